@@ -1,0 +1,433 @@
+"""Bit-level building blocks: DCCL-style bounded numbers, enums, stamps, byte alignment.
+
+Every field constructor here records its specification (bits, range, resolution, unit) on the
+construct object so that ``spec/wire-format.md`` field tables are generated from the very objects
+that encode and decode (see :mod:`coex_core._wire.spec`).
+
+Rules (normative, see the spec):
+
+* Bits are written most-significant first; multi-bit integers are big-endian.
+* A bounded value ``v`` in ``[lo, hi]`` at resolution ``res`` is sent as the unsigned integer
+  ``round((v - lo) / res)`` in ``ceil(log2((hi - lo) / res + 1 + optional))`` bits (the ``+1``
+  counts both end points; *round*, not floor). An optional field reserves code 0 for "absent"
+  and shifts every value up by one.
+* Encoding a value outside ``[lo, hi]`` raises :class:`~coex_core.errors.EncodeError` (strict
+  mode) unless the field is documented as *saturating*, in which case it is clamped.
+* Decoding a code that maps outside ``[lo, hi]`` raises :class:`~coex_core.errors.DecodeError`.
+"""
+
+from __future__ import annotations
+
+import enum
+import math
+from collections.abc import Callable, Sequence
+from typing import Any
+
+import construct as cs
+
+__all__ = [
+    "Align8",
+    "Count",
+    "Float32",
+    "RawBytes",
+    "Text",
+    "Bits",
+    "Body",
+    "Bool",
+    "Bounded",
+    "Choice",
+    "Enum",
+    "FieldSpec",
+    "OptBool",
+    "SInt",
+    "Stamp",
+    "STAMP_BITS",
+    "STAMP_MODULUS",
+    "UInt",
+    "nbits",
+    "spec_of",
+]
+
+STAMP_BITS = 18
+STAMP_MODULUS = 1 << STAMP_BITS
+
+
+class OutOfRange(cs.ConstructError):
+    """Raised inside construct for a value or code outside its field's range."""
+
+
+def nbits(lo: float, hi: float, res: float = 1.0, optional: bool = False) -> int:
+    """Bits needed for ``[lo, hi]`` at ``res`` (DCCL formula, with the +1, and +1 value if optional)."""
+    steps = round((hi - lo) / res)
+    values = steps + 1 + (1 if optional else 0)
+    return max(1, math.ceil(math.log2(values)))
+
+
+def _decimals(res: float) -> int:
+    if float(res).is_integer():
+        return 0
+    return max(0, -math.floor(math.log10(res) + 1e-9)) + 1
+
+
+class FieldSpec:
+    """What the spec generator needs to know about one field."""
+
+    def __init__(
+        self,
+        bits: str,
+        range_: str = "",
+        resolution: str = "",
+        unit: str = "",
+        note: str = "",
+    ) -> None:
+        self.bits = bits
+        self.range = range_
+        self.resolution = resolution
+        self.unit = unit
+        self.note = note
+
+
+def spec_of(con: Any) -> FieldSpec | None:
+    """The :class:`FieldSpec` attached to a construct, looking through renames."""
+    while con is not None:
+        spec = getattr(con, "coex_spec", None)
+        if spec is not None:
+            return spec  # type: ignore[no-any-return]
+        con = getattr(con, "subcon", None)
+    return None
+
+
+class UInt(cs.Construct):  # type: ignore[misc]
+    """Unsigned integer of ``width`` bits (an int or a context lambda); width 0 is legal and reads 0."""
+
+    def __init__(self, width: int | Callable[[Any], int]) -> None:
+        super().__init__()
+        self.width = width
+
+    def _width(self, context: Any) -> int:
+        w = self.width(context) if callable(self.width) else self.width
+        return int(w)
+
+    def _parse(self, stream: Any, context: Any, path: str) -> int:
+        w = self._width(context)
+        if w == 0:
+            return 0
+        data = cs.stream_read(stream, w, path)
+        return int.from_bytes(cs.bits2bytes(data), "big") if w % 8 == 0 else _bits_to_int(data)
+
+    def _build(self, obj: Any, stream: Any, context: Any, path: str) -> int:
+        w = self._width(context)
+        value = int(obj)
+        if value < 0 or value >= (1 << w) and not (w == 0 and value == 0):
+            raise OutOfRange(f"{value} does not fit in {w} bits", path=path)
+        if w:
+            cs.stream_write(stream, _int_to_bits(value, w), w, path)
+        return value
+
+    def _sizeof(self, context: Any, path: str) -> int:
+        raise cs.SizeofError("bit field", path=path)
+
+
+def _bits_to_int(data: bytes) -> int:
+    v = 0
+    for b in data:
+        v = (v << 1) | (b & 1)
+    return v
+
+
+def _int_to_bits(value: int, width: int) -> bytes:
+    return bytes((value >> (width - 1 - i)) & 1 for i in range(width))
+
+
+def Bits(width: int | Callable[[Any], int], note: str = "") -> cs.Construct:
+    """A raw unsigned bit field (flags, masks, codes)."""
+    c = UInt(width)
+    w = f"{width}" if isinstance(width, int) else "variable"
+    c.coex_spec = FieldSpec(w, f"0..2^{width}-1" if isinstance(width, int) else "", note=note)
+    return c
+
+
+class SInt(cs.Adapter):  # type: ignore[misc]
+    """Two's-complement signed integer of ``width`` bits."""
+
+    def __init__(self, width: int, unit: str = "") -> None:
+        super().__init__(UInt(width))
+        self.bits = width
+        self.coex_spec = FieldSpec(
+            str(width), f"{-(1 << (width - 1))}..{(1 << (width - 1)) - 1}", "1", unit, "two's complement"
+        )
+
+    def _decode(self, obj: int, context: Any, path: str) -> int:
+        return obj - (1 << self.bits) if obj >= 1 << (self.bits - 1) else obj
+
+    def _encode(self, obj: Any, context: Any, path: str) -> int:
+        v = int(obj)
+        if not -(1 << (self.bits - 1)) <= v < (1 << (self.bits - 1)):
+            raise OutOfRange(f"{v} outside signed {self.bits}-bit range", path=path)
+        return v & ((1 << self.bits) - 1)
+
+
+class Bounded(cs.Adapter):  # type: ignore[misc]
+    """A DCCL-style bounded number: clamp-or-reject, round (not floor), offset by ``lo``.
+
+    ``saturating=True`` clamps out-of-range values on encode (documented in the spec);
+    otherwise they raise. Integers are returned when ``lo`` and ``res`` are integral.
+    """
+
+    def __init__(
+        self,
+        lo: float,
+        hi: float,
+        res: float = 1,
+        *,
+        optional: bool = False,
+        unit: str = "",
+        saturating: bool = False,
+    ) -> None:
+        self.lo, self.hi, self.res = lo, hi, res
+        self.optional = optional
+        self.saturating = saturating
+        self.steps = round((hi - lo) / res)
+        self.bits = nbits(lo, hi, res, optional)
+        self.integral = float(lo).is_integer() and float(res).is_integer()
+        self.ndigits = _decimals(res)
+        super().__init__(UInt(self.bits))
+        note = []
+        if optional:
+            note.append("optional: code 0 = absent")
+        if saturating:
+            note.append("saturating")
+        self.coex_spec = FieldSpec(str(self.bits), f"{_fmt(lo)}..{_fmt(hi)}", _fmt(res), unit, "; ".join(note))
+
+    def _decode(self, obj: int, context: Any, path: str) -> Any:
+        if self.optional:
+            if obj == 0:
+                return None
+            obj -= 1
+        if obj > self.steps:
+            raise OutOfRange(f"code {obj} above maximum {self.steps}", path=path)
+        if self.integral:
+            return int(self.lo) + obj * int(self.res)
+        return round(self.lo + obj * self.res, self.ndigits)
+
+    def _encode(self, obj: Any, context: Any, path: str) -> int:
+        if obj is None:
+            if self.optional:
+                return 0
+            raise OutOfRange("value is required", path=path)
+        if isinstance(obj, bool) or not isinstance(obj, int | float):
+            raise OutOfRange(f"expected a number, got {type(obj).__name__}", path=path)
+        v = float(obj)
+        if not math.isfinite(v):
+            raise OutOfRange(f"{obj} is not finite", path=path)
+        tol = self.res * 1e-6
+        if v < self.lo - tol or v > self.hi + tol:
+            if not self.saturating:
+                raise OutOfRange(f"{obj} outside [{self.lo}, {self.hi}]", path=path)
+            v = min(max(v, self.lo), self.hi)
+        code = min(max(round((v - self.lo) / self.res), 0), self.steps)
+        return code + (1 if self.optional else 0)
+
+
+def _fmt(x: float) -> str:
+    return str(int(x)) if float(x).is_integer() else f"{x:g}"
+
+
+def Stamp(optional: bool = False) -> cs.Construct:
+    """A compact timestamp: whole seconds modulo 2^18 (about 72.8 h); see the rollover rule."""
+    c = Bounded(0, STAMP_MODULUS - 1, 1, optional=optional, unit="s mod 2^18")
+    c.coex_spec.note = ("optional: code 0 = absent; " if optional else "") + "stamp (see 'Time')"
+    return c
+
+
+class Bool(cs.Adapter):  # type: ignore[misc]
+    """One bit, 1 = true."""
+
+    def __init__(self) -> None:
+        super().__init__(UInt(1))
+        self.coex_spec = FieldSpec("1", "0..1", note="boolean")
+
+    def _decode(self, obj: int, context: Any, path: str) -> bool:
+        return bool(obj)
+
+    def _encode(self, obj: Any, context: Any, path: str) -> int:
+        if not isinstance(obj, bool):
+            raise OutOfRange(f"expected a bool, got {obj!r}", path=path)
+        return int(obj)
+
+
+class OptBool(cs.Adapter):  # type: ignore[misc]
+    """Two bits: 0 = absent (no change), 1 = false, 2 = true; 3 is invalid."""
+
+    def __init__(self) -> None:
+        super().__init__(UInt(2))
+        self.coex_spec = FieldSpec("2", "0..2", note="optional boolean: 0 absent, 1 false, 2 true")
+
+    def _decode(self, obj: int, context: Any, path: str) -> bool | None:
+        if obj == 3:
+            raise OutOfRange("code 3 is not a valid optional boolean", path=path)
+        return None if obj == 0 else obj == 2
+
+    def _encode(self, obj: Any, context: Any, path: str) -> int:
+        if obj is None:
+            return 0
+        if not isinstance(obj, bool):
+            raise OutOfRange(f"expected a bool or None, got {obj!r}", path=path)
+        return 2 if obj else 1
+
+
+class Enum(cs.Adapter):  # type: ignore[misc]
+    """An IntEnum in the fewest bits that hold its largest member; unknown codes are invalid."""
+
+    def __init__(self, enum_cls: type[enum.IntEnum], bits: int | None = None) -> None:
+        top = max(int(m) for m in enum_cls)
+        self.bits = bits or max(1, top.bit_length())
+        self.enum_cls = enum_cls
+        super().__init__(UInt(self.bits))
+        members = ", ".join(f"{int(m)} {m.name}" for m in enum_cls)
+        self.coex_spec = FieldSpec(str(self.bits), f"0..{top}", note=f"enum: {members}")
+
+    def _decode(self, obj: int, context: Any, path: str) -> enum.IntEnum:
+        try:
+            return self.enum_cls(obj)
+        except ValueError:
+            raise OutOfRange(f"{obj} is not a valid {self.enum_cls.__name__}", path=path) from None
+
+    def _encode(self, obj: Any, context: Any, path: str) -> int:
+        try:
+            return int(self.enum_cls(obj))
+        except (ValueError, TypeError):
+            raise OutOfRange(f"{obj!r} is not a valid {self.enum_cls.__name__}", path=path) from None
+
+
+class Choice(cs.Adapter):  # type: ignore[misc]
+    """A value from a fixed table, sent as its index."""
+
+    def __init__(self, table: Sequence[float], unit: str = "") -> None:
+        self.table = tuple(table)
+        self.bits = max(1, (len(self.table) - 1).bit_length())
+        super().__init__(UInt(self.bits))
+        values = ", ".join(f"{i} = {_fmt(v)}" for i, v in enumerate(self.table))
+        self.coex_spec = FieldSpec(str(self.bits), f"0..{len(self.table) - 1}", "", unit, f"table: {values}")
+
+    def _decode(self, obj: int, context: Any, path: str) -> float:
+        if obj >= len(self.table):
+            raise OutOfRange(f"table index {obj} out of range", path=path)
+        return self.table[obj]
+
+    def _encode(self, obj: Any, context: Any, path: str) -> int:
+        for i, v in enumerate(self.table):
+            if isinstance(obj, int | float) and not isinstance(obj, bool) and abs(float(obj) - v) < 1e-9:
+                return i
+        raise OutOfRange(f"{obj!r} is not one of {self.table}", path=path)
+
+
+class Align8(cs.Construct):  # type: ignore[misc]
+    """Zero bits up to the next byte boundary (must be zero when parsed)."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.flagbuildnone = True
+
+    def _parse(self, stream: Any, context: Any, path: str) -> None:
+        pad = -cs.stream_tell(stream, path) % 8
+        if any(cs.stream_read(stream, pad, path)):
+            raise OutOfRange("non-zero padding bits", path=path)
+        return None
+
+    def _build(self, obj: Any, stream: Any, context: Any, path: str) -> None:
+        pad = -cs.stream_tell(stream, path) % 8
+        cs.stream_write(stream, bytes(pad), pad, path)
+        return None
+
+    def _sizeof(self, context: Any, path: str) -> int:
+        raise cs.SizeofError("alignment", path=path)
+
+
+class _MaxLen(cs.Adapter):  # type: ignore[misc]
+    def __init__(self, subcon: cs.Construct, max_len: int) -> None:
+        super().__init__(subcon)
+        self.max_len = max_len
+
+    def _decode(self, obj: Any, context: Any, path: str) -> Any:
+        if len(obj) > self.max_len:
+            raise OutOfRange(f"{len(obj)} bytes exceed the maximum {self.max_len}", path=path)
+        return obj
+
+    def _encode(self, obj: Any, context: Any, path: str) -> Any:
+        if len(obj) > self.max_len:
+            raise OutOfRange(f"{len(obj)} bytes exceed the maximum {self.max_len}", path=path)
+        return obj
+
+
+def RawBytes(max_len: int | None = None, fixed: int | None = None) -> cs.Construct:
+    """Byte-aligned raw bytes: a fixed count, or the rest of a length-prefixed body (at most ``max_len``)."""
+    if fixed is not None:
+        c = cs.Bytewise(cs.Bytes(fixed))
+        c.coex_spec = FieldSpec(str(8 * fixed), f"{fixed} bytes", unit="bytes")
+        return c
+    assert max_len is not None
+    c = cs.Bytewise(_MaxLen(cs.GreedyBytes, max_len))
+    c.coex_spec = FieldSpec("8 x n", f"0..{max_len} bytes", unit="bytes", note="rest of the body")
+    return c
+
+
+class _Text(cs.Adapter):  # type: ignore[misc]
+    def __init__(self, max_len: int) -> None:
+        self.max_len = max_len
+        super().__init__(cs.Bytewise(cs.Prefixed(cs.Int8ub, cs.GreedyBytes)))
+
+    def _decode(self, obj: bytes, context: Any, path: str) -> str:
+        if len(obj) > self.max_len:
+            raise OutOfRange(f"text of {len(obj)} bytes exceeds {self.max_len}", path=path)
+        return obj.decode("utf-8")
+
+    def _encode(self, obj: Any, context: Any, path: str) -> bytes:
+        if not isinstance(obj, str):
+            raise OutOfRange(f"expected a str, got {obj!r}", path=path)
+        data = obj.encode("utf-8")
+        if len(data) > self.max_len:
+            raise OutOfRange(f"text of {len(data)} bytes exceeds {self.max_len}", path=path)
+        return data
+
+
+def Text(max_len: int) -> cs.Construct:
+    """UTF-8 text, byte-aligned, with a one-byte length (at most ``max_len`` bytes)."""
+    c = _Text(max_len)
+    c.coex_spec = FieldSpec("8 + 8 x n", f"0..{max_len} bytes", note="UTF-8, one-byte length first")
+    return c
+
+
+class _Float32(cs.Adapter):  # type: ignore[misc]
+    def __init__(self) -> None:
+        super().__init__(cs.Bytewise(cs.Float32b))
+
+    def _decode(self, obj: float, context: Any, path: str) -> float:
+        if not math.isfinite(obj):
+            raise OutOfRange("non-finite float", path=path)
+        return float(obj)
+
+    def _encode(self, obj: Any, context: Any, path: str) -> float:
+        if isinstance(obj, bool) or not isinstance(obj, int | float) or not math.isfinite(obj):
+            raise OutOfRange(f"expected a finite number, got {obj!r}", path=path)
+        return float(obj)
+
+
+def Float32(unit: str = "") -> cs.Construct:
+    """IEEE 754 binary32, big-endian, byte-aligned; NaN and infinities are invalid."""
+    c = _Float32()
+    c.coex_spec = FieldSpec("32", "finite", unit=unit, note="IEEE 754 binary32, big-endian")
+    return c
+
+
+def Count(lo: int, hi: int, of: str) -> cs.Construct:
+    """A derived element count: built from ``len(<of>)``, checked against ``[lo, hi]``."""
+    c = cs.Rebuild(Bounded(lo, hi), lambda ctx: len(ctx[of]))
+    c.coex_spec = FieldSpec(str(nbits(lo, hi)), f"{lo}..{hi}", note=f"number of entries in `{of}` (derived)")
+    c.coex_derived = True
+    return c
+
+
+def Body(*fields: cs.Construct) -> cs.Construct:
+    """A message body: the fields, bit-packed MSB first, zero-padded to a whole byte."""
+    return cs.Bitwise(cs.Struct(*fields, Align8()))

@@ -1,0 +1,140 @@
+"""Imagery messages: announce, fragments, selective acks, goals, time requests, progress."""
+
+from __future__ import annotations
+
+import construct as cs
+
+from ..messages import (
+    ByteRange,
+    GoalKind,
+    ImageAck,
+    ImageAnnounce,
+    ImageByTimeRequest,
+    ImageFragment,
+    ImageGoal,
+    TimeDirection,
+    TransferProgress,
+)
+from ._primitives import Bits, Body, Bool, Bounded, Count, Enum, RawBytes, Stamp
+from ._registry import MessageSpec, register
+
+IMAGE_ID = Bounded(0, 1023) * "Image id (wraps at 1024)"
+OFFSET_MAX = 2**20 - 1
+#: Largest fragment payload: keeps a fragment inside one 256-byte sub-frame.
+MAX_FRAGMENT_DATA = 224
+MAX_PACKET_MARKS = 15
+MAX_ACK_RANGES = 15
+MAX_NEXT_IMAGES = 8
+
+IMAGE_ANNOUNCE = Body(
+    "image_id" / IMAGE_ID,
+    "stamp" / Stamp() * "Capture time",
+    "x" / Bounded(-50000, 50000, 0.1, optional=True, unit="m") * "Position east, if known",
+    "y" / Bounded(-50000, 50000, 0.1, optional=True, unit="m") * "Position north, if known",
+    "width" / Bounded(1, 4096, unit="px") * "Image width",
+    "height" / Bounded(1, 4096, unit="px") * "Image height",
+    "grey" / Bool() * "Grey (1) or colour (0)",
+    "total_bytes" / Bounded(0, OFFSET_MAX, unit="B") * "Codestream body size",
+    "params" / Bits(15) * "Coding parameter code (progression, resolutions, layers, wavelet)",
+)
+
+IMAGE_FRAGMENT = Body(
+    "image_id" / IMAGE_ID,
+    "offset" / Bounded(0, OFFSET_MAX, unit="B") * "Offset of data in the codestream body",
+    "n_packets" / Count(0, MAX_PACKET_MARKS, "packets"),
+    "packets" / cs.Array(cs.this.n_packets, Bounded(0, MAX_FRAGMENT_DATA - 1, unit="B"))
+    * "Offsets in data where a JPEG 2000 packet starts",
+    "data" / RawBytes(max_len=MAX_FRAGMENT_DATA) * "Codestream bytes",
+)
+
+BYTE_RANGE = cs.Struct(
+    "start" / Bounded(0, OFFSET_MAX, unit="B") * "First byte held",
+    "end" / Bounded(0, OFFSET_MAX, unit="B") * "One past the last byte held",
+)
+
+IMAGE_ACK = Body(
+    "image_id" / IMAGE_ID,
+    "contiguous" / Bounded(0, OFFSET_MAX, unit="B") * "Every byte below this is held",
+    "n_ranges" / Count(0, MAX_ACK_RANGES, "ranges"),
+    "ranges" / cs.Array(cs.this.n_ranges, BYTE_RANGE) * "Further ranges held (see ByteRange)",
+)
+
+IMAGE_GOAL = Body(
+    "command_id" / Bounded(0, 255) * "Command id",
+    "image_id" / IMAGE_ID,
+    "kind" / Enum(GoalKind) * "Goal kind",
+    "value" / Bounded(0, 255) * "Percent of the image (FRACTION) or number of layers (LAYER)",
+)
+
+IMAGE_BY_TIME = Body(
+    "command_id" / Bounded(0, 255) * "Command id",
+    "stamp" / Stamp() * "Time of interest",
+    "direction" / Enum(TimeDirection) * "Nearest, or the image before / after",
+)
+
+TRANSFER_PROGRESS = Body(
+    "stamp" / Stamp() * "Time of the report",
+    "pending" / Bounded(0, 1023, saturating=True) * "Images announced but not at their goal",
+    "current" / Bounded(0, 1023, optional=True) * "Image being sent",
+    "unacked_fragments" / Bounded(0, 255, saturating=True) * "Fragments sent but not acked",
+    "n_next" / Count(0, MAX_NEXT_IMAGES, "next_images"),
+    "next_images" / cs.Array(cs.this.n_next, Bounded(0, 1023)) * "Images to be sent next, in order",
+)
+
+_BIG_FRAG = ImageFragment(1023, OFFSET_MAX, tuple(range(MAX_PACKET_MARKS)), b"\xff" * MAX_FRAGMENT_DATA)
+_BIG_ACK = ImageAck(1023, OFFSET_MAX, (ByteRange(OFFSET_MAX, OFFSET_MAX),) * MAX_ACK_RANGES)
+
+register(MessageSpec(
+    32, ImageAnnounce, IMAGE_ANNOUNCE, False, "imagery", "A new image exists on the vehicle.",
+    largest=lambda: ImageAnnounce(0, 0, None, None, 1, 1, True, 0, 0),
+    cases=lambda: [
+        ("minimum", ImageAnnounce(0, 0, None, None, 1, 1, False, 0, 0)),
+        ("nui_640x480", ImageAnnounce(17, 5123, 12.3, -45.6, 640, 480, True, 20366, 0x1234)),
+        ("maximum", ImageAnnounce(1023, 2**18 - 1, 50000.0, -50000.0, 4096, 4096, True, OFFSET_MAX, 2**15 - 1)),
+    ],
+))
+register(MessageSpec(
+    33, ImageFragment, IMAGE_FRAGMENT, True, "imagery", "Bytes of an image's codestream body.",
+    largest=lambda: _BIG_FRAG,
+    cases=lambda: [
+        ("empty", ImageFragment(0, 0, (), b"")),
+        ("first_packet", ImageFragment(5, 0, (0, 37), bytes(range(60)))),
+        ("largest", _BIG_FRAG),
+    ],
+))
+register(MessageSpec(
+    34, ImageAck, IMAGE_ACK, False, "imagery", "Selective ack of an image's bytes.",
+    largest=lambda: _BIG_ACK,
+    cases=lambda: [
+        ("nothing", ImageAck(0, 0, ())),
+        ("gaps", ImageAck(17, 450, (ByteRange(675, 900), ByteRange(1125, 2000)))),
+        ("largest", _BIG_ACK),
+    ],
+))
+register(MessageSpec(
+    35, ImageGoal, IMAGE_GOAL, False, "imagery", "Topside command: an image's goal.",
+    largest=lambda: ImageGoal(255, 1023, GoalKind.FULL, 255),
+    cases=lambda: [
+        ("skip", ImageGoal(0, 0, GoalKind.SKIP, 0)),
+        ("fraction_50", ImageGoal(3, 694, GoalKind.FRACTION, 50)),
+        ("full_max", ImageGoal(255, 1023, GoalKind.FULL, 255)),
+    ],
+))
+register(MessageSpec(
+    36, ImageByTimeRequest, IMAGE_BY_TIME, False, "imagery", "Topside request for an image by time.",
+    largest=lambda: ImageByTimeRequest(255, 2**18 - 1, TimeDirection.AFTER),
+    cases=lambda: [
+        ("nearest_0", ImageByTimeRequest(0, 0, TimeDirection.NEAREST)),
+        ("before", ImageByTimeRequest(4, 6100, TimeDirection.BEFORE)),
+        ("after_max", ImageByTimeRequest(255, 2**18 - 1, TimeDirection.AFTER)),
+    ],
+))
+register(MessageSpec(
+    37, TransferProgress, TRANSFER_PROGRESS, False, "imagery", "What the image sender is doing.",
+    largest=lambda: TransferProgress(0, 0, 1023, 0, (1023,) * MAX_NEXT_IMAGES),
+    cases=lambda: [
+        ("idle", TransferProgress(0, 0, None, 0, ())),
+        ("busy", TransferProgress(7000, 12, 694, 9, (695, 696, 697))),
+        ("largest", TransferProgress(2**18 - 1, 1023, 1023, 255, (1023,) * MAX_NEXT_IMAGES)),
+    ],
+))

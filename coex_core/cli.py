@@ -1,0 +1,119 @@
+"""The ``coex`` command line.
+
+The core provides ``coex plugins`` and ``coex spec``; every other sub-command (``demo``,
+``bathy``, ``image``, ``timeseries``, ``send``, ``listen``, ``modem-sim``, ``topside``, ``replay``)
+is contributed by a plugin through the ``coex.commands`` entry-point group: a function
+``register(subparsers)`` that adds its parser and sets ``func`` to a callable taking the parsed
+arguments and returning an exit code. The core imports no plugin.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import sys
+from collections.abc import Sequence
+from importlib import metadata
+
+from . import __version__
+from .errors import CoexError
+from .registry import COMMAND_GROUP, available
+
+__all__ = ["main", "build_parser"]
+
+log = logging.getLogger("coex")
+
+
+def _cmd_plugins(args: argparse.Namespace) -> int:
+    infos = available(check=True)
+    if args.json:
+        print(json.dumps([info.__dict__ for info in infos], indent=2))
+        return 0
+    print(f"{'kind':<10} {'name':<12} {'version':<10} {'status':<20} target")
+    for info in infos:
+        kind = {"coex.modalities": "modality", "coex.transports": "transport"}.get(info.group, info.group)
+        line = f"{kind:<10} {info.name:<12} {info.version:<10} {info.status:<20} {info.target}"
+        if info.error:
+            line += f"  ({info.error})"
+        print(line)
+    return 0
+
+
+def _cmd_spec(args: argparse.Namespace) -> int:
+    from ._wire import spec as specgen
+
+    if args.write_vectors:
+        specgen.write_vectors(args.write_vectors)
+    if args.check:
+        stale = specgen.check_document(args.document)
+        if stale:
+            print(f"{args.document} is out of date; run: coex spec --write", file=sys.stderr)
+            return 1
+        print(f"{args.document} agrees with the construct definitions")
+        return 0
+    if args.write:
+        specgen.write_document(args.document)
+        print(f"wrote {args.document}")
+        return 0
+    print(specgen.render_tables())
+    return 0
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="coex", description="CoEx: live science data from an underwater vehicle over an acoustic link."
+    )
+    parser.add_argument("--version", action="version", version=f"coexploration {__version__}")
+    parser.add_argument("-v", "--verbose", action="count", default=0, help="more log output")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+
+    p = sub.add_parser("plugins", help="list registered modalities and transports with their status")
+    p.add_argument("--json", action="store_true", help="machine-readable output")
+    p.set_defaults(func=_cmd_plugins)
+
+    p = sub.add_parser("spec", help="print or regenerate the wire-format field tables")
+    p.add_argument("--document", default="spec/wire-format.md", help="the spec document")
+    p.add_argument("--write", action="store_true", help="rewrite the generated tables in the document")
+    p.add_argument("--check", action="store_true", help="exit 1 if the document's tables are stale")
+    p.add_argument("--write-vectors", metavar="DIR", help="regenerate the golden vectors into DIR")
+    p.set_defaults(func=_cmd_spec)
+
+    for ep in sorted(metadata.entry_points(group=COMMAND_GROUP), key=lambda e: e.name):
+        try:
+            register = ep.load()
+            register(sub)
+        except Exception as exc:  # a broken or uninstallable plugin must not break the CLI
+            log.debug("command plugin %s unavailable: %s", ep.name, exc)
+            q = sub.add_parser(ep.name, help=f"(unavailable: {exc})")
+            q.set_defaults(func=_unavailable(ep.name, exc))
+    return parser
+
+
+def _unavailable(name: str, exc: Exception):  # type: ignore[no-untyped-def]
+    def run(args: argparse.Namespace) -> int:
+        print(f"coex {name} is unavailable: {exc}", file=sys.stderr)
+        return 2
+
+    return run
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    level = logging.WARNING - 10 * min(args.verbose, 2)
+    logging.basicConfig(level=level, format="%(levelname)s %(name)s: %(message)s")
+    if not getattr(args, "func", None):
+        parser.print_help()
+        return 2
+    try:
+        return int(args.func(args) or 0)
+    except CoexError as exc:
+        print(f"coex: error: {exc}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())

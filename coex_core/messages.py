@@ -1,0 +1,420 @@
+"""CoEx wire messages as frozen dataclasses.
+
+These are the public, construct-free face of the wire format. Field values are the values the
+wire carries (already quantised): decoding an encoded message gives back an equal message when
+every field is on its grid. Ranges, resolutions and bit widths are specified once, in the
+construct definitions of :mod:`coex_core._wire`, and listed in ``spec/wire-format.md``.
+
+Conventions: ``stamp`` fields are whole seconds modulo 2^18 (see :mod:`coex_core.timefmt`); ``x``/``y``
+are metres east/north in the survey's local frame; ``level`` 0 is the finest map level.
+"""
+
+from __future__ import annotations
+
+import enum
+from dataclasses import dataclass
+
+__all__ = [
+    "Message",
+    "FrameHeader",
+    "Frame",
+    # core
+    "VehicleMode",
+    "VehicleStatus",
+    "StreamStatus",
+    "QueueStatus",
+    "QueueConfig",
+    "Slot",
+    "ScheduleUpdate",
+    "LinkControl",
+    "AckStatus",
+    "CommandAck",
+    "AuthTrailer",
+    "LinkStatus",
+    "Opaque",
+    # bathymetry
+    "MapMetadata",
+    "Subgrid",
+    "MapRoiRequest",
+    # imagery
+    "ImageAnnounce",
+    "ImageFragment",
+    "ImageAck",
+    "ByteRange",
+    "GoalKind",
+    "ImageGoal",
+    "TimeDirection",
+    "ImageByTimeRequest",
+    "TransferProgress",
+    # time series
+    "TimeSeriesChannel",
+    "TimeSeriesChunk",
+    "TimeSeriesRequest",
+]
+
+
+@dataclass(frozen=True, slots=True)
+class Message:
+    """Base class of every wire message. Do not subclass outside :mod:`coex_core.messages`;
+    third-party modalities use :class:`Opaque` with a type id from the third-party range."""
+
+
+@dataclass(frozen=True, slots=True)
+class FrameHeader:
+    """The 3-byte header of every frame (plus a CRC-16 when ``crc`` is set).
+
+    ``src``/``dst`` are node ids 0..15 (0 = broadcast as destination); ``seq`` counts
+    transmissions modulo 256; ``schedule`` is the TDMA schedule version the sender runs."""
+
+    src: int = 0
+    dst: int = 0
+    seq: int = 0
+    schedule: int = 0
+    crc: bool = False
+
+
+@dataclass(frozen=True, slots=True)
+class Frame:
+    """A decoded frame: its header and its messages in order."""
+
+    header: FrameHeader
+    messages: tuple[Message, ...]
+
+
+# --------------------------------------------------------------------------------------- core
+
+
+class VehicleMode(enum.IntEnum):
+    UNKNOWN = 0
+    IDLE = 1
+    SURVEY = 2
+    TRANSIT = 3
+    HOVER = 4
+    SURFACE = 5
+    ABORT = 6
+    MANUAL = 7
+
+
+@dataclass(frozen=True, slots=True)
+class VehicleStatus(Message):
+    """Vehicle safety status: always sent first in a vehicle transmission (strict tier 0)."""
+
+    stamp: int
+    x: float
+    y: float
+    depth: float
+    altitude: float | None
+    heading: float
+    speed: float
+    battery: int
+    mode: VehicleMode
+    faults: int
+
+
+@dataclass(frozen=True, slots=True)
+class StreamStatus:
+    """One stream's line in :class:`QueueStatus`."""
+
+    stream: int
+    enabled: bool
+    tier: int
+    priority: int
+    depth: int
+    queued_bytes: int
+    oldest_age: int
+    drops: int
+
+
+@dataclass(frozen=True, slots=True)
+class QueueStatus(Message):
+    """Per-stream queue state, sent topside regularly."""
+
+    stamp: int
+    streams: tuple[StreamStatus, ...]
+
+
+@dataclass(frozen=True, slots=True)
+class QueueConfig(Message):
+    """Topside command: change one stream's settings (absent fields are left unchanged) or flush it."""
+
+    command_id: int
+    stream: int
+    flush: bool
+    enabled: bool | None
+    priority: int | None
+    ttl: int | None
+    max_depth: int | None
+    newest_first: bool | None
+
+
+@dataclass(frozen=True, slots=True)
+class Slot:
+    """One TDMA slot of a :class:`ScheduleUpdate`."""
+
+    owner: int
+    duration: float
+    guard: float
+    min_priority: int
+
+
+@dataclass(frozen=True, slots=True)
+class ScheduleUpdate(Message):
+    """Topside command: a new versioned TDMA schedule for one link, active from a cycle boundary."""
+
+    command_id: int
+    link: int
+    version: int
+    activate_cycle: int
+    slots: tuple[Slot, ...]
+
+
+@dataclass(frozen=True, slots=True)
+class LinkControl(Message):
+    """Topside command: enable or disable one modem link, or mute it."""
+
+    command_id: int
+    link: int
+    enabled: bool
+    mute: bool
+
+
+class AckStatus(enum.IntEnum):
+    ACCEPTED = 0
+    REJECTED = 1
+    UNAUTHENTICATED = 2
+    UNKNOWN_TARGET = 3
+
+
+@dataclass(frozen=True, slots=True)
+class CommandAck(Message):
+    """Vehicle answer to a topside command (queue, schedule, link, goal)."""
+
+    command_id: int
+    status: AckStatus
+
+
+@dataclass(frozen=True, slots=True)
+class AuthTrailer(Message):
+    """Command authentication: a monotonic counter and a truncated HMAC-SHA256 tag (8 bytes)
+    over the frame bytes before this trailer. It is the last message of its frame."""
+
+    counter: int
+    tag: bytes
+
+
+@dataclass(frozen=True, slots=True)
+class LinkStatus(Message):
+    """Modem link statistics for the console (from the modem's receive statistics)."""
+
+    stamp: int
+    link: int
+    frames: int
+    bad_frames: int
+    snr: float | None
+    doppler: float | None
+
+
+@dataclass(frozen=True, slots=True)
+class Opaque(Message):
+    """A message of a type id in a third-party range: the body is the plugin's own bytes.
+
+    A receiver without the plugin can skip it because third-party bodies always carry a length."""
+
+    type_id: int
+    body: bytes
+
+
+# -------------------------------------------------------------------------------- bathymetry
+
+
+@dataclass(frozen=True, slots=True)
+class MapMetadata(Message):
+    """The map's geometry and progress; lets topside lay out levels before subgrids arrive."""
+
+    stamp: int
+    resolution: float
+    vertical_resolution: float
+    subgrid_side: int
+    levels: int
+    origin_lat: float
+    origin_lon: float
+    x_min: int
+    y_min: int
+    x_max: int
+    y_max: int
+    pending: int
+
+
+@dataclass(frozen=True, slots=True)
+class Subgrid(Message):
+    """A square block of ``side x side`` cells at one level, decodable on its own.
+
+    Cell (i, j) (row i northwards, column j eastwards) covers x in
+    ``[(ix*side + j) * r, (ix*side + j + 1) * r)`` with ``r = resolution * 2**level``.
+    ``mask`` has one bit per cell in row-major order (most significant bit first), 1 = present;
+    ``None`` means every cell is present. ``values`` holds one ``width``-bit code per present cell;
+    the elevation is ``(z_min + code) * vertical_resolution`` (for ``encoding`` 0).
+    """
+
+    level: int
+    ix: int
+    iy: int
+    stamp: int
+    resolution: float
+    vertical_resolution: float
+    side: int
+    encoding: int
+    z_min: int
+    width: int
+    mask: int | None
+    values: tuple[int, ...]
+
+
+@dataclass(frozen=True, slots=True)
+class MapRoiRequest(Message):
+    """Topside request for a region at one level, with the implicit ack of what topside holds.
+
+    The region is the inclusive subgrid-index rectangle ``[x0, x0+w) x [y0, y0+h)``.
+    ``held`` has one entry per subgrid of the region in row-major order: the newest stamp
+    topside holds for it, or ``None`` when it holds nothing. With ``fill_gaps`` the vehicle
+    sends only subgrids topside lacks and ``held`` is empty.
+    """
+
+    request_id: int
+    level: int
+    x0: int
+    y0: int
+    w: int
+    h: int
+    fill_gaps: bool
+    held: tuple[int | None, ...]
+
+
+# ----------------------------------------------------------------------------------- imagery
+
+
+@dataclass(frozen=True, slots=True)
+class ImageAnnounce(Message):
+    """A new image exists on the vehicle."""
+
+    image_id: int
+    stamp: int
+    x: float | None
+    y: float | None
+    width: int
+    height: int
+    grey: bool
+    total_bytes: int
+    params: int
+
+
+@dataclass(frozen=True, slots=True)
+class ImageFragment(Message):
+    """Bytes ``[offset, offset + len(data))`` of an image's codestream body.
+
+    ``packets`` lists the offsets, relative to ``offset``, at which a JPEG 2000 packet starts
+    inside ``data`` so the receiver can decode whole packets only."""
+
+    image_id: int
+    offset: int
+    packets: tuple[int, ...]
+    data: bytes
+
+
+@dataclass(frozen=True, slots=True)
+class ByteRange:
+    """Bytes ``[start, end)`` of a codestream body."""
+
+    start: int
+    end: int
+
+
+@dataclass(frozen=True, slots=True)
+class ImageAck(Message):
+    """Selective ack: topside holds bytes ``[0, contiguous)`` and each ``[start, end)`` range."""
+
+    image_id: int
+    contiguous: int
+    ranges: tuple[ByteRange, ...]
+
+
+class GoalKind(enum.IntEnum):
+    SKIP = 0
+    FRACTION = 1
+    LAYER = 2
+    FULL = 3
+
+
+@dataclass(frozen=True, slots=True)
+class ImageGoal(Message):
+    """Topside command: transfer an image up to a goal (fraction in 1/100, layer, or full)."""
+
+    command_id: int
+    image_id: int
+    kind: GoalKind
+    value: int
+
+
+class TimeDirection(enum.IntEnum):
+    NEAREST = 0
+    BEFORE = 1
+    AFTER = 2
+
+
+@dataclass(frozen=True, slots=True)
+class ImageByTimeRequest(Message):
+    """Topside request: the image nearest ``stamp``, or the one before / after it."""
+
+    command_id: int
+    stamp: int
+    direction: TimeDirection
+
+
+@dataclass(frozen=True, slots=True)
+class TransferProgress(Message):
+    """What the image sender is doing: pending count, current image, next images, unacked bytes."""
+
+    stamp: int
+    pending: int
+    current: int | None
+    unacked_fragments: int
+    next_images: tuple[int, ...]
+
+
+# ------------------------------------------------------------------------------- time series
+
+
+@dataclass(frozen=True, slots=True)
+class TimeSeriesChannel(Message):
+    """Registration of a time-series channel: name, unit, range and resolution."""
+
+    channel: int
+    name: str
+    unit: str
+    lo: float
+    hi: float
+    resolution: float
+
+
+@dataclass(frozen=True, slots=True)
+class TimeSeriesChunk(Message):
+    """A self-contained piece of one channel's wavelet code for a block of samples."""
+
+    channel: int
+    start: int
+    period: float
+    count: int
+    level: int
+    step: int
+    data: bytes
+
+
+@dataclass(frozen=True, slots=True)
+class TimeSeriesRequest(Message):
+    """Topside request: a channel's window ``[start, end]`` refined down to ``max_error``."""
+
+    command_id: int
+    channel: int
+    start: int
+    end: int
+    max_error: float

@@ -1,0 +1,129 @@
+"""Abstract bases of a data modality (bathymetry, imagery, time series, third-party ...).
+
+A modality has two sides that never do I/O and never read a clock: time enters as ``now``
+(float seconds) and data leaves as :class:`~coex_core.messages.Message` objects.
+
+* The **subsea side** (:class:`ModalitySender`) takes sensor data (:meth:`~ModalitySender.ingest`),
+  answers "give me at most N bytes for this packet" (:meth:`~ModalitySender.fill`) and handles
+  topside requests (:meth:`~ModalitySender.handle`).
+* The **topside side** (:class:`ModalityReceiver`) takes received messages
+  (:meth:`~ModalityReceiver.receive`), builds products (:meth:`~ModalityReceiver.products`) and
+  creates requests (:meth:`~ModalityReceiver.poll` and modality-specific request methods).
+
+A plugin's entry point (group ``coex.modalities``) names a :class:`Modality` subclass, which
+creates both sides.
+"""
+
+from __future__ import annotations
+
+import abc
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+from typing import Any, ClassVar
+
+from .messages import Message
+
+__all__ = ["Modality", "ModalityReceiver", "ModalitySender", "Product"]
+
+
+@dataclass(frozen=True)
+class Product:
+    """Something a receiver made that a person or a tool can use.
+
+    ``kind`` names it (``"map-level"``, ``"image"``, ``"series"`` ...), ``key`` identifies it
+    within the kind, ``version`` increases whenever it improves, ``data`` holds the payload
+    (numpy arrays, bytes ...) and ``meta`` describes it (JSON-serialisable)."""
+
+    kind: str
+    key: str
+    version: int
+    data: Any = None
+    meta: Mapping[str, Any] = field(default_factory=dict)
+
+
+class ModalitySender(abc.ABC):
+    """The subsea side of a modality.
+
+    Contract:
+
+    * :meth:`fill` returns messages whose encoded sizes (``coex_core.wire.encoded_size``) add up
+      to at most ``max_bytes``; it returns ``[]`` when it has nothing that fits. It must be
+      cheap: the channel manager calls it while building a packet and gives up on a sender that
+      raises or overruns its deadline (that sender then counts as "no data" for the packet).
+    * :meth:`handle` accepts only the message types listed in ``Modality.requests``; anything
+      else, and any request out of bounds, raises :class:`~coex_core.errors.RequestRejected`
+      and leaves the sender unchanged. It may return messages to send at once (acks).
+    * Bad sensor input given to :meth:`ingest` raises a :class:`~coex_core.errors.CoexError`
+      subclass and loses nothing already ingested.
+    """
+
+    @abc.abstractmethod
+    def ingest(self, data: Any, now: float) -> None:
+        """Take sensor data captured at or before ``now``."""
+
+    @abc.abstractmethod
+    def fill(self, max_bytes: int, now: float) -> list[Message]:
+        """Messages to send now, at most ``max_bytes`` encoded in total."""
+
+    @abc.abstractmethod
+    def handle(self, message: Message, now: float) -> list[Message]:
+        """Handle a topside request; return any immediate replies."""
+
+    def pending_bytes(self) -> int:
+        """An estimate of the bytes still waiting to be sent (0 when idle)."""
+        return 0
+
+
+class ModalityReceiver(abc.ABC):
+    """The topside side of a modality.
+
+    Contract: :meth:`receive` accepts the message types listed in ``Modality.messages``, never
+    raises for a valid message (duplicates and stale data are ignored), and returns the
+    products it changed. :meth:`poll` returns requests to send to the vehicle (acks, retries
+    of unanswered requests); it returns each request once per call that should send it.
+    """
+
+    @abc.abstractmethod
+    def receive(self, message: Message, now: float) -> list[Product]:
+        """Take one received message; return the products it improved."""
+
+    @abc.abstractmethod
+    def poll(self, now: float) -> list[Message]:
+        """Requests and acks to send to the vehicle now."""
+
+    @abc.abstractmethod
+    def products(self) -> list[Product]:
+        """Every current product."""
+
+
+class Modality(abc.ABC):
+    """A modality plugin: its name, its message types, and factories for both sides.
+
+    ``messages`` are the types its sender emits and its receiver takes; ``requests`` are the
+    types its receiver emits and its sender handles. ``config`` is a plain mapping (from a
+    command line or a file); an invalid one raises :class:`~coex_core.errors.ConfigError`.
+    """
+
+    name: ClassVar[str]
+    version: ClassVar[str] = "0"
+    messages: ClassVar[tuple[type[Message], ...]] = ()
+    requests: ClassVar[tuple[type[Message], ...]] = ()
+
+    @abc.abstractmethod
+    def sender(self, config: Mapping[str, Any] | None = None) -> ModalitySender:
+        """A new subsea side."""
+
+    @abc.abstractmethod
+    def receiver(self, config: Mapping[str, Any] | None = None) -> ModalityReceiver:
+        """A new topside side."""
+
+    @classmethod
+    def handles(cls, message: Message) -> bool:
+        return isinstance(message, tuple(cls.messages) + tuple(cls.requests))
+
+
+def total_size(messages: Sequence[Message]) -> int:
+    """Encoded size of several messages."""
+    from .wire import encoded_size
+
+    return sum(encoded_size(m) for m in messages)

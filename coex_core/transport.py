@@ -1,0 +1,114 @@
+"""Abstract base of a transport: something that sends and receives whole frames.
+
+Modelled on python-can's ``BusABC``: subclasses implement :meth:`Transport.send_frame` and
+:meth:`Transport._recv_internal`; the base class adds the MTU check, the timeout loop, the
+context manager and an idempotent :meth:`Transport.close`.
+
+Transports are chosen by URI (``micromodem:///dev/ttyUSB0?rate=5``,
+``mavlink:udpout:127.0.0.1:14550``, ``lcm:udpm://239.255.76.67:7667``, ``loopback://name``);
+see :func:`coex_core.registry.open_transport`.
+"""
+
+from __future__ import annotations
+
+import abc
+from collections.abc import Mapping
+from types import TracebackType
+from typing import Any, ClassVar
+from urllib.parse import parse_qsl
+
+from .errors import ConfigError, FrameTooLarge, TransportError
+
+__all__ = ["Transport", "parse_query"]
+
+
+class Transport(abc.ABC):
+    """Sends and receives whole frames of at most :attr:`mtu` bytes.
+
+    Contract: a frame given to :meth:`send` either goes out whole or raises
+    :class:`~coex_core.errors.TransportError`; a frame above the MTU raises
+    :class:`~coex_core.errors.FrameTooLarge` and nothing is sent. :meth:`recv` returns one whole
+    frame exactly as sent, or ``None`` on timeout; it never returns part of a frame. Transports
+    may lose frames (acoustic links do); they never alter one without detection.
+    """
+
+    #: URI scheme this transport answers to (``micromodem``, ``mavlink`` ...).
+    scheme: ClassVar[str] = ""
+
+    def __init__(self, mtu: int) -> None:
+        if mtu <= 0:
+            raise ConfigError(f"MTU must be positive, got {mtu}")
+        self.mtu = mtu
+        self._closed = False
+
+    # ----------------------------------------------------------------- to implement
+    @abc.abstractmethod
+    def _send_internal(self, frame: bytes) -> None:
+        """Send one frame (already checked against the MTU)."""
+
+    @abc.abstractmethod
+    def _recv_internal(self, timeout: float | None) -> bytes | None:
+        """Return one frame, or ``None`` if none arrived within ``timeout`` seconds."""
+
+    def _close_internal(self) -> None:
+        """Release resources (called once)."""
+
+    @classmethod
+    def from_uri(cls, uri: str) -> Transport:
+        """Create a transport from its URI."""
+        raise ConfigError(f"{cls.__name__} cannot be created from a URI")
+
+    # ---------------------------------------------------------------- public API
+    def send(self, frame: bytes) -> None:
+        if self._closed:
+            raise TransportError("transport is closed")
+        if not isinstance(frame, bytes | bytearray):
+            raise TypeError("a frame is bytes")
+        if len(frame) > self.mtu:
+            raise FrameTooLarge(f"frame of {len(frame)} B exceeds the MTU of {self.mtu} B")
+        self._send_internal(bytes(frame))
+
+    def recv(self, timeout: float | None = None) -> bytes | None:
+        if self._closed:
+            raise TransportError("transport is closed")
+        return self._recv_internal(timeout)
+
+    def close(self) -> None:
+        if not self._closed:
+            self._closed = True
+            self._close_internal()
+
+    @property
+    def closed(self) -> bool:
+        return self._closed
+
+    def stats(self) -> Mapping[str, Any]:
+        """Link statistics, transport specific (frames sent/received, SNR ...)."""
+        return {}
+
+    def __enter__(self) -> Transport:
+        return self
+
+    def __exit__(
+        self, exc_type: type[BaseException] | None, exc: BaseException | None, tb: TracebackType | None
+    ) -> None:
+        self.close()
+
+
+def parse_query(query: str, allowed: Mapping[str, type]) -> dict[str, Any]:
+    """Parse a URI query string into typed options, rejecting unknown or malformed ones."""
+    out: dict[str, Any] = {}
+    for key, value in parse_qsl(query, keep_blank_values=True, strict_parsing=False):
+        if key not in allowed:
+            raise ConfigError(f"unknown option {key!r}; expected one of {sorted(allowed)}")
+        typ = allowed[key]
+        try:
+            if typ is bool:
+                if value.lower() not in ("1", "0", "true", "false", "yes", "no"):
+                    raise ValueError(value)
+                out[key] = value.lower() in ("1", "true", "yes")
+            else:
+                out[key] = typ(value)
+        except ValueError:
+            raise ConfigError(f"option {key}={value!r} is not a valid {typ.__name__}") from None
+    return out

@@ -1,0 +1,1 @@
+"""Built-in CoEx transports (Micromodem, MAVLink, LCM); each registers through entry points."""
