@@ -1,0 +1,63 @@
+"""Abstract tests every transport plugin must pass (use with :class:`TransportFixtures`)."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import pytest
+
+from coex_core.errors import FrameTooLarge
+from coex_core.transport import Transport
+
+
+def _frame(size: int, salt: int) -> bytes:
+    return bytes((i * 31 + salt * 7 + size) % 256 for i in range(size))
+
+
+class TransportTests:
+    """Back-to-back frames of every size up to the MTU arrive intact; over-MTU frames are refused."""
+
+    def test_mtu_is_positive(self, transport_pair: tuple[Transport, Transport]) -> None:
+        a, b = transport_pair
+        assert a.mtu > 0 and b.mtu > 0
+
+    @pytest.mark.parametrize("direction", ["a_to_b", "b_to_a"])
+    def test_back_to_back_every_size(
+        self,
+        transport_pair: tuple[Transport, Transport],
+        frame_sizes: Sequence[int],
+        burst: int,
+        recv_timeout: float,
+        direction: str,
+    ) -> None:
+        a, b = transport_pair
+        tx, rx = (a, b) if direction == "a_to_b" else (b, a)
+        sizes = [s for s in frame_sizes if s <= tx.mtu]
+        for start in range(0, len(sizes), burst):
+            frames = [_frame(s, start) for s in sizes[start:start + burst]]
+            for f in frames:
+                tx.send(f)
+            got = []
+            for _ in frames:
+                frame = rx.recv(timeout=recv_timeout)
+                assert frame is not None, f"frame lost (sizes {sizes[start:start + burst]})"
+                got.append(frame)
+            assert got == frames
+
+    def test_over_mtu_refused(self, transport_pair: tuple[Transport, Transport], recv_timeout: float) -> None:
+        a, b = transport_pair
+        with pytest.raises(FrameTooLarge):
+            a.send(bytes(a.mtu + 1))
+        # nothing of the refused frame arrives, and the transport still works
+        a.send(b"\x01\x02\x03")
+        assert b.recv(timeout=recv_timeout) == b"\x01\x02\x03"
+
+    def test_recv_times_out_with_none(self, transport_pair: tuple[Transport, Transport]) -> None:
+        _, b = transport_pair
+        assert b.recv(timeout=0.2) is None
+
+    def test_close_is_idempotent(self, transport_pair: tuple[Transport, Transport]) -> None:
+        a, _ = transport_pair
+        a.close()
+        a.close()
+        assert a.closed
