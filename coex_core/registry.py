@@ -15,11 +15,13 @@ missing raises :class:`~coex_core.errors.PluginLoadError` naming the extra to in
 from __future__ import annotations
 
 from dataclasses import dataclass
-from importlib import metadata
-from typing import Any
+from typing import TYPE_CHECKING, Any
 from urllib.parse import urlsplit
 
 from .errors import PluginLoadError, PluginNotFound
+
+if TYPE_CHECKING:
+    from importlib import metadata
 
 __all__ = [
     "MODALITY_GROUP",
@@ -53,6 +55,9 @@ class PluginInfo:
 
 
 def _entry_points(group: str) -> dict[str, metadata.EntryPoint]:
+    # imported here: importlib.metadata pulls in socket and threading, which the core avoids at import
+    from importlib import metadata
+
     found: dict[str, metadata.EntryPoint] = {}
     for ep in metadata.entry_points(group=group):
         found.setdefault(ep.name, ep)

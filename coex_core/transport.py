@@ -50,7 +50,7 @@ class Transport(abc.ABC):
     def _recv_internal(self, timeout: float | None) -> bytes | None:
         """Return one frame, or ``None`` if none arrived within ``timeout`` seconds."""
 
-    def _close_internal(self) -> None:
+    def _close_internal(self) -> None:  # noqa: B027  (optional hook, deliberately not abstract)
         """Release resources (called once)."""
 
     @classmethod

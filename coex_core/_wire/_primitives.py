@@ -118,7 +118,7 @@ class UInt(cs.Construct):  # type: ignore[misc]
     def _build(self, obj: Any, stream: Any, context: Any, path: str) -> int:
         w = self._width(context)
         value = int(obj)
-        if value < 0 or value >= (1 << w) and not (w == 0 and value == 0):
+        if value < 0 or (value >= (1 << w) and not (w == 0 and value == 0)):
             raise OutOfRange(f"{value} does not fit in {w} bits", path=path)
         if w:
             cs.stream_write(stream, _int_to_bits(value, w), w, path)

@@ -5,7 +5,7 @@ from __future__ import annotations
 import construct as cs
 
 from ..messages import MapMetadata, MapRoiRequest, Subgrid
-from ._primitives import Body, Bool, Bounded, Choice, Count, SInt, Stamp, UInt
+from ._primitives import Body, Bool, Bounded, Choice, SInt, Stamp, UInt
 from ._registry import MessageSpec, register
 
 #: Horizontal cell size at level 0 (metres): a 3-bit code.

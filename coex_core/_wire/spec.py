@@ -171,7 +171,7 @@ def message_vectors(spec: MessageSpec) -> dict[str, Any]:
 
 
 def _status() -> VehicleStatus:
-    return VehicleStatus(3600, 12.5, -7.25, 45.0, 3.1, 90.0, 1.0, 80, VehicleMode.SURVEY, 0)
+    return VehicleStatus(3600, 12.5, -7.2, 45.0, 3.1, 90.0, 1.0, 80, VehicleMode.SURVEY, 0)
 
 
 FRAME_CASES: list[tuple[str, FrameHeader, list[Message], int]] = [

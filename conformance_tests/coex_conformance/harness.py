@@ -66,7 +66,7 @@ class LinkedPair:
         self.sent_messages.extend(out)
         if out:
             self.down.a.send(wire.pack(out, self.frame_budget, FrameHeader(src=2, dst=1)))
-        while (frame := self.down.b.recv(timeout=0.0)) is not None:
+        while (frame := self.down.b.recv(timeout=1.0)) is not None:
             for m in wire.unpack(frame):
                 self.received_messages.append(m)
                 self.receiver.receive(m, self.now)
@@ -74,7 +74,7 @@ class LinkedPair:
         self.requests.extend(reqs)
         for frame in self._frames(reqs):
             self.up.a.send(frame)
-        while (frame := self.up.b.recv(timeout=0.0)) is not None:
+        while (frame := self.up.b.recv(timeout=1.0)) is not None:
             for m in wire.unpack(frame):
                 try:
                     for reply in self.sender.handle(m, self.now):

@@ -1,0 +1,43 @@
+# CoEx developer entry points. `make demo` and `make test` work on a fresh machine: they create
+# .venv/, install every package editable with all extras and the dev tools, and install the Debian
+# packages that are missing (libopenjp2-7 for glymur, chromium for the browser tests).
+
+PYTHON ?= python3
+VENV   := .venv
+PY     := $(VENV)/bin/python
+STAMP  := $(VENV)/.coex-installed
+PYTEST_ARGS ?=
+DEMO_ARGS ?=
+
+.PHONY: install demo test lint typecheck pytest bench clean
+
+install: $(STAMP)
+
+$(STAMP): pyproject.toml examples/coex-sample-plugin/pyproject.toml scripts/system-deps.sh
+	@bash scripts/system-deps.sh
+	@test -x $(PY) || $(PYTHON) -m venv $(VENV)
+	@$(PY) -m pip install -q --disable-pip-version-check --upgrade pip
+	@$(PY) -m pip install -q --disable-pip-version-check -e ".[all,dev]" -e examples/coex-sample-plugin
+	@touch $(STAMP)
+	@echo "CoEx installed in $(VENV)/ (activate with: . $(VENV)/bin/activate)"
+
+demo: install
+	$(VENV)/bin/coex demo $(DEMO_ARGS)
+
+lint: install
+	$(VENV)/bin/ruff check .
+
+typecheck: install
+	$(VENV)/bin/mypy
+
+pytest: install
+	$(VENV)/bin/pytest -n 2 $(PYTEST_ARGS)
+
+test: lint typecheck pytest
+
+bench: install
+	@mkdir -p bench/results
+	@set -e; for b in bench/*.py; do echo "== $$b"; $(PY) $$b; done
+
+clean:
+	rm -rf $(VENV) .pytest_cache .mypy_cache .ruff_cache .hypothesis bench/results
