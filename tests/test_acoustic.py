@@ -59,14 +59,14 @@ def test_half_duplex_and_collision() -> None:
     assert by_dst[2].cause == "half-duplex" and by_dst[2].frames == [None]
     assert by_dst[1].cause == "" and by_dst[1].frames == [b"two"]  # node 1 was done by then
     ch3 = _pair()
-    ch3.set_position(3, (0.0, 1500.0, 0.0))
+    ch3.set_position(3, (3000.0, 0.0, 0.0))
     ch3.transmit(1, [b"one"], 5, 0.0)
     ch3.transmit(3, [b"three"], 5, 0.2)
     at2 = [a for a in ch3.poll(100.0) if a.dst == 2]
     assert {a.cause for a in at2} == {"collision"}
     # separated in time: no collision
     ch4 = _pair()
-    ch4.set_position(3, (0.0, 1500.0, 0.0))
+    ch4.set_position(3, (3000.0, 0.0, 0.0))
     ch4.transmit(1, [b"one"], 5, 0.0)
     ch4.transmit(3, [b"three"], 5, 10.0)
     assert all(a.cause == "" for a in ch4.poll(100.0))
