@@ -112,8 +112,7 @@ class UInt(cs.Construct):  # type: ignore[misc]
         w = self._width(context)
         if w == 0:
             return 0
-        data = cs.stream_read(stream, w, path)
-        return int.from_bytes(cs.bits2bytes(data), "big") if w % 8 == 0 else _bits_to_int(data)
+        return _bits_to_int(cs.stream_read(stream, w, path))
 
     def _build(self, obj: Any, stream: Any, context: Any, path: str) -> int:
         w = self._width(context)
@@ -128,15 +127,17 @@ class UInt(cs.Construct):  # type: ignore[misc]
         raise cs.SizeofError("bit field", path=path)
 
 
+_TO_ASCII = bytes.maketrans(b"\x00\x01", b"01")
+_FROM_ASCII = bytes.maketrans(b"01", b"\x00\x01")
+
+
 def _bits_to_int(data: bytes) -> int:
-    v = 0
-    for b in data:
-        v = (v << 1) | (b & 1)
-    return v
+    """construct's bit streams hold one bit per byte (0 or 1)."""
+    return int(bytes(data).translate(_TO_ASCII), 2)
 
 
 def _int_to_bits(value: int, width: int) -> bytes:
-    return bytes((value >> (width - 1 - i)) & 1 for i in range(width))
+    return format(value, f"0{width}b").encode().translate(_FROM_ASCII)
 
 
 def Bits(width: int | Callable[[Any], int], note: str = "") -> cs.Construct:

@@ -18,15 +18,31 @@ Golden wire vectors ship with the package (:func:`vectors_dir`).
 
 from __future__ import annotations
 
+import importlib
+from typing import Any
+
 import pytest
 
 pytest.register_assert_rewrite("coex_conformance.modality", "coex_conformance.transport", "coex_conformance.wire")
 
-from .fixtures import ModalityFixtures, TransportFixtures  # noqa: E402
-from .harness import LinkedPair, run_until  # noqa: E402
-from .modality import ModalityTests  # noqa: E402
-from .transport import TransportTests  # noqa: E402
-from .wire import WireVectorTests, load_vectors, vectors_dir  # noqa: E402
+# Imported on first use: pytest imports this package for its plugin in every run, so it stays cheap.
+_LAZY = {
+    "ModalityFixtures": "fixtures",
+    "TransportFixtures": "fixtures",
+    "LinkedPair": "harness",
+    "run_until": "harness",
+    "ModalityTests": "modality",
+    "TransportTests": "transport",
+    "WireVectorTests": "wire",
+    "load_vectors": "wire",
+    "vectors_dir": "wire",
+}
+
+
+def __getattr__(name: str) -> Any:
+    if name in _LAZY:
+        return getattr(importlib.import_module(f".{_LAZY[name]}", __name__), name)
+    raise AttributeError(name)
 
 __all__ = [
     "LinkedPair",
