@@ -29,6 +29,8 @@ __all__ = [
     "LinkControl",
     "AckStatus",
     "CommandAck",
+    "FrameAckEntry",
+    "FrameAck",
     "AuthTrailer",
     "LinkStatus",
     "Opaque",
@@ -191,6 +193,27 @@ class CommandAck(Message):
 
     command_id: int
     status: AckStatus
+
+
+@dataclass(frozen=True, slots=True)
+class FrameAckEntry:
+    """One acknowledged transmission of a :class:`FrameAck`: its header ``seq`` and a bitmap of
+    the frames received intact (bit i, least significant first, = frame i of the packet)."""
+
+    seq: int
+    frames: int
+
+
+@dataclass(frozen=True, slots=True)
+class FrameAck(Message):
+    """Receiver's acknowledgement of the frames it received from node ``node`` on link ``link``.
+
+    The sender clears every ack-required message it packed into an acknowledged frame, on every
+    link (see ``docs/channel.md``)."""
+
+    node: int
+    link: int
+    entries: tuple[FrameAckEntry, ...]
 
 
 @dataclass(frozen=True, slots=True)

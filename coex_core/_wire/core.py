@@ -8,6 +8,8 @@ from ..messages import (
     AckStatus,
     AuthTrailer,
     CommandAck,
+    FrameAck,
+    FrameAckEntry,
     LinkControl,
     LinkStatus,
     QueueConfig,
@@ -94,6 +96,18 @@ LINK_CONTROL = Body(
 COMMAND_ACK = Body(
     "command_id" / COMMAND_ID,
     "status" / Enum(AckStatus) * "Outcome",
+)
+
+FRAME_ACK_ENTRY = cs.Struct(
+    "seq" / Bounded(0, 255) * "Sequence number of the acknowledged transmission (frame header seq)",
+    "frames" / Bits(8) * "Bitmap of frames received intact (bit 0 = first frame)",
+)
+
+FRAME_ACK = Body(
+    "node" / Bounded(0, 15) * "Node id whose transmissions are acknowledged",
+    "link" / LINK,
+    "n_entries" / Count(1, 16, "entries"),
+    "entries" / cs.Array(cs.this.n_entries, FRAME_ACK_ENTRY) * "Acknowledged transmissions (see FrameAckEntry)",
 )
 
 AUTH_TRAILER = Body(
@@ -217,5 +231,15 @@ register(MessageSpec(
         ("unknown_stats", LinkStatus(0, 0, 0, 0, None, None)),
         ("typical", LinkStatus(7200, 1, 9, 2, 12.5, -0.3)),
         ("extremes", LinkStatus(2**18 - 1, 7, 63, 63, -20.0, 12.7)),
+    ],
+))
+register(MessageSpec(
+    9, FrameAck, FRAME_ACK, False, "core",
+    "Acknowledgement of received frames (per transmission seq, a frame bitmap); clears acked messages on every link.",
+    largest=lambda: FrameAck(15, 7, tuple(FrameAckEntry(255, 255) for _ in range(16))),
+    cases=lambda: [
+        ("one_frame", FrameAck(2, 0, (FrameAckEntry(0, 0b1),))),
+        ("two_packets", FrameAck(1, 1, (FrameAckEntry(17, 0b11111111), FrameAckEntry(18, 0b00100101)))),
+        ("largest", FrameAck(15, 7, tuple(FrameAckEntry(255, 255) for _ in range(16)))),
     ],
 ))
