@@ -38,6 +38,8 @@ __all__ = [
     "MapMetadata",
     "Subgrid",
     "MapRoiRequest",
+    "MapRoiReply",
+    "SubgridEncoding",
     # imagery
     "ImageAnnounce",
     "ImageFragment",
@@ -268,15 +270,36 @@ class MapMetadata(Message):
     pending: int
 
 
+class SubgridEncoding(enum.IntEnum):
+    """How a :class:`Subgrid` codes its cells (``q`` = elevation / vertical_resolution, an integer).
+
+    * ``OFFSET``: ``q = z_base + v``, every ``v`` in ``width`` bits (``width`` 0: all equal ``z_base``).
+    * ``DELTA``: present cells in serpentine order (row 0 west to east, row 1 east to west, ...);
+      ``q[k] = q[k-1] + unzigzag(v[k])`` with ``q[-1] = z_base``; ``v`` Rice-coded with parameter
+      ``width``.
+    * ``PLANE``: ``q(i, j) = z_base + ((slope_x * j + slope_y * i + 4) >> 3) + unzigzag(v)``
+      (slopes in 1/8 units per cell, arithmetic shift), ``v`` Rice-coded with parameter ``width``.
+
+    ``unzigzag(v) = v >> 1 if v is even else -((v + 1) >> 1)``. Every encoding uses only the
+    subgrid's own bits: a subgrid never depends on another message."""
+
+    OFFSET = 0
+    DELTA = 1
+    PLANE = 2
+
+
 @dataclass(frozen=True, slots=True)
 class Subgrid(Message):
     """A square block of ``side x side`` cells at one level, decodable on its own.
 
     Cell (i, j) (row i northwards, column j eastwards) covers x in
-    ``[(ix*side + j) * r, (ix*side + j + 1) * r)`` with ``r = resolution * 2**level``.
-    ``mask`` has one bit per cell in row-major order (most significant bit first), 1 = present;
-    ``None`` means every cell is present. ``values`` holds one ``width``-bit code per present cell;
-    the elevation is ``(z_min + code) * vertical_resolution`` (for ``encoding`` 0).
+    ``[(ix*side + j) * r, (ix*side + j + 1) * r)`` and y in ``[(iy*side + i) * r, (iy*side + i + 1) * r)``
+    with ``r = resolution * 2**level``. ``mask`` has one bit per cell in row-major order (most
+    significant bit = cell (0, 0)), 1 = present; ``None`` means every cell is present. ``values``
+    holds one code per present cell, interpreted as ``encoding`` says (:class:`SubgridEncoding`);
+    ``slope_x``/``slope_y`` are used by ``PLANE`` only (0 otherwise). Elevations are
+    ``q * vertical_resolution`` metres (positive up). ``coex_plugins.bathymetry.decode_subgrid``
+    turns a subgrid into an array.
     """
 
     level: int
@@ -286,21 +309,26 @@ class Subgrid(Message):
     resolution: float
     vertical_resolution: float
     side: int
-    encoding: int
-    z_min: int
+    encoding: SubgridEncoding
+    z_base: int
     width: int
     mask: int | None
     values: tuple[int, ...]
+    slope_x: int = 0
+    slope_y: int = 0
 
 
 @dataclass(frozen=True, slots=True)
 class MapRoiRequest(Message):
     """Topside request for a region at one level, with the implicit ack of what topside holds.
 
-    The region is the inclusive subgrid-index rectangle ``[x0, x0+w) x [y0, y0+h)``.
-    ``held`` has one entry per subgrid of the region in row-major order: the newest stamp
-    topside holds for it, or ``None`` when it holds nothing. With ``fill_gaps`` the vehicle
-    sends only subgrids topside lacks and ``held`` is empty.
+    The region is the subgrid-index rectangle ``[x0, x0+w) x [y0, y0+h)`` at ``level``.
+    Without ``fill_gaps``, ``held`` has one entry per subgrid of the region in row-major order
+    (at most 64): the newest stamp topside holds for it, or ``None`` when it holds nothing; the
+    vehicle re-sends the subgrids it has newer data for or that topside lacks. With ``fill_gaps``
+    (gap filling, regions up to 16 x 16) ``held`` is empty and ``have`` is a bitmap of ``w*h`` bits
+    (row-major, most significant bit first, 1 = topside holds that subgrid); the vehicle sends
+    only what topside lacks.
     """
 
     request_id: int
@@ -311,6 +339,17 @@ class MapRoiRequest(Message):
     h: int
     fill_gaps: bool
     held: tuple[int | None, ...]
+    have: int | None = None
+
+
+@dataclass(frozen=True, slots=True)
+class MapRoiReply(Message):
+    """Vehicle answer to a :class:`MapRoiRequest`: ``queued`` subgrids will follow (0: nothing
+    newer). Lets topside tell "lost" from "nothing to send" and time its retry."""
+
+    request_id: int
+    level: int
+    queued: int
 
 
 # ----------------------------------------------------------------------------------- imagery

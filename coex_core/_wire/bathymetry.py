@@ -4,8 +4,10 @@ from __future__ import annotations
 
 import construct as cs
 
-from ..messages import MapMetadata, MapRoiRequest, Subgrid
-from ._primitives import Body, Bool, Bounded, Choice, SInt, Stamp, UInt
+from typing import Any
+
+from ..messages import MapMetadata, MapRoiReply, MapRoiRequest, Subgrid, SubgridEncoding
+from ._primitives import Body, Bool, Bounded, Choice, Enum, FieldSpec, SInt, Stamp, UInt
 from ._registry import MessageSpec, register
 
 #: Horizontal cell size at level 0 (metres): a 3-bit code.
@@ -33,12 +35,125 @@ MAP_METADATA = Body(
 )
 
 
+#: Rice codes: a quotient of this many one-bits or more is sent as an escape instead.
+RICE_ESCAPE = 16
+#: Escaped values carry their bit length in this many bits, then the value itself.
+RICE_ESCAPE_LEN_BITS = 5
+
+
 def _n_values(ctx: cs.Container) -> int:
-    if ctx.width == 0:
+    if ctx.encoding == SubgridEncoding.OFFSET and ctx.width == 0:
         return 0
     if ctx.mask is None:
         return int(ctx.side) ** 2
     return int(ctx.mask).bit_count()
+
+
+def rice_bits(v: int, k: int) -> int:
+    """Bits of one value in the Rice code with parameter ``k`` (escape included)."""
+    q = v >> k
+    if q < RICE_ESCAPE:
+        return q + 1 + k
+    return RICE_ESCAPE + RICE_ESCAPE_LEN_BITS + v.bit_length()
+
+
+class RiceCodes(cs.Construct):  # type: ignore[misc]
+    """``count`` non-negative integers, each Rice-coded with parameter ``k``.
+
+    A value ``v`` with ``q = v >> k`` below :data:`RICE_ESCAPE` is ``q`` one-bits, a zero-bit and
+    the low ``k`` bits of ``v``; a larger one is :data:`RICE_ESCAPE` one-bits, its bit length ``n``
+    in :data:`RICE_ESCAPE_LEN_BITS` bits and ``v`` in ``n`` bits (escapes only when needed)."""
+
+    def __init__(self, count: Any, k: Any) -> None:
+        super().__init__()
+        self.count = count
+        self.k = k
+        self.coex_spec = FieldSpec("variable", "", note=(
+            f"Rice codes, parameter `width`; escape after {RICE_ESCAPE} ones: "
+            f"{RICE_ESCAPE_LEN_BITS}-bit length, then the value"))
+
+    def _parse(self, stream: Any, context: Any, path: str) -> list[int]:
+        n, k = int(self.count(context)), int(self.k(context))
+        out: list[int] = []
+        used = 0
+        for _ in range(n):
+            q = 0
+            while cs.stream_read(stream, 1, path)[0]:
+                q += 1
+                if q == RICE_ESCAPE:
+                    break
+            if q < RICE_ESCAPE:
+                low = _read_uint(stream, k, path)
+                v = (q << k) | low
+            else:
+                nb = _read_uint(stream, RICE_ESCAPE_LEN_BITS, path)
+                v = _read_uint(stream, nb, path)
+            used += rice_bits(v, k)
+            if used > MAX_SUBGRID_VALUE_BITS:
+                raise cs.ValidationError("subgrid values exceed the maximum size", path=path)
+            out.append(v)
+        return out
+
+    def _build(self, obj: Any, stream: Any, context: Any, path: str) -> list[int]:
+        k = int(self.k(context))
+        values = [int(v) for v in obj]
+        if len(values) != int(self.count(context)):
+            raise cs.ValidationError(f"expected {self.count(context)} values, got {len(values)}", path=path)
+        bits: list[int] = []
+        for v in values:
+            if v < 0:
+                raise cs.ValidationError(f"negative Rice value {v}", path=path)
+            q = v >> k
+            if q < RICE_ESCAPE:
+                bits += [1] * q + [0] + [(v >> (k - 1 - i)) & 1 for i in range(k)]
+            else:
+                nb = v.bit_length()
+                if nb >= 1 << RICE_ESCAPE_LEN_BITS:
+                    raise cs.ValidationError(f"Rice value {v} too large", path=path)
+                bits += [1] * RICE_ESCAPE
+                bits += [(nb >> (RICE_ESCAPE_LEN_BITS - 1 - i)) & 1 for i in range(RICE_ESCAPE_LEN_BITS)]
+                bits += [(v >> (nb - 1 - i)) & 1 for i in range(nb)]
+        if len(bits) > MAX_SUBGRID_VALUE_BITS:
+            raise cs.ValidationError("subgrid values exceed the maximum size", path=path)
+        if bits:
+            cs.stream_write(stream, bytes(bits), len(bits), path)
+        return values
+
+    def _sizeof(self, context: Any, path: str) -> int:
+        raise cs.SizeofError("variable-length codes", path=path)
+
+
+def _read_uint(stream: Any, width: int, path: str) -> int:
+    if width == 0:
+        return 0
+    v = 0
+    for b in cs.stream_read(stream, width, path):
+        v = (v << 1) | (b & 1)
+    return v
+
+
+class _Zero(cs.Construct):  # type: ignore[misc]
+    """An absent field: no bits; reads 0 and only builds from 0."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.flagbuildnone = True
+
+    def _parse(self, stream: Any, context: Any, path: str) -> int:
+        return 0
+
+    def _build(self, obj: Any, stream: Any, context: Any, path: str) -> int:
+        if obj not in (None, 0):
+            raise cs.ValidationError(f"must be 0 here, got {obj!r}", path=path)
+        return 0
+
+    def _sizeof(self, context: Any, path: str) -> int:
+        return 0
+
+
+def _fixed_values() -> cs.Construct:
+    c = cs.Array(_n_values, UInt(cs.this.width))
+    return c
 
 
 SUBGRID = Body(
@@ -49,13 +164,23 @@ SUBGRID = Body(
     "resolution" / Choice(RESOLUTIONS, unit="m") * "Cell size at level 0",
     "vertical_resolution" / Choice(VERTICAL_RESOLUTIONS, unit="m") * "Elevation quantum",
     "side" / Bounded(2, 16, unit="cells") * "Subgrid side",
-    "encoding" / Bounded(0, 3) * "Cell coding: 0 = offset above z_min",
-    "z_min" / SInt(20) * "Block minimum, in vertical-resolution units",
-    "width" / Bounded(0, 24, unit="bits") * "Bits per cell value (0: every present cell equals z_min)",
+    "encoding" / Enum(SubgridEncoding, bits=2) * "Cell coding (0 OFFSET, 1 DELTA, 2 PLANE; see SubgridEncoding)",
+    "z_base" / SInt(20) * "Base elevation in vertical-resolution units (block minimum for OFFSET)",
+    "width" / Bounded(0, 24, unit="bits") * "OFFSET: bits per value (0: every present cell equals z_base); "
+    "DELTA/PLANE: Rice parameter",
+    "slope_x" / cs.IfThenElse(cs.this.encoding == SubgridEncoding.PLANE, SInt(12), _Zero())
+    * "PLANE only: eastward slope, 1/8 vertical units per cell",
+    "slope_y" / cs.IfThenElse(cs.this.encoding == SubgridEncoding.PLANE, SInt(12), _Zero())
+    * "PLANE only: northward slope, 1/8 vertical units per cell",
     "partial" / cs.Rebuild(Bool(), lambda ctx: ctx.mask is not None) * "1 if a presence mask follows (derived)",
     "mask" / cs.If(cs.this.partial, UInt(lambda ctx: int(ctx.side) ** 2)) * "Presence mask, side^2 bits, row-major",
-    "values" / cs.Array(_n_values, UInt(cs.this.width)) * "Cell codes of the present cells, width bits each",
-    cs.Check(lambda ctx: len(ctx["values"]) * ctx.width <= MAX_SUBGRID_VALUE_BITS),
+    "values" / cs.IfThenElse(
+        cs.this.encoding == SubgridEncoding.OFFSET,
+        _fixed_values(),
+        RiceCodes(_n_values, lambda ctx: ctx.width),
+    ) * "Codes of the present cells: OFFSET width bits each, otherwise Rice codes",
+    cs.Check(lambda ctx: ctx.encoding != SubgridEncoding.OFFSET
+             or len(ctx["values"]) * ctx.width <= MAX_SUBGRID_VALUE_BITS),
 )
 
 MAP_ROI_REQUEST = Body(
@@ -65,17 +190,25 @@ MAP_ROI_REQUEST = Body(
     "y0" / SInt(14) * "First subgrid row",
     "w" / Bounded(1, 16, unit="subgrids") * "Region width",
     "h" / Bounded(1, 16, unit="subgrids") * "Region height",
-    "fill_gaps" / Bool() * "Send only what topside lacks (held is then empty)",
+    "fill_gaps" / Bool() * "Gap filling: send only what topside lacks (held is then empty)",
     "held" / cs.Array(lambda ctx: 0 if ctx.fill_gaps else ctx.w * ctx.h, Stamp(optional=True))
-    * "Per subgrid, row-major: newest stamp topside holds, or absent",
+    * "Without fill_gaps, per subgrid, row-major: newest stamp topside holds, or absent",
+    "have" / cs.If(cs.this.fill_gaps, UInt(lambda ctx: int(ctx.w) * int(ctx.h)))
+    * "With fill_gaps: w*h bits, row-major, 1 = topside holds the subgrid",
     cs.Check(lambda ctx: ctx.fill_gaps or ctx.w * ctx.h <= MAX_ROI_HELD),
+)
+
+MAP_ROI_REPLY = Body(
+    "request_id" / Bounded(0, 255) * "The request answered",
+    "level" / Bounded(0, 15) * "Its level",
+    "queued" / Bounded(0, 1023, saturating=True) * "Subgrids queued for it (0: nothing newer)",
 )
 
 
 def _sub(**kw: object) -> Subgrid:
     base: dict[str, object] = dict(
-        level=0, ix=0, iy=0, stamp=0, resolution=1.0, vertical_resolution=0.1, side=8, encoding=0,
-        z_min=0, width=0, mask=None, values=(),
+        level=0, ix=0, iy=0, stamp=0, resolution=1.0, vertical_resolution=0.1, side=8,
+        encoding=SubgridEncoding.OFFSET, z_base=0, width=0, mask=None, values=(),
     )
     base.update(kw)
     return Subgrid(**base)  # type: ignore[arg-type]
@@ -90,7 +223,9 @@ def _meta(**kw: object) -> MapMetadata:
     return MapMetadata(**base)  # type: ignore[arg-type]
 
 
-_LARGEST_SUBGRID = _sub(side=16, width=6, mask=(1 << 256) - 1, values=(63,) * 256, z_min=-(2**19))
+#: The largest subgrid: PLANE with slopes, a full mask and 1536 value bits.
+_LARGEST_SUBGRID = _sub(side=16, encoding=SubgridEncoding.PLANE, width=5, mask=(1 << 256) - 1,
+                        values=(31,) * 256, z_base=-(2**19), slope_x=-2048, slope_y=2047)
 
 register(MessageSpec(
     16, MapMetadata, MAP_METADATA, False, "bathymetry",
@@ -112,12 +247,17 @@ register(MessageSpec(
     "A block of side x side cells at one level, decodable on its own.",
     largest=lambda: _LARGEST_SUBGRID,
     cases=lambda: [
-        ("flat_all_equal", _sub(z_min=-300, width=0)),
-        ("typical_4bit", _sub(level=2, ix=-3, iy=5, stamp=4000, z_min=-298, width=4,
+        ("flat_all_equal", _sub(z_base=-300, width=0)),
+        ("typical_4bit", _sub(level=2, ix=-3, iy=5, stamp=4000, z_base=-298, width=4,
                               values=tuple((i * 7) % 16 for i in range(64)))),
-        ("sparse_mask", _sub(level=0, ix=8191, iy=-8192, stamp=2**18 - 1, z_min=2**19 - 1, width=3,
+        ("sparse_mask", _sub(level=0, ix=8191, iy=-8192, stamp=2**18 - 1, z_base=2**19 - 1, width=3,
                              mask=0b1011 << 60, values=(1, 7, 0))),
         ("empty_mask", _sub(side=2, width=5, mask=0, values=())),
+        ("delta_rice_with_escape", _sub(level=1, ix=4, iy=-2, stamp=1234, encoding=SubgridEncoding.DELTA,
+                                        z_base=-305, width=1, mask=((1 << 64) - 1) ^ 0b111,
+                                        values=(0, 1, 2, 3, 0, 0, 5) + (2,) * 52 + (200, 1))),
+        ("plane_rice", _sub(level=4, ix=0, iy=-1, stamp=99, encoding=SubgridEncoding.PLANE, z_base=-412,
+                            width=0, slope_x=-13, slope_y=40, values=tuple((i * 5) % 3 for i in range(64)))),
         ("largest", _LARGEST_SUBGRID),
     ],
 ))
@@ -128,7 +268,19 @@ register(MessageSpec(
     cases=lambda: [
         ("single_missing", MapRoiRequest(0, 0, 0, 0, 1, 1, False, (None,))),
         ("two_by_two", MapRoiRequest(3, 1, -2, 4, 2, 2, False, (100, None, 2**18 - 1, 0))),
-        ("fill_gaps_max_region", MapRoiRequest(255, 15, -8192, 8191, 16, 16, True, ())),
+        ("fill_gaps_max_region", MapRoiRequest(255, 15, -8192, 8191, 16, 16, True, (),
+                                                have=((1 << 256) - 1) ^ (0b1011 << 100))),
+        ("fill_gaps_holds_nothing", MapRoiRequest(9, 0, 3, -3, 3, 2, True, (), have=0)),
         ("largest", MapRoiRequest(255, 15, 0, 0, 8, 8, False, (2**18 - 1,) * 64)),
+    ],
+))
+register(MessageSpec(
+    19, MapRoiReply, MAP_ROI_REPLY, False, "bathymetry",
+    "Vehicle answer to a region request: how many subgrids it queued.",
+    largest=lambda: MapRoiReply(255, 15, 1023),
+    cases=lambda: [
+        ("nothing_newer", MapRoiReply(0, 0, 0)),
+        ("some_queued", MapRoiReply(17, 2, 12)),
+        ("maximum", MapRoiReply(255, 15, 1023)),
     ],
 ))
