@@ -1,0 +1,291 @@
+"""Offline re-analysis of a dive: replay an ``lcm-logger`` log of a CoEx session.
+
+:func:`replay_log` reads the log with ``lcm.EventLog``, decodes every ``coex.frame_t`` event,
+unpacks the CoEx frame and routes each message to the topside receiver of the modality that
+declares it (``Modality.messages``). Modalities come from the ``coex.modalities`` entry points
+(:mod:`coex_core.registry`); one that cannot load is skipped with a warning and listed in the
+summary. ``now`` given to the receivers is the event's log time in seconds since 1970.
+
+With an output directory it writes:
+
+``summary.json``      the summary returned by :func:`replay_log`
+``products/<modality>/<kind>-<key>.npy|.bin|.txt`` (+ ``.json`` with version and meta)
+                      every product whose data is a numpy array, bytes or text
+``decoded.lcmlog``    an LCM log of ``coex.vehicle_status_t`` (channel ``COEX_VEHICLE_STATUS``)
+                      and ``coex.map_level_t`` (``COEX_MAP_LEVEL``) events, for LCM tools
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+import re
+from collections import Counter
+from collections.abc import Mapping
+from importlib import metadata
+from pathlib import Path
+from typing import Any
+
+import lcm
+import numpy as np
+
+from coex_core import registry
+from coex_core.errors import ConfigError, DecodeError
+from coex_core.jsonfmt import to_json
+from coex_core.messages import Message, Subgrid, VehicleStatus
+from coex_core.modality import Modality, ModalityReceiver, Product
+
+from ._codec import is_frame_t, unpack_event
+from .products import (
+    MAP_LEVEL_CHANNEL,
+    VEHICLE_STATUS_CHANNEL,
+    MapLevelSummary,
+    vehicle_status_to_lcm,
+)
+
+__all__ = ["load_modalities", "replay_log", "write_products"]
+
+log = logging.getLogger(__name__)
+
+
+def load_modalities() -> tuple[dict[str, Modality], dict[str, str]]:
+    """Instantiate every registered modality; return ``(loaded, unavailable name -> reason)``."""
+    loaded: dict[str, Modality] = {}
+    unavailable: dict[str, str] = {}
+    names = sorted(ep.name for ep in metadata.entry_points(group=registry.MODALITY_GROUP))
+    for name in dict.fromkeys(names):
+        try:
+            loaded[name] = registry.load_modality(name)()
+        except Exception as exc:  # a broken or uninstallable plugin must not stop a replay
+            unavailable[name] = f"{type(exc).__name__}: {exc}"
+            log.warning("modality %s unavailable, its messages are not replayed: %s", name, exc)
+    return loaded, unavailable
+
+
+def _safe(text: str) -> str:
+    return re.sub(r"[^A-Za-z0-9_.-]+", "_", text).strip("_") or "product"
+
+
+def _jsonable(value: Any) -> Any:
+    try:
+        json.dumps(value, allow_nan=True)
+        return value
+    except (TypeError, ValueError):
+        if isinstance(value, Mapping):
+            return {str(k): _jsonable(v) for k, v in value.items()}
+        if isinstance(value, list | tuple):
+            return [_jsonable(v) for v in value]
+        if isinstance(value, np.generic):
+            return value.item()
+        return repr(value)
+
+
+def _describe(product: Product) -> dict[str, Any]:
+    data = product.data
+    shape = list(data.shape) if isinstance(data, np.ndarray) else None
+    return {
+        "kind": product.kind,
+        "key": product.key,
+        "version": product.version,
+        "data": type(data).__name__,
+        "shape": shape,
+        "meta": _jsonable(dict(product.meta)),
+    }
+
+
+def write_products(products: Mapping[str, list[Product]], out_dir: Path) -> list[str]:
+    """Write exportable products (numpy arrays, bytes, text) below ``out_dir/products``; return
+    the paths written, relative to ``out_dir``."""
+    written: list[str] = []
+    for modality, items in products.items():
+        for product in items:
+            data = product.data
+            stem = out_dir / "products" / _safe(modality) / f"{_safe(product.kind)}-{_safe(product.key)}"
+            if isinstance(data, np.ndarray):
+                path = stem.with_name(stem.name + ".npy")
+                path.parent.mkdir(parents=True, exist_ok=True)
+                np.save(path, data, allow_pickle=False)
+            elif isinstance(data, bytes | bytearray):
+                path = stem.with_name(stem.name + ".bin")
+                path.parent.mkdir(parents=True, exist_ok=True)
+                path.write_bytes(bytes(data))
+            elif isinstance(data, str):
+                path = stem.with_name(stem.name + ".txt")
+                path.parent.mkdir(parents=True, exist_ok=True)
+                path.write_text(data)
+            else:
+                continue
+            side = stem.with_name(stem.name + ".json")
+            side.write_text(json.dumps(_describe(product), indent=2, allow_nan=True))
+            written.append(str(path.relative_to(out_dir)))
+    return written
+
+
+def _open_log(path: Path) -> lcm.EventLog:
+    if not path.is_file():
+        raise ConfigError(f"no such LCM log: {path}")
+    try:
+        return lcm.EventLog(str(path), "r")
+    except Exception as exc:
+        raise ConfigError(f"cannot open LCM log {path}: {exc}") from exc
+
+
+def replay_log(
+    path: str | Path,
+    out_dir: str | Path | None = None,
+    *,
+    channel: str | None = None,
+    modalities: Mapping[str, Modality] | None = None,
+) -> dict[str, Any]:
+    """Replay an LCM log into the topside receivers; return (and write) the summary.
+
+    ``channel`` is a regular expression a channel must match in full (default: every channel,
+    recognising ``coex.frame_t`` events by their fingerprint); ``modalities`` overrides the
+    registry (name -> instance)."""
+    path = Path(path)
+    pattern = re.compile(channel) if channel else None
+    unavailable: dict[str, str] = {}
+    if modalities is None:
+        modalities, unavailable = load_modalities()
+    receivers: dict[str, ModalityReceiver] = {}
+    routes: dict[type[Message], list[str]] = {}
+    requests: set[type[Message]] = set()
+    for name, modality in modalities.items():
+        try:
+            receivers[name] = modality.receiver()
+        except Exception as exc:
+            unavailable[name] = f"{type(exc).__name__}: {exc}"
+            log.warning("modality %s: cannot create its receiver: %s", name, exc)
+            continue
+        for cls in modality.messages:
+            routes.setdefault(cls, []).append(name)
+        requests.update(modality.requests)
+
+    counts: Counter[str] = Counter()
+    by_type: Counter[str] = Counter()
+    routed: Counter[str] = Counter()
+    unrouted: Counter[str] = Counter()
+    receiver_errors: Counter[str] = Counter()
+    channels: Counter[str] = Counter()
+    errors: list[str] = []
+    first_utime: int | None = None
+    last_utime: int | None = None
+    last_status: VehicleStatus | None = None
+    maps = MapLevelSummary()
+    decoded_events: list[tuple[int, str, bytes]] = []
+
+    eventlog = _open_log(path)
+    try:
+        while True:
+            try:
+                event = eventlog.read_next_event()
+            except StopIteration:
+                break
+            except Exception as exc:  # a truncated or corrupt log: keep what was read
+                errors.append(f"log read stopped: {exc}")
+                log.warning("%s: log read stopped: %s", path, exc)
+                break
+            if event is None:
+                break
+            counts["events"] += 1
+            if pattern is not None and not pattern.fullmatch(event.channel):
+                continue
+            if not is_frame_t(event.data):
+                if pattern is not None:
+                    counts["bad_events"] += 1
+                    errors.append(f"event {event.eventnum} on {event.channel}: not a coex.frame_t")
+                continue
+            try:
+                lcm_frame, frame = unpack_event(event.data)
+            except DecodeError as exc:
+                counts["bad_events"] += 1
+                errors.append(f"event {event.eventnum} on {event.channel}: {exc}")
+                log.warning("event %d on %s: %s", event.eventnum, event.channel, exc)
+                continue
+            counts["frames"] += 1
+            counts["frame_bytes"] += len(lcm_frame.data)
+            channels[event.channel] += 1
+            utime = int(event.timestamp)
+            first_utime = utime if first_utime is None else min(first_utime, utime)
+            last_utime = utime if last_utime is None else max(last_utime, utime)
+            now = utime / 1e6
+            levels: set[int] = set()
+            for message in frame.messages:
+                kind = type(message).__name__
+                by_type[kind] += 1
+                counts["messages"] += 1
+                if isinstance(message, VehicleStatus):
+                    last_status = message
+                    decoded_events.append(
+                        (utime, VEHICLE_STATUS_CHANNEL, vehicle_status_to_lcm(message, utime).encode())
+                    )
+                elif isinstance(message, Subgrid):
+                    levels.add(maps.add(message))
+                targets = routes.get(type(message), [])
+                if not targets:
+                    unrouted["request" if type(message) in requests else kind] += 1
+                for name in targets:
+                    try:
+                        receivers[name].receive(message, now)
+                        routed[name] += 1
+                    except Exception as exc:  # a receiver bug must not end the re-analysis
+                        receiver_errors[name] += 1
+                        log.warning("modality %s failed on %s: %s", name, kind, exc)
+            for level in sorted(levels):
+                decoded_events.append((utime, MAP_LEVEL_CHANNEL, maps.summary(level, utime).encode()))
+    finally:
+        eventlog.close()
+
+    products: dict[str, list[Product]] = {}
+    for name, receiver in receivers.items():
+        try:
+            products[name] = list(receiver.products())
+        except Exception as exc:
+            receiver_errors[name] += 1
+            log.warning("modality %s: products() failed: %s", name, exc)
+
+    summary: dict[str, Any] = {
+        "log": str(path),
+        "events": counts["events"],
+        "frames": counts["frames"],
+        "frame_bytes": counts["frame_bytes"],
+        "bad_events": counts["bad_events"],
+        "messages": counts["messages"],
+        "channels": dict(sorted(channels.items())),
+        "first_utime": first_utime,
+        "last_utime": last_utime,
+        "duration_s": (last_utime - first_utime) / 1e6 if first_utime is not None and last_utime else 0.0,
+        "messages_by_type": dict(sorted(by_type.items())),
+        "routed": dict(sorted(routed.items())),
+        "unrouted": dict(sorted(unrouted.items())),
+        "modalities": sorted(receivers),
+        "unavailable": dict(sorted(unavailable.items())),
+        "receiver_errors": dict(sorted(receiver_errors.items())),
+        "vehicle_status": to_json(last_status) if last_status is not None else None,
+        "map_levels": [
+            {k: (None if isinstance(v, float) and math.isnan(v) else v)
+             for k, v in ((s, getattr(m, s)) for s in m.__slots__)}
+            for m in maps.summaries(last_utime or 0)
+        ],
+        "products": {name: [_describe(p) for p in items] for name, items in sorted(products.items())},
+        "errors": errors[:100],
+        "files": [],
+    }
+    if out_dir is not None:
+        out = Path(out_dir)
+        out.mkdir(parents=True, exist_ok=True)
+        files = write_products(products, out)
+        if decoded_events:
+            decoded = out / "decoded.lcmlog"
+            writer = lcm.EventLog(str(decoded), "w", overwrite=True)
+            try:
+                for utime, chan, data in decoded_events:
+                    writer.write_event(utime, chan, data)
+            finally:
+                writer.close()
+            files.append(decoded.name)
+        files.append("summary.json")
+        summary["files"] = files
+        (out / "summary.json").write_text(json.dumps(summary, indent=2, default=str))
+    return summary
