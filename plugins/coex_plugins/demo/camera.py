@@ -1,0 +1,144 @@
+"""Render downward-looking camera frames from the simulated seafloor.
+
+A pinhole camera looks straight down from the vehicle with a co-located light. Each pixel is
+projected to the seafloor (the local height field), where a procedural sand texture, the ripples'
+shading, and any target (a car: a box with a darker, mottled paint and sharp edges) set its
+brightness; then comes the light's fall-off with range and off-axis angle, water attenuation
+(which also tints the colour), backscatter haze and sensor noise. Everything is vectorised numpy.
+
+The result looks like the NUI dive images in the ways that matter to the pipeline: 640 x 480,
+low contrast, vignetted, with a target that is recognisable when it is in frame.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+__all__ = ["Box", "CameraModel", "SandTexture", "render_frame", "footprint"]
+
+HeightFn = Callable[[np.ndarray, np.ndarray], np.ndarray]
+
+
+@dataclass(frozen=True)
+class Box:
+    """A box-shaped target on the seafloor (a car): centre, size (m) and heading (degrees)."""
+
+    x: float
+    y: float
+    length: float = 4.5
+    width: float = 1.8
+    height: float = 1.5
+    heading: float = 0.0
+
+    def inside(self, gx: np.ndarray, gy: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Mask of ground points under the box, and their coordinates in the box frame."""
+        h = np.deg2rad(self.heading)
+        dx, dy = gx - self.x, gy - self.y
+        u = dx * np.cos(h) + dy * np.sin(h)
+        v = -dx * np.sin(h) + dy * np.cos(h)
+        mask = (np.abs(u) <= self.length / 2) & (np.abs(v) <= self.width / 2)
+        return mask, u, v
+
+
+@dataclass(frozen=True)
+class CameraModel:
+    width: int = 640
+    height: int = 480
+    hfov_deg: float = 62.0
+    attenuation: float = 0.12  # 1/m, mean over the visible band
+    tint: tuple[float, float, float] = (0.96, 1.0, 0.95)  # red is absorbed first
+    noise: float = 2.5  # sensor noise, grey levels
+    gain: float = 420.0
+
+
+class SandTexture:
+    """Deterministic procedural albedo: sums of oriented sinusoids and a coarse speckle."""
+
+    def __init__(self, seed: int = 0, octaves: int = 12) -> None:
+        rng = np.random.default_rng(seed)
+        self.k = rng.uniform(2.0, 40.0, octaves)  # wavenumbers, rad/m
+        self.theta = rng.uniform(0, np.pi, octaves)
+        self.phase = rng.uniform(0, 2 * np.pi, octaves)
+        self.amp = 1.0 / np.sqrt(self.k)
+        self.amp /= self.amp.sum()
+
+    def __call__(self, gx: np.ndarray, gy: np.ndarray) -> np.ndarray:
+        acc = np.zeros_like(gx)
+        for k, th, ph, a in zip(self.k, self.theta, self.phase, self.amp):
+            acc += a * np.sin(k * (gx * np.cos(th) + gy * np.sin(th)) + ph)
+        # sparse dark pebbles and shell fragments: a thresholded high-frequency pattern
+        grit = np.sin(61.0 * gx + 3.0 * np.sin(17.0 * gy)) * np.sin(53.0 * gy + 2.0 * np.sin(23.0 * gx))
+        return 0.55 + 0.10 * acc - 0.12 * (grit > 0.93)
+
+
+def footprint(altitude: float, camera: CameraModel | None = None) -> tuple[float, float]:
+    """Width and height (m) of the seafloor in frame at ``altitude``."""
+    cam = camera or CameraModel()
+    w = 2 * altitude * np.tan(np.deg2rad(cam.hfov_deg) / 2)
+    return float(w), float(w * cam.height / cam.width)
+
+
+def render_frame(
+    height_fn: HeightFn,
+    x: float,
+    y: float,
+    vehicle_z: float,
+    heading_deg: float,
+    *,
+    targets: Sequence[Box] = (),
+    texture: SandTexture | None = None,
+    camera: CameraModel | None = None,
+    rng: np.random.Generator | None = None,
+    grey: bool = False,
+) -> np.ndarray:
+    """A frame from a camera at (x, y, vehicle_z) looking down; uint8 (H, W, 3) or (H, W) if grey."""
+    cam = camera or CameraModel()
+    tex = texture or SandTexture()
+    rng = rng or np.random.default_rng(0)
+    floor_z = float(np.asarray(height_fn(np.array([x]), np.array([y])))[0])
+    altitude = max(vehicle_z - floor_z, 0.3)
+    f = (cam.width / 2) / np.tan(np.deg2rad(cam.hfov_deg) / 2)
+    cols = (np.arange(cam.width) - cam.width / 2 + 0.5) / f
+    rows = (cam.height / 2 - np.arange(cam.height) - 0.5) / f
+    px, py = np.meshgrid(cols, rows)  # image-plane directions, camera frame (right, forward)
+    h = np.deg2rad(heading_deg)
+    # camera right = (cos h, -sin h), forward = (sin h, cos h) for a heading clockwise from north
+    ex, ey = px * np.cos(h) + py * np.sin(h), -px * np.sin(h) + py * np.cos(h)
+    gx, gy = x + ex * altitude, y + ey * altitude
+    gz = height_fn(gx, gy)
+    albedo = tex(gx, gy)
+    top = np.zeros_like(gz, dtype=bool)
+    for box in targets:
+        mask, u, v = box.inside(gx, gy)
+        gz = np.where(mask, gz + box.height, gz)
+        # a wreck: dark corroded panels, bright encrusting growth, a frame of hard dark edges
+        clutter = np.sin(5.3 * u + 2.0 * np.sin(3.1 * v)) * np.cos(6.7 * v + 1.5 * np.sin(4.3 * u))
+        paint = 0.16 + 0.06 * clutter + 0.5 * (tex(gx * 2.3, gy * 1.9) - 0.55)
+        growth = clutter > 0.8
+        edge = (np.abs(np.abs(u) - box.length / 2) < 0.1) | (np.abs(np.abs(v) - box.width / 2) < 0.1)
+        albedo = np.where(mask, np.where(edge, 0.10, np.where(growth, 0.42, paint)), albedo)
+        top |= mask
+    # surface normals from the height field (finite differences in image space)
+    dzx = np.gradient(gz, axis=1) / np.maximum(np.gradient(gx, axis=1) ** 2 + np.gradient(gy, axis=1) ** 2, 1e-9) ** 0.5
+    dzy = np.gradient(gz, axis=0) / np.maximum(np.gradient(gx, axis=0) ** 2 + np.gradient(gy, axis=0) ** 2, 1e-9) ** 0.5
+    normal_z = 1.0 / np.sqrt(1.0 + dzx**2 + dzy**2)
+    rng_m = np.sqrt((gx - x) ** 2 + (gy - y) ** 2 + (vehicle_z - gz) ** 2)
+    cos_in = np.clip(normal_z * (vehicle_z - gz) / np.maximum(rng_m, 1e-6), 0.0, 1.0)
+    falloff = (altitude / np.maximum(rng_m, 0.1)) ** 2
+    vignette = (1.0 + px**2 + py**2) ** -1.0
+    # light relative to the centre of the frame, then an overall loss that grows with altitude
+    light = cos_in * falloff * vignette * np.exp(-2 * cam.attenuation * (rng_m - altitude))
+    signal = cam.gain * albedo * light * np.exp(-0.05 * max(altitude - 3.0, 0.0))
+    haze = 12.0 * (1.0 - np.exp(-cam.attenuation * altitude)) * vignette
+    channels = []
+    for tint in cam.tint:
+        chan = (signal + haze) * tint + rng.normal(0.0, cam.noise, signal.shape)
+        channels.append(chan)
+    img = np.clip(np.stack(channels, axis=-1), 0, 255).astype(np.uint8)
+    if grey:
+        g = 0.299 * img[..., 0] + 0.587 * img[..., 1] + 0.114 * img[..., 2]
+        return np.round(g).astype(np.uint8)
+    return img
