@@ -53,6 +53,15 @@ def mutate(rng: random.Random, data: bytes) -> bytes:
     return bytes(b)
 
 
+def _cpu_time(fn: object, data: bytes) -> float:
+    t0 = time.process_time()
+    try:
+        fn(data)  # type: ignore[operator]
+    except Exception:
+        pass
+    return time.process_time() - t0
+
+
 def run(n: int, seed: int) -> dict[str, object]:
     rng = random.Random(seed)
     corpus = seeds()
@@ -77,6 +86,10 @@ def run(n: int, seed: int) -> dict[str, object]:
             else:
                 escapes.append("...")
         dt = time.process_time() - t0
+        if dt > SLOW_S:
+            # a decode is deterministic: time it again and keep the fastest of three, so that a
+            # page fault or a busy machine is not blamed on the decoder
+            dt = min(dt, *(_cpu_time(fn, data) for _ in range(2)))
         worst = max(worst, dt)
         if dt > SLOW_S:
             slow += 1
