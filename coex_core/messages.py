@@ -52,7 +52,10 @@ __all__ = [
     "TransferProgress",
     # time series
     "TimeSeriesChannel",
+    "Wavelet",
     "TimeSeriesChunk",
+    "TimeSeriesPart",
+    "TimeSeriesAck",
     "TimeSeriesRequest",
 ]
 
@@ -458,22 +461,65 @@ class TimeSeriesChannel(Message):
     resolution: float
 
 
+class Wavelet(enum.IntEnum):
+    """The wavelet of a time-series block (PyWavelets names: haar, bior2.2, bior4.4, db4)."""
+
+    HAAR = 0
+    BIOR22 = 1
+    BIOR44 = 2
+    DB4 = 3
+
+
 @dataclass(frozen=True, slots=True)
 class TimeSeriesChunk(Message):
-    """A self-contained piece of one channel's wavelet code for a block of samples."""
+    """A self-contained piece of one refinement pass of one block of a channel.
+
+    A block is ``count`` samples on the regular grid ``t_i = start + offset + i * period``.
+    Pass ``level`` 0 is the coarse overview (approximation plus the largest details); pass
+    ``p > 0`` codes the residual left by passes ``0..p-1``. The chunk holds the quantised
+    wavelet coefficients ``[first, end)`` of the pass (flat order: approximation first, then
+    details coarse to fine), or all of them when ``first``/``end`` are ``None``; a coefficient
+    is ``q * step_value(step)``. ``error`` codes the maximum absolute error of the block once
+    passes ``0..level`` are all held (see ``docs/timeseries.md`` for the codes and ``data``)."""
 
     channel: int
     start: int
+    offset: float
     period: float
     count: int
+    wavelet: Wavelet
     level: int
     step: int
+    error: int
+    first: int | None
+    end: int | None
     data: bytes
 
 
 @dataclass(frozen=True, slots=True)
+class TimeSeriesPart:
+    """Names one chunk: its block (``start``, ``offset``), pass ``level`` and ``first``
+    coefficient (0 for a chunk that holds the whole pass)."""
+
+    start: int
+    offset: float
+    level: int
+    first: int
+
+
+@dataclass(frozen=True, slots=True)
+class TimeSeriesAck(Message):
+    """Topside ack: the channel's registration (``registered``) and chunks it now holds."""
+
+    channel: int
+    registered: bool
+    parts: tuple[TimeSeriesPart, ...]
+
+
+@dataclass(frozen=True, slots=True)
 class TimeSeriesRequest(Message):
-    """Topside request: a channel's window ``[start, end]`` refined down to ``max_error``."""
+    """Topside request: refine every block of a channel that overlaps the window
+    ``[start, end]`` (stamps) until its maximum absolute error is at most ``max_error``."""
 
     command_id: int
     channel: int

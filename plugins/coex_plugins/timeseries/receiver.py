@@ -1,0 +1,371 @@
+"""The topside side of the time-series modality: reconstruction, error bounds, requests, CSV."""
+
+from __future__ import annotations
+
+import csv
+import io
+import logging
+import math
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from coex_core.errors import ConfigError, RequestRejected
+from coex_core.messages import (
+    Message,
+    TimeSeriesAck,
+    TimeSeriesChannel,
+    TimeSeriesChunk,
+    TimeSeriesPart,
+    TimeSeriesRequest,
+    Wavelet,
+)
+from coex_core.modality import ModalityReceiver, Product
+from coex_core.timefmt import to_stamp, unwrap
+
+from . import codec
+
+__all__ = ["Series", "TimeSeriesReceiver"]
+
+log = logging.getLogger(__name__)
+MAX_ACK_PARTS = 40
+
+
+@dataclass(frozen=True)
+class Series:
+    """A channel's reconstruction: sample times, values and the error bound of each value
+    (``inf`` where the bound is unknown because a pass is incomplete)."""
+
+    channel: int
+    name: str
+    unit: str
+    times: np.ndarray
+    values: np.ndarray
+    bounds: np.ndarray
+
+    @property
+    def max_bound(self) -> float:
+        return float(self.bounds.max()) if self.bounds.size else math.inf
+
+
+@dataclass
+class _Part:
+    end: int
+    step: int
+    error: int
+    codes: np.ndarray
+
+
+@dataclass
+class _RBlock:
+    start: float
+    period: float
+    count: int
+    wavelet: Wavelet
+    passes: dict[int, dict[int, _Part]] = field(default_factory=dict)
+    cache: tuple[np.ndarray, float] | None = None
+
+    @property
+    def end(self) -> float:
+        return self.start + (self.count - 1) * self.period
+
+    def complete(self, level: int) -> bool:
+        parts = self.passes.get(level)
+        if not parts:
+            return False
+        total = codec.layout(self.count, self.wavelet).total
+        pos = 0
+        for first in sorted(parts):
+            if first > pos:
+                return False
+            pos = max(pos, parts[first].end)
+        return pos >= total
+
+    def reconstruct(self) -> tuple[np.ndarray, float] | None:
+        """Values and bound from the complete passes ``0..P`` (or partial pass 0, bound inf)."""
+        if self.cache is not None:
+            return self.cache
+        total = codec.layout(self.count, self.wavelet).total
+        top = -1
+        while self.complete(top + 1):
+            top += 1
+        levels = list(range(top + 1)) if top >= 0 else ([0] if 0 in self.passes else [])
+        if not levels:
+            return None
+        flat = np.zeros(total)
+        error = 255
+        for level in levels:
+            for first, part in self.passes[level].items():
+                flat[first:part.end] += part.codes * codec.code_value(part.step)
+                error = part.error
+        bound = codec.code_value(error) if top >= 0 else math.inf
+        self.cache = (codec.synthesise(flat, self.count, self.wavelet), bound)
+        return self.cache
+
+    def bound(self) -> float:
+        r = self.reconstruct()
+        return math.inf if r is None else r[1]
+
+
+@dataclass
+class _RChannel:
+    cid: int
+    registration: TimeSeriesChannel | None = None
+    ack_registration: bool = False
+    blocks: dict[tuple[int, float], _RBlock] = field(default_factory=dict)
+    to_ack: list[TimeSeriesPart] = field(default_factory=list)
+    version: int = 0
+
+    @property
+    def name(self) -> str:
+        return self.registration.name if self.registration else f"channel{self.cid}"
+
+
+@dataclass
+class _Pending:
+    request: TimeSeriesRequest
+    t0: float
+    t1: float
+    sent_at: float | None = None
+    tries: int = 0
+
+
+class TimeSeriesReceiver(ModalityReceiver):
+    """Takes channel registrations and chunks, acks them, tracks requests, reconstructs.
+
+    Configuration: ``request_retry`` (120 s: an unsatisfied request is sent again after this
+    long), ``request_tries`` (10: then it is dropped).
+    """
+
+    def __init__(self, config: Mapping[str, Any] | None = None) -> None:
+        config = dict(config or {})
+        unknown = set(config) - {"request_retry", "request_tries"}
+        if unknown:
+            raise ConfigError(f"unknown time-series receiver options: {sorted(unknown)}")
+        try:
+            self.request_retry = float(config.get("request_retry", 120.0))
+            self.request_tries = int(config.get("request_tries", 10))
+        except (TypeError, ValueError) as exc:
+            raise ConfigError(f"invalid time-series receiver option: {exc}") from exc
+        if not (self.request_retry > 0 and self.request_tries > 0):
+            raise ConfigError("request_retry and request_tries must be positive")
+        self._channels: dict[int, _RChannel] = {}
+        self._pending: list[_Pending] = []
+        self._command = 0
+        self.ignored = 0  # chunks that were well-formed on the wire but inconsistent
+
+    # ------------------------------------------------------------------- receive
+
+    def _ch(self, cid: int) -> _RChannel:
+        ch = self._channels.get(cid)
+        if ch is None:
+            ch = self._channels[cid] = _RChannel(cid)
+        return ch
+
+    def receive(self, message: Message, now: float) -> list[Product]:
+        if isinstance(message, TimeSeriesChannel):
+            ch = self._ch(message.channel)
+            ch.ack_registration = True
+            if ch.registration != message:
+                ch.registration = message
+                ch.version += 1
+                return [self._product(ch)]
+            return []
+        if isinstance(message, TimeSeriesChunk):
+            return self._chunk(message, now)
+        return []
+
+    def _chunk(self, m: TimeSeriesChunk, now: float) -> list[Product]:
+        ch = self._ch(m.channel)
+        key = (m.start, m.offset)
+        lay = codec.layout(m.count, m.wavelet)
+        first, end = (0, lay.total) if m.first is None else (m.first, m.end or 0)
+        if not first < end <= lay.total:
+            self.ignored += 1
+            log.warning("chunk of channel %d covers [%d, %d) outside 0..%d", m.channel, first, end, lay.total)
+            return []
+        block = ch.blocks.get(key)
+        if block is not None and (block.count, block.period, block.wavelet) != (m.count, m.period, m.wavelet):
+            self.ignored += 1
+            log.warning("chunk of channel %d disagrees with its block's geometry", m.channel)
+            return []
+        try:
+            codes = codec.decode_codes(m.data, end - first, lay.n_approx, allow_dpcm=first == 0)
+        except codec.CodeError as exc:
+            self.ignored += 1
+            log.warning("undecodable chunk of channel %d: %s", m.channel, exc)
+            return []
+        ch.to_ack.append(TimeSeriesPart(m.start, m.offset, m.level, first))
+        if block is None:
+            block = ch.blocks[key] = _RBlock(unwrap(m.start, now) + m.offset, m.period, m.count, m.wavelet)
+        parts = block.passes.setdefault(m.level, {})
+        if first in parts:
+            return []  # duplicate: acked again, nothing new
+        parts[first] = _Part(end, m.step, m.error, codes)
+        block.cache = None
+        ch.version += 1
+        return [self._product(ch)]
+
+    # ----------------------------------------------------------------- requests
+
+    def request(self, channel: str | int, start: float, end: float,
+                max_error: float | None = None) -> TimeSeriesRequest:
+        """Ask for the window ``[start, end]`` (absolute seconds) of a channel down to
+        ``max_error`` or, when it is ``None``, four times finer than the worst bound held there.
+        The request is sent by :meth:`poll` and repeated until the bound is met."""
+        ch = self._find(channel)
+        if not (math.isfinite(start) and math.isfinite(end) and start <= end):
+            raise RequestRejected(f"invalid window [{start}, {end}]")
+        if max_error is None:
+            held = [b.bound() for b in ch.blocks.values() if b.end >= start and b.start <= end]
+            finite = [h for h in held if math.isfinite(h)]
+            if not finite:
+                raise RequestRejected("no decoded data in that window to refine; give max_error")
+            max_error = max(finite) / 4
+            if ch.registration is not None:
+                max_error = max(max_error, ch.registration.resolution / 2)
+        if not (math.isfinite(max_error) and max_error > 0):
+            raise RequestRejected(f"max_error must be positive, got {max_error}")
+        if ch.registration is not None and max_error < ch.registration.resolution / 2 * (1 - 1e-6):
+            raise RequestRejected(
+                f"max_error {max_error:g} is below half the resolution ({ch.registration.resolution / 2:g})")
+        req = TimeSeriesRequest(self._command, ch.cid, to_stamp(start), to_stamp(end),
+                                float(np.float32(max_error)))
+        self._command = (self._command + 1) % 256
+        self._pending.append(_Pending(req, start, end))
+        return req
+
+    def _find(self, channel: str | int) -> _RChannel:
+        if isinstance(channel, int) and not isinstance(channel, bool):
+            if not 0 <= channel < 32:
+                raise RequestRejected(f"channel id {channel} out of range")
+            return self._ch(channel)
+        for ch in self._channels.values():
+            if ch.registration is not None and ch.registration.name == channel:
+                return ch
+        raise RequestRejected(f"unknown channel {channel!r}")
+
+    def _satisfied(self, p: _Pending) -> bool:
+        ch = self._ch(p.request.channel)
+        blocks = [b for b in ch.blocks.values() if b.end >= p.t0 and b.start <= p.t1 + 1]
+        return bool(blocks) and all(b.bound() <= p.request.max_error for b in blocks)
+
+    def poll(self, now: float) -> list[Message]:
+        out: list[Message] = []
+        for ch in self._channels.values():
+            parts, ch.to_ack = ch.to_ack, []
+            if ch.ack_registration or parts:
+                for i in range(0, max(len(parts), 1), MAX_ACK_PARTS):
+                    out.append(TimeSeriesAck(ch.cid, ch.ack_registration, tuple(parts[i:i + MAX_ACK_PARTS])))
+                ch.ack_registration = False
+        keep = []
+        for p in self._pending:
+            if self._satisfied(p) or p.tries >= self.request_tries:
+                continue
+            keep.append(p)
+            if p.sent_at is None or now - p.sent_at >= self.request_retry or now < p.sent_at:
+                out.append(p.request)
+                p.sent_at = now
+                p.tries += 1
+        self._pending = keep
+        return out
+
+    def pending_requests(self) -> list[TimeSeriesRequest]:
+        """Requests not yet satisfied."""
+        return [p.request for p in self._pending if not self._satisfied(p)]
+
+    # ----------------------------------------------------------------- products
+
+    def series(self, channel: str | int) -> Series:
+        """The reconstruction of one channel (blocks in time order)."""
+        ch = self._find(channel)
+        return self._series(ch)
+
+    def _series(self, ch: _RChannel) -> Series:
+        ts, vs, bs = [], [], []
+        for block in sorted(ch.blocks.values(), key=lambda b: b.start):
+            r = block.reconstruct()
+            if r is None:
+                continue
+            ts.append(block.start + block.period * np.arange(block.count))
+            vs.append(r[0])
+            bs.append(np.full(block.count, r[1]))
+        cat = (lambda a: np.concatenate(a) if a else np.zeros(0))
+        unit = ch.registration.unit if ch.registration else ""
+        return Series(ch.cid, ch.name, unit, cat(ts), cat(vs), cat(bs))
+
+    def _product(self, ch: _RChannel) -> Product:
+        s = self._series(ch)
+        reg = ch.registration
+        meta: dict[str, Any] = {
+            "channel": ch.cid, "name": ch.name, "unit": s.unit, "samples": int(s.times.size),
+            "blocks": len(ch.blocks), "max_bound": s.max_bound if s.times.size else None,
+        }
+        if reg is not None:
+            meta.update(lo=reg.lo, hi=reg.hi, resolution=reg.resolution)
+        return Product("series", ch.name, ch.version, s, meta)
+
+    def products(self) -> list[Product]:
+        return [self._product(ch) for _, ch in sorted(self._channels.items())]
+
+    def bounds(self, channel: str | int) -> list[tuple[float, float, float]]:
+        """``(start, end, bound)`` of every block held for a channel (``inf``: incomplete)."""
+        ch = self._find(channel)
+        return [(b.start, b.end, b.bound()) for b in sorted(ch.blocks.values(), key=lambda b: b.start)]
+
+    # ---------------------------------------------------------------------- CSV
+
+    def to_csv(self, target: str | Path | io.TextIOBase | None = None,
+               times: Sequence[float] | np.ndarray | None = None,
+               channels: Sequence[str | int] | None = None) -> str:
+        """Export ``time``, one column per channel, then one ``<name>_bound`` column each.
+
+        Values are given at ``times`` (linear interpolation of each block's grid; empty where
+        no block covers the time), or at the union of the channels' grid times. Returns the
+        text and writes it to ``target`` when given."""
+        chans = [self._find(c) for c in channels] if channels is not None else [
+            ch for _, ch in sorted(self._channels.items())]
+        series = [self._series(ch) for ch in chans]
+        if times is None:
+            grid = np.unique(np.concatenate([s.times for s in series])) if series else np.zeros(0)
+        else:
+            grid = np.asarray(times, dtype=np.float64)
+        cols_v, cols_b = [], []
+        for s in series:
+            v, b = _sample(s, grid)
+            cols_v.append(v)
+            cols_b.append(b)
+        buf = io.StringIO()
+        w = csv.writer(buf, lineterminator="\n")
+        w.writerow(["time", *(s.name for s in series), *(f"{s.name}_bound" for s in series)])
+        table = [np.char.mod("%.3f", grid)]
+        table += [np.where(np.isnan(c), "", np.char.mod("%.10g", c)) for c in cols_v + cols_b]
+        if grid.size:
+            w.writerows(np.stack(table, axis=1).tolist())
+        text = buf.getvalue()
+        if isinstance(target, str | Path):
+            Path(target).write_text(text)
+        elif target is not None:
+            target.write(text)
+        return text
+
+
+def _sample(s: Series, grid: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Values and bounds of a series at ``grid`` times (NaN where no block covers them)."""
+    v = np.full(grid.size, np.nan)
+    b = np.full(grid.size, np.nan)
+    if not s.times.size or not grid.size:
+        return v, b
+    # blocks are contiguous runs of the grid; interpolate inside each block only
+    gaps = np.flatnonzero(np.diff(s.times) > 1.5 * np.median(np.diff(s.times))) if s.times.size > 1 else []
+    bounds = np.split(np.arange(s.times.size), np.asarray(gaps) + 1)
+    for idx in bounds:
+        t = s.times[idx]
+        half = 0.5 * (t[1] - t[0]) if t.size > 1 else 0.5
+        inside = (grid >= t[0] - half) & (grid <= t[-1] + half)
+        v[inside] = np.interp(grid[inside], t, s.values[idx])
+        b[inside] = np.interp(grid[inside], t, s.bounds[idx])
+    return v, b
