@@ -44,17 +44,21 @@ from .products import (
     vehicle_status_to_lcm,
 )
 
-__all__ = ["load_modalities", "replay_log", "write_products"]
+__all__ = ["load_modalities", "modality_names", "replay_log", "write_products"]
 
 log = logging.getLogger(__name__)
+
+
+def modality_names() -> list[str]:
+    """Names registered in the ``coex.modalities`` entry-point group."""
+    return sorted({ep.name for ep in metadata.entry_points(group=registry.MODALITY_GROUP)})
 
 
 def load_modalities() -> tuple[dict[str, Modality], dict[str, str]]:
     """Instantiate every registered modality; return ``(loaded, unavailable name -> reason)``."""
     loaded: dict[str, Modality] = {}
     unavailable: dict[str, str] = {}
-    names = sorted(ep.name for ep in metadata.entry_points(group=registry.MODALITY_GROUP))
-    for name in dict.fromkeys(names):
+    for name in modality_names():
         try:
             loaded[name] = registry.load_modality(name)()
         except Exception as exc:  # a broken or uninstallable plugin must not stop a replay
