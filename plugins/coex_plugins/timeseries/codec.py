@@ -130,7 +130,8 @@ def analyse(x: np.ndarray, wavelet: Wavelet) -> np.ndarray:
     if lay.level == 0:
         return np.array(x, dtype=np.float64)
     coeffs = pywt.wavedec(x, WAVELET_NAMES[lay.wavelet], mode=MODE, level=lay.level, axis=-1)
-    return np.concatenate(coeffs, axis=-1)
+    flat: np.ndarray = np.concatenate(coeffs, axis=-1)
+    return flat
 
 
 def synthesise(flat: np.ndarray, count: int, wavelet: Wavelet) -> np.ndarray:
@@ -170,7 +171,8 @@ class Pass:
 
 
 def _quantise(w: np.ndarray, steps: np.ndarray) -> np.ndarray:
-    return np.rint(w[None, :] / steps[:, None])
+    q: np.ndarray = np.rint(w[None, :] / steps[:, None])
+    return q
 
 
 def make_pass(x: np.ndarray, recon: np.ndarray, target: float, wavelet: Wavelet) -> tuple[Pass, np.ndarray]:
@@ -286,7 +288,8 @@ def _from_fixed(bits: np.ndarray, n: int, k: int) -> np.ndarray:
     if k == 0:
         return np.zeros(n, dtype=np.int64)
     weights = (1 << np.arange(k - 1, -1, -1)).astype(np.int64)
-    return (bits.reshape(n, k).astype(np.int64) * weights[None, :]).sum(axis=1)
+    out: np.ndarray = (bits.reshape(n, k).astype(np.int64) * weights[None, :]).sum(axis=1)
+    return out
 
 
 def decode_codes(data: bytes, length: int, n_approx: int = 0, allow_dpcm: bool = True) -> np.ndarray:

@@ -28,7 +28,7 @@ from coex_core.timefmt import to_stamp, unwrap
 
 from . import codec
 
-__all__ = ["Series", "TimeSeriesReceiver"]
+__all__ = ["Series", "TimeSeriesReceiver", "sample_series"]
 
 log = logging.getLogger(__name__)
 MAX_ACK_PARTS = 40
@@ -293,9 +293,8 @@ class TimeSeriesReceiver(ModalityReceiver):
             ts.append(block.start + block.period * np.arange(block.count))
             vs.append(r[0])
             bs.append(np.full(block.count, r[1]))
-        cat = (lambda a: np.concatenate(a) if a else np.zeros(0))
         unit = ch.registration.unit if ch.registration else ""
-        return Series(ch.cid, ch.name, unit, cat(ts), cat(vs), cat(bs))
+        return Series(ch.cid, ch.name, unit, _cat(ts), _cat(vs), _cat(bs))
 
     def _product(self, ch: _RChannel) -> Product:
         s = self._series(ch)
@@ -335,7 +334,7 @@ class TimeSeriesReceiver(ModalityReceiver):
             grid = np.asarray(times, dtype=np.float64)
         cols_v, cols_b = [], []
         for s in series:
-            v, b = _sample(s, grid)
+            v, b = sample_series(s, grid)
             cols_v.append(v)
             cols_b.append(b)
         buf = io.StringIO()
@@ -353,15 +352,22 @@ class TimeSeriesReceiver(ModalityReceiver):
         return text
 
 
-def _sample(s: Series, grid: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def _cat(arrays: list[np.ndarray]) -> np.ndarray:
+    return np.concatenate(arrays) if arrays else np.zeros(0)
+
+
+def sample_series(s: Series, grid: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Values and bounds of a series at ``grid`` times (NaN where no block covers them)."""
     v = np.full(grid.size, np.nan)
     b = np.full(grid.size, np.nan)
     if not s.times.size or not grid.size:
         return v, b
     # blocks are contiguous runs of the grid; interpolate inside each block only
-    gaps = np.flatnonzero(np.diff(s.times) > 1.5 * np.median(np.diff(s.times))) if s.times.size > 1 else []
-    bounds = np.split(np.arange(s.times.size), np.asarray(gaps) + 1)
+    gaps = np.zeros(0, dtype=np.int64)
+    if s.times.size > 1:
+        d = np.diff(s.times)
+        gaps = np.flatnonzero(d > 1.5 * np.median(d))
+    bounds = np.split(np.arange(s.times.size), gaps + 1)
     for idx in bounds:
         t = s.times[idx]
         half = 0.5 * (t[1] - t[0]) if t.size > 1 else 0.5

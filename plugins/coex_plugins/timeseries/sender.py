@@ -17,7 +17,6 @@ from coex_core.messages import (
     TimeSeriesChannel,
     TimeSeriesChunk,
     TimeSeriesRequest,
-    Wavelet,
 )
 from coex_core.modality import ModalitySender
 from coex_core.timefmt import unwrap

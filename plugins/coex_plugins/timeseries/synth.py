@@ -67,7 +67,8 @@ def _drift(t: np.ndarray, scale: float, hours: tuple[float, ...], rng: np.random
     kernel = np.hanning(601)
     smooth = np.convolve(walk, kernel / kernel.sum(), mode="same")
     smooth -= smooth.mean()
-    return d + 0.2 * scale * smooth / max(float(np.std(smooth)), 1e-12)
+    out: np.ndarray = d + 0.2 * scale * smooth / max(float(np.std(smooth)), 1e-12)
+    return out
 
 
 def _quantise(x: np.ndarray, res: float) -> np.ndarray:
@@ -78,7 +79,7 @@ def methane(duration: float = 21600.0, period: float = 1.0, seed: int = 0, t0: f
             jitter: float = 0.0, n_spikes: int = 6) -> SynthSeries:
     """Dissolved methane (nmol/L): drift around 3 nM, 0.01 nM noise, ``n_spikes`` short spikes."""
     rng = np.random.default_rng(seed)
-    n = int(round(duration / period))
+    n = round(duration / period)
     t = _times(n, period, t0, jitter, rng)
     base = 3.0 + _drift(t, 0.4, (5.0, 1.7), rng)
     spikes = []
@@ -103,7 +104,7 @@ def temperature(duration: float = 21600.0, period: float = 1.0, seed: int = 0, t
                 jitter: float = 0.0) -> SynthSeries:
     """Temperature (degC): drift around 4 degC of a few tenths, 1 mK noise, no spikes."""
     rng = np.random.default_rng(seed + 1)
-    n = int(round(duration / period))
+    n = round(duration / period)
     t = _times(n, period, t0, jitter, rng)
     base = 4.0 + _drift(t, 0.15, (6.0, 2.3, 0.7), rng)
     values = base + rng.normal(0.0, 0.001, n)
