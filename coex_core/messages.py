@@ -377,11 +377,14 @@ class ImageAnnounce(Message):
 class ImageFragment(Message):
     """Bytes ``[offset, offset + len(data))`` of an image's codestream body.
 
-    ``packets`` lists the offsets, relative to ``offset``, at which a JPEG 2000 packet starts
-    inside ``data`` so the receiver can decode whole packets only."""
+    ``packet`` is the index (in codestream order) of the JPEG 2000 packet that holds
+    ``data[0]``; ``packets`` lists the offsets, relative to ``offset`` and increasing, at which
+    a packet starts inside ``data`` (the first is 0 when ``data`` starts packet ``packet``).
+    With them the receiver decodes whole packets only and repairs around a lost fragment."""
 
     image_id: int
     offset: int
+    packet: int
     packets: tuple[int, ...]
     data: bytes
 

@@ -20,9 +20,12 @@ from ._registry import MessageSpec, register
 
 IMAGE_ID = Bounded(0, 1023) * "Image id (wraps at 1024)"
 OFFSET_MAX = 2**20 - 1
-#: Largest fragment payload: keeps a fragment inside one 256-byte sub-frame.
-MAX_FRAGMENT_DATA = 224
+#: Largest fragment payload: a fragment with every packet mark still fits in 251 bytes
+#: (a 256-byte sub-frame with header and CRC).
+MAX_FRAGMENT_DATA = 227
 MAX_PACKET_MARKS = 15
+#: Packets in one codestream: at most 32 layers x 8 resolutions x 3 components.
+MAX_PACKET_INDEX = 1023
 MAX_ACK_RANGES = 15
 MAX_NEXT_IMAGES = 8
 
@@ -41,9 +44,10 @@ IMAGE_ANNOUNCE = Body(
 IMAGE_FRAGMENT = Body(
     "image_id" / IMAGE_ID,
     "offset" / Bounded(0, OFFSET_MAX, unit="B") * "Offset of data in the codestream body",
+    "packet" / Bounded(0, MAX_PACKET_INDEX) * "Index of the JPEG 2000 packet holding the first data byte",
     "n_packets" / Count(0, MAX_PACKET_MARKS, "packets"),
-    "packets" / cs.Array(cs.this.n_packets, Bounded(0, MAX_FRAGMENT_DATA - 1, unit="B"))
-    * "Offsets in data where a JPEG 2000 packet starts",
+    "packets" / cs.Array(cs.this.n_packets, Bounded(0, 255, unit="B"))
+    * "Offsets in data where a packet starts, increasing (0 = data starts packet `packet`)",
     "data" / RawBytes(max_len=MAX_FRAGMENT_DATA) * "Codestream bytes",
 )
 
@@ -81,7 +85,9 @@ TRANSFER_PROGRESS = Body(
     "next_images" / cs.Array(cs.this.n_next, Bounded(0, 1023)) * "Images to be sent next, in order",
 )
 
-_BIG_FRAG = ImageFragment(1023, OFFSET_MAX, tuple(range(MAX_PACKET_MARKS)), b"\xff" * MAX_FRAGMENT_DATA)
+_BIG_FRAG = ImageFragment(
+    1023, OFFSET_MAX, MAX_PACKET_INDEX, tuple(range(MAX_PACKET_MARKS)), b"\xff" * MAX_FRAGMENT_DATA
+)
 _BIG_ACK = ImageAck(1023, OFFSET_MAX, (ByteRange(OFFSET_MAX, OFFSET_MAX),) * MAX_ACK_RANGES)
 
 register(MessageSpec(
@@ -97,8 +103,9 @@ register(MessageSpec(
     33, ImageFragment, IMAGE_FRAGMENT, True, "imagery", "Bytes of an image's codestream body.",
     largest=lambda: _BIG_FRAG,
     cases=lambda: [
-        ("empty", ImageFragment(0, 0, (), b"")),
-        ("first_packet", ImageFragment(5, 0, (0, 37), bytes(range(60)))),
+        ("empty", ImageFragment(0, 0, 0, (), b"")),
+        ("first_packet", ImageFragment(5, 0, 0, (0, 37), bytes(range(60)))),
+        ("inside_packet", ImageFragment(17, 3120, 41, (), bytes(range(200)))),
         ("largest", _BIG_FRAG),
     ],
 ))

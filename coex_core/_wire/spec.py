@@ -183,7 +183,7 @@ FRAME_CASES: list[tuple[str, FrameHeader, list[Message], int]] = [
     ("third_party", FrameHeader(src=15, dst=0, seq=0),
      [Opaque(96, b"\x01\x02"), Opaque(32767, b""), Opaque(200, bytes(range(16)))], 256),
     ("fragment_fills_subframe", FrameHeader(src=2, dst=1, seq=3, crc=True),
-     [ImageFragment(9, 640, (0,), bytes(224))], 256),
+     [ImageFragment(9, 640, 12, (0,), bytes(224))], 256),
 ]
 
 
@@ -225,7 +225,7 @@ def _invalid_cases() -> list[tuple[str, str, bytes, str]]:
         ("fragment_length_too_long", "message", bytes.fromhex("21ff0100"), "truncated"),
         ("fragment_length_short", "message", bytes.fromhex("2102000000"), "truncated"),
         ("fragment_data_too_large", "message",
-         bytes.fromhex("21e601") + bytes(5) + bytes(225), "exceed"),
+         bytes.fromhex("21ea01") + bytes(6) + bytes(228), "exceed"),
         ("trailing_bytes", "message", _codec.encode(CommandAck(1, AckStatus.ACCEPTED)) + b"\x01", "after"),
         ("frame_too_short", "frame", b"\x40\x00", "truncated"),
         ("frame_bad_version", "frame", bytes.fromhex("800000"), "bad frame header"),

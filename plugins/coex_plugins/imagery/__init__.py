@@ -1,0 +1,45 @@
+"""Progressive imagery: JPEG 2000 (glymur / OpenJPEG) over a lossy acoustic link.
+
+See ``docs/imagery.md``. The vehicle side (:class:`ImagerySender`) encodes each image, announces
+it, sends it to a default set-point in capture order and serves operator goals first, with
+selective acks and retransmission; the topside side (:class:`ImageryReceiver`) rebuilds the
+JPEG 2000 header from a few parameter bits, decodes whole packets only (repairing around lost
+fragments) and produces an improved image after every useful fragment.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from typing import Any, ClassVar
+
+from coex_core.messages import (
+    ImageAck,
+    ImageAnnounce,
+    ImageByTimeRequest,
+    ImageFragment,
+    ImageGoal,
+    Message,
+    TransferProgress,
+)
+from coex_core.modality import Modality
+
+from .codec import CodingParams, encode_image
+from .receiver import ImageryReceiver
+from .sender import ImageInput, ImagerySender
+
+__all__ = ["CodingParams", "ImageInput", "ImageryModality", "ImageryReceiver", "ImagerySender", "encode_image"]
+
+
+class ImageryModality(Modality):
+    """The ``imagery`` modality plugin."""
+
+    name: ClassVar[str] = "imagery"
+    version: ClassVar[str] = "1.0"
+    messages: ClassVar[tuple[type[Message], ...]] = (ImageAnnounce, ImageFragment, TransferProgress)
+    requests: ClassVar[tuple[type[Message], ...]] = (ImageAck, ImageGoal, ImageByTimeRequest)
+
+    def sender(self, config: Mapping[str, Any] | None = None) -> ImagerySender:
+        return ImagerySender(config)
+
+    def receiver(self, config: Mapping[str, Any] | None = None) -> ImageryReceiver:
+        return ImageryReceiver(config)

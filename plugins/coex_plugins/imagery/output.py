@@ -1,0 +1,48 @@
+"""Writing topside images: ``image_<id>.tiff`` and ``image_<id>.png`` after every improvement."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from coex_core.modality import Product
+
+__all__ = ["ImageWriter", "write_png", "write_tiff"]
+
+
+def write_png(path: str | Path, image: Any) -> None:
+    from PIL import Image
+
+    a = np.asarray(image, np.uint8)
+    tmp = f"{path}.part"
+    Image.fromarray(a).save(tmp, format="PNG")
+    os.replace(tmp, path)
+
+
+def write_tiff(path: str | Path, image: Any, description: str = "") -> None:
+    import tifffile
+
+    tmp = f"{path}.part"
+    tifffile.imwrite(tmp, np.asarray(image, np.uint8), description=description or None)
+    os.replace(tmp, path)
+
+
+class ImageWriter:
+    """A product listener that writes each improved image (atomically: write, then rename)."""
+
+    def __init__(self, out_dir: str | Path) -> None:
+        self.out_dir = Path(out_dir)
+        self.out_dir.mkdir(parents=True, exist_ok=True)
+        self.written = 0
+
+    def __call__(self, product: Product) -> None:
+        if product.kind != "image" or product.data is None:
+            return
+        base = self.out_dir / f"image_{int(product.meta['image_id']):04d}"
+        desc = f"coex image {product.key} version {product.version} bytes {product.meta.get('bytes_used')}"
+        write_tiff(f"{base}.tiff", product.data, desc)
+        write_png(f"{base}.png", product.data)
+        self.written += 1

@@ -1,0 +1,355 @@
+"""The subsea side of the imagery modality: announce, goals, selective repeat.
+
+Memory and queue bounds (documented in ``docs/imagery.md``):
+
+* at most ``max_images`` images are kept (default 64). Each keeps its body (at most the last
+  layer target, 20,480 B by default), a byte map of what topside acknowledged (1 B per body
+  byte) and the last send time of each byte (8 B per body byte): about 0.2 MB per image,
+  13 MB for 64 images. When full, ingesting evicts the oldest image that needs nothing more,
+  else the oldest without an operator goal, else the oldest image.
+* the list of fragments sent but not yet acknowledged (for ``TransferProgress``) holds at most
+  1024 entries.
+* an image with an operator goal is served before every default transfer and is never evicted
+  while another image can go instead; retransmission only resends bytes that were sent at least
+  ``rto`` seconds ago and are still unacknowledged, so a lost ack costs one resend, never a stall.
+"""
+
+from __future__ import annotations
+
+from collections import deque
+from collections.abc import Mapping
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+import numpy.typing as npt
+
+from coex_core.errors import ConfigError, RequestRejected
+from coex_core.messages import (
+    AckStatus,
+    CommandAck,
+    GoalKind,
+    ImageAck,
+    ImageAnnounce,
+    ImageByTimeRequest,
+    ImageFragment,
+    ImageGoal,
+    Message,
+    TimeDirection,
+    TransferProgress,
+)
+from coex_core.modality import ModalitySender
+from coex_core.timefmt import to_stamp, unwrap
+from coex_core.wire import encoded_size
+
+from .codec import CodingParams, Encoded, encode_image
+from .goals import Goal, parse_goal
+
+__all__ = ["ImageInput", "ImagerySender", "fragment_size"]
+
+MAX_FRAGMENT_DATA = 227
+MAX_MARKS = 15
+MAX_NEXT = 8
+_FRAG_FIXED_BITS = 10 + 20 + 10 + 4
+
+
+@dataclass(frozen=True)
+class ImageInput:
+    """An image to ingest with its capture time (default: ``now``) and position (metres, local)."""
+
+    image: Any
+    time: float | None = None
+    x: float | None = None
+    y: float | None = None
+
+
+def fragment_size(n_marks: int, n_data: int) -> int:
+    """Encoded bytes of an ``ImageFragment`` with ``n_marks`` packet marks and ``n_data`` data bytes."""
+    body = (_FRAG_FIXED_BITS + 8 * n_marks + 7) // 8 + n_data
+    return 1 + (1 if body < 128 else 2) + body
+
+
+class _Tx:
+    __slots__ = ("image_id", "enc", "time", "x", "y", "announced_at", "heard", "acked", "sent_at",
+                 "default_goal", "goal", "explicit")
+
+    def __init__(self, image_id: int, enc: Encoded, time: float, x: float | None, y: float | None,
+                 default_goal: int) -> None:
+        self.image_id = image_id
+        self.enc = enc
+        self.time = time
+        self.x = x
+        self.y = y
+        self.announced_at: float | None = None
+        self.heard = False
+        n = len(enc.body)
+        self.acked: npt.NDArray[np.bool_] = np.zeros(n, bool)
+        self.sent_at: npt.NDArray[np.float64] = np.full(n, -np.inf)
+        self.default_goal = default_goal
+        self.goal = default_goal
+        self.explicit: int | None = None
+
+    @property
+    def total(self) -> int:
+        return len(self.enc.body)
+
+    def needs(self) -> bool:
+        return self.goal > 0 and not bool(self.acked[: self.goal].all())
+
+    def unacked(self) -> int:
+        return int(self.goal - np.count_nonzero(self.acked[: self.goal])) if self.goal else 0
+
+    def announce(self) -> ImageAnnounce:
+        return ImageAnnounce(self.image_id, to_stamp(self.time), self.x, self.y, self.enc.width,
+                             self.enc.height, self.enc.grey, self.total, self.enc.params)
+
+
+class ImagerySender(ModalitySender):
+    """Subsea side. Configuration keys (all optional):
+
+    * coding: ``progression``, ``resolutions``, ``layer_bytes``, ``irreversible``, ``grey``,
+      ``max_size`` (see :class:`~coex_plugins.imagery.codec.CodingParams`);
+    * ``default_goal`` (``"layer:6"``): the set-point every new image is sent to, in capture order;
+    * ``request_goal`` (same as ``default_goal``): the goal given to an image found by an
+      ``ImageByTimeRequest`` (it is then served first, like an operator goal);
+    * ``max_images`` (64), ``rto`` (30 s: resend unacked bytes after this long),
+      ``progress_interval`` (60 s), ``max_announces`` (2 per fill).
+    """
+
+    def __init__(self, config: Mapping[str, Any] | None = None) -> None:
+        cfg = dict(config or {})
+        self.coding = CodingParams.from_config(cfg)
+        self.default_goal: Goal = parse_goal(cfg.get("default_goal", "layer:6"))
+        self.request_goal: Goal = parse_goal(cfg.get("request_goal", self.default_goal))
+        try:
+            self.max_images = int(cfg.get("max_images", 64))
+            self.rto = float(cfg.get("rto", 30.0))
+            self.progress_interval = float(cfg.get("progress_interval", 60.0))
+            self.max_announces = int(cfg.get("max_announces", 2))
+        except (TypeError, ValueError) as exc:
+            raise ConfigError(f"invalid imagery sender option: {exc}") from exc
+        if not 1 <= self.max_images <= 512:
+            raise ConfigError("max_images must be in 1..512")
+        if self.rto <= 0 or self.progress_interval <= 0 or self.max_announces < 1:
+            raise ConfigError("rto and progress_interval must be positive, max_announces >= 1")
+        self.images: dict[int, _Tx] = {}
+        self._next_id = 0
+        self._request_counter = 0
+        self._inflight: deque[tuple[int, int, int]] = deque(maxlen=1024)
+        self._current: int | None = None
+        self._progress_at = -np.inf
+        self._progress_dirty = False
+        self._last_progress: tuple[Any, ...] | None = None
+        self.evicted = 0
+
+    # ------------------------------------------------------------------ ingest
+
+    def ingest(self, data: Any, now: float) -> None:
+        item = data if isinstance(data, ImageInput) else ImageInput(data)
+        t = float(now if item.time is None else item.time)
+        for v in (item.x, item.y):
+            if v is not None and not (isinstance(v, int | float) and -50000 <= v <= 50000):
+                raise ConfigError(f"position {v!r} outside +-50 km")
+        enc = encode_image(item.image, self.coding)  # raises ConfigError, nothing changed yet
+        if len(self.images) >= self.max_images:
+            self._evict()
+        image_id = self._next_id
+        while image_id in self.images:
+            image_id = (image_id + 1) % 1024
+        self._next_id = (image_id + 1) % 1024
+        tx = _Tx(image_id, enc, t, item.x, item.y, self.default_goal.bytes_for(enc))
+        self.images[image_id] = tx
+
+    def _evict(self) -> None:
+        by_age = sorted(self.images.values(), key=lambda tx: tx.time)
+        for pick in (lambda tx: not tx.needs(), lambda tx: tx.explicit is None, lambda tx: True):
+            victims = [tx for tx in by_age if pick(tx)]
+            if victims:
+                del self.images[victims[0].image_id]
+                self.evicted += 1
+                return
+
+    # ------------------------------------------------------------------ order
+
+    def order(self) -> list[_Tx]:
+        """Images that still need bytes: operator goals (latest first), then capture order."""
+        explicit = [tx for tx in self.images.values() if tx.explicit is not None and tx.needs()]
+        explicit.sort(key=lambda tx: -(tx.explicit or 0))
+        default = [tx for tx in self.images.values() if tx.explicit is None and tx.needs()]
+        default.sort(key=lambda tx: tx.time)
+        return explicit + default
+
+    def pending_bytes(self) -> int:
+        return sum(tx.unacked() for tx in self.images.values())
+
+    def unacked_fragments(self) -> int:
+        n = 0
+        for image_id, start, end in self._inflight:
+            tx = self.images.get(image_id)
+            if tx is not None and not tx.acked[start:end].all():
+                n += 1
+        return n
+
+    def progress(self, now: float) -> TransferProgress:
+        order = self.order()
+        current = self._current if self._current in self.images and self.images[self._current].needs() else None
+        if current is None and order:
+            current = order[0].image_id
+        nxt = tuple(tx.image_id for tx in order if tx.image_id != current)[:MAX_NEXT]
+        return TransferProgress(to_stamp(now), min(len(order), 1023), current,
+                                min(self.unacked_fragments(), 255), nxt)
+
+    # ------------------------------------------------------------------ fill
+
+    def fill(self, max_bytes: int, now: float) -> list[Message]:
+        out: list[Message] = []
+        left = int(max_bytes)
+        if left <= 0:
+            return out
+        # 1. progress report, when due and changed
+        if self.images and (self._progress_dirty or now - self._progress_at >= self.progress_interval):
+            prog = self.progress(now)
+            key = (prog.pending, prog.current, prog.unacked_fragments, prog.next_images)
+            size = encoded_size(prog)
+            if (self._progress_dirty or key != self._last_progress) and size <= left:
+                out.append(prog)
+                left -= size
+                self._progress_at = now
+                self._progress_dirty = False
+                self._last_progress = key
+        # 2. announcements, capture order
+        announces = 0
+        for tx in sorted(self.images.values(), key=lambda t: t.time):
+            if announces >= self.max_announces:
+                break
+            due = tx.announced_at is None or (not tx.heard and now - tx.announced_at >= self.rto)
+            if not due:
+                continue
+            msg = tx.announce()
+            size = encoded_size(msg)
+            if size > left:
+                break
+            out.append(msg)
+            left -= size
+            tx.announced_at = now
+            announces += 1
+        # 3. data: goals first, then the default set-point in capture order
+        for tx in self.order():
+            if tx.announced_at is None:
+                continue
+            while left >= fragment_size(0, 1):
+                frag = self._fragment(tx, left, now)
+                if frag is None:
+                    break
+                out.append(frag)
+                left -= fragment_size(len(frag.packets), len(frag.data))
+                self._current = tx.image_id
+            if left < fragment_size(0, 1):
+                break
+        return out
+
+    def _fragment(self, tx: _Tx, left: int, now: float) -> ImageFragment | None:
+        goal = tx.goal
+        ready = ~tx.acked[:goal] & (tx.sent_at[:goal] <= now - self.rto)
+        if not ready.any():
+            return None
+        pos = int(np.argmax(ready))
+        stop_rel = np.flatnonzero(~ready[pos:])
+        run = int(stop_rel[0]) if len(stop_rel) else goal - pos
+        starts = tx.enc.packet_starts
+        n = min(run, MAX_FRAGMENT_DATA, left - fragment_size(0, 0))
+        while n > 0:
+            lo = int(np.searchsorted(starts, pos, side="left"))
+            hi = int(np.searchsorted(starts, pos + n, side="left"))
+            marks = starts[lo:hi] - pos
+            if len(marks) > MAX_MARKS:
+                n = int(marks[MAX_MARKS])
+                marks = marks[:MAX_MARKS]
+            over = fragment_size(len(marks), n) - left
+            if over <= 0:
+                break
+            n -= over
+        if n <= 0:
+            return None
+        packet = int(np.searchsorted(starts, pos, side="right")) - 1
+        frag = ImageFragment(tx.image_id, pos, packet, tuple(int(m) for m in marks), tx.enc.body[pos:pos + n])
+        tx.sent_at[pos:pos + n] = now
+        self._inflight.append((tx.image_id, pos, pos + n))
+        return frag
+
+    # ------------------------------------------------------------------ requests
+
+    def handle(self, message: Message, now: float) -> list[Message]:
+        if isinstance(message, ImageAck):
+            self._ack(message)
+            return []
+        if isinstance(message, ImageGoal):
+            return self._goal(message)
+        if isinstance(message, ImageByTimeRequest):
+            return self._by_time(message, now)
+        raise RequestRejected(f"imagery sender does not handle {type(message).__name__}")
+
+    def _tx(self, image_id: int) -> _Tx:
+        tx = self.images.get(image_id)
+        if tx is None:
+            raise RequestRejected(f"no image {image_id} on the vehicle")
+        return tx
+
+    def _ack(self, ack: ImageAck) -> None:
+        tx = self._tx(ack.image_id)
+        spans = [(0, ack.contiguous)] + [(r.start, r.end) for r in ack.ranges]
+        for s, e in spans:
+            if not 0 <= s <= e <= tx.total:
+                raise RequestRejected(f"ack range {s}..{e} outside image {ack.image_id} ({tx.total} B)")
+        for s, e in spans:
+            tx.acked[s:e] = True
+        tx.heard = True
+
+    def _goal(self, msg: ImageGoal) -> list[Message]:
+        tx = self._tx(msg.image_id)
+        layers = tx.enc.stream.layers
+        if msg.kind == GoalKind.FRACTION and not 1 <= msg.value <= 100:
+            raise RequestRejected(f"fraction {msg.value} % outside 1..100")
+        if msg.kind == GoalKind.LAYER and not 1 <= msg.value <= layers:
+            raise RequestRejected(f"layer {msg.value} outside 1..{layers}")
+        if msg.kind == GoalKind.SKIP:
+            tx.goal = 0
+            tx.explicit = None
+        else:
+            goal = {GoalKind.FRACTION: Goal("fraction", msg.value), GoalKind.LAYER: Goal("layer", msg.value),
+                    GoalKind.FULL: Goal("full")}[GoalKind(msg.kind)]
+            new = goal.bytes_for(tx.enc)
+            if tx.explicit is None or new != tx.goal:
+                self._request_counter += 1
+                tx.explicit = self._request_counter
+            tx.goal = new
+        self._progress_dirty = True
+        return [CommandAck(msg.command_id, AckStatus.ACCEPTED)]
+
+    def find(self, stamp: int, direction: TimeDirection, now: float) -> _Tx | None:
+        """The image nearest the time of ``stamp``, or the last one before / first one after it."""
+        if not self.images:
+            return None
+        t = unwrap(stamp, now)
+        txs = list(self.images.values())
+        times = np.array([tx.time for tx in txs])
+        if direction == TimeDirection.NEAREST:
+            return txs[int(np.argmin(np.abs(times - t)))]
+        if direction == TimeDirection.BEFORE:
+            idx = np.flatnonzero(times < t - 0.5)
+            return txs[int(idx[np.argmax(times[idx])])] if len(idx) else None
+        idx = np.flatnonzero(times > t + 0.5)
+        return txs[int(idx[np.argmin(times[idx])])] if len(idx) else None
+
+    def _by_time(self, msg: ImageByTimeRequest, now: float) -> list[Message]:
+        tx = self.find(msg.stamp, TimeDirection(msg.direction), now)
+        if tx is None:
+            raise RequestRejected(f"no image {TimeDirection(msg.direction).name.lower()} stamp {msg.stamp}")
+        want = max(self.request_goal.bytes_for(tx.enc), tx.goal)
+        if tx.explicit is None or want != tx.goal:
+            self._request_counter += 1
+            tx.explicit = self._request_counter
+        tx.goal = want
+        tx.announced_at = None if not tx.heard else tx.announced_at  # re-announce if never heard
+        self._progress_dirty = True
+        return [CommandAck(msg.command_id, AckStatus.ACCEPTED)]
