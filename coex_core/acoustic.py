@@ -8,7 +8,7 @@ The model, in order of what happens to a transmission:
    ``airtime(k * frame_bytes)``. The numbers for rates 1, 3 and 5 are fitted through the two packet
    durations ros_acomms' ``mac_utils.py`` gives for each PSK FDP rate (72 B mini-packet and the full
    data packet): rate 1 0.675 s + 641 bit/s (72 B: 1.57 s, 192 B: 3.07 s), rate 3 0.376 s +
-   1519 bit/s (512 B: 3.07 s), rate 5 0.187 s + 5824 bit/s (72 B: 0.29 s, 2048 B: 3.0 s). Rates 0
+   1519 bit/s (512 B: 3.07 s), rate 5 0.187 s + 5830 bit/s (72 B: 0.29 s, 2048 B: 3.0 s). Rates 0
    (FH-FSK, 80 bit/s), 2, 4 and 6 are not in that table; their numbers are estimates from the
    Micromodem's nominal rates and are marked so in :attr:`RateInfo.note`.
 2. **Propagation**: nodes have positions (metres); a packet sent at ``t`` by ``src`` occupies
@@ -87,7 +87,7 @@ RATES: dict[int, RateInfo] = {
     2: RateInfo(2, 64, 3, 0.5, 1200.0, _EST),
     3: RateInfo(3, 256, 2, 0.376, 1519.0, _FIT),
     4: RateInfo(4, 256, 2, 0.3, 2600.0, _EST),
-    5: RateInfo(5, 256, 8, 0.187, 5824.0, _FIT),
+    5: RateInfo(5, 256, 8, 0.187, 5830.0, _FIT),
     6: RateInfo(6, 32, 6, 0.5, 2400.0, _EST),
 }
 

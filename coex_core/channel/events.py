@@ -1,0 +1,130 @@
+"""Events the channel manager and the node report (``events()`` drains them)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+from ..messages import AckStatus, Message
+
+__all__ = [
+    "Acked",
+    "BadFrame",
+    "CommandApplied",
+    "CommandResult",
+    "Dropped",
+    "Event",
+    "LinkChanged",
+    "ProductUpdated",
+    "Received",
+    "Rejected",
+    "ScheduleSwitched",
+    "SenderFailed",
+]
+
+
+@dataclass(frozen=True)
+class Event:
+    time: float
+
+
+@dataclass(frozen=True)
+class SenderFailed(Event):
+    """A modality sender raised (``error``) or overran its deadline (``slow``) while filling a
+    packet; it counted as "no data" for the rest of that packet."""
+
+    stream: int
+    error: str
+    slow: bool = False
+
+
+@dataclass(frozen=True)
+class Dropped(Event):
+    """Messages left a queue unsent: ``reason`` is ``overflow``, ``ttl``, ``flush`` or ``encode``."""
+
+    stream: int
+    reason: str
+    count: int = 1
+
+
+@dataclass(frozen=True)
+class Acked(Event):
+    """An ack-required message was acknowledged (on any link) ``latency`` s after its first send."""
+
+    stream: int
+    message: Message
+    latency: float
+    link: int
+
+
+@dataclass(frozen=True)
+class CommandApplied(Event):
+    """The vehicle handled a topside command and answers with ``status``."""
+
+    command: Message
+    status: AckStatus
+    reason: str = ""
+
+
+@dataclass(frozen=True)
+class CommandResult(Event):
+    """Topside learned the outcome of one of its commands."""
+
+    command_id: int
+    status: AckStatus
+    command: Message | None = None
+
+
+@dataclass(frozen=True)
+class ScheduleSwitched(Event):
+    """A link now runs schedule ``version`` (``reason``: ``activation``, ``watchdog``, ``peer``,
+    ``restore``)."""
+
+    link: int
+    version: int
+    cycle: int
+    reason: str
+
+
+@dataclass(frozen=True)
+class LinkChanged(Event):
+    """A link was enabled/disabled or (un)muted; ``returned`` messages went back to their queues."""
+
+    link: int
+    enabled: bool
+    muted: bool
+    returned: int = 0
+
+
+@dataclass(frozen=True)
+class BadFrame(Event):
+    """A received frame could not be decoded (counted, logged, dropped)."""
+
+    link: int
+    reason: str
+    size: int = 0
+
+
+@dataclass(frozen=True)
+class Received(Event):
+    """A message that no modality consumed (vehicle/queue/link status, command acks ...)."""
+
+    link: int
+    src: int
+    message: Message
+
+
+@dataclass(frozen=True)
+class ProductUpdated(Event):
+    """A topside receiver improved a product."""
+
+    modality: str
+    product: Any
+
+
+@dataclass(frozen=True)
+class Rejected(Event):
+    """A received message was refused (out-of-bounds request, unknown type, failing handler)."""
+
+    message: Message
+    reason: str

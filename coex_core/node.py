@@ -1,0 +1,274 @@
+"""A sans-I/O CoEx node: a channel manager plus modality senders (subsea) and/or receivers
+(topside), with routing of received messages by type.
+
+Use::
+
+    node = Node(manager)
+    node.add_sender(ImageryModality, sender, StreamConfig(5, "images", priority=30))   # subsea
+    node.add_receiver(ImageryModality, receiver)                                       # topside
+    node.receive(link_id, frame_bytes, now)      # never raises for bad bytes
+    for tx in node.poll(now): ...                # Transmission(link_id, rate, frames, ...)
+    node.events()                                # products, acks, command results, bad frames
+
+Routing of a received message: frame acks and command acks go to the manager; channel
+commands (QueueConfig, ScheduleUpdate, LinkControl) are applied and answered with a
+CommandAck; a type in some ``Modality.requests`` goes to that modality's sender (requests with a
+``command_id`` get a CommandAck: ACCEPTED, or REJECTED when the sender raises
+``RequestRejected``); a type in some ``Modality.messages`` goes to that modality's receiver; the
+rest (vehicle, queue and link status ...) is reported as a :class:`Received` event.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
+
+from .channel.events import (
+    BadFrame,
+    CommandResult,
+    Event,
+    ProductUpdated,
+    Received,
+    Rejected,
+)
+from .channel.manager import CONTROL_STREAM, STATUS_STREAM, ChannelManager, Transmission
+from .channel.queue import StreamConfig
+from .channel.schedule import Schedule
+from .errors import CoexError, ConfigError, DecodeError, RequestRejected
+from .messages import (
+    AckStatus,
+    CommandAck,
+    FrameAck,
+    LinkControl,
+    Message,
+    Opaque,
+    QueueConfig,
+    ScheduleUpdate,
+    VehicleStatus,
+)
+from .modality import Modality, ModalityReceiver, ModalitySender
+from .wire import unpack_frame
+
+__all__ = ["Node", "Transmission"]
+
+_CHANNEL_COMMANDS = (QueueConfig, ScheduleUpdate, LinkControl)
+
+
+@dataclass
+class _SenderSlot:
+    name: str
+    modality: type[Modality]
+    sender: ModalitySender
+    stream: int
+
+
+@dataclass
+class _ReceiverSlot:
+    name: str
+    modality: type[Modality]
+    receiver: ModalityReceiver
+    stream: int
+
+
+def _modality_class(m: Modality | type[Modality]) -> type[Modality]:
+    return m if isinstance(m, type) else type(m)
+
+
+def _opaque_ids(m: type[Modality]) -> frozenset[int]:
+    ids = getattr(m, "opaque_type_ids", ())
+    return frozenset(int(i) for i in ids)
+
+
+class Node:
+    """One end of the link (vehicle or topside)."""
+
+    def __init__(self, manager: ChannelManager, *, log: Callable[[str], None] | None = None) -> None:
+        self.manager = manager
+        self.node_id = manager.node_id
+        self._senders: list[_SenderSlot] = []
+        self._receivers: list[_ReceiverSlot] = []
+        self._events: list[Event] = []
+        self._log = log
+        self.stats: dict[str, int] = {"frames": 0, "bad_frames": 0, "messages": 0, "rejected": 0,
+                                      "foreign": 0}
+
+    # ===================================================================== composition
+    def add_sender(self, modality: Modality | type[Modality], sender: ModalitySender,
+                   stream: StreamConfig) -> None:
+        """Subsea: ``sender`` fills packets for ``stream`` and handles the modality's requests."""
+        cls = _modality_class(modality)
+        self.manager.add_stream(stream, sender)
+        self._senders.append(_SenderSlot(getattr(cls, "name", cls.__name__), cls, sender, stream.stream))
+
+    def add_receiver(self, modality: Modality | type[Modality], receiver: ModalityReceiver,
+                     stream: int = CONTROL_STREAM) -> None:
+        """Topside: ``receiver`` takes the modality's messages; its requests (``poll``) go out on
+        ``stream`` (default: the acked tier-0 control stream)."""
+        cls = _modality_class(modality)
+        self.manager.stream(stream)
+        self._receivers.append(_ReceiverSlot(getattr(cls, "name", cls.__name__), cls, receiver, stream))
+
+    # ========================================================================= receive
+    def receive(self, link_id: int, frame: bytes, now: float) -> list[Message]:
+        """Take one received frame. Bad frames are counted and reported (:class:`BadFrame`),
+        never raised. Returns the frame's messages (empty if it was not for this node)."""
+        self.stats["frames"] += 1
+        try:
+            decoded = unpack_frame(frame)
+        except DecodeError as exc:
+            self.stats["bad_frames"] += 1
+            self._note(f"bad frame on link {link_id}: {exc}")
+            self._events.append(BadFrame(now, link_id, str(exc), len(frame) if isinstance(frame, bytes | bytearray) else 0))
+            return []
+        h = decoded.header
+        if h.src == self.node_id or h.dst not in (0, self.node_id):
+            self.stats["foreign"] += 1
+            return []
+        ackable = any(not isinstance(m, FrameAck) for m in decoded.messages)
+        try:
+            self.manager.on_frame(link_id, h, now, ackable)
+        except CoexError as exc:
+            self._note(f"frame bookkeeping failed: {exc}")
+        for m in decoded.messages:
+            self.stats["messages"] += 1
+            try:
+                self._route(link_id, h.src, m, now)
+            except Exception as exc:  # one bad message never loses the others, never crashes
+                self.stats["rejected"] += 1
+                self._note(f"{type(m).__name__} failed: {exc}")
+                self._events.append(Rejected(now, m, f"{type(exc).__name__}: {exc}"))
+        return list(decoded.messages)
+
+    def _route(self, link_id: int, src: int, m: Message, now: float) -> None:
+        if isinstance(m, FrameAck):
+            self.manager.on_ack(m, now)
+            return
+        if isinstance(m, CommandAck):
+            self.manager.on_command_ack(m, now)  # emits CommandResult
+            return
+        if isinstance(m, _CHANNEL_COMMANDS):
+            ack = self.manager.apply(m, now)
+            self.manager.push(CONTROL_STREAM, ack, now)
+            return
+        for s in self._senders:
+            if isinstance(m, tuple(s.modality.requests)) or self._opaque_for(m, s.modality):
+                self._handle_request(s, m, now)
+                return
+        for r in self._receivers:
+            if isinstance(m, tuple(r.modality.messages)) or self._opaque_for(m, r.modality):
+                for p in r.receiver.receive(m, now):
+                    self._events.append(ProductUpdated(now, r.name, p))
+                return
+        self._events.append(Received(now, link_id, src, m))
+
+    @staticmethod
+    def _opaque_for(m: Message, cls: type[Modality]) -> bool:
+        return isinstance(m, Opaque) and m.type_id in _opaque_ids(cls)
+
+    def _handle_request(self, s: _SenderSlot, m: Message, now: float) -> None:
+        cid = getattr(m, "command_id", None)
+        try:
+            replies = s.sender.handle(m, now)
+        except RequestRejected as exc:
+            self.stats["rejected"] += 1
+            self._events.append(Rejected(now, m, str(exc)))
+            if cid is not None:
+                self.manager.push(CONTROL_STREAM, CommandAck(int(cid), AckStatus.REJECTED), now)
+            return
+        except Exception as exc:
+            self.stats["rejected"] += 1
+            self._note(f"{s.name} sender failed on {type(m).__name__}: {exc}")
+            self._events.append(Rejected(now, m, f"{type(exc).__name__}: {exc}"))
+            if cid is not None:
+                self.manager.push(CONTROL_STREAM, CommandAck(int(cid), AckStatus.REJECTED), now)
+            return
+        if cid is not None:
+            self.manager.push(CONTROL_STREAM, CommandAck(int(cid), AckStatus.ACCEPTED), now)
+        for r in replies or ():
+            try:
+                self.manager.push(s.stream, r, now)
+            except CoexError as exc:
+                self._events.append(Rejected(now, r, f"reply not sendable: {exc}"))
+
+    # ============================================================================ send
+    def poll(self, now: float) -> list[Transmission]:
+        """Collect receivers' requests, then build a packet for every link that may send now."""
+        for r in self._receivers:
+            try:
+                reqs = r.receiver.poll(now)
+            except Exception as exc:
+                self._note(f"{r.name} receiver poll failed: {exc}")
+                continue
+            for m in reqs:
+                try:
+                    self.manager.push(r.stream, m, now)
+                except CoexError as exc:
+                    self._events.append(Rejected(now, m, f"request not sendable: {exc}"))
+        return self.manager.poll(now)
+
+    def next_event(self, now: float) -> float | None:
+        """When :meth:`poll` should next be called (``None``: nothing scheduled)."""
+        return self.manager.next_event(now)
+
+    def events(self) -> list[Event]:
+        """Everything that happened since the last call: node events then manager events."""
+        out = self._events + self.manager.events()
+        self._events = []
+        return out
+
+    def products(self) -> list[tuple[str, Any]]:
+        return [(r.name, p) for r in self._receivers for p in r.receiver.products()]
+
+    # ==================================================================== vehicle side
+    def push_status(self, status: VehicleStatus, now: float) -> None:
+        """Queue the newest vehicle status (strict tier 0, newest only)."""
+        self.manager.push(STATUS_STREAM, status, now)
+
+    # ================================================================== topside helpers
+    def queue_config(self, stream: int, now: float, *, flush: bool = False,
+                     enabled: bool | None = None, priority: int | None = None,
+                     ttl: int | None = None, max_depth: int | None = None,
+                     newest_first: bool | None = None) -> int:
+        """Send a QueueConfig; returns its command id (see :class:`CommandResult` events)."""
+        cid = self.manager.next_command_id()
+        msg = QueueConfig(cid, stream, flush, enabled, priority, ttl, max_depth, newest_first)
+        return self.manager.send_command(msg, now)
+
+    def link_control(self, link: int, now: float, *, enabled: bool = True, mute: bool = False) -> int:
+        cid = self.manager.next_command_id()
+        return self.manager.send_command(LinkControl(cid, link, enabled, mute), now)
+
+    def schedule_update(self, link: int, schedule: Schedule, now: float,
+                        activate_cycle: int | None = None) -> int:
+        """Announce a new schedule; both ends switch at the announced cycle boundary."""
+        return self.manager.propose_schedule(link, schedule, now, activate_cycle).command_id
+
+    def request(self, message: Message, now: float) -> int | None:
+        """Send a modality request (or any message) on the control stream; a request with a
+        ``command_id`` is tracked until the vehicle's CommandAck."""
+        cid = getattr(message, "command_id", None)
+        if cid is not None:
+            return self.manager.send_command(message, now)
+        self.manager.push(CONTROL_STREAM, message, now)
+        return None
+
+    def command_results(self, events: list[Event]) -> list[CommandResult]:
+        return [e for e in events if isinstance(e, CommandResult)]
+
+    # ========================================================================== misc
+    def _note(self, text: str) -> None:
+        if self._log is not None:
+            try:
+                self._log(text)
+            except Exception:  # logging must never take the node down
+                pass
+
+    def check(self) -> None:
+        """Raise :class:`ConfigError` if two modalities claim one message type."""
+        seen: dict[type, str] = {}
+        for s in self._senders:
+            for t in s.modality.requests:
+                if t in seen:
+                    raise ConfigError(f"{t.__name__} handled by {seen[t]} and {s.name}")
+                seen[t] = s.name
