@@ -137,7 +137,7 @@ class ImagerySender(ModalitySender):
         self._request_counter = 0
         self._inflight: deque[tuple[int, int, int]] = deque(maxlen=1024)
         self._current: int | None = None
-        self._progress_at = -np.inf
+        self._progress_at: float | None = None
         self._progress_dirty = False
         self._last_progress: tuple[Any, ...] | None = None
         self.evicted = 0
@@ -192,9 +192,7 @@ class ImagerySender(ModalitySender):
 
     def progress(self, now: float) -> TransferProgress:
         order = self.order()
-        current = self._current if self._current in self.images and self.images[self._current].needs() else None
-        if current is None and order:
-            current = order[0].image_id
+        current = order[0].image_id if order else None
         nxt = tuple(tx.image_id for tx in order if tx.image_id != current)[:MAX_NEXT]
         return TransferProgress(to_stamp(now), min(len(order), 1023), current,
                                 min(self.unacked_fragments(), 255), nxt)
@@ -207,6 +205,8 @@ class ImagerySender(ModalitySender):
         if left <= 0:
             return out
         # 1. progress report, when due and changed
+        if self._progress_at is None:
+            self._progress_at = now  # the first report goes out one interval after the first fill
         if self.images and (self._progress_dirty or now - self._progress_at >= self.progress_interval):
             prog = self.progress(now)
             key = (prog.pending, prog.current, prog.unacked_fragments, prog.next_images)

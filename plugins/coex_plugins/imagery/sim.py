@@ -1,0 +1,166 @@
+"""A deterministic two-way simulation of an imagery transfer over lossy links (no clock, no I/O).
+
+Used by ``coex image roundtrip``, the tests and the benchmark. Each round the vehicle fills one
+frame of at most ``mtu`` bytes; topside takes what arrives and answers with acks and requests in
+as many frames as they need; the vehicle handles those and its immediate replies (command acks)
+go down in one more frame. Loss is drawn per frame from seeded models: independent
+(:class:`Bernoulli`) or bursty (:class:`GilbertElliott`).
+"""
+
+from __future__ import annotations
+
+import random
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+from coex_core import wire
+from coex_core.errors import EncodeError, RequestRejected
+from coex_core.messages import FrameHeader, Message
+from coex_core.modality import ModalityReceiver, ModalitySender, Product
+
+__all__ = ["Bernoulli", "GilbertElliott", "LossModel", "Transfer", "WireEvent"]
+
+
+class LossModel:
+    """Decides, frame by frame, whether a frame is lost."""
+
+    def lost(self) -> bool:
+        raise NotImplementedError
+
+
+class Bernoulli(LossModel):
+    """Each frame is lost independently with probability ``p``."""
+
+    def __init__(self, p: float, seed: int = 0) -> None:
+        if not 0.0 <= p <= 1.0:
+            raise ValueError(f"loss must be in [0, 1], got {p}")
+        self.p = p
+        self.rng = random.Random(seed)
+
+    def lost(self) -> bool:
+        return self.p > 0 and self.rng.random() < self.p
+
+
+class GilbertElliott(LossModel):
+    """Two-state burst loss: in the bad state frames are lost with ``loss_bad``, in the good state
+    with ``loss_good``; the state flips with ``p_gb`` (good to bad) and ``p_bg`` (bad to good)."""
+
+    def __init__(self, p_gb: float = 0.1, p_bg: float = 0.25, loss_good: float = 0.05,
+                 loss_bad: float = 0.95, seed: int = 0) -> None:
+        self.p_gb, self.p_bg, self.loss_good, self.loss_bad = p_gb, p_bg, loss_good, loss_bad
+        self.rng = random.Random(seed)
+        self.bad = False
+
+    def lost(self) -> bool:
+        if self.bad:
+            self.bad = self.rng.random() >= self.p_bg
+        else:
+            self.bad = self.rng.random() < self.p_gb
+        return self.rng.random() < (self.loss_bad if self.bad else self.loss_good)
+
+
+@dataclass
+class WireEvent:
+    """One message on the wire, in send order."""
+
+    direction: str  # "down" (vehicle to ship) or "up"
+    frame: int
+    message: Message
+    size: int
+    lost: bool
+    now: float
+    wire_total: int  # cumulative wire bytes (both directions, frame headers included)
+    down_total: int  # cumulative vehicle-to-ship wire bytes
+
+
+@dataclass
+class Transfer:
+    sender: ModalitySender
+    receiver: ModalityReceiver
+    mtu: int = 256
+    down: LossModel = field(default_factory=lambda: Bernoulli(0.0))
+    up: LossModel = field(default_factory=lambda: Bernoulli(0.0))
+    round_seconds: float = 5.0
+    now: float = 0.0
+    events: list[WireEvent] = field(default_factory=list)
+    on_message: Callable[[WireEvent, list[Product]], None] | None = None
+
+    def __post_init__(self) -> None:
+        if self.mtu < 32:
+            raise ValueError("the MTU must be at least 32 bytes")
+        self._frame = 0
+        self._wire = 0
+        self._down = 0
+
+    def _send_frame(self, direction: str, messages: list[Message]) -> None:
+        if not messages:
+            return
+        header = FrameHeader(src=2 if direction == "down" else 1, dst=1 if direction == "down" else 2,
+                             seq=self._frame % 256)
+        frame = wire.pack(messages, self.mtu, header)
+        lost = (self.down if direction == "down" else self.up).lost()
+        self._frame += 1
+        first = True
+        for m in messages:
+            size = wire.encoded_size(m)
+            extra = wire.header_size(header) if first else 0
+            first = False
+            self._wire += size + extra
+            if direction == "down":
+                self._down += size + extra
+            ev = WireEvent(direction, self._frame - 1, m, size, lost, self.now, self._wire, self._down)
+            self.events.append(ev)
+            if lost:
+                if self.on_message:
+                    self.on_message(ev, [])
+                continue
+            if direction == "down":
+                products = self.receiver.receive(m, self.now)
+                if self.on_message:
+                    self.on_message(ev, products)
+            else:
+                if self.on_message:
+                    self.on_message(ev, [])
+                try:
+                    self._replies.extend(self.sender.handle(m, self.now))
+                except RequestRejected:
+                    pass
+        _ = frame
+
+    def _frames(self, messages: list[Message]) -> list[list[Message]]:
+        batches: list[list[Message]] = []
+        batch: list[Message] = []
+        used = wire.header_size()
+        for m in messages:
+            size = wire.encoded_size(m)
+            if used + size > self.mtu and batch:
+                batches.append(batch)
+                batch, used = [], wire.header_size()
+            batch.append(m)
+            used += size
+        if batch:
+            batches.append(batch)
+        return batches
+
+    def step(self) -> None:
+        self.now += self.round_seconds
+        self._replies: list[Message] = []
+        out = self.sender.fill(self.mtu - wire.header_size(), self.now)
+        self._send_frame("down", out)
+        for batch in self._frames(self.receiver.poll(self.now)):
+            self._send_frame("up", batch)
+        for batch in self._frames(self._replies):
+            try:
+                self._send_frame("down", batch)
+            except EncodeError:
+                pass
+
+    def run(self, done: Callable[[], bool], max_rounds: int) -> int:
+        """Step until ``done()``; return the rounds used (raises ``TimeoutError`` after ``max_rounds``)."""
+        for i in range(max_rounds):
+            if done():
+                return i
+            self.step()
+        if done():
+            return max_rounds
+        raise TimeoutError(f"transfer not done after {max_rounds} rounds")
