@@ -175,12 +175,12 @@ class LcmTransport(Transport):
             return inst
         key = (self.config.url, share)
         with self._shared_lock:
-            inst = self._shared.get(key)
-            if inst is None:
-                inst = _Instance(self._new_lcm(), key)
-                self._shared[key] = inst
-            inst.users += 1
-            return inst
+            shared = self._shared.get(key)
+            if shared is None:
+                shared = _Instance(self._new_lcm(), key)
+                self._shared[key] = shared
+            shared.users += 1
+            return shared
 
     def _new_lcm(self) -> lcm.LCM:
         try:
