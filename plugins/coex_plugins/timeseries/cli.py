@@ -107,7 +107,7 @@ def roundtrip(csv_path: str | Path, out: str | Path, budgets: list[int], *, wave
     names, times, values, res = read_csv(csv_path)
     order = np.argsort(times, kind="stable")
     times, values = times[order], values[order]
-    channels = []
+    channels: list[dict[str, Any]] = []
     for j, name in enumerate(names):
         r = resolution or res[j]
         col = values[:, j][np.isfinite(values[:, j])]
@@ -141,13 +141,13 @@ def roundtrip(csv_path: str | Path, out: str | Path, budgets: list[int], *, wave
     drain()
     # refine the whole record as a topside asking for "finer detail" would, until each channel
     # reaches half its resolution or the largest budget is spent
-    finished = set()
+    finished: set[str] = set()
     while total < limit and len(finished) < len(names):
         for j, name in enumerate(names):
             if name in finished:
                 continue
             worst = max((b for _, _, b in topside.bounds(name)), default=math.inf)
-            floor = channels[j]["resolution"] / 2
+            floor = float(channels[j]["resolution"]) / 2
             if worst <= floor * 1.0001:
                 finished.add(name)
                 continue

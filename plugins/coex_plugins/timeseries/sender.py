@@ -30,7 +30,7 @@ MAX_CHANNELS = 32
 MAX_PASSES = 16
 MAX_CHUNK_DATA = 232
 # priority classes of queued chunks (lower is sent first)
-_REQUESTED, _OVERVIEW, _BACKGROUND = 0, 1, 2
+_REQUESTED, _ALERT, _OVERVIEW = 0, 1, 2
 
 
 class InvalidSamples(CoexError, ValueError):
@@ -154,14 +154,18 @@ class TimeSeriesSender(ModalitySender):
     * ``wavelet`` (``"bior4.4"``), ``block_samples`` (4096, at most 4096), ``max_latency``
       (1200 s: a block closes when full or this long after its first sample),
       ``overview_factor`` (12: the overview's error target is this many noise sigmas, at least
-      half the resolution, unless the channel sets ``overview_error``), ``retry_after`` (90 s:
-      an unacknowledged chunk is sent again after this long).
+      half the resolution, unless the channel sets ``overview_error``), ``alert_fraction``
+      (0.4: when a block holds spikes, i.e. short excursions from its running median, higher than
+      ``2 * overview / alert_fraction``, a cheaper first pass with error ``alert_fraction * h``
+      (``h`` the smallest such spike) goes ahead of every overview, so that spikes show
+      early; 0 disables it), ``retry_after``
+      (90 s: an unacknowledged chunk is sent again after this long).
     """
 
     def __init__(self, config: Mapping[str, Any] | None = None) -> None:
         config = dict(config or {})
         unknown = set(config) - {"channels", "wavelet", "block_samples", "max_latency",
-                                 "overview_factor", "retry_after"}
+                                 "overview_factor", "alert_fraction", "retry_after"}
         if unknown:
             raise ConfigError(f"unknown time-series sender options: {sorted(unknown)}")
         name = str(config.get("wavelet", "bior4.4"))
@@ -175,6 +179,10 @@ class TimeSeriesSender(ModalitySender):
         self.max_latency = _positive(config, "max_latency", 1200.0)
         self.overview_factor = _positive(config, "overview_factor", 12.0)
         self.retry_after = _positive(config, "retry_after", 90.0)
+        af = config.get("alert_fraction", 0.4)
+        if isinstance(af, bool) or not isinstance(af, int | float) or not 0 <= af < 1:
+            raise ConfigError(f"alert_fraction must be in [0, 1), got {af!r}")
+        self.alert_fraction = float(af)
         self._channels: list[_Channel] = []
         self._by_name: dict[str, _Channel] = {}
         self._order = 0
@@ -324,7 +332,12 @@ class TimeSeriesSender(ModalitySender):
         target = ch.cfg.overview_error
         if target is None:
             target = self.overview_factor * codec.noise_sigma(x, self.wavelet)
-        self._add_pass(ch, block, max(target, ch.cfg.resolution / 2), _OVERVIEW)
+        target = max(target, ch.cfg.resolution / 2)
+        alert = self.alert_fraction * _smallest_spike(x, 2 * target / self.alert_fraction) \
+            if self.alert_fraction else 0.0
+        if alert > 2 * target:
+            self._add_pass(ch, block, alert, _ALERT)
+        self._add_pass(ch, block, target, _OVERVIEW)
 
     def _add_pass(self, ch: _Channel, block: _Block, target: float, klass: int) -> None:
         level = len(block.passes)
@@ -450,3 +463,21 @@ class TimeSeriesSender(ModalitySender):
         return sum(not ch.reg_acked for ch in self._channels) + sum(
             len(ch.by_key) for ch in self._channels)
 
+
+
+def _smallest_spike(x: np.ndarray, threshold: float, window: int = 61) -> float:
+    """Height of the smallest spike above ``threshold``: spikes are runs of samples whose
+    distance from the block's running median (``window`` samples, so spikes up to about half
+    as long do not pull it) exceeds the threshold; 0 when there is none."""
+    if x.size < 3:
+        return 0.0
+    w = min(window, x.size - (1 - x.size % 2))
+    half = w // 2
+    trend = np.median(np.lib.stride_tricks.sliding_window_view(np.pad(x, half, mode="edge"), w), axis=1)
+    e = np.abs(x - trend)
+    sig = e > threshold
+    if not sig.any():
+        return 0.0
+    edges = np.flatnonzero(np.diff(np.concatenate(([0], sig.astype(np.int8), [0]))))
+    heights = np.maximum.reduceat(e, edges[0::2])
+    return float(heights.min())
