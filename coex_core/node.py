@@ -75,8 +75,10 @@ def _modality_class(m: Modality | type[Modality]) -> type[Modality]:
     return m if isinstance(m, type) else type(m)
 
 
-def _opaque_ids(m: type[Modality]) -> frozenset[int]:
-    ids = getattr(m, "opaque_type_ids", ())
+def _opaque_ids(m: type[Modality], attr: str) -> frozenset[int]:
+    """Third-party type ids a modality declares: ``opaque_messages`` (its data) and
+    ``opaque_requests`` (its requests), class attributes of type ids."""
+    ids = getattr(m, attr, ())
     return frozenset(int(i) for i in ids)
 
 
@@ -152,19 +154,19 @@ class Node:
             self.manager.push(CONTROL_STREAM, ack, now)
             return
         for s in self._senders:
-            if isinstance(m, tuple(s.modality.requests)) or self._opaque_for(m, s.modality):
+            if isinstance(m, tuple(s.modality.requests)) or self._opaque_for(m, s.modality, "opaque_requests"):
                 self._handle_request(s, m, now)
                 return
         for r in self._receivers:
-            if isinstance(m, tuple(r.modality.messages)) or self._opaque_for(m, r.modality):
+            if isinstance(m, tuple(r.modality.messages)) or self._opaque_for(m, r.modality, "opaque_messages"):
                 for p in r.receiver.receive(m, now):
                     self._events.append(ProductUpdated(now, r.name, p))
                 return
         self._events.append(Received(now, link_id, src, m))
 
     @staticmethod
-    def _opaque_for(m: Message, cls: type[Modality]) -> bool:
-        return isinstance(m, Opaque) and m.type_id in _opaque_ids(cls)
+    def _opaque_for(m: Message, cls: type[Modality], attr: str) -> bool:
+        return isinstance(m, Opaque) and m.type_id in _opaque_ids(cls, attr)
 
     def _handle_request(self, s: _SenderSlot, m: Message, now: float) -> None:
         cid = getattr(m, "command_id", None)

@@ -176,6 +176,8 @@ class _Link:
     proposed: dict[int, _PendingSchedule] = field(default_factory=dict)
     seq: int = 0
     busy_until: float = -math.inf
+    #: Nothing to send at the last opportunity: do not look again before this (unless pushed).
+    idle_until: float = -math.inf
     last_heard: float | None = None
     switched_at: float | None = None
     #: (link, seq) records of this link's transmissions: entry ids per frame seq.
@@ -219,6 +221,7 @@ class ChannelManager:
         sender_budget: float = 0.25,
         queue_status_interval: float | None = None,
         ack_frames: bool = True,
+        idle_interval: float = 1.0,
     ) -> None:
         if not 1 <= node_id <= 15:
             raise ConfigError(f"node id {node_id} outside 1..15")
@@ -230,6 +233,7 @@ class ChannelManager:
         self.sender_budget = float(sender_budget)
         self.queue_status_interval = queue_status_interval
         self.ack_frames = ack_frames
+        self.idle_interval = float(idle_interval)
         self._links: dict[int, _Link] = {}
         for cfg in links:
             if cfg.link in self._links:
@@ -281,6 +285,8 @@ class ChannelManager:
         q = self.stream(stream)
         size = encoded_size(message)  # raises EncodeError for a bad message
         entry = self._new_entry(q, message, size, now)
+        for st in self._links.values():
+            st.idle_until = -math.inf  # new data: the next opportunity is worth a look
         dropped = q.push(entry)
         if dropped is not None:
             self._forget(dropped)
@@ -357,9 +363,15 @@ class ChannelManager:
             keys = [k for k in e.pending if k[0] == link]
             for k in keys:
                 del e.pending[k]
+            if keys:
+                self._recompute_ready(e)
             if keys and e.id in ids and not e.pending:
                 n += 1
         return n
+
+    def _recompute_ready(self, e: Entry) -> None:
+        e.ready_at = max((t + self._links[lk].ack_timeout for (lk, _), t in e.pending.items()
+                          if lk in self._links), default=-math.inf)
 
     # ============================================================================== time
     def _window(self, st: _Link, now: float) -> SlotWindow:
@@ -370,7 +382,7 @@ class ChannelManager:
         st = self._link(link)
         if not st.enabled or st.muted:
             return False
-        if now < st.busy_until + st.cfg.gap - 1e-9:
+        if now < st.busy_until + st.cfg.gap - 1e-9 or now < st.idle_until - 1e-9:
             return False
         w = self._window(st, now)
         return w.slot.owner == self.node_id and now + st.cfg.packet_time + w.slot.guard <= w.end + 1e-9
@@ -380,7 +392,7 @@ class ChannelManager:
         st = self._link(link)
         if not st.enabled or st.muted:
             return None
-        t = max(now, st.busy_until + st.cfg.gap)
+        t = max(now, st.busy_until + st.cfg.gap, st.idle_until)
         for _ in range(2 * len(st.current.slots) + 2):
             w = st.current.next_window(t, self.node_id)
             if w is None:
@@ -466,6 +478,8 @@ class ChannelManager:
                 tx = self.build(link, now)
                 if tx is not None:
                     out.append(tx)
+                else:
+                    self._links[link].idle_until = now + self.idle_interval
         return out
 
     def build(self, link: int, now: float) -> Transmission | None:
@@ -478,7 +492,8 @@ class ChannelManager:
         self._build_no += 1
         w = self._window(st, now)
         hdr_bytes = header_size(FrameHeader(crc=cfg.crc))
-        exhausted: set[int] = set()
+        # stream -> largest budget for which it had nothing (inf: failed or slow, skip it)
+        exhausted: dict[int, float] = {}
         t0 = self.clock() if self.clock is not None else 0.0
         acks = self._take_acks()
         frames_msgs: list[tuple[list[Message], list[Entry]]] = []
@@ -527,6 +542,7 @@ class ChannelManager:
                 q = self._streams[e.stream].queue
                 if q.config.ack_required:
                     e.pending[(link, seq)] = now
+                    e.ready_at = max(e.ready_at, now + st.ack_timeout)
                     refs.append((e.stream, e.id))
             if refs:
                 st.sent[seq] = refs
@@ -552,6 +568,7 @@ class ChannelManager:
             e = self._find(sid, eid)
             if e is not None:
                 e.pending.pop((link, seq), None)
+                self._recompute_ready(e)
 
     def _mark_taken(self, q: StreamQueue, e: Entry, now: float) -> None:
         if e.first_sent is None:
@@ -575,12 +592,16 @@ class ChannelManager:
                 return False
         return not q.in_blackout(now)
 
-    def _sendable(self, e: Entry, now: float) -> bool:
-        if e.hold == self._build_no:
+    def _sendable(self, e: Entry, now: float, link: int) -> bool:
+        if e.hold == self._build_no or now < e.ready_at:
             return False
-        for (link, _seq), t in e.pending.items():
-            st = self._links.get(link)
-            if st is not None and now < t + st.ack_timeout:
+        if e.pending:  # every send timed out: avoid the links that failed it if others exist
+            e.failed_links.update(lk for lk, _ in e.pending)
+        if link in e.failed_links:
+            usable = [k for k, st in self._links.items() if st.enabled and not st.muted]
+            if all(k in e.failed_links for k in usable):
+                e.failed_links.clear()
+            else:
                 return False
         return True
 
@@ -592,13 +613,16 @@ class ChannelManager:
                 continue
             entry = None
             for e in q.ordered():
-                if e.size <= left and self._sendable(e, now):
+                if e.size <= left and self._sendable(e, now, link):
                     entry = e
                     break
             if entry is None:
                 continue
             last = q.last_access if q.last_access is not None else -math.inf
-            key = (-q.config.tier, q.score(now), q.config.priority, -last, -sid)
+            # tier 0 is ordered by priority alone (status before queue status); other tiers
+            # compete by value
+            value = float(q.config.priority) if q.config.tier == 0 else q.score(now)
+            key = (-q.config.tier, value, q.config.priority, -last, -sid)
             if best is None or key > best[0]:
                 best = (key, q, entry)
         if best is None:
@@ -607,7 +631,7 @@ class ChannelManager:
         # frame still clears it
         return best[1], best[2]
 
-    def _pull(self, link: int, w: SlotWindow, left: int, now: float, exhausted: set[int],
+    def _pull(self, link: int, w: SlotWindow, left: int, now: float, exhausted: dict[int, float],
               t0: float) -> bool:
         """Ask modality senders (best score first) for at most ``left`` bytes. Returns whether a
         usable message was queued."""
@@ -615,7 +639,7 @@ class ChannelManager:
             return False
         cands = []
         for sid, s in self._streams.items():
-            if s.sender is None or sid in exhausted or not self._eligible(s.queue, link, w, now):
+            if s.sender is None or left <= exhausted.get(sid, -1) or not self._eligible(s.queue, link, w, now):
                 continue
             q = s.queue
             cands.append(((q.config.tier, -q.score(now), -q.config.priority, sid), s))
@@ -629,7 +653,7 @@ class ChannelManager:
                 if not isinstance(got, list | tuple):
                     raise TypeError(f"fill returned {type(got).__name__}, not a list")
             except Exception as exc:  # a failing sender must never stop the packet
-                exhausted.add(q.id)
+                exhausted[q.id] = math.inf
                 self.stats["sender_failures"] += 1
                 self._events.append(SenderFailed(now, q.id, f"{type(exc).__name__}: {exc}"))
                 continue
@@ -650,13 +674,13 @@ class ChannelManager:
                 if size <= left and not slow:
                     fits = True
             if slow:
-                exhausted.add(q.id)
+                exhausted[q.id] = math.inf
                 self.stats["sender_failures"] += 1
                 self._events.append(SenderFailed(now, q.id, "fill overran its deadline", slow=True))
                 continue
             if fits:
                 return True
-            exhausted.add(q.id)
+            exhausted[q.id] = max(exhausted.get(q.id, -1), left)
             if self.clock is not None and self.clock() - t0 > self.fill_budget:
                 return False
         return False
@@ -719,6 +743,8 @@ class ChannelManager:
             seqs = self._to_ack.setdefault((header.src, link), [])
             if header.seq not in seqs:
                 seqs.append(header.seq)
+            for other in self._links.values():
+                other.idle_until = -math.inf
         v = header.schedule
         if v == st.current.version:
             return

@@ -91,6 +91,10 @@ class Entry:
     sends: int = 0
     #: Build number during which this entry must not be used (late data from a slow sender).
     hold: int = -1
+    #: While acks are awaited: when the last of them times out.
+    ready_at: float = float("-inf")
+    #: Links on which a send of this entry timed out (re-sends prefer other links).
+    failed_links: set[int] = field(default_factory=set)
 
 
 class StreamQueue:

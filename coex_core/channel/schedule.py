@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
+from functools import cached_property
 from typing import Any
 
 from ..errors import ConfigError
@@ -72,7 +73,7 @@ class Schedule:
         if not 0 <= self.version <= 15:
             raise ConfigError(f"schedule version {self.version} outside 0..15")
 
-    @property
+    @cached_property
     def cycle(self) -> float:
         """Cycle length in seconds."""
         return float(sum(s.duration for s in self.slots))
