@@ -187,6 +187,7 @@ class Node:
             return
         if cid is not None:
             self.manager.push(CONTROL_STREAM, CommandAck(int(cid), AckStatus.ACCEPTED), now)
+        self.manager.expedite(s.stream)  # the answer goes in the next transmission
         for r in replies or ():
             try:
                 self.manager.push(s.stream, r, now)

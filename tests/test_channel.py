@@ -461,3 +461,18 @@ def test_schedule_update_rejections() -> None:
     m.poll(360.0)  # start of cycle 3
     assert m.schedule(0).version == 2
     assert any(isinstance(e, ScheduleSwitched) and e.version == 2 for e in m.events())
+
+
+def test_expedited_stream_is_asked_first() -> None:
+    m = manager(links=[vehicle_link(rate=1, frames=1)])
+    busy = FakeSender(size=61, tag=1)
+    asked = FakeSender(size=61, tag=2)
+    m.add_stream(StreamConfig(5, "busy", priority=100), busy)
+    m.add_stream(StreamConfig(6, "asked", priority=1), asked)
+    tx = m.build(0, 1.0)
+    assert tx is not None and messages_of(tx.frames) == [blob(61, 1)]
+    m.expedite(6)  # an operator request reached stream 6's modality
+    tx = m.build(0, 2.0)
+    assert tx is not None and messages_of(tx.frames) == [blob(61, 2)]
+    tx = m.build(0, 3.0)  # served once: back to the normal contest
+    assert tx is not None and messages_of(tx.frames) == [blob(61, 1)]

@@ -269,6 +269,13 @@ class ChannelManager:
         self._defaults[config.stream] = config
         return q
 
+    def expedite(self, stream: int) -> None:
+        """Serve ``stream`` first in the next packet (an operator request was just handed to
+        its modality): it wins its tier's contest and is asked first for data."""
+        self.stream(stream).expedite = True
+        for st in self._links.values():
+            st.idle_until = -math.inf
+
     def stream(self, stream: int) -> StreamQueue:
         try:
             return self._streams[stream].queue
@@ -527,6 +534,9 @@ class ChannelManager:
                 self._requeue_ack(a)
         if not frames_msgs:
             return None
+        for _, taken in frames_msgs:
+            for e in taken:
+                self._streams[e.stream].queue.expedite = False
         frames: list[bytes] = []
         seq0 = st.seq
         n_msgs = 0
@@ -622,6 +632,8 @@ class ChannelManager:
             # tier 0 is ordered by priority alone (status before queue status); other tiers
             # compete by value
             value = float(q.config.priority) if q.config.tier == 0 else q.score(now)
+            if q.expedite:
+                value = math.inf
             key = (-q.config.tier, value, q.config.priority, -last, -sid)
             if best is None or key > best[0]:
                 best = (key, q, entry)
@@ -642,7 +654,8 @@ class ChannelManager:
             if s.sender is None or left <= exhausted.get(sid, -1) or not self._eligible(s.queue, link, w, now):
                 continue
             q = s.queue
-            cands.append(((q.config.tier, -q.score(now), -q.config.priority, sid), s))
+            score = math.inf if q.expedite else q.score(now)
+            cands.append(((q.config.tier, -score, -q.config.priority, sid), s))
         for _, s in sorted(cands, key=lambda c: c[0]):
             q = s.queue
             sender = s.sender

@@ -104,6 +104,9 @@ class StreamQueue:
         self.config = config
         self.entries: list[Entry] = []  # push order, oldest first
         self.last_access: float | None = None
+        #: Set when the stream's modality took an operator request: it wins its tier's contest
+        #: (and is asked first for data) until a packet carried something from it.
+        self.expedite = False
         self.drops = 0  # since the last queue status
         self.drops_total = 0
         self.drop_reasons: dict[str, int] = {}
