@@ -230,7 +230,7 @@ def test_heartbeats_are_periodic_while_waiting() -> None:
             node.recv(timeout=0.55)  # nothing to receive; it still beats while it waits
         ear.recv(timeout=0.2)
         assert ear.codec.peers.get((8, 191)) is not None
-        assert 4 <= ear.stats()["packets_received"] <= 8
+        assert 3 <= ear.stats()["packets_received"] <= 8  # 6 expected; slack for a loaded CI
 
 
 # -------------------------------------------------------------------------- TCP and serial

@@ -126,7 +126,11 @@ class MavlinkTransport(Transport):
         self.link = link
         self.codec = codec
         self._ready: deque[bytes] = deque()
-        self.service()
+        try:
+            self.service()  # the first heartbeat, so routers learn about us at once
+        except BaseException:
+            link.close()
+            raise
 
     @classmethod
     def from_uri(cls, uri: str) -> MavlinkTransport:
