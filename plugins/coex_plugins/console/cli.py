@@ -1,0 +1,217 @@
+"""``coex topside --transport URI [--http 127.0.0.1:8080]``: a topside node with the console.
+
+The node runs the channel manager and every modality receiver that loads (bathymetry, imagery,
+time series), over one transport, on the wall clock (TDMA slots come from the shared epoch).
+The console is served at ``http://HOST:PORT/``; every operator action becomes a wire-format
+command sent by the node.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import sys
+import threading
+import time
+from collections.abc import Callable
+from typing import Any
+
+from coex_core.errors import CoexError, ConfigError, TransportError
+
+__all__ = ["TopsideApp", "build_topside", "register", "run"]
+
+log = logging.getLogger(__name__)
+
+#: The NUI 2022 cycle: 6 slots, topside (node 1) in slots 0 and 3, the vehicle in the others.
+NUI_OWNERS = (1, 2, 2, 1, 2, 2)
+
+
+def _hostport(text: str) -> tuple[str, int]:
+    host, sep, port = text.rpartition(":")
+    if not sep or not port.isdigit():
+        raise argparse.ArgumentTypeError(f"expected HOST:PORT, got {text!r}")
+    return host or "127.0.0.1", int(port)
+
+
+def register(subparsers: Any) -> None:
+    p = subparsers.add_parser(
+        "topside", help="run a topside node and serve the web console",
+        description="Run a topside node over a transport and serve the web console "
+                    "(map, images, time series, link and queues) on HTTP.")
+    p.add_argument("--transport", required=True, metavar="URI",
+                   help="transport URI (micromodem:///dev/ttyUSB0, mavlink:..., lcm:..., "
+                        "loopback://name)")
+    p.add_argument("--http", type=_hostport, default=("127.0.0.1", 8080), metavar="HOST:PORT",
+                   help="where to serve the console (default 127.0.0.1:8080; port 0 = any)")
+    p.add_argument("--node-id", type=int, default=1, help="topside node id (default 1)")
+    p.add_argument("--vehicle-id", type=int, default=2, help="vehicle node id (default 2)")
+    p.add_argument("--link", type=int, default=0, help="link id of the transport (default 0)")
+    p.add_argument("--rate", type=int, default=5, help="Micromodem rate of packets (default 5)")
+    p.add_argument("--slot", type=float, default=20.0,
+                   help="TDMA slot length in seconds (NUI cycle of 6 slots, default 20)")
+    p.add_argument("--guard", type=float, default=2.0, help="slot guard time (default 2 s)")
+    p.add_argument("--schedule", metavar="JSON",
+                   help='explicit schedule: {"slots": [{"owner": 1, "duration": 20, '
+                        '"guard": 2}, ...], "epoch": 0}')
+    p.add_argument("--modalities", default="bathymetry,imagery,timeseries",
+                   help="comma-separated receivers to run (default: all built-in)")
+    p.set_defaults(func=run)
+
+
+class TopsideApp:
+    """A topside node, its transport, the console hub and server, and the loop driving them."""
+
+    def __init__(self, node: Any, transport: Any, link: int, hub: Any, server: Any,
+                 clock: Callable[[], float]) -> None:
+        self.node = node
+        self.transport = transport
+        self.link = link
+        self.hub = hub
+        self.server = server
+        self.clock = clock
+        self.stop = threading.Event()
+        self.errors: list[str] = []
+
+    @property
+    def url(self) -> str:
+        return str(self.server.url)
+
+    def step(self) -> float:
+        """One pass: take waiting frames, let the node send, move events to the console.
+        Returns when the node next needs attention."""
+        with self.hub.lock:
+            now = self.clock()
+            while True:
+                try:
+                    frame = self.transport.recv(timeout=0)
+                except TransportError as exc:
+                    self.errors.append(f"receive: {exc}")
+                    break
+                if frame is None:
+                    break
+                self.node.receive(self.link, frame, self.clock())
+            now = self.clock()
+            for tx in self.node.poll(now):
+                try:
+                    send_packet = getattr(self.transport, "send_packet", None)
+                    if callable(send_packet):
+                        send_packet(list(tx.frames), tx.rate)
+                    else:
+                        for f in tx.frames:
+                            self.transport.send(f)
+                except CoexError as exc:
+                    self.errors.append(f"send: {exc}")
+            self.hub.pump(self.node, self.clock())
+            nxt = self.node.next_event(self.clock())
+        return float(nxt) if nxt is not None else self.clock() + 0.2
+
+    def run(self) -> None:
+        """Drive the node until :attr:`stop` is set."""
+        while not self.stop.is_set():
+            nxt = self.step()
+            wait = max(0.0, min(nxt - self.clock(), 0.2))
+            started = time.monotonic()
+            try:
+                frame = self.transport.recv(timeout=wait)
+            except TransportError as exc:
+                self.errors.append(f"receive: {exc}")
+                frame = None
+            if frame is not None:
+                with self.hub.lock:
+                    self.node.receive(self.link, frame, self.clock())
+            else:
+                # a transport that does not really block (simulated links) must not spin
+                left = wait - (time.monotonic() - started)
+                if left > 0:
+                    self.stop.wait(left)
+
+    def start(self) -> TopsideApp:
+        threading.Thread(target=self.run, name="coex-topside", daemon=True).start()
+        return self
+
+    def close(self) -> None:
+        self.stop.set()
+        self.server.close()
+        self.transport.close()
+
+
+def _schedule(args: argparse.Namespace) -> Any:
+    from coex_core.channel.schedule import Schedule
+
+    if args.schedule:
+        try:
+            d = json.loads(args.schedule)
+            return Schedule.from_dict(d)
+        except (ValueError, KeyError, TypeError) as exc:
+            raise ConfigError(f"invalid --schedule: {exc}") from exc
+    owners = [args.node_id if o == 1 else args.vehicle_id for o in NUI_OWNERS]
+    return Schedule.simple(owners, args.slot, args.guard)
+
+
+def build_topside(transport_uri: str, host: str = "127.0.0.1", port: int = 8080, *,
+                  node_id: int = 1, vehicle_id: int = 2, link: int = 0, rate: int = 5,
+                  schedule: Any = None,
+                  modalities: tuple[str, ...] = ("bathymetry", "imagery", "timeseries"),
+                  clock: Callable[[], float] = time.time) -> TopsideApp:
+    """Open the transport, build the topside node and its receivers, serve the console
+    (not yet driving the node: call ``start()`` or ``run()``)."""
+    from coex_core.channel.manager import ChannelManager, LinkConfig
+    from coex_core.channel.schedule import Schedule
+    from coex_core.node import Node
+    from coex_core.registry import load_modality, open_transport
+
+    from .node import NodeCommands, tap_receiver
+    from .server import ConsoleHub, serve
+    from .state import ConsoleState
+
+    if schedule is None:
+        schedule = Schedule.simple([node_id if o == 1 else vehicle_id for o in NUI_OWNERS],
+                                   20.0, 2.0)
+    transport = open_transport(transport_uri)
+    try:
+        from coex_core.acoustic import rate_info
+
+        fbytes = min(rate_info(rate).frame_bytes, int(transport.mtu))
+        cfg = LinkConfig(link, schedule, rate=rate, frame_bytes=fbytes, dst=vehicle_id)
+        manager = ChannelManager(node_id, [cfg])
+        node = Node(manager, log=lambda text: log.info("%s", text))
+        state = ConsoleState(node_id=node_id, vehicle_id=vehicle_id,
+                             stream_names={s.id: s.config.name for s in manager.streams})
+        hub = ConsoleHub(state, NodeCommands(node, clock), clock)
+        for name in modalities:
+            try:
+                cls = load_modality(name)
+                receiver = cls().receiver()
+            except (CoexError, ImportError, AttributeError, TypeError) as exc:
+                log.warning("modality %s not available: %s", name, exc)
+                state._log(0.0, f"modality {name} not available: {exc}", "warn")
+                continue
+            node.add_receiver(cls, tap_receiver(receiver, hub))
+        state.set_schedule(link, schedule)
+        server = serve(hub, host, port)
+    except BaseException:
+        transport.close()
+        raise
+    return TopsideApp(node, transport, link, hub, server, clock)
+
+
+def run(args: argparse.Namespace) -> int:
+    host, port = args.http
+    try:
+        app = build_topside(
+            args.transport, host, port, node_id=args.node_id, vehicle_id=args.vehicle_id,
+            link=args.link, rate=args.rate, schedule=_schedule(args),
+            modalities=tuple(m for m in args.modalities.split(",") if m))
+    except (CoexError, OSError) as exc:
+        print(f"coex topside: {exc}", file=sys.stderr)
+        return 2
+    print(f"CoEx console on {app.url} (topside node {args.node_id}, {args.transport})",
+          flush=True)
+    try:
+        app.run()
+    except KeyboardInterrupt:
+        pass
+    finally:
+        app.close()
+    return 0

@@ -1,0 +1,114 @@
+"""Glue between the console and a topside :class:`coex_core.node.Node`.
+
+* :class:`NodeCommands` is the ``send`` of :class:`~.state.ConsoleActions` for a node: command
+  ids come from the node's channel manager (so its ``CommandResult`` events match), schedules go
+  through ``propose_schedule`` (both ends switch on the announced cycle), everything else through
+  ``node.request`` (control stream, acked, tracked until the vehicle's ``CommandAck``).
+* :func:`tap_receiver` wraps a modality receiver so the console also sees the raw messages it
+  takes (subgrids with their stamps, image fragments), not only its products.
+* :func:`pump` moves what the node reported (``node.events()``, link state, schedules) into a
+  :class:`~.state.ConsoleState`; the loop that drives the node calls it (via
+  :meth:`ConsoleHub.pump <coex_plugins.console.server.ConsoleHub.pump>`).
+
+Not thread-safe by itself: call everything here with the hub's lock held (the node is not
+thread-safe either).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import Any
+
+from coex_core.channel.schedule import Schedule, resolve_cycle
+from coex_core.messages import Message, ScheduleUpdate
+from coex_core.modality import ModalityReceiver, Product
+
+from .state import ConsoleState
+
+__all__ = ["NodeCommands", "TapReceiver", "pump", "tap_receiver"]
+
+
+class NodeCommands:
+    """Send console commands through a topside node (``clock()`` gives ``now``)."""
+
+    def __init__(self, node: Any, clock: Callable[[], float]) -> None:
+        self.node = node
+        self.clock = clock
+        self.sent: list[Message] = []
+
+    def next_command_id(self) -> int:
+        return int(self.node.manager.next_command_id())
+
+    def __call__(self, msg: Message) -> Message:
+        now = self.clock()
+        if isinstance(msg, ScheduleUpdate):
+            current = self.node.manager.schedule(msg.link).cycle_at(now)
+            cycle = resolve_cycle(msg.activate_cycle, current)
+            out: Message = self.node.manager.propose_schedule(
+                msg.link, Schedule.from_message(msg), now, cycle)
+        else:
+            self.node.request(msg, now)
+            out = msg
+        self.sent.append(out)
+        return out
+
+
+class TapReceiver(ModalityReceiver):
+    """A receiver that shows every message it takes to ``on_message(msg, now)`` first."""
+
+    def __init__(self, inner: ModalityReceiver,
+                 on_message: Callable[[Message, float], Any]) -> None:
+        self.inner = inner
+        self.on_message = on_message
+
+    def receive(self, message: Message, now: float) -> list[Product]:
+        try:
+            self.on_message(message, now)
+        except Exception:  # the console must never cost the receiver a message
+            pass
+        return self.inner.receive(message, now)
+
+    def poll(self, now: float) -> list[Message]:
+        return self.inner.poll(now)
+
+    def products(self) -> list[Product]:
+        return self.inner.products()
+
+    def __getattr__(self, name: str) -> Any:  # request helpers of the wrapped receiver
+        return getattr(self.inner, name)
+
+
+def tap_receiver(receiver: ModalityReceiver, hub: Any) -> TapReceiver:
+    """Wrap ``receiver`` so that ``hub`` (a ConsoleHub or ConsoleState) sees its raw messages.
+    The wrapped receiver is called from the node's loop, which already holds the hub's lock."""
+    state: ConsoleState = hub.state if hasattr(hub, "state") else hub
+    return TapReceiver(receiver, lambda msg, now: state.apply_message(msg, now))
+
+
+def pump(state: ConsoleState, node: Any, now: float) -> int:
+    """Apply the node's events and refresh link/schedule state; returns the events applied."""
+    events = node.events()
+    for e in events:
+        state.apply_event(e)
+    mgr = node.manager
+    for link in mgr.links:
+        info = mgr.link_state(link)
+        lk = state._link(link)
+        local = (info["enabled"], info["muted"], info["packets"], info["frames_rx"],
+                 info["last_heard"])
+        if lk.get("_local") != local:
+            lk["_local"] = local
+            lk.update(enabled=info["enabled"], muted=info["muted"], sent_packets=info["packets"],
+                      frames_rx=info["frames_rx"], last_heard=info["last_heard"])
+            state._touch("link")
+        sch = mgr.schedule(link)
+        known = state.schedules.get(link)
+        key = (sch.version, sch.epoch, sch.first_cycle, len(sch.slots))
+        if known is None or known.get("_key") != key:
+            proposed = known.get("proposed") if known else None
+            state.set_schedule(link, sch)
+            state.schedules[link]["_key"] = key
+            state.schedules[link]["proposed"] = proposed
+    if now > state.now:
+        state.now = float(now)
+    return len(events)

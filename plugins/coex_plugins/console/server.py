@@ -1,0 +1,306 @@
+"""The console's web server: stdlib ``ThreadingHTTPServer``, static page, JSON API and
+server-sent events.
+
+Endpoints (all on 127.0.0.1 unless told otherwise):
+
+* ``GET /`` the page; ``GET /static/<file>`` its script and style (no CDN, no build step).
+* ``GET /api/state`` the whole :meth:`ConsoleState.snapshot` as JSON.
+* ``GET /api/events`` server-sent events: ``snapshot`` (everything, once), then ``update``
+  (the sections that changed) and ``clock`` (``{"now": t}`` once a second). Every browser
+  gets the same state.
+* ``GET /map/<level>.png`` a map level; ``GET /image/<id>.png`` an image thumbnail.
+* ``POST /api/action`` ``{"action": name, "args": {...}}`` runs a :class:`ConsoleActions`
+  method; answers ``{"ok": true, "sent": [messages as JSON]}`` or ``{"ok": false, "error": ...}``
+  (HTTP 400).
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import threading
+import time
+from collections.abc import Callable, Iterable
+from http import HTTPStatus
+from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
+from importlib import resources
+from typing import Any
+from urllib.parse import urlsplit
+
+from coex_core import jsonfmt
+from coex_core.errors import CoexError
+from coex_core.messages import Message
+
+from .state import SECTIONS, ConsoleActions, ConsoleState
+
+__all__ = ["ConsoleHub", "ConsoleServer", "serve"]
+
+log = logging.getLogger(__name__)
+
+_STATIC = {"app.js": "text/javascript", "style.css": "text/css", "index.html": "text/html"}
+
+
+def _jsonable(obj: Any) -> Any:
+    if hasattr(obj, "tolist"):
+        return obj.tolist()
+    if isinstance(obj, set | frozenset | tuple):
+        return list(obj)
+    return str(obj)
+
+
+def dumps(obj: Any) -> str:
+    return json.dumps(obj, default=_jsonable, allow_nan=False, separators=(",", ":"))
+
+
+class ConsoleHub:
+    """A :class:`ConsoleState` and its :class:`ConsoleActions` shared by the runner thread and
+    the HTTP threads: every change goes through :meth:`update` (under one lock) and wakes the
+    event streams.
+
+    ``send`` takes each command message (the topside node's send path); ``clock`` gives ``now``.
+    """
+
+    def __init__(self, state: ConsoleState, send: Callable[[Message], Any],
+                 clock: Callable[[], float]) -> None:
+        self.state = state
+        self.clock = clock
+        self.lock = threading.RLock()
+        self.changed = threading.Condition(self.lock)
+        self.actions = ConsoleActions(state, send, clock)
+        self.closed = False
+
+    # ------------------------------------------------------------------ from the runner
+    def update(self, fn: Callable[[ConsoleState], Any]) -> Any:
+        """Run ``fn(state)`` under the lock and wake every event stream."""
+        with self.changed:
+            result = fn(self.state)
+            self.changed.notify_all()
+            return result
+
+    def messages(self, msgs: Iterable[Message], now: float, link: int | None = None) -> None:
+        msgs = list(msgs)
+        self.update(lambda s: s.apply_messages(msgs, now, link))
+
+    def events(self, events: Iterable[Any]) -> None:
+        events = list(events)
+        self.update(lambda s: [s.apply_event(e) for e in events])
+
+    def pump(self, node: Any, now: float) -> int:
+        """Apply a topside node's events (call it from the loop that drives the node)."""
+        from .node import pump
+
+        with self.changed:
+            before = dict(self.state.versions)
+            n = pump(self.state, node, now)
+            if before != self.state.versions:
+                self.changed.notify_all()
+            return n
+
+    def tick(self, now: float) -> None:
+        """Move the console's clock (ages, TDMA position)."""
+        def go(s: ConsoleState) -> None:
+            if now > s.now:
+                s.now = float(now)
+        with self.lock:
+            go(self.state)
+
+    # ---------------------------------------------------------------- from the browser
+    def act(self, action: str, args: dict[str, Any]) -> list[Message]:
+        with self.changed:
+            sent = self.actions.dispatch(action, args)
+            self.changed.notify_all()
+            return sent
+
+    def snapshot(self) -> dict[str, Any]:
+        with self.lock:
+            return self.state.snapshot()
+
+    def wait_changes(self, seen: dict[str, int], timeout: float) -> dict[str, Any]:
+        """Sections changed since ``seen`` (waits up to ``timeout`` s); updates ``seen``."""
+        with self.changed:
+            if not self._dirty(seen):
+                self.changed.wait(timeout)
+            out = self.state.changes(seen)
+            seen.update({k: self.state.versions[k] for k in out})
+            return out
+
+    def _dirty(self, seen: dict[str, int]) -> bool:
+        return any(seen.get(s) != self.state.versions[s] for s in SECTIONS)
+
+    def close(self) -> None:
+        with self.changed:
+            self.closed = True
+            self.changed.notify_all()
+
+
+class _Handler(BaseHTTPRequestHandler):
+    server: ConsoleServer
+    protocol_version = "HTTP/1.1"
+
+    def log_message(self, format: str, *args: Any) -> None:
+        log.debug("%s " + format, self.address_string(), *args)
+
+    # ------------------------------------------------------------------ helpers
+    def _send(self, code: int, body: bytes, ctype: str, cache: bool = False) -> None:
+        self.send_response(code)
+        self.send_header("Content-Type", ctype)
+        self.send_header("Content-Length", str(len(body)))
+        self.send_header("Cache-Control", "max-age=3600" if cache else "no-store")
+        self.end_headers()
+        if self.command != "HEAD":
+            self.wfile.write(body)
+
+    def _json(self, code: int, obj: Any) -> None:
+        self._send(code, dumps(obj).encode(), "application/json")
+
+    def _not_found(self) -> None:
+        self._json(HTTPStatus.NOT_FOUND, {"ok": False, "error": f"no such page {self.path}"})
+
+    # ------------------------------------------------------------------ GET
+    def do_GET(self) -> None:
+        path = urlsplit(self.path).path
+        hub = self.server.hub
+        if path in ("/", "/index.html"):
+            self._send(200, _asset("index.html"), "text/html; charset=utf-8")
+        elif path.startswith("/static/"):
+            name = path[len("/static/"):]
+            if name not in _STATIC:
+                return self._not_found()
+            self._send(200, _asset(name), _STATIC[name] + "; charset=utf-8")
+        elif path == "/favicon.ico":
+            self._send(204, b"", "image/x-icon", cache=True)
+        elif path == "/api/state":
+            self._json(200, hub.snapshot())
+        elif path == "/api/events":
+            self._events()
+        elif path.startswith("/map/") and path.endswith(".png"):
+            try:
+                level = int(path[5:-4])
+            except ValueError:
+                return self._not_found()
+            with hub.lock:
+                png = hub.state.map_png(level)
+            if png is None:
+                return self._not_found()
+            self._send(200, png, "image/png", cache=True)
+        elif path.startswith("/image/") and path.endswith(".png"):
+            try:
+                iid = int(path[7:-4])
+            except ValueError:
+                return self._not_found()
+            with hub.lock:
+                png = hub.state.image_png(iid)
+            if png is None:
+                return self._not_found()
+            self._send(200, png, "image/png", cache=True)
+        else:
+            self._not_found()
+
+    do_HEAD = do_GET
+
+    def _events(self) -> None:
+        hub = self.server.hub
+        self.send_response(200)
+        self.send_header("Content-Type", "text/event-stream")
+        self.send_header("Cache-Control", "no-store")
+        self.send_header("Connection", "close")
+        self.end_headers()
+        self.close_connection = True
+        with hub.lock:
+            snap = hub.state.snapshot()
+            seen = dict(hub.state.versions)
+            last_now = hub.state.now
+        last_clock = time.monotonic()
+        try:
+            self._event("snapshot", snap)
+            while not hub.closed and not self.server.stopping:
+                changes = hub.wait_changes(seen, 1.0)
+                if changes:
+                    with hub.lock:
+                        changes["now"] = hub.state.now
+                    self._event("update", changes)
+                now = hub.state.now
+                if time.monotonic() - last_clock >= 1.0:
+                    # the clock also keeps the connection alive (and finds dead browsers)
+                    self._event("clock", {"now": now, "moved": now != last_now})
+                    last_now, last_clock = now, time.monotonic()
+        except (BrokenPipeError, ConnectionResetError, OSError):
+            return
+
+    def _event(self, name: str, data: Any) -> None:
+        self.wfile.write(f"event: {name}\ndata: {dumps(data)}\n\n".encode())
+        self.wfile.flush()
+
+    # ------------------------------------------------------------------ POST
+    def do_POST(self) -> None:
+        if urlsplit(self.path).path != "/api/action":
+            return self._not_found()
+        try:
+            length = int(self.headers.get("Content-Length", "0"))
+            if not 0 <= length <= 65536:
+                raise ValueError("body too large")
+            body = json.loads(self.rfile.read(length) or b"{}")
+            action = str(body["action"])
+            args = body.get("args") or {}
+            if not isinstance(args, dict):
+                raise ValueError("args must be an object")
+        except (ValueError, KeyError, TypeError) as exc:
+            return self._json(400, {"ok": False, "error": f"bad request: {exc}"})
+        try:
+            sent = self.server.hub.act(action, args)
+        except CoexError as exc:
+            return self._json(400, {"ok": False, "error": str(exc)})
+        except Exception as exc:  # never let an operator action kill the console
+            log.exception("action %s failed", action)
+            return self._json(500, {"ok": False, "error": f"{type(exc).__name__}: {exc}"})
+        self._json(200, {"ok": True, "sent": [jsonfmt.to_json(m) for m in sent]})
+
+
+def _asset(name: str) -> bytes:
+    return resources.files(__package__).joinpath("static", name).read_bytes()
+
+
+class ConsoleServer(ThreadingHTTPServer):
+    """The console's HTTP server, running in a background thread once :meth:`start` is called."""
+
+    daemon_threads = True
+    allow_reuse_address = True
+
+    def __init__(self, hub: ConsoleHub, host: str = "127.0.0.1", port: int = 8080) -> None:
+        super().__init__((host, port), _Handler)
+        self.hub = hub
+        self.stopping = False
+        self._thread: threading.Thread | None = None
+
+    @property
+    def url(self) -> str:
+        host, port = self.server_address[:2]
+        return f"http://{host}:{port}/"
+
+    def start(self) -> ConsoleServer:
+        self._thread = threading.Thread(target=self.serve_forever, kwargs={"poll_interval": 0.2},
+                                        name="coex-console", daemon=True)
+        self._thread.start()
+        return self
+
+    def close(self) -> None:
+        self.stopping = True
+        self.hub.close()
+        self.shutdown()
+        self.server_close()
+        if self._thread is not None:
+            self._thread.join(timeout=5)
+
+    def __enter__(self) -> ConsoleServer:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+def serve(target: Any, host: str = "127.0.0.1", port: int = 8080) -> ConsoleServer:
+    """Serve the console for ``target`` (a :class:`ConsoleHub`) in a background thread and
+    return the running server (``server.url``, ``server.close()``). Port 0 picks a free port."""
+    if not isinstance(target, ConsoleHub):
+        raise TypeError(f"serve() needs a ConsoleHub, got {type(target).__name__}")
+    return ConsoleServer(target, host, port).start()

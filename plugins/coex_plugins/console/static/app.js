@@ -1,0 +1,687 @@
+// CoEx topside console: live state over server-sent events, actions as POST /api/action.
+// Plain browser JavaScript, no build step, no external resources.
+"use strict";
+
+const S = { now: 0, vehicle: null, map: null, images: null, series: null, link: null,
+  queues: null, commands: [], log: [], versions: {} };
+const $ = (sel) => document.querySelector(sel);
+const el = (tag, attrs = {}, ...kids) => {
+  const e = document.createElement(tag);
+  for (const [k, v] of Object.entries(attrs)) {
+    if (k === "class") e.className = v;
+    else if (k.startsWith("on")) e.addEventListener(k.slice(2), v);
+    else e.setAttribute(k, v);
+  }
+  for (const k of kids) e.append(k instanceof Node ? k : document.createTextNode(String(k)));
+  return e;
+};
+
+// ------------------------------------------------------------------ formatting
+const pad = (n) => String(n).padStart(2, "0");
+function fmtT(t) {
+  if (t === null || t === undefined) return "–";
+  const s = ((Math.floor(t) % 86400) + 86400) % 86400;
+  return `${pad(Math.floor(s / 3600))}:${pad(Math.floor(s / 60) % 60)}:${pad(s % 60)}`;
+}
+function fmtAge(a) {
+  if (a === null || a === undefined || !isFinite(a)) return "–";
+  a = Math.max(0, a);
+  if (a < 90) return `${a.toFixed(0)} s`;
+  if (a < 5400) return `${(a / 60).toFixed(0)} min`;
+  return `${(a / 3600).toFixed(1)} h`;
+}
+function fmtBytes(b) {
+  if (b === null || b === undefined) return "?";
+  return b < 2048 ? `${b} B` : `${(b / 1024).toFixed(1)} kB`;
+}
+function parseTime(text) {
+  // "hh:mm:ss" or "mm:ss" (time of day, nearest to now) or plain seconds
+  text = text.trim();
+  if (!text) return S.now;
+  if (text.includes(":")) {
+    const parts = text.split(":").map(Number);
+    if (parts.some((p) => !isFinite(p))) throw new Error(`bad time ${text}`);
+    while (parts.length < 3) parts.unshift(0);
+    const tod = parts[0] * 3600 + parts[1] * 60 + parts[2];
+    const base = S.now - (((S.now % 86400) + 86400) % 86400);
+    let t = base + tod;
+    if (t > S.now + 43200) t -= 86400;
+    if (t < S.now - 43200) t += 86400;
+    return t;
+  }
+  const v = Number(text);
+  if (!isFinite(v)) throw new Error(`bad time ${text}`);
+  return v;
+}
+
+// ------------------------------------------------------------------ actions
+function toast(text, error = false) {
+  const t = $("#toast");
+  t.textContent = text;
+  t.className = "toast" + (error ? " error" : "");
+  clearTimeout(toast.timer);
+  toast.timer = setTimeout(() => t.classList.add("hidden"), error ? 6000 : 2500);
+}
+async function act(action, args) {
+  try {
+    const r = await fetch("/api/action", { method: "POST",
+      headers: { "Content-Type": "application/json" }, body: JSON.stringify({ action, args }) });
+    const body = await r.json();
+    if (!body.ok) { toast(body.error || "failed", true); return null; }
+    toast(`sent ${body.sent.map((m) => m.type).join(", ")}`);
+    return body;
+  } catch (err) {
+    toast(String(err), true);
+    return null;
+  }
+}
+
+// ------------------------------------------------------------------ the map
+const canvas = $("#map-canvas");
+const ctx = canvas.getContext("2d");
+const view = { cx: 0, cy: 0, scale: 1, auto: true };
+const hiddenLevels = new Set();
+const imgCache = new Map();
+let drawMode = false, drag = null, roi = null;
+
+function w2s(x, y) {
+  return [canvas.width / 2 + (x - view.cx) * view.scale, canvas.height / 2 - (y - view.cy) * view.scale];
+}
+function s2w(px, py) {
+  return [view.cx + (px - canvas.width / 2) / view.scale, view.cy - (py - canvas.height / 2) / view.scale];
+}
+function evPos(ev) {
+  const r = canvas.getBoundingClientRect();
+  return [(ev.clientX - r.left) * canvas.width / r.width, (ev.clientY - r.top) * canvas.height / r.height];
+}
+function resizeCanvas() {
+  const r = canvas.getBoundingClientRect();
+  const w = Math.max(200, Math.round(r.width)), h = Math.max(200, Math.round(r.height));
+  if (canvas.width !== w || canvas.height !== h) { canvas.width = w; canvas.height = h; }
+}
+function bounds() {
+  let b = null;
+  const add = (x, y) => {
+    if (x === null || y === null || x === undefined) return;
+    if (!b) b = [x, y, x, y];
+    else b = [Math.min(b[0], x), Math.min(b[1], y), Math.max(b[2], x), Math.max(b[3], y)];
+  };
+  if (S.map) {
+    for (const lv of S.map.levels) { add(lv.x0, lv.y0); add(lv.x1, lv.y1); }
+    for (const t of S.map.targets) add(t.x, t.y);
+    for (const r of S.map.requests) { add(r.rect[0], r.rect[1]); add(r.rect[2], r.rect[3]); }
+  }
+  if (S.vehicle) for (const p of S.vehicle.track) add(p[1], p[2]);
+  return b;
+}
+function fit() {
+  resizeCanvas();
+  const b = bounds();
+  if (!b) return;
+  const w = Math.max(b[2] - b[0], 20), h = Math.max(b[3] - b[1], 20);
+  view.cx = (b[0] + b[2]) / 2; view.cy = (b[1] + b[3]) / 2;
+  view.scale = 0.9 * Math.min(canvas.width / w, canvas.height / h);
+}
+function levelImage(lv) {
+  let img = imgCache.get(lv.level);
+  if (!img || img.dataset.src !== lv.png) {
+    const fresh = new Image();
+    fresh.dataset.src = lv.png;
+    fresh.onload = () => { imgCache.set(lv.level, fresh); drawMap(); };
+    fresh.src = lv.png;
+    if (!img) return null;  // keep drawing the previous picture until the new one loads
+  }
+  return img && img.complete ? img : null;
+}
+function ageColor(age, alpha) {
+  const f = Math.min(1, Math.max(0, age / 1800));
+  const r = Math.round(80 + 175 * f), g = Math.round(220 - 150 * f);
+  return `rgba(${r},${g},90,${alpha})`;
+}
+function drawMap() {
+  resizeCanvas();
+  if (view.auto) fit();
+  ctx.setTransform(1, 0, 0, 1, 0, 0);
+  ctx.fillStyle = "#0a1016";
+  ctx.fillRect(0, 0, canvas.width, canvas.height);
+  ctx.imageSmoothingEnabled = false;
+  const m = S.map;
+  const has = m && m.levels.length;
+  $("#map-hint").classList.toggle("hidden", !!(has || (S.vehicle && S.vehicle.track.length)));
+  drawGrid();
+  if (m) {
+    const visible = m.levels.filter((lv) => !hiddenLevels.has(lv.level));
+    for (const lv of visible) {  // coarse first, finer on top
+      const img = levelImage(lv);
+      if (!img) continue;
+      const [ax, ay] = w2s(lv.x0, lv.y1), [bx, by] = w2s(lv.x1, lv.y0);
+      ctx.drawImage(img, ax, ay, bx - ax, by - ay);
+    }
+    if ($("#show-age").checked && visible.length) {
+      const lv = visible[visible.length - 1];
+      const span = lv.side * lv.cell;
+      for (const [ix, iy, age] of lv.tiles) {
+        const [ax, ay] = w2s(ix * span, (iy + 1) * span);
+        const sz = span * view.scale;
+        ctx.fillStyle = ageColor(age, 0.35);
+        ctx.fillRect(ax, ay, sz, sz);
+      }
+    }
+    for (const r of m.requests) {
+      const [ax, ay] = w2s(r.rect[0], r.rect[3]), [bx, by] = w2s(r.rect[2], r.rect[1]);
+      const style = { requested: ["#f0b443", [6, 4]], queued: ["#f0b443", [6, 4]],
+        partial: ["#e8e05a", []], received: ["#58c47c", []], "nothing newer": ["#8890a0", [2, 3]] }[r.status] || ["#f0b443", [6, 4]];
+      ctx.strokeStyle = style[0]; ctx.setLineDash(style[1]); ctx.lineWidth = 2;
+      ctx.strokeRect(ax, ay, bx - ax, by - ay);
+      ctx.setLineDash([]);
+      ctx.fillStyle = style[0]; ctx.font = "11px system-ui";
+      ctx.fillText(`L${r.level} ${r.status}${r.received ? ` (${r.received})` : ""}`, ax + 3, ay + 12);
+    }
+  }
+  if (S.vehicle && $("#show-track").checked) drawTrack();
+  if (m) {
+    for (const t of m.targets) {
+      const [x, y] = w2s(t.x, t.y);
+      ctx.strokeStyle = "#ef5f5f"; ctx.lineWidth = 2;
+      ctx.beginPath(); ctx.arc(x, y, 9, 0, 2 * Math.PI); ctx.stroke();
+      ctx.fillStyle = "#ffb0b0"; ctx.font = "11px system-ui";
+      const h = t.height !== undefined && t.height !== null ? ` +${Number(t.height).toFixed(1)} m` : "";
+      ctx.fillText(`target${h}`, x + 11, y - 6);
+    }
+  }
+  if (roi) {
+    const [ax, ay] = w2s(Math.min(roi[0], roi[2]), Math.max(roi[1], roi[3]));
+    const [bx, by] = w2s(Math.max(roi[0], roi[2]), Math.min(roi[1], roi[3]));
+    ctx.fillStyle = "rgba(79,179,255,0.15)"; ctx.fillRect(ax, ay, bx - ax, by - ay);
+    ctx.strokeStyle = "#4fb3ff"; ctx.lineWidth = 2; ctx.strokeRect(ax, ay, bx - ax, by - ay);
+  }
+  drawScale();
+}
+function drawGrid() {
+  const stepM = niceStep(100 / view.scale);
+  const [x0, y1] = s2w(0, 0), [x1, y0] = s2w(canvas.width, canvas.height);
+  ctx.strokeStyle = "rgba(255,255,255,0.05)"; ctx.lineWidth = 1;
+  ctx.beginPath();
+  for (let x = Math.ceil(x0 / stepM) * stepM; x < x1; x += stepM) {
+    const [sx] = w2s(x, 0); ctx.moveTo(sx, 0); ctx.lineTo(sx, canvas.height);
+  }
+  for (let y = Math.ceil(y0 / stepM) * stepM; y < y1; y += stepM) {
+    const [, sy] = w2s(0, y); ctx.moveTo(0, sy); ctx.lineTo(canvas.width, sy);
+  }
+  ctx.stroke();
+}
+function niceStep(v) {
+  const p = Math.pow(10, Math.floor(Math.log10(Math.max(v, 1e-6))));
+  for (const k of [1, 2, 5, 10]) if (k * p >= v) return k * p;
+  return 10 * p;
+}
+function drawScale() {
+  const m = niceStep(120 / view.scale), px = m * view.scale;
+  const x = 12, y = canvas.height - 14;
+  ctx.strokeStyle = "#dce6ee"; ctx.lineWidth = 2;
+  ctx.beginPath(); ctx.moveTo(x, y); ctx.lineTo(x + px, y); ctx.stroke();
+  ctx.fillStyle = "#dce6ee"; ctx.font = "11px system-ui";
+  ctx.fillText(`${m} m`, x + px + 6, y + 4);
+}
+function drawTrack() {
+  const tr = S.vehicle.track;
+  if (tr.length > 1) {
+    ctx.strokeStyle = "rgba(255,255,255,0.75)"; ctx.lineWidth = 1.5;
+    ctx.beginPath();
+    tr.forEach((p, i) => { const [x, y] = w2s(p[1], p[2]); if (i) ctx.lineTo(x, y); else ctx.moveTo(x, y); });
+    ctx.stroke();
+  }
+  const st = S.vehicle.status;
+  if (st) {
+    const [x, y] = w2s(st.x, st.y), a = (st.heading * Math.PI) / 180;
+    ctx.save(); ctx.translate(x, y); ctx.rotate(a);
+    ctx.fillStyle = "#f28f3b"; ctx.strokeStyle = "#000";
+    ctx.beginPath(); ctx.moveTo(0, -11); ctx.lineTo(7, 8); ctx.lineTo(-7, 8); ctx.closePath();
+    ctx.fill(); ctx.stroke(); ctx.restore();
+  }
+}
+function renderLevels() {
+  const tb = $("#levels-table tbody");
+  tb.replaceChildren();
+  const m = S.map;
+  if (!m) return;
+  for (const lv of m.levels.slice().sort((a, b) => a.level - b.level)) {
+    const cb = el("input", { type: "checkbox" });
+    cb.checked = !hiddenLevels.has(lv.level);
+    cb.addEventListener("change", () => { if (cb.checked) hiddenLevels.delete(lv.level); else hiddenLevels.add(lv.level); drawMap(); });
+    tb.append(el("tr", { "data-level": lv.level }, el("td", {}, cb), el("td", {}, lv.level),
+      el("td", {}, `${lv.cell} m`), el("td", { class: "n-subgrids" }, lv.subgrids),
+      el("td", {}, `${Math.round(lv.coverage_m2).toLocaleString()} m²`),
+      el("td", {}, fmtAge(lv.newest_age)), el("td", {}, fmtAge(lv.oldest_age))));
+  }
+  const sel = $("#roi-level"), keep = sel.value;
+  const n = m.meta ? m.meta.levels : Math.max(1, ...m.levels.map((l) => l.level + 1));
+  sel.replaceChildren();
+  for (let k = 0; k < Math.max(n, 1); k++) {
+    const cell = m.meta ? m.meta.resolution * 2 ** k : null;
+    sel.append(el("option", { value: k }, cell ? `${k} (${cell} m)` : `${k}`));
+  }
+  if (keep !== "") sel.value = keep;
+  if (m.zrange) {
+    $("#colorbar").style.background = "linear-gradient(90deg,#26145a,#285fa0,#28a08c,#8ccd50,#fae63c)";
+    $("#colorbar").title = `${m.zrange[0].toFixed(1)} m … ${m.zrange[1].toFixed(1)} m`;
+    $("#colorbar").textContent = "";
+  }
+}
+
+canvas.addEventListener("mousedown", (ev) => {
+  const p = evPos(ev);
+  if (drawMode) {
+    const w = s2w(...p);
+    roi = [w[0], w[1], w[0], w[1]];
+    drag = { kind: "draw" };
+  } else {
+    drag = { kind: "pan", p, cx: view.cx, cy: view.cy };
+  }
+});
+window.addEventListener("mousemove", (ev) => {
+  const p = evPos(ev);
+  const w = s2w(...p);
+  $("#map-cursor").textContent = `x ${w[0].toFixed(1)} m, y ${w[1].toFixed(1)} m`;
+  if (!drag) return;
+  if (drag.kind === "draw") { roi[2] = w[0]; roi[3] = w[1]; drawMap(); }
+  else {
+    view.auto = false;
+    view.cx = drag.cx - (p[0] - drag.p[0]) / view.scale;
+    view.cy = drag.cy + (p[1] - drag.p[1]) / view.scale;
+    drawMap();
+  }
+});
+window.addEventListener("mouseup", () => {
+  if (drag && drag.kind === "draw") {
+    if (Math.abs(roi[2] - roi[0]) * view.scale < 3 && Math.abs(roi[3] - roi[1]) * view.scale < 3) {
+      roi = null;
+    } else {
+      showRoiBar();
+    }
+    drawMap();
+  }
+  drag = null;
+});
+canvas.addEventListener("wheel", (ev) => {
+  ev.preventDefault();
+  view.auto = false;
+  const p = evPos(ev), before = s2w(...p);
+  view.scale *= Math.exp(-ev.deltaY * 0.0015);
+  const after = s2w(...p);
+  view.cx += before[0] - after[0]; view.cy += before[1] - after[1];
+  drawMap();
+}, { passive: false });
+canvas.addEventListener("dblclick", (ev) => {
+  // double-click a target: select a 16 m box around it
+  if (!S.map) return;
+  const p = evPos(ev);
+  for (const t of S.map.targets) {
+    const [x, y] = w2s(t.x, t.y);
+    if (Math.hypot(x - p[0], y - p[1]) < 12) {
+      roi = [t.x - 8, t.y - 8, t.x + 8, t.y + 8];
+      showRoiBar(); drawMap(); return;
+    }
+  }
+});
+function setDraw(on) {
+  drawMode = on;
+  $("#draw-btn").classList.toggle("active", on);
+  canvas.classList.toggle("drawing", on);
+}
+function showRoiBar() {
+  const w = Math.abs(roi[2] - roi[0]), h = Math.abs(roi[3] - roi[1]);
+  $("#roi-desc").textContent = `${w.toFixed(0)} × ${h.toFixed(0)} m at (${Math.min(roi[0], roi[2]).toFixed(0)}, ${Math.min(roi[1], roi[3]).toFixed(0)})`;
+  $("#roi-bar").classList.remove("hidden");
+}
+$("#draw-btn").addEventListener("click", () => setDraw(!drawMode));
+$("#fit-btn").addEventListener("click", () => { view.auto = true; drawMap(); });
+$("#show-age").addEventListener("change", drawMap);
+$("#show-track").addEventListener("change", drawMap);
+$("#roi-cancel").addEventListener("click", () => { roi = null; $("#roi-bar").classList.add("hidden"); drawMap(); });
+$("#roi-send").addEventListener("click", async () => {
+  if (!roi) return;
+  const r = await act("request_region", { level: Number($("#roi-level").value || 0),
+    x_min: roi[0], y_min: roi[1], x_max: roi[2], y_max: roi[3], fill_gaps: $("#roi-gaps").checked });
+  if (r) { roi = null; $("#roi-bar").classList.add("hidden"); setDraw(false); drawMap(); }
+});
+
+// ------------------------------------------------------------------ images
+const cards = new Map();
+function renderImages() {
+  const g = $("#gallery");
+  const im = S.images;
+  if (!im) return;
+  const p = im.progress;
+  $("#img-progress").textContent = p ? `vehicle: ${p.pending ?? 0} pending, sending ${p.current ?? "–"}, next ${(p.next || []).join(", ") || "–"}, ${p.unacked_fragments ?? 0} fragments unacked` : "";
+  if (im.items.length && g.querySelector(".empty")) g.replaceChildren();
+  for (const it of im.items) {
+    let c = cards.get(it.image_id);
+    if (!c) { c = makeCard(it); cards.set(it.image_id, c); g.prepend(c.root); }
+    updateCard(c, it);
+  }
+}
+function makeCard(it) {
+  const root = el("div", { class: "card", "data-image": it.image_id });
+  const pic = el("div", { class: "nothumb" }, "waiting for data");
+  const meta = el("div", { class: "meta" });
+  const bar = el("div", { class: "bar" }, el("div", { style: "width:0%" }));
+  const bytes = el("div", { class: "meta" });
+  const kind = el("select", {},
+    ...["fraction", "layer", "full", "skip"].map((k) => el("option", { value: k }, k)));
+  const val = el("input", { value: "50", title: "% or layer" });
+  const set = el("button", { title: "transfer this image up to the goal" }, "Goal");
+  set.addEventListener("click", () => act("set_image_goal", { image_id: it.image_id, kind: kind.value, value: Number(val.value || 0) }));
+  root.append(pic, meta, bar, bytes, el("div", { class: "goal" }, kind, val, set));
+  return { root, pic, meta, bar, bytes, thumb: null };
+}
+function updateCard(c, it) {
+  if (it.thumb && it.thumb !== c.thumb) {
+    const img = el("img", { class: "thumb", src: it.thumb, alt: `image ${it.image_id}` });
+    c.pic.replaceWith(img); c.pic = img; c.thumb = it.thumb;
+  }
+  const pos = it.x !== null && it.x !== undefined ? ` · (${Number(it.x).toFixed(0)}, ${Number(it.y).toFixed(0)})` : "";
+  c.meta.textContent = `#${it.image_id} · ${fmtT(it.t)}${pos}${it.width ? ` · ${it.width}×${it.height}` : ""}`;
+  const f = it.fraction ?? 0;
+  c.bar.firstChild.style.width = `${Math.min(100, 100 * f).toFixed(1)}%`;
+  const goal = it.goal ? ` · goal ${it.goal.kind.toLowerCase()}${it.goal.value ? " " + it.goal.value : ""}` : "";
+  c.bytes.textContent = `${fmtBytes(it.bytes_received)} / ${fmtBytes(it.total_bytes)}${goal}`;
+  c.root.classList.toggle("current", S.images.progress && S.images.progress.current === it.image_id);
+}
+for (const b of document.querySelectorAll(".img-time-btn")) {
+  b.addEventListener("click", () => {
+    let t;
+    try { t = parseTime($("#img-time").value); } catch (e) { toast(String(e.message), true); return; }
+    act("image_by_time", { t, direction: b.dataset.dir });
+  });
+}
+
+// ------------------------------------------------------------------ time series
+const plots = new Map();
+let seriesSel = null;  // {channel, t0, t1}
+function renderSeries() {
+  const box = $("#series");
+  const sr = S.series;
+  if (!sr) return;
+  if (sr.channels.length && box.querySelector(".empty")) box.replaceChildren();
+  for (const ch of sr.channels) {
+    let p = plots.get(ch.channel);
+    if (!p) { p = makePlot(ch.channel); plots.set(ch.channel, p); box.append(p.root); }
+    p.data = ch;
+    drawPlot(p);
+  }
+}
+function makePlot(channel) {
+  const title = el("div", { class: "title" });
+  const cv = el("canvas", { width: 600, height: 120, "data-channel": channel });
+  const root = el("div", { class: "plot" }, title, cv);
+  const p = { root, title, cv, data: null, range: null };
+  let down = null;
+  cv.addEventListener("mousedown", (ev) => { const t = plotT(p, ev); if (t !== null) { down = t; seriesSel = { channel, t0: t, t1: t }; drawAllPlots(); } });
+  cv.addEventListener("mousemove", (ev) => { if (down === null) return; const t = plotT(p, ev); if (t !== null) { seriesSel.t1 = t; drawAllPlots(); } });
+  window.addEventListener("mouseup", () => {
+    if (down === null) return;
+    down = null;
+    if (seriesSel && Math.abs(seriesSel.t1 - seriesSel.t0) < 1e-6) seriesSel = null;
+    $("#series-refine").disabled = !seriesSel;
+    drawAllPlots();
+  });
+  return p;
+}
+function plotT(p, ev) {
+  if (!p.range) return null;
+  const r = p.cv.getBoundingClientRect();
+  const f = (ev.clientX - r.left) / r.width;
+  return p.range[0] + f * (p.range[1] - p.range[0]);
+}
+function drawAllPlots() { for (const p of plots.values()) drawPlot(p); }
+function drawPlot(p) {
+  const cv = p.cv, c = cv.getContext("2d"), ch = p.data;
+  const rect = cv.getBoundingClientRect();
+  if (rect.width > 50 && cv.width !== Math.round(rect.width)) cv.width = Math.round(rect.width);
+  const W = cv.width, H = cv.height;
+  c.fillStyle = "#0a1016"; c.fillRect(0, 0, W, H);
+  const unit = ch.unit ? ` [${ch.unit}]` : "";
+  const err = ch.max_error !== null && ch.max_error !== undefined ? ` · max error ±${Number(ch.max_error).toPrecision(3)}` : "";
+  p.title.innerHTML = "";
+  p.title.append(el("b", {}, ch.name || `channel ${ch.channel}`), `${unit} · ${ch.samples || 0} samples${err}`);
+  if (!ch.t || !ch.t.length) { p.range = null; return; }
+  const t = ch.t, v = ch.v, e = ch.err;
+  let t0 = t[0], t1 = t[t.length - 1];
+  if (t1 <= t0) t1 = t0 + 1;
+  let lo = Infinity, hi = -Infinity;
+  for (let i = 0; i < v.length; i++) {
+    const ei = e[i] > 0 ? e[i] : 0;
+    lo = Math.min(lo, v[i] - ei); hi = Math.max(hi, v[i] + ei);
+  }
+  if (hi <= lo) { hi = lo + 1; }
+  const padY = (hi - lo) * 0.08; lo -= padY; hi += padY;
+  p.range = [t0, t1];
+  const X = (x) => ((x - t0) / (t1 - t0)) * (W - 4) + 2;
+  const Y = (y) => H - 14 - ((y - lo) / (hi - lo)) * (H - 22);
+  // pending refinement requests
+  for (const r of (S.series.requests || []).filter((q) => q.channel === ch.channel)) {
+    c.fillStyle = "rgba(240,180,67,0.12)";
+    c.fillRect(X(r.start), 0, Math.max(2, X(r.end) - X(r.start)), H - 12);
+  }
+  // error band
+  c.fillStyle = "rgba(79,179,255,0.25)";
+  c.beginPath();
+  let open = false;
+  const flush = (from, to) => {
+    if (to <= from) return;
+    c.moveTo(X(t[from]), Y(v[from] + e[from]));
+    for (let i = from; i < to; i++) c.lineTo(X(t[i]), Y(v[i] + e[i]));
+    for (let i = to - 1; i >= from; i--) c.lineTo(X(t[i]), Y(v[i] - e[i]));
+    c.closePath();
+  };
+  let start = 0;
+  for (let i = 0; i <= t.length; i++) {
+    const ok = i < t.length && e[i] >= 0 && (i === start || t[i] - t[i - 1] < (t1 - t0) / 50);
+    if (!ok) { flush(start, i); start = i + (i < t.length && e[i] < 0 ? 1 : 0); open = false; }
+    else open = true;
+  }
+  void open;
+  c.fill();
+  c.strokeStyle = "#dce6ee"; c.lineWidth = 1;
+  c.beginPath();
+  for (let i = 0; i < t.length; i++) {
+    const gap = i > 0 && t[i] - t[i - 1] > (t1 - t0) / 50;
+    if (i === 0 || gap) c.moveTo(X(t[i]), Y(v[i])); else c.lineTo(X(t[i]), Y(v[i]));
+  }
+  c.stroke();
+  c.fillStyle = "#8aa0b2"; c.font = "10px system-ui";
+  c.fillText(fmtT(t0), 2, H - 2); c.fillText(fmtT(t1), W - 48, H - 2);
+  c.fillText(hi.toPrecision(4), 2, 10); c.fillText(lo.toPrecision(4), 2, H - 16);
+  if (seriesSel && seriesSel.channel === ch.channel) {
+    const a = X(Math.min(seriesSel.t0, seriesSel.t1)), b = X(Math.max(seriesSel.t0, seriesSel.t1));
+    c.fillStyle = "rgba(79,179,255,0.2)"; c.fillRect(a, 0, b - a, H - 12);
+    c.strokeStyle = "#4fb3ff"; c.strokeRect(a, 0, b - a, H - 12);
+  }
+}
+$("#series-refine").addEventListener("click", async () => {
+  if (!seriesSel) return;
+  const txt = $("#series-err").value.trim();
+  const args = { channel: seriesSel.channel, start: Math.min(seriesSel.t0, seriesSel.t1),
+    end: Math.max(seriesSel.t0, seriesSel.t1) };
+  if (txt) args.max_error = Number(txt);
+  const r = await act("refine_series", args);
+  if (r) { seriesSel = null; $("#series-refine").disabled = true; drawAllPlots(); }
+});
+
+// ------------------------------------------------------------------ link & queues
+function renderLink() {
+  const L = S.link;
+  if (!L) return;
+  const box = $("#tdma");
+  box.replaceChildren();
+  for (const sch of L.schedules) {
+    const cv = el("canvas", { width: 560, height: sch.proposed ? 46 : 28, "data-link": sch.link });
+    box.append(cv);
+  }
+  drawTdma();
+  const tb = $("#links-table tbody");
+  tb.replaceChildren();
+  for (const lk of L.links) {
+    const state = lk.enabled ? (lk.muted ? "muted" : "enabled") : "disabled";
+    const btn = el("button", {}, lk.enabled ? "Disable" : "Enable");
+    btn.addEventListener("click", () => act("link_control", { link: lk.link, enabled: !lk.enabled }));
+    const ratio = lk.frames ? ` (${((100 * lk.bad_frames) / lk.frames).toFixed(0)}%)` : "";
+    tb.append(el("tr", { "data-link": lk.link }, el("td", {}, lk.link),
+      el("td", { class: lk.enabled ? "on" : "off" }, state),
+      el("td", {}, lk.snr === null || lk.snr === undefined ? "–" : `${lk.snr} dB`),
+      el("td", {}, `${lk.frames}${lk.frames_rx !== undefined ? ` / rx ${lk.frames_rx}` : ""}`),
+      el("td", {}, `${lk.bad_frames + (lk.local_bad || 0)}${ratio}`),
+      el("td", {}, fmtAge(lk.last_heard !== null && lk.last_heard !== undefined ? S.now - lk.last_heard : lk.age)),
+      el("td", {}, btn)));
+  }
+  const sl = $("#sched-slots");
+  if (!sl.value && L.schedules.length) {
+    sl.value = L.schedules[0].slots.map((s) => `${s.owner}:${s.duration}:${s.guard}`).join(", ");
+    $("#sched-link").value = L.schedules[0].link;
+  }
+}
+function drawTdma() {
+  const L = S.link;
+  if (!L) return;
+  for (const cv of document.querySelectorAll("#tdma canvas")) {
+    const sch = L.schedules.find((s) => String(s.link) === cv.dataset.link);
+    if (!sch) continue;
+    const rect = cv.getBoundingClientRect();
+    if (rect.width > 50 && cv.width !== Math.round(rect.width)) cv.width = Math.round(rect.width);
+    const c = cv.getContext("2d"), W = cv.width;
+    c.fillStyle = "#0a1016"; c.fillRect(0, 0, W, cv.height);
+    const row = (slots, y, h, label) => {
+      const total = slots.reduce((a, s) => a + s.duration, 0) || 1;
+      let x = 60;
+      c.fillStyle = "#8aa0b2"; c.font = "10px system-ui"; c.fillText(label, 2, y + h - 4);
+      slots.forEach((s, i) => {
+        const w = ((W - 62) * s.duration) / total;
+        const col = s.owner === L.node_id ? "#4fb3ff" : s.owner === L.vehicle_id ? "#f28f3b" : "#889";
+        c.fillStyle = col; c.globalAlpha = 0.75; c.fillRect(x + 1, y, w - 2, h);
+        c.globalAlpha = 1; c.fillStyle = "rgba(0,0,0,0.45)";
+        const gw = ((W - 62) * s.guard) / total; c.fillRect(x + w - 1 - gw, y, gw, h);
+        c.fillStyle = "#05090d"; c.fillText(`${i}:${s.owner === L.node_id ? "top" : "veh"}`, x + 4, y + h - 5);
+        x += w;
+      });
+      return total;
+    };
+    const total = row(sch.slots, 2, 22, `link ${sch.link} v${sch.active_version}`);
+    if (sch.cycle > 0) {
+      const since = S.now - sch.epoch;
+      const pos = ((since % sch.cycle) + sch.cycle) % sch.cycle;
+      const x = 60 + ((W - 62) * pos) / total;
+      c.strokeStyle = "#fff"; c.lineWidth = 2; c.beginPath(); c.moveTo(x, 0); c.lineTo(x, 26); c.stroke();
+      c.fillStyle = "#dce6ee";
+      c.fillText(`cycle ${sch.first_cycle + Math.floor(since / sch.cycle)}`, 2, 10);
+    }
+    if (sch.proposed) {
+      row(sch.proposed.slots, 28, 16, `v${sch.proposed.version} ${sch.proposed.status}`);
+    }
+  }
+}
+$("#sched-send").addEventListener("click", () => {
+  const slots = [];
+  for (const part of $("#sched-slots").value.split(",")) {
+    const f = part.trim().split(":").map(Number);
+    if (!part.trim()) continue;
+    if (f.length < 2 || f.some((x) => !isFinite(x))) { toast(`bad slot "${part.trim()}" (owner:seconds:guard)`, true); return; }
+    slots.push({ owner: f[0], duration: f[1], guard: f[2] || 0 });
+  }
+  act("propose_schedule", { link: Number($("#sched-link").value || 0), slots });
+});
+const qrows = new Map();
+function renderQueues() {
+  const Q = S.queues;
+  if (!Q) return;
+  $("#queues-age").textContent = Q.t !== null && Q.t !== undefined ? `queue status from the vehicle at ${fmtT(Q.t)}` : "no queue status from the vehicle yet";
+  const tb = $("#queues-table tbody");
+  for (const s of Q.streams) {
+    let r = qrows.get(s.stream);
+    if (!r) {
+      const prio = el("input", { type: "number", min: 0, max: 127 });
+      const setP = el("button", { title: "set priority" }, "Set");
+      const tog = el("button", {});
+      const flush = el("button", { title: "discard everything queued" }, "Flush");
+      setP.addEventListener("click", () => act("queue_config", { stream: s.stream, priority: Number(prio.value) }));
+      tog.addEventListener("click", () => act("queue_config", { stream: s.stream, enabled: !r.enabled }));
+      flush.addEventListener("click", () => act("queue_config", { stream: s.stream, flush: true }));
+      const cells = [0, 1, 2, 3, 4, 5, 6].map(() => el("td"));
+      cells[2].append(prio, setP);
+      const tr = el("tr", { "data-stream": s.stream }, ...cells, el("td", {}, tog, flush));
+      r = { tr, cells, prio, tog, enabled: s.enabled };
+      qrows.set(s.stream, r);
+      tb.append(tr);
+    }
+    r.enabled = s.enabled;
+    r.cells[0].textContent = `${s.stream} ${s.name}`;
+    r.cells[0].className = s.enabled ? "" : "off";
+    r.cells[1].textContent = s.tier;
+    if (document.activeElement !== r.prio) r.prio.value = s.priority;
+    r.cells[3].textContent = s.depth;
+    r.cells[4].textContent = fmtBytes(s.queued_bytes);
+    r.cells[5].textContent = fmtAge(s.oldest_age);
+    r.cells[6].textContent = `${s.drops} (${s.drops_total})`;
+    r.tog.textContent = s.enabled ? "Disable" : "Enable";
+  }
+}
+
+// ------------------------------------------------------------------ header, commands, log
+function renderVehicle() {
+  const v = S.vehicle && S.vehicle.status;
+  const box = $("#vehicle-status");
+  if (!v) { box.textContent = "no vehicle status yet"; return; }
+  box.innerHTML = "";
+  const f = (label, value) => [el("span", {}, ` ${label} `), el("b", {}, value)];
+  box.append(...f("mode", v.mode), ...f("depth", `${v.depth.toFixed(1)} m`),
+    ...f("alt", v.altitude === null ? "–" : `${v.altitude.toFixed(1)} m`),
+    ...f("hdg", `${v.heading.toFixed(0)}°`), ...f("speed", `${v.speed.toFixed(2)} m/s`),
+    ...f("battery", `${v.battery}%`), ...f("pos", `${v.x.toFixed(0)}, ${v.y.toFixed(0)}`),
+    ...f("at", fmtT(v.t)), ...f("age", fmtAge(S.now - v.t)));
+  if (v.faults) box.append(el("b", { class: "off" }, ` faults 0x${v.faults.toString(16)}`));
+  const it = $("#img-time");
+  if (!it.value && document.activeElement !== it) it.placeholder = fmtT(v.t);
+}
+function renderCommands() {
+  const ul = $("#commands");
+  ul.replaceChildren(...S.commands.map((c) => el("li", { "data-status": c.status },
+    el("span", { class: "t" }, fmtT(c.sent)), c.summary,
+    el("span", { class: `badge ${c.status.replace(" ", "_")}` }, c.status))));
+  if (!S.commands.length) ul.append(el("li", { class: "empty" }, "No command sent yet."));
+}
+function renderLog() {
+  const ul = $("#log");
+  ul.replaceChildren(...S.log.slice().reverse().map((l) => el("li", { class: l.level },
+    el("span", { class: "t" }, fmtT(l.t)), l.text)));
+}
+
+const RENDER = { vehicle: () => { renderVehicle(); drawMap(); }, map: () => { renderLevels(); drawMap(); },
+  images: renderImages, series: renderSeries, link: renderLink, queues: renderQueues,
+  commands: renderCommands, log: renderLog };
+
+function apply(data, full) {
+  if (data.now !== undefined) S.now = data.now;
+  if (data.versions) S.versions = data.versions;
+  for (const k of Object.keys(RENDER)) {
+    if (k in data) { S[k] = data[k]; RENDER[k](); S.versions[k] = (S.versions[k] || 0) + (full ? 0 : 1); }
+  }
+  $("#clock").textContent = fmtT(S.now);
+  window.coex.updates += 1;
+}
+
+// ------------------------------------------------------------------ live connection
+window.coex = { S, view, updates: 0, connected: false };
+function connect() {
+  const es = new EventSource("/api/events");
+  es.addEventListener("snapshot", (ev) => { apply(JSON.parse(ev.data), true); });
+  es.addEventListener("update", (ev) => { apply(JSON.parse(ev.data), false); });
+  es.addEventListener("clock", (ev) => {
+    S.now = JSON.parse(ev.data).now;
+    $("#clock").textContent = fmtT(S.now);
+    renderVehicle(); drawTdma();
+  });
+  es.onopen = () => { $("#conn").textContent = "live"; $("#conn").className = "conn on"; window.coex.connected = true; };
+  es.onerror = () => { $("#conn").textContent = "reconnecting…"; $("#conn").className = "conn off"; window.coex.connected = false; };
+}
+window.addEventListener("resize", () => { drawMap(); drawAllPlots(); drawTdma(); });
+connect();
