@@ -1,0 +1,356 @@
+"""Behaviour of the time-series modality: overview, spikes first, bounds, requests, acks, CSV."""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import numpy as np
+import pytest
+from coex_plugins.timeseries import (
+    InvalidSamples,
+    Samples,
+    TimeSeriesModality,
+    TimeSeriesReceiver,
+    TimeSeriesSender,
+    synth,
+)
+from coex_plugins.timeseries.receiver import sample_series
+
+from coex_core import wire
+from coex_core.errors import CoexError, ConfigError, RequestRejected
+from coex_core.messages import (
+    Message,
+    TimeSeriesAck,
+    TimeSeriesChannel,
+    TimeSeriesChunk,
+    TimeSeriesPart,
+    TimeSeriesRequest,
+)
+from coex_core.registry import load_modality
+from coex_core.timefmt import unwrap
+
+T0 = 1_700_000_000.0
+
+
+def _sender(series: list[synth.SynthSeries], **config: Any) -> TimeSeriesSender:
+    return TimeSeriesSender({"channels": [s.channel() for s in series], **config})
+
+
+def _feed(sender: TimeSeriesSender, series: list[synth.SynthSeries], batch: int = 60) -> float:
+    n = series[0].times.size
+    for i in range(0, n, batch):
+        j = min(i + batch, n)
+        sender.ingest({s.name: (s.times[i:j], s.values[i:j]) for s in series}, float(series[0].times[j - 1]))
+    now = float(series[0].times[-1])
+    sender.flush(now)
+    return now
+
+
+def _drain(sender: TimeSeriesSender, receiver: TimeSeriesReceiver, now: float,
+           sent: list[Message] | None = None, budget: int = 251) -> float:
+    for _ in range(10_000):
+        for reply in receiver.poll(now):
+            sender.handle(reply, now)
+        out = sender.fill(budget, now)
+        if not out:
+            return now
+        for m in out:
+            assert wire.decode(wire.encode(m)) == m
+            if sent is not None:
+                sent.append(m)
+            receiver.receive(m, now)
+        now += 1.0
+    raise AssertionError("the sender never went idle")
+
+
+@pytest.fixture(scope="module")
+def record() -> list[synth.SynthSeries]:
+    return synth.dataset(duration=7200.0, t0=T0, seed=4)
+
+
+def test_entry_point_loads_the_modality() -> None:
+    assert load_modality("timeseries") is TimeSeriesModality
+
+
+def test_overview_covers_every_channel_within_its_bound(record: list[synth.SynthSeries]) -> None:
+    sender = _sender(record)
+    rx = TimeSeriesReceiver()
+    now = _drain(sender, rx, _feed(sender, record))
+    for s in record:
+        series = rx.series(s.name)
+        assert series.unit == s.unit
+        assert series.times.size == s.times.size
+        np.testing.assert_allclose(series.times, s.times, atol=1e-6)
+        err = np.abs(series.values - s.values)
+        assert np.all(err <= series.bounds), f"{s.name}: error above the stated bound"
+        # the overview is coarse (a few noise sigmas and more) but far from useless
+        assert 0 < series.max_bound < 0.05 * (s.values.max() - s.values.min())
+    assert sender.pending_bytes() == 0 and sender.unacked() == 0
+    assert now > T0
+
+
+def test_spikes_arrive_before_the_rest_of_the_overview(record: list[synth.SynthSeries]) -> None:
+    methane = record[0]
+    sender = _sender([methane])
+    sent: list[Message] = []
+    _drain(sender, TimeSeriesReceiver(), _feed(sender, [methane]), sent)
+    total = sum(wire.encoded_size(m) for m in sent)
+    rx = TimeSeriesReceiver()
+    used = 0
+    for m in sent:
+        rx.receive(m, T0 + 7200)
+        used += wire.encoded_size(m)
+        series = rx.series("methane") if rx.products() and rx.bounds("methane") else None
+        if series is None:
+            continue
+        got, _ = sample_series(series, np.array([sp.time for sp in methane.spikes]))
+        idx = np.searchsorted(methane.times, [sp.time for sp in methane.spikes])
+        above = got - methane.baseline[idx]
+        if np.all(np.nan_to_num(above, nan=-1) >= 0.5 * np.array([sp.height for sp in methane.spikes])):
+            break
+    else:
+        raise AssertionError("spikes never all visible")
+    assert used < 0.5 * total, f"spikes visible only after {used} of {total} B"
+
+
+def test_every_chunk_decodes_on_its_own(record: list[synth.SynthSeries]) -> None:
+    sender = _sender(record[:1])
+    sent: list[Message] = []
+    _drain(sender, TimeSeriesReceiver(), _feed(sender, record[:1]), sent)
+    chunks = [m for m in sent if isinstance(m, TimeSeriesChunk) and m.level == 0]
+    assert len(chunks) >= 3
+    for chunk in chunks:
+        rx = TimeSeriesReceiver()  # no registration, nothing else
+        products = rx.receive(chunk, T0 + 7200)
+        assert products and products[0].data.times.size == chunk.count
+        assert math.isfinite(products[0].data.max_bound)
+        t0 = unwrap(chunk.start, T0 + 7200) + chunk.offset
+        assert products[0].data.times[0] == pytest.approx(t0)
+
+
+def test_lost_chunk_bound_uses_complete_prefix_and_recovers(record: list[synth.SynthSeries]) -> None:
+    methane = record[0]
+    sender = _sender([methane], max_latency=1e9)
+    now = _feed(sender, [methane])
+    rx = TimeSeriesReceiver()
+    now = _drain(sender, rx, now)
+    before = rx.bounds("methane")
+    rx.request("methane", T0, T0 + 7200, 0.05)
+    for m in rx.poll(now):
+        sender.handle(m, now)
+    refinements = [m for m in sender.fill(10_000, now) if isinstance(m, TimeSeriesChunk)]
+    assert refinements and all(m.level >= 1 for m in refinements)
+    lost, rest = refinements[0], refinements[1:]
+    for m in rest:
+        rx.receive(m, now)
+    block = [b for b in rx.bounds("methane") if abs(b[0] - (unwrap(lost.start, now) + lost.offset)) < 1]
+    assert block
+    # the first refinement chunk is the first new pass of its block: without it the block keeps
+    # the bound of its complete passes, although later passes of the block did arrive
+    assert any((m.start, m.offset) == (lost.start, lost.offset) for m in rest)
+    prefix_bound = next(b for b in before if b[0] == block[0][0])[2]
+    assert block[0][2] == prefix_bound
+    # the vehicle resends what was not acked, and then every bound meets the request
+    for reply in rx.poll(now):
+        sender.handle(reply, now)
+    now = _drain(sender, rx, now + sender.retry_after)
+    assert all(b <= 0.05 for _, _, b in rx.bounds("methane"))
+    s = rx.series("methane")
+    assert np.all(np.abs(s.values - methane.values) <= s.bounds)
+
+
+def test_request_refines_only_the_window_and_never_resends_held_data(record: list[synth.SynthSeries]) -> None:
+    methane = record[0]
+    sender = _sender([methane], block_samples=1024)
+    rx = TimeSeriesReceiver()
+    now = _drain(sender, rx, _feed(sender, [methane]))
+    before = {b[0]: b[2] for b in rx.bounds("methane")}
+    req = rx.request("methane", T0 + 3000, T0 + 4000, 0.03)
+    assert isinstance(req, TimeSeriesRequest) and req.max_error == pytest.approx(0.03)
+    sent: list[Message] = []
+    now = _drain(sender, rx, now, sent)
+    assert sent and all(isinstance(m, TimeSeriesChunk) and m.level >= 1 for m in sent)
+    after = rx.bounds("methane")
+    for start, end, bound in after:
+        if end >= T0 + 3000 and start <= T0 + 4001:
+            assert bound <= 0.03
+        else:
+            assert bound == before[start]
+    assert rx.pending_requests() == []
+    # "finer detail": no max_error means four times finer than the worst bound held there
+    worst = max(b for s, e, b in after if e >= T0 + 5000 and s <= T0 + 5500)
+    req2 = rx.request("methane", T0 + 5000, T0 + 5500)
+    assert req2.max_error == pytest.approx(worst / 4, rel=1e-6)
+    _drain(sender, rx, now)
+    assert max(b for s, e, b in rx.bounds("methane") if e >= T0 + 5000 and s <= T0 + 5500) <= worst / 4
+
+
+def test_request_for_recent_data_closes_the_open_block(record: list[synth.SynthSeries]) -> None:
+    methane = record[0]
+    sender = _sender([methane], max_latency=1e9)
+    now = float(methane.times[999])
+    sender.ingest(Samples("methane", methane.times[:1000], methane.values[:1000]), now)
+    rx = TimeSeriesReceiver()
+    _drain(sender, rx, now)
+    assert not rx.bounds("methane") if rx.products() else True
+    sender.handle(TimeSeriesRequest(1, 0, int(methane.times[900]) % 2**18, int(now) % 2**18, 0.05), now)
+    rx2 = TimeSeriesReceiver()
+    _drain(sender, rx2, now)
+    assert rx2.bounds(0) and max(b for *_, b in rx2.bounds(0)) <= 0.05  # by id: rx2 missed the registration
+
+
+def test_bad_requests_are_rejected_and_change_nothing(record: list[synth.SynthSeries]) -> None:
+    sender = _sender(record)
+    now = _feed(sender, record[:1] + record[1:])
+    pending = sender.pending_bytes()
+    bad = [
+        TimeSeriesRequest(1, 7, 0, 10, 1.0),  # unknown channel
+        TimeSeriesRequest(2, 0, 0, 10, 0.0001),  # below half the resolution (0.001 nM)
+        TimeSeriesAck(9, True, ()),  # unknown channel
+        TimeSeriesChannel(0, "x", "", 0.0, 1.0, 0.1),  # not a request
+    ]
+    for m in bad:
+        with pytest.raises(RequestRejected):
+            sender.handle(m, now)
+    assert sender.pending_bytes() == pending
+    rx = TimeSeriesReceiver()
+    with pytest.raises(RequestRejected):
+        rx.request("nothing", T0, T0 + 10, 1.0)
+    _drain(sender, rx, now)
+    with pytest.raises(RequestRejected):
+        rx.request("methane", T0 + 10, T0, 1.0)
+    with pytest.raises(RequestRejected):
+        rx.request("methane", T0, T0 + 10, 0.0001)
+
+
+def test_bad_samples_raise_and_lose_nothing(record: list[synth.SynthSeries]) -> None:
+    methane = record[0]
+    good = _sender([methane])
+    t, v = methane.times[:2000], methane.values[:2000]
+    good.ingest({"methane": (t, v)}, float(t[-1]))
+    checked = _sender([methane])
+    checked.ingest({"methane": (t, v)}, float(t[-1]))
+    bad_batches: list[Any] = [
+        {"methane": (t[-10:] + 100, v[-10:] + 5000.0)},  # above the channel's range
+        {"methane": (t[:10], v[:10])},  # times go backwards
+        {"methane": (t[-10:] + 100, v[-11:])},  # shape mismatch
+        {"oxygen": (t[-10:] + 100, v[-10:])},  # unknown channel
+        {"methane": (np.array([np.inf]), np.array([1.0]))},
+        "not samples",
+    ]
+    for batch in bad_batches:
+        with pytest.raises(InvalidSamples) as info:
+            checked.ingest(batch, float(t[-1]))
+        assert isinstance(info.value, CoexError)
+    for s in (good, checked):
+        s.flush(float(t[-1]))
+    assert good.blocks("methane") == checked.blocks("methane")
+    assert good.pending_bytes() == checked.pending_bytes() > 0
+
+
+def test_irregular_times_and_gaps(record: list[synth.SynthSeries]) -> None:
+    rng = np.random.default_rng(8)
+    n = 3000
+    t = T0 + np.cumsum(rng.uniform(0.6, 1.4, n))  # irregular, mean period 1 s
+    t = np.concatenate([t[:1200], t[1500:] + 5000.0])  # a long gap: a new block starts after it
+    v = 10 + np.sin((t - T0) / 300.0)
+    v[100:110] = np.nan  # dropouts are interpolated inside a block
+    sender = TimeSeriesSender({"channels": [{"name": "o2", "unit": "umol/kg", "lo": 0, "hi": 400,
+                                             "resolution": 0.001}]})
+    sender.ingest(Samples("o2", t, v), float(t[-1]))
+    sender.flush(float(t[-1]))
+    blocks = sender.blocks("o2")
+    assert len(blocks) >= 2 and blocks[1][0] >= t[1199] + 4000
+    assert all(abs(p - 1.0) <= 0.02 for _, _, p in blocks)
+    rx = TimeSeriesReceiver()
+    _drain(sender, rx, float(t[-1]))
+    rx.request("o2", float(t[0]), float(t[-1]), 0.002)
+    _drain(sender, rx, float(t[-1]) + 10)
+    s = rx.series("o2")
+    ok = np.isfinite(v)
+    got, bound = sample_series(s, t[ok])
+    # on a grid of the mean period, each sample moves by at most half a period: slope * 0.5 s
+    slope = 1 / 300.0
+    assert np.all(np.abs(got - v[ok]) <= bound + slope * 0.5 + 1e-9)
+    inside_gap = sample_series(s, np.array([t[1199] + 2000.0]))[0]
+    assert np.isnan(inside_gap).all()
+
+
+def test_unacked_chunks_are_resent_and_acked_ones_are_not(record: list[synth.SynthSeries]) -> None:
+    sender = _sender(record[:1], retry_after=60.0)
+    now = _feed(sender, record[:1])
+    first = sender.fill(10_000, now)
+    assert isinstance(first[0], TimeSeriesChannel) and len(first) > 2
+    assert sender.fill(10_000, now + 10) == []
+    again = sender.fill(10_000, now + 61)
+    assert again == first
+    rx = TimeSeriesReceiver()
+    for m in again:
+        rx.receive(m, now + 61)
+    acks = rx.poll(now + 61)
+    assert acks and all(isinstance(a, TimeSeriesAck) for a in acks)
+    for a in acks:
+        sender.handle(a, now + 62)
+    assert sender.fill(10_000, now + 500) == [] and sender.pending_bytes() == 0
+    # a duplicate is acked again (its first ack may have been lost) but changes no product
+    assert rx.receive(again[1], now + 600) == []
+    re_ack = rx.poll(now + 600)
+    assert isinstance(re_ack[0], TimeSeriesAck) and re_ack[0].parts == (
+        TimeSeriesPart(again[1].start, again[1].offset, again[1].level, 0),)
+
+
+def test_latency_closes_blocks_so_the_overview_flows(record: list[synth.SynthSeries]) -> None:
+    methane = record[0]
+    sender = _sender([methane], max_latency=300.0)
+    sender.ingest(Samples("methane", methane.times[:200], methane.values[:200]), float(methane.times[199]))
+    assert sender.blocks("methane") == []
+    out = sender.fill(251, float(methane.times[0]) + 301)
+    assert any(isinstance(m, TimeSeriesChunk) and m.count == 200 for m in out)
+
+
+def test_fill_respects_small_budgets(record: list[synth.SynthSeries]) -> None:
+    sender = _sender(record[:1], block_samples=512)
+    now = _feed(sender, record[:1])
+    for budget in (0, 12, 13, 30, 64):
+        out = sender.fill(budget, now)
+        assert sum(wire.encoded_size(m) for m in out) <= budget
+
+
+def test_csv_export(tmp_path: Any, record: list[synth.SynthSeries]) -> None:
+    sender = _sender(record)
+    rx = TimeSeriesReceiver()
+    _drain(sender, rx, _feed(sender, record))
+    text = rx.to_csv(tmp_path / "r.csv", times=record[0].times[:5])
+    lines = (tmp_path / "r.csv").read_text().splitlines()
+    assert text.splitlines() == lines
+    assert lines[0] == "time,methane,temperature,methane_bound,temperature_bound"
+    row = lines[1].split(",")
+    assert float(row[0]) == pytest.approx(T0)
+    assert abs(float(row[1]) - record[0].values[0]) <= float(row[3])
+    assert abs(float(row[2]) - record[1].values[0]) <= float(row[4])
+    assert len(lines) == 6
+
+
+def test_invalid_configuration() -> None:
+    base = {"name": "m", "lo": 0, "hi": 1, "resolution": 0.1}
+    for config in ({"channels": [{**base, "hi": -1}]}, {"channels": [{**base, "resolution": 0}]},
+                   {"channels": [base, base]}, {"channels": [{"name": "m"}]}, {"wavelet": "sym99"},
+                   {"block_samples": 8}, {"block_samples": 5000}, {"retry_after": -1}, {"alert_fraction": 1.5},
+                   {"bogus": 1}):
+        with pytest.raises(ConfigError):
+            TimeSeriesSender(config)
+    with pytest.raises(ConfigError):
+        TimeSeriesReceiver({"request_retry": 0})
+
+
+def test_receiver_retries_unsatisfied_requests() -> None:
+    rx = TimeSeriesReceiver({"request_retry": 50.0, "request_tries": 3})
+    rx.receive(TimeSeriesChannel(0, "m", "nM", 0.0, 10.0, 0.001), T0)
+    assert isinstance(rx.poll(T0)[0], TimeSeriesAck)
+    req = rx.request(0, T0, T0 + 100, 0.01)
+    assert rx.poll(T0) == [req]
+    assert rx.poll(T0 + 10) == []
+    assert rx.poll(T0 + 60) == [req]
+    assert rx.poll(T0 + 120) == [req]
+    assert rx.poll(T0 + 200) == []  # gave up after three tries
