@@ -137,6 +137,7 @@ def test_lost_chunk_bound_uses_complete_prefix_and_recovers(record: list[synth.S
     now = _drain(sender, rx, now)
     before = rx.bounds("methane")
     rx.request("methane", T0, T0 + 7200, 0.05)
+    rx.request("methane", T0, T0 + 7200, 0.02)
     for m in rx.poll(now):
         sender.handle(m, now)
     refinements = [m for m in sender.fill(10_000, now) if isinstance(m, TimeSeriesChunk)]
@@ -155,7 +156,7 @@ def test_lost_chunk_bound_uses_complete_prefix_and_recovers(record: list[synth.S
     for reply in rx.poll(now):
         sender.handle(reply, now)
     now = _drain(sender, rx, now + sender.retry_after)
-    assert all(b <= 0.05 for _, _, b in rx.bounds("methane"))
+    assert all(b <= 0.02 for _, _, b in rx.bounds("methane"))
     s = rx.series("methane")
     assert np.all(np.abs(s.values - methane.values) <= s.bounds)
 
