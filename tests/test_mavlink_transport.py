@@ -251,6 +251,23 @@ def test_tcp_client_and_server() -> None:
         server.close()
 
 
+def test_tcp_peer_gone_and_no_client_are_transport_errors() -> None:
+    port = free_tcp_port()
+    server = MavlinkTransport.from_uri(f"mavlink:tcpin:127.0.0.1:{port}?heartbeat=0")
+    try:
+        with pytest.raises(TransportError, match="no client"):
+            server.send(b"nobody listens")
+        client = MavlinkTransport.from_uri(f"mavlink:tcp:127.0.0.1:{port}?sysid=2&heartbeat=0")
+        client.send(b"hi")
+        assert server.recv(timeout=2.0) == b"hi"
+        server.close()
+        with pytest.raises(TransportError, match="closed by peer"):
+            client.recv(timeout=2.0)
+        client.close()
+    finally:
+        server.close()
+
+
 def test_tcp_connect_refused_is_transport_error() -> None:
     with pytest.raises(TransportError):
         MavlinkTransport.from_uri(f"mavlink:tcp:127.0.0.1:{free_tcp_port()}")
@@ -375,3 +392,12 @@ def test_stock_pymavlink_reads_our_tunnels_and_answers() -> None:
     # and the TUNNELs stock pymavlink sent back were reassembled into the same frames
     assert echoed == frames
     assert stats["rejected"] == 0
+
+
+def test_serial_url_handler_echo_is_ignored() -> None:
+    """pyserial's ``loop://`` echoes what we write: our own packets come back and are ignored."""
+    with MavlinkTransport.from_uri("mavlink:serial:loop://?heartbeat=0") as t:
+        assert t.link._fd is None  # type: ignore[attr-defined]  # the pyserial-timeout path
+        t.send(b"echo")
+        assert t.recv(timeout=0.3) is None
+        assert t.stats()["own"] == 1 and t.stats()["frames_received"] == 0

@@ -7,8 +7,10 @@ one received chunk as ``(data, is_datagram)`` or ``None`` when nothing arrived i
 from __future__ import annotations
 
 import abc
+import select
 import selectors
 import socket
+import sys
 from collections import OrderedDict
 from typing import Any
 
@@ -314,6 +316,14 @@ class SerialLink(Link):
             raise TransportError(f"serial: cannot open {device} at {baud} Bd: {exc}") from exc
         self.device = device
         self.baud = baud
+        # a real port (POSIX) is waited on with select, so the port is never reconfigured per
+        # read; pyserial URL handlers without a descriptor use pyserial's own timeout instead
+        self._fd: int | None = None
+        if sys.platform != "win32":
+            try:
+                self._fd = int(self.port.fileno())
+            except (AttributeError, OSError, ValueError, TypeError):
+                self._fd = None
 
     def write(self, packet: bytes) -> None:
         try:
@@ -323,6 +333,12 @@ class SerialLink(Link):
 
     def read(self, timeout: float | None) -> bytes | None:
         try:
+            if self._fd is not None:
+                ready, _, _ = select.select([self._fd], [], [], None if timeout is None else max(0.0, timeout))
+                if not ready:
+                    return None
+                data = self.port.read(max(1, self.port.in_waiting))  # the port has timeout=0
+                return bytes(data) if data else None
             self.port.timeout = timeout
             data = self.port.read(1)
             if not data:
