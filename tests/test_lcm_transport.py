@@ -305,3 +305,17 @@ def test_coex_send_and_listen_over_udpm(multicast: None) -> None:
     lines = out.split()
     assert len(lines) == 2 and lines[0] == frames[0]
     assert lines[1] in frames  # the second may be the repeat of the first from a later send
+
+
+def test_recv_with_zero_timeout_returns_what_already_arrived() -> None:
+    a, b = LcmTransport.pair()
+    try:
+        assert b.recv(timeout=0) is None
+        a.send(b"x")
+        a.send(b"y")
+        assert [b.recv(timeout=0), b.recv(timeout=0), b.recv(timeout=0)] == [b"x", b"y", None]
+        a.send(b"z")
+        assert b.recv(timeout=None) == b"z"  # blocks until a frame is there
+    finally:
+        a.close()
+        b.close()

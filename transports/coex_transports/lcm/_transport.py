@@ -230,6 +230,7 @@ class LcmTransport(Transport):
 
     def _recv_internal(self, timeout: float | None) -> bytes | None:
         deadline = None if timeout is None else time.monotonic() + max(0.0, timeout)
+        first = True
         while True:
             if self._queue:
                 return self._queue.popleft()
@@ -239,9 +240,10 @@ class LcmTransport(Transport):
                 wait_ms = 1000
             else:
                 left = deadline - time.monotonic()
-                if left <= 0:
+                if left <= 0 and not first:
                     return None
-                wait_ms = max(1, min(1000, int(left * 1000)))
+                wait_ms = max(0, min(1000, int(left * 1000)))  # 0: dispatch what is already there
+            first = False
             self._handle(wait_ms)
 
     def _handle(self, wait_ms: int) -> None:
