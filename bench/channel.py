@@ -211,15 +211,18 @@ def run(cycles: int, seed: int, loss: float = 0.0, requests: bool = True,
     next_ok = 0
     n_req = 0
     starts = sorted(t for t, _ in vehicle_tx)
-    for s in senders.values():
+    first_arrival: dict[int, float] = {}
+    for s in senders.values():  # a request re-sent after a lost frame ack counts once
         for tag, arrived in s.handled:
-            n_req += 1
-            nxt = next((t for t in starts if t > arrived), None)
-            ans = answered.get(tag)
-            if ans is None or nxt is None:
-                continue
-            lat.append(ans - arrived)
-            next_ok += ans == nxt
+            first_arrival.setdefault(tag, arrived)
+    for tag, arrived in sorted(first_arrival.items()):
+        n_req += 1
+        nxt = next((t for t in starts if t > arrived), None)
+        ans = answered.get(tag)
+        if ans is None or nxt is None:
+            continue
+        lat.append(ans - arrived)
+        next_ok += ans == nxt
 
     veh_log = [r for r in log if r["src"] == VEHICLE and r["dst"] == TOPSIDE]
     delivered_frames = sum(sum(r["delivered"]) for r in veh_log)

@@ -93,7 +93,11 @@ class Node:
         self._events: list[Event] = []
         self._log = log
         self.stats: dict[str, int] = {"frames": 0, "bad_frames": 0, "messages": 0, "rejected": 0,
-                                      "foreign": 0}
+                                      "foreign": 0, "duplicates": 0}
+        #: command id -> (command, status, time): a command received again (its frame ack was
+        #: lost and topside re-sent it) is answered again but not applied twice.
+        self._recent: dict[int, tuple[Message, AckStatus, float]] = {}
+        self.duplicate_window = 3600.0
 
     # ===================================================================== composition
     def add_sender(self, modality: Modality | type[Modality], sender: ModalitySender,
@@ -149,8 +153,11 @@ class Node:
         if isinstance(m, CommandAck):
             self.manager.on_command_ack(m, now)  # emits CommandResult
             return
+        if self._duplicate(m, now):
+            return
         if isinstance(m, _CHANNEL_COMMANDS):
             ack = self.manager.apply(m, now)
+            self._remember(m, ack.status, now)
             self.manager.push(CONTROL_STREAM, ack, now)
             return
         for s in self._senders:
@@ -164,6 +171,22 @@ class Node:
                 return
         self._events.append(Received(now, link_id, src, m))
 
+    def _duplicate(self, m: Message, now: float) -> bool:
+        cid = getattr(m, "command_id", None)
+        if cid is None:
+            return False
+        seen = self._recent.get(int(cid))
+        if seen is None or seen[0] != m or now - seen[2] > self.duplicate_window:
+            return False
+        self.stats["duplicates"] += 1
+        self.manager.push(CONTROL_STREAM, CommandAck(int(cid), seen[1]), now)
+        return True
+
+    def _remember(self, m: Message, status: AckStatus, now: float) -> None:
+        cid = getattr(m, "command_id", None)
+        if cid is not None:
+            self._recent[int(cid)] = (m, status, now)
+
     @staticmethod
     def _opaque_for(m: Message, cls: type[Modality], attr: str) -> bool:
         return isinstance(m, Opaque) and m.type_id in _opaque_ids(cls, attr)
@@ -176,6 +199,7 @@ class Node:
             self.stats["rejected"] += 1
             self._events.append(Rejected(now, m, str(exc)))
             if cid is not None:
+                self._remember(m, AckStatus.REJECTED, now)
                 self.manager.push(CONTROL_STREAM, CommandAck(int(cid), AckStatus.REJECTED), now)
             return
         except Exception as exc:
@@ -186,6 +210,7 @@ class Node:
                 self.manager.push(CONTROL_STREAM, CommandAck(int(cid), AckStatus.REJECTED), now)
             return
         if cid is not None:
+            self._remember(m, AckStatus.ACCEPTED, now)
             self.manager.push(CONTROL_STREAM, CommandAck(int(cid), AckStatus.ACCEPTED), now)
         self.manager.expedite(s.stream)  # the answer goes in the next transmission
         for r in replies or ():

@@ -312,3 +312,20 @@ def test_lossy_channel_still_delivers_acked_data(seed: int) -> None:
     p.run(1200.0)
     assert len(p.receiver.got) > 200
     assert any(isinstance(e, Acked) for e in p.vevents)
+
+
+def test_a_repeated_command_is_answered_but_not_applied_twice() -> None:
+    p = Pair()
+    p.vmgr.push(5, Opaque(DATA, b"\x00keep"), 0.0)
+    flush = wire.pack([QueueConfig(4, 5, True, None, None, None, None, None)], 256,
+                      FrameHeader(src=TOPSIDE, dst=VEHICLE, seq=1))
+    p.vehicle.receive(0, flush, 1.0)
+    p.vmgr.push(5, Opaque(DATA, b"\x00new!"), 2.0)
+    again = wire.pack([QueueConfig(4, 5, True, None, None, None, None, None)], 256,
+                      FrameHeader(src=TOPSIDE, dst=VEHICLE, seq=2))
+    p.vehicle.receive(0, again, 3.0)  # topside re-sent it: its frame ack was lost
+    assert [e.message for e in p.vmgr.stream(5).entries] == [Opaque(DATA, b"\x00new!")]
+    assert p.vehicle.stats["duplicates"] == 1
+    acks = [e.message for e in p.vmgr.stream(2).entries]
+    assert len(acks) == 2 and all(a.status == AckStatus.ACCEPTED for a in acks)
+
