@@ -379,7 +379,8 @@ class ImageFragment(Message):
 
     ``packet`` is the index (in codestream order) of the JPEG 2000 packet that holds
     ``data[0]``; ``packets`` lists the offsets, relative to ``offset`` and increasing, at which
-    a packet starts inside ``data`` (the first is 0 when ``data`` starts packet ``packet``).
+    a packet starts inside ``data`` (the first is 0 when ``data`` starts packet ``packet``; an
+    offset equal to ``len(data)`` says the next packet starts right after ``data``).
     With them the receiver decodes whole packets only and repairs around a lost fragment."""
 
     image_id: int
@@ -482,7 +483,8 @@ class TimeSeriesChunk(Message):
     ``p > 0`` codes the residual left by passes ``0..p-1``. The chunk holds the quantised
     wavelet coefficients ``[first, end)`` of the pass (flat order: approximation first, then
     details coarse to fine), or all of them when ``first``/``end`` are ``None``; a coefficient
-    is ``q * step_value(step)``. ``error`` codes the maximum absolute error of the block once
+    is ``q * step_value(step)``. A ``samples`` pass holds residual sample values instead of
+    wavelet coefficients (indices are sample indices). ``error`` codes the maximum absolute error of the block once
     passes ``0..level`` are all held (see ``docs/timeseries.md`` for the codes and ``data``)."""
 
     channel: int
@@ -492,6 +494,7 @@ class TimeSeriesChunk(Message):
     count: int
     wavelet: Wavelet
     level: int
+    samples: bool
     step: int
     error: int
     first: int | None

@@ -2,10 +2,15 @@
 
 from __future__ import annotations
 
+import itertools
 from pathlib import Path
 
 import numpy as np
 import pytest
+from coex_plugins.imagery import ImageInput, ImageryModality, ImageryReceiver, ImagerySender, codec
+from coex_plugins.imagery.codec import CodingParams
+from coex_plugins.imagery.sim import Transfer
+from coex_plugins.imagery.synth import seafloor
 
 from coex_core import wire
 from coex_core.errors import ConfigError, DecodeError, RequestRejected
@@ -22,11 +27,6 @@ from coex_core.messages import (
     TimeDirection,
     TransferProgress,
 )
-from coex_plugins.imagery import ImageInput, ImageryModality, ImageryReceiver, ImagerySender
-from coex_plugins.imagery import codec
-from coex_plugins.imagery.codec import CodingParams
-from coex_plugins.imagery.sim import Bernoulli, Transfer
-from coex_plugins.imagery.synth import seafloor
 
 SMALL = {"layer_bytes": [30, 60, 120, 240, 480, 900, 1600, 3000], "rto": 12.0}
 
@@ -94,7 +94,7 @@ def test_prefix_quality_increases(enc: codec.Encoded) -> None:
         n = enc.layer_end(k)
         pk = codec.split_packets(enc.body, enc.packet_starts, n)
         q.append(codec.psnr(codec.decode_packets(enc.params, enc.width, enc.height, pk), enc.image))
-    assert all(b >= a - 0.05 for a, b in zip(q, q[1:], strict=False)), q
+    assert all(b >= a - 0.05 for a, b in itertools.pairwise(q)), q
     assert q[-1] - q[0] > 8
 
 
@@ -109,7 +109,7 @@ def test_packet_aware_repair_beats_prefix(enc: codec.Encoded) -> None:
     repaired = codec.decode_packets(enc.params, enc.width, enc.height, holed)
     prefix = codec.decode_packets(enc.params, enc.width, enc.height, packets[:victim])
     assert codec.psnr(repaired, enc.image) > codec.psnr(prefix, enc.image) + 1.0
-    cs, used = codec.assemble(enc.params, enc.width, enc.height, holed)
+    _cs, used = codec.assemble(enc.params, enc.width, enc.height, holed)
     # later packets of the lost packet's resolution were dropped, the rest kept
     same_res = [i for i in range(victim, len(packets)) if enc.stream.resolutions and
                 codec.packet_order(enc.stream)[i, 1] == codec.packet_order(enc.stream)[victim, 1]]
@@ -204,7 +204,7 @@ def test_goals_are_served_first_and_acknowledged() -> None:
     assert acks and acks[0].status == AckStatus.ACCEPTED
     assert r.images[2].image is not None
     first_after = [e.message.image_id for e in t.events if isinstance(e.message, ImageFragment)
-                   and e.now > t.events[[i for i, e2 in enumerate(t.events) if e2.message == goal][0]].now]
+                   and e.now > t.events[next(i for i, e2 in enumerate(t.events) if e2.message == goal)].now]
     assert first_after[0] == 2
 
 
@@ -283,7 +283,7 @@ def test_receiver_repairs_a_lost_middle_fragment(enc: codec.Encoded, img: np.nda
     prefix = codec.decode_packets(enc.params, enc.width, enc.height,
                                   codec.split_packets(s.images[0].enc.body, s.images[0].enc.packet_starts, lost.offset))
     assert codec.psnr(rx.image, s.images[0].enc.image) > codec.psnr(prefix, s.images[0].enc.image) + 0.5
-    ack = [m for m in r.poll(1.0) if isinstance(m, ImageAck)][0]
+    ack = next(m for m in r.poll(1.0) if isinstance(m, ImageAck))
     assert ack.contiguous == lost.offset and ack.ranges[0].start == lost.offset + len(lost.data)
     r.receive(lost, 2.0)
     assert rx.have.all() and bytes(rx.buf) == s.images[0].enc.body

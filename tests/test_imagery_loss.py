@@ -5,12 +5,12 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-
-from coex_core.messages import ImageFragment
 from coex_plugins.imagery import ImageInput, ImageryModality, ImageryReceiver, ImagerySender
 from coex_plugins.imagery.codec import psnr
 from coex_plugins.imagery.sim import Bernoulli, GilbertElliott, LossModel, Transfer
 from coex_plugins.imagery.synth import seafloor
+
+from coex_core.messages import ImageFragment
 
 CFG = {"layer_bytes": [30, 60, 120, 240, 480, 900, 1600], "default_goal": "layer:3", "rto": 15.0,
        "progress_interval": 60.0}
@@ -54,7 +54,7 @@ def _scenario(down: LossModel, up: LossModel, max_rounds: int) -> tuple[ImageryS
 
 @pytest.mark.parametrize("seed", [1, 2, 3])
 def test_half_of_all_frames_lost_both_ways(seed: int) -> None:
-    s, r, t = _scenario(Bernoulli(0.5, seed), Bernoulli(0.5, seed + 100), 3000)
+    _s, _r, t = _scenario(Bernoulli(0.5, seed), Bernoulli(0.5, seed + 100), 3000)
     frames = {e.frame: e.lost for e in t.events if e.direction == "down"}
     lost = sum(frames.values()) / len(frames)
     assert 0.35 < lost < 0.65 and len(frames) > 50
@@ -65,7 +65,7 @@ def test_half_of_all_frames_lost_both_ways(seed: int) -> None:
 def test_burst_loss_with_lost_acks(seed: int) -> None:
     down = GilbertElliott(0.1, 0.2, 0.05, 0.95, seed=seed)
     up = GilbertElliott(0.1, 0.2, 0.05, 0.95, seed=seed + 50)
-    s, r, t = _scenario(down, up, 3000)
+    _s, _r, t = _scenario(down, up, 3000)
     # there were bursts: at least 4 consecutive lost downlink frames
     frames = {}
     for e in t.events:
@@ -79,7 +79,7 @@ def test_burst_loss_with_lost_acks(seed: int) -> None:
 
 
 def test_resends_only_what_is_missing() -> None:
-    s, r, t = _scenario(Bernoulli(0.3, 9), Bernoulli(0.3, 10), 3000)
+    s, _r, t = _scenario(Bernoulli(0.3, 9), Bernoulli(0.3, 10), 3000)
     sent = sum(len(e.message.data) for e in t.events if isinstance(e.message, ImageFragment))
     needed = sum(tx.goal for tx in s.images.values())
     delivered = sum(len(e.message.data) for e in t.events

@@ -47,7 +47,8 @@ IMAGE_FRAGMENT = Body(
     "packet" / Bounded(0, MAX_PACKET_INDEX) * "Index of the JPEG 2000 packet holding the first data byte",
     "n_packets" / Count(0, MAX_PACKET_MARKS, "packets"),
     "packets" / cs.Array(cs.this.n_packets, Bounded(0, 255, unit="B"))
-    * "Offsets in data where a packet starts, increasing (0 = data starts packet `packet`)",
+    * "Offsets in data where a packet starts, increasing, at most len(data) (0 = data starts packet "
+    "`packet`; len(data) = the next packet starts right after data)",
     "data" / RawBytes(max_len=MAX_FRAGMENT_DATA) * "Codestream bytes",
 )
 

@@ -16,6 +16,7 @@ depends on it), is replaced by an empty packet (one ``0x00`` byte). The stream i
 from __future__ import annotations
 
 import functools
+import itertools
 import os
 import tempfile
 import warnings
@@ -83,7 +84,7 @@ class CodingParams:
         lb = tuple(int(b) for b in self.layer_bytes)
         if not 1 <= len(lb) <= MAX_LAYERS:
             raise ConfigError(f"1..{MAX_LAYERS} layers, got {len(lb)}")
-        if any(b <= 0 for b in lb) or any(b2 <= b1 for b1, b2 in zip(lb, lb[1:], strict=False)):
+        if any(b <= 0 for b in lb) or any(b2 <= b1 for b1, b2 in itertools.pairwise(lb)):
             raise ConfigError(f"layer_bytes must be positive and strictly increasing, got {lb}")
         if lb[-1] > MAX_BODY_BYTES // 2:
             raise ConfigError(f"the last layer target {lb[-1]} B is too large")
@@ -172,7 +173,7 @@ def to_grey(img: npt.NDArray[Any]) -> npt.NDArray[np.uint8]:
     if a.ndim == 3 and a.shape[2] in (3, 4):
         rgb = _as_u8(a[..., :3]).astype(np.float64)
         y = rgb @ np.array([0.299, 0.587, 0.114])
-        return np.clip(np.rint(y), 0, 255).astype(np.uint8)
+        return _u8(np.clip(np.rint(y), 0, 255))
     raise ConfigError(f"expected an (H, W) or (H, W, 3) image, got shape {a.shape}")
 
 
@@ -185,9 +186,9 @@ def _as_u8(a: npt.NDArray[Any]) -> npt.NDArray[np.uint8]:
         if not np.all(np.isfinite(a)):
             raise ConfigError("image contains NaN or infinite values")
         hi = 1.0 if float(a.max(initial=0.0)) <= 1.0 else 255.0
-        return np.clip(np.rint(a * (255.0 / hi)), 0, 255).astype(np.uint8)
+        return _u8(np.clip(np.rint(a * (255.0 / hi)), 0, 255))
     if np.issubdtype(a.dtype, np.integer):
-        return np.clip(a, 0, 255).astype(np.uint8)
+        return _u8(np.clip(a, 0, 255))
     raise ConfigError(f"unsupported image dtype {a.dtype}")
 
 
@@ -201,8 +202,8 @@ def _reduce(img: npt.NDArray[np.uint8], max_size: int) -> npt.NDArray[np.uint8]:
         return img
     h2, w2 = h // f, w // f
     a = img[: h2 * f, : w2 * f].astype(np.float64)
-    shape = (h2, f, w2, f) + a.shape[2:]
-    return np.clip(np.rint(a.reshape(shape).mean(axis=(1, 3))), 0, 255).astype(np.uint8)
+    shape = (h2, f, w2, f, *a.shape[2:])
+    return _u8(np.clip(np.rint(a.reshape(shape).mean(axis=(1, 3))), 0, 255))
 
 
 @dataclass(frozen=True)
@@ -451,3 +452,8 @@ def psnr(a: npt.NDArray[Any], b: npt.NDArray[Any]) -> float:
     d = np.asarray(a, np.float64) - np.asarray(b, np.float64)
     mse = float(np.mean(d * d))
     return float("inf") if mse == 0 else 10.0 * float(np.log10(255.0**2 / mse))
+
+
+def _u8(a: npt.NDArray[Any]) -> npt.NDArray[np.uint8]:
+    out: npt.NDArray[np.uint8] = np.asarray(a).astype(np.uint8)
+    return out

@@ -193,7 +193,7 @@ class ImageryReceiver(ModalityReceiver):
         first = frag.packet + (0 if len(marks) and marks[0] == 0 else 1)
         idx = first + np.arange(len(marks))
         ok = (frag.offset + n <= len(rx.have) and n > 0 and (len(marks) == 0 or (
-            bool(np.all(np.diff(marks) > 0)) and int(marks[-1]) < n and int(idx[-1]) < rx.sp.n_packets))
+            bool(np.all(np.diff(marks) > 0)) and int(marks[-1]) <= n and int(idx[-1]) < rx.sp.n_packets))
             and frag.packet < rx.sp.n_packets)
         if ok and len(marks):
             known = rx.starts[idx]

@@ -17,7 +17,7 @@ Memory and queue bounds (documented in ``docs/imagery.md``):
 from __future__ import annotations
 
 from collections import deque
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from typing import Any
 
@@ -70,8 +70,20 @@ def fragment_size(n_marks: int, n_data: int) -> int:
 
 
 class _Tx:
-    __slots__ = ("image_id", "enc", "time", "x", "y", "announced_at", "heard", "acked", "sent_at",
-                 "default_goal", "goal", "explicit")
+    __slots__ = (
+        "acked",
+        "announced_at",
+        "default_goal",
+        "enc",
+        "explicit",
+        "goal",
+        "heard",
+        "image_id",
+        "sent_at",
+        "time",
+        "x",
+        "y",
+    )
 
     def __init__(self, image_id: int, enc: Encoded, time: float, x: float | None, y: float | None,
                  default_goal: int) -> None:
@@ -162,7 +174,10 @@ class ImagerySender(ModalitySender):
 
     def _evict(self) -> None:
         by_age = sorted(self.images.values(), key=lambda tx: tx.time)
-        for pick in (lambda tx: not tx.needs(), lambda tx: tx.explicit is None, lambda tx: True):
+        rules: tuple[Callable[[_Tx], bool], ...] = (
+            lambda tx: not tx.needs(), lambda tx: tx.explicit is None, lambda tx: True
+        )
+        for pick in rules:
             victims = [tx for tx in by_age if pick(tx)]
             if victims:
                 del self.images[victims[0].image_id]
@@ -260,10 +275,10 @@ class ImagerySender(ModalitySender):
         n = min(run, MAX_FRAGMENT_DATA, left - fragment_size(0, 0))
         while n > 0:
             lo = int(np.searchsorted(starts, pos, side="left"))
-            hi = int(np.searchsorted(starts, pos + n, side="left"))
+            hi = int(np.searchsorted(starts, pos + n, side="right"))  # a start at pos + n ends a packet
             marks = starts[lo:hi] - pos
-            if len(marks) > MAX_MARKS:
-                n = int(marks[MAX_MARKS])
+            if len(marks) > MAX_MARKS:  # end the data at the 15th start, which is then its end mark
+                n = int(marks[MAX_MARKS - 1])
                 marks = marks[:MAX_MARKS]
             over = fragment_size(len(marks), n) - left
             if over <= 0:

@@ -7,6 +7,8 @@ vectorised numpy and seeded, so a seed always gives the same image.
 
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
 import numpy.typing as npt
 
@@ -23,7 +25,8 @@ def _fractal(rng: np.random.Generator, h: int, w: int, beta: float) -> npt.NDArr
     phase = rng.uniform(0, 2 * np.pi, amp.shape)
     field = np.fft.irfft2(amp * np.exp(1j * phase), s=(h, w))
     field -= field.mean()
-    return field / (field.std() + 1e-12)
+    out: npt.NDArray[np.float64] = field / (field.std() + 1e-12)
+    return out
 
 
 def seafloor(
@@ -48,10 +51,10 @@ def seafloor(
     img += rng.normal(0.0, 3.0, img.shape)
     grey = np.clip(np.rint(img), 0, 255)
     if not colour:
-        return grey.astype(np.uint8)
+        return _u8(grey)
     tint = np.array([0.75, 1.05, 1.0]) + rng.normal(0, 0.03, 3)
     rgb = grey[..., None] * tint[None, None, :]
-    return np.clip(np.rint(rgb), 0, 255).astype(np.uint8)
+    return _u8(np.clip(np.rint(rgb), 0, 255))
 
 
 def seafloor_series(
@@ -59,3 +62,8 @@ def seafloor_series(
 ) -> list[npt.NDArray[np.uint8]]:
     """``n`` different images (seeds ``seed``, ``seed + 1`` ...)."""
     return [seafloor(height, width, seed=seed + i, colour=colour) for i in range(n)]
+
+
+def _u8(a: npt.NDArray[Any]) -> npt.NDArray[np.uint8]:
+    out: npt.NDArray[np.uint8] = np.asarray(a).astype(np.uint8)
+    return out
