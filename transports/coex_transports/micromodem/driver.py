@@ -363,11 +363,12 @@ class MicromodemDriver:
         times = []
         if self._current_cmd is not None:
             times.append(self._current_cmd.deadline)
-        if self._tx is not None and self._tx_state != "idle":
+        if self._tx is not None and self._tx_state != "idle" and self._current_cmd is None:
             times.append(self._tx_deadline)
         if self._resume_at is not None:
             times.append(self._resume_at)
-        if self._ready and self._last_keepalive is not None:
+        if (self._ready and self._tx is None and self._current_cmd is None
+                and self._last_keepalive is not None):
             times.append(self._last_keepalive + self.config.keepalive)
         return min(times) if times else None
 
