@@ -188,6 +188,8 @@ def build_topside(transport_uri: str, host: str = "127.0.0.1", port: int = 8080,
                 state._log(0.0, f"modality {name} not available: {exc}", "warn")
                 continue
             node.add_receiver(cls, tap_receiver(receiver, hub))
+            if name == "bathymetry" and hasattr(receiver, "request_area"):
+                hub.actions.map_receiver = receiver
         state.set_schedule(link, schedule)
         server = serve(hub, host, port)
     except BaseException:

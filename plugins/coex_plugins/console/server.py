@@ -61,12 +61,12 @@ class ConsoleHub:
     """
 
     def __init__(self, state: ConsoleState, send: Callable[[Message], Any],
-                 clock: Callable[[], float]) -> None:
+                 clock: Callable[[], float], *, map_receiver: Any = None) -> None:
         self.state = state
         self.clock = clock
         self.lock = threading.RLock()
         self.changed = threading.Condition(self.lock)
-        self.actions = ConsoleActions(state, send, clock)
+        self.actions = ConsoleActions(state, send, clock, map_receiver=map_receiver)
         self.closed = False
 
     # ------------------------------------------------------------------ from the runner
@@ -105,7 +105,7 @@ class ConsoleHub:
             go(self.state)
 
     # ---------------------------------------------------------------- from the browser
-    def act(self, action: str, args: dict[str, Any]) -> list[Message]:
+    def act(self, action: str, args: dict[str, Any]) -> list[Any]:
         with self.changed:
             sent = self.actions.dispatch(action, args)
             self.changed.notify_all()
@@ -253,7 +253,16 @@ class _Handler(BaseHTTPRequestHandler):
         except Exception as exc:  # never let an operator action kill the console
             log.exception("action %s failed", action)
             return self._json(500, {"ok": False, "error": f"{type(exc).__name__}: {exc}"})
-        self._json(200, {"ok": True, "sent": [jsonfmt.to_json(m) for m in sent]})
+        self._json(200, {"ok": True, "sent": [_describe(m) for m in sent]})
+
+
+def _describe(item: Any) -> dict[str, Any]:
+    if isinstance(item, Message):
+        return jsonfmt.to_json(item)
+    # a region the bathymetry receiver will send as MapRoiRequest (and retry)
+    fields = ("level", "x0", "y0", "w", "h", "fill_gaps")
+    return {"type": "MapRoiRequest", "queued": True,
+            **{k: getattr(item, k) for k in fields if hasattr(item, k)}}
 
 
 def _asset(name: str) -> bytes:

@@ -158,6 +158,8 @@ class _RoiRequest:
     queued: int | None = None
     received: int = 0
     done_at: float | None = None
+    #: The bathymetry receiver's region object when the receiver sends (and retries) it.
+    region: Any = None
 
 
 @dataclass
@@ -199,6 +201,7 @@ class _Command:
     message: m.Message
     status: str = "sent"
     answered: float | None = None
+    roi_key: int | None = None
 
 
 class ConsoleState:
@@ -239,6 +242,7 @@ class ConsoleState:
         self.target_min_cells = 3
         self._targets_cache: tuple[Any, list[dict[str, Any]]] = (None, [])
         self.roi: dict[int, _RoiRequest] = {}
+        self._region_count = 0
         self._zrange: tuple[float, float] | None = None
         # images
         self.images: dict[int, _Image] = {}
@@ -420,8 +424,10 @@ class ConsoleState:
         self._touch("map")
 
     def _on_roi_reply(self, r: m.MapRoiReply, now: float) -> None:
-        req = self.roi.get(r.request_id)
-        if req is None or req.level != r.level:
+        req = next((q for q in self.roi.values()
+                    if (q.region.request_id if q.region is not None else q.request_id)
+                    == r.request_id and q.level == r.level), None)
+        if req is None:
             return
         req.queued = r.queued
         if r.queued == 0:
@@ -605,6 +611,7 @@ class ConsoleState:
             self.command_order.remove(key)
         self.command_order.append(key)
         if isinstance(msg, m.MapRoiRequest):
+            self.commands[key].roi_key = msg.request_id
             held = dict(zip(((ix, iy) for iy in range(msg.y0, msg.y0 + msg.h)
                              for ix in range(msg.x0, msg.x0 + msg.w)), msg.held or ()))
             self.roi[msg.request_id] = _RoiRequest(msg.request_id, msg.level, msg.x0, msg.y0,
@@ -634,6 +641,24 @@ class ConsoleState:
                 self._touch("link")
         self._touch("commands")
         self._log(now, f"sent {summary or kind}")
+
+    def record_regions(self, regions: Sequence[Any], now: float, summary: str) -> None:
+        """Remember map regions a bathymetry receiver will request (and retry) for us."""
+        self._advance(now)
+        for r in regions:
+            self._region_count += 1
+            key = -self._region_count
+            self.roi[key] = _RoiRequest(-1, r.level, r.x0, r.y0, r.w, r.h, now, {}, region=r)
+            text = (f"{summary}: subgrids [{r.x0}..{r.x0 + r.w - 1}] x "
+                    f"[{r.y0}..{r.y0 + r.h - 1}]")
+            ckey = 100000 + self._region_count
+            self.commands[ckey] = _Command(-1, "MapRoiRequest", text, now,
+                                           m.MapRoiRequest(0, r.level, r.x0, r.y0, r.w, r.h,
+                                                           True, (), 0),
+                                           status="queued", roi_key=key)
+            self.command_order.append(ckey)
+            self._log(now, f"requested {text}")
+        self._touch("map", "commands")
 
     def _command_result(self, command_id: int, status: Any, now: float) -> None:
         cmd = self.commands.get(256 + command_id)
@@ -747,8 +772,14 @@ class ConsoleState:
         res = (lv.cell if lv else (self.map_meta.resolution * 2 ** r.level
                                     if self.map_meta else 2.0 ** r.level))
         span = side * res
-        return {"request_id": r.request_id, "level": r.level, "x0": r.x0, "y0": r.y0,
-                "w": r.w, "h": r.h, "status": r.status, "queued": r.queued,
+        rid = r.request_id
+        status = r.status
+        if r.region is not None:
+            rid = r.region.request_id if r.region.request_id is not None else -1
+            if r.region.sends == 0 and status == "requested":
+                status = "waiting"
+        return {"request_id": rid, "level": r.level, "x0": r.x0, "y0": r.y0,
+                "w": r.w, "h": r.h, "status": status, "queued": r.queued,
                 "received": r.received, "sent": _num(r.sent, 1),
                 "rect": [r.x0 * span, r.y0 * span, (r.x0 + r.w) * span, (r.y0 + r.h) * span]}
 
@@ -831,8 +862,11 @@ class ConsoleState:
         out = []
         for key in reversed(self.command_order):
             c = self.commands[key]
+            status = c.status
+            if c.roi_key is not None and c.roi_key in self.roi:
+                status = self._snap_roi(self.roi[c.roi_key])["status"]
             out.append({"command_id": c.command_id, "kind": c.kind, "summary": c.summary,
-                        "sent": _num(c.sent, 1), "status": c.status,
+                        "sent": _num(c.sent, 1), "status": status,
                         "answered": _num(c.answered, 1)})
         return out
 
@@ -878,8 +912,12 @@ class ConsoleActions:
     (the runner's clock; the actions never read one themselves)."""
 
     def __init__(self, state: ConsoleState, send: Callable[[m.Message], Any],
-                 clock: Callable[[], float], *, first_command_id: int = 0) -> None:
+                 clock: Callable[[], float], *, first_command_id: int = 0,
+                 map_receiver: Any = None) -> None:
         self.state = state
+        #: A bathymetry receiver (``request_area``): when set, map regions are asked through it
+        #: (it knows what topside holds, numbers the requests and retries them).
+        self.map_receiver = map_receiver
         self.send = send
         self.clock = clock
         self._next_id = first_command_id % 256
@@ -905,7 +943,7 @@ class ConsoleActions:
 
     # -------------------------------------------------------------------------- map
     def request_region(self, level: int, x_min: float, y_min: float, x_max: float,
-                       y_max: float, *, fill_gaps: bool = False) -> list[m.MapRoiRequest]:
+                       y_max: float, *, fill_gaps: bool = False) -> list[Any]:
         """Request the map at ``level`` over the rectangle ``[x_min, x_max] x [y_min, y_max]``
         (metres). The rectangle is cut into requests of at most 8 x 8 subgrids (16 x 16 with
         ``fill_gaps``), each listing what topside holds, so the vehicle sends only what is newer
@@ -918,6 +956,12 @@ class ConsoleActions:
             raise RequestRejected("region corners must be finite numbers")
         x_min, x_max = sorted(vals[0::2])
         y_min, y_max = sorted(vals[1::2])
+        if self.map_receiver is not None:
+            regions = list(self.map_receiver.request_area(level, x_min, y_min, x_max, y_max,
+                                                          fill_gaps=bool(fill_gaps)))
+            self.state.record_regions(regions, self.clock(), f"map level {level}"
+                                      + (" (gaps)" if fill_gaps else ""))
+            return regions
         lv = self.state.levels.get(level)
         meta = self.state.map_meta
         if lv is not None:
@@ -957,7 +1001,7 @@ class ConsoleActions:
                 msgs.append(msg)
                 texts.append(f"map level {level} subgrids [{x}..{x + w - 1}] x "
                              f"[{y}..{y + h - 1}]{' (gaps)' if fill_gaps else ''}")
-        return self._emit(msgs, texts)  # type: ignore[return-value]
+        return self._emit(msgs, texts)
 
     # ----------------------------------------------------------------------- images
     def set_image_goal(self, image_id: int, kind: str, value: int = 0) -> m.ImageGoal:

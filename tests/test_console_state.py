@@ -1,0 +1,485 @@
+"""Console adapter: ConsoleState from real plugin messages/products, ConsoleActions as wire
+commands, the HTTP/SSE server, and the topside node glue (commands acked by a vehicle node)."""
+
+from __future__ import annotations
+
+import io
+import json
+import threading
+import time
+import urllib.error
+import urllib.request
+from typing import Any
+
+import numpy as np
+import pytest
+from coex_plugins.bathymetry import (
+    BathymetryModality,
+    BathymetryReceiver,
+    BathymetrySender,
+    decode_subgrid,
+)
+from coex_plugins.console import ConsoleActions, ConsoleHub, ConsoleState, serve
+from coex_plugins.console.node import NodeCommands, pump, tap_receiver
+from coex_plugins.console.testing import RecordingSender, drain, feed_sample, survey_points
+from coex_plugins.timeseries.synth import dataset
+
+from coex_core import messages as m
+from coex_core import wire
+from coex_core.channel.events import BadFrame, CommandResult, LinkChanged
+from coex_core.channel.manager import ChannelManager, LinkConfig
+from coex_core.channel.queue import StreamConfig
+from coex_core.channel.schedule import Schedule
+from coex_core.errors import RequestRejected
+from coex_core.node import Node
+from coex_core.timefmt import to_stamp
+
+T0 = 36000.0
+NUI = Schedule.simple([1, 2, 2, 1, 2, 2], 20.0, 2.0)
+
+
+@pytest.fixture(scope="module")
+def sample() -> tuple[ConsoleState, dict[str, Any]]:
+    state = ConsoleState(schedules={0: NUI})
+    made = feed_sample(state, t0=T0, seed=0)
+    return state, made
+
+
+@pytest.fixture(scope="module")
+def subgrids(sample: tuple[ConsoleState, dict[str, Any]]) -> list[m.Subgrid]:
+    return list(sample[1]["subgrids"])
+
+
+def fresh(subgrids: list[m.Subgrid] | None = None) -> ConsoleState:
+    st = ConsoleState(schedules={0: NUI})
+    if subgrids:
+        st.apply_messages(subgrids, T0)
+    return st
+
+
+def png_size(data: bytes) -> tuple[int, int]:
+    from PIL import Image
+
+    with Image.open(io.BytesIO(data)) as img:
+        img.load()
+        return img.size
+
+
+# ------------------------------------------------------------------------------ state
+
+
+def test_snapshot_is_strict_json_with_every_section(sample: tuple[ConsoleState, Any]) -> None:
+    state, _ = sample
+    snap = json.loads(json.dumps(state.snapshot(), allow_nan=False))
+    for name in ("vehicle", "map", "images", "series", "link", "queues", "commands", "log"):
+        assert name in snap
+    assert snap["vehicle"]["status"]["mode"] == "SURVEY"
+    assert len(snap["vehicle"]["track"]) == 63  # 65 statuses, 2 repeat the previous position
+
+
+def test_map_levels_assembled_from_real_subgrids(subgrids: list[m.Subgrid]) -> None:
+    st = fresh(subgrids)
+    levels = {lv["level"]: lv for lv in st.snapshot()["map"]["levels"]}
+    by_level: dict[int, set[tuple[int, int]]] = {}
+    for sg in subgrids:
+        by_level.setdefault(sg.level, set()).add((sg.ix, sg.iy))
+    assert set(levels) == set(by_level)
+    for level, keys in by_level.items():
+        assert levels[level]["subgrids"] == len(keys)
+        assert levels[level]["cell"] == 2.0**level
+    # the assembled grid holds exactly the decoded subgrid values at the right place
+    sg = next(s for s in subgrids if s.level == 0)
+    z, x0, y0, cell = st.level_grid(0)  # type: ignore[misc]
+    r = round((sg.iy * sg.side * cell - y0) / cell)
+    c = round((sg.ix * sg.side * cell - x0) / cell)
+    np.testing.assert_array_equal(z[r:r + sg.side, c:c + sg.side], decode_subgrid(sg))
+    # the level picture is a real PNG of the grid's size
+    png = st.map_png(0)
+    assert png is not None and png.startswith(b"\x89PNG")
+    assert png_size(png) == (z.shape[1], z.shape[0])
+
+
+def test_subgrid_arrival_changes_only_the_map_and_keeps_newest(subgrids: list[m.Subgrid]) -> None:
+    st = fresh()
+    v0 = dict(st.versions)
+    sg = subgrids[0]
+    assert st.apply_message(sg, T0) == {"map"}
+    assert st.versions["map"] == v0["map"] + 1
+    # an older copy of the same subgrid is ignored; a newer one replaces it
+    older = m.Subgrid(**{**{f: getattr(sg, f) for f in sg.__slots__}, "stamp": sg.stamp - 10})
+    assert st.apply_message(older, T0) == set()
+    newer = m.Subgrid(**{**{f: getattr(sg, f) for f in sg.__slots__}, "stamp": sg.stamp + 10})
+    assert st.apply_message(newer, T0 + 20) == {"map"}
+    assert st.held_stamps(sg.level, sg.ix, sg.iy, 1, 1) == [sg.stamp + 10]
+
+
+def test_candidate_targets_found_near_the_cars(subgrids: list[m.Subgrid]) -> None:
+    st = fresh(subgrids)
+    targets = st.snapshot()["map"]["targets"]
+    # Seafloor.default(size=96) puts the cars at (33.6, 40.3) and (60.5, 55.7)
+    for cx, cy in ((33.6, 40.3), (60.5, 55.7)):
+        assert min(np.hypot(t["x"] - cx, t["y"] - cy) for t in targets) < 4.0
+
+
+def test_vehicle_status_late_arrival_keeps_newest() -> None:
+    st = ConsoleState()
+    st.apply_message(m.VehicleStatus(100, 1.0, 2.0, 50.0, 10.0, 90.0, 1.0, 80, m.VehicleMode.SURVEY, 0), 100.0)
+    st.apply_message(m.VehicleStatus(90, 9.0, 9.0, 50.0, 10.0, 90.0, 1.0, 80, m.VehicleMode.SURVEY, 0), 101.0)
+    snap = st.snapshot()["vehicle"]
+    assert (snap["status"]["x"], snap["status"]["t"]) == (1.0, 100.0)
+
+
+def test_series_products_with_error_bounds(sample: tuple[ConsoleState, Any]) -> None:
+    state, made = sample
+    chans = {c["name"]: c for c in state.snapshot()["series"]["channels"]}
+    rx = made["series_receiver"]
+    for name in ("methane", "temperature"):
+        s = rx.series(name)
+        c = chans[name]
+        assert c["samples"] == s.times.size
+        assert len(c["t"]) == len(c["v"]) == len(c["err"])
+        assert c["max_error"] == pytest.approx(float(s.bounds.max()), rel=1e-3)
+        # the displayed band contains every true sample: |value - truth| <= bound
+        truth = next(d for d in dataset(duration=1800.0, period=1.0, seed=0, t0=T0 - 1800.0)
+                     if d.name == name)
+        t, v, err = (np.asarray(c[k]) for k in ("t", "v", "err"))
+        assert np.all(err >= 0)
+        ref = np.interp(t, truth.times, truth.values)
+        assert np.all(np.abs(v - ref) <= err + 1e-3)
+
+
+def test_image_products_thumbnails_and_bytes(sample: tuple[ConsoleState, Any]) -> None:
+    state, made = sample
+    items = state.snapshot()["images"]["items"]
+    assert len(items) == 3
+    rx = made["image_receiver"]
+    for it in items:
+        p = next(p for p in rx.products() if p.kind == "image" and p.meta["image_id"] == it["image_id"])
+        assert it["bytes_received"] == p.meta["held_bytes"] > 0
+        assert it["total_bytes"] == p.meta["total_bytes"]
+        png = state.image_png(it["image_id"])
+        assert png is not None and max(png_size(png)) <= 160
+
+
+def test_link_queue_and_command_acks() -> None:
+    st = ConsoleState(schedules={0: NUI})
+    sent: list[m.Message] = []
+    acts = ConsoleActions(st, sent.append, lambda: 10.0)
+    q = acts.queue_config(3, priority=90)
+    st.apply_message(m.QueueStatus(to_stamp(12.0), (m.StreamStatus(3, True, 1, 90, 5, 640, 32, 1),)), 12.0)
+    st.apply_message(m.LinkStatus(to_stamp(12.0), 0, 8, 3, 9.5, None), 12.0)
+    st.apply_event(BadFrame(13.0, 0, "crc"))
+    st.apply_message(m.CommandAck(q.command_id, m.AckStatus.ACCEPTED), 14.0)
+    snap = st.snapshot()
+    assert snap["queues"]["streams"] == [dict(stream=3, drops_total=1, enabled=True, tier=1, priority=90,
+                                              depth=5, queued_bytes=640, oldest_age=32, drops=1,
+                                              name="stream 3")]
+    lk = snap["link"]["links"][0]
+    assert (lk["frames"], lk["bad_frames"], lk["snr"], lk["local_bad"]) == (8, 3, 9.5, 1)
+    assert snap["commands"][0]["status"] == "accepted"
+    st.apply_event(LinkChanged(15.0, 0, False, False))
+    assert st.snapshot()["link"]["links"][0]["enabled"] is False
+
+
+# ---------------------------------------------------------------------------- actions
+
+
+def test_request_region_lists_held_stamps(subgrids: list[m.Subgrid]) -> None:
+    st = fresh(subgrids)
+    sent: list[m.Message] = []
+    acts = ConsoleActions(st, sent.append, lambda: T0 + 5)
+    held = {(s.ix, s.iy): s.stamp for s in subgrids if s.level == 0}
+    out = acts.request_region(0, 20.0, 20.0, 60.0, 100.0)
+    assert out == sent and all(isinstance(x, m.MapRoiRequest) for x in sent)
+    covered = set()
+    for req in sent:
+        assert req.w <= 8 and req.h <= 8 and req.level == 0
+        assert len(req.held) == req.w * req.h
+        for k, st_ in enumerate(req.held):
+            key = (req.x0 + k % req.w, req.y0 + k // req.w)
+            covered.add(key)
+            assert st_ == held.get(key)
+        wire.encode(req)  # every request fits the wire format
+    assert covered == {(ix, iy) for ix in range(2, 8) for iy in range(2, 13)}
+    reqs = st.snapshot()["map"]["requests"]
+    assert [r["status"] for r in reqs] == ["requested"] * len(sent)
+
+
+def test_region_status_follows_reply_and_arrivals(subgrids: list[m.Subgrid]) -> None:
+    st = fresh()
+    st.apply_message(subgrids[0], T0)
+    sent: list[m.Message] = []
+    acts = ConsoleActions(st, sent.append, lambda: T0)
+    sg = next(s for s in subgrids if s.level == 0)
+    span = sg.side * 1.0
+    (req,) = acts.request_region(0, sg.ix * span + 1, sg.iy * span + 1, sg.ix * span + 2, sg.iy * span + 2)
+    st.apply_message(m.MapRoiReply(req.request_id, 0, 1), T0 + 30)
+    assert st.snapshot()["map"]["requests"][-1]["status"] == "queued"
+    st.apply_message(sg, T0 + 40)
+    assert st.snapshot()["map"]["requests"][-1]["status"] == "received"
+    (req2,) = acts.request_region(0, 500.0, 500.0, 501.0, 501.0)
+    st.apply_message(m.MapRoiReply(req2.request_id, 0, 0), T0 + 50)
+    assert st.snapshot()["map"]["requests"][-1]["status"] == "nothing newer"
+
+
+def test_gap_fill_request_bitmap(subgrids: list[m.Subgrid]) -> None:
+    st = fresh(subgrids)
+    sent: list[m.Message] = []
+    ConsoleActions(st, sent.append, lambda: T0).request_region(1, 0, 0, 63.9, 63.9, fill_gaps=True)
+    (req,) = sent
+    assert req.fill_gaps and req.held == () and (req.w, req.h) == (4, 4)
+    held = {(s.ix, s.iy) for s in subgrids if s.level == 1}
+    for k in range(16):
+        bit = (req.have >> (15 - k)) & 1
+        assert bit == ((k % 4, k // 4) in held)
+
+
+@pytest.mark.parametrize("action,args", [
+    ("request_region", dict(level=16, x_min=0, y_min=0, x_max=1, y_max=1)),
+    ("request_region", dict(level=0, x_min=0, y_min=0, x_max=1e6, y_max=1e6)),
+    ("request_region", dict(level=0, x_min="nan", y_min=0, x_max=1, y_max=1)),
+    ("set_image_goal", dict(image_id=1, kind="most", value=1)),
+    ("set_image_goal", dict(image_id=1, kind="fraction", value=0)),
+    ("image_by_time", dict(t=1.0, direction="sideways")),
+    ("refine_series", dict(channel=9, start=0, end=1)),
+    ("queue_config", dict(stream=40, priority=1)),
+    ("queue_config", dict(stream=3, priority=300)),
+    ("link_control", dict(link=9, enabled=True)),
+    ("propose_schedule", dict(link=0, slots=[])),
+    ("propose_schedule", dict(link=0, slots=[{"owner": 1, "duration": 1.0, "guard": 2.0}])),
+    ("no_such_action", {}),
+    ("queue_config", dict(stream=3, bogus=1)),
+])
+def test_bad_actions_rejected_and_nothing_sent(subgrids: list[m.Subgrid], action: str,
+                                               args: dict[str, Any]) -> None:
+    st = fresh(subgrids)
+    sent: list[m.Message] = []
+    acts = ConsoleActions(st, sent.append, lambda: T0)
+    before = st.snapshot()["commands"]
+    with pytest.raises(RequestRejected):
+        acts.dispatch(action, args)
+    assert sent == [] and st.snapshot()["commands"] == before
+
+
+def test_every_action_is_a_wire_command(sample: tuple[ConsoleState, Any]) -> None:
+    state, _ = sample
+    st = ConsoleState(schedules={0: NUI})
+    st.apply_messages(sample[1]["subgrids"], T0)
+    for c in state.series.values():  # reuse the reconstructed series
+        st.series[c["channel"]] = dict(c)
+    sent: list[m.Message] = []
+    acts = ConsoleActions(st, sent.append, lambda: T0 + 100)
+    acts.set_image_goal(2, "fraction", 40)
+    acts.image_by_time(T0 - 130, "previous")
+    acts.refine_series(0, T0 - 600, T0 - 300)
+    acts.queue_config(3, enabled=False)
+    acts.queue_config(3, flush=True)
+    acts.link_control(1, False)
+    acts.propose_schedule(0, [{"owner": 1, "duration": 10, "guard": 1},
+                              {"owner": 2, "duration": 30, "guard": 2}])
+    kinds = [type(x) for x in sent]
+    assert kinds == [m.ImageGoal, m.ImageByTimeRequest, m.TimeSeriesRequest, m.QueueConfig,
+                     m.QueueConfig, m.LinkControl, m.ScheduleUpdate]
+    for x in sent:
+        assert wire.decode(wire.encode(x)) == x
+    assert sent[1].direction == m.TimeDirection.BEFORE and sent[1].stamp == to_stamp(T0 - 130)
+    assert sent[2].max_error > 0
+    sched = sent[-1]
+    assert isinstance(sched, m.ScheduleUpdate)
+    assert sched.version == 1 and sched.activate_cycle == int((T0 + 100) // 120) + 2
+    assert len({x.command_id for x in sent}) == len(sent)
+    snap = st.snapshot()
+    assert len(snap["commands"]) == len(sent)
+    assert st.images[2].goal == ("FRACTION", 40)
+    assert snap["link"]["schedules"][0]["proposed"]["status"] == "sent"
+
+
+# ----------------------------------------------------------------------------- server
+
+
+def _get(url: str) -> tuple[int, bytes, str]:
+    with urllib.request.urlopen(url, timeout=5) as r:
+        return r.status, r.read(), r.headers.get("Content-Type", "")
+
+
+def _post(url: str, body: dict[str, Any]) -> tuple[int, dict[str, Any]]:
+    req = urllib.request.Request(url, data=json.dumps(body).encode(), method="POST",
+                                 headers={"Content-Type": "application/json"})
+    try:
+        with urllib.request.urlopen(req, timeout=5) as r:
+            return r.status, json.loads(r.read())
+    except urllib.error.HTTPError as e:
+        return e.code, json.loads(e.read())
+
+
+def test_server_pages_actions_and_events(subgrids: list[m.Subgrid]) -> None:
+    st = fresh(subgrids)
+    sent: list[m.Message] = []
+    hub = ConsoleHub(st, sent.append, lambda: T0)
+    with serve(hub, "127.0.0.1", 0) as srv:
+        assert srv.server_address[0] == "127.0.0.1"
+        code, body, ctype = _get(srv.url)
+        assert code == 200 and b"map-canvas" in body and ctype.startswith("text/html")
+        for name in ("app.js", "style.css"):
+            assert _get(srv.url + "static/" + name)[0] == 200
+        code, png, ctype = _get(srv.url + "map/0.png")
+        assert ctype == "image/png" and png == st.map_png(0)
+        state = json.loads(_get(srv.url + "api/state")[1])
+        assert state["map"]["levels"]
+        code, ans = _post(srv.url + "api/action", {"action": "queue_config",
+                                                   "args": {"stream": 4, "priority": 70}})
+        assert code == 200 and ans["sent"][0]["type"] == "QueueConfig" and ans["sent"][0]["priority"] == 70
+        assert sent == [m.QueueConfig(0, 4, False, None, 70, None, None, None)]
+        code, ans = _post(srv.url + "api/action", {"action": "queue_config", "args": {"stream": 99}})
+        assert code == 400 and "stream" in ans["error"] and len(sent) == 1
+        with pytest.raises(urllib.error.HTTPError):
+            _get(srv.url + "static/../server.py")
+        # two browsers on the event stream both see a change made after they connected
+        streams = [urllib.request.urlopen(srv.url + "api/events", timeout=5) for _ in range(2)]
+        try:
+            firsts = [_read_event(s) for s in streams]
+            assert all(ev == "snapshot" for ev, _ in firsts)
+            hub.messages([m.VehicleStatus(to_stamp(T0), 5.0, 6.0, 40.0, 20.0, 10.0, 1.0, 90,
+                                          m.VehicleMode.SURVEY, 0)], T0)
+            for s in streams:
+                _ev, data = _read_event(s, want="update")
+                assert data["vehicle"]["status"]["x"] == 5.0
+        finally:
+            for s in streams:
+                s.close()
+
+
+def _read_event(stream: Any, want: str | None = None) -> tuple[str, Any]:
+    deadline = time.monotonic() + 5
+    while time.monotonic() < deadline:
+        name, data = "", ""
+        while True:
+            line = stream.readline().decode()
+            if line in ("\n", ""):
+                break
+            if line.startswith("event: "):
+                name = line[7:].strip()
+            elif line.startswith("data: "):
+                data = line[6:]
+        if name and (want is None or name == want):
+            return name, json.loads(data)
+    raise AssertionError(f"no {want} event")
+
+
+# ---------------------------------------------------------------------- node glue
+
+
+def _pair(schedule: Schedule) -> tuple[Node, Node, RecordingSender, BathymetryReceiver, ConsoleHub, list[float]]:
+    clock = [1000.0]
+    top = Node(ChannelManager(1, [LinkConfig(0, schedule, dst=2)]))
+    veh = Node(ChannelManager(2, [LinkConfig(0, schedule, dst=1)], queue_status_interval=30.0))
+    sender = RecordingSender(BathymetrySender({"send_delay": 0.0, "levels": 4}))
+    sender.ingest(survey_points(), 900.0)
+    veh.add_sender(BathymetryModality, sender, StreamConfig(3, "map", priority=30))
+    state = ConsoleState(schedules={0: schedule})
+    hub = ConsoleHub(state, NodeCommands(top, lambda: clock[0]), lambda: clock[0])
+    rx = BathymetryReceiver()
+    top.add_receiver(BathymetryModality, tap_receiver(rx, hub))
+    return top, veh, sender, rx, hub, clock
+
+
+def _run(top: Node, veh: Node, hub: ConsoleHub, clock: list[float], seconds: float) -> None:
+    """Both nodes over a perfect in-memory link, 0.5 s steps (frames arrive at once)."""
+    end = clock[0] + seconds
+    while clock[0] < end:
+        now = clock[0]
+        for a, b in ((top, veh), (veh, top)):
+            for tx in a.poll(now):
+                for f in tx.frames:
+                    b.receive(0, f, now)
+        hub.pump(top, now)
+        clock[0] += 0.5
+
+
+def test_node_commands_are_acked_by_the_vehicle() -> None:
+    sched = Schedule.simple([1, 2], 5.0, 0.5)
+    top, veh, _sender, _rx, hub, clock = _pair(sched)
+    _run(top, veh, hub, clock, 12)
+    snap = hub.snapshot()
+    assert snap["map"]["levels"], "subgrids from the vehicle reach the console through the tap"
+    assert {s["name"] for s in snap["queues"]["streams"]} >= {"stream 3"}
+    hub.act("queue_config", {"stream": 3, "priority": 99})
+    hub.act("propose_schedule", {"link": 0, "slots": [{"owner": 1, "duration": 4, "guard": 0.5},
+                                                      {"owner": 2, "duration": 6, "guard": 0.5}]})
+    _run(top, veh, hub, clock, 25)
+    assert veh.manager.stream(3).config.priority == 99
+    cmds = {c["kind"]: c["status"] for c in hub.snapshot()["commands"]}
+    assert cmds["QueueConfig"] == "accepted" and cmds["ScheduleUpdate"] == "accepted"
+    _run(top, veh, hub, clock, 25)
+    assert veh.manager.schedule(0).version == 1 and top.manager.schedule(0).version == 1
+    assert hub.snapshot()["link"]["schedules"][0]["version"] == 1
+
+
+def test_map_region_through_the_bathymetry_receiver() -> None:
+    sched = Schedule.simple([1, 2], 5.0, 0.5)
+    top, veh, sender, rx, hub, clock = _pair(sched)
+    hub.actions.map_receiver = rx
+    _run(top, veh, hub, clock, 12)
+    ans = hub.act("request_region", {"level": 0, "x_min": 30, "y_min": 35, "x_max": 40, "y_max": 45})
+    assert ans and all(r.level == 0 for r in ans)
+    assert hub.snapshot()["map"]["requests"][-1]["status"] == "waiting"
+    _run(top, veh, hub, clock, 30)
+    got = [x for x in sender.handled if isinstance(x, m.MapRoiRequest)]
+    assert got and got[0].level == 0 and (got[0].x0, got[0].y0) == (3, 4)
+    req = hub.snapshot()["map"]["requests"][-1]
+    assert req["status"] in ("queued", "partial", "received", "nothing newer")
+    assert req["request_id"] == got[0].request_id
+
+
+def test_tap_never_costs_the_receiver_a_message() -> None:
+    rx = BathymetryReceiver()
+
+    def boom(msg: m.Message, now: float) -> None:
+        raise RuntimeError("console bug")
+
+    from coex_plugins.console.node import TapReceiver
+
+    tap = TapReceiver(rx, boom)
+    sender = BathymetrySender({"send_delay": 0.0, "levels": 2})
+    sender.ingest(survey_points(), 0.0)
+    msgs = drain(sender, 1.0)
+    for x in msgs:
+        tap.receive(x, 1.0)
+    assert rx.products() and tap.products() == rx.products()
+
+
+def test_pump_reports_events_and_link_state() -> None:
+    sched = Schedule.simple([1, 2], 5.0, 0.5)
+    top = Node(ChannelManager(1, [LinkConfig(0, sched, dst=2)]))
+    st = ConsoleState()
+    top.receive(0, b"\x00garbage", 1.0)
+    assert pump(st, top, 2.0) == 1
+    snap = st.snapshot()
+    assert snap["link"]["bad_frames"] == 1 and snap["link"]["schedules"][0]["cycle"] == 10.0
+    assert any("bad frame" in x["text"] for x in snap["log"])
+    st.apply_event(CommandResult(3.0, 77, m.AckStatus.REJECTED))
+    assert any("unknown command 77" in x["text"] for x in st.snapshot()["log"])
+
+
+def test_hub_is_safe_from_threads(subgrids: list[m.Subgrid]) -> None:
+    st = fresh()
+    hub = ConsoleHub(st, lambda msg: None, lambda: T0)
+    errors: list[BaseException] = []
+
+    def feed() -> None:
+        try:
+            for sg in subgrids[:200]:
+                hub.messages([sg], T0)
+        except BaseException as exc:  # pragma: no cover - reported below
+            errors.append(exc)
+
+    t = threading.Thread(target=feed)
+    t.start()
+    seen: dict[str, int] = {}
+    while t.is_alive():
+        hub.wait_changes(seen, 0.05)
+        json.dumps(hub.snapshot(), allow_nan=False)
+    t.join()
+    assert not errors
+    assert sum(lv["subgrids"] for lv in hub.snapshot()["map"]["levels"]) == len(
+        {(s.level, s.ix, s.iy) for s in subgrids[:200]})
