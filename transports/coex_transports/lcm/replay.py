@@ -9,14 +9,16 @@ summary. ``now`` given to the receivers is the event's log time in seconds since
 With an output directory it writes:
 
 ``summary.json``      the summary returned by :func:`replay_log`
-``products/<modality>/<kind>-<key>.npy|.bin|.txt`` (+ ``.json`` with version and meta)
-                      every product whose data is a numpy array, bytes or text
+``products/<modality>/<kind>-<key>.npy|.npz|.bin|.txt`` (+ ``.json`` with version and meta)
+                      every product whose data is a numpy array, bytes, text, or a dataclass
+                      or mapping holding arrays (saved as .npz)
 ``decoded.lcmlog``    an LCM log of ``coex.vehicle_status_t`` (channel ``COEX_VEHICLE_STATUS``)
                       and ``coex.map_level_t`` (``COEX_MAP_LEVEL``) events, for LCM tools
 """
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import logging
 import math
@@ -98,9 +100,21 @@ def _describe(product: Product) -> dict[str, Any]:
     }
 
 
+def _arrays_of(data: Any) -> dict[str, np.ndarray]:
+    """The numpy-array fields of a dataclass instance or the array values of a mapping."""
+    if dataclasses.is_dataclass(data) and not isinstance(data, type):
+        items = {f.name: getattr(data, f.name) for f in dataclasses.fields(data)}
+    elif isinstance(data, Mapping):
+        items = {str(k): v for k, v in data.items()}
+    else:
+        return {}
+    return {k: v for k, v in items.items() if isinstance(v, np.ndarray)}
+
+
 def write_products(products: Mapping[str, list[Product]], out_dir: Path) -> list[str]:
-    """Write exportable products (numpy arrays, bytes, text) below ``out_dir/products``; return
-    the paths written, relative to ``out_dir``."""
+    """Write exportable products below ``out_dir/products``: a numpy array as ``.npy``, bytes as
+    ``.bin``, text as ``.txt``, a dataclass or mapping holding arrays as ``.npz`` (its arrays);
+    each with a ``.json`` side file. Return the paths written, relative to ``out_dir``."""
     written: list[str] = []
     for modality, items in products.items():
         for product in items:
@@ -118,6 +132,10 @@ def write_products(products: Mapping[str, list[Product]], out_dir: Path) -> list
                 path = stem.with_name(stem.name + ".txt")
                 path.parent.mkdir(parents=True, exist_ok=True)
                 path.write_text(data)
+            elif arrays := _arrays_of(data):
+                path = stem.with_name(stem.name + ".npz")
+                path.parent.mkdir(parents=True, exist_ok=True)
+                np.savez(path, **arrays)
             else:
                 continue
             side = stem.with_name(stem.name + ".json")
