@@ -15,7 +15,6 @@ from __future__ import annotations
 from collections.abc import Iterator
 
 import pytest
-
 from coex_conformance import TransportFixtures
 
 from .transport import MicromodemTransport
