@@ -9,6 +9,8 @@ from typing import Any, ClassVar
 
 import pytest
 from coex_transports._runner import SimNetwork
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from coex_core import wire
 from coex_core.acoustic import AcousticChannel
@@ -329,3 +331,27 @@ def test_a_repeated_command_is_answered_but_not_applied_twice() -> None:
     acks = [e.message for e in p.vmgr.stream(2).entries]
     assert len(acks) == 2 and all(a.status == AckStatus.ACCEPTED for a in acks)
 
+
+
+def _fuzz_node() -> Node:
+    node = Node(ChannelManager(VEHICLE, links(2)))
+    node.add_sender(FakeModality, FakeSender(), StreamConfig(5, "fake", ack_required=True))
+    return node
+
+
+_FUZZ_NODE = _fuzz_node()
+_SEED_FRAME = wire.pack(
+    [QueueConfig(1, 5, False, None, 40, None, None, None), Opaque(REQUEST, b"\x03"),
+     Opaque(DATA, b"\x00abc")], 256, FrameHeader(src=TOPSIDE, dst=VEHICLE, seq=4))
+
+
+@settings(max_examples=150, deadline=None)
+@given(st.binary(max_size=300) | st.builds(
+    lambda pos, val: _SEED_FRAME[:pos] + bytes([val]) + _SEED_FRAME[pos + 1:],
+    st.integers(0, len(_SEED_FRAME) - 1), st.integers(0, 255)))
+def test_receive_never_raises_on_arbitrary_bytes(data: bytes) -> None:
+    node = _FUZZ_NODE
+    node.receive(0, data, 5.0)
+    node.receive(7, data, 5.0)  # unknown link id too
+    node.events()
+    node.poll(30.0)  # and the node still builds packets
