@@ -13,7 +13,10 @@ An escape is any exception other than ``DecodeError`` from
 ``coex_transports.lcm.unpack_event`` (the receive path), or any exception at all from
 ``LcmTransport._on_message`` (the LCM callback, which must count bad input, never raise).
 
-    python bench/fuzz_lcm.py [--inputs N] [--seed S] [--quick]
+    python bench/fuzz_lcm.py [--inputs N] [--seed S] [--jobs J] [--quick]
+
+With ``--jobs J`` the inputs are split over J processes (seeds ``S*1000 + j``); the run is
+deterministic for a given (S, J).
 
 Prints inputs executed and escapes; writes bench/results/fuzz_lcm.json.
 """
@@ -141,14 +144,38 @@ def run(inputs: int, seed: int) -> dict[str, object]:
     }
 
 
+def _run_part(part: tuple[int, int]) -> dict[str, object]:
+    return run(*part)
+
+
+def run_parallel(inputs: int, seed: int, jobs: int) -> dict[str, object]:
+    if jobs <= 1:
+        return run(inputs, seed)
+    import multiprocessing
+
+    shares = [inputs // jobs + (1 if j < inputs % jobs else 0) for j in range(jobs)]
+    t0 = time.perf_counter()
+    with multiprocessing.get_context("spawn").Pool(jobs) as pool:
+        parts = pool.map(_run_part, [(n, seed * 1000 + j) for j, n in enumerate(shares)])
+    seconds = time.perf_counter() - t0
+    out: dict[str, object] = {key: sum(int(p[key]) for p in parts)  # type: ignore[call-overload]
+                              for key in ("inputs", "escapes", "accepted", "decode_errors",
+                                          "callback_inputs", "callback_bad", "callback_queued")}
+    out.update(seeds=parts[0]["seeds"], seed=seed, jobs=jobs, seconds=round(seconds, 2),
+               inputs_per_s=round(inputs / seconds) if seconds else None,
+               escape_examples=[e for p in parts for e in p["escape_examples"]][:20])  # type: ignore[attr-defined]
+    return out
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description="fuzz the LCM receive path")
     parser.add_argument("--inputs", type=int, default=1_000_000, help="mutated inputs (default 10^6)")
     parser.add_argument("--seed", type=int, default=1)
+    parser.add_argument("--jobs", type=int, default=1, help="processes to split the inputs over")
     parser.add_argument("--quick", action="store_true", help="10^4 inputs, for a smoke run")
     args = parser.parse_args(argv)
     inputs = 10_000 if args.quick else args.inputs
-    result = run(inputs, args.seed)
+    result = run_parallel(inputs, args.seed, args.jobs)
     out = ROOT / "bench" / "results" / "fuzz_lcm.json"
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(json.dumps(result, indent=2))
