@@ -19,7 +19,13 @@ def register(sub: Any) -> None:
     p = sub.add_parser(
         "replay",
         help="replay an lcm-logger log of a CoEx session into the topside receivers",
-        description=__doc__.split("\n\n")[1] if __doc__ else None,
+        description=(
+            "Read an lcm-logger log, give every CoEx message to the topside receiver of its "
+            "modality and print a summary; with --out also write summary.json, exportable "
+            "products (products/<modality>/...) and decoded.lcmlog (coex.vehicle_status_t and "
+            "coex.map_level_t events). Exit code 0 when the log held at least one CoEx frame, "
+            "1 when it held none, 2 on an error."
+        ),
     )
     p.add_argument("--lcm-log", required=True, metavar="FILE", help="log written by lcm-logger")
     p.add_argument("--out", metavar="DIR", help="write summary.json, products and decoded.lcmlog here")
