@@ -17,7 +17,8 @@ The model, in order of what happens to a transmission:
    receive it; two arrivals that overlap at one node destroy each other. Such arrivals are still
    reported (every frame ``None``) with :attr:`Arrival.cause` saying why.
 4. **Frame loss**: each frame is lost independently with probability ``loss``, and/or by a
-   :class:`GilbertElliott` two-state burst model stepped once per frame, and/or by
+   :class:`GilbertElliott` two-state burst model stepped once per frame (one state per
+   sender-receiver path), and/or by
    ``range_loss(distance)``; all drawn from one ``random.Random(seed)`` at transmit time, so a seed
    always gives the same losses whatever the polling pattern.
 5. **Bit errors**: with ``bit_error_rate`` every bit of a surviving frame flips independently
@@ -36,7 +37,7 @@ import binascii
 import math
 import random
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
@@ -214,6 +215,7 @@ class AcousticChannel:
         self._busy: dict[int, float] = {}
         self._txs: list[_Tx] = []
         self._pending: list[_Pending] = []
+        self._burst: dict[tuple[int, int], GilbertElliott] = {}
         self._log: list[dict[str, Any]] = []
         self.sent_packets = 0
         self.sent_frames = 0
@@ -285,7 +287,7 @@ class AcousticChannel:
             reasons: list[str] = []
             for f in frames:
                 lost = self._rng.random() < self.loss
-                if self.burst is not None and self.burst.step(self._rng):
+                if self.burst is not None and self._burst_state(src, dst).step(self._rng):
                     lost = True
                 if extra and self._rng.random() < extra:
                     lost = True
@@ -302,6 +304,15 @@ class AcousticChannel:
             arrival = Arrival(dst, src, rate, out, start + delay, end + delay, "", self.link, slot)
             self._pending.append(_Pending(arrival, start, capacity, used, reasons))
         return end
+
+    def _burst_state(self, src: int, dst: int) -> GilbertElliott:
+        """Each (sender, receiver) path has its own burst state (a copy of ``burst``)."""
+        key = (src, dst)
+        state = self._burst.get(key)
+        if state is None:
+            assert self.burst is not None
+            state = self._burst[key] = replace(self.burst)
+        return state
 
     def _bit_errors(self, frame: bytes) -> bytes | None:
         if self.bit_error_rate <= 0.0 or not frame:

@@ -431,7 +431,10 @@ class ChannelManager:
         ref = max(x for x in (st.last_heard, st.switched_at, -math.inf) if x is not None)
         if ref == -math.inf:
             return None
-        return ref + st.cfg.watchdog_cycles * st.current.cycle
+        # fall back at the first cycle boundary after N silent cycles, so that both ends (each
+        # counting from the last frame it heard) switch on a boundary
+        late = ref + st.cfg.watchdog_cycles * st.current.cycle
+        return st.current.cycle_start(st.current.cycle_at(late) + 1)
 
     def _tick(self, now: float) -> None:
         """Schedule activations, watchdog, expiry, queue status."""
