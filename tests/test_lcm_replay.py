@@ -147,7 +147,7 @@ def test_record_with_lcm_logger_replay_offline_and_with_lcm_logplayer(
     up_ch, down_ch, ready = unique_channel("UP"), unique_channel("DOWN"), unique_channel("READY")
     path = tmp_path / "dive.lcmlog"
     logger = subprocess.Popen(
-        [str(BIN / "lcm-logger"), f"--lcm-url={TEST_UDPM_URL}", f"--channel={up_ch}|{down_ch}|{ready}",
+        [str(BIN / "lcm-logger"), f"--lcm-url={TEST_UDPM_URL}", f"--channel=({up_ch}|{down_ch}|{ready})",
          "--flush-interval=20", "--quiet", "--force", str(path)],
         stdout=subprocess.PIPE, stderr=subprocess.PIPE,
     )

@@ -319,3 +319,29 @@ def test_recv_with_zero_timeout_returns_what_already_arrived() -> None:
     finally:
         a.close()
         b.close()
+
+
+@pytest.mark.parametrize("provider", ["memq", "udpm"])
+def test_a_blocked_reader_thread_gets_frames_sent_from_another_thread(provider: str, request: pytest.FixtureRequest) -> None:
+    import threading
+
+    if provider == "udpm":
+        request.getfixturevalue("multicast")
+        cfg = LcmConfig(url=TEST_UDPM_URL, tx=unique_channel(), rx=unique_channel())
+    else:
+        cfg = LcmConfig(url="memq://", tx=unique_channel(), rx=unique_channel())
+    a, b = LcmTransport.pair(cfg)
+    got: list[bytes | None] = []
+    reader = threading.Thread(target=lambda: got.extend(b.recv(timeout=5.0) for _ in range(3)))
+    try:
+        reader.start()
+        for i in range(3):
+            time.sleep(0.05)
+            a.send(bytes([i]) * 10)
+        reader.join(timeout=10)
+        assert not reader.is_alive()
+        assert got == [bytes([i]) * 10 for i in range(3)]
+    finally:
+        reader.join(timeout=10)
+        a.close()
+        b.close()
