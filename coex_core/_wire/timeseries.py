@@ -50,6 +50,7 @@ TS_CHUNK = Body(
     "count" / Bounded(1, 4096, unit="samples") * "Samples in the block",
     "wavelet" / Enum(Wavelet) * "Wavelet of the block's transform",
     "level" / Bounded(0, 15) * "Refinement pass (0 = coarse overview)",
+    "samples" / Bool() * "1: the pass codes residual samples, not wavelet coefficients",
     "step" / Bounded(0, 255) * "Quantisation step of this pass: 2^((code-160)/8)",
     "error" / Bounded(0, 255) * "Max abs error once passes 0..level are held: at most 2^((code-160)/8)",
     "partial" / cs.Rebuild(Bool(), lambda ctx: ctx.first is not None or ctx.end is not None)
@@ -85,7 +86,7 @@ TS_REQUEST = Body(
 
 
 def _big_chunk() -> TimeSeriesChunk:
-    return TimeSeriesChunk(31, 2**18 - 1, 0.99, 655.35, 4096, Wavelet.DB4, 15, 255, 255,
+    return TimeSeriesChunk(31, 2**18 - 1, 0.99, 655.35, 4096, Wavelet.DB4, 15, True, 255, 255,
                            MAX_COEFFICIENT, MAX_COEFFICIENT + 1, b"\xff" * MAX_CHUNK_DATA)
 
 
@@ -108,11 +109,13 @@ register(MessageSpec(
     "A self-contained piece of one refinement pass of one block of a channel's wavelet code.",
     largest=_big_chunk,
     cases=lambda: [
-        ("empty", TimeSeriesChunk(0, 0, 0.0, 0.01, 1, Wavelet.HAAR, 0, 0, 0, None, None, b"")),
-        ("overview", TimeSeriesChunk(2, 3600, 0.25, 1.0, 1024, Wavelet.BIOR22, 0, 137, 141, None, None,
+        ("empty", TimeSeriesChunk(0, 0, 0.0, 0.01, 1, Wavelet.HAAR, 0, False, 0, 0, None, None, b"")),
+        ("overview", TimeSeriesChunk(2, 3600, 0.25, 1.0, 1024, Wavelet.BIOR22, 0, False, 137, 141, None, None,
                                      bytes.fromhex("deadbeef0102"))),
-        ("part", TimeSeriesChunk(5, 7200, 0.5, 0.25, 4000, Wavelet.BIOR44, 3, 100, 101, 17, 2051,
+        ("part", TimeSeriesChunk(5, 7200, 0.5, 0.25, 4000, Wavelet.BIOR44, 3, False, 100, 101, 17, 2051,
                                  bytes.fromhex("0011"))),
+        ("samples", TimeSeriesChunk(1, 100, 0.0, 2.0, 300, Wavelet.BIOR44, 2, True, 90, 90, None, None,
+                                    bytes.fromhex("8000"))),
         ("largest", _big_chunk()),
     ],
 ))

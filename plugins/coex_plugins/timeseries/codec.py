@@ -19,7 +19,8 @@ Coefficient bit code of one chunk (``data``), bits most-significant first:
 * the low ``kr`` bits of every run, the low ``km`` bits of every magnitude, one sign bit each
   (1 = negative); zero bits up to a whole byte.
 
-With ``dpcm`` set (only in a chunk starting at coefficient 0) the approximation codes are sent
+With ``dpcm`` set (in a wavelet chunk starting at coefficient 0, or in any chunk of a samples
+pass, where it covers every code) the approximation codes are sent
 as differences from the previous approximation code. Separate unary and fixed-width sections
 make decoding a handful of vectorised numpy operations.
 """
@@ -66,8 +67,11 @@ CODE_BIAS = 160
 CODE_SCALE = 8
 _N_BITS = 13
 _K_BITS = 5
-_HEADER_BITS = _N_BITS + 2 * _K_BITS + 1
+_W_BITS = 6
+_HEADER_BITS = 2 + _N_BITS + 2 * (_K_BITS + _W_BITS)
 _MAX_K = (1 << _K_BITS) - 1
+#: a unary quotient of this many one-bits means: the value is in the escape section
+_ESC = 16
 
 
 def code_value(code: int) -> float:
@@ -159,12 +163,17 @@ def noise_sigma(x: np.ndarray, wavelet: Wavelet) -> float:
 
 @dataclass(frozen=True)
 class Pass:
-    """One refinement pass of a block: step code, integer codes, achieved error bound code."""
+    """One refinement pass of a block: step code, integer codes, achieved error bound code.
+
+    ``samples`` passes code the residual samples themselves (one code per sample) instead of
+    wavelet coefficients: near the noise level that is cheaper, and the error is exactly at
+    most half the step."""
 
     step: int
     codes: np.ndarray
     error: int
     max_error: float
+    samples: bool = False
 
     def coefficients(self) -> np.ndarray:
         return self.codes.astype(np.float64) * code_value(self.step)
@@ -181,7 +190,8 @@ def make_pass(x: np.ndarray, recon: np.ndarray, target: float, wavelet: Wavelet)
     Returns the pass and the new reconstruction. Candidate steps are tried 48 at a time (one
     vectorised inverse transform); the largest step meeting the target wins, which also keeps
     the codes smallest. If no step meets it (target below float precision) the finest step is
-    used and the bound states what was achieved."""
+    used and the bound states what was achieved. A samples pass (the residual rounded to twice
+    the target, difference-coded) replaces it when that codes smaller."""
     count = x.shape[-1]
     resid = x - recon
     w = analyse(resid, wavelet)
@@ -205,9 +215,18 @@ def make_pass(x: np.ndarray, recon: np.ndarray, target: float, wavelet: Wavelet)
         top = int(codes[-1]) - 1
     assert best is not None
     step, q_best, rec_best, _ = best
+    samples = False
+    # the same target coded sample by sample: the residual rounded to a step of twice the target
+    s_code = floor_code(2 * target)
+    s_step = code_value(s_code)
+    q_samp = np.rint(resid / s_step)
+    n_approx = layout(count, wavelet).n_approx
+    if np.max(np.abs(resid - q_samp * s_step), initial=0.0) <= target and \
+            coded_bytes(q_samp.astype(np.int64), 0, True) < coded_bytes(q_best.astype(np.int64), n_approx):
+        step, q_best, rec_best, samples = s_code, q_samp, q_samp * s_step, True
     new_recon = recon + rec_best
     achieved = float(np.max(np.abs(x - new_recon))) if count else 0.0
-    p = Pass(step, q_best.astype(np.int64), ceil_code(achieved), achieved)
+    p = Pass(step, q_best.astype(np.int64), ceil_code(achieved), achieved, samples)
     return p, new_recon
 
 
@@ -218,12 +237,40 @@ class CodeError(ValueError):
     """Malformed coefficient data (the caller turns it into its own typed error)."""
 
 
+def _rice_params(values: np.ndarray) -> tuple[int, int]:
+    """Rice parameter ``k`` and escape width ``w`` (0: no escapes) that code ``values`` in the
+    fewest bits; a value whose quotient ``v >> k`` reaches :data:`_ESC` is escaped."""
+    if values.size == 0:
+        return 0, 0
+    ks = np.arange(_MAX_K + 1)
+    q = values[:, None] >> ks[None, :]
+    esc = q >= _ESC
+    widths = np.where(esc, _bit_length(values)[:, None], 0).max(axis=0)
+    cost = (np.minimum(q, _ESC) + 1).sum(axis=0) + ks * (~esc).sum(axis=0) + widths * esc.sum(axis=0)
+    cost = cost + np.where(widths > 0, _W_BITS, 0)
+    k = int(np.argmin(cost))
+    return k, int(widths[k])
+
+
 def _rice_k(values: np.ndarray) -> int:
+    """Best plain Rice parameter (used by benchmarks for a naive delta code)."""
     if values.size == 0:
         return 0
     ks = np.arange(_MAX_K + 1)
     cost = (values[:, None] >> ks[None, :]).sum(axis=0) + values.size * (ks + 1)
     return int(np.argmin(cost))
+
+
+def _bit_length(values: np.ndarray) -> np.ndarray:
+    out = np.zeros(values.shape, dtype=np.int64)
+    v = values.copy()
+    for _ in range(64):  # over bit positions, not samples
+        nz = v > 0
+        if not nz.any():
+            break
+        out += nz
+        v >>= 1
+    return out
 
 
 def _fixed_bits(values: np.ndarray, k: int) -> np.ndarray:
@@ -244,48 +291,65 @@ def _uint_bits(value: int, width: int) -> np.ndarray:
     return _fixed_bits(np.array([value], dtype=np.int64), width)
 
 
+def _rice_sections(values: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Parameter bits, unary part, low bits of ordinary values, escaped values."""
+    k, w = _rice_params(values)
+    q = values >> k
+    esc = q >= _ESC
+    params = np.concatenate([_uint_bits(k, _K_BITS), _uint_bits(w, _W_BITS)])
+    return params, _unary(np.minimum(q, _ESC)), _fixed_bits(values[~esc], k), _fixed_bits(values[esc], w)
+
+
 def encode_codes(codes: np.ndarray, n_approx: int = 0, dpcm: bool = False) -> bytes:
-    """The bit code of integer codes (one chunk's range). ``dpcm`` difference-codes the first
-    ``n_approx`` codes (valid only for a range starting at coefficient 0)."""
+    """The bit code of integer codes (one chunk's range): the shorter of the sparse form (zero
+    runs and magnitudes) and the dense form (every code zigzag-mapped). ``dpcm``
+    difference-codes the first ``n_approx`` codes."""
     v = np.asarray(codes, dtype=np.int64).copy()
     if dpcm and n_approx > 1:
         a = min(n_approx, v.size)
         v[1:a] = np.diff(v[:a])
+    sparse = _sparse(v, dpcm)
+    if v.size > 8 * len(sparse):
+        return sparse  # the dense form needs at least a bit per code
+    dense = _dense(v, dpcm)
+    return dense if len(dense) < len(sparse) else sparse
+
+
+def _dense(v: np.ndarray, dpcm: bool) -> bytes:
+    z = np.where(v >= 0, 2 * v, -2 * v - 1)
+    p, u, low, esc = _rice_sections(z)
+    parts = [np.array([1, 1 if dpcm else 0], dtype=np.uint8), p, u, low, esc]
+    return np.packbits(np.concatenate(parts)).tobytes()
+
+
+def _sparse(v: np.ndarray, dpcm: bool) -> bytes:
     nz = np.flatnonzero(v)
     if nz.size >= 1 << _N_BITS:
         raise ValueError("too many non-zero codes for one chunk")
     runs = np.diff(np.concatenate(([-1], nz))) - 1
     vals = v[nz]
     mags = np.abs(vals) - 1
-    kr, km = _rice_k(runs), _rice_k(mags)
-    parts = [
-        _uint_bits(nz.size, _N_BITS), _uint_bits(kr, _K_BITS), _uint_bits(km, _K_BITS),
-        np.array([1 if dpcm else 0], dtype=np.uint8),
-        _unary(runs >> kr), _unary(mags >> km),
-        _fixed_bits(runs, kr), _fixed_bits(mags, km), (vals < 0).astype(np.uint8),
-    ]
+    pr, ur, lr, er = _rice_sections(runs)
+    pm, um, lm, em = _rice_sections(mags)
+    parts = [np.array([0, 1 if dpcm else 0], dtype=np.uint8), _uint_bits(nz.size, _N_BITS), pr, pm,
+             ur, um, lr, lm, er, em, (vals < 0).astype(np.uint8)]
     return np.packbits(np.concatenate(parts)).tobytes()
 
 
 def encoded_bits(codes: np.ndarray) -> int:
-    """Bits :func:`encode_codes` needs (without DPCM), computed without building them."""
-    v = np.asarray(codes, dtype=np.int64)
-    nz = np.flatnonzero(v)
-    runs = np.diff(np.concatenate(([-1], nz))) - 1
-    mags = np.abs(v[nz]) - 1
-    kr, km = _rice_k(runs), _rice_k(mags)
-    return int(_HEADER_BITS + (runs >> kr).sum() + (mags >> km).sum() + nz.size * (3 + kr + km))
+    """Bits :func:`encode_codes` needs (without differences), computed without building them."""
+    return 8 * len(encode_codes(codes))
 
 
 def _read_uint(bits: np.ndarray, pos: int, width: int) -> int:
     v = 0
-    for b in bits[pos:pos + width].tolist():
+    for b in bits[pos:pos + width].tolist():  # one header field, at most 13 bits
         v = (v << 1) | b
     return v
 
 
 def _from_fixed(bits: np.ndarray, n: int, k: int) -> np.ndarray:
-    if k == 0:
+    if k == 0 or n == 0:
         return np.zeros(n, dtype=np.int64)
     weights = (1 << np.arange(k - 1, -1, -1)).astype(np.int64)
     out: np.ndarray = (bits.reshape(n, k).astype(np.int64) * weights[None, :]).sum(axis=1)
@@ -295,17 +359,70 @@ def _from_fixed(bits: np.ndarray, n: int, k: int) -> np.ndarray:
 def decode_codes(data: bytes, length: int, n_approx: int = 0, allow_dpcm: bool = True) -> np.ndarray:
     """Integer codes of a chunk's range of ``length`` coefficients; raises :class:`CodeError`."""
     bits = np.unpackbits(np.frombuffer(data, dtype=np.uint8))
-    if bits.size < _HEADER_BITS:
+    if bits.size < 2 + _K_BITS + _W_BITS:
         raise CodeError("coefficient data shorter than its header")
-    n = _read_uint(bits, 0, _N_BITS)
-    kr = _read_uint(bits, _N_BITS, _K_BITS)
-    km = _read_uint(bits, _N_BITS + _K_BITS, _K_BITS)
-    dpcm = bool(bits[_N_BITS + 2 * _K_BITS])
+    dense, dpcm = bool(bits[0]), bool(bits[1])
     if dpcm and not allow_dpcm:
         raise CodeError("difference coding in a chunk that does not start at coefficient 0")
+    out = _decode_dense(bits, length) if dense else _decode_sparse(bits, length)
+    if dpcm and n_approx > 1:
+        a = min(n_approx, length)
+        out[:a] = np.cumsum(out[:a])
+    return out
+
+
+def _read_rice(bits: np.ndarray, pos: int, n: int, k: int, w: int) -> tuple[np.ndarray, int]:
+    """``n`` Rice-with-escape values whose unary part starts at ``pos`` and whose low bits and
+    escapes follow it; returns them and the position after them."""
+    if n == 0:
+        return np.zeros(0, dtype=np.int64), pos
+    zeros = np.flatnonzero(bits[pos:] == 0)
+    if zeros.size < n:
+        raise CodeError("truncated unary section")
+    z = zeros[:n]
+    q = (np.diff(np.concatenate(([-1], z))) - 1).astype(np.int64)
+    if q.max() > _ESC:
+        raise CodeError("unary quotient above the escape code")
+    pos += int(z[-1]) + 1
+    esc = q == _ESC
+    ne = int(esc.sum())
+    if ne and w == 0:
+        raise CodeError("escaped value without an escape width")
+    if pos + (n - ne) * k + ne * w > bits.size:
+        raise CodeError("truncated fixed-width section")
+    out = q << k
+    out[~esc] |= _from_fixed(bits[pos:pos + (n - ne) * k], n - ne, k)
+    pos += (n - ne) * k
+    out[esc] = _from_fixed(bits[pos:pos + ne * w], ne, w)
+    return out, pos + ne * w
+
+
+def _check_padding(bits: np.ndarray, pos: int) -> None:
+    pad = bits.size - pos
+    if pad < 0 or pad >= 8 or (pad > 0 and bits[pos:].any()):
+        raise CodeError("coefficient data is not in canonical form (padding)")
+
+
+def _decode_dense(bits: np.ndarray, length: int) -> np.ndarray:
+    pos = 2
+    k, w = _read_uint(bits, pos, _K_BITS), _read_uint(bits, pos + _K_BITS, _W_BITS)
+    z, pos = _read_rice(bits, pos + _K_BITS + _W_BITS, length, k, w)
+    _check_padding(bits, pos)
+    return np.where(z % 2 == 0, z // 2, -(z + 1) // 2)
+
+
+def _decode_sparse(bits: np.ndarray, length: int) -> np.ndarray:
+    if bits.size < _HEADER_BITS:
+        raise CodeError("coefficient data shorter than its header")
+    pos = 2
+    n = _read_uint(bits, pos, _N_BITS)
+    pos += _N_BITS
+    kr, wr = _read_uint(bits, pos, _K_BITS), _read_uint(bits, pos + _K_BITS, _W_BITS)
+    pos += _K_BITS + _W_BITS
+    km, wm = _read_uint(bits, pos, _K_BITS), _read_uint(bits, pos + _K_BITS, _W_BITS)
+    pos += _K_BITS + _W_BITS
     if n > length:
         raise CodeError(f"{n} non-zero codes for {length} coefficients")
-    pos = _HEADER_BITS
     out = np.zeros(length, dtype=np.int64)
     if n:
         zeros = np.flatnonzero(bits[pos:] == 0)
@@ -314,14 +431,27 @@ def decode_codes(data: bytes, length: int, n_approx: int = 0, allow_dpcm: bool =
         z = zeros[: 2 * n]
         ones = np.diff(np.concatenate(([-1], z))) - 1
         qr, qm = ones[:n].astype(np.int64), ones[n:].astype(np.int64)
+        if qr.max() > _ESC or qm.max() > _ESC:
+            raise CodeError("unary quotient above the escape code")
         pos += int(z[-1]) + 1
-        need = n * (kr + km + 1)
+        er, em = qr == _ESC, qm == _ESC
+        if (er.any() and wr == 0) or (em.any() and wm == 0):
+            raise CodeError("escaped value without an escape width")
+        ner, nem = int(er.sum()), int(em.sum())
+        need = (n - ner) * kr + (n - nem) * km + ner * wr + nem * wm + n
         if pos + need > bits.size:
             raise CodeError("truncated fixed-width section")
-        runs = (qr << kr) | _from_fixed(bits[pos:pos + n * kr], n, kr)
-        pos += n * kr
-        mags = (qm << km) | _from_fixed(bits[pos:pos + n * km], n, km)
-        pos += n * km
+        runs, mags = qr, qm
+        sections = []
+        for count, width in ((n - ner, kr), (n - nem, km), (ner, wr), (nem, wm)):
+            sections.append(_from_fixed(bits[pos:pos + count * width], count, width))
+            pos += count * width
+        runs = np.where(er, 0, (qr << kr))
+        runs[~er] |= sections[0]
+        runs[er] = sections[2]
+        mags = np.where(em, 0, (qm << km))
+        mags[~em] |= sections[1]
+        mags[em] = sections[3]
         neg = bits[pos:pos + n].astype(bool)
         pos += n
         idx = np.cumsum(runs + 1) - 1
@@ -329,17 +459,14 @@ def decode_codes(data: bytes, length: int, n_approx: int = 0, allow_dpcm: bool =
             raise CodeError("coefficient index beyond the chunk's range")
         vals = mags + 1
         out[idx] = np.where(neg, -vals, vals)
-    pad = bits.size - pos
-    if pad >= 8 or (pad > 0 and bits[pos:].any()):
-        raise CodeError("coefficient data is not in canonical form (padding)")
-    if dpcm and n_approx > 1:
-        a = min(n_approx, length)
-        out[:a] = np.cumsum(out[:a])
+    _check_padding(bits, pos)
     return out
 
 
-def _best_code(codes: np.ndarray, first: int, n_approx: int) -> bytes:
+def _best_code(codes: np.ndarray, first: int, n_approx: int, samples: bool = False) -> bytes:
     plain = encode_codes(codes)
+    if samples:
+        n_approx, first = codes.size, 0  # a samples chunk may difference-code all its codes
     if first == 0 and n_approx > 1 and codes[: min(n_approx, codes.size)].any():
         diff = encode_codes(codes, n_approx, dpcm=True)
         if len(diff) < len(plain):
@@ -347,7 +474,13 @@ def _best_code(codes: np.ndarray, first: int, n_approx: int) -> bytes:
     return plain
 
 
-def split_pass(codes: np.ndarray, n_approx: int, max_bytes: int) -> list[tuple[int, int, bytes]]:
+def coded_bytes(codes: np.ndarray, n_approx: int, samples: bool = False) -> int:
+    """Bytes of the whole pass coded as one range (the better of plain and differences)."""
+    return len(_best_code(codes, 0, n_approx, samples))
+
+
+def split_pass(codes: np.ndarray, n_approx: int, max_bytes: int,
+               samples: bool = False) -> list[tuple[int, int, bytes]]:
     """Split a pass into ``(first, end, data)`` ranges, each coded in at most ``max_bytes``.
 
     Ranges are contiguous and cover every coefficient. A range is halved (by its non-zero
@@ -356,7 +489,7 @@ def split_pass(codes: np.ndarray, n_approx: int, max_bytes: int) -> list[tuple[i
     stack = [(0, int(codes.size))]
     while stack:
         first, end = stack.pop()
-        data = _best_code(codes[first:end], first, n_approx)
+        data = _best_code(codes[first:end], first, n_approx, samples)
         if len(data) <= max_bytes:
             out.append((first, end, data))
             continue

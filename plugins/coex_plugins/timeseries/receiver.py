@@ -57,6 +57,7 @@ class _Part:
     step: int
     error: int
     codes: np.ndarray
+    samples: bool
 
 
 @dataclass
@@ -76,13 +77,16 @@ class _RBlock:
         parts = self.passes.get(level)
         if not parts:
             return False
-        total = codec.layout(self.count, self.wavelet).total
+        total = self.total(next(iter(parts.values())).samples)
         pos = 0
         for first in sorted(parts):
             if first > pos:
                 return False
             pos = max(pos, parts[first].end)
         return pos >= total
+
+    def total(self, samples: bool) -> int:
+        return self.count if samples else codec.layout(self.count, self.wavelet).total
 
     def reconstruct(self) -> tuple[np.ndarray, float] | None:
         """Values and bound from the complete passes ``0..P`` (or partial pass 0, bound inf)."""
@@ -96,13 +100,15 @@ class _RBlock:
         if not levels:
             return None
         flat = np.zeros(total)
+        direct = np.zeros(self.count)
         error = 255
         for level in levels:
             for first, part in self.passes[level].items():
-                flat[first:part.end] += part.codes * codec.code_value(part.step)
+                target = direct if part.samples else flat
+                target[first:part.end] += part.codes * codec.code_value(part.step)
                 error = part.error
         bound = codec.code_value(error) if top >= 0 else math.inf
-        self.cache = (codec.synthesise(flat, self.count, self.wavelet), bound)
+        self.cache = (codec.synthesise(flat, self.count, self.wavelet) + direct, bound)
         return self.cache
 
     def bound(self) -> float:
@@ -182,10 +188,12 @@ class TimeSeriesReceiver(ModalityReceiver):
         ch = self._ch(m.channel)
         key = (m.start, m.offset)
         lay = codec.layout(m.count, m.wavelet)
-        first, end = (0, lay.total) if m.first is None else (m.first, m.end or 0)
-        if not first < end <= lay.total:
+        total = m.count if m.samples else lay.total
+        n_approx = 0 if m.samples else lay.n_approx
+        first, end = (0, total) if m.first is None else (m.first, m.end or 0)
+        if not first < end <= total:
             self.ignored += 1
-            log.warning("chunk of channel %d covers [%d, %d) outside 0..%d", m.channel, first, end, lay.total)
+            log.warning("chunk of channel %d covers [%d, %d) outside 0..%d", m.channel, first, end, total)
             return []
         block = ch.blocks.get(key)
         if block is not None and (block.count, block.period, block.wavelet) != (m.count, m.period, m.wavelet):
@@ -193,18 +201,25 @@ class TimeSeriesReceiver(ModalityReceiver):
             log.warning("chunk of channel %d disagrees with its block's geometry", m.channel)
             return []
         try:
-            codes = codec.decode_codes(m.data, end - first, lay.n_approx, allow_dpcm=first == 0)
+            if m.samples:  # every code of a samples chunk may be difference-coded
+                codes = codec.decode_codes(m.data, end - first, end - first)
+            else:
+                codes = codec.decode_codes(m.data, end - first, n_approx, allow_dpcm=first == 0)
         except codec.CodeError as exc:
             self.ignored += 1
             log.warning("undecodable chunk of channel %d: %s", m.channel, exc)
             return []
-        ch.to_ack.append(TimeSeriesPart(m.start, m.offset, m.level, first))
         if block is None:
             block = ch.blocks[key] = _RBlock(unwrap(m.start, now) + m.offset, m.period, m.count, m.wavelet)
         parts = block.passes.setdefault(m.level, {})
+        if parts and next(iter(parts.values())).samples != m.samples:
+            self.ignored += 1
+            log.warning("chunk of channel %d disagrees with its pass's other chunks", m.channel)
+            return []
+        ch.to_ack.append(TimeSeriesPart(m.start, m.offset, m.level, first))
         if first in parts:
             return []  # duplicate: acked again, nothing new
-        parts[first] = _Part(end, m.step, m.error, codes)
+        parts[first] = _Part(end, m.step, m.error, codes, m.samples)
         block.cache = None
         ch.version += 1
         return [self._product(ch)]

@@ -346,14 +346,14 @@ class TimeSeriesSender(ModalitySender):
         goal = codec.code_value(codec.floor_code(target))
         p, block.recon = codec.make_pass(block.x, block.recon, goal, self.wavelet)
         block.passes.append(p)
-        lay = codec.layout(block.count, self.wavelet)
-        pieces = codec.split_pass(p.codes, lay.n_approx, MAX_CHUNK_DATA)
+        n_approx = 0 if p.samples else codec.layout(block.count, self.wavelet).n_approx
+        pieces = codec.split_pass(p.codes, n_approx, MAX_CHUNK_DATA, p.samples)
         whole = len(pieces) == 1
         chunks = []
         for first, end, data in pieces:
             msg = TimeSeriesChunk(
                 ch.cid, block.stamp, block.offset, block.period, block.count, self.wavelet, level,
-                p.step, p.error, None if whole else first, None if whole else end, data)
+                p.samples, p.step, p.error, None if whole else first, None if whole else end, data)
             chunk = _Chunk(msg, wire.encoded_size(msg), (block.stamp, block.offset, level, first),
                            klass, self._next_order())
             ch.by_key[chunk.key] = chunk
