@@ -345,3 +345,18 @@ def test_a_blocked_reader_thread_gets_frames_sent_from_another_thread(provider: 
         reader.join(timeout=10)
         a.close()
         b.close()
+
+
+def test_rx_is_an_exact_channel_name_not_a_regex() -> None:
+    base = unique_channel()
+    a, b = LcmTransport.pair(LcmConfig(url="memq://", tx=f"{base}.UP", rx=f"{base}.DOWN"))
+    c = LcmTransport(LcmConfig(url="memq://", tx=f"{base}XUP", rx=unique_channel(), share=a.config.share))
+    try:
+        c.send(b"other channel")  # 'X' would match '.' if rx were used as a regex
+        a.send(b"right channel")
+        assert b.recv(timeout=1.0) == b"right channel"
+        assert b.recv(timeout=0.1) is None
+    finally:
+        a.close()
+        b.close()
+        c.close()

@@ -26,6 +26,7 @@ logged, never returned.
 from __future__ import annotations
 
 import logging
+import re
 import secrets
 import threading
 import time
@@ -152,7 +153,8 @@ class LcmTransport(Transport):
         self._counts = {"sent": 0, "received": 0, "own": 0, "bad": 0, "dropped": 0}
         self._inst = self._acquire(instance)
         try:
-            self._subscription = self._inst.lcm.subscribe(self.config.rx, self._on_message)
+            # LCM subscribes by regular expression: escape it, rx is one exact channel name
+            self._subscription = self._inst.lcm.subscribe(re.escape(self.config.rx), self._on_message)
             self._subscription.set_queue_capacity(max(self.config.queue, 30))
         except Exception:
             self._release()
