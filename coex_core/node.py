@@ -28,6 +28,7 @@ from .channel.events import (
     BadFrame,
     CommandResult,
     Event,
+    LinkStats,
     ProductUpdated,
     Received,
     Rejected,
@@ -85,7 +86,8 @@ def _opaque_ids(m: type[Modality], attr: str) -> frozenset[int]:
 class Node:
     """One end of the link (vehicle or topside)."""
 
-    def __init__(self, manager: ChannelManager, *, log: Callable[[str], None] | None = None) -> None:
+    def __init__(self, manager: ChannelManager, *, log: Callable[[str], None] | None = None,
+                 stats_interval: float | None = 60.0) -> None:
         self.manager = manager
         self.node_id = manager.node_id
         self._senders: list[_SenderSlot] = []
@@ -98,6 +100,9 @@ class Node:
         #: lost and topside re-sent it) is answered again but not applied twice.
         self._recent: dict[int, tuple[Message, AckStatus, float]] = {}
         self.duplicate_window = 3600.0
+        self.stats_interval = stats_interval
+        self._last_stats: float | None = None
+        self._bad_by_link: dict[int, int] = {}
 
     # ===================================================================== composition
     def add_sender(self, modality: Modality | type[Modality], sender: ModalitySender,
@@ -124,6 +129,7 @@ class Node:
             decoded = unpack_frame(frame)
         except DecodeError as exc:
             self.stats["bad_frames"] += 1
+            self._bad_by_link[link_id] = self._bad_by_link.get(link_id, 0) + 1
             self._note(f"bad frame on link {link_id}: {exc}")
             self._events.append(BadFrame(now, link_id, str(exc), len(frame) if isinstance(frame, bytes | bytearray) else 0))
             return []
@@ -220,8 +226,22 @@ class Node:
                 self._events.append(Rejected(now, r, f"reply not sendable: {exc}"))
 
     # ============================================================================ send
+    def link_stats(self, now: float) -> list[LinkStats]:
+        """Per-link counters now."""
+        out = []
+        for link in self.manager.links:
+            st = self.manager.link_state(link)
+            out.append(LinkStats(now, link, st["frames_rx"], self._bad_by_link.get(link, 0),
+                                 st["packets"], st["frames_tx"], st["schedule"], st["enabled"],
+                                 st["muted"]))
+        return out
+
     def poll(self, now: float) -> list[Transmission]:
         """Collect receivers' requests, then build a packet for every link that may send now."""
+        if self.stats_interval is not None and (
+                self._last_stats is None or now - self._last_stats >= self.stats_interval):
+            self._last_stats = now
+            self._events.extend(self.link_stats(now))
         for r in self._receivers:
             try:
                 reqs = r.receiver.poll(now)

@@ -199,6 +199,8 @@ def test_bad_frames_are_counted_never_raised() -> None:
     assert p.vehicle.stats["bad_frames"] == 5
     assert sum(isinstance(e, BadFrame) for e in p.vehicle.events()) == 5
     assert p.vehicle.receive(0, good, 2.0) != []
+    (stats,) = p.vehicle.link_stats(2.0)
+    assert (stats.link, stats.frames_rx, stats.bad_frames) == (0, 1, 5)
     assert p.vmgr.stream(5).config.priority == 99
     # a frame for another node is ignored
     other = wire.pack([QueueConfig(2, 5, False, None, 1, None, None, None)], 256,

@@ -15,6 +15,7 @@ __all__ = [
     "Dropped",
     "Event",
     "LinkChanged",
+    "LinkStats",
     "ProductUpdated",
     "Received",
     "Rejected",
@@ -128,3 +129,18 @@ class Rejected(Event):
 
     message: Message
     reason: str
+
+
+@dataclass(frozen=True)
+class LinkStats(Event):
+    """Per-link counters of a node since it started (emitted every ``Node.stats_interval``)."""
+
+    link: int
+    frames_rx: int
+    bad_frames: int
+    packets_tx: int
+    frames_tx: int
+    schedule: int
+    enabled: bool
+    muted: bool
+

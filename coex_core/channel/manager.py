@@ -183,6 +183,7 @@ class _Link:
     #: (link, seq) records of this link's transmissions: entry ids per frame seq.
     sent: dict[int, list[tuple[int, int]]] = field(default_factory=dict)
     packets: int = 0
+    frames_tx: int = 0
     frames_rx: int = 0
 
     @property
@@ -334,7 +335,8 @@ class ChannelManager:
         return {"link": link, "enabled": st.enabled, "muted": st.muted,
                 "schedule": st.current.version,
                 "pending": None if st.pending is None else st.pending.schedule.version,
-                "packets": st.packets, "frames_rx": st.frames_rx, "last_heard": st.last_heard}
+                "packets": st.packets, "frames_tx": st.frames_tx, "frames_rx": st.frames_rx,
+                "last_heard": st.last_heard}
 
     def schedule(self, link: int) -> Schedule:
         """The schedule link ``link`` runs now."""
@@ -563,6 +565,7 @@ class ChannelManager:
         duration = cfg.airtime(len(frames))
         st.busy_until = now + duration
         st.packets += 1
+        st.frames_tx += len(frames)
         capacity = cfg.n_frames * cfg.fbytes
         self.stats["packets"] += 1
         self.stats["frames"] += len(frames)
