@@ -483,3 +483,23 @@ def test_hub_is_safe_from_threads(subgrids: list[m.Subgrid]) -> None:
     assert not errors
     assert sum(lv["subgrids"] for lv in hub.snapshot()["map"]["levels"]) == len(
         {(s.level, s.ix, s.iy) for s in subgrids[:200]})
+
+
+def test_serve_a_node_or_a_view_only_state() -> None:
+    sched = Schedule.simple([1, 2], 5.0, 0.5)
+    top = Node(ChannelManager(1, [LinkConfig(0, sched, dst=2)]))
+    rx = BathymetryReceiver()
+    top.add_receiver(BathymetryModality, rx)
+    with serve(top, "127.0.0.1", 0) as srv:
+        hub = srv.hub
+        assert hub.actions.map_receiver is rx  # attach() found the bathymetry receiver
+        code, ans = _post(srv.url + "api/action", {"action": "link_control",
+                                                   "args": {"link": 0, "enabled": False}})
+        assert code == 200 and ans["sent"][0]["type"] == "LinkControl"
+        # the command is queued on the node's acked control stream
+        assert any(isinstance(e.message, m.LinkControl) for e in top.manager.stream(2).entries)
+    st = ConsoleState()
+    with serve(st, "127.0.0.1", 0) as srv:
+        code, ans = _post(srv.url + "api/action", {"action": "link_control",
+                                                   "args": {"link": 0, "enabled": False}})
+        assert code == 400 and "view-only" in ans["error"]

@@ -16,7 +16,7 @@ See ``docs/console.md``.
 
 from __future__ import annotations
 
-from .node import NodeCommands, TapReceiver, tap_receiver
+from .node import NodeCommands, TapReceiver, attach, pump, tap_receiver
 from .server import ConsoleHub, ConsoleServer, serve
 from .state import SECTIONS, ConsoleActions, ConsoleState, elevation_rgb, png_bytes
 
@@ -28,8 +28,10 @@ __all__ = [
     "ConsoleState",
     "NodeCommands",
     "TapReceiver",
+    "attach",
     "elevation_rgb",
     "png_bytes",
+    "pump",
     "serve",
     "tap_receiver",
 ]

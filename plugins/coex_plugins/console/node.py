@@ -25,7 +25,7 @@ from coex_core.modality import ModalityReceiver, Product
 
 from .state import ConsoleState
 
-__all__ = ["NodeCommands", "TapReceiver", "pump", "tap_receiver"]
+__all__ = ["NodeCommands", "TapReceiver", "attach", "pump", "tap_receiver"]
 
 
 class NodeCommands:
@@ -109,6 +109,40 @@ def pump(state: ConsoleState, node: Any, now: float) -> int:
             state.set_schedule(link, sch)
             state.schedules[link]["_key"] = key
             state.schedules[link]["proposed"] = proposed
+    # regions a bathymetry receiver sends for us: show when they go out (ids, retries)
+    sig = tuple((k, r.region.request_id, r.region.sends, r.region.done)
+                for k, r in state.roi.items() if r.region is not None)
+    if sig != state._region_sig:
+        state._region_sig = sig
+        state._touch("map", "commands")
     if now > state.now:
         state.now = float(now)
     return len(events)
+
+
+def attach(node: Any, clock: Callable[[], float] | None = None, *,
+           map_receiver: Any = None, stream_names: dict[int, str] | None = None) -> Any:
+    """A :class:`~coex_plugins.console.server.ConsoleHub` for a topside ``node``.
+
+    Commands go through :class:`NodeCommands`; ``clock`` defaults to the console's own
+    ``now`` (moved by :meth:`ConsoleHub.pump`). Receivers already added to the node are wrapped
+    with :func:`tap_receiver` (so the map sees subgrid stamps) and a bathymetry receiver becomes
+    the map-region path unless ``map_receiver`` is given. The loop driving the node must hold
+    ``hub.lock`` while it steps the node and call ``hub.pump(node, now)`` after each step."""
+    from .server import ConsoleHub
+
+    mgr = node.manager
+    names = {q.id: q.config.name for q in mgr.streams}
+    names.update(stream_names or {})
+    state = ConsoleState(node_id=node.node_id, stream_names=names,
+                         schedules={link: mgr.schedule(link) for link in mgr.links})
+    hub = ConsoleHub(state, NodeCommands(node, clock or (lambda: state.now)),
+                     clock or (lambda: state.now), map_receiver=map_receiver)
+    for slot in getattr(node, "_receivers", ()):
+        inner = slot.receiver
+        if isinstance(inner, TapReceiver):
+            inner = inner.inner
+        slot.receiver = tap_receiver(inner, hub)
+        if map_receiver is None and hasattr(inner, "request_area"):
+            hub.actions.map_receiver = inner
+    return hub

@@ -28,7 +28,7 @@ from typing import Any
 from urllib.parse import urlsplit
 
 from coex_core import jsonfmt
-from coex_core.errors import CoexError
+from coex_core.errors import CoexError, RequestRejected
 from coex_core.messages import Message
 
 from .state import SECTIONS, ConsoleActions, ConsoleState
@@ -307,9 +307,26 @@ class ConsoleServer(ThreadingHTTPServer):
         self.close()
 
 
-def serve(target: Any, host: str = "127.0.0.1", port: int = 8080) -> ConsoleServer:
-    """Serve the console for ``target`` (a :class:`ConsoleHub`) in a background thread and
-    return the running server (``server.url``, ``server.close()``). Port 0 picks a free port."""
-    if not isinstance(target, ConsoleHub):
-        raise TypeError(f"serve() needs a ConsoleHub, got {type(target).__name__}")
-    return ConsoleServer(target, host, port).start()
+def serve(target: Any, host: str = "127.0.0.1", port: int = 8080, *,
+          clock: Callable[[], float] | None = None) -> ConsoleServer:
+    """Serve the console in a background thread and return the running server (``server.url``,
+    ``server.hub``, ``server.close()``). Port 0 picks a free port.
+
+    ``target`` is a :class:`ConsoleHub`, a topside :class:`~coex_core.node.Node` (a hub is made
+    with :func:`~coex_plugins.console.node.attach`; the loop driving the node must then hold
+    ``server.hub.lock`` while stepping it and call ``server.hub.pump(node, now)``), or a
+    :class:`ConsoleState` (view only: actions are refused)."""
+    if isinstance(target, ConsoleHub):
+        hub = target
+    elif isinstance(target, ConsoleState):
+        def refuse(msg: Message) -> None:
+            raise RequestRejected("this console is view-only (no topside node to send with)")
+        hub = ConsoleHub(target, refuse, clock or (lambda: target.now))
+    elif hasattr(target, "manager") and hasattr(target, "events"):
+        from .node import attach
+
+        hub = attach(target, clock)
+    else:
+        raise TypeError(f"serve() needs a ConsoleHub, Node or ConsoleState, "
+                        f"got {type(target).__name__}")
+    return ConsoleServer(hub, host, port).start()

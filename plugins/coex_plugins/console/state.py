@@ -243,6 +243,7 @@ class ConsoleState:
         self._targets_cache: tuple[Any, list[dict[str, Any]]] = (None, [])
         self.roi: dict[int, _RoiRequest] = {}
         self._region_count = 0
+        self._region_sig: tuple[Any, ...] = ()
         self._zrange: tuple[float, float] | None = None
         # images
         self.images: dict[int, _Image] = {}
@@ -421,6 +422,7 @@ class ConsoleState:
                 req.status = "received" if req.received >= expected else "partial"
                 if req.status == "received":
                     req.done_at = now
+                self._touch("commands")
         self._touch("map")
 
     def _on_roi_reply(self, r: m.MapRoiReply, now: float) -> None:
@@ -436,7 +438,7 @@ class ConsoleState:
             req.status, req.done_at = "received", now
         elif req.status == "requested":
             req.status = "queued"
-        self._touch("map")
+        self._touch("map", "commands")
         self._log(now, f"map request {r.request_id}: {r.queued} subgrids queued")
 
     def held_stamps(self, level: int, x0: int, y0: int, w: int, h: int) -> list[int | None]:

@@ -549,18 +549,18 @@ function drawTdma() {
     if (!sch) continue;
     const rect = cv.getBoundingClientRect();
     if (rect.width > 50 && cv.width !== Math.round(rect.width)) cv.width = Math.round(rect.width);
-    const c = cv.getContext("2d"), W = cv.width;
+    const c = cv.getContext("2d"), W = cv.width, LW = 96;
     c.fillStyle = "#0a1016"; c.fillRect(0, 0, W, cv.height);
     const row = (slots, y, h, label) => {
       const total = slots.reduce((a, s) => a + s.duration, 0) || 1;
-      let x = 60;
+      let x = LW;
       c.fillStyle = "#8aa0b2"; c.font = "10px system-ui"; c.fillText(label, 2, y + h - 4);
       slots.forEach((s, i) => {
-        const w = ((W - 62) * s.duration) / total;
+        const w = ((W - LW - 2) * s.duration) / total;
         const col = s.owner === L.node_id ? "#4fb3ff" : s.owner === L.vehicle_id ? "#f28f3b" : "#889";
         c.fillStyle = col; c.globalAlpha = 0.75; c.fillRect(x + 1, y, w - 2, h);
         c.globalAlpha = 1; c.fillStyle = "rgba(0,0,0,0.45)";
-        const gw = ((W - 62) * s.guard) / total; c.fillRect(x + w - 1 - gw, y, gw, h);
+        const gw = ((W - LW - 2) * s.guard) / total; c.fillRect(x + w - 1 - gw, y, gw, h);
         c.fillStyle = "#05090d"; c.fillText(`${i}:${s.owner === L.node_id ? "top" : "veh"}`, x + 4, y + h - 5);
         x += w;
       });
@@ -570,10 +570,10 @@ function drawTdma() {
     if (sch.cycle > 0) {
       const since = S.now - sch.epoch;
       const pos = ((since % sch.cycle) + sch.cycle) % sch.cycle;
-      const x = 60 + ((W - 62) * pos) / total;
+      const x = LW + ((W - LW - 2) * pos) / total;
       c.strokeStyle = "#fff"; c.lineWidth = 2; c.beginPath(); c.moveTo(x, 0); c.lineTo(x, 26); c.stroke();
       c.fillStyle = "#dce6ee";
-      c.fillText(`cycle ${sch.first_cycle + Math.floor(since / sch.cycle)}`, 2, 10);
+      c.fillText(`cycle ${(sch.first_cycle + Math.floor(since / sch.cycle)) % 65536}`, 2, 11);
     }
     if (sch.proposed) {
       row(sch.proposed.slots, 28, 16, `v${sch.proposed.version} ${sch.proposed.status}`);
@@ -670,7 +670,12 @@ function apply(data, full) {
 }
 
 // ------------------------------------------------------------------ live connection
-window.coex = { S, view, updates: 0, connected: false };
+// for tests and the curious: state, view, and world -> page coordinates of the map
+window.coex = { S, view, updates: 0, connected: false,
+  pagePoint(x, y) {
+    const r = canvas.getBoundingClientRect(), [sx, sy] = w2s(x, y);
+    return [r.left + (sx * r.width) / canvas.width, r.top + (sy * r.height) / canvas.height];
+  } };
 function connect() {
   const es = new EventSource("/api/events");
   es.addEventListener("snapshot", (ev) => { apply(JSON.parse(ev.data), true); });

@@ -1,0 +1,178 @@
+"""The console in a real headless browser (Debian chromium driven by Playwright).
+
+``coex topside`` (built with :func:`build_topside`) runs over a ``loopback://`` transport; the
+other end is a vehicle node with the real bathymetry sender in a thread. The test loads the page
+in two browsers, sees the map fill in as subgrids arrive, draws a region, requests it at the
+finest level, and checks that the vehicle's sender received that ``MapRoiRequest``.
+Needs ``/usr/bin/chromium`` (``scripts/system-deps.sh``) and the ``playwright`` package
+(dev extra); never ``playwright install``.
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+import threading
+import time
+import uuid
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import pytest
+from coex_plugins.bathymetry import BathymetryModality, BathymetrySender
+from coex_plugins.console.cli import TopsideApp, build_topside
+from coex_plugins.console.testing import RecordingSender, survey_points
+from coex_transports._runner import RealClock, Runner
+
+from coex_core import messages as m
+from coex_core.channel.manager import ChannelManager, LinkConfig
+from coex_core.channel.queue import StreamConfig
+from coex_core.channel.schedule import Schedule
+from coex_core.node import Node
+from coex_core.registry import open_transport
+from coex_core.timefmt import to_stamp
+
+CHROMIUM = os.environ.get("COEX_CHROMIUM", "/usr/bin/chromium")
+ARGS = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
+        "--disable-background-networking", "--disable-component-update", "--disable-sync"]
+#: Topside slot then vehicle slot, 4 s each: one rate-5 packet (3 s) per slot.
+SCHEDULE = Schedule.simple([1, 2], 4.0, 0.5)
+
+
+class Vehicle:
+    """A vehicle node on the other loopback end, with the bathymetry sender and a status."""
+
+    def __init__(self, uri: str) -> None:
+        self.transport = open_transport(uri)
+        manager = ChannelManager(2, [LinkConfig(0, SCHEDULE, rate=5, dst=1)],
+                                 queue_status_interval=8.0)
+        self.node = Node(manager)
+        self.sender = RecordingSender(BathymetrySender({"send_delay": 0.0, "levels": 4}))
+        self.sender.ingest(survey_points(), time.time())
+        self.node.add_sender(BathymetryModality, self.sender, StreamConfig(3, "map", priority=30))
+        self.runner = Runner(self.node, {0: self.transport}, RealClock())
+        self.stop = threading.Event()
+        self.thread = threading.Thread(target=self._loop, daemon=True)
+
+    def _loop(self) -> None:
+        k = 0
+        while not self.stop.is_set():
+            now = time.time()
+            if k % 20 == 0:
+                self.node.push_status(m.VehicleStatus(
+                    to_stamp(now), 10.0 + k * 0.05, 30.0, 45.0, 20.0, 90.0, 1.5, 77,
+                    m.VehicleMode.SURVEY, 0), now)
+            self.runner.step()
+            k += 1
+            self.stop.wait(0.05)
+
+    def requests(self) -> list[m.MapRoiRequest]:
+        return [x for x in list(self.sender.handled) if isinstance(x, m.MapRoiRequest)]
+
+
+@pytest.fixture
+def topside() -> Iterator[tuple[TopsideApp, Vehicle]]:
+    uri = f"loopback://console-{uuid.uuid4().hex[:8]}?rate=100000"
+    app = build_topside(uri, "127.0.0.1", 0, schedule=SCHEDULE,
+                        modalities=("bathymetry", "imagery", "timeseries"))
+    vehicle = Vehicle(uri)
+    app.start()
+    vehicle.thread.start()
+    try:
+        yield app, vehicle
+    finally:
+        vehicle.stop.set()
+        vehicle.thread.join(timeout=5)
+        app.close()
+
+
+@pytest.fixture(scope="module")
+def browser() -> Iterator[Any]:
+    sync_api = pytest.importorskip("playwright.sync_api", reason="pip install playwright (dev extra)")
+    assert shutil.which(CHROMIUM) or Path(CHROMIUM).exists(), (
+        f"{CHROMIUM} missing: install Debian chromium (scripts/system-deps.sh)")
+    with sync_api.sync_playwright() as p:
+        b = p.chromium.launch(executable_path=CHROMIUM, args=ARGS)
+        try:
+            yield b
+        finally:
+            b.close()
+
+
+def _painted(page: Any) -> int:
+    """Map canvas pixels that are neither background nor grid."""
+    return int(page.evaluate("""() => {
+        const c = document.querySelector('#map-canvas');
+        const d = c.getContext('2d').getImageData(0, 0, c.width, c.height).data;
+        let n = 0;
+        for (let i = 0; i < d.length; i += 4) if (d[i] + d[i+1] + d[i+2] > 120) n++;
+        return n; }"""))
+
+
+def test_console_map_updates_and_region_request_reaches_vehicle(
+        topside: tuple[TopsideApp, Vehicle], browser: Any, tmp_path: Path) -> None:
+    app, vehicle = topside
+    errors: list[str] = []
+    pages = []
+    for _ in range(2):  # two operators on the same console
+        page = browser.new_page(viewport={"width": 1400, "height": 1000})
+        page.on("pageerror", lambda e: errors.append(str(e)))
+        page.goto(app.url)
+        pages.append(page)
+    page, other = pages
+    page.wait_for_function("window.coex && window.coex.connected", timeout=10_000)
+    empty = _painted(page)
+
+    # the map updates as the vehicle's subgrids arrive (first vehicle slot within 8 s)
+    page.wait_for_selector("#levels-table tbody tr", timeout=20_000)
+    page.wait_for_function(
+        "document.querySelectorAll('#levels-table tbody tr').length >= 3", timeout=20_000)
+    page.wait_for_timeout(500)  # let the level pictures load
+    assert _painted(page) > empty + 5000
+    with app.hub.lock:
+        held = {lv: len(v.tiles) for lv, v in app.hub.state.levels.items()}
+    shown = {int(r.get_attribute("data-level")): int(r.query_selector(".n-subgrids").inner_text())
+             for r in page.query_selector_all("#levels-table tbody tr")}
+    assert shown and all(shown[lv] <= held[lv] for lv in shown)
+    other.wait_for_selector("#levels-table tbody tr", timeout=10_000)
+
+    # draw a region (28..44 m east, 34..46 m north) and request it at level 0
+    page.click("#draw-btn")
+    a = page.evaluate("window.coex.pagePoint(28, 46)")
+    b = page.evaluate("window.coex.pagePoint(44, 34)")
+    page.mouse.move(a[0], a[1])
+    page.mouse.down()
+    page.mouse.move((a[0] + b[0]) / 2, (a[1] + b[1]) / 2)
+    page.mouse.move(b[0], b[1])
+    page.mouse.up()
+    page.wait_for_selector("#roi-bar:not(.hidden)")
+    page.select_option("#roi-level", "0")
+    page.click("#roi-send")
+
+    # both operators see the request; the vehicle's bathymetry sender gets it over the link
+    for p in (page, other):
+        p.wait_for_function(
+            "[...document.querySelectorAll('#commands li')].some(li => li.textContent.includes('map level 0'))",
+            timeout=10_000)
+    deadline = time.monotonic() + 25
+    while not vehicle.requests() and time.monotonic() < deadline:
+        time.sleep(0.2)
+    got = vehicle.requests()
+    assert got, f"no MapRoiRequest reached the vehicle (topside errors: {app.errors})"
+    cells = {(r.x0 + i, r.y0 + j) for r in got for i in range(r.w) for j in range(r.h)}
+    assert all(r.level == 0 for r in got)
+    assert cells == {(ix, iy) for ix in range(3, 6) for iy in range(4, 6)}  # 8 m subgrids
+
+    # the requested region is drawn on the map with its status, then answered
+    page.wait_for_function(
+        "window.coex.S.map.requests.some(r => r.level === 0 && r.status !== 'waiting')",
+        timeout=15_000)
+    shot = tmp_path / "console.png"
+    page.screenshot(path=str(shot), full_page=True)
+    assert shot.stat().st_size > 20_000
+    if os.environ.get("COEX_CONSOLE_SHOT"):
+        shutil.copy(shot, os.environ["COEX_CONSOLE_SHOT"])
+    assert not errors, errors
+    for p in pages:
+        p.close()
