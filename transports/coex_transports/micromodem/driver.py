@@ -679,13 +679,13 @@ class MicromodemDriver:
         if rev.ident.upper() == "INIT":
             self._s.reboots += 1
             self.events.append(Rebooted(now))
-            if self._tx is not None:
-                self._fail_tx(now, "modem rebooted")
             self._rx = None
             self._ready = False
             self._current_cmd = None
             self._commands.clear()
             self._resume_at = now + self.config.reboot_pause
+            if self._tx is not None:
+                self._fail_tx(now, "modem rebooted")
         elif rev.version:
             self._s.firmware_version = rev.version
 
