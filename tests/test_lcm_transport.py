@@ -360,3 +360,43 @@ def test_rx_is_an_exact_channel_name_not_a_regex() -> None:
         a.close()
         b.close()
         c.close()
+
+
+def test_decoded_option_publishes_vehicle_status_and_map_levels() -> None:
+    import dataclasses
+
+    from coex_conformance import load_vectors
+    from coex_transports.lcm import map_level_t, vehicle_status_t
+    from coex_transports.lcm.products import vehicle_status_from_lcm
+
+    from coex_core import jsonfmt
+
+    assert parse_lcm_uri("lcm:memq://?decoded=1").decoded
+    with pytest.raises(ConfigError):
+        parse_lcm_uri("lcm:memq://?decoded=maybe")
+    fields = next(v for v in load_vectors("messages") if v["type"] == "Subgrid")["fields"]
+    sub = jsonfmt.from_json({"type": "Subgrid", **fields})
+    status = VehicleStatus(stamp=9, x=1.0, y=2.0, depth=30.0, altitude=None, heading=10.0,
+                           speed=0.5, battery=90, mode=VehicleMode.SURVEY, faults=0)
+    cfg = LcmConfig(url="memq://", tx=unique_channel(), rx=unique_channel(), decoded=True)
+    a, b = LcmTransport.pair(cfg)
+    seen: dict[str, list[bytes]] = {"COEX_VEHICLE_STATUS": [], "COEX_MAP_LEVEL": []}
+    raw = b._inst.lcm
+    for channel, box in seen.items():
+        raw.subscribe(channel, lambda _c, data, box=box: box.append(data))
+    try:
+        frame = wire.pack([status, dataclasses.replace(sub, level=2, ix=3, iy=4)], 256, FrameHeader(src=2))
+        a.send(frame)
+        a.send(encode_frame(b"not a coex frame"))  # a valid frame_t whose CoEx frame is bad
+        assert b.recv(timeout=1.0) == frame
+        assert b.recv(timeout=1.0) == encode_frame(b"not a coex frame")  # still delivered
+        for _ in range(4):
+            raw.handle_timeout(50)
+        assert [vehicle_status_from_lcm(vehicle_status_t.decode(d)) for d in seen["COEX_VEHICLE_STATUS"]] == [status]
+        (level,) = [map_level_t.decode(d) for d in seen["COEX_MAP_LEVEL"]]
+        assert (level.level, level.subgrids) == (2, 1)
+        assert b.stats()["decoded"] == 2 and b.stats()["undecodable"] == 1
+        assert "decoded" not in a.stats() or a.stats()["decoded"] == 0
+    finally:
+        a.close()
+        b.close()

@@ -12,6 +12,8 @@ URL reaches LCM):
              URL and share name (``memq://`` ends always share one, since memq is private to an
              instance)
 ``queue``    frames buffered per end before the oldest is dropped and counted (default 4096)
+``decoded``  ``1`` to also publish ``coex.vehicle_status_t`` (channel ``COEX_VEHICLE_STATUS``) and
+             ``coex.map_level_t`` (``COEX_MAP_LEVEL``) for every received frame, for LCM tools
 
 Every other option (``ttl``, ``recv_buf_size``, ``speed``, ``mode`` ...) goes to LCM unchanged.
 An empty provider (``lcm:``) means ``udpm://239.255.76.67:7667?ttl=0``; ``LCM_DEFAULT_URL`` is
@@ -49,7 +51,9 @@ log = logging.getLogger(__name__)
 
 DEFAULT_URL = "udpm://239.255.76.67:7667?ttl=0"
 _MAX_CHANNEL = 63  # LCM_MAX_CHANNEL_NAME_LENGTH
-_OPTIONS: dict[str, type] = {"channel": str, "tx": str, "rx": str, "mtu": int, "share": str, "queue": int}
+_OPTIONS: dict[str, type] = {
+    "channel": str, "tx": str, "rx": str, "mtu": int, "share": str, "queue": int, "decoded": bool,
+}
 
 
 @dataclass(frozen=True)
@@ -68,6 +72,9 @@ class LcmConfig:
     share: str | None = None
     #: frames buffered before the oldest is dropped (and counted)
     queue: int = 4096
+    #: also publish decoded products of received frames: ``coex.vehicle_status_t`` on
+    #: ``COEX_VEHICLE_STATUS`` and ``coex.map_level_t`` on ``COEX_MAP_LEVEL`` (for LCM tools)
+    decoded: bool = False
 
     def __post_init__(self) -> None:
         for name in ("tx", "rx"):
@@ -108,7 +115,12 @@ def parse_lcm_uri(uri: str) -> LcmConfig:
     for key, value in parse_qsl(parts.query, keep_blank_values=True):
         if key in _OPTIONS:
             try:
-                ours[key] = _OPTIONS[key](value)
+                if _OPTIONS[key] is bool:
+                    if value.lower() not in ("1", "0", "true", "false", "yes", "no"):
+                        raise ValueError(value)
+                    ours[key] = value.lower() in ("1", "true", "yes")
+                else:
+                    ours[key] = _OPTIONS[key](value)
             except ValueError:
                 raise ConfigError(f"option {key}={value!r} is not a valid {_OPTIONS[key].__name__}") from None
         else:
@@ -123,6 +135,7 @@ def parse_lcm_uri(uri: str) -> LcmConfig:
         mtu=ours.pop("mtu", 65536),
         share=ours.pop("share", None),
         queue=ours.pop("queue", 4096),
+        decoded=ours.pop("decoded", False),
     )
 
 
@@ -151,6 +164,9 @@ class LcmTransport(Transport):
         self.origin = secrets.randbits(63)
         self._queue: deque[bytes] = deque()
         self._counts = {"sent": 0, "received": 0, "own": 0, "bad": 0, "dropped": 0}
+        if self.config.decoded:
+            self._counts.update(decoded=0, undecodable=0)
+        self._maps: Any = None  # MapLevelSummary of the decoded channels, created on first use
         self._inst = self._acquire(instance)
         try:
             # LCM subscribes by regular expression: escape it, rx is one exact channel name
@@ -221,6 +237,44 @@ class LcmTransport(Transport):
             log.warning("LCM end on %s: receive queue full, dropped the oldest frame", channel)
         self._queue.append(frame.data)
         self._counts["received"] += 1
+        if self.config.decoded:
+            self._publish_decoded(frame.data)
+
+    def _publish_decoded(self, data: bytes) -> None:
+        """Publish the decoded types of one received frame (never disturbs frame delivery)."""
+        from coex_core.messages import Subgrid, VehicleStatus
+        from coex_core.wire import unpack
+
+        from .products import (
+            MAP_LEVEL_CHANNEL,
+            VEHICLE_STATUS_CHANNEL,
+            MapLevelSummary,
+            vehicle_status_to_lcm,
+        )
+
+        try:
+            messages = unpack(data)
+        except DecodeError as exc:
+            self._counts["undecodable"] += 1
+            log.debug("frame not decodable for the decoded channels: %s", exc)
+            return
+        utime = time.time_ns() // 1000
+        levels: set[int] = set()
+        try:
+            for message in messages:
+                if isinstance(message, VehicleStatus):
+                    self._inst.lcm.publish(VEHICLE_STATUS_CHANNEL, vehicle_status_to_lcm(message, utime).encode())
+                    self._counts["decoded"] += 1
+                elif isinstance(message, Subgrid):
+                    if self._maps is None:
+                        self._maps = MapLevelSummary()
+                    levels.add(self._maps.add(message))
+            for level in sorted(levels):
+                assert self._maps is not None
+                self._inst.lcm.publish(MAP_LEVEL_CHANNEL, self._maps.summary(level, utime).encode())
+                self._counts["decoded"] += 1
+        except Exception as exc:  # a decoded side channel must never cost a frame
+            log.warning("publishing decoded products failed: %s", exc)
 
     def _send_internal(self, frame: bytes) -> None:
         data = encode_frame(frame, utime=time.time_ns() // 1000, origin=self.origin)
