@@ -14,7 +14,9 @@ Routing of a received message: frame acks and command acks go to the manager; ch
 commands (QueueConfig, ScheduleUpdate, LinkControl) are applied and answered with a
 CommandAck; a type in some ``Modality.requests`` goes to that modality's sender (requests with a
 ``command_id`` get a CommandAck: ACCEPTED, or REJECTED when the sender raises
-``RequestRejected``); a type in some ``Modality.messages`` goes to that modality's receiver; the
+``RequestRejected``) and, unless it is a routine ack (a type named ``...Ack``), expedites the
+modality's stream so the answer leaves in the next transmission; a type in some
+``Modality.messages`` goes to that modality's receiver; the
 rest (vehicle, queue and link status ...) is reported as a :class:`Received` event.
 """
 
@@ -194,6 +196,14 @@ class Node:
             self._recent[int(cid)] = (m, status, now)
 
     @staticmethod
+    def _routine(m: Message, cls: type[Modality]) -> bool:
+        """Routine traffic (acks: ``ImageAck``, ``TimeSeriesAck`` ..., or an Opaque id in the
+        modality's ``opaque_routine``) does not expedite the modality's stream."""
+        if isinstance(m, Opaque):
+            return m.type_id in _opaque_ids(cls, "opaque_routine")
+        return type(m).__name__.endswith("Ack")
+
+    @staticmethod
     def _opaque_for(m: Message, cls: type[Modality], attr: str) -> bool:
         return isinstance(m, Opaque) and m.type_id in _opaque_ids(cls, attr)
 
@@ -218,7 +228,9 @@ class Node:
         if cid is not None:
             self._remember(m, AckStatus.ACCEPTED, now)
             self.manager.push(CONTROL_STREAM, CommandAck(int(cid), AckStatus.ACCEPTED), now)
-        self.manager.expedite(s.stream)  # the answer goes in the next transmission
+        if not self._routine(m, s.modality):
+            # an operator request (not a routine ack): its answer goes in the next transmission
+            self.manager.expedite(s.stream)
         for r in replies or ():
             try:
                 self.manager.push(s.stream, r, now)
