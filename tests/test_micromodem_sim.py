@@ -1,0 +1,249 @@
+"""The Micromodem simulator: in process on a simulated clock through the real driver, and on
+pseudo-terminals / TCP for external hosts (``coex modem-sim``, ``coex send``/``coex listen``)."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+import time
+from collections.abc import Iterator
+from typing import Any
+
+import pytest
+from coex_transports.micromodem import MicromodemTransport, nmea
+from coex_transports.micromodem.driver import Acked, PingResult, Rebooted, TxDone
+from coex_transports.micromodem.simulator import ModemNetwork, PtySimulator
+
+from coex_core.acoustic import AcousticChannel
+from coex_core.messages import LinkStatus
+from coex_core.registry import open_transport
+
+COEX = [os.path.join(os.path.dirname(sys.executable), "coex")]
+
+
+def pair(**channel: Any) -> tuple[ModemNetwork, MicromodemTransport, MicromodemTransport]:
+    net = ModemNetwork({1: (0.0, 0.0, 0.0), 2: (1500.0, 0.0, 0.0)}, channel=AcousticChannel(**channel))
+    return net, net.transport(1, dest=2), net.transport(2, dest=1)
+
+
+def modem_lines(net: ModemNetwork, node: int) -> list[str]:
+    return [x.decode() for x in net.modems[node].host_lines]
+
+
+def test_frames_arrive_one_airtime_plus_travel_time_later() -> None:
+    net, a, b = pair(seed=1)
+    assert a.wait_ready(5) and b.wait_ready(5)
+    t0 = net.now
+    frames = [bytes([i]) * 200 for i in range(3)]
+    for f in frames:
+        a.send(f)
+    got = [b.recv(timeout=10) for _ in frames]
+    assert got == frames
+    from coex_core.acoustic import RATES
+
+    expected = RATES[5].packet_airtime(3) + 1.0  # one packet of 3 frames, 1500 m at 1500 m/s
+    assert net.now - t0 == pytest.approx(expected, abs=1e-3)
+    events = a.events()
+    assert [type(e) for e in events if isinstance(e, TxDone)] == [TxDone]
+    status = b.link_status()
+    assert isinstance(status, LinkStatus) and (status.frames, status.bad_frames) == (3, 0)
+
+
+def test_lossy_channel_good_frames_of_damaged_packets_still_arrive() -> None:
+    net, a, b = pair(seed=5, loss=0.3, bit_error_rate=2e-4)
+    sent = [bytes([i % 256, i // 256]) * 100 for i in range(240)]
+    for f in sent:
+        a.send(f)
+    got = []
+    while True:
+        f = b.recv(timeout=60)
+        if f is None:
+            break
+        got.append(f)
+    st = b.stats()
+    assert st["bad_frames"] > 30  # losses and CRC failures were reported as bad frames ...
+    assert len(got) + st["bad_frames"] == len(sent)  # ... and every other frame was delivered
+    assert got == [f for f in sent if f in set(got)]  # unaltered, in order
+    lines = modem_lines(net, 2)
+    assert lines  # the host side of modem 2 is our driver
+    assert b.link_status() is not None
+
+
+def test_bad_crc_reported_as_a_real_modem_does() -> None:
+    net, a, b = pair(seed=2, loss=0.5)
+    outs: list[bytes] = []
+    net.modems[2].keep_host_lines = 0
+    orig = net.modems[2].data_to_send
+
+    def spy() -> bytes:
+        out = orig()
+        outs.append(out)
+        return out
+
+    net.modems[2].data_to_send = spy  # type: ignore[method-assign]
+    for i in range(8):
+        a.send(bytes([i]) * 100)
+    while b.recv(timeout=30) is not None:
+        pass
+    text = b"".join(outs).decode()
+    seq = [line.split(",")[0].split("*")[0] for line in text.split("\r\n") if line.startswith(("$CARX", "$CACYC", "$CAMSG", "$CACST"))]
+    assert "$CAMSG" in seq
+    cyc = seq.index("$CACYC")
+    assert seq[cyc - 1] == "$CARXP" and seq[cyc + 9] == "$CACST"
+    cst = [nmea.parse_cacst(nmea.parse(x)) for x in text.split("\r\n") if x.startswith("$CACST")]
+    data_cst = [c for c in cst if c.frames == 8]
+    assert data_cst and data_cst[0].mode == 1 and data_cst[0].psk_error == 3 and data_cst[0].bad_frames > 0
+    assert data_cst[0].version == 6
+
+
+def test_fdp_mode_round_trip() -> None:
+    net = ModemNetwork({1: (0.0, 0.0, 0.0), 2: (300.0, 0.0, 0.0)})
+    a = net.transport(1, dest=2, rate=1, mode="fdp")
+    b = net.transport(2, dest=1, rate=1, mode="fdp")
+    a.send(b"first")
+    a.send(bytes(64))
+    a.send(b"third")
+    got = [b.recv(timeout=20) for _ in range(3)]
+    assert got[0] == b"first".ljust(64, b"\x00")  # padded to the frame grid (CoEx frames are self-delimiting)
+    assert got[1] == bytes(64) and got[2] == b"third"
+    assert any(x.startswith("$CCTDP,2,1,0,0,") for x in modem_lines(net, 1))
+
+
+def test_rate0_two_cycle_stats_and_acks() -> None:
+    net = ModemNetwork({1: (0.0, 0.0, 0.0), 2: (750.0, 0.0, 0.0)})
+    a = net.transport(1, dest=2, rate=0, ack=True)
+    b = net.transport(2, dest=1, rate=0)
+    a.send(bytes(range(32)))
+    assert b.recv(timeout=30) == bytes(range(32))
+    net.run_for(20)
+    acked = [e for e in a.events() if isinstance(e, Acked)]
+    assert acked == [Acked(2, 1, acked[0].time)]
+    csts = [e for e in b.events() if isinstance(e, LinkStatus)]
+    assert len(csts) == 2  # the FSK cycle-init mini-packet and the data packet
+
+
+def test_ping_reports_one_way_travel_time() -> None:
+    net, a, _ = pair()
+    a.wait_ready(5)
+    a.ping(2)
+    net.run_for(20)
+    pings = [e for e in a.events() if isinstance(e, PingResult)]
+    assert len(pings) == 1 and pings[0].owtt == pytest.approx(1.0, abs=1e-4)
+    assert a.stats()["last_owtt"] == pytest.approx(1.0, abs=1e-4)
+
+
+def test_modem_reboot_mid_transfer_loses_nothing() -> None:
+    net, a, b = pair()
+    a.wait_ready(5)
+    for i in range(6):
+        a.send(bytes([i]) * 50)
+    net.run_for(0.05)
+    net.modems[1].reboot(net.now)
+    got = [b.recv(timeout=60) for _ in range(6)]
+    assert got == [bytes([i]) * 50 for i in range(6)]
+    assert any(isinstance(e, Rebooted) for e in a.events())
+    assert a.stats()["reboots"] == 1 and a.stats()["tx_retries"] >= 1
+
+
+def test_host_that_misses_the_data_request_gets_data_timeout() -> None:
+    net = ModemNetwork()
+    m = net.modems[1]
+    m.feed(nmea.format_sentence("CCCFG", ["XST", 1]) + nmea.format_sentence("CCCYC", [0, 1, 2, 1, 0, 2]), net.now)
+    out = m.data_to_send().decode()
+    assert "$CACYC,0,1,2,1,0,2*" in out and "$CADRQ," in out
+    net.run_for(10)
+    out = m.data_to_send().decode().split("\r\n")
+    assert out[0].startswith("$CAERR,") and ",DATA_TIMEOUT,1," in out[0]
+    xst = nmea.parse_caxst(nmea.parse(next(x for x in out if x.startswith("$CAXST"))))
+    assert xst.mode == 4 and xst.frames_sent == 0
+    assert any(x.startswith("$CATXF") for x in out)
+
+
+def test_simulated_modem_answers_config_queries_and_rejects_nonsense() -> None:
+    net = ModemNetwork()
+    m = net.modems[2]
+    m.feed(b"$CCCFQ,SRC\r\n$CCCFQ,TOP\r\n$CCXYZ,1\r\n$CCCFG,SRC,1*30\r\ngarbage\r\n$CCTMQ,0\r\n", net.now)
+    out = m.data_to_send().decode().split("\r\n")
+    assert out[0].startswith("$CACFG,SRC,2*")
+    assert sum(1 for x in out if x.startswith("$CACFG")) > 10
+    # unknown command and bad checksum (a line without '$' is line noise, ignored)
+    assert sum(1 for x in out if x.startswith("$CAERR")) == 2
+    assert m.nvram["SRC"] == "2"  # the corrupted set was not applied
+    assert out[-2].startswith("$CATMQ,2025-01-01T00:00:00")
+
+
+def test_two_hour_dive_runs_fast_through_the_real_driver() -> None:
+    net, a, b = pair(seed=9, loss=0.1)
+    start = time.process_time()
+    t_end = net.now + 7200.0
+    sent = received = 0
+    while net.now < t_end:
+        for _ in range(8):
+            a.send(bytes([sent % 256]) * 240)
+            sent += 1
+        b.send(b"ack")
+        while b.recv(timeout=20.0) is not None:
+            received += 1
+        a.recv(timeout=0)
+    elapsed = time.process_time() - start
+    assert net.now >= t_end
+    assert received > 0.8 * sent > 1000
+    assert elapsed < 20.0, elapsed
+
+
+# ----------------------------------------------------------------------- pseudo-terminals
+
+
+@pytest.fixture
+def pty_sim() -> Iterator[PtySimulator]:
+    net = ModemNetwork({1: (0.0, 0.0, 0.0), 2: (1000.0, 0.0, 0.0)})
+    sim = PtySimulator(net, tcp_ports={2: 0}, speed=4.0)
+    sim.start()
+    yield sim
+    sim.stop()
+
+
+def test_driver_over_pty_and_tcp(pty_sim: PtySimulator) -> None:
+    host, port = pty_sim.tcp_addresses[2]
+    a = open_transport(f"micromodem://{pty_sim.paths[1]}?src=1&dest=2&rate=5")
+    b = open_transport(f"micromodem:socket://{host}:{port}?src=2&dest=1&rate=5")
+    try:
+        assert a.wait_ready(10) and b.wait_ready(10)
+        a.send(b"over a pty")
+        a.send(bytes(256))
+        assert b.recv(timeout=10) == b"over a pty"
+        assert b.recv(timeout=10) == bytes(256)
+        b.send(b"and back over tcp")
+        assert a.recv(timeout=10) == b"and back over tcp"
+        assert a.stats()["firmware_version"] is None or a.stats()["firmware_version"]
+    finally:
+        a.close()
+        b.close()
+
+
+def test_coex_send_and_listen_over_simulated_modems(pty_sim: PtySimulator) -> None:
+    listen = subprocess.Popen(
+        [*COEX, "listen", "--transport", f"micromodem://{pty_sim.paths[2]}?src=2&dest=1", "--count", "2",
+         "--timeout", "40"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        sent = subprocess.run(
+            [*COEX, "send", "--transport", f"micromodem://{pty_sim.paths[1]}?src=1&dest=2", "--hex", "c0ffee",
+             "--hex", "00" * 3 + "ff"], capture_output=True, text=True, timeout=60)
+        assert sent.returncode == 0, sent.stderr
+        out, err = listen.communicate(timeout=60)
+    finally:
+        listen.kill()
+    assert listen.returncode == 0, err
+    assert out.split() == ["c0ffee", "000000ff"]
+
+
+def test_modem_sim_command_prints_device_paths() -> None:
+    proc = subprocess.run([*COEX, "modem-sim", "--nodes", "1,2,3", "--duration", "0.5"], capture_output=True,
+                          text=True, timeout=60)
+    assert proc.returncode == 0, proc.stderr
+    lines = proc.stdout.splitlines()
+    assert [x.split(":")[0] for x in lines] == ["modem 1", "modem 2", "modem 3"]
+    assert all(x.split(": ")[1].startswith("/dev/") for x in lines)
+    bad = subprocess.run([*COEX, "modem-sim", "--nodes", "1"], capture_output=True, text=True, timeout=60)
+    assert bad.returncode != 0 and "two distinct" in bad.stderr
