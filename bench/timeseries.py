@@ -174,7 +174,7 @@ def main() -> int:
     results: dict[str, Any] = {"duration_s": duration, "samples": int(methane.times.size),
                                "spike_threshold": SPIKE_THRESHOLD, "target_fraction": TARGET_FRACTION,
                                "channels": {}}
-    met_all = True
+    met_rice = met_entropy = True
     for series in (methane, temperature):
         errors = ERRORS[series.name][::2] if args.quick else ERRORS[series.name]
         ch: dict[str, Any] = {"rows": [], "spikes": {}}
@@ -185,7 +185,7 @@ def main() -> int:
                 ch["spikes"][cname] = spike_bytes(series, cfg, SPIKE_THRESHOLD)
         print(f"{'E':>7} {'deltas rice':>11} {'deltas H0':>9} | " + " | ".join(
             f"{c + ' prog':>12} {c + ' direct':>13} {'ovw':>5}" for c in configs)
-            + (" | spikes@ (10% of H0)" if series.spikes else ""))
+            + (" | spikes within 10% of deltas: rice / H0" if series.spikes else ""))
         for e in errors:
             row: dict[str, Any] = {"error": e, "deltas_rice": deltas_rice_bytes(series.values, e),
                                    "deltas_entropy": deltas_entropy_bytes(series.values, e)}
@@ -194,26 +194,36 @@ def main() -> int:
             line = f"{e:>7g} {row['deltas_rice']:>11} {row['deltas_entropy']:>9} | " + " | ".join(
                 f"{row[c]['progressive']:>12} {row[c]['direct']:>13} {row[c]['overview']:>5}" for c in configs)
             if series.spikes:
-                budget = TARGET_FRACTION * row["deltas_entropy"]
-                verdicts = {}
-                for cname in configs:
-                    need = ch["spikes"][cname]["bytes_all_spikes"]
-                    verdicts[cname] = need is not None and need <= budget
-                row["spike_budget"] = budget
-                row["spikes_within_budget"] = verdicts
-                met_all &= all(verdicts.values())
-                line += f" | {budget:>6.0f} B: " + ", ".join(
-                    f"{c} {'yes' if v else 'NO'}" for c, v in verdicts.items())
+                row["spikes_within_budget"] = {}
+                cells = []
+                for base in ("rice", "entropy"):
+                    budget = TARGET_FRACTION * row[f"deltas_{base}"]
+                    verdicts = {}
+                    for cname in configs:
+                        need = ch["spikes"][cname]["bytes_all_spikes"]
+                        verdicts[cname] = need is not None and need <= budget
+                    row["spikes_within_budget"][base] = {"budget": budget, **verdicts}
+                    if base == "rice":
+                        met_rice &= all(verdicts.values())
+                    else:
+                        met_entropy &= all(verdicts.values())
+                    cells.append(f"{budget:.0f} B " + "/".join("yes" if v else "NO" for v in verdicts.values()))
+                line += " | " + " ; ".join(cells)
             print(line)
             ch["rows"].append(row)
         for cname, sp in ch["spikes"].items():
             print(f"  {cname}: every spike > {SPIKE_THRESHOLD} {series.unit} visible after "
                   f"{sp['bytes_all_spikes']} B (default stream {sp['default_stream_bytes']} B)")
         results["channels"][series.name] = ch
-    results["target_met"] = met_all
+    results["target_met_vs_rice_deltas"] = met_rice
+    results["target_met_vs_entropy_deltas"] = met_entropy
     results["seconds"] = round(time.perf_counter() - t_start, 1)
-    print(f"\ntarget (every spike within {TARGET_FRACTION:.0%} of the bytes deltas need, every E): "
-          f"{'MET' if met_all else 'NOT MET'}  ({results['seconds']} s)")
+    print(f"\ntarget: every spike within {TARGET_FRACTION:.0%} of the bytes deltas need for the same bound, "
+          f"at every E, live and archive:")
+    print(f"  against Rice-coded deltas (naive prefix code):         {'MET' if met_rice else 'NOT MET'}")
+    print(f"  against the order-0 entropy of deltas (ideal coder):   {'MET' if met_entropy else 'NOT MET'}"
+          f"  (see the per-E columns)")
+    print(f"({results['seconds']} s)")
     out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(json.dumps(results, indent=1, default=float) + "\n")
