@@ -14,33 +14,34 @@ from __future__ import annotations
 
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
+from typing import Protocol
 
 import numpy as np
 
-__all__ = ["Box", "CameraModel", "SandTexture", "render_frame", "footprint"]
+__all__ = ["BoxLike", "CameraModel", "SandTexture", "render_frame", "footprint", "in_frame"]
 
 HeightFn = Callable[[np.ndarray, np.ndarray], np.ndarray]
 
 
-@dataclass(frozen=True)
-class Box:
-    """A box-shaped target on the seafloor (a car): centre, size (m) and heading (degrees)."""
+class BoxLike(Protocol):
+    """A box-shaped target (``coex_plugins.bathymetry.sim.Target``): centre, size (m), heading (deg)."""
 
     x: float
     y: float
-    length: float = 4.5
-    width: float = 1.8
-    height: float = 1.5
-    heading: float = 0.0
+    length: float
+    width: float
+    height: float
+    heading: float
 
-    def inside(self, gx: np.ndarray, gy: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Mask of ground points under the box, and their coordinates in the box frame."""
-        h = np.deg2rad(self.heading)
-        dx, dy = gx - self.x, gy - self.y
-        u = dx * np.cos(h) + dy * np.sin(h)
-        v = -dx * np.sin(h) + dy * np.cos(h)
-        mask = (np.abs(u) <= self.length / 2) & (np.abs(v) <= self.width / 2)
-        return mask, u, v
+
+def _inside(box: BoxLike, gx: np.ndarray, gy: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Mask of ground points under the box, and their coordinates along and across it."""
+    h = np.deg2rad(90.0 - box.heading)  # heading clockwise from north -> angle from east
+    dx, dy = gx - box.x, gy - box.y
+    u = dx * np.cos(h) + dy * np.sin(h)
+    v = -dx * np.sin(h) + dy * np.cos(h)
+    mask = (np.abs(u) <= box.length / 2) & (np.abs(v) <= box.width / 2)
+    return mask, u, v
 
 
 @dataclass(frozen=True)
@@ -81,6 +82,20 @@ def footprint(altitude: float, camera: CameraModel | None = None) -> tuple[float
     return float(w), float(w * cam.height / cam.width)
 
 
+def in_frame(box: BoxLike, x: float, y: float, altitude: float, heading_deg: float,
+             camera: CameraModel | None = None, fraction: float = 0.2) -> bool:
+    """Whether at least ``fraction`` of the box's top is inside the frame of a camera at (x, y)."""
+    cam = camera or CameraModel()
+    w, h = footprint(altitude, cam)
+    gu, gv = np.meshgrid(np.linspace(-w / 2, w / 2, 64), np.linspace(-h / 2, h / 2, 48))
+    t = np.deg2rad(heading_deg)
+    gx = x + gu * np.cos(t) + gv * np.sin(t)
+    gy = y - gu * np.sin(t) + gv * np.cos(t)
+    mask, _, _ = _inside(box, gx, gy)
+    covered = mask.mean() * w * h
+    return bool(covered >= fraction * box.length * box.width)
+
+
 def render_frame(
     height_fn: HeightFn,
     x: float,
@@ -88,7 +103,7 @@ def render_frame(
     vehicle_z: float,
     heading_deg: float,
     *,
-    targets: Sequence[Box] = (),
+    targets: Sequence[BoxLike] = (),
     texture: SandTexture | None = None,
     camera: CameraModel | None = None,
     rng: np.random.Generator | None = None,
@@ -112,7 +127,7 @@ def render_frame(
     albedo = tex(gx, gy)
     top = np.zeros_like(gz, dtype=bool)
     for box in targets:
-        mask, u, v = box.inside(gx, gy)
+        mask, u, v = _inside(box, gx, gy)
         gz = np.where(mask, gz + box.height, gz)
         # a wreck: dark corroded panels, bright encrusting growth, a frame of hard dark edges
         clutter = np.sin(5.3 * u + 2.0 * np.sin(3.1 * v)) * np.cos(6.7 * v + 1.5 * np.sin(4.3 * u))
