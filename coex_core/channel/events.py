@@ -41,7 +41,8 @@ class SenderFailed(Event):
 
 @dataclass(frozen=True)
 class Dropped(Event):
-    """Messages left a queue unsent: ``reason`` is ``overflow``, ``ttl``, ``flush`` or ``encode``."""
+    """Messages left a queue unsent: ``reason`` is ``overflow``, ``superseded`` (a newer one
+    replaced it in a newest-only stream), ``ttl``, ``flush`` or ``encode``."""
 
     stream: int
     reason: str

@@ -298,7 +298,7 @@ class ChannelManager:
         dropped = q.push(entry)
         if dropped is not None:
             self._forget(dropped)
-            self._events.append(Dropped(now, stream, "overflow"))
+            self._events.append(Dropped(now, stream, q.overflow_reason))
         return entry.id
 
     def _new_entry(self, q: StreamQueue, message: Message, size: int, now: float) -> Entry:

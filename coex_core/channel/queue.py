@@ -141,11 +141,16 @@ class StreamQueue:
                 self.count_drop("overflow")
                 return entry
             victim = self.entries[0]
-            self.drop(victim, "overflow")
+            self.drop(victim, self.overflow_reason)
             self.entries.append(entry)
             return victim
         self.entries.append(entry)
         return None
+
+    @property
+    def overflow_reason(self) -> str:
+        """``superseded`` for a newest-only stream (depth 1, newest first), else ``overflow``."""
+        return "superseded" if self.config.newest_first and self.config.max_depth == 1 else "overflow"
 
     def trim(self) -> list[Entry]:
         """Enforce ``max_depth`` after a change (drops oldest when newest-first, else newest)."""
