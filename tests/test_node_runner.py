@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import io
+import json
+from pathlib import Path
 from typing import Any
 
 from coex_transports._runner import Runner, SimulatedClock
@@ -77,3 +79,28 @@ def test_runner_run_until_on_simulated_clock() -> None:
         frames.append(f)
     assert frames and all(wire.unpack_frame(f).header.src == VEHICLE for f in frames)
     assert sender.n > 10
+
+
+def test_runner_persists_settings_across_a_restart(tmp_path: Path) -> None:
+    from coex_core.messages import LinkControl, QueueConfig
+
+    path = tmp_path / "vehicle-settings.json"
+    lb = LoopbackLink(mtu=64)
+    clock = SimulatedClock(sim=lb.clock)
+    vehicle, _, _ = _nodes()
+    runner = Runner(vehicle, {0: lb.a}, clock, settings_path=path)
+    runner.step()
+    assert path.exists()
+    vehicle.manager.apply(QueueConfig(1, 5, False, True, 77, 600, 9, True), 1.0)
+    vehicle.manager.apply(LinkControl(2, 0, True, True), 1.0)  # muted (the only link: refused)
+    runner.step()
+    saved = json.loads(path.read_text())
+    assert saved["streams"]["5"]["priority"] == 77
+    # restart: a fresh node built from the same configuration picks the settings up
+    again, _, _ = _nodes()
+    assert again.manager.stream(5).config.priority != 77
+    Runner(again, {0: lb.a}, clock, settings_path=path)
+    c = again.manager.stream(5).config
+    assert (c.priority, c.ttl, c.max_depth, c.newest_first) == (77, 600.0, 9, True)
+    assert not again.manager.link_state(0)["muted"]
+

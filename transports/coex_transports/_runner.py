@@ -11,15 +11,20 @@ with real time, real transports, or a simulated clock.
   two-hour dive replays in seconds. It writes the link log (JSON lines) if given a file.
 
 A transport that has a ``send_packet(frames, rate)`` method gets each packet whole (a modem
-sends a packet's frames together); otherwise each frame is sent with ``send``.
+sends a packet's frames together); otherwise each frame is sent with ``send``. With
+``settings_path`` the runner loads the node's operator settings (stream settings, links,
+schedules) at start and writes them whenever they change, so they survive a restart.
 """
 
 from __future__ import annotations
 
 import heapq
 import itertools
+import json
+import os
 import time
 from collections.abc import Callable, Mapping, Sequence
+from pathlib import Path
 from typing import Any, Protocol, TextIO
 
 from coex_core.acoustic import AcousticChannel
@@ -97,10 +102,20 @@ class Runner:
         *,
         link_log: TextIO | Callable[[dict[str, Any]], None] | None = None,
         max_wait: float = 0.2,
+        settings_path: str | Path | None = None,
     ) -> None:
         unknown = set(transports) - set(node.manager.links)
         if unknown:
             raise ConfigError(f"transports for unknown links {sorted(unknown)}")
+        self.settings_path = Path(settings_path) if settings_path is not None else None
+        self._saved: dict[str, Any] | None = None
+        if self.settings_path is not None and self.settings_path.exists():
+            try:
+                saved = json.loads(self.settings_path.read_text())
+            except (OSError, ValueError) as exc:
+                raise ConfigError(f"cannot read settings {self.settings_path}: {exc}") from exc
+            node.manager.import_settings(saved)
+            self._saved = saved
         self.node = node
         self.transports = dict(transports)
         self.clock: Clock = clock or RealClock()
@@ -136,8 +151,27 @@ class Runner:
                 "dst": None, "rate": tx.rate, "frames": len(tx.frames), "capacity_bytes": tx.capacity,
                 "used_bytes": tx.used, "delivered": None, "lost": None, "cause": "sent",
             })
+        self.save_settings()
         nxt = self.node.next_event(self.clock.time())
         return nxt if nxt is not None else self.clock.time() + self.max_wait
+
+    def save_settings(self) -> bool:
+        """Write the node's operator settings to ``settings_path`` when they changed (atomic
+        replace), so they survive a restart. Returns whether a file was written."""
+        if self.settings_path is None:
+            return False
+        current = json.loads(json.dumps(self.node.manager.export_settings()))
+        if current == self._saved:
+            return False
+        tmp = self.settings_path.with_name(self.settings_path.name + ".tmp")
+        try:
+            tmp.write_text(json.dumps(current, indent=1, sort_keys=True))
+            os.replace(tmp, self.settings_path)
+        except OSError as exc:
+            self.errors.append(f"cannot save settings: {exc}")
+            return False
+        self._saved = current
+        return True
 
     def run(self, *, until: float | None = None, duration: float | None = None,
             stop: Callable[[], bool] | None = None) -> None:
