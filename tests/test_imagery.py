@@ -334,7 +334,7 @@ def test_progress_reports(img: np.ndarray) -> None:
     prog = [m for m in out if isinstance(m, TransferProgress)]
     assert len(prog) == 1
     p = prog[0]
-    assert p.pending == 2 and p.current == 0 and p.next_images == (1,) and p.unacked_fragments >= 2
+    assert p.pending == 2 and p.current == 0 and p.next_images == (1,) and p.unacked_fragments >= 1
     products = r.receive(p, 40.0)
     assert products[0].kind == "image-progress" and products[0].meta["next_images"] == [1]
     s.handle(ImageGoal(1, 1, GoalKind.LAYER, 1), 41.0)

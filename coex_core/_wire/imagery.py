@@ -20,10 +20,11 @@ from ._registry import MessageSpec, register
 
 IMAGE_ID = Bounded(0, 1023) * "Image id (wraps at 1024)"
 OFFSET_MAX = 2**20 - 1
-#: Largest fragment payload: a fragment with every packet mark still fits in 251 bytes
-#: (a 256-byte sub-frame with header and CRC).
+#: Largest fragment payload. A fragment with many packet marks carries less data: the whole
+#: message must still fit in 251 bytes (a 256-byte sub-frame with header and CRC); encoding a
+#: larger one raises EncodeError and decoding one raises DecodeError.
 MAX_FRAGMENT_DATA = 227
-MAX_PACKET_MARKS = 15
+MAX_PACKET_MARKS = 31
 #: Packets in one codestream: at most 32 layers x 8 resolutions x 3 components.
 MAX_PACKET_INDEX = 1023
 MAX_ACK_RANGES = 15
@@ -86,8 +87,9 @@ TRANSFER_PROGRESS = Body(
     "next_images" / cs.Array(cs.this.n_next, Bounded(0, 1023)) * "Images to be sent next, in order",
 )
 
+#: The largest fragment: every mark, and as much data as still fits in 251 bytes.
 _BIG_FRAG = ImageFragment(
-    1023, OFFSET_MAX, MAX_PACKET_INDEX, tuple(range(MAX_PACKET_MARKS)), b"\xff" * MAX_FRAGMENT_DATA
+    1023, OFFSET_MAX, MAX_PACKET_INDEX, tuple(range(MAX_PACKET_MARKS)), b"\xff" * 211
 )
 _BIG_ACK = ImageAck(1023, OFFSET_MAX, (ByteRange(OFFSET_MAX, OFFSET_MAX),) * MAX_ACK_RANGES)
 

@@ -48,9 +48,11 @@ from .goals import Goal, parse_goal
 __all__ = ["ImageInput", "ImagerySender", "fragment_size"]
 
 MAX_FRAGMENT_DATA = 227
-MAX_MARKS = 15
+MAX_MARKS = 31
+#: A fragment message never exceeds this (the wire maximum).
+MAX_MESSAGE = 251
 MAX_NEXT = 8
-_FRAG_FIXED_BITS = 10 + 20 + 10 + 4
+_FRAG_FIXED_BITS = 10 + 20 + 10 + 5
 
 
 @dataclass(frozen=True)
@@ -272,12 +274,13 @@ class ImagerySender(ModalitySender):
         stop_rel = np.flatnonzero(~ready[pos:])
         run = int(stop_rel[0]) if len(stop_rel) else goal - pos
         starts = tx.enc.packet_starts
+        left = min(left, MAX_MESSAGE)
         n = min(run, MAX_FRAGMENT_DATA, left - fragment_size(0, 0))
         while n > 0:
             lo = int(np.searchsorted(starts, pos, side="left"))
             hi = int(np.searchsorted(starts, pos + n, side="right"))  # a start at pos + n ends a packet
             marks = starts[lo:hi] - pos
-            if len(marks) > MAX_MARKS:  # end the data at the 15th start, which is then its end mark
+            if len(marks) > MAX_MARKS:  # end the data at the last allowed start: it is the end mark
                 n = int(marks[MAX_MARKS - 1])
                 marks = marks[:MAX_MARKS]
             over = fragment_size(len(marks), n) - left
