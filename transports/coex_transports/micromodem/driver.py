@@ -206,6 +206,7 @@ class _Stats:
     bad_checksum: int = 0
     malformed: int = 0
     unknown: int = 0
+    handler_errors: int = 0  # bugs, not bad input: should stay 0 (bench/fuzz_nmea.py checks)
     garbage_bytes: int = 0
     overlong: int = 0
     packets_sent: int = 0
@@ -330,6 +331,9 @@ class MicromodemDriver:
             except NmeaError as exc:
                 self._s.malformed += 1
                 self._s.last_error = str(exc)
+            except Exception as exc:  # last line of defence: a bad line never stops the link
+                self._s.handler_errors += 1
+                self._s.last_error = f"{type(exc).__name__} handling {line[:40]!r}: {exc}"
         self._s.garbage_bytes = self._splitter.garbage_bytes
         self._s.overlong = self._splitter.overlong
         self._pump(now)

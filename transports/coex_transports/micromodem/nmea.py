@@ -493,7 +493,7 @@ def _fdp_frames(s: Sentence, text: str, base64data: bool) -> tuple[FdpFrame, ...
     out = []
     for i in range(0, len(parts), 3):
         crc, nbytes, payload = parts[i:i + 3]
-        if crc not in ("0", "1") or not nbytes.isdigit() or int(nbytes) > 4096:
+        if crc not in ("0", "1") or not nbytes.isdigit() or len(nbytes) > 5 or int(nbytes) > 4096:
             raise NmeaError(f"${s.ident}: bad frame triple {crc!r};{nbytes!r}")
         if base64data:
             try:
