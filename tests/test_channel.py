@@ -476,3 +476,26 @@ def test_expedited_stream_is_asked_first() -> None:
     assert tx is not None and messages_of(tx.frames) == [blob(61, 2)]
     tx = m.build(0, 3.0)  # served once: back to the normal contest
     assert tx is not None and messages_of(tx.frames) == [blob(61, 1)]
+
+
+def test_posix_times_from_a_zero_epoch() -> None:
+    # deployments run on time.time(): slot arithmetic must hold at 1.7e9 s
+    m = manager(links=[LinkConfig(0, nui())])
+    m.add_stream(StreamConfig(5, "d"), FakeSender(size=120))
+    base = 14_166_667 * 120.0 + 40.0  # 1.7e9 s + 80 s: slot 2 (vehicle) of its cycle
+    assert m.schedule(0).window(base).index == 2
+    assert m.schedule(0).window(base - 1e-3).index == 1
+    starts = []
+    cycle0 = base - 40.0
+    t = cycle0 + 1.0  # in topside's slot 0
+    while True:
+        nxt = m.next_opportunity(0, t)
+        assert nxt is not None
+        if nxt >= cycle0 + 120.0:
+            break
+        assert m.can_transmit(0, nxt)
+        (tx,) = m.poll(nxt)
+        starts.append((tx.slot, nxt))
+        t = nxt + 1e-6
+    assert {s for s, _ in starts} == {1, 2, 4, 5}
+    assert len(starts) == 6 * 4  # 6 packets in each of the 4 vehicle slots
