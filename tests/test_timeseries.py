@@ -26,6 +26,7 @@ from coex_core.messages import (
     TimeSeriesChunk,
     TimeSeriesPart,
     TimeSeriesRequest,
+    Wavelet,
 )
 from coex_core.registry import load_modality
 from coex_core.timefmt import unwrap
@@ -355,3 +356,25 @@ def test_receiver_retries_unsatisfied_requests() -> None:
     assert rx.poll(T0 + 60) == [req]
     assert rx.poll(T0 + 120) == [req]
     assert rx.poll(T0 + 200) == []  # gave up after three tries
+
+
+def test_receiver_survives_any_wire_valid_chunk() -> None:
+    """Chunks that are valid on the wire but carry nonsense never make the receiver raise."""
+    rng = np.random.default_rng(12)
+    rx = TimeSeriesReceiver()
+    for i in range(250):
+        count = int(rng.integers(1, 4097))
+        partial = bool(rng.integers(0, 2))
+        first = int(rng.integers(0, 8000)) if partial else None
+        end = int(rng.integers(1, 8193)) if partial else None
+        data = rng.integers(0, 256, int(rng.integers(0, 60)), dtype=np.uint8).tobytes()
+        chunk = TimeSeriesChunk(int(rng.integers(0, 3)), int(rng.integers(0, 50)), 0.0, 1.0, count,
+                                list(Wavelet)[int(rng.integers(0, 4))], int(rng.integers(0, 4)),
+                                bool(rng.integers(0, 2)), int(rng.integers(0, 256)), int(rng.integers(0, 256)),
+                                first, end, data)
+        assert wire.decode(wire.encode(chunk)) == chunk
+        rx.receive(chunk, T0 + i)
+    rx.poll(T0 + 500)
+    for p in rx.products():
+        assert p.kind == "series"
+    assert rx.ignored > 0

@@ -72,6 +72,8 @@ _HEADER_BITS = 2 + _N_BITS + 2 * (_K_BITS + _W_BITS)
 _MAX_K = (1 << _K_BITS) - 1
 #: a unary quotient of this many one-bits means: the value is in the escape section
 _ESC = 16
+#: codes (and magnitudes) are below 2^62, so sums and signs never overflow int64
+_MAX_CODE = 1 << 62
 
 
 def code_value(code: int) -> float:
@@ -408,6 +410,8 @@ def _decode_dense(bits: np.ndarray, length: int) -> np.ndarray:
     k, w = _read_uint(bits, pos, _K_BITS), _read_uint(bits, pos + _K_BITS, _W_BITS)
     z, pos = _read_rice(bits, pos + _K_BITS + _W_BITS, length, k, w)
     _check_padding(bits, pos)
+    if z.size and z.max() >= _MAX_CODE:
+        raise CodeError("code out of range")
     return np.where(z % 2 == 0, z // 2, -(z + 1) // 2)
 
 
@@ -454,6 +458,8 @@ def _decode_sparse(bits: np.ndarray, length: int) -> np.ndarray:
         mags[em] = sections[3]
         neg = bits[pos:pos + n].astype(bool)
         pos += n
+        if runs.max() >= length or mags.max() >= _MAX_CODE:
+            raise CodeError("zero run or magnitude out of range")
         idx = np.cumsum(runs + 1) - 1
         if idx[-1] >= length:
             raise CodeError("coefficient index beyond the chunk's range")

@@ -307,15 +307,24 @@ class TimeSeriesSender(ModalitySender):
                 self._close(ch, ch.times.size)
 
     def _close(self, ch: _Channel, n: int) -> None:
+        """Close the first ``n`` open samples into one or more blocks (never more than
+        ``block_samples`` grid points each)."""
+        while n > 0:
+            p = self._period(ch)
+            cs = math.floor(float(ch.times[0]) * 100 + 1e-6)
+            g = np.rint((ch.times[:n] - cs / 100) / p).astype(np.int64)
+            m = max(1, int(np.searchsorted(g, self.block_samples, side="left")))
+            self._close_block(ch, m, p, cs)
+            n -= m
+
+    def _close_block(self, ch: _Channel, n: int, p: float, cs: int) -> None:
         t, v = ch.times[:n], ch.values[:n]
         ch.times, ch.values = ch.times[n:], ch.values[n:]
-        p = self._period(ch)
         if ch.period is None and t.size >= 16:
             ch.period = p
         keep = ~np.isnan(v)
         if not keep.any():
             return
-        cs = math.floor(float(t[0]) * 100 + 1e-6)
         start = cs / 100
         g = np.rint((t - start) / p).astype(np.int64)
         g, v = g[keep], v[keep]
