@@ -116,14 +116,17 @@ def links(n: int = 1, **kw: Any) -> list[LinkConfig]:
 
 class Pair:
     def __init__(self, n_links: int = 1, loss: float = 0.0, seed: int = 1,
-                 log: io.StringIO | None = None, **link_kw: Any) -> None:
+                 log: io.StringIO | None = None, link_cfgs: list[LinkConfig] | None = None,
+                 **link_kw: Any) -> None:
         self.sender = FakeSender()
         self.receiver = FakeReceiver()
-        self.vmgr = ChannelManager(VEHICLE, links(n_links, **link_kw), queue_status_interval=120.0)
+        cfgs = link_cfgs or links(n_links, **link_kw)
+        n_links = len(cfgs)
+        self.vmgr = ChannelManager(VEHICLE, cfgs, queue_status_interval=120.0)
         self.vehicle = Node(self.vmgr)
         self.vehicle.add_sender(FakeModality, self.sender, StreamConfig(5, "fake", priority=30,
                                                                        ack_required=True))
-        self.tmgr = ChannelManager(TOPSIDE, links(n_links, **link_kw))
+        self.tmgr = ChannelManager(TOPSIDE, cfgs)
         self.topside = Node(self.tmgr)
         self.topside.add_receiver(FakeModality, self.receiver)
         self.channels = {i: AcousticChannel(loss=loss, seed=seed + i) for i in range(n_links)}
@@ -357,3 +360,23 @@ def test_receive_never_raises_on_arbitrary_bytes(data: bytes) -> None:
     node.receive(7, data, 5.0)  # unknown link id too
     node.events()
     node.poll(30.0)  # and the node still builds packets
+
+
+def test_each_link_has_its_own_schedule_and_layout() -> None:
+    other = Schedule.simple([TOPSIDE, VEHICLE], 30.0, 3.0)  # the 3.5 kHz modem: 60 s cycle
+    p = Pair(link_cfgs=[LinkConfig(0, nui(), rate=5), LinkConfig(1, other, rate=3)])
+    p.run(240.0)
+    new1 = Schedule.simple([TOPSIDE, VEHICLE, VEHICLE], 30.0, 3.0, version=4)
+    p.topside.schedule_update(1, new1, 240.0, activate_cycle=7)  # link 1 cycle 7 = t 420
+    p.run(600.0)
+    v = [tx for nid, tx in p.net.transmissions if nid == VEHICLE]
+    l0 = [tx for tx in v if tx.link_id == 0]
+    l1 = [tx for tx in v if tx.link_id == 1]
+    assert l0 and all(len(tx.frames) <= 8 and tx.slot in (1, 2, 4, 5) and tx.schedule == 0 for tx in l0)
+    assert all(len(tx.frames) <= 2 for tx in l1)  # rate 3: 2 x 256 B
+    before = [tx for tx in l1 if tx.start < 420.0]
+    after = [tx for tx in l1 if tx.start >= 420.0]
+    assert before and all(tx.slot == 1 and (tx.start % 60.0) >= 30.0 for tx in before)
+    assert after and all(tx.schedule == 4 and tx.slot in (1, 2) for tx in after)
+    assert p.vmgr.schedule(0).version == 0 and p.tmgr.schedule(0).version == 0
+    assert p.vmgr.schedule(1) == p.tmgr.schedule(1)
