@@ -1,0 +1,64 @@
+"""Bathymetry modality: a real-time quadtree seafloor map sent as compact, self-contained subgrids.
+
+Subsea, :class:`BathymetrySender` ingests multibeam soundings (``N x 3`` arrays, ``.npy``, ``.csv``
+or ROS bags) into a :class:`QuadtreeMap` and streams changed subgrids coarsest level first;
+topside, :class:`BathymetryReceiver` assembles every level, tracks what it holds and how old it
+is, and asks for regions or gaps (:class:`~coex_core.messages.MapRoiRequest`). See
+``docs/bathymetry.md``.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from typing import Any, ClassVar
+
+from coex_core.messages import MapMetadata, MapRoiReply, MapRoiRequest, Message, Subgrid
+from coex_core.modality import Modality
+
+from ._io import iter_points, load_points, pointcloud2_xyz, write_pointcloud_bag
+from ._quadtree import InputError, LevelBlock, QuadtreeMap
+from ._receiver import RECEIVER_DEFAULTS, BathymetryReceiver, Region
+from ._sender import SENDER_DEFAULTS, BathymetrySender
+from ._subgrid import decode_subgrid, decode_subgrid_units, encode_subgrid, size_2022, subgrid_bits
+from .export import Candidate, find_targets, hillshade, write_geotiff, write_png
+
+__all__ = [
+    "BathymetryModality",
+    "BathymetryReceiver",
+    "BathymetrySender",
+    "Candidate",
+    "InputError",
+    "LevelBlock",
+    "QuadtreeMap",
+    "RECEIVER_DEFAULTS",
+    "Region",
+    "SENDER_DEFAULTS",
+    "decode_subgrid",
+    "decode_subgrid_units",
+    "encode_subgrid",
+    "find_targets",
+    "hillshade",
+    "iter_points",
+    "load_points",
+    "pointcloud2_xyz",
+    "size_2022",
+    "subgrid_bits",
+    "write_geotiff",
+    "write_png",
+    "write_pointcloud_bag",
+]
+
+
+class BathymetryModality(Modality):
+    """The ``bathymetry`` modality plugin (entry point ``coex.modalities``)."""
+
+    name: ClassVar[str] = "bathymetry"
+    version: ClassVar[str] = "1"
+    messages: ClassVar[tuple[type[Message], ...]] = (MapMetadata, Subgrid, MapRoiReply)
+    requests: ClassVar[tuple[type[Message], ...]] = (MapRoiRequest,)
+
+    def sender(self, config: Mapping[str, Any] | None = None) -> BathymetrySender:
+        return BathymetrySender(config)
+
+    def receiver(self, config: Mapping[str, Any] | None = None) -> BathymetryReceiver:
+        return BathymetryReceiver(config)

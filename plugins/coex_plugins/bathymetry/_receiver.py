@@ -1,0 +1,313 @@
+"""The topside side: level mosaics, per-subgrid holdings and ages, region requests and retries."""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+import numpy.typing as npt
+
+from coex_core.errors import ConfigError, RequestRejected
+from coex_core.messages import MapMetadata, MapRoiReply, MapRoiRequest, Message, Subgrid
+from coex_core.modality import ModalityReceiver, Product
+from coex_core.timefmt import to_stamp, unwrap
+
+from ._sender import merged_config
+from ._subgrid import decode_subgrid
+
+__all__ = ["BathymetryReceiver", "RECEIVER_DEFAULTS", "Region"]
+
+#: Receiver configuration keys and defaults.
+RECEIVER_DEFAULTS: dict[str, Any] = {
+    "resolution": 1.0,
+    "subgrid_side": 8,
+    "levels": 5,
+    "origin_lat": None,
+    "origin_lon": None,
+    "request_timeout": 60.0,
+    "subgrid_wait": 4.0,
+    "auto_fill": True,
+    "auto_fill_interval": 300.0,
+    "max_regions": 256,
+}
+
+#: Largest region of one request with stamps (8 x 8 = 64 subgrids) and of one gap-filling request.
+ROI_CHUNK = 8
+GAP_CHUNK = 16
+
+
+@dataclass
+class Region:
+    """An active region request: re-sent (with fresh stamps) until the vehicle answers "nothing newer"."""
+
+    level: int
+    x0: int
+    y0: int
+    w: int
+    h: int
+    fill_gaps: bool
+    auto: bool = False
+    next_send: float = -math.inf
+    request_id: int | None = None
+    sends: int = 0
+    done: bool = False
+
+
+@dataclass
+class _Held:
+    stamp: float
+    values: npt.NDArray[np.float64]
+    received: float
+
+
+@dataclass
+class _Mosaic:
+    """One level assembled from subgrids, grown by doubling as subgrids arrive."""
+
+    side: int
+    ix0: int = 0
+    iy0: int = 0
+    nx: int = 0
+    ny: int = 0
+    array: npt.NDArray[np.float64] = field(default_factory=lambda: np.full((0, 0), np.nan))
+
+    def paste(self, ix: int, iy: int, values: npt.NDArray[np.float64]) -> None:
+        if self.nx == 0:
+            self.ix0, self.iy0, self.nx, self.ny = ix, iy, 1, 1
+            self.array = np.full((self.side, self.side), np.nan)
+        if not (self.ix0 <= ix < self.ix0 + self.nx and self.iy0 <= iy < self.iy0 + self.ny):
+            x0 = min(self.ix0, ix)
+            y0 = min(self.iy0, iy)
+            x1 = max(self.ix0 + self.nx, ix + 1)
+            y1 = max(self.iy0 + self.ny, iy + 1)
+            # grow with slack so a survey's steady growth costs amortised O(1) per subgrid
+            gx = max(x1 - x0, 2 * self.nx) if (x1 - x0) > self.nx else self.nx
+            gy = max(y1 - y0, 2 * self.ny) if (y1 - y0) > self.ny else self.ny
+            if ix < self.ix0:
+                x0 = self.ix0 + self.nx - gx
+            if iy < self.iy0:
+                y0 = self.iy0 + self.ny - gy
+            new = np.full((gy * self.side, gx * self.side), np.nan)
+            s = self.side
+            new[(self.iy0 - y0) * s:(self.iy0 - y0 + self.ny) * s, (self.ix0 - x0) * s:(self.ix0 - x0 + self.nx) * s] = self.array
+            self.array, self.ix0, self.iy0, self.nx, self.ny = new, x0, y0, gx, gy
+        s = self.side
+        r, c = (iy - self.iy0) * s, (ix - self.ix0) * s
+        self.array[r:r + s, c:c + s] = values
+
+
+class BathymetryReceiver(ModalityReceiver):
+    """Assembles every level as subgrids arrive and keeps, per subgrid, its stamp and arrival time.
+
+    Requests: :meth:`request_region` (stamps of what topside holds, the implicit ack; the vehicle
+    re-sends newer or missing subgrids) and :meth:`request_gaps` (everything missing in a region,
+    one bitmap). Each region is re-requested after ``request_timeout`` (plus ``subgrid_wait`` per
+    subgrid the vehicle said it queued) until the vehicle answers that it has nothing newer, so
+    lost requests, replies and subgrids are all recovered. With ``auto_fill`` the receiver asks
+    for the gaps of every level over the whole map whenever the vehicle reports its background
+    queue empty (at most every ``auto_fill_interval`` seconds).
+    """
+
+    def __init__(self, config: Mapping[str, Any] | None = None) -> None:
+        cfg = merged_config(config, RECEIVER_DEFAULTS)
+        self.config = cfg
+        self.request_timeout = float(cfg["request_timeout"])
+        self.subgrid_wait = float(cfg["subgrid_wait"])
+        self.auto_fill = bool(cfg["auto_fill"])
+        self.auto_fill_interval = float(cfg["auto_fill_interval"])
+        self.max_regions = int(cfg["max_regions"])
+        if self.request_timeout <= 0:
+            raise ConfigError("request_timeout must be positive")
+        self.metadata: MapMetadata | None = None
+        self.held: dict[int, dict[tuple[int, int], _Held]] = {}
+        self._mosaics: dict[int, _Mosaic] = {}
+        self._versions: dict[int, int] = {}
+        self._geometry: dict[int, tuple[float, int]] = {}
+        self.regions: list[Region] = []
+        self._by_id: dict[int, Region] = {}
+        self._next_id = 0
+        self._next_auto = -math.inf
+        self.duplicates = 0
+
+    # ---------------------------------------------------------------------------- receive
+
+    def receive(self, message: Message, now: float) -> list[Product]:
+        if isinstance(message, Subgrid):
+            return self._subgrid(message, now)
+        if isinstance(message, MapMetadata):
+            self.metadata = message
+            if self.auto_fill and message.pending == 0 and now >= self._next_auto:
+                self._next_auto = now + self.auto_fill_interval
+                self._schedule_auto_fill(message)
+            return []
+        if isinstance(message, MapRoiReply):
+            region = self._by_id.get(message.request_id)
+            if region is not None and region.request_id == message.request_id and not region.done:
+                if message.queued == 0:
+                    region.done = True
+                else:
+                    region.next_send = now + self.request_timeout + self.subgrid_wait * message.queued
+            return []
+        return []
+
+    def _subgrid(self, sg: Subgrid, now: float) -> list[Product]:
+        level = sg.level
+        stamp = unwrap(sg.stamp, now)
+        cells = self.held.setdefault(level, {})
+        old = cells.get((sg.ix, sg.iy))
+        if old is not None and old.stamp >= stamp:
+            self.duplicates += 1
+            return []
+        values = decode_subgrid(sg)
+        cells[(sg.ix, sg.iy)] = _Held(stamp, values, now)
+        self._geometry[level] = (sg.resolution * (1 << level), sg.side)
+        mosaic = self._mosaics.get(level)
+        if mosaic is None or mosaic.side != sg.side:
+            mosaic = self._mosaics[level] = _Mosaic(sg.side)
+        mosaic.paste(sg.ix, sg.iy, values)
+        self._versions[level] = self._versions.get(level, 0) + 1
+        return [self.level_product(level, now)]
+
+    # ---------------------------------------------------------------------------- products
+
+    def level_product(self, level: int, now: float | None = None) -> Product:
+        """Level ``level`` as one array (row 0 = south, NaN where nothing is held)."""
+        mosaic = self._mosaics[level]
+        cell, side = self._geometry[level]
+        held = self.held.get(level, {})
+        newest = max((h.stamp for h in held.values()), default=0.0)
+        meta: dict[str, Any] = {
+            "level": level,
+            "cell_size": cell,
+            "x0": mosaic.ix0 * side * cell,
+            "y0": mosaic.iy0 * side * cell,
+            "subgrids": len(held),
+            "newest": newest,
+            "origin_lat": self.origin()[0],
+            "origin_lon": self.origin()[1],
+        }
+        if now is not None:
+            meta["oldest_age"] = now - min((h.received for h in held.values()), default=now)
+        return Product("map-level", f"level-{level}", self._versions.get(level, 0), mosaic.array, meta)
+
+    def products(self) -> list[Product]:
+        return [self.level_product(k) for k in sorted(self._mosaics)]
+
+    def origin(self) -> tuple[float, float]:
+        lat, lon = self.config["origin_lat"], self.config["origin_lon"]
+        if lat is None and self.metadata is not None:
+            lat = self.metadata.origin_lat
+        if lon is None and self.metadata is not None:
+            lon = self.metadata.origin_lon
+        return float(lat or 0.0), float(lon or 0.0)
+
+    def holdings(self, level: int) -> dict[tuple[int, int], int]:
+        """``(ix, iy) -> stamp`` of every subgrid held at ``level``."""
+        return {k: to_stamp(h.stamp) for k, h in self.held.get(level, {}).items()}
+
+    def age(self, level: int, ix: int, iy: int, now: float) -> float | None:
+        """Seconds since the newest data in a held subgrid was measured (None if not held)."""
+        h = self.held.get(level, {}).get((ix, iy))
+        return None if h is None else now - h.stamp
+
+    # ---------------------------------------------------------------------------- requests
+
+    def _geometry_for(self, level: int) -> tuple[float, int]:
+        meta = self.metadata
+        res = meta.resolution if meta else float(self.config["resolution"])
+        side = meta.subgrid_side if meta else int(self.config["subgrid_side"])
+        return res * (1 << level), side
+
+    def subgrid_index(self, level: int, x: float, y: float) -> tuple[int, int]:
+        """The subgrid holding point (x, y) at ``level``."""
+        cell, side = self._geometry_for(level)
+        return math.floor(x / (cell * side)), math.floor(y / (cell * side))
+
+    def _add(self, region: Region) -> None:
+        active = [r for r in self.regions if not r.done]
+        if len(active) >= self.max_regions:
+            raise RequestRejected(f"more than {self.max_regions} active region requests")
+        self.regions = active + [region]
+
+    def request_region(self, level: int, x0: int, y0: int, w: int, h: int) -> list[Region]:
+        """Ask for subgrids ``[x0, x0+w) x [y0, y0+h)`` at ``level`` that the vehicle has newer
+        than topside (or topside lacks). Split into requests of at most 8 x 8 subgrids."""
+        return self._regions(level, x0, y0, w, h, fill_gaps=False)
+
+    def request_gaps(self, level: int, x0: int, y0: int, w: int, h: int) -> list[Region]:
+        """Ask for everything missing at ``level`` in the region (16 x 16 subgrids per request)."""
+        return self._regions(level, x0, y0, w, h, fill_gaps=True)
+
+    def request_area(self, level: int, x_min: float, y_min: float, x_max: float, y_max: float,
+                     fill_gaps: bool = False) -> list[Region]:
+        """:meth:`request_region` (or :meth:`request_gaps`) for an area in metres."""
+        ax, ay = self.subgrid_index(level, x_min, y_min)
+        bx, by = self.subgrid_index(level, x_max, y_max)
+        return self._regions(level, ax, ay, bx - ax + 1, by - ay + 1, fill_gaps=fill_gaps)
+
+    def _regions(self, level: int, x0: int, y0: int, w: int, h: int, *, fill_gaps: bool,
+                 auto: bool = False) -> list[Region]:
+        levels = self.metadata.levels if self.metadata else int(self.config["levels"])
+        if not 0 <= level < levels:
+            raise RequestRejected(f"level {level} outside 0..{levels - 1}")
+        if w < 1 or h < 1:
+            raise RequestRejected("empty region")
+        chunk = GAP_CHUNK if fill_gaps else ROI_CHUNK
+        n = math.ceil(w / chunk) * math.ceil(h / chunk)
+        if n > self.max_regions:
+            raise RequestRejected(f"region of {w} x {h} subgrids needs {n} requests (max {self.max_regions})")
+        out = []
+        for cy in range(y0, y0 + h, chunk):
+            for cx in range(x0, x0 + w, chunk):
+                r = Region(level, cx, cy, min(chunk, x0 + w - cx), min(chunk, y0 + h - cy), fill_gaps, auto)
+                self._add(r)
+                out.append(r)
+        return out
+
+    def _schedule_auto_fill(self, meta: MapMetadata) -> None:
+        if any(r.auto and not r.done for r in self.regions):
+            return
+        if meta.x_max <= meta.x_min or meta.y_max <= meta.y_min:
+            return
+        for level in range(meta.levels - 1, -1, -1):
+            ax, ay = self.subgrid_index(level, meta.x_min, meta.y_min)
+            bx, by = self.subgrid_index(level, meta.x_max - 1e-6, meta.y_max - 1e-6)
+            try:
+                self._regions(level, ax, ay, bx - ax + 1, by - ay + 1, fill_gaps=True, auto=True)
+            except RequestRejected:
+                break
+
+    def _message(self, r: Region) -> MapRoiRequest:
+        rid = self._next_id
+        self._next_id = (self._next_id + 1) % 256
+        old = self._by_id.get(rid)
+        if old is not None and old.request_id == rid:
+            old.request_id = None
+        self._by_id[rid] = r
+        r.request_id = rid
+        held = self.held.get(r.level, {})
+        keys = [(r.x0 + i % r.w, r.y0 + i // r.w) for i in range(r.w * r.h)]
+        if r.fill_gaps:
+            have = 0
+            for k in keys:
+                have = (have << 1) | (k in held)
+            return MapRoiRequest(rid, r.level, r.x0, r.y0, r.w, r.h, True, (), have)
+        stamps = tuple(to_stamp(held[k].stamp) if k in held else None for k in keys)
+        return MapRoiRequest(rid, r.level, r.x0, r.y0, r.w, r.h, False, stamps)
+
+    def poll(self, now: float) -> list[Message]:
+        out: list[Message] = []
+        self.regions = [r for r in self.regions if not r.done]
+        # Coarse levels first, then in the order asked.
+        for r in sorted(self.regions, key=lambda r: -r.level):
+            if now >= r.next_send:
+                out.append(self._message(r))
+                r.sends += 1
+                r.next_send = now + self.request_timeout
+        return out
+
+    def active_regions(self) -> list[Region]:
+        return [r for r in self.regions if not r.done]

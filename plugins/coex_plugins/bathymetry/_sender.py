@@ -1,0 +1,311 @@
+"""The subsea side: the map, the default sending policy and region requests."""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import numpy.typing as npt
+
+from coex_core import wire
+from coex_core.errors import ConfigError, RequestRejected
+from coex_core.messages import MapMetadata, MapRoiReply, MapRoiRequest, Message, Subgrid
+from coex_core.modality import ModalitySender
+from coex_core.timefmt import to_stamp, unwrap
+
+from ._io import iter_points
+from ._quadtree import InputError, QuadtreeMap
+from ._subgrid import encode_subgrid, subgrid_bits
+
+__all__ = ["BathymetrySender", "SENDER_DEFAULTS"]
+
+Key = tuple[int, int, int]  # (level, ix, iy)
+
+#: Sender configuration keys and defaults (the NUI 2022 values where they exist).
+SENDER_DEFAULTS: dict[str, Any] = {
+    "resolution": 1.0,
+    "vertical_resolution": 0.1,
+    "subgrid_side": 8,
+    "levels": 5,
+    "send_delay": 20.0,
+    "metadata_interval": 60.0,
+    "origin_lat": 0.0,
+    "origin_lon": 0.0,
+    "outlier_rejection": True,
+    "outlier_threshold": 1.0,
+    "outlier_k": 3.0,
+    "batch_points": 20_000,
+    "topic": None,
+    "max_queue": 4096,
+}
+
+#: Smallest possible subgrid message (an all-equal block): stop filling below this.
+MIN_SUBGRID_BYTES = 12
+
+
+def merged_config(config: Mapping[str, Any] | None, defaults: Mapping[str, Any]) -> dict[str, Any]:
+    cfg = dict(defaults)
+    for k, v in (config or {}).items():
+        if k not in defaults:
+            raise ConfigError(f"unknown bathymetry option {k!r} (known: {', '.join(sorted(defaults))})")
+        cfg[k] = v
+    return cfg
+
+
+class BathymetrySender(ModalitySender):
+    """Ingests soundings into a :class:`QuadtreeMap` and answers ``fill(max_bytes, now)``.
+
+    Policy: requested subgrids first (FIFO), then background subgrids, coarsest level first; a
+    subgrid is eligible when it changed since it was last sent and has been quiet for
+    ``send_delay`` seconds. Each version is sent once (streamed subgrids are not acked: topside
+    repairs gaps with :class:`MapRoiRequest`). A :class:`MapMetadata` goes out every
+    ``metadata_interval`` seconds and when the background queue empties.
+    """
+
+    def __init__(self, config: Mapping[str, Any] | None = None) -> None:
+        cfg = merged_config(config, SENDER_DEFAULTS)
+        self.config = cfg
+        try:
+            self.map = QuadtreeMap(
+                float(cfg["resolution"]), float(cfg["vertical_resolution"]),
+                subgrid_side=int(cfg["subgrid_side"]), levels=int(cfg["levels"]),
+                outlier_rejection=bool(cfg["outlier_rejection"]),
+                outlier_threshold=float(cfg["outlier_threshold"]), outlier_k=float(cfg["outlier_k"]),
+                batch_points=int(cfg["batch_points"]),
+            )
+        except InputError as exc:
+            raise ConfigError(str(exc)) from exc
+        self.send_delay = float(cfg["send_delay"])
+        self.metadata_interval = float(cfg["metadata_interval"])
+        self.origin = (float(cfg["origin_lat"]), float(cfg["origin_lon"]))
+        self.max_queue = int(cfg["max_queue"])
+        self._sent: dict[tuple[tuple[int, int], int], npt.NDArray[np.float64]] = {}
+        self._queue: list[Key] = []
+        self._queued: set[Key] = set()
+        self._last_meta = -math.inf
+        self._meta_due = False
+        self._had_background = False
+        self._pending = 0
+        self.sent_log: list[Subgrid] = []
+        self._cache: dict[Key, tuple[int, Subgrid]] = {}
+
+    # ---------------------------------------------------------------------------- ingest
+
+    def ingest(self, data: Any, now: float) -> None:
+        """Take an ``N x 3`` array, or a path to a ``.npy``, ``.csv`` or ROS 1/2 bag (topic from
+        the ``topic`` option; every PointCloud2 topic when unset)."""
+        if isinstance(data, str | Path):
+            for _, xyz in iter_points(data, topic=self.config["topic"]):
+                self.map.add_points(xyz, now)
+            return
+        if isinstance(data, np.ndarray | list | tuple):
+            self.map.add_points(np.asarray(data), now)
+            return
+        raise InputError(f"cannot ingest {type(data).__name__}: give an N x 3 array or a file path")
+
+    # ------------------------------------------------------------------------ subgrids
+
+    def _sent_array(self, tile: tuple[int, int], level: int) -> npt.NDArray[np.float64]:
+        arr = self._sent.get((tile, level))
+        if arr is None:
+            p = self.map.subgrids_per_tile(level)
+            arr = np.full((p, p), -np.inf)
+            self._sent[(tile, level)] = arr
+        return arr
+
+    def subgrid_time(self, key: Key) -> float:
+        """Last update of subgrid ``key`` (``-inf`` when it holds no data)."""
+        level, ix, iy = key
+        tile, a, b = self.map.tile_of_subgrid(level, ix, iy)
+        if tile not in self.map._slots:  # noqa: SLF001 (same package)
+            return -math.inf
+        return float(self.map.subgrid_times(tile, level)[b, a])
+
+    def build(self, key: Key) -> Subgrid | None:
+        """The current Subgrid message for ``key`` (None when the map has nothing there).
+
+        Built subgrids are cached until their tile changes (a subgrid that did not fit in one
+        packet is not coded again for the next)."""
+        level, ix, iy = key
+        tile, _, _ = self.map.tile_of_subgrid(level, ix, iy)
+        version = self.map.tile_version(tile)
+        hit = self._cache.get(key)
+        if hit is not None and hit[0] == version:
+            return hit[1]
+        sg = self._build(key)
+        if sg is not None:
+            self._cache[key] = (version, sg)
+        return sg
+
+    def _build(self, key: Key) -> Subgrid | None:
+        level, ix, iy = key
+        blk = self.map.block(level, ix, iy)
+        if blk is None or not (blk.count > 0).any():
+            return None
+        present = blk.count > 0
+        q = np.zeros(blk.mean.shape, np.int64)
+        q[present] = np.rint(blk.mean[present] / self.map.vertical_resolution).astype(np.int64)
+        return encode_subgrid(
+            q, present, level=level, ix=ix, iy=iy, stamp=to_stamp(blk.updated),
+            resolution=self.map.resolution, vertical_resolution=self.map.vertical_resolution,
+        )
+
+    def _mark_sent(self, key: Key, updated: float) -> None:
+        self._cache.pop(key, None)
+        level, ix, iy = key
+        tile, a, b = self.map.tile_of_subgrid(level, ix, iy)
+        arr = self._sent_array(tile, level)
+        arr[b, a] = max(arr[b, a], updated)
+
+    def _background(self, now: float) -> list[tuple[int, float, Key]]:
+        """Eligible background subgrids, coarsest level first, oldest update first."""
+        out: list[tuple[int, float, Key]] = []
+        changed = 0
+        for level in range(self.map.levels - 1, -1, -1):
+            p = self.map.subgrids_per_tile(level)
+            for tile in self.map.tiles:
+                times = self.map.subgrid_times(tile, level)
+                sent = self._sent_array(tile, level)
+                dirty = np.isfinite(times) & (times > sent)
+                changed += int(dirty.sum())
+                elig = dirty & (now - times >= self.send_delay)
+                for b, a in zip(*np.nonzero(elig), strict=True):
+                    out.append((-level, float(times[b, a]), (level, tile[0] * p + int(a), tile[1] * p + int(b))))
+        out.sort()
+        self._pending = changed + len(self._queue)
+        return out
+
+    def inventory(self) -> dict[Key, int]:
+        """Every subgrid holding data, with the stamp it would be sent with."""
+        inv: dict[Key, int] = {}
+        for level in range(self.map.levels):
+            p = self.map.subgrids_per_tile(level)
+            for tile in self.map.tiles:
+                times = self.map.subgrid_times(tile, level)
+                for b, a in zip(*np.nonzero(np.isfinite(times)), strict=True):
+                    inv[(level, tile[0] * p + int(a), tile[1] * p + int(b))] = to_stamp(float(times[b, a]))
+        return inv
+
+    def metadata(self, now: float) -> MapMetadata:
+        ext = self.map.extent() or (0.0, 0.0, 0.0, 0.0)
+        lim = 65535
+
+        def clamp(v: float) -> int:
+            return int(min(max(math.floor(v), -lim - 1), lim))
+
+        stamp = to_stamp(self.map.last_update if math.isfinite(self.map.last_update) else now)
+        return MapMetadata(
+            stamp=stamp, resolution=self.map.resolution, vertical_resolution=self.map.vertical_resolution,
+            subgrid_side=self.map.subgrid_side, levels=self.map.levels,
+            origin_lat=round(self.origin[0], 6), origin_lon=round(self.origin[1], 6),
+            x_min=clamp(ext[0]), y_min=clamp(ext[1]), x_max=clamp(ext[2]), y_max=clamp(ext[3]),
+            pending=min(self._pending, 65535),
+        )
+
+    # ----------------------------------------------------------------------------- fill
+
+    def fill(self, max_bytes: int, now: float) -> list[Message]:
+        out: list[Message] = []
+        left = int(max_bytes)
+        if left <= 0:
+            return out
+        self.map.flush()
+        if not self.map.tiles:
+            return out
+        background = self._background(now)
+        if background:
+            self._had_background = True
+        elif self._had_background and not self._queue:
+            self._had_background = False
+            self._meta_due = True  # tell topside the background is done (it may fill gaps)
+        if self._meta_due or now - self._last_meta >= self.metadata_interval:
+            meta = self.metadata(now)
+            size = wire.encoded_size(meta)
+            if size <= left:
+                out.append(meta)
+                left -= size
+                self._last_meta = now
+                self._meta_due = False
+        # Requested subgrids first.
+        remaining: list[Key] = []
+        for key in self._queue:
+            if left < MIN_SUBGRID_BYTES:
+                remaining.append(key)
+                continue
+            sg = self.build(key)
+            if sg is None:
+                self._queued.discard(key)
+                continue
+            size = (subgrid_bits(sg) + 7) // 8
+            if size <= left:
+                out.append(sg)
+                left -= size
+                self._queued.discard(key)
+                self._mark_sent(key, self.subgrid_time(key))
+                self.sent_log.append(sg)
+            else:
+                remaining.append(key)
+        self._queue = remaining
+        for _, updated, key in background:
+            if left < MIN_SUBGRID_BYTES:
+                break
+            if key in self._queued:
+                continue
+            sg = self.build(key)
+            if sg is None:
+                continue
+            size = (subgrid_bits(sg) + 7) // 8
+            if size <= left:
+                out.append(sg)
+                left -= size
+                self._mark_sent(key, updated)
+                self.sent_log.append(sg)
+        return out
+
+    def pending_bytes(self) -> int:
+        return 40 * (self._pending + len(self._queue))
+
+    # --------------------------------------------------------------------------- requests
+
+    def handle(self, message: Message, now: float) -> list[Message]:
+        if not isinstance(message, MapRoiRequest):
+            raise RequestRejected(f"the bathymetry sender does not handle {type(message).__name__}")
+        r = message
+        self.map.flush()
+        if not (isinstance(r.level, int) and 0 <= r.level < self.map.levels):
+            raise RequestRejected(f"level {r.level} outside 0..{self.map.levels - 1}")
+        if not (isinstance(r.w, int) and isinstance(r.h, int) and 1 <= r.w <= 16 and 1 <= r.h <= 16):
+            raise RequestRejected(f"region {r.w} x {r.h} subgrids is outside 1..16 x 1..16")
+        if not (-8192 <= r.x0 and r.x0 + r.w <= 8192 and -8192 <= r.y0 and r.y0 + r.h <= 8192):
+            raise RequestRejected("region outside the addressable map")
+        if not 0 <= r.request_id <= 255:
+            raise RequestRejected("request id outside 0..255")
+        n = r.w * r.h
+        if r.fill_gaps:
+            if r.held or r.have is None or not 0 <= r.have < (1 << n):
+                raise RequestRejected("a gap-filling request carries a w*h-bit 'have' bitmap and no stamps")
+        elif len(r.held) != n or n > 64:
+            raise RequestRejected(f"a region request lists one stamp per subgrid (w*h = {n} <= 64)")
+        if len(self._queue) + n > self.max_queue:
+            raise RequestRejected("too many subgrids already queued for requests")
+        queued = 0
+        for i in range(n):
+            key = (r.level, r.x0 + i % r.w, r.y0 + i // r.w)
+            updated = self.subgrid_time(key)
+            if not math.isfinite(updated):
+                continue
+            if r.fill_gaps:
+                assert r.have is not None
+                want = not (r.have >> (n - 1 - i)) & 1
+            else:
+                held = r.held[i]
+                want = held is None or math.floor(updated) > unwrap(held, now)
+            if want:
+                queued += 1
+                if key not in self._queued:
+                    self._queue.append(key)
+                    self._queued.add(key)
+        return [MapRoiReply(r.request_id, r.level, min(queued, 1023))]

@@ -1,0 +1,263 @@
+"""Topside products: GeoTIFF and PNG export of a level, and candidate-target flagging.
+
+GeoTIFF: float32, NaN = no data (``GDAL_NODATA`` tag ``nan``), north-up. The CRS is a local metric
+Transverse Mercator centred on the survey's origin (``origin_lat``, ``origin_lon``, WGS 84, scale
+1, no false easting/northing), so map x/y (metres east/north of the origin) are the projected
+coordinates. Written with ``tifffile`` and the GeoTIFF keys (ModelPixelScale, ModelTiepoint,
+GeoKeyDirectory, GeoDoubleParams).
+
+PNG: elevation through a colour map, multiplied by a hillshade (sun from the north-west, 45 deg).
+
+Targets: cells higher than the background around them (the mean of the ring of cells between
+``inner`` and ``outer`` cells away) by more than ``threshold`` metres, grouped into 8-connected
+candidates with position, height above the background and size.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import numpy.typing as npt
+
+__all__ = ["Candidate", "find_targets", "hillshade", "write_geotiff", "write_png"]
+
+FloatArray = npt.NDArray[np.float64]
+
+# GeoKey ids and codes (GeoTIFF 1.1).
+_GT_MODEL_TYPE, _GT_RASTER_TYPE, _GT_CITATION = 1024, 1025, 1026
+_GEOGRAPHIC_TYPE, _GEOG_ANGULAR_UNITS = 2048, 2054
+_PROJECTED_CS_TYPE, _PROJECTION, _PROJ_COORD_TRANS, _PROJ_LINEAR_UNITS = 3072, 3074, 3075, 3076
+_PROJ_NAT_ORIGIN_LONG, _PROJ_NAT_ORIGIN_LAT = 3080, 3081
+_PROJ_FALSE_EASTING, _PROJ_FALSE_NORTHING, _PROJ_SCALE_AT_NAT_ORIGIN = 3082, 3083, 3092
+_USER_DEFINED = 32767
+_CT_TRANSVERSE_MERCATOR = 1
+
+
+def _geokeys(origin_lat: float, origin_lon: float) -> tuple[list[int], list[float]]:
+    doubles = [origin_lon, origin_lat, 0.0, 0.0, 1.0]
+    keys = [
+        (_GT_MODEL_TYPE, 0, 1, 1),  # projected
+        (_GT_RASTER_TYPE, 0, 1, 1),  # pixel is area
+        (_GEOGRAPHIC_TYPE, 0, 1, 4326),  # WGS 84
+        (_GEOG_ANGULAR_UNITS, 0, 1, 9102),  # degree
+        (_PROJECTED_CS_TYPE, 0, 1, _USER_DEFINED),
+        (_PROJECTION, 0, 1, _USER_DEFINED),
+        (_PROJ_COORD_TRANS, 0, 1, _CT_TRANSVERSE_MERCATOR),
+        (_PROJ_LINEAR_UNITS, 0, 1, 9001),  # metre
+        (_PROJ_NAT_ORIGIN_LONG, 34736, 1, 0),
+        (_PROJ_NAT_ORIGIN_LAT, 34736, 1, 1),
+        (_PROJ_FALSE_EASTING, 34736, 1, 2),
+        (_PROJ_FALSE_NORTHING, 34736, 1, 3),
+        (_PROJ_SCALE_AT_NAT_ORIGIN, 34736, 1, 4),
+    ]
+    keys.sort()
+    directory = [1, 1, 0, len(keys)]
+    for k in keys:
+        directory.extend(k)
+    return directory, doubles
+
+
+def write_geotiff(
+    path: str | Path,
+    grid: npt.ArrayLike,
+    *,
+    x0: float,
+    y0: float,
+    cell: float,
+    origin_lat: float = 0.0,
+    origin_lon: float = 0.0,
+) -> Path:
+    """Write ``grid`` (row 0 = south, as the map holds it) with south-west corner ``(x0, y0)``."""
+    import tifffile
+
+    arr = np.flipud(np.asarray(grid, np.float64)).astype(np.float32)
+    rows = arr.shape[0]
+    directory, doubles = _geokeys(origin_lat, origin_lon)
+    tags: list[tuple[int, str, int, Any, bool]] = [
+        (33550, "d", 3, (cell, cell, 0.0), True),  # ModelPixelScale
+        (33922, "d", 6, (0.0, 0.0, 0.0, x0, y0 + rows * cell, 0.0), True),  # ModelTiepoint (top-left)
+        (34735, "H", len(directory), tuple(directory), True),  # GeoKeyDirectory
+        (34736, "d", len(doubles), tuple(doubles), True),  # GeoDoubleParams
+        (42113, "s", 4, "nan", True),  # GDAL_NODATA
+    ]
+    out = Path(path)
+    tifffile.imwrite(out, arr, photometric="minisblack", extratags=tags)
+    return out
+
+
+def read_geotiff(path: str | Path) -> tuple[FloatArray, dict[str, Any]]:
+    """Read back a GeoTIFF written by :func:`write_geotiff`: grid (row 0 = south) and geo tags."""
+    import tifffile
+
+    with tifffile.TiffFile(path) as tif:
+        page = tif.pages[0]
+        arr = np.flipud(page.asarray().astype(np.float64))  # type: ignore[union-attr]
+        tags = {t.name: t.value for t in page.tags.values()}  # type: ignore[union-attr]
+    scale = tags["ModelPixelScaleTag"]
+    tie = tags["ModelTiepointTag"]
+    geo = {
+        "cell": float(scale[0]),
+        "x0": float(tie[3]),
+        "y0": float(tie[4]) - arr.shape[0] * float(scale[1]),
+        "geokeys": tags.get("GeoKeyDirectoryTag"),
+        "geodoubles": tags.get("GeoDoubleParamsTag"),
+        "nodata": tags.get("GDAL_NODATA"),
+    }
+    return arr, geo
+
+
+def hillshade(grid: npt.ArrayLike, cell: float, azimuth: float = 315.0, altitude: float = 45.0) -> FloatArray:
+    """Lambertian hillshade in 0..1 (row 0 = south); NaN cells give 1 (unshaded)."""
+    z = np.asarray(grid, np.float64)
+    if z.size == 0:
+        return np.ones_like(z)
+    fill = np.where(np.isfinite(z), z, np.nanmean(z) if np.isfinite(z).any() else 0.0)
+    if min(z.shape) < 2:
+        return np.ones_like(z)
+    dzdy, dzdx = np.gradient(fill, cell)
+    az, alt = np.radians(azimuth), np.radians(altitude)
+    # sun direction (east, north, up)
+    sx, sy, sz = np.sin(az) * np.cos(alt), np.cos(az) * np.cos(alt), np.sin(alt)
+    norm = np.sqrt(dzdx**2 + dzdy**2 + 1.0)
+    shade = (-dzdx * sx - dzdy * sy + sz) / norm
+    shade = np.clip(shade, 0.0, 1.0)
+    return np.asarray(np.where(np.isfinite(z), shade, 1.0), np.float64)
+
+
+_STOPS = np.array([0.0, 0.25, 0.5, 0.75, 1.0])
+_COLOURS = np.array([
+    [68, 1, 84], [59, 82, 139], [33, 145, 140], [94, 201, 98], [253, 231, 37],
+], np.float64)  # viridis at five stops
+
+
+def write_png(path: str | Path, grid: npt.ArrayLike, cell: float = 1.0) -> Path:
+    """Colour-mapped elevation with hillshade, north up; no-data cells are transparent."""
+    from PIL import Image
+
+    z = np.asarray(grid, np.float64)
+    ok = np.isfinite(z)
+    if ok.any():
+        lo, hi = np.percentile(z[ok], [1, 99])
+    else:
+        lo, hi = 0.0, 1.0
+    t = np.clip((np.where(ok, z, lo) - lo) / max(hi - lo, 1e-9), 0.0, 1.0)
+    rgb = np.stack([np.interp(t, _STOPS, _COLOURS[:, c]) for c in range(3)], axis=-1)
+    shade = 0.35 + 0.65 * hillshade(z, cell)
+    rgb = rgb * shade[..., None]
+    alpha = np.where(ok, 255, 0)
+    rgba = np.concatenate([rgb, alpha[..., None]], axis=-1).clip(0, 255).astype(np.uint8)
+    out = Path(path)
+    Image.fromarray(np.flipud(rgba), "RGBA").save(out)
+    return out
+
+
+@dataclass(frozen=True)
+class Candidate:
+    """A candidate target: centre (x, y) in metres, height above its surroundings, cells flagged."""
+
+    x: float
+    y: float
+    height: float
+    cells: int
+    peak_x: float
+    peak_y: float
+
+    def to_dict(self) -> dict[str, float | int]:
+        return asdict(self)
+
+
+def _box_sum(a: FloatArray, r: int) -> FloatArray:
+    """Sum over the (2r+1) square around every cell (zero padding), via 2-D cumulative sums."""
+    p = np.pad(a, ((r + 1, r), (r + 1, r)))
+    c = p.cumsum(0).cumsum(1)
+    k = 2 * r + 1
+    return np.asarray(c[k:, k:] - c[:-k, k:] - c[k:, :-k] + c[:-k, :-k], np.float64)
+
+
+def find_targets(
+    grid: npt.ArrayLike,
+    *,
+    cell: float,
+    x0: float = 0.0,
+    y0: float = 0.0,
+    threshold: float = 0.8,
+    inner: int | None = None,
+    outer: int | None = None,
+    min_cells: int = 2,
+    max_area: float = 60.0,
+) -> list[Candidate]:
+    """Cells standing out from their neighbourhood by more than ``threshold`` metres.
+
+    The background of a cell is the mean of the cells in the ring between ``inner`` and
+    ``outer`` cells away (defaults: about 4 m and 12 m, at least 2 and 4 cells), so an object
+    up to ~8 m across does not raise its own background. Flagged cells are grouped (8-connected)
+    into candidates, highest first. Groups of fewer than ``min_cells`` cells (single-cell spikes
+    are what swath-edge outliers look like) or larger than ``max_area`` square metres (terrain,
+    not an object) are left out."""
+    z = np.asarray(grid, np.float64)
+    if z.size == 0:
+        return []
+    inner = inner if inner is not None else max(2, int(round(4.0 / cell)))
+    outer = outer if outer is not None else max(inner + 2, int(round(12.0 / cell)))
+    ok = np.isfinite(z)
+    zf = np.where(ok, z, 0.0)
+    w = ok.astype(np.float64)
+    ring_sum = _box_sum(zf, outer) - _box_sum(zf, inner)
+    ring_n = _box_sum(w, outer) - _box_sum(w, inner)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        background = ring_sum / ring_n
+    enough = ring_n >= 0.3 * ((2 * outer + 1) ** 2 - (2 * inner + 1) ** 2)
+    excess = z - background
+    flag = ok & enough & (excess > threshold)
+    if not flag.any():
+        return []
+    labels = _label(flag)
+    ids = labels[flag]
+    ex = excess[flag]
+    rows, cols = np.nonzero(flag)
+    n = int(ids.max()) + 1
+    count = np.bincount(ids, minlength=n)
+    height = np.full(n, -np.inf)
+    np.maximum.at(height, ids, ex)
+    cx = np.bincount(ids, weights=cols, minlength=n) / np.maximum(count, 1)
+    cy = np.bincount(ids, weights=rows, minlength=n) / np.maximum(count, 1)
+    # peak cell per component: the flagged cell with the highest excess
+    order = np.lexsort((-ex, ids))
+    first = order[np.flatnonzero(np.diff(ids[order], prepend=-1))]
+    out = []
+    for i in first:
+        lab = int(ids[i])
+        if count[lab] < min_cells or count[lab] * cell * cell > max_area:
+            continue
+        out.append(Candidate(
+            x=float(x0 + (cx[lab] + 0.5) * cell), y=float(y0 + (cy[lab] + 0.5) * cell),
+            height=float(height[lab]), cells=int(count[lab]),
+            peak_x=float(x0 + (cols[i] + 0.5) * cell), peak_y=float(y0 + (rows[i] + 0.5) * cell),
+        ))
+    out.sort(key=lambda c: -c.height)
+    return out
+
+
+def _label(mask: npt.NDArray[np.bool_]) -> npt.NDArray[np.int64]:
+    """8-connected component labels (0..n-1 on ``mask``, -1 elsewhere) by min-label propagation."""
+    big = np.iinfo(np.int64).max
+    lab = np.where(mask, np.arange(mask.size).reshape(mask.shape), big)
+    while True:
+        p = np.pad(lab, 1, constant_values=big)
+        h, w = mask.shape
+        best = lab.copy()
+        for dy in (0, 1, 2):
+            for dx in (0, 1, 2):
+                best = np.minimum(best, p[dy:dy + h, dx:dx + w])
+        best = np.where(mask, best, big)
+        if np.array_equal(best, lab):
+            break
+        lab = best
+    flat = lab[mask]
+    _, dense = np.unique(flat, return_inverse=True)
+    out = np.full(mask.shape, -1, np.int64)
+    out[mask] = dense.ravel()
+    return out
