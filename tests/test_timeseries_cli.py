@@ -56,10 +56,11 @@ def test_roundtrip_writes_messages_and_budgeted_reconstructions(
     errors = []
     for b in budgets:
         header, table = _read(out / f"recon_{b}.csv")
-        if b == 100:  # not even one whole overview of each channel yet
-            assert table.shape[0] == series[0].times.size
-            continue
         assert header == ["time", "methane", "temperature", "methane_bound", "temperature_bound"]
+        assert table.shape == (series[0].times.size, 5)
+        if b == 100:  # only the registrations and the first chunk fit: most cells are still empty
+            assert np.isnan(table[:, 1:]).mean() > 0.5
+            continue
         np.testing.assert_allclose(table[:, 0], series[0].times, atol=1e-3)
         err = []
         for j, s in enumerate(series):

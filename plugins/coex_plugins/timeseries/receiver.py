@@ -334,12 +334,14 @@ class TimeSeriesReceiver(ModalityReceiver):
 
     def to_csv(self, target: str | Path | io.TextIOBase | None = None,
                times: Sequence[float] | np.ndarray | None = None,
-               channels: Sequence[str | int] | None = None) -> str:
+               channels: Sequence[str | int] | None = None,
+               names: Sequence[str] | None = None) -> str:
         """Export ``time``, one column per channel, then one ``<name>_bound`` column each.
 
         Values are given at ``times`` (linear interpolation of each block's grid; empty where
-        no block covers the time), or at the union of the channels' grid times. Returns the
-        text and writes it to ``target`` when given."""
+        no block covers the time), or at the union of the channels' grid times. ``channels``
+        (names or ids) picks and orders the channels, ``names`` renames their columns. Returns
+        the text and writes it to ``target`` when given."""
         chans = [self._find(c) for c in channels] if channels is not None else [
             ch for _, ch in sorted(self._channels.items())]
         series = [self._series(ch) for ch in chans]
@@ -354,7 +356,10 @@ class TimeSeriesReceiver(ModalityReceiver):
             cols_b.append(b)
         buf = io.StringIO()
         w = csv.writer(buf, lineterminator="\n")
-        w.writerow(["time", *(s.name for s in series), *(f"{s.name}_bound" for s in series)])
+        labels = list(names) if names is not None else [s.name for s in series]
+        if len(labels) != len(series):
+            raise ConfigError(f"{len(labels)} names for {len(series)} channels")
+        w.writerow(["time", *labels, *(f"{n}_bound" for n in labels)])
         table = [np.char.mod("%.3f", grid)]
         table += [np.where(np.isnan(c), "", np.char.mod("%.10g", c)) for c in cols_v + cols_b]
         if grid.size:
