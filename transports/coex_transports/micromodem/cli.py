@@ -13,6 +13,7 @@ from __future__ import annotations
 import argparse
 import sys
 import time
+from collections.abc import Sequence
 from typing import Any
 
 from coex_core.errors import ConfigError
@@ -54,7 +55,7 @@ def run(args: argparse.Namespace) -> int:
         raise ConfigError("--speed must be positive")
     channel = AcousticChannel(loss=args.loss, bit_error_rate=args.ber, sound_speed=args.sound_speed,
                               seed=args.seed)
-    positions = {n: (i * args.spacing, 0.0, 0.0) for i, n in enumerate(args.nodes)}
+    positions: dict[int, Sequence[float]] = {n: (i * args.spacing, 0.0, 0.0) for i, n in enumerate(args.nodes)}
     network = ModemNetwork(positions, channel=channel)
     tcp = None if args.tcp_base is None else {n: args.tcp_base + i for i, n in enumerate(args.nodes)}
     sim = PtySimulator(network, tcp_ports=tcp, speed=args.speed)

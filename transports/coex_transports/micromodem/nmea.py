@@ -131,7 +131,7 @@ class Sentence:
         except IndexError:
             raise NmeaError(f"${self.ident}: field {index + 1} missing") from None
 
-    def int(self, index: int, lo: int | None = None, hi: int | None = None) -> int:
+    def integer(self, index: int, lo: int | None = None, hi: int | None = None) -> int:
         text = self.field(index)
         try:
             value = int(text, 10)
@@ -141,7 +141,7 @@ class Sentence:
             raise NmeaError(f"${self.ident}: field {index + 1} = {value} out of [{lo}, {hi}]")
         return value
 
-    def float(self, index: int) -> float:
+    def number(self, index: int) -> float:
         text = self.field(index)
         try:
             value = float(text)
@@ -444,28 +444,28 @@ def _expect(s: Sentence, kind: str) -> None:
 
 
 def _flag(s: Sentence, i: int) -> bool:
-    return s.int(i, 0, 1) == 1
+    return s.integer(i, 0, 1) == 1
 
 
 def parse_cacyc(s: Sentence) -> CycleInit:
     _expect(s, "CYC")
-    return CycleInit(s.int(1, 0, 255), s.int(2, 0, 255), s.int(3, 0, 6), _flag(s, 4), s.int(5, 0, 64))
+    return CycleInit(s.integer(1, 0, 255), s.integer(2, 0, 255), s.integer(3, 0, 6), _flag(s, 4), s.integer(5, 0, 64))
 
 
 def parse_cadrq(s: Sentence) -> DataRequest:
     _expect(s, "DRQ")
-    return DataRequest(s.int(1, 0, 255), s.int(2, 0, 255), _flag(s, 3), s.int(4, 0, 4096), s.int(5, 1, 64))
+    return DataRequest(s.integer(1, 0, 255), s.integer(2, 0, 255), _flag(s, 3), s.integer(4, 0, 4096), s.integer(5, 1, 64))
 
 
 def parse_carxd(s: Sentence) -> RxData:
     _expect(s, "RXD")
-    return RxData(s.int(0, 0, 255), s.int(1, 0, 255), _flag(s, 2), s.int(3, 1, 64),
+    return RxData(s.integer(0, 0, 255), s.integer(1, 0, 255), _flag(s, 2), s.integer(3, 1, 64),
                   unhex_field(s.field(4), ident=s.ident))
 
 
 def parse_caack(s: Sentence) -> Ack:
     _expect(s, "ACK")
-    return Ack(s.int(0, 0, 255), s.int(1, 0, 255), s.int(2, 0, 64), _flag(s, 3))
+    return Ack(s.integer(0, 0, 255), s.integer(1, 0, 255), s.integer(2, 0, 64), _flag(s, 3))
 
 
 def parse_carev(s: Sentence) -> Revision:
@@ -481,7 +481,7 @@ def parse_caerr(s: Sentence) -> ModemError:
 
 def parse_campr(s: Sentence) -> PingReply:
     _expect(s, "MPR")
-    return PingReply(s.int(0, 0, 255), s.int(1, 0, 255), abs(s.float(2)))
+    return PingReply(s.integer(0, 0, 255), s.integer(1, 0, 255), abs(s.number(2)))
 
 
 def _fdp_frames(s: Sentence, text: str, base64data: bool) -> tuple[FdpFrame, ...]:
@@ -511,7 +511,7 @@ def parse_cardp(s: Sentence, *, base64data: bool = False) -> FdpReceive:
     _expect(s, "RDP")
     if len(s.fields) != 7:
         raise NmeaError(f"$CARDP has {len(s.fields)} fields, expected 7")
-    return FdpReceive(s.int(0, 0, 255), s.int(1, 0, 255), s.int(2, 0, 15), _flag(s, 3),
+    return FdpReceive(s.integer(0, 0, 255), s.integer(1, 0, 255), s.integer(2, 0, 15), _flag(s, 3),
                       _fdp_frames(s, s.field(5), base64data), _fdp_frames(s, s.field(6), base64data))
 
 
@@ -519,7 +519,7 @@ def parse_cacst(s: Sentence) -> ReceiveStats:
     """Versions 6, 7 (30+ fields) and 8 (34 fields); a first field below 6 is the Micromodem-1
     layout (no VERSION field, 29 fields)."""
     _expect(s, "CST")
-    first = s.int(0, 0)
+    first = s.integer(0, 0)
     if first >= 6:
         version, o = first, 1
         if len(s.fields) < 30:
@@ -528,20 +528,20 @@ def parse_cacst(s: Sentence) -> ReceiveStats:
         version, o = 0, 0
         if len(s.fields) < 29:
             raise NmeaError(f"$CACST (Micromodem-1) has {len(s.fields)} fields, expected 29")
-    mode = s.int(o, 0, 9)
+    mode = s.integer(o, 0, 9)
     toa = s.field(o + 1)
     extra: dict[str, int] = {}
     if version >= 8 and len(s.fields) >= 34:
         for i, name in enumerate(("seq", "data_rate", "data_frames", "bad_data_frames")):
-            extra[name] = s.int(30 + i)
+            extra[name] = s.integer(30 + i)
     return ReceiveStats(
         version=version, mode=mode, toa=toa,
-        rate=s.int(o + 12, 0, 15), src=s.int(o + 13, 0, 255), dest=s.int(o + 14, 0, 255),
-        psk_error=s.int(o + 15, 0, 99), packet_type=s.int(o + 16, -1, 99),
-        frames=s.int(o + 17, 0, 255), bad_frames=s.int(o + 18, 0, 255),
-        snr_rss=s.float(o + 19), snr_in=s.float(o + 20), snr_out=s.float(o + 21),
-        snr_sym=s.float(o + 22), mse=s.float(o + 23), dqf=int(s.float(o + 24)),
-        doppler=s.float(o + 25), noise=s.float(o + 26), carrier=s.int(o + 27), bandwidth=s.int(o + 28),
+        rate=s.integer(o + 12, 0, 15), src=s.integer(o + 13, 0, 255), dest=s.integer(o + 14, 0, 255),
+        psk_error=s.integer(o + 15, 0, 99), packet_type=s.integer(o + 16, -1, 99),
+        frames=s.integer(o + 17, 0, 255), bad_frames=s.integer(o + 18, 0, 255),
+        snr_rss=s.number(o + 19), snr_in=s.number(o + 20), snr_out=s.number(o + 21),
+        snr_sym=s.number(o + 22), mse=s.number(o + 23), dqf=int(s.number(o + 24)),
+        doppler=s.number(o + 25), noise=s.number(o + 26), carrier=s.integer(o + 27), bandwidth=s.integer(o + 28),
         extra=extra,
     )
 
@@ -549,7 +549,7 @@ def parse_cacst(s: Sentence) -> ReceiveStats:
 def parse_caxst(s: Sentence) -> TransmitStats:
     """Versions 6-8 (VERSION first) and the Micromodem-1 layout (first field a ``YYYYMMDD`` date)."""
     _expect(s, "XST")
-    first = s.int(0, 0)
+    first = s.integer(0, 0)
     if first > 19700000:
         version, o = 0, 0
     else:
@@ -557,10 +557,10 @@ def parse_caxst(s: Sentence) -> TransmitStats:
     if len(s.fields) < o + 15:
         raise NmeaError(f"$CAXST has {len(s.fields)} fields, expected >= {o + 15}")
     return TransmitStats(
-        version=version, date=s.field(o), time=s.field(o + 1), mode=s.int(o + 3, 0, 99),
-        rate=s.int(o + 7, 0, 15), src=s.int(o + 8, 0, 255), dest=s.int(o + 9, 0, 255),
-        ack=s.int(o + 10, 0, 1) == 1, frames_expected=s.int(o + 11, 0, 255),
-        frames_sent=s.int(o + 12, 0, 255), packet_type=s.int(o + 13, -1, 99), nbytes=s.int(o + 14, 0),
+        version=version, date=s.field(o), time=s.field(o + 1), mode=s.integer(o + 3, 0, 99),
+        rate=s.integer(o + 7, 0, 15), src=s.integer(o + 8, 0, 255), dest=s.integer(o + 9, 0, 255),
+        ack=s.integer(o + 10, 0, 1) == 1, frames_expected=s.integer(o + 11, 0, 255),
+        frames_sent=s.integer(o + 12, 0, 255), packet_type=s.integer(o + 13, -1, 99), nbytes=s.integer(o + 14, 0),
     )
 
 

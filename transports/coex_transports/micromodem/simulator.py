@@ -207,7 +207,7 @@ class SimulatedModem:
             if name not in self.nvram and not name.isupper() and "." not in name:
                 raise NmeaError(f"unknown setting {name}")
             if name == "SRC":
-                s.int(1, 0, 127)
+                s.integer(1, 0, 127)
             self.nvram[name] = value
         self._emit("CACFG", [name, value])
         if name == "REV" and value == "1" and self._next_rev is None:
@@ -224,7 +224,7 @@ class SimulatedModem:
             self._emit("CAERR", [nmea.hhmmss(now), "CFG", 4, f"unknown setting {name}"])
 
     def _cc_clk(self, s: Sentence, now: float) -> None:
-        fields = [s.int(i) for i in range(6)]
+        fields = [s.integer(i) for i in range(6)]
         self._emit("CACLK", fields)
 
     def _cc_tms(self, s: Sentence, now: float) -> None:
@@ -238,8 +238,8 @@ class SimulatedModem:
         self._emit("CAMSC", list(s.fields))
 
     def _cc_cyc(self, s: Sentence, now: float) -> None:
-        src, dest, rate = s.int(1, 0, 127), s.int(2, 0, 127), s.int(3, 0, 6)
-        ack, nframes = s.int(4, 0, 1) == 1, s.int(5, 0, 64)
+        src, dest, rate = s.integer(1, 0, 127), s.integer(2, 0, 127), s.integer(3, 0, 6)
+        ack, nframes = s.integer(4, 0, 1) == 1, s.integer(5, 0, 64)
         if self._cycle is not None or now < self._air_until:
             self._emit("CAERR", [nmea.hhmmss(now), "CYC", 5, "modem busy"])
             return
@@ -324,8 +324,8 @@ class SimulatedModem:
         self._at(end, done)
 
     def _cc_tdp(self, s: Sentence, now: float) -> None:
-        dest, rate = s.int(0, 0, 127), s.int(1, 0, 15)
-        ack, reserved = s.int(2, 0, 1), s.field(3)
+        dest, rate = s.integer(0, 0, 127), s.integer(1, 0, 15)
+        ack, reserved = s.integer(2, 0, 1), s.field(3)
         if rate not in FDP_RATES:
             self._emit("CAERR", [nmea.hhmmss(now), "TDP", 7, f"rate {rate} is not an FDP rate"])
             return
@@ -353,7 +353,7 @@ class SimulatedModem:
         self._at(end, done)
 
     def _cc_mpc(self, s: Sentence, now: float) -> None:
-        src, dest = s.int(0, 0, 127), s.int(1, 0, 127)
+        src, dest = s.integer(0, 0, 127), s.integer(1, 0, 127)
         if now < self._air_until or self._cycle is not None:
             self._emit("CAERR", [nmea.hhmmss(now), "MPC", 5, "modem busy"])
             return

@@ -15,14 +15,14 @@ from __future__ import annotations
 from collections.abc import Iterator
 
 import pytest
-from coex_conformance import TransportFixtures
+from coex_conformance import TransportFixtures  # type: ignore[import-untyped]
 
 from .transport import MicromodemTransport
 
 __all__ = ["MicromodemFixtures"]
 
 
-class MicromodemFixtures(TransportFixtures):
+class MicromodemFixtures(TransportFixtures):  # type: ignore[misc]
     @pytest.fixture
     def transport_pair(self) -> Iterator[tuple[MicromodemTransport, MicromodemTransport]]:
         from coex_core.acoustic import AcousticChannel

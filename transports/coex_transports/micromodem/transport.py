@@ -168,8 +168,8 @@ class _SimBackend(_Backend):
         if timeout is None:
             # nothing else can happen in a single-threaded simulation once the network is quiet
             self.network.run_while(lambda: not ready() and self.network.busy(), 1e9)
-            return ready()
-        return self.network.run_while(lambda: not ready(), timeout)
+            return bool(ready())
+        return bool(self.network.run_while(lambda: not ready(), timeout))
 
 
 class MicromodemTransport(Transport):
