@@ -5,6 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 from coex_plugins.timeseries import codec
+from hypothesis import given
+from hypothesis import strategies as st
 
 from coex_core.messages import Wavelet
 
@@ -128,3 +130,14 @@ def test_split_pass_pieces_fit_cover_and_decode_alone() -> None:
         np.testing.assert_array_equal(got, codes[first:end])
         pos = end
     assert pos == codes.size
+
+
+@given(
+    codes=st.lists(st.one_of(st.integers(-3, 3), st.integers(-(2**40), 2**40)), min_size=1, max_size=300),
+    n_approx=st.integers(0, 40),
+    dpcm=st.booleans(),
+)
+def test_coefficient_code_roundtrip_property(codes: list[int], n_approx: int, dpcm: bool) -> None:
+    arr = np.array(codes, dtype=np.int64)
+    data = codec.encode_codes(arr, n_approx, dpcm=dpcm)
+    np.testing.assert_array_equal(codec.decode_codes(data, arr.size, n_approx), arr)
