@@ -20,6 +20,9 @@ from __future__ import annotations
 import base64
 import binascii
 import datetime as _dt
+import functools
+import operator
+import re
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
 
@@ -105,10 +108,7 @@ FDP_RATES: dict[int, LegacyRate] = {1: RATES[1], 3: RATES[3], 5: RATES[5]}
 def checksum(body: str | bytes) -> str:
     """XOR of every byte of ``body`` (the text between ``$`` and ``*``) as two uppercase hex digits."""
     data = body.encode("ascii") if isinstance(body, str) else body
-    value = 0
-    for b in data:
-        value ^= b
-    return f"{value:02X}"
+    return f"{functools.reduce(operator.xor, data, 0):02X}"
 
 
 @dataclass(frozen=True)
@@ -278,18 +278,12 @@ class LineSplitter:
         return len(self._buf)
 
 
+_EOL = re.compile(rb"([\r\n])")
+
+
 def _split_keep(data: bytes) -> list[bytes]:
-    out: list[bytes] = []
-    start = 0
-    for i, b in enumerate(data):
-        if b in (13, 10):
-            if i > start:
-                out.append(data[start:i])
-            out.append(data[i:i + 1])
-            start = i + 1
-    if start < len(data):
-        out.append(data[start:])
-    return out
+    """``data`` cut at CR and LF, keeping each terminator as its own item."""
+    return [part for part in _EOL.split(data) if part]
 
 
 def hhmmss(now: float) -> str:
