@@ -499,3 +499,19 @@ def test_posix_times_from_a_zero_epoch() -> None:
         t = nxt + 1e-6
     assert {s for s, _ in starts} == {1, 2, 4, 5}
     assert len(starts) == 6 * 4  # 6 packets in each of the 4 vehicle slots
+
+
+def test_per_link_message_size_cap() -> None:
+    m = manager(links=two_links())
+    s = FakeSender(size=200, tag=1)
+    m.add_stream(StreamConfig(5, "img", link_max_bytes=((1, 60),)), s)
+    tx = m.build(1, 1.0)  # the slow modem: small pieces only
+    assert tx is not None and all(wire.encoded_size(x) <= 60 for x in messages_of(tx.frames))
+    assert max(s.calls) == 60
+    m.push(5, blob(100, 2), 2.0)
+    tx = m.build(1, 3.0)
+    assert tx is not None and blob(100, 2) not in messages_of(tx.frames)  # too big for link 1
+    tx = m.build(0, 4.0)
+    assert tx is not None and blob(100, 2) in messages_of(tx.frames)
+    cfg = StreamConfig.from_dict(json.loads(json.dumps(m.stream(5).config.to_dict())))
+    assert cfg.max_bytes_on(1) == 60 and cfg.max_bytes_on(0) is None

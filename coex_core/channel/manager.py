@@ -628,8 +628,10 @@ class ChannelManager:
             if not q.entries or not self._eligible(q, link, w, now):
                 continue
             entry = None
+            cap = q.config.max_bytes_on(link)
+            room = left if cap is None else min(left, cap)
             for e in q.ordered():
-                if e.size <= left and self._sendable(e, now, link):
+                if e.size <= room and self._sendable(e, now, link):
                     entry = e
                     break
             if entry is None:
@@ -666,9 +668,13 @@ class ChannelManager:
             q = s.queue
             sender = s.sender
             assert sender is not None
+            cap = q.config.max_bytes_on(link)
+            ask = left if cap is None else min(left, cap)
+            if ask <= 0:
+                continue
             start = self.clock() if self.clock is not None else 0.0
             try:
-                got = sender.fill(left, now)
+                got = sender.fill(ask, now)
                 if not isinstance(got, list | tuple):
                     raise TypeError(f"fill returned {type(got).__name__}, not a list")
             except Exception as exc:  # a failing sender must never stop the packet
@@ -690,7 +696,7 @@ class ChannelManager:
                 if slow:
                     e.hold = self._build_no
                 q.push(e, bypass_depth=True)
-                if size <= left and not slow:
+                if size <= ask and not slow:
                     fits = True
             if slow:
                 exhausted[q.id] = math.inf

@@ -25,8 +25,9 @@ class StreamConfig:
     is the minimum gap between two sends from the stream. ``max_depth`` bounds pushed messages
     (a full newest-first queue drops its oldest, a full oldest-first queue refuses the new one).
     ``ack_required`` keeps a message until a :class:`~coex_core.messages.FrameAck` covers a frame
-    that carried it. ``links`` restricts the stream to some links (``None`` = all). ``tags``
-    let a slot reserve itself for some streams."""
+    that carried it. ``links`` restricts the stream to some links (``None`` = all);
+    ``link_max_bytes`` caps message sizes per link. ``tags`` let a slot reserve itself for some
+    streams."""
 
     stream: int
     name: str = ""
@@ -40,6 +41,9 @@ class StreamConfig:
     enabled: bool = True
     links: frozenset[int] | None = None
     tags: frozenset[str] = field(default_factory=frozenset)
+    #: ``((link, max_bytes), ...)``: largest message this stream may put on a link (smaller,
+    #: coarser pieces on a slow modem); senders are asked for at most that much there.
+    link_max_bytes: tuple[tuple[int, int], ...] = ()
 
     def __post_init__(self) -> None:
         if not 0 <= self.stream <= 31:
@@ -70,7 +74,15 @@ class StreamConfig:
         if kw.get("links") is not None:
             kw["links"] = frozenset(int(x) for x in kw["links"])
         kw["tags"] = frozenset(kw.get("tags", ()))
+        kw["link_max_bytes"] = tuple((int(a), int(b)) for a, b in kw.get("link_max_bytes", ()))
         return cls(**kw)
+
+    def max_bytes_on(self, link: int) -> int | None:
+        """The message size cap on ``link`` (``None``: only the frame limits it)."""
+        for lk, n in self.link_max_bytes:
+            if lk == link:
+                return n
+        return None
 
     def updated(self, **changes: Any) -> StreamConfig:
         return replace(self, **changes)
