@@ -77,13 +77,13 @@ def topside() -> Iterator[tuple[TopsideApp, Vehicle]]:
     app = build_topside(uri, "127.0.0.1", 0, schedule=SCHEDULE,
                         modalities=("bathymetry", "imagery", "timeseries"))
     vehicle = Vehicle(uri)
-    app.start()
-    vehicle.thread.start()
+    app.start()  # the vehicle starts once the page is loaded (the test does it)
     try:
         yield app, vehicle
     finally:
         vehicle.stop.set()
-        vehicle.thread.join(timeout=5)
+        if vehicle.thread.is_alive():
+            vehicle.thread.join(timeout=5)
         app.close()
 
 
@@ -100,14 +100,17 @@ def browser() -> Iterator[Any]:
             b.close()
 
 
+#: Map canvas pixels that are neither background nor grid.
+PAINTED = """(() => {
+    const c = document.querySelector('#map-canvas');
+    const d = c.getContext('2d').getImageData(0, 0, c.width, c.height).data;
+    let n = 0;
+    for (let i = 0; i < d.length; i += 4) if (d[i] + d[i+1] + d[i+2] > 120) n++;
+    return n; })()"""
+
+
 def _painted(page: Any) -> int:
-    """Map canvas pixels that are neither background nor grid."""
-    return int(page.evaluate("""() => {
-        const c = document.querySelector('#map-canvas');
-        const d = c.getContext('2d').getImageData(0, 0, c.width, c.height).data;
-        let n = 0;
-        for (let i = 0; i < d.length; i += 4) if (d[i] + d[i+1] + d[i+2] > 120) n++;
-        return n; }"""))
+    return int(page.evaluate(PAINTED))
 
 
 def test_console_map_updates_and_region_request_reaches_vehicle(
@@ -121,15 +124,17 @@ def test_console_map_updates_and_region_request_reaches_vehicle(
         page.goto(app.url)
         pages.append(page)
     page, other = pages
-    page.wait_for_function("window.coex && window.coex.connected", timeout=10_000)
+    page.wait_for_function("window.coex && window.coex.connected && window.coex.updates > 0",
+                           timeout=10_000)
+    assert page.query_selector_all("#levels-table tbody tr") == []
     empty = _painted(page)
+    vehicle.thread.start()
 
     # the map updates as the vehicle's subgrids arrive (first vehicle slot within 8 s)
     page.wait_for_selector("#levels-table tbody tr", timeout=20_000)
     page.wait_for_function(
         "document.querySelectorAll('#levels-table tbody tr').length >= 3", timeout=20_000)
-    page.wait_for_timeout(500)  # let the level pictures load
-    assert _painted(page) > empty + 5000
+    page.wait_for_function(f"{PAINTED} > {empty + 5000}", timeout=10_000)  # pictures drawn
     with app.hub.lock:
         held = {lv: len(v.tiles) for lv, v in app.hub.state.levels.items()}
     shown = {int(r.get_attribute("data-level")): int(r.query_selector(".n-subgrids").inner_text())
