@@ -184,11 +184,14 @@ def run(cycles: int, seed: int, loss: float = 0.0, requests: bool = True,
 
     vehicle_tx: list[tuple[float, Any]] = []
     answered: dict[int, float] = {}
+    backlog: list[int] = []  # queued bytes not awaiting an ack, after each vehicle packet
 
     def on_tx(node_id: int, tx: Any) -> None:
         if node_id != VEHICLE:
             return
         vehicle_tx.append((tx.start, tx))
+        backlog.append(sum(e.size for q in vmgr.streams if q.id >= 3 for e in q.entries
+                           if not e.pending))
         waiting = {g for s in senders.values() for g, _ in s.handled} - set(answered)
         if not waiting:
             return
@@ -263,6 +266,8 @@ def run(cycles: int, seed: int, loss: float = 0.0, requests: bool = True,
         "utilisation_vs_tdma": round(per_cycle / tdma_limit, 4),
         "vs_nui2022_config": round(per_cycle / nui_limit, 2),
         "sender_failures": vmgr.stats["sender_failures"],
+        "max_backlog_bytes": max(backlog, default=0),
+        "max_backlog_packets": round(max(backlog, default=0) / info.max_bytes, 2),
     }
 
 
@@ -303,6 +308,8 @@ def main(argv: list[str] | None = None) -> int:
     print(f"  10% frame loss: {lo['useful_bytes_per_s']:.0f} B/s useful delivered "
           f"({lo['utilisation_vs_tdma']:.1%} of the TDMA limit), fill {lo['fill']:.2%}, "
           f"requests at next opportunity {lo['requests_next_opportunity']}/{lo['requests']}")
+    print(f"  manager queues stay shallow: at most {c['max_backlog_bytes']} B "
+          f"({c['max_backlog_packets']} packets) queued and not awaiting an ack")
     print(f"  without a sender that cuts to fit (80/144 B pieces + 40..100 B chunks only): fill "
           f"{fixed['fill']:.2%}")
     out = ROOT / "bench" / "results"
