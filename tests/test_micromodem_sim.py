@@ -12,7 +12,7 @@ from typing import Any
 
 import pytest
 from coex_transports.micromodem import MicromodemTransport, nmea
-from coex_transports.micromodem.driver import Acked, PingResult, Rebooted, TxDone
+from coex_transports.micromodem.driver import Acked, DriverConfig, PingResult, Rebooted, TxDone
 from coex_transports.micromodem.simulator import ModemNetwork, PtySimulator
 
 from coex_core.acoustic import AcousticChannel
@@ -247,3 +247,44 @@ def test_modem_sim_command_prints_device_paths() -> None:
     assert all(x.split(": ")[1].startswith("/dev/") for x in lines)
     bad = subprocess.run([*COEX, "modem-sim", "--nodes", "1"], capture_output=True, text=True, timeout=60)
     assert bad.returncode != 0 and "two distinct" in bad.stderr
+
+
+def test_serial_thread_survives_garbage_on_a_pyserial_loop_url() -> None:
+    """The threaded driver on pyserial's ``loop://``: our own sentences come back (ignored), random
+    bytes and truncated lines are dropped, and a good frame in between is still delivered."""
+    import random
+
+    import serial
+
+    port = serial.serial_for_url("loop://", timeout=0.05)
+    t = MicromodemTransport.on_port(port, DriverConfig(src=1, set_clock=False, reply_timeout=0.2, retries=0))
+    try:
+        rng = random.Random(3)
+        for _ in range(50):
+            port.write(bytes(rng.randrange(256) for _ in range(rng.randrange(1, 60))))
+            port.write(b"$CARXD,2,1,0,1,01"[: rng.randrange(1, 17)] + b"\r\n")
+        port.write(b"\r\n" + nmea.format_sentence("CARXD", [2, 1, 0, 1, "c0ffee"]))
+        assert t.recv(timeout=10) == b"\xc0\xff\xee"
+        st = t.stats()
+        assert st["garbage_bytes"] > 0 and st["malformed"] + st["bad_checksum"] > 0
+        assert st["handler_errors"] == 0
+    finally:
+        t.close()
+
+
+def test_unplugged_modem_gives_a_transport_error() -> None:
+    from coex_core.errors import TransportError
+
+    net = ModemNetwork()
+    sim = PtySimulator(net, speed=4.0)
+    sim.start()
+    t = open_transport(f"micromodem://{sim.paths[1]}?src=1&dest=2")
+    try:
+        assert t.wait_ready(10)
+        sim.stop()  # closes the pseudo-terminals under the driver
+        with pytest.raises(TransportError):
+            for _ in range(50):
+                t.recv(timeout=0.2)
+    finally:
+        t.close()
+    assert t.closed
