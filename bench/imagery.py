@@ -95,20 +95,12 @@ def our_curve(img: np.ndarray, mtu: int) -> tuple[list[tuple[int, float, int]], 
     t = Transfer(s, r, mtu=mtu)
     t.run(lambda: not s.order(), 100000)
     # wire bytes before each fragment's frame, and the fragment's fixed parts
-    frags = []
-    before = 0
-    for e in t.events:
-        if e.direction != "down":
-            continue
-        if isinstance(e.message, ImageFragment):
-            frags.append((e.message, e.down_total - e.size))
-        before = e.down_total
-    _ = before
+    frags = [(e.message, e.down_total - e.size) for e in t.events
+             if e.direction == "down" and isinstance(e.message, ImageFragment)]
     enc = tx.enc
     starts = enc.packet_starts
     ends = np.append(starts[1:], len(enc.body))
     pts = []
-    blank = 17.0
     for n in ends:
         n = int(n)
         # the fragment that carries byte n - 1
@@ -122,7 +114,6 @@ def our_curve(img: np.ndarray, mtu: int) -> tuple[list[tuple[int, float, int]], 
         pk = codec.split_packets(enc.body, starts, n)
         q = codec.psnr(codec.decode_packets(enc.params, enc.width, enc.height, pk), img)
         pts.append((cost, q, n))
-    _ = blank
     return pts, tx
 
 

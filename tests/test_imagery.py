@@ -357,3 +357,37 @@ def test_writer_outputs_tiff_and_png_after_each_useful_fragment(tmp_path: Path, 
     tif = tifffile.imread(tmp_path / "image_0000.tiff")
     png = np.asarray(Image.open(tmp_path / "image_0000.png"))
     assert np.array_equal(tif, r.images[0].image) and np.array_equal(png, tif)
+
+
+def test_receiver_survives_arbitrary_valid_messages() -> None:
+    """Any message that decodes is taken without an exception, and real data still lands."""
+    from hypothesis import given, settings
+    from hypothesis import strategies as st
+
+    e = codec.encode_image(seafloor(48, 64, seed=2), CodingParams(layer_bytes=(50, 200, 600)))
+    ann = ImageAnnounce(3, 10, None, None, e.width, e.height, True, len(e.body), e.params)
+    frag = st.builds(
+        ImageFragment, st.integers(0, 5), st.integers(0, 2000), st.integers(0, 1023),
+        st.lists(st.integers(0, 255), max_size=8).map(lambda v: tuple(sorted(v))),
+        st.binary(max_size=100),
+    )
+    bad_ann = st.builds(ImageAnnounce, st.integers(0, 5), st.integers(0, 100), st.none(), st.none(),
+                        st.integers(1, 300), st.integers(1, 300), st.booleans(), st.integers(0, 5000),
+                        st.integers(0, 2**15 - 1))
+
+    @settings(max_examples=60, deadline=None)
+    @given(st.lists(st.one_of(frag, bad_ann), max_size=12))
+    def run(noise: list) -> None:
+        r = ImageryReceiver()
+        r.receive(ann, 11.0)
+        for m in noise:
+            if isinstance(m, ImageAnnounce) and m.image_id == 3:
+                continue
+            r.receive(m, 11.0)
+        r.poll(12.0)
+        r.products()
+        good = ImageFragment(3, 0, 0, (0,), e.body[: min(100, len(e.body))])
+        r.receive(good, 12.0)
+        assert r.images[3].have[: len(good.data)].all() or r.rejected_fragments > 0
+
+    run()

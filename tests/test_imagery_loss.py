@@ -34,12 +34,11 @@ def _complete(s: ImagerySender, r: ImageryReceiver) -> bool:
 
 
 def _scenario(down: LossModel, up: LossModel, max_rounds: int) -> tuple[ImagerySender, ImageryReceiver, Transfer]:
-    s, r = _setup(4)
+    s, r = _setup(4, request_goal="layer:6")
     t = Transfer(s, r, mtu=96, down=down, up=up, now=400.0)
     # the operator asks for image 1 in full and for the image before t=300 s (image 2) to layer 6
     r.request_goal(1, "full", now=t.now)
     r.request_by_time(299.0, "before", now=t.now)
-    s.request_goal = s.request_goal.__class__("layer", 6)
     t.run(lambda: _complete(s, r) and not r.pending_requests(), max_rounds)
     assert s.images[1].goal == s.images[1].total
     assert s.images[2].goal == s.images[2].enc.layer_end(6)

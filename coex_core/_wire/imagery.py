@@ -23,7 +23,7 @@ OFFSET_MAX = 2**20 - 1
 #: Largest fragment payload. A fragment with many packet marks carries less data: the whole
 #: message must still fit in 251 bytes (a 256-byte sub-frame with header and CRC); encoding a
 #: larger one raises EncodeError and decoding one raises DecodeError.
-MAX_FRAGMENT_DATA = 227
+MAX_FRAGMENT_DATA = 242
 MAX_PACKET_MARKS = 31
 #: Packets in one codestream: at most 32 layers x 8 resolutions x 3 components.
 MAX_PACKET_INDEX = 1023

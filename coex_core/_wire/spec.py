@@ -225,7 +225,7 @@ def _invalid_cases() -> list[tuple[str, str, bytes, str]]:
         ("fragment_length_too_long", "message", bytes.fromhex("21ff0100"), "truncated"),
         ("fragment_length_short", "message", bytes.fromhex("2102000000"), "truncated"),
         ("fragment_data_too_large", "message",
-         bytes.fromhex("21ea01") + bytes(6) + bytes(228), "exceed"),
+         bytes.fromhex("21f901") + bytes(6) + bytes(243), "exceed"),
         ("fragment_above_251_bytes", "message", _codec.TYPE_ID.build(33) + _codec._BODIES[33].build(
             _codec._to_container(ImageFragment(0, 0, 0, tuple(range(16)), bytes(227)))), "above"),
         ("trailing_bytes", "message", _codec.encode(CommandAck(1, AckStatus.ACCEPTED)) + b"\x01", "after"),

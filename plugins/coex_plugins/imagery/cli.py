@@ -27,7 +27,6 @@ import numpy as np
 
 from coex_core import jsonfmt, wire
 from coex_core.errors import ConfigError
-from coex_core.messages import GoalKind
 from coex_core.modality import Product
 
 from .output import write_png
@@ -122,7 +121,6 @@ def run_roundtrip(args: argparse.Namespace) -> int:
         rx = receiver.images.get(image_id)
         return rx is not None and bool(rx.have.all()) and not sender.order()
 
-    _ = GoalKind
     rounds = transfer.run(done, args.max_rounds)
     (out / "messages.jsonl").write_text("\n".join(lines) + "\n")
     totals = np.array([s[0] for s in snapshots])

@@ -236,12 +236,10 @@ class ImageryReceiver(ModalityReceiver):
         layers = 0
         if rx.used:
             used = set(rx.signature)
-            per_layer = rx.sp.resolutions * rx.sp.components
             while layers < rx.sp.layers and all(
-                i in used for i in np.flatnonzero(rx.order[:, 0] == layers)
+                int(i) in used for i in np.flatnonzero(rx.order[:, 0] == layers)
             ):
                 layers += 1
-            _ = per_layer
         meta = {
             "image_id": a.image_id, "stamp": a.stamp, "time": rx.time, "x": a.x, "y": a.y,
             "width": a.width, "height": a.height, "grey": a.grey, "total_bytes": a.total_bytes,

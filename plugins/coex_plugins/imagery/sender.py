@@ -47,7 +47,7 @@ from .goals import Goal, parse_goal
 
 __all__ = ["ImageInput", "ImagerySender", "fragment_size"]
 
-MAX_FRAGMENT_DATA = 227
+MAX_FRAGMENT_DATA = 242
 MAX_MARKS = 31
 #: A fragment message never exceeds this (the wire maximum).
 MAX_MESSAGE = 251
@@ -127,7 +127,8 @@ class ImagerySender(ModalitySender):
     * ``request_goal`` (same as ``default_goal``): the goal given to an image found by an
       ``ImageByTimeRequest`` (it is then served first, like an operator goal);
     * ``max_images`` (64), ``rto`` (30 s: resend unacked bytes after this long),
-      ``progress_interval`` (60 s), ``max_announces`` (2 per fill).
+      ``progress_interval`` (60 s), ``max_announces`` (2 per fill), ``min_fragment`` (16: no
+      fragment with fewer data bytes unless it ends the image's goal).
     """
 
     def __init__(self, config: Mapping[str, Any] | None = None) -> None:
@@ -140,6 +141,7 @@ class ImagerySender(ModalitySender):
             self.rto = float(cfg.get("rto", 30.0))
             self.progress_interval = float(cfg.get("progress_interval", 60.0))
             self.max_announces = int(cfg.get("max_announces", 2))
+            self.min_fragment = int(cfg.get("min_fragment", 16))
         except (TypeError, ValueError) as exc:
             raise ConfigError(f"invalid imagery sender option: {exc}") from exc
         if not 1 <= self.max_images <= 512:
@@ -255,7 +257,7 @@ class ImagerySender(ModalitySender):
             if tx.announced_at is None:
                 continue
             while left >= fragment_size(0, 1):
-                frag = self._fragment(tx, left, now)
+                frag = self._fragment(tx, left, now, trailing=bool(out))
                 if frag is None:
                     break
                 out.append(frag)
@@ -265,7 +267,7 @@ class ImagerySender(ModalitySender):
                 break
         return out
 
-    def _fragment(self, tx: _Tx, left: int, now: float) -> ImageFragment | None:
+    def _fragment(self, tx: _Tx, left: int, now: float, trailing: bool = False) -> ImageFragment | None:
         goal = tx.goal
         ready = ~tx.acked[:goal] & (tx.sent_at[:goal] <= now - self.rto)
         if not ready.any():
@@ -276,6 +278,7 @@ class ImagerySender(ModalitySender):
         starts = tx.enc.packet_starts
         left = min(left, MAX_MESSAGE)
         n = min(run, MAX_FRAGMENT_DATA, left - fragment_size(0, 0))
+        squeezed = n < min(run, MAX_FRAGMENT_DATA)  # the budget, not the data, limits this fragment
         while n > 0:
             lo = int(np.searchsorted(starts, pos, side="left"))
             hi = int(np.searchsorted(starts, pos + n, side="right"))  # a start at pos + n ends a packet
@@ -287,8 +290,9 @@ class ImagerySender(ModalitySender):
             if over <= 0:
                 break
             n -= over
-        if n <= 0:
-            return None
+            squeezed = True
+        if n <= 0 or (trailing and squeezed and n < self.min_fragment):
+            return None  # a tiny fragment at the end of a packet costs more than it carries
         packet = int(np.searchsorted(starts, pos, side="right")) - 1
         frag = ImageFragment(tx.image_id, pos, packet, tuple(int(m) for m in marks), tx.enc.body[pos:pos + n])
         tx.sent_at[pos:pos + n] = now
