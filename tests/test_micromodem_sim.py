@@ -288,3 +288,29 @@ def test_unplugged_modem_gives_a_transport_error() -> None:
     finally:
         t.close()
     assert t.closed
+
+
+def test_coex_frames_survive_modem_zero_padding_and_fdp_grid() -> None:
+    """Firmware that pads frames with zeros (goby3 #286) and the FDP frame grid both hand the
+    receiver a longer frame; CoEx frames carry their own lengths, so the messages are the same."""
+    from coex_core import wire
+    from coex_core.messages import FrameHeader, LinkStatus
+
+    msgs = [LinkStatus(100, 1, 8, 1, 12.5, -0.3)]
+    frame = wire.pack(msgs, 64, FrameHeader(src=1, dst=2, seq=3, crc=True))
+    assert len(frame) < 64
+    net = ModemNetwork({1: (0.0, 0.0, 0.0), 2: (300.0, 0.0, 0.0)})
+    a = net.transport(1, dest=2, rate=1, mode="fdp")
+    b = net.transport(2, dest=1, rate=1, mode="fdp")
+    a.send(frame)
+    a.send(frame)
+    got = [b.recv(timeout=20), b.recv(timeout=20)]
+    assert got[0] == frame.ljust(64, b"\x00") and got[1] == frame
+    assert [wire.unpack(g) for g in got] == [msgs, msgs]
+    # a padded legacy CARXD, as early Micromodem-2 firmware reports it
+    from coex_transports.micromodem.driver import MicromodemDriver
+
+    d = MicromodemDriver(DriverConfig(src=2))
+    d.feed(nmea.format_sentence("CARXD", [1, 2, 0, 1, frame.ljust(64, b"\x00").hex()]), 0.0)
+    received = d.receive()
+    assert received is not None and wire.unpack(received.data) == msgs
