@@ -18,6 +18,7 @@ schedules) at start and writes them whenever they change, so they survive a rest
 
 from __future__ import annotations
 
+import collections
 import heapq
 import itertools
 import json
@@ -121,7 +122,13 @@ class Runner:
         self.clock: Clock = clock or RealClock()
         self.link_log = link_log
         self.max_wait = max_wait
-        self.errors: list[str] = []
+        #: The last 100 transport errors (the loop never stops for one); ``error_count`` counts all.
+        self.errors: collections.deque[str] = collections.deque(maxlen=100)
+        self.error_count = 0
+
+    def _error(self, text: str) -> None:
+        self.error_count += 1
+        self.errors.append(text)
 
     def step(self) -> float:
         """Receive everything waiting, poll the node, send its packets; returns the time the
@@ -132,7 +139,7 @@ class Runner:
                 try:
                     frame = tr.recv(timeout=0)
                 except TransportError as exc:
-                    self.errors.append(f"link {link} receive: {exc}")
+                    self._error(f"link {link} receive: {exc}")
                     break
                 if frame is None:
                     break
@@ -145,7 +152,7 @@ class Runner:
             try:
                 _send(out, tx)
             except CoexError as exc:
-                self.errors.append(f"link {tx.link_id} send: {exc}")
+                self._error(f"link {tx.link_id} send: {exc}")
             _write(self.link_log, {
                 "time": round(now, 6), "link": tx.link_id, "slot": tx.slot, "src": self.node.node_id,
                 "dst": None, "rate": tx.rate, "frames": len(tx.frames), "capacity_bytes": tx.capacity,
@@ -168,7 +175,7 @@ class Runner:
             tmp.write_text(json.dumps(current, indent=1, sort_keys=True))
             os.replace(tmp, self.settings_path)
         except OSError as exc:
-            self.errors.append(f"cannot save settings: {exc}")
+            self._error(f"cannot save settings: {exc}")
             return False
         self._saved = current
         return True
@@ -189,7 +196,7 @@ class Runner:
                     try:
                         frame = tr.recv(timeout=left)
                     except TransportError as exc:
-                        self.errors.append(f"link {link} receive: {exc}")
+                        self._error(f"link {link} receive: {exc}")
                         frame = None
                     if frame is not None:
                         self.node.receive(link, frame, self.clock.time())
