@@ -12,17 +12,21 @@ reconstruction is ``waverec(sum_p q_p * step_p)``.
 
 Coefficient bit code of one chunk (``data``), bits most-significant first:
 
-* header: ``n`` (13 bits, number of non-zero codes), ``kr`` (5 bits), ``km`` (5 bits),
-  ``dpcm`` (1 bit);
-* unary section: for each non-zero code, ``run >> kr`` one-bits and a zero (``run`` = zero codes
-  before it), then for each, ``mag >> km`` one-bits and a zero (``mag = |q| - 1``);
-* the low ``kr`` bits of every run, the low ``km`` bits of every magnitude, one sign bit each
-  (1 = negative); zero bits up to a whole byte.
+* ``dense`` (1 bit), ``dpcm`` (1 bit);
+* sparse form (``dense`` = 0): ``n`` (13 bits, number of non-zero codes); Rice parameters of
+  the zero runs, then of the magnitudes ``|q| - 1``, each ``k`` (5 bits), an escape flag (1 bit)
+  and, when set, an escape width ``w`` (6 bits, 1..63); the unary quotients (``v >> k``
+  one-bits and a zero; 16 one-bits mean "escaped") of every run, then of every magnitude; the
+  low ``k`` bits of the non-escaped runs, then magnitudes; the escaped runs, then magnitudes, in
+  ``w`` bits each; one sign bit per non-zero code (1 = negative);
+* dense form (``dense`` = 1): one Rice parameter set as above, then every code zigzag-mapped
+  (0, -1, 1, -2 ... to 0, 1, 2, 3 ...) as unary quotients, low bits, escapes;
+* zero bits up to a whole byte (they must be zero, and fewer than 8).
 
 With ``dpcm`` set (in a wavelet chunk starting at coefficient 0, or in any chunk of a samples
-pass, where it covers every code) the approximation codes are sent
-as differences from the previous approximation code. Separate unary and fixed-width sections
-make decoding a handful of vectorised numpy operations.
+pass, where it covers every code) the approximation codes are sent as differences from the
+previous code. Separate unary and fixed-width sections make encoding and decoding a handful of
+vectorised numpy operations.
 """
 
 from __future__ import annotations
@@ -68,7 +72,7 @@ CODE_SCALE = 8
 _N_BITS = 13
 _K_BITS = 5
 _W_BITS = 6
-_HEADER_BITS = 2 + _N_BITS + 2 * (_K_BITS + _W_BITS)
+_HEADER_BITS = 2 + _N_BITS + 2 * (_K_BITS + 1)
 _MAX_K = (1 << _K_BITS) - 1
 #: a unary quotient of this many one-bits means: the value is in the escape section
 _ESC = 16
@@ -298,7 +302,9 @@ def _rice_sections(values: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarr
     k, w = _rice_params(values)
     q = values >> k
     esc = q >= _ESC
-    params = np.concatenate([_uint_bits(k, _K_BITS), _uint_bits(w, _W_BITS)])
+    # the escape width is present only when something is escaped
+    params = np.concatenate([_uint_bits(k, _K_BITS), np.array([1 if w else 0], dtype=np.uint8),
+                             _uint_bits(w, _W_BITS) if w else np.zeros(0, dtype=np.uint8)])
     return params, _unary(np.minimum(q, _ESC)), _fixed_bits(values[~esc], k), _fixed_bits(values[esc], w)
 
 
@@ -361,7 +367,7 @@ def _from_fixed(bits: np.ndarray, n: int, k: int) -> np.ndarray:
 def decode_codes(data: bytes, length: int, n_approx: int = 0, allow_dpcm: bool = True) -> np.ndarray:
     """Integer codes of a chunk's range of ``length`` coefficients; raises :class:`CodeError`."""
     bits = np.unpackbits(np.frombuffer(data, dtype=np.uint8))
-    if bits.size < 2 + _K_BITS + _W_BITS:
+    if bits.size < 2 + _K_BITS + 1:
         raise CodeError("coefficient data shorter than its header")
     dense, dpcm = bool(bits[0]), bool(bits[1])
     if dpcm and not allow_dpcm:
@@ -371,6 +377,22 @@ def decode_codes(data: bytes, length: int, n_approx: int = 0, allow_dpcm: bool =
         a = min(n_approx, length)
         out[:a] = np.cumsum(out[:a])
     return out
+
+
+def _read_params(bits: np.ndarray, pos: int) -> tuple[int, int, int]:
+    """Rice parameter, escape width (0 when absent) and the position after them."""
+    if pos + _K_BITS + 1 > bits.size:
+        raise CodeError("truncated coefficient header")
+    k = _read_uint(bits, pos, _K_BITS)
+    pos += _K_BITS + 1
+    if not bits[pos - 1]:
+        return k, 0, pos
+    if pos + _W_BITS > bits.size:
+        raise CodeError("truncated coefficient header")
+    w = _read_uint(bits, pos, _W_BITS)
+    if w == 0:
+        raise CodeError("escape width 0 is not canonical")
+    return k, w, pos + _W_BITS
 
 
 def _read_rice(bits: np.ndarray, pos: int, n: int, k: int, w: int) -> tuple[np.ndarray, int]:
@@ -407,8 +429,8 @@ def _check_padding(bits: np.ndarray, pos: int) -> None:
 
 def _decode_dense(bits: np.ndarray, length: int) -> np.ndarray:
     pos = 2
-    k, w = _read_uint(bits, pos, _K_BITS), _read_uint(bits, pos + _K_BITS, _W_BITS)
-    z, pos = _read_rice(bits, pos + _K_BITS + _W_BITS, length, k, w)
+    k, w, pos = _read_params(bits, pos)
+    z, pos = _read_rice(bits, pos, length, k, w)
     _check_padding(bits, pos)
     if z.size and z.max() >= _MAX_CODE:
         raise CodeError("code out of range")
@@ -421,10 +443,8 @@ def _decode_sparse(bits: np.ndarray, length: int) -> np.ndarray:
     pos = 2
     n = _read_uint(bits, pos, _N_BITS)
     pos += _N_BITS
-    kr, wr = _read_uint(bits, pos, _K_BITS), _read_uint(bits, pos + _K_BITS, _W_BITS)
-    pos += _K_BITS + _W_BITS
-    km, wm = _read_uint(bits, pos, _K_BITS), _read_uint(bits, pos + _K_BITS, _W_BITS)
-    pos += _K_BITS + _W_BITS
+    kr, wr, pos = _read_params(bits, pos)
+    km, wm, pos = _read_params(bits, pos)
     if n > length:
         raise CodeError(f"{n} non-zero codes for {length} coefficients")
     out = np.zeros(length, dtype=np.int64)
