@@ -197,6 +197,7 @@ class Runner:
                         frame = tr.recv(timeout=left)
                     except TransportError as exc:
                         self._error(f"link {link} receive: {exc}")
+                        self.clock.wait_until(wake)  # do not spin on a broken transport
                         frame = None
                     if frame is not None:
                         self.node.receive(link, frame, self.clock.time())
