@@ -259,6 +259,8 @@ class AcousticChannel:
         Raises :class:`FrameTooLarge` for too many frames or a frame above the rate's frame size."""
         info = rate_info(rate)
         self._position(src)
+        if not all(isinstance(f, bytes | bytearray | memoryview) for f in frames):
+            raise ConfigError("frames must be bytes")
         frames = [bytes(f) for f in frames]
         if not frames:
             raise ConfigError("a packet needs at least one frame")

@@ -48,6 +48,14 @@ def test_oversize_rejected() -> None:
         ch.transmit(1, [b"x"] * 9, 5, 0.0)
     with pytest.raises(ConfigError):
         ch.transmit(7, [b"x"], 5, 0.0)
+    with pytest.raises(ConfigError):
+        ch.transmit(1, [5], 5, 0.0)  # type: ignore[list-item]
+    with pytest.raises(ConfigError):
+        ch.set_position(3, (0.0, float("nan"), 0.0))
+    with pytest.raises(ConfigError):
+        AcousticChannel(loss=1.5)
+    with pytest.raises(ConfigError):
+        GilbertElliott(p_good_bad=2.0)
 
 
 def test_half_duplex_and_collision() -> None:
