@@ -21,8 +21,9 @@ from typing import Any
 
 import pytest
 from coex_plugins.bathymetry import BathymetryModality, BathymetrySender
+from coex_plugins.console import ConsoleHub, ConsoleState, serve
 from coex_plugins.console.cli import TopsideApp, build_topside
-from coex_plugins.console.testing import RecordingSender, survey_points
+from coex_plugins.console.testing import RecordingSender, feed_sample, survey_points
 from coex_transports._runner import RealClock, Runner
 
 from coex_core import messages as m
@@ -36,6 +37,7 @@ from coex_core.timefmt import to_stamp
 CHROMIUM = os.environ.get("COEX_CHROMIUM", "/usr/bin/chromium")
 ARGS = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
         "--disable-background-networking", "--disable-component-update", "--disable-sync"]
+T0 = 36000.0  # 10:00:00
 #: Topside slot then vehicle slot, 4 s each: one rate-5 packet (3 s) per slot.
 SCHEDULE = Schedule.simple([1, 2], 4.0, 0.5)
 
@@ -89,7 +91,10 @@ def topside() -> Iterator[tuple[TopsideApp, Vehicle]]:
 
 @pytest.fixture(scope="module")
 def browser() -> Iterator[Any]:
-    sync_api = pytest.importorskip("playwright.sync_api", reason="pip install playwright (dev extra)")
+    try:
+        from playwright import sync_api
+    except ImportError:  # a missing test dependency is a failure, not a skip
+        pytest.fail("playwright is missing: pip install -e '.[dev]' (never `playwright install`)")
     assert shutil.which(CHROMIUM) or Path(CHROMIUM).exists(), (
         f"{CHROMIUM} missing: install Debian chromium (scripts/system-deps.sh)")
     with sync_api.sync_playwright() as p:
@@ -181,3 +186,64 @@ def test_console_map_updates_and_region_request_reaches_vehicle(
     assert not errors, errors
     for p in pages:
         p.close()
+
+
+def test_console_actions_from_the_page_are_wire_commands(browser: Any) -> None:
+    """Images, time series, queues, link and schedule controls of the page, on a sample dive
+    made by the real plugins (no link: the hub records what it would send)."""
+    state = ConsoleState(schedules={0: Schedule.simple([1, 2, 2, 1, 2, 2], 20.0, 2.0)})
+    feed_sample(state, t0=T0)
+    sent: list[m.Message] = []
+    hub = ConsoleHub(state, sent.append, lambda: T0)
+    errors: list[str] = []
+    with serve(hub, "127.0.0.1", 0) as srv:
+        page = browser.new_page(viewport={"width": 1400, "height": 1000})
+        page.on("pageerror", lambda e: errors.append(str(e)))
+        page.goto(srv.url)
+        page.wait_for_function("window.coex && window.coex.updates > 0", timeout=10_000)
+        # three image cards with decoded thumbnails
+        page.wait_for_function(
+            "[...document.querySelectorAll('#gallery .card img')].filter(i => i.naturalWidth > 0).length === 3",
+            timeout=10_000)
+        assert "SURVEY" in page.inner_text("#vehicle-status")
+
+        card = page.locator('#gallery .card[data-image="1"]')
+        card.locator("select").select_option("full")
+        card.locator("button").click()
+        page.fill("#img-time", "09:57:40")
+        page.click('.img-time-btn[data-dir="previous"]')
+
+        plot = page.locator('#series canvas[data-channel="0"]')
+        box = plot.bounding_box()
+        y = box["y"] + box["height"] / 2
+        page.mouse.move(box["x"] + box["width"] * 0.25, y)
+        page.mouse.down()
+        page.mouse.move(box["x"] + box["width"] * 0.5, y)
+        page.mouse.up()
+        page.fill("#series-err", "0.05")
+        page.click("#series-refine")
+
+        row = page.locator('#queues-table tr[data-stream="3"]')
+        row.locator("input").fill("99")
+        row.locator("button", has_text="Set").click()
+        page.locator('#queues-table tr[data-stream="4"]').locator("button", has_text="Flush").click()
+        page.locator('#links-table tr[data-link="0"]').locator("button").click()
+        page.click("#schedule-editor summary")
+        page.fill("#sched-slots", "1:10:1, 2:30:2")
+        page.click("#sched-send")
+        page.wait_for_function("document.querySelectorAll('#commands li[data-status]').length === 7",
+                               timeout=10_000)
+        page.close()
+    assert not errors, errors
+    goal, by_time, refine, prio, flush, link, sched = sent
+    assert goal == m.ImageGoal(goal.command_id, 1, m.GoalKind.FULL, 0)
+    assert by_time.direction == m.TimeDirection.BEFORE and by_time.stamp == to_stamp(T0 - 140)
+    assert isinstance(refine, m.TimeSeriesRequest) and refine.channel == 0
+    t0, t1 = T0 - 1800, T0 - 1
+    assert abs(refine.start - to_stamp(t0 + 0.25 * (t1 - t0))) <= 30
+    assert abs(refine.end - to_stamp(t0 + 0.5 * (t1 - t0))) <= 30
+    assert refine.max_error == pytest.approx(0.05, rel=1e-6)
+    assert (prio.stream, prio.priority, prio.flush) == (3, 99, False)
+    assert (flush.stream, flush.flush) == (4, True)
+    assert link == m.LinkControl(link.command_id, 0, False, False)
+    assert [(s.owner, s.duration, s.guard) for s in sched.slots] == [(1, 10.0, 1.0), (2, 30.0, 2.0)]

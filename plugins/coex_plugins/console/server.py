@@ -115,11 +115,18 @@ class ConsoleHub:
         with self.lock:
             return self.state.snapshot()
 
-    def wait_changes(self, seen: dict[str, int], timeout: float) -> dict[str, Any]:
-        """Sections changed since ``seen`` (waits up to ``timeout`` s); updates ``seen``."""
+    def wait_changes(self, seen: dict[str, int], timeout: float,
+                     coalesce: float = 0.0) -> dict[str, Any]:
+        """Sections changed since ``seen`` (waits up to ``timeout`` s, then ``coalesce`` s more
+        so that a burst of changes goes out as one update); updates ``seen``."""
         with self.changed:
             if not self._dirty(seen):
                 self.changed.wait(timeout)
+            if not self._dirty(seen):
+                return {}
+        if coalesce > 0:
+            time.sleep(coalesce)
+        with self.lock:
             out = self.state.changes(seen)
             seen.update({k: self.state.versions[k] for k in out})
             return out
@@ -214,7 +221,7 @@ class _Handler(BaseHTTPRequestHandler):
         try:
             self._event("snapshot", snap)
             while not hub.closed and not self.server.stopping:
-                changes = hub.wait_changes(seen, 1.0)
+                changes = hub.wait_changes(seen, 1.0, coalesce=self.server.coalesce)
                 if changes:
                     with hub.lock:
                         changes["now"] = hub.state.now
@@ -279,6 +286,8 @@ class ConsoleServer(ThreadingHTTPServer):
         super().__init__((host, port), _Handler)
         self.hub = hub
         self.stopping = False
+        #: Seconds an event stream waits after a change to send a burst as one update.
+        self.coalesce = 0.2
         self._thread: threading.Thread | None = None
 
     @property

@@ -142,6 +142,7 @@ class _Level:
     version: int = 0
     png: bytes | None = None
     png_version: int = -1
+    summary: tuple[int, Any, Any, int] | None = None
 
 
 @dataclass
@@ -715,10 +716,14 @@ class ConsoleState:
         for lv in sorted(self.levels.values(), key=lambda v: -v.level):
             if not lv.tiles:
                 continue
-            keys = np.array(list(lv.tiles.keys()), np.int64)
-            ts = np.array([tile.t for tile in lv.tiles.values()])
+            if lv.summary is None or lv.summary[0] != lv.version:
+                lv.summary = (lv.version,
+                              np.array(list(lv.tiles.keys()), np.int64),
+                              np.array([tile.t for tile in lv.tiles.values()]),
+                              int(sum(int(np.isfinite(tile.z).sum())
+                                      for tile in lv.tiles.values())))
+            _, keys, ts, cells = lv.summary
             s, c = lv.side, lv.cell
-            cells = int(sum(int(np.isfinite(tile.z).sum()) for tile in lv.tiles.values()))
             levels.append({
                 "level": lv.level, "cell": c, "side": s, "subgrids": len(lv.tiles),
                 "cells": cells, "coverage_m2": cells * c * c,
@@ -728,8 +733,7 @@ class ConsoleState:
                 "newest_age": _num(self.now - float(ts.max()), 1),
                 "oldest_age": _num(self.now - float(ts.min()), 1),
                 "version": lv.version, "png": f"/map/{lv.level}.png?v={lv.version}",
-                "tiles": [[int(ix), int(iy), _num(self.now - tile.t, 0)]
-                          for (ix, iy), tile in lv.tiles.items()],
+                "tiles": np.column_stack([keys, np.round(self.now - ts)]).astype(int).tolist(),
             })
         meta = self.map_meta
         zr = self._zrange
