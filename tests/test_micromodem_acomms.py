@@ -248,6 +248,9 @@ def _script(driver: MicromodemDriver, now: float = 1000.0) -> None:
     for _ in range(20):
         out = driver.data_to_send()
         if not out:
+            driver.poll(now + 0.05)  # the clock set waits for 50 ms past the top of a second
+            out = driver.data_to_send()
+        if not out:
             break
         for line in out.splitlines():
             s = nmea.parse(line)

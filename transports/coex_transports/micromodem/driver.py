@@ -32,6 +32,7 @@ never depends on the frame length a modem reports (some firmware pads frames wit
 from __future__ import annotations
 
 import datetime as _dt
+import math
 from collections import deque
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
@@ -187,6 +188,7 @@ class _Command:
     retry: bool = True
     tries: int = 0
     deadline: float = 0.0
+    align: bool = False  # send 50 ms after the top of a second (clock set, as goby3 does)
     on_done: Callable[[float], None] | None = None
     on_fail: Callable[[float, str], None] | None = None
 
@@ -303,11 +305,11 @@ class MicromodemDriver:
             if c.firmware == "mm2":
                 self._commands.append(_Command(
                     build=lambda t: nmea.format_sentence("CCTMS", [_iso(t + 1.0), 0]),
-                    expect="CATMS", match=lambda s: True))
+                    expect="CATMS", match=lambda s: True, align=True))
             else:
                 self._commands.append(_Command(
                     build=lambda t: nmea.format_sentence("CCCLK", _clock_fields(t + 1.0)),
-                    expect="CACLK", match=lambda s: True))
+                    expect="CACLK", match=lambda s: True, align=True))
         self._last_keepalive = now
         self._next_command(now)
 
@@ -342,7 +344,9 @@ class MicromodemDriver:
         """Run the timers (retries, keep-alive, transmit timeout) and start queued packets."""
         cmd = self._current_cmd
         if cmd is not None and now >= cmd.deadline:
-            if cmd.retry and cmd.tries <= self.config.retries:
+            if cmd.tries == 0:
+                self._send_command(cmd, now)
+            elif cmd.retry and cmd.tries <= self.config.retries:
                 self._s.command_retries += 1
                 self._send_command(cmd, now)
             else:
@@ -449,8 +453,13 @@ class MicromodemDriver:
         if self._current_cmd is not None:
             return
         if self._commands:
-            self._current_cmd = self._commands.popleft()
-            self._send_command(self._current_cmd, now)
+            cmd = self._current_cmd = self._commands.popleft()
+            if cmd.align:
+                # goby3: the time goes out 50-100 ms after the top of a second, as the next second
+                top = math.floor(now)
+                cmd.deadline = top + 0.05 if now - top <= 0.05 else top + 1.05
+            else:
+                self._send_command(cmd, now)
         elif self._started and not self._ready and self._resume_at is None:
             self._ready = True
 
