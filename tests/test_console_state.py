@@ -503,3 +503,31 @@ def test_serve_a_node_or_a_view_only_state() -> None:
         code, ans = _post(srv.url + "api/action", {"action": "link_control",
                                                    "args": {"link": 0, "enabled": False}})
         assert code == 400 and "view-only" in ans["error"]
+
+
+def test_drive_simulation_feeds_the_console_and_the_caller() -> None:
+    from coex_plugins.console import attach, drive_simulation
+    from coex_transports._runner import SimNetwork
+
+    from coex_core.acoustic import AcousticChannel
+
+    top = Node(ChannelManager(1, [LinkConfig(0, NUI)]))
+    top.add_receiver(BathymetryModality, BathymetryReceiver())
+    veh = Node(ChannelManager(2, [LinkConfig(0, NUI)], queue_status_interval=120.0))
+    sender = BathymetrySender({"send_delay": 0.0, "levels": 4})
+    sender.ingest(survey_points(), 0.0)
+    veh.add_sender(BathymetryModality, sender, StreamConfig(3, "map", priority=30))
+    net = SimNetwork({0: AcousticChannel(loss=0.2, seed=3)})
+    net.add_node(veh, (0.0, 0.0, 100.0))
+    net.add_node(top, (50.0, 0.0, 0.0))
+    hub = attach(top, clock=lambda: net.now)
+    seen: list[Any] = []
+    drive_simulation(net, top, hub, 300.0, step=5.0, on_events=seen.extend)
+    assert seen and net.now == pytest.approx(300.0)
+    snap = hub.snapshot()
+    assert snap["map"]["levels"] and snap["queues"]["streams"]
+    assert snap["link"]["schedules"][0]["cycle"] == 120.0
+    hub.act("queue_config", {"stream": 3, "priority": 64})
+    drive_simulation(net, top, hub, 600.0, step=5.0)
+    assert veh.manager.stream(3).config.priority == 64
+    assert hub.snapshot()["commands"][0]["status"] == "accepted"

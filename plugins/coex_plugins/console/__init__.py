@@ -16,7 +16,7 @@ See ``docs/console.md``.
 
 from __future__ import annotations
 
-from .node import NodeCommands, TapReceiver, attach, pump, tap_receiver
+from .node import NodeCommands, TapReceiver, attach, drive_simulation, pump, tap_receiver
 from .server import ConsoleHub, ConsoleServer, serve
 from .state import SECTIONS, ConsoleActions, ConsoleState, elevation_rgb, png_bytes
 
@@ -29,6 +29,7 @@ __all__ = [
     "NodeCommands",
     "TapReceiver",
     "attach",
+    "drive_simulation",
     "elevation_rgb",
     "png_bytes",
     "pump",

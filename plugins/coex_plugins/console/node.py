@@ -25,7 +25,7 @@ from coex_core.modality import ModalityReceiver, Product
 
 from .state import ConsoleState
 
-__all__ = ["NodeCommands", "TapReceiver", "attach", "pump", "tap_receiver"]
+__all__ = ["NodeCommands", "TapReceiver", "attach", "drive_simulation", "pump", "tap_receiver"]
 
 
 class NodeCommands:
@@ -85,9 +85,11 @@ def tap_receiver(receiver: ModalityReceiver, hub: Any) -> TapReceiver:
     return TapReceiver(receiver, lambda msg, now: state.apply_message(msg, now))
 
 
-def pump(state: ConsoleState, node: Any, now: float) -> int:
-    """Apply the node's events and refresh link/schedule state; returns the events applied."""
-    events = node.events()
+def pump(state: ConsoleState, node: Any, now: float, events: list[Any] | None = None) -> int:
+    """Apply the node's events (``node.events()``, or ``events`` when the caller drains the
+    node itself) and refresh link/schedule state; returns the events applied."""
+    if events is None:
+        events = node.events()
     for e in events:
         state.apply_event(e)
     mgr = node.manager
@@ -146,3 +148,29 @@ def attach(node: Any, clock: Callable[[], float] | None = None, *,
         if map_receiver is None and hasattr(inner, "request_area"):
             hub.actions.map_receiver = inner
     return hub
+
+
+def drive_simulation(net: Any, node: Any, hub: Any, until: float, *, speed: float | None = None,
+                     step: float = 1.0, stop: Callable[[], bool] | None = None,
+                     on_events: Callable[[list[Any]], Any] | None = None) -> None:
+    """Run a :class:`~coex_transports._runner.SimNetwork` to ``until`` with a live console.
+
+    The network advances ``step`` simulated seconds at a time under ``hub.lock`` (operator
+    actions from the page reach the node between steps); after each step the topside ``node``'s
+    events go to the console (and to ``on_events`` when given, for a caller that also needs
+    them). ``speed`` (simulated seconds per wall-clock second) paces the run; ``None`` runs as
+    fast as possible. ``stop()`` ends it early."""
+    import time
+
+    wall0, sim0 = time.monotonic(), float(net.now)
+    while net.now < until and not (stop is not None and stop()):
+        with hub.lock:
+            net.run(min(until, net.now + step))
+            events = node.events()
+            if on_events is not None:
+                on_events(events)
+            hub.pump(node, net.now, events)
+        if speed:
+            ahead = (net.now - sim0) / speed - (time.monotonic() - wall0)
+            if ahead > 0:
+                time.sleep(ahead)

@@ -85,13 +85,14 @@ class ConsoleHub:
         events = list(events)
         self.update(lambda s: [s.apply_event(e) for e in events])
 
-    def pump(self, node: Any, now: float) -> int:
-        """Apply a topside node's events (call it from the loop that drives the node)."""
+    def pump(self, node: Any, now: float, events: list[Any] | None = None) -> int:
+        """Apply a topside node's events (``node.events()`` unless ``events`` is given; call it
+        from the loop that drives the node)."""
         from .node import pump
 
         with self.changed:
             before = dict(self.state.versions)
-            n = pump(self.state, node, now)
+            n = pump(self.state, node, now, events)
             if before != self.state.versions:
                 self.changed.notify_all()
             return n
