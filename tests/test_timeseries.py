@@ -190,7 +190,7 @@ def test_request_refines_only_the_window_and_never_resends_held_data(record: lis
 
 def test_request_for_recent_data_closes_the_open_block(record: list[synth.SynthSeries]) -> None:
     methane = record[0]
-    sender = _sender([methane], max_latency=1e9)
+    sender = _sender([methane], max_latency=1e9, spike_close=0)
     now = float(methane.times[999])
     sender.ingest(Samples("methane", methane.times[:1000], methane.values[:1000]), now)
     rx = TimeSeriesReceiver()
@@ -378,3 +378,23 @@ def test_receiver_survives_any_wire_valid_chunk() -> None:
     for p in rx.products():
         assert p.kind == "series"
     assert rx.ignored > 0
+
+
+def test_a_spike_closes_its_block_early_so_the_alert_is_prompt() -> None:
+    methane = synth.methane(duration=7200.0, t0=T0, seed=4)
+    sender = _sender([methane], max_latency=3600.0, spike_close=60.0)
+    rx = TimeSeriesReceiver()
+    first_seen: dict[int, float] = {}
+    for i in range(0, methane.times.size, 10):
+        now = float(methane.times[min(i + 10, methane.times.size) - 1])
+        sender.ingest(Samples("methane", methane.times[i:i + 10], methane.values[i:i + 10]), now)
+        _drain(sender, rx, now)
+        for k, sp in enumerate(methane.spikes):
+            if k not in first_seen and any(s <= sp.time <= e for s, e, _ in rx.bounds("methane")):
+                first_seen[k] = now
+    assert len(first_seen) == len(methane.spikes)
+    for k, sp in enumerate(methane.spikes):
+        # the spike's own samples, 60 s of tail and one 10 s batch; not the 3600 s latency
+        assert first_seen[k] - sp.time <= sp.width + 60 + 10 + 5, (k, first_seen[k] - sp.time)
+    # and only spikes close blocks early: the rest still closes after max_latency
+    assert len(sender.blocks("methane")) <= 2 + 2 * len(methane.spikes)

@@ -159,13 +159,16 @@ class TimeSeriesSender(ModalitySender):
       ``2 * overview / alert_fraction``, a cheaper first pass with error ``alert_fraction * h``
       (``h`` the smallest such spike) goes ahead of every overview, so that spikes show
       early; 0 disables it), ``retry_after``
-      (90 s: an unacknowledged chunk is sent again after this long).
+      (90 s: an unacknowledged chunk is sent again after this long), ``spike_close`` (60 s: a
+      block closes early, so its alert goes out at once, when it holds a spike that ended this
+      long before its newest sample; 0 disables it).
     """
 
     def __init__(self, config: Mapping[str, Any] | None = None) -> None:
         config = dict(config or {})
         unknown = set(config) - {"channels", "wavelet", "block_samples", "max_latency",
-                                 "overview_factor", "alert_fraction", "retry_after"}
+                                 "overview_factor", "alert_fraction", "retry_after",
+                                 "spike_close"}
         if unknown:
             raise ConfigError(f"unknown time-series sender options: {sorted(unknown)}")
         name = str(config.get("wavelet", "bior4.4"))
@@ -183,6 +186,10 @@ class TimeSeriesSender(ModalitySender):
         if isinstance(af, bool) or not isinstance(af, int | float) or not 0 <= af < 1:
             raise ConfigError(f"alert_fraction must be in [0, 1), got {af!r}")
         self.alert_fraction = float(af)
+        sc = config.get("spike_close", 60.0)
+        if isinstance(sc, bool) or not isinstance(sc, int | float) or not 0 <= sc < math.inf:
+            raise ConfigError(f"spike_close must be a non-negative number of seconds, got {sc!r}")
+        self.spike_close = float(sc)
         self._channels: list[_Channel] = []
         self._by_name: dict[str, _Channel] = {}
         self._order = 0
@@ -223,7 +230,30 @@ class TimeSeriesSender(ModalitySender):
             ch.values = np.concatenate([ch.values, v])
             ch.last_time = float(t[-1]) if t.size else ch.last_time
             self._close_full(ch)
+            if t.size:
+                self._close_on_spike(ch)
         self._close_late(now)
+
+    def _close_on_spike(self, ch: _Channel) -> None:
+        """Close the open block early when it holds a spike worth an alert that has ended
+        ``spike_close`` seconds before the newest sample, so that the alert need not wait for
+        the block to fill."""
+        if not (self.spike_close and self.alert_fraction) or ch.times.size < 64:
+            return
+        ok = ~np.isnan(ch.values)
+        t, v = ch.times[ok], ch.values[ok]
+        if v.size < 64:
+            return
+        d = np.diff(v)
+        sigma = float(np.median(np.abs(d - np.median(d)))) / 0.6745 / math.sqrt(2)
+        target = ch.cfg.overview_error if ch.cfg.overview_error is not None else self.overview_factor * sigma
+        target = max(target, ch.cfg.resolution / 2)
+        e = _excursions(v)
+        sig = np.flatnonzero(e > 2 * target / self.alert_fraction)
+        # alert-worthy: the alert pass would aim at least twice as coarse as the overview
+        if sig.size and self.alert_fraction * float(e[sig].max()) > 2 * target \
+                and t[-1] - t[sig[-1]] >= self.spike_close:
+            self._close(ch, ch.times.size)
 
     def _normalise(self, data: Any) -> list[tuple[_Channel, Any, Any]]:
         if isinstance(data, Samples):
@@ -474,16 +504,22 @@ class TimeSeriesSender(ModalitySender):
 
 
 
-def _smallest_spike(x: np.ndarray, threshold: float, window: int = 61) -> float:
-    """Height of the smallest spike above ``threshold``: spikes are runs of samples whose
-    distance from the block's running median (``window`` samples, so spikes up to about half
-    as long do not pull it) exceeds the threshold; 0 when there is none."""
+def _excursions(x: np.ndarray, window: int = 61) -> np.ndarray:
+    """Distance of each sample from a running median of ``window`` samples (spikes up to about
+    half as long do not pull the median)."""
     if x.size < 3:
-        return 0.0
+        return np.zeros(x.size)
     w = min(window, x.size - (1 - x.size % 2))
     half = w // 2
     trend = np.median(np.lib.stride_tricks.sliding_window_view(np.pad(x, half, mode="edge"), w), axis=1)
-    e = np.abs(x - trend)
+    e: np.ndarray = np.abs(x - trend)
+    return e
+
+
+def _smallest_spike(x: np.ndarray, threshold: float) -> float:
+    """Height of the smallest spike above ``threshold``: spikes are runs of samples whose
+    distance from the block's running median exceeds the threshold; 0 when there is none."""
+    e = _excursions(x)
     sig = e > threshold
     if not sig.any():
         return 0.0
