@@ -371,3 +371,19 @@ def test_fault_feeding_random_bytes_and_truncated_sentences_never_crashes() -> N
     assert len(ok) >= 0.9 * delivered_expected
     st = d.stats()
     assert st["bad_checksum"] > 100 and st["malformed"] > 100 and st["garbage_bytes"] > 1000
+
+
+def test_packet_arriving_in_the_middle_of_startup_is_delivered() -> None:
+    """goby3 #126: a $CACYC (and $CAREV) can arrive in the middle of the startup dialogue."""
+    d = MicromodemDriver(DriverConfig(src=1))
+    d.start(T0)
+    first = d.data_to_send()
+    assert first.startswith(b"$CCCFG,CST,1*")
+    d.feed(b"$CACYC,0,0,8,0,0,1*52\r\n", T0)  # the real line from #126 (not for us, but reported)
+    d.feed(L("CACYC", 0, 2, 1, 1, 0, 1) + L("CAREV", "120000", "AUV", "2.0.27087")
+           + L("CARXD", 2, 1, 0, 1, "beef") + L("CACFG", "CST", "1"), T0 + 0.2)
+    assert d.data_to_send().startswith(b"$CCCFG,XST,1*")  # the startup goes on
+    frame = d.receive()
+    assert frame is not None and frame.data == b"\xbe\xef"
+    d.feed(L("CACFG", "XST", "1"), T0 + 0.3)
+    assert answer_startup(d, T0 + 1) == b"" and d.ready

@@ -314,3 +314,68 @@ def test_coex_frames_survive_modem_zero_padding_and_fdp_grid() -> None:
     d.feed(nmea.format_sentence("CARXD", [1, 2, 0, 1, frame.ljust(64, b"\x00").hex()]), 0.0)
     received = d.receive()
     assert received is not None and wire.unpack(received.data) == msgs
+
+
+# ------------------------------------------------- goby3 driver_tester vectors (micromodem.md §5)
+
+
+def test_goby3_vector_rate0_with_ack() -> None:
+    """test4: rate 0, 1 -> 2, ACK on, one 32-byte frame 0x00..0x1F; frame at 2, frame 1 acked at 1."""
+    net = ModemNetwork()
+    a, b = net.transport(1, dest=2, rate=0), net.transport(2, dest=1, rate=0)
+    a.send_packet([bytes(range(0x20))], rate=0, ack=True)
+    assert b.recv(timeout=30) == bytes(range(0x20))
+    net.run_for(15)
+    assert [(e.src, e.frame) for e in a.events() if isinstance(e, Acked)] == [(2, 1)]
+
+
+def test_goby3_vector_rate2_three_frames_acked() -> None:
+    """test5: rate 2, 1 -> 2, ACK on, frames 0x40..0x7F, 0x80..0xBF, 0xC0..0xFF."""
+    net = ModemNetwork()
+    a, b = net.transport(1, dest=2, rate=2), net.transport(2, dest=1, rate=2)
+    frames = [bytes(range(0x40, 0x80)), bytes(range(0x80, 0xC0)), bytes(range(0xC0, 0x100))]
+    a.send_packet(frames, rate=2, ack=True)
+    assert [b.recv(timeout=30) for _ in frames] == frames
+    net.run_for(15)
+    assert [e.frame for e in a.events() if isinstance(e, Acked)] == [1, 2, 3]
+    assert "$CCCYC,0,1,2,2,1,3" in [x.split("*")[0] for x in modem_lines(net, 1)]
+
+
+def test_goby3_vector_fdp_rate1() -> None:
+    """test6: FDP 2 -> 1 at rate 1 after psk.packet.mod_hdr_version,1; 22-byte payload."""
+    net = ModemNetwork()
+    payload = bytes.fromhex("00112233445566778899001122334455667788990011")
+    a = net.transport(1, dest=2, rate=1, mode="fdp")
+    b = net.transport(2, dest=1, rate=1, mode="fdp", nvram=(("psk.packet.mod_hdr_version", "1"),))
+    b.send(payload)
+    assert a.recv(timeout=30) == payload
+    rdp = [x for x in modem_lines(net, 2) if x.startswith("$CCTDP")]
+    assert rdp and rdp[0].split("*")[0] == f"$CCTDP,1,1,0,0,{payload.hex()}"
+    assert a.driver.events and any(getattr(e, "fdp", False) and e.src == 2 and e.rate == 1 for e in a.events())
+
+
+def test_goby3_startup_is_accepted_by_the_simulator() -> None:
+    net = ModemNetwork()
+    m = net.modems[1]
+    cmds = [("CCCFG", ["ALL", 0]), ("CCCFG", ["CST", 1]), ("CCCFG", ["AGC", 0]), ("CCCFG", ["SRC", 1]),
+            ("CCCFG", ["REV", 1]), ("CCCFG", ["RXP", 1]), ("CCCFG", ["recv.base64data", 1]), ("CCMSC", [1, 1, 0]),
+            ("CCTMS", ["2025-01-01T00:00:01Z", 0]), ("CCCLK", [2025, 1, 1, 0, 0, 1]), ("CCCFQ", ["TOP"]),
+            ("CCTMQ", [0]), ("CCCFQ", ["SRC"])]
+    replies = []
+    for ident, fields in cmds:
+        m.feed(nmea.format_sentence(ident, fields), net.now)
+        replies.append([nmea.parse(x) for x in m.data_to_send().split(b"\r\n") if x])
+    assert [r[0].ident for r in replies] == ["CACFG"] * 7 + ["CAMSC", "CATMS", "CACLK", "CACFG", "CATMQ", "CACFG"]
+    assert [r[0].fields[:2] for r in replies[:7]] == [(str(f[0]), str(f[1])) for _, f in cmds[:7]]
+    assert len(replies[10]) == len(m.nvram) > 10  # the whole configuration
+    assert replies[-1][0].fields == ("SRC", "1")
+
+
+def test_base64_fdp_receive() -> None:
+    net = ModemNetwork()
+    a = net.transport(1, dest=2, rate=5, mode="fdp")
+    b = net.transport(2, dest=1, rate=5, mode="fdp", base64=True)
+    a.send(bytes(range(200)))
+    assert b.recv(timeout=30) == bytes(range(200))
+    rdp = [x for x in net.modems[2].host_lines if x.startswith(b"$CCCFG,recv.base64data")]
+    assert rdp
