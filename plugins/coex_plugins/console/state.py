@@ -241,6 +241,9 @@ class ConsoleState:
         self.auto_targets = auto_targets
         self.target_threshold = 0.8
         self.target_min_cells = 3
+        #: At most this many markers, at least this far apart (metres).
+        self.max_targets = 8
+        self.target_spacing = 6.0
         self._targets_cache: tuple[Any, list[dict[str, Any]]] = (None, [])
         self.roi: dict[int, _RoiRequest] = {}
         self._region_count = 0
@@ -764,8 +767,14 @@ class ConsoleState:
             found: list[dict[str, Any]] = []
             if grid is not None:
                 z, x0, y0, cell = grid
-                for c in find_targets(z, cell=cell, x0=x0, y0=y0, threshold=self.target_threshold,
-                                      min_cells=self.target_min_cells)[:8]:
+                cands = find_targets(z, cell=cell, x0=x0, y0=y0, threshold=self.target_threshold,
+                                     min_cells=self.target_min_cells)
+                for c in sorted(cands, key=lambda c: -c.height):
+                    if len(found) >= self.max_targets:
+                        break
+                    if any(math.hypot(c.x - f["x"], c.y - f["y"]) < self.target_spacing
+                           for f in found):
+                        continue  # one marker per object
                     found.append({"x": _num(c.x, 1), "y": _num(c.y, 1),
                                   "height": _num(c.height, 2), "cells": int(c.cells),
                                   "level": lv.level, "auto": True})

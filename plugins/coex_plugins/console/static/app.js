@@ -163,14 +163,14 @@ function drawMap() {
       for (const [ix, iy, age] of lv.tiles) {
         const [ax, ay] = w2s(ix * span, (iy + 1) * span);
         const sz = span * view.scale;
-        ctx.fillStyle = ageColor(age, 0.35);
+        ctx.fillStyle = ageColor(age, 0.3);
         ctx.fillRect(ax, ay, sz, sz);
       }
     }
     for (const r of m.requests) {
       const [ax, ay] = w2s(r.rect[0], r.rect[3]), [bx, by] = w2s(r.rect[2], r.rect[1]);
       const style = { requested: ["#f0b443", [6, 4]], queued: ["#f0b443", [6, 4]],
-        partial: ["#e8e05a", []], received: ["#58c47c", []], "nothing newer": ["#8890a0", [2, 3]] }[r.status] || ["#f0b443", [6, 4]];
+        partial: ["#e8e05a", []], received: ["#58c47c", []], "nothing newer": ["#c0c8d8", [3, 3]] }[r.status] || ["#f0b443", [6, 4]];
       ctx.strokeStyle = style[0]; ctx.setLineDash(style[1]); ctx.lineWidth = 2;
       ctx.strokeRect(ax, ay, bx - ax, by - ay);
       ctx.setLineDash([]);
@@ -554,7 +554,7 @@ function drawTdma() {
     const row = (slots, y, h, label) => {
       const total = slots.reduce((a, s) => a + s.duration, 0) || 1;
       let x = LW;
-      c.fillStyle = "#8aa0b2"; c.font = "10px system-ui"; c.fillText(label, 2, y + h - 4);
+      c.fillStyle = "#8aa0b2"; c.font = "10px system-ui"; c.fillText(label, 2, y + h);
       slots.forEach((s, i) => {
         const w = ((W - LW - 2) * s.duration) / total;
         const col = s.owner === L.node_id ? "#4fb3ff" : s.owner === L.vehicle_id ? "#f28f3b" : "#889";
@@ -573,7 +573,7 @@ function drawTdma() {
       const x = LW + ((W - LW - 2) * pos) / total;
       c.strokeStyle = "#fff"; c.lineWidth = 2; c.beginPath(); c.moveTo(x, 0); c.lineTo(x, 26); c.stroke();
       c.fillStyle = "#dce6ee";
-      c.fillText(`cycle ${(sch.first_cycle + Math.floor(since / sch.cycle)) % 65536}`, 2, 11);
+      c.fillText(`cycle ${(sch.first_cycle + Math.floor(since / sch.cycle)) % 65536}`, 2, 10);
     }
     if (sch.proposed) {
       row(sch.proposed.slots, 28, 16, `v${sch.proposed.version} ${sch.proposed.status}`);
