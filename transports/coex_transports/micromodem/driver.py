@@ -420,6 +420,11 @@ class MicromodemDriver:
         """The next received frame, or ``None``."""
         return self._received.popleft() if self._received else None
 
+    @property
+    def received_count(self) -> int:
+        """Frames delivered since the start (good ``$CARXD`` / FDP data frames)."""
+        return self._s.frames_received
+
     def pending_received(self) -> int:
         return len(self._received)
 

@@ -48,7 +48,7 @@ from coex_core.loopback import SimClock
 from . import nmea
 from .nmea import FDP_RATES, RATES, FdpFrame, NmeaError, Sentence
 
-__all__ = ["SimulatedModem", "ModemNetwork", "PtySimulator", "DEFAULT_NVRAM", "FIRMWARE_VERSION"]
+__all__ = ["SimulatedModem", "ModemNetwork", "NetworkClock", "PtySimulator", "DEFAULT_NVRAM", "FIRMWARE_VERSION"]
 
 FIRMWARE_VERSION = "2.0.27087"
 
@@ -642,6 +642,15 @@ class ModemNetwork:
         self.clock.advance_to(t)
         self.step()
 
+    def as_clock(self) -> NetworkClock:
+        """A clock for :class:`coex_transports._runner.Runner` (``time()``/``wait_until(t)``):
+        waiting runs this network, returning early when a host driver receives a frame."""
+        return NetworkClock(self)
+
+    def received_count(self) -> int:
+        """Frames delivered so far to all in-process host drivers."""
+        return sum(int(h.driver.received_count) for h in self._hosts)
+
     def run_for(self, dt: float) -> None:
         self.run_until(self.clock.now + dt)
 
@@ -659,6 +668,24 @@ class ModemNetwork:
             self.clock.advance_to(max(nxt, self.clock.now + 1e-6) if nxt <= self.clock.now else nxt)
             self.step()
         return True
+
+
+class NetworkClock:
+    """``time()`` and ``wait_until(t)`` over a :class:`ModemNetwork` (the runner's Clock protocol)."""
+
+    def __init__(self, network: ModemNetwork) -> None:
+        self.network = network
+
+    def time(self) -> float:
+        return self.network.now
+
+    def wait_until(self, t: float) -> None:
+        net = self.network
+        if t <= net.now:
+            net.step()
+            return
+        start = net.received_count()
+        net.run_while(lambda: net.received_count() == start, t - net.now)
 
 
 class PtySimulator:
