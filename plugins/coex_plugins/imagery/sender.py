@@ -126,9 +126,10 @@ class ImagerySender(ModalitySender):
     * ``default_goal`` (``"layer:6"``): the set-point every new image is sent to, in capture order;
     * ``request_goal`` (same as ``default_goal``): the goal given to an image found by an
       ``ImageByTimeRequest`` (it is then served first, like an operator goal);
-    * ``max_images`` (64), ``rto`` (30 s: resend unacked bytes after this long),
-      ``progress_interval`` (60 s), ``max_announces`` (2 per fill), ``min_fragment`` (16: no
-      fragment with fewer data bytes unless it ends the image's goal).
+    * ``max_images`` (64), ``rto`` (60 s: resend unacked bytes after this long; keep it above the
+      ack round trip of the TDMA schedule),
+      ``progress_interval`` (60 s), ``max_announces`` (2 per fill), ``min_fragment`` (16: a second
+      fragment squeezed into what is left of a packet must carry at least this many bytes).
     """
 
     def __init__(self, config: Mapping[str, Any] | None = None) -> None:
@@ -138,7 +139,7 @@ class ImagerySender(ModalitySender):
         self.request_goal: Goal = parse_goal(cfg.get("request_goal", self.default_goal))
         try:
             self.max_images = int(cfg.get("max_images", 64))
-            self.rto = float(cfg.get("rto", 30.0))
+            self.rto = float(cfg.get("rto", 60.0))
             self.progress_interval = float(cfg.get("progress_interval", 60.0))
             self.max_announces = int(cfg.get("max_announces", 2))
             self.min_fragment = int(cfg.get("min_fragment", 16))

@@ -39,7 +39,7 @@ def seafloor(
     r2 = ((yy - cy) / height) ** 2 + ((xx - cx) / width) ** 2
     light = np.exp(-r2 / rng.uniform(0.08, 0.16))
     texture = 0.6 * _fractal(rng, height, width, 2.4) + 0.4 * _fractal(rng, height, width, 1.2)
-    img = 40.0 + 80.0 * light + rng.uniform(10, 20) * texture * (0.5 + light)
+    img = 40.0 + 80.0 * light + rng.uniform(7, 13) * texture * (0.5 + light)
     if rocks:
         ry = rng.uniform(0, height, rocks)[:, None, None]
         rx = rng.uniform(0, width, rocks)[:, None, None]
@@ -48,7 +48,7 @@ def seafloor(
         body = np.exp(-d2 * 2.0)
         shadow = np.exp(-(((yy[None] - ry - 0.6 * rr) ** 2 + (xx[None] - rx - 0.6 * rr) ** 2) / rr**2) * 2.0)
         img += (25.0 * body - 18.0 * shadow).sum(axis=0) * (0.4 + light)
-    img += rng.normal(0.0, 3.0, img.shape)
+    img += rng.normal(0.0, 1.2, img.shape)
     grey = np.clip(np.rint(img), 0, 255)
     if not colour:
         return _u8(grey)
