@@ -398,3 +398,26 @@ def test_a_spike_closes_its_block_early_so_the_alert_is_prompt() -> None:
         assert first_seen[k] - sp.time <= sp.width + 60 + 10 + 5, (k, first_seen[k] - sp.time)
     # and only spikes close blocks early: the rest still closes after max_latency
     assert len(sender.blocks("methane")) <= 2 + 2 * len(methane.spikes)
+
+
+def test_dives_longer_than_the_stamp_period() -> None:
+    """Stamps repeat every 2^18 s (72.8 h); blocks of an 80 h dive stay apart even when a late
+    block starts on the very stamp of an early one (4096 s blocks: 2^18 s is 64 of them)."""
+    period = 64.0
+    t = T0 + period * np.arange(int(80 * 3600 / period))
+    v = 5 + np.sin((t - T0) / 20000.0)
+    sender = TimeSeriesSender({"channels": [{"name": "o2", "lo": 0, "hi": 20, "resolution": 0.01,
+                                             "period": period}], "block_samples": 64, "max_latency": 1e9})
+    rx = TimeSeriesReceiver()
+    for i in range(0, t.size, 30):
+        now = float(t[min(i + 30, t.size) - 1])
+        sender.ingest(Samples("o2", t[i:i + 30], v[i:i + 30]), now)
+        _drain(sender, rx, now)
+    sender.flush(float(t[-1]))
+    _drain(sender, rx, float(t[-1]))
+    want = [start for start, _, _ in sender.blocks("o2")]
+    got = [start for start, _, _ in rx.bounds("o2")]
+    assert len(want) > 65 and got == pytest.approx(want)
+    assert want[64] - want[0] == 2**18
+    s = rx.series("o2")
+    assert np.all(np.abs(s.values - v) <= s.bounds)

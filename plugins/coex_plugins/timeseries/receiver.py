@@ -121,7 +121,7 @@ class _RChannel:
     cid: int
     registration: TimeSeriesChannel | None = None
     ack_registration: bool = False
-    blocks: dict[tuple[int, float], _RBlock] = field(default_factory=dict)
+    blocks: dict[int, _RBlock] = field(default_factory=dict)  # by start in centiseconds
     to_ack: list[TimeSeriesPart] = field(default_factory=list)
     version: int = 0
 
@@ -186,7 +186,8 @@ class TimeSeriesReceiver(ModalityReceiver):
 
     def _chunk(self, m: TimeSeriesChunk, now: float) -> list[Product]:
         ch = self._ch(m.channel)
-        key = (m.start, m.offset)
+        start = unwrap(m.start, now) + m.offset
+        key = round(start * 100)  # absolute: stamps repeat every 2^18 s
         lay = codec.layout(m.count, m.wavelet)
         total = m.count if m.samples else lay.total
         n_approx = 0 if m.samples else lay.n_approx
@@ -210,7 +211,7 @@ class TimeSeriesReceiver(ModalityReceiver):
             log.warning("undecodable chunk of channel %d: %s", m.channel, exc)
             return []
         if block is None:
-            block = ch.blocks[key] = _RBlock(unwrap(m.start, now) + m.offset, m.period, m.count, m.wavelet)
+            block = ch.blocks[key] = _RBlock(start, m.period, m.count, m.wavelet)
         parts = block.passes.setdefault(m.level, {})
         if parts and next(iter(parts.values())).samples != m.samples:
             self.ignored += 1

@@ -19,7 +19,7 @@ from coex_core.messages import (
     TimeSeriesRequest,
 )
 from coex_core.modality import ModalitySender
-from coex_core.timefmt import unwrap
+from coex_core.timefmt import STAMP_MODULUS, unwrap
 
 from . import codec
 
@@ -90,6 +90,7 @@ class _Chunk:
     key: tuple[int, float, int, int]
     klass: int
     order: int
+    t0: float  # absolute start of the chunk's block
     sent_at: float | None = None
     acked: bool = False
 
@@ -394,7 +395,7 @@ class TimeSeriesSender(ModalitySender):
                 ch.cid, block.stamp, block.offset, block.period, block.count, self.wavelet, level,
                 p.samples, p.step, p.error, None if whole else first, None if whole else end, data)
             chunk = _Chunk(msg, wire.encoded_size(msg), (block.stamp, block.offset, level, first),
-                           klass, self._next_order())
+                           klass, self._next_order(), block.start)
             ch.by_key[chunk.key] = chunk
             chunks.append(chunk)
         block.chunks.append(chunks)
@@ -427,6 +428,11 @@ class TimeSeriesSender(ModalitySender):
         return sent_at is None or now - sent_at >= self.retry_after or now < sent_at
 
     def _candidates(self, now: float) -> list[_Chunk]:
+        # a stamp is unambiguous for half its period: older chunks would be misplaced, drop them
+        horizon = now - STAMP_MODULUS / 2 + 3600.0
+        for ch in self._channels:
+            for key in [k for k, c in ch.by_key.items() if c.t0 < horizon]:
+                del ch.by_key[key]
         cands = [c for ch in self._channels for c in ch.by_key.values()
                  if not c.acked and self._due(c.sent_at, now)]
         cands.sort(key=lambda c: (c.klass, c.order))
