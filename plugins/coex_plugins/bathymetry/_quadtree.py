@@ -22,10 +22,16 @@ Each sounding is compared with a reference built from the map *and* the batch:
 
 * in a cell holding at least ``min_count`` soundings (including this batch), the cell mean:
   rejected when ``|z - mean| > outlier_threshold``;
-* in a sparser cell, the 4 x 4-cell block around it (level 2): rejected when
+* in a sparser cell, the 4 x 4-cell block around it (level 2), or the 16 x 16-cell block
+  (level 4) where that is sparse too: rejected when
   ``|z - block mean| > max(outlier_threshold, outlier_k * block std)`` and the block holds at
   least ``min_count`` soundings. A real target raises its block's spread and passes; an isolated
   spike does not.
+
+A sounding with too few neighbours to be judged (fewer than ``min_count`` soundings in its cell
+and in both blocks) is held back (``pending``) and judged again with the next batch, until it is
+``max_pending_age`` seconds older than the newest sounding (or ``max_pending`` are waiting); then
+it is added unjudged. ``flush(force=True)`` adds every held sounding at once (end of a file).
 
 Rejected soundings are counted (``rejected``), never added. Non-finite soundings and soundings
 outside the addressable area (|x|, |y| beyond ``resolution * 2**16``) are dropped and counted
@@ -45,6 +51,8 @@ __all__ = ["InputError", "QuadtreeMap", "LevelBlock"]
 
 FloatArray = npt.NDArray[np.float64]
 IntArray = npt.NDArray[np.int64]
+
+_ADDED, _REJECTED, _DROPPED, _HELD = 0, 1, 2, 3
 
 #: Level-0 cell indices are limited to +-2**16 (the wire's subgrid index range at level 0).
 MAX_CELL_INDEX = 1 << 16
@@ -85,6 +93,8 @@ class QuadtreeMap:
         outlier_k: float = 3.0,
         min_count: int = 3,
         batch_points: int = 20_000,
+        max_pending_age: float = 60.0,
+        max_pending: int = 200_000,
     ) -> None:
         if not resolution > 0 or not vertical_resolution > 0:
             raise InputError("resolution and vertical_resolution must be positive")
@@ -118,13 +128,21 @@ class QuadtreeMap:
         self.rejected = 0
         self.dropped = 0
         self.last_update = -np.inf
+        #: Time of the newest ``add_points`` call.
+        self.last_input = -np.inf
         self.batch_points = int(batch_points)
         self._buffer: list[tuple[FloatArray, float]] = []
         self._buffered = 0
-        #: With ``track_rejections``, one boolean array per ingested batch (input order):
-        #: True where a sounding was rejected or dropped (for measurements).
+        self.max_pending_age = float(max_pending_age)
+        self.max_pending = int(max_pending)
+        self._pending_pts = np.zeros((0, 3))
+        self._pending_t = np.zeros(0)
+        self._pending_ids = np.zeros(0, np.int64)
+        self._next_id = 0
+        #: With ``track_rejections``, the input positions (0 = first sounding ever added) of the
+        #: soundings outlier rejection removed, one array per ingested batch (for measurements).
         self.track_rejections = False
-        self.rejection_log: list[npt.NDArray[np.bool_]] = []
+        self.rejected_ids: list[npt.NDArray[np.int64]] = []
 
     # ------------------------------------------------------------------------- structure
 
@@ -193,34 +211,54 @@ class QuadtreeMap:
         if pts.shape[0] == 0:
             return 0
         self._buffer.append((np.array(pts[:, :3], np.float64), t))
+        self.last_input = max(self.last_input, t)
         self._buffered += pts.shape[0]
         if self._buffered >= self.batch_points:
             self.flush()
         return int(pts.shape[0])
 
-    def flush(self) -> None:
-        """Ingest the buffered soundings now."""
-        if not self._buffer:
+    def flush(self, force: bool = False) -> None:
+        """Ingest the buffered soundings now. With ``force``, soundings held back because they could
+        not be judged yet (see the module docstring) are ingested too, unjudged."""
+        if not self._buffer and not (force and self._pending_n):
             return
         chunks, self._buffer, self._buffered = self._buffer, [], 0
-        pts = chunks[0][0] if len(chunks) == 1 else np.concatenate([c[0] for c in chunks])
-        times = np.repeat(np.array([c[1] for c in chunks]), [c[0].shape[0] for c in chunks])
-        keep = self._ingest(pts, times)
+        n_new = sum(c[0].shape[0] for c in chunks)
+        ids = np.arange(self._next_id, self._next_id + n_new)
+        self._next_id += n_new
+        parts = [self._pending_pts] + [c[0] for c in chunks]
+        pts = np.concatenate(parts) if len(parts) > 1 else parts[0]
+        times = np.concatenate([self._pending_t, np.repeat(np.array([c[1] for c in chunks]),
+                                                           [c[0].shape[0] for c in chunks])])
+        all_ids = np.concatenate([self._pending_ids, ids])
+        status = self._ingest(pts, times, force)
+        held = status == _HELD
+        self._pending_pts, self._pending_t, self._pending_ids = pts[held], times[held], all_ids[held]
         if self.track_rejections:
-            self.rejection_log.append(~keep)
+            self.rejected_ids.append(all_ids[status == _REJECTED])
 
-    def _ingest(self, pts: FloatArray, times: FloatArray) -> npt.NDArray[np.bool_]:
+    @property
+    def _pending_n(self) -> int:
+        return int(self._pending_t.size)
+
+    @property
+    def pending(self) -> int:
+        """Soundings held back until their neighbourhood has enough data to judge them."""
+        return self._pending_n
+
+    def _ingest(self, pts: FloatArray, times: FloatArray, force: bool) -> npt.NDArray[np.int8]:
+        """Ingest; return per sounding _ADDED, _REJECTED, _DROPPED or _HELD."""
         x, y, z = pts[:, 0], pts[:, 1], pts[:, 2]
         with np.errstate(invalid="ignore"):
             ci = np.floor(x / self.resolution)
             cj = np.floor(y / self.resolution)
             ok = np.isfinite(z) & (np.abs(ci) < MAX_CELL_INDEX) & (np.abs(cj) < MAX_CELL_INDEX)
-        kept = np.zeros(z.size, bool)
+        status = np.full(z.size, _DROPPED, np.int8)
         if not ok.all():
             self.dropped += int(np.count_nonzero(~ok))
             ci, cj, z, times = ci[ok], cj[ok], z[ok], times[ok]
             if z.size == 0:
-                return kept
+                return status
         col = ci.astype(np.int64)
         row = cj.astype(np.int64)
         tx = col >> self._shift
@@ -236,10 +274,18 @@ class QuadtreeMap:
         s_b = np.bincount(flat, weights=z, minlength=size)
         ss_b = np.bincount(flat, weights=z * z, minlength=size)
         keep = np.ones(z.size, bool)
+        hold = np.zeros(z.size, bool)
         if self.outlier_rejection:
-            keep = self._screen(slots, flat, local, inv, z, n_b, s_b, ss_b)
+            keep, judged = self._screen(slots, flat, local, inv, z, n_b, s_b, ss_b)
+            if not force:
+                hold = ~judged & (times > times.max() - self.max_pending_age)
+                if hold.sum() + 0 > self.max_pending:
+                    cut = np.sort(times[hold])[-self.max_pending]
+                    hold &= times >= cut
+            rejected = ~keep
+            self.rejected += int(np.count_nonzero(rejected))
+            keep &= ~hold
             if not keep.all():
-                self.rejected += int(np.count_nonzero(~keep))
                 w = keep.astype(np.float64)
                 n_b = np.bincount(flat, weights=w, minlength=size).astype(np.int64)
                 s_b = np.bincount(flat, weights=z * w, minlength=size)
@@ -256,8 +302,9 @@ class QuadtreeMap:
         self.accepted += added
         if added:
             self.last_update = max(self.last_update, float(times[keep].max()))
-        kept[ok] = keep
-        return kept
+        st = np.where(keep, _ADDED, np.where(hold, _HELD, _REJECTED)).astype(np.int8)
+        status[ok] = st
+        return status
 
     def _screen(
         self,
@@ -269,8 +316,8 @@ class QuadtreeMap:
         n_b: IntArray,
         s_b: FloatArray,
         ss_b: FloatArray,
-    ) -> npt.NDArray[np.bool_]:
-        """Which soundings of a batch to keep (see the module docstring).
+    ) -> tuple[npt.NDArray[np.bool_], npt.NDArray[np.bool_]]:
+        """Which soundings of a batch to keep, and which could be judged (see the module docstring).
 
         Two passes: the first judges every sounding against references that may include the
         outliers themselves; the second recomputes the references from the map and the soundings
@@ -280,28 +327,35 @@ class QuadtreeMap:
         c_map = self._count[slots].ravel()
         s_map = self._sum[slots].ravel()
         ss_map = self._sumsq[slots].ravel()
-        t4 = self.tile >> 2
         row = local >> self._shift
         col = local & (self.tile - 1)
-        b2 = inv * (t4 * t4) + (row >> 2) * t4 + (col >> 2)
-        shape = (m, t4, 4, t4, 4)
+        blocks = []
+        for f in (4, 16):  # 4 x 4 cells (level 2), then 16 x 16 cells (level 4) where sparser
+            if f > self.tile:
+                break
+            tf = self.tile // f
+            blocks.append(((m, tf, f, tf, f), inv * (tf * tf) + (row // f) * tf + (col // f)))
 
-        def judge(c: IntArray, sm: FloatArray, ss: FloatArray) -> npt.NDArray[np.bool_]:
+        def judge(c: IntArray, sm: FloatArray, ss: FloatArray) -> tuple[npt.NDArray[np.bool_], npt.NDArray[np.bool_]]:
             mean = sm / np.maximum(c, 1)
             dense = c[flat] >= self.min_count
-            dev = np.abs(z - mean[flat])
-            c2 = c.reshape(shape).sum(axis=(2, 4)).ravel()
-            s2 = sm.reshape(shape).sum(axis=(2, 4)).ravel()
-            ss2 = ss.reshape(shape).sum(axis=(2, 4)).ravel()
-            mean2 = s2 / np.maximum(c2, 1)
-            std2 = np.sqrt(np.maximum(ss2 / np.maximum(c2, 1) - mean2 * mean2, 0.0))
-            thr2 = np.maximum(self.outlier_threshold, self.outlier_k * std2[b2])
-            bad_sparse = (c2[b2] >= self.min_count) & (np.abs(z - mean2[b2]) > thr2)
-            return ~np.where(dense, dev > self.outlier_threshold, bad_sparse)
+            bad = dense & (np.abs(z - mean[flat]) > self.outlier_threshold)
+            judged = dense.copy()
+            for shape, b in blocks:
+                cb = c.reshape(shape).sum(axis=(2, 4)).ravel()
+                sb = sm.reshape(shape).sum(axis=(2, 4)).ravel()
+                ssb = ss.reshape(shape).sum(axis=(2, 4)).ravel()
+                mb = sb / np.maximum(cb, 1)
+                sd = np.sqrt(np.maximum(ssb / np.maximum(cb, 1) - mb * mb, 0.0))
+                thr = np.maximum(self.outlier_threshold, self.outlier_k * sd[b])
+                here = ~judged & (cb[b] >= self.min_count)
+                bad |= here & (np.abs(z - mb[b]) > thr)
+                judged |= here
+            return ~bad, judged
 
-        keep = judge(c_map + n_b, s_map + s_b, ss_map + ss_b)
+        keep, judged = judge(c_map + n_b, s_map + s_b, ss_map + ss_b)
         if keep.all():
-            return keep
+            return keep, judged
         w = keep.astype(np.float64)
         n_k = np.bincount(flat, weights=w, minlength=size).astype(np.int64)
         s_k = np.bincount(flat, weights=z * w, minlength=size)

@@ -68,6 +68,9 @@ class BathymetrySender(ModalitySender):
     def __init__(self, config: Mapping[str, Any] | None = None) -> None:
         cfg = merged_config(config, SENDER_DEFAULTS)
         self.config = cfg
+        if int(cfg["subgrid_side"]) not in (2, 4, 8):
+            # 8 x 8 cells of up to 20 bits always fit one message; 16 x 16 rough blocks may not.
+            raise ConfigError("subgrid_side must be 2, 4 or 8")
         try:
             self.map = QuadtreeMap(
                 float(cfg["resolution"]), float(cfg["vertical_resolution"]),
@@ -212,7 +215,8 @@ class BathymetrySender(ModalitySender):
         left = int(max_bytes)
         if left <= 0:
             return out
-        self.map.flush()
+        # Soundings held back for lack of neighbours go in once the input has been quiet.
+        self.map.flush(force=now - self.map.last_input >= self.send_delay)
         if not self.map.tiles:
             return out
         background = self._background(now)

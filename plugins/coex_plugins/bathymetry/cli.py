@@ -78,7 +78,7 @@ def roundtrip(
         t_data = max(t_data, t or 0.0)
         sender.map.add_points(xyz, t or 0.0)
         n_points += len(xyz)
-    sender.map.flush()
+    sender.map.flush(force=True)
     down = LoopbackLink(mtu=FRAME_BYTES, bytes_per_s=1e9, loss=loss, seed=seed)
     up = LoopbackLink(mtu=FRAME_BYTES, bytes_per_s=1e9, loss=loss, seed=seed + 1)
     now = t_data + sender.send_delay
