@@ -379,3 +379,22 @@ def test_base64_fdp_receive() -> None:
     assert b.recv(timeout=30) == bytes(range(200))
     rdp = [x for x in net.modems[2].host_lines if x.startswith(b"$CCCFG,recv.base64data")]
     assert rdp
+
+
+def test_flush_reports_a_silent_modem() -> None:
+    """A port with no modem behind it (pyserial ``loop://`` only echoes our own sentences): the
+    startup commands time out, the packet fails, and ``flush`` says so instead of succeeding."""
+    import serial
+
+    from coex_core.errors import TransportError
+
+    port = serial.serial_for_url("loop://", timeout=0.05)
+    t = MicromodemTransport.on_port(port, DriverConfig(src=1, reply_timeout=0.1, retries=0, max_attempts=1))
+    try:
+        t.send(b"lost")
+        with pytest.raises(TransportError, match="could not be sent"):
+            t.flush(timeout=20)
+        st = t.stats()
+        assert st["command_failures"] >= 6 and st["tx_failed"] == 1
+    finally:
+        t.close()

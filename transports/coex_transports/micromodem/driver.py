@@ -421,6 +421,11 @@ class MicromodemDriver:
         return self._received.popleft() if self._received else None
 
     @property
+    def failed_count(self) -> int:
+        """Packets given up after ``max_attempts`` (each also a :class:`TxFailed` event)."""
+        return self._s.tx_failed
+
+    @property
     def received_count(self) -> int:
         """Frames delivered since the start (good ``$CARXD`` / FDP data frames)."""
         return self._s.frames_received

@@ -258,9 +258,18 @@ class MicromodemTransport(Transport):
         self._backend.wake()
 
     def flush(self, timeout: float | None = 120.0) -> None:
-        """Wait until every queued frame has been transmitted (or has failed for good)."""
+        """Wait until every queued frame has left. Raises :class:`TransportTimeout` if frames are
+        still queued after ``timeout`` seconds, and :class:`TransportError` if packets failed for
+        good meanwhile (their frames are in :class:`~.driver.TxFailed` events)."""
+        with self._backend.lock:
+            failed_before = self.driver.failed_count
         if not self._backend.wait(lambda: self.driver.idle and self.driver.ready, timeout):
             raise TransportTimeout(f"frames still queued after {timeout} s")
+        with self._backend.lock:
+            failed = self.driver.failed_count - failed_before
+            reason = self.driver.stats()["last_error"]
+        if failed:
+            raise TransportError(f"{failed} packet(s) could not be sent: {reason}")
 
     def wait_ready(self, timeout: float | None = 30.0) -> bool:
         """Wait for the end of the modem startup sequence."""
