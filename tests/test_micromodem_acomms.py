@@ -75,6 +75,8 @@ def setup(tmp_path_factory: pytest.TempPathFactory) -> Iterator[dict[str, Any]]:
     handlers_before = list(root.handlers)
     positions = {1: (0.0, 0.0, 0.0), 2: (1000.0, 0.0, 0.0), 3: (0.0, 1000.0, 0.0)}
     network = ModemNetwork(positions, channel=AcousticChannel(seed=3))
+    for m in network.modems.values():
+        m.nvram["DTO"] = "30"  # pyacomms answers a CADRQ per 0.1 s read loop: no flaky DATA_TIMEOUT on a busy CI
     sim = PtySimulator(network, speed=SPEED)
     sim.start()
     logs = tmp_path_factory.mktemp("acomms_logs")
