@@ -88,3 +88,14 @@ def test_roundtrip_rejects_bad_input(tmp_path: Path, capsys: pytest.CaptureFixtu
     assert main(["timeseries", "roundtrip", str(good), "--out", str(tmp_path / "o"), "--budgets", "x"]) == 2
     assert main(["timeseries", "roundtrip", str(tmp_path / "missing.csv"), "--out", str(tmp_path / "o"),
                  "--budgets", "10"]) == 2
+
+
+def test_synth_writes_the_roundtrip_input(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    out = tmp_path / "s.csv"
+    assert main(["timeseries", "synth", "--out", str(out), "--hours", "0.5", "--seed", "3"]) == 0
+    assert "methane spikes" in capsys.readouterr().out
+    header, table = _read(out)
+    assert header == ["time", "methane", "temperature"] and table.shape == (1800, 3)
+    expected = synth.dataset(duration=1800.0, seed=3, t0=1_700_000_000.0)
+    np.testing.assert_allclose(table[:, 1], expected[0].values, atol=1e-9)
+    assert main(["timeseries", "synth", "--out", str(out), "--hours", "0"]) == 2

@@ -1,5 +1,7 @@
 """``coex timeseries``: run the time-series modality on a CSV file.
 
+``coex timeseries synth --out CSV [--hours H]`` writes the synthetic record the benchmark uses.
+
 ``coex timeseries roundtrip CSV --out DIR --budgets B1,B2,...`` reads a CSV whose first column
 is ``time`` (absolute seconds) and whose other columns are channels, runs the vehicle side
 (overview of every block, then successive "finer detail" refinements of the whole record as a
@@ -30,6 +32,7 @@ from coex_core.errors import ConfigError
 from coex_core.jsonfmt import to_json
 from coex_core.messages import Message
 
+from . import synth
 from .receiver import TimeSeriesReceiver, sample_series
 from .sender import TimeSeriesSender
 
@@ -52,6 +55,15 @@ def register(subparsers: Any) -> None:
     r.add_argument("--resolution", type=float, default=None,
                    help="sensor resolution of every channel (default: from the CSV's decimals)")
     r.set_defaults(func=_cmd_roundtrip)
+    g = sub.add_parser("synth", help="write a realistic synthetic CSV (methane with spikes, temperature)")
+    g.add_argument("--out", required=True, metavar="CSV", help="output file")
+    g.add_argument("--hours", type=float, default=6.0, help="duration (default 6 h)")
+    g.add_argument("--period", type=float, default=1.0, help="sample period in seconds (default 1)")
+    g.add_argument("--jitter", type=float, default=0.0,
+                   help="sample time jitter as a fraction of the period (default 0)")
+    g.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
+    g.add_argument("--t0", type=float, default=1_700_000_000.0, help="time of the first sample")
+    g.set_defaults(func=_cmd_synth)
     p.set_defaults(func=lambda args: (p.print_help(), 2)[1])
 
 
@@ -189,6 +201,18 @@ def roundtrip(csv_path: str | Path, out: str | Path, budgets: list[int], *, wave
                            "covered": float(ok.sum() / max(1, np.isfinite(values[:, j]).sum()))}
         summary["budgets"][str(b)] = entry
     return summary
+
+
+def _cmd_synth(args: argparse.Namespace) -> int:
+    if not (args.hours > 0 and args.period > 0 and 0 <= args.jitter < 0.5):
+        raise ConfigError("--hours and --period must be positive and --jitter in [0, 0.5)")
+    series = synth.dataset(duration=args.hours * 3600.0, period=args.period, seed=args.seed,
+                           t0=args.t0, jitter=args.jitter)
+    synth.write_csv(args.out, series)
+    spikes = ", ".join(f"{s.height:.1f} nM at {s.time - args.t0:.0f} s" for s in series[0].spikes)
+    print(f"wrote {args.out}: {series[0].times.size} samples of {', '.join(s.name for s in series)}; "
+          f"methane spikes: {spikes}")
+    return 0
 
 
 def _cmd_roundtrip(args: argparse.Namespace) -> int:

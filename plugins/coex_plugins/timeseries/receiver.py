@@ -317,7 +317,9 @@ class TimeSeriesReceiver(ModalityReceiver):
         reg = ch.registration
         meta: dict[str, Any] = {
             "channel": ch.cid, "name": ch.name, "unit": s.unit, "samples": int(s.times.size),
-            "blocks": len(ch.blocks), "max_bound": s.max_bound if s.times.size else None,
+            "blocks": len(ch.blocks),
+            # JSON-safe: None while nothing is held or a bound is unknown (incomplete pass)
+            "max_bound": s.max_bound if s.times.size and math.isfinite(s.max_bound) else None,
         }
         if reg is not None:
             meta.update(lo=reg.lo, hi=reg.hi, resolution=reg.resolution)
