@@ -531,3 +531,51 @@ def test_drive_simulation_feeds_the_console_and_the_caller() -> None:
     drive_simulation(net, top, hub, 600.0, step=5.0)
     assert veh.manager.stream(3).config.priority == 64
     assert hub.snapshot()["commands"][0]["status"] == "accepted"
+
+
+def test_map_from_level_products_when_subgrids_are_not_tapped(subgrids: list[m.Subgrid]) -> None:
+    rx = BathymetryReceiver()
+    st = ConsoleState()
+    for sg in subgrids:
+        for p in rx.receive(sg, T0):
+            st.apply_product("bathymetry", p, T0)
+    raw = fresh(subgrids)
+    got = {lv["level"]: lv for lv in st.snapshot()["map"]["levels"]}
+    want = {lv["level"]: lv for lv in raw.snapshot()["map"]["levels"]}
+    assert got.keys() == want.keys()
+    for k in want:
+        assert got[k]["subgrids"] == want[k]["subgrids"] and got[k]["cells"] == want[k]["cells"]
+        assert sorted(map(tuple, got[k]["tiles"])) == sorted(map(tuple, want[k]["tiles"]))
+        np.testing.assert_array_equal(st.level_grid(k)[0], raw.level_grid(k)[0])
+    # raw subgrids (exact stamps) take over from products, never the other way round
+    st.apply_message(subgrids[0], T0)
+    assert st.levels[subgrids[0].level].raw
+
+
+def test_pump_survives_an_event_the_console_cannot_show() -> None:
+    from coex_core.channel.events import ProductUpdated, Received
+    from coex_core.modality import Product
+
+    class FakeNode:
+        manager = ChannelManager(1, [LinkConfig(0, NUI)])
+
+        def __init__(self) -> None:
+            self._events = [
+                ProductUpdated(1.0, "bathymetry", Product("map-level", "level-0", 1,
+                                                          np.zeros((3, 5)), {"level": 0})),
+                Received(1.5, 0, 2, m.Subgrid(0, 0, 0, 1, 1.0, 0.1, 8, m.SubgridEncoding.OFFSET,
+                                              0, 4, None, (1, 2, 3))),  # 3 values for 64 cells
+                Received(2.0, 0, 2, m.VehicleStatus(2, 1.0, 2.0, 3.0, None, 0.0, 0.0, 50,
+                                                    m.VehicleMode.IDLE, 0)),
+            ]
+
+        def events(self) -> list[Any]:
+            out, self._events = self._events, []
+            return out
+
+    st = ConsoleState()
+    assert pump(st, FakeNode(), 3.0) == 3
+    snap = json.loads(json.dumps(st.snapshot(), allow_nan=False))
+    assert snap["vehicle"]["status"]["x"] == 1.0  # the good event after the odd ones is shown
+    assert snap["map"]["levels"] == []
+    assert any("could not show Received" in x["text"] for x in snap["log"])

@@ -91,7 +91,10 @@ def pump(state: ConsoleState, node: Any, now: float, events: list[Any] | None = 
     if events is None:
         events = node.events()
     for e in events:
-        state.apply_event(e)
+        try:
+            state.apply_event(e)
+        except Exception as exc:  # a display problem must never stop the node's loop
+            state._log(now, f"console could not show {type(e).__name__}: {exc}", "warn")
     mgr = node.manager
     for link in mgr.links:
         info = mgr.link_state(link)

@@ -143,6 +143,8 @@ class _Level:
     png: bytes | None = None
     png_version: int = -1
     summary: tuple[int, Any, Any, int] | None = None
+    #: Fed by raw Subgrid messages (exact stamps), not by assembled level products.
+    raw: bool = False
 
 
 @dataclass
@@ -321,6 +323,8 @@ class ConsoleState:
             self._targets_product(data, meta)
         elif kind.startswith("map") and isinstance(data, m.Subgrid):
             self._on_subgrid(data, now, None)
+        elif kind == "map-level" and hasattr(data, "shape"):
+            self._map_level_product(np.asarray(data, float), meta, now)
         return {s for s in SECTIONS if self.versions[s] != before[s]}
 
     def apply_event(self, event: Any) -> set[str]:
@@ -403,8 +407,8 @@ class ConsoleState:
         t = unwrap(sg.stamp, now)
         lv = self.levels.get(sg.level)
         cell = float(sg.resolution) * 2 ** sg.level
-        if lv is None or lv.side != sg.side or not math.isclose(lv.cell, cell):
-            lv = self.levels[sg.level] = _Level(sg.level, cell, sg.side)
+        if lv is None or lv.side != sg.side or not math.isclose(lv.cell, cell) or not lv.raw:
+            lv = self.levels[sg.level] = _Level(sg.level, cell, sg.side, raw=True)
         old = lv.tiles.get((sg.ix, sg.iy))
         if old is not None and old.t >= t:
             return  # duplicate or older
@@ -444,6 +448,36 @@ class ConsoleState:
             req.status = "queued"
         self._touch("map", "commands")
         self._log(now, f"map request {r.request_id}: {r.queued} subgrids queued")
+
+    def _map_level_product(self, z: FloatArray, meta: dict[str, Any], now: float) -> None:
+        """A bathymetry receiver's assembled level, for when its raw subgrids are not tapped
+        (every held subgrid gets the level's newest time: ages are approximate)."""
+        try:
+            level, cell = int(meta["level"]), float(meta["cell_size"])
+            x0, y0 = float(meta["x0"]), float(meta["y0"])
+        except (KeyError, TypeError, ValueError):
+            return
+        lv = self.levels.get(level)
+        if lv is not None and lv.raw:
+            return  # the raw subgrids (with their own stamps) are the better source
+        side = self.map_meta.subgrid_side if self.map_meta else (lv.side if lv else 8)
+        ny, nx = z.shape[0] // side, z.shape[1] // side
+        if ny * nx == 0 or z.shape != (ny * side, nx * side):
+            return
+        ix0, iy0 = round(x0 / (side * cell)), round(y0 / (side * cell))
+        t = float(meta.get("newest") or now)
+        blocks = z.reshape(ny, side, nx, side).swapaxes(1, 2)
+        held = np.isfinite(blocks).any(axis=(2, 3))
+        version = lv.version + 1 if lv is not None else 1
+        lv = self.levels[level] = _Level(level, cell, side, version=version)
+        for i, j in zip(*np.nonzero(held)):
+            lv.tiles[(ix0 + int(j), iy0 + int(i))] = _Tile(to_stamp(t), t, now,
+                                                           blocks[i, j].copy())
+        if np.isfinite(z).any():
+            lo, hi = float(np.nanmin(z)), float(np.nanmax(z))
+            zr = self._zrange or (lo, hi)
+            self._zrange = (min(zr[0], lo), max(zr[1], hi))
+        self._touch("map")
 
     def held_stamps(self, level: int, x0: int, y0: int, w: int, h: int) -> list[int | None]:
         """Per subgrid of the region, row-major (rows = y): the stamp topside holds, or None."""
@@ -1064,8 +1098,10 @@ class ConsoleActions:
             raise RequestRejected(f"unknown channel {channel}")
         if max_error is None:
             t, b = s.get("times"), s.get("bounds")
-            sel = (t >= start) & (t <= end) & np.isfinite(b) if t is not None else None
-            if sel is None or not sel.any():
+            if t is None or b is None:
+                raise RequestRejected("no data in that window to refine; give max_error")
+            sel = (t >= start) & (t <= end) & np.isfinite(b)
+            if not sel.any():
                 raise RequestRejected("no data in that window to refine; give max_error")
             max_error = float(b[sel].max()) / 4
             if s.get("resolution"):
