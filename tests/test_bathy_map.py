@@ -6,9 +6,15 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from coex_plugins.bathymetry import (
+    InputError,
+    QuadtreeMap,
+    iter_points,
+    load_points,
+    write_pointcloud_bag,
+)
 
 from coex_core.errors import CoexError
-from coex_plugins.bathymetry import InputError, QuadtreeMap, iter_points, load_points, write_pointcloud_bag
 
 from ._bathy_data import small_survey
 

@@ -6,13 +6,20 @@ import math
 
 import numpy as np
 import pytest
-
 from coex_conformance.harness import LinkedPair, run_until
+from coex_plugins.bathymetry import BathymetryReceiver, BathymetrySender
+
 from coex_core import wire
 from coex_core.errors import RequestRejected
-from coex_core.messages import MapMetadata, MapRoiReply, MapRoiRequest, Subgrid, VehicleMode, VehicleStatus
+from coex_core.messages import (
+    MapMetadata,
+    MapRoiReply,
+    MapRoiRequest,
+    Subgrid,
+    VehicleMode,
+    VehicleStatus,
+)
 from coex_core.timefmt import to_stamp
-from coex_plugins.bathymetry import BathymetryReceiver, BathymetrySender
 
 from ._bathy_data import small_survey
 
@@ -184,10 +191,10 @@ def test_gap_filling_sends_exactly_what_topside_lacks() -> None:
 )
 def test_absurd_or_foreign_requests_are_rejected_and_change_nothing(request_: object) -> None:
     sender, last = _loaded_sender()
-    before = (list(sender._queue), sender.inventory())  # noqa: SLF001
+    before = (list(sender._queue), sender.inventory())
     with pytest.raises(RequestRejected):
         sender.handle(request_, last)  # type: ignore[arg-type]
-    assert (list(sender._queue), sender.inventory()) == before  # noqa: SLF001
+    assert (list(sender._queue), sender.inventory()) == before
 
 
 def test_receiver_rejects_absurd_regions() -> None:

@@ -6,12 +6,6 @@ import random
 
 import numpy as np
 import pytest
-from hypothesis import given
-from hypothesis import strategies as st
-
-from coex_core import wire
-from coex_core.errors import DecodeError
-from coex_core.messages import FrameHeader, Subgrid, SubgridEncoding
 from coex_plugins.bathymetry import (
     BathymetrySender,
     decode_subgrid,
@@ -20,6 +14,12 @@ from coex_plugins.bathymetry import (
     size_2022,
     subgrid_bits,
 )
+from hypothesis import given
+from hypothesis import strategies as st
+
+from coex_core import wire
+from coex_core.errors import DecodeError
+from coex_core.messages import FrameHeader, Subgrid, SubgridEncoding
 
 from ._bathy_data import small_survey
 
@@ -125,7 +125,7 @@ def test_a_lost_subgrid_leaves_every_other_subgrid_decodable() -> None:
     frames = []
     batch: list[Subgrid] = []
     for sg in subgrids:
-        if sum(wire.encoded_size(m) for m in batch + [sg]) > 250:
+        if sum(wire.encoded_size(m) for m in [*batch, sg]) > 250:
             frames.append((batch, wire.pack(batch, 256, FrameHeader(src=2, dst=1))))
             batch = []
         batch.append(sg)

@@ -7,13 +7,19 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from coex_plugins.bathymetry import (
+    BathymetryReceiver,
+    BathymetrySender,
+    find_targets,
+    write_geotiff,
+    write_png,
+)
+from coex_plugins.bathymetry.export import read_geotiff
 from PIL import Image
 
 from coex_core import wire
 from coex_core.cli import main
 from coex_core.messages import Subgrid
-from coex_plugins.bathymetry import BathymetryReceiver, BathymetrySender, find_targets, write_geotiff, write_png
-from coex_plugins.bathymetry.export import read_geotiff
 
 from ._bathy_data import small_survey
 
@@ -44,8 +50,8 @@ def test_receiver_assembles_every_level_like_the_vehicle_map() -> None:
         cell = prod.meta["cell_size"]
         assert cell == 2.0**k
         # Compare on the overlap, placing both by their south-west corners.
-        r0 = int(round((prod.meta["y0"] - y0) / cell))
-        c0 = int(round((prod.meta["x0"] - x0) / cell))
+        r0 = round((prod.meta["y0"] - y0) / cell)
+        c0 = round((prod.meta["x0"] - x0) / cell)
         got = prod.data
         ref = np.full(got.shape, np.nan)
         rows = slice(max(r0, 0), min(r0 + got.shape[0], grid.shape[0]))

@@ -146,7 +146,7 @@ def write_pointcloud_bag(
     def message(t: float, xyz: FloatArray) -> Any:
         data = np.ascontiguousarray(xyz, dtype="<f4").view(np.uint8).ravel()
         sec = int(t)
-        stamp = time_t(sec=sec, nanosec=int(round((t - sec) * 1e9)))
+        stamp = time_t(sec=sec, nanosec=round((t - sec) * 1e9))
         hdr = header_t(seq=0, stamp=stamp, frame_id="map") if ros1 else header_t(stamp=stamp, frame_id="map")
         return pc2(header=hdr, height=1, width=len(xyz), fields=fields, is_bigendian=False,
                    point_step=12, row_step=12 * len(xyz), data=data, is_dense=True)

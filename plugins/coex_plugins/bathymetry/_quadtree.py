@@ -41,6 +41,7 @@ outside the addressable area (|x|, |y| beyond ``resolution * 2**16``) are droppe
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 import numpy.typing as npt
@@ -313,9 +314,9 @@ class QuadtreeMap:
         local: IntArray,
         inv: IntArray,
         z: FloatArray,
-        n_b: IntArray,
-        s_b: FloatArray,
-        ss_b: FloatArray,
+        n_b: npt.NDArray[Any],
+        s_b: npt.NDArray[Any],
+        ss_b: npt.NDArray[Any],
     ) -> tuple[npt.NDArray[np.bool_], npt.NDArray[np.bool_]]:
         """Which soundings of a batch to keep, and which could be judged (see the module docstring).
 
@@ -434,7 +435,7 @@ class QuadtreeMap:
         x1, y1 = keys.max(axis=0) + 1
         n = self.tile >> level
         out = np.full(((y1 - y0) * n, (x1 - x0) * n), np.nan)
-        for (tx, ty), s in self._slots.items():
+        for tx, ty in self._keys:
             cnt, sm, _, _ = self.level_stats((tx, ty), level)
             with np.errstate(invalid="ignore", divide="ignore"):
                 val = np.where(cnt > 0, sm / np.maximum(cnt, 1), np.nan)
@@ -453,8 +454,8 @@ class QuadtreeMap:
         return float(x0), float(y0), float(x1), float(y1)
 
 
-def _grow(a: npt.NDArray[np.generic], cap: int, fill: float) -> npt.NDArray[np.generic]:
-    shape = (cap,) + a.shape[1:]
+def _grow(a: npt.NDArray[Any], cap: int, fill: float) -> Any:
+    shape = (cap, *a.shape[1:])
     out = np.full(shape, fill, dtype=a.dtype)
     out[: a.shape[0]] = a
     return out

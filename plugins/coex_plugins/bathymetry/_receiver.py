@@ -230,7 +230,7 @@ class BathymetryReceiver(ModalityReceiver):
         active = [r for r in self.regions if not r.done]
         if len(active) >= self.max_regions:
             raise RequestRejected(f"more than {self.max_regions} active region requests")
-        self.regions = active + [region]
+        self.regions = [*active, region]
 
     def request_region(self, level: int, x0: int, y0: int, w: int, h: int) -> list[Region]:
         """Ask for subgrids ``[x0, x0+w) x [y0, y0+h)`` at ``level`` that the vehicle has newer

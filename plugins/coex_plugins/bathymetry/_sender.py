@@ -123,7 +123,7 @@ class BathymetrySender(ModalitySender):
         """Last update of subgrid ``key`` (``-inf`` when it holds no data)."""
         level, ix, iy = key
         tile, a, b = self.map.tile_of_subgrid(level, ix, iy)
-        if tile not in self.map._slots:  # noqa: SLF001 (same package)
+        if tile not in self.map._slots:
             return -math.inf
         return float(self.map.subgrid_times(tile, level)[b, a])
 

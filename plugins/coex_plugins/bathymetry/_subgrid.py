@@ -117,7 +117,7 @@ def encode_subgrid(
     pf = pa.ravel()
     vals = flat[pf]
     if vals.size == 0:
-        return Subgrid(encoding=SubgridEncoding.OFFSET, z_base=0, width=0, values=(), **base)  # type: ignore[arg-type]
+        return Subgrid(encoding=SubgridEncoding.OFFSET, z_base=0, width=0, values=(), **base)
     if np.abs(vals).max() >= Z_LIMIT:
         raise ValueError("elevation outside the wire range (|z| < 2**19 vertical units)")
     candidates: list[tuple[int, Subgrid]] = []
@@ -128,7 +128,7 @@ def encode_subgrid(
         codes = vals - lo if width else vals[:0]
         if vals.size * width <= 1536:
             sg = Subgrid(encoding=SubgridEncoding.OFFSET, z_base=lo, width=width,
-                         values=tuple(int(c) for c in codes), **base)  # type: ignore[arg-type]
+                         values=tuple(int(c) for c in codes), **base)
             candidates.append((header + vals.size * width, sg))
     if SubgridEncoding.DELTA in encodings:
         order = _serpentine(side)
@@ -138,7 +138,7 @@ def encode_subgrid(
         k, cost = _rice_cost(v)
         if cost <= 1536:
             sg = Subgrid(encoding=SubgridEncoding.DELTA, z_base=int(ser[0]), width=k,
-                         values=tuple(int(c) for c in v), **base)  # type: ignore[arg-type]
+                         values=tuple(int(c) for c in v), **base)
             candidates.append((header + cost, sg))
     if SubgridEncoding.PLANE in encodings and vals.size >= 3:
         ii, jj = np.divmod(np.arange(side * side), side)
@@ -154,7 +154,7 @@ def encode_subgrid(
             k, cost = _rice_cost(v)
             if cost <= 1536:
                 sg = Subgrid(encoding=SubgridEncoding.PLANE, z_base=zb, width=k, values=tuple(int(c) for c in v),
-                             slope_x=sx, slope_y=sy, **base)  # type: ignore[arg-type]
+                             slope_x=sx, slope_y=sy, **base)
                 candidates.append((header + PLANE_BITS + cost, sg))
     if not candidates:
         raise ValueError("no encoding fits this subgrid")

@@ -23,7 +23,14 @@ from coex_core import wire
 from coex_core.errors import CoexError, ConfigError
 from coex_core.jsonfmt import to_json
 from coex_core.loopback import LoopbackLink
-from coex_core.messages import FrameHeader, MapMetadata, MapRoiReply, MapRoiRequest, Message, Subgrid
+from coex_core.messages import (
+    FrameHeader,
+    MapMetadata,
+    MapRoiReply,
+    MapRoiRequest,
+    Message,
+    Subgrid,
+)
 
 from ._io import iter_points
 from ._receiver import BathymetryReceiver
@@ -41,6 +48,12 @@ def _level_of(m: Message) -> int | None:
     if isinstance(m, Subgrid | MapRoiRequest | MapRoiReply):
         return int(m.level)
     return None
+
+
+def _send(link: LoopbackLink, messages: list[Message]) -> int:
+    frame = wire.pack(messages, FRAME_BYTES, FrameHeader(src=1, dst=2))
+    link.a.send(frame)
+    return len(frame)
 
 
 def _record(m: Message, t: float, direction: str) -> dict[str, Any]:
@@ -117,15 +130,12 @@ def roundtrip(
             for m in reqs:
                 records.append(_record(m, now, "up"))
             frame_msgs: list[Message] = []
-            for m in reqs + [None]:  # type: ignore[list-item]
-                if m is not None and sum(wire.encoded_size(x) for x in frame_msgs + [m]) <= budget:
-                    frame_msgs.append(m)
-                    continue
-                if frame_msgs:
-                    f = wire.pack(frame_msgs, FRAME_BYTES, FrameHeader(src=1, dst=2))
-                    bytes_up += len(f)
-                    up.a.send(f)
-                frame_msgs = [m] if m is not None else []
+            for m in reqs:
+                if frame_msgs and sum(wire.encoded_size(x) for x in [*frame_msgs, m]) > budget:
+                    bytes_up += _send(up, frame_msgs)
+                    frame_msgs = []
+                frame_msgs.append(m)
+            bytes_up += _send(up, frame_msgs)
         up.clock.advance_to(now + 1.0)
         while (f := up.b.recv(timeout=0.0)) is not None:
             for m in wire.unpack(f):
@@ -164,7 +174,7 @@ def roundtrip(
             "mean_bytes": float(np.mean(subgrid_bytes[k])) if subgrid_bytes.get(k) else None,
             "mean_bytes_2022": float(np.mean(bytes_2022[k])) if bytes_2022.get(k) else None,
         }
-        if k in receiver._mosaics:  # noqa: SLF001
+        if k in receiver._mosaics:
             prod = receiver.level_product(k)
             cell = float(prod.meta["cell_size"])
             write_geotiff(out_dir / f"level_{k}.tif", prod.data, x0=prod.meta["x0"], y0=prod.meta["y0"],

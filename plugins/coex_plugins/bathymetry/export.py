@@ -94,7 +94,7 @@ def read_geotiff(path: str | Path) -> tuple[FloatArray, dict[str, Any]]:
 
     with tifffile.TiffFile(path) as tif:
         page = tif.pages[0]
-        arr = np.flipud(page.asarray().astype(np.float64))  # type: ignore[union-attr]
+        arr = np.flipud(page.asarray().astype(np.float64))
         tags = {t.name: t.value for t in page.tags.values()}  # type: ignore[union-attr]
     scale = tags["ModelPixelScaleTag"]
     tie = tags["ModelTiepointTag"]
@@ -200,8 +200,8 @@ def find_targets(
     z = np.asarray(grid, np.float64)
     if z.size == 0:
         return []
-    inner = inner if inner is not None else max(2, int(round(4.0 / cell)))
-    outer = outer if outer is not None else max(inner + 2, int(round(12.0 / cell)))
+    inner = inner if inner is not None else max(2, round(4.0 / cell))
+    outer = outer if outer is not None else max(inner + 2, round(12.0 / cell))
     ok = np.isfinite(z)
     zf = np.where(ok, z, 0.0)
     w = ok.astype(np.float64)

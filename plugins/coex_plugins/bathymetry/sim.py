@@ -20,6 +20,7 @@ Used by the tests, the benchmark, ``coex bathy roundtrip`` sample data and the d
 
 from __future__ import annotations
 
+import itertools
 from collections.abc import Iterator
 from dataclasses import dataclass, field
 
@@ -124,7 +125,7 @@ class Survey:
             return
         starts = np.flatnonzero(np.diff(self.ping, prepend=-1))
         starts = np.append(starts[::batch], self.ping.size)
-        for a, b in zip(starts[:-1], starts[1:], strict=True):
+        for a, b in itertools.pairwise(starts):
             yield float(self.times[b - 1]), self.points[a:b]
 
     def __len__(self) -> int:
