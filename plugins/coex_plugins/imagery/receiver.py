@@ -39,6 +39,8 @@ from .codec import StreamParams, decode_packets, packet_order, parse_params
 __all__ = ["ImageryReceiver"]
 
 MAX_ACK_RANGES = 15
+#: Ids ahead of a new announcement whose older images are forgotten (previous id cycle).
+REUSE_WINDOW = 16
 
 
 class _Rx:
@@ -171,6 +173,13 @@ class ImageryReceiver(ModalityReceiver):
             return []
         if old is not None:  # the id wrapped round: a new image replaces the old one
             del self.images[ann.image_id]
+        # ids are given in sequence (mod 1024): an older image held under one of the next few ids
+        # is from the previous cycle; forget it before its id is reused, so that fragments of the
+        # new image arriving before their (lost) announcement never land in the old buffer
+        t = unwrap(ann.stamp, now)
+        for stale in [i for i, h in self.images.items()
+                      if 0 < (i - ann.image_id) % 1024 <= REUSE_WINDOW and h.time < t]:
+            del self.images[stale]
         rx = _Rx(ann, sp, now)
         self.images[ann.image_id] = rx
         while len(self.images) > self.max_images:
