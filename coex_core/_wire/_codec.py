@@ -5,6 +5,7 @@ from __future__ import annotations
 import binascii
 import dataclasses
 import enum
+import functools
 import io
 import types
 import typing
@@ -142,6 +143,20 @@ def encode(message: Message) -> bytes:
     """Encode one message (type id, length where specified, body)."""
     if isinstance(message, Opaque):
         return _encode_opaque(message)
+    try:
+        return _encode_cached(message)
+    except TypeError:  # unhashable field values (a list given where a tuple is expected)
+        return _encode(message)
+
+
+@functools.lru_cache(maxsize=8192)
+def _encode_cached(message: Message) -> bytes:
+    # messages are frozen dataclasses: equal messages have equal encodings, so packing (which asks
+    # for sizes repeatedly) and the canonical-form check of decoding do not re-run construct
+    return _encode(message)
+
+
+def _encode(message: Message) -> bytes:
     spec = spec_for(message)
     try:
         data = TYPE_ID.build(spec.type_id) + _BODIES[spec.type_id].build(_to_container(message))

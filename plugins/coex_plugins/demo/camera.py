@@ -58,7 +58,7 @@ class CameraModel:
 class SandTexture:
     """Deterministic procedural albedo: sums of oriented sinusoids and a coarse speckle."""
 
-    def __init__(self, seed: int = 0, octaves: int = 12) -> None:
+    def __init__(self, seed: int = 0, octaves: int = 8) -> None:
         rng = np.random.default_rng(seed)
         self.k = rng.uniform(2.0, 40.0, octaves)  # wavenumbers, rad/m
         self.theta = rng.uniform(0, np.pi, octaves)
@@ -67,9 +67,12 @@ class SandTexture:
         self.amp /= self.amp.sum()
 
     def __call__(self, gx: np.ndarray, gy: np.ndarray) -> np.ndarray:
+        gx = np.asarray(gx, np.float32)
+        gy = np.asarray(gy, np.float32)
         acc = np.zeros_like(gx)
         for k, th, ph, a in zip(self.k, self.theta, self.phase, self.amp):
-            acc += a * np.sin(k * (gx * np.cos(th) + gy * np.sin(th)) + ph)
+            acc += np.float32(a) * np.sin(np.float32(k * np.cos(th)) * gx + np.float32(k * np.sin(th)) * gy
+                                          + np.float32(ph))
         # sparse dark pebbles and shell fragments: a thresholded high-frequency pattern
         grit = np.sin(61.0 * gx + 3.0 * np.sin(17.0 * gy)) * np.sin(53.0 * gy + 2.0 * np.sin(23.0 * gx))
         return 0.55 + 0.10 * acc - 0.12 * (grit > 0.93)
@@ -80,6 +83,26 @@ def footprint(altitude: float, camera: CameraModel | None = None) -> tuple[float
     cam = camera or CameraModel()
     w = 2 * altitude * np.tan(np.deg2rad(cam.hfov_deg) / 2)
     return float(w), float(w * cam.height / cam.width)
+
+
+def _coarse_heights(height_fn: HeightFn, gx: np.ndarray, gy: np.ndarray, step: int = 8) -> np.ndarray:
+    """The height field sampled every ``step`` pixels and bilinearly interpolated (seafloor
+    relief and ripples are smooth at that scale; the camera's targets are added separately)."""
+    h, w = gx.shape
+    rows = np.unique(np.r_[np.arange(0, h, step), h - 1])
+    cols = np.unique(np.r_[np.arange(0, w, step), w - 1])
+    coarse = np.asarray(height_fn(gx[np.ix_(rows, cols)], gy[np.ix_(rows, cols)]), float)
+    ri = np.interp(np.arange(h), rows, np.arange(len(rows)))
+    ci = np.interp(np.arange(w), cols, np.arange(len(cols)))
+    r0 = np.minimum(ri.astype(int), len(rows) - 2)
+    c0 = np.minimum(ci.astype(int), len(cols) - 2)
+    fr = (ri - r0)[:, None]
+    fc = (ci - c0)[None, :]
+    a = coarse[r0][:, c0]
+    b = coarse[r0][:, c0 + 1]
+    c = coarse[r0 + 1][:, c0]
+    d = coarse[r0 + 1][:, c0 + 1]
+    return (a * (1 - fr) * (1 - fc) + b * (1 - fr) * fc + c * fr * (1 - fc) + d * fr * fc)
 
 
 def in_frame(box: BoxLike, x: float, y: float, altitude: float, heading_deg: float,
@@ -123,18 +146,22 @@ def render_frame(
     # camera right = (cos h, -sin h), forward = (sin h, cos h) for a heading clockwise from north
     ex, ey = px * np.cos(h) + py * np.sin(h), -px * np.sin(h) + py * np.cos(h)
     gx, gy = x + ex * altitude, y + ey * altitude
-    gz = height_fn(gx, gy)
+    gz = _coarse_heights(height_fn, gx, gy)
     albedo = tex(gx, gy)
     top = np.zeros_like(gz, dtype=bool)
     for box in targets:
         mask, u, v = _inside(box, gx, gy)
         gz = np.where(mask, gz + box.height, gz)
         # a wreck: dark corroded panels, bright encrusting growth, a frame of hard dark edges
-        clutter = np.sin(5.3 * u + 2.0 * np.sin(3.1 * v)) * np.cos(6.7 * v + 1.5 * np.sin(4.3 * u))
-        paint = 0.16 + 0.06 * clutter + 0.5 * (tex(gx * 2.3, gy * 1.9) - 0.55)
+        if not mask.any():
+            continue
+        um, vm = u[mask], v[mask]
+        clutter = np.sin(5.3 * um + 2.0 * np.sin(3.1 * vm)) * np.cos(6.7 * vm + 1.5 * np.sin(4.3 * um))
+        paint = 0.16 + 0.06 * clutter + 0.5 * (tex(gx[mask] * 2.3, gy[mask] * 1.9) - 0.55)
         growth = clutter > 0.8
-        edge = (np.abs(np.abs(u) - box.length / 2) < 0.1) | (np.abs(np.abs(v) - box.width / 2) < 0.1)
-        albedo = np.where(mask, np.where(edge, 0.10, np.where(growth, 0.42, paint)), albedo)
+        edge = (np.abs(np.abs(um) - box.length / 2) < 0.1) | (np.abs(np.abs(vm) - box.width / 2) < 0.1)
+        albedo = albedo.astype(np.float64)
+        albedo[mask] = np.where(edge, 0.10, np.where(growth, 0.42, paint))
         top |= mask
     # surface normals from the height field (finite differences in image space)
     dzx = np.gradient(gz, axis=1) / np.maximum(np.gradient(gx, axis=1) ** 2 + np.gradient(gy, axis=1) ** 2, 1e-9) ** 0.5

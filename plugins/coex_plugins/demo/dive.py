@@ -1,0 +1,788 @@
+"""The demo dive: a time-compressed re-enactment of NUI dive 040's nested survey.
+
+Two CoEx nodes (vehicle 2, topside 1), each a channel manager with the built-in modalities, talk
+through two simulated WHOI Micromodems (:class:`~coex_transports.micromodem.simulator.ModemNetwork`):
+the bytes between each node and its modem are the NMEA sentences of the real driver
+(:class:`~coex_transports.micromodem.MicromodemTransport`), so the demo runs the same code path
+as a vehicle with real hardware. Rate 5, 6 x 20 s TDMA slots (topside 0 and 3, vehicle 1, 2, 4,
+5), configurable frame loss. Everything runs on one simulated clock that jumps from event to
+event, so a two-hour dive takes a few minutes at most.
+
+The scenario: descent; a lawnmower multibeam survey at 30 m altitude over a seafloor with ripples
+and two car-sized targets the operator does not know about; a camera pass at 3 m altitude over
+the candidates the operator found in the 1 m map; ascent. A scripted operator watches the map,
+requests the finest level around candidates, then asks for camera images near each target by
+time and steps back in time until the target is in frame, as the 2022 operators did.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import math
+import sys
+import time
+from collections.abc import Callable, Iterator
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from coex_transports._runner import Runner, SimulatedClock
+from coex_transports.micromodem.simulator import ModemNetwork
+
+from coex_core.acoustic import AcousticChannel, GilbertElliott
+from coex_core.channel import ChannelManager, LinkConfig, Schedule, StreamConfig
+from coex_core.channel.events import ProductUpdated, Received
+from coex_core.loopback import SimClock
+from coex_core.messages import VehicleMode, VehicleStatus
+from coex_core.node import Node
+from coex_core.timefmt import to_stamp
+from coex_plugins.bathymetry import (
+    BathymetryModality,
+    BathymetryReceiver,
+    find_targets,
+    write_geotiff,
+    write_png,
+)
+from coex_plugins.bathymetry.sim import Seafloor, Survey, Target, simulate_survey
+from coex_plugins.imagery import ImageInput, ImageryModality, ImageryReceiver
+from coex_plugins.timeseries import TimeSeriesModality, TimeSeriesReceiver
+from coex_plugins.timeseries import synth as ts_synth
+
+from .camera import SandTexture, in_frame, render_frame
+
+__all__ = ["DemoConfig", "DemoResult", "run_demo"]
+
+TOPSIDE, VEHICLE = 1, 2
+EPOCH = 1_656_633_600.0  # 2022-07-01T00:00:00Z: the dive's clock (simulated)
+CYCLE = 120.0
+CAMERA_ALTITUDE = 3.0
+SURVEY_ALTITUDE = 30.0
+
+
+@dataclass
+class DemoConfig:
+    """Options of ``coex demo`` (see ``coex demo --help``)."""
+
+    out: Path = Path("coex-demo-out")
+    loss: float = 0.3
+    seed: int = 1
+    images: Path | None = None
+    gui: bool = False
+    http: str = "127.0.0.1:8080"
+    quick: bool = False
+    duration: float = 7200.0
+    area: float = 256.0
+    progress: bool = True
+    burst: bool = False
+
+    def scaled(self) -> DemoConfig:
+        """The short scenario of ``--quick`` (tests): a small area, a short dive."""
+        if not self.quick:
+            return self
+        return DemoConfig(**{**asdict(self), "area": 96.0, "duration": 3000.0, "quick": True})
+
+
+@dataclass
+class Decision:
+    t: float
+    kind: str
+    text: str
+
+
+@dataclass
+class DemoResult:
+    out: Path
+    metrics: dict[str, Any]
+    decisions: list[Decision] = field(default_factory=list)
+
+
+# ------------------------------------------------------------------------------ scenario
+
+
+def _targets(area: float, rng: np.random.Generator) -> tuple[Target, ...]:
+    """Two car-sized boxes at positions the operator does not know (well inside the area)."""
+    margin = 0.2 * area
+    out: list[Target] = []
+    while len(out) < 2:
+        x, y = rng.uniform(margin, area - margin, 2)
+        if all(math.hypot(x - t.x, y - t.y) > 0.25 * area for t in out):
+            out.append(Target(float(round(x, 1)), float(round(y, 1)), heading=float(rng.uniform(-90, 90))))
+    return tuple(out)
+
+
+@dataclass
+class Leg:
+    """A straight leg of the vehicle's track at constant depth offset above the seafloor."""
+
+    t0: float
+    t1: float
+    p0: tuple[float, float]
+    p1: tuple[float, float]
+    altitude: float
+    camera: bool = False
+
+    def at(self, t: float) -> tuple[float, float]:
+        f = 0.0 if self.t1 <= self.t0 else min(max((t - self.t0) / (self.t1 - self.t0), 0.0), 1.0)
+        return (self.p0[0] + f * (self.p1[0] - self.p0[0]), self.p0[1] + f * (self.p1[1] - self.p0[1]))
+
+    @property
+    def heading(self) -> float:
+        dx, dy = self.p1[0] - self.p0[0], self.p1[1] - self.p0[1]
+        return (math.degrees(math.atan2(dx, dy)) + 360.0) % 360.0 if (dx or dy) else 0.0
+
+
+class Track:
+    """The vehicle's position over time: survey pings first, then planned legs."""
+
+    def __init__(self, floor: Seafloor) -> None:
+        self.floor = floor
+        # the seafloor on a 1 m grid (with a margin), interpolated for the track's depths
+        xs = np.arange(floor.x0 - 64.0, floor.x0 + floor.size + 64.0, 1.0)
+        ys = np.arange(floor.y0 - 64.0, floor.y0 + floor.size + 64.0, 1.0)
+        self._xs, self._ys = xs, ys
+        gx, gy = np.meshgrid(xs, ys)
+        self._grid = floor.elevation(gx, gy)
+        self.samples: list[tuple[float, float, float, float]] = []  # t, x, y, altitude
+        self.legs: list[Leg] = []
+
+    def add_sample(self, t: float, x: float, y: float, altitude: float) -> None:
+        self.samples.append((t, x, y, altitude))
+
+    def position(self, t: float) -> tuple[float, float, float, float, float]:
+        """x, y, depth, altitude, heading at time ``t``."""
+        for leg in self.legs:
+            if leg.t0 <= t <= leg.t1:
+                x, y = leg.at(t)
+                return (*self._depth(x, y, leg.altitude), leg.heading)
+        if self.samples:
+            ts = [s[0] for s in self.samples]
+            i = int(np.searchsorted(ts, t))
+            i = min(max(i, 0), len(self.samples) - 1)
+            _, x, y, alt = self.samples[i]
+            j = max(i - 1, 0)
+            dx, dy = x - self.samples[j][1], y - self.samples[j][2]
+            heading = (math.degrees(math.atan2(dx, dy)) + 360.0) % 360.0 if (dx or dy) else 0.0
+            return (*self._depth(x, y, alt), heading)
+        return (0.0, 0.0, 0.0, 0.0, 0.0)
+
+    def floor_z(self, x: float, y: float) -> float:
+        i = float(np.clip(np.interp(y, self._ys, np.arange(len(self._ys))), 0, len(self._ys) - 1.001))
+        j = float(np.clip(np.interp(x, self._xs, np.arange(len(self._xs))), 0, len(self._xs) - 1.001))
+        i0, j0 = int(i), int(j)
+        fi, fj = i - i0, j - j0
+        g = self._grid
+        return float(g[i0, j0] * (1 - fi) * (1 - fj) + g[i0, j0 + 1] * (1 - fi) * fj
+                     + g[i0 + 1, j0] * fi * (1 - fj) + g[i0 + 1, j0 + 1] * fi * fj)
+
+    def _depth(self, x: float, y: float, altitude: float) -> tuple[float, float, float, float]:
+        floor_z = self.floor_z(x, y)
+        return x, y, max(0.0, -(floor_z + altitude)), altitude
+
+
+# ------------------------------------------------------------------------------ the nodes
+
+
+def nui_schedule() -> Schedule:
+    """6 x 20 s slots, 2 s guard: topside owns slots 0 and 3, the vehicle 1, 2, 4, 5."""
+    return Schedule.simple([TOPSIDE, VEHICLE, VEHICLE, TOPSIDE, VEHICLE, VEHICLE], 20.0, 2.0, epoch=EPOCH)
+
+
+def build_nodes(out: Path, channels: list[dict[str, Any]]) -> tuple[Node, Node, dict[str, Any], dict[str, Any]]:
+    sched = nui_schedule()
+    vehicle = Node(ChannelManager(VEHICLE, [LinkConfig(0, sched, rate=5, dst=TOPSIDE)],
+                                  queue_status_interval=CYCLE))
+    topside = Node(ChannelManager(TOPSIDE, [LinkConfig(0, sched, rate=5, dst=VEHICLE)],
+                                  queue_status_interval=CYCLE))
+    senders = {
+        "bathymetry": BathymetryModality().sender({"send_delay": 20.0}),
+        "imagery": ImageryModality().sender({"default_goal": "layer:2", "request_goal": "layer:6"}),
+        "timeseries": TimeSeriesModality().sender({"channels": channels}),
+    }
+    receivers = {
+        "bathymetry": BathymetryModality().receiver(None),
+        "imagery": ImageryModality().receiver({"out_dir": str(out / "images")}),
+        "timeseries": TimeSeriesModality().receiver(None),
+    }
+    # NUI 2022 priorities: map subgrids 30, image fragments 30, time series a little less
+    vehicle.add_sender(BathymetryModality, senders["bathymetry"], StreamConfig(3, "map", priority=30))
+    vehicle.add_sender(ImageryModality, senders["imagery"], StreamConfig(4, "images", priority=30))
+    vehicle.add_sender(TimeSeriesModality, senders["timeseries"], StreamConfig(5, "series", priority=20))
+    topside.add_receiver(BathymetryModality, receivers["bathymetry"])
+    topside.add_receiver(ImageryModality, receivers["imagery"])
+    topside.add_receiver(TimeSeriesModality, receivers["timeseries"])
+    return vehicle, topside, senders, receivers
+
+
+# ------------------------------------------------------------------------------ operator
+
+
+@dataclass
+class TargetWatch:
+    x: float
+    y: float
+    height: float
+    found_at: float
+    level0_requested: bool = False
+    passed_at: float | None = None
+    request_at: float | None = None
+    image_id: int | None = None
+    tried: list[int] = field(default_factory=list)
+    confirmed_at: float | None = None
+
+
+class Operator:
+    """The scripted topside operator (what the 2022 operators did by hand)."""
+
+    def __init__(self, topside: Node, receivers: dict[str, Any], log: Callable[[float, str, str], None]) -> None:
+        self.topside = topside
+        self.bathy: BathymetryReceiver = receivers["bathymetry"]
+        self.imagery: ImageryReceiver = receivers["imagery"]
+        self.series: TimeSeriesReceiver = receivers["timeseries"]
+        self.log = log
+        self.track: list[tuple[float, float, float, float]] = []  # t, x, y, heading (received)
+        self.coarse_requested: list[tuple[float, float]] = []
+        self.targets: list[TargetWatch] = []
+        self.camera_phase = False
+
+    # what topside hears
+    def on_status(self, s: VehicleStatus, now: float) -> None:
+        self.track.append((now, s.x, s.y, s.heading))
+
+    def _level_grid(self, level: int) -> tuple[np.ndarray, float, tuple[float, float]] | None:
+        try:
+            p = self.bathy.level_product(level)
+        except Exception:
+            return None
+        if p.data is None:
+            return None
+        meta = dict(p.meta)
+        return np.asarray(p.data, dtype=float), float(meta["cell_size"]), (float(meta["x0"]), float(meta["y0"]))
+
+    def watch_map(self, now: float) -> None:
+        """Every cycle: look for candidates on a coarse level, ask for 1 m around them; confirm at 1 m."""
+        for level in (2, 1):
+            g = self._level_grid(level)
+            if g is None:
+                continue
+            grid, cell, origin = g
+            for c in find_targets(grid, cell=cell, x0=origin[0], y0=origin[1], threshold=0.4, min_cells=1):
+                if any(math.hypot(c.x - x, c.y - y) < 12.0 for x, y in self.coarse_requested):
+                    continue
+                self.coarse_requested.append((c.x, c.y))
+                self.bathy.request_area(0, c.x - 12.0, c.y - 12.0, c.x + 12.0, c.y + 12.0)
+                self.log(now, "ROI request", f"level 0 (1 m) around ({c.x:.0f}, {c.y:.0f}): "
+                         f"level-{level} bump of {c.height:.1f} m")
+            break
+        g0 = self._level_grid(0)
+        if g0 is None:
+            return
+        grid, cell, origin = g0
+        for c in find_targets(grid, cell=cell, x0=origin[0], y0=origin[1], threshold=1.0):
+            if any(math.hypot(c.x - t.x, c.y - t.y) < 6.0 for t in self.targets):
+                continue
+            self.targets.append(TargetWatch(c.x, c.y, c.height, now))
+            self.log(now, "target at 1 m", f"candidate at ({c.x:.1f}, {c.y:.1f}), {c.height:.1f} m high "
+                     "in the 1 m map: added to the camera pass")
+
+    # camera pass
+    def watch_images(self, now: float) -> None:
+        if not self.camera_phase or not self.track:
+            return
+        _t_now, x_now, y_now, _ = self.track[-1]
+        for tw in self.targets:
+            if tw.confirmed_at is not None:
+                continue
+            if tw.passed_at is None:
+                close = [(math.hypot(x - tw.x, y - tw.y), t) for t, x, y, _ in self.track]
+                d, t_close = min(close)
+                if d < 6.0 and math.hypot(x_now - tw.x, y_now - tw.y) > 8.0:
+                    tw.passed_at = t_close
+                    self._ask(tw, t_close, "nearest", now)
+                continue
+            if tw.image_id is None:
+                continue
+            prod = self._image_meta(tw.image_id)
+            if prod is None:
+                continue
+            x, y = prod.get("x"), prod.get("y")
+            if x is None or y is None:
+                continue
+            if not self._shows(tw, float(x), float(y)):
+                if tw.image_id not in tw.tried:
+                    tw.tried.append(tw.image_id)
+                    self.log(now, "image request", f"image {tw.image_id} does not show the target at "
+                             f"({tw.x:.0f}, {tw.y:.0f}): stepping back in time")
+                    self._ask(tw, float(prod["time"]), "before", now)
+                continue
+            if int(prod.get("layers_complete", 0)) >= 3:
+                tw.confirmed_at = now
+                dt = now - (tw.request_at or now)
+                self.log(now, "confirming image", f"image {tw.image_id} shows the target at "
+                         f"({tw.x:.0f}, {tw.y:.0f}), {prod['bytes_used']} B, {dt:.0f} s after the request")
+
+    def _shows(self, tw: TargetWatch, x: float, y: float) -> bool:
+        box = Target(tw.x, tw.y, 3.0, 3.0, 1.0, 0.0)  # the operator knows roughly where, not how it lies
+        return in_frame(box, x, y, CAMERA_ALTITUDE, 0.0, fraction=0.15)
+
+    def _image_meta(self, image_id: int) -> dict[str, Any] | None:
+        for p in self.imagery.products():
+            if p.kind == "image" and p.key == str(image_id):
+                return dict(p.meta)
+        return None
+
+    def _ask(self, tw: TargetWatch, t: float, direction: str, now: float) -> None:
+        msg = self.imagery.request_by_time(t, direction, now)
+        if tw.request_at is None:
+            tw.request_at = now
+        self.log(now, "image request", f"image {direction} {t - EPOCH:.0f} s (dive time) for the target at "
+                 f"({tw.x:.0f}, {tw.y:.0f}) [command {msg.command_id}]")
+
+    def on_image(self, meta: dict[str, Any], now: float) -> None:
+        """Map an announced/refined image to the target whose request it answers."""
+        for tw in self.targets:
+            if tw.passed_at is None or tw.confirmed_at is not None:
+                continue
+            x, y = meta.get("x"), meta.get("y")
+            if x is None or y is None:
+                continue
+            t_img = float(meta.get("time") or 0.0)
+            wanted = tw.passed_at if not tw.tried else None
+            if wanted is not None and abs(t_img - wanted) < 30.0 and tw.image_id is None:
+                tw.image_id = int(meta["image_id"])
+            elif tw.tried and int(meta["image_id"]) not in tw.tried and self._shows(tw, float(x), float(y)):
+                tw.image_id = int(meta["image_id"])
+
+
+# ------------------------------------------------------------------------------ the run
+
+
+def _rng(seed: int, salt: int) -> np.random.Generator:
+    return np.random.default_rng([seed, salt])
+
+
+def _status(track: Track, t: float) -> VehicleStatus:
+    x, y, depth, alt, heading = track.position(t)
+    return VehicleStatus(to_stamp(t), round(x, 1), round(y, 1), round(min(depth, 6000.0), 1),
+                         round(min(alt, 500.0), 1), round(heading % 359.9, 1), 0.5,
+                         max(0, 100 - int((t - EPOCH) / 120)), VehicleMode.SURVEY, 0)
+
+
+def _image_files(path: Path | None) -> list[Path]:
+    if path is None:
+        return []
+    files = sorted(p for p in Path(path).iterdir() if p.suffix.lower() in (".tif", ".tiff", ".png", ".jpg"))
+    if not files:
+        raise FileNotFoundError(f"no images (.tif, .tiff, .png, .jpg) in {path}")
+    return files
+
+
+def _load_image(path: Path) -> np.ndarray:
+    from PIL import Image
+
+    with Image.open(path) as im:
+        return np.asarray(im.convert("RGB"))
+
+
+class _Progress:
+    def __init__(self, total: float, enabled: bool) -> None:
+        self.total = total
+        self.enabled = enabled and sys.stderr.isatty()
+        self.last = -1
+
+    def update(self, t: float) -> None:
+        if not self.enabled:
+            return
+        pct = int(100 * min(max(t / self.total, 0.0), 1.0))
+        if pct != self.last:
+            self.last = pct
+            bar = "#" * (pct // 4) + "-" * (25 - pct // 4)
+            sys.stderr.write(f"\r[{bar}] {pct:3d}%  dive time {t:6.0f} s")
+            sys.stderr.flush()
+
+    def close(self) -> None:
+        if self.enabled:
+            sys.stderr.write("\n")
+
+
+def run_demo(config: DemoConfig, *, on_decision: Callable[[Decision], None] | None = None) -> DemoResult:
+    cfg = config.scaled()
+    out = Path(cfg.out)
+    (out / "images").mkdir(parents=True, exist_ok=True)
+    (out / "map").mkdir(exist_ok=True)
+    wall0 = time.perf_counter()
+    decisions: list[Decision] = []
+
+    def log(now: float, kind: str, text: str) -> None:
+        d = Decision(round(now - EPOCH, 1), kind, text)
+        decisions.append(d)
+        if on_decision is not None:
+            on_decision(d)
+
+    # the world
+    floor = Seafloor(size=cfg.area, depth=500.0, targets=_targets(cfg.area, _rng(cfg.seed, 1)), seed=cfg.seed)
+    texture = SandTexture(seed=cfg.seed)
+    track = Track(floor)
+    descent = 300.0 if not cfg.quick else 120.0
+    survey: Survey = simulate_survey(floor, altitude=SURVEY_ALTITUDE, speed=1.0 if not cfg.quick else 1.5,
+                                     ping_rate=2.0, beams=256, t0=EPOCH + descent,
+                                     turn_time=60.0 if not cfg.quick else 20.0, seed=cfg.seed + 1)
+    survey_end = float(survey.times[-1]) if len(survey) else EPOCH + descent
+
+    # the link: two simulated Micromodems on one acoustic channel, the real driver on each side
+    clock = SimClock(EPOCH)
+    burst = _burst(cfg.loss) if cfg.burst else None
+    channel = AcousticChannel(loss=0.0 if burst else cfg.loss, burst=burst, seed=cfg.seed)
+    net = ModemNetwork({TOPSIDE: (cfg.area / 2, -200.0, 0.0), VEHICLE: (0.0, 0.0, 500.0)},
+                       channel=channel, clock=clock)
+    end = EPOCH + cfg.duration
+    series = ts_synth.dataset(duration=max(cfg.duration, 1200.0), period=1.0, seed=cfg.seed, t0=EPOCH)
+    vehicle, topside, senders, receivers = build_nodes(out, [s.channel() for s in series])
+    link_log = (out / "link.jsonl").open("w")
+    runners = {
+        VEHICLE: Runner(vehicle, {0: net.transport(VEHICLE, rate=5, dest=TOPSIDE)}, SimulatedClock(sim=clock),
+                        link_log=link_log),
+        TOPSIDE: Runner(topside, {0: net.transport(TOPSIDE, rate=5, dest=VEHICLE)}, SimulatedClock(sim=clock),
+                        link_log=link_log),
+    }
+    operator = Operator(topside, receivers, log)
+
+    # timed events (simulated): sensor data, status, operator
+    events: list[tuple[float, int, Callable[[float], None]]] = []
+    counter = iter(range(10**9))
+
+    def at(t: float, fn: Callable[[float], None]) -> None:
+        events.append((t, next(counter), fn))
+
+    for t, xyz in survey.pings(batch=20):
+        track.add_sample(float(t), float(np.mean(xyz[:, 0])), float(np.mean(xyz[:, 1])), SURVEY_ALTITUDE)
+        at(float(t), lambda now, xyz=xyz: senders["bathymetry"].ingest(xyz, now))
+    track.samples.sort()
+    track.legs.append(Leg(EPOCH, EPOCH + descent, (0.0, 0.0), (0.0, 0.0), SURVEY_ALTITUDE))
+
+    _schedule_series(at, senders["timeseries"], series, EPOCH, end)
+
+    t_status = EPOCH
+    while t_status < end:
+        at(t_status, lambda now: vehicle.push_status(_status(track, now), now))
+        t_status += 10.0
+
+    def every_cycle(now: float) -> None:
+        operator.watch_map(now)
+        operator.watch_images(now)
+        metrics_tick(now)
+
+    coverage: dict[int, list[tuple[float, float]]] = {}
+    visible_at: dict[int, float] = {}
+
+    def metrics_tick(now: float) -> None:
+        for level in range(0, 4):
+            g = operator._level_grid(level)
+            frac = 0.0
+            if g is not None:
+                grid = g[0]
+                n_cells = (cfg.area / (2**level)) ** 2
+                frac = min(1.0, float(np.count_nonzero(~np.isnan(grid))) / max(n_cells, 1.0))
+            coverage.setdefault(level, []).append((round(now - EPOCH, 1), round(frac, 4)))
+        g0 = operator._level_grid(0)
+        if g0 is not None:
+            cands = find_targets(g0[0], cell=g0[1], x0=g0[2][0], y0=g0[2][1], threshold=1.0)
+            for i, tgt in enumerate(floor.targets):
+                if i not in visible_at and any(math.hypot(c.x - tgt.x, c.y - tgt.y) < 3.5 for c in cands):
+                    visible_at[i] = now
+
+    t_op = EPOCH + CYCLE / 2
+    while t_op < end:
+        at(t_op, every_cycle)
+        t_op += CYCLE / 2
+
+    # the camera pass is planned when the survey ends, from the targets the operator found
+    plan_at = survey_end + 30.0
+    camera_times: list[float] = []
+
+    def plan_camera(now: float) -> None:
+        operator.camera_phase = True
+        found = operator.targets[:2]
+        if not found:
+            log(now, "camera pass", "no target confirmed at 1 m: camera transect through the centre")
+            points = [(cfg.area / 2, cfg.area / 2)]
+        else:
+            points = [(tw.x, tw.y) for tw in found]
+            log(now, "camera pass", "vehicle retargeted over " + ", ".join(f"({x:.0f}, {y:.0f})" for x, y in points))
+        t = now
+        pos = track.position(now)[:2]
+        half = 30.0 if not cfg.quick else 15.0
+        for x, y in points:
+            start = (x + 1.0, y - half)
+            dist = math.hypot(start[0] - pos[0], start[1] - pos[1])
+            track.legs.append(Leg(t, t + dist / 1.0, pos, start, CAMERA_ALTITUDE, camera=True))
+            t += dist / 1.0
+            track.legs.append(Leg(t, t + 2 * half / 0.5, start, (x + 1.0, y + half), CAMERA_ALTITUDE, camera=True))
+            t += 2 * half / 0.5
+            pos = (x + 1.0, y + half)
+        track.legs.append(Leg(t, end, pos, pos, 50.0))
+        period = 6.0
+        tc = now + period
+        while tc < t:
+            camera_times.append(tc)
+            at(tc, take_picture)
+            tc += period
+
+    image_files = _image_files(cfg.images)
+    shot = iter(range(10**9))
+
+    def take_picture(now: float) -> None:
+        x, y, depth, _alt, heading = track.position(now)
+        k = next(shot)
+        if image_files:
+            img = _load_image(image_files[k % len(image_files)])
+        else:
+            z = -(depth)
+            img = render_frame(floor.elevation, x, y, z, heading, targets=floor.targets, texture=texture,
+                               rng=_rng(cfg.seed, 100 + k))
+        senders["imagery"].ingest(ImageInput(img, time=now, x=round(x, 1), y=round(y, 1)), now)
+
+    at(plan_at, plan_camera)
+    if cfg.gui:
+        _start_gui(cfg, topside, receivers)
+
+    # the loop: one simulated clock for the modems, the drivers, both nodes and the scenario
+    progress = _Progress(cfg.duration, cfg.progress)
+    import heapq
+
+    heapq.heapify(events)
+    steps = 0
+    while clock.now < end:
+        candidates = [end]
+        if events:
+            candidates.append(events[0][0])
+        nxt = net.next_event()
+        if nxt is not None:
+            candidates.append(nxt)
+        for r in runners.values():
+            n = r.node.next_event(clock.now)
+            if n is not None:
+                candidates.append(n)
+        t = max(min(candidates), clock.now)
+        if t == clock.now and steps and not (events and events[0][0] <= clock.now):
+            t = clock.now + 1e-3
+        net.run_until(t)
+        while events and events[0][0] <= clock.now:
+            _, _, fn = heapq.heappop(events)
+            fn(clock.now)
+        for r in runners.values():
+            r.step()
+        net.step()
+        for ev in topside.events():
+            _observe(ev, operator, clock.now)
+        vehicle.events()
+        steps += 1
+        progress.update(clock.now - EPOCH)
+    progress.close()
+    link_log.close()
+
+    # outputs
+    wall = time.perf_counter() - wall0
+    metrics = _finish(out, cfg, floor, survey_end, operator, receivers, coverage, visible_at, decisions, wall,
+                      runners, camera_times)
+    return DemoResult(out, metrics, decisions)
+
+
+def _burst(loss: float, mean_burst: float = 4.0) -> GilbertElliott:
+    """Bursty loss with the given mean rate and mean burst length (frames): a bad state losing
+    everything, a good state losing nothing."""
+    p_bg = 1.0 / mean_burst
+    p_gb = loss * p_bg / max(1.0 - loss, 1e-6)
+    return GilbertElliott(p_good_bad=min(p_gb, 1.0), p_bad_good=p_bg, loss_good=0.0, loss_bad=1.0)
+
+
+def _observe(ev: Any, operator: Operator, now: float) -> None:
+    if isinstance(ev, Received) and isinstance(ev.message, VehicleStatus):
+        operator.on_status(ev.message, now)
+    elif isinstance(ev, ProductUpdated) and ev.product.kind == "image":
+        operator.on_image(dict(ev.product.meta), now)
+
+
+def _schedule_series(at: Callable[[float, Callable[[float], None]], None], sender: Any, series: Any,
+                     t0: float, end: float) -> None:
+    """Feed the synthetic sensor channels to the vehicle in 60 s batches."""
+    step = 60.0
+    t = t0 + step
+    while t <= end:
+        def feed(now: float, lo: float = t - step, hi: float = t) -> None:
+            batch = {}
+            for s in series:
+                m = (s.times >= lo) & (s.times < hi)
+                if m.any():
+                    batch[s.name] = (s.times[m], s.values[m])
+            if batch:
+                sender.ingest(batch, now)
+        at(t, feed)
+        t += step
+
+
+def _start_gui(cfg: DemoConfig, topside: Node, receivers: dict[str, Any]) -> None:
+    try:
+        from coex_plugins.console import serve  # type: ignore[attr-defined]
+    except Exception as exc:  # the console is optional for the demo
+        print(f"coex demo: the web console is unavailable ({exc})", file=sys.stderr)
+        return
+    host, _, port = cfg.http.rpartition(":")
+    server = serve(topside, host or "127.0.0.1", int(port))
+    print(f"coex demo: web console at http://{host or '127.0.0.1'}:{port}/", file=sys.stderr)
+    _ = server
+
+
+# ------------------------------------------------------------------------------ outputs
+
+
+def _finish(out: Path, cfg: DemoConfig, floor: Seafloor, survey_end: float, operator: Operator,
+            receivers: dict[str, Any], coverage: dict[int, list[tuple[float, float]]],
+            visible_at: dict[int, float], decisions: list[Decision], wall: float,
+            runners: dict[int, Runner], camera_times: list[float]) -> dict[str, Any]:
+    from .report import line_chart, timeline_chart, write_report
+
+    bathy: BathymetryReceiver = receivers["bathymetry"]
+    origin = (floor.x0, floor.y0)
+    map_files: list[str] = []
+    for level in range(0, 6):
+        try:
+            p = bathy.level_product(level)
+        except Exception:
+            continue
+        if p.data is None or not np.isfinite(np.asarray(p.data, float)).any():
+            continue
+        meta = dict(p.meta)
+        cell, x0, y0 = float(meta["cell_size"]), float(meta["x0"]), float(meta["y0"])
+        grid = np.asarray(p.data, float)
+        write_geotiff(out / "map" / f"level_{level}.tif", grid, x0=x0, y0=y0, cell=cell,
+                      origin_lat=float(meta.get("origin_lat", 0.0)), origin_lon=float(meta.get("origin_lon", 0.0)))
+        write_png(out / "map" / f"level_{level}.png", grid, cell=cell)
+        map_files.append(f"map/level_{level}.png")
+    # ground truth at 1 m
+    xs = np.arange(0.5, floor.size, 1.0) + floor.x0
+    ys = np.arange(0.5, floor.size, 1.0) + floor.y0
+    gx, gy = np.meshgrid(xs, ys)
+    truth = floor.elevation(gx, gy)
+    write_geotiff(out / "truth.tif", truth, x0=origin[0], y0=origin[1], cell=1.0)  # row 0 = south
+    (out / "truth.json").write_text(json.dumps({
+        "seafloor": {"size_m": floor.size, "depth_m": floor.depth, "seed": floor.seed, "cell_m": 1.0},
+        "targets": [asdict(t) for t in floor.targets],
+    }, indent=2))
+    # time series
+    ts: TimeSeriesReceiver = receivers["timeseries"]
+    ts.to_csv(out / "timeseries.csv")
+    # images
+    img: ImageryReceiver = receivers["imagery"]
+    image_meta = [dict(p.meta) for p in img.products() if p.kind == "image"]
+    image_files = sorted(str(p.relative_to(out)) for p in (out / "images").glob("*.png"))
+
+    # link use
+    link = _link_summary(out / "link.jsonl")
+    targets = []
+    for i, t in enumerate(floor.targets):
+        seen = visible_at.get(i)
+        targets.append({"x": t.x, "y": t.y, "visible_at_1m_s": None if seen is None else round(seen - EPOCH, 1),
+                        "before_survey_end": seen is not None and seen <= survey_end})
+    confirmations = []
+    for tw in operator.targets:
+        if tw.request_at is None:
+            continue
+        dt = None if tw.confirmed_at is None else tw.confirmed_at - tw.request_at
+        confirmations.append({"x": tw.x, "y": tw.y, "requested_at_s": round(tw.request_at - EPOCH, 1),
+                              "confirmed_at_s": None if tw.confirmed_at is None else round(tw.confirmed_at - EPOCH, 1),
+                              "seconds": None if dt is None else round(dt, 1),
+                              "tdma_cycles": None if dt is None else round(dt / CYCLE, 2),
+                              "image_id": tw.image_id, "stepped_back": len(tw.tried)})
+    both_visible = len(targets) == 2 and all(t["before_survey_end"] for t in targets)
+    confirmed = [c for c in confirmations if c["tdma_cycles"] is not None]
+    images_ok = bool(confirmed) and all(c["tdma_cycles"] <= 2.0 for c in confirmed)
+    metrics: dict[str, Any] = {
+        "config": {k: str(v) if isinstance(v, Path) else v for k, v in asdict(cfg).items()},
+        "wall_seconds": round(wall, 1),
+        "dive_seconds": cfg.duration,
+        "survey_end_s": round(survey_end - EPOCH, 1),
+        "targets": targets,
+        "confirming_images": confirmations,
+        "images_received": len(image_meta),
+        "images_captured": len(camera_times),
+        "link": link,
+        "map_coverage": {str(k): v[-1][1] if v else 0.0 for k, v in coverage.items()},
+        "bad_frames": {"topside": runners[TOPSIDE].node.stats.get("bad_frames", 0),
+                       "vehicle": runners[VEHICLE].node.stats.get("bad_frames", 0)},
+        "goals": {
+            "both targets identifiable topside at 1 m before the survey ends": {
+                "met": both_visible,
+                "detail": "; ".join(
+                    f"target {i + 1} at ({t['x']:.0f}, {t['y']:.0f}): "
+                    + (f"visible at {t['visible_at_1m_s']:.0f} s" if t["visible_at_1m_s"] is not None else "not visible")
+                    for i, t in enumerate(targets)) + f"; survey ended at {survey_end - EPOCH:.0f} s",
+            },
+            "a confirming image within two TDMA cycles of its request": {
+                "met": images_ok,
+                "detail": "; ".join(f"{c['tdma_cycles']} cycles" if c["tdma_cycles"] is not None
+                                    else "not confirmed" for c in confirmations) or "no image requested",
+            },
+        },
+    }
+    (out / "metrics.json").write_text(json.dumps(metrics, indent=2))
+    charts = [
+        line_chart({f"level {k} ({2**k} m)": v for k, v in sorted(coverage.items())},
+                   title="Map filling in over time (fraction of the survey area held topside)",
+                   xlabel="dive time (s)", ylabel="fraction",
+                   markers=[(survey_end - EPOCH, "survey ends")] + [
+                       (v - EPOCH, f"target {i + 1} visible at 1 m") for i, v in visible_at.items()]),
+        line_chart({"capacity": link["capacity_series"], "used": link["used_series"],
+                    "delivered": link["delivered_series"]},
+                   title="Link use against capacity (cumulative bytes, vehicle to topside)",
+                   xlabel="dive time (s)", ylabel="bytes"),
+        timeline_chart([{"t": d.t, "kind": d.kind, "text": d.text} for d in decisions], t_end=cfg.duration),
+    ]
+    write_report(out, metrics, charts, [asdict(d) for d in decisions],
+                 {"Map levels": map_files, "Received images": image_files[:60]})
+    for k in ("capacity_series", "used_series", "delivered_series"):
+        link.pop(k, None)
+    (out / "metrics.json").write_text(json.dumps(metrics, indent=2))
+    with (out / "decisions.csv").open("w", newline="") as f:
+        w = csv.writer(f)
+        w.writerow(["dive_time_s", "kind", "text"])
+        for d in decisions:
+            w.writerow([d.t, d.kind, d.text])
+    return metrics
+
+
+def _link_summary(path: Path) -> dict[str, Any]:
+    cap = used = delivered = 0
+    cap_s: list[tuple[float, float]] = []
+    used_s: list[tuple[float, float]] = []
+    del_s: list[tuple[float, float]] = []
+    sent = lost = 0
+    for line in path.read_text().splitlines():
+        try:
+            rec = json.loads(line)
+        except ValueError:
+            continue
+        if rec.get("src") != VEHICLE:
+            continue
+        t = float(rec.get("time", 0.0)) - EPOCH
+        if rec.get("cause") == "sent":
+            cap += int(rec.get("capacity_bytes") or 0)
+            used += int(rec.get("used_bytes") or 0)
+            sent += 1
+            cap_s.append((round(t, 1), cap))
+            used_s.append((round(t, 1), used))
+        elif rec.get("delivered") is not None:
+            d = rec.get("delivered")
+            n = sum(1 for x in d if x) if isinstance(d, list) else int(d)
+            delivered += int(rec.get("used_bytes") or 0) if n else 0
+            lost += int(rec.get("lost") or 0) if not isinstance(rec.get("lost"), list) else len(rec["lost"])
+            del_s.append((round(t, 1), delivered))
+    return {"packets_sent": sent, "capacity_bytes": cap, "used_bytes": used,
+            "fill": round(used / cap, 4) if cap else None, "capacity_series": cap_s, "used_series": used_s,
+            "delivered_series": del_s}
+
+
+def iter_decisions(result: DemoResult) -> Iterator[str]:
+    for d in result.decisions:
+        yield f"{d.t:7.0f} s  {d.kind:<16} {d.text}"
