@@ -256,8 +256,10 @@ def _script(driver: MicromodemDriver, now: float = 1000.0) -> None:
             break
         for line in out.splitlines():
             s = nmea.parse(line)
-            echo = {"CCCFG": "CACFG", "CCTMS": "CATMS"}[s.ident]
-            driver.feed(nmea.format_sentence(echo, s.fields), now)
+            if s.ident == "CCCFQ":
+                driver.feed(nmea.format_sentence("CACFG", [s.fields[0], "2.0.35490"]), now)
+            else:
+                driver.feed(nmea.format_sentence({"CCCFG": "CACFG", "CCTMS": "CATMS"}[s.ident], s.fields), now)
     assert driver.ready
 
 

@@ -31,7 +31,15 @@ def lines(data: bytes) -> list[str]:
     return [x.decode() for x in data.split(b"\r\n") if x]
 
 
-ECHO = {"CCCFG": "CACFG", "CCTMS": "CATMS", "CCCLK": "CACLK"}
+ECHO = {"CCCFG": "CACFG", "CCTMS": "CATMS", "CCCLK": "CACLK", "CCCFQ": "CACFG"}
+FIRMWARE = "2.0.35490"
+
+
+def echo_of(s: nmea.Sentence) -> bytes:
+    """What a modem answers to a startup command."""
+    if s.ident == "CCCFQ":
+        return L("CACFG", s.fields[0], FIRMWARE)
+    return L(ECHO[s.ident], *s.fields)
 
 
 def answer_startup(d: MicromodemDriver, now: float) -> bytes:
@@ -46,7 +54,7 @@ def answer_startup(d: MicromodemDriver, now: float) -> bytes:
         s = nmea.parse(out.splitlines()[0])
         if s.ident not in ECHO:
             return out
-        d.feed(L(ECHO[s.ident], *s.fields), now)
+        d.feed(echo_of(s), now)
     raise AssertionError("startup never ended")
 
 
@@ -63,8 +71,7 @@ def ready_driver(**kw: object) -> MicromodemDriver:
             break
         for line in out.splitlines():
             s = nmea.parse(line)
-            echo = {"CCCFG": "CACFG", "CCTMS": "CATMS", "CCCLK": "CACLK"}[s.ident]
-            d.feed(nmea.format_sentence(echo, s.fields), T0)
+            d.feed(echo_of(s), T0)
     assert d.ready
     return d
 
@@ -86,13 +93,14 @@ def test_startup_sequence_one_command_at_a_time_with_echoes() -> None:
         sent.append(out[0])
         s = nmea.parse(out[0])
         assert not d.ready
-        d.feed(L({"CCCFG": "CACFG", "CCTMS": "CATMS"}[s.ident], *s.fields), T0)
+        d.feed(echo_of(s), T0)
     assert [x.split("*")[0] for x in sent] == [
         "$CCCFG,CST,1", "$CCCFG,XST,1", "$CCCFG,AGN,0", "$CCCFG,SRC,3", "$CCCFG,REV,1", "$CCCFG,RXP,1",
-        "$CCTMS,2025-01-01T12:00:01Z,0",
+        "$CCCFQ,info.firmware_version", "$CCTMS,2025-01-01T12:00:01Z,0",
     ]
     assert d.ready
     assert d.config_values["SRC"] == "3"
+    assert d.stats()["firmware_version"] == FIRMWARE
 
 
 def test_startup_retries_without_echo_and_skips_commands_the_modem_rejects() -> None:
@@ -387,3 +395,14 @@ def test_packet_arriving_in_the_middle_of_startup_is_delivered() -> None:
     assert frame is not None and frame.data == b"\xbe\xef"
     d.feed(L("CACFG", "XST", "1"), T0 + 0.3)
     assert answer_startup(d, T0 + 1) == b"" and d.ready
+
+
+@pytest.mark.parametrize(("version", "padded"), [("2.0.27087", True), ("2.0.35490", False), ("3.1.2", False)])
+def test_odd_fdp_payload_padded_only_for_buggy_firmware(version: str, padded: bool) -> None:
+    """goby3 fe462bff: Micromodem-2 firmware 2.0.x below 35490 mishandles odd-length $CCTDP data."""
+    d = ready_driver(src=1, dest=2, rate=1, mode="fdp")
+    d.feed(L("CACFG", "info.firmware_version", version), T0)
+    assert d.stats()["firmware_version"] == version
+    d.send_frame(b"odd")
+    d.poll(T0)
+    assert d.data_to_send() == L("CCTDP", 2, 1, 0, 0, "6f6464" + ("00" if padded else ""))

@@ -301,6 +301,10 @@ class MicromodemDriver:
             items.append(("recv.base64data", "1"))
         for name, value in items:
             self._commands.append(self._cfg_command(name, value))
+        if c.firmware == "mm2":
+            self._commands.append(_Command(
+                build=lambda t: nmea.format_sentence("CCCFQ", ["info.firmware_version"]),
+                expect="CACFG", match=lambda s: bool(s.fields) and s.fields[0] == "info.firmware_version"))
         if c.set_clock:
             if c.firmware == "mm2":
                 self._commands.append(_Command(
@@ -523,8 +527,8 @@ class MicromodemDriver:
         if packet.fdp:
             self._tx_state = "wait_tdp"
             payload = _fdp_payload(packet.frames, RATES[packet.rate].frame_bytes)
-            if c.firmware == "mm2" and len(payload) % 2:
-                pass  # odd lengths are fine from firmware 2.0.35490; older firmware needs nvram padding
+            if len(payload) % 2 and _odd_fdp_bug(self._s.firmware_version):
+                payload += b"\x00"  # goby3 fe462bff: firmware 2.0.x < 35490 mishandles odd lengths
             line = nmea.format_sentence("CCTDP", [packet.dest, packet.rate, 0, 0, payload.hex()])
             cmd = _Command(build=lambda t: line, expect="CATDP", match=lambda s: True,
                            on_done=self._tx_accepted, on_fail=self._tx_rejected)
@@ -596,9 +600,8 @@ class MicromodemDriver:
         cmd = self._current_cmd
         if cmd is not None and s.ident == cmd.expect and cmd.match(s):
             self._command_done(now)
-            if s.kind != "CYC":
-                return
-            # the CACYC echo also starts the data requests: fall through
+            if s.kind == "CFG":
+                self._on_cfg(s, now)
             return
         handler = _HANDLERS.get(s.kind)
         if handler is None:
@@ -731,6 +734,8 @@ class MicromodemDriver:
     def _on_cfg(self, s: Sentence, now: float) -> None:
         if len(s.fields) >= 2:
             self.config_values[s.fields[0]] = s.fields[1]
+            if s.fields[0] == "info.firmware_version" and s.fields[1]:
+                self._s.firmware_version = s.fields[1]
 
     def _on_mpr(self, s: Sentence, now: float) -> None:
         reply = nmea.parse_campr(s)
@@ -747,6 +752,17 @@ class MicromodemDriver:
 
     def _write(self, line: bytes) -> None:
         self._out += line
+
+
+def _odd_fdp_bug(version: str | None) -> bool:
+    """Whether Micromodem-2 firmware ``version`` (``2.0.27087``) needs even-length FDP payloads."""
+    if not version:
+        return False
+    try:
+        parts = [int(p) for p in version.strip().lstrip("v").split(".")]
+    except ValueError:
+        return False
+    return len(parts) >= 3 and parts[0] == 2 and parts[1] == 0 and parts[2] < 35490
 
 
 def _fdp_payload(frames: Sequence[bytes], frame_bytes: int) -> bytes:

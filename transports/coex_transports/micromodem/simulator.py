@@ -50,7 +50,8 @@ from .nmea import FDP_RATES, RATES, FdpFrame, NmeaError, Sentence
 
 __all__ = ["SimulatedModem", "ModemNetwork", "NetworkClock", "PtySimulator", "DEFAULT_NVRAM", "FIRMWARE_VERSION"]
 
-FIRMWARE_VERSION = "2.0.27087"
+#: Reported by the simulated modems: a Micromodem-2 firmware without the odd-length FDP bug.
+FIRMWARE_VERSION = "2.0.35490"
 
 #: NVRAM of a freshly reset simulated modem (names as the Micromodem uses them).
 DEFAULT_NVRAM: dict[str, str] = {
