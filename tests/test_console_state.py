@@ -496,8 +496,15 @@ def test_serve_a_node_or_a_view_only_state() -> None:
         code, ans = _post(srv.url + "api/action", {"action": "link_control",
                                                    "args": {"link": 0, "enabled": False}})
         assert code == 200 and ans["sent"][0]["type"] == "LinkControl"
-        # the command is queued on the node's acked control stream
+        # the page never touches the node from its thread: the command waits for the loop
+        assert not any(isinstance(e.message, m.LinkControl) for e in top.manager.stream(2).entries)
+        # whoever drains the node's events (here: this test, as the demo's loop does) sends it
+        # and feeds the console
+        top.receive(0, b"\x00garbage", 5.0)
+        events = top.events()
+        assert [type(e).__name__ for e in events] == ["BadFrame"]
         assert any(isinstance(e.message, m.LinkControl) for e in top.manager.stream(2).entries)
+        assert hub.snapshot()["link"]["bad_frames"] == 1
     st = ConsoleState()
     with serve(st, "127.0.0.1", 0) as srv:
         code, ans = _post(srv.url + "api/action", {"action": "link_control",
@@ -579,3 +586,47 @@ def test_pump_survives_an_event_the_console_cannot_show() -> None:
     assert snap["vehicle"]["status"]["x"] == 1.0  # the good event after the odd ones is shown
     assert snap["map"]["levels"] == []
     assert any("could not show Received" in x["text"] for x in snap["log"])
+
+
+def test_attached_node_driven_like_the_demo_loop() -> None:
+    """The demo drains ``topside.events()`` itself and holds no console lock: the console still
+    sees everything, and page commands (a schedule gets a new command id from the manager) are
+    sent from the loop's thread and end up accepted."""
+    from coex_plugins.console import attach
+    from coex_transports._runner import SimNetwork
+
+    from coex_core.acoustic import AcousticChannel
+
+    sched = Schedule.simple([1, 2], 10.0, 1.0)
+    top = Node(ChannelManager(1, [LinkConfig(0, sched)]))
+    top.add_receiver(BathymetryModality, BathymetryReceiver())
+    veh = Node(ChannelManager(2, [LinkConfig(0, sched)], queue_status_interval=60.0))
+    sender = BathymetrySender({"send_delay": 0.0, "levels": 3})
+    sender.ingest(survey_points(), 0.0)
+    veh.add_sender(BathymetryModality, sender, StreamConfig(3, "map", priority=30))
+    net = SimNetwork({0: AcousticChannel(seed=1)})
+    net.add_node(veh, (0.0, 0.0, 100.0))
+    net.add_node(top, (50.0, 0.0, 0.0))
+    hub = attach(top)
+    mine: list[Any] = []
+
+    def demo_loop(until: float) -> None:
+        while net.now < until:
+            net.run(min(until, net.now + 2.0))
+            mine.extend(top.events())
+
+    demo_loop(60.0)
+    assert mine and hub.snapshot()["map"]["levels"]
+    t = threading.Thread(target=lambda: hub.act("propose_schedule", {
+        "link": 0, "slots": [{"owner": 1, "duration": 8, "guard": 1},
+                             {"owner": 2, "duration": 12, "guard": 1}]}))
+    t.start()
+    t.join()
+    (cmd,) = hub.snapshot()["commands"]
+    demo_loop(200.0)
+    snap = hub.snapshot()
+    (cmd,) = snap["commands"]
+    assert cmd["kind"] == "ScheduleUpdate" and cmd["status"] == "accepted"
+    assert veh.manager.schedule(0).version == 1 and top.manager.schedule(0).version == 1
+    assert snap["link"]["schedules"][0]["cycle"] == 20.0
+    assert any(type(e).__name__ == "CommandResult" for e in mine)  # the loop still gets them

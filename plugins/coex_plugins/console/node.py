@@ -16,6 +16,7 @@ thread-safe either).
 
 from __future__ import annotations
 
+from collections import deque
 from collections.abc import Callable
 from typing import Any
 
@@ -29,17 +30,44 @@ __all__ = ["NodeCommands", "TapReceiver", "attach", "drive_simulation", "pump", 
 
 
 class NodeCommands:
-    """Send console commands through a topside node (``clock()`` gives ``now``)."""
+    """Send console commands through a topside node (``clock()`` gives ``now``).
 
-    def __init__(self, node: Any, clock: Callable[[], float]) -> None:
+    With ``deferred``, a command is only queued when the page asks (from an HTTP thread) and
+    reaches the node at the next :meth:`flush`, which the thread driving the node calls (through
+    ``node.events()`` of an attached node, or :meth:`ConsoleHub.pump`): the node is never
+    touched from two threads. ``on_sent(built, sent)`` hears when the node sent a different
+    message than the one built (a schedule gets its command id from the channel manager)."""
+
+    def __init__(self, node: Any, clock: Callable[[], float], *, deferred: bool = False,
+                 on_sent: Callable[[Message, Message], Any] | None = None) -> None:
         self.node = node
         self.clock = clock
+        self.deferred = deferred
+        self.on_sent = on_sent
         self.sent: list[Message] = []
+        self.pending: deque[Message] = deque()
 
     def next_command_id(self) -> int:
         return int(self.node.manager.next_command_id())
 
     def __call__(self, msg: Message) -> Message:
+        if self.deferred:
+            self.pending.append(msg)
+            return msg
+        return self._send(msg)
+
+    def flush(self) -> int:
+        """Send the queued commands (call it from the thread that drives the node)."""
+        n = 0
+        while self.pending:
+            msg = self.pending.popleft()
+            out = self._send(msg)
+            n += 1
+            if out is not msg and self.on_sent is not None:
+                self.on_sent(msg, out)
+        return n
+
+    def _send(self, msg: Message) -> Message:
         now = self.clock()
         if isinstance(msg, ScheduleUpdate):
             current = self.node.manager.schedule(msg.link).cycle_at(now)
@@ -79,9 +107,12 @@ class TapReceiver(ModalityReceiver):
 
 
 def tap_receiver(receiver: ModalityReceiver, hub: Any) -> TapReceiver:
-    """Wrap ``receiver`` so that ``hub`` (a ConsoleHub or ConsoleState) sees its raw messages.
-    The wrapped receiver is called from the node's loop, which already holds the hub's lock."""
-    state: ConsoleState = hub.state if hasattr(hub, "state") else hub
+    """Wrap ``receiver`` so that ``hub`` (a ConsoleHub, or a bare ConsoleState) sees its raw
+    messages (under the hub's lock, from the thread driving the node)."""
+    if hasattr(hub, "update"):
+        return TapReceiver(receiver, lambda msg, now: hub.update(
+            lambda st: st.apply_message(msg, now)))
+    state: ConsoleState = hub
     return TapReceiver(receiver, lambda msg, now: state.apply_message(msg, now))
 
 
@@ -127,13 +158,18 @@ def pump(state: ConsoleState, node: Any, now: float, events: list[Any] | None = 
 
 def attach(node: Any, clock: Callable[[], float] | None = None, *,
            map_receiver: Any = None, stream_names: dict[int, str] | None = None) -> Any:
-    """A :class:`~coex_plugins.console.server.ConsoleHub` for a topside ``node``.
+    """A :class:`~coex_plugins.console.server.ConsoleHub` fed by a topside ``node``, whatever
+    loop drives it.
 
-    Commands go through :class:`NodeCommands`; ``clock`` defaults to the console's own
-    ``now`` (moved by :meth:`ConsoleHub.pump`). Receivers already added to the node are wrapped
-    with :func:`tap_receiver` (so the map sees subgrid stamps) and a bathymetry receiver becomes
-    the map-region path unless ``map_receiver`` is given. The loop driving the node must hold
-    ``hub.lock`` while it steps the node and call ``hub.pump(node, now)`` after each step."""
+    * ``node.events()`` is wrapped: whoever drains the node's events (a runner, the demo) also
+      hands them to the console, and gets them back unchanged.
+    * Commands from the page are queued (:class:`NodeCommands` with ``deferred``) and sent by
+      that same ``node.events()`` call, in the thread driving the node.
+    * Receivers already added to the node are wrapped with :func:`tap_receiver` (the map sees
+      subgrid stamps, the images their fragments); a bathymetry receiver becomes the map-region
+      path unless ``map_receiver`` is given.
+
+    ``clock`` (``now`` of commands) defaults to the newest event time the console has seen."""
     from .server import ConsoleHub
 
     mgr = node.manager
@@ -141,8 +177,11 @@ def attach(node: Any, clock: Callable[[], float] | None = None, *,
     names.update(stream_names or {})
     state = ConsoleState(node_id=node.node_id, stream_names=names,
                          schedules={link: mgr.schedule(link) for link in mgr.links})
-    hub = ConsoleHub(state, NodeCommands(node, clock or (lambda: state.now)),
-                     clock or (lambda: state.now), map_receiver=map_receiver)
+    now_of = clock or (lambda: state.now)
+    commands = NodeCommands(node, now_of, deferred=True)
+    hub = ConsoleHub(state, commands, now_of, map_receiver=map_receiver)
+    commands.on_sent = lambda built, sent: hub.update(
+        lambda st: st.replace_command(built, sent, now_of()))
     for slot in getattr(node, "_receivers", ()):
         inner = slot.receiver
         if isinstance(inner, TapReceiver):
@@ -150,6 +189,18 @@ def attach(node: Any, clock: Callable[[], float] | None = None, *,
         slot.receiver = tap_receiver(inner, hub)
         if map_receiver is None and hasattr(inner, "request_area"):
             hub.actions.map_receiver = inner
+    original = getattr(node.events, "_coex_original", node.events)
+
+    def events() -> list[Any]:
+        commands.flush()
+        evs = list(original())
+        now = max((float(getattr(e, "time", 0.0)) for e in evs), default=state.now)
+        hub.update(lambda st: pump(st, node, now, evs))
+        return evs
+
+    events._coex_original = original  # type: ignore[attr-defined]
+    events._coex_hub = hub  # type: ignore[attr-defined]
+    node.events = events
     return hub
 
 
@@ -169,10 +220,9 @@ def drive_simulation(net: Any, node: Any, hub: Any, until: float, *, speed: floa
     while net.now < until and not (stop is not None and stop()):
         with hub.lock:
             net.run(min(until, net.now + step))
-            events = node.events()
+            events = hub.pump(node, net.now)
             if on_events is not None:
                 on_events(events)
-            hub.pump(node, net.now, events)
         if speed:
             ahead = (net.now - sim0) / speed - (time.monotonic() - wall0)
             if ahead > 0:

@@ -85,17 +85,28 @@ class ConsoleHub:
         events = list(events)
         self.update(lambda s: [s.apply_event(e) for e in events])
 
-    def pump(self, node: Any, now: float, events: list[Any] | None = None) -> int:
-        """Apply a topside node's events (``node.events()`` unless ``events`` is given; call it
-        from the loop that drives the node)."""
+    def pump(self, node: Any, now: float, events: list[Any] | None = None) -> list[Any]:
+        """Call it from the loop that drives a topside node, after each step: sends commands
+        the page queued, applies the node's events (``node.events()``, or ``events`` drained by
+        the caller) and refreshes link and schedule state. Returns the events."""
         from .node import pump
 
         with self.changed:
+            flush = getattr(self.actions.send, "flush", None)
+            if callable(flush):
+                flush()
             before = dict(self.state.versions)
-            n = pump(self.state, node, now, events)
+            wrapped = getattr(node.events, "_coex_hub", None) is self
+            if events is None:
+                events = list(node.events())  # an attached node feeds the console itself
+                if not wrapped:
+                    pump(self.state, node, now, events)
+            elif not wrapped:
+                pump(self.state, node, now, events)
+            pump(self.state, node, now, [])
             if before != self.state.versions:
                 self.changed.notify_all()
-            return n
+            return events
 
     def tick(self, now: float) -> None:
         """Move the console's clock (ages, TDMA position)."""

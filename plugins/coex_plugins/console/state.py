@@ -682,6 +682,23 @@ class ConsoleState:
         self._touch("commands")
         self._log(now, f"sent {summary or kind}")
 
+    def replace_command(self, built: m.Message, sent: m.Message, now: float) -> None:
+        """The node sent ``sent`` for the command recorded as ``built`` (another command id)."""
+        old = self.commands.pop(256 + int(getattr(built, "command_id", -1)), None)
+        if old is None:
+            return
+        key = 256 + int(getattr(sent, "command_id", 0))
+        old.message, old.command_id = sent, key - 256
+        self.commands[key] = old
+        self.command_order = deque((key if k == 256 + int(getattr(built, "command_id", -1))
+                                    else k for k in self.command_order), maxlen=64)
+        if isinstance(sent, m.ScheduleUpdate):
+            sch = self.schedules.get(sent.link)
+            if sch is not None and sch.get("proposed"):
+                sch["proposed"]["command_id"] = sent.command_id
+                sch["proposed"]["activate_cycle"] = sent.activate_cycle
+        self._touch("commands", "link")
+
     def record_regions(self, regions: Sequence[Any], now: float, summary: str) -> None:
         """Remember map regions a bathymetry receiver will request (and retry) for us."""
         self._advance(now)
