@@ -16,10 +16,10 @@ CFG = {"layer_bytes": [30, 60, 120, 240, 480, 900, 1600], "default_goal": "layer
        "progress_interval": 60.0}
 
 
-def _setup(n: int, **cfg: object) -> tuple[ImagerySender, ImageryReceiver]:
+def _setup(n: int, mtu: int = 96, **cfg: object) -> tuple[ImagerySender, ImageryReceiver]:
     m = ImageryModality()
     s = m.sender({**CFG, **cfg})
-    r = m.receiver({"retry": 20.0, "max_tries": 100})
+    r = m.receiver({"retry": 20.0, "max_tries": 100, "max_ack_bytes": min(81, mtu - 3)})
     for i in range(n):
         s.ingest(ImageInput(seafloor(64, 96, seed=10 + i), time=100.0 * i, x=float(i), y=2.0), 100.0 * i)
     return s, r
@@ -33,9 +33,11 @@ def _complete(s: ImagerySender, r: ImageryReceiver) -> bool:
     return not s.order()
 
 
-def _scenario(down: LossModel, up: LossModel, max_rounds: int) -> tuple[ImagerySender, ImageryReceiver, Transfer]:
-    s, r = _setup(4, request_goal="layer:6")
-    t = Transfer(s, r, mtu=96, down=down, up=up, now=400.0)
+def _scenario(
+    down: LossModel, up: LossModel, max_rounds: int, mtu: int = 96
+) -> tuple[ImagerySender, ImageryReceiver, Transfer]:
+    s, r = _setup(4, mtu, request_goal="layer:6")
+    t = Transfer(s, r, mtu=mtu, down=down, up=up, now=400.0)
     # the operator asks for image 1 in full and for the image before t=300 s (image 2) to layer 6
     r.request_goal(1, "full", now=t.now)
     r.request_by_time(299.0, "before", now=t.now)

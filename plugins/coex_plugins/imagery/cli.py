@@ -92,7 +92,7 @@ def run_roundtrip(args: argparse.Namespace) -> int:
     image = load_image(args.image)
     modality = ImageryModality()
     sender = modality.sender({"default_goal": "full", "grey": not args.colour})
-    receiver = modality.receiver({})
+    receiver = modality.receiver({"max_ack_bytes": min(81, args.mtu - wire.header_size())})
     sender.ingest(ImageInput(image), 0.0)
     (image_id, tx), = sender.images.items()
     shape = (tx.enc.height, tx.enc.width) if tx.enc.grey else (tx.enc.height, tx.enc.width, 3)

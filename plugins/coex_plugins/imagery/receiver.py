@@ -113,7 +113,8 @@ class _Pending:
 class ImageryReceiver(ModalityReceiver):
     """Topside side. Configuration keys (all optional): ``max_images`` (256), ``max_early``
     (256), ``ack_limit`` (acks per poll, 4), ``retry`` (seconds between request retries, 60),
-    ``max_tries`` (10), ``out_dir`` (write ``image_<id>.tiff`` and ``.png`` after every useful
+    ``max_tries`` (10), ``max_ack_bytes`` (81: at most 15 ranges; lower it to fit a small uplink
+    MTU, e.g. MTU - 3), ``out_dir`` (write ``image_<id>.tiff`` and ``.png`` after every useful
     fragment, see :class:`~coex_plugins.imagery.output.ImageWriter`)."""
 
     def __init__(self, config: Mapping[str, Any] | None = None) -> None:
@@ -124,10 +125,15 @@ class ImageryReceiver(ModalityReceiver):
             self.ack_limit = int(cfg.get("ack_limit", 4))
             self.retry = float(cfg.get("retry", 60.0))
             self.max_tries = int(cfg.get("max_tries", 10))
+            self.max_ack_bytes = int(cfg.get("max_ack_bytes", 81))
         except (TypeError, ValueError) as exc:
             raise ConfigError(f"invalid imagery receiver option: {exc}") from exc
         if self.max_images < 1 or self.max_early < 0 or self.ack_limit < 1 or self.retry <= 0:
             raise ConfigError("invalid imagery receiver limits")
+        if self.max_ack_bytes < 6:
+            raise ConfigError("max_ack_bytes must be at least 6 (an ack without ranges)")
+        #: ranges per ack: type id + ceil((34 + 40 k) / 8) bytes must fit max_ack_bytes
+        self.ack_ranges = min(MAX_ACK_RANGES, (8 * (self.max_ack_bytes - 1) - 34) // 40)
         self.images: OrderedDict[int, _Rx] = OrderedDict()
         self._early: deque[ImageFragment] = deque(maxlen=self.max_early)
         self._ack_due: OrderedDict[int, None] = OrderedDict()
@@ -317,7 +323,7 @@ class ImageryReceiver(ModalityReceiver):
             rx = self.images.get(image_id)
             if rx is None:
                 continue
-            ranges = rx.ranges()[:MAX_ACK_RANGES]
+            ranges = rx.ranges()[: self.ack_ranges]
             out.append(ImageAck(image_id, rx.contiguous(), tuple(ByteRange(s, e) for s, e in ranges)))
         return out
 
