@@ -407,3 +407,20 @@ def test_flush_reports_a_silent_modem() -> None:
         assert st["command_failures"] >= 6 and st["tx_failed"] == 1
     finally:
         t.close()
+
+
+def test_closing_a_simulated_transport_frees_its_modem() -> None:
+    net, a, b = pair()
+    a.send(b"x")
+    assert b.recv(timeout=10) == b"x"
+    b.close()
+    a.send(b"to nobody")
+    net.run_for(30)
+    assert net.modems[2].data_to_send() == b""  # discarded, not piling up
+    b2 = net.transport(2, dest=1)
+    a.send(b"y")
+    assert b2.recv(timeout=10) == b"y"
+    from coex_core.errors import ConfigError
+
+    with pytest.raises(ConfigError):
+        net.transport(2)

@@ -112,6 +112,7 @@ class SimulatedModem:
         self.host_lines: list[bytes] = []  # every sentence the host wrote (for tests and logs)
         self.keep_host_lines = 1000
         self.errors = 0
+        self.orphan = False  # its host went away: output is discarded
 
     # -------------------------------------------------------------------------- identity
     @property
@@ -544,7 +545,17 @@ class ModemNetwork:
     def attach(self, node: int, driver: Any) -> None:
         """Wire an in-process host driver (``feed``/``poll``/``data_to_send``/``next_deadline``) to
         ``node``'s modem."""
+        if any(h.modem.node == node for h in self._hosts):
+            raise ConfigError(f"modem {node} already has a host")
         self._hosts.append(_Host(driver, self.modems[node]))
+        self.modems[node].orphan = False
+
+    def detach(self, driver: Any) -> None:
+        """Unwire a host driver (its modem's output is then discarded)."""
+        for h in list(self._hosts):
+            if h.driver is driver:
+                self._hosts.remove(h)
+                h.modem.orphan = True
 
     def transport(self, node: int, **options: Any) -> Any:
         """A :class:`~.transport.MicromodemTransport` on ``node``'s simulated modem, driven by this
@@ -602,6 +613,9 @@ class ModemNetwork:
             moved = self._exchange(now) or moved
             if not moved:
                 break
+        for m in self.modems.values():
+            if m.orphan:
+                m.data_to_send()  # nobody listens on this modem's serial port any more
         self._prune(now)
 
     def _exchange(self, now: float) -> bool:

@@ -164,6 +164,9 @@ class _SimBackend(_Backend):
         # back to back share a packet
         return
 
+    def close(self) -> None:
+        self.network.detach(self.driver)
+
     def wait(self, ready: Callable[[], bool], timeout: float | None) -> bool:
         if timeout is None:
             # nothing else can happen in a single-threaded simulation once the network is quiet
