@@ -406,3 +406,16 @@ def test_odd_fdp_payload_padded_only_for_buggy_firmware(version: str, padded: bo
     d.send_frame(b"odd")
     d.poll(T0)
     assert d.data_to_send() == L("CCTDP", 2, 1, 0, 0, "6f6464" + ("00" if padded else ""))
+
+
+def test_data_request_after_a_garbled_cycle_echo_is_still_answered() -> None:
+    d = ready_driver(src=1, dest=2, rate=1)
+    d.send_frame(b"\x05" * 20)
+    d.poll(T0)
+    d.data_to_send()
+    echo = bytearray(L("CACYC", 0, 1, 2, 1, 0, 1))
+    echo[8] ^= 0x01  # a flipped bit: bad checksum, line dropped
+    d.feed(bytes(echo) + L("CADRQ", "120000", 1, 2, 0, 64, 1), T0 + 0.1)
+    assert d.data_to_send() == L("CCTXD", 1, 2, 0, "05" * 20)
+    d.feed(L("CATXP") + L("CATXF"), T0 + 3)
+    assert d.idle and d.stats()["packets_sent"] == 1 and d.stats()["bad_checksum"] == 1

@@ -619,6 +619,10 @@ class MicromodemDriver:
     def _on_drq(self, s: Sentence, now: float) -> None:
         drq = nmea.parse_cadrq(s)
         packet = self._tx
+        if (packet is not None and not packet.fdp and self._tx_state == "wait_cyc"
+                and (drq.src, drq.dest) == (self.config.src, packet.dest)
+                and self._current_cmd is not None and self._current_cmd.expect == "CACYC"):
+            self._command_done(now)  # the $CACYC echo was lost on the serial line: the request says it all
         if packet is None or packet.fdp or self._tx_state not in ("drq", "air"):
             # remote poll or stale request: a blank frame suppresses further requests
             self._write(nmea.format_sentence("CCTXD", [drq.src, drq.dest, int(drq.ack), ""]))
