@@ -282,6 +282,10 @@ class SubgridEncoding(enum.IntEnum):
       ``width``.
     * ``PLANE``: ``q(i, j) = z_base + ((slope_x * j + slope_y * i + 4) >> 3) + unzigzag(v)``
       (slopes in 1/8 units per cell, arithmetic shift), ``v`` Rice-coded with parameter ``width``.
+    * ``GRADIENT`` (complete subgrids only, ``mask`` None): ``r = unzigzag(v)`` in row-major order
+      is the second difference of ``q - z_base`` (predictor west + south - south-west, zero
+      outside the block), so ``q = z_base + cumsum(cumsum(r, rows), columns)``; Rice-coded with
+      parameter ``width``.
 
     ``unzigzag(v) = v >> 1 if v is even else -((v + 1) >> 1)``. Every encoding uses only the
     subgrid's own bits: a subgrid never depends on another message."""
@@ -289,6 +293,7 @@ class SubgridEncoding(enum.IntEnum):
     OFFSET = 0
     DELTA = 1
     PLANE = 2
+    GRADIENT = 3
 
 
 @dataclass(frozen=True, slots=True)
@@ -300,7 +305,7 @@ class Subgrid(Message):
     with ``r = resolution * 2**level``. ``mask`` has one bit per cell in row-major order (most
     significant bit = cell (0, 0)), 1 = present; ``None`` means every cell is present. ``values``
     holds one code per present cell, interpreted as ``encoding`` says (:class:`SubgridEncoding`);
-    ``slope_x``/``slope_y`` are used by ``PLANE`` only (0 otherwise). Elevations are
+    ``slope_x``/``slope_y`` are set for ``PLANE`` only (None otherwise). Elevations are
     ``q * vertical_resolution`` metres (positive up). ``coex_plugins.bathymetry.decode_subgrid``
     turns a subgrid into an array.
     """
@@ -317,8 +322,8 @@ class Subgrid(Message):
     width: int
     mask: int | None
     values: tuple[int, ...]
-    slope_x: int = 0
-    slope_y: int = 0
+    slope_x: int | None = None
+    slope_y: int | None = None
 
 
 @dataclass(frozen=True, slots=True)

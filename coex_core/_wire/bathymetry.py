@@ -2,9 +2,9 @@
 
 from __future__ import annotations
 
-import construct as cs
-
 from typing import Any
+
+import construct as cs
 
 from ..messages import MapMetadata, MapRoiReply, MapRoiRequest, Subgrid, SubgridEncoding
 from ._primitives import Body, Bool, Bounded, Choice, Enum, FieldSpec, SInt, Stamp, UInt
@@ -57,70 +57,62 @@ def rice_bits(v: int, k: int) -> int:
     return RICE_ESCAPE + RICE_ESCAPE_LEN_BITS + v.bit_length()
 
 
-class RiceCodes(cs.Construct):  # type: ignore[misc]
-    """``count`` non-negative integers, each Rice-coded with parameter ``k``.
+class SubgridCode(UInt):
+    """One cell code of a Subgrid: ``width`` bits for OFFSET, otherwise a Rice code with parameter
+    ``width``: ``q = v >> width`` below :data:`RICE_ESCAPE` is ``q`` one-bits, a zero-bit and the
+    low ``width`` bits of ``v``; a larger one is :data:`RICE_ESCAPE` one-bits, the bit length ``n``
+    of ``v`` in :data:`RICE_ESCAPE_LEN_BITS` bits and ``v`` in ``n`` bits (escapes only when
+    needed: any other form is not canonical and is rejected)."""
 
-    A value ``v`` with ``q = v >> k`` below :data:`RICE_ESCAPE` is ``q`` one-bits, a zero-bit and
-    the low ``k`` bits of ``v``; a larger one is :data:`RICE_ESCAPE` one-bits, its bit length ``n``
-    in :data:`RICE_ESCAPE_LEN_BITS` bits and ``v`` in ``n`` bits (escapes only when needed)."""
-
-    def __init__(self, count: Any, k: Any) -> None:
-        super().__init__()
-        self.count = count
-        self.k = k
+    def __init__(self) -> None:
+        super().__init__(lambda ctx: ctx.width)
         self.coex_spec = FieldSpec("variable", "", note=(
-            f"Rice codes, parameter `width`; escape after {RICE_ESCAPE} ones: "
-            f"{RICE_ESCAPE_LEN_BITS}-bit length, then the value"))
+            f"OFFSET: width bits; otherwise a Rice code with parameter width, escape after "
+            f"{RICE_ESCAPE} ones: {RICE_ESCAPE_LEN_BITS}-bit length, then the value"))
 
-    def _parse(self, stream: Any, context: Any, path: str) -> list[int]:
-        n, k = int(self.count(context)), int(self.k(context))
-        out: list[int] = []
-        used = 0
-        for _ in range(n):
-            q = 0
-            while cs.stream_read(stream, 1, path)[0]:
-                q += 1
-                if q == RICE_ESCAPE:
-                    break
-            if q < RICE_ESCAPE:
-                low = _read_uint(stream, k, path)
-                v = (q << k) | low
-            else:
+    def _width(self, context: Any) -> int:
+        w = int(context.width)
+        # For Rice codes this is only the range of values without an escape (used by generators).
+        return w if context.encoding == SubgridEncoding.OFFSET else min(w + 4, 24)
+
+    def _parse(self, stream: Any, context: Any, path: str) -> int:
+        if context.encoding == SubgridEncoding.OFFSET:
+            return super()._parse(stream, context, path)  # type: ignore[no-any-return]
+        k = int(context.width)
+        q = 0
+        while cs.stream_read(stream, 1, path)[0]:
+            q += 1
+            if q == RICE_ESCAPE:
                 nb = _read_uint(stream, RICE_ESCAPE_LEN_BITS, path)
-                v = _read_uint(stream, nb, path)
-            used += rice_bits(v, k)
-            if used > MAX_SUBGRID_VALUE_BITS:
-                raise cs.ValidationError("subgrid values exceed the maximum size", path=path)
-            out.append(v)
-        return out
+                return _read_uint(stream, nb, path)
+        return (q << k) | _read_uint(stream, k, path)
 
-    def _build(self, obj: Any, stream: Any, context: Any, path: str) -> list[int]:
-        k = int(self.k(context))
-        values = [int(v) for v in obj]
-        if len(values) != int(self.count(context)):
-            raise cs.ValidationError(f"expected {self.count(context)} values, got {len(values)}", path=path)
-        bits: list[int] = []
-        for v in values:
-            if v < 0:
-                raise cs.ValidationError(f"negative Rice value {v}", path=path)
-            q = v >> k
-            if q < RICE_ESCAPE:
-                bits += [1] * q + [0] + [(v >> (k - 1 - i)) & 1 for i in range(k)]
-            else:
-                nb = v.bit_length()
-                if nb >= 1 << RICE_ESCAPE_LEN_BITS:
-                    raise cs.ValidationError(f"Rice value {v} too large", path=path)
-                bits += [1] * RICE_ESCAPE
-                bits += [(nb >> (RICE_ESCAPE_LEN_BITS - 1 - i)) & 1 for i in range(RICE_ESCAPE_LEN_BITS)]
-                bits += [(v >> (nb - 1 - i)) & 1 for i in range(nb)]
-        if len(bits) > MAX_SUBGRID_VALUE_BITS:
-            raise cs.ValidationError("subgrid values exceed the maximum size", path=path)
-        if bits:
-            cs.stream_write(stream, bytes(bits), len(bits), path)
-        return values
+    def _build(self, obj: Any, stream: Any, context: Any, path: str) -> int:
+        if context.encoding == SubgridEncoding.OFFSET:
+            return super()._build(obj, stream, context, path)  # type: ignore[no-any-return]
+        k = int(context.width)
+        v = int(obj)
+        if v < 0:
+            raise cs.ValidationError(f"negative Rice value {v}", path=path)
+        q = v >> k
+        if q < RICE_ESCAPE:
+            bits = [1] * q + [0] + [(v >> (k - 1 - i)) & 1 for i in range(k)]
+        else:
+            nb = v.bit_length()
+            if nb >= 1 << RICE_ESCAPE_LEN_BITS:
+                raise cs.ValidationError(f"Rice value {v} too large", path=path)
+            bits = [1] * RICE_ESCAPE
+            bits += [(nb >> (RICE_ESCAPE_LEN_BITS - 1 - i)) & 1 for i in range(RICE_ESCAPE_LEN_BITS)]
+            bits += [(v >> (nb - 1 - i)) & 1 for i in range(nb)]
+        cs.stream_write(stream, bytes(bits), len(bits), path)
+        return v
 
-    def _sizeof(self, context: Any, path: str) -> int:
-        raise cs.SizeofError("variable-length codes", path=path)
+
+def _value_bits(ctx: Any) -> int:
+    values = [int(v) for v in ctx["values"]]
+    if ctx.encoding == SubgridEncoding.OFFSET:
+        return len(values) * int(ctx.width)
+    return sum(rice_bits(v, int(ctx.width)) for v in values)
 
 
 def _read_uint(stream: Any, width: int, path: str) -> int:
@@ -132,30 +124,6 @@ def _read_uint(stream: Any, width: int, path: str) -> int:
     return v
 
 
-class _Zero(cs.Construct):  # type: ignore[misc]
-    """An absent field: no bits; reads 0 and only builds from 0."""
-
-    def __init__(self) -> None:
-        super().__init__()
-        self.flagbuildnone = True
-
-    def _parse(self, stream: Any, context: Any, path: str) -> int:
-        return 0
-
-    def _build(self, obj: Any, stream: Any, context: Any, path: str) -> int:
-        if obj not in (None, 0):
-            raise cs.ValidationError(f"must be 0 here, got {obj!r}", path=path)
-        return 0
-
-    def _sizeof(self, context: Any, path: str) -> int:
-        return 0
-
-
-def _fixed_values() -> cs.Construct:
-    c = cs.Array(_n_values, UInt(cs.this.width))
-    return c
-
-
 SUBGRID = Body(
     "level" / Bounded(0, 15) * "Level (0 = finest; cell size resolution x 2^level)",
     "ix" / SInt(14) * "Subgrid column index at this level",
@@ -164,23 +132,20 @@ SUBGRID = Body(
     "resolution" / Choice(RESOLUTIONS, unit="m") * "Cell size at level 0",
     "vertical_resolution" / Choice(VERTICAL_RESOLUTIONS, unit="m") * "Elevation quantum",
     "side" / Bounded(2, 16, unit="cells") * "Subgrid side",
-    "encoding" / Enum(SubgridEncoding, bits=2) * "Cell coding (0 OFFSET, 1 DELTA, 2 PLANE; see SubgridEncoding)",
+    "encoding" / Enum(SubgridEncoding, bits=2) * "Cell coding (see SubgridEncoding)",
     "z_base" / SInt(20) * "Base elevation in vertical-resolution units (block minimum for OFFSET)",
     "width" / Bounded(0, 24, unit="bits") * "OFFSET: bits per value (0: every present cell equals z_base); "
     "DELTA/PLANE: Rice parameter",
-    "slope_x" / cs.IfThenElse(cs.this.encoding == SubgridEncoding.PLANE, SInt(12), _Zero())
+    "slope_x" / cs.If(cs.this.encoding == SubgridEncoding.PLANE, SInt(12))
     * "PLANE only: eastward slope, 1/8 vertical units per cell",
-    "slope_y" / cs.IfThenElse(cs.this.encoding == SubgridEncoding.PLANE, SInt(12), _Zero())
+    "slope_y" / cs.If(cs.this.encoding == SubgridEncoding.PLANE, SInt(12))
     * "PLANE only: northward slope, 1/8 vertical units per cell",
     "partial" / cs.Rebuild(Bool(), lambda ctx: ctx.mask is not None) * "1 if a presence mask follows (derived)",
     "mask" / cs.If(cs.this.partial, UInt(lambda ctx: int(ctx.side) ** 2)) * "Presence mask, side^2 bits, row-major",
-    "values" / cs.IfThenElse(
-        cs.this.encoding == SubgridEncoding.OFFSET,
-        _fixed_values(),
-        RiceCodes(_n_values, lambda ctx: ctx.width),
-    ) * "Codes of the present cells: OFFSET width bits each, otherwise Rice codes",
-    cs.Check(lambda ctx: ctx.encoding != SubgridEncoding.OFFSET
-             or len(ctx["values"]) * ctx.width <= MAX_SUBGRID_VALUE_BITS),
+    "values" / cs.Array(_n_values, SubgridCode())
+    * "Codes of the present cells, row-major (DELTA: serpentine order)",
+    cs.Check(lambda ctx: _value_bits(ctx) <= MAX_SUBGRID_VALUE_BITS),
+    cs.Check(lambda ctx: ctx.encoding != SubgridEncoding.GRADIENT or ctx.mask is None),
 )
 
 MAP_ROI_REQUEST = Body(
@@ -258,6 +223,8 @@ register(MessageSpec(
                                         values=(0, 1, 2, 3, 0, 0, 5) + (2,) * 52 + (200, 1))),
         ("plane_rice", _sub(level=4, ix=0, iy=-1, stamp=99, encoding=SubgridEncoding.PLANE, z_base=-412,
                             width=0, slope_x=-13, slope_y=40, values=tuple((i * 5) % 3 for i in range(64)))),
+        ("gradient_complete", _sub(level=3, ix=-7, iy=2, stamp=77, encoding=SubgridEncoding.GRADIENT,
+                                   z_base=-2950, width=1, values=(0, *tuple(i * 3 % 5 for i in range(63))))),
         ("largest", _LARGEST_SUBGRID),
     ],
 ))

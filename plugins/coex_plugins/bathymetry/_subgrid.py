@@ -1,8 +1,9 @@
 """Subgrid coding: cell arrays to :class:`~coex_core.messages.Subgrid` messages and back.
 
 The encoder tries every :class:`~coex_core.messages.SubgridEncoding` (OFFSET: fixed-width offsets
-above the block minimum; DELTA: serpentine differences, Rice-coded; PLANE: residuals from a
-fitted plane, Rice-coded, with the best Rice parameter) and keeps the smallest. All of them use
+above the block minimum; DELTA: serpentine differences; PLANE: residuals from a fitted plane;
+GRADIENT: second differences, complete blocks only; the last three Rice-coded with the best
+parameter) and keeps the smallest. All of them use
 only the subgrid's own bits, so a lost subgrid never makes another one useless. Both directions
 are numpy-vectorised (a DELTA decode is a cumulative sum).
 """
@@ -156,6 +157,15 @@ def encode_subgrid(
                 sg = Subgrid(encoding=SubgridEncoding.PLANE, z_base=zb, width=k, values=tuple(int(c) for c in v),
                              slope_x=sx, slope_y=sy, **base)
                 candidates.append((header + PLANE_BITS + cost, sg))
+    if SubgridEncoding.GRADIENT in encodings and mask is None:
+        d = qa - qa[0, 0]
+        r = np.diff(np.diff(np.pad(d, ((1, 0), (1, 0))), axis=0), axis=1)
+        v = _zigzag(r.ravel())
+        k, cost = _rice_cost(v)
+        if cost <= 1536:
+            sg = Subgrid(encoding=SubgridEncoding.GRADIENT, z_base=int(qa[0, 0]), width=k,
+                         values=tuple(int(c) for c in v), **base)
+            candidates.append((header + cost, sg))
     if not candidates:
         raise ValueError("no encoding fits this subgrid")
     return min(candidates, key=lambda c: (c[0], int(c[1].encoding)))[1]
@@ -183,8 +193,15 @@ def decode_subgrid_units(sg: Subgrid) -> IntArray:
         order = _serpentine(side)
         sel = order[present[order]]
         out[sel] = sg.z_base + np.cumsum(_unzigzag(v))
+    elif sg.encoding == SubgridEncoding.GRADIENT:
+        if sg.mask is not None:
+            raise ValueError("a GRADIENT subgrid has no mask")
+        r = _unzigzag(v).reshape(side, side)
+        out[:] = (sg.z_base + np.cumsum(np.cumsum(r, axis=0), axis=1)).ravel()
     else:
         ii, jj = np.divmod(np.arange(side * side), side)
+        if sg.slope_x is None or sg.slope_y is None:
+            raise ValueError("a PLANE subgrid needs slopes")
         plane = (sg.slope_x * jj[present] + sg.slope_y * ii[present] + 4) >> 3
         out[present] = sg.z_base + plane + _unzigzag(v)
     return out.reshape(side, side)
