@@ -424,3 +424,25 @@ def test_closing_a_simulated_transport_frees_its_modem() -> None:
 
     with pytest.raises(ConfigError):
         net.transport(2)
+
+
+def test_carxp_at_the_first_bit_data_after_the_last() -> None:
+    from coex_core.acoustic import RATES
+
+    net = ModemNetwork({1: (0.0, 0.0, 0.0), 2: (1500.0, 0.0, 0.0)})
+    m1, m2 = net.modems[1], net.modems[2]
+    for m in (m1, m2):
+        m.feed(nmea.format_sentence("CCCFG", ["RXP", 1]), net.now)
+        m.data_to_send()
+    t0 = net.now
+    m1.feed(nmea.format_sentence("CCCYC", [0, 1, 2, 5, 0, 1]), t0)
+    m1.feed(nmea.format_sentence("CCTXD", [1, 2, 0, "abcd"]), t0)
+    net.run_until(t0 + 0.999)
+    assert m2.data_to_send() == b""  # 1500 m at 1500 m/s: nothing yet
+    net.run_until(t0 + 1.001)
+    assert m2.data_to_send() == b"$CARXP*58\r\n"
+    net.run_until(t0 + 1.0 + RATES[5].packet_airtime(1) - 0.01)
+    assert m2.data_to_send() == b""
+    net.run_until(t0 + 1.0 + RATES[5].packet_airtime(1) + 0.01)
+    out = [x.split(",")[0].split("*")[0] for x in m2.data_to_send().decode().split("\r\n") if x]
+    assert out == ["$CACYC", "$CARXD"]  # CST is off on this modem; no second CARXP

@@ -18,15 +18,15 @@
   what WHOI's ``acomms`` library is pointed at in the interop tests.
 
 Simplifications (documented in ``docs/micromodem.md``): mini-packets (pings, acknowledgements,
-the rate-0 cycle-init) travel as one-frame rate-0 packets of the channel; ``$CARXP`` is reported
-when the packet has been received rather than at its first bit; uplink polls (``$CCCYC`` with a
-third-party SRC) are refused with ``$CAERR``.
+the rate-0 cycle-init) travel as one-frame rate-0 packets of the channel; uplink polls (``$CCCYC``
+with a third-party SRC) are refused with ``$CAERR``.
 """
 
 from __future__ import annotations
 
 import datetime as _dt
 import errno
+import functools
 import heapq
 import itertools
 import math
@@ -113,6 +113,7 @@ class SimulatedModem:
         self.keep_host_lines = 1000
         self.errors = 0
         self.orphan = False  # its host went away: output is discarded
+        self._detected: set[int] = set()  # packets whose $CARXP went out at their first bit
 
     # -------------------------------------------------------------------------- identity
     @property
@@ -397,9 +398,28 @@ class SimulatedModem:
             packet_type=ptype, frames=frames, bad_frames=bad, snr_in=snr_in, snr_out=snr_out,
             doppler=self.doppler))
 
-    def _rxp(self) -> None:
+    def _rxp(self, meta: _Meta) -> None:
+        """``$CARXP`` for this packet, unless it was already reported at its first bit."""
+        if id(meta) in self._detected:
+            self._detected.discard(id(meta))
+            return
         if self._on("RXP"):
             self._emit("CARXP", [])
+
+    def _addressed(self, meta: _Meta) -> bool:
+        if meta.kind in ("ping", "pong", "ack"):
+            return meta.dest == self.id
+        return self._for_me(meta)
+
+    def detect(self, meta: _Meta, now: float) -> None:
+        """The first bit of a packet reaches this modem: ``$CARXP`` (unless it is transmitting)."""
+        if now < self._air_until or not self._addressed(meta):
+            return
+        if self._on("RXP"):
+            self._emit("CARXP", [])
+        self._detected.add(id(meta))
+        if len(self._detected) > 64:
+            self._detected.clear()
 
     def _for_me(self, meta: _Meta) -> bool:
         return meta.dest in (self.id, 0)
@@ -408,7 +428,7 @@ class SimulatedModem:
         if a.cause or (all(f is None for f in a.frames) and meta.kind in ("ping", "pong", "ack", "ci")):
             if a.cause and self._for_me(meta):
                 # the packet was destroyed at this receiver (collision, or we were transmitting)
-                self._rxp()
+                self._rxp(meta)
                 self._cst(now, a, meta, frames=0, bad=0, ptype=_PACKET_TYPE["psk"], mode=2)
             return
         kind = meta.kind
@@ -417,7 +437,7 @@ class SimulatedModem:
         elif kind == "ci":
             if not self._for_me(meta):
                 return
-            self._rxp()
+            self._rxp(meta)
             self._emit("CACYC", [0, meta.src_id, meta.dest, 0, int(meta.ack), meta.nframes])
             self._cst(now, a, meta, frames=1, bad=0, ptype=_PACKET_TYPE["fsk_mini"])
         elif kind == "fdp":
@@ -425,7 +445,7 @@ class SimulatedModem:
         elif kind == "ping":
             if meta.dest != self.id:
                 return
-            self._rxp()
+            self._rxp(meta)
             self._emit("CAMPA", [meta.src_id, meta.dest])
             self._cst(now, a, meta, frames=1, bad=0, ptype=_PACKET_TYPE["fsk_mini"])
             self._emit("CATXP", [])
@@ -434,14 +454,14 @@ class SimulatedModem:
         elif kind == "pong":
             if meta.dest != self.id:
                 return
-            self._rxp()
+            self._rxp(meta)
             owtt = self.network.channel.delay(a.src, a.dst)
             self._emit("CAMPR", [meta.src_id, meta.dest, f"{owtt:.4f}"])
             self._cst(now, a, meta, frames=1, bad=0, ptype=_PACKET_TYPE["fsk_mini"])
         elif kind == "ack":
             if meta.dest != self.id:
                 return
-            self._rxp()
+            self._rxp(meta)
             for f in meta.acked:
                 self._emit("CAACK", [meta.src_id, meta.dest, f, 1])
             self._cst(now, a, meta, frames=1, bad=0, ptype=_PACKET_TYPE["fsk_mini"])
@@ -449,7 +469,7 @@ class SimulatedModem:
     def _rx_data(self, a: Arrival, meta: _Meta, now: float) -> None:
         if not self._for_me(meta):
             return
-        self._rxp()
+        self._rxp(meta)
         if meta.rate != 0:
             self._emit("CACYC", [0, meta.src_id, meta.dest, meta.rate, int(meta.ack), meta.nframes])
         good: list[int] = []
@@ -478,7 +498,7 @@ class SimulatedModem:
     def _rx_fdp(self, a: Arrival, meta: _Meta, now: float) -> None:
         if not self._for_me(meta):
             return
-        self._rxp()
+        self._rxp(meta)
         frames = []
         for f, size in zip(a.frames, meta.frame_sizes):
             frames.append(FdpFrame(True, len(f), f) if f is not None else FdpFrame(False, size, b""))
@@ -570,6 +590,10 @@ class ModemNetwork:
         end = self.channel.transmit(modem.node, frames, rate, now)
         start = end - AIR_RATES[rate].packet_airtime(len(frames))
         self._meta.append((modem.node, start, meta))
+        for other in self.modems.values():
+            if other is not modem:
+                t = start + self.channel.delay(modem.node, other.node)
+                other._at(t, functools.partial(other.detect, meta))
         return end
 
     def _lookup(self, a: Arrival) -> _Meta | None:
