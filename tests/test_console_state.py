@@ -458,7 +458,14 @@ def test_pump_reports_events_and_link_state() -> None:
     assert snap["link"]["bad_frames"] == 1 and snap["link"]["schedules"][0]["cycle"] == 10.0
     assert any("bad frame" in x["text"] for x in snap["log"])
     st.apply_event(CommandResult(3.0, 77, m.AckStatus.REJECTED))
-    assert any("unknown command 77" in x["text"] for x in st.snapshot()["log"])
+    assert any("command 77: rejected (not sent from this console)" in x["text"]
+               for x in st.snapshot()["log"])
+    # a command the node sent for someone else (a script) is listed with its outcome
+    goal = m.ImageGoal(78, 4, m.GoalKind.FULL, 0)
+    st.apply_event(CommandResult(4.0, 78, m.AckStatus.ACCEPTED, goal))
+    assert st.snapshot()["commands"][0] == {"command_id": 78, "kind": "ImageGoal",
+                                            "summary": "ImageGoal (by the node)", "sent": 4.0,
+                                            "status": "accepted", "answered": 4.0}
 
 
 def test_hub_is_safe_from_threads(subgrids: list[m.Subgrid]) -> None:
@@ -629,4 +636,11 @@ def test_attached_node_driven_like_the_demo_loop() -> None:
     assert cmd["kind"] == "ScheduleUpdate" and cmd["status"] == "accepted"
     assert veh.manager.schedule(0).version == 1 and top.manager.schedule(0).version == 1
     assert snap["link"]["schedules"][0]["cycle"] == 20.0
+    # a region someone else asked of the bathymetry receiver is shown too
+    rx = hub.actions.map_receiver
+    rx.request_area(0, 30.0, 30.0, 40.0, 40.0)
+    demo_loop(260.0)
+    reqs = hub.snapshot()["map"]["requests"]
+    assert [r["level"] for r in reqs] == [0] and reqs[0]["status"] != "waiting"
+    assert any("(by the node)" in c["summary"] for c in hub.snapshot()["commands"])
     assert any(type(e).__name__ == "CommandResult" for e in mine)  # the loop still gets them

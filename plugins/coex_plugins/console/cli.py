@@ -189,7 +189,7 @@ def build_topside(transport_uri: str, host: str = "127.0.0.1", port: int = 8080,
                 continue
             node.add_receiver(cls, tap_receiver(receiver, hub))
             if name == "bathymetry" and hasattr(receiver, "request_area"):
-                hub.actions.map_receiver = receiver
+                hub.actions.map_receiver = state.region_source = receiver
         state.set_schedule(link, schedule)
         server = serve(hub, host, port)
     except BaseException:

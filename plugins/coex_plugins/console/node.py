@@ -145,6 +145,15 @@ def pump(state: ConsoleState, node: Any, now: float, events: list[Any] | None = 
             state.set_schedule(link, sch)
             state.schedules[link]["_key"] = key
             state.schedules[link]["proposed"] = proposed
+    # regions asked of the bathymetry receiver by others (a script): show them too
+    source = state.region_source
+    if source is not None:
+        others = [r for r in list(getattr(source, "regions", ()))
+                  if not getattr(r, "auto", False) and id(r) not in state._region_ids]
+        if others:
+            state.record_regions(others, now, "map level "
+                                 + ",".join(sorted({str(r.level) for r in others}))
+                                 + " (by the node)")
     # regions a bathymetry receiver sends for us: show when they go out (ids, retries)
     sig = tuple((k, r.region.request_id, r.region.sends, r.region.done)
                 for k, r in state.roi.items() if r.region is not None)
@@ -189,6 +198,7 @@ def attach(node: Any, clock: Callable[[], float] | None = None, *,
         slot.receiver = tap_receiver(inner, hub)
         if map_receiver is None and hasattr(inner, "request_area"):
             hub.actions.map_receiver = inner
+    state.region_source = hub.actions.map_receiver
     original = getattr(node.events, "_coex_original", node.events)
 
     def events() -> list[Any]:

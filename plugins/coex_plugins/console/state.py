@@ -250,6 +250,10 @@ class ConsoleState:
         self.roi: dict[int, _RoiRequest] = {}
         self._region_count = 0
         self._region_sig: tuple[Any, ...] = ()
+        self._region_ids: set[int] = set()
+        #: A bathymetry receiver whose operator regions (not its automatic gap filling) are
+        #: shown even when someone else asked for them (a script, another tool).
+        self.region_source: Any = None
         self._zrange: tuple[float, float] | None = None
         # images
         self.images: dict[int, _Image] = {}
@@ -338,7 +342,8 @@ class ConsoleState:
         elif name == "ProductUpdated":
             self.apply_product(str(event.modality), event.product, now)
         elif name == "CommandResult":
-            self._command_result(int(event.command_id), event.status, now)
+            self._command_result(int(event.command_id), event.status, now,
+                                 getattr(event, "command", None))
         elif name == "BadFrame":
             self.bad_frames += 1
             lk = self._link(int(event.link))
@@ -703,6 +708,9 @@ class ConsoleState:
         """Remember map regions a bathymetry receiver will request (and retry) for us."""
         self._advance(now)
         for r in regions:
+            if id(r) in self._region_ids:
+                continue
+            self._region_ids.add(id(r))
             self._region_count += 1
             key = -self._region_count
             self.roi[key] = _RoiRequest(-1, r.level, r.x0, r.y0, r.w, r.h, now, {}, region=r)
@@ -717,12 +725,25 @@ class ConsoleState:
             self._log(now, f"requested {text}")
         self._touch("map", "commands")
 
-    def _command_result(self, command_id: int, status: Any, now: float) -> None:
+    def _command_result(self, command_id: int, status: Any, now: float,
+                        command: m.Message | None = None) -> None:
         cmd = self.commands.get(256 + command_id)
         name = status.name if hasattr(status, "name") else str(status)
+        if cmd is not None and command is not None and cmd.message != command:
+            cmd = None  # an id reused by a command sent by someone else
         if cmd is None:
-            self._log(now, f"ack for unknown command {command_id}: {name}", "warn")
-            return
+            if command is None:
+                self._log(now, f"vehicle answered command {command_id}: {name.lower()} "
+                               "(not sent from this console)")
+                return
+            # a command the topside node sent for someone else (a script, a receiver)
+            key = 256 + command_id
+            cmd = self.commands[key] = _Command(command_id, type(command).__name__,
+                                                f"{type(command).__name__} (by the node)",
+                                                now, command)
+            if key in self.command_order:
+                self.command_order.remove(key)
+            self.command_order.append(key)
         cmd.status, cmd.answered = name.lower(), now
         if isinstance(cmd.message, m.ScheduleUpdate):
             sch = self.schedules.get(cmd.message.link)
