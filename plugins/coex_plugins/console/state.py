@@ -274,6 +274,7 @@ class ConsoleState:
         # commands and log
         self.commands: dict[int, _Command] = {}
         self.command_order: deque[int] = deque(maxlen=64)
+        self._foreign_acks: dict[int, tuple[str, float]] = {}
         self.log: deque[dict[str, Any]] = deque(maxlen=max_log)
 
     # -------------------------------------------------------------------- bookkeeping
@@ -733,8 +734,11 @@ class ConsoleState:
             cmd = None  # an id reused by a command sent by someone else
         if cmd is None:
             if command is None:
-                self._log(now, f"vehicle answered command {command_id}: {name.lower()} "
-                               "(not sent from this console)")
+                last = self._foreign_acks.get(command_id)
+                if last is None or last[0] != name or now - last[1] > 600:
+                    self._log(now, f"vehicle answered command {command_id}: {name.lower()} "
+                                   "(not sent from this console)")
+                self._foreign_acks[command_id] = (name, now)
                 return
             # a command the topside node sent for someone else (a script, a receiver)
             key = 256 + command_id
