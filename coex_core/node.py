@@ -94,6 +94,8 @@ class Node:
         self.node_id = manager.node_id
         self._senders: list[_SenderSlot] = []
         self._receivers: list[_ReceiverSlot] = []
+        #: command id -> the receiver whose request carried it (its CommandAck goes back to it)
+        self._command_owner: dict[int, _ReceiverSlot] = {}
         self._events: list[Event] = []
         self._log = log
         self.stats: dict[str, int] = {"frames": 0, "bad_frames": 0, "messages": 0, "rejected": 0,
@@ -159,6 +161,11 @@ class Node:
             self.manager.on_ack(m, now)
             return
         if isinstance(m, CommandAck):
+            owner = self._command_owner.pop(m.command_id, None)
+            if owner is not None:
+                # a modality request: its receiver tracks it (and may stop retrying it)
+                for p in owner.receiver.receive(m, now) or ():
+                    self._events.append(ProductUpdated(now, owner.name, p))
             self.manager.on_command_ack(m, now)  # emits CommandResult
             return
         if self._duplicate(m, now):
@@ -260,6 +267,10 @@ class Node:
             except Exception as exc:
                 self._note(f"{r.name} receiver poll failed: {exc}")
                 continue
+            for m in reqs:
+                cid = getattr(m, "command_id", None)
+                if cid is not None:
+                    self._command_owner[int(cid)] = r
             for m in reqs:
                 try:
                     self.manager.push(r.stream, m, now)
