@@ -247,3 +247,21 @@ def test_roi_and_ack_exchange_converges_under_loss() -> None:
     assert any(r.sends > 1 for r in regions), "lost requests or replies were retried"
     assert any(isinstance(m, MapRoiReply) and m.queued == 0 for m in pair.received_messages)
     assert math.isfinite(pair.now)
+
+
+def test_config_outside_the_wire_tables_is_a_config_error() -> None:
+    from coex_core.errors import ConfigError
+
+    for cfg in ({"resolution": 0.3}, {"vertical_resolution": 0.07}, {"subgrid_side": 16}, {"bogus": 1}):
+        with pytest.raises(ConfigError):
+            BathymetrySender(cfg)
+
+
+def test_elevations_beyond_the_wire_range_are_skipped_not_a_crash() -> None:
+    sender = BathymetrySender({"vertical_resolution": 0.01, "levels": 2})
+    deep = np.array([[1.5, 1.5, -6000.0]] * 5)  # 600,000 cm: beyond 20 signed bits
+    ok = np.array([[20.5, 20.5, -50.0]] * 5)
+    sender.ingest(np.vstack([deep, ok]), 0.0)
+    out = [m for m in sender.fill(240, 30.0) if isinstance(m, Subgrid)]
+    assert {(m.level, m.ix, m.iy) for m in out} == {(1, 1, 1), (0, 2, 2)}
+    assert (0, 0, 0) in sender.unsendable

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import logging
 import math
 from collections.abc import Mapping
 from pathlib import Path
@@ -11,6 +12,7 @@ import numpy as np
 import numpy.typing as npt
 
 from coex_core import wire
+from coex_core._wire.bathymetry import RESOLUTIONS, VERTICAL_RESOLUTIONS
 from coex_core.errors import ConfigError, RequestRejected
 from coex_core.messages import MapMetadata, MapRoiReply, MapRoiRequest, Message, Subgrid
 from coex_core.modality import ModalitySender
@@ -21,6 +23,8 @@ from ._quadtree import InputError, QuadtreeMap
 from ._subgrid import encode_subgrid, subgrid_bits
 
 __all__ = ["BathymetrySender", "SENDER_DEFAULTS"]
+
+log = logging.getLogger(__name__)
 
 Key = tuple[int, int, int]  # (level, ix, iy)
 
@@ -68,6 +72,12 @@ class BathymetrySender(ModalitySender):
     def __init__(self, config: Mapping[str, Any] | None = None) -> None:
         cfg = merged_config(config, SENDER_DEFAULTS)
         self.config = cfg
+        if float(cfg["resolution"]) not in RESOLUTIONS:
+            raise ConfigError(f"resolution must be one of {RESOLUTIONS} m (the wire's table)")
+        if float(cfg["vertical_resolution"]) not in VERTICAL_RESOLUTIONS:
+            raise ConfigError(f"vertical_resolution must be one of {VERTICAL_RESOLUTIONS} m (the wire's table)")
+        if not 1 <= int(cfg["levels"]) <= 8:
+            raise ConfigError("levels must be in 1..8")
         if int(cfg["subgrid_side"]) not in (2, 4, 8):
             # 8 x 8 cells of up to 20 bits always fit one message; 16 x 16 rough blocks may not.
             raise ConfigError("subgrid_side must be 2, 4 or 8")
@@ -94,6 +104,8 @@ class BathymetrySender(ModalitySender):
         self._pending = 0
         self.sent_log: list[Subgrid] = []
         self._cache: dict[Key, tuple[int, Subgrid]] = {}
+        #: Subgrids whose elevations do not fit the wire (|z| >= 2**19 vertical units): skipped.
+        self.unsendable: set[Key] = set()
 
     # ---------------------------------------------------------------------------- ingest
 
@@ -138,7 +150,13 @@ class BathymetrySender(ModalitySender):
         hit = self._cache.get(key)
         if hit is not None and hit[0] == version:
             return hit[1]
-        sg = self._build(key)
+        try:
+            sg = self._build(key)
+        except ValueError as exc:  # elevations outside the wire's range: skip, never crash
+            self.unsendable.add(key)
+            log.warning("subgrid %s cannot be sent: %s", key, exc)
+            self._mark_sent(key, self.subgrid_time(key))
+            return None
         if sg is not None:
             self._cache[key] = (version, sg)
         return sg
