@@ -43,3 +43,25 @@ def test_coex_topside_bad_options() -> None:
     r = subprocess.run([COEX, "topside", "--transport", "loopback://y", "--http", "127.0.0.1:0",
                         "--schedule", "{bad json"], capture_output=True, text=True, timeout=60)
     assert r.returncode == 2 and "--schedule" in r.stderr
+
+
+def test_topside_app_shows_its_own_modem_statistics() -> None:
+    from coex_plugins.console.cli import build_topside
+
+    from coex_core.messages import LinkStatus
+    from coex_core.timefmt import to_stamp
+
+    now = [50_000.0]
+    app = build_topside("loopback://cli-stats", "127.0.0.1", 0, modalities=(), clock=lambda: now[0])
+    try:
+        stats = [LinkStatus(to_stamp(now[0]), 0, 8, 1, 12.5, 0.2)]
+        app.transport.link_status = lambda: stats[-1]  # as the Micromodem transport offers
+        app.step()
+        app.step()  # the same statistics are not counted twice
+        now[0] += 10
+        stats.append(LinkStatus(to_stamp(now[0]), 0, 8, 3, 7.0, None))
+        app.step()
+        (lk,) = app.hub.snapshot()["link"]["links"]
+        assert (lk["packets"], lk["frames"], lk["bad_frames"], lk["snr"]) == (2, 16, 4, 7.0)
+    finally:
+        app.close()

@@ -72,6 +72,7 @@ class TopsideApp:
         self.clock = clock
         self.stop = threading.Event()
         self.errors: list[str] = []
+        self._last_status: Any = None
 
     @property
     def url(self) -> str:
@@ -103,8 +104,24 @@ class TopsideApp:
                 except CoexError as exc:
                     self.errors.append(f"send: {exc}")
             self.hub.pump(self.node, self.clock())
+            self._modem_status()
             nxt = self.node.next_event(self.clock())
         return float(nxt) if nxt is not None else self.clock() + 0.2
+
+    def _modem_status(self) -> None:
+        """Receive statistics of topside's own modem (a transport with ``link_status()``, like
+        the Micromodem's), shown with the link."""
+        get = getattr(self.transport, "link_status", None)
+        if not callable(get):
+            return
+        try:
+            status = get()
+        except Exception as exc:  # statistics are a nicety: never stop the loop for them
+            self.errors.append(f"link status: {exc}")
+            return
+        if status is not None and status != self._last_status:
+            self._last_status = status
+            self.hub.messages([status], self.clock(), self.link)
 
     def run(self) -> None:
         """Drive the node until :attr:`stop` is set."""
