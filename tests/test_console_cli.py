@@ -65,3 +65,21 @@ def test_topside_app_shows_its_own_modem_statistics() -> None:
         assert (lk["packets"], lk["frames"], lk["bad_frames"], lk["snr"]) == (2, 16, 4, 7.0)
     finally:
         app.close()
+
+
+def test_topside_with_two_modems() -> None:
+    from coex_plugins.console.cli import build_topside
+
+    app = build_topside(["loopback://two-a", "loopback://two-b?mtu=128"], "127.0.0.1", 0,
+                        modalities=())
+    try:
+        assert sorted(app.transports) == [0, 1] and app.node.manager.links == [0, 1]
+        assert app.node.manager.link(1).fbytes == 128  # frames capped at that transport's MTU
+        app.step()
+        snap = app.hub.snapshot()["link"]
+        assert [lk["link"] for lk in snap["links"]] == [0, 1]
+        assert [s["link"] for s in snap["schedules"]] == [0, 1]
+        app.hub.act("link_control", {"link": 1, "enabled": False})
+        assert app.hub.snapshot()["commands"][0]["summary"] == "link 1 disable"
+    finally:
+        app.close()

@@ -14,7 +14,8 @@ import logging
 import sys
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
+from dataclasses import replace
 from typing import Any
 
 from coex_core.errors import CoexError, ConfigError, TransportError
@@ -39,9 +40,10 @@ def register(subparsers: Any) -> None:
         "topside", help="run a topside node and serve the web console",
         description="Run a topside node over a transport and serve the web console "
                     "(map, images, time series, link and queues) on HTTP.")
-    p.add_argument("--transport", required=True, metavar="URI",
+    p.add_argument("--transport", required=True, metavar="URI", action="append",
                    help="transport URI (micromodem:///dev/ttyUSB0, mavlink:..., lcm:..., "
-                        "loopback://name)")
+                        "loopback://name); repeat it for several modems (links --link, "
+                        "--link + 1, ...)")
     p.add_argument("--http", type=_hostport, default=("127.0.0.1", 8080), metavar="HOST:PORT",
                    help="where to serve the console (default 127.0.0.1:8080; port 0 = any)")
     p.add_argument("--node-id", type=int, default=1, help="topside node id (default 1)")
@@ -60,68 +62,84 @@ def register(subparsers: Any) -> None:
 
 
 class TopsideApp:
-    """A topside node, its transport, the console hub and server, and the loop driving them."""
+    """A topside node, its transports (one per link id: several modems), the console hub and
+    server, and the loop driving them."""
 
-    def __init__(self, node: Any, transport: Any, link: int, hub: Any, server: Any,
+    def __init__(self, node: Any, transports: dict[int, Any], hub: Any, server: Any,
                  clock: Callable[[], float]) -> None:
         self.node = node
-        self.transport = transport
-        self.link = link
+        self.transports = dict(transports)
         self.hub = hub
         self.server = server
         self.clock = clock
         self.stop = threading.Event()
         self.errors: list[str] = []
-        self._last_status: Any = None
+        self._last_status: dict[int, Any] = {}
 
     @property
     def url(self) -> str:
         return str(self.server.url)
 
+    @property
+    def link(self) -> int:
+        """The first link id."""
+        return int(next(iter(self.transports)))
+
+    @property
+    def transport(self) -> Any:
+        """The transport of the first link."""
+        return self.transports[self.link]
+
     def step(self) -> float:
         """One pass: take waiting frames, let the node send, move events to the console.
         Returns when the node next needs attention."""
         with self.hub.lock:
-            now = self.clock()
-            while True:
-                try:
-                    frame = self.transport.recv(timeout=0)
-                except TransportError as exc:
-                    self.errors.append(f"receive: {exc}")
-                    break
-                if frame is None:
-                    break
-                self.node.receive(self.link, frame, self.clock())
+            for link, tr in self.transports.items():
+                while True:
+                    try:
+                        frame = tr.recv(timeout=0)
+                    except TransportError as exc:
+                        self.errors.append(f"link {link} receive: {exc}")
+                        break
+                    if frame is None:
+                        break
+                    self.node.receive(link, frame, self.clock())
             now = self.clock()
             for tx in self.node.poll(now):
+                tr = self.transports.get(tx.link_id)
+                if tr is None:
+                    continue
                 try:
-                    send_packet = getattr(self.transport, "send_packet", None)
+                    send_packet = getattr(tr, "send_packet", None)
                     if callable(send_packet):
                         send_packet(list(tx.frames), tx.rate)
                     else:
                         for f in tx.frames:
-                            self.transport.send(f)
+                            tr.send(f)
                 except CoexError as exc:
-                    self.errors.append(f"send: {exc}")
+                    self.errors.append(f"link {tx.link_id} send: {exc}")
             self.hub.pump(self.node, self.clock())
-            self._modem_status()
+            for link, tr in self.transports.items():
+                self._modem_status(link, tr)
             nxt = self.node.next_event(self.clock())
         return float(nxt) if nxt is not None else self.clock() + 0.2
 
-    def _modem_status(self) -> None:
+    def _modem_status(self, link: int, transport: Any) -> None:
         """Receive statistics of topside's own modem (a transport with ``link_status()``, like
         the Micromodem's), shown with the link."""
-        get = getattr(self.transport, "link_status", None)
+        get = getattr(transport, "link_status", None)
         if not callable(get):
             return
         try:
             status = get()
         except Exception as exc:  # statistics are a nicety: never stop the loop for them
-            self.errors.append(f"link status: {exc}")
+            self.errors.append(f"link {link} status: {exc}")
             return
-        if status is not None and status != self._last_status:
-            self._last_status = status
-            self.hub.messages([status], self.clock(), self.link)
+        if status is not None and status != self._last_status.get(link):
+            self._last_status[link] = status
+            if getattr(status, "link", link) != link:
+                status = replace(status, link=link)
+            self.hub.messages([status], self.clock(), link)
 
     def run(self) -> None:
         """Drive the node until :attr:`stop` is set."""
@@ -129,15 +147,18 @@ class TopsideApp:
             nxt = self.step()
             wait = max(0.0, min(nxt - self.clock(), 0.2))
             started = time.monotonic()
-            try:
-                frame = self.transport.recv(timeout=wait)
-            except TransportError as exc:
-                self.errors.append(f"receive: {exc}")
-                frame = None
-            if frame is not None:
-                with self.hub.lock:
-                    self.node.receive(self.link, frame, self.clock())
-            else:
+            frame = None
+            if len(self.transports) == 1:
+                # block in the transport's receive until a frame comes or it is time to poll
+                link, tr = next(iter(self.transports.items()))
+                try:
+                    frame = tr.recv(timeout=wait)
+                except TransportError as exc:
+                    self.errors.append(f"link {link} receive: {exc}")
+                if frame is not None:
+                    with self.hub.lock:
+                        self.node.receive(link, frame, self.clock())
+            if frame is None:
                 # a transport that does not really block (simulated links) must not spin
                 left = wait - (time.monotonic() - started)
                 if left > 0:
@@ -150,7 +171,8 @@ class TopsideApp:
     def close(self) -> None:
         self.stop.set()
         self.server.close()
-        self.transport.close()
+        for tr in self.transports.values():
+            tr.close()
 
 
 def _schedule(args: argparse.Namespace) -> Any:
@@ -166,13 +188,14 @@ def _schedule(args: argparse.Namespace) -> Any:
     return Schedule.simple(owners, args.slot, args.guard)
 
 
-def build_topside(transport_uri: str, host: str = "127.0.0.1", port: int = 8080, *,
-                  node_id: int = 1, vehicle_id: int = 2, link: int = 0, rate: int = 5,
+def build_topside(transport_uri: str | Sequence[str], host: str = "127.0.0.1", port: int = 8080,
+                  *, node_id: int = 1, vehicle_id: int = 2, link: int = 0, rate: int = 5,
                   schedule: Any = None,
                   modalities: tuple[str, ...] = ("bathymetry", "imagery", "timeseries"),
                   clock: Callable[[], float] = time.time) -> TopsideApp:
-    """Open the transport, build the topside node and its receivers, serve the console
-    (not yet driving the node: call ``start()`` or ``run()``)."""
+    """Open the transports (several URIs: several modems, link ids ``link``, ``link + 1`` ...),
+    build the topside node and its receivers, serve the console (not yet driving the node: call
+    ``start()`` or ``run()``)."""
     from coex_core.channel.manager import ChannelManager, LinkConfig
     from coex_core.channel.schedule import Schedule
     from coex_core.node import Node
@@ -185,13 +208,19 @@ def build_topside(transport_uri: str, host: str = "127.0.0.1", port: int = 8080,
     if schedule is None:
         schedule = Schedule.simple([node_id if o == 1 else vehicle_id for o in NUI_OWNERS],
                                    20.0, 2.0)
-    transport = open_transport(transport_uri)
+    uris = [transport_uri] if isinstance(transport_uri, str) else list(transport_uri)
+    if not uris:
+        raise ConfigError("give at least one transport URI")
+    transports: dict[int, Any] = {}
     try:
         from coex_core.acoustic import rate_info
 
-        fbytes = min(rate_info(rate).frame_bytes, int(transport.mtu))
-        cfg = LinkConfig(link, schedule, rate=rate, frame_bytes=fbytes, dst=vehicle_id)
-        manager = ChannelManager(node_id, [cfg])
+        for i, uri in enumerate(uris):
+            transports[link + i] = open_transport(uri)
+        cfgs = [LinkConfig(lid, schedule, rate=rate,
+                           frame_bytes=min(rate_info(rate).frame_bytes, int(tr.mtu)),
+                           dst=vehicle_id) for lid, tr in transports.items()]
+        manager = ChannelManager(node_id, cfgs)
         node = Node(manager, log=lambda text: log.info("%s", text))
         state = ConsoleState(node_id=node_id, vehicle_id=vehicle_id,
                              stream_names={s.id: s.config.name for s in manager.streams})
@@ -207,12 +236,14 @@ def build_topside(transport_uri: str, host: str = "127.0.0.1", port: int = 8080,
             node.add_receiver(cls, tap_receiver(receiver, hub))
             if name == "bathymetry" and hasattr(receiver, "request_area"):
                 hub.actions.map_receiver = state.region_source = receiver
-        state.set_schedule(link, schedule)
+        for lid in transports:
+            state.set_schedule(lid, schedule)
         server = serve(hub, host, port)
     except BaseException:
-        transport.close()
+        for tr in transports.values():
+            tr.close()
         raise
-    return TopsideApp(node, transport, link, hub, server, clock)
+    return TopsideApp(node, transports, hub, server, clock)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -225,8 +256,8 @@ def run(args: argparse.Namespace) -> int:
     except (CoexError, OSError) as exc:
         print(f"coex topside: {exc}", file=sys.stderr)
         return 2
-    print(f"CoEx console on {app.url} (topside node {args.node_id}, {args.transport})",
-          flush=True)
+    print(f"CoEx console on {app.url} (topside node {args.node_id}, "
+          f"{', '.join(args.transport)})", flush=True)
     try:
         app.run()
     except KeyboardInterrupt:
