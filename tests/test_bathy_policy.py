@@ -265,3 +265,25 @@ def test_elevations_beyond_the_wire_range_are_skipped_not_a_crash() -> None:
     out = [m for m in sender.fill(240, 30.0) if isinstance(m, Subgrid)]
     assert {(m.level, m.ix, m.iy) for m in out} == {(1, 1, 1), (0, 2, 2)}
     assert (0, 0, 0) in sender.unsendable
+
+
+def test_poll_paces_requests_and_auto_fill_runs_once_per_map_change() -> None:
+    receiver = BathymetryReceiver({"levels": LEVELS})
+    meta = MapMetadata(stamp=500, resolution=1.0, vertical_resolution=0.1, subgrid_side=8, levels=LEVELS,
+                       origin_lat=0.0, origin_lon=0.0, x_min=-256, y_min=0, x_max=256, y_max=256, pending=0)
+    receiver.receive(meta, 1000.0)
+    first = receiver.poll(1000.0)
+    assert 0 < len(first) <= 4 and all(isinstance(r, MapRoiRequest) and r.fill_gaps for r in first)
+    assert [r.level for r in first] == sorted((r.level for r in first), reverse=True)  # type: ignore[attr-defined]
+    total = len(first)
+    while batch := receiver.poll(1001.0):
+        total += len(batch)
+    assert total == len(receiver.active_regions()) > 4
+    for region in receiver.active_regions():  # the vehicle has nothing for any of them
+        assert region.request_id is not None
+        receiver.receive(MapRoiReply(region.request_id, region.level, 0), 1002.0)
+    assert receiver.active_regions() == []
+    receiver.receive(meta, 2000.0)  # same map, nothing was missing: no new round
+    assert receiver.poll(2000.0) == []
+    receiver.receive(MapMetadata(**{**{f: getattr(meta, f) for f in meta.__slots__}, "stamp": 900}), 2001.0)
+    assert receiver.poll(2001.0)  # the map changed: gaps are checked again

@@ -32,6 +32,7 @@ RECEIVER_DEFAULTS: dict[str, Any] = {
     "auto_fill": True,
     "auto_fill_interval": 300.0,
     "max_regions": 256,
+    "max_requests_per_poll": 4,
 }
 
 #: Largest region of one request with stamps (8 x 8 = 64 subgrids) and of one gap-filling request.
@@ -108,7 +109,9 @@ class BathymetryReceiver(ModalityReceiver):
     subgrid the vehicle said it queued) until the vehicle answers that it has nothing newer, so
     lost requests, replies and subgrids are all recovered. With ``auto_fill`` the receiver asks
     for the gaps of every level over the whole map whenever the vehicle reports its background
-    queue empty (at most every ``auto_fill_interval`` seconds).
+    queue empty (at most every ``auto_fill_interval`` seconds, and again only when the map changed
+    or the last round found gaps). ``poll`` emits at most ``max_requests_per_poll`` requests,
+    coarsest level first.
     """
 
     def __init__(self, config: Mapping[str, Any] | None = None) -> None:
@@ -119,6 +122,9 @@ class BathymetryReceiver(ModalityReceiver):
         self.auto_fill = bool(cfg["auto_fill"])
         self.auto_fill_interval = float(cfg["auto_fill_interval"])
         self.max_regions = int(cfg["max_regions"])
+        self.max_requests_per_poll = int(cfg["max_requests_per_poll"])
+        if self.max_requests_per_poll < 1:
+            raise ConfigError("max_requests_per_poll must be at least 1")
         if self.request_timeout <= 0:
             raise ConfigError("request_timeout must be positive")
         self.metadata: MapMetadata | None = None
@@ -130,6 +136,8 @@ class BathymetryReceiver(ModalityReceiver):
         self._by_id: dict[int, Region] = {}
         self._next_id = 0
         self._next_auto = -math.inf
+        self._auto_stamp: int | None = None
+        self._auto_found = False
         self.duplicates = 0
 
     # ---------------------------------------------------------------------------- receive
@@ -139,9 +147,14 @@ class BathymetryReceiver(ModalityReceiver):
             return self._subgrid(message, now)
         if isinstance(message, MapMetadata):
             self.metadata = message
-            if self.auto_fill and message.pending == 0 and now >= self._next_auto:
-                self._next_auto = now + self.auto_fill_interval
-                self._schedule_auto_fill(message)
+            # Gap filling when the background is done, again only if the map changed since or
+            # the last round found gaps.
+            fresh = message.stamp != self._auto_stamp or self._auto_found
+            if self.auto_fill and message.pending == 0 and now >= self._next_auto and fresh:
+                if self._schedule_auto_fill(message):
+                    self._next_auto = now + self.auto_fill_interval
+                    self._auto_stamp = message.stamp
+                    self._auto_found = False
             return []
         if isinstance(message, MapRoiReply):
             region = self._by_id.get(message.request_id)
@@ -149,6 +162,7 @@ class BathymetryReceiver(ModalityReceiver):
                 if message.queued == 0:
                     region.done = True
                 else:
+                    self._auto_found |= region.auto
                     region.next_send = now + self.request_timeout + self.subgrid_wait * message.queued
             return []
         return []
@@ -267,11 +281,11 @@ class BathymetryReceiver(ModalityReceiver):
                 out.append(r)
         return out
 
-    def _schedule_auto_fill(self, meta: MapMetadata) -> None:
+    def _schedule_auto_fill(self, meta: MapMetadata) -> bool:
         if any(r.auto and not r.done for r in self.regions):
-            return
+            return False
         if meta.x_max <= meta.x_min or meta.y_max <= meta.y_min:
-            return
+            return False
         for level in range(meta.levels - 1, -1, -1):
             ax, ay = self.subgrid_index(level, meta.x_min, meta.y_min)
             bx, by = self.subgrid_index(level, meta.x_max - 1e-6, meta.y_max - 1e-6)
@@ -279,6 +293,7 @@ class BathymetryReceiver(ModalityReceiver):
                 self._regions(level, ax, ay, bx - ax + 1, by - ay + 1, fill_gaps=True, auto=True)
             except RequestRejected:
                 break
+        return True
 
     def _message(self, r: Region) -> MapRoiRequest:
         rid = self._next_id
@@ -301,8 +316,11 @@ class BathymetryReceiver(ModalityReceiver):
     def poll(self, now: float) -> list[Message]:
         out: list[Message] = []
         self.regions = [r for r in self.regions if not r.done]
-        # Coarse levels first, then in the order asked.
+        # Coarse levels first, then in the order asked; a few requests per poll (the uplink is
+        # slow), the rest on the next polls.
         for r in sorted(self.regions, key=lambda r: -r.level):
+            if len(out) >= self.max_requests_per_poll:
+                break
             if now >= r.next_send:
                 out.append(self._message(r))
                 r.sends += 1
