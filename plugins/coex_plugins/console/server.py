@@ -198,7 +198,9 @@ class _Handler(BaseHTTPRequestHandler):
             except ValueError:
                 return self._not_found()
             with hub.lock:
-                png = hub.state.map_png(level)
+                png, render = hub.state.map_png_job(level)
+            if render is not None:
+                png = render()  # drawn outside the lock: the node's loop never waits for it
             if png is None:
                 return self._not_found()
             self._send(200, png, "image/png", cache=True)

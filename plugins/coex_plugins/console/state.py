@@ -512,17 +512,34 @@ class ConsoleState:
 
     def map_png(self, level: int) -> bytes | None:
         """The level as a PNG (colour ramp + hillshade, north up, transparent where empty)."""
+        png, job = self.map_png_job(level)
+        if job is not None:
+            png = job()
+        return png
+
+    def map_png_job(self, level: int) -> tuple[bytes | None, Callable[[], bytes] | None]:
+        """``(png, None)`` when the picture of the level is current, else ``(None, render)``:
+        ``render()`` draws it from a copy of the grid (no need to hold a lock while it runs)
+        and keeps it for the next call."""
         lv = self.levels.get(level)
         if lv is None:
-            return None
-        if lv.png is None or lv.png_version != lv.version:
-            grid = self.level_grid(level)
-            if grid is None:
-                return None
-            z, _, _, cell = grid
-            lo, hi = self._zrange or (0.0, 1.0)
-            lv.png, lv.png_version = png_bytes(elevation_rgb(z, lo, hi, cell)), lv.version
-        return lv.png
+            return None, None
+        if lv.png is not None and lv.png_version == lv.version:
+            return lv.png, None
+        grid = self.level_grid(level)
+        if grid is None:
+            return None, None
+        z, _, _, cell = grid
+        lo, hi = self._zrange or (0.0, 1.0)
+        version = lv.version
+
+        def render() -> bytes:
+            png = png_bytes(elevation_rgb(z, lo, hi, cell))
+            if lv.png_version < version:
+                lv.png, lv.png_version = png, version
+            return png
+
+        return None, render
 
     # ----------------------------------------------------------------------- images
     def _image(self, image_id: int) -> _Image:
