@@ -207,6 +207,12 @@ def test_console_actions_from_the_page_are_wire_commands(browser: Any) -> None:
             timeout=10_000)
         assert "SURVEY" in page.inner_text("#vehicle-status")
 
+        # a click on the vehicle track sets the image time to when the vehicle was there
+        # (the sample's 11th status: x 31.0 m, y 20 m at 09:51:30)
+        x, y = page.evaluate("window.coex.pagePoint(31.0, 20.0)")
+        page.mouse.click(x, y)
+        assert page.input_value("#img-time") == "09:51:30"
+
         card = page.locator('#gallery .card[data-image="1"]')
         card.locator("select").select_option("full")
         card.locator("button").click()

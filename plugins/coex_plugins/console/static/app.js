@@ -292,7 +292,30 @@ window.addEventListener("mousemove", (ev) => {
     drawMap();
   }
 });
-window.addEventListener("mouseup", () => {
+function pickTrackTime(p) {
+  // a click (no drag) near the vehicle track sets the image time to when the vehicle was there
+  if (!S.vehicle || !S.vehicle.track.length) return;
+  let best = null, bestD = 10;
+  for (const q of S.vehicle.track) {
+    const [x, y] = w2s(q[1], q[2]);
+    const d = Math.hypot(x - p[0], y - p[1]);
+    if (d < bestD) { bestD = d; best = q; }
+  }
+  if (best) {
+    $("#img-time").value = fmtT(best[0]);
+    toast(`image time set to ${fmtT(best[0])} (vehicle at ${best[1].toFixed(0)}, ${best[2].toFixed(0)})`);
+  }
+}
+window.addEventListener("keydown", (ev) => {
+  if (ev.key === "Escape") {
+    roi = null; $("#roi-bar").classList.add("hidden"); setDraw(false); drawMap();
+  }
+});
+window.addEventListener("mouseup", (ev) => {
+  if (drag && drag.kind === "pan") {
+    const p = evPos(ev);
+    if (Math.hypot(p[0] - drag.p[0], p[1] - drag.p[1]) < 3) pickTrackTime(p);
+  }
   if (drag && drag.kind === "draw") {
     if (Math.abs(roi[2] - roi[0]) * view.scale < 3 && Math.abs(roi[3] - roi[1]) * view.scale < 3) {
       roi = null;
