@@ -75,6 +75,8 @@ def test_nothing_is_sent_until_quiet_for_send_delay_then_coarsest_level_first() 
         remaining -= {(s.level, s.ix, s.iy) for s in subs}
         sent.extend(subs)
     assert not remaining
+    assert all(sender.last_transmitted((s.level, s.ix, s.iy)) is not None for s in sent)
+    assert sender.last_transmitted((0, 999, 999)) is None
     keys = [(s.level, s.ix, s.iy) for s in sent]
     assert len(keys) == len(set(keys)), "each subgrid is sent once"
     assert set(keys) == set(sender.inventory())

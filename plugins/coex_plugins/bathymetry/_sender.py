@@ -102,8 +102,8 @@ class BathymetrySender(ModalitySender):
         self._meta_due = False
         self._had_background = False
         self._pending = 0
-        self.sent_log: list[Subgrid] = []
         self._cache: dict[Key, tuple[int, Subgrid]] = {}
+        self._sent_at: dict[Key, float] = {}
         #: Subgrids whose elevations do not fit the wire (|z| >= 2**19 vertical units): skipped.
         self.unsendable: set[Key] = set()
 
@@ -174,12 +174,18 @@ class BathymetrySender(ModalitySender):
             resolution=self.map.resolution, vertical_resolution=self.map.vertical_resolution,
         )
 
-    def _mark_sent(self, key: Key, updated: float) -> None:
+    def _mark_sent(self, key: Key, updated: float, now: float | None = None) -> None:
         self._cache.pop(key, None)
         level, ix, iy = key
         tile, a, b = self.map.tile_of_subgrid(level, ix, iy)
         arr = self._sent_array(tile, level)
         arr[b, a] = max(arr[b, a], updated)
+        if now is not None:
+            self._sent_at[key] = now
+
+    def last_transmitted(self, key: Key) -> float | None:
+        """When subgrid ``key`` (level, ix, iy) was last handed to the link (None: never)."""
+        return self._sent_at.get(key)
 
     def _background(self, now: float) -> list[tuple[int, float, Key]]:
         """Eligible background subgrids, coarsest level first, oldest update first."""
@@ -266,8 +272,7 @@ class BathymetrySender(ModalitySender):
                 out.append(sg)
                 left -= size
                 self._queued.discard(key)
-                self._mark_sent(key, self.subgrid_time(key))
-                self.sent_log.append(sg)
+                self._mark_sent(key, self.subgrid_time(key), now)
             else:
                 remaining.append(key)
         self._queue = remaining
@@ -283,8 +288,7 @@ class BathymetrySender(ModalitySender):
             if size <= left:
                 out.append(sg)
                 left -= size
-                self._mark_sent(key, updated)
-                self.sent_log.append(sg)
+                self._mark_sent(key, updated, now)
         return out
 
     def pending_bytes(self) -> int:
