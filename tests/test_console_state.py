@@ -334,6 +334,16 @@ def test_server_pages_actions_and_events(subgrids: list[m.Subgrid]) -> None:
         assert code == 400 and "stream" in ans["error"] and len(sent) == 1
         with pytest.raises(urllib.error.HTTPError):
             _get(srv.url + "static/../server.py")
+        # another site's page cannot act: not JSON, or another origin
+        for headers, code in (({"Content-Type": "text/plain"}, 415),
+                              ({"Content-Type": "application/json",
+                                "Origin": "http://evil.example"}, 403)):
+            req = urllib.request.Request(srv.url + "api/action", method="POST", headers=headers,
+                                         data=b'{"action": "queue_config", "args": {"stream": 4, "flush": true}}')
+            with pytest.raises(urllib.error.HTTPError) as err:
+                urllib.request.urlopen(req, timeout=5)
+            assert err.value.code == code
+        assert len(sent) == 1
         # two browsers on the event stream both see a change made after they connected
         streams = [urllib.request.urlopen(srv.url + "api/events", timeout=5) for _ in range(2)]
         try:

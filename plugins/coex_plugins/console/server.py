@@ -256,6 +256,14 @@ class _Handler(BaseHTTPRequestHandler):
     def do_POST(self) -> None:
         if urlsplit(self.path).path != "/api/action":
             return self._not_found()
+        # Only the console's own page may act: a JSON body (other sites' pages cannot send one
+        # without a CORS preflight, which this server never grants) from the same origin.
+        ctype = self.headers.get("Content-Type", "").split(";")[0].strip().lower()
+        origin = self.headers.get("Origin")
+        if ctype != "application/json":
+            return self._json(415, {"ok": False, "error": "actions must be application/json"})
+        if origin is not None and urlsplit(origin).netloc != self.headers.get("Host", ""):
+            return self._json(403, {"ok": False, "error": f"cross-origin action from {origin}"})
         try:
             length = int(self.headers.get("Content-Length", "0"))
             if not 0 <= length <= 65536:
