@@ -157,11 +157,11 @@ def render_frame(
             continue
         um, vm = u[mask], v[mask]
         clutter = np.sin(5.3 * um + 2.0 * np.sin(3.1 * vm)) * np.cos(6.7 * vm + 1.5 * np.sin(4.3 * um))
-        paint = 0.16 + 0.06 * clutter + 0.5 * (tex(gx[mask] * 2.3, gy[mask] * 1.9) - 0.55)
+        paint = 0.07 + 0.03 * clutter + 0.25 * (tex(gx[mask] * 2.3, gy[mask] * 1.9) - 0.55)
         growth = clutter > 0.8
         edge = (np.abs(np.abs(um) - box.length / 2) < 0.1) | (np.abs(np.abs(vm) - box.width / 2) < 0.1)
         albedo = albedo.astype(np.float64)
-        albedo[mask] = np.where(edge, 0.10, np.where(growth, 0.42, paint))
+        albedo[mask] = np.where(edge, 0.03, np.where(growth, 0.2, paint))
         top |= mask
     # surface normals from the height field (finite differences in image space)
     dzx = np.gradient(gz, axis=1) / np.maximum(np.gradient(gx, axis=1) ** 2 + np.gradient(gy, axis=1) ** 2, 1e-9) ** 0.5

@@ -18,6 +18,7 @@ time and steps back in time until the target is in frame, as the 2022 operators 
 from __future__ import annotations
 
 import csv
+import heapq
 import json
 import math
 import sys
@@ -33,7 +34,7 @@ from coex_transports.micromodem.simulator import ModemNetwork
 
 from coex_core.acoustic import AcousticChannel, GilbertElliott
 from coex_core.channel import ChannelManager, LinkConfig, Schedule, StreamConfig
-from coex_core.channel.events import ProductUpdated, Received
+from coex_core.channel.events import Received
 from coex_core.loopback import SimClock
 from coex_core.messages import VehicleMode, VehicleStatus
 from coex_core.node import Node
@@ -59,6 +60,7 @@ EPOCH = 1_656_633_600.0  # 2022-07-01T00:00:00Z: the dive's clock (simulated)
 CYCLE = 120.0
 CAMERA_ALTITUDE = 3.0
 SURVEY_ALTITUDE = 30.0
+LINK_STREAM = 6
 
 
 @dataclass
@@ -197,7 +199,7 @@ def build_nodes(out: Path, channels: list[dict[str, Any]]) -> tuple[Node, Node, 
                                   queue_status_interval=CYCLE))
     senders = {
         "bathymetry": BathymetryModality().sender({"send_delay": 20.0}),
-        "imagery": ImageryModality().sender({"default_goal": "layer:2", "request_goal": "layer:6"}),
+        "imagery": ImageryModality().sender({"default_goal": "layer:2", "request_goal": f"layer:{CONFIRM_LAYERS}"}),
         "timeseries": TimeSeriesModality().sender({"channels": channels}),
     }
     receivers = {
@@ -209,6 +211,8 @@ def build_nodes(out: Path, channels: list[dict[str, Any]]) -> tuple[Node, Node, 
     vehicle.add_sender(BathymetryModality, senders["bathymetry"], StreamConfig(3, "map", priority=30))
     vehicle.add_sender(ImageryModality, senders["imagery"], StreamConfig(4, "images", priority=30))
     vehicle.add_sender(TimeSeriesModality, senders["timeseries"], StreamConfig(5, "series", priority=20))
+    # the vehicle modem's statistics (SNR, bad frames, Doppler) for the console: newest only
+    vehicle.manager.add_stream(StreamConfig(LINK_STREAM, "link", priority=40, newest_first=True, max_depth=1))
     topside.add_receiver(BathymetryModality, receivers["bathymetry"])
     topside.add_receiver(ImageryModality, receivers["imagery"])
     topside.add_receiver(TimeSeriesModality, receivers["timeseries"])
@@ -223,34 +227,53 @@ class TargetWatch:
     x: float
     y: float
     height: float
+    cells: int
     found_at: float
-    level0_requested: bool = False
     passed_at: float | None = None
+    want: tuple[float, str] | None = None  # the image asked for: (time, "nearest" | "before")
+    first_request_at: float | None = None
     request_at: float | None = None
     image_id: int | None = None
     tried: list[int] = field(default_factory=list)
     confirmed_at: float | None = None
 
 
-class Operator:
-    """The scripted topside operator (what the 2022 operators did by hand)."""
+#: The operator's test of "a car-sized object in the 1 m map": height and footprint.
+MIN_HEIGHT, MAX_HEIGHT = 1.0, 3.0
+MIN_CELLS, MAX_CELLS = 3, 20
+#: The image goal of a requested image (the vehicle's ``request_goal``): enough to recognise a car.
+CONFIRM_LAYERS = 10
 
-    def __init__(self, topside: Node, receivers: dict[str, Any], log: Callable[[float, str, str], None]) -> None:
+
+class Operator:
+    """The scripted topside operator (what the 2022 operators did by hand).
+
+    It knows the survey box (it planned the survey), never the targets: it finds candidates in
+    what topside received, asks for 1 m data around them, shortlists car-sized ones, and asks for
+    images by time, stepping back until the target is in frame."""
+
+    def __init__(self, topside: Node, receivers: dict[str, Any], box: tuple[float, float, float, float],
+                 log: Callable[[float, str, str], None]) -> None:
         self.topside = topside
         self.bathy: BathymetryReceiver = receivers["bathymetry"]
         self.imagery: ImageryReceiver = receivers["imagery"]
         self.series: TimeSeriesReceiver = receivers["timeseries"]
+        self.box = box
         self.log = log
         self.track: list[tuple[float, float, float, float]] = []  # t, x, y, heading (received)
         self.coarse_requested: list[tuple[float, float]] = []
         self.targets: list[TargetWatch] = []
         self.camera_phase = False
 
+    def inside(self, x: float, y: float, margin: float = 3.0) -> bool:
+        x0, y0, x1, y1 = self.box
+        return x0 + margin <= x <= x1 - margin and y0 + margin <= y <= y1 - margin
+
     # what topside hears
     def on_status(self, s: VehicleStatus, now: float) -> None:
         self.track.append((now, s.x, s.y, s.heading))
 
-    def _level_grid(self, level: int) -> tuple[np.ndarray, float, tuple[float, float]] | None:
+    def level_grid(self, level: int) -> tuple[np.ndarray, float, tuple[float, float]] | None:
         try:
             p = self.bathy.level_product(level)
         except Exception:
@@ -260,99 +283,96 @@ class Operator:
         meta = dict(p.meta)
         return np.asarray(p.data, dtype=float), float(meta["cell_size"]), (float(meta["x0"]), float(meta["y0"]))
 
+    def candidates(self, level: int, threshold: float, **kw: Any) -> list[Any]:
+        g = self.level_grid(level)
+        if g is None:
+            return []
+        grid, cell, (x0, y0) = g
+        return [c for c in find_targets(grid, cell=cell, x0=x0, y0=y0, threshold=threshold, **kw)
+                if self.inside(c.x, c.y)]
+
+    def shortlist(self, n: int = 2) -> list[TargetWatch]:
+        return sorted(self.targets, key=lambda t: -t.height)[:n]
+
     def watch_map(self, now: float) -> None:
-        """Every cycle: look for candidates on a coarse level, ask for 1 m around them; confirm at 1 m."""
+        """Every half cycle: look for bumps on a coarse level and ask for 1 m data around them;
+        shortlist car-sized objects in the 1 m map."""
         for level in (2, 1):
-            g = self._level_grid(level)
-            if g is None:
+            cands = self.candidates(level, 0.3, min_cells=1)
+            if self.level_grid(level) is None:
                 continue
-            grid, cell, origin = g
-            for c in find_targets(grid, cell=cell, x0=origin[0], y0=origin[1], threshold=0.4, min_cells=1):
+            for c in cands:
                 if any(math.hypot(c.x - x, c.y - y) < 12.0 for x, y in self.coarse_requested):
                     continue
                 self.coarse_requested.append((c.x, c.y))
                 self.bathy.request_area(0, c.x - 12.0, c.y - 12.0, c.x + 12.0, c.y + 12.0)
-                self.log(now, "ROI request", f"level 0 (1 m) around ({c.x:.0f}, {c.y:.0f}): "
-                         f"level-{level} bump of {c.height:.1f} m")
+                self.log(now, "ROI request", f"level 0 (1 m) around ({c.x:.0f}, {c.y:.0f}): a "
+                         f"{c.height:.1f} m bump at level {level} ({2 ** level} m cells)")
             break
-        g0 = self._level_grid(0)
-        if g0 is None:
-            return
-        grid, cell, origin = g0
-        for c in find_targets(grid, cell=cell, x0=origin[0], y0=origin[1], threshold=1.0):
+        for c in self.candidates(0, MIN_HEIGHT, min_cells=MIN_CELLS, max_area=float(MAX_CELLS)):
+            if not (MIN_HEIGHT <= c.height <= MAX_HEIGHT and MIN_CELLS <= c.cells <= MAX_CELLS):
+                continue
             if any(math.hypot(c.x - t.x, c.y - t.y) < 6.0 for t in self.targets):
                 continue
-            self.targets.append(TargetWatch(c.x, c.y, c.height, now))
-            self.log(now, "target at 1 m", f"candidate at ({c.x:.1f}, {c.y:.1f}), {c.height:.1f} m high "
-                     "in the 1 m map: added to the camera pass")
+            self.targets.append(TargetWatch(c.x, c.y, c.height, c.cells, now))
+            self.log(now, "target at 1 m", f"car-sized object at ({c.x:.1f}, {c.y:.1f}): {c.height:.1f} m "
+                     f"high, {c.cells} cells in the 1 m map")
 
     # camera pass
     def watch_images(self, now: float) -> None:
         if not self.camera_phase or not self.track:
             return
-        _t_now, x_now, y_now, _ = self.track[-1]
-        for tw in self.targets:
+        _, x_now, y_now, _ = self.track[-1]
+        for tw in self.shortlist():
             if tw.confirmed_at is not None:
                 continue
             if tw.passed_at is None:
-                close = [(math.hypot(x - tw.x, y - tw.y), t) for t, x, y, _ in self.track]
-                d, t_close = min(close)
-                if d < 6.0 and math.hypot(x_now - tw.x, y_now - tw.y) > 8.0:
+                d, t_close = min((math.hypot(x - tw.x, y - tw.y), t) for t, x, y, _ in self.track)
+                if d < 6.0 and math.hypot(x_now - tw.x, y_now - tw.y) > 10.0:
                     tw.passed_at = t_close
                     self._ask(tw, t_close, "nearest", now)
                 continue
-            if tw.image_id is None:
+            meta = self._answer(tw)
+            if meta is None:
                 continue
-            prod = self._image_meta(tw.image_id)
-            if prod is None:
-                continue
-            x, y = prod.get("x"), prod.get("y")
-            if x is None or y is None:
-                continue
-            if not self._shows(tw, float(x), float(y)):
+            tw.image_id = int(meta["image_id"])
+            if not self._shows(tw, float(meta["x"]), float(meta["y"])):
                 if tw.image_id not in tw.tried:
                     tw.tried.append(tw.image_id)
                     self.log(now, "image request", f"image {tw.image_id} does not show the target at "
                              f"({tw.x:.0f}, {tw.y:.0f}): stepping back in time")
-                    self._ask(tw, float(prod["time"]), "before", now)
+                    self._ask(tw, float(meta["time"]), "before", now)
                 continue
-            if int(prod.get("layers_complete", 0)) >= 3:
+            if int(meta.get("layers_complete", 0)) >= CONFIRM_LAYERS or meta.get("complete"):
                 tw.confirmed_at = now
                 dt = now - (tw.request_at or now)
                 self.log(now, "confirming image", f"image {tw.image_id} shows the target at "
-                         f"({tw.x:.0f}, {tw.y:.0f}), {prod['bytes_used']} B, {dt:.0f} s after the request")
+                         f"({tw.x:.0f}, {tw.y:.0f}): {meta['bytes_used']} B, {dt:.0f} s after its request")
+
+    def _answer(self, tw: TargetWatch) -> dict[str, Any] | None:
+        """The image the vehicle serves for the operator's request (the same rule the vehicle applies)."""
+        if tw.want is None:
+            return None
+        t, direction = tw.want
+        imgs = [dict(p.meta) for p in self.imagery.products()
+                if p.kind == "image" and p.meta.get("x") is not None and p.meta.get("time") is not None]
+        if direction == "before":
+            imgs = [m for m in imgs if float(m["time"]) < t]
+            return max(imgs, key=lambda m: float(m["time"]), default=None)
+        return min(imgs, key=lambda m: abs(float(m["time"]) - t), default=None)
 
     def _shows(self, tw: TargetWatch, x: float, y: float) -> bool:
         box = Target(tw.x, tw.y, 3.0, 3.0, 1.0, 0.0)  # the operator knows roughly where, not how it lies
         return in_frame(box, x, y, CAMERA_ALTITUDE, 0.0, fraction=0.15)
 
-    def _image_meta(self, image_id: int) -> dict[str, Any] | None:
-        for p in self.imagery.products():
-            if p.kind == "image" and p.key == str(image_id):
-                return dict(p.meta)
-        return None
-
     def _ask(self, tw: TargetWatch, t: float, direction: str, now: float) -> None:
         msg = self.imagery.request_by_time(t, direction, now)
-        if tw.request_at is None:
-            tw.request_at = now
-        self.log(now, "image request", f"image {direction} {t - EPOCH:.0f} s (dive time) for the target at "
+        tw.want = (t, direction)
+        tw.request_at = now
+        if tw.first_request_at is None:
+            tw.first_request_at = now
+        self.log(now, "image request", f"image {direction} dive time {t - EPOCH:.0f} s, for the target at "
                  f"({tw.x:.0f}, {tw.y:.0f}) [command {msg.command_id}]")
-
-    def on_image(self, meta: dict[str, Any], now: float) -> None:
-        """Map an announced/refined image to the target whose request it answers."""
-        for tw in self.targets:
-            if tw.passed_at is None or tw.confirmed_at is not None:
-                continue
-            x, y = meta.get("x"), meta.get("y")
-            if x is None or y is None:
-                continue
-            t_img = float(meta.get("time") or 0.0)
-            wanted = tw.passed_at if not tw.tried else None
-            if wanted is not None and abs(t_img - wanted) < 30.0 and tw.image_id is None:
-                tw.image_id = int(meta["image_id"])
-            elif tw.tried and int(meta["image_id"]) not in tw.tried and self._shows(tw, float(x), float(y)):
-                tw.image_id = int(meta["image_id"])
 
 
 # ------------------------------------------------------------------------------ the run
@@ -446,14 +466,14 @@ def run_demo(config: DemoConfig, *, on_decision: Callable[[Decision], None] | No
         TOPSIDE: Runner(topside, {0: net.transport(TOPSIDE, rate=5, dest=VEHICLE)}, SimulatedClock(sim=clock),
                         link_log=link_log),
     }
-    operator = Operator(topside, receivers, log)
+    operator = Operator(topside, receivers, (floor.x0, floor.y0, floor.x0 + floor.size, floor.y0 + floor.size), log)
 
     # timed events (simulated): sensor data, status, operator
     events: list[tuple[float, int, Callable[[float], None]]] = []
     counter = iter(range(10**9))
 
     def at(t: float, fn: Callable[[float], None]) -> None:
-        events.append((t, next(counter), fn))
+        heapq.heappush(events, (t, next(counter), fn))
 
     for t, xyz in survey.pings(batch=20):
         track.add_sample(float(t), float(np.mean(xyz[:, 0])), float(np.mean(xyz[:, 1])), SURVEY_ALTITUDE)
@@ -468,6 +488,13 @@ def run_demo(config: DemoConfig, *, on_decision: Callable[[Decision], None] | No
         at(t_status, lambda now: vehicle.push_status(_status(track, now), now))
         t_status += 10.0
 
+    vehicle_modem = runners[VEHICLE].transports[0]
+
+    def push_link_status(now: float) -> None:
+        status = vehicle_modem.link_status()
+        if status is not None:
+            vehicle.manager.push(LINK_STREAM, status, now)
+
     def every_cycle(now: float) -> None:
         operator.watch_map(now)
         operator.watch_images(now)
@@ -477,17 +504,17 @@ def run_demo(config: DemoConfig, *, on_decision: Callable[[Decision], None] | No
     visible_at: dict[int, float] = {}
 
     def metrics_tick(now: float) -> None:
+        push_link_status(now)
         for level in range(0, 4):
-            g = operator._level_grid(level)
+            g = operator.level_grid(level)
             frac = 0.0
             if g is not None:
                 grid = g[0]
-                n_cells = (cfg.area / (2**level)) ** 2
-                frac = min(1.0, float(np.count_nonzero(~np.isnan(grid))) / max(n_cells, 1.0))
+                frac = _area_fraction(grid, g[1], g[2], floor)
             coverage.setdefault(level, []).append((round(now - EPOCH, 1), round(frac, 4)))
-        g0 = operator._level_grid(0)
+        g0 = operator.level_grid(0)
         if g0 is not None:
-            cands = find_targets(g0[0], cell=g0[1], x0=g0[2][0], y0=g0[2][1], threshold=1.0)
+            cands = operator.candidates(0, MIN_HEIGHT, min_cells=MIN_CELLS, max_area=float(MAX_CELLS))
             for i, tgt in enumerate(floor.targets):
                 if i not in visible_at and any(math.hypot(c.x - tgt.x, c.y - tgt.y) < 3.5 for c in cands):
                     visible_at[i] = now
@@ -503,7 +530,7 @@ def run_demo(config: DemoConfig, *, on_decision: Callable[[Decision], None] | No
 
     def plan_camera(now: float) -> None:
         operator.camera_phase = True
-        found = operator.targets[:2]
+        found = operator.shortlist()
         if not found:
             log(now, "camera pass", "no target confirmed at 1 m: camera transect through the centre")
             points = [(cfg.area / 2, cfg.area / 2)]
@@ -549,9 +576,6 @@ def run_demo(config: DemoConfig, *, on_decision: Callable[[Decision], None] | No
 
     # the loop: one simulated clock for the modems, the drivers, both nodes and the scenario
     progress = _Progress(cfg.duration, cfg.progress)
-    import heapq
-
-    heapq.heapify(events)
     steps = 0
     while clock.now < end:
         candidates = [end]
@@ -589,6 +613,18 @@ def run_demo(config: DemoConfig, *, on_decision: Callable[[Decision], None] | No
     return DemoResult(out, metrics, decisions)
 
 
+def _area_fraction(grid: np.ndarray, cell: float, origin: tuple[float, float], floor: Seafloor) -> float:
+    """Fraction of the survey area's cells that the topside grid holds."""
+    ny, nx = grid.shape
+    xs = origin[0] + (np.arange(nx) + 0.5) * cell
+    ys = origin[1] + (np.arange(ny) + 0.5) * cell
+    cx = (xs >= floor.x0) & (xs <= floor.x0 + floor.size)
+    cy = (ys >= floor.y0) & (ys <= floor.y0 + floor.size)
+    sub = grid[np.ix_(cy, cx)]
+    total = (floor.size / cell) ** 2
+    return float(min(1.0, np.count_nonzero(np.isfinite(sub)) / max(total, 1.0)))
+
+
 def _burst(loss: float, mean_burst: float = 4.0) -> GilbertElliott:
     """Bursty loss with the given mean rate and mean burst length (frames): a bad state losing
     everything, a good state losing nothing."""
@@ -600,8 +636,6 @@ def _burst(loss: float, mean_burst: float = 4.0) -> GilbertElliott:
 def _observe(ev: Any, operator: Operator, now: float) -> None:
     if isinstance(ev, Received) and isinstance(ev.message, VehicleStatus):
         operator.on_status(ev.message, now)
-    elif isinstance(ev, ProductUpdated) and ev.product.kind == "image":
-        operator.on_image(dict(ev.product.meta), now)
 
 
 def _schedule_series(at: Callable[[float, Callable[[float], None]], None], sender: Any, series: Any,
@@ -686,11 +720,14 @@ def _finish(out: Path, cfg: DemoConfig, floor: Seafloor, survey_end: float, oper
         targets.append({"x": t.x, "y": t.y, "visible_at_1m_s": None if seen is None else round(seen - EPOCH, 1),
                         "before_survey_end": seen is not None and seen <= survey_end})
     confirmations = []
-    for tw in operator.targets:
+    for tw in operator.shortlist():
         if tw.request_at is None:
             continue
         dt = None if tw.confirmed_at is None else tw.confirmed_at - tw.request_at
-        confirmations.append({"x": tw.x, "y": tw.y, "requested_at_s": round(tw.request_at - EPOCH, 1),
+        first = tw.first_request_at or tw.request_at
+        confirmations.append({"x": round(tw.x, 1), "y": round(tw.y, 1),
+                              "first_request_at_s": round(first - EPOCH, 1),
+                              "requested_at_s": round(tw.request_at - EPOCH, 1),
                               "confirmed_at_s": None if tw.confirmed_at is None else round(tw.confirmed_at - EPOCH, 1),
                               "seconds": None if dt is None else round(dt, 1),
                               "tdma_cycles": None if dt is None else round(dt / CYCLE, 2),
