@@ -34,12 +34,11 @@ import traceback
 from collections import Counter
 from pathlib import Path
 
-from coex_transports.lcm import LcmConfig, LcmTransport, encode_frame, unpack_event
-
 from coex_core import wire
 from coex_core._wire._registry import SPECS_BY_ID
 from coex_core.errors import DecodeError
 from coex_core.messages import FrameHeader
+from coex_transports.lcm import LcmConfig, LcmTransport, encode_frame, unpack_event
 
 ROOT = Path(__file__).resolve().parents[1]
 CALLBACK_SHARE = 10  # one input in this many also goes through the transport callback

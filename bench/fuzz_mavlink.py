@@ -32,8 +32,9 @@ from collections import Counter, deque
 from pathlib import Path
 from typing import Any
 
-from coex_transports.mavlink import PAYLOAD_TYPE, TunnelCodec, split_frame
 from pymavlink.dialects.v20 import common as mavlink2
+
+from coex_transports.mavlink import PAYLOAD_TYPE, TunnelCodec, split_frame
 
 MTU = 2048
 MAX_PARTIAL = 8

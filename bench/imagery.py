@@ -31,12 +31,12 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+
+from coex_core.messages import ImageFragment
 from coex_plugins.imagery import ImageInput, ImageryModality, codec
 from coex_plugins.imagery.sender import fragment_size
 from coex_plugins.imagery.sim import Transfer
 from coex_plugins.imagery.synth import seafloor
-
-from coex_core.messages import ImageFragment
 
 THRESHOLDS = (25.0, 30.0, 35.0)
 TARGET_RATIO = {25.0: 0.5, 30.0: 0.6, 35.0: 0.75}

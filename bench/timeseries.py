@@ -27,12 +27,12 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from coex_plugins.timeseries import TimeSeriesReceiver, TimeSeriesSender, synth
-from coex_plugins.timeseries.codec import _rice_k
-from coex_plugins.timeseries.receiver import sample_series
 
 from coex_core import wire
 from coex_core.messages import Message
+from coex_plugins.timeseries import TimeSeriesReceiver, TimeSeriesSender, synth
+from coex_plugins.timeseries.codec import _rice_k
+from coex_plugins.timeseries.receiver import sample_series
 
 T0 = 1_700_000_000.0
 ERRORS = {"methane": (0.01, 0.02, 0.05, 0.1, 0.2, 0.5), "temperature": (0.001, 0.002, 0.005, 0.01, 0.05)}

@@ -7,8 +7,8 @@ import subprocess
 import sys
 
 import pytest
-from coex_conformance import TransportFixtures, TransportTests
 
+from coex_conformance import TransportFixtures, TransportTests
 from coex_core import errors, registry
 from coex_core.loopback import LoopbackLink, LoopbackTransport
 from coex_core.timefmt import STAMP_MODULUS, to_stamp, unwrap

@@ -7,10 +7,6 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from coex_plugins.imagery import ImageInput, ImageryModality, ImageryReceiver, ImagerySender, codec
-from coex_plugins.imagery.codec import CodingParams
-from coex_plugins.imagery.sim import Transfer
-from coex_plugins.imagery.synth import seafloor
 
 from coex_core import wire
 from coex_core.errors import ConfigError, DecodeError, RequestRejected
@@ -27,6 +23,10 @@ from coex_core.messages import (
     TimeDirection,
     TransferProgress,
 )
+from coex_plugins.imagery import ImageInput, ImageryModality, ImageryReceiver, ImagerySender, codec
+from coex_plugins.imagery.codec import CodingParams
+from coex_plugins.imagery.sim import Transfer
+from coex_plugins.imagery.synth import seafloor
 
 SMALL = {"layer_bytes": [30, 60, 120, 240, 480, 900, 1600, 3000], "rto": 12.0}
 

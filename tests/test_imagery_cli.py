@@ -8,13 +8,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 import tifffile
-from coex_plugins.imagery.codec import psnr
-from coex_plugins.imagery.synth import seafloor
 from PIL import Image
 
 from coex_core import wire
 from coex_core.cli import main
 from coex_core.jsonfmt import from_json
+from coex_plugins.imagery.codec import psnr
+from coex_plugins.imagery.synth import seafloor
 
 
 @pytest.fixture(scope="module")

@@ -6,11 +6,11 @@ from collections.abc import Callable, Sequence
 from typing import Any
 
 import pytest
+
 from coex_conformance import ModalityFixtures, ModalityTests
+from coex_core.modality import Modality, ModalityReceiver, ModalitySender
 from coex_plugins.imagery import ImageInput, ImageryModality, ImageryReceiver, ImagerySender
 from coex_plugins.imagery.synth import seafloor
-
-from coex_core.modality import Modality, ModalityReceiver, ModalitySender
 
 
 class ImageryFixtures(ModalityFixtures):

@@ -5,12 +5,12 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+
+from coex_core.messages import ImageFragment
 from coex_plugins.imagery import ImageInput, ImageryModality, ImageryReceiver, ImagerySender
 from coex_plugins.imagery.codec import psnr
 from coex_plugins.imagery.sim import Bernoulli, GilbertElliott, LossModel, Transfer
 from coex_plugins.imagery.synth import seafloor
-
-from coex_core.messages import ImageFragment
 
 CFG = {"layer_bytes": [30, 60, 120, 240, 480, 900, 1600], "default_goal": "layer:3", "rto": 15.0,
        "progress_interval": 60.0}

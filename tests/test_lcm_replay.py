@@ -17,14 +17,8 @@ from typing import Any
 import lcm
 import numpy as np
 import pytest
-from coex_conformance import load_vectors
-from coex_transports.lcm import LcmConfig, LcmTransport, decode_frame, encode_frame, is_frame_t
-from coex_transports.lcm import replay as replay_mod
-from coex_transports.lcm._types import map_level_t, vehicle_status_t
-from coex_transports.lcm.products import vehicle_status_from_lcm
-from coex_transports.lcm.replay import replay_log
-from coex_transports.lcm.testing import TEST_UDPM_URL, ensure_multicast_route, unique_channel
 
+from coex_conformance import load_vectors
 from coex_core import jsonfmt, wire
 from coex_core.cli import main as coex_main
 from coex_core.errors import PluginLoadError
@@ -37,6 +31,12 @@ from coex_core.messages import (
     VehicleStatus,
 )
 from coex_core.modality import Modality, ModalityReceiver, ModalitySender, Product
+from coex_transports.lcm import LcmConfig, LcmTransport, decode_frame, encode_frame, is_frame_t
+from coex_transports.lcm import replay as replay_mod
+from coex_transports.lcm._types import map_level_t, vehicle_status_t
+from coex_transports.lcm.products import vehicle_status_from_lcm
+from coex_transports.lcm.replay import replay_log
+from coex_transports.lcm.testing import TEST_UDPM_URL, ensure_multicast_route, unique_channel
 
 BIN = Path(lcm.LCM_BIN_DIR)
 

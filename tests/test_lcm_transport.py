@@ -13,6 +13,11 @@ from pathlib import Path
 
 import lcm
 import pytest
+
+from coex_core import registry, wire
+from coex_core.cli import main as coex_main
+from coex_core.errors import ConfigError, FrameTooLarge, TransportError
+from coex_core.messages import FrameHeader, VehicleMode, VehicleStatus
 from coex_transports.lcm import (
     DEFAULT_URL,
     LcmConfig,
@@ -22,11 +27,6 @@ from coex_transports.lcm import (
     parse_lcm_uri,
 )
 from coex_transports.lcm.testing import TEST_UDPM_URL, ensure_multicast_route, unique_channel
-
-from coex_core import registry, wire
-from coex_core.cli import main as coex_main
-from coex_core.errors import ConfigError, FrameTooLarge, TransportError
-from coex_core.messages import FrameHeader, VehicleMode, VehicleStatus
 
 
 @pytest.fixture(scope="module")
@@ -366,10 +366,9 @@ def test_decoded_option_publishes_vehicle_status_and_map_levels() -> None:
     import dataclasses
 
     from coex_conformance import load_vectors
+    from coex_core import jsonfmt
     from coex_transports.lcm import map_level_t, vehicle_status_t
     from coex_transports.lcm.products import vehicle_status_from_lcm
-
-    from coex_core import jsonfmt
 
     assert parse_lcm_uri("lcm:memq://?decoded=1").decoded
     with pytest.raises(ConfigError):

@@ -10,7 +10,13 @@ import sys
 from pathlib import Path
 
 import pytest
+from hypothesis import given
+from hypothesis import strategies as st
+
 from coex_conformance import load_vectors
+from coex_core import jsonfmt, wire
+from coex_core.errors import DecodeError, EncodeError
+from coex_core.messages import FrameHeader, Subgrid, VehicleMode, VehicleStatus
 from coex_transports.lcm import (
     FRAME_T_FINGERPRINT,
     FRAME_T_OVERHEAD,
@@ -28,12 +34,6 @@ from coex_transports.lcm.products import (
     vehicle_status_from_lcm,
     vehicle_status_to_lcm,
 )
-from hypothesis import given
-from hypothesis import strategies as st
-
-from coex_core import jsonfmt, wire
-from coex_core.errors import DecodeError, EncodeError
-from coex_core.messages import FrameHeader, Subgrid, VehicleMode, VehicleStatus
 
 ROOT = Path(__file__).resolve().parents[1]
 

@@ -7,6 +7,11 @@ import subprocess
 import sys
 
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from pymavlink.dialects.v20 import common as mavlink2
+
+from coex_core.errors import ConfigError, DecodeError, EncodeError
 from coex_transports.mavlink import (
     CHUNK_BYTES,
     MAX_FRAME_BYTES,
@@ -18,11 +23,6 @@ from coex_transports.mavlink import (
     parse_fragment,
     split_frame,
 )
-from hypothesis import given, settings
-from hypothesis import strategies as st
-from pymavlink.dialects.v20 import common as mavlink2
-
-from coex_core.errors import ConfigError, DecodeError, EncodeError
 
 
 def _frame(n: int, seed: int = 0) -> bytes:

@@ -5,6 +5,7 @@ from __future__ import annotations
 from collections.abc import Iterator
 
 import pytest
+
 from coex_conformance import TransportFixtures, TransportTests
 from coex_transports.mavlink import MavlinkTransport
 

@@ -17,13 +17,13 @@ import time
 from collections.abc import Iterator
 
 import pytest
-from coex_transports.mavlink import PAYLOAD_TYPE, MavlinkTransport, parse_mavlink_uri, split_frame
 from pymavlink.dialects.v20 import common as mavlink2
 
 from coex_core.errors import ConfigError, FrameTooLarge, TransportError
 from coex_core.messages import FrameHeader, Opaque
 from coex_core.registry import open_transport
 from coex_core.wire import pack, unpack_frame
+from coex_transports.mavlink import PAYLOAD_TYPE, MavlinkTransport, parse_mavlink_uri, split_frame
 
 
 def free_udp_port() -> int:

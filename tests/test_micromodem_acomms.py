@@ -24,11 +24,11 @@ from pathlib import Path
 from typing import Any
 
 import pytest
+
+from coex_core.acoustic import AcousticChannel
 from coex_transports.micromodem import MicromodemTransport, nmea
 from coex_transports.micromodem.driver import DriverConfig, MicromodemDriver
 from coex_transports.micromodem.simulator import ModemNetwork, PtySimulator
-
-from coex_core.acoustic import AcousticChannel
 
 pytestmark = [
     pytest.mark.filterwarnings("ignore::DeprecationWarning"),

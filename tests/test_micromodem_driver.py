@@ -5,6 +5,9 @@ from __future__ import annotations
 import random
 
 import pytest
+
+from coex_core.errors import ConfigError, FrameTooLarge, TransportError
+from coex_core.messages import LinkStatus
 from coex_transports.micromodem import nmea
 from coex_transports.micromodem.driver import (
     Acked,
@@ -16,9 +19,6 @@ from coex_transports.micromodem.driver import (
     TxFailed,
 )
 from coex_transports.micromodem.transport import parse_uri
-
-from coex_core.errors import ConfigError, FrameTooLarge, TransportError
-from coex_core.messages import LinkStatus
 
 T0 = 1735732800.0  # 2025-01-01T12:00:00Z
 

@@ -5,10 +5,10 @@ from __future__ import annotations
 import base64
 
 import pytest
-from coex_transports.micromodem import nmea
-from coex_transports.micromodem.nmea import NmeaError
 
 from coex_core.errors import DecodeError
+from coex_transports.micromodem import nmea
+from coex_transports.micromodem.nmea import NmeaError
 
 # Real Micromodem-2 lines (firmware 2.0.27087, GobySoft/goby3#126), from micromodem.md §0 and §5.
 REAL_LINES = [

@@ -11,13 +11,13 @@ from collections.abc import Iterator
 from typing import Any
 
 import pytest
-from coex_transports.micromodem import MicromodemTransport, nmea
-from coex_transports.micromodem.driver import Acked, DriverConfig, PingResult, Rebooted, TxDone
-from coex_transports.micromodem.simulator import ModemNetwork, PtySimulator
 
 from coex_core.acoustic import AcousticChannel
 from coex_core.messages import LinkStatus
 from coex_core.registry import open_transport
+from coex_transports.micromodem import MicromodemTransport, nmea
+from coex_transports.micromodem.driver import Acked, DriverConfig, PingResult, Rebooted, TxDone
+from coex_transports.micromodem.simulator import ModemNetwork, PtySimulator
 
 COEX = [os.path.join(os.path.dirname(sys.executable), "coex")]
 

@@ -8,7 +8,6 @@ from collections.abc import Mapping
 from typing import Any, ClassVar
 
 import pytest
-from coex_transports._runner import SimNetwork
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
@@ -42,6 +41,7 @@ from coex_core.messages import (
 )
 from coex_core.modality import Modality, ModalityReceiver, ModalitySender, Product
 from coex_core.node import Node
+from coex_transports._runner import SimNetwork
 
 VEHICLE, TOPSIDE = 2, 1
 DATA, REQUEST = 100, 120  # third-party type ids of the fake modality

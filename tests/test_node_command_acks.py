@@ -2,12 +2,11 @@
 
 from __future__ import annotations
 
-from coex_plugins.imagery import ImageryModality
-
 from coex_core import wire
 from coex_core.channel import ChannelManager, LinkConfig, Schedule
 from coex_core.messages import AckStatus, CommandAck, FrameHeader, ImageByTimeRequest
 from coex_core.node import Node
+from coex_plugins.imagery import ImageryModality
 
 
 def test_command_ack_reaches_the_requesting_receiver() -> None:

@@ -7,15 +7,6 @@ from typing import Any
 
 import numpy as np
 import pytest
-from coex_plugins.timeseries import (
-    InvalidSamples,
-    Samples,
-    TimeSeriesModality,
-    TimeSeriesReceiver,
-    TimeSeriesSender,
-    synth,
-)
-from coex_plugins.timeseries.receiver import sample_series
 
 from coex_core import wire
 from coex_core.errors import CoexError, ConfigError, RequestRejected
@@ -30,6 +21,15 @@ from coex_core.messages import (
 )
 from coex_core.registry import load_modality
 from coex_core.timefmt import unwrap
+from coex_plugins.timeseries import (
+    InvalidSamples,
+    Samples,
+    TimeSeriesModality,
+    TimeSeriesReceiver,
+    TimeSeriesSender,
+    synth,
+)
+from coex_plugins.timeseries.receiver import sample_series
 
 T0 = 1_700_000_000.0
 

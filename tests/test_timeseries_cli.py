@@ -8,11 +8,11 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from coex_plugins.timeseries import synth
 
 from coex_core import wire
 from coex_core.cli import main
 from coex_core.jsonfmt import from_json
+from coex_plugins.timeseries import synth
 
 T0 = 1_700_000_000.0
 

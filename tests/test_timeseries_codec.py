@@ -4,11 +4,11 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from coex_plugins.timeseries import codec
 from hypothesis import given
 from hypothesis import strategies as st
 
 from coex_core.messages import Wavelet
+from coex_plugins.timeseries import codec
 
 
 def test_codes_bracket_values() -> None:

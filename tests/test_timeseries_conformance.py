@@ -7,10 +7,10 @@ from typing import Any
 
 import numpy as np
 import pytest
-from coex_conformance import ModalityFixtures, ModalityTests
-from coex_plugins.timeseries import TimeSeriesModality, TimeSeriesReceiver, TimeSeriesSender, synth
 
+from coex_conformance import ModalityFixtures, ModalityTests
 from coex_core.modality import Modality, ModalityReceiver, ModalitySender
+from coex_plugins.timeseries import TimeSeriesModality, TimeSeriesReceiver, TimeSeriesSender, synth
 
 T0 = 1_700_000_000.0
 WINDOW_ERROR = 0.03

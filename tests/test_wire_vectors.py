@@ -6,7 +6,6 @@ import json
 from pathlib import Path
 
 from coex_conformance import WireVectorTests, vectors_dir
-
 from coex_core._wire import spec as specgen
 from coex_core._wire._registry import SPECS_BY_ID
 

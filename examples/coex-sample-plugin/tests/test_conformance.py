@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import pytest
+
 from coex_conformance import ModalityFixtures, ModalityTests
 from coex_sample_plugin import PingModality
 

@@ -29,8 +29,6 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from coex_transports._runner import Runner, SimulatedClock
-from coex_transports.micromodem.simulator import ModemNetwork
 
 from coex_core.acoustic import AcousticChannel, GilbertElliott
 from coex_core.channel import ChannelManager, LinkConfig, Schedule, StreamConfig
@@ -50,6 +48,8 @@ from coex_plugins.bathymetry.sim import Seafloor, Survey, Target, simulate_surve
 from coex_plugins.imagery import ImageInput, ImageryModality, ImageryReceiver
 from coex_plugins.timeseries import TimeSeriesModality, TimeSeriesReceiver
 from coex_plugins.timeseries import synth as ts_synth
+from coex_transports._runner import Runner, SimulatedClock
+from coex_transports.micromodem.simulator import ModemNetwork
 
 from .camera import SandTexture, in_frame, render_frame
 

@@ -22,6 +22,7 @@ import uuid
 from collections.abc import Callable, Iterator
 
 import pytest
+
 from coex_conformance import TransportFixtures
 
 from ._transport import LcmConfig, LcmTransport

@@ -15,6 +15,7 @@ from __future__ import annotations
 from collections.abc import Iterator
 
 import pytest
+
 from coex_conformance import TransportFixtures  # type: ignore[import-untyped]
 
 from .transport import MicromodemTransport
