@@ -853,7 +853,11 @@ class ConsoleState:
             return []
         lv = min(fine, key=lambda v: v.level)
         key = (lv.level, lv.version)
-        if self._targets_cache[0] != key:
+        last = self._targets_cache[0]
+        # a big map changes with every subgrid: look again once 5% more of it has come in
+        stale = (last is None or last[0] != lv.level or lv.version < last[1]
+                 or lv.version - last[1] >= max(1, len(lv.tiles) // 20))
+        if stale:
             from coex_plugins.bathymetry import find_targets
 
             grid = self.level_grid(lv.level)
