@@ -72,6 +72,24 @@ def memory(survey: Survey) -> dict[str, float]:
             "bytes_per_covered_cell": once / max(covered, 1.0), "tiles": len(m.tiles)}
 
 
+def fill_cost(survey: Survey) -> dict[str, float]:
+    """Milliseconds per ``fill(240)`` while streaming the whole map (the channel manager's call)."""
+    sender = BathymetrySender()
+    for t, xyz in survey.pings(batch=50):
+        sender.ingest(xyz, t)
+    now = float(survey.times[-1]) + 30.0
+    times = []
+    for i in range(100_000):
+        t0 = time.perf_counter()
+        out = sender.fill(240, now + i)
+        times.append(time.perf_counter() - t0)
+        if not out:
+            break
+    ms = np.array(times) * 1e3
+    return {"calls": len(times), "median_ms": float(np.median(ms)), "p99_ms": float(np.percentile(ms, 99)),
+            "max_ms": float(ms.max())}
+
+
 def outliers(survey: Survey) -> dict[str, Any]:
     m = QuadtreeMap()
     m.track_rejections = True
@@ -185,6 +203,10 @@ def main() -> int:
                   f"({mem['bytes_per_covered_cell']:.0f} B/cell); after 4x the soundings: "
                   f"{mem['bytes_after_4x'] / 1e6:.1f} MB")
             ok &= big["points_per_s"] >= 2_000_000
+            fc = fill_cost(survey)
+            scene["fill"] = fc
+            print(f"fill(240): {fc['calls']} calls, median {fc['median_ms']:.1f} ms, p99 {fc['p99_ms']:.1f} ms, "
+                  f"max {fc['max_ms']:.1f} ms")
         results["scenes"][name] = scene
     results["targets_met"] = bool(ok)
     Path(args.out).parent.mkdir(parents=True, exist_ok=True)

@@ -122,6 +122,7 @@ class QuadtreeMap:
         self._sumsq = np.zeros((cap, self._tt), np.float64)
         self._time = np.full((cap, self._tt), -np.inf, np.float64)
         self._version = np.zeros(cap, np.int64)
+        self._times_cache: dict[tuple[int, int], tuple[int, FloatArray]] = {}
         #: Root of the quadtree above the tiles: ``2**root_level`` tiles per side from ``root_origin``.
         self.root_level = 0
         self.root_origin: tuple[int, int] | None = None
@@ -392,9 +393,15 @@ class QuadtreeMap:
         """Last update of each subgrid node of a tile at ``level`` (``-inf`` where empty)."""
         self.flush()
         s = self._slots[key]
+        version = int(self._version[s])
+        hit = self._times_cache.get((s, level))
+        if hit is not None and hit[0] == version:
+            return hit[1]
         p = self.subgrids_per_tile(level)
         span = self.tile // p
         result: FloatArray = self._time[s].reshape(p, span, p, span).max(axis=(1, 3))
+        result.flags.writeable = False
+        self._times_cache[(s, level)] = (version, result)
         return result
 
     def tile_of_subgrid(self, level: int, ix: int, iy: int) -> tuple[tuple[int, int], int, int]:

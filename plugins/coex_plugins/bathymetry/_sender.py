@@ -48,6 +48,8 @@ SENDER_DEFAULTS: dict[str, Any] = {
 
 #: Smallest possible subgrid message (an all-equal block): stop filling below this.
 MIN_SUBGRID_BYTES = 12
+#: After this many subgrids that did not fit, ``fill`` stops looking for smaller ones (keeps it cheap).
+MAX_MISSES = 8
 
 
 def merged_config(config: Mapping[str, Any] | None, defaults: Mapping[str, Any]) -> dict[str, Any]:
@@ -102,7 +104,7 @@ class BathymetrySender(ModalitySender):
         self._meta_due = False
         self._had_background = False
         self._pending = 0
-        self._cache: dict[Key, tuple[int, Subgrid]] = {}
+        self._cache: dict[Key, tuple[int, Subgrid, int]] = {}
         self._sent_at: dict[Key, float] = {}
         #: Subgrids whose elevations do not fit the wire (|z| >= 2**19 vertical units): skipped.
         self.unsendable: set[Key] = set()
@@ -140,16 +142,19 @@ class BathymetrySender(ModalitySender):
         return float(self.map.subgrid_times(tile, level)[b, a])
 
     def build(self, key: Key) -> Subgrid | None:
-        """The current Subgrid message for ``key`` (None when the map has nothing there).
+        """The current Subgrid message for ``key`` (None when the map has nothing there)."""
+        built = self._built(key)
+        return None if built is None else built[0]
 
-        Built subgrids are cached until their tile changes (a subgrid that did not fit in one
-        packet is not coded again for the next)."""
+    def _built(self, key: Key) -> tuple[Subgrid, int] | None:
+        """The current Subgrid for ``key`` and its encoded size, cached until its tile changes (a
+        subgrid that did not fit one packet is not coded again for the next)."""
         level, ix, iy = key
         tile, _, _ = self.map.tile_of_subgrid(level, ix, iy)
         version = self.map.tile_version(tile)
         hit = self._cache.get(key)
         if hit is not None and hit[0] == version:
-            return hit[1]
+            return hit[1], hit[2]
         try:
             sg = self._build(key)
         except ValueError as exc:  # elevations outside the wire's range: skip, never crash
@@ -157,9 +162,11 @@ class BathymetrySender(ModalitySender):
             log.warning("subgrid %s cannot be sent: %s", key, exc)
             self._mark_sent(key, self.subgrid_time(key))
             return None
-        if sg is not None:
-            self._cache[key] = (version, sg)
-        return sg
+        if sg is None:
+            return None
+        size = (subgrid_bits(sg) + 7) // 8
+        self._cache[key] = (version, sg, size)
+        return sg, size
 
     def _build(self, key: Key) -> Subgrid | None:
         level, ix, iy = key
@@ -187,21 +194,29 @@ class BathymetrySender(ModalitySender):
         """When subgrid ``key`` (level, ix, iy) was last handed to the link (None: never)."""
         return self._sent_at.get(key)
 
-    def _background(self, now: float) -> list[tuple[int, float, Key]]:
-        """Eligible background subgrids, coarsest level first, oldest update first."""
+    def _background(self, now: float, limit: int = 64) -> list[tuple[int, float, Key]]:
+        """Up to about ``limit`` eligible background subgrids: coarsest level first, then the
+        longest-quiet first (also counts every changed subgrid for ``pending``)."""
         out: list[tuple[int, float, Key]] = []
         changed = 0
         for level in range(self.map.levels - 1, -1, -1):
             p = self.map.subgrids_per_tile(level)
+            found: list[tuple[int, float, Key]] = []
             for tile in self.map.tiles:
                 times = self.map.subgrid_times(tile, level)
                 sent = self._sent_array(tile, level)
                 dirty = np.isfinite(times) & (times > sent)
                 changed += int(dirty.sum())
-                elig = dirty & (now - times >= self.send_delay)
-                for b, a in zip(*np.nonzero(elig), strict=True):
-                    out.append((-level, float(times[b, a]), (level, tile[0] * p + int(a), tile[1] * p + int(b))))
-        out.sort()
+                if len(out) >= limit:
+                    continue
+                rows, cols = np.nonzero(dirty & (now - times >= self.send_delay))
+                found.extend(
+                    (-level, float(times[b, a]), (level, tile[0] * p + int(a), tile[1] * p + int(b)))
+                    for b, a in zip(rows.tolist(), cols.tolist(), strict=True)
+                )
+            if found:
+                found.sort()
+                out.extend(found[: max(limit - len(out), 0)])
         self._pending = changed + len(self._queue)
         return out
 
@@ -259,36 +274,41 @@ class BathymetrySender(ModalitySender):
                 self._meta_due = False
         # Requested subgrids first.
         remaining: list[Key] = []
+        misses = 0
         for key in self._queue:
-            if left < MIN_SUBGRID_BYTES:
+            if left < MIN_SUBGRID_BYTES or misses >= MAX_MISSES:
                 remaining.append(key)
                 continue
-            sg = self.build(key)
-            if sg is None:
+            built = self._built(key)
+            if built is None:
                 self._queued.discard(key)
                 continue
-            size = (subgrid_bits(sg) + 7) // 8
+            sg, size = built
             if size <= left:
                 out.append(sg)
                 left -= size
                 self._queued.discard(key)
                 self._mark_sent(key, self.subgrid_time(key), now)
             else:
+                misses += 1
                 remaining.append(key)
         self._queue = remaining
+        misses = 0
         for _, updated, key in background:
-            if left < MIN_SUBGRID_BYTES:
+            if left < MIN_SUBGRID_BYTES or misses >= MAX_MISSES:
                 break
             if key in self._queued:
                 continue
-            sg = self.build(key)
-            if sg is None:
+            built = self._built(key)
+            if built is None:
                 continue
-            size = (subgrid_bits(sg) + 7) // 8
+            sg, size = built
             if size <= left:
                 out.append(sg)
                 left -= size
                 self._mark_sent(key, updated, now)
+            else:
+                misses += 1
         return out
 
     def pending_bytes(self) -> int:
