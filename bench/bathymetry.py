@@ -29,10 +29,9 @@ import numpy as np
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
+from coex_core import wire  # noqa: E402
 from coex_plugins.bathymetry import BathymetrySender, QuadtreeMap, size_2022  # noqa: E402
 from coex_plugins.bathymetry.sim import Seafloor, Survey, simulate_survey  # noqa: E402
-
-from coex_core import wire  # noqa: E402
 
 LINK_RATE = 100.0
 
