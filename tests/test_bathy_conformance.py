@@ -6,10 +6,10 @@ from collections.abc import Callable, Sequence
 from typing import Any
 
 import pytest
-from coex_conformance import ModalityFixtures, ModalityTests
-from coex_plugins.bathymetry import BathymetryModality, BathymetryReceiver, BathymetrySender
 
+from coex_conformance import ModalityFixtures, ModalityTests
 from coex_core.modality import Modality, ModalityReceiver, ModalitySender
+from coex_plugins.bathymetry import BathymetryModality, BathymetryReceiver, BathymetrySender
 
 from ._bathy_data import small_survey
 

@@ -6,6 +6,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+
+from coex_core.errors import CoexError
 from coex_plugins.bathymetry import (
     InputError,
     QuadtreeMap,
@@ -13,8 +15,6 @@ from coex_plugins.bathymetry import (
     load_points,
     write_pointcloud_bag,
 )
-
-from coex_core.errors import CoexError
 
 from ._bathy_data import small_survey
 

@@ -6,9 +6,8 @@ import math
 
 import numpy as np
 import pytest
-from coex_conformance.harness import LinkedPair, run_until
-from coex_plugins.bathymetry import BathymetryReceiver, BathymetrySender
 
+from coex_conformance.harness import LinkedPair, run_until
 from coex_core import wire
 from coex_core.errors import RequestRejected
 from coex_core.messages import (
@@ -20,6 +19,7 @@ from coex_core.messages import (
     VehicleStatus,
 )
 from coex_core.timefmt import to_stamp
+from coex_plugins.bathymetry import BathymetryReceiver, BathymetrySender
 
 from ._bathy_data import small_survey
 

@@ -6,6 +6,12 @@ import random
 
 import numpy as np
 import pytest
+from hypothesis import given
+from hypothesis import strategies as st
+
+from coex_core import wire
+from coex_core.errors import DecodeError
+from coex_core.messages import FrameHeader, Subgrid, SubgridEncoding
 from coex_plugins.bathymetry import (
     BathymetrySender,
     decode_subgrid,
@@ -14,12 +20,6 @@ from coex_plugins.bathymetry import (
     size_2022,
     subgrid_bits,
 )
-from hypothesis import given
-from hypothesis import strategies as st
-
-from coex_core import wire
-from coex_core.errors import DecodeError
-from coex_core.messages import FrameHeader, Subgrid, SubgridEncoding
 
 from ._bathy_data import small_survey
 

@@ -7,6 +7,11 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from PIL import Image
+
+from coex_core import wire
+from coex_core.cli import main
+from coex_core.messages import Subgrid
 from coex_plugins.bathymetry import (
     BathymetryReceiver,
     BathymetrySender,
@@ -15,11 +20,6 @@ from coex_plugins.bathymetry import (
     write_png,
 )
 from coex_plugins.bathymetry.export import read_geotiff
-from PIL import Image
-
-from coex_core import wire
-from coex_core.cli import main
-from coex_core.messages import Subgrid
 
 from ._bathy_data import small_survey
 
