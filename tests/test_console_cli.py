@@ -13,7 +13,8 @@ COEX = str(Path(sys.executable).with_name("coex"))
 
 def test_coex_topside_serves_the_console() -> None:
     proc = subprocess.Popen([COEX, "topside", "--transport", "loopback://cli-test",
-                             "--http", "127.0.0.1:0", "--slot", "5"],
+                             "--http", "127.0.0.1:0", "--slot", "5",
+                             "--stream-names", "3=map,4=images"],
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:
         assert proc.stdout is not None
@@ -43,13 +44,15 @@ def test_coex_topside_bad_options() -> None:
     r = subprocess.run([COEX, "topside", "--transport", "loopback://y", "--http", "127.0.0.1:0",
                         "--schedule", "{bad json"], capture_output=True, text=True, timeout=60)
     assert r.returncode == 2 and "--schedule" in r.stderr
+    r = subprocess.run([COEX, "topside", "--transport", "loopback://z", "--stream-names", "map"],
+                       capture_output=True, text=True, timeout=60)
+    assert r.returncode == 2 and "ID=NAME" in r.stderr
 
 
 def test_topside_app_shows_its_own_modem_statistics() -> None:
-    from coex_plugins.console.cli import build_topside
-
     from coex_core.messages import LinkStatus
     from coex_core.timefmt import to_stamp
+    from coex_plugins.console.cli import build_topside
 
     now = [50_000.0]
     app = build_topside("loopback://cli-stats", "127.0.0.1", 0, modalities=(), clock=lambda: now[0])
@@ -81,5 +84,21 @@ def test_topside_with_two_modems() -> None:
         assert [s["link"] for s in snap["schedules"]] == [0, 1]
         app.hub.act("link_control", {"link": 1, "enabled": False})
         assert app.hub.snapshot()["commands"][0]["summary"] == "link 1 disable"
+    finally:
+        app.close()
+
+
+def test_topside_stream_names() -> None:
+    from coex_core.messages import QueueStatus, StreamStatus
+    from coex_plugins.console.cli import build_topside
+
+    app = build_topside("loopback://names", "127.0.0.1", 0, modalities=(),
+                        stream_names={3: "map"}, clock=lambda: 100.0)
+    try:
+        app.hub.messages([QueueStatus(100, (StreamStatus(0, True, 0, 127, 1, 64, 0, 0),
+                                            StreamStatus(3, True, 1, 30, 2, 128, 16, 0),
+                                            StreamStatus(9, True, 1, 30, 0, 0, 0, 0)))], 100.0)
+        names = [s["name"] for s in app.hub.snapshot()["queues"]["streams"]]
+        assert names == ["status", "map", "stream 9"]
     finally:
         app.close()

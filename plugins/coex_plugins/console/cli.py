@@ -35,6 +35,16 @@ def _hostport(text: str) -> tuple[str, int]:
     return host or "127.0.0.1", int(port)
 
 
+def _names(text: str) -> dict[int, str]:
+    out: dict[int, str] = {}
+    for part in filter(None, (x.strip() for x in text.split(","))):
+        sid, sep, name = part.partition("=")
+        if not sep or not sid.strip().isdigit() or not name.strip():
+            raise argparse.ArgumentTypeError(f"expected ID=NAME, got {part!r}")
+        out[int(sid)] = name.strip()
+    return out
+
+
 def register(subparsers: Any) -> None:
     p = subparsers.add_parser(
         "topside", help="run a topside node and serve the web console",
@@ -56,6 +66,9 @@ def register(subparsers: Any) -> None:
     p.add_argument("--schedule", metavar="JSON",
                    help='explicit schedule: {"slots": [{"owner": 1, "duration": 20, '
                         '"guard": 2}, ...], "epoch": 0}')
+    p.add_argument("--stream-names", type=_names, default={}, metavar="ID=NAME,...",
+                   help="names of the vehicle's streams for the queue table, e.g. "
+                        "3=map,4=images,5=series")
     p.add_argument("--modalities", default="bathymetry,imagery,timeseries",
                    help="comma-separated receivers to run (default: all built-in)")
     p.set_defaults(func=run)
@@ -192,6 +205,7 @@ def build_topside(transport_uri: str | Sequence[str], host: str = "127.0.0.1", p
                   *, node_id: int = 1, vehicle_id: int = 2, link: int = 0, rate: int = 5,
                   schedule: Any = None,
                   modalities: tuple[str, ...] = ("bathymetry", "imagery", "timeseries"),
+                  stream_names: dict[int, str] | None = None,
                   clock: Callable[[], float] = time.time) -> TopsideApp:
     """Open the transports (several URIs: several modems, link ids ``link``, ``link + 1`` ...),
     build the topside node and its receivers, serve the console (not yet driving the node: call
@@ -222,8 +236,9 @@ def build_topside(transport_uri: str | Sequence[str], host: str = "127.0.0.1", p
                            dst=vehicle_id) for lid, tr in transports.items()]
         manager = ChannelManager(node_id, cfgs)
         node = Node(manager, log=lambda text: log.info("%s", text))
-        state = ConsoleState(node_id=node_id, vehicle_id=vehicle_id,
-                             stream_names={s.id: s.config.name for s in manager.streams})
+        names = {s.id: s.config.name for s in manager.streams}
+        names.update(stream_names or {})
+        state = ConsoleState(node_id=node_id, vehicle_id=vehicle_id, stream_names=names)
         hub = ConsoleHub(state, NodeCommands(node, clock), clock)
         for name in modalities:
             try:
@@ -252,7 +267,8 @@ def run(args: argparse.Namespace) -> int:
         app = build_topside(
             args.transport, host, port, node_id=args.node_id, vehicle_id=args.vehicle_id,
             link=args.link, rate=args.rate, schedule=_schedule(args),
-            modalities=tuple(m for m in args.modalities.split(",") if m))
+            modalities=tuple(m for m in args.modalities.split(",") if m),
+            stream_names=args.stream_names)
     except (CoexError, OSError) as exc:
         print(f"coex topside: {exc}", file=sys.stderr)
         return 2
