@@ -20,11 +20,6 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-from coex_plugins.bathymetry import BathymetryModality, BathymetrySender
-from coex_plugins.console import ConsoleHub, ConsoleState, serve
-from coex_plugins.console.cli import TopsideApp, build_topside
-from coex_plugins.console.testing import RecordingSender, feed_sample, survey_points
-from coex_transports._runner import RealClock, Runner
 
 from coex_core import messages as m
 from coex_core.channel.manager import ChannelManager, LinkConfig
@@ -33,6 +28,11 @@ from coex_core.channel.schedule import Schedule
 from coex_core.node import Node
 from coex_core.registry import open_transport
 from coex_core.timefmt import to_stamp
+from coex_plugins.bathymetry import BathymetryModality, BathymetrySender
+from coex_plugins.console import ConsoleHub, ConsoleState, serve
+from coex_plugins.console.cli import TopsideApp, build_topside
+from coex_plugins.console.testing import RecordingSender, feed_sample, survey_points
+from coex_transports._runner import RealClock, Runner
 
 CHROMIUM = os.environ.get("COEX_CHROMIUM", "/usr/bin/chromium")
 ARGS = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",

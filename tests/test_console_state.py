@@ -13,16 +13,6 @@ from typing import Any
 
 import numpy as np
 import pytest
-from coex_plugins.bathymetry import (
-    BathymetryModality,
-    BathymetryReceiver,
-    BathymetrySender,
-    decode_subgrid,
-)
-from coex_plugins.console import ConsoleActions, ConsoleHub, ConsoleState, serve
-from coex_plugins.console.node import NodeCommands, pump, tap_receiver
-from coex_plugins.console.testing import RecordingSender, drain, feed_sample, survey_points
-from coex_plugins.timeseries.synth import dataset
 
 from coex_core import messages as m
 from coex_core import wire
@@ -33,6 +23,16 @@ from coex_core.channel.schedule import Schedule
 from coex_core.errors import RequestRejected
 from coex_core.node import Node
 from coex_core.timefmt import to_stamp
+from coex_plugins.bathymetry import (
+    BathymetryModality,
+    BathymetryReceiver,
+    BathymetrySender,
+    decode_subgrid,
+)
+from coex_plugins.console import ConsoleActions, ConsoleHub, ConsoleState, serve
+from coex_plugins.console.node import NodeCommands, pump, tap_receiver
+from coex_plugins.console.testing import RecordingSender, drain, feed_sample, survey_points
+from coex_plugins.timeseries.synth import dataset
 
 T0 = 36000.0
 NUI = Schedule.simple([1, 2, 2, 1, 2, 2], 20.0, 2.0)
@@ -507,8 +507,9 @@ def test_serve_a_node_or_a_view_only_state() -> None:
     top = Node(ChannelManager(1, [LinkConfig(0, sched, dst=2)]))
     rx = BathymetryReceiver()
     top.add_receiver(BathymetryModality, rx)
-    with serve(top, "127.0.0.1", 0) as srv:
+    with serve(top, "127.0.0.1", 0, stream_names={3: "map"}) as srv:
         hub = srv.hub
+        assert hub.state.stream_names[3] == "map" and hub.state.stream_names[2] == "control"
         assert hub.actions.map_receiver is rx  # attach() found the bathymetry receiver
         code, ans = _post(srv.url + "api/action", {"action": "link_control",
                                                    "args": {"link": 0, "enabled": False}})
@@ -530,10 +531,9 @@ def test_serve_a_node_or_a_view_only_state() -> None:
 
 
 def test_drive_simulation_feeds_the_console_and_the_caller() -> None:
+    from coex_core.acoustic import AcousticChannel
     from coex_plugins.console import attach, drive_simulation
     from coex_transports._runner import SimNetwork
-
-    from coex_core.acoustic import AcousticChannel
 
     top = Node(ChannelManager(1, [LinkConfig(0, NUI)]))
     top.add_receiver(BathymetryModality, BathymetryReceiver())
@@ -609,10 +609,9 @@ def test_attached_node_driven_like_the_demo_loop() -> None:
     """The demo drains ``topside.events()`` itself and holds no console lock: the console still
     sees everything, and page commands (a schedule gets a new command id from the manager) are
     sent from the loop's thread and end up accepted."""
+    from coex_core.acoustic import AcousticChannel
     from coex_plugins.console import attach
     from coex_transports._runner import SimNetwork
-
-    from coex_core.acoustic import AcousticChannel
 
     sched = Schedule.simple([1, 2], 10.0, 1.0)
     top = Node(ChannelManager(1, [LinkConfig(0, sched)]))

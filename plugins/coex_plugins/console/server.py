@@ -340,14 +340,16 @@ class ConsoleServer(ThreadingHTTPServer):
 
 
 def serve(target: Any, host: str = "127.0.0.1", port: int = 8080, *,
-          clock: Callable[[], float] | None = None) -> ConsoleServer:
+          clock: Callable[[], float] | None = None,
+          stream_names: dict[int, str] | None = None) -> ConsoleServer:
     """Serve the console in a background thread and return the running server (``server.url``,
     ``server.hub``, ``server.close()``). Port 0 picks a free port.
 
     ``target`` is a :class:`ConsoleHub`, a topside :class:`~coex_core.node.Node` (a hub is made
     with :func:`~coex_plugins.console.node.attach`; the loop driving the node must then hold
     ``server.hub.lock`` while stepping it and call ``server.hub.pump(node, now)``), or a
-    :class:`ConsoleState` (view only: actions are refused)."""
+    :class:`ConsoleState` (view only: actions are refused). ``stream_names`` names the
+    vehicle's streams in the queue table (with a node)."""
     if isinstance(target, ConsoleHub):
         hub = target
     elif isinstance(target, ConsoleState):
@@ -357,7 +359,7 @@ def serve(target: Any, host: str = "127.0.0.1", port: int = 8080, *,
     elif hasattr(target, "manager") and hasattr(target, "events"):
         from .node import attach
 
-        hub = attach(target, clock)
+        hub = attach(target, clock, stream_names=stream_names)
     else:
         raise TypeError(f"serve() needs a ConsoleHub, Node or ConsoleState, "
                         f"got {type(target).__name__}")
