@@ -175,3 +175,23 @@ def test_pointcloud2_bags_with_topic_selection(tmp_path: Path, ros1: bool) -> No
         np.testing.assert_allclose(a, b, atol=1e-5)
     with pytest.raises(InputError, match="no PointCloud2 topic"):
         list(iter_points(path, topic="/other"))
+
+
+def test_sender_ingests_pointcloud2_messages_and_rejects_other_objects(tmp_path: Path) -> None:
+    from rosbags.highlevel import AnyReader
+    from rosbags.typesys import Stores, get_typestore
+
+    from coex_plugins.bathymetry import BathymetrySender
+
+    rng = np.random.default_rng(4)
+    xyz = np.column_stack([rng.uniform(0, 8, 60), rng.uniform(0, 8, 60), rng.normal(-40, 0.05, 60)])
+    write_pointcloud_bag(tmp_path / "b", [(5.0, xyz)])
+    sender = BathymetrySender()
+    with AnyReader([tmp_path / "b"], default_typestore=get_typestore(Stores.ROS2_HUMBLE)) as reader:
+        for conn, _, raw in reader.messages():
+            sender.ingest(reader.deserialize(raw, conn.msgtype), 5.0)
+    sender.map.flush(force=True)
+    assert sender.map.accepted == 60
+    with pytest.raises(InputError):
+        sender.ingest("survey.npy", 6.0)  # the sender does no file I/O
+    assert sender.map.accepted == 60

@@ -5,7 +5,6 @@ from __future__ import annotations
 import logging
 import math
 from collections.abc import Mapping
-from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -18,7 +17,7 @@ from coex_core.messages import MapMetadata, MapRoiReply, MapRoiRequest, Message,
 from coex_core.modality import ModalitySender
 from coex_core.timefmt import to_stamp, unwrap
 
-from ._io import iter_points
+from ._io import pointcloud2_xyz
 from ._quadtree import InputError, QuadtreeMap
 from ._subgrid import encode_subgrid, subgrid_bits
 
@@ -112,16 +111,16 @@ class BathymetrySender(ModalitySender):
     # ---------------------------------------------------------------------------- ingest
 
     def ingest(self, data: Any, now: float) -> None:
-        """Take an ``N x 3`` array, or a path to a ``.npy``, ``.csv`` or ROS 1/2 bag (topic from
-        the ``topic`` option; every PointCloud2 topic when unset)."""
-        if isinstance(data, str | Path):
-            for _, xyz in iter_points(data, topic=self.config["topic"]):
-                self.map.add_points(xyz, now)
-            return
+        """Take an ``N x 3`` array (x east, y north, z up, metres) or a deserialised
+        ``sensor_msgs/PointCloud2`` message. No I/O here: files and bags are read by the caller
+        (``iter_points``, ``coex bathy roundtrip``)."""
         if isinstance(data, np.ndarray | list | tuple):
             self.map.add_points(np.asarray(data), now)
             return
-        raise InputError(f"cannot ingest {type(data).__name__}: give an N x 3 array or a file path")
+        if all(hasattr(data, a) for a in ("fields", "data", "point_step", "width", "height")):
+            self.map.add_points(pointcloud2_xyz(data), now)
+            return
+        raise InputError(f"cannot ingest {type(data).__name__}: give an N x 3 array or a PointCloud2 message")
 
     # ------------------------------------------------------------------------ subgrids
 
