@@ -653,3 +653,46 @@ def test_attached_node_driven_like_the_demo_loop() -> None:
     assert [r["level"] for r in reqs] == [0] and reqs[0]["status"] != "waiting"
     assert any("(by the node)" in c["summary"] for c in hub.snapshot()["commands"])
     assert any(type(e).__name__ == "CommandResult" for e in mine)  # the loop still gets them
+
+
+def test_images_and_series_through_nodes() -> None:
+    """Imagery and time series from a vehicle node: the gallery fills with bytes and
+    thumbnails, channels with error bounds; a goal and a refinement from the console are
+    accepted by the vehicle's senders."""
+    from coex_plugins.imagery import ImageryModality
+    from coex_plugins.imagery.sender import ImageInput
+    from coex_plugins.imagery.synth import seafloor
+    from coex_plugins.timeseries import TimeSeriesModality
+
+    sched = Schedule.simple([1, 2], 5.0, 0.5)
+    clock = [2000.0]
+    top = Node(ChannelManager(1, [LinkConfig(0, sched, dst=2)]))
+    veh = Node(ChannelManager(2, [LinkConfig(0, sched, dst=1)]))
+    data = dataset(duration=1200.0, period=1.0, seed=2, t0=700.0)
+    img_tx = RecordingSender(ImageryModality().sender())
+    ts_tx = RecordingSender(TimeSeriesModality().sender({
+        "channels": [s.channel() for s in data], "block_samples": 256, "max_latency": 30.0}))
+    for k in range(2):
+        img_tx.ingest(ImageInput(seafloor(96, 128, seed=k), 1900.0 + 30 * k, 10.0 * k, 5.0), 1990.0)
+    ts_tx.ingest({s.name: (s.times, s.values) for s in data}, 1990.0)
+    veh.add_sender(ImageryModality, img_tx, StreamConfig(4, "images", priority=30))
+    veh.add_sender(TimeSeriesModality, ts_tx, StreamConfig(5, "series", priority=30))
+    state = ConsoleState(schedules={0: sched})
+    hub = ConsoleHub(state, NodeCommands(top, lambda: clock[0]), lambda: clock[0])
+    top.add_receiver(ImageryModality, tap_receiver(ImageryModality().receiver(), hub))
+    top.add_receiver(TimeSeriesModality, tap_receiver(TimeSeriesModality().receiver(), hub))
+    _run(top, veh, hub, clock, 60)
+    snap = hub.snapshot()
+    items = {it["image_id"]: it for it in snap["images"]["items"]}
+    assert len(items) == 2 and all(it["total_bytes"] for it in items.values())
+    assert any(it["bytes_received"] > 0 and it["thumb"] for it in items.values())
+    chans = {c["name"]: c for c in snap["series"]["channels"]}
+    assert set(chans) == {s.name for s in data} and all(c.get("samples") for c in chans.values())
+    first = min(items)
+    hub.act("set_image_goal", {"image_id": first, "kind": "full"})
+    hub.act("refine_series", {"channel": 0, "start": 1400.0, "end": 1500.0})
+    _run(top, veh, hub, clock, 30)
+    assert any(isinstance(x, m.ImageGoal) and x.image_id == first for x in img_tx.handled)
+    assert any(isinstance(x, m.TimeSeriesRequest) and x.channel == 0 for x in ts_tx.handled)
+    status = {c["kind"]: c["status"] for c in hub.snapshot()["commands"]}
+    assert status == {"ImageGoal": "accepted", "TimeSeriesRequest": "accepted"}
