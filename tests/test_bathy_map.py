@@ -195,3 +195,13 @@ def test_sender_ingests_pointcloud2_messages_and_rejects_other_objects(tmp_path:
     with pytest.raises(InputError):
         sender.ingest("survey.npy", 6.0)  # the sender does no file I/O
     assert sender.map.accepted == 60
+
+
+def test_queries_outside_the_levels_raise_a_typed_error() -> None:
+    m = QuadtreeMap(levels=3)
+    m.add_points(np.array([[1.0, 1.0, -5.0]] * 3), 1.0)
+    assert m.block(2, 0, 0) is not None
+    assert m.block(0, 50, 50) is None
+    for level in (-1, 3):
+        with pytest.raises(InputError):
+            m.block(level, 0, 0)

@@ -367,7 +367,9 @@ class QuadtreeMap:
     # --------------------------------------------------------------------------- queries
 
     def subgrids_per_tile(self, level: int) -> int:
-        """Subgrids a tile holds per side at ``level``."""
+        """Subgrids a tile holds per side at ``level`` (0 .. ``levels - 1``)."""
+        if not 0 <= level < self.levels:
+            raise InputError(f"level {level} outside 0..{self.levels - 1}")
         return self.tile // (self.subgrid_side << level)
 
     def tile_version(self, key: tuple[int, int]) -> int:
