@@ -8,9 +8,9 @@ GeoKeyDirectory, GeoDoubleParams).
 
 PNG: elevation through a colour map, multiplied by a hillshade (sun from the north-west, 45 deg).
 
-Targets: cells higher than the background around them (the mean of the ring of cells between
-``inner`` and ``outer`` cells away) by more than ``threshold`` metres, grouped into 8-connected
-candidates with position, height above the background and size.
+Targets: cells higher than the background around them (a grey-scale opening, the "top-hat"
+transform) by more than ``threshold`` metres, grouped into 8-connected candidates with position,
+height above the background and size.
 """
 
 from __future__ import annotations
@@ -22,7 +22,7 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
-__all__ = ["Candidate", "find_targets", "hillshade", "write_geotiff", "write_png"]
+__all__ = ["Candidate", "find_targets", "hillshade", "opening", "read_geotiff", "write_geotiff", "write_png"]
 
 FloatArray = npt.NDArray[np.float64]
 
@@ -177,6 +177,28 @@ def _box_sum(a: FloatArray, r: int) -> FloatArray:
     return np.asarray(c[k:, k:] - c[:-k, k:] - c[k:, :-k] + c[:-k, :-k], np.float64)
 
 
+def _filter1d(a: FloatArray, r: int, axis: int, fn: Any, pad: float) -> FloatArray:
+    """Running min or max over 2r+1 cells along ``axis`` (``pad`` outside the grid)."""
+    widths = [(0, 0), (0, 0)]
+    widths[axis] = (r, r)
+    p = np.pad(a, widths, constant_values=pad)
+    win = np.lib.stride_tricks.sliding_window_view(p, 2 * r + 1, axis=axis)
+    return np.asarray(fn(win, axis=-1), np.float64)
+
+
+def opening(grid: npt.ArrayLike, r: int) -> FloatArray:
+    """Grey-scale opening with a (2r+1)-cell square (a min filter, then a max filter), ignoring
+    NaN: the surface with every bump narrower than the square shaved off."""
+    z = np.asarray(grid, np.float64)
+    lo = np.where(np.isfinite(z), z, np.inf)
+    for axis in (0, 1):
+        lo = _filter1d(lo, r, axis, np.min, np.inf)
+    hi = np.where(np.isfinite(lo), lo, -np.inf)
+    for axis in (0, 1):
+        hi = _filter1d(hi, r, axis, np.max, -np.inf)
+    return np.where(np.isfinite(hi) & np.isfinite(z), hi, np.nan)
+
+
 def find_targets(
     grid: npt.ArrayLike,
     *,
@@ -184,34 +206,30 @@ def find_targets(
     x0: float = 0.0,
     y0: float = 0.0,
     threshold: float = 0.8,
-    inner: int | None = None,
-    outer: int | None = None,
+    window: float = 9.0,
     min_cells: int = 2,
     max_area: float = 60.0,
+    min_coverage: float = 0.6,
 ) -> list[Candidate]:
     """Cells standing out from their neighbourhood by more than ``threshold`` metres.
 
-    The background of a cell is the mean of the cells in the ring between ``inner`` and
-    ``outer`` cells away (defaults: about 4 m and 12 m, at least 2 and 4 cells), so an object
-    up to ~8 m across does not raise its own background. Flagged cells are grouped (8-connected)
-    into candidates, highest first. Groups of fewer than ``min_cells`` cells (single-cell spikes
-    are what swath-edge outliers look like) or larger than ``max_area`` square metres (terrain,
-    not an object) are left out."""
+    The background is the grey-scale opening of the map with a square of about ``window``
+    metres (a "top-hat" transform): smooth terrain, slopes and ripples stay in the background,
+    an object narrower than the window (a car: 4.5 x 1.8 m) does not. Cells whose window is less
+    than ``min_coverage`` covered (swath edges, holes) are not judged. Flagged cells are grouped
+    (8-connected) into candidates, highest first. Groups of fewer than ``min_cells`` cells
+    (single-cell spikes are what swath-edge outliers look like) or larger than ``max_area``
+    square metres (terrain, not an object) are left out."""
     z = np.asarray(grid, np.float64)
-    if z.size == 0:
+    if z.size == 0 or min(z.shape) < 2:
         return []
-    inner = inner if inner is not None else max(2, round(4.0 / cell))
-    outer = outer if outer is not None else max(inner + 2, round(12.0 / cell))
+    r = max(1, round(window / cell / 2))
     ok = np.isfinite(z)
-    zf = np.where(ok, z, 0.0)
-    w = ok.astype(np.float64)
-    ring_sum = _box_sum(zf, outer) - _box_sum(zf, inner)
-    ring_n = _box_sum(w, outer) - _box_sum(w, inner)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        background = ring_sum / ring_n
-    enough = ring_n >= 0.3 * ((2 * outer + 1) ** 2 - (2 * inner + 1) ** 2)
-    excess = z - background
-    flag = ok & enough & (excess > threshold)
+    background = opening(z, r)
+    coverage = _box_sum(ok.astype(np.float64), r) / (2 * r + 1) ** 2
+    with np.errstate(invalid="ignore"):
+        excess = z - background
+        flag = ok & (coverage >= min_coverage) & (excess > threshold)
     if not flag.any():
         return []
     labels = _label(flag)

@@ -63,9 +63,13 @@ class Seafloor:
     def __post_init__(self) -> None:
         rng = np.random.default_rng(self.seed)
         n = 24
-        k = rng.uniform(0.5, 6.0, n) * 2 * np.pi / max(self.size, 1.0)
+        # Relief wavelengths from a sixth of the area to twice its size, never below 60 m (a small
+        # scene is a piece of gently rolling bottom, not a field of 45-degree bumps).
+        size = max(self.size, 1.0)
+        lo, hi = max(size / 6.0, 60.0), max(2.0 * size, 120.0)
+        k = 2 * np.pi / rng.uniform(lo, hi, n)
         ang = rng.uniform(0, 2 * np.pi, n)
-        amp = rng.normal(0, 1, n) / (k * max(self.size, 1.0) / (2 * np.pi))
+        amp = rng.normal(0, 1, n) / (k * size / (2 * np.pi))
         amp *= self.relief / max(np.sqrt((amp**2).sum() / 2), 1e-9)
         phase = rng.uniform(0, 2 * np.pi, n)
         object.__setattr__(self, "_modes", np.stack([k * np.cos(ang), k * np.sin(ang), amp, phase], axis=1))
