@@ -137,3 +137,17 @@ def test_coex_bathy_roundtrip_reports_bad_input(tmp_path: Path, capsys: pytest.C
     bad.write_text("x,y\n1,2\n")
     assert main(["bathy", "roundtrip", str(bad), "--out", str(tmp_path / "o")]) == 2
     assert "bad.csv" in capsys.readouterr().err
+
+
+def test_a_far_away_subgrid_does_not_blow_up_the_mosaic() -> None:
+    receiver = BathymetryReceiver({"levels": 1})
+    base = {"level": 0, "stamp": 100, "resolution": 1.0, "vertical_resolution": 0.1, "side": 8,
+            "encoding": 0, "z_base": -5000, "width": 0, "mask": None, "values": ()}
+    near = Subgrid(ix=0, iy=0, **base)  # type: ignore[arg-type]
+    far = Subgrid(ix=-8192, iy=8191, **base)  # type: ignore[arg-type]
+    receiver.receive(near, 200.0)
+    assert receiver.receive(far, 200.0) == []
+    prod = receiver.level_product(0)
+    assert prod.data.size <= 16 * 1024 * 1024
+    assert receiver.holdings(0) == {(0, 0): 100, (-8192, 8191): 100}
+    assert (0, -8192, 8191) in receiver.off_mosaic

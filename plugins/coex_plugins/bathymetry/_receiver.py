@@ -33,6 +33,7 @@ RECEIVER_DEFAULTS: dict[str, Any] = {
     "auto_fill_interval": 300.0,
     "max_regions": 256,
     "max_requests_per_poll": 4,
+    "max_mosaic_cells": 16 * 1024 * 1024,
 }
 
 #: Largest region of one request with stamps (8 x 8 = 64 subgrids) and of one gap-filling request.
@@ -74,6 +75,14 @@ class _Mosaic:
     nx: int = 0
     ny: int = 0
     array: npt.NDArray[np.float64] = field(default_factory=lambda: np.full((0, 0), np.nan))
+
+    def fits(self, ix: int, iy: int, max_cells: int) -> bool:
+        """Whether pasting subgrid (ix, iy) keeps the mosaic's bounding box within ``max_cells``."""
+        if self.nx == 0:
+            return True
+        w = max(self.ix0 + self.nx, ix + 1) - min(self.ix0, ix)
+        h = max(self.iy0 + self.ny, iy + 1) - min(self.iy0, iy)
+        return w * h * self.side * self.side <= max_cells
 
     def paste(self, ix: int, iy: int, values: npt.NDArray[np.float64]) -> None:
         if self.nx == 0:
@@ -139,6 +148,9 @@ class BathymetryReceiver(ModalityReceiver):
         self._auto_stamp: int | None = None
         self._auto_found = False
         self.duplicates = 0
+        self.max_mosaic_cells = int(cfg["max_mosaic_cells"])
+        #: Subgrids held but left out of the level mosaics (they would make them too large).
+        self.off_mosaic: set[tuple[int, int, int]] = set()
 
     # ---------------------------------------------------------------------------- receive
 
@@ -181,6 +193,10 @@ class BathymetryReceiver(ModalityReceiver):
         mosaic = self._mosaics.get(level)
         if mosaic is None or mosaic.side != sg.side:
             mosaic = self._mosaics[level] = _Mosaic(sg.side)
+        if not mosaic.fits(sg.ix, sg.iy, self.max_mosaic_cells // 4):  # growth may double a side
+            # Held and requestable, but too far from the rest to draw without a huge array.
+            self.off_mosaic.add((level, sg.ix, sg.iy))
+            return []
         mosaic.paste(sg.ix, sg.iy, values)
         self._versions[level] = self._versions.get(level, 0) + 1
         return [self.level_product(level, now)]
