@@ -205,3 +205,14 @@ def test_queries_outside_the_levels_raise_a_typed_error() -> None:
     for level in (-1, 3):
         with pytest.raises(InputError):
             m.block(level, 0, 0)
+
+
+def test_memory_guard_drops_soundings_that_need_too_many_tiles() -> None:
+    m = QuadtreeMap(max_tiles=2, outlier_rejection=False)
+    pts = np.array([[1.0, 1.0, -5.0], [300.0, 1.0, -5.0], [900.0, 900.0, -5.0], [2.0, 2.0, -5.0]])
+    m.add_points(pts, 1.0)
+    m.flush()
+    assert len(m.tiles) == 2 and (m.accepted, m.dropped) == (3, 1)
+    m.add_points(np.array([[3.0, 3.0, -5.0], [5000.0, 0.0, -5.0]]), 2.0)
+    m.flush()
+    assert len(m.tiles) == 2 and (m.accepted, m.dropped) == (4, 2)

@@ -33,9 +33,10 @@ and in both blocks) is held back (``pending``) and judged again with the next ba
 ``max_pending_age`` seconds older than the newest sounding (or ``max_pending`` are waiting); then
 it is added unjudged. ``flush(force=True)`` adds every held sounding at once (end of a file).
 
-Rejected soundings are counted (``rejected``), never added. Non-finite soundings and soundings
-outside the addressable area (|x|, |y| beyond ``resolution * 2**16``) are dropped and counted
-(``dropped``).
+Rejected soundings are counted (``rejected``), never added. Non-finite soundings, soundings
+outside the addressable area (|x|, |y| beyond ``resolution * 2**16``) and soundings that would
+need more than ``max_tiles`` tiles (1024 by default, about 470 MB, 16 km² at 1 m) are dropped and
+counted (``dropped``).
 """
 
 from __future__ import annotations
@@ -94,6 +95,7 @@ class QuadtreeMap:
         outlier_k: float = 3.0,
         min_count: int = 3,
         batch_points: int = 20_000,
+        max_tiles: int = 1024,
         max_pending_age: float = 60.0,
         max_pending: int = 200_000,
     ) -> None:
@@ -133,6 +135,9 @@ class QuadtreeMap:
         #: Time of the newest ``add_points`` call.
         self.last_input = -np.inf
         self.batch_points = int(batch_points)
+        #: At most this many tiles (about 460 KB each with the defaults): a memory guard against
+        #: soundings scattered over a huge area (a navigation glitch); the rest are dropped.
+        self.max_tiles = int(max_tiles)
         self._buffer: list[tuple[FloatArray, float]] = []
         self._buffered = 0
         self.max_pending_age = float(max_pending_age)
@@ -266,6 +271,21 @@ class QuadtreeMap:
         tx = col >> self._shift
         ty = row >> self._shift
         uniq_x, uniq_y, inv = _group_tiles(tx, ty)
+        new = np.array([(int(a), int(b)) not in self._slots for a, b in zip(uniq_x, uniq_y, strict=True)])
+        room = max(self.max_tiles - len(self._keys), 0)
+        if int(new.sum()) > room:
+            # Memory guard: soundings that would need more tiles than max_tiles are dropped.
+            refused = np.zeros(new.size, bool)
+            refused[np.flatnonzero(new)[room:]] = True
+            bad = refused[inv]
+            self.dropped += int(bad.sum())
+            ok_idx = np.flatnonzero(ok)
+            ok = ok.copy()
+            ok[ok_idx[bad]] = False
+            col, row, z, times, tx, ty = col[~bad], row[~bad], z[~bad], times[~bad], tx[~bad], ty[~bad]
+            if z.size == 0:
+                return status
+            uniq_x, uniq_y, inv = _group_tiles(tx, ty)
         slots = np.array([self._slot((int(a), int(b))) for a, b in zip(uniq_x, uniq_y, strict=True)], np.int64)
         m = slots.size
         t = self.tile
