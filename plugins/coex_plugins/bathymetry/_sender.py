@@ -41,6 +41,7 @@ SENDER_DEFAULTS: dict[str, Any] = {
     "outlier_threshold": 1.0,
     "outlier_k": 3.0,
     "batch_points": 20_000,
+    "max_tiles": 1024,
     "topic": None,
     "max_queue": 4096,
 }
@@ -88,7 +89,7 @@ class BathymetrySender(ModalitySender):
                 subgrid_side=int(cfg["subgrid_side"]), levels=int(cfg["levels"]),
                 outlier_rejection=bool(cfg["outlier_rejection"]),
                 outlier_threshold=float(cfg["outlier_threshold"]), outlier_k=float(cfg["outlier_k"]),
-                batch_points=int(cfg["batch_points"]),
+                batch_points=int(cfg["batch_points"]), max_tiles=int(cfg["max_tiles"]),
             )
         except InputError as exc:
             raise ConfigError(str(exc)) from exc
