@@ -28,6 +28,8 @@ def register(sub: Any) -> None:
     gui.add_argument("--gui", action="store_true", help="serve the live web console during the dive")
     gui.add_argument("--no-gui", dest="gui", action="store_false", help="no web console (default)")
     p.add_argument("--http", default="127.0.0.1:8080", help="address of the web console with --gui")
+    p.add_argument("--speed", type=float, default=20.0,
+                   help="with --gui: simulated seconds per second (default 20: the dive takes 6 minutes)")
     p.add_argument("--quick", action="store_true", help="a short, small scenario (for tests)")
     p.add_argument("--quiet", action="store_true", help="no progress bar and no decision log")
     p.set_defaults(func=run)
@@ -40,6 +42,8 @@ def run(args: argparse.Namespace) -> int:
 
     if not 0.0 <= args.loss < 1.0:
         raise ConfigError("--loss must be in [0, 1)")
+    if args.speed <= 0:
+        raise ConfigError("--speed must be positive")
     if args.images is not None and not args.images.is_dir():
         raise ConfigError(f"--images {args.images} is not a directory")
 
@@ -48,7 +52,8 @@ def run(args: argparse.Namespace) -> int:
             sys.stderr.write(f"\r{d.t:7.0f} s  {d.kind:<16} {d.text}\n")
 
     cfg = DemoConfig(out=args.out, loss=args.loss, seed=args.seed, images=args.images, gui=args.gui,
-                     http=args.http, quick=args.quick, progress=not args.quiet, burst=args.burst)
+                     http=args.http, quick=args.quick, progress=not args.quiet, burst=args.burst,
+                     speed=args.speed)
     result = run_demo(cfg, on_decision=say)
     m = result.metrics
     for name, goal in m["goals"].items():

@@ -17,6 +17,7 @@ time and steps back in time until the target is in frame, as the 2022 operators 
 
 from __future__ import annotations
 
+import contextlib
 import csv
 import heapq
 import json
@@ -36,7 +37,7 @@ from coex_core.channel.events import Received
 from coex_core.loopback import SimClock
 from coex_core.messages import VehicleMode, VehicleStatus
 from coex_core.node import Node
-from coex_core.timefmt import to_stamp
+from coex_core.timefmt import to_stamp, unwrap
 from coex_plugins.bathymetry import (
     BathymetryModality,
     BathymetryReceiver,
@@ -59,6 +60,7 @@ TOPSIDE, VEHICLE = 1, 2
 EPOCH = 1_656_633_600.0  # 2022-07-01T00:00:00Z: the dive's clock (simulated)
 CYCLE = 120.0
 CAMERA_ALTITUDE = 3.0
+TRANSIT_ALTITUDE = 10.0
 SURVEY_ALTITUDE = 30.0
 LINK_STREAM = 6
 
@@ -78,6 +80,10 @@ class DemoConfig:
     area: float = 256.0
     progress: bool = True
     burst: bool = False
+    #: with ``gui``: simulated seconds per wall-clock second, so that a person can act
+    speed: float = 20.0
+    #: with ``gui``: keep serving the console after the dive until interrupted
+    linger: bool = True
 
     def scaled(self) -> DemoConfig:
         """The short scenario of ``--quick`` (tests): a small area, a short dive."""
@@ -199,7 +205,7 @@ def build_nodes(out: Path, channels: list[dict[str, Any]]) -> tuple[Node, Node, 
                                   queue_status_interval=CYCLE))
     senders = {
         "bathymetry": BathymetryModality().sender({"send_delay": 20.0}),
-        "imagery": ImageryModality().sender({"default_goal": "layer:2", "request_goal": f"layer:{CONFIRM_LAYERS}"}),
+        "imagery": ImageryModality().sender({"default_goal": f"layer:{DEFAULT_LAYERS}", "request_goal": f"layer:{CONFIRM_LAYERS}"}),
         "timeseries": TimeSeriesModality().sender({"channels": channels}),
     }
     receivers = {
@@ -243,6 +249,8 @@ MIN_HEIGHT, MAX_HEIGHT = 1.0, 3.0
 MIN_CELLS, MAX_CELLS = 3, 20
 #: The image goal of a requested image (the vehicle's ``request_goal``): enough to recognise a car.
 CONFIRM_LAYERS = 10
+#: The vehicle's default set-point for every image (``default_goal``).
+DEFAULT_LAYERS = 2
 
 
 class Operator:
@@ -271,7 +279,9 @@ class Operator:
 
     # what topside hears
     def on_status(self, s: VehicleStatus, now: float) -> None:
-        self.track.append((now, s.x, s.y, s.heading))
+        # the status's own time (its stamp), not when it arrived: it may have waited for a slot
+        if s.altitude is not None and s.altitude <= CAMERA_ALTITUDE + 2.0:  # on a camera transect
+            self.track.append((unwrap(s.stamp, now), s.x, s.y, s.heading))
 
     def level_grid(self, level: int) -> tuple[np.ndarray, float, tuple[float, float]] | None:
         try:
@@ -327,7 +337,7 @@ class Operator:
             if tw.confirmed_at is not None:
                 continue
             if tw.passed_at is None:
-                d, t_close = min((math.hypot(x - tw.x, y - tw.y), t) for t, x, y, _ in self.track)
+                d, t_close = _closest_approach(self.track, tw.x, tw.y)
                 if d < 6.0 and math.hypot(x_now - tw.x, y_now - tw.y) > 10.0:
                     tw.passed_at = t_close
                     self._ask(tw, t_close, "nearest", now)
@@ -350,22 +360,28 @@ class Operator:
                          f"({tw.x:.0f}, {tw.y:.0f}): {meta['bytes_used']} B, {dt:.0f} s after its request")
 
     def _answer(self, tw: TargetWatch) -> dict[str, Any] | None:
-        """The image the vehicle serves for the operator's request (the same rule the vehicle applies)."""
+        """The image the vehicle serves for the operator's latest request, by the rule the vehicle
+        applies (nearest to the time, or the newest before it), once topside has heard the
+        announcements it needs to tell (images are announced in capture order)."""
         if tw.want is None:
             return None
         t, direction = tw.want
-        imgs = [dict(p.meta) for p in self.imagery.products()
-                if p.kind == "image" and p.meta.get("x") is not None and p.meta.get("time") is not None]
+        metas = [dict(p.meta) for p in self.imagery.products()
+                 if p.kind == "image" and p.meta.get("x") is not None and p.meta.get("time") is not None]
         if direction == "before":
-            imgs = [m for m in imgs if float(m["time"]) < t]
-            return max(imgs, key=lambda m: float(m["time"]), default=None)
-        return min(imgs, key=lambda m: abs(float(m["time"]) - t), default=None)
+            older = [m for m in metas if float(m["time"]) < t]
+            return max(older, key=lambda m: float(m["time"]), default=None)
+        if not any(float(m["time"]) >= t for m in metas):
+            return None  # the images after that time are not announced yet: wait
+        # ties go to the earlier image, as on the vehicle
+        return min(metas, key=lambda m: (abs(float(m["time"]) - t), float(m["time"])), default=None)
 
     def _shows(self, tw: TargetWatch, x: float, y: float) -> bool:
         box = Target(tw.x, tw.y, 3.0, 3.0, 1.0, 0.0)  # the operator knows roughly where, not how it lies
         return in_frame(box, x, y, CAMERA_ALTITUDE, 0.0, fraction=0.15)
 
     def _ask(self, tw: TargetWatch, t: float, direction: str, now: float) -> None:
+        t = float(math.floor(t))  # the wire carries whole seconds
         msg = self.imagery.request_by_time(t, direction, now)
         tw.want = (t, direction)
         tw.request_at = now
@@ -543,7 +559,7 @@ def run_demo(config: DemoConfig, *, on_decision: Callable[[Decision], None] | No
         for x, y in points:
             start = (x + 1.0, y - half)
             dist = math.hypot(start[0] - pos[0], start[1] - pos[1])
-            track.legs.append(Leg(t, t + dist / 1.0, pos, start, CAMERA_ALTITUDE, camera=True))
+            track.legs.append(Leg(t, t + dist / 1.0, pos, start, TRANSIT_ALTITUDE))
             t += dist / 1.0
             track.legs.append(Leg(t, t + 2 * half / 0.5, start, (x + 1.0, y + half), CAMERA_ALTITUDE, camera=True))
             t += 2 * half / 0.5
@@ -558,10 +574,14 @@ def run_demo(config: DemoConfig, *, on_decision: Callable[[Decision], None] | No
 
     image_files = _image_files(cfg.images)
     shot = iter(range(10**9))
+    taken: list[float] = []
 
     def take_picture(now: float) -> None:
+        if not any(leg.camera and leg.t0 <= now <= leg.t1 for leg in track.legs):
+            return  # the camera runs on the transects only
         x, y, depth, _alt, heading = track.position(now)
         k = next(shot)
+        taken.append(now)
         if image_files:
             img = _load_image(image_files[k % len(image_files)])
         else:
@@ -571,8 +591,9 @@ def run_demo(config: DemoConfig, *, on_decision: Callable[[Decision], None] | No
         senders["imagery"].ingest(ImageInput(img, time=now, x=round(x, 1), y=round(y, 1)), now)
 
     at(plan_at, plan_camera)
-    if cfg.gui:
-        _start_gui(cfg, topside, receivers)
+    server = _start_gui(cfg, topside) if cfg.gui else None
+    lock = server.hub.lock if server is not None else contextlib.nullcontext()
+    wall_start, sim_start = time.monotonic(), clock.now
 
     # the loop: one simulated clock for the modems, the drivers, both nodes and the scenario
     progress = _Progress(cfg.duration, cfg.progress)
@@ -591,26 +612,57 @@ def run_demo(config: DemoConfig, *, on_decision: Callable[[Decision], None] | No
         t = max(min(candidates), clock.now)
         if t == clock.now and steps and not (events and events[0][0] <= clock.now):
             t = clock.now + 1e-3
-        net.run_until(t)
-        while events and events[0][0] <= clock.now:
-            _, _, fn = heapq.heappop(events)
-            fn(clock.now)
-        for r in runners.values():
-            r.step()
-        net.step()
-        for ev in topside.events():
-            _observe(ev, operator, clock.now)
-        vehicle.events()
+        if server is not None:  # pace the dive so that a person at the console can act
+            t = min(t, clock.now + 1.0)
+            ahead = (t - sim_start) / cfg.speed - (time.monotonic() - wall_start)
+            if ahead > 0:
+                time.sleep(ahead)
+        with lock:
+            net.run_until(t)
+            while events and events[0][0] <= clock.now:
+                _, _, fn = heapq.heappop(events)
+                fn(clock.now)
+            for r in runners.values():
+                r.step()
+            net.step()
+            for ev in topside.events():
+                _observe(ev, operator, clock.now)
+            vehicle.events()
         steps += 1
         progress.update(clock.now - EPOCH)
     progress.close()
     link_log.close()
+    if server is not None and cfg.linger:
+        print(f"coex demo: the dive is over; the console stays at {server.url} (Ctrl+C to stop)",
+              file=sys.stderr)
+        try:
+            while True:
+                time.sleep(3600)
+        except KeyboardInterrupt:
+            pass
+    if server is not None:
+        server.close()
 
     # outputs
     wall = time.perf_counter() - wall0
     metrics = _finish(out, cfg, floor, survey_end, operator, receivers, coverage, visible_at, decisions, wall,
-                      runners, camera_times)
+                      runners, taken)
     return DemoResult(out, metrics, decisions)
+
+
+def _closest_approach(track: list[tuple[float, float, float, float]], x: float, y: float) -> tuple[float, float]:
+    """Distance and time of the track's closest approach to (x, y), between its points too
+    (statuses arrive tens of metres apart on a slow link)."""
+    best = (math.inf, 0.0)
+    for (t0, x0, y0, _), (t1, x1, y1, _) in zip(track, track[1:] or track):
+        dx, dy = x1 - x0, y1 - y0
+        seg = dx * dx + dy * dy
+        f = 0.0 if seg == 0 or t1 - t0 > 120.0 else min(max(((x - x0) * dx + (y - y0) * dy) / seg, 0.0), 1.0)
+        px, py = x0 + f * dx, y0 + f * dy
+        d = math.hypot(px - x, py - y)
+        if d < best[0]:
+            best = (d, t0 + f * (t1 - t0))
+    return best
 
 
 def _area_fraction(grid: np.ndarray, cell: float, origin: tuple[float, float], floor: Seafloor) -> float:
@@ -638,6 +690,7 @@ def _observe(ev: Any, operator: Operator, now: float) -> None:
         operator.on_status(ev.message, now)
 
 
+
 def _schedule_series(at: Callable[[float, Callable[[float], None]], None], sender: Any, series: Any,
                      t0: float, end: float) -> None:
     """Feed the synthetic sensor channels to the vehicle in 60 s batches."""
@@ -656,16 +709,14 @@ def _schedule_series(at: Callable[[float, Callable[[float], None]], None], sende
         t += step
 
 
-def _start_gui(cfg: DemoConfig, topside: Node, receivers: dict[str, Any]) -> None:
-    try:
-        from coex_plugins.console import serve  # type: ignore[attr-defined]
-    except Exception as exc:  # the console is optional for the demo
-        print(f"coex demo: the web console is unavailable ({exc})", file=sys.stderr)
-        return
+def _start_gui(cfg: DemoConfig, topside: Node) -> Any:
+    from coex_plugins.console import serve
+
     host, _, port = cfg.http.rpartition(":")
-    server = serve(topside, host or "127.0.0.1", int(port))
-    print(f"coex demo: web console at http://{host or '127.0.0.1'}:{port}/", file=sys.stderr)
-    _ = server
+    server = serve(topside, host or "127.0.0.1", int(port),
+                   stream_names={3: "map", 4: "images", 5: "series", LINK_STREAM: "link"})
+    print(f"coex demo: web console at {server.url} (the dive runs at {cfg.speed:g}x)", file=sys.stderr)
+    return server
 
 
 # ------------------------------------------------------------------------------ outputs
@@ -722,6 +773,9 @@ def _finish(out: Path, cfg: DemoConfig, floor: Seafloor, survey_end: float, oper
     confirmations = []
     for tw in operator.shortlist():
         if tw.request_at is None:
+            confirmations.append({"x": round(tw.x, 1), "y": round(tw.y, 1), "first_request_at_s": None,
+                                  "requested_at_s": None, "confirmed_at_s": None, "seconds": None,
+                                  "tdma_cycles": None, "image_id": None, "stepped_back": 0})
             continue
         dt = None if tw.confirmed_at is None else tw.confirmed_at - tw.request_at
         first = tw.first_request_at or tw.request_at
@@ -733,8 +787,8 @@ def _finish(out: Path, cfg: DemoConfig, floor: Seafloor, survey_end: float, oper
                               "tdma_cycles": None if dt is None else round(dt / CYCLE, 2),
                               "image_id": tw.image_id, "stepped_back": len(tw.tried)})
     both_visible = len(targets) == 2 and all(t["before_survey_end"] for t in targets)
-    confirmed = [c for c in confirmations if c["tdma_cycles"] is not None]
-    images_ok = bool(confirmed) and all(c["tdma_cycles"] <= 2.0 for c in confirmed)
+    images_ok = bool(confirmations) and all(
+        c["tdma_cycles"] is not None and c["tdma_cycles"] <= 2.0 for c in confirmations)
     metrics: dict[str, Any] = {
         "config": {k: str(v) if isinstance(v, Path) else v for k, v in asdict(cfg).items()},
         "wall_seconds": round(wall, 1),
