@@ -470,8 +470,9 @@ def run_demo(config: DemoConfig, *, on_decision: Callable[[Decision], None] | No
     clock = SimClock(EPOCH)
     burst = _burst(cfg.loss) if cfg.burst else None
     channel = AcousticChannel(loss=0.0 if burst else cfg.loss, burst=burst, seed=cfg.seed)
+    # each node's driver talks NMEA to its simulated modem through a real pseudo-terminal pair
     net = ModemNetwork({TOPSIDE: (cfg.area / 2, -200.0, 0.0), VEHICLE: (0.0, 0.0, 500.0)},
-                       channel=channel, clock=clock)
+                       channel=channel, clock=clock, ptys=True)
     end = EPOCH + cfg.duration
     series = ts_synth.dataset(duration=max(cfg.duration, 1200.0), period=1.0, seed=cfg.seed, t0=EPOCH)
     vehicle, topside, senders, receivers = build_nodes(out, [s.channel() for s in series])
@@ -632,6 +633,8 @@ def run_demo(config: DemoConfig, *, on_decision: Callable[[Decision], None] | No
         progress.update(clock.now - EPOCH)
     progress.close()
     link_log.close()
+    ptys = net.pty_paths()
+    net.close()
     if server is not None and cfg.linger:
         print(f"coex demo: the dive is over; the console stays at {server.url} (Ctrl+C to stop)",
               file=sys.stderr)
@@ -647,6 +650,9 @@ def run_demo(config: DemoConfig, *, on_decision: Callable[[Decision], None] | No
     wall = time.perf_counter() - wall0
     metrics = _finish(out, cfg, floor, survey_end, operator, receivers, coverage, visible_at, decisions, wall,
                       runners, taken)
+    metrics["modems"] = {"nmea_over": {str(k): v for k, v in ptys.items()}, "rate": 5,
+                         "tdma": "6 x 20 s, guard 2 s; topside slots 0, 3; vehicle slots 1, 2, 4, 5"}
+    (out / "metrics.json").write_text(json.dumps(metrics, indent=2))
     return DemoResult(out, metrics, decisions)
 
 

@@ -516,11 +516,62 @@ class SimulatedModem:
 
 
 class _Host:
-    """An in-process host (driver) wired to a simulated modem's serial port."""
+    """An in-process host (driver) wired to a simulated modem's serial port: directly, or through
+    a real pseudo-terminal pair (``pty=True``: the driver's bytes are written to the terminal
+    side and read by the modem from the master side, and back, in the caller's thread)."""
 
-    def __init__(self, driver: Any, modem: SimulatedModem) -> None:
+    def __init__(self, driver: Any, modem: SimulatedModem, pty: bool = False) -> None:
         self.driver = driver
         self.modem = modem
+        self.master: int | None = None
+        self.slave: int | None = None
+        self.path = ""
+        if pty:
+            self.master, self.slave = os.openpty()
+            tty.setraw(self.slave)
+            os.set_blocking(self.master, False)
+            os.set_blocking(self.slave, False)
+            self.path = os.ttyname(self.slave)
+
+    @staticmethod
+    def _pipe(src: int, dst: int, data: bytes) -> bytes:
+        """Write ``data`` into ``src`` and return everything that comes out at ``dst``."""
+        got = bytearray()
+        view = memoryview(data)
+        while True:
+            if view:
+                try:
+                    n = os.write(src, view[:1024])
+                    view = view[n:]
+                except BlockingIOError:
+                    pass
+            try:
+                chunk = os.read(dst, 4096)
+            except BlockingIOError:
+                chunk = b""
+            got += chunk
+            if not view and not chunk:
+                break
+        return bytes(got)
+
+    def to_modem(self, data: bytes) -> bytes:
+        if self.master is None or self.slave is None:
+            return data
+        return self._pipe(self.slave, self.master, data)
+
+    def to_host(self, data: bytes) -> bytes:
+        if self.master is None or self.slave is None:
+            return data
+        return self._pipe(self.master, self.slave, data)
+
+    def close(self) -> None:
+        for fd in (self.master, self.slave):
+            if fd is not None:
+                try:
+                    os.close(fd)
+                except OSError:
+                    pass
+        self.master = self.slave = None
 
 
 class ModemNetwork:
@@ -538,7 +589,10 @@ class ModemNetwork:
         clock: SimClock | None = None,
         snr: float = 15.0,
         doppler: float = 0.0,
+        ptys: bool = False,
     ) -> None:
+        #: with ``ptys``, every in-process host talks to its modem through a real pseudo-terminal
+        self.ptys = ptys
         self.channel = channel or AcousticChannel()
         self.clock = clock or SimClock(1735689600.0)
         self.modems: dict[int, SimulatedModem] = {}
@@ -567,7 +621,7 @@ class ModemNetwork:
         ``node``'s modem."""
         if any(h.modem.node == node for h in self._hosts):
             raise ConfigError(f"modem {node} already has a host")
-        self._hosts.append(_Host(driver, self.modems[node]))
+        self._hosts.append(_Host(driver, self.modems[node], pty=self.ptys))
         self.modems[node].orphan = False
 
     def detach(self, driver: Any) -> None:
@@ -649,16 +703,25 @@ class ModemNetwork:
             for h in self._hosts:
                 out = h.driver.data_to_send()
                 if out:
-                    h.modem.feed(out, now)
+                    h.modem.feed(h.to_modem(out), now)
                     any_bytes = True
                 back = h.modem.data_to_send()
                 if back:
-                    h.driver.feed(back, now)
+                    h.driver.feed(h.to_host(back), now)
                     any_bytes = True
             if not any_bytes:
                 break
             moved = True
         return moved
+
+    def pty_paths(self) -> dict[int, str]:
+        """The pseudo-terminal of each in-process host's modem (``ptys=True``)."""
+        return {h.modem.node: h.path for h in self._hosts if h.path}
+
+    def close(self) -> None:
+        """Close the hosts' pseudo-terminals."""
+        for h in self._hosts:
+            h.close()
 
     def _prune(self, now: float) -> None:
         if len(self._meta) > 256:
