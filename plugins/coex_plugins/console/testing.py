@@ -50,7 +50,8 @@ def survey_points(size: float = 96.0, seed: int = 0) -> npt.NDArray[np.float64]:
     from coex_plugins.bathymetry.sim import Seafloor, simulate_survey
 
     floor = Seafloor.default(size=size, seed=seed, depth=60.0)
-    survey = simulate_survey(floor, altitude=20.0, beams=64, ping_rate=2.0, speed=3.0, seed=seed)
+    # dense enough for a sounding in every 1 m cell (a sparser survey leaves the finest level striped)
+    survey = simulate_survey(floor, altitude=20.0, beams=128, ping_rate=2.0, speed=1.5, seed=seed)
     return np.asarray(survey.points, float)
 
 
