@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import hashlib
 import hmac
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 
 from . import wire
 from .errors import AuthenticationError, ConfigError, DecodeError
@@ -29,10 +29,12 @@ from .messages import (
     Message,
     QueueConfig,
     ScheduleUpdate,
+    TimeSeriesAck,
     TimeSeriesRequest,
 )
 
-__all__ = ["COMMAND_TYPES", "TAG_BYTES", "TRAILER_BYTES", "CommandSigner", "CommandVerifier", "is_command"]
+__all__ = ["COMMAND_TYPES", "TAG_BYTES", "TRAILER_BYTES", "CommandSigner", "CommandVerifier", "ReplayError",
+           "is_command", "parse_key"]
 
 TAG_BYTES = 8
 TRAILER_BYTES = 13
@@ -40,13 +42,28 @@ MAX_COUNTER = 2**32 - 1
 #: Topside-to-vehicle messages that change what the vehicle does: they must be authenticated.
 COMMAND_TYPES: tuple[type[Message], ...] = (
     QueueConfig, ScheduleUpdate, LinkControl, ImageGoal, ImageByTimeRequest, MapRoiRequest,
-    TimeSeriesRequest, ImageAck,
+    TimeSeriesRequest, ImageAck, TimeSeriesAck,
 )
 _TRAILER_TYPE = wire.type_id(AuthTrailer)
 
 
+class ReplayError(AuthenticationError):
+    """A correctly signed frame whose counter is not newer than the last accepted one."""
+
+
 def is_command(message: Message) -> bool:
     return isinstance(message, COMMAND_TYPES)
+
+
+def parse_key(text: bytes) -> bytes:
+    """The key of a key file's contents: hexadecimal (at least 32 hex digits, surrounding
+    whitespace ignored) or else the raw bytes (at least 16). Raises :class:`ConfigError`."""
+    stripped = text.strip()
+    try:
+        key = bytes.fromhex(stripped.decode("ascii"))
+    except (UnicodeDecodeError, ValueError):
+        key = text
+    return _check_key(key)
 
 
 def _check_key(key: bytes) -> bytes:
@@ -101,22 +118,37 @@ class CommandVerifier:
 
     def _unpack(self, frame: bytes) -> list[Message]:
         decoded = wire.unpack_frame(frame)  # DecodeError for corrupt frames
-        messages = list(decoded.messages)
+        return self._verify(frame, decoded.header, decoded.messages, is_command)
+
+    def verify(self, frame: bytes, header: FrameHeader, messages: Sequence[Message],
+               command: Callable[[Message], bool] = is_command) -> list[Message]:
+        """Check an already decoded frame (``messages`` as :func:`coex_core.wire.unpack_frame`
+        returned them); ``command`` says which messages need authentication (default:
+        :func:`is_command`). Returns the messages without the trailer."""
+        try:
+            return self._verify(frame, header, messages, command)
+        except AuthenticationError:
+            self.rejected += 1
+            raise
+
+    def _verify(self, frame: bytes, header: FrameHeader, messages_in: Sequence[Message],
+                command: Callable[[Message], bool]) -> list[Message]:
+        messages = list(messages_in)
         trailers = [i for i, m in enumerate(messages) if isinstance(m, AuthTrailer)]
         if not trailers:
-            if any(is_command(m) for m in messages):
+            if any(command(m) for m in messages):
                 raise AuthenticationError("unauthenticated command rejected")
             return messages
         if trailers != [len(messages) - 1]:
             raise AuthenticationError("the AuthTrailer must be the last message and appear once")
         trailer = messages.pop()
         assert isinstance(trailer, AuthTrailer)
-        signed = self._signed_bytes(frame, decoded.header, messages)
+        signed = self._signed_bytes(frame, header, messages)
         expected = _tag(self._key, signed, trailer.counter)
         if not hmac.compare_digest(expected, trailer.tag):
             raise AuthenticationError("bad authentication tag (forged or corrupted command)")
         if trailer.counter <= self.counter:
-            raise AuthenticationError(
+            raise ReplayError(
                 f"replayed command: counter {trailer.counter} <= last accepted {self.counter}")
         self.counter = trailer.counter
         return messages

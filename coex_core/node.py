@@ -26,6 +26,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
+from .auth import ReplayError, is_command
 from .channel.events import (
     BadFrame,
     CommandResult,
@@ -38,9 +39,10 @@ from .channel.events import (
 from .channel.manager import CONTROL_STREAM, STATUS_STREAM, ChannelManager, Transmission
 from .channel.queue import StreamConfig
 from .channel.schedule import Schedule
-from .errors import CoexError, ConfigError, DecodeError, RequestRejected
+from .errors import AuthenticationError, CoexError, ConfigError, DecodeError, RequestRejected
 from .messages import (
     AckStatus,
+    AuthTrailer,
     CommandAck,
     FrameAck,
     LinkControl,
@@ -99,7 +101,7 @@ class Node:
         self._events: list[Event] = []
         self._log = log
         self.stats: dict[str, int] = {"frames": 0, "bad_frames": 0, "messages": 0, "rejected": 0,
-                                      "foreign": 0, "duplicates": 0}
+                                      "foreign": 0, "duplicates": 0, "unauthenticated": 0}
         #: command id -> (command, status, time): a command received again (its frame ack was
         #: lost and topside re-sent it) is answered again but not applied twice.
         self._recent: dict[int, tuple[Message, AckStatus, float]] = {}
@@ -107,6 +109,21 @@ class Node:
         self.stats_interval = stats_interval
         self._last_stats: float | None = None
         self._bad_by_link: dict[int, int] = {}
+        #: request types of the attached modalities: commands like those of ``auth.COMMAND_TYPES``
+        self._request_types: tuple[type, ...] = ()
+        self._request_opaque: frozenset[int] = frozenset()
+        manager.is_command = self.is_command
+
+    def is_command(self, m: Message) -> bool:
+        """Whether ``m`` is a topside-to-vehicle command (authenticated when a key is set): the
+        channel commands, the core requests and acks, and every attached modality's requests."""
+        if isinstance(m, Opaque):
+            return m.type_id in self._request_opaque
+        return is_command(m) or isinstance(m, self._request_types)
+
+    def _add_requests(self, cls: type[Modality]) -> None:
+        self._request_types = tuple({*self._request_types, *cls.requests})
+        self._request_opaque = self._request_opaque | _opaque_ids(cls, "opaque_requests")
 
     # ===================================================================== composition
     def add_sender(self, modality: Modality | type[Modality], sender: ModalitySender,
@@ -114,6 +131,7 @@ class Node:
         """Subsea: ``sender`` fills packets for ``stream`` and handles the modality's requests."""
         cls = _modality_class(modality)
         self.manager.add_stream(stream, sender)
+        self._add_requests(cls)
         self._senders.append(_SenderSlot(getattr(cls, "name", cls.__name__), cls, sender, stream.stream))
 
     def add_receiver(self, modality: Modality | type[Modality], receiver: ModalityReceiver,
@@ -122,6 +140,7 @@ class Node:
         ``stream`` (default: the acked tier-0 control stream)."""
         cls = _modality_class(modality)
         self.manager.stream(stream)
+        self._add_requests(cls)
         self._receivers.append(_ReceiverSlot(getattr(cls, "name", cls.__name__), cls, receiver, stream))
 
     # ========================================================================= receive
@@ -141,12 +160,23 @@ class Node:
         if h.src == self.node_id or h.dst not in (0, self.node_id):
             self.stats["foreign"] += 1
             return []
-        ackable = any(not isinstance(m, FrameAck) for m in decoded.messages)
+        messages = list(decoded.messages)
+        replayed = False
+        verifier = self.manager.verifier
+        if verifier is not None:
+            try:
+                messages = verifier.verify(frame, h, messages, self.is_command)
+            except AuthenticationError as exc:
+                replayed = isinstance(exc, ReplayError)
+                messages = self._unauthenticated(link_id, messages, exc, now)
+        # a replayed frame is not acked: a genuine command that lost the race (frames
+        # reordered) is then re-sent under a new counter
+        ackable = not replayed and any(not isinstance(m, FrameAck) for m in decoded.messages)
         try:
             self.manager.on_frame(link_id, h, now, ackable)
         except CoexError as exc:
             self._note(f"frame bookkeeping failed: {exc}")
-        for m in decoded.messages:
+        for m in messages:
             self.stats["messages"] += 1
             try:
                 self._route(link_id, h.src, m, now)
@@ -154,7 +184,26 @@ class Node:
                 self.stats["rejected"] += 1
                 self._note(f"{type(m).__name__} failed: {exc}")
                 self._events.append(Rejected(now, m, f"{type(exc).__name__}: {exc}"))
-        return list(decoded.messages)
+        return messages
+
+    def _unauthenticated(self, link_id: int, messages: list[Message], exc: AuthenticationError,
+                         now: float) -> list[Message]:
+        """A frame failed authentication: its commands are rejected, logged and counted (and
+        answered ``UNAUTHENTICATED`` unless it was a replay); the rest is returned."""
+        self.stats["unauthenticated"] += 1
+        self._note(f"commands rejected on link {link_id}: {exc}")
+        rest: list[Message] = []
+        for m in messages:
+            if isinstance(m, AuthTrailer):
+                continue
+            if not self.is_command(m):
+                rest.append(m)
+                continue
+            self._events.append(Rejected(now, m, f"{type(exc).__name__}: {exc}"))
+            cid = getattr(m, "command_id", None)
+            if cid is not None and not isinstance(exc, ReplayError):
+                self.manager.push(CONTROL_STREAM, CommandAck(int(cid), AckStatus.UNAUTHENTICATED), now)
+        return rest
 
     def _route(self, link_id: int, src: int, m: Message, now: float) -> None:
         if isinstance(m, FrameAck):

@@ -15,6 +15,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from ..acoustic import RateInfo, rate_info
+from ..auth import TRAILER_BYTES, CommandSigner, CommandVerifier, is_command
 from ..errors import CoexError, ConfigError, EncodeError
 from ..messages import (
     AckStatus,
@@ -209,7 +210,14 @@ class ChannelManager:
     spent ``fill_budget`` seconds, is "no data" for the rest of that packet.
     ``queue_status_interval`` (s) makes the node send a :class:`QueueStatus` that often
     (``None``: never).
+    ``command_key`` (at least 16 bytes, shared by topside and vehicle) turns on command
+    authentication (spec section 10): frames this node sends that carry commands end with an
+    ``AuthTrailer`` (13 bytes reserved while packing), signed by :attr:`signer`; the node checks
+    received frames with :attr:`verifier`. Both counters are part of :meth:`export_settings`.
     """
+
+    #: counters a restarted signer skips (frames it may have signed after its last save)
+    COUNTER_MARGIN = 1024
 
     def __init__(
         self,
@@ -223,6 +231,7 @@ class ChannelManager:
         queue_status_interval: float | None = None,
         ack_frames: bool = True,
         idle_interval: float = 1.0,
+        command_key: bytes | None = None,
     ) -> None:
         if not 1 <= node_id <= 15:
             raise ConfigError(f"node id {node_id} outside 1..15")
@@ -235,6 +244,11 @@ class ChannelManager:
         self.queue_status_interval = queue_status_interval
         self.ack_frames = ack_frames
         self.idle_interval = float(idle_interval)
+        self.signer = CommandSigner(command_key) if command_key is not None else None
+        self.verifier = CommandVerifier(command_key) if command_key is not None else None
+        #: which messages are commands (signed when sent, verified when received); the node
+        #: extends it with its modalities' request types
+        self.is_command: Callable[[Message], bool] = is_command
         self._links: dict[int, _Link] = {}
         for cfg in links:
             if cfg.link in self._links:
@@ -255,7 +269,8 @@ class ChannelManager:
         self._command_id = 0
         self._commands: dict[int, Message] = {}  # topside: sent commands awaiting a CommandAck
         self.stats: dict[str, int] = {"packets": 0, "frames": 0, "used_bytes": 0, "capacity": 0,
-                                      "acked": 0, "resent": 0, "sender_failures": 0}
+                                      "acked": 0, "resent": 0, "sender_failures": 0,
+                                      "signed": 0}
 
     # =========================================================================== streams
     def add_stream(self, config: StreamConfig, sender: ModalitySender | None = None) -> StreamQueue:
@@ -508,10 +523,13 @@ class ChannelManager:
         exhausted: dict[int, float] = {}
         t0 = self.clock() if self.clock is not None else 0.0
         acks = self._take_acks()
+        signer = self.signer
+        reserve = TRAILER_BYTES if signer is not None and any(
+            self.is_command(e.message) for e in self._all_entries()) else 0
         frames_msgs: list[tuple[list[Message], list[Entry]]] = []
         used = 0
         for _ in range(cfg.n_frames):
-            left = cfg.fbytes - hdr_bytes
+            left = cfg.fbytes - hdr_bytes - reserve
             msgs: list[Message] = []
             taken: list[Entry] = []
             while acks and encoded_size(acks[0]) <= left:
@@ -532,7 +550,7 @@ class ChannelManager:
                 self._mark_taken(q, e, now)
             if not msgs:
                 break
-            used += cfg.fbytes - hdr_bytes - left
+            used += cfg.fbytes - hdr_bytes - reserve - left
             frames_msgs.append((msgs, taken))
         if acks:  # acks that did not fit go back for the next packet
             for a in acks:
@@ -550,7 +568,11 @@ class ChannelManager:
             self._claim_seq(st, link, seq)
             header = FrameHeader(src=self.node_id, dst=cfg.dst, seq=seq, schedule=st.current.version,
                                  crc=cfg.crc)
-            frames.append(pack(msgs, cfg.fbytes, header))
+            if signer is not None and any(self.is_command(m) for m in msgs):
+                frames.append(signer.pack(msgs, cfg.fbytes, header))
+                self.stats["signed"] += 1
+            else:
+                frames.append(pack(msgs, cfg.fbytes, header))
             n_msgs += len(msgs)
             refs = []
             for e in taken:
@@ -967,6 +989,11 @@ class ChannelManager:
                 for link, st in sorted(self._links.items())
             },
             "command_id": self._command_id,
+            "auth": {
+                # a restart resumes above the last counter it may have used (see import_settings)
+                "sent": self.signer.counter if self.signer is not None else None,
+                "accepted": self.verifier.counter if self.verifier is not None else None,
+            },
         }
 
     def import_settings(self, settings: dict[str, Any], now: float | None = None) -> None:
@@ -989,6 +1016,13 @@ class ChannelManager:
                 st.pending = None if not p else _PendingSchedule(
                     Schedule.from_dict(p["schedule"]), int(p["command_id"]))
             self._command_id = int(settings.get("command_id", self._command_id))
+            auth = settings.get("auth") or {}
+            if self.signer is not None and auth.get("sent") is not None:
+                # frames signed after the last save may have left: skip a margin of counters
+                self.signer.counter = max(self.signer.counter,
+                                          int(auth["sent"]) + self.COUNTER_MARGIN)
+            if self.verifier is not None and auth.get("accepted") is not None:
+                self.verifier.counter = max(self.verifier.counter, int(auth["accepted"]))
         except (KeyError, TypeError, ValueError) as exc:
             raise ConfigError(f"invalid channel settings: {exc}") from exc
 

@@ -16,6 +16,7 @@ import threading
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import replace
+from pathlib import Path
 from typing import Any
 
 from coex_core.errors import CoexError, ConfigError, TransportError
@@ -71,6 +72,9 @@ def register(subparsers: Any) -> None:
                         "3=map,4=images,5=series")
     p.add_argument("--modalities", default="bathymetry,imagery,timeseries",
                    help="comma-separated receivers to run (default: all built-in)")
+    p.add_argument("--command-key-file", metavar="PATH",
+                   help="shared command key (hex, or at least 16 raw bytes): every command is "
+                        "signed (spec section 10); the vehicle must have the same key")
     p.set_defaults(func=run)
 
 
@@ -206,10 +210,12 @@ def build_topside(transport_uri: str | Sequence[str], host: str = "127.0.0.1", p
                   schedule: Any = None,
                   modalities: tuple[str, ...] = ("bathymetry", "imagery", "timeseries"),
                   stream_names: dict[int, str] | None = None,
-                  clock: Callable[[], float] = time.time) -> TopsideApp:
+                  clock: Callable[[], float] = time.time,
+                  command_key: bytes | None = None) -> TopsideApp:
     """Open the transports (several URIs: several modems, link ids ``link``, ``link + 1`` ...),
     build the topside node and its receivers, serve the console (not yet driving the node: call
-    ``start()`` or ``run()``)."""
+    ``start()`` or ``run()``). With ``command_key`` every command is authenticated (spec
+    section 10)."""
     from coex_core.channel.manager import ChannelManager, LinkConfig
     from coex_core.channel.schedule import Schedule
     from coex_core.node import Node
@@ -234,7 +240,7 @@ def build_topside(transport_uri: str | Sequence[str], host: str = "127.0.0.1", p
         cfgs = [LinkConfig(lid, schedule, rate=rate,
                            frame_bytes=min(rate_info(rate).frame_bytes, int(tr.mtu)),
                            dst=vehicle_id) for lid, tr in transports.items()]
-        manager = ChannelManager(node_id, cfgs)
+        manager = ChannelManager(node_id, cfgs, command_key=command_key)
         node = Node(manager, log=lambda text: log.info("%s", text))
         names = {s.id: s.config.name for s in manager.streams}
         names.update(stream_names or {})
@@ -264,11 +270,19 @@ def build_topside(transport_uri: str | Sequence[str], host: str = "127.0.0.1", p
 def run(args: argparse.Namespace) -> int:
     host, port = args.http
     try:
+        key = None
+        if args.command_key_file:
+            from coex_core.auth import parse_key
+
+            try:
+                key = parse_key(Path(args.command_key_file).read_bytes())
+            except OSError as exc:
+                raise ConfigError(f"cannot read --command-key-file: {exc}") from exc
         app = build_topside(
             args.transport, host, port, node_id=args.node_id, vehicle_id=args.vehicle_id,
             link=args.link, rate=args.rate, schedule=_schedule(args),
             modalities=tuple(m for m in args.modalities.split(",") if m),
-            stream_names=args.stream_names)
+            stream_names=args.stream_names, command_key=key)
     except (CoexError, OSError) as exc:
         print(f"coex topside: {exc}", file=sys.stderr)
         return 2

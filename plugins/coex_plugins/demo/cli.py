@@ -31,6 +31,10 @@ def register(sub: Any) -> None:
     p.add_argument("--speed", type=float, default=20.0,
                    help="with --gui: simulated seconds per second (default 20: the dive takes 6 minutes)")
     p.add_argument("--quick", action="store_true", help="a short, small scenario (for tests)")
+    p.add_argument("--command-key-file", type=Path, default=None, metavar="PATH",
+                   help="shared command key (hex, or at least 16 raw bytes) instead of the demo's "
+                        "embedded one")
+    p.add_argument("--no-auth", action="store_true", help="commands unauthenticated")
     p.add_argument("--quiet", action="store_true", help="no progress bar and no decision log")
     p.set_defaults(func=run)
 
@@ -51,9 +55,21 @@ def run(args: argparse.Namespace) -> int:
         if not args.quiet:
             sys.stderr.write(f"\r{d.t:7.0f} s  {d.kind:<16} {d.text}\n")
 
+    from coex_core.auth import parse_key
+
+    from .dive import DEMO_COMMAND_KEY
+
+    key: bytes | None = DEMO_COMMAND_KEY
+    if args.no_auth:
+        key = None
+    elif args.command_key_file is not None:
+        try:
+            key = parse_key(args.command_key_file.read_bytes())
+        except OSError as exc:
+            raise ConfigError(f"cannot read --command-key-file: {exc}") from exc
     cfg = DemoConfig(out=args.out, loss=args.loss, seed=args.seed, images=args.images, gui=args.gui,
                      http=args.http, quick=args.quick, progress=not args.quiet, burst=args.burst,
-                     speed=args.speed)
+                     speed=args.speed, command_key=key)
     result = run_demo(cfg, on_decision=say)
     m = result.metrics
     for name, goal in m["goals"].items():

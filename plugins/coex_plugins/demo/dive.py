@@ -65,6 +65,10 @@ SURVEY_ALTITUDE = 30.0
 LINK_STREAM = 6
 
 
+#: The demo's embedded command key (not a secret: real deployments configure their own).
+DEMO_COMMAND_KEY = b"coex-demo-command-key-not-secret"
+
+
 @dataclass
 class DemoConfig:
     """Options of ``coex demo`` (see ``coex demo --help``)."""
@@ -84,6 +88,9 @@ class DemoConfig:
     speed: float = 20.0
     #: with ``gui``: keep serving the console after the dive until interrupted
     linger: bool = True
+    #: shared command key (spec section 10): topside signs every command, the vehicle checks
+    #: them; ``None`` turns authentication off
+    command_key: bytes | None = DEMO_COMMAND_KEY
 
     def scaled(self) -> DemoConfig:
         """The short scenario of ``--quick`` (tests): a small area, a short dive."""
@@ -197,12 +204,13 @@ def nui_schedule() -> Schedule:
     return Schedule.simple([TOPSIDE, VEHICLE, VEHICLE, TOPSIDE, VEHICLE, VEHICLE], 20.0, 2.0, epoch=EPOCH)
 
 
-def build_nodes(out: Path, channels: list[dict[str, Any]]) -> tuple[Node, Node, dict[str, Any], dict[str, Any]]:
+def build_nodes(out: Path, channels: list[dict[str, Any]], command_key: bytes | None = None,
+                ) -> tuple[Node, Node, dict[str, Any], dict[str, Any]]:
     sched = nui_schedule()
     vehicle = Node(ChannelManager(VEHICLE, [LinkConfig(0, sched, rate=5, dst=TOPSIDE)],
-                                  queue_status_interval=CYCLE))
+                                  queue_status_interval=CYCLE, command_key=command_key))
     topside = Node(ChannelManager(TOPSIDE, [LinkConfig(0, sched, rate=5, dst=VEHICLE)],
-                                  queue_status_interval=CYCLE))
+                                  queue_status_interval=CYCLE, command_key=command_key))
     senders = {
         "bathymetry": BathymetryModality().sender({"send_delay": 20.0}),
         "imagery": ImageryModality().sender({"default_goal": f"layer:{DEFAULT_LAYERS}", "request_goal": f"layer:{CONFIRM_LAYERS}"}),
@@ -475,7 +483,7 @@ def run_demo(config: DemoConfig, *, on_decision: Callable[[Decision], None] | No
                        channel=channel, clock=clock, ptys=True)
     end = EPOCH + cfg.duration
     series = ts_synth.dataset(duration=max(cfg.duration, 1200.0), period=1.0, seed=cfg.seed, t0=EPOCH)
-    vehicle, topside, senders, receivers = build_nodes(out, [s.channel() for s in series])
+    vehicle, topside, senders, receivers = build_nodes(out, [s.channel() for s in series], cfg.command_key)
     link_log = (out / "link.jsonl").open("w")
     runners = {
         VEHICLE: Runner(vehicle, {0: net.transport(VEHICLE, rate=5, dest=TOPSIDE)}, SimulatedClock(sim=clock),
@@ -652,6 +660,11 @@ def run_demo(config: DemoConfig, *, on_decision: Callable[[Decision], None] | No
                       runners, taken)
     metrics["modems"] = {"nmea_over": {str(k): v for k, v in ptys.items()}, "rate": 5,
                          "tdma": "6 x 20 s, guard 2 s; topside slots 0, 3; vehicle slots 1, 2, 4, 5"}
+    metrics["authentication"] = {
+        "enabled": cfg.command_key is not None,
+        "signed_frames": topside.manager.stats["signed"],
+        "rejected_frames": vehicle.stats["unauthenticated"],
+    }
     (out / "metrics.json").write_text(json.dumps(metrics, indent=2))
     return DemoResult(out, metrics, decisions)
 
@@ -796,7 +809,9 @@ def _finish(out: Path, cfg: DemoConfig, floor: Seafloor, survey_end: float, oper
     images_ok = bool(confirmations) and all(
         c["tdma_cycles"] is not None and c["tdma_cycles"] <= 2.0 for c in confirmations)
     metrics: dict[str, Any] = {
-        "config": {k: str(v) if isinstance(v, Path) else v for k, v in asdict(cfg).items()},
+        # the key itself never goes into the outputs
+        "config": {k: str(v) if isinstance(v, Path) else v for k, v in asdict(cfg).items()
+                   if k != "command_key"},
         "wall_seconds": round(wall, 1),
         "dive_seconds": cfg.duration,
         "survey_end_s": round(survey_end - EPOCH, 1),
