@@ -64,7 +64,7 @@ def _drift(t: np.ndarray, scale: float, hours: tuple[float, ...], rng: np.random
     for h in hours:
         d += scale * rng.uniform(0.3, 1.0) * np.sin(2 * np.pi * rel / (h * 3600.0) + rng.uniform(0, 2 * np.pi))
     walk = np.cumsum(rng.normal(0.0, 1.0, rel.size))
-    kernel = np.hanning(601)
+    kernel = np.hanning(min(601, rel.size))  # "same" mode needs a kernel no longer than the series
     smooth = np.convolve(walk, kernel / kernel.sum(), mode="same")
     smooth -= smooth.mean()
     out: np.ndarray = d + 0.2 * scale * smooth / max(float(np.std(smooth)), 1e-12)
