@@ -377,6 +377,29 @@ class Node:
         return [e for e in events if isinstance(e, CommandResult)]
 
     # ========================================================================== misc
+    def sender(self, name: str) -> ModalitySender:
+        """The sender of the modality called ``name`` (:class:`ConfigError` if none)."""
+        for s in self._senders:
+            if s.name == name:
+                return s.sender
+        raise ConfigError(f"no sender {name!r} on node {self.node_id}")
+
+    def receiver(self, name: str) -> ModalityReceiver:
+        """The receiver of the modality called ``name`` (:class:`ConfigError` if none)."""
+        for r in self._receivers:
+            if r.name == name:
+                return r.receiver
+        raise ConfigError(f"no receiver {name!r} on node {self.node_id}")
+
+    def set_log(self, log: Callable[[str], None] | None) -> None:
+        self._log = log
+
+    def __getstate__(self) -> dict[str, Any]:
+        """Everything but the log callback (a node's state can be pickled: ``NodeStore``)."""
+        state = dict(self.__dict__)
+        state["_log"] = None
+        return state
+
     def _note(self, text: str) -> None:
         if self._log is not None:
             try:

@@ -154,6 +154,8 @@ class Dive:
     series_rx: TimeSeriesReceiver
     inputs: list[tuple[float, Callable[[float], None]]] = field(default_factory=list)
     series_data: list[Any] = field(default_factory=list)
+    #: the vehicle's sensor data: (time, modality name, data for its sender's ingest)
+    feed: list[tuple[float, str, Any]] = field(default_factory=list)
     end_of_data: float = 0.0
 
 
@@ -162,18 +164,46 @@ def schedule() -> Schedule:
     return Schedule.simple([TOPSIDE, VEHICLE, VEHICLE, VEHICLE], 4.0, 0.5, epoch=0.0)
 
 
+def sensor_feed(survey: Any, series_data: list[Any], minutes: int = 15) -> list[tuple[float, str, Any]]:
+    """The vehicle's inputs in time order: multibeam pings (batches of 20), four camera
+    images, sensor samples every minute."""
+    feed: list[tuple[float, str, Any]] = []
+    times = np.asarray(survey.times, dtype=float)
+    shift = T0 - float(times[0])
+    for t, xyz in survey.pings(batch=20):
+        feed.append((float(t) + shift, "bathymetry", xyz))
+    for i in range(4):
+        t = T0 + 30.0 + 60.0 * i
+        feed.append((t, "imagery", ImageInput(seafloor(64, 96, seed=20 + i), time=t, x=float(i), y=0.0)))
+    for k in range(0, 60 * minutes, 60):
+        feed.append((T0 + k + 60.0, "timeseries", {
+            s.name: (s.times[(s.times >= T0 + k) & (s.times < T0 + k + 60)],
+                     s.values[(s.times >= T0 + k) & (s.times < T0 + k + 60)]) for s in series_data}))
+    feed.sort(key=lambda f: f[0])
+    return feed
+
+
 def build_dive(*, wrap_sender: Callable[[ModalitySender], ModalitySender] | None = None,
                wrap_receiver: Callable[[ModalityReceiver], ModalityReceiver] | None = None,
-               crc: bool = False) -> Dive:
-    """``crc``: the CoEx frame CRC on (needed where the link itself does not check frames)."""
+               crc: bool = False, minutes: int = 15, packet_seconds: float | None = None,
+               ack_timeout: float | None = None) -> Dive:
+    """``crc``: the CoEx frame CRC on (needed where the link itself does not check frames);
+    ``minutes`` of sensor data; ``packet_seconds``: the time a packet takes (default: a rate-5
+    packet's airtime; less for a link without airtime such as LCM); ``ack_timeout``: when an
+    unacked frame's messages (and unacked image bytes) may go again (default: one TDMA cycle;
+    10 s for images)."""
     sched = schedule()
-    vehicle = Node(ChannelManager(VEHICLE, [LinkConfig(0, sched, rate=5, dst=TOPSIDE, crc=crc)]))
-    topside = Node(ChannelManager(TOPSIDE, [LinkConfig(0, sched, rate=5, dst=VEHICLE, crc=crc)]))
+    vehicle = Node(ChannelManager(VEHICLE, [LinkConfig(0, sched, rate=5, dst=TOPSIDE, crc=crc,
+                                                       packet_seconds=packet_seconds,
+                                                       ack_timeout=ack_timeout)]))
+    topside = Node(ChannelManager(TOPSIDE, [LinkConfig(0, sched, rate=5, dst=VEHICLE, crc=crc,
+                                                       packet_seconds=packet_seconds,
+                                                       ack_timeout=ack_timeout)]))
     _, survey = small_survey(64.0, 200)
     bathy = BathymetryModality().sender({"levels": 3, "send_delay": 5.0})
     images = ImageryModality().sender({"layer_bytes": [40, 80, 160, 320, 640, 1200], "default_goal": "layer:2",
-                                       "rto": 10.0, "progress_interval": 60.0})
-    series_data = ts_synth.dataset(duration=900.0, period=2.0, seed=3, t0=T0)
+                                       "rto": ack_timeout or 10.0, "progress_interval": 60.0})
+    series_data = ts_synth.dataset(duration=60.0 * minutes, period=2.0, seed=3, t0=T0)
     series = TimeSeriesModality().sender({"channels": [s.channel() for s in series_data]})
     map_rx = BathymetryModality().receiver({"levels": 3})
     image_rx = ImageryModality().receiver({"retry": 10.0, "max_tries": 1000})
@@ -190,20 +220,9 @@ def build_dive(*, wrap_sender: Callable[[ModalitySender], ModalitySender] | None
     topside.add_receiver(TimeSeriesModality, wrap_rx(series_rx))
     dive = Dive(vehicle, topside, bathy, images, series, map_rx, image_rx, series_rx,
                 series_data=series_data)
-    times = np.asarray(survey.times, dtype=float)
-    shift = T0 - float(times[0])
-    for t, xyz in survey.pings(batch=20):
-        dive.inputs.append((float(t) + shift, lambda now, xyz=xyz: w_bathy.ingest(xyz, now)))
-    for i in range(4):
-        def take(now: float, i: int = i) -> None:
-            w_images.ingest(ImageInput(seafloor(64, 96, seed=20 + i), time=now, x=float(i), y=0.0), now)
-        dive.inputs.append((T0 + 30.0 + 60.0 * i, take))
-    for k in range(0, 900, 60):
-        def chunk(now: float, k: int = k) -> None:
-            w_series.ingest({s.name: (s.times[(s.times >= T0 + k) & (s.times < T0 + k + 60)],
-                                    s.values[(s.times >= T0 + k) & (s.times < T0 + k + 60)])
-                           for s in series_data}, now)
-        dive.inputs.append((T0 + k + 60.0, chunk))
+    dive.feed = sensor_feed(survey, series_data, minutes)
+    for t, name, data in dive.feed:
+        dive.inputs.append((t, lambda now, name=name, data=data: vehicle.sender(name).ingest(data, now)))
     dive.inputs.append((T0 + 200.0, lambda now: image_rx.request_goal(1, "full", now=now)))
     dive.end_of_data = max(t for t, _ in dive.inputs)
     return dive

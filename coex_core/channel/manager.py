@@ -272,6 +272,13 @@ class ChannelManager:
                                       "acked": 0, "resent": 0, "sender_failures": 0,
                                       "signed": 0}
 
+    def __getstate__(self) -> dict[str, Any]:
+        """Everything but the ``clock`` callable (the state can be pickled; the restorer
+        attaches a clock again)."""
+        state = dict(self.__dict__)
+        state["clock"] = None
+        return state
+
     # =========================================================================== streams
     def add_stream(self, config: StreamConfig, sender: ModalitySender | None = None) -> StreamQueue:
         """Add (or replace the settings of) a stream; ``sender`` is asked to fill packets."""

@@ -36,6 +36,8 @@ from coex_core.loopback import SimClock
 from coex_core.node import Node
 from coex_core.transport import Transport
 
+from .store import NodeStore
+
 __all__ = ["Clock", "RealClock", "Runner", "SimNetwork", "SimulatedClock"]
 
 
@@ -104,6 +106,7 @@ class Runner:
         link_log: TextIO | Callable[[dict[str, Any]], None] | None = None,
         max_wait: float = 0.2,
         settings_path: str | Path | None = None,
+        store: NodeStore | None = None,
     ) -> None:
         unknown = set(transports) - set(node.manager.links)
         if unknown:
@@ -118,6 +121,10 @@ class Runner:
             node.manager.import_settings(saved)
             self._saved = saved
         self.node = node
+        #: with a :class:`~coex_transports.store.NodeStore`: every received frame and ingested
+        #: input is journaled, the node's state is saved before every transmission (restore
+        #: the node with ``store.restore(build)`` before making the runner)
+        self.store = store
         self.transports = dict(transports)
         self.clock: Clock = clock or RealClock()
         self.link_log = link_log
@@ -143,9 +150,17 @@ class Runner:
                     break
                 if frame is None:
                     break
-                self.node.receive(link, frame, self.clock.time())
+                self._receive(link, frame)
         now = self.clock.time()
-        for tx in self.node.poll(now):
+        txs = self.node.poll(now)
+        if self.store is not None:
+            for tx in txs:
+                for f in tx.frames:
+                    if self.store.journal_tx:
+                        self.store.record_tx(tx.link_id, f, now)
+            # what leaves now is marked sent in the saved state before it leaves
+            self.store.maybe_snapshot(self.node, now, force=bool(txs))
+        for tx in txs:
             out = self.transports.get(tx.link_id)
             if out is None:
                 continue
@@ -161,6 +176,21 @@ class Runner:
         self.save_settings()
         nxt = self.node.next_event(self.clock.time())
         return nxt if nxt is not None else self.clock.time() + self.max_wait
+
+    def _receive(self, link: int, frame: bytes) -> None:
+        now = self.clock.time()
+        if self.store is not None:
+            self.store.record_rx(link, frame, now)  # committed before the node sees it
+        self.node.receive(link, frame, now)
+
+    def ingest(self, name: str, data: Any) -> None:
+        """Give sensor data to the sender of modality ``name`` now (journaled first with a
+        store, so a restart does not lose it)."""
+        now = self.clock.time()
+        sender = self.node.sender(name)
+        if self.store is not None:
+            self.store.record_input(name, data, now)
+        sender.ingest(data, now)
 
     def save_settings(self) -> bool:
         """Write the node's operator settings to ``settings_path`` when they changed (atomic
@@ -200,7 +230,7 @@ class Runner:
                         self.clock.wait_until(wake)  # do not spin on a broken transport
                         frame = None
                     if frame is not None:
-                        self.node.receive(link, frame, self.clock.time())
+                        self._receive(link, frame)
                 continue
             self.clock.wait_until(wake)
 

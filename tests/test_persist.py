@@ -1,0 +1,173 @@
+"""Persistence: a vehicle and a topside process over LCM (UDP multicast on loopback), each with a
+SQLite store, are killed with SIGKILL at random moments of a dive and restarted; in the end
+nothing received is lost (topside's map, images and series equal the vehicle's) and the
+restarts did not make the vehicle send again what topside had acknowledged."""
+
+from __future__ import annotations
+
+import os
+import random
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from coex_core import wire
+from coex_core.errors import DecodeError
+from coex_core.messages import FrameAck, ImageFragment, Subgrid
+from coex_transports.lcm.testing import TEST_UDPM_URL, ensure_multicast_route, unique_channel
+from coex_transports.store import NodeStore
+
+from ._faults import T0, VEHICLE, Dive, build_dive, images_complete, map_converged, series_complete
+from ._persist_node import ACK_TIMEOUT, PACKET_SECONDS
+
+ROOT = Path(__file__).resolve().parents[1]
+SPEED = 20.0  # dive seconds per wall-clock second
+MINUTES = 5  # of sensor data
+
+
+def restored(db: Path, role: str) -> Any:
+    def build() -> Any:
+        d = build_dive(minutes=MINUTES, packet_seconds=PACKET_SECONDS, ack_timeout=ACK_TIMEOUT)
+        return d.vehicle if role == "vehicle" else d.topside
+
+    store = NodeStore(db)
+    try:
+        return store.restore(build)
+    finally:
+        store.close()
+
+
+def both(vdb: Path, tdb: Path) -> Dive:
+    """The two nodes as their stores have them now, as a Dive for the fault suite's checks."""
+    template = build_dive(minutes=MINUTES, packet_seconds=PACKET_SECONDS, ack_timeout=ACK_TIMEOUT)
+    v, t = restored(vdb, "vehicle"), restored(tdb, "topside")
+    return Dive(v, t, v.sender("bathymetry"), v.sender("imagery"), v.sender("timeseries"),
+                t.receiver("bathymetry"), t.receiver("imagery"), t.receiver("timeseries"),
+                series_data=template.series_data)
+
+
+def converged(d: Dive) -> bool:
+    return map_converged(d) and images_complete(d) and series_complete(d)
+
+
+class Proc:
+    def __init__(self, role: str, db: Path, uri: str, epoch: float, log: Path) -> None:
+        self.args = [sys.executable, "-m", "tests._persist_node", "--role", role, "--db", str(db),
+                     "--uri", uri, "--epoch", repr(epoch), "--speed", str(SPEED),
+                     "--minutes", str(MINUTES)]
+        self.log = log
+        self.p: subprocess.Popen[bytes] | None = None
+        self.start()
+
+    def start(self) -> None:
+        with self.log.open("ab") as f:
+            self.p = subprocess.Popen(self.args, cwd=ROOT, stdout=f, stderr=subprocess.STDOUT)
+
+    def kill(self) -> None:
+        assert self.p is not None and self.p.poll() is None, self.log.read_text()[-3000:]
+        os.kill(self.p.pid, signal.SIGKILL)
+        self.p.wait()
+
+    def stop(self) -> int:
+        assert self.p is not None
+        if self.p.poll() is None:
+            self.p.send_signal(signal.SIGTERM)
+            try:
+                self.p.wait(10)
+            except subprocess.TimeoutExpired:
+                self.p.kill()
+                self.p.wait()
+        return int(self.p.returncode)
+
+
+@pytest.fixture(scope="module")
+def lcm_uri() -> str:
+    ensure_multicast_route()
+    return f"lcm:{TEST_UDPM_URL}&channel={unique_channel('COEX_PERSIST')}"
+
+
+def test_kill_and_restart_both_sides_at_random_moments(tmp_path: Path, lcm_uri: str) -> None:
+    rng = random.Random(2026)
+    vdb, tdb = tmp_path / "vehicle.sqlite", tmp_path / "topside.sqlite"
+    epoch = time.time() + 2.0  # both processes import and build before the dive starts
+    procs = {"vehicle": Proc("vehicle", vdb, lcm_uri, epoch, tmp_path / "vehicle.log"),
+             "topside": Proc("topside", tdb, lcm_uri, epoch, tmp_path / "topside.log")}
+    kills: list[tuple[str, float]] = []
+    try:
+        # six crashes during the first 400 s of the dive (20 s of wall time), mostly alternating
+        # sides, at random moments, each side down for a random 0.2-1.5 s (4-30 dive seconds)
+        moments = sorted(rng.uniform(1.0, 20.0) for _ in range(int(os.environ.get("COEX_KILLS", "6"))))
+        for i, m in enumerate(moments):
+            role = ("vehicle", "topside")[i % 2] if rng.random() < 0.7 else ("topside", "vehicle")[i % 2]
+            wait = epoch + m - time.time()
+            if wait > 0:
+                time.sleep(wait)
+            procs[role].kill()
+            kills.append((role, round(T0 + (time.time() - epoch) * SPEED, 1)))
+            time.sleep(rng.uniform(0.2, 1.5))
+            procs[role].start()
+        # then until everything has arrived (at most 2400 dive seconds)
+        deadline = epoch + 2400.0 / SPEED
+        while True:
+            time.sleep(4.0)
+            d = both(vdb, tdb)
+            if converged(d) or time.time() > deadline:
+                break
+    finally:
+        codes = {role: p.stop() for role, p in procs.items()}
+    d = both(vdb, tdb)
+    logs = {role: (tmp_path / f"{role}.log").read_text()[-2000:] for role in procs}
+    assert os.environ.get("COEX_KILLS") or ({r for r, _ in kills} == {"vehicle", "topside"} and len(kills) == 6)
+    assert codes == {"vehicle": 0, "topside": 0}, logs
+    assert map_converged(d), ("map", kills, logs)
+    assert images_complete(d), ("images", kills, logs)
+    assert series_complete(d), ("series", kills, logs)
+
+    # the topside's journal has every frame it received, and after every restart the vehicle did
+    # not send again a map subgrid that topside had acknowledged (the vehicle's journal has what
+    # it sent and the acks it got), nor much more image data than the images need
+    store = NodeStore(tdb)
+    try:
+        starts = int(store.get("starts_topside") or 0)
+        received = store.count("rx")
+    finally:
+        store.close()
+    assert starts == 1 + sum(r == "topside" for r, _ in kills)
+    assert received > 100
+    store = NodeStore(vdb)
+    try:
+        rows = list(store.journal())
+    finally:
+        store.close()
+    by_seq: dict[int, set[Any]] = {}
+    acked: set[Any] = set()
+    sent = again = image_bytes = 0
+    for r in rows:
+        if r.kind not in ("rx", "tx"):
+            continue
+        try:
+            frame = wire.unpack_frame(r.data)
+        except DecodeError:
+            continue
+        if r.kind == "tx":
+            keys = {(m.level, m.ix, m.iy, m.stamp) for m in frame.messages if isinstance(m, Subgrid)}
+            image_bytes += sum(len(m.data) for m in frame.messages if isinstance(m, ImageFragment))
+            sent += len(keys)
+            again += len(keys & acked)
+            by_seq[frame.header.seq] = keys
+            continue
+        for m in frame.messages:
+            if isinstance(m, FrameAck) and m.node == VEHICLE:
+                for e in m.entries:
+                    acked.update(*(by_seq.get((e.seq + d) % 256, set()) for d in range(8) if e.frames >> d & 1))
+    need = sum(tx.goal for tx in d.images.images.values())
+    print(f"kills {kills}; {sent} subgrids sent, {again} of them after topside had acked them; "
+          f"{image_bytes} image bytes sent for {need}")
+    assert sent > 200
+    assert again <= 0.02 * sent, f"{again} of {sent} subgrids sent again after their ack"
+    assert image_bytes <= 1.6 * need, f"{image_bytes} image bytes sent for {need} needed"

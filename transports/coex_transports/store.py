@@ -1,0 +1,199 @@
+"""Persistence of a node (SQLite, WAL): nothing received or captured is lost when a process is
+killed (``kill -9``) and restarted, and transfers resume where they were.
+
+The core is sans-I/O, so the store lives here, next to the runner. One SQLite file per node:
+
+* ``journal``: every frame the node **received** (``rx``: link, time, bytes) and every input a
+  sender **captured** (``input``: modality name, time, the pickled data), and every frame it
+  **sent** (``tx``, for the record), each committed before the node sees it;
+* ``snapshot``: the whole sans-I/O state of the node (channel manager with its queues, pending
+  acks, sequence numbers, command ids and authentication counters, operator settings; every
+  modality sender and receiver with what it has captured, sent, acked and built), pickled, with
+  the id of the last journal row it includes. It is written in one transaction before every
+  transmission leaves (so a restarted node knows what it already sent) and after received
+  frames, at most every ``snapshot_interval`` seconds.
+
+:meth:`NodeStore.restore` loads the snapshot (or builds a fresh node) and replays the journal rows
+written after it, in order: received frames go through ``Node.receive`` again and inputs through
+the sender's ``ingest``, so the node is exactly where it was when it died, minus nothing.
+SQLite in WAL mode with ``synchronous=NORMAL`` keeps every committed row across a process crash.
+
+The snapshot format is Python's pickle of CoEx's own objects: a file for this installation's
+own restarts, not an exchange format (exports are in ``docs/*.md``; the wire format in ``spec/``).
+"""
+
+from __future__ import annotations
+
+import pickle
+import sqlite3
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from coex_core.errors import ConfigError
+from coex_core.node import Node
+
+__all__ = ["JournalRow", "NodeStore"]
+
+_SCHEMA = """
+CREATE TABLE IF NOT EXISTS journal (
+    id INTEGER PRIMARY KEY AUTOINCREMENT,
+    kind TEXT NOT NULL CHECK (kind IN ('rx', 'tx', 'input')),
+    t REAL NOT NULL,
+    link INTEGER,
+    name TEXT,
+    data BLOB NOT NULL
+);
+CREATE TABLE IF NOT EXISTS snapshot (
+    id INTEGER PRIMARY KEY CHECK (id = 1),
+    journal_id INTEGER NOT NULL,
+    t REAL NOT NULL,
+    state BLOB NOT NULL
+);
+CREATE TABLE IF NOT EXISTS meta (key TEXT PRIMARY KEY, value TEXT NOT NULL);
+"""
+
+
+@dataclass(frozen=True)
+class JournalRow:
+    id: int
+    kind: str
+    t: float
+    link: int | None
+    name: str | None
+    data: bytes
+
+
+class NodeStore:
+    """The persistent state of one node in the SQLite file ``path`` (created if missing)."""
+
+    def __init__(self, path: str | Path, *, snapshot_interval: float = 5.0,
+                 journal_tx: bool = True) -> None:
+        self.path = Path(path)
+        self.snapshot_interval = float(snapshot_interval)
+        self.journal_tx = journal_tx
+        try:
+            self.db = sqlite3.connect(self.path, isolation_level=None)
+            mode = self.db.execute("PRAGMA journal_mode=WAL").fetchone()[0]
+            if str(mode).lower() != "wal":
+                raise ConfigError(f"{self.path}: SQLite refused WAL mode ({mode})")
+            self.db.execute("PRAGMA synchronous=NORMAL")
+            self.db.executescript(_SCHEMA)
+        except sqlite3.Error as exc:
+            raise ConfigError(f"cannot open the node store {self.path}: {exc}") from exc
+        self._last_snapshot: float | None = None
+        self._dirty = False
+        self.stats = {"rx": 0, "tx": 0, "input": 0, "snapshots": 0, "replayed": 0}
+
+    # ------------------------------------------------------------------------- journal
+    def _append(self, kind: str, t: float, data: bytes, link: int | None = None,
+                name: str | None = None) -> int:
+        cur = self.db.execute("INSERT INTO journal (kind, t, link, name, data) VALUES (?, ?, ?, ?, ?)",
+                              (kind, float(t), link, name, sqlite3.Binary(data)))
+        self.stats[kind] += 1
+        return int(cur.lastrowid or 0)
+
+    def record_rx(self, link: int, frame: bytes, t: float) -> int:
+        """Journal a received frame (before the node sees it)."""
+        self._dirty = True
+        return self._append("rx", t, bytes(frame), link=link)
+
+    def record_tx(self, link: int, frame: bytes, t: float) -> int:
+        return self._append("tx", t, bytes(frame), link=link)
+
+    def record_input(self, name: str, data: Any, t: float) -> int:
+        """Journal an input of sender ``name`` (before the sender ingests it)."""
+        self._dirty = True
+        return self._append("input", t, pickle.dumps(data, protocol=5), name=name)
+
+    def journal(self, kind: str | None = None, after: int = 0) -> Iterator[JournalRow]:
+        """Journal rows after id ``after`` (all kinds, or one), in order."""
+        q = "SELECT id, kind, t, link, name, data FROM journal WHERE id > ?"
+        args: tuple[Any, ...] = (after,)
+        if kind is not None:
+            q += " AND kind = ?"
+            args += (kind,)
+        for row in self.db.execute(q + " ORDER BY id", args):
+            yield JournalRow(int(row[0]), row[1], float(row[2]), row[3], row[4], bytes(row[5]))
+
+    def count(self, kind: str) -> int:
+        return int(self.db.execute("SELECT COUNT(*) FROM journal WHERE kind = ?", (kind,)).fetchone()[0])
+
+    def last_input(self, name: str) -> JournalRow | None:
+        row = self.db.execute("SELECT id, kind, t, link, name, data FROM journal WHERE kind = 'input' "
+                              "AND name = ? ORDER BY id DESC LIMIT 1", (name,)).fetchone()
+        return None if row is None else JournalRow(int(row[0]), row[1], float(row[2]), row[3], row[4], bytes(row[5]))
+
+    # ------------------------------------------------------------------------ snapshots
+    def snapshot(self, node: Node, t: float) -> None:
+        """Save the node's whole state, consistent with the journal so far (one transaction)."""
+        state = pickle.dumps(node, protocol=5)
+        self.db.execute("BEGIN IMMEDIATE")
+        try:
+            last = self.db.execute("SELECT COALESCE(MAX(id), 0) FROM journal").fetchone()[0]
+            self.db.execute("INSERT OR REPLACE INTO snapshot (id, journal_id, t, state) VALUES (1, ?, ?, ?)",
+                            (int(last), float(t), sqlite3.Binary(state)))
+            self.db.execute("COMMIT")
+        except BaseException:
+            self.db.execute("ROLLBACK")
+            raise
+        self._last_snapshot = t
+        self._dirty = False
+        self.stats["snapshots"] += 1
+
+    def maybe_snapshot(self, node: Node, t: float, *, force: bool = False) -> bool:
+        """Snapshot when ``force`` (a transmission is about to leave) or when something was
+        journaled and ``snapshot_interval`` has passed since the last one."""
+        if force or (self._dirty and (self._last_snapshot is None
+                                      or t - self._last_snapshot >= self.snapshot_interval)):
+            self.snapshot(node, t)
+            return True
+        return False
+
+    def has_state(self) -> bool:
+        return self.db.execute("SELECT COUNT(*) FROM snapshot").fetchone()[0] > 0 or self.count("input") > 0 \
+            or self.count("rx") > 0
+
+    def restore(self, build: Callable[[], Node], *, log: Callable[[str], None] | None = None,
+                clock: Callable[[], float] | None = None) -> Node:
+        """The node as it was: the last snapshot (or ``build()`` when there is none) plus every
+        journal row written after it, replayed in order. ``log`` and ``clock`` (not saved) are
+        attached to the restored node."""
+        row = self.db.execute("SELECT journal_id, state FROM snapshot WHERE id = 1").fetchone()
+        if row is None:
+            node, after = build(), 0
+        else:
+            try:
+                node = pickle.loads(bytes(row[1]))
+            except Exception as exc:
+                raise ConfigError(f"{self.path}: unreadable snapshot ({exc}); move the file away "
+                                  "to start afresh") from exc
+            after = int(row[0])
+            node.set_log(log)
+            node.manager.clock = clock
+        for r in self.journal(after=after):
+            if r.kind == "rx":
+                node.receive(int(r.link or 0), r.data, r.t)
+            elif r.kind == "input":
+                try:
+                    node.sender(str(r.name)).ingest(pickle.loads(r.data), r.t)
+                except Exception as exc:  # it failed the first time too; the rest still counts
+                    if log is not None:
+                        log(f"journaled input {r.id} of {r.name} not taken again: {exc}")
+            else:
+                continue
+            self.stats["replayed"] += 1
+        return node
+
+    # ----------------------------------------------------------------------------- meta
+    def get(self, key: str, default: str | None = None) -> str | None:
+        """A small persistent value of the application (e.g. an operator action done)."""
+        row = self.db.execute("SELECT value FROM meta WHERE key = ?", (key,)).fetchone()
+        return default if row is None else str(row[0])
+
+    def set(self, key: str, value: str) -> None:
+        self.db.execute("INSERT OR REPLACE INTO meta (key, value) VALUES (?, ?)", (key, value))
+
+    def close(self) -> None:
+        self.db.close()
