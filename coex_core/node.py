@@ -391,6 +391,10 @@ class Node:
                 return r.receiver
         raise ConfigError(f"no receiver {name!r} on node {self.node_id}")
 
+    def receivers(self) -> list[tuple[str, ModalityReceiver]]:
+        """``(modality name, receiver)`` of every attached receiver, in attachment order."""
+        return [(r.name, r.receiver) for r in self._receivers]
+
     def set_log(self, log: Callable[[str], None] | None) -> None:
         self._log = log
 

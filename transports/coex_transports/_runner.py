@@ -244,6 +244,7 @@ class SimNetwork:
         clock: SimulatedClock | None = None,
         *,
         link_log: TextIO | Callable[[dict[str, Any]], None] | None = None,
+        keep_transmissions: int | None = None,
     ) -> None:
         self.channels = dict(channels)
         for link, ch in self.channels.items():
@@ -253,7 +254,10 @@ class SimNetwork:
         self.nodes: dict[int, Node] = {}
         self._timers: list[tuple[float, int, Callable[[float], None]]] = []
         self._count = itertools.count()
-        self.transmissions: list[tuple[int, Transmission]] = []
+        #: ``(node id, Transmission)`` of every packet sent, oldest first (for tests and
+        #: reports); with ``keep_transmissions`` only that many of the newest (long runs).
+        self.transmissions: collections.deque[tuple[int, Transmission]] = collections.deque(
+            maxlen=keep_transmissions)
         self.on_transmit: Callable[[int, Transmission], None] | None = None
         self._last_step = float("-inf")
 

@@ -36,6 +36,9 @@ from coex_core.node import Node
 
 __all__ = ["JournalRow", "NodeStore"]
 
+#: First item of every pickled snapshot: (format, node, extra).
+_FORMAT = "coex-node-snapshot-1"
+
 _SCHEMA = """
 CREATE TABLE IF NOT EXISTS journal (
     id INTEGER PRIMARY KEY AUTOINCREMENT,
@@ -84,6 +87,11 @@ class NodeStore:
             raise ConfigError(f"cannot open the node store {self.path}: {exc}") from exc
         self._last_snapshot: float | None = None
         self._dirty = False
+        #: ``extra()`` is saved with every snapshot, in the same pickle as the node (objects
+        #: shared with the node stay shared): an application's own state, e.g. the console's.
+        self.extra: Callable[[], Any] | None = None
+        #: What ``extra()`` returned at the snapshot :meth:`restore` loaded (None without one).
+        self.restored_extra: Any = None
         self.stats = {"rx": 0, "tx": 0, "input": 0, "snapshots": 0, "replayed": 0}
 
     # ------------------------------------------------------------------------- journal
@@ -128,7 +136,8 @@ class NodeStore:
     # ------------------------------------------------------------------------ snapshots
     def snapshot(self, node: Node, t: float) -> None:
         """Save the node's whole state, consistent with the journal so far (one transaction)."""
-        state = pickle.dumps(node, protocol=5)
+        extra = self.extra() if self.extra is not None else None
+        state = pickle.dumps((_FORMAT, node, extra), protocol=5)
         self.db.execute("BEGIN IMMEDIATE")
         try:
             last = self.db.execute("SELECT COALESCE(MAX(id), 0) FROM journal").fetchone()[0]
@@ -156,22 +165,32 @@ class NodeStore:
             or self.count("rx") > 0
 
     def restore(self, build: Callable[[], Node], *, log: Callable[[str], None] | None = None,
-                clock: Callable[[], float] | None = None) -> Node:
+                clock: Callable[[], float] | None = None,
+                before_replay: Callable[[Node, Any], Any] | None = None) -> Node:
         """The node as it was: the last snapshot (or ``build()`` when there is none) plus every
         journal row written after it, replayed in order. ``log`` and ``clock`` (not saved) are
-        attached to the restored node."""
+        attached to the restored node. ``before_replay(node, extra)`` runs between the two
+        (``extra``: what :attr:`extra` returned at that snapshot, or None), so an application
+        can re-attach its own state and see the replayed frames too."""
         row = self.db.execute("SELECT journal_id, state FROM snapshot WHERE id = 1").fetchone()
+        extra: Any = None
         if row is None:
             node, after = build(), 0
         else:
             try:
-                node = pickle.loads(bytes(row[1]))
+                loaded = pickle.loads(bytes(row[1]))
+                fmt, node, extra = loaded
+                if fmt != _FORMAT or not isinstance(node, Node):
+                    raise ValueError(f"not a {_FORMAT} snapshot")
             except Exception as exc:
                 raise ConfigError(f"{self.path}: unreadable snapshot ({exc}); move the file away "
                                   "to start afresh") from exc
             after = int(row[0])
             node.set_log(log)
             node.manager.clock = clock
+        self.restored_extra = extra
+        if before_replay is not None:
+            before_replay(node, extra)
         for r in self.journal(after=after):
             if r.kind == "rx":
                 node.receive(int(r.link or 0), r.data, r.t)

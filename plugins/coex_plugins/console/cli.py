@@ -1,4 +1,5 @@
-"""``coex topside --transport URI [--http 127.0.0.1:8080]``: a topside node with the console.
+"""``coex topside --transport URI [--http 127.0.0.1:8080] [--store FILE]``: a topside node with the
+console.
 
 The node runs the channel manager and every modality receiver that loads (bathymetry, imagery,
 time series), over one transport, on the wall clock (TDMA slots come from the shared epoch).
@@ -75,6 +76,9 @@ def register(subparsers: Any) -> None:
     p.add_argument("--command-key-file", metavar="PATH",
                    help="shared command key (hex, or at least 16 raw bytes): every command is "
                         "signed (spec section 10); the vehicle must have the same key")
+    p.add_argument("--store", metavar="FILE",
+                   help="SQLite file keeping everything received and the console's state: "
+                        "after a crash or kill, the same command resumes where it was")
     p.set_defaults(func=run)
 
 
@@ -83,8 +87,10 @@ class TopsideApp:
     server, and the loop driving them."""
 
     def __init__(self, node: Any, transports: dict[int, Any], hub: Any, server: Any,
-                 clock: Callable[[], float]) -> None:
+                 clock: Callable[[], float], *, store: Any = None) -> None:
         self.node = node
+        #: A :class:`coex_transports.store.NodeStore` (or None): journal and snapshots.
+        self.store = store
         self.transports = dict(transports)
         self.hub = hub
         self.server = server
@@ -92,6 +98,7 @@ class TopsideApp:
         self.stop = threading.Event()
         self.errors: list[str] = []
         self._last_status: dict[int, Any] = {}
+        self._commands_seen = self._commands_sent()
 
     @property
     def url(self) -> str:
@@ -120,9 +127,15 @@ class TopsideApp:
                         break
                     if frame is None:
                         break
-                    self.node.receive(link, frame, self.clock())
+                    self._receive(link, frame)
             now = self.clock()
-            for tx in self.node.poll(now):
+            txs = self.node.poll(now)
+            if self.store is not None:
+                for tx in txs:
+                    for f in tx.frames:
+                        self.store.record_tx(tx.link_id, f, now)
+                self._save(now, force=bool(txs))
+            for tx in txs:
                 tr = self.transports.get(tx.link_id)
                 if tr is None:
                     continue
@@ -138,8 +151,32 @@ class TopsideApp:
             self.hub.pump(self.node, self.clock())
             for link, tr in self.transports.items():
                 self._modem_status(link, tr)
+            if self.store is not None:
+                self._save(self.clock())
             nxt = self.node.next_event(self.clock())
         return float(nxt) if nxt is not None else self.clock() + 0.2
+
+    def _commands_sent(self) -> int:
+        """Changes whenever the operator's commands do (sent, queued, answered)."""
+        return int(self.hub.state.versions.get("commands", 0))
+
+    def _receive(self, link: int, frame: bytes) -> None:
+        """Take one frame (journaled first with a store); call it with the hub's lock held."""
+        now = self.clock()
+        if self.store is not None:
+            self.store.record_rx(link, frame, now)
+        self.node.receive(link, frame, now)
+
+    def _save(self, now: float, force: bool = False) -> None:
+        """Snapshot before a transmission, when the commands changed, else now and then."""
+        sent = self._commands_sent()
+        force = force or sent != self._commands_seen
+        self._commands_seen = sent
+        try:
+            self.store.maybe_snapshot(self.node, now, force=force)
+        except Exception as exc:  # a full disk must not stop the console
+            self.errors.append(f"store: {exc}")
+            log.warning("store: %s", exc)
 
     def _modem_status(self, link: int, transport: Any) -> None:
         """Receive statistics of topside's own modem (a transport with ``link_status()``, like
@@ -174,7 +211,7 @@ class TopsideApp:
                     self.errors.append(f"link {link} receive: {exc}")
                 if frame is not None:
                     with self.hub.lock:
-                        self.node.receive(link, frame, self.clock())
+                        self._receive(link, frame)
             if frame is None:
                 # a transport that does not really block (simulated links) must not spin
                 left = wait - (time.monotonic() - started)
@@ -182,14 +219,24 @@ class TopsideApp:
                     self.stop.wait(left)
 
     def start(self) -> TopsideApp:
-        threading.Thread(target=self.run, name="coex-topside", daemon=True).start()
+        self._thread = threading.Thread(target=self.run, name="coex-topside", daemon=True)
+        self._thread.start()
         return self
 
     def close(self) -> None:
         self.stop.set()
+        thread = getattr(self, "_thread", None)
+        if thread is not None and thread is not threading.current_thread():
+            thread.join(timeout=5.0)
         self.server.close()
         for tr in self.transports.values():
             tr.close()
+        if self.store is not None:
+            with self.hub.lock:
+                try:
+                    self.store.snapshot(self.node, self.clock())
+                finally:
+                    self.store.close()
 
 
 def _schedule(args: argparse.Namespace) -> Any:
@@ -211,17 +258,25 @@ def build_topside(transport_uri: str | Sequence[str], host: str = "127.0.0.1", p
                   modalities: tuple[str, ...] = ("bathymetry", "imagery", "timeseries"),
                   stream_names: dict[int, str] | None = None,
                   clock: Callable[[], float] = time.time,
-                  command_key: bytes | None = None) -> TopsideApp:
+                  command_key: bytes | None = None,
+                  store: str | Path | None = None,
+                  snapshot_interval: float = 30.0) -> TopsideApp:
     """Open the transports (several URIs: several modems, link ids ``link``, ``link + 1`` ...),
     build the topside node and its receivers, serve the console (not yet driving the node: call
     ``start()`` or ``run()``). With ``command_key`` every command is authenticated (spec
-    section 10)."""
+    section 10).
+
+    With ``store`` (an SQLite file, :class:`coex_transports.store.NodeStore`) every received
+    frame is journaled before the node sees it and the node with its console state (map, images,
+    series, requests, goals, schedules, command log) is saved before each transmission, after
+    each operator command and at most every ``snapshot_interval`` seconds otherwise; when the
+    file already holds a topside, that one is resumed (its settings win over the arguments)."""
     from coex_core.channel.manager import ChannelManager, LinkConfig
     from coex_core.channel.schedule import Schedule
     from coex_core.node import Node
     from coex_core.registry import load_modality, open_transport
 
-    from .node import NodeCommands, tap_receiver
+    from .node import NodeCommands, TapReceiver, hub_hook
     from .server import ConsoleHub, serve
     from .state import ConsoleState
 
@@ -232,6 +287,7 @@ def build_topside(transport_uri: str | Sequence[str], host: str = "127.0.0.1", p
     if not uris:
         raise ConfigError("give at least one transport URI")
     transports: dict[int, Any] = {}
+    nstore: Any = None
     try:
         from coex_core.acoustic import rate_info
 
@@ -240,31 +296,81 @@ def build_topside(transport_uri: str | Sequence[str], host: str = "127.0.0.1", p
         cfgs = [LinkConfig(lid, schedule, rate=rate,
                            frame_bytes=min(rate_info(rate).frame_bytes, int(tr.mtu)),
                            dst=vehicle_id) for lid, tr in transports.items()]
-        manager = ChannelManager(node_id, cfgs, command_key=command_key)
-        node = Node(manager, log=lambda text: log.info("%s", text))
-        names = {s.id: s.config.name for s in manager.streams}
-        names.update(stream_names or {})
-        state = ConsoleState(node_id=node_id, vehicle_id=vehicle_id, stream_names=names)
-        hub = ConsoleHub(state, NodeCommands(node, clock), clock)
-        for name in modalities:
-            try:
-                cls = load_modality(name)
-                receiver = cls().receiver()
-            except (CoexError, ImportError, AttributeError, TypeError) as exc:
-                log.warning("modality %s not available: %s", name, exc)
-                state._log(0.0, f"modality {name} not available: {exc}", "warn")
-                continue
-            node.add_receiver(cls, tap_receiver(receiver, hub))
-            if name == "bathymetry" and hasattr(receiver, "request_area"):
-                hub.actions.map_receiver = state.region_source = receiver
-        for lid in transports:
-            state.set_schedule(lid, schedule)
+        missing: list[str] = []
+
+        def fresh() -> Any:
+            node = Node(ChannelManager(node_id, cfgs, command_key=command_key))
+            for name in modalities:
+                try:
+                    cls = load_modality(name)
+                    receiver = cls().receiver()
+                except (CoexError, ImportError, AttributeError, TypeError) as exc:
+                    log.warning("modality %s not available: %s", name, exc)
+                    missing.append(f"modality {name} not available: {exc}")
+                    continue
+                node.add_receiver(cls, TapReceiver(receiver, lambda msg, now: None))
+            return node
+
+        hubs: list[Any] = []
+
+        def wire(node: Any, extra: Any) -> None:
+            """The console around ``node``: a fresh one, or the one saved with it."""
+            if isinstance(extra, dict) and isinstance(extra.get("state"), ConsoleState):
+                state = extra["state"]
+            else:
+                names = {s.id: s.config.name for s in node.manager.streams}
+                names.update(stream_names or {})
+                state = ConsoleState(node_id=node_id, vehicle_id=vehicle_id, stream_names=names)
+                for lid in transports:
+                    state.set_schedule(lid, schedule)
+            hub = ConsoleHub(state, NodeCommands(node, clock), clock)
+            if isinstance(extra, dict):
+                hub.actions._next_request = int(extra.get("next_request", 0)) % 256
+            for name, receiver in node.receivers():
+                if isinstance(receiver, TapReceiver):
+                    receiver.on_message = hub_hook(hub)
+                    receiver = receiver.inner
+                if name == "bathymetry" and hasattr(receiver, "request_area"):
+                    hub.actions.map_receiver = state.region_source = receiver
+            hubs.append(hub)
+
+        if store is None:
+            node = fresh()
+            wire(node, None)
+        else:
+            from coex_transports.store import NodeStore
+
+            nstore = NodeStore(store, snapshot_interval=snapshot_interval)
+            resumed = nstore.has_state()
+            node = nstore.restore(fresh, log=None, clock=None, before_replay=wire)
+            if sorted(node.manager.links) != sorted(transports):
+                raise ConfigError(
+                    f"{store} holds a node with links {sorted(node.manager.links)}, this run has "
+                    f"{sorted(transports)}: give the same transports, or another --store")
+            if node.node_id != node_id:
+                raise ConfigError(f"{store} holds topside node {node.node_id}, not {node_id}")
+            if resumed:
+                log.info("resumed from %s (%d journal rows replayed)", store,
+                         nstore.stats["replayed"])
+        node.set_log(lambda text: log.info("%s", text))
+        hub = hubs[-1]
+        state = hub.state
+        for text in missing:
+            state._log(0.0, text, "warn")
+        if nstore is not None:
+            if nstore.restored_extra is not None or nstore.stats["replayed"]:
+                state._log(clock(), f"resumed from {store}: {nstore.stats['replayed']} "
+                                    "journaled frames replayed")
+            nstore.extra = lambda: {"state": hub.state,
+                                    "next_request": hub.actions._next_request}
         server = serve(hub, host, port)
     except BaseException:
         for tr in transports.values():
             tr.close()
+        if nstore is not None:
+            nstore.close()
         raise
-    return TopsideApp(node, transports, hub, server, clock)
+    return TopsideApp(node, transports, hub, server, clock, store=nstore)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -282,16 +388,23 @@ def run(args: argparse.Namespace) -> int:
             args.transport, host, port, node_id=args.node_id, vehicle_id=args.vehicle_id,
             link=args.link, rate=args.rate, schedule=_schedule(args),
             modalities=tuple(m for m in args.modalities.split(",") if m),
-            stream_names=args.stream_names, command_key=key)
+            stream_names=args.stream_names, command_key=key, store=args.store)
     except (CoexError, OSError) as exc:
         print(f"coex topside: {exc}", file=sys.stderr)
         return 2
     print(f"CoEx console on {app.url} (topside node {args.node_id}, "
           f"{', '.join(args.transport)})", flush=True)
+    def terminate(signum: int, frame: Any) -> None:
+        raise KeyboardInterrupt  # a polite stop (SIGTERM) saves the store like Ctrl-C
+
+    import signal
+
+    previous = signal.signal(signal.SIGTERM, terminate)
     try:
         app.run()
     except KeyboardInterrupt:
         pass
     finally:
         app.close()
+        signal.signal(signal.SIGTERM, previous)
     return 0

@@ -26,7 +26,8 @@ from coex_core.modality import ModalityReceiver, Product
 
 from .state import ConsoleState
 
-__all__ = ["NodeCommands", "TapReceiver", "attach", "drive_simulation", "pump", "tap_receiver"]
+__all__ = ["NodeCommands", "TapReceiver", "attach", "drive_simulation", "hub_hook", "pump",
+           "tap_receiver"]
 
 
 class NodeCommands:
@@ -103,17 +104,36 @@ class TapReceiver(ModalityReceiver):
         return self.inner.products()
 
     def __getattr__(self, name: str) -> Any:  # request helpers of the wrapped receiver
+        if name in ("inner", "on_message") or name.startswith("__"):
+            raise AttributeError(name)
         return getattr(self.inner, name)
+
+    def __getstate__(self) -> dict[str, Any]:
+        """The wrapped receiver only: the console hook is attached again after a restore."""
+        return {"inner": self.inner}
+
+    def __setstate__(self, state: dict[str, Any]) -> None:
+        self.inner = state["inner"]
+        self.on_message = _ignore
+
+
+def _ignore(message: Message, now: float) -> None:
+    return None
+
+
+def hub_hook(hub: Any) -> Callable[[Message, float], Any]:
+    """What a :class:`TapReceiver` calls to show ``hub`` (a ConsoleHub, or a bare
+    ConsoleState) each raw message."""
+    if hasattr(hub, "update"):
+        return lambda msg, now: hub.update(lambda st: st.apply_message(msg, now))
+    state: ConsoleState = hub
+    return lambda msg, now: state.apply_message(msg, now)
 
 
 def tap_receiver(receiver: ModalityReceiver, hub: Any) -> TapReceiver:
     """Wrap ``receiver`` so that ``hub`` (a ConsoleHub, or a bare ConsoleState) sees its raw
     messages (under the hub's lock, from the thread driving the node)."""
-    if hasattr(hub, "update"):
-        return TapReceiver(receiver, lambda msg, now: hub.update(
-            lambda st: st.apply_message(msg, now)))
-    state: ConsoleState = hub
-    return TapReceiver(receiver, lambda msg, now: state.apply_message(msg, now))
+    return TapReceiver(receiver, hub_hook(hub))
 
 
 def pump(state: ConsoleState, node: Any, now: float, events: list[Any] | None = None) -> int:

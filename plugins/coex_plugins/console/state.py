@@ -277,6 +277,17 @@ class ConsoleState:
         self._foreign_acks: dict[int, tuple[str, float]] = {}
         self.log: deque[dict[str, Any]] = deque(maxlen=max_log)
 
+    def __getstate__(self) -> dict[str, Any]:
+        """Picklable (a topside store saves the console with its node); object ids are not."""
+        state = dict(self.__dict__)
+        del state["_region_ids"]
+        return state
+
+    def __setstate__(self, state: dict[str, Any]) -> None:
+        self.__dict__.update(state)
+        # the regions recorded are the ones held (for good) by the requests in ``roi``
+        self._region_ids = {id(r.region) for r in self.roi.values() if r.region is not None}
+
     # -------------------------------------------------------------------- bookkeeping
     def _touch(self, *sections: str) -> None:
         for s in sections:
