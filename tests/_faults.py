@@ -79,13 +79,12 @@ class FaultyChannel(AcousticChannel):
         return out
 
 
-class FailingSender(ModalitySender):
-    """A sender that raises on every ``every``-th call of ``fill`` and ``handle`` (and of
-    ``ingest`` with ``fail_ingest``) and otherwise defers to ``inner``."""
+class _Every:
+    """Counts calls; every ``every``-th one is told to fail."""
 
-    def __init__(self, inner: ModalitySender, every: int = 3, fail_ingest: bool = False) -> None:
-        self.inner, self.every, self.calls, self.raised = inner, every, 0, 0
-        self.fail_ingest = fail_ingest
+    every: int
+    calls: int
+    raised: int
 
     def _boom(self) -> bool:
         self.calls += 1
@@ -93,6 +92,15 @@ class FailingSender(ModalitySender):
             self.raised += 1
             return True
         return False
+
+
+class FailingSender(_Every, ModalitySender):
+    """A sender that raises on every ``every``-th call of ``fill`` and ``handle`` (and of
+    ``ingest`` with ``fail_ingest``) and otherwise defers to ``inner``."""
+
+    def __init__(self, inner: ModalitySender, every: int = 3, fail_ingest: bool = False) -> None:
+        self.inner, self.every, self.calls, self.raised = inner, every, 0, 0
+        self.fail_ingest = fail_ingest
 
     def ingest(self, data: Any, now: float) -> None:
         if self.fail_ingest and self._boom():
@@ -110,19 +118,12 @@ class FailingSender(ModalitySender):
         return self.inner.handle(message, now)
 
 
-class FailingReceiver(ModalityReceiver):
+class FailingReceiver(_Every, ModalityReceiver):
     """A receiver whose every ``every``-th ``receive`` raises after ``inner`` took the message
     (a bug in building a product), and whose ``poll`` raises every ``every``-th call."""
 
     def __init__(self, inner: ModalityReceiver, every: int = 5) -> None:
         self.inner, self.every, self.calls, self.raised = inner, every, 0, 0
-
-    def _boom(self) -> bool:
-        self.calls += 1
-        if self.calls % self.every == 0:
-            self.raised += 1
-            return True
-        return False
 
     def receive(self, message: Message, now: float) -> list[Product]:
         out = self.inner.receive(message, now)

@@ -350,6 +350,58 @@ def test_frame_acks_are_generated_for_received_frames() -> None:
     assert ack == FrameAck(TOPSIDE, 0, (FrameAckEntry(3, 0b1011), FrameAckEntry(40, 1)))
 
 
+def test_frames_received_longer_ago_than_the_ack_timeout_are_not_acked() -> None:
+    from coex_core.messages import FrameHeader
+
+    m = manager(links=[vehicle_link(ack_timeout=50.0)])
+    m.on_frame(0, FrameHeader(src=TOPSIDE, dst=VEHICLE, seq=3), 0.0)
+    m.on_frame(0, FrameHeader(src=TOPSIDE, dst=VEHICLE, seq=9), 30.0)
+    tx = m.build(0, 60.0)  # seq 3 is 60 s old: its sender has re-sent (and may reuse seq 3)
+    assert tx is not None
+    assert messages_of(tx.frames) == [FrameAck(TOPSIDE, 0, (FrameAckEntry(9, 1),))]
+    assert m.stats["stale_acks"] == 1
+    m.on_frame(0, FrameHeader(src=TOPSIDE, dst=VEHICLE, seq=10), 100.0)
+    assert m.build(0, 200.0) is None  # nothing but a stale ack: nothing to send
+    assert m.stats["stale_acks"] == 2
+
+
+def test_a_late_ack_cannot_clear_a_newer_frame_with_the_same_seq() -> None:
+    """The sender reuses a seq after 256 frames. An ack of the old use sent late (a receiver
+    restarted from its journal, a long outage) would clear the messages of the newer frame,
+    lost on the way, as if they had arrived. The receiver sends no ack older than the ack
+    timeout (shorter than a wrap), so they stay queued and go again."""
+    v = ChannelManager(VEHICLE, [LinkConfig(0, Schedule.simple([VEHICLE], 4.0, 0.0), rate=5,
+                                            dst=TOPSIDE, ack_timeout=20.0)])
+    v.add_stream(StreamConfig(5, "data", ack_required=True, max_depth=1000))
+    t = ChannelManager(TOPSIDE, [LinkConfig(0, Schedule.simple([TOPSIDE], 4.0, 0.0), rate=5,
+                                            dst=VEHICLE, ack_timeout=20.0)])
+    now, j = 0.0, 0
+    reused: list[Message] = []
+    for k in range(33):  # 33 packets of 8 frames: seqs 0..7 are used again by packet 32
+        for _ in range(16):
+            v.push(5, Opaque(96 + j, j.to_bytes(2, "big") * 50), now)
+            j += 1
+        tx = v.build(0, now)
+        assert tx is not None
+        if k == 0:  # topside gets the first packet; its ack is held back (topside is down)
+            for f in tx.frames:
+                t.on_frame(0, wire.unpack_frame(f).header, now)
+        elif k == 32:  # the packet that reuses seqs 0..7 is lost
+            assert tx.seq == 0
+            reused = messages_of(tx.frames)
+        else:  # the others are acked at once
+            v.on_ack(FrameAck(VEHICLE, 0, (FrameAckEntry(tx.seq, 0xFF),)), now + 1.0)
+        now += 4.0
+    assert reused
+    late = t.build(0, now)  # topside is back, 132 s after packet 0
+    for msg in messages_of(late.frames) if late is not None else []:
+        if isinstance(msg, FrameAck):
+            v.on_ack(msg, now)
+    assert t.stats["stale_acks"] == 8
+    queued = {e.message for e in v.stream(5).entries}
+    assert set(reused) <= queued  # not cleared by an ack of other frames
+
+
 # ---------------------------------------------------------------- queue config / status
 
 def test_queue_config_changes_settings_and_flushes() -> None:

@@ -144,7 +144,7 @@ def test_a_replayed_frame_is_rejected_and_not_applied_twice() -> None:
     p.vehicle.receive(0, newer, 60.0)
     p.vehicle.receive(0, old, 61.0)
     assert p.sender.urgent == [6, 6, 6]
-    acked = {(e.seq + d) % 256 for f in p.vehicle.manager._take_acks() if isinstance(f, FrameAck)
+    acked = {(e.seq + d) % 256 for f in p.vehicle.manager._take_acks(62.0) if isinstance(f, FrameAck)
              for e in f.entries for d in range(8) if e.frames >> d & 1}
     assert 3 in acked and 2 not in acked
 

@@ -264,13 +264,15 @@ class ChannelManager:
         self._entry_ids = 0
         self._build_no = 0
         self._events: list[Event] = []
-        self._to_ack: dict[tuple[int, int], list[int]] = {}  # (src, link) -> seqs to acknowledge
+        #: (src, link) -> {seq: when received} of the frames to acknowledge
+        self._to_ack: dict[tuple[int, int], dict[int, float]] = {}
+        self._ack_times: dict[tuple[int, int, int], float] = {}  # of the acks being packed
         self._last_qs: float | None = None
         self._command_id = 0
         self._commands: dict[int, Message] = {}  # topside: sent commands awaiting a CommandAck
         self.stats: dict[str, int] = {"packets": 0, "frames": 0, "used_bytes": 0, "capacity": 0,
                                       "acked": 0, "resent": 0, "sender_failures": 0,
-                                      "signed": 0}
+                                      "signed": 0, "stale_acks": 0}
 
     def __getstate__(self) -> dict[str, Any]:
         """Everything but the ``clock`` callable (the state can be pickled; the restorer
@@ -529,7 +531,7 @@ class ChannelManager:
         # stream -> largest budget for which it had nothing (inf: failed or slow, skip it)
         exhausted: dict[int, float] = {}
         t0 = self.clock() if self.clock is not None else 0.0
-        acks = self._take_acks()
+        acks = self._take_acks(now)
         signer = self.signer
         reserve = TRAILER_BYTES if signer is not None and any(
             self.is_command(e.message) for e in self._all_entries()) else 0
@@ -561,7 +563,7 @@ class ChannelManager:
             frames_msgs.append((msgs, taken))
         if acks:  # acks that did not fit go back for the next packet
             for a in acks:
-                self._requeue_ack(a)
+                self._requeue_ack(a, now)
         if not frames_msgs:
             return None
         for _, taken in frames_msgs:
@@ -794,9 +796,8 @@ class ChannelManager:
         st.last_heard = now
         st.frames_rx += 1
         if self.ack_frames and ackable:
-            seqs = self._to_ack.setdefault((header.src, link), [])
-            if header.seq not in seqs:
-                seqs.append(header.seq)
+            seqs = self._to_ack.setdefault((header.src, link), {})
+            seqs[header.seq] = now  # a newer use of a seq: the ack names the newest
             for other in self._links.values():
                 other.idle_until = -math.inf
         v = header.schedule
@@ -814,9 +815,24 @@ class ChannelManager:
         if v == st.safe.version and settled:  # the peer's watchdog fired
             self._fallback(link, now, "peer")
 
-    def _take_acks(self) -> list[Message]:
+    def _take_acks(self, now: float) -> list[Message]:
+        """The frame acks to send now. A frame received longer ago than its link's
+        ``ack_timeout`` is not acknowledged any more: its sender has made its messages sendable
+        again by then, and may have reused the seq (after 256 frames), so a late ack could
+        clear messages of a newer frame that never arrived (a restarted node replaying its
+        journal, a long outage)."""
         out: list[Message] = []
-        for (src, link), seqs in sorted(self._to_ack.items()):
+        self._ack_times = {}
+        for (src, link), pending in sorted(self._to_ack.items()):
+            st = self._links.get(link)
+            horizon = st.ack_timeout if st is not None else math.inf
+            seqs = []
+            for seq, t in pending.items():
+                if now - t > horizon:
+                    self.stats["stale_acks"] += 1
+                    continue
+                seqs.append(seq)
+                self._ack_times[(src, link, seq)] = t
             if not seqs:
                 continue
             entries: list[FrameAckEntry] = []
@@ -833,13 +849,14 @@ class ChannelManager:
         self._to_ack.clear()
         return out
 
-    def _requeue_ack(self, ack: Message) -> None:
+    def _requeue_ack(self, ack: Message, now: float) -> None:
         assert isinstance(ack, FrameAck)
-        seqs = self._to_ack.setdefault((ack.node, ack.link), [])
+        seqs = self._to_ack.setdefault((ack.node, ack.link), {})
         for ent in ack.entries:
             for i in range(8):
-                if ent.frames >> i & 1 and (ent.seq + i) % SEQ_MODULUS not in seqs:
-                    seqs.append((ent.seq + i) % SEQ_MODULUS)
+                seq = (ent.seq + i) % SEQ_MODULUS
+                if ent.frames >> i & 1 and seq not in seqs:
+                    seqs[seq] = self._ack_times.get((ack.node, ack.link, seq), now)
 
     # ============================================================== commands (vehicle side)
     def apply(self, command: Message, now: float) -> CommandAck:
