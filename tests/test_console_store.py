@@ -186,11 +186,14 @@ def test_coex_topside_store_survives_kill_9(tmp_path: Path) -> None:
     cmd = [COEX, "topside", "--transport", "loopback://k9", "--http", "127.0.0.1:0",
            "--slot", "2", "--guard", "0.2", "--store", str(db)]
 
+    said: list[str] = []
+
     def start() -> tuple[subprocess.Popen[str], str]:
         proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
         assert proc.stdout is not None
         line = proc.stdout.readline()
         assert line.startswith("CoEx console on http://"), line + (proc.stderr.read() if proc.stderr else "")
+        said.append(proc.stdout.readline())
         return proc, line.split()[3]
 
     proc, url = start()
@@ -222,6 +225,7 @@ def test_coex_topside_store_survives_kill_9(tmp_path: Path) -> None:
         assert [(c["command_id"], c["summary"]) for c in again["commands"]] == \
             [(c["command_id"], c["summary"]) for c in commands]
         assert any("resumed from" in e["text"] for e in again["log"])
+        assert said[0].startswith(f"store {db}: new") and said[1].startswith(f"store {db}: resumed")
     finally:
         proc.terminate()
         proc.wait(timeout=10)

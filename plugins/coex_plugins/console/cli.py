@@ -394,6 +394,11 @@ def run(args: argparse.Namespace) -> int:
         return 2
     print(f"CoEx console on {app.url} (topside node {args.node_id}, "
           f"{', '.join(args.transport)})", flush=True)
+    if app.store is not None:
+        st = app.store
+        resumed = st.restored_extra is not None or st.stats["replayed"] > 0
+        print(f"store {args.store}: " + (f"resumed ({st.stats['replayed']} journaled frames "
+                                         "replayed)" if resumed else "new"), flush=True)
     def terminate(signum: int, frame: Any) -> None:
         raise KeyboardInterrupt  # a polite stop (SIGTERM) saves the store like Ctrl-C
 
