@@ -98,7 +98,7 @@ class TopsideApp:
         self.stop = threading.Event()
         self.errors: list[str] = []
         self._last_status: dict[int, Any] = {}
-        self._commands_seen = self._commands_sent()
+        self._commands_seen = self._commands_version()
 
     @property
     def url(self) -> str:
@@ -156,7 +156,7 @@ class TopsideApp:
             nxt = self.node.next_event(self.clock())
         return float(nxt) if nxt is not None else self.clock() + 0.2
 
-    def _commands_sent(self) -> int:
+    def _commands_version(self) -> int:
         """Changes whenever the operator's commands do (sent, queued, answered)."""
         return int(self.hub.state.versions.get("commands", 0))
 
@@ -169,7 +169,7 @@ class TopsideApp:
 
     def _save(self, now: float, force: bool = False) -> None:
         """Snapshot before a transmission, when the commands changed, else now and then."""
-        sent = self._commands_sent()
+        sent = self._commands_version()
         force = force or sent != self._commands_seen
         self._commands_seen = sent
         try:
