@@ -9,6 +9,7 @@ go down in one more frame. Loss is drawn per frame from seeded models: independe
 
 from __future__ import annotations
 
+import abc
 import random
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -21,11 +22,12 @@ from coex_core.modality import ModalityReceiver, ModalitySender, Product
 __all__ = ["Bernoulli", "GilbertElliott", "LossModel", "Transfer", "WireEvent"]
 
 
-class LossModel:
+class LossModel(abc.ABC):
     """Decides, frame by frame, whether a frame is lost."""
 
+    @abc.abstractmethod
     def lost(self) -> bool:
-        raise NotImplementedError
+        """Whether the next frame is lost."""
 
 
 class Bernoulli(LossModel):
