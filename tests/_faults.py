@@ -24,7 +24,7 @@ from coex_plugins.imagery import ImageInput, ImageryModality, ImageryReceiver, I
 from coex_plugins.imagery.synth import seafloor
 from coex_plugins.timeseries import TimeSeriesModality, TimeSeriesReceiver, TimeSeriesSender
 from coex_plugins.timeseries import synth as ts_synth
-from coex_transports._runner import Runner, SimNetwork, SimulatedClock
+from coex_transports._runner import Runner, SimNetwork, SimulatedClock, next_wakeup
 
 from ._bathy_data import small_survey
 
@@ -270,19 +270,9 @@ def run_modems(dive: Dive, until: float, reboots: list[float], loss: float = 0.1
         heapq.heappush(events, (t, 10**6 + j, lambda now: net.modems[VEHICLE].reboot(now)))
     steps = 0
     while clock.now < until:
-        cands = [until]
-        if events:
-            cands.append(events[0][0])
-        nxt = net.next_event()
-        if nxt is not None:
-            cands.append(nxt)
-        for r in runners:
-            n = r.node.next_event(clock.now)
-            if n is not None:
-                cands.append(n)
-        t = max(min(cands), clock.now)
-        if t == clock.now and steps and not (events and events[0][0] <= clock.now):
-            t = clock.now + 1e-3
+        t = next_wakeup(clock.now, until, events[0][0] if events else None,
+                        [net.next_event(), *(r.node.next_event(clock.now) for r in runners)],
+                        started=bool(steps))
         t = min(t, clock.now + 1.0)
         net.run_until(t)
         while events and events[0][0] <= clock.now:

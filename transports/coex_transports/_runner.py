@@ -24,7 +24,7 @@ import itertools
 import json
 import os
 import time
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Callable, Iterable, Mapping, Sequence
 from pathlib import Path
 from typing import Any, Protocol, TextIO
 
@@ -38,7 +38,7 @@ from coex_core.transport import Transport
 
 from .store import NodeStore
 
-__all__ = ["Clock", "RealClock", "Runner", "SimNetwork", "SimulatedClock"]
+__all__ = ["Clock", "RealClock", "Runner", "SimNetwork", "SimulatedClock", "next_wakeup"]
 
 
 class Clock(Protocol):
@@ -74,6 +74,19 @@ class SimulatedClock:
 
     def wait_until(self, t: float) -> None:
         self.sim.advance_to(t)
+
+
+def next_wakeup(now: float, until: float, timer: float | None, sources: Iterable[float | None], *,
+                started: bool) -> float:
+    """When a hand-driven simulation loop (modems, drivers and nodes on one simulated clock)
+    should step next: the earliest of ``until``, the next ``timer`` and every source's next
+    event (None: none), never in the past; once the loop has ``started``, a millisecond later
+    when nothing is due now, so that it always advances."""
+    cands = [until, *(t for t in (timer, *sources) if t is not None)]
+    t = max(min(cands), now)
+    if t == now and started and not (timer is not None and timer <= now):
+        t = now + 1e-3
+    return t
 
 
 def _write(sink: TextIO | Callable[[dict[str, Any]], None] | None, rec: dict[str, Any]) -> None:

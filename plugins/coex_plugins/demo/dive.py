@@ -49,7 +49,7 @@ from coex_plugins.bathymetry.sim import Seafloor, Survey, Target, simulate_surve
 from coex_plugins.imagery import ImageInput, ImageryModality, ImageryReceiver
 from coex_plugins.timeseries import TimeSeriesModality, TimeSeriesReceiver
 from coex_plugins.timeseries import synth as ts_synth
-from coex_transports._runner import Runner, SimulatedClock
+from coex_transports._runner import Runner, SimulatedClock, next_wakeup
 from coex_transports.micromodem.simulator import ModemNetwork
 
 from .camera import SandTexture, in_frame, render_frame
@@ -608,19 +608,9 @@ def run_demo(config: DemoConfig, *, on_decision: Callable[[Decision], None] | No
     progress = _Progress(cfg.duration, cfg.progress)
     steps = 0
     while clock.now < end:
-        candidates = [end]
-        if events:
-            candidates.append(events[0][0])
-        nxt = net.next_event()
-        if nxt is not None:
-            candidates.append(nxt)
-        for r in runners.values():
-            n = r.node.next_event(clock.now)
-            if n is not None:
-                candidates.append(n)
-        t = max(min(candidates), clock.now)
-        if t == clock.now and steps and not (events and events[0][0] <= clock.now):
-            t = clock.now + 1e-3
+        t = next_wakeup(clock.now, end, events[0][0] if events else None,
+                        [net.next_event(), *(r.node.next_event(clock.now) for r in runners.values())],
+                        started=bool(steps))
         if server is not None:  # pace the dive so that a person at the console can act
             t = min(t, clock.now + 1.0)
             ahead = (t - sim_start) / cfg.speed - (time.monotonic() - wall_start)

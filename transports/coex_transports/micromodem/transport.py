@@ -25,6 +25,7 @@ same driver against an in-process simulated modem on a simulated clock instead.
 
 from __future__ import annotations
 
+import abc
 import threading
 import time
 from collections.abc import Callable, Sequence
@@ -72,19 +73,26 @@ def parse_uri(uri: str) -> tuple[str, int, DriverConfig]:
     return port, baud, DriverConfig(nvram=tuple(nvram), **kwargs)
 
 
-class _Backend:
+class _Backend(abc.ABC):
     """How the driver meets its modem: a serial port on a thread, or a simulated network."""
 
     lock: Any
 
-    def wake(self) -> None: ...
+    def wake(self) -> None:
+        """Let a waiter re-check its condition (nothing to do by default)."""
+        return None
 
+    @abc.abstractmethod
     def wait(self, ready: Callable[[], bool], timeout: float | None) -> bool:
-        raise NotImplementedError
+        """Wait until ``ready()`` or ``timeout``; return ``ready()``."""
 
-    def close(self) -> None: ...
+    def close(self) -> None:
+        """Release the modem (nothing to do by default)."""
+        return None
 
-    def check(self) -> None: ...
+    def check(self) -> None:
+        """Raise if the backend has failed (never, by default)."""
+        return None
 
 
 class _SerialBackend(_Backend):
