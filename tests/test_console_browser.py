@@ -253,3 +253,36 @@ def test_console_actions_from_the_page_are_wire_commands(browser: Any) -> None:
     assert (flush.stream, flush.flush) == (4, True)
     assert link == m.LinkControl(link.command_id, 0, False, False)
     assert [(s.owner, s.duration, s.guard) for s in sched.slots] == [(1, 10.0, 1.0), (2, 30.0, 2.0)]
+
+
+class _SlowFirstAction(ConsoleHub):
+    """A hub that takes its time over the first action, as a busy console would."""
+
+    def act(self, action: str, args: dict[str, Any]) -> list[Any]:
+        if not getattr(self, "_slowed", False):
+            self._slowed = True
+            time.sleep(0.8)
+        return super().act(action, args)
+
+
+def test_console_actions_reach_the_vehicle_in_the_order_given(browser: Any) -> None:
+    """Two quick clicks (flush a queue, then disable the link) become commands in that order,
+    even when the server is slow with the first: the page sends one action at a time."""
+    state = ConsoleState(schedules={0: Schedule.simple([1, 2], 20.0, 2.0)})
+    feed_sample(state, t0=T0)
+    sent: list[m.Message] = []
+    hub = _SlowFirstAction(state, sent.append, lambda: T0)
+    errors: list[str] = []
+    with serve(hub, "127.0.0.1", 0) as srv:
+        page = browser.new_page(viewport={"width": 1400, "height": 1000})
+        page.on("pageerror", lambda e: errors.append(str(e)))
+        page.goto(srv.url)
+        page.wait_for_function("window.coex && window.coex.updates > 0", timeout=10_000)
+        page.wait_for_selector('#queues-table tr[data-stream="4"]', timeout=10_000)
+        page.locator('#queues-table tr[data-stream="4"]').locator("button", has_text="Flush").click()
+        page.locator('#links-table tr[data-link="0"]').locator("button").click()
+        page.wait_for_function("document.querySelectorAll('#commands li[data-status]').length === 2",
+                               timeout=10_000)
+        page.close()
+    assert not errors, errors
+    assert [type(x) for x in sent] == [m.QueueConfig, m.LinkControl], sent

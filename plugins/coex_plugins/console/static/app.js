@@ -62,7 +62,16 @@ function toast(text, error = false) {
   clearTimeout(toast.timer);
   toast.timer = setTimeout(() => t.classList.add("hidden"), error ? 6000 : 2500);
 }
-async function act(action, args) {
+// Actions go to the server one at a time, in the order the operator gave them: two quick
+// clicks (flush a queue, then disable the link) must become commands in that order, and
+// concurrent requests may be served in any order.
+let actionChain = Promise.resolve();
+function act(action, args) {
+  const result = actionChain.then(() => sendAction(action, args));
+  actionChain = result;
+  return result;
+}
+async function sendAction(action, args) {
   try {
     const r = await fetch("/api/action", { method: "POST",
       headers: { "Content-Type": "application/json" }, body: JSON.stringify({ action, args }) });
