@@ -10,6 +10,7 @@ Needs ``/usr/bin/chromium`` (``scripts/system-deps.sh``) and the ``playwright`` 
 
 from __future__ import annotations
 
+import contextlib
 import os
 import shutil
 import threading
@@ -105,6 +106,25 @@ def browser() -> Iterator[Any]:
             b.close()
 
 
+@contextlib.contextmanager
+def sample_console(browser: Any, hub_type: type[ConsoleHub], sent: list[m.Message],
+                   errors: list[str]) -> Iterator[Any]:
+    """A page of a console fed with the sample dive (no link: ``sent`` records what the hub
+    would send, ``errors`` the page's script errors), loaded and showing its first update."""
+    state = ConsoleState(schedules={0: Schedule.simple([1, 2, 2, 1, 2, 2], 20.0, 2.0)})
+    feed_sample(state, t0=T0)
+    hub = hub_type(state, sent.append, lambda: T0)
+    with serve(hub, "127.0.0.1", 0) as srv:
+        page = browser.new_page(viewport={"width": 1400, "height": 1000})
+        page.on("pageerror", lambda e: errors.append(str(e)))
+        page.goto(srv.url)
+        page.wait_for_function("window.coex && window.coex.updates > 0", timeout=10_000)
+        try:
+            yield page
+        finally:
+            page.close()
+
+
 #: Map canvas pixels that are neither background nor grid.
 PAINTED = """(() => {
     const c = document.querySelector('#map-canvas');
@@ -191,16 +211,9 @@ def test_console_map_updates_and_region_request_reaches_vehicle(
 def test_console_actions_from_the_page_are_wire_commands(browser: Any) -> None:
     """Images, time series, queues, link and schedule controls of the page, on a sample dive
     made by the real plugins (no link: the hub records what it would send)."""
-    state = ConsoleState(schedules={0: Schedule.simple([1, 2, 2, 1, 2, 2], 20.0, 2.0)})
-    feed_sample(state, t0=T0)
     sent: list[m.Message] = []
-    hub = ConsoleHub(state, sent.append, lambda: T0)
     errors: list[str] = []
-    with serve(hub, "127.0.0.1", 0) as srv:
-        page = browser.new_page(viewport={"width": 1400, "height": 1000})
-        page.on("pageerror", lambda e: errors.append(str(e)))
-        page.goto(srv.url)
-        page.wait_for_function("window.coex && window.coex.updates > 0", timeout=10_000)
+    with sample_console(browser, ConsoleHub, sent, errors) as page:
         # three image cards with decoded thumbnails
         page.wait_for_function(
             "[...document.querySelectorAll('#gallery .card img')].filter(i => i.naturalWidth > 0).length === 3",
@@ -239,7 +252,6 @@ def test_console_actions_from_the_page_are_wire_commands(browser: Any) -> None:
         page.click("#sched-send")
         page.wait_for_function("document.querySelectorAll('#commands li[data-status]').length === 7",
                                timeout=10_000)
-        page.close()
     assert not errors, errors
     goal, by_time, refine, prio, flush, link, sched = sent
     assert goal == m.ImageGoal(goal.command_id, 1, m.GoalKind.FULL, 0)
@@ -268,21 +280,13 @@ class _SlowFirstAction(ConsoleHub):
 def test_console_actions_reach_the_vehicle_in_the_order_given(browser: Any) -> None:
     """Two quick clicks (flush a queue, then disable the link) become commands in that order,
     even when the server is slow with the first: the page sends one action at a time."""
-    state = ConsoleState(schedules={0: Schedule.simple([1, 2], 20.0, 2.0)})
-    feed_sample(state, t0=T0)
     sent: list[m.Message] = []
-    hub = _SlowFirstAction(state, sent.append, lambda: T0)
     errors: list[str] = []
-    with serve(hub, "127.0.0.1", 0) as srv:
-        page = browser.new_page(viewport={"width": 1400, "height": 1000})
-        page.on("pageerror", lambda e: errors.append(str(e)))
-        page.goto(srv.url)
-        page.wait_for_function("window.coex && window.coex.updates > 0", timeout=10_000)
+    with sample_console(browser, _SlowFirstAction, sent, errors) as page:
         page.wait_for_selector('#queues-table tr[data-stream="4"]', timeout=10_000)
         page.locator('#queues-table tr[data-stream="4"]').locator("button", has_text="Flush").click()
         page.locator('#links-table tr[data-link="0"]').locator("button").click()
         page.wait_for_function("document.querySelectorAll('#commands li[data-status]').length === 2",
                                timeout=10_000)
-        page.close()
     assert not errors, errors
     assert [type(x) for x in sent] == [m.QueueConfig, m.LinkControl], sent
