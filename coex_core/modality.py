@@ -73,6 +73,12 @@ class ModalitySender(abc.ABC):
         """An estimate of the bytes still waiting to be sent (0 when idle)."""
         return 0
 
+    def acked(self, message: Message, now: float) -> None:  # noqa: B027 - optional hook
+        """The other side acknowledged ``message``, which this sender produced (streams with
+        ``ack_required`` only; called by the node when the frame ack arrives). Optional: a
+        sender may use it to drop a queued copy that is no longer needed. It must not raise
+        (if it does, the node logs and counts it, and nothing else changes)."""
+
 
 class ModalityReceiver(abc.ABC):
     """The topside side of a modality.

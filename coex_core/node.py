@@ -186,6 +186,18 @@ class Node:
                 self._events.append(Rejected(now, m, f"{type(exc).__name__}: {exc}"))
         return messages
 
+    def _acked(self, ack: FrameAck, now: float) -> None:
+        """Apply a frame ack, then tell each sender which of its messages were acknowledged."""
+        for stream, message in self.manager.acknowledge(ack, now):
+            for s in self._senders:
+                if s.stream != stream:
+                    continue
+                try:
+                    s.sender.acked(message, now)
+                except Exception as exc:  # a sender's hook never stops the node
+                    self.stats["rejected"] += 1
+                    self._note(f"{s.name} sender failed on an ack: {type(exc).__name__}: {exc}")
+
     def _unauthenticated(self, link_id: int, messages: list[Message], exc: AuthenticationError,
                          now: float) -> list[Message]:
         """A frame failed authentication: its commands are rejected, logged and counted (and
@@ -207,7 +219,7 @@ class Node:
 
     def _route(self, link_id: int, src: int, m: Message, now: float) -> None:
         if isinstance(m, FrameAck):
-            self.manager.on_ack(m, now)
+            self._acked(m, now)
             return
         if isinstance(m, CommandAck):
             owner = self._command_owner.pop(m.command_id, None)

@@ -180,6 +180,29 @@ def test_gap_filling_sends_exactly_what_topside_lacks() -> None:
     assert sorted((s.ix, s.iy) for s in out) == sorted(dropped)
 
 
+def test_a_requested_subgrid_acked_meanwhile_is_not_sent_again_unless_newer() -> None:
+    """Topside asks for two subgrids it lacks while copies are still on the way; the ack of a
+    copy answers its request (the ack arrives after the request), unless the map has a newer
+    version of it by then."""
+    sender, receiver, now = _synced()
+    keys = sorted(k for k in receiver.held[0] if min(k) >= 0)[:2]
+    copies = {k: sender.build((0, *k)) for k in keys}
+    for k in keys:
+        del receiver.held[0][k]
+    receiver.request_gaps(0, min(k[0] for k in keys), min(k[1] for k in keys), 16, 16)
+    for r in receiver.poll(now):
+        sender.handle(r, now)
+    plain, newer = keys
+    sender.acked(copies[plain], now + 5.0)  # the copy in flight arrived: nothing to resend
+    x, y = newer[0] * 8 + 3.5, newer[1] * 8 + 3.5
+    _bump(sender, x, y, now + 6.0)  # the other subgrid changed before its copy was acked
+    sender.acked(copies[newer], now + 7.0)
+    sender.acked(sender.metadata(now), now + 7.0)  # not a subgrid: ignored
+    out = [(s.level, s.ix, s.iy) for s in _drain(sender, now + 30.0) if s.level == 0]
+    assert (0, *plain) not in out
+    assert out.count((0, *newer)) == 1  # once: as requested, not again as a changed subgrid
+
+
 @pytest.mark.parametrize(
     "request_",
     [

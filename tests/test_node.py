@@ -117,8 +117,8 @@ def links(n: int = 1, **kw: Any) -> list[LinkConfig]:
 class Pair:
     def __init__(self, n_links: int = 1, loss: float = 0.0, seed: int = 1,
                  log: io.StringIO | None = None, link_cfgs: list[LinkConfig] | None = None,
-                 **link_kw: Any) -> None:
-        self.sender = FakeSender()
+                 sender: FakeSender | None = None, **link_kw: Any) -> None:
+        self.sender = sender or FakeSender()
         self.receiver = FakeReceiver()
         cfgs = link_cfgs or links(n_links, **link_kw)
         n_links = len(cfgs)
@@ -380,3 +380,30 @@ def test_each_link_has_its_own_schedule_and_layout() -> None:
     assert after and all(tx.schedule == 4 and tx.slot in (1, 2) for tx in after)
     assert p.vmgr.schedule(0).version == 0 and p.tmgr.schedule(0).version == 0
     assert p.vmgr.schedule(1) == p.tmgr.schedule(1)
+
+
+class _AckListener(FakeSender):
+    def __init__(self, fail: bool = False) -> None:
+        super().__init__()
+        self.heard: list[Message] = []
+        self.fail = fail
+
+    def acked(self, message: Message, now: float) -> None:
+        self.heard.append(message)
+        if self.fail:
+            raise RuntimeError("hook broken")
+
+
+@pytest.mark.parametrize("fail", [False, True])
+def test_senders_hear_which_of_their_messages_were_acked(fail: bool) -> None:
+    """The node tells a sender (``ModalitySender.acked``) each of its messages the other side
+    acknowledged, exactly the manager's ``Acked`` events; a hook that raises is logged and
+    counted, and the acks still clear the queue."""
+    listener = _AckListener(fail)
+    p = Pair(sender=listener)
+    p.run(300.0)
+    acked = [e.message for e in p.vevents if isinstance(e, Acked) and e.stream == 5]
+    assert len(acked) > 20
+    assert listener.heard == acked
+    assert p.vmgr.stats["acked"] >= len(acked)
+    assert p.vehicle.stats["rejected"] == (len(acked) if fail else 0)

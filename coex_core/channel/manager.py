@@ -766,10 +766,15 @@ class ChannelManager:
         """Apply a :class:`FrameAck` (received on any link): every ack-required message packed
         in an acknowledged frame leaves its queue, and every link's pending records. Returns the
         number of messages cleared."""
+        return len(self.acknowledge(ack, now))
+
+    def acknowledge(self, ack: FrameAck, now: float) -> list[tuple[int, Message]]:
+        """:meth:`on_ack`, returning the ``(stream, message)`` pairs it cleared (each also gives
+        an :class:`Acked` event)."""
         if ack.node != self.node_id or ack.link not in self._links:
-            return 0
+            return []
         st = self._links[ack.link]
-        cleared = 0
+        cleared: list[tuple[int, Message]] = []
         for ent in ack.entries:
             for i in range(8):
                 if not ent.frames >> i & 1:
@@ -782,7 +787,7 @@ class ChannelManager:
                     q = self._streams[sid].queue
                     self._forget(e)
                     q.entries.remove(e)
-                    cleared += 1
+                    cleared.append((sid, e.message))
                     self.stats["acked"] += 1
                     self._events.append(Acked(now, sid, e.message, now - (e.first_sent or now), ack.link))
         return cleared

@@ -275,6 +275,7 @@ class BathymetrySender(ModalitySender):
         # Requested subgrids first.
         remaining: list[Key] = []
         misses = 0
+        answered: set[Key] = set()
         for key in self._queue:
             if left < MIN_SUBGRID_BYTES or misses >= MAX_MISSES:
                 remaining.append(key)
@@ -288,6 +289,7 @@ class BathymetrySender(ModalitySender):
                 out.append(sg)
                 left -= size
                 self._queued.discard(key)
+                answered.add(key)
                 self._mark_sent(key, self.subgrid_time(key), now)
             else:
                 misses += 1
@@ -297,7 +299,7 @@ class BathymetrySender(ModalitySender):
         for _, updated, key in background:
             if left < MIN_SUBGRID_BYTES or misses >= MAX_MISSES:
                 break
-            if key in self._queued:
+            if key in self._queued or key in answered:  # requested: sent above, or still queued
                 continue
             built = self._built(key)
             if built is None:
@@ -315,6 +317,19 @@ class BathymetrySender(ModalitySender):
         return 40 * (self._pending + len(self._queue))
 
     # --------------------------------------------------------------------------- requests
+
+    def acked(self, message: Message, now: float) -> None:
+        """Topside acknowledged a subgrid: a request for it still queued is answered, if the
+        acknowledged copy is its current version (a newer version stays queued)."""
+        if not isinstance(message, Subgrid):
+            return
+        key = (message.level, message.ix, message.iy)
+        if key not in self._queued:
+            return
+        built = self._built(key)
+        if built is not None and built[0] == message:
+            self._queued.discard(key)
+            self._queue = [k for k in self._queue if k != key]
 
     def handle(self, message: Message, now: float) -> list[Message]:
         if not isinstance(message, MapRoiRequest):
