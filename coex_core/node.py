@@ -176,7 +176,12 @@ class Node:
             self.manager.on_frame(link_id, h, now, ackable)
         except CoexError as exc:
             self._note(f"frame bookkeeping failed: {exc}")
-        for m in messages:
+        # a frame's acks are applied after its other messages: a request packed earlier than
+        # the ack (so it may ask for what the ack confirms) then meets the ack, and the sender
+        # can drop what the ack answered (``ModalitySender.acked``)
+        acks_last = [m for m in messages if not isinstance(m, FrameAck)] + \
+            [m for m in messages if isinstance(m, FrameAck)]
+        for m in acks_last:
             self.stats["messages"] += 1
             try:
                 self._route(link_id, h.src, m, now)

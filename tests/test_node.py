@@ -407,3 +407,40 @@ def test_senders_hear_which_of_their_messages_were_acked(fail: bool) -> None:
     assert listener.heard == acked
     assert p.vmgr.stats["acked"] >= len(acked)
     assert p.vehicle.stats["rejected"] == (len(acked) if fail else 0)
+
+
+def test_a_gap_request_packed_before_the_ack_of_what_it_asks_for_resends_nothing() -> None:
+    """Topside's packet carries a FrameAck (built at packing time) and a gap request built
+    earlier, when topside still lacked a subgrid the acked frame carried. The node applies the
+    frame's acks after its other messages, so the bathymetry sender drops that subgrid from its
+    request queue instead of sending it again."""
+    from coex_core.messages import FrameAck, FrameAckEntry, MapRoiRequest, Subgrid
+    from coex_plugins.bathymetry import BathymetryModality, BathymetrySender
+
+    from ._bathy_data import small_survey
+
+    _, survey = small_survey(48.0, 128)
+    sender = BathymetrySender({"levels": 3})
+    for t, xyz in survey.pings(batch=10):
+        sender.ingest(xyz, t)
+    vmgr = ChannelManager(VEHICLE, links(), queue_status_interval=1e9)
+    vehicle = Node(vmgr)
+    vehicle.add_sender(BathymetryModality, sender, StreamConfig(3, "map", priority=30, ack_required=True))
+    now = float(survey.times[-1]) + 1000.0
+    while not vmgr.can_transmit(0, now):
+        now += 1.0
+    (tx,) = vehicle.poll(now)
+    seq, first = next((tx.seq + i, sg) for i, f in enumerate(tx.frames)
+                      for sg in wire.unpack(f) if isinstance(sg, Subgrid))
+    key = (first.level, first.ix, first.iy)
+    request = MapRoiRequest(7, first.level, first.ix, first.iy, 1, 1, True, (), 0)  # "I lack it"
+    ack = FrameAck(VEHICLE, 0, (FrameAckEntry(seq, 1),))
+    frame = wire.pack([ack, request], 256, FrameHeader(src=TOPSIDE, dst=VEHICLE, seq=3))
+    vehicle.receive(0, frame, now + 10.0)
+    assert [e for e in vehicle.events() if isinstance(e, Acked)]
+    again = [(m.level, m.ix, m.iy) for m in sender.fill(10_000, now + 11.0) if isinstance(m, Subgrid)]
+    assert key not in again
+    # the same request after the ack (a real new loss) is served
+    vehicle.receive(0, wire.pack([MapRoiRequest(8, *key, 1, 1, True, (), 0)], 256,
+                                 FrameHeader(src=TOPSIDE, dst=VEHICLE, seq=4)), now + 12.0)
+    assert key in [(m.level, m.ix, m.iy) for m in sender.fill(10_000, now + 13.0) if isinstance(m, Subgrid)]
