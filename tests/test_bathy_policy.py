@@ -203,6 +203,30 @@ def test_a_requested_subgrid_acked_meanwhile_is_not_sent_again_unless_newer() ->
     assert out.count((0, *newer)) == 1  # once: as requested, not again as a changed subgrid
 
 
+def test_the_newest_gap_request_for_a_region_wins() -> None:
+    """An older copy of a gap request delivered late (the channel re-sent it) queues nothing;
+    a newer gap request saying topside now holds what an earlier one asked for unqueues it."""
+    sender, receiver, now = _synced()
+    k1, k2 = sorted(k for k in receiver.held[0] if min(k) >= 0)[:2]
+    x0, y0 = min(k1[0], k2[0]), min(k1[1], k2[1])
+    w, h = max(k1[0], k2[0]) - x0 + 1, max(k1[1], k2[1]) - y0 + 1
+
+    def gap(rid: int, lacking: set[tuple[int, int]]) -> MapRoiRequest:
+        have = 0
+        for i in range(w * h):
+            have = (have << 1) | ((x0 + i % w, y0 + i // w) not in lacking)
+        return MapRoiRequest(rid, 0, x0, y0, w, h, True, (), have)
+
+    assert sender.handle(gap(250, {k1, k2}), now)[0].queued == 2  # type: ignore[attr-defined]
+    assert sender.handle(gap(3, {k2}), now + 30.0)[0].queued == 1  # type: ignore[attr-defined]
+    assert sender.handle(gap(250, {k1, k2}), now + 40.0)[0].queued == 0  # type: ignore[attr-defined]
+    assert sender.stale_requests == 1
+    out = [(s.ix, s.iy) for s in _drain(sender, now + 41.0, step=0) if s.level == 0]
+    assert out == [k2]
+    # long after, or far older ids, a request is new again
+    assert sender.handle(gap(250, {k1}), now + 400.0)[0].queued == 1  # type: ignore[attr-defined]
+
+
 @pytest.mark.parametrize(
     "request_",
     [

@@ -50,6 +50,12 @@ SENDER_DEFAULTS: dict[str, Any] = {
 MIN_SUBGRID_BYTES = 12
 #: After this many subgrids that did not fit, ``fill`` stops looking for smaller ones (keeps it cheap).
 MAX_MISSES = 8
+#: a request for a region at most STALE_REQUEST_IDS ids older than the newest one handled for it
+#: within STALE_REQUEST_S seconds is a late copy (ids wrap at 256)
+STALE_REQUEST_S = 300.0
+STALE_REQUEST_IDS = 32
+#: regions whose newest request id is remembered
+MAX_REGIONS_REMEMBERED = 1024
 
 
 def merged_config(config: Mapping[str, Any] | None, defaults: Mapping[str, Any]) -> dict[str, Any]:
@@ -100,6 +106,7 @@ class BathymetrySender(ModalitySender):
         self._sent: dict[tuple[tuple[int, int], int], npt.NDArray[np.float64]] = {}
         self._queue: list[Key] = []
         self._queued: set[Key] = set()
+        self._init_requests()
         self._last_meta = -math.inf
         self._meta_due = False
         self._had_background = False
@@ -283,12 +290,14 @@ class BathymetrySender(ModalitySender):
             built = self._built(key)
             if built is None:
                 self._queued.discard(key)
+                self._gap_queued.discard(key)
                 continue
             sg, size = built
             if size <= left:
                 out.append(sg)
                 left -= size
                 self._queued.discard(key)
+                self._gap_queued.discard(key)
                 answered.add(key)
                 self._mark_sent(key, self.subgrid_time(key), now)
             else:
@@ -318,6 +327,24 @@ class BathymetrySender(ModalitySender):
 
     # --------------------------------------------------------------------------- requests
 
+    def _init_requests(self) -> None:
+        #: queued by gap-filling requests (a newer gap request saying topside has them unqueues them)
+        self._gap_queued: set[Key] = set()
+        #: newest request id and arrival time per requested region
+        self._last_request: dict[tuple[int, int, int, int, int, bool], tuple[int, float]] = {}
+        #: requests ignored because a newer one for the same region had been handled
+        self.stale_requests = 0
+
+    def __setstate__(self, state: dict[str, Any]) -> None:
+        self.__dict__.update(state)
+        if "_gap_queued" not in state:  # saved by an older version
+            self._init_requests()
+
+    def _unqueue(self, keys: set[Key]) -> None:
+        self._queued -= keys
+        self._gap_queued -= keys
+        self._queue = [k for k in self._queue if k not in keys]
+
     def acked(self, message: Message, now: float) -> None:
         """Topside acknowledged a subgrid: a request for it still queued is answered, if the
         acknowledged copy is its current version (a newer version stays queued)."""
@@ -328,8 +355,7 @@ class BathymetrySender(ModalitySender):
             return
         built = self._built(key)
         if built is not None and built[0] == message:
-            self._queued.discard(key)
-            self._queue = [k for k in self._queue if k != key]
+            self._unqueue({key})
 
     def handle(self, message: Message, now: float) -> list[Message]:
         if not isinstance(message, MapRoiRequest):
@@ -352,7 +378,19 @@ class BathymetrySender(ModalitySender):
             raise RequestRejected(f"a region request lists one stamp per subgrid (w*h = {n} <= 64)")
         if len(self._queue) + n > self.max_queue:
             raise RequestRejected("too many subgrids already queued for requests")
+        # The newest request for a region wins: the channel may deliver an older copy (re-sent
+        # after its ack timeout, with what topside lacked back then) after a newer one.
+        region = (r.level, r.x0, r.y0, r.w, r.h, r.fill_gaps)
+        last = self._last_request.get(region)
+        if (last is not None and 0 < (last[0] - r.request_id) % 256 <= STALE_REQUEST_IDS
+                and now - last[1] < STALE_REQUEST_S):
+            self.stale_requests += 1
+            return [MapRoiReply(r.request_id, r.level, 0)]
+        self._last_request[region] = (r.request_id, now)
+        if len(self._last_request) > MAX_REGIONS_REMEMBERED:
+            del self._last_request[next(iter(self._last_request))]
         queued = 0
+        held_now: set[Key] = set()
         for i in range(n):
             key = (r.level, r.x0 + i % r.w, r.y0 + i // r.w)
             updated = self.subgrid_time(key)
@@ -369,4 +407,10 @@ class BathymetrySender(ModalitySender):
                 if key not in self._queued:
                     self._queue.append(key)
                     self._queued.add(key)
+                    if r.fill_gaps:
+                        self._gap_queued.add(key)
+            elif r.fill_gaps and key in self._gap_queued:
+                held_now.add(key)  # asked for by an earlier gap request, held by topside now
+        if held_now:
+            self._unqueue(held_now)
         return [MapRoiReply(r.request_id, r.level, min(queued, 1023))]
