@@ -101,6 +101,15 @@ class ModalityReceiver(abc.ABC):
     def products(self) -> list[Product]:
         """Every current product."""
 
+    def supersedes(self, old: Message, new: Message) -> bool:
+        """Whether ``new``, a request :meth:`poll` just returned, makes ``old``, an earlier one
+        still in the channel (queued, or sent and not yet acknowledged), useless. Optional
+        (default: never). The node then withdraws ``old`` before queueing ``new``, so the channel
+        does not re-send an outdated request after the fresh one (a retry of a region request
+        carries what topside holds now). It must not raise (if it does, the node logs it and
+        withdraws nothing)."""
+        return False
+
 
 class Modality(abc.ABC):
     """A modality plugin: its name, its message types, and factories for both sides.

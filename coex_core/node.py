@@ -338,11 +338,25 @@ class Node:
                 if cid is not None:
                     self._command_owner[int(cid)] = r
             for m in reqs:
+                self._supersede(r, m, now)
                 try:
                     self.manager.push(r.stream, m, now)
                 except CoexError as exc:
                     self._events.append(Rejected(now, m, f"request not sendable: {exc}"))
         return self.manager.poll(now)
+
+    def _supersede(self, r: _ReceiverSlot, new: Message, now: float) -> None:
+        """Withdraw from ``r``'s stream the earlier requests its receiver says ``new`` replaces."""
+        if getattr(type(r.receiver), "supersedes", ModalityReceiver.supersedes) is ModalityReceiver.supersedes:
+            return  # the default: nothing is ever superseded
+
+        def outdated(old: Message) -> bool:
+            return old is not new and type(old) is type(new) and r.receiver.supersedes(old, new)
+
+        try:
+            self.manager.withdraw(r.stream, outdated, now)
+        except Exception as exc:
+            self._note(f"{r.name} receiver supersedes failed: {exc}")
 
     def next_event(self, now: float) -> float | None:
         """When :meth:`poll` should next be called (``None``: nothing scheduled)."""

@@ -310,6 +310,25 @@ def test_ack_on_one_link_clears_the_message_everywhere() -> None:
     assert m.on_ack(FrameAck(VEHICLE, 0, (FrameAckEntry(tx0.seq, 1),)), 120.0) == 0
 
 
+def test_withdrawn_messages_leave_queued_or_in_flight_and_their_late_ack_clears_nothing() -> None:
+    m = manager(StreamConfig(5, "img", ack_required=True), links=[vehicle_link(ack_timeout=50.0)])
+    m.push(5, blob(40, 1), 0.0)
+    m.push(5, blob(40, 2), 0.0)
+    tx = m.build(0, 1.0)
+    assert tx is not None and messages_of(tx.frames) == [blob(40, 1), blob(40, 2)]
+    m.push(5, blob(40, 3), 5.0)
+    m.events()
+    assert m.withdraw(5, lambda msg: msg in (blob(40, 1), blob(40, 3)), 6.0) == 2
+    assert [e.message for e in m.stream(5).entries] == [blob(40, 2)]
+    (dropped,) = [e for e in m.events() if isinstance(e, Dropped)]
+    assert (dropped.stream, dropped.reason, dropped.count) == (5, "superseded", 2)
+    assert m.stream(5).drop_reasons == {"superseded": 2}
+    # the frame's ack clears only what is still there; nothing withdrawn is ever sent again
+    assert m.on_ack(FrameAck(VEHICLE, 0, (FrameAckEntry(tx.seq, 1),)), 10.0) == 1
+    assert m.build(0, 200.0) is None
+    assert m.withdraw(5, lambda msg: True, 201.0) == 0
+
+
 def test_disabling_a_link_returns_unacked_messages() -> None:
     m = manager(StreamConfig(5, "img", ack_required=True), links=two_links())
     m.push(5, blob(40, 1), 0.0)

@@ -444,3 +444,64 @@ def test_a_gap_request_packed_before_the_ack_of_what_it_asks_for_resends_nothing
     vehicle.receive(0, wire.pack([MapRoiRequest(8, *key, 1, 1, True, (), 0)], 256,
                                  FrameHeader(src=TOPSIDE, dst=VEHICLE, seq=4)), now + 12.0)
     assert key in [(m.level, m.ix, m.iy) for m in sender.fill(10_000, now + 13.0) if isinstance(m, Subgrid)]
+
+
+def _control_requests(mgr: ChannelManager) -> list[int]:
+    from coex_core.channel import CONTROL_STREAM
+    from coex_core.messages import MapRoiRequest
+
+    return [e.message.request_id for e in mgr.stream(CONTROL_STREAM).entries
+            if isinstance(e.message, MapRoiRequest)]
+
+
+def test_a_retried_region_request_replaces_the_unacked_one_in_the_channel() -> None:
+    """The vehicle never hears topside: a region request goes out, is not acked, and the receiver
+    retries it with what it holds now. The retry withdraws the earlier copy from the channel
+    (``ModalityReceiver.supersedes``), so the channel never re-sends an outdated request after
+    the fresh one; a request for another region stays."""
+    from coex_core.channel import Dropped
+    from coex_core.messages import MapRoiRequest
+    from coex_plugins.bathymetry import BathymetryModality, BathymetryReceiver
+
+    receiver = BathymetryReceiver({"levels": 3, "request_timeout": 100.0, "max_requests_per_poll": 4})
+    tmgr = ChannelManager(TOPSIDE, links())
+    topside = Node(tmgr)
+    topside.add_receiver(BathymetryModality, receiver)
+    receiver.request_gaps(0, 0, 0, 2, 2)
+    receiver.request_region(1, 0, 0, 1, 1)
+    sent: list[tuple[float, int]] = []
+    now = 0.0
+    while now < 450.0:
+        for tx in topside.poll(now):
+            sent += [(now, m.request_id) for f in tx.frames for m in wire.unpack(f)
+                     if isinstance(m, MapRoiRequest) and m.level == 0]
+        now += 1.0
+    ids = [rid for _, rid in sent]
+    assert len(set(ids)) >= 4  # the receiver retried every 100 s
+    # once a newer request for the region exists, no older one is ever sent again
+    for i, rid in enumerate(ids):
+        assert all(rid >= earlier for earlier in ids[:i]), sent
+    # the channel holds one request per region: the newest of each
+    newest = {r.level: r.request_id for r in receiver.active_regions()}
+    assert sorted(_control_requests(tmgr)) == sorted(newest.values())
+    dropped = [e for e in topside.events() if isinstance(e, Dropped) and e.reason == "superseded"]
+    assert sum(e.count for e in dropped) >= 2 * (len(set(ids)) - 1)
+
+
+class _BadSupersedes(FakeReceiver):
+    def poll(self, now: float) -> list[Message]:
+        return [Opaque(REQUEST, bytes([int(now) % 200]))]
+
+    def supersedes(self, old: Message, new: Message) -> bool:
+        raise RuntimeError("broken hook")
+
+
+def test_a_supersedes_hook_that_raises_withdraws_nothing_and_queues_the_request() -> None:
+    from coex_core.channel import CONTROL_STREAM
+
+    tmgr = ChannelManager(TOPSIDE, links())
+    topside = Node(tmgr)
+    topside.add_receiver(FakeModality, _BadSupersedes())
+    topside.poll(1.0)
+    topside.poll(2.0)
+    assert [e.message.body for e in tmgr.stream(CONTROL_STREAM).entries] == [b"\x01", b"\x02"]

@@ -41,8 +41,9 @@ class SenderFailed(Event):
 
 @dataclass(frozen=True)
 class Dropped(Event):
-    """Messages left a queue unsent: ``reason`` is ``overflow``, ``superseded`` (a newer one
-    replaced it in a newest-only stream), ``ttl``, ``flush`` or ``encode``."""
+    """Messages left a queue unsent (or unacknowledged): ``reason`` is ``overflow``,
+    ``superseded`` (a newer one replaced it in a newest-only stream, or a receiver's newer
+    request made it useless: ``ChannelManager.withdraw``), ``ttl``, ``flush`` or ``encode``."""
 
     stream: int
     reason: str

@@ -340,6 +340,20 @@ class ChannelManager:
             self._events.append(Dropped(now, stream, "flush", n))
         return n
 
+    def withdraw(self, stream: int, match: Callable[[Message], bool], now: float) -> int:
+        """Take off ``stream`` every entry whose message ``match`` accepts, queued or sent and
+        awaiting its ack (a later ack for it then clears nothing). Counted as ``superseded``
+        drops; returns how many were withdrawn."""
+        q = self.stream(stream)
+        gone = [e for e in q.entries if match(e.message)]
+        for e in gone:
+            self._forget(e)
+            q.entries.remove(e)
+        if gone:
+            q.count_drop("superseded", len(gone))
+            self._events.append(Dropped(now, stream, "superseded", len(gone)))
+        return len(gone)
+
     # ============================================================================= links
     def link(self, link: int) -> LinkConfig:
         return self._link(link).cfg

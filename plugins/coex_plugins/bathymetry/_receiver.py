@@ -343,5 +343,13 @@ class BathymetryReceiver(ModalityReceiver):
                 r.next_send = now + self.request_timeout
         return out
 
+    def supersedes(self, old: Message, new: Message) -> bool:
+        """A region request retried (same level, rectangle and kind) replaces the earlier one: it
+        carries what topside holds now, so the channel must not re-send the old one after it."""
+        return (isinstance(old, MapRoiRequest) and isinstance(new, MapRoiRequest)
+                and old.request_id != new.request_id
+                and (old.level, old.x0, old.y0, old.w, old.h, old.fill_gaps)
+                == (new.level, new.x0, new.y0, new.w, new.h, new.fill_gaps))
+
     def active_regions(self) -> list[Region]:
         return [r for r in self.regions if not r.done]
