@@ -330,28 +330,25 @@ class ChannelManager:
         return Entry(self._entry_ids, q.id, message, size, now)
 
     def flush(self, stream: int, now: float) -> int:
-        q = self.stream(stream)
-        n = len(q.entries)
-        for e in list(q.entries):
-            self._forget(e)
-        q.entries.clear()
-        if n:
-            q.count_drop("flush", n)
-            self._events.append(Dropped(now, stream, "flush", n))
-        return n
+        """Empty ``stream`` (counted as ``flush`` drops); returns how many messages left."""
+        return self._remove(stream, lambda m: True, "flush", now)
 
     def withdraw(self, stream: int, match: Callable[[Message], bool], now: float) -> int:
         """Take off ``stream`` every entry whose message ``match`` accepts, queued or sent and
         awaiting its ack (a later ack for it then clears nothing). Counted as ``superseded``
         drops; returns how many were withdrawn."""
+        return self._remove(stream, match, "superseded", now)
+
+    def _remove(self, stream: int, match: Callable[[Message], bool], reason: str, now: float) -> int:
         q = self.stream(stream)
-        gone = [e for e in q.entries if match(e.message)]
+        flags = [bool(match(e.message)) for e in q.entries]  # a match that raises changes nothing
+        gone = [e for e, f in zip(q.entries, flags, strict=True) if f]
+        q.entries[:] = [e for e, f in zip(q.entries, flags, strict=True) if not f]
         for e in gone:
             self._forget(e)
-            q.entries.remove(e)
         if gone:
-            q.count_drop("superseded", len(gone))
-            self._events.append(Dropped(now, stream, "superseded", len(gone)))
+            q.count_drop(reason, len(gone))
+            self._events.append(Dropped(now, stream, reason, len(gone)))
         return len(gone)
 
     # ============================================================================= links
