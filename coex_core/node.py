@@ -179,9 +179,7 @@ class Node:
         # a frame's acks are applied after its other messages: a request packed earlier than
         # the ack (so it may ask for what the ack confirms) then meets the ack, and the sender
         # can drop what the ack answered (``ModalitySender.acked``)
-        acks_last = [m for m in messages if not isinstance(m, FrameAck)] + \
-            [m for m in messages if isinstance(m, FrameAck)]
-        for m in acks_last:
+        for m in sorted(messages, key=lambda m: isinstance(m, FrameAck)):  # stable: order kept
             self.stats["messages"] += 1
             try:
                 self._route(link_id, h.src, m, now)

@@ -14,11 +14,13 @@ from hypothesis import strategies as st
 from coex_core import wire
 from coex_core.acoustic import AcousticChannel
 from coex_core.channel import (
+    CONTROL_STREAM,
     Acked,
     BadFrame,
     ChannelManager,
     CommandApplied,
     CommandResult,
+    Dropped,
     LinkConfig,
     ProductUpdated,
     Received,
@@ -31,17 +33,24 @@ from coex_core.channel import (
 from coex_core.errors import RequestRejected
 from coex_core.messages import (
     AckStatus,
+    FrameAck,
+    FrameAckEntry,
     FrameHeader,
+    MapRoiRequest,
     Message,
     Opaque,
     QueueConfig,
     QueueStatus,
+    Subgrid,
     VehicleMode,
     VehicleStatus,
 )
 from coex_core.modality import Modality, ModalityReceiver, ModalitySender, Product
 from coex_core.node import Node
+from coex_plugins.bathymetry import BathymetryModality, BathymetryReceiver, BathymetrySender
 from coex_transports._runner import SimNetwork
+
+from ._bathy_data import small_survey
 
 VEHICLE, TOPSIDE = 2, 1
 DATA, REQUEST = 100, 120  # third-party type ids of the fake modality
@@ -414,11 +423,6 @@ def test_a_gap_request_packed_before_the_ack_of_what_it_asks_for_resends_nothing
     earlier, when topside still lacked a subgrid the acked frame carried. The node applies the
     frame's acks after its other messages, so the bathymetry sender drops that subgrid from its
     request queue instead of sending it again."""
-    from coex_core.messages import FrameAck, FrameAckEntry, MapRoiRequest, Subgrid
-    from coex_plugins.bathymetry import BathymetryModality, BathymetrySender
-
-    from ._bathy_data import small_survey
-
     _, survey = small_survey(48.0, 128)
     sender = BathymetrySender({"levels": 3})
     for t, xyz in survey.pings(batch=10):
@@ -446,23 +450,11 @@ def test_a_gap_request_packed_before_the_ack_of_what_it_asks_for_resends_nothing
     assert key in [(m.level, m.ix, m.iy) for m in sender.fill(10_000, now + 13.0) if isinstance(m, Subgrid)]
 
 
-def _control_requests(mgr: ChannelManager) -> list[int]:
-    from coex_core.channel import CONTROL_STREAM
-    from coex_core.messages import MapRoiRequest
-
-    return [e.message.request_id for e in mgr.stream(CONTROL_STREAM).entries
-            if isinstance(e.message, MapRoiRequest)]
-
-
 def test_a_retried_region_request_replaces_the_unacked_one_in_the_channel() -> None:
     """The vehicle never hears topside: a region request goes out, is not acked, and the receiver
     retries it with what it holds now. The retry withdraws the earlier copy from the channel
     (``ModalityReceiver.supersedes``), so the channel never re-sends an outdated request after
     the fresh one; a request for another region stays."""
-    from coex_core.channel import Dropped
-    from coex_core.messages import MapRoiRequest
-    from coex_plugins.bathymetry import BathymetryModality, BathymetryReceiver
-
     receiver = BathymetryReceiver({"levels": 3, "request_timeout": 100.0, "max_requests_per_poll": 4})
     tmgr = ChannelManager(TOPSIDE, links())
     topside = Node(tmgr)
@@ -483,7 +475,9 @@ def test_a_retried_region_request_replaces_the_unacked_one_in_the_channel() -> N
         assert all(rid >= earlier for earlier in ids[:i]), sent
     # the channel holds one request per region: the newest of each
     newest = {r.level: r.request_id for r in receiver.active_regions()}
-    assert sorted(_control_requests(tmgr)) == sorted(newest.values())
+    queued = [e.message.request_id for e in tmgr.stream(CONTROL_STREAM).entries
+              if isinstance(e.message, MapRoiRequest)]
+    assert sorted(queued) == sorted(newest.values())
     dropped = [e for e in topside.events() if isinstance(e, Dropped) and e.reason == "superseded"]
     assert sum(e.count for e in dropped) >= 2 * (len(set(ids)) - 1)
 
@@ -497,8 +491,6 @@ class _BadSupersedes(FakeReceiver):
 
 
 def test_a_supersedes_hook_that_raises_withdraws_nothing_and_queues_the_request() -> None:
-    from coex_core.channel import CONTROL_STREAM
-
     tmgr = ChannelManager(TOPSIDE, links())
     topside = Node(tmgr)
     topside.add_receiver(FakeModality, _BadSupersedes())
