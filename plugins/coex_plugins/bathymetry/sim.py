@@ -34,7 +34,9 @@ FloatArray = npt.NDArray[np.float64]
 
 @dataclass(frozen=True)
 class Target:
-    """A box on the seafloor: centre (x, y), length, width, height (m) and heading (deg from north)."""
+    """An object on the seafloor: centre (x, y), length, width, height (m) and heading (deg from
+    north). ``shape`` is ``"box"`` (a car: flat top) or ``"dome"`` (a boulder: a half-ellipsoid
+    inscribed in the same box)."""
 
     x: float
     y: float
@@ -42,6 +44,7 @@ class Target:
     width: float = 1.8
     height: float = 1.5
     heading: float = 0.0
+    shape: str = "box"
 
 
 @dataclass(frozen=True)
@@ -107,9 +110,14 @@ class Seafloor:
             dx, dy = xa - t.x, ya - t.y
             u = dx * np.sin(h) + dy * np.cos(h)
             v = dx * np.cos(h) - dy * np.sin(h)
+            base = float(self.ground(t.x, t.y))
+            if t.shape == "dome":
+                r2 = (u / (t.length / 2)) ** 2 + (v / (t.width / 2)) ** 2
+                top = base + t.height * np.sqrt(np.clip(1.0 - r2, 0.0, 1.0))
+                z = np.where(r2 < 1.0, np.maximum(z, top), z)
+                continue
             inside = (np.abs(u) <= t.length / 2) & (np.abs(v) <= t.width / 2)
-            top = float(self.ground(t.x, t.y)) + t.height
-            z = np.where(inside, np.maximum(z, top), z)
+            z = np.where(inside, np.maximum(z, base + t.height), z)
         return z
 
 

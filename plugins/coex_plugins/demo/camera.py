@@ -18,7 +18,7 @@ from typing import Protocol
 
 import numpy as np
 
-__all__ = ["BoxLike", "CameraModel", "SandTexture", "render_frame", "footprint", "in_frame"]
+__all__ = ["BoxLike", "CameraModel", "SandTexture", "render_frame", "render_labelled", "footprint", "in_frame"]
 
 HeightFn = Callable[[np.ndarray, np.ndarray], np.ndarray]
 
@@ -127,12 +127,37 @@ def render_frame(
     heading_deg: float,
     *,
     targets: Sequence[BoxLike] = (),
+    rocks: Sequence[BoxLike] = (),
     texture: SandTexture | None = None,
     camera: CameraModel | None = None,
     rng: np.random.Generator | None = None,
     grey: bool = False,
 ) -> np.ndarray:
     """A frame from a camera at (x, y, vehicle_z) looking down; uint8 (H, W, 3) or (H, W) if grey."""
+    return render_labelled(height_fn, x, y, vehicle_z, heading_deg, targets=targets, rocks=rocks,
+                           texture=texture, camera=camera, rng=rng, grey=grey)[0]
+
+
+def render_labelled(
+    height_fn: HeightFn,
+    x: float,
+    y: float,
+    vehicle_z: float,
+    heading_deg: float,
+    *,
+    targets: Sequence[BoxLike] = (),
+    rocks: Sequence[BoxLike] = (),
+    texture: SandTexture | None = None,
+    camera: CameraModel | None = None,
+    rng: np.random.Generator | None = None,
+    grey: bool = False,
+) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`render_frame` and the frame's truth: a label image (uint8, H x W) that is 0 on the
+    seafloor, ``k + 1`` where box ``k`` of ``targets`` is seen and ``len(targets) + k + 1`` where
+    rock ``k`` of ``rocks`` is seen.
+
+    A rock is a car-sized boulder: a rounded, lumpy dome of the sand's colour (lightly mottled,
+    no hard edges); a car is a box with dark, mottled paint and sharp edges."""
     cam = camera or CameraModel()
     tex = texture or SandTexture()
     rng = rng or np.random.default_rng(0)
@@ -148,8 +173,24 @@ def render_frame(
     gx, gy = x + ex * altitude, y + ey * altitude
     gz = _coarse_heights(height_fn, gx, gy)
     albedo = tex(gx, gy)
+    labels = np.zeros(gz.shape, np.uint8)
+    for k, rock in enumerate(rocks):
+        mask, u, v = _inside(rock, gx, gy)
+        if not mask.any():
+            continue
+        # an ellipsoidal dome inscribed in the box, with lumps; the colour of the sand, mottled
+        um, vm = u[mask] / (rock.length / 2), v[mask] / (rock.width / 2)
+        r2 = um**2 + vm**2
+        dome = r2 < 1.0
+        lumps = 0.12 * np.sin(7.0 * um + 2.0) * np.sin(5.0 * vm + 1.0)
+        hz = np.where(dome, rock.height * np.sqrt(np.clip(1.0 - r2, 0.0, 1.0)) * (1.0 + lumps), 0.0)
+        idx = np.flatnonzero(mask.ravel())[dome]
+        gz.ravel()[np.flatnonzero(mask.ravel())] += hz
+        albedo = albedo.astype(np.float64)
+        albedo.ravel()[idx] = albedo.ravel()[idx] * (0.9 + 0.15 * np.sin(9.0 * um[dome]) * np.cos(8.0 * vm[dome]))
+        labels.ravel()[idx] = len(targets) + k + 1
     top = np.zeros_like(gz, dtype=bool)
-    for box in targets:
+    for k, box in enumerate(targets):
         mask, u, v = _inside(box, gx, gy)
         gz = np.where(mask, gz + box.height, gz)
         # a wreck: dark corroded panels, bright encrusting growth, a frame of hard dark edges
@@ -163,6 +204,7 @@ def render_frame(
         albedo = albedo.astype(np.float64)
         albedo[mask] = np.where(edge, 0.03, np.where(growth, 0.2, paint))
         top |= mask
+        labels[mask] = k + 1
     # surface normals from the height field (finite differences in image space)
     dzx = np.gradient(gz, axis=1) / np.maximum(np.gradient(gx, axis=1) ** 2 + np.gradient(gy, axis=1) ** 2, 1e-9) ** 0.5
     dzy = np.gradient(gz, axis=0) / np.maximum(np.gradient(gx, axis=0) ** 2 + np.gradient(gy, axis=0) ** 2, 1e-9) ** 0.5
@@ -182,5 +224,5 @@ def render_frame(
     img = np.clip(np.stack(channels, axis=-1), 0, 255).astype(np.uint8)
     if grey:
         g = 0.299 * img[..., 0] + 0.587 * img[..., 1] + 0.114 * img[..., 2]
-        return np.round(g).astype(np.uint8)
-    return img
+        return np.round(g).astype(np.uint8), labels
+    return img, labels

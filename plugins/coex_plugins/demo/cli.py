@@ -1,4 +1,5 @@
-"""``coex demo [--loss P] [--seed S] [--out DIR] [--images DIR] [--gui | --no-gui] [--quick]``."""
+"""``coex demo [--preset NAME | --scenario FILE.toml] [--loss P] [--burst] [--seed S] [--operator none|script]
+[--out DIR] [--images DIR] [--gui | --no-gui] [--quick]``."""
 
 from __future__ import annotations
 
@@ -15,13 +16,27 @@ def register(sub: Any) -> None:
         "demo",
         help="replay a nested survey (sonar map, then camera pass) through simulated modems",
         description="Replays a two-hour nested survey through the whole CoEx stack and two simulated "
-        "Micromodems (rate 5, 6 x 20 s TDMA), time-compressed, with a scripted operator. Writes maps, "
-        "images, time series, the link log, metrics.json and report.html to --out.",
+        "Micromodems (rate 5, 6 x 20 s TDMA by default), time-compressed, with a scripted operator. "
+        "Writes maps, images, time series, the link log, truth.json, metrics.json and report.html to "
+        "--out; the goals are judged against the simulation's truth.",
     )
     p.add_argument("--out", type=Path, default=Path("coex-demo-out"), help="output directory (default ./coex-demo-out)")
-    p.add_argument("--loss", type=float, default=0.3, help="frame loss probability (default 0.3)")
-    p.add_argument("--burst", action="store_true", help="bursty (Gilbert-Elliott) loss instead of independent")
+    scn = p.add_mutually_exclusive_group()
+    scn.add_argument("--preset", default=None, metavar="NAME",
+                     help="a built-in scenario: default (today's dive), dive040 (the ship 1.5 water depths "
+                          "away, range-dependent loss), harsh (Micromodem rate 3, bursty loss)")
+    scn.add_argument("--scenario", type=Path, default=None, metavar="FILE.toml",
+                     help="a scenario file (site, survey, targets and decoys, modem, TDMA, loss model, ship; "
+                          "see docs/demo.md)")
+    p.add_argument("--loss", type=float, default=None,
+                   help="frame loss probability, overriding the scenario's loss model (default: the scenario's, "
+                        "0.3 independent for the default preset)")
+    p.add_argument("--burst", action="store_true",
+                   help="bursty (Gilbert-Elliott, mean burst 4 frames) loss at --loss instead of independent")
     p.add_argument("--seed", type=int, default=1, help="seed of the scenario and the channel (default 1)")
+    p.add_argument("--operator", choices=("none", "script"), default=None,
+                   help="who operates topside: the scripted operator (default without --gui) or nobody but a "
+                        "person at the console (default with --gui)")
     p.add_argument("--images", type=Path, default=None,
                    help="use real image files from DIR along the camera transect instead of rendered frames")
     gui = p.add_mutually_exclusive_group()
@@ -44,7 +59,7 @@ def run(args: argparse.Namespace) -> int:
 
     from .dive import Decision, DemoConfig, run_demo
 
-    if not 0.0 <= args.loss < 1.0:
+    if args.loss is not None and not 0.0 <= args.loss < 1.0:
         raise ConfigError("--loss must be in [0, 1)")
     if args.speed <= 0:
         raise ConfigError("--speed must be positive")
@@ -53,7 +68,8 @@ def run(args: argparse.Namespace) -> int:
 
     def say(d: Decision) -> None:
         if not args.quiet:
-            sys.stderr.write(f"\r{d.t:7.0f} s  {d.kind:<16} {d.text}\n")
+            who = "" if d.who == "script" else f"[{d.who}] "
+            sys.stderr.write(f"\r{d.t:7.0f} s  {d.kind:<16} {who}{d.text}\n")
 
     from coex_core.auth import parse_key
 
@@ -67,11 +83,15 @@ def run(args: argparse.Namespace) -> int:
             key = parse_key(args.command_key_file.read_bytes())
         except OSError as exc:
             raise ConfigError(f"cannot read --command-key-file: {exc}") from exc
+    from .scenario import load_scenario, preset
+
+    scenario = load_scenario(args.scenario) if args.scenario is not None else preset(args.preset or "default")
     cfg = DemoConfig(out=args.out, loss=args.loss, seed=args.seed, images=args.images, gui=args.gui,
                      http=args.http, quick=args.quick, progress=not args.quiet, burst=args.burst,
-                     speed=args.speed, command_key=key)
+                     speed=args.speed, command_key=key, scenario=scenario, operator=args.operator)
     result = run_demo(cfg, on_decision=say)
     m = result.metrics
+    print(f"scenario {m['scenario']['name']}: {m['scenario']['loss_description']}; operator {m['operator']}")
     for name, goal in m["goals"].items():
         verdict = "MET" if goal["met"] else "NOT MET"
         print(f"{verdict:8} {name}: {goal['detail']}")

@@ -4,15 +4,18 @@ Two CoEx nodes (vehicle 2, topside 1), each a channel manager with the built-in 
 through two simulated WHOI Micromodems (:class:`~coex_transports.micromodem.simulator.ModemNetwork`):
 the bytes between each node and its modem are the NMEA sentences of the real driver
 (:class:`~coex_transports.micromodem.MicromodemTransport`), so the demo runs the same code path
-as a vehicle with real hardware. Rate 5, 6 x 20 s TDMA slots (topside 0 and 3, vehicle 1, 2, 4,
-5), configurable frame loss. Everything runs on one simulated clock that jumps from event to
-event, so a two-hour dive takes a few minutes at most.
+as a vehicle with real hardware. The scenario (:mod:`coex_plugins.demo.scenario`: a preset or a
+TOML file) sets the site, the survey, the modem rate, the TDMA slots, the loss model and where
+the ship is. Everything runs on one simulated clock that jumps from event to event, so a
+two-hour dive takes well under a minute.
 
-The scenario: descent; a lawnmower multibeam survey at 30 m altitude over a seafloor with ripples
-and two car-sized targets the operator does not know about; a camera pass at 3 m altitude over
-the candidates the operator found in the 1 m map; ascent. A scripted operator watches the map,
-requests the finest level around candidates, then asks for camera images near each target by
-time and steps back in time until the target is in frame, as the 2022 operators did.
+The dive: descent; a lawnmower multibeam survey over a seafloor with ripples, cars (the targets)
+and possibly car-sized boulders (decoys) that the operator does not know about; camera transects
+at low altitude over the candidates the operator ranked in the received 1 m map, most car-like
+first, while camera time remains; then the vehicle holds until the end of the dive. The scripted
+operator (:mod:`coex_plugins.demo.operator`) decides only from what reached topside. The goals
+are judged against the simulation's truth (:mod:`coex_plugins.demo.truth`), never against the
+operator's belief.
 """
 
 from __future__ import annotations
@@ -31,17 +34,17 @@ from typing import Any
 
 import numpy as np
 
-from coex_core.acoustic import AcousticChannel, GilbertElliott
+from coex_core.acoustic import AcousticChannel
 from coex_core.channel import ChannelManager, LinkConfig, Schedule, StreamConfig
 from coex_core.channel.events import Received
+from coex_core.errors import ConfigError
 from coex_core.loopback import SimClock
 from coex_core.messages import VehicleMode, VehicleStatus
 from coex_core.node import Node
-from coex_core.timefmt import to_stamp, unwrap
+from coex_core.timefmt import to_stamp
 from coex_plugins.bathymetry import (
     BathymetryModality,
     BathymetryReceiver,
-    find_targets,
     write_geotiff,
     write_png,
 )
@@ -52,17 +55,26 @@ from coex_plugins.timeseries import synth as ts_synth
 from coex_transports._runner import Runner, SimulatedClock, next_wakeup
 from coex_transports.micromodem.simulator import ModemNetwork
 
-from .camera import SandTexture, in_frame, render_frame
+from .camera import CameraModel, SandTexture, render_labelled
+from .operator import CONFIRM_LAYERS, MIN_SCORE, CandidateView, Operator
+from .scenario import Scenario, preset
+from .truth import FrameTruth, frame_truth, judge
 
 __all__ = ["DemoConfig", "DemoResult", "run_demo"]
 
 TOPSIDE, VEHICLE = 1, 2
 EPOCH = 1_656_633_600.0  # 2022-07-01T00:00:00Z: the dive's clock (simulated)
-CYCLE = 120.0
-CAMERA_ALTITUDE = 3.0
 TRANSIT_ALTITUDE = 10.0
-SURVEY_ALTITUDE = 30.0
+HOLD_ALTITUDE = 50.0
 LINK_STREAM = 6
+#: seconds between camera frames on a transect
+CAMERA_PERIOD = 6.0
+#: the vehicle's default set-point for every image (``default_goal``)
+DEFAULT_LAYERS = 2
+#: a target is identifiable at 1 m when a car-like candidate of the received 1 m map lies this
+#: close to it (m)
+IDENTIFY_RADIUS = 3.5
+OPERATORS = ("script", "none")
 
 
 #: The demo's embedded command key (not a secret: real deployments configure their own).
@@ -74,15 +86,15 @@ class DemoConfig:
     """Options of ``coex demo`` (see ``coex demo --help``)."""
 
     out: Path = Path("coex-demo-out")
-    loss: float = 0.3
+    #: frame loss; ``None`` keeps the scenario's loss model (``--loss``)
+    loss: float | None = None
     seed: int = 1
     images: Path | None = None
     gui: bool = False
     http: str = "127.0.0.1:8080"
     quick: bool = False
-    duration: float = 7200.0
-    area: float = 256.0
     progress: bool = True
+    #: bursty (Gilbert-Elliott) loss at ``loss`` (or the scenario's rate) instead of independent
     burst: bool = False
     #: with ``gui``: simulated seconds per wall-clock second, so that a person can act
     speed: float = 20.0
@@ -91,12 +103,21 @@ class DemoConfig:
     #: shared command key (spec section 10): topside signs every command, the vehicle checks
     #: them; ``None`` turns authentication off
     command_key: bytes | None = DEMO_COMMAND_KEY
+    #: the dive (``--scenario FILE`` / ``--preset NAME``); ``None`` is preset ``default``
+    scenario: Scenario | None = None
+    #: ``"script"`` or ``"none"``; ``None``: the script, unless a person has the console (``gui``)
+    operator: str | None = None
 
-    def scaled(self) -> DemoConfig:
-        """The short scenario of ``--quick`` (tests): a small area, a short dive."""
-        if not self.quick:
-            return self
-        return DemoConfig(**{**asdict(self), "area": 96.0, "duration": 3000.0, "quick": True})
+    def resolved(self) -> tuple[Scenario, str]:
+        """The scenario with ``--quick``, ``--loss`` and ``--burst`` applied, and the operator."""
+        scn = self.scenario or preset("default")
+        scn = scn.with_loss(self.loss, self.burst)
+        if self.quick:
+            scn = scn.quick()
+        op = self.operator or ("none" if self.gui else "script")
+        if op not in OPERATORS:
+            raise ConfigError(f"operator must be one of {', '.join(OPERATORS)}, got {op!r}")
+        return scn, op
 
 
 @dataclass
@@ -104,6 +125,8 @@ class Decision:
     t: float
     kind: str
     text: str
+    #: ``"script"`` (the scripted operator), ``"person"`` (an action in the console) or ``"system"``
+    who: str = "script"
 
 
 @dataclass
@@ -114,17 +137,6 @@ class DemoResult:
 
 
 # ------------------------------------------------------------------------------ scenario
-
-
-def _targets(area: float, rng: np.random.Generator) -> tuple[Target, ...]:
-    """Two car-sized boxes at positions the operator does not know (well inside the area)."""
-    margin = 0.2 * area
-    out: list[Target] = []
-    while len(out) < 2:
-        x, y = rng.uniform(margin, area - margin, 2)
-        if all(math.hypot(x - t.x, y - t.y) > 0.25 * area for t in out):
-            out.append(Target(float(round(x, 1)), float(round(y, 1)), heading=float(rng.uniform(-90, 90))))
-    return tuple(out)
 
 
 @dataclass
@@ -199,21 +211,31 @@ class Track:
 # ------------------------------------------------------------------------------ the nodes
 
 
+def dive_schedule(scn: Scenario) -> Schedule:
+    """The scenario's TDMA cycle (the NUI 2022 one by default: 6 x 20 s slots, 2 s guard, topside
+    slots 0 and 3, vehicle slots 1, 2, 4, 5)."""
+    owners = [TOPSIDE if s == "topside" else VEHICLE for s in scn.slots]
+    return Schedule.simple(owners, scn.slot_seconds, scn.guard_seconds, epoch=EPOCH)
+
+
 def nui_schedule() -> Schedule:
     """6 x 20 s slots, 2 s guard: topside owns slots 0 and 3, the vehicle 1, 2, 4, 5."""
-    return Schedule.simple([TOPSIDE, VEHICLE, VEHICLE, TOPSIDE, VEHICLE, VEHICLE], 20.0, 2.0, epoch=EPOCH)
+    return dive_schedule(Scenario())
 
 
 def build_nodes(out: Path, channels: list[dict[str, Any]], command_key: bytes | None = None,
-                ) -> tuple[Node, Node, dict[str, Any], dict[str, Any]]:
-    sched = nui_schedule()
-    vehicle = Node(ChannelManager(VEHICLE, [LinkConfig(0, sched, rate=5, dst=TOPSIDE)],
-                                  queue_status_interval=CYCLE, command_key=command_key))
-    topside = Node(ChannelManager(TOPSIDE, [LinkConfig(0, sched, rate=5, dst=VEHICLE)],
-                                  queue_status_interval=CYCLE, command_key=command_key))
+                scenario: Scenario | None = None) -> tuple[Node, Node, dict[str, Any], dict[str, Any]]:
+    scn = scenario or Scenario()
+    sched = dive_schedule(scn)
+    cycle = scn.cycle
+    vehicle = Node(ChannelManager(VEHICLE, [LinkConfig(0, sched, rate=scn.modem_rate, dst=TOPSIDE)],
+                                  queue_status_interval=cycle, command_key=command_key))
+    topside = Node(ChannelManager(TOPSIDE, [LinkConfig(0, sched, rate=scn.modem_rate, dst=VEHICLE)],
+                                  queue_status_interval=cycle, command_key=command_key))
     senders = {
         "bathymetry": BathymetryModality().sender({"send_delay": 20.0}),
-        "imagery": ImageryModality().sender({"default_goal": f"layer:{DEFAULT_LAYERS}", "request_goal": f"layer:{CONFIRM_LAYERS}"}),
+        "imagery": ImageryModality().sender({"default_goal": f"layer:{DEFAULT_LAYERS}",
+                                             "request_goal": f"layer:{CONFIRM_LAYERS}"}),
         "timeseries": TimeSeriesModality().sender({"channels": channels}),
     }
     receivers = {
@@ -231,172 +253,6 @@ def build_nodes(out: Path, channels: list[dict[str, Any]], command_key: bytes | 
     topside.add_receiver(ImageryModality, receivers["imagery"])
     topside.add_receiver(TimeSeriesModality, receivers["timeseries"])
     return vehicle, topside, senders, receivers
-
-
-# ------------------------------------------------------------------------------ operator
-
-
-@dataclass
-class TargetWatch:
-    x: float
-    y: float
-    height: float
-    cells: int
-    found_at: float
-    passed_at: float | None = None
-    want: tuple[float, str] | None = None  # the image asked for: (time, "nearest" | "before")
-    first_request_at: float | None = None
-    request_at: float | None = None
-    image_id: int | None = None
-    tried: list[int] = field(default_factory=list)
-    confirmed_at: float | None = None
-
-
-#: The operator's test of "a car-sized object in the 1 m map": height and footprint.
-MIN_HEIGHT, MAX_HEIGHT = 1.0, 3.0
-MIN_CELLS, MAX_CELLS = 3, 20
-#: The image goal of a requested image (the vehicle's ``request_goal``): enough to recognise a car.
-CONFIRM_LAYERS = 10
-#: The vehicle's default set-point for every image (``default_goal``).
-DEFAULT_LAYERS = 2
-
-
-class Operator:
-    """The scripted topside operator (what the 2022 operators did by hand).
-
-    It knows the survey box (it planned the survey), never the targets: it finds candidates in
-    what topside received, asks for 1 m data around them, shortlists car-sized ones, and asks for
-    images by time, stepping back until the target is in frame."""
-
-    def __init__(self, topside: Node, receivers: dict[str, Any], box: tuple[float, float, float, float],
-                 log: Callable[[float, str, str], None]) -> None:
-        self.topside = topside
-        self.bathy: BathymetryReceiver = receivers["bathymetry"]
-        self.imagery: ImageryReceiver = receivers["imagery"]
-        self.series: TimeSeriesReceiver = receivers["timeseries"]
-        self.box = box
-        self.log = log
-        self.track: list[tuple[float, float, float, float]] = []  # t, x, y, heading (received)
-        self.coarse_requested: list[tuple[float, float]] = []
-        self.targets: list[TargetWatch] = []
-        self.camera_phase = False
-
-    def inside(self, x: float, y: float, margin: float = 3.0) -> bool:
-        x0, y0, x1, y1 = self.box
-        return x0 + margin <= x <= x1 - margin and y0 + margin <= y <= y1 - margin
-
-    # what topside hears
-    def on_status(self, s: VehicleStatus, now: float) -> None:
-        # the status's own time (its stamp), not when it arrived: it may have waited for a slot
-        if s.altitude is not None and s.altitude <= CAMERA_ALTITUDE + 2.0:  # on a camera transect
-            self.track.append((unwrap(s.stamp, now), s.x, s.y, s.heading))
-
-    def level_grid(self, level: int) -> tuple[np.ndarray, float, tuple[float, float]] | None:
-        try:
-            p = self.bathy.level_product(level)
-        except Exception:
-            return None
-        if p.data is None:
-            return None
-        meta = dict(p.meta)
-        return np.asarray(p.data, dtype=float), float(meta["cell_size"]), (float(meta["x0"]), float(meta["y0"]))
-
-    def candidates(self, level: int, threshold: float, **kw: Any) -> list[Any]:
-        g = self.level_grid(level)
-        if g is None:
-            return []
-        grid, cell, (x0, y0) = g
-        return [c for c in find_targets(grid, cell=cell, x0=x0, y0=y0, threshold=threshold, **kw)
-                if self.inside(c.x, c.y)]
-
-    def shortlist(self, n: int = 2) -> list[TargetWatch]:
-        return sorted(self.targets, key=lambda t: -t.height)[:n]
-
-    def watch_map(self, now: float) -> None:
-        """Every half cycle: look for bumps on a coarse level and ask for 1 m data around them;
-        shortlist car-sized objects in the 1 m map."""
-        for level in (2, 1):
-            cands = self.candidates(level, 0.3, min_cells=1)
-            if self.level_grid(level) is None:
-                continue
-            for c in cands:
-                if any(math.hypot(c.x - x, c.y - y) < 12.0 for x, y in self.coarse_requested):
-                    continue
-                self.coarse_requested.append((c.x, c.y))
-                self.bathy.request_area(0, c.x - 12.0, c.y - 12.0, c.x + 12.0, c.y + 12.0)
-                self.log(now, "ROI request", f"level 0 (1 m) around ({c.x:.0f}, {c.y:.0f}): a "
-                         f"{c.height:.1f} m bump at level {level} ({2 ** level} m cells)")
-            break
-        for c in self.candidates(0, MIN_HEIGHT, min_cells=MIN_CELLS, max_area=float(MAX_CELLS)):
-            if not (MIN_HEIGHT <= c.height <= MAX_HEIGHT and MIN_CELLS <= c.cells <= MAX_CELLS):
-                continue
-            if any(math.hypot(c.x - t.x, c.y - t.y) < 6.0 for t in self.targets):
-                continue
-            self.targets.append(TargetWatch(c.x, c.y, c.height, c.cells, now))
-            self.log(now, "target at 1 m", f"car-sized object at ({c.x:.1f}, {c.y:.1f}): {c.height:.1f} m "
-                     f"high, {c.cells} cells in the 1 m map")
-
-    # camera pass
-    def watch_images(self, now: float) -> None:
-        if not self.camera_phase or not self.track:
-            return
-        _, x_now, y_now, _ = self.track[-1]
-        for tw in self.shortlist():
-            if tw.confirmed_at is not None:
-                continue
-            if tw.passed_at is None:
-                d, t_close = _closest_approach(self.track, tw.x, tw.y)
-                if d < 6.0 and math.hypot(x_now - tw.x, y_now - tw.y) > 10.0:
-                    tw.passed_at = t_close
-                    self._ask(tw, t_close, "nearest", now)
-                continue
-            meta = self._answer(tw)
-            if meta is None:
-                continue
-            tw.image_id = int(meta["image_id"])
-            if not self._shows(tw, float(meta["x"]), float(meta["y"])):
-                if tw.image_id not in tw.tried:
-                    tw.tried.append(tw.image_id)
-                    self.log(now, "image request", f"image {tw.image_id} does not show the target at "
-                             f"({tw.x:.0f}, {tw.y:.0f}): stepping back in time")
-                    self._ask(tw, float(meta["time"]), "before", now)
-                continue
-            if int(meta.get("layers_complete", 0)) >= CONFIRM_LAYERS or meta.get("complete"):
-                tw.confirmed_at = now
-                dt = now - (tw.request_at or now)
-                self.log(now, "confirming image", f"image {tw.image_id} shows the target at "
-                         f"({tw.x:.0f}, {tw.y:.0f}): {meta['bytes_used']} B, {dt:.0f} s after its request")
-
-    def _answer(self, tw: TargetWatch) -> dict[str, Any] | None:
-        """The image the vehicle serves for the operator's latest request, by the rule the vehicle
-        applies (nearest to the time, or the newest before it), once topside has heard the
-        announcements it needs to tell (images are announced in capture order)."""
-        if tw.want is None:
-            return None
-        t, direction = tw.want
-        metas = [dict(p.meta) for p in self.imagery.products()
-                 if p.kind == "image" and p.meta.get("x") is not None and p.meta.get("time") is not None]
-        if direction == "before":
-            older = [m for m in metas if float(m["time"]) < t]
-            return max(older, key=lambda m: float(m["time"]), default=None)
-        if not any(float(m["time"]) >= t for m in metas):
-            return None  # the images after that time are not announced yet: wait
-        # ties go to the earlier image, as on the vehicle
-        return min(metas, key=lambda m: (abs(float(m["time"]) - t), float(m["time"])), default=None)
-
-    def _shows(self, tw: TargetWatch, x: float, y: float) -> bool:
-        box = Target(tw.x, tw.y, 3.0, 3.0, 1.0, 0.0)  # the operator knows roughly where, not how it lies
-        return in_frame(box, x, y, CAMERA_ALTITUDE, 0.0, fraction=0.15)
-
-    def _ask(self, tw: TargetWatch, t: float, direction: str, now: float) -> None:
-        t = float(math.floor(t))  # the wire carries whole seconds
-        msg = self.imagery.request_by_time(t, direction, now)
-        tw.want = (t, direction)
-        tw.request_at = now
-        if tw.first_request_at is None:
-            tw.first_request_at = now
-        self.log(now, "image request", f"image {direction} dive time {t - EPOCH:.0f} s, for the target at "
-                 f"({tw.x:.0f}, {tw.y:.0f}) [command {msg.command_id}]")
 
 
 # ------------------------------------------------------------------------------ the run
@@ -451,47 +307,66 @@ class _Progress:
 
 
 def run_demo(config: DemoConfig, *, on_decision: Callable[[Decision], None] | None = None) -> DemoResult:
-    cfg = config.scaled()
+    scn, operator_mode = config.resolved()
+    cfg = config
     out = Path(cfg.out)
     (out / "images").mkdir(parents=True, exist_ok=True)
     (out / "map").mkdir(exist_ok=True)
     wall0 = time.perf_counter()
     decisions: list[Decision] = []
 
-    def log(now: float, kind: str, text: str) -> None:
-        d = Decision(round(now - EPOCH, 1), kind, text)
+    def log(now: float, kind: str, text: str, who: str = "script") -> None:
+        d = Decision(round(now - EPOCH, 1), kind, text, who)
         decisions.append(d)
         if on_decision is not None:
             on_decision(d)
 
-    # the world
-    floor = Seafloor(size=cfg.area, depth=500.0, targets=_targets(cfg.area, _rng(cfg.seed, 1)), seed=cfg.seed)
+    # the world: cars (the targets) and boulders (decoys) at positions the operator does not know
+    placed_targets, placed_decoys = scn.place(cfg.seed)
+    cars = tuple(Target(o.x, o.y, o.length, o.width, o.height, o.heading) for o in placed_targets)
+    rocks = tuple(Target(o.x, o.y, o.length, o.width, o.height, o.heading, "dome") for o in placed_decoys)
+    floor = Seafloor(size=scn.area, depth=scn.water_depth, relief=scn.relief,
+                     ripple_amplitude=scn.ripple_amplitude, targets=cars + rocks, seed=cfg.seed)
     texture = SandTexture(seed=cfg.seed)
+    camera = CameraModel()
     track = Track(floor)
     descent = 300.0 if not cfg.quick else 120.0
-    survey: Survey = simulate_survey(floor, altitude=SURVEY_ALTITUDE, speed=1.0 if not cfg.quick else 1.5,
+    survey: Survey = simulate_survey(floor, altitude=scn.survey_altitude, line_spacing=scn.line_spacing or None,
+                                     speed=scn.survey_speed if not cfg.quick else max(scn.survey_speed, 1.5),
                                      ping_rate=2.0, beams=256, t0=EPOCH + descent,
                                      turn_time=60.0 if not cfg.quick else 20.0, seed=cfg.seed + 1)
     survey_end = float(survey.times[-1]) if len(survey) else EPOCH + descent
+    end = EPOCH + scn.duration
 
     # the link: two simulated Micromodems on one acoustic channel, the real driver on each side
     clock = SimClock(EPOCH)
-    burst = _burst(cfg.loss) if cfg.burst else None
-    channel = AcousticChannel(loss=0.0 if burst else cfg.loss, burst=burst, seed=cfg.seed)
+    channel = AcousticChannel(loss=scn.loss.independent(), burst=scn.loss.burst(),
+                              range_loss=scn.loss.range_loss(), seed=cfg.seed)
     # each node's driver talks NMEA to its simulated modem through a real pseudo-terminal pair
-    net = ModemNetwork({TOPSIDE: (cfg.area / 2, -200.0, 0.0), VEHICLE: (0.0, 0.0, 500.0)},
+    net = ModemNetwork({TOPSIDE: (scn.ship[0], scn.ship[1], 0.0), VEHICLE: (0.0, 0.0, 0.0)},
                        channel=channel, clock=clock, ptys=True)
-    end = EPOCH + cfg.duration
-    series = ts_synth.dataset(duration=max(cfg.duration, 1200.0), period=1.0, seed=cfg.seed, t0=EPOCH)
-    vehicle, topside, senders, receivers = build_nodes(out, [s.channel() for s in series], cfg.command_key)
+    series = ts_synth.dataset(duration=max(scn.duration, 1200.0), period=1.0, seed=cfg.seed, t0=EPOCH)
+    vehicle, topside, senders, receivers = build_nodes(out, [s.channel() for s in series], cfg.command_key, scn)
     link_log = (out / "link.jsonl").open("w")
     runners = {
-        VEHICLE: Runner(vehicle, {0: net.transport(VEHICLE, rate=5, dest=TOPSIDE)}, SimulatedClock(sim=clock),
-                        link_log=link_log),
-        TOPSIDE: Runner(topside, {0: net.transport(TOPSIDE, rate=5, dest=VEHICLE)}, SimulatedClock(sim=clock),
-                        link_log=link_log),
+        VEHICLE: Runner(vehicle, {0: net.transport(VEHICLE, rate=scn.modem_rate, dest=TOPSIDE)},
+                        SimulatedClock(sim=clock), link_log=link_log),
+        TOPSIDE: Runner(topside, {0: net.transport(TOPSIDE, rate=scn.modem_rate, dest=VEHICLE)},
+                        SimulatedClock(sim=clock), link_log=link_log),
     }
-    operator = Operator(topside, receivers, (floor.x0, floor.y0, floor.x0 + floor.size, floor.y0 + floor.size), log)
+
+    # what the camera saw, for the operator's eye and the referee (frames showing an object only)
+    frames: dict[float, FrameTruth] = {}
+
+    def frame_at(t: float) -> FrameTruth | None:
+        best = min(frames, key=lambda ft: abs(ft - t), default=None)
+        return frames[best] if best is not None and abs(best - t) <= 1.0 else None
+
+    operator = Operator(topside, receivers, (floor.x0, floor.y0, floor.x0 + floor.size, floor.y0 + floor.size),
+                        log, frames=frame_at, camera_altitude=scn.camera_altitude,
+                        active=operator_mode == "script")
+    operator.epoch = EPOCH
+    received_track: list[tuple[float, float]] = []
 
     # timed events (simulated): sensor data, status, operator
     events: list[tuple[float, int, Callable[[float], None]]] = []
@@ -501,16 +376,21 @@ def run_demo(config: DemoConfig, *, on_decision: Callable[[Decision], None] | No
         heapq.heappush(events, (t, next(counter), fn))
 
     for t, xyz in survey.pings(batch=20):
-        track.add_sample(float(t), float(np.mean(xyz[:, 0])), float(np.mean(xyz[:, 1])), SURVEY_ALTITUDE)
+        track.add_sample(float(t), float(np.mean(xyz[:, 0])), float(np.mean(xyz[:, 1])), scn.survey_altitude)
         at(float(t), lambda now, xyz=xyz: senders["bathymetry"].ingest(xyz, now))
     track.samples.sort()
-    track.legs.append(Leg(EPOCH, EPOCH + descent, (0.0, 0.0), (0.0, 0.0), SURVEY_ALTITUDE))
+    track.legs.append(Leg(EPOCH, EPOCH + descent, (0.0, 0.0), (0.0, 0.0), scn.survey_altitude))
 
     _schedule_series(at, senders["timeseries"], series, EPOCH, end)
 
+    def push_status(now: float) -> None:
+        status = _status(track, now)
+        channel.set_position(VEHICLE, (status.x, status.y, status.depth or 0.0))  # range-dependent loss
+        vehicle.push_status(status, now)
+
     t_status = EPOCH
     while t_status < end:
-        at(t_status, lambda now: vehicle.push_status(_status(track, now), now))
+        at(t_status, push_status)
         t_status += 10.0
 
     vehicle_modem = runners[VEHICLE].transports[0]
@@ -520,92 +400,120 @@ def run_demo(config: DemoConfig, *, on_decision: Callable[[Decision], None] | No
         if status is not None:
             vehicle.manager.push(LINK_STREAM, status, now)
 
-    def every_cycle(now: float) -> None:
-        operator.watch_map(now)
-        operator.watch_images(now)
-        metrics_tick(now)
-
     coverage: dict[int, list[tuple[float, float]]] = {}
     visible_at: dict[int, float] = {}
 
-    def metrics_tick(now: float) -> None:
+    def every_half_cycle(now: float) -> None:
+        views = operator.measured(now)
+        operator.watch_map(now, views)
+        operator.watch_images(now)
         push_link_status(now)
         for level in range(0, 4):
             g = operator.level_grid(level)
-            frac = 0.0
-            if g is not None:
-                grid = g[0]
-                frac = _area_fraction(grid, g[1], g[2], floor)
+            frac = 0.0 if g is None else _area_fraction(g[0], g[1], g[2], floor)
             coverage.setdefault(level, []).append((round(now - EPOCH, 1), round(frac, 4)))
-        g0 = operator.level_grid(0)
-        if g0 is not None:
-            cands = operator.candidates(0, MIN_HEIGHT, min_cells=MIN_CELLS, max_area=float(MAX_CELLS))
-            for i, tgt in enumerate(floor.targets):
-                if i not in visible_at and any(math.hypot(c.x - tgt.x, c.y - tgt.y) < 3.5 for c in cands):
-                    visible_at[i] = now
+        # judged against the truth: a car-like bump of the received 1 m map where a car is
+        for i, tgt in enumerate(cars):
+            if i not in visible_at and any(v.score >= MIN_SCORE and math.hypot(v.x - tgt.x, v.y - tgt.y)
+                                           <= IDENTIFY_RADIUS for v in views):
+                visible_at[i] = now
 
-    t_op = EPOCH + CYCLE / 2
+    t_op = EPOCH + scn.cycle / 2
     while t_op < end:
-        at(t_op, every_cycle)
-        t_op += CYCLE / 2
+        at(t_op, every_half_cycle)
+        t_op += scn.cycle / 2
 
-    # the camera pass is planned when the survey ends, from the targets the operator found
-    plan_at = survey_end + 30.0
-    camera_times: list[float] = []
+    # the camera pass, planned when the survey ends: transects over the candidates in rank order
+    # while camera time remains; when they are done, the next candidates found meanwhile
+    half = 30.0 if not cfg.quick else 15.0
+    reserve = 2 * scn.cycle  # the last frames need time to come up before the dive ends
+    holds: list[Leg] = []
 
-    def plan_camera(now: float) -> None:
+    def transect(t: float, pos: tuple[float, float], x: float, y: float) -> tuple[float, tuple[float, float]]:
+        start = (x, y - half)
+        dist = math.hypot(start[0] - pos[0], start[1] - pos[1])
+        track.legs.append(Leg(t, t + dist / 1.0, pos, start, TRANSIT_ALTITUDE))
+        t += dist / 1.0
+        track.legs.append(Leg(t, t + 2 * half / 0.5, start, (x, y + half), scn.camera_altitude, camera=True))
+        return t + 2 * half / 0.5, (x, y + half)
+
+    def plan_camera(now: float, first: bool = False) -> None:
         operator.camera_phase = True
-        found = operator.shortlist()
-        if not found:
-            log(now, "camera pass", "no target confirmed at 1 m: camera transect through the centre")
-            points = [(cfg.area / 2, cfg.area / 2)]
-        else:
-            points = [(tw.x, tw.y) for tw in found]
-            log(now, "camera pass", "vehicle retargeted over " + ", ".join(f"({x:.0f}, {y:.0f})" for x, y in points))
-        t = now
         pos = track.position(now)[:2]
-        half = 30.0 if not cfg.quick else 15.0
-        for x, y in points:
-            start = (x + 1.0, y - half)
-            dist = math.hypot(start[0] - pos[0], start[1] - pos[1])
-            track.legs.append(Leg(t, t + dist / 1.0, pos, start, TRANSIT_ALTITUDE))
-            t += dist / 1.0
-            track.legs.append(Leg(t, t + 2 * half / 0.5, start, (x + 1.0, y + half), CAMERA_ALTITUDE, camera=True))
-            t += 2 * half / 0.5
-            pos = (x + 1.0, y + half)
-        track.legs.append(Leg(t, end, pos, pos, 50.0))
-        period = 6.0
-        tc = now + period
-        while tc < t:
-            camera_times.append(tc)
-            at(tc, take_picture)
-            tc += period
+        t = now
+        planned: list[CandidateView] = []
+        if operator.active:
+            for _rank, cv in enumerate(operator.ranked(), 1):
+                if cv.planned:
+                    continue
+                dist = math.hypot(cv.x - pos[0], cv.y - half - pos[1])
+                if t + dist + 4 * half > end - reserve:
+                    break  # no camera time left for the next in rank order
+                t, pos = transect(t, pos, cv.x, cv.y)
+                cv.planned = True
+                planned.append(cv)
+            if planned:
+                log(now, "camera pass", "vehicle retargeted over " + ", ".join(
+                    f"({c.x:.0f}, {c.y:.0f}) [car-likeness {c.score:.2f}]" for c in planned))
+            elif first:
+                log(now, "camera pass", "no car-like candidate in the 1 m map yet: the vehicle holds")
+        elif first:
+            t, pos = transect(t, pos, scn.area / 2, scn.area / 2)
+            log(now, "camera pass", "no operator script: one camera transect through the centre of the site",
+                "system")
+        if planned or first:
+            if holds:
+                holds[-1].t1 = now
+            hold = Leg(t, end, pos, pos, HOLD_ALTITUDE)
+            holds.append(hold)
+            track.legs.append(hold)
+        if operator.active and t < end - reserve:
+            at(max(t, now + scn.cycle), plan_camera)
+
+    at(survey_end + 30.0, lambda now: plan_camera(now, first=True))
 
     image_files = _image_files(cfg.images)
     shot = iter(range(10**9))
     taken: list[float] = []
+    hfov = math.tan(math.radians(camera.hfov_deg) / 2)
 
     def take_picture(now: float) -> None:
         if not any(leg.camera and leg.t0 <= now <= leg.t1 for leg in track.legs):
             return  # the camera runs on the transects only
-        x, y, depth, _alt, heading = track.position(now)
+        x, y, depth, alt, heading = track.position(now)
         k = next(shot)
         taken.append(now)
-        if image_files:
-            img = _load_image(image_files[k % len(image_files)])
-        else:
-            z = -(depth)
-            img = render_frame(floor.elevation, x, y, z, heading, targets=floor.targets, texture=texture,
-                               rng=_rng(cfg.seed, 100 + k))
+        rendered, labels = render_labelled(floor.ground, x, y, -depth, heading, targets=cars, rocks=rocks,
+                                           texture=texture, camera=camera, rng=_rng(cfg.seed, 100 + k))
+        img = rendered
+        if image_files:  # a real dive image, with the simulated objects where the camera sees them
+            real = _load_image(image_files[k % len(image_files)])
+            if real.shape == rendered.shape:
+                img = np.where(labels[..., None] > 0, rendered, real)
+            else:
+                img, labels = real, np.zeros(real.shape[:2], np.uint8)
+        areas, pixel = {}, {}
+        for i, o in enumerate(cars + rocks, 1):
+            dome = o.shape == "dome"
+            areas[i] = o.length * o.width * (math.pi / 4 if dome else 1.0)
+            top = max(alt - o.height * (0.67 if dome else 1.0), 0.3)
+            pixel[i] = (2 * top * hfov / camera.width) ** 2
+        ft = frame_truth(now, x, y, heading, img, labels, len(cars), areas, pixel)
+        if ft is not None:
+            frames[now] = ft
         senders["imagery"].ingest(ImageInput(img, time=now, x=round(x, 1), y=round(y, 1)), now)
 
-    at(plan_at, plan_camera)
-    server = _start_gui(cfg, topside) if cfg.gui else None
+    tc = survey_end + 30.0 + CAMERA_PERIOD
+    while tc < end:
+        at(tc, take_picture)
+        tc += CAMERA_PERIOD
+
+    server = _start_gui(cfg, topside, log) if cfg.gui else None
     lock = server.hub.lock if server is not None else contextlib.nullcontext()
     wall_start, sim_start = time.monotonic(), clock.now
 
     # the loop: one simulated clock for the modems, the drivers, both nodes and the scenario
-    progress = _Progress(cfg.duration, cfg.progress)
+    progress = _Progress(scn.duration, cfg.progress)
     steps = 0
     while clock.now < end:
         t = next_wakeup(clock.now, end, events[0][0] if events else None,
@@ -625,7 +533,9 @@ def run_demo(config: DemoConfig, *, on_decision: Callable[[Decision], None] | No
                 r.step()
             net.step()
             for ev in topside.events():
-                _observe(ev, operator, clock.now)
+                if isinstance(ev, Received) and isinstance(ev.message, VehicleStatus):
+                    operator.on_status(ev.message, clock.now)
+                    received_track.append((ev.message.x, ev.message.y))
             vehicle.events()
         steps += 1
         progress.update(clock.now - EPOCH)
@@ -646,10 +556,12 @@ def run_demo(config: DemoConfig, *, on_decision: Callable[[Decision], None] | No
 
     # outputs
     wall = time.perf_counter() - wall0
-    metrics = _finish(out, cfg, floor, survey_end, operator, receivers, coverage, visible_at, decisions, wall,
-                      runners, taken)
-    metrics["modems"] = {"nmea_over": {str(k): v for k, v in ptys.items()}, "rate": 5,
-                         "tdma": "6 x 20 s, guard 2 s; topside slots 0, 3; vehicle slots 1, 2, 4, 5"}
+    world = _World(scn, floor, cars, rocks, survey_end, frames, received_track, taken, operator_mode)
+    metrics = _finish(out, cfg, world, operator, receivers, coverage, visible_at, decisions, wall, runners)
+    metrics["modems"] = {"nmea_over": {str(k): v for k, v in ptys.items()}, "rate": scn.modem_rate,
+                         "tdma": f"{len(scn.slots)} x {scn.slot_seconds:g} s, guard {scn.guard_seconds:g} s; "
+                                 f"topside slots {', '.join(str(i) for i, s in enumerate(scn.slots) if s == 'topside')}; "
+                                 f"vehicle slots {', '.join(str(i) for i, s in enumerate(scn.slots) if s == 'vehicle')}"}
     metrics["authentication"] = {
         "enabled": cfg.command_key is not None,
         "signed_frames": topside.manager.stats["signed"],
@@ -659,19 +571,19 @@ def run_demo(config: DemoConfig, *, on_decision: Callable[[Decision], None] | No
     return DemoResult(out, metrics, decisions)
 
 
-def _closest_approach(track: list[tuple[float, float, float, float]], x: float, y: float) -> tuple[float, float]:
-    """Distance and time of the track's closest approach to (x, y), between its points too
-    (statuses arrive tens of metres apart on a slow link)."""
-    best = (math.inf, 0.0)
-    for (t0, x0, y0, _), (t1, x1, y1, _) in zip(track, track[1:] or track):
-        dx, dy = x1 - x0, y1 - y0
-        seg = dx * dx + dy * dy
-        f = 0.0 if seg == 0 or t1 - t0 > 120.0 else min(max(((x - x0) * dx + (y - y0) * dy) / seg, 0.0), 1.0)
-        px, py = x0 + f * dx, y0 + f * dy
-        d = math.hypot(px - x, py - y)
-        if d < best[0]:
-            best = (d, t0 + f * (t1 - t0))
-    return best
+@dataclass
+class _World:
+    """What the simulation knows, handed to the judging."""
+
+    scenario: Scenario
+    floor: Seafloor
+    cars: tuple[Target, ...]
+    rocks: tuple[Target, ...]
+    survey_end: float
+    frames: dict[float, FrameTruth]
+    received_track: list[tuple[float, float]]
+    camera_times: list[float]
+    operator: str
 
 
 def _area_fraction(grid: np.ndarray, cell: float, origin: tuple[float, float], floor: Seafloor) -> float:
@@ -684,20 +596,6 @@ def _area_fraction(grid: np.ndarray, cell: float, origin: tuple[float, float], f
     sub = grid[np.ix_(cy, cx)]
     total = (floor.size / cell) ** 2
     return float(min(1.0, np.count_nonzero(np.isfinite(sub)) / max(total, 1.0)))
-
-
-def _burst(loss: float, mean_burst: float = 4.0) -> GilbertElliott:
-    """Bursty loss with the given mean rate and mean burst length (frames): a bad state losing
-    everything, a good state losing nothing."""
-    p_bg = 1.0 / mean_burst
-    p_gb = loss * p_bg / max(1.0 - loss, 1e-6)
-    return GilbertElliott(p_good_bad=min(p_gb, 1.0), p_bad_good=p_bg, loss_good=0.0, loss_bad=1.0)
-
-
-def _observe(ev: Any, operator: Operator, now: float) -> None:
-    if isinstance(ev, Received) and isinstance(ev.message, VehicleStatus):
-        operator.on_status(ev.message, now)
-
 
 
 def _schedule_series(at: Callable[[float, Callable[[float], None]], None], sender: Any, series: Any,
@@ -718,12 +616,27 @@ def _schedule_series(at: Callable[[float, Callable[[float], None]], None], sende
         t += step
 
 
-def _start_gui(cfg: DemoConfig, topside: Node) -> Any:
+def _start_gui(cfg: DemoConfig, topside: Node, log: Callable[..., None]) -> Any:
     from coex_plugins.console import serve
 
     host, _, port = cfg.http.rpartition(":")
     server = serve(topside, host or "127.0.0.1", int(port),
                    stream_names={3: "map", 4: "images", 5: "series", LINK_STREAM: "link"})
+    hub = server.hub
+    act = hub.act
+
+    def logged(action: str, args: dict[str, Any]) -> list[Any]:
+        """What a person does in the console goes into the decision list too."""
+        now = hub.clock()
+        try:
+            sent = act(action, args)
+        except Exception as exc:
+            log(now, "console action", f"{action} {json.dumps(args, default=str)} refused: {exc}", "person")
+            raise
+        log(now, "console action", f"{action} {json.dumps(args, default=str)}", "person")
+        return sent
+
+    hub.act = logged
     print(f"coex demo: web console at {server.url} (the dive runs at {cfg.speed:g}x)", file=sys.stderr)
     return server
 
@@ -731,15 +644,80 @@ def _start_gui(cfg: DemoConfig, topside: Node) -> Any:
 # ------------------------------------------------------------------------------ outputs
 
 
-def _finish(out: Path, cfg: DemoConfig, floor: Seafloor, survey_end: float, operator: Operator,
-            receivers: dict[str, Any], coverage: dict[int, list[tuple[float, float]]],
-            visible_at: dict[int, float], decisions: list[Decision], wall: float,
-            runners: dict[int, Runner], camera_times: list[float]) -> dict[str, Any]:
-    from .report import line_chart, timeline_chart, write_report
+def _judge(world: _World, operator: Operator, bytes_of: Callable[[int], int | None],
+           cycle: float) -> tuple[list[dict[str, Any] | None], list[dict[str, Any]]]:
+    """Every confirmation the operator made, judged against the truth: per true target the first
+    confirmation by a received image that shows it, and the confirmations that show no target."""
+    per_target: list[dict[str, Any] | None] = [None] * len(world.cars)
+    false: list[dict[str, Any]] = []
+    confirmed = sorted((c for c in operator.candidates if c.verdict == "car"), key=lambda c: c.confirmed_at or 0.0)
+    for c in confirmed:
+        truth = world.frames.get(c.evidence_time) if c.evidence_time is not None else None
+        shown = judge(c.evidence, truth) if (c.evidence is not None and truth is not None) else []
+        hit = [k for kind, k in shown if kind == "target"]
+        assert c.confirmed_at is not None and c.verdict_image is not None
+        record = {"image_id": c.verdict_image,
+                  "image_time_s": None if c.evidence_time is None else round(c.evidence_time - EPOCH, 1),
+                  "image_x": c.evidence_xy[0] if c.evidence_xy else None,
+                  "image_y": c.evidence_xy[1] if c.evidence_xy else None,
+                  "confirmed_at_s": round(c.confirmed_at - EPOCH, 1),
+                  "bytes": c.evidence_bytes,
+                  "requested_at_s": None if c.request_at is None else round(c.request_at - EPOCH, 1),
+                  "first_requested_at_s": None if c.first_request_at is None else round(c.first_request_at - EPOCH, 1),
+                  "tdma_cycles": None if c.request_at is None else round((c.confirmed_at - c.request_at) / cycle, 2),
+                  "tdma_cycles_from_first_request": None if c.first_request_at is None
+                  else round((c.confirmed_at - c.first_request_at) / cycle, 2),
+                  "candidate": {"x": c.x, "y": c.y}}
+        if hit:
+            for k in hit:
+                if per_target[k] is None:
+                    per_target[k] = record
+        else:
+            others = [f"decoy {k + 1} (a boulder)" for kind, k in shown if kind == "decoy"]
+            false.append({"x": c.x, "y": c.y, "image_id": c.verdict_image,
+                          "confirmed_at_s": record["confirmed_at_s"],
+                          "shows": ", ".join(others) or "no target (sand, or too little of one, or too blurry)"})
+    return per_target, false
 
+
+def _why_not(i: int, world: _World, operator: Operator, visible: float | None) -> str:
+    """Why target ``i`` was not confirmed, from the truth."""
+    car = world.cars[i]
+    near = [c for c in operator.candidates if math.hypot(c.x - car.x, c.y - car.y) <= IDENTIFY_RADIUS]
+    seen = [ft for ft in world.frames.values() if ft.visible.get(i + 1, 0.0) >= 0.15]
+    if visible is None:
+        return "never identifiable in the received 1 m map"
+    if not any(c.planned for c in near):
+        return "identifiable at 1 m but never visited with the camera (ranked too low or no camera time left)"
+    if not seen:
+        return "visited, but no camera frame showed it"
+    return "photographed, but no received image of it was confirmed"
+
+
+def _finish(out: Path, cfg: DemoConfig, world: _World, operator: Operator, receivers: dict[str, Any],
+            coverage: dict[int, list[tuple[float, float]]], visible_at: dict[int, float],
+            decisions: list[Decision], wall: float, runners: dict[int, Runner]) -> dict[str, Any]:
+    from .report import line_chart, map_figure, timeline_chart, write_report
+
+    scn, floor = world.scenario, world.floor
     bathy: BathymetryReceiver = receivers["bathymetry"]
-    origin = (floor.x0, floor.y0)
-    map_files: list[str] = []
+    names = {("target", i): f"target {i + 1}" for i in range(len(world.cars))}
+    names.update({("decoy", k): f"decoy {k + 1} (rock)" for k in range(len(world.rocks))})
+    ranked = operator.ranked()
+    rank_of = {id(c): r for r, c in enumerate(ranked, 1)}
+
+    def truth_near(x: float, y: float) -> str:
+        for key, objs in (("target", world.cars), ("decoy", world.rocks)):
+            for k, o in enumerate(objs):
+                if math.hypot(o.x - x, o.y - y) <= IDENTIFY_RADIUS:
+                    return names[(key, k)]
+        return "none"
+
+    candidates = [{"x": c.x, "y": c.y, "height": c.height, "cells": c.cells, "length": c.length, "width": c.width,
+                   "score": c.score, "rank": rank_of.get(id(c)), "visited": c.planned, "verdict": c.verdict or None,
+                   "truth": truth_near(c.x, c.y)}
+                  for c in sorted(operator.candidates, key=lambda c: -c.score) if c.score >= MIN_SCORE]
+    map_svgs: list[str] = []
     for level in range(0, 6):
         try:
             p = bathy.level_product(level)
@@ -753,105 +731,186 @@ def _finish(out: Path, cfg: DemoConfig, floor: Seafloor, survey_end: float, oper
         write_geotiff(out / "map" / f"level_{level}.tif", grid, x0=x0, y0=y0, cell=cell,
                       origin_lat=float(meta.get("origin_lat", 0.0)), origin_lon=float(meta.get("origin_lon", 0.0)))
         write_png(out / "map" / f"level_{level}.png", grid, cell=cell)
-        map_files.append(f"map/level_{level}.png")
+        if level <= 3:
+            # the survey box (and a margin), not the whole quadtree
+            sub, sx0, sy0 = _crop(grid, cell, x0, y0, floor.x0 - 8, floor.y0 - 8, floor.x0 + floor.size + 8,
+                                  floor.y0 + floor.size + 8)
+            map_svgs.append(map_figure(
+                sub, cell=cell, x0=sx0, y0=sy0,
+                title=f"Level {level}: {cell:g} m cells, as received topside",
+                track=world.received_track,
+                targets=[{"x": t.x, "y": t.y, "label": f"target {i + 1}"} for i, t in enumerate(world.cars)],
+                decoys=[{"x": t.x, "y": t.y, "label": f"decoy {i + 1} (rock)"} for i, t in enumerate(world.rocks)],
+                candidates=[{"x": c["x"], "y": c["y"], "label": f"#{c['rank']}", "visited": c["visited"]}
+                            for c in candidates if c["rank"] is not None] if level == 0 else []))
     # ground truth at 1 m
     xs = np.arange(0.5, floor.size, 1.0) + floor.x0
     ys = np.arange(0.5, floor.size, 1.0) + floor.y0
     gx, gy = np.meshgrid(xs, ys)
-    truth = floor.elevation(gx, gy)
-    write_geotiff(out / "truth.tif", truth, x0=origin[0], y0=origin[1], cell=1.0)  # row 0 = south
+    write_geotiff(out / "truth.tif", floor.elevation(gx, gy), x0=floor.x0, y0=floor.y0, cell=1.0)  # row 0 = south
     (out / "truth.json").write_text(json.dumps({
         "seafloor": {"size_m": floor.size, "depth_m": floor.depth, "seed": floor.seed, "cell_m": 1.0},
-        "targets": [asdict(t) for t in floor.targets],
+        "targets": [{"name": f"target {i + 1}", "kind": "car", **_obj(t)} for i, t in enumerate(world.cars)],
+        "decoys": [{"name": f"decoy {i + 1}", "kind": "rock", **_obj(t)} for i, t in enumerate(world.rocks)],
     }, indent=2))
     # time series
     ts: TimeSeriesReceiver = receivers["timeseries"]
     ts.to_csv(out / "timeseries.csv")
     # images
     img: ImageryReceiver = receivers["imagery"]
-    image_meta = [dict(p.meta) for p in img.products() if p.kind == "image"]
-    image_files = sorted(str(p.relative_to(out)) for p in (out / "images").glob("*.png"))
+    metas = {int(p.meta["image_id"]): dict(p.meta) for p in img.products() if p.kind == "image"}
 
-    # link use
+    def bytes_of(image_id: int) -> int | None:
+        m = metas.get(image_id)
+        return None if m is None else int(m["bytes_used"])
+
+    per_target, false = _judge(world, operator, bytes_of, scn.cycle)
     link = _link_summary(out / "link.jsonl")
     targets = []
-    for i, t in enumerate(floor.targets):
+    for i, t in enumerate(world.cars):
         seen = visible_at.get(i)
-        targets.append({"x": t.x, "y": t.y, "visible_at_1m_s": None if seen is None else round(seen - EPOCH, 1),
-                        "before_survey_end": seen is not None and seen <= survey_end})
-    confirmations = []
-    for tw in operator.shortlist():
-        if tw.request_at is None:
-            confirmations.append({"x": round(tw.x, 1), "y": round(tw.y, 1), "first_request_at_s": None,
-                                  "requested_at_s": None, "confirmed_at_s": None, "seconds": None,
-                                  "tdma_cycles": None, "image_id": None, "stepped_back": 0})
-            continue
-        dt = None if tw.confirmed_at is None else tw.confirmed_at - tw.request_at
-        first = tw.first_request_at or tw.request_at
-        confirmations.append({"x": round(tw.x, 1), "y": round(tw.y, 1),
-                              "first_request_at_s": round(first - EPOCH, 1),
-                              "requested_at_s": round(tw.request_at - EPOCH, 1),
-                              "confirmed_at_s": None if tw.confirmed_at is None else round(tw.confirmed_at - EPOCH, 1),
-                              "seconds": None if dt is None else round(dt, 1),
-                              "tdma_cycles": None if dt is None else round(dt / CYCLE, 2),
-                              "image_id": tw.image_id, "stepped_back": len(tw.tried)})
-    both_visible = len(targets) == 2 and all(t["before_survey_end"] for t in targets)
-    images_ok = bool(confirmations) and all(
-        c["tdma_cycles"] is not None and c["tdma_cycles"] <= 2.0 for c in confirmations)
+        conf = per_target[i]
+        targets.append({"name": f"target {i + 1}", "x": t.x, "y": t.y, "heading": t.heading,
+                        "identifiable_at_1m_s": None if seen is None else round(seen - EPOCH, 1),
+                        "before_survey_end": seen is not None and seen <= world.survey_end,
+                        "confirmation": conf,
+                        "why_not": None if conf is not None else _why_not(i, world, operator, seen)})
+    confirming = {c["image_id"]: t["name"] for t in targets if (c := t["confirmation"]) is not None}
+    requested = {i for c in operator.candidates for i in c.looked + ([c.image_id] if c.image_id is not None else [])}
+    images = [{"file": f"images/image_{i:04d}.png", "image_id": i, "time_s": round(float(m["time"]) - EPOCH, 1),
+               "x": m.get("x"), "y": m.get("y"), "bytes": int(m["bytes_used"]), "layers": int(m["layers_complete"]),
+               "confirms": confirming.get(i), "requested": i in requested}
+              for i, m in sorted(metas.items(), key=lambda kv: float(kv[1]["time"]))
+              if (out / "images" / f"image_{i:04d}.png").exists()]
+
+    all_identifiable = all(t["before_survey_end"] for t in targets)
+    all_confirmed = all(t["confirmation"] is not None for t in targets)
+    success = all_confirmed and not false
+    cycles = [t["confirmation"]["tdma_cycles"] for t in targets if t["confirmation"] is not None]
+    fast = success and all(c is not None and c <= 2.0 for c in cycles)
+    none_text = "no targets in this scenario" if not targets else ""
+    goals = {
+        "every target identifiable topside at 1 m before the survey ends": {
+            "met": all_identifiable,
+            "detail": "; ".join(
+                f"{t['name']} at ({t['x']:.0f}, {t['y']:.0f}): "
+                + (f"identifiable at {t['identifiable_at_1m_s']:.0f} s" if t["identifiable_at_1m_s"] is not None
+                   else "never identifiable") for t in targets) or none_text
+            + f"; survey ended at {world.survey_end - EPOCH:.0f} s",
+        },
+        "every target confirmed by a received image that shows it, and nothing else confirmed": {
+            "met": success,
+            "detail": "; ".join(
+                f"{t['name']}: " + (f"image {t['confirmation']['image_id']} at {t['confirmation']['confirmed_at_s']:.0f} s"
+                                    if t["confirmation"] else f"NOT confirmed ({t['why_not']})") for t in targets)
+            + (f"; {len(false)} false confirmation(s): " + "; ".join(
+                f"({f['x']:.0f}, {f['y']:.0f}) by image {f['image_id']}, which shows {f['shows']}" for f in false)
+               if false else "; no false confirmation"),
+        },
+        "each confirming image within two TDMA cycles of its request": {
+            "met": fast,
+            "detail": "; ".join(f"{t['name']}: {t['confirmation']['tdma_cycles']} cycles" if t["confirmation"]
+                                else f"{t['name']}: not confirmed" for t in targets) or none_text,
+        },
+    }
     metrics: dict[str, Any] = {
+        "scenario": scn.to_dict(),
         # the key itself never goes into the outputs
         "config": {k: str(v) if isinstance(v, Path) else v for k, v in asdict(cfg).items()
-                   if k != "command_key"},
+                   if k not in ("command_key", "scenario")},
+        "operator": world.operator,
+        "summary": _summary(targets, false, world.operator),
+        "success": success,
         "wall_seconds": round(wall, 1),
-        "dive_seconds": cfg.duration,
-        "survey_end_s": round(survey_end - EPOCH, 1),
+        "dive_seconds": scn.duration,
+        "survey_end_s": round(world.survey_end - EPOCH, 1),
+        "tdma_cycle_s": scn.cycle,
         "targets": targets,
-        "confirming_images": confirmations,
-        "images_received": len(image_meta),
-        "images_captured": len(camera_times),
+        "false_confirmations": false,
+        "decoys": [{"name": f"decoy {i + 1}", "kind": "rock", "x": t.x, "y": t.y,
+                    "visited": any(c.planned and math.hypot(c.x - t.x, c.y - t.y) <= IDENTIFY_RADIUS
+                                   for c in operator.candidates)}
+                   for i, t in enumerate(world.rocks)],
+        "candidates": candidates,
+        "images_received": len(metas),
+        "images_captured": len(world.camera_times),
         "link": link,
         "map_coverage": {str(k): v[-1][1] if v else 0.0 for k, v in coverage.items()},
         "bad_frames": {"topside": runners[TOPSIDE].node.stats.get("bad_frames", 0),
                        "vehicle": runners[VEHICLE].node.stats.get("bad_frames", 0)},
-        "goals": {
-            "both targets identifiable topside at 1 m before the survey ends": {
-                "met": both_visible,
-                "detail": "; ".join(
-                    f"target {i + 1} at ({t['x']:.0f}, {t['y']:.0f}): "
-                    + (f"visible at {t['visible_at_1m_s']:.0f} s" if t["visible_at_1m_s"] is not None else "not visible")
-                    for i, t in enumerate(targets)) + f"; survey ended at {survey_end - EPOCH:.0f} s",
-            },
-            "a confirming image within two TDMA cycles of its request": {
-                "met": images_ok,
-                "detail": "; ".join(f"{c['tdma_cycles']} cycles" if c["tdma_cycles"] is not None
-                                    else "not confirmed" for c in confirmations) or "no image requested",
-            },
-        },
+        "goals": goals,
     }
-    (out / "metrics.json").write_text(json.dumps(metrics, indent=2))
     charts = [
         line_chart({f"level {k} ({2**k} m)": v for k, v in sorted(coverage.items())},
                    title="Map filling in over time (fraction of the survey area held topside)",
                    xlabel="dive time (s)", ylabel="fraction",
-                   markers=[(survey_end - EPOCH, "survey ends")] + [
-                       (v - EPOCH, f"target {i + 1} visible at 1 m") for i, v in visible_at.items()]),
+                   markers=[(world.survey_end - EPOCH, "survey ends")] + [
+                       (v - EPOCH, f"target {i + 1} identifiable at 1 m") for i, v in visible_at.items()]),
         line_chart({"capacity": link["capacity_series"], "used": link["used_series"],
                     "delivered": link["delivered_series"]},
                    title="Link use against capacity (cumulative bytes, vehicle to topside)",
                    xlabel="dive time (s)", ylabel="bytes"),
-        timeline_chart([{"t": d.t, "kind": d.kind, "text": d.text} for d in decisions], t_end=cfg.duration),
+        timeline_chart([{"t": d.t, "kind": d.kind, "text": d.text} for d in decisions], t_end=scn.duration),
     ]
-    write_report(out, metrics, charts, [asdict(d) for d in decisions],
-                 {"Map levels": map_files, "Received images": image_files[:60]})
     for k in ("capacity_series", "used_series", "delivered_series"):
         link.pop(k, None)
+    write_report(out, metrics, charts=charts, maps=map_svgs, images=images,
+                 decisions=[asdict(d) for d in decisions])
     (out / "metrics.json").write_text(json.dumps(metrics, indent=2))
     with (out / "decisions.csv").open("w", newline="") as f:
         w = csv.writer(f)
-        w.writerow(["dive_time_s", "kind", "text"])
+        w.writerow(["dive_time_s", "who", "kind", "text"])
         for d in decisions:
-            w.writerow([d.t, d.kind, d.text])
+            w.writerow([d.t, d.who, d.kind, d.text])
     return metrics
+
+
+def _obj(t: Target) -> dict[str, Any]:
+    return {"x": t.x, "y": t.y, "length": t.length, "width": t.width, "height": t.height,
+            "heading": round(t.heading, 1)}
+
+
+def _crop(grid: np.ndarray, cell: float, x0: float, y0: float, xa: float, ya: float, xb: float, yb: float,
+          ) -> tuple[np.ndarray, float, float]:
+    """The part of a level grid (row 0 = south) inside [xa, xb] x [ya, yb]."""
+    ny, nx = grid.shape
+    c0 = max(math.floor((xa - x0) / cell), 0)
+    c1 = min(math.ceil((xb - x0) / cell), nx)
+    r0 = max(math.floor((ya - y0) / cell), 0)
+    r1 = min(math.ceil((yb - y0) / cell), ny)
+    if c1 <= c0 or r1 <= r0:
+        return grid, x0, y0
+    return grid[r0:r1, c0:c1], x0 + c0 * cell, y0 + r0 * cell
+
+
+def _summary(targets: list[dict[str, Any]], false: list[dict[str, Any]], operator: str) -> str:
+    """The outcome in words, from the judged metrics."""
+    parts = []
+    ok = [t for t in targets if t["confirmation"] is not None]
+    missed = [t for t in targets if t["confirmation"] is None]
+    if not targets:
+        parts.append("This scenario has no targets.")
+    elif not missed:
+        parts.append(f"All {len(targets)} targets were confirmed by received images that show them.")
+    else:
+        parts.append(f"{len(ok)} of {len(targets)} targets were confirmed by a received image that shows them.")
+    for t in ok:
+        c = t["confirmation"]
+        parts.append(f"{t['name'].capitalize()} at ({t['x']:.0f}, {t['y']:.0f}): image {c['image_id']}, "
+                     f"{c['bytes']} B, confirmed at {c['confirmed_at_s']:.0f} s, {c['tdma_cycles']} TDMA cycles "
+                     "after its request.")
+    for t in missed:
+        parts.append(f"{t['name'].capitalize()} at ({t['x']:.0f}, {t['y']:.0f}) was NOT confirmed: {t['why_not']}.")
+    if false:
+        parts.append(f"{len(false)} confirmation(s) of something that is not a target: "
+                     + "; ".join(f"({f['x']:.0f}, {f['y']:.0f}) by image {f['image_id']}, which shows {f['shows']}"
+                                 for f in false) + ".")
+    elif targets:
+        parts.append("Nothing that is not a target was confirmed.")
+    if operator == "none":
+        parts.append("No scripted operator ran (--operator none): only what a person did in the console counts.")
+    verdict = "MET" if (targets and not missed and not false) else "NOT MET"
+    return f"Goal {verdict}. " + " ".join(parts)
 
 
 def _link_summary(path: Path) -> dict[str, Any]:

@@ -1,0 +1,389 @@
+"""The scripted topside operator of ``coex demo`` (``--operator script``): what the 2022
+operators did by hand, deciding only from what reached topside.
+
+* **The map.** Every half TDMA cycle it looks for bumps on a coarse level and asks for the 1 m
+  level around them; in the 1 m map it measures each bump (height above the local background,
+  footprint, length and width from the cells' second moments) and scores how car-like it is
+  (:func:`car_likeness`: a car is about 4.5 x 1.8 m and 1.5 m high; a round boulder or a tall
+  spike scores low). Candidates are visited in that order while camera time remains.
+* **The images.** Once the vehicle has passed over a candidate (closest approach along the track
+  topside received), it asks for the image nearest that time. It looks at the image as received
+  (:class:`~coex_plugins.demo.truth.Eye`): a car confirms the candidate; a blurry object makes it
+  ask for more layers of that image; sand makes it step to the previous or next image (towards
+  the candidate, by the frame's position); a boulder, or too many tries, makes it move on.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from coex_core.messages import VehicleStatus
+from coex_core.node import Node
+from coex_core.timefmt import unwrap
+from coex_plugins.bathymetry import BathymetryReceiver, find_targets
+from coex_plugins.bathymetry.export import opening
+from coex_plugins.imagery import ImageryReceiver
+
+from .truth import Eye, FrameTruth
+
+__all__ = ["CandidateView", "Operator", "car_likeness", "measure"]
+
+#: a car as the operator pictures it: length, width, height (m)
+CAR = (4.5, 1.8, 1.5)
+#: candidates scoring below this are not worth camera time
+MIN_SCORE = 0.2
+#: layers of a requested image the vehicle sends first (its ``request_goal``), and the most the
+#: operator asks for when an image is too blurry to tell
+CONFIRM_LAYERS = 10
+MORE_LAYERS = 14
+#: images the operator looks at for one candidate before moving on
+MAX_LOOKS = 6
+#: an image is "at" a candidate when taken within this distance of it (m)
+NEAR = 6.0
+
+
+@dataclass
+class CandidateView:
+    """A bump in the received 1 m map as the operator measured it."""
+
+    x: float
+    y: float
+    height: float
+    cells: int
+    length: float
+    width: float
+    score: float
+    found_at: float
+    #: the camera pass over it: planned, then what the operator made of the images
+    planned: bool = False
+    passed_at: float | None = None
+    want: tuple[float, str] | None = None  # (time, "nearest" | "before" | "after")
+    want_goal: int | None = None  # image id of a pending request for more layers
+    request_at: float | None = None
+    first_request_at: float | None = None
+    looked: list[int] = field(default_factory=list)
+    looked_times: dict[int, float] = field(default_factory=dict)
+    image_id: int | None = None
+    confirmed_at: float | None = None
+    verdict: str = ""  # "car", "rock", "given up"
+    verdict_image: int | None = None
+    #: the image as received when the operator confirmed a car (for the referee), its capture
+    #: time, position and received bytes
+    evidence: Any = field(default=None, repr=False)
+    evidence_time: float | None = None
+    evidence_xy: tuple[float, float] | None = None
+    evidence_bytes: int | None = None
+
+    @property
+    def done(self) -> bool:
+        return bool(self.verdict)
+
+
+def car_likeness(height: float, length: float, width: float) -> float:
+    """How car-like a bump is, in [0, 1]: Gaussian likelihoods of its height, length and width
+    against a car's (4.5 x 1.8 x 1.5 m), with the spreads a 1 m map allows."""
+    h0, l0, w0 = CAR[2], CAR[0], CAR[1]
+    s = (((height - h0) / 0.6) ** 2 + ((length - l0) / 1.5) ** 2 + ((width - w0) / 0.9) ** 2)
+    return float(math.exp(-0.5 * s))
+
+
+def measure(grid: np.ndarray, cell: float, x0: float, y0: float, cand: Any, now: float = 0.0,
+            ) -> CandidateView | None:
+    """Measure a :func:`find_targets` candidate in the 1 m grid: the connected cells standing
+    more than half its height above the local background, their second moments giving length
+    and width (a uniform L x W rectangle has variances L^2/12 and W^2/12)."""
+    ny, nx = grid.shape
+    ci = int((cand.peak_x - x0) / cell)
+    ri = int((cand.peak_y - y0) / cell)
+    r = 12
+    r0, r1, c0, c1 = max(ri - r, 0), min(ri + r + 1, ny), max(ci - r, 0), min(ci + r + 1, nx)
+    win = np.asarray(grid[r0:r1, c0:c1], float)
+    if win.size < 9 or not np.isfinite(win).any():
+        return None
+    excess = win - opening(win, max(1, round(4.5 / cell)))
+    with np.errstate(invalid="ignore"):
+        above = np.isfinite(excess) & (excess > 0.5 * cand.height)
+    pr, pc = ri - r0, ci - c0
+    if not (0 <= pr < win.shape[0] and 0 <= pc < win.shape[1]) or not above[pr, pc]:
+        return None
+    # the connected part containing the peak (8-neighbour growth, vectorised per step)
+    comp = np.zeros_like(above)
+    comp[pr, pc] = True
+    while True:
+        p = np.pad(comp, 1)
+        grown = comp.copy()
+        for dy in (0, 1, 2):
+            for dx in (0, 1, 2):
+                grown |= p[dy:dy + comp.shape[0], dx:dx + comp.shape[1]]
+        grown &= above
+        if np.array_equal(grown, comp):
+            break
+        comp = grown
+    rows, cols = np.nonzero(comp)
+    n = rows.size
+    ys = (rows + 0.5) * cell
+    xs = (cols + 0.5) * cell
+    if n >= 2:
+        cov = np.cov(np.stack([xs, ys]))
+        ev = np.sort(np.linalg.eigvalsh(cov))[::-1]
+    else:
+        ev = np.zeros(2)
+    # a cell's own extent adds cell^2 / 12 to each variance
+    length = float(math.sqrt(12.0 * max(ev[0], 0.0) + cell * cell))
+    width = float(math.sqrt(12.0 * max(ev[1], 0.0) + cell * cell))
+    height = float(np.nanmax(excess[comp]))
+    cx = float(x0 + (c0 + cols.mean() + 0.5) * cell)
+    cy = float(y0 + (r0 + rows.mean() + 0.5) * cell)
+    return CandidateView(round(cx, 1), round(cy, 1), round(height, 2), int(n), round(length, 1),
+                         round(width, 1), round(car_likeness(height, length, width), 3), now)
+
+
+class Operator:
+    """The scripted operator (see the module docstring). It knows the survey box (it planned the
+    survey) and never the targets. ``frames`` gives the simulator's :class:`FrameTruth` of a
+    captured frame by its capture time (the eye needs to know which pixels hold an object)."""
+
+    def __init__(self, topside: Node, receivers: dict[str, Any], box: tuple[float, float, float, float],
+                 log: Callable[[float, str, str], None], *, frames: Callable[[float], FrameTruth | None],
+                 camera_altitude: float, eye: Eye | None = None, active: bool = True) -> None:
+        self.topside = topside
+        self.bathy: BathymetryReceiver = receivers["bathymetry"]
+        self.imagery: ImageryReceiver = receivers["imagery"]
+        self.box = box
+        self.log = log
+        self.frames = frames
+        self.camera_altitude = camera_altitude
+        self.eye = eye or Eye()
+        #: ``False`` (``--operator none``): the operator watches nothing and asks for nothing
+        self.active = active
+        self.track: list[tuple[float, float, float, float]] = []  # t, x, y, heading (received)
+        self.coarse_requested: list[tuple[float, float]] = []
+        self.candidates: list[CandidateView] = []
+        self.camera_phase = False
+        self.position: tuple[float, float] | None = None  # the newest reported position
+
+    def inside(self, x: float, y: float, margin: float = 3.0) -> bool:
+        x0, y0, x1, y1 = self.box
+        return x0 + margin <= x <= x1 - margin and y0 + margin <= y <= y1 - margin
+
+    # ------------------------------------------------------------------ what topside hears
+    def on_status(self, s: VehicleStatus, now: float) -> None:
+        # the status's own time (its stamp), not when it arrived: it may have waited for a slot
+        self.position = (s.x, s.y)
+        if s.altitude is not None and s.altitude <= self.camera_altitude + 2.0:  # on a camera transect
+            self.track.append((unwrap(s.stamp, now), s.x, s.y, s.heading))
+
+    def level_grid(self, level: int) -> tuple[np.ndarray, float, tuple[float, float]] | None:
+        try:
+            p = self.bathy.level_product(level)
+        except Exception:
+            return None
+        if p.data is None:
+            return None
+        meta = dict(p.meta)
+        return np.asarray(p.data, dtype=float), float(meta["cell_size"]), (float(meta["x0"]), float(meta["y0"]))
+
+    def bumps(self, level: int, threshold: float, **kw: Any) -> list[Any]:
+        g = self.level_grid(level)
+        if g is None:
+            return []
+        grid, cell, (x0, y0) = g
+        return [c for c in find_targets(grid, cell=cell, x0=x0, y0=y0, threshold=threshold, **kw)
+                if self.inside(c.x, c.y)]
+
+    def measured(self, now: float) -> list[CandidateView]:
+        """Every bump of the received 1 m map, measured and scored (nothing remembered)."""
+        g = self.level_grid(0)
+        if g is None:
+            return []
+        grid, cell, (x0, y0) = g
+        out = []
+        for c in self.bumps(0, 0.7, min_cells=2, max_area=40.0):
+            v = measure(grid, cell, x0, y0, c, now)
+            if v is not None:
+                out.append(v)
+        return out
+
+    def ranked(self) -> list[CandidateView]:
+        """Candidates worth camera time, most car-like first."""
+        return sorted((c for c in self.candidates if c.score >= MIN_SCORE), key=lambda c: -c.score)
+
+    def watch_map(self, now: float, views: list[CandidateView] | None = None) -> None:
+        """Ask for 1 m data around coarse bumps; measure and rank the bumps of the 1 m map
+        (``views``: :meth:`measured` at ``now``, if the caller has it already)."""
+        if not self.active:
+            return
+        for level in (2, 1):
+            if self.level_grid(level) is None:
+                continue
+            for c in self.bumps(level, 0.3, min_cells=1):
+                if any(math.hypot(c.x - x, c.y - y) < 12.0 for x, y in self.coarse_requested):
+                    continue
+                self.coarse_requested.append((c.x, c.y))
+                self.bathy.request_area(0, c.x - 12.0, c.y - 12.0, c.x + 12.0, c.y + 12.0)
+                self.log(now, "ROI request", f"level 0 (1 m) around ({c.x:.0f}, {c.y:.0f}): a "
+                         f"{c.height:.1f} m bump at level {level} ({2 ** level} m cells)")
+            break
+        for v in self.measured(now) if views is None else views:
+            old = next((c for c in self.candidates if math.hypot(c.x - v.x, c.y - v.y) < 4.0), None)
+            if old is None:
+                self.candidates.append(v)
+                if v.score >= MIN_SCORE:
+                    self.log(now, "candidate at 1 m", self._describe(v))
+            elif not old.planned:  # more data came in: measure again; once flagged, stay flagged
+                was = old.score
+                old.x, old.y, old.height, old.cells = v.x, v.y, v.height, v.cells
+                old.length, old.width, old.score = v.length, v.width, max(v.score, was)
+                if was < MIN_SCORE <= v.score:
+                    self.log(now, "candidate at 1 m", self._describe(old))
+
+    @staticmethod
+    def _describe(v: CandidateView) -> str:
+        return (f"({v.x:.1f}, {v.y:.1f}): {v.height:.1f} m high, {v.length:.1f} x {v.width:.1f} m "
+                f"({v.cells} cells), car-likeness {v.score:.2f}")
+
+    # ------------------------------------------------------------------ the camera pass
+    def watch_images(self, now: float) -> None:
+        if not self.active or not self.camera_phase or not self.track:
+            return
+        x_now, y_now = self.position or self.track[-1][1:3]
+        for cv in self.ranked():
+            if not cv.planned or cv.done:
+                continue
+            if cv.passed_at is None:
+                d, t_close = closest_approach(self.track, cv.x, cv.y)
+                if d < NEAR and math.hypot(x_now - cv.x, y_now - cv.y) > 10.0:
+                    cv.passed_at = t_close
+                    self._ask(cv, t_close, "nearest", now)
+                continue
+            self._look(cv, now)
+
+    def _look(self, cv: CandidateView, now: float) -> None:
+        meta = self._answer(cv)
+        if meta is None:
+            return
+        image_id = int(meta["image_id"])
+        cv.image_id = image_id
+        img = self.imagery.image(image_id)
+        truth = self.frames(float(meta["time"]))
+        here = math.hypot(float(meta["x"]) - cv.x, float(meta["y"]) - cv.y) <= NEAR
+        sights = self.eye.look(img, truth) if (img is not None and truth is not None) else []
+        kinds = {s.kind for s in sights}
+        if here and "car" in kinds:
+            cv.verdict, cv.verdict_image, cv.confirmed_at = "car", image_id, now
+            cv.evidence = None if img is None else np.array(img, copy=True)
+            cv.evidence_time = truth.time if truth is not None else None
+            cv.evidence_xy = (float(meta["x"]), float(meta["y"]))
+            cv.evidence_bytes = int(meta["bytes_used"])
+            dt = now - (cv.request_at or now)
+            self.log(now, "confirming image", f"image {image_id} shows a car at ({cv.x:.0f}, {cv.y:.0f}) "
+                     f"[{self._seen(sights)}]: {meta['bytes_used']} B, {dt:.0f} s after its request")
+            return
+        layers = int(meta.get("layers_complete", 0))
+        arrived = bool(meta.get("complete")) or layers >= (MORE_LAYERS if cv.want_goal == image_id
+                                                           else CONFIRM_LAYERS)
+        if not arrived:
+            return  # the vehicle is still sending the layers asked for: look again later
+        if image_id not in cv.looked:
+            cv.looked.append(image_id)
+            cv.looked_times[image_id] = float(meta["time"])
+        if here and "rock" in kinds and "unclear" not in kinds:
+            cv.verdict, cv.verdict_image = "rock", image_id
+            self.log(now, "not a target", f"image {image_id} shows a boulder at ({cv.x:.0f}, {cv.y:.0f}), "
+                     f"not a car [{self._seen(sights)}]: moving on")
+            return
+        if "unclear" in kinds and cv.want_goal != image_id and layers < MORE_LAYERS:
+            cv.want_goal = image_id
+            cv.request_at = now
+            msg = self.imagery.request_goal(image_id, "layer", MORE_LAYERS, now)
+            self.log(now, "image goal", f"image {image_id} shows something at ({cv.x:.0f}, {cv.y:.0f}) "
+                     f"too blurry to tell [{self._seen(sights)}]: asking for {MORE_LAYERS} layers "
+                     f"[command {msg.command_id}]")
+            return
+        if len(cv.looked) >= MAX_LOOKS:
+            cv.verdict = "given up"
+            self.log(now, "given up", f"no car in {len(cv.looked)} images near ({cv.x:.0f}, {cv.y:.0f}): "
+                     "moving on")
+            return
+        direction = self._towards(cv, meta)
+        # step on from the furthest image already seen that way: never the same image twice
+        times = cv.looked_times.values()
+        start = min(times) if direction == "before" else max(times)
+        self.log(now, "image request", f"image {image_id} shows no car at ({cv.x:.0f}, {cv.y:.0f}) "
+                 f"[{self._seen(sights)}]: stepping {'back' if direction == 'before' else 'forward'} in time")
+        self._ask(cv, start, direction, now)
+
+    @staticmethod
+    def _seen(sights: list[Any]) -> str:
+        if not sights:
+            return "sand only"
+        return "; ".join(f"{s.kind} region over {s.share:.0%} of the frame, contrast {s.contrast:+.1f}, "
+                         f"edges {s.sharpness:.1f}x the sand's" for s in sights)
+
+    def _towards(self, cv: CandidateView, meta: dict[str, Any]) -> str:
+        """``"before"`` when the candidate lies behind the frame along the vehicle's heading."""
+        t = float(meta["time"])
+        heading = 0.0
+        if self.track:
+            heading = min(self.track, key=lambda p: abs(p[0] - t))[3]
+        h = math.radians(heading)
+        ahead = (cv.x - float(meta["x"])) * math.sin(h) + (cv.y - float(meta["y"])) * math.cos(h)
+        return "after" if ahead > 0 else "before"
+
+    def _answer(self, cv: CandidateView) -> dict[str, Any] | None:
+        """The image the vehicle serves for the operator's latest request, by the rule the vehicle
+        applies (nearest to the time, or the newest before / oldest after it), once topside has
+        heard the announcements it needs to tell (images are announced in capture order)."""
+        if cv.want is None:
+            return None
+        t, direction = cv.want
+        metas = [dict(p.meta) for p in self.imagery.products()
+                 if p.kind == "image" and p.meta.get("x") is not None and p.meta.get("time") is not None]
+        if cv.want_goal is not None:
+            for m in metas:
+                if int(m["image_id"]) == cv.want_goal:
+                    return m
+        later = [m for m in metas if float(m["time"]) > t]
+        if direction == "before":
+            older = [m for m in metas if float(m["time"]) < t]
+            return max(older, key=lambda m: float(m["time"]), default=None)
+        if direction == "after":
+            return min(later, key=lambda m: float(m["time"]), default=None)
+        if not any(float(m["time"]) >= t for m in metas):
+            return None  # the images after that time are not announced yet: wait
+        # ties go to the earlier image, as on the vehicle
+        return min(metas, key=lambda m: (abs(float(m["time"]) - t), float(m["time"])), default=None)
+
+    def _ask(self, cv: CandidateView, t: float, direction: str, now: float) -> None:
+        t = float(math.floor(t)) if direction != "after" else float(math.ceil(t))  # whole seconds
+        msg = self.imagery.request_by_time(t, direction, now)
+        cv.want = (t, direction)
+        cv.want_goal = None
+        cv.request_at = now
+        if cv.first_request_at is None:
+            cv.first_request_at = now
+        self.log(now, "image request", f"image {direction} dive time {t - self.epoch:.0f} s, for the candidate "
+                 f"at ({cv.x:.0f}, {cv.y:.0f}) [command {msg.command_id}]")
+
+    #: the dive's epoch, for dive times in the log (set by the demo)
+    epoch: float = 0.0
+
+
+def closest_approach(track: list[tuple[float, float, float, float]], x: float, y: float) -> tuple[float, float]:
+    """Distance and time of the track's closest approach to (x, y), between its points too
+    (statuses arrive tens of metres apart on a slow link)."""
+    best = (math.inf, 0.0)
+    for (t0, x0, y0, _), (t1, x1, y1, _) in zip(track, track[1:] or track):
+        dx, dy = x1 - x0, y1 - y0
+        seg = dx * dx + dy * dy
+        f = 0.0 if seg == 0 or t1 - t0 > 120.0 else min(max(((x - x0) * dx + (y - y0) * dy) / seg, 0.0), 1.0)
+        px, py = x0 + f * dx, y0 + f * dy
+        d = math.hypot(px - x, py - y)
+        if d < best[0]:
+            best = (d, t0 + f * (t1 - t0))
+    return best
