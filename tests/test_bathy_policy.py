@@ -336,3 +336,25 @@ def test_poll_paces_requests_and_auto_fill_runs_once_per_map_change() -> None:
     assert receiver.poll(2000.0) == []
     receiver.receive(MapMetadata(**{**{f: getattr(meta, f) for f in meta.__slots__}, "stamp": 900}), 2001.0)
     assert receiver.poll(2001.0)  # the map changed: gaps are checked again
+
+
+def test_a_reply_to_an_earlier_copy_of_a_retried_request_closes_the_region() -> None:
+    """On a TDMA link the vehicle's answer often comes back after topside retried the request
+    under a new id (the retry timer is shorter than a cycle). Matching the answer only to the
+    newest id left regions open forever, retried every minute with every answer discarded (seen
+    in the demo: 1 m gaps that were asked for and never filled)."""
+    receiver = BathymetryReceiver({"levels": LEVELS, "auto_fill": False})
+    region = receiver.request_area(0, 0.0, 0.0, 20.0, 20.0, fill_gaps=True)[0]
+    first = receiver.poll(0.0)
+    assert len(first) == 1 and isinstance(first[0], MapRoiRequest)
+    retry = receiver.poll(receiver.request_timeout + 1.0)  # no answer yet: retried, new id
+    assert len(retry) == 1 and isinstance(retry[0], MapRoiRequest)
+    assert retry[0].request_id != first[0].request_id
+    # the answer to the first copy arrives now: the vehicle queued 3 subgrids
+    receiver.receive(MapRoiReply(first[0].request_id, 0, 3), 70.0)
+    assert receiver.active_regions() == [region]
+    assert receiver.poll(71.0) == []  # it waits for them instead of asking again at once
+    # then an answer to the first copy saying nothing more: the region is done
+    receiver.receive(MapRoiReply(first[0].request_id, 0, 0), 200.0)
+    assert receiver.active_regions() == []
+    assert receiver.poll(10_000.0) == []

@@ -169,8 +169,12 @@ class BathymetryReceiver(ModalityReceiver):
                     self._auto_found = False
             return []
         if isinstance(message, MapRoiReply):
+            # A reply to any copy of a region's request counts: on a TDMA link the answer often
+            # arrives after the request was retried under a new id (the retry timer is shorter
+            # than a cycle), and an answer to an older copy, which listed no more than topside
+            # holds now, is as good ("nothing" then is nothing now).
             region = self._by_id.get(message.request_id)
-            if region is not None and region.request_id == message.request_id and not region.done:
+            if region is not None and not region.done:
                 if message.queued == 0:
                     region.done = True
                 else:
