@@ -37,20 +37,47 @@ def test_truth_and_metrics_are_consistent(demo: tuple[Path, dict]) -> None:  # t
     assert len(truth["targets"]) == 2
     assert json.loads((out / "metrics.json").read_text())["goals"] == metrics["goals"]
     assert set(metrics["goals"]) == {
-        "both targets identifiable topside at 1 m before the survey ends",
-        "a confirming image within two TDMA cycles of its request",
+        "every target identifiable topside at 1 m before the survey ends",
+        "every target confirmed by a received image that shows it, and nothing else confirmed",
+        "each confirming image within two TDMA cycles of its request",
     }
+    assert [(t["x"], t["y"]) for t in truth["targets"]] == [(t["x"], t["y"]) for t in metrics["targets"]]
+    assert metrics["scenario"]["name"] == "default" and metrics["operator"] == "script"
     # the map reached topside through the modems: the finest level covers most of the survey area
     assert metrics["map_coverage"]["0"] > 0.5
     assert metrics["images_received"] > 0 and metrics["images_received"] <= metrics["images_captured"]
     assert 0.0 < metrics["link"]["fill"] <= 1.0
 
 
+def test_short_dive_meets_its_goals_against_the_truth(demo: tuple[Path, dict]) -> None:  # type: ignore[type-arg]
+    """Every goal of the short scenario is met, and the truth agrees: each true target (from
+    truth.json, not from the operator) has a confirming image taken within a few metres of it,
+    saved topside, requested and confirmed within two TDMA cycles; nothing else was confirmed."""
+    out, metrics = demo
+    truth = json.loads((out / "truth.json").read_text())
+    assert truth["targets"], "the scenario has targets"
+    for name, goal in metrics["goals"].items():
+        assert goal["met"], f"{name}: {goal['detail']}"
+    assert metrics["success"] is True and metrics["false_confirmations"] == []
+    assert metrics["summary"].startswith("Goal MET")
+    for t, got in zip(truth["targets"], metrics["targets"], strict=True):
+        conf = got["confirmation"]
+        assert conf is not None, t
+        assert np.hypot(conf["image_x"] - t["x"], conf["image_y"] - t["y"]) < 5.0
+        assert (out / "images" / f"image_{conf['image_id']:04d}.png").exists()
+        assert 0 < conf["bytes"] and conf["tdma_cycles"] is not None and conf["tdma_cycles"] <= 2.0
+        assert got["identifiable_at_1m_s"] is not None and got["identifiable_at_1m_s"] <= metrics["survey_end_s"]
+    html = (out / "report.html").read_text()
+    assert "Goal MET" in html and "NOT MET" not in html
+
+
 def test_link_log_is_json_lines_with_capacity_and_use(demo: tuple[Path, dict]) -> None:  # type: ignore[type-arg]
     out, _ = demo
     records = [json.loads(line) for line in (out / "link.jsonl").read_text().splitlines()]
     sent = [r for r in records if r.get("cause") == "sent"]
-    assert sent
+    arrived = [r for r in records if isinstance(r.get("delivered"), list)]
+    assert sent and arrived  # transmissions, and what became of them at the other end
+    assert all(len(r["delivered"]) == r["frames"] for r in arrived)
     for r in sent[:20]:
         assert {"time", "link", "slot", "frames", "capacity_bytes", "used_bytes"} <= set(r)
         assert r["used_bytes"] <= r["capacity_bytes"]
@@ -74,7 +101,9 @@ def test_report_has_plots_and_goals(demo: tuple[Path, dict]) -> None:  # type: i
     html = (out / "report.html").read_text()
     assert html.count("<svg") >= 3
     assert "Map filling in over time" in html and "Link use against capacity" in html
-    assert "both targets identifiable" in html
+    assert "every target identifiable" in html
+    assert "x east (m)" in html and "depth (m)" in html  # the map figures have axes and a colour bar
+    assert "<details>" in html  # raw metrics folded away
 
 
 def test_images_option_uses_given_files(tmp_path: Path) -> None:

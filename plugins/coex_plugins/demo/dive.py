@@ -332,7 +332,7 @@ def run_demo(config: DemoConfig, *, on_decision: Callable[[Decision], None] | No
     track = Track(floor)
     descent = 300.0 if not cfg.quick else 120.0
     survey: Survey = simulate_survey(floor, altitude=scn.survey_altitude, line_spacing=scn.line_spacing or None,
-                                     speed=scn.survey_speed if not cfg.quick else max(scn.survey_speed, 1.5),
+                                     speed=scn.survey_speed,
                                      ping_rate=2.0, beams=256, t0=EPOCH + descent,
                                      turn_time=60.0 if not cfg.quick else 20.0, seed=cfg.seed + 1)
     survey_end = float(survey.times[-1]) if len(survey) else EPOCH + descent
@@ -537,6 +537,8 @@ def run_demo(config: DemoConfig, *, on_decision: Callable[[Decision], None] | No
                     operator.on_status(ev.message, clock.now)
                     received_track.append((ev.message.x, ev.message.y))
             vehicle.events()
+            for rec in channel.log():  # what arrived, per packet and receiver: delivered or lost frames
+                link_log.write(json.dumps(rec, sort_keys=True, separators=(",", ":")) + "\n")
         steps += 1
         progress.update(clock.now - EPOCH)
     progress.close()
@@ -684,14 +686,18 @@ def _why_not(i: int, world: _World, operator: Operator, visible: float | None) -
     """Why target ``i`` was not confirmed, from the truth."""
     car = world.cars[i]
     near = [c for c in operator.candidates if math.hypot(c.x - car.x, c.y - car.y) <= IDENTIFY_RADIUS]
-    seen = [ft for ft in world.frames.values() if ft.visible.get(i + 1, 0.0) >= 0.15]
+    shown = sorted(ft.time for ft in world.frames.values() if ft.visible.get(i + 1, 0.0) >= 0.15)
+    if shown:
+        return (f"photographed ({len(shown)} frames from {shown[0] - EPOCH:.0f} s), but no received image of it "
+                "was confirmed")
     if visible is None:
-        return "never identifiable in the received 1 m map"
+        return "never photographed: never identifiable in the received 1 m map"
+    if world.operator == "none":
+        return "never photographed: never visited with the camera (no operator retargeted the vehicle)"
     if not any(c.planned for c in near):
-        return "identifiable at 1 m but never visited with the camera (ranked too low or no camera time left)"
-    if not seen:
-        return "visited, but no camera frame showed it"
-    return "photographed, but no received image of it was confirmed"
+        return ("never photographed: identifiable at 1 m but never visited with the camera (ranked too low, "
+                "or no camera time left)")
+    return "never photographed: visited, but no camera frame showed enough of it"
 
 
 def _finish(out: Path, cfg: DemoConfig, world: _World, operator: Operator, receivers: dict[str, Any],
@@ -918,7 +924,7 @@ def _link_summary(path: Path) -> dict[str, Any]:
     cap_s: list[tuple[float, float]] = []
     used_s: list[tuple[float, float]] = []
     del_s: list[tuple[float, float]] = []
-    sent = lost = 0
+    sent = lost = frames = 0
     for line in path.read_text().splitlines():
         try:
             rec = json.loads(line)
@@ -936,10 +942,12 @@ def _link_summary(path: Path) -> dict[str, Any]:
         elif rec.get("delivered") is not None:
             d = rec.get("delivered")
             n = sum(1 for x in d if x) if isinstance(d, list) else int(d)
-            delivered += int(rec.get("used_bytes") or 0) if n else 0
+            delivered += int(rec.get("delivered_bytes", rec.get("used_bytes") if n else 0) or 0)
             lost += int(rec.get("lost") or 0) if not isinstance(rec.get("lost"), list) else len(rec["lost"])
+            frames += int(rec.get("frames") or 0)
             del_s.append((round(t, 1), delivered))
-    return {"packets_sent": sent, "capacity_bytes": cap, "used_bytes": used,
+    return {"packets_sent": sent, "capacity_bytes": cap, "used_bytes": used, "delivered_bytes": delivered,
+            "frames_lost": lost, "frame_loss": round(lost / frames, 4) if frames else None,
             "fill": round(used / cap, 4) if cap else None, "capacity_series": cap_s, "used_series": used_s,
             "delivered_series": del_s}
 

@@ -33,10 +33,11 @@ from .truth import Eye, FrameTruth
 
 __all__ = ["CandidateView", "Operator", "car_likeness", "measure"]
 
-#: a car as the operator pictures it: length, width, height (m)
+#: a car as the operator pictures it: length, width, height (m), and the flatness of its top
 CAR = (4.5, 1.8, 1.5)
+FLAT = 0.93
 #: candidates scoring below this are not worth camera time
-MIN_SCORE = 0.2
+MIN_SCORE = 0.05
 #: layers of a requested image the vehicle sends first (its ``request_goal``), and the most the
 #: operator asks for when an image is too blurry to tell
 CONFIRM_LAYERS = 10
@@ -45,6 +46,11 @@ MORE_LAYERS = 14
 MAX_LOOKS = 6
 #: an image is "at" a candidate when taken within this distance of it (m)
 NEAR = 6.0
+#: gaps in the 1 m map are asked for in tiles of this size (m), a few tiles per look, each tile
+#: again after GAP_RETRY seconds at the earliest
+GAP_TILE = 32.0
+GAP_TILES_PER_LOOK = 2
+GAP_RETRY = 600.0
 
 
 @dataclass
@@ -59,6 +65,7 @@ class CandidateView:
     width: float
     score: float
     found_at: float
+    flatness: float = FLAT
     #: the camera pass over it: planned, then what the operator made of the images
     planned: bool = False
     passed_at: float | None = None
@@ -84,11 +91,13 @@ class CandidateView:
         return bool(self.verdict)
 
 
-def car_likeness(height: float, length: float, width: float) -> float:
-    """How car-like a bump is, in [0, 1]: Gaussian likelihoods of its height, length and width
-    against a car's (4.5 x 1.8 x 1.5 m), with the spreads a 1 m map allows."""
+def car_likeness(height: float, length: float, width: float, flatness: float = FLAT) -> float:
+    """How car-like a bump is, in [0, 1]: Gaussian likelihoods of its height, length, width and
+    flatness (mean over max height across its footprint) against a car's (4.5 x 1.8 x 1.5 m, a
+    flat top), with the spreads a 1 m map allows."""
     h0, l0, w0 = CAR[2], CAR[0], CAR[1]
-    s = (((height - h0) / 0.6) ** 2 + ((length - l0) / 1.5) ** 2 + ((width - w0) / 0.9) ** 2)
+    s = (((height - h0) / 0.6) ** 2 + ((length - l0) / 1.5) ** 2 + ((width - w0) / 1.0) ** 2
+         + ((min(flatness, FLAT) - FLAT) / 0.2) ** 2)
     return float(math.exp(-0.5 * s))
 
 
@@ -111,19 +120,12 @@ def measure(grid: np.ndarray, cell: float, x0: float, y0: float, cand: Any, now:
     pr, pc = ri - r0, ci - c0
     if not (0 <= pr < win.shape[0] and 0 <= pc < win.shape[1]) or not above[pr, pc]:
         return None
-    # the connected part containing the peak (8-neighbour growth, vectorised per step)
-    comp = np.zeros_like(above)
-    comp[pr, pc] = True
-    while True:
-        p = np.pad(comp, 1)
-        grown = comp.copy()
-        for dy in (0, 1, 2):
-            for dx in (0, 1, 2):
-                grown |= p[dy:dy + comp.shape[0], dx:dx + comp.shape[1]]
-        grown &= above
-        if np.array_equal(grown, comp):
-            break
-        comp = grown
+    comp = _grow(above, pr, pc)
+    # a car has a flat top: over its whole footprint (cells above 30 % of its height) it stands
+    # almost at full height; a boulder's dome falls away from its crest
+    with np.errstate(invalid="ignore"):
+        foot = _grow(np.isfinite(excess) & (excess > 0.3 * cand.height), pr, pc)
+    flatness = float(np.nanmean(excess[foot]) / max(float(np.nanmax(excess[foot])), 1e-6))
     rows, cols = np.nonzero(comp)
     n = rows.size
     ys = (rows + 0.5) * cell
@@ -140,7 +142,24 @@ def measure(grid: np.ndarray, cell: float, x0: float, y0: float, cand: Any, now:
     cx = float(x0 + (c0 + cols.mean() + 0.5) * cell)
     cy = float(y0 + (r0 + rows.mean() + 0.5) * cell)
     return CandidateView(round(cx, 1), round(cy, 1), round(height, 2), int(n), round(length, 1),
-                         round(width, 1), round(car_likeness(height, length, width), 3), now)
+                         round(width, 1), round(car_likeness(height, length, width, flatness), 3), now,
+                         flatness=round(flatness, 2))
+
+
+def _grow(mask: np.ndarray, r: int, c: int) -> np.ndarray:
+    """The 8-connected part of ``mask`` containing cell (r, c) (vectorised growth steps)."""
+    comp = np.zeros_like(mask)
+    comp[r, c] = bool(mask[r, c])
+    while True:
+        p = np.pad(comp, 1)
+        grown = comp.copy()
+        for dy in (0, 1, 2):
+            for dx in (0, 1, 2):
+                grown |= p[dy:dy + comp.shape[0], dx:dx + comp.shape[1]]
+        grown &= mask
+        if np.array_equal(grown, comp):
+            return comp
+        comp = grown
 
 
 class Operator:
@@ -166,6 +185,8 @@ class Operator:
         self.candidates: list[CandidateView] = []
         self.camera_phase = False
         self.position: tuple[float, float] | None = None  # the newest reported position
+        #: per gap tile: when last asked, how often, what was held then, requests that brought nothing
+        self._gap_asked: dict[tuple[float, float], tuple[float, int, float, int]] = {}
 
     def inside(self, x: float, y: float, margin: float = 3.0) -> bool:
         x0, y0, x1, y1 = self.box
@@ -229,6 +250,7 @@ class Operator:
                 self.log(now, "ROI request", f"level 0 (1 m) around ({c.x:.0f}, {c.y:.0f}): a "
                          f"{c.height:.1f} m bump at level {level} ({2 ** level} m cells)")
             break
+        self._ask_for_gaps(now)
         for v in self.measured(now) if views is None else views:
             old = next((c for c in self.candidates if math.hypot(c.x - v.x, c.y - v.y) < 4.0), None)
             if old is None:
@@ -239,13 +261,53 @@ class Operator:
                 was = old.score
                 old.x, old.y, old.height, old.cells = v.x, v.y, v.height, v.cells
                 old.length, old.width, old.score = v.length, v.width, max(v.score, was)
+                old.flatness = v.flatness
                 if was < MIN_SCORE <= v.score:
                     self.log(now, "candidate at 1 m", self._describe(old))
+
+    def _ask_for_gaps(self, now: float) -> None:
+        """Holes in the 1 m map where the coarse map shows the ground was surveyed: ask for the
+        1 m subgrids there that are missing or newer than topside's (a region request lists the
+        stamps topside holds), a few tiles at a time, tiles never asked first; a tile again after :data:`GAP_RETRY` seconds, and no more
+        once two requests brought nothing (the vehicle has no more there)."""
+        fine = self.level_grid(0)
+        if fine is None:
+            return
+        grid, cell, (gx0, gy0) = fine
+        coarse = [g for g in (self.level_grid(k) for k in (1, 2, 3)) if g is not None]
+        x0, y0, x1, y1 = self.box
+        wanted = []
+        for ty in np.arange(y0, y1, GAP_TILE):
+            for tx in np.arange(x0, x1, GAP_TILE):
+                key = (float(tx), float(ty))
+                asked_at, n, held_then, stale = self._gap_asked.get(key, (-np.inf, 0, -1.0, 0))
+                if now < asked_at + GAP_RETRY or stale >= 2:
+                    continue
+                # the whole box once the survey is over (the operator planned it); before, where
+                # a coarse level shows the swaths have passed
+                surveyed = 1.0 if self.camera_phase else max(
+                    (_fraction(g, c, gx, gy, tx, ty, GAP_TILE) for g, c, (gx, gy) in coarse), default=0.0)
+                held = _fraction(grid, cell, gx0, gy0, tx, ty, GAP_TILE)
+                if surveyed < 0.3 or held >= 0.98 * surveyed:
+                    continue
+                stale = stale + 1 if n and held <= held_then + 0.005 else 0
+                if stale >= 2:
+                    self._gap_asked[key] = (asked_at, n, held, stale)
+                    continue
+                wanted.append((n, held, key, surveyed, stale))
+        for n, held, (tx, ty), surveyed, stale in sorted(wanted)[:GAP_TILES_PER_LOOK]:
+            self._gap_asked[(tx, ty)] = (now, n + 1, held, stale)
+            x1t, y1t = min(tx + GAP_TILE, x1) - 1e-3, min(ty + GAP_TILE, y1) - 1e-3
+            # a region request with topside's stamps, not a gap request: a hole is often in a
+            # subgrid topside holds in an older, partly surveyed version
+            self.bathy.request_area(0, tx, ty, x1t, y1t)
+            self.log(now, "gap request", f"level 0 (1 m) gaps in {GAP_TILE:.0f} m x {GAP_TILE:.0f} m at "
+                     f"({tx:.0f}, {ty:.0f}): {held:.0%} held where {surveyed:.0%} was surveyed")
 
     @staticmethod
     def _describe(v: CandidateView) -> str:
         return (f"({v.x:.1f}, {v.y:.1f}): {v.height:.1f} m high, {v.length:.1f} x {v.width:.1f} m "
-                f"({v.cells} cells), car-likeness {v.score:.2f}")
+                f"({v.cells} cells), top {v.flatness:.0%} flat, car-likeness {v.score:.2f}")
 
     # ------------------------------------------------------------------ the camera pass
     def watch_images(self, now: float) -> None:
@@ -372,6 +434,17 @@ class Operator:
 
     #: the dive's epoch, for dive times in the log (set by the demo)
     epoch: float = 0.0
+
+
+def _fraction(grid: np.ndarray, cell: float, x0: float, y0: float, tx: float, ty: float, size: float) -> float:
+    """Fraction of the square [tx, tx + size) x [ty, ty + size) that a level grid holds."""
+    ny, nx = grid.shape
+    c0, c1 = max(int((tx - x0) / cell), 0), min(math.ceil((tx + size - x0) / cell), nx)
+    r0, r1 = max(int((ty - y0) / cell), 0), min(math.ceil((ty + size - y0) / cell), ny)
+    if c1 <= c0 or r1 <= r0:
+        return 0.0
+    expected = max((size / cell) ** 2, 1.0)
+    return float(np.count_nonzero(np.isfinite(grid[r0:r1, c0:c1])) / expected)
 
 
 def closest_approach(track: list[tuple[float, float, float, float]], x: float, y: float) -> tuple[float, float]:

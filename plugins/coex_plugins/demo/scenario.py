@@ -250,7 +250,6 @@ class Scenario:
         def scale(objs: tuple[ObjectSpec, ...]) -> tuple[ObjectSpec, ...]:
             return tuple(replace(o, x=round(o.x * f, 1), y=round(o.y * f, 1)) for o in objs)
         return replace(self, area=96.0, duration=min(self.duration, 3000.0), targets=scale(self.targets),
-                       survey_speed=max(self.survey_speed, 1.5),
                        decoys=scale(self.decoys), ship=(self.ship[0] * f, self.ship[1] * f)
                        if self.loss.model != "range" else self.ship)
 
