@@ -224,7 +224,11 @@ def nui_schedule() -> Schedule:
 
 
 def build_nodes(out: Path, channels: list[dict[str, Any]], command_key: bytes | None = None,
-                scenario: Scenario | None = None) -> tuple[Node, Node, dict[str, Any], dict[str, Any]]:
+                scenario: Scenario | None = None, *, auto_fill: bool = True,
+                ) -> tuple[Node, Node, dict[str, Any], dict[str, Any]]:
+    """The two nodes of the dive. ``auto_fill=False`` when the scripted operator asks for the
+    holes of the map itself (the receiver's own gap rounds over the whole map would compete with
+    it, and with image requests, for the uplink)."""
     scn = scenario or Scenario()
     sched = dive_schedule(scn)
     cycle = scn.cycle
@@ -239,7 +243,7 @@ def build_nodes(out: Path, channels: list[dict[str, Any]], command_key: bytes | 
         "timeseries": TimeSeriesModality().sender({"channels": channels}),
     }
     receivers = {
-        "bathymetry": BathymetryModality().receiver(None),
+        "bathymetry": BathymetryModality().receiver({"auto_fill": auto_fill}),
         "imagery": ImageryModality().receiver({"out_dir": str(out / "images")}),
         "timeseries": TimeSeriesModality().receiver(None),
     }
@@ -346,7 +350,8 @@ def run_demo(config: DemoConfig, *, on_decision: Callable[[Decision], None] | No
     net = ModemNetwork({TOPSIDE: (scn.ship[0], scn.ship[1], 0.0), VEHICLE: (0.0, 0.0, 0.0)},
                        channel=channel, clock=clock, ptys=True)
     series = ts_synth.dataset(duration=max(scn.duration, 1200.0), period=1.0, seed=cfg.seed, t0=EPOCH)
-    vehicle, topside, senders, receivers = build_nodes(out, [s.channel() for s in series], cfg.command_key, scn)
+    vehicle, topside, senders, receivers = build_nodes(out, [s.channel() for s in series], cfg.command_key, scn,
+                                                       auto_fill=operator_mode != "script")
     link_log = (out / "link.jsonl").open("w")
     runners = {
         VEHICLE: Runner(vehicle, {0: net.transport(VEHICLE, rate=scn.modem_rate, dest=TOPSIDE)},
@@ -363,7 +368,7 @@ def run_demo(config: DemoConfig, *, on_decision: Callable[[Decision], None] | No
         return frames[best] if best is not None and abs(best - t) <= 1.0 else None
 
     operator = Operator(topside, receivers, (floor.x0, floor.y0, floor.x0 + floor.size, floor.y0 + floor.size),
-                        log, frames=frame_at, camera_altitude=scn.camera_altitude,
+                        log, frames=frame_at, camera_altitude=scn.camera_altitude, cycle=scn.cycle,
                         active=operator_mode == "script")
     operator.epoch = EPOCH
     received_track: list[tuple[float, float]] = []
@@ -451,6 +456,7 @@ def run_demo(config: DemoConfig, *, on_decision: Callable[[Decision], None] | No
                     break  # no camera time left for the next in rank order
                 t, pos = transect(t, pos, cv.x, cv.y)
                 cv.planned = True
+                cv.pass_planned = t - 2 * half / 0.5 + half / 0.5  # the middle of its transect
                 planned.append(cv)
             if planned:
                 log(now, "camera pass", "vehicle retargeted over " + ", ".join(

@@ -51,6 +51,10 @@ NEAR = 6.0
 GAP_TILE = 32.0
 GAP_TILES_PER_LOOK = 2
 GAP_RETRY = 600.0
+#: region requests the operator keeps open at once (the uplink also carries image requests)
+MAX_OPEN_MAP_REQUESTS = 6
+#: an image request the vehicle has not answered after this many TDMA cycles is asked again
+ANSWER_CYCLES = 3
 
 
 @dataclass
@@ -68,6 +72,8 @@ class CandidateView:
     flatness: float = FLAT
     #: the camera pass over it: planned, then what the operator made of the images
     planned: bool = False
+    #: when the planned transect passes closest to it (the operator's own plan)
+    pass_planned: float | None = None
     passed_at: float | None = None
     want: tuple[float, str] | None = None  # (time, "nearest" | "before" | "after")
     want_goal: int | None = None  # image id of a pending request for more layers
@@ -169,7 +175,8 @@ class Operator:
 
     def __init__(self, topside: Node, receivers: dict[str, Any], box: tuple[float, float, float, float],
                  log: Callable[[float, str, str], None], *, frames: Callable[[float], FrameTruth | None],
-                 camera_altitude: float, eye: Eye | None = None, active: bool = True) -> None:
+                 camera_altitude: float, cycle: float = 120.0, eye: Eye | None = None,
+                 active: bool = True) -> None:
         self.topside = topside
         self.bathy: BathymetryReceiver = receivers["bathymetry"]
         self.imagery: ImageryReceiver = receivers["imagery"]
@@ -177,6 +184,7 @@ class Operator:
         self.log = log
         self.frames = frames
         self.camera_altitude = camera_altitude
+        self.cycle = cycle
         self.eye = eye or Eye()
         #: ``False`` (``--operator none``): the operator watches nothing and asks for nothing
         self.active = active
@@ -245,6 +253,8 @@ class Operator:
             for c in self.bumps(level, 0.3, min_cells=1):
                 if any(math.hypot(c.x - x, c.y - y) < 12.0 for x, y in self.coarse_requested):
                     continue
+                if self._map_requests_open() >= MAX_OPEN_MAP_REQUESTS:
+                    break  # the uplink is shared with image requests: a few map requests at a time
                 self.coarse_requested.append((c.x, c.y))
                 self.bathy.request_area(0, c.x - 12.0, c.y - 12.0, c.x + 12.0, c.y + 12.0)
                 self.log(now, "ROI request", f"level 0 (1 m) around ({c.x:.0f}, {c.y:.0f}): a "
@@ -295,7 +305,8 @@ class Operator:
                     self._gap_asked[key] = (asked_at, n, held, stale)
                     continue
                 wanted.append((n, held, key, surveyed, stale))
-        for n, held, (tx, ty), surveyed, stale in sorted(wanted)[:GAP_TILES_PER_LOOK]:
+        room = max(0, min(GAP_TILES_PER_LOOK, MAX_OPEN_MAP_REQUESTS - self._map_requests_open()))
+        for n, held, (tx, ty), surveyed, stale in sorted(wanted)[:room]:
             self._gap_asked[(tx, ty)] = (now, n + 1, held, stale)
             x1t, y1t = min(tx + GAP_TILE, x1) - 1e-3, min(ty + GAP_TILE, y1) - 1e-3
             # a region request with topside's stamps, not a gap request: a hole is often in a
@@ -303,6 +314,10 @@ class Operator:
             self.bathy.request_area(0, tx, ty, x1t, y1t)
             self.log(now, "gap request", f"level 0 (1 m) gaps in {GAP_TILE:.0f} m x {GAP_TILE:.0f} m at "
                      f"({tx:.0f}, {ty:.0f}): {held:.0%} held where {surveyed:.0%} was surveyed")
+
+    def _map_requests_open(self) -> int:
+        """Region requests of the operator's still open (not yet answered "nothing more")."""
+        return sum(1 for r in self.bathy.active_regions() if not r.auto)
 
     @staticmethod
     def _describe(v: CandidateView) -> str:
@@ -322,12 +337,25 @@ class Operator:
                 if d < NEAR and math.hypot(x_now - cv.x, y_now - cv.y) > 10.0:
                     cv.passed_at = t_close
                     self._ask(cv, t_close, "nearest", now)
+                elif cv.pass_planned is not None and now > cv.pass_planned + self.cycle:
+                    # few statuses came up on a lossy link: go by the plan the operator made
+                    cv.passed_at = cv.pass_planned
+                    self._ask(cv, cv.pass_planned, "nearest", now)
                 continue
             self._look(cv, now)
 
     def _look(self, cv: CandidateView, now: float) -> None:
         meta = self._answer(cv)
-        if meta is None:
+        stuck = cv.request_at is not None and now - cv.request_at > ANSWER_CYCLES * self.cycle
+        if meta is None or (stuck and not self._arrived(cv, meta)):
+            if stuck and cv.want is not None:  # no answer: the request may never have reached the vehicle
+                t, direction = cv.want
+                self.log(now, "image request", f"no answer for {now - (cv.request_at or now):.0f} s: asking again")
+                if cv.want_goal is not None and meta is not None:
+                    cv.request_at = now
+                    self.imagery.request_goal(cv.want_goal, "layer", MORE_LAYERS, now)
+                else:
+                    self._ask(cv, t, direction, now)
             return
         image_id = int(meta["image_id"])
         cv.image_id = image_id
@@ -347,9 +375,7 @@ class Operator:
                      f"[{self._seen(sights)}]: {meta['bytes_used']} B, {dt:.0f} s after its request")
             return
         layers = int(meta.get("layers_complete", 0))
-        arrived = bool(meta.get("complete")) or layers >= (MORE_LAYERS if cv.want_goal == image_id
-                                                           else CONFIRM_LAYERS)
-        if not arrived:
+        if not self._arrived(cv, meta):
             return  # the vehicle is still sending the layers asked for: look again later
         if image_id not in cv.looked:
             cv.looked.append(image_id)
@@ -386,6 +412,12 @@ class Operator:
             return "sand only"
         return "; ".join(f"{s.kind} region over {s.share:.0%} of the frame, contrast {s.contrast:+.1f}, "
                          f"edges {s.sharpness:.1f}x the sand's" for s in sights)
+
+    @staticmethod
+    def _arrived(cv: CandidateView, meta: dict[str, Any]) -> bool:
+        """Whether the layers asked for of this image are all topside."""
+        want = MORE_LAYERS if cv.want_goal == int(meta["image_id"]) else CONFIRM_LAYERS
+        return bool(meta.get("complete")) or int(meta.get("layers_complete", 0)) >= want
 
     def _towards(self, cv: CandidateView, meta: dict[str, Any]) -> str:
         """``"before"`` when the candidate lies behind the frame along the vehicle's heading."""
@@ -454,7 +486,9 @@ def closest_approach(track: list[tuple[float, float, float, float]], x: float, y
     for (t0, x0, y0, _), (t1, x1, y1, _) in zip(track, track[1:] or track):
         dx, dy = x1 - x0, y1 - y0
         seg = dx * dx + dy * dy
-        f = 0.0 if seg == 0 or t1 - t0 > 120.0 else min(max(((x - x0) * dx + (y - y0) * dy) / seg, 0.0), 1.0)
+        # between two statuses of one transect (not across a transit between transects)
+        f = 0.0 if seg == 0 or seg > 80.0**2 or t1 - t0 > 400.0 else min(
+            max(((x - x0) * dx + (y - y0) * dy) / seg, 0.0), 1.0)
         px, py = x0 + f * dx, y0 + f * dy
         d = math.hypot(px - x, py - y)
         if d < best[0]:

@@ -554,7 +554,11 @@ def _scenario_line(sc: Any) -> str:
     if depth is not None:
         bits.append(f"water depth {depth:g} m")
     loss = sc.get("loss")
-    if isinstance(loss, Mapping):
+    if sc.get("loss_description"):
+        bits.append(f"link: {sc['loss_description']}")
+        if sc.get("modem_rate") is not None:
+            bits.append(f"Micromodem rate {sc['modem_rate']}")
+    elif isinstance(loss, Mapping):
         model = loss.get("model", "?")
         extra = ", ".join(f"{k} {v}" for k, v in loss.items() if k != "model" and not isinstance(v, Mapping | list))
         bits.append(f"link loss: {model}" + (f" ({extra})" if extra else ""))
@@ -583,7 +587,7 @@ def _targets_table(targets: Any) -> str:
         if not isinstance(t, Mapping):
             continue
         name = t.get("name", f"target {i + 1}")
-        seen = t.get("identifiable_at_1m_s", t.get("visible_at_1m_s"))
+        seen = t.get("identifiable_at_1m_s")
         seen_s = _num(seen) if _f(seen) is not None else '<span class="bad">never</span>'
         c = t.get("confirmation")
         if isinstance(c, Mapping):
