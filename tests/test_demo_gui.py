@@ -33,6 +33,13 @@ def test_demo_gui_serves_the_console(tmp_path: Path) -> None:
         assert url, "the demo did not announce its console"
         first = _get(url + "/api/state")
         assert isinstance(first, dict) and first
+        # a person asks for the 1 m map of a corner: it goes to the vehicle and into the decisions
+        body = json.dumps({"action": "request_region",
+                           "args": {"level": 0, "x_min": 0, "y_min": 0, "x_max": 20, "y_max": 20}}).encode()
+        req = urllib.request.Request(url + "/api/action", data=body, method="POST",
+                                     headers={"Content-Type": "application/json"})
+        with urllib.request.urlopen(req, timeout=10) as r:
+            assert json.loads(r.read())["ok"] is True
         over = False
         while time.monotonic() < deadline + 300 and not over:
             over = "the dive is over" in proc.stderr.readline()
@@ -48,3 +55,10 @@ def test_demo_gui_serves_the_console(tmp_path: Path) -> None:
         if proc.poll() is None:
             proc.kill()
     assert (tmp_path / "report.html").exists()
+    # with the console and no --operator, a person operates: no scripted decision, theirs logged
+    metrics = json.loads((tmp_path / "metrics.json").read_text())
+    assert metrics["operator"] == "none"
+    rows = (tmp_path / "decisions.csv").read_text().splitlines()
+    assert not any(",script," in r for r in rows)
+    assert any(",person,console action," in r and "request_region" in r for r in rows)
+    assert "person" in (tmp_path / "report.html").read_text()

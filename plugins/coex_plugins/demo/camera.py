@@ -18,7 +18,7 @@ from typing import Protocol
 
 import numpy as np
 
-__all__ = ["BoxLike", "CameraModel", "SandTexture", "render_frame", "render_labelled", "footprint", "in_frame"]
+__all__ = ["BoxLike", "CameraModel", "SandTexture", "render_frame", "render_labelled", "footprint"]
 
 HeightFn = Callable[[np.ndarray, np.ndarray], np.ndarray]
 
@@ -103,20 +103,6 @@ def _coarse_heights(height_fn: HeightFn, gx: np.ndarray, gy: np.ndarray, step: i
     c = coarse[r0 + 1][:, c0]
     d = coarse[r0 + 1][:, c0 + 1]
     return (a * (1 - fr) * (1 - fc) + b * (1 - fr) * fc + c * fr * (1 - fc) + d * fr * fc)
-
-
-def in_frame(box: BoxLike, x: float, y: float, altitude: float, heading_deg: float,
-             camera: CameraModel | None = None, fraction: float = 0.2) -> bool:
-    """Whether at least ``fraction`` of the box's top is inside the frame of a camera at (x, y)."""
-    cam = camera or CameraModel()
-    w, h = footprint(altitude, cam)
-    gu, gv = np.meshgrid(np.linspace(-w / 2, w / 2, 64), np.linspace(-h / 2, h / 2, 48))
-    t = np.deg2rad(heading_deg)
-    gx = x + gu * np.cos(t) + gv * np.sin(t)
-    gy = y - gu * np.sin(t) + gv * np.cos(t)
-    mask, _, _ = _inside(box, gx, gy)
-    covered = mask.mean() * w * h
-    return bool(covered >= fraction * box.length * box.width)
 
 
 def render_frame(

@@ -15,6 +15,7 @@ operators did by hand, deciding only from what reached topside.
 
 from __future__ import annotations
 
+import contextlib
 import math
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -22,6 +23,7 @@ from typing import Any
 
 import numpy as np
 
+from coex_core.errors import RequestRejected
 from coex_core.messages import VehicleStatus
 from coex_core.node import Node
 from coex_core.timefmt import unwrap
@@ -41,18 +43,18 @@ MIN_SCORE = 0.05
 #: layers of a requested image the vehicle sends first (its ``request_goal``), and the most the
 #: operator asks for when an image is too blurry to tell
 CONFIRM_LAYERS = 10
-MORE_LAYERS = 14
+MORE_LAYERS = 16
 #: images the operator looks at for one candidate before moving on
 MAX_LOOKS = 6
 #: an image is "at" a candidate when taken within this distance of it (m)
 NEAR = 6.0
 #: gaps in the 1 m map are asked for in tiles of this size (m), a few tiles per look, each tile
 #: again after GAP_RETRY seconds at the earliest
-GAP_TILE = 32.0
+GAP_TILE = 64.0
 GAP_TILES_PER_LOOK = 2
 GAP_RETRY = 600.0
 #: region requests the operator keeps open at once (the uplink also carries image requests)
-MAX_OPEN_MAP_REQUESTS = 6
+MAX_OPEN_MAP_REQUESTS = 12
 #: an image request the vehicle has not answered after this many TDMA cycles is asked again
 ANSWER_CYCLES = 3
 
@@ -195,6 +197,7 @@ class Operator:
         self.position: tuple[float, float] | None = None  # the newest reported position
         #: per gap tile: when last asked, how often, what was held then, requests that brought nothing
         self._gap_asked: dict[tuple[float, float], tuple[float, int, float, int]] = {}
+        self._overview_asked = False
 
     def inside(self, x: float, y: float, margin: float = 3.0) -> bool:
         x0, y0, x1, y1 = self.box
@@ -261,6 +264,14 @@ class Operator:
                          f"{c.height:.1f} m bump at level {level} ({2 ** level} m cells)")
             break
         self._ask_for_gaps(now)
+        if self.camera_phase and not self._overview_asked:
+            # the survey is over: complete the coarse levels of the box too (the overview maps)
+            self._overview_asked = True
+            x0, y0, x1, y1 = self.box
+            for level in (3, 2, 1):
+                with contextlib.suppress(RequestRejected):
+                    self.bathy.request_area(level, x0, y0, x1 - 1e-3, y1 - 1e-3)
+            self.log(now, "ROI request", "levels 1-3 (2, 4, 8 m) over the whole survey box: the overview maps")
         for v in self.measured(now) if views is None else views:
             old = next((c for c in self.candidates if math.hypot(c.x - v.x, c.y - v.y) < 4.0), None)
             if old is None:
@@ -362,7 +373,8 @@ class Operator:
         img = self.imagery.image(image_id)
         truth = self.frames(float(meta["time"]))
         here = math.hypot(float(meta["x"]) - cv.x, float(meta["y"]) - cv.y) <= NEAR
-        sights = self.eye.look(img, truth) if (img is not None and truth is not None) else []
+        settled = self._arrived(cv, meta)
+        sights = self.eye.look(img, truth, settled=settled) if (img is not None and truth is not None) else []
         kinds = {s.kind for s in sights}
         if here and "car" in kinds:
             cv.verdict, cv.verdict_image, cv.confirmed_at = "car", image_id, now
@@ -375,7 +387,7 @@ class Operator:
                      f"[{self._seen(sights)}]: {meta['bytes_used']} B, {dt:.0f} s after its request")
             return
         layers = int(meta.get("layers_complete", 0))
-        if not self._arrived(cv, meta):
+        if not settled:
             return  # the vehicle is still sending the layers asked for: look again later
         if image_id not in cv.looked:
             cv.looked.append(image_id)

@@ -95,14 +95,21 @@ class Sight:
 class Eye:
     """The scripted operator's eye (see the module docstring). An object region must cover
     ``min_share`` of the frame to be noticed; it is a car when it is darker than the sand by
-    ``min_contrast`` and its outline is ``min_sharpness`` times sharper than the sand's texture;
-    it is a rock when it is paler by that much and soft-edged; otherwise it is unclear."""
+    ``min_contrast`` and its outline is ``min_sharpness`` times sharper than the sand's texture
+    (``min_sharpness_settled`` once every layer asked for has arrived); it is a rock when it is
+    paler by that much and soft-edged; otherwise it is unclear."""
 
     min_share: float = 0.1
     min_contrast: float = 0.4
     min_sharpness: float = 2.3
+    #: the outline needed once no more layers are coming (the best image the operator will get):
+    #: a dark, fairly sharp hull is then taken for a car
+    min_sharpness_settled: float = 1.8
 
-    def look(self, received: npt.ArrayLike, truth: FrameTruth) -> list[Sight]:
+    def look(self, received: npt.ArrayLike, truth: FrameTruth, *, settled: bool = False) -> list[Sight]:
+        """What the eye makes of each object region of ``truth`` in the received image;
+        ``settled``: every layer asked for has arrived."""
+        need = self.min_sharpness_settled if settled else self.min_sharpness
         img = shrink(received)
         labels = truth.labels
         if img.shape != labels.shape:
@@ -125,9 +132,9 @@ class Eye:
             contrast = (float(img[around].mean()) - float(img[mask].mean())) / spread
             edge = _outline(mask)
             sharp = float(grad[edge].mean()) / (float(grad[around].mean()) + 1e-6)
-            if contrast >= self.min_contrast and sharp >= self.min_sharpness:
+            if contrast >= self.min_contrast and sharp >= need:
                 kind = "car"
-            elif contrast <= -self.min_contrast and sharp < self.min_sharpness:
+            elif contrast <= -self.min_contrast and sharp < need:
                 kind = "rock"
             else:
                 kind = "unclear"
