@@ -59,7 +59,7 @@ def test_short_dive_meets_its_goals_against_the_truth(demo: tuple[Path, dict]) -
     for name, goal in metrics["goals"].items():
         assert goal["met"], f"{name}: {goal['detail']}"
     assert metrics["success"] is True and metrics["false_confirmations"] == []
-    assert metrics["summary"].startswith("Goal MET")
+    assert metrics["summary"].startswith("MET: every true target confirmed")
     for t, got in zip(truth["targets"], metrics["targets"], strict=True):
         conf = got["confirmation"]
         assert conf is not None, t
@@ -68,7 +68,7 @@ def test_short_dive_meets_its_goals_against_the_truth(demo: tuple[Path, dict]) -
         assert 0 < conf["bytes"] and conf["tdma_cycles"] is not None and conf["tdma_cycles"] <= 2.0
         assert got["identifiable_at_1m_s"] is not None and got["identifiable_at_1m_s"] <= metrics["survey_end_s"]
     html = (out / "report.html").read_text()
-    assert "Goal MET" in html and "NOT MET" not in html
+    assert "MET: every true target confirmed" in html and "NOT MET" not in html
 
 
 def test_link_log_is_json_lines_with_capacity_and_use(demo: tuple[Path, dict]) -> None:  # type: ignore[type-arg]

@@ -240,4 +240,4 @@ def test_report_says_not_met_when_a_target_is_never_photographed(tmp_path: Path)
     assert "never photographed" in m["targets"][0]["why_not"]
     html = (tmp_path / "report.html").read_text()
     assert "NOT MET" in html and "never photographed" in html
-    assert m["summary"].startswith("Goal NOT MET")
+    assert m["summary"].startswith("NOT MET: every true target confirmed")

@@ -831,7 +831,7 @@ def _finish(out: Path, cfg: DemoConfig, world: _World, operator: Operator, recei
         "config": {k: str(v) if isinstance(v, Path) else v for k, v in asdict(cfg).items()
                    if k not in ("command_key", "scenario")},
         "operator": world.operator,
-        "summary": _summary(targets, false, world.operator),
+        "summary": _summary(targets, false, world.operator, goals),
         "success": success,
         "wall_seconds": round(wall, 1),
         "dive_seconds": scn.duration,
@@ -895,34 +895,40 @@ def _crop(grid: np.ndarray, cell: float, x0: float, y0: float, xa: float, ya: fl
     return grid[r0:r1, c0:c1], x0 + c0 * cell, y0 + r0 * cell
 
 
-def _summary(targets: list[dict[str, Any]], false: list[dict[str, Any]], operator: str) -> str:
-    """The outcome in words, from the judged metrics."""
-    parts = []
+def _summary(targets: list[dict[str, Any]], false: list[dict[str, Any]], operator: str,
+             goals: dict[str, dict[str, Any]]) -> str:
+    """The outcome in words, from the judged metrics: the main goal first, then the others."""
     ok = [t for t in targets if t["confirmation"] is not None]
     missed = [t for t in targets if t["confirmation"] is None]
+    main = bool(targets) and not missed and not false
+    parts = [f"{'MET' if main else 'NOT MET'}: every true target confirmed by a received image that shows "
+             "it, and nothing else confirmed."]
     if not targets:
         parts.append("This scenario has no targets.")
     elif not missed:
-        parts.append(f"All {len(targets)} targets were confirmed by received images that show them.")
+        parts.append(f"All {len(targets)} targets were confirmed.")
     else:
-        parts.append(f"{len(ok)} of {len(targets)} targets were confirmed by a received image that shows them.")
+        parts.append(f"{len(ok)} of {len(targets)} targets were confirmed.")
     for t in ok:
         c = t["confirmation"]
         parts.append(f"{t['name'].capitalize()} at ({t['x']:.0f}, {t['y']:.0f}): image {c['image_id']}, "
                      f"{c['bytes']} B, confirmed at {c['confirmed_at_s']:.0f} s, {c['tdma_cycles']} TDMA cycles "
                      "after its request.")
     for t in missed:
-        parts.append(f"{t['name'].capitalize()} at ({t['x']:.0f}, {t['y']:.0f}) was NOT confirmed: {t['why_not']}.")
+        parts.append(f"{t['name'].capitalize()} at ({t['x']:.0f}, {t['y']:.0f}) was not confirmed: {t['why_not']}.")
     if false:
         parts.append(f"{len(false)} confirmation(s) of something that is not a target: "
                      + "; ".join(f"({f['x']:.0f}, {f['y']:.0f}) by image {f['image_id']}, which shows {f['shows']}"
                                  for f in false) + ".")
     elif targets:
         parts.append("Nothing that is not a target was confirmed.")
+    others = [f"{name}: {'MET' if g['met'] else 'NOT MET'} ({g['detail']})" for name, g in goals.items()
+              if not name.startswith("every target confirmed")]
+    if others:
+        parts.append("Other goals: " + "; ".join(others) + ".")
     if operator == "none":
         parts.append("No scripted operator ran (--operator none): only what a person did in the console counts.")
-    verdict = "MET" if (targets and not missed and not false) else "NOT MET"
-    return f"Goal {verdict}. " + " ".join(parts)
+    return " ".join(parts)
 
 
 def _link_summary(path: Path) -> dict[str, Any]:
