@@ -5,7 +5,9 @@ Runs the demo's full two-hour dive for every seed under each condition, in paral
 * ``30% independent``: preset ``default`` (30 % independent frame loss);
 * ``60% independent``: preset ``default`` with ``--loss 0.6``;
 * ``50% burst``: preset ``default`` with ``--loss 0.5 --burst`` (Gilbert-Elliott, mean burst 4 frames);
-* ``dive040``: preset ``dive040`` (the ship 1.5 water depths from the site, range-dependent loss).
+* ``dive040``: preset ``dive040`` (the ship 1.5 water depths from the site, range-dependent loss);
+* ``30% + 2 decoys``: preset ``default`` with two car-sized boulders placed at random (not in the
+  issue's list; a confirmation of a boulder fails the dive).
 
 Per condition it prints and records:
 
@@ -40,24 +42,28 @@ from typing import Any
 
 ROOT = Path(__file__).resolve().parents[1]
 
-#: condition name -> (preset, --loss, --burst, success target)
-CONDITIONS: dict[str, tuple[str, float | None, bool, float]] = {
-    "30% independent": ("default", None, False, 0.95),
-    "60% independent": ("default", 0.6, False, 0.80),
-    "50% burst": ("default", 0.5, True, 0.95),
-    "dive040": ("dive040", None, False, 0.95),
+#: condition name -> (preset, --loss, --burst, success target, scenario keys on top of the preset)
+CONDITIONS: dict[str, tuple[str, float | None, bool, float, dict[str, Any]]] = {
+    "30% independent": ("default", None, False, 0.95, {}),
+    "60% independent": ("default", 0.6, False, 0.80, {}),
+    "50% burst": ("default", 0.5, True, 0.95, {}),
+    "dive040": ("dive040", None, False, 0.95, {}),
+    # not in the list: two car-sized boulders beside the two cars, to show that the
+    # operator's eye is not fooled (any confirmation of a boulder fails the dive)
+    "30% + 2 decoys": ("default", None, False, 0.95, {"seafloor": {"random_decoys": 2}}),
 }
 
 
 def one_dive(condition: str, seed: int, quick: bool) -> dict[str, Any]:
     from coex_plugins.demo import DemoConfig, run_demo
-    from coex_plugins.demo.scenario import preset
+    from coex_plugins.demo.scenario import preset, scenario_from_dict
 
-    name, loss, burst, _ = CONDITIONS[condition]
+    name, loss, burst, _, extra = CONDITIONS[condition]
+    scenario = scenario_from_dict(extra, base=preset(name)) if extra else preset(name)
     with tempfile.TemporaryDirectory(prefix="coex-dive-") as tmp:
         t0 = time.perf_counter()
         r = run_demo(DemoConfig(out=Path(tmp), seed=seed, loss=loss, burst=burst, quick=quick,
-                                progress=False, scenario=preset(name)))
+                                progress=False, scenario=scenario))
         wall = time.perf_counter() - t0
     m = r.metrics
     return {
@@ -66,6 +72,7 @@ def one_dive(condition: str, seed: int, quick: bool) -> dict[str, Any]:
         "confirmed": [t["confirmation"] is not None for t in m["targets"]],
         "tdma_cycles": [t["confirmation"]["tdma_cycles"] for t in m["targets"] if t["confirmation"]],
         "false_confirmations": len(m["false_confirmations"]),
+        "decoys_visited": sum(1 for d in m["decoys"] if d["visited"]),
         "why_not": [t["why_not"] for t in m["targets"] if t["why_not"]],
         "map_coverage": m["map_coverage"],
         "link_fill": m["link"]["fill"],
@@ -82,6 +89,7 @@ def _pct(values: list[float], q: float) -> float | None:
 
 def summarise(condition: str, dives: list[dict[str, Any]]) -> dict[str, Any]:
     target = CONDITIONS[condition][3]
+    decoys = sum(d["decoys_visited"] for d in dives)
     n = len(dives)
     ok = sum(d["success"] for d in dives)
     times = [t for d in dives for t in d["identifiable_at_1m_s"] if t is not None]
@@ -94,6 +102,7 @@ def summarise(condition: str, dives: list[dict[str, Any]]) -> dict[str, Any]:
         "dives": n, "success": ok, "success_rate": round(ok / n, 3) if n else None, "target": target,
         "met": n > 0 and ok / n >= target,
         "false_confirmations": sum(d["false_confirmations"] for d in dives),
+        "decoys_visited": decoys,
         "identifiable_at_1m_s": {"median": _pct(times, 0.5), "worst": max(times) if times else None,
                                  "never": never},
         "tdma_cycles": {"median": _pct(cycles, 0.5), "p90": _pct(cycles, 0.9),
@@ -116,9 +125,10 @@ def table(summary: dict[str, dict[str, Any]]) -> str:
         cov = s["map_coverage"]
         covs = " / ".join(f"{cov[k]['median']:.1%} ({cov[k]['worst']:.1%})" for k in ("0", "1", "2") if k in cov)
         never = f", {ident['never']} never" if ident["never"] else ""
+        visits = f" ({s['decoys_visited']} decoy visits)" if s["decoys_visited"] else ""
         lines.append(
             f"| {cond} | {s['dives']} | {s['success_rate']:.0%} ({s['success']}/{s['dives']}) | {s['target']:.0%} "
-            f"| {'yes' if s['met'] else 'NO'} | {s['false_confirmations']} "
+            f"| {'yes' if s['met'] else 'NO'} | {s['false_confirmations']}{visits} "
             f"| {_fmt(ident['median'])} / {_fmt(ident['worst'])}{never} "
             f"| {_fmt(cyc['median'], 2)} / {_fmt(cyc['p90'], 2)}, {_fmt_pct(cyc['within_two'])} "
             f"| {covs} | {_fmt_pct(s['link_fill'])} |")

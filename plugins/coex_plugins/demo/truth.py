@@ -95,11 +95,14 @@ class Sight:
 class Eye:
     """The scripted operator's eye (see the module docstring). An object region must cover
     ``min_share`` of the frame to be noticed; it is a car when it is darker than the sand by
-    ``min_contrast`` and its outline is ``min_sharpness`` times sharper than the sand's texture
+    ``car_contrast`` and its outline is ``min_sharpness`` times sharper than the sand's texture
     (``min_sharpness_settled`` once every layer asked for has arrived); it is a rock when it is
-    paler by that much and soft-edged; otherwise it is unclear."""
+    paler by ``min_contrast`` and soft-edged; otherwise it is unclear."""
 
     min_share: float = 0.1
+    #: a car's paint is far darker than sand; a boulder's rim in shadow, or the fall-off of the
+    #: light towards the frame's edge, makes a region only a little darker
+    car_contrast: float = 1.0
     min_contrast: float = 0.4
     min_sharpness: float = 2.3
     #: the outline needed once no more layers are coming (the best image the operator will get):
@@ -132,7 +135,7 @@ class Eye:
             contrast = (float(img[around].mean()) - float(img[mask].mean())) / spread
             edge = _outline(mask)
             sharp = float(grad[edge].mean()) / (float(grad[around].mean()) + 1e-6)
-            if contrast >= self.min_contrast and sharp >= need:
+            if contrast >= self.car_contrast and sharp >= need:
                 kind = "car"
             elif contrast <= -self.min_contrast and sharp < need:
                 kind = "rock"
