@@ -80,7 +80,8 @@ y = -450.0
     rl = s.loss.range_loss()
     assert rl is not None and rl(400.0) < 0.1 < rl(800.0) < rl(1500.0) <= 0.8
     targets, decoys = s.place(seed=3)
-    assert targets == s.targets and decoys == s.decoys  # listed objects win over random ones
+    assert targets == s.targets and [(d.x, d.y) for d in decoys] == [(d.x, d.y) for d in s.decoys]
+    assert all(d.shape == "dome" for d in decoys)  # listed objects win over random ones; decoys are boulders
     d = s.to_dict()
     assert d["loss"]["model"] == "range" and d["targets"][0]["x"] == 50.0 and "range" in d["loss_description"]
 

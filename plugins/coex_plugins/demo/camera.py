@@ -18,7 +18,7 @@ from typing import Protocol
 
 import numpy as np
 
-__all__ = ["BoxLike", "CameraModel", "SandTexture", "render_frame", "render_labelled", "footprint"]
+__all__ = ["BoxLike", "CameraModel", "SandTexture", "render_labelled", "footprint"]
 
 HeightFn = Callable[[np.ndarray, np.ndarray], np.ndarray]
 
@@ -105,25 +105,6 @@ def _coarse_heights(height_fn: HeightFn, gx: np.ndarray, gy: np.ndarray, step: i
     return (a * (1 - fr) * (1 - fc) + b * (1 - fr) * fc + c * fr * (1 - fc) + d * fr * fc)
 
 
-def render_frame(
-    height_fn: HeightFn,
-    x: float,
-    y: float,
-    vehicle_z: float,
-    heading_deg: float,
-    *,
-    targets: Sequence[BoxLike] = (),
-    rocks: Sequence[BoxLike] = (),
-    texture: SandTexture | None = None,
-    camera: CameraModel | None = None,
-    rng: np.random.Generator | None = None,
-    grey: bool = False,
-) -> np.ndarray:
-    """A frame from a camera at (x, y, vehicle_z) looking down; uint8 (H, W, 3) or (H, W) if grey."""
-    return render_labelled(height_fn, x, y, vehicle_z, heading_deg, targets=targets, rocks=rocks,
-                           texture=texture, camera=camera, rng=rng, grey=grey)[0]
-
-
 def render_labelled(
     height_fn: HeightFn,
     x: float,
@@ -138,7 +119,8 @@ def render_labelled(
     rng: np.random.Generator | None = None,
     grey: bool = False,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """:func:`render_frame` and the frame's truth: a label image (uint8, H x W) that is 0 on the
+    """A frame from a camera at (x, y, vehicle_z) looking down (uint8, H x W x 3, or H x W if
+    ``grey``) and the frame's truth: a label image (uint8, H x W) that is 0 on the
     seafloor, ``k + 1`` where box ``k`` of ``targets`` is seen and ``len(targets) + k + 1`` where
     rock ``k`` of ``rocks`` is seen.
 

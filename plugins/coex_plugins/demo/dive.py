@@ -327,8 +327,7 @@ def run_demo(config: DemoConfig, *, on_decision: Callable[[Decision], None] | No
 
     # the world: cars (the targets) and boulders (decoys) at positions the operator does not know
     placed_targets, placed_decoys = scn.place(cfg.seed)
-    cars = tuple(Target(o.x, o.y, o.length, o.width, o.height, o.heading) for o in placed_targets)
-    rocks = tuple(Target(o.x, o.y, o.length, o.width, o.height, o.heading, "dome") for o in placed_decoys)
+    cars, rocks = placed_targets, placed_decoys
     floor = Seafloor(size=scn.area, depth=scn.water_depth, relief=scn.relief,
                      ripple_amplitude=scn.ripple_amplitude, targets=cars + rocks, seed=cfg.seed)
     texture = SandTexture(seed=cfg.seed)

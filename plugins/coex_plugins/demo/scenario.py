@@ -71,26 +71,20 @@ import numpy as np
 
 from coex_core.acoustic import RATES, GilbertElliott
 from coex_core.errors import ConfigError
+from coex_plugins.bathymetry.sim import Target
 
 __all__ = ["LossSpec", "ObjectSpec", "PRESETS", "Scenario", "load_scenario", "preset"]
 
 LOSS_MODELS = ("independent", "gilbert-elliott", "range")
 
 
-@dataclass(frozen=True)
-class ObjectSpec:
-    """A box on the seafloor: a car (target) or a car-sized rock (decoy)."""
-
-    x: float
-    y: float
-    length: float = 4.5
-    width: float = 1.8
-    height: float = 1.5
-    heading: float = 0.0
+#: An object of the scenario: a car (``shape="box"``, the targets) or a boulder (``"dome"``, the
+#: decoys), as the seafloor simulator takes it.
+ObjectSpec = Target
 
 
 #: a car-sized rock: about the footprint and height of a car, rounder, and the colour of the sand
-ROCK = {"length": 3.6, "width": 2.6, "height": 1.6}
+ROCK: dict[str, Any] = {"length": 3.6, "width": 2.6, "height": 1.6, "shape": "dome"}
 
 
 @dataclass(frozen=True)
@@ -218,8 +212,8 @@ class Scenario:
         """Targets and decoys: the listed ones, or random ones (the seed places them) well inside
         the area and apart from each other."""
         rng = np.random.default_rng([seed, 1])
-        targets = list(self.targets)
-        decoys = list(self.decoys)
+        targets = [replace(o, shape="box") for o in self.targets]
+        decoys = [replace(o, shape="dome") for o in self.decoys]  # boulders, whatever was given
         margin = 0.2 * self.area
         min_gap = 0.25 * self.area if self.random_targets + self.random_decoys <= 3 else 0.12 * self.area
 
