@@ -53,8 +53,10 @@ NEAR = 6.0
 GAP_TILE = 64.0
 GAP_TILES_PER_LOOK = 2
 GAP_RETRY = 600.0
-#: region requests the operator keeps open at once (the uplink also carries image requests)
+#: region requests the operator keeps open at once (the uplink also carries image requests),
+#: during the survey and during the camera pass
 MAX_OPEN_MAP_REQUESTS = 12
+MAX_OPEN_MAP_REQUESTS_CAMERA = 3
 #: an image request the vehicle has not answered after this many TDMA cycles is asked again
 ANSWER_CYCLES = 3
 
@@ -80,6 +82,7 @@ class CandidateView:
     want: tuple[float, str] | None = None  # (time, "nearest" | "before" | "after")
     want_goal: int | None = None  # image id of a pending request for more layers
     request_at: float | None = None
+    command_id: int | None = None  # of the latest request
     first_request_at: float | None = None
     looked: list[int] = field(default_factory=list)
     looked_times: dict[int, float] = field(default_factory=dict)
@@ -197,7 +200,7 @@ class Operator:
         self.position: tuple[float, float] | None = None  # the newest reported position
         #: per gap tile: when last asked, how often, what was held then, requests that brought nothing
         self._gap_asked: dict[tuple[float, float], tuple[float, int, float, int]] = {}
-        self._overview_asked = False
+        self._overview = [3, 2, 1]
 
     def inside(self, x: float, y: float, margin: float = 3.0) -> bool:
         x0, y0, x1, y1 = self.box
@@ -256,7 +259,7 @@ class Operator:
             for c in self.bumps(level, 0.3, min_cells=1):
                 if any(math.hypot(c.x - x, c.y - y) < 12.0 for x, y in self.coarse_requested):
                     continue
-                if self._map_requests_open() >= MAX_OPEN_MAP_REQUESTS:
+                if self._map_requests_open() >= self._map_limit():
                     break  # the uplink is shared with image requests: a few map requests at a time
                 self.coarse_requested.append((c.x, c.y))
                 self.bathy.request_area(0, c.x - 12.0, c.y - 12.0, c.x + 12.0, c.y + 12.0)
@@ -264,14 +267,15 @@ class Operator:
                          f"{c.height:.1f} m bump at level {level} ({2 ** level} m cells)")
             break
         self._ask_for_gaps(now)
-        if self.camera_phase and not self._overview_asked:
-            # the survey is over: complete the coarse levels of the box too (the overview maps)
-            self._overview_asked = True
+        while self.camera_phase and self._overview and self._map_requests_open() < self._map_limit():
+            # the survey is over: complete the coarse levels of the box too (the overview maps),
+            # a level at a time while the uplink has room
+            level = self._overview.pop(0)
             x0, y0, x1, y1 = self.box
-            for level in (3, 2, 1):
-                with contextlib.suppress(RequestRejected):
-                    self.bathy.request_area(level, x0, y0, x1 - 1e-3, y1 - 1e-3)
-            self.log(now, "ROI request", "levels 1-3 (2, 4, 8 m) over the whole survey box: the overview maps")
+            with contextlib.suppress(RequestRejected):
+                self.bathy.request_area(level, x0, y0, x1 - 1e-3, y1 - 1e-3)
+            self.log(now, "ROI request", f"level {level} ({2 ** level} m) over the whole survey box: the "
+                     "overview map")
         for v in self.measured(now) if views is None else views:
             old = next((c for c in self.candidates if math.hypot(c.x - v.x, c.y - v.y) < 4.0), None)
             if old is None:
@@ -316,7 +320,7 @@ class Operator:
                     self._gap_asked[key] = (asked_at, n, held, stale)
                     continue
                 wanted.append((n, held, key, surveyed, stale))
-        room = max(0, min(GAP_TILES_PER_LOOK, MAX_OPEN_MAP_REQUESTS - self._map_requests_open()))
+        room = max(0, min(GAP_TILES_PER_LOOK, self._map_limit() - self._map_requests_open()))
         for n, held, (tx, ty), surveyed, stale in sorted(wanted)[:room]:
             self._gap_asked[(tx, ty)] = (now, n + 1, held, stale)
             x1t, y1t = min(tx + GAP_TILE, x1) - 1e-3, min(ty + GAP_TILE, y1) - 1e-3
@@ -325,6 +329,11 @@ class Operator:
             self.bathy.request_area(0, tx, ty, x1t, y1t)
             self.log(now, "gap request", f"level 0 (1 m) gaps in {GAP_TILE:.0f} m x {GAP_TILE:.0f} m at "
                      f"({tx:.0f}, {ty:.0f}): {held:.0%} held where {surveyed:.0%} was surveyed")
+
+    def _map_limit(self) -> int:
+        """Map requests the operator keeps open at once: fewer once images are being asked for
+        (they share the uplink's control queue with the image requests)."""
+        return MAX_OPEN_MAP_REQUESTS_CAMERA if self.camera_phase else MAX_OPEN_MAP_REQUESTS
 
     def _map_requests_open(self) -> int:
         """Region requests of the operator's still open (not yet answered "nothing more")."""
@@ -357,14 +366,16 @@ class Operator:
 
     def _look(self, cv: CandidateView, now: float) -> None:
         meta = self._answer(cv)
-        stuck = cv.request_at is not None and now - cv.request_at > ANSWER_CYCLES * self.cycle
+        pending = {getattr(m, "command_id", None) for m in self.imagery.pending_requests()}
+        stuck = (cv.request_at is not None and now - cv.request_at > ANSWER_CYCLES * self.cycle
+                 and cv.command_id not in pending)  # still being retried by the receiver: wait
         if meta is None or (stuck and not self._arrived(cv, meta)):
             if stuck and cv.want is not None:  # no answer: the request may never have reached the vehicle
                 t, direction = cv.want
                 self.log(now, "image request", f"no answer for {now - (cv.request_at or now):.0f} s: asking again")
                 if cv.want_goal is not None and meta is not None:
                     cv.request_at = now
-                    self.imagery.request_goal(cv.want_goal, "layer", MORE_LAYERS, now)
+                    cv.command_id = self.imagery.request_goal(cv.want_goal, "layer", MORE_LAYERS, now).command_id
                 else:
                     self._ask(cv, t, direction, now)
             return
@@ -401,6 +412,7 @@ class Operator:
             cv.want_goal = image_id
             cv.request_at = now
             msg = self.imagery.request_goal(image_id, "layer", MORE_LAYERS, now)
+            cv.command_id = msg.command_id
             self.log(now, "image goal", f"image {image_id} shows something at ({cv.x:.0f}, {cv.y:.0f}) "
                      f"too blurry to tell [{self._seen(sights)}]: asking for {MORE_LAYERS} layers "
                      f"[command {msg.command_id}]")
@@ -422,8 +434,8 @@ class Operator:
     def _seen(sights: list[Any]) -> str:
         if not sights:
             return "sand only"
-        return "; ".join(f"{s.kind} region over {s.share:.0%} of the frame, contrast {s.contrast:+.1f}, "
-                         f"edges {s.sharpness:.1f}x the sand's" for s in sights)
+        return "; ".join(f"{s.kind} region over {s.share:.0%} of the frame, {s.ratio:.0%} as bright as the "
+                         f"sand, edges {s.sharpness:.1f}x the sand's" for s in sights)
 
     @staticmethod
     def _arrived(cv: CandidateView, meta: dict[str, Any]) -> bool:
@@ -468,6 +480,7 @@ class Operator:
     def _ask(self, cv: CandidateView, t: float, direction: str, now: float) -> None:
         t = float(math.floor(t)) if direction != "after" else float(math.ceil(t))  # whole seconds
         msg = self.imagery.request_by_time(t, direction, now)
+        cv.command_id = msg.command_id
         cv.want = (t, direction)
         cv.want_goal = None
         cv.request_at = now

@@ -89,20 +89,25 @@ class Sight:
     share: float  # fraction of the frame
     contrast: float  # (surroundings - object) / spread: positive = darker than the sand
     sharpness: float  # gradient on the outline / gradient on the sand
+    ratio: float = 1.0  # object brightness / the sand's around it
 
 
 @dataclass(frozen=True)
 class Eye:
     """The scripted operator's eye (see the module docstring). An object region must cover
-    ``min_share`` of the frame to be noticed; it is a car when it is darker than the sand by
-    ``car_contrast`` and its outline is ``min_sharpness`` times sharper than the sand's texture
-    (``min_sharpness_settled`` once every layer asked for has arrived); it is a rock when it is
-    paler by ``min_contrast`` and soft-edged; otherwise it is unclear."""
+    ``min_share`` of the frame to be noticed. It is a car when it is at most ``car_ratio`` as
+    bright as the sand around it (dark paint; and darker by ``min_contrast`` of the sand's
+    spread) and its outline is ``min_sharpness`` times sharper than the sand's texture
+    (``min_sharpness_settled`` once every layer asked for has arrived). It is a rock (a boulder,
+    not a car) when it is at least ``rock_ratio`` as bright as the sand and the image is clear
+    enough to tell. Otherwise it is unclear."""
 
     min_share: float = 0.1
-    #: a car's paint is far darker than sand; a boulder's rim in shadow, or the fall-off of the
-    #: light towards the frame's edge, makes a region only a little darker
-    car_contrast: float = 1.0
+    #: a car's paint is far darker than sand (the region at most this fraction of the
+    #: brightness of the sand around it); a boulder is the sand's colour, only a little darker
+    #: where its flank turns away from the light or the light falls off towards the frame's edge
+    car_ratio: float = 0.6
+    rock_ratio: float = 0.7
     min_contrast: float = 0.4
     min_sharpness: float = 2.3
     #: the outline needed once no more layers are coming (the best image the operator will get):
@@ -132,16 +137,18 @@ class Eye:
             if around.sum() < 10:
                 continue
             spread = float(img[around].std()) + 3.0
-            contrast = (float(img[around].mean()) - float(img[mask].mean())) / spread
+            sand_level = float(img[around].mean())
+            contrast = (sand_level - float(img[mask].mean())) / spread
+            ratio = float(img[mask].mean()) / max(sand_level, 1.0)
             edge = _outline(mask)
             sharp = float(grad[edge].mean()) / (float(grad[around].mean()) + 1e-6)
-            if contrast >= self.car_contrast and sharp >= need:
+            if ratio <= self.car_ratio and contrast >= self.min_contrast and sharp >= need:
                 kind = "car"
-            elif contrast <= -self.min_contrast and sharp < need:
+            elif ratio >= self.rock_ratio and (settled or sharp >= need or contrast <= -self.min_contrast):
                 kind = "rock"
             else:
                 kind = "unclear"
-            sights.append(Sight(label, kind, round(share, 3), round(contrast, 2), round(sharp, 2)))
+            sights.append(Sight(label, kind, round(share, 3), round(contrast, 2), round(sharp, 2), round(ratio, 2)))
         return sights
 
 
@@ -205,4 +212,4 @@ def describe(obj: tuple[str, int] | None, names: dict[tuple[str, int], str] | No
 
 def as_dict(sight: Sight) -> dict[str, Any]:
     return {"label": sight.label, "kind": sight.kind, "share": sight.share, "contrast": sight.contrast,
-            "sharpness": sight.sharpness}
+            "sharpness": sight.sharpness, "ratio": sight.ratio}
