@@ -44,6 +44,9 @@ MIN_SCORE = 0.05
 #: operator asks for when an image is too blurry to tell
 CONFIRM_LAYERS = 10
 MORE_LAYERS = 16
+#: the operator never confirms a car from a preview: an image needs this many quality layers
+#: (about 450 B of a 640 x 480 frame) before what it shows counts
+MIN_CONFIRM_LAYERS = 8
 #: images the operator looks at for one candidate before moving on
 MAX_LOOKS = 6
 #: an image is "at" a candidate when taken within this distance of it (m)
@@ -387,7 +390,9 @@ class Operator:
         settled = self._arrived(cv, meta)
         sights = self.eye.look(img, truth, settled=settled) if (img is not None and truth is not None) else []
         kinds = {s.kind for s in sights}
-        if here and "car" in kinds:
+        layers = int(meta.get("layers_complete", 0))
+        preview = layers < MIN_CONFIRM_LAYERS and not meta.get("complete")
+        if here and "car" in kinds and not preview:
             cv.verdict, cv.verdict_image, cv.confirmed_at = "car", image_id, now
             cv.evidence = None if img is None else np.array(img, copy=True)
             cv.evidence_time = truth.time if truth is not None else None
@@ -397,7 +402,6 @@ class Operator:
             self.log(now, "confirming image", f"image {image_id} shows a car at ({cv.x:.0f}, {cv.y:.0f}) "
                      f"[{self._seen(sights)}]: {meta['bytes_used']} B, {dt:.0f} s after its request")
             return
-        layers = int(meta.get("layers_complete", 0))
         if not settled:
             return  # the vehicle is still sending the layers asked for: look again later
         if image_id not in cv.looked:
@@ -435,7 +439,7 @@ class Operator:
         if not sights:
             return "sand only"
         return "; ".join(f"{s.kind} region over {s.share:.0%} of the frame, {s.ratio:.0%} as bright as the "
-                         f"sand, edges {s.sharpness:.1f}x the sand's" for s in sights)
+                         f"sand, edges {s.sharpness:.1f}x the sand's and {s.edge_width:.1f} px wide" for s in sights)
 
     @staticmethod
     def _arrived(cv: CandidateView, meta: dict[str, Any]) -> bool:

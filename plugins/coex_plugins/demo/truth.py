@@ -90,6 +90,7 @@ class Sight:
     contrast: float  # (surroundings - object) / spread: positive = darker than the sand
     sharpness: float  # gradient on the outline / gradient on the sand
     ratio: float = 1.0  # object brightness / the sand's around it
+    edge_width: float = 0.0  # pixels (quarter size) of the step from the object to the sand
 
 
 @dataclass(frozen=True)
@@ -98,7 +99,8 @@ class Eye:
     ``min_share`` of the frame to be noticed. It is a car when it is at most ``car_ratio`` as
     bright as the sand around it (dark paint; and darker by ``min_contrast`` of the sand's
     spread) and its outline is ``min_sharpness`` times sharper than the sand's texture
-    (``min_sharpness_settled`` once every layer asked for has arrived). It is a rock (a boulder,
+    (``min_sharpness_settled`` once every layer asked for has arrived) and its edge is at most
+    ``max_edge_width`` pixels wide (``max_edge_width_settled``). It is a rock (a boulder,
     not a car) when it is at least ``rock_ratio`` as bright as the sand and the image is clear
     enough to tell. Otherwise it is unclear."""
 
@@ -113,11 +115,17 @@ class Eye:
     #: the outline needed once no more layers are coming (the best image the operator will get):
     #: a dark, fairly sharp hull is then taken for a car
     min_sharpness_settled: float = 1.8
+    #: how wide (pixels of the quarter-size image) the step from hull to sand may be: a sharp
+    #: edge is about 2, the first layers' smudge 3 to 8 (independent of how flat the sand looks,
+    #: which the first layers blur away too)
+    max_edge_width: float = 2.5
+    max_edge_width_settled: float = 3.0
 
     def look(self, received: npt.ArrayLike, truth: FrameTruth, *, settled: bool = False) -> list[Sight]:
         """What the eye makes of each object region of ``truth`` in the received image;
         ``settled``: every layer asked for has arrived."""
         need = self.min_sharpness_settled if settled else self.min_sharpness
+        widest = self.max_edge_width_settled if settled else self.max_edge_width
         img = shrink(received)
         labels = truth.labels
         if img.shape != labels.shape:
@@ -141,14 +149,18 @@ class Eye:
             contrast = (sand_level - float(img[mask].mean())) / spread
             ratio = float(img[mask].mean()) / max(sand_level, 1.0)
             edge = _outline(mask)
-            sharp = float(grad[edge].mean()) / (float(grad[around].mean()) + 1e-6)
-            if ratio <= self.car_ratio and contrast >= self.min_contrast and sharp >= need:
+            on_edge = float(grad[edge].mean())
+            sharp = on_edge / (float(grad[around].mean()) + 1e-6)
+            width = abs(sand_level - float(img[mask].mean())) / max(on_edge, 1e-6)
+            clear = sharp >= need and width <= widest
+            if ratio <= self.car_ratio and contrast >= self.min_contrast and clear:
                 kind = "car"
-            elif ratio >= self.rock_ratio and (settled or sharp >= need or contrast <= -self.min_contrast):
+            elif ratio >= self.rock_ratio and (settled or clear or contrast <= -self.min_contrast):
                 kind = "rock"
             else:
                 kind = "unclear"
-            sights.append(Sight(label, kind, round(share, 3), round(contrast, 2), round(sharp, 2), round(ratio, 2)))
+            sights.append(Sight(label, kind, round(share, 3), round(contrast, 2), round(sharp, 2), round(ratio, 2),
+                                round(width, 1)))
         return sights
 
 
@@ -212,4 +224,4 @@ def describe(obj: tuple[str, int] | None, names: dict[tuple[str, int], str] | No
 
 def as_dict(sight: Sight) -> dict[str, Any]:
     return {"label": sight.label, "kind": sight.kind, "share": sight.share, "contrast": sight.contrast,
-            "sharpness": sight.sharpness, "ratio": sight.ratio}
+            "sharpness": sight.sharpness, "ratio": sight.ratio, "edge_width": sight.edge_width}
