@@ -17,7 +17,7 @@ creates both sides.
 from __future__ import annotations
 
 import abc
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any, ClassVar
 
@@ -100,6 +100,24 @@ class ModalityReceiver(abc.ABC):
     @abc.abstractmethod
     def products(self) -> list[Product]:
         """Every current product."""
+
+    #: where this receiver's command ids come from (:meth:`bind_command_ids`)
+    _command_ids: Callable[[], int] | None = None
+    _own_command_id: int = 0
+
+    def bind_command_ids(self, allocate: Callable[[], int]) -> None:
+        """The node calls this when the receiver is added: every ``command_id`` the receiver
+        puts on a request must then come from ``allocate()`` (:meth:`next_command_id`), so that
+        one node has one id space and a CommandAck answers exactly one command, whether the
+        node, the console or a receiver sent it."""
+        self._command_ids = allocate
+
+    def next_command_id(self) -> int:
+        """A command id for a new request (the node's, once bound; else the receiver's own)."""
+        if self._command_ids is not None:
+            return int(self._command_ids())
+        self._own_command_id = (self._own_command_id + 1) % 256
+        return self._own_command_id
 
     def supersedes(self, old: Message, new: Message) -> bool:
         """Whether ``new``, a request :meth:`poll` just returned, makes ``old``, an earlier one

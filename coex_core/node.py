@@ -141,6 +141,7 @@ class Node:
         cls = _modality_class(modality)
         self.manager.stream(stream)
         self._add_requests(cls)
+        receiver.bind_command_ids(self.manager.next_command_id)  # one command id space per node
         self._receivers.append(_ReceiverSlot(getattr(cls, "name", cls.__name__), cls, receiver, stream))
 
     # ========================================================================= receive
@@ -432,6 +433,11 @@ class Node:
         state = dict(self.__dict__)
         state["_log"] = None
         return state
+
+    def __setstate__(self, state: dict[str, Any]) -> None:
+        self.__dict__.update(state)
+        for r in self._receivers:  # a snapshot from before receivers took the node's ids
+            r.receiver.bind_command_ids(self.manager.next_command_id)
 
     def _note(self, text: str) -> None:
         if self._log is not None:

@@ -138,7 +138,6 @@ class ImageryReceiver(ModalityReceiver):
         self._early: deque[ImageFragment] = deque(maxlen=self.max_early)
         self._ack_due: OrderedDict[int, None] = OrderedDict()
         self._requests: dict[int, _Pending] = {}
-        self._command_id = 0
         self.progress: TransferProgress | None = None
         self._progress_version = 0
         self.rejected_fragments = 0
@@ -285,9 +284,9 @@ class ImageryReceiver(ModalityReceiver):
     # ------------------------------------------------------------------ requests
 
     def _new_command(self, make: Callable[[int], Message], now: float) -> Message:
-        self._command_id = (self._command_id + 1) % 256
-        msg = make(self._command_id)
-        self._requests[self._command_id] = _Pending(msg, -np.inf, 0)
+        cid = self.next_command_id()
+        msg = make(cid)
+        self._requests[cid] = _Pending(msg, -np.inf, 0)
         return msg
 
     def request_goal(self, image_id: int, kind: GoalKind | str, value: int = 0, now: float = 0.0) -> ImageGoal:
