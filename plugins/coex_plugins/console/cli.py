@@ -20,7 +20,7 @@ from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
-from coex_core.errors import CoexError, ConfigError, TransportError
+from coex_core.errors import CoexError, ConfigError
 
 __all__ = ["TopsideApp", "build_topside", "register", "run"]
 
@@ -84,21 +84,33 @@ def register(subparsers: Any) -> None:
 
 class TopsideApp:
     """A topside node, its transports (one per link id: several modems), the console hub and
-    server, and the loop driving them."""
+    server, and the loop driving them: the public :class:`coex.Runner`, with the console's lock
+    held around each step and a hook that moves the node's events to the console."""
 
     def __init__(self, node: Any, transports: dict[int, Any], hub: Any, server: Any,
                  clock: Callable[[], float], *, store: Any = None) -> None:
+        from coex_transports.runner import RealClock, Runner
+
         self.node = node
-        #: A :class:`coex_transports.store.NodeStore` (or None): journal and snapshots.
+        #: A :class:`coex.NodeStore` (or None): journal and snapshots.
         self.store = store
         self.transports = dict(transports)
         self.hub = hub
         self.server = server
         self.clock = clock
         self.stop = threading.Event()
-        self.errors: list[str] = []
         self._last_status: dict[int, Any] = {}
         self._commands_seen = self._commands_version()
+        self.runner = Runner(node, self.transports, RealClock(clock), store=store,
+                             lock=hub.lock, after_step=[self._to_console],
+                             snapshot_due=self._commands_changed,
+                             on_error=lambda text: log.warning("%s", text))
+        self.transports = self.runner.transports  # one dict: a link's transport may be swapped
+
+    @property
+    def errors(self) -> list[str]:
+        """The runner's recent transport and store errors."""
+        return list(self.runner.errors)
 
     @property
     def url(self) -> str:
@@ -115,68 +127,25 @@ class TopsideApp:
         return self.transports[self.link]
 
     def step(self) -> float:
-        """One pass: take waiting frames, let the node send, move events to the console.
-        Returns when the node next needs attention."""
-        with self.hub.lock:
-            for link, tr in self.transports.items():
-                while True:
-                    try:
-                        frame = tr.recv(timeout=0)
-                    except TransportError as exc:
-                        self.errors.append(f"link {link} receive: {exc}")
-                        break
-                    if frame is None:
-                        break
-                    self._receive(link, frame)
-            now = self.clock()
-            txs = self.node.poll(now)
-            if self.store is not None:
-                for tx in txs:
-                    for f in tx.frames:
-                        self.store.record_tx(tx.link_id, f, now)
-                self._save(now, force=bool(txs))
-            for tx in txs:
-                tr = self.transports.get(tx.link_id)
-                if tr is None:
-                    continue
-                try:
-                    send_packet = getattr(tr, "send_packet", None)
-                    if callable(send_packet):
-                        send_packet(list(tx.frames), tx.rate)
-                    else:
-                        for f in tx.frames:
-                            tr.send(f)
-                except CoexError as exc:
-                    self.errors.append(f"link {tx.link_id} send: {exc}")
-            self.hub.pump(self.node, self.clock())
-            for link, tr in self.transports.items():
-                self._modem_status(link, tr)
-            if self.store is not None:
-                self._save(self.clock())
-            nxt = self.node.next_event(self.clock())
-        return float(nxt) if nxt is not None else self.clock() + 0.2
+        """One pass of the runner: take waiting frames, let the node send, move events to the
+        console. Returns when the node next needs attention."""
+        return float(self.runner.step())
+
+    def _to_console(self, now: float) -> None:
+        self.hub.pump(self.node, now)
+        for link, tr in self.transports.items():
+            self._modem_status(link, tr)
 
     def _commands_version(self) -> int:
         """Changes whenever the operator's commands do (sent, queued, answered)."""
         return int(self.hub.state.versions.get("commands", 0))
 
-    def _receive(self, link: int, frame: bytes) -> None:
-        """Take one frame (journaled first with a store); call it with the hub's lock held."""
-        now = self.clock()
-        if self.store is not None:
-            self.store.record_rx(link, frame, now)
-        self.node.receive(link, frame, now)
-
-    def _save(self, now: float, force: bool = False) -> None:
-        """Snapshot before a transmission, when the commands changed, else now and then."""
+    def _commands_changed(self) -> bool:
+        """Whether the store must be saved now: the operator's commands changed."""
         sent = self._commands_version()
-        force = force or sent != self._commands_seen
+        changed = sent != self._commands_seen
         self._commands_seen = sent
-        try:
-            self.store.maybe_snapshot(self.node, now, force=force)
-        except Exception as exc:  # a full disk must not stop the console
-            self.errors.append(f"store: {exc}")
-            log.warning("store: %s", exc)
+        return changed
 
     def _modem_status(self, link: int, transport: Any) -> None:
         """Receive statistics of topside's own modem (a transport with ``link_status()``, like
@@ -187,7 +156,7 @@ class TopsideApp:
         try:
             status = get()
         except Exception as exc:  # statistics are a nicety: never stop the loop for them
-            self.errors.append(f"link {link} status: {exc}")
+            self.runner._error(f"link {link} status: {exc}")
             return
         if status is not None and status != self._last_status.get(link):
             self._last_status[link] = status
@@ -197,26 +166,7 @@ class TopsideApp:
 
     def run(self) -> None:
         """Drive the node until :attr:`stop` is set."""
-        while not self.stop.is_set():
-            nxt = self.step()
-            wait = max(0.0, min(nxt - self.clock(), 0.2))
-            started = time.monotonic()
-            frame = None
-            if len(self.transports) == 1:
-                # block in the transport's receive until a frame comes or it is time to poll
-                link, tr = next(iter(self.transports.items()))
-                try:
-                    frame = tr.recv(timeout=wait)
-                except TransportError as exc:
-                    self.errors.append(f"link {link} receive: {exc}")
-                if frame is not None:
-                    with self.hub.lock:
-                        self._receive(link, frame)
-            if frame is None:
-                # a transport that does not really block (simulated links) must not spin
-                left = wait - (time.monotonic() - started)
-                if left > 0:
-                    self.stop.wait(left)
+        self.runner.run(stop=self.stop.is_set)
 
     def start(self) -> TopsideApp:
         self._thread = threading.Thread(target=self.run, name="coex-topside", daemon=True)
