@@ -40,6 +40,7 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import Any, ClassVar
 
+from coex import SimNetwork
 from coex_core import wire
 from coex_core.acoustic import RATES, AcousticChannel
 from coex_core.channel import ChannelManager, LinkConfig, Schedule, StreamConfig
@@ -47,7 +48,6 @@ from coex_core.errors import ConfigError
 from coex_core.messages import Message, Opaque, VehicleMode, VehicleStatus
 from coex_core.modality import Modality, ModalityReceiver, ModalitySender, Product
 from coex_core.node import Node
-from coex_transports._runner import SimNetwork
 
 ROOT = Path(__file__).resolve().parents[1]
 VEHICLE, TOPSIDE = 2, 1

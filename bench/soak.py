@@ -31,6 +31,7 @@ from typing import Any
 
 import numpy as np
 
+from coex import SimNetwork, SimulatedClock
 from coex_core.acoustic import AcousticChannel
 from coex_core.channel import ChannelManager, LinkConfig, Schedule, StreamConfig
 from coex_core.messages import VehicleMode, VehicleStatus
@@ -41,7 +42,6 @@ from coex_plugins.imagery import ImageInput, ImageryModality
 from coex_plugins.imagery.synth import seafloor
 from coex_plugins.timeseries import TimeSeriesModality
 from coex_plugins.timeseries import synth as ts_synth
-from coex_transports._runner import SimNetwork, SimulatedClock
 
 ROOT = Path(__file__).resolve().parents[1]
 VEHICLE, TOPSIDE = 2, 1

@@ -13,6 +13,7 @@ from typing import Any
 
 import numpy as np
 
+from coex import Runner, SimNetwork, SimulatedClock
 from coex_core.acoustic import AcousticChannel, Arrival
 from coex_core.channel import ChannelManager, LinkConfig, Schedule, StreamConfig
 from coex_core.errors import RequestRejected
@@ -24,7 +25,7 @@ from coex_plugins.imagery import ImageInput, ImageryModality, ImageryReceiver, I
 from coex_plugins.imagery.synth import seafloor
 from coex_plugins.timeseries import TimeSeriesModality, TimeSeriesReceiver, TimeSeriesSender
 from coex_plugins.timeseries import synth as ts_synth
-from coex_transports._runner import Runner, SimNetwork, SimulatedClock, next_wakeup
+from coex_transports.runner import next_wakeup
 
 from ._bathy_data import small_survey
 

@@ -17,8 +17,8 @@ import sys
 import time
 from typing import Any
 
+from coex import Runner
 from coex_core.registry import open_transport
-from coex_transports._runner import Runner
 from coex_transports.store import NodeStore
 
 from ._faults import T0, build_dive

@@ -22,6 +22,7 @@ from typing import Any
 
 import pytest
 
+from coex import RealClock, Runner
 from coex_core import messages as m
 from coex_core.channel.manager import ChannelManager, LinkConfig
 from coex_core.channel.queue import StreamConfig
@@ -33,7 +34,6 @@ from coex_plugins.bathymetry import BathymetryModality, BathymetrySender
 from coex_plugins.console import ConsoleHub, ConsoleState, serve
 from coex_plugins.console.cli import TopsideApp, build_topside
 from coex_plugins.console.testing import RecordingSender, feed_sample, survey_points
-from coex_transports._runner import RealClock, Runner
 
 CHROMIUM = os.environ.get("COEX_CHROMIUM", "/usr/bin/chromium")
 ARGS = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",

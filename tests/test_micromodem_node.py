@@ -5,13 +5,13 @@ from __future__ import annotations
 
 from typing import Any
 
+from coex import Runner
 from coex_core import wire
 from coex_core.acoustic import AcousticChannel
 from coex_core.channel import Acked, ChannelManager, LinkConfig, Schedule, StreamConfig
 from coex_core.messages import Message, Opaque
 from coex_core.modality import ModalitySender
 from coex_core.node import Node
-from coex_transports._runner import Runner
 from coex_transports.micromodem import ModemNetwork
 
 VEHICLE, TOPSIDE = 2, 1

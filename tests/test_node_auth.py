@@ -7,6 +7,7 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
+from coex import SimNetwork
 from coex_core import wire
 from coex_core.acoustic import AcousticChannel
 from coex_core.auth import TRAILER_BYTES, CommandSigner
@@ -22,7 +23,6 @@ from coex_core.messages import (
     QueueConfig,
 )
 from coex_core.node import Node
-from coex_transports._runner import SimNetwork
 from tests.test_node import REQUEST, TOPSIDE, VEHICLE, FakeModality, FakeReceiver, FakeSender, links
 
 KEY = b"ship-and-vehicle-share-this-key!"

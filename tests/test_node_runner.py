@@ -7,13 +7,13 @@ import json
 from pathlib import Path
 from typing import Any
 
+from coex import Runner, SimulatedClock
 from coex_core import wire
 from coex_core.channel import Acked, ChannelManager, LinkConfig, Schedule, StreamConfig
 from coex_core.loopback import LoopbackLink
 from coex_core.messages import Message, Opaque
 from coex_core.modality import ModalitySender
 from coex_core.node import Node
-from coex_transports._runner import Runner, SimulatedClock
 
 VEHICLE, TOPSIDE = 2, 1
 

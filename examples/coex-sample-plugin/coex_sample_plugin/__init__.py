@@ -11,10 +11,18 @@ import struct
 from collections.abc import Mapping
 from typing import Any
 
-from coex_core.errors import ConfigError, RequestRejected
-from coex_core.messages import Message, Opaque
-from coex_core.modality import Modality, ModalityReceiver, ModalitySender, Product
-from coex_core.wire import encoded_size
+from coex.messages import Opaque
+from coex.wire import encoded_size
+
+from coex import (
+    ConfigError,
+    Message,
+    Modality,
+    ModalityReceiver,
+    ModalitySender,
+    Product,
+    RequestRejected,
+)
 
 PING_TYPE = 100  # third-party, one-byte form
 ACK_TYPE = 101

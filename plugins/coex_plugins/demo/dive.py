@@ -34,6 +34,7 @@ from typing import Any
 
 import numpy as np
 
+from coex import Runner, SimulatedClock
 from coex_core.acoustic import AcousticChannel
 from coex_core.channel import ChannelManager, LinkConfig, Schedule, StreamConfig
 from coex_core.channel.events import Received
@@ -52,8 +53,8 @@ from coex_plugins.bathymetry.sim import Seafloor, Survey, Target, simulate_surve
 from coex_plugins.imagery import ImageInput, ImageryModality, ImageryReceiver
 from coex_plugins.timeseries import TimeSeriesModality, TimeSeriesReceiver
 from coex_plugins.timeseries import synth as ts_synth
-from coex_transports._runner import Runner, SimulatedClock, next_wakeup
 from coex_transports.micromodem.simulator import ModemNetwork
+from coex_transports.runner import next_wakeup
 
 from .camera import CameraModel, SandTexture, render_labelled
 from .operator import CONFIRM_LAYERS, MIN_SCORE, CandidateView, Operator

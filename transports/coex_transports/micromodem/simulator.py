@@ -745,7 +745,7 @@ class ModemNetwork:
         self.step()
 
     def as_clock(self) -> NetworkClock:
-        """A clock for :class:`coex_transports._runner.Runner` (``time()``/``wait_until(t)``):
+        """A clock for :class:`coex.Runner` (``time()``/``wait_until(t)``):
         waiting runs this network, returning early when a host driver receives a frame."""
         return NetworkClock(self)
 

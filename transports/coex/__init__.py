@@ -1,0 +1,120 @@
+"""CoEx's public API: what integrators and plugin authors import.
+
+::
+
+    import coex
+
+    node = coex.Node(coex.ChannelManager(1, [coex.LinkConfig(0, coex.Schedule.simple([1, 2], 20, 2))]))
+    runner = coex.Runner(node, {0: coex.open_transport("micromodem:///dev/ttyUSB0?rate=5")})
+
+Everything here is stable for a release; the modules behind it (``coex_core.*``,
+``coex_transports.*``) may move. Layers: this facade re-exports the core (wire format, node,
+channel manager, plugin bases, errors) and the transport layer (run loops, store); it imports no
+modality plugin (load those by name with :func:`load_modality`).
+"""
+
+from __future__ import annotations
+
+import sys
+
+from coex_core import __version__, errors, messages, wire
+from coex_core.acoustic import AcousticChannel
+from coex_core.channel import (
+    CONTROL_STREAM,
+    Acked,
+    BadFrame,
+    ChannelManager,
+    CommandResult,
+    Dropped,
+    Event,
+    LinkChanged,
+    LinkConfig,
+    LinkStats,
+    ProductUpdated,
+    Received,
+    Rejected,
+    Schedule,
+    StreamConfig,
+    TdmaSlot,
+    Transmission,
+)
+from coex_core.errors import (
+    AuthenticationError,
+    CoexError,
+    ConfigError,
+    DecodeError,
+    EncodeError,
+    FrameTooLarge,
+    PluginLoadError,
+    PluginNotFound,
+    RequestRejected,
+    TransportError,
+    TransportTimeout,
+)
+from coex_core.messages import Frame, FrameHeader, Message
+from coex_core.modality import Modality, ModalityReceiver, ModalitySender, Product
+from coex_core.node import Node
+from coex_core.registry import available, load_modality, load_transport, open_transport
+from coex_core.transport import Transport
+from coex_transports.runner import RealClock, Runner, SimNetwork, SimulatedClock
+from coex_transports.store import NodeStore
+
+# ``from coex.messages import Opaque``, ``coex.wire.pack``: the core's message, wire and error
+# modules under the facade's name (the same module objects)
+sys.modules.setdefault(__name__ + ".messages", messages)
+sys.modules.setdefault(__name__ + ".wire", wire)
+sys.modules.setdefault(__name__ + ".errors", errors)
+
+__all__ = [
+    "CONTROL_STREAM",
+    "AcousticChannel",
+    "Acked",
+    "AuthenticationError",
+    "BadFrame",
+    "ChannelManager",
+    "CoexError",
+    "CommandResult",
+    "ConfigError",
+    "DecodeError",
+    "Dropped",
+    "EncodeError",
+    "Event",
+    "Frame",
+    "FrameHeader",
+    "FrameTooLarge",
+    "LinkChanged",
+    "LinkConfig",
+    "LinkStats",
+    "Message",
+    "Modality",
+    "ModalityReceiver",
+    "ModalitySender",
+    "Node",
+    "NodeStore",
+    "PluginLoadError",
+    "PluginNotFound",
+    "Product",
+    "ProductUpdated",
+    "RealClock",
+    "Received",
+    "Rejected",
+    "RequestRejected",
+    "Runner",
+    "Schedule",
+    "SimNetwork",
+    "SimulatedClock",
+    "StreamConfig",
+    "TdmaSlot",
+    "Transmission",
+    "Transport",
+    "TransportError",
+    "TransportTimeout",
+    "__version__",
+    "available",
+    "errors",
+    "load_modality",
+    "load_transport",
+    "messages",
+    "open_transport",
+    "wire",
+]
