@@ -9,6 +9,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 from hypothesis import given
 from hypothesis import strategies as st
@@ -206,3 +207,16 @@ def test_map_level_summary_without_depths() -> None:
     summary.add(_subgrid())
     out = summary.summary(_subgrid().level)
     assert math.isnan(out.z_min) and math.isnan(out.z_max) and out.subgrids == 1
+
+
+def test_map_level_summary_finds_the_bathymetry_decoder_through_the_registry() -> None:
+    """The transport never imports the bathymetry plugin; with it installed, the default
+    summary still has depths (the plugin's decoder, reached through its entry point)."""
+    from coex_plugins.bathymetry import decode_subgrid
+
+    sub = _subgrid()
+    summary = MapLevelSummary()
+    summary.add(sub)
+    out = summary.summary(sub.level)
+    z = np.asarray(decode_subgrid(sub), float)
+    assert (out.z_min, out.z_max) == (float(np.nanmin(z)), float(np.nanmax(z)))

@@ -57,6 +57,12 @@ class BathymetryModality(Modality):
     messages: ClassVar[tuple[type[Message], ...]] = (MapMetadata, Subgrid, MapRoiReply)
     requests: ClassVar[tuple[type[Message], ...]] = (MapRoiRequest,)
 
+    @staticmethod
+    def decode_subgrid(sg: Subgrid) -> Any:
+        """Elevations of one subgrid (NaN = empty): what layers below the plugins (the LCM
+        transport's map summaries) reach through the registry, never by importing it."""
+        return decode_subgrid(sg)
+
     def sender(self, config: Mapping[str, Any] | None = None) -> BathymetrySender:
         return BathymetrySender(config)
 

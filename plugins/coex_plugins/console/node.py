@@ -24,6 +24,7 @@ from coex_core.channel.schedule import Schedule, resolve_cycle
 from coex_core.messages import Message, ScheduleUpdate
 from coex_core.modality import ModalityReceiver, Product
 
+from .hub import ConsoleHub, pump
 from .state import ConsoleState
 
 __all__ = ["NodeCommands", "TapReceiver", "attach", "drive_simulation", "hub_hook", "pump",
@@ -103,6 +104,15 @@ class TapReceiver(ModalityReceiver):
     def products(self) -> list[Product]:
         return self.inner.products()
 
+    def supersedes(self, old: Message, new: Message) -> bool:
+        return self.inner.supersedes(old, new)
+
+    def bind_command_ids(self, allocate: Callable[[], int]) -> None:
+        self.inner.bind_command_ids(allocate)
+
+    def next_command_id(self) -> int:
+        return self.inner.next_command_id()
+
     def __getattr__(self, name: str) -> Any:  # request helpers of the wrapped receiver
         if name in ("inner", "on_message") or name.startswith("__"):
             raise AttributeError(name)
@@ -136,55 +146,6 @@ def tap_receiver(receiver: ModalityReceiver, hub: Any) -> TapReceiver:
     return TapReceiver(receiver, hub_hook(hub))
 
 
-def pump(state: ConsoleState, node: Any, now: float, events: list[Any] | None = None) -> int:
-    """Apply the node's events (``node.events()``, or ``events`` when the caller drains the
-    node itself) and refresh link/schedule state; returns the events applied."""
-    if events is None:
-        events = node.events()
-    for e in events:
-        try:
-            state.apply_event(e)
-        except Exception as exc:  # a display problem must never stop the node's loop
-            state._log(now, f"console could not show {type(e).__name__}: {exc}", "warn")
-    mgr = node.manager
-    for link in mgr.links:
-        info = mgr.link_state(link)
-        lk = state._link(link)
-        local = (info["enabled"], info["muted"], info["packets"], info["frames_rx"],
-                 info["last_heard"])
-        if lk.get("_local") != local:
-            lk["_local"] = local
-            lk.update(enabled=info["enabled"], muted=info["muted"], sent_packets=info["packets"],
-                      frames_rx=info["frames_rx"], last_heard=info["last_heard"])
-            state._touch("link")
-        sch = mgr.schedule(link)
-        known = state.schedules.get(link)
-        key = (sch.version, sch.epoch, sch.first_cycle, len(sch.slots))
-        if known is None or known.get("_key") != key:
-            proposed = known.get("proposed") if known else None
-            state.set_schedule(link, sch)
-            state.schedules[link]["_key"] = key
-            state.schedules[link]["proposed"] = proposed
-    # regions asked of the bathymetry receiver by others (a script): show them too
-    source = state.region_source
-    if source is not None:
-        others = [r for r in list(getattr(source, "regions", ()))
-                  if not getattr(r, "auto", False) and id(r) not in state._region_ids]
-        if others:
-            state.record_regions(others, now, "map level "
-                                 + ",".join(sorted({str(r.level) for r in others}))
-                                 + " (by the node)")
-    # regions a bathymetry receiver sends for us: show when they go out (ids, retries)
-    sig = tuple((k, r.region.request_id, r.region.sends, r.region.done)
-                for k, r in state.roi.items() if r.region is not None)
-    if sig != state._region_sig:
-        state._region_sig = sig
-        state._touch("map", "commands")
-    if now > state.now:
-        state.now = float(now)
-    return len(events)
-
-
 def attach(node: Any, clock: Callable[[], float] | None = None, *,
            map_receiver: Any = None, stream_names: dict[int, str] | None = None) -> Any:
     """A :class:`~coex_plugins.console.server.ConsoleHub` fed by a topside ``node``, whatever
@@ -199,8 +160,6 @@ def attach(node: Any, clock: Callable[[], float] | None = None, *,
       path unless ``map_receiver`` is given.
 
     ``clock`` (``now`` of commands) defaults to the newest event time the console has seen."""
-    from .server import ConsoleHub
-
     mgr = node.manager
     names = {q.id: q.config.name for q in mgr.streams}
     names.update(stream_names or {})
@@ -237,7 +196,7 @@ def attach(node: Any, clock: Callable[[], float] | None = None, *,
 def drive_simulation(net: Any, node: Any, hub: Any, until: float, *, speed: float | None = None,
                      step: float = 1.0, stop: Callable[[], bool] | None = None,
                      on_events: Callable[[list[Any]], Any] | None = None) -> None:
-    """Run a :class:`~coex_transports._runner.SimNetwork` to ``until`` with a live console.
+    """Run a :class:`~coex.SimNetwork` to ``until`` with a live console.
 
     The network advances ``step`` simulated seconds at a time under ``hub.lock`` (operator
     actions from the page reach the node between steps); after each step the topside ``node``'s

@@ -20,7 +20,7 @@ import json
 import logging
 import threading
 import time
-from collections.abc import Callable, Iterable
+from collections.abc import Callable
 from http import HTTPStatus
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 from importlib import resources
@@ -31,7 +31,9 @@ from coex_core import jsonfmt
 from coex_core.errors import CoexError, RequestRejected
 from coex_core.messages import Message
 
-from .state import SECTIONS, ConsoleActions, ConsoleState
+from .hub import ConsoleHub
+from .node import attach
+from .state import ConsoleState
 
 __all__ = ["ConsoleHub", "ConsoleServer", "serve"]
 
@@ -50,106 +52,6 @@ def _jsonable(obj: Any) -> Any:
 
 def dumps(obj: Any) -> str:
     return json.dumps(obj, default=_jsonable, allow_nan=False, separators=(",", ":"))
-
-
-class ConsoleHub:
-    """A :class:`ConsoleState` and its :class:`ConsoleActions` shared by the runner thread and
-    the HTTP threads: every change goes through :meth:`update` (under one lock) and wakes the
-    event streams.
-
-    ``send`` takes each command message (the topside node's send path); ``clock`` gives ``now``.
-    """
-
-    def __init__(self, state: ConsoleState, send: Callable[[Message], Any],
-                 clock: Callable[[], float], *, map_receiver: Any = None) -> None:
-        self.state = state
-        self.clock = clock
-        self.lock = threading.RLock()
-        self.changed = threading.Condition(self.lock)
-        self.actions = ConsoleActions(state, send, clock, map_receiver=map_receiver)
-        self.closed = False
-
-    # ------------------------------------------------------------------ from the runner
-    def update(self, fn: Callable[[ConsoleState], Any]) -> Any:
-        """Run ``fn(state)`` under the lock and wake every event stream."""
-        with self.changed:
-            result = fn(self.state)
-            self.changed.notify_all()
-            return result
-
-    def messages(self, msgs: Iterable[Message], now: float, link: int | None = None) -> None:
-        msgs = list(msgs)
-        self.update(lambda s: s.apply_messages(msgs, now, link))
-
-    def events(self, events: Iterable[Any]) -> None:
-        events = list(events)
-        self.update(lambda s: [s.apply_event(e) for e in events])
-
-    def pump(self, node: Any, now: float, events: list[Any] | None = None) -> list[Any]:
-        """Call it from the loop that drives a topside node, after each step: sends commands
-        the page queued, applies the node's events (``node.events()``, or ``events`` drained by
-        the caller) and refreshes link and schedule state. Returns the events."""
-        from .node import pump
-
-        with self.changed:
-            flush = getattr(self.actions.send, "flush", None)
-            if callable(flush):
-                flush()
-            before = dict(self.state.versions)
-            wrapped = getattr(node.events, "_coex_hub", None) is self
-            if events is None:
-                events = list(node.events())  # an attached node feeds the console itself
-                if not wrapped:
-                    pump(self.state, node, now, events)
-            elif not wrapped:
-                pump(self.state, node, now, events)
-            pump(self.state, node, now, [])
-            if before != self.state.versions:
-                self.changed.notify_all()
-            return events
-
-    def tick(self, now: float) -> None:
-        """Move the console's clock (ages, TDMA position)."""
-        def go(s: ConsoleState) -> None:
-            if now > s.now:
-                s.now = float(now)
-        with self.lock:
-            go(self.state)
-
-    # ---------------------------------------------------------------- from the browser
-    def act(self, action: str, args: dict[str, Any]) -> list[Any]:
-        with self.changed:
-            sent = self.actions.dispatch(action, args)
-            self.changed.notify_all()
-            return sent
-
-    def snapshot(self) -> dict[str, Any]:
-        with self.lock:
-            return self.state.snapshot()
-
-    def wait_changes(self, seen: dict[str, int], timeout: float,
-                     coalesce: float = 0.0) -> dict[str, Any]:
-        """Sections changed since ``seen`` (waits up to ``timeout`` s, then ``coalesce`` s more
-        so that a burst of changes goes out as one update); updates ``seen``."""
-        with self.changed:
-            if not self._dirty(seen):
-                self.changed.wait(timeout)
-            if not self._dirty(seen):
-                return {}
-        if coalesce > 0:
-            time.sleep(coalesce)
-        with self.lock:
-            out = self.state.changes(seen)
-            seen.update({k: self.state.versions[k] for k in out})
-            return out
-
-    def _dirty(self, seen: dict[str, int]) -> bool:
-        return any(seen.get(s) != self.state.versions[s] for s in SECTIONS)
-
-    def close(self) -> None:
-        with self.changed:
-            self.closed = True
-            self.changed.notify_all()
 
 
 class _Handler(BaseHTTPRequestHandler):
@@ -357,8 +259,6 @@ def serve(target: Any, host: str = "127.0.0.1", port: int = 8080, *,
             raise RequestRejected("this console is view-only (no topside node to send with)")
         hub = ConsoleHub(target, refuse, clock or (lambda: target.now))
     elif hasattr(target, "manager") and hasattr(target, "events"):
-        from .node import attach
-
         hub = attach(target, clock, stream_names=stream_names)
     else:
         raise TypeError(f"serve() needs a ConsoleHub, Node or ConsoleState, "

@@ -71,11 +71,13 @@ def vehicle_status_from_lcm(msg: vehicle_status_t) -> VehicleStatus:
 
 
 def _default_decoder() -> Callable[[Subgrid], Any] | None:
-    try:
-        from coex_plugins.bathymetry import decode_subgrid
+    from coex_core.registry import load_modality
+
+    try:  # through the registry: a transport never imports a modality plugin
+        decode = getattr(load_modality("bathymetry"), "decode_subgrid", None)
     except Exception:  # the bathymetry plugin is optional: depths are then NaN
         return None
-    return decode_subgrid  # type: ignore[no-any-return]
+    return decode if callable(decode) else None
 
 
 def _cells(sub: Subgrid) -> int:
@@ -90,7 +92,8 @@ class MapLevelSummary:
     :meth:`add` keeps the newest subgrid per ``(level, ix, iy)`` (the last one added wins: the
     order of reception); :meth:`summary` / :meth:`summaries` describe the levels. Depths come
     from ``decoder(subgrid) -> array of elevations (NaN = empty)``, by default
-    ``coex_plugins.bathymetry.decode_subgrid`` when the bathymetry plugin is installed."""
+    the ``bathymetry`` modality's ``decode_subgrid`` when that plugin is installed
+    (found through the registry)."""
 
     def __init__(self, decoder: Callable[[Subgrid], Any] | None = None) -> None:
         self._decoder = decoder if decoder is not None else _default_decoder()

@@ -1,0 +1,200 @@
+"""The layers import only downward: core <- transports (and the ``coex`` facade, and the
+conformance kit) <- modalities <- apps (console, demo); no module imports itself back through
+others (no cycles); README and docs show only the public facade for core and run-loop names."""
+
+from __future__ import annotations
+
+import ast
+import re
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+
+#: import package -> where it lives in the repository
+PACKAGES = {
+    "coex_core": "coex_core",
+    "coex_transports": "transports/coex_transports",
+    "coex": "transports/coex",
+    "coex_conformance": "conformance_tests/coex_conformance",
+    "coex_plugins": "plugins/coex_plugins",
+}
+APPS = ("coex_plugins.console", "coex_plugins.demo")
+LAYER_NAMES = ("core", "transports", "modalities", "apps")
+
+
+def layer(module: str) -> int:
+    """0 core, 1 transports (with the facade and the conformance kit), 2 modalities, 3 apps."""
+    top = module.split(".")[0]
+    if top == "coex_core":
+        return 0
+    if top in ("coex_transports", "coex", "coex_conformance"):
+        return 1
+    if module.startswith(APPS) or module == "coex_plugins":
+        return 3
+    return 2
+
+
+def modules(root: Path) -> dict[str, Path]:
+    out: dict[str, Path] = {}
+    for pkg, where in PACKAGES.items():
+        base = root / where
+        for path in base.rglob("*.py"):
+            if "_types" in path.relative_to(base).parts:  # lcm-gen output
+                continue
+            parts = [pkg, *path.relative_to(base).with_suffix("").parts]
+            if parts[-1] == "__init__":
+                parts.pop()
+            out[".".join(parts)] = path
+    return out
+
+
+def imports_of(name: str, path: Path, known: dict[str, Path]) -> set[str]:
+    """Every project module ``name`` imports, at any depth of the file (lazy imports count)."""
+    found: set[str] = set()
+    package = name.split(".") if path.name == "__init__.py" else name.split(".")[:-1]
+    for node in ast.walk(ast.parse(path.read_text())):
+        if isinstance(node, ast.Import):
+            found.update(a.name for a in node.names)
+        elif isinstance(node, ast.ImportFrom):
+            if node.level:
+                base = package[: len(package) - (node.level - 1)]
+                mod = ".".join(base + ([node.module] if node.module else []))
+            else:
+                mod = node.module or ""
+            found.add(mod)
+            found.update(f"{mod}.{a.name}" for a in node.names if f"{mod}.{a.name}" in known)
+    out: set[str] = set()
+    for mod in found:
+        parts = mod.split(".")
+        while parts and ".".join(parts) not in known:
+            parts.pop()
+        if parts:
+            out.add(".".join(parts))
+    out.discard(name)
+    return out
+
+
+def graph(root: Path) -> dict[str, set[str]]:
+    known = modules(root)
+    return {name: imports_of(name, path, known) for name, path in known.items()}
+
+
+def upward(g: dict[str, set[str]]) -> list[str]:
+    return [f"{a} ({LAYER_NAMES[layer(a)]}) imports {b} ({LAYER_NAMES[layer(b)]})"
+            for a, deps in sorted(g.items()) for b in sorted(deps) if layer(b) > layer(a)]
+
+
+def cycles(g: dict[str, set[str]]) -> list[list[str]]:
+    """Strongly connected groups of modules (a package importing its own submodules, or a
+    submodule its package, is not a cycle)."""
+    def edges(n: str) -> list[str]:
+        return [d for d in g[n] if not d.startswith(n + ".") and not n.startswith(d + ".")]
+
+    index: dict[str, int] = {}
+    low: dict[str, int] = {}
+    stack: list[str] = []
+    on: set[str] = set()
+    found: list[list[str]] = []
+
+    def visit(v: str) -> None:  # Tarjan
+        index[v] = low[v] = len(index)
+        stack.append(v)
+        on.add(v)
+        for w in edges(v):
+            if w not in index:
+                visit(w)
+                low[v] = min(low[v], low[w])
+            elif w in on:
+                low[v] = min(low[v], index[w])
+        if low[v] == index[v]:
+            group = []
+            while True:
+                w = stack.pop()
+                on.discard(w)
+                group.append(w)
+                if w == v:
+                    break
+            if len(group) > 1:
+                found.append(sorted(group))
+
+    for v in sorted(g):
+        if v not in index:
+            visit(v)
+    return found
+
+
+def test_no_layer_imports_a_layer_above_it() -> None:
+    assert upward(graph(ROOT)) == []
+
+
+def test_no_module_imports_itself_back_through_others() -> None:
+    assert cycles(graph(ROOT)) == []
+
+
+def test_the_checks_catch_an_upward_import_and_a_cycle(tmp_path: Path) -> None:
+    """The two checks above on a made-up tree: a transport importing a plugin, two console
+    modules importing each other (lazily, inside a function)."""
+    for where in PACKAGES.values():
+        (tmp_path / where).mkdir(parents=True, exist_ok=True)
+        (tmp_path / where / "__init__.py").write_text("")
+    (tmp_path / "coex_core" / "wire.py").write_text("X = 1\n")
+    (tmp_path / "transports/coex_transports/lcm.py").write_text(
+        "def f():\n    from coex_plugins.bathymetry import decode\n")
+    (tmp_path / "plugins/coex_plugins/bathymetry.py").write_text("from coex_core import wire\n")
+    console = tmp_path / "plugins/coex_plugins/console"
+    console.mkdir()
+    (console / "__init__.py").write_text("")
+    (console / "node.py").write_text("def attach():\n    from .server import Hub\n")
+    (console / "server.py").write_text("from .node import attach\n")
+    g = graph(tmp_path)
+    assert upward(g) == ["coex_transports.lcm (transports) imports coex_plugins.bathymetry "
+                         "(modalities)"]
+    assert cycles(g) == [["coex_plugins.console.node", "coex_plugins.console.server"]]
+
+
+DOCS = [ROOT / "README.md", *sorted((ROOT / "docs").glob("*.md"))]
+#: core modules and run loops are imported from the facade; a plugin's or a transport plugin's
+#: own API (``coex_plugins.bathymetry``, ``coex_transports.lcm``) from its package
+PRIVATE = re.compile(r"^\s*(from|import)\s+(coex_core\b|coex_transports\.(_\w+|runner|store)\b)")
+
+
+@pytest.mark.parametrize("doc", DOCS, ids=[p.name for p in DOCS])
+def test_docs_import_core_names_only_from_the_public_facade(doc: Path) -> None:
+    bad = []
+    in_code = False
+    for n, line in enumerate(doc.read_text().splitlines(), 1):
+        if line.lstrip().startswith("```"):
+            in_code = not in_code
+        elif in_code and PRIVATE.match(line):
+            bad.append(f"{doc.name}:{n}: {line.strip()}")
+    assert bad == []
+
+
+def test_the_facade_offers_what_integrators_and_plugin_authors_need() -> None:
+    import coex
+    from coex_core.modality import ModalitySender
+    from coex_transports.runner import Runner
+
+    names = {"Node", "ChannelManager", "LinkConfig", "Schedule", "StreamConfig", "Modality",
+             "ModalitySender", "ModalityReceiver", "Transport", "Product", "open_transport",
+             "Runner", "SimNetwork", "NodeStore", "CoexError", "ConfigError", "DecodeError"}
+    assert names <= set(coex.__all__)
+    assert all(getattr(coex, n) is not None for n in coex.__all__)
+    assert coex.Runner is Runner and coex.ModalitySender is ModalitySender
+    from coex.messages import Opaque  # the core's modules under the facade's name
+
+    assert Opaque is coex.messages.Opaque
+
+
+def test_the_old_runner_path_still_works_and_warns() -> None:
+    import importlib
+    import sys
+
+    sys.modules.pop("coex_transports._runner", None)
+    with pytest.warns(DeprecationWarning, match="import Runner and SimNetwork from coex"):
+        old = importlib.import_module("coex_transports._runner")
+    import coex
+
+    assert old.Runner is coex.Runner and old.SimNetwork is coex.SimNetwork
