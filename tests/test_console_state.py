@@ -531,9 +531,9 @@ def test_serve_a_node_or_a_view_only_state() -> None:
 
 
 def test_drive_simulation_feeds_the_console_and_the_caller() -> None:
+    from coex import SimNetwork
     from coex_core.acoustic import AcousticChannel
     from coex_plugins.console import attach, drive_simulation
-    from coex_transports._runner import SimNetwork
 
     top = Node(ChannelManager(1, [LinkConfig(0, NUI)]))
     top.add_receiver(BathymetryModality, BathymetryReceiver())
@@ -609,9 +609,9 @@ def test_attached_node_driven_like_the_demo_loop() -> None:
     """The demo drains ``topside.events()`` itself and holds no console lock: the console still
     sees everything, and page commands (a schedule gets a new command id from the manager) are
     sent from the loop's thread and end up accepted."""
+    from coex import SimNetwork
     from coex_core.acoustic import AcousticChannel
     from coex_plugins.console import attach
-    from coex_transports._runner import SimNetwork
 
     sched = Schedule.simple([1, 2], 10.0, 1.0)
     top = Node(ChannelManager(1, [LinkConfig(0, sched)]))
@@ -696,3 +696,69 @@ def test_images_and_series_through_nodes() -> None:
     assert any(isinstance(x, m.TimeSeriesRequest) and x.channel == 0 for x in ts_tx.handled)
     status = {c["kind"]: c["status"] for c in hub.snapshot()["commands"]}
     assert status == {"ImageGoal": "accepted", "TimeSeriesRequest": "accepted"}
+
+
+# ------------------------------------------------------------------ one topside, two users
+
+def test_a_console_tapped_receiver_keeps_withdrawing_superseded_requests() -> None:
+    """``coex topside`` and ``demo --gui`` wrap the node's receivers for the console: the wrapped
+    bathymetry receiver must still tell the node that a retried region request replaces the
+    earlier copy (else the stale copy stays in the channel and is sent again)."""
+    from coex_core.channel import CONTROL_STREAM
+
+    receiver = BathymetryReceiver({"levels": 3, "request_timeout": 100.0})
+    tmgr = ChannelManager(1, [LinkConfig(0, Schedule.simple([1, 2], 5.0, 0.5), dst=2)])
+    top = Node(tmgr)
+    top.add_receiver(BathymetryModality, tap_receiver(receiver, ConsoleState()))
+    receiver.request_region(0, 0, 0, 1, 1)  # the vehicle never answers: retried every 100 s
+    now = 0.0
+    while now < 450.0:
+        top.poll(now)
+        now += 1.0
+    (newest,) = [r.request_id for r in receiver.active_regions()]
+    queued = [e.message.request_id for e in tmgr.stream(CONTROL_STREAM).entries
+              if isinstance(e.message, m.MapRoiRequest)]
+    assert queued == [newest]
+
+
+def test_a_script_and_the_console_never_share_a_command_id() -> None:
+    """A script asks the imagery receiver for an image goal while the person at the console sends
+    a queue change the vehicle refuses. Each must get its own answer: the person's command shows
+    rejected, the script's goal reaches the vehicle's sender and is accepted."""
+    from coex import SimNetwork
+    from coex_core.acoustic import AcousticChannel
+    from coex_plugins.console import attach
+    from coex_plugins.imagery import ImageryModality
+    from coex_plugins.imagery.sender import ImageInput
+    from coex_plugins.imagery.synth import seafloor
+
+    sched = Schedule.simple([1, 2], 10.0, 1.0)
+    top = Node(ChannelManager(1, [LinkConfig(0, sched, dst=2)]))
+    images = ImageryModality().receiver()
+    top.add_receiver(ImageryModality, images)
+    veh = Node(ChannelManager(2, [LinkConfig(0, sched, dst=1)]))
+    img_tx = RecordingSender(ImageryModality().sender())
+    img_tx.ingest(ImageInput(seafloor(96, 128, seed=1), 10.0, 0.0, 5.0), 10.0)
+    veh.add_sender(ImageryModality, img_tx, StreamConfig(4, "images", priority=30))
+    net = SimNetwork({0: AcousticChannel(seed=1, loss=0.0)})
+    net.add_node(veh, (0.0, 0.0, 100.0))
+    net.add_node(top, (50.0, 0.0, 0.0))
+    hub = attach(top, clock=lambda: net.now)
+
+    def run(until: float) -> None:
+        while net.now < until:
+            net.run(min(until, net.now + 1.0))
+            hub.pump(top, net.now)
+
+    run(40.0)
+    (image_id,) = [p.key for p in images.products() if p.kind == "image"] or [None]
+    assert image_id is not None
+    hub.act("queue_config", {"stream": 9, "priority": 5})  # no stream 9 on the vehicle
+    run(41.0)  # the console's command is queued in the node before the script's
+    goal = images.request_goal(int(image_id), "layer", 3, net.now)
+    run(120.0)
+    assert any(isinstance(x, m.ImageGoal) and x.command_id == goal.command_id
+               for x in img_tx.handled), "the vehicle took the script's goal as a new command"
+    assert not images.pending_requests(), "the script's goal was acknowledged"
+    person = [c for c in hub.snapshot()["commands"] if c["kind"] == "QueueConfig"]
+    assert [c["status"] for c in person] == ["unknown_target"], hub.snapshot()["commands"]
