@@ -10,12 +10,12 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
+from coex_core.config import merged_config
 from coex_core.errors import ConfigError, RequestRejected
 from coex_core.messages import MapMetadata, MapRoiReply, MapRoiRequest, Message, Subgrid
 from coex_core.modality import ModalityReceiver, Product
 from coex_core.timefmt import to_stamp, unwrap
 
-from ._sender import merged_config
 from ._subgrid import decode_subgrid
 
 __all__ = ["BathymetryReceiver", "RECEIVER_DEFAULTS", "Region"]
@@ -124,7 +124,7 @@ class BathymetryReceiver(ModalityReceiver):
     """
 
     def __init__(self, config: Mapping[str, Any] | None = None) -> None:
-        cfg = merged_config(config, RECEIVER_DEFAULTS)
+        cfg = merged_config(config, RECEIVER_DEFAULTS, "bathymetry receiver")
         self.config = cfg
         self.request_timeout = float(cfg["request_timeout"])
         self.subgrid_wait = float(cfg["subgrid_wait"])

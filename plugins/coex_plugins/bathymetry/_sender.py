@@ -12,6 +12,7 @@ import numpy.typing as npt
 
 from coex_core import wire
 from coex_core._wire.bathymetry import RESOLUTIONS, VERTICAL_RESOLUTIONS
+from coex_core.config import merged_config
 from coex_core.errors import ConfigError, RequestRejected
 from coex_core.messages import MapMetadata, MapRoiReply, MapRoiRequest, Message, Subgrid
 from coex_core.modality import ModalitySender
@@ -58,15 +59,6 @@ STALE_REQUEST_IDS = 32
 MAX_REGIONS_REMEMBERED = 1024
 
 
-def merged_config(config: Mapping[str, Any] | None, defaults: Mapping[str, Any]) -> dict[str, Any]:
-    cfg = dict(defaults)
-    for k, v in (config or {}).items():
-        if k not in defaults:
-            raise ConfigError(f"unknown bathymetry option {k!r} (known: {', '.join(sorted(defaults))})")
-        cfg[k] = v
-    return cfg
-
-
 class BathymetrySender(ModalitySender):
     """Ingests soundings into a :class:`QuadtreeMap` and answers ``fill(max_bytes, now)``.
 
@@ -78,7 +70,7 @@ class BathymetrySender(ModalitySender):
     """
 
     def __init__(self, config: Mapping[str, Any] | None = None) -> None:
-        cfg = merged_config(config, SENDER_DEFAULTS)
+        cfg = merged_config(config, SENDER_DEFAULTS, "bathymetry sender")
         self.config = cfg
         if float(cfg["resolution"]) not in RESOLUTIONS:
             raise ConfigError(f"resolution must be one of {RESOLUTIONS} m (the wire's table)")

@@ -17,6 +17,7 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
+from coex_core.config import merged_config
 from coex_core.errors import CoexError, ConfigError
 from coex_core.messages import (
     ByteRange,
@@ -110,6 +111,12 @@ class _Pending:
     tries: int
 
 
+#: the imagery receiver's options and their defaults
+RECEIVER_DEFAULTS: dict[str, Any] = {"max_images": 256, "max_early": 256, "ack_limit": 4,
+                                     "retry": 60.0, "max_tries": 10, "max_ack_bytes": 81,
+                                     "out_dir": None}
+
+
 class ImageryReceiver(ModalityReceiver):
     """Topside side. Configuration keys (all optional): ``max_images`` (256), ``max_early``
     (256), ``ack_limit`` (acks per poll, 4), ``retry`` (seconds between request retries, 60),
@@ -118,7 +125,7 @@ class ImageryReceiver(ModalityReceiver):
     fragment, see :class:`~coex_plugins.imagery.output.ImageWriter`)."""
 
     def __init__(self, config: Mapping[str, Any] | None = None) -> None:
-        cfg = dict(config or {})
+        cfg = merged_config(config, RECEIVER_DEFAULTS, "imagery receiver")
         try:
             self.max_images = int(cfg.get("max_images", 256))
             self.max_early = int(cfg.get("max_early", 256))

@@ -24,6 +24,7 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
+from coex_core.config import merged_config
 from coex_core.errors import ConfigError, RequestRejected
 from coex_core.messages import (
     AckStatus,
@@ -118,6 +119,15 @@ class _Tx:
                              self.enc.height, self.enc.grey, self.total, self.enc.params)
 
 
+#: coding options (:class:`~coex_plugins.imagery.codec.CodingParams` fields)
+CODING_KEYS = ("progression", "resolutions", "layer_bytes", "irreversible", "grey", "max_size")
+#: the imagery sender's options and their defaults (coding options default to CodingParams')
+SENDER_DEFAULTS: dict[str, Any] = {**dict.fromkeys(CODING_KEYS), "default_goal": "layer:6",
+                                   "request_goal": None, "max_images": 64, "rto": 60.0,
+                                   "progress_interval": 60.0, "max_announces": 2,
+                                   "min_fragment": 16}
+
+
 class ImagerySender(ModalitySender):
     """Subsea side. Configuration keys (all optional):
 
@@ -133,10 +143,11 @@ class ImagerySender(ModalitySender):
     """
 
     def __init__(self, config: Mapping[str, Any] | None = None) -> None:
-        cfg = dict(config or {})
-        self.coding = CodingParams.from_config(cfg)
-        self.default_goal: Goal = parse_goal(cfg.get("default_goal", "layer:6"))
-        self.request_goal: Goal = parse_goal(cfg.get("request_goal", self.default_goal))
+        cfg = merged_config(config, SENDER_DEFAULTS, "imagery sender")
+        self.coding = CodingParams.from_config({k: cfg[k] for k in CODING_KEYS if cfg[k] is not None})
+        self.default_goal: Goal = parse_goal(cfg["default_goal"])
+        self.request_goal: Goal = parse_goal(cfg["request_goal"] if cfg["request_goal"] is not None
+                                             else self.default_goal)
         try:
             self.max_images = int(cfg.get("max_images", 64))
             self.rto = float(cfg.get("rto", 60.0))

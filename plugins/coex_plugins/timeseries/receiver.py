@@ -13,6 +13,7 @@ from typing import Any
 
 import numpy as np
 
+from coex_core.config import merged_config
 from coex_core.errors import ConfigError, RequestRejected
 from coex_core.messages import (
     Message,
@@ -139,6 +140,10 @@ class _Pending:
     tries: int = 0
 
 
+#: the time-series receiver's options and their defaults
+RECEIVER_DEFAULTS: dict[str, Any] = {"request_retry": 120.0, "request_tries": 10}
+
+
 class TimeSeriesReceiver(ModalityReceiver):
     """Takes channel registrations and chunks, acks them, tracks requests, reconstructs.
 
@@ -147,10 +152,7 @@ class TimeSeriesReceiver(ModalityReceiver):
     """
 
     def __init__(self, config: Mapping[str, Any] | None = None) -> None:
-        config = dict(config or {})
-        unknown = set(config) - {"request_retry", "request_tries"}
-        if unknown:
-            raise ConfigError(f"unknown time-series receiver options: {sorted(unknown)}")
+        config = merged_config(config, RECEIVER_DEFAULTS, "time-series receiver")
         try:
             self.request_retry = float(config.get("request_retry", 120.0))
             self.request_tries = int(config.get("request_tries", 10))

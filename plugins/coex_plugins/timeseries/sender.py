@@ -10,6 +10,7 @@ from typing import Any
 import numpy as np
 
 from coex_core import wire
+from coex_core.config import merged_config
 from coex_core.errors import CoexError, ConfigError, RequestRejected
 from coex_core.messages import (
     Message,
@@ -145,6 +146,12 @@ def _positive(config: Mapping[str, Any], key: str, default: float) -> float:
     return f
 
 
+#: the time-series sender's options (None: the default documented below)
+SENDER_OPTIONS: dict[str, Any] = dict.fromkeys((
+    "channels", "wavelet", "block_samples", "max_latency", "overview_factor", "alert_fraction",
+    "retry_after", "spike_close"))
+
+
 class TimeSeriesSender(ModalitySender):
     """Blocks samples per channel, codes each block progressively and serves the link.
 
@@ -166,12 +173,8 @@ class TimeSeriesSender(ModalitySender):
     """
 
     def __init__(self, config: Mapping[str, Any] | None = None) -> None:
-        config = dict(config or {})
-        unknown = set(config) - {"channels", "wavelet", "block_samples", "max_latency",
-                                 "overview_factor", "alert_fraction", "retry_after",
-                                 "spike_close"}
-        if unknown:
-            raise ConfigError(f"unknown time-series sender options: {sorted(unknown)}")
+        config = {k: v for k, v in merged_config(config, SENDER_OPTIONS, "time-series sender").items()
+                  if v is not None}
         name = str(config.get("wavelet", "bior4.4"))
         if name not in WAVELETS:
             raise ConfigError(f"wavelet must be one of {sorted(WAVELETS)}, got {name!r}")

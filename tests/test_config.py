@@ -1,0 +1,49 @@
+"""One configuration convention: every built-in sender and receiver rejects an unknown
+(misspelt) option with a ConfigError naming it, and takes its documented options."""
+
+from __future__ import annotations
+
+import pytest
+
+from coex import ConfigError, load_modality
+from coex_core.config import merged_config
+
+MODALITIES = ["bathymetry", "imagery", "timeseries"]
+
+
+@pytest.mark.parametrize("name", MODALITIES)
+@pytest.mark.parametrize("side", ["sender", "receiver"])
+def test_a_misspelt_option_is_refused_with_its_name(name: str, side: str) -> None:
+    modality = load_modality(name)()
+    with pytest.raises(ConfigError, match=r"unknown .*option 'max_imgaes' \(known: "):
+        getattr(modality, side)({"max_imgaes": 3})
+
+
+@pytest.mark.parametrize("name, side, config", [
+    ("bathymetry", "sender", {"levels": 3}),
+    ("bathymetry", "receiver", {"levels": 3}),
+    ("imagery", "sender", {"max_images": 3, "resolutions": 4, "rto": 90.0}),
+    ("imagery", "receiver", {"max_images": 3, "retry": 30.0}),
+    ("timeseries", "sender", {"block_samples": 256}),
+    ("timeseries", "receiver", {"request_retry": 30.0}),
+])
+def test_documented_options_are_taken(name: str, side: str, config: dict[str, object]) -> None:
+    part = getattr(load_modality(name)(), side)(config)
+    for key, value in config.items():
+        held = getattr(part, key, None)
+        if held is None:  # kept in the part's config mapping or a settings object
+            for v in vars(part).values():
+                if isinstance(v, dict) and key in v:
+                    held = v[key]
+                elif hasattr(v, key) and not isinstance(v, dict):
+                    held = getattr(v, key)
+        assert held == value, key
+
+
+def test_merged_config() -> None:
+    assert merged_config({"a": 2}, {"a": 1, "b": 3}) == {"a": 2, "b": 3}
+    assert merged_config(None, {"a": 1}) == {"a": 1}
+    with pytest.raises(ConfigError, match="unknown imagery sender option 'c' \\(known: a, b\\)"):
+        merged_config({"c": 1}, {"a": 1, "b": 2}, "imagery sender")
+    with pytest.raises(ConfigError, match="mapping"):
+        merged_config([("a", 1)], {"a": 1})  # type: ignore[arg-type]
