@@ -6,10 +6,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from coex_core.acoustic import GilbertElliott
 from coex_core.messages import ImageFragment
 from coex_plugins.imagery import ImageInput, ImageryModality, ImageryReceiver, ImagerySender
 from coex_plugins.imagery.codec import psnr
-from coex_plugins.imagery.sim import Bernoulli, GilbertElliott, LossModel, Transfer
+from coex_plugins.imagery.sim import Bernoulli, Burst, LossModel, Transfer
 from coex_plugins.imagery.synth import seafloor
 
 CFG = {"layer_bytes": [30, 60, 120, 240, 480, 900, 1600], "default_goal": "layer:3", "rto": 15.0,
@@ -64,8 +65,8 @@ def test_half_of_all_frames_lost_both_ways(seed: int) -> None:
 
 @pytest.mark.parametrize("seed", [4, 5])
 def test_burst_loss_with_lost_acks(seed: int) -> None:
-    down = GilbertElliott(0.1, 0.2, 0.05, 0.95, seed=seed)
-    up = GilbertElliott(0.1, 0.2, 0.05, 0.95, seed=seed + 50)
+    down = Burst(GilbertElliott(0.1, 0.2, 0.05, 0.95), seed=seed)
+    up = Burst(GilbertElliott(0.1, 0.2, 0.05, 0.95), seed=seed + 50)
     _s, _r, t = _scenario(down, up, 3000)
     # there were bursts: at least 4 consecutive lost downlink frames
     frames = {}

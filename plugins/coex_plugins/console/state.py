@@ -88,15 +88,9 @@ def elevation_rgb(z: FloatArray, lo: float, hi: float, cell: float = 1.0) -> npt
     span = max(hi - lo, 1e-9)
     t = np.clip((np.where(ok, z, lo) - lo) / span, 0.0, 1.0)
     rgb = np.stack([np.interp(t, _RAMP_POS, _RAMP_RGB[:, k]) for k in range(3)], axis=-1)
-    filled = np.where(ok, z, np.nanmean(z) if ok.any() else 0.0)
-    if min(z.shape) >= 2:
-        gy, gx = np.gradient(filled, cell)
-        # light from the north-west, 45 degrees up
-        slope = np.pi / 2 - np.arctan(np.hypot(gx, gy))
-        aspect = np.arctan2(-gx, gy)
-        az, alt = np.deg2rad(315.0), np.deg2rad(45.0)
-        shade = np.sin(alt) * np.sin(slope) + np.cos(alt) * np.cos(slope) * np.cos(az - aspect)
-        rgb *= (0.55 + 0.45 * np.clip(shade, 0, 1))[..., None]
+    from coex_plugins.bathymetry import hillshade  # the one hillshade (light from the NW)
+
+    rgb *= (0.55 + 0.45 * hillshade(z, cell))[..., None]
     out = np.zeros((*z.shape, 4), np.uint8)
     out[..., :3] = np.clip(rgb, 0, 255).astype(np.uint8)
     out[..., 3] = np.where(ok, 255, 0)

@@ -228,15 +228,11 @@ def _colourise(t: npt.NDArray[np.float64]) -> npt.NDArray[np.float64]:
 def _shade(z: npt.NDArray[np.float64], cell: float, azimuth: float = 315.0,
            altitude: float = 45.0, strength: float = 0.6) -> npt.NDArray[np.float64]:
     """A brightness factor from a hillshade (row 0 = south), 1.0 on flat ground and next to gaps."""
-    if min(z.shape) < 2:
-        return np.ones_like(z)
-    dzdy, dzdx = np.gradient(z, cell)  # axis 0 runs north, axis 1 east
-    az, alt = math.radians(azimuth), math.radians(altitude)
-    sun = (math.sin(az) * math.cos(alt), math.cos(az) * math.cos(alt), math.sin(alt))
-    with np.errstate(invalid="ignore"):
-        lit = (-dzdx * sun[0] - dzdy * sun[1] + sun[2]) / np.sqrt(dzdx**2 + dzdy**2 + 1.0)
-        factor = 1.0 + strength * (np.clip(lit, 0.0, 1.0) - sun[2])
-    return np.where(np.isfinite(factor), np.clip(factor, 0.55, 1.25), 1.0)
+    from coex_plugins.bathymetry import hillshade  # the one hillshade
+
+    lit = hillshade(z, cell, azimuth, altitude)
+    factor = 1.0 + strength * (lit - math.sin(math.radians(altitude)))
+    return np.where(np.isfinite(z), np.clip(factor, 0.55, 1.25), 1.0)
 
 
 def _marker(kind: str, x: float, y: float, filled: bool = False) -> str:

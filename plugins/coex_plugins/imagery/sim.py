@@ -4,7 +4,8 @@ Used by ``coex image roundtrip``, the tests and the benchmark. Each round the ve
 frame of at most ``mtu`` bytes; topside takes what arrives and answers with acks and requests in
 as many frames as they need; the vehicle handles those and its immediate replies (command acks)
 go down in one more frame. Loss is drawn per frame from seeded models: independent
-(:class:`Bernoulli`) or bursty (:class:`GilbertElliott`).
+(:class:`Bernoulli`) or bursty (:class:`Burst`: the channel simulator's
+:class:`~coex_core.acoustic.GilbertElliott` with its own random stream).
 """
 
 from __future__ import annotations
@@ -15,11 +16,12 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 
 from coex_core import wire
+from coex_core.acoustic import GilbertElliott
 from coex_core.errors import EncodeError, RequestRejected
 from coex_core.messages import FrameHeader, Message
 from coex_core.modality import ModalityReceiver, ModalitySender, Product
 
-__all__ = ["Bernoulli", "GilbertElliott", "LossModel", "Transfer", "WireEvent"]
+__all__ = ["Bernoulli", "Burst", "LossModel", "Transfer", "WireEvent"]
 
 
 class LossModel(abc.ABC):
@@ -43,22 +45,17 @@ class Bernoulli(LossModel):
         return self.p > 0 and self.rng.random() < self.p
 
 
-class GilbertElliott(LossModel):
-    """Two-state burst loss: in the bad state frames are lost with ``loss_bad``, in the good state
-    with ``loss_good``; the state flips with ``p_gb`` (good to bad) and ``p_bg`` (bad to good)."""
+class Burst(LossModel):
+    """Burst loss: the acoustic channel's two-state :class:`~coex_core.acoustic.GilbertElliott`
+    model (the one loss model of CoEx), stepped once per frame with a seeded random stream."""
 
-    def __init__(self, p_gb: float = 0.1, p_bg: float = 0.25, loss_good: float = 0.05,
-                 loss_bad: float = 0.95, seed: int = 0) -> None:
-        self.p_gb, self.p_bg, self.loss_good, self.loss_bad = p_gb, p_bg, loss_good, loss_bad
+    def __init__(self, model: GilbertElliott | None = None, seed: int = 0) -> None:
+        self.model = model if model is not None else GilbertElliott(
+            p_good_bad=0.1, p_bad_good=0.25, loss_good=0.05, loss_bad=0.95)
         self.rng = random.Random(seed)
-        self.bad = False
 
     def lost(self) -> bool:
-        if self.bad:
-            self.bad = self.rng.random() >= self.p_bg
-        else:
-            self.bad = self.rng.random() < self.p_gb
-        return self.rng.random() < (self.loss_bad if self.bad else self.loss_good)
+        return self.model.step(self.rng)
 
 
 @dataclass
