@@ -47,3 +47,26 @@ def test_merged_config() -> None:
         merged_config({"c": 1}, {"a": 1, "b": 2}, "imagery sender")
     with pytest.raises(ConfigError, match="mapping"):
         merged_config([("a", 1)], {"a": 1})  # type: ignore[arg-type]
+
+
+def test_request_tracker_sends_retries_and_gives_up() -> None:
+    from coex_core.requests import RequestTracker
+
+    t: RequestTracker[str] = RequestTracker(retry=10.0, max_tries=3)
+    t.add(1, "a")
+    t.add(2, "b")
+    assert t.due(0.0) == ["a", "b"] and t.due(5.0) == []
+    assert t.answered(1) is not None and t.answered(1) is None
+    assert t.due(10.0) == ["b"]  # unanswered: again after the retry interval
+    assert t.due(19.0) == []
+    assert t.due(3.0) == ["b"]  # a clock that went back resends
+    t2: RequestTracker[str] = RequestTracker(retry=10.0, max_tries=2)
+    t2.add("k", "x")
+    assert t2.due(0.0) == ["x"] and t2.due(10.0) == ["x"]
+    assert t2.due(20.0) == [] and len(t2) == 0 and t2.given_up == 1  # two sends, then given up
+    t3: RequestTracker[str] = RequestTracker(retry=10.0, max_tries=5)
+    t3.add("k", "x")
+    assert t3.due(0.0, done=lambda m: False) == ["x"]
+    assert t3.pending(done=lambda m: True) == [] and t3.due(30.0, done=lambda m: True) == []
+    assert "k" not in t3  # done: dropped as answered, not given up
+    assert t3.given_up == 0

@@ -16,8 +16,8 @@ def test_command_ack_reaches_the_requesting_receiver() -> None:
     topside.add_receiver(ImageryModality, receiver)
     receiver.request_by_time(1000.0, "before", 0.0)
     topside.poll(1.0)  # collects the request (and would send it in topside's slot)
-    [cid] = [p.message.command_id for p in receiver._requests.values()
-             if isinstance(p.message, ImageByTimeRequest)]
+    [cid] = [m.command_id for m in receiver.pending_requests()
+             if isinstance(m, ImageByTimeRequest)]
     assert receiver.pending_requests()
     frame = wire.pack([CommandAck(cid, AckStatus.ACCEPTED)], 64, FrameHeader(src=2, dst=1, seq=1))
     topside.receive(0, frame, 30.0)

@@ -11,7 +11,6 @@ from __future__ import annotations
 import warnings
 from collections import OrderedDict, deque
 from collections.abc import Callable, Mapping
-from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -33,6 +32,7 @@ from coex_core.messages import (
     TransferProgress,
 )
 from coex_core.modality import ModalityReceiver, Product
+from coex_core.requests import RequestTracker
 from coex_core.timefmt import to_stamp, unwrap
 
 from .codec import StreamParams, decode_packets, packet_order, parse_params
@@ -104,13 +104,6 @@ class _Rx:
         return tuple(used)
 
 
-@dataclass
-class _Pending:
-    message: Message
-    sent_at: float
-    tries: int
-
-
 #: the imagery receiver's options and their defaults
 RECEIVER_DEFAULTS: dict[str, Any] = {"max_images": 256, "max_early": 256, "ack_limit": 4,
                                      "retry": 60.0, "max_tries": 10, "max_ack_bytes": 81,
@@ -144,7 +137,7 @@ class ImageryReceiver(ModalityReceiver):
         self.images: OrderedDict[int, _Rx] = OrderedDict()
         self._early: deque[ImageFragment] = deque(maxlen=self.max_early)
         self._ack_due: OrderedDict[int, None] = OrderedDict()
-        self._requests: dict[int, _Pending] = {}
+        self._requests: RequestTracker[Message] = RequestTracker(self.retry, self.max_tries)
         self.progress: TransferProgress | None = None
         self._progress_version = 0
         self.rejected_fragments = 0
@@ -168,7 +161,7 @@ class ImageryReceiver(ModalityReceiver):
             self._progress_version += 1
             changed.append(self._progress_product())
         elif isinstance(message, CommandAck):
-            self._requests.pop(message.command_id, None)
+            self._requests.answered(message.command_id)
         for p in changed:
             for listener in self.listeners:
                 listener(p)
@@ -293,7 +286,7 @@ class ImageryReceiver(ModalityReceiver):
     def _new_command(self, make: Callable[[int], Message], now: float) -> Message:
         cid = self.next_command_id()
         msg = make(cid)
-        self._requests[cid] = _Pending(msg, -np.inf, 0)
+        self._requests.add(cid, msg)
         return msg
 
     def request_goal(self, image_id: int, kind: GoalKind | str, value: int = 0, now: float = 0.0) -> ImageGoal:
@@ -315,15 +308,7 @@ class ImageryReceiver(ModalityReceiver):
         return msg
 
     def poll(self, now: float) -> list[Message]:
-        out: list[Message] = []
-        for cid, pend in list(self._requests.items()):
-            if now - pend.sent_at >= self.retry:
-                if pend.tries >= self.max_tries:
-                    del self._requests[cid]
-                    continue
-                pend.sent_at = now
-                pend.tries += 1
-                out.append(pend.message)
+        out: list[Message] = self._requests.due(now)
         for _ in range(min(self.ack_limit, len(self._ack_due))):
             image_id, _ = self._ack_due.popitem(last=False)
             rx = self.images.get(image_id)
@@ -334,4 +319,4 @@ class ImageryReceiver(ModalityReceiver):
         return out
 
     def pending_requests(self) -> list[Message]:
-        return [p.message for p in self._requests.values()]
+        return self._requests.pending()

@@ -25,6 +25,7 @@ from coex_core.messages import (
     Wavelet,
 )
 from coex_core.modality import ModalityReceiver, Product
+from coex_core.requests import RequestTracker
 from coex_core.timefmt import to_stamp, unwrap
 
 from . import codec
@@ -131,15 +132,6 @@ class _RChannel:
         return self.registration.name if self.registration else f"channel{self.cid}"
 
 
-@dataclass
-class _Pending:
-    request: TimeSeriesRequest
-    t0: float
-    t1: float
-    sent_at: float | None = None
-    tries: int = 0
-
-
 #: the time-series receiver's options and their defaults
 RECEIVER_DEFAULTS: dict[str, Any] = {"request_retry": 120.0, "request_tries": 10}
 
@@ -161,8 +153,10 @@ class TimeSeriesReceiver(ModalityReceiver):
         if not (self.request_retry > 0 and self.request_tries > 0):
             raise ConfigError("request_retry and request_tries must be positive")
         self._channels: dict[int, _RChannel] = {}
-        self._pending: list[_Pending] = []
-        self._command = 0
+        self._pending: RequestTracker[TimeSeriesRequest] = RequestTracker(
+            self.request_retry, self.request_tries)
+        #: command id -> the window (start, end) of a tracked request, in seconds
+        self._windows: dict[int, tuple[float, float]] = {}
         self.ignored = 0  # chunks that were well-formed on the wire but inconsistent
 
     # ------------------------------------------------------------------- receive
@@ -250,10 +244,10 @@ class TimeSeriesReceiver(ModalityReceiver):
         if ch.registration is not None and max_error < ch.registration.resolution / 2 * (1 - 1e-6):
             raise RequestRejected(
                 f"max_error {max_error:g} is below half the resolution ({ch.registration.resolution / 2:g})")
-        req = TimeSeriesRequest(self._command, ch.cid, to_stamp(start), to_stamp(end),
+        req = TimeSeriesRequest(self.next_command_id(), ch.cid, to_stamp(start), to_stamp(end),
                                 float(np.float32(max_error)))
-        self._command = (self._command + 1) % 256
-        self._pending.append(_Pending(req, start, end))
+        self._windows[req.command_id] = (start, end)
+        self._pending.add(req.command_id, req)
         return req
 
     def _find(self, channel: str | int) -> _RChannel:
@@ -266,10 +260,11 @@ class TimeSeriesReceiver(ModalityReceiver):
                 return ch
         raise RequestRejected(f"unknown channel {channel!r}")
 
-    def _satisfied(self, p: _Pending) -> bool:
-        ch = self._ch(p.request.channel)
-        blocks = [b for b in ch.blocks.values() if b.end >= p.t0 and b.start <= p.t1 + 1]
-        return bool(blocks) and all(b.bound() <= p.request.max_error for b in blocks)
+    def _satisfied(self, req: TimeSeriesRequest) -> bool:
+        t0, t1 = self._windows[req.command_id]
+        ch = self._ch(req.channel)
+        blocks = [b for b in ch.blocks.values() if b.end >= t0 and b.start <= t1 + 1]
+        return bool(blocks) and all(b.bound() <= req.max_error for b in blocks)
 
     def poll(self, now: float) -> list[Message]:
         out: list[Message] = []
@@ -279,21 +274,13 @@ class TimeSeriesReceiver(ModalityReceiver):
                 for i in range(0, max(len(parts), 1), MAX_ACK_PARTS):
                     out.append(TimeSeriesAck(ch.cid, ch.ack_registration, tuple(parts[i:i + MAX_ACK_PARTS])))
                 ch.ack_registration = False
-        keep = []
-        for p in self._pending:
-            if self._satisfied(p) or p.tries >= self.request_tries:
-                continue
-            keep.append(p)
-            if p.sent_at is None or now - p.sent_at >= self.request_retry or now < p.sent_at:
-                out.append(p.request)
-                p.sent_at = now
-                p.tries += 1
-        self._pending = keep
+        out += self._pending.due(now, done=self._satisfied)
+        self._windows = {cid: w for cid, w in self._windows.items() if cid in self._pending}
         return out
 
     def pending_requests(self) -> list[TimeSeriesRequest]:
         """Requests not yet satisfied."""
-        return [p.request for p in self._pending if not self._satisfied(p)]
+        return self._pending.pending(done=self._satisfied)
 
     # ----------------------------------------------------------------- products
 
