@@ -1,0 +1,126 @@
+"""Frame acknowledgements of a channel manager: what to ack, what an ack clears, re-sends.
+
+A part of :class:`~coex_core.channel.manager.ChannelManager` (the API is the manager's)."""
+
+from __future__ import annotations
+
+import math
+
+from ..messages import (
+    FrameAck,
+    FrameAckEntry,
+    FrameHeader,
+    Message,
+)
+from .events import Acked
+from .links import (
+    MAX_ACK_ENTRIES,
+    SEQ_MODULUS,
+)
+from .tdma import LinksMixin
+
+__all__ = ["AcksMixin"]
+
+
+class AcksMixin(LinksMixin):
+    # ============================================================================== acks
+    def on_ack(self, ack: FrameAck, now: float) -> int:
+        """Apply a :class:`FrameAck` (received on any link): every ack-required message packed
+        in an acknowledged frame leaves its queue, and every link's pending records. Returns the
+        number of messages cleared."""
+        return len(self.acknowledge(ack, now))
+
+    def acknowledge(self, ack: FrameAck, now: float) -> list[tuple[int, Message]]:
+        """:meth:`on_ack`, returning the ``(stream, message)`` pairs it cleared (each also gives
+        an :class:`Acked` event)."""
+        if ack.node != self.node_id or ack.link not in self._links:
+            return []
+        st = self._links[ack.link]
+        cleared: list[tuple[int, Message]] = []
+        for ent in ack.entries:
+            for i in range(8):
+                if not ent.frames >> i & 1:
+                    continue
+                seq = (ent.seq + i) % SEQ_MODULUS
+                for sid, eid in st.sent.pop(seq, []):
+                    e = self._find(sid, eid)
+                    if e is None:
+                        continue
+                    q = self._streams[sid].queue
+                    self._forget(e)
+                    q.entries.remove(e)
+                    cleared.append((sid, e.message))
+                    self.stats["acked"] += 1
+                    self._events.append(Acked(now, sid, e.message, now - (e.first_sent or now), ack.link))
+        return cleared
+
+    def on_frame(self, link: int, header: FrameHeader, now: float, ackable: bool = True) -> None:
+        """Bookkeeping for a good frame received on ``link``: the watchdog, the peer's schedule
+        version, and (if ``ackable``) the frame ack to send back."""
+        st = self._links.get(link)
+        if st is None or header.src == self.node_id:
+            return
+        st.last_heard = now
+        st.frames_rx += 1
+        if self.ack_frames and ackable:
+            seqs = self._to_ack.setdefault((header.src, link), {})
+            seqs[header.seq] = now  # a newer use of a seq: the ack names the newest
+            for other in self._links.values():
+                other.idle_until = -math.inf
+        v = header.schedule
+        if v == st.current.version:
+            return
+        for cid, prop in list(st.proposed.items()):
+            if prop.schedule.version == v:  # the vehicle switched: our proposal was accepted
+                st.proposed.pop(cid)
+                self._switch(link, prop.schedule, now, "peer")
+                return
+        if st.pending is not None and st.pending.schedule.version == v:
+            self._switch(link, st.pending.schedule, now, "peer")
+            return
+        settled = st.switched_at is None or now - st.switched_at >= st.current.cycle
+        if v == st.safe.version and settled:  # the peer's watchdog fired
+            self._fallback(link, now, "peer")
+
+    def _take_acks(self, now: float) -> list[Message]:
+        """The frame acks to send now. A frame received longer ago than its link's
+        ``ack_timeout`` is not acknowledged any more: its sender has made its messages sendable
+        again by then, and may have reused the seq (after 256 frames), so a late ack could
+        clear messages of a newer frame that never arrived (a restarted node replaying its
+        journal, a long outage)."""
+        out: list[Message] = []
+        self._ack_times = {}
+        for (src, link), pending in sorted(self._to_ack.items()):
+            st = self._links.get(link)
+            horizon = st.ack_timeout if st is not None else math.inf
+            seqs = []
+            for seq, t in pending.items():
+                if now - t > horizon:
+                    self.stats["stale_acks"] += 1
+                    continue
+                seqs.append(seq)
+                self._ack_times[(src, link, seq)] = t
+            if not seqs:
+                continue
+            entries: list[FrameAckEntry] = []
+            for seq in seqs:
+                for k, ent in enumerate(entries):
+                    d = (seq - ent.seq) % SEQ_MODULUS
+                    if d < 8:
+                        entries[k] = FrameAckEntry(ent.seq, ent.frames | 1 << d)
+                        break
+                else:
+                    entries.append(FrameAckEntry(seq, 1))
+            for i in range(0, len(entries), MAX_ACK_ENTRIES):
+                out.append(FrameAck(src, link, tuple(entries[i:i + MAX_ACK_ENTRIES])))
+        self._to_ack.clear()
+        return out
+
+    def _requeue_ack(self, ack: Message, now: float) -> None:
+        assert isinstance(ack, FrameAck)
+        seqs = self._to_ack.setdefault((ack.node, ack.link), {})
+        for ent in ack.entries:
+            for i in range(8):
+                seq = (ent.seq + i) % SEQ_MODULUS
+                if ent.frames >> i & 1 and seq not in seqs:
+                    seqs[seq] = self._ack_times.get((ack.node, ack.link, seq), now)
