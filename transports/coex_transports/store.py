@@ -72,8 +72,12 @@ class NodeStore:
     """The persistent state of one node in the SQLite file ``path`` (created if missing)."""
 
     def __init__(self, path: str | Path, *, snapshot_interval: float = 5.0,
-                 journal_tx: bool = True) -> None:
+                 journal_tx: bool = True, compact: bool = True) -> None:
         self.path = Path(path)
+        #: drop the journal rows a snapshot includes, in the snapshot's transaction (the file
+        #: stays the size of one snapshot plus what came since); ``False`` keeps the whole
+        #: journal as a record (a test that audits what was sent and received)
+        self.compact = compact
         self.snapshot_interval = float(snapshot_interval)
         self.journal_tx = journal_tx
         try:
@@ -143,6 +147,8 @@ class NodeStore:
             last = self.db.execute("SELECT COALESCE(MAX(id), 0) FROM journal").fetchone()[0]
             self.db.execute("INSERT OR REPLACE INTO snapshot (id, journal_id, t, state) VALUES (1, ?, ?, ?)",
                             (int(last), float(t), sqlite3.Binary(state)))
+            if self.compact:
+                self.db.execute("DELETE FROM journal WHERE id <= ?", (int(last),))
             self.db.execute("COMMIT")
         except BaseException:
             self.db.execute("ROLLBACK")
