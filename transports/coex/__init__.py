@@ -19,6 +19,7 @@ import sys
 
 from coex_core import __version__, errors, messages, wire
 from coex_core.acoustic import AcousticChannel
+from coex_core.config import merged_config
 from coex_core.channel import (
     CONTROL_STREAM,
     Acked,
@@ -55,6 +56,7 @@ from coex_core.messages import Frame, FrameHeader, Message
 from coex_core.modality import Modality, ModalityReceiver, ModalitySender, Product
 from coex_core.node import Node
 from coex_core.registry import available, load_modality, load_transport, open_transport
+from coex_core.requests import RequestTracker
 from coex_core.transport import Transport
 from coex_transports.runner import RealClock, Runner, SimNetwork, SimulatedClock
 from coex_transports.store import NodeStore
@@ -99,6 +101,7 @@ __all__ = [
     "Received",
     "Rejected",
     "RequestRejected",
+    "RequestTracker",
     "Runner",
     "Schedule",
     "SimNetwork",
@@ -114,6 +117,7 @@ __all__ = [
     "errors",
     "load_modality",
     "load_transport",
+    "merged_config",
     "messages",
     "open_transport",
     "wire",
