@@ -19,7 +19,6 @@ import sys
 
 from coex_core import __version__, errors, messages, wire
 from coex_core.acoustic import AcousticChannel
-from coex_core.config import merged_config
 from coex_core.channel import (
     CONTROL_STREAM,
     Acked,
@@ -39,6 +38,7 @@ from coex_core.channel import (
     TdmaSlot,
     Transmission,
 )
+from coex_core.config import merged_config
 from coex_core.errors import (
     AuthenticationError,
     CoexError,
