@@ -20,12 +20,16 @@ from ._wire._codec import (
     unpack_frame,
 )
 from ._wire._registry import MAX_MESSAGE_BYTES, SPECS_BY_CLASS, SPECS_BY_ID, THIRD_PARTY_RANGES
+from ._wire.bathymetry import RESOLUTIONS as SUBGRID_RESOLUTIONS
+from ._wire.bathymetry import VERTICAL_RESOLUTIONS as SUBGRID_VERTICAL_RESOLUTIONS
 
 __all__ = [
     "CRC_BYTES",
     "FRAME_HEADER_BYTES",
     "MAX_MESSAGE_BYTES",
     "MAX_SIZES",
+    "SUBGRID_RESOLUTIONS",
+    "SUBGRID_VERTICAL_RESOLUTIONS",
     "THIRD_PARTY_RANGES",
     "crc16",
     "decode",

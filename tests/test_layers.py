@@ -133,16 +133,39 @@ def test_no_module_imports_itself_back_through_others() -> None:
     assert cycles(graph(ROOT)) == []
 
 
+def private_imports(g: dict[str, set[str]]) -> list[str]:
+    """Imports of another package's private module (``coex_core._wire``,
+    ``coex_plugins.bathymetry._subgrid`` from outside ``coex_plugins.bathymetry``)."""
+    out = []
+    for a, deps in sorted(g.items()):
+        for b in sorted(deps):
+            parts = b.split(".")
+            for i, part in enumerate(parts):
+                owner = ".".join(parts[:i])
+                if part.startswith("_") and not part.startswith("__"):
+                    if not (a == owner or a.startswith(owner + ".")):
+                        out.append(f"{a} imports {b}")
+                    break  # inside its owner, a private module may use its own private parts
+    return out
+
+
+def test_no_module_reaches_into_another_package_s_private_modules() -> None:
+    allowed = {"coex_transports._runner"}  # the deprecated alias (imports the public runner)
+    assert [p for p in private_imports(graph(ROOT)) if p.split()[0] not in allowed] == []
+
+
 def test_the_checks_catch_an_upward_import_and_a_cycle(tmp_path: Path) -> None:
-    """The two checks above on a made-up tree: a transport importing a plugin, two console
-    modules importing each other (lazily, inside a function)."""
+    """The checks above on a made-up tree: a transport importing a plugin, two console modules
+    importing each other (lazily, inside a function), a plugin using a core private module."""
     for where in PACKAGES.values():
         (tmp_path / where).mkdir(parents=True, exist_ok=True)
         (tmp_path / where / "__init__.py").write_text("")
     (tmp_path / "coex_core" / "wire.py").write_text("X = 1\n")
     (tmp_path / "transports/coex_transports/lcm.py").write_text(
         "def f():\n    from coex_plugins.bathymetry import decode\n")
-    (tmp_path / "plugins/coex_plugins/bathymetry.py").write_text("from coex_core import wire\n")
+    (tmp_path / "coex_core" / "_codec.py").write_text("from . import wire\n")
+    (tmp_path / "plugins/coex_plugins/bathymetry.py").write_text(
+        "from coex_core import wire\nfrom coex_core._codec import X\n")
     console = tmp_path / "plugins/coex_plugins/console"
     console.mkdir()
     (console / "__init__.py").write_text("")
@@ -152,6 +175,7 @@ def test_the_checks_catch_an_upward_import_and_a_cycle(tmp_path: Path) -> None:
     assert upward(g) == ["coex_transports.lcm (transports) imports coex_plugins.bathymetry "
                          "(modalities)"]
     assert cycles(g) == [["coex_plugins.console.node", "coex_plugins.console.server"]]
+    assert private_imports(g) == ["coex_plugins.bathymetry imports coex_core._codec"]
 
 
 DOCS = [ROOT / "README.md", *sorted((ROOT / "docs").glob("*.md"))]

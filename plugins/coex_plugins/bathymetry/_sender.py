@@ -11,12 +11,13 @@ import numpy as np
 import numpy.typing as npt
 
 from coex_core import wire
-from coex_core._wire.bathymetry import RESOLUTIONS, VERTICAL_RESOLUTIONS
 from coex_core.config import merged_config
 from coex_core.errors import ConfigError, RequestRejected
 from coex_core.messages import MapMetadata, MapRoiReply, MapRoiRequest, Message, Subgrid
 from coex_core.modality import ModalitySender
 from coex_core.timefmt import to_stamp, unwrap
+from coex_core.wire import SUBGRID_RESOLUTIONS as RESOLUTIONS
+from coex_core.wire import SUBGRID_VERTICAL_RESOLUTIONS as VERTICAL_RESOLUTIONS
 
 from ._io import pointcloud2_xyz
 from ._quadtree import InputError, QuadtreeMap

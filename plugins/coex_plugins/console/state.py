@@ -1008,10 +1008,8 @@ _HANDLERS: dict[type, Callable[[ConsoleState, Any, float, int | None], None]] = 
 
 def _decode_subgrid(sg: m.Subgrid) -> FloatArray:
     """Elevations of a subgrid (row 0 = south), with the bathymetry plugin's decoder."""
-    try:
-        from coex_plugins.bathymetry import decode_subgrid
-    except ImportError:
-        from coex_plugins.bathymetry._subgrid import decode_subgrid
+    from coex_plugins.bathymetry import decode_subgrid
+
     return np.asarray(decode_subgrid(sg), float)
 
 
