@@ -73,6 +73,13 @@ class ModalitySender(abc.ABC):
         """An estimate of the bytes still waiting to be sent (0 when idle)."""
         return 0
 
+    def journal_form(self, data: Any) -> Any:
+        """What a store journals of an input before :meth:`ingest` takes it (and what is
+        ingested): plain data that :mod:`coex_core.state` can save (numbers, strings, arrays,
+        containers, registered classes). Optional (default: the input itself); a sender that
+        accepts other objects (a ROS message) converts them here."""
+        return data
+
     def acked(self, message: Message, now: float) -> None:  # noqa: B027 - optional hook
         """The other side acknowledged ``message``, which this sender produced (streams with
         ``ack_required`` only; called by the node when the frame ack arrives). Optional: a
@@ -103,6 +110,8 @@ class ModalityReceiver(abc.ABC):
 
     #: where this receiver's command ids come from (:meth:`bind_command_ids`)
     _command_ids: Callable[[], int] | None = None
+    #: not saved with the receiver's state (:mod:`coex_core.state`): the node binds it again
+    _state_transient: ClassVar[tuple[str, ...]] = ("_command_ids",)
     _own_command_id: int = 0
 
     def bind_command_ids(self, allocate: Callable[[], int]) -> None:

@@ -53,6 +53,7 @@ from .messages import (
     VehicleStatus,
 )
 from .modality import Modality, ModalityReceiver, ModalitySender
+from .state import StateError, dumps, loads
 from .wire import unpack_frame
 
 __all__ = ["Node", "Transmission"]
@@ -428,16 +429,75 @@ class Node:
     def set_log(self, log: Callable[[str], None] | None) -> None:
         self._log = log
 
-    def __getstate__(self) -> dict[str, Any]:
-        """Everything but the log callback (a node's state can be pickled: ``NodeStore``)."""
-        state = dict(self.__dict__)
-        state["_log"] = None
-        return state
+    # ===================================================================== saved state
+    #: node fields that are state (the rest is structure, rebuilt by whoever builds the node)
+    _STATE_FIELDS = ("stats", "_recent", "duplicate_window", "stats_interval", "_last_stats",
+                     "_bad_by_link")
 
-    def __setstate__(self, state: dict[str, Any]) -> None:
-        self.__dict__.update(state)
-        for r in self._receivers:  # a snapshot from before receivers took the node's ids
-            r.receiver.bind_command_ids(self.manager.next_command_id)
+    def export_state(self, extra: Any = None) -> bytes:
+        """The node's state as :mod:`coex_core.state` bytes (never pickle): its channel manager
+        (queues, pending acks, sequence numbers, schedules, command ids), every modality
+        sender and receiver (by modality name), its own counters and command bookkeeping, and
+        ``extra`` (an application's state saved with it, e.g. the console's: objects it shares
+        with the node stay shared). Keys, clocks and callbacks are not state."""
+        mgr = self.manager
+        root = {
+            "node_id": self.node_id,
+            "node": {k: getattr(self, k) for k in self._STATE_FIELDS},
+            "command_owner": {cid: r.name for cid, r in self._command_owner.items()},
+            "manager": mgr,
+            "auth": {"signed": mgr.signer.counter if mgr.signer is not None else None,
+                     "accepted": mgr.verifier.counter if mgr.verifier is not None else None,
+                     "rejected": mgr.verifier.rejected if mgr.verifier is not None else None},
+            "senders": {s.name: _innermost(s.sender) for s in self._senders},
+            "receivers": {r.name: _innermost(r.receiver) for r in self._receivers},
+            "extra": extra,
+        }
+        return dumps(root)
+
+    def restore_state(self, data: bytes) -> Any:
+        """Load what :meth:`export_state` saved into this node, which must have been built the
+        same way (node id, modalities; a sender or receiver wrapped by the application keeps
+        its wrapper). Returns the saved ``extra``. :class:`~coex_core.state.StateError` when the
+        state does not fit this node."""
+        root = loads(data)
+        if root.get("node_id") != self.node_id:
+            raise StateError(f"the saved state is node {root.get('node_id')}'s, not {self.node_id}'s")
+        senders, receivers = dict(root["senders"]), dict(root["receivers"])
+        if set(senders) != {s.name for s in self._senders} or \
+                set(receivers) != {r.name for r in self._receivers}:
+            raise StateError(f"the saved state has senders {sorted(senders)} and receivers "
+                             f"{sorted(receivers)}; this node has "
+                             f"{sorted(s.name for s in self._senders)} and "
+                             f"{sorted(r.name for r in self._receivers)}")
+        fresh, mgr = self.manager, root["manager"]
+        if sorted(mgr.links) != sorted(fresh.links):
+            raise StateError(f"the saved state has links {sorted(mgr.links)}, this node "
+                             f"{sorted(fresh.links)}")
+        mgr.clock, mgr.is_command = fresh.clock, self.is_command
+        mgr.signer, mgr.verifier = fresh.signer, fresh.verifier
+        auth = root["auth"]
+        if mgr.signer is not None and auth["signed"] is not None:
+            mgr.signer.counter = int(auth["signed"])
+        if mgr.verifier is not None and auth["accepted"] is not None:
+            mgr.verifier.counter = int(auth["accepted"])
+            mgr.verifier.rejected = int(auth["rejected"] or 0)
+        for s in self._senders:
+            s.sender = _install(s.sender, senders[s.name])
+        for r in self._receivers:
+            r.receiver = _install(r.receiver, receivers[r.name])
+            r.receiver.bind_command_ids(mgr.next_command_id)
+        by_stream = {s.stream: s.sender for s in self._senders}
+        for sid, st in mgr._streams.items():
+            old = fresh._streams.get(sid)
+            st.sender = by_stream.get(sid, old.sender if old is not None else None)
+        self.manager = mgr
+        for k, v in root["node"].items():
+            setattr(self, k, v)
+        slots = {r.name: r for r in self._receivers}
+        self._command_owner = {int(cid): slots[name] for cid, name in root["command_owner"].items()
+                               if name in slots}
+        return root["extra"]
 
     def _note(self, text: str) -> None:
         if self._log is not None:
@@ -454,3 +514,24 @@ class Node:
                 if t in seen:
                     raise ConfigError(f"{t.__name__} handled by {seen[t]} and {s.name}")
                 seen[t] = s.name
+
+
+def _innermost(part: Any) -> Any:
+    """The sender or receiver inside an application's wrappers (``inner``): its state."""
+    seen = 0
+    while isinstance(getattr(part, "inner", None), ModalitySender | ModalityReceiver) and seen < 8:
+        part, seen = part.inner, seen + 1
+    return part
+
+
+def _install(current: Any, restored: Any) -> Any:
+    """``restored`` in place of the innermost part of ``current`` (its wrappers stay)."""
+    holder = None
+    part = current
+    while isinstance(getattr(part, "inner", None), ModalitySender | ModalityReceiver):
+        holder, part = part, part.inner
+    if holder is None:
+        return restored
+    holder.inner = restored
+    return current
+

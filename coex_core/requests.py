@@ -15,12 +15,14 @@ from dataclasses import dataclass
 from typing import Generic, TypeVar
 
 from .errors import ConfigError
+from .state import persistent
 
 __all__ = ["Pending", "RequestTracker"]
 
 M = TypeVar("M")
 
 
+@persistent("core.Pending")
 @dataclass
 class Pending(Generic[M]):
     """One tracked request: the message, when it was last sent (None: not yet), how often."""
@@ -30,6 +32,7 @@ class Pending(Generic[M]):
     tries: int = 0
 
 
+@persistent("core.RequestTracker")
 class RequestTracker(Generic[M]):
     """Requests awaiting an answer, in the order they were added."""
 

@@ -146,3 +146,17 @@ class LinkStats(Event):
     enabled: bool
     muted: bool
 
+
+
+def _register() -> None:
+    """Events not yet taken by the application are saved with the node (coex_core.state)."""
+    import dataclasses
+
+    from ..state import persistent
+
+    for obj in list(globals().values()):
+        if isinstance(obj, type) and obj.__module__ == __name__ and dataclasses.is_dataclass(obj):
+            persistent("event." + obj.__name__)(obj)
+
+
+_register()

@@ -15,6 +15,7 @@ from ..messages import (
     Message,
 )
 from ..modality import ModalitySender
+from ..state import persistent
 from ..wire import header_size
 from .events import Event
 from .queue import StreamConfig, StreamQueue
@@ -51,6 +52,7 @@ def default_streams() -> list[StreamConfig]:
     ]
 
 
+@persistent("channel.LinkConfig")
 @dataclass(frozen=True)
 class LinkConfig:
     """One modem link: its safe schedule, frame layout and policies.
@@ -133,12 +135,14 @@ class Transmission:
     schedule: int = 0
 
 
+@persistent("channel.PendingSchedule")
 @dataclass
 class _PendingSchedule:
     schedule: Schedule  # with epoch/first_cycle set to its activation
     command_id: int
 
 
+@persistent("channel.Link")
 @dataclass
 class _Link:
     cfg: LinkConfig
@@ -169,6 +173,7 @@ class _Link:
         return self.cfg.ack_timeout if self.cfg.ack_timeout is not None else self.current.cycle
 
 
+@persistent("channel.Stream", transient=("sender",))  # the node links its sender again
 @dataclass
 class _Stream:
     queue: StreamQueue

@@ -16,11 +16,11 @@ tracking commands), :mod:`.settings` (operator settings); the API is this class'
 from __future__ import annotations
 
 from collections.abc import Callable, Iterable, Sequence
-from typing import Any
 
 from ..auth import CommandSigner, CommandVerifier, is_command
 from ..errors import ConfigError
 from ..messages import Message
+from ..state import persistent
 from .events import Event
 from .links import (
     CONTROL_STREAM,
@@ -29,7 +29,6 @@ from .links import (
     LinkConfig,
     Transmission,
     _Link,
-    _PendingSchedule,  # noqa: F401  (old pickled snapshots name it here)
     _Stream,
     default_streams,
 )
@@ -47,6 +46,8 @@ __all__ = [
 ]
 
 
+#: the clock, the command test and the key holders come from the node it is restored into
+@persistent("channel.ChannelManager", transient=("clock", "is_command", "signer", "verifier"))
 class ChannelManager(SettingsMixin):
     """Queues, packing, TDMA and links of one node (vehicle or topside).
 
@@ -118,13 +119,6 @@ class ChannelManager(SettingsMixin):
         self.stats: dict[str, int] = {"packets": 0, "frames": 0, "used_bytes": 0, "capacity": 0,
                                       "acked": 0, "resent": 0, "sender_failures": 0,
                                       "signed": 0, "stale_acks": 0}
-
-    def __getstate__(self) -> dict[str, Any]:
-        """Everything but the ``clock`` callable (the state can be pickled; the restorer
-        attaches a clock again)."""
-        state = dict(self.__dict__)
-        state["clock"] = None
-        return state
 
     # ============================================================================ events
     def events(self) -> list[Event]:

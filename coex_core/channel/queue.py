@@ -8,6 +8,7 @@ from typing import Any
 
 from ..errors import ConfigError
 from ..messages import Message
+from ..state import persistent
 
 __all__ = ["DEFAULT_TTL", "Entry", "StreamConfig", "StreamQueue"]
 
@@ -15,6 +16,7 @@ __all__ = ["DEFAULT_TTL", "Entry", "StreamConfig", "StreamQueue"]
 DEFAULT_TTL = 1800.0
 
 
+@persistent("channel.StreamConfig")
 @dataclass(frozen=True)
 class StreamConfig:
     """Settings of one stream (queue).
@@ -88,6 +90,7 @@ class StreamConfig:
         return replace(self, **changes)
 
 
+@persistent("channel.Entry")
 @dataclass
 class Entry:
     """A queued message and its bookkeeping."""
@@ -109,6 +112,7 @@ class Entry:
     failed_links: set[int] = field(default_factory=set)
 
 
+@persistent("channel.StreamQueue")
 class StreamQueue:
     """One stream's queue and its counters."""
 

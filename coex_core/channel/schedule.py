@@ -9,6 +9,7 @@ from typing import Any
 
 from ..errors import ConfigError
 from ..messages import ScheduleUpdate, Slot
+from ..state import persistent
 
 __all__ = ["CYCLE_MODULUS", "Schedule", "SlotWindow", "TdmaSlot", "resolve_cycle"]
 
@@ -16,6 +17,7 @@ __all__ = ["CYCLE_MODULUS", "Schedule", "SlotWindow", "TdmaSlot", "resolve_cycle
 CYCLE_MODULUS = 1 << 16
 
 
+@persistent("channel.TdmaSlot")
 @dataclass(frozen=True)
 class TdmaSlot:
     """One slot: ``owner`` transmits in it; nothing may start later than ``guard`` seconds before
@@ -57,6 +59,7 @@ class SlotWindow:
     end: float
 
 
+@persistent("channel.Schedule")
 @dataclass(frozen=True)
 class Schedule:
     """A TDMA cycle: ``slots`` in order, repeating from ``epoch``, which is the start of cycle

@@ -48,6 +48,7 @@ import numpy as np
 import numpy.typing as npt
 
 from coex_core.errors import CoexError
+from coex_core.state import persistent
 
 __all__ = ["InputError", "QuadtreeMap", "LevelBlock"]
 
@@ -64,6 +65,7 @@ class InputError(CoexError, ValueError):
     """Sensor input that cannot be ingested (wrong shape or type, unreadable file)."""
 
 
+@persistent("bathymetry.LevelBlock")
 @dataclass(frozen=True)
 class LevelBlock:
     """Statistics of one subgrid-sized block at one level (row 0 = south, column 0 = west)."""
@@ -74,6 +76,7 @@ class LevelBlock:
     updated: float
 
 
+@persistent("bathymetry.QuadtreeMap")
 class QuadtreeMap:
     """A 2.5-D seafloor map: mean elevation per cell at ``resolution`` metres (level 0) and at every
     coarser level up to ``levels - 1`` (cell size ``resolution * 2**level``).

@@ -14,6 +14,7 @@ from coex_core.config import merged_config
 from coex_core.errors import ConfigError, RequestRejected
 from coex_core.messages import MapMetadata, MapRoiReply, MapRoiRequest, Message, Subgrid
 from coex_core.modality import ModalityReceiver, Product
+from coex_core.state import persistent
 from coex_core.timefmt import to_stamp, unwrap
 
 from ._subgrid import decode_subgrid
@@ -41,6 +42,7 @@ ROI_CHUNK = 8
 GAP_CHUNK = 16
 
 
+@persistent("bathymetry.Region")
 @dataclass
 class Region:
     """An active region request: re-sent (with fresh stamps) until the vehicle answers "nothing newer"."""
@@ -58,6 +60,7 @@ class Region:
     done: bool = False
 
 
+@persistent("bathymetry.Held")
 @dataclass
 class _Held:
     stamp: float
@@ -65,6 +68,7 @@ class _Held:
     received: float
 
 
+@persistent("bathymetry.Mosaic")
 @dataclass
 class _Mosaic:
     """One level assembled from subgrids, grown by doubling as subgrids arrive."""
@@ -109,6 +113,7 @@ class _Mosaic:
         self.array[r:r + s, c:c + s] = values
 
 
+@persistent("bathymetry.Receiver")
 class BathymetryReceiver(ModalityReceiver):
     """Assembles every level as subgrids arrive and keeps, per subgrid, its stamp and arrival time.
 

@@ -15,6 +15,7 @@ from coex_core.config import merged_config
 from coex_core.errors import ConfigError, RequestRejected
 from coex_core.messages import MapMetadata, MapRoiReply, MapRoiRequest, Message, Subgrid
 from coex_core.modality import ModalitySender
+from coex_core.state import persistent
 from coex_core.timefmt import to_stamp, unwrap
 from coex_core.wire import SUBGRID_RESOLUTIONS as RESOLUTIONS
 from coex_core.wire import SUBGRID_VERTICAL_RESOLUTIONS as VERTICAL_RESOLUTIONS
@@ -60,6 +61,7 @@ STALE_REQUEST_IDS = 32
 MAX_REGIONS_REMEMBERED = 1024
 
 
+@persistent("bathymetry.Sender")
 class BathymetrySender(ModalitySender):
     """Ingests soundings into a :class:`QuadtreeMap` and answers ``fill(max_bytes, now)``.
 
@@ -122,6 +124,13 @@ class BathymetrySender(ModalitySender):
             self.map.add_points(pointcloud2_xyz(data), now)
             return
         raise InputError(f"cannot ingest {type(data).__name__}: give an N x 3 array or a PointCloud2 message")
+
+    def journal_form(self, data: Any) -> Any:
+        """A PointCloud2 message is journaled as its N x 3 array of points."""
+        if not isinstance(data, np.ndarray | list | tuple) and all(
+                hasattr(data, a) for a in ("fields", "data", "point_step", "width", "height")):
+            return pointcloud2_xyz(data)
+        return data
 
     # ------------------------------------------------------------------------ subgrids
 
@@ -327,11 +336,6 @@ class BathymetrySender(ModalitySender):
         self._last_request: dict[tuple[int, int, int, int, int, bool], tuple[int, float]] = {}
         #: requests ignored because a newer one for the same region had been handled
         self.stale_requests = 0
-
-    def __setstate__(self, state: dict[str, Any]) -> None:
-        self.__dict__.update(state)
-        if "_gap_queued" not in state:  # saved by an older version
-            self._init_requests()
 
     def _unqueue(self, keys: set[Key]) -> None:
         self._queued -= keys

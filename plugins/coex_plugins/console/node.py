@@ -118,18 +118,6 @@ class TapReceiver(ModalityReceiver):
             raise AttributeError(name)
         return getattr(self.inner, name)
 
-    def __getstate__(self) -> dict[str, Any]:
-        """The wrapped receiver only: the console hook is attached again after a restore."""
-        return {"inner": self.inner}
-
-    def __setstate__(self, state: dict[str, Any]) -> None:
-        self.inner = state["inner"]
-        self.on_message = _ignore
-
-
-def _ignore(message: Message, now: float) -> None:
-    return None
-
 
 def hub_hook(hub: Any) -> Callable[[Message, float], Any]:
     """What a :class:`TapReceiver` calls to show ``hub`` (a ConsoleHub, or a bare

@@ -28,6 +28,7 @@ import numpy.typing as npt
 
 from coex_core import messages as m
 from coex_core.errors import RequestRejected
+from coex_core.state import persistent
 from coex_core.timefmt import to_stamp, unwrap
 
 __all__ = [
@@ -119,6 +120,7 @@ def _num(x: float | None, nd: int = 3) -> float | None:
 # ---------------------------------------------------------------------------- map model
 
 
+@persistent("console.Tile")
 @dataclass
 class _Tile:
     stamp: int
@@ -127,6 +129,7 @@ class _Tile:
     z: FloatArray
 
 
+@persistent("console.Level")
 @dataclass
 class _Level:
     level: int
@@ -141,6 +144,7 @@ class _Level:
     raw: bool = False
 
 
+@persistent("console.RoiRequest")
 @dataclass
 class _RoiRequest:
     request_id: int
@@ -159,6 +163,7 @@ class _RoiRequest:
     region: Any = None
 
 
+@persistent("console.Image")
 @dataclass
 class _Image:
     image_id: int
@@ -189,6 +194,7 @@ class _Image:
         return self.bytes_received != before
 
 
+@persistent("console.Command")
 @dataclass
 class _Command:
     command_id: int
@@ -201,6 +207,7 @@ class _Command:
     roi_key: int | None = None
 
 
+@persistent("console.State", transient=("_region_ids",))
 class ConsoleState:
     """Everything the console shows, built from messages, products and events.
 
@@ -271,15 +278,9 @@ class ConsoleState:
         self._foreign_acks: dict[int, tuple[str, float]] = {}
         self.log: deque[dict[str, Any]] = deque(maxlen=max_log)
 
-    def __getstate__(self) -> dict[str, Any]:
-        """Picklable (a topside store saves the console with its node); object ids are not."""
-        state = dict(self.__dict__)
-        del state["_region_ids"]
-        return state
-
-    def __setstate__(self, state: dict[str, Any]) -> None:
-        self.__dict__.update(state)
-        # the regions recorded are the ones held (for good) by the requests in ``roi``
+    def _after_restore(self) -> None:
+        """A topside store saves the console with its node (:mod:`coex_core.state`); object
+        ids are not state: the regions recorded are the ones the requests in ``roi`` hold."""
         self._region_ids = {id(r.region) for r in self.roi.values() if r.region is not None}
 
     # -------------------------------------------------------------------- bookkeeping

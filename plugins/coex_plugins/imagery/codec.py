@@ -28,6 +28,7 @@ import numpy as np
 import numpy.typing as npt
 
 from coex_core.errors import ConfigError, DecodeError
+from coex_core.state import persistent
 
 __all__ = [
     "CodingParams",
@@ -61,6 +62,7 @@ _SOD = b"\xff\x93"
 _EOC = b"\xff\xd9"
 
 
+@persistent("imagery.CodingParams")
 @dataclass(frozen=True)
 class CodingParams:
     """How the vehicle encodes images (all configurable; defaults measured, see ``docs/imagery.md``).
@@ -124,6 +126,7 @@ def params_code(progression: str, resolutions: int, layers: int, irreversible: b
     return (p << 10) | ((resolutions - 1) << 7) | ((layers - 1) << 2) | (int(irreversible) << 1) | int(colour)
 
 
+@persistent("imagery.StreamParams")
 @dataclass(frozen=True)
 class StreamParams:
     """Decoded ``params`` code."""
@@ -206,6 +209,7 @@ def _reduce(img: npt.NDArray[np.uint8], max_size: int) -> npt.NDArray[np.uint8]:
     return _u8(np.clip(np.rint(a.reshape(shape).mean(axis=(1, 3))), 0, 255))
 
 
+@persistent("imagery.Encoded")
 @dataclass(frozen=True)
 class Encoded:
     """An encoded image: its body (packet data) and where each packet starts in it."""

@@ -6,12 +6,14 @@ import math
 from dataclasses import dataclass
 
 from coex_core.errors import ConfigError
+from coex_core.state import persistent
 
 from .codec import Encoded
 
 __all__ = ["Goal", "parse_goal"]
 
 
+@persistent("imagery.Goal")
 @dataclass(frozen=True)
 class Goal:
     """``kind`` is ``"none"``, ``"bytes"``, ``"fraction"`` (value in percent), ``"layer"`` or ``"full"``."""

@@ -33,6 +33,7 @@ from coex_core.messages import (
 )
 from coex_core.modality import ModalityReceiver, Product
 from coex_core.requests import RequestTracker
+from coex_core.state import persistent
 from coex_core.timefmt import to_stamp, unwrap
 
 from .codec import StreamParams, decode_packets, packet_order, parse_params
@@ -44,6 +45,7 @@ MAX_ACK_RANGES = 15
 REUSE_WINDOW = 16
 
 
+@persistent("imagery.Rx")
 class _Rx:
     def __init__(self, ann: ImageAnnounce, sp: StreamParams, now: float) -> None:
         self.ann = ann
@@ -110,6 +112,7 @@ RECEIVER_DEFAULTS: dict[str, Any] = {"max_images": 256, "max_early": 256, "ack_l
                                      "out_dir": None}
 
 
+@persistent("imagery.Receiver", transient=("listeners",))
 class ImageryReceiver(ModalityReceiver):
     """Topside side. Configuration keys (all optional): ``max_images`` (256), ``max_early``
     (256), ``ack_limit`` (acks per poll, 4), ``retry`` (seconds between request retries, 60),
@@ -141,8 +144,13 @@ class ImageryReceiver(ModalityReceiver):
         self.progress: TransferProgress | None = None
         self._progress_version = 0
         self.rejected_fragments = 0
+        self.out_dir = cfg.get("out_dir")
+        self._after_restore()
+
+    def _after_restore(self) -> None:
+        """The listeners (not saved state): the image writer of ``out_dir``."""
         self.listeners: list[Callable[[Product], None]] = []
-        out_dir = cfg.get("out_dir")
+        out_dir = self.out_dir
         if out_dir:
             from .output import ImageWriter
 

@@ -40,6 +40,7 @@ from coex_core.messages import (
     TransferProgress,
 )
 from coex_core.modality import ModalitySender
+from coex_core.state import persistent
 from coex_core.timefmt import to_stamp, unwrap
 from coex_core.wire import encoded_size
 
@@ -56,6 +57,7 @@ MAX_NEXT = 8
 _FRAG_FIXED_BITS = 10 + 20 + 10 + 5
 
 
+@persistent("imagery.ImageInput")
 @dataclass(frozen=True)
 class ImageInput:
     """An image to ingest with its capture time (default: ``now``) and position (metres, local)."""
@@ -72,6 +74,7 @@ def fragment_size(n_marks: int, n_data: int) -> int:
     return 1 + (1 if body < 128 else 2) + body
 
 
+@persistent("imagery.Tx")
 class _Tx:
     __slots__ = (
         "acked",
@@ -128,6 +131,7 @@ SENDER_DEFAULTS: dict[str, Any] = {**dict.fromkeys(CODING_KEYS), "default_goal":
                                    "min_fragment": 16}
 
 
+@persistent("imagery.Sender")
 class ImagerySender(ModalitySender):
     """Subsea side. Configuration keys (all optional):
 

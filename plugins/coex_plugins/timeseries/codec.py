@@ -39,6 +39,7 @@ import numpy as np
 import pywt
 
 from coex_core.messages import Wavelet
+from coex_core.state import persistent
 
 __all__ = [
     "CODE_BIAS",
@@ -105,6 +106,7 @@ def ceil_code(value: float) -> int:
     return int(min(max(c, 0), 255))
 
 
+@persistent("timeseries.Layout")
 @dataclass(frozen=True)
 class Layout:
     """Coefficient layout of a block: decomposition level, band lengths, flat size."""
@@ -167,6 +169,7 @@ def noise_sigma(x: np.ndarray, wavelet: Wavelet) -> float:
 # -------------------------------------------------------------------------- passes
 
 
+@persistent("timeseries.Pass")
 @dataclass(frozen=True)
 class Pass:
     """One refinement pass of a block: step code, integer codes, achieved error bound code.

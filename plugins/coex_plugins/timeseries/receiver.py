@@ -26,6 +26,7 @@ from coex_core.messages import (
 )
 from coex_core.modality import ModalityReceiver, Product
 from coex_core.requests import RequestTracker
+from coex_core.state import persistent
 from coex_core.timefmt import to_stamp, unwrap
 
 from . import codec
@@ -36,6 +37,7 @@ log = logging.getLogger(__name__)
 MAX_ACK_PARTS = 40
 
 
+@persistent("timeseries.Series")
 @dataclass(frozen=True)
 class Series:
     """A channel's reconstruction: sample times, values and the error bound of each value
@@ -53,6 +55,7 @@ class Series:
         return float(self.bounds.max()) if self.bounds.size else math.inf
 
 
+@persistent("timeseries.Part")
 @dataclass
 class _Part:
     end: int
@@ -62,6 +65,7 @@ class _Part:
     samples: bool
 
 
+@persistent("timeseries.RBlock")
 @dataclass
 class _RBlock:
     start: float
@@ -118,6 +122,7 @@ class _RBlock:
         return math.inf if r is None else r[1]
 
 
+@persistent("timeseries.RChannel")
 @dataclass
 class _RChannel:
     cid: int
@@ -136,6 +141,7 @@ class _RChannel:
 RECEIVER_DEFAULTS: dict[str, Any] = {"request_retry": 120.0, "request_tries": 10}
 
 
+@persistent("timeseries.Receiver")
 class TimeSeriesReceiver(ModalityReceiver):
     """Takes channel registrations and chunks, acks them, tracks requests, reconstructs.
 

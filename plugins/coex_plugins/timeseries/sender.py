@@ -20,6 +20,7 @@ from coex_core.messages import (
     TimeSeriesRequest,
 )
 from coex_core.modality import ModalitySender
+from coex_core.state import persistent
 from coex_core.timefmt import STAMP_MODULUS, unwrap
 
 from . import codec
@@ -38,6 +39,7 @@ class InvalidSamples(CoexError, ValueError):
     """Sensor samples that cannot be ingested (unknown channel, bad times, out of range)."""
 
 
+@persistent("timeseries.Samples")
 @dataclass(frozen=True)
 class Samples:
     """Samples of one channel: ``times`` (absolute seconds, non-decreasing) and ``values``
@@ -48,6 +50,7 @@ class Samples:
     values: Any
 
 
+@persistent("timeseries.ChannelConfig")
 @dataclass(frozen=True)
 class ChannelConfig:
     """A channel's registration and coding settings."""
@@ -84,6 +87,7 @@ class ChannelConfig:
         return cfg
 
 
+@persistent("timeseries.Chunk")
 @dataclass
 class _Chunk:
     message: TimeSeriesChunk
@@ -96,6 +100,7 @@ class _Chunk:
     acked: bool = False
 
 
+@persistent("timeseries.Block")
 @dataclass
 class _Block:
     start: float  # absolute time of sample 0 (on a 0.01 s grid)
@@ -119,6 +124,7 @@ class _Block:
         return codec.code_value(self.passes[-1].error) if self.passes else math.inf
 
 
+@persistent("timeseries.Channel")
 @dataclass
 class _Channel:
     cid: int
@@ -152,6 +158,7 @@ SENDER_OPTIONS: dict[str, Any] = dict.fromkeys((
     "retry_after", "spike_close"))
 
 
+@persistent("timeseries.Sender")
 class TimeSeriesSender(ModalitySender):
     """Blocks samples per channel, codes each block progressively and serves the link.
 

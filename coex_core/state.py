@@ -1,0 +1,302 @@
+"""Explicit, versioned state of nodes, channel managers, senders and receivers (never pickle).
+
+What a node holds (queues, acks, maps, images, series, requests) is saved by walking its objects
+and writing only what this module knows how to write:
+
+* ``None``, ``bool``, ``int``, ``float`` (NaN and infinities too), ``str``;
+* ``list``, ``tuple``, ``dict`` (any such keys), ``set``, ``frozenset``, ``OrderedDict``,
+  ``deque``;
+* ``bytes`` / ``bytearray`` and numpy arrays (kept apart, in the container's array part);
+  numpy scalars;
+* the wire format's messages and their parts (``coex_core.messages``), by message type name;
+* objects of classes **registered** with :func:`persistent` under a stable name (a plugin's
+  own state classes: ``"bathymetry.Region"``), with a version, and the attributes that are not
+  state (callbacks, clocks: ``transient``), which the class's ``_after_restore()`` rebuilds.
+
+Anything else is a :class:`StateError` naming the type and where it was found: nothing is saved
+by accident, and renaming or moving a module does not break a saved dive (names are stable,
+not module paths). An object reached twice is saved once and restored as one object (the
+console and a node share a receiver).
+
+The container (:func:`dumps` / :func:`loads`): ``b"COEXSTATE\\n"``, a 4-byte big-endian length,
+that many bytes of UTF-8 JSON ``{"format": "coex-state", "version": 1, "classes": {name:
+version}, "root": ...}``, then a compressed numpy ``.npz`` archive (read with ``allow_pickle=False``) of the arrays
+and byte strings the JSON refers to by index (``{"$a": i}``, ``{"$b": i}``). The tagged JSON
+forms are listed in ``docs/persistence.md``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import enum
+import io
+import json
+import math
+import struct
+from collections import OrderedDict, deque
+from collections.abc import Callable
+from typing import Any, TypeVar
+
+import numpy as np
+
+from . import messages as _messages
+from .errors import CoexError
+
+__all__ = ["FORMAT", "VERSION", "StateError", "dumps", "loads", "persistent", "registered"]
+
+FORMAT = "coex-state"
+VERSION = 1
+MAGIC = b"COEXSTATE\n"
+
+
+class StateError(CoexError, ValueError):
+    """A state that cannot be saved (an unknown type) or loaded (corrupt, unknown class, newer
+    class version)."""
+
+
+@dataclasses.dataclass(frozen=True)
+class _Class:
+    name: str
+    cls: type
+    version: int
+    transient: frozenset[str]
+    upgrade: Callable[[dict[str, Any], int], dict[str, Any]] | None
+
+
+_BY_NAME: dict[str, _Class] = {}
+_BY_CLASS: dict[type, _Class] = {}
+
+T = TypeVar("T", bound=type)
+
+
+def persistent(name: str, *, version: int = 1, transient: tuple[str, ...] = (),
+               upgrade: Callable[[dict[str, Any], int], dict[str, Any]] | None = None
+               ) -> Callable[[T], T]:
+    """Class decorator: objects of the class may be saved, under ``name`` (stable across module
+    moves) and ``version``. ``transient`` attributes are not saved (restored as absent; the
+    class's ``_after_restore()`` sets them), nor those a base class lists in its
+    ``_state_transient`` class attribute. ``upgrade(fields, saved_version)`` turns the fields
+    saved by an older version into this version's (without it, an older version loads as is,
+    and a newer one is refused)."""
+
+    def deco(cls: T) -> T:
+        old = _BY_NAME.get(name)
+        if old is not None and old.cls.__qualname__ != cls.__qualname__:
+            raise StateError(f"state name {name!r} is taken by {old.cls.__qualname__}")
+        inherited = {t for k in cls.__mro__ for t in getattr(k, "_state_transient", ())}
+        entry = _Class(name, cls, int(version), frozenset(transient) | inherited, upgrade)
+        _BY_NAME[name] = entry
+        _BY_CLASS[cls] = entry
+        return cls
+
+    return deco
+
+
+def registered() -> dict[str, int]:
+    """Every registered state class name and its version."""
+    return {n: c.version for n, c in sorted(_BY_NAME.items())}
+
+
+def _register_messages() -> None:
+    """The wire format's messages, their parts and enums, by class name ("msg.Subgrid")."""
+    for obj in vars(_messages).values():
+        if not isinstance(obj, type) or obj.__module__ != _messages.__name__:
+            continue
+        if dataclasses.is_dataclass(obj) or issubclass(obj, enum.Enum):
+            persistent("msg." + obj.__name__)(obj)
+
+
+_register_messages()
+
+
+# --------------------------------------------------------------------------------- encode
+
+class _Writer:
+    def __init__(self) -> None:
+        self.blobs: list[np.ndarray] = []
+        self.memo: dict[int, int] = {}
+        self.keep: list[Any] = []  # objects whose id() is in memo stay alive while writing
+        self.used: dict[str, int] = {}
+
+    def blob(self, arr: np.ndarray) -> int:
+        self.blobs.append(arr)
+        return len(self.blobs) - 1
+
+    def enc(self, x: Any, path: str) -> Any:
+        if x is None or isinstance(x, bool | str):
+            return x
+        if isinstance(x, enum.Enum):
+            c = self._cls(x, path)
+            return {"$e": c.name, "v": x.value}
+        if isinstance(x, int) and type(x) is int:
+            return x
+        if isinstance(x, float) and type(x) is float:
+            return x if math.isfinite(x) else {"$f": repr(x)}
+        if isinstance(x, np.ndarray):
+            if x.dtype == object:
+                raise StateError(f"{path}: numpy array of Python objects")
+            return {"$a": self.blob(np.ascontiguousarray(x))}
+        if isinstance(x, np.generic):
+            return {"$n": x.dtype.str, "v": self.enc(x.item(), path)}
+        if isinstance(x, bytes | bytearray):
+            tag = "$b" if isinstance(x, bytes) else "$ba"
+            return {tag: self.blob(np.frombuffer(bytes(x), np.uint8))}
+        if isinstance(x, list) and type(x) is list:
+            return [self.enc(v, f"{path}[{i}]") for i, v in enumerate(x)]
+        if type(x) is tuple:
+            return {"$t": [self.enc(v, f"{path}[{i}]") for i, v in enumerate(x)]}
+        if type(x) in (set, frozenset):
+            items = [self.enc(v, f"{path}{{}}") for v in x]
+            return {"$s" if type(x) is set else "$fs": items}
+        if type(x) is deque:
+            return {"$q": [self.enc(v, f"{path}[{i}]") for i, v in enumerate(x)], "max": x.maxlen}
+        if type(x) in (dict, OrderedDict):
+            items = [[self.enc(k, f"{path}.key"), self.enc(v, f"{path}[{k!r}]")]
+                     for k, v in x.items()]
+            return {"$d" if type(x) is dict else "$od": items}
+        return self._object(x, path)
+
+    def _cls(self, x: Any, path: str) -> _Class:
+        c = _BY_CLASS.get(type(x))
+        if c is None:
+            raise StateError(f"{path}: a {type(x).__module__}.{type(x).__qualname__} is not "
+                             "registered state (coex_core.state.persistent)")
+        self.used[c.name] = c.version
+        return c
+
+    def _object(self, x: Any, path: str) -> Any:
+        c = self._cls(x, path)
+        ref = self.memo.get(id(x))
+        if ref is not None:
+            return {"$r": ref}
+        ref = self.memo[id(x)] = len(self.memo)
+        self.keep.append(x)
+        fields = _fields(x)
+        out = {k: self.enc(v, f"{path}.{k}") for k, v in fields.items() if k not in c.transient}
+        return {"$o": c.name, "id": ref, "f": out}
+
+
+def _fields(x: Any) -> dict[str, Any]:
+    out: dict[str, Any] = dict(getattr(x, "__dict__", {}))
+    for cls in type(x).__mro__:
+        for slot in getattr(cls, "__slots__", ()):
+            if slot not in ("__dict__", "__weakref__") and hasattr(x, slot):
+                out[slot] = getattr(x, slot)
+    return out
+
+
+def dumps(root: Any) -> bytes:
+    """The container bytes of ``root`` (see the module docstring); :class:`StateError` names
+    the first thing that is not state."""
+    w = _Writer()
+    doc = {"format": FORMAT, "version": VERSION, "root": w.enc(root, "root")}
+    doc["classes"] = dict(sorted(w.used.items()))
+    text = json.dumps(doc, separators=(",", ":"), allow_nan=False).encode()
+    buf = io.BytesIO()
+    arrays: dict[str, Any] = {f"b{i}": b for i, b in enumerate(w.blobs)}
+    np.savez_compressed(buf, **arrays)
+    return MAGIC + struct.pack(">I", len(text)) + text + buf.getvalue()
+
+
+# --------------------------------------------------------------------------------- decode
+
+class _Reader:
+    def __init__(self, blobs: Any, versions: dict[str, int]) -> None:
+        self.blobs = blobs
+        self.versions = versions
+        self.memo: dict[int, Any] = {}
+        self.restored: list[Any] = []
+
+    def dec(self, x: Any) -> Any:
+        if x is None or isinstance(x, bool | int | float | str):
+            return x
+        if isinstance(x, list):
+            return [self.dec(v) for v in x]
+        if not isinstance(x, dict) or len(x) == 0:
+            raise StateError(f"malformed state value {x!r:.60}")
+        tag = next(iter(x))
+        v = x[tag]
+        if tag == "$f":
+            return float(v)
+        if tag == "$a":
+            return np.array(self.blobs[f"b{int(v)}"])
+        if tag == "$b":
+            return self.blobs[f"b{int(v)}"].tobytes()
+        if tag == "$ba":
+            return bytearray(self.blobs[f"b{int(v)}"].tobytes())
+        if tag == "$n":
+            return np.dtype(v).type(self.dec(x["v"]))
+        if tag == "$t":
+            return tuple(self.dec(i) for i in v)
+        if tag == "$s":
+            return {self.dec(i) for i in v}
+        if tag == "$fs":
+            return frozenset(self.dec(i) for i in v)
+        if tag == "$q":
+            return deque((self.dec(i) for i in v), maxlen=x.get("max"))
+        if tag == "$d":
+            return {self.dec(k): self.dec(i) for k, i in v}
+        if tag == "$od":
+            return OrderedDict((self.dec(k), self.dec(i)) for k, i in v)
+        if tag == "$e":
+            return self._class(v).cls(x["v"])
+        if tag == "$r":
+            try:
+                return self.memo[int(v)]
+            except KeyError:
+                raise StateError(f"state refers to object {v} before it is defined") from None
+        if tag == "$o":
+            return self._object(x)
+        raise StateError(f"unknown state tag {tag!r}")
+
+    def _class(self, name: str) -> _Class:
+        c = _BY_NAME.get(name)
+        if c is None:
+            raise StateError(f"the state holds a {name!r}, which this installation does not "
+                             "know (a plugin missing?)")
+        return c
+
+    def _object(self, x: dict[str, Any]) -> Any:
+        c = self._class(x["$o"])
+        saved = int(self.versions.get(c.name, c.version))
+        if saved > c.version:
+            raise StateError(f"{c.name} was saved by a newer version ({saved} > {c.version})")
+        obj: Any = object.__new__(c.cls)
+        self.memo[int(x["id"])] = obj
+        fields = {k: self.dec(v) for k, v in x["f"].items()}
+        if saved < c.version and c.upgrade is not None:
+            fields = c.upgrade(fields, saved)
+        for k, v in fields.items():
+            object.__setattr__(obj, k, v)
+        self.restored.append(obj)
+        return obj
+
+
+def loads(data: bytes) -> Any:
+    """The object :func:`dumps` wrote. Each restored object with an ``_after_restore()``
+    method has it called once everything is restored (in the order restored)."""
+    if not data.startswith(MAGIC) or len(data) < len(MAGIC) + 4:
+        raise StateError("not a CoEx state (no COEXSTATE header)")
+    (n,) = struct.unpack(">I", data[len(MAGIC):len(MAGIC) + 4])
+    start = len(MAGIC) + 4
+    try:
+        doc = json.loads(data[start:start + n].decode())
+        blobs = np.load(io.BytesIO(data[start + n:]), allow_pickle=False)
+    except (ValueError, OSError, UnicodeDecodeError) as exc:
+        raise StateError(f"corrupt CoEx state: {exc}") from exc
+    if doc.get("format") != FORMAT:
+        raise StateError(f"not a {FORMAT} document")
+    if int(doc.get("version", 0)) > VERSION:
+        raise StateError(f"state container version {doc['version']} is newer than {VERSION}")
+    reader = _Reader(blobs, {str(k): int(v) for k, v in doc.get("classes", {}).items()})
+    try:
+        root = reader.dec(doc["root"])
+    except (KeyError, TypeError, ValueError) as exc:
+        if isinstance(exc, StateError):
+            raise
+        raise StateError(f"corrupt CoEx state: {exc}") from exc
+    for obj in reader.restored:
+        hook = getattr(obj, "_after_restore", None)
+        if callable(hook):
+            hook()
+    return root
