@@ -22,7 +22,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import pickle
 import resource
 import sys
 import time
@@ -159,14 +158,14 @@ def k_photos(parts: dict[str, Any]) -> int:
 
 
 def held(parts: dict[str, Any]) -> dict[str, float]:
-    """What the nodes hold: their whole sans-I/O state as a store would save it (pickled size),
+    """What the nodes hold: their whole sans-I/O state as a store would save it (its saved state: Node.export_state),
     images kept on each side, and series samples kept topside (bounded by the modalities'
     documented limits, or by the dive itself for the series)."""
     ts = parts["ts_rx"]
     series = sum(b.count for ch in ts._channels.values() for b in ch.blocks.values())
     return {
-        "vehicle_state_mb": round(len(pickle.dumps(parts["vehicle"], protocol=5)) / 2**20, 2),
-        "topside_state_mb": round(len(pickle.dumps(parts["topside"], protocol=5)) / 2**20, 2),
+        "vehicle_state_mb": round(len(parts["vehicle"].export_state()) / 2**20, 2),
+        "topside_state_mb": round(len(parts["topside"].export_state()) / 2**20, 2),
         "images_vehicle": float(len(parts["images"].images)),
         "images_topside": float(len(parts["image_rx"].images)),
         "series_samples_topside": float(series),

@@ -57,6 +57,7 @@ from coex_core.modality import Modality, ModalityReceiver, ModalitySender, Produ
 from coex_core.node import Node
 from coex_core.registry import available, load_modality, load_transport, open_transport
 from coex_core.requests import RequestTracker
+from coex_core.state import StateError, persistent
 from coex_core.transport import Transport
 from coex_transports.runner import RealClock, Runner, SimNetwork, SimulatedClock
 from coex_transports.store import NodeStore
@@ -106,6 +107,7 @@ __all__ = [
     "Schedule",
     "SimNetwork",
     "SimulatedClock",
+    "StateError",
     "StreamConfig",
     "TdmaSlot",
     "Transmission",
@@ -120,5 +122,6 @@ __all__ = [
     "merged_config",
     "messages",
     "open_transport",
+    "persistent",
     "wire",
 ]

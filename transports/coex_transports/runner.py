@@ -253,6 +253,7 @@ class Runner:
             now = self.clock.time()
             sender = self.node.sender(name)
             if self.store is not None:
+                data = sender.journal_form(data)
                 self.store.record_input(name, data, now)
             sender.ingest(data, now)
 

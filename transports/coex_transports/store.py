@@ -4,40 +4,42 @@ killed (``kill -9``) and restarted, and transfers resume where they were.
 The core is sans-I/O, so the store lives here, next to the runner. One SQLite file per node:
 
 * ``journal``: every frame the node **received** (``rx``: link, time, bytes) and every input a
-  sender **captured** (``input``: modality name, time, the pickled data), and every frame it
-  **sent** (``tx``, for the record), each committed before the node sees it;
+  sender **captured** (``input``: modality name, time, the data in :mod:`coex_core.state`
+  form), and every frame it **sent** (``tx``, for the record), each committed before the node
+  sees it;
 * ``snapshot``: the whole sans-I/O state of the node (channel manager with its queues, pending
   acks, sequence numbers, command ids and authentication counters, operator settings; every
-  modality sender and receiver with what it has captured, sent, acked and built), pickled, with
-  the id of the last journal row it includes. It is written in one transaction before every
-  transmission leaves (so a restarted node knows what it already sent) and after received
-  frames, at most every ``snapshot_interval`` seconds.
+  modality sender and receiver with what it has captured, sent, acked and built) as
+  :meth:`Node.export_state <coex_core.node.Node.export_state>` writes it (explicit, versioned
+  state: never pickle), with the id of the last journal row it includes. It is written in one
+  transaction before every transmission leaves (so a restarted node knows what it already sent)
+  and after received frames, at most every ``snapshot_interval`` seconds; the journal rows it
+  includes are deleted in the same transaction.
 
-:meth:`NodeStore.restore` loads the snapshot (or builds a fresh node) and replays the journal rows
-written after it, in order: received frames go through ``Node.receive`` again and inputs through
-the sender's ``ingest``, so the node is exactly where it was when it died, minus nothing.
-SQLite in WAL mode with ``synchronous=NORMAL`` keeps every committed row across a process crash.
-
-The snapshot format is Python's pickle of CoEx's own objects: a file for this installation's
-own restarts, not an exchange format (exports are in ``docs/*.md``; the wire format in ``spec/``).
+:meth:`NodeStore.restore` builds the node (the application's ``build()``), loads the snapshot into
+it, and replays the journal rows written after it, in order: received frames go through
+``Node.receive`` again and inputs through the sender's ``ingest``, so the node is exactly where
+it was when it died, minus nothing. SQLite in WAL mode with ``synchronous=NORMAL`` keeps every
+committed row across a process crash.
 """
 
 from __future__ import annotations
 
-import pickle
 import sqlite3
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from coex_core import state
 from coex_core.errors import ConfigError
 from coex_core.node import Node
 
 __all__ = ["JournalRow", "NodeStore"]
 
-#: First item of every pickled snapshot: (format, node, extra).
-_FORMAT = "coex-node-snapshot-1"
+#: Stores written before the explicit state format held pickled snapshots, which this version
+#: refuses (it never unpickles).
+_PICKLE_PROTOCOL_5 = b"\x80\x05"
 
 _SCHEMA = """
 CREATE TABLE IF NOT EXISTS journal (
@@ -91,7 +93,7 @@ class NodeStore:
             raise ConfigError(f"cannot open the node store {self.path}: {exc}") from exc
         self._last_snapshot: float | None = None
         self._dirty = False
-        #: ``extra()`` is saved with every snapshot, in the same pickle as the node (objects
+        #: ``extra()`` is saved with every snapshot, in the same document as the node (objects
         #: shared with the node stay shared): an application's own state, e.g. the console's.
         self.extra: Callable[[], Any] | None = None
         #: What ``extra()`` returned at the snapshot :meth:`restore` loaded (None without one).
@@ -117,7 +119,7 @@ class NodeStore:
     def record_input(self, name: str, data: Any, t: float) -> int:
         """Journal an input of sender ``name`` (before the sender ingests it)."""
         self._dirty = True
-        return self._append("input", t, pickle.dumps(data, protocol=5), name=name)
+        return self._append("input", t, state.dumps(data), name=name)
 
     def journal(self, kind: str | None = None, after: int = 0) -> Iterator[JournalRow]:
         """Journal rows after id ``after`` (all kinds, or one), in order."""
@@ -141,12 +143,12 @@ class NodeStore:
     def snapshot(self, node: Node, t: float) -> None:
         """Save the node's whole state, consistent with the journal so far (one transaction)."""
         extra = self.extra() if self.extra is not None else None
-        state = pickle.dumps((_FORMAT, node, extra), protocol=5)
+        blob = node.export_state(extra)
         self.db.execute("BEGIN IMMEDIATE")
         try:
             last = self.db.execute("SELECT COALESCE(MAX(id), 0) FROM journal").fetchone()[0]
             self.db.execute("INSERT OR REPLACE INTO snapshot (id, journal_id, t, state) VALUES (1, ?, ?, ?)",
-                            (int(last), float(t), sqlite3.Binary(state)))
+                            (int(last), float(t), sqlite3.Binary(blob)))
             if self.compact:
                 self.db.execute("DELETE FROM journal WHERE id <= ?", (int(last),))
             self.db.execute("COMMIT")
@@ -173,26 +175,30 @@ class NodeStore:
     def restore(self, build: Callable[[], Node], *, log: Callable[[str], None] | None = None,
                 clock: Callable[[], float] | None = None,
                 before_replay: Callable[[Node, Any], Any] | None = None) -> Node:
-        """The node as it was: the last snapshot (or ``build()`` when there is none) plus every
-        journal row written after it, replayed in order. ``log`` and ``clock`` (not saved) are
-        attached to the restored node. ``before_replay(node, extra)`` runs between the two
-        (``extra``: what :attr:`extra` returned at that snapshot, or None), so an application
-        can re-attach its own state and see the replayed frames too."""
+        """The node as it was: ``build()`` (the node's structure: modalities, streams, links,
+        keys), the last snapshot's state loaded into it, then every journal row written after
+        it, replayed in order. ``log`` and ``clock`` (not saved), when given, are attached to the
+        restored node. ``before_replay(node, extra)`` runs between the two (``extra``: what
+        :attr:`extra` returned at that snapshot, or None), so an application can re-attach its
+        own state and see the replayed frames too."""
         row = self.db.execute("SELECT journal_id, state FROM snapshot WHERE id = 1").fetchone()
         extra: Any = None
-        if row is None:
-            node, after = build(), 0
-        else:
+        node, after = build(), 0
+        if row is not None:
+            blob = bytes(row[1])
+            if blob.startswith(_PICKLE_PROTOCOL_5):
+                raise ConfigError(f"{self.path}: written by an older CoEx (a pickled snapshot), "
+                                  "which this version does not read; move the file away to "
+                                  "start afresh")
             try:
-                loaded = pickle.loads(bytes(row[1]))
-                fmt, node, extra = loaded
-                if fmt != _FORMAT or not isinstance(node, Node):
-                    raise ValueError(f"not a {_FORMAT} snapshot")
-            except Exception as exc:
+                extra = node.restore_state(blob)
+            except state.StateError as exc:
                 raise ConfigError(f"{self.path}: unreadable snapshot ({exc}); move the file away "
                                   "to start afresh") from exc
             after = int(row[0])
+        if log is not None:
             node.set_log(log)
+        if clock is not None:
             node.manager.clock = clock
         self.restored_extra = extra
         if before_replay is not None:
@@ -202,7 +208,7 @@ class NodeStore:
                 node.receive(int(r.link or 0), r.data, r.t)
             elif r.kind == "input":
                 try:
-                    node.sender(str(r.name)).ingest(pickle.loads(r.data), r.t)
+                    node.sender(str(r.name)).ingest(state.loads(r.data), r.t)
                 except Exception as exc:  # it failed the first time too; the rest still counts
                     if log is not None:
                         log(f"journaled input {r.id} of {r.name} not taken again: {exc}")
