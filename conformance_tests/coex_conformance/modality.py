@@ -8,7 +8,7 @@ from typing import Any
 
 import pytest
 
-from coex_core import wire
+from coex_core import state, wire
 from coex_core.errors import DecodeError, RequestRejected
 from coex_core.messages import Message, VehicleMode, VehicleStatus
 from coex_core.modality import Modality, ModalityReceiver, ModalitySender
@@ -81,6 +81,41 @@ class ModalityTests:
             start_requests(pair.receiver, pair.now)
         run_until(pair, lambda: converged(pair.sender, pair.receiver), max_rounds)
         assert pair.receiver.products(), "a converged receiver has products"
+
+    def test_state_survives_a_restart(
+        self,
+        modality: Modality,
+        sender_config: Any,
+        receiver_config: Any,
+        sample_inputs: Sequence[tuple[float, Any]],
+        converged: Callable[[ModalitySender, ModalityReceiver], bool],
+        start_requests: Callable[[ModalityReceiver, float], None] | None,
+        loss: float,
+        frame_budget: int,
+        max_rounds: int,
+        round_seconds: float,
+    ) -> None:
+        """A node store saves the sender and the receiver mid-transfer with
+        :mod:`coex_core.state` (every class they keep must be registered with
+        ``coex_core.state.persistent``) and journals the inputs; restored, they hold the same
+        products, and the transfer still converges."""
+        for _, data in sample_inputs:  # journaled inputs load back as something ingest takes
+            state.loads(state.dumps(modality.sender(sender_config).journal_form(data)))
+        pair = self._pair(modality, sender_config, receiver_config, loss=loss, frame_budget=frame_budget,
+                          round_seconds=round_seconds, seed=9)
+        pair.now = 0.0
+        for now, data in sample_inputs:
+            pair.sender.ingest(state.loads(state.dumps(pair.sender.journal_form(data))), now)
+            pair.now = max(pair.now, now)
+        if start_requests is not None:
+            start_requests(pair.receiver, pair.now)
+        for _ in range(3):
+            pair.step()
+        before = [(p.kind, p.key, p.version) for p in pair.receiver.products()]
+        pair.sender = state.loads(state.dumps(pair.sender))
+        pair.receiver = state.loads(state.dumps(pair.receiver))
+        assert [(p.kind, p.key, p.version) for p in pair.receiver.products()] == before
+        run_until(pair, lambda: converged(pair.sender, pair.receiver), max_rounds)
 
     def test_receiver_tolerates_duplicates_and_reordering(
         self,

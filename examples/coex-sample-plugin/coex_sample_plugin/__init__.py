@@ -22,6 +22,7 @@ from coex import (
     ModalitySender,
     Product,
     RequestRejected,
+    persistent,
 )
 
 PING_TYPE = 100  # third-party, one-byte form
@@ -32,6 +33,7 @@ MAX_RECORDS = 20
 __all__ = ["PingModality", "PING_TYPE", "ACK_TYPE"]
 
 
+@persistent("pings.Sender")  # saved with the node by a store (stable name, not module path)
 class PingSender(ModalitySender):
     def __init__(self, resend_after: float = 30.0) -> None:
         self.records: dict[int, tuple[int, int]] = {}  # seq -> (time, range_cm)
@@ -81,6 +83,7 @@ class PingSender(ModalitySender):
         return RECORD.size * max(0, len(self.records) - self.acked_below)
 
 
+@persistent("pings.Receiver")
 class PingReceiver(ModalityReceiver):
     def __init__(self) -> None:
         self.records: dict[int, tuple[int, int]] = {}
