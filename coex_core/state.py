@@ -282,8 +282,10 @@ def loads(data: bytes) -> Any:
     try:
         doc = json.loads(data[start:start + n].decode())
         blobs = np.load(io.BytesIO(data[start + n:]), allow_pickle=False)
-    except (ValueError, OSError, UnicodeDecodeError) as exc:
+    except Exception as exc:  # bad JSON, a damaged zip archive: never a crash of the caller
         raise StateError(f"corrupt CoEx state: {exc}") from exc
+    if not isinstance(doc, dict):
+        raise StateError("corrupt CoEx state: the document is not an object")
     if doc.get("format") != FORMAT:
         raise StateError(f"not a {FORMAT} document")
     if int(doc.get("version", 0)) > VERSION:
@@ -291,9 +293,9 @@ def loads(data: bytes) -> Any:
     reader = _Reader(blobs, {str(k): int(v) for k, v in doc.get("classes", {}).items()})
     try:
         root = reader.dec(doc["root"])
-    except (KeyError, TypeError, ValueError) as exc:
-        if isinstance(exc, StateError):
-            raise
+    except StateError:
+        raise
+    except Exception as exc:  # a missing array, a wrong field: the file is damaged
         raise StateError(f"corrupt CoEx state: {exc}") from exc
     for obj in reader.restored:
         hook = getattr(obj, "_after_restore", None)

@@ -1,0 +1,117 @@
+"""coex_core.state: the explicit state format (never pickle)."""
+
+from __future__ import annotations
+
+from collections import OrderedDict, deque
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+import pytest
+
+from coex_core import messages as m
+from coex_core.state import StateError, dumps, loads, persistent
+
+
+@persistent("test.Box")
+class Box:
+    def __init__(self, value: Any) -> None:
+        self.value = value
+
+
+@persistent("test.Hooked", transient=("callback",))
+class Hooked:
+    def __init__(self, value: Any) -> None:
+        self.value = value
+        self.callback = print  # not state: rebuilt after a restore
+
+    def _after_restore(self) -> None:
+        self.callback = print
+
+
+class Careless:
+    def __init__(self) -> None:
+        self.callback = print
+
+
+persistent("test.Careless")(Careless)  # registered, but its callback is not declared transient
+
+
+@persistent("test.Point", version=2, upgrade=lambda f, v: {**f, "z": 0.0} if v < 2 else f)
+@dataclass(frozen=True)
+class Point:
+    x: float
+    y: float
+    z: float = 0.0
+
+
+class Unknown:
+    pass
+
+
+def test_values_round_trip() -> None:
+    value = {
+        "none": None, "flag": True, "n": -3, "x": 1.5, "nan": float("nan"), "inf": float("-inf"),
+        "text": "é", "list": [1, [2]], "tuple": (1, 2), "set": {3, 4}, "frozen": frozenset({5}),
+        "deque": deque([1, 2], maxlen=5), "od": OrderedDict([("b", 1), ("a", 2)]),
+        (1, 2): "tuple key", 7: "int key", "bytes": b"\x00\xff", "ba": bytearray(b"ab"),
+        "array": np.arange(12, dtype=np.int16).reshape(3, 4), "scalar": np.float32(2.5),
+        "message": m.QueueStatus(5, (m.StreamStatus(3, True, 1, 30, 2, 100, 7, 0),)),
+        "enum": m.AckStatus.REJECTED,
+    }
+    back = loads(dumps(value))
+    assert np.isnan(back.pop("nan")) and np.isnan(value.pop("nan"))
+    arr = back.pop("array")
+    assert arr.dtype == np.int16 and (arr == value.pop("array")).all()
+    assert back == value
+    assert type(back["deque"]) is deque and back["deque"].maxlen == 5
+    assert list(back["od"]) == ["b", "a"] and type(back["scalar"]) is np.float32
+    assert type(back["ba"]) is bytearray and back["enum"] is m.AckStatus.REJECTED
+
+
+def test_shared_objects_stay_shared_and_cycles_work() -> None:
+    inner = Box([1, 2])
+    outer = Box({"a": inner, "b": inner})
+    inner.value.append(outer)  # a cycle
+    back = loads(dumps(outer))
+    assert back.value["a"] is back.value["b"]
+    assert back.value["a"].value[2] is back
+
+
+def test_transient_attributes_are_not_saved_and_are_rebuilt() -> None:
+    b = Hooked(1)
+    b.callback = lambda: None
+    back = loads(dumps(b))
+    assert back.callback is print and back.value == 1
+
+
+def test_unregistered_types_are_refused_with_where_they_were() -> None:
+    with pytest.raises(StateError, match=r"root\['x'\]\[1\]: a .*Unknown is not registered"):
+        dumps({"x": [1, Unknown()]})
+    with pytest.raises(StateError, match="callback"):
+        dumps(Careless())  # its callback is a function: not state, and not declared transient
+    with pytest.raises(StateError, match="objects"):
+        dumps(np.array([object()], dtype=object))
+
+
+def test_versions_upgrade_older_and_refuse_newer() -> None:
+    data = dumps(Point(1.0, 2.0, 3.0))
+    assert loads(data) == Point(1.0, 2.0, 3.0)
+    older = data.replace(b'"test.Point":2', b'"test.Point":1')
+    assert loads(older) == Point(1.0, 2.0, 0.0)  # upgraded from version 1
+    newer = data.replace(b'"test.Point":2', b'"test.Point":3')
+    with pytest.raises(StateError, match="newer"):
+        loads(newer)
+    with pytest.raises(StateError, match="does not know"):
+        loads(data.replace(b'"test.Point"', b'"test.Gone!"'))
+
+
+def test_corrupt_or_foreign_data_is_a_state_error() -> None:
+    import pickle
+
+    with pytest.raises(StateError, match="COEXSTATE"):
+        loads(pickle.dumps({"a": 1}))
+    data = dumps({"a": np.arange(3)})
+    for bad in (data[:20], data[:-10], data[:15] + b"x" + data[16:]):
+        with pytest.raises(StateError):
+            loads(bad)
