@@ -135,7 +135,7 @@ def test_no_module_imports_itself_back_through_others() -> None:
 
 def private_imports(g: dict[str, set[str]]) -> list[str]:
     """Imports of another package's private module (``coex_core._wire``,
-    ``coex_plugins.bathymetry._subgrid`` from outside ``coex_plugins.bathymetry``)."""
+    ``coex_plugins.bathymetry._codec`` from outside ``coex_plugins.bathymetry``)."""
     out = []
     for a, deps in sorted(g.items()):
         for b in sorted(deps):

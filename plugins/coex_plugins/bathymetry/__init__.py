@@ -15,12 +15,12 @@ from typing import Any, ClassVar
 from coex_core.messages import MapMetadata, MapRoiReply, MapRoiRequest, Message, Subgrid
 from coex_core.modality import Modality
 
-from ._io import iter_points, load_points, pointcloud2_xyz, write_pointcloud_bag
-from ._quadtree import InputError, LevelBlock, QuadtreeMap
-from ._receiver import RECEIVER_DEFAULTS, BathymetryReceiver, Region
-from ._sender import SENDER_DEFAULTS, BathymetrySender
-from ._subgrid import decode_subgrid, decode_subgrid_units, encode_subgrid, size_2022, subgrid_bits
+from .codec import decode_subgrid, decode_subgrid_units, encode_subgrid, size_2022, subgrid_bits
 from .export import Candidate, find_targets, hillshade, write_geotiff, write_png
+from .points import iter_points, load_points, pointcloud2_xyz, write_pointcloud_bag
+from .quadtree import InputError, LevelBlock, QuadtreeMap
+from .receiver import RECEIVER_DEFAULTS, BathymetryReceiver, Region
+from .sender import SENDER_DEFAULTS, BathymetrySender
 
 __all__ = [
     "BathymetryModality",

@@ -32,11 +32,11 @@ from coex_core.messages import (
     Subgrid,
 )
 
-from ._io import iter_points
-from ._receiver import BathymetryReceiver
-from ._sender import BathymetrySender
-from ._subgrid import decode_subgrid_units, size_2022
+from .codec import decode_subgrid_units, size_2022
 from .export import find_targets, write_geotiff, write_png
+from .points import iter_points
+from .receiver import BathymetryReceiver
+from .sender import BathymetrySender
 
 __all__ = ["register", "roundtrip"]
 

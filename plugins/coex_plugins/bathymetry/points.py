@@ -13,7 +13,7 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
-from ._quadtree import InputError
+from .quadtree import InputError
 
 __all__ = ["iter_points", "load_points", "pointcloud2_xyz", "write_pointcloud_bag"]
 

@@ -17,7 +17,7 @@ from coex_core.modality import ModalityReceiver, Product
 from coex_core.state import persistent
 from coex_core.timefmt import to_stamp, unwrap
 
-from ._subgrid import decode_subgrid
+from .codec import decode_subgrid
 
 __all__ = ["BathymetryReceiver", "RECEIVER_DEFAULTS", "Region"]
 

@@ -20,9 +20,9 @@ from coex_core.timefmt import to_stamp, unwrap
 from coex_core.wire import SUBGRID_RESOLUTIONS as RESOLUTIONS
 from coex_core.wire import SUBGRID_VERTICAL_RESOLUTIONS as VERTICAL_RESOLUTIONS
 
-from ._io import pointcloud2_xyz
-from ._quadtree import InputError, QuadtreeMap
-from ._subgrid import encode_subgrid, subgrid_bits
+from .codec import encode_subgrid, subgrid_bits
+from .points import pointcloud2_xyz
+from .quadtree import InputError, QuadtreeMap
 
 __all__ = ["BathymetrySender", "SENDER_DEFAULTS"]
 
