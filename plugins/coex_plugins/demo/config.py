@@ -1,0 +1,84 @@
+"""The demo's options, its result and its fixed numbers (node ids, the dive's clock, altitudes)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from coex_core.errors import ConfigError
+
+from .scenario import Scenario, preset
+
+TOPSIDE, VEHICLE = 1, 2
+EPOCH = 1_656_633_600.0  # 2022-07-01T00:00:00Z: the dive's clock (simulated)
+TRANSIT_ALTITUDE = 10.0
+HOLD_ALTITUDE = 50.0
+LINK_STREAM = 6
+#: seconds between camera frames on a transect
+CAMERA_PERIOD = 6.0
+#: the vehicle's default set-point for every image (``default_goal``)
+DEFAULT_LAYERS = 2
+#: a target is identifiable at 1 m when a car-like candidate of the received 1 m map lies this
+#: close to it (m)
+IDENTIFY_RADIUS = 3.5
+OPERATORS = ("script", "none")
+
+
+#: The demo's embedded command key (not a secret: real deployments configure their own).
+DEMO_COMMAND_KEY = b"coex-demo-command-key-not-secret"
+
+
+@dataclass
+class DemoConfig:
+    """Options of ``coex demo`` (see ``coex demo --help``)."""
+
+    out: Path = Path("coex-demo-out")
+    #: frame loss; ``None`` keeps the scenario's loss model (``--loss``)
+    loss: float | None = None
+    seed: int = 1
+    images: Path | None = None
+    gui: bool = False
+    http: str = "127.0.0.1:8080"
+    quick: bool = False
+    progress: bool = True
+    #: bursty (Gilbert-Elliott) loss at ``loss`` (or the scenario's rate) instead of independent
+    burst: bool = False
+    #: with ``gui``: simulated seconds per wall-clock second, so that a person can act
+    speed: float = 20.0
+    #: with ``gui``: keep serving the console after the dive until interrupted
+    linger: bool = True
+    #: shared command key (spec section 10): topside signs every command, the vehicle checks
+    #: them; ``None`` turns authentication off
+    command_key: bytes | None = DEMO_COMMAND_KEY
+    #: the dive (``--scenario FILE`` / ``--preset NAME``); ``None`` is preset ``default``
+    scenario: Scenario | None = None
+    #: ``"script"`` or ``"none"``; ``None``: the script, unless a person has the console (``gui``)
+    operator: str | None = None
+
+    def resolved(self) -> tuple[Scenario, str]:
+        """The scenario with ``--quick``, ``--loss`` and ``--burst`` applied, and the operator."""
+        scn = self.scenario or preset("default")
+        scn = scn.with_loss(self.loss, self.burst)
+        if self.quick:
+            scn = scn.quick()
+        op = self.operator or ("none" if self.gui else "script")
+        if op not in OPERATORS:
+            raise ConfigError(f"operator must be one of {', '.join(OPERATORS)}, got {op!r}")
+        return scn, op
+
+
+@dataclass
+class Decision:
+    t: float
+    kind: str
+    text: str
+    #: ``"script"`` (the scripted operator), ``"person"`` (an action in the console) or ``"system"``
+    who: str = "script"
+
+
+@dataclass
+class DemoResult:
+    out: Path
+    metrics: dict[str, Any]
+    decisions: list[Decision] = field(default_factory=list)

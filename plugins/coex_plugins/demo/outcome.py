@@ -1,0 +1,361 @@
+"""What the dive achieved, judged against the simulation's truth: metrics.json, the report, the
+map exports and decisions.csv."""
+
+from __future__ import annotations
+
+import csv
+import json
+import math
+from collections.abc import Callable, Iterator
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from coex import Runner
+from coex_plugins.bathymetry import (
+    BathymetryReceiver,
+    write_geotiff,
+    write_png,
+)
+from coex_plugins.bathymetry.sim import Seafloor, Target
+from coex_plugins.imagery import ImageryReceiver
+from coex_plugins.timeseries import TimeSeriesReceiver
+
+from .config import EPOCH, IDENTIFY_RADIUS, TOPSIDE, VEHICLE, Decision, DemoConfig, DemoResult
+from .operator import MIN_SCORE, Operator
+from .scenario import Scenario
+from .truth import FrameTruth, judge
+
+
+@dataclass
+class World:
+    """What the simulation knows, handed to the judging."""
+
+    scenario: Scenario
+    floor: Seafloor
+    cars: tuple[Target, ...]
+    rocks: tuple[Target, ...]
+    survey_end: float
+    frames: dict[float, FrameTruth]
+    received_track: list[tuple[float, float]]
+    camera_times: list[float]
+    operator: str
+
+
+def _judge(world: World, operator: Operator, bytes_of: Callable[[int], int | None],
+           cycle: float) -> tuple[list[dict[str, Any] | None], list[dict[str, Any]]]:
+    """Every confirmation the operator made, judged against the truth: per true target the first
+    confirmation by a received image that shows it, and the confirmations that show no target."""
+    per_target: list[dict[str, Any] | None] = [None] * len(world.cars)
+    false: list[dict[str, Any]] = []
+    confirmed = sorted((c for c in operator.candidates if c.verdict == "car"), key=lambda c: c.confirmed_at or 0.0)
+    for c in confirmed:
+        truth = world.frames.get(c.evidence_time) if c.evidence_time is not None else None
+        shown = judge(c.evidence, truth) if (c.evidence is not None and truth is not None) else []
+        hit = [k for kind, k in shown if kind == "target"]
+        assert c.confirmed_at is not None and c.verdict_image is not None
+        record = {"image_id": c.verdict_image,
+                  "image_time_s": None if c.evidence_time is None else round(c.evidence_time - EPOCH, 1),
+                  "image_x": c.evidence_xy[0] if c.evidence_xy else None,
+                  "image_y": c.evidence_xy[1] if c.evidence_xy else None,
+                  "confirmed_at_s": round(c.confirmed_at - EPOCH, 1),
+                  "bytes": c.evidence_bytes,
+                  "requested_at_s": None if c.request_at is None else round(c.request_at - EPOCH, 1),
+                  "first_requested_at_s": None if c.first_request_at is None else round(c.first_request_at - EPOCH, 1),
+                  "tdma_cycles": None if c.request_at is None else round((c.confirmed_at - c.request_at) / cycle, 2),
+                  "tdma_cycles_from_first_request": None if c.first_request_at is None
+                  else round((c.confirmed_at - c.first_request_at) / cycle, 2),
+                  "candidate": {"x": c.x, "y": c.y}}
+        if hit:
+            for k in hit:
+                if per_target[k] is None:
+                    per_target[k] = record
+        else:
+            others = [f"decoy {k + 1} (a boulder)" for kind, k in shown if kind == "decoy"]
+            false.append({"x": c.x, "y": c.y, "image_id": c.verdict_image,
+                          "confirmed_at_s": record["confirmed_at_s"],
+                          "shows": ", ".join(others) or "no target (sand, or too little of one, or too blurry)"})
+    return per_target, false
+
+
+def _why_not(i: int, world: World, operator: Operator, visible: float | None) -> str:
+    """Why target ``i`` was not confirmed, from the truth."""
+    car = world.cars[i]
+    near = [c for c in operator.candidates if math.hypot(c.x - car.x, c.y - car.y) <= IDENTIFY_RADIUS]
+    shown = sorted(ft.time for ft in world.frames.values() if ft.visible.get(i + 1, 0.0) >= 0.15)
+    if shown:
+        return (f"photographed ({len(shown)} frames from {shown[0] - EPOCH:.0f} s), but no received image of it "
+                "was confirmed")
+    if visible is None:
+        return "never photographed: never identifiable in the received 1 m map"
+    if world.operator == "none":
+        return "never photographed: never visited with the camera (no operator retargeted the vehicle)"
+    if not any(c.planned for c in near):
+        return ("never photographed: identifiable at 1 m but never visited with the camera (ranked too low, "
+                "or no camera time left)")
+    return "never photographed: visited, but no camera frame showed enough of it"
+
+
+def finish(out: Path, cfg: DemoConfig, world: World, operator: Operator, receivers: dict[str, Any],
+            coverage: dict[int, list[tuple[float, float]]], visible_at: dict[int, float],
+            decisions: list[Decision], wall: float, runners: dict[int, Runner]) -> dict[str, Any]:
+    from .report import line_chart, map_figure, timeline_chart, write_report
+
+    scn, floor = world.scenario, world.floor
+    bathy: BathymetryReceiver = receivers["bathymetry"]
+    names = {("target", i): f"target {i + 1}" for i in range(len(world.cars))}
+    names.update({("decoy", k): f"decoy {k + 1} (rock)" for k in range(len(world.rocks))})
+    ranked = operator.ranked()
+    rank_of = {id(c): r for r, c in enumerate(ranked, 1)}
+
+    def truth_near(x: float, y: float) -> str:
+        for key, objs in (("target", world.cars), ("decoy", world.rocks)):
+            for k, o in enumerate(objs):
+                if math.hypot(o.x - x, o.y - y) <= IDENTIFY_RADIUS:
+                    return names[(key, k)]
+        return "none"
+
+    candidates = [{"x": c.x, "y": c.y, "height": c.height, "cells": c.cells, "length": c.length, "width": c.width,
+                   "score": c.score, "rank": rank_of.get(id(c)), "visited": c.planned, "verdict": c.verdict or None,
+                   "truth": truth_near(c.x, c.y)}
+                  for c in sorted(operator.candidates, key=lambda c: -c.score) if c.score >= MIN_SCORE]
+    map_svgs: list[str] = []
+    for level in range(0, 6):
+        try:
+            p = bathy.level_product(level)
+        except Exception:
+            continue
+        if p.data is None or not np.isfinite(np.asarray(p.data, float)).any():
+            continue
+        meta = dict(p.meta)
+        cell, x0, y0 = float(meta["cell_size"]), float(meta["x0"]), float(meta["y0"])
+        grid = np.asarray(p.data, float)
+        write_geotiff(out / "map" / f"level_{level}.tif", grid, x0=x0, y0=y0, cell=cell,
+                      origin_lat=float(meta.get("origin_lat", 0.0)), origin_lon=float(meta.get("origin_lon", 0.0)))
+        write_png(out / "map" / f"level_{level}.png", grid, cell=cell)
+        if level <= 3:
+            # the survey box (and a margin), not the whole quadtree
+            sub, sx0, sy0 = _crop(grid, cell, x0, y0, floor.x0 - 8, floor.y0 - 8, floor.x0 + floor.size + 8,
+                                  floor.y0 + floor.size + 8)
+            map_svgs.append(map_figure(
+                sub, cell=cell, x0=sx0, y0=sy0,
+                title=f"Level {level}: {cell:g} m cells, as received topside",
+                track=world.received_track,
+                targets=[{"x": t.x, "y": t.y, "label": f"target {i + 1}"} for i, t in enumerate(world.cars)],
+                decoys=[{"x": t.x, "y": t.y, "label": f"decoy {i + 1} (rock)"} for i, t in enumerate(world.rocks)],
+                candidates=[{"x": c["x"], "y": c["y"], "label": f"#{c['rank']}", "visited": c["visited"]}
+                            for c in candidates if c["rank"] is not None] if level == 0 else []))
+    # ground truth at 1 m
+    xs = np.arange(0.5, floor.size, 1.0) + floor.x0
+    ys = np.arange(0.5, floor.size, 1.0) + floor.y0
+    gx, gy = np.meshgrid(xs, ys)
+    write_geotiff(out / "truth.tif", floor.elevation(gx, gy), x0=floor.x0, y0=floor.y0, cell=1.0)  # row 0 = south
+    (out / "truth.json").write_text(json.dumps({
+        "seafloor": {"size_m": floor.size, "depth_m": floor.depth, "seed": floor.seed, "cell_m": 1.0},
+        "targets": [{"name": f"target {i + 1}", "kind": "car", **_obj(t)} for i, t in enumerate(world.cars)],
+        "decoys": [{"name": f"decoy {i + 1}", "kind": "rock", **_obj(t)} for i, t in enumerate(world.rocks)],
+    }, indent=2))
+    # time series
+    ts: TimeSeriesReceiver = receivers["timeseries"]
+    ts.to_csv(out / "timeseries.csv")
+    # images
+    img: ImageryReceiver = receivers["imagery"]
+    metas = {int(p.meta["image_id"]): dict(p.meta) for p in img.products() if p.kind == "image"}
+
+    def bytes_of(image_id: int) -> int | None:
+        m = metas.get(image_id)
+        return None if m is None else int(m["bytes_used"])
+
+    per_target, false = _judge(world, operator, bytes_of, scn.cycle)
+    link = _link_summary(out / "link.jsonl")
+    targets = []
+    for i, t in enumerate(world.cars):
+        seen = visible_at.get(i)
+        conf = per_target[i]
+        targets.append({"name": f"target {i + 1}", "x": t.x, "y": t.y, "heading": t.heading,
+                        "identifiable_at_1m_s": None if seen is None else round(seen - EPOCH, 1),
+                        "before_survey_end": seen is not None and seen <= world.survey_end,
+                        "confirmation": conf,
+                        "why_not": None if conf is not None else _why_not(i, world, operator, seen)})
+    confirming = {c["image_id"]: t["name"] for t in targets if (c := t["confirmation"]) is not None}
+    requested = {i for c in operator.candidates for i in c.looked + ([c.image_id] if c.image_id is not None else [])}
+    images = [{"file": f"images/image_{i:04d}.png", "image_id": i, "time_s": round(float(m["time"]) - EPOCH, 1),
+               "x": m.get("x"), "y": m.get("y"), "bytes": int(m["bytes_used"]), "layers": int(m["layers_complete"]),
+               "confirms": confirming.get(i), "requested": i in requested}
+              for i, m in sorted(metas.items(), key=lambda kv: float(kv[1]["time"]))
+              if (out / "images" / f"image_{i:04d}.png").exists()]
+
+    all_identifiable = all(t["before_survey_end"] for t in targets)
+    all_confirmed = all(t["confirmation"] is not None for t in targets)
+    success = all_confirmed and not false
+    cycles = [t["confirmation"]["tdma_cycles"] for t in targets if t["confirmation"] is not None]
+    fast = success and all(c is not None and c <= 2.0 for c in cycles)
+    none_text = "no targets in this scenario" if not targets else ""
+    goals = {
+        "every target identifiable topside at 1 m before the survey ends": {
+            "met": all_identifiable,
+            "detail": "; ".join(
+                f"{t['name']} at ({t['x']:.0f}, {t['y']:.0f}): "
+                + (f"identifiable at {t['identifiable_at_1m_s']:.0f} s" if t["identifiable_at_1m_s"] is not None
+                   else "never identifiable") for t in targets) or none_text
+            + f"; survey ended at {world.survey_end - EPOCH:.0f} s",
+        },
+        "every target confirmed by a received image that shows it, and nothing else confirmed": {
+            "met": success,
+            "detail": "; ".join(
+                f"{t['name']}: " + (f"image {t['confirmation']['image_id']} at {t['confirmation']['confirmed_at_s']:.0f} s"
+                                    if t["confirmation"] else f"NOT confirmed ({t['why_not']})") for t in targets)
+            + (f"; {len(false)} false confirmation(s): " + "; ".join(
+                f"({f['x']:.0f}, {f['y']:.0f}) by image {f['image_id']}, which shows {f['shows']}" for f in false)
+               if false else "; no false confirmation"),
+        },
+        "each confirming image within two TDMA cycles of its request": {
+            "met": fast,
+            "detail": "; ".join(f"{t['name']}: {t['confirmation']['tdma_cycles']} cycles" if t["confirmation"]
+                                else f"{t['name']}: not confirmed" for t in targets) or none_text,
+        },
+    }
+    metrics: dict[str, Any] = {
+        "scenario": scn.to_dict(),
+        # the key itself never goes into the outputs
+        "config": {k: str(v) if isinstance(v, Path) else v for k, v in asdict(cfg).items()
+                   if k not in ("command_key", "scenario")},
+        "operator": world.operator,
+        "summary": _summary(targets, false, world.operator, goals),
+        "success": success,
+        "wall_seconds": round(wall, 1),
+        "dive_seconds": scn.duration,
+        "survey_end_s": round(world.survey_end - EPOCH, 1),
+        "tdma_cycle_s": scn.cycle,
+        "targets": targets,
+        "false_confirmations": false,
+        "decoys": [{"name": f"decoy {i + 1}", "kind": "rock", "x": t.x, "y": t.y,
+                    "visited": any(c.planned and math.hypot(c.x - t.x, c.y - t.y) <= IDENTIFY_RADIUS
+                                   for c in operator.candidates)}
+                   for i, t in enumerate(world.rocks)],
+        "candidates": candidates,
+        "images_received": len(metas),
+        "images_captured": len(world.camera_times),
+        "link": link,
+        "map_coverage": {str(k): v[-1][1] if v else 0.0 for k, v in coverage.items()},
+        "bad_frames": {"topside": runners[TOPSIDE].node.stats.get("bad_frames", 0),
+                       "vehicle": runners[VEHICLE].node.stats.get("bad_frames", 0)},
+        "goals": goals,
+    }
+    charts = [
+        line_chart({f"level {k} ({2**k} m)": v for k, v in sorted(coverage.items())},
+                   title="Map filling in over time (fraction of the survey area held topside)",
+                   xlabel="dive time (s)", ylabel="fraction",
+                   markers=[(world.survey_end - EPOCH, "survey ends")] + [
+                       (v - EPOCH, f"target {i + 1} identifiable at 1 m") for i, v in visible_at.items()]),
+        line_chart({"capacity": link["capacity_series"], "used": link["used_series"],
+                    "delivered": link["delivered_series"]},
+                   title="Link use against capacity (cumulative bytes, vehicle to topside)",
+                   xlabel="dive time (s)", ylabel="bytes"),
+        timeline_chart([{"t": d.t, "kind": d.kind, "text": d.text} for d in decisions], t_end=scn.duration),
+    ]
+    for k in ("capacity_series", "used_series", "delivered_series"):
+        link.pop(k, None)
+    write_report(out, metrics, charts=charts, maps=map_svgs, images=images,
+                 decisions=[asdict(d) for d in decisions])
+    (out / "metrics.json").write_text(json.dumps(metrics, indent=2))
+    with (out / "decisions.csv").open("w", newline="") as f:
+        w = csv.writer(f)
+        w.writerow(["dive_time_s", "who", "kind", "text"])
+        for d in decisions:
+            w.writerow([d.t, d.who, d.kind, d.text])
+    return metrics
+
+
+def _obj(t: Target) -> dict[str, Any]:
+    return {"x": t.x, "y": t.y, "length": t.length, "width": t.width, "height": t.height,
+            "heading": round(t.heading, 1)}
+
+
+def _crop(grid: np.ndarray, cell: float, x0: float, y0: float, xa: float, ya: float, xb: float, yb: float,
+          ) -> tuple[np.ndarray, float, float]:
+    """The part of a level grid (row 0 = south) inside [xa, xb] x [ya, yb]."""
+    ny, nx = grid.shape
+    c0 = max(math.floor((xa - x0) / cell), 0)
+    c1 = min(math.ceil((xb - x0) / cell), nx)
+    r0 = max(math.floor((ya - y0) / cell), 0)
+    r1 = min(math.ceil((yb - y0) / cell), ny)
+    if c1 <= c0 or r1 <= r0:
+        return grid, x0, y0
+    return grid[r0:r1, c0:c1], x0 + c0 * cell, y0 + r0 * cell
+
+
+def _summary(targets: list[dict[str, Any]], false: list[dict[str, Any]], operator: str,
+             goals: dict[str, dict[str, Any]]) -> str:
+    """The outcome in words, from the judged metrics: the main goal first, then the others."""
+    ok = [t for t in targets if t["confirmation"] is not None]
+    missed = [t for t in targets if t["confirmation"] is None]
+    main = bool(targets) and not missed and not false
+    parts = [f"{'MET' if main else 'NOT MET'}: every true target confirmed by a received image that shows "
+             "it, and nothing else confirmed."]
+    if not targets:
+        parts.append("This scenario has no targets.")
+    elif not missed:
+        parts.append(f"All {len(targets)} targets were confirmed.")
+    else:
+        parts.append(f"{len(ok)} of {len(targets)} targets were confirmed.")
+    for t in ok:
+        c = t["confirmation"]
+        parts.append(f"{t['name'].capitalize()} at ({t['x']:.0f}, {t['y']:.0f}): image {c['image_id']}, "
+                     f"{c['bytes']} B, confirmed at {c['confirmed_at_s']:.0f} s, {c['tdma_cycles']} TDMA cycles "
+                     "after its request.")
+    for t in missed:
+        parts.append(f"{t['name'].capitalize()} at ({t['x']:.0f}, {t['y']:.0f}) was not confirmed: {t['why_not']}.")
+    if false:
+        parts.append(f"{len(false)} confirmation(s) of something that is not a target: "
+                     + "; ".join(f"({f['x']:.0f}, {f['y']:.0f}) by image {f['image_id']}, which shows {f['shows']}"
+                                 for f in false) + ".")
+    elif targets:
+        parts.append("Nothing that is not a target was confirmed.")
+    others = [f"{name}: {'MET' if g['met'] else 'NOT MET'} ({g['detail']})" for name, g in goals.items()
+              if not name.startswith("every target confirmed")]
+    if others:
+        parts.append("Other goals: " + "; ".join(others) + ".")
+    if operator == "none":
+        parts.append("No scripted operator ran (--operator none): only what a person did in the console counts.")
+    return " ".join(parts)
+
+
+def _link_summary(path: Path) -> dict[str, Any]:
+    cap = used = delivered = 0
+    cap_s: list[tuple[float, float]] = []
+    used_s: list[tuple[float, float]] = []
+    del_s: list[tuple[float, float]] = []
+    sent = lost = frames = 0
+    for line in path.read_text().splitlines():
+        try:
+            rec = json.loads(line)
+        except ValueError:
+            continue
+        if rec.get("src") != VEHICLE:
+            continue
+        t = float(rec.get("time", 0.0)) - EPOCH
+        if rec.get("cause") == "sent":
+            cap += int(rec.get("capacity_bytes") or 0)
+            used += int(rec.get("used_bytes") or 0)
+            sent += 1
+            cap_s.append((round(t, 1), cap))
+            used_s.append((round(t, 1), used))
+        elif rec.get("delivered") is not None:
+            d = rec.get("delivered")
+            n = sum(1 for x in d if x) if isinstance(d, list) else int(d)
+            delivered += int(rec.get("delivered_bytes", rec.get("used_bytes") if n else 0) or 0)
+            lost += int(rec.get("lost") or 0) if not isinstance(rec.get("lost"), list) else len(rec["lost"])
+            frames += int(rec.get("frames") or 0)
+            del_s.append((round(t, 1), delivered))
+    return {"packets_sent": sent, "capacity_bytes": cap, "used_bytes": used, "delivered_bytes": delivered,
+            "frames_lost": lost, "frame_loss": round(lost / frames, 4) if frames else None,
+            "fill": round(used / cap, 4) if cap else None, "capacity_series": cap_s, "used_series": used_s,
+            "delivered_series": del_s}
+
+
+def iter_decisions(result: DemoResult) -> Iterator[str]:
+    for d in result.decisions:
+        yield f"{d.t:7.0f} s  {d.kind:<16} {d.text}"

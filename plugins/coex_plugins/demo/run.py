@@ -1,0 +1,408 @@
+"""The dive's run: the simulated world, both nodes, their Micromodems and the operator on one
+simulated clock."""
+
+from __future__ import annotations
+
+import contextlib
+import heapq
+import json
+import math
+import sys
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from coex import Runner, SimulatedClock
+from coex_core.acoustic import AcousticChannel
+from coex_core.channel.events import Received
+from coex_core.loopback import SimClock
+from coex_core.messages import VehicleStatus
+from coex_core.node import Node
+from coex_plugins.bathymetry.sim import Seafloor, Survey, simulate_survey
+from coex_plugins.imagery import ImageInput
+from coex_plugins.timeseries import synth as ts_synth
+from coex_transports.micromodem.simulator import ModemNetwork
+from coex_transports.runner import next_wakeup
+
+from .camera import CameraModel, SandTexture, render_labelled
+from .config import (
+    CAMERA_PERIOD,
+    EPOCH,
+    HOLD_ALTITUDE,
+    IDENTIFY_RADIUS,
+    LINK_STREAM,
+    TOPSIDE,
+    TRANSIT_ALTITUDE,
+    VEHICLE,
+    Decision,
+    DemoConfig,
+    DemoResult,
+)
+from .operator import MIN_SCORE, CandidateView, Operator
+from .outcome import World, finish
+from .truth import FrameTruth, frame_truth
+from .world import (
+    Leg,
+    Track,
+    area_fraction,
+    build_nodes,
+    image_files,
+    load_image,
+    rng_for,
+    schedule_series,
+    vehicle_status,
+)
+
+
+class _Progress:
+    def __init__(self, total: float, enabled: bool) -> None:
+        self.total = total
+        self.enabled = enabled and sys.stderr.isatty()
+        self.last = -1
+
+    def update(self, t: float) -> None:
+        if not self.enabled:
+            return
+        pct = int(100 * min(max(t / self.total, 0.0), 1.0))
+        if pct != self.last:
+            self.last = pct
+            bar = "#" * (pct // 4) + "-" * (25 - pct // 4)
+            sys.stderr.write(f"\r[{bar}] {pct:3d}%  dive time {t:6.0f} s")
+            sys.stderr.flush()
+
+    def close(self) -> None:
+        if self.enabled:
+            sys.stderr.write("\n")
+
+
+def _start_gui(cfg: DemoConfig, topside: Node, log: Callable[..., None]) -> Any:
+    from coex_plugins.console import serve
+
+    host, _, port = cfg.http.rpartition(":")
+    server = serve(topside, host or "127.0.0.1", int(port),
+                   stream_names={3: "map", 4: "images", 5: "series", LINK_STREAM: "link"})
+    hub = server.hub
+    act = hub.act
+
+    def logged(action: str, args: dict[str, Any]) -> list[Any]:
+        """What a person does in the console goes into the decision list too."""
+        now = hub.clock()
+        try:
+            sent = act(action, args)
+        except Exception as exc:
+            log(now, "console action", f"{action} {json.dumps(args, default=str)} refused: {exc}", "person")
+            raise
+        log(now, "console action", f"{action} {json.dumps(args, default=str)}", "person")
+        return sent
+
+    hub.act = logged
+    print(f"coex demo: web console at {server.url} (the dive runs at {cfg.speed:g}x)", file=sys.stderr)
+    return server
+
+
+class DiveRun:
+    """One dive: the world (seafloor, objects, survey, track), the link (two simulated
+    Micromodems on one acoustic channel, each node's real driver talking NMEA to its modem), the
+    two nodes, the operator, and the timed events (sensor data, status, the operator's rounds,
+    the camera pass, the camera) on one simulated clock. :meth:`run` runs it and writes the
+    outputs (:mod:`coex_plugins.demo.outcome`)."""
+
+    def __init__(self, config: DemoConfig, on_decision: Callable[[Decision], None] | None = None) -> None:
+        self.cfg = cfg = config
+        self.scn, self.operator_mode = scn, operator_mode = config.resolved()
+        self.on_decision = on_decision
+        self.out = out = Path(cfg.out)
+        (out / "images").mkdir(parents=True, exist_ok=True)
+        (out / "map").mkdir(exist_ok=True)
+        self.wall0 = time.perf_counter()
+        self.decisions: list[Decision] = []
+        self._build_world()
+        self._build_link()
+        # what the camera saw, for the operator's eye and the referee (frames showing an object)
+        self.frames: dict[float, FrameTruth] = {}
+        floor = self.floor
+        self.operator = Operator(self.topside, self.receivers,
+                                 (floor.x0, floor.y0, floor.x0 + floor.size, floor.y0 + floor.size),
+                                 self.log, frames=self.frame_at, camera_altitude=scn.camera_altitude,
+                                 cycle=scn.cycle, active=operator_mode == "script")
+        self.operator.epoch = EPOCH
+        self.received_track: list[tuple[float, float]] = []
+        self.coverage: dict[int, list[tuple[float, float]]] = {}
+        self.visible_at: dict[int, float] = {}
+        # timed events (simulated): sensor data, status, operator, camera
+        self.events: list[tuple[float, int, Callable[[float], None]]] = []
+        self._counter = iter(range(10**9))
+        self._schedule()
+
+    # ------------------------------------------------------------------------ set-up
+    def log(self, now: float, kind: str, text: str, who: str = "script") -> None:
+        d = Decision(round(now - EPOCH, 1), kind, text, who)
+        self.decisions.append(d)
+        if self.on_decision is not None:
+            self.on_decision(d)
+
+    def at(self, t: float, fn: Callable[[float], None]) -> None:
+        heapq.heappush(self.events, (t, next(self._counter), fn))
+
+    def _build_world(self) -> None:
+        """Cars (the targets) and boulders (decoys) where the operator does not know, the
+        seafloor, the camera and the survey."""
+        cfg, scn = self.cfg, self.scn
+        self.cars, self.rocks = scn.place(cfg.seed)
+        self.floor = Seafloor(size=scn.area, depth=scn.water_depth, relief=scn.relief,
+                              ripple_amplitude=scn.ripple_amplitude, targets=self.cars + self.rocks,
+                              seed=cfg.seed)
+        self.texture = SandTexture(seed=cfg.seed)
+        self.camera = CameraModel()
+        self.track = Track(self.floor)
+        self.descent = 300.0 if not cfg.quick else 120.0
+        self.survey: Survey = simulate_survey(
+            self.floor, altitude=scn.survey_altitude, line_spacing=scn.line_spacing or None,
+            speed=scn.survey_speed, ping_rate=2.0, beams=256, t0=EPOCH + self.descent,
+            turn_time=60.0 if not cfg.quick else 20.0, seed=cfg.seed + 1)
+        self.survey_end = float(self.survey.times[-1]) if len(self.survey) else EPOCH + self.descent
+        self.end = EPOCH + scn.duration
+
+    def _build_link(self) -> None:
+        """Two simulated Micromodems on one acoustic channel; each node's driver talks NMEA to
+        its modem through a real pseudo-terminal pair; a runner per node."""
+        cfg, scn, out = self.cfg, self.scn, self.out
+        self.clock = clock = SimClock(EPOCH)
+        self.channel = AcousticChannel(loss=scn.loss.independent(), burst=scn.loss.burst(),
+                                       range_loss=scn.loss.range_loss(), seed=cfg.seed)
+        self.net = net = ModemNetwork({TOPSIDE: (scn.ship[0], scn.ship[1], 0.0), VEHICLE: (0.0, 0.0, 0.0)},
+                                      channel=self.channel, clock=clock, ptys=True)
+        self.series = ts_synth.dataset(duration=max(scn.duration, 1200.0), period=1.0, seed=cfg.seed,
+                                       t0=EPOCH)
+        self.vehicle, self.topside, self.senders, self.receivers = build_nodes(
+            out, [s.channel() for s in self.series], cfg.command_key, scn,
+            auto_fill=self.operator_mode != "script")
+        self.link_log = (out / "link.jsonl").open("w")
+        self.runners = {
+            VEHICLE: Runner(self.vehicle, {0: net.transport(VEHICLE, rate=scn.modem_rate, dest=TOPSIDE)},
+                            SimulatedClock(sim=clock), link_log=self.link_log),
+            TOPSIDE: Runner(self.topside, {0: net.transport(TOPSIDE, rate=scn.modem_rate, dest=VEHICLE)},
+                            SimulatedClock(sim=clock), link_log=self.link_log),
+        }
+        self.vehicle_modem = self.runners[VEHICLE].transports[0]
+
+    def _schedule(self) -> None:
+        scn, track = self.scn, self.track
+        for t, xyz in self.survey.pings(batch=20):
+            track.add_sample(float(t), float(np.mean(xyz[:, 0])), float(np.mean(xyz[:, 1])),
+                             scn.survey_altitude)
+            self.at(float(t), lambda now, xyz=xyz: self.senders["bathymetry"].ingest(xyz, now))
+        track.samples.sort()
+        track.legs.append(Leg(EPOCH, EPOCH + self.descent, (0.0, 0.0), (0.0, 0.0), scn.survey_altitude))
+        schedule_series(self.at, self.senders["timeseries"], self.series, EPOCH, self.end)
+        t = EPOCH
+        while t < self.end:
+            self.at(t, self.push_status)
+            t += 10.0
+        t = EPOCH + scn.cycle / 2
+        while t < self.end:
+            self.at(t, self.every_half_cycle)
+            t += scn.cycle / 2
+        # the camera pass, planned when the survey ends: transects over the candidates in rank
+        # order while camera time remains; when they are done, the next candidates found meanwhile
+        self.half = 30.0 if not self.cfg.quick else 15.0
+        self.reserve = 2 * scn.cycle  # the last frames need time to come up before the dive ends
+        self.holds: list[Leg] = []
+        self.at(self.survey_end + 30.0, lambda now: self.plan_camera(now, first=True))
+        self.real_images = image_files(self.cfg.images)
+        self._shot = iter(range(10**9))
+        self.taken: list[float] = []
+        self.hfov = math.tan(math.radians(self.camera.hfov_deg) / 2)
+        t = self.survey_end + 30.0 + CAMERA_PERIOD
+        while t < self.end:
+            self.at(t, self.take_picture)
+            t += CAMERA_PERIOD
+
+    # ------------------------------------------------------------------------ events
+    def frame_at(self, t: float) -> FrameTruth | None:
+        best = min(self.frames, key=lambda ft: abs(ft - t), default=None)
+        return self.frames[best] if best is not None and abs(best - t) <= 1.0 else None
+
+    def push_status(self, now: float) -> None:
+        status = vehicle_status(self.track, now)
+        self.channel.set_position(VEHICLE, (status.x, status.y, status.depth or 0.0))  # range loss
+        self.vehicle.push_status(status, now)
+
+    def push_link_status(self, now: float) -> None:
+        status = self.vehicle_modem.link_status()
+        if status is not None:
+            self.vehicle.manager.push(LINK_STREAM, status, now)
+
+    def every_half_cycle(self, now: float) -> None:
+        operator = self.operator
+        views = operator.measured(now)
+        operator.watch_map(now, views)
+        operator.watch_images(now)
+        self.push_link_status(now)
+        for level in range(0, 4):
+            g = operator.level_grid(level)
+            frac = 0.0 if g is None else area_fraction(g[0], g[1], g[2], self.floor)
+            self.coverage.setdefault(level, []).append((round(now - EPOCH, 1), round(frac, 4)))
+        # judged against the truth: a car-like bump of the received 1 m map where a car is
+        for i, tgt in enumerate(self.cars):
+            if i not in self.visible_at and any(v.score >= MIN_SCORE and math.hypot(v.x - tgt.x, v.y - tgt.y)
+                                                <= IDENTIFY_RADIUS for v in views):
+                self.visible_at[i] = now
+
+    def transect(self, t: float, pos: tuple[float, float], x: float, y: float
+                 ) -> tuple[float, tuple[float, float]]:
+        half, track = self.half, self.track
+        start = (x, y - half)
+        dist = math.hypot(start[0] - pos[0], start[1] - pos[1])
+        track.legs.append(Leg(t, t + dist / 1.0, pos, start, TRANSIT_ALTITUDE))
+        t += dist / 1.0
+        track.legs.append(Leg(t, t + 2 * half / 0.5, start, (x, y + half), self.scn.camera_altitude,
+                              camera=True))
+        return t + 2 * half / 0.5, (x, y + half)
+
+    def plan_camera(self, now: float, first: bool = False) -> None:
+        operator, scn, half, end = self.operator, self.scn, self.half, self.end
+        operator.camera_phase = True
+        pos = self.track.position(now)[:2]
+        t = now
+        planned: list[CandidateView] = []
+        if operator.active:
+            for _rank, cv in enumerate(operator.ranked(), 1):
+                if cv.planned:
+                    continue
+                dist = math.hypot(cv.x - pos[0], cv.y - half - pos[1])
+                if t + dist + 4 * half > end - self.reserve:
+                    break  # no camera time left for the next in rank order
+                t, pos = self.transect(t, pos, cv.x, cv.y)
+                cv.planned = True
+                cv.pass_planned = t - 2 * half / 0.5 + half / 0.5  # the middle of its transect
+                planned.append(cv)
+            if planned:
+                self.log(now, "camera pass", "vehicle retargeted over " + ", ".join(
+                    f"({c.x:.0f}, {c.y:.0f}) [car-likeness {c.score:.2f}]" for c in planned))
+            elif first:
+                self.log(now, "camera pass", "no car-like candidate in the 1 m map yet: the vehicle holds")
+        elif first:
+            t, pos = self.transect(t, pos, scn.area / 2, scn.area / 2)
+            self.log(now, "camera pass", "no operator script: one camera transect through the centre "
+                     "of the site", "system")
+        if planned or first:
+            if self.holds:
+                self.holds[-1].t1 = now
+            hold = Leg(t, end, pos, pos, HOLD_ALTITUDE)
+            self.holds.append(hold)
+            self.track.legs.append(hold)
+        if operator.active and t < end - self.reserve:
+            self.at(max(t, now + scn.cycle), self.plan_camera)
+
+    def take_picture(self, now: float) -> None:
+        track, camera, cars, rocks = self.track, self.camera, self.cars, self.rocks
+        if not any(leg.camera and leg.t0 <= now <= leg.t1 for leg in track.legs):
+            return  # the camera runs on the transects only
+        x, y, depth, alt, heading = track.position(now)
+        k = next(self._shot)
+        self.taken.append(now)
+        rendered, labels = render_labelled(self.floor.ground, x, y, -depth, heading, targets=cars,
+                                           rocks=rocks, texture=self.texture, camera=camera,
+                                           rng=rng_for(self.cfg.seed, 100 + k))
+        img = rendered
+        if self.real_images:  # a real dive image, with the simulated objects where the camera sees them
+            real = load_image(self.real_images[k % len(self.real_images)])
+            if real.shape == rendered.shape:
+                img = np.where(labels[..., None] > 0, rendered, real)
+            else:
+                img, labels = real, np.zeros(real.shape[:2], np.uint8)
+        areas, pixel = {}, {}
+        for i, o in enumerate(cars + rocks, 1):
+            dome = o.shape == "dome"
+            areas[i] = o.length * o.width * (math.pi / 4 if dome else 1.0)
+            top = max(alt - o.height * (0.67 if dome else 1.0), 0.3)
+            pixel[i] = (2 * top * self.hfov / camera.width) ** 2
+        ft = frame_truth(now, x, y, heading, img, labels, len(cars), areas, pixel)
+        if ft is not None:
+            self.frames[now] = ft
+        self.senders["imagery"].ingest(ImageInput(img, time=now, x=round(x, 1), y=round(y, 1)), now)
+
+    # ------------------------------------------------------------------------ the loop
+    def run(self) -> DemoResult:
+        """Run the dive to its end on the simulated clock, then judge it and write the outputs."""
+        cfg, clock, net, end = self.cfg, self.clock, self.net, self.end
+        server = _start_gui(cfg, self.topside, self.log) if cfg.gui else None
+        lock = server.hub.lock if server is not None else contextlib.nullcontext()
+        wall_start, sim_start = time.monotonic(), clock.now
+        progress = _Progress(self.scn.duration, cfg.progress)
+        steps = 0
+        events, runners = self.events, self.runners
+        while clock.now < end:
+            t = next_wakeup(clock.now, end, events[0][0] if events else None,
+                            [net.next_event(), *(r.node.next_event(clock.now) for r in runners.values())],
+                            started=bool(steps))
+            if server is not None:  # pace the dive so that a person at the console can act
+                t = min(t, clock.now + 1.0)
+                ahead = (t - sim_start) / cfg.speed - (time.monotonic() - wall_start)
+                if ahead > 0:
+                    time.sleep(ahead)
+            with lock:
+                self._step(t)
+            steps += 1
+            progress.update(clock.now - EPOCH)
+        progress.close()
+        self.link_log.close()
+        ptys = net.pty_paths()
+        net.close()
+        if server is not None and cfg.linger:
+            print(f"coex demo: the dive is over; the console stays at {server.url} (Ctrl+C to stop)",
+                  file=sys.stderr)
+            try:
+                while True:
+                    time.sleep(3600)
+            except KeyboardInterrupt:
+                pass
+        if server is not None:
+            server.close()
+        return self._outputs(ptys)
+
+    def _step(self, t: float) -> None:
+        """Everything due up to ``t``: the modems, the timed events, both runners."""
+        clock, events = self.clock, self.events
+        self.net.run_until(t)
+        while events and events[0][0] <= clock.now:
+            _, _, fn = heapq.heappop(events)
+            fn(clock.now)
+        for r in self.runners.values():
+            r.step()
+        self.net.step()
+        for ev in self.topside.events():
+            if isinstance(ev, Received) and isinstance(ev.message, VehicleStatus):
+                self.operator.on_status(ev.message, clock.now)
+                self.received_track.append((ev.message.x, ev.message.y))
+        self.vehicle.events()
+        for rec in self.channel.log():  # what arrived, per packet and receiver: delivered or lost frames
+            self.link_log.write(json.dumps(rec, sort_keys=True, separators=(",", ":")) + "\n")
+
+    def _outputs(self, ptys: dict[int, str]) -> DemoResult:
+        cfg, scn, out = self.cfg, self.scn, self.out
+        wall = time.perf_counter() - self.wall0
+        world = World(scn, self.floor, self.cars, self.rocks, self.survey_end, self.frames,
+                      self.received_track, self.taken, self.operator_mode)
+        metrics = finish(out, cfg, world, self.operator, self.receivers, self.coverage, self.visible_at,
+                         self.decisions, wall, self.runners)
+        metrics["modems"] = {"nmea_over": {str(k): v for k, v in ptys.items()}, "rate": scn.modem_rate,
+                             "tdma": f"{len(scn.slots)} x {scn.slot_seconds:g} s, guard {scn.guard_seconds:g} s; "
+                                     f"topside slots {', '.join(str(i) for i, s in enumerate(scn.slots) if s == 'topside')}; "
+                                     f"vehicle slots {', '.join(str(i) for i, s in enumerate(scn.slots) if s == 'vehicle')}"}
+        metrics["authentication"] = {
+            "enabled": cfg.command_key is not None,
+            "signed_frames": self.topside.manager.stats["signed"],
+            "rejected_frames": self.vehicle.stats["unauthenticated"],
+        }
+        (out / "metrics.json").write_text(json.dumps(metrics, indent=2))
+        return DemoResult(out, metrics, self.decisions)
+
+
+def run_demo(config: DemoConfig, *, on_decision: Callable[[Decision], None] | None = None) -> DemoResult:
+    """Run one demo dive (:class:`DiveRun`) and write its outputs to ``config.out``."""
+    return DiveRun(config, on_decision).run()
