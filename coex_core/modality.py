@@ -128,6 +128,12 @@ class ModalityReceiver(abc.ABC):
         self._own_command_id = (self._own_command_id + 1) % 256
         return self._own_command_id
 
+    def view(self, product: Product) -> Mapping[str, Any] | None:
+        """What the topside console shows of one of this receiver's products in its generic
+        panel (modalities it has no panel of its own for): a small JSON-safe mapping of labels
+        to values. Optional (default: None, the console shows the product's plain metadata)."""
+        return None
+
     def supersedes(self, old: Message, new: Message) -> bool:
         """Whether ``new``, a request :meth:`poll` just returned, makes ``old``, an earlier one
         still in the channel (queued, or sent and not yet acknowledged), useless. Optional

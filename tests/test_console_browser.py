@@ -161,7 +161,8 @@ def test_console_map_updates_and_region_request_reaches_vehicle(
         "document.querySelectorAll('#levels-table tbody tr').length >= 3", timeout=20_000)
     page.wait_for_function(f"{PAINTED} > {empty + 5000}", timeout=10_000)  # pictures drawn
     with app.hub.lock:
-        held = {lv: len(v.tiles) for lv, v in app.hub.state.levels.items()}
+        rx = app.hub.state.map_receiver
+        held = {lv: len(rx.holdings(lv)) for lv in rx.levels()}
     shown = {int(r.get_attribute("data-level")): int(r.query_selector(".n-subgrids").inner_text())
              for r in page.query_selector_all("#levels-table tbody tr")}
     assert shown and all(shown[lv] <= held[lv] for lv in shown)
@@ -290,3 +291,30 @@ def test_console_actions_reach_the_vehicle_in_the_order_given(browser: Any) -> N
                                timeout=10_000)
     assert not errors, errors
     assert [type(x) for x in sent] == [m.QueueConfig, m.LinkControl], sent
+
+
+def test_a_third_party_modality_shows_in_the_generic_panel(browser: Any, tmp_path: Path) -> None:
+    """The sample plugin's pings (no panel of their own) appear in "Other data"; the panel
+    stays hidden on a console without such data."""
+    from coex_core.registry import load_modality
+
+    errors: list[str] = []
+    with sample_console(browser, ConsoleHub, [], errors) as page:
+        assert page.is_hidden("#other-panel")
+    state = ConsoleState(schedules={0: Schedule.simple([1, 2, 2, 1, 2, 2], 20.0, 2.0)})
+    feed_sample(state, t0=T0)
+    pings = load_modality("pings")().sender(None)
+    for k in range(12):
+        pings.ingest((T0 - 60 + 5 * k, 30.0 + k), T0)
+    state.apply_messages(pings.fill(400, T0), T0)
+    with serve(ConsoleHub(state, lambda msg: None, lambda: T0), "127.0.0.1", 0) as srv:
+        page = browser.new_page(viewport={"width": 1400, "height": 1300})
+        page.on("pageerror", lambda e: errors.append(str(e)))
+        page.goto(srv.url)
+        page.wait_for_function("window.coex && window.coex.updates > 0", timeout=10_000)
+        assert page.is_visible("#other-panel")
+        text = page.inner_text("#other")
+        assert "pings" in text and "count: 12" in text
+        page.screenshot(path=str(tmp_path / "other-panel.png"), full_page=True)
+        page.close()
+    assert errors == []

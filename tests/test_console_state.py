@@ -30,8 +30,8 @@ from coex_plugins.bathymetry import (
     decode_subgrid,
 )
 from coex_plugins.console import ConsoleActions, ConsoleHub, ConsoleState, serve
-from coex_plugins.console.node import NodeCommands, pump, tap_receiver
-from coex_plugins.console.testing import RecordingSender, drain, feed_sample, survey_points
+from coex_plugins.console.node import NodeCommands, pump
+from coex_plugins.console.testing import RecordingSender, feed_sample, survey_points
 from coex_plugins.timeseries.synth import dataset
 
 T0 = 36000.0
@@ -184,13 +184,27 @@ def test_link_queue_and_command_acks() -> None:
 # ---------------------------------------------------------------------------- actions
 
 
+def _region_requests(rx: BathymetryReceiver, now: float, n: int) -> list[m.MapRoiRequest]:
+    """What the receiver sends for ``n`` new regions (a few per poll, as on the uplink)."""
+    out: list[m.MapRoiRequest] = []
+    for _ in range(n):
+        out += [x for x in rx.poll(now) if isinstance(x, m.MapRoiRequest)]
+        if len(out) >= n:
+            break
+    return out
+
+
 def test_request_region_lists_held_stamps(subgrids: list[m.Subgrid]) -> None:
+    """A map region asked in the console goes through the bathymetry receiver, which lists
+    what topside holds in each request (the console keeps no second map)."""
     st = fresh(subgrids)
-    sent: list[m.Message] = []
-    acts = ConsoleActions(st, sent.append, lambda: T0 + 5)
+    rx = st.map_receiver
+    acts = ConsoleActions(st, lambda msg: None, lambda: T0 + 5, map_receiver=rx)
     held = {(s.ix, s.iy): s.stamp for s in subgrids if s.level == 0}
-    out = acts.request_region(0, 20.0, 20.0, 60.0, 100.0)
-    assert out == sent and all(isinstance(x, m.MapRoiRequest) for x in sent)
+    regions = acts.request_region(0, 20.0, 20.0, 60.0, 100.0)
+    assert [r["status"] for r in st.snapshot()["map"]["requests"]] == ["waiting"] * len(regions)
+    sent = _region_requests(rx, T0 + 5, len(regions))
+    assert len(sent) == len(regions)
     covered = set()
     for req in sent:
         assert req.w <= 8 and req.h <= 8 and req.level == 0
@@ -202,36 +216,45 @@ def test_request_region_lists_held_stamps(subgrids: list[m.Subgrid]) -> None:
         wire.encode(req)  # every request fits the wire format
     assert covered == {(ix, iy) for ix in range(2, 8) for iy in range(2, 13)}
     reqs = st.snapshot()["map"]["requests"]
-    assert [r["status"] for r in reqs] == ["requested"] * len(sent)
+    assert [r["status"] for r in reqs] == ["sent"] * len(sent)
+    assert sorted(r["request_id"] for r in reqs) == sorted(x.request_id for x in sent)
 
 
-def test_region_status_follows_reply_and_arrivals(subgrids: list[m.Subgrid]) -> None:
+def test_region_status_follows_the_vehicle_s_replies(subgrids: list[m.Subgrid]) -> None:
     st = fresh()
     st.apply_message(subgrids[0], T0)
-    sent: list[m.Message] = []
-    acts = ConsoleActions(st, sent.append, lambda: T0)
+    rx = st.map_receiver
+    acts = ConsoleActions(st, lambda msg: None, lambda: T0, map_receiver=rx)
     sg = next(s for s in subgrids if s.level == 0)
     span = sg.side * 1.0
-    (req,) = acts.request_region(0, sg.ix * span + 1, sg.iy * span + 1, sg.ix * span + 2, sg.iy * span + 2)
+    acts.request_region(0, sg.ix * span + 1, sg.iy * span + 1, sg.ix * span + 2, sg.iy * span + 2)
+    (req,) = _region_requests(rx, T0, 1)
     st.apply_message(m.MapRoiReply(req.request_id, 0, 1), T0 + 30)
     assert st.snapshot()["map"]["requests"][-1]["status"] == "queued"
-    st.apply_message(sg, T0 + 40)
-    assert st.snapshot()["map"]["requests"][-1]["status"] == "received"
-    (req2,) = acts.request_region(0, 500.0, 500.0, 501.0, 501.0)
+    assert st.snapshot()["map"]["requests"][-1]["queued"] == 1
+    acts.request_region(0, 500.0, 500.0, 501.0, 501.0)
+    (req2,) = [x for x in _region_requests(rx, T0 + 40, 2) if x.x0 > 10]
     st.apply_message(m.MapRoiReply(req2.request_id, 0, 0), T0 + 50)
     assert st.snapshot()["map"]["requests"][-1]["status"] == "nothing newer"
 
 
 def test_gap_fill_request_bitmap(subgrids: list[m.Subgrid]) -> None:
     st = fresh(subgrids)
-    sent: list[m.Message] = []
-    ConsoleActions(st, sent.append, lambda: T0).request_region(1, 0, 0, 63.9, 63.9, fill_gaps=True)
-    (req,) = sent
+    rx = st.map_receiver
+    ConsoleActions(st, lambda msg: None, lambda: T0, map_receiver=rx).request_region(
+        1, 0, 0, 63.9, 63.9, fill_gaps=True)
+    (req,) = _region_requests(rx, T0, 1)
     assert req.fill_gaps and req.held == () and (req.w, req.h) == (4, 4)
     held = {(s.ix, s.iy) for s in subgrids if s.level == 1}
     for k in range(16):
         bit = (req.have >> (15 - k)) & 1
         assert bit == ((k % 4, k // 4) in held)
+
+
+def test_a_view_only_console_asks_nothing(subgrids: list[m.Subgrid]) -> None:
+    st = fresh(subgrids)
+    with pytest.raises(RequestRejected, match="bathymetry receiver"):
+        ConsoleActions(st, lambda msg: None, lambda: T0).request_region(0, 0, 0, 10, 10)
 
 
 @pytest.mark.parametrize("action,args", [
@@ -254,11 +277,12 @@ def test_bad_actions_rejected_and_nothing_sent(subgrids: list[m.Subgrid], action
                                                args: dict[str, Any]) -> None:
     st = fresh(subgrids)
     sent: list[m.Message] = []
-    acts = ConsoleActions(st, sent.append, lambda: T0)
+    acts = ConsoleActions(st, sent.append, lambda: T0, map_receiver=st.map_receiver)
     before = st.snapshot()["commands"]
     with pytest.raises(RequestRejected):
         acts.dispatch(action, args)
     assert sent == [] and st.snapshot()["commands"] == before
+    assert not st.map_receiver.regions  # and no map region either
 
 
 def test_every_action_is_a_wire_command(sample: tuple[ConsoleState, Any]) -> None:
@@ -386,10 +410,10 @@ def _pair(schedule: Schedule) -> tuple[Node, Node, RecordingSender, BathymetryRe
     sender = RecordingSender(BathymetrySender({"send_delay": 0.0, "levels": 4}))
     sender.ingest(survey_points(), 900.0)
     veh.add_sender(BathymetryModality, sender, StreamConfig(3, "map", priority=30))
-    state = ConsoleState(schedules={0: schedule})
-    hub = ConsoleHub(state, NodeCommands(top, lambda: clock[0]), lambda: clock[0])
     rx = BathymetryReceiver()
-    top.add_receiver(BathymetryModality, tap_receiver(rx, hub))
+    top.add_receiver(BathymetryModality, rx)
+    state = ConsoleState(schedules={0: schedule}, receivers=dict(top.receivers()))
+    hub = ConsoleHub(state, NodeCommands(top, lambda: clock[0]), lambda: clock[0])
     return top, veh, sender, rx, hub, clock
 
 
@@ -411,7 +435,7 @@ def test_node_commands_are_acked_by_the_vehicle() -> None:
     top, veh, _sender, _rx, hub, clock = _pair(sched)
     _run(top, veh, hub, clock, 12)
     snap = hub.snapshot()
-    assert snap["map"]["levels"], "subgrids from the vehicle reach the console through the tap"
+    assert snap["map"]["levels"], "subgrids from the vehicle reach the console (the receiver's)"
     assert {s["name"] for s in snap["queues"]["streams"]} >= {"stream 3"}
     hub.act("queue_config", {"stream": 3, "priority": 99})
     hub.act("propose_schedule", {"link": 0, "slots": [{"owner": 1, "duration": 4, "guard": 0.5},
@@ -437,25 +461,37 @@ def test_map_region_through_the_bathymetry_receiver() -> None:
     got = [x for x in sender.handled if isinstance(x, m.MapRoiRequest)]
     assert got and got[0].level == 0 and (got[0].x0, got[0].y0) == (3, 4)
     req = hub.snapshot()["map"]["requests"][-1]
-    assert req["status"] in ("queued", "partial", "received", "nothing newer")
+    assert req["status"] in ("sent", "queued", "nothing newer")
     assert req["request_id"] == got[0].request_id
 
 
-def test_tap_never_costs_the_receiver_a_message() -> None:
-    rx = BathymetryReceiver()
+def test_a_third_party_modality_gets_the_generic_panel() -> None:
+    """A modality without a panel of its own (the sample plugin's pings, found through its
+    entry point) is shown in the generic panel: its products with the receiver's view of them;
+    a view that raises is reported there, never stops the console."""
+    from coex_core.registry import load_modality
 
-    def boom(msg: m.Message, now: float) -> None:
-        raise RuntimeError("console bug")
+    pings = load_modality("pings")
+    sender = pings().sender(None)
+    for t in range(5):
+        sender.ingest((float(t), 20.0 + t), float(t))
+    st = ConsoleState()
+    for msg in sender.fill(400, 10.0):
+        st.apply_message(msg, 10.0)
+    snap = json.loads(json.dumps(st.snapshot(), allow_nan=False))
+    (panel,) = snap["other"]["modalities"]
+    assert panel["name"] == "pings" and panel["products"]
+    assert all(p["version"] >= 1 and p["fields"] for p in panel["products"])
 
-    from coex_plugins.console.node import TapReceiver
+    def broken(product: Any) -> dict[str, Any]:
+        raise RuntimeError("plugin bug")
 
-    tap = TapReceiver(rx, boom)
-    sender = BathymetrySender({"send_delay": 0.0, "levels": 2})
-    sender.ingest(survey_points(), 0.0)
-    msgs = drain(sender, 1.0)
-    for x in msgs:
-        tap.receive(x, 1.0)
-    assert rx.products() and tap.products() == rx.products()
+    st.receivers["pings"].view = broken
+    sender.ingest((15.0, 30.0), 15.0)  # a new ping: the receiver's product changes
+    for msg in sender.fill(400, 20.0):
+        st.apply_message(msg, 20.0)
+    fields = [p["fields"] for p in st.snapshot()["other"]["modalities"][0]["products"]]
+    assert any("view failed: plugin bug" in str(f.get("error")) for f in fields)
 
 
 def test_pump_reports_events_and_link_state() -> None:
@@ -557,23 +593,29 @@ def test_drive_simulation_feeds_the_console_and_the_caller() -> None:
     assert hub.snapshot()["commands"][0]["status"] == "accepted"
 
 
-def test_map_from_level_products_when_subgrids_are_not_tapped(subgrids: list[m.Subgrid]) -> None:
+def test_the_map_is_the_receiver_s(subgrids: list[m.Subgrid]) -> None:
+    """Attached to a node, the console shows the node's bathymetry receiver: the levels it
+    holds, with each subgrid's stamp; the console keeps no mosaic of its own."""
     rx = BathymetryReceiver()
-    st = ConsoleState()
+    st = ConsoleState(receivers={"bathymetry": rx})
     for sg in subgrids:
         for p in rx.receive(sg, T0):
             st.apply_product("bathymetry", p, T0)
-    raw = fresh(subgrids)
-    got = {lv["level"]: lv for lv in st.snapshot()["map"]["levels"]}
-    want = {lv["level"]: lv for lv in raw.snapshot()["map"]["levels"]}
-    assert got.keys() == want.keys()
-    for k in want:
-        assert got[k]["subgrids"] == want[k]["subgrids"] and got[k]["cells"] == want[k]["cells"]
-        assert sorted(map(tuple, got[k]["tiles"])) == sorted(map(tuple, want[k]["tiles"]))
-        np.testing.assert_array_equal(st.level_grid(k)[0], raw.level_grid(k)[0])
-    # raw subgrids (exact stamps) take over from products, never the other way round
-    st.apply_message(subgrids[0], T0)
-    assert st.levels[subgrids[0].level].raw
+    levels = {lv["level"]: lv for lv in st.snapshot()["map"]["levels"]}
+    assert set(levels) == set(rx.levels())
+    for k, lv in levels.items():
+        assert lv["subgrids"] == len(rx.holdings(k))
+        assert sorted((ix, iy) for ix, iy, _ in lv["tiles"]) == sorted(rx.holdings(k))
+        z = st.level_grid(k)[0]  # type: ignore[index]
+        np.testing.assert_array_equal(z, rx.level_product(k).data)
+        assert z is not rx.level_product(k).data  # a copy: drawn outside the node's lock
+    sg = subgrids[0]
+    assert st.held_stamps(sg.level, sg.ix, sg.iy, 1, 1) == [rx.holdings(sg.level)[(sg.ix, sg.iy)]]
+    # messages reach a node's receivers through the node, never through the console
+    fresh_rx = BathymetryReceiver()
+    st2 = ConsoleState(receivers={"bathymetry": fresh_rx})
+    st2.apply_message(sg, T0)
+    assert not fresh_rx.levels()
 
 
 def test_pump_survives_an_event_the_console_cannot_show() -> None:
@@ -677,10 +719,10 @@ def test_images_and_series_through_nodes() -> None:
     ts_tx.ingest({s.name: (s.times, s.values) for s in data}, 1990.0)
     veh.add_sender(ImageryModality, img_tx, StreamConfig(4, "images", priority=30))
     veh.add_sender(TimeSeriesModality, ts_tx, StreamConfig(5, "series", priority=30))
-    state = ConsoleState(schedules={0: sched})
+    top.add_receiver(ImageryModality, ImageryModality().receiver())
+    top.add_receiver(TimeSeriesModality, TimeSeriesModality().receiver())
+    state = ConsoleState(schedules={0: sched}, receivers=dict(top.receivers()))
     hub = ConsoleHub(state, NodeCommands(top, lambda: clock[0]), lambda: clock[0])
-    top.add_receiver(ImageryModality, tap_receiver(ImageryModality().receiver(), hub))
-    top.add_receiver(TimeSeriesModality, tap_receiver(TimeSeriesModality().receiver(), hub))
     _run(top, veh, hub, clock, 60)
     snap = hub.snapshot()
     items = {it["image_id"]: it for it in snap["images"]["items"]}
@@ -700,20 +742,24 @@ def test_images_and_series_through_nodes() -> None:
 
 # ------------------------------------------------------------------ one topside, two users
 
-def test_a_console_tapped_receiver_keeps_withdrawing_superseded_requests() -> None:
-    """``coex topside`` and ``demo --gui`` wrap the node's receivers for the console: the wrapped
-    bathymetry receiver must still tell the node that a retried region request replaces the
-    earlier copy (else the stale copy stays in the channel and is sent again)."""
+def test_a_console_leaves_the_node_s_receivers_alone() -> None:
+    """``coex topside`` and ``demo --gui`` attach the console to the node: its receivers stay
+    the node's own objects (no wrapper that could lose a hook, as a wrapper once lost
+    ``supersedes``), and a retried region request still replaces the earlier copy."""
     from coex_core.channel import CONTROL_STREAM
+    from coex_plugins.console import attach
 
     receiver = BathymetryReceiver({"levels": 3, "request_timeout": 100.0})
     tmgr = ChannelManager(1, [LinkConfig(0, Schedule.simple([1, 2], 5.0, 0.5), dst=2)])
     top = Node(tmgr)
-    top.add_receiver(BathymetryModality, tap_receiver(receiver, ConsoleState()))
+    top.add_receiver(BathymetryModality, receiver)
+    hub = attach(top, clock=lambda: 0.0)
+    assert top.receiver("bathymetry") is receiver and hub.actions.map_receiver is receiver
     receiver.request_region(0, 0, 0, 1, 1)  # the vehicle never answers: retried every 100 s
     now = 0.0
     while now < 450.0:
         top.poll(now)
+        top.events()
         now += 1.0
     (newest,) = [r.request_id for r in receiver.active_regions()]
     queued = [e.message.request_id for e in tmgr.stream(CONTROL_STREAM).entries

@@ -136,7 +136,7 @@ def test_topside_resumes_from_its_store(tmp_path: Path) -> None:
         assert set(app.node.receiver("imagery").images) == held
         assert app.node.manager._command_id == next_cid
         # the map receiver is the console's region source again (not a copy)
-        assert app.hub.actions.map_receiver is app.node.receiver("bathymetry").inner
+        assert app.hub.actions.map_receiver is app.node.receiver("bathymetry")
         assert app.hub.state.region_source is app.hub.actions.map_receiver
 
         # the transfer resumes: the goal is met, the map keeps growing, nothing is resent

@@ -42,7 +42,8 @@ ROI_CHUNK = 8
 GAP_CHUNK = 16
 
 
-@persistent("bathymetry.Region")
+@persistent("bathymetry.Region", version=2,
+            upgrade=lambda fields, saved: {"queued": None, "answered": None, **fields})
 @dataclass
 class Region:
     """An active region request: re-sent (with fresh stamps) until the vehicle answers "nothing newer"."""
@@ -58,6 +59,9 @@ class Region:
     request_id: int | None = None
     sends: int = 0
     done: bool = False
+    #: what the vehicle last answered: subgrids it queued for the region, and when
+    queued: int | None = None
+    answered: float | None = None
 
 
 @persistent("bathymetry.Held")
@@ -180,6 +184,8 @@ class BathymetryReceiver(ModalityReceiver):
             # holds now, is as good ("nothing" then is nothing now).
             region = self._by_id.get(message.request_id)
             if region is not None and not region.done:
+                region.queued = message.queued
+                region.answered = now
                 if message.queued == 0:
                     region.done = True
                 else:
@@ -234,6 +240,18 @@ class BathymetryReceiver(ModalityReceiver):
 
     def products(self) -> list[Product]:
         return [self.level_product(k) for k in sorted(self._mosaics)]
+
+    def levels(self) -> list[int]:
+        """The levels of which something is held, finest first."""
+        return sorted(k for k, held in self.held.items() if held)
+
+    def geometry(self, level: int) -> tuple[float, int] | None:
+        """``(cell size in m, subgrid side in cells)`` of a level, once a subgrid of it came."""
+        return self._geometry.get(level)
+
+    def level_version(self, level: int) -> int:
+        """Changes whenever the level's mosaic does (the version of its product)."""
+        return self._versions.get(level, 0)
 
     def origin(self) -> tuple[float, float]:
         lat, lon = self.config["origin_lat"], self.config["origin_lon"]

@@ -226,7 +226,7 @@ def build_topside(transport_uri: str | Sequence[str], host: str = "127.0.0.1", p
     from coex_core.node import Node
     from coex_core.registry import load_modality, open_transport
 
-    from .node import NodeCommands, TapReceiver, hub_hook
+    from .node import NodeCommands
     from .server import ConsoleHub, serve
     from .state import ConsoleState
 
@@ -258,7 +258,7 @@ def build_topside(transport_uri: str | Sequence[str], host: str = "127.0.0.1", p
                     log.warning("modality %s not available: %s", name, exc)
                     missing.append(f"modality {name} not available: {exc}")
                     continue
-                node.add_receiver(cls, TapReceiver(receiver, lambda msg, now: None))
+                node.add_receiver(cls, receiver)
             return node
 
         hubs: list[Any] = []
@@ -270,18 +270,18 @@ def build_topside(transport_uri: str | Sequence[str], host: str = "127.0.0.1", p
             else:
                 names = {s.id: s.config.name for s in node.manager.streams}
                 names.update(stream_names or {})
-                state = ConsoleState(node_id=node_id, vehicle_id=vehicle_id, stream_names=names)
+                state = ConsoleState(node_id=node_id, vehicle_id=vehicle_id, stream_names=names,
+                                     receivers=dict(node.receivers()))
                 for lid in transports:
                     state.set_schedule(lid, schedule)
+            # the node's receivers are what the console shows (the saved console holds the
+            # same objects as the restored node: they were saved in one document)
+            state.receivers = dict(node.receivers())
+            state.own_receivers = False
             hub = ConsoleHub(state, NodeCommands(node, clock), clock)
-            if isinstance(extra, dict):
-                hub.actions._next_request = int(extra.get("next_request", 0)) % 256
-            for name, receiver in node.receivers():
-                if isinstance(receiver, TapReceiver):
-                    receiver.on_message = hub_hook(hub)
-                    receiver = receiver.inner
-                if name == "bathymetry" and hasattr(receiver, "request_area"):
-                    hub.actions.map_receiver = state.region_source = receiver
+            rx = state.receivers.get("bathymetry")
+            if rx is not None and hasattr(rx, "request_area"):
+                hub.actions.map_receiver = state.region_source = rx
             hubs.append(hub)
 
         if store is None:
@@ -311,8 +311,7 @@ def build_topside(transport_uri: str | Sequence[str], host: str = "127.0.0.1", p
             if nstore.restored_extra is not None or nstore.stats["replayed"]:
                 state._log(clock(), f"resumed from {store}: {nstore.stats['replayed']} "
                                     "journaled frames replayed")
-            nstore.extra = lambda: {"state": hub.state,
-                                    "next_request": hub.actions._next_request}
+            nstore.extra = lambda: {"state": hub.state}
         server = serve(hub, host, port)
     except BaseException:
         for tr in transports.values():

@@ -4,8 +4,8 @@
   ids come from the node's channel manager (so its ``CommandResult`` events match), schedules go
   through ``propose_schedule`` (both ends switch on the announced cycle), everything else through
   ``node.request`` (control stream, acked, tracked until the vehicle's ``CommandAck``).
-* :func:`tap_receiver` wraps a modality receiver so the console also sees the raw messages it
-  takes (subgrids with their stamps, image fragments), not only its products.
+* :func:`attach` gives the console the node's receivers (what it shows comes from them and
+  from the node's events: it decodes nothing itself).
 * :func:`pump` moves what the node reported (``node.events()``, link state, schedules) into a
   :class:`~.state.ConsoleState`; the loop that drives the node calls it (via
   :meth:`ConsoleHub.pump <coex_plugins.console.server.ConsoleHub.pump>`).
@@ -22,13 +22,11 @@ from typing import Any
 
 from coex_core.channel.schedule import Schedule, resolve_cycle
 from coex_core.messages import Message, ScheduleUpdate
-from coex_core.modality import ModalityReceiver, Product
 
 from .hub import ConsoleHub, pump
 from .state import ConsoleState
 
-__all__ = ["NodeCommands", "TapReceiver", "attach", "drive_simulation", "hub_hook", "pump",
-           "tap_receiver"]
+__all__ = ["NodeCommands", "attach", "drive_simulation", "pump"]
 
 
 class NodeCommands:
@@ -83,57 +81,6 @@ class NodeCommands:
         return out
 
 
-class TapReceiver(ModalityReceiver):
-    """A receiver that shows every message it takes to ``on_message(msg, now)`` first."""
-
-    def __init__(self, inner: ModalityReceiver,
-                 on_message: Callable[[Message, float], Any]) -> None:
-        self.inner = inner
-        self.on_message = on_message
-
-    def receive(self, message: Message, now: float) -> list[Product]:
-        try:
-            self.on_message(message, now)
-        except Exception:  # the console must never cost the receiver a message
-            pass
-        return self.inner.receive(message, now)
-
-    def poll(self, now: float) -> list[Message]:
-        return self.inner.poll(now)
-
-    def products(self) -> list[Product]:
-        return self.inner.products()
-
-    def supersedes(self, old: Message, new: Message) -> bool:
-        return self.inner.supersedes(old, new)
-
-    def bind_command_ids(self, allocate: Callable[[], int]) -> None:
-        self.inner.bind_command_ids(allocate)
-
-    def next_command_id(self) -> int:
-        return self.inner.next_command_id()
-
-    def __getattr__(self, name: str) -> Any:  # request helpers of the wrapped receiver
-        if name in ("inner", "on_message") or name.startswith("__"):
-            raise AttributeError(name)
-        return getattr(self.inner, name)
-
-
-def hub_hook(hub: Any) -> Callable[[Message, float], Any]:
-    """What a :class:`TapReceiver` calls to show ``hub`` (a ConsoleHub, or a bare
-    ConsoleState) each raw message."""
-    if hasattr(hub, "update"):
-        return lambda msg, now: hub.update(lambda st: st.apply_message(msg, now))
-    state: ConsoleState = hub
-    return lambda msg, now: state.apply_message(msg, now)
-
-
-def tap_receiver(receiver: ModalityReceiver, hub: Any) -> TapReceiver:
-    """Wrap ``receiver`` so that ``hub`` (a ConsoleHub, or a bare ConsoleState) sees its raw
-    messages (under the hub's lock, from the thread driving the node)."""
-    return TapReceiver(receiver, hub_hook(hub))
-
-
 def attach(node: Any, clock: Callable[[], float] | None = None, *,
            map_receiver: Any = None, stream_names: dict[int, str] | None = None) -> Any:
     """A :class:`~coex_plugins.console.server.ConsoleHub` fed by a topside ``node``, whatever
@@ -143,28 +90,26 @@ def attach(node: Any, clock: Callable[[], float] | None = None, *,
       hands them to the console, and gets them back unchanged.
     * Commands from the page are queued (:class:`NodeCommands` with ``deferred``) and sent by
       that same ``node.events()`` call, in the thread driving the node.
-    * Receivers already added to the node are wrapped with :func:`tap_receiver` (the map sees
-      subgrid stamps, the images their fragments); a bathymetry receiver becomes the map-region
-      path unless ``map_receiver`` is given.
+    * The console shows the node's receivers (products from ``ProductUpdated`` events, and what
+      the receivers hold: subgrid stamps and ages, image bytes); the bathymetry receiver is the
+      map-region path unless ``map_receiver`` is given. Modalities without a panel of their own
+      go to the generic panel.
 
     ``clock`` (``now`` of commands) defaults to the newest event time the console has seen."""
     mgr = node.manager
     names = {q.id: q.config.name for q in mgr.streams}
     names.update(stream_names or {})
+    receivers = dict(node.receivers())
     state = ConsoleState(node_id=node.node_id, stream_names=names,
-                         schedules={link: mgr.schedule(link) for link in mgr.links})
+                         schedules={link: mgr.schedule(link) for link in mgr.links},
+                         receivers=receivers)
     now_of = clock or (lambda: state.now)
     commands = NodeCommands(node, now_of, deferred=True)
     hub = ConsoleHub(state, commands, now_of, map_receiver=map_receiver)
     commands.on_sent = lambda built, sent: hub.update(
         lambda st: st.replace_command(built, sent, now_of()))
-    for slot in getattr(node, "_receivers", ()):
-        inner = slot.receiver
-        if isinstance(inner, TapReceiver):
-            inner = inner.inner
-        slot.receiver = tap_receiver(inner, hub)
-        if map_receiver is None and hasattr(inner, "request_area"):
-            hub.actions.map_receiver = inner
+    if map_receiver is None:
+        hub.actions.map_receiver = receivers.get("bathymetry")
     state.region_source = hub.actions.map_receiver
     original = getattr(node.events, "_coex_original", node.events)
 

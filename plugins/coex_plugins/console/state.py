@@ -40,12 +40,11 @@ __all__ = [
 ]
 
 #: The sections of a snapshot, in the order the page lays them out.
-SECTIONS = ("vehicle", "map", "images", "series", "link", "queues", "commands", "log")
+SECTIONS = ("vehicle", "map", "images", "series", "other", "link", "queues", "commands", "log")
 
-#: Largest region one MapRoiRequest may list stamps for (the wire format's limit).
-MAX_ROI_HELD = 64
-#: Largest side of a gap-filling request.
-MAX_ROI_SIDE = 16
+#: Modalities with a panel of their own; the products of any other go to the generic panel.
+OWN_PANELS = ("bathymetry", "imagery", "timeseries")
+
 #: Refuse a region of more than this many subgrids (split into many requests otherwise).
 MAX_ROI_SUBGRIDS = 64 * 64
 
@@ -120,30 +119,6 @@ def _num(x: float | None, nd: int = 3) -> float | None:
 # ---------------------------------------------------------------------------- map model
 
 
-@persistent("console.Tile")
-@dataclass
-class _Tile:
-    stamp: int
-    t: float
-    received: float
-    z: FloatArray
-
-
-@persistent("console.Level")
-@dataclass
-class _Level:
-    level: int
-    cell: float
-    side: int
-    tiles: dict[tuple[int, int], _Tile] = field(default_factory=dict)
-    version: int = 0
-    png: bytes | None = None
-    png_version: int = -1
-    summary: tuple[int, Any, Any, int] | None = None
-    #: Fed by raw Subgrid messages (exact stamps), not by assembled level products.
-    raw: bool = False
-
-
 @persistent("console.RoiRequest")
 @dataclass
 class _RoiRequest:
@@ -167,9 +142,7 @@ class _RoiRequest:
 @dataclass
 class _Image:
     image_id: int
-    announce: m.ImageAnnounce | None = None
     t: float | None = None
-    ranges: list[tuple[int, int]] = field(default_factory=list)
     goal: tuple[str, int] | None = None
     version: int = 0
     thumb: bytes | None = None
@@ -178,20 +151,6 @@ class _Image:
     decoded_version: int = -1
     decoded_meta: dict[str, Any] = field(default_factory=dict)
 
-    @property
-    def bytes_received(self) -> int:
-        return sum(b - a for a, b in self.ranges)
-
-    def add_range(self, a: int, b: int) -> bool:
-        before = self.bytes_received
-        merged: list[tuple[int, int]] = []
-        for s, e in sorted([*self.ranges, (a, b)]):
-            if merged and s <= merged[-1][1]:
-                merged[-1] = (merged[-1][0], max(merged[-1][1], e))
-            else:
-                merged.append((s, e))
-        self.ranges = merged
-        return self.bytes_received != before
 
 
 @persistent("console.Command")
@@ -226,6 +185,7 @@ class ConsoleState:
         max_track: int = 5000,
         max_log: int = 200,
         auto_targets: bool = True,
+        receivers: Mapping[str, Any] | None = None,
     ) -> None:
         self.node_id = node_id
         self.vehicle_id = vehicle_id
@@ -236,9 +196,15 @@ class ConsoleState:
         self.status: m.VehicleStatus | None = None
         self.status_t: float | None = None
         self.track: deque[tuple[float, float, float, float]] = deque(maxlen=max_track)
-        # map
-        self.map_meta: m.MapMetadata | None = None
-        self.levels: dict[int, _Level] = {}
+        #: modality name -> its topside receiver: a node's (the console shows what they hold
+        #: and never decodes anything itself), or, without ``receivers``, the console's own,
+        #: made from the registry when a modality's first message arrives (a view of raw
+        #: messages: a log replay, a test)
+        self.receivers: dict[str, Any] = dict(receivers or {})
+        self.own_receivers = receivers is None
+        # map (the bathymetry receiver's levels)
+        self._map_summary: dict[int, tuple[int, Any, Any, int]] = {}
+        self._png: dict[int, tuple[int, bytes]] = {}
         self.targets: list[dict[str, Any]] = []
         #: Flag candidate targets on the finest level (threshold in metres, minimum cells).
         self.auto_targets = auto_targets
@@ -254,7 +220,7 @@ class ConsoleState:
         self._region_ids: set[int] = set()
         #: A bathymetry receiver whose operator regions (not its automatic gap filling) are
         #: shown even when someone else asked for them (a script, another tool).
-        self.region_source: Any = None
+        self.region_source: Any = self.receivers.get("bathymetry")
         self._zrange: tuple[float, float] | None = None
         # images
         self.images: dict[int, _Image] = {}
@@ -263,6 +229,8 @@ class ConsoleState:
         # series
         self.series: dict[int, dict[str, Any]] = {}
         self.series_requests: list[dict[str, Any]] = []
+        # other modalities: name -> product key -> what the generic panel shows
+        self.other: dict[str, dict[str, dict[str, Any]]] = {}
         # link
         self.links: dict[int, dict[str, Any]] = {}
         self.schedules: dict[int, dict[str, Any]] = {}
@@ -305,7 +273,35 @@ class ConsoleState:
         handler = _HANDLERS.get(type(msg))
         if handler is not None:
             handler(self, msg, now, link)
+        elif self.own_receivers:  # a node's receivers get their messages from the node
+            name = _modality_of(msg)
+            rx = self._receiver(name) if name is not None else None
+            if rx is not None:
+                for p in rx.receive(msg, now) or ():
+                    self.apply_product(name, p, now)
         return {s for s in SECTIONS if self.versions[s] != before[s]}
+
+    def _receiver(self, name: str | None) -> Any:
+        """The receiver of modality ``name``: the node's, or one the console makes (view of raw
+        messages) from the registry (None when the modality is not installed)."""
+        if name is None:
+            return None
+        rx = self.receivers.get(name)
+        if rx is None and self.own_receivers:
+            from coex_core.registry import load_modality
+
+            try:
+                rx = self.receivers[name] = load_modality(name)().receiver()
+            except Exception:
+                return None
+            if name == "bathymetry":
+                self.region_source = rx
+        return rx
+
+    @property
+    def map_receiver(self) -> Any:
+        """The bathymetry receiver whose levels the map shows (None before any)."""
+        return self.receivers.get("bathymetry")
 
     def apply_messages(self, msgs: Iterable[m.Message], now: float,
                        link: int | None = None) -> set[str]:
@@ -321,7 +317,9 @@ class ConsoleState:
         kind = str(getattr(product, "kind", ""))
         data = getattr(product, "data", None)
         meta = dict(getattr(product, "meta", {}) or {})
-        if kind == "series":
+        if modality not in OWN_PANELS:
+            self._other_product(modality, product, meta)
+        elif kind == "series":
             self._series_product(data, meta)
         elif kind == "image":
             self._image_product(product, data, meta, now)
@@ -332,10 +330,8 @@ class ConsoleState:
             self._touch("images")
         elif "target" in kind:
             self._targets_product(data, meta)
-        elif kind.startswith("map") and isinstance(data, m.Subgrid):
-            self._on_subgrid(data, now, None)
         elif kind == "map-level" and hasattr(data, "shape"):
-            self._map_level_product(np.asarray(data, float), meta, now)
+            self._map_product(np.asarray(data, float))
         return {s for s in SECTIONS if self.versions[s] != before[s]}
 
     def apply_event(self, event: Any) -> set[str]:
@@ -411,110 +407,32 @@ class ConsoleState:
         self._touch("vehicle")
 
     # -------------------------------------------------------------------------- map
-    def _on_meta(self, meta: m.MapMetadata, now: float) -> None:
-        self.map_meta = meta
-        self._touch("map")
-
-    def _on_subgrid(self, sg: m.Subgrid, now: float, link: int | None) -> None:
-        t = unwrap(sg.stamp, now)
-        lv = self.levels.get(sg.level)
-        cell = float(sg.resolution) * 2 ** sg.level
-        if lv is None or lv.side != sg.side or not math.isclose(lv.cell, cell) or not lv.raw:
-            lv = self.levels[sg.level] = _Level(sg.level, cell, sg.side, raw=True)
-        old = lv.tiles.get((sg.ix, sg.iy))
-        if old is not None and old.t >= t:
-            return  # duplicate or older
-        z = _decode_subgrid(sg)
-        lv.tiles[(sg.ix, sg.iy)] = _Tile(sg.stamp, t, now, z)
-        lv.version += 1
-        if np.isfinite(z).any():
-            lo, hi = float(np.nanmin(z)), float(np.nanmax(z))
-            if self._zrange is None:
-                self._zrange = (lo, hi)
-            else:
-                self._zrange = (min(self._zrange[0], lo), max(self._zrange[1], hi))
-        for req in self.roi.values():
-            key = (sg.ix - req.x0, sg.iy - req.y0)
-            if (req.level == sg.level and 0 <= key[0] < req.w and 0 <= key[1] < req.h
-                    and req.status in ("requested", "queued", "partial")):
-                req.received += 1
-                expected = req.queued if req.queued else req.w * req.h
-                req.status = "received" if req.received >= expected else "partial"
-                if req.status == "received":
-                    req.done_at = now
-                self._touch("commands")
-        self._touch("map")
-
-    def _on_roi_reply(self, r: m.MapRoiReply, now: float) -> None:
-        req = next((q for q in self.roi.values()
-                    if (q.region.request_id if q.region is not None else q.request_id)
-                    == r.request_id and q.level == r.level), None)
-        if req is None:
-            return
-        req.queued = r.queued
-        if r.queued == 0:
-            req.status, req.done_at = "nothing newer", now
-        elif req.received >= r.queued:
-            req.status, req.done_at = "received", now
-        elif req.status == "requested":
-            req.status = "queued"
-        self._touch("map", "commands")
-        self._log(now, f"map request {r.request_id}: {r.queued} subgrids queued")
-
-    def _map_level_product(self, z: FloatArray, meta: dict[str, Any], now: float) -> None:
-        """A bathymetry receiver's assembled level, for when its raw subgrids are not tapped
-        (every held subgrid gets the level's newest time: ages are approximate)."""
-        try:
-            level, cell = int(meta["level"]), float(meta["cell_size"])
-            x0, y0 = float(meta["x0"]), float(meta["y0"])
-        except (KeyError, TypeError, ValueError):
-            return
-        lv = self.levels.get(level)
-        if lv is not None and lv.raw:
-            return  # the raw subgrids (with their own stamps) are the better source
-        side = self.map_meta.subgrid_side if self.map_meta else (lv.side if lv else 8)
-        ny, nx = z.shape[0] // side, z.shape[1] // side
-        if ny * nx == 0 or z.shape != (ny * side, nx * side):
-            return
-        ix0, iy0 = round(x0 / (side * cell)), round(y0 / (side * cell))
-        t = float(meta.get("newest") or now)
-        blocks = z.reshape(ny, side, nx, side).swapaxes(1, 2)
-        held = np.isfinite(blocks).any(axis=(2, 3))
-        version = lv.version + 1 if lv is not None else 1
-        lv = self.levels[level] = _Level(level, cell, side, version=version)
-        for i, j in zip(*np.nonzero(held)):
-            lv.tiles[(ix0 + int(j), iy0 + int(i))] = _Tile(to_stamp(t), t, now,
-                                                           blocks[i, j].copy())
-        if np.isfinite(z).any():
-            lo, hi = float(np.nanmin(z)), float(np.nanmax(z))
+    def _map_product(self, z: FloatArray) -> None:
+        """A level of the bathymetry receiver changed: its depth range widens the colour scale."""
+        finite = z[np.isfinite(z)]
+        if finite.size:
+            lo, hi = float(finite.min()), float(finite.max())
             zr = self._zrange or (lo, hi)
             self._zrange = (min(zr[0], lo), max(zr[1], hi))
         self._touch("map")
 
     def held_stamps(self, level: int, x0: int, y0: int, w: int, h: int) -> list[int | None]:
         """Per subgrid of the region, row-major (rows = y): the stamp topside holds, or None."""
-        lv = self.levels.get(level)
-        out: list[int | None] = []
-        for iy in range(y0, y0 + h):
-            for ix in range(x0, x0 + w):
-                tile = lv.tiles.get((ix, iy)) if lv else None
-                out.append(tile.stamp if tile else None)
-        return out
+        rx = self.map_receiver
+        held = rx.holdings(level) if rx is not None else {}
+        return [held.get((ix, iy)) for iy in range(y0, y0 + h) for ix in range(x0, x0 + w)]
 
     def level_grid(self, level: int) -> tuple[FloatArray, float, float, float] | None:
-        """The assembled level: ``(z, x0, y0, cell)`` with row 0 = south, or None if empty."""
-        lv = self.levels.get(level)
-        if lv is None or not lv.tiles:
+        """A copy of the receiver's level: ``(z, x0, y0, cell)`` with row 0 = south, or None
+        if nothing of it is held."""
+        rx = self.map_receiver
+        if rx is None or level not in rx.levels():
             return None
-        keys = np.array(list(lv.tiles.keys()), np.int64)
-        ixmin, iymin = keys.min(axis=0)
-        ixmax, iymax = keys.max(axis=0)
-        s = lv.side
-        z = np.full(((iymax - iymin + 1) * s, (ixmax - ixmin + 1) * s), np.nan)
-        for (ix, iy), tile in lv.tiles.items():
-            r, c = (iy - iymin) * s, (ix - ixmin) * s
-            z[r:r + s, c:c + s] = tile.z
-        return z, float(ixmin * s * lv.cell), float(iymin * s * lv.cell), lv.cell
+        p = rx.level_product(level)
+        z = np.array(p.data, dtype=float)
+        if not np.isfinite(z).any():
+            return None
+        return z, float(p.meta["x0"]), float(p.meta["y0"]), float(p.meta["cell_size"])
 
     def map_png(self, level: int) -> bytes | None:
         """The level as a PNG (colour ramp + hillshade, north up, transparent where empty)."""
@@ -527,22 +445,23 @@ class ConsoleState:
         """``(png, None)`` when the picture of the level is current, else ``(None, render)``:
         ``render()`` draws it from a copy of the grid (no need to hold a lock while it runs)
         and keeps it for the next call."""
-        lv = self.levels.get(level)
-        if lv is None:
+        rx = self.map_receiver
+        if rx is None:
             return None, None
-        if lv.png is not None and lv.png_version == lv.version:
-            return lv.png, None
+        version = rx.level_version(level)
+        cached = self._png.get(level)
+        if cached is not None and cached[0] == version:
+            return cached[1], None
         grid = self.level_grid(level)
         if grid is None:
             return None, None
         z, _, _, cell = grid
         lo, hi = self._zrange or (0.0, 1.0)
-        version = lv.version
 
         def render() -> bytes:
             png = png_bytes(elevation_rgb(z, lo, hi, cell))
-            if lv.png_version < version:
-                lv.png, lv.png_version = png, version
+            if level not in self._png or self._png[level][0] < version:
+                self._png[level] = (version, png)
             return png
 
         return None, render
@@ -553,25 +472,6 @@ class ConsoleState:
         if img is None:
             img = self.images[image_id] = _Image(image_id)
         return img
-
-    def _on_announce(self, a: m.ImageAnnounce, now: float) -> None:
-        img = self._image(a.image_id)
-        if img.announce != a:
-            img.announce, img.t = a, unwrap(a.stamp, now)
-            img.version += 1
-            self._touch("images")
-
-    def _on_fragment(self, f: m.ImageFragment, now: float) -> None:
-        img = self._image(f.image_id)
-        if img.add_range(f.offset, f.offset + len(f.data)):
-            img.version += 1
-            self._touch("images")
-
-    def _on_progress(self, p: m.TransferProgress, now: float) -> None:
-        self.progress_info = {"pending": p.pending, "current": p.current,
-                              "unacked_fragments": p.unacked_fragments,
-                              "next": list(p.next_images)}
-        self._touch("images")
 
     def _image_product(self, product: Any, data: Any, meta: dict[str, Any], now: float) -> None:
         iid = meta.get("image_id")
@@ -607,11 +507,6 @@ class ConsoleState:
         return img.thumb
 
     # ------------------------------------------------------------------ time series
-    def _on_channel(self, c: m.TimeSeriesChannel, now: float) -> None:
-        s = self.series.setdefault(c.channel, {"channel": c.channel})
-        s.update(name=c.name, unit=c.unit, lo=c.lo, hi=c.hi, resolution=c.resolution)
-        self._touch("series")
-
     def _series_product(self, data: Any, meta: dict[str, Any]) -> None:
         cid = int(meta.get("channel", getattr(data, "channel", -1)))
         if cid < 0:
@@ -636,6 +531,26 @@ class ConsoleState:
                             if isinstance(v, int | float | str | bool)})
         self.targets = out
         self._touch("map")
+
+    # ------------------------------------------------------------ other modalities
+    def _other_product(self, modality: str, product: Any, meta: dict[str, Any]) -> None:
+        """A product of a modality without a panel of its own: the generic panel shows its
+        kind, key, version and the receiver's ``view`` of it (else its plain metadata)."""
+        view: Any = None
+        show = getattr(self.receivers.get(modality), "view", None)
+        if callable(show):
+            try:
+                view = show(product)
+            except Exception as exc:  # a plugin's view must never stop the console
+                view = {"error": f"view failed: {exc}"}
+        shown = view if isinstance(view, Mapping) else meta
+        fields = {str(k): (_num(v) if isinstance(v, float) else v) for k, v in shown.items()
+                  if v is None or isinstance(v, int | float | str | bool)}
+        self.other.setdefault(modality, {})[str(getattr(product, "key", ""))] = {
+            "kind": str(getattr(product, "kind", "")), "key": str(getattr(product, "key", "")),
+            "version": int(getattr(product, "version", 0)), "fields": fields,
+            "t": _num(self.now, 1)}
+        self._touch("other")
 
     # -------------------------------------------------------------------------- link
     def _link(self, link: int) -> dict[str, Any]:
@@ -674,19 +589,12 @@ class ConsoleState:
         if cid is None:
             return
         kind = type(msg).__name__
-        key = (0 if isinstance(msg, m.MapRoiRequest) else 256) + int(cid)
+        key = 256 + int(cid)
         self.commands[key] = _Command(int(cid), kind, summary or kind, now, msg)
         if key in self.command_order:
             self.command_order.remove(key)
         self.command_order.append(key)
-        if isinstance(msg, m.MapRoiRequest):
-            self.commands[key].roi_key = msg.request_id
-            held = dict(zip(((ix, iy) for iy in range(msg.y0, msg.y0 + msg.h)
-                             for ix in range(msg.x0, msg.x0 + msg.w)), msg.held or ()))
-            self.roi[msg.request_id] = _RoiRequest(msg.request_id, msg.level, msg.x0, msg.y0,
-                                                   msg.w, msg.h, now, held)
-            self._touch("map")
-        elif isinstance(msg, m.ImageGoal):
+        if isinstance(msg, m.ImageGoal):
             self._image(msg.image_id).goal = (msg.kind.name, msg.value)
             self._touch("images")
         elif isinstance(msg, m.ImageByTimeRequest):
@@ -814,30 +722,36 @@ class ConsoleState:
         return {"status": status, "track": [[_num(t, 1), x, y, d] for t, x, y, d in track]}
 
     def _snap_map(self) -> dict[str, Any]:
+        rx = self.map_receiver
         levels = []
-        for lv in sorted(self.levels.values(), key=lambda v: -v.level):
-            if not lv.tiles:
+        for level in sorted(rx.levels(), reverse=True) if rx is not None else ():
+            geometry = rx.geometry(level)
+            if geometry is None:
                 continue
-            if lv.summary is None or lv.summary[0] != lv.version:
-                lv.summary = (lv.version,
-                              np.array(list(lv.tiles.keys()), np.int64),
-                              np.array([tile.t for tile in lv.tiles.values()]),
-                              int(sum(int(np.isfinite(tile.z).sum())
-                                      for tile in lv.tiles.values())))
-            _, keys, ts, cells = lv.summary
-            s, c = lv.side, lv.cell
+            c, side = geometry
+            version = rx.level_version(level)
+            cached = self._map_summary.get(level)
+            if cached is None or cached[0] != version:
+                held = rx.held[level]
+                cached = (version, np.array(list(held.keys()), np.int64),
+                          np.array([h.stamp for h in held.values()], float),
+                          int(sum(int(np.isfinite(h.values).sum()) for h in held.values())))
+                self._map_summary[level] = cached
+            _, keys, ts, cells = cached
+            if not len(keys):
+                continue
             levels.append({
-                "level": lv.level, "cell": c, "side": s, "subgrids": len(lv.tiles),
+                "level": level, "cell": c, "side": side, "subgrids": len(keys),
                 "cells": cells, "coverage_m2": cells * c * c,
-                "x0": float(keys[:, 0].min() * s * c), "y0": float(keys[:, 1].min() * s * c),
-                "x1": float((keys[:, 0].max() + 1) * s * c),
-                "y1": float((keys[:, 1].max() + 1) * s * c),
+                "x0": float(keys[:, 0].min() * side * c), "y0": float(keys[:, 1].min() * side * c),
+                "x1": float((keys[:, 0].max() + 1) * side * c),
+                "y1": float((keys[:, 1].max() + 1) * side * c),
                 "newest_age": _num(self.now - float(ts.max()), 1),
                 "oldest_age": _num(self.now - float(ts.min()), 1),
-                "version": lv.version, "png": f"/map/{lv.level}.png?v={lv.version}",
+                "version": version, "png": f"/map/{level}.png?v={version}",
                 "tiles": np.column_stack([keys, np.round(self.now - ts)]).astype(int).tolist(),
             })
-        meta = self.map_meta
+        meta = rx.metadata if rx is not None else None
         zr = self._zrange
         return {
             "meta": None if meta is None else {
@@ -854,19 +768,22 @@ class ConsoleState:
     def _auto_targets(self) -> list[dict[str, Any]]:
         """Candidate targets flagged on the finest level held at 2 m or better (cells standing
         out from their surroundings, the bathymetry plugin's ``find_targets``)."""
-        fine = [lv for lv in self.levels.values() if lv.tiles and lv.cell <= 2.0]
-        if not self.auto_targets or not fine:
+        rx = self.map_receiver
+        if not self.auto_targets or rx is None:
             return []
-        lv = min(fine, key=lambda v: v.level)
-        key = (lv.level, lv.version)
+        fine = [lv for lv in rx.levels() if (rx.geometry(lv) or (99.0, 0))[0] <= 2.0]
+        if not fine:
+            return []
+        level = min(fine)
+        version, count = rx.level_version(level), len(rx.held.get(level, {}))
         last = self._targets_cache[0]
         # a big map changes with every subgrid: look again once 5% more of it has come in
-        stale = (last is None or last[0] != lv.level or lv.version < last[1]
-                 or lv.version - last[1] >= max(1, len(lv.tiles) // 20))
+        stale = (last is None or last[0] != level or version < last[1]
+                 or version - last[1] >= max(1, count // 20))
         if stale:
             from coex_plugins.bathymetry import find_targets
 
-            grid = self.level_grid(lv.level)
+            grid = self.level_grid(level)
             found: list[dict[str, Any]] = []
             if grid is not None:
                 z, x0, y0, cell = grid
@@ -880,40 +797,51 @@ class ConsoleState:
                         continue  # one marker per object
                     found.append({"x": _num(c.x, 1), "y": _num(c.y, 1),
                                   "height": _num(c.height, 2), "cells": int(c.cells),
-                                  "level": lv.level, "auto": True})
-            self._targets_cache = (key, found)
+                                  "level": level, "auto": True})
+            self._targets_cache = ((level, version), found)
         return list(self._targets_cache[1])
 
     def _snap_roi(self, r: _RoiRequest) -> dict[str, Any]:
-        lv = self.levels.get(r.level)
-        side = lv.side if lv else (self.map_meta.subgrid_side if self.map_meta else 8)
-        res = (lv.cell if lv else (self.map_meta.resolution * 2 ** r.level
-                                    if self.map_meta else 2.0 ** r.level))
-        span = side * res
-        rid = r.request_id
-        status = r.status
-        if r.region is not None:
-            rid = r.region.request_id if r.region.request_id is not None else -1
-            if r.region.sends == 0 and status == "requested":
+        """A region request as the bathymetry receiver sends and retries it: ``waiting`` (not
+        sent yet), ``sent``, ``queued`` (the vehicle queued ``queued`` subgrids for it; asked
+        again until it has nothing newer) or ``nothing newer`` (done)."""
+        rx = self.map_receiver
+        geometry = rx.geometry(r.level) if rx is not None else None
+        meta = rx.metadata if rx is not None else None
+        if geometry is not None:
+            span = geometry[0] * geometry[1]
+        elif meta is not None:
+            span = meta.resolution * 2 ** r.level * meta.subgrid_side
+        else:
+            span = 8.0 * 2 ** r.level
+        region = r.region
+        rid, status, queued = r.request_id, r.status, r.queued
+        if region is not None:
+            rid = region.request_id if region.request_id is not None else -1
+            queued = getattr(region, "queued", None)
+            if region.done:
+                status = "nothing newer" if not queued else "received"
+            elif queued:
+                status = "queued"
+            elif region.sends:
+                status = "sent"
+            else:
                 status = "waiting"
         return {"request_id": rid, "level": r.level, "x0": r.x0, "y0": r.y0,
-                "w": r.w, "h": r.h, "status": status, "queued": r.queued,
-                "received": r.received, "sent": _num(r.sent, 1),
+                "w": r.w, "h": r.h, "status": status, "queued": queued,
+                "sent": _num(r.sent, 1),
                 "rect": [r.x0 * span, r.y0 * span, (r.x0 + r.w) * span, (r.y0 + r.h) * span]}
 
     def _snap_images(self) -> dict[str, Any]:
         items = []
         for img in sorted(self.images.values(), key=lambda i: (i.t or 0, i.image_id)):
-            a = img.announce
             info = img.decoded_meta
-            total = a.total_bytes if a else info.get("total_bytes")
-            got = max(img.bytes_received, int(info.get("held_bytes", 0) or 0))
+            total = info.get("total_bytes")
+            got = int(info.get("held_bytes", 0) or 0)
             items.append({
                 "image_id": img.image_id, "t": _num(img.t, 1),
-                "stamp": a.stamp if a else info.get("stamp"),
-                "x": a.x if a else info.get("x"), "y": a.y if a else info.get("y"),
-                "width": a.width if a else info.get("width"),
-                "height": a.height if a else info.get("height"),
+                "stamp": info.get("stamp"), "x": info.get("x"), "y": info.get("y"),
+                "width": info.get("width"), "height": info.get("height"),
                 "total_bytes": total, "bytes_received": got,
                 "fraction": _num(got / total, 3) if total else None,
                 "goal": None if img.goal is None else {"kind": img.goal[0], "value": img.goal[1]},
@@ -952,6 +880,11 @@ class ConsoleState:
                 d["samples"] = int(s["times"].size)
             chans.append(d)
         return {"channels": chans, "requests": self.series_requests[-20:]}
+
+    def _snap_other(self) -> dict[str, Any]:
+        return {"modalities": [
+            {"name": name, "products": sorted(products.values(), key=lambda p: p["key"])[-50:]}
+            for name, products in sorted(self.other.items())]}
 
     def _snap_link(self) -> dict[str, Any]:
         links = []
@@ -994,26 +927,40 @@ class ConsoleState:
 
 _HANDLERS: dict[type, Callable[[ConsoleState, Any, float, int | None], None]] = {
     m.VehicleStatus: lambda s, msg, now, link: s._on_status(msg, now),
-    m.MapMetadata: lambda s, msg, now, link: s._on_meta(msg, now),
-    m.Subgrid: lambda s, msg, now, link: s._on_subgrid(msg, now, link),
-    m.MapRoiReply: lambda s, msg, now, link: s._on_roi_reply(msg, now),
-    m.ImageAnnounce: lambda s, msg, now, link: s._on_announce(msg, now),
-    m.ImageFragment: lambda s, msg, now, link: s._on_fragment(msg, now),
-    m.TransferProgress: lambda s, msg, now, link: s._on_progress(msg, now),
-    m.TimeSeriesChannel: lambda s, msg, now, link: s._on_channel(msg, now),
     m.LinkStatus: lambda s, msg, now, link: s._on_link_status(msg, now),
     m.QueueStatus: lambda s, msg, now, link: s._on_queue_status(msg, now),
     m.CommandAck: lambda s, msg, now, link: s._on_command_ack(msg, now),
 }
 
 
-def _decode_subgrid(sg: m.Subgrid) -> FloatArray:
-    """Elevations of a subgrid (row 0 = south), with the bathymetry plugin's decoder."""
-    from coex_plugins.bathymetry import decode_subgrid
-
-    return np.asarray(decode_subgrid(sg), float)
+_MODALITY_OF: dict[Any, str] | None = None
 
 
+def _modality_of(msg: m.Message) -> str | None:
+    """The installed modality whose receiver takes ``msg`` (by type, or by type id for the
+    opaque messages of third-party plugins), from the registry."""
+    global _MODALITY_OF
+    if _MODALITY_OF is None:
+        from coex_core.registry import available, load_modality
+
+        table: dict[Any, str] = {}
+        for info in available(check=False):
+            if info.group != "coex.modalities":
+                continue
+            try:
+                cls = load_modality(info.name)
+            except Exception:
+                continue
+            for t in getattr(cls, "messages", ()):
+                table.setdefault(t, info.name)
+            for tid in getattr(cls, "opaque_messages", ()):
+                table.setdefault(("opaque", int(tid)), info.name)
+        _MODALITY_OF = table
+    if isinstance(msg, m.Opaque):
+        name = _MODALITY_OF.get(("opaque", int(msg.type_id)))
+        if name is not None:
+            return name
+    return _MODALITY_OF.get(type(msg))
 
 
 # ----------------------------------------------------------------------------- actions
@@ -1037,7 +984,6 @@ class ConsoleActions:
         self.send = send
         self.clock = clock
         self._next_id = first_command_id % 256
-        self._next_request = first_command_id % 256
 
     def _cid(self) -> int:
         source = getattr(self.send, "next_command_id", None)
@@ -1061,9 +1007,10 @@ class ConsoleActions:
     def request_region(self, level: int, x_min: float, y_min: float, x_max: float,
                        y_max: float, *, fill_gaps: bool = False) -> list[Any]:
         """Request the map at ``level`` over the rectangle ``[x_min, x_max] x [y_min, y_max]``
-        (metres). The rectangle is cut into requests of at most 8 x 8 subgrids (16 x 16 with
-        ``fill_gaps``), each listing what topside holds, so the vehicle sends only what is newer
-        or missing."""
+        (metres) through the node's bathymetry receiver (:attr:`map_receiver`), which cuts it
+        into requests listing what topside holds (or, with ``fill_gaps``, a bitmap of it), so
+        the vehicle sends only what is newer or missing, numbers them and retries them until
+        the vehicle has nothing newer. Returns the receiver's regions."""
         level = int(level)
         if not 0 <= level <= 15:
             raise RequestRejected(f"level {level} outside 0..15")
@@ -1072,52 +1019,20 @@ class ConsoleActions:
             raise RequestRejected("region corners must be finite numbers")
         x_min, x_max = sorted(vals[0::2])
         y_min, y_max = sorted(vals[1::2])
-        if self.map_receiver is not None:
-            regions = list(self.map_receiver.request_area(level, x_min, y_min, x_max, y_max,
-                                                          fill_gaps=bool(fill_gaps)))
-            self.state.record_regions(regions, self.clock(), f"map level {level}"
-                                      + (" (gaps)" if fill_gaps else ""))
-            return regions
-        lv = self.state.levels.get(level)
-        meta = self.state.map_meta
-        if lv is not None:
-            side, cell = lv.side, lv.cell
-        elif meta is not None:
-            side, cell = meta.subgrid_side, meta.resolution * 2 ** level
-        else:
-            other = next(iter(self.state.levels.values()), None)
-            if other is None:
-                raise RequestRejected("no map geometry yet (no MapMetadata or subgrid received)")
-            side, cell = other.side, other.cell / 2 ** other.level * 2 ** level
-        span = side * cell
-        ix0, iy0 = math.floor(x_min / span), math.floor(y_min / span)
-        ix1, iy1 = math.floor(x_max / span), math.floor(y_max / span)
+        rx = self.map_receiver
+        if rx is None:
+            raise RequestRejected("map requests need a topside node with a bathymetry receiver")
+        ix0, iy0 = rx.subgrid_index(level, x_min, y_min)  # the receiver's own indexing
+        ix1, iy1 = rx.subgrid_index(level, x_max, y_max)
         nx, ny = ix1 - ix0 + 1, iy1 - iy0 + 1
         if nx * ny > MAX_ROI_SUBGRIDS:
             raise RequestRejected(f"region of {nx} x {ny} subgrids at level {level} is too large")
         if not (-8192 <= ix0 and ix1 < 8192 and -8192 <= iy0 and iy1 < 8192):
             raise RequestRejected("region outside the map's index range")
-        step = MAX_ROI_SIDE if fill_gaps else 8
-        msgs: list[m.MapRoiRequest] = []
-        texts: list[str] = []
-        for y in range(iy0, iy1 + 1, step):
-            for x in range(ix0, ix1 + 1, step):
-                w, h = min(step, ix1 + 1 - x), min(step, iy1 + 1 - y)
-                held = self.state.held_stamps(level, x, y, w, h)
-                rid = self._next_request
-                self._next_request = (rid + 1) % 256
-                if fill_gaps:
-                    have = 0
-                    for k, st in enumerate(held):
-                        if st is not None:
-                            have |= 1 << (w * h - 1 - k)
-                    msg = m.MapRoiRequest(rid, level, x, y, w, h, True, (), have)
-                else:
-                    msg = m.MapRoiRequest(rid, level, x, y, w, h, False, tuple(held))
-                msgs.append(msg)
-                texts.append(f"map level {level} subgrids [{x}..{x + w - 1}] x "
-                             f"[{y}..{y + h - 1}]{' (gaps)' if fill_gaps else ''}")
-        return self._emit(msgs, texts)
+        regions = list(rx.request_area(level, x_min, y_min, x_max, y_max, fill_gaps=bool(fill_gaps)))
+        self.state.record_regions(regions, self.clock(), f"map level {level}"
+                                  + (" (gaps)" if fill_gaps else ""))
+        return regions
 
     # ----------------------------------------------------------------------- images
     def set_image_goal(self, image_id: int, kind: str, value: int = 0) -> m.ImageGoal:

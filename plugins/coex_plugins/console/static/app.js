@@ -2,7 +2,7 @@
 // Plain browser JavaScript, no build step, no external resources.
 "use strict";
 
-const S = { now: 0, vehicle: null, map: null, images: null, series: null, link: null,
+const S = { now: 0, vehicle: null, map: null, images: null, series: null, other: null, link: null,
   queues: null, commands: [], log: [], versions: {} };
 const $ = (sel) => document.querySelector(sel);
 const el = (tag, attrs = {}, ...kids) => {
@@ -178,13 +178,13 @@ function drawMap() {
     }
     for (const r of m.requests) {
       const [ax, ay] = w2s(r.rect[0], r.rect[3]), [bx, by] = w2s(r.rect[2], r.rect[1]);
-      const style = { requested: ["#f0b443", [6, 4]], queued: ["#f0b443", [6, 4]],
-        partial: ["#e8e05a", []], received: ["#58c47c", []], "nothing newer": ["#c0c8d8", [3, 3]] }[r.status] || ["#f0b443", [6, 4]];
+      const style = { waiting: ["#f0b443", [6, 4]], sent: ["#f0b443", [6, 4]],
+        queued: ["#e8e05a", []], "nothing newer": ["#58c47c", []] }[r.status] || ["#f0b443", [6, 4]];
       ctx.strokeStyle = style[0]; ctx.setLineDash(style[1]); ctx.lineWidth = 2;
       ctx.strokeRect(ax, ay, bx - ax, by - ay);
       ctx.setLineDash([]);
       ctx.fillStyle = style[0]; ctx.font = "11px system-ui";
-      ctx.fillText(`L${r.level} ${r.status}${r.received ? ` (${r.received})` : ""}`, ax + 3, ay + 12);
+      ctx.fillText(`L${r.level} ${r.status}${r.queued ? ` (${r.queued})` : ""}`, ax + 3, ay + 12);
     }
   }
   if (S.vehicle && $("#show-track").checked) drawTrack();
@@ -687,8 +687,22 @@ function renderLog() {
     el("span", { class: "t" }, fmtT(l.t)), l.text)));
 }
 
+// products of modalities the page has no panel for (a third-party plugin): a generic table
+function renderOther() {
+  const mods = (S.other && S.other.modalities) || [];
+  $("#other-panel").classList.toggle("hidden", !mods.length);
+  $("#other").replaceChildren(...mods.map((mod) => el("div", { class: "other-mod" },
+    el("h3", {}, mod.name),
+    el("table", { class: "grid" },
+      el("thead", {}, el("tr", {}, el("th", {}, "product"), el("th", {}, "kind"),
+        el("th", {}, "version"), el("th", {}, "details"))),
+      el("tbody", {}, ...mod.products.map((p) => el("tr", {},
+        el("td", {}, p.key), el("td", {}, p.kind), el("td", {}, p.version),
+        el("td", { class: "fields" }, Object.entries(p.fields).map(([k, v]) => `${k}: ${v}`).join(", ")))))))));
+}
+
 const RENDER = { vehicle: () => { renderVehicle(); drawMap(); }, map: () => { renderLevels(); drawMap(); },
-  images: renderImages, series: renderSeries, link: renderLink, queues: renderQueues,
+  images: renderImages, series: renderSeries, other: renderOther, link: renderLink, queues: renderQueues,
   commands: renderCommands, log: renderLog };
 
 function apply(data, full) {
