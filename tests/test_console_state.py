@@ -808,3 +808,11 @@ def test_a_script_and_the_console_never_share_a_command_id() -> None:
     assert not images.pending_requests(), "the script's goal was acknowledged"
     person = [c for c in hub.snapshot()["commands"] if c["kind"] == "QueueConfig"]
     assert [c["status"] for c in person] == ["unknown_target"], hub.snapshot()["commands"]
+
+
+def test_tap_receiver_is_deprecated_and_wraps_nothing() -> None:
+    from coex_plugins.console import tap_receiver
+
+    rx = BathymetryReceiver()
+    with pytest.warns(DeprecationWarning, match="node's receivers"):
+        assert tap_receiver(rx, ConsoleState()) is rx

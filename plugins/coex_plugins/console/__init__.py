@@ -13,7 +13,7 @@ See ``docs/console.md``.
 
 from __future__ import annotations
 
-from .node import NodeCommands, attach, drive_simulation, pump
+from .node import NodeCommands, attach, drive_simulation, pump, tap_receiver
 from .server import ConsoleHub, ConsoleServer, serve
 from .state import SECTIONS, ConsoleActions, ConsoleState, elevation_rgb, png_bytes
 
@@ -30,4 +30,5 @@ __all__ = [
     "png_bytes",
     "pump",
     "serve",
+    "tap_receiver",
 ]

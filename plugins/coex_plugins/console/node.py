@@ -16,17 +16,19 @@ thread-safe either).
 
 from __future__ import annotations
 
+import warnings
 from collections import deque
 from collections.abc import Callable
 from typing import Any
 
 from coex_core.channel.schedule import Schedule, resolve_cycle
 from coex_core.messages import Message, ScheduleUpdate
+from coex_core.modality import ModalityReceiver
 
 from .hub import ConsoleHub, pump
 from .state import ConsoleState
 
-__all__ = ["NodeCommands", "attach", "drive_simulation", "pump"]
+__all__ = ["NodeCommands", "attach", "drive_simulation", "pump", "tap_receiver"]
 
 
 class NodeCommands:
@@ -79,6 +81,16 @@ class NodeCommands:
             out = msg
         self.sent.append(out)
         return out
+
+
+def tap_receiver(receiver: ModalityReceiver, hub: Any = None) -> ModalityReceiver:
+    """Deprecated (kept for one release): the console shows the node's receivers as they are
+    (:func:`attach`, ``ConsoleState(receivers=...)``), so nothing needs wrapping. Returns
+    ``receiver`` unchanged."""
+    warnings.warn("tap_receiver is deprecated: the console shows the node's receivers as they "
+                  "are (attach(node), ConsoleState(receivers=...))", DeprecationWarning,
+                  stacklevel=2)
+    return receiver
 
 
 def attach(node: Any, clock: Callable[[], float] | None = None, *,
