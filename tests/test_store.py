@@ -6,22 +6,10 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
-import numpy as np
-
 from coex import AcousticChannel, NodeStore
 
 from ._faults import T0, build_dive, run_sim
-
-
-def _products(node: Any) -> dict[str, Any]:
-    out: dict[str, Any] = {}
-    for name, rx in node.receivers():
-        for p in rx.products():
-            data = p.data
-            if isinstance(data, np.ndarray):
-                data = np.nan_to_num(np.asarray(data, float), nan=-9999.0).round(6).tobytes()
-            out[f"{name}/{p.key}"] = (p.version, data if isinstance(data, bytes) else repr(data))
-    return out
+from .test_store_fixture import digest
 
 
 class Recorder:
@@ -56,7 +44,7 @@ def _dive_with_store(db: Path, *, compact: bool, snapshot_at: float, until: floa
 def test_store_restores_a_node_exactly(tmp_path: Path) -> None:
     db = tmp_path / "topside.sqlite"
     dive, store = _dive_with_store(db, compact=True, snapshot_at=T0 + 150.0, until=T0 + 400.0)
-    live = _products(dive.topside)
+    live = digest(dive.topside)
     assert any(k.startswith("bathymetry/") for k in live) and any(k.startswith("imagery/") for k in live)
     (last,) = store.db.execute("SELECT journal_id FROM snapshot").fetchone()
     after = store.count("rx")
@@ -70,7 +58,7 @@ def test_store_restores_a_node_exactly(tmp_path: Path) -> None:
     finally:
         store.close()
     assert store.stats["replayed"] == after
-    assert _products(node) == live
+    assert digest(node) == live
 
 
 def test_the_journal_is_compacted_at_each_snapshot(tmp_path: Path) -> None:
