@@ -26,9 +26,10 @@ VERSIONS = ["v1"]
 MINUTES = 2
 
 
-def digest(node: Any) -> dict[str, Any]:
+def digest(node: Any, products_only: bool = False) -> dict[str, Any]:
     """What the node holds, in a form a later version can compare with: per product, its
-    version and a hash of its data."""
+    version and a hash of its data (and, unless ``products_only``, the manager's and senders'
+    counters)."""
     out: dict[str, Any] = {}
     for name, rx in node.receivers():
         for p in rx.products():
@@ -38,6 +39,8 @@ def digest(node: Any) -> dict[str, Any]:
             else:
                 raw = repr(data).encode()
             out[f"{name}/{p.key}"] = [int(p.version), hashlib.sha256(raw).hexdigest()[:16]]
+    if products_only:
+        return out
     mgr = node.manager
     out["manager"] = {"command_id": mgr._command_id, "queued": sum(len(q) for q in mgr.streams),
                       "packets": mgr.stats["packets"]}
