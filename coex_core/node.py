@@ -113,6 +113,7 @@ class Node:
         #: request types of the attached modalities: commands like those of ``auth.COMMAND_TYPES``
         self._request_types: tuple[type, ...] = ()
         self._request_opaque: frozenset[int] = frozenset()
+        self._listeners: list[Callable[[list[Event]], Any]] = []
         manager.is_command = self.is_command
 
     def is_command(self, m: Message) -> bool:
@@ -363,10 +364,29 @@ class Node:
         return self.manager.next_event(now)
 
     def events(self) -> list[Event]:
-        """Everything that happened since the last call: node events then manager events."""
+        """Everything that happened since the last call: node events then manager events.
+        Every :meth:`subscribe`d listener sees them too, in this call (the thread that drives
+        the node)."""
         out = self._events + self.manager.events()
         self._events = []
+        for listener in list(self._listeners):
+            try:
+                listener(out)
+            except Exception as exc:  # an observer (a console) must never cost the node
+                self._note(f"event listener failed: {exc}")
         return out
+
+    def subscribe(self, listener: Callable[[list[Event]], Any]) -> Callable[[], None]:
+        """Call ``listener(events)`` with what every :meth:`events` call drains, whoever
+        drains it (a runner, a demo loop): how an application (the console) watches a node
+        that another loop drives. Returns a function that unsubscribes it."""
+        self._listeners.append(listener)
+
+        def unsubscribe() -> None:
+            if listener in self._listeners:
+                self._listeners.remove(listener)
+
+        return unsubscribe
 
     def products(self) -> list[tuple[str, Any]]:
         return [(r.name, p) for r in self._receivers for p in r.receiver.products()]

@@ -515,3 +515,25 @@ def test_a_supersedes_hook_that_raises_withdraws_nothing_and_queues_the_request(
     topside.poll(1.0)
     topside.poll(2.0)
     assert [e.message.body for e in tmgr.stream(CONTROL_STREAM).entries] == [b"\x01", b"\x02"]
+
+
+def test_subscribers_see_every_drained_event_and_never_cost_the_node() -> None:
+    """An application watches a node that another loop drives (the console does): whoever
+    calls ``events()`` gets the events, and every subscriber sees them too; a subscriber that
+    raises is logged, and the others and the caller still get everything."""
+    notes: list[str] = []
+    p = Pair()
+    p.topside.set_log(notes.append)
+    seen: list[Any] = []
+
+    def broken(events: list[Any]) -> None:
+        raise RuntimeError("console bug")
+
+    p.topside.subscribe(broken)
+    stop = p.topside.subscribe(seen.extend)
+    p.run(300.0)
+    assert p.tevents and seen == p.tevents
+    assert any("event listener failed: console bug" in n for n in notes)
+    stop()
+    p.run(400.0)
+    assert len(p.tevents) > len(seen)  # unsubscribed: no longer told

@@ -85,6 +85,8 @@ class ConsoleHub:
         self.changed = threading.Condition(self.lock)
         self.actions = ConsoleActions(state, send, clock, map_receiver=map_receiver)
         self.closed = False
+        #: the topside node this hub watches (set by :func:`~.node.attach`), or None
+        self.attached_to: Any = None
 
     # ------------------------------------------------------------------ from the runner
     def update(self, fn: Callable[[ConsoleState], Any]) -> Any:
@@ -111,7 +113,7 @@ class ConsoleHub:
             if callable(flush):
                 flush()
             before = dict(self.state.versions)
-            wrapped = getattr(node.events, "_coex_hub", None) is self
+            wrapped = getattr(self, "attached_to", None) is node  # it feeds the hub itself
             if events is None:
                 events = list(node.events())  # an attached node feeds the console itself
                 if not wrapped:

@@ -98,10 +98,11 @@ def attach(node: Any, clock: Callable[[], float] | None = None, *,
     """A :class:`~coex_plugins.console.server.ConsoleHub` fed by a topside ``node``, whatever
     loop drives it.
 
-    * ``node.events()`` is wrapped: whoever drains the node's events (a runner, the demo) also
-      hands them to the console, and gets them back unchanged.
-    * Commands from the page are queued (:class:`NodeCommands` with ``deferred``) and sent by
-      that same ``node.events()`` call, in the thread driving the node.
+    * The hub subscribes to the node's events (:meth:`Node.subscribe
+      <coex_core.node.Node.subscribe>`): whoever drains them (a runner, the demo) also feeds the
+      console.
+    * Commands from the page are queued (:class:`NodeCommands` with ``deferred``) and sent
+      during that same ``node.events()`` call, in the thread driving the node.
     * The console shows the node's receivers (products from ``ProductUpdated`` events, and what
       the receivers hold: subgrid stamps and ages, image bytes); the bathymetry receiver is the
       map-region path unless ``map_receiver`` is given. Modalities without a panel of their own
@@ -123,18 +124,14 @@ def attach(node: Any, clock: Callable[[], float] | None = None, *,
     if map_receiver is None:
         hub.actions.map_receiver = receivers.get("bathymetry")
     state.region_source = hub.actions.map_receiver
-    original = getattr(node.events, "_coex_original", node.events)
 
-    def events() -> list[Any]:
-        commands.flush()
-        evs = list(original())
+    def on_events(evs: list[Any]) -> None:
+        commands.flush()  # the page's commands go out from the thread driving the node
         now = max((float(getattr(e, "time", 0.0)) for e in evs), default=state.now)
         hub.update(lambda st: pump(st, node, now, evs))
-        return evs
 
-    events._coex_original = original  # type: ignore[attr-defined]
-    events._coex_hub = hub  # type: ignore[attr-defined]
-    node.events = events
+    node.subscribe(on_events)
+    hub.attached_to = node
     return hub
 
 
