@@ -58,8 +58,8 @@ def pump(state: ConsoleState, node: Any, now: float, events: list[Any] | None = 
                                  + ",".join(sorted({str(r.level) for r in others}))
                                  + " (by the node)")
     # regions a bathymetry receiver sends for us: show when they go out (ids, retries)
-    sig = tuple((k, r.region.request_id, r.region.sends, r.region.done)
-                for k, r in state.roi.items() if r.region is not None)
+    sig = tuple((k, r.region.request_id, r.region.sends, r.region.done, r.region.queued)
+                for k, r in state.roi.items())
     if sig != state._region_sig:
         state._region_sig = sig
         state._touch("map", "commands")

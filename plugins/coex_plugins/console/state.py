@@ -122,20 +122,16 @@ def _num(x: float | None, nd: int = 3) -> float | None:
 @persistent("console.RoiRequest")
 @dataclass
 class _RoiRequest:
-    request_id: int
+    """A map region asked from the console: the bathymetry receiver's region object (which
+    it sends, retries and closes), and when it was asked."""
+
     level: int
     x0: int
     y0: int
     w: int
     h: int
     sent: float
-    held: dict[tuple[int, int], int | None]
-    status: str = "requested"
-    queued: int | None = None
-    received: int = 0
-    done_at: float | None = None
-    #: The bathymetry receiver's region object when the receiver sends (and retries) it.
-    region: Any = None
+    region: Any
 
 
 @persistent("console.Image")
@@ -249,7 +245,7 @@ class ConsoleState:
     def _after_restore(self) -> None:
         """A topside store saves the console with its node (:mod:`coex_core.state`); object
         ids are not state: the regions recorded are the ones the requests in ``roi`` hold."""
-        self._region_ids = {id(r.region) for r in self.roi.values() if r.region is not None}
+        self._region_ids = {id(r.region) for r in self.roi.values()}
 
     # -------------------------------------------------------------------- bookkeeping
     def _touch(self, *sections: str) -> None:
@@ -645,7 +641,7 @@ class ConsoleState:
             self._region_ids.add(id(r))
             self._region_count += 1
             key = -self._region_count
-            self.roi[key] = _RoiRequest(-1, r.level, r.x0, r.y0, r.w, r.h, now, {}, region=r)
+            self.roi[key] = _RoiRequest(r.level, r.x0, r.y0, r.w, r.h, now, r)
             text = (f"{summary}: subgrids [{r.x0}..{r.x0 + r.w - 1}] x "
                     f"[{r.y0}..{r.y0 + r.h - 1}]")
             ckey = 100000 + self._region_count
@@ -815,18 +811,16 @@ class ConsoleState:
         else:
             span = 8.0 * 2 ** r.level
         region = r.region
-        rid, status, queued = r.request_id, r.status, r.queued
-        if region is not None:
-            rid = region.request_id if region.request_id is not None else -1
-            queued = getattr(region, "queued", None)
-            if region.done:
-                status = "nothing newer" if not queued else "received"
-            elif queued:
-                status = "queued"
-            elif region.sends:
-                status = "sent"
-            else:
-                status = "waiting"
+        rid = region.request_id if region.request_id is not None else -1
+        queued = getattr(region, "queued", None)
+        if region.done:
+            status = "nothing newer"
+        elif queued:
+            status = "queued"
+        elif region.sends:
+            status = "sent"
+        else:
+            status = "waiting"
         return {"request_id": rid, "level": r.level, "x0": r.x0, "y0": r.y0,
                 "w": r.w, "h": r.h, "status": status, "queued": queued,
                 "sent": _num(r.sent, 1),
