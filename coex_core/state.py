@@ -20,7 +20,7 @@ console and a node share a receiver).
 
 The container (:func:`dumps` / :func:`loads`): ``b"COEXSTATE\\n"``, a 4-byte big-endian length,
 that many bytes of UTF-8 JSON ``{"format": "coex-state", "version": 1, "classes": {name:
-version}, "root": ...}``, then a compressed numpy ``.npz`` archive (read with ``allow_pickle=False``) of the arrays
+version}, "root": ...}``, then a numpy ``.npz`` archive (stored uncompressed: a node saves before every transmission; read with ``allow_pickle=False``) of the arrays
 and byte strings the JSON refers to by index (``{"$a": i}``, ``{"$b": i}``). The tagged JSON
 forms are listed in ``docs/persistence.md``.
 """
@@ -194,7 +194,7 @@ def dumps(root: Any) -> bytes:
     text = json.dumps(doc, separators=(",", ":"), allow_nan=False).encode()
     buf = io.BytesIO()
     arrays: dict[str, Any] = {f"b{i}": b for i, b in enumerate(w.blobs)}
-    np.savez_compressed(buf, **arrays)
+    np.savez(buf, **arrays)
     return MAGIC + struct.pack(">I", len(text)) + text + buf.getvalue()
 
 
