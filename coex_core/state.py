@@ -114,12 +114,20 @@ _register_messages()
 class _Writer:
     def __init__(self) -> None:
         self.blobs: list[np.ndarray] = []
+        #: id() of an array or byte string already written -> its blob (written once, and
+        #: restored as one object where several places share it)
+        self.blob_of: dict[int, int] = {}
         self.memo: dict[int, int] = {}
         self.keep: list[Any] = []  # objects whose id() is in memo stay alive while writing
         self.used: dict[str, int] = {}
 
-    def blob(self, arr: np.ndarray) -> int:
+    def blob(self, arr: np.ndarray, source: Any) -> int:
+        known = self.blob_of.get(id(source))
+        if known is not None:
+            return known
         self.blobs.append(arr)
+        self.blob_of[id(source)] = len(self.blobs) - 1
+        self.keep.append(source)
         return len(self.blobs) - 1
 
     def enc(self, x: Any, path: str) -> Any:
@@ -135,12 +143,12 @@ class _Writer:
         if isinstance(x, np.ndarray):
             if x.dtype == object:
                 raise StateError(f"{path}: numpy array of Python objects")
-            return {"$a": self.blob(np.ascontiguousarray(x))}
+            return {"$a": self.blob(np.ascontiguousarray(x), x)}
         if isinstance(x, np.generic):
             return {"$n": x.dtype.str, "v": self.enc(x.item(), path)}
         if isinstance(x, bytes | bytearray):
             tag = "$b" if isinstance(x, bytes) else "$ba"
-            return {tag: self.blob(np.frombuffer(bytes(x), np.uint8))}
+            return {tag: self.blob(np.frombuffer(bytes(x), np.uint8), x)}
         if isinstance(x, list) and type(x) is list:
             return [self.enc(v, f"{path}[{i}]") for i, v in enumerate(x)]
         if type(x) is tuple:
@@ -205,6 +213,7 @@ class _Reader:
         self.blobs = blobs
         self.versions = versions
         self.memo: dict[int, Any] = {}
+        self.arrays: dict[int, Any] = {}
         self.restored: list[Any] = []
 
     def dec(self, x: Any) -> Any:
@@ -219,7 +228,10 @@ class _Reader:
         if tag == "$f":
             return float(v)
         if tag == "$a":
-            return np.array(self.blobs[f"b{int(v)}"])
+            i = int(v)
+            if i not in self.arrays:
+                self.arrays[i] = np.array(self.blobs[f"b{i}"])
+            return self.arrays[i]
         if tag == "$b":
             return self.blobs[f"b{int(v)}"].tobytes()
         if tag == "$ba":

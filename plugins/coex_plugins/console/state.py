@@ -162,7 +162,8 @@ class _Command:
     roi_key: int | None = None
 
 
-@persistent("console.State", transient=("_region_ids",))
+#: caches (pictures, summaries) are not state: they are made again when needed
+@persistent("console.State", transient=("_region_ids", "_png", "_map_summary", "_targets_cache"))
 class ConsoleState:
     """Everything the console shows, built from messages, products and events.
 
@@ -246,6 +247,9 @@ class ConsoleState:
         """A topside store saves the console with its node (:mod:`coex_core.state`); object
         ids are not state: the regions recorded are the ones the requests in ``roi`` hold."""
         self._region_ids = {id(r.region) for r in self.roi.values()}
+        self._png = {}
+        self._map_summary = {}
+        self._targets_cache = (None, [])
 
     # -------------------------------------------------------------------- bookkeeping
     def _touch(self, *sections: str) -> None:
