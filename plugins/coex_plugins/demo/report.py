@@ -702,7 +702,7 @@ h1{font-size:1.6em;margin-bottom:.2em}h2{border-bottom:2px solid #ddd;padding-bo
 table{border-collapse:collapse;margin:.6em 0}td,th{border:1px solid #ccc;padding:4px 9px;vertical-align:top}
 th{background:#f2f2f2;text-align:left;font-weight:600}td.r{text-align:right;font-variant-numeric:tabular-nums}
 td.c{text-align:center}.met{color:#fff;background:#2e8b3a;padding:1px 6px;border-radius:3px;font-weight:bold}
-.notmet{color:#fff;background:#c62828;padding:1px 6px;border-radius:3px;font-weight:bold}.na{color:#888}
+.notmet{color:#fff;background:#c62828;padding:1px 6px;border-radius:3px;font-weight:bold;white-space:nowrap}.na{color:#888}
 .bad{color:#c62828;font-weight:bold}.ok{color:#2e8b3a;font-weight:bold}table.false th{background:#fde8e8}
 .summary{font-size:1.05em;background:#f7f9fc;border-left:4px solid #2a6ebb;padding:.6em 1em}
 .gallery{display:flex;flex-wrap:wrap;gap:10px}.card{margin:0;width:204px;border:1px solid #ccc;padding:3px;
