@@ -82,3 +82,41 @@ def test_store_is_in_wal_mode(tmp_path: Path) -> None:
         assert store.db.execute("PRAGMA journal_mode").fetchone()[0].lower() == "wal"
     finally:
         store.close()
+
+
+def test_a_damaged_or_pickled_snapshot_is_a_clear_error(tmp_path: Path) -> None:
+    import pickle
+    import shutil
+    import sqlite3
+
+    import pytest
+
+    from coex import ConfigError
+
+    from .test_store_fixture import FIXTURES, MINUTES
+
+    def with_state(name: str, blob: bytes) -> Path:
+        db = tmp_path / name
+        shutil.copy(FIXTURES / "store-v1-topside.sqlite", db)
+        con = sqlite3.connect(db)
+        con.execute("UPDATE snapshot SET state = ?", (blob,))
+        con.commit()
+        con.close()
+        return db
+
+    good = sqlite3.connect(FIXTURES / "store-v1-topside.sqlite").execute(
+        "SELECT state FROM snapshot").fetchone()[0]
+    cases = {
+        "truncated.sqlite": (good[: len(good) // 2], "unreadable snapshot"),
+        "renamed.sqlite": (good.replace(b'"bathymetry.Receiver"', b'"bathymetry.Receivex"'),
+                           "does not know"),
+        "pickled.sqlite": (pickle.dumps({"node": 1}, protocol=5), "pickled snapshot"),
+    }
+    for name, (blob, why) in cases.items():
+        store = NodeStore(with_state(name, blob))
+        try:
+            with pytest.raises(ConfigError, match=why) as err:
+                store.restore(lambda: build_dive(minutes=MINUTES).topside)
+            assert name in str(err.value)
+        finally:
+            store.close()

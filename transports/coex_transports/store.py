@@ -192,7 +192,10 @@ class NodeStore:
                                   "start afresh")
             try:
                 extra = node.restore_state(blob)
-            except state.StateError as exc:
+            except Exception as exc:  # a damaged or foreign file: a clear error, never a crash
+                if not isinstance(exc, state.StateError | KeyError | TypeError | ValueError |
+                                  AttributeError):
+                    raise
                 raise ConfigError(f"{self.path}: unreadable snapshot ({exc}); move the file away "
                                   "to start afresh") from exc
             after = int(row[0])
