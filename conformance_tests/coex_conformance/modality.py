@@ -99,14 +99,12 @@ class ModalityTests:
         :mod:`coex_core.state` (every class they keep must be registered with
         ``coex_core.state.persistent``) and journals the inputs; restored, they hold the same
         products, and the transfer still converges."""
-        for _, data in sample_inputs:  # journaled inputs load back as something ingest takes
-            state.loads(state.dumps(modality.sender(sender_config).journal_form(data)))
         pair = self._pair(modality, sender_config, receiver_config, loss=loss, frame_budget=frame_budget,
                           round_seconds=round_seconds, seed=9)
-        pair.now = 0.0
-        for now, data in sample_inputs:
-            pair.sender.ingest(state.loads(state.dumps(pair.sender.journal_form(data))), now)
-            pair.now = max(pair.now, now)
+        # the inputs as a store journals them and replays them: saved, loaded, then ingested
+        journaled = [(now, state.loads(state.dumps(pair.sender.journal_form(data))))
+                     for now, data in sample_inputs]
+        pair.now = ingest_all(pair.sender, journaled)
         if start_requests is not None:
             start_requests(pair.receiver, pair.now)
         for _ in range(3):
