@@ -151,3 +151,18 @@ def test_a_far_away_subgrid_does_not_blow_up_the_mosaic() -> None:
     assert prod.data.size <= 16 * 1024 * 1024
     assert receiver.holdings(0) == {(0, 0): 100, (-8192, 8191): 100}
     assert (0, -8192, 8191) in receiver.off_mosaic
+
+
+def test_a_region_outside_the_wire_s_index_range_is_refused_and_nothing_is_asked() -> None:
+    """A MapRoiRequest carries 14-bit subgrid indices: a region beyond them is refused when it
+    is asked, not left to fail (and be retried) every time the receiver polls."""
+    from coex_core.errors import RequestRejected
+    from coex_plugins.bathymetry import BathymetryReceiver
+
+    rx = BathymetryReceiver()
+    with pytest.raises(RequestRejected, match="index range"):
+        rx.request_region(0, 8190, 0, 4, 1)
+    with pytest.raises(RequestRejected, match="index range"):
+        rx.request_area(0, 0.0, -1e6, 10.0, 10.0)
+    assert rx.regions == [] and rx.poll(0.0) == []
+    assert len(rx.request_region(0, 8184, -8192, 8, 8)) == 1  # the edges themselves are fine

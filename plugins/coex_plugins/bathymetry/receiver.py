@@ -40,6 +40,8 @@ RECEIVER_DEFAULTS: dict[str, Any] = {
 #: Largest region of one request with stamps (8 x 8 = 64 subgrids) and of one gap-filling request.
 ROI_CHUNK = 8
 GAP_CHUNK = 16
+#: subgrid indices a MapRoiRequest can carry (14-bit two's complement, spec: MapRoiRequest x0/y0)
+SUBGRID_INDEX_MIN, SUBGRID_INDEX_MAX = -8192, 8191
 
 
 @persistent("bathymetry.Region", version=2,
@@ -312,6 +314,10 @@ class BathymetryReceiver(ModalityReceiver):
             raise RequestRejected(f"level {level} outside 0..{levels - 1}")
         if w < 1 or h < 1:
             raise RequestRejected("empty region")
+        if not (SUBGRID_INDEX_MIN <= x0 and x0 + w - 1 <= SUBGRID_INDEX_MAX
+                and SUBGRID_INDEX_MIN <= y0 and y0 + h - 1 <= SUBGRID_INDEX_MAX):
+            raise RequestRejected(f"region outside the map's subgrid index range "
+                                  f"({SUBGRID_INDEX_MIN}..{SUBGRID_INDEX_MAX}, the wire's limit)")
         chunk = GAP_CHUNK if fill_gaps else ROI_CHUNK
         n = math.ceil(w / chunk) * math.ceil(h / chunk)
         if n > self.max_regions:

@@ -45,8 +45,6 @@ SECTIONS = ("vehicle", "map", "images", "series", "other", "link", "queues", "co
 #: Modalities with a panel of their own; the products of any other go to the generic panel.
 OWN_PANELS = ("bathymetry", "imagery", "timeseries")
 
-#: Refuse a region of more than this many subgrids (split into many requests otherwise).
-MAX_ROI_SUBGRIDS = 64 * 64
 
 FloatArray = npt.NDArray[np.float64]
 
@@ -1020,13 +1018,7 @@ class ConsoleActions:
         rx = self.map_receiver
         if rx is None:
             raise RequestRejected("map requests need a topside node with a bathymetry receiver")
-        ix0, iy0 = rx.subgrid_index(level, x_min, y_min)  # the receiver's own indexing
-        ix1, iy1 = rx.subgrid_index(level, x_max, y_max)
-        nx, ny = ix1 - ix0 + 1, iy1 - iy0 + 1
-        if nx * ny > MAX_ROI_SUBGRIDS:
-            raise RequestRejected(f"region of {nx} x {ny} subgrids at level {level} is too large")
-        if not (-8192 <= ix0 and ix1 < 8192 and -8192 <= iy0 and iy1 < 8192):
-            raise RequestRejected("region outside the map's index range")
+        # the receiver checks the level, the size and the wire's index range
         regions = list(rx.request_area(level, x_min, y_min, x_max, y_max, fill_gaps=bool(fill_gaps)))
         self.state.record_regions(regions, self.clock(), f"map level {level}"
                                   + (" (gaps)" if fill_gaps else ""))
