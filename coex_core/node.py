@@ -536,22 +536,25 @@ class Node:
                 seen[t] = s.name
 
 
+def _wrappers(part: Any) -> list[Any]:
+    """``part`` and the senders or receivers it wraps (``inner``), outermost first."""
+    chain = [part]
+    while isinstance(getattr(chain[-1], "inner", None), ModalitySender | ModalityReceiver) \
+            and len(chain) < 8:
+        chain.append(chain[-1].inner)
+    return chain
+
+
 def _innermost(part: Any) -> Any:
-    """The sender or receiver inside an application's wrappers (``inner``): its state."""
-    seen = 0
-    while isinstance(getattr(part, "inner", None), ModalitySender | ModalityReceiver) and seen < 8:
-        part, seen = part.inner, seen + 1
-    return part
+    """The sender or receiver inside an application's wrappers: its state."""
+    return _wrappers(part)[-1]
 
 
 def _install(current: Any, restored: Any) -> Any:
     """``restored`` in place of the innermost part of ``current`` (its wrappers stay)."""
-    holder = None
-    part = current
-    while isinstance(getattr(part, "inner", None), ModalitySender | ModalityReceiver):
-        holder, part = part, part.inner
-    if holder is None:
+    chain = _wrappers(current)
+    if len(chain) == 1:
         return restored
-    holder.inner = restored
+    chain[-2].inner = restored
     return current
 

@@ -120,3 +120,27 @@ def test_a_damaged_or_pickled_snapshot_is_a_clear_error(tmp_path: Path) -> None:
             assert name in str(err.value)
         finally:
             store.close()
+
+
+def test_a_wrapped_sender_keeps_its_wrapper_and_gets_the_saved_state() -> None:
+    """An application that wraps a sender (here a recorder) saves the sender inside; restored,
+    the node's wrapper is still the one it built, around the saved sender."""
+    from coex import ChannelManager, LinkConfig, Node, Schedule, StreamConfig
+    from coex_plugins.bathymetry import BathymetryModality, BathymetrySender
+    from coex_plugins.console.testing import RecordingSender, survey_points
+
+    def build() -> tuple[Node, RecordingSender]:
+        node = Node(ChannelManager(2, [LinkConfig(0, Schedule.simple([1, 2], 5.0, 0.5), dst=1)]))
+        wrapper = RecordingSender(BathymetrySender({"send_delay": 0.0, "levels": 3}))
+        node.add_sender(BathymetryModality, wrapper, StreamConfig(3, "map"))
+        return node, wrapper
+
+    node, wrapper = build()
+    wrapper.ingest(survey_points(), 10.0)
+    saved = node.export_state()
+    fresh, fresh_wrapper = build()
+    fresh.restore_state(saved)
+    assert fresh.sender("bathymetry") is fresh_wrapper  # the application's own wrapper
+    assert fresh_wrapper.inner is not wrapper.inner  # around the restored sender
+    assert fresh_wrapper.inner.map.tiles() == wrapper.inner.map.tiles() != []
+    assert fresh.manager._streams[3].sender is fresh_wrapper  # packets are filled through it
