@@ -142,5 +142,5 @@ def test_a_wrapped_sender_keeps_its_wrapper_and_gets_the_saved_state() -> None:
     fresh.restore_state(saved)
     assert fresh.sender("bathymetry") is fresh_wrapper  # the application's own wrapper
     assert fresh_wrapper.inner is not wrapper.inner  # around the restored sender
-    assert fresh_wrapper.inner.map.tiles() == wrapper.inner.map.tiles() != []
+    assert fresh_wrapper.inner.map.tiles == wrapper.inner.map.tiles != []
     assert fresh.manager._streams[3].sender is fresh_wrapper  # packets are filled through it
