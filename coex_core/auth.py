@@ -29,6 +29,7 @@ from .messages import (
     Message,
     QueueConfig,
     ScheduleUpdate,
+    SpareConfig,
     TimeSeriesAck,
     TimeSeriesRequest,
 )
@@ -42,7 +43,7 @@ MAX_COUNTER = 2**32 - 1
 #: Topside-to-vehicle messages that change what the vehicle does: they must be authenticated.
 COMMAND_TYPES: tuple[type[Message], ...] = (
     QueueConfig, ScheduleUpdate, LinkControl, ImageGoal, ImageByTimeRequest, MapRoiRequest,
-    TimeSeriesRequest, ImageAck, TimeSeriesAck,
+    TimeSeriesRequest, ImageAck, TimeSeriesAck, SpareConfig,
 )
 _TRAILER_TYPE = wire.type_id(AuthTrailer)
 

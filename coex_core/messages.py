@@ -27,6 +27,7 @@ __all__ = [
     "Slot",
     "ScheduleUpdate",
     "LinkControl",
+    "SpareConfig",
     "AckStatus",
     "CommandAck",
     "FrameAckEntry",
@@ -183,6 +184,19 @@ class LinkControl(Message):
     link: int
     enabled: bool
     mute: bool
+
+
+@dataclass(frozen=True, slots=True)
+class SpareConfig(Message):
+    """Topside command: how much of each packet spare traffic may fill, in percent (0: off).
+    With ``stream`` absent it sets the share of ``link`` (every link when ``link`` is absent):
+    the spare tier and the redundant copies of urgent messages together. With ``stream`` it sets
+    that stream's spare share on every link (``link`` must then be absent)."""
+
+    command_id: int
+    link: int | None
+    stream: int | None
+    percent: int
 
 
 class AckStatus(enum.IntEnum):
@@ -353,11 +367,14 @@ class MapRoiRequest(Message):
 @dataclass(frozen=True, slots=True)
 class MapRoiReply(Message):
     """Vehicle answer to a :class:`MapRoiRequest`: ``queued`` subgrids will follow (0: nothing
-    newer). Lets topside tell "lost" from "nothing to send" and time its retry."""
+    newer). Lets topside tell "lost" from "nothing to send" and time its retry. ``waiting``
+    subgrids of the region hold no data yet: the request then *stands* on the vehicle (until it
+    expires) and they follow as soon as they are surveyed (0: the request does not stand)."""
 
     request_id: int
     level: int
     queued: int
+    waiting: int = 0
 
 
 # ----------------------------------------------------------------------------------- imagery

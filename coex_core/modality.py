@@ -73,6 +73,26 @@ class ModalitySender(abc.ABC):
         """An estimate of the bytes still waiting to be sent (0 when idle)."""
         return 0
 
+    def spare(self, max_bytes: int, now: float) -> list[Message]:
+        """Spare work: messages worth sending only when nothing else waits (re-sends of what
+        was lost, refinements beyond the set-point), at most ``max_bytes`` encoded in total,
+        with :meth:`fill`'s contract. The channel manager asks for it below every tier, within
+        the link's and the stream's spare share (``LinkConfig.spare``, ``StreamConfig.spare``:
+        0 switches it off, and then it is never called). Optional (default: none). What it
+        returns is packed at once, not queued: a message that does not fit is dropped (counted
+        as ``overrun``)."""
+        return []
+
+    def spare_bytes(self) -> int:
+        """An estimate of the spare work available now, in bytes (0: none). Optional."""
+        return 0
+
+    def lost(self, message: Message, now: float) -> None:  # noqa: B027 - optional hook
+        """No frame that carried ``message`` (which this sender produced, on a stream that is
+        not ``ack_required``) was acknowledged within the link's ack timeout: it probably did not
+        arrive (or its ack did not). Optional: a sender may offer it again as spare work. It must
+        not raise (if it does, the manager counts it and nothing else changes)."""
+
     def journal_form(self, data: Any) -> Any:
         """What a store journals of an input before :meth:`ingest` takes it (and what is
         ingested): plain data that :mod:`coex_core.state` can save (numbers, strings, arrays,
@@ -81,10 +101,11 @@ class ModalitySender(abc.ABC):
         return data
 
     def acked(self, message: Message, now: float) -> None:  # noqa: B027 - optional hook
-        """The other side acknowledged ``message``, which this sender produced (streams with
-        ``ack_required`` only; called by the node when the frame ack arrives). Optional: a
-        sender may use it to drop a queued copy that is no longer needed. It must not raise
-        (if it does, the node logs and counts it, and nothing else changes)."""
+        """The other side acknowledged a frame that carried ``message``, which this sender
+        produced (called by the node when the frame ack arrives; on streams without
+        ``ack_required`` too, see :meth:`lost`). Optional: a sender may use it to drop a queued
+        copy that is no longer needed. It must not raise (if it does, the node logs and counts
+        it, and nothing else changes)."""
 
 
 class ModalityReceiver(abc.ABC):

@@ -50,6 +50,7 @@ from .messages import (
     Opaque,
     QueueConfig,
     ScheduleUpdate,
+    SpareConfig,
     VehicleStatus,
 )
 from .modality import Modality, ModalityReceiver, ModalitySender
@@ -58,7 +59,11 @@ from .wire import unpack_frame
 
 __all__ = ["Node", "Transmission"]
 
-_CHANNEL_COMMANDS = (QueueConfig, ScheduleUpdate, LinkControl)
+#: copies of a command that arrive within this many seconds came in one packet (redundant
+#: copies in several frames): they are handled and answered once
+DUPLICATE_SAME_PACKET = 1.0
+
+_CHANNEL_COMMANDS = (QueueConfig, ScheduleUpdate, LinkControl, SpareConfig)
 
 
 @dataclass
@@ -107,6 +112,9 @@ class Node:
         #: lost and topside re-sent it) is answered again but not applied twice.
         self._recent: dict[int, tuple[Message, AckStatus, float]] = {}
         self.duplicate_window = 3600.0
+        #: command id -> (status, time) of the last CommandAck taken (its redundant copies from
+        #: the same packet are dropped)
+        self._answers_seen: dict[int, tuple[AckStatus, float]] = {}
         self.stats_interval = stats_interval
         self._last_stats: float | None = None
         self._bad_by_link: dict[int, int] = {}
@@ -228,6 +236,11 @@ class Node:
             self._acked(m, now)
             return
         if isinstance(m, CommandAck):
+            seen = self._answers_seen.get(m.command_id)
+            if seen is not None and seen[0] == m.status and now - seen[1] <= DUPLICATE_SAME_PACKET:
+                self.stats["duplicates"] += 1  # a redundant copy from the same packet
+                return
+            self._answers_seen[m.command_id] = (m.status, now)
             owner = self._command_owner.pop(m.command_id, None)
             if owner is not None:
                 # a modality request: its receiver tracks it (and may stop retrying it)
@@ -261,7 +274,10 @@ class Node:
         if seen is None or seen[0] != m or now - seen[2] > self.duplicate_window:
             return False
         self.stats["duplicates"] += 1
-        self.manager.push(CONTROL_STREAM, CommandAck(int(cid), seen[1]), now)
+        if now - seen[2] > DUPLICATE_SAME_PACKET:
+            # a re-send (the first answer may have been lost): answer again; a copy in another
+            # frame of the same packet (redundancy under loss) was answered with the first
+            self.manager.push(CONTROL_STREAM, CommandAck(int(cid), seen[1]), now)
         return True
 
     def _remember(self, m: Message, status: AckStatus, now: float) -> None:
@@ -409,6 +425,13 @@ class Node:
     def link_control(self, link: int, now: float, *, enabled: bool = True, mute: bool = False) -> int:
         cid = self.manager.next_command_id()
         return self.manager.send_command(LinkControl(cid, link, enabled, mute), now)
+
+    def spare_config(self, percent: int, now: float, *, link: int | None = None,
+                     stream: int | None = None) -> int:
+        """Send a SpareConfig: cap spare traffic at ``percent`` of each packet (0: off) on
+        ``link`` (every link when both are None) or for ``stream``; returns its command id."""
+        cid = self.manager.next_command_id()
+        return self.manager.send_command(SpareConfig(cid, link, stream, int(percent)), now)
 
     def schedule_update(self, link: int, schedule: Schedule, now: float,
                         activate_cycle: int | None = None) -> int:

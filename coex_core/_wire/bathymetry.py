@@ -167,6 +167,8 @@ MAP_ROI_REPLY = Body(
     "request_id" / Bounded(0, 255) * "The request answered",
     "level" / Bounded(0, 15) * "Its level",
     "queued" / Bounded(0, 1023, saturating=True) * "Subgrids queued for it (0: nothing newer)",
+    "waiting" / Bounded(0, 1023, saturating=True)
+    * "Subgrids of the region not surveyed yet: the request stands and they follow when surveyed (0: it does not stand)",
 )
 
 
@@ -243,11 +245,12 @@ register(MessageSpec(
 ))
 register(MessageSpec(
     19, MapRoiReply, MAP_ROI_REPLY, False, "bathymetry",
-    "Vehicle answer to a region request: how many subgrids it queued.",
-    largest=lambda: MapRoiReply(255, 15, 1023),
+    "Vehicle answer to a region request: how many subgrids it queued, and how many it waits for.",
+    largest=lambda: MapRoiReply(255, 15, 1023, 1023),
     cases=lambda: [
         ("nothing_newer", MapRoiReply(0, 0, 0)),
         ("some_queued", MapRoiReply(17, 2, 12)),
-        ("maximum", MapRoiReply(255, 15, 1023)),
+        ("standing", MapRoiReply(40, 0, 3, 61)),
+        ("maximum", MapRoiReply(255, 15, 1023, 1023)),
     ],
 ))

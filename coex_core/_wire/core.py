@@ -16,6 +16,7 @@ from ..messages import (
     QueueStatus,
     ScheduleUpdate,
     Slot,
+    SpareConfig,
     StreamStatus,
     VehicleMode,
     VehicleStatus,
@@ -201,6 +202,23 @@ register(MessageSpec(
         ("disable_link0", LinkControl(0, 0, False, False)),
         ("enable_link1", LinkControl(17, 1, True, False)),
         ("max_muted", LinkControl(255, 7, True, True)),
+    ],
+))
+SPARE_CONFIG = Body(
+    "command_id" / COMMAND_ID,
+    "link" / Bounded(0, 7, optional=True) * "Link whose share is set (absent: every link, or none when stream is given)",
+    "stream" / Bounded(0, 31, optional=True) * "Stream whose share is set (absent: the link's share)",
+    "percent" / Bounded(0, 100, unit="%") * "Share of each packet spare traffic may fill (0: off)",
+)
+register(MessageSpec(
+    10, SpareConfig, SPARE_CONFIG, False, "core",
+    "Topside command: cap or switch off spare traffic, per link or per stream.",
+    largest=lambda: SpareConfig(255, 7, None, 100),
+    cases=lambda: [
+        ("all_links_off", SpareConfig(0, None, None, 0)),
+        ("link1_quarter", SpareConfig(21, 1, None, 25)),
+        ("stream3_half", SpareConfig(22, None, 3, 50)),
+        ("maximum", SpareConfig(255, 7, None, 100)),
     ],
 ))
 register(MessageSpec(

@@ -12,31 +12,41 @@ from ..messages import (
     FrameHeader,
     Message,
 )
+from .delivery import DeliveryMixin
 from .events import Acked
 from .links import (
     MAX_ACK_ENTRIES,
     SEQ_MODULUS,
 )
-from .tdma import LinksMixin
 
 __all__ = ["AcksMixin"]
 
 
-class AcksMixin(LinksMixin):
+class AcksMixin(DeliveryMixin):
     # ============================================================================== acks
     def on_ack(self, ack: FrameAck, now: float) -> int:
         """Apply a :class:`FrameAck` (received on any link): every ack-required message packed
         in an acknowledged frame leaves its queue, and every link's pending records. Returns the
-        number of messages cleared."""
-        return len(self.acknowledge(ack, now))
+        number of ack-required messages cleared."""
+        return len(self._acknowledge(ack, now)[0])
 
     def acknowledge(self, ack: FrameAck, now: float) -> list[tuple[int, Message]]:
         """:meth:`on_ack`, returning the ``(stream, message)`` pairs it cleared (each also gives
-        an :class:`Acked` event)."""
+        an :class:`Acked` event), then the modality messages of other streams that the
+        acknowledged frames delivered (see :mod:`.delivery`); the node gives each to the
+        sender that produced it (``ModalitySender.acked``)."""
+        cleared, delivered = self._acknowledge(ack, now)
+        return cleared + delivered
+
+    def _acknowledge(self, ack: FrameAck, now: float
+                     ) -> tuple[list[tuple[int, Message]], list[tuple[int, Message]]]:
         if ack.node != self.node_id or ack.link not in self._links:
-            return []
+            return [], []
         st = self._links[ack.link]
         cleared: list[tuple[int, Message]] = []
+        delivered: list[tuple[int, Message]] = []
+        seqs = [(ent.seq + i) % SEQ_MODULUS for ent in ack.entries for i in range(8) if ent.frames >> i & 1]
+        delivered.extend(self._delivered(ack.link, seqs, now))
         for ent in ack.entries:
             for i in range(8):
                 if not ent.frames >> i & 1:
@@ -52,7 +62,7 @@ class AcksMixin(LinksMixin):
                     cleared.append((sid, e.message))
                     self.stats["acked"] += 1
                     self._events.append(Acked(now, sid, e.message, now - (e.first_sent or now), ack.link))
-        return cleared
+        return cleared, delivered
 
     def on_frame(self, link: int, header: FrameHeader, now: float, ackable: bool = True) -> None:
         """Bookkeeping for a good frame received on ``link``: the watchdog, the peer's schedule
@@ -62,6 +72,7 @@ class AcksMixin(LinksMixin):
             return
         st.last_heard = now
         st.frames_rx += 1
+        self._heard(link, header)
         if self.ack_frames and ackable:
             seqs = self._to_ack.setdefault((header.src, link), {})
             seqs[header.seq] = now  # a newer use of a seq: the ack names the newest

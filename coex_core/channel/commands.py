@@ -14,6 +14,7 @@ from ..messages import (
     Message,
     QueueConfig,
     ScheduleUpdate,
+    SpareConfig,
 )
 from .events import (
     CommandApplied,
@@ -33,7 +34,7 @@ __all__ = ["CommandsMixin"]
 class CommandsMixin(PackingMixin):
     # ============================================================== commands (vehicle side)
     def apply(self, command: Message, now: float) -> CommandAck:
-        """Apply a topside command (QueueConfig, ScheduleUpdate, LinkControl) and return the
+        """Apply a topside command (QueueConfig, ScheduleUpdate, LinkControl, SpareConfig) and return the
         CommandAck to send; never raises for a well-formed message."""
         status, reason = AckStatus.REJECTED, "not a channel command"
         if isinstance(command, QueueConfig):
@@ -42,6 +43,8 @@ class CommandsMixin(PackingMixin):
             status, reason = self._apply_schedule(command, now)
         elif isinstance(command, LinkControl):
             status, reason = self._apply_link_control(command, now)
+        elif isinstance(command, SpareConfig):
+            status, reason = self._apply_spare(command)
         cid = int(getattr(command, "command_id", 0))
         self._events.append(CommandApplied(now, command, status, reason))
         return CommandAck(cid, status)
@@ -94,6 +97,32 @@ class CommandsMixin(PackingMixin):
             return AckStatus.REJECTED, f"activation cycle {n} is not after the current cycle {cur}"
         st.pending = _PendingSchedule(new.starting_at(n, st.current.cycle_start(n)), c.command_id)
         return AckStatus.ACCEPTED, ""
+
+    def _apply_spare(self, c: SpareConfig) -> tuple[AckStatus, str]:
+        if not 0 <= c.percent <= 100:
+            return AckStatus.REJECTED, f"spare share {c.percent} % outside 0..100"
+        share = c.percent / 100.0
+        if c.stream is not None:
+            if c.link is not None:
+                return AckStatus.REJECTED, "a spare share is set per link or per stream, not both"
+            s = self._streams.get(c.stream)
+            if s is None:
+                return AckStatus.UNKNOWN_TARGET, f"no stream {c.stream}"
+            s.queue.config = s.queue.config.updated(spare=share)
+            return AckStatus.ACCEPTED, ""
+        if c.link is not None and c.link not in self._links:
+            return AckStatus.UNKNOWN_TARGET, f"no link {c.link}"
+        self.set_spare(share, c.link)
+        return AckStatus.ACCEPTED, ""
+
+    def set_spare(self, share: float, link: int | None = None) -> None:
+        """Set the share of each packet spare traffic may fill on ``link`` (every link when
+        ``None``): 0 switches the spare tier and redundant copies off, 1 lets them fill every
+        idle byte. (A stream's own share is ``StreamConfig.spare``.)"""
+        if not 0.0 <= share <= 1.0:
+            raise ConfigError(f"spare share {share} outside 0..1")
+        for lk in ([link] if link is not None else list(self._links)):
+            self._link(lk).spare = float(share)
 
     def _apply_link_control(self, c: LinkControl, now: float) -> tuple[AckStatus, str]:
         st = self._links.get(c.link)

@@ -2,7 +2,10 @@
 
 Fields: ``time`` (transmission start), ``link``, ``slot``, ``src``, ``dst``, ``rate``, ``frames``,
 ``capacity_bytes`` (frames x frame size), ``used_bytes`` (bytes of the frames as sent),
-``delivered`` (per frame), ``delivered_bytes``, ``lost`` (frames lost) and ``cause``. The
+``delivered`` (per frame), ``delivered_bytes``, ``lost`` (frames lost) and ``cause``. A
+runner's own ``sent`` record adds ``spare_bytes`` and ``redundant_bytes`` (of ``used_bytes``:
+spare-tier messages and extra copies of urgent ones) and ``backlog_bytes`` (work left after the
+packet, see ``Transmission``). The
 simulated channel (:meth:`coex_core.acoustic.AcousticChannel.log`) produces the records; the
 runner writes them. Nothing here touches a file: callers pass text in and out.
 """

@@ -77,6 +77,9 @@ class LinkConfig:
     gap: float = 0.0
     dst: int = 0
     band: str = ""
+    #: the share of each packet that spare traffic (the spare tier and redundant copies) may
+    #: fill: 0 switches it off on this link (acoustic transmissions cost the vehicle energy)
+    spare: float = 1.0
 
     def __post_init__(self) -> None:
         if not 0 <= self.link <= 7:
@@ -90,6 +93,8 @@ class LinkConfig:
             raise ConfigError("watchdog_cycles must be >= 1")
         if (self.frames or info.frames) > 8:
             raise ConfigError("at most 8 frames per packet")
+        if not 0.0 <= self.spare <= 1.0:
+            raise ConfigError(f"spare {self.spare} outside 0..1 (a share of each packet)")
 
     @property
     def info(self) -> RateInfo:
@@ -119,7 +124,10 @@ class Transmission:
 
     ``seq`` is the header seq of the first frame (frame i has ``seq + i`` mod 256);
     ``capacity`` is the byte size of a full packet on this link, ``used`` the message bytes
-    packed (headers excluded), ``duration`` the airtime."""
+    packed (headers excluded), ``duration`` the airtime. Of ``used``, ``spare`` bytes came from
+    the spare tier and ``redundant`` bytes are extra copies of urgent messages; ``backlog`` is
+    the work left after this packet (queued bytes plus what senders say they still have,
+    background and spare)."""
 
     link_id: int
     rate: int
@@ -133,6 +141,9 @@ class Transmission:
     used: int = 0
     messages: int = 0
     schedule: int = 0
+    spare: int = 0
+    redundant: int = 0
+    backlog: int = 0
 
 
 @persistent("channel.PendingSchedule")
@@ -163,6 +174,8 @@ class _Link:
     packets: int = 0
     frames_tx: int = 0
     frames_rx: int = 0
+    #: runtime share of each packet spare traffic may fill (starts at ``cfg.spare``)
+    spare: float = 1.0
 
     @property
     def safe(self) -> Schedule:

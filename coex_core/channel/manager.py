@@ -99,7 +99,7 @@ class ChannelManager(SettingsMixin):
         for cfg in links:
             if cfg.link in self._links:
                 raise ConfigError(f"link {cfg.link} configured twice")
-            self._links[cfg.link] = _Link(cfg, cfg.schedule, cfg.enabled, cfg.muted)
+            self._links[cfg.link] = _Link(cfg, cfg.schedule, cfg.enabled, cfg.muted, spare=cfg.spare)
         self._streams: dict[int, _Stream] = {}
         self._defaults: dict[int, StreamConfig] = {}
         given = {s.stream: s for s in streams}
@@ -118,7 +118,11 @@ class ChannelManager(SettingsMixin):
         self._commands: dict[int, Message] = {}  # topside: sent commands awaiting a CommandAck
         self.stats: dict[str, int] = {"packets": 0, "frames": 0, "used_bytes": 0, "capacity": 0,
                                       "acked": 0, "resent": 0, "sender_failures": 0,
-                                      "signed": 0, "stale_acks": 0}
+                                      "signed": 0, "stale_acks": 0, "delivered": 0, "lost": 0,
+                                      "spare_bytes": 0, "redundant_bytes": 0}
+        self._delivery_state()
+        #: stream -> when its sender last gave spare work (the spare tier takes turns)
+        self._spare_turn: dict[int, float] = {}
 
     # ============================================================================ events
     def events(self) -> list[Event]:

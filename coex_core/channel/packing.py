@@ -9,9 +9,11 @@ import math
 from ..auth import TRAILER_BYTES
 from ..errors import CoexError, EncodeError
 from ..messages import (
+    FrameAck,
     FrameHeader,
     Message,
 )
+from ..modality import ModalitySender
 from ..wire import encoded_size, header_size, pack
 from .acks import AcksMixin
 from .events import (
@@ -27,6 +29,26 @@ from .queue import Entry, StreamQueue
 from .schedule import SlotWindow
 
 __all__ = ["PackingMixin"]
+
+
+class _FrameBuild:
+    """A frame being packed: its messages, the queue entries among them, the bytes left."""
+
+    __slots__ = ("left", "msgs", "spare", "spare_open", "taken")
+
+    def __init__(self, room: int) -> None:
+        self.left = room
+        self.msgs: list[Message] = []
+        self.taken: list[Entry] = []
+        #: (stream, message) of the spare-tier messages it carries
+        self.spare: list[tuple[int, Message]] = []
+        self.spare_open = True
+
+    def add(self, m: Message, size: int, entry: Entry | None = None) -> None:
+        self.msgs.append(m)
+        self.left -= size
+        if entry is not None:
+            self.taken.append(entry)
 
 
 class PackingMixin(AcksMixin):
@@ -48,7 +70,10 @@ class PackingMixin(AcksMixin):
         """Pack one packet for ``link`` now (``None`` when there is nothing to send).
 
         Order per frame: pending frame acks, then the contest (tier first, then value), then
-        pulls from modality senders when no queued message fits."""
+        pulls from modality senders when no queued message fits. Then, within the link's spare
+        share: extra copies of the packet's urgent messages (frame acks, tier-0 messages, the
+        first answer to a request) in other frames, as many as the measured loss calls for
+        (:meth:`copies`); then the spare tier (``ModalitySender.spare``) fills what is left."""
         st = self._link(link)
         cfg = st.cfg
         self._build_no += 1
@@ -61,63 +86,84 @@ class PackingMixin(AcksMixin):
         signer = self.signer
         reserve = TRAILER_BYTES if signer is not None and any(
             self.is_command(e.message) for e in self._all_entries()) else 0
-        frames_msgs: list[tuple[list[Message], list[Entry]]] = []
-        used = 0
+        room = cfg.fbytes - hdr_bytes - reserve
+        # room kept in each frame for the extra copies of the urgent messages known now (frame
+        # acks, tier-0 messages, replies queued on an expedited stream), so that background
+        # traffic cannot crowd them out; unused, it goes to the spare tier
+        keep = self._copy_reserve(link, acks, room, now)
+        frames_b: list[_FrameBuild] = []
+        urgent: list[tuple[Message, int, Entry | None]] = []  # message, size, its entry
         for _ in range(cfg.n_frames):
-            left = cfg.fbytes - hdr_bytes - reserve
-            msgs: list[Message] = []
-            taken: list[Entry] = []
-            while acks and encoded_size(acks[0]) <= left:
+            fb = _FrameBuild(room)
+            while acks and encoded_size(acks[0]) <= fb.left:
                 a = acks.pop(0)
-                msgs.append(a)
-                left -= encoded_size(a)
-            while left > 0:
-                pick = self._contest(link, w, left, now)
+                fb.add(a, encoded_size(a))
+                urgent.append((a, encoded_size(a), None))
+            while fb.left > 0:
+                pick = self._contest(link, w, fb.left, now, keep)
                 if pick is None:
-                    if not self._pull(link, w, left, now, exhausted, t0):
+                    if fb.left - keep <= 0 or not self._pull(link, w, fb.left - keep, now, exhausted, t0):
                         break
                     continue
                 q, e = pick
-                msgs.append(e.message)
-                taken.append(e)
-                left -= e.size
+                fb.add(e.message, e.size, e)
                 q.last_access = now
+                if q.config.tier == 0 or q.expedite:
+                    urgent.append((e.message, e.size, e))
                 self._mark_taken(q, e, now)
-            if not msgs:
+            if not fb.msgs:
                 break
-            used += cfg.fbytes - hdr_bytes - reserve - left
-            frames_msgs.append((msgs, taken))
+            frames_b.append(fb)
         if acks:  # acks that did not fit go back for the next packet
             for a in acks:
                 self._requeue_ack(a, now)
-        if not frames_msgs:
-            return None
-        for _, taken in frames_msgs:
-            for e in taken:
+        if not frames_b:
+            # nothing but spare work: an empty packet is built only if the spare tier fills it
+            if st.spare <= 0:
+                return None
+        for fb in frames_b:
+            for e in fb.taken:
                 self._streams[e.stream].queue.expedite = False
+        spare_budget = int(st.spare * cfg.n_frames * room)
+        redundant = self._add_copies(link, frames_b, urgent, room, spare_budget)
+        spare = self._fill_spare(link, w, frames_b, room, spare_budget - redundant, now, t0)
+        frames_b = [fb for fb in frames_b if fb.msgs]
+        if not frames_b:
+            return None
         frames: list[bytes] = []
         seq0 = st.seq
         n_msgs = 0
-        for i, (msgs, taken) in enumerate(frames_msgs):
+        used = 0
+        tokens: dict[int, int] = {}  # id(message) -> delivery token, shared by its copies
+        for i, fb in enumerate(frames_b):
             seq = (seq0 + i) % SEQ_MODULUS
             self._claim_seq(st, link, seq)
             header = FrameHeader(src=self.node_id, dst=cfg.dst, seq=seq, schedule=st.current.version,
                                  crc=cfg.crc)
-            if signer is not None and any(self.is_command(m) for m in msgs):
-                frames.append(signer.pack(msgs, cfg.fbytes, header))
+            if signer is not None and any(self.is_command(m) for m in fb.msgs):
+                frames.append(signer.pack(fb.msgs, cfg.fbytes, header))
                 self.stats["signed"] += 1
             else:
-                frames.append(pack(msgs, cfg.fbytes, header))
-            n_msgs += len(msgs)
+                frames.append(pack(fb.msgs, cfg.fbytes, header))
+            n_msgs += len(fb.msgs)
+            used += room - fb.left
             refs = []
-            for e in taken:
+            tracked = list(fb.spare)
+            for e in fb.taken:
                 q = self._streams[e.stream].queue
                 if q.config.ack_required:
                     e.pending[(link, seq)] = now
                     e.ready_at = max(e.ready_at, now + st.ack_timeout)
                     refs.append((e.stream, e.id))
+                elif self._streams[e.stream].sender is not None:
+                    tracked.append((e.stream, e.message))
             if refs:
                 st.sent[seq] = refs
+            for sid, m in tracked:
+                token = tokens[id(m)] = self._track(link, sid, m, now, tokens.get(id(m)))
+                self._carried(link, seq, token)
+            if any(not isinstance(m, FrameAck) for m in fb.msgs):
+                self._watch_frame(link, seq, now)
         st.seq = (seq0 + len(frames)) % SEQ_MODULUS
         duration = cfg.airtime(len(frames))
         st.busy_until = now + duration
@@ -128,12 +174,143 @@ class PackingMixin(AcksMixin):
         self.stats["frames"] += len(frames)
         self.stats["used_bytes"] += used
         self.stats["capacity"] += capacity
+        self.stats["spare_bytes"] += spare
+        self.stats["redundant_bytes"] += redundant
         return Transmission(link, cfg.rate, tuple(frames), seq0, now, duration, w.index, w.cycle,
-                            capacity, used, n_msgs, st.current.version)
+                            capacity, used, n_msgs, st.current.version, spare, redundant,
+                            self.backlog())
+
+    def backlog(self) -> int:
+        """Bytes of work waiting: queued messages plus what every sender says it still has
+        (``pending_bytes``, and ``spare_bytes`` on streams whose spare traffic is on)."""
+        n = sum(s.queue.queued_bytes() for s in self._streams.values() if s.queue.config.enabled)
+        for s in self._streams.values():
+            if s.sender is None or not s.queue.config.enabled:
+                continue
+            try:
+                n += int(s.sender.pending_bytes())
+                if s.queue.config.spare > 0 and any(st.spare > 0 for st in self._links.values()):
+                    n += int(s.sender.spare_bytes())
+            except Exception:  # an estimate must never stop a packet
+                continue
+        return n
+
+    def _add_copies(self, link: int, frames_b: list[_FrameBuild],
+                    urgent: list[tuple[Message, int, Entry | None]], room: int, budget: int) -> int:
+        """Put extra copies of the packet's urgent messages into other frames (existing ones with
+        room, then new ones up to the link's frames per packet), within ``budget`` bytes;
+        returns the bytes added. A copy of an ack-required message is recorded under its frame
+        too, so an ack of any copy clears it."""
+        k = self.copies(link)
+        n_frames = self._links[link].cfg.n_frames
+        if k <= 1 or not urgent or budget <= 0:
+            return 0
+        added = 0
+        for m, size, entry in urgent:
+            have = sum(1 for fb in frames_b if any(x is m for x in fb.msgs))
+            start = next((i for i, fb in enumerate(frames_b) if any(x is m for x in fb.msgs)), 0)
+            while have < k and added + size <= budget:
+                order = list(range(start + 1, len(frames_b))) + list(range(0, start + 1))
+                target = next((frames_b[j] for j in order if frames_b[j].left >= size
+                               and not any(x is m for x in frames_b[j].msgs)), None)
+                if target is None:
+                    if len(frames_b) >= n_frames or size > room:
+                        break
+                    target = _FrameBuild(room)
+                    frames_b.append(target)
+                target.add(m, size, entry)
+                have += 1
+                added += size
+        return added
+
+    def _fill_spare(self, link: int, w: SlotWindow, frames_b: list[_FrameBuild], room: int, budget: int,
+                    now: float, t0: float) -> int:
+        """The spare tier: below everything else, senders' ``spare(max_bytes, now)`` fill what is
+        left of the packet, within the link's spare share (``budget``) and each stream's
+        (``StreamConfig.spare``); returns the spare bytes packed. Senders take turns: the one
+        that gave spare work longest ago (weighted by priority) is asked first."""
+        st = self._links[link]
+        cfg = st.cfg
+        if budget <= 0:
+            return 0
+        cands = []
+        for sid, s in self._streams.items():
+            q = s.queue
+            if (s.sender is None or q.config.spare <= 0 or not self._eligible(q, link, w, now)
+                    or getattr(type(s.sender), "spare", ModalitySender.spare) is ModalitySender.spare):
+                continue
+            cands.append(sid)
+        if not cands:
+            return 0
+        total = 0
+        per_stream = {sid: int(self._streams[sid].queue.config.spare * cfg.n_frames * room) for sid in cands}
+        exhausted: dict[int, float] = {}
+        while True:
+            fb = next((f for f in frames_b if f.left > 0 and f.spare_open), None)
+            if fb is None:
+                if len(frames_b) >= cfg.n_frames or total >= budget:
+                    break
+                fb = _FrameBuild(room)
+                frames_b.append(fb)
+            if self.clock is not None and self.clock() - t0 > self.fill_budget:
+                break
+            left = min(fb.left, budget - total)
+            order = sorted(
+                (sid for sid in cands if left > exhausted.get(sid, -1) and per_stream[sid] > 0),
+                key=lambda sid: (-(self._streams[sid].queue.config.priority
+                                   * (now - self._spare_turn.get(sid, -math.inf) + 1.0)), sid))
+            got_any = False
+            for sid in order:
+                s = self._streams[sid]
+                sender = s.sender
+                assert sender is not None
+                ask = min(left, per_stream[sid])
+                cap = s.queue.config.max_bytes_on(link)
+                if cap is not None:
+                    ask = min(ask, cap)
+                if ask <= 0:
+                    continue
+                try:
+                    got = sender.spare(ask, now)
+                    if not isinstance(got, list | tuple):
+                        raise TypeError(f"spare returned {type(got).__name__}, not a list")
+                except Exception as exc:  # a failing sender must never stop the packet
+                    exhausted[sid] = math.inf
+                    self.stats["sender_failures"] += 1
+                    self._events.append(SenderFailed(now, sid, f"spare: {type(exc).__name__}: {exc}"))
+                    continue
+                packed = 0
+                for m in got:
+                    try:
+                        size = encoded_size(m)
+                    except (EncodeError, CoexError, TypeError, ValueError) as exc:
+                        s.queue.count_drop("encode")
+                        self._events.append(Dropped(now, sid, "encode"))
+                        self._events.append(SenderFailed(now, sid, f"unencodable spare message: {exc}"))
+                        continue
+                    if size > fb.left or packed + size > ask:
+                        # more than asked for: spare work can be made again, so it is dropped
+                        s.queue.count_drop("overrun")
+                        self._events.append(Dropped(now, sid, "overrun"))
+                        continue
+                    fb.add(m, size)
+                    fb.spare.append((sid, m))
+                    packed += size
+                if packed:
+                    per_stream[sid] -= packed
+                    total += packed
+                    self._spare_turn[sid] = now
+                    got_any = True
+                    break
+                exhausted[sid] = max(exhausted.get(sid, -1), left)
+            if not got_any:
+                fb.spare_open = False  # nobody has spare work that fits this frame
+        return total
 
     def _claim_seq(self, st: _Link, link: int, seq: int) -> None:
         """Reusing a seq forgets the old frame's pending records (its ack can no longer be told
         apart); those messages become sendable again."""
+        self._forget_frame(link, seq)
         old = st.sent.pop(seq, None)
         if not old:
             return
@@ -178,7 +355,26 @@ class PackingMixin(AcksMixin):
                 return False
         return True
 
-    def _contest(self, link: int, w: SlotWindow, left: int, now: float) -> tuple[StreamQueue, Entry] | None:
+    def _copy_reserve(self, link: int, acks: list[Message], room: int, now: float) -> int:
+        """Bytes per frame that only urgent messages (tier 0, expedited streams) may use: room
+        for ``copies - 1`` extra copies of the urgent messages waiting now, spread over the
+        other frames (at most half a frame)."""
+        st = self._links[link]
+        k = self.copies(link)
+        n = st.cfg.n_frames
+        if k <= 1 or n <= 1 or st.spare <= 0:
+            return 0
+        w = self._window(st, now)
+        urgent = sum(encoded_size(a) for a in acks)
+        for s in self._streams.values():
+            q = s.queue
+            if (q.config.tier == 0 or q.expedite) and q.entries and self._eligible(q, link, w, now):
+                urgent += sum(e.size for e in q.entries if self._sendable(e, now, link))
+        return min(room // 2, math.ceil((k - 1) * urgent / (n - 1)))
+
+    def _contest(self, link: int, w: SlotWindow, left: int, now: float,
+                 keep: int = 0) -> tuple[StreamQueue, Entry] | None:
+        """The message to pack next: ``keep`` bytes of ``left`` are for urgent messages only."""
         best: tuple[tuple[float, ...], StreamQueue, Entry] | None = None
         for sid in sorted(self._streams):
             q = self._streams[sid].queue
@@ -186,7 +382,8 @@ class PackingMixin(AcksMixin):
                 continue
             entry = None
             cap = q.config.max_bytes_on(link)
-            room = left if cap is None else min(left, cap)
+            room = left if q.config.tier == 0 or q.expedite else left - keep
+            room = room if cap is None else min(room, cap)
             for e in q.ordered():
                 if e.size <= room and self._sendable(e, now, link):
                     entry = e

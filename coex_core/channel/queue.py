@@ -29,7 +29,7 @@ class StreamConfig:
     ``ack_required`` keeps a message until a :class:`~coex_core.messages.FrameAck` covers a frame
     that carried it. ``links`` restricts the stream to some links (``None`` = all);
     ``link_max_bytes`` caps message sizes per link. ``tags`` let a slot reserve itself for some
-    streams."""
+    streams. ``spare`` caps the share of a packet the stream's spare work may fill (0: none)."""
 
     stream: int
     name: str = ""
@@ -46,6 +46,9 @@ class StreamConfig:
     #: ``((link, max_bytes), ...)``: largest message this stream may put on a link (smaller,
     #: coarser pieces on a slow modem); senders are asked for at most that much there.
     link_max_bytes: tuple[tuple[int, int], ...] = ()
+    #: the largest share of a packet this stream's spare work (``ModalitySender.spare``) may
+    #: fill: 0 switches its spare traffic off, 1 lets it use every idle byte
+    spare: float = 1.0
 
     def __post_init__(self) -> None:
         if not 0 <= self.stream <= 31:
@@ -56,10 +59,12 @@ class StreamConfig:
             raise ConfigError(f"priority {self.priority} outside 0..127")
         if self.ttl < 0 or self.blackout < 0 or self.max_depth < 0:
             raise ConfigError("ttl, blackout and max_depth must not be negative")
+        if not 0.0 <= self.spare <= 1.0:
+            raise ConfigError(f"spare {self.spare} outside 0..1 (a share of each packet)")
 
     #: Settings an operator may change at runtime (and that :meth:`to_dict` saves).
     RUNTIME = ("enabled", "priority", "ttl", "max_depth", "newest_first", "blackout", "tier",
-               "ack_required")
+               "ack_required", "spare")
 
     def to_dict(self) -> dict[str, Any]:
         out: dict[str, Any] = {}

@@ -27,6 +27,7 @@ class SettingsMixin(CommandsMixin):
                 str(link): {
                     "enabled": st.enabled,
                     "muted": st.muted,
+                    "spare": st.spare,
                     "schedule": st.current.to_dict(),
                     "pending": None if st.pending is None else {
                         "schedule": st.pending.schedule.to_dict(), "command_id": st.pending.command_id},
@@ -54,6 +55,7 @@ class SettingsMixin(CommandsMixin):
                     continue
                 st.enabled = bool(d.get("enabled", st.enabled))
                 st.muted = bool(d.get("muted", st.muted))
+                st.spare = float(d.get("spare", st.spare))
                 if d.get("schedule"):
                     st.current = Schedule.from_dict(d["schedule"])
                     st.switched_at = now

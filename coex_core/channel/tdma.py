@@ -46,7 +46,7 @@ class LinksMixin(StreamsMixin):
                 "schedule": st.current.version,
                 "pending": None if st.pending is None else st.pending.schedule.version,
                 "packets": st.packets, "frames_tx": st.frames_tx, "frames_rx": st.frames_rx,
-                "last_heard": st.last_heard}
+                "last_heard": st.last_heard, "spare": st.spare}
 
     def schedule(self, link: int) -> Schedule:
         """The schedule link ``link`` runs now."""

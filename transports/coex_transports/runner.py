@@ -222,6 +222,7 @@ class Runner:
                 "time": round(now, 6), "link": tx.link_id, "slot": tx.slot, "src": self.node.node_id,
                 "dst": None, "rate": tx.rate, "frames": len(tx.frames), "capacity_bytes": tx.capacity,
                 "used_bytes": tx.used, "delivered": None, "lost": None, "cause": "sent",
+                "spare_bytes": tx.spare, "redundant_bytes": tx.redundant, "backlog_bytes": tx.backlog,
             })
         self.save_settings()
         for hook in self.after_step:
