@@ -122,8 +122,23 @@ def test_region_request_with_current_stamps_resends_nothing() -> None:
     req = _request(receiver, 0, now)
     assert any(h is not None for h in req.held)
     replies = sender.handle(req, now)
-    assert replies == [MapRoiReply(req.request_id, 0, 0)]
+    # nothing newer; the region's subgrids beyond the survey (negative indices) are awaited
+    unsurveyed = sum(1 for i in range(36) if not math.isfinite(sender.subgrid_time((0, -2 + i % 6, -2 + i // 6))))
+    assert unsurveyed > 0
+    assert replies == [MapRoiReply(req.request_id, 0, 0, unsurveyed)]
     assert not [m for m in sender.fill(240, now) if isinstance(m, Subgrid)]
+    receiver.receive(replies[0], now)
+    (region,) = receiver.active_regions()  # it stands on the vehicle: waiting, not answered
+    assert region.waiting == unsurveyed and not region.done
+    assert receiver.poll(now + 600.0) == []  # not asked again while it stands
+
+
+def test_a_request_over_surveyed_ground_with_current_stamps_closes() -> None:
+    sender, receiver, now = _synced()
+    receiver.request_region(0, 0, 0, 4, 4)
+    (req,) = receiver.poll(now)
+    replies = sender.handle(req, now)
+    assert replies == [MapRoiReply(req.request_id, 0, 0, 0)]
     receiver.receive(replies[0], now)
     assert receiver.active_regions() == []
 

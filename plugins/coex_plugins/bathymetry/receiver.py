@@ -30,6 +30,7 @@ RECEIVER_DEFAULTS: dict[str, Any] = {
     "origin_lon": None,
     "request_timeout": 60.0,
     "subgrid_wait": 4.0,
+    "standing_recheck": 1800.0,
     "auto_fill": True,
     "auto_fill_interval": 300.0,
     "max_regions": 256,
@@ -44,8 +45,8 @@ GAP_CHUNK = 16
 SUBGRID_INDEX_MIN, SUBGRID_INDEX_MAX = -8192, 8191
 
 
-@persistent("bathymetry.Region", version=2,
-            upgrade=lambda fields, saved: {"queued": None, "answered": None, **fields})
+@persistent("bathymetry.Region", version=3,
+            upgrade=lambda fields, saved: {"queued": None, "answered": None, "waiting": 0, **fields})
 @dataclass
 class Region:
     """An active region request: re-sent (with fresh stamps) until the vehicle answers "nothing newer"."""
@@ -64,6 +65,8 @@ class Region:
     #: what the vehicle last answered: subgrids it queued for the region, and when
     queued: int | None = None
     answered: float | None = None
+    #: subgrids of the region the vehicle has not surveyed yet: its request stands for them
+    waiting: int = 0
 
 
 @persistent("bathymetry.Held")
@@ -127,7 +130,10 @@ class BathymetryReceiver(ModalityReceiver):
     re-sends newer or missing subgrids) and :meth:`request_gaps` (everything missing in a region,
     one bitmap). Each region is re-requested after ``request_timeout`` (plus ``subgrid_wait`` per
     subgrid the vehicle said it queued) until the vehicle answers that it has nothing newer, so
-    lost requests, replies and subgrids are all recovered. With ``auto_fill`` the receiver asks
+    lost requests, replies and subgrids are all recovered. A region the vehicle has not surveyed
+    all of stands there (``MapRoiReply.waiting``): its subgrids follow when they are surveyed, and
+    it is shown as waiting, and asked again only after ``standing_recheck`` seconds (the vehicle's
+    ``standing_expiry``). With ``auto_fill`` the receiver asks
     for the gaps of every level over the whole map whenever the vehicle reports its background
     queue empty (at most every ``auto_fill_interval`` seconds, and again only when the map changed
     or the last round found gaps). ``poll`` emits at most ``max_requests_per_poll`` requests,
@@ -139,6 +145,7 @@ class BathymetryReceiver(ModalityReceiver):
         self.config = cfg
         self.request_timeout = float(cfg["request_timeout"])
         self.subgrid_wait = float(cfg["subgrid_wait"])
+        self.standing_recheck = float(cfg["standing_recheck"])
         self.auto_fill = bool(cfg["auto_fill"])
         self.auto_fill_interval = float(cfg["auto_fill_interval"])
         self.max_regions = int(cfg["max_regions"])
@@ -188,8 +195,11 @@ class BathymetryReceiver(ModalityReceiver):
             if region is not None and not region.done:
                 region.queued = message.queued
                 region.answered = now
-                if message.queued == 0:
+                region.waiting = message.waiting
+                if message.queued == 0 and message.waiting == 0:
                     region.done = True
+                elif message.queued == 0:  # it stands on the vehicle: the data follows when surveyed
+                    region.next_send = now + self.standing_recheck
                 else:
                     self._auto_found |= region.auto
                     region.next_send = now + self.request_timeout + self.subgrid_wait * message.queued

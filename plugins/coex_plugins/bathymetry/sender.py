@@ -47,6 +47,8 @@ SENDER_DEFAULTS: dict[str, Any] = {
     "max_tiles": 1024,
     "topic": None,
     "max_queue": 4096,
+    "standing_expiry": 1800.0,
+    "max_standing": 32,
 }
 
 #: Smallest possible subgrid message (an all-equal block): stop filling below this.
@@ -67,9 +69,12 @@ class BathymetrySender(ModalitySender):
 
     Policy: requested subgrids first (FIFO), then background subgrids, coarsest level first; a
     subgrid is eligible when it changed since it was last sent and has been quiet for
-    ``send_delay`` seconds. Each version is sent once (streamed subgrids are not acked: topside
-    repairs gaps with :class:`MapRoiRequest`). A :class:`MapMetadata` goes out every
-    ``metadata_interval`` seconds and when the background queue empties.
+    ``send_delay`` seconds. Each version is sent once by :meth:`fill`. A subgrid whose frame
+    was not acknowledged (:meth:`lost`, from the channel manager) is offered again as spare
+    work (:meth:`spare`, coarsest level first) until a frame that carried its current version
+    is acknowledged; topside can still repair gaps with :class:`MapRoiRequest`. A
+    :class:`MapMetadata` goes out every ``metadata_interval`` seconds and when the background
+    queue empties.
     """
 
     def __init__(self, config: Mapping[str, Any] | None = None) -> None:
@@ -98,6 +103,10 @@ class BathymetrySender(ModalitySender):
         self.metadata_interval = float(cfg["metadata_interval"])
         self.origin = (float(cfg["origin_lat"]), float(cfg["origin_lon"]))
         self.max_queue = int(cfg["max_queue"])
+        self.standing_expiry = float(cfg["standing_expiry"])
+        self.max_standing = int(cfg["max_standing"])
+        if not (self.standing_expiry >= 0 and self.max_standing >= 0):
+            raise ConfigError("standing_expiry and max_standing must not be negative")
         self._sent: dict[tuple[tuple[int, int], int], npt.NDArray[np.float64]] = {}
         self._queue: list[Key] = []
         self._queued: set[Key] = set()
@@ -110,6 +119,17 @@ class BathymetrySender(ModalitySender):
         self._sent_at: dict[Key, float] = {}
         #: Subgrids whose elevations do not fit the wire (|z| >= 2**19 vertical units): skipped.
         self.unsendable: set[Key] = set()
+        self._after_restore()
+
+    def _after_restore(self) -> None:
+        if getattr(self, "_resend", None) is None:  # a sender saved before spare work existed
+            #: subgrids whose last sent version was lost: spare work (key -> when it was lost)
+            self._resend: dict[Key, float] = {}
+            #: standing region requests: region -> (subgrids awaiting survey, expiry time)
+            self._standing: dict[tuple[int, int, int, int, int, bool], tuple[set[Key], float]] = {}
+            self._standing_checked = -math.inf
+            self.standing_expiry = float(getattr(self, "standing_expiry", SENDER_DEFAULTS["standing_expiry"]))
+            self.max_standing = int(getattr(self, "max_standing", SENDER_DEFAULTS["max_standing"]))
 
     # ---------------------------------------------------------------------------- ingest
 
@@ -192,6 +212,7 @@ class BathymetrySender(ModalitySender):
 
     def _mark_sent(self, key: Key, updated: float, now: float | None = None) -> None:
         self._cache.pop(key, None)
+        self._resend.pop(key, None)
         level, ix, iy = key
         tile, a, b = self.map.tile_of_subgrid(level, ix, iy)
         arr = self._sent_array(tile, level)
@@ -281,6 +302,7 @@ class BathymetrySender(ModalitySender):
                 left -= size
                 self._last_meta = now
                 self._meta_due = False
+        self._serve_standing(now)
         # Requested subgrids first.
         remaining: list[Key] = []
         misses = 0
@@ -327,6 +349,29 @@ class BathymetrySender(ModalitySender):
     def pending_bytes(self) -> int:
         return 40 * (self._pending + len(self._queue))
 
+    def standing(self) -> list[tuple[tuple[int, int, int, int, int, bool], int, float]]:
+        """Standing region requests: ``(region, subgrids still awaited, expiry time)``."""
+        return [(r, len(keys), exp) for r, (keys, exp) in self._standing.items()]
+
+    def _serve_standing(self, now: float) -> None:
+        """Queue, as requested, the awaited subgrids of standing requests that now hold data
+        quiet for ``send_delay`` (at most once a second); drop expired and fulfilled ones."""
+        if not self._standing or now - self._standing_checked < 1.0:
+            return
+        self._standing_checked = now
+        for region, (keys, expires) in list(self._standing.items()):
+            if now > expires:
+                del self._standing[region]
+                continue
+            ready = {k for k in keys if now - self.subgrid_time(k) >= self.send_delay}
+            for key in sorted(ready):
+                if key not in self._queued and len(self._queue) < self.max_queue:
+                    self._queue.append(key)
+                    self._queued.add(key)
+            keys -= ready
+            if not keys:
+                del self._standing[region]
+
     # --------------------------------------------------------------------------- requests
 
     def _init_requests(self) -> None:
@@ -343,16 +388,58 @@ class BathymetrySender(ModalitySender):
         self._queue = [k for k in self._queue if k not in keys]
 
     def acked(self, message: Message, now: float) -> None:
-        """Topside acknowledged a subgrid: a request for it still queued is answered, if the
-        acknowledged copy is its current version (a newer version stays queued)."""
+        """A frame that carried a subgrid was acknowledged: a re-send of it (spare work) or a
+        request for it still queued is answered, if the acknowledged copy is its current version
+        (a newer version stays queued)."""
         if not isinstance(message, Subgrid):
             return
         key = (message.level, message.ix, message.iy)
-        if key not in self._queued:
+        if key not in self._queued and key not in self._resend:
             return
         built = self._built(key)
         if built is not None and built[0] == message:
-            self._unqueue({key})
+            self._resend.pop(key, None)
+            if key in self._queued:
+                self._unqueue({key})
+
+    def lost(self, message: Message, now: float) -> None:
+        """No frame that carried a subgrid was acknowledged: if it is still the subgrid's
+        current version (a newer one goes out with the background anyway), it becomes spare
+        work."""
+        if not isinstance(message, Subgrid):
+            return
+        key = (message.level, message.ix, message.iy)
+        built = self._built(key)
+        if built is not None and built[0] == message:
+            self._resend[key] = now
+
+    def spare(self, max_bytes: int, now: float) -> list[Message]:
+        """Re-sends of subgrids whose frames were not acknowledged, coarsest level first, then
+        the longest lost first (each goes again until an ack of its current version arrives)."""
+        out: list[Message] = []
+        left = int(max_bytes)
+        misses = 0
+        for key in sorted(self._resend, key=lambda k: (-k[0], self._resend[k], k)):
+            if left < MIN_SUBGRID_BYTES or misses >= MAX_MISSES:
+                break
+            if key in self._queued:
+                continue  # a request will send it
+            built = self._built(key)
+            if built is None:
+                self._resend.pop(key, None)
+                continue
+            sg, size = built
+            if size > left:
+                misses += 1
+                continue
+            out.append(sg)
+            left -= size
+            del self._resend[key]  # lost again: lost() brings it back
+            self._mark_sent(key, self.subgrid_time(key), now)
+        return out
+
+    def spare_bytes(self) -> int:
+        return 40 * len(self._resend)
 
     def handle(self, message: Message, now: float) -> list[Message]:
         if not isinstance(message, MapRoiRequest):
@@ -388,10 +475,13 @@ class BathymetrySender(ModalitySender):
             del self._last_request[next(iter(self._last_request))]
         queued = 0
         held_now: set[Key] = set()
+        unsurveyed: set[Key] = set()
         for i in range(n):
             key = (r.level, r.x0 + i % r.w, r.y0 + i // r.w)
             updated = self.subgrid_time(key)
             if not math.isfinite(updated):
+                if not r.fill_gaps or not (r.have or 0) >> (n - 1 - i) & 1:
+                    unsurveyed.add(key)
                 continue
             if r.fill_gaps:
                 assert r.have is not None
@@ -410,4 +500,18 @@ class BathymetrySender(ModalitySender):
                 held_now.add(key)  # asked for by an earlier gap request, held by topside now
         if held_now:
             self._unqueue(held_now)
-        return [MapRoiReply(r.request_id, r.level, min(queued, 1023))]
+        waiting = self._stand(region, unsurveyed, now)
+        return [MapRoiReply(r.request_id, r.level, min(queued, 1023), min(waiting, 1023))]
+
+    def _stand(self, region: tuple[int, int, int, int, int, bool], keys: set[Key], now: float) -> int:
+        """Make the request for ``region`` stand for its ``keys`` not surveyed yet (replacing an
+        earlier one for the same region); returns how many it waits for (0: it does not stand,
+        none is missing or standing requests are off)."""
+        self._standing.pop(region, None)
+        if not keys or self.max_standing == 0 or self.standing_expiry <= 0:
+            return 0
+        while len(self._standing) >= self.max_standing:  # the oldest gives way
+            del self._standing[next(iter(self._standing))]
+        self._standing[region] = (keys, now + self.standing_expiry)
+        self._standing_checked = -math.inf
+        return len(keys)

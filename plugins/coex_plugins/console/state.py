@@ -802,7 +802,8 @@ class ConsoleState:
     def _snap_roi(self, r: _RoiRequest) -> dict[str, Any]:
         """A region request as the bathymetry receiver sends and retries it: ``waiting`` (not
         sent yet), ``sent``, ``queued`` (the vehicle queued ``queued`` subgrids for it; asked
-        again until it has nothing newer) or ``nothing newer`` (done)."""
+        again until it has nothing newer), ``waiting for survey`` (the request stands on the
+        vehicle for ``awaiting_survey`` subgrids not surveyed yet) or ``nothing newer`` (done)."""
         rx = self.map_receiver
         geometry = rx.geometry(r.level) if rx is not None else None
         meta = rx.metadata if rx is not None else None
@@ -815,16 +816,19 @@ class ConsoleState:
         region = r.region
         rid = region.request_id if region.request_id is not None else -1
         queued = getattr(region, "queued", None)
+        waiting = getattr(region, "waiting", 0)
         if region.done:
             status = "nothing newer"
         elif queued:
             status = "queued"
+        elif waiting:
+            status = "waiting for survey"
         elif region.sends:
             status = "sent"
         else:
             status = "waiting"
         return {"request_id": rid, "level": r.level, "x0": r.x0, "y0": r.y0,
-                "w": r.w, "h": r.h, "status": status, "queued": queued,
+                "w": r.w, "h": r.h, "status": status, "queued": queued, "awaiting_survey": waiting,
                 "sent": _num(r.sent, 1),
                 "rect": [r.x0 * span, r.y0 * span, (r.x0 + r.w) * span, (r.y0 + r.h) * span]}
 

@@ -16,6 +16,7 @@ Memory and queue bounds (documented in ``docs/imagery.md``):
 
 from __future__ import annotations
 
+import math
 from collections import deque
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
@@ -85,6 +86,7 @@ class _Tx:
         "goal",
         "heard",
         "image_id",
+        "sends",
         "sent_at",
         "time",
         "x",
@@ -103,6 +105,8 @@ class _Tx:
         n = len(enc.body)
         self.acked: npt.NDArray[np.bool_] = np.zeros(n, bool)
         self.sent_at: npt.NDArray[np.float64] = np.full(n, -np.inf)
+        #: how often each byte was sent (a requested image's bytes are repeated under loss)
+        self.sends: npt.NDArray[np.uint8] = np.zeros(n, np.uint8)
         self.default_goal = default_goal
         self.goal = default_goal
         self.explicit: int | None = None
@@ -133,6 +137,11 @@ SENDER_DEFAULTS: dict[str, Any] = {**dict.fromkeys(CODING_KEYS), "default_goal":
 
 @persistent("imagery.Sender")
 class ImagerySender(ModalitySender):
+    _last_now: float = float("-inf")
+
+    def _after_restore(self) -> None:
+        if getattr(self, "_fates", None) is None:  # saved before frame fates were kept
+            self._fates = deque(maxlen=64)
     """Subsea side. Configuration keys (all optional):
 
     * coding: ``progression``, ``resolutions``, ``layer_bytes``, ``irreversible``, ``grey``,
@@ -173,6 +182,10 @@ class ImagerySender(ModalitySender):
         self._progress_dirty = False
         self._last_progress: tuple[Any, ...] | None = None
         self.evicted = 0
+        #: the newest ``now`` seen (for :meth:`spare_bytes`, which has none)
+        self._last_now = float("-inf")
+        #: fates of recent fragments (1 delivered, 0 lost), from the channel's frame acks
+        self._fates: deque[int] = deque(maxlen=64)
 
     # ------------------------------------------------------------------ ingest
 
@@ -237,6 +250,7 @@ class ImagerySender(ModalitySender):
     def fill(self, max_bytes: int, now: float) -> list[Message]:
         out: list[Message] = []
         left = int(max_bytes)
+        self._last_now = now
         if left <= 0:
             return out
         # 1. progress report, when due and changed
@@ -283,9 +297,98 @@ class ImagerySender(ModalitySender):
                 break
         return out
 
-    def _fragment(self, tx: _Tx, left: int, now: float, trailing: bool = False) -> ImageFragment | None:
-        goal = tx.goal
+    def frame_loss(self) -> float | None:
+        """The share of this sender's fragments whose frames were lost, over the last 64 whose
+        fate the channel told (:meth:`acked`, :meth:`lost`); None before 8 are known."""
+        seen = self._fates
+        return 1.0 - sum(seen) / len(seen) if len(seen) >= 8 else None
+
+    def copies(self) -> int:
+        """How many times a requested image's bytes go out before topside could have answered
+        (each in a later packet): enough that all copies are lost with probability at most 5 %
+        at the measured loss, at most 8; 1 when no loss is measured."""
+        p = self.frame_loss()
+        if p is None or p <= 0.05:
+            return 1
+        return 8 if p >= 0.99 else max(1, min(8, math.ceil(math.log(0.05) / math.log(p))))
+
+    def _fate(self, frag: ImageFragment, ok: int) -> None:
+        """Count a fragment sent once (a repeated one says little about a frame's loss)."""
+        tx = self.images.get(frag.image_id)
+        sends = getattr(tx, "sends", None)
+        if sends is not None and frag.offset < len(sends) and sends[frag.offset] <= 1:
+            self._fates.append(ok)
+
+    def acked(self, message: Message, now: float) -> None:
+        """A frame that carried a fragment arrived: its bytes are held topside (the ImageAck
+        that follows says the same; this is only sooner). An announcement that arrived is heard."""
+        if isinstance(message, ImageAnnounce):
+            tx = self.images.get(message.image_id)
+            if tx is not None:
+                tx.heard = True
+            return
+        if isinstance(message, ImageFragment):
+            self._fate(message, 1)
+            tx = self.images.get(message.image_id)
+            if tx is not None and message.offset + len(message.data) <= tx.total:
+                tx.acked[message.offset:message.offset + len(message.data)] = True
+
+    def lost(self, message: Message, now: float) -> None:
+        """No frame that carried a fragment arrived: its bytes not held are due again at once
+        (instead of after ``rto``). A lost announcement goes again at once."""
+        if isinstance(message, ImageAnnounce):
+            tx = self.images.get(message.image_id)
+            if tx is not None and not tx.heard:
+                tx.announced_at = None
+            return
+        if isinstance(message, ImageFragment):
+            self._fate(message, 0)
+            tx = self.images.get(message.image_id)
+            if tx is not None and message.offset + len(message.data) <= tx.total:
+                span = slice(message.offset, message.offset + len(message.data))
+                tx.sent_at[span] = np.where(tx.acked[span], tx.sent_at[span], -np.inf)
+
+    def spare(self, max_bytes: int, now: float) -> list[Message]:
+        """Further quality layers, beyond each image's goal up to its whole codestream: the
+        requested images first (latest request first), then the others newest first. Bytes
+        sent and not acknowledged go again after ``rto``, as in :meth:`fill`."""
+        out: list[Message] = []
+        left = int(max_bytes)
+        self._last_now = now
+        for tx in self._spare_order():
+            while left >= fragment_size(0, 1):
+                frag = self._fragment(tx, left, now, trailing=bool(out), goal=tx.total)
+                if frag is None:
+                    break
+                out.append(frag)
+                left -= fragment_size(len(frag.packets), len(frag.data))
+            if left < fragment_size(0, 1):
+                break
+        return out
+
+    def _spare_order(self) -> list[_Tx]:
+        txs = [tx for tx in self.images.values()
+               if tx.announced_at is not None and tx.goal > 0 and not tx.needs()]
+        txs.sort(key=lambda tx: (tx.explicit is None, -(tx.explicit or 0), -tx.time))
+        return txs
+
+    def spare_bytes(self) -> int:
+        """Bytes beyond the goals not held topside and not in flight (sent within ``rto``)."""
+        now = self._last_now
+        return sum(int(np.count_nonzero(~tx.acked & (tx.sent_at <= now - self.rto))) for tx in self._spare_order())
+
+    def _fragment(self, tx: _Tx, left: int, now: float, trailing: bool = False,
+                  goal: int | None = None) -> ImageFragment | None:
+        goal = tx.goal if goal is None else goal
         ready = ~tx.acked[:goal] & (tx.sent_at[:goal] <= now - self.rto)
+        sends = getattr(tx, "sends", None)
+        if sends is None:  # an image saved before repeats existed
+            sends = tx.sends = np.zeros(tx.total, np.uint8)
+        copies = self.copies() if tx.explicit is not None else 1
+        if copies > 1:
+            # a requested image under loss: its bytes go again in the next packet, up to
+            # ``copies`` times, without waiting for an ack that takes a TDMA cycle to come
+            ready |= ~tx.acked[:goal] & (sends[:goal] < copies) & (tx.sent_at[:goal] < now)
         if not ready.any():
             return None
         pos = int(np.argmax(ready))
@@ -312,6 +415,7 @@ class ImagerySender(ModalitySender):
         packet = int(np.searchsorted(starts, pos, side="right")) - 1
         frag = ImageFragment(tx.image_id, pos, packet, tuple(int(m) for m in marks), tx.enc.body[pos:pos + n])
         tx.sent_at[pos:pos + n] = now
+        sends[pos:pos + n] = np.minimum(sends[pos:pos + n], 254) + 1
         self._inflight.append((tx.image_id, pos, pos + n))
         return frag
 

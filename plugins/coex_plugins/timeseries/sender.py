@@ -33,6 +33,8 @@ MAX_PASSES = 16
 MAX_CHUNK_DATA = 232
 # priority classes of queued chunks (lower is sent first)
 _REQUESTED, _ALERT, _OVERVIEW = 0, 1, 2
+#: refinement passes made for spare capacity: sent only by ``spare``
+_SPARE = 3
 
 
 class InvalidSamples(CoexError, ValueError):
@@ -437,20 +439,62 @@ class TimeSeriesSender(ModalitySender):
     def _due(self, sent_at: float | None, now: float) -> bool:
         return sent_at is None or now - sent_at >= self.retry_after or now < sent_at
 
-    def _candidates(self, now: float) -> list[_Chunk]:
+    def spare(self, max_bytes: int, now: float) -> list[Message]:
+        """Refinements: further passes of the closed blocks, newest block first, each quartering
+        the block's error bound down to half the resolution; one pass is made at a time, when
+        the spare chunks made before are all sent. A topside request turns them into requested
+        chunks (:class:`TimeSeriesRequest`)."""
+        out: list[Message] = []
+        left = max_bytes
+        for _ in range(2):
+            cands = self._candidates(now, spare=True)
+            for chunk in cands:
+                if left < 13:
+                    break
+                if chunk.size <= left:
+                    out.append(chunk.message)
+                    chunk.sent_at = now
+                    left -= chunk.size
+            if left < 13 or any(not c.acked and c.sent_at is None
+                                for ch in self._channels for c in ch.by_key.values() if c.klass == _SPARE):
+                break
+            if not self._refine_spare():
+                break
+        return out
+
+    def _refinable(self) -> list[tuple[_Channel, _Block]]:
+        return [(ch, b) for ch in self._channels for b in ch.blocks
+                if len(b.passes) < MAX_PASSES and b.bound() > ch.cfg.resolution / 2 * (1 + 1e-9)]
+
+    def _refine_spare(self) -> bool:
+        """Make the next spare refinement pass (newest block first); False when none is left."""
+        blocks = self._refinable()
+        if not blocks:
+            return False
+        ch, block = max(blocks, key=lambda cb: cb[1].start)
+        self._add_pass(ch, block, max(block.bound() / 4, ch.cfg.resolution / 2), _SPARE)
+        return True
+
+    def spare_bytes(self) -> int:
+        held = sum(c.size for ch in self._channels for c in ch.by_key.values()
+                   if c.klass == _SPARE and not c.acked)
+        return held + 64 * len(self._refinable())
+
+    def _candidates(self, now: float, spare: bool = False) -> list[_Chunk]:
         # a stamp is unambiguous for half its period: older chunks would be misplaced, drop them
         horizon = now - STAMP_MODULUS / 2 + 3600.0
         for ch in self._channels:
             for key in [k for k, c in ch.by_key.items() if c.t0 < horizon]:
                 del ch.by_key[key]
         cands = [c for ch in self._channels for c in ch.by_key.values()
-                 if not c.acked and self._due(c.sent_at, now)]
+                 if not c.acked and (c.klass == _SPARE) == spare and self._due(c.sent_at, now)]
         cands.sort(key=lambda c: (c.klass, c.order))
         return cands
 
     def pending_bytes(self) -> int:
         total = sum(ch.reg_size for ch in self._channels if not ch.reg_acked)
-        return total + sum(c.size for ch in self._channels for c in ch.by_key.values() if not c.acked)
+        return total + sum(c.size for ch in self._channels for c in ch.by_key.values()
+                           if not c.acked and c.klass != _SPARE)
 
     def handle(self, message: Message, now: float) -> list[Message]:
         if isinstance(message, TimeSeriesAck):

@@ -179,12 +179,15 @@ function drawMap() {
     for (const r of m.requests) {
       const [ax, ay] = w2s(r.rect[0], r.rect[3]), [bx, by] = w2s(r.rect[2], r.rect[1]);
       const style = { waiting: ["#f0b443", [6, 4]], sent: ["#f0b443", [6, 4]],
-        queued: ["#e8e05a", []], "nothing newer": ["#58c47c", []] }[r.status] || ["#f0b443", [6, 4]];
+        queued: ["#e8e05a", []], "waiting for survey": ["#6fb7ff", [2, 3]],
+        "nothing newer": ["#58c47c", []] }[r.status] || ["#f0b443", [6, 4]];
       ctx.strokeStyle = style[0]; ctx.setLineDash(style[1]); ctx.lineWidth = 2;
       ctx.strokeRect(ax, ay, bx - ax, by - ay);
       ctx.setLineDash([]);
       ctx.fillStyle = style[0]; ctx.font = "11px system-ui";
-      ctx.fillText(`L${r.level} ${r.status}${r.queued ? ` (${r.queued})` : ""}`, ax + 3, ay + 12);
+      const extra = r.status === "waiting for survey" ? ` (${r.awaiting_survey} not surveyed yet)`
+        : r.queued ? ` (${r.queued})` : "";
+      ctx.fillText(`L${r.level} ${r.status}${extra}`, ax + 3, ay + 12);
     }
   }
   if (S.vehicle && $("#show-track").checked) drawTrack();
