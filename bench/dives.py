@@ -23,6 +23,17 @@ Per condition it prints and records:
 Targets (issue: the main job tells the truth): at least 95 % success at 30 % independent, 50 %
 burst and dive040; at least 80 % at 60 % independent.
 
+A second table measures spare capacity (issue: spend every idle byte), judged against the
+simulated seafloor and the wire:
+
+* every map level at least 99.5 % complete (of the surveyed cells, worst dive) ten minutes after
+  the survey's end at 30 % independent loss, and by the end of the dive at 60 %;
+* vehicle link use at least 90 % in every dive, over the packets sent while work (background or
+  spare) was left after the packet (``link.jsonl`` ``backlog_bytes``);
+* at 60 %: request to first answer byte at the next vehicle slot in the median (vehicle slots
+  started between a request's first transmission and the first vehicle message answering it),
+  and a confirming image within two TDMA cycles of its request in at least 90 % of dives.
+
     python bench/dives.py [--seeds N] [--jobs J] [--quick] [--conditions NAME,...]
 
 Writes ``bench/results/dives.json`` (every dive's metrics summary and the table).
@@ -75,7 +86,14 @@ def one_dive(condition: str, seed: int, quick: bool) -> dict[str, Any]:
         "decoys_visited": sum(1 for d in m["decoys"] if d["visited"]),
         "why_not": [t["why_not"] for t in m["targets"] if t["why_not"]],
         "map_coverage": m["map_coverage"],
+        "map_coverage_after_survey": m["map_coverage_after_survey"],
         "link_fill": m["link"]["fill"],
+        "link_fill_with_work": m["link"]["fill_with_work"],
+        "spare_bytes": m["link"]["spare_bytes"],
+        "redundant_bytes": m["link"]["redundant_bytes"],
+        "first_answer_vehicle_slots": m["responses"]["median_vehicle_slots"],
+        "first_answer_at_next_slot": m["responses"]["at_next_vehicle_slot"],
+        "confirmations_within_two": m["goals"]["each confirming image within two TDMA cycles of its request"]["met"],
         "goals": {k: v["met"] for k, v in m["goals"].items()},
     }
 
@@ -109,9 +127,69 @@ def summarise(condition: str, dives: list[dict[str, Any]]) -> dict[str, Any]:
                         "within_two": round(sum(c <= 2.0 for c in cycles) / len(cycles), 3) if cycles else None},
         "map_coverage": cover,
         "link_fill": _pct([d["link_fill"] for d in dives if d["link_fill"] is not None], 0.5),
+        "spare": _spare_summary(condition, dives),
         "failures": [{"seed": d["seed"], "why": d["why_not"], "false": d["false_confirmations"]}
                      for d in dives if not d["success"]],
     }
+
+
+#: issue 20's measures: condition -> the coverage that must reach 99.5 % ("after_survey": ten
+#: minutes after the survey's end; "end": by the end of the dive; None: not measured there)
+SPARE_COVERAGE = {"30% independent": "after_survey", "60% independent": "end"}
+COVERAGE_TARGET = 0.995
+LINK_USE_TARGET = 0.90
+WITHIN_TWO_TARGET = 0.90
+
+
+def _spare_summary(condition: str, dives: list[dict[str, Any]]) -> dict[str, Any]:
+    """Spare capacity (issue 20): worst map level completeness (after the survey and at the
+    end), vehicle link use in packets sent while work was left, request to first answer in
+    vehicle slots, and the share of dives whose confirming images all came within two cycles."""
+    levels = sorted({k for d in dives for k in d["map_coverage"]}, key=int)
+    after = {k: min(d["map_coverage_after_survey"].get(k, 0.0) for d in dives) for k in levels}
+    end = {k: min(d["map_coverage"].get(k, 0.0) for d in dives) for k in levels}
+    use = [d["link_fill_with_work"] for d in dives if d["link_fill_with_work"] is not None]
+    slots = [d["first_answer_vehicle_slots"] for d in dives]
+    within = sum(1 for d in dives if d["confirmations_within_two"])
+    out: dict[str, Any] = {
+        "coverage_after_survey_worst": after, "coverage_end_worst": end,
+        "link_use_with_work": {"median": _pct(use, 0.5), "worst": min(use) if use else None},
+        "first_answer_vehicle_slots_median": _pct([s if s is not None else 1e9 for s in slots], 0.5),
+        "dives_confirmed_within_two_cycles": round(within / len(dives), 3) if dives else None,
+        "spare_bytes_median": _pct([d["spare_bytes"] for d in dives], 0.5),
+        "redundant_bytes_median": _pct([d["redundant_bytes"] for d in dives], 0.5),
+    }
+    checks: dict[str, bool] = {"link_use": bool(use) and min(use) >= LINK_USE_TARGET}
+    which = SPARE_COVERAGE.get(condition)
+    if which is not None:
+        cov = after if which == "after_survey" else end
+        checks["coverage"] = bool(cov) and min(cov.values()) >= COVERAGE_TARGET
+    if condition == "60% independent":
+        med = out["first_answer_vehicle_slots_median"]
+        checks["first_answer_next_slot"] = med is not None and med <= 1
+        checks["within_two_cycles"] = (out["dives_confirmed_within_two_cycles"] or 0) >= WITHIN_TWO_TARGET
+    out["checks"] = checks
+    out["met"] = all(checks.values())
+    return out
+
+
+def spare_table(summary: dict[str, dict[str, Any]]) -> str:
+    head = ("| condition | levels 0 / 1 / 2 / 3 worst, 10 min after survey | worst at end | vehicle link use "
+            "with work (median, worst) | request to first answer (median vehicle slots) | dives with "
+            "confirmations within 2 cycles | spare / redundant bytes per dive (median) | met |")
+    lines = [head, "|" + "---|" * 8]
+    for cond, s in summary.items():
+        sp = s["spare"]
+        after = " / ".join(f"{v:.1%}" for _, v in sorted(sp["coverage_after_survey_worst"].items(), key=lambda kv: int(kv[0])))
+        end = " / ".join(f"{v:.1%}" for _, v in sorted(sp["coverage_end_worst"].items(), key=lambda kv: int(kv[0])))
+        use = sp["link_use_with_work"]
+        failed = [k for k, ok in sp["checks"].items() if not ok]
+        lines.append(
+            f"| {cond} | {after} | {end} | {_fmt_pct(use['median'])}, {_fmt_pct(use['worst'])} "
+            f"| {_fmt(sp['first_answer_vehicle_slots_median'], 1)} | {_fmt_pct(sp['dives_confirmed_within_two_cycles'])} "
+            f"| {_fmt(sp['spare_bytes_median'])} / {_fmt(sp['redundant_bytes_median'])} "
+            f"| {'yes' if sp['met'] else 'NO (' + ', '.join(failed) + ')'} |")
+    return "\n".join(lines)
 
 
 def table(summary: dict[str, dict[str, Any]]) -> str:
@@ -173,12 +251,14 @@ def main(argv: list[str] | None = None) -> int:
     summary = {c: summarise(c, [d for d in results if d["condition"] == c]) for c in conds}
     text = table(summary)
     print(text)
-    all_met = all(s["met"] for s in summary.values())
+    spare = spare_table(summary)
+    print("\nSpare capacity (issue 20):\n" + spare)
+    all_met = all(s["met"] and s["spare"]["met"] for s in summary.values())
     print(f"\n{'all targets met' if all_met else 'TARGETS NOT MET'}; {len(results)} dives in "
           f"{time.perf_counter() - t0:.0f} s")
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps({"quick": args.quick, "seeds": list(seeds), "summary": summary,
-                                    "table": text, "dives": results}, indent=2))
+                                    "table": text, "spare_table": spare, "dives": results}, indent=2))
     return 0
 
 

@@ -104,7 +104,9 @@ def test_received_map_matches_truth_where_held(demo: tuple[Path, dict]) -> None:
         return float(np.median(np.abs(diff))), int(inside.sum())
 
     err, n = misfit(got)
-    assert n > 0.5 * np.isfinite(got).sum() > 1000  # the map lies on the seafloor it maps
+    # the map lies on the seafloor it maps: nearly every cell of the site is held, in place (the
+    # survey's run-ins beyond the site are held too, since lost subgrids are sent again)
+    assert n > 0.99 * truth.size > 1000
     assert err < 0.3, err
     # the check sees orientation: the same map upside down or mirrored does not pass
     assert misfit(np.flipud(got))[0] > 3 * err and misfit(np.fliplr(got))[0] > 3 * err

@@ -43,12 +43,14 @@ from .config import (
 )
 from .operator import MIN_SCORE, CandidateView, Operator
 from .outcome import World, finish
+from .timing import ResponseTimer
 from .truth import FrameTruth, frame_truth
 from .world import (
     Leg,
     Track,
     area_fraction,
     build_nodes,
+    dive_schedule,
     image_files,
     load_image,
     rng_for,
@@ -188,6 +190,7 @@ class DiveRun:
                             SimulatedClock(sim=clock), link_log=self.link_log),
         }
         self.vehicle_modem = self.runners[VEHICLE].transports[0]
+        self.timer = ResponseTimer(self.topside, dive_schedule(scn), VEHICLE, EPOCH)
 
     def _schedule(self) -> None:
         scn, track = self.scn, self.track
@@ -389,7 +392,7 @@ class DiveRun:
         world = World(scn, self.floor, self.cars, self.rocks, self.survey_end, self.frames,
                       self.received_track, self.taken, self.operator_mode)
         metrics = finish(out, cfg, world, self.operator, self.receivers, self.coverage, self.visible_at,
-                         self.decisions, wall, self.runners)
+                         self.decisions, wall, self.runners, self.timer.summary())
         metrics["modems"] = {"nmea_over": {str(k): v for k, v in ptys.items()}, "rate": scn.modem_rate,
                              "tdma": f"{len(scn.slots)} x {scn.slot_seconds:g} s, guard {scn.guard_seconds:g} s; "
                                      f"topside slots {', '.join(str(i) for i, s in enumerate(scn.slots) if s == 'topside')}; "
