@@ -87,6 +87,13 @@ class ModalitySender(abc.ABC):
         """An estimate of the spare work available now, in bytes (0: none). Optional."""
         return 0
 
+    def ready_bytes(self, now: float) -> int:
+        """An estimate of the bytes :meth:`fill` and :meth:`spare` could give now (what waits
+        for an ack that is still due excluded). The channel manager reports it as the backlog
+        after each packet (``Transmission.backlog``): a packet sent while work was ready should
+        be full. Optional (default: :meth:`pending_bytes` plus :meth:`spare_bytes`)."""
+        return self.pending_bytes() + self.spare_bytes()
+
     def lost(self, message: Message, now: float) -> None:  # noqa: B027 - optional hook
         """No frame that carried ``message`` (which this sender produced, on a stream that is
         not ``ack_required``) was acknowledged within the link's ack timeout: it probably did not

@@ -178,22 +178,24 @@ class PackingMixin(AcksMixin):
         self.stats["redundant_bytes"] += redundant
         return Transmission(link, cfg.rate, tuple(frames), seq0, now, duration, w.index, w.cycle,
                             capacity, used, n_msgs, st.current.version, spare, redundant,
-                            self.backlog())
+                            self.backlog(now))
 
-    def backlog(self) -> int:
-        """Bytes of work waiting: queued messages plus what every sender says it still has
-        (``pending_bytes``, and ``spare_bytes`` on streams whose spare traffic is on)."""
+    def backlog(self, now: float) -> int:
+        """Bytes of work ready to go: queued messages plus what every sender could give now
+        (``ModalitySender.ready_bytes``; spare work only where spare traffic is on)."""
         n = sum(s.queue.queued_bytes() for s in self._streams.values() if s.queue.config.enabled)
+        spare_on = any(st.spare > 0 for st in self._links.values())
         for s in self._streams.values():
             if s.sender is None or not s.queue.config.enabled:
                 continue
             try:
-                n += int(s.sender.pending_bytes())
-                if s.queue.config.spare > 0 and any(st.spare > 0 for st in self._links.values()):
-                    n += int(s.sender.spare_bytes())
+                if spare_on and s.queue.config.spare > 0:
+                    n += int(s.sender.ready_bytes(now))
+                else:
+                    n += int(s.sender.ready_bytes(now)) - int(s.sender.spare_bytes())
             except Exception:  # an estimate must never stop a packet
                 continue
-        return n
+        return max(n, 0)
 
     def _add_copies(self, link: int, frames_b: list[_FrameBuild],
                     urgent: list[tuple[Message, int, Entry | None]], room: int, budget: int) -> int:

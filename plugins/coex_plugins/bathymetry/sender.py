@@ -224,9 +224,10 @@ class BathymetrySender(ModalitySender):
         """When subgrid ``key`` (level, ix, iy) was last handed to the link (None: never)."""
         return self._sent_at.get(key)
 
-    def _background(self, now: float, limit: int = 64) -> list[tuple[int, float, Key]]:
+    def _background(self, now: float, limit: int = 64, quiet: bool = True) -> list[tuple[int, float, Key]]:
         """Up to about ``limit`` eligible background subgrids: coarsest level first, then the
-        longest-quiet first (also counts every changed subgrid for ``pending``)."""
+        longest-quiet first (also counts every changed subgrid for ``pending``). With ``quiet``
+        False, changed subgrids that are not quiet yet (provisional spare work) instead."""
         out: list[tuple[int, float, Key]] = []
         changed = 0
         for level in range(self.map.levels - 1, -1, -1):
@@ -239,7 +240,8 @@ class BathymetrySender(ModalitySender):
                 changed += int(dirty.sum())
                 if len(out) >= limit:
                     continue
-                rows, cols = np.nonzero(dirty & (now - times >= self.send_delay))
+                settled = now - times >= self.send_delay
+                rows, cols = np.nonzero(dirty & (settled if quiet else ~settled))
                 found.extend(
                     (-level, float(times[b, a]), (level, tile[0] * p + int(a), tile[1] * p + int(b)))
                     for b, a in zip(rows.tolist(), cols.tolist(), strict=True)
@@ -414,8 +416,11 @@ class BathymetrySender(ModalitySender):
             self._resend[key] = now
 
     def spare(self, max_bytes: int, now: float) -> list[Message]:
-        """Re-sends of subgrids whose frames were not acknowledged, coarsest level first, then
-        the longest lost first (each goes again until an ack of its current version arrives)."""
+        """Spare work, coarsest level first: re-sends of subgrids whose frames were not
+        acknowledged (the longest lost first; each goes again until an ack of its current
+        version arrives), then *provisional* subgrids, changed but not yet quiet for
+        ``send_delay`` (the survey is still over them): topside sees them sooner, and the
+        background sends them again only if they change after this."""
         out: list[Message] = []
         left = int(max_bytes)
         misses = 0
@@ -436,10 +441,27 @@ class BathymetrySender(ModalitySender):
             left -= size
             del self._resend[key]  # lost again: lost() brings it back
             self._mark_sent(key, self.subgrid_time(key), now)
+        if left >= MIN_SUBGRID_BYTES and misses < MAX_MISSES:
+            for _, updated, key in self._background(now, quiet=False):
+                if left < MIN_SUBGRID_BYTES or misses >= MAX_MISSES:
+                    break
+                if key in self._queued:
+                    continue
+                built = self._built(key)
+                if built is None:
+                    continue
+                sg, size = built
+                if size > left:
+                    misses += 1
+                    continue
+                out.append(sg)
+                left -= size
+                self._mark_sent(key, updated, now)
         return out
 
     def spare_bytes(self) -> int:
-        return 40 * len(self._resend)
+        """Lost subgrids to send again, and changed ones not quiet yet (provisional)."""
+        return 40 * (len(self._resend) + self._pending)
 
     def handle(self, message: Message, now: float) -> list[Message]:
         if not isinstance(message, MapRoiRequest):

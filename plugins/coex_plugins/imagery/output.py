@@ -18,7 +18,7 @@ def write_png(path: str | Path, image: Any) -> None:
 
     a = np.asarray(image, np.uint8)
     tmp = f"{path}.part"
-    Image.fromarray(a).save(tmp, format="PNG")
+    Image.fromarray(a).save(tmp, format="PNG", compress_level=1)  # fast: written at every improvement
     os.replace(tmp, path)
 
 

@@ -230,6 +230,18 @@ class ImagerySender(ModalitySender):
     def pending_bytes(self) -> int:
         return sum(tx.unacked() for tx in self.images.values())
 
+    def ready_bytes(self, now: float) -> int:
+        """Bytes up to the goals, and beyond them (spare work), not held topside and not in
+        flight (sent within ``rto`` and not found lost)."""
+        n = 0
+        for tx in self.images.values():
+            due = ~tx.acked & (tx.sent_at <= now - self.rto)
+            if tx.goal > 0 and not tx.needs():
+                n += int(np.count_nonzero(due))
+            else:
+                n += int(np.count_nonzero(due[:tx.goal]))
+        return n
+
     def unacked_fragments(self) -> int:
         n = 0
         for image_id, start, end in self._inflight:

@@ -475,6 +475,13 @@ class TimeSeriesSender(ModalitySender):
         self._add_pass(ch, block, max(block.bound() / 4, ch.cfg.resolution / 2), _SPARE)
         return True
 
+    def ready_bytes(self, now: float) -> int:
+        """Registrations and chunks (background and spare) due now, and refinements to make."""
+        regs = sum(ch.reg_size for ch in self._channels if not ch.reg_acked and self._due(ch.reg_sent_at, now))
+        chunks = sum(c.size for ch in self._channels for c in ch.by_key.values()
+                     if not c.acked and self._due(c.sent_at, now))
+        return regs + chunks + 64 * len(self._refinable())
+
     def spare_bytes(self) -> int:
         held = sum(c.size for ch in self._channels for c in ch.by_key.values()
                    if c.klass == _SPARE and not c.acked)
