@@ -204,6 +204,10 @@ class AckStatus(enum.IntEnum):
     REJECTED = 1
     UNAUTHENTICATED = 2
     UNKNOWN_TARGET = 3
+    #: accepted, but what it asks for does not exist yet (an image of a time not captured yet):
+    #: the request stands, and a second CommandAck (ACCEPTED when served, REJECTED when it
+    #: expires) follows
+    PENDING = 4
 
 
 @dataclass(frozen=True, slots=True)

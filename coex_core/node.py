@@ -241,7 +241,10 @@ class Node:
                 self.stats["duplicates"] += 1  # a redundant copy from the same packet
                 return
             self._answers_seen[m.command_id] = (m.status, now)
-            owner = self._command_owner.pop(m.command_id, None)
+            if m.status == AckStatus.PENDING:  # a standing request: its final answer follows
+                owner = self._command_owner.get(m.command_id)
+            else:
+                owner = self._command_owner.pop(m.command_id, None)
             if owner is not None:
                 # a modality request: its receiver tracks it (and may stop retrying it)
                 for p in owner.receiver.receive(m, now) or ():
@@ -315,13 +318,18 @@ class Node:
             if cid is not None:
                 self.manager.push(CONTROL_STREAM, CommandAck(int(cid), AckStatus.REJECTED), now)
             return
+        replies = list(replies or ())
         if cid is not None:
-            self._remember(m, AckStatus.ACCEPTED, now)
-            self.manager.push(CONTROL_STREAM, CommandAck(int(cid), AckStatus.ACCEPTED), now)
+            # the sender's own CommandAck for it (e.g. PENDING: it stands) replaces the default
+            own = [r for r in replies if isinstance(r, CommandAck) and r.command_id == cid]
+            status = own[0].status if own else AckStatus.ACCEPTED
+            replies = [r for r in replies if not any(r is o for o in own)]
+            self._remember(m, status, now)
+            self.manager.push(CONTROL_STREAM, CommandAck(int(cid), status), now)
         if not self._routine(m, s.modality):
             # an operator request (not a routine ack): its answer goes in the next transmission
             self.manager.expedite(s.stream)
-        for r in replies or ():
+        for r in replies:
             try:
                 self.manager.push(s.stream, r, now)
             except CoexError as exc:

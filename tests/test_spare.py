@@ -294,3 +294,49 @@ def test_a_region_request_over_ground_not_yet_surveyed_stands_until_the_data_exi
     assert len(sender.standing()) == 1
     sender.fill(240, 200.0 + sender.standing_expiry + 1.0)
     assert sender.standing() == []
+
+
+# ------------------------------------------------------------------ imagery: standing requests
+
+def test_an_image_request_for_a_time_not_captured_yet_stands_until_the_image_exists() -> None:
+    from coex_core.messages import ImageByTimeRequest, TimeDirection
+    from coex_core.timefmt import to_stamp
+    from coex_plugins.imagery import ImageryModality
+    from coex_plugins.imagery.sender import ImageInput
+
+    vm = ChannelManager(VEHICLE, [LinkConfig(0, nui(), dst=TOPSIDE)])
+    tm = ChannelManager(TOPSIDE, [LinkConfig(0, nui(), dst=VEHICLE)])
+    vehicle, topside = Node(vm), Node(tm)
+    sender = ImageryModality().sender({"standing_expiry": 900.0})
+    receiver = ImageryModality().receiver(None)
+    vehicle.add_sender(ImageryModality, sender, StreamConfig(4, "images"))
+    topside.add_receiver(ImageryModality, receiver)
+    net = SimNetwork({0: AcousticChannel(loss=0.0, seed=1)})
+    net.add_node(vehicle, (0.0, 0.0, 100.0))
+    net.add_node(topside, (10.0, 0.0, 0.0))
+    rng = np.random.default_rng(1)
+    sender.ingest(ImageInput(rng.integers(0, 255, (64, 64), np.uint8), time=10.0), 10.0)
+    receiver.request_by_time(500.0, TimeDirection.NEAREST, 20.0)  # not captured yet
+    net.run(200.0)
+    assert [r.stamp for r, _ in sender.standing()] == [to_stamp(500.0)]
+    (waiting,) = receiver.waiting_requests()
+    assert isinstance(waiting[0], ImageByTimeRequest)
+    assert receiver.pending_requests() == []  # answered PENDING: not retried, shown as waiting
+    results = [e for e in topside.events() if isinstance(e, CommandResult)]
+    assert [r.status for r in results] == [AckStatus.PENDING]
+    # the image of that time is captured: the request is served and answered
+    sender.ingest(ImageInput(rng.integers(0, 255, (64, 64), np.uint8), time=505.0), 505.0)
+    net.run(900.0)
+    assert sender.standing() == [] and receiver.waiting_requests() == []
+    results = [e for e in topside.events() if isinstance(e, CommandResult)]
+    assert [r.status for r in results] == [AckStatus.ACCEPTED]
+    served = max(sender.images.values(), key=lambda tx: tx.time)
+    assert served.explicit is not None and served.time == 505.0
+    products = {int(p.meta["image_id"]) for _, p in topside.products() if p.kind == "image"}
+    assert served.image_id in products
+    # one that never comes expires: rejected, and topside stops waiting
+    receiver.request_by_time(5000.0, TimeDirection.AFTER, 900.0)
+    net.run(2000.0)
+    results = [e for e in topside.events() if isinstance(e, CommandResult)]
+    assert [r.status for r in results] == [AckStatus.PENDING, AckStatus.REJECTED]
+    assert receiver.waiting_requests() == [] and sender.standing() == []

@@ -224,11 +224,12 @@ register(MessageSpec(
 register(MessageSpec(
     6, CommandAck, COMMAND_ACK, False, "core",
     "Vehicle acknowledgement of a topside command.",
-    largest=lambda: CommandAck(255, AckStatus.UNKNOWN_TARGET),
+    largest=lambda: CommandAck(255, AckStatus.PENDING),
     cases=lambda: [
         ("accepted_0", CommandAck(0, AckStatus.ACCEPTED)),
         ("rejected", CommandAck(42, AckStatus.REJECTED)),
-        ("max", CommandAck(255, AckStatus.UNKNOWN_TARGET)),
+        ("unknown_target", CommandAck(255, AckStatus.UNKNOWN_TARGET)),
+        ("pending", CommandAck(13, AckStatus.PENDING)),
     ],
 ))
 register(MessageSpec(

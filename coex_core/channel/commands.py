@@ -168,8 +168,12 @@ class CommandsMixin(PackingMixin):
         return msg
 
     def on_command_ack(self, ack: CommandAck, now: float) -> CommandResult:
-        """Topside: the vehicle's answer to one of our commands."""
-        command = self._commands.pop(ack.command_id, None)
+        """Topside: the vehicle's answer to one of our commands (a PENDING answer keeps the
+        command, whose final answer follows)."""
+        if ack.status == AckStatus.PENDING:
+            command = self._commands.get(ack.command_id)
+        else:
+            command = self._commands.pop(ack.command_id, None)
         for link, st in self._links.items():
             prop = st.proposed.pop(ack.command_id, None)
             if prop is not None and ack.status == AckStatus.ACCEPTED:

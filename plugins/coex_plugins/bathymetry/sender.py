@@ -53,6 +53,8 @@ SENDER_DEFAULTS: dict[str, Any] = {
 
 #: Smallest possible subgrid message (an all-equal block): stop filling below this.
 MIN_SUBGRID_BYTES = 12
+#: a provisional subgrid (spare work) has been quiet for at least this long (s)
+PROVISIONAL_QUIET = 3.0
 #: After this many subgrids that did not fit, ``fill`` stops looking for smaller ones (keeps it cheap).
 MAX_MISSES = 8
 #: a request for a region at most STALE_REQUEST_IDS ids older than the newest one handled for it
@@ -220,6 +222,14 @@ class BathymetrySender(ModalitySender):
         if now is not None:
             self._sent_at[key] = now
 
+    def _sent_time(self, key: Key) -> float:
+        """The update time of the version of ``key`` last sent (``-inf``: never sent)."""
+        level, ix, iy = key
+        tile, a, b = self.map.tile_of_subgrid(level, ix, iy)
+        if (tile, level) not in self._sent:
+            return -math.inf
+        return float(self._sent[(tile, level)][b, a])
+
     def last_transmitted(self, key: Key) -> float | None:
         """When subgrid ``key`` (level, ix, iy) was last handed to the link (None: never)."""
         return self._sent_at.get(key)
@@ -241,7 +251,10 @@ class BathymetrySender(ModalitySender):
                 if len(out) >= limit:
                     continue
                 settled = now - times >= self.send_delay
-                rows, cols = np.nonzero(dirty & (settled if quiet else ~settled))
+                # provisional: quiet for a few seconds at least (a version sent in the middle of
+                # a second of pings would go again with the same stamp)
+                spare = ~settled & (now - times >= PROVISIONAL_QUIET)
+                rows, cols = np.nonzero(dirty & (settled if quiet else spare))
                 found.extend(
                     (-level, float(times[b, a]), (level, tile[0] * p + int(a), tile[1] * p + int(b)))
                     for b, a in zip(rows.tolist(), cols.tolist(), strict=True)
@@ -367,6 +380,8 @@ class BathymetrySender(ModalitySender):
                 continue
             ready = {k for k in keys if now - self.subgrid_time(k) >= self.send_delay}
             for key in sorted(ready):
+                if self._sent_time(key) >= self.subgrid_time(key):
+                    continue  # the background (or spare work) has sent this version already
                 if key not in self._queued and len(self._queue) < self.max_queue:
                     self._queue.append(key)
                     self._queued.add(key)

@@ -19,6 +19,7 @@ import numpy.typing as npt
 from coex_core.config import merged_config
 from coex_core.errors import CoexError, ConfigError
 from coex_core.messages import (
+    AckStatus,
     ByteRange,
     CommandAck,
     GoalKind,
@@ -149,6 +150,8 @@ class ImageryReceiver(ModalityReceiver):
 
     def _after_restore(self) -> None:
         """The listeners (not saved state): the image writer of ``out_dir``."""
+        if getattr(self, "_waiting", None) is None:  # saved before requests could stand
+            self._waiting: dict[int, tuple[Message, float]] = {}
         self.listeners: list[Callable[[Product], None]] = []
         out_dir = self.out_dir
         if out_dir:
@@ -169,7 +172,14 @@ class ImageryReceiver(ModalityReceiver):
             self._progress_version += 1
             changed.append(self._progress_product())
         elif isinstance(message, CommandAck):
-            self._requests.answered(message.command_id)
+            done = self._requests.answered(message.command_id)
+            if message.status == AckStatus.PENDING:
+                # it stands on the vehicle (an image of that time is not captured yet): waiting,
+                # not answered; the final CommandAck follows
+                if done is not None:
+                    self._waiting[message.command_id] = (done.message, now)
+            else:
+                self._waiting.pop(message.command_id, None)
         for p in changed:
             for listener in self.listeners:
                 listener(p)
@@ -328,3 +338,8 @@ class ImageryReceiver(ModalityReceiver):
 
     def pending_requests(self) -> list[Message]:
         return self._requests.pending()
+
+    def waiting_requests(self) -> list[tuple[Message, float]]:
+        """Requests the vehicle keeps standing (answered ``PENDING``: an image of their time
+        is not captured yet), with when it said so."""
+        return list(self._waiting.values())

@@ -132,7 +132,7 @@ CODING_KEYS = ("progression", "resolutions", "layer_bytes", "irreversible", "gre
 SENDER_DEFAULTS: dict[str, Any] = {**dict.fromkeys(CODING_KEYS), "default_goal": "layer:6",
                                    "request_goal": None, "max_images": 64, "rto": 60.0,
                                    "progress_interval": 60.0, "max_announces": 2,
-                                   "min_fragment": 16}
+                                   "min_fragment": 16, "standing_expiry": 1800.0, "max_standing": 8}
 
 
 @persistent("imagery.Sender")
@@ -142,6 +142,13 @@ class ImagerySender(ModalitySender):
     def _after_restore(self) -> None:
         if getattr(self, "_fates", None) is None:  # saved before frame fates were kept
             self._fates = deque(maxlen=64)
+        if getattr(self, "_standing", None) is None:  # saved before requests could stand
+            #: command id -> (by-time request for a time not captured yet, expiry time)
+            self._standing: dict[int, tuple[ImageByTimeRequest, float]] = {}
+            #: final CommandAcks of served or expired standing requests, to send
+            self._answers: list[Message] = []
+            self.standing_expiry = float(getattr(self, "standing_expiry", SENDER_DEFAULTS["standing_expiry"]))
+            self.max_standing = int(getattr(self, "max_standing", SENDER_DEFAULTS["max_standing"]))
     """Subsea side. Configuration keys (all optional):
 
     * coding: ``progression``, ``resolutions``, ``layer_bytes``, ``irreversible``, ``grey``,
@@ -152,7 +159,11 @@ class ImagerySender(ModalitySender):
     * ``max_images`` (64), ``rto`` (60 s: resend unacked bytes after this long; keep it above the
       ack round trip of the TDMA schedule),
       ``progress_interval`` (60 s), ``max_announces`` (2 per fill), ``min_fragment`` (16: a second
-      fragment squeezed into what is left of a packet must carry at least this many bytes).
+      fragment squeezed into what is left of a packet must carry at least this many bytes),
+      ``standing_expiry`` (1800 s) and ``max_standing`` (8): an ``ImageByTimeRequest`` (nearest
+      or after) for a time later than the newest image stands (answered ``PENDING``) until an
+      image of that time is captured (then ``ACCEPTED`` and served like any request) or it
+      expires (then ``REJECTED``).
     """
 
     def __init__(self, config: Mapping[str, Any] | None = None) -> None:
@@ -167,6 +178,8 @@ class ImagerySender(ModalitySender):
             self.progress_interval = float(cfg.get("progress_interval", 60.0))
             self.max_announces = int(cfg.get("max_announces", 2))
             self.min_fragment = int(cfg.get("min_fragment", 16))
+            self.standing_expiry = float(cfg["standing_expiry"])
+            self.max_standing = int(cfg["max_standing"])
         except (TypeError, ValueError) as exc:
             raise ConfigError(f"invalid imagery sender option: {exc}") from exc
         if not 1 <= self.max_images <= 512:
@@ -186,6 +199,7 @@ class ImagerySender(ModalitySender):
         self._last_now = float("-inf")
         #: fates of recent fragments (1 delivered, 0 lost), from the channel's frame acks
         self._fates: deque[int] = deque(maxlen=64)
+        self._after_restore()
 
     # ------------------------------------------------------------------ ingest
 
@@ -263,6 +277,11 @@ class ImagerySender(ModalitySender):
         out: list[Message] = []
         left = int(max_bytes)
         self._last_now = now
+        if self._standing:
+            self._answers.extend(self._serve_standing(now))
+        while self._answers and encoded_size(self._answers[0]) <= left:
+            left -= encoded_size(self._answers[0])
+            out.append(self._answers.pop(0))
         if left <= 0:
             return out
         # 1. progress report, when due and changed
@@ -496,9 +515,44 @@ class ImagerySender(ModalitySender):
         return txs[int(idx[np.argmin(times[idx])])] if len(idx) else None
 
     def _by_time(self, msg: ImageByTimeRequest, now: float) -> list[Message]:
-        tx = self.find(msg.stamp, TimeDirection(msg.direction), now)
+        direction = TimeDirection(msg.direction)
+        t = unwrap(msg.stamp, now)
+        newest = max((tx.time for tx in self.images.values()), default=-math.inf)
+        if direction != TimeDirection.BEFORE and t > newest + 0.5:
+            # a time not captured yet: the request stands until an image of that time exists
+            if len(self._standing) >= self.max_standing:
+                raise RequestRejected(f"{self.max_standing} image requests already wait for images")
+            self._standing[msg.command_id] = (msg, now + self.standing_expiry)
+            return [CommandAck(msg.command_id, AckStatus.PENDING)]
+        tx = self.find(msg.stamp, direction, now)
         if tx is None:
-            raise RequestRejected(f"no image {TimeDirection(msg.direction).name.lower()} stamp {msg.stamp}")
+            raise RequestRejected(f"no image {direction.name.lower()} stamp {msg.stamp}")
+        self._serve(tx)
+        return [CommandAck(msg.command_id, AckStatus.ACCEPTED)]
+
+    def standing(self) -> list[tuple[ImageByTimeRequest, float]]:
+        """Image requests waiting for an image of their time: ``(request, expiry time)``."""
+        return list(self._standing.values())
+
+    def _serve_standing(self, now: float) -> list[Message]:
+        """Answer the standing requests an image now exists for (the first image captured at or
+        after their time), and reject the expired ones; returns their final CommandAcks."""
+        out: list[Message] = []
+        for cid, (msg, expires) in list(self._standing.items()):
+            t = unwrap(msg.stamp, now)
+            later = [tx for tx in self.images.values()
+                     if tx.time >= t - 0.5 and (msg.direction != TimeDirection.AFTER or tx.time > t + 0.5)]
+            if later:
+                self._serve(min(later, key=lambda tx: tx.time))
+                out.append(CommandAck(cid, AckStatus.ACCEPTED))
+                del self._standing[cid]
+            elif now > expires:
+                out.append(CommandAck(cid, AckStatus.REJECTED))
+                del self._standing[cid]
+        return out
+
+    def _serve(self, tx: _Tx) -> None:
+        """Give ``tx`` the request goal and serve it first."""
         want = max(self.request_goal.bytes_for(tx.enc), tx.goal)
         if tx.explicit is None or want != tx.goal:
             self._request_counter += 1
@@ -506,4 +560,3 @@ class ImagerySender(ModalitySender):
         tx.goal = want
         tx.announced_at = None if not tx.heard else tx.announced_at  # re-announce if never heard
         self._progress_dirty = True
-        return [CommandAck(msg.command_id, AckStatus.ACCEPTED)]
