@@ -22,7 +22,12 @@ tagged messages. Measured:
   (the vehicle transmitting at rate 5 for all of its slot time) and against the TDMA limit
   (whole packets that fit before each slot's guard); the original system's configuration
   (one 17 s packet per slot) is given for comparison;
-* a lossy run (10 % independent frame loss) for goodput, and replay speed (simulated s per s).
+* a lossy run (10 % independent frame loss) for goodput, and replay speed (simulated s per s);
+* spare capacity: a mostly idle link (20 B/s of new data per modality, spare work always
+  available) with spare traffic on and off, and on at 60 % frame loss: vehicle link use over
+  the packets sent while work was ready (target >= 90 %), spare and redundant bytes (0 with spare
+  off), and request to the first answer byte delivered topside, in vehicle slots (target: the
+  next vehicle slot in the median at 60 % loss).
 
     python bench/channel.py [--cycles N] [--seed S] [--quick]
 
@@ -272,6 +277,102 @@ def run(cycles: int, seed: int, loss: float = 0.0, requests: bool = True,
     }
 
 
+class SpareBenchSender(BenchSender):
+    """A mostly idle modality: a trickle of background data (``rate`` B/s of new pieces), spare
+    work always available (refinements), and a request answered by tagged pieces."""
+
+    def __init__(self, kind: int, rng: random.Random, rate: float) -> None:
+        super().__init__(kind, "fit", rng)
+        self.rate = rate
+        self.credit = 0.0
+        self.last: float | None = None
+
+    def fill(self, max_bytes: int, now: float) -> list[Message]:
+        if self.last is not None:
+            self.credit += (now - self.last) * self.rate
+        self.last = now
+        room = int(min(max_bytes, self.credit))
+        if self.urgent:
+            room = max(room, min(max_bytes, 245))  # an answer goes whatever the trickle
+        out = super().fill(room, now)
+        self.credit -= sum(wire.encoded_size(m) for m in out)
+        return out
+
+    def spare(self, max_bytes: int, now: float) -> list[Message]:
+        out: list[Message] = []
+        room = max_bytes
+        while room >= 12:
+            size = min(room, 245)
+            overhead = 2 if size - 2 < 128 else 3
+            out.append(Opaque(DATA, bytes([self.kind, 0]) + bytes(size - overhead - 2)))
+            room -= size
+        return out
+
+    def spare_bytes(self) -> int:
+        return 10**6
+
+
+def run_spare(cycles: int, seed: int, loss: float, spare: bool) -> dict[str, Any]:
+    """A mostly idle link (a 20 B/s trickle of background data per modality) with spare work:
+    vehicle link use over packets sent while work was ready, spare bytes, and request to first
+    answer byte delivered topside, in vehicle slots (1: the next vehicle slot)."""
+    rng = random.Random(seed)
+    schedule = Schedule.simple(OWNERS, SLOT, GUARD)
+    link = LinkConfig(0, schedule, rate=5, spare=1.0 if spare else 0.0)
+    vmgr = ChannelManager(VEHICLE, [link], queue_status_interval=schedule.cycle, clock=time.perf_counter)
+    vehicle = Node(vmgr)
+    senders = {k: SpareBenchSender(k, random.Random(seed + k), 20.0) for k in range(3)}
+    for k, snd in senders.items():
+        vehicle.add_sender(_modality(k), snd, StreamConfig(5 + k, f"m{k}", priority=30))
+    topside = Node(ChannelManager(TOPSIDE, [LinkConfig(0, schedule, rate=5)]))
+    receiver = BenchReceiver()
+    topside.add_receiver(_modality(0), receiver)
+    net = SimNetwork({0: AcousticChannel(loss=loss, seed=seed)})
+    net.add_node(vehicle, (0.0, 0.0, 1000.0))
+    net.add_node(topside, (300.0, 0.0, 0.0))
+    net.every(10.0, lambda now: vehicle.push_status(
+        VehicleStatus(int(now), 1.0, 2.0, 1000.0, 10.0, 0.0, 1.0, 90, VehicleMode.SURVEY, 0), now))
+    issued: dict[int, float] = {}
+    t, tag = 200.0, 1
+    while t < cycles * schedule.cycle - 2 * schedule.cycle and tag < 256:
+        kind = rng.choice(sorted(senders))
+        issued[tag] = t
+        net.at(t, lambda now, k=kind, g=tag: topside.request(Opaque(REQUEST + k, bytes([k, g])), now))
+        t += rng.uniform(150.0, 400.0)
+        tag += 1
+    txs: list[Any] = []
+    net.on_transmit = lambda node_id, tx: txs.append(tx) if node_id == VEHICLE else None
+    net.run(cycles * schedule.cycle)
+
+    def vehicle_slots(t0: float, t1: float) -> int:
+        n, t = 0, t0 + 1e-6
+        while True:
+            w = schedule.next_window(t, VEHICLE)
+            if w is None or w.start > t1:
+                return n
+            n += w.start > t0
+            t = w.end + 1e-6
+
+    # a request's clock starts when it first leaves topside (the next topside slot)
+    slots = []
+    for g, t_req in issued.items():
+        w = schedule.next_window(t_req, TOPSIDE)
+        sent = t_req if w is None else max(t_req, w.start)
+        got = receiver.first_seen.get(g)
+        slots.append(vehicle_slots(sent, got) if got is not None else 10**6)
+    slots.sort()
+    work = [tx for tx in txs if tx.backlog > 0]
+    return {
+        "loss": loss, "spare": spare, "cycles": cycles, "vehicle_packets": len(txs),
+        "link_use_with_work": round(sum(tx.used for tx in work) / sum(tx.capacity for tx in work), 4) if work else None,
+        "link_use_all": round(sum(tx.used for tx in txs) / sum(tx.capacity for tx in txs), 4) if txs else None,
+        "spare_bytes": vmgr.stats["spare_bytes"], "redundant_bytes": vmgr.stats["redundant_bytes"],
+        "requests": len(slots),
+        "first_answer_vehicle_slots_median": slots[len(slots) // 2] if slots else None,
+        "first_answer_at_next_vehicle_slot": round(sum(s <= 1 for s in slots) / len(slots), 3) if slots else None,
+    }
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--cycles", type=int, default=60, help="TDMA cycles of 120 s (default 60 = 2 h)")
@@ -282,12 +383,25 @@ def main(argv: list[str] | None = None) -> int:
     clean = run(cycles, args.seed)
     lossy = run(max(4, cycles // 2), args.seed + 1, loss=0.1)
     fixed = run(max(4, cycles // 2), args.seed + 2, cut_to_fit=False)
+    spare_cycles = max(4, cycles // 2)
+    idle_on = run_spare(spare_cycles, args.seed, 0.0, True)
+    idle_off = run_spare(spare_cycles, args.seed, 0.0, False)
+    lossy_on = run_spare(spare_cycles, args.seed + 3, 0.6, True)
     result = {
         "scenario": "rate 5 (8x256 B), 6 x 20 s slots, guard 2 s, vehicle slots 1,2,4,5",
         "clean": clean,
         "lossy_10pct": lossy,
         "no_cut_to_fit_sender": fixed,
+        "spare_idle_link": idle_on,
+        "spare_off_idle_link": idle_off,
+        "spare_60pct_loss": lossy_on,
         "targets": {
+            "link use >= 90 % while work is ready (spare on)": (idle_on["link_use_with_work"] or 0) >= 0.90
+            and (lossy_on["link_use_with_work"] or 0) >= 0.90,
+            "no spare bytes with spare traffic off": idle_off["spare_bytes"] == 0 and idle_off["redundant_bytes"] == 0,
+            "60 % loss: first answer byte at the next vehicle slot (median)":
+                lossy_on["first_answer_vehicle_slots_median"] is not None
+                and lossy_on["first_answer_vehicle_slots_median"] <= 1,
             "fill>=0.97": clean["fill"] >= 0.97,
             "every request served at the next vehicle opportunity":
                 clean["requests"] > 0 and clean["requests_next_opportunity"] == clean["requests"],
@@ -313,11 +427,21 @@ def main(argv: list[str] | None = None) -> int:
           f"({c['max_backlog_packets']} packets) queued and not awaiting an ack")
     print(f"  without a sender that cuts to fit (80/144 B pieces + 40..100 B chunks only): fill "
           f"{fixed['fill']:.2%}")
+    for name, r in (("spare on, idle link", idle_on), ("spare off, idle link", idle_off),
+                    ("spare on, 60% loss", lossy_on)):
+        print(f"  {name}: link use {_pct(r['link_use_all'])} overall, {_pct(r['link_use_with_work'])} while "
+              f"work was ready; spare {r['spare_bytes']} B, redundant {r['redundant_bytes']} B; request to "
+              f"first answer delivered: median {r['first_answer_vehicle_slots_median']} vehicle slots, "
+              f"{_pct(r['first_answer_at_next_vehicle_slot'])} at the next one")
     out = ROOT / "bench" / "results"
     out.mkdir(parents=True, exist_ok=True)
     (out / "channel.json").write_text(json.dumps(result, indent=2) + "\n")
     print(f"  targets: {result['targets']}")
     return 0 if all(result["targets"].values()) else 1
+
+
+def _pct(v: float | None) -> str:
+    return "-" if v is None else f"{v:.1%}"
 
 
 if __name__ == "__main__":

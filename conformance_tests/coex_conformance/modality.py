@@ -49,6 +49,50 @@ class ModalityTests:
             if not out and budget >= 64:
                 break
 
+    @pytest.mark.parametrize("budget", [0, 1, 17, 64, 251])
+    def test_spare_honours_budget_and_fill_s_contract(
+        self, modality: Modality, sender_config: Any, sample_inputs: Sequence[tuple[float, Any]], budget: int
+    ) -> None:
+        """Spare work (``ModalitySender.spare``, optional) returns a list of the modality's own
+        messages within the budget, before and after the sender has sent everything, and its
+        estimates (``spare_bytes``, ``ready_bytes``) are non-negative integers."""
+        sender = modality.sender(sender_config)
+        now = ingest_all(sender, sample_inputs)
+        for i in range(30):
+            t = now + 30.0 * (i + 1)
+            sender.fill(240, t)
+            out = sender.spare(budget, t)
+            assert isinstance(out, list), f"spare returned {type(out).__name__}"
+            sizes = [wire.encoded_size(m) for m in out]
+            assert sum(sizes) <= budget, f"spare({budget}) returned {sum(sizes)} B"
+            for m in out:
+                assert isinstance(m, modality.messages), f"{type(m).__name__} not in Modality.messages"
+            for n in (sender.spare_bytes(), sender.ready_bytes(t)):
+                assert isinstance(n, int) and n >= 0
+
+    def test_delivery_hooks_accept_every_own_message(
+        self, modality: Modality, sender_config: Any, sample_inputs: Sequence[tuple[float, Any]]
+    ) -> None:
+        """The channel tells a sender which of its messages arrived (``acked``) and which were
+        lost (``lost``); both take any message the sender produced, in any order, more than
+        once, without raising, and the sender keeps working."""
+        sender = modality.sender(sender_config)
+        now = ingest_all(sender, sample_inputs)
+        sent: list[Message] = []
+        for i in range(20):
+            t = now + 30.0 * (i + 1)
+            sent += sender.fill(240, t) + sender.spare(240, t)
+        assert sent, "the sender produced nothing from the sample inputs"
+        rng = random.Random(3)
+        t = now + 700.0
+        for m in rng.sample(sent, len(sent)):
+            (sender.lost if rng.random() < 0.5 else sender.acked)(m, t)
+            sender.lost(m, t)
+        for m in sent[: len(sent) // 2]:
+            sender.acked(m, t + 1.0)
+        out = sender.fill(240, t + 30.0) + sender.spare(240, t + 30.0)
+        assert sum(wire.encoded_size(m) for m in out) <= 480
+
     def test_messages_roundtrip_on_the_wire(
         self, modality: Modality, sender_config: Any, sample_inputs: Sequence[tuple[float, Any]]
     ) -> None:
