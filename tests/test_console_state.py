@@ -268,6 +268,9 @@ def test_a_view_only_console_asks_nothing(subgrids: list[m.Subgrid]) -> None:
     ("queue_config", dict(stream=40, priority=1)),
     ("queue_config", dict(stream=3, priority=300)),
     ("link_control", dict(link=9, enabled=True)),
+    ("spare_config", dict(percent=101)),
+    ("spare_config", dict(percent=50, link=0, stream=3)),
+    ("spare_config", dict(percent=50, link=8)),
     ("propose_schedule", dict(link=0, slots=[])),
     ("propose_schedule", dict(link=0, slots=[{"owner": 1, "duration": 1.0, "guard": 2.0}])),
     ("no_such_action", {}),
@@ -299,11 +302,13 @@ def test_every_action_is_a_wire_command(sample: tuple[ConsoleState, Any]) -> Non
     acts.queue_config(3, enabled=False)
     acts.queue_config(3, flush=True)
     acts.link_control(1, False)
+    acts.dispatch("spare_config", {"percent": 0, "link": 0})
     acts.propose_schedule(0, [{"owner": 1, "duration": 10, "guard": 1},
                               {"owner": 2, "duration": 30, "guard": 2}])
     kinds = [type(x) for x in sent]
     assert kinds == [m.ImageGoal, m.ImageByTimeRequest, m.TimeSeriesRequest, m.QueueConfig,
-                     m.QueueConfig, m.LinkControl, m.ScheduleUpdate]
+                     m.QueueConfig, m.LinkControl, m.SpareConfig, m.ScheduleUpdate]
+    assert sent[6] == m.SpareConfig(sent[6].command_id, 0, None, 0)
     for x in sent:
         assert wire.decode(wire.encode(x)) == x
     assert sent[1].direction == m.TimeDirection.BEFORE and sent[1].stamp == to_stamp(T0 - 130)

@@ -164,3 +164,24 @@ def test_nmea_went_through_pseudo_terminals(demo: tuple[Path, dict]) -> None:  #
     ptys = metrics["modems"]["nmea_over"]
     assert len(ptys) == 2, ptys  # both modems (topside and vehicle), not none
     assert all(p.startswith("/dev/pts/") for p in ptys.values())
+
+
+def test_the_dive_spends_idle_bytes_and_sends_none_when_spare_traffic_is_off(
+        demo: tuple[Path, dict], tmp_path: Path) -> None:  # type: ignore[type-arg]
+    """With spare traffic on (the default) the vehicle fills the packets it sends while work is
+    ready, lost subgrids come back, requests are answered at the next vehicle slot in the
+    median; with ``modem.spare = 0`` not one spare or redundant byte leaves the vehicle."""
+    from coex_plugins.demo.scenario import preset, scenario_from_dict
+
+    _, metrics = demo
+    link = metrics["link"]
+    assert link["spare_bytes"] > 0 and link["fill_with_work"] >= 0.9
+    assert metrics["responses"]["median_vehicle_slots"] == 1
+    assert min(metrics["map_coverage_after_survey"].values()) >= 0.995
+    off = run_demo(DemoConfig(out=tmp_path, quick=True, seed=1, progress=False,
+                              scenario=scenario_from_dict({"modem": {"spare": 0.0}}, base=preset("default"))))
+    assert off.metrics["link"]["spare_bytes"] == 0 and off.metrics["link"]["redundant_bytes"] == 0
+    sent = [json.loads(line) for line in (tmp_path / "link.jsonl").read_text().splitlines()]
+    sent = [r for r in sent if r.get("cause") == "sent" and r["src"] == 2]
+    assert sent and all(r["spare_bytes"] == 0 and r["redundant_bytes"] == 0 for r in sent)
+    assert off.metrics["link"]["fill"] < link["fill"]

@@ -1133,6 +1133,27 @@ class ConsoleActions:
                            + (" mute" if mute else "")])
         return msg
 
+    def spare_config(self, percent: int, link: int | None = None,
+                     stream: int | None = None) -> m.SpareConfig:
+        """Cap spare traffic (re-sends, refinements, redundant copies) at ``percent`` of each
+        packet, 0 = off: on ``link``, on every link (both None), or for ``stream``'s spare work.
+        Acoustic transmissions cost the vehicle energy: this is the operator's lever."""
+        pct = int(percent)
+        if not 0 <= pct <= 100:
+            raise RequestRejected("spare share is 0..100 %")
+        if link is not None and stream is not None:
+            raise RequestRejected("set a spare share per link or per stream, not both")
+        if link is not None and not 0 <= int(link) <= 7:
+            raise RequestRejected(f"link {link} outside 0..7")
+        if stream is not None and not 0 <= int(stream) <= 31:
+            raise RequestRejected(f"stream {stream} outside 0..31")
+        msg = m.SpareConfig(self._cid(), None if link is None else int(link),
+                            None if stream is None else int(stream), pct)
+        target = (f"stream {stream}" if stream is not None else
+                  f"link {link}" if link is not None else "every link")
+        self._emit([msg], [f"spare traffic on {target}: {'off' if pct == 0 else f'at most {pct} % of each packet'}"])
+        return msg
+
     def propose_schedule(self, link: int, slots: Sequence[Mapping[str, Any]],
                          activate_cycle: int | None = None,
                          version: int | None = None) -> m.ScheduleUpdate:
@@ -1175,12 +1196,12 @@ class ConsoleActions:
     def dispatch(self, action: str, args: Mapping[str, Any]) -> list[m.Message]:
         """Run an action named by the page (``request_region``, ``set_image_goal``,
         ``image_by_time``, ``refine_series``, ``queue_config``, ``link_control``,
-        ``propose_schedule``) with keyword ``args``; returns the messages sent."""
+        ``spare_config``, ``propose_schedule``) with keyword ``args``; returns the messages sent."""
         fn = {
             "request_region": self.request_region, "set_image_goal": self.set_image_goal,
             "image_by_time": self.image_by_time, "refine_series": self.refine_series,
             "queue_config": self.queue_config, "link_control": self.link_control,
-            "propose_schedule": self.propose_schedule,
+            "spare_config": self.spare_config, "propose_schedule": self.propose_schedule,
         }.get(action)
         if fn is None:
             raise RequestRejected(f"unknown action {action!r}")

@@ -155,6 +155,8 @@ class Scenario:
     slots: tuple[str, ...] = ("topside", "vehicle", "vehicle", "topside", "vehicle", "vehicle")
     slot_seconds: float = 20.0
     guard_seconds: float = 2.0
+    #: share of each vehicle packet spare traffic may fill (0: off; docs/channel.md)
+    spare: float = 1.0
     loss: LossSpec = field(default_factory=LossSpec)
     ship: tuple[float, float] = (128.0, -200.0)
 
@@ -181,6 +183,8 @@ class Scenario:
             raise ConfigError(f"modem.slots must list 'topside' or 'vehicle' per slot, got {list(self.slots)}")
         if "topside" not in self.slots or "vehicle" not in self.slots:
             raise ConfigError("modem.slots needs at least one topside and one vehicle slot")
+        if not 0.0 <= self.spare <= 1.0:
+            raise ConfigError(f"modem.spare must be in [0, 1] (a share of each packet), got {self.spare}")
         if not 0.0 <= self.guard_seconds < self.slot_seconds:
             raise ConfigError("modem.guard_seconds must be >= 0 and below modem.slot_seconds")
         packet = RATES[self.modem_rate].packet_airtime()
@@ -275,7 +279,7 @@ _SECTIONS: dict[str, dict[str, str]] = {
     "seafloor": {"relief": "relief", "ripple_amplitude": "ripple_amplitude", "random_targets": "random_targets",
                  "random_decoys": "random_decoys"},
     "modem": {"rate": "modem_rate", "slots": "slots", "slot_seconds": "slot_seconds",
-              "guard_seconds": "guard_seconds"},
+              "guard_seconds": "guard_seconds", "spare": "spare"},
 }
 _OBJECT_KEYS = {"x", "y", "length", "width", "height", "heading"}
 _LOSS_KEYS = {"model", "rate", "mean_burst", "range_50", "range_width", "range_max"}

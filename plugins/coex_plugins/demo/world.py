@@ -117,7 +117,8 @@ def build_nodes(out: Path, channels: list[dict[str, Any]], command_key: bytes | 
     scn = scenario or Scenario()
     sched = dive_schedule(scn)
     cycle = scn.cycle
-    vehicle = Node(ChannelManager(VEHICLE, [LinkConfig(0, sched, rate=scn.modem_rate, dst=TOPSIDE)],
+    vehicle = Node(ChannelManager(VEHICLE, [LinkConfig(0, sched, rate=scn.modem_rate, dst=TOPSIDE,
+                                                       spare=scn.spare)],
                                   queue_status_interval=cycle, command_key=command_key))
     topside = Node(ChannelManager(TOPSIDE, [LinkConfig(0, sched, rate=scn.modem_rate, dst=VEHICLE)],
                                   queue_status_interval=cycle, command_key=command_key))

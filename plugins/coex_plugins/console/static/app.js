@@ -561,6 +561,13 @@ function renderLink() {
     const state = lk.enabled ? (lk.muted ? "muted" : "enabled") : "disabled";
     const btn = el("button", {}, lk.enabled ? "Disable" : "Enable");
     btn.addEventListener("click", () => act("link_control", { link: lk.link, enabled: !lk.enabled }));
+    // spare traffic (re-sends, refinements, redundant copies): the operator's energy lever
+    const spare = el("select", { title: "spare traffic: share of each packet (0 = off)", "data-spare-link": lk.link },
+      ...[["", "spare…"], ["100", "spare 100 %"], ["50", "spare 50 %"], ["25", "spare 25 %"], ["0", "spare off"]]
+        .map(([v, t]) => el("option", { value: v }, t)));
+    spare.addEventListener("change", () => {
+      if (spare.value !== "") act("spare_config", { link: lk.link, percent: Number(spare.value) });
+    });
     const ratio = lk.frames ? ` (${((100 * lk.bad_frames) / lk.frames).toFixed(0)}%)` : "";
     tb.append(el("tr", { "data-link": lk.link }, el("td", {}, lk.link),
       el("td", { class: lk.enabled ? "on" : "off" }, state),
@@ -568,7 +575,7 @@ function renderLink() {
       el("td", {}, `${lk.frames}${lk.frames_rx !== undefined ? ` / rx ${lk.frames_rx}` : ""}`),
       el("td", {}, `${lk.bad_frames + (lk.local_bad || 0)}${ratio}`),
       el("td", {}, fmtAge(lk.last_heard !== null && lk.last_heard !== undefined ? S.now - lk.last_heard : lk.age)),
-      el("td", {}, btn)));
+      el("td", {}, btn, " ", spare)));
   }
   const sl = $("#sched-slots");
   if (!sl.value && L.schedules.length) {
