@@ -247,14 +247,20 @@ def test_console_actions_from_the_page_are_wire_commands(browser: Any) -> None:
         row.locator("input").fill("99")
         row.locator("button", has_text="Set").click()
         page.locator('#queues-table tr[data-stream="4"]').locator("button", has_text="Flush").click()
+        page.wait_for_function("document.querySelectorAll('#commands li[data-status]').length === 5",
+                               timeout=10_000)
+        page.locator('#links-table tr[data-link="0"] select').select_option("0")  # spare traffic off
+        page.wait_for_function("document.querySelectorAll('#commands li[data-status]').length === 6",
+                               timeout=10_000)
         page.locator('#links-table tr[data-link="0"]').locator("button").click()
         page.click("#schedule-editor summary")
         page.fill("#sched-slots", "1:10:1, 2:30:2")
         page.click("#sched-send")
-        page.wait_for_function("document.querySelectorAll('#commands li[data-status]').length === 7",
+        page.wait_for_function("document.querySelectorAll('#commands li[data-status]').length === 8",
                                timeout=10_000)
     assert not errors, errors
-    goal, by_time, refine, prio, flush, link, sched = sent
+    goal, by_time, refine, prio, flush, spare, link, sched = sent
+    assert spare == m.SpareConfig(spare.command_id, 0, None, 0)
     assert goal == m.ImageGoal(goal.command_id, 1, m.GoalKind.FULL, 0)
     assert by_time.direction == m.TimeDirection.BEFORE and by_time.stamp == to_stamp(T0 - 140)
     assert isinstance(refine, m.TimeSeriesRequest) and refine.channel == 0
