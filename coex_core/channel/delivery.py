@@ -4,8 +4,8 @@
   ``spare``) on a stream that is not ``ack_required`` is remembered under the frames that carried
   it. When a :class:`~coex_core.messages.FrameAck` covers one of those frames, the node passes the
   message to ``ModalitySender.acked``; when none of them is acknowledged, the manager passes it
-  to ``ModalitySender.lost``: as soon as a frame ack shows that the peer, acknowledging later
-  frames, did not receive them (a node acknowledges every frame it received in its next
+  to ``ModalitySender.lost``: as soon as a frame ack shows that the peer, acknowledging frames of
+  a later packet, did not receive them (a node acknowledges every frame it received in its next
   transmission), or else after the link's ``ack_timeout``. So a sender knows what
   reached topside without a modality-specific ack (the bathymetry sender re-sends lost subgrids
   from its spare work).
@@ -21,7 +21,7 @@ A part of :class:`~coex_core.channel.manager.ChannelManager` (the API is the man
 from __future__ import annotations
 
 import math
-from collections import deque
+from collections import OrderedDict, deque
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -36,6 +36,8 @@ __all__ = ["LOSS_WINDOW", "REDUNDANCY_TARGET", "DeliveryMixin"]
 LOSS_WINDOW = 64
 #: fewest outcomes before an estimate is trusted
 MIN_OUTCOMES = 8
+#: messages given to ``lost`` that a late ack can still turn into ``acked``
+LOST_REMEMBERED = 4096
 #: an urgent message gets enough copies that all are lost with at most this probability
 REDUNDANCY_TARGET = 0.05
 
@@ -72,11 +74,16 @@ class DeliveryMixin(LinksMixin):
         self._rx_outcomes: dict[int, deque[int]] = {}
         #: (src, link) -> seq of the newest frame heard from that peer
         self._rx_last: dict[tuple[int, int], int] = {}
+        #: token -> messages given to ``lost`` whose frames' late ack may still come: it then
+        #: goes to ``acked`` (so the sender does not send again what arrived)
+        self._lost_recs: OrderedDict[int, _Delivery] = OrderedDict()
 
     def _after_restore(self) -> None:
         self._delivery_state()
         for k in ("delivered", "lost", "spare_bytes", "redundant_bytes"):
             self.stats.setdefault(k, 0)
+        if getattr(self, "_lost_recs", None) is None:
+            self._lost_recs = OrderedDict()
         if getattr(self, "_spare_turn", None) is None:
             self._spare_turn: dict[int, float] = {}
 
@@ -111,7 +118,7 @@ class DeliveryMixin(LinksMixin):
     def _delivered(self, link: int, seqs: list[int], now: float) -> list[tuple[int, Message]]:
         """The frames ``seqs`` on ``link`` were acknowledged (one FrameAck): the modality
         messages they delivered. The peer acknowledges every frame it received in its next
-        transmission, so a watched frame sent no later than the newest frame this ack covers,
+        transmission, so a watched frame sent in a packet before the newest one this ack covers,
         and not acknowledged, was lost: its messages go to their senders' ``lost`` at once,
         without waiting for the ack timeout."""
         watch = self._frame_watch.get(link, {})
@@ -124,18 +131,26 @@ class DeliveryMixin(LinksMixin):
                 newest = max(newest, w[0])
             for token in self._delivery_frames.get(link, {}).pop(seq, ()):
                 rec = self._deliveries.pop(token, None)
+                if rec is None:
+                    rec = self._lost_recs.pop(token, None)  # a late ack: it arrived after all
+                    if rec is not None:
+                        self.stats["late_acks"] = self.stats.get("late_acks", 0) + 1
                 if rec is not None:
                     self.stats["delivered"] += 1
                     out.append((rec.stream, rec.message))
-        for seq in [q for q, (sent, _) in watch.items() if sent <= newest]:
+        # strictly earlier packets only: frames of the newest acknowledged packet may still be
+        # on their way through the peer's receiver (it may build its ack between two frames)
+        for seq in [q for q, (sent, _) in watch.items() if sent < newest]:
             del watch[seq]
             self._outcome(self._tx_outcomes, link, 0)
             self._frame_lost(link, seq, now)
         return out
 
     def _frame_lost(self, link: int, seq: int, now: float) -> None:
-        """Frame ``seq`` on ``link`` did not arrive: a message none of whose frames arrived is lost."""
-        for token in self._delivery_frames.get(link, {}).pop(seq, ()):
+        """Frame ``seq`` on ``link`` did not arrive: a message none of whose frames arrived is
+        lost. (The frame's tokens stay recorded until its seq is used again: a late ack of it
+        still counts.)"""
+        for token in self._delivery_frames.get(link, {}).get(seq, ()):
             rec = self._deliveries.get(token)
             if rec is None:
                 continue
@@ -143,9 +158,13 @@ class DeliveryMixin(LinksMixin):
                 rec.frames.remove((link, seq))
             if not rec.frames:
                 del self._deliveries[token]
-                self._lost(rec, now)
+                self.stats["lost_inferred"] = self.stats.get("lost_inferred", 0) + 1
+                self._lost(rec, now, token)
 
-    def _lost(self, rec: _Delivery, now: float) -> None:
+    def _lost(self, rec: _Delivery, now: float, token: int) -> None:
+        self._lost_recs[token] = rec
+        while len(self._lost_recs) > LOST_REMEMBERED:
+            self._lost_recs.popitem(last=False)
         self.stats["lost"] += 1
         s = self._streams.get(rec.stream)
         hook = getattr(s.sender, "lost", None) if s is not None and s.sender is not None else None
@@ -169,15 +188,12 @@ class DeliveryMixin(LinksMixin):
                 if rec is None:
                     continue  # delivered, or already found lost
                 del self._deliveries[token]
-                self._lost(rec, now)
+                self._lost(rec, now, token)
         for link, watch in self._frame_watch.items():
             late = [seq for seq, (_, t) in watch.items() if t <= now]
             for seq in late:
                 del watch[seq]
                 self._outcome(self._tx_outcomes, link, 0)
-                frames = self._delivery_frames.get(link)
-                if frames is not None:
-                    frames.pop(seq, None)
 
     def _tick(self, now: float) -> None:
         super()._tick(now)

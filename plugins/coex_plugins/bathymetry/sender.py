@@ -127,6 +127,9 @@ class BathymetrySender(ModalitySender):
         if getattr(self, "_resend", None) is None:  # a sender saved before spare work existed
             #: subgrids whose last sent version was lost: spare work (key -> when it was lost)
             self._resend: dict[Key, float] = {}
+            #: key -> hash of the newest version a frame ack confirmed (its other copies' losses
+            #: do not make it spare work again)
+            self._confirmed: dict[Key, int] = {}
             #: standing region requests: region -> (subgrids awaiting survey, expiry time)
             self._standing: dict[tuple[int, int, int, int, int, bool], tuple[set[Key], float]] = {}
             self._standing_checked = -math.inf
@@ -411,6 +414,7 @@ class BathymetrySender(ModalitySender):
         if not isinstance(message, Subgrid):
             return
         key = (message.level, message.ix, message.iy)
+        self._confirmed[key] = hash(message)  # a copy of this version arrived
         if key not in self._queued and key not in self._resend:
             return
         built = self._built(key)
@@ -426,6 +430,8 @@ class BathymetrySender(ModalitySender):
         if not isinstance(message, Subgrid):
             return
         key = (message.level, message.ix, message.iy)
+        if self._confirmed.get(key) == hash(message):
+            return  # another copy of this version arrived (its ack may come after this copy's loss)
         built = self._built(key)
         if built is not None and built[0] == message:
             self._resend[key] = now
