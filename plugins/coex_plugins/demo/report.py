@@ -718,6 +718,34 @@ details summary{cursor:pointer;font-weight:600}.note{color:#555;font-size:.92em}
 """
 
 
+def _link_note(metrics: dict[str, Any]) -> str:
+    """One paragraph on how the vehicle used its link: fill, spare and redundant bytes, request
+    to first answer, the map ten minutes after the survey."""
+    link = metrics.get("link") or {}
+    parts = []
+    if _f(link.get("fill")) is not None:
+        parts.append(f"vehicle link use {float(link['fill']):.0%} of the packets it sent")
+    if _f(link.get("fill_with_work")) is not None:
+        parts.append(f"{float(link['fill_with_work']):.0%} while work was ready")
+    if _f(link.get("spare_bytes")) is not None:
+        parts.append(f"{int(link['spare_bytes']):,} B of spare work (re-sends, provisional subgrids, further "
+                     f"image layers, refinements) and {int(link.get('redundant_bytes') or 0):,} B of redundant "
+                     "copies of acks, commands and first answers")
+    if _f(link.get("frame_loss")) is not None:
+        parts.append(f"frame loss {float(link['frame_loss']):.0%}")
+    resp = metrics.get("responses") or {}
+    if resp.get("requests"):
+        med = resp.get("median_vehicle_slots")
+        parts.append(f"{resp['requests']} requests, first answer "
+                     + ("never, in the median" if med is None else f"after {med:g} vehicle slot(s) in the median")
+                     + f" ({float(resp.get('at_next_vehicle_slot') or 0):.0%} at the next vehicle slot)")
+    cov = metrics.get("map_coverage_after_survey") or {}
+    if cov:
+        parts.append("map ten minutes after the survey: " + ", ".join(
+            f"level {k} {float(v):.1%}" for k, v in sorted(cov.items(), key=lambda kv: int(kv[0]))))
+    return f'<p class="note">Link: {_e("; ".join(parts))}.</p>' if parts else ""
+
+
 def write_report(
     out: Path,
     metrics: Mapping[str, Any],
@@ -744,6 +772,7 @@ def write_report(
         if _f(metrics.get(key)) is not None:
             facts.append(f"{label} {_num(metrics.get(key), ',.0f')}{unit}")
     facts_html = f'<p class="note">{_e(" · ".join(facts))}</p>' if facts else ""
+    link_html = _link_note(metrics)
     maps_html = "".join(f'<div class="fig">{m}</div>' for m in maps) or "<p><em>No map was received.</em></p>"
     charts_html = "".join(f'<div class="fig">{c}</div>' for c in charts) or "<p><em>No charts.</em></p>"
     doc = f"""<!doctype html>
@@ -771,6 +800,7 @@ orange diamonds decoys, cyan circles the candidates the operator flagged in the 
 <h2 id="images">Images</h2>
 {_gallery(out, images)}
 <h2 id="time">The dive over time</h2>
+{link_html}
 {charts_html}
 <h2 id="decisions">Decisions</h2>
 {_decisions_table(decisions)}
