@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import logging
 import math
-from collections.abc import Mapping
+from collections.abc import Iterable, Mapping
 from typing import Any
 
 import numpy as np
@@ -443,9 +443,18 @@ class BathymetrySender(ModalitySender):
         ``send_delay`` (the survey is still over them): topside sees them sooner, and the
         background sends them again only if they change after this."""
         out: list[Message] = []
-        left = int(max_bytes)
-        misses = 0
-        for key in sorted(self._resend, key=lambda k: (-k[0], self._resend[k], k)):
+        lost = sorted(self._resend, key=lambda k: (-k[0], self._resend[k], k))
+        left, misses = self._pack(((k, None) for k in lost), int(max_bytes), 0, out, now)
+        if left >= MIN_SUBGRID_BYTES and misses < MAX_MISSES:
+            self._pack(((k, u) for _, u, k in self._background(now, quiet=False)), left, misses, out, now)
+        return out
+
+    def _pack(self, keys: Iterable[tuple[Key, float | None]], left: int, misses: int, out: list[Message],
+              now: float) -> tuple[int, int]:
+        """Append to ``out`` the current versions of ``keys`` (not queued for a request) that fit
+        in ``left`` bytes, marking each sent at its update time (``None``: now's); stop after
+        :data:`MAX_MISSES` that did not fit. Returns the bytes and misses left."""
+        for key, updated in keys:
             if left < MIN_SUBGRID_BYTES or misses >= MAX_MISSES:
                 break
             if key in self._queued:
@@ -460,25 +469,9 @@ class BathymetrySender(ModalitySender):
                 continue
             out.append(sg)
             left -= size
-            del self._resend[key]  # lost again: lost() brings it back
-            self._mark_sent(key, self.subgrid_time(key), now)
-        if left >= MIN_SUBGRID_BYTES and misses < MAX_MISSES:
-            for _, updated, key in self._background(now, quiet=False):
-                if left < MIN_SUBGRID_BYTES or misses >= MAX_MISSES:
-                    break
-                if key in self._queued:
-                    continue
-                built = self._built(key)
-                if built is None:
-                    continue
-                sg, size = built
-                if size > left:
-                    misses += 1
-                    continue
-                out.append(sg)
-                left -= size
-                self._mark_sent(key, updated, now)
-        return out
+            # sent: off the re-send list (a loss brings it back), not changed since
+            self._mark_sent(key, self.subgrid_time(key) if updated is None else updated, now)
+        return left, misses
 
     def spare_bytes(self) -> int:
         """Lost subgrids to send again, and changed ones not quiet yet (provisional)."""

@@ -427,14 +427,21 @@ class TimeSeriesSender(ModalitySender):
                 out.append(ch.registration)
                 ch.reg_sent_at = now
                 left -= ch.reg_size
-        for chunk in self._candidates(now):
+        self._send(self._candidates(now), left, out, now)
+        return out
+
+    @staticmethod
+    def _send(chunks: list[_Chunk], left: int, out: list[Message], now: float) -> int:
+        """Append the chunks that fit in ``left`` bytes to ``out`` (marked sent now); returns
+        the bytes left."""
+        for chunk in chunks:
             if left < 13:
                 break
             if chunk.size <= left:
                 out.append(chunk.message)
                 chunk.sent_at = now
                 left -= chunk.size
-        return out
+        return left
 
     def _due(self, sent_at: float | None, now: float) -> bool:
         return sent_at is None or now - sent_at >= self.retry_after or now < sent_at
@@ -447,14 +454,7 @@ class TimeSeriesSender(ModalitySender):
         out: list[Message] = []
         left = max_bytes
         for _ in range(2):
-            cands = self._candidates(now, spare=True)
-            for chunk in cands:
-                if left < 13:
-                    break
-                if chunk.size <= left:
-                    out.append(chunk.message)
-                    chunk.sent_at = now
-                    left -= chunk.size
+            left = self._send(self._candidates(now, spare=True), left, out, now)
             if left < 13 or any(not c.acked and c.sent_at is None
                                 for ch in self._channels for c in ch.by_key.values() if c.klass == _SPARE):
                 break
