@@ -112,9 +112,9 @@ class Node:
         #: lost and topside re-sent it) is answered again but not applied twice.
         self._recent: dict[int, tuple[Message, AckStatus, float]] = {}
         self.duplicate_window = 3600.0
-        #: command id -> (status, time) of the last CommandAck taken (its redundant copies from
-        #: the same packet are dropped)
-        self._answers_seen: dict[int, tuple[AckStatus, float]] = {}
+        #: messages taken from the latest packet (redundant copies of them in its other frames
+        #: are dropped), and when
+        self._packet_seen: dict[Message, float] = {}
         self.stats_interval = stats_interval
         self._last_stats: float | None = None
         self._bad_by_link: dict[int, int] = {}
@@ -235,12 +235,10 @@ class Node:
         if isinstance(m, FrameAck):
             self._acked(m, now)
             return
+        if self._copy_seen(m, now):
+            self.stats["duplicates"] += 1  # a redundant copy from the same packet: handled once
+            return
         if isinstance(m, CommandAck):
-            seen = self._answers_seen.get(m.command_id)
-            if seen is not None and seen[0] == m.status and now - seen[1] <= DUPLICATE_SAME_PACKET:
-                self.stats["duplicates"] += 1  # a redundant copy from the same packet
-                return
-            self._answers_seen[m.command_id] = (m.status, now)
             if m.status == AckStatus.PENDING:  # a standing request: its final answer follows
                 owner = self._command_owner.get(m.command_id)
             else:
@@ -268,6 +266,21 @@ class Node:
                     self._events.append(ProductUpdated(now, r.name, p))
                 return
         self._events.append(Received(now, link_id, src, m))
+
+    def _copy_seen(self, m: Message, now: float) -> bool:
+        """Whether ``m`` is a copy of a message taken within :data:`DUPLICATE_SAME_PACKET`
+        seconds (a sender under loss puts copies in several frames of one packet)."""
+        seen = self._packet_seen
+        if seen and now - max(seen.values()) > DUPLICATE_SAME_PACKET:
+            seen.clear()
+        try:
+            t = seen.get(m)
+        except TypeError:  # an unhashable message: never a copy
+            return False
+        if t is not None and now - t <= DUPLICATE_SAME_PACKET:
+            return True
+        seen[m] = now
+        return False
 
     def _duplicate(self, m: Message, now: float) -> bool:
         cid = getattr(m, "command_id", None)

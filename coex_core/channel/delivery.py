@@ -33,7 +33,9 @@ from .tdma import LinksMixin
 __all__ = ["LOSS_WINDOW", "REDUNDANCY_TARGET", "DeliveryMixin"]
 
 #: frames (sent, or received from the peer) that the loss estimate looks back over
-LOSS_WINDOW = 64
+LOSS_WINDOW = 256
+#: a jump in the peer's seqs up to this many frames counts as loss (larger: a restart, an outage)
+MAX_GAP = 64
 #: fewest outcomes before an estimate is trusted
 MIN_OUTCOMES = 8
 #: messages given to ``lost`` that a late ack can still turn into ``acked``
@@ -124,10 +126,11 @@ class DeliveryMixin(LinksMixin):
         watch = self._frame_watch.get(link, {})
         newest = -math.inf
         out = []
+        fates: list[tuple[float, int]] = []  # (sent, 1 acked / 0 lost), recorded in send order
         for seq in seqs:
             w = watch.pop(seq, None)
             if w is not None:
-                self._outcome(self._tx_outcomes, link, 1)
+                fates.append((w[0], 1))
                 newest = max(newest, w[0])
             for token in self._delivery_frames.get(link, {}).pop(seq, ()):
                 rec = self._deliveries.pop(token, None)
@@ -141,9 +144,10 @@ class DeliveryMixin(LinksMixin):
         # strictly earlier packets only: frames of the newest acknowledged packet may still be
         # on their way through the peer's receiver (it may build its ack between two frames)
         for seq in [q for q, (sent, _) in watch.items() if sent < newest]:
-            del watch[seq]
-            self._outcome(self._tx_outcomes, link, 0)
+            fates.append((watch.pop(seq)[0], 0))
             self._frame_lost(link, seq, now)
+        for _, ok in sorted(fates):
+            self._outcome(self._tx_outcomes, link, ok)
         return out
 
     def _frame_lost(self, link: int, seq: int, now: float) -> None:
@@ -211,7 +215,7 @@ class DeliveryMixin(LinksMixin):
         self._rx_last[key] = header.seq
         if last is not None:
             gap = (header.seq - last - 1) % 256
-            if gap < LOSS_WINDOW:  # a larger jump is a restart or a long outage, not loss
+            if gap < MAX_GAP:  # a larger jump is a restart or a long outage, not loss
                 for _ in range(gap):
                     self._outcome(self._rx_outcomes, link, 0)
         self._outcome(self._rx_outcomes, link, 1)

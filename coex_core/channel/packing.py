@@ -201,28 +201,36 @@ class PackingMixin(AcksMixin):
                     urgent: list[tuple[Message, int, Entry | None]], room: int, budget: int) -> int:
         """Put extra copies of the packet's urgent messages into other frames (existing ones with
         room, then new ones up to the link's frames per packet), within ``budget`` bytes;
-        returns the bytes added. A copy of an ack-required message is recorded under its frame
-        too, so an ack of any copy clears it."""
+        returns the bytes added. Copies go round by round (every urgent message gets its second
+        copy before any gets a third), so one large message cannot take the room of the others.
+        A copy of an ack-required message is recorded under its frame too, so an ack of any copy
+        clears it."""
         k = self.copies(link)
         n_frames = self._links[link].cfg.n_frames
         if k <= 1 or not urgent or budget <= 0:
             return 0
         added = 0
-        for m, size, entry in urgent:
-            have = sum(1 for fb in frames_b if any(x is m for x in fb.msgs))
-            start = next((i for i, fb in enumerate(frames_b) if any(x is m for x in fb.msgs)), 0)
-            while have < k and added + size <= budget:
+        for _ in range(k - 1):
+            placed = False
+            for m, size, entry in urgent:
+                if added + size > budget:
+                    continue
+                have = [i for i, fb in enumerate(frames_b) if any(x is m for x in fb.msgs)]
+                if len(have) >= k:
+                    continue
+                start = have[-1] if have else 0
                 order = list(range(start + 1, len(frames_b))) + list(range(0, start + 1))
-                target = next((frames_b[j] for j in order if frames_b[j].left >= size
-                               and not any(x is m for x in frames_b[j].msgs)), None)
+                target = next((frames_b[j] for j in order if j not in have and frames_b[j].left >= size), None)
                 if target is None:
                     if len(frames_b) >= n_frames or size > room:
-                        break
+                        continue
                     target = _FrameBuild(room)
                     frames_b.append(target)
                 target.add(m, size, entry)
-                have += 1
                 added += size
+                placed = True
+            if not placed:
+                break
         return added
 
     def _fill_spare(self, link: int, w: SlotWindow, frames_b: list[_FrameBuild], room: int, budget: int,
