@@ -186,7 +186,9 @@ def test_kill_and_restart_both_sides_at_random_moments(tmp_path: Path, lcm_uri: 
     # the vehicle re-sends on its own (spare work) only what it did not hear acknowledged; what
     # topside asks for again after a restart (a request race) it sends, as asked
     assert again - again_asked <= 0.02 * sent, f"{again - again_asked} of {sent} subgrids sent again unasked"
-    assert again <= 0.05 * sent, f"{again} of {sent} subgrids sent again after their ack"
+    # a topside killed between two snapshots forgets what it received since, and asks again
+    # (more when spare traffic fills the link): bounded, not zero
+    assert again_asked <= 0.10 * sent, f"{again_asked} of {sent} subgrids asked for again after their ack"
     # what was sent but not yet acked when a side died goes again (as after a loss); what topside
     # had acked does not
     # (how much unacked data goes again depends on how late the processes run: not asserted)
