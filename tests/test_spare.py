@@ -27,6 +27,7 @@ from coex_core.messages import (
     QueueConfig,
     SpareConfig,
     Subgrid,
+    TransferProgress,
     VehicleMode,
     VehicleStatus,
 )
@@ -340,3 +341,38 @@ def test_an_image_request_for_a_time_not_captured_yet_stands_until_the_image_exi
     results = [e for e in topside.events() if isinstance(e, CommandResult)]
     assert [r.status for r in results] == [AckStatus.PENDING, AckStatus.REJECTED]
     assert receiver.waiting_requests() == [] and sender.standing() == []
+
+
+def test_imagery_spare_work_sends_further_layers_newest_image_first() -> None:
+    """Once every image is at its goal, spare work brings the newest image beyond it (up to its
+    whole codestream) before the older ones; the background sends nothing more."""
+    from coex_plugins.imagery import ImageryModality
+    from coex_plugins.imagery.sender import ImageInput
+
+    sender = ImageryModality().sender({"default_goal": "layer:2"})
+    rng = np.random.default_rng(2)
+    for t in (10.0, 20.0):
+        sender.ingest(ImageInput(rng.integers(0, 255, (96, 96), np.uint8), time=t), t)
+    now = 30.0
+    for _ in range(200):  # the background, every byte acknowledged as it goes
+        out = sender.fill(240, now)
+        for m in out:
+            sender.acked(m, now)
+        if not out:
+            break
+        now += 1.0
+    old, new = sorted(sender.images.values(), key=lambda tx: tx.time)
+    assert not old.needs() and not new.needs() and new.goal < new.total
+    assert sender.spare_bytes() == (old.total - old.goal) + (new.total - new.goal)
+    got = sender.spare(240, now)
+    assert got and {m.image_id for m in got} == {new.image_id}
+    assert min(m.offset for m in got) >= new.goal
+    for _ in range(500):
+        out = sender.spare(240, now)
+        for m in out:
+            sender.acked(m, now)
+        if not out:
+            break
+        now += 1.0
+    assert new.acked.all() and old.acked.all() and sender.spare_bytes() == 0
+    assert not [m for m in sender.fill(240, now) if not isinstance(m, TransferProgress)]

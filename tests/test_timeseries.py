@@ -421,3 +421,29 @@ def test_dives_longer_than_the_stamp_period() -> None:
     assert want[64] - want[0] == 2**18
     s = rx.series("o2")
     assert np.all(np.abs(s.values - v) <= s.bounds)
+
+
+def test_spare_work_refines_the_series_below_the_overview(record: list[synth.SynthSeries]) -> None:
+    """Spare capacity (``spare``) sends refinement passes, newest block first, that topside
+    decodes into a series within a smaller stated bound, still true against the samples; the
+    background (``fill``) never sends them."""
+    methane = record[0]
+    sender = _sender([methane])
+    rx = TimeSeriesReceiver()
+    now = _drain(sender, rx, _feed(sender, [methane]))
+    overview = rx.series(methane.name).max_bound
+    assert sender.fill(251, now + 1.0) == []  # the background is done
+    assert sender.spare_bytes() > 0
+    for i in range(400):
+        out = sender.spare(251, now + 2.0 + i)
+        assert sum(wire.encoded_size(m) for m in out) <= 251
+        for m in out:
+            rx.receive(m, now + 2.0 + i)
+        for reply in rx.poll(now + 2.0 + i):
+            sender.handle(reply, now + 2.0 + i)
+        if not out:
+            break
+    series = rx.series(methane.name)
+    assert series.max_bound < overview / 3
+    assert np.all(np.abs(series.values - methane.values) <= series.bounds)
+    assert sender.fill(251, now + 1000.0) == []
