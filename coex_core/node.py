@@ -290,10 +290,9 @@ class Node:
         if seen is None or seen[0] != m or now - seen[2] > self.duplicate_window:
             return False
         self.stats["duplicates"] += 1
-        if now - seen[2] > DUPLICATE_SAME_PACKET:
-            # a re-send (the first answer may have been lost): answer again; a copy in another
-            # frame of the same packet (redundancy under loss) was answered with the first
-            self.manager.push(CONTROL_STREAM, CommandAck(int(cid), seen[1]), now)
+        # a re-send (the first answer may have been lost): answer again (copies from one packet
+        # never get here: _copy_seen drops them first)
+        self.manager.push(CONTROL_STREAM, CommandAck(int(cid), seen[1]), now)
         return True
 
     def _remember(self, m: Message, status: AckStatus, now: float) -> None:

@@ -360,9 +360,10 @@ class ImagerySender(ModalitySender):
             return
         if isinstance(message, ImageFragment):
             self._fate(message, 1)
-            tx = self.images.get(message.image_id)
-            if tx is not None and message.offset + len(message.data) <= tx.total:
-                tx.acked[message.offset:message.offset + len(message.data)] = True
+            held = self._span(message)
+            if held is not None:
+                tx, span = held
+                tx.acked[span] = True
 
     def lost(self, message: Message, now: float) -> None:
         """No frame that carried a fragment arrived: its bytes not held are due again at once
@@ -374,10 +375,17 @@ class ImagerySender(ModalitySender):
             return
         if isinstance(message, ImageFragment):
             self._fate(message, 0)
-            tx = self.images.get(message.image_id)
-            if tx is not None and message.offset + len(message.data) <= tx.total:
-                span = slice(message.offset, message.offset + len(message.data))
+            held = self._span(message)
+            if held is not None:
+                tx, span = held
                 tx.sent_at[span] = np.where(tx.acked[span], tx.sent_at[span], -np.inf)
+
+    def _span(self, frag: ImageFragment) -> tuple[_Tx, slice] | None:
+        """The image a fragment belongs to and the bytes it carried (None: an image no longer
+        held, or bytes outside it)."""
+        tx = self.images.get(frag.image_id)
+        end = frag.offset + len(frag.data)
+        return None if tx is None or end > tx.total else (tx, slice(frag.offset, end))
 
     def spare(self, max_bytes: int, now: float) -> list[Message]:
         """Further quality layers, beyond each image's goal up to its whole codestream: the
