@@ -376,3 +376,77 @@ def test_imagery_spare_work_sends_further_layers_newest_image_first() -> None:
         now += 1.0
     assert new.acked.all() and old.acked.all() and sender.spare_bytes() == 0
     assert not [m for m in sender.fill(240, now) if not isinstance(m, TransferProgress)]
+
+
+def test_a_requested_images_lost_bytes_get_all_their_repeats_again_after_each_loss() -> None:
+    """Under loss a requested image's bytes go out ``copies()`` times before topside can answer;
+    when every copy of some bytes is reported lost they get ``copies()`` repeats again (not one
+    per ack round), and bytes sent before the request count for nothing once it comes."""
+    from coex_core.messages import ImageByTimeRequest, ImageFragment, TimeDirection
+    from coex_core.timefmt import to_stamp
+    from coex_plugins.imagery import ImageryModality
+    from coex_plugins.imagery.sender import ImageInput
+
+    sender = ImageryModality().sender({"default_goal": "layer:16", "request_goal": "layer:24"})
+    rng = np.random.default_rng(3)
+    sender.ingest(ImageInput(rng.integers(0, 255, (256, 256), np.uint8), time=10.0), 10.0)
+    (tx,) = sender.images.values()
+    now = 20.0
+    first = [m for m in sender.fill(4000, now) if isinstance(m, ImageFragment)]
+    assert len(first) >= 8 and tx.explicit is None
+    for i, m in enumerate(first):  # three frames in four lost: the loss the sender measures
+        (sender.lost if i % 4 else sender.acked)(m, now)
+    k = sender.copies()
+    assert k == min(8, math.ceil(math.log(0.05) / math.log(sender.frame_loss() or 0.0))) and k > 1
+    sender.handle(ImageByTimeRequest(1, to_stamp(10.0), TimeDirection.NEAREST), now)
+    assert tx.explicit is not None
+    goal = tx.goal
+    missing = ~tx.acked[:goal]
+    assert missing.any()
+
+    def round_of_sends() -> list[ImageFragment]:
+        nonlocal now
+        sent: list[ImageFragment] = []
+        for _ in range(3 * k):  # one packet a second, no answer from topside yet
+            now += 1.0
+            sent += [m for m in sender.fill(50000, now) if isinstance(m, ImageFragment) and m.image_id == tx.image_id]
+        return sent
+
+    def times_sent(frags: list[ImageFragment]) -> np.ndarray:
+        n = np.zeros(tx.total, int)
+        for m in frags:
+            n[m.offset:m.offset + len(m.data)] += 1
+        return n
+
+    sent = round_of_sends()
+    assert (times_sent(sent)[:goal][missing] == k).all()  # the earlier default sends do not count
+    for m in sent:  # every copy lost
+        sender.lost(m, now)
+    again = round_of_sends()
+    assert (times_sent(again)[:goal][missing] == k).all()
+    for m in again:
+        sender.acked(m, now)
+    assert not tx.needs() and not round_of_sends()
+
+
+def test_a_newer_image_ack_replaces_an_older_one_of_the_same_image_in_the_uplink() -> None:
+    """Topside's acks of one image are not stacked up in the uplink under loss: the newest
+    replaces the older ones still queued or in flight; acks of other images stay."""
+    from coex_core.messages import ByteRange, ImageAck
+    from coex_plugins.imagery import ImageryModality
+
+    receiver = ImageryModality().receiver(None)
+    old, new = ImageAck(3, 10, ()), ImageAck(3, 40, (ByteRange(60, 80),))
+    assert receiver.supersedes(old, new)
+    assert not receiver.supersedes(ImageAck(4, 10, ()), new)
+    assert not receiver.supersedes(old, ImageAck(4, 40, ()))
+    tm = ChannelManager(TOPSIDE, [LinkConfig(0, nui(), dst=VEHICLE)])
+    topside = Node(tm)
+    topside.add_receiver(ImageryModality, receiver)
+    acks = iter([[old, ImageAck(4, 5, ())], [new]])
+    receiver.poll = lambda now: next(acks, [])  # type: ignore[method-assign]
+    assert not topside.poll(21.0)  # a vehicle slot: queued
+    assert not topside.poll(22.0)
+    (tx,) = topside.poll(60.0)  # topside's next slot
+    sent = [m for f in tx.frames for m in wire.unpack(f) if isinstance(m, ImageAck)]
+    assert {(m.image_id, m.contiguous) for m in sent} == {(3, 40), (4, 5)}

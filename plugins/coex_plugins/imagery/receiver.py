@@ -336,6 +336,13 @@ class ImageryReceiver(ModalityReceiver):
             out.append(ImageAck(image_id, rx.contiguous(), tuple(ByteRange(s, e) for s, e in ranges)))
         return out
 
+    def supersedes(self, old: Message, new: Message) -> bool:
+        """A newer ack of an image replaces an older one still in the channel: it says what
+        topside holds now, which includes everything the older one said (bytes held are never
+        dropped). Without this, a lossy downlink fills the uplink with stale acks of one image."""
+        return (isinstance(old, ImageAck) and isinstance(new, ImageAck)
+                and old.image_id == new.image_id)
+
     def pending_requests(self) -> list[Message]:
         return self._requests.pending()
 

@@ -379,6 +379,11 @@ class ImagerySender(ModalitySender):
             if held is not None:
                 tx, span = held
                 tx.sent_at[span] = np.where(tx.acked[span], tx.sent_at[span], -np.inf)
+                if tx.explicit is not None:
+                    # every copy of these bytes was lost: a requested image's missing bytes get
+                    # their repeats again, or each ack round would carry a single copy
+                    sends = _sends(tx)
+                    sends[span] = np.where(tx.acked[span], sends[span], 0)
 
     def _span(self, frag: ImageFragment) -> tuple[_Tx, slice] | None:
         """The image a fragment belongs to and the bytes it carried (None: an image no longer
@@ -420,9 +425,7 @@ class ImagerySender(ModalitySender):
                   goal: int | None = None) -> ImageFragment | None:
         goal = tx.goal if goal is None else goal
         ready = ~tx.acked[:goal] & (tx.sent_at[:goal] <= now - self.rto)
-        sends = getattr(tx, "sends", None)
-        if sends is None:  # an image saved before repeats existed
-            sends = tx.sends = np.zeros(tx.total, np.uint8)
+        sends = _sends(tx)
         copies = self.copies() if tx.explicit is not None else 1
         if copies > 1:
             # a requested image under loss: its bytes go again in the next packet, up to
@@ -562,9 +565,21 @@ class ImagerySender(ModalitySender):
     def _serve(self, tx: _Tx) -> None:
         """Give ``tx`` the request goal and serve it first."""
         want = max(self.request_goal.bytes_for(tx.enc), tx.goal)
+        # bytes sent before the request (as the default set-point) count for nothing now: the
+        # requested ones get their full repeats
+        sends = _sends(tx)
+        sends[:want] = np.where(tx.acked[:want], sends[:want], 0)
         if tx.explicit is None or want != tx.goal:
             self._request_counter += 1
             tx.explicit = self._request_counter
         tx.goal = want
         tx.announced_at = None if not tx.heard else tx.announced_at  # re-announce if never heard
         self._progress_dirty = True
+
+
+def _sends(tx: _Tx) -> npt.NDArray[np.uint8]:
+    """How often each byte of ``tx`` was sent (an image saved before repeats existed gets zeros)."""
+    sends = getattr(tx, "sends", None)
+    if sends is None:
+        sends = tx.sends = np.zeros(tx.total, np.uint8)
+    return sends
