@@ -182,8 +182,21 @@ class Modality(abc.ABC):
 
     name: ClassVar[str]
     version: ClassVar[str] = "0"
+    #: built-in message types its sender emits and its receiver takes
     messages: ClassVar[tuple[type[Message], ...]] = ()
+    #: built-in message types its receiver emits and its sender handles (requests, acks)
     requests: ClassVar[tuple[type[Message], ...]] = ()
+    #: third-party type ids (:class:`~coex_core.messages.Opaque`, spec section 3: 96..32767)
+    #: its sender emits and its receiver takes; a node routes those ids, and only those, to it
+    message_ids: ClassVar[tuple[int, ...]] = ()
+    #: third-party type ids its receiver emits and its sender handles
+    request_ids: ClassVar[tuple[int, ...]] = ()
+    #: the requests that are routine (acks of data, types or third-party ids): handled without
+    #: expediting the stream; every other request makes its answer leave in the next packet
+    routine: ClassVar[tuple[type[Message] | int, ...]] = ()
+    #: bytes a sender may still send per hour once everything it holds is acknowledged
+    #: (progress reports, heartbeats); the conformance suite holds it to this
+    keepalive_bytes_per_hour: ClassVar[int] = 0
 
     @abc.abstractmethod
     def sender(self, config: Mapping[str, Any] | None = None) -> ModalitySender:
@@ -195,7 +208,16 @@ class Modality(abc.ABC):
 
     @classmethod
     def handles(cls, message: Message) -> bool:
-        return isinstance(message, tuple(cls.messages) + tuple(cls.requests))
+        """Whether ``message`` is one of this modality's messages or requests (by type, or by
+        declared third-party id)."""
+        from .messages import Opaque
+        from .routing import declared_ids, type_id, wildcard
+
+        tid = type_id(message)
+        if tid is None:
+            return False
+        return any(tid in declared_ids(cls, kind) or (isinstance(message, Opaque) and wildcard(cls, kind))
+                   for kind in ("messages", "requests"))
 
 
 def total_size(messages: Sequence[Message]) -> int:

@@ -14,15 +14,17 @@ Routing of a received message: frame acks and command acks go to the manager; ch
 commands (QueueConfig, ScheduleUpdate, LinkControl) are applied and answered with a
 CommandAck; a type in some ``Modality.requests`` goes to that modality's sender (requests with a
 ``command_id`` get a CommandAck: ACCEPTED, or REJECTED when the sender raises
-``RequestRejected``) and, unless it is a routine ack (a type named ``...Ack``), expedites the
-modality's stream so the answer leaves in the next transmission; a type in some
-``Modality.messages`` goes to that modality's receiver; the
-rest (vehicle, queue and link status ...) is reported as a :class:`Received` event.
+``RequestRejected``) and, unless the modality declares it ``routine`` (acks of data),
+expedites the modality's stream so the answer leaves in the next transmission; a type in some
+``Modality.messages`` goes to that modality's receiver; the rest (vehicle, queue and link
+status ...) is reported as a :class:`Received` event. Modalities are found by the wire type
+ids they declare (built-in types, and third-party ids: :mod:`coex_core.routing`); a node
+refuses two modalities that claim one id.
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from typing import Any
 
@@ -54,6 +56,17 @@ from .messages import (
     VehicleStatus,
 )
 from .modality import Modality, ModalityReceiver, ModalitySender
+from .routing import (
+    RemappedReceiver,
+    RemappedSender,
+    Routes,
+    check_remap,
+    declared_ids,
+    routine_ids,
+    third_party,
+    type_id,
+    wildcard,
+)
 from .state import StateError, dumps, loads
 from .wire import unpack_frame
 
@@ -72,6 +85,8 @@ class _SenderSlot:
     modality: type[Modality]
     sender: ModalitySender
     stream: int
+    #: wire ids of its routine requests (they do not expedite the stream)
+    routine: frozenset[int] = frozenset()
 
 
 @dataclass
@@ -86,11 +101,8 @@ def _modality_class(m: Modality | type[Modality]) -> type[Modality]:
     return m if isinstance(m, type) else type(m)
 
 
-def _opaque_ids(m: type[Modality], attr: str) -> frozenset[int]:
-    """Third-party type ids a modality declares: ``opaque_messages`` (its data) and
-    ``opaque_requests`` (its requests), class attributes of type ids."""
-    ids = getattr(m, attr, ())
-    return frozenset(int(i) for i in ids)
+def _on_wire(ids: frozenset[int], remap: dict[int, int]) -> frozenset[int]:
+    return frozenset(remap.get(i, i) for i in ids)
 
 
 class Node:
@@ -121,6 +133,10 @@ class Node:
         #: request types of the attached modalities: commands like those of ``auth.COMMAND_TYPES``
         self._request_types: tuple[type, ...] = ()
         self._request_opaque: frozenset[int] = frozenset()
+        #: declared routing (:mod:`coex_core.routing`): wire type id -> sender (requests) or
+        #: receiver (messages)
+        self._request_routes = Routes("requests")
+        self._message_routes = Routes("messages")
         self._listeners: list[Callable[[list[Event]], Any]] = []
         manager.is_command = self.is_command
 
@@ -131,28 +147,46 @@ class Node:
             return m.type_id in self._request_opaque
         return is_command(m) or isinstance(m, self._request_types)
 
-    def _add_requests(self, cls: type[Modality]) -> None:
-        self._request_types = tuple({*self._request_types, *cls.requests})
-        self._request_opaque = self._request_opaque | _opaque_ids(cls, "opaque_requests")
+    def _add_requests(self, cls: type[Modality], remap: dict[int, int]) -> None:
+        self._request_types = tuple({*self._request_types, *(t for t in cls.requests if t is not Opaque)})
+        self._request_opaque = self._request_opaque | frozenset(
+            i for i in _on_wire(declared_ids(cls, "requests"), remap) if third_party(i))
 
     # ===================================================================== composition
     def add_sender(self, modality: Modality | type[Modality], sender: ModalitySender,
-                   stream: StreamConfig) -> None:
-        """Subsea: ``sender`` fills packets for ``stream`` and handles the modality's requests."""
+                   stream: StreamConfig, *, ids: Mapping[int, int] | None = None) -> None:
+        """Subsea: ``sender`` fills packets for ``stream`` and handles the modality's requests
+        (routed by the type ids the modality declares, :mod:`coex_core.routing`). ``ids``
+        remaps the modality's third-party ids on the wire (own id -> wire id; the topside
+        node must remap them the same way). :class:`ConfigError` when another modality on this
+        node already claims one of its request ids (the message names both)."""
         cls = _modality_class(modality)
-        self.manager.add_stream(stream, sender)
-        self._add_requests(cls)
-        self._senders.append(_SenderSlot(getattr(cls, "name", cls.__name__), cls, sender, stream.stream))
+        name = str(getattr(cls, "name", cls.__name__))
+        remap = check_remap(cls, ids)
+        wire_ids = _on_wire(declared_ids(cls, "requests"), remap)
+        slot = _SenderSlot(name, cls, RemappedSender(sender, remap) if remap else sender, stream.stream,
+                           _on_wire(routine_ids(cls), remap))
+        self._request_routes.claim(name, cls, wire_ids, slot, wildcard(cls, "requests"))
+        self.manager.add_stream(stream, slot.sender)
+        self._add_requests(cls, remap)
+        self._senders.append(slot)
 
     def add_receiver(self, modality: Modality | type[Modality], receiver: ModalityReceiver,
-                     stream: int = CONTROL_STREAM) -> None:
-        """Topside: ``receiver`` takes the modality's messages; its requests (``poll``) go out on
-        ``stream`` (default: the acked tier-0 control stream)."""
+                     stream: int = CONTROL_STREAM, *, ids: Mapping[int, int] | None = None) -> None:
+        """Topside: ``receiver`` takes the modality's messages (routed by declared type ids);
+        its requests (``poll``) go out on ``stream`` (default: the acked tier-0 control
+        stream). ``ids`` as in :meth:`add_sender`. :class:`ConfigError` when another modality
+        on this node already claims one of its message ids."""
         cls = _modality_class(modality)
+        name = str(getattr(cls, "name", cls.__name__))
+        remap = check_remap(cls, ids)
+        wire_ids = _on_wire(declared_ids(cls, "messages"), remap)
+        slot = _ReceiverSlot(name, cls, RemappedReceiver(receiver, remap) if remap else receiver, stream)
+        self._message_routes.claim(name, cls, wire_ids, slot, wildcard(cls, "messages"))
         self.manager.stream(stream)
-        self._add_requests(cls)
-        receiver.bind_command_ids(self.manager.next_command_id)  # one command id space per node
-        self._receivers.append(_ReceiverSlot(getattr(cls, "name", cls.__name__), cls, receiver, stream))
+        self._add_requests(cls, remap)
+        slot.receiver.bind_command_ids(self.manager.next_command_id)  # one command id space per node
+        self._receivers.append(slot)
 
     # ========================================================================= receive
     def receive(self, link_id: int, frame: bytes, now: float) -> list[Message]:
@@ -256,15 +290,15 @@ class Node:
             self._remember(m, ack.status, now)
             self.manager.push(CONTROL_STREAM, ack, now)
             return
-        for s in self._senders:
-            if isinstance(m, tuple(s.modality.requests)) or self._opaque_for(m, s.modality, "opaque_requests"):
-                self._handle_request(s, m, now)
-                return
-        for r in self._receivers:
-            if isinstance(m, tuple(r.modality.messages)) or self._opaque_for(m, r.modality, "opaque_messages"):
-                for p in r.receiver.receive(m, now):
-                    self._events.append(ProductUpdated(now, r.name, p))
-                return
+        s = self._request_routes.owner(m)
+        if s is not None:
+            self._handle_request(s, m, now)
+            return
+        r = self._message_routes.owner(m)
+        if r is not None:
+            for p in r.receiver.receive(m, now):
+                self._events.append(ProductUpdated(now, r.name, p))
+            return
         self._events.append(Received(now, link_id, src, m))
 
     def _copy_seen(self, m: Message, now: float) -> bool:
@@ -301,16 +335,10 @@ class Node:
             self._recent[int(cid)] = (m, status, now)
 
     @staticmethod
-    def _routine(m: Message, cls: type[Modality]) -> bool:
-        """Routine traffic (acks: ``ImageAck``, ``TimeSeriesAck`` ..., or an Opaque id in the
-        modality's ``opaque_routine``) does not expedite the modality's stream."""
-        if isinstance(m, Opaque):
-            return m.type_id in _opaque_ids(cls, "opaque_routine")
-        return type(m).__name__.endswith("Ack")
-
-    @staticmethod
-    def _opaque_for(m: Message, cls: type[Modality], attr: str) -> bool:
-        return isinstance(m, Opaque) and m.type_id in _opaque_ids(cls, attr)
+    def _routine(m: Message, s: _SenderSlot) -> bool:
+        """Routine traffic (the requests a modality declares ``routine``: ``ImageAck``,
+        ``TimeSeriesAck`` ...) does not expedite the modality's stream."""
+        return type_id(m) in s.routine
 
     def _handle_request(self, s: _SenderSlot, m: Message, now: float) -> None:
         cid = getattr(m, "command_id", None)
@@ -338,7 +366,7 @@ class Node:
             replies = [r for r in replies if not any(r is o for o in own)]
             self._remember(m, status, now)
             self.manager.push(CONTROL_STREAM, CommandAck(int(cid), status), now)
-        if not self._routine(m, s.modality):
+        if not self._routine(m, s):
             # an operator request (not a routine ack): its answer goes in the next transmission
             self.manager.expedite(s.stream)
         for r in replies:
@@ -570,13 +598,13 @@ class Node:
                 pass
 
     def check(self) -> None:
-        """Raise :class:`ConfigError` if two modalities claim one message type."""
-        seen: dict[type, str] = {}
-        for s in self._senders:
-            for t in s.modality.requests:
-                if t in seen:
-                    raise ConfigError(f"{t.__name__} handled by {seen[t]} and {s.name}")
-                seen[t] = s.name
+        """Raise :class:`ConfigError` if two modalities claim one message type (kept for
+        callers: :meth:`add_sender` and :meth:`add_receiver` refuse that already)."""
+        for routes in (self._request_routes, self._message_routes):
+            owners: dict[int, str] = {}
+            for tid, name in routes.names.items():
+                if owners.setdefault(tid, name) != name:
+                    raise ConfigError(f"modalities {owners[tid]!r} and {name!r} both claim type id {tid}")
 
 
 def _wrappers(part: Any) -> list[Any]:

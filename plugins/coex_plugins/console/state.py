@@ -953,7 +953,7 @@ def _modality_of(msg: m.Message) -> str | None:
                 continue
             for t in getattr(cls, "messages", ()):
                 table.setdefault(t, info.name)
-            for tid in getattr(cls, "opaque_messages", ()):
+            for tid in (*getattr(cls, "message_ids", ()), *getattr(cls, "opaque_messages", ())):
                 table.setdefault(("opaque", int(tid)), info.name)
         _MODALITY_OF = table
     if isinstance(msg, m.Opaque):

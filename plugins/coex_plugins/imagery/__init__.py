@@ -37,6 +37,8 @@ class ImageryModality(Modality):
     version: ClassVar[str] = "1.0"
     messages: ClassVar[tuple[type[Message], ...]] = (ImageAnnounce, ImageFragment, TransferProgress)
     requests: ClassVar[tuple[type[Message], ...]] = (ImageAck, ImageGoal, ImageByTimeRequest)
+    #: acks of data: handled without expediting the stream
+    routine: ClassVar[tuple[type[Message] | int, ...]] = (ImageAck,)
 
     def sender(self, config: Mapping[str, Any] | None = None) -> ImagerySender:
         return ImagerySender(config)

@@ -43,6 +43,8 @@ class TimeSeriesModality(Modality):
     version: ClassVar[str] = "1"
     messages: ClassVar[tuple[type[Message], ...]] = (TimeSeriesChannel, TimeSeriesChunk)
     requests: ClassVar[tuple[type[Message], ...]] = (TimeSeriesRequest, TimeSeriesAck)
+    #: acks of data: handled without expediting the stream
+    routine: ClassVar[tuple[type[Message] | int, ...]] = (TimeSeriesAck,)
 
     def sender(self, config: Mapping[str, Any] | None = None) -> TimeSeriesSender:
         return TimeSeriesSender(config)

@@ -1,0 +1,253 @@
+"""Declared routing: which modality a received message belongs to, by wire type id.
+
+A modality declares the messages it owns (:class:`~coex_core.modality.Modality`):
+
+* ``messages`` / ``requests``: built-in message types (each has a type id, spec section 3);
+* ``message_ids`` / ``request_ids``: third-party type ids (96..32767), carried as
+  :class:`~coex_core.messages.Opaque`;
+* ``routine``: the requests (types or ids) that do not expedite its stream (acks of data).
+
+A :class:`~coex_core.node.Node` routes each received message by its type id to the one modality
+that claimed it, and refuses, when a modality is added, a second modality that claims an id
+already claimed (a :class:`~coex_core.errors.ConfigError` naming both).
+
+A plugin written before ids were declared lists ``Opaque`` in ``messages`` (or ``requests``)
+and declares no ids: it receives the third-party messages that no modality claims (one such
+plugin per node and direction).
+
+A deployment may **remap** a modality's third-party ids on the wire (two plugins that chose
+the same id, or an id the register assigns differently): ``Node.add_sender(..., ids={200: 4200})``
+and the same on the other node. The plugin keeps using its own ids; the node translates
+(:class:`RemappedSender`, :class:`RemappedReceiver`).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable, Mapping
+from dataclasses import dataclass, field
+from typing import Any
+
+from ._wire._registry import SPECS_BY_CLASS, THIRD_PARTY_RANGES
+from .errors import ConfigError
+from .messages import Message, Opaque
+from .modality import Modality, ModalityReceiver, ModalitySender, Product
+
+__all__ = ["RemappedReceiver", "RemappedSender", "Routes", "declared_ids", "routine_ids", "type_id",
+           "wildcard"]
+
+_KINDS = {"messages": ("messages", "message_ids", "opaque_messages"),
+          "requests": ("requests", "request_ids", "opaque_requests")}
+
+
+def third_party(tid: int) -> bool:
+    return any(tid in r for r in THIRD_PARTY_RANGES)
+
+
+def type_id(m: Message) -> int | None:
+    """The wire type id of ``m`` (None: not a wire message)."""
+    if isinstance(m, Opaque):
+        return int(m.type_id)
+    spec = SPECS_BY_CLASS.get(type(m))
+    return None if spec is None else spec.type_id
+
+
+def _own_ids(cls: type[Modality], attr: str, what: str) -> tuple[int, ...]:
+    raw = getattr(cls, attr, ()) or ()
+    try:
+        ids = tuple(int(i) for i in raw)
+    except (TypeError, ValueError) as exc:
+        raise ConfigError(f"modality {_name(cls)}: {attr} must be type ids (integers): {exc}") from exc
+    for i in ids:
+        if not third_party(i):
+            raise ConfigError(f"modality {_name(cls)}: {what} id {i} is not a third-party type id "
+                              "(96..32767, spec section 3)")
+    return ids
+
+
+def declared_ids(cls: type[Modality], kind: str) -> frozenset[int]:
+    """Wire type ids a modality owns: ``kind`` ``"messages"`` (its sender emits them) or
+    ``"requests"`` (its receiver emits them): built-in types and third-party ids (also the
+    legacy ``opaque_messages`` / ``opaque_requests`` attributes)."""
+    types_attr, ids_attr, legacy = _KINDS[kind]
+    ids = {SPECS_BY_CLASS[t].type_id for t in getattr(cls, types_attr, ()) if t in SPECS_BY_CLASS}
+    ids.update(_own_ids(cls, ids_attr, kind[:-1]))
+    ids.update(_own_ids(cls, legacy, kind[:-1]))
+    return frozenset(ids)
+
+
+def wildcard(cls: type[Modality], kind: str) -> bool:
+    """A legacy modality that lists ``Opaque`` among its types and declares no third-party ids:
+    it takes the third-party messages of that kind that no modality claims."""
+    types_attr, ids_attr, legacy = _KINDS[kind]
+    return Opaque in tuple(getattr(cls, types_attr, ())) and not (
+        getattr(cls, ids_attr, ()) or getattr(cls, legacy, ()))
+
+
+def routine_ids(cls: type[Modality]) -> frozenset[int]:
+    """Requests of a modality that are routine (``routine``, and the legacy ``opaque_routine``)."""
+    out: set[int] = set()
+    for r in tuple(getattr(cls, "routine", ()) or ()):
+        if isinstance(r, type):
+            spec = SPECS_BY_CLASS.get(r)
+            if spec is None:
+                raise ConfigError(f"modality {_name(cls)}: routine type {r.__name__} is not a wire message")
+            out.add(spec.type_id)
+        else:
+            out.add(int(r))
+    out.update(_own_ids(cls, "opaque_routine", "routine"))
+    return frozenset(out)
+
+
+def _name(cls: type[Any]) -> str:
+    return str(getattr(cls, "name", cls.__name__))
+
+
+def check_remap(cls: type[Modality], ids: Mapping[int, int] | None) -> dict[int, int]:
+    """A deployment's remap of ``cls``'s third-party ids (own id -> wire id), checked."""
+    if not ids:
+        return {}
+    own = set(_own_ids(cls, "message_ids", "message")) | set(_own_ids(cls, "request_ids", "request")) \
+        | set(_own_ids(cls, "opaque_messages", "message")) | set(_own_ids(cls, "opaque_requests", "request"))
+    out: dict[int, int] = {}
+    for a, b in dict(ids).items():
+        try:
+            a, b = int(a), int(b)
+        except (TypeError, ValueError) as exc:
+            raise ConfigError(f"modality {_name(cls)}: id remap {a!r} -> {b!r} is not two integers") from exc
+        if a not in own:
+            raise ConfigError(f"modality {_name(cls)} declares no third-party id {a} to remap "
+                              f"(it declares {sorted(own) or 'none'})")
+        if not third_party(b):
+            raise ConfigError(f"modality {_name(cls)}: remapped id {b} is not a third-party type id (96..32767)")
+        out[a] = b
+    if len(set(out.values())) != len(out):
+        raise ConfigError(f"modality {_name(cls)}: two ids remapped to one wire id: {out}")
+    return out
+
+
+@dataclass
+class Routes:
+    """One node's routing table for one direction: wire type id -> owner, and the legacy
+    catch-all owner of unclaimed third-party ids."""
+
+    kind: str
+    owners: dict[int, Any] = field(default_factory=dict)
+    names: dict[int, str] = field(default_factory=dict)
+    catch_all: Any = None
+    catch_all_name: str | None = None
+
+    def claim(self, name: str, cls: type[Modality], ids: Iterable[int], slot: Any, catch_all: bool) -> None:
+        """Claim ``ids`` for ``slot`` (modality ``name``); :class:`ConfigError` naming both
+        modalities when one is claimed already. Nothing is claimed unless all are free."""
+        ids = sorted(set(ids))
+        for i in ids:
+            if i in self.owners:
+                raise ConfigError(
+                    f"modalities {self.names[i]!r} and {name!r} both claim {self.kind[:-1]} type id {i}"
+                    f"{' (a third-party id: remap one in the deployment configuration)' if third_party(i) else ''}")
+        if catch_all and self.catch_all is not None:
+            raise ConfigError(
+                f"modalities {self.catch_all_name!r} and {name!r} both take every third-party "
+                f"{self.kind[:-1]} (Opaque in {self.kind}, no {self.kind[:-1]}_ids declared): declare "
+                f"{self.kind[:-1]}_ids in each")
+        for i in ids:
+            self.owners[i] = slot
+            self.names[i] = name
+        if catch_all:
+            self.catch_all, self.catch_all_name = slot, name
+
+    def owner(self, m: Message) -> Any:
+        tid = type_id(m)
+        slot = self.owners.get(tid) if tid is not None else None
+        if slot is None and isinstance(m, Opaque):
+            return self.catch_all
+        return slot
+
+
+def _translate(m: Message, table: Mapping[int, int]) -> Message:
+    if isinstance(m, Opaque) and m.type_id in table:
+        return Opaque(table[m.type_id], m.body)
+    return m
+
+
+class RemappedSender(ModalitySender):
+    """A sender whose third-party ids a deployment remapped: it speaks its own ids, the wire
+    carries the remapped ones (``inner`` is the plugin's sender: its state is saved)."""
+
+    def __init__(self, inner: ModalitySender, to_wire: Mapping[int, int]) -> None:
+        self.inner = inner
+        self.to_wire = dict(to_wire)
+        self.from_wire = {b: a for a, b in self.to_wire.items()}
+
+    def _out(self, ms: Iterable[Message]) -> list[Message]:
+        return [_translate(m, self.to_wire) for m in ms]
+
+    def ingest(self, data: Any, now: float) -> None:
+        self.inner.ingest(data, now)
+
+    def fill(self, max_bytes: int, now: float) -> list[Message]:
+        return self._out(self.inner.fill(max_bytes, now))
+
+    def spare(self, max_bytes: int, now: float) -> list[Message]:
+        return self._out(self.inner.spare(max_bytes, now))
+
+    def handle(self, message: Message, now: float) -> list[Message]:
+        return self._out(self.inner.handle(_translate(message, self.from_wire), now) or ())
+
+    def pending_bytes(self) -> int:
+        return self.inner.pending_bytes()
+
+    def spare_bytes(self) -> int:
+        return self.inner.spare_bytes()
+
+    def ready_bytes(self, now: float) -> int:
+        return self.inner.ready_bytes(now)
+
+    def acked(self, message: Message, now: float) -> None:
+        self.inner.acked(_translate(message, self.from_wire), now)
+
+    def lost(self, message: Message, now: float) -> None:
+        self.inner.lost(_translate(message, self.from_wire), now)
+
+    def journal_form(self, data: Any) -> Any:
+        return self.inner.journal_form(data)
+
+    def __getattr__(self, name: str) -> Any:  # the plugin's own API (request methods ...)
+        if name == "inner":
+            raise AttributeError(name)
+        return getattr(self.inner, name)
+
+
+class RemappedReceiver(ModalityReceiver):
+    """The topside side of :class:`RemappedSender`."""
+
+    def __init__(self, inner: ModalityReceiver, to_wire: Mapping[int, int]) -> None:
+        self.inner = inner
+        self.to_wire = dict(to_wire)
+        self.from_wire = {b: a for a, b in self.to_wire.items()}
+
+    def receive(self, message: Message, now: float) -> list[Product]:
+        return self.inner.receive(_translate(message, self.from_wire), now)
+
+    def poll(self, now: float) -> list[Message]:
+        return [_translate(m, self.to_wire) for m in self.inner.poll(now)]
+
+    def products(self) -> list[Product]:
+        return self.inner.products()
+
+    def bind_command_ids(self, allocate: Any) -> None:
+        self.inner.bind_command_ids(allocate)
+
+    def next_command_id(self) -> int:
+        return self.inner.next_command_id()
+
+    def view(self, product: Product) -> Any:
+        return self.inner.view(product)
+
+    def supersedes(self, old: Message, new: Message) -> bool:
+        return self.inner.supersedes(_translate(old, self.from_wire), _translate(new, self.from_wire))
+
+    def __getattr__(self, name: str) -> Any:
+        if name == "inner":
+            raise AttributeError(name)
+        return getattr(self.inner, name)
