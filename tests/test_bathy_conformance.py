@@ -1,4 +1,5 @@
-"""The bathymetry plugin against the modality conformance suite."""
+"""The bathymetry modality passes the CoEx modality conformance suite, with the inputs the suite
+runs it on beside other plugins (coex_conformance.companions: one source of truth)."""
 
 from __future__ import annotations
 
@@ -8,40 +9,36 @@ from typing import Any
 import pytest
 
 from coex_conformance import ModalityFixtures, ModalityTests
+from coex_conformance.companions import Companion, companions
 from coex_core.modality import Modality, ModalityReceiver, ModalitySender
-from coex_plugins.bathymetry import BathymetryModality, BathymetryReceiver, BathymetrySender
 
-from ._bathy_data import small_survey
-
-LEVELS = 3
+COMPANION: Companion = next(c for c in companions() if c.name == "bathymetry")
 
 
 class BathymetryFixtures(ModalityFixtures):
     @pytest.fixture
     def modality(self) -> Modality:
-        return BathymetryModality()
+        return COMPANION.modality()
 
     @pytest.fixture
     def sample_inputs(self) -> Sequence[tuple[float, Any]]:
-        _, survey = small_survey(48.0, 64)
-        return list(survey.pings(batch=20))
+        return COMPANION.sample_inputs()
 
     @pytest.fixture
-    def sender_config(self) -> dict[str, Any]:
-        return {"levels": LEVELS}
+    def sender_config(self) -> Any:
+        return COMPANION.sender_config()
 
     @pytest.fixture
-    def receiver_config(self) -> dict[str, Any]:
-        return {"levels": LEVELS}
+    def receiver_config(self) -> Any:
+        return COMPANION.receiver_config()
+
+    @pytest.fixture
+    def start_requests(self) -> Callable[[ModalityReceiver, float], None] | None:
+        return COMPANION.start_requests
 
     @pytest.fixture
     def converged(self) -> Callable[[ModalitySender, ModalityReceiver], bool]:
-        def done(sender: ModalitySender, receiver: ModalityReceiver) -> bool:
-            assert isinstance(sender, BathymetrySender) and isinstance(receiver, BathymetryReceiver)
-            held = {level: receiver.holdings(level) for level in range(LEVELS)}
-            return all(held[lv].get((ix, iy)) == st for (lv, ix, iy), st in sender.inventory().items())
-
-        return done
+        return COMPANION.converged
 
 
 class TestBathymetryConformance(ModalityTests, BathymetryFixtures):

@@ -1,4 +1,5 @@
-"""The conformance suite for the imagery plugin (small generated images, so it runs fast)."""
+"""The imagery modality passes the CoEx modality conformance suite, with the inputs the suite
+runs it on beside other plugins (coex_conformance.companions: one source of truth)."""
 
 from __future__ import annotations
 
@@ -8,36 +9,36 @@ from typing import Any
 import pytest
 
 from coex_conformance import ModalityFixtures, ModalityTests
+from coex_conformance.companions import Companion, companions
 from coex_core.modality import Modality, ModalityReceiver, ModalitySender
-from coex_plugins.imagery import ImageInput, ImageryModality, ImageryReceiver, ImagerySender
-from coex_plugins.imagery.synth import seafloor
+
+COMPANION: Companion = next(c for c in companions() if c.name == "imagery")
 
 
 class ImageryFixtures(ModalityFixtures):
     @pytest.fixture
     def modality(self) -> Modality:
-        return ImageryModality()
+        return COMPANION.modality()
 
     @pytest.fixture
     def sample_inputs(self) -> Sequence[tuple[float, Any]]:
-        return [(10.0 * (i + 1), ImageInput(seafloor(48, 64, seed=i), x=1.5 * i, y=-2.0))
-                for i in range(3)]
+        return COMPANION.sample_inputs()
 
     @pytest.fixture
-    def sender_config(self) -> dict[str, Any]:
-        return {"layer_bytes": [30, 60, 120, 240, 480, 900], "default_goal": "layer:4", "rto": 12.0}
+    def sender_config(self) -> Any:
+        return COMPANION.sender_config()
+
+    @pytest.fixture
+    def receiver_config(self) -> Any:
+        return COMPANION.receiver_config()
+
+    @pytest.fixture
+    def start_requests(self) -> Callable[[ModalityReceiver, float], None] | None:
+        return COMPANION.start_requests
 
     @pytest.fixture
     def converged(self) -> Callable[[ModalitySender, ModalityReceiver], bool]:
-        def done(sender: ModalitySender, receiver: ModalityReceiver) -> bool:
-            assert isinstance(sender, ImagerySender) and isinstance(receiver, ImageryReceiver)
-            for image_id, tx in sender.images.items():
-                rx = receiver.images.get(image_id)
-                if rx is None or rx.contiguous() < tx.goal or rx.image is None:
-                    return False
-            return bool(sender.images)
-
-        return done
+        return COMPANION.converged
 
 
 class TestImageryConformance(ModalityTests, ImageryFixtures):

@@ -176,7 +176,7 @@ def test_a_deployment_remaps_third_party_ids_on_the_wire() -> None:
     """Two plugins that chose the same ids share a node once the deployment remaps one: the
     wire carries the remapped ids, each plugin still sees its own."""
     vehicle, topside, net = pair()
-    s1, r1 = attach(vehicle, topside, modality("ctd", 200, 201), 5)
+    _s1, r1 = attach(vehicle, topside, modality("ctd", 200, 201), 5)
     s2, r2 = attach(vehicle, topside, modality("adcp", 200, 201), 6, ids={200: 4200, 201: 4201})
     on_wire: set[int] = set()
     poll = vehicle.poll

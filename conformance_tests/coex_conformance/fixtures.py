@@ -67,6 +67,17 @@ class ModalityFixtures:
         """Optional: simulated seconds per round."""
         return 5.0
 
+    @pytest.fixture
+    def node_converge_seconds(self) -> float:
+        """Optional: simulated seconds every plugin in the two-node test may take to converge."""
+        return 4 * 3600.0
+
+    @pytest.fixture
+    def settle_seconds(self) -> float:
+        """Optional: simulated seconds after convergence before the sender must be quiet (acks
+        in flight, spare work finishing)."""
+        return 1800.0
+
 
 class TransportFixtures:
     """Fixtures a transport plugin provides to run :class:`~coex_conformance.TransportTests`."""

@@ -9,9 +9,10 @@ from typing import Any
 import pytest
 
 from coex_core import state, wire
-from coex_core.errors import DecodeError, RequestRejected
-from coex_core.messages import Message, VehicleMode, VehicleStatus
+from coex_core.errors import ConfigError, DecodeError, RequestRejected
+from coex_core.messages import Message, Opaque, VehicleMode, VehicleStatus
 from coex_core.modality import Modality, ModalityReceiver, ModalitySender
+from coex_core.routing import declared_ids, routine_ids, type_id, wildcard
 
 from .harness import LinkedPair, ingest_all, run_until
 
@@ -29,10 +30,30 @@ class ModalityTests:
         return LinkedPair(modality.sender(sender_config), modality.receiver(receiver_config), **kw)
 
     def test_declares_messages(self, modality: Modality) -> None:
-        assert modality.name and isinstance(modality.name, str)
-        assert modality.messages, "a modality declares the message types it sends"
-        for cls in (*modality.messages, *modality.requests):
-            assert issubclass(cls, Message)
+        """A modality has a name and declares what it sends: built-in types (``messages``) or
+        third-party ids (``message_ids``), and its requests; the ids are third-party ids, and
+        ``routine`` names only its own requests."""
+        cls = type(modality)
+        assert modality.name and isinstance(modality.name, str), "rule: a modality has a name (a string)"
+        try:
+            sends = declared_ids(cls, "messages")
+            asks = declared_ids(cls, "requests")
+            routine = routine_ids(cls)
+        except ConfigError as exc:
+            raise AssertionError(f"rule: declared ids are third-party type ids (96..32767); {exc}") from exc
+        assert sends or wildcard(cls, "messages"), (
+            "rule: a modality declares the messages it sends (messages or message_ids)")
+        for t in (*modality.messages, *modality.requests):
+            assert isinstance(t, type) and issubclass(t, Message), f"rule: messages and requests are Message types; {t!r}"
+        assert routine <= asks, (f"rule: routine names the modality's own requests; "
+                                 f"{sorted(routine - asks)} are not among its requests")
+
+    @staticmethod
+    def _sends_own(modality: Modality, m: Message) -> bool:
+        tid = type_id(m)
+        cls = type(modality)
+        return tid is not None and (tid in declared_ids(cls, "messages")
+                                    or (isinstance(m, Opaque) and wildcard(cls, "messages")))
 
     @pytest.mark.parametrize("budget", [0, 1, 5, 17, 32, 64, 100, 251])
     def test_fill_honours_budget(
@@ -45,7 +66,8 @@ class ModalityTests:
             sizes = [wire.encoded_size(m) for m in out]
             assert sum(sizes) <= budget, f"fill({budget}) returned {sum(sizes)} B"
             for m in out:
-                assert isinstance(m, modality.messages), f"{type(m).__name__} not in Modality.messages"
+                assert self._sends_own(modality, m), (
+                    f"rule: a sender sends only the messages its modality declares; {m!r:.120}")
             if not out and budget >= 64:
                 break
 
@@ -66,7 +88,8 @@ class ModalityTests:
             sizes = [wire.encoded_size(m) for m in out]
             assert sum(sizes) <= budget, f"spare({budget}) returned {sum(sizes)} B"
             for m in out:
-                assert isinstance(m, modality.messages), f"{type(m).__name__} not in Modality.messages"
+                assert self._sends_own(modality, m), (
+                    f"rule: a sender sends only the messages its modality declares; {m!r:.120}")
             for n in (sender.spare_bytes(), sender.ready_bytes(t)):
                 assert isinstance(n, int) and n >= 0
 
@@ -206,3 +229,152 @@ class ModalityTests:
                     wire.decode(v)
                 except DecodeError:
                     pass
+
+    # ------------------------------------------------------------------ in a real node
+    def _node_run(self, modality: Modality, sender_config: Any, receiver_config: Any,
+                  sample_inputs: Sequence[tuple[float, Any]], converged: Any, start_requests: Any,
+                  loss: float, node_converge_seconds: float) -> Any:
+        from .noderun import NodeRun
+
+        run = NodeRun(modality, sender_config, receiver_config, sample_inputs, converged, start_requests, loss)
+        run.run_until_converged(node_converge_seconds)
+        late = [p.name for p in run.parts if p.converged_at is None]
+        assert not late, (f"rule: every plugin converges in a node beside the others; not converged after "
+                          f"{node_converge_seconds:.0f} s at {loss:.0%} loss: {', '.join(late)}")
+        return run
+
+    def test_works_in_a_node_beside_every_other_plugin(
+        self, modality: Modality, sender_config: Any, receiver_config: Any,
+        sample_inputs: Sequence[tuple[float, Any]], converged: Any, start_requests: Any, loss: float,
+        node_converge_seconds: float,
+    ) -> None:
+        """The plugin under test, the sample third-party plugin and every built-in modality run
+        in two real nodes (vehicle senders, topside receivers) over a lossy simulated acoustic
+        link with a TDMA schedule: all of them converge, every message reaches the modality that
+        declared it and no other, none is left unrouted, and neither node rejects anything."""
+        run = self._node_run(modality, sender_config, receiver_config, sample_inputs, converged,
+                             start_requests, loss, node_converge_seconds)
+        misrouted = [m for p in run.parts for m in p.misrouted]
+        assert not misrouted, ("rule: a node hands a modality only the messages it declares "
+                               "(messages, requests, message_ids, request_ids); " + "; ".join(misrouted[:5]))
+        assert not run.unrouted, ("rule: every message a modality declares reaches it; " + "; ".join(run.unrouted[:5]))
+        for node in (run.vehicle, run.topside):
+            assert node.stats["rejected"] == 0, (
+                f"rule: nothing is rejected between conforming plugins; node {node.node_id} rejected "
+                f"{node.stats['rejected']} message(s)")
+
+    def test_sender_goes_quiet_once_everything_is_acknowledged(
+        self, modality: Modality, sender_config: Any, receiver_config: Any,
+        sample_inputs: Sequence[tuple[float, Any]], converged: Any, start_requests: Any, loss: float,
+        node_converge_seconds: float, settle_seconds: float,
+    ) -> None:
+        """After convergence and the acks that follow it (``settle_seconds``), the sender of the
+        plugin under test sends at most its declared ``keepalive_bytes_per_hour`` over the next
+        hour (spare traffic on): it never resends what topside holds."""
+        run = self._node_run(modality, sender_config, receiver_config, sample_inputs, converged,
+                             start_requests, loss, node_converge_seconds)
+        run.run(settle_seconds)
+        mark = run.now
+        run.run(3600.0)
+        part = run.part(modality.name)
+        sent = sum(n for t, n in part.sent if t >= mark)
+        allowed = int(getattr(type(modality), "keepalive_bytes_per_hour", 0) or 0)
+        assert sent <= allowed, (
+            f"rule: a converged sender goes quiet (at most keepalive_bytes_per_hour = {allowed} B); "
+            f"{modality.name} sent {sent} B in the hour after it converged and settled")
+
+    # ------------------------------------------------------------------ damaged input, encoding
+    def _own_messages(self, modality: Modality, sender_config: Any, receiver_config: Any,
+                      sample_inputs: Sequence[tuple[float, Any]], start_requests: Any) -> list[Message]:
+        """What the sender sends and the receiver asks for, over a short lossless exchange."""
+        pair = self._pair(modality, sender_config, receiver_config, loss=0.0, seed=2)
+        pair.now = ingest_all(pair.sender, sample_inputs)
+        if start_requests is not None:
+            start_requests(pair.receiver, pair.now)
+        for _ in range(60):
+            pair.step()
+        return pair.sent_messages + pair.requests
+
+    def test_receiver_raises_only_decode_error_on_damaged_messages(
+        self, modality: Modality, sender_config: Any, receiver_config: Any,
+        sample_inputs: Sequence[tuple[float, Any]], start_requests: Any,
+    ) -> None:
+        """Truncated and bit-flipped copies of the plugin's own messages: the wire layer rejects
+        them with DecodeError, or the receiver (and the sender, for requests) takes them and
+        raises nothing but DecodeError. A third-party body the modality's own codec
+        (``decode_body``) rejects must be rejected by the receiver too: a lenient receiver
+        would show damaged data as good."""
+        own = [m for m in self._own_messages(modality, sender_config, receiver_config, sample_inputs,
+                                             start_requests) if modality.handles(m)]
+        assert own, "the plugin produced no messages of its own from the sample inputs"
+        receiver = modality.receiver(receiver_config)
+        sender = modality.sender(sender_config)
+        now = ingest_all(sender, sample_inputs) + 10.0
+        codec = getattr(type(modality), "decode_body", None)
+        rng = random.Random(13)
+        tried = 0
+        for m in own[:40]:
+            data = wire.encode(m)
+            variants = [data[:k] for k in range(1, len(data))]
+            for _ in range(12):
+                b = bytearray(data)
+                b[rng.randrange(len(b))] ^= 1 << rng.randrange(8)
+                variants.append(bytes(b))
+            if isinstance(m, Opaque):  # the body alone damaged: the wire layer cannot see it
+                variants += [wire.encode(Opaque(m.type_id, m.body[:k])) for k in range(len(m.body))]
+            for v in variants:
+                try:
+                    d = wire.decode(v)
+                except DecodeError:
+                    continue
+                if not modality.handles(d):
+                    continue
+                tried += 1
+                is_request = type(d) in tuple(modality.requests) or (
+                    isinstance(d, Opaque) and d.type_id in getattr(type(modality), "request_ids", ()))
+                side = "sender" if is_request else "receiver"
+                rejected_by_codec = False
+                if isinstance(d, Opaque) and codec is not None:
+                    try:
+                        codec(d.type_id, d.body)
+                    except DecodeError:
+                        rejected_by_codec = True
+                try:
+                    if is_request:
+                        sender.handle(d, now)
+                    else:
+                        receiver.receive(d, now)
+                except (DecodeError, RequestRejected):
+                    continue
+                except Exception as exc:
+                    raise AssertionError(
+                        f"rule: a damaged message raises DecodeError only; the {side} raised "
+                        f"{type(exc).__name__}: {exc} on {d!r:.160}") from exc
+                assert not rejected_by_codec, (
+                    f"rule: the {side} rejects what the modality's decode_body rejects; it accepted "
+                    f"{d!r:.160}")
+        assert tried or own, "no damaged variant reached the plugin"
+
+    def test_bodies_re_encode_to_the_same_bytes(
+        self, modality: Modality, sender_config: Any, receiver_config: Any,
+        sample_inputs: Sequence[tuple[float, Any]], start_requests: Any,
+    ) -> None:
+        """Every message the plugin sends or asks for decodes and re-encodes to the same bytes;
+        a third-party body re-encodes the same through the modality's ``decode_body`` and
+        ``encode_body``, which a modality that declares third-party ids must provide."""
+        cls = type(modality)
+        own = self._own_messages(modality, sender_config, receiver_config, sample_inputs, start_requests)
+        assert own, "the plugin produced no messages from the sample inputs"
+        third = bool(getattr(cls, "message_ids", ()) or getattr(cls, "request_ids", ()))
+        dec, enc = getattr(cls, "decode_body", None), getattr(cls, "encode_body", None)
+        assert not third or (dec is not None and enc is not None), (
+            "rule: a modality that declares third-party ids gives their body codec "
+            "(classmethods decode_body(type_id, body) and encode_body(type_id, value))")
+        for m in own:
+            data = wire.encode(m)
+            again = wire.encode(wire.decode(data))
+            assert again == data, f"rule: a message re-encodes to the same bytes; {m!r:.160} did not"
+            if isinstance(m, Opaque) and dec is not None and enc is not None:
+                body = enc(m.type_id, dec(m.type_id, m.body))
+                assert body == m.body, (f"rule: a third-party body re-encodes to the same bytes; type id "
+                                        f"{m.type_id}: {m.body.hex()} became {bytes(body).hex()}")

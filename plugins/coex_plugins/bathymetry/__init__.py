@@ -56,6 +56,8 @@ class BathymetryModality(Modality):
     version: ClassVar[str] = "1"
     messages: ClassVar[tuple[type[Message], ...]] = (MapMetadata, Subgrid, MapRoiReply)
     requests: ClassVar[tuple[type[Message], ...]] = (MapRoiRequest,)
+    #: map metadata once a minute (23 B) while the dive goes on, after every subgrid is held
+    keepalive_bytes_per_hour: ClassVar[int] = 1500
 
     @staticmethod
     def decode_subgrid(sg: Subgrid) -> Any:
