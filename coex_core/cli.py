@@ -26,6 +26,15 @@ log = logging.getLogger("coex")
 
 
 def _cmd_plugins(args: argparse.Namespace) -> int:
+    if args.action == "check":
+        import importlib
+
+        # the suite is an application of the core, shipped beside it: imported only here
+        check = importlib.import_module("coex_conformance.check")
+        return int(check.main(args.names, args.pytest_args or ()))
+    if args.names:
+        print("coex plugins: plugin names go with 'check' (coex plugins check NAME ...)", file=sys.stderr)
+        return 2
     infos = available(check=True)
     if args.json:
         print(json.dumps([info.__dict__ for info in infos], indent=2))
@@ -68,7 +77,13 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("-v", "--verbose", action="count", default=0, help="more log output")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
 
-    p = sub.add_parser("plugins", help="list registered modalities and transports with their status")
+    p = sub.add_parser("plugins", help="list registered modalities and transports with their status; "
+                       "'coex plugins check NAME ...' runs the conformance suite on installed modalities, together")
+    p.add_argument("action", nargs="?", choices=["check"],
+                   help="check: run the conformance suite on the named modality plugins, together")
+    p.add_argument("names", nargs="*", metavar="NAME", help="modality plugins to check (entry-point names)")
+    p.add_argument("--pytest-args", nargs=argparse.REMAINDER,
+                   help="with check: further pytest arguments (e.g. -x -k node)")
     p.add_argument("--json", action="store_true", help="machine-readable output")
     p.set_defaults(func=_cmd_plugins)
 

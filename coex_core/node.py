@@ -56,9 +56,8 @@ from .messages import (
     VehicleStatus,
 )
 from .modality import Modality, ModalityReceiver, ModalitySender
+from .remap import RemappedReceiver, RemappedSender
 from .routing import (
-    RemappedReceiver,
-    RemappedSender,
     Routes,
     check_remap,
     declared_ids,

@@ -18,7 +18,7 @@ plugin per node and direction).
 A deployment may **remap** a modality's third-party ids on the wire (two plugins that chose
 the same id, or an id the register assigns differently): ``Node.add_sender(..., ids={200: 4200})``
 and the same on the other node. The plugin keeps using its own ids; the node translates
-(:class:`RemappedSender`, :class:`RemappedReceiver`).
+(:mod:`coex_core.remap`).
 """
 
 from __future__ import annotations
@@ -30,10 +30,11 @@ from typing import Any
 from ._wire._registry import SPECS_BY_CLASS, THIRD_PARTY_RANGES
 from .errors import ConfigError
 from .messages import Message, Opaque
-from .modality import Modality, ModalityReceiver, ModalitySender, Product
 
-__all__ = ["RemappedReceiver", "RemappedSender", "Routes", "declared_ids", "routine_ids", "type_id",
-           "wildcard"]
+#: a Modality subclass (this module is below coex_core.modality, which uses it)
+Modality = Any
+
+__all__ = ["Routes", "check_remap", "declared_ids", "routine_ids", "third_party", "type_id", "wildcard"]
 
 _KINDS = {"messages": ("messages", "message_ids", "opaque_messages"),
           "requests": ("requests", "request_ids", "opaque_requests")}
@@ -162,92 +163,3 @@ class Routes:
         if slot is None and isinstance(m, Opaque):
             return self.catch_all
         return slot
-
-
-def _translate(m: Message, table: Mapping[int, int]) -> Message:
-    if isinstance(m, Opaque) and m.type_id in table:
-        return Opaque(table[m.type_id], m.body)
-    return m
-
-
-class RemappedSender(ModalitySender):
-    """A sender whose third-party ids a deployment remapped: it speaks its own ids, the wire
-    carries the remapped ones (``inner`` is the plugin's sender: its state is saved)."""
-
-    def __init__(self, inner: ModalitySender, to_wire: Mapping[int, int]) -> None:
-        self.inner = inner
-        self.to_wire = dict(to_wire)
-        self.from_wire = {b: a for a, b in self.to_wire.items()}
-
-    def _out(self, ms: Iterable[Message]) -> list[Message]:
-        return [_translate(m, self.to_wire) for m in ms]
-
-    def ingest(self, data: Any, now: float) -> None:
-        self.inner.ingest(data, now)
-
-    def fill(self, max_bytes: int, now: float) -> list[Message]:
-        return self._out(self.inner.fill(max_bytes, now))
-
-    def spare(self, max_bytes: int, now: float) -> list[Message]:
-        return self._out(self.inner.spare(max_bytes, now))
-
-    def handle(self, message: Message, now: float) -> list[Message]:
-        return self._out(self.inner.handle(_translate(message, self.from_wire), now) or ())
-
-    def pending_bytes(self) -> int:
-        return self.inner.pending_bytes()
-
-    def spare_bytes(self) -> int:
-        return self.inner.spare_bytes()
-
-    def ready_bytes(self, now: float) -> int:
-        return self.inner.ready_bytes(now)
-
-    def acked(self, message: Message, now: float) -> None:
-        self.inner.acked(_translate(message, self.from_wire), now)
-
-    def lost(self, message: Message, now: float) -> None:
-        self.inner.lost(_translate(message, self.from_wire), now)
-
-    def journal_form(self, data: Any) -> Any:
-        return self.inner.journal_form(data)
-
-    def __getattr__(self, name: str) -> Any:  # the plugin's own API (request methods ...)
-        if name == "inner":
-            raise AttributeError(name)
-        return getattr(self.inner, name)
-
-
-class RemappedReceiver(ModalityReceiver):
-    """The topside side of :class:`RemappedSender`."""
-
-    def __init__(self, inner: ModalityReceiver, to_wire: Mapping[int, int]) -> None:
-        self.inner = inner
-        self.to_wire = dict(to_wire)
-        self.from_wire = {b: a for a, b in self.to_wire.items()}
-
-    def receive(self, message: Message, now: float) -> list[Product]:
-        return self.inner.receive(_translate(message, self.from_wire), now)
-
-    def poll(self, now: float) -> list[Message]:
-        return [_translate(m, self.to_wire) for m in self.inner.poll(now)]
-
-    def products(self) -> list[Product]:
-        return self.inner.products()
-
-    def bind_command_ids(self, allocate: Any) -> None:
-        self.inner.bind_command_ids(allocate)
-
-    def next_command_id(self) -> int:
-        return self.inner.next_command_id()
-
-    def view(self, product: Product) -> Any:
-        return self.inner.view(product)
-
-    def supersedes(self, old: Message, new: Message) -> bool:
-        return self.inner.supersedes(_translate(old, self.from_wire), _translate(new, self.from_wire))
-
-    def __getattr__(self, name: str) -> Any:
-        if name == "inner":
-            raise AttributeError(name)
-        return getattr(self.inner, name)

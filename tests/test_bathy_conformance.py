@@ -9,10 +9,12 @@ from typing import Any
 import pytest
 
 from coex_conformance import ModalityFixtures, ModalityTests
-from coex_conformance.companions import Companion, companions
+from coex_conformance.companions import Companion, registered
 from coex_core.modality import Modality, ModalityReceiver, ModalitySender
 
-COMPANION: Companion = next(c for c in companions() if c.name == "bathymetry")
+_C = registered("bathymetry")
+assert _C is not None, "the bathymetry plugin registers its conformance inputs (coex.conformance)"
+COMPANION: Companion = _C
 
 
 class BathymetryFixtures(ModalityFixtures):

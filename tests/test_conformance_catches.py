@@ -94,7 +94,7 @@ def test_a_sender_that_never_goes_quiet_fails_the_suite() -> None:
     m = variant("broken-chatty", sender=ChattySender)
     with pytest.raises(AssertionError, match=r"rule: a converged sender goes quiet .* broken-chatty sent \d+ B"):
         SUITE.test_sender_goes_quiet_once_everything_is_acknowledged(
-            m, None, None, sample_inputs(), sample_converged, None, 0.3, 4 * 3600.0, 1800.0)
+            m, None, None, sample_inputs(), sample_converged, None, 0.3, 4 * 3600.0, 1800.0, ())
 
 
 def test_a_plugin_claiming_another_plugins_ids_fails_the_suite() -> None:
@@ -116,7 +116,7 @@ def test_a_plugin_claiming_another_plugins_ids_fails_the_suite() -> None:
 
     with pytest.raises(ConfigError, match="'squatter' and 'conformance-sample' both claim"):
         SUITE.test_works_in_a_node_beside_every_other_plugin(
-            Squatter(), None, None, sample_inputs(), sample_converged, None, 0.3, 4 * 3600.0)
+            Squatter(), None, None, sample_inputs(), sample_converged, None, 0.3, 4 * 3600.0, ())
 
 
 def test_a_body_codec_that_does_not_round_trip_fails_the_suite() -> None:

@@ -102,3 +102,35 @@ def test_topside_stream_names() -> None:
         assert names == ["status", "map", "stream 9"]
     finally:
         app.close()
+
+
+def test_topside_remaps_a_modalitys_third_party_ids() -> None:
+    """``--remap-ids pings:100=4100,101=4101``: the console's node takes the pings plugin's
+    records under wire id 4100 and hands them to the plugin as its own id 100."""
+    import argparse
+
+    import pytest
+
+    from coex_core import wire
+    from coex_core.errors import ConfigError
+    from coex_core.messages import FrameHeader, Opaque
+    from coex_plugins.console.cli import build_topside, parse_remap
+
+    assert parse_remap("pings:100=4100,101=4101") == ("pings", {100: 4100, 101: 4101})
+    with pytest.raises(argparse.ArgumentTypeError):
+        parse_remap("pings:100")
+    with pytest.raises(ConfigError, match="not run here: ctd"):
+        build_topside("loopback://remap-bad", "127.0.0.1", 0, modalities=("pings",),
+                      remap_ids={"ctd": {130: 4130}})
+    app = build_topside("loopback://remap", "127.0.0.1", 0, modalities=("pings",),
+                        remap_ids={"pings": {100: 4100, 101: 4101}}, clock=lambda: 100.0)
+    try:
+        record = bytes.fromhex("0000" "00000064" "07d0")  # seq 0, t 100 s, 20.00 m
+        for tid, seq in ((4100, 1), (100, 2)):
+            app.node.receive(0, wire.pack([Opaque(tid, record)], 256, FrameHeader(src=2, dst=1, seq=seq)), 100.0)
+        receiver = app.node.receiver("pings")
+        assert receiver.inner.records == {0: (100, 2000)}  # the remapped id only
+        (ack,) = [m for m in receiver.poll(101.0) if isinstance(m, Opaque)]
+        assert ack.type_id == 4101
+    finally:
+        app.close()

@@ -218,3 +218,28 @@ def test_routine_requests_are_declared_not_guessed_from_class_names() -> None:
     node.add_sender(other, other().sender(), StreamConfig(6, "adcp"))
     node.receive(0, wire.pack([Opaque(301, b"go")], 256, FrameHeader(src=TOPSIDE, dst=VEHICLE, seq=2)), 26.0)
     assert node.manager.stream(6).expedite  # an operator request: answered in the next packet
+
+
+def test_the_register_of_third_party_ids_is_consistent_with_the_plugins_that_use_them() -> None:
+    """spec/third-party-ids.md: assigned ids are third-party ids outside the experimental block,
+    no id twice; the example plugins declare exactly the ids registered for them."""
+    import re
+    from pathlib import Path
+
+    from coex_conformance.sample import SampleModality
+    from coex_core.routing import declared_ids
+    from coex_sample_plugin import PingModality
+
+    text = (Path(__file__).resolve().parents[1] / "spec" / "third-party-ids.md").read_text()
+    assigned = text.split("## Assigned ids", 1)[1].split("## Experimental", 1)[0]
+    rows = [(int(m[1]), m[2]) for m in re.finditer(r"^\| (\d+) \| ([\w-]+) \|", assigned, re.M)]
+    ids = [i for i, _ in rows]
+    assert rows and len(ids) == len(set(ids))
+    assert all((96 <= i < 30000) for i in ids)
+    by_plugin: dict[str, set[int]] = {}
+    for i, name in rows:
+        by_plugin.setdefault(name, set()).add(i)
+    assert by_plugin["pings"] == declared_ids(PingModality, "messages") | declared_ids(PingModality, "requests")
+    assert by_plugin["ctd"] == {130, 131}  # docs/plugins.md (checked by tests/test_plugin_guide.py)
+    sample = declared_ids(SampleModality, "messages") | declared_ids(SampleModality, "requests")
+    assert all(30000 <= i <= 32767 for i in sample) and "32700, 32701" in text

@@ -73,6 +73,13 @@ class ModalityFixtures:
         return 4 * 3600.0
 
     @pytest.fixture
+    def other_plugins(self) -> Sequence[Any]:
+        """Optional: further plugins (:class:`~coex_conformance.companions.Companion`) to run
+        beside the plugin under test in the two-node tests, on top of the sample third-party
+        plugin and the built-in modalities (``coex plugins check A B`` passes B here for A)."""
+        return ()
+
+    @pytest.fixture
     def settle_seconds(self) -> float:
         """Optional: simulated seconds after convergence before the sender must be quiet (acks
         in flight, spare work finishing)."""

@@ -100,6 +100,9 @@ class ModalityTests:
         lost (``lost``); both take any message the sender produced, in any order, more than
         once, without raising, and the sender keeps working."""
         sender = modality.sender(sender_config)
+        for hook in ("acked", "lost", "spare", "spare_bytes", "ready_bytes", "pending_bytes"):
+            assert callable(getattr(sender, hook, None)), (
+                f"rule: the channel calls the sender's {hook}(); an attribute of that name hides it")
         now = ingest_all(sender, sample_inputs)
         sent: list[Message] = []
         for i in range(20):
@@ -233,10 +236,11 @@ class ModalityTests:
     # ------------------------------------------------------------------ in a real node
     def _node_run(self, modality: Modality, sender_config: Any, receiver_config: Any,
                   sample_inputs: Sequence[tuple[float, Any]], converged: Any, start_requests: Any,
-                  loss: float, node_converge_seconds: float) -> Any:
+                  loss: float, node_converge_seconds: float, other_plugins: Sequence[Any] = ()) -> Any:
         from .noderun import NodeRun
 
-        run = NodeRun(modality, sender_config, receiver_config, sample_inputs, converged, start_requests, loss)
+        run = NodeRun(modality, sender_config, receiver_config, sample_inputs, converged, start_requests, loss,
+                      others=other_plugins)
         run.run_until_converged(node_converge_seconds)
         late = [p.name for p in run.parts if p.converged_at is None]
         assert not late, (f"rule: every plugin converges in a node beside the others; not converged after "
@@ -246,14 +250,14 @@ class ModalityTests:
     def test_works_in_a_node_beside_every_other_plugin(
         self, modality: Modality, sender_config: Any, receiver_config: Any,
         sample_inputs: Sequence[tuple[float, Any]], converged: Any, start_requests: Any, loss: float,
-        node_converge_seconds: float,
+        node_converge_seconds: float, other_plugins: Sequence[Any],
     ) -> None:
         """The plugin under test, the sample third-party plugin and every built-in modality run
         in two real nodes (vehicle senders, topside receivers) over a lossy simulated acoustic
         link with a TDMA schedule: all of them converge, every message reaches the modality that
         declared it and no other, none is left unrouted, and neither node rejects anything."""
         run = self._node_run(modality, sender_config, receiver_config, sample_inputs, converged,
-                             start_requests, loss, node_converge_seconds)
+                             start_requests, loss, node_converge_seconds, other_plugins)
         misrouted = [m for p in run.parts for m in p.misrouted]
         assert not misrouted, ("rule: a node hands a modality only the messages it declares "
                                "(messages, requests, message_ids, request_ids); " + "; ".join(misrouted[:5]))
@@ -266,13 +270,13 @@ class ModalityTests:
     def test_sender_goes_quiet_once_everything_is_acknowledged(
         self, modality: Modality, sender_config: Any, receiver_config: Any,
         sample_inputs: Sequence[tuple[float, Any]], converged: Any, start_requests: Any, loss: float,
-        node_converge_seconds: float, settle_seconds: float,
+        node_converge_seconds: float, settle_seconds: float, other_plugins: Sequence[Any],
     ) -> None:
         """After convergence and the acks that follow it (``settle_seconds``), the sender of the
         plugin under test sends at most its declared ``keepalive_bytes_per_hour`` over the next
         hour (spare traffic on): it never resends what topside holds."""
         run = self._node_run(modality, sender_config, receiver_config, sample_inputs, converged,
-                             start_requests, loss, node_converge_seconds)
+                             start_requests, loss, node_converge_seconds, other_plugins)
         run.run(settle_seconds)
         mark = run.now
         run.run(3600.0)

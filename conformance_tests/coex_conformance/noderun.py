@@ -8,7 +8,7 @@ declaration (``Modality.handles``): anything else is a misrouting.
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -47,13 +47,15 @@ class NodeRun:
     def __init__(self, modality: Modality, sender_config: Any, receiver_config: Any,
                  sample_inputs: Any, converged: Callable[[ModalitySender, ModalityReceiver], bool],
                  start_requests: Callable[[ModalityReceiver, float], None] | None, loss: float,
-                 seed: int = 5) -> None:
+                 seed: int = 5, others: Sequence[Companion] = ()) -> None:
         under_test = Companion(modality.name, lambda: modality, lambda: list(sample_inputs), converged,
                                lambda: sender_config, lambda: receiver_config, start_requests)
         self.under_test = modality.name
         # a companion the plugin under test is (or derives from) is replaced by it
-        chosen = [under_test] + [c for c in companions()
+        chosen = [under_test] + [c for c in (*others, *companions())
                                  if c.name != modality.name and not isinstance(modality, type(c.modality()))]
+        names = [c.name for c in chosen]
+        chosen = [c for i, c in enumerate(chosen) if c.name not in names[:i]]  # each plugin once
         schedule = Schedule.simple([TOPSIDE, VEHICLE, VEHICLE, TOPSIDE, VEHICLE, VEHICLE], 20.0, 2.0)
         self.vehicle = Node(ChannelManager(VEHICLE, [LinkConfig(0, schedule, dst=TOPSIDE)]))
         self.topside = Node(ChannelManager(TOPSIDE, [LinkConfig(0, schedule, dst=VEHICLE)]))

@@ -16,6 +16,7 @@ from coex.wire import encoded_size
 
 from coex import (
     ConfigError,
+    DecodeError,
     Message,
     Modality,
     ModalityReceiver,
@@ -31,6 +32,21 @@ RECORD = struct.Struct(">HIH")  # seq, time (s), range (cm)
 MAX_RECORDS = 20
 
 __all__ = ["PingModality", "PING_TYPE", "ACK_TYPE"]
+
+
+def decode_pings(body: bytes) -> list[tuple[int, int, int]]:
+    """The records of a ping body; :class:`DecodeError` unless it is whole records (1..20)."""
+    if not body or len(body) % RECORD.size or len(body) > MAX_RECORDS * RECORD.size:
+        raise DecodeError(f"a ping body is 1..{MAX_RECORDS} records of {RECORD.size} B, not {len(body)} B")
+    return [RECORD.unpack_from(body, i) for i in range(0, len(body), RECORD.size)]
+
+
+def conformance() -> Any:
+    """Entry point ``coex.conformance: pings``: what ``coex plugins check pings`` runs it on."""
+    from coex_conformance.companions import Companion
+
+    return Companion("pings", PingModality, lambda: [(10.0 + i, (10.0 + i, 20.0 + i / 10)) for i in range(60)],
+                     lambda sender, receiver: len(receiver.records) == len(sender.records))
 
 
 @persistent("pings.Sender")  # saved with the node by a store (stable name, not module path)
@@ -92,10 +108,8 @@ class PingReceiver(ModalityReceiver):
     def receive(self, message: Message, now: float) -> list[Product]:
         if not (isinstance(message, Opaque) and message.type_id == PING_TYPE):
             return []
-        body = message.body
         changed = False
-        for i in range(0, len(body) - len(body) % RECORD.size, RECORD.size):
-            seq, t, rng = RECORD.unpack_from(body, i)
+        for seq, t, rng in decode_pings(message.body):  # DecodeError on a damaged body
             if seq not in self.records:
                 self.records[seq] = (t, rng)
                 changed = True
@@ -123,9 +137,27 @@ class PingReceiver(ModalityReceiver):
 
 class PingModality(Modality):
     name = "pings"
-    version = "0.2.0"
-    messages = (Opaque,)
-    requests = (Opaque,)
+    version = "0.3.0"
+    # the third-party ids it owns (spec/third-party-ids.md): a node routes these, and only
+    # these, to it; the ack is routine (it does not hurry the sender's stream)
+    message_ids = (PING_TYPE,)
+    request_ids = (ACK_TYPE,)
+    routine = (ACK_TYPE,)
+
+    @classmethod
+    def decode_body(cls, type_id: int, body: bytes) -> Any:
+        """The body codec the conformance suite checks: strict, canonical."""
+        if type_id == PING_TYPE:
+            return decode_pings(body)
+        if len(body) != 2:
+            raise DecodeError(f"a ping ack is 2 bytes, not {len(body)}")
+        return struct.unpack(">H", body)[0]
+
+    @classmethod
+    def encode_body(cls, type_id: int, value: Any) -> bytes:
+        if type_id == PING_TYPE:
+            return b"".join(RECORD.pack(*r) for r in value)
+        return struct.pack(">H", value)
 
     def sender(self, config: Mapping[str, Any] | None = None) -> PingSender:
         return PingSender(**dict(config or {}))

@@ -1,11 +1,14 @@
-"""How a plugin author runs the CoEx conformance suite: fixtures plus a two-line subclass."""
+"""How a plugin author runs the CoEx conformance suite: fixtures plus a two-line subclass. The
+inputs are the ones the plugin registers for `coex plugins check pings` (one source of truth)."""
 
 from __future__ import annotations
 
 import pytest
 
 from coex_conformance import ModalityFixtures, ModalityTests
-from coex_sample_plugin import PingModality
+from coex_sample_plugin import PingModality, conformance
+
+INPUTS = conformance()
 
 
 class PingFixtures(ModalityFixtures):
@@ -15,11 +18,11 @@ class PingFixtures(ModalityFixtures):
 
     @pytest.fixture
     def sample_inputs(self):
-        return [(10.0 + i, (10.0 + i, 20.0 + i / 10)) for i in range(60)]
+        return INPUTS.sample_inputs()
 
     @pytest.fixture
     def converged(self):
-        return lambda sender, receiver: len(receiver.records) == len(sender.records)
+        return INPUTS.converged
 
 
 class TestPingModality(ModalityTests, PingFixtures):

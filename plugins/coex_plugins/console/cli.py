@@ -47,6 +47,21 @@ def _names(text: str) -> dict[int, str]:
     return out
 
 
+def parse_remap(text: str) -> tuple[str, dict[int, int]]:
+    """``NAME:OWN=WIRE[,OWN=WIRE...]`` (``--remap-ids``): a modality's third-party ids as the
+    deployment carries them on the wire."""
+    name, sep, pairs = text.partition(":")
+    out: dict[int, int] = {}
+    for part in filter(None, (x.strip() for x in pairs.split(","))):
+        a, eq, b = part.partition("=")
+        if not eq or not a.strip().isdigit() or not b.strip().isdigit():
+            raise argparse.ArgumentTypeError(f"expected OWN=WIRE (two type ids), got {part!r}")
+        out[int(a)] = int(b)
+    if not sep or not name.strip() or not out:
+        raise argparse.ArgumentTypeError(f"expected NAME:OWN=WIRE[,OWN=WIRE...], got {text!r}")
+    return name.strip(), out
+
+
 def register(subparsers: Any) -> None:
     p = subparsers.add_parser(
         "topside", help="run a topside node and serve the web console",
@@ -73,6 +88,10 @@ def register(subparsers: Any) -> None:
                         "3=map,4=images,5=series")
     p.add_argument("--modalities", default="bathymetry,imagery,timeseries",
                    help="comma-separated receivers to run (default: all built-in)")
+    p.add_argument("--remap-ids", type=parse_remap, action="append", default=[],
+                   metavar="NAME:OWN=WIRE,...",
+                   help="carry modality NAME's third-party type ids OWN as WIRE on the wire (the "
+                        "vehicle remaps them alike; spec/third-party-ids.md); repeat per modality")
     p.add_argument("--command-key-file", metavar="PATH",
                    help="shared command key (hex, or at least 16 raw bytes): every command is "
                         "signed (spec section 10); the vehicle must have the same key")
@@ -210,7 +229,8 @@ def build_topside(transport_uri: str | Sequence[str], host: str = "127.0.0.1", p
                   clock: Callable[[], float] = time.time,
                   command_key: bytes | None = None,
                   store: str | Path | None = None,
-                  snapshot_interval: float = 30.0) -> TopsideApp:
+                  snapshot_interval: float = 30.0,
+                  remap_ids: dict[str, dict[int, int]] | None = None) -> TopsideApp:
     """Open the transports (several URIs: several modems, link ids ``link``, ``link + 1`` ...),
     build the topside node and its receivers, serve the console (not yet driving the node: call
     ``start()`` or ``run()``). With ``command_key`` every command is authenticated (spec
@@ -220,7 +240,10 @@ def build_topside(transport_uri: str | Sequence[str], host: str = "127.0.0.1", p
     frame is journaled before the node sees it and the node with its console state (map, images,
     series, requests, goals, schedules, command log) is saved before each transmission, after
     each operator command and at most every ``snapshot_interval`` seconds otherwise; when the
-    file already holds a topside, that one is resumed (its settings win over the arguments)."""
+    file already holds a topside, that one is resumed (its settings win over the arguments).
+
+    ``remap_ids`` maps a modality name to its third-party ids as carried on the wire
+    (``{"ctd": {130: 4130}}``; spec/third-party-ids.md)."""
     from coex_core.channel.manager import ChannelManager, LinkConfig
     from coex_core.channel.schedule import Schedule
     from coex_core.node import Node
@@ -233,6 +256,9 @@ def build_topside(transport_uri: str | Sequence[str], host: str = "127.0.0.1", p
     if schedule is None:
         schedule = Schedule.simple([node_id if o == 1 else vehicle_id for o in NUI_OWNERS],
                                    20.0, 2.0)
+    unknown = sorted(set(remap_ids or {}) - set(modalities))
+    if unknown:
+        raise ConfigError(f"--remap-ids names modalities not run here: {', '.join(unknown)}")
     uris = [transport_uri] if isinstance(transport_uri, str) else list(transport_uri)
     if not uris:
         raise ConfigError("give at least one transport URI")
@@ -258,7 +284,7 @@ def build_topside(transport_uri: str | Sequence[str], host: str = "127.0.0.1", p
                     log.warning("modality %s not available: %s", name, exc)
                     missing.append(f"modality {name} not available: {exc}")
                     continue
-                node.add_receiver(cls, receiver)
+                node.add_receiver(cls, receiver, ids=(remap_ids or {}).get(name))
             return node
 
         hubs: list[Any] = []
@@ -337,7 +363,8 @@ def run(args: argparse.Namespace) -> int:
             args.transport, host, port, node_id=args.node_id, vehicle_id=args.vehicle_id,
             link=args.link, rate=args.rate, schedule=_schedule(args),
             modalities=tuple(m for m in args.modalities.split(",") if m),
-            stream_names=args.stream_names, command_key=key, store=args.store)
+            stream_names=args.stream_names, command_key=key, store=args.store,
+            remap_ids=dict(args.remap_ids))
     except (CoexError, OSError) as exc:
         print(f"coex topside: {exc}", file=sys.stderr)
         return 2
