@@ -52,6 +52,21 @@ def _cmd_plugins(args: argparse.Namespace) -> int:
 def _cmd_spec(args: argparse.Namespace) -> int:
     from ._wire import spec as specgen
 
+    if args.action == "decode":
+        return specgen.serve_decoder(sys.stdin, sys.stdout)
+    if args.action == "vectors":
+        if not args.check_command:
+            print("coex spec vectors: give --check-command CMD", file=sys.stderr)
+            return 2
+        n, problems = specgen.check_command(args.check_command, args.vectors)
+        for p in problems[:50]:
+            print(p)
+        if len(problems) > 50:
+            print(f"... and {len(problems) - 50} more")
+        print(f"{n} vectors: {n - len(problems) if problems else n} agree, {len(problems)} difference(s) "
+              f"({args.check_command})")
+        return 1 if problems else 0
+
     if args.write_vectors:
         specgen.write_vectors(args.write_vectors)
     if args.check:
@@ -87,7 +102,15 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--json", action="store_true", help="machine-readable output")
     p.set_defaults(func=_cmd_plugins)
 
-    p = sub.add_parser("spec", help="print or regenerate the wire-format field tables")
+    p = sub.add_parser("spec", help="print or regenerate the wire-format field tables; check another "
+                       "implementation against the vectors ('coex spec vectors --check-command CMD')")
+    p.add_argument("action", nargs="?", choices=["vectors", "decode"],
+                   help="vectors: feed every vector to --check-command and report differences; "
+                        "decode: the reference decoder of that protocol (lines on stdin, JSON out)")
+    p.add_argument("--check-command", metavar="CMD",
+                   help="with vectors: another implementation's decoder: reads 'message HEX' or "
+                        "'frame HEX' lines, answers one JSON object per line (spec section 13)")
+    p.add_argument("--vectors", default="spec/vectors", metavar="DIR", help="the vectors (default spec/vectors)")
     p.add_argument("--document", default="spec/wire-format.md", help="the spec document")
     p.add_argument("--write", action="store_true", help="rewrite the generated tables in the document")
     p.add_argument("--check", action="store_true", help="exit 1 if the document's tables are stale")

@@ -70,7 +70,10 @@ def _decimals(res: float) -> int:
 
 
 class FieldSpec:
-    """What the spec generator needs to know about one field."""
+    """What the spec generator needs to know about one field: its width in bits, range,
+    resolution, unit, how its code maps to a value (``coding``: "unsigned", "offset from lo",
+    "two's complement", "IEEE 754 binary32", "bytes" ...), a note, and when it is present
+    (``presence``, filled in by the generator)."""
 
     def __init__(
         self,
@@ -79,22 +82,54 @@ class FieldSpec:
         resolution: str = "",
         unit: str = "",
         note: str = "",
+        coding: str = "unsigned",
+        presence: str = "always",
     ) -> None:
         self.bits = bits
         self.range = range_
         self.resolution = resolution
         self.unit = unit
         self.note = note
+        self.coding = coding
+        self.presence = presence
+
+    def but(self, **changes: Any) -> FieldSpec:
+        out = FieldSpec(self.bits, self.range, self.resolution, self.unit, self.note, self.coding, self.presence)
+        for k, v in changes.items():
+            setattr(out, k, v)
+        return out
 
 
 def spec_of(con: Any) -> FieldSpec | None:
-    """The :class:`FieldSpec` attached to a construct, looking through renames."""
+    """The :class:`FieldSpec` attached to a construct, looking through renames and constants
+    (a constant's row shows its width and its one value)."""
+    const = None
     while con is not None:
         spec = getattr(con, "coex_spec", None)
         if spec is not None:
-            return spec  # type: ignore[no-any-return]
+            return spec.but(range=str(const.value), note="constant") if const is not None else spec  # type: ignore[no-any-return]
+        if isinstance(con, cs.Const):
+            const = con
+        if isinstance(con, UInt) and not callable(con.width):
+            return FieldSpec(str(con.width), f"0..{(1 << con.width) - 1}" if const is None else str(const.value),
+                             note="constant" if const is not None else "")
         con = getattr(con, "subcon", None)
     return None
+
+
+def When(condition: str, predicate: Callable[[Any], bool], subcon: cs.Construct) -> cs.Construct:
+    """A field present only when ``predicate(context)`` holds; ``condition`` says so in the
+    spec's words (e.g. "`encoding` = PLANE")."""
+    c = cs.If(predicate, subcon)
+    c.coex_presence = condition
+    return c
+
+
+def Entries(count: str, length: Callable[[Any], int], subcon: cs.Construct) -> cs.Construct:
+    """An array whose length follows from earlier fields; ``count`` says how, in the spec's words."""
+    c = cs.Array(length, subcon)
+    c.coex_count = count
+    return c
 
 
 class UInt(cs.Construct):  # type: ignore[misc]
@@ -155,7 +190,8 @@ class SInt(cs.Adapter):  # type: ignore[misc]
         super().__init__(UInt(width))
         self.bits = width
         self.coex_spec = FieldSpec(
-            str(width), f"{-(1 << (width - 1))}..{(1 << (width - 1)) - 1}", "1", unit, "two's complement"
+            str(width), f"{-(1 << (width - 1))}..{(1 << (width - 1)) - 1}", "1", unit, "",
+            coding="two's complement"
         )
 
     def _decode(self, obj: int, context: Any, path: str) -> int:
@@ -198,7 +234,8 @@ class Bounded(cs.Adapter):  # type: ignore[misc]
             note.append("optional: code 0 = absent")
         if saturating:
             note.append("saturating")
-        self.coex_spec = FieldSpec(str(self.bits), f"{_fmt(lo)}..{_fmt(hi)}", _fmt(res), unit, "; ".join(note))
+        self.coex_spec = FieldSpec(str(self.bits), f"{_fmt(lo)}..{_fmt(hi)}", _fmt(res), unit, "; ".join(note),
+                                   coding="unsigned" if lo == 0 and res == 1 and not optional else "bounded")
 
     def _decode(self, obj: int, context: Any, path: str) -> Any:
         if self.optional:
@@ -246,7 +283,7 @@ class Bool(cs.Adapter):  # type: ignore[misc]
 
     def __init__(self) -> None:
         super().__init__(UInt(1))
-        self.coex_spec = FieldSpec("1", "0..1", note="boolean")
+        self.coex_spec = FieldSpec("1", "0..1", coding="boolean")
 
     def _decode(self, obj: int, context: Any, path: str) -> bool:
         return bool(obj)
@@ -262,7 +299,7 @@ class OptBool(cs.Adapter):  # type: ignore[misc]
 
     def __init__(self) -> None:
         super().__init__(UInt(2))
-        self.coex_spec = FieldSpec("2", "0..2", note="optional boolean: 0 absent, 1 false, 2 true")
+        self.coex_spec = FieldSpec("2", "0..2", note="0 absent, 1 false, 2 true", coding="optional boolean")
 
     def _decode(self, obj: int, context: Any, path: str) -> bool | None:
         if obj == 3:
@@ -286,7 +323,7 @@ class Enum(cs.Adapter):  # type: ignore[misc]
         self.enum_cls = enum_cls
         super().__init__(UInt(self.bits))
         members = ", ".join(f"{int(m)} {m.name}" for m in enum_cls)
-        self.coex_spec = FieldSpec(str(self.bits), f"0..{top}", note=f"enum: {members}")
+        self.coex_spec = FieldSpec(str(self.bits), f"0..{top}", note=f"enum: {members}", coding="enum")
 
     def _decode(self, obj: int, context: Any, path: str) -> enum.IntEnum:
         try:
@@ -309,7 +346,8 @@ class Choice(cs.Adapter):  # type: ignore[misc]
         self.bits = max(1, (len(self.table) - 1).bit_length())
         super().__init__(UInt(self.bits))
         values = ", ".join(f"{i} = {_fmt(v)}" for i, v in enumerate(self.table))
-        self.coex_spec = FieldSpec(str(self.bits), f"0..{len(self.table) - 1}", "", unit, f"table: {values}")
+        self.coex_spec = FieldSpec(str(self.bits), f"0..{len(self.table) - 1}", "", unit, f"table: {values}",
+                                   coding="table index")
 
     def _decode(self, obj: int, context: Any, path: str) -> float:
         if obj >= len(self.table):
@@ -345,6 +383,29 @@ class Align8(cs.Construct):  # type: ignore[misc]
         raise cs.SizeofError("alignment", path=path)
 
 
+class Rule(cs.Construct):  # type: ignore[misc]
+    """A rule on the fields before it (no bits): ``predicate(context)`` must hold when parsing
+    and building; otherwise :class:`OutOfRange` with ``message`` (the spec's reason words)."""
+
+    def __init__(self, predicate: Callable[[Any], bool], message: str) -> None:
+        super().__init__()
+        self.predicate, self.message = predicate, message
+        self.flagbuildnone = True
+
+    def _check(self, context: Any, path: str) -> None:
+        if not self.predicate(context):
+            raise OutOfRange(self.message, path=path)
+
+    def _parse(self, stream: Any, context: Any, path: str) -> None:
+        self._check(context, path)
+
+    def _build(self, obj: Any, stream: Any, context: Any, path: str) -> None:
+        self._check(context, path)
+
+    def _sizeof(self, context: Any, path: str) -> int:
+        return 0
+
+
 class _MaxLen(cs.Adapter):  # type: ignore[misc]
     def __init__(self, subcon: cs.Construct, max_len: int) -> None:
         super().__init__(subcon)
@@ -362,14 +423,16 @@ class _MaxLen(cs.Adapter):  # type: ignore[misc]
 
 
 def RawBytes(max_len: int | None = None, fixed: int | None = None) -> cs.Construct:
-    """Byte-aligned raw bytes: a fixed count, or the rest of a length-prefixed body (at most ``max_len``)."""
+    """Raw bytes, 8 bits each, continuing the bit stream (not aligned): a fixed count, or the rest
+    of a length-prefixed body (at most ``max_len``)."""
     if fixed is not None:
         c = cs.Bytewise(cs.Bytes(fixed))
-        c.coex_spec = FieldSpec(str(8 * fixed), f"{fixed} bytes", unit="bytes")
+        c.coex_spec = FieldSpec(str(8 * fixed), f"{fixed} bytes", unit="bytes", coding="bytes")
         return c
     assert max_len is not None
     c = cs.Bytewise(_MaxLen(cs.GreedyBytes, max_len))
-    c.coex_spec = FieldSpec("8 x n", f"0..{max_len} bytes", unit="bytes", note="rest of the body")
+    c.coex_spec = FieldSpec("8 x n", f"0..{max_len} bytes", unit="bytes", note="rest of the body",
+                            coding="bytes")
     return c
 
 
@@ -393,9 +456,10 @@ class _Text(cs.Adapter):  # type: ignore[misc]
 
 
 def Text(max_len: int) -> cs.Construct:
-    """UTF-8 text, byte-aligned, with a one-byte length (at most ``max_len`` bytes)."""
+    """UTF-8 text with a one-byte length (at most ``max_len`` bytes), continuing the bit stream."""
     c = _Text(max_len)
-    c.coex_spec = FieldSpec("8 + 8 x n", f"0..{max_len} bytes", note="UTF-8, one-byte length first")
+    c.coex_spec = FieldSpec("8 + 8 x n", f"0..{max_len} bytes", note="one-byte length first",
+                            coding="UTF-8")
     return c
 
 
@@ -415,16 +479,18 @@ class _Float32(cs.Adapter):  # type: ignore[misc]
 
 
 def Float32(unit: str = "") -> cs.Construct:
-    """IEEE 754 binary32, big-endian, byte-aligned; NaN and infinities are invalid."""
+    """IEEE 754 binary32, big-endian, continuing the bit stream; NaN and infinities are invalid."""
     c = _Float32()
-    c.coex_spec = FieldSpec("32", "finite", unit=unit, note="IEEE 754 binary32, big-endian")
+    c.coex_spec = FieldSpec("32", "finite", unit=unit, coding="IEEE 754 binary32, big-endian")
     return c
 
 
 def Count(lo: int, hi: int, of: str) -> cs.Construct:
     """A derived element count: built from ``len(<of>)``, checked against ``[lo, hi]``."""
     c = cs.Rebuild(Bounded(lo, hi), lambda ctx: len(ctx[of]))
-    c.coex_spec = FieldSpec(str(nbits(lo, hi)), f"{lo}..{hi}", note=f"number of entries in `{of}` (derived)")
+    c.coex_spec = FieldSpec(str(nbits(lo, hi)), f"{lo}..{hi}", "1",
+                            note=f"number of entries in `{of}`" + (f"; the code is the number minus {lo}" if lo else ""),
+                            coding="bounded" if lo else "unsigned", presence="always (derived)")
     c.coex_derived = True
     return c
 

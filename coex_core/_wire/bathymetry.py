@@ -7,7 +7,21 @@ from typing import Any
 import construct as cs
 
 from ..messages import MapMetadata, MapRoiReply, MapRoiRequest, Subgrid, SubgridEncoding
-from ._primitives import Body, Bool, Bounded, Choice, Enum, FieldSpec, SInt, Stamp, UInt
+from ._primitives import (
+    Bits,
+    Body,
+    Bool,
+    Bounded,
+    Choice,
+    Entries,
+    Enum,
+    FieldSpec,
+    Rule,
+    SInt,
+    Stamp,
+    UInt,
+    When,
+)
 from ._registry import MessageSpec, register
 
 #: Horizontal cell size at level 0 (metres): a 3-bit code.
@@ -68,7 +82,8 @@ class SubgridCode(UInt):
         super().__init__(lambda ctx: ctx.width)
         self.coex_spec = FieldSpec("variable", "", note=(
             f"OFFSET: width bits; otherwise a Rice code with parameter width, escape after "
-            f"{RICE_ESCAPE} ones: {RICE_ESCAPE_LEN_BITS}-bit length, then the value"))
+            f"{RICE_ESCAPE} ones: {RICE_ESCAPE_LEN_BITS}-bit length, then the value"),
+            coding="OFFSET: unsigned; else Rice (canonical)")
 
     def _width(self, context: Any) -> int:
         w = int(context.width)
@@ -108,6 +123,12 @@ class SubgridCode(UInt):
         return v
 
 
+def _bitmask(width: str, bits: Any) -> Any:
+    c = Bits(bits)
+    c.coex_spec = FieldSpec(width, "", coding="bit mask, first bit first")
+    return c
+
+
 def _value_bits(ctx: Any) -> int:
     values = [int(v) for v in ctx["values"]]
     if ctx.encoding == SubgridEncoding.OFFSET:
@@ -136,16 +157,20 @@ SUBGRID = Body(
     "z_base" / SInt(20) * "Base elevation in vertical-resolution units (block minimum for OFFSET)",
     "width" / Bounded(0, 24, unit="bits") * "OFFSET: bits per value (0: every present cell equals z_base); "
     "DELTA/PLANE: Rice parameter",
-    "slope_x" / cs.If(cs.this.encoding == SubgridEncoding.PLANE, SInt(12))
-    * "PLANE only: eastward slope, 1/8 vertical units per cell",
-    "slope_y" / cs.If(cs.this.encoding == SubgridEncoding.PLANE, SInt(12))
-    * "PLANE only: northward slope, 1/8 vertical units per cell",
+    "slope_x" / When("`encoding` = PLANE", cs.this.encoding == SubgridEncoding.PLANE, SInt(12))
+    * "Eastward slope, 1/8 vertical units per cell",
+    "slope_y" / When("`encoding` = PLANE", cs.this.encoding == SubgridEncoding.PLANE, SInt(12))
+    * "Northward slope, 1/8 vertical units per cell",
     "partial" / cs.Rebuild(Bool(), lambda ctx: ctx.mask is not None) * "1 if a presence mask follows (derived)",
-    "mask" / cs.If(cs.this.partial, UInt(lambda ctx: int(ctx.side) ** 2)) * "Presence mask, side^2 bits, row-major",
-    "values" / cs.Array(_n_values, SubgridCode())
-    * "Codes of the present cells, row-major (DELTA: serpentine order)",
-    cs.Check(lambda ctx: _value_bits(ctx) <= MAX_SUBGRID_VALUE_BITS),
-    cs.Check(lambda ctx: ctx.encoding != SubgridEncoding.GRADIENT or ctx.mask is None),
+    "mask" / When("`partial` = 1", cs.this.partial, _bitmask("side^2", lambda ctx: int(ctx.side) ** 2))
+    * "Presence mask, one bit per cell, row-major (spec/payloads.md), 1 = the cell is present",
+    "values" / Entries("none when `encoding` = OFFSET and `width` = 0; otherwise one per present cell "
+                       "(side^2 without a mask, the mask's 1 bits with one)", _n_values, SubgridCode())
+    * "Codes of the present cells, row-major (DELTA: serpentine order); spec/payloads.md",
+    Rule(lambda ctx: _value_bits(ctx) <= MAX_SUBGRID_VALUE_BITS,
+         f"the values take more than {MAX_SUBGRID_VALUE_BITS} bits in all (too large)"),
+    Rule(lambda ctx: ctx.encoding != SubgridEncoding.GRADIENT or ctx.mask is None,
+         "`encoding` is GRADIENT and `partial` is 1 (a GRADIENT subgrid has no mask)"),
 )
 
 MAP_ROI_REQUEST = Body(
@@ -156,11 +181,13 @@ MAP_ROI_REQUEST = Body(
     "w" / Bounded(1, 16, unit="subgrids") * "Region width",
     "h" / Bounded(1, 16, unit="subgrids") * "Region height",
     "fill_gaps" / Bool() * "Gap filling: send only what topside lacks (held is then empty)",
-    "held" / cs.Array(lambda ctx: 0 if ctx.fill_gaps else ctx.w * ctx.h, Stamp(optional=True))
-    * "Without fill_gaps, per subgrid, row-major: newest stamp topside holds, or absent",
-    "have" / cs.If(cs.this.fill_gaps, UInt(lambda ctx: int(ctx.w) * int(ctx.h)))
-    * "With fill_gaps: w*h bits, row-major, 1 = topside holds the subgrid",
-    cs.Check(lambda ctx: ctx.fill_gaps or ctx.w * ctx.h <= MAX_ROI_HELD),
+    "held" / Entries("w*h entries when `fill_gaps` = 0; none when it is 1",
+                     lambda ctx: 0 if ctx.fill_gaps else ctx.w * ctx.h, Stamp(optional=True))
+    * "Per subgrid, row-major: newest stamp topside holds, or absent",
+    "have" / When("`fill_gaps` = 1", cs.this.fill_gaps, _bitmask("w*h", lambda ctx: int(ctx.w) * int(ctx.h)))
+    * "w*h bits, row-major, 1 = topside holds the subgrid",
+    Rule(lambda ctx: ctx.fill_gaps or ctx.w * ctx.h <= MAX_ROI_HELD,
+         f"`fill_gaps` is 0 and w*h is above {MAX_ROI_HELD} (too many subgrids)"),
 )
 
 MAP_ROI_REPLY = Body(

@@ -15,7 +15,7 @@ from ..messages import (
     TimeDirection,
     TransferProgress,
 )
-from ._primitives import Bits, Body, Bool, Bounded, Count, Enum, RawBytes, Stamp
+from ._primitives import Bits, Body, Bool, Bounded, Count, Enum, RawBytes, Rule, Stamp
 from ._registry import MessageSpec, register
 
 IMAGE_ID = Bounded(0, 1023) * "Image id (wraps at 1024)"
@@ -51,6 +51,9 @@ IMAGE_FRAGMENT = Body(
     * "Offsets in data where a packet starts, increasing, at most len(data) (0 = data starts packet "
     "`packet`; len(data) = the next packet starts right after data)",
     "data" / RawBytes(max_len=MAX_FRAGMENT_DATA) * "Codestream bytes",
+    Rule(lambda ctx: all(a < b for a, b in zip(ctx.packets, ctx.packets[1:]))
+         and all(p <= len(ctx.data) for p in ctx.packets),
+         "the `packets` entries are out of order (not strictly increasing) or one is above the number of `data` bytes"),
 )
 
 BYTE_RANGE = cs.Struct(

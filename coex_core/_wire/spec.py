@@ -27,7 +27,7 @@ from ..messages import (
     VehicleStatus,
 )
 from . import _codec
-from ._primitives import FieldSpec, spec_of
+from ._primitives import Align8, FieldSpec, Rule, spec_of
 from ._registry import SPECS_BY_ID, MessageSpec
 
 BEGIN = "<!-- BEGIN GENERATED MESSAGE TABLES (coex spec --write) -->"
@@ -50,11 +50,28 @@ def _is_derived(con: Any) -> bool:
     return False
 
 
+def _count_text(arr: Any) -> str:
+    """How many entries an array has, in the spec's words."""
+    told = getattr(arr, "coex_count", None)
+    if told:
+        return str(told)
+    count = arr.count
+    if isinstance(count, int):
+        return f"{count} entries"
+    text = str(count)  # a construct expression such as this['n_packets']
+    if text.startswith("this['") and text.endswith("']"):
+        return f"`{text[6:-2]}` entries"
+    raise ValueError(f"array {arr!r}: say how many entries it has (coex_primitives.Entries)")
+
+
 def _rows(struct: Any, prefix: str = "") -> list[tuple[str, FieldSpec, str, Any]]:
     rows = []
     for sc in struct.subcons:
         name = getattr(sc, "name", None)
         if not name:
+            if isinstance(sc, Align8):
+                rows.append(("(padding)", FieldSpec("0..7", "0", coding="zero bits",
+                                                    presence="always"), "Zero bits up to the next byte boundary", None))
             continue
         doc = getattr(sc, "docs", "") or ""
         inner = sc
@@ -62,40 +79,54 @@ def _rows(struct: Any, prefix: str = "") -> list[tuple[str, FieldSpec, str, Any]
             doc = doc or (getattr(inner, "docs", "") or "")
             inner = inner.subcon
         if isinstance(inner, cs.IfThenElse):
-            spec = spec_of(inner.thensubcon) or FieldSpec("?")
-            spec = FieldSpec(spec.bits, spec.range, spec.resolution, spec.unit,
-                             "only when the preceding flag is set")
-            rows.append((prefix + name, spec, doc, None))
+            presence = getattr(inner, "coex_presence", None)
+            if presence is None:
+                raise ValueError(f"field {name}: say when it is present (coex_primitives.When)")
+            spec = spec_of(inner.thensubcon)
+            if spec is None:
+                raise ValueError(f"field {name}: no FieldSpec")
+            rows.append((prefix + name, spec.but(presence=f"when {presence}"), doc, None))
             continue
         if isinstance(inner, cs.Array):
+            count = _count_text(inner)
             sub = _struct_of(inner.subcon)
             if sub is not None:
-                rows.append((prefix + name, FieldSpec("n x entry", note="array of entries below"), doc, sub))
+                rows.append((prefix + name, FieldSpec("n x entry", note="array of entries below", coding="entries",
+                                                      presence=count), doc, sub))
             else:
-                el = spec_of(inner.subcon) or FieldSpec("?")
-                rows.append((prefix + name, FieldSpec(f"n x {el.bits}", el.range, el.resolution, el.unit,
-                                                      el.note), doc, None))
+                el = spec_of(inner.subcon)
+                if el is None:
+                    raise ValueError(f"field {name}: no FieldSpec")
+                rows.append((prefix + name, el.but(bits=f"n x {el.bits}", presence=count), doc, None))
             continue
-        spec = spec_of(inner) or FieldSpec("?")
+        spec = spec_of(inner)
+        if spec is None:
+            raise ValueError(f"field {name}: no FieldSpec")
         if _is_derived(inner):
-            spec = FieldSpec(spec.bits, spec.range, spec.resolution, spec.unit, spec.note or "derived")
+            spec = spec.but(presence="always (derived)")
         rows.append((prefix + name, spec, doc, None))
     return rows
 
 
 def _table(struct: Any) -> list[str]:
     lines = [
-        "| field | bits | range | resolution | unit | description |",
-        "|---|---|---|---|---|---|",
+        "| field | bits | range | resolution | unit | coding | present | description |",
+        "|---|---|---|---|---|---|---|---|",
     ]
     subs = []
     for name, spec, doc, sub in _rows(struct):
         desc = doc.strip().replace("|", "\\|")
         if spec.note:
             desc = f"{desc} ({spec.note})" if desc else spec.note
-        lines.append(f"| `{name}` | {spec.bits} | {spec.range} | {spec.resolution} | {spec.unit} | {desc} |")
+        field = name if name.startswith("(") else f"`{name}`"
+        lines.append(f"| {field} | {spec.bits} | {spec.range} | {spec.resolution} | {spec.unit} | {spec.coding} "
+                     f"| {spec.presence} | {desc} |")
         if sub is not None:
             subs.append((name, sub))
+    rules = [sc.message for sc in struct.subcons if isinstance(sc, Rule)]
+    if rules:
+        lines += ["", "A decoder MUST reject the message (and an encoder refuse it) when:", ""]
+        lines += [f"- {r}" for r in rules]
     for name, sub in subs:
         lines += ["", f"Each entry of `{name}`:", ""]
         lines += _table(sub)
@@ -115,8 +146,6 @@ def render_message(spec: MessageSpec) -> str:
         "",
     ]
     lines += _table(body)
-    lines.append("")
-    lines.append("The body is padded with zero bits to a whole byte.")
     return "\n".join(lines)
 
 
@@ -128,7 +157,8 @@ def render_tables() -> str:
 def render_frame_header() -> str:
     struct = _codec.FRAME_HEADER.subcons[0].subcon.subcon  # Renamed(bits) -> Bitwise -> Struct
     lines = _table(_struct_of(struct))
-    lines.append("| `checksum` | 16 | 0..65535 | | | CRC-16/CCITT-FALSE, only when `crc` is 1 |")
+    lines.append("| `checksum` | 16 | 0..65535 | 1 |  | unsigned, big-endian | when `crc` = 1 | "
+                 "CRC-16/CCITT-FALSE (section 9) |")
     return "\n".join(lines) + "\n"
 
 
@@ -202,6 +232,56 @@ def frame_vectors() -> dict[str, Any]:
     return {"vectors": out}
 
 
+def _bits(*fields: tuple[int | str, int]) -> bytes:
+    """Bytes from ``(value, width)`` fields (or ``(bit string, 0)``), zero-padded to a byte:
+    hand-made inputs that the encoder would refuse to produce."""
+    s = "".join(format(v, f"0{w}b") if isinstance(v, int) else v for v, w in fields)
+    s += "0" * (-len(s) % 8)
+    return int(s, 2).to_bytes(len(s) // 8, "big") if s else b""
+
+
+def _f32(x: float) -> str:
+    import struct
+
+    return format(struct.unpack(">I", struct.pack(">f", x))[0], "032b")
+
+
+def _subgrid_head(encoding: int, width: int, side: int = 2, partial: int = 0) -> list[tuple[int | str, int]]:
+    """Subgrid 17 up to `partial`: level 0, ix 0, iy 0, stamp 0, 1 m, 0.1 m, side, encoding,
+    z_base 0, width (no slopes: not PLANE)."""
+    return [(17, 8), (0, 4), (0, 14), (0, 14), (0, 18), (3, 3), (3, 3), (side - 2, 4), (encoding, 2),
+            (0, 20), (width, 5), (partial, 1)]
+
+
+def _spec_rule_cases() -> list[tuple[str, str, bytes, str]]:
+    """Inputs each invalid by one rule of the document that the encoder never produces."""
+    zeros3 = [("0", 0)] * 3  # three more DELTA codes of 0 (Rice, k = 0)
+    frag = _bits((1, 10), (0, 20), (0, 10), (2, 5), (5, 8), (3, 8), ("0" * 80, 0))
+    frag_above = _bits((1, 10), (0, 20), (0, 10), (2, 5), (3, 8), (11, 8), ("0" * 80, 0))
+    frag_plain = _bits((1, 10), (0, 20), (0, 10), (0, 5), ("0" * 80, 0))
+    channel = _bits((1, 5), (0, 3), (_f32(0.0), 0), (_f32(1.0), 0), (_f32(0.1), 0), (1, 8), (0xFF, 8), (0, 8))
+    return [
+        ("rice_escape_not_needed", "message",
+         _bits(*_subgrid_head(1, 0), ("1" * 16 + "00001" + "1", 0), *zeros3), "canonical"),
+        ("rice_escape_length_not_minimal", "message",
+         _bits(*_subgrid_head(1, 0), ("1" * 16 + "00110" + "010100", 0), *zeros3), "canonical"),
+        ("varint_length_not_minimal", "message", bytes([0x21, 0x80 | len(frag_plain), 0x00]) + frag_plain,
+         "canonical"),
+        ("gradient_with_mask", "message", _bits(*_subgrid_head(3, 0, partial=1), (0b1111, 4), ("0000", 0)),
+         "GRADIENT"),
+        ("subgrid_values_too_large", "message", _bits(*_subgrid_head(0, 7, side=16), ("0" * 256 * 7, 0)),
+         "too large"),
+        ("roi_held_too_many", "message",
+         _bits((18, 8), (0, 8), (0, 4), (0, 14), (0, 14), (8, 4), (7, 4), (0, 1), ("0" * 19 * 72, 0)),
+         "too many"),
+        ("fragment_packets_decreasing", "message", bytes([0x21, len(frag)]) + frag, "out of order"),
+        ("fragment_packet_beyond_data", "message", bytes([0x21, len(frag_above)]) + frag_above, "out of order"),
+        ("float_nan", "message", _bits((50, 8), (1, 8), (0, 5), (0, 18), (0, 18), (0, 7), (_f32(float("nan")), 0)),
+         "non-finite"),
+        ("text_not_utf8", "message", bytes([0x30, len(channel)]) + channel, "utf-8"),
+    ]
+
+
 def _invalid_cases() -> list[tuple[str, str, bytes, str]]:
     """(name, scope, bytes, reason): reason is a word the DecodeError message must contain."""
     cases: list[tuple[str, str, bytes, str]] = []
@@ -236,6 +316,7 @@ def _invalid_cases() -> list[tuple[str, str, bytes, str]]:
          bytes.fromhex("6021095b51") + _codec.encode(CommandAck(1, AckStatus.ACCEPTED)), "crc mismatch"),
         ("frame_garbage_after_end", "frame", bytes.fromhex("40000000000001"), "after the end marker"),
         ("frame_truncated_message", "frame", bytes.fromhex("40000001"), "truncated"),
+        *_spec_rule_cases(),
     ]
     _ = heading_max
     return cases
@@ -272,3 +353,110 @@ def write_vectors(directory: str | Path) -> None:
     d.mkdir(parents=True, exist_ok=True)
     for name, doc in all_vector_files().items():
         (d / name).write_text(dumps(doc))
+
+
+# ------------------------------------------------------------------ other implementations
+#
+# ``coex spec vectors --check-command CMD`` runs CMD once and writes one line per vector to its
+# standard input: ``message <hex>`` or ``frame <hex>``. CMD answers with one JSON object per
+# line, in order: ``{"type": NAME, "fields": {...}}`` for a message, ``{"header": {...},
+# "messages": [{"type": NAME, ...fields}, ...]}`` for a frame (fields in the JSON form of the
+# vectors, spec section 13), or ``{"error": TEXT}`` when the input is invalid.
+# ``coex spec decode`` is the reference implementation of that protocol.
+
+
+def decode_line(line: str) -> dict[str, Any]:
+    """The reference answer to one line of the vector-checking protocol."""
+    scope, _, hexdata = line.strip().partition(" ")
+    try:
+        data = bytes.fromhex(hexdata.strip())
+    except ValueError:
+        return {"error": "bad hex"}
+    try:
+        if scope == "message":
+            m = _codec.decode(data)
+            fields = jsonfmt.to_json(m)
+            name = fields.pop("type")
+            return {"type": name, "fields": fields}
+        if scope == "frame":
+            frame = _codec.unpack_frame(data)
+            h = frame.header
+            return {"header": {"src": h.src, "dst": h.dst, "seq": h.seq, "schedule": h.schedule, "crc": h.crc},
+                    "messages": [jsonfmt.to_json(m) for m in frame.messages]}
+        return {"error": f"unknown scope {scope!r} (message or frame)"}
+    except DecodeError as exc:
+        return {"error": str(exc)}
+
+
+def serve_decoder(stdin: Any, stdout: Any) -> int:
+    """``coex spec decode``: answer every line of ``stdin`` (the protocol above)."""
+    for line in stdin:
+        if line.strip():
+            stdout.write(json.dumps(decode_line(line), separators=(",", ":")) + "\n")
+            stdout.flush()
+    return 0
+
+
+def vector_cases(directory: str | Path) -> list[tuple[str, str, str, dict[str, Any]]]:
+    """``(name, scope, hex, expected)`` of every vector in ``directory``; ``expected`` is what a
+    conformant decoder answers (``{"error": reason}`` for an invalid one)."""
+    d = Path(directory)
+    out: list[tuple[str, str, str, dict[str, Any]]] = []
+    for path in sorted(d.glob("*.json")):
+        doc = json.loads(path.read_text())
+        if path.name == "invalid.json":
+            out += [(f"invalid/{v['name']}", v["scope"], v["hex"], {"error": v["reason"]}) for v in doc["vectors"]]
+        elif path.name == "frames.json":
+            out += [(f"frames/{v['name']}", "frame", v["hex"], {"header": v["header"], "messages": v["messages"]})
+                    for v in doc["vectors"]]
+        else:
+            out += [(f"{doc['type']}/{v['name']}", "message", v["hex"], {"type": doc["type"], "fields": v["fields"]})
+                    for v in doc["vectors"]]
+    return out
+
+
+def _same(a: Any, b: Any) -> bool:
+    if isinstance(a, bool) or isinstance(b, bool):
+        return a is b
+    if isinstance(a, int | float) and isinstance(b, int | float):
+        return a == b or abs(float(a) - float(b)) <= 1e-9 * max(1.0, abs(float(a)), abs(float(b)))
+    if isinstance(a, dict) and isinstance(b, dict):
+        return a.keys() == b.keys() and all(_same(a[k], b[k]) for k in a)
+    if isinstance(a, list | tuple) and isinstance(b, list | tuple):
+        return len(a) == len(b) and all(_same(x, y) for x, y in zip(a, b))
+    return bool(a == b)
+
+
+def check_command(command: str, directory: str | Path, timeout: float = 600.0) -> tuple[int, list[str]]:
+    """Feed every vector of ``directory`` to ``command`` (the protocol above); returns the number
+    of vectors and a list of differences (empty: conformant)."""
+    import shlex
+    import subprocess
+
+    cases = vector_cases(directory)
+    stdin = "".join(f"{scope} {hx}\n" for _, scope, hx, _ in cases)
+    try:
+        run = subprocess.run(shlex.split(command), input=stdin, capture_output=True, text=True, timeout=timeout)
+    except (OSError, subprocess.TimeoutExpired) as exc:
+        return len(cases), [f"could not run {command!r}: {exc}"]
+    answers = [ln for ln in run.stdout.splitlines() if ln.strip()]
+    problems: list[str] = []
+    if run.returncode != 0:
+        problems.append(f"{command!r} exited with {run.returncode}: {run.stderr.strip()[-300:]}")
+    if len(answers) != len(cases):
+        problems.append(f"{len(cases)} vectors sent, {len(answers)} answers received")
+    for (name, _, hx, want), line in zip(cases, answers):
+        try:
+            got = json.loads(line)
+        except ValueError:
+            problems.append(f"{name}: not JSON: {line[:120]}")
+            continue
+        if "error" in want:
+            if "error" not in got:
+                problems.append(f"{name}: accepted an invalid input ({want['error']}): {hx}")
+        elif "error" in got:
+            problems.append(f"{name}: rejected a valid input: {got['error']}")
+        elif not _same(got, want):
+            problems.append(f"{name}: decoded {json.dumps(got)[:200]}, expected {json.dumps(want)[:200]}")
+    return len(cases), problems
+

@@ -17,7 +17,19 @@ from ..messages import (
     TimeSeriesRequest,
     Wavelet,
 )
-from ._primitives import Align8, Body, Bool, Bounded, Count, Enum, Float32, RawBytes, Stamp, Text
+from ._primitives import (
+    Align8,
+    Body,
+    Bool,
+    Bounded,
+    Count,
+    Enum,
+    Float32,
+    RawBytes,
+    Stamp,
+    Text,
+    When,
+)
 from ._registry import MessageSpec, register
 
 CHANNEL = Bounded(0, 31) * "Channel id"
@@ -55,8 +67,9 @@ TS_CHUNK = Body(
     "error" / Bounded(0, 255) * "Max abs error once passes 0..level are held: at most 2^((code-160)/8)",
     "partial" / cs.Rebuild(Bool(), lambda ctx: ctx.first is not None or ctx.end is not None)
     * "1 if the chunk holds only coefficients [first, end) of the pass (derived)",
-    "first" / cs.If(cs.this.partial, Bounded(0, MAX_COEFFICIENT)) * "First coefficient held",
-    "end" / cs.If(cs.this.partial, Bounded(1, MAX_COEFFICIENT + 1)) * "One past the last coefficient held",
+    "first" / When("`partial` = 1", cs.this.partial, Bounded(0, MAX_COEFFICIENT)) * "First coefficient held",
+    "end" / When("`partial` = 1", cs.this.partial, Bounded(1, MAX_COEFFICIENT + 1))
+    * "One past the last coefficient held (the code is `end` minus 1)",
     Align8(),
     "data" / RawBytes(max_len=MAX_CHUNK_DATA) * "Coded coefficients",
 )
