@@ -135,3 +135,19 @@ def test_the_unbroken_sample_passes_the_same_checks() -> None:
     m = SampleModality()
     SUITE.test_receiver_raises_only_decode_error_on_damaged_messages(m, None, None, sample_inputs(), None)
     SUITE.test_bodies_re_encode_to_the_same_bytes(m, None, None, sample_inputs(), None)
+
+
+def test_every_suite_test_says_what_it_checks() -> None:
+    """Every test of the conformance suite has a docstring (what a plugin author reads when it
+    fails), and its assertions name the rule broken ("rule: ...")."""
+    import inspect
+
+    from coex_conformance import TransportTests, WireVectorTests
+
+    for cls in (ModalityTests, TransportTests, WireVectorTests):
+        for name, fn in inspect.getmembers(cls, inspect.isfunction):
+            if name.startswith("test"):
+                assert (fn.__doc__ or "").strip(), f"{cls.__name__}.{name} has no docstring"
+                src = inspect.getsource(fn)
+                if "assert " in src:
+                    assert "rule:" in src or "self._" in src, f"{cls.__name__}.{name}: no rule message"

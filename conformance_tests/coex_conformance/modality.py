@@ -59,12 +59,14 @@ class ModalityTests:
     def test_fill_honours_budget(
         self, modality: Modality, sender_config: Any, sample_inputs: Sequence[tuple[float, Any]], budget: int
     ) -> None:
+        """``fill(max_bytes)`` never returns more than ``max_bytes`` encoded bytes (0, 1 and
+        tiny budgets included), and only the modality's own messages."""
         sender = modality.sender(sender_config)
         now = ingest_all(sender, sample_inputs)
         for i in range(50):
             out = sender.fill(budget, now + 30.0 * (i + 1))
             sizes = [wire.encoded_size(m) for m in out]
-            assert sum(sizes) <= budget, f"fill({budget}) returned {sum(sizes)} B"
+            assert sum(sizes) <= budget, f"rule: fill honours its byte budget; fill({budget}) returned {sum(sizes)} B"
             for m in out:
                 assert self._sends_own(modality, m), (
                     f"rule: a sender sends only the messages its modality declares; {m!r:.120}")
@@ -84,14 +86,14 @@ class ModalityTests:
             t = now + 30.0 * (i + 1)
             sender.fill(240, t)
             out = sender.spare(budget, t)
-            assert isinstance(out, list), f"spare returned {type(out).__name__}"
+            assert isinstance(out, list), f"rule: spare returns a list; it returned {type(out).__name__}"
             sizes = [wire.encoded_size(m) for m in out]
-            assert sum(sizes) <= budget, f"spare({budget}) returned {sum(sizes)} B"
+            assert sum(sizes) <= budget, f"rule: spare honours its byte budget; spare({budget}) returned {sum(sizes)} B"
             for m in out:
                 assert self._sends_own(modality, m), (
                     f"rule: a sender sends only the messages its modality declares; {m!r:.120}")
             for n in (sender.spare_bytes(), sender.ready_bytes(t)):
-                assert isinstance(n, int) and n >= 0
+                assert isinstance(n, int) and n >= 0, f"rule: spare_bytes and ready_bytes are integers >= 0; got {n!r}"
 
     def test_delivery_hooks_accept_every_own_message(
         self, modality: Modality, sender_config: Any, sample_inputs: Sequence[tuple[float, Any]]
@@ -108,7 +110,7 @@ class ModalityTests:
         for i in range(20):
             t = now + 30.0 * (i + 1)
             sent += sender.fill(240, t) + sender.spare(240, t)
-        assert sent, "the sender produced nothing from the sample inputs"
+        assert sent, "rule: the sender produces messages from the sample inputs; it produced none"
         rng = random.Random(3)
         t = now + 700.0
         for m in rng.sample(sent, len(sent)):
@@ -117,19 +119,21 @@ class ModalityTests:
         for m in sent[: len(sent) // 2]:
             sender.acked(m, t + 1.0)
         out = sender.fill(240, t + 30.0) + sender.spare(240, t + 30.0)
-        assert sum(wire.encoded_size(m) for m in out) <= 480
+        assert sum(wire.encoded_size(m) for m in out) <= 480, (
+            "rule: after any acked/lost notifications the sender still honours its budgets")
 
     def test_messages_roundtrip_on_the_wire(
         self, modality: Modality, sender_config: Any, sample_inputs: Sequence[tuple[float, Any]]
     ) -> None:
+        """Every message the sender produces encodes and decodes back to an equal message."""
         sender = modality.sender(sender_config)
         now = ingest_all(sender, sample_inputs)
         seen = 0
         for i in range(200):
             for m in sender.fill(240, now + 30.0 * (i + 1)):
-                assert wire.decode(wire.encode(m)) == m
+                assert wire.decode(wire.encode(m)) == m, f"rule: a message survives the wire; {m!r:.160} did not"
                 seen += 1
-        assert seen, "the sender produced nothing from the sample inputs"
+        assert seen, "rule: the sender produces messages from the sample inputs; it produced none"
 
     def test_converges_over_lossy_link(
         self,
@@ -144,13 +148,16 @@ class ModalityTests:
         max_rounds: int,
         round_seconds: float,
     ) -> None:
+        """A sender and a receiver joined by a lossy link (``loss``, 30 % by default, both
+        directions; one ``frame_budget`` frame each way per round) converge within
+        ``max_rounds``, and the receiver then has products."""
         pair = self._pair(modality, sender_config, receiver_config, loss=loss, frame_budget=frame_budget,
                           round_seconds=round_seconds, seed=7)
         pair.now = ingest_all(pair.sender, sample_inputs)
         if start_requests is not None:
             start_requests(pair.receiver, pair.now)
         run_until(pair, lambda: converged(pair.sender, pair.receiver), max_rounds)
-        assert pair.receiver.products(), "a converged receiver has products"
+        assert pair.receiver.products(), "rule: a converged receiver has products; it has none"
 
     def test_state_survives_a_restart(
         self,
@@ -192,6 +199,7 @@ class ModalityTests:
         receiver_config: Any,
         sample_inputs: Sequence[tuple[float, Any]],
     ) -> None:
+        """The receiver takes its messages twice and in random order without raising."""
         sender = modality.sender(sender_config)
         now = ingest_all(sender, sample_inputs)
         produced: list[Message] = []
@@ -208,19 +216,25 @@ class ModalityTests:
     def test_sender_rejects_foreign_request(
         self, modality: Modality, sender_config: Any, sample_inputs: Sequence[tuple[float, Any]]
     ) -> None:
+        """A request that is not the modality's is refused with RequestRejected."""
         sender = modality.sender(sender_config)
         now = ingest_all(sender, sample_inputs)
-        with pytest.raises(RequestRejected):
+        try:
             sender.handle(_foreign_message(modality), now)
+        except RequestRejected:
+            return
+        raise AssertionError("rule: a sender refuses a foreign request with RequestRejected; it took a VehicleStatus")
 
     def test_corrupted_messages_raise_decode_error(
         self, modality: Modality, sender_config: Any, sample_inputs: Sequence[tuple[float, Any]]
     ) -> None:
+        """Truncated and bit-flipped encodings of the sender's messages raise DecodeError from
+        ``coex.wire.decode``, nothing else."""
         sender = modality.sender(sender_config)
         now = ingest_all(sender, sample_inputs)
         rng = random.Random(11)
         samples = [wire.encode(m) for i in range(20) for m in sender.fill(240, now + 30.0 * (i + 1))]
-        assert samples
+        assert samples, "rule: the sender produces messages from the sample inputs; it produced none"
         for data in samples:
             variants = [data[:k] for k in range(len(data))]
             for _ in range(20):
@@ -232,6 +246,9 @@ class ModalityTests:
                     wire.decode(v)
                 except DecodeError:
                     pass
+                except Exception as exc:
+                    raise AssertionError(f"rule: wire.decode raises DecodeError only; {type(exc).__name__} "
+                                         f"on {v.hex()}") from exc
 
     # ------------------------------------------------------------------ in a real node
     def _node_run(self, modality: Modality, sender_config: Any, receiver_config: Any,

@@ -79,19 +79,27 @@ class WireVectorTests:
 
     @pytest.mark.parametrize("vector", MESSAGE_VECTORS, ids=_ids(MESSAGE_VECTORS))
     def test_encode_matches_vector(self, vector: dict[str, Any], encode_message: Callable[[dict[str, Any]], bytes]) -> None:
-        assert encode_message({"type": vector["type"], **vector["fields"]}).hex() == vector["hex"]
+        """A valid vector's fields encode to exactly its bytes."""
+        got = encode_message({"type": vector["type"], **vector["fields"]}).hex()
+        assert got == vector["hex"], f"rule: fields encode to the vector's bytes; {vector['type']}/{vector['name']} gave {got}"
 
     @pytest.mark.parametrize("vector", MESSAGE_VECTORS, ids=_ids(MESSAGE_VECTORS))
     def test_decode_matches_vector(self, vector: dict[str, Any], decode_message: Callable[[bytes], dict[str, Any]]) -> None:
-        assert decode_message(bytes.fromhex(vector["hex"])) == {"type": vector["type"], **vector["fields"]}
+        """A valid vector's bytes decode to exactly its fields."""
+        got = decode_message(bytes.fromhex(vector["hex"]))
+        assert got == {"type": vector["type"], **vector["fields"]}, (
+            f"rule: bytes decode to the vector's fields; {vector['type']}/{vector['name']} gave {got}")
 
     @pytest.mark.parametrize("vector", FRAME_VECTORS, ids=_ids(FRAME_VECTORS))
     def test_frames(self, vector: dict[str, Any]) -> None:
+        """A frame vector's header and messages pack to its bytes, and unpack back."""
         header = FrameHeader(**vector["header"])
         messages = [jsonfmt.from_json(m) for m in vector["messages"]]
-        assert wire.pack(messages, vector["budget"], header).hex() == vector["hex"]
+        assert wire.pack(messages, vector["budget"], header).hex() == vector["hex"], (
+            f"rule: a frame packs to the vector's bytes ({vector['name']})")
         frame = wire.unpack_frame(bytes.fromhex(vector["hex"]))
-        assert frame.header == header and list(frame.messages) == messages
+        assert frame.header == header and list(frame.messages) == messages, (
+            f"rule: a frame unpacks to the vector's header and messages ({vector['name']})")
 
     @pytest.mark.parametrize("vector", INVALID_VECTORS, ids=_ids(INVALID_VECTORS))
     def test_invalid_rejected(
@@ -100,10 +108,13 @@ class WireVectorTests:
         decode_message: Callable[[bytes], dict[str, Any]],
         decode_error: type[BaseException],
     ) -> None:
+        """Every invalid vector is rejected with the decoder's error, for its stated reason
+        (the error words of spec section 13)."""
         data = bytes.fromhex(vector["hex"])
         decoder = decode_message if vector.get("scope", "message") == "message" else (
             lambda d: wire.unpack_frame(d)
         )
         with pytest.raises(decode_error) as info:
             decoder(data)
-        assert vector["reason"].lower() in str(info.value).lower()
+        assert vector["reason"].lower() in str(info.value).lower(), (
+            f"rule: {vector['name']} is rejected for '{vector['reason']}'; the error said: {info.value}")
