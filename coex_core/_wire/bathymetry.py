@@ -156,7 +156,7 @@ SUBGRID = Body(
     "encoding" / Enum(SubgridEncoding, bits=2) * "Cell coding (see SubgridEncoding)",
     "z_base" / SInt(20) * "Base elevation in vertical-resolution units (block minimum for OFFSET)",
     "width" / Bounded(0, 24, unit="bits") * "OFFSET: bits per value (0: every present cell equals z_base); "
-    "DELTA/PLANE: Rice parameter",
+    "DELTA/PLANE/GRADIENT: Rice parameter (spec/payloads.md)",
     "slope_x" / When("`encoding` = PLANE", cs.this.encoding == SubgridEncoding.PLANE, SInt(12))
     * "Eastward slope, 1/8 vertical units per cell",
     "slope_y" / When("`encoding` = PLANE", cs.this.encoding == SubgridEncoding.PLANE, SInt(12))

@@ -3,7 +3,7 @@
 The vehicle encodes an image with a PLT marker (packet lengths), then keeps only the *body*: the
 packet data between the tile-part's SOD marker and the EOC. The main header is the same for every
 image with the same coding parameters and size, so it is never sent: ``ImageAnnounce.params``
-carries a 13-bit code (:func:`params_code`) and topside rebuilds the header by encoding a dummy
+carries a 13-bit code in its 15-bit field (the top two bits 0; :func:`params_code`, spec/payloads.md section 3.1) and topside rebuilds the header by encoding a dummy
 image with the same parameters (:func:`main_header`, cached).
 
 Topside decodes *whole packets only* (:func:`assemble`): every packet that is missing or

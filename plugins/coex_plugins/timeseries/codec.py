@@ -16,7 +16,7 @@ Coefficient bit code of one chunk (``data``), bits most-significant first:
 * sparse form (``dense`` = 0): ``n`` (13 bits, number of non-zero codes); Rice parameters of
   the zero runs, then of the magnitudes ``|q| - 1``, each ``k`` (5 bits), an escape flag (1 bit)
   and, when set, an escape width ``w`` (6 bits, 1..63); the unary quotients (``v >> k``
-  one-bits and a zero; 16 one-bits mean "escaped") of every run, then of every magnitude; the
+  one-bits and a zero; 16 one-bits then a zero mean "escaped") of every run, then of every magnitude; the
   low ``k`` bits of the non-escaped runs, then magnitudes; the escaped runs, then magnitudes, in
   ``w`` bits each; one sign bit per non-zero code (1 = negative);
 * dense form (``dense`` = 1): one Rice parameter set as above, then every code zigzag-mapped

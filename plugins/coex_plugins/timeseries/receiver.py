@@ -222,6 +222,14 @@ class TimeSeriesReceiver(ModalityReceiver):
         ch.to_ack.append(TimeSeriesPart(m.start, m.offset, m.level, first))
         if first in parts:
             return []  # duplicate: acked again, nothing new
+        if any(f < end and first < p.end for f, p in parts.items()):
+            # coefficients [first, end) overlap a chunk already held: adding both would count
+            # them twice (spec/payloads.md 2.4); the chunk is refused, not acked
+            ch.to_ack.pop()
+            self.ignored += 1
+            log.warning("chunk [%d, %d) of channel %d overlaps a chunk of its pass already held", first, end,
+                        m.channel)
+            return []
         parts[first] = _Part(end, m.step, m.error, codes, m.samples)
         block.cache = None
         ch.version += 1
