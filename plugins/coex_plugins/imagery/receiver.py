@@ -8,6 +8,7 @@ fragments that arrive before their image's announcement wait in a buffer of at m
 
 from __future__ import annotations
 
+import logging
 import warnings
 from collections import OrderedDict, deque
 from collections.abc import Callable, Mapping
@@ -17,7 +18,7 @@ import numpy as np
 import numpy.typing as npt
 
 from coex_core.config import merged_config
-from coex_core.errors import CoexError, ConfigError
+from coex_core.errors import CoexError, ConfigError, DecodeError
 from coex_core.messages import (
     AckStatus,
     ByteRange,
@@ -38,6 +39,8 @@ from coex_core.state import persistent
 from coex_core.timefmt import to_stamp, unwrap
 
 from .codec import StreamParams, decode_packets, packet_order, parse_params
+
+log = logging.getLogger("coex.imagery")
 
 __all__ = ["ImageryReceiver"]
 
@@ -192,7 +195,13 @@ class ImageryReceiver(ModalityReceiver):
             return []
         try:
             sp = parse_params(ann.params)
-        except CoexError:
+            if sp.colour == ann.grey:
+                raise DecodeError(f"the grey flag ({ann.grey}) disagrees with params (colour={sp.colour})")
+        except CoexError as exc:
+            # spec/payloads.md 3.1: such an image is not decoded; said, not silent
+            self.rejected_announces = getattr(self, "rejected_announces", 0) + 1
+            log.warning("image %d announced with unusable coding parameters %#x: %s", ann.image_id,
+                        ann.params, exc)
             return []
         if old is not None:  # the id wrapped round: a new image replaces the old one
             del self.images[ann.image_id]
