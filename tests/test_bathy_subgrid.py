@@ -21,7 +21,7 @@ from coex_plugins.bathymetry import (
     subgrid_bits,
 )
 
-from ._bathy_data import small_survey
+from ._bathy_data import survey_subgrids
 
 ABSENT = np.iinfo(np.int64).min
 
@@ -105,18 +105,7 @@ def test_size_2022_is_one_or_two_bytes_per_cell() -> None:
 
 
 def _survey_subgrids(levels: int = 3) -> tuple[BathymetrySender, list[Subgrid]]:
-    _, survey = small_survey(64.0, 256)
-    sender = BathymetrySender({"levels": levels})
-    for t, xyz in survey.pings(batch=10):
-        sender.ingest(xyz, t)
-    now = float(survey.times[-1]) + 30.0
-    out: list[Subgrid] = []
-    for i in range(2000):
-        batch = sender.fill(240, now + i)
-        if not batch:
-            break
-        out.extend(m for m in batch if isinstance(m, Subgrid))
-    return sender, out
+    return survey_subgrids(64.0, 256, levels)  # type: ignore[return-value]
 
 
 def test_a_lost_subgrid_leaves_every_other_subgrid_decodable() -> None:

@@ -1,47 +1,8 @@
-"""The imagery modality passes the CoEx modality conformance suite, with the inputs the suite
-runs it on beside other plugins (coex_conformance.companions: one source of truth)."""
+"""The imagery modality passes the CoEx modality conformance suite, on the inputs it registers
+for `coex plugins check imagery` (coex_plugins.imagery.conformance: one source of truth)."""
 
 from __future__ import annotations
 
-from collections.abc import Callable, Sequence
-from typing import Any
+from coex_conformance.check import suite_class
 
-import pytest
-
-from coex_conformance import ModalityFixtures, ModalityTests
-from coex_conformance.companions import Companion, registered
-from coex_core.modality import Modality, ModalityReceiver, ModalitySender
-
-_C = registered("imagery")
-assert _C is not None, "the imagery plugin registers its conformance inputs (coex.conformance)"
-COMPANION: Companion = _C
-
-
-class ImageryFixtures(ModalityFixtures):
-    @pytest.fixture
-    def modality(self) -> Modality:
-        return COMPANION.modality()
-
-    @pytest.fixture
-    def sample_inputs(self) -> Sequence[tuple[float, Any]]:
-        return COMPANION.sample_inputs()
-
-    @pytest.fixture
-    def sender_config(self) -> Any:
-        return COMPANION.sender_config()
-
-    @pytest.fixture
-    def receiver_config(self) -> Any:
-        return COMPANION.receiver_config()
-
-    @pytest.fixture
-    def start_requests(self) -> Callable[[ModalityReceiver, float], None] | None:
-        return COMPANION.start_requests
-
-    @pytest.fixture
-    def converged(self) -> Callable[[ModalitySender, ModalityReceiver], bool]:
-        return COMPANION.converged
-
-
-class TestImageryConformance(ModalityTests, ImageryFixtures):
-    pass
+TestImageryConformance = suite_class("imagery")

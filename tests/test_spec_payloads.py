@@ -557,22 +557,9 @@ def spec_decode_j2k(cs: bytes, path: Path) -> np.ndarray:
 
 
 def _survey() -> tuple[Any, list[Subgrid]]:
-    from coex_plugins.bathymetry import BathymetrySender
+    from ._bathy_data import survey_subgrids
 
-    from ._bathy_data import small_survey
-
-    _, survey = small_survey(64.0, 96)
-    sender = BathymetrySender({"levels": 3})
-    for t, xyz in survey.pings(batch=10):
-        sender.ingest(xyz, t)
-    now = float(survey.times[-1]) + 30.0
-    out: list[Subgrid] = []
-    for i in range(2000):
-        batch = sender.fill(240, now + i)
-        if not batch:
-            break
-        out.extend(m for m in batch if isinstance(m, Subgrid))
-    return sender, out
+    return survey_subgrids(64.0, 96)
 
 
 @pytest.fixture(scope="module")

@@ -52,10 +52,12 @@ def load_companion(name: str) -> Companion:
     return companion
 
 
-def suite_class(name: str, together: Sequence[str] = ()) -> type:
-    """A pytest test class running the suite on plugin ``name`` beside the plugins ``together``."""
-    c = load_companion(name)
-    others = [load_companion(n) for n in together if n != name]
+def suite_class(name: str | Companion, together: Sequence[str] = ()) -> type:
+    """A pytest test class running the whole suite on plugin ``name`` (its registered inputs, or
+    a :class:`Companion` given directly) beside the plugins ``together``. A plugin's own test
+    module can be one line: ``TestMine = suite_class("mine")``."""
+    c = name if isinstance(name, Companion) else load_companion(name)
+    others = [load_companion(n) for n in together if n != c.name]
 
     class Fixtures(ModalityFixtures):
         @pytest.fixture
@@ -86,7 +88,7 @@ def suite_class(name: str, together: Sequence[str] = ()) -> type:
         def other_plugins(self) -> Any:
             return others
 
-    return type(f"Test_{_ident(name)}", (ModalityTests, Fixtures), {})
+    return type(f"Test_{_ident(c.name)}", (ModalityTests, Fixtures), {})
 
 
 def _ident(name: str) -> str:
