@@ -277,11 +277,11 @@ def test_console_actions_from_the_page_are_wire_commands(browser: Any) -> None:
 class _SlowFirstAction(ConsoleHub):
     """A hub that takes its time over the first action, as a busy console would."""
 
-    def act(self, action: str, args: dict[str, Any]) -> list[Any]:
+    def act(self, action: str, args: dict[str, Any], operator: str = "") -> list[Any]:
         if not getattr(self, "_slowed", False):
             self._slowed = True
             time.sleep(0.8)
-        return super().act(action, args)
+        return super().act(action, args, operator)
 
 
 def test_console_actions_reach_the_vehicle_in_the_order_given(browser: Any) -> None:

@@ -62,6 +62,41 @@ def parse_remap(text: str) -> tuple[str, dict[int, int]]:
     return name.strip(), out
 
 
+def console_access(host: str, operators: str | Path | None, insecure_open: bool,
+                   tls_cert: str | None, tls_key: str | None, session_hours: float = 12.0) -> tuple[Any, Any]:
+    """The console's sign-in (:class:`~.access.Access`, or None) and TLS context (or None);
+    :class:`ConfigError` for a console that would be open to the network without sign-in."""
+    import ipaddress
+
+    from .access import Access, OperatorsFile
+    from .server import tls_context
+
+    if (tls_cert is None) != (tls_key is None):
+        raise ConfigError("give both --tls-cert and --tls-key")
+    tls = tls_context(tls_cert, tls_key) if tls_cert and tls_key else None
+    if operators is not None:
+        path = Path(operators)
+        if not path.exists():
+            raise ConfigError(f"no operators file {path} (make one: coex operators add NAME --role operator "
+                              f"--file {path})")
+        return Access(OperatorsFile(path), session_hours=session_hours), tls
+    try:
+        loopback = host == "localhost" or ipaddress.ip_address(host).is_loopback
+    except ValueError:
+        loopback = False
+    if not loopback:
+        if not insecure_open:
+            raise ConfigError(
+                f"refusing to serve the console on {host} without sign-in: anyone who reaches the port "
+                "could command the vehicle. Give --operators FILE (coex operators add ...), or "
+                "--insecure-open if this network is trusted (docs/console.md)")
+        log.warning("INSECURE: the console on %s has no sign-in: anyone who reaches it commands the "
+                    "vehicle (--insecure-open)", host)
+    if tls is not None:
+        log.warning("TLS without an operators file: the console is encrypted but open to anyone who reaches it")
+    return None, tls
+
+
 def register(subparsers: Any) -> None:
     p = subparsers.add_parser(
         "topside", help="run a topside node and serve the web console",
@@ -92,6 +127,15 @@ def register(subparsers: Any) -> None:
                    metavar="NAME:OWN=WIRE,...",
                    help="carry modality NAME's third-party type ids OWN as WIRE on the wire (the "
                         "vehicle remaps them alike; spec/third-party-ids.md); repeat per modality")
+    p.add_argument("--operators", metavar="FILE",
+                   help="operators file (coex operators add ...): everyone signs in; operators "
+                        "command, viewers watch. Required to listen beyond the loopback address")
+    p.add_argument("--insecure-open", action="store_true",
+                   help="listen beyond loopback without sign-in (a trusted network only; logged loudly)")
+    p.add_argument("--tls-cert", metavar="PEM", help="serve HTTPS with this certificate chain")
+    p.add_argument("--tls-key", metavar="PEM", help="the certificate's private key")
+    p.add_argument("--session-hours", type=float, default=12.0,
+                   help="a sign-in lasts this long (default 12 h)")
     p.add_argument("--command-key-file", metavar="PATH",
                    help="shared command key (hex, or at least 16 raw bytes): every command is "
                         "signed (spec section 10); the vehicle must have the same key")
@@ -230,7 +274,10 @@ def build_topside(transport_uri: str | Sequence[str], host: str = "127.0.0.1", p
                   command_key: bytes | None = None,
                   store: str | Path | None = None,
                   snapshot_interval: float = 30.0,
-                  remap_ids: dict[str, dict[int, int]] | None = None) -> TopsideApp:
+                  remap_ids: dict[str, dict[int, int]] | None = None,
+                  operators: str | Path | None = None, insecure_open: bool = False,
+                  tls_cert: str | None = None, tls_key: str | None = None,
+                  session_hours: float = 12.0) -> TopsideApp:
     """Open the transports (several URIs: several modems, link ids ``link``, ``link + 1`` ...),
     build the topside node and its receivers, serve the console (not yet driving the node: call
     ``start()`` or ``run()``). With ``command_key`` every command is authenticated (spec
@@ -243,7 +290,13 @@ def build_topside(transport_uri: str | Sequence[str], host: str = "127.0.0.1", p
     file already holds a topside, that one is resumed (its settings win over the arguments).
 
     ``remap_ids`` maps a modality name to its third-party ids as carried on the wire
-    (``{"ctd": {130: 4130}}``; spec/third-party-ids.md)."""
+    (``{"ctd": {130: 4130}}``; spec/third-party-ids.md).
+
+    ``operators`` (an operators file, ``coex operators``) makes the console ask everyone to
+    sign in: operators command, viewers watch. A console on a non-loopback address refuses to
+    start without one, unless ``insecure_open`` (logged loudly). ``tls_cert`` and ``tls_key``
+    serve HTTPS."""
+    access, tls = console_access(host, operators, insecure_open, tls_cert, tls_key, session_hours)
     from coex_core.channel.manager import ChannelManager, LinkConfig
     from coex_core.channel.schedule import Schedule
     from coex_core.node import Node
@@ -338,7 +391,7 @@ def build_topside(transport_uri: str | Sequence[str], host: str = "127.0.0.1", p
                 state._log(clock(), f"resumed from {store}: {nstore.stats['replayed']} "
                                     "journaled frames replayed")
             nstore.extra = lambda: {"state": hub.state}
-        server = serve(hub, host, port)
+        server = serve(hub, host, port, access=access, tls=tls)
     except BaseException:
         for tr in transports.values():
             tr.close()
@@ -364,7 +417,8 @@ def run(args: argparse.Namespace) -> int:
             link=args.link, rate=args.rate, schedule=_schedule(args),
             modalities=tuple(m for m in args.modalities.split(",") if m),
             stream_names=args.stream_names, command_key=key, store=args.store,
-            remap_ids=dict(args.remap_ids))
+            remap_ids=dict(args.remap_ids), operators=args.operators, insecure_open=args.insecure_open,
+            tls_cert=args.tls_cert, tls_key=args.tls_key, session_hours=args.session_hours)
     except (CoexError, OSError) as exc:
         print(f"coex topside: {exc}", file=sys.stderr)
         return 2
@@ -389,3 +443,52 @@ def run(args: argparse.Namespace) -> int:
         app.close()
         signal.signal(signal.SIGTERM, previous)
     return 0
+
+
+# ------------------------------------------------------------------ coex operators
+def register_operators(subparsers: Any) -> None:
+    """``coex operators add|remove|list``: the console's operators file."""
+    p = subparsers.add_parser("operators", help="manage who may sign in to the console (operators "
+                                                "command, viewers watch)")
+    p.add_argument("--file", default="coex-operators.json", help="the operators file (default "
+                   "coex-operators.json; created with mode 0600)")
+    sub = p.add_subparsers(dest="op", metavar="ACTION", required=True)
+    a = sub.add_parser("add", help="add or replace an operator; prints a new random token unless "
+                                   "--password-stdin")
+    a.add_argument("name")
+    a.add_argument("--role", choices=["operator", "viewer"], required=True)
+    a.add_argument("--password-stdin", action="store_true", help="read a password (8+ characters) "
+                   "from standard input instead of making a token")
+    r = sub.add_parser("remove", help="remove an operator (their sessions end)")
+    r.add_argument("name")
+    sub.add_parser("list", help="names and roles")
+    p.set_defaults(func=_operators)
+
+
+def _operators(args: argparse.Namespace) -> int:
+    from .access import OperatorsFile
+
+    try:
+        f = OperatorsFile(args.file)
+        if args.op == "list":
+            for op in sorted(f.operators.values(), key=lambda o: o.name):
+                print(f"{op.name}\t{op.role}")
+            if not f.operators:
+                print(f"(nobody in {args.file})", file=sys.stderr)
+            return 0
+        if args.op == "remove":
+            f.remove(args.name)
+            f.save()
+            print(f"removed {args.name} from {args.file}")
+            return 0
+        secret = sys.stdin.readline().rstrip("\n") if args.password_stdin else None
+        made = f.add(args.name, args.role, secret)
+        f.save()
+        print(f"{args.name} ({args.role}) saved in {args.file}")
+        if made is not None:
+            print(f"token (shown once, give it to {args.name}): {made}")
+        return 0
+    except ConfigError as exc:
+        print(f"coex operators: {exc}", file=sys.stderr)
+        return 2
+

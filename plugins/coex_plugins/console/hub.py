@@ -134,9 +134,10 @@ class ConsoleHub:
             go(self.state)
 
     # ---------------------------------------------------------------- from the browser
-    def act(self, action: str, args: dict[str, Any]) -> list[Any]:
+    def act(self, action: str, args: dict[str, Any], operator: str = "") -> list[Any]:
+        """Run a page action; ``operator`` (the signed-in name) is recorded with its commands."""
         with self.changed:
-            sent = self.actions.dispatch(action, args)
+            sent = self.actions.dispatch(action, args, operator)
             self.changed.notify_all()
             return sent
 

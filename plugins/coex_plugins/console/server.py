@@ -12,12 +12,23 @@ Endpoints (all on 127.0.0.1 unless told otherwise):
 * ``POST /api/action`` ``{"action": name, "args": {...}}`` runs a :class:`ConsoleActions`
   method; answers ``{"ok": true, "sent": [messages as JSON]}`` or ``{"ok": false, "error": ...}``
   (HTTP 400).
+* ``GET /api/whoami``: ``{"auth", "name", "role", "may_command", "csrf"}``.
+
+With an :class:`~coex_plugins.console.access.Access` (an operators file), everything but
+``/login`` needs a session: ``GET /login`` the sign-in page, ``POST /login`` (form or JSON
+``name``, ``password``) sets the session cookie (HttpOnly, SameSite=Strict, Secure under TLS),
+``POST /logout`` ends it. An unauthenticated page request is redirected to ``/login`` (303), an
+API or stream request gets 401; ``POST /api/action`` also needs the operator role (403 for a
+viewer), the session's CSRF token in ``X-CSRF-Token`` (403) and the operator's command rate
+(429). Failed sign-ins are logged and, after five in five minutes, refused for a while (429).
 """
 
 from __future__ import annotations
 
+import hmac
 import json
 import logging
+import ssl
 import threading
 import time
 from collections.abc import Callable
@@ -25,12 +36,13 @@ from http import HTTPStatus
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 from importlib import resources
 from typing import Any
-from urllib.parse import urlsplit
+from urllib.parse import parse_qs, urlsplit
 
 from coex_core import jsonfmt
 from coex_core.errors import CoexError, RequestRejected
 from coex_core.messages import Message
 
+from .access import Access, Session, describe, parse_cookies
 from .hub import ConsoleHub
 from .node import attach
 from .state import ConsoleState
@@ -40,6 +52,10 @@ __all__ = ["ConsoleHub", "ConsoleServer", "serve"]
 log = logging.getLogger(__name__)
 
 _STATIC = {"app.js": "text/javascript", "style.css": "text/css", "index.html": "text/html"}
+COOKIE = "coex_session"
+#: the largest body a sign-in may have
+MAX_LOGIN_BODY = 4096
+_LOCAL = Session("", "", "operator", "", float("inf"))  # a console without sign-in
 
 
 def _jsonable(obj: Any) -> Any:
@@ -77,10 +93,47 @@ class _Handler(BaseHTTPRequestHandler):
     def _not_found(self) -> None:
         self._json(HTTPStatus.NOT_FOUND, {"ok": False, "error": f"no such page {self.path}"})
 
+    # ------------------------------------------------------------------ access
+    def _session(self) -> Session | None:
+        access = self.server.access
+        if access is None:
+            return _LOCAL
+        return access.session(parse_cookies(self.headers.get("Cookie")).get(COOKIE))
+
+    def _client(self) -> str:
+        return str(self.client_address[0])
+
+    def _redirect(self, where: str, cookie: str | None = None) -> None:
+        self.send_response(303)
+        self.send_header("Location", where)
+        self.send_header("Content-Length", "0")
+        self.send_header("Cache-Control", "no-store")
+        if cookie is not None:
+            self.send_header("Set-Cookie", cookie)
+        self.end_headers()
+
+    def _cookie(self, sid: str, max_age: int) -> str:
+        secure = "; Secure" if self.server.tls else ""
+        return f"{COOKIE}={sid}; HttpOnly; SameSite=Strict; Path=/; Max-Age={max_age}{secure}"
+
+    def _login_page(self, code: int = 200, error: str = "") -> None:
+        self._send(code, _login_html(error).encode(), "text/html; charset=utf-8")
+
     # ------------------------------------------------------------------ GET
     def do_GET(self) -> None:
         path = urlsplit(self.path).path
         hub = self.server.hub
+        if path == "/login":
+            return self._login_page() if self.server.access is not None else self._redirect("/")
+        if path == "/favicon.ico":
+            return self._send(204, b"", "image/x-icon", cache=True)
+        session = self._session()
+        if session is None:
+            if path in ("/", "/index.html"):
+                return self._redirect("/login")
+            return self._json(401, {"ok": False, "error": "sign in first (/login)"})
+        if path == "/api/whoami":
+            return self._json(200, {"auth": self.server.access is not None, **describe(session)})
         if path in ("/", "/index.html"):
             self._send(200, _asset("index.html"), "text/html; charset=utf-8")
         elif path.startswith("/static/"):
@@ -88,8 +141,6 @@ class _Handler(BaseHTTPRequestHandler):
             if name not in _STATIC:
                 return self._not_found()
             self._send(200, _asset(name), _STATIC[name] + "; charset=utf-8")
-        elif path == "/favicon.ico":
-            self._send(204, b"", "image/x-icon", cache=True)
         elif path == "/api/state":
             self._json(200, hub.snapshot())
         elif path == "/api/events":
@@ -156,8 +207,21 @@ class _Handler(BaseHTTPRequestHandler):
 
     # ------------------------------------------------------------------ POST
     def do_POST(self) -> None:
-        if urlsplit(self.path).path != "/api/action":
+        path = urlsplit(self.path).path
+        if path == "/login":
+            return self._login()
+        if path == "/logout":
+            return self._logout()
+        if path != "/api/action":
             return self._not_found()
+        session = self._session()
+        if session is None:
+            return self._json(401, {"ok": False, "error": "sign in first (/login)"})
+        if not session.may_command:
+            return self._json(403, {"ok": False, "error": f"{session.name} is a viewer: viewers cannot command"})
+        access = self.server.access
+        if access is not None and not hmac.compare_digest(self.headers.get("X-CSRF-Token", ""), session.csrf):
+            return self._json(403, {"ok": False, "error": "missing or wrong CSRF token (reload the page)"})
         # Only the console's own page may act: a JSON body (other sites' pages cannot send one
         # without a CORS preflight, which this server never grants) from the same origin.
         ctype = self.headers.get("Content-Type", "").split(";")[0].strip().lower()
@@ -177,14 +241,83 @@ class _Handler(BaseHTTPRequestHandler):
                 raise ValueError("args must be an object")
         except (ValueError, KeyError, TypeError) as exc:
             return self._json(400, {"ok": False, "error": f"bad request: {exc}"})
+        if access is not None:
+            wait = access.command_allowed(session)
+            if wait:
+                log.warning("command rate limit: %s asked for %s", session.name, action)
+                return self._json(429, {"ok": False, "error": f"{session.name}: at most "
+                                        f"{access.commands_per_minute} commands a minute; wait {wait:.0f} s"})
         try:
-            sent = self.server.hub.act(action, args)
+            hub = self.server.hub
+            # the signed-in name goes with the commands (a console without sign-in has none)
+            sent = hub.act(action, args, session.name) if session.name else hub.act(action, args)
         except CoexError as exc:
             return self._json(400, {"ok": False, "error": str(exc)})
         except Exception as exc:  # never let an operator action kill the console
             log.exception("action %s failed", action)
             return self._json(500, {"ok": False, "error": f"{type(exc).__name__}: {exc}"})
         self._json(200, {"ok": True, "sent": [_describe(m) for m in sent]})
+
+    def _login(self) -> None:
+        access = self.server.access
+        if access is None:
+            return self._redirect("/")
+        ctype = self.headers.get("Content-Type", "").split(";")[0].strip().lower()
+        try:
+            length = int(self.headers.get("Content-Length", "0"))
+            if not 0 <= length <= MAX_LOGIN_BODY:
+                raise ValueError("body too large")
+            raw = self.rfile.read(length).decode()
+            if ctype == "application/json":
+                body = json.loads(raw or "{}")
+                name, secret = str(body.get("name", "")), str(body.get("password", ""))
+            else:
+                form = parse_qs(raw)
+                name, secret = form.get("name", [""])[0], form.get("password", [""])[0]
+        except (ValueError, UnicodeDecodeError) as exc:
+            return self._login_page(400, f"bad sign-in request: {exc}")
+        client = self._client()
+        wait = max(access.locked_out(name), access.locked_out(client))
+        if wait:
+            return self._login_page(429, f"too many failed sign-ins: try again in {wait:.0f} s")
+        s = access.login(name, secret, client)
+        if s is None:
+            return self._login_page(401, "wrong name or password")
+        self._redirect("/", self._cookie(s.sid, int(access.session_seconds)))
+
+    def _logout(self) -> None:
+        access = self.server.access
+        session = self._session()
+        if access is not None and session is not None:
+            if not hmac.compare_digest(self.headers.get("X-CSRF-Token", ""), session.csrf):
+                return self._json(403, {"ok": False, "error": "missing or wrong CSRF token"})
+            access.logout(session.sid)
+        self.send_response(200)
+        body = b'{"ok":true}'
+        self.send_header("Content-Type", "application/json")
+        self.send_header("Content-Length", str(len(body)))
+        self.send_header("Set-Cookie", self._cookie("", 0))
+        self.end_headers()
+        self.wfile.write(body)
+
+
+def _login_html(error: str) -> str:
+    import html
+
+    msg = f'<p class="error" role="alert">{html.escape(error)}</p>' if error else ""
+    return f"""<!doctype html>
+<html lang="en"><head><meta charset="utf-8"><title>CoEx console: sign in</title>
+<meta name="viewport" content="width=device-width, initial-scale=1">
+<style>body{{font:15px system-ui,sans-serif;background:#0d1b26;color:#e6eef3;display:grid;
+place-items:center;height:100vh;margin:0}}form{{background:#152a38;padding:24px 28px;border-radius:8px;
+min-width:280px}}label{{display:block;margin:10px 0 4px}}input{{width:100%;padding:6px;box-sizing:border-box}}
+button{{margin-top:16px;padding:6px 16px}}.error{{color:#ff9b8a}}</style></head>
+<body><form method="post" action="/login"><h1>CoEx console</h1>{msg}
+<label for="name">Name</label><input id="name" name="name" autocomplete="username" required>
+<label for="password">Password or token</label>
+<input id="password" name="password" type="password" autocomplete="current-password" required>
+<button type="submit" id="signin">Sign in</button></form></body></html>
+"""
 
 
 def _describe(item: Any) -> dict[str, Any]:
@@ -206,8 +339,14 @@ class ConsoleServer(ThreadingHTTPServer):
     daemon_threads = True
     allow_reuse_address = True
 
-    def __init__(self, hub: ConsoleHub, host: str = "127.0.0.1", port: int = 8080) -> None:
+    def __init__(self, hub: ConsoleHub, host: str = "127.0.0.1", port: int = 8080, *,
+                 access: Access | None = None, tls: ssl.SSLContext | None = None) -> None:
         super().__init__((host, port), _Handler)
+        if tls is not None:
+            self.socket = tls.wrap_socket(self.socket, server_side=True)
+        #: sign-in and roles (None: no sign-in; only for a console on the loopback address)
+        self.access = access
+        self.tls = tls
         self.hub = hub
         self.stopping = False
         #: Seconds an event stream waits after a change to send a burst as one update.
@@ -218,7 +357,7 @@ class ConsoleServer(ThreadingHTTPServer):
     def url(self) -> str:
         host, port = self.server_address[:2]
         name = host.decode() if isinstance(host, bytes) else str(host)
-        return f"http://{name}:{port}/"
+        return f"{'https' if self.tls else 'http'}://{name}:{port}/"
 
     def start(self) -> ConsoleServer:
         self._thread = threading.Thread(target=self.serve_forever, kwargs={"poll_interval": 0.2},
@@ -243,7 +382,8 @@ class ConsoleServer(ThreadingHTTPServer):
 
 def serve(target: Any, host: str = "127.0.0.1", port: int = 8080, *,
           clock: Callable[[], float] | None = None,
-          stream_names: dict[int, str] | None = None) -> ConsoleServer:
+          stream_names: dict[int, str] | None = None,
+          access: Access | None = None, tls: ssl.SSLContext | None = None) -> ConsoleServer:
     """Serve the console in a background thread and return the running server (``server.url``,
     ``server.hub``, ``server.close()``). Port 0 picks a free port.
 
@@ -263,4 +403,15 @@ def serve(target: Any, host: str = "127.0.0.1", port: int = 8080, *,
     else:
         raise TypeError(f"serve() needs a ConsoleHub, Node or ConsoleState, "
                         f"got {type(target).__name__}")
-    return ConsoleServer(hub, host, port).start()
+    return ConsoleServer(hub, host, port, access=access, tls=tls).start()
+
+
+def tls_context(cert: str, key: str) -> ssl.SSLContext:
+    """A server TLS context (TLS 1.2 or newer) from a PEM certificate chain and key."""
+    ctx = ssl.SSLContext(ssl.PROTOCOL_TLS_SERVER)
+    ctx.minimum_version = ssl.TLSVersion.TLSv1_2
+    try:
+        ctx.load_cert_chain(cert, key)
+    except (OSError, ssl.SSLError) as exc:
+        raise CoexError(f"cannot load the TLS certificate {cert} and key {key}: {exc}") from exc
+    return ctx

@@ -158,6 +158,8 @@ class _Command:
     status: str = "sent"
     answered: float | None = None
     roi_key: int | None = None
+    #: who sent it: the signed-in operator ("" for a console without sign-in)
+    by: str = ""
 
 
 #: caches (pictures, summaries) are not state: they are made again when needed
@@ -169,6 +171,9 @@ class ConsoleState:
     each link (``link -> coex_core.channel.schedule.Schedule`` or anything with ``to_dict()``, or
     a plain dict ``{"version", "epoch", "slots": [{"owner", "duration", "guard", ...}]}``);
     ``node_id`` is topside's node id (its slots are drawn as "ours")."""
+
+    #: the operator whose action is running (set by :meth:`ConsoleActions.dispatch`)
+    actor: str = ""
 
     def __init__(
         self,
@@ -588,7 +593,7 @@ class ConsoleState:
             return
         kind = type(msg).__name__
         key = 256 + int(cid)
-        self.commands[key] = _Command(int(cid), kind, summary or kind, now, msg)
+        self.commands[key] = _Command(int(cid), kind, summary or kind, now, msg, by=self.actor)
         if key in self.command_order:
             self.command_order.remove(key)
         self.command_order.append(key)
@@ -615,7 +620,7 @@ class ConsoleState:
                                              for s in msg.slots]}
                 self._touch("link")
         self._touch("commands")
-        self._log(now, f"sent {summary or kind}")
+        self._log(now, f"{self.actor + ' ' if self.actor else ''}sent {summary or kind}")
 
     def replace_command(self, built: m.Message, sent: m.Message, now: float) -> None:
         """The node sent ``sent`` for the command recorded as ``built`` (another command id)."""
@@ -650,9 +655,9 @@ class ConsoleState:
             self.commands[ckey] = _Command(-1, "MapRoiRequest", text, now,
                                            m.MapRoiRequest(0, r.level, r.x0, r.y0, r.w, r.h,
                                                            True, (), 0),
-                                           status="queued", roi_key=key)
+                                           status="queued", roi_key=key, by=self.actor)
             self.command_order.append(ckey)
-            self._log(now, f"requested {text}")
+            self._log(now, f"{self.actor + ' ' if self.actor else ''}requested {text}")
         self._touch("map", "commands")
 
     def _command_result(self, command_id: int, status: Any, now: float,
@@ -918,7 +923,7 @@ class ConsoleState:
                 status = self._snap_roi(self.roi[c.roi_key])["status"]
             out.append({"command_id": c.command_id, "kind": c.kind, "summary": c.summary,
                         "sent": _num(c.sent, 1), "status": status,
-                        "answered": _num(c.answered, 1)})
+                        "answered": _num(c.answered, 1), "by": getattr(c, "by", "")})
         return out
 
     def _snap_log(self) -> list[dict[str, Any]]:
@@ -1193,7 +1198,7 @@ class ConsoleActions:
         return msg
 
     # ------------------------------------------------------------------- dispatcher
-    def dispatch(self, action: str, args: Mapping[str, Any]) -> list[m.Message]:
+    def dispatch(self, action: str, args: Mapping[str, Any], operator: str = "") -> list[m.Message]:
         """Run an action named by the page (``request_region``, ``set_image_goal``,
         ``image_by_time``, ``refine_series``, ``queue_config``, ``link_control``,
         ``spare_config``, ``propose_schedule``) with keyword ``args``; returns the messages sent."""
@@ -1205,10 +1210,13 @@ class ConsoleActions:
         }.get(action)
         if fn is None:
             raise RequestRejected(f"unknown action {action!r}")
+        self.state.actor = str(operator)  # recorded with every command this action sends
         try:
             result = fn(**dict(args))  # type: ignore[operator]
         except TypeError as exc:
             raise RequestRejected(f"bad arguments for {action}: {exc}") from None
         except (ValueError, OverflowError) as exc:
             raise RequestRejected(f"bad value for {action}: {exc}") from None
+        finally:
+            self.state.actor = ""
         return list(result) if isinstance(result, list) else [result]

@@ -74,7 +74,9 @@ function act(action, args) {
 async function sendAction(action, args) {
   try {
     const r = await fetch("/api/action", { method: "POST",
-      headers: { "Content-Type": "application/json" }, body: JSON.stringify({ action, args }) });
+      headers: { "Content-Type": "application/json", "X-CSRF-Token": ME.csrf || "" },
+      body: JSON.stringify({ action, args }) });
+    if (r.status === 401) { location.href = "/login"; return null; }
     const body = await r.json();
     if (!body.ok) { toast(body.error || "failed", true); return null; }
     toast(`sent ${body.sent.map((m) => m.type).join(", ")}`);
@@ -688,6 +690,7 @@ function renderCommands() {
   const ul = $("#commands");
   ul.replaceChildren(...S.commands.map((c) => el("li", { "data-status": c.status },
     el("span", { class: "t" }, fmtT(c.sent)), c.summary,
+    c.by ? el("span", { class: "by", title: "sent by" }, ` · ${c.by}`) : "",
     el("span", { class: `badge ${c.status.replace(" ", "_")}` }, c.status))));
   if (!S.commands.length) ul.append(el("li", { class: "empty" }, "No command sent yet."));
 }
@@ -722,7 +725,39 @@ function apply(data, full) {
     if (k in data) { S[k] = data[k]; RENDER[k](); S.versions[k] = (S.versions[k] || 0) + (full ? 0 : 1); }
   }
   $("#clock").textContent = fmtT(S.now);
+  applyRole();
   window.coex.updates += 1;
+}
+
+// ------------------------------------------------------------------ who is signed in
+// Viewers see everything live; only operators command: for a viewer every command button is
+// disabled (the server refuses their actions anyway, 403).
+const ME = { auth: false, name: "", role: "operator", may_command: true, csrf: "" };
+const VIEW_ONLY = new Set(["fit-btn", "draw-btn", "roi-cancel", "logout-btn"]);
+function applyRole() {
+  document.body.classList.toggle("viewer", !ME.may_command);
+  if (ME.may_command) return;
+  for (const b of document.querySelectorAll("main button, main select, #roi-form input, #sched-form input")) {
+    if (!VIEW_ONLY.has(b.id)) { b.disabled = true; b.title = "viewers cannot command"; }
+  }
+}
+async function whoami() {
+  try {
+    const r = await fetch("/api/whoami");
+    if (r.status === 401) { location.href = "/login"; return; }
+    Object.assign(ME, await r.json());
+  } catch (err) { return; }
+  const who = $("#who");
+  if (ME.auth) {
+    who.replaceChildren(`${ME.name} (${ME.role}) `,
+      el("button", { id: "logout-btn", type: "button", title: "sign out" }, "Sign out"));
+    $("#logout-btn").addEventListener("click", async () => {
+      await fetch("/logout", { method: "POST", headers: { "X-CSRF-Token": ME.csrf } });
+      location.href = "/login";
+    });
+  }
+  applyRole();
+  window.coex.me = ME;
 }
 
 // ------------------------------------------------------------------ live connection
@@ -745,4 +780,4 @@ function connect() {
   es.onerror = () => { $("#conn").textContent = "reconnecting…"; $("#conn").className = "conn off"; window.coex.connected = false; };
 }
 window.addEventListener("resize", () => { drawMap(); drawAllPlots(); drawTdma(); });
-connect();
+whoami().then(connect);
