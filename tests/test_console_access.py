@@ -254,9 +254,9 @@ def test_https_with_a_test_certificate(operators: Path, tmp_path: Path) -> None:
 def test_in_the_browser_a_viewer_sees_disabled_buttons_and_an_operator_commands(operators: Path) -> None:
     """Headless Chromium: the sign-in page, a viewer's page with its command buttons disabled,
     and an operator whose command reaches the node with their name in the commands panel."""
-    from tests.test_console_browser import ARGS, CHROMIUM
-
     from playwright import sync_api
+
+    from .test_console_browser import ARGS, CHROMIUM
 
     c = Console(operators)
     try:
