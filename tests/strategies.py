@@ -97,12 +97,27 @@ def _body_struct(spec: MessageSpec) -> Any:
     return con
 
 
+def _fragment_rule(ctx: cs.Container) -> None:
+    """ImageFragment: packet starts strictly increase and stay within the data (a rule of the
+    spec that random fields almost never meet)."""
+    marks = sorted({min(int(p), len(ctx.data)) for p in ctx.packets})
+    ctx.packets = marks
+    ctx.n_packets = len(marks)
+
+
+#: per message type, the rules a drawn message is made to follow (the table's "MUST reject when")
+_RULES: dict[str, Any] = {"ImageFragment": _fragment_rule}
+
+
 def message_strategy(spec: MessageSpec) -> st.SearchStrategy[Message]:
     struct = _body_struct(spec)
 
     @st.composite
     def build(draw: Any) -> Message:
         ctx = _draw_struct(draw, struct)
+        fix = _RULES.get(spec.cls.__name__)
+        if fix is not None:
+            fix(ctx)
         return _from_container(spec.cls, ctx)  # type: ignore[no-any-return]
 
     return build()

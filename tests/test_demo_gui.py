@@ -50,7 +50,9 @@ def test_demo_gui_serves_the_console(tmp_path: Path) -> None:
         with urllib.request.urlopen(url + "/", timeout=10) as r:
             assert b"<html" in r.read().lower()
         proc.send_signal(signal.SIGINT)
-        assert proc.wait(timeout=180) == 0  # writes the report and maps first (slow on a loaded machine)
+        # communicate drains both pipes while it waits: the demo never blocks on a full pipe
+        proc.communicate(timeout=180)  # writes the report and maps first (slow on a loaded machine)
+        assert proc.returncode == 0
     finally:
         if proc.poll() is None:
             proc.kill()
