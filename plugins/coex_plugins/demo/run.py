@@ -357,6 +357,7 @@ class DiveRun:
         ptys = net.pty_paths()
         net.close()
         if server is not None and cfg.linger:
+            _stop_on_interrupt()
             print(f"coex demo: the dive is over; the console stays at {server.url} (Ctrl+C to stop)",
                   file=sys.stderr)
             try:
@@ -404,6 +405,22 @@ class DiveRun:
         }
         (out / "metrics.json").write_text(json.dumps(metrics, indent=2))
         return DemoResult(out, metrics, self.decisions)
+
+
+def _stop_on_interrupt() -> None:
+    """Ctrl+C (SIGINT) and SIGTERM end the lingering console, even when the process was started
+    with SIGINT ignored (a background job of a non-interactive shell inherits that)."""
+    import signal
+    import threading
+
+    if threading.current_thread() is not threading.main_thread():
+        return
+
+    def stop(signum: int, frame: Any) -> None:
+        raise KeyboardInterrupt
+
+    signal.signal(signal.SIGINT, signal.default_int_handler)
+    signal.signal(signal.SIGTERM, stop)
 
 
 def run_demo(config: DemoConfig, *, on_decision: Callable[[Decision], None] | None = None) -> DemoResult:
