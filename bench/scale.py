@@ -57,7 +57,7 @@ def survey(area_km2: float, seed: int = 1):  # type: ignore[no-untyped-def]
     per_batch = max(1, BATCH // BEAMS)
     across = (np.arange(BEAMS) + 0.5) / BEAMS * SWATH
     t = 0.0
-    for line in range(int(math.ceil(side / SWATH))):
+    for line in range(math.ceil(side / SWATH)):
         y0 = line * SWATH
         for p0 in range(0, pings_per_line, per_batch):
             n = min(per_batch, pings_per_line - p0)
