@@ -2,7 +2,7 @@
 as the survey area grows.
 
 Per area (1, 4, 16, 36, 100 km² by default) a fresh process surveys a square in lawnmower
-lines of 100 m swath: pings every 0.5 m along the line, 200 beams across it (two soundings per
+lines of 100 m swath: pings every 0.5 m along the line, 100 beams across it (two soundings per
 1 m cell), a smooth seafloor with relief, in batches of 10^5 points. It prints and writes
 (``bench/results/scale.json``) per area:
 
@@ -44,7 +44,7 @@ ROOT = Path(__file__).resolve().parents[1]
 BATCH = 100_000
 SWATH = 100.0
 PING_STEP = 0.5
-BEAMS = 200
+BEAMS = 100
 RSS_BUDGET_MB = 512
 INGEST_TARGET = 4e6
 
