@@ -296,3 +296,29 @@ def test_who_sent_a_command_is_saved_with_the_console(console: Console) -> None:
     assert console.act(cookie, csrf)[0] == 200
     restored = st.loads(st.dumps(console.state))
     assert [c["by"] for c in restored.snapshot()["commands"] if c["kind"] == "QueueConfig"] == ["ana"]
+
+
+def test_the_demo_console_follows_the_same_rule_and_logs_who_acted(operators: Path, tmp_path: Path) -> None:
+    """`coex demo --gui` refuses an address beyond loopback without sign-in; with an operators
+    file a signed-in person's action reaches the decision list with their name."""
+    from coex_core.channel import ChannelManager, LinkConfig
+    from coex_core.node import Node
+    from coex_plugins.demo.config import DemoConfig
+    from coex_plugins.demo.run import _start_gui
+
+    r = subprocess.run([sys.executable, "-m", "coex_core.cli", "demo", "--quick", "--gui", "--http", "0.0.0.0:0",
+                        "--quiet", "--out", str(tmp_path / "out")], capture_output=True, text=True, timeout=120)
+    assert r.returncode == 2 and "without sign-in" in r.stderr
+    node = Node(ChannelManager(1, [LinkConfig(0, Schedule.simple([1, 2], 20.0, 2.0), dst=2)]))
+    said: list[tuple[str, str, str]] = []
+    server = _start_gui(DemoConfig(http="127.0.0.1:0", operators=operators), node,
+                        lambda now, kind, text, who="script": said.append((kind, text, who)))
+    try:
+        c = Console.__new__(Console)
+        c.server, c.port, c.tls, c.sent = server, server.server_address[1], None, []
+        cookie, csrf = c.login("ana")
+        code, reply = c.act(cookie, csrf, "link_control", {"link": 0, "enabled": True})
+        assert code == 200, reply
+        assert ("console action", 'ana: link_control {"link": 0, "enabled": true}', "person") in said
+    finally:
+        server.close()

@@ -43,6 +43,11 @@ def register(sub: Any) -> None:
     gui.add_argument("--gui", action="store_true", help="serve the live web console during the dive")
     gui.add_argument("--no-gui", dest="gui", action="store_false", help="no web console (default)")
     p.add_argument("--http", default="127.0.0.1:8080", help="address of the web console with --gui")
+    p.add_argument("--operators", type=Path, default=None, metavar="FILE",
+                   help="with --gui: everyone signs in to the console (coex operators); required for "
+                        "an --http address beyond loopback")
+    p.add_argument("--insecure-open", action="store_true",
+                   help="with --gui: serve beyond loopback without sign-in (a trusted network only)")
     p.add_argument("--speed", type=float, default=20.0,
                    help="with --gui: simulated seconds per second (default 20: the dive takes 6 minutes)")
     p.add_argument("--quick", action="store_true", help="a short, small scenario (for tests)")
@@ -88,7 +93,8 @@ def run(args: argparse.Namespace) -> int:
     scenario = load_scenario(args.scenario) if args.scenario is not None else preset(args.preset or "default")
     cfg = DemoConfig(out=args.out, loss=args.loss, seed=args.seed, images=args.images, gui=args.gui,
                      http=args.http, quick=args.quick, progress=not args.quiet, burst=args.burst,
-                     speed=args.speed, command_key=key, scenario=scenario, operator=args.operator)
+                     speed=args.speed, command_key=key, scenario=scenario, operator=args.operator,
+                     operators=args.operators, insecure_open=args.insecure_open)
     result = run_demo(cfg, on_decision=say)
     m = result.metrics
     print(f"scenario {m['scenario']['name']}: {m['scenario']['loss_description']}; operator {m['operator']}")

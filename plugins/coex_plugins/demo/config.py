@@ -55,6 +55,10 @@ class DemoConfig:
     scenario: Scenario | None = None
     #: ``"script"`` or ``"none"``; ``None``: the script, unless a person has the console (``gui``)
     operator: str | None = None
+    #: with ``gui``: the console's operators file (everyone signs in; required beyond loopback)
+    operators: Path | None = None
+    #: with ``gui``: serve beyond loopback without sign-in
+    insecure_open: bool = False
 
     def resolved(self) -> tuple[Scenario, str]:
         """The scenario with ``--quick``, ``--loss`` and ``--burst`` applied, and the operator."""

@@ -82,22 +82,28 @@ class _Progress:
 
 def _start_gui(cfg: DemoConfig, topside: Node, log: Callable[..., None]) -> Any:
     from coex_plugins.console import serve
+    from coex_plugins.console.cli import console_access
 
     host, _, port = cfg.http.rpartition(":")
-    server = serve(topside, host or "127.0.0.1", int(port),
+    host = host or "127.0.0.1"
+    # the same rule as coex topside: beyond loopback only with sign-in (or --insecure-open)
+    access, _ = console_access(host, cfg.operators, cfg.insecure_open, None, None)
+    server = serve(topside, host, int(port), access=access,
                    stream_names={3: "map", 4: "images", 5: "series", LINK_STREAM: "link"})
     hub = server.hub
     act = hub.act
 
-    def logged(action: str, args: dict[str, Any]) -> list[Any]:
-        """What a person does in the console goes into the decision list too."""
+    def logged(action: str, args: dict[str, Any], operator: str = "") -> list[Any]:
+        """What a person does in the console goes into the decision list too (with their name
+        when they signed in)."""
         now = hub.clock()
+        by = f"{operator}: " if operator else ""
         try:
-            sent = act(action, args)
+            sent = act(action, args, operator) if operator else act(action, args)
         except Exception as exc:
-            log(now, "console action", f"{action} {json.dumps(args, default=str)} refused: {exc}", "person")
+            log(now, "console action", f"{by}{action} {json.dumps(args, default=str)} refused: {exc}", "person")
             raise
-        log(now, "console action", f"{action} {json.dumps(args, default=str)}", "person")
+        log(now, "console action", f"{by}{action} {json.dumps(args, default=str)}", "person")
         return sent
 
     hub.act = logged
