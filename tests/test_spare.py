@@ -353,27 +353,25 @@ def test_imagery_spare_work_sends_further_layers_newest_image_first() -> None:
     rng = np.random.default_rng(2)
     for t in (10.0, 20.0):
         sender.ingest(ImageInput(rng.integers(0, 255, (96, 96), np.uint8), time=t), t)
-    now = 30.0
-    for _ in range(200):  # the background, every byte acknowledged as it goes
-        out = sender.fill(240, now)
-        for m in out:
-            sender.acked(m, now)
-        if not out:
-            break
-        now += 1.0
+    def drain(pull: Any, now: float, rounds: int) -> float:
+        """Pull until nothing comes, every byte acknowledged as it goes; returns the time."""
+        for _ in range(rounds):
+            out = pull(240, now)
+            for m in out:
+                sender.acked(m, now)
+            if not out:
+                break
+            now += 1.0
+        return now
+
+    now = drain(sender.fill, 30.0, 200)  # the background
     old, new = sorted(sender.images.values(), key=lambda tx: tx.time)
     assert not old.needs() and not new.needs() and new.goal < new.total
     assert sender.spare_bytes() == (old.total - old.goal) + (new.total - new.goal)
     got = sender.spare(240, now)
     assert got and {m.image_id for m in got} == {new.image_id}
     assert min(m.offset for m in got) >= new.goal
-    for _ in range(500):
-        out = sender.spare(240, now)
-        for m in out:
-            sender.acked(m, now)
-        if not out:
-            break
-        now += 1.0
+    now = drain(sender.spare, now, 500)
     assert new.acked.all() and old.acked.all() and sender.spare_bytes() == 0
     assert not [m for m in sender.fill(240, now) if not isinstance(m, TransferProgress)]
 
