@@ -596,15 +596,6 @@ class Node:
             except Exception:  # logging must never take the node down
                 pass
 
-    def check(self) -> None:
-        """Raise :class:`ConfigError` if two modalities claim one message type (kept for
-        callers: :meth:`add_sender` and :meth:`add_receiver` refuse that already)."""
-        for routes in (self._request_routes, self._message_routes):
-            owners: dict[int, str] = {}
-            for tid, name in routes.names.items():
-                if owners.setdefault(tid, name) != name:
-                    raise ConfigError(f"modalities {owners[tid]!r} and {name!r} both claim type id {tid}")
-
 
 def _wrappers(part: Any) -> list[Any]:
     """``part`` and the senders or receivers it wraps (``inner``), outermost first."""
