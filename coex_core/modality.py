@@ -22,6 +22,7 @@ from dataclasses import dataclass, field
 from typing import Any, ClassVar
 
 from .messages import Message
+from .storage import Storage
 
 __all__ = ["Modality", "ModalityReceiver", "ModalitySender", "Product"]
 
@@ -107,6 +108,16 @@ class ModalitySender(abc.ABC):
         accepts other objects (a ROS message) converts them here."""
         return data
 
+    def attach_storage(self, storage: Storage) -> None:  # noqa: B027 - optional hook
+        """The node's runner gives the modality its out-of-core storage
+        (:mod:`coex_core.storage`): a modality whose state can outgrow memory keeps there what it
+        is not working on. Called after the modality's saved state (if any) was loaded. Optional
+        (default: the storage is not used)."""
+
+    def sync_storage(self) -> None:  # noqa: B027 - optional hook
+        """Before every snapshot of the node: write to the attached storage whatever is held in
+        memory that the storage does not have yet. Optional."""
+
     def acked(self, message: Message, now: float) -> None:  # noqa: B027 - optional hook
         """The other side acknowledged a frame that carried ``message``, which this sender
         produced (called by the node when the frame ack arrives; on streams without
@@ -170,6 +181,16 @@ class ModalityReceiver(abc.ABC):
         carries what topside holds now). It must not raise (if it does, the node logs it and
         withdraws nothing)."""
         return False
+
+    def attach_storage(self, storage: Storage) -> None:  # noqa: B027 - optional hook
+        """The node's runner gives the modality its out-of-core storage
+        (:mod:`coex_core.storage`): a modality whose state can outgrow memory keeps there what it
+        is not working on. Called after the modality's saved state (if any) was loaded. Optional
+        (default: the storage is not used)."""
+
+    def sync_storage(self) -> None:  # noqa: B027 - optional hook
+        """Before every snapshot of the node: write to the attached storage whatever is held in
+        memory that the storage does not have yet. Optional."""
 
 
 class Modality(abc.ABC):

@@ -67,6 +67,7 @@ from .routing import (
     wildcard,
 )
 from .state import StateError, dumps, loads
+from .storage import Storage
 from .wire import unpack_frame
 
 __all__ = ["Node", "Transmission"]
@@ -519,6 +520,23 @@ class Node:
     def set_log(self, log: Callable[[str], None] | None) -> None:
         self._log = log
 
+    def attach_storage(self, storage: Storage) -> None:
+        """Give every modality its part of ``storage`` (:mod:`coex_core.storage`): senders
+        ``tx/<name>/``, receivers ``rx/<name>/``. A runner with a store calls this after the
+        node's saved state (if any) was loaded, and again whenever it restores the node."""
+        for s in self._senders:
+            _innermost(s.sender).attach_storage(storage.child(f"tx/{s.name}/"))
+        for r in self._receivers:
+            _innermost(r.receiver).attach_storage(storage.child(f"rx/{r.name}/"))
+
+    def sync_storage(self) -> None:
+        """Every modality writes to its storage what the storage does not have yet (before a
+        snapshot: :meth:`export_state` calls it)."""
+        for s in self._senders:
+            _innermost(s.sender).sync_storage()
+        for r in self._receivers:
+            _innermost(r.receiver).sync_storage()
+
     # ===================================================================== saved state
     #: node fields that are state (the rest is structure, rebuilt by whoever builds the node)
     _STATE_FIELDS = ("stats", "_recent", "duplicate_window", "stats_interval", "_last_stats",
@@ -530,6 +548,7 @@ class Node:
         sender and receiver (by modality name), its own counters and command bookkeeping, and
         ``extra`` (an application's state saved with it, e.g. the console's: objects it shares
         with the node stay shared). Keys, clocks and callbacks are not state."""
+        self.sync_storage()
         mgr = self.manager
         root = {
             "node_id": self.node_id,

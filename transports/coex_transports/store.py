@@ -34,8 +34,9 @@ from typing import Any
 from coex_core import state
 from coex_core.errors import ConfigError
 from coex_core.node import Node
+from coex_core.storage import Storage
 
-__all__ = ["JournalRow", "NodeStore"]
+__all__ = ["JournalRow", "NodeStore", "SqliteStorage"]
 
 #: Stores written before the explicit state format held pickled snapshots, which this version
 #: refuses (it never unpickles).
@@ -57,7 +58,59 @@ CREATE TABLE IF NOT EXISTS snapshot (
     state BLOB NOT NULL
 );
 CREATE TABLE IF NOT EXISTS meta (key TEXT PRIMARY KEY, value TEXT NOT NULL);
+CREATE TABLE IF NOT EXISTS storage (
+    id INTEGER PRIMARY KEY AUTOINCREMENT,
+    key TEXT NOT NULL,
+    gen INTEGER NOT NULL,
+    data BLOB NOT NULL,
+    UNIQUE (key, gen)
+);
 """
+
+
+class SqliteStorage(Storage):
+    """The modalities' out-of-core storage (:mod:`coex_core.storage`) in the node's SQLite file,
+    consistent with its snapshots.
+
+    Rows carry a *generation*: the snapshot that last committed is generation ``g`` (``meta``
+    key ``storage_gen``); what is put after it is written as generation ``g + 1`` at once (so a
+    spilled tile leaves memory) but counts only once the next snapshot commits, in the
+    snapshot's own transaction, which also deletes the rows it supersedes. Opening the store
+    discards rows newer than the last snapshot: the snapshot and the journal replayed after it
+    rebuild them, so nothing is counted twice after a crash."""
+
+    def __init__(self, db: sqlite3.Connection) -> None:
+        self.db = db
+        row = db.execute("SELECT value FROM meta WHERE key = 'storage_gen'").fetchone()
+        self.committed = int(row[0]) if row is not None else 0
+        db.execute("DELETE FROM storage WHERE gen > ?", (self.committed,))
+        self.writes = 0
+
+    def get(self, key: str) -> bytes | None:
+        row = self.db.execute("SELECT data FROM storage WHERE key = ? ORDER BY gen DESC LIMIT 1",
+                              (key,)).fetchone()
+        return None if row is None else bytes(row[0])
+
+    def put(self, key: str, data: bytes) -> None:
+        self.db.execute("INSERT OR REPLACE INTO storage (key, gen, data) VALUES (?, ?, ?)",
+                        (key, self.committed + 1, sqlite3.Binary(data)))
+        self.writes += 1
+
+    def keys(self, prefix: str = "") -> list[str]:
+        rows = self.db.execute("SELECT DISTINCT key FROM storage WHERE substr(key, 1, ?) = ?",
+                               (len(prefix), prefix))
+        return [str(r[0]) for r in rows]
+
+    def nbytes(self) -> int:
+        return int(self.db.execute("SELECT COALESCE(SUM(length(data)), 0) FROM storage").fetchone()[0])
+
+    def commit(self) -> None:
+        """Make what was put count (inside the snapshot's transaction)."""
+        g = self.committed + 1
+        self.db.execute("INSERT OR REPLACE INTO meta (key, value) VALUES ('storage_gen', ?)", (str(g),))
+        self.db.execute("DELETE FROM storage WHERE gen < ? AND key IN (SELECT key FROM storage WHERE gen = ?)",
+                        (g, g))
+        self.committed = g
 
 
 @dataclass(frozen=True)
@@ -99,6 +152,14 @@ class NodeStore:
         #: What ``extra()`` returned at the snapshot :meth:`restore` loaded (None without one).
         self.restored_extra: Any = None
         self.stats = {"rx": 0, "tx": 0, "input": 0, "snapshots": 0, "replayed": 0}
+        self._storage: SqliteStorage | None = None
+
+    def storage(self) -> SqliteStorage:
+        """The modalities' out-of-core storage in this file (:class:`SqliteStorage`); what
+        :meth:`restore` attaches to the node."""
+        if self._storage is None:
+            self._storage = SqliteStorage(self.db)
+        return self._storage
 
     # ------------------------------------------------------------------------- journal
     def _append(self, kind: str, t: float, data: bytes, link: int | None = None,
@@ -144,6 +205,8 @@ class NodeStore:
         """Save the node's whole state, consistent with the journal so far (one transaction)."""
         extra = self.extra() if self.extra is not None else None
         blob = node.export_state(extra)
+        storage = self.storage()
+        gen = storage.committed
         self.db.execute("BEGIN IMMEDIATE")
         try:
             last = self.db.execute("SELECT COALESCE(MAX(id), 0) FROM journal").fetchone()[0]
@@ -151,9 +214,11 @@ class NodeStore:
                             (int(last), float(t), sqlite3.Binary(blob)))
             if self.compact:
                 self.db.execute("DELETE FROM journal WHERE id <= ?", (int(last),))
+            storage.commit()
             self.db.execute("COMMIT")
         except BaseException:
             self.db.execute("ROLLBACK")
+            storage.committed = gen
             raise
         self._last_snapshot = t
         self._dirty = False
@@ -199,6 +264,7 @@ class NodeStore:
                 raise ConfigError(f"{self.path}: unreadable snapshot ({exc}); move the file away "
                                   "to start afresh") from exc
             after = int(row[0])
+        node.attach_storage(self.storage())
         if log is not None:
             node.set_log(log)
         if clock is not None:
