@@ -11,7 +11,9 @@ and writing only what this module knows how to write:
 * the wire format's messages and their parts (``coex_core.messages``), by message type name;
 * objects of classes **registered** with :func:`persistent` under a stable name (a plugin's
   own state classes: ``"bathymetry.Region"``), with a version, and the attributes that are not
-  state (callbacks, clocks: ``transient``), which the class's ``_after_restore()`` rebuilds.
+  state (callbacks, clocks: ``transient``), which the class's ``_after_restore()`` rebuilds;
+  an object with a ``_before_save()`` method has it called just before its fields are read
+  (a map writes its resident tiles to its storage).
 
 Anything else is a :class:`StateError` naming the type and where it was found: nothing is saved
 by accident, and renaming or moving a module does not break a saved dive (names are stable,
@@ -179,6 +181,9 @@ class _Writer:
             return {"$r": ref}
         ref = self.memo[id(x)] = len(self.memo)
         self.keep.append(x)
+        before = getattr(x, "_before_save", None)
+        if callable(before):  # e.g. a map writes its resident tiles to its storage first
+            before()
         fields = _fields(x)
         out = {k: self.enc(v, f"{path}.{k}") for k, v in fields.items() if k not in c.transient}
         return {"$o": c.name, "id": ref, "f": out}

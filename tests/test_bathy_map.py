@@ -59,7 +59,7 @@ def test_coarser_levels_aggregate_children_weighted_by_count() -> None:
 def test_tree_grows_a_new_root_and_memory_follows_area_not_points() -> None:
     m = QuadtreeMap(outlier_rejection=False)
     rng = np.random.default_rng(1)
-    patch = np.column_stack([rng.uniform(0, 100, 20000), rng.uniform(0, 100, 20000), rng.normal(-30, 0.1, 20000)])
+    patch = np.column_stack([rng.uniform(1, 99, 20000), rng.uniform(1, 99, 20000), rng.normal(-30, 0.1, 20000)])
     m.add_points(patch, 1.0)
     m.flush()
     assert m.root_level == 0 or m.root_origin is not None

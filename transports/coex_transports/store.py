@@ -79,19 +79,35 @@ class SqliteStorage(Storage):
     discards rows newer than the last snapshot: the snapshot and the journal replayed after it
     rebuild them, so nothing is counted twice after a crash."""
 
-    def __init__(self, db: sqlite3.Connection) -> None:
+    def __init__(self, db: sqlite3.Connection, path: Path | None = None) -> None:
         self.db = db
+        self.path = path
+        #: after :meth:`detach`: what was put since (the file is only read then)
+        self._overlay: dict[str, bytes] | None = None
         row = db.execute("SELECT value FROM meta WHERE key = 'storage_gen'").fetchone()
         self.committed = int(row[0]) if row is not None else 0
         db.execute("DELETE FROM storage WHERE gen > ?", (self.committed,))
         self.writes = 0
 
+    def detach(self) -> None:
+        """The store closes: a node restored from it may still be used (a look at a stopped or
+        running node's state). Reads go on from the file through a read-only connection; puts
+        stay in memory and are never written."""
+        self._overlay = {}
+        if self.path is not None:
+            self.db = sqlite3.connect(f"file:{self.path}?mode=ro", uri=True, isolation_level=None)
+
     def get(self, key: str) -> bytes | None:
+        if self._overlay is not None and key in self._overlay:
+            return self._overlay[key]
         row = self.db.execute("SELECT data FROM storage WHERE key = ? ORDER BY gen DESC LIMIT 1",
                               (key,)).fetchone()
         return None if row is None else bytes(row[0])
 
     def put(self, key: str, data: bytes) -> None:
+        if self._overlay is not None:
+            self._overlay[key] = bytes(data)
+            return
         self.db.execute("INSERT OR REPLACE INTO storage (key, gen, data) VALUES (?, ?, ?)",
                         (key, self.committed + 1, sqlite3.Binary(data)))
         self.writes += 1
@@ -158,7 +174,7 @@ class NodeStore:
         """The modalities' out-of-core storage in this file (:class:`SqliteStorage`); what
         :meth:`restore` attaches to the node."""
         if self._storage is None:
-            self._storage = SqliteStorage(self.db)
+            self._storage = SqliteStorage(self.db, self.path)
         return self._storage
 
     # ------------------------------------------------------------------------- journal
@@ -296,4 +312,6 @@ class NodeStore:
         self.db.execute("INSERT OR REPLACE INTO meta (key, value) VALUES (?, ?)", (key, value))
 
     def close(self) -> None:
+        if self._storage is not None:
+            self._storage.detach()
         self.db.close()

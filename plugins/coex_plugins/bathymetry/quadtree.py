@@ -41,6 +41,7 @@ counted (``dropped``).
 
 from __future__ import annotations
 
+from collections import OrderedDict
 from dataclasses import dataclass
 from typing import Any
 
@@ -49,6 +50,7 @@ import numpy.typing as npt
 
 from coex_core.errors import CoexError
 from coex_core.state import persistent
+from coex_core.storage import MemoryStorage, Storage
 
 __all__ = ["InputError", "QuadtreeMap", "LevelBlock"]
 
@@ -59,6 +61,12 @@ _ADDED, _REJECTED, _DROPPED, _HELD = 0, 1, 2, 3
 
 #: Level-0 cell indices are limited to +-2**16 (the wire's subgrid index range at level 0).
 MAX_CELL_INDEX = 1 << 16
+
+#: Memory the map's resident tiles may use by default (bytes): 512 MB.
+DEFAULT_MEMORY_BUDGET = 512 * 2**20
+#: Disk the map's stored tiles may use by default (bytes): 16 GB (a 100 km² map at 1 m takes
+#: about 1.3 GB).
+DEFAULT_DISK_BUDGET = 16 * 2**30
 
 
 class InputError(CoexError, ValueError):
@@ -76,7 +84,17 @@ class LevelBlock:
     updated: float
 
 
-@persistent("bathymetry.QuadtreeMap")
+def _upgrade_map(fields: dict[str, Any], saved: int) -> dict[str, Any]:
+    """A map saved by version 1 (every tile in four arrays of the saved state) keeps its tiles
+    in a :class:`MemoryStorage` of the saved state now; ``_after_restore`` finishes the index."""
+    if saved < 2 and "_count" in fields:
+        fields["_v1_arrays"] = {k: fields.pop(k) for k in ("_count", "_sum", "_sumsq", "_time")}
+        fields.pop("_times_cache", None)
+    return fields
+
+
+@persistent("bathymetry.QuadtreeMap", version=2, transient=("_res", "_ext", "_free", "_changed_all"),
+            upgrade=_upgrade_map)
 class QuadtreeMap:
     """A 2.5-D seafloor map: mean elevation per cell at ``resolution`` metres (level 0) and at every
     coarser level up to ``levels - 1`` (cell size ``resolution * 2**level``).
@@ -84,6 +102,12 @@ class QuadtreeMap:
     ``add_points(xyz, now)`` takes an ``N x 3`` array (x east, y north, z up, metres) in a local
     frame. Elevations are kept as float sums; ``vertical_resolution`` is the quantum used when
     cells are sent.
+
+    Out of core: at most ``memory_budget`` bytes of tiles stay in memory (the most recently used);
+    the others live in the map's storage (:mod:`coex_core.storage`: the node's SQLite file when it
+    has a store, else in memory) and come back when soundings land on them or a query needs
+    them. The index every query of the sender uses (tile versions, the last update of every
+    subgrid at every level) stays in memory: about 3 KB per tile.
     """
 
     def __init__(
@@ -98,7 +122,9 @@ class QuadtreeMap:
         outlier_k: float = 3.0,
         min_count: int = 3,
         batch_points: int = 20_000,
-        max_tiles: int = 1024,
+        max_tiles: int | None = None,
+        memory_budget: int = DEFAULT_MEMORY_BUDGET,
+        disk_budget: int | None = DEFAULT_DISK_BUDGET,
         max_pending_age: float = 60.0,
         max_pending: int = 200_000,
     ) -> None:
@@ -108,6 +134,10 @@ class QuadtreeMap:
             raise InputError("subgrid_side must be a power of two >= 2")
         if not 1 <= levels <= 8:
             raise InputError("levels must be in 1..8")
+        if subgrid_side << (levels - 1) > 4096:
+            raise InputError("subgrid_side * 2**(levels - 1) must be at most 4096 cells")
+        if max_tiles is not None and int(max_tiles) < 1:
+            raise InputError("max_tiles must be at least 1 (or None: no limit)")
         self.resolution = float(resolution)
         self.vertical_resolution = float(vertical_resolution)
         self.subgrid_side = int(subgrid_side)
@@ -119,15 +149,17 @@ class QuadtreeMap:
         self.tile = self.subgrid_side << (self.levels - 1)
         self._shift = self.tile.bit_length() - 1
         self._tt = self.tile * self.tile
+        #: tile key -> tile number (creation order); ``_keys[number]`` is the key
         self._slots: dict[tuple[int, int], int] = {}
         self._keys: list[tuple[int, int]] = []
         cap = 4
-        self._count = np.zeros((cap, self._tt), np.int64)
-        self._sum = np.zeros((cap, self._tt), np.float64)
-        self._sumsq = np.zeros((cap, self._tt), np.float64)
-        self._time = np.full((cap, self._tt), -np.inf, np.float64)
         self._version = np.zeros(cap, np.int64)
-        self._times_cache: dict[tuple[int, int], tuple[int, FloatArray]] = {}
+        #: the version of each tile its storage holds (-1: none)
+        self._stored = np.full(cap, -1, np.int64)
+        #: bytes the storage holds for each tile
+        self._stored_size = np.zeros(cap, np.int64)
+        #: last update of every subgrid node, per level: ``(tiles, p, p)`` (-inf where empty)
+        self._stimes = [np.full((cap, p, p), -np.inf) for p in self._per_tile()]
         #: Root of the quadtree above the tiles: ``2**root_level`` tiles per side from ``root_origin``.
         self.root_level = 0
         self.root_origin: tuple[int, int] | None = None
@@ -138,9 +170,17 @@ class QuadtreeMap:
         #: Time of the newest ``add_points`` call.
         self.last_input = -np.inf
         self.batch_points = int(batch_points)
-        #: At most this many tiles (about 460 KB each with the defaults): a memory guard against
-        #: soundings scattered over a huge area (a navigation glitch); the rest are dropped.
-        self.max_tiles = int(max_tiles)
+        #: At most this many tiles in all (None: no limit but the addressable area and the disk
+        #: budget); soundings that would need more are dropped, counted and reported.
+        self.max_tiles = None if max_tiles is None else int(max_tiles)
+        self.memory_budget = int(memory_budget)
+        self.disk_budget = None if disk_budget is None else int(disk_budget)
+        #: Why soundings are being dropped (a budget exhausted, the storage failing), or None.
+        self.overflow: str | None = None
+        #: tiles written to and read back from the storage
+        self.spills = 0
+        self.loads = 0
+        self._mem: MemoryStorage | None = MemoryStorage()
         self._buffer: list[tuple[FloatArray, float]] = []
         self._buffered = 0
         self.max_pending_age = float(max_pending_age)
@@ -153,8 +193,43 @@ class QuadtreeMap:
         #: soundings outlier rejection removed, one array per ingested batch (for measurements).
         self.track_rejections = False
         self.rejected_ids: list[npt.NDArray[np.int64]] = []
+        #: tiles changed since :meth:`take_changed` was last called
+        self._changed: set[tuple[int, int]] = set()
+        self._after_restore()
+
+    def _after_restore(self) -> None:
+        #: resident tiles, least recently used first: number -> (4, T*T) [count, sum, sumsq, time]
+        self._res: OrderedDict[int, FloatArray] = OrderedDict()
+        self._ext: Storage | None = None
+        self._free: list[FloatArray] = []
+        #: the sender must look at every tile (after a restore, or a map of an older version)
+        self._changed_all = True
+        old = self.__dict__.pop("_v1_arrays", None)
+        if old is not None:  # a version-1 map: its tiles go to a memory storage, its index is built
+            self._mem = MemoryStorage()
+            self._ext = None
+            n = len(self._keys)
+            self.memory_budget = DEFAULT_MEMORY_BUDGET
+            self.disk_budget = DEFAULT_DISK_BUDGET
+            if getattr(self, "max_tiles", None) is not None and self.max_tiles <= 1024:
+                self.max_tiles = None  # the old memory guard, which the storage replaces
+            self.overflow, self.spills, self.loads = None, 0, 0
+            self._changed = set()
+            cap = max(4, n)
+            self._stored = np.full(cap, -1, np.int64)
+            self._stored_size = np.zeros(cap, np.int64)
+            self._version = _grow(np.asarray(self._version)[:n], cap, 0)
+            self._stimes = [np.full((cap, p, p), -np.inf) for p in self._per_tile()]
+            for i in range(n):
+                cells = np.stack([np.asarray(old["_count"][i], np.float64), old["_sum"][i], old["_sumsq"][i],
+                                  old["_time"][i]])
+                self._index_times(np.array([i]), cells[None, 3])
+                self._put(i, cells)
 
     # ------------------------------------------------------------------------- structure
+
+    def _per_tile(self) -> list[int]:
+        return [self.tile // (self.subgrid_side << lv) for lv in range(self.levels)]
 
     @property
     def tiles(self) -> list[tuple[int, int]]:
@@ -162,9 +237,71 @@ class QuadtreeMap:
         self.flush()
         return list(self._keys)
 
+    def has_tile(self, key: tuple[int, int]) -> bool:
+        return key in self._slots
+
+    @property
+    def tile_bytes(self) -> int:
+        """Memory one resident tile holds."""
+        return 4 * 8 * self._tt
+
+    @property
+    def max_resident(self) -> int:
+        """Tiles kept in memory at most (``memory_budget`` less a quarter for the batch in flight,
+        the index and the sender's bookkeeping)."""
+        return max(4, (self.memory_budget * 3 // 4) // self.tile_bytes)
+
+    @property
+    def resident(self) -> int:
+        """Tiles in memory now."""
+        return len(self._res)
+
     def nbytes(self) -> int:
-        """Memory held by the cell arrays."""
-        return int(self._count.nbytes + self._sum.nbytes + self._sumsq.nbytes + self._time.nbytes)
+        """Memory held by the resident tiles and the index."""
+        index = self._version.nbytes * 3 + sum(a.nbytes for a in self._stimes)
+        return int(len(self._res) * self.tile_bytes + index)
+
+    def disk_bytes(self) -> int:
+        """Bytes the storage holds for this map's tiles."""
+        return int(self._stored_size[: len(self._keys)].sum())
+
+    @property
+    def storage(self) -> Storage:
+        st = self._ext if self._ext is not None else self._mem
+        if st is None:
+            raise CoexError("the map's tiles are in a storage that is not attached "
+                            "(restore the node with its NodeStore)")
+        return st
+
+    def attach_storage(self, storage: Storage) -> None:
+        """Keep spilled tiles in ``storage`` from now on (what the memory storage held moves there)."""
+        if self._mem is not None:
+            for key in self._mem.keys():
+                data = self._mem.get(key)
+                if data is not None:
+                    storage.put(key, data)
+        self._mem = None
+        self._ext = storage
+
+    def sync(self) -> None:
+        """Write every resident tile that changed since it was last stored (before a snapshot)."""
+        self.flush()
+        for n, cells in self._res.items():
+            if self._stored[n] != self._version[n]:
+                self._put(n, cells)
+
+    def _before_save(self) -> None:
+        self.sync()
+
+    def take_changed(self) -> set[tuple[int, int]] | None:
+        """Tiles changed since the last call (None: look at every tile, e.g. after a restore)."""
+        self.flush()
+        if self._changed_all:
+            self._changed_all = False
+            self._changed = set()
+            return None
+        out, self._changed = self._changed, set()
+        return out
 
     def _grow_root(self, tx: int, ty: int) -> None:
         if self.root_origin is None:
@@ -184,22 +321,86 @@ class QuadtreeMap:
             self.root_level += 1
         self.root_origin = (ox, oy)
 
-    def _slot(self, key: tuple[int, int]) -> int:
-        s = self._slots.get(key)
-        if s is not None:
-            return s
-        s = len(self._keys)
-        if s == self._count.shape[0]:
-            cap = 2 * s
-            self._count = _grow(self._count, cap, 0)
-            self._sum = _grow(self._sum, cap, 0.0)
-            self._sumsq = _grow(self._sumsq, cap, 0.0)
-            self._time = _grow(self._time, cap, -np.inf)
+    def _new_tile(self, key: tuple[int, int]) -> int:
+        n = len(self._keys)
+        if n == self._version.shape[0]:
+            cap = 2 * n
             self._version = _grow(self._version, cap, 0)
-        self._slots[key] = s
+            self._stored = _grow(self._stored, cap, -1)
+            self._stored_size = _grow(self._stored_size, cap, 0)
+            self._stimes = [_grow(a, cap, -np.inf) for a in self._stimes]
+        self._slots[key] = n
         self._keys.append(key)
         self._grow_root(*key)
-        return s
+        return n
+
+    def _blank(self) -> FloatArray:
+        cells = self._free.pop() if self._free else np.empty((4, self._tt))
+        cells[:3] = 0.0
+        cells[3] = -np.inf
+        return cells
+
+    def _cells(self, n: int, protect: set[int] | frozenset[int] = frozenset()) -> FloatArray:
+        """Tile ``n``'s cells, brought into memory if needed (others may leave)."""
+        cells = self._res.get(n)
+        if cells is not None:
+            self._res.move_to_end(n)
+            return cells
+        cells = self._blank()
+        if self._stored[n] >= 0:
+            data = self.storage.get(_tile_name(self._keys[n]))
+            if data is None:
+                raise CoexError(f"tile {self._keys[n]} is missing from the map's storage")
+            _decode_tile(data, cells)
+            self.loads += 1
+        self._res[n] = cells
+        self._evict(protect | {n})
+        return cells
+
+    def _evict(self, protect: set[int] | frozenset[int]) -> None:
+        while len(self._res) > self.max_resident:
+            victim = next((k for k in self._res if k not in protect), None)
+            if victim is None:
+                return
+            cells = self._res[victim]
+            if self._stored[victim] != self._version[victim] and not self._put(victim, cells):
+                self._res.move_to_end(victim)  # the storage failed: it stays (reported in overflow)
+                return
+            del self._res[victim]
+            if len(self._free) < 4:
+                self._free.append(cells)
+
+    def _put(self, n: int, cells: FloatArray) -> bool:
+        data = _encode_tile(cells)
+        try:
+            self.storage.put(_tile_name(self._keys[n]), data)
+        except Exception as exc:  # a full disk: keep the tile in memory, say so, never crash
+            self.overflow = f"the map's storage failed ({exc}): new ground is not mapped"
+            return False
+        self._stored[n] = self._version[n]
+        self._stored_size[n] = len(data)
+        self.spills += 1
+        return True
+
+    def _room(self) -> int:
+        """New tiles allowed now (the tile cap and the disk budget)."""
+        room = 1 << 62
+        if self.max_tiles is not None:
+            room = max(self.max_tiles - len(self._keys), 0)
+            if room == 0:
+                self.overflow = f"max_tiles ({self.max_tiles}) reached: new ground is not mapped"
+        if self.disk_budget is not None and self._ext is not None:
+            # about the size a tile takes on disk, measured on those written so far
+            n = int(np.count_nonzero(self._stored[: len(self._keys)] >= 0))
+            per = self.disk_bytes() / n if n else self.tile_bytes / 2
+            fit = int((self.disk_budget - self.disk_bytes()) // max(per, 1.0)) - len(self._res)
+            if fit <= 0:
+                self.overflow = (f"disk budget ({self.disk_budget / 2**20:.0f} MB) reached: "
+                                 "new ground is not mapped")
+            room = min(room, max(fit, 0))
+        if self.overflow is not None and self.overflow.startswith("the map's storage failed"):
+            room = 0
+        return room
 
     # ---------------------------------------------------------------------------- ingest
 
@@ -274,66 +475,108 @@ class QuadtreeMap:
         tx = col >> self._shift
         ty = row >> self._shift
         uniq_x, uniq_y, inv = _group_tiles(tx, ty)
-        new = np.array([(int(a), int(b)) not in self._slots for a, b in zip(uniq_x, uniq_y, strict=True)])
-        room = max(self.max_tiles - len(self._keys), 0)
-        if int(new.sum()) > room:
-            # Memory guard: soundings that would need more tiles than max_tiles are dropped.
-            refused = np.zeros(new.size, bool)
-            refused[np.flatnonzero(new)[room:]] = True
-            bad = refused[inv]
-            self.dropped += int(bad.sum())
-            ok_idx = np.flatnonzero(ok)
-            ok = ok.copy()
-            ok[ok_idx[bad]] = False
-            col, row, z, times, tx, ty = col[~bad], row[~bad], z[~bad], times[~bad], tx[~bad], ty[~bad]
-            if z.size == 0:
-                return status
-            uniq_x, uniq_y, inv = _group_tiles(tx, ty)
-        slots = np.array([self._slot((int(a), int(b))) for a, b in zip(uniq_x, uniq_y, strict=True)], np.int64)
-        m = slots.size
+        keys = list(zip(uniq_x.tolist(), uniq_y.tolist(), strict=True))
+        new = np.array([k not in self._slots for k in keys])
+        if new.any():
+            room = self._room()
+            if int(new.sum()) > room:
+                # A budget is exhausted: soundings that need new tiles are dropped (counted and
+                # reported in ``overflow``; the sender tells topside).
+                refused = np.zeros(new.size, bool)
+                refused[np.flatnonzero(new)[room:]] = True
+                bad = refused[inv]
+                self.dropped += int(bad.sum())
+                ok_idx = np.flatnonzero(ok)
+                ok = ok.copy()
+                ok[ok_idx[bad]] = False
+                col, row, z, times, tx, ty = col[~bad], row[~bad], z[~bad], times[~bad], tx[~bad], ty[~bad]
+                if z.size == 0:
+                    return status
+                uniq_x, uniq_y, inv = _group_tiles(tx, ty)
+                keys = list(zip(uniq_x.tolist(), uniq_y.tolist(), strict=True))
+        tmax = float(times.max())
+        limit = max(1, self.max_resident // 2)
+        if len(keys) <= limit:
+            st = self._ingest_tiles(keys, inv, col, row, z, times, tmax, force)
+        else:  # scattered soundings: a few tiles at a time, so that they fit in memory
+            st = np.empty(z.size, np.int8)
+            for c in range(0, len(keys), limit):
+                sel = np.flatnonzero((inv >= c) & (inv < c + limit))
+                st[sel] = self._ingest_tiles(keys[c:c + limit], inv[sel] - c, col[sel], row[sel], z[sel],
+                                             times[sel], tmax, force)
+        status[ok] = st
+        return status
+
+    def _ingest_tiles(self, keys: list[tuple[int, int]], inv: IntArray, col: IntArray, row: IntArray,
+                      z: FloatArray, times: FloatArray, tmax: float, force: bool) -> npt.NDArray[np.int8]:
+        ns = np.array([self._slots[k] if k in self._slots else self._new_tile(k) for k in keys], np.int64)
+        m = ns.size
+        protect = set(ns.tolist())
+        tt = self._tt
+        cnt, sm, ssq, tim = (np.empty((m, tt)) for _ in range(4))
+        tiles = []
+        for i, n in enumerate(ns.tolist()):
+            cells = self._cells(n, protect)
+            tiles.append(cells)
+            cnt[i], sm[i], ssq[i], tim[i] = cells
         t = self.tile
+        tx = np.array([k[0] for k in keys], np.int64)[inv]
+        ty = np.array([k[1] for k in keys], np.int64)[inv]
         local = ((row - ty * t) << self._shift) + (col - tx * t)
-        flat = inv * self._tt + local
-        size = m * self._tt
+        flat = inv * tt + local
+        size = m * tt
         n_b = np.bincount(flat, minlength=size)
         s_b = np.bincount(flat, weights=z, minlength=size)
         ss_b = np.bincount(flat, weights=z * z, minlength=size)
         keep = np.ones(z.size, bool)
         hold = np.zeros(z.size, bool)
         if self.outlier_rejection:
-            keep, judged = self._screen(slots, flat, local, inv, z, n_b, s_b, ss_b)
+            keep, judged = self._screen(m, cnt.ravel(), sm.ravel(), ssq.ravel(), flat, local, inv, z,
+                                        n_b, s_b, ss_b)
             if not force:
-                hold = ~judged & (times > times.max() - self.max_pending_age)
-                if hold.sum() + 0 > self.max_pending:
+                hold = ~judged & (times > tmax - self.max_pending_age)
+                if hold.sum() > self.max_pending:
                     cut = np.sort(times[hold])[-self.max_pending]
                     hold &= times >= cut
-            rejected = ~keep
-            self.rejected += int(np.count_nonzero(rejected))
+            self.rejected += int(np.count_nonzero(~keep))
             keep &= ~hold
             if not keep.all():
                 w = keep.astype(np.float64)
                 n_b = np.bincount(flat, weights=w, minlength=size).astype(np.int64)
                 s_b = np.bincount(flat, weights=z * w, minlength=size)
                 ss_b = np.bincount(flat, weights=z * z * w, minlength=size)
-        n2 = n_b.reshape(m, self._tt)
-        self._count[slots] += n2
-        self._sum[slots] += s_b.reshape(m, self._tt)
-        self._sumsq[slots] += ss_b.reshape(m, self._tt)
-        tm = self._time[slots].ravel()
-        np.maximum.at(tm, flat[keep], times[keep])
-        self._time[slots] = tm.reshape(m, self._tt)
-        self._version[slots] += 1
-        added = int(n2.sum())
+        cnt += n_b.reshape(m, tt)
+        sm += s_b.reshape(m, tt)
+        ssq += ss_b.reshape(m, tt)
+        np.maximum.at(tim.reshape(-1), flat[keep], times[keep])
+        for i, cells in enumerate(tiles):
+            cells[0], cells[1], cells[2], cells[3] = cnt[i], sm[i], ssq[i], tim[i]
+        self._version[ns] += 1
+        self._index_times(ns, tim)
+        self._changed.update(keys)
+        added = int(np.count_nonzero(keep))
         self.accepted += added
         if added:
             self.last_update = max(self.last_update, float(times[keep].max()))
-        st = np.where(keep, _ADDED, np.where(hold, _HELD, _REJECTED)).astype(np.int8)
-        status[ok] = st
-        return status
+        return np.where(keep, _ADDED, np.where(hold, _HELD, _REJECTED)).astype(np.int8)
+
+    def _index_times(self, ns: IntArray, tim: FloatArray) -> None:
+        """Update the index's last update of every subgrid node of tiles ``ns`` (times ``(m, T*T)``)."""
+        m, side = ns.size, self.subgrid_side
+        p = self.tile // side
+        cur = tim.reshape(m, p, side, p, side).max(axis=(2, 4))
+        self._stimes[0][ns] = cur
+        for lv in range(1, self.levels):
+            p //= 2
+            cur = cur.reshape(m, p, 2, p, 2).max(axis=(2, 4))
+            self._stimes[lv][ns] = cur
 
     def _screen(
         self,
-        slots: IntArray,
+        m: int,
+        c_map: FloatArray,
+        s_map: FloatArray,
+        ss_map: FloatArray,
         flat: IntArray,
         local: IntArray,
         inv: IntArray,
@@ -347,11 +590,7 @@ class QuadtreeMap:
         Two passes: the first judges every sounding against references that may include the
         outliers themselves; the second recomputes the references from the map and the soundings
         the first pass kept, and judges again (a clipped, robust mean per cell and per block)."""
-        m = slots.size
         size = m * self._tt
-        c_map = self._count[slots].ravel()
-        s_map = self._sum[slots].ravel()
-        ss_map = self._sumsq[slots].ravel()
         row = local >> self._shift
         col = local & (self.tile - 1)
         blocks = []
@@ -361,7 +600,7 @@ class QuadtreeMap:
             tf = self.tile // f
             blocks.append(((m, tf, f, tf, f), inv * (tf * tf) + (row // f) * tf + (col // f)))
 
-        def judge(c: IntArray, sm: FloatArray, ss: FloatArray) -> tuple[npt.NDArray[np.bool_], npt.NDArray[np.bool_]]:
+        def judge(c: FloatArray, sm: FloatArray, ss: FloatArray) -> tuple[npt.NDArray[np.bool_], npt.NDArray[np.bool_]]:
             mean = sm / np.maximum(c, 1)
             dense = c[flat] >= self.min_count
             bad = dense & (np.abs(z - mean[flat]) > self.outlier_threshold)
@@ -382,7 +621,7 @@ class QuadtreeMap:
         if keep.all():
             return keep, judged
         w = keep.astype(np.float64)
-        n_k = np.bincount(flat, weights=w, minlength=size).astype(np.int64)
+        n_k = np.bincount(flat, weights=w, minlength=size)
         s_k = np.bincount(flat, weights=z * w, minlength=size)
         ss_k = np.bincount(flat, weights=z * z * w, minlength=size)
         return judge(c_map + n_k, s_map + s_k, ss_map + ss_k)
@@ -403,31 +642,24 @@ class QuadtreeMap:
     def level_stats(self, key: tuple[int, int], level: int) -> tuple[IntArray, FloatArray, FloatArray, FloatArray]:
         """``(count, sum, sumsq, updated)`` of a tile's cells at ``level`` (shape ``T>>level`` square)."""
         self.flush()
-        s = self._slots[key]
+        cells = self._cells(self._slots[key])
         t = self.tile
         f = 1 << level
         n = t >> level
         shape = (n, f, n, f)
-        cnt = self._count[s].reshape(shape).sum(axis=(1, 3))
-        sm = self._sum[s].reshape(shape).sum(axis=(1, 3))
-        ss = self._sumsq[s].reshape(shape).sum(axis=(1, 3))
-        tm = self._time[s].reshape(shape).max(axis=(1, 3))
+        cnt = cells[0].reshape(shape).sum(axis=(1, 3)).astype(np.int64)
+        sm = cells[1].reshape(shape).sum(axis=(1, 3))
+        ss = cells[2].reshape(shape).sum(axis=(1, 3))
+        tm = cells[3].reshape(shape).max(axis=(1, 3))
         return cnt, sm, ss, tm
 
     def subgrid_times(self, key: tuple[int, int], level: int) -> FloatArray:
-        """Last update of each subgrid node of a tile at ``level`` (``-inf`` where empty)."""
+        """Last update of each subgrid node of a tile at ``level`` (``-inf`` where empty), from the
+        index (the tile stays where it is)."""
         self.flush()
-        s = self._slots[key]
-        version = int(self._version[s])
-        hit = self._times_cache.get((s, level))
-        if hit is not None and hit[0] == version:
-            return hit[1]
-        p = self.subgrids_per_tile(level)
-        span = self.tile // p
-        result: FloatArray = self._time[s].reshape(p, span, p, span).max(axis=(1, 3))
-        result.flags.writeable = False
-        self._times_cache[(s, level)] = (version, result)
-        return result
+        view: FloatArray = self._stimes[level][self._slots[key]]
+        view.flags.writeable = False
+        return view
 
     def tile_of_subgrid(self, level: int, ix: int, iy: int) -> tuple[tuple[int, int], int, int]:
         """The tile holding subgrid ``(ix, iy)`` at ``level`` and the subgrid's position in it."""
@@ -441,16 +673,17 @@ class QuadtreeMap:
         s = self._slots.get(key)
         if s is None:
             return None
+        cells = self._cells(s)
         side = self.subgrid_side
         f = 1 << level
         span = side * f
         t = self.tile
         sl = np.s_[b * span:(b + 1) * span, a * span:(a + 1) * span]
         shape = (side, f, side, f)
-        cnt = self._count[s].reshape(t, t)[sl].reshape(shape).sum(axis=(1, 3))
-        sm = self._sum[s].reshape(t, t)[sl].reshape(shape).sum(axis=(1, 3))
-        ss = self._sumsq[s].reshape(t, t)[sl].reshape(shape).sum(axis=(1, 3))
-        upd = float(self._time[s].reshape(t, t)[sl].max())
+        cnt = cells[0].reshape(t, t)[sl].reshape(shape).sum(axis=(1, 3)).astype(np.int64)
+        sm = cells[1].reshape(t, t)[sl].reshape(shape).sum(axis=(1, 3))
+        ss = cells[2].reshape(t, t)[sl].reshape(shape).sum(axis=(1, 3))
+        upd = float(cells[3].reshape(t, t)[sl].max())
         with np.errstate(invalid="ignore", divide="ignore"):
             mean = np.where(cnt > 0, sm / np.maximum(cnt, 1), np.nan)
             var = np.where(cnt > 0, ss / np.maximum(cnt, 1) - mean * mean, np.nan)
@@ -458,7 +691,7 @@ class QuadtreeMap:
 
     def grid(self, level: int = 0) -> tuple[FloatArray, float, float]:
         """The whole map at ``level`` as one array (NaN where empty), row 0 = south, and the
-        (x, y) of its south-west corner."""
+        (x, y) of its south-west corner (small maps: it is one array in memory)."""
         self.flush()
         if not self._keys:
             return np.full((0, 0), np.nan), 0.0, 0.0
@@ -484,6 +717,61 @@ class QuadtreeMap:
         x0, y0 = keys.min(axis=0) * span
         x1, y1 = (keys.max(axis=0) + 1) * span
         return float(x0), float(y0), float(x1), float(y1)
+
+
+def _tile_name(key: tuple[int, int]) -> str:
+    return f"tile/{key[0]}/{key[1]}"
+
+
+_TILE_MAGIC = b"CXT1"
+_COUNT_TYPES = (np.uint8, np.uint16, np.uint32, np.float64)
+_zstd: Any = None
+
+
+def _codec() -> Any:
+    global _zstd
+    if _zstd is None:
+        import zstandard
+
+        _zstd = (zstandard.ZstdCompressor(level=1), zstandard.ZstdDecompressor())
+    return _zstd
+
+
+def _shuffle(a: npt.NDArray[Any]) -> bytes:
+    """Bytes of ``a`` grouped by significance (all first bytes, then all second...): the high
+    bytes of nearby elevations repeat, so they compress."""
+    return np.ascontiguousarray(a.reshape(-1).view(np.uint8).reshape(-1, a.itemsize).T).tobytes()
+
+
+def _unshuffle(b: bytes, dtype: Any) -> npt.NDArray[Any]:
+    size = np.dtype(dtype).itemsize
+    return np.ascontiguousarray(np.frombuffer(b, np.uint8).reshape(size, -1).T).view(dtype).reshape(-1)
+
+
+def _encode_tile(cells: FloatArray) -> bytes:
+    """A tile's cells as bytes (lossless): ``CXT1``, the count's type code, then zstd of the
+    byte-shuffled count (the smallest unsigned type that holds it) and sums, sums of squares and
+    times (float64)."""
+    cmax = float(cells[0].max())
+    code = 3
+    for i, dt in enumerate(_COUNT_TYPES[:3]):
+        if cmax <= np.iinfo(dt).max:
+            code = i
+            break
+    count = cells[0].astype(_COUNT_TYPES[code])
+    payload = _shuffle(count) + _shuffle(cells[1:])
+    return _TILE_MAGIC + bytes([code]) + _codec()[0].compress(payload)
+
+
+def _decode_tile(data: bytes, out: FloatArray) -> None:
+    if data[:4] != _TILE_MAGIC or data[4] > 3:
+        raise CoexError("a stored map tile is not in the CXT1 format")
+    dt = _COUNT_TYPES[data[4]]
+    payload = _codec()[1].decompress(data[5:])
+    tt = out.shape[1]
+    nc = tt * np.dtype(dt).itemsize
+    out[0] = _unshuffle(payload[:nc], dt)
+    out[1:] = _unshuffle(payload[nc:], np.float64).reshape(3, tt)
 
 
 def _grow(a: npt.NDArray[Any], cap: int, fill: float) -> Any:

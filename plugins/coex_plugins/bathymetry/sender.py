@@ -2,13 +2,13 @@
 
 from __future__ import annotations
 
+import heapq
 import logging
 import math
 from collections.abc import Iterable, Mapping
 from typing import Any
 
 import numpy as np
-import numpy.typing as npt
 
 from coex_core import wire
 from coex_core.config import merged_config
@@ -16,13 +16,14 @@ from coex_core.errors import ConfigError, RequestRejected
 from coex_core.messages import MapMetadata, MapRoiReply, MapRoiRequest, Message, Subgrid
 from coex_core.modality import ModalitySender
 from coex_core.state import persistent
+from coex_core.storage import Storage
 from coex_core.timefmt import to_stamp, unwrap
 from coex_core.wire import SUBGRID_RESOLUTIONS as RESOLUTIONS
 from coex_core.wire import SUBGRID_VERTICAL_RESOLUTIONS as VERTICAL_RESOLUTIONS
 
 from .codec import encode_subgrid, subgrid_bits
 from .points import pointcloud2_xyz
-from .quadtree import InputError, QuadtreeMap
+from .quadtree import InputError, QuadtreeMap, _grow
 
 __all__ = ["BathymetrySender", "SENDER_DEFAULTS"]
 
@@ -44,7 +45,9 @@ SENDER_DEFAULTS: dict[str, Any] = {
     "outlier_threshold": 1.0,
     "outlier_k": 3.0,
     "batch_points": 20_000,
-    "max_tiles": 1024,
+    "max_tiles": None,
+    "memory_budget": 512 * 2**20,
+    "disk_budget": 16 * 2**30,
     "topic": None,
     "max_queue": 4096,
     "standing_expiry": 1800.0,
@@ -97,7 +100,10 @@ class BathymetrySender(ModalitySender):
                 subgrid_side=int(cfg["subgrid_side"]), levels=int(cfg["levels"]),
                 outlier_rejection=bool(cfg["outlier_rejection"]),
                 outlier_threshold=float(cfg["outlier_threshold"]), outlier_k=float(cfg["outlier_k"]),
-                batch_points=int(cfg["batch_points"]), max_tiles=int(cfg["max_tiles"]),
+                batch_points=int(cfg["batch_points"]),
+                max_tiles=None if cfg["max_tiles"] is None else int(cfg["max_tiles"]),
+                memory_budget=int(cfg["memory_budget"]),
+                disk_budget=None if cfg["disk_budget"] is None else int(cfg["disk_budget"]),
             )
         except InputError as exc:
             raise ConfigError(str(exc)) from exc
@@ -109,7 +115,7 @@ class BathymetrySender(ModalitySender):
         self.max_standing = int(cfg["max_standing"])
         if not (self.standing_expiry >= 0 and self.max_standing >= 0):
             raise ConfigError("standing_expiry and max_standing must not be negative")
-        self._sent: dict[tuple[tuple[int, int], int], npt.NDArray[np.float64]] = {}
+        self._init_sent()
         self._queue: list[Key] = []
         self._queued: set[Key] = set()
         self._init_requests()
@@ -118,12 +124,38 @@ class BathymetrySender(ModalitySender):
         self._had_background = False
         self._pending = 0
         self._cache: dict[Key, tuple[int, Subgrid, int]] = {}
-        self._sent_at: dict[Key, float] = {}
         #: Subgrids whose elevations do not fit the wire (|z| >= 2**19 vertical units): skipped.
         self.unsendable: set[Key] = set()
         self._after_restore()
 
+    def _init_sent(self) -> None:
+        #: per level, by the map's tile number: the update time of the version of each subgrid
+        #: last sent (-inf: never) and when it was handed to the link (NaN: never)
+        cap = 4
+        self._sent_t = [np.full((cap, p, p), -np.inf) for p in self._per_tile()]
+        self._sent_when = [np.full((cap, p, p), np.nan) for p in self._per_tile()]
+        #: tiles that may hold subgrids changed since they were sent (the sender looks only there)
+        self._reset_index()
+        #: what the map reported when it began dropping soundings (logged once)
+        self._overflow_logged: str | None = None
+
+    def _per_tile(self) -> list[int]:
+        return [self.map.subgrids_per_tile(lv) for lv in range(self.map.levels)]
+
     def _after_restore(self) -> None:
+        old_sent = self.__dict__.pop("_sent", None)
+        old_at = self.__dict__.pop("_sent_at", None)
+        if old_sent is not None:  # saved by a version that kept one array per (tile, level)
+            self._init_sent()
+            for (tile, level), arr in old_sent.items():
+                if self.map.has_tile(tuple(tile)):
+                    n = self._sent_row(tuple(tile))
+                    self._sent_t[level][n] = arr
+            for key, when in (old_at or {}).items():
+                level, ix, iy = key
+                tile, a, b = self.map.tile_of_subgrid(level, ix, iy)
+                if self.map.has_tile(tile):
+                    self._sent_when[level][self._sent_row(tile), b, a] = when
         if getattr(self, "_resend", None) is None:  # a sender saved before spare work existed
             #: subgrids whose last sent version was lost: spare work (key -> when it was lost)
             self._resend: dict[Key, float] = {}
@@ -157,15 +189,70 @@ class BathymetrySender(ModalitySender):
             return pointcloud2_xyz(data)
         return data
 
+    def attach_storage(self, storage: Storage) -> None:
+        """Spilled map tiles go to ``storage`` (the node's store)."""
+        self.map.attach_storage(storage)
+
+    def sync_storage(self) -> None:
+        self.map.sync()
+
+    def _report_overflow(self) -> None:
+        """Log, once per cause, that the map drops soundings (topside sees ``MapMetadata.dropped``)."""
+        if self.map.overflow is not None and self.map.overflow != self._overflow_logged:
+            self._overflow_logged = self.map.overflow
+            log.warning("bathymetry map: %s (%d soundings dropped so far)", self.map.overflow, self.map.dropped)
+
     # ------------------------------------------------------------------------ subgrids
 
-    def _sent_array(self, tile: tuple[int, int], level: int) -> npt.NDArray[np.float64]:
-        arr = self._sent.get((tile, level))
-        if arr is None:
-            p = self.map.subgrids_per_tile(level)
-            arr = np.full((p, p), -np.inf)
-            self._sent[(tile, level)] = arr
-        return arr
+    def _sent_row(self, tile: tuple[int, int]) -> int:
+        """The map's number of ``tile`` (which must exist), the sender's arrays grown to hold it."""
+        n = self.map._slots[tile]
+        if n >= self._sent_t[0].shape[0]:
+            cap = max(2 * self._sent_t[0].shape[0], n + 1)
+            self._sent_t = [_grow(a, cap, -np.inf) for a in self._sent_t]
+            self._sent_when = [_grow(a, cap, np.nan) for a in self._sent_when]
+            self._tmin = [_grow(a, cap, np.inf) for a in self._tmin]
+            self._dcount = [_grow(a, cap, 0) for a in self._dcount]
+        return n
+
+    def _refresh(self, tile: tuple[int, int], levels: Iterable[int] | None = None) -> None:
+        """Recount the changed subgrids of ``tile`` (at ``levels``, default all) for the index."""
+        n = self._sent_row(tile)
+        for level in range(self.map.levels) if levels is None else levels:
+            times = self.map.subgrid_times(tile, level)
+            changed = np.isfinite(times) & (times > self._sent_t[level][n])
+            count = int(np.count_nonzero(changed))
+            self._changed_total += count - int(self._dcount[level][n])
+            self._dcount[level][n] = count
+            tmin = float(times[changed].min()) if count else math.inf
+            if tmin != self._tmin[level][n]:
+                self._tmin[level][n] = tmin
+                if count:
+                    heapq.heappush(self._heaps[level], (tmin, n))
+        last = float(self.map._stimes[-1][n].max())
+        if math.isfinite(last):
+            self._recent[n] = max(self._recent.get(n, -math.inf), last)
+
+    def _absorb(self) -> None:
+        """Take the map's changed tiles into the index (every tile after a restore)."""
+        changed = self.map.take_changed()
+        if changed is None:
+            self._reset_index()
+            changed = set(self.map._keys)
+        for tile in changed:
+            self._refresh(tile)
+
+    def _reset_index(self) -> None:
+        #: per level, by tile number: changed subgrids and the oldest update among them (the
+        #: index of changed tiles: the sender never scans the whole map)
+        cap = self._sent_t[0].shape[0]
+        self._tmin = [np.full(cap, math.inf) for _ in range(self.map.levels)]
+        self._dcount = [np.zeros(cap, np.int64) for _ in range(self.map.levels)]
+        self._changed_total = 0
+        #: per level, a heap of (oldest changed update, tile number); stale entries are skipped
+        self._heaps: list[list[tuple[float, int]]] = [[] for _ in range(self.map.levels)]
+        #: tiles changed recently (number -> their newest update): provisional spare work
+        self._recent: dict[int, float] = {}
 
     def subgrid_time(self, key: Key) -> float:
         """Last update of subgrid ``key`` (``-inf`` when it holds no data)."""
@@ -220,63 +307,110 @@ class BathymetrySender(ModalitySender):
         self._resend.pop(key, None)
         level, ix, iy = key
         tile, a, b = self.map.tile_of_subgrid(level, ix, iy)
-        arr = self._sent_array(tile, level)
+        if not self.map.has_tile(tile):
+            return
+        n = self._sent_row(tile)
+        arr = self._sent_t[level][n]
         arr[b, a] = max(arr[b, a], updated)
         if now is not None:
-            self._sent_at[key] = now
+            self._sent_when[level][n, b, a] = now
+        self._refresh(tile, (level,))
 
     def _sent_time(self, key: Key) -> float:
         """The update time of the version of ``key`` last sent (``-inf``: never sent)."""
         level, ix, iy = key
         tile, a, b = self.map.tile_of_subgrid(level, ix, iy)
-        if (tile, level) not in self._sent:
+        if not self.map.has_tile(tile):
             return -math.inf
-        return float(self._sent[(tile, level)][b, a])
+        return float(self._sent_t[level][self._sent_row(tile), b, a])
 
     def last_transmitted(self, key: Key) -> float | None:
         """When subgrid ``key`` (level, ix, iy) was last handed to the link (None: never)."""
-        return self._sent_at.get(key)
+        level, ix, iy = key
+        if not 0 <= level < self.map.levels:
+            return None
+        tile, a, b = self.map.tile_of_subgrid(level, ix, iy)
+        if not self.map.has_tile(tile):
+            return None
+        when = float(self._sent_when[level][self._sent_row(tile), b, a])
+        return None if math.isnan(when) else when
 
     def _background(self, now: float, limit: int = 64, quiet: bool = True) -> list[tuple[int, float, Key]]:
-        """Up to about ``limit`` eligible background subgrids: coarsest level first, then the
-        longest-quiet first (also counts every changed subgrid for ``pending``). With ``quiet``
-        False, changed subgrids that are not quiet yet (provisional spare work) instead."""
+        """Up to ``limit`` eligible background subgrids: coarsest level first, then the
+        longest-quiet first. With ``quiet`` False, changed subgrids that are not quiet yet
+        (provisional spare work) instead. Only tiles the index of changed tiles names are
+        looked at, so the cost does not grow with the map."""
+        self._absorb()
         out: list[tuple[int, float, Key]] = []
-        changed = 0
+        if not quiet:
+            for n, last in list(self._recent.items()):
+                if now - last > self.send_delay + 1.0:
+                    del self._recent[n]  # settled now: the background sends it
         for level in range(self.map.levels - 1, -1, -1):
-            p = self.map.subgrids_per_tile(level)
-            found: list[tuple[int, float, Key]] = []
-            for tile in self.map.tiles:
-                times = self.map.subgrid_times(tile, level)
-                sent = self._sent_array(tile, level)
-                dirty = np.isfinite(times) & (times > sent)
-                changed += int(dirty.sum())
-                if len(out) >= limit:
-                    continue
-                settled = now - times >= self.send_delay
-                # provisional: quiet for a few seconds at least (a version sent in the middle of
-                # a second of pings would go again with the same stamp)
-                spare = ~settled & (now - times >= PROVISIONAL_QUIET)
-                rows, cols = np.nonzero(dirty & (settled if quiet else spare))
-                found.extend(
-                    (-level, float(times[b, a]), (level, tile[0] * p + int(a), tile[1] * p + int(b)))
-                    for b, a in zip(rows.tolist(), cols.tolist(), strict=True)
-                )
-            if found:
-                found.sort()
-                out.extend(found[: max(limit - len(out), 0)])
-        self._pending = changed + len(self._queue)
+            need = limit - len(out)
+            if need <= 0:
+                break
+            found = self._eligible_quiet(level, now, need) if quiet else self._eligible_recent(level, now)
+            found.sort()
+            out.extend(found[:need])
+        self._pending = self._changed_total + len(self._queue)
         return out
+
+    def _tile_found(self, level: int, n: int, now: float, quiet: bool) -> list[tuple[int, float, Key]]:
+        tile = self.map._keys[n]
+        p = self.map.subgrids_per_tile(level)
+        times = self.map.subgrid_times(tile, level)
+        changed = np.isfinite(times) & (times > self._sent_t[level][n])
+        settled = now - times >= self.send_delay
+        # provisional: quiet for a few seconds at least (a version sent in the middle of a
+        # second of pings would go again with the same stamp)
+        mask = changed & (settled if quiet else ~settled & (now - times >= PROVISIONAL_QUIET))
+        rows, cols = np.nonzero(mask)
+        return [(-level, float(times[b, a]), (level, tile[0] * p + a, tile[1] * p + b))
+                for b, a in zip(rows.tolist(), cols.tolist(), strict=True)]
+
+    def _eligible_quiet(self, level: int, now: float, need: int) -> list[tuple[int, float, Key]]:
+        """Changed subgrids quiet for ``send_delay`` at ``level``: tiles in order of their oldest
+        change, until ``need`` are found and no other tile can hold an older one."""
+        heap, tmin = self._heaps[level], self._tmin[level]
+        found: list[tuple[int, float, Key]] = []
+        taken: list[tuple[float, int]] = []
+        seen: set[int] = set()
+        cutoff = now - self.send_delay
+        while heap:
+            t, n = heap[0]
+            if t != tmin[n] or n in seen:
+                heapq.heappop(heap)  # stale: the tile changed or was sent since
+                continue
+            if t > cutoff:
+                break
+            if len(found) >= need and t > sorted(f[1] for f in found)[need - 1]:
+                break
+            taken.append(heapq.heappop(heap))
+            seen.add(n)
+            found.extend(self._tile_found(level, n, now, True))
+        for entry in taken:
+            heapq.heappush(heap, entry)
+        return found
+
+    def _eligible_recent(self, level: int, now: float) -> list[tuple[int, float, Key]]:
+        found: list[tuple[int, float, Key]] = []
+        for n in sorted(self._recent):
+            if self._dcount[level][n]:
+                found.extend(self._tile_found(level, n, now, False))
+        return found
 
     def inventory(self) -> dict[Key, int]:
         """Every subgrid holding data, with the stamp it would be sent with."""
+        self.map.flush()
         inv: dict[Key, int] = {}
+        keys = np.array(self.map._keys, np.int64).reshape(-1, 2)
         for level in range(self.map.levels):
             p = self.map.subgrids_per_tile(level)
-            for tile in self.map.tiles:
-                times = self.map.subgrid_times(tile, level)
-                for b, a in zip(*np.nonzero(np.isfinite(times)), strict=True):
-                    inv[(level, tile[0] * p + int(a), tile[1] * p + int(b))] = to_stamp(float(times[b, a]))
+            times = self.map._stimes[level][: len(keys)]
+            ns, bs, as_ = np.nonzero(np.isfinite(times))
+            for n, b, a, t in zip(ns.tolist(), bs.tolist(), as_.tolist(), times[ns, bs, as_].tolist(), strict=True):
+                inv[(level, int(keys[n, 0]) * p + a, int(keys[n, 1]) * p + b)] = to_stamp(t)
         return inv
 
     def metadata(self, now: float) -> MapMetadata:
@@ -304,8 +438,9 @@ class BathymetrySender(ModalitySender):
             return out
         # Soundings held back for lack of neighbours go in once the input has been quiet.
         self.map.flush(force=now - self.map.last_input >= self.send_delay)
-        if not self.map.tiles:
+        if not self.map._keys:
             return out
+        self._report_overflow()
         background = self._background(now)
         if background:
             self._had_background = True
