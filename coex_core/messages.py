@@ -289,6 +289,8 @@ class MapMetadata(Message):
     x_max: int
     y_max: int
     pending: int
+    #: thousands of soundings the vehicle's map has dropped (a budget exhausted), rounded up
+    dropped_k: int = 0
 
 
 class SubgridEncoding(enum.IntEnum):

@@ -46,6 +46,9 @@ MAP_METADATA = Body(
     "x_max" / Bounded(-65536, 65535, unit="m") * "Extent of the data: east edge",
     "y_max" / Bounded(-65536, 65535, unit="m") * "Extent of the data: north edge",
     "pending" / Bounded(0, 65535, saturating=True) * "Subgrids waiting to be sent",
+    "dropped_k" / Bounded(0, 65535, saturating=True, unit="1000 soundings")
+    * "Soundings the map dropped because a budget (memory, disk, tiles) is exhausted, in thousands "
+      "rounded up (0: none dropped); topside warns the operator",
 )
 
 
@@ -211,7 +214,7 @@ def _sub(**kw: object) -> Subgrid:
 def _meta(**kw: object) -> MapMetadata:
     base: dict[str, object] = dict(
         stamp=0, resolution=1.0, vertical_resolution=0.1, subgrid_side=8, levels=4, origin_lat=0.0,
-        origin_lon=0.0, x_min=0, y_min=0, x_max=0, y_max=0, pending=0,
+        origin_lon=0.0, x_min=0, y_min=0, x_max=0, y_max=0, pending=0, dropped_k=0,
     )
     base.update(kw)
     return MapMetadata(**base)  # type: ignore[arg-type]
@@ -231,9 +234,11 @@ register(MessageSpec(
                           x_max=-65536, y_max=-65536)),
         ("nui_2022", _meta(stamp=5400, origin_lat=33.806114, origin_lon=-118.389713, x_min=-256,
                            y_min=-256, x_max=255, y_max=255, pending=311)),
+        ("dropping", _meta(stamp=72000, x_min=0, y_min=0, x_max=10000, y_max=10000, pending=4000,
+                           dropped_k=38500)),
         ("maximum", _meta(stamp=2**18 - 1, resolution=16.0, vertical_resolution=2.0, subgrid_side=16,
                           levels=16, origin_lat=90.0, origin_lon=180.0, x_min=65535, y_min=65535,
-                          x_max=65535, y_max=65535, pending=65535)),
+                          x_max=65535, y_max=65535, pending=65535, dropped_k=65535)),
     ],
 ))
 register(MessageSpec(

@@ -427,6 +427,7 @@ class BathymetrySender(ModalitySender):
             origin_lat=round(self.origin[0], 6), origin_lon=round(self.origin[1], 6),
             x_min=clamp(ext[0]), y_min=clamp(ext[1]), x_max=clamp(ext[2]), y_max=clamp(ext[3]),
             pending=min(self._pending, 65535),
+            dropped_k=min(-(-self.map.dropped // 1000), 65535),
         )
 
     # ----------------------------------------------------------------------------- fill
