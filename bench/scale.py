@@ -30,10 +30,12 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import os
 import resource
 import statistics
 import subprocess
 import sys
+import tempfile
 import time
 from pathlib import Path
 from typing import Any
@@ -47,6 +49,8 @@ PING_STEP = 0.5
 BEAMS = 100
 RSS_BUDGET_MB = 512
 INGEST_TARGET = 4e6
+#: a snapshot of the vehicle's node every this many batches (as a store does every few seconds)
+SNAPSHOT_EVERY = 20
 
 
 def survey(area_km2: float, seed: int = 1):  # type: ignore[no-untyped-def]
@@ -71,19 +75,43 @@ def survey(area_km2: float, seed: int = 1):  # type: ignore[no-untyped-def]
             yield t, np.column_stack([x, y, z])
 
 
-def one_area(area: float) -> dict[str, Any]:
-    from coex_core.messages import MapRoiRequest
-    from coex_plugins.bathymetry import BathymetrySender
+def _rss_mb() -> float:
+    """Resident memory of this process now (MB)."""
+    with open("/proc/self/statm") as f:
+        return int(f.read().split()[1]) * os.sysconf("SC_PAGE_SIZE") / 2**20
 
-    sender = BathymetrySender({"levels": 5})
+
+def _peak_mb() -> float:
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+
+
+def _build() -> Any:
+    from coex import ChannelManager, LinkConfig, Node, Schedule, StreamConfig
+    from coex_plugins.bathymetry import BathymetryModality, BathymetrySender
+
+    node = Node(ChannelManager(2, [LinkConfig(0, Schedule.simple([1, 2], 20.0, 2.0), rate=5, dst=1)]))
+    node.add_sender(BathymetryModality, BathymetrySender({"levels": 5}), StreamConfig(3, "map", priority=30))
+    return node
+
+
+def one_area(area: float, workdir: Path) -> dict[str, Any]:
+    from coex import NodeStore
+    from coex_core.messages import MapRoiRequest
+
+    db = workdir / "vehicle.db"
+    base_rss = _rss_mb()  # the interpreter and the libraries, before the map exists
+    store = NodeStore(db)
+    node = store.restore(_build)
+    sender = node.sender("bathymetry")
     points = 0
     spent = 0.0
     side = math.sqrt(area) * 1000.0
     last_km2_start = (1.0 - 1.0 / area) * side * side if area > 1 else 0.0
     last_points = 0
     last_spent = 0.0
+    snapshots: list[float] = []
     t = 0.0
-    for t, xyz in survey(area):
+    for i, (t, xyz) in enumerate(survey(area)):
         t0 = time.perf_counter()
         sender.ingest(xyz, t)
         dt = time.perf_counter() - t0
@@ -92,6 +120,10 @@ def one_area(area: float) -> dict[str, Any]:
         if points / 2.0 >= last_km2_start:  # two soundings per m²: the area covered so far
             last_points += xyz.shape[0]
             last_spent += dt
+        if i % SNAPSHOT_EVERY == SNAPSHOT_EVERY - 1:
+            t0 = time.perf_counter()
+            store.snapshot(node, t)
+            snapshots.append(time.perf_counter() - t0)
     t0 = time.perf_counter()
     sender.map.flush(force=True)
     spent += time.perf_counter() - t0
@@ -103,27 +135,87 @@ def one_area(area: float) -> dict[str, Any]:
         fills.append(time.perf_counter() - t0)
     roi = []
     for i in range(5):
+        # a region mapped in the first minutes of the survey (its tiles left memory long ago):
+        # the request, and the fill that sends its first subgrids (bringing the tile back)
         req = MapRoiRequest(i, 0, 0, 0, 16, 16, True, (), 0)
         t0 = time.perf_counter()
         try:
-            sender.handle(req, t + 200.0 + i)
+            sender.handle(req, t + 200.0 + 400.0 * i)
         except Exception as exc:  # a refused request is a result too
             return {"area_km2": area, "error": f"region request failed: {exc}"}
+        sent = sender.fill(240, t + 200.0 + 400.0 * i)
         roi.append(time.perf_counter() - t0)
+        if not any(getattr(s, "level", None) == 0 and 0 <= s.ix < 16 and 0 <= s.iy < 16 for s in sent):
+            return {"area_km2": area, "error": "the region request was not served by the next fill"}
+    peak = _peak_mb()
+    t0 = time.perf_counter()
+    store.snapshot(node, t + 3000.0)
+    snapshots.append(time.perf_counter() - t0)
+    disk = sum(f.stat().st_size for f in workdir.glob("vehicle.db*"))
+    store.close()
+    del node, sender, m
+    # restart: a new store and node from the file (snapshot, index of tiles; no sounding replayed)
+    t0 = time.perf_counter()
+    store2 = NodeStore(db)
+    node2 = store2.restore(_build)
+    s2 = node2.sender("bathymetry")
+    s2.fill(240, t + 4000.0)
+    restart = time.perf_counter() - t0
+    restored_ok = s2.map.accepted > 0 and s2.map.dropped == 0
+    store2.close()
     return {
         "area_km2": area,
         "points": points,
         "ingest_pts_per_s": round(points / spent) if spent else None,
         "ingest_last_km2_pts_per_s": round(last_points / last_spent) if last_spent else None,
-        "peak_rss_mb": round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0, 1),
-        "map_mb": round(m.nbytes() / 2**20, 1),
-        "dropped": int(m.dropped),
-        "dropped_share": round(m.dropped / points, 4) if points else 0.0,
+        "peak_rss_mb": round(peak, 1),
+        "map_rss_mb": round(peak - base_rss, 1),
+        "map_mb": round(s2.map.nbytes() / 2**20, 1),
+        "dropped": int(s2.map.dropped),
+        "dropped_share": round(s2.map.dropped / points, 4) if points else 0.0,
         "fill_ms": round(1000 * statistics.median(fills), 3),
         "region_request_ms": round(1000 * statistics.median(roi), 3),
-        "disk_mb": 0.0,
-        "topside_rss_mb": None,
-        "restart_s": None,
+        "disk_mb": round(disk / 2**20, 1),
+        "snapshot_ms_max": round(1000 * max(snapshots), 1),
+        "restart_s": round(restart, 3),
+        "restored": restored_ok,
+    }
+
+
+def topside(area: float) -> dict[str, Any]:
+    """Every subgrid of every level of the surveyed map, received by a topside receiver in this
+    process (the vehicle's map built in memory first, then sent through fill() and the wire)."""
+    from coex_core import wire
+    from coex_plugins.bathymetry import BathymetryReceiver, BathymetrySender
+
+    sender = BathymetrySender({"levels": 5})
+    t = 0.0
+    for t, xyz in survey(area):
+        sender.ingest(xyz, t)
+    sender.map.flush(force=True)
+    frames: list[bytes] = []
+    now = t + 100.0
+    while True:
+        out = sender.fill(1 << 20, now)
+        if not out:
+            break
+        frames.extend(wire.encode(m) for m in out)
+    del sender
+    base_rss = _rss_mb()
+    rx = BathymetryReceiver({"auto_fill": False})
+    t0 = time.perf_counter()
+    for f in frames:
+        rx.receive(wire.decode(f), now)
+    spent = time.perf_counter() - t0
+    held = sum(len(rx.holdings(lv)) for lv in rx.levels())
+    resident = getattr(rx, "resident_bytes", None)
+    return {
+        "area_km2": area,
+        "subgrids": len(frames),
+        "held": held,
+        "receive_per_s": round(len(frames) / spent) if spent else None,
+        "topside_rss_mb": round(_rss_mb() - base_rss, 1),
+        "topside_resident_mb": round(resident() / 2**20, 1) if resident else None,
     }
 
 
@@ -132,10 +224,15 @@ def main() -> int:
     ap.add_argument("--areas", default="1,4,16,36,100", help="areas in km² (comma-separated)")
     ap.add_argument("--quick", action="store_true", help="1 and 4 km² only")
     ap.add_argument("--one", type=float, help=argparse.SUPPRESS)  # run one area in this process
+    ap.add_argument("--topside-one", type=float, help=argparse.SUPPRESS)
     ap.add_argument("--out", type=Path, default=ROOT / "bench" / "results" / "scale.json")
     args = ap.parse_args()
     if args.one is not None:
-        print(json.dumps(one_area(args.one)))
+        with tempfile.TemporaryDirectory(prefix="coex-scale-") as tmp:
+            print(json.dumps(one_area(args.one, Path(tmp))))
+        return 0
+    if args.topside_one is not None:
+        print(json.dumps(topside(args.topside_one)))
         return 0
     areas = [1.0, 4.0] if args.quick else [float(a) for a in args.areas.split(",")]
     rows = []
