@@ -33,10 +33,15 @@ and in both blocks) is held back (``pending``) and judged again with the next ba
 ``max_pending_age`` seconds older than the newest sounding (or ``max_pending`` are waiting); then
 it is added unjudged. ``flush(force=True)`` adds every held sounding at once (end of a file).
 
-Rejected soundings are counted (``rejected``), never added. Non-finite soundings, soundings
-outside the addressable area (|x|, |y| beyond ``resolution * 2**16``) and soundings that would
-need more than ``max_tiles`` tiles (1024 by default, about 470 MB, 16 km² at 1 m) are dropped and
-counted (``dropped``).
+Rejected soundings are counted (``rejected``), never added. Non-finite soundings and soundings
+outside the addressable area (|x|, |y| beyond ``resolution * 2**16``) are dropped and counted
+(``dropped``), and so are soundings that would need a new tile once ``disk_budget`` or the
+optional ``max_tiles`` is reached or the storage fails; ``overflow`` then says why (the sender
+logs it and tells topside in ``MapMetadata.dropped_k``).
+
+Out of core: at most ``memory_budget`` bytes of tiles stay in memory (least recently used leave
+first); the others are kept, losslessly compressed, in the map's :mod:`coex_core.storage` and
+read back on demand (see :class:`QuadtreeMap`).
 """
 
 from __future__ import annotations
@@ -258,9 +263,11 @@ class QuadtreeMap:
 
     @property
     def max_resident(self) -> int:
-        """Tiles kept in memory at most (two thirds of ``memory_budget``; the rest is for the batch
-        in flight, the index, the coarse summaries and the sender's bookkeeping)."""
-        return max(4, (self.memory_budget * 2 // 3) // self.tile_bytes)
+        """Tiles kept in memory at most: half of ``memory_budget`` less the index and the coarse
+        summaries (the other half is for the batch in flight, snapshots and the sender's
+        bookkeeping)."""
+        index = self._version.nbytes * 3 + sum(a.nbytes for a in self._stimes) + self._summ.nbytes
+        return max(4, (self.memory_budget // 2 - index) // self.tile_bytes)
 
     @property
     def resident(self) -> int:
