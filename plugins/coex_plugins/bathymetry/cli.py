@@ -174,7 +174,7 @@ def roundtrip(
             "mean_bytes": float(np.mean(subgrid_bytes[k])) if subgrid_bytes.get(k) else None,
             "mean_bytes_2022": float(np.mean(bytes_2022[k])) if bytes_2022.get(k) else None,
         }
-        if k in receiver._mosaics:
+        if k in receiver.levels():
             prod = receiver.level_product(k)
             cell = float(prod.meta["cell_size"])
             write_geotiff(out_dir / f"level_{k}.tif", prod.data, x0=prod.meta["x0"], y0=prod.meta["y0"],

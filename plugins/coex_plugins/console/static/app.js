@@ -165,12 +165,13 @@ function drawMap() {
     for (const lv of visible) {  // coarse first, finer on top
       const img = levelImage(lv);
       if (!img) continue;
-      const [ax, ay] = w2s(lv.x0, lv.y1), [bx, by] = w2s(lv.x1, lv.y0);
+      const box = lv.image || [lv.x0, lv.y0, lv.x1, lv.y1];  // the drawn array's extent
+      const [ax, ay] = w2s(box[0], box[3]), [bx, by] = w2s(box[2], box[1]);
       ctx.drawImage(img, ax, ay, bx - ax, by - ay);
     }
     if ($("#show-age").checked && visible.length) {
       const lv = visible[visible.length - 1];
-      const span = lv.side * lv.cell;
+      const span = lv.side * lv.cell * (lv.tile_span || 1);  // blocks of tile_span subgrids
       for (const [ix, iy, age] of lv.tiles) {
         const [ax, ay] = w2s(ix * span, (iy + 1) * span);
         const sz = span * view.scale;
