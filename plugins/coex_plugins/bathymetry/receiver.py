@@ -331,29 +331,38 @@ class _Overview:
             self.count = cnt
         self.ox0, self.oy0, self.nx, self.ny = x0, y0, gx, gy
 
-    def weights(self) -> tuple[FloatArray, FloatArray]:
-        """(mean x count, count) of every overview cell, as float64."""
+    def weights(self, rows: slice = slice(None)) -> tuple[FloatArray, FloatArray]:
+        """(mean x count, count) of the overview cells of ``rows``, as float64."""
         if self.count is None:
-            return _weighted(self.mean)
-        cnt = self.count.astype(np.float64)
-        return np.where(cnt > 0, self.mean.astype(np.float64) * cnt, 0.0), cnt
+            return _weighted(self.mean[rows])
+        cnt = self.count[rows].astype(np.float64)
+        return np.where(cnt > 0, self.mean[rows].astype(np.float64) * cnt, 0.0), cnt
 
     def coarsen(self) -> None:
-        """Twice the step: every new cell the mean of 2 x 2 old ones (weighted by their counts)."""
-        z, w = self.weights()
+        """Twice the step: every new cell the mean of 2 x 2 old ones (weighted by their counts),
+        a band of rows at a time (no full-size temporaries)."""
         x0, y0 = self.ox0 // 2, self.oy0 // 2
         px, py = self.ox0 - 2 * x0, self.oy0 - 2 * y0
         nx, ny = (px + self.nx + 1) // 2, (py + self.ny + 1) // 2
-        zz = np.zeros((2 * ny, 2 * nx))
-        ww = np.zeros((2 * ny, 2 * nx))
-        zz[py:py + self.ny, px:px + self.nx] = z
-        ww[py:py + self.ny, px:px + self.nx] = w
-        zs = zz.reshape(ny, 2, nx, 2).sum(axis=(1, 3))
-        ws = ww.reshape(ny, 2, nx, 2).sum(axis=(1, 3))
+        mean = np.full((ny, nx), np.nan, np.float32)
+        count = np.zeros((ny, nx), np.float32)
+        band = 128
+        for r in range(0, ny, band):
+            h = min(band, ny - r)
+            lo, hi = max(0, 2 * r - py), min(self.ny, 2 * (r + h) - py)
+            z, w = self.weights(slice(lo, hi))
+            zz = np.zeros((2 * h, 2 * nx))
+            ww = np.zeros((2 * h, 2 * nx))
+            o = lo + py - 2 * r
+            zz[o:o + hi - lo, px:px + self.nx] = z
+            ww[o:o + hi - lo, px:px + self.nx] = w
+            zs = zz.reshape(h, 2, nx, 2).sum(axis=(1, 3))
+            ws = ww.reshape(h, 2, nx, 2).sum(axis=(1, 3))
+            mean[r:r + h] = np.where(ws > 0, zs / np.maximum(ws, 1.0), np.nan)
+            count[r:r + h] = ws
         self.step *= 2
         self.ox0, self.oy0, self.nx, self.ny = x0, y0, nx, ny
-        self.mean = np.where(ws > 0, zs / np.maximum(ws, 1.0), np.nan).astype(np.float32)
-        self.count = ws.astype(np.float32)
+        self.mean, self.count = mean, count
 
     def draw(self, gx: int, gy: int, values: FloatArray, old: FloatArray | None) -> None:
         """Level cells from global cell (gx, gy) now hold ``values`` (they held ``old``)."""
@@ -761,8 +770,7 @@ class BathymetryReceiver(ModalityReceiver):
         r, c = ly * side, lx * side
         block = tile.values[r:r + side, c:c + side]
         st = self._stats[level]
-        fin = ~np.isnan(values)
-        cells = int(np.count_nonzero(fin))
+        cells = int(np.count_nonzero(values == values))  # not NaN
         old: FloatArray | None = None
         if tile.held[ly, lx]:
             old = block.copy()
@@ -786,8 +794,12 @@ class BathymetryReceiver(ModalityReceiver):
         st.oldest = min(st.oldest, stamp)
         st.oldest_rx = min(st.oldest_rx, now)
         if cells:
-            v = values[fin]
-            st.zmin, st.zmax = min(st.zmin, float(v.min())), max(st.zmax, float(v.max()))
+            flat = values.ravel()
+            lo, hi = float(np.fmin.reduce(flat)), float(np.fmax.reduce(flat))  # NaN ignored
+            if lo < st.zmin:
+                st.zmin = lo
+            if hi > st.zmax:
+                st.zmax = hi
         if draw:
             self._draw(level, ix * side, iy * side, values, old)
 
