@@ -318,3 +318,44 @@ def test_a_receiver_with_spilled_tiles_restores_from_a_node_store(tmp_path: Path
         assert _fingerprint(restored) == held
     finally:
         store.close()
+
+
+def test_the_console_shows_a_big_level_bounded_and_what_is_on_screen(monkeypatch: pytest.MonkeyPatch) -> None:
+    """The console's map section of a level too big to draw whole: a bounded picture (the
+    decimated overview, placed on its extent), the coverage in a bounded number of blocks,
+    and, through the server, the part on screen at a finer step, read from the tiles."""
+    import io
+    import urllib.error
+    import urllib.request
+
+    from PIL import Image
+
+    from coex_plugins.console import ConsoleState, serve
+    from coex_plugins.console import state as console_state
+
+    monkeypatch.setattr(console_state, "MAP_BLOCKS", 16)
+    rx = BathymetryReceiver({"levels": 1, "max_mosaic_cells": 4096, "tile_subgrids": 4,
+                             "memory_budget": 1})
+    st = ConsoleState(receivers={"bathymetry": rx})
+    for msg in _survey(48, 40, levels=1):
+        for p in rx.receive(msg, 1000.0):
+            st.apply_product("bathymetry", p, 1000.0)
+    (lv,) = st.snapshot()["map"]["levels"]
+    assert lv["subgrids"] == len(rx.holdings(0)) > 16 and lv["step"] > 1
+    assert lv["tile_span"] >= 4 and len(lv["tiles"]) <= 16  # blocks of tiles, not every subgrid
+    covered = {(ix // lv["tile_span"], iy // lv["tile_span"]) for ix, iy in rx.holdings(0)}
+    assert {(bx, by) for bx, by, _ in lv["tiles"]} == covered
+    z, x0, y0, cell = st.level_grid(0)  # type: ignore[misc]
+    assert z.size <= 4096 and cell == lv["step"]
+    assert lv["image"] == [x0, y0, x0 + z.shape[1] * cell, y0 + z.shape[0] * cell]
+    assert lv["x0"] >= lv["image"][0] and lv["x1"] <= lv["image"][2]
+    with serve(st, "127.0.0.1", 0) as srv:
+        box = "x0=-16&y0=0&x1=112&y1=64"
+        with urllib.request.urlopen(srv.url + f"map/0/window.png?{box}&step=2", timeout=5) as r:
+            img = np.asarray(Image.open(io.BytesIO(r.read())))
+        assert img.shape == (32, 64, 4)  # 128 x 64 m at 2 m a pixel
+        want, _ = rx.window(0, -16.0, 0.0, 112.0, 64.0, max_cells=32 * 64)
+        assert ((img[::-1, :, 3] > 0) == np.isfinite(want)).all()  # north up, empty transparent
+        for bad in ("x0=0&y0=0&x1=0&y1=10", "x0=0&y0=0&x1=1e9&y1=1e9", "x0=nan&y0=0&x1=1&y1=1"):
+            with pytest.raises(urllib.error.HTTPError):
+                urllib.request.urlopen(srv.url + f"map/0/window.png?{bad}&step=1", timeout=5)
