@@ -605,8 +605,8 @@ class BathymetryReceiver(ModalityReceiver):
             meta = self._overview_meta.get(level)
             dirty = self._ov_dirty.get(level, set())
             if meta is not None and meta[0] != ov.step:
-                for key in store.keys(f"ov/{level}/{meta[0]}/"):
-                    store.put(key, b"")  # a coarser step replaced these
+                for name in store.keys(f"ov/{level}/{meta[0]}/"):
+                    store.put(name, b"")  # a coarser step replaced these
                 dirty = ov.chunks()
             for cx, cy in dirty:
                 store.put(f"ov/{level}/{ov.step}/{cx}/{cy}", ov.encode_chunk(cx, cy, self.tile_compression))

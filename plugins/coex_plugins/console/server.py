@@ -160,7 +160,7 @@ class _Handler(BaseHTTPRequestHandler):
             if not all(math.isfinite(v) for v in box):
                 return self._not_found()
             with hub.lock:
-                job = hub.state.map_window_job(level, *box, step=step)
+                job = hub.state.map_window_job(level, box[0], box[1], box[2], box[3], step=step)
             if job is None:
                 return self._not_found()
             self._send(200, job(), "image/png", cache=True)  # drawn outside the lock

@@ -209,7 +209,8 @@ class ConsoleState:
         self.receivers: dict[str, Any] = dict(receivers or {})
         self.own_receivers = receivers is None
         # map (the bathymetry receiver's levels)
-        self._map_summary: dict[int, tuple[int, Any, Any, int]] = {}
+        #: per level: (version, summary, coverage span, keys, oldest stamps, image box, step)
+        self._map_summary: dict[int, tuple[int, Any, int, Any, Any, list[float], int]] = {}
         self._png: dict[int, tuple[int, bytes]] = {}
         self.targets: list[dict[str, Any]] = []
         #: Flag candidate targets on the finest level (threshold in metres, minimum cells).
