@@ -817,11 +817,13 @@ class ConsoleState:
 
     def _auto_targets(self) -> list[dict[str, Any]]:
         """Candidate targets flagged on the finest level held at 2 m or better (cells standing
-        out from their surroundings, the bathymetry plugin's ``find_targets``)."""
+        out from their surroundings, the bathymetry plugin's ``find_targets``), if it is drawn
+        whole (a level too big for that is a decimated overview: no car stands out in it)."""
         rx = self.map_receiver
         if not self.auto_targets or rx is None:
             return []
-        fine = [lv for lv in rx.levels() if (rx.geometry(lv) or (99.0, 0))[0] <= 2.0]
+        fine = [lv for lv in rx.levels() if (rx.geometry(lv) or (99.0, 0))[0] <= 2.0
+                and rx.level_product(lv).meta.get("step", 1) == 1]
         if not fine:
             return []
         level = min(fine)
