@@ -245,6 +245,7 @@ def test_the_saved_state_holds_the_tiles_only_without_a_storage() -> None:
     store = MemoryStorage()
     rx.attach_storage(store)
     rx.sync_storage()
+    assert rx.disk_bytes() == store.nbytes() > 0  # tiles and overview chunks
     blob = state.dumps(rx)
     assert len(blob) < store.nbytes() / 4
     again = state.loads(blob)

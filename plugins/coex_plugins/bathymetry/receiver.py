@@ -518,6 +518,8 @@ class BathymetryReceiver(ModalityReceiver):
         self._index: dict[int, _LevelIndex] = {}
         #: overview geometry as last written to an attached storage: level -> (step, ox0, oy0, nx, ny)
         self._overview_meta: dict[int, tuple[int, int, int, int, int]] = {}
+        #: bytes of each overview chunk in that storage: (level, cx, cy) -> size
+        self._ov_stored: dict[tuple[int, int, int], int] = {}
         # With the receiver's own MemoryStorage, the resident tiles and the overviews are saved
         # with its state (``_own_*`` are the same objects); with a storage the node attached,
         # the state holds the index only and the rest is in the storage.
@@ -575,6 +577,7 @@ class BathymetryReceiver(ModalityReceiver):
             for level, ov in self._overviews.items():
                 self._ov_dirty[level] = ov.chunks()
             self._overview_meta = {}
+            self._ov_stored = {}
         else:
             for level, (step, ox0, oy0, nx, ny) in self._overview_meta.items():
                 ov = _Overview(step)
@@ -607,9 +610,12 @@ class BathymetryReceiver(ModalityReceiver):
             if meta is not None and meta[0] != ov.step:
                 for name in store.keys(f"ov/{level}/{meta[0]}/"):
                     store.put(name, b"")  # a coarser step replaced these
+                self._ov_stored = {k: v for k, v in self._ov_stored.items() if k[0] != level}
                 dirty = ov.chunks()
             for cx, cy in dirty:
-                store.put(f"ov/{level}/{ov.step}/{cx}/{cy}", ov.encode_chunk(cx, cy, self.tile_compression))
+                data = ov.encode_chunk(cx, cy, self.tile_compression)
+                store.put(f"ov/{level}/{ov.step}/{cx}/{cy}", data)
+                self._ov_stored[(level, cx, cy)] = len(data)
             self._overview_meta[level] = (ov.step, ov.ox0, ov.oy0, ov.nx, ov.ny)
         self._ov_dirty.clear()
 
@@ -623,8 +629,10 @@ class BathymetryReceiver(ModalityReceiver):
                    for ov in self._overviews.values())
 
     def disk_bytes(self) -> int:
-        """Bytes the storage holds for this receiver's tiles (as last written)."""
-        return int(sum(int(ix.stored[:ix.n].sum()) for ix in self._index.values()))
+        """Bytes the storage holds for this receiver: its tiles and overview chunks, as last
+        written (counted as they are written, never read back)."""
+        tiles = sum(int(ix.stored[:ix.n].sum()) for ix in self._index.values())
+        return tiles + sum(self._ov_stored.values())
 
     def _tile(self, level: int, tx: int, ty: int, create: bool = False) -> _Tile | None:
         """Tile (tx, ty) of ``level``, read back from storage if spilled; made when ``create``."""
