@@ -360,3 +360,20 @@ def test_the_console_shows_a_big_level_bounded_and_what_is_on_screen(monkeypatch
         for bad in ("x0=0&y0=0&x1=0&y1=10", "x0=0&y0=0&x1=1e9&y1=1e9", "x0=nan&y0=0&x1=1&y1=1"):
             with pytest.raises(urllib.error.HTTPError):
                 urllib.request.urlopen(srv.url + f"map/0/window.png?{bad}&step=1", timeout=5)
+
+
+def test_an_overview_coarsened_between_snapshots_restores_from_its_storage() -> None:
+    cfg = {"levels": 1, "max_mosaic_cells": 16384, "memory_budget": 1, "tile_subgrids": 4}
+    rx = BathymetryReceiver(cfg)
+    store = MemoryStorage()
+    rx.attach_storage(store)
+    _feed(rx, _survey(10, 10, levels=1))
+    rx.sync_storage()
+    first = rx.level_product(0).meta["step"]
+    _feed(rx, _survey(60, 50, levels=1, x0=-20, y0=-20), 1100.0)  # the level outgrows its array
+    rx.sync_storage()
+    assert rx.level_product(0).meta["step"] > first
+    assert rx.disk_bytes() == store.nbytes()  # chunks of the finer step emptied
+    back = state.loads(state.dumps(rx))
+    back.attach_storage(store)
+    _assert_same(rx, back)
