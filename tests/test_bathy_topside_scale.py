@@ -377,3 +377,16 @@ def test_an_overview_coarsened_between_snapshots_restores_from_its_storage() -> 
     back = state.loads(state.dumps(rx))
     back.attach_storage(store)
     _assert_same(rx, back)
+
+
+def test_attaching_the_same_storage_again_moves_nothing() -> None:
+    rx = BathymetryReceiver({"levels": 1, "memory_budget": 1, "tile_subgrids": 4})
+    _feed(rx, _survey(12, 12, levels=1))
+    base = MemoryStorage()
+    rx.attach_storage(base.child("rx/bathymetry/"))
+    puts: list[str] = []
+    put = base.put
+    base.put = lambda key, data: (puts.append(key), put(key, data))[1]  # type: ignore[method-assign]
+    rx.attach_storage(base.child("rx/bathymetry/"))  # what a node attaching again gives
+    assert puts == []
+    assert set(rx.holdings(0)) == {(m.ix, m.iy) for m in _survey(12, 12, levels=1)}

@@ -566,7 +566,8 @@ class BathymetryReceiver(ModalityReceiver):
         """Keep spilled tiles (and, for snapshots, the overviews) in ``storage`` from now on.
         What the receiver's own storage held moves there; a receiver restored from a snapshot
         taken with a storage attached reads its overviews back from it."""
-        if storage is self._store:
+        if _same_storage(storage, self._store):
+            self._store = storage
             return
         old = self._store
         if old is not None:
@@ -1216,6 +1217,15 @@ class BathymetryReceiver(ModalityReceiver):
 
     def active_regions(self) -> list[Region]:
         return [r for r in self.regions if not r.done]
+
+
+def _same_storage(a: Storage | None, b: Storage | None) -> bool:
+    """Whether two storages are the same keys: the same object, or the same part (``child``)
+    of the same storage, as a node attaching its storage again gives."""
+    if a is b:
+        return True
+    pa, pb = getattr(a, "parent", None), getattr(b, "parent", None)
+    return pa is not None and _same_storage(pa, pb) and getattr(a, "prefix", None) == getattr(b, "prefix", None)
 
 
 def _blocks_from(ov: _Overview, ox0: int, oy0: int, ox1: int, oy1: int, s: int) -> FloatArray:
