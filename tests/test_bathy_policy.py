@@ -145,10 +145,10 @@ def test_a_request_over_surveyed_ground_with_current_stamps_closes() -> None:
 
 def test_region_request_resends_only_missing_and_newer_subgrids() -> None:
     sender, receiver, now = _synced()
-    held0 = receiver.held[0]
+    held0 = receiver.holdings(0)
     inside = sorted(k for k in held0 if -2 <= k[0] < 4 and -2 <= k[1] < 4)
     missing = inside[0]
-    del held0[missing]
+    assert receiver.forget(0, *missing)
     t2 = now + 10.0
     newer_key = inside[-1]
     x = (newer_key[0] * 8 + 3.5) * 1.0
@@ -175,9 +175,9 @@ def test_requested_subgrids_go_out_ahead_of_background() -> None:
 
 def test_gap_filling_sends_exactly_what_topside_lacks() -> None:
     sender, receiver, now = _synced()
-    dropped = sorted(receiver.held[0])[::3]
+    dropped = sorted(receiver.holdings(0))[::3]
     for k in dropped:
-        del receiver.held[0][k]
+        assert receiver.forget(0, *k)
     xs = [k[0] for k in sender.inventory() if k[0] == 0]
     keys = [k[1:] for k in sender.inventory() if k[0] == 0]
     x0, y0 = min(k[0] for k in keys), min(k[1] for k in keys)
@@ -200,10 +200,10 @@ def test_a_requested_subgrid_acked_meanwhile_is_not_sent_again_unless_newer() ->
     copy answers its request (the ack arrives after the request), unless the map has a newer
     version of it by then."""
     sender, receiver, now = _synced()
-    keys = sorted(k for k in receiver.held[0] if min(k) >= 0)[:2]
+    keys = sorted(k for k in receiver.holdings(0) if min(k) >= 0)[:2]
     copies = {k: sender.build((0, *k)) for k in keys}
     for k in keys:
-        del receiver.held[0][k]
+        assert receiver.forget(0, *k)
     receiver.request_gaps(0, min(k[0] for k in keys), min(k[1] for k in keys), 16, 16)
     for r in receiver.poll(now):
         sender.handle(r, now)
@@ -222,7 +222,7 @@ def test_the_newest_gap_request_for_a_region_wins() -> None:
     """An older copy of a gap request delivered late (the channel re-sent it) queues nothing;
     a newer gap request saying topside now holds what an earlier one asked for unqueues it."""
     sender, receiver, now = _synced()
-    k1, k2 = sorted(k for k in receiver.held[0] if min(k) >= 0)[:2]
+    k1, k2 = sorted(k for k in receiver.holdings(0) if min(k) >= 0)[:2]
     x0, y0 = min(k1[0], k2[0]), min(k1[1], k2[1])
     w, h = max(k1[0], k2[0]) - x0 + 1, max(k1[1], k2[1]) - y0 + 1
 
@@ -271,7 +271,7 @@ def test_receiver_rejects_absurd_regions() -> None:
 
 def test_receiver_keeps_the_newest_version_and_ages() -> None:
     sender, receiver, now = _synced()
-    key = sorted(receiver.held[0])[0]
+    key = sorted(receiver.holdings(0))[0]
     stamp = receiver.holdings(0)[key]
     sg = sender.build((0, *key))
     assert sg is not None

@@ -140,17 +140,23 @@ def test_coex_bathy_roundtrip_reports_bad_input(tmp_path: Path, capsys: pytest.C
 
 
 def test_a_far_away_subgrid_does_not_blow_up_the_mosaic() -> None:
+    """A far-away (or bogus) subgrid is held and drawn: the level's drawn array turns into a
+    decimated overview within ``max_mosaic_cells``, where both subgrids show."""
     receiver = BathymetryReceiver({"levels": 1})
     base = {"level": 0, "stamp": 100, "resolution": 1.0, "vertical_resolution": 0.1, "side": 8,
             "encoding": 0, "z_base": -5000, "width": 0, "mask": None, "values": ()}
     near = Subgrid(ix=0, iy=0, **base)  # type: ignore[arg-type]
     far = Subgrid(ix=-8192, iy=8191, **base)  # type: ignore[arg-type]
     receiver.receive(near, 200.0)
-    assert receiver.receive(far, 200.0) == []
-    prod = receiver.level_product(0)
+    (prod,) = receiver.receive(far, 200.0)
     assert prod.data.size <= 16 * 1024 * 1024
+    assert prod.meta["step"] > 1 and prod.meta["cell_size"] == prod.meta["step"] * 1.0
     assert receiver.holdings(0) == {(0, 0): 100, (-8192, 8191): 100}
-    assert (0, -8192, 8191) in receiver.off_mosaic
+    cell, x0, y0 = prod.meta["cell_size"], prod.meta["x0"], prod.meta["y0"]
+    for ix, iy in ((0, 0), (-8192, 8191)):
+        r, c = int((iy * 8 + 4 - y0) // cell), int((ix * 8 + 4 - x0) // cell)
+        assert prod.data[r, c] == pytest.approx(-500.0)
+    assert np.isfinite(prod.data).sum() == 2
 
 
 def test_a_region_outside_the_wire_s_index_range_is_refused_and_nothing_is_asked() -> None:

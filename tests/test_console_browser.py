@@ -324,3 +324,51 @@ def test_a_third_party_modality_shows_in_the_generic_panel(browser: Any, tmp_pat
         page.screenshot(path=str(tmp_path / "other-panel.png"), full_page=True)
         page.close()
     assert errors == []
+
+
+def test_a_big_level_zoomed_in_is_drawn_from_what_is_on_screen(browser: Any) -> None:
+    """A level too big to draw whole comes as a decimated overview (16 m pixels here); the page
+    asks the server for the part on screen at the screen's resolution, read from the
+    receiver's tiles, and draws it (zoomed in further, again)."""
+    import numpy as np
+
+    from coex_plugins.bathymetry import BathymetryReceiver, encode_subgrid
+
+    rx = BathymetryReceiver({"levels": 1, "max_mosaic_cells": 4096, "memory_budget": 1,
+                             "tile_subgrids": 4})
+    state = ConsoleState(receivers={"bathymetry": rx})
+    yy, xx = np.mgrid[0:8, 0:8]
+    for iy in range(40):
+        for ix in range(40):
+            q = -4000 + 3 * (ix * 8 + xx) + ((iy * 8 + yy) // 4) % 7
+            sg = encode_subgrid(q, np.ones((8, 8), bool), level=0, ix=ix, iy=iy,
+                                stamp=to_stamp(T0), resolution=1.0, vertical_resolution=0.1)
+            for p in rx.receive(sg, T0):
+                state.apply_product("bathymetry", p, T0)
+    assert state.snapshot()["map"]["levels"][0]["step"] == 16
+    errors: list[str] = []
+    windows: list[str] = []
+    hub = ConsoleHub(state, lambda msg: None, lambda: T0)
+    with serve(hub, "127.0.0.1", 0) as srv:
+        page = browser.new_page(viewport={"width": 1400, "height": 1000})
+        page.on("pageerror", lambda e: errors.append(str(e)))
+        page.on("requestfinished", lambda r: windows.append(r.url) if "/window.png" in r.url else None)
+        page.goto(srv.url)
+        page.wait_for_function("window.coex && window.coex.updates > 0", timeout=10_000)
+        deadline = time.monotonic() + 10
+        while not windows and time.monotonic() < deadline:
+            page.wait_for_timeout(100)
+        assert windows and "step=1&" in windows[0]  # about 2 screen pixels a metre
+        x, y = page.evaluate("window.coex.pagePoint(100, 100)")
+        page.mouse.move(x, y)
+        seen = len(windows)
+        for _ in range(6):
+            page.mouse.wheel(0, -400)
+            page.wait_for_timeout(50)
+        deadline = time.monotonic() + 10
+        while len(windows) == seen and time.monotonic() < deadline:
+            page.wait_for_timeout(100)
+        assert len(windows) > seen  # the part now on screen
+        assert _painted(page) > 100_000
+        page.close()
+    assert not errors, errors

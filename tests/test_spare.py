@@ -251,7 +251,7 @@ def _bathy_pair(loss: float, seed: int, *, spare: float = 1.0) -> tuple[Node, No
 
 
 def _held(receiver: BathymetryReceiver) -> set[tuple[int, int, int]]:
-    return {(lv, ix, iy) for lv, cells in receiver.held.items() for ix, iy in cells}
+    return {(lv, ix, iy) for lv in receiver.levels() for ix, iy in receiver.holdings(lv)}
 
 
 def test_subgrids_lost_in_the_water_are_sent_again_by_spare_capacity() -> None:

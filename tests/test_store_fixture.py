@@ -74,13 +74,15 @@ def test_a_store_of_an_earlier_version_loads(tmp_path: Path, version: str, role:
     shutil.copy(source, db)
     expected = json.loads((FIXTURES / f"store-{version}.json").read_text())[role]
     store = NodeStore(db)
+    again = NodeStore(tmp_path / "again.sqlite")
     try:
         node = store.restore(lambda: getattr(build_dive(minutes=MINUTES), role))
+        assert digest(node) == expected
+        # and it goes on working: moved to another store (its modalities' out-of-core storage
+        # too, while the first store is open), another snapshot of it loads too
+        node.attach_storage(again.storage())
     finally:
         store.close()
-    assert digest(node) == expected
-    # and it goes on working: another snapshot of it loads too
-    again = NodeStore(tmp_path / "again.sqlite")
     try:
         again.snapshot(node, T0 + 300.0)
         twin = again.restore(lambda: getattr(build_dive(minutes=MINUTES), role))

@@ -16,7 +16,15 @@ from coex_core.messages import MapMetadata, MapRoiReply, MapRoiRequest, Message,
 from coex_core.modality import Modality
 
 from .codec import decode_subgrid, decode_subgrid_units, encode_subgrid, size_2022, subgrid_bits
-from .export import Candidate, find_targets, hillshade, write_geotiff, write_png
+from .export import (
+    Candidate,
+    find_targets,
+    hillshade,
+    write_geotiff,
+    write_geotiff_tiled,
+    write_level_geotiff,
+    write_png,
+)
 from .points import iter_points, load_points, pointcloud2_xyz, write_pointcloud_bag
 from .quadtree import InputError, LevelBlock, QuadtreeMap
 from .receiver import RECEIVER_DEFAULTS, BathymetryReceiver, Region
@@ -44,6 +52,8 @@ __all__ = [
     "size_2022",
     "subgrid_bits",
     "write_geotiff",
+    "write_geotiff_tiled",
+    "write_level_geotiff",
     "write_png",
     "write_pointcloud_bag",
 ]

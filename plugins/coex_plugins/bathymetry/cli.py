@@ -33,7 +33,7 @@ from coex_core.messages import (
 )
 
 from .codec import decode_subgrid_units, size_2022
-from .export import find_targets, write_geotiff, write_png
+from .export import find_targets, write_level_geotiff, write_png
 from .points import iter_points
 from .receiver import BathymetryReceiver
 from .sender import BathymetrySender
@@ -174,11 +174,12 @@ def roundtrip(
             "mean_bytes": float(np.mean(subgrid_bytes[k])) if subgrid_bytes.get(k) else None,
             "mean_bytes_2022": float(np.mean(bytes_2022[k])) if bytes_2022.get(k) else None,
         }
-        if k in receiver._mosaics:
+        if k in receiver.levels():
+            # the GeoTIFF at full resolution, streamed from the receiver's tiles; the PNG and
+            # the candidates from its drawn overview (the level itself while it is small)
+            write_level_geotiff(out_dir / f"level_{k}.tif", receiver, k, origin_lat=lat, origin_lon=lon)
             prod = receiver.level_product(k)
             cell = float(prod.meta["cell_size"])
-            write_geotiff(out_dir / f"level_{k}.tif", prod.data, x0=prod.meta["x0"], y0=prod.meta["y0"],
-                          cell=cell, origin_lat=lat, origin_lon=lon)
             write_png(out_dir / f"level_{k}.png", prod.data, cell)
             info["tif"] = f"level_{k}.tif"
             if k == 0:

@@ -4,7 +4,9 @@ GeoTIFF: float32, NaN = no data (``GDAL_NODATA`` tag ``nan``), north-up. The CRS
 Transverse Mercator centred on the survey's origin (``origin_lat``, ``origin_lon``, WGS 84, scale
 1, no false easting/northing), so map x/y (metres east/north of the origin) are the projected
 coordinates. Written with ``tifffile`` and the GeoTIFF keys (ModelPixelScale, ModelTiepoint,
-GeoKeyDirectory, GeoDoubleParams).
+GeoKeyDirectory, GeoDoubleParams). :func:`write_level_geotiff` writes a receiver's level the same
+way, tiled (256 x 256) and deflate-compressed, streamed from the receiver's tiles: a 100 km² level
+at 1 m is never one array in memory.
 
 PNG: elevation through a colour map, multiplied by a hillshade (sun from the north-west, 45 deg).
 
@@ -15,6 +17,7 @@ height above the background and size.
 
 from __future__ import annotations
 
+from collections.abc import Callable, Iterator
 from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
@@ -22,7 +25,8 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
-__all__ = ["Candidate", "find_targets", "hillshade", "opening", "read_geotiff", "write_geotiff", "write_png"]
+__all__ = ["Candidate", "find_targets", "hillshade", "opening", "read_geotiff", "write_geotiff",
+           "write_geotiff_tiled", "write_level_geotiff", "write_png"]
 
 FloatArray = npt.NDArray[np.float64]
 
@@ -74,18 +78,92 @@ def write_geotiff(
     import tifffile
 
     arr = np.flipud(np.asarray(grid, np.float64)).astype(np.float32)
-    rows = arr.shape[0]
+    tags = _geotags(x0, y0, cell, arr.shape[0], origin_lat, origin_lon)
+    out = Path(path)
+    tifffile.imwrite(out, arr, photometric="minisblack", extratags=tags)
+    return out
+
+
+def _geotags(x0: float, y0: float, cell: float, rows: int, origin_lat: float,
+             origin_lon: float) -> list[tuple[int, str, int, Any, bool]]:
     directory, doubles = _geokeys(origin_lat, origin_lon)
-    tags: list[tuple[int, str, int, Any, bool]] = [
+    return [
         (33550, "d", 3, (cell, cell, 0.0), True),  # ModelPixelScale
         (33922, "d", 6, (0.0, 0.0, 0.0, x0, y0 + rows * cell, 0.0), True),  # ModelTiepoint (top-left)
         (34735, "H", len(directory), tuple(directory), True),  # GeoKeyDirectory
         (34736, "d", len(doubles), tuple(doubles), True),  # GeoDoubleParams
         (42113, "s", 4, "nan", True),  # GDAL_NODATA
     ]
+
+
+def write_geotiff_tiled(
+    path: str | Path,
+    read: Callable[[int, int, int, int], npt.ArrayLike],
+    *,
+    width: int,
+    height: int,
+    x0: float,
+    y0: float,
+    cell: float,
+    origin_lat: float = 0.0,
+    origin_lon: float = 0.0,
+    tile: int = 256,
+) -> Path:
+    """Write a ``width x height`` raster as :func:`write_geotiff` does (same tags), but tiled
+    (``tile x tile``, a multiple of 16) and deflate-compressed, fetching it a tile at a time:
+    ``read(col, row, w, h)`` returns the ``h x w`` cells from column ``col`` and row ``row``
+    counted from the south-west corner (row 0 = south, NaN = no data). Only one tile is in
+    memory at a time."""
+    import tifffile
+
+    if tile <= 0 or tile % 16:
+        raise ValueError("tile must be a positive multiple of 16")
+    if width <= 0 or height <= 0:
+        raise ValueError("empty raster")
+
+    def tiles() -> Iterator[npt.NDArray[np.float32]]:
+        for top in range(height, 0, -tile):  # TIFF tile rows, north first
+            r0 = max(0, top - tile)
+            for c0 in range(0, width, tile):
+                w = min(tile, width - c0)
+                block = np.asarray(read(c0, r0, w, top - r0), np.float64)
+                if block.shape != (top - r0, w):
+                    raise ValueError(f"read({c0}, {r0}, {w}, {top - r0}) gave {block.shape}")
+                out = np.full((tile, tile), np.nan, np.float32)
+                out[:top - r0, :w] = block[::-1]
+                yield out
+
     out = Path(path)
-    tifffile.imwrite(out, arr, photometric="minisblack", extratags=tags)
+    tifffile.imwrite(out, tiles(), shape=(height, width), dtype=np.float32, tile=(tile, tile),
+                     compression="zlib", photometric="minisblack",
+                     extratags=_geotags(x0, y0, cell, height, origin_lat, origin_lon))
     return out
+
+
+def write_level_geotiff(path: str | Path, receiver: Any, level: int, *, tile: int = 256,
+                        origin_lat: float | None = None, origin_lon: float | None = None) -> Path:
+    """Level ``level`` of a bathymetry receiver (:class:`~coex_plugins.bathymetry.BathymetryReceiver`)
+    at full resolution over everything it received, as a tiled, compressed GeoTIFF
+    (:func:`write_geotiff_tiled`) read from its tiles through :meth:`window`: memory stays
+    bounded by the receiver's budget and one GeoTIFF tile. The origin defaults to the
+    receiver's. :class:`ValueError` if nothing of the level is held."""
+    summary = receiver.level_summary(level)
+    if summary is None or summary["extent"] is None:
+        raise ValueError(f"nothing held at level {level}")
+    ix0, iy0, ix1, iy1 = summary["extent"]
+    cell, side = float(summary["cell"]), int(summary["side"])
+    x0, y0 = ix0 * side * cell, iy0 * side * cell
+    lat, lon = receiver.origin()
+
+    def read(col: int, row: int, w: int, h: int) -> npt.NDArray[np.float64]:
+        grid, _ = receiver.window(level, x0 + col * cell, y0 + row * cell, x0 + (col + w) * cell,
+                                  y0 + (row + h) * cell, max_cells=w * h)
+        return np.asarray(grid)
+
+    return write_geotiff_tiled(path, read, width=(ix1 - ix0) * side, height=(iy1 - iy0) * side,
+                               x0=x0, y0=y0, cell=cell, tile=tile,
+                               origin_lat=lat if origin_lat is None else origin_lat,
+                               origin_lon=lon if origin_lon is None else origin_lon)
 
 
 def read_geotiff(path: str | Path) -> tuple[FloatArray, dict[str, Any]]:

@@ -1,9 +1,25 @@
-"""The topside side: level mosaics, per-subgrid holdings and ages, region requests and retries."""
+"""The topside side: levels held as tiles (spilled to storage beyond a memory budget), drawn
+overviews, per-subgrid holdings and ages, region requests and retries.
+
+Every level is cut into *receiver tiles* of ``tile_subgrids x tile_subgrids`` subgrids (16 x 16
+subgrids of 8 x 8 cells: 128 x 128 cells). A tile holds the cells (float64, NaN where nothing)
+and, per subgrid, its stamp, its arrival time and whether it is held. Tiles stay in memory up to
+``memory_budget`` bytes; beyond it the least recently used one is written to the receiver's
+:class:`~coex_core.storage.Storage` (``tile/<level>/<tx>/<ty>``, raw arrays behind a small header,
+zlib level ``tile_compression``) and read back when needed. Each level also keeps one drawn
+*overview* array of at most ``max_mosaic_cells`` cells: the level at full resolution while it
+fits, else block means over 2 x 2, 4 x 4 ... cells (``meta["step"]`` of its product), so a level
+of any extent is drawn in bounded memory and nothing held is left out. :meth:`window` reads what
+is on screen (or a tile of an export) from the tiles.
+"""
 
 from __future__ import annotations
 
 import math
-from collections.abc import Mapping
+import struct
+import zlib
+from collections import OrderedDict
+from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -14,12 +30,15 @@ from coex_core.config import merged_config
 from coex_core.errors import ConfigError, RequestRejected
 from coex_core.messages import MapMetadata, MapRoiReply, MapRoiRequest, Message, Subgrid
 from coex_core.modality import ModalityReceiver, Product
-from coex_core.state import persistent
-from coex_core.timefmt import to_stamp, unwrap
+from coex_core.state import StateError, persistent
+from coex_core.storage import MemoryStorage, Storage
+from coex_core.timefmt import STAMP_MODULUS, unwrap
 
 from .codec import decode_subgrid
 
 __all__ = ["BathymetryReceiver", "RECEIVER_DEFAULTS", "Region"]
+
+FloatArray = npt.NDArray[np.float64]
 
 #: Receiver configuration keys and defaults.
 RECEIVER_DEFAULTS: dict[str, Any] = {
@@ -36,6 +55,9 @@ RECEIVER_DEFAULTS: dict[str, Any] = {
     "max_regions": 256,
     "max_requests_per_poll": 4,
     "max_mosaic_cells": 16 * 1024 * 1024,
+    "memory_budget": 256 * 1024 * 1024,
+    "tile_subgrids": 16,
+    "tile_compression": 1,
 }
 
 #: Largest region of one request with stamps (8 x 8 = 64 subgrids) and of one gap-filling request.
@@ -43,6 +65,15 @@ ROI_CHUNK = 8
 GAP_CHUNK = 16
 #: subgrid indices a MapRoiRequest can carry (14-bit two's complement, spec: MapRoiRequest x0/y0)
 SUBGRID_INDEX_MIN, SUBGRID_INDEX_MAX = -8192, 8191
+#: Overview cells per side of one stored overview chunk (``ov/<level>/<step>/<cx>/<cy>``).
+CHUNK = 128
+#: Largest array :meth:`BathymetryReceiver.window` returns by default (cells).
+WINDOW_CELLS = 4 * 1024 * 1024
+
+_TILE_HEADER = struct.Struct("<4sBBBB")
+_TILE_MAGIC = b"CXRT"
+_CHUNK_HEADER = struct.Struct("<4sBBBBI")
+_CHUNK_MAGIC = b"CXOV"
 
 
 @persistent("bathymetry.Region", version=3,
@@ -69,60 +100,354 @@ class Region:
     waiting: int = 0
 
 
+# ------------------------------------------------------------------------- saved by version 1
+# (one object per subgrid and one dense mosaic per level): read only, to load an older state.
+
 @persistent("bathymetry.Held")
 @dataclass
 class _Held:
     stamp: float
-    values: npt.NDArray[np.float64]
+    values: FloatArray
     received: float
 
 
 @persistent("bathymetry.Mosaic")
 @dataclass
 class _Mosaic:
-    """One level assembled from subgrids, grown by doubling as subgrids arrive."""
-
     side: int
     ix0: int = 0
     iy0: int = 0
     nx: int = 0
     ny: int = 0
-    array: npt.NDArray[np.float64] = field(default_factory=lambda: np.full((0, 0), np.nan))
+    array: FloatArray = field(default_factory=lambda: np.full((0, 0), np.nan))
 
-    def fits(self, ix: int, iy: int, max_cells: int) -> bool:
-        """Whether pasting subgrid (ix, iy) keeps the mosaic's bounding box within ``max_cells``."""
+
+# ------------------------------------------------------------------------------------ tiles
+
+@persistent("bathymetry.Tile")
+class _Tile:
+    """``n x n`` subgrids of one level: cells (row 0 = south, NaN where nothing) and, per
+    subgrid, stamp, arrival time and whether it is held. ``dirty``: the storage lacks it."""
+
+    def __init__(self, n: int, side: int) -> None:
+        self.values = np.full((n * side, n * side), np.nan)
+        self.stamp = np.zeros((n, n))
+        self.received = np.zeros((n, n))
+        self.held = np.zeros((n, n), bool)
+        self.dirty = True
+
+    @property
+    def nbytes(self) -> int:
+        return int(self.values.nbytes + self.stamp.nbytes + self.received.nbytes + self.held.nbytes)
+
+
+def _tile_nbytes(n: int, side: int) -> int:
+    return (n * side) ** 2 * 8 + n * n * 17
+
+
+def _encode_tile(t: _Tile, compression: int) -> bytes:
+    n = t.held.shape[0]
+    side = t.values.shape[0] // n
+    payload = b"".join((t.held.astype(np.uint8).tobytes(), t.stamp.astype("<f8").tobytes(),
+                        t.received.astype("<f8").tobytes(), t.values.astype("<f8").tobytes()))
+    flags = 0
+    if compression > 0:
+        payload, flags = zlib.compress(payload, compression), 1
+    return _TILE_HEADER.pack(_TILE_MAGIC, 1, flags, n, side) + payload
+
+
+def _decode_tile(data: bytes, n: int, side: int, where: str) -> _Tile:
+    try:
+        magic, version, flags, tn, tside = _TILE_HEADER.unpack_from(data)
+        if magic != _TILE_MAGIC or version != 1 or (tn, tside) != (n, side):
+            raise ValueError(f"header {magic!r} v{version} {tn}x{tside}")
+        payload = data[_TILE_HEADER.size:]
+        if flags & 1:
+            payload = zlib.decompress(payload)
+        buf = bytearray(payload)
+        cells = (n * side) ** 2
+        if len(buf) != n * n * 17 + cells * 8:
+            raise ValueError(f"{len(buf)} bytes")
+        t = object.__new__(_Tile)
+        t.held = np.frombuffer(buf, np.uint8, n * n).reshape(n, n).astype(bool)
+        o = n * n
+        t.stamp = np.frombuffer(buf, "<f8", n * n, o).reshape(n, n).astype(np.float64)
+        o += 8 * n * n
+        t.received = np.frombuffer(buf, "<f8", n * n, o).reshape(n, n).astype(np.float64)
+        o += 8 * n * n
+        t.values = np.frombuffer(buf, "<f8", cells, o).reshape(n * side, n * side).astype(np.float64)
+    except (ValueError, struct.error, zlib.error) as exc:
+        raise StateError(f"bathymetry receiver: stored tile {where} is damaged ({exc})") from exc
+    t.dirty = False
+    return t
+
+
+@persistent("bathymetry.LevelIndex", transient=("pos",))
+class _LevelIndex:
+    """Every tile of one level, and per tile a summary written whenever the tile is (its
+    resident copy may be newer): subgrids held, newest and oldest stamp, oldest arrival, and the
+    bytes the storage holds for it."""
+
+    def __init__(self) -> None:
+        self.n = 0
+        self.keys = np.zeros((0, 2), np.int64)
+        self.count = np.zeros(0, np.int64)
+        self.newest = np.zeros(0)
+        self.oldest = np.zeros(0)
+        self.oldest_rx = np.zeros(0)
+        self.stored = np.zeros(0, np.int64)
+        self.pos: dict[tuple[int, int], int] = {}
+
+    def _after_restore(self) -> None:
+        self.pos = {(int(a), int(b)): i for i, (a, b) in enumerate(self.keys[:self.n].tolist())}
+
+    def add(self, tx: int, ty: int) -> int:
+        if self.n == len(self.count):
+            cap = max(16, 2 * self.n)
+            self.keys = np.resize(self.keys, (cap, 2))
+            for name in ("count", "newest", "oldest", "oldest_rx", "stored"):
+                setattr(self, name, np.resize(getattr(self, name), cap))
+        i = self.n
+        self.keys[i] = (tx, ty)
+        self.count[i], self.stored[i] = 0, 0
+        self.newest[i], self.oldest[i], self.oldest_rx[i] = -math.inf, math.inf, math.inf
+        self.pos[(tx, ty)] = i
+        self.n += 1
+        return i
+
+    def summarise(self, i: int, t: _Tile) -> None:
+        held = t.held
+        n = int(np.count_nonzero(held))
+        self.count[i] = n
+        if n:
+            st = t.stamp[held]
+            self.newest[i], self.oldest[i] = st.max(), st.min()
+            self.oldest_rx[i] = t.received[held].min()
+        else:
+            self.newest[i], self.oldest[i], self.oldest_rx[i] = -math.inf, math.inf, math.inf
+
+
+@persistent("bathymetry.LevelStats")
+@dataclass
+class _LevelStats:
+    """What a level holds, kept as subgrids come: counts, stamps, extent (subgrid indices,
+    end exclusive, of everything received) and depth range. ``stale``: the oldest stamp or
+    arrival (or the newest stamp) left with a subgrid replaced or forgotten; recomputed from
+    the tile summaries when asked."""
+
+    subgrids: int = 0
+    cells: int = 0
+    newest: float = -math.inf
+    oldest: float = math.inf
+    oldest_rx: float = math.inf
+    stale: bool = False
+    ix0: int = 0
+    iy0: int = 0
+    ix1: int = 0
+    iy1: int = 0
+    zmin: float = math.inf
+    zmax: float = -math.inf
+
+
+# --------------------------------------------------------------------------------- overview
+
+def _starts(g0: int, n: int, s: int) -> npt.NDArray[np.intp]:
+    """Local indices where a global block of ``s`` cells starts, for ``n`` cells from global ``g0``."""
+    first = (-g0) % s
+    starts = np.arange(first, n, s)
+    if first:
+        starts = np.concatenate(([0], starts))
+    return starts
+
+
+def _block_sums(z: FloatArray, w: FloatArray, gy: int, gx: int, s: int) -> tuple[int, int, FloatArray, FloatArray]:
+    """Per global ``s x s`` block: the sums of ``z`` and of the weights ``w`` of an array whose
+    cell (0, 0) is global cell (gy, gx). Returns (first block row, first block column, sums, weights)."""
+    rs, cs = _starts(gy, z.shape[0], s), _starts(gx, z.shape[1], s)
+    sz = np.add.reduceat(np.add.reduceat(z, rs, axis=0), cs, axis=1)
+    sw = np.add.reduceat(np.add.reduceat(w, rs, axis=0), cs, axis=1)
+    return gy // s, gx // s, sz, sw
+
+
+def _weighted(values: FloatArray) -> tuple[FloatArray, FloatArray]:
+    fin = ~np.isnan(values)
+    return np.where(fin, values, 0.0), fin.astype(np.float64)
+
+
+@persistent("bathymetry.Overview")
+@dataclass
+class _Overview:
+    """One level drawn in bounded memory: overview cell (i, j) is the mean of level cells
+    ``[j*step, (j+1)*step) x [i*step, (i+1)*step)``; the array covers overview cells
+    ``[ox0, ox0 + nx) x [oy0, oy0 + ny)`` (row 0 = south), grown with slack as subgrids come.
+    At ``step`` 1 ``mean`` holds the cells themselves (float64); beyond, float32 means and how
+    many cells each is of (``count``)."""
+
+    step: int = 1
+    ox0: int = 0
+    oy0: int = 0
+    nx: int = 0
+    ny: int = 0
+    mean: npt.NDArray[Any] = field(default_factory=lambda: np.full((0, 0), np.nan))
+    count: npt.NDArray[np.float32] | None = None
+
+    def span(self, gx: int, gy: int, side: int) -> tuple[int, int, int, int]:
+        k = self.step
+        return gx // k, (gx + side - 1) // k + 1, gy // k, (gy + side - 1) // k + 1
+
+    def fits(self, a: int, b: int, c: int, d: int, max_cells: int) -> bool:
+        """Whether overview cells [a, b) x [c, d) fit with the rest in ``max_cells`` (growth
+        may double a side, so the bounding box is held to a quarter)."""
         if self.nx == 0:
             return True
-        w = max(self.ix0 + self.nx, ix + 1) - min(self.ix0, ix)
-        h = max(self.iy0 + self.ny, iy + 1) - min(self.iy0, iy)
-        return w * h * self.side * self.side <= max_cells
+        w = max(self.ox0 + self.nx, b) - min(self.ox0, a)
+        h = max(self.oy0 + self.ny, d) - min(self.oy0, c)
+        return w * h <= max_cells // 4
 
-    def paste(self, ix: int, iy: int, values: npt.NDArray[np.float64]) -> None:
+    def include(self, a: int, b: int, c: int, d: int) -> None:
+        """Grow the array (with slack, so steady growth costs amortised O(1)) to cover [a, b) x [c, d)."""
         if self.nx == 0:
-            self.ix0, self.iy0, self.nx, self.ny = ix, iy, 1, 1
-            self.array = np.full((self.side, self.side), np.nan)
-        if not (self.ix0 <= ix < self.ix0 + self.nx and self.iy0 <= iy < self.iy0 + self.ny):
-            x0 = min(self.ix0, ix)
-            y0 = min(self.iy0, iy)
-            x1 = max(self.ix0 + self.nx, ix + 1)
-            y1 = max(self.iy0 + self.ny, iy + 1)
-            # grow with slack so a survey's steady growth costs amortised O(1) per subgrid
-            gx = max(x1 - x0, 2 * self.nx) if (x1 - x0) > self.nx else self.nx
-            gy = max(y1 - y0, 2 * self.ny) if (y1 - y0) > self.ny else self.ny
-            if ix < self.ix0:
-                x0 = self.ix0 + self.nx - gx
-            if iy < self.iy0:
-                y0 = self.iy0 + self.ny - gy
-            new = np.full((gy * self.side, gx * self.side), np.nan)
-            s = self.side
-            new[(self.iy0 - y0) * s:(self.iy0 - y0 + self.ny) * s, (self.ix0 - x0) * s:(self.ix0 - x0 + self.nx) * s] = self.array
-            self.array, self.ix0, self.iy0, self.nx, self.ny = new, x0, y0, gx, gy
-        s = self.side
-        r, c = (iy - self.iy0) * s, (ix - self.ix0) * s
-        self.array[r:r + s, c:c + s] = values
+            self.ox0, self.oy0, self.nx, self.ny = a, c, b - a, d - c
+            self.mean = np.full((d - c, b - a), np.nan, np.float64 if self.step == 1 else np.float32)
+            self.count = None if self.step == 1 else np.zeros((d - c, b - a), np.float32)
+            return
+        if self.ox0 <= a and b <= self.ox0 + self.nx and self.oy0 <= c and d <= self.oy0 + self.ny:
+            return
+        x0, y0 = min(self.ox0, a), min(self.oy0, c)
+        x1, y1 = max(self.ox0 + self.nx, b), max(self.oy0 + self.ny, d)
+        gx = max(x1 - x0, 2 * self.nx) if (x1 - x0) > self.nx else self.nx
+        gy = max(y1 - y0, 2 * self.ny) if (y1 - y0) > self.ny else self.ny
+        if a < self.ox0:
+            x0 = self.ox0 + self.nx - gx
+        if c < self.oy0:
+            y0 = self.oy0 + self.ny - gy
+        r, q = self.oy0 - y0, self.ox0 - x0
+        new = np.full((gy, gx), np.nan, self.mean.dtype)
+        new[r:r + self.ny, q:q + self.nx] = self.mean
+        self.mean = new
+        if self.count is not None:
+            cnt = np.zeros((gy, gx), np.float32)
+            cnt[r:r + self.ny, q:q + self.nx] = self.count
+            self.count = cnt
+        self.ox0, self.oy0, self.nx, self.ny = x0, y0, gx, gy
+
+    def weights(self, rows: slice = slice(None)) -> tuple[FloatArray, FloatArray]:
+        """(mean x count, count) of the overview cells of ``rows``, as float64."""
+        if self.count is None:
+            return _weighted(self.mean[rows])
+        cnt = self.count[rows].astype(np.float64)
+        return np.where(cnt > 0, self.mean[rows].astype(np.float64) * cnt, 0.0), cnt
+
+    def coarsen(self) -> None:
+        """Twice the step: every new cell the mean of 2 x 2 old ones (weighted by their counts),
+        a band of rows at a time (no full-size temporaries)."""
+        x0, y0 = self.ox0 // 2, self.oy0 // 2
+        px, py = self.ox0 - 2 * x0, self.oy0 - 2 * y0
+        nx, ny = (px + self.nx + 1) // 2, (py + self.ny + 1) // 2
+        mean = np.full((ny, nx), np.nan, np.float32)
+        count = np.zeros((ny, nx), np.float32)
+        band = 128
+        for r in range(0, ny, band):
+            h = min(band, ny - r)
+            lo, hi = max(0, 2 * r - py), min(self.ny, 2 * (r + h) - py)
+            z, w = self.weights(slice(lo, hi))
+            zz = np.zeros((2 * h, 2 * nx))
+            ww = np.zeros((2 * h, 2 * nx))
+            o = lo + py - 2 * r
+            zz[o:o + hi - lo, px:px + self.nx] = z
+            ww[o:o + hi - lo, px:px + self.nx] = w
+            zs = zz.reshape(h, 2, nx, 2).sum(axis=(1, 3))
+            ws = ww.reshape(h, 2, nx, 2).sum(axis=(1, 3))
+            mean[r:r + h] = np.where(ws > 0, zs / np.maximum(ws, 1.0), np.nan)
+            count[r:r + h] = ws
+        self.step *= 2
+        self.ox0, self.oy0, self.nx, self.ny = x0, y0, nx, ny
+        self.mean, self.count = mean, count
+
+    def draw(self, gx: int, gy: int, values: FloatArray, old: FloatArray | None) -> None:
+        """Level cells from global cell (gx, gy) now hold ``values`` (they held ``old``)."""
+        side = values.shape[0]
+        if self.count is None:
+            r, c = gy - self.oy0, gx - self.ox0
+            self.mean[r:r + side, c:c + side] = values
+            return
+        by, bx, sz, sw = _block_sums(*_weighted(values), gy, gx, self.step)
+        if old is not None:
+            _, _, oz, ow = _block_sums(*_weighted(old), gy, gx, self.step)
+            sz, sw = sz - oz, sw - ow
+        r, c = by - self.oy0, bx - self.ox0
+        h, w = sz.shape
+        m = self.mean[r:r + h, c:c + w]
+        n = self.count[r:r + h, c:c + w]
+        cnt = n.astype(np.float64)
+        tot = np.where(cnt > 0, m.astype(np.float64) * cnt, 0.0) + sz
+        cnt += sw
+        m[...] = np.where(cnt > 0.5, tot / np.maximum(cnt, 1.0), np.nan)
+        n[...] = np.maximum(cnt, 0.0)
+
+    def chunks(self) -> set[tuple[int, int]]:
+        """Every stored chunk the array touches."""
+        if self.nx == 0:
+            return set()
+        return {(cx, cy) for cy in range(self.oy0 // CHUNK, (self.oy0 + self.ny - 1) // CHUNK + 1)
+                for cx in range(self.ox0 // CHUNK, (self.ox0 + self.nx - 1) // CHUNK + 1)}
+
+    def encode_chunk(self, cx: int, cy: int, compression: int) -> bytes:
+        mean = np.full((CHUNK, CHUNK), np.nan, self.mean.dtype)
+        count = np.zeros((CHUNK, CHUNK), np.float32)
+        a, c = cx * CHUNK, cy * CHUNK
+        x0, x1 = max(a, self.ox0), min(a + CHUNK, self.ox0 + self.nx)
+        y0, y1 = max(c, self.oy0), min(c + CHUNK, self.oy0 + self.ny)
+        if x0 < x1 and y0 < y1:
+            src = (slice(y0 - self.oy0, y1 - self.oy0), slice(x0 - self.ox0, x1 - self.ox0))
+            dst = (slice(y0 - c, y1 - c), slice(x0 - a, x1 - a))
+            mean[dst] = self.mean[src]
+            if self.count is not None:
+                count[dst] = self.count[src]
+        parts = [mean.astype(mean.dtype.newbyteorder("<")).tobytes()]
+        if self.count is not None:
+            parts.append(count.astype("<f4").tobytes())
+        payload, flags = b"".join(parts), 0
+        if compression > 0:
+            payload, flags = zlib.compress(payload, compression), 1
+        return _CHUNK_HEADER.pack(_CHUNK_MAGIC, 1, flags, int(self.count is not None), 0, self.step) + payload
+
+    def paste_chunk(self, cx: int, cy: int, data: bytes, where: str) -> None:
+        try:
+            magic, version, flags, counted, _, step = _CHUNK_HEADER.unpack_from(data)
+            if magic != _CHUNK_MAGIC or version != 1 or step != self.step or counted != (self.count is not None):
+                raise ValueError(f"header {magic!r} v{version} step {step}")
+            payload = data[_CHUNK_HEADER.size:]
+            if flags & 1:
+                payload = zlib.decompress(payload)
+            n = CHUNK * CHUNK
+            mean = np.frombuffer(payload, "<f4" if counted else "<f8", n).reshape(CHUNK, CHUNK)
+            count = np.frombuffer(payload, "<f4", n, n * mean.itemsize).reshape(CHUNK, CHUNK) if counted else None
+        except (ValueError, struct.error, zlib.error) as exc:
+            raise StateError(f"bathymetry receiver: stored overview chunk {where} is damaged ({exc})") from exc
+        a, c = cx * CHUNK, cy * CHUNK
+        x0, x1 = max(a, self.ox0), min(a + CHUNK, self.ox0 + self.nx)
+        y0, y1 = max(c, self.oy0), min(c + CHUNK, self.oy0 + self.ny)
+        if x0 < x1 and y0 < y1:
+            dst = (slice(y0 - self.oy0, y1 - self.oy0), slice(x0 - self.ox0, x1 - self.ox0))
+            src = (slice(y0 - c, y1 - c), slice(x0 - a, x1 - a))
+            self.mean[dst] = mean[src]
+            if self.count is not None and count is not None:
+                self.count[dst] = count[src]
 
 
-@persistent("bathymetry.Receiver")
+def _upgrade_receiver(fields: dict[str, Any], saved: int) -> dict[str, Any]:
+    """Version 1 held one ``_Held`` per subgrid and one dense mosaic per level: keep them aside
+    for :meth:`BathymetryReceiver._after_restore`, which moves them into tiles."""
+    if saved < 2:
+        fields["_legacy"] = (fields.pop("held", {}), fields.pop("_mosaics", {}),
+                             fields.pop("off_mosaic", set()))
+        fields["config"] = {**RECEIVER_DEFAULTS, **dict(fields.get("config") or {})}
+    return fields
+
+
+@persistent("bathymetry.Receiver", version=2, upgrade=_upgrade_receiver,
+            transient=("_tiles", "_store", "_overviews", "_ov_dirty", "_resident_nbytes"))
 class BathymetryReceiver(ModalityReceiver):
     """Assembles every level as subgrids arrive and keeps, per subgrid, its stamp and arrival time.
 
@@ -138,6 +463,16 @@ class BathymetryReceiver(ModalityReceiver):
     queue empty (at most every ``auto_fill_interval`` seconds, and again only when the map changed
     or the last round found gaps). ``poll`` emits at most ``max_requests_per_poll`` requests,
     coarsest level first.
+
+    Memory (a day-long survey: 100 km² at 1 m): the levels are held as tiles of
+    ``tile_subgrids`` x ``tile_subgrids`` subgrids; at most ``memory_budget`` bytes of tiles
+    (default 256 MB, :meth:`resident_bytes`) stay in memory, the least recently used beyond it
+    go to the storage the node attaches (:meth:`attach_storage`; by default a
+    :class:`~coex_core.storage.MemoryStorage` saved with the receiver), zlib-compressed at level
+    ``tile_compression`` (0: raw). Each level's drawn overview (its product) holds at most
+    ``max_mosaic_cells`` cells (8 bytes each). A storage attached, the receiver's saved state
+    holds the tile index and summaries only; :meth:`sync_storage` (called before every
+    snapshot) writes what the storage lacks.
     """
 
     def __init__(self, config: Mapping[str, Any] | None = None) -> None:
@@ -155,8 +490,6 @@ class BathymetryReceiver(ModalityReceiver):
         if self.request_timeout <= 0:
             raise ConfigError("request_timeout must be positive")
         self.metadata: MapMetadata | None = None
-        self.held: dict[int, dict[tuple[int, int], _Held]] = {}
-        self._mosaics: dict[int, _Mosaic] = {}
         self._versions: dict[int, int] = {}
         self._geometry: dict[int, tuple[float, int]] = {}
         self.regions: list[Region] = []
@@ -166,9 +499,209 @@ class BathymetryReceiver(ModalityReceiver):
         self._auto_stamp: int | None = None
         self._auto_found = False
         self.duplicates = 0
+        self._init_tiles(cfg)
+
+    def _init_tiles(self, cfg: Mapping[str, Any]) -> None:
         self.max_mosaic_cells = int(cfg["max_mosaic_cells"])
-        #: Subgrids held but left out of the level mosaics (they would make them too large).
-        self.off_mosaic: set[tuple[int, int, int]] = set()
+        self.memory_budget = int(cfg["memory_budget"])
+        self.tile_subgrids = int(cfg["tile_subgrids"])
+        self.tile_compression = int(cfg["tile_compression"])
+        if self.max_mosaic_cells < 64:
+            raise ConfigError("max_mosaic_cells must be at least 64")
+        if not 1 <= self.tile_subgrids <= 255:
+            raise ConfigError("tile_subgrids must be within 1..255")
+        if not 0 <= self.tile_compression <= 9:
+            raise ConfigError("tile_compression must be a zlib level, 0..9 (0: none)")
+        #: Subgrids that came with another geometry than the level's first one (ignored).
+        self.mismatched = 0
+        self._stats: dict[int, _LevelStats] = {}
+        self._index: dict[int, _LevelIndex] = {}
+        #: overview geometry as last written to an attached storage: level -> (step, ox0, oy0, nx, ny)
+        self._overview_meta: dict[int, tuple[int, int, int, int, int]] = {}
+        #: bytes of each overview chunk in that storage: (level, cx, cy) -> size
+        self._ov_stored: dict[tuple[int, int, int], int] = {}
+        # With the receiver's own MemoryStorage, the resident tiles and the overviews are saved
+        # with its state (``_own_*`` are the same objects); with a storage the node attached,
+        # the state holds the index only and the rest is in the storage.
+        self._own_store: MemoryStorage | None = MemoryStorage()
+        self._own_tiles: OrderedDict[tuple[int, int, int], _Tile] = OrderedDict()
+        self._own_overviews: dict[int, _Overview] = {}
+        self._after_restore()
+
+    def _after_restore(self) -> None:
+        legacy = self.__dict__.pop("_legacy", None)
+        if legacy is not None:
+            self._init_tiles(self.config)
+            self._import_v1(*legacy)
+            return
+        self._ov_dirty: dict[int, set[tuple[int, int]]] = {}
+        self._store: Storage | None
+        if self._own_store is not None:
+            self._store = self._own_store
+            self._tiles = self._own_tiles
+            self._overviews = self._own_overviews
+        else:  # the tiles are in the node's storage: attach_storage reads the overviews back
+            self._store = None
+            self._tiles = OrderedDict()
+            self._overviews = {}
+        self._resident_nbytes = sum(t.nbytes for t in self._tiles.values())
+
+    def _import_v1(self, held: dict[int, dict[tuple[int, int], _Held]], mosaics: dict[int, _Mosaic],
+                   off: set[tuple[int, int, int]]) -> None:
+        for level, mos in mosaics.items():
+            self._overviews[level] = _Overview(1, mos.ix0 * mos.side, mos.iy0 * mos.side,
+                                               mos.nx * mos.side, mos.ny * mos.side, mos.array)
+        for level, cells in held.items():
+            if level not in self._geometry:
+                continue
+            for (ix, iy), h in cells.items():
+                drawn = level in mosaics and mosaics[level].side == self._geometry[level][1] \
+                    and (level, ix, iy) not in off
+                self._hold(level, ix, iy, float(h.stamp), np.asarray(h.values, np.float64),
+                           float(h.received), draw=not drawn)
+
+    # ---------------------------------------------------------------------------- storage
+
+    def attach_storage(self, storage: Storage) -> None:
+        """Keep spilled tiles (and, for snapshots, the overviews) in ``storage`` from now on.
+        What the receiver's own storage held moves there; a receiver restored from a snapshot
+        taken with a storage attached reads its overviews back from it."""
+        if _same_storage(storage, self._store):
+            self._store = storage
+            return
+        old = self._store
+        if old is not None:
+            for key in old.keys("tile/"):
+                data = old.get(key)
+                if data:
+                    storage.put(key, data)
+            for level, ov in self._overviews.items():
+                self._ov_dirty[level] = ov.chunks()
+            self._overview_meta = {}
+            self._ov_stored = {}
+        else:
+            for level, (step, ox0, oy0, nx, ny) in self._overview_meta.items():
+                ov = _Overview(step)
+                ov.include(ox0, ox0 + nx, oy0, oy0 + ny)
+                prefix = f"ov/{level}/{step}/"
+                for key in storage.keys(prefix):
+                    data = storage.get(key)
+                    if data:
+                        cx, cy = (int(v) for v in key[len(prefix):].split("/"))
+                        ov.paste_chunk(cx, cy, data, key)
+                self._overviews[level] = ov
+        self._store = storage
+        self._own_store = None
+        self._own_tiles = OrderedDict()
+        self._own_overviews = {}
+
+    def sync_storage(self) -> None:
+        """Write the tiles and overview chunks changed since the last call to the attached
+        storage (nothing with the receiver's own storage: they are saved with its state)."""
+        store = self._store
+        if store is None or self._own_store is not None:
+            self._ov_dirty.clear()
+            return
+        for key, t in self._tiles.items():
+            if t.dirty:
+                self._write_tile(key, t)
+        for level, ov in self._overviews.items():
+            meta = self._overview_meta.get(level)
+            dirty = self._ov_dirty.get(level, set())
+            if meta is not None and meta[0] != ov.step:
+                for name in store.keys(f"ov/{level}/{meta[0]}/"):
+                    store.put(name, b"")  # a coarser step replaced these
+                self._ov_stored = {k: v for k, v in self._ov_stored.items() if k[0] != level}
+                dirty = ov.chunks()
+            for cx, cy in dirty:
+                data = ov.encode_chunk(cx, cy, self.tile_compression)
+                store.put(f"ov/{level}/{ov.step}/{cx}/{cy}", data)
+                self._ov_stored[(level, cx, cy)] = len(data)
+            self._overview_meta[level] = (ov.step, ov.ox0, ov.oy0, ov.nx, ov.ny)
+        self._ov_dirty.clear()
+
+    def resident_bytes(self) -> int:
+        """Bytes of the tiles held in memory (at most ``memory_budget``, or one tile)."""
+        return self._resident_nbytes
+
+    def overview_bytes(self) -> int:
+        """Bytes of the levels' drawn overviews (each at most ``max_mosaic_cells`` cells)."""
+        return sum(ov.mean.nbytes + (0 if ov.count is None else ov.count.nbytes)
+                   for ov in self._overviews.values())
+
+    def disk_bytes(self) -> int:
+        """Bytes the storage holds for this receiver: its tiles and overview chunks, as last
+        written (counted as they are written, never read back)."""
+        tiles = sum(int(ix.stored[:ix.n].sum()) for ix in self._index.values())
+        return tiles + sum(self._ov_stored.values())
+
+    def _tile(self, level: int, tx: int, ty: int, create: bool = False) -> _Tile | None:
+        """Tile (tx, ty) of ``level``, read back from storage if spilled; made when ``create``."""
+        key = (level, tx, ty)
+        tiles = self._tiles
+        t = tiles.get(key)
+        if t is not None:
+            tiles.move_to_end(key)
+            return t
+        index = self._index.get(level)
+        row = None if index is None else index.pos.get((tx, ty))
+        side = self._geometry[level][1] if level in self._geometry else 0
+        if row is None:
+            if not create:
+                return None
+            if index is None:
+                index = self._index[level] = _LevelIndex()
+            index.add(tx, ty)
+            t = _Tile(self.tile_subgrids, side)
+        else:
+            name = f"tile/{level}/{tx}/{ty}"
+            if self._store is None:
+                raise StateError("bathymetry receiver: its tiles are in the node's storage, which is "
+                                 "not attached (Node.attach_storage; NodeStore.restore does it)")
+            data = self._store.get(name)
+            if data is None:
+                raise StateError(f"bathymetry receiver: tile {name} is missing from its storage")
+            t = _decode_tile(data, self.tile_subgrids, side, name)
+        tiles[key] = t
+        self._resident_nbytes += t.nbytes
+        if self._resident_nbytes > self.memory_budget:
+            while self._resident_nbytes > self.memory_budget and len(tiles) > 1:
+                old_key, old = tiles.popitem(last=False)
+                self._resident_nbytes -= old.nbytes
+                if old.dirty:
+                    self._write_tile(old_key, old)
+        return t
+
+    def _write_tile(self, key: tuple[int, int, int], t: _Tile) -> None:
+        level, tx, ty = key
+        assert self._store is not None
+        data = _encode_tile(t, self.tile_compression)
+        self._store.put(f"tile/{level}/{tx}/{ty}", data)
+        index = self._index[level]
+        row = index.pos[(tx, ty)]
+        index.summarise(row, t)
+        index.stored[row] = len(data)
+        t.dirty = False
+
+    def _level_tiles(self, level: int, tx0: int | None = None, ty0: int | None = None,
+                     tx1: int | None = None, ty1: int | None = None) -> Iterable[tuple[int, int, _Tile]]:
+        """The level's tiles (within the tile range, end exclusive, if given), read as needed."""
+        index = self._index.get(level)
+        if index is None:
+            return
+        keys = index.keys[:index.n]
+        if tx0 is not None and ty0 is not None and tx1 is not None and ty1 is not None:
+            if (tx1 - tx0) * (ty1 - ty0) <= index.n:
+                cand = [(tx, ty) for ty in range(ty0, ty1) for tx in range(tx0, tx1) if (tx, ty) in index.pos]
+            else:
+                m = (keys[:, 0] >= tx0) & (keys[:, 0] < tx1) & (keys[:, 1] >= ty0) & (keys[:, 1] < ty1)
+                cand = [(int(a), int(b)) for a, b in keys[m].tolist()]
+        else:
+            cand = [(int(a), int(b)) for a, b in keys.tolist()]
+        for tx, ty in cand:
+            t = self._tile(level, tx, ty)
+            if t is not None:
+                yield tx, ty, t
 
     # ---------------------------------------------------------------------------- receive
 
@@ -208,61 +741,180 @@ class BathymetryReceiver(ModalityReceiver):
 
     def _subgrid(self, sg: Subgrid, now: float) -> list[Product]:
         level = sg.level
+        cell = sg.resolution * (1 << level)
+        geometry = self._geometry.get(level)
+        if geometry is None:
+            self._geometry[level] = (cell, sg.side)
+            self._stats[level] = _LevelStats()
+        elif geometry[1] != sg.side or geometry[0] != cell:
+            self.mismatched += 1  # the level's cells would not line up: ignored
+            return []
         stamp = unwrap(sg.stamp, now)
-        cells = self.held.setdefault(level, {})
-        old = cells.get((sg.ix, sg.iy))
-        if old is not None and old.stamp >= stamp:
+        n = self.tile_subgrids
+        tx, lx = divmod(sg.ix, n)
+        ty, ly = divmod(sg.iy, n)
+        tile = self._tile(level, tx, ty, create=True)
+        assert tile is not None
+        if tile.held[ly, lx] and tile.stamp[ly, lx] >= stamp:
             self.duplicates += 1
             return []
-        values = decode_subgrid(sg)
-        cells[(sg.ix, sg.iy)] = _Held(stamp, values, now)
-        self._geometry[level] = (sg.resolution * (1 << level), sg.side)
-        mosaic = self._mosaics.get(level)
-        if mosaic is None or mosaic.side != sg.side:
-            mosaic = self._mosaics[level] = _Mosaic(sg.side)
-        if not mosaic.fits(sg.ix, sg.iy, self.max_mosaic_cells // 4):  # growth may double a side
-            # Held and requestable, but too far from the rest to draw without a huge array.
-            self.off_mosaic.add((level, sg.ix, sg.iy))
-            return []
-        mosaic.paste(sg.ix, sg.iy, values)
+        self._put(level, tile, sg.ix, sg.iy, lx, ly, stamp, decode_subgrid(sg), now, draw=True)
         self._versions[level] = self._versions.get(level, 0) + 1
-        return [self.level_product(level, now)]
+        return [self.level_product(level)]
+
+    def _hold(self, level: int, ix: int, iy: int, stamp: float, values: FloatArray, received: float,
+              draw: bool) -> None:
+        n = self.tile_subgrids
+        tx, lx = divmod(ix, n)
+        ty, ly = divmod(iy, n)
+        if level not in self._stats:
+            self._stats[level] = _LevelStats()
+        tile = self._tile(level, tx, ty, create=True)
+        assert tile is not None
+        self._put(level, tile, ix, iy, lx, ly, stamp, values, received, draw=draw)
+
+    def _put(self, level: int, tile: _Tile, ix: int, iy: int, lx: int, ly: int, stamp: float,
+             values: FloatArray, now: float, draw: bool) -> None:
+        side = values.shape[0]
+        r, c = ly * side, lx * side
+        block = tile.values[r:r + side, c:c + side]
+        st = self._stats[level]
+        cells = int(np.count_nonzero(values == values))  # not NaN
+        old: FloatArray | None = None
+        if tile.held[ly, lx]:
+            old = block.copy()
+            st.cells += cells - int(np.count_nonzero(~np.isnan(old)))
+            if tile.stamp[ly, lx] <= st.oldest or tile.received[ly, lx] <= st.oldest_rx:
+                st.stale = True
+        else:
+            if st.subgrids == 0:
+                st.ix0, st.iy0, st.ix1, st.iy1 = ix, iy, ix + 1, iy + 1
+            else:
+                st.ix0, st.iy0 = min(st.ix0, ix), min(st.iy0, iy)
+                st.ix1, st.iy1 = max(st.ix1, ix + 1), max(st.iy1, iy + 1)
+            st.subgrids += 1
+            st.cells += cells
+            tile.held[ly, lx] = True
+        block[...] = values
+        tile.stamp[ly, lx] = stamp
+        tile.received[ly, lx] = now
+        tile.dirty = True
+        st.newest = max(st.newest, stamp)
+        st.oldest = min(st.oldest, stamp)
+        st.oldest_rx = min(st.oldest_rx, now)
+        if cells:
+            flat = values.ravel()
+            lo, hi = float(np.fmin.reduce(flat)), float(np.fmax.reduce(flat))  # NaN ignored
+            if lo < st.zmin:
+                st.zmin = lo
+            if hi > st.zmax:
+                st.zmax = hi
+        if draw:
+            self._draw(level, ix * side, iy * side, values, old)
+
+    def _draw(self, level: int, gx: int, gy: int, values: FloatArray, old: FloatArray | None) -> None:
+        ov = self._overviews.get(level)
+        if ov is None:
+            ov = self._overviews[level] = _Overview()
+        side = values.shape[0]
+        a, b, c, d = ov.span(gx, gy, side)
+        if not ov.fits(a, b, c, d, self.max_mosaic_cells):
+            # Too large to draw cell by cell: coarser until it fits (a far-away or bogus subgrid
+            # too: it is drawn, small, never left out).
+            while not ov.fits(a, b, c, d, self.max_mosaic_cells):
+                ov.coarsen()
+                a, b, c, d = ov.span(gx, gy, side)
+        ov.include(a, b, c, d)
+        ov.draw(gx, gy, values, old)
+        dirty = self._ov_dirty.setdefault(level, set())
+        for cy in range(c // CHUNK, (d - 1) // CHUNK + 1):
+            for cx in range(a // CHUNK, (b - 1) // CHUNK + 1):
+                dirty.add((cx, cy))
+
+    def forget(self, level: int, ix: int, iy: int) -> bool:
+        """Drop a held subgrid (a bad one, or to ask for it again: the next region or gap request
+        lacks it). False if it was not held."""
+        n = self.tile_subgrids
+        tx, lx = divmod(ix, n)
+        ty, ly = divmod(iy, n)
+        tile = self._tile(level, tx, ty)
+        if tile is None or not tile.held[ly, lx]:
+            return False
+        side = self._geometry[level][1]
+        r, c = ly * side, lx * side
+        block = tile.values[r:r + side, c:c + side]
+        old = block.copy()
+        st = self._stats[level]
+        st.subgrids -= 1
+        st.cells -= int(np.count_nonzero(~np.isnan(old)))
+        st.stale = True
+        block[...] = np.nan
+        tile.held[ly, lx] = False
+        tile.stamp[ly, lx] = tile.received[ly, lx] = 0.0
+        tile.dirty = True
+        self._draw(level, ix * side, iy * side, np.full((side, side), np.nan), old)
+        self._versions[level] = self._versions.get(level, 0) + 1
+        return True
 
     # ---------------------------------------------------------------------------- products
 
+    def _overview(self, level: int) -> _Overview:
+        ov = self._overviews.get(level)
+        if ov is None and level in self._overview_meta and self._store is None:
+            raise StateError("bathymetry receiver: its levels are in the node's storage, which is "
+                             "not attached (Node.attach_storage; NodeStore.restore does it)")
+        if ov is None:
+            raise KeyError(level)
+        return ov
+
     def level_product(self, level: int, now: float | None = None) -> Product:
-        """Level ``level`` as one array (row 0 = south, NaN where nothing is held)."""
-        mosaic = self._mosaics[level]
-        cell, side = self._geometry[level]
-        held = self.held.get(level, {})
-        newest = max((h.stamp for h in held.values()), default=0.0)
+        """Level ``level`` as one array (row 0 = south, NaN where nothing is held) of at most
+        ``max_mosaic_cells`` cells: the level's own cells while they fit, else means of
+        ``meta["step"] x meta["step"]`` cells (a decimated overview; :meth:`window` reads any part
+        at full resolution). ``meta``: ``level``, ``cell_size`` (of the array's cells),
+        ``step``, ``level_cell`` (the level's cell size), the south-west corner ``x0``, ``y0``,
+        ``subgrids``, ``cells`` (held cells), ``newest``, ``zmin``/``zmax`` (depth range
+        received), the origin, and with ``now`` ``oldest_age`` (seconds since the longest-held
+        subgrid arrived)."""
+        ov = self._overview(level)
+        cell, _ = self._geometry[level]
+        st = self._stats[level]
+        k = ov.step
+        lat, lon = self.origin()
         meta: dict[str, Any] = {
             "level": level,
-            "cell_size": cell,
-            "x0": mosaic.ix0 * side * cell,
-            "y0": mosaic.iy0 * side * cell,
-            "subgrids": len(held),
-            "newest": newest,
-            "origin_lat": self.origin()[0],
-            "origin_lon": self.origin()[1],
+            "cell_size": cell * k,
+            "step": k,
+            "level_cell": cell,
+            "x0": ov.ox0 * k * cell,
+            "y0": ov.oy0 * k * cell,
+            "subgrids": st.subgrids,
+            "cells": st.cells,
+            "newest": st.newest if st.subgrids else 0.0,
+            "origin_lat": lat,
+            "origin_lon": lon,
         }
+        if st.zmin <= st.zmax:
+            meta["zmin"], meta["zmax"] = st.zmin, st.zmax
         if now is not None:
-            meta["oldest_age"] = now - min((h.received for h in held.values()), default=now)
-        return Product("map-level", f"level-{level}", self._versions.get(level, 0), mosaic.array, meta)
+            self._refresh(level)
+            meta["oldest_age"] = now - st.oldest_rx if st.subgrids else 0.0
+        return Product("map-level", f"level-{level}", self._versions.get(level, 0), ov.mean, meta)
 
     def products(self) -> list[Product]:
-        return [self.level_product(k) for k in sorted(self._mosaics)]
+        levels = set(self._overviews) | set(self._overview_meta)
+        return [self.level_product(k) for k in sorted(levels)]
 
     def levels(self) -> list[int]:
         """The levels of which something is held, finest first."""
-        return sorted(k for k, held in self.held.items() if held)
+        return sorted(k for k, st in self._stats.items() if st.subgrids)
 
     def geometry(self, level: int) -> tuple[float, int] | None:
         """``(cell size in m, subgrid side in cells)`` of a level, once a subgrid of it came."""
         return self._geometry.get(level)
 
     def level_version(self, level: int) -> int:
-        """Changes whenever the level's mosaic does (the version of its product)."""
+        """Changes whenever the level does (the version of its product)."""
         return self._versions.get(level, 0)
 
     def origin(self) -> tuple[float, float]:
@@ -273,14 +925,184 @@ class BathymetryReceiver(ModalityReceiver):
             lon = self.metadata.origin_lon
         return float(lat or 0.0), float(lon or 0.0)
 
+    def _refresh(self, level: int) -> None:
+        """Recompute a level's newest and oldest stamps and oldest arrival, if stale."""
+        st = self._stats[level]
+        if not st.stale:
+            return
+        index = self._index.get(level)
+        if index is not None:
+            for (lv, tx, ty), t in self._tiles.items():
+                if lv == level and t.dirty:
+                    index.summarise(index.pos[(tx, ty)], t)
+            m = index.count[:index.n] > 0
+            if m.any():
+                st.newest = float(index.newest[:index.n][m].max())
+                st.oldest = float(index.oldest[:index.n][m].min())
+                st.oldest_rx = float(index.oldest_rx[:index.n][m].min())
+            else:
+                st.newest, st.oldest, st.oldest_rx = -math.inf, math.inf, math.inf
+        st.stale = False
+
+    def level_summary(self, level: int) -> dict[str, Any] | None:
+        """What a level holds, without reading its tiles: ``subgrids``, ``cells`` (held cells),
+        ``newest`` and ``oldest`` stamp (seconds), ``oldest_received``, ``extent`` (subgrid
+        indices ``(ix0, iy0, ix1, iy1)``, end exclusive, of everything received), ``cell``,
+        ``side``, ``zmin``/``zmax``. None before any subgrid of it."""
+        st = self._stats.get(level)
+        geometry = self._geometry.get(level)
+        if st is None or geometry is None:
+            return None
+        self._refresh(level)
+        held = st.subgrids > 0
+        return {"subgrids": st.subgrids, "cells": st.cells,
+                "newest": st.newest if held else None, "oldest": st.oldest if held else None,
+                "oldest_received": st.oldest_rx if held else None,
+                "extent": (st.ix0, st.iy0, st.ix1, st.iy1) if held else None,
+                "cell": geometry[0], "side": geometry[1],
+                "zmin": st.zmin if st.zmin <= st.zmax else None,
+                "zmax": st.zmax if st.zmin <= st.zmax else None}
+
+    def held_subgrids(self, level: int) -> tuple[npt.NDArray[np.int64], FloatArray, FloatArray]:
+        """Every subgrid held at ``level``: ``(keys, stamps, received)``, keys an ``n x 2``
+        array of ``(ix, iy)``, stamps and arrival times in seconds. Reads every tile of the
+        level (from storage when spilled): for a whole big level prefer :meth:`coverage`."""
+        n = self.tile_subgrids
+        keys, stamps, received = [], [], []
+        for tx, ty, t in self._level_tiles(level):
+            ly, lx = np.nonzero(t.held)
+            keys.append(np.column_stack([tx * n + lx, ty * n + ly]))
+            stamps.append(t.stamp[ly, lx])
+            received.append(t.received[ly, lx])
+        if not keys:
+            return np.zeros((0, 2), np.int64), np.zeros(0), np.zeros(0)
+        return (np.concatenate(keys).astype(np.int64), np.concatenate(stamps), np.concatenate(received))
+
     def holdings(self, level: int) -> dict[tuple[int, int], int]:
-        """``(ix, iy) -> stamp`` of every subgrid held at ``level``."""
-        return {k: to_stamp(h.stamp) for k, h in self.held.get(level, {}).items()}
+        """``(ix, iy) -> stamp`` of every subgrid held at ``level`` (reads the whole level)."""
+        keys, stamps, _ = self.held_subgrids(level)
+        wire = (np.floor(stamps).astype(np.int64) % STAMP_MODULUS).tolist()
+        return dict(zip(map(tuple, keys.tolist()), wire, strict=True))
+
+    def coverage(self, level: int, max_blocks: int = 4096
+                 ) -> tuple[int, npt.NDArray[np.int64], FloatArray]:
+        """What a level holds, in at most ``max_blocks`` blocks: ``(span, keys, oldest)``, block
+        ``(bx, by)`` of ``keys`` covering subgrids ``[bx*span, (bx+1)*span) x [by*span, (by+1)*span)``
+        and holding something, ``oldest`` its oldest stamp (seconds). ``span`` is 1 (every held
+        subgrid) when the level holds at most ``max_blocks`` subgrids, else a multiple of
+        ``tile_subgrids`` (from the tile summaries, no tile read)."""
+        st = self._stats.get(level)
+        if st is None or st.subgrids == 0:
+            return 1, np.zeros((0, 2), np.int64), np.zeros(0)
+        if st.subgrids <= max_blocks:
+            keys, stamps, _ = self.held_subgrids(level)
+            return 1, keys, stamps
+        index = self._index[level]
+        for (lv, tx, ty), t in self._tiles.items():
+            if lv == level and t.dirty:
+                index.summarise(index.pos[(tx, ty)], t)
+        m = index.count[:index.n] > 0
+        keys, oldest = index.keys[:index.n][m], index.oldest[:index.n][m]
+        shift = 0
+        while True:
+            uniq, inv = np.unique(keys >> shift, axis=0, return_inverse=True)
+            if len(uniq) <= max(1, max_blocks):
+                break
+            shift += 1
+        out = np.full(len(uniq), np.inf)
+        np.minimum.at(out, inv.ravel(), oldest)
+        return self.tile_subgrids << shift, uniq.astype(np.int64), out
 
     def age(self, level: int, ix: int, iy: int, now: float) -> float | None:
         """Seconds since the newest data in a held subgrid was measured (None if not held)."""
-        h = self.held.get(level, {}).get((ix, iy))
-        return None if h is None else now - h.stamp
+        if level not in self._geometry:
+            return None
+        n = self.tile_subgrids
+        tx, lx = divmod(ix, n)
+        ty, ly = divmod(iy, n)
+        t = self._tile(level, tx, ty)
+        if t is None or not t.held[ly, lx]:
+            return None
+        return now - float(t.stamp[ly, lx])
+
+    def _region(self, level: int, x0: int, y0: int, w: int, h: int) -> tuple[npt.NDArray[np.bool_], FloatArray]:
+        """Held flags and stamps (seconds) of subgrids ``[x0, x0+w) x [y0, y0+h)``, row 0 = y0."""
+        held = np.zeros((h, w), bool)
+        stamp = np.zeros((h, w))
+        if level not in self._geometry:
+            return held, stamp
+        n = self.tile_subgrids
+        for tx, ty, t in self._level_tiles(level, x0 // n, y0 // n, (x0 + w - 1) // n + 1,
+                                           (y0 + h - 1) // n + 1):
+            a, b = max(x0, tx * n), min(x0 + w, tx * n + n)
+            c, d = max(y0, ty * n), min(y0 + h, ty * n + n)
+            src = (slice(c - ty * n, d - ty * n), slice(a - tx * n, b - tx * n))
+            dst = (slice(c - y0, d - y0), slice(a - x0, b - x0))
+            held[dst] = t.held[src]
+            stamp[dst] = t.stamp[src]
+        return held, stamp
+
+    def region_stamps(self, level: int, x0: int, y0: int, w: int, h: int) -> list[int | None]:
+        """Per subgrid of the region, row-major (rows = y): the stamp held (wire form), or None."""
+        held, stamp = self._region(level, x0, y0, w, h)
+        wire = np.floor(stamp).astype(np.int64) % STAMP_MODULUS
+        return [int(s) if k else None for k, s in zip(held.ravel().tolist(), wire.ravel().tolist(), strict=True)]
+
+    def window(self, level: int, x_min: float, y_min: float, x_max: float, y_max: float,
+               max_cells: int = WINDOW_CELLS) -> tuple[FloatArray, tuple[float, float, float]]:
+        """The part of a level over ``[x_min, x_max) x [y_min, y_max)`` (metres): ``(array,
+        (x0, y0, cell))``, row 0 = south, NaN where nothing is held, ``(x0, y0)`` its south-west
+        corner and ``cell`` its cell size. At most ``max_cells`` cells: a larger window is
+        decimated (the mean of the held cells of each ``2^j x 2^j`` block, blocks aligned on
+        the level's grid, so a pan shows the same cells). Reads only the tiles it covers (or,
+        when decimated at least as much as the level's overview, the overview)."""
+        geometry = self._geometry.get(level) or self._geometry_for(level)
+        cell = geometry[0]
+        cx0 = math.floor(x_min / cell + 1e-9)
+        cy0 = math.floor(y_min / cell + 1e-9)
+        cx1 = max(cx0 + 1, math.ceil(x_max / cell - 1e-9))
+        cy1 = max(cy0 + 1, math.ceil(y_max / cell - 1e-9))
+        s = 1
+        while -(-(cx1 - cx0) // s) * -(-(cy1 - cy0) // s) > max(1, max_cells):
+            s *= 2
+        bx0, by0 = cx0 // s, cy0 // s
+        bx1, by1 = -(-cx1 // s), -(-cy1 // s)
+        geo = (bx0 * s * cell, by0 * s * cell, s * cell)
+        st = self._stats.get(level)
+        if st is None or st.subgrids == 0:
+            return np.full((by1 - by0, bx1 - bx0), np.nan), geo
+        out = self._cells(level, bx0 * s, by0 * s, bx1 * s, by1 * s, s)
+        return out, geo
+
+    def _cells(self, level: int, cx0: int, cy0: int, cx1: int, cy1: int, s: int) -> FloatArray:
+        """Level cells ``[cx0, cx1) x [cy0, cy1)`` (multiples of ``s``) in blocks of ``s``."""
+        ny, nx = (cy1 - cy0) // s, (cx1 - cx0) // s
+        side = self._geometry[level][1]
+        ov = self._overviews.get(level)
+        if s > 1 and ov is not None and s % ov.step == 0 and ov.nx:
+            k = ov.step
+            return _blocks_from(ov, cx0 // k, cy0 // k, cx1 // k, cy1 // k, s // k)
+        size = self.tile_subgrids * side
+        if s == 1:
+            out = np.full((ny, nx), np.nan)
+        else:
+            zs, ws = np.zeros((ny, nx)), np.zeros((ny, nx))
+        for tx, ty, t in self._level_tiles(level, cx0 // size, cy0 // size, (cx1 - 1) // size + 1,
+                                           (cy1 - 1) // size + 1):
+            gx, gy = tx * size, ty * size
+            a, b = max(cx0, gx), min(cx1, gx + size)
+            c, d = max(cy0, gy), min(cy1, gy + size)
+            part = t.values[c - gy:d - gy, a - gx:b - gx]
+            if s == 1:
+                out[c - cy0:d - cy0, a - cx0:b - cx0] = part
+                continue
+            by, bx, z, w = _block_sums(*_weighted(part), c, a, s)
+            r, q = by - cy0 // s, bx - cx0 // s
+            zs[r:r + z.shape[0], q:q + z.shape[1]] += z
+            ws[r:r + z.shape[0], q:q + z.shape[1]] += w
+        if s == 1:
+            return out
+        return np.where(ws > 0, zs / np.maximum(ws, 1.0), np.nan)
 
     # ---------------------------------------------------------------------------- requests
 
@@ -362,14 +1184,13 @@ class BathymetryReceiver(ModalityReceiver):
             old.request_id = None
         self._by_id[rid] = r
         r.request_id = rid
-        held = self.held.get(r.level, {})
-        keys = [(r.x0 + i % r.w, r.y0 + i // r.w) for i in range(r.w * r.h)]
         if r.fill_gaps:
+            held, _ = self._region(r.level, r.x0, r.y0, r.w, r.h)
             have = 0
-            for k in keys:
-                have = (have << 1) | (k in held)
+            for k in held.ravel().tolist():
+                have = (have << 1) | k
             return MapRoiRequest(rid, r.level, r.x0, r.y0, r.w, r.h, True, (), have)
-        stamps = tuple(to_stamp(held[k].stamp) if k in held else None for k in keys)
+        stamps = tuple(self.region_stamps(r.level, r.x0, r.y0, r.w, r.h))
         return MapRoiRequest(rid, r.level, r.x0, r.y0, r.w, r.h, False, stamps)
 
     def poll(self, now: float) -> list[Message]:
@@ -396,3 +1217,35 @@ class BathymetryReceiver(ModalityReceiver):
 
     def active_regions(self) -> list[Region]:
         return [r for r in self.regions if not r.done]
+
+
+def _same_storage(a: Storage | None, b: Storage | None) -> bool:
+    """Whether two storages are the same keys: the same object, or the same part (``child``)
+    of the same storage, as a node attaching its storage again gives."""
+    if a is b:
+        return True
+    pa, pb = getattr(a, "parent", None), getattr(b, "parent", None)
+    return pa is not None and _same_storage(pa, pb) and getattr(a, "prefix", None) == getattr(b, "prefix", None)
+
+
+def _blocks_from(ov: _Overview, ox0: int, oy0: int, ox1: int, oy1: int, s: int) -> FloatArray:
+    """Overview cells ``[ox0, ox1) x [oy0, oy1)`` (multiples of ``s``) in blocks of ``s``, means
+    weighted by the cells each overview cell is of."""
+    ny, nx = (oy1 - oy0) // s, (ox1 - ox0) // s
+    a, b = max(ox0, ov.ox0), min(ox1, ov.ox0 + ov.nx)
+    c, d = max(oy0, ov.oy0), min(oy1, ov.oy0 + ov.ny)
+    if a >= b or c >= d:
+        return np.full((ny, nx), np.nan)
+    part = _Overview(ov.step, a, c, b - a, d - c,
+                     ov.mean[c - ov.oy0:d - ov.oy0, a - ov.ox0:b - ov.ox0],
+                     None if ov.count is None else ov.count[c - ov.oy0:d - ov.oy0, a - ov.ox0:b - ov.ox0])
+    if s == 1:
+        out = np.full((ny, nx), np.nan)
+        out[c - oy0:d - oy0, a - ox0:b - ox0] = part.mean
+        return out
+    by, bx, z, w = _block_sums(*part.weights(), c, a, s)
+    zs, ws = np.zeros((ny, nx)), np.zeros((ny, nx))
+    r, q = by - oy0 // s, bx - ox0 // s
+    zs[r:r + z.shape[0], q:q + z.shape[1]] = z
+    ws[r:r + z.shape[0], q:q + z.shape[1]] = w
+    return np.where(ws > 0, zs / np.maximum(ws, 1.0), np.nan)

@@ -8,7 +8,10 @@ Endpoints (all on 127.0.0.1 unless told otherwise):
 * ``GET /api/events`` server-sent events: ``snapshot`` (everything, once), then ``update``
   (the sections that changed) and ``clock`` (``{"now": t}`` once a second). Every browser
   gets the same state.
-* ``GET /map/<level>.png`` a map level; ``GET /image/<id>.png`` an image thumbnail.
+* ``GET /map/<level>.png`` a map level (its drawn overview); ``GET
+  /map/<level>/window.png?x0=&y0=&x1=&y1=&step=`` the part of a big level on screen, at
+  ``step`` level cells per pixel, read from the receiver's tiles; ``GET /image/<id>.png`` an
+  image thumbnail.
 * ``POST /api/action`` ``{"action": name, "args": {...}}`` runs a :class:`ConsoleActions`
   method; answers ``{"ok": true, "sent": [messages as JSON]}`` or ``{"ok": false, "error": ...}``
   (HTTP 400).
@@ -28,6 +31,7 @@ from __future__ import annotations
 import hmac
 import json
 import logging
+import math
 import ssl
 import threading
 import time
@@ -145,6 +149,21 @@ class _Handler(BaseHTTPRequestHandler):
             self._json(200, hub.snapshot())
         elif path == "/api/events":
             self._events()
+        elif path.startswith("/map/") and path.endswith("/window.png"):
+            try:
+                level = int(path[5:-len("/window.png")])
+                q = {k: v[-1] for k, v in parse_qs(urlsplit(self.path).query).items()}
+                box = [float(q[k]) for k in ("x0", "y0", "x1", "y1")]
+                step = int(q.get("step", "1"))
+            except (KeyError, ValueError):
+                return self._not_found()
+            if not all(math.isfinite(v) for v in box):
+                return self._not_found()
+            with hub.lock:
+                job = hub.state.map_window_job(level, box[0], box[1], box[2], box[3], step=step)
+            if job is None:
+                return self._not_found()
+            self._send(200, job(), "image/png", cache=True)  # drawn outside the lock
         elif path.startswith("/map/") and path.endswith(".png"):
             try:
                 level = int(path[5:-4])

@@ -45,6 +45,12 @@ SECTIONS = ("vehicle", "map", "images", "series", "other", "link", "queues", "co
 #: Modalities with a panel of their own; the products of any other go to the generic panel.
 OWN_PANELS = ("bathymetry", "imagery", "timeseries")
 
+#: The map section shows a level's coverage (the age of its data) in at most this many blocks:
+#: every subgrid of a small level, groups of receiver tiles of a big one.
+MAP_BLOCKS = 4096
+#: The largest picture of what is on screen (``/map/<level>/window.png``), in pixels.
+MAP_WINDOW_CELLS = 8 * 1024 * 1024
+
 
 FloatArray = npt.NDArray[np.float64]
 
@@ -203,7 +209,8 @@ class ConsoleState:
         self.receivers: dict[str, Any] = dict(receivers or {})
         self.own_receivers = receivers is None
         # map (the bathymetry receiver's levels)
-        self._map_summary: dict[int, tuple[int, Any, Any, int]] = {}
+        #: per level: (version, summary, coverage span, keys, oldest stamps, image box, step)
+        self._map_summary: dict[int, tuple[int, Any, int, Any, Any, list[float], int]] = {}
         self._png: dict[int, tuple[int, bytes]] = {}
         self.targets: list[dict[str, Any]] = []
         #: Flag candidate targets on the finest level (threshold in metres, minimum cells).
@@ -334,7 +341,7 @@ class ConsoleState:
         elif "target" in kind:
             self._targets_product(data, meta)
         elif kind == "map-level" and hasattr(data, "shape"):
-            self._map_product(np.asarray(data, float))
+            self._map_product(data, meta)
         return {s for s in SECTIONS if self.versions[s] != before[s]}
 
     def apply_event(self, event: Any) -> set[str]:
@@ -410,8 +417,16 @@ class ConsoleState:
         self._touch("vehicle")
 
     # -------------------------------------------------------------------------- map
-    def _map_product(self, z: FloatArray) -> None:
-        """A level of the bathymetry receiver changed: its depth range widens the colour scale."""
+    def _map_product(self, data: Any, meta: Mapping[str, Any]) -> None:
+        """A level of the bathymetry receiver changed: its depth range widens the colour scale
+        (the receiver's ``zmin``/``zmax`` when it says them: a big level is not scanned)."""
+        if meta.get("zmin") is not None and meta.get("zmax") is not None:
+            lo, hi = float(meta["zmin"]), float(meta["zmax"])
+            zr = self._zrange or (lo, hi)
+            self._zrange = (min(zr[0], lo), max(zr[1], hi))
+            self._touch("map")
+            return
+        z = np.asarray(data, float)
         finite = z[np.isfinite(z)]
         if finite.size:
             lo, hi = float(finite.min()), float(finite.max())
@@ -422,12 +437,14 @@ class ConsoleState:
     def held_stamps(self, level: int, x0: int, y0: int, w: int, h: int) -> list[int | None]:
         """Per subgrid of the region, row-major (rows = y): the stamp topside holds, or None."""
         rx = self.map_receiver
-        held = rx.holdings(level) if rx is not None else {}
-        return [held.get((ix, iy)) for iy in range(y0, y0 + h) for ix in range(x0, x0 + w)]
+        if rx is None:
+            return [None] * (w * h)
+        return list(rx.region_stamps(level, x0, y0, w, h))
 
     def level_grid(self, level: int) -> tuple[FloatArray, float, float, float] | None:
-        """A copy of the receiver's level: ``(z, x0, y0, cell)`` with row 0 = south, or None
-        if nothing of it is held."""
+        """A copy of the receiver's drawn level: ``(z, x0, y0, cell)`` with row 0 = south, or
+        None if nothing of it is held. A big level is a decimated overview (``cell`` is then a
+        multiple of the level's: at most the receiver's ``max_mosaic_cells``)."""
         rx = self.map_receiver
         if rx is None or level not in rx.levels():
             return None
@@ -436,6 +453,25 @@ class ConsoleState:
         if not np.isfinite(z).any():
             return None
         return z, float(p.meta["x0"]), float(p.meta["y0"]), float(p.meta["cell_size"])
+
+    def map_window_job(self, level: int, x0: float, y0: float, x1: float, y1: float,
+                       step: int = 1) -> Callable[[], bytes] | None:
+        """What is on screen of a big level, finer than its drawn overview: a job rendering
+        ``[x0, x1) x [y0, y1)`` (metres) at ``step`` level cells per pixel as a PNG (north up),
+        read from the receiver's tiles now (call it holding the node's lock; the job may run
+        without). None if nothing of the level is held or the picture would exceed
+        :data:`MAP_WINDOW_CELLS` pixels."""
+        rx = self.map_receiver
+        geometry = rx.geometry(level) if rx is not None else None
+        if geometry is None or level not in rx.levels() or step < 1 or not x1 > x0 or not y1 > y0:
+            return None
+        span = geometry[0] * step
+        cells = math.ceil((x1 - x0) / span - 1e-9) * math.ceil((y1 - y0) / span - 1e-9)
+        if not 0 < cells <= MAP_WINDOW_CELLS:
+            return None
+        z, (_, _, cell) = rx.window(level, x0, y0, x1, y1, max_cells=cells)
+        lo, hi = self._zrange or (0.0, 1.0)
+        return lambda: png_bytes(elevation_rgb(z, lo, hi, cell))
 
     def map_png(self, level: int) -> bytes | None:
         """The level as a PNG (colour ramp + hillshade, north up, transparent where empty)."""
@@ -735,23 +771,34 @@ class ConsoleState:
             version = rx.level_version(level)
             cached = self._map_summary.get(level)
             if cached is None or cached[0] != version:
-                held = rx.held[level]
-                cached = (version, np.array(list(held.keys()), np.int64),
-                          np.array([h.stamp for h in held.values()], float),
-                          int(sum(int(np.isfinite(h.values).sum()) for h in held.values())))
+                # from the receiver's running summary and its coverage in at most MAP_BLOCKS
+                # blocks (every subgrid of a small level): a big level is never read whole
+                summary = rx.level_summary(level)
+                span, keys, ts = rx.coverage(level, MAP_BLOCKS)
+                p = rx.level_product(level)
+                pc = float(p.meta["cell_size"])
+                px0, py0 = float(p.meta["x0"]), float(p.meta["y0"])
+                image = [px0, py0, px0 + p.data.shape[1] * pc, py0 + p.data.shape[0] * pc]
+                cached = (version, summary, span, keys, ts, image, int(p.meta.get("step", 1)))
                 self._map_summary[level] = cached
-            _, keys, ts, cells = cached
-            if not len(keys):
+            _, summary, span, keys, ts, image, step = cached
+            if summary is None or not summary["subgrids"] or summary["extent"] is None:
                 continue
+            ix0, iy0, ix1, iy1 = summary["extent"]
+            cells = int(summary["cells"])
             levels.append({
-                "level": level, "cell": c, "side": side, "subgrids": len(keys),
+                "level": level, "cell": c, "side": side, "subgrids": int(summary["subgrids"]),
                 "cells": cells, "coverage_m2": cells * c * c,
-                "x0": float(keys[:, 0].min() * side * c), "y0": float(keys[:, 1].min() * side * c),
-                "x1": float((keys[:, 0].max() + 1) * side * c),
-                "y1": float((keys[:, 1].max() + 1) * side * c),
-                "newest_age": _num(self.now - float(ts.max()), 1),
-                "oldest_age": _num(self.now - float(ts.min()), 1),
+                "x0": float(ix0 * side * c), "y0": float(iy0 * side * c),
+                "x1": float(ix1 * side * c), "y1": float(iy1 * side * c),
+                "newest_age": _num(self.now - float(summary["newest"]), 1),
+                "oldest_age": _num(self.now - float(summary["oldest"]), 1),
                 "version": version, "png": f"/map/{level}.png?v={version}",
+                # where the picture goes (the receiver's drawn array, which may be larger than
+                # what is held, and coarser: ``step`` level cells per pixel)
+                "image": image, "step": step,
+                # per block of tile_span x tile_span subgrids: its oldest data's age
+                "tile_span": span,
                 "tiles": np.column_stack([keys, np.round(self.now - ts)]).astype(int).tolist(),
             })
         meta = rx.metadata if rx is not None else None
@@ -770,15 +817,18 @@ class ConsoleState:
 
     def _auto_targets(self) -> list[dict[str, Any]]:
         """Candidate targets flagged on the finest level held at 2 m or better (cells standing
-        out from their surroundings, the bathymetry plugin's ``find_targets``)."""
+        out from their surroundings, the bathymetry plugin's ``find_targets``), if it is drawn
+        whole (a level too big for that is a decimated overview: no car stands out in it)."""
         rx = self.map_receiver
         if not self.auto_targets or rx is None:
             return []
-        fine = [lv for lv in rx.levels() if (rx.geometry(lv) or (99.0, 0))[0] <= 2.0]
+        fine = [lv for lv in rx.levels() if (rx.geometry(lv) or (99.0, 0))[0] <= 2.0
+                and rx.level_product(lv).meta.get("step", 1) == 1]
         if not fine:
             return []
         level = min(fine)
-        version, count = rx.level_version(level), len(rx.held.get(level, {}))
+        summary = rx.level_summary(level)
+        version, count = rx.level_version(level), int(summary["subgrids"]) if summary else 0
         last = self._targets_cache[0]
         # a big map changes with every subgrid: look again once 5% more of it has come in
         stale = (last is None or last[0] != level or version < last[1]

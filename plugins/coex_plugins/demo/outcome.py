@@ -17,6 +17,7 @@ from coex import Runner
 from coex_plugins.bathymetry import (
     BathymetryReceiver,
     write_geotiff,
+    write_level_geotiff,
     write_png,
 )
 from coex_plugins.bathymetry.sim import Seafloor, Target
@@ -138,8 +139,11 @@ def finish(out: Path, cfg: DemoConfig, world: World, operator: Operator, receive
         meta = dict(p.meta)
         cell, x0, y0 = float(meta["cell_size"]), float(meta["x0"]), float(meta["y0"])
         grid = np.asarray(p.data, float)
-        write_geotiff(out / "map" / f"level_{level}.tif", grid, x0=x0, y0=y0, cell=cell,
-                      origin_lat=float(meta.get("origin_lat", 0.0)), origin_lon=float(meta.get("origin_lon", 0.0)))
+        # the GeoTIFF at full resolution, streamed from the receiver's tiles; the PNG and the
+        # figures from its drawn level
+        write_level_geotiff(out / "map" / f"level_{level}.tif", bathy, level,
+                            origin_lat=float(meta.get("origin_lat", 0.0)),
+                            origin_lon=float(meta.get("origin_lon", 0.0)))
         write_png(out / "map" / f"level_{level}.png", grid, cell=cell)
         if level <= 3:
             # the survey box (and a margin), not the whole quadtree

@@ -144,6 +144,34 @@ function levelImage(lv) {
   }
   return img && img.complete ? img : null;
 }
+const winCache = new Map();  // level -> {key, img, box}: what is on screen of a big level
+function levelWindow(lv) {
+  // A big level's picture is a decimated overview (lv.step level cells a pixel): zoomed in
+  // further, ask the server for the part on screen, read from the receiver's tiles.
+  if (!lv.step || lv.step <= 1) return null;
+  let s = 1;
+  while (s * 2 * lv.cell <= 1 / view.scale) s *= 2;  // a screen pixel holds s x s cells
+  if (s >= lv.step) return null;
+  const [vx0, vy1] = s2w(0, 0), [vx1, vy0] = s2w(canvas.width, canvas.height);
+  const g = s * lv.cell * 256;  // snapped: small pans keep the picture
+  const x0 = Math.floor(Math.max(vx0, lv.x0) / g) * g, y0 = Math.floor(Math.max(vy0, lv.y0) / g) * g;
+  const x1 = Math.ceil(Math.min(vx1, lv.x1) / g) * g, y1 = Math.ceil(Math.min(vy1, lv.y1) / g) * g;
+  if (x1 <= x0 || y1 <= y0) return null;
+  const key = `/map/${lv.level}/window.png?x0=${x0}&y0=${y0}&x1=${x1}&y1=${y1}&step=${s}&v=${lv.version}`;
+  let c = winCache.get(lv.level);
+  if (!c) { c = { key: null, img: null, box: null, pending: null }; winCache.set(lv.level, c); }
+  if (c.key !== key && c.pending !== key) {
+    c.pending = key;
+    const fresh = new Image(), entry = c;
+    fresh.onload = () => {
+      entry.key = key; entry.img = fresh; entry.box = [x0, y0, x1, y1];
+      if (entry.pending === key) entry.pending = null;
+      drawMap();
+    };
+    fresh.src = key;
+  }
+  return c.img && c.img.complete ? c : null;  // the previous one until the new one loads
+}
 function ageColor(age, alpha) {
   const f = Math.min(1, Math.max(0, age / 1800));
   const r = Math.round(80 + 175 * f), g = Math.round(220 - 150 * f);
@@ -165,12 +193,18 @@ function drawMap() {
     for (const lv of visible) {  // coarse first, finer on top
       const img = levelImage(lv);
       if (!img) continue;
-      const [ax, ay] = w2s(lv.x0, lv.y1), [bx, by] = w2s(lv.x1, lv.y0);
+      const box = lv.image || [lv.x0, lv.y0, lv.x1, lv.y1];  // the drawn array's extent
+      const [ax, ay] = w2s(box[0], box[3]), [bx, by] = w2s(box[2], box[1]);
       ctx.drawImage(img, ax, ay, bx - ax, by - ay);
+      const win = levelWindow(lv);
+      if (win) {
+        const [wa, wb] = w2s(win.box[0], win.box[3]), [wc, wd] = w2s(win.box[2], win.box[1]);
+        ctx.drawImage(win.img, wa, wb, wc - wa, wd - wb);
+      }
     }
     if ($("#show-age").checked && visible.length) {
       const lv = visible[visible.length - 1];
-      const span = lv.side * lv.cell;
+      const span = lv.side * lv.cell * (lv.tile_span || 1);  // blocks of tile_span subgrids
       for (const [ix, iy, age] of lv.tiles) {
         const [ax, ay] = w2s(ix * span, (iy + 1) * span);
         const sz = span * view.scale;
