@@ -392,18 +392,26 @@ class _Overview:
         return {(cx, cy) for cy in range(self.oy0 // CHUNK, (self.oy0 + self.ny - 1) // CHUNK + 1)
                 for cx in range(self.ox0 // CHUNK, (self.ox0 + self.nx - 1) // CHUNK + 1)}
 
-    def encode_chunk(self, cx: int, cy: int, compression: int) -> bytes:
-        mean = np.full((CHUNK, CHUNK), np.nan, self.mean.dtype)
-        count = np.zeros((CHUNK, CHUNK), np.float32)
+    def _chunk_overlap(self, cx: int, cy: int) -> tuple[tuple[slice, slice], tuple[slice, slice]] | None:
+        """Where chunk ``(cx, cy)`` and this overview overlap: the overview's slices and the
+        chunk's (None: they do not)."""
         a, c = cx * CHUNK, cy * CHUNK
         x0, x1 = max(a, self.ox0), min(a + CHUNK, self.ox0 + self.nx)
         y0, y1 = max(c, self.oy0), min(c + CHUNK, self.oy0 + self.ny)
-        if x0 < x1 and y0 < y1:
-            src = (slice(y0 - self.oy0, y1 - self.oy0), slice(x0 - self.ox0, x1 - self.ox0))
-            dst = (slice(y0 - c, y1 - c), slice(x0 - a, x1 - a))
-            mean[dst] = self.mean[src]
+        if not (x0 < x1 and y0 < y1):
+            return None
+        return ((slice(y0 - self.oy0, y1 - self.oy0), slice(x0 - self.ox0, x1 - self.ox0)),
+                (slice(y0 - c, y1 - c), slice(x0 - a, x1 - a)))
+
+    def encode_chunk(self, cx: int, cy: int, compression: int) -> bytes:
+        mean = np.full((CHUNK, CHUNK), np.nan, self.mean.dtype)
+        count = np.zeros((CHUNK, CHUNK), np.float32)
+        overlap = self._chunk_overlap(cx, cy)
+        if overlap is not None:
+            mine, theirs = overlap
+            mean[theirs] = self.mean[mine]
             if self.count is not None:
-                count[dst] = self.count[src]
+                count[theirs] = self.count[mine]
         parts = [mean.astype(mean.dtype.newbyteorder("<")).tobytes()]
         if self.count is not None:
             parts.append(count.astype("<f4").tobytes())
@@ -425,15 +433,12 @@ class _Overview:
             count = np.frombuffer(payload, "<f4", n, n * mean.itemsize).reshape(CHUNK, CHUNK) if counted else None
         except (ValueError, struct.error, zlib.error) as exc:
             raise StateError(f"bathymetry receiver: stored overview chunk {where} is damaged ({exc})") from exc
-        a, c = cx * CHUNK, cy * CHUNK
-        x0, x1 = max(a, self.ox0), min(a + CHUNK, self.ox0 + self.nx)
-        y0, y1 = max(c, self.oy0), min(c + CHUNK, self.oy0 + self.ny)
-        if x0 < x1 and y0 < y1:
-            dst = (slice(y0 - self.oy0, y1 - self.oy0), slice(x0 - self.ox0, x1 - self.ox0))
-            src = (slice(y0 - c, y1 - c), slice(x0 - a, x1 - a))
-            self.mean[dst] = mean[src]
+        overlap = self._chunk_overlap(cx, cy)
+        if overlap is not None:
+            mine, theirs = overlap
+            self.mean[mine] = mean[theirs]
             if self.count is not None and count is not None:
-                self.count[dst] = count[src]
+                self.count[mine] = count[theirs]
 
 
 def _upgrade_receiver(fields: dict[str, Any], saved: int) -> dict[str, Any]:
