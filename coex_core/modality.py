@@ -42,7 +42,21 @@ class Product:
     meta: Mapping[str, Any] = field(default_factory=dict)
 
 
-class ModalitySender(abc.ABC):
+class _OutOfCore:
+    """The optional out-of-core hooks both sides of a modality share."""
+
+    def attach_storage(self, storage: Storage) -> None:
+        """The node's runner gives the modality its out-of-core storage
+        (:mod:`coex_core.storage`): a modality whose state can outgrow memory keeps there what it
+        is not working on. Called after the modality's saved state (if any) was loaded. Optional
+        (default: the storage is not used)."""
+
+    def sync_storage(self) -> None:
+        """Before every snapshot of the node: write to the attached storage whatever is held in
+        memory that the storage does not have yet. Optional."""
+
+
+class ModalitySender(_OutOfCore, abc.ABC):
     """The subsea side of a modality.
 
     Contract:
@@ -95,7 +109,7 @@ class ModalitySender(abc.ABC):
         be full. Optional (default: :meth:`pending_bytes` plus :meth:`spare_bytes`)."""
         return self.pending_bytes() + self.spare_bytes()
 
-    def lost(self, message: Message, now: float) -> None:  # noqa: B027 - optional hook
+    def lost(self, message: Message, now: float) -> None:
         """No frame that carried ``message`` (which this sender produced, on a stream that is
         not ``ack_required``) was acknowledged within the link's ack timeout: it probably did not
         arrive (or its ack did not). Optional: a sender may offer it again as spare work. It must
@@ -108,17 +122,7 @@ class ModalitySender(abc.ABC):
         accepts other objects (a ROS message) converts them here."""
         return data
 
-    def attach_storage(self, storage: Storage) -> None:  # noqa: B027 - optional hook
-        """The node's runner gives the modality its out-of-core storage
-        (:mod:`coex_core.storage`): a modality whose state can outgrow memory keeps there what it
-        is not working on. Called after the modality's saved state (if any) was loaded. Optional
-        (default: the storage is not used)."""
-
-    def sync_storage(self) -> None:  # noqa: B027 - optional hook
-        """Before every snapshot of the node: write to the attached storage whatever is held in
-        memory that the storage does not have yet. Optional."""
-
-    def acked(self, message: Message, now: float) -> None:  # noqa: B027 - optional hook
+    def acked(self, message: Message, now: float) -> None:
         """The other side acknowledged a frame that carried ``message``, which this sender
         produced (called by the node when the frame ack arrives; on streams without
         ``ack_required`` too, see :meth:`lost`). Optional: a sender may use it to drop a queued
@@ -126,7 +130,7 @@ class ModalitySender(abc.ABC):
         it, and nothing else changes)."""
 
 
-class ModalityReceiver(abc.ABC):
+class ModalityReceiver(_OutOfCore, abc.ABC):
     """The topside side of a modality.
 
     Contract: :meth:`receive` accepts the message types listed in ``Modality.messages``, never
@@ -181,16 +185,6 @@ class ModalityReceiver(abc.ABC):
         carries what topside holds now). It must not raise (if it does, the node logs it and
         withdraws nothing)."""
         return False
-
-    def attach_storage(self, storage: Storage) -> None:  # noqa: B027 - optional hook
-        """The node's runner gives the modality its out-of-core storage
-        (:mod:`coex_core.storage`): a modality whose state can outgrow memory keeps there what it
-        is not working on. Called after the modality's saved state (if any) was loaded. Optional
-        (default: the storage is not used)."""
-
-    def sync_storage(self) -> None:  # noqa: B027 - optional hook
-        """Before every snapshot of the node: write to the attached storage whatever is held in
-        memory that the storage does not have yet. Optional."""
 
 
 class Modality(abc.ABC):
