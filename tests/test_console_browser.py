@@ -370,5 +370,8 @@ def test_a_big_level_zoomed_in_is_drawn_from_what_is_on_screen(browser: Any) -> 
             page.wait_for_timeout(100)
         assert len(windows) > seen  # the part now on screen
         assert _painted(page) > 100_000
+        if os.environ.get("COEX_BIG_MAP_SHOT"):  # to look at it: COEX_BIG_MAP_SHOT=big.png
+            page.wait_for_timeout(500)
+            page.screenshot(path=os.environ["COEX_BIG_MAP_SHOT"])
         page.close()
     assert not errors, errors
