@@ -30,6 +30,7 @@ from .messages import (
     QueueConfig,
     ScheduleUpdate,
     SpareConfig,
+    SurveyCommand,
     TimeSeriesAck,
     TimeSeriesRequest,
 )
@@ -43,7 +44,7 @@ MAX_COUNTER = 2**32 - 1
 #: Topside-to-vehicle messages that change what the vehicle does: they must be authenticated.
 COMMAND_TYPES: tuple[type[Message], ...] = (
     QueueConfig, ScheduleUpdate, LinkControl, ImageGoal, ImageByTimeRequest, MapRoiRequest,
-    TimeSeriesRequest, ImageAck, TimeSeriesAck, SpareConfig,
+    TimeSeriesRequest, ImageAck, TimeSeriesAck, SpareConfig, SurveyCommand,
 )
 _TRAILER_TYPE = wire.type_id(AuthTrailer)
 

@@ -58,6 +58,13 @@ __all__ = [
     "TimeSeriesPart",
     "TimeSeriesAck",
     "TimeSeriesRequest",
+    # surveys
+    "SurveyKind",
+    "SurveyState",
+    "SurveyReason",
+    "SurveyPoint",
+    "SurveyCommand",
+    "SurveyStatus",
 ]
 
 
@@ -560,3 +567,104 @@ class TimeSeriesRequest(Message):
     start: int
     end: int
     max_error: float
+
+
+# ------------------------------------------------------------------------------- surveys
+class SurveyKind(enum.IntEnum):
+    """What a :class:`SurveyCommand` asks the vehicle to fly."""
+
+    #: go to the point (``x``, ``y``) and hold there
+    GOTO = 0
+    #: one straight line from (``x``, ``y``) along ``heading`` for ``length`` metres
+    LINE = 1
+    #: a lawnmower centred on (``x``, ``y``): rows ``length`` long along ``heading``, ``spacing``
+    #: apart, across ``width`` (the first row on the port side of ``heading``)
+    LAWNMOWER = 2
+    #: the waypoints (``x``, ``y``) then ``points``, in order
+    WAYPOINTS = 3
+
+
+class SurveyState(enum.IntEnum):
+    """Where a survey command is (:class:`SurveyStatus`)."""
+
+    #: it passed the vehicle's checks and went to its autonomy
+    ACCEPTED = 0
+    #: refused (``reason`` says why); the vehicle does nothing
+    REJECTED = 1
+    #: the vehicle is flying it (``index``: the waypoint it is heading for)
+    STARTED = 2
+    #: flown to its end
+    COMPLETED = 3
+    #: stopped before its end (``reason``: replaced by a newer survey, or the autonomy failed)
+    ABORTED = 4
+
+
+class SurveyReason(enum.IntEnum):
+    """Why a survey was rejected or aborted."""
+
+    NONE = 0
+    #: a waypoint or a leg lies outside the vehicle's geofence (``index``: the first such point;
+    #: ``value``: how far outside, metres)
+    OUTSIDE_GEOFENCE = 1
+    #: the altitude asked is below the vehicle's minimum (``value``: the minimum, metres)
+    ALTITUDE_LIMIT = 2
+    #: the depth asked is beyond the vehicle's maximum (``value``: the maximum, metres)
+    DEPTH_LIMIT = 3
+    #: the path is longer than the vehicle's limit (``value``: the limit, metres)
+    TOO_LONG = 4
+    #: the command cannot be flown as given (a field it needs is missing or zero)
+    INVALID = 5
+    #: the vehicle's autonomy refused it (a mission upload was not accepted)
+    AUTONOMY_REFUSED = 6
+    #: a newer survey replaced it
+    SUPERSEDED = 7
+    #: the vehicle has no autonomy that takes survey commands
+    NO_AUTONOMY = 8
+    #: the autonomy stopped it (a fault, a mode change, an operator on the vehicle)
+    AUTONOMY_STOPPED = 9
+    #: the speed asked is above the vehicle's maximum (``value``: the maximum, m/s)
+    SPEED_LIMIT = 10
+
+
+@dataclass(frozen=True, slots=True)
+class SurveyPoint:
+    """A waypoint of a :class:`SurveyCommand` (metres east/north of the origin)."""
+
+    x: float
+    y: float
+
+
+@dataclass(frozen=True, slots=True)
+class SurveyCommand(Message):
+    """Topside command: survey somewhere (see :class:`SurveyKind`). The vehicle answers with a
+    :class:`CommandAck` and reports the survey's state in :class:`SurveyStatus` messages.
+    ``altitude`` (above the seafloor) or ``depth`` (below the surface) sets how high it flies
+    (neither: as it is); ``append`` queues it after the surveys already accepted instead of
+    replacing them."""
+
+    command_id: int
+    survey_id: int
+    kind: SurveyKind
+    x: float
+    y: float
+    heading: float | None = None
+    length: float | None = None
+    width: float | None = None
+    spacing: float | None = None
+    altitude: float | None = None
+    depth: float | None = None
+    speed: float | None = None
+    append: bool = False
+    points: tuple[SurveyPoint, ...] = ()
+
+
+@dataclass(frozen=True, slots=True)
+class SurveyStatus(Message):
+    """Vehicle report: the state of one survey (the newest state only; re-sent until acked)."""
+
+    survey_id: int
+    state: SurveyState
+    reason: SurveyReason
+    stamp: int
+    index: int | None = None
+    value: float | None = None

@@ -105,8 +105,22 @@ def _fragment_rule(ctx: cs.Container) -> None:
     ctx.n_packets = len(marks)
 
 
+def _survey_rule(ctx: cs.Container) -> None:
+    """SurveyCommand: the fields its kind needs are present, only WAYPOINTS carries points, and
+    altitude and depth are not both given."""
+    kind = int(ctx.kind)
+    need = {1: ("heading", "length"), 2: ("heading", "length", "width", "spacing")}.get(kind, ())
+    for name in need:
+        if ctx[name] is None:
+            ctx[name] = 10.0
+    if kind != 3:
+        ctx.points, ctx.n_points = [], 0
+    if ctx.altitude is not None:
+        ctx.depth = None
+
+
 #: per message type, the rules a drawn message is made to follow (the table's "MUST reject when")
-_RULES: dict[str, Any] = {"ImageFragment": _fragment_rule}
+_RULES: dict[str, Any] = {"ImageFragment": _fragment_rule, "SurveyCommand": _survey_rule}
 
 
 def message_strategy(spec: MessageSpec) -> st.SearchStrategy[Message]:

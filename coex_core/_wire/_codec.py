@@ -16,7 +16,7 @@ import construct as cs
 
 from ..errors import DecodeError, EncodeError
 from ..messages import Frame, FrameHeader, Message, Opaque
-from . import bathymetry, core, imagery, timeseries  # noqa: F401  (they register their messages)
+from . import bathymetry, core, imagery, survey, timeseries  # noqa: F401  (they register their messages)
 from ._primitives import Bool, Bounded, UInt
 from ._registry import (
     BUILTIN_RANGE,

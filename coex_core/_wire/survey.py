@@ -1,0 +1,102 @@
+"""Survey messages: a topside command asking the vehicle to survey somewhere, and the vehicle's
+report of where that survey is (accepted, rejected with a reason, started, completed)."""
+
+from __future__ import annotations
+
+import construct as cs
+
+from ..messages import (
+    SurveyCommand,
+    SurveyKind,
+    SurveyPoint,
+    SurveyReason,
+    SurveyState,
+    SurveyStatus,
+)
+from ._primitives import Body, Bool, Bounded, Count, Enum, Rule, Stamp
+from ._registry import MessageSpec, register
+
+#: Further waypoints of a WAYPOINTS survey (the first is ``x``, ``y``).
+MAX_SURVEY_POINTS = 31
+SURVEY_ID = Bounded(0, 1023) * "Survey id (chosen topside; wraps at 1024)"
+XY = dict(lo=-50000, hi=50000, res=0.1, unit="m")
+
+SURVEY_POINT = cs.Struct(
+    "x" / Bounded(**XY) * "Waypoint east of the origin",  # type: ignore[arg-type]
+    "y" / Bounded(**XY) * "Waypoint north of the origin",  # type: ignore[arg-type]
+)
+
+
+def _shape_ok(ctx: cs.Container) -> bool:
+    kind = int(ctx.kind)
+    if kind == SurveyKind.LINE:
+        need = (ctx.heading, ctx.length)
+    elif kind == SurveyKind.LAWNMOWER:
+        need = (ctx.heading, ctx.length, ctx.width, ctx.spacing)
+    else:
+        need = ()
+    points_ok = kind == SurveyKind.WAYPOINTS or len(ctx.points) == 0
+    return all(v is not None for v in need) and points_ok and (ctx.altitude is None or ctx.depth is None)
+
+
+SURVEY_COMMAND = Body(
+    "command_id" / Bounded(0, 255) * "Command id, echoed in the CommandAck",
+    "survey_id" / SURVEY_ID,
+    "kind" / Enum(SurveyKind, bits=3) * "What to fly",
+    "x" / Bounded(**XY) * "Goal point, line start, lawnmower centre or first waypoint, east",  # type: ignore[arg-type]
+    "y" / Bounded(**XY) * "The same, north",  # type: ignore[arg-type]
+    "heading" / Bounded(0, 359.9, 0.1, optional=True, unit="deg")
+    * "Direction of the line or of the lawnmower's rows, clockwise from north",
+    "length" / Bounded(0, 10000, 0.5, optional=True, unit="m") * "Line length, or lawnmower row length",
+    "width" / Bounded(0, 10000, 0.5, optional=True, unit="m") * "Lawnmower width (across the rows)",
+    "spacing" / Bounded(0, 500, 0.5, optional=True, unit="m") * "Lawnmower row spacing",
+    "altitude" / Bounded(0, 500, 0.1, optional=True, unit="m") * "Altitude above the seafloor to fly at",
+    "depth" / Bounded(0, 6000, 0.1, optional=True, unit="m") * "Depth to fly at (instead of altitude)",
+    "speed" / Bounded(0, 5, 0.05, optional=True, unit="m/s") * "Speed through the water",
+    "append" / Bool() * "Queue after the surveys already accepted (0: replace them)",
+    "n_points" / Count(0, MAX_SURVEY_POINTS, "points"),
+    "points" / cs.Array(cs.this.n_points, SURVEY_POINT) * "Further waypoints of a WAYPOINTS survey, in order",
+    Rule(_shape_ok, "a LINE needs heading and length, a LAWNMOWER heading, length, width and spacing; "
+                    "only a WAYPOINTS survey has points; altitude and depth are not both given"),
+)
+
+SURVEY_STATUS = Body(
+    "survey_id" / SURVEY_ID,
+    "state" / Enum(SurveyState, bits=3) * "Where the survey is",
+    "reason" / Enum(SurveyReason, bits=4) * "Why it was rejected or aborted (NONE otherwise)",
+    "stamp" / Stamp() * "When it got to this state",
+    "index" / Bounded(0, 255, optional=True)
+    * "STARTED: the waypoint it heads for; REJECTED: the first waypoint that broke the rule",
+    "value" / Bounded(0, 10000, 0.1, optional=True, unit="m, or m/s")
+    * "REJECTED: how far outside the geofence, or the limit that was broken",
+)
+
+_FAR = 50000.0
+_BIG = SurveyCommand(255, 1023, SurveyKind.WAYPOINTS, -_FAR, _FAR, None, None, None, None, 500.0, None,
+                     5.0, True, tuple(SurveyPoint(_FAR, -_FAR) for _ in range(MAX_SURVEY_POINTS)))
+
+register(MessageSpec(
+    56, SurveyCommand, SURVEY_COMMAND, False, "survey",
+    "Topside command: survey somewhere (go to a point, a line, a lawnmower or waypoints); "
+    "answered by a CommandAck and SurveyStatus reports.",
+    largest=lambda: _BIG,
+    cases=lambda: [
+        ("goto", SurveyCommand(0, 0, SurveyKind.GOTO, 12.3, -45.6)),
+        ("line", SurveyCommand(7, 3, SurveyKind.LINE, 100.0, -20.0, 0.0, 60.0, None, None, 5.0, None, 0.5,
+                               True)),
+        ("lawnmower", SurveyCommand(21, 17, SurveyKind.LAWNMOWER, 150.0, 150.0, 45.0, 120.0, 80.0, 20.0,
+                                    None, 35.5, 1.0)),
+        ("waypoints_max", _BIG),
+    ],
+))
+register(MessageSpec(
+    57, SurveyStatus, SURVEY_STATUS, False, "survey",
+    "Vehicle report: the newest state of one survey (re-sent until acknowledged).",
+    largest=lambda: SurveyStatus(1023, SurveyState.ABORTED, SurveyReason.SPEED_LIMIT, 2**18 - 1, 255, 10000.0),
+    cases=lambda: [
+        ("accepted", SurveyStatus(0, SurveyState.ACCEPTED, SurveyReason.NONE, 0)),
+        ("outside_fence", SurveyStatus(17, SurveyState.REJECTED, SurveyReason.OUTSIDE_GEOFENCE, 5123, 3, 212.5)),
+        ("started", SurveyStatus(3, SurveyState.STARTED, SurveyReason.NONE, 7200, 1)),
+        ("largest", SurveyStatus(1023, SurveyState.ABORTED, SurveyReason.SPEED_LIMIT, 2**18 - 1, 255, 10000.0)),
+    ],
+))
