@@ -103,7 +103,7 @@ def plan_of(cmd: SurveyCommand) -> SurveyPlan:
         if not (cmd.length and cmd.spacing) or cmd.width is None or cmd.heading is None:
             raise Refusal(SurveyReason.INVALID, text="a lawnmower needs a heading, a length and a "
                                                      "spacing above 0, and a width")
-        rows = int(math.floor(cmd.width / cmd.spacing + 1e-9)) + 1
+        rows = math.floor(cmd.width / cmd.spacing + 1e-9) + 1
         if rows > MAX_ROWS:
             raise Refusal(SurveyReason.INVALID, value=float(rows),
                           text=f"a lawnmower of {rows} rows (at most {MAX_ROWS})")
