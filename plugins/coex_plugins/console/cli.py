@@ -102,7 +102,10 @@ def register(subparsers: Any) -> None:
         "topside", help="run a topside node and serve the web console",
         description="Run a topside node over a transport and serve the web console "
                     "(map, images, time series, link and queues) on HTTP.")
-    p.add_argument("--transport", required=True, metavar="URI", action="append",
+    p.add_argument("--config", metavar="FILE",
+                   help="the topside's configuration file (TOML, docs/deploy.md): node, modems, "
+                        "TDMA, modalities, store and console in one place; replaces the options below")
+    p.add_argument("--transport", metavar="URI", action="append",
                    help="transport URI (micromodem:///dev/ttyUSB0, mavlink:..., lcm:..., "
                         "loopback://name); repeat it for several modems (links --link, "
                         "--link + 1, ...)")
@@ -277,7 +280,8 @@ def build_topside(transport_uri: str | Sequence[str], host: str = "127.0.0.1", p
                   remap_ids: dict[str, dict[int, int]] | None = None,
                   operators: str | Path | None = None, insecure_open: bool = False,
                   tls_cert: str | None = None, tls_key: str | None = None,
-                  session_hours: float = 12.0) -> TopsideApp:
+                  session_hours: float = 12.0,
+                  receiver_options: dict[str, dict[str, Any]] | None = None) -> TopsideApp:
     """Open the transports (several URIs: several modems, link ids ``link``, ``link + 1`` ...),
     build the topside node and its receivers, serve the console (not yet driving the node: call
     ``start()`` or ``run()``). With ``command_key`` every command is authenticated (spec
@@ -295,7 +299,7 @@ def build_topside(transport_uri: str | Sequence[str], host: str = "127.0.0.1", p
     ``operators`` (an operators file, ``coex operators``) makes the console ask everyone to
     sign in: operators command, viewers watch. A console on a non-loopback address refuses to
     start without one, unless ``insecure_open`` (logged loudly). ``tls_cert`` and ``tls_key``
-    serve HTTPS."""
+    serve HTTPS. ``receiver_options`` gives a modality's receiver its options by name."""
     access, tls = console_access(host, operators, insecure_open, tls_cert, tls_key, session_hours)
     from coex_core.channel.manager import ChannelManager, LinkConfig
     from coex_core.channel.schedule import Schedule
@@ -332,7 +336,7 @@ def build_topside(transport_uri: str | Sequence[str], host: str = "127.0.0.1", p
             for name in modalities:
                 try:
                     cls = load_modality(name)
-                    receiver = cls().receiver()
+                    receiver = cls().receiver((receiver_options or {}).get(name) or None)
                 except (CoexError, ImportError, AttributeError, TypeError) as exc:
                     log.warning("modality %s not available: %s", name, exc)
                     missing.append(f"modality {name} not available: {exc}")
@@ -401,7 +405,43 @@ def build_topside(transport_uri: str | Sequence[str], host: str = "127.0.0.1", p
     return TopsideApp(node, transports, hub, server, clock, store=nstore)
 
 
+def topside_from_config(path: str, clock: Callable[[], float] = time.time) -> TopsideApp:
+    """The topside node, its modems and console as a configuration file describes them."""
+    from coex_plugins.vehicle.config import _resolved, load
+
+    cfg = load(path, "topside")
+    c = cfg.console
+    host, _, port = str(c.get("http", "127.0.0.1:8080")).rpartition(":")
+
+    def rel(k: str) -> str | None:
+        return str(cfg.base_dir / c[k]) if c.get(k) else None
+
+    names = {m.stream: m.name for m in cfg.modalities}
+    names.update({int(k): str(v) for k, v in (c.get("stream_names") or {}).items()})
+    return build_topside(
+        [m.uri for m in cfg.modems], host or "127.0.0.1", int(port), node_id=cfg.node_id, vehicle_id=cfg.peer,
+        rate=cfg.modems[0].rate, schedule=cfg.schedule(), modalities=tuple(m.name for m in cfg.modalities),
+        stream_names=names, clock=clock, command_key=cfg.command_key, store=cfg.store,
+        snapshot_interval=cfg.snapshot_interval,
+        remap_ids={m.name: m.ids for m in cfg.modalities if m.ids} or None, operators=rel("operators"),
+        insecure_open=bool(c.get("insecure_open", False)), tls_cert=rel("tls_cert"), tls_key=rel("tls_key"),
+        session_hours=float(c.get("session_hours", 12.0)),
+        receiver_options={m.name: _resolved(m.options, cfg) for m in cfg.modalities})
+
+
 def run(args: argparse.Namespace) -> int:
+    if args.config:
+        try:
+            app = topside_from_config(args.config)
+        except (CoexError, OSError) as exc:
+            print(f"coex topside: {exc}", file=sys.stderr)
+            return 2
+        logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(levelname)s %(message)s")
+        print(f"CoEx console on {app.url} (topside node {app.node.node_id}, from {args.config})", flush=True)
+        return _serve(app)
+    if not args.transport:
+        print("coex topside: give --config FILE or at least one --transport URI", file=sys.stderr)
+        return 2
     host, port = args.http
     try:
         key = None
@@ -424,11 +464,16 @@ def run(args: argparse.Namespace) -> int:
         return 2
     print(f"CoEx console on {app.url} (topside node {args.node_id}, "
           f"{', '.join(args.transport)})", flush=True)
+    return _serve(app)
+
+
+def _serve(app: TopsideApp) -> int:
     if app.store is not None:
         st = app.store
         resumed = st.restored_extra is not None or st.stats["replayed"] > 0
-        print(f"store {args.store}: " + (f"resumed ({st.stats['replayed']} journaled frames "
+        print(f"store {app.store.path}: " + (f"resumed ({st.stats['replayed']} journaled frames "
                                          "replayed)" if resumed else "new"), flush=True)
+
     def terminate(signum: int, frame: Any) -> None:
         raise KeyboardInterrupt  # a polite stop (SIGTERM) saves the store like Ctrl-C
 

@@ -1,0 +1,417 @@
+"""The deployment configuration of ``coex vehicle`` and ``coex topside`` (one TOML file per
+node; ``docs/deploy.md`` documents every key, ``examples/`` holds complete ones).
+
+:func:`load` reads a file and checks **everything** before anything is opened: each problem is
+one sentence that names its key (``modems[0].uri: no transport 'micromodm' (known: ...)``), and
+:class:`~coex_core.errors.ConfigError` lists them all. ``coex config check FILE`` prints them.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import re
+import tomllib
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from importlib import metadata
+from pathlib import Path
+from typing import Any
+
+from coex_core.errors import CoexError, ConfigError
+
+__all__ = ["DEFAULT_MODALITIES", "DeployConfig", "ModalityConfig", "check", "load"]
+
+ROLES = ("vehicle", "topside")
+#: streams and priorities of the built-in modalities when the file names none (NUI 2022:
+#: map subgrids and image fragments 30, time series a little less; survey reports high)
+DEFAULT_MODALITIES: dict[str, tuple[int, int]] = {
+    "bathymetry": (3, 30), "imagery": (4, 30), "timeseries": (5, 20), "survey": (7, 90),
+}
+#: the NUI 2022 cycle: 6 slots, topside in slots 0 and 3
+NUI_SLOTS = ("topside", "vehicle", "vehicle", "topside", "vehicle", "vehicle")
+TOP_KEYS = {"node", "modems", "tdma", "modalities", "status", "inputs", "autonomy", "console"}
+
+
+@dataclass
+class ModalityConfig:
+    name: str
+    stream: int
+    priority: int
+    options: dict[str, Any] = field(default_factory=dict)
+    ids: dict[int, int] = field(default_factory=dict)
+
+
+@dataclass
+class ModemConfig:
+    uri: str
+    rate: int = 5
+    frame_bytes: int | None = None
+    spare: float | None = None
+
+
+@dataclass
+class DeployConfig:
+    """One node's deployment, checked (see :func:`load`)."""
+
+    path: Path
+    role: str
+    node_id: int
+    peer: int
+    origin_lat: float = 0.0
+    origin_lon: float = 0.0
+    command_key: bytes | None = None
+    command_key_file: Path | None = None
+    store: Path | None = None
+    snapshot_interval: float = 30.0
+    log_level: str = "info"
+    modems: list[ModemConfig] = field(default_factory=list)
+    slots: tuple[str, ...] = NUI_SLOTS
+    slot_seconds: float = 20.0
+    guard: float = 2.0
+    epoch: float = 0.0
+    modalities: list[ModalityConfig] = field(default_factory=list)
+    status_interval: float = 10.0
+    inputs: list[dict[str, Any]] = field(default_factory=list)
+    autonomy: dict[str, Any] = field(default_factory=lambda: {"type": "log"})
+    console: dict[str, Any] = field(default_factory=dict)
+
+    @property
+    def base_dir(self) -> Path:
+        return self.path.parent
+
+    def owners(self) -> list[int]:
+        """The TDMA slot owners as node ids."""
+        vehicle, topside = ((self.node_id, self.peer) if self.role == "vehicle" else (self.peer, self.node_id))
+        return [topside if s == "topside" else vehicle for s in self.slots]
+
+    def schedule(self) -> Any:
+        from coex_core.channel.schedule import Schedule
+
+        return Schedule.simple(self.owners(), self.slot_seconds, self.guard, epoch=self.epoch)
+
+
+class _Problems:
+    def __init__(self) -> None:
+        self.items: list[str] = []
+
+    def add(self, key: str, text: str) -> None:
+        self.items.append(f"{key}: {text}")
+
+    def table(self, data: Any, key: str) -> dict[str, Any]:
+        if data is None:
+            return {}
+        if not isinstance(data, Mapping):
+            self.add(key, f"a table, got {type(data).__name__}")
+            return {}
+        return dict(data)
+
+    def unknown(self, data: Mapping[str, Any], known: set[str] | tuple[str, ...], key: str) -> None:
+        for k in data:
+            if k not in known:
+                self.add(f"{key}.{k}" if key else k, f"unknown key (known: {', '.join(sorted(known))})")
+
+    def number(self, data: Mapping[str, Any], k: str, key: str, default: Any, *, lo: float | None = None,
+               hi: float | None = None, integer: bool = False) -> Any:
+        v = data.get(k, default)
+        if v is default:
+            return v
+        ok = isinstance(v, int) if integer else isinstance(v, int | float)
+        if isinstance(v, bool) or not ok or (not integer and not math.isfinite(v)):
+            self.add(f"{key}.{k}", f"{'an integer' if integer else 'a number'}, got {v!r}")
+            return default
+        if (lo is not None and v < lo) or (hi is not None and v > hi):
+            self.add(f"{key}.{k}", f"{v!r} is outside {lo:g}..{hi:g}" if lo is not None and hi is not None
+                     else f"{v!r} is below {lo:g}" if lo is not None else f"{v!r} is above {hi:g}")
+            return default
+        return v
+
+
+def _entry_points(group: str) -> dict[str, metadata.EntryPoint]:
+    return {ep.name: ep for ep in metadata.entry_points(group=group)}
+
+
+def load(path: str | Path, role: str | None = None) -> DeployConfig:
+    """Read and check a node's configuration. :class:`ConfigError` lists every problem, each
+    naming its key. ``role`` (``"vehicle"`` or ``"topside"``) must match the file's
+    ``node.role`` when given."""
+    cfg, problems = _parse(Path(path), role)
+    if problems:
+        raise ConfigError(f"{path}: " + "; ".join(problems) if len(problems) == 1 else
+                          f"{path}: {len(problems)} problems:\n  " + "\n  ".join(problems))
+    assert cfg is not None
+    return cfg
+
+
+def check(path: str | Path, role: str | None = None) -> tuple[DeployConfig | None, list[str]]:
+    """``(config, problems)``: what ``coex config check`` prints."""
+    return _parse(Path(path), role)
+
+
+_VAR = re.compile(r"\$\{([A-Za-z_][A-Za-z0-9_]*)(?::-([^}]*))?\}")
+
+
+def expand(text: str) -> str:
+    """``${NAME}`` and ``${NAME:-default}`` replaced by the environment variable (or the
+    default), before the TOML is read: one file serves several machines (device paths, ports).
+    :class:`ConfigError` for an unset variable without a default."""
+    def sub(m: re.Match[str]) -> str:
+        value = os.environ.get(m.group(1), m.group(2))
+        if value is None:
+            raise ConfigError(f"${{{m.group(1)}}} is not set and has no default (write ${{{m.group(1)}:-...}})")
+        return value
+
+    return _VAR.sub(sub, text)
+
+
+def _parse(path: Path, role: str | None) -> tuple[DeployConfig | None, list[str]]:
+    p = _Problems()
+    try:
+        raw = tomllib.loads(expand(path.read_text()))
+    except ConfigError as exc:
+        return None, [str(exc)]
+    except OSError as exc:
+        return None, [f"cannot read the file: {exc.strerror or exc}"]
+    except tomllib.TOMLDecodeError as exc:
+        return None, [f"not valid TOML: {exc}"]
+    p.unknown(raw, TOP_KEYS, "")
+    node = p.table(raw.get("node"), "node")
+    p.unknown(node, {"role", "id", "peer", "origin", "command_key_file", "store", "snapshot_interval",
+                     "log_level"}, "node")
+    r = node.get("role", role)
+    if r not in ROLES:
+        p.add("node.role", f"'vehicle' or 'topside', got {r!r}" if r is not None else
+              "missing: say whether this node is the 'vehicle' or the 'topside'")
+        r = role or "vehicle"
+    elif role is not None and r != role:
+        p.add("node.role", f"this file configures the {r}, not the {role} (run coex {r} --config ...)")
+    if "id" not in node:
+        p.add("node.id", "missing: this node's id (1..15; topside is usually 1, the vehicle 2)")
+    nid = p.number(node, "id", "node", 2 if r == "vehicle" else 1, lo=1, hi=15, integer=True)
+    peer = p.number(node, "peer", "node", 1 if r == "vehicle" else 2, lo=1, hi=15, integer=True)
+    if peer == nid:
+        p.add("node.peer", f"the other node's id must differ from this node's ({nid})")
+    cfg = DeployConfig(path=path.resolve(), role=r, node_id=nid, peer=peer)
+    origin = p.table(node.get("origin"), "node.origin")
+    p.unknown(origin, {"lat", "lon"}, "node.origin")
+    cfg.origin_lat = float(p.number(origin, "lat", "node.origin", 0.0, lo=-90, hi=90))
+    cfg.origin_lon = float(p.number(origin, "lon", "node.origin", 0.0, lo=-180, hi=180))
+    cfg.snapshot_interval = float(p.number(node, "snapshot_interval", "node", 30.0, lo=1, hi=3600))
+    level = node.get("log_level", "info")
+    if level not in ("debug", "info", "warning", "error"):
+        p.add("node.log_level", f"debug, info, warning or error, got {level!r}")
+    cfg.log_level = str(level)
+    keyfile = node.get("command_key_file")
+    if keyfile is not None:
+        from coex_core.auth import parse_key
+
+        kp = cfg.base_dir / str(keyfile)
+        try:
+            cfg.command_key = parse_key(kp.read_bytes())
+            cfg.command_key_file = kp
+        except OSError as exc:
+            p.add("node.command_key_file", f"cannot read {kp}: {exc.strerror or exc}")
+        except (CoexError, ValueError) as exc:
+            p.add("node.command_key_file", str(exc))
+    store = node.get("store", f"{r}.sqlite")
+    if store is False:
+        cfg.store = None
+    elif isinstance(store, str) and store:
+        cfg.store = cfg.base_dir / store
+    else:
+        p.add("node.store", f"a file name (default {r}.sqlite) or false, got {store!r}")
+    _modems(raw, p, cfg)
+    _tdma(raw, p, cfg)
+    _modalities(raw, p, cfg)
+    if r == "vehicle":
+        status = p.table(raw.get("status"), "status")
+        p.unknown(status, {"interval"}, "status")
+        cfg.status_interval = float(p.number(status, "interval", "status", 10.0, lo=1, hi=3600))
+        _inputs(raw, p, cfg)
+        _autonomy(raw, p, cfg)
+        for k in ("console",):
+            if k in raw:
+                p.add(k, "only a topside node has a console")
+    else:
+        for k in ("inputs", "autonomy", "status"):
+            if k in raw:
+                p.add(k, "only a vehicle node has inputs, an autonomy and a status")
+        _console(raw, p, cfg)
+    return cfg, p.items
+
+
+def _modems(raw: Mapping[str, Any], p: _Problems, cfg: DeployConfig) -> None:
+    modems = raw.get("modems")
+    if not isinstance(modems, list) or not modems:
+        p.add("modems", "at least one [[modems]] table with a transport uri "
+                        "(micromodem:///dev/ttyUSB0?rate=5, mavlink:udpout:host:port, lcm:udpm://...)")
+        return
+    known = _entry_points("coex.transports")
+    for i, m in enumerate(modems):
+        key = f"modems[{i}]"
+        m = p.table(m, key)
+        p.unknown(m, {"uri", "rate", "frame_bytes", "spare"}, key)
+        uri = m.get("uri")
+        if not isinstance(uri, str) or not uri:
+            p.add(f"{key}.uri", "missing: the transport URI")
+            continue
+        scheme = uri.split(":", 1)[0]
+        if scheme not in known:
+            p.add(f"{key}.uri", f"no transport {scheme!r} (known: {', '.join(sorted(known))})")
+        rate = p.number(m, "rate", key, 5, lo=0, hi=6, integer=True)
+        fb = p.number(m, "frame_bytes", key, None, lo=16, hi=4096, integer=True)
+        spare = p.number(m, "spare", key, None, lo=0, hi=1)
+        cfg.modems.append(ModemConfig(uri, rate, fb, spare))
+
+
+def _tdma(raw: Mapping[str, Any], p: _Problems, cfg: DeployConfig) -> None:
+    t = p.table(raw.get("tdma"), "tdma")
+    p.unknown(t, {"slots", "slot_seconds", "guard", "epoch"}, "tdma")
+    slots = t.get("slots", list(NUI_SLOTS))
+    if (not isinstance(slots, list) or not slots or len(slots) > 32
+            or any(s not in ("topside", "vehicle") for s in slots)):
+        p.add("tdma.slots", f"a list of 1 to 32 'topside' / 'vehicle' entries, got {slots!r}")
+    else:
+        cfg.slots = tuple(slots)
+        if "topside" not in slots or "vehicle" not in slots:
+            p.add("tdma.slots", "both the topside and the vehicle need at least one slot")
+    cfg.slot_seconds = float(p.number(t, "slot_seconds", "tdma", 20.0, lo=0.5, hi=600))
+    cfg.guard = float(p.number(t, "guard", "tdma", 2.0, lo=0, hi=25.5))
+    if cfg.guard >= cfg.slot_seconds:
+        p.add("tdma.guard", f"the guard ({cfg.guard:g} s) must be shorter than a slot ({cfg.slot_seconds:g} s)")
+    cfg.epoch = float(p.number(t, "epoch", "tdma", 0.0))
+
+
+def _modalities(raw: Mapping[str, Any], p: _Problems, cfg: DeployConfig) -> None:
+    known = _entry_points("coex.modalities")
+    table = p.table(raw.get("modalities"), "modalities")
+    if "modalities" not in raw:
+        table = {name: {} for name in DEFAULT_MODALITIES if name in known}
+    streams: dict[int, str] = {}
+    for name, m in table.items():
+        key = f"modalities.{name}"
+        m = p.table(m, key)
+        p.unknown(m, {"stream", "priority", "options", "ids", "enabled"}, key)
+        if m.get("enabled", True) is False:
+            continue
+        if name not in known:
+            p.add(key, f"no modality {name!r} installed (known: {', '.join(sorted(known))})")
+            continue
+        d_stream, d_prio = DEFAULT_MODALITIES.get(name, (None, 30))
+        stream = p.number(m, "stream", key, d_stream, lo=1, hi=31, integer=True)
+        if stream is None:
+            p.add(f"{key}.stream", "missing: the stream (queue) id of this modality, 1..31")
+            continue
+        if stream in streams:
+            p.add(f"{key}.stream", f"stream {stream} is already {streams[stream]}'s")
+        streams[stream] = name
+        prio = p.number(m, "priority", key, d_prio, lo=0, hi=127, integer=True)
+        options = p.table(m.get("options"), f"{key}.options")
+        ids: dict[int, int] = {}
+        for own, wire_id in p.table(m.get("ids"), f"{key}.ids").items():
+            try:
+                ids[int(own)] = int(wire_id)
+            except (TypeError, ValueError):
+                p.add(f"{key}.ids.{own}", f"type ids are integers, got {own!r} = {wire_id!r}")
+        mc = ModalityConfig(name, int(stream), int(prio), options, ids)
+        # the modality checks its own options (an unknown one is named)
+        try:
+            cls = known[name].load()
+            side = cls().sender if cfg.role == "vehicle" else cls().receiver
+            side(_resolved(options, cfg) or None)
+        except ConfigError as exc:
+            p.add(f"{key}.options", str(exc))
+        except ImportError as exc:
+            p.add(key, f"cannot load the {name} plugin: {exc} (install its extra: pip install "
+                       f"'coexploration[{name}]')")
+        except (CoexError, TypeError, ValueError) as exc:
+            p.add(f"{key}.options", f"{type(exc).__name__}: {exc}")
+        cfg.modalities.append(mc)
+
+
+def _resolved(options: Mapping[str, Any], cfg: DeployConfig) -> dict[str, Any]:
+    """Options whose values name files (``out_dir``) taken from the configuration's directory."""
+    out = dict(options)
+    for k in ("out_dir",):
+        if isinstance(out.get(k), str):
+            out[k] = str(cfg.base_dir / out[k])
+    return out
+
+
+def _adapter(kind: str, group: str, table: Mapping[str, Any], key: str, p: _Problems) -> Any:
+    known = _entry_points(group)
+    t = table.get("type")
+    if t not in known:
+        p.add(f"{key}.type", f"{'missing' if t is None else repr(t) + ' is not installed'} "
+                             f"(known {kind}s: {', '.join(sorted(known))})")
+        return None
+    try:
+        return known[t].load()
+    except ImportError as exc:
+        p.add(f"{key}.type", f"cannot load {kind} {t!r}: {exc}")
+        return None
+
+
+def _inputs(raw: Mapping[str, Any], p: _Problems, cfg: DeployConfig) -> None:
+    from .inputs.base import FEEDS, check_options
+
+    inputs = raw.get("inputs", [])
+    if not isinstance(inputs, list):
+        p.add("inputs", "a list of [[inputs]] tables")
+        return
+    running = {m.name for m in cfg.modalities}
+    for i, t in enumerate(inputs):
+        key = f"inputs[{i}]"
+        t = p.table(t, key)
+        cls = _adapter("input", "coex.inputs", t, key, p)
+        if cls is None:
+            continue
+        feeds = t.get("feeds", list(cls.feeds))
+        if not isinstance(feeds, list) or any(f not in cls.feeds for f in feeds):
+            p.add(f"{key}.feeds", f"a list of what {t['type']} can feed ({', '.join(cls.feeds)}), got {feeds!r}")
+        else:
+            for f in feeds:
+                if f in FEEDS and f != "status" and f not in running:
+                    p.add(f"{key}.feeds", f"feeds {f}, but the {f} modality does not run on this node")
+        options = {k: v for k, v in t.items() if k not in ("type", "feeds")}
+        for text in check_options(cls, options):
+            p.add(key, text)
+        cfg.inputs.append(dict(t))
+
+
+def _autonomy(raw: Mapping[str, Any], p: _Problems, cfg: DeployConfig) -> None:
+    from .autonomy.base import check_autonomy_options
+
+    if "autonomy" not in raw and "survey" not in {m.name for m in cfg.modalities}:
+        cfg.autonomy = {}
+        return  # no survey commands: nothing to fly them
+    t = p.table(raw.get("autonomy", {"type": "log"}), "autonomy")
+    t.setdefault("type", "log")
+    cls = _adapter("autonomy output", "coex.autonomy", t, "autonomy", p)
+    if cls is None:
+        return
+    for text in check_autonomy_options(cls, {k: v for k, v in t.items() if k != "type"}):
+        p.add("autonomy", text)
+    cfg.autonomy = dict(t)
+    if "survey" not in {m.name for m in cfg.modalities}:
+        p.add("autonomy", "an autonomy output needs the survey modality ([modalities.survey])")
+
+
+def _console(raw: Mapping[str, Any], p: _Problems, cfg: DeployConfig) -> None:
+    c = p.table(raw.get("console"), "console")
+    p.unknown(c, {"http", "operators", "insecure_open", "tls_cert", "tls_key", "session_hours",
+                  "stream_names"}, "console")
+    http = c.get("http", "127.0.0.1:8080")
+    _host, sep, port = str(http).rpartition(":")
+    if not sep or not port.isdigit() or not 0 <= int(port) <= 65535:
+        p.add("console.http", f"HOST:PORT, got {http!r}")
+    for k in ("operators", "tls_cert", "tls_key"):
+        if k in c:
+            if not isinstance(c[k], str):
+                p.add(f"console.{k}", f"a file name, got {c[k]!r}")
+            elif not (cfg.base_dir / c[k]).exists():
+                p.add(f"console.{k}", f"no file {cfg.base_dir / c[k]}")
+    if not isinstance(c.get("insecure_open", False), bool):
+        p.add("console.insecure_open", "true or false")
+    p.number(c, "session_hours", "console", 12.0, lo=0.01, hi=24 * 365)
+    cfg.console = c

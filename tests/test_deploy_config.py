@@ -1,0 +1,83 @@
+"""`coex config check`: a deployment file is checked whole before anything opens, and every
+problem names its key."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from coex_core.errors import ConfigError
+from coex_plugins.vehicle.config import check, expand, load
+
+EXAMPLES = Path(__file__).resolve().parents[1] / "examples" / "deploy"
+
+BAD = """
+[node]
+role = "vehicle"
+id = 22
+peer = 1
+colour = "red"
+store = 3
+[[modems]]
+uri = "micromodm:///dev/ttyUSB0"
+rate = 9
+[tdma]
+slots = ["topside", "vehicle", "ship"]
+guard = 30
+[modalities.bathymetry]
+stream = 3
+options = { send_dleay = 2 }
+[modalities.survey]
+stream = 3
+options = { geofence = { polygon = [[0, 0], [1, 1]] } }
+[console]
+http = "x"
+"""
+
+
+def test_every_problem_is_reported_with_its_key(tmp_path: Path) -> None:
+    f = tmp_path / "v.toml"
+    f.write_text(BAD)
+    _, problems = check(f)
+    keys = [p.split(":", 1)[0] for p in problems]
+    for key in ("node.colour", "node.id", "node.store", "modems[0].uri", "modems[0].rate", "tdma.slots",
+                "tdma.guard", "modalities.bathymetry.options", "modalities.survey.stream",
+                "modalities.survey.options", "console"):
+        assert key in keys, (key, problems)
+    text = "\n".join(problems)
+    assert "send_dleay" in text and "micromodm" in text and "polygon" in text
+    with pytest.raises(ConfigError, match="problems"):
+        load(f)
+    out = subprocess.run([sys.executable, "-m", "coex_core.cli", "config", "check", str(f)],
+                         capture_output=True, text=True, timeout=120)
+    assert out.returncode == 1
+    assert "modems[0].uri: no transport 'micromodm'" in out.stdout
+
+
+def test_the_role_must_match_and_toml_errors_are_clear(tmp_path: Path) -> None:
+    f = tmp_path / "t.toml"
+    f.write_text('[node]\nrole = "topside"\nid = 1\n[[modems]]\nuri = "loopback://a"\n')
+    cfg = load(f, "topside")
+    assert cfg.owners() == [1, 2, 2, 1, 2, 2] and cfg.store == tmp_path / "topside.sqlite"
+    with pytest.raises(ConfigError, match="configures the topside"):
+        load(f, "vehicle")
+    f.write_text("[node\n")
+    assert "not valid TOML" in check(f)[1][0]
+    assert "cannot read" in check(tmp_path / "missing.toml")[1][0]
+
+
+def test_environment_variables_fill_the_file(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setenv("COEX_X", "7")
+    assert expand("a = ${COEX_X:-3}\nb = ${COEX_UNSET_Y:-4}") == "a = 7\nb = 4"
+    with pytest.raises(ConfigError, match="COEX_UNSET_Y"):
+        expand("${COEX_UNSET_Y}")
+
+
+def test_the_topside_example_checks_clean() -> None:
+    cfg, problems = check(EXAMPLES / "topside.toml")
+    assert problems == [] and cfg is not None
+    assert [m.name for m in cfg.modalities] == ["bathymetry", "imagery", "timeseries", "survey"]
+    assert cfg.command_key is not None
