@@ -38,6 +38,10 @@ __all__ = [
 MODALITY_GROUP = "coex.modalities"
 TRANSPORT_GROUP = "coex.transports"
 COMMAND_GROUP = "coex.commands"
+#: the vehicle daemon's adapters (``coex vehicle``): inputs from the vehicle's middleware and
+#: outputs to its autonomy; listed by ``coex plugins``, loaded only by the daemon
+INPUT_GROUP = "coex.inputs"
+AUTONOMY_GROUP = "coex.autonomy"
 
 
 @dataclass(frozen=True)
@@ -113,9 +117,10 @@ def open_transport(uri: str) -> Any:
 
 
 def available(check: bool = True) -> list[PluginInfo]:
-    """Every registered modality and transport; with ``check`` each is imported to report status."""
+    """Every registered modality, transport, input and autonomy output; with ``check`` each is
+    imported to report status."""
     out = []
-    for group in (MODALITY_GROUP, TRANSPORT_GROUP):
+    for group in (MODALITY_GROUP, TRANSPORT_GROUP, INPUT_GROUP, AUTONOMY_GROUP):
         for name, ep in sorted(_entry_points(group).items()):
             dist, version = _dist_name(ep)
             status, error = "registered", ""
