@@ -76,7 +76,7 @@ _BIG = SurveyCommand(255, 1023, SurveyKind.WAYPOINTS, -_FAR, _FAR, None, None, N
                      5.0, True, tuple(SurveyPoint(_FAR, -_FAR) for _ in range(MAX_SURVEY_POINTS)))
 
 register(MessageSpec(
-    56, SurveyCommand, SURVEY_COMMAND, False, "survey",
+    11, SurveyCommand, SURVEY_COMMAND, False, "survey",
     "Topside command: survey somewhere (go to a point, a line, a lawnmower or waypoints); "
     "answered by a CommandAck and SurveyStatus reports.",
     largest=lambda: _BIG,
@@ -90,7 +90,7 @@ register(MessageSpec(
     ],
 ))
 register(MessageSpec(
-    57, SurveyStatus, SURVEY_STATUS, False, "survey",
+    12, SurveyStatus, SURVEY_STATUS, False, "survey",
     "Vehicle report: the newest state of one survey (re-sent until acknowledged).",
     largest=lambda: SurveyStatus(1023, SurveyState.ABORTED, SurveyReason.SPEED_LIMIT, 2**18 - 1, 255, 10000.0),
     cases=lambda: [
