@@ -1,5 +1,5 @@
 """The layers import only downward: core <- transports (and the ``coex`` facade, and the
-conformance kit) <- modalities <- apps (console, demo); no module imports itself back through
+conformance kit) <- modalities <- apps (console, demo, vehicle); no module imports itself back through
 others (no cycles); README and docs show only the public facade for core and run-loop names."""
 
 from __future__ import annotations
@@ -20,7 +20,7 @@ PACKAGES = {
     "coex_conformance": "conformance_tests/coex_conformance",
     "coex_plugins": "plugins/coex_plugins",
 }
-APPS = ("coex_plugins.console", "coex_plugins.demo")
+APPS = ("coex_plugins.console", "coex_plugins.demo", "coex_plugins.vehicle")
 LAYER_NAMES = ("core", "transports", "modalities", "apps")
 
 
