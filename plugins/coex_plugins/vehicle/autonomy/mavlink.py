@@ -460,7 +460,7 @@ class MavlinkAutonomy(Autonomy):
             return
         if not 0 <= seq < len(self.items):
             self.stats["bad"] += 1
-            log.warning("mavlink: the autopilot asked for item %d of %d; ignored", seq, len(self.items))
+            log.warning("mavlink: the autopilot asked for item %d (the mission has %d); ignored", seq, len(self.items))
             return
         expected = 0 if self._sent is None else self._sent + 1
         if seq > expected:
