@@ -261,6 +261,24 @@ def test_new_plan_during_an_upload_restarts_it(make: Callable[..., MavlinkAutono
         peer.close()
 
 
+def test_an_ack_before_the_last_item_is_not_taken_as_the_answer(make: Callable[..., MavlinkAutonomy],
+                                                                port: int) -> None:
+    peer = _peer(port)  # stepped by hand
+    try:
+        out = make(start="none")
+        out.poll(time.monotonic())  # our heartbeat: the peer learns where we are
+        end = time.monotonic() + 5
+        while peer.conn.mav.total_packets_received == 0 and time.monotonic() < end:
+            peer.step(time.monotonic())
+        out.submit(_plan(), time.monotonic())
+        peer.conn.mav.mission_ack_send(1, 191, 0)  # a late "accepted" of an earlier upload
+        got = run(out, lambda r: bool(r), peer=peer)
+        assert got == [SurveyReport(7, SurveyState.STARTED, got[0].time, index=0)]
+        assert len(peer.missions) == 1 and len(peer.missions[0]) == 4 and out.stats["ignored"] == 1
+    finally:
+        peer.close()
+
+
 def test_garbage_and_wrong_requests_are_logged_and_ignored(make: Callable[..., MavlinkAutonomy], port: int) -> None:
     peer = _peer(port)  # stepped by hand
     try:

@@ -482,9 +482,11 @@ class MavlinkAutonomy(Autonomy):
             self.phase = "idle"
             self._report(SurveyState.REJECTED, now, SurveyReason.AUTONOMY_REFUSED, value=float(result))
             return
-        if self._sent is None or self._sent < len(self.items) - 1:
-            log.warning("mavlink: the autopilot accepted survey %s after %s of %d items",
-                        self.plan.survey_id, "none" if self._sent is None else self._sent + 1, len(self.items))
+        if self._sent != len(self.items) - 1:
+            # the vehicle accepts after the last item: this ack is an earlier upload's
+            self.stats["ignored"] += 1
+            log.info("mavlink: ignored an ack before the last item of survey %s was sent", self.plan.survey_id)
+            return
         log.info("mavlink: survey %s uploaded", self.plan.survey_id)
         self.phase = "flying"
         self._deadline = math.inf
