@@ -22,7 +22,7 @@ from typing import Any
 
 from coex_core.errors import ConfigError
 from coex_core.messages import SurveyReason, SurveyState
-from coex_transports.lcm._transport import DEFAULT_URL
+from coex_transports.lcm import DEFAULT_URL
 from coex_transports.lcm._types.survey_request_t import survey_request_t
 from coex_transports.lcm._types.survey_state_t import survey_state_t
 
