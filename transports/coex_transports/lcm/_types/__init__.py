@@ -7,3 +7,5 @@ lcm-gen 1.5.3
 from .frame_t import frame_t as frame_t
 from .vehicle_status_t import vehicle_status_t as vehicle_status_t
 from .map_level_t import map_level_t as map_level_t
+from .survey_request_t import survey_request_t as survey_request_t
+from .survey_state_t import survey_state_t as survey_state_t

@@ -1,0 +1,169 @@
+"""The ``lcm`` autonomy output: each plan is published as a ``coex.survey_request_t`` for the
+vehicle's own planner, whose ``coex.survey_state_t`` answers become survey reports.
+
+* :meth:`LcmAutonomy.submit` publishes a request on ``channel`` (default
+  ``COEX_SURVEY_REQUEST``): the waypoints in local metres and in degrees (from the configured
+  origin), the altitude, depth and speed (NaN = not given). ``utime`` is ``now`` in microseconds.
+* :meth:`LcmAutonomy.poll` handles what arrived on ``state_channel`` (default
+  ``COEX_SURVEY_STATE``), never blocking: state 2 -> STARTED (``index``), 3 -> COMPLETED,
+  4 -> ABORTED (AUTONOMY_STOPPED), 1 -> REJECTED (AUTONOMY_REFUSED). Reports are stamped with
+  ``now`` (the daemon's clock), not with the planner's ``utime``.
+
+Anything else on the state channel (another type, an unknown state) is logged and dropped.
+The types are defined in ``spec/bindings/coex.lcm``.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from collections.abc import Mapping
+from typing import Any
+
+from coex_core.errors import ConfigError
+from coex_core.messages import SurveyReason, SurveyState
+from coex_transports.lcm import DEFAULT_URL
+from coex_transports.lcm._types.survey_request_t import survey_request_t
+from coex_transports.lcm._types.survey_state_t import survey_state_t
+
+from ...survey.plan import SurveyReport
+from .base import Autonomy
+
+__all__ = ["LcmAutonomy", "report_of", "request_of"]
+
+log = logging.getLogger(__name__)
+
+#: survey_state_t.state -> (SurveyState, reason)
+STATES = {
+    1: (SurveyState.REJECTED, SurveyReason.AUTONOMY_REFUSED),
+    2: (SurveyState.STARTED, SurveyReason.NONE),
+    3: (SurveyState.COMPLETED, SurveyReason.NONE),
+    4: (SurveyState.ABORTED, SurveyReason.AUTONOMY_STOPPED),
+}
+#: most messages handled in one poll
+MAX_HANDLE = 1000
+
+
+def _nan(v: float | None) -> float:
+    return math.nan if v is None else float(v)
+
+
+def request_of(plan: Any, context: Any, now: float) -> survey_request_t:
+    """The ``survey_request_t`` of a plan."""
+    msg = survey_request_t()
+    msg.utime = round(now * 1e6)
+    msg.survey_id = int(plan.survey_id)
+    msg.kind = int(plan.kind)
+    pts = [(float(x), float(y)) for x, y in plan.waypoints]
+    msg.n = len(pts)
+    msg.x = [p[0] for p in pts]
+    msg.y = [p[1] for p in pts]
+    geo = [context.geodetic(x, y) for x, y in pts]
+    msg.lat = [g[0] for g in geo]
+    msg.lon = [g[1] for g in geo]
+    msg.altitude, msg.depth, msg.speed = _nan(plan.altitude), _nan(plan.depth), _nan(plan.speed)
+    return msg
+
+
+def report_of(msg: survey_state_t, now: float) -> SurveyReport | None:
+    """The SurveyReport of a planner's answer (None: a state it cannot be)."""
+    state = STATES.get(int(msg.state))
+    if state is None:
+        return None
+    index = int(msg.index) if state[0] == SurveyState.STARTED and msg.index >= 0 else None
+    if state[0] == SurveyState.STARTED and index is None:
+        index = 0
+    return SurveyReport(int(msg.survey_id), state[0], float(now), state[1], index)
+
+
+class LcmAutonomy(Autonomy):
+    """Publishes survey requests on LCM, reads the planner's answers (module docstring)."""
+
+    name = "lcm"
+    options = {
+        "url": (DEFAULT_URL, "LCM provider URL (udpm://239.255.76.67:7667?ttl=0, memq:// ...)"),
+        "channel": ("COEX_SURVEY_REQUEST", "channel of the survey_request_t it publishes"),
+        "state_channel": ("COEX_SURVEY_STATE", "channel of the planner's survey_state_t answers"),
+    }
+
+    @classmethod
+    def check(cls, options: Mapping[str, Any]) -> list[str]:
+        problems = []
+        for key in ("url", "channel", "state_channel"):
+            v = options.get(key, "x")
+            if not isinstance(v, str) or not v:
+                problems.append(f"autonomy 'lcm': {key} must be a non-empty string, got {v!r}")
+            elif key != "url" and len(v) > 63:
+                problems.append(f"autonomy 'lcm': {key} is longer than LCM's 63 characters")
+        return problems
+
+    def __init__(self, options: Mapping[str, Any], context: Any, instance: Any = None) -> None:
+        super().__init__(options, context)
+        self.lc: Any = instance
+        self._own = instance is None
+        self._sub: Any = None
+        self._received: list[bytes] = []
+        self.stats = {"published": 0, "received": 0, "bad": 0}
+
+    def open(self) -> None:
+        if self._sub is not None:
+            return
+        if self.lc is None:
+            import lcm
+
+            try:
+                self.lc = lcm.LCM(self.config["url"])
+            except Exception as exc:
+                raise ConfigError(f"autonomy 'lcm': cannot open {self.config['url']!r}: {exc}") from exc
+        # LCM subscribes by regular expression: match the channel name exactly
+        import re
+
+        self._sub = self.lc.subscribe(re.escape(self.config["state_channel"]),
+                                      lambda _channel, data: self._received.append(data))
+
+    def close(self) -> None:
+        if self.lc is not None and self._sub is not None:
+            try:
+                self.lc.unsubscribe(self._sub)
+            except Exception:  # already gone
+                pass
+        self._sub = None
+        if self._own:
+            self.lc = None
+
+    def submit(self, plan: Any, now: float) -> None:
+        if self._sub is None:
+            self.open()
+        msg = request_of(plan, self.context, now)
+        self.lc.publish(self.config["channel"], msg.encode())
+        self.stats["published"] += 1
+        log.info("lcm: survey %s (%d waypoints) published on %s", plan.survey_id, msg.n, self.config["channel"])
+
+    def poll(self, now: float) -> list[Any]:
+        if self._sub is None:
+            return []
+        for _ in range(MAX_HANDLE):
+            try:
+                if self.lc.handle_timeout(0) <= 0:
+                    break
+            except OSError as exc:
+                log.warning("lcm: receive failed: %s", exc)
+                break
+        data, self._received = self._received, []
+        out = []
+        for raw in data:
+            try:
+                msg = survey_state_t.decode(raw)
+            except Exception as exc:  # another type on the channel, a truncated message
+                self.stats["bad"] += 1
+                log.warning("lcm: not a survey_state_t on %s (%d bytes): %s", self.config["state_channel"],
+                            len(raw), exc)
+                continue
+            report = report_of(msg, now)
+            if report is None:
+                self.stats["bad"] += 1
+                log.warning("lcm: survey %d: unknown state %d", msg.survey_id, msg.state)
+                continue
+            self.stats["received"] += 1
+            out.append(report)
+        return out
