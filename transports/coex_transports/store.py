@@ -95,7 +95,8 @@ class SqliteStorage(Storage):
         stay in memory and are never written."""
         self._overlay = {}
         if self.path is not None:
-            self.db = sqlite3.connect(f"file:{self.path}?mode=ro", uri=True, isolation_level=None)
+            self.db = sqlite3.connect(f"file:{self.path}?mode=ro", uri=True, isolation_level=None,
+                                      check_same_thread=False)
 
     def get(self, key: str) -> bytes | None:
         if self._overlay is not None and key in self._overlay:
@@ -152,7 +153,9 @@ class NodeStore:
         self.snapshot_interval = float(snapshot_interval)
         self.journal_tx = journal_tx
         try:
-            self.db = sqlite3.connect(self.path, isolation_level=None)
+            # a daemon opens its store in one thread and may run its loop in another (one at a
+            # time: the runner's steps and the final snapshot never overlap)
+            self.db = sqlite3.connect(self.path, isolation_level=None, check_same_thread=False)
             mode = self.db.execute("PRAGMA journal_mode=WAL").fetchone()[0]
             if str(mode).lower() != "wal":
                 raise ConfigError(f"{self.path}: SQLite refused WAL mode ({mode})")

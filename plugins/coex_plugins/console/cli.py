@@ -281,7 +281,8 @@ def build_topside(transport_uri: str | Sequence[str], host: str = "127.0.0.1", p
                   operators: str | Path | None = None, insecure_open: bool = False,
                   tls_cert: str | None = None, tls_key: str | None = None,
                   session_hours: float = 12.0,
-                  receiver_options: dict[str, dict[str, Any]] | None = None) -> TopsideApp:
+                  receiver_options: dict[str, dict[str, Any]] | None = None,
+                  link_options: Sequence[dict[str, Any]] | None = None) -> TopsideApp:
     """Open the transports (several URIs: several modems, link ids ``link``, ``link + 1`` ...),
     build the topside node and its receivers, serve the console (not yet driving the node: call
     ``start()`` or ``run()``). With ``command_key`` every command is authenticated (spec
@@ -299,7 +300,9 @@ def build_topside(transport_uri: str | Sequence[str], host: str = "127.0.0.1", p
     ``operators`` (an operators file, ``coex operators``) makes the console ask everyone to
     sign in: operators command, viewers watch. A console on a non-loopback address refuses to
     start without one, unless ``insecure_open`` (logged loudly). ``tls_cert`` and ``tls_key``
-    serve HTTPS. ``receiver_options`` gives a modality's receiver its options by name."""
+    serve HTTPS. ``receiver_options`` gives a modality's receiver its options by name;
+    ``link_options`` (one mapping per transport) sets LinkConfig fields (``rate``,
+    ``frame_bytes``, ``spare``, ``packet_seconds``) link by link."""
     access, tls = console_access(host, operators, insecure_open, tls_cert, tls_key, session_hours)
     from coex_core.channel.manager import ChannelManager, LinkConfig
     from coex_core.channel.schedule import Schedule
@@ -326,9 +329,13 @@ def build_topside(transport_uri: str | Sequence[str], host: str = "127.0.0.1", p
 
         for i, uri in enumerate(uris):
             transports[link + i] = open_transport(uri)
+        extra = list(link_options or [])
         cfgs = [LinkConfig(lid, schedule, rate=rate,
                            frame_bytes=min(rate_info(rate).frame_bytes, int(tr.mtu)),
                            dst=vehicle_id) for lid, tr in transports.items()]
+        for i, lc in enumerate(cfgs):  # per-link settings of a configuration file
+            if i < len(extra) and extra[i]:
+                cfgs[i] = replace(lc, **extra[i])
         missing: list[str] = []
 
         def fresh() -> Any:
@@ -426,7 +433,10 @@ def topside_from_config(path: str, clock: Callable[[], float] = time.time) -> To
         remap_ids={m.name: m.ids for m in cfg.modalities if m.ids} or None, operators=rel("operators"),
         insecure_open=bool(c.get("insecure_open", False)), tls_cert=rel("tls_cert"), tls_key=rel("tls_key"),
         session_hours=float(c.get("session_hours", 12.0)),
-        receiver_options={m.name: _resolved(m.options, cfg) for m in cfg.modalities})
+        receiver_options={m.name: _resolved(m.options, cfg) for m in cfg.modalities},
+        link_options=[{k: v for k, v in (("rate", m.rate), ("frame_bytes", m.frame_bytes), ("spare", m.spare),
+                                          ("packet_seconds", m.packet_seconds)) if v is not None}
+                      for m in cfg.modems])
 
 
 def run(args: argparse.Namespace) -> int:

@@ -48,6 +48,7 @@ class ModemConfig:
     rate: int = 5
     frame_bytes: int | None = None
     spare: float | None = None
+    packet_seconds: float | None = None
 
 
 @dataclass
@@ -250,7 +251,7 @@ def _modems(raw: Mapping[str, Any], p: _Problems, cfg: DeployConfig) -> None:
     for i, m in enumerate(modems):
         key = f"modems[{i}]"
         m = p.table(m, key)
-        p.unknown(m, {"uri", "rate", "frame_bytes", "spare"}, key)
+        p.unknown(m, {"uri", "rate", "frame_bytes", "spare", "packet_seconds"}, key)
         uri = m.get("uri")
         if not isinstance(uri, str) or not uri:
             p.add(f"{key}.uri", "missing: the transport URI")
@@ -261,7 +262,8 @@ def _modems(raw: Mapping[str, Any], p: _Problems, cfg: DeployConfig) -> None:
         rate = p.number(m, "rate", key, 5, lo=0, hi=6, integer=True)
         fb = p.number(m, "frame_bytes", key, None, lo=16, hi=4096, integer=True)
         spare = p.number(m, "spare", key, None, lo=0, hi=1)
-        cfg.modems.append(ModemConfig(uri, rate, fb, spare))
+        packet = p.number(m, "packet_seconds", key, None, lo=0.001, hi=600)
+        cfg.modems.append(ModemConfig(uri, rate, fb, spare, packet))
 
 
 def _tdma(raw: Mapping[str, Any], p: _Problems, cfg: DeployConfig) -> None:

@@ -60,6 +60,8 @@ def link_configs(cfg: DeployConfig, transports: dict[int, Any]) -> list[Any]:
         m = cfg.modems[lid]
         fb = m.frame_bytes or min(rate_info(m.rate).frame_bytes, int(tr.mtu))
         kw: dict[str, Any] = {} if m.spare is None else {"spare": m.spare}
+        if m.packet_seconds is not None:
+            kw["packet_seconds"] = m.packet_seconds
         out.append(LinkConfig(lid, schedule, rate=m.rate, frame_bytes=fb, dst=cfg.peer, **kw))
     return out
 

@@ -1,0 +1,116 @@
+"""`coex vehicle` and `coex topside --config` in one process over a MAVLink (UDP) link: a survey
+command goes up signed, is checked against the geofence, flown by the simulated autonomy and
+reported back; one outside the fence is rejected with its reason; a restart resumes from the
+store without flying the survey again."""
+
+from __future__ import annotations
+
+import socket
+import time
+from pathlib import Path
+from typing import Any
+
+from coex_plugins.console.cli import topside_from_config
+from coex_plugins.vehicle.config import load
+from coex_plugins.vehicle.daemon import VehicleApp
+
+KEY = "00112233445566778899aabbccddeeff00112233445566778899aabbccddeeff"
+
+COMMON = """
+[tdma]
+slots = ["topside", "vehicle"]
+slot_seconds = 1.0
+guard = 0.1
+"""
+VEHICLE = """
+[node]
+role = "vehicle"
+id = 2
+command_key_file = "k.key"
+store = "vehicle.sqlite"
+snapshot_interval = 1
+[modalities.bathymetry]
+stream = 3
+[modalities.survey]
+stream = 7
+priority = 90
+options = {{ geofence = {{ radius = 300.0, min_altitude = 2.0 }} }}
+[status]
+interval = 1
+[[modems]]
+uri = "mavlink:udpout:127.0.0.1:{port}?sysid=2&compid=191"
+packet_seconds = 0.2
+[autonomy]
+type = "sim"
+speed = 40.0
+""" + COMMON
+TOPSIDE = """
+[node]
+role = "topside"
+id = 1
+command_key_file = "k.key"
+store = "topside.sqlite"
+[modalities.bathymetry]
+stream = 3
+[modalities.survey]
+stream = 7
+[console]
+http = "127.0.0.1:0"
+[[modems]]
+uri = "mavlink:udpin:127.0.0.1:{port}?sysid=1&compid=190"
+packet_seconds = 0.2
+""" + COMMON
+
+
+def _free_udp_port() -> int:
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+def _wait(cond: Any, timeout: float = 30.0) -> None:
+    end = time.monotonic() + timeout
+    while time.monotonic() < end:
+        if cond():
+            return
+        time.sleep(0.05)
+    raise AssertionError("timed out")
+
+
+def test_a_survey_goes_up_is_flown_and_a_restart_resumes(tmp_path: Path) -> None:
+    port = _free_udp_port()
+    (tmp_path / "k.key").write_text(KEY)
+    (tmp_path / "v.toml").write_text(VEHICLE.format(port=port))
+    (tmp_path / "t.toml").write_text(TOPSIDE.format(port=port))
+    vehicle = VehicleApp(load(tmp_path / "v.toml", "vehicle")).start()
+    topside = topside_from_config(str(tmp_path / "t.toml")).start()
+    try:
+        rx = topside.node.receiver("survey")
+        with topside.hub.lock:
+            ok = rx.request("line", 0.0, 0.0, time.time(), heading=90.0, length=120.0, altitude=5.0)
+            bad = rx.request("line", 0.0, 0.0, time.time(), heading=0.0, length=400.0, altitude=5.0,
+                             append=True)
+        _wait(lambda: rx.surveys[ok.survey_id].state == "completed"
+              and rx.surveys[bad.survey_id].state == "rejected")
+        assert rx.surveys[bad.survey_id].text == "waypoint 1 is 100 m outside the geofence"
+        states = [h[1] for h in rx.surveys[ok.survey_id].history]
+        assert states[0] == "requested" and states[-1] == "completed" and "started" in states
+        assert vehicle.counts["plans"] == 1 and vehicle.counts["reports"] >= 2
+        # the simulated autonomy's position came up as the vehicle status
+        _wait(lambda: topside.hub.state.status is not None and topside.hub.state.status.x > 100.0)
+        assert vehicle.node.stats["unauthenticated"] == 0
+    finally:
+        vehicle.close()
+    # the vehicle restarts from its store: the survey's state is there, nothing is flown again
+    again = VehicleApp(load(tmp_path / "v.toml", "vehicle"))
+    try:
+        assert again.resumed
+        tx = again.node.sender("survey")
+        assert tx.surveys[ok.survey_id].state.name == "COMPLETED"
+        assert tx.surveys[bad.survey_id].state.name == "REJECTED"
+        again.start()
+        time.sleep(1.0)
+        assert again.counts["plans"] == 0
+    finally:
+        again.close()
+        topside.close()
