@@ -19,7 +19,7 @@ import numpy as np
 
 from .base import InputContext
 
-__all__ = ["DirectoryWatch", "Sidecar", "as_pixels", "read_image", "read_sidecar", "split_patterns"]
+__all__ = ["DirectoryWatch", "Sidecar", "as_pixels", "decode_image", "read_image", "read_sidecar", "split_patterns"]
 
 log = logging.getLogger(__name__)
 
@@ -170,14 +170,29 @@ def read_image(path: str | Path) -> np.ndarray:
     from PIL import Image as PILImage
 
     with PILImage.open(p) as img:
-        img.load()
-        if img.mode in ("P", "PA", "CMYK", "YCbCr", "LAB", "HSV", "RGBA", "RGBX", "RGBa", "LA"):
-            img = img.convert("RGB" if img.mode not in ("LA",) else "L")
-        elif img.mode == "1":
-            img = img.convert("L")
-        elif img.mode.startswith("I;16"):
-            return as_pixels(np.asarray(img).astype(np.uint16))
-        return as_pixels(np.asarray(img))
+        return _pil_pixels(img)
+
+
+def decode_image(data: bytes) -> np.ndarray:
+    """The pixels of an encoded image (JPEG, PNG ... anything Pillow reads), as
+    :func:`read_image` gives them. Raises ``OSError`` or ``ValueError`` on bad data."""
+    import io
+
+    from PIL import Image as PILImage
+
+    with PILImage.open(io.BytesIO(data)) as img:
+        return _pil_pixels(img)
+
+
+def _pil_pixels(img: Any) -> np.ndarray:
+    img.load()
+    if img.mode.startswith("I;16"):
+        return as_pixels(np.asarray(img).astype(np.uint16))
+    if img.mode in ("1", "LA", "La"):
+        return as_pixels(np.asarray(img.convert("L")))
+    if img.mode not in ("L", "RGB", "I", "F"):  # palette, alpha, CMYK, YCbCr ...
+        img = img.convert("RGB")
+    return as_pixels(np.asarray(img))
 
 
 def as_pixels(array: Any) -> np.ndarray:
