@@ -7,3 +7,5 @@ lcm-gen 1.5.3
 from .frame_t import frame_t as frame_t
 from .vehicle_status_t import vehicle_status_t as vehicle_status_t
 from .map_level_t import map_level_t as map_level_t
+from .points_t import points_t as points_t
+from .nav_t import nav_t as nav_t
