@@ -339,6 +339,7 @@ class LcmInput(Input):
         items, self._items = self._items, []
         for channel, pairs in self._samples.items():
             arr = np.asarray(pairs, np.float64)
+            arr = arr[np.argsort(arr[:, 0], kind="stable")]  # in time order, whatever the arrival
             items.append(Samples(channel, arr[:, 0].copy(), arr[:, 1].copy()))
         self._samples = {}
         return items
