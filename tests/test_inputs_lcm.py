@@ -19,8 +19,7 @@ from coex_plugins.vehicle.inputs.lcm import LcmInput, compile_path, make_nav_t
 
 lcm = pytest.importorskip("lcm")
 
-from coex_transports.lcm import regen  # noqa: E402
-from coex_transports.lcm._types import points_t  # noqa: E402
+from coex_transports.lcm import points_t, regen  # noqa: E402
 from coex_transports.lcm.testing import TEST_UDPM_URL, ensure_multicast_route, unique_channel  # noqa: E402
 
 OWN_LCM = """

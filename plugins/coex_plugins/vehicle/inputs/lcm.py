@@ -84,7 +84,7 @@ def compile_path(path: str) -> tuple[Callable[[Any], Any], str]:
 def make_nav_t(utime: int = 0, **fields: float) -> Any:
     """A ``coex.nav_t`` with every field NaN (unknown) but those given (lcm-gen's default is 0,
     which would claim the vehicle is at the origin, at the surface, heading north)."""
-    from coex_transports.lcm._types import nav_t
+    from coex_transports.lcm import nav_t
 
     msg = nav_t()
     msg.utime = int(utime)
@@ -246,7 +246,7 @@ class LcmInput(Input):
         if self._lc is not None:
             return
         lcm = need("lcm", "lcm")
-        from coex_transports.lcm._types import nav_t, points_t
+        from coex_transports.lcm import nav_t, points_t
 
         for own in self.own:
             own.resolve()
