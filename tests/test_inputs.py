@@ -279,3 +279,74 @@ def test_points_bad_array_is_skipped(tmp_path: Path, caplog: pytest.LogCaptureFi
     with caplog.at_level(logging.WARNING):
         assert adapter.poll(0.0) == []
     assert sum("cannot read" in r.getMessage() for r in caplog.records) == 2
+
+
+# --------------------------------------------------------------------------- docs
+DOC = ROOT / "docs" / "inputs.md"
+
+
+def test_docs_give_every_option_and_valid_examples() -> None:
+    import re
+
+    text = DOC.read_text()
+    sections = {m.group(1): m.start() for m in re.finditer(r"^## (\w+)$", text, re.M)}
+    blocks = re.findall(r"```toml\n(.*?)```", text, re.S)
+    examples = [t for b in blocks for t in tomllib.loads(b).get("inputs", [])]
+    for name, value in entry_points().items():
+        cls = load(value)
+        start = sections[name]
+        end = min([s for s in sections.values() if s > start], default=len(text))
+        section = text[start:end]
+        for option in cls.options:
+            assert f"| `{option}` |" in section, f"docs/inputs.md: {name} does not document {option!r}"
+        mine = [e for e in examples if e["type"] == name]
+        assert mine, f"docs/inputs.md: no example of {name}"
+        for example in mine:
+            assert check_options(cls, example) == []
+    # and the example of "Writing your own input" is a working input
+    code = re.search(r"```python\n(.*?)```", text, re.S).group(1)
+    namespace: dict[str, object] = {}
+    exec(compile(code, "docs/inputs.md", "exec"), namespace)
+    ctd = namespace["CtdInput"]
+    assert check_options(ctd, {"port": 70000}) == ["input 'myctd': option 'port' must be a UDP port, not 70000"]
+    import socket
+
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as probe:
+        probe.bind(("127.0.0.1", 0))
+        port = probe.getsockname()[1]
+    adapter = ctd({"port": port}, InputContext())
+    adapter.open()
+    try:
+        with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as tx:
+            tx.sendto(b"4.5,33.1,120.0", ("127.0.0.1", port))
+            tx.sendto(b"nonsense", ("127.0.0.1", port))
+            items: list[object] = []
+            deadline = time.monotonic() + 2.0
+            while len(items) < 2 and time.monotonic() < deadline:
+                items += adapter.poll(9.0)
+        samples, nav = items
+        assert samples.values.tolist() == [4.5] and nav.depth == 120.0
+    finally:
+        adapter.close()
+
+
+def test_adapters_load_without_their_optional_libraries() -> None:
+    """Each module imports its library when it opens: a vehicle without lcm loads the others."""
+    import subprocess
+    import sys
+
+    code = (
+        "import sys\n"
+        "for m in ('lcm', 'pymavlink', 'serial', 'rosbags', 'tifffile', 'PIL'): sys.modules[m] = None\n"
+        "from coex_core.errors import PluginLoadError\n"
+        "from coex_plugins.vehicle.inputs.base import InputContext\n"
+        "from coex_plugins.vehicle.inputs import directory, points, rosbag, lcm, mavlink, nmea\n"
+        "try:\n"
+        "    lcm.LcmInput({'nav_channel': 'NAV'}, InputContext()).open()\n"
+        "except PluginLoadError as exc:\n"
+        "    print(exc)\n"
+    )
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join(sys.path)}
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60, env=env)
+    assert out.returncode == 0, out.stderr
+    assert "pip install 'coexploration[lcm]'" in out.stdout

@@ -4,13 +4,18 @@
 * ``nav_channel``: ``coex.nav_t`` -> :class:`~.base.Nav` (status; NaN fields are unknown);
 * ``own``: the vehicle's own LCM types, mapped field by field with a tiny path language::
 
-      own = [
-        { channel = "POSE", type = "bot_core.pose_t", feeds = "status",
-          fields = { x = "pos[1]", y = "pos[0]", depth = "pos[2]", heading = "yaw" },
-          scale = { heading = 57.29578 } },
-        { channel = "CTD", type = "mylcm.ctd_t", feeds = "timeseries",
-          channels = { temperature = "temp", salinity = "sal" } },
-      ]
+      [[inputs.own]]
+      channel = "POSE"
+      type = "bot_core.pose_t"
+      feeds = "status"
+      fields = { x = "pos[1]", y = "pos[0]", depth = "pos[2]", heading = "yaw" }
+      scale = { heading = 57.29578 }
+
+      [[inputs.own]]
+      channel = "CTD"
+      type = "mylcm.ctd_t"
+      feeds = "timeseries"
+      channels = { temperature = "temp", salinity = "sal" }
 
   A path is a field name, optionally indexed (``pos[2]``), possibly of a nested type
   (``pose.position.x``), with an optional leading ``-``; ``scale`` multiplies the value of a
