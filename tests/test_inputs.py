@@ -350,3 +350,16 @@ def test_adapters_load_without_their_optional_libraries() -> None:
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60, env=env)
     assert out.returncode == 0, out.stderr
     assert "pip install 'coexploration[lcm]'" in out.stdout
+
+
+def test_log_once_logs_each_problem_once_and_stays_bounded(caplog: pytest.LogCaptureFixture) -> None:
+    from coex_plugins.vehicle.inputs._common import LogOnce
+
+    once = LogOnce(logging.getLogger("test.inputs"))
+    once.LIMIT = 3
+    with caplog.at_level(logging.WARNING):
+        for key in ("a", "a", "b", "c", "d", "a"):
+            once(key, "problem %s", key)
+    assert [r.getMessage() for r in caplog.records] == ["problem a", "problem b", "problem c", "problem d",
+                                                       "problem a"]
+    assert len(once.counts) == 3

@@ -41,12 +41,17 @@ class LogOnce:
     """Logs each distinct problem (by key) once, then counts it quietly: a camera writing a broken
     file every second must not flood the vehicle's log."""
 
+    #: distinct problems remembered; beyond it the oldest are forgotten (and may be logged again)
+    LIMIT = 4096
+
     def __init__(self, logger: logging.Logger) -> None:
         self.logger = logger
         self.counts: dict[str, int] = {}
 
     def __call__(self, key: str, message: str, *args: Any, level: int = logging.WARNING) -> None:
         n = self.counts.get(key, 0)
+        if n == 0 and len(self.counts) >= self.LIMIT:  # a dive of broken files: stay bounded
+            del self.counts[next(iter(self.counts))]
         self.counts[key] = n + 1
         if n == 0:
             self.logger.log(level, message, *args)
