@@ -51,8 +51,8 @@ class DirectoryWatch:
     and many writers use while writing) are ignored. With ``existing`` false, what is in the
     directory at :meth:`open` is skipped (a single named file is always taken). Taken files are
     remembered in memory only, also across close and :meth:`open` of the same object; after a
-    restart of the process, ``existing`` true takes everything again and the daemon's journal
-    is what keeps the vehicle from sending an item twice."""
+    restart of the process, ``existing`` true takes everything again (not feeding it twice is
+    left to the daemon, which journals what it was fed)."""
 
     def __init__(self, path: str | Path, patterns: tuple[str, ...], settle: float, existing: bool,
                  interval: float = 0.0) -> None:
