@@ -5,6 +5,8 @@
 * :func:`encode_frame` / :func:`decode_frame` / :func:`unpack_event`: pure codec functions.
 * :mod:`~coex_transports.lcm.products`: ``coex.vehicle_status_t`` and ``coex.map_level_t``
   for LCM tools (lcm-spy, consoles).
+* ``coex.points_t`` and ``coex.nav_t``: what the vehicle's ``lcm`` input reads (soundings and
+  the vehicle's position) from an LCM vehicle.
 * :mod:`~coex_transports.lcm.replay`: offline re-analysis of an ``lcm-logger`` log
   (``coex replay --lcm-log FILE``).
 
@@ -24,7 +26,7 @@ from ._codec import (
     unpack_event,
 )
 from ._transport import DEFAULT_URL, LcmConfig, LcmTransport, parse_lcm_uri
-from ._types import frame_t, map_level_t, vehicle_status_t
+from ._types import frame_t, map_level_t, nav_t, points_t, vehicle_status_t
 
 __all__ = [
     "DEFAULT_URL",
@@ -38,7 +40,9 @@ __all__ = [
     "frame_t",
     "is_frame_t",
     "map_level_t",
+    "nav_t",
     "parse_lcm_uri",
+    "points_t",
     "unpack_event",
     "vehicle_status_t",
 ]

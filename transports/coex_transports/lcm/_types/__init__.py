@@ -9,3 +9,5 @@ from .vehicle_status_t import vehicle_status_t as vehicle_status_t
 from .map_level_t import map_level_t as map_level_t
 from .survey_request_t import survey_request_t as survey_request_t
 from .survey_state_t import survey_state_t as survey_state_t
+from .points_t import points_t as points_t
+from .nav_t import nav_t as nav_t

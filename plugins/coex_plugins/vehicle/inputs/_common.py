@@ -1,0 +1,152 @@
+"""What several input adapters share: option checks, logging a problem once, headings, and the
+import of an optional library with the extra that installs it."""
+
+from __future__ import annotations
+
+import importlib
+import logging
+import math
+from collections.abc import Mapping
+from types import ModuleType
+from typing import Any
+
+from coex_core.errors import PluginLoadError
+
+__all__ = [
+    "LogOnce",
+    "compass_from_enu_yaw",
+    "finite",
+    "need",
+    "want_bool",
+    "want_choice",
+    "want_host_port",
+    "want_int",
+    "want_number",
+    "want_str",
+    "yaw_of_quaternion",
+]
+
+
+def need(module: str, extra: str) -> ModuleType:
+    """Import an optional library, or raise :class:`PluginLoadError` naming the extra."""
+    try:
+        return importlib.import_module(module)
+    except ImportError as exc:
+        raise PluginLoadError(
+            f"this input needs {module.split('.')[0]}: pip install 'coexploration[{extra}]' ({exc})"
+        ) from exc
+
+
+class LogOnce:
+    """Logs each distinct problem (by key) once, then counts it quietly: a camera writing a broken
+    file every second must not flood the vehicle's log."""
+
+    #: distinct problems remembered; beyond it the oldest are forgotten (and may be logged again)
+    LIMIT = 4096
+
+    def __init__(self, logger: logging.Logger) -> None:
+        self.logger = logger
+        self.counts: dict[str, int] = {}
+
+    def __call__(self, key: str, message: str, *args: Any, level: int = logging.WARNING) -> None:
+        n = self.counts.get(key, 0)
+        if n == 0 and len(self.counts) >= self.LIMIT:  # a dive of broken files: stay bounded
+            del self.counts[next(iter(self.counts))]
+        self.counts[key] = n + 1
+        if n == 0:
+            self.logger.log(level, message, *args)
+
+
+# --------------------------------------------------------------------------- option checks
+def _is_number(v: Any) -> bool:
+    return isinstance(v, int | float) and not isinstance(v, bool)
+
+
+def want_str(name: str, options: Mapping[str, Any], key: str, *, nonempty: bool = False) -> list[str]:
+    """A problem if ``key`` is given and is not a string (or is empty when ``nonempty``)."""
+    if key not in options:
+        return []
+    v = options[key]
+    if not isinstance(v, str):
+        return [f"input {name!r}: option {key!r} must be a string, not {v!r}"]
+    if nonempty and not v.strip():
+        return [f"input {name!r}: option {key!r} must not be empty"]
+    return []
+
+
+def want_number(name: str, options: Mapping[str, Any], key: str, *, minimum: float | None = None,
+                positive: bool = False) -> list[str]:
+    """A problem if ``key`` is given and is not a finite number in range."""
+    if key not in options:
+        return []
+    v = options[key]
+    if not _is_number(v) or not math.isfinite(v):
+        return [f"input {name!r}: option {key!r} must be a number, not {v!r}"]
+    if positive and v <= 0:
+        return [f"input {name!r}: option {key!r} must be greater than 0, not {v!r}"]
+    if minimum is not None and v < minimum:
+        return [f"input {name!r}: option {key!r} must be at least {minimum}, not {v!r}"]
+    return []
+
+
+def want_int(name: str, options: Mapping[str, Any], key: str, lo: int, hi: int) -> list[str]:
+    """A problem if ``key`` is given and is not an integer in ``lo..hi``."""
+    if key not in options:
+        return []
+    v = options[key]
+    if not isinstance(v, int) or isinstance(v, bool) or not lo <= v <= hi:
+        return [f"input {name!r}: option {key!r} must be an integer from {lo} to {hi}, not {v!r}"]
+    return []
+
+
+def want_bool(name: str, options: Mapping[str, Any], key: str) -> list[str]:
+    """A problem if ``key`` is given and is not true or false."""
+    if key in options and not isinstance(options[key], bool):
+        return [f"input {name!r}: option {key!r} must be true or false, not {options[key]!r}"]
+    return []
+
+
+def want_choice(name: str, options: Mapping[str, Any], key: str, choices: tuple[str, ...]) -> list[str]:
+    """A problem if ``key`` is given and is not one of ``choices``."""
+    if key in options and options[key] not in choices:
+        return [f"input {name!r}: option {key!r} must be one of {', '.join(map(repr, choices))}, "
+                f"not {options[key]!r}"]
+    return []
+
+
+def want_host_port(name: str, options: Mapping[str, Any], key: str) -> list[str]:
+    """A problem if ``key`` is given, not empty, and not ``host:port``."""
+    v = options.get(key, "")
+    if v == "":
+        return []
+    if isinstance(v, str):
+        host, sep, port = v.rpartition(":")
+        if sep and host and port.isdigit() and 0 <= int(port) <= 65535:
+            return []
+    return [f"input {name!r}: option {key!r} must be 'host:port' (e.g. '0.0.0.0:10110'), not {v!r}"]
+
+
+# --------------------------------------------------------------------------- values
+def finite(v: Any) -> float | None:
+    """``v`` as a float, or None when it is missing, not a number, NaN or infinite."""
+    try:
+        f = float(v)
+    except (TypeError, ValueError):
+        return None
+    return f if math.isfinite(f) else None
+
+
+def yaw_of_quaternion(x: float, y: float, z: float, w: float) -> float | None:
+    """The yaw (rotation about z, radians, counter-clockwise) of a quaternion, or None if it is
+    all zeros (unset orientation) or not finite."""
+    n = x * x + y * y + z * z + w * w
+    if not math.isfinite(n) or n < 1e-12:
+        return None
+    # atan2 of unnormalised terms: the same angle for any scale of the quaternion
+    return math.atan2(2.0 * (w * z + x * y), w * w + x * x - y * y - z * z)
+
+
+def compass_from_enu_yaw(yaw: float) -> float:
+    """A compass heading (degrees clockwise from north, 0..360) from an ENU yaw (radians
+    counter-clockwise from east, as ROS gives it): yaw 0 (east) is heading 90."""
+    return (90.0 - math.degrees(yaw)) % 360.0
