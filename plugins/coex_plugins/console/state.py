@@ -828,6 +828,8 @@ class ConsoleState:
                 sch["proposed"]["status"] = name.lower()
             self._touch("link")
         self._touch("commands")
+        if isinstance(cmd.message, m.SurveyCommand):
+            return  # the survey receiver's product says it, with the reason (_survey_product)
         self._log(now, f"{cmd.summary}: {name.lower()}",
                   "info" if name == "ACCEPTED" else "warn")
 
