@@ -220,6 +220,7 @@ def test_console_actions_from_the_page_are_wire_commands(browser: Any) -> None:
             "[...document.querySelectorAll('#gallery .card img')].filter(i => i.naturalWidth > 0).length === 3",
             timeout=10_000)
         assert "SURVEY" in page.inner_text("#vehicle-status")
+        assert page.is_disabled("#survey-btn")  # no survey receiver behind this console
 
         # a click on the vehicle track sets the image time to when the vehicle was there
         # (the sample's 11th status: x 31.0 m, y 20 m at 09:51:30)
@@ -511,6 +512,12 @@ def test_a_survey_drawn_on_the_map_is_sent_and_its_rejection_shown(browser: Any,
         page.mouse.move(b[0], b[1])
         page.mouse.up()
         assert "heading 90°" in page.inner_text("#survey-desc")
+        page.fill("#survey-z", "9999")  # beyond what a SurveyCommand carries: refused at once
+        page.click("#survey-send")
+        page.wait_for_selector("#survey-error:not(.hidden)", timeout=10_000)
+        assert "cannot be sent" in page.inner_text("#survey-error")
+        assert len(rx.surveys) == 1 and page.is_visible("#survey-bar")  # nothing sent, drawing kept
+        page.fill("#survey-z", "8")
         page.click("#survey-send")
         page.wait_for_function("document.querySelectorAll('#surveys-table tr[data-survey]').length === 2",
                                timeout=10_000)

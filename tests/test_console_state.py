@@ -918,9 +918,14 @@ def test_a_survey_that_cannot_be_sent_is_refused_with_a_clear_error() -> None:
         code, ans = _post(srv.url + "api/action", {"action": "survey", "args": {
             "kind": "line", "x": 0, "y": 0, "length": 10}})
         assert code == 400 and not ans["ok"] and "heading" in ans["error"]
-    # a console without the survey receiver (view only) says so
+    assert hub.snapshot()["surveys"]["available"] is True
+    # a console without the survey receiver (view only) says so, and the page disables the tool
+    view = ConsoleState()
     with pytest.raises(RequestRejected, match="survey receiver"):
-        ConsoleActions(ConsoleState(), lambda msg: None, lambda: T0).survey("goto", 0, 0)
+        ConsoleActions(view, lambda msg: None, lambda: T0).survey("goto", 0, 0)
+    assert view.snapshot()["surveys"] == {"items": [], "available": False,
+                                          "states": ["requested", "accepted", "started", "completed",
+                                                     "rejected", "aborted", "given up"]}
 
 
 def test_topside_runs_the_survey_receiver_by_default() -> None:

@@ -671,7 +671,9 @@ class ConsoleState:
             row["append"] = bool(meta.get("append", False))
             items.append(row)
         items.sort(key=lambda r: (r["requested"] or 0.0, r["survey_id"]))
-        return {"items": items[-MAX_SURVEYS:], "available": self.survey_receiver is not None,
+        # whether the page may ask for surveys (a node's survey receiver sends them)
+        available = self.survey_receiver is not None and not self.own_receivers
+        return {"items": items[-MAX_SURVEYS:], "available": available,
                 "states": list(SURVEY_STATES)}
 
     # ------------------------------------------------------------ other modalities

@@ -653,9 +653,16 @@ function surveyDetails(sv) {
 function renderSurveys() {
   const tb = $("#surveys-table tbody");
   const items = (S.surveys && S.surveys.items) || [];
+  const btn = $("#survey-btn");
+  if (S.surveys && !S.surveys.available) {  // no survey receiver on this console's node
+    btn.disabled = true; btn.title = "this console cannot ask for surveys (no survey receiver)";
+    if (surveyMode) endSurvey();
+  } else if (ME.may_command) {
+    btn.disabled = false; btn.title = "draw a survey for the vehicle: a point, a line or a lawnmower box";
+  }
   if (!items.length) {
     tb.replaceChildren(el("tr", { class: "empty-row" }, el("td", { colspan: 5, class: "empty" },
-      S.surveys && !S.surveys.available ? "This console has no survey receiver (coex topside --modalities … survey)."
+      S.surveys && !S.surveys.available ? "This console cannot ask for surveys (its node has no survey receiver)."
         : "No survey requested yet.")));
     return;
   }
