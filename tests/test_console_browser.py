@@ -220,6 +220,7 @@ def test_console_actions_from_the_page_are_wire_commands(browser: Any) -> None:
             "[...document.querySelectorAll('#gallery .card img')].filter(i => i.naturalWidth > 0).length === 3",
             timeout=10_000)
         assert "SURVEY" in page.inner_text("#vehicle-status")
+        assert page.is_disabled("#survey-btn")  # no survey receiver behind this console
 
         # a click on the vehicle track sets the image time to when the vehicle was there
         # (the sample's 11th status: x 31.0 m, y 20 m at 09:51:30)
@@ -374,4 +375,176 @@ def test_a_big_level_zoomed_in_is_drawn_from_what_is_on_screen(browser: Any) -> 
             page.wait_for_timeout(500)
             page.screenshot(path=os.environ["COEX_BIG_MAP_SHOT"])
         page.close()
+    assert not errors, errors
+
+
+class VehicleEnd:
+    """The vehicle's end of a loopback link, by hand: what topside sends, and frames of
+    messages "from the vehicle" (src 2)."""
+
+    def __init__(self, uri: str) -> None:
+        from coex_core import wire
+
+        self.wire = wire
+        self.transport = open_transport(uri)
+        self.seq = 0
+        self.heard: list[m.Message] = []
+
+    def send(self, msgs: list[m.Message]) -> None:
+        """Pack ``msgs`` into as few frames as fit and send them to topside."""
+        budget = int(self.transport.mtu)
+        batch: list[m.Message] = []
+        for msg in [*msgs, None]:
+            if msg is not None and self.wire.header_size() + sum(
+                    len(self.wire.encode(x)) for x in [*batch, msg]) <= budget:
+                batch.append(msg)
+                continue
+            if batch:
+                self.seq = (self.seq + 1) % 256
+                self.transport.send(self.wire.pack(batch, budget, m.FrameHeader(src=2, dst=1, seq=self.seq)))
+            batch = [msg] if msg is not None else []
+
+    def wait_for(self, kind: type, timeout: float = 20.0) -> Any:
+        """The first message of type ``kind`` topside sends."""
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            frame = self.transport.recv(0.2)
+            if frame is None:
+                continue
+            for msg in self.wire.unpack_frame(frame).messages:
+                self.heard.append(msg)
+                if isinstance(msg, kind):
+                    return msg
+        raise AssertionError(f"topside sent no {kind.__name__} (heard {self.heard})")
+
+
+def _surveys_row(page: Any, sid: int) -> str:
+    return f'#surveys-table tr[data-survey="{sid}"]'
+
+
+def test_a_survey_drawn_on_the_map_is_sent_and_its_rejection_shown(browser: Any, tmp_path: Path) -> None:
+    """The operator draws a lawnmower box with the mouse on a ``coex topside`` page (the
+    survey receiver runs by default), sees the path previewed, sends it and sees it listed as
+    requested; the SurveyCommand goes out over the link. The vehicle answers CommandAck
+    REJECTED and SurveyStatus REJECTED OUTSIDE_GEOFENCE: the page shows "rejected" with the
+    reason in words. A line survey then shows accepted, then started towards its waypoint."""
+    from coex_plugins.bathymetry import BathymetrySender
+    from coex_plugins.console.testing import drain
+
+    uri = f"loopback://survey-{uuid.uuid4().hex[:8]}?rate=100000&mtu=1024"
+    app = build_topside(uri, "127.0.0.1", 0, schedule=SCHEDULE)
+    vehicle = VehicleEnd(uri)
+    app.start()
+    errors: list[str] = []
+    try:
+        # a map and a vehicle to draw over
+        now = time.time()
+        bathy = BathymetrySender({"send_delay": 0.0, "levels": 4})
+        bathy.ingest(survey_points(), now)
+        vehicle.send([m.VehicleStatus(to_stamp(now), 30.0, 20.0, 45.0, 20.0, 90.0, 1.5, 77,
+                                      m.VehicleMode.SURVEY, 0), *drain(bathy, now)])
+        page = browser.new_page(viewport={"width": 1280, "height": 1000})
+        page.on("pageerror", lambda e: errors.append(str(e)))
+        page.goto(app.url)
+        page.wait_for_function("window.coex && window.coex.connected && window.coex.updates > 0",
+                               timeout=10_000)
+        page.wait_for_function("document.querySelectorAll('#levels-table tbody tr').length >= 3",
+                               timeout=20_000)
+        assert "No survey requested yet" in page.inner_text("#surveys-table")
+
+        # draw a lawnmower: a 60 x 30 m box from (20, 75) to (80, 45)
+        page.click("#survey-btn")
+        page.wait_for_selector("#survey-bar:not(.hidden)")
+        assert page.input_value("#survey-kind") == "lawnmower"
+        assert page.is_disabled("#survey-send")  # nothing drawn yet
+        a = page.evaluate("window.coex.pagePoint(20, 75)")
+        b = page.evaluate("window.coex.pagePoint(80, 45)")
+        page.mouse.move(a[0], a[1])
+        page.mouse.down()
+        page.mouse.move((a[0] + b[0]) / 2, (a[1] + b[1]) / 2)
+        page.mouse.move(b[0], b[1])
+        page.mouse.up()
+        desc = page.inner_text("#survey-desc")
+        assert "lawnmower 60 \u00d7 30 m" in desc and "heading 90°" in desc and "4 rows" in desc, desc
+        page.fill("#survey-spacing", "10")
+        page.fill("#survey-z", "8")
+        if os.environ.get("COEX_SURVEY_SHOT"):
+            page.screenshot(path=os.environ["COEX_SURVEY_SHOT"].replace(".png", "-preview.png"))
+        page.click("#survey-send")
+        page.wait_for_selector("#survey-bar.hidden", state="attached", timeout=10_000)
+
+        # listed as requested, in the commands too; the command goes out over the link
+        rx = app.node.receiver("survey")
+        page.wait_for_selector('#surveys-table tr[data-state="requested"]', timeout=10_000)
+        with app.hub.lock:
+            ((sid, rec),) = rx.surveys.items()
+            cmd = rec.command
+        row = _surveys_row(page, sid)
+        assert "lawnmower" in page.inner_text(row) and "requested" in page.inner_text(row)
+        assert cmd.kind == m.SurveyKind.LAWNMOWER and cmd.altitude == 8.0 and cmd.spacing == 10.0
+        assert (cmd.heading, cmd.length, cmd.width) == (90.0, 60.0, 30.0)
+        assert abs(cmd.x - 50) <= 0.5 and abs(cmd.y - 60) <= 0.5
+        got = vehicle.wait_for(m.SurveyCommand)
+        assert got == cmd
+
+        # the vehicle refuses it: outside its geofence
+        text = "waypoint 6 is 12.5 m outside the geofence"
+        vehicle.send([m.CommandAck(cmd.command_id, m.AckStatus.REJECTED)])
+        vehicle.send([m.SurveyStatus(sid, m.SurveyState.REJECTED, m.SurveyReason.OUTSIDE_GEOFENCE,
+                                     to_stamp(time.time()), 6, 12.5)])
+        page.wait_for_function(
+            f"(() => {{ const r = document.querySelector('{row}');"
+            f" return r && r.dataset.state === 'rejected' && r.textContent.includes('{text}'); }})()",
+            timeout=15_000)
+        assert "rejected" in page.inner_text(row)
+        assert "SurveyCommand" not in page.inner_text("#commands")  # in words there too
+        assert any("survey" in li and "rejected" in li for li in
+                   page.eval_on_selector_all("#commands li", "els => els.map(e => e.textContent)"))
+        assert text in page.inner_text("#log")
+
+        # a line inside the fence: accepted, then started towards waypoint 1
+        page.click("#survey-btn")
+        page.select_option("#survey-kind", "line")
+        a = page.evaluate("window.coex.pagePoint(10, 10)")
+        b = page.evaluate("window.coex.pagePoint(70, 10)")
+        page.mouse.move(a[0], a[1])
+        page.mouse.down()
+        page.mouse.move(b[0], b[1])
+        page.mouse.up()
+        assert "heading 90°" in page.inner_text("#survey-desc")
+        page.fill("#survey-z", "9999")  # beyond what a SurveyCommand carries: refused at once
+        page.click("#survey-send")
+        page.wait_for_selector("#survey-error:not(.hidden)", timeout=10_000)
+        assert "cannot be sent" in page.inner_text("#survey-error")
+        assert len(rx.surveys) == 1 and page.is_visible("#survey-bar")  # nothing sent, drawing kept
+        page.fill("#survey-z", "8")
+        page.click("#survey-send")
+        page.wait_for_function("document.querySelectorAll('#surveys-table tr[data-survey]').length === 2",
+                               timeout=10_000)
+        with app.hub.lock:
+            line = max(rx.surveys.values(), key=lambda r: r.time).command
+        assert line.kind == m.SurveyKind.LINE and abs(line.length - 60) <= 0.5
+        vehicle.wait_for(m.SurveyCommand)
+        vehicle.send([m.CommandAck(line.command_id, m.AckStatus.ACCEPTED)])
+        page.wait_for_selector(f'{_surveys_row(page, line.survey_id)}[data-state="accepted"]', timeout=15_000)
+        vehicle.send([m.SurveyStatus(line.survey_id, m.SurveyState.STARTED, m.SurveyReason.NONE,
+                                     to_stamp(time.time()), 1)])
+        page.wait_for_selector(f'{_surveys_row(page, line.survey_id)}[data-state="started"]', timeout=15_000)
+        assert "heading for waypoint 1" in page.inner_text(_surveys_row(page, line.survey_id))
+        assert text in page.inner_text(row)  # the rejected one stays listed with its reason
+
+        # a reload shows the same (the state comes from the receiver's records)
+        page.reload()
+        page.wait_for_function("window.coex && window.coex.updates > 0", timeout=10_000)
+        assert text in page.inner_text(row)
+        assert page.get_attribute(_surveys_row(page, line.survey_id), "data-state") == "started"
+        page.wait_for_timeout(300)  # the map pictures
+        shot = tmp_path / "survey.png"
+        page.screenshot(path=str(shot), full_page=True)
+        if os.environ.get("COEX_SURVEY_SHOT"):
+            shutil.copy(shot, os.environ["COEX_SURVEY_SHOT"])
+        page.close()
+    finally:
+        app.close()
+        vehicle.transport.close()
     assert not errors, errors

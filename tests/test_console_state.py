@@ -821,3 +821,123 @@ def test_tap_receiver_is_deprecated_and_wraps_nothing() -> None:
     rx = BathymetryReceiver()
     with pytest.warns(DeprecationWarning, match="node's receivers"):
         assert tap_receiver(rx, ConsoleState()) is rx
+
+
+# ------------------------------------------------------------------------------ surveys
+
+FENCE = {"polygon": [[-50, -50], [50, -50], [50, 50], [-50, 50]], "min_altitude": 2.0}
+
+
+def _survey_pair() -> tuple[Node, Node, Any, ConsoleHub, list[float]]:
+    """A topside node with the survey receiver and its console, and a vehicle whose survey
+    sender keeps it inside a 100 m square."""
+    from coex_plugins.survey import SurveyModality, SurveyReceiver, SurveySender
+
+    clock = [1000.0]
+    sched = Schedule.simple([1, 2], 5.0, 0.5)
+    top = Node(ChannelManager(1, [LinkConfig(0, sched, dst=2)]))
+    veh = Node(ChannelManager(2, [LinkConfig(0, sched, dst=1)]))
+    tx = SurveySender({"geofence": FENCE})
+    veh.add_sender(SurveyModality, tx, StreamConfig(7, "survey", priority=90))
+    top.add_receiver(SurveyModality, SurveyReceiver())
+    state = ConsoleState(schedules={0: sched}, receivers=dict(top.receivers()))
+    hub = ConsoleHub(state, NodeCommands(top, lambda: clock[0]), lambda: clock[0])
+    return top, veh, tx, hub, clock
+
+
+def test_survey_action_sends_a_survey_command_and_shows_the_vehicle_s_reason() -> None:
+    """The page's ``survey`` action goes through the node's survey receiver; the vehicle refuses
+    a lawnmower that leaves its geofence, and the page is told "rejected" with the reason in
+    words (only the sections that changed)."""
+    top, veh, tx, hub, clock = _survey_pair()
+    seen = dict(hub.state.versions)
+    (cmd,) = hub.act("survey", {"kind": "lawnmower", "x": 40, "y": 0, "heading": 0, "length": 40,
+                                "width": 40, "spacing": 10, "altitude": 5, "depth": None,
+                                "speed": "", "append": False, "points": []})
+    assert isinstance(cmd, m.SurveyCommand) and cmd.kind == m.SurveyKind.LAWNMOWER
+    assert (cmd.x, cmd.y, cmd.heading, cmd.length, cmd.width, cmd.spacing, cmd.altitude) == (
+        40.0, 0.0, 0.0, 40.0, 40.0, 10.0, 5.0)
+    changed = hub.wait_changes(seen, 0.1)
+    assert "surveys" in changed and "map" not in changed and "images" not in changed
+    (item,) = changed["surveys"]["items"]
+    assert (item["survey_id"], item["kind"], item["state"]) == (cmd.survey_id, "lawnmower", "requested")
+    assert len(item["waypoints"]) == 10 and item["waypoints"][0] == [20.0, -20.0]  # port row first
+    (c,) = changed["commands"]
+    assert c["kind"] == "SurveyCommand" and c["status"] == "requested"
+    assert "lawnmower 40 x 40 m at (40, 0)" in c["summary"]
+
+    _run(top, veh, hub, clock, 20)
+    got = tx.surveys[cmd.survey_id].command  # what the vehicle's survey sender was given
+    assert got == cmd
+    changed = hub.wait_changes(seen, 0.1)
+    (item,) = changed["surveys"]["items"]
+    assert item["state"] == "rejected" and item["reason"] == "OUTSIDE_GEOFENCE"
+    assert item["text"] == "waypoint 8 is 10 m outside the geofence"  # (60, -20): 10 m east of it
+    assert [h[1] for h in item["history"]] == ["requested", "rejected", "rejected"]
+    assert changed["commands"][0]["status"] == "rejected"
+    assert any("waypoint 8 is 10 m outside" in line["text"] and line["level"] == "warn"
+               for line in changed["log"])
+    json.dumps(hub.snapshot(), allow_nan=False)
+
+    # a survey inside the fence is accepted, then started (its waypoint) and completed
+    (ok,) = hub.act("survey", {"kind": "line", "x": -20, "y": 0, "heading": 90, "length": 40,
+                               "altitude": 5})
+    _run(top, veh, hub, clock, 20)
+    from coex_plugins.survey import SurveyReport
+
+    tx.ingest(SurveyReport(ok.survey_id, m.SurveyState.STARTED, clock[0], index=1), clock[0])
+    _run(top, veh, hub, clock, 20)
+    items = {s["survey_id"]: s for s in hub.snapshot()["surveys"]["items"]}
+    assert (items[ok.survey_id]["state"], items[ok.survey_id]["index"]) == ("started", 1)
+    assert items[ok.survey_id]["waypoints"] == [[-20.0, 0.0], [20.0, 0.0]]
+    assert items[cmd.survey_id]["state"] == "rejected"  # the other one is still listed
+
+    # the console saved (a store saves it with the node and its receivers) shows the same
+    # surveys after a restart
+    from coex_core.state import dumps, loads
+
+    state2 = loads(dumps(hub.state))
+    assert state2.survey_receiver is not hub.state.survey_receiver
+    assert state2.snapshot()["surveys"] == hub.snapshot()["surveys"]
+
+
+def test_a_survey_that_cannot_be_sent_is_refused_with_a_clear_error() -> None:
+    top, _veh, _tx, hub, _clock = _survey_pair()
+    for args, match in [({"kind": "spiral", "x": 0, "y": 0}, "unknown survey kind"),
+                        ({"kind": "line", "x": 0, "y": 0, "length": 10}, "heading"),
+                        ({"kind": "goto", "x": 1e6, "y": 0}, "cannot be sent"),
+                        ({"kind": "goto", "x": "nan", "y": 0}, "finite"),
+                        ({"kind": "goto", "x": 0, "y": 0, "altitude": 5, "depth": 9}, "not both"),
+                        ({"kind": "waypoints", "x": 0, "y": 0, "points": [[1]]}, "pairs"),
+                        ({"kind": "goto", "x": 0}, "bad arguments")]:
+        with pytest.raises(RequestRejected, match=match):
+            hub.act("survey", args)
+    assert hub.snapshot()["surveys"]["items"] == [] and hub.snapshot()["commands"] == []
+    assert not top.receiver("survey").pending_requests()
+    with serve(hub, "127.0.0.1", 0) as srv:  # the page gets the reason as the error
+        code, ans = _post(srv.url + "api/action", {"action": "survey", "args": {
+            "kind": "line", "x": 0, "y": 0, "length": 10}})
+        assert code == 400 and not ans["ok"] and "heading" in ans["error"]
+    assert hub.snapshot()["surveys"]["available"] is True
+    # a console without the survey receiver (view only) says so, and the page disables the tool
+    view = ConsoleState()
+    with pytest.raises(RequestRejected, match="survey receiver"):
+        ConsoleActions(view, lambda msg: None, lambda: T0).survey("goto", 0, 0)
+    assert view.snapshot()["surveys"] == {"items": [], "available": False,
+                                          "states": ["requested", "accepted", "started", "completed",
+                                                     "rejected", "aborted", "given up"]}
+
+
+def test_topside_runs_the_survey_receiver_by_default() -> None:
+    from coex_plugins.console.cli import build_topside
+
+    app = build_topside("loopback://survey-default", "127.0.0.1", 0, clock=lambda: 100.0)
+    try:
+        assert app.node.receiver("survey") is app.hub.state.survey_receiver is not None
+        (cmd,) = app.hub.act("survey", {"kind": "goto", "x": 3, "y": 4})
+        app.step()
+        snap = app.hub.snapshot()
+        assert snap["surveys"]["items"][0]["state"] == "requested"
+        assert snap["commands"][0]["summary"] == f"survey {cmd.survey_id}: go to (3, 4)"
+    finally:
+        app.close()

@@ -2,7 +2,7 @@
 console.
 
 The node runs the channel manager and every modality receiver that loads (bathymetry, imagery,
-time series), over one transport, on the wall clock (TDMA slots come from the shared epoch).
+time series, survey), over one transport, on the wall clock (TDMA slots come from the shared epoch).
 The console is served at ``http://HOST:PORT/``; every operator action becomes a wire-format
 command sent by the node.
 """
@@ -25,6 +25,10 @@ from coex_core.errors import CoexError, ConfigError
 __all__ = ["TopsideApp", "build_topside", "register", "run"]
 
 log = logging.getLogger(__name__)
+
+#: The receivers ``coex topside`` runs unless told otherwise: every built-in modality (``survey``
+#: sends the operator's survey requests and follows their state).
+DEFAULT_MODALITIES = ("bathymetry", "imagery", "timeseries", "survey")
 
 #: The NUI 2022 cycle: 6 slots, topside (node 1) in slots 0 and 3, the vehicle in the others.
 NUI_OWNERS = (1, 2, 2, 1, 2, 2)
@@ -124,8 +128,9 @@ def register(subparsers: Any) -> None:
     p.add_argument("--stream-names", type=_names, default={}, metavar="ID=NAME,...",
                    help="names of the vehicle's streams for the queue table, e.g. "
                         "3=map,4=images,5=series")
-    p.add_argument("--modalities", default="bathymetry,imagery,timeseries",
-                   help="comma-separated receivers to run (default: all built-in)")
+    p.add_argument("--modalities", default=",".join(DEFAULT_MODALITIES),
+                   help="comma-separated receivers to run (default: all built-in, "
+                        f"{','.join(DEFAULT_MODALITIES)})")
     p.add_argument("--remap-ids", type=parse_remap, action="append", default=[],
                    metavar="NAME:OWN=WIRE,...",
                    help="carry modality NAME's third-party type ids OWN as WIRE on the wire (the "
@@ -271,7 +276,7 @@ def _schedule(args: argparse.Namespace) -> Any:
 def build_topside(transport_uri: str | Sequence[str], host: str = "127.0.0.1", port: int = 8080,
                   *, node_id: int = 1, vehicle_id: int = 2, link: int = 0, rate: int = 5,
                   schedule: Any = None,
-                  modalities: tuple[str, ...] = ("bathymetry", "imagery", "timeseries"),
+                  modalities: tuple[str, ...] = DEFAULT_MODALITIES,
                   stream_names: dict[int, str] | None = None,
                   clock: Callable[[], float] = time.time,
                   command_key: bytes | None = None,

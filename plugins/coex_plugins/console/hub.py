@@ -63,6 +63,8 @@ def pump(state: ConsoleState, node: Any, now: float, events: list[Any] | None = 
     if sig != state._region_sig:
         state._region_sig = sig
         state._touch("map", "commands")
+    # surveys the survey receiver follows: a new state, one given up, one asked by a script
+    state.refresh_surveys()
     if now > state.now:
         state.now = float(now)
     return len(events)

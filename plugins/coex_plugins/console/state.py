@@ -3,8 +3,8 @@
 * :class:`ConsoleState` takes received messages (:meth:`~ConsoleState.apply_message`), receiver
   products (:meth:`~ConsoleState.apply_product`) and node events (:meth:`~ConsoleState.apply_event`)
   and keeps everything the console shows. :meth:`~ConsoleState.snapshot` gives the whole state
-  as plain JSON-able data; each section (``vehicle``, ``map``, ``images``, ``series``, ``link``,
-  ``queues``, ``commands``, ``log``) has a version, so :meth:`~ConsoleState.changes` gives only
+  as plain JSON-able data; each section (``vehicle``, ``map``, ``surveys``, ``images``, ``series``,
+  ``link``, ``queues``, ``commands``, ``log``) has a version, so :meth:`~ConsoleState.changes` gives only
   the sections that changed since a client last looked (the server pushes those).
 * :class:`ConsoleActions` turns an operator action into wire-format command messages
   (:mod:`coex_core.messages`) and hands each one to ``send`` (the topside node's send path);
@@ -40,10 +40,16 @@ __all__ = [
 ]
 
 #: The sections of a snapshot, in the order the page lays them out.
-SECTIONS = ("vehicle", "map", "images", "series", "other", "link", "queues", "commands", "log")
+SECTIONS = ("vehicle", "map", "surveys", "images", "series", "other", "link", "queues", "commands",
+            "log")
 
 #: Modalities with a panel of their own; the products of any other go to the generic panel.
-OWN_PANELS = ("bathymetry", "imagery", "timeseries")
+OWN_PANELS = ("bathymetry", "imagery", "timeseries", "survey")
+
+#: The states of a survey the page draws (the survey receiver's ``SurveyRecord.state``).
+SURVEY_STATES = ("requested", "accepted", "started", "completed", "rejected", "aborted", "given up")
+#: The surveys the page lists and draws (the newest).
+MAX_SURVEYS = 40
 
 #: The map section shows a level's coverage (the age of its data) in at most this many blocks:
 #: every subgrid of a small level, groups of receiver tiles of a big one.
@@ -169,7 +175,8 @@ class _Command:
 
 
 #: caches (pictures, summaries) are not state: they are made again when needed
-@persistent("console.State", transient=("_region_ids", "_png", "_map_summary", "_targets_cache"))
+@persistent("console.State", transient=("_region_ids", "_png", "_map_summary", "_targets_cache",
+                                        "_survey_sig", "_survey_rows"))
 class ConsoleState:
     """Everything the console shows, built from messages, products and events.
 
@@ -229,6 +236,11 @@ class ConsoleState:
         #: shown even when someone else asked for them (a script, another tool).
         self.region_source: Any = self.receivers.get("bathymetry")
         self._zrange: tuple[float, float] | None = None
+        # surveys: the survey receiver's records (what it asked and what the vehicle answered);
+        # products of a survey receiver the console does not hold (rare) are kept here
+        self.survey_products: dict[int, dict[str, Any]] = {}
+        self._survey_sig: tuple[Any, ...] | None = None
+        self._survey_rows: dict[int, tuple[int, dict[str, Any]]] = {}
         # images
         self.images: dict[int, _Image] = {}
         self.progress_info: dict[str, Any] | None = None
@@ -260,6 +272,12 @@ class ConsoleState:
         self._png = {}
         self._map_summary = {}
         self._targets_cache = (None, [])
+        self._survey_sig, self._survey_rows = None, {}
+        # a console saved before a section or an attribute existed
+        for s in SECTIONS:
+            self.versions.setdefault(s, 0)
+        if not isinstance(getattr(self, "survey_products", None), dict):
+            self.survey_products = {}
 
     # -------------------------------------------------------------------- bookkeeping
     def _touch(self, *sections: str) -> None:
@@ -327,7 +345,9 @@ class ConsoleState:
         kind = str(getattr(product, "kind", ""))
         data = getattr(product, "data", None)
         meta = dict(getattr(product, "meta", {}) or {})
-        if modality not in OWN_PANELS:
+        if modality == "survey":
+            self._survey_product(product, meta, now)
+        elif modality not in OWN_PANELS:
             self._other_product(modality, product, meta)
         elif kind == "series":
             self._series_product(data, meta)
@@ -571,6 +591,91 @@ class ConsoleState:
         self.targets = out
         self._touch("map")
 
+    # ---------------------------------------------------------------------- surveys
+    @property
+    def survey_receiver(self) -> Any:
+        """The survey receiver (``coex_plugins.survey.SurveyReceiver``) that sends the operator's
+        survey requests and follows them (None: this console cannot ask for surveys)."""
+        return self.receivers.get("survey")
+
+    def _survey_product(self, product: Any, meta: dict[str, Any], now: float) -> None:
+        """A survey changed state (the survey receiver's product): shown in the surveys
+        section, and in the event log with its reason in words."""
+        try:
+            sid = int(meta.get("survey_id", getattr(product, "key", "")))
+        except (TypeError, ValueError):
+            return
+        if self.survey_receiver is None:  # nobody holds the records: keep what we were told
+            self.survey_products[sid] = dict(meta)
+        state, text = str(meta.get("state", "")), str(meta.get("text") or "")
+        bad = state in ("rejected", "aborted", "given up")
+        self._log(float(meta.get("time") or now),
+                  f"survey {sid} {state}" + (f": {text}" if text else ""), "warn" if bad else "info")
+        self._survey_sig = None  # shown again at once
+        self._touch("surveys", "commands")
+
+    def refresh_surveys(self) -> bool:
+        """Look at the survey receiver's records (a request made by someone else, a survey given
+        up for want of an answer): True, and the surveys section changed, if they did."""
+        rx = self.survey_receiver
+        records = getattr(rx, "surveys", None)
+        if not isinstance(records, Mapping):
+            return False
+        sig = tuple((int(k), int(getattr(r, "version", 0)), str(getattr(r, "state", "")))
+                    for k, r in list(records.items()))
+        if sig == self._survey_sig:
+            return False
+        self._survey_sig = sig
+        self._touch("surveys", "commands")
+        return True
+
+    def _survey_metas(self) -> dict[int, dict[str, Any]]:
+        """survey id -> the survey receiver's product metadata (cached per record version)."""
+        rx = self.survey_receiver
+        records = getattr(rx, "surveys", None)
+        if not isinstance(records, Mapping):
+            return dict(self.survey_products)
+        out: dict[int, dict[str, Any]] = {}
+        rows: dict[int, tuple[int, dict[str, Any]]] = {}
+        stale = [k for k, r in records.items()
+                 if self._survey_rows.get(int(k), (None,))[0] != getattr(r, "version", 0)]
+        fresh = ({int(p.key): dict(p.meta) for p in rx.products() if str(p.key).isdigit()}
+                 if stale else {})
+        for k, r in records.items():
+            k = int(k)
+            version = int(getattr(r, "version", 0))
+            cached = self._survey_rows.get(k)
+            meta = fresh.get(k) if cached is None or cached[0] != version else cached[1]
+            if meta is None:
+                continue
+            rows[k] = (version, meta)
+            out[k] = meta
+        self._survey_rows = rows
+        return out
+
+    def _snap_surveys(self) -> dict[str, Any]:
+        """Every survey asked (the newest :data:`MAX_SURVEYS`): its path (``waypoints``, metres
+        east/north), its state and, for a rejection or an abort, the reason in words."""
+        items = []
+        for sid, meta in self._survey_metas().items():
+            history = [[_num(float(t), 1), str(st), str(tx)] for t, st, tx in meta.get("history") or ()]
+            requested = history[0][0] if history else _num(meta.get("time"), 1)
+            wps = [[_num(float(a), 2), _num(float(b), 2)] for a, b in meta.get("waypoints") or ()]
+            row = {"survey_id": sid, "kind": meta.get("kind"), "state": meta.get("state"),
+                   "text": meta.get("text") or "", "reason": meta.get("reason"),
+                   "index": meta.get("index"), "time": _num(meta.get("time"), 1),
+                   "requested": requested, "history": history, "waypoints": wps}
+            for k in ("heading", "length", "width", "spacing", "altitude", "depth", "speed"):
+                v = meta.get(k)
+                row[k] = _num(float(v), 2) if isinstance(v, int | float) else None
+            row["append"] = bool(meta.get("append", False))
+            items.append(row)
+        items.sort(key=lambda r: (r["requested"] or 0.0, r["survey_id"]))
+        # whether the page may ask for surveys (a node's survey receiver sends them)
+        available = self.survey_receiver is not None and not self.own_receivers
+        return {"items": items[-MAX_SURVEYS:], "available": available,
+                "states": list(SURVEY_STATES)}
+
     # ------------------------------------------------------------ other modalities
     def _other_product(self, modality: str, product: Any, meta: dict[str, Any]) -> None:
         """A product of a modality without a panel of its own: the generic panel shows its
@@ -725,6 +830,8 @@ class ConsoleState:
                 sch["proposed"]["status"] = name.lower()
             self._touch("link")
         self._touch("commands")
+        if isinstance(cmd.message, m.SurveyCommand):
+            return  # the survey receiver's product says it, with the reason (_survey_product)
         self._log(now, f"{cmd.summary}: {name.lower()}",
                   "info" if name == "ACCEPTED" else "warn")
 
@@ -966,11 +1073,18 @@ class ConsoleState:
 
     def _snap_commands(self) -> list[dict[str, Any]]:
         out = []
+        surveys: dict[int, dict[str, Any]] | None = None
         for key in reversed(self.command_order):
             c = self.commands[key]
             status = c.status
             if c.roi_key is not None and c.roi_key in self.roi:
                 status = self._snap_roi(self.roi[c.roi_key])["status"]
+            elif isinstance(c.message, m.SurveyCommand):  # the survey's own state
+                if surveys is None:
+                    surveys = self._survey_metas()
+                meta = surveys.get(int(c.message.survey_id))
+                if meta is not None:
+                    status = str(meta.get("state") or status)
             out.append({"command_id": c.command_id, "kind": c.kind, "summary": c.summary,
                         "sent": _num(c.sent, 1), "status": status,
                         "answered": _num(c.answered, 1), "by": getattr(c, "by", "")})
@@ -1019,6 +1133,31 @@ def _modality_of(msg: m.Message) -> str | None:
 
 
 # ----------------------------------------------------------------------------- actions
+
+
+def survey_summary(cmd: m.SurveyCommand) -> str:
+    """A survey command in words (the commands list and the event log)."""
+    def n(v: float | None) -> str:
+        return "?" if v is None else f"{v:g}"
+
+    kind = m.SurveyKind(cmd.kind)
+    at = f"({cmd.x:.0f}, {cmd.y:.0f})"
+    if kind == m.SurveyKind.GOTO:
+        what = f"go to {at}"
+    elif kind == m.SurveyKind.LINE:
+        what = f"line from {at}, heading {n(cmd.heading)}°, {n(cmd.length)} m"
+    elif kind == m.SurveyKind.LAWNMOWER:
+        what = (f"lawnmower {n(cmd.length)} x {n(cmd.width)} m at {at}, heading {n(cmd.heading)}°, "
+                f"rows {n(cmd.spacing)} m apart")
+    else:
+        what = f"{len(cmd.points) + 1} waypoints from {at}"
+    if cmd.altitude is not None:
+        what += f", altitude {n(cmd.altitude)} m"
+    if cmd.depth is not None:
+        what += f", depth {n(cmd.depth)} m"
+    if cmd.speed is not None:
+        what += f", {n(cmd.speed)} m/s"
+    return f"survey {cmd.survey_id}: {what}" + (" (after the others)" if cmd.append else "")
 
 
 class ConsoleActions:
@@ -1082,6 +1221,52 @@ class ConsoleActions:
         self.state.record_regions(regions, self.clock(), f"map level {level}"
                                   + (" (gaps)" if fill_gaps else ""))
         return regions
+
+    # ---------------------------------------------------------------------- surveys
+    def survey(self, kind: str, x: float, y: float, *, heading: float | None = None,
+               length: float | None = None, width: float | None = None,
+               spacing: float | None = None, altitude: float | None = None,
+               depth: float | None = None, speed: float | None = None, append: bool = False,
+               points: Sequence[Sequence[float]] = ()) -> m.SurveyCommand:
+        """Ask the vehicle to survey (``kind`` ``goto``, ``line``, ``lawnmower`` or
+        ``waypoints``; ``x``, ``y`` metres east/north of the origin; a lawnmower is centred on
+        them with its rows along ``heading``) through the node's survey receiver, which sends the
+        ``SurveyCommand``, re-sends it until answered and follows the survey's state. Returns
+        the command (sent at the node's next poll)."""
+        rx = self.state.survey_receiver
+        if rx is None or self.state.own_receivers:
+            raise RequestRejected("survey requests need a topside node with the survey receiver "
+                                  "(coex topside runs it unless --modalities leaves out survey)")
+        nums: dict[str, float | None] = {}
+        for name, v in (("x", x), ("y", y), ("heading", heading), ("length", length),
+                        ("width", width), ("spacing", spacing), ("altitude", altitude),
+                        ("depth", depth), ("speed", speed)):
+            if v is None or v == "":
+                nums[name] = None
+                continue
+            f = float(v)
+            if not math.isfinite(f):
+                raise RequestRejected(f"survey {name} must be a finite number, not {v!r}")
+            nums[name] = f
+        if nums["x"] is None or nums["y"] is None:
+            raise RequestRejected("a survey needs x and y (metres east and north of the origin)")
+        if nums["altitude"] is not None and nums["depth"] is not None:
+            raise RequestRejected("give an altitude or a depth, not both")
+        try:
+            pts = [(float(p[0]), float(p[1])) for p in points or ()]
+        except (TypeError, ValueError, IndexError, KeyError):
+            raise RequestRejected("survey points are [x, y] pairs (metres)") from None
+        if not all(math.isfinite(a) and math.isfinite(b) for a, b in pts):
+            raise RequestRejected("survey points must be finite numbers")
+        now = self.clock()
+        # the receiver checks the kind, the fields the kind needs and their wire ranges
+        cmd = rx.request(str(kind), nums["x"], nums["y"], now, heading=nums["heading"],
+                         length=nums["length"], width=nums["width"], spacing=nums["spacing"],
+                         altitude=nums["altitude"], depth=nums["depth"], speed=nums["speed"],
+                         append=bool(append), points=pts)
+        self.state.record_command(cmd, now, survey_summary(cmd))
+        self.state.refresh_surveys()
+        return cmd
 
     # ----------------------------------------------------------------------- images
     def set_image_goal(self, image_id: int, kind: str, value: int = 0) -> m.ImageGoal:
@@ -1251,8 +1436,10 @@ class ConsoleActions:
     def dispatch(self, action: str, args: Mapping[str, Any], operator: str = "") -> list[m.Message]:
         """Run an action named by the page (``request_region``, ``set_image_goal``,
         ``image_by_time``, ``refine_series``, ``queue_config``, ``link_control``,
-        ``spare_config``, ``propose_schedule``) with keyword ``args``; returns the messages sent."""
+        ``spare_config``, ``propose_schedule``, ``survey``) with keyword ``args``; returns the
+        messages sent."""
         fn = {
+            "survey": self.survey,
             "request_region": self.request_region, "set_image_goal": self.set_image_goal,
             "image_by_time": self.image_by_time, "refine_series": self.refine_series,
             "queue_config": self.queue_config, "link_control": self.link_control,

@@ -2,7 +2,7 @@
 // Plain browser JavaScript, no build step, no external resources.
 "use strict";
 
-const S = { now: 0, vehicle: null, map: null, images: null, series: null, other: null, link: null,
+const S = { now: 0, vehicle: null, map: null, surveys: null, images: null, series: null, other: null, link: null,
   queues: null, commands: [], log: [], versions: {} };
 const $ = (sel) => document.querySelector(sel);
 const el = (tag, attrs = {}, ...kids) => {
@@ -78,11 +78,13 @@ async function sendAction(action, args) {
       body: JSON.stringify({ action, args }) });
     if (r.status === 401) { location.href = "/login"; return null; }
     const body = await r.json();
-    if (!body.ok) { toast(body.error || "failed", true); return null; }
+    if (!body.ok) { act.lastError = body.error || "failed"; toast(act.lastError, true); return null; }
+    act.lastError = "";
     toast(`sent ${body.sent.map((m) => m.type).join(", ")}`);
     return body;
   } catch (err) {
-    toast(String(err), true);
+    act.lastError = String(err);
+    toast(act.lastError, true);
     return null;
   }
 }
@@ -94,6 +96,7 @@ const view = { cx: 0, cy: 0, scale: 1, auto: true };
 const hiddenLevels = new Set();
 const imgCache = new Map();
 let drawMode = false, drag = null, roi = null;
+let surveyMode = false, draft = null, hotSurvey = null;  // a survey being drawn; one hovered in the list
 
 function w2s(x, y) {
   return [canvas.width / 2 + (x - view.cx) * view.scale, canvas.height / 2 - (y - view.cy) * view.scale];
@@ -122,6 +125,7 @@ function bounds() {
     for (const t of S.map.targets) add(t.x, t.y);
     for (const r of S.map.requests) { add(r.rect[0], r.rect[1]); add(r.rect[2], r.rect[3]); }
   }
+  if (S.surveys) for (const sv of S.surveys.items) for (const p of sv.waypoints) add(p[0], p[1]);
   if (S.vehicle) for (const p of S.vehicle.track) add(p[1], p[2]);
   return b;
 }
@@ -227,6 +231,7 @@ function drawMap() {
     }
   }
   if (S.vehicle && $("#show-track").checked) drawTrack();
+  drawSurveys();
   if (m) {
     for (const t of m.targets) {
       const [x, y] = w2s(t.x, t.y);
@@ -243,6 +248,7 @@ function drawMap() {
     ctx.fillStyle = "rgba(79,179,255,0.15)"; ctx.fillRect(ax, ay, bx - ax, by - ay);
     ctx.strokeStyle = "#4fb3ff"; ctx.lineWidth = 2; ctx.strokeRect(ax, ay, bx - ax, by - ay);
   }
+  drawDraft();
   drawScale();
 }
 function drawGrid() {
@@ -319,7 +325,12 @@ function renderLevels() {
 
 canvas.addEventListener("mousedown", (ev) => {
   const p = evPos(ev);
-  if (drawMode) {
+  if (surveyMode) {
+    const w = s2w(...p);
+    draft = { kind: $("#survey-kind").value, a: w, b: w.slice() };
+    drag = { kind: "survey" };
+    showSurveyBar(); drawMap();
+  } else if (drawMode) {
     const w = s2w(...p);
     roi = [w[0], w[1], w[0], w[1]];
     drag = { kind: "draw" };
@@ -333,6 +344,7 @@ window.addEventListener("mousemove", (ev) => {
   $("#map-cursor").textContent = `x ${w[0].toFixed(1)} m, y ${w[1].toFixed(1)} m`;
   if (!drag) return;
   if (drag.kind === "draw") { roi[2] = w[0]; roi[3] = w[1]; drawMap(); }
+  else if (drag.kind === "survey") { if (draft.kind !== "goto") draft.b = w; showSurveyBar(); drawMap(); }
   else {
     view.auto = false;
     view.cx = drag.cx - (p[0] - drag.p[0]) / view.scale;
@@ -356,13 +368,24 @@ function pickTrackTime(p) {
 }
 window.addEventListener("keydown", (ev) => {
   if (ev.key === "Escape") {
-    roi = null; $("#roi-bar").classList.add("hidden"); setDraw(false); drawMap();
+    roi = null; $("#roi-bar").classList.add("hidden"); setDraw(false);
+    endSurvey(); drawMap();
   }
 });
 window.addEventListener("mouseup", (ev) => {
   if (drag && drag.kind === "pan") {
     const p = evPos(ev);
     if (Math.hypot(p[0] - drag.p[0], p[1] - drag.p[1]) < 3) pickTrackTime(p);
+  }
+  if (drag && drag.kind === "survey") {
+    const [ax, ay] = w2s(...draft.a), [bx, by] = w2s(...draft.b);
+    const small = Math.hypot(bx - ax, by - ay) < 4;
+    if (draft.kind !== "goto" && (small || (draft.kind === "lawnmower"
+        && (Math.abs(bx - ax) < 4 || Math.abs(by - ay) < 4)))) {
+      draft = null;  // a click where a drag was needed
+      toast(`drag on the map to draw the ${$("#survey-kind").value === "line" ? "line" : "box"}`);
+    }
+    showSurveyBar(); drawMap();
   }
   if (drag && drag.kind === "draw") {
     if (Math.abs(roi[2] - roi[0]) * view.scale < 3 && Math.abs(roi[3] - roi[1]) * view.scale < 3) {
@@ -396,6 +419,7 @@ canvas.addEventListener("dblclick", (ev) => {
   }
 });
 function setDraw(on) {
+  if (on) endSurvey();
   drawMode = on;
   $("#draw-btn").classList.toggle("active", on);
   canvas.classList.toggle("drawing", on);
@@ -406,6 +430,7 @@ function showRoiBar() {
   $("#roi-bar").classList.remove("hidden");
 }
 $("#draw-btn").addEventListener("click", () => setDraw(!drawMode));
+$("#survey-btn").addEventListener("click", () => { if (surveyMode) endSurvey(); else startSurvey(); drawMap(); });
 $("#fit-btn").addEventListener("click", () => { view.auto = true; drawMap(); });
 $("#show-age").addEventListener("change", drawMap);
 $("#show-track").addEventListener("change", drawMap);
@@ -415,6 +440,263 @@ $("#roi-send").addEventListener("click", async () => {
   const r = await act("request_region", { level: Number($("#roi-level").value || 0),
     x_min: roi[0], y_min: roi[1], x_max: roi[2], y_max: roi[3], fill_gaps: $("#roi-gaps").checked });
   if (r) { roi = null; $("#roi-bar").classList.add("hidden"); setDraw(false); drawMap(); }
+});
+
+// ------------------------------------------------------------------ surveys
+// The operator draws a survey (click a point, drag a line, drag a box for a lawnmower) and sends
+// it; the survey receiver sends the SurveyCommand and follows it. Each survey is drawn as the
+// path the vehicle will fly (S.surveys: the receiver's records), coloured by its state.
+const SURVEY_COLOR = { requested: "#f0b443", accepted: "#6fb7ff", started: "#d08cff",
+  completed: "#58c47c", rejected: "#ff5c5c", aborted: "#a3adb8", "given up": "#a3adb8",
+  unknown: "#a3adb8" };
+const SURVEY_DASH = { requested: [7, 4], rejected: [4, 4], aborted: [2, 4], "given up": [6, 3, 2, 3] };
+const KIND_NAME = { goto: "go to", line: "line", lawnmower: "lawnmower", waypoints: "waypoints" };
+const DEG = Math.PI / 180;
+const round = (v, q) => Math.round(v / q) * q;
+
+function numField(sel) {
+  const t = $(sel).value.trim();
+  if (t === "") return null;
+  const v = Number(t);
+  if (!isFinite(v)) throw new Error(`${$(sel).id.replace("survey-", "")}: not a number`);
+  return v;
+}
+// What the drawn survey asks for (the action's arguments).
+function surveyArgs() {
+  if (!draft) return null;
+  const args = { kind: draft.kind };
+  const [ax, ay] = draft.a, [bx, by] = draft.b;
+  if (draft.kind === "goto") {
+    Object.assign(args, { x: round(ax, 0.1), y: round(ay, 0.1) });
+  } else if (draft.kind === "line") {
+    // drawn with a mouse: whole degrees and metres
+    const heading = round(((Math.atan2(bx - ax, by - ay) / DEG) + 360) % 360, 1) % 360;
+    Object.assign(args, { x: round(ax, 0.1), y: round(ay, 0.1), heading,
+      length: round(Math.hypot(bx - ax, by - ay), 1) });
+  } else {
+    // a box: rows along the heading (default: the box's long side), covering the whole box
+    const W = Math.abs(bx - ax), H = Math.abs(by - ay);
+    let heading = numField("#survey-heading");
+    if (heading === null) heading = W >= H ? 90 : 0;
+    heading = round(((heading % 360) + 360) % 360, 0.1);
+    const sn = Math.abs(Math.sin(heading * DEG)), cs = Math.abs(Math.cos(heading * DEG));
+    Object.assign(args, { x: round((ax + bx) / 2, 0.1), y: round((ay + by) / 2, 0.1), heading,
+      length: round(W * sn + H * cs, 1), width: round(W * cs + H * sn, 1),
+      spacing: numField("#survey-spacing") });
+  }
+  const z = numField("#survey-z");
+  if (z !== null) args[$("#survey-zmode").value] = z;
+  const speed = numField("#survey-speed");
+  if (speed !== null) args.speed = speed;
+  args.append = $("#survey-append").checked;
+  return args;
+}
+// The path a survey asks for: the same waypoints as the vehicle's plan (coex_plugins.survey.plan).
+function surveyPath(a) {
+  if (a.kind === "goto") return [[a.x, a.y]];
+  const ex = Math.sin(a.heading * DEG), ey = Math.cos(a.heading * DEG);
+  if (a.kind === "line") return [[a.x, a.y], [a.x + a.length * ex, a.y + a.length * ey]];
+  if (!(a.spacing > 0) || !(a.length > 0)) return [];
+  const rows = Math.floor(a.width / a.spacing + 1e-9) + 1;
+  if (rows > 200) return [];
+  const px = -ey, py = ex, across = (rows - 1) * a.spacing, out = [];
+  for (let r = 0; r < rows; r++) {
+    const off = across / 2 - r * a.spacing, cx = a.x + off * px, cy = a.y + off * py;
+    const p = [cx - (a.length / 2) * ex, cy - (a.length / 2) * ey];
+    const q = [cx + (a.length / 2) * ex, cy + (a.length / 2) * ey];
+    if (r % 2 === 0) out.push(p, q); else out.push(q, p);
+  }
+  return out;
+}
+function pathLength(w) {
+  let n = 0;
+  for (let i = 1; i < w.length; i++) n += Math.hypot(w[i][0] - w[i - 1][0], w[i][1] - w[i - 1][1]);
+  return n;
+}
+function startSurvey() {
+  setDraw(false);
+  surveyMode = true; draft = null;
+  $("#survey-btn").classList.add("active");
+  canvas.classList.add("drawing");
+  $("#roi-bar").classList.add("hidden"); roi = null;
+  showSurveyBar();
+}
+function endSurvey() {
+  surveyMode = false; draft = null;
+  $("#survey-btn").classList.remove("active");
+  if (!drawMode) canvas.classList.remove("drawing");
+  $("#survey-bar").classList.add("hidden");
+}
+function showSurveyBar() {
+  const bar = $("#survey-bar"), kind = $("#survey-kind").value;
+  bar.classList.remove("hidden", "goto", "line", "lawnmower");
+  bar.classList.add(kind);
+  $("#survey-error").classList.add("hidden");
+  const desc = $("#survey-desc");
+  let args = null, err = "";
+  try { args = surveyArgs(); } catch (e) { err = e.message; }
+  if (args && args.kind === "lawnmower") {
+    const [ax, ay] = draft.a, [bx, by] = draft.b;
+    $("#survey-heading").placeholder = `auto (${Math.abs(bx - ax) >= Math.abs(by - ay) ? 90 : 0})`;
+  } else {
+    $("#survey-heading").placeholder = "auto";
+  }
+  let text = { goto: "click the point to go to", line: "drag the line to fly (from its start)",
+    lawnmower: "drag a box to cover with a lawnmower" }[kind];
+  if (err) text = err;
+  else if (args) {
+    const path = surveyPath(args);
+    if (args.kind === "goto") text = `go to (${args.x.toFixed(0)}, ${args.y.toFixed(0)})`;
+    else if (args.kind === "line") text = `line ${args.length} m, heading ${args.heading}°, from (${args.x.toFixed(0)}, ${args.y.toFixed(0)})`;
+    else if (!path.length) text = `lawnmower ${args.length} × ${args.width} m: give a spacing above 0 (at most 200 rows)`;
+    else text = `lawnmower ${args.length} × ${args.width} m, heading ${args.heading}°, ${path.length / 2} rows, path ${pathLength(path).toFixed(0)} m`;
+  }
+  desc.textContent = text;
+  desc.classList.toggle("dim", !args);
+  $("#survey-send").disabled = !args || !!err || !surveyPath(args).length || !ME.may_command;
+}
+function drawDraft() {
+  if (!surveyMode || !draft) return;
+  let args;
+  try { args = surveyArgs(); } catch (e) { return; }
+  ctx.save();
+  if (args.kind === "lawnmower") {  // the box drawn
+    const [ax, ay] = w2s(...draft.a), [bx, by] = w2s(...draft.b);
+    ctx.fillStyle = "rgba(79,179,255,0.10)"; ctx.fillRect(ax, ay, bx - ax, by - ay);
+    ctx.strokeStyle = "rgba(79,179,255,0.8)"; ctx.lineWidth = 1; ctx.setLineDash([4, 3]);
+    ctx.strokeRect(ax, ay, bx - ax, by - ay);
+  }
+  const path = surveyPath(args);
+  ctx.setLineDash([]);
+  strokePath(path, "#ffffff", 2, [], 1);
+  if (path.length) {
+    ctx.fillStyle = "#ffffff"; ctx.font = "bold 11px system-ui";
+    const [x, y] = w2s(...path[0]);
+    label(`preview: ${KIND_NAME[args.kind]}`, x + 8, y - 8, "#ffffff");
+  }
+  ctx.restore();
+}
+function strokePath(path, color, width, dash, alpha) {
+  if (!path.length) return;
+  ctx.globalAlpha = alpha;
+  ctx.strokeStyle = color; ctx.fillStyle = color; ctx.lineWidth = width; ctx.setLineDash(dash);
+  if (path.length > 1) {
+    ctx.beginPath();
+    path.forEach((p, i) => { const [x, y] = w2s(p[0], p[1]); if (i) ctx.lineTo(x, y); else ctx.moveTo(x, y); });
+    ctx.stroke();
+    ctx.setLineDash([]);
+    // an arrow head on the last leg: the way it is flown
+    const [x0, y0] = w2s(...path[path.length - 2]), [x1, y1] = w2s(...path[path.length - 1]);
+    const a = Math.atan2(y1 - y0, x1 - x0), L = 9;
+    ctx.beginPath(); ctx.moveTo(x1, y1);
+    ctx.lineTo(x1 - L * Math.cos(a - 0.45), y1 - L * Math.sin(a - 0.45));
+    ctx.lineTo(x1 - L * Math.cos(a + 0.45), y1 - L * Math.sin(a + 0.45));
+    ctx.closePath(); ctx.fill();
+  }
+  ctx.setLineDash([]);
+  const [sx, sy] = w2s(...path[0]);  // the start (a go-to: the point, as a diamond)
+  ctx.beginPath();
+  if (path.length === 1) { ctx.moveTo(sx, sy - 7); ctx.lineTo(sx + 7, sy); ctx.lineTo(sx, sy + 7); ctx.lineTo(sx - 7, sy); ctx.closePath(); ctx.lineWidth = 2; ctx.stroke(); }
+  else { ctx.arc(sx, sy, 4, 0, 2 * Math.PI); ctx.fill(); }
+  ctx.globalAlpha = 1;
+}
+function label(text, x, y, color) {
+  ctx.font = "bold 11px system-ui";
+  const w = ctx.measureText(text).width;
+  ctx.fillStyle = "rgba(10,16,22,0.78)"; ctx.fillRect(x - 3, y - 11, w + 6, 15);
+  ctx.fillStyle = color; ctx.fillText(text, x, y);
+}
+function drawSurveys() {
+  if (!S.surveys) return;
+  ctx.save();
+  const items = S.surveys.items;
+  // finished ones first, the live ones on top; the hovered one last
+  const order = items.slice().sort((a, b) => (a.survey_id === hotSurvey) - (b.survey_id === hotSurvey)
+    || ["requested", "accepted", "started"].includes(a.state) - ["requested", "accepted", "started"].includes(b.state));
+  for (const sv of order) {
+    const color = SURVEY_COLOR[sv.state] || SURVEY_COLOR.unknown, w = sv.waypoints;
+    if (!w.length) continue;
+    const hot = sv.survey_id === hotSurvey;
+    const dim = ["completed", "aborted", "given up"].includes(sv.state) && !hot ? 0.55 : 1;
+    const lw = hot ? 4 : sv.state === "started" ? 3 : 2;
+    if (sv.state === "started" && sv.index !== null && sv.index !== undefined && sv.index < w.length) {
+      const i = Math.max(0, sv.index);
+      strokePath(w.slice(0, i + 1), color, lw, [], 0.4);     // flown
+      strokePath(w.slice(Math.max(0, i - 1)), color, lw, [], 1);  // to fly (from the leg it is on)
+      const [x, y] = w2s(...w[i]);  // the waypoint it heads for
+      ctx.strokeStyle = color; ctx.lineWidth = 2;
+      ctx.beginPath(); ctx.arc(x, y, 8, 0, 2 * Math.PI); ctx.stroke();
+      ctx.beginPath(); ctx.arc(x, y, 3, 0, 2 * Math.PI); ctx.fillStyle = color; ctx.fill();
+      label(`→ waypoint ${sv.index}`, x + 11, y + 4, color);
+    } else {
+      strokePath(w, color, lw, SURVEY_DASH[sv.state] || [], dim);
+    }
+    const [x, y] = w2s(...w[0]);
+    ctx.globalAlpha = dim;
+    label(`S${sv.survey_id} ${sv.state}`, x + 7, y - 7, color);
+    ctx.globalAlpha = 1;
+  }
+  ctx.restore();
+}
+function surveyDetails(sv) {
+  if (sv.text) return sv.text;
+  if (sv.reason) return sv.reason.toLowerCase().replace(/_/g, " ");
+  const what = [];
+  if (sv.kind === "lawnmower") what.push(`${sv.length} × ${sv.width} m, rows ${sv.spacing} m apart, heading ${sv.heading}°`);
+  else if (sv.kind === "line") what.push(`${sv.length} m, heading ${sv.heading}°`);
+  else if (sv.waypoints.length) what.push(`(${sv.waypoints[0][0].toFixed(0)}, ${sv.waypoints[0][1].toFixed(0)})`);
+  if (sv.altitude !== null && sv.altitude !== undefined) what.push(`altitude ${sv.altitude} m`);
+  if (sv.depth !== null && sv.depth !== undefined) what.push(`depth ${sv.depth} m`);
+  if (sv.speed !== null && sv.speed !== undefined) what.push(`${sv.speed} m/s`);
+  return what.join(", ");
+}
+function renderSurveys() {
+  const tb = $("#surveys-table tbody");
+  const items = (S.surveys && S.surveys.items) || [];
+  const btn = $("#survey-btn");
+  if (S.surveys && !S.surveys.available) {  // no survey receiver on this console's node
+    btn.disabled = true; btn.title = "this console cannot ask for surveys (no survey receiver)";
+    if (surveyMode) endSurvey();
+  } else if (ME.may_command) {
+    btn.disabled = false; btn.title = "draw a survey for the vehicle: a point, a line or a lawnmower box";
+  }
+  if (!items.length) {
+    tb.replaceChildren(el("tr", { class: "empty-row" }, el("td", { colspan: 5, class: "empty" },
+      S.surveys && !S.surveys.available ? "This console cannot ask for surveys (its node has no survey receiver)."
+        : "No survey requested yet.")));
+    return;
+  }
+  tb.replaceChildren(...items.slice().reverse().map((sv) => {
+    const why = ["rejected", "aborted", "given up"].includes(sv.state);
+    const history = (sv.history || []).map((h) => `${fmtT(h[0])} ${h[1]}${h[2] ? ": " + h[2] : ""}`).join("\n");
+    const changed = sv.time !== null && fmtT(sv.time) !== fmtT(sv.requested) ? ` → ${fmtT(sv.time)}` : "";
+    const tr = el("tr", { "data-survey": sv.survey_id, "data-state": sv.state, title: history },
+      el("td", {}, `S${sv.survey_id}`), el("td", {}, KIND_NAME[sv.kind] || sv.kind || "?"),
+      el("td", {}, el("span", { class: `sbadge st-${String(sv.state).replace(" ", "_")}` }, sv.state)),
+      el("td", {}, `${fmtT(sv.requested)}${changed}`),
+      el("td", { class: "details" + (why ? " why" : "") }, surveyDetails(sv)));
+    tr.classList.toggle("hot", sv.survey_id === hotSurvey);
+    tr.addEventListener("mouseenter", () => { hotSurvey = sv.survey_id; tr.classList.add("hot"); drawMap(); });
+    tr.addEventListener("mouseleave", () => { hotSurvey = null; tr.classList.remove("hot"); drawMap(); });
+    return tr;
+  }));
+}
+for (const sel of ["#survey-kind", "#survey-heading", "#survey-spacing", "#survey-z", "#survey-zmode", "#survey-speed"]) {
+  $(sel).addEventListener("input", () => {
+    if (sel === "#survey-kind" && draft) draft = null;  // another kind: draw it again
+    showSurveyBar(); drawMap();
+  });
+}
+$("#survey-cancel").addEventListener("click", () => { endSurvey(); drawMap(); });
+$("#survey-send").addEventListener("click", async () => {
+  let args;
+  try { args = surveyArgs(); } catch (e) { toast(e.message, true); return; }
+  if (!args) return;
+  const r = await act("survey", args);
+  if (r) { endSurvey(); drawMap(); return; }
+  const box = $("#survey-error");  // refused before it was sent: say why, keep the drawing
+  box.textContent = `not sent: ${act.lastError}`;
+  box.classList.remove("hidden");
 });
 
 // ------------------------------------------------------------------ images
@@ -749,6 +1031,7 @@ function renderOther() {
 }
 
 const RENDER = { vehicle: () => { renderVehicle(); drawMap(); }, map: () => { renderLevels(); drawMap(); },
+  surveys: () => { renderSurveys(); drawMap(); },
   images: renderImages, series: renderSeries, other: renderOther, link: renderLink, queues: renderQueues,
   commands: renderCommands, log: renderLog };
 
