@@ -451,7 +451,8 @@ def run(args: argparse.Namespace) -> int:
         except (CoexError, OSError) as exc:
             print(f"coex topside: {exc}", file=sys.stderr)
             return 2
-        logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(levelname)s %(message)s")
+        logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(levelname)s %(message)s",
+                            force=True)
         print(f"CoEx console on {app.url} (topside node {app.node.node_id}, from {args.config})", flush=True)
         return _serve(app)
     if not args.transport:

@@ -61,7 +61,8 @@ def run_vehicle(args: argparse.Namespace) -> int:
 
     try:
         cfg = load(args.config, "vehicle")
-        logging.basicConfig(level=cfg.log_level.upper(), format="%(asctime)s %(name)s %(levelname)s %(message)s")
+        logging.basicConfig(level=cfg.log_level.upper(), format="%(asctime)s %(name)s %(levelname)s %(message)s",
+                            force=True)  # a library may have configured logging on import
         app = VehicleApp(cfg)
     except (CoexError, OSError) as exc:
         print(f"coex vehicle: {exc}", file=sys.stderr)
