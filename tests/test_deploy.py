@@ -249,9 +249,11 @@ def deployment(tmp_path: Path) -> Iterator[dict[str, Any]]:
 def test_a_vehicle_and_topside_pair_from_the_examples(deployment: dict[str, Any]) -> None:
     d = deployment
     http, procs, peer, images = d["http"], d["procs"], d["peer"], d["images"]
+    # the vehicle's position (MAVLink) reaches topside; then the camera writes an image
+    _wait("the vehicle status topside", lambda: (_state(http).get("vehicle") or {}).get("status"), 300, procs)
     _write_image(images / "img_0001.png", 1)
 
-    # the map (ROS bag and LCM soundings), the image, and the vehicle's position (MAVLink) reach topside
+    # the map (ROS bag and LCM soundings) and the image (placed where the vehicle was) reach topside
     def ready() -> dict[str, Any] | None:
         s = _state(http)
         if not s:
@@ -265,6 +267,8 @@ def test_a_vehicle_and_topside_pair_from_the_examples(deployment: dict[str, Any]
     status = s["vehicle"]["status"]
     assert abs(status["x"] - 30.0) < 1.0 and abs(status["y"] - 10.0) < 1.0, status  # MAVLink lat/lon -> x/y
     assert abs(status["depth"] - 25.0) < 0.2 and abs(status["altitude"] - 5.0) < 0.2, status
+    [img] = [i for i in s["images"]["items"] if i.get("bytes_received")]
+    assert (img["width"], img["height"]) == (128, 96) and abs(img["x"] - 30.0) < 1.0, img
 
     # a lawnmower inside the geofence: accepted, uploaded to the MAVLink peer, flown
     _act(http, "survey", {"kind": "lawnmower", "x": 40.0, "y": -30.0, "heading": 90.0, "length": 60.0,

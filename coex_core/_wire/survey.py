@@ -29,6 +29,7 @@ SURVEY_POINT = cs.Struct(
 
 def _shape_ok(ctx: cs.Container) -> bool:
     kind = int(ctx.kind)
+    need: tuple[object, ...]
     if kind == SurveyKind.LINE:
         need = (ctx.heading, ctx.length)
     elif kind == SurveyKind.LAWNMOWER:
