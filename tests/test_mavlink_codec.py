@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import random
+import os
 import subprocess
 import sys
 
@@ -357,7 +358,9 @@ def test_library_never_imports_mavutil() -> None:
         "assert 'pymavlink.mavutil' not in sys.modules, 'mavutil imported'\n"
         "assert 'MAVLINK_DIALECT' not in os.environ and 'MAVLINK20' not in os.environ\n"
     )
-    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
+    # a clean environment: another test of this worker may have used mavutil, which sets them
+    env = {k: v for k, v in os.environ.items() if k not in ("MAVLINK_DIALECT", "MAVLINK20")}
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60, env=env)
     assert proc.returncode == 0, proc.stderr
 
 
