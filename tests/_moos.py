@@ -24,12 +24,13 @@ import pytest
 __all__ = ["MoosDB", "find_moosdb", "free_port", "moosdb", "moosdb_path", "unique"]
 
 
-def _cache_dir() -> Path:
-    work = os.environ.get("WORK")  # build_moos.sh's own variable
-    if work:
-        return Path(work)
+def _build_dirs() -> list[Path]:
+    """Where ``build_moos.sh`` builds: ``$WORK`` if set, and its default."""
     base = os.environ.get("XDG_CACHE_HOME") or str(Path.home() / ".cache")
-    return Path(base) / "coex-moos"
+    dirs = [Path(base) / "coex-moos"]
+    if os.environ.get("WORK"):  # build_moos.sh's own variable
+        dirs.insert(0, Path(os.environ["WORK"]))
+    return dirs
 
 
 def find_moosdb() -> tuple[str | None, str]:
@@ -43,9 +44,11 @@ def find_moosdb() -> tuple[str | None, str]:
     found = shutil.which("MOOSDB")
     if found:
         return found, ""
-    built = _cache_dir() / "core-moos" / "build" / "bin" / "MOOSDB"
-    if os.access(built, os.X_OK):
-        return str(built), ""
+    candidates = [d / "core-moos" / "build" / "bin" / "MOOSDB" for d in _build_dirs()]
+    for built in candidates:
+        if os.access(built, os.X_OK):
+            return str(built), ""
+    built = candidates[0]
     repo = Path(__file__).resolve().parents[1]
     shared = repo.parent / "shared" / "vendor" / "moos" / "build_moos.sh"
     how = ("run `make moos`" if shared.exists() else
