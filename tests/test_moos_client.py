@@ -6,6 +6,7 @@ import socket
 import struct
 import time
 
+import numpy as np
 import pytest
 from hypothesis import given
 from hypothesis import strategies as st
@@ -155,7 +156,7 @@ def test_binary_double_string_through_moosdb(moosdb: MoosDB) -> None:
         tx.notify(b_var, v)
     tx.notify(s_var, "a string, ünïcode")
     tx.notify(d_var, 3.25)
-    tx.notify(d_var, 7)
+    tx.notify(d_var, np.int64(7))
     assert tx.flush(5)
     got = _collect(rx, len(values) + 3)
     assert [m.value for m in got if m.key == b_var] == values
@@ -212,14 +213,15 @@ def test_notifications_wait_for_a_subscriber(moosdb: MoosDB) -> None:
     var = unique("HELD")
     tx = _client(moosdb, unique("tx"), await_subscribers=[var], await_timeout=20)
     assert tx.connect(5)
-    for i in range(5):
-        tx.notify(var, bytes([i]) * 10)
-    assert not tx.flush(0.5) and tx.pending() == 5
+    frames = [i.to_bytes(2, "little") * 500 for i in range(1500)]  # 1.5 MB: more than one packet
+    for f in frames:
+        tx.notify(var, f)
+    assert not tx.flush(0.5) and tx.pending() == len(frames)
     rx = _client(moosdb, unique("rx"))
     rx.register(var)
     assert rx.connect(5)
-    assert tx.flush(5)
-    assert [m.value for m in _collect(rx, 5)] == [bytes([i]) * 10 for i in range(5)]
+    assert tx.flush(10)
+    assert [m.value for m in _collect(rx, len(frames))] == frames
     tx.close()
     rx.close()
 

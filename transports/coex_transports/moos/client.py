@@ -42,6 +42,7 @@ import contextlib
 import hashlib
 import logging
 import math
+import numbers
 import select
 import socket
 import struct
@@ -340,6 +341,7 @@ class MoosClient:
         self._wake_r.setblocking(False)
         self._wake_w.setblocking(False)
         self._last_error = ""
+        self._more = False  # the last packet left sendable notifications behind
         self._counts = {
             "connects": 0, "sent": 0, "received": 0, "duplicates": 0, "replays_ignored": 0,
             "dropped_pending": 0, "dropped_inbox": 0, "resent": 0,
@@ -404,7 +406,7 @@ class MoosClient:
                 msg = self._message(NOTIFY, BINARY, key, time=time, sval=bytes(value))
             elif isinstance(value, str):
                 msg = self._message(NOTIFY, STRING, key, time=time, sval=_bytes(value))
-            elif isinstance(value, int | float):
+            elif isinstance(value, numbers.Real):
                 msg = self._message(NOTIFY, DOUBLE, key, time=time, dval=float(value))
             else:
                 raise TypeError(f"a MOOS value is bytes, str or a number, not {type(value).__name__}")
@@ -599,7 +601,8 @@ class MoosClient:
             if packet is not None:
                 sock.sendall(packet)
                 last_sent = now
-            wait = max(0.0, min(1.0 - (now - last_sent), 0.25))
+            # more to write (a backlog split into packets): only look for input, do not wait
+            wait = 0.0 if self._more else max(0.0, min(1.0 - (now - last_sent), 0.25))
             readable, _, _ = select.select([sock, self._wake_r], [], [], wait)
             if self._wake_r in readable:
                 with contextlib.suppress(OSError):
@@ -630,6 +633,7 @@ class MoosClient:
             notifies: list[RawMessage] = []
             size = 0
             held = False
+            self._more = False
             hold = now - self._connected_at < self.await_timeout
             if self._outbox:
                 keep: deque[RawMessage] = deque()
@@ -640,6 +644,7 @@ class MoosClient:
                         continue
                     if size >= _PACKET_BUDGET:
                         keep.append(msg)
+                        self._more = True
                         continue
                     notifies.append(msg)
                     size += len(msg.sval) + 64
