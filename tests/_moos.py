@@ -56,6 +56,17 @@ def find_moosdb() -> tuple[str | None, str]:
     return None, f"MOOSDB not found (not on PATH, not at {built}): {how}"
 
 
+def _die_with_parent() -> None:
+    """In the child: on Linux, get SIGKILL when the test process dies (no MOOSDB left behind
+    when pytest itself is killed)."""
+    try:
+        import ctypes
+
+        ctypes.CDLL("libc.so.6", use_errno=True).prctl(1, signal.SIGKILL)  # PR_SET_PDEATHSIG
+    except (OSError, AttributeError):
+        pass
+
+
 def free_port() -> int:
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
@@ -87,6 +98,7 @@ class MoosDB:
         self.proc = subprocess.Popen(
             [self.exe, str(mission), f"--moos_port={self.port}", "--moos_suicide_disable"],
             stdout=logf, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL, cwd=self.dir,
+            preexec_fn=_die_with_parent,
         )
         logf.close()
         deadline = time.monotonic() + timeout
