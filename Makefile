@@ -9,7 +9,7 @@ STAMP  := $(VENV)/.coex-installed
 PYTEST_ARGS ?=
 DEMO_ARGS ?=
 
-.PHONY: install demo test lint typecheck pytest bench clean
+.PHONY: install demo test lint typecheck pytest moos bench clean
 
 install: $(STAMP)
 
@@ -30,7 +30,12 @@ lint: install
 typecheck: install
 	$(VENV)/bin/mypy
 
-pytest: install
+# a real MOOSDB and pymoos for the MOOS tests, built from ../shared/vendor/moos when there is no
+# MOOSDB on PATH; never fails (the tests needing them are skipped with the reason)
+moos: install
+	@bash scripts/moos.sh $(PY)
+
+pytest: install moos
 	$(VENV)/bin/pytest -n 2 $(PYTEST_ARGS)
 
 test: lint typecheck pytest

@@ -6,6 +6,9 @@ import os
 
 from hypothesis import HealthCheck, settings
 
+# a real MOOSDB for the MOOS tests, skipped with the reason when there is none (tests/_moos.py)
+from ._moos import moosdb, moosdb_path  # noqa: F401
+
 settings.register_profile(
     "ci", max_examples=150, deadline=None, suppress_health_check=[HealthCheck.too_slow]
 )
