@@ -36,7 +36,7 @@ from coex_plugins.bathymetry.export import opening
 from coex_plugins.imagery import ImageryReceiver
 from coex_plugins.survey import SurveyReceiver
 
-from .config import CAMERA_SPEED, TRANSIT_SPEED
+from .config import CAMERA_PERIOD, CAMERA_SPEED, TRANSIT_SPEED
 from .truth import Eye, FrameTruth
 
 __all__ = ["CameraLine", "CandidateView", "Operator", "car_likeness", "measure"]
@@ -399,14 +399,15 @@ class Operator:
                 f"({v.cells} cells), top {v.flatness:.0%} flat, car-likeness {v.score:.2f}")
 
     # ------------------------------------------------------------------ the camera pass
-    def camera_round(self, now: float, *, end: float, reserve: float, half: float, first: bool = False) -> None:
+    def camera_round(self, now: float, *, end: float, reserve: float, half: float, first: bool = False,
+                     free_at: float | None = None) -> None:
         """Send the vehicle over the candidates not yet sent, most car-like first, while camera
         time remains: one survey command per candidate, a camera line of ``2 * half`` metres
         south to north over it at the camera altitude and :data:`CAMERA_SPEED`, queued behind
         the lines already sent (``append``: commands that cross the link out of order cannot undo
         each other; the vehicle holds with an empty queue, so the first starts at once). Camera
-        time is counted from topside's estimate of when the vehicle is done with its queue."""
-        self.camera_phase = True
+        time is counted from topside's estimate of when the vehicle is done with its queue, and
+        not before ``free_at`` (when the vehicle's own survey ends: the operator planned it)."""
         if not self.active:
             return
         for sid, line in self.lines.items():  # no answer after every try: the receiver gave it up
@@ -414,6 +415,7 @@ class Operator:
             if rec is not None and rec.state == "given up" and line.state != "given up":
                 self.on_survey({"survey_id": sid, "state": rec.state, "time": rec.time, "text": rec.text}, now)
         t, pos = self._queue_end(now)
+        t = max(t, free_at or t)
         sent = 0
         for cv in self.ranked():
             if cv.planned or cv.refused is not None:
@@ -514,7 +516,8 @@ class Operator:
     def _pass_time(self, cv: CandidateView, now: float) -> float | None:
         """When the camera passed ``cv``, from what reached topside, once it is past: the
         closest approach of the received track (the vehicle more than 10 m beyond); else the
-        vehicle's report of reaching the line's start (or of finishing it) half a cycle on; else,
+        vehicle's report of reaching the line's start (or of finishing it), once the next frame
+        after the pass is taken; else,
         on a lossy link where both are late, from when it set off (or from a later line's
         report) a cycle on."""
         x_now, y_now = self.position or (self.track[-1][1:3] if self.track else (cv.x, cv.y))
@@ -526,8 +529,8 @@ class Operator:
         if line is None:
             return None
         reported = line.reported_pass()
-        if reported is not None:
-            return reported if now > reported + self.cycle / 2 else None
+        if reported is not None:  # the image nearest that time exists once the next frame is taken
+            return reported if now >= reported + CAMERA_PERIOD else None
         half = line.length / 2 / line.speed
         est = None
         if line.set_off is not None:

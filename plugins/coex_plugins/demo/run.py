@@ -227,14 +227,17 @@ class DiveRun:
         while t < self.end:
             self.at(t, self.every_half_cycle)
             t += scn.cycle / 2
-        # the survey over, the vehicle's autonomy takes over (it holds until told otherwise); the
-        # operator decides the camera pass and sends it as survey commands, and again every cycle
-        # for the candidates found meanwhile, while camera time remains
+        # the survey over, the vehicle's autonomy takes over (it holds until told otherwise). The
+        # operator decides the camera pass 30 s before that at the latest, at the start of a
+        # topside slot, so that its survey commands reach the vehicle as its survey ends (it queues
+        # them until then); then at every topside slot for the candidates found meanwhile, while
+        # camera time remains
         self.at(self.survey_end, self.start_autonomy)
-        t = self.survey_end + 30.0
-        while t < self.end - self.reserve:
-            self.at(t, lambda now, first=t == self.survey_end + 30.0: self.camera_round(now, first))
-            t += scn.cycle
+        self.at(self.survey_end + 30.0, self.camera_phase)
+        rounds = self.topside_slots(self.survey_end + 30.0 - scn.cycle, self.end - self.reserve)
+        first = max((t for t in rounds if t <= self.survey_end + 30.0), default=self.survey_end + 30.0)
+        for t in [first] + [t for t in rounds if t > first]:
+            self.at(t, lambda now, first=t == first: self.camera_round(now, first))
         self.real_images = image_files(self.cfg.images)
         self._shot = iter(range(10**9))
         self.taken: list[float] = []
@@ -275,6 +278,22 @@ class DiveRun:
                                                 <= IDENTIFY_RADIUS for v in views):
                 self.visible_at[i] = now
 
+    def topside_slots(self, t0: float, t1: float) -> list[float]:
+        """Start times of topside's TDMA slots in ``[t0, t1)``."""
+        scn = self.scn
+        mine = [i * scn.slot_seconds for i, owner in enumerate(scn.slots) if owner == "topside"]
+        k = math.floor((t0 - EPOCH) / scn.cycle)
+        out = []
+        while EPOCH + k * scn.cycle < t1:
+            out += [t for t in (EPOCH + k * scn.cycle + o for o in mine) if t0 <= t < t1]
+            k += 1
+        return out
+
+    def camera_phase(self, now: float) -> None:
+        """The survey is over (and its last data had time to come up): the operator turns to the
+        camera pass (fewer map requests, the overview maps)."""
+        self.operator.camera_phase = True
+
     def start_autonomy(self, now: float) -> None:
         self.autonomy.start(now)
         if self.autonomy.mission is not None:
@@ -283,7 +302,8 @@ class DiveRun:
 
     def camera_round(self, now: float, first: bool = False) -> None:
         """The operator's camera-pass round: survey commands for the candidates not yet sent."""
-        self.operator.camera_round(now, end=self.end, reserve=self.reserve, half=self.half, first=first)
+        self.operator.camera_round(now, end=self.end, reserve=self.reserve, half=self.half, first=first,
+                                   free_at=self.survey_end)
 
     def take_picture(self, now: float) -> None:
         track, camera, cars, rocks = self.track, self.camera, self.cars, self.rocks
