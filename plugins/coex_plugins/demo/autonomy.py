@@ -15,6 +15,7 @@ stops where the vehicle is; with nothing queued the vehicle holds at
 
 from __future__ import annotations
 
+import functools
 import itertools
 import math
 from collections.abc import Callable
@@ -99,9 +100,9 @@ class Autonomy:
         self._gen += 1
         gen = self._gen
         if self._flying is not None:
-            t = self.truth.get(self._flying)
-            if t is not None and t["completed"] is None and t["stopped"] is None:
-                t["stopped"] = now
+            flying = self.truth.get(self._flying)
+            if flying is not None and flying["completed"] is None and flying["stopped"] is None:
+                flying["stopped"] = now
             self._flying = None
         pos = self._cut(now)
         plan: SurveyPlan | None = self.sender.active_plan()
@@ -135,9 +136,10 @@ class Autonomy:
         truth["set_off"] = now
         self.sender.ingest(SurveyReport(sid, SurveyState.STARTED, now, index=0), now)
         for k, tk in enumerate(reached):
-            self.at(tk, lambda _now, k=k, tk=tk: self._reach(gen, sid, k, tk, len(wps)))
+            self.at(tk, functools.partial(self._reach, gen, sid, k, tk, len(wps)))
 
-    def _reach(self, gen: int, sid: int, k: int, tk: float, n: int) -> None:
+    def _reach(self, gen: int, sid: int, k: int, tk: float, n: int, now: float) -> None:
+        """The vehicle reached waypoint ``k`` of ``n`` of survey ``sid`` at ``tk``."""
         if gen != self._gen:
             return  # that plan was replaced
         truth = self.truth[sid]

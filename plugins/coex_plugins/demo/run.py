@@ -4,6 +4,7 @@ simulated clock."""
 from __future__ import annotations
 
 import contextlib
+import functools
 import heapq
 import json
 import math
@@ -237,7 +238,7 @@ class DiveRun:
         rounds = self.topside_slots(self.survey_end + 30.0 - scn.cycle, self.end - self.reserve)
         first = max((t for t in rounds if t <= self.survey_end + 30.0), default=self.survey_end + 30.0)
         for t in [first] + [t for t in rounds if t > first]:
-            self.at(t, lambda now, first=t == first: self.camera_round(now, first))
+            self.at(t, functools.partial(self.camera_round, first=t == first))
         self.real_images = image_files(self.cfg.images)
         self._shot = iter(range(10**9))
         self.taken: list[float] = []
