@@ -197,3 +197,54 @@ def test_the_dive_spends_idle_bytes_and_sends_none_when_spare_traffic_is_off(
     sent = [r for r in sent if r.get("cause") == "sent" and r["src"] == 2]
     assert sent and all(r["spare_bytes"] == 0 and r["redundant_bytes"] == 0 for r in sent)
     assert off.metrics["link"]["fill"] < link["fill"]
+
+
+def test_the_camera_pass_flew_only_after_a_survey_command_crossed_the_link(
+        demo: tuple[Path, dict]) -> None:  # type: ignore[type-arg]
+    """No side channel: every camera line the vehicle flew was a survey command topside sent,
+    that arrived in a topside packet the simulated modem delivered, that the vehicle accepted
+    (and topside heard so) before it set off; every camera frame came after that."""
+    from coex_plugins.demo.config import EPOCH, TOPSIDE, VEHICLE
+
+    out, metrics = demo
+    surveys = metrics["surveys"]
+    assert surveys and all(s["asked"]["kind"] == "line" and s["candidate"] is not None for s in surveys)
+    records = [json.loads(line) for line in (out / "link.jsonl").read_text().splitlines()]
+    uplink = [r["arrival"] - EPOCH for r in records
+              if r.get("src") == TOPSIDE and r.get("dst") == VEHICLE and any(r.get("delivered") or [])]
+    flown = [s for s in surveys if s["truth"]["set_off_s"] is not None]
+    assert flown
+    for s in flown:
+        truth = s["truth"]
+        assert truth["vehicle_answer"] == "accepted" and s["final_state"] == "completed"
+        got = truth["received_by_vehicle_s"]
+        # the command reached the vehicle in a topside packet the modem delivered, after it was sent
+        assert s["sent_at_s"] <= got
+        assert any(abs(a - got) <= 1.0 for a in uplink), (got, uplink[:10])
+        assert got <= truth["set_off_s"] <= truth["waypoints_reached_s"][0] <= truth["completed_s"]
+        # topside heard the vehicle's answers over the link, after the fact
+        assert s["accepted_at_s"] is not None and s["accepted_at_s"] >= got
+        assert s["completed_at_s"] is not None and s["completed_at_s"] == pytest.approx(truth["completed_s"], abs=1.0)
+    first = min(s["truth"]["set_off_s"] for s in flown)
+    confirmations = [t["confirmation"] for t in metrics["targets"]]
+    assert all(c is not None and c["image_time_s"] > first for c in confirmations)
+    rows = (out / "decisions.csv").read_text()
+    assert "survey command,\"survey 0 sent: a 30 m camera line over" in rows
+    assert "survey 0 accepted by the vehicle" in rows and "survey 0 completed" in rows
+
+
+def test_a_camera_line_outside_the_geofence_is_never_flown(tmp_path: Path) -> None:
+    """With the vehicle's geofence far from the site, every camera line is refused by the
+    vehicle, the camera never runs, the reason reaches topside's decisions, and the referee
+    says why the targets were not photographed."""
+    fence = {"polygon": [[-500, -500], [-400, -500], [-400, -400], [-500, -400]], "min_altitude": 2.0}
+    result = run_demo(DemoConfig(out=tmp_path, quick=True, seed=1, progress=False, geofence=fence))
+    m = result.metrics
+    assert m["surveys"] and m["images_captured"] == 0 and m["success"] is False
+    for s in m["surveys"]:
+        assert s["final_state"] == "rejected" and s["reason"] == "OUTSIDE_GEOFENCE"
+        assert s["truth"]["vehicle_answer"] == "rejected" and s["truth"]["set_off_s"] is None
+    assert all(not c["visited"] and c["refused"] for c in m["candidates"] if c["survey_id"] is not None)
+    rows = (tmp_path / "decisions.csv").read_text()
+    assert "outside the geofence" in rows and "rejected" in rows
+    assert all("did not fly the camera line" in t["why_not"] for t in m["targets"])

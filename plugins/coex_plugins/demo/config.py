@@ -15,6 +15,13 @@ EPOCH = 1_656_633_600.0  # 2022-07-01T00:00:00Z: the dive's clock (simulated)
 TRANSIT_ALTITUDE = 10.0
 HOLD_ALTITUDE = 50.0
 LINK_STREAM = 6
+#: the survey modality's stream (the vehicle's answers to survey commands)
+SURVEY_STREAM = 7
+#: the vehicle's speeds (m/s): between the camera lines, and along them
+TRANSIT_SPEED = 1.0
+CAMERA_SPEED = 0.5
+#: the lowest altitude (m) the vehicle's geofence lets a survey ask for
+MIN_ALTITUDE = 2.0
 #: seconds between camera frames on a transect
 CAMERA_PERIOD = 6.0
 #: the vehicle's default set-point for every image (``default_goal``)
@@ -59,6 +66,10 @@ class DemoConfig:
     operators: Path | None = None
     #: with ``gui``: serve beyond loopback without sign-in
     insecure_open: bool = False
+    #: the vehicle's geofence for survey commands (:class:`~coex_plugins.survey.plan.Geofence`
+    #: keys); ``None``: the site with a margin of a quarter of its side, and
+    #: :data:`MIN_ALTITUDE`
+    geofence: dict[str, Any] | None = None
 
     def resolved(self) -> tuple[Scenario, str]:
         """The scenario with ``--quick``, ``--loss`` and ``--burst`` applied, and the operator."""

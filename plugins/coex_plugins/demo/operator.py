@@ -5,9 +5,13 @@ operators did by hand, deciding only from what reached topside.
   level around them; in the 1 m map it measures each bump (height above the local background,
   footprint, length and width from the cells' second moments) and scores how car-like it is
   (:func:`car_likeness`: a car is about 4.5 x 1.8 m and 1.5 m high; a round boulder or a tall
-  spike scores low). Candidates are visited in that order while camera time remains.
+  spike scores low). Candidates are visited in that order while camera time remains: the
+  operator sends the vehicle one survey command per candidate (a camera line over it, queued
+  behind the lines already sent), over the acoustic link like every other command; the
+  vehicle's answers (accepted, rejected with its reason, started, completed) come back.
 * **The images.** Once the vehicle has passed over a candidate (closest approach along the track
-  topside received), it asks for the image nearest that time. It looks at the image as received
+  topside received, or the time the vehicle reported reaching the line's start, plus half the
+  line), it asks for the image nearest that time. It looks at the image as received
   (:class:`~coex_plugins.demo.truth.Eye`): a car confirms the candidate; a blurry object makes it
   ask for more layers of that image; sand makes it step to the previous or next image (towards
   the candidate, by the frame's position); a boulder, or too many tries, makes it move on.
@@ -24,16 +28,18 @@ from typing import Any
 import numpy as np
 
 from coex_core.errors import RequestRejected
-from coex_core.messages import VehicleStatus
+from coex_core.messages import SurveyCommand, VehicleStatus
 from coex_core.node import Node
 from coex_core.timefmt import unwrap
 from coex_plugins.bathymetry import BathymetryReceiver, find_targets
 from coex_plugins.bathymetry.export import opening
 from coex_plugins.imagery import ImageryReceiver
+from coex_plugins.survey import SurveyReceiver
 
+from .config import CAMERA_PERIOD, CAMERA_SPEED, TRANSIT_SPEED
 from .truth import Eye, FrameTruth
 
-__all__ = ["CandidateView", "Operator", "car_likeness", "measure"]
+__all__ = ["CameraLine", "CandidateView", "Operator", "car_likeness", "measure"]
 
 #: a car as the operator pictures it: length, width, height (m), and the flatness of its top
 CAR = (4.5, 1.8, 1.5)
@@ -77,10 +83,13 @@ class CandidateView:
     score: float
     found_at: float
     flatness: float = FLAT
-    #: the camera pass over it: planned, then what the operator made of the images
+    #: the camera pass over it: a survey command sent for it (and not refused), then what the
+    #: operator made of the images
     planned: bool = False
-    #: when the planned transect passes closest to it (the operator's own plan)
-    pass_planned: float | None = None
+    #: the survey id of its camera line
+    survey_id: int | None = None
+    #: why the vehicle will not fly its camera line (refused, or replaced by someone else's)
+    refused: str | None = None
     passed_at: float | None = None
     want: tuple[float, str] | None = None  # (time, "nearest" | "before" | "after")
     want_goal: int | None = None  # image id of a pending request for more layers
@@ -103,6 +112,43 @@ class CandidateView:
     @property
     def done(self) -> bool:
         return bool(self.verdict)
+
+
+@dataclass
+class CameraLine:
+    """A camera line the operator sent (a LINE survey over a candidate), and what topside heard
+    of it: the stamps of the vehicle's reports."""
+
+    survey_id: int
+    candidate: CandidateView
+    start: tuple[float, float]
+    end: tuple[float, float]
+    speed: float
+    sent_at: float
+    state: str = "requested"
+    #: the vehicle's stamps: set off for the line (STARTED 0), reached its start (STARTED 1), done
+    set_off: float | None = None
+    at_start: float | None = None
+    completed: float | None = None
+
+    @property
+    def length(self) -> float:
+        return math.hypot(self.end[0] - self.start[0], self.end[1] - self.start[1])
+
+    @property
+    def open(self) -> bool:
+        """Still to be flown or being flown (as far as topside knows)."""
+        return self.state in ("requested", "accepted", "started")
+
+    def reported_pass(self) -> float | None:
+        """When the camera passed the candidate, from the vehicle's reports: the line's start
+        reached, plus half the line at its speed (or the line done, less that)."""
+        half = self.length / 2 / self.speed
+        if self.at_start is not None:
+            return self.at_start + half
+        if self.completed is not None:
+            return self.completed - half
+        return None
 
 
 def car_likeness(height: float, length: float, width: float, flatness: float = FLAT) -> float:
@@ -182,12 +228,13 @@ class Operator:
     captured frame by its capture time (the eye needs to know which pixels hold an object)."""
 
     def __init__(self, topside: Node, receivers: dict[str, Any], box: tuple[float, float, float, float],
-                 log: Callable[[float, str, str], None], *, frames: Callable[[float], FrameTruth | None],
+                 log: Callable[..., None], *, frames: Callable[[float], FrameTruth | None],
                  camera_altitude: float, cycle: float = 120.0, eye: Eye | None = None,
                  active: bool = True) -> None:
         self.topside = topside
         self.bathy: BathymetryReceiver = receivers["bathymetry"]
         self.imagery: ImageryReceiver = receivers["imagery"]
+        self.survey: SurveyReceiver = receivers["survey"]
         self.box = box
         self.log = log
         self.frames = frames
@@ -201,6 +248,9 @@ class Operator:
         self.candidates: list[CandidateView] = []
         self.camera_phase = False
         self.position: tuple[float, float] | None = None  # the newest reported position
+        self.positions: list[tuple[float, float, float]] = []  # t, x, y of every status received
+        #: the camera lines sent, by survey id
+        self.lines: dict[int, CameraLine] = {}
         #: per gap tile: when last asked, how often, what was held then, requests that brought nothing
         self._gap_asked: dict[tuple[float, float], tuple[float, int, float, int]] = {}
         self._overview = [3, 2, 1]
@@ -213,6 +263,7 @@ class Operator:
     def on_status(self, s: VehicleStatus, now: float) -> None:
         # the status's own time (its stamp), not when it arrived: it may have waited for a slot
         self.position = (s.x, s.y)
+        self.positions.append((unwrap(s.stamp, now), s.x, s.y))
         if s.altitude is not None and s.altitude <= self.camera_altitude + 2.0:  # on a camera transect
             self.track.append((unwrap(s.stamp, now), s.x, s.y, s.heading))
 
@@ -348,22 +399,161 @@ class Operator:
                 f"({v.cells} cells), top {v.flatness:.0%} flat, car-likeness {v.score:.2f}")
 
     # ------------------------------------------------------------------ the camera pass
-    def watch_images(self, now: float) -> None:
-        if not self.active or not self.camera_phase or not self.track:
+    def camera_round(self, now: float, *, end: float, reserve: float, half: float, first: bool = False,
+                     free_at: float | None = None) -> None:
+        """Send the vehicle over the candidates not yet sent, most car-like first, while camera
+        time remains: one survey command per candidate, a camera line of ``2 * half`` metres
+        south to north over it at the camera altitude and :data:`CAMERA_SPEED`, queued behind
+        the lines already sent (``append``: commands that cross the link out of order cannot undo
+        each other; the vehicle holds with an empty queue, so the first starts at once). Camera
+        time is counted from topside's estimate of when the vehicle is done with its queue, and
+        not before ``free_at`` (when the vehicle's own survey ends: the operator planned it)."""
+        if not self.active:
             return
-        x_now, y_now = self.position or self.track[-1][1:3]
+        for sid, line in self.lines.items():  # no answer after every try: the receiver gave it up
+            rec = self.survey.surveys.get(sid)
+            if rec is not None and rec.state == "given up" and line.state != "given up":
+                self.on_survey({"survey_id": sid, "state": rec.state, "time": rec.time, "text": rec.text}, now)
+        t, pos = self._queue_end(now)
+        t = max(t, free_at or t)
+        sent = 0
+        for cv in self.ranked():
+            if cv.planned or cv.refused is not None:
+                continue
+            dist = math.hypot(cv.x - pos[0], cv.y - half - pos[1])
+            if t + dist / TRANSIT_SPEED + 2 * half / CAMERA_SPEED > end - reserve:
+                break  # no camera time left for the next in rank order
+            try:
+                cmd = self.survey.request("line", cv.x, cv.y - half, now, heading=0.0, length=2 * half,
+                                          altitude=self.camera_altitude, speed=CAMERA_SPEED, append=True)
+            except RequestRejected as exc:
+                cv.refused = f"cannot be sent: {exc}"
+                self.log(now, "survey command", f"a camera line over ({cv.x:.0f}, {cv.y:.0f}) {cv.refused}")
+                continue
+            line = self._line(cmd, cv, now)
+            cv.planned, cv.survey_id = True, cmd.survey_id
+            t += dist / TRANSIT_SPEED + 2 * half / CAMERA_SPEED
+            pos = line.end
+            sent += 1
+            self.log(now, "survey command", f"survey {cmd.survey_id} sent: a {2 * half:.0f} m camera line over "
+                     f"({cv.x:.0f}, {cv.y:.0f}) [car-likeness {cv.score:.2f}], at {self.camera_altitude:g} m and "
+                     f"{CAMERA_SPEED:g} m/s, queued after {len(self._open_lines()) - 1} line(s) "
+                     f"[command {cmd.command_id}]")
+        if first and not sent:
+            self.log(now, "camera pass", "no car-like candidate in the 1 m map yet: the vehicle holds")
+
+    def _line(self, cmd: SurveyCommand, cv: CandidateView, now: float) -> CameraLine:
+        x, y, length = float(cmd.x), float(cmd.y), float(cmd.length or 0.0)
+        line = CameraLine(int(cmd.survey_id), cv, (x, y), (x, y + length), float(cmd.speed or CAMERA_SPEED), now)
+        self.lines[line.survey_id] = line
+        return line
+
+    def _open_lines(self) -> list[CameraLine]:
+        return [ln for _, ln in sorted(self.lines.items()) if ln.open]
+
+    def _position_at(self, t: float) -> tuple[float, float] | None:
+        if not self.positions:
+            return None
+        _, x, y = min(self.positions, key=lambda p: abs(p[0] - t))
+        return x, y
+
+    def _queue_end(self, now: float) -> tuple[float, tuple[float, float]]:
+        """When and where topside expects the vehicle to be done with the lines it sent, from the
+        vehicle's reports; a new command reaches the vehicle a quarter cycle from now at best
+        (topside's slots)."""
+        x0, y0, x1, y1 = self.box
+        pos = self.position or ((x0 + x1) / 2, (y0 + y1) / 2)
+        t = now + self.cycle / 4
+        for line in self._open_lines():
+            fly = line.length / line.speed
+            if line.at_start is not None:
+                done = line.at_start + fly
+            elif line.set_off is not None:
+                start = self._position_at(line.set_off) or pos
+                done = line.set_off + math.hypot(line.start[0] - start[0], line.start[1] - start[1]) / TRANSIT_SPEED + fly
+            else:
+                done = t + math.hypot(line.start[0] - pos[0], line.start[1] - pos[1]) / TRANSIT_SPEED + fly
+            t, pos = max(done, now + self.cycle / 4), line.end
+        return t, pos
+
+    def on_survey(self, meta: dict[str, Any], now: float) -> None:
+        """A survey's state as it reached topside (the survey receiver's product): log it, and for
+        the operator's camera lines note the vehicle's stamps, or why it will not fly one."""
+        sid = int(meta["survey_id"])
+        state, stamp, text = str(meta.get("state")), float(meta.get("time") or now), str(meta.get("text") or "")
+        index = meta.get("index")
+        line = self.lines.get(sid)
+        when = f" (at {stamp - self.epoch:.0f} s)" if abs(stamp - now) >= 1.0 else ""
+        what = {"accepted": "accepted by the vehicle", "started": "started" + (f": {text}" if text else ""),
+                "completed": "completed", "rejected": "rejected", "aborted": "aborted",
+                "given up": "given up"}.get(state, state)
+        if state in ("rejected", "aborted", "given up") and text:
+            what += f": {text}"
+        if line is not None:
+            what += f", the camera line over ({line.candidate.x:.0f}, {line.candidate.y:.0f})"
+        self.log(now, "survey state", f"survey {sid} {what}{when}", "system" if line is None else "script")
+        if line is None:
+            return
+        line.state = state
+        cv = line.candidate
+        if state == "started":
+            if index == 0 and line.set_off is None:
+                line.set_off = stamp
+            elif index == 1:
+                line.at_start = stamp
+        elif state == "completed":
+            line.completed = stamp
+        elif state in ("rejected", "aborted") and cv.passed_at is None and cv.survey_id == sid:
+            # the vehicle will not fly it: no camera time for this candidate (never asked again:
+            # the answer would be the same, and a replaced line was someone else's decision)
+            if not text.startswith("refused by the vehicle"):  # its reason follows
+                cv.planned, cv.refused = False, text or state
+            else:
+                cv.planned, cv.refused = False, cv.refused or "refused by the vehicle"
+        elif state == "given up" and cv.survey_id == sid:
+            cv.planned, cv.survey_id = False, None  # never reached the vehicle: sent again next round
+
+    def _pass_time(self, cv: CandidateView, now: float) -> float | None:
+        """When the camera passed ``cv``, from what reached topside, once it is past: the
+        closest approach of the received track (the vehicle more than 10 m beyond); else the
+        vehicle's report of reaching the line's start (or of finishing it), once the next frame
+        after the pass is taken; else,
+        on a lossy link where both are late, from when it set off (or from a later line's
+        report) a cycle on."""
+        x_now, y_now = self.position or (self.track[-1][1:3] if self.track else (cv.x, cv.y))
+        if self.track:
+            d, t_close = closest_approach(self.track, cv.x, cv.y)
+            if d < NEAR and math.hypot(x_now - cv.x, y_now - cv.y) > 10.0:
+                return t_close
+        line = self.lines.get(cv.survey_id) if cv.survey_id is not None else None
+        if line is None:
+            return None
+        reported = line.reported_pass()
+        if reported is not None:  # the image nearest that time exists once the next frame is taken
+            return reported if now >= reported + CAMERA_PERIOD else None
+        half = line.length / 2 / line.speed
+        est = None
+        if line.set_off is not None:
+            start = self._position_at(line.set_off)
+            if start is not None:
+                est = line.set_off + math.hypot(line.start[0] - start[0], line.start[1] - start[1]) / TRANSIT_SPEED + half
+        else:  # a later line set off: this one was done by then
+            later = [ln.set_off for sid, ln in self.lines.items() if sid > line.survey_id and ln.set_off is not None]
+            if later:
+                est = min(later) - half  # type: ignore[type-var]
+        return est if est is not None and now > est + self.cycle else None
+
+    def watch_images(self, now: float) -> None:
+        if not self.active or not self.camera_phase:
+            return
         for cv in self.ranked():
             if not cv.planned or cv.done:
                 continue
             if cv.passed_at is None:
-                d, t_close = closest_approach(self.track, cv.x, cv.y)
-                if d < NEAR and math.hypot(x_now - cv.x, y_now - cv.y) > 10.0:
-                    cv.passed_at = t_close
-                    self._ask(cv, t_close, "nearest", now)
-                elif cv.pass_planned is not None and now > cv.pass_planned + self.cycle:
-                    # few statuses came up on a lossy link: go by the plan the operator made
-                    cv.passed_at = cv.pass_planned
-                    self._ask(cv, cv.pass_planned, "nearest", now)
+                t_pass = self._pass_time(cv, now)
+                if t_pass is not None:
+                    cv.passed_at = t_pass
+                    self._ask(cv, t_pass, "nearest", now)
                 continue
             self._look(cv, now)
 

@@ -7,7 +7,7 @@ import csv
 import json
 import math
 from collections.abc import Callable, Iterator
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -25,7 +25,7 @@ from coex_plugins.imagery import ImageryReceiver
 from coex_plugins.timeseries import TimeSeriesReceiver
 
 from .config import EPOCH, IDENTIFY_RADIUS, TOPSIDE, VEHICLE, Decision, DemoConfig, DemoResult
-from .operator import MIN_SCORE, Operator
+from .operator import MIN_SCORE, NEAR, Operator
 from .scenario import Scenario
 from .truth import FrameTruth, judge
 
@@ -43,6 +43,21 @@ class World:
     received_track: list[tuple[float, float]]
     camera_times: list[float]
     operator: str
+    #: the legs the vehicle really flew with its camera on (``Leg``: t0, t1, p0, p1)
+    camera_legs: list[Any] = field(default_factory=list)
+    #: the vehicle's side of every survey command, by survey id (``Autonomy.summary``)
+    surveys: dict[int, dict[str, Any]] = field(default_factory=dict)
+
+    def visited(self, x: float, y: float) -> bool:
+        """Whether the camera really flew within :data:`~.operator.NEAR` metres of (x, y)."""
+        for leg in self.camera_legs:
+            (ax, ay), (bx, by) = leg.p0, leg.p1
+            dx, dy = bx - ax, by - ay
+            seg = dx * dx + dy * dy
+            f = 0.0 if seg == 0 else min(max(((x - ax) * dx + (y - ay) * dy) / seg, 0.0), 1.0)
+            if math.hypot(ax + f * dx - x, ay + f * dy - y) <= NEAR:
+                return True
+        return False
 
 
 def _judge(world: World, operator: Operator, bytes_of: Callable[[int], int | None],
@@ -93,6 +108,9 @@ def _why_not(i: int, world: World, operator: Operator, visible: float | None) ->
         return "never photographed: never identifiable in the received 1 m map"
     if world.operator == "none":
         return "never photographed: never visited with the camera (no operator retargeted the vehicle)"
+    refused = [c.refused for c in near if c.refused]
+    if refused and not any(c.planned for c in near):
+        return f"never photographed: the vehicle did not fly the camera line over it ({refused[0]})"
     if not any(c.planned for c in near):
         return ("never photographed: identifiable at 1 m but never visited with the camera (ranked too low, "
                 "or no camera time left)")
@@ -125,7 +143,8 @@ def finish(out: Path, cfg: DemoConfig, world: World, operator: Operator, receive
         return "none"
 
     candidates = [{"x": c.x, "y": c.y, "height": c.height, "cells": c.cells, "length": c.length, "width": c.width,
-                   "score": c.score, "rank": rank_of.get(id(c)), "visited": c.planned, "verdict": c.verdict or None,
+                   "score": c.score, "rank": rank_of.get(id(c)), "visited": world.visited(c.x, c.y),
+                   "survey_id": c.survey_id, "refused": c.refused, "verdict": c.verdict or None,
                    "truth": truth_near(c.x, c.y)}
                   for c in sorted(operator.candidates, key=lambda c: -c.score) if c.score >= MIN_SCORE]
     map_svgs: list[str] = []
@@ -242,9 +261,9 @@ def finish(out: Path, cfg: DemoConfig, world: World, operator: Operator, receive
         "targets": targets,
         "false_confirmations": false,
         "decoys": [{"name": f"decoy {i + 1}", "kind": "rock", "x": t.x, "y": t.y,
-                    "visited": any(c.planned and math.hypot(c.x - t.x, c.y - t.y) <= IDENTIFY_RADIUS
-                                   for c in operator.candidates)}
+                    "visited": world.visited(t.x, t.y)}
                    for i, t in enumerate(world.rocks)],
+        "surveys": _surveys(receivers["survey"], operator, world.surveys),
         "candidates": candidates,
         "images_received": len(metas),
         "images_captured": len(world.camera_times),
@@ -281,6 +300,48 @@ def finish(out: Path, cfg: DemoConfig, world: World, operator: Operator, receive
         for d in decisions:
             w.writerow([d.t, d.who, d.kind, d.text])
     return metrics
+
+
+def _surveys(receiver: Any, operator: Operator, truth: dict[int, dict[str, Any]]) -> list[dict[str, Any]]:
+    """One entry per survey command topside sent: what was asked, when it was sent, each state
+    as topside heard it (dive seconds: the arrival of the vehicle's ack, the stamps of its
+    reports), its final state, and the truth: when the command reached the vehicle, what the
+    vehicle answered and when it really flew it."""
+
+    def s(t: float | None) -> float | None:
+        return None if t is None else round(t - EPOCH, 1)
+
+    out = []
+    for sid, rec in sorted(receiver.surveys.items()):
+        if rec.command is None:
+            continue
+        c = rec.command
+        first: dict[str, float] = {}
+        started: dict[int, float] = {}
+        for t, state, text in rec.history:
+            first.setdefault(state, t)
+            if state == "started":
+                k = text.rsplit(" ", 1)[-1]
+                if k.isdigit():
+                    started.setdefault(int(k), t)
+        line = operator.lines.get(sid)
+        out.append({
+            "id": sid, "command_id": rec.command_id,
+            "asked": {"kind": type(c.kind)(c.kind).name.lower(), "x": c.x, "y": c.y, "heading": c.heading,
+                      "length": c.length, "altitude": c.altitude, "speed": c.speed, "append": c.append,
+                      "points": [[p.x, p.y] for p in c.points]},
+            "candidate": None if line is None else {"x": line.candidate.x, "y": line.candidate.y,
+                                                    "score": line.candidate.score},
+            "sent_at_s": s(first.get("requested")),
+            "accepted_at_s": s(first.get("accepted")),
+            "started_at_s": s(started.get(0, first.get("started"))),
+            "line_start_at_s": s(started.get(1)),
+            "completed_at_s": s(first.get("completed")),
+            "rejected_at_s": s(first.get("rejected")),
+            "final_state": rec.state, "reason": rec.reason, "text": rec.text,
+            "truth": truth.get(sid),
+        })
+    return out
 
 
 def _obj(t: Target) -> dict[str, Any]:

@@ -611,6 +611,41 @@ def _false_table(items: Any) -> str:
             f"<th>what the image showed</th></tr>{rows}</table>")
 
 
+def _surveys_table(items: Any) -> str:
+    """Every survey command topside sent: what it asked, each state as topside heard it, and what
+    the vehicle really did (the truth)."""
+    if not items:
+        return "<p><em>No survey command was sent: the vehicle was never retargeted.</em></p>"
+    rows = []
+    for s in items:
+        if not isinstance(s, Mapping):
+            continue
+        a = s.get("asked") or {}
+        c = s.get("candidate") or {}
+        t = s.get("truth") or {}
+        what = f"{a.get('kind', '?')} from {_pos(a.get('x'), a.get('y'))}"
+        if a.get("length") is not None:
+            what += f", {_num(a.get('length'))} m at {_num(a.get('heading'))}°"
+        if c:
+            what += f", over {_pos(c.get('x'), c.get('y'))}"
+        state = str(s.get("final_state", "?")) + (f": {s.get('text')}" if s.get("text") else "")
+        flown = ("not flown" if t.get("set_off_s") is None else
+                 f"set off {_num(t.get('set_off_s'))} s, done {_num(t.get('completed_s'))} s"
+                 + (f", stopped {_num(t.get('stopped_s'))} s" if t.get("stopped_s") is not None else ""))
+        rows.append(f"<tr><td class='r'>{_num(s.get('id'))}</td><td>{_e(what)}</td>"
+                    f"<td class='r'>{_num(s.get('sent_at_s'))}</td><td class='r'>{_num(s.get('accepted_at_s'))}</td>"
+                    f"<td class='r'>{_num(s.get('started_at_s'))}</td><td class='r'>{_num(s.get('completed_at_s'))}</td>"
+                    f"<td>{_e(state)}</td><td class='r'>{_num(t.get('received_by_vehicle_s'))}</td>"
+                    f"<td>{_e(flown)}</td></tr>")
+    return ('<h3>Survey commands</h3><p class="note">The camera pass as it crossed the acoustic link: each '
+            "survey command topside sent, when the vehicle's answers reached topside (dive seconds; "
+            "started and completed are the vehicle's stamps), and, from the simulation, when the command "
+            'reached the vehicle and when the vehicle flew it.</p><table class="surveys"><tr><th>survey</th>'
+            "<th>asked</th><th>sent (s)</th><th>accepted (s)</th><th>started (s)</th><th>completed (s)</th>"
+            "<th>final state topside</th><th>reached the vehicle (s)</th><th>flown (truth)</th></tr>"
+            + "".join(rows) + "</table>")
+
+
 def _thumb_src(path: Path) -> tuple[str | None, bool]:
     """A data URI of a thumbnail of ``path`` (about 200 px wide) and whether it is upscaled."""
     try:
@@ -802,6 +837,7 @@ orange diamonds decoys, cyan circles the candidates the operator flagged in the 
 <h2 id="time">The dive over time</h2>
 {link_html}
 {charts_html}
+{_surveys_table(metrics.get("surveys"))}
 <h2 id="decisions">Decisions</h2>
 {_decisions_table(decisions)}
 <h2 id="raw">Raw metrics</h2>

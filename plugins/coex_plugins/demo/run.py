@@ -4,6 +4,7 @@ simulated clock."""
 from __future__ import annotations
 
 import contextlib
+import functools
 import heapq
 import json
 import math
@@ -17,7 +18,7 @@ import numpy as np
 
 from coex import Runner, SimulatedClock
 from coex_core.acoustic import AcousticChannel
-from coex_core.channel.events import Received
+from coex_core.channel.events import ProductUpdated, Received
 from coex_core.loopback import SimClock
 from coex_core.messages import VehicleStatus
 from coex_core.node import Node
@@ -27,21 +28,22 @@ from coex_plugins.timeseries import synth as ts_synth
 from coex_transports.micromodem.simulator import ModemNetwork
 from coex_transports.runner import next_wakeup
 
+from .autonomy import Autonomy
 from .camera import CameraModel, SandTexture, render_labelled
 from .config import (
     CAMERA_PERIOD,
+    CAMERA_SPEED,
     EPOCH,
-    HOLD_ALTITUDE,
     IDENTIFY_RADIUS,
     LINK_STREAM,
+    SURVEY_STREAM,
     TOPSIDE,
-    TRANSIT_ALTITUDE,
     VEHICLE,
     Decision,
     DemoConfig,
     DemoResult,
 )
-from .operator import MIN_SCORE, CandidateView, Operator
+from .operator import MIN_SCORE, Operator
 from .outcome import World, finish
 from .timing import ResponseTimer
 from .truth import FrameTruth, frame_truth
@@ -89,7 +91,8 @@ def _start_gui(cfg: DemoConfig, topside: Node, log: Callable[..., None]) -> Any:
     # the same rule as coex topside: beyond loopback only with sign-in (or --insecure-open)
     access, _ = console_access(host, cfg.operators, cfg.insecure_open, None, None)
     server = serve(topside, host, int(port), access=access,
-                   stream_names={3: "map", 4: "images", 5: "series", LINK_STREAM: "link"})
+                   stream_names={3: "map", 4: "images", 5: "series", LINK_STREAM: "link",
+                                 SURVEY_STREAM: "survey"})
     hub = server.hub
     act = hub.act
 
@@ -114,8 +117,9 @@ def _start_gui(cfg: DemoConfig, topside: Node, log: Callable[..., None]) -> Any:
 class DiveRun:
     """One dive: the world (seafloor, objects, survey, track), the link (two simulated
     Micromodems on one acoustic channel, each node's real driver talking NMEA to its modem), the
-    two nodes, the operator, and the timed events (sensor data, status, the operator's rounds,
-    the camera pass, the camera) on one simulated clock. :meth:`run` runs it and writes the
+    two nodes, the operator, the vehicle's autonomy (it flies the survey commands that crossed
+    the link), and the timed events (sensor data, status, the operator's rounds, the camera) on
+    one simulated clock. :meth:`run` runs it and writes the
     outputs (:mod:`coex_plugins.demo.outcome`)."""
 
     def __init__(self, config: DemoConfig, on_decision: Callable[[Decision], None] | None = None) -> None:
@@ -129,6 +133,15 @@ class DiveRun:
         self.decisions: list[Decision] = []
         self._build_world()
         self._build_link()
+        # the camera pass: the operator's survey commands cross the link, the vehicle's autonomy
+        # flies them (with --operator none, its own transect through the centre of the site)
+        self.half = 30.0 if not cfg.quick else 15.0
+        self.reserve = 2 * scn.cycle  # the last frames need time to come up before the dive ends
+        mid = scn.area / 2
+        self.autonomy = Autonomy(self.senders["survey"], self.track, self.at, self.end,
+                                 camera_altitude=scn.camera_altitude, camera_speed=CAMERA_SPEED,
+                                 mission=None if operator_mode == "script" else
+                                 ((mid, mid - self.half), (mid, mid + self.half)))
         # what the camera saw, for the operator's eye and the referee (frames showing an object)
         self.frames: dict[float, FrameTruth] = {}
         floor = self.floor
@@ -187,7 +200,7 @@ class DiveRun:
                                        t0=EPOCH)
         self.vehicle, self.topside, self.senders, self.receivers = build_nodes(
             out, [s.channel() for s in self.series], cfg.command_key, scn,
-            auto_fill=self.operator_mode != "script")
+            auto_fill=self.operator_mode != "script", geofence=cfg.geofence)
         self.link_log = (out / "link.jsonl").open("w")
         self.runners = {
             VEHICLE: Runner(self.vehicle, {0: net.transport(VEHICLE, rate=scn.modem_rate, dest=TOPSIDE)},
@@ -215,17 +228,22 @@ class DiveRun:
         while t < self.end:
             self.at(t, self.every_half_cycle)
             t += scn.cycle / 2
-        # the camera pass, planned when the survey ends: transects over the candidates in rank
-        # order while camera time remains; when they are done, the next candidates found meanwhile
-        self.half = 30.0 if not self.cfg.quick else 15.0
-        self.reserve = 2 * scn.cycle  # the last frames need time to come up before the dive ends
-        self.holds: list[Leg] = []
-        self.at(self.survey_end + 30.0, lambda now: self.plan_camera(now, first=True))
+        # the survey over, the vehicle's autonomy takes over (it holds until told otherwise). The
+        # operator decides the camera pass 30 s before that at the latest, at the start of a
+        # topside slot, so that its survey commands reach the vehicle as its survey ends (it queues
+        # them until then); then at every topside slot for the candidates found meanwhile, while
+        # camera time remains
+        self.at(self.survey_end, self.start_autonomy)
+        self.at(self.survey_end + 30.0, self.camera_phase)
+        rounds = self.topside_slots(self.survey_end + 30.0 - scn.cycle, self.end - self.reserve)
+        first = max((t for t in rounds if t <= self.survey_end + 30.0), default=self.survey_end + 30.0)
+        for t in [first] + [t for t in rounds if t > first]:
+            self.at(t, functools.partial(self.camera_round, first=t == first))
         self.real_images = image_files(self.cfg.images)
         self._shot = iter(range(10**9))
         self.taken: list[float] = []
         self.hfov = math.tan(math.radians(self.camera.hfov_deg) / 2)
-        t = self.survey_end + 30.0 + CAMERA_PERIOD
+        t = self.survey_end + CAMERA_PERIOD
         while t < self.end:
             self.at(t, self.take_picture)
             t += CAMERA_PERIOD
@@ -261,51 +279,32 @@ class DiveRun:
                                                 <= IDENTIFY_RADIUS for v in views):
                 self.visible_at[i] = now
 
-    def transect(self, t: float, pos: tuple[float, float], x: float, y: float
-                 ) -> tuple[float, tuple[float, float]]:
-        half, track = self.half, self.track
-        start = (x, y - half)
-        dist = math.hypot(start[0] - pos[0], start[1] - pos[1])
-        track.legs.append(Leg(t, t + dist / 1.0, pos, start, TRANSIT_ALTITUDE))
-        t += dist / 1.0
-        track.legs.append(Leg(t, t + 2 * half / 0.5, start, (x, y + half), self.scn.camera_altitude,
-                              camera=True))
-        return t + 2 * half / 0.5, (x, y + half)
+    def topside_slots(self, t0: float, t1: float) -> list[float]:
+        """Start times of topside's TDMA slots in ``[t0, t1)``."""
+        scn = self.scn
+        mine = [i * scn.slot_seconds for i, owner in enumerate(scn.slots) if owner == "topside"]
+        k = math.floor((t0 - EPOCH) / scn.cycle)
+        out = []
+        while EPOCH + k * scn.cycle < t1:
+            out += [t for t in (EPOCH + k * scn.cycle + o for o in mine) if t0 <= t < t1]
+            k += 1
+        return out
 
-    def plan_camera(self, now: float, first: bool = False) -> None:
-        operator, scn, half, end = self.operator, self.scn, self.half, self.end
-        operator.camera_phase = True
-        pos = self.track.position(now)[:2]
-        t = now
-        planned: list[CandidateView] = []
-        if operator.active:
-            for _rank, cv in enumerate(operator.ranked(), 1):
-                if cv.planned:
-                    continue
-                dist = math.hypot(cv.x - pos[0], cv.y - half - pos[1])
-                if t + dist + 4 * half > end - self.reserve:
-                    break  # no camera time left for the next in rank order
-                t, pos = self.transect(t, pos, cv.x, cv.y)
-                cv.planned = True
-                cv.pass_planned = t - 2 * half / 0.5 + half / 0.5  # the middle of its transect
-                planned.append(cv)
-            if planned:
-                self.log(now, "camera pass", "vehicle retargeted over " + ", ".join(
-                    f"({c.x:.0f}, {c.y:.0f}) [car-likeness {c.score:.2f}]" for c in planned))
-            elif first:
-                self.log(now, "camera pass", "no car-like candidate in the 1 m map yet: the vehicle holds")
-        elif first:
-            t, pos = self.transect(t, pos, scn.area / 2, scn.area / 2)
-            self.log(now, "camera pass", "no operator script: one camera transect through the centre "
-                     "of the site", "system")
-        if planned or first:
-            if self.holds:
-                self.holds[-1].t1 = now
-            hold = Leg(t, end, pos, pos, HOLD_ALTITUDE)
-            self.holds.append(hold)
-            self.track.legs.append(hold)
-        if operator.active and t < end - self.reserve:
-            self.at(max(t, now + scn.cycle), self.plan_camera)
+    def camera_phase(self, now: float) -> None:
+        """The survey is over (and its last data had time to come up): the operator turns to the
+        camera pass (fewer map requests, the overview maps)."""
+        self.operator.camera_phase = True
+
+    def start_autonomy(self, now: float) -> None:
+        self.autonomy.start(now)
+        if self.autonomy.mission is not None:
+            self.log(now, "camera pass", "no operator script: the vehicle makes its own camera transect "
+                     "through the centre of the site", "system")
+
+    def camera_round(self, now: float, first: bool = False) -> None:
+        """The operator's camera-pass round: survey commands for the candidates not yet sent."""
+        self.operator.camera_round(now, end=self.end, reserve=self.reserve, half=self.half, first=first,
+                                   free_at=self.survey_end)
 
     def take_picture(self, now: float) -> None:
         track, camera, cars, rocks = self.track, self.camera, self.cars, self.rocks
@@ -384,11 +383,14 @@ class DiveRun:
             fn(clock.now)
         for r in self.runners.values():
             r.step()
+        self.autonomy.check(clock.now)  # a survey command arrived: the vehicle flies it
         self.net.step()
         for ev in self.topside.events():
             if isinstance(ev, Received) and isinstance(ev.message, VehicleStatus):
                 self.operator.on_status(ev.message, clock.now)
                 self.received_track.append((ev.message.x, ev.message.y))
+            elif isinstance(ev, ProductUpdated) and ev.modality == "survey":
+                self.operator.on_survey(dict(ev.product.meta), clock.now)
         self.vehicle.events()
         for rec in self.channel.log():  # what arrived, per packet and receiver: delivered or lost frames
             self.link_log.write(json.dumps(rec, sort_keys=True, separators=(",", ":")) + "\n")
@@ -397,7 +399,8 @@ class DiveRun:
         cfg, scn, out = self.cfg, self.scn, self.out
         wall = time.perf_counter() - self.wall0
         world = World(scn, self.floor, self.cars, self.rocks, self.survey_end, self.frames,
-                      self.received_track, self.taken, self.operator_mode)
+                      self.received_track, self.taken, self.operator_mode, self.autonomy.camera_legs(),
+                      self.autonomy.summary())
         metrics = finish(out, cfg, world, self.operator, self.receivers, self.coverage, self.visible_at,
                          self.decisions, wall, self.runners, self.timer.summary())
         metrics["modems"] = {"nmea_over": {str(k): v for k, v in ptys.items()}, "rate": scn.modem_rate,

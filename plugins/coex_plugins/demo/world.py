@@ -20,9 +20,18 @@ from coex_plugins.bathymetry import (
 )
 from coex_plugins.bathymetry.sim import Seafloor
 from coex_plugins.imagery import ImageryModality
+from coex_plugins.survey import SurveyModality
 from coex_plugins.timeseries import TimeSeriesModality
 
-from .config import DEFAULT_LAYERS, EPOCH, LINK_STREAM, TOPSIDE, VEHICLE
+from .config import (
+    DEFAULT_LAYERS,
+    EPOCH,
+    LINK_STREAM,
+    MIN_ALTITUDE,
+    SURVEY_STREAM,
+    TOPSIDE,
+    VEHICLE,
+)
 from .operator import CONFIRM_LAYERS
 from .scenario import Scenario
 
@@ -108,12 +117,22 @@ def nui_schedule() -> Schedule:
     return dive_schedule(Scenario())
 
 
+def site_geofence(scn: Scenario) -> dict[str, Any]:
+    """The vehicle's geofence for survey commands: the site (``[0, area]`` square) with a margin
+    of a quarter of its side (room for a camera line's run-in past the edge), and
+    :data:`~coex_plugins.demo.config.MIN_ALTITUDE`."""
+    m, a = scn.area / 4, scn.area
+    return {"polygon": [[-m, -m], [a + m, -m], [a + m, a + m], [-m, a + m]], "min_altitude": MIN_ALTITUDE}
+
+
 def build_nodes(out: Path, channels: list[dict[str, Any]], command_key: bytes | None = None,
                 scenario: Scenario | None = None, *, auto_fill: bool = True,
+                geofence: dict[str, Any] | None = None,
                 ) -> tuple[Node, Node, dict[str, Any], dict[str, Any]]:
     """The two nodes of the dive. ``auto_fill=False`` when the scripted operator asks for the
     holes of the map itself (the receiver's own gap rounds over the whole map would compete with
-    it, and with image requests, for the uplink)."""
+    it, and with image requests, for the uplink). ``geofence``: the vehicle's limits for survey
+    commands (default :func:`site_geofence`)."""
     scn = scenario or Scenario()
     sched = dive_schedule(scn)
     cycle = scn.cycle
@@ -127,11 +146,14 @@ def build_nodes(out: Path, channels: list[dict[str, Any]], command_key: bytes | 
         "imagery": ImageryModality().sender({"default_goal": f"layer:{DEFAULT_LAYERS}",
                                              "request_goal": f"layer:{CONFIRM_LAYERS}"}),
         "timeseries": TimeSeriesModality().sender({"channels": channels}),
+        # survey commands: checked against the vehicle's geofence, then flown by its autonomy
+        "survey": SurveyModality().sender({"geofence": site_geofence(scn) if geofence is None else geofence}),
     }
     receivers = {
         "bathymetry": BathymetryModality().receiver({"auto_fill": auto_fill}),
         "imagery": ImageryModality().receiver({"out_dir": str(out / "images")}),
         "timeseries": TimeSeriesModality().receiver(None),
+        "survey": SurveyModality().receiver(None),
     }
     # NUI 2022 priorities: map subgrids 30, image fragments 30, time series a little less
     vehicle.add_sender(BathymetryModality, senders["bathymetry"], StreamConfig(3, "map", priority=30))
@@ -139,9 +161,12 @@ def build_nodes(out: Path, channels: list[dict[str, Any]], command_key: bytes | 
     vehicle.add_sender(TimeSeriesModality, senders["timeseries"], StreamConfig(5, "series", priority=20))
     # the vehicle modem's statistics (SNR, bad frames, Doppler) for the console: newest only
     vehicle.manager.add_stream(StreamConfig(LINK_STREAM, "link", priority=40, newest_first=True, max_depth=1))
+    # a survey's answers (accepted, rejected with its reason, started, completed): few bytes, first
+    vehicle.add_sender(SurveyModality, senders["survey"], StreamConfig(SURVEY_STREAM, "survey", priority=90))
     topside.add_receiver(BathymetryModality, receivers["bathymetry"])
     topside.add_receiver(ImageryModality, receivers["imagery"])
     topside.add_receiver(TimeSeriesModality, receivers["timeseries"])
+    topside.add_receiver(SurveyModality, receivers["survey"])
     return vehicle, topside, senders, receivers
 
 
