@@ -20,7 +20,7 @@ from typing import Any
 
 from coex_core.errors import CoexError, ConfigError
 
-__all__ = ["DEFAULT_MODALITIES", "DeployConfig", "ModalityConfig", "check", "load"]
+__all__ = ["DEFAULT_MODALITIES", "DeployConfig", "ModalityConfig", "check", "check_mapping", "from_mapping", "load"]
 
 ROLES = ("vehicle", "topside")
 #: streams and priorities of the built-in modalities when the file names none (NUI 2022:
@@ -166,7 +166,6 @@ def expand(text: str) -> str:
 
 
 def _parse(path: Path, role: str | None) -> tuple[DeployConfig | None, list[str]]:
-    p = _Problems()
     try:
         raw = tomllib.loads(expand(path.read_text()))
     except ConfigError as exc:
@@ -175,6 +174,24 @@ def _parse(path: Path, role: str | None) -> tuple[DeployConfig | None, list[str]
         return None, [f"cannot read the file: {exc.strerror or exc}"]
     except tomllib.TOMLDecodeError as exc:
         return None, [f"not valid TOML: {exc}"]
+    return check_mapping(raw, path, role)
+
+
+def from_mapping(raw: Mapping[str, Any], path: str | Path, role: str | None = None) -> DeployConfig:
+    """A configuration given as the mapping a TOML file would hold (another front end, such as a
+    MOOS mission file's ``ProcessConfig`` block, builds it); ``path`` is where relative file
+    names are taken from (its directory). :class:`ConfigError` lists every problem."""
+    cfg, problems = check_mapping(raw, Path(path), role)
+    if problems:
+        raise ConfigError(f"{path}: " + "; ".join(problems) if len(problems) == 1 else
+                          f"{path}: {len(problems)} problems:\n  " + "\n  ".join(problems))
+    assert cfg is not None
+    return cfg
+
+
+def check_mapping(raw: Mapping[str, Any], path: Path, role: str | None) -> tuple[DeployConfig | None, list[str]]:
+    """``(config, problems)`` of a configuration mapping (see :func:`from_mapping`)."""
+    p = _Problems()
     p.unknown(raw, TOP_KEYS, "")
     node = p.table(raw.get("node"), "node")
     p.unknown(node, {"role", "id", "peer", "origin", "command_key_file", "store", "snapshot_interval",
