@@ -16,33 +16,15 @@ import abc
 from collections.abc import Mapping
 from typing import Any, ClassVar
 
-from coex_core.errors import ConfigError
-
-from ..inputs.base import InputContext
+from ..inputs.base import Adapter, adapter_problems
 
 __all__ = ["Autonomy", "check_autonomy_options"]
 
 
-class Autonomy(abc.ABC):
-    name: ClassVar[str] = ""
-    #: name -> (default, description); ``...`` = required
-    options: ClassVar[Mapping[str, tuple[Any, str]]] = {}
+class Autonomy(Adapter, abc.ABC):
+    """An autonomy output (see the module docstring)."""
 
-    def __init__(self, options: Mapping[str, Any], context: InputContext) -> None:
-        problems = check_autonomy_options(type(self), options)
-        if problems:
-            raise ConfigError("; ".join(problems))
-        self.config: dict[str, Any] = {k: v[0] for k, v in self.options.items() if v[0] is not ...}
-        self.config.update(options)
-        self.context = context
-
-    @classmethod
-    def check(cls, options: Mapping[str, Any]) -> list[str]:
-        """Problems beyond unknown and missing keys, one sentence each naming the key."""
-        return []
-
-    def open(self) -> None:  # noqa: B027
-        """Connect."""
+    kind: ClassVar[str] = "autonomy"
 
     @abc.abstractmethod
     def submit(self, plan: Any, now: float) -> None:
@@ -52,15 +34,7 @@ class Autonomy(abc.ABC):
     def poll(self, now: float) -> list[Any]:
         """SurveyReports since the last call (never blocks)."""
 
-    def close(self) -> None:  # noqa: B027
-        """Disconnect."""
-
 
 def check_autonomy_options(cls: type[Autonomy], options: Mapping[str, Any]) -> list[str]:
-    problems = [f"unknown option {k!r} for autonomy {cls.name!r} (known: {', '.join(sorted(cls.options))})"
-                for k in options if k not in cls.options and k != "type"]
-    problems += [f"autonomy {cls.name!r} needs option {k!r} ({desc})"
-                 for k, (default, desc) in cls.options.items() if default is ... and k not in options]
-    if not problems:
-        problems += cls.check(options)
-    return problems
+    """Unknown and missing keys, then the output's own :meth:`Autonomy.check`."""
+    return adapter_problems(cls, options)

@@ -11,13 +11,14 @@ import logging
 import math
 import os
 import time
+from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from .base import InputContext
+from .base import Input, InputContext
 
 __all__ = ["DirectoryWatch", "Sidecar", "as_pixels", "decode_image", "read_image", "read_sidecar", "split_patterns"]
 
@@ -272,3 +273,21 @@ def _num(doc: dict[str, Any], key: str) -> float | None:
     if isinstance(v, bool) or not isinstance(v, int | float) or not math.isfinite(v):
         return None
     return float(v)
+
+
+class WatchedInput(Input):
+    """An input that watches a directory (or one file) for new files: ``path`` (relative to the
+    configuration's directory), ``pattern``, ``settle``, ``existing``, ``interval``. Subclasses
+    turn each settled file into items in :meth:`poll`."""
+
+    def __init__(self, options: Mapping[str, Any], context: InputContext) -> None:
+        super().__init__(options, context)
+        path = Path(self.config["path"]).expanduser()
+        if not path.is_absolute():
+            path = Path(context.base_dir) / path
+        self.watch = DirectoryWatch(path, split_patterns(self.config["pattern"]),
+                                    self.config["settle"], self.config["existing"],
+                                    self.config["interval"])
+
+    def open(self) -> None:
+        self.watch.open()

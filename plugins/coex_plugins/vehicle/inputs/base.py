@@ -20,7 +20,7 @@ import numpy as np
 
 from coex_core.errors import ConfigError
 
-__all__ = ["FEEDS", "Image", "Input", "InputContext", "Nav", "Points", "Samples", "check_options"]
+__all__ = ["FEEDS", "Adapter", "Image", "Input", "InputContext", "Nav", "Points", "Samples", "check_options"]
 
 #: what an input may feed: the bathymetry map, the image sender, time-series channels, the
 #: vehicle status
@@ -104,18 +104,20 @@ class InputContext:
         return lat, lon
 
 
-class Input(abc.ABC):
-    """An input adapter (see the module docstring)."""
+class Adapter:
+    """What inputs and autonomy outputs share: a name, declared options checked by name, the
+    merged ``config`` and the daemon's :class:`InputContext`."""
 
     #: the entry-point name
     name: ClassVar[str] = ""
-    #: what it can feed (a subset of :data:`FEEDS`)
-    feeds: ClassVar[tuple[str, ...]] = ()
     #: its options: name -> (default, one-line description); ``...`` as default = required
     options: ClassVar[Mapping[str, tuple[Any, str]]] = {}
+    #: what the configuration says of it ("input", "autonomy"), and table keys that are not options
+    kind: ClassVar[str] = "adapter"
+    table_keys: ClassVar[tuple[str, ...]] = ("type",)
 
     def __init__(self, options: Mapping[str, Any], context: InputContext) -> None:
-        problems = check_options(type(self), options)
+        problems = adapter_problems(type(self), options)
         if problems:
             raise ConfigError("; ".join(problems))
         self.config: dict[str, Any] = {k: v[0] for k, v in self.options.items() if v[0] is not ...}
@@ -128,15 +130,35 @@ class Input(abc.ABC):
         one sentence each, naming the key. Optional."""
         return []
 
-    def open(self) -> None:  # noqa: B027  (optional)
-        """Start reading (open files, sockets, subscriptions)."""
+    def open(self) -> None:
+        """Start (open files, sockets, subscriptions; connect)."""
+
+    def close(self) -> None:
+        """Stop and release everything."""
+
+
+def adapter_problems(cls: type[Adapter], options: Mapping[str, Any]) -> list[str]:
+    """Unknown and missing keys, then the adapter's own :meth:`Adapter.check`."""
+    problems = [f"unknown option {k!r} for {cls.kind} {cls.name!r} (known: {', '.join(sorted(cls.options))})"
+                for k in options if k not in cls.options and k not in cls.table_keys]
+    problems += [f"{cls.kind} {cls.name!r} needs option {k!r} ({desc})"
+                 for k, (default, desc) in cls.options.items() if default is ... and k not in options]
+    if not problems:
+        problems += cls.check(options)
+    return problems
+
+
+class Input(Adapter, abc.ABC):
+    """An input adapter (see the module docstring)."""
+
+    #: what it can feed (a subset of :data:`FEEDS`)
+    feeds: ClassVar[tuple[str, ...]] = ()
+    kind: ClassVar[str] = "input"
+    table_keys: ClassVar[tuple[str, ...]] = ("type", "feeds")
 
     @abc.abstractmethod
     def poll(self, now: float) -> list[Item]:
         """What arrived since the last call (never blocks)."""
-
-    def close(self) -> None:  # noqa: B027  (optional)
-        """Stop reading and release everything."""
 
     def next_event(self, now: float) -> float | None:
         """When this input next has something (a replayed bag's next message), or None: the
@@ -146,10 +168,4 @@ class Input(abc.ABC):
 
 def check_options(cls: type[Input], options: Mapping[str, Any]) -> list[str]:
     """Unknown and missing keys, then the adapter's own :meth:`Input.check`."""
-    problems = [f"unknown option {k!r} for input {cls.name!r} (known: {', '.join(sorted(cls.options))})"
-                for k in options if k not in cls.options and k not in ("type", "feeds")]
-    problems += [f"input {cls.name!r} needs option {k!r} ({desc})"
-                 for k, (default, desc) in cls.options.items() if default is ... and k not in options]
-    if not problems:
-        problems += cls.check(options)
-    return problems
+    return adapter_problems(cls, options)

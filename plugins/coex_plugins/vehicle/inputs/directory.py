@@ -14,12 +14,11 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Mapping
-from pathlib import Path
 from typing import Any, ClassVar
 
 from ._common import LogOnce, want_bool, want_number, want_str
-from ._files import DirectoryWatch, read_image, read_sidecar, split_patterns
-from .base import Image, Input, InputContext, Item
+from ._files import WatchedInput, read_image, read_sidecar, split_patterns
+from .base import Image, InputContext, Item
 
 __all__ = ["DirectoryInput"]
 
@@ -28,7 +27,7 @@ log = logging.getLogger(__name__)
 IMAGE_PATTERNS = "*.tif,*.tiff,*.png,*.jpg,*.jpeg,*.pgm"
 
 
-class DirectoryInput(Input):
+class DirectoryInput(WatchedInput):
     """Images written into a directory (see the module docstring)."""
 
     name = "directory"
@@ -57,16 +56,7 @@ class DirectoryInput(Input):
 
     def __init__(self, options: Mapping[str, Any], context: InputContext) -> None:
         super().__init__(options, context)
-        path = Path(self.config["path"]).expanduser()
-        if not path.is_absolute():
-            path = Path(context.base_dir) / path
-        self.watch = DirectoryWatch(path, split_patterns(self.config["pattern"]),
-                                    self.config["settle"], self.config["existing"],
-                                    self.config["interval"])
         self._problem = LogOnce(log)
-
-    def open(self) -> None:
-        self.watch.open()
 
     def poll(self, now: float) -> list[Item]:
         items: list[Item] = []

@@ -12,14 +12,13 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Mapping
-from pathlib import Path
 from typing import Any, ClassVar
 
 import numpy as np
 
 from ._common import LogOnce, want_bool, want_number, want_str
-from ._files import DirectoryWatch, read_sidecar, split_patterns
-from .base import Input, InputContext, Item, Points
+from ._files import WatchedInput, read_sidecar
+from .base import InputContext, Item, Points
 
 __all__ = ["PointsInput", "finite_rows"]
 
@@ -32,7 +31,7 @@ def finite_rows(xyz: np.ndarray) -> np.ndarray:
     return a[np.isfinite(a).all(axis=1)]
 
 
-class PointsInput(Input):
+class PointsInput(WatchedInput):
     """Point files (see the module docstring)."""
 
     name = "points"
@@ -57,16 +56,7 @@ class PointsInput(Input):
 
     def __init__(self, options: Mapping[str, Any], context: InputContext) -> None:
         super().__init__(options, context)
-        path = Path(self.config["path"]).expanduser()
-        if not path.is_absolute():
-            path = Path(context.base_dir) / path
-        self.watch = DirectoryWatch(path, split_patterns(self.config["pattern"]),
-                                    self.config["settle"], self.config["existing"],
-                                    self.config["interval"])
         self._problem = LogOnce(log)
-
-    def open(self) -> None:
-        self.watch.open()
 
     def poll(self, now: float) -> list[Item]:
         items: list[Item] = []
