@@ -186,7 +186,10 @@ class MoosInput(Input):
             items.append(Samples(channel, np.asarray(ts, float)[order], np.asarray(vs, float)[order]))
             self.counts["samples"] += len(ts)
         if nav:
-            items.insert(0, Nav(nav_time if nav_time is not None else now, **nav))
+            g = nav.get
+            items.insert(0, Nav(nav_time if nav_time is not None else now, x=g("x"), y=g("y"), lat=g("lat"),
+                                lon=g("lon"), depth=g("depth"), altitude=g("altitude"), heading=g("heading"),
+                                speed=g("speed")))
             self.counts["nav"] += 1
         return items
 
