@@ -21,7 +21,7 @@ from pathlib import Path
 
 import pytest
 
-__all__ = ["MoosDB", "find_moosdb", "free_port", "moosdb", "moosdb_path", "unique"]
+__all__ = ["MoosDB", "find_moosdb", "free_port", "moos_entry_points", "moosdb", "moosdb_path", "unique"]
 
 
 def _build_dirs() -> list[Path]:
@@ -54,6 +54,31 @@ def find_moosdb() -> tuple[str | None, str]:
     how = ("run `make moos`" if shared.exists() else
            f"no {shared} to build it from; install MOOSDB (github.com/themoos/core-moos) on PATH")
     return None, f"MOOSDB not found (not on PATH, not at {built}): {how}"
+
+
+def moos_entry_points() -> str | None:
+    """Make the ``moos`` input and autonomy output findable as entry points when the installed
+    metadata predates them (an environment installed from an older checkout, a git worktree):
+    a small ``.dist-info`` holding them, taken from ``pyproject.toml``, is put on ``sys.path``.
+    Returns its directory (for a child process's ``PYTHONPATH``), or None when not needed."""
+    import sys
+    import tomllib
+    from importlib import metadata
+
+    groups = {"coex.inputs", "coex.autonomy"}
+    if all("moos" in {ep.name for ep in metadata.entry_points(group=g)} for g in groups):
+        return None
+    project = tomllib.loads((Path(__file__).resolve().parents[1] / "pyproject.toml").read_text())
+    eps = project["project"]["entry-points"]
+    root = Path(tempfile.gettempdir()) / f"coex-moos-eps-{os.getuid()}"
+    info = root / "coex_moos_shim-0.0.dist-info"
+    info.mkdir(parents=True, exist_ok=True)
+    (info / "METADATA").write_text("Metadata-Version: 2.1\nName: coex-moos-shim\nVersion: 0.0\n")
+    (info / "entry_points.txt").write_text("".join(
+        f"[{g}]\nmoos = {eps[g]['moos']}\n\n" for g in sorted(groups)))
+    if str(root) not in sys.path:
+        sys.path.append(str(root))
+    return str(root)
 
 
 def _die_with_parent() -> None:

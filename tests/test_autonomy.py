@@ -39,7 +39,7 @@ def _plan(sid: int = 7, pts: tuple[tuple[float, float], ...] = ((10.0, 0.0), (10
 # ------------------------------------------------------------------ registration
 def test_every_output_is_registered_under_its_name() -> None:
     eps = _entry_points()
-    assert set(eps) == {"log", "sim", "mavlink", "lcm"} and DEFAULT == "log"
+    assert set(eps) == {"log", "sim", "mavlink", "lcm", "moos"} and DEFAULT == "log"
     assert eps["mavlink"].endswith("[mavlink]") and eps["lcm"].endswith("[lcm]")
     for name, value in eps.items():
         cls = metadata.EntryPoint(name, value, GROUP).load()
@@ -57,8 +57,8 @@ def test_open_autonomy_builds_the_named_output(monkeypatch: pytest.MonkeyPatch, 
         open_autonomy({"type": "sim", "sped": 2.0}, CTX)
     with pytest.raises(ConfigError, match="needs option 'connection'"):
         open_autonomy({"type": "mavlink"}, CTX)
-    with pytest.raises(Exception, match=r"no coex\.autonomy plugin named 'moos'"):
-        open_autonomy({"type": "moos"}, CTX)
+    with pytest.raises(Exception, match=r"no coex\.autonomy plugin named 'dune'"):
+        open_autonomy({"type": "dune"}, CTX)
 
 
 # ------------------------------------------------------------------ log

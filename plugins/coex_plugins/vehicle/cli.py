@@ -18,9 +18,19 @@ def register(subparsers: Any) -> None:
         "vehicle", help="run the vehicle node from a configuration file",
         description="Run the vehicle node: its modems, modalities, inputs from the vehicle's "
                     "middleware and the autonomy output for survey commands, all from one TOML "
-                    "file (docs/deploy.md). SIGTERM or Ctrl-C stops it cleanly; the next start "
-                    "resumes from its store.")
-    p.add_argument("--config", required=True, metavar="FILE", help="the vehicle's configuration (TOML)")
+                    "file (docs/deploy.md), or as the MOOS application pCoex from a mission file's "
+                    "ProcessConfig block (docs/moos.md). SIGTERM or Ctrl-C stops it cleanly; the "
+                    "next start resumes from its store.")
+    src = p.add_mutually_exclusive_group(required=True)
+    src.add_argument("--config", metavar="FILE", help="the vehicle's configuration (TOML)")
+    src.add_argument("--moos", metavar="MISSION", help="a MOOS mission file (.moos) with a ProcessConfig block "
+                                                       "for this process")
+    p.add_argument("--process-name", default="pCoex", metavar="NAME",
+                   help="with --moos: the ProcessConfig block to read (default pCoex)")
+    p.add_argument("--moos-host", "--moos_host", metavar="HOST",
+                   help="with --moos: the MOOSDB host instead of the mission's ServerHost")
+    p.add_argument("--moos-port", "--moos_port", type=int, metavar="PORT",
+                   help="with --moos: the MOOSDB port instead of the mission's ServerPort")
     p.set_defaults(func=run_vehicle)
 
 
@@ -30,13 +40,22 @@ def register_config(subparsers: Any) -> None:
     c = sub.add_parser("check", help="report every problem of a configuration file, each with its key")
     c.add_argument("file", metavar="FILE")
     c.add_argument("--role", choices=["vehicle", "topside"], help="the role the file must configure")
+    c.add_argument("--process-name", default="pCoex", metavar="NAME",
+                   help="a .moos mission file: the ProcessConfig block to read (default pCoex)")
     p.set_defaults(func=_check)
 
 
 def _check(args: argparse.Namespace) -> int:
     from .config import check
 
-    cfg, problems = check(args.file, args.role)
+    if str(args.file).endswith(".moos"):
+        from .mission import check_mission
+
+        cfg, problems = check_mission(args.file, args.process_name)
+        if args.role == "topside" and not problems:
+            problems = ["a MOOS mission's pCoex block configures the vehicle"]
+    else:
+        cfg, problems = check(args.file, args.role)
     if problems:
         for text in problems:
             print(f"{args.file}: {text}")
@@ -60,7 +79,14 @@ def run_vehicle(args: argparse.Namespace) -> int:
     from .daemon import VehicleApp
 
     try:
-        cfg = load(args.config, "vehicle")
+        if args.moos is not None:
+            from .mission import load_mission
+
+            cfg = load_mission(args.moos, args.process_name, host=args.moos_host, port=args.moos_port)
+        else:
+            if args.moos_host is not None or args.moos_port is not None:
+                raise CoexError("--moos-host and --moos-port go with --moos MISSION")
+            cfg = load(args.config, "vehicle")
         logging.basicConfig(level=cfg.log_level.upper(), format="%(asctime)s %(name)s %(levelname)s %(message)s",
                             force=True)  # a library may have configured logging on import
         app = VehicleApp(cfg)

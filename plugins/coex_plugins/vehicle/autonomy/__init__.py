@@ -6,7 +6,9 @@ Built-in outputs (entry-point group ``coex.autonomy``; ``docs/autonomy.md``):
 * ``sim``: a simulated vehicle that flies the plan at a constant speed (examples and tests);
 * ``mavlink``: uploads the plan as a MAVLink mission (ArduSub, PX4) with pymavlink and starts it;
 * ``lcm``: publishes a ``coex.survey_request_t`` for an LCM planner and reads its
-  ``coex.survey_state_t`` answers.
+  ``coex.survey_state_t`` answers;
+* ``moos``: updates the MOOS-IvP helm's ``BHV_Waypoint`` and reads its ``WPT_INDEX`` /
+  ``WPT_STAT`` (``docs/moos.md``).
 
 :func:`open_autonomy` builds one from a configuration table (``[autonomy] type = "..."``).
 """
