@@ -6,7 +6,7 @@ MOOS's defaults, when left out). Options:
 ``name``     the MOOS client name (default ``pCoex``; unique per MOOSDB)
 ``tx``       the variable frames are written to (default ``COEX_TX``), as binary strings
 ``rx``       the variable frames are read from (default ``COEX_RX``)
-``mtu``      largest frame :meth:`send` accepts (default 65536)
+``mtu``      largest frame :meth:`send` accepts (default 2048: a Micromodem-2 packet, 8 x 256 B)
 ``queue``    frames kept while MOOSDB is unreachable (default 10000; beyond it the oldest is
              dropped and counted)
 ``hold``     seconds frames wait after each (re)connect for a client to register for ``tx``
@@ -55,7 +55,7 @@ class MoosConfig:
     tx: str = "COEX_TX"
     #: variable frames are read from (binary)
     rx: str = "COEX_RX"
-    mtu: int = 65536
+    mtu: int = 2048
     #: frames kept while MOOSDB is unreachable
     queue: int = 10000
     #: seconds frames wait after a (re)connect for a client registered for ``tx``
