@@ -5,6 +5,7 @@ and the navigation."""
 
 from __future__ import annotations
 
+import contextlib
 import os
 import shutil
 import signal
@@ -302,12 +303,12 @@ def test_refusal_override_and_endflag(moosdb: MoosDB, pymoos_client: Callable[..
         a.close()
 
 
-# ------------------------------------------------------------------ two nodes over a modem link
+# ------------------------------------------------------------------ two nodes over simulated modems
 COMMON = """
 [tdma]
 slots = ["topside", "vehicle"]
-slot_seconds = 1.0
-guard = 0.1
+slot_seconds = 5.0
+guard = 0.5
 """
 VEHICLE = """
 [node]
@@ -322,8 +323,7 @@ options = {{ geofence = {{ radius = 400.0 }} }}
 [status]
 interval = 1
 [[modems]]
-uri = "mavlink:udpout:127.0.0.1:{port}?sysid=2&compid=191"
-packet_seconds = 0.2
+uri = "{modem}?src=2&dest=1&rate=5"
 [[inputs]]
 type = "moos"
 feeds = ["status"]
@@ -347,71 +347,74 @@ stream = 7
 [console]
 http = "127.0.0.1:0"
 [[modems]]
-uri = "mavlink:udpin:127.0.0.1:{port}?sysid=1&compid=190"
-packet_seconds = 0.2
+uri = "{modem}?src=1&dest=2&rate=5"
 """ + COMMON
 
 
 def test_a_survey_command_reaches_the_helm_and_its_progress_comes_back(
         tmp_path: Path, moosdb: MoosDB, pymoos_client: Callable[..., Any]) -> None:
-    pytest.importorskip("pymavlink")
+    pytest.importorskip("serial")
     from coex_plugins.console.cli import topside_from_config
     from coex_plugins.vehicle.config import load
     from coex_plugins.vehicle.daemon import VehicleApp
 
-    from .test_vehicle_daemon import _free_udp_port
+    from ._modemsim import modem_sim
 
-    port, upd, act = _free_udp_port(), unique("COEX_WPT_UPDATE"), unique("COEX_SURVEY")
-    (tmp_path / "k.key").write_text(KEY)
-    (tmp_path / "v.toml").write_text(VEHICLE.format(port=port, moos=moosdb.port, name=unique("pCoex"),
-                                                    upd=upd, act=act))
-    (tmp_path / "t.toml").write_text(TOPSIDE.format(port=port))
-    helm = pymoos_client(upd, act)
+    upd, act = unique("COEX_WPT_UPDATE"), unique("COEX_SURVEY")
+    with contextlib.ExitStack() as stack:
+        modems = stack.enter_context(modem_sim((1, 2)))  # two simulated Micromodems, real time
+        (tmp_path / "k.key").write_text(KEY)
+        (tmp_path / "v.toml").write_text(VEHICLE.format(modem=modems[2], moos=moosdb.port, name=unique("pCoex"),
+                                                        upd=upd, act=act))
+        (tmp_path / "t.toml").write_text(TOPSIDE.format(modem=modems[1]))
+        helm = pymoos_client(upd, act)
+        vehicle = VehicleApp(load(tmp_path / "v.toml", "vehicle")).start()
+        stack.callback(vehicle.close)
+        topside = topside_from_config(str(tmp_path / "t.toml")).start()
+        stack.callback(topside.close)
+        _survey_to_helm(vehicle, topside, helm, upd, act)
+
+
+def _survey_to_helm(vehicle: Any, topside: Any, helm: Any, upd: str, act: str) -> None:
     seen: list[tuple[str, Any]] = []
-    vehicle = VehicleApp(load(tmp_path / "v.toml", "vehicle")).start()
-    topside = topside_from_config(str(tmp_path / "t.toml")).start()
-    try:
-        # the navigation, as pNodeReporter reads it, reaches topside as the vehicle status
-        def nav() -> Any:
-            for var, value in [("NAV_X", 31.5), ("NAV_Y", -12.0), ("NAV_DEPTH", 22.4), ("NAV_ALTITUDE", 6.5),
-                               ("NAV_HEADING", 135.0), ("NAV_SPEED", 1.2)]:
-                helm.notify(var, value, -1)
-            st = topside.hub.state.status
-            return st is not None and abs(st.x - 31.5) < 0.1 and st
+    # the navigation, as pNodeReporter reads it, reaches topside as the vehicle status
+    def nav() -> Any:
+        for var, value in [("NAV_X", 31.5), ("NAV_Y", -12.0), ("NAV_DEPTH", 22.4), ("NAV_ALTITUDE", 6.5),
+                           ("NAV_HEADING", 135.0), ("NAV_SPEED", 1.2)]:
+            helm.notify(var, value, -1)
+        st = topside.hub.state.status
+        return st is not None and abs(st.x - 31.5) < 0.1 and st
 
-        st = _wait(nav, 60, "the vehicle status topside")
-        assert (st.x, st.y, st.depth, st.altitude, st.heading) == (31.5, -12.0, 22.4, 6.5, 135.0)
-        # a lawnmower survey goes up and becomes a helm update, then the activation
-        rx = topside.node.receiver("survey")
-        with topside.hub.lock:
-            req = rx.request("lawnmower", 20.0, 10.0, time.time(), heading=30.0, length=100.0, width=40.0,
-                             spacing=20.0, depth=15.0, speed=1.5)
-        _wait(lambda: act in [k for k, _ in _collect(helm, seen)], 60, "the helm update and activation")
-        plan = vehicle.autonomy.plan
-        assert plan is not None and plan.survey_id == req.survey_id and len(plan.waypoints) == 6
-        keys = [k for k, _ in seen]
-        assert keys.index(upd) < keys.index(act)  # the update first, then the behaviour's condition
-        update = dict(seen)[upd]
-        assert update == "points=" + ":".join(f"{x:g},{y:g}" for x, y in plan.waypoints) + "#speed=1.5"
-        assert dict(seen)[act] == "true"
-        # the helm flies it: WPT_INDEX, then WPT_STAT completed, as BHV_Waypoint posts them
-        for k in (0, 1, 3):
-            helm.notify("WPT_INDEX", float(k), -1)
-            time.sleep(0.1)
-        s = rx.surveys[req.survey_id]
-        _wait(lambda: s.state == "started" and s.index == 3, 60, "started, heading for waypoint 3")
-        helm.notify("WPT_STAT", "vname=alpha,behavior-name=some_other_bhv,completed", -1)
-        time.sleep(0.5)
-        assert s.state == "started"  # another behaviour's completion is not ours
-        helm.notify("WPT_STAT", "vname=alpha,behavior-name=coex_survey,index=5,hits=1/1,cycles=0,dist=40,eta=27", -1)
-        helm.notify("WPT_STAT", "behavior-name=coex_survey,completed", -1)
-        _wait(lambda: s.state == "completed", 60, "completed topside")
-        states = [h[1] for h in s.history]
-        assert states[0] == "requested" and "started" in states and states[-1] == "completed", states
-        assert vehicle.counts["plans"] == 1
-    finally:
-        vehicle.close()
-        topside.close()
+    st = _wait(nav, 120, "the vehicle status topside")
+    assert (st.x, st.y, st.depth, st.altitude, st.heading) == (31.5, -12.0, 22.4, 6.5, 135.0)
+    # a lawnmower survey goes up and becomes a helm update, then the activation
+    rx = topside.node.receiver("survey")
+    with topside.hub.lock:
+        req = rx.request("lawnmower", 20.0, 10.0, time.time(), heading=30.0, length=100.0, width=40.0,
+                         spacing=20.0, depth=15.0, speed=1.5)
+    _wait(lambda: act in [k for k, _ in _collect(helm, seen)], 120, "the helm update and activation")
+    plan = vehicle.autonomy.plan
+    assert plan is not None and plan.survey_id == req.survey_id and len(plan.waypoints) == 6
+    keys = [k for k, _ in seen]
+    assert keys.index(upd) < keys.index(act)  # the update first, then the behaviour's condition
+    update = dict(seen)[upd]
+    assert update == "points=" + ":".join(f"{x:g},{y:g}" for x, y in plan.waypoints) + "#speed=1.5"
+    assert dict(seen)[act] == "true"
+    # the helm flies it: WPT_INDEX, then WPT_STAT completed, as BHV_Waypoint posts them
+    for k in (0, 1, 3):
+        helm.notify("WPT_INDEX", float(k), -1)
+        time.sleep(0.1)
+    s = rx.surveys[req.survey_id]
+    _wait(lambda: s.state == "started" and s.index == 3, 120, "started, heading for waypoint 3")
+    helm.notify("WPT_STAT", "vname=alpha,behavior-name=some_other_bhv,completed", -1)
+    time.sleep(0.5)
+    assert s.state == "started"  # another behaviour's completion is not ours
+    helm.notify("WPT_STAT", "vname=alpha,behavior-name=coex_survey,index=5,hits=1/1,cycles=0,dist=40,eta=27", -1)
+    helm.notify("WPT_STAT", "behavior-name=coex_survey,completed", -1)
+    _wait(lambda: s.state == "completed", 120, "completed topside")
+    states = [h[1] for h in s.history]
+    assert states[0] == "requested" and "started" in states and states[-1] == "completed", states
+    assert vehicle.counts["plans"] == 1
 
 
 # ------------------------------------------------------------------ pCoex as a process
