@@ -16,7 +16,6 @@ import numpy as np
 import pytest
 
 from coex_core.errors import ConfigError
-from coex_plugins.vehicle.inputs._common import compass_from_enu_yaw, yaw_of_quaternion
 from coex_plugins.vehicle.inputs._files import as_pixels
 from coex_plugins.vehicle.inputs.base import (
     FEEDS,
@@ -28,6 +27,7 @@ from coex_plugins.vehicle.inputs.base import (
 )
 from coex_plugins.vehicle.inputs.directory import DirectoryInput
 from coex_plugins.vehicle.inputs.points import PointsInput
+from coex_plugins.vehicle.options import compass_from_enu_yaw, yaw_of_quaternion
 
 ROOT = Path(__file__).resolve().parents[1]
 OLD = time.time() - 3600.0  # an mtime that has long settled
@@ -353,7 +353,7 @@ def test_adapters_load_without_their_optional_libraries() -> None:
 
 
 def test_log_once_logs_each_problem_once_and_stays_bounded(caplog: pytest.LogCaptureFixture) -> None:
-    from coex_plugins.vehicle.inputs._common import LogOnce
+    from coex_plugins.vehicle.options import LogOnce
 
     once = LogOnce(logging.getLogger("test.inputs"))
     once.LIMIT = 3

@@ -52,8 +52,8 @@ from typing import Any
 from coex_core.messages import SurveyKind, SurveyReason, SurveyState
 
 from ...survey.plan import SurveyReport
-from ..inputs._common import LogOnce
 from ..inputs.moos import parse_server
+from ..options import LogOnce
 from .base import Autonomy
 
 __all__ = ["MoosAutonomy", "parse_flag", "update_of"]

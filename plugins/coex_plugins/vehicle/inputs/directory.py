@@ -16,7 +16,7 @@ import logging
 from collections.abc import Mapping
 from typing import Any, ClassVar
 
-from ._common import LogOnce, want_bool, want_number, want_str
+from ..options import LogOnce, want_bool, want_number, want_str
 from ._files import WatchedInput, read_image, read_sidecar, split_patterns
 from .base import Image, InputContext, Item
 

@@ -44,7 +44,7 @@ import numpy as np
 
 from coex_core.errors import ConfigError
 
-from ._common import LogOnce, finite, need, want_str
+from ..options import LogOnce, finite, need, want_str
 from .base import Input, InputContext, Item, Nav, Points, Samples
 
 __all__ = ["DEFAULT_URL", "LcmInput", "compile_path", "make_nav_t"]

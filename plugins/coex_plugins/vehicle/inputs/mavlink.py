@@ -43,7 +43,7 @@ from urllib.parse import unquote, urlsplit
 
 import numpy as np
 
-from ._common import (
+from ..options import (
     LogOnce,
     need,
     want_bool,

@@ -29,7 +29,7 @@ from typing import Any, ClassVar
 
 import numpy as np
 
-from ._common import LogOnce, want_bool, want_str
+from ..options import LogOnce, want_bool, want_str
 from .base import Image, Input, InputContext, Item, Nav, Points, Samples
 
 __all__ = ["NAV_DEFAULTS", "MoosInput", "parse_server"]

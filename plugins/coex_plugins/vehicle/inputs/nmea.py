@@ -36,7 +36,7 @@ from typing import Any, ClassVar
 
 import numpy as np
 
-from ._common import LogOnce, need, want_bool, want_host_port, want_int, want_number, want_str
+from ..options import LogOnce, need, want_bool, want_host_port, want_int, want_number, want_str
 from .base import Input, InputContext, Item, Nav, Samples
 
 __all__ = ["NmeaError", "NmeaInput", "checksum", "parse_sentence"]

@@ -16,7 +16,7 @@ from typing import Any, ClassVar
 
 import numpy as np
 
-from ._common import LogOnce, want_bool, want_number, want_str
+from ..options import LogOnce, want_bool, want_number, want_str
 from ._files import WatchedInput, read_sidecar
 from .base import InputContext, Item, Points
 

@@ -31,7 +31,7 @@ import numpy as np
 
 from coex_core.errors import ConfigError
 
-from ._common import (
+from ..options import (
     LogOnce,
     compass_from_enu_yaw,
     finite,
