@@ -548,3 +548,61 @@ def test_a_survey_drawn_on_the_map_is_sent_and_its_rejection_shown(browser: Any,
         app.close()
         vehicle.transport.close()
     assert not errors, errors
+
+
+class _SameIds(list):
+    """A send that numbers every command 5, as a node does after its ids wrap around."""
+
+    def __call__(self, msg: m.Message) -> None:
+        self.append(msg)
+
+    def next_command_id(self) -> int:
+        return 5
+
+
+def test_a_rejected_command_stays_rejected_with_its_reason(browser: Any) -> None:
+    """A "previous image" request is rejected; the vehicle answers it again (re-sends), and a
+    later command reuses its id and is accepted: the first stays rejected with its reason in
+    words, the answer is logged once, and the later one shows accepted."""
+    from coex_core.channel.events import CommandResult
+
+    state = ConsoleState(schedules={0: Schedule.simple([1, 2, 2, 1, 2, 2], 20.0, 2.0)})
+    feed_sample(state, t0=T0)
+    sent = _SameIds()
+    hub = ConsoleHub(state, sent, lambda: T0)
+    errors: list[str] = []
+    with serve(hub, "127.0.0.1", 0) as srv:
+        page = browser.new_page(viewport={"width": 1280, "height": 1000})
+        page.on("pageerror", lambda e: errors.append(str(e)))
+        page.goto(srv.url)
+        page.wait_for_function("window.coex && window.coex.updates > 0", timeout=10_000)
+        page.fill("#img-time", "09:20:00")
+        page.click('.img-time-btn[data-dir="previous"]')
+        page.wait_for_function("document.querySelectorAll('#commands li[data-status]').length === 1",
+                               timeout=10_000)
+        (asked,) = sent
+        assert "previous image before 09:20:00" in page.inner_text("#commands")
+        hub.update(lambda st: st.apply_event(CommandResult(T0 + 5, 5, m.AckStatus.REJECTED, asked)))
+        for k in range(3):  # the vehicle answers every re-send; the node passes them on bare
+            hub.update(lambda st, k=k: st.apply_event(CommandResult(T0 + 10 + k, 5, m.AckStatus.REJECTED)))
+        # the id comes round again: a queue flush numbered 5, accepted (and answered twice)
+        page.wait_for_selector('#queues-table tr[data-stream="4"]', timeout=10_000)
+        page.locator('#queues-table tr[data-stream="4"]').locator("button", has_text="Flush").click()
+        page.wait_for_function("document.querySelectorAll('#commands li[data-status]').length === 2",
+                               timeout=10_000)
+        flush = sent[1]
+        assert flush.command_id == 5
+        hub.update(lambda st: st.apply_event(CommandResult(T0 + 30, 5, m.AckStatus.ACCEPTED, flush)))
+        hub.update(lambda st: st.apply_event(CommandResult(T0 + 40, 5, m.AckStatus.ACCEPTED)))
+        hub.update(lambda st: st.apply_message(m.CommandAck(5, m.AckStatus.REJECTED), T0 + 50))
+        page.wait_for_selector('#commands li[data-status="accepted"]', timeout=10_000)
+        rows = page.eval_on_selector_all("#commands li[data-status]",
+                                         "els => els.map(e => [e.dataset.status, e.textContent])")
+        assert [r[0] for r in rows] == ["accepted", "rejected"], rows
+        assert "the vehicle holds no image before that time" in rows[1][1]
+        assert page.is_visible('#commands li[data-status="rejected"] .reason')
+        log = page.inner_text("#log")
+        assert log.count("previous image before 09:20:00: rejected") == 1, log
+        assert log.count("flush: accepted") == 1, log
+        page.close()
+    assert not errors, errors

@@ -21,7 +21,7 @@ import zlib
 from collections import deque
 from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 import numpy.typing as npt
@@ -50,6 +50,8 @@ OWN_PANELS = ("bathymetry", "imagery", "timeseries", "survey")
 SURVEY_STATES = ("requested", "accepted", "started", "completed", "rejected", "aborted", "given up")
 #: The surveys the page lists and draws (the newest).
 MAX_SURVEYS = 40
+#: A command in these states may still be answered (``pending``: it stands on the vehicle).
+OPEN_COMMAND_STATES = ("sent", "pending")
 
 #: The map section shows a level's coverage (the age of its data) in at most this many blocks:
 #: every subgrid of a small level, groups of receiver tiles of a big one.
@@ -172,6 +174,8 @@ class _Command:
     roi_key: int | None = None
     #: who sent it: the signed-in operator ("" for a console without sign-in)
     by: str = ""
+    #: why the vehicle answered as it did, in words (a rejection's likely cause)
+    reason: str = ""
 
 
 #: caches (pictures, summaries) are not state: they are made again when needed
@@ -733,11 +737,10 @@ class ConsoleState:
         if cid is None:
             return
         kind = type(msg).__name__
-        key = 256 + int(cid)
+        key = self._new_command_key()
         self.commands[key] = _Command(int(cid), kind, summary or kind, now, msg, by=self.actor)
-        if key in self.command_order:
-            self.command_order.remove(key)
         self.command_order.append(key)
+        self._prune_commands()
         if isinstance(msg, m.ImageGoal):
             self._image(msg.image_id).goal = (msg.kind.name, msg.value)
             self._touch("images")
@@ -763,16 +766,34 @@ class ConsoleState:
         self._touch("commands")
         self._log(now, f"{self.actor + ' ' if self.actor else ''}sent {summary or kind}")
 
+    def _new_command_key(self) -> int:
+        """A key no other command of this console has (command ids wrap at 256 and are reused:
+        a command is never looked up by its id alone)."""
+        return max(self.commands, default=0) + 1
+
+    def _prune_commands(self) -> None:
+        """Forget commands that fell out of the list (``command_order`` keeps the newest 64)."""
+        keep = set(self.command_order)
+        for key in [k for k in self.commands if k not in keep]:
+            del self.commands[key]
+
+    def _find_command(self, command_id: int, message: m.Message | None = None) -> int | None:
+        """The key of the newest command with ``command_id`` (and, when given, that message)."""
+        for key in reversed(self.command_order):
+            c = self.commands.get(key)
+            if c is None or c.roi_key is not None or c.command_id != command_id:
+                continue
+            if message is None or c.message == message:
+                return key
+        return None
+
     def replace_command(self, built: m.Message, sent: m.Message, now: float) -> None:
         """The node sent ``sent`` for the command recorded as ``built`` (another command id)."""
-        old = self.commands.pop(256 + int(getattr(built, "command_id", -1)), None)
-        if old is None:
+        key = self._find_command(int(getattr(built, "command_id", -1)), built)
+        if key is None:
             return
-        key = 256 + int(getattr(sent, "command_id", 0))
-        old.message, old.command_id = sent, key - 256
-        self.commands[key] = old
-        self.command_order = deque((key if k == 256 + int(getattr(built, "command_id", -1))
-                                    else k for k in self.command_order), maxlen=64)
+        old = self.commands[key]
+        old.message, old.command_id = sent, int(getattr(sent, "command_id", 0))
         if isinstance(sent, m.ScheduleUpdate):
             sch = self.schedules.get(sent.link)
             if sch is not None and sch.get("proposed"):
@@ -792,48 +813,60 @@ class ConsoleState:
             self.roi[key] = _RoiRequest(r.level, r.x0, r.y0, r.w, r.h, now, r)
             text = (f"{summary}: subgrids [{r.x0}..{r.x0 + r.w - 1}] x "
                     f"[{r.y0}..{r.y0 + r.h - 1}]")
-            ckey = 100000 + self._region_count
+            ckey = self._new_command_key()
             self.commands[ckey] = _Command(-1, "MapRoiRequest", text, now,
                                            m.MapRoiRequest(0, r.level, r.x0, r.y0, r.w, r.h,
                                                            True, (), 0),
                                            status="queued", roi_key=key, by=self.actor)
             self.command_order.append(ckey)
+            self._prune_commands()
             self._log(now, f"{self.actor + ' ' if self.actor else ''}requested {text}")
         self._touch("map", "commands")
 
     def _command_result(self, command_id: int, status: Any, now: float,
                         command: m.Message | None = None) -> None:
-        cmd = self.commands.get(256 + command_id)
+        """The vehicle's answer to a command. The node gives the command it answers the first
+        time (``command``); a repeated answer (the vehicle answers every re-send) comes without
+        it and changes nothing, nor does an answer to a command already answered: ids wrap at
+        256, so an old answer must never land on a newer command that reuses the id."""
         name = status.name if hasattr(status, "name") else str(status)
-        if cmd is not None and command is not None and cmd.message != command:
-            cmd = None  # an id reused by a command sent by someone else
-        if cmd is None:
-            if command is None:
-                last = self._foreign_acks.get(command_id)
-                if last is None or last[0] != name or now - last[1] > 600:
-                    self._log(now, f"vehicle answered command {command_id}: {name.lower()} "
-                                   "(not sent from this console)")
-                self._foreign_acks[command_id] = (name, now)
-                return
+        new = name.lower()
+        key = self._find_command(command_id, command)
+        if key is None and command is None:
+            last = self._foreign_acks.get(command_id)
+            if last is None or last[0] != name or now - last[1] > 600:
+                self._log(now, f"vehicle answered command {command_id}: {new} "
+                               "(not sent from this console)")
+            self._foreign_acks[command_id] = (name, now)
+            return
+        if key is None:
             # a command the topside node sent for someone else (a script, a receiver)
-            key = 256 + command_id
-            cmd = self.commands[key] = _Command(command_id, type(command).__name__,
-                                                f"{type(command).__name__} (by the node)",
-                                                now, command)
-            if key in self.command_order:
-                self.command_order.remove(key)
+            key = self._new_command_key()
+            self.commands[key] = _Command(command_id, type(command).__name__,
+                                          f"{type(command).__name__} (by the node)", now,
+                                          cast(m.Message, command))
             self.command_order.append(key)
-        cmd.status, cmd.answered = name.lower(), now
+            self._prune_commands()
+        cmd = self.commands[key]
+        if cmd.status == new:
+            return  # the same answer again (a re-send answered): nothing new
+        if cmd.status not in OPEN_COMMAND_STATES:
+            return  # already answered for good: a late or repeated answer changes nothing
+        was_pending = cmd.status == "pending"
+        cmd.status, cmd.answered = new, now
+        cmd.reason = ack_reason(cmd.message, name, was_pending)
         if isinstance(cmd.message, m.ScheduleUpdate):
             sch = self.schedules.get(cmd.message.link)
             if sch is not None and sch.get("proposed"):
-                sch["proposed"]["status"] = name.lower()
+                sch["proposed"]["status"] = new
             self._touch("link")
+        if isinstance(cmd.message, m.ImageByTimeRequest | m.ImageGoal):
+            self._touch("images")
         self._touch("commands")
         if isinstance(cmd.message, m.SurveyCommand):
             return  # the survey receiver's product says it, with the reason (_survey_product)
-        self._log(now, f"{cmd.summary}: {name.lower()}",
-                  "info" if name == "ACCEPTED" else "warn")
+        self._log(now, f"{cmd.summary}: {new}" + (f" ({cmd.reason})" if cmd.reason else ""),
+                  "info" if name in ("ACCEPTED", "PENDING") else "warn")
 
     def _on_command_ack(self, a: m.CommandAck, now: float) -> None:
         self._command_result(a.command_id, a.status, now)
@@ -1076,7 +1109,7 @@ class ConsoleState:
         surveys: dict[int, dict[str, Any]] | None = None
         for key in reversed(self.command_order):
             c = self.commands[key]
-            status = c.status
+            status, reason = c.status, getattr(c, "reason", "")
             if c.roi_key is not None and c.roi_key in self.roi:
                 status = self._snap_roi(self.roi[c.roi_key])["status"]
             elif isinstance(c.message, m.SurveyCommand):  # the survey's own state
@@ -1085,13 +1118,64 @@ class ConsoleState:
                 meta = surveys.get(int(c.message.survey_id))
                 if meta is not None:
                     status = str(meta.get("state") or status)
+                    if status in ("rejected", "aborted", "given up") and meta.get("text"):
+                        reason = str(meta["text"])
             out.append({"command_id": c.command_id, "kind": c.kind, "summary": c.summary,
                         "sent": _num(c.sent, 1), "status": status,
-                        "answered": _num(c.answered, 1), "by": getattr(c, "by", "")})
+                        "answered": _num(c.answered, 1), "by": getattr(c, "by", ""),
+                        "reason": reason})
         return out
 
     def _snap_log(self) -> list[dict[str, Any]]:
         return list(self.log)[-60:]
+
+
+def hms(t: float | None) -> str:
+    """``hh:mm:ss`` of the day (UTC) of an absolute time, as the page shows it."""
+    if t is None or not math.isfinite(float(t)):
+        return "-"
+    s = math.floor(float(t)) % 86400
+    return f"{s // 3600:02d}:{s // 60 % 60:02d}:{s % 60:02d}"
+
+
+def ack_reason(msg: m.Message, status: str, was_pending: bool = False) -> str:
+    """What the vehicle's answer ``status`` (an :class:`~coex_core.messages.AckStatus` name)
+    to ``msg`` means, in words. A ``CommandAck`` carries no reason: this is the cause the
+    vehicle's code gives for that answer to that kind of command."""
+    if status == "ACCEPTED":
+        return ""
+    if status == "UNAUTHENTICATED":
+        return "not authenticated: the vehicle and topside command keys differ"
+    if status == "PENDING":
+        return "no image of that time yet: the request stands on the vehicle until one is taken"
+    if isinstance(msg, m.QueueConfig):
+        if status == "UNKNOWN_TARGET":
+            return f"the vehicle has no stream {msg.stream}"
+        return "the vehicle refused the setting (outside its limits)"
+    if isinstance(msg, m.LinkControl | m.SpareConfig | m.ScheduleUpdate):
+        link = getattr(msg, "link", None)
+        if status == "UNKNOWN_TARGET":
+            return f"the vehicle has no link {link}" if link is not None else \
+                f"the vehicle has no stream {getattr(msg, 'stream', '?')}"
+        if isinstance(msg, m.LinkControl):
+            return "it would leave the vehicle without a transmitting link"
+        if isinstance(msg, m.ScheduleUpdate):
+            return ("its activation cycle had passed when it arrived, or no slot of the "
+                    "vehicle fits a packet")
+        return "the vehicle refused the share"
+    if isinstance(msg, m.ImageByTimeRequest):
+        if was_pending:
+            return "no image of that time was taken before the request expired"
+        d = {m.TimeDirection.BEFORE: "before", m.TimeDirection.AFTER: "after"}.get(
+            msg.direction, "near")
+        return f"the vehicle holds no image {d} that time"
+    if isinstance(msg, m.ImageGoal):
+        return f"the vehicle no longer holds image {msg.image_id}, or the goal is beyond it"
+    if isinstance(msg, m.TimeSeriesRequest):
+        return f"the vehicle has no channel {msg.channel}, or the window is not valid"
+    if status == "UNKNOWN_TARGET":
+        return "the vehicle does not know what it names"
+    return "refused by the vehicle"
 
 
 _HANDLERS: dict[type, Callable[[ConsoleState, Any, float, int | None], None]] = {
@@ -1298,7 +1382,9 @@ class ConsoleActions:
         if not math.isfinite(float(t)):
             raise RequestRejected("time must be finite")
         msg = m.ImageByTimeRequest(self._cid(), to_stamp(float(t)), d)
-        self._emit([msg], [f"image {d.name.lower()} t={float(t):.0f}"])
+        what = {m.TimeDirection.BEFORE: "previous image before",
+                m.TimeDirection.AFTER: "next image after"}.get(d, "image nearest")
+        self._emit([msg], [f"{what} {hms(float(t))}"])
         return msg
 
     # ------------------------------------------------------------------ time series

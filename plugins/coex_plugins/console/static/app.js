@@ -1004,10 +1004,12 @@ function renderVehicle() {
 }
 function renderCommands() {
   const ul = $("#commands");
-  ul.replaceChildren(...S.commands.map((c) => el("li", { "data-status": c.status },
+  ul.replaceChildren(...S.commands.map((c) => el("li", { "data-status": c.status, "data-command": c.command_id },
     el("span", { class: "t" }, fmtT(c.sent)), c.summary,
     c.by ? el("span", { class: "by", title: "sent by" }, ` · ${c.by}`) : "",
-    el("span", { class: `badge ${c.status.replace(" ", "_")}` }, c.status))));
+    el("span", { class: `badge ${c.status.replace(/ /g, "_")}` }, c.status),
+    c.reason ? el("div", { class: `reason ${c.status.replace(/ /g, "_")}` }, c.reason) : "",
+    c.answer ? el("div", { class: "answer" }, c.answer) : "")));
   if (!S.commands.length) ul.append(el("li", { class: "empty" }, "No command sent yet."));
 }
 function renderLog() {
