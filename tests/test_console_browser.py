@@ -606,3 +606,30 @@ def test_a_rejected_command_stays_rejected_with_its_reason(browser: Any) -> None
         assert log.count("flush: accepted") == 1, log
         page.close()
     assert not errors, errors
+
+
+def test_the_map_has_axis_labels_a_north_arrow_and_colour_bar_numbers(browser: Any, tmp_path: Path) -> None:
+    """Metres east and north along the map's edges, and the colour bar's depths written out;
+    the gaps of the finest level are hatched, and the levels table says how many."""
+    errors: list[str] = []
+    with sample_console(browser, ConsoleHub, [], errors) as page:
+        page.set_viewport_size({"width": 1280, "height": 1000})
+        page.wait_for_function("window.coex.axes && window.coex.axes.x.length >= 3 && window.coex.axes.y.length >= 2",
+                               timeout=10_000)
+        axes = page.evaluate("window.coex.axes")
+        xs = [float(v) for v in axes["x"]]
+        assert xs == sorted(xs) and len(set(xs)) == len(xs) and xs[-1] >= 60, axes
+        ticks = page.eval_on_selector_all("#colorbar .tick", "els => els.map(e => e.textContent)")
+        zr = page.evaluate("window.coex.S.map.zrange")
+        assert len(ticks) == 5 and float(ticks[0]) == pytest.approx(zr[0], abs=0.6), (ticks, zr)
+        assert float(ticks[-1]) == pytest.approx(zr[1], abs=0.6)
+        assert "seafloor elevation (m)" in page.inner_text("#colorbar")
+        page.check("#show-age")
+        assert page.is_visible("#age-legend") and "30 min" in page.inner_text("#age-legend")
+        row = page.inner_text('#levels-table tr[data-level="0"]')
+        assert "%" in row and ("empty" in row or "none" in row or "between swaths" in row), row
+        assert "dive 0:" in page.inner_text("#clock")
+        page.screenshot(path=str(tmp_path / "axes.png"))
+        if os.environ.get("COEX_AXES_SHOT"):
+            shutil.copy(tmp_path / "axes.png", os.environ["COEX_AXES_SHOT"])
+    assert not errors, errors

@@ -811,8 +811,7 @@ class ConsoleState:
             self._region_count += 1
             key = -self._region_count
             self.roi[key] = _RoiRequest(r.level, r.x0, r.y0, r.w, r.h, now, r)
-            text = (f"{summary}: subgrids [{r.x0}..{r.x0 + r.w - 1}] x "
-                    f"[{r.y0}..{r.y0 + r.h - 1}]")
+            text = f"{summary}: {region_words(self, r)}"
             ckey = self._new_command_key()
             self.commands[ckey] = _Command(-1, "MapRoiRequest", text, now,
                                            m.MapRoiRequest(0, r.level, r.x0, r.y0, r.w, r.h,
@@ -926,9 +925,18 @@ class ConsoleState:
                 continue
             ix0, iy0, ix1, iy1 = summary["extent"]
             cells = int(summary["cells"])
+            # gaps: blocks of tile_span x tile_span subgrids inside the extent with no data
+            bx = math.ceil(ix1 / span) - math.floor(ix0 / span)
+            by = math.ceil(iy1 / span) - math.floor(iy0 / span)
+            empty = max(0, bx * by - len(keys))
+            block_m = span * side * c
             levels.append({
                 "level": level, "cell": c, "side": side, "subgrids": int(summary["subgrids"]),
                 "cells": cells, "coverage_m2": cells * c * c,
+                "fill_pct": round(100.0 * cells / max(1, (ix1 - ix0) * (iy1 - iy0) * side * side)),
+                "gaps": empty, "gap_block_m": block_m,
+                "gap_note": gap_words(empty, block_m, int(summary["subgrids"]) * side * side,
+                                      cells),
                 "x0": float(ix0 * side * c), "y0": float(iy0 * side * c),
                 "x1": float(ix1 * side * c), "y1": float(iy1 * side * c),
                 "newest_age": _num(self.now - float(summary["newest"]), 1),
@@ -993,6 +1001,17 @@ class ConsoleState:
                                   "level": level, "auto": True})
             self._targets_cache = ((level, version), found)
         return list(self._targets_cache[1])
+
+    def subgrid_metres(self, level: int) -> float:
+        """The side of a subgrid of ``level`` in metres."""
+        rx = self.map_receiver
+        geometry = rx.geometry(level) if rx is not None else None
+        meta = rx.metadata if rx is not None else None
+        if geometry is not None:
+            return float(geometry[0] * geometry[1])
+        if meta is not None:
+            return float(meta.resolution * 2 ** level * meta.subgrid_side)
+        return 8.0 * 2 ** level
 
     def _snap_roi(self, r: _RoiRequest) -> dict[str, Any]:
         """A region request as the bathymetry receiver sends and retries it: ``waiting`` (not
@@ -1128,6 +1147,24 @@ class ConsoleState:
 
     def _snap_log(self) -> list[dict[str, Any]]:
         return list(self.log)[-60:]
+
+
+def region_words(state: ConsoleState, r: Any) -> str:
+    """A region of subgrids in metres: ``32 x 24 m at (24, 32) m``."""
+    span = state.subgrid_metres(int(r.level))
+    return (f"{r.w * span:g} x {r.h * span:g} m at ({r.x0 * span:g}, {r.y0 * span:g}) m")
+
+
+def gap_words(empty: int, block_m: float, subgrid_cells: int, cells: int) -> str:
+    """The gaps of a level in words: empty squares inside its extent, and the cells missing
+    inside the subgrids held (between sonar swaths, beyond the beams: the map's stripes)."""
+    parts = []
+    if empty:
+        parts.append(f"{empty} empty {block_m:g} m square{'s' if empty != 1 else ''}")
+    inner = subgrid_cells - cells
+    if inner > 0 and subgrid_cells:
+        parts.append(f"{100.0 * inner / subgrid_cells:.0f} % of cells between swaths")
+    return ", ".join(parts) or "none"
 
 
 def hms(t: float | None) -> str:
@@ -1413,7 +1450,7 @@ class ConsoleActions:
         msg = m.TimeSeriesRequest(self._cid(), int(channel), to_stamp(start), to_stamp(end),
                                   float(np.float32(max_error)))
         name = s.get("name", f"channel {channel}")
-        self._emit([msg], [f"refine {name} {start:.0f}..{end:.0f} s to ±{max_error:.3g}"])
+        self._emit([msg], [f"refine {name} {hms(start)} to {hms(end)} to ±{max_error:.3g}"])
         return msg
 
     # ------------------------------------------------------------------------ queues

@@ -206,6 +206,7 @@ function drawMap() {
         ctx.drawImage(win.img, wa, wb, wc - wa, wd - wb);
       }
     }
+    if ($("#show-gaps").checked && visible.length) drawGaps(visible[visible.length - 1]);
     if ($("#show-age").checked && visible.length) {
       const lv = visible[visible.length - 1];
       const span = lv.side * lv.cell * (lv.tile_span || 1);  // blocks of tile_span subgrids
@@ -250,6 +251,71 @@ function drawMap() {
   }
   drawDraft();
   drawScale();
+  drawAxes();
+}
+// Axis ticks in metres east (bottom) and north (left) of the site origin, and a north arrow:
+// the labels drawn are kept in window.coex.axes (for tests and the curious).
+function drawAxes() {
+  const stepM = niceStep(90 / view.scale);
+  const [x0, y1] = s2w(0, 0), [x1, y0] = s2w(canvas.width, canvas.height);
+  const W = canvas.width, H = canvas.height, axes = { x: [], y: [] };
+  ctx.save();
+  ctx.fillStyle = "rgba(10,16,22,0.72)";
+  ctx.fillRect(0, H - 16, W, 16); ctx.fillRect(0, 0, 44, H - 16);
+  ctx.font = "10px system-ui"; ctx.fillStyle = "#b8c8d6"; ctx.strokeStyle = "#b8c8d6"; ctx.lineWidth = 1;
+  ctx.beginPath();
+  for (let x = Math.ceil(x0 / stepM) * stepM; x < x1; x += stepM) {
+    const [sx] = w2s(x, 0);
+    if (sx < 50 || sx > W - 20) continue;
+    ctx.moveTo(sx, H - 16); ctx.lineTo(sx, H - 12);
+    const t = `${+x.toFixed(1)}`;
+    ctx.fillText(t, sx - ctx.measureText(t).width / 2, H - 3);
+    axes.x.push(t);
+  }
+  for (let y = Math.ceil(y0 / stepM) * stepM; y < y1; y += stepM) {
+    const [, sy] = w2s(0, y);
+    if (sy < 10 || sy > H - 24) continue;
+    ctx.moveTo(44, sy); ctx.lineTo(40, sy);
+    const t = `${+y.toFixed(1)}`;
+    ctx.fillText(t, 38 - ctx.measureText(t).width, sy + 3);
+    axes.y.push(t);
+  }
+  ctx.stroke();
+  ctx.fillStyle = "#dce6ee";
+  ctx.fillText("east (m)", W - 52, H - 19);
+  ctx.save(); ctx.translate(10, 64); ctx.rotate(-Math.PI / 2); ctx.fillText("north (m)", -40, 0); ctx.restore();
+  // north arrow (north is always up)
+  const ax = W - 24, ay = 16;
+  ctx.fillStyle = "rgba(10,16,22,0.72)"; ctx.beginPath(); ctx.arc(ax, ay + 12, 15, 0, 2 * Math.PI); ctx.fill();
+  ctx.fillStyle = "#dce6ee"; ctx.beginPath();
+  ctx.moveTo(ax, ay); ctx.lineTo(ax + 6, ay + 16); ctx.lineTo(ax, ay + 12); ctx.lineTo(ax - 6, ay + 16); ctx.closePath(); ctx.fill();
+  ctx.font = "bold 10px system-ui"; ctx.fillText("N", ax - 3.5, ay + 25);
+  ctx.restore();
+  window.coex.axes = axes;
+}
+// Where the finest level shown has nothing, inside its extent: hatched, so that a coarser level
+// drawn underneath does not hide that the fine data is missing there.
+function drawGaps(lv) {
+  const span = lv.side * lv.cell * (lv.tile_span || 1);
+  const held = new Set(lv.tiles.map((t) => `${t[0]},${t[1]}`));
+  const ix0 = Math.floor(lv.x0 / span), iy0 = Math.floor(lv.y0 / span);
+  const ix1 = Math.ceil(lv.x1 / span), iy1 = Math.ceil(lv.y1 / span);
+  if ((ix1 - ix0) * (iy1 - iy0) > 40000) return;
+  ctx.save();
+  ctx.strokeStyle = "rgba(255,255,255,0.55)"; ctx.lineWidth = 1;
+  ctx.fillStyle = "rgba(10,16,22,0.55)";
+  let n = 0;
+  for (let ix = ix0; ix < ix1; ix++) for (let iy = iy0; iy < iy1; iy++) {
+    if (held.has(`${ix},${iy}`)) continue;
+    n++;
+    const [ax, ay] = w2s(ix * span, (iy + 1) * span), sz = span * view.scale;
+    ctx.fillRect(ax, ay, sz, sz);
+    ctx.beginPath();
+    for (let k = -sz; k < sz; k += 6) { ctx.moveTo(ax + Math.max(0, k), ay + Math.max(0, -k)); ctx.lineTo(ax + Math.min(sz, sz + k), ay + Math.min(sz, sz - k)); }
+    ctx.stroke();
+  }
+  ctx.restore();
+  window.coex.gaps = n;
 }
 function drawGrid() {
   const stepM = niceStep(100 / view.scale);
@@ -271,7 +337,7 @@ function niceStep(v) {
 }
 function drawScale() {
   const m = niceStep(120 / view.scale), px = m * view.scale;
-  const x = 12, y = canvas.height - 14;
+  const x = 54, y = canvas.height - 26;
   ctx.strokeStyle = "#dce6ee"; ctx.lineWidth = 2;
   ctx.beginPath(); ctx.moveTo(x, y); ctx.lineTo(x + px, y); ctx.stroke();
   ctx.fillStyle = "#dce6ee"; ctx.font = "11px system-ui";
@@ -304,8 +370,11 @@ function renderLevels() {
     cb.checked = !hiddenLevels.has(lv.level);
     cb.addEventListener("change", () => { if (cb.checked) hiddenLevels.delete(lv.level); else hiddenLevels.add(lv.level); drawMap(); });
     tb.append(el("tr", { "data-level": lv.level }, el("td", {}, cb), el("td", {}, lv.level),
-      el("td", {}, `${lv.cell} m`), el("td", { class: "n-subgrids" }, lv.subgrids),
-      el("td", {}, `${Math.round(lv.coverage_m2).toLocaleString()} m²`),
+      el("td", { title: lv.step > 1 ? `drawn at one pixel per ${lv.step} x ${lv.step} cells until you zoom in` : "" },
+        `${lv.cell} m${lv.step > 1 ? ` (drawn ${lv.cell * lv.step} m)` : ""}`), el("td", { class: "n-subgrids" }, lv.subgrids),
+      el("td", { title: "area held, and its share of the level's extent" },
+        `${Math.round(lv.coverage_m2).toLocaleString()} m² (${lv.fill_pct ?? "?"} %)`),
+      el("td", { class: "gaps", title: "blocks of the level's extent with no data (hatched with 'gaps')" }, lv.gap_note || "–"),
       el("td", {}, fmtAge(lv.newest_age)), el("td", {}, fmtAge(lv.oldest_age))));
   }
   const sel = $("#roi-level"), keep = sel.value;
@@ -316,11 +385,23 @@ function renderLevels() {
     sel.append(el("option", { value: k }, cell ? `${k} (${cell} m)` : `${k}`));
   }
   if (keep !== "") sel.value = keep;
-  if (m.zrange) {
-    $("#colorbar").style.background = "linear-gradient(90deg,#26145a,#285fa0,#28a08c,#8ccd50,#fae63c)";
-    $("#colorbar").title = `${m.zrange[0].toFixed(1)} m … ${m.zrange[1].toFixed(1)} m`;
-    $("#colorbar").textContent = "";
+  renderColorbar();
+}
+// The colour ramp with its numbers: seafloor elevation in metres (negative = below the surface
+// datum), the same scale for every level.
+function renderColorbar() {
+  const m = S.map, box = $("#colorbar");
+  if (!m || !m.zrange) { box.replaceChildren(); return; }
+  const [lo, hi] = m.zrange, n = 5, ticks = [];
+  const digits = hi - lo < 5 ? 1 : 0;
+  for (let k = 0; k < n; k++) {
+    const v = lo + ((hi - lo) * k) / (n - 1);
+    ticks.push(el("span", { class: "tick", style: `left:${(100 * k) / (n - 1)}%` }, `${v.toFixed(digits)}`));
   }
+  box.replaceChildren(el("span", { class: "cb-title" }, "seafloor elevation (m)"),
+    el("div", { class: "cb-wrap" }, el("div", { class: "cb-ramp" }), el("div", { class: "cb-ticks" }, ...ticks)));
+  const age = $("#show-age").checked;
+  $("#age-legend").classList.toggle("hidden", !age);
 }
 
 canvas.addEventListener("mousedown", (ev) => {
@@ -432,7 +513,8 @@ function showRoiBar() {
 $("#draw-btn").addEventListener("click", () => setDraw(!drawMode));
 $("#survey-btn").addEventListener("click", () => { if (surveyMode) endSurvey(); else startSurvey(); drawMap(); });
 $("#fit-btn").addEventListener("click", () => { view.auto = true; drawMap(); });
-$("#show-age").addEventListener("change", drawMap);
+$("#show-age").addEventListener("change", () => { $("#age-legend").classList.toggle("hidden", !$("#show-age").checked); drawMap(); });
+$("#show-gaps").addEventListener("change", drawMap);
 $("#show-track").addEventListener("change", drawMap);
 $("#roi-cancel").addEventListener("click", () => { roi = null; $("#roi-bar").classList.add("hidden"); drawMap(); });
 $("#roi-send").addEventListener("click", async () => {
@@ -987,6 +1069,20 @@ function renderQueues() {
 }
 
 // ------------------------------------------------------------------ header, commands, log
+// Dive time: since the first vehicle status the console holds.
+function diveStart() {
+  const tr = S.vehicle && S.vehicle.track;
+  return tr && tr.length ? tr[0][0] : null;
+}
+function fmtDur(s) {
+  s = Math.max(0, Math.floor(s));
+  return `${Math.floor(s / 3600)}:${pad(Math.floor(s / 60) % 60)}:${pad(s % 60)}`;
+}
+function showClock() {
+  const t0 = diveStart();
+  $("#clock").textContent = fmtT(S.now) + (t0 !== null ? ` · dive ${fmtDur(S.now - t0)}` : "");
+  $("#clock").title = "time of day (UTC) of the dive, and time since the first vehicle status";
+}
 function renderVehicle() {
   const v = S.vehicle && S.vehicle.status;
   const box = $("#vehicle-status");
@@ -1043,7 +1139,7 @@ function apply(data, full) {
   for (const k of Object.keys(RENDER)) {
     if (k in data) { S[k] = data[k]; RENDER[k](); S.versions[k] = (S.versions[k] || 0) + (full ? 0 : 1); }
   }
-  $("#clock").textContent = fmtT(S.now);
+  showClock();
   applyRole();
   window.coex.updates += 1;
 }
@@ -1092,7 +1188,7 @@ function connect() {
   es.addEventListener("update", (ev) => { apply(JSON.parse(ev.data), false); });
   es.addEventListener("clock", (ev) => {
     S.now = JSON.parse(ev.data).now;
-    $("#clock").textContent = fmtT(S.now);
+    showClock();
     renderVehicle(); drawTdma();
   });
   es.onopen = () => { $("#conn").textContent = "live"; $("#conn").className = "conn on"; window.coex.connected = true; };
