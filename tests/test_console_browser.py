@@ -633,3 +633,66 @@ def test_the_map_has_axis_labels_a_north_arrow_and_colour_bar_numbers(browser: A
         if os.environ.get("COEX_AXES_SHOT"):
             shutil.copy(tmp_path / "axes.png", os.environ["COEX_AXES_SHOT"])
     assert not errors, errors
+
+
+def test_clicking_an_image_opens_it_full_size(browser: Any, tmp_path: Path) -> None:
+    """A card opens the viewer: the picture at its full size (one image pixel a screen pixel
+    at 100 %), its bytes and quality layers; its position and footprint are on the map."""
+    errors: list[str] = []
+    with sample_console(browser, ConsoleHub, [], errors) as page:
+        page.set_viewport_size({"width": 1280, "height": 1000})
+        page.wait_for_function(
+            "[...document.querySelectorAll('#gallery .card img')].filter(i => i.naturalWidth > 0).length === 3",
+            timeout=10_000)
+        it = page.evaluate("window.coex.S.images.items.find(i => i.image_id === 1)")
+        page.click('#gallery .card[data-image="1"] img')
+        page.wait_for_selector("#viewer:not(.hidden)")
+        page.wait_for_function("document.querySelector('#viewer-img').naturalWidth > 0", timeout=10_000)
+        assert page.evaluate("document.querySelector('#viewer-img').naturalWidth") == it["width"]
+        meta = page.inner_text("#viewer-meta")
+        assert "bytes" in meta and "quality layers" in meta and "of" in meta, meta
+        assert "#1" in page.inner_text("#viewer-title")
+        page.click("#viewer-zoom")  # 100 %: image pixels as they are
+        assert page.evaluate("document.querySelector('#viewer-img').getBoundingClientRect().width") == it["width"]
+        page.screenshot(path=str(tmp_path / "viewer.png"))
+        if os.environ.get("COEX_VIEWER_SHOT"):
+            shutil.copy(tmp_path / "viewer.png", os.environ["COEX_VIEWER_SHOT"])
+        page.keyboard.press("Escape")
+        page.wait_for_selector("#viewer.hidden", state="attached")
+        # the image's position on the map opens it too
+        x, y = page.evaluate(f"window.coex.pagePoint({it['x']}, {it['y']})")
+        page.mouse.click(x, y)
+        page.wait_for_selector("#viewer:not(.hidden)")
+    assert not errors, errors
+
+
+def test_a_by_time_request_names_the_image_that_answered_it(browser: Any) -> None:
+    """"previous" before 09:57:40 is answered by image #0 (taken 09:56:40): the command says
+    so, and that image's card is marked."""
+    from coex_core.channel.events import CommandResult
+
+    state = ConsoleState(schedules={0: Schedule.simple([1, 2, 2, 1, 2, 2], 20.0, 2.0)})
+    feed_sample(state, t0=T0)
+    sent: list[m.Message] = []
+    hub = ConsoleHub(state, sent.append, lambda: T0)
+    errors: list[str] = []
+    with serve(hub, "127.0.0.1", 0) as srv:
+        page = browser.new_page(viewport={"width": 1280, "height": 1000})
+        page.on("pageerror", lambda e: errors.append(str(e)))
+        page.goto(srv.url)
+        page.wait_for_function("window.coex && window.coex.updates > 0", timeout=10_000)
+        page.wait_for_selector('#gallery .card[data-image="0"]', timeout=10_000)
+        page.fill("#img-time", "09:57:40")
+        page.click('.img-time-btn[data-dir="previous"]')
+        page.wait_for_function("document.querySelectorAll('#commands li[data-status]').length === 1",
+                               timeout=10_000)
+        (asked,) = sent
+        hub.update(lambda st: st.apply_event(CommandResult(T0 + 5, asked.command_id,
+                                                           m.AckStatus.ACCEPTED, asked)))
+        page.wait_for_selector('#commands li[data-status="accepted"] .answer', timeout=10_000)
+        text = page.inner_text('#commands li[data-status="accepted"]')
+        assert "answered by image #0 taken 09:56:40" in text, text
+        page.wait_for_selector('#gallery .card.answer[data-image="0"]', timeout=10_000)
+        assert page.locator("#gallery .card.answer").count() == 1
+        page.close()
+    assert not errors, errors

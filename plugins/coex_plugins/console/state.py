@@ -109,6 +109,18 @@ def elevation_rgb(z: FloatArray, lo: float, hi: float, cell: float = 1.0) -> npt
     return out[::-1]
 
 
+#: The side of an image thumbnail (px); the viewer shows the full picture.
+THUMB_SIDE = 320
+
+
+def _picture(a: npt.NDArray[Any], max_side: int) -> npt.NDArray[np.uint8]:
+    """An image as 8-bit RGB or grey, decimated to at most ``max_side`` pixels a side."""
+    if a.ndim == 3 and a.shape[2] >= 3:
+        step = max(1, math.ceil(max(a.shape[:2]) / max_side))
+        return np.ascontiguousarray(a[::step, ::step, :3]).astype(np.uint8)
+    return _grey_thumbnail(a, max_side)
+
+
 def _grey_thumbnail(img: npt.NDArray[Any], max_side: int = 160) -> npt.NDArray[np.uint8]:
     a = np.asarray(img)
     if a.ndim == 3 and a.shape[2] == 1:
@@ -249,6 +261,10 @@ class ConsoleState:
         self.images: dict[int, _Image] = {}
         self.progress_info: dict[str, Any] | None = None
         self.image_queries: list[dict[str, Any]] = []
+        #: (time, altitude) of the vehicle's statuses: where an image's footprint comes from
+        self.altitudes: deque[tuple[float, float]] = deque(maxlen=2000)
+        #: The camera's field of view in degrees (across, along): image footprints on the map.
+        self.camera_fov = (60.0, 45.0)
         # series
         self.series: dict[int, dict[str, Any]] = {}
         self.series_requests: list[dict[str, Any]] = []
@@ -277,6 +293,10 @@ class ConsoleState:
         self._map_summary = {}
         self._targets_cache = (None, [])
         self._survey_sig, self._survey_rows = None, {}
+        if not isinstance(getattr(self, "altitudes", None), deque):
+            self.altitudes = deque(maxlen=2000)
+        if not hasattr(self, "camera_fov"):
+            self.camera_fov = (60.0, 45.0)
         # a console saved before a section or an attribute existed
         for s in SECTIONS:
             self.versions.setdefault(s, 0)
@@ -438,6 +458,10 @@ class ConsoleState:
         self.status, self.status_t = s, t
         if not self.track or self.track[-1][1:3] != (s.x, s.y):
             self.track.append((t, s.x, s.y, s.depth))
+        if not isinstance(getattr(self, "altitudes", None), deque):
+            self.altitudes = deque(maxlen=2000)
+        if s.altitude is not None:
+            self.altitudes.append((t, float(s.altitude)))
         self._touch("vehicle")
 
     # -------------------------------------------------------------------------- map
@@ -554,20 +578,31 @@ class ConsoleState:
         img.version += 1
         self._touch("images")
 
-    def image_png(self, image_id: int) -> bytes | None:
-        """The newest decoded picture of an image, as a thumbnail PNG (None before any)."""
+    def image_png(self, image_id: int, full: bool = False) -> bytes | None:
+        """The newest decoded picture of an image, as a thumbnail PNG (at most
+        :data:`THUMB_SIDE` px), or at full size with ``full`` (None before any)."""
         img = self.images.get(image_id)
         if img is None or img.decoded is None:
             return None
+        if full:
+            return png_bytes(_picture(np.asarray(img.decoded), 1 << 16))
         if img.thumb is None or img.thumb_version != img.decoded_version:
-            a = np.asarray(img.decoded)
-            if a.ndim == 3 and a.shape[2] >= 3:
-                step = max(1, math.ceil(max(a.shape[:2]) / 160))
-                rgb = np.ascontiguousarray(a[::step, ::step, :3]).astype(np.uint8)
-            else:
-                rgb = _grey_thumbnail(a)
-            img.thumb, img.thumb_version = png_bytes(rgb), img.decoded_version
+            img.thumb = png_bytes(_picture(np.asarray(img.decoded), THUMB_SIDE))
+            img.thumb_version = img.decoded_version
         return img.thumb
+
+    def by_time_answer(self, msg: m.ImageByTimeRequest, now: float) -> _Image | None:
+        """The image that answered an accepted by-time request: the one the vehicle's rule
+        picks (nearest, newest before, oldest after the time) among the images topside knows."""
+        t = unwrap(msg.stamp, now)
+        known = [i for i in self.images.values() if i.t is not None]
+        if msg.direction == m.TimeDirection.BEFORE:
+            known = [i for i in known if cast(float, i.t) < t - 0.5]
+            return max(known, key=lambda i: cast(float, i.t), default=None)
+        if msg.direction == m.TimeDirection.AFTER:
+            known = [i for i in known if cast(float, i.t) > t + 0.5]
+            return min(known, key=lambda i: cast(float, i.t), default=None)
+        return min(known, key=lambda i: abs(cast(float, i.t) - t), default=None)
 
     # ------------------------------------------------------------------ time series
     def _series_product(self, data: Any, meta: dict[str, Any]) -> None:
@@ -1061,10 +1096,34 @@ class ConsoleState:
                 "goal": None if img.goal is None else {"kind": img.goal[0], "value": img.goal[1]},
                 "thumb": (f"/image/{img.image_id}.png?v={img.decoded_version}"
                           if img.decoded is not None else None),
+                "full": (f"/image/{img.image_id}.png?full=1&v={img.decoded_version}"
+                         if img.decoded is not None else None),
+                "layers": info.get("layers"), "layers_complete": info.get("layers_complete"),
+                "packets": info.get("packets"), "packets_used": info.get("packets_used"),
+                "bytes_used": info.get("bytes_used"), "complete": info.get("complete"),
+                "footprint": self._footprint(img),
                 "meta": img.decoded_meta,
             })
         return {"items": items, "queries": self.image_queries[-10:],
                 "progress": self.progress_info}
+
+    def _footprint(self, img: _Image) -> list[float] | None:
+        """The seafloor an image covers, ``[width, height]`` in metres: the camera's field of
+        view (:attr:`camera_fov`, degrees across and along) at the altitude the vehicle reported
+        nearest the image's time. None without a position or an altitude."""
+        info = img.decoded_meta
+        if info.get("x") is None or img.t is None:
+            return None
+        alt = None
+        best = math.inf
+        for t, a in getattr(self, "altitudes", ()):
+            if abs(t - img.t) < best and a is not None:
+                best, alt = abs(t - img.t), a
+        if alt is None or best > 300:
+            return None
+        fx, fy = getattr(self, "camera_fov", (60.0, 45.0))
+        return [_num(2 * alt * math.tan(math.radians(fx) / 2), 2),
+                _num(2 * alt * math.tan(math.radians(fy) / 2), 2)]
 
     def _snap_series(self) -> dict[str, Any]:
         chans = []
@@ -1139,7 +1198,13 @@ class ConsoleState:
                     status = str(meta.get("state") or status)
                     if status in ("rejected", "aborted", "given up") and meta.get("text"):
                         reason = str(meta["text"])
+            answer, img = "", None
+            if isinstance(c.message, m.ImageByTimeRequest) and status == "accepted":
+                img = self.by_time_answer(c.message, c.sent)
+                answer = (f"answered by image #{img.image_id} taken {hms(img.t)}"
+                          if img is not None else "answered: the image is on its way")
             out.append({"command_id": c.command_id, "kind": c.kind, "summary": c.summary,
+                        "answer": answer, "image_id": None if img is None else img.image_id,
                         "sent": _num(c.sent, 1), "status": status,
                         "answered": _num(c.answered, 1), "by": getattr(c, "by", ""),
                         "reason": reason})

@@ -232,6 +232,7 @@ function drawMap() {
     }
   }
   if (S.vehicle && $("#show-track").checked) drawTrack();
+  if ($("#show-images").checked) drawImages();
   drawSurveys();
   if (m) {
     for (const t of m.targets) {
@@ -360,6 +361,37 @@ function drawTrack() {
     ctx.fill(); ctx.stroke(); ctx.restore();
   }
 }
+// Where the images were taken: their footprint (camera field of view at the vehicle's altitude)
+// and a dot; the one open in the viewer, and images answering a request, stand out.
+function drawImages() {
+  if (!S.images) return;
+  const ans = answeredBy();
+  ctx.save();
+  for (const it of S.images.items) {
+    if (it.x === null || it.x === undefined) continue;
+    const [x, y] = w2s(it.x, it.y);
+    const hot = it.image_id === viewer.id || ans.has(it.image_id);
+    if (it.footprint) {
+      const w = it.footprint[0] * view.scale, h = it.footprint[1] * view.scale;
+      ctx.strokeStyle = hot ? "#ffffff" : "rgba(120,230,255,0.8)"; ctx.lineWidth = hot ? 2 : 1;
+      ctx.fillStyle = "rgba(120,230,255,0.10)";
+      ctx.fillRect(x - w / 2, y - h / 2, w, h); ctx.strokeRect(x - w / 2, y - h / 2, w, h);
+    }
+    ctx.fillStyle = hot ? "#ffffff" : "#78e6ff";
+    ctx.beginPath(); ctx.arc(x, y, hot ? 4 : 3, 0, 2 * Math.PI); ctx.fill();
+    if (hot || view.scale > 4) label(`#${it.image_id}`, x + 6, y - 5, "#78e6ff");
+  }
+  ctx.restore();
+}
+function pickImage(p) {
+  if (!S.images || !$("#show-images").checked) return false;
+  for (const it of S.images.items) {
+    if (it.x === null || it.x === undefined) continue;
+    const [x, y] = w2s(it.x, it.y);
+    if (Math.hypot(x - p[0], y - p[1]) < 7) { openViewer(it.image_id); return true; }
+  }
+  return false;
+}
 function renderLevels() {
   const tb = $("#levels-table tbody");
   tb.replaceChildren();
@@ -456,7 +488,7 @@ window.addEventListener("keydown", (ev) => {
 window.addEventListener("mouseup", (ev) => {
   if (drag && drag.kind === "pan") {
     const p = evPos(ev);
-    if (Math.hypot(p[0] - drag.p[0], p[1] - drag.p[1]) < 3) pickTrackTime(p);
+    if (Math.hypot(p[0] - drag.p[0], p[1] - drag.p[1]) < 3 && !pickImage(p)) pickTrackTime(p);
   }
   if (drag && drag.kind === "survey") {
     const [ax, ay] = w2s(...draft.a), [bx, by] = w2s(...draft.b);
@@ -516,6 +548,7 @@ $("#fit-btn").addEventListener("click", () => { view.auto = true; drawMap(); });
 $("#show-age").addEventListener("change", () => { $("#age-legend").classList.toggle("hidden", !$("#show-age").checked); drawMap(); });
 $("#show-gaps").addEventListener("change", drawMap);
 $("#show-track").addEventListener("change", drawMap);
+$("#show-images").addEventListener("change", drawMap);
 $("#roi-cancel").addEventListener("click", () => { roi = null; $("#roi-bar").classList.add("hidden"); drawMap(); });
 $("#roi-send").addEventListener("click", async () => {
   if (!roi) return;
@@ -802,9 +835,12 @@ function makeCard(it) {
   const meta = el("div", { class: "meta" });
   const bar = el("div", { class: "bar" }, el("div", { style: "width:0%" }));
   const bytes = el("div", { class: "meta" });
-  const kind = el("select", {},
-    ...["fraction", "layer", "full", "skip"].map((k) => el("option", { value: k }, k)));
-  const val = el("input", { value: "50", title: "% or layer" });
+  const kind = el("select", { title: "how much of this image to transfer" },
+    ...[["fraction", "% of bytes"], ["layer", "up to layer"], ["full", "all of it"], ["skip", "skip it"]]
+      .map(([k, t]) => el("option", { value: k }, t)));
+  const val = el("input", { value: "50", title: "% of the bytes, or the quality layer" });
+  kind.addEventListener("change", () => { val.disabled = kind.value === "full" || kind.value === "skip"; });
+  root.addEventListener("click", (ev) => { if (!ev.target.closest(".goal")) openViewer(it.image_id); });
   const set = el("button", { title: "transfer this image up to the goal" }, "Goal");
   set.addEventListener("click", () => act("set_image_goal", { image_id: it.image_id, kind: kind.value, value: Number(val.value || 0) }));
   root.append(pic, meta, bar, bytes, el("div", { class: "goal" }, kind, val, set));
@@ -822,7 +858,51 @@ function updateCard(c, it) {
   const goal = it.goal ? ` · goal ${it.goal.kind.toLowerCase()}${it.goal.value ? " " + it.goal.value : ""}` : "";
   c.bytes.textContent = `${fmtBytes(it.bytes_received)} / ${fmtBytes(it.total_bytes)}${goal}`;
   c.root.classList.toggle("current", S.images.progress && S.images.progress.current === it.image_id);
+  const answered = answeredBy().get(it.image_id);
+  c.root.classList.toggle("answer", !!answered);
+  c.root.title = answered ? `answers: ${answered}` : "click to open full size";
+  if (viewer.id === it.image_id) showViewer();
 }
+// image id -> the by-time request it answered (the newest)
+function answeredBy() {
+  const out = new Map();
+  for (const c of S.commands || []) if (c.image_id !== null && c.image_id !== undefined && !out.has(c.image_id)) out.set(c.image_id, c.summary);
+  return out;
+}
+
+// ------------------------------------------------------------------ full-size viewer
+const viewer = { id: null, fit: true };
+function openViewer(id) { viewer.id = id; showViewer(); }
+function closeViewer() { viewer.id = null; $("#viewer").classList.add("hidden"); }
+function showViewer() {
+  const it = S.images && S.images.items.find((i) => i.image_id === viewer.id);
+  if (!it) return;
+  $("#viewer").classList.remove("hidden");
+  const img = $("#viewer-img");
+  if (it.full && img.dataset.src !== it.full) { img.src = it.full; img.dataset.src = it.full; }
+  img.classList.toggle("hidden", !it.full);
+  $("#viewer-none").classList.toggle("hidden", !!it.full);
+  img.classList.toggle("fit", viewer.fit);
+  $("#viewer-zoom").textContent = viewer.fit ? "100 %" : "fit";
+  const pos = it.x !== null && it.x !== undefined ? `(${Number(it.x).toFixed(1)}, ${Number(it.y).toFixed(1)}) m` : "–";
+  const fp = it.footprint ? `about ${it.footprint[0].toFixed(1)} × ${it.footprint[1].toFixed(1)} m of seafloor` : "–";
+  const layers = it.layers ? `${it.layers_complete ?? 0} of ${it.layers} complete` : "–";
+  const goal = it.goal ? `${it.goal.kind.toLowerCase()}${it.goal.value ? " " + it.goal.value : ""}` : "default";
+  const rows = [["image", `#${it.image_id}`], ["taken", fmtT(it.t)], ["position", pos],
+    ["footprint", fp], ["size", it.width ? `${it.width} × ${it.height} px` : "–"],
+    ["bytes", `${fmtBytes(it.bytes_received)} of ${fmtBytes(it.total_bytes)}${it.fraction !== null && it.fraction !== undefined ? ` (${(100 * it.fraction).toFixed(1)} %)` : ""}`],
+    ["decoded from", it.bytes_used !== undefined && it.bytes_used !== null ? `${fmtBytes(it.bytes_used)} in ${it.packets_used} of ${it.packets} packets` : "–"],
+    ["quality layers", layers], ["goal", goal]];
+  const ans = answeredBy().get(it.image_id);
+  if (ans) rows.push(["answers", ans]);
+  $("#viewer-meta").replaceChildren(...rows.map(([k, v]) => el("tr", {}, el("th", {}, k), el("td", {}, v))));
+  $("#viewer-title").textContent = `Image #${it.image_id} · ${fmtT(it.t)}${it.complete ? " · complete" : ""}`;
+}
+$("#viewer-close").addEventListener("click", closeViewer);
+$("#viewer").addEventListener("click", (ev) => { if (ev.target.id === "viewer") closeViewer(); });
+$("#viewer-zoom").addEventListener("click", () => { viewer.fit = !viewer.fit; showViewer(); });
+$("#viewer-full").addEventListener("click", () => { if (viewer.id !== null) act("set_image_goal", { image_id: viewer.id, kind: "full", value: 0 }); });
+window.addEventListener("keydown", (ev) => { if (ev.key === "Escape" && viewer.id !== null) closeViewer(); });
 for (const b of document.querySelectorAll(".img-time-btn")) {
   b.addEventListener("click", () => {
     let t;
@@ -1129,9 +1209,10 @@ function renderOther() {
 }
 
 const RENDER = { vehicle: () => { renderVehicle(); drawMap(); }, map: () => { renderLevels(); drawMap(); },
+  images: () => { renderImages(); drawMap(); },
   surveys: () => { renderSurveys(); drawMap(); },
-  images: renderImages, series: renderSeries, other: renderOther, link: renderLink, queues: renderQueues,
-  commands: renderCommands, log: renderLog };
+  series: renderSeries, other: renderOther, link: renderLink, queues: renderQueues,
+  commands: () => { renderCommands(); if (S.images) renderImages(); }, log: renderLog };
 
 function apply(data, full) {
   if (data.now !== undefined) S.now = data.now;
