@@ -696,3 +696,71 @@ def test_a_by_time_request_names_the_image_that_answered_it(browser: Any) -> Non
         assert page.locator("#gallery .card.answer").count() == 1
         page.close()
     assert not errors, errors
+
+
+def test_a_region_over_unsurveyed_ground_waits_then_fills(browser: Any, tmp_path: Path) -> None:
+    """A region asked where the vehicle has not surveyed yet shows "waiting for data" (the
+    request stands on the vehicle), then "in flight" and "filled" when its subgrids arrive; the
+    bar says the size sent (whole 8 m subgrids), not only the size drawn."""
+    import numpy as np
+
+    from coex_plugins.bathymetry import BathymetrySender, encode_subgrid
+    from coex_plugins.console.testing import drain
+
+    uri = f"loopback://roi-{uuid.uuid4().hex[:8]}?rate=100000&mtu=1024"
+    app = build_topside(uri, "127.0.0.1", 0, schedule=SCHEDULE)
+    app.node.receiver("bathymetry").auto_fill = False  # only the operator's request
+    vehicle = VehicleEnd(uri)
+    app.start()
+    errors: list[str] = []
+    try:
+        now = time.time()
+        bathy = BathymetrySender({"send_delay": 0.0, "levels": 4})
+        bathy.ingest(survey_points(), now)
+        vehicle.send(drain(bathy, now))
+        page = browser.new_page(viewport={"width": 1280, "height": 1000})
+        page.on("pageerror", lambda e: errors.append(str(e)))
+        page.goto(app.url)
+        page.wait_for_function("window.coex && window.coex.connected && document.querySelectorAll('#levels-table tbody tr').length >= 3",
+                               timeout=20_000)
+        # a 20 x 12 m box east of the survey: 3 x 2 subgrids of 8 m are asked (24 x 16 m)
+        page.click("#draw-btn")
+        a = page.evaluate("window.coex.pagePoint(170, 30)")
+        b = page.evaluate("window.coex.pagePoint(190, 18)")
+        page.mouse.move(a[0], a[1])
+        page.mouse.down()
+        page.mouse.move(b[0], b[1])
+        page.mouse.up()
+        page.select_option("#roi-level", "0")
+        desc = page.inner_text("#roi-desc")
+        times = "\u00d7"
+        assert f"drawn 20 {times} 12 m" in desc and f"asks 24 {times} 16 m (3 {times} 2 subgrids of 8 m)" in desc, desc
+        page.click("#roi-send")
+        req = vehicle.wait_for(m.MapRoiRequest)
+        while (req.level, req.w, req.h) != (0, 3, 2):  # the receiver's own gap filling
+            req = vehicle.wait_for(m.MapRoiRequest)
+        assert "24 x 16 m at (168, 16) m" in page.inner_text("#commands")
+        # not surveyed yet: the request stands on the vehicle
+        vehicle.send([m.MapRoiReply(req.request_id, 0, 0, 6)])
+        page.wait_for_function("window.coex.S.map.requests.some(r => r.state === 'waiting for data')",
+                               timeout=15_000)
+        assert "6 subgrids not surveyed yet" in page.inner_text("#commands")
+        # surveyed now: the vehicle queues them, they arrive, and it has nothing newer
+        vehicle.send([m.MapRoiReply(req.request_id, 0, 6, 0)])
+        page.wait_for_function("window.coex.S.map.requests.some(r => r.state === 'in flight')", timeout=15_000)
+        yy, xx = np.mgrid[0:8, 0:8]
+        sgs = [encode_subgrid(-450 + xx + yy, np.ones((8, 8), bool), level=0, ix=ix, iy=iy,
+                              stamp=to_stamp(time.time()), resolution=1.0, vertical_resolution=0.1)
+               for ix in range(req.x0, req.x0 + 3) for iy in range(req.y0, req.y0 + 2)]
+        vehicle.send([*sgs, m.MapRoiReply(req.request_id, 0, 0, 0)])
+        page.wait_for_function("window.coex.S.map.requests.some(r => r.state === 'filled')", timeout=15_000)
+        assert "filled (6 subgrids)" in page.inner_text("#commands")
+        page.wait_for_timeout(300)
+        page.screenshot(path=str(tmp_path / "roi.png"))
+        if os.environ.get("COEX_ROI_SHOT"):
+            shutil.copy(tmp_path / "roi.png", os.environ["COEX_ROI_SHOT"])
+        page.close()
+    finally:
+        app.close()
+        vehicle.transport.close()
+    assert not errors, errors

@@ -156,6 +156,8 @@ class _RoiRequest:
     h: int
     sent: float
     region: Any
+    #: the most subgrids the vehicle said it queued for it (0: it never sent anything)
+    got: int = 0
 
 
 @persistent("console.Image")
@@ -1066,18 +1068,30 @@ class ConsoleState:
         rid = region.request_id if region.request_id is not None else -1
         queued = getattr(region, "queued", None)
         waiting = getattr(region, "waiting", 0)
+        got = max(int(getattr(r, "got", 0) or 0), int(queued or 0))
+        r.got = got
+        # ``status``: the request as the receiver sends it; ``state``: what it means for the
+        # operator (requested, in flight, waiting for data, filled, nothing to send)
         if region.done:
             status = "nothing newer"
+            state = "filled" if got else "nothing to send"
         elif queued:
-            status = "queued"
+            status, state = "queued", "in flight"
         elif waiting:
-            status = "waiting for survey"
+            status, state = "waiting for survey", "waiting for data"
         elif region.sends:
-            status = "sent"
+            status, state = "sent", "requested"
         else:
-            status = "waiting"
+            status, state = "waiting", "requested"
+        text = {"requested": "asked" + (f" ({region.sends}x)" if region.sends > 1 else "")
+                             if region.sends else "waiting for a topside slot",
+                "in flight": f"{queued} subgrid{'s' if queued != 1 else ''} on the way",
+                "waiting for data": f"{waiting} subgrid{'s' if waiting != 1 else ''} not surveyed yet",
+                "filled": f"filled ({got} subgrid{'s' if got != 1 else ''})",
+                "nothing to send": "nothing to send: topside had it all"}[state]
         return {"request_id": rid, "level": r.level, "x0": r.x0, "y0": r.y0,
-                "w": r.w, "h": r.h, "status": status, "queued": queued, "awaiting_survey": waiting,
+                "w": r.w, "h": r.h, "status": status, "state": state, "text": text,
+                "got": got, "queued": queued, "awaiting_survey": waiting,
                 "sent": _num(r.sent, 1),
                 "rect": [r.x0 * span, r.y0 * span, (r.x0 + r.w) * span, (r.y0 + r.h) * span]}
 
@@ -1189,7 +1203,8 @@ class ConsoleState:
             c = self.commands[key]
             status, reason = c.status, getattr(c, "reason", "")
             if c.roi_key is not None and c.roi_key in self.roi:
-                status = self._snap_roi(self.roi[c.roi_key])["status"]
+                roi = self._snap_roi(self.roi[c.roi_key])
+                status, reason = roi["state"], roi["text"]
             elif isinstance(c.message, m.SurveyCommand):  # the survey's own state
                 if surveys is None:
                     surveys = self._survey_metas()

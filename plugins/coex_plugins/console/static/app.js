@@ -217,18 +217,15 @@ function drawMap() {
         ctx.fillRect(ax, ay, sz, sz);
       }
     }
+    placed.length = 0;
     for (const r of m.requests) {
       const [ax, ay] = w2s(r.rect[0], r.rect[3]), [bx, by] = w2s(r.rect[2], r.rect[1]);
-      const style = { waiting: ["#f0b443", [6, 4]], sent: ["#f0b443", [6, 4]],
-        queued: ["#e8e05a", []], "waiting for survey": ["#6fb7ff", [2, 3]],
-        "nothing newer": ["#58c47c", []] }[r.status] || ["#f0b443", [6, 4]];
+      const style = ROI_STYLE[r.state] || ROI_STYLE.requested;
       ctx.strokeStyle = style[0]; ctx.setLineDash(style[1]); ctx.lineWidth = 2;
+      if (style[2]) { ctx.fillStyle = style[2]; ctx.fillRect(ax, ay, bx - ax, by - ay); }
       ctx.strokeRect(ax, ay, bx - ax, by - ay);
       ctx.setLineDash([]);
-      ctx.fillStyle = style[0]; ctx.font = "11px system-ui";
-      const extra = r.status === "waiting for survey" ? ` (${r.awaiting_survey} not surveyed yet)`
-        : r.queued ? ` (${r.queued})` : "";
-      ctx.fillText(`L${r.level} ${r.status}${extra}`, ax + 3, ay + 12);
+      placeLabel(`L${r.level} ${r.text}`, ax + 3, ay + 12, style[0]);
     }
   }
   if (S.vehicle && $("#show-track").checked) drawTrack();
@@ -239,9 +236,9 @@ function drawMap() {
       const [x, y] = w2s(t.x, t.y);
       ctx.strokeStyle = "#ef5f5f"; ctx.lineWidth = 2;
       ctx.beginPath(); ctx.arc(x, y, 9, 0, 2 * Math.PI); ctx.stroke();
-      ctx.fillStyle = "#ffb0b0"; ctx.font = "11px system-ui";
-      const h = t.height !== undefined && t.height !== null ? ` +${Number(t.height).toFixed(1)} m` : "";
-      ctx.fillText(`target${h}`, x + 11, y - 6);
+      const h = t.height !== undefined && t.height !== null ? ` ${Number(t.height).toFixed(1)} m high` : "";
+      const size = t.cells && t.level !== undefined && S.map.meta ? `, ~${Math.round(t.cells * (S.map.meta.resolution * 2 ** t.level) ** 2)} m²` : "";
+      placeLabel(`target${h}${size}`, x + 11, y - 6, "#ffb0b0");
     }
   }
   if (roi) {
@@ -249,6 +246,12 @@ function drawMap() {
     const [bx, by] = w2s(Math.max(roi[0], roi[2]), Math.min(roi[1], roi[3]));
     ctx.fillStyle = "rgba(79,179,255,0.15)"; ctx.fillRect(ax, ay, bx - ax, by - ay);
     ctx.strokeStyle = "#4fb3ff"; ctx.lineWidth = 2; ctx.strokeRect(ax, ay, bx - ax, by - ay);
+    const sn = !$("#roi-bar").classList.contains("hidden") && roiSnapped();
+    if (sn) {
+      const [cx, cy] = w2s(sn.x0, sn.y1), [dx, dy] = w2s(sn.x1, sn.y0);
+      ctx.setLineDash([3, 3]); ctx.strokeStyle = "#ffffff"; ctx.lineWidth = 1;
+      ctx.strokeRect(cx, cy, dx - cx, dy - cy); ctx.setLineDash([]);
+    }
   }
   drawDraft();
   drawScale();
@@ -317,6 +320,24 @@ function drawGaps(lv) {
   }
   ctx.restore();
   window.coex.gaps = n;
+}
+// region requests: one look per state (the legend under the map says which)
+const ROI_STYLE = { requested: ["#f0b443", [6, 4]], "in flight": ["#e8e05a", [], "rgba(232,224,90,0.10)"],
+  "waiting for data": ["#6fb7ff", [2, 3], "rgba(111,183,255,0.10)"], filled: ["#58c47c", []],
+  "nothing to send": ["#9aa6b2", [1, 4]] };
+// labels placed so that they do not cover one another (tried below, above, then further down)
+const placed = [];
+function placeLabel(text, x, y, color) {
+  ctx.font = "bold 11px system-ui";
+  const w = ctx.measureText(text).width + 6;
+  x = Math.max(48, Math.min(x, canvas.width - w - 4));  // inside the map, clear of the axis
+  for (const dy of [0, 15, -15, 30, -30, 45, 60, 75]) {
+    const r = [x - 3, y + dy - 11, w, 15];
+    if (!placed.some((q) => r[0] < q[0] + q[2] && q[0] < r[0] + r[2] && r[1] < q[1] + q[3] && q[1] < r[1] + r[3])) {
+      placed.push(r); label(text, x, y + dy, color); return;
+    }
+  }
+  placed.push([x - 3, y - 11, w, 15]); label(text, x, y, color);
 }
 function drawGrid() {
   const stepM = niceStep(100 / view.scale);
@@ -537,11 +558,25 @@ function setDraw(on) {
   $("#draw-btn").classList.toggle("active", on);
   canvas.classList.toggle("drawing", on);
 }
+// The region the vehicle is asked for: whole subgrids of the level, so the box drawn grows to
+// the subgrid edges; the bar says the size drawn and the size sent, and the map shows it dashed.
+function roiSnapped() {
+  if (!roi || !S.map || !S.map.meta) return null;
+  const k = Number($("#roi-level").value || 0), side = S.map.meta.resolution * 2 ** k * S.map.meta.subgrid_side;
+  const x0 = Math.floor(Math.min(roi[0], roi[2]) / side) * side, y0 = Math.floor(Math.min(roi[1], roi[3]) / side) * side;
+  const x1 = (Math.floor(Math.max(roi[0], roi[2]) / side) + 1) * side, y1 = (Math.floor(Math.max(roi[1], roi[3]) / side) + 1) * side;
+  return { x0, y0, x1, y1, side, nx: Math.round((x1 - x0) / side), ny: Math.round((y1 - y0) / side) };
+}
 function showRoiBar() {
   const w = Math.abs(roi[2] - roi[0]), h = Math.abs(roi[3] - roi[1]);
-  $("#roi-desc").textContent = `${w.toFixed(0)} × ${h.toFixed(0)} m at (${Math.min(roi[0], roi[2]).toFixed(0)}, ${Math.min(roi[1], roi[3]).toFixed(0)})`;
+  const sn = roiSnapped();
+  let text = `drawn ${w.toFixed(0)} × ${h.toFixed(0)} m at (${Math.min(roi[0], roi[2]).toFixed(0)}, ${Math.min(roi[1], roi[3]).toFixed(0)})`;
+  if (sn) text += ` → asks ${sn.x1 - sn.x0} × ${sn.y1 - sn.y0} m (${sn.nx} × ${sn.ny} subgrids of ${sn.side} m)`;
+  $("#roi-desc").textContent = text;
   $("#roi-bar").classList.remove("hidden");
+  drawMap();
 }
+$("#roi-level").addEventListener("change", () => { if (roi) showRoiBar(); });
 $("#draw-btn").addEventListener("click", () => setDraw(!drawMode));
 $("#survey-btn").addEventListener("click", () => { if (surveyMode) endSurvey(); else startSurvey(); drawMap(); });
 $("#fit-btn").addEventListener("click", () => { view.auto = true; drawMap(); });
