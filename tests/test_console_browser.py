@@ -548,3 +548,219 @@ def test_a_survey_drawn_on_the_map_is_sent_and_its_rejection_shown(browser: Any,
         app.close()
         vehicle.transport.close()
     assert not errors, errors
+
+
+class _SameIds(list):
+    """A send that numbers every command 5, as a node does after its ids wrap around."""
+
+    def __call__(self, msg: m.Message) -> None:
+        self.append(msg)
+
+    def next_command_id(self) -> int:
+        return 5
+
+
+def test_a_rejected_command_stays_rejected_with_its_reason(browser: Any) -> None:
+    """A "previous image" request is rejected; the vehicle answers it again (re-sends), and a
+    later command reuses its id and is accepted: the first stays rejected with its reason in
+    words, the answer is logged once, and the later one shows accepted."""
+    from coex_core.channel.events import CommandResult
+
+    state = ConsoleState(schedules={0: Schedule.simple([1, 2, 2, 1, 2, 2], 20.0, 2.0)})
+    feed_sample(state, t0=T0)
+    sent = _SameIds()
+    hub = ConsoleHub(state, sent, lambda: T0)
+    errors: list[str] = []
+    with serve(hub, "127.0.0.1", 0) as srv:
+        page = browser.new_page(viewport={"width": 1280, "height": 1000})
+        page.on("pageerror", lambda e: errors.append(str(e)))
+        page.goto(srv.url)
+        page.wait_for_function("window.coex && window.coex.updates > 0", timeout=10_000)
+        page.fill("#img-time", "09:20:00")
+        page.click('.img-time-btn[data-dir="previous"]')
+        page.wait_for_function("document.querySelectorAll('#commands li[data-status]').length === 1",
+                               timeout=10_000)
+        (asked,) = sent
+        assert "previous image before 09:20:00" in page.inner_text("#commands")
+        hub.update(lambda st: st.apply_event(CommandResult(T0 + 5, 5, m.AckStatus.REJECTED, asked)))
+        for k in range(3):  # the vehicle answers every re-send; the node passes them on bare
+            hub.update(lambda st, k=k: st.apply_event(CommandResult(T0 + 10 + k, 5, m.AckStatus.REJECTED)))
+        # the id comes round again: a queue flush numbered 5, accepted (and answered twice)
+        page.wait_for_selector('#queues-table tr[data-stream="4"]', timeout=10_000)
+        page.locator('#queues-table tr[data-stream="4"]').locator("button", has_text="Flush").click()
+        page.wait_for_function("document.querySelectorAll('#commands li[data-status]').length === 2",
+                               timeout=10_000)
+        flush = sent[1]
+        assert flush.command_id == 5
+        hub.update(lambda st: st.apply_event(CommandResult(T0 + 30, 5, m.AckStatus.ACCEPTED, flush)))
+        hub.update(lambda st: st.apply_event(CommandResult(T0 + 40, 5, m.AckStatus.ACCEPTED)))
+        hub.update(lambda st: st.apply_message(m.CommandAck(5, m.AckStatus.REJECTED), T0 + 50))
+        page.wait_for_selector('#commands li[data-status="accepted"]', timeout=10_000)
+        rows = page.eval_on_selector_all("#commands li[data-status]",
+                                         "els => els.map(e => [e.dataset.status, e.textContent])")
+        assert [r[0] for r in rows] == ["accepted", "rejected"], rows
+        assert "the vehicle holds no image before that time" in rows[1][1]
+        assert page.is_visible('#commands li[data-status="rejected"] .reason')
+        log = page.inner_text("#log")
+        assert log.count("previous image before 09:20:00: rejected") == 1, log
+        assert log.count("flush: accepted") == 1, log
+        page.close()
+    assert not errors, errors
+
+
+def test_the_map_has_axis_labels_a_north_arrow_and_colour_bar_numbers(browser: Any, tmp_path: Path) -> None:
+    """Metres east and north along the map's edges, and the colour bar's depths written out;
+    the gaps of the finest level are hatched, and the levels table says how many."""
+    errors: list[str] = []
+    with sample_console(browser, ConsoleHub, [], errors) as page:
+        page.set_viewport_size({"width": 1280, "height": 1000})
+        page.wait_for_function("window.coex.axes && window.coex.axes.x.length >= 3 && window.coex.axes.y.length >= 2",
+                               timeout=10_000)
+        axes = page.evaluate("window.coex.axes")
+        xs = [float(v) for v in axes["x"]]
+        assert xs == sorted(xs) and len(set(xs)) == len(xs) and xs[-1] >= 60, axes
+        ticks = page.eval_on_selector_all("#colorbar .tick", "els => els.map(e => e.textContent)")
+        zr = page.evaluate("window.coex.S.map.zrange")
+        assert len(ticks) == 5 and float(ticks[0]) == pytest.approx(zr[0], abs=0.6), (ticks, zr)
+        assert float(ticks[-1]) == pytest.approx(zr[1], abs=0.6)
+        assert "seafloor elevation (m)" in page.inner_text("#colorbar")
+        page.check("#show-age")
+        assert page.is_visible("#age-legend") and "30 min" in page.inner_text("#age-legend")
+        row = page.inner_text('#levels-table tr[data-level="0"]')
+        assert "%" in row and ("empty" in row or "none" in row or "between swaths" in row), row
+        assert "dive 0:" in page.inner_text("#clock")
+        page.screenshot(path=str(tmp_path / "axes.png"))
+        if os.environ.get("COEX_AXES_SHOT"):
+            shutil.copy(tmp_path / "axes.png", os.environ["COEX_AXES_SHOT"])
+    assert not errors, errors
+
+
+def test_clicking_an_image_opens_it_full_size(browser: Any, tmp_path: Path) -> None:
+    """A card opens the viewer: the picture at its full size (one image pixel a screen pixel
+    at 100 %), its bytes and quality layers; its position and footprint are on the map."""
+    errors: list[str] = []
+    with sample_console(browser, ConsoleHub, [], errors) as page:
+        page.set_viewport_size({"width": 1280, "height": 1000})
+        page.wait_for_function(
+            "[...document.querySelectorAll('#gallery .card img')].filter(i => i.naturalWidth > 0).length === 3",
+            timeout=10_000)
+        it = page.evaluate("window.coex.S.images.items.find(i => i.image_id === 1)")
+        page.click('#gallery .card[data-image="1"] img')
+        page.wait_for_selector("#viewer:not(.hidden)")
+        page.wait_for_function("document.querySelector('#viewer-img').naturalWidth > 0", timeout=10_000)
+        assert page.evaluate("document.querySelector('#viewer-img').naturalWidth") == it["width"]
+        meta = page.inner_text("#viewer-meta")
+        assert "bytes" in meta and "quality layers" in meta and "of" in meta, meta
+        assert "#1" in page.inner_text("#viewer-title")
+        page.click("#viewer-zoom")  # 100 %: image pixels as they are
+        assert page.evaluate("document.querySelector('#viewer-img').getBoundingClientRect().width") == it["width"]
+        page.screenshot(path=str(tmp_path / "viewer.png"))
+        if os.environ.get("COEX_VIEWER_SHOT"):
+            shutil.copy(tmp_path / "viewer.png", os.environ["COEX_VIEWER_SHOT"])
+        page.keyboard.press("Escape")
+        page.wait_for_selector("#viewer.hidden", state="attached")
+        # the image's position on the map opens it too
+        x, y = page.evaluate(f"window.coex.pagePoint({it['x']}, {it['y']})")
+        page.mouse.click(x, y)
+        page.wait_for_selector("#viewer:not(.hidden)")
+    assert not errors, errors
+
+
+def test_a_by_time_request_names_the_image_that_answered_it(browser: Any) -> None:
+    """"previous" before 09:57:40 is answered by image #0 (taken 09:56:40): the command says
+    so, and that image's card is marked."""
+    from coex_core.channel.events import CommandResult
+
+    state = ConsoleState(schedules={0: Schedule.simple([1, 2, 2, 1, 2, 2], 20.0, 2.0)})
+    feed_sample(state, t0=T0)
+    sent: list[m.Message] = []
+    hub = ConsoleHub(state, sent.append, lambda: T0)
+    errors: list[str] = []
+    with serve(hub, "127.0.0.1", 0) as srv:
+        page = browser.new_page(viewport={"width": 1280, "height": 1000})
+        page.on("pageerror", lambda e: errors.append(str(e)))
+        page.goto(srv.url)
+        page.wait_for_function("window.coex && window.coex.updates > 0", timeout=10_000)
+        page.wait_for_selector('#gallery .card[data-image="0"]', timeout=10_000)
+        page.fill("#img-time", "09:57:40")
+        page.click('.img-time-btn[data-dir="previous"]')
+        page.wait_for_function("document.querySelectorAll('#commands li[data-status]').length === 1",
+                               timeout=10_000)
+        (asked,) = sent
+        hub.update(lambda st: st.apply_event(CommandResult(T0 + 5, asked.command_id,
+                                                           m.AckStatus.ACCEPTED, asked)))
+        page.wait_for_selector('#commands li[data-status="accepted"] .answer', timeout=10_000)
+        text = page.inner_text('#commands li[data-status="accepted"]')
+        assert "answered by image #0 taken 09:56:40" in text, text
+        page.wait_for_selector('#gallery .card.answer[data-image="0"]', timeout=10_000)
+        assert page.locator("#gallery .card.answer").count() == 1
+        page.close()
+    assert not errors, errors
+
+
+def test_a_region_over_unsurveyed_ground_waits_then_fills(browser: Any, tmp_path: Path) -> None:
+    """A region asked where the vehicle has not surveyed yet shows "waiting for data" (the
+    request stands on the vehicle), then "in flight" and "filled" when its subgrids arrive; the
+    bar says the size sent (whole 8 m subgrids), not only the size drawn."""
+    import numpy as np
+
+    from coex_plugins.bathymetry import BathymetrySender, encode_subgrid
+    from coex_plugins.console.testing import drain
+
+    uri = f"loopback://roi-{uuid.uuid4().hex[:8]}?rate=100000&mtu=1024"
+    app = build_topside(uri, "127.0.0.1", 0, schedule=SCHEDULE)
+    app.node.receiver("bathymetry").auto_fill = False  # only the operator's request
+    vehicle = VehicleEnd(uri)
+    app.start()
+    errors: list[str] = []
+    try:
+        now = time.time()
+        bathy = BathymetrySender({"send_delay": 0.0, "levels": 4})
+        bathy.ingest(survey_points(), now)
+        vehicle.send(drain(bathy, now))
+        page = browser.new_page(viewport={"width": 1280, "height": 1000})
+        page.on("pageerror", lambda e: errors.append(str(e)))
+        page.goto(app.url)
+        page.wait_for_function("window.coex && window.coex.connected && document.querySelectorAll('#levels-table tbody tr').length >= 3",
+                               timeout=20_000)
+        # a 20 x 12 m box east of the survey: 3 x 2 subgrids of 8 m are asked (24 x 16 m)
+        page.click("#draw-btn")
+        a = page.evaluate("window.coex.pagePoint(170, 30)")
+        b = page.evaluate("window.coex.pagePoint(190, 18)")
+        page.mouse.move(a[0], a[1])
+        page.mouse.down()
+        page.mouse.move(b[0], b[1])
+        page.mouse.up()
+        page.select_option("#roi-level", "0")
+        desc = page.inner_text("#roi-desc")
+        times = "\u00d7"
+        assert f"drawn 20 {times} 12 m" in desc and f"asks 24 {times} 16 m (3 {times} 2 subgrids of 8 m)" in desc, desc
+        page.click("#roi-send")
+        req = vehicle.wait_for(m.MapRoiRequest)
+        while (req.level, req.w, req.h) != (0, 3, 2):  # the receiver's own gap filling
+            req = vehicle.wait_for(m.MapRoiRequest)
+        assert "24 x 16 m at (168, 16) m" in page.inner_text("#commands")
+        # not surveyed yet: the request stands on the vehicle
+        vehicle.send([m.MapRoiReply(req.request_id, 0, 0, 6)])
+        page.wait_for_function("window.coex.S.map.requests.some(r => r.state === 'waiting for data')",
+                               timeout=15_000)
+        assert "6 subgrids not surveyed yet" in page.inner_text("#commands")
+        # surveyed now: the vehicle queues them, they arrive, and it has nothing newer
+        vehicle.send([m.MapRoiReply(req.request_id, 0, 6, 0)])
+        page.wait_for_function("window.coex.S.map.requests.some(r => r.state === 'in flight')", timeout=15_000)
+        yy, xx = np.mgrid[0:8, 0:8]
+        sgs = [encode_subgrid(-450 + xx + yy, np.ones((8, 8), bool), level=0, ix=ix, iy=iy,
+                              stamp=to_stamp(time.time()), resolution=1.0, vertical_resolution=0.1)
+               for ix in range(req.x0, req.x0 + 3) for iy in range(req.y0, req.y0 + 2)]
+        vehicle.send([*sgs, m.MapRoiReply(req.request_id, 0, 0, 0)])
+        page.wait_for_function("window.coex.S.map.requests.some(r => r.state === 'filled')", timeout=15_000)
+        assert "filled (6 subgrids)" in page.inner_text("#commands")
+        page.wait_for_timeout(300)
+        page.screenshot(path=str(tmp_path / "roi.png"))
+        if os.environ.get("COEX_ROI_SHOT"):
+            shutil.copy(tmp_path / "roi.png", os.environ["COEX_ROI_SHOT"])
+        page.close()
+    finally:
+        app.close()
+        vehicle.transport.close()
+    assert not errors, errors

@@ -516,7 +516,8 @@ def test_pump_reports_events_and_link_state() -> None:
     st.apply_event(CommandResult(4.0, 78, m.AckStatus.ACCEPTED, goal))
     assert st.snapshot()["commands"][0] == {"command_id": 78, "kind": "ImageGoal",
                                             "summary": "ImageGoal (by the node)", "sent": 4.0,
-                                            "status": "accepted", "answered": 4.0, "by": ""}
+                                            "status": "accepted", "answered": 4.0, "by": "", "answer": "", "image_id": None,
+                                                "reason": ""}
 
 
 def test_hub_is_safe_from_threads(subgrids: list[m.Subgrid]) -> None:

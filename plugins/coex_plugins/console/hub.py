@@ -58,8 +58,11 @@ def pump(state: ConsoleState, node: Any, now: float, events: list[Any] | None = 
                                  + ",".join(sorted({str(r.level) for r in others}))
                                  + " (by the node)")
     # regions a bathymetry receiver sends for us: show when they go out (ids, retries)
-    sig = tuple((k, r.region.request_id, r.region.sends, r.region.done, r.region.queued)
-                for k, r in state.roi.items())
+    for r in state.roi.values():  # what the vehicle queued for it: filled, or nothing to send
+        if r.region.queued:
+            r.got = max(int(getattr(r, "got", 0) or 0), int(r.region.queued))
+    sig = tuple((k, r.region.request_id, r.region.sends, r.region.done, r.region.queued,
+                 r.region.waiting) for k, r in state.roi.items())
     if sig != state._region_sig:
         state._region_sig = sig
         state._touch("map", "commands")

@@ -181,8 +181,9 @@ class _Handler(BaseHTTPRequestHandler):
                 iid = int(path[7:-4])
             except ValueError:
                 return self._not_found()
+            full = "full=1" in urlsplit(self.path).query
             with hub.lock:
-                png = hub.state.image_png(iid)
+                png = hub.state.image_png(iid, full=full)
             if png is None:
                 return self._not_found()
             self._send(200, png, "image/png", cache=True)

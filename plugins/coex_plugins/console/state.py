@@ -21,7 +21,7 @@ import zlib
 from collections import deque
 from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 import numpy.typing as npt
@@ -50,6 +50,8 @@ OWN_PANELS = ("bathymetry", "imagery", "timeseries", "survey")
 SURVEY_STATES = ("requested", "accepted", "started", "completed", "rejected", "aborted", "given up")
 #: The surveys the page lists and draws (the newest).
 MAX_SURVEYS = 40
+#: A command in these states may still be answered (``pending``: it stands on the vehicle).
+OPEN_COMMAND_STATES = ("sent", "pending")
 
 #: The map section shows a level's coverage (the age of its data) in at most this many blocks:
 #: every subgrid of a small level, groups of receiver tiles of a big one.
@@ -107,6 +109,18 @@ def elevation_rgb(z: FloatArray, lo: float, hi: float, cell: float = 1.0) -> npt
     return out[::-1]
 
 
+#: The side of an image thumbnail (px); the viewer shows the full picture.
+THUMB_SIDE = 320
+
+
+def _picture(a: npt.NDArray[Any], max_side: int) -> npt.NDArray[np.uint8]:
+    """An image as 8-bit RGB or grey, decimated to at most ``max_side`` pixels a side."""
+    if a.ndim == 3 and a.shape[2] >= 3:
+        step = max(1, math.ceil(max(a.shape[:2]) / max_side))
+        return np.ascontiguousarray(a[::step, ::step, :3]).astype(np.uint8)
+    return _grey_thumbnail(a, max_side)
+
+
 def _grey_thumbnail(img: npt.NDArray[Any], max_side: int = 160) -> npt.NDArray[np.uint8]:
     a = np.asarray(img)
     if a.ndim == 3 and a.shape[2] == 1:
@@ -142,6 +156,8 @@ class _RoiRequest:
     h: int
     sent: float
     region: Any
+    #: the most subgrids the vehicle said it queued for it (0: it never sent anything)
+    got: int = 0
 
 
 @persistent("console.Image")
@@ -172,6 +188,8 @@ class _Command:
     roi_key: int | None = None
     #: who sent it: the signed-in operator ("" for a console without sign-in)
     by: str = ""
+    #: why the vehicle answered as it did, in words (a rejection's likely cause)
+    reason: str = ""
 
 
 #: caches (pictures, summaries) are not state: they are made again when needed
@@ -245,6 +263,10 @@ class ConsoleState:
         self.images: dict[int, _Image] = {}
         self.progress_info: dict[str, Any] | None = None
         self.image_queries: list[dict[str, Any]] = []
+        #: (time, altitude) of the vehicle's statuses: where an image's footprint comes from
+        self.altitudes: deque[tuple[float, float]] = deque(maxlen=2000)
+        #: The camera's field of view in degrees (across, along): image footprints on the map.
+        self.camera_fov = (60.0, 45.0)
         # series
         self.series: dict[int, dict[str, Any]] = {}
         self.series_requests: list[dict[str, Any]] = []
@@ -273,6 +295,10 @@ class ConsoleState:
         self._map_summary = {}
         self._targets_cache = (None, [])
         self._survey_sig, self._survey_rows = None, {}
+        if not isinstance(getattr(self, "altitudes", None), deque):
+            self.altitudes = deque(maxlen=2000)
+        if not hasattr(self, "camera_fov"):
+            self.camera_fov = (60.0, 45.0)
         # a console saved before a section or an attribute existed
         for s in SECTIONS:
             self.versions.setdefault(s, 0)
@@ -434,6 +460,10 @@ class ConsoleState:
         self.status, self.status_t = s, t
         if not self.track or self.track[-1][1:3] != (s.x, s.y):
             self.track.append((t, s.x, s.y, s.depth))
+        if not isinstance(getattr(self, "altitudes", None), deque):
+            self.altitudes = deque(maxlen=2000)
+        if s.altitude is not None:
+            self.altitudes.append((t, float(s.altitude)))
         self._touch("vehicle")
 
     # -------------------------------------------------------------------------- map
@@ -550,20 +580,31 @@ class ConsoleState:
         img.version += 1
         self._touch("images")
 
-    def image_png(self, image_id: int) -> bytes | None:
-        """The newest decoded picture of an image, as a thumbnail PNG (None before any)."""
+    def image_png(self, image_id: int, full: bool = False) -> bytes | None:
+        """The newest decoded picture of an image, as a thumbnail PNG (at most
+        :data:`THUMB_SIDE` px), or at full size with ``full`` (None before any)."""
         img = self.images.get(image_id)
         if img is None or img.decoded is None:
             return None
+        if full:
+            return png_bytes(_picture(np.asarray(img.decoded), 1 << 16))
         if img.thumb is None or img.thumb_version != img.decoded_version:
-            a = np.asarray(img.decoded)
-            if a.ndim == 3 and a.shape[2] >= 3:
-                step = max(1, math.ceil(max(a.shape[:2]) / 160))
-                rgb = np.ascontiguousarray(a[::step, ::step, :3]).astype(np.uint8)
-            else:
-                rgb = _grey_thumbnail(a)
-            img.thumb, img.thumb_version = png_bytes(rgb), img.decoded_version
+            img.thumb = png_bytes(_picture(np.asarray(img.decoded), THUMB_SIDE))
+            img.thumb_version = img.decoded_version
         return img.thumb
+
+    def by_time_answer(self, msg: m.ImageByTimeRequest, now: float) -> _Image | None:
+        """The image that answered an accepted by-time request: the one the vehicle's rule
+        picks (nearest, newest before, oldest after the time) among the images topside knows."""
+        t = unwrap(msg.stamp, now)
+        known = [i for i in self.images.values() if i.t is not None]
+        if msg.direction == m.TimeDirection.BEFORE:
+            known = [i for i in known if cast(float, i.t) < t - 0.5]
+            return max(known, key=lambda i: cast(float, i.t), default=None)
+        if msg.direction == m.TimeDirection.AFTER:
+            known = [i for i in known if cast(float, i.t) > t + 0.5]
+            return min(known, key=lambda i: cast(float, i.t), default=None)
+        return min(known, key=lambda i: abs(cast(float, i.t) - t), default=None)
 
     # ------------------------------------------------------------------ time series
     def _series_product(self, data: Any, meta: dict[str, Any]) -> None:
@@ -733,11 +774,10 @@ class ConsoleState:
         if cid is None:
             return
         kind = type(msg).__name__
-        key = 256 + int(cid)
+        key = self._new_command_key()
         self.commands[key] = _Command(int(cid), kind, summary or kind, now, msg, by=self.actor)
-        if key in self.command_order:
-            self.command_order.remove(key)
         self.command_order.append(key)
+        self._prune_commands()
         if isinstance(msg, m.ImageGoal):
             self._image(msg.image_id).goal = (msg.kind.name, msg.value)
             self._touch("images")
@@ -763,16 +803,34 @@ class ConsoleState:
         self._touch("commands")
         self._log(now, f"{self.actor + ' ' if self.actor else ''}sent {summary or kind}")
 
+    def _new_command_key(self) -> int:
+        """A key no other command of this console has (command ids wrap at 256 and are reused:
+        a command is never looked up by its id alone)."""
+        return max(self.commands, default=0) + 1
+
+    def _prune_commands(self) -> None:
+        """Forget commands that fell out of the list (``command_order`` keeps the newest 64)."""
+        keep = set(self.command_order)
+        for key in [k for k in self.commands if k not in keep]:
+            del self.commands[key]
+
+    def _find_command(self, command_id: int, message: m.Message | None = None) -> int | None:
+        """The key of the newest command with ``command_id`` (and, when given, that message)."""
+        for key in reversed(self.command_order):
+            c = self.commands.get(key)
+            if c is None or c.roi_key is not None or c.command_id != command_id:
+                continue
+            if message is None or c.message == message:
+                return key
+        return None
+
     def replace_command(self, built: m.Message, sent: m.Message, now: float) -> None:
         """The node sent ``sent`` for the command recorded as ``built`` (another command id)."""
-        old = self.commands.pop(256 + int(getattr(built, "command_id", -1)), None)
-        if old is None:
+        key = self._find_command(int(getattr(built, "command_id", -1)), built)
+        if key is None:
             return
-        key = 256 + int(getattr(sent, "command_id", 0))
-        old.message, old.command_id = sent, key - 256
-        self.commands[key] = old
-        self.command_order = deque((key if k == 256 + int(getattr(built, "command_id", -1))
-                                    else k for k in self.command_order), maxlen=64)
+        old = self.commands[key]
+        old.message, old.command_id = sent, int(getattr(sent, "command_id", 0))
         if isinstance(sent, m.ScheduleUpdate):
             sch = self.schedules.get(sent.link)
             if sch is not None and sch.get("proposed"):
@@ -790,50 +848,61 @@ class ConsoleState:
             self._region_count += 1
             key = -self._region_count
             self.roi[key] = _RoiRequest(r.level, r.x0, r.y0, r.w, r.h, now, r)
-            text = (f"{summary}: subgrids [{r.x0}..{r.x0 + r.w - 1}] x "
-                    f"[{r.y0}..{r.y0 + r.h - 1}]")
-            ckey = 100000 + self._region_count
+            text = f"{summary}: {region_words(self, r)}"
+            ckey = self._new_command_key()
             self.commands[ckey] = _Command(-1, "MapRoiRequest", text, now,
                                            m.MapRoiRequest(0, r.level, r.x0, r.y0, r.w, r.h,
                                                            True, (), 0),
                                            status="queued", roi_key=key, by=self.actor)
             self.command_order.append(ckey)
+            self._prune_commands()
             self._log(now, f"{self.actor + ' ' if self.actor else ''}requested {text}")
         self._touch("map", "commands")
 
     def _command_result(self, command_id: int, status: Any, now: float,
                         command: m.Message | None = None) -> None:
-        cmd = self.commands.get(256 + command_id)
+        """The vehicle's answer to a command. The node gives the command it answers the first
+        time (``command``); a repeated answer (the vehicle answers every re-send) comes without
+        it and changes nothing, nor does an answer to a command already answered: ids wrap at
+        256, so an old answer must never land on a newer command that reuses the id."""
         name = status.name if hasattr(status, "name") else str(status)
-        if cmd is not None and command is not None and cmd.message != command:
-            cmd = None  # an id reused by a command sent by someone else
-        if cmd is None:
-            if command is None:
-                last = self._foreign_acks.get(command_id)
-                if last is None or last[0] != name or now - last[1] > 600:
-                    self._log(now, f"vehicle answered command {command_id}: {name.lower()} "
-                                   "(not sent from this console)")
-                self._foreign_acks[command_id] = (name, now)
-                return
+        new = name.lower()
+        key = self._find_command(command_id, command)
+        if key is None and command is None:
+            last = self._foreign_acks.get(command_id)
+            if last is None or last[0] != name or now - last[1] > 600:
+                self._log(now, f"vehicle answered command {command_id}: {new} "
+                               "(not sent from this console)")
+            self._foreign_acks[command_id] = (name, now)
+            return
+        if key is None:
             # a command the topside node sent for someone else (a script, a receiver)
-            key = 256 + command_id
-            cmd = self.commands[key] = _Command(command_id, type(command).__name__,
-                                                f"{type(command).__name__} (by the node)",
-                                                now, command)
-            if key in self.command_order:
-                self.command_order.remove(key)
+            key = self._new_command_key()
+            self.commands[key] = _Command(command_id, type(command).__name__,
+                                          f"{type(command).__name__} (by the node)", now,
+                                          cast(m.Message, command))
             self.command_order.append(key)
-        cmd.status, cmd.answered = name.lower(), now
+            self._prune_commands()
+        cmd = self.commands[key]
+        if cmd.status == new:
+            return  # the same answer again (a re-send answered): nothing new
+        if cmd.status not in OPEN_COMMAND_STATES:
+            return  # already answered for good: a late or repeated answer changes nothing
+        was_pending = cmd.status == "pending"
+        cmd.status, cmd.answered = new, now
+        cmd.reason = ack_reason(cmd.message, name, was_pending)
         if isinstance(cmd.message, m.ScheduleUpdate):
             sch = self.schedules.get(cmd.message.link)
             if sch is not None and sch.get("proposed"):
-                sch["proposed"]["status"] = name.lower()
+                sch["proposed"]["status"] = new
             self._touch("link")
+        if isinstance(cmd.message, m.ImageByTimeRequest | m.ImageGoal):
+            self._touch("images")
         self._touch("commands")
         if isinstance(cmd.message, m.SurveyCommand):
             return  # the survey receiver's product says it, with the reason (_survey_product)
-        self._log(now, f"{cmd.summary}: {name.lower()}",
-                  "info" if name == "ACCEPTED" else "warn")
+        self._log(now, f"{cmd.summary}: {new}" + (f" ({cmd.reason})" if cmd.reason else ""),
+                  "info" if name in ("ACCEPTED", "PENDING") else "warn")
 
     def _on_command_ack(self, a: m.CommandAck, now: float) -> None:
         self._command_result(a.command_id, a.status, now)
@@ -893,9 +962,18 @@ class ConsoleState:
                 continue
             ix0, iy0, ix1, iy1 = summary["extent"]
             cells = int(summary["cells"])
+            # gaps: blocks of tile_span x tile_span subgrids inside the extent with no data
+            bx = math.ceil(ix1 / span) - math.floor(ix0 / span)
+            by = math.ceil(iy1 / span) - math.floor(iy0 / span)
+            empty = max(0, bx * by - len(keys))
+            block_m = span * side * c
             levels.append({
                 "level": level, "cell": c, "side": side, "subgrids": int(summary["subgrids"]),
                 "cells": cells, "coverage_m2": cells * c * c,
+                "fill_pct": round(100.0 * cells / max(1, (ix1 - ix0) * (iy1 - iy0) * side * side)),
+                "gaps": empty, "gap_block_m": block_m,
+                "gap_note": gap_words(empty, block_m, int(summary["subgrids"]) * side * side,
+                                      cells),
                 "x0": float(ix0 * side * c), "y0": float(iy0 * side * c),
                 "x1": float(ix1 * side * c), "y1": float(iy1 * side * c),
                 "newest_age": _num(self.now - float(summary["newest"]), 1),
@@ -961,6 +1039,17 @@ class ConsoleState:
             self._targets_cache = ((level, version), found)
         return list(self._targets_cache[1])
 
+    def subgrid_metres(self, level: int) -> float:
+        """The side of a subgrid of ``level`` in metres."""
+        rx = self.map_receiver
+        geometry = rx.geometry(level) if rx is not None else None
+        meta = rx.metadata if rx is not None else None
+        if geometry is not None:
+            return float(geometry[0] * geometry[1])
+        if meta is not None:
+            return float(meta.resolution * 2 ** level * meta.subgrid_side)
+        return 8.0 * 2 ** level
+
     def _snap_roi(self, r: _RoiRequest) -> dict[str, Any]:
         """A region request as the bathymetry receiver sends and retries it: ``waiting`` (not
         sent yet), ``sent``, ``queued`` (the vehicle queued ``queued`` subgrids for it; asked
@@ -979,18 +1068,30 @@ class ConsoleState:
         rid = region.request_id if region.request_id is not None else -1
         queued = getattr(region, "queued", None)
         waiting = getattr(region, "waiting", 0)
+        got = max(int(getattr(r, "got", 0) or 0), int(queued or 0))
+        r.got = got
+        # ``status``: the request as the receiver sends it; ``state``: what it means for the
+        # operator (requested, in flight, waiting for data, filled, nothing to send)
         if region.done:
             status = "nothing newer"
+            state = "filled" if got else "nothing to send"
         elif queued:
-            status = "queued"
+            status, state = "queued", "in flight"
         elif waiting:
-            status = "waiting for survey"
+            status, state = "waiting for survey", "waiting for data"
         elif region.sends:
-            status = "sent"
+            status, state = "sent", "requested"
         else:
-            status = "waiting"
+            status, state = "waiting", "requested"
+        text = {"requested": "asked" + (f" ({region.sends}x)" if region.sends > 1 else "")
+                             if region.sends else "waiting for a topside slot",
+                "in flight": f"{queued} subgrid{'s' if queued != 1 else ''} on the way",
+                "waiting for data": f"{waiting} subgrid{'s' if waiting != 1 else ''} not surveyed yet",
+                "filled": f"filled ({got} subgrid{'s' if got != 1 else ''})",
+                "nothing to send": "nothing to send: topside had it all"}[state]
         return {"request_id": rid, "level": r.level, "x0": r.x0, "y0": r.y0,
-                "w": r.w, "h": r.h, "status": status, "queued": queued, "awaiting_survey": waiting,
+                "w": r.w, "h": r.h, "status": status, "state": state, "text": text,
+                "got": got, "queued": queued, "awaiting_survey": waiting,
                 "sent": _num(r.sent, 1),
                 "rect": [r.x0 * span, r.y0 * span, (r.x0 + r.w) * span, (r.y0 + r.h) * span]}
 
@@ -1009,10 +1110,34 @@ class ConsoleState:
                 "goal": None if img.goal is None else {"kind": img.goal[0], "value": img.goal[1]},
                 "thumb": (f"/image/{img.image_id}.png?v={img.decoded_version}"
                           if img.decoded is not None else None),
+                "full": (f"/image/{img.image_id}.png?full=1&v={img.decoded_version}"
+                         if img.decoded is not None else None),
+                "layers": info.get("layers"), "layers_complete": info.get("layers_complete"),
+                "packets": info.get("packets"), "packets_used": info.get("packets_used"),
+                "bytes_used": info.get("bytes_used"), "complete": info.get("complete"),
+                "footprint": self._footprint(img),
                 "meta": img.decoded_meta,
             })
         return {"items": items, "queries": self.image_queries[-10:],
                 "progress": self.progress_info}
+
+    def _footprint(self, img: _Image) -> list[float] | None:
+        """The seafloor an image covers, ``[width, height]`` in metres: the camera's field of
+        view (:attr:`camera_fov`, degrees across and along) at the altitude the vehicle reported
+        nearest the image's time. None without a position or an altitude."""
+        info = img.decoded_meta
+        if info.get("x") is None or img.t is None:
+            return None
+        alt = None
+        best = math.inf
+        for t, a in getattr(self, "altitudes", ()):
+            if abs(t - img.t) < best and a is not None:
+                best, alt = abs(t - img.t), a
+        if alt is None or best > 300:
+            return None
+        fx, fy = getattr(self, "camera_fov", (60.0, 45.0))
+        return [_num(2 * alt * math.tan(math.radians(fx) / 2), 2),
+                _num(2 * alt * math.tan(math.radians(fy) / 2), 2)]
 
     def _snap_series(self) -> dict[str, Any]:
         chans = []
@@ -1076,22 +1201,98 @@ class ConsoleState:
         surveys: dict[int, dict[str, Any]] | None = None
         for key in reversed(self.command_order):
             c = self.commands[key]
-            status = c.status
+            status, reason = c.status, getattr(c, "reason", "")
             if c.roi_key is not None and c.roi_key in self.roi:
-                status = self._snap_roi(self.roi[c.roi_key])["status"]
+                roi = self._snap_roi(self.roi[c.roi_key])
+                status, reason = roi["state"], roi["text"]
             elif isinstance(c.message, m.SurveyCommand):  # the survey's own state
                 if surveys is None:
                     surveys = self._survey_metas()
                 meta = surveys.get(int(c.message.survey_id))
                 if meta is not None:
                     status = str(meta.get("state") or status)
+                    if status in ("rejected", "aborted", "given up") and meta.get("text"):
+                        reason = str(meta["text"])
+            answer, img = "", None
+            if isinstance(c.message, m.ImageByTimeRequest) and status == "accepted":
+                img = self.by_time_answer(c.message, c.sent)
+                answer = (f"answered by image #{img.image_id} taken {hms(img.t)}"
+                          if img is not None else "answered: the image is on its way")
             out.append({"command_id": c.command_id, "kind": c.kind, "summary": c.summary,
+                        "answer": answer, "image_id": None if img is None else img.image_id,
                         "sent": _num(c.sent, 1), "status": status,
-                        "answered": _num(c.answered, 1), "by": getattr(c, "by", "")})
+                        "answered": _num(c.answered, 1), "by": getattr(c, "by", ""),
+                        "reason": reason})
         return out
 
     def _snap_log(self) -> list[dict[str, Any]]:
         return list(self.log)[-60:]
+
+
+def region_words(state: ConsoleState, r: Any) -> str:
+    """A region of subgrids in metres: ``32 x 24 m at (24, 32) m``."""
+    span = state.subgrid_metres(int(r.level))
+    return (f"{r.w * span:g} x {r.h * span:g} m at ({r.x0 * span:g}, {r.y0 * span:g}) m")
+
+
+def gap_words(empty: int, block_m: float, subgrid_cells: int, cells: int) -> str:
+    """The gaps of a level in words: empty squares inside its extent, and the cells missing
+    inside the subgrids held (between sonar swaths, beyond the beams: the map's stripes)."""
+    parts = []
+    if empty:
+        parts.append(f"{empty} empty {block_m:g} m square{'s' if empty != 1 else ''}")
+    inner = subgrid_cells - cells
+    if inner > 0 and subgrid_cells:
+        parts.append(f"{100.0 * inner / subgrid_cells:.0f} % of cells between swaths")
+    return ", ".join(parts) or "none"
+
+
+def hms(t: float | None) -> str:
+    """``hh:mm:ss`` of the day (UTC) of an absolute time, as the page shows it."""
+    if t is None or not math.isfinite(float(t)):
+        return "-"
+    s = math.floor(float(t)) % 86400
+    return f"{s // 3600:02d}:{s // 60 % 60:02d}:{s % 60:02d}"
+
+
+def ack_reason(msg: m.Message, status: str, was_pending: bool = False) -> str:
+    """What the vehicle's answer ``status`` (an :class:`~coex_core.messages.AckStatus` name)
+    to ``msg`` means, in words. A ``CommandAck`` carries no reason: this is the cause the
+    vehicle's code gives for that answer to that kind of command."""
+    if status == "ACCEPTED":
+        return ""
+    if status == "UNAUTHENTICATED":
+        return "not authenticated: the vehicle and topside command keys differ"
+    if status == "PENDING":
+        return "no image of that time yet: the request stands on the vehicle until one is taken"
+    if isinstance(msg, m.QueueConfig):
+        if status == "UNKNOWN_TARGET":
+            return f"the vehicle has no stream {msg.stream}"
+        return "the vehicle refused the setting (outside its limits)"
+    if isinstance(msg, m.LinkControl | m.SpareConfig | m.ScheduleUpdate):
+        link = getattr(msg, "link", None)
+        if status == "UNKNOWN_TARGET":
+            return f"the vehicle has no link {link}" if link is not None else \
+                f"the vehicle has no stream {getattr(msg, 'stream', '?')}"
+        if isinstance(msg, m.LinkControl):
+            return "it would leave the vehicle without a transmitting link"
+        if isinstance(msg, m.ScheduleUpdate):
+            return ("its activation cycle had passed when it arrived, or no slot of the "
+                    "vehicle fits a packet")
+        return "the vehicle refused the share"
+    if isinstance(msg, m.ImageByTimeRequest):
+        if was_pending:
+            return "no image of that time was taken before the request expired"
+        d = {m.TimeDirection.BEFORE: "before", m.TimeDirection.AFTER: "after"}.get(
+            msg.direction, "near")
+        return f"the vehicle holds no image {d} that time"
+    if isinstance(msg, m.ImageGoal):
+        return f"the vehicle no longer holds image {msg.image_id}, or the goal is beyond it"
+    if isinstance(msg, m.TimeSeriesRequest):
+        return f"the vehicle has no channel {msg.channel}, or the window is not valid"
+    if status == "UNKNOWN_TARGET":
+        return "the vehicle does not know what it names"
+    return "refused by the vehicle"
 
 
 _HANDLERS: dict[type, Callable[[ConsoleState, Any, float, int | None], None]] = {
@@ -1298,7 +1499,9 @@ class ConsoleActions:
         if not math.isfinite(float(t)):
             raise RequestRejected("time must be finite")
         msg = m.ImageByTimeRequest(self._cid(), to_stamp(float(t)), d)
-        self._emit([msg], [f"image {d.name.lower()} t={float(t):.0f}"])
+        what = {m.TimeDirection.BEFORE: "previous image before",
+                m.TimeDirection.AFTER: "next image after"}.get(d, "image nearest")
+        self._emit([msg], [f"{what} {hms(float(t))}"])
         return msg
 
     # ------------------------------------------------------------------ time series
@@ -1327,7 +1530,7 @@ class ConsoleActions:
         msg = m.TimeSeriesRequest(self._cid(), int(channel), to_stamp(start), to_stamp(end),
                                   float(np.float32(max_error)))
         name = s.get("name", f"channel {channel}")
-        self._emit([msg], [f"refine {name} {start:.0f}..{end:.0f} s to ±{max_error:.3g}"])
+        self._emit([msg], [f"refine {name} {hms(start)} to {hms(end)} to ±{max_error:.3g}"])
         return msg
 
     # ------------------------------------------------------------------------ queues

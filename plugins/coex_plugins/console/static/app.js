@@ -206,6 +206,7 @@ function drawMap() {
         ctx.drawImage(win.img, wa, wb, wc - wa, wd - wb);
       }
     }
+    if ($("#show-gaps").checked && visible.length) drawGaps(visible[visible.length - 1]);
     if ($("#show-age").checked && visible.length) {
       const lv = visible[visible.length - 1];
       const span = lv.side * lv.cell * (lv.tile_span || 1);  // blocks of tile_span subgrids
@@ -216,30 +217,28 @@ function drawMap() {
         ctx.fillRect(ax, ay, sz, sz);
       }
     }
+    placed.length = 0;
     for (const r of m.requests) {
       const [ax, ay] = w2s(r.rect[0], r.rect[3]), [bx, by] = w2s(r.rect[2], r.rect[1]);
-      const style = { waiting: ["#f0b443", [6, 4]], sent: ["#f0b443", [6, 4]],
-        queued: ["#e8e05a", []], "waiting for survey": ["#6fb7ff", [2, 3]],
-        "nothing newer": ["#58c47c", []] }[r.status] || ["#f0b443", [6, 4]];
+      const style = ROI_STYLE[r.state] || ROI_STYLE.requested;
       ctx.strokeStyle = style[0]; ctx.setLineDash(style[1]); ctx.lineWidth = 2;
+      if (style[2]) { ctx.fillStyle = style[2]; ctx.fillRect(ax, ay, bx - ax, by - ay); }
       ctx.strokeRect(ax, ay, bx - ax, by - ay);
       ctx.setLineDash([]);
-      ctx.fillStyle = style[0]; ctx.font = "11px system-ui";
-      const extra = r.status === "waiting for survey" ? ` (${r.awaiting_survey} not surveyed yet)`
-        : r.queued ? ` (${r.queued})` : "";
-      ctx.fillText(`L${r.level} ${r.status}${extra}`, ax + 3, ay + 12);
+      placeLabel(`L${r.level} ${r.text}`, ax + 3, ay + 12, style[0]);
     }
   }
   if (S.vehicle && $("#show-track").checked) drawTrack();
+  if ($("#show-images").checked) drawImages();
   drawSurveys();
   if (m) {
     for (const t of m.targets) {
       const [x, y] = w2s(t.x, t.y);
       ctx.strokeStyle = "#ef5f5f"; ctx.lineWidth = 2;
       ctx.beginPath(); ctx.arc(x, y, 9, 0, 2 * Math.PI); ctx.stroke();
-      ctx.fillStyle = "#ffb0b0"; ctx.font = "11px system-ui";
-      const h = t.height !== undefined && t.height !== null ? ` +${Number(t.height).toFixed(1)} m` : "";
-      ctx.fillText(`target${h}`, x + 11, y - 6);
+      const h = t.height !== undefined && t.height !== null ? ` ${Number(t.height).toFixed(1)} m high` : "";
+      const size = t.cells && t.level !== undefined && S.map.meta ? `, ~${Math.round(t.cells * (S.map.meta.resolution * 2 ** t.level) ** 2)} m²` : "";
+      placeLabel(`target${h}${size}`, x + 11, y - 6, "#ffb0b0");
     }
   }
   if (roi) {
@@ -247,9 +246,98 @@ function drawMap() {
     const [bx, by] = w2s(Math.max(roi[0], roi[2]), Math.min(roi[1], roi[3]));
     ctx.fillStyle = "rgba(79,179,255,0.15)"; ctx.fillRect(ax, ay, bx - ax, by - ay);
     ctx.strokeStyle = "#4fb3ff"; ctx.lineWidth = 2; ctx.strokeRect(ax, ay, bx - ax, by - ay);
+    const sn = !$("#roi-bar").classList.contains("hidden") && roiSnapped();
+    if (sn) {
+      const [cx, cy] = w2s(sn.x0, sn.y1), [dx, dy] = w2s(sn.x1, sn.y0);
+      ctx.setLineDash([3, 3]); ctx.strokeStyle = "#ffffff"; ctx.lineWidth = 1;
+      ctx.strokeRect(cx, cy, dx - cx, dy - cy); ctx.setLineDash([]);
+    }
   }
   drawDraft();
   drawScale();
+  drawAxes();
+}
+// Axis ticks in metres east (bottom) and north (left) of the site origin, and a north arrow:
+// the labels drawn are kept in window.coex.axes (for tests and the curious).
+function drawAxes() {
+  const stepM = niceStep(90 / view.scale);
+  const [x0, y1] = s2w(0, 0), [x1, y0] = s2w(canvas.width, canvas.height);
+  const W = canvas.width, H = canvas.height, axes = { x: [], y: [] };
+  ctx.save();
+  ctx.fillStyle = "rgba(10,16,22,0.72)";
+  ctx.fillRect(0, H - 16, W, 16); ctx.fillRect(0, 0, 44, H - 16);
+  ctx.font = "10px system-ui"; ctx.fillStyle = "#b8c8d6"; ctx.strokeStyle = "#b8c8d6"; ctx.lineWidth = 1;
+  ctx.beginPath();
+  for (let x = Math.ceil(x0 / stepM) * stepM; x < x1; x += stepM) {
+    const [sx] = w2s(x, 0);
+    if (sx < 50 || sx > W - 20) continue;
+    ctx.moveTo(sx, H - 16); ctx.lineTo(sx, H - 12);
+    const t = `${+x.toFixed(1)}`;
+    ctx.fillText(t, sx - ctx.measureText(t).width / 2, H - 3);
+    axes.x.push(t);
+  }
+  for (let y = Math.ceil(y0 / stepM) * stepM; y < y1; y += stepM) {
+    const [, sy] = w2s(0, y);
+    if (sy < 10 || sy > H - 24) continue;
+    ctx.moveTo(44, sy); ctx.lineTo(40, sy);
+    const t = `${+y.toFixed(1)}`;
+    ctx.fillText(t, 38 - ctx.measureText(t).width, sy + 3);
+    axes.y.push(t);
+  }
+  ctx.stroke();
+  ctx.fillStyle = "#dce6ee";
+  ctx.fillText("east (m)", W - 52, H - 19);
+  ctx.save(); ctx.translate(10, 64); ctx.rotate(-Math.PI / 2); ctx.fillText("north (m)", -40, 0); ctx.restore();
+  // north arrow (north is always up)
+  const ax = W - 24, ay = 16;
+  ctx.fillStyle = "rgba(10,16,22,0.72)"; ctx.beginPath(); ctx.arc(ax, ay + 12, 15, 0, 2 * Math.PI); ctx.fill();
+  ctx.fillStyle = "#dce6ee"; ctx.beginPath();
+  ctx.moveTo(ax, ay); ctx.lineTo(ax + 6, ay + 16); ctx.lineTo(ax, ay + 12); ctx.lineTo(ax - 6, ay + 16); ctx.closePath(); ctx.fill();
+  ctx.font = "bold 10px system-ui"; ctx.fillText("N", ax - 3.5, ay + 25);
+  ctx.restore();
+  window.coex.axes = axes;
+}
+// Where the finest level shown has nothing, inside its extent: hatched, so that a coarser level
+// drawn underneath does not hide that the fine data is missing there.
+function drawGaps(lv) {
+  const span = lv.side * lv.cell * (lv.tile_span || 1);
+  const held = new Set(lv.tiles.map((t) => `${t[0]},${t[1]}`));
+  const ix0 = Math.floor(lv.x0 / span), iy0 = Math.floor(lv.y0 / span);
+  const ix1 = Math.ceil(lv.x1 / span), iy1 = Math.ceil(lv.y1 / span);
+  if ((ix1 - ix0) * (iy1 - iy0) > 40000) return;
+  ctx.save();
+  ctx.strokeStyle = "rgba(255,255,255,0.55)"; ctx.lineWidth = 1;
+  ctx.fillStyle = "rgba(10,16,22,0.55)";
+  let n = 0;
+  for (let ix = ix0; ix < ix1; ix++) for (let iy = iy0; iy < iy1; iy++) {
+    if (held.has(`${ix},${iy}`)) continue;
+    n++;
+    const [ax, ay] = w2s(ix * span, (iy + 1) * span), sz = span * view.scale;
+    ctx.fillRect(ax, ay, sz, sz);
+    ctx.beginPath();
+    for (let k = -sz; k < sz; k += 6) { ctx.moveTo(ax + Math.max(0, k), ay + Math.max(0, -k)); ctx.lineTo(ax + Math.min(sz, sz + k), ay + Math.min(sz, sz - k)); }
+    ctx.stroke();
+  }
+  ctx.restore();
+  window.coex.gaps = n;
+}
+// region requests: one look per state (the legend under the map says which)
+const ROI_STYLE = { requested: ["#f0b443", [6, 4]], "in flight": ["#e8e05a", [], "rgba(232,224,90,0.10)"],
+  "waiting for data": ["#6fb7ff", [2, 3], "rgba(111,183,255,0.10)"], filled: ["#58c47c", []],
+  "nothing to send": ["#9aa6b2", [1, 4]] };
+// labels placed so that they do not cover one another (tried below, above, then further down)
+const placed = [];
+function placeLabel(text, x, y, color) {
+  ctx.font = "bold 11px system-ui";
+  const w = ctx.measureText(text).width + 6;
+  x = Math.max(48, Math.min(x, canvas.width - w - 4));  // inside the map, clear of the axis
+  for (const dy of [0, 15, -15, 30, -30, 45, 60, 75]) {
+    const r = [x - 3, y + dy - 11, w, 15];
+    if (!placed.some((q) => r[0] < q[0] + q[2] && q[0] < r[0] + r[2] && r[1] < q[1] + q[3] && q[1] < r[1] + r[3])) {
+      placed.push(r); label(text, x, y + dy, color); return;
+    }
+  }
+  placed.push([x - 3, y - 11, w, 15]); label(text, x, y, color);
 }
 function drawGrid() {
   const stepM = niceStep(100 / view.scale);
@@ -271,7 +359,7 @@ function niceStep(v) {
 }
 function drawScale() {
   const m = niceStep(120 / view.scale), px = m * view.scale;
-  const x = 12, y = canvas.height - 14;
+  const x = 54, y = canvas.height - 26;
   ctx.strokeStyle = "#dce6ee"; ctx.lineWidth = 2;
   ctx.beginPath(); ctx.moveTo(x, y); ctx.lineTo(x + px, y); ctx.stroke();
   ctx.fillStyle = "#dce6ee"; ctx.font = "11px system-ui";
@@ -294,6 +382,37 @@ function drawTrack() {
     ctx.fill(); ctx.stroke(); ctx.restore();
   }
 }
+// Where the images were taken: their footprint (camera field of view at the vehicle's altitude)
+// and a dot; the one open in the viewer, and images answering a request, stand out.
+function drawImages() {
+  if (!S.images) return;
+  const ans = answeredBy();
+  ctx.save();
+  for (const it of S.images.items) {
+    if (it.x === null || it.x === undefined) continue;
+    const [x, y] = w2s(it.x, it.y);
+    const hot = it.image_id === viewer.id || ans.has(it.image_id);
+    if (it.footprint) {
+      const w = it.footprint[0] * view.scale, h = it.footprint[1] * view.scale;
+      ctx.strokeStyle = hot ? "#ffffff" : "rgba(120,230,255,0.8)"; ctx.lineWidth = hot ? 2 : 1;
+      ctx.fillStyle = "rgba(120,230,255,0.10)";
+      ctx.fillRect(x - w / 2, y - h / 2, w, h); ctx.strokeRect(x - w / 2, y - h / 2, w, h);
+    }
+    ctx.fillStyle = hot ? "#ffffff" : "#78e6ff";
+    ctx.beginPath(); ctx.arc(x, y, hot ? 4 : 3, 0, 2 * Math.PI); ctx.fill();
+    if (hot || view.scale > 4) label(`#${it.image_id}`, x + 6, y - 5, "#78e6ff");
+  }
+  ctx.restore();
+}
+function pickImage(p) {
+  if (!S.images || !$("#show-images").checked) return false;
+  for (const it of S.images.items) {
+    if (it.x === null || it.x === undefined) continue;
+    const [x, y] = w2s(it.x, it.y);
+    if (Math.hypot(x - p[0], y - p[1]) < 7) { openViewer(it.image_id); return true; }
+  }
+  return false;
+}
 function renderLevels() {
   const tb = $("#levels-table tbody");
   tb.replaceChildren();
@@ -304,8 +423,11 @@ function renderLevels() {
     cb.checked = !hiddenLevels.has(lv.level);
     cb.addEventListener("change", () => { if (cb.checked) hiddenLevels.delete(lv.level); else hiddenLevels.add(lv.level); drawMap(); });
     tb.append(el("tr", { "data-level": lv.level }, el("td", {}, cb), el("td", {}, lv.level),
-      el("td", {}, `${lv.cell} m`), el("td", { class: "n-subgrids" }, lv.subgrids),
-      el("td", {}, `${Math.round(lv.coverage_m2).toLocaleString()} m²`),
+      el("td", { title: lv.step > 1 ? `drawn at one pixel per ${lv.step} x ${lv.step} cells until you zoom in` : "" },
+        `${lv.cell} m${lv.step > 1 ? ` (drawn ${lv.cell * lv.step} m)` : ""}`), el("td", { class: "n-subgrids" }, lv.subgrids),
+      el("td", { title: "area held, and its share of the level's extent" },
+        `${Math.round(lv.coverage_m2).toLocaleString()} m² (${lv.fill_pct ?? "?"} %)`),
+      el("td", { class: "gaps", title: "blocks of the level's extent with no data (hatched with 'gaps')" }, lv.gap_note || "–"),
       el("td", {}, fmtAge(lv.newest_age)), el("td", {}, fmtAge(lv.oldest_age))));
   }
   const sel = $("#roi-level"), keep = sel.value;
@@ -316,11 +438,23 @@ function renderLevels() {
     sel.append(el("option", { value: k }, cell ? `${k} (${cell} m)` : `${k}`));
   }
   if (keep !== "") sel.value = keep;
-  if (m.zrange) {
-    $("#colorbar").style.background = "linear-gradient(90deg,#26145a,#285fa0,#28a08c,#8ccd50,#fae63c)";
-    $("#colorbar").title = `${m.zrange[0].toFixed(1)} m … ${m.zrange[1].toFixed(1)} m`;
-    $("#colorbar").textContent = "";
+  renderColorbar();
+}
+// The colour ramp with its numbers: seafloor elevation in metres (negative = below the surface
+// datum), the same scale for every level.
+function renderColorbar() {
+  const m = S.map, box = $("#colorbar");
+  if (!m || !m.zrange) { box.replaceChildren(); return; }
+  const [lo, hi] = m.zrange, n = 5, ticks = [];
+  const digits = hi - lo < 5 ? 1 : 0;
+  for (let k = 0; k < n; k++) {
+    const v = lo + ((hi - lo) * k) / (n - 1);
+    ticks.push(el("span", { class: "tick", style: `left:${(100 * k) / (n - 1)}%` }, `${v.toFixed(digits)}`));
   }
+  box.replaceChildren(el("span", { class: "cb-title" }, "seafloor elevation (m)"),
+    el("div", { class: "cb-wrap" }, el("div", { class: "cb-ramp" }), el("div", { class: "cb-ticks" }, ...ticks)));
+  const age = $("#show-age").checked;
+  $("#age-legend").classList.toggle("hidden", !age);
 }
 
 canvas.addEventListener("mousedown", (ev) => {
@@ -375,7 +509,7 @@ window.addEventListener("keydown", (ev) => {
 window.addEventListener("mouseup", (ev) => {
   if (drag && drag.kind === "pan") {
     const p = evPos(ev);
-    if (Math.hypot(p[0] - drag.p[0], p[1] - drag.p[1]) < 3) pickTrackTime(p);
+    if (Math.hypot(p[0] - drag.p[0], p[1] - drag.p[1]) < 3 && !pickImage(p)) pickTrackTime(p);
   }
   if (drag && drag.kind === "survey") {
     const [ax, ay] = w2s(...draft.a), [bx, by] = w2s(...draft.b);
@@ -424,16 +558,32 @@ function setDraw(on) {
   $("#draw-btn").classList.toggle("active", on);
   canvas.classList.toggle("drawing", on);
 }
+// The region the vehicle is asked for: whole subgrids of the level, so the box drawn grows to
+// the subgrid edges; the bar says the size drawn and the size sent, and the map shows it dashed.
+function roiSnapped() {
+  if (!roi || !S.map || !S.map.meta) return null;
+  const k = Number($("#roi-level").value || 0), side = S.map.meta.resolution * 2 ** k * S.map.meta.subgrid_side;
+  const x0 = Math.floor(Math.min(roi[0], roi[2]) / side) * side, y0 = Math.floor(Math.min(roi[1], roi[3]) / side) * side;
+  const x1 = (Math.floor(Math.max(roi[0], roi[2]) / side) + 1) * side, y1 = (Math.floor(Math.max(roi[1], roi[3]) / side) + 1) * side;
+  return { x0, y0, x1, y1, side, nx: Math.round((x1 - x0) / side), ny: Math.round((y1 - y0) / side) };
+}
 function showRoiBar() {
   const w = Math.abs(roi[2] - roi[0]), h = Math.abs(roi[3] - roi[1]);
-  $("#roi-desc").textContent = `${w.toFixed(0)} × ${h.toFixed(0)} m at (${Math.min(roi[0], roi[2]).toFixed(0)}, ${Math.min(roi[1], roi[3]).toFixed(0)})`;
+  const sn = roiSnapped();
+  let text = `drawn ${w.toFixed(0)} × ${h.toFixed(0)} m at (${Math.min(roi[0], roi[2]).toFixed(0)}, ${Math.min(roi[1], roi[3]).toFixed(0)})`;
+  if (sn) text += ` → asks ${sn.x1 - sn.x0} × ${sn.y1 - sn.y0} m (${sn.nx} × ${sn.ny} subgrids of ${sn.side} m)`;
+  $("#roi-desc").textContent = text;
   $("#roi-bar").classList.remove("hidden");
+  drawMap();
 }
+$("#roi-level").addEventListener("change", () => { if (roi) showRoiBar(); });
 $("#draw-btn").addEventListener("click", () => setDraw(!drawMode));
 $("#survey-btn").addEventListener("click", () => { if (surveyMode) endSurvey(); else startSurvey(); drawMap(); });
 $("#fit-btn").addEventListener("click", () => { view.auto = true; drawMap(); });
-$("#show-age").addEventListener("change", drawMap);
+$("#show-age").addEventListener("change", () => { $("#age-legend").classList.toggle("hidden", !$("#show-age").checked); drawMap(); });
+$("#show-gaps").addEventListener("change", drawMap);
 $("#show-track").addEventListener("change", drawMap);
+$("#show-images").addEventListener("change", drawMap);
 $("#roi-cancel").addEventListener("click", () => { roi = null; $("#roi-bar").classList.add("hidden"); drawMap(); });
 $("#roi-send").addEventListener("click", async () => {
   if (!roi) return;
@@ -720,9 +870,12 @@ function makeCard(it) {
   const meta = el("div", { class: "meta" });
   const bar = el("div", { class: "bar" }, el("div", { style: "width:0%" }));
   const bytes = el("div", { class: "meta" });
-  const kind = el("select", {},
-    ...["fraction", "layer", "full", "skip"].map((k) => el("option", { value: k }, k)));
-  const val = el("input", { value: "50", title: "% or layer" });
+  const kind = el("select", { title: "how much of this image to transfer" },
+    ...[["fraction", "% of bytes"], ["layer", "up to layer"], ["full", "all of it"], ["skip", "skip it"]]
+      .map(([k, t]) => el("option", { value: k }, t)));
+  const val = el("input", { value: "50", title: "% of the bytes, or the quality layer" });
+  kind.addEventListener("change", () => { val.disabled = kind.value === "full" || kind.value === "skip"; });
+  root.addEventListener("click", (ev) => { if (!ev.target.closest(".goal")) openViewer(it.image_id); });
   const set = el("button", { title: "transfer this image up to the goal" }, "Goal");
   set.addEventListener("click", () => act("set_image_goal", { image_id: it.image_id, kind: kind.value, value: Number(val.value || 0) }));
   root.append(pic, meta, bar, bytes, el("div", { class: "goal" }, kind, val, set));
@@ -740,7 +893,51 @@ function updateCard(c, it) {
   const goal = it.goal ? ` · goal ${it.goal.kind.toLowerCase()}${it.goal.value ? " " + it.goal.value : ""}` : "";
   c.bytes.textContent = `${fmtBytes(it.bytes_received)} / ${fmtBytes(it.total_bytes)}${goal}`;
   c.root.classList.toggle("current", S.images.progress && S.images.progress.current === it.image_id);
+  const answered = answeredBy().get(it.image_id);
+  c.root.classList.toggle("answer", !!answered);
+  c.root.title = answered ? `answers: ${answered}` : "click to open full size";
+  if (viewer.id === it.image_id) showViewer();
 }
+// image id -> the by-time request it answered (the newest)
+function answeredBy() {
+  const out = new Map();
+  for (const c of S.commands || []) if (c.image_id !== null && c.image_id !== undefined && !out.has(c.image_id)) out.set(c.image_id, c.summary);
+  return out;
+}
+
+// ------------------------------------------------------------------ full-size viewer
+const viewer = { id: null, fit: true };
+function openViewer(id) { viewer.id = id; showViewer(); }
+function closeViewer() { viewer.id = null; $("#viewer").classList.add("hidden"); }
+function showViewer() {
+  const it = S.images && S.images.items.find((i) => i.image_id === viewer.id);
+  if (!it) return;
+  $("#viewer").classList.remove("hidden");
+  const img = $("#viewer-img");
+  if (it.full && img.dataset.src !== it.full) { img.src = it.full; img.dataset.src = it.full; }
+  img.classList.toggle("hidden", !it.full);
+  $("#viewer-none").classList.toggle("hidden", !!it.full);
+  img.classList.toggle("fit", viewer.fit);
+  $("#viewer-zoom").textContent = viewer.fit ? "100 %" : "fit";
+  const pos = it.x !== null && it.x !== undefined ? `(${Number(it.x).toFixed(1)}, ${Number(it.y).toFixed(1)}) m` : "–";
+  const fp = it.footprint ? `about ${it.footprint[0].toFixed(1)} × ${it.footprint[1].toFixed(1)} m of seafloor` : "–";
+  const layers = it.layers ? `${it.layers_complete ?? 0} of ${it.layers} complete` : "–";
+  const goal = it.goal ? `${it.goal.kind.toLowerCase()}${it.goal.value ? " " + it.goal.value : ""}` : "default";
+  const rows = [["image", `#${it.image_id}`], ["taken", fmtT(it.t)], ["position", pos],
+    ["footprint", fp], ["size", it.width ? `${it.width} × ${it.height} px` : "–"],
+    ["bytes", `${fmtBytes(it.bytes_received)} of ${fmtBytes(it.total_bytes)}${it.fraction !== null && it.fraction !== undefined ? ` (${(100 * it.fraction).toFixed(1)} %)` : ""}`],
+    ["decoded from", it.bytes_used !== undefined && it.bytes_used !== null ? `${fmtBytes(it.bytes_used)} in ${it.packets_used} of ${it.packets} packets` : "–"],
+    ["quality layers", layers], ["goal", goal]];
+  const ans = answeredBy().get(it.image_id);
+  if (ans) rows.push(["answers", ans]);
+  $("#viewer-meta").replaceChildren(...rows.map(([k, v]) => el("tr", {}, el("th", {}, k), el("td", {}, v))));
+  $("#viewer-title").textContent = `Image #${it.image_id} · ${fmtT(it.t)}${it.complete ? " · complete" : ""}`;
+}
+$("#viewer-close").addEventListener("click", closeViewer);
+$("#viewer").addEventListener("click", (ev) => { if (ev.target.id === "viewer") closeViewer(); });
+$("#viewer-zoom").addEventListener("click", () => { viewer.fit = !viewer.fit; showViewer(); });
+$("#viewer-full").addEventListener("click", () => { if (viewer.id !== null) act("set_image_goal", { image_id: viewer.id, kind: "full", value: 0 }); });
+window.addEventListener("keydown", (ev) => { if (ev.key === "Escape" && viewer.id !== null) closeViewer(); });
 for (const b of document.querySelectorAll(".img-time-btn")) {
   b.addEventListener("click", () => {
     let t;
@@ -987,6 +1184,20 @@ function renderQueues() {
 }
 
 // ------------------------------------------------------------------ header, commands, log
+// Dive time: since the first vehicle status the console holds.
+function diveStart() {
+  const tr = S.vehicle && S.vehicle.track;
+  return tr && tr.length ? tr[0][0] : null;
+}
+function fmtDur(s) {
+  s = Math.max(0, Math.floor(s));
+  return `${Math.floor(s / 3600)}:${pad(Math.floor(s / 60) % 60)}:${pad(s % 60)}`;
+}
+function showClock() {
+  const t0 = diveStart();
+  $("#clock").textContent = fmtT(S.now) + (t0 !== null ? ` · dive ${fmtDur(S.now - t0)}` : "");
+  $("#clock").title = "time of day (UTC) of the dive, and time since the first vehicle status";
+}
 function renderVehicle() {
   const v = S.vehicle && S.vehicle.status;
   const box = $("#vehicle-status");
@@ -1004,10 +1215,12 @@ function renderVehicle() {
 }
 function renderCommands() {
   const ul = $("#commands");
-  ul.replaceChildren(...S.commands.map((c) => el("li", { "data-status": c.status },
+  ul.replaceChildren(...S.commands.map((c) => el("li", { "data-status": c.status, "data-command": c.command_id },
     el("span", { class: "t" }, fmtT(c.sent)), c.summary,
     c.by ? el("span", { class: "by", title: "sent by" }, ` · ${c.by}`) : "",
-    el("span", { class: `badge ${c.status.replace(" ", "_")}` }, c.status))));
+    el("span", { class: `badge ${c.status.replace(/ /g, "_")}` }, c.status),
+    c.reason ? el("div", { class: `reason ${c.status.replace(/ /g, "_")}` }, c.reason) : "",
+    c.answer ? el("div", { class: "answer" }, c.answer) : "")));
   if (!S.commands.length) ul.append(el("li", { class: "empty" }, "No command sent yet."));
 }
 function renderLog() {
@@ -1031,9 +1244,10 @@ function renderOther() {
 }
 
 const RENDER = { vehicle: () => { renderVehicle(); drawMap(); }, map: () => { renderLevels(); drawMap(); },
+  images: () => { renderImages(); drawMap(); },
   surveys: () => { renderSurveys(); drawMap(); },
-  images: renderImages, series: renderSeries, other: renderOther, link: renderLink, queues: renderQueues,
-  commands: renderCommands, log: renderLog };
+  series: renderSeries, other: renderOther, link: renderLink, queues: renderQueues,
+  commands: () => { renderCommands(); if (S.images) renderImages(); }, log: renderLog };
 
 function apply(data, full) {
   if (data.now !== undefined) S.now = data.now;
@@ -1041,7 +1255,7 @@ function apply(data, full) {
   for (const k of Object.keys(RENDER)) {
     if (k in data) { S[k] = data[k]; RENDER[k](); S.versions[k] = (S.versions[k] || 0) + (full ? 0 : 1); }
   }
-  $("#clock").textContent = fmtT(S.now);
+  showClock();
   applyRole();
   window.coex.updates += 1;
 }
@@ -1090,7 +1304,7 @@ function connect() {
   es.addEventListener("update", (ev) => { apply(JSON.parse(ev.data), false); });
   es.addEventListener("clock", (ev) => {
     S.now = JSON.parse(ev.data).now;
-    $("#clock").textContent = fmtT(S.now);
+    showClock();
     renderVehicle(); drawTdma();
   });
   es.onopen = () => { $("#conn").textContent = "live"; $("#conn").className = "conn on"; window.coex.connected = true; };
