@@ -517,9 +517,9 @@ class Operator:
         """When the camera passed ``cv``, from what reached topside, once it is past: the
         closest approach of the received track (the vehicle more than 10 m beyond); else the
         vehicle's report of reaching the line's start (or of finishing it), once the next frame
-        after the pass is taken; else,
-        on a lossy link where both are late, from when it set off (or from a later line's
-        report) a cycle on."""
+        after the pass is taken; else, on a lossy link where both are late, from when it set off
+        for this line, a cycle on. Never from another line's reports: the vehicle flies the lines
+        in the order their commands reached it, which loss can make unlike the order sent."""
         x_now, y_now = self.position or (self.track[-1][1:3] if self.track else (cv.x, cv.y))
         if self.track:
             d, t_close = closest_approach(self.track, cv.x, cv.y)
@@ -537,10 +537,6 @@ class Operator:
             start = self._position_at(line.set_off)
             if start is not None:
                 est = line.set_off + math.hypot(line.start[0] - start[0], line.start[1] - start[1]) / TRANSIT_SPEED + half
-        else:  # a later line set off: this one was done by then
-            later = [ln.set_off for sid, ln in self.lines.items() if sid > line.survey_id and ln.set_off is not None]
-            if later:
-                est = min(later) - half  # type: ignore[type-var]
         return est if est is not None and now > est + self.cycle else None
 
     def watch_images(self, now: float) -> None:
