@@ -11,6 +11,7 @@ Needs ``/usr/bin/chromium`` (``scripts/system-deps.sh``) and the ``playwright`` 
 from __future__ import annotations
 
 import contextlib
+import json
 import os
 import shutil
 import threading
@@ -108,11 +109,14 @@ def browser() -> Iterator[Any]:
 
 @contextlib.contextmanager
 def sample_console(browser: Any, hub_type: type[ConsoleHub], sent: list[m.Message],
-                   errors: list[str]) -> Iterator[Any]:
+                   errors: list[str], prepare: Any = None) -> Iterator[Any]:
     """A page of a console fed with the sample dive (no link: ``sent`` records what the hub
-    would send, ``errors`` the page's script errors), loaded and showing its first update."""
+    would send, ``errors`` the page's script errors), loaded and showing its first update;
+    ``prepare(state)`` adds to the sample first."""
     state = ConsoleState(schedules={0: Schedule.simple([1, 2, 2, 1, 2, 2], 20.0, 2.0)})
     feed_sample(state, t0=T0)
+    if prepare is not None:
+        prepare(state)
     hub = hub_type(state, sent.append, lambda: T0)
     with serve(hub, "127.0.0.1", 0) as srv:
         page = browser.new_page(viewport={"width": 1400, "height": 1000})
@@ -763,4 +767,41 @@ def test_a_region_over_unsurveyed_ground_waits_then_fills(browser: Any, tmp_path
     finally:
         app.close()
         vehicle.transport.close()
+    assert not errors, errors
+
+
+def _link_history(state: ConsoleState) -> None:
+    """Twenty minutes of modem reports and received statuses on link 0 (SNR falling)."""
+    for k in range(40):
+        t = T0 - 590 + 15 * k
+        state.apply_message(m.LinkStatus(to_stamp(t), 0, 3, 1 if k % 7 == 0 else 0,
+                                         float(14 - k * 0.2), 0.1), t, 0)
+        state.apply_message(m.VehicleStatus(to_stamp(t), 5.0, 5.0, 40.0, 20.0, 90.0, 1.5, 80,
+                                            m.VehicleMode.SURVEY, 0), t, 0)
+
+
+def test_the_link_has_throughput_and_snr_plots_and_counters_in_words(browser: Any, tmp_path: Path) -> None:
+    """Throughput (bytes per cycle) and SNR are drawn over dive time with axis labels, and the
+    counters of the link and queue tables are words a non-expert reads."""
+    errors: list[str] = []
+    with sample_console(browser, ConsoleHub, [], errors, prepare=_link_history) as page:
+        page.set_viewport_size({"width": 1280, "height": 1000})
+        page.wait_for_selector('#link-plots canvas[data-plot="throughput"][data-xticks]', timeout=10_000)
+        for kind, ylabel in (("throughput", "bytes / cycle"), ("snr", "SNR (dB)")):
+            cv = page.query_selector(f'#link-plots canvas[data-plot="{kind}"]')
+            assert cv is not None and cv.is_visible(), kind
+            assert cv.get_attribute("data-ylabel") == ylabel
+            assert cv.get_attribute("data-xlabel") == "dive time"
+            ticks = json.loads(cv.get_attribute("data-xticks") or "[]")
+            assert len(ticks) >= 3 and any("min" in t for t in ticks), ticks
+        th = page.evaluate("window.coex.S.link.links[0].throughput")
+        assert len(th) >= 10 and all(b[1] > 0 for b in th), th
+        row = page.inner_text('#links-table tr[data-link="0"]')
+        assert "packets heard" in row and "frames" in row and "garbled" in row, row
+        assert "signal" in row, row
+        q = page.inner_text('#queues-table tr[data-stream="3"]')
+        assert "dropped in the last report" in q and "since the start" in q, q
+        page.screenshot(path=str(tmp_path / "link.png"), full_page=True)
+        if os.environ.get("COEX_LINK_SHOT"):
+            shutil.copy(tmp_path / "link.png", os.environ["COEX_LINK_SHOT"])
     assert not errors, errors

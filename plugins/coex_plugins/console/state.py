@@ -30,6 +30,7 @@ from coex_core import messages as m
 from coex_core.errors import RequestRejected
 from coex_core.state import persistent
 from coex_core.timefmt import to_stamp, unwrap
+from coex_core.wire import encoded_size
 
 __all__ = [
     "SECTIONS",
@@ -324,6 +325,7 @@ class ConsoleState:
         it changed."""
         self._advance(now)
         before = dict(self.versions)
+        self._count_rx(msg, now, link)
         handler = _HANDLERS.get(type(msg))
         if handler is not None:
             handler(self, msg, now, link)
@@ -743,8 +745,32 @@ class ConsoleState:
         if lk is None:
             lk = self.links[link] = {"link": link, "enabled": True, "muted": False,
                                      "packets": 0, "frames": 0, "bad_frames": 0, "snr": None,
-                                     "doppler": None, "last": None, "history": deque(maxlen=120)}
+                                     "doppler": None, "last": None, "history": deque(maxlen=240)}
         return lk
+
+    def _count_rx(self, msg: m.Message, now: float, link: int | None) -> None:
+        """Throughput: the bytes of the messages received, per TDMA cycle of the link (60 s
+        without a schedule). Not a change of its own: the bins go out with the link section's
+        next change (the modem's report of the packet, topside's frame counters)."""
+        try:
+            size = encoded_size(msg)
+        except Exception:  # a message the codec cannot build (a test double): not counted
+            return
+        if link is None:
+            link = min(self.links, default=0)
+        lk = self._link(int(link))
+        sch = self.schedules.get(int(link))
+        cycle = float(sch["cycle"]) if sch and sch.get("cycle", 0) > 0 else 60.0
+        epoch = float(sch["epoch"]) if sch else 0.0
+        start = epoch + math.floor((now - epoch) / cycle) * cycle
+        bins = lk.get("_rx")
+        if not isinstance(bins, deque):
+            bins = lk["_rx"] = deque(maxlen=240)
+        if bins and abs(bins[-1][0] - start) < 1e-6:
+            bins[-1][1] += size
+        else:
+            bins.append([start, size, cycle])
+        lk["rx_bytes"] = int(lk.get("rx_bytes", 0)) + size
 
     def _on_link_status(self, s: m.LinkStatus, now: float) -> None:
         lk = self._link(s.link)
@@ -1178,6 +1204,9 @@ class ConsoleState:
         for lk in sorted(self.links.values(), key=lambda x: x["link"]):
             d = {k: v for k, v in lk.items() if k != "history" and not k.startswith("_")}
             d["history"] = [[_num(t, 1), snr, f, b] for t, snr, f, b in lk["history"]]
+            # bytes received per cycle: [cycle start, bytes, cycle length] (the open cycle last)
+            d["throughput"] = [[_num(t, 1), int(n), _num(c, 1)]
+                               for t, n, c in lk.get("_rx") or ()]
             d["age"] = _num(self.now - lk["last"], 1) if lk["last"] is not None else None
             links.append(d)
         schedules = [{k: v for k, v in self.schedules[link].items() if not k.startswith("_")}

@@ -1083,19 +1083,160 @@ function renderLink() {
     spare.addEventListener("change", () => {
       if (spare.value !== "") act("spare_config", { link: lk.link, percent: Number(spare.value) });
     });
-    const ratio = lk.frames ? ` (${((100 * lk.bad_frames) / lk.frames).toFixed(0)}%)` : "";
+    // every counter in words: a non-expert reads the row, no tooltip needed
+    const heard = lk.packets ? `${lk.packets} packets heard (${lk.frames} frames)` : "no modem report yet";
+    const ours = [];
+    if (lk.sent_packets !== undefined) ours.push(`topside sent ${lk.sent_packets} packets`);
+    if (lk.frames_rx !== undefined) ours.push(`decoded ${lk.frames_rx} frames`);
+    const bad = lk.bad_frames + (lk.local_bad || 0);
+    const pct = lk.frames ? ` (${((100 * lk.bad_frames) / lk.frames).toFixed(0)} % of frames heard)` : "";
+    const badWords = bad ? `${lk.bad_frames} frames garbled${pct}` + (lk.local_bad ? `, ${lk.local_bad} topside could not decode` : "")
+      : "none garbled";
+    const rate = lastRate(lk);
     tb.append(el("tr", { "data-link": lk.link }, el("td", {}, lk.link),
       el("td", { class: lk.enabled ? "on" : "off" }, state),
-      el("td", {}, lk.snr === null || lk.snr === undefined ? "–" : `${lk.snr} dB`),
-      el("td", {}, `${lk.frames}${lk.frames_rx !== undefined ? ` / rx ${lk.frames_rx}` : ""}`),
-      el("td", {}, `${lk.bad_frames + (lk.local_bad || 0)}${ratio}`),
+      el("td", { class: "words" }, lk.snr === null || lk.snr === undefined ? "–" : `${Number(lk.snr).toFixed(1)} dB`,
+        el("div", { class: "expl" }, snrWords(lk.snr))),
+      el("td", { class: "words", "data-col": "frames" }, heard, ours.length ? el("div", { class: "expl" }, ours.join(", ")) : "",
+        rate ? el("div", { class: "expl" }, rate) : ""),
+      el("td", { class: "words", "data-col": "bad" }, badWords),
       el("td", {}, fmtAge(lk.last_heard !== null && lk.last_heard !== undefined ? S.now - lk.last_heard : lk.age)),
       el("td", {}, btn, " ", spare)));
   }
+  renderLinkPlots();
   const sl = $("#sched-slots");
   if (!sl.value && L.schedules.length) {
     sl.value = L.schedules[0].slots.map((s) => `${s.owner}:${s.duration}:${s.guard}`).join(", ");
     $("#sched-link").value = L.schedules[0].link;
+  }
+}
+function snrWords(snr) {
+  if (snr === null || snr === undefined) return "signal strength: not reported";
+  if (snr >= 15) return "strong signal";
+  if (snr >= 8) return "good signal";
+  if (snr >= 3) return "weak signal: expect lost frames";
+  return "very weak: most frames will be lost";
+}
+// bytes received in the last complete cycle, in words
+function lastRate(lk) {
+  const th = lk.throughput || [];
+  const done = th.filter((b) => b[0] + b[2] <= S.now);
+  if (!done.length) return "";
+  const b = done[done.length - 1];
+  return `last cycle: ${fmtBytes(b[1])} received in ${b[2]} s (${(b[1] / b[2]).toFixed(0)} B/s)`;
+}
+// ---- small plots against dive time (canvas, no library)
+function fmtDive(s, step) {
+  s = Math.round(s);
+  const sign = s < 0 ? "-" : ""; s = Math.abs(s);
+  if (step >= 60 && s % 60 === 0) {
+    const mins = s / 60;
+    return mins >= 60 ? `${sign}${Math.floor(mins / 60)} h ${pad(mins % 60)}` : `${sign}${mins} min`;
+  }
+  return `${sign}${Math.floor(s / 60)}:${pad(s % 60)}`;
+}
+function timeStep(span, n) {
+  const steps = [5, 10, 15, 30, 60, 120, 300, 600, 900, 1800, 3600, 7200, 14400];
+  for (const st of steps) if (span / st <= n) return st;
+  return steps[steps.length - 1];
+}
+// Axes for a plot of [t0, t1] (absolute seconds, labelled in dive time) by [lo, hi]; returns X, Y.
+function plotAxes(c, W, H, t0, t1, lo, hi, opts = {}) {
+  const L = opts.left || 40, R = 6, T = 14, B = 26;
+  const X = (t) => L + ((t - t0) / (t1 - t0 || 1)) * (W - L - R);
+  const Y = (y) => H - B - ((y - lo) / (hi - lo || 1)) * (H - B - T);
+  const d0 = diveStart() ?? t0;
+  c.strokeStyle = "#2a3a48"; c.lineWidth = 1; c.fillStyle = "#8aa0b2"; c.font = "10px system-ui";
+  c.beginPath(); c.moveTo(L, T); c.lineTo(L, H - B); c.lineTo(W - R, H - B); c.stroke();
+  const st = timeStep(t1 - t0, Math.max(2, Math.floor((W - L) / 70)));
+  c.textAlign = "center";
+  const xt = [];
+  for (let k = Math.ceil((t0 - d0) / st) * st; d0 + k <= t1 + 1e-6; k += st) {
+    const x = X(d0 + k);
+    c.beginPath(); c.moveTo(x, H - B); c.lineTo(x, H - B + 3); c.stroke();
+    c.textAlign = x > W - 24 ? "right" : "center";
+    c.fillText(fmtDive(k, st), x > W - 24 ? W - 2 : x, H - B + 12);
+    xt.push(fmtDive(k, st));
+  }
+  // what was drawn, for tests and the curious
+  c.canvas.dataset.xticks = JSON.stringify(xt);
+  c.canvas.dataset.xlabel = opts.xlabel || "dive time";
+  c.canvas.dataset.ylabel = opts.ylabel || "";
+  c.textAlign = "center";
+  c.fillText(opts.xlabel || "dive time", L + (W - L - R) / 2, H - 2);
+  const ys = niceStep((hi - lo) / 3);
+  c.textAlign = "right";
+  for (let y = Math.ceil(lo / ys) * ys; y <= hi + 1e-9; y += ys) {
+    c.beginPath(); c.moveTo(L - 3, Y(y)); c.lineTo(L, Y(y)); c.stroke();
+    c.fillText(Number(y.toPrecision(4)).toString(), L - 4, Y(y) + 3);
+  }
+  c.textAlign = "left";
+  c.fillText(opts.ylabel || "", 2, 10);
+  return [X, Y];
+}
+function renderLinkPlots() {
+  const box = $("#link-plots");
+  const links = (S.link && S.link.links) || [];
+  const have = links.filter((lk) => (lk.history && lk.history.length) || (lk.throughput && lk.throughput.length));
+  box.classList.toggle("hidden", !have.length);
+  for (const lk of have) {
+    let p = box.querySelector(`[data-plots-link="${lk.link}"]`);
+    if (!p) {
+      p = el("div", { class: "link-plots", "data-plots-link": lk.link },
+        el("div", { class: "ptitle" }, `link ${lk.link}: bytes received from the vehicle per TDMA cycle`),
+        el("canvas", { class: "tput", width: 560, height: 110, "data-plot": "throughput" }),
+        el("div", { class: "ptitle" }, `link ${lk.link}: signal-to-noise ratio of each packet heard (higher is better; red ticks: garbled frames)`),
+        el("canvas", { class: "snr", width: 560, height: 110, "data-plot": "snr" }));
+      box.append(p);
+    }
+    p.lk = lk;
+  }
+  drawLinkPlots();
+}
+function drawLinkPlots() {
+  for (const p of document.querySelectorAll("#link-plots .link-plots")) {
+    const lk = p.lk; if (!lk) continue;
+    const hist = (lk.history || []).slice().sort((a, b) => a[0] - b[0]), th = lk.throughput || [];
+    const d0 = diveStart();
+    let t0 = Infinity, t1 = -Infinity;
+    for (const h of hist) { t0 = Math.min(t0, h[0]); t1 = Math.max(t1, h[0]); }
+    for (const b of th) { t0 = Math.min(t0, b[0]); t1 = Math.max(t1, b[0] + b[2]); }
+    if (d0 !== null) t0 = Math.min(t0, d0);
+    t1 = Math.max(t1, S.now);
+    if (!isFinite(t0)) continue;
+    if (t1 - t0 < 60) t0 = t1 - 60;
+    for (const cv of p.querySelectorAll("canvas")) {
+      const rect = cv.getBoundingClientRect();
+      if (rect.width > 50 && cv.width !== Math.round(rect.width)) cv.width = Math.round(rect.width);
+      const c = cv.getContext("2d"), W = cv.width, H = cv.height;
+      c.fillStyle = "#0a1016"; c.fillRect(0, 0, W, H);
+      if (cv.dataset.plot === "throughput") {
+        const hi = Math.max(10, ...th.map((b) => b[1])) * 1.1;
+        const [X, Y] = plotAxes(c, W, H, t0, t1, 0, hi, { ylabel: "bytes / cycle" });
+        for (const b of th) {
+          const open = b[0] + b[2] > S.now;
+          c.fillStyle = open ? "rgba(79,179,255,0.4)" : "#4fb3ff";
+          c.fillRect(X(b[0]) + 0.5, Y(b[1]), Math.max(1, X(b[0] + b[2]) - X(b[0]) - 1), Y(0) - Y(b[1]));
+        }
+        if (!th.length) { c.fillStyle = "#8aa0b2"; c.fillText("nothing received yet", 50, H / 2); }
+      } else {
+        const vals = hist.map((h) => h[1]).filter((v) => v !== null);
+        const lo = Math.min(0, ...vals), hi = Math.max(20, ...vals) + 2;
+        const [X, Y] = plotAxes(c, W, H, t0, t1, lo, hi, { ylabel: "SNR (dB)" });
+        c.strokeStyle = "#58c47c"; c.fillStyle = "#58c47c"; c.lineWidth = 1.2; c.beginPath();
+        let first = true;
+        for (const h of hist) {
+          if (h[1] === null) { first = true; continue; }
+          if (first) c.moveTo(X(h[0]), Y(h[1])); else c.lineTo(X(h[0]), Y(h[1]));
+          first = false;
+        }
+        c.stroke();
+        for (const h of hist) {
+          if (h[1] !== null) c.fillRect(X(h[0]) - 1.5, Y(h[1]) - 1.5, 3, 3);
+          if (h[3] > 0) { c.fillStyle = "#ef5f5f"; c.fillRect(X(h[0]) - 1, Y(lo) - 8, 2, 8); c.fillStyle = "#58c47c"; }
+        }
+      }
+    }
   }
 }
 function drawTdma() {
@@ -1164,6 +1305,7 @@ function renderQueues() {
       tog.addEventListener("click", () => act("queue_config", { stream: s.stream, enabled: !r.enabled }));
       flush.addEventListener("click", () => act("queue_config", { stream: s.stream, flush: true }));
       const cells = [0, 1, 2, 3, 4, 5, 6].map(() => el("td"));
+      cells[6].className = "words";
       cells[2].append(prio, setP);
       const tr = el("tr", { "data-stream": s.stream }, ...cells, el("td", {}, tog, flush));
       r = { tr, cells, prio, tog, enabled: s.enabled };
@@ -1178,7 +1320,7 @@ function renderQueues() {
     r.cells[3].textContent = s.depth;
     r.cells[4].textContent = fmtBytes(s.queued_bytes);
     r.cells[5].textContent = fmtAge(s.oldest_age);
-    r.cells[6].textContent = `${s.drops} (${s.drops_total})`;
+    r.cells[6].textContent = s.drops_total ? `${s.drops} dropped in the last report, ${s.drops_total} since the start` : "none dropped";
     r.tog.textContent = s.enabled ? "Disable" : "Enable";
   }
 }
@@ -1310,5 +1452,5 @@ function connect() {
   es.onopen = () => { $("#conn").textContent = "live"; $("#conn").className = "conn on"; window.coex.connected = true; };
   es.onerror = () => { $("#conn").textContent = "reconnecting…"; $("#conn").className = "conn off"; window.coex.connected = false; };
 }
-window.addEventListener("resize", () => { drawMap(); drawAllPlots(); drawTdma(); });
+window.addEventListener("resize", () => { drawMap(); drawAllPlots(); drawTdma(); drawLinkPlots(); });
 whoami().then(connect);
