@@ -241,9 +241,12 @@ def test_console_actions_from_the_page_are_wire_commands(browser: Any) -> None:
         plot = page.locator('#series canvas[data-channel="0"]')
         box = plot.bounding_box()
         y = box["y"] + box["height"] / 2
-        page.mouse.move(box["x"] + box["width"] * 0.25, y)
+        # the plot area: right of the value axis (48 px), 6 px short of the right edge
+        def at(f: float) -> float:
+            return float(box["x"] + 48 + f * (box["width"] - 54))
+        page.mouse.move(at(0.25), y)
         page.mouse.down()
-        page.mouse.move(box["x"] + box["width"] * 0.5, y)
+        page.mouse.move(at(0.5), y)
         page.mouse.up()
         page.fill("#series-err", "0.05")
         page.click("#series-refine")
@@ -804,4 +807,26 @@ def test_the_link_has_throughput_and_snr_plots_and_counters_in_words(browser: An
         page.screenshot(path=str(tmp_path / "link.png"), full_page=True)
         if os.environ.get("COEX_LINK_SHOT"):
             shutil.copy(tmp_path / "link.png", os.environ["COEX_LINK_SHOT"])
+    assert not errors, errors
+
+
+def test_a_stale_time_series_says_so_and_its_axis_has_dive_time_ticks(browser: Any) -> None:
+    """Fresh series carry no warning; ten minutes without a new sample, each plot says "no new
+    samples for 10 min"; the time axis is ticked in dive time, not two end labels."""
+    errors: list[str] = []
+    with sample_console(browser, ConsoleHub, [], errors) as page:
+        page.set_viewport_size({"width": 1280, "height": 1000})
+        page.wait_for_selector("#series canvas[data-xticks]", timeout=10_000)
+        assert page.eval_on_selector_all("#series .plot[data-stale]", "els => els.length") == 0
+        ticks = json.loads(page.get_attribute("#series canvas", "data-xticks") or "[]")
+        assert len(ticks) >= 4, ticks
+        assert page.get_attribute("#series canvas", "data-xlabel") == "dive time"
+
+    def later(state: ConsoleState) -> None:
+        state.now = T0 + 600  # ten minutes on, nothing new
+    with sample_console(browser, ConsoleHub, [], errors, prepare=later) as page:
+        page.wait_for_selector("#series .plot[data-stale]", timeout=10_000)
+        words = page.eval_on_selector_all("#series .plot", "els => els.map(e => e.dataset.stale)")
+        assert words and all(w and w.startswith("no new samples for 10 min") for w in words), words
+        assert "no new samples for 10 min" in page.inner_text("#series")
     assert not errors, errors

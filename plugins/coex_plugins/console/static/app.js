@@ -963,7 +963,7 @@ function renderSeries() {
 }
 function makePlot(channel) {
   const title = el("div", { class: "title" });
-  const cv = el("canvas", { width: 600, height: 120, "data-channel": channel });
+  const cv = el("canvas", { width: 600, height: 140, "data-channel": channel });
   const root = el("div", { class: "plot" }, title, cv);
   const p = { root, title, cv, data: null, range: null };
   let down = null;
@@ -981,8 +981,15 @@ function makePlot(channel) {
 function plotT(p, ev) {
   if (!p.range) return null;
   const r = p.cv.getBoundingClientRect();
-  const f = (ev.clientX - r.left) / r.width;
+  const px = ((ev.clientX - r.left) / r.width) * p.cv.width;
+  const f = Math.min(1, Math.max(0, (px - SERIES_L) / (p.cv.width - SERIES_L - 6)));
   return p.range[0] + f * (p.range[1] - p.range[0]);
+}
+const SERIES_L = 48;
+// A channel is stale when its newest sample is older than a few TDMA cycles.
+function staleAfter() {
+  const sch = S.link && S.link.schedules && S.link.schedules[0];
+  return Math.max(120, 3 * (sch && sch.cycle > 0 ? sch.cycle : 60));
 }
 function drawAllPlots() { for (const p of plots.values()) drawPlot(p); }
 function drawPlot(p) {
@@ -995,9 +1002,16 @@ function drawPlot(p) {
   const err = ch.max_error !== null && ch.max_error !== undefined ? ` · max error ±${Number(ch.max_error).toPrecision(3)}` : "";
   p.title.innerHTML = "";
   p.title.append(el("b", {}, ch.name || `channel ${ch.channel}`), `${unit} · ${ch.samples || 0} samples${err}`);
+  p.root.removeAttribute("data-stale");
   if (!ch.t || !ch.t.length) { p.range = null; return; }
   const t = ch.t, v = ch.v, e = ch.err;
   let t0 = t[0], t1 = t[t.length - 1];
+  const age = S.now - t1;
+  if (age > staleAfter()) {
+    const words = `no new samples for ${fmtAge(age)} (newest ${fmtT(t1)})`;
+    p.title.append(" ", el("span", { class: "stale" }, words));
+    p.root.dataset.stale = words;
+  }
   if (t1 <= t0) t1 = t0 + 1;
   let lo = Infinity, hi = -Infinity;
   for (let i = 0; i < v.length; i++) {
@@ -1007,17 +1021,16 @@ function drawPlot(p) {
   if (hi <= lo) { hi = lo + 1; }
   const padY = (hi - lo) * 0.08; lo -= padY; hi += padY;
   p.range = [t0, t1];
-  const X = (x) => ((x - t0) / (t1 - t0)) * (W - 4) + 2;
-  const Y = (y) => H - 14 - ((y - lo) / (hi - lo)) * (H - 22);
+  const [X, Y] = plotAxes(c, W, H, t0, t1, lo, hi, { left: SERIES_L, ylabel: ch.unit || "" });
+  const top = 14, bot = H - 26;
   // pending refinement requests
   for (const r of (S.series.requests || []).filter((q) => q.channel === ch.channel)) {
     c.fillStyle = "rgba(240,180,67,0.12)";
-    c.fillRect(X(r.start), 0, Math.max(2, X(r.end) - X(r.start)), H - 12);
+    c.fillRect(X(r.start), top, Math.max(2, X(r.end) - X(r.start)), bot - top);
   }
   // error band
   c.fillStyle = "rgba(79,179,255,0.25)";
   c.beginPath();
-  let open = false;
   const flush = (from, to) => {
     if (to <= from) return;
     c.moveTo(X(t[from]), Y(v[from] + e[from]));
@@ -1028,10 +1041,8 @@ function drawPlot(p) {
   let start = 0;
   for (let i = 0; i <= t.length; i++) {
     const ok = i < t.length && e[i] >= 0 && (i === start || t[i] - t[i - 1] < (t1 - t0) / 50);
-    if (!ok) { flush(start, i); start = i + (i < t.length && e[i] < 0 ? 1 : 0); open = false; }
-    else open = true;
+    if (!ok) { flush(start, i); start = i + (i < t.length && e[i] < 0 ? 1 : 0); }
   }
-  void open;
   c.fill();
   c.strokeStyle = "#dce6ee"; c.lineWidth = 1;
   c.beginPath();
@@ -1040,13 +1051,10 @@ function drawPlot(p) {
     if (i === 0 || gap) c.moveTo(X(t[i]), Y(v[i])); else c.lineTo(X(t[i]), Y(v[i]));
   }
   c.stroke();
-  c.fillStyle = "#8aa0b2"; c.font = "10px system-ui";
-  c.fillText(fmtT(t0), 2, H - 2); c.fillText(fmtT(t1), W - 48, H - 2);
-  c.fillText(hi.toPrecision(4), 2, 10); c.fillText(lo.toPrecision(4), 2, H - 16);
   if (seriesSel && seriesSel.channel === ch.channel) {
     const a = X(Math.min(seriesSel.t0, seriesSel.t1)), b = X(Math.max(seriesSel.t0, seriesSel.t1));
-    c.fillStyle = "rgba(79,179,255,0.2)"; c.fillRect(a, 0, b - a, H - 12);
-    c.strokeStyle = "#4fb3ff"; c.strokeRect(a, 0, b - a, H - 12);
+    c.fillStyle = "rgba(79,179,255,0.2)"; c.fillRect(a, top, b - a, bot - top);
+    c.strokeStyle = "#4fb3ff"; c.strokeRect(a, top, b - a, bot - top);
   }
 }
 $("#series-refine").addEventListener("click", async () => {
@@ -1164,7 +1172,8 @@ function plotAxes(c, W, H, t0, t1, lo, hi, opts = {}) {
   c.canvas.dataset.ylabel = opts.ylabel || "";
   c.textAlign = "center";
   c.fillText(opts.xlabel || "dive time", L + (W - L - R) / 2, H - 2);
-  const ys = niceStep((hi - lo) / 3);
+  let ys = niceStep((hi - lo) / 4);
+  if (Math.floor(hi / ys) - Math.ceil(lo / ys) < 2) ys = niceStep((hi - lo) / 8);
   c.textAlign = "right";
   for (let y = Math.ceil(lo / ys) * ys; y <= hi + 1e-9; y += ys) {
     c.beginPath(); c.moveTo(L - 3, Y(y)); c.lineTo(L, Y(y)); c.stroke();
@@ -1447,7 +1456,7 @@ function connect() {
   es.addEventListener("clock", (ev) => {
     S.now = JSON.parse(ev.data).now;
     showClock();
-    renderVehicle(); drawTdma();
+    renderVehicle(); drawTdma(); drawAllPlots();
   });
   es.onopen = () => { $("#conn").textContent = "live"; $("#conn").className = "conn on"; window.coex.connected = true; };
   es.onerror = () => { $("#conn").textContent = "reconnecting…"; $("#conn").className = "conn off"; window.coex.connected = false; };
