@@ -803,7 +803,7 @@ def test_the_link_has_throughput_and_snr_plots_and_counters_in_words(browser: An
         assert "packets heard" in row and "frames" in row and "garbled" in row, row
         assert "signal" in row, row
         q = page.inner_text('#queues-table tr[data-stream="3"]')
-        assert "dropped in the last report" in q and "since the start" in q, q
+        assert "dropped in the last report" in q and "in all" in q, q
         page.screenshot(path=str(tmp_path / "link.png"), full_page=True)
         if os.environ.get("COEX_LINK_SHOT"):
             shutil.copy(tmp_path / "link.png", os.environ["COEX_LINK_SHOT"])
@@ -829,4 +829,48 @@ def test_a_stale_time_series_says_so_and_its_axis_has_dive_time_ticks(browser: A
         words = page.eval_on_selector_all("#series .plot", "els => els.map(e => e.dataset.stale)")
         assert words and all(w and w.startswith("no new samples for 10 min") for w in words), words
         assert "no new samples for 10 min" in page.inner_text("#series")
+    assert not errors, errors
+
+
+def test_the_header_says_when_contact_is_lost_or_ended_and_the_page_fits_a_wide_screen(browser: Any, tmp_path: Path) -> None:
+    """"live" while statuses come; "no contact for 10 min" once they stop; "ended" after the
+    dive. The vehicle's mode is the one it reports. At 1600 x 1000 the queue table and the
+    commands are above the fold; the TDMA timeline is drawn at its natural aspect."""
+    errors: list[str] = []
+    with sample_console(browser, ConsoleHub, [], errors, prepare=_link_history) as page:
+        page.set_viewport_size({"width": 1600, "height": 1000})
+        page.wait_for_function("document.querySelector('#conn').textContent === 'live'", timeout=10_000)
+        assert "reports SURVEY" in page.inner_text("#vehicle-status")
+        for sel in ("#queues-table", "#commands", "#links-table", "#series canvas"):
+            box = page.locator(sel).first.bounding_box()
+            assert box is not None and box["y"] + min(box["height"], 60) <= 1000, (sel, box)
+        # nothing wider than its panel (the queue buttons are on screen)
+        for sel in ("#link-panel", "#images-panel", "#series-panel", "#log-panel"):
+            over = page.evaluate(f"(e => e.scrollWidth - e.clientWidth)(document.querySelector('{sel}'))")
+            assert over <= 1, (sel, over)
+        flush = page.locator('#queues-table tr[data-stream="3"] button', has_text="Flush").bounding_box()
+        panel = page.locator("#link-panel").bounding_box()
+        assert flush["x"] + flush["width"] <= panel["x"] + panel["width"], (flush, panel)
+        cv = page.locator("#tdma canvas").first
+        ratio = page.evaluate("(c => c.getBoundingClientRect().height / c.height)(document.querySelector('#tdma canvas'))")
+        assert ratio == pytest.approx(1.0, abs=0.02)
+        assert cv.bounding_box()["width"] == pytest.approx(page.evaluate(
+            "document.querySelector('#tdma canvas').width"), abs=1)
+        page.screenshot(path=str(tmp_path / "wide.png"))
+        if os.environ.get("COEX_WIDE_SHOT"):
+            shutil.copy(tmp_path / "wide.png", os.environ["COEX_WIDE_SHOT"])
+
+    def silent(state: ConsoleState) -> None:
+        state.now = T0 + 600  # no status for ten minutes
+    with sample_console(browser, ConsoleHub, [], errors, prepare=silent) as page:
+        page.wait_for_function("document.querySelector('#conn').textContent.startsWith('no contact for')",
+                               timeout=10_000)
+        assert page.inner_text("#conn") == "no contact for 10 min"
+
+    def over(state: ConsoleState) -> None:
+        state.end_contact(T0 + 5, "the dive is over")
+    with sample_console(browser, ConsoleHub, [], errors, prepare=over) as page:
+        page.wait_for_function("document.querySelector('#conn').textContent.startsWith('ended')",
+                               timeout=10_000)
+        assert page.inner_text("#conn") == "ended: the dive is over"
     assert not errors, errors

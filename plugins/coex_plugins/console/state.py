@@ -227,6 +227,9 @@ class ConsoleState:
         # vehicle
         self.status: m.VehicleStatus | None = None
         self.status_t: float | None = None
+        #: why contact ended for good (the dive is over, the link closed), or None
+        self.ended: str | None = None
+        self.ended_t: float | None = None
         self.track: deque[tuple[float, float, float, float]] = deque(maxlen=max_track)
         #: modality name -> its topside receiver: a node's (the console shows what they hold
         #: and never decodes anything itself), or, without ``receivers``, the console's own,
@@ -455,6 +458,14 @@ class ConsoleState:
         self._touch("map")
 
     # ---------------------------------------------------------------------- vehicle
+    def end_contact(self, now: float, why: str = "the dive is over") -> None:
+        """Contact with the vehicle has ended for good (the dive is over, the link closed):
+        the page stops saying "live"."""
+        self._advance(now)
+        self.ended, self.ended_t = str(why), float(now)
+        self._touch("vehicle")
+        self._log(now, f"contact ended: {why}")
+
     def _on_status(self, s: m.VehicleStatus, now: float) -> None:
         t = unwrap(s.stamp, now)
         if self.status_t is not None and t < self.status_t:
@@ -960,7 +971,9 @@ class ConsoleState:
         if len(track) > 1500:  # keep the payload small: every k-th point plus the newest
             k = math.ceil(len(track) / 1500)
             track = [*track[::k], track[-1]]
-        return {"status": status, "track": [[_num(t, 1), x, y, d] for t, x, y, d in track]}
+        ended = getattr(self, "ended", None)
+        return {"status": status, "track": [[_num(t, 1), x, y, d] for t, x, y, d in track],
+                "ended": ended, "ended_t": _num(getattr(self, "ended_t", None), 1)}
 
     def _snap_map(self) -> dict[str, Any]:
         rx = self.map_receiver

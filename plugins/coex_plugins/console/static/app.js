@@ -1074,7 +1074,9 @@ function renderLink() {
   const box = $("#tdma");
   box.replaceChildren();
   for (const sch of L.schedules) {
-    const cv = el("canvas", { width: 560, height: sch.proposed ? 46 : 28, "data-link": sch.link });
+    const h = sch.proposed ? 46 : 28;
+    const cv = el("canvas", { width: 560, height: h, "data-link": sch.link });
+    cv.style.height = `${h}px`;  // drawn at its natural aspect: one canvas pixel a CSS pixel
     box.append(cv);
   }
   drawTdma();
@@ -1329,7 +1331,7 @@ function renderQueues() {
     r.cells[3].textContent = s.depth;
     r.cells[4].textContent = fmtBytes(s.queued_bytes);
     r.cells[5].textContent = fmtAge(s.oldest_age);
-    r.cells[6].textContent = s.drops_total ? `${s.drops} dropped in the last report, ${s.drops_total} since the start` : "none dropped";
+    r.cells[6].textContent = s.drops_total ? `${s.drops} dropped in the last report, ${s.drops_total} in all` : "none dropped";
     r.tog.textContent = s.enabled ? "Disable" : "Enable";
   }
 }
@@ -1349,17 +1351,58 @@ function showClock() {
   $("#clock").textContent = fmtT(S.now) + (t0 !== null ? ` · dive ${fmtDur(S.now - t0)}` : "");
   $("#clock").title = "time of day (UTC) of the dive, and time since the first vehicle status";
 }
+// What the vehicle is doing, in words: its vertical motion from the track's depths, and the
+// survey it flies (from the survey receiver's state) when one is started.
+function vehicleDoing() {
+  const out = [];
+  const tr = (S.vehicle && S.vehicle.track) || [];
+  if (tr.length >= 2) {
+    const last = tr[tr.length - 1];
+    let k = tr.length - 2;
+    while (k > 0 && last[0] - tr[k][0] < 20) k--;
+    const dt = last[0] - tr[k][0];
+    const rate = dt > 0 ? (last[3] - tr[k][3]) / dt : 0;
+    if (dt > 0 && dt < 600 && rate > 0.05) out.push("descending");
+    else if (dt > 0 && dt < 600 && rate < -0.05) out.push("ascending");
+  }
+  const items = (S.surveys && S.surveys.items) || [];
+  const flying = items.filter((sv) => sv.state === "started");
+  if (flying.length) {
+    const sv = flying[flying.length - 1];
+    const n = (sv.waypoints || []).length;
+    out.push(`flying survey S${sv.survey_id}` + (sv.index !== null && sv.index !== undefined && n ? ` (waypoint ${sv.index + 1} of ${n})` : ""));
+  }
+  return out.join(", ");
+}
+// Contact: "live" only while the page is connected and the vehicle was heard lately.
+let pageConnected = false;
+function showConn() {
+  const conn = $("#conn");
+  const V = S.vehicle || {};
+  const v = V.status;
+  let text = "live", cls = "conn on";
+  if (!pageConnected) { text = "reconnecting…"; cls = "conn off"; }
+  else if (V.ended) { text = `ended: ${V.ended}`; cls = "conn ended"; }
+  else if (!v) { text = "live · no vehicle status yet"; cls = "conn wait"; }
+  else if (S.now - v.t > staleAfter()) { text = `no contact for ${fmtAge(S.now - v.t)}`; cls = "conn wait"; }
+  conn.textContent = text; conn.className = cls;
+  conn.title = "live: the page is connected and the vehicle was heard in the last few TDMA cycles";
+}
 function renderVehicle() {
   const v = S.vehicle && S.vehicle.status;
   const box = $("#vehicle-status");
+  showConn();
   if (!v) { box.textContent = "no vehicle status yet"; return; }
   box.innerHTML = "";
   const f = (label, value) => [el("span", {}, ` ${label} `), el("b", {}, value)];
-  box.append(...f("mode", v.mode), ...f("depth", `${v.depth.toFixed(1)} m`),
+  const doing = vehicleDoing();
+  box.append(...f("reports", v.mode), ...(doing ? [el("b", { class: "doing" }, ` · ${doing}`)] : []),
+    ...f("depth", `${v.depth.toFixed(1)} m`),
     ...f("alt", v.altitude === null ? "–" : `${v.altitude.toFixed(1)} m`),
     ...f("hdg", `${v.heading.toFixed(0)}°`), ...f("speed", `${v.speed.toFixed(2)} m/s`),
     ...f("battery", `${v.battery}%`), ...f("pos", `${v.x.toFixed(0)}, ${v.y.toFixed(0)}`),
-    ...f("at", fmtT(v.t)), ...f("age", fmtAge(S.now - v.t)));
+    ...f("heard", `${fmtAge(S.now - v.t)} ago`));
+  box.title = `vehicle status of ${fmtT(v.t)}: the mode is what the vehicle reports`;
   if (v.faults) box.append(el("b", { class: "off" }, ` faults 0x${v.faults.toString(16)}`));
   const it = $("#img-time");
   if (!it.value && document.activeElement !== it) it.placeholder = fmtT(v.t);
@@ -1396,7 +1439,7 @@ function renderOther() {
 
 const RENDER = { vehicle: () => { renderVehicle(); drawMap(); }, map: () => { renderLevels(); drawMap(); },
   images: () => { renderImages(); drawMap(); },
-  surveys: () => { renderSurveys(); drawMap(); },
+  surveys: () => { renderSurveys(); renderVehicle(); drawMap(); },
   series: renderSeries, other: renderOther, link: renderLink, queues: renderQueues,
   commands: () => { renderCommands(); if (S.images) renderImages(); }, log: renderLog };
 
@@ -1458,8 +1501,8 @@ function connect() {
     showClock();
     renderVehicle(); drawTdma(); drawAllPlots();
   });
-  es.onopen = () => { $("#conn").textContent = "live"; $("#conn").className = "conn on"; window.coex.connected = true; };
-  es.onerror = () => { $("#conn").textContent = "reconnecting…"; $("#conn").className = "conn off"; window.coex.connected = false; };
+  es.onopen = () => { pageConnected = true; showConn(); window.coex.connected = true; };
+  es.onerror = () => { pageConnected = false; showConn(); window.coex.connected = false; };
 }
 window.addEventListener("resize", () => { drawMap(); drawAllPlots(); drawTdma(); drawLinkPlots(); });
 whoami().then(connect);
