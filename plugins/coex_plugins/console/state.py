@@ -945,9 +945,27 @@ class ConsoleState:
         self._command_result(a.command_id, a.status, now)
 
     # -------------------------------------------------------------------- snapshots
-    def changes(self, seen: Mapping[str, int]) -> dict[str, Any]:
-        """The sections whose version differs from ``seen`` (section -> version)."""
-        return {s: self.section(s) for s in SECTIONS if seen.get(s) != self.versions[s]}
+    def changes(self, seen: Mapping[str, Any]) -> dict[str, Any]:
+        """The sections whose version differs from ``seen`` (section -> version).
+
+        The map section is the big one (every level's blocks). When ``seen`` also holds
+        ``"_map"`` (what this client holds of it: :meth:`map_held` of the snapshot it got), the
+        map goes as a delta (``"delta": true``): a level whose version did not change is
+        ``{"level": n, "same": true}``, a changed one carries its blocks that changed
+        (``tiles_changed``) and the ones gone (``tiles_removed``) instead of all ``tiles``;
+        ``seen["_map"]`` is updated to what the client holds after this update."""
+        out = {s: self.section(s) for s in SECTIONS if seen.get(s) != self.versions[s]}
+        held = seen.get("_map")
+        if "map" in out and isinstance(held, dict):
+            out["map"] = map_delta(out["map"], held)
+        return out
+
+    def map_held(self, section: Mapping[str, Any] | None = None) -> dict[int, Any]:
+        """What a client that got the map section ``section`` (default: the current one)
+        holds of it: per level its version and its blocks (for :meth:`changes`)."""
+        held: dict[int, Any] = {}
+        map_delta(self._snap_map() if section is None else section, held)
+        return held
 
     def snapshot(self) -> dict[str, Any]:
         """The whole state as JSON-able data (plus ``now`` and section ``versions``)."""
@@ -1017,13 +1035,17 @@ class ConsoleState:
                 "x1": float(ix1 * side * c), "y1": float(iy1 * side * c),
                 "newest_age": _num(self.now - float(summary["newest"]), 1),
                 "oldest_age": _num(self.now - float(summary["oldest"]), 1),
+                # absolute times (s): the page takes the ages from its clock, so that a level
+                # that did not change is the same in every update (and need not be resent)
+                "newest": _num(float(summary["newest"]), 1),
+                "oldest": _num(float(summary["oldest"]), 1),
                 "version": version, "png": f"/map/{level}.png?v={version}",
                 # where the picture goes (the receiver's drawn array, which may be larger than
                 # what is held, and coarser: ``step`` level cells per pixel)
                 "image": image, "step": step,
-                # per block of tile_span x tile_span subgrids: its oldest data's age
+                # per block of tile_span x tile_span subgrids: the time of its oldest data
                 "tile_span": span,
-                "tiles": np.column_stack([keys, np.round(self.now - ts)]).astype(int).tolist(),
+                "tiles": np.column_stack([keys, np.round(ts)]).astype(np.int64).tolist(),
             })
         meta = rx.metadata if rx is not None else None
         zr = self._zrange
@@ -1269,6 +1291,33 @@ class ConsoleState:
 
     def _snap_log(self) -> list[dict[str, Any]]:
         return list(self.log)[-60:]
+
+
+def map_delta(full: Mapping[str, Any], held: dict[int, Any]) -> dict[str, Any]:
+    """The map section ``full`` as a delta against what a client holds (``held``: level ->
+    (version, {(ix, iy): t}, tile_span), updated to what it holds after it): see
+    :meth:`ConsoleState.changes`."""
+    levels = []
+    present = set()
+    for lv in full["levels"]:
+        n = int(lv["level"])
+        present.add(n)
+        tiles = {(int(a), int(b)): int(t) for a, b, t in lv["tiles"]}
+        had = held.get(n)
+        if had is None or had[2] != lv["tile_span"]:
+            levels.append(lv)
+        elif had[0] == lv["version"]:
+            levels.append({"level": n, "same": True})
+        else:
+            old = had[1]
+            part = {k: v for k, v in lv.items() if k != "tiles"}
+            part["tiles_changed"] = [[a, b, t] for (a, b), t in tiles.items() if old.get((a, b)) != t]
+            part["tiles_removed"] = [[a, b] for (a, b) in old if (a, b) not in tiles]
+            levels.append(part)
+        held[n] = (lv["version"], tiles, lv["tile_span"])
+    for n in [n for n in held if n not in present]:
+        del held[n]
+    return {**full, "levels": levels, "delta": True}
 
 
 def region_words(state: ConsoleState, r: Any) -> str:

@@ -210,10 +210,10 @@ function drawMap() {
     if ($("#show-age").checked && visible.length) {
       const lv = visible[visible.length - 1];
       const span = lv.side * lv.cell * (lv.tile_span || 1);  // blocks of tile_span subgrids
-      for (const [ix, iy, age] of lv.tiles) {
+      for (const [ix, iy, t] of lv.tiles) {
         const [ax, ay] = w2s(ix * span, (iy + 1) * span);
         const sz = span * view.scale;
-        ctx.fillStyle = ageColor(age, 0.3);
+        ctx.fillStyle = ageColor(S.now - t, 0.3);
         ctx.fillRect(ax, ay, sz, sz);
       }
     }
@@ -428,7 +428,7 @@ function renderLevels() {
       el("td", { title: "area held, and its share of the level's extent" },
         `${Math.round(lv.coverage_m2).toLocaleString()} m² (${lv.fill_pct ?? "?"} %)`),
       el("td", { class: "gaps", title: "blocks of the level's extent with no data (hatched with 'gaps')" }, lv.gap_note || "–"),
-      el("td", {}, fmtAge(lv.newest_age)), el("td", {}, fmtAge(lv.oldest_age))));
+      el("td", {}, fmtAge(S.now - lv.newest)), el("td", {}, fmtAge(S.now - lv.oldest))));
   }
   const sel = $("#roi-level"), keep = sel.value;
   const n = m.meta ? m.meta.levels : Math.max(1, ...m.levels.map((l) => l.level + 1));
@@ -1443,8 +1443,28 @@ const RENDER = { vehicle: () => { renderVehicle(); drawMap(); }, map: () => { re
   series: renderSeries, other: renderOther, link: renderLink, queues: renderQueues,
   commands: () => { renderCommands(); if (S.images) renderImages(); }, log: renderLog };
 
+// A map update is a delta (the server sends a level's blocks only when they changed): merge it
+// into the map the page holds.
+function mergeMap(old, upd) {
+  if (!upd.delta || !old) return upd;
+  const had = new Map((old.levels || []).map((lv) => [lv.level, lv]));
+  upd.levels = upd.levels.map((lv) => {
+    const prev = had.get(lv.level);
+    if (lv.same) return prev;
+    if (!lv.tiles_changed) return lv;
+    const tiles = new Map(((prev && prev.tiles) || []).map((t) => [`${t[0]},${t[1]}`, t]));
+    for (const t of lv.tiles_changed) tiles.set(`${t[0]},${t[1]}`, t);
+    for (const t of lv.tiles_removed || []) tiles.delete(`${t[0]},${t[1]}`);
+    const out = Object.assign({}, lv, { tiles: [...tiles.values()] });
+    delete out.tiles_changed; delete out.tiles_removed;
+    return out;
+  }).filter((lv) => lv);
+  delete upd.delta;
+  return upd;
+}
 function apply(data, full) {
   if (data.now !== undefined) S.now = data.now;
+  if (data.map) data.map = mergeMap(full ? null : S.map, data.map);
   if (data.versions) S.versions = data.versions;
   for (const k of Object.keys(RENDER)) {
     if (k in data) { S[k] = data[k]; RENDER[k](); S.versions[k] = (S.versions[k] || 0) + (full ? 0 : 1); }
