@@ -1355,7 +1355,10 @@ function showClock() {
 // survey it flies (from the survey receiver's state) when one is started.
 function vehicleDoing() {
   const out = [];
-  const tr = (S.vehicle && S.vehicle.track) || [];
+  const V = S.vehicle || {};
+  // only while in contact: a dive that ended, or a silent vehicle, is not "ascending" now
+  if (V.ended || !V.status || S.now - V.status.t > staleAfter()) return "";
+  const tr = V.track || [];
   if (tr.length >= 2) {
     const last = tr[tr.length - 1];
     let k = tr.length - 2;
@@ -1369,8 +1372,8 @@ function vehicleDoing() {
   const flying = items.filter((sv) => sv.state === "started");
   if (flying.length) {
     const sv = flying[flying.length - 1];
-    const n = (sv.waypoints || []).length;
-    out.push(`flying survey S${sv.survey_id}` + (sv.index !== null && sv.index !== undefined && n ? ` (waypoint ${sv.index + 1} of ${n})` : ""));
+    // the waypoint as the map labels it ("→ waypoint 3")
+    out.push(`flying survey S${sv.survey_id}` + (sv.index !== null && sv.index !== undefined ? ` → waypoint ${sv.index}` : ""));
   }
   return out.join(", ");
 }
