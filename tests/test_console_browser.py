@@ -11,6 +11,7 @@ Needs ``/usr/bin/chromium`` (``scripts/system-deps.sh``) and the ``playwright`` 
 from __future__ import annotations
 
 import contextlib
+import json
 import os
 import shutil
 import threading
@@ -108,11 +109,14 @@ def browser() -> Iterator[Any]:
 
 @contextlib.contextmanager
 def sample_console(browser: Any, hub_type: type[ConsoleHub], sent: list[m.Message],
-                   errors: list[str]) -> Iterator[Any]:
+                   errors: list[str], prepare: Any = None) -> Iterator[Any]:
     """A page of a console fed with the sample dive (no link: ``sent`` records what the hub
-    would send, ``errors`` the page's script errors), loaded and showing its first update."""
+    would send, ``errors`` the page's script errors), loaded and showing its first update;
+    ``prepare(state)`` adds to the sample first."""
     state = ConsoleState(schedules={0: Schedule.simple([1, 2, 2, 1, 2, 2], 20.0, 2.0)})
     feed_sample(state, t0=T0)
+    if prepare is not None:
+        prepare(state)
     hub = hub_type(state, sent.append, lambda: T0)
     with serve(hub, "127.0.0.1", 0) as srv:
         page = browser.new_page(viewport={"width": 1400, "height": 1000})
@@ -237,9 +241,12 @@ def test_console_actions_from_the_page_are_wire_commands(browser: Any) -> None:
         plot = page.locator('#series canvas[data-channel="0"]')
         box = plot.bounding_box()
         y = box["y"] + box["height"] / 2
-        page.mouse.move(box["x"] + box["width"] * 0.25, y)
+        # the plot area: right of the value axis (48 px), 6 px short of the right edge
+        def at(f: float) -> float:
+            return float(box["x"] + 48 + f * (box["width"] - 54))
+        page.mouse.move(at(0.25), y)
         page.mouse.down()
-        page.mouse.move(box["x"] + box["width"] * 0.5, y)
+        page.mouse.move(at(0.5), y)
         page.mouse.up()
         page.fill("#series-err", "0.05")
         page.click("#series-refine")
@@ -763,4 +770,107 @@ def test_a_region_over_unsurveyed_ground_waits_then_fills(browser: Any, tmp_path
     finally:
         app.close()
         vehicle.transport.close()
+    assert not errors, errors
+
+
+def _link_history(state: ConsoleState) -> None:
+    """Twenty minutes of modem reports and received statuses on link 0 (SNR falling)."""
+    for k in range(40):
+        t = T0 - 590 + 15 * k
+        state.apply_message(m.LinkStatus(to_stamp(t), 0, 3, 1 if k % 7 == 0 else 0,
+                                         float(14 - k * 0.2), 0.1), t, 0)
+        state.apply_message(m.VehicleStatus(to_stamp(t), 5.0, 5.0, 40.0, 20.0, 90.0, 1.5, 80,
+                                            m.VehicleMode.SURVEY, 0), t, 0)
+
+
+def test_the_link_has_throughput_and_snr_plots_and_counters_in_words(browser: Any, tmp_path: Path) -> None:
+    """Throughput (bytes per cycle) and SNR are drawn over dive time with axis labels, and the
+    counters of the link and queue tables are words a non-expert reads."""
+    errors: list[str] = []
+    with sample_console(browser, ConsoleHub, [], errors, prepare=_link_history) as page:
+        page.set_viewport_size({"width": 1280, "height": 1000})
+        page.wait_for_selector('#link-plots canvas[data-plot="throughput"][data-xticks]', timeout=10_000)
+        for kind, ylabel in (("throughput", "bytes / cycle"), ("snr", "SNR (dB)")):
+            cv = page.query_selector(f'#link-plots canvas[data-plot="{kind}"]')
+            assert cv is not None and cv.is_visible(), kind
+            assert cv.get_attribute("data-ylabel") == ylabel
+            assert cv.get_attribute("data-xlabel") == "dive time"
+            ticks = json.loads(cv.get_attribute("data-xticks") or "[]")
+            assert len(ticks) >= 3 and any("min" in t for t in ticks), ticks
+        th = page.evaluate("window.coex.S.link.links[0].throughput")
+        assert len(th) >= 10 and all(b[1] > 0 for b in th), th
+        row = page.inner_text('#links-table tr[data-link="0"]')
+        assert "packets heard" in row and "frames" in row and "garbled" in row, row
+        assert "signal" in row, row
+        q = page.inner_text('#queues-table tr[data-stream="3"]')
+        assert "dropped in the last report" in q and "in all" in q, q
+        page.screenshot(path=str(tmp_path / "link.png"), full_page=True)
+        if os.environ.get("COEX_LINK_SHOT"):
+            shutil.copy(tmp_path / "link.png", os.environ["COEX_LINK_SHOT"])
+    assert not errors, errors
+
+
+def test_a_stale_time_series_says_so_and_its_axis_has_dive_time_ticks(browser: Any) -> None:
+    """Fresh series carry no warning; ten minutes without a new sample, each plot says "no new
+    samples for 10 min"; the time axis is ticked in dive time, not two end labels."""
+    errors: list[str] = []
+    with sample_console(browser, ConsoleHub, [], errors) as page:
+        page.set_viewport_size({"width": 1280, "height": 1000})
+        page.wait_for_selector("#series canvas[data-xticks]", timeout=10_000)
+        assert page.eval_on_selector_all("#series .plot[data-stale]", "els => els.length") == 0
+        ticks = json.loads(page.get_attribute("#series canvas", "data-xticks") or "[]")
+        assert len(ticks) >= 4, ticks
+        assert page.get_attribute("#series canvas", "data-xlabel") == "dive time"
+
+    def later(state: ConsoleState) -> None:
+        state.now = T0 + 600  # ten minutes on, nothing new
+    with sample_console(browser, ConsoleHub, [], errors, prepare=later) as page:
+        page.wait_for_selector("#series .plot[data-stale]", timeout=10_000)
+        words = page.eval_on_selector_all("#series .plot", "els => els.map(e => e.dataset.stale)")
+        assert words and all(w and w.startswith("no new samples for 10 min") for w in words), words
+        assert "no new samples for 10 min" in page.inner_text("#series")
+    assert not errors, errors
+
+
+def test_the_header_says_when_contact_is_lost_or_ended_and_the_page_fits_a_wide_screen(browser: Any, tmp_path: Path) -> None:
+    """"live" while statuses come; "no contact for 10 min" once they stop; "ended" after the
+    dive. The vehicle's mode is the one it reports. At 1600 x 1000 the queue table and the
+    commands are above the fold; the TDMA timeline is drawn at its natural aspect."""
+    errors: list[str] = []
+    with sample_console(browser, ConsoleHub, [], errors, prepare=_link_history) as page:
+        page.set_viewport_size({"width": 1600, "height": 1000})
+        page.wait_for_function("document.querySelector('#conn').textContent === 'live'", timeout=10_000)
+        assert "reports SURVEY" in page.inner_text("#vehicle-status")
+        for sel in ("#queues-table", "#commands", "#links-table", "#series canvas"):
+            box = page.locator(sel).first.bounding_box()
+            assert box is not None and box["y"] + min(box["height"], 60) <= 1000, (sel, box)
+        # nothing wider than its panel (the queue buttons are on screen)
+        for sel in ("#link-panel", "#images-panel", "#series-panel", "#log-panel"):
+            over = page.evaluate(f"(e => e.scrollWidth - e.clientWidth)(document.querySelector('{sel}'))")
+            assert over <= 1, (sel, over)
+        flush = page.locator('#queues-table tr[data-stream="3"] button', has_text="Flush").bounding_box()
+        panel = page.locator("#link-panel").bounding_box()
+        assert flush["x"] + flush["width"] <= panel["x"] + panel["width"], (flush, panel)
+        cv = page.locator("#tdma canvas").first
+        ratio = page.evaluate("(c => c.getBoundingClientRect().height / c.height)(document.querySelector('#tdma canvas'))")
+        assert ratio == pytest.approx(1.0, abs=0.02)
+        assert cv.bounding_box()["width"] == pytest.approx(page.evaluate(
+            "document.querySelector('#tdma canvas').width"), abs=1)
+        page.screenshot(path=str(tmp_path / "wide.png"))
+        if os.environ.get("COEX_WIDE_SHOT"):
+            shutil.copy(tmp_path / "wide.png", os.environ["COEX_WIDE_SHOT"])
+
+    def silent(state: ConsoleState) -> None:
+        state.now = T0 + 600  # no status for ten minutes
+    with sample_console(browser, ConsoleHub, [], errors, prepare=silent) as page:
+        page.wait_for_function("document.querySelector('#conn').textContent.startsWith('no contact for')",
+                               timeout=10_000)
+        assert page.inner_text("#conn") == "no contact for 10 min"
+
+    def over(state: ConsoleState) -> None:
+        state.end_contact(T0 + 5, "the dive is over")
+    with sample_console(browser, ConsoleHub, [], errors, prepare=over) as page:
+        page.wait_for_function("document.querySelector('#conn').textContent.startsWith('ended')",
+                               timeout=10_000)
+        assert page.inner_text("#conn") == "ended: the dive is over"
     assert not errors, errors

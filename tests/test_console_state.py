@@ -942,3 +942,57 @@ def test_topside_runs_the_survey_receiver_by_default() -> None:
         assert snap["commands"][0]["summary"] == f"survey {cmd.survey_id}: go to (3, 4)"
     finally:
         app.close()
+
+
+def _merge_map(old: dict[str, Any], upd: dict[str, Any]) -> dict[str, Any]:
+    """What the page does with a map delta (app.js mergeMap)."""
+    had = {lv["level"]: lv for lv in old["levels"]}
+    levels = []
+    for lv in upd["levels"]:
+        if lv.get("same"):
+            levels.append(had[lv["level"]])
+        elif "tiles_changed" in lv:
+            tiles = {(t[0], t[1]): t for t in had[lv["level"]]["tiles"]}
+            tiles.update({(t[0], t[1]): t for t in lv["tiles_changed"]})
+            for a, b in lv["tiles_removed"]:
+                tiles.pop((a, b), None)
+            part = {k: v for k, v in lv.items() if k not in ("tiles_changed", "tiles_removed")}
+            levels.append({**part, "tiles": list(tiles.values())})
+        else:
+            levels.append(lv)
+    return {**{k: v for k, v in upd.items() if k != "delta"}, "levels": levels}
+
+
+def test_an_update_after_one_new_subgrid_sends_only_what_changed(subgrids: list[m.Subgrid]) -> None:
+    """A page's update after one new subgrid carries that level's changed block, not the whole
+    map section; merged into what the page holds it gives the whole section."""
+    import json
+
+    def size(x: Any) -> int:
+        return len(json.dumps(x, separators=(",", ":")))
+
+    fine = [sg for sg in subgrids if sg.level == 0]
+    last = fine[-1]
+    st = fresh([sg for sg in subgrids if sg is not last])
+    held_map = st.snapshot()["map"]
+    seen: dict[str, Any] = dict(st.versions)
+    seen["_map"] = st.map_held(held_map)
+    assert st.apply_message(last, T0 + 5) == {"map"}
+    whole = st.section("map")
+    upd = st.changes(seen)
+    assert set(upd) == {"map"} and upd["map"]["delta"] is True
+    assert size(upd["map"]) * 5 < size(whole), (size(upd["map"]), size(whole))
+    same = [lv["level"] for lv in upd["map"]["levels"] if lv.get("same")]
+    assert sorted(same) == [1, 2, 3], upd["map"]["levels"]
+    changed = next(lv for lv in upd["map"]["levels"] if lv["level"] == 0)
+    assert len(changed["tiles_changed"]) == 1 and changed["tiles_removed"] == []
+    merged = _merge_map(held_map, upd["map"])
+    key = lambda lv: (lv["level"], sorted(map(tuple, lv["tiles"])))  # noqa: E731
+    assert [key(lv) for lv in merged["levels"]] == [key(lv) for lv in whole["levels"]]
+    assert {k: v for k, v in merged.items() if k != "levels"} == {
+        k: v for k, v in whole.items() if k != "levels"}
+    seen.update({k: st.versions[k] for k in upd})
+    assert st.changes(seen) == {}  # nothing new: nothing sent
+    # without "_map" (an API client, a test): the whole section, as before
+    plain = st.changes({k: v for k, v in seen.items() if k != "map" and k != "_map"})
+    assert "tiles" in plain["map"]["levels"][0] and "delta" not in plain["map"]

@@ -202,7 +202,9 @@ class _Handler(BaseHTTPRequestHandler):
         self.close_connection = True
         with hub.lock:
             snap = hub.state.snapshot()
-            seen = dict(hub.state.versions)
+            seen: dict[str, Any] = dict(hub.state.versions)
+            # what this page holds of the map: its updates carry only what changed
+            seen["_map"] = hub.state.map_held(snap["map"])
             last_now = hub.state.now
         last_clock = time.monotonic()
         try:

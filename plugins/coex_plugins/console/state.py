@@ -30,6 +30,7 @@ from coex_core import messages as m
 from coex_core.errors import RequestRejected
 from coex_core.state import persistent
 from coex_core.timefmt import to_stamp, unwrap
+from coex_core.wire import encoded_size
 
 __all__ = [
     "SECTIONS",
@@ -226,6 +227,9 @@ class ConsoleState:
         # vehicle
         self.status: m.VehicleStatus | None = None
         self.status_t: float | None = None
+        #: why contact ended for good (the dive is over, the link closed), or None
+        self.ended: str | None = None
+        self.ended_t: float | None = None
         self.track: deque[tuple[float, float, float, float]] = deque(maxlen=max_track)
         #: modality name -> its topside receiver: a node's (the console shows what they hold
         #: and never decodes anything itself), or, without ``receivers``, the console's own,
@@ -324,6 +328,7 @@ class ConsoleState:
         it changed."""
         self._advance(now)
         before = dict(self.versions)
+        self._count_rx(msg, now, link)
         handler = _HANDLERS.get(type(msg))
         if handler is not None:
             handler(self, msg, now, link)
@@ -453,6 +458,14 @@ class ConsoleState:
         self._touch("map")
 
     # ---------------------------------------------------------------------- vehicle
+    def end_contact(self, now: float, why: str = "the dive is over") -> None:
+        """Contact with the vehicle has ended for good (the dive is over, the link closed):
+        the page stops saying "live"."""
+        self._advance(now)
+        self.ended, self.ended_t = str(why), float(now)
+        self._touch("vehicle")
+        self._log(now, f"contact ended: {why}")
+
     def _on_status(self, s: m.VehicleStatus, now: float) -> None:
         t = unwrap(s.stamp, now)
         if self.status_t is not None and t < self.status_t:
@@ -743,8 +756,32 @@ class ConsoleState:
         if lk is None:
             lk = self.links[link] = {"link": link, "enabled": True, "muted": False,
                                      "packets": 0, "frames": 0, "bad_frames": 0, "snr": None,
-                                     "doppler": None, "last": None, "history": deque(maxlen=120)}
+                                     "doppler": None, "last": None, "history": deque(maxlen=240)}
         return lk
+
+    def _count_rx(self, msg: m.Message, now: float, link: int | None) -> None:
+        """Throughput: the bytes of the messages received, per TDMA cycle of the link (60 s
+        without a schedule). Not a change of its own: the bins go out with the link section's
+        next change (the modem's report of the packet, topside's frame counters)."""
+        try:
+            size = encoded_size(msg)
+        except Exception:  # a message the codec cannot build (a test double): not counted
+            return
+        if link is None:
+            link = min(self.links, default=0)
+        lk = self._link(int(link))
+        sch = self.schedules.get(int(link))
+        cycle = float(sch["cycle"]) if sch and sch.get("cycle", 0) > 0 else 60.0
+        epoch = float(sch["epoch"]) if sch else 0.0
+        start = epoch + math.floor((now - epoch) / cycle) * cycle
+        bins = lk.get("_rx")
+        if not isinstance(bins, deque):
+            bins = lk["_rx"] = deque(maxlen=240)
+        if bins and abs(bins[-1][0] - start) < 1e-6:
+            bins[-1][1] += size
+        else:
+            bins.append([start, size, cycle])
+        lk["rx_bytes"] = int(lk.get("rx_bytes", 0)) + size
 
     def _on_link_status(self, s: m.LinkStatus, now: float) -> None:
         lk = self._link(s.link)
@@ -908,9 +945,27 @@ class ConsoleState:
         self._command_result(a.command_id, a.status, now)
 
     # -------------------------------------------------------------------- snapshots
-    def changes(self, seen: Mapping[str, int]) -> dict[str, Any]:
-        """The sections whose version differs from ``seen`` (section -> version)."""
-        return {s: self.section(s) for s in SECTIONS if seen.get(s) != self.versions[s]}
+    def changes(self, seen: Mapping[str, Any]) -> dict[str, Any]:
+        """The sections whose version differs from ``seen`` (section -> version).
+
+        The map section is the big one (every level's blocks). When ``seen`` also holds
+        ``"_map"`` (what this client holds of it: :meth:`map_held` of the snapshot it got), the
+        map goes as a delta (``"delta": true``): a level whose version did not change is
+        ``{"level": n, "same": true}``, a changed one carries its blocks that changed
+        (``tiles_changed``) and the ones gone (``tiles_removed``) instead of all ``tiles``;
+        ``seen["_map"]`` is updated to what the client holds after this update."""
+        out = {s: self.section(s) for s in SECTIONS if seen.get(s) != self.versions[s]}
+        held = seen.get("_map")
+        if "map" in out and isinstance(held, dict):
+            out["map"] = map_delta(out["map"], held)
+        return out
+
+    def map_held(self, section: Mapping[str, Any] | None = None) -> dict[int, Any]:
+        """What a client that got the map section ``section`` (default: the current one)
+        holds of it: per level its version and its blocks (for :meth:`changes`)."""
+        held: dict[int, Any] = {}
+        map_delta(self._snap_map() if section is None else section, held)
+        return held
 
     def snapshot(self) -> dict[str, Any]:
         """The whole state as JSON-able data (plus ``now`` and section ``versions``)."""
@@ -934,7 +989,9 @@ class ConsoleState:
         if len(track) > 1500:  # keep the payload small: every k-th point plus the newest
             k = math.ceil(len(track) / 1500)
             track = [*track[::k], track[-1]]
-        return {"status": status, "track": [[_num(t, 1), x, y, d] for t, x, y, d in track]}
+        ended = getattr(self, "ended", None)
+        return {"status": status, "track": [[_num(t, 1), x, y, d] for t, x, y, d in track],
+                "ended": ended, "ended_t": _num(getattr(self, "ended_t", None), 1)}
 
     def _snap_map(self) -> dict[str, Any]:
         rx = self.map_receiver
@@ -978,13 +1035,17 @@ class ConsoleState:
                 "x1": float(ix1 * side * c), "y1": float(iy1 * side * c),
                 "newest_age": _num(self.now - float(summary["newest"]), 1),
                 "oldest_age": _num(self.now - float(summary["oldest"]), 1),
+                # absolute times (s): the page takes the ages from its clock, so that a level
+                # that did not change is the same in every update (and need not be resent)
+                "newest": _num(float(summary["newest"]), 1),
+                "oldest": _num(float(summary["oldest"]), 1),
                 "version": version, "png": f"/map/{level}.png?v={version}",
                 # where the picture goes (the receiver's drawn array, which may be larger than
                 # what is held, and coarser: ``step`` level cells per pixel)
                 "image": image, "step": step,
-                # per block of tile_span x tile_span subgrids: its oldest data's age
+                # per block of tile_span x tile_span subgrids: the time of its oldest data
                 "tile_span": span,
-                "tiles": np.column_stack([keys, np.round(self.now - ts)]).astype(int).tolist(),
+                "tiles": np.column_stack([keys, np.round(ts)]).astype(np.int64).tolist(),
             })
         meta = rx.metadata if rx is not None else None
         zr = self._zrange
@@ -1178,6 +1239,9 @@ class ConsoleState:
         for lk in sorted(self.links.values(), key=lambda x: x["link"]):
             d = {k: v for k, v in lk.items() if k != "history" and not k.startswith("_")}
             d["history"] = [[_num(t, 1), snr, f, b] for t, snr, f, b in lk["history"]]
+            # bytes received per cycle: [cycle start, bytes, cycle length] (the open cycle last)
+            d["throughput"] = [[_num(t, 1), int(n), _num(c, 1)]
+                               for t, n, c in lk.get("_rx") or ()]
             d["age"] = _num(self.now - lk["last"], 1) if lk["last"] is not None else None
             links.append(d)
         schedules = [{k: v for k, v in self.schedules[link].items() if not k.startswith("_")}
@@ -1227,6 +1291,33 @@ class ConsoleState:
 
     def _snap_log(self) -> list[dict[str, Any]]:
         return list(self.log)[-60:]
+
+
+def map_delta(full: Mapping[str, Any], held: dict[int, Any]) -> dict[str, Any]:
+    """The map section ``full`` as a delta against what a client holds (``held``: level ->
+    (version, {(ix, iy): t}, tile_span), updated to what it holds after it): see
+    :meth:`ConsoleState.changes`."""
+    levels = []
+    present = set()
+    for lv in full["levels"]:
+        n = int(lv["level"])
+        present.add(n)
+        tiles = {(int(a), int(b)): int(t) for a, b, t in lv["tiles"]}
+        had = held.get(n)
+        if had is None or had[2] != lv["tile_span"]:
+            levels.append(lv)
+        elif had[0] == lv["version"]:
+            levels.append({"level": n, "same": True})
+        else:
+            old = had[1]
+            part = {k: v for k, v in lv.items() if k != "tiles"}
+            part["tiles_changed"] = [[a, b, t] for (a, b), t in tiles.items() if old.get((a, b)) != t]
+            part["tiles_removed"] = [[a, b] for (a, b) in old if (a, b) not in tiles]
+            levels.append(part)
+        held[n] = (lv["version"], tiles, lv["tile_span"])
+    for n in [n for n in held if n not in present]:
+        del held[n]
+    return {**full, "levels": levels, "delta": True}
 
 
 def region_words(state: ConsoleState, r: Any) -> str:

@@ -361,6 +361,8 @@ class DiveRun:
         self.link_log.close()
         ptys = net.pty_paths()
         net.close()
+        if server is not None:  # the console stops saying "live"
+            server.hub.update(lambda st: st.end_contact(clock.now, "the dive is over"))
         if server is not None and cfg.linger:
             _stop_on_interrupt()
             print(f"coex demo: the dive is over; the console stays at {server.url} (Ctrl+C to stop)",

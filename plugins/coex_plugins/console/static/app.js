@@ -210,10 +210,10 @@ function drawMap() {
     if ($("#show-age").checked && visible.length) {
       const lv = visible[visible.length - 1];
       const span = lv.side * lv.cell * (lv.tile_span || 1);  // blocks of tile_span subgrids
-      for (const [ix, iy, age] of lv.tiles) {
+      for (const [ix, iy, t] of lv.tiles) {
         const [ax, ay] = w2s(ix * span, (iy + 1) * span);
         const sz = span * view.scale;
-        ctx.fillStyle = ageColor(age, 0.3);
+        ctx.fillStyle = ageColor(S.now - t, 0.3);
         ctx.fillRect(ax, ay, sz, sz);
       }
     }
@@ -428,7 +428,7 @@ function renderLevels() {
       el("td", { title: "area held, and its share of the level's extent" },
         `${Math.round(lv.coverage_m2).toLocaleString()} m² (${lv.fill_pct ?? "?"} %)`),
       el("td", { class: "gaps", title: "blocks of the level's extent with no data (hatched with 'gaps')" }, lv.gap_note || "–"),
-      el("td", {}, fmtAge(lv.newest_age)), el("td", {}, fmtAge(lv.oldest_age))));
+      el("td", {}, fmtAge(S.now - lv.newest)), el("td", {}, fmtAge(S.now - lv.oldest))));
   }
   const sel = $("#roi-level"), keep = sel.value;
   const n = m.meta ? m.meta.levels : Math.max(1, ...m.levels.map((l) => l.level + 1));
@@ -963,7 +963,7 @@ function renderSeries() {
 }
 function makePlot(channel) {
   const title = el("div", { class: "title" });
-  const cv = el("canvas", { width: 600, height: 120, "data-channel": channel });
+  const cv = el("canvas", { width: 600, height: 140, "data-channel": channel });
   const root = el("div", { class: "plot" }, title, cv);
   const p = { root, title, cv, data: null, range: null };
   let down = null;
@@ -981,8 +981,15 @@ function makePlot(channel) {
 function plotT(p, ev) {
   if (!p.range) return null;
   const r = p.cv.getBoundingClientRect();
-  const f = (ev.clientX - r.left) / r.width;
+  const px = ((ev.clientX - r.left) / r.width) * p.cv.width;
+  const f = Math.min(1, Math.max(0, (px - SERIES_L) / (p.cv.width - SERIES_L - 6)));
   return p.range[0] + f * (p.range[1] - p.range[0]);
+}
+const SERIES_L = 48;
+// A channel is stale when its newest sample is older than a few TDMA cycles.
+function staleAfter() {
+  const sch = S.link && S.link.schedules && S.link.schedules[0];
+  return Math.max(120, 3 * (sch && sch.cycle > 0 ? sch.cycle : 60));
 }
 function drawAllPlots() { for (const p of plots.values()) drawPlot(p); }
 function drawPlot(p) {
@@ -995,9 +1002,16 @@ function drawPlot(p) {
   const err = ch.max_error !== null && ch.max_error !== undefined ? ` · max error ±${Number(ch.max_error).toPrecision(3)}` : "";
   p.title.innerHTML = "";
   p.title.append(el("b", {}, ch.name || `channel ${ch.channel}`), `${unit} · ${ch.samples || 0} samples${err}`);
+  p.root.removeAttribute("data-stale");
   if (!ch.t || !ch.t.length) { p.range = null; return; }
   const t = ch.t, v = ch.v, e = ch.err;
   let t0 = t[0], t1 = t[t.length - 1];
+  const age = S.now - t1;
+  if (age > staleAfter()) {
+    const words = `no new samples for ${fmtAge(age)} (newest ${fmtT(t1)})`;
+    p.title.append(" ", el("span", { class: "stale" }, words));
+    p.root.dataset.stale = words;
+  }
   if (t1 <= t0) t1 = t0 + 1;
   let lo = Infinity, hi = -Infinity;
   for (let i = 0; i < v.length; i++) {
@@ -1007,17 +1021,16 @@ function drawPlot(p) {
   if (hi <= lo) { hi = lo + 1; }
   const padY = (hi - lo) * 0.08; lo -= padY; hi += padY;
   p.range = [t0, t1];
-  const X = (x) => ((x - t0) / (t1 - t0)) * (W - 4) + 2;
-  const Y = (y) => H - 14 - ((y - lo) / (hi - lo)) * (H - 22);
+  const [X, Y] = plotAxes(c, W, H, t0, t1, lo, hi, { left: SERIES_L, ylabel: ch.unit || "" });
+  const top = 14, bot = H - 26;
   // pending refinement requests
   for (const r of (S.series.requests || []).filter((q) => q.channel === ch.channel)) {
     c.fillStyle = "rgba(240,180,67,0.12)";
-    c.fillRect(X(r.start), 0, Math.max(2, X(r.end) - X(r.start)), H - 12);
+    c.fillRect(X(r.start), top, Math.max(2, X(r.end) - X(r.start)), bot - top);
   }
   // error band
   c.fillStyle = "rgba(79,179,255,0.25)";
   c.beginPath();
-  let open = false;
   const flush = (from, to) => {
     if (to <= from) return;
     c.moveTo(X(t[from]), Y(v[from] + e[from]));
@@ -1028,10 +1041,8 @@ function drawPlot(p) {
   let start = 0;
   for (let i = 0; i <= t.length; i++) {
     const ok = i < t.length && e[i] >= 0 && (i === start || t[i] - t[i - 1] < (t1 - t0) / 50);
-    if (!ok) { flush(start, i); start = i + (i < t.length && e[i] < 0 ? 1 : 0); open = false; }
-    else open = true;
+    if (!ok) { flush(start, i); start = i + (i < t.length && e[i] < 0 ? 1 : 0); }
   }
-  void open;
   c.fill();
   c.strokeStyle = "#dce6ee"; c.lineWidth = 1;
   c.beginPath();
@@ -1040,13 +1051,10 @@ function drawPlot(p) {
     if (i === 0 || gap) c.moveTo(X(t[i]), Y(v[i])); else c.lineTo(X(t[i]), Y(v[i]));
   }
   c.stroke();
-  c.fillStyle = "#8aa0b2"; c.font = "10px system-ui";
-  c.fillText(fmtT(t0), 2, H - 2); c.fillText(fmtT(t1), W - 48, H - 2);
-  c.fillText(hi.toPrecision(4), 2, 10); c.fillText(lo.toPrecision(4), 2, H - 16);
   if (seriesSel && seriesSel.channel === ch.channel) {
     const a = X(Math.min(seriesSel.t0, seriesSel.t1)), b = X(Math.max(seriesSel.t0, seriesSel.t1));
-    c.fillStyle = "rgba(79,179,255,0.2)"; c.fillRect(a, 0, b - a, H - 12);
-    c.strokeStyle = "#4fb3ff"; c.strokeRect(a, 0, b - a, H - 12);
+    c.fillStyle = "rgba(79,179,255,0.2)"; c.fillRect(a, top, b - a, bot - top);
+    c.strokeStyle = "#4fb3ff"; c.strokeRect(a, top, b - a, bot - top);
   }
 }
 $("#series-refine").addEventListener("click", async () => {
@@ -1066,7 +1074,9 @@ function renderLink() {
   const box = $("#tdma");
   box.replaceChildren();
   for (const sch of L.schedules) {
-    const cv = el("canvas", { width: 560, height: sch.proposed ? 46 : 28, "data-link": sch.link });
+    const h = sch.proposed ? 46 : 28;
+    const cv = el("canvas", { width: 560, height: h, "data-link": sch.link });
+    cv.style.height = `${h}px`;  // drawn at its natural aspect: one canvas pixel a CSS pixel
     box.append(cv);
   }
   drawTdma();
@@ -1083,19 +1093,161 @@ function renderLink() {
     spare.addEventListener("change", () => {
       if (spare.value !== "") act("spare_config", { link: lk.link, percent: Number(spare.value) });
     });
-    const ratio = lk.frames ? ` (${((100 * lk.bad_frames) / lk.frames).toFixed(0)}%)` : "";
+    // every counter in words: a non-expert reads the row, no tooltip needed
+    const heard = lk.packets ? `${lk.packets} packets heard (${lk.frames} frames)` : "no modem report yet";
+    const ours = [];
+    if (lk.sent_packets !== undefined) ours.push(`topside sent ${lk.sent_packets} packets`);
+    if (lk.frames_rx !== undefined) ours.push(`decoded ${lk.frames_rx} frames`);
+    const bad = lk.bad_frames + (lk.local_bad || 0);
+    const pct = lk.frames ? ` (${((100 * lk.bad_frames) / lk.frames).toFixed(0)} % of frames heard)` : "";
+    const badWords = bad ? `${lk.bad_frames} frames garbled${pct}` + (lk.local_bad ? `, ${lk.local_bad} topside could not decode` : "")
+      : "none garbled";
+    const rate = lastRate(lk);
     tb.append(el("tr", { "data-link": lk.link }, el("td", {}, lk.link),
       el("td", { class: lk.enabled ? "on" : "off" }, state),
-      el("td", {}, lk.snr === null || lk.snr === undefined ? "–" : `${lk.snr} dB`),
-      el("td", {}, `${lk.frames}${lk.frames_rx !== undefined ? ` / rx ${lk.frames_rx}` : ""}`),
-      el("td", {}, `${lk.bad_frames + (lk.local_bad || 0)}${ratio}`),
+      el("td", { class: "words" }, lk.snr === null || lk.snr === undefined ? "–" : `${Number(lk.snr).toFixed(1)} dB`,
+        el("div", { class: "expl" }, snrWords(lk.snr))),
+      el("td", { class: "words", "data-col": "frames" }, heard, ours.length ? el("div", { class: "expl" }, ours.join(", ")) : "",
+        rate ? el("div", { class: "expl" }, rate) : ""),
+      el("td", { class: "words", "data-col": "bad" }, badWords),
       el("td", {}, fmtAge(lk.last_heard !== null && lk.last_heard !== undefined ? S.now - lk.last_heard : lk.age)),
       el("td", {}, btn, " ", spare)));
   }
+  renderLinkPlots();
   const sl = $("#sched-slots");
   if (!sl.value && L.schedules.length) {
     sl.value = L.schedules[0].slots.map((s) => `${s.owner}:${s.duration}:${s.guard}`).join(", ");
     $("#sched-link").value = L.schedules[0].link;
+  }
+}
+function snrWords(snr) {
+  if (snr === null || snr === undefined) return "signal strength: not reported";
+  if (snr >= 15) return "strong signal";
+  if (snr >= 8) return "good signal";
+  if (snr >= 3) return "weak signal: expect lost frames";
+  return "very weak: most frames will be lost";
+}
+// bytes received in the last complete cycle, in words
+function lastRate(lk) {
+  const th = lk.throughput || [];
+  const done = th.filter((b) => b[0] + b[2] <= S.now);
+  if (!done.length) return "";
+  const b = done[done.length - 1];
+  return `last cycle: ${fmtBytes(b[1])} received in ${b[2]} s (${(b[1] / b[2]).toFixed(0)} B/s)`;
+}
+// ---- small plots against dive time (canvas, no library)
+function fmtDive(s, step) {
+  s = Math.round(s);
+  const sign = s < 0 ? "-" : ""; s = Math.abs(s);
+  if (step >= 60 && s % 60 === 0) {
+    const mins = s / 60;
+    return mins >= 60 ? `${sign}${Math.floor(mins / 60)} h ${pad(mins % 60)}` : `${sign}${mins} min`;
+  }
+  return `${sign}${Math.floor(s / 60)}:${pad(s % 60)}`;
+}
+function timeStep(span, n) {
+  const steps = [5, 10, 15, 30, 60, 120, 300, 600, 900, 1800, 3600, 7200, 14400];
+  for (const st of steps) if (span / st <= n) return st;
+  return steps[steps.length - 1];
+}
+// Axes for a plot of [t0, t1] (absolute seconds, labelled in dive time) by [lo, hi]; returns X, Y.
+function plotAxes(c, W, H, t0, t1, lo, hi, opts = {}) {
+  const L = opts.left || 40, R = 6, T = 14, B = 26;
+  const X = (t) => L + ((t - t0) / (t1 - t0 || 1)) * (W - L - R);
+  const Y = (y) => H - B - ((y - lo) / (hi - lo || 1)) * (H - B - T);
+  const d0 = diveStart() ?? t0;
+  c.strokeStyle = "#2a3a48"; c.lineWidth = 1; c.fillStyle = "#8aa0b2"; c.font = "10px system-ui";
+  c.beginPath(); c.moveTo(L, T); c.lineTo(L, H - B); c.lineTo(W - R, H - B); c.stroke();
+  const st = timeStep(t1 - t0, Math.max(2, Math.floor((W - L) / 70)));
+  c.textAlign = "center";
+  const xt = [];
+  for (let k = Math.ceil((t0 - d0) / st) * st; d0 + k <= t1 + 1e-6; k += st) {
+    const x = X(d0 + k);
+    c.beginPath(); c.moveTo(x, H - B); c.lineTo(x, H - B + 3); c.stroke();
+    c.textAlign = x > W - 24 ? "right" : "center";
+    c.fillText(fmtDive(k, st), x > W - 24 ? W - 2 : x, H - B + 12);
+    xt.push(fmtDive(k, st));
+  }
+  // what was drawn, for tests and the curious
+  c.canvas.dataset.xticks = JSON.stringify(xt);
+  c.canvas.dataset.xlabel = opts.xlabel || "dive time";
+  c.canvas.dataset.ylabel = opts.ylabel || "";
+  c.textAlign = "center";
+  c.fillText(opts.xlabel || "dive time", L + (W - L - R) / 2, H - 2);
+  let ys = niceStep((hi - lo) / 4);
+  if (Math.floor(hi / ys) - Math.ceil(lo / ys) < 2) ys = niceStep((hi - lo) / 8);
+  c.textAlign = "right";
+  for (let y = Math.ceil(lo / ys) * ys; y <= hi + 1e-9; y += ys) {
+    c.beginPath(); c.moveTo(L - 3, Y(y)); c.lineTo(L, Y(y)); c.stroke();
+    c.fillText(Number(y.toPrecision(4)).toString(), L - 4, Y(y) + 3);
+  }
+  c.textAlign = "left";
+  c.fillText(opts.ylabel || "", 2, 10);
+  return [X, Y];
+}
+function renderLinkPlots() {
+  const box = $("#link-plots");
+  const links = (S.link && S.link.links) || [];
+  const have = links.filter((lk) => (lk.history && lk.history.length) || (lk.throughput && lk.throughput.length));
+  box.classList.toggle("hidden", !have.length);
+  for (const lk of have) {
+    let p = box.querySelector(`[data-plots-link="${lk.link}"]`);
+    if (!p) {
+      p = el("div", { class: "link-plots", "data-plots-link": lk.link },
+        el("div", { class: "ptitle" }, `link ${lk.link}: bytes received from the vehicle per TDMA cycle`),
+        el("canvas", { class: "tput", width: 560, height: 110, "data-plot": "throughput" }),
+        el("div", { class: "ptitle" }, `link ${lk.link}: signal-to-noise ratio of each packet heard (higher is better; red ticks: garbled frames)`),
+        el("canvas", { class: "snr", width: 560, height: 110, "data-plot": "snr" }));
+      box.append(p);
+    }
+    p.lk = lk;
+  }
+  drawLinkPlots();
+}
+function drawLinkPlots() {
+  for (const p of document.querySelectorAll("#link-plots .link-plots")) {
+    const lk = p.lk; if (!lk) continue;
+    const hist = (lk.history || []).slice().sort((a, b) => a[0] - b[0]), th = lk.throughput || [];
+    const d0 = diveStart();
+    let t0 = Infinity, t1 = -Infinity;
+    for (const h of hist) { t0 = Math.min(t0, h[0]); t1 = Math.max(t1, h[0]); }
+    for (const b of th) { t0 = Math.min(t0, b[0]); t1 = Math.max(t1, b[0] + b[2]); }
+    if (d0 !== null) t0 = Math.min(t0, d0);
+    t1 = Math.max(t1, S.now);
+    if (!isFinite(t0)) continue;
+    if (t1 - t0 < 60) t0 = t1 - 60;
+    for (const cv of p.querySelectorAll("canvas")) {
+      const rect = cv.getBoundingClientRect();
+      if (rect.width > 50 && cv.width !== Math.round(rect.width)) cv.width = Math.round(rect.width);
+      const c = cv.getContext("2d"), W = cv.width, H = cv.height;
+      c.fillStyle = "#0a1016"; c.fillRect(0, 0, W, H);
+      if (cv.dataset.plot === "throughput") {
+        const hi = Math.max(10, ...th.map((b) => b[1])) * 1.1;
+        const [X, Y] = plotAxes(c, W, H, t0, t1, 0, hi, { ylabel: "bytes / cycle" });
+        for (const b of th) {
+          const open = b[0] + b[2] > S.now;
+          c.fillStyle = open ? "rgba(79,179,255,0.4)" : "#4fb3ff";
+          c.fillRect(X(b[0]) + 0.5, Y(b[1]), Math.max(1, X(b[0] + b[2]) - X(b[0]) - 1), Y(0) - Y(b[1]));
+        }
+        if (!th.length) { c.fillStyle = "#8aa0b2"; c.fillText("nothing received yet", 50, H / 2); }
+      } else {
+        const vals = hist.map((h) => h[1]).filter((v) => v !== null);
+        const lo = Math.min(0, ...vals), hi = Math.max(20, ...vals) + 2;
+        const [X, Y] = plotAxes(c, W, H, t0, t1, lo, hi, { ylabel: "SNR (dB)" });
+        c.strokeStyle = "#58c47c"; c.fillStyle = "#58c47c"; c.lineWidth = 1.2; c.beginPath();
+        let first = true;
+        for (const h of hist) {
+          if (h[1] === null) { first = true; continue; }
+          if (first) c.moveTo(X(h[0]), Y(h[1])); else c.lineTo(X(h[0]), Y(h[1]));
+          first = false;
+        }
+        c.stroke();
+        for (const h of hist) {
+          if (h[1] !== null) c.fillRect(X(h[0]) - 1.5, Y(h[1]) - 1.5, 3, 3);
+          if (h[3] > 0) { c.fillStyle = "#ef5f5f"; c.fillRect(X(h[0]) - 1, Y(lo) - 8, 2, 8); c.fillStyle = "#58c47c"; }
+        }
+      }
+    }
   }
 }
 function drawTdma() {
@@ -1164,6 +1316,7 @@ function renderQueues() {
       tog.addEventListener("click", () => act("queue_config", { stream: s.stream, enabled: !r.enabled }));
       flush.addEventListener("click", () => act("queue_config", { stream: s.stream, flush: true }));
       const cells = [0, 1, 2, 3, 4, 5, 6].map(() => el("td"));
+      cells[6].className = "words";
       cells[2].append(prio, setP);
       const tr = el("tr", { "data-stream": s.stream }, ...cells, el("td", {}, tog, flush));
       r = { tr, cells, prio, tog, enabled: s.enabled };
@@ -1178,7 +1331,7 @@ function renderQueues() {
     r.cells[3].textContent = s.depth;
     r.cells[4].textContent = fmtBytes(s.queued_bytes);
     r.cells[5].textContent = fmtAge(s.oldest_age);
-    r.cells[6].textContent = `${s.drops} (${s.drops_total})`;
+    r.cells[6].textContent = s.drops_total ? `${s.drops} dropped in the last report, ${s.drops_total} in all` : "none dropped";
     r.tog.textContent = s.enabled ? "Disable" : "Enable";
   }
 }
@@ -1198,17 +1351,61 @@ function showClock() {
   $("#clock").textContent = fmtT(S.now) + (t0 !== null ? ` · dive ${fmtDur(S.now - t0)}` : "");
   $("#clock").title = "time of day (UTC) of the dive, and time since the first vehicle status";
 }
+// What the vehicle is doing, in words: its vertical motion from the track's depths, and the
+// survey it flies (from the survey receiver's state) when one is started.
+function vehicleDoing() {
+  const out = [];
+  const V = S.vehicle || {};
+  // only while in contact: a dive that ended, or a silent vehicle, is not "ascending" now
+  if (V.ended || !V.status || S.now - V.status.t > staleAfter()) return "";
+  const tr = V.track || [];
+  if (tr.length >= 2) {
+    const last = tr[tr.length - 1];
+    let k = tr.length - 2;
+    while (k > 0 && last[0] - tr[k][0] < 20) k--;
+    const dt = last[0] - tr[k][0];
+    const rate = dt > 0 ? (last[3] - tr[k][3]) / dt : 0;
+    if (dt > 0 && dt < 600 && rate > 0.05) out.push("descending");
+    else if (dt > 0 && dt < 600 && rate < -0.05) out.push("ascending");
+  }
+  const items = (S.surveys && S.surveys.items) || [];
+  const flying = items.filter((sv) => sv.state === "started");
+  if (flying.length) {
+    const sv = flying[flying.length - 1];
+    // the waypoint as the map labels it ("→ waypoint 3")
+    out.push(`flying survey S${sv.survey_id}` + (sv.index !== null && sv.index !== undefined ? ` → waypoint ${sv.index}` : ""));
+  }
+  return out.join(", ");
+}
+// Contact: "live" only while the page is connected and the vehicle was heard lately.
+let pageConnected = false;
+function showConn() {
+  const conn = $("#conn");
+  const V = S.vehicle || {};
+  const v = V.status;
+  let text = "live", cls = "conn on";
+  if (!pageConnected) { text = "reconnecting…"; cls = "conn off"; }
+  else if (V.ended) { text = `ended: ${V.ended}`; cls = "conn ended"; }
+  else if (!v) { text = "live · no vehicle status yet"; cls = "conn wait"; }
+  else if (S.now - v.t > staleAfter()) { text = `no contact for ${fmtAge(S.now - v.t)}`; cls = "conn wait"; }
+  conn.textContent = text; conn.className = cls;
+  conn.title = "live: the page is connected and the vehicle was heard in the last few TDMA cycles";
+}
 function renderVehicle() {
   const v = S.vehicle && S.vehicle.status;
   const box = $("#vehicle-status");
+  showConn();
   if (!v) { box.textContent = "no vehicle status yet"; return; }
   box.innerHTML = "";
   const f = (label, value) => [el("span", {}, ` ${label} `), el("b", {}, value)];
-  box.append(...f("mode", v.mode), ...f("depth", `${v.depth.toFixed(1)} m`),
+  const doing = vehicleDoing();
+  box.append(...f("reports", v.mode), ...(doing ? [el("b", { class: "doing" }, ` · ${doing}`)] : []),
+    ...f("depth", `${v.depth.toFixed(1)} m`),
     ...f("alt", v.altitude === null ? "–" : `${v.altitude.toFixed(1)} m`),
     ...f("hdg", `${v.heading.toFixed(0)}°`), ...f("speed", `${v.speed.toFixed(2)} m/s`),
     ...f("battery", `${v.battery}%`), ...f("pos", `${v.x.toFixed(0)}, ${v.y.toFixed(0)}`),
-    ...f("at", fmtT(v.t)), ...f("age", fmtAge(S.now - v.t)));
+    ...f("heard", `${fmtAge(S.now - v.t)} ago`));
+  box.title = `vehicle status of ${fmtT(v.t)}: the mode is what the vehicle reports`;
   if (v.faults) box.append(el("b", { class: "off" }, ` faults 0x${v.faults.toString(16)}`));
   const it = $("#img-time");
   if (!it.value && document.activeElement !== it) it.placeholder = fmtT(v.t);
@@ -1245,12 +1442,32 @@ function renderOther() {
 
 const RENDER = { vehicle: () => { renderVehicle(); drawMap(); }, map: () => { renderLevels(); drawMap(); },
   images: () => { renderImages(); drawMap(); },
-  surveys: () => { renderSurveys(); drawMap(); },
+  surveys: () => { renderSurveys(); renderVehicle(); drawMap(); },
   series: renderSeries, other: renderOther, link: renderLink, queues: renderQueues,
   commands: () => { renderCommands(); if (S.images) renderImages(); }, log: renderLog };
 
+// A map update is a delta (the server sends a level's blocks only when they changed): merge it
+// into the map the page holds.
+function mergeMap(old, upd) {
+  if (!upd.delta || !old) return upd;
+  const had = new Map((old.levels || []).map((lv) => [lv.level, lv]));
+  upd.levels = upd.levels.map((lv) => {
+    const prev = had.get(lv.level);
+    if (lv.same) return prev;
+    if (!lv.tiles_changed) return lv;
+    const tiles = new Map(((prev && prev.tiles) || []).map((t) => [`${t[0]},${t[1]}`, t]));
+    for (const t of lv.tiles_changed) tiles.set(`${t[0]},${t[1]}`, t);
+    for (const t of lv.tiles_removed || []) tiles.delete(`${t[0]},${t[1]}`);
+    const out = Object.assign({}, lv, { tiles: [...tiles.values()] });
+    delete out.tiles_changed; delete out.tiles_removed;
+    return out;
+  }).filter((lv) => lv);
+  delete upd.delta;
+  return upd;
+}
 function apply(data, full) {
   if (data.now !== undefined) S.now = data.now;
+  if (data.map) data.map = mergeMap(full ? null : S.map, data.map);
   if (data.versions) S.versions = data.versions;
   for (const k of Object.keys(RENDER)) {
     if (k in data) { S[k] = data[k]; RENDER[k](); S.versions[k] = (S.versions[k] || 0) + (full ? 0 : 1); }
@@ -1305,10 +1522,10 @@ function connect() {
   es.addEventListener("clock", (ev) => {
     S.now = JSON.parse(ev.data).now;
     showClock();
-    renderVehicle(); drawTdma();
+    renderVehicle(); drawTdma(); drawAllPlots();
   });
-  es.onopen = () => { $("#conn").textContent = "live"; $("#conn").className = "conn on"; window.coex.connected = true; };
-  es.onerror = () => { $("#conn").textContent = "reconnecting…"; $("#conn").className = "conn off"; window.coex.connected = false; };
+  es.onopen = () => { pageConnected = true; showConn(); window.coex.connected = true; };
+  es.onerror = () => { pageConnected = false; showConn(); window.coex.connected = false; };
 }
-window.addEventListener("resize", () => { drawMap(); drawAllPlots(); drawTdma(); });
+window.addEventListener("resize", () => { drawMap(); drawAllPlots(); drawTdma(); drawLinkPlots(); });
 whoami().then(connect);
