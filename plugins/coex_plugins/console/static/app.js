@@ -182,6 +182,8 @@ function ageColor(age, alpha) {
   return `rgba(${r},${g},90,${alpha})`;
 }
 function drawMap() {
+  placed.length = 0;
+  regionLabels.length = 0;
   resizeCanvas();
   if (view.auto) fit();
   ctx.setTransform(1, 0, 0, 1, 0, 0);
@@ -217,7 +219,6 @@ function drawMap() {
         ctx.fillRect(ax, ay, sz, sz);
       }
     }
-    placed.length = 0;
     for (const r of m.requests) {
       const [ax, ay] = w2s(r.rect[0], r.rect[3]), [bx, by] = w2s(r.rect[2], r.rect[1]);
       const style = ROI_STYLE[r.state] || ROI_STYLE.requested;
@@ -225,7 +226,7 @@ function drawMap() {
       if (style[2]) { ctx.fillStyle = style[2]; ctx.fillRect(ax, ay, bx - ax, by - ay); }
       ctx.strokeRect(ax, ay, bx - ax, by - ay);
       ctx.setLineDash([]);
-      placeLabel(`L${r.level} ${r.text}`, ax + 3, ay + 12, style[0]);
+      regionLabels.push([`L${r.level} ${r.text}`, ax + 3, ay + 12, style[0]]);
     }
   }
   if (S.vehicle && $("#show-track").checked) drawTrack();
@@ -241,6 +242,10 @@ function drawMap() {
       placeLabel(`target${h}${size}`, x + 11, y - 6, "#ffb0b0");
     }
   }
+  // region labels last: where targets and surveys leave no room they are left out (the box's
+  // style and the commands list say the same)
+  for (const [text, x, y, color] of regionLabels) placeLabel(text, x, y, color, true);
+  regionLabels.length = 0;
   if (roi) {
     const [ax, ay] = w2s(Math.min(roi[0], roi[2]), Math.max(roi[1], roi[3]));
     const [bx, by] = w2s(Math.max(roi[0], roi[2]), Math.min(roi[1], roi[3]));
@@ -325,9 +330,11 @@ function drawGaps(lv) {
 const ROI_STYLE = { requested: ["#f0b443", [6, 4]], "in flight": ["#e8e05a", [], "rgba(232,224,90,0.10)"],
   "waiting for data": ["#6fb7ff", [2, 3], "rgba(111,183,255,0.10)"], filled: ["#58c47c", []],
   "nothing to send": ["#9aa6b2", [1, 4]] };
-// labels placed so that they do not cover one another (tried below, above, then further down)
+// labels placed so that they do not cover one another (tried below, above, then further down);
+// an optional label with no free spot is left out, a needed one goes where it was asked
 const placed = [];
-function placeLabel(text, x, y, color) {
+const regionLabels = [];
+function placeLabel(text, x, y, color, optional = false) {
   ctx.font = "bold 11px system-ui";
   const w = ctx.measureText(text).width + 6;
   x = Math.max(48, Math.min(x, canvas.width - w - 4));  // inside the map, clear of the axis
@@ -337,6 +344,7 @@ function placeLabel(text, x, y, color) {
       placed.push(r); label(text, x, y + dy, color); return;
     }
   }
+  if (optional) return;
   placed.push([x - 3, y - 11, w, 15]); label(text, x, y, color);
 }
 function drawGrid() {
@@ -777,13 +785,13 @@ function drawSurveys() {
       ctx.strokeStyle = color; ctx.lineWidth = 2;
       ctx.beginPath(); ctx.arc(x, y, 8, 0, 2 * Math.PI); ctx.stroke();
       ctx.beginPath(); ctx.arc(x, y, 3, 0, 2 * Math.PI); ctx.fillStyle = color; ctx.fill();
-      label(`→ waypoint ${sv.index}`, x + 11, y + 4, color);
+      placeLabel(`→ waypoint ${sv.index}`, x + 11, y + 4, color);
     } else {
       strokePath(w, color, lw, SURVEY_DASH[sv.state] || [], dim);
     }
     const [x, y] = w2s(...w[0]);
     ctx.globalAlpha = dim;
-    label(`S${sv.survey_id} ${sv.state}`, x + 7, y - 7, color);
+    placeLabel(`S${sv.survey_id} ${sv.state}`, x + 7, y - 7, color);
     ctx.globalAlpha = 1;
   }
   ctx.restore();
