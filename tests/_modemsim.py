@@ -14,17 +14,17 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 
 
-def free_tcp_base(n: int = 2) -> int:
-    """A base port with ``n`` consecutive free TCP ports."""
+def free_tcp_base(n: int = 2, kind: int = socket.SOCK_STREAM) -> int:
+    """A base port with ``n`` consecutive free ports (TCP; ``kind=socket.SOCK_DGRAM``: UDP)."""
     for _ in range(50):
-        with socket.socket() as s:
+        with socket.socket(socket.AF_INET, kind) as s:
             s.bind(("127.0.0.1", 0))
             base = int(s.getsockname()[1])
         if base + n >= 65000:
             continue
         try:
             for i in range(n):
-                with socket.socket() as t:
+                with socket.socket(socket.AF_INET, kind) as t:
                     t.bind(("127.0.0.1", base + i))
             return base
         except OSError:

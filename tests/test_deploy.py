@@ -26,6 +26,8 @@ from typing import Any
 import numpy as np
 import pytest
 
+from ._modemsim import free_tcp_base
+
 pytest.importorskip("lcm")
 pytest.importorskip("pymavlink")
 pytest.importorskip("rosbags")
@@ -40,20 +42,7 @@ pytestmark = pytest.mark.slow
 
 def _port(kind: int = socket.SOCK_STREAM, n: int = 1) -> int:
     """A base port with ``n`` consecutive free ports."""
-    for _ in range(50):
-        with socket.socket(socket.AF_INET, kind) as s:
-            s.bind(("127.0.0.1", 0))
-            base = int(s.getsockname()[1])
-        if base + n >= 65000:
-            continue
-        try:
-            for i in range(n):
-                with socket.socket(socket.AF_INET, kind) as t:
-                    t.bind(("127.0.0.1", base + i))
-            return base
-        except OSError:
-            continue
-    raise RuntimeError("no free ports")
+    return free_tcp_base(n, kind)
 
 
 def _wait(what: str, cond: Callable[[], Any], timeout: float, procs: dict[str, subprocess.Popen[str]]) -> Any:

@@ -29,8 +29,9 @@ import heapq
 import itertools
 import json
 import os
+import signal
 import time
-from collections.abc import Callable, Iterable, Mapping, Sequence
+from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
 from pathlib import Path
 from typing import Any, Protocol, TextIO
 
@@ -44,7 +45,7 @@ from coex_core.transport import Transport
 
 from .store import NodeStore
 
-__all__ = ["Clock", "RealClock", "Runner", "SimNetwork", "SimulatedClock", "next_wakeup"]
+__all__ = ["Clock", "RealClock", "Runner", "SimNetwork", "SimulatedClock", "next_wakeup", "sigterm_as_interrupt"]
 
 
 class Clock(Protocol):
@@ -421,3 +422,18 @@ class SimNetwork:
             if max_steps is not None and steps >= max_steps:
                 break
         return steps
+
+
+@contextlib.contextmanager
+def sigterm_as_interrupt() -> Iterator[None]:
+    """Inside the block SIGTERM raises :class:`KeyboardInterrupt`, so a daemon stopped by its
+    service manager stops as on Ctrl-C: cleanly, its store saved. The previous handler is put back
+    on leaving (main thread only, as for any signal handler)."""
+    def terminate(signum: int, frame: Any) -> None:
+        raise KeyboardInterrupt
+
+    previous = signal.signal(signal.SIGTERM, terminate)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, previous)

@@ -490,19 +490,15 @@ def _serve(app: TopsideApp) -> int:
         print(f"store {app.store.path}: " + (f"resumed ({st.stats['replayed']} journaled frames "
                                          "replayed)" if resumed else "new"), flush=True)
 
-    def terminate(signum: int, frame: Any) -> None:
-        raise KeyboardInterrupt  # a polite stop (SIGTERM) saves the store like Ctrl-C
+    from coex_transports.runner import sigterm_as_interrupt
 
-    import signal
-
-    previous = signal.signal(signal.SIGTERM, terminate)
-    try:
-        app.run()
-    except KeyboardInterrupt:
-        pass
-    finally:
-        app.close()
-        signal.signal(signal.SIGTERM, previous)
+    with sigterm_as_interrupt():  # a polite stop (SIGTERM) saves the store like Ctrl-C
+        try:
+            app.run()
+        except KeyboardInterrupt:
+            pass
+        finally:
+            app.close()
     return 0
 
 

@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import argparse
 import logging
-import signal
 import sys
 from typing import Any
 
@@ -100,17 +99,15 @@ def run_vehicle(args: argparse.Namespace) -> int:
           + (f"store {cfg.store} ({'resumed, ' + str(st.stats['replayed']) + ' journal rows replayed' if app.resumed else 'new'})"
              if st is not None else "no store"), flush=True)
 
-    def terminate(signum: int, frame: Any) -> None:
-        raise KeyboardInterrupt  # SIGTERM stops like Ctrl-C: cleanly, the store saved
+    from coex_transports.runner import sigterm_as_interrupt
 
-    previous = signal.signal(signal.SIGTERM, terminate)
-    try:
-        app.open()
-        app.run()
-    except KeyboardInterrupt:
-        pass
-    finally:
-        app.close()
-        signal.signal(signal.SIGTERM, previous)
-        print(f"coex vehicle: stopped ({', '.join(f'{k} {v}' for k, v in app.counts.items())})", flush=True)
+    with sigterm_as_interrupt():  # SIGTERM stops like Ctrl-C: cleanly, the store saved
+        try:
+            app.open()
+            app.run()
+        except KeyboardInterrupt:
+            pass
+        finally:
+            app.close()
+            print(f"coex vehicle: stopped ({', '.join(f'{k} {v}' for k, v in app.counts.items())})", flush=True)
     return 0

@@ -1,5 +1,6 @@
-"""What several input adapters share: option checks, logging a problem once, headings, and the
-import of an optional library with the extra that installs it."""
+"""What the vehicle's adapters (inputs and autonomy outputs) share: option checks, logging a
+problem once, headings, the import of an optional library with the extra that installs it, and
+the MOOS connection."""
 
 from __future__ import annotations
 
@@ -150,3 +151,17 @@ def compass_from_enu_yaw(yaw: float) -> float:
     """A compass heading (degrees clockwise from north, 0..360) from an ENU yaw (radians
     counter-clockwise from east, as ROS gives it): yaw 0 (east) is heading 90."""
     return (90.0 - math.degrees(yaw)) % 360.0
+
+
+def moos_client(client: Any, host: str, port: int, name: str, variables: list[str]) -> Any:
+    """The MOOS input's and autonomy output's connection: ``client`` (made here when None) with
+    every one of ``variables`` registered, connecting (and reconnecting) in its own thread; never
+    waits for MOOSDB."""
+    if client is None:
+        from coex_transports.moos import MoosClient
+
+        client = MoosClient(host, port, name)
+    for var in variables:
+        client.register(var, 0.0)
+    client.connect(timeout=0.0)
+    return client

@@ -53,7 +53,7 @@ from coex_core.messages import SurveyKind, SurveyReason, SurveyState
 
 from ...survey.plan import SurveyReport
 from ..inputs.moos import parse_server
-from ..options import LogOnce
+from ..options import LogOnce, moos_client
 from .base import Autonomy
 
 __all__ = ["MoosAutonomy", "parse_flag", "update_of"]
@@ -176,13 +176,7 @@ class MoosAutonomy(Autonomy):
         return list(dict.fromkeys(out))
 
     def open(self) -> None:
-        if self.client is None:
-            from coex_transports.moos import MoosClient
-
-            self.client = MoosClient(self.host, self.port, self.config["name"])
-        for var in self.variables:
-            self.client.register(var, 0.0)
-        self.client.connect(timeout=0.0)  # never wait: the client (re)connects in its thread
+        self.client = moos_client(self.client, self.host, self.port, self.config["name"], self.variables)
 
     def close(self) -> None:
         if self.client is not None:

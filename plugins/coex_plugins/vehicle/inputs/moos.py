@@ -29,7 +29,7 @@ from typing import Any, ClassVar
 
 import numpy as np
 
-from ..options import LogOnce, want_bool, want_str
+from ..options import LogOnce, moos_client, want_bool, want_str
 from .base import Image, Input, InputContext, Item, Nav, Points, Samples
 
 __all__ = ["NAV_DEFAULTS", "MoosInput", "parse_server"]
@@ -134,14 +134,7 @@ class MoosInput(Input):
         return list(dict.fromkeys(out))
 
     def open(self) -> None:
-        if self.client is None:
-            from coex_transports.moos import MoosClient
-
-            self.client = MoosClient(self.host, self.port, self.config["name"])
-        for var in self.variables:
-            self.client.register(var, 0.0)
-        # never wait: the client connects (and reconnects) in its own thread
-        self.client.connect(timeout=0.0)
+        self.client = moos_client(self.client, self.host, self.port, self.config["name"], self.variables)
 
     def close(self) -> None:
         if self.client is not None:
