@@ -24,6 +24,7 @@ from .messages import (
     ImageAck,
     ImageByTimeRequest,
     ImageGoal,
+    ImageRegionRequest,
     LinkControl,
     MapRoiRequest,
     Message,
@@ -44,7 +45,7 @@ MAX_COUNTER = 2**32 - 1
 #: Topside-to-vehicle messages that change what the vehicle does: they must be authenticated.
 COMMAND_TYPES: tuple[type[Message], ...] = (
     QueueConfig, ScheduleUpdate, LinkControl, ImageGoal, ImageByTimeRequest, MapRoiRequest,
-    TimeSeriesRequest, ImageAck, TimeSeriesAck, SpareConfig, SurveyCommand,
+    TimeSeriesRequest, ImageAck, TimeSeriesAck, SpareConfig, SurveyCommand, ImageRegionRequest,
 )
 _TRAILER_TYPE = wire.type_id(AuthTrailer)
 

@@ -50,6 +50,8 @@ __all__ = [
     "ImageGoal",
     "TimeDirection",
     "ImageByTimeRequest",
+    "ImageRegionRequest",
+    "RegionGoal",
     "TransferProgress",
     # time series
     "TimeSeriesChannel",
@@ -412,15 +414,16 @@ class ImageAnnounce(Message):
 class ImageFragment(Message):
     """Bytes ``[offset, offset + len(data))`` of an image's codestream body.
 
-    ``packet`` is the index (in codestream order) of the JPEG 2000 packet that holds
-    ``data[0]``; ``packets`` lists the offsets, relative to ``offset`` and increasing, at which
-    a packet starts inside ``data`` (the first is 0 when ``data`` starts packet ``packet``; an
-    offset equal to ``len(data)`` says the next packet starts right after ``data``).
-    With them the receiver decodes whole packets only and repairs around a lost fragment."""
+    ``packets`` lists the offsets, relative to ``offset`` and increasing, at which a packet
+    starts inside ``data`` (0 when ``data`` starts a packet; an offset equal to ``len(data)``
+    says the next packet starts right after ``data``), and ``packet`` is then the index (in
+    codestream order) of the JPEG 2000 packet that holds ``data[0]``. A fragment inside one
+    packet has no marks and no ``packet`` (None): on the wire it is two bytes shorter.
+    With the marks the receiver decodes whole packets only and repairs around a lost fragment."""
 
     image_id: int
     offset: int
-    packet: int
+    packet: int | None
     packets: tuple[int, ...]
     data: bytes
 
@@ -472,6 +475,31 @@ class ImageByTimeRequest(Message):
     command_id: int
     stamp: int
     direction: TimeDirection
+
+
+class RegionGoal(enum.IntEnum):
+    """How far an image region is to be brought: quality in 0.1 dB PSNR inside the region,
+    a number of quality layers, or a budget of body bytes."""
+
+    QUALITY = 0
+    LAYER = 1
+    BYTES = 2
+
+
+@dataclass(frozen=True, slots=True)
+class ImageRegionRequest(Message):
+    """Topside command: bring the rectangle ``[x0, x1) x [y0, y1)`` (pixels of the image as
+    announced) of image ``image_id`` to a goal, by sending the JPEG 2000 packets of the precincts
+    that cover it (those topside holds are not sent again)."""
+
+    command_id: int
+    image_id: int
+    x0: int
+    y0: int
+    x1: int
+    y1: int
+    kind: RegionGoal
+    value: int
 
 
 @dataclass(frozen=True, slots=True)

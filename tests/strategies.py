@@ -100,9 +100,20 @@ def _body_struct(spec: MessageSpec) -> Any:
 def _fragment_rule(ctx: cs.Container) -> None:
     """ImageFragment: packet starts strictly increase and stay within the data (a rule of the
     spec that random fields almost never meet)."""
-    marks = sorted({min(int(p), len(ctx.data)) for p in ctx.packets})
+    marks = sorted({min(int(p), len(ctx.data)) for p in ctx.packets or ()})
     ctx.packets = marks
-    ctx.n_packets = len(marks)
+    ctx.marked = bool(marks)
+    ctx.n_packets = len(marks) if marks else None
+    if marks and ctx.packet is None:
+        ctx.packet = 0
+    if not marks:
+        ctx.packet = None
+
+
+def _region_rule(ctx: cs.Container) -> None:
+    """ImageRegionRequest: the region is not empty."""
+    ctx.x0, ctx.x1 = min(ctx.x0, ctx.x1 - 1), max(ctx.x1, ctx.x0 + 1)
+    ctx.y0, ctx.y1 = min(ctx.y0, ctx.y1 - 1), max(ctx.y1, ctx.y0 + 1)
 
 
 def _survey_rule(ctx: cs.Container) -> None:
@@ -120,7 +131,8 @@ def _survey_rule(ctx: cs.Container) -> None:
 
 
 #: per message type, the rules a drawn message is made to follow (the table's "MUST reject when")
-_RULES: dict[str, Any] = {"ImageFragment": _fragment_rule, "SurveyCommand": _survey_rule}
+_RULES: dict[str, Any] = {"ImageFragment": _fragment_rule, "SurveyCommand": _survey_rule,
+                          "ImageRegionRequest": _region_rule}
 
 
 def message_strategy(spec: MessageSpec) -> st.SearchStrategy[Message]:

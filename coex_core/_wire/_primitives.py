@@ -495,6 +495,15 @@ def Count(lo: int, hi: int, of: str) -> cs.Construct:
     return c
 
 
+def Flag(of: str) -> cs.Construct:
+    """A derived bit: 1 when ``<of>`` has entries (the fields that depend on it are then present)."""
+    c = cs.Rebuild(Bool(), lambda ctx: len(ctx[of]) > 0)
+    c.coex_spec = FieldSpec("1", "0..1", "1", note=f"1 when `{of}` has entries", coding="unsigned",
+                            presence="always (derived)")
+    c.coex_derived = True
+    return c
+
+
 def Body(*fields: cs.Construct) -> cs.Construct:
     """A message body: the fields, bit-packed MSB first, zero-padded to a whole byte."""
     return cs.Bitwise(cs.Struct(*fields, Align8()))

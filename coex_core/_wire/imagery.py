@@ -12,10 +12,25 @@ from ..messages import (
     ImageByTimeRequest,
     ImageFragment,
     ImageGoal,
+    ImageRegionRequest,
+    RegionGoal,
     TimeDirection,
     TransferProgress,
 )
-from ._primitives import Bits, Body, Bool, Bounded, Count, Enum, RawBytes, Rule, Stamp
+from ._primitives import (
+    Bits,
+    Body,
+    Bool,
+    Bounded,
+    Count,
+    Entries,
+    Enum,
+    Flag,
+    RawBytes,
+    Rule,
+    Stamp,
+    When,
+)
 from ._registry import MessageSpec, register
 
 IMAGE_ID = Bounded(0, 1023) * "Image id (wraps at 1024)"
@@ -23,7 +38,7 @@ OFFSET_MAX = 2**20 - 1
 #: Largest fragment payload. A fragment with many packet marks carries less data: the whole
 #: message must still fit in 251 bytes (a 256-byte sub-frame with header and CRC); encoding a
 #: larger one raises EncodeError and decoding one raises DecodeError.
-MAX_FRAGMENT_DATA = 242
+MAX_FRAGMENT_DATA = 244
 MAX_PACKET_MARKS = 31
 #: Packets in one codestream: at most 32 layers x 8 resolutions x 3 components.
 MAX_PACKET_INDEX = 1023
@@ -45,12 +60,17 @@ IMAGE_ANNOUNCE = Body(
 IMAGE_FRAGMENT = Body(
     "image_id" / IMAGE_ID,
     "offset" / Bounded(0, OFFSET_MAX, unit="B") * "Offset of data in the codestream body",
-    "packet" / Bounded(0, MAX_PACKET_INDEX) * "Index of the JPEG 2000 packet holding the first data byte",
-    "n_packets" / Count(0, MAX_PACKET_MARKS, "packets"),
-    "packets" / cs.Array(cs.this.n_packets, Bounded(0, 255, unit="B"))
+    "marked" / Flag("packets"),
+    "n_packets" / When("`marked` = 1", cs.this.marked, Count(1, MAX_PACKET_MARKS, "packets")),
+    "packet" / When("`marked` = 1", cs.this.marked, Bounded(0, MAX_PACKET_INDEX))
+    * "Index of the JPEG 2000 packet holding the first data byte",
+    "packets" / Entries("`n_packets` entries (none when `marked` = 0)", lambda ctx: ctx.n_packets or 0,
+                        Bounded(0, 255, unit="B"))
     * "Offsets in data where a packet starts, increasing, at most len(data) (0 = data starts packet "
     "`packet`; len(data) = the next packet starts right after data)",
     "data" / RawBytes(max_len=MAX_FRAGMENT_DATA) * "Codestream bytes",
+    Rule(lambda ctx: (ctx.packet is None) == (not ctx.packets),
+         "`packet` is given exactly when there are packet marks"),
     Rule(lambda ctx: all(a < b for a, b in zip(ctx.packets, ctx.packets[1:]))
          and all(p <= len(ctx.data) for p in ctx.packets),
          "the `packets` entries are out of order (not strictly increasing) or one is above the number of `data` bytes"),
@@ -75,6 +95,18 @@ IMAGE_GOAL = Body(
     "value" / Bounded(0, 255) * "Percent of the image (FRACTION) or number of layers (LAYER)",
 )
 
+IMAGE_REGION = Body(
+    "command_id" / Bounded(0, 255) * "Command id",
+    "image_id" / IMAGE_ID,
+    "x0" / Bounded(0, 4095, unit="px") * "Left edge (first column in the region)",
+    "y0" / Bounded(0, 4095, unit="px") * "Top edge (first row in the region)",
+    "x1" / Bounded(1, 4096, unit="px") * "Right edge (one past the last column)",
+    "y1" / Bounded(1, 4096, unit="px") * "Bottom edge (one past the last row)",
+    "kind" / Enum(RegionGoal) * "Goal kind",
+    "value" / Bounded(0, 65535) * "QUALITY: PSNR in the region, 0.1 dB; LAYER: layers; BYTES: body bytes",
+    Rule(lambda ctx: ctx.x0 < ctx.x1 and ctx.y0 < ctx.y1, "the region is empty (x0 >= x1 or y0 >= y1)"),
+)
+
 IMAGE_BY_TIME = Body(
     "command_id" / Bounded(0, 255) * "Command id",
     "stamp" / Stamp() * "Time of interest",
@@ -94,6 +126,7 @@ TRANSFER_PROGRESS = Body(
 _BIG_FRAG = ImageFragment(
     1023, OFFSET_MAX, MAX_PACKET_INDEX, tuple(range(MAX_PACKET_MARKS)), b"\xff" * 211
 )
+_BIG_PLAIN = ImageFragment(1023, OFFSET_MAX, None, (), b"\xff" * MAX_FRAGMENT_DATA)
 _BIG_ACK = ImageAck(1023, OFFSET_MAX, (ByteRange(OFFSET_MAX, OFFSET_MAX),) * MAX_ACK_RANGES)
 
 register(MessageSpec(
@@ -109,10 +142,11 @@ register(MessageSpec(
     33, ImageFragment, IMAGE_FRAGMENT, True, "imagery", "Bytes of an image's codestream body.",
     largest=lambda: _BIG_FRAG,
     cases=lambda: [
-        ("empty", ImageFragment(0, 0, 0, (), b"")),
+        ("empty", ImageFragment(0, 0, None, (), b"")),
         ("first_packet", ImageFragment(5, 0, 0, (0, 37), bytes(range(60)))),
-        ("inside_packet", ImageFragment(17, 3120, 41, (), bytes(range(200)))),
+        ("inside_packet", ImageFragment(17, 3120, None, (), bytes(range(200)))),
         ("largest", _BIG_FRAG),
+        ("largest_plain", _BIG_PLAIN),
     ],
 ))
 register(MessageSpec(
@@ -140,6 +174,16 @@ register(MessageSpec(
         ("nearest_0", ImageByTimeRequest(0, 0, TimeDirection.NEAREST)),
         ("before", ImageByTimeRequest(4, 6100, TimeDirection.BEFORE)),
         ("after_max", ImageByTimeRequest(255, 2**18 - 1, TimeDirection.AFTER)),
+    ],
+))
+register(MessageSpec(
+    38, ImageRegionRequest, IMAGE_REGION, False, "imagery",
+    "Topside command: bring a rectangle of an image to a goal (JPEG 2000 precincts).",
+    largest=lambda: ImageRegionRequest(255, 1023, 4095, 4095, 4096, 4096, RegionGoal.BYTES, 65535),
+    cases=lambda: [
+        ("quarter_30db", ImageRegionRequest(7, 17, 0, 0, 320, 240, RegionGoal.QUALITY, 300)),
+        ("layers", ImageRegionRequest(8, 17, 400, 300, 640, 480, RegionGoal.LAYER, 12)),
+        ("bytes_max", ImageRegionRequest(255, 1023, 4095, 4095, 4096, 4096, RegionGoal.BYTES, 65535)),
     ],
 ))
 register(MessageSpec(

@@ -213,7 +213,7 @@ FRAME_CASES: list[tuple[str, FrameHeader, list[Message], int]] = [
     ("third_party", FrameHeader(src=15, dst=0, seq=0),
      [Opaque(96, b"\x01\x02"), Opaque(32767, b""), Opaque(200, bytes(range(16)))], 256),
     ("fragment_fills_subframe", FrameHeader(src=2, dst=1, seq=3, crc=True),
-     [ImageFragment(9, 640, 12, (0,), bytes(224))], 256),
+     [ImageFragment(9, 640, 12, (0,), bytes(241))], 256),
 ]
 
 
@@ -256,9 +256,10 @@ def _subgrid_head(encoding: int, width: int, side: int = 2, partial: int = 0) ->
 def _spec_rule_cases() -> list[tuple[str, str, bytes, str]]:
     """Inputs each invalid by one rule of the document that the encoder never produces."""
     zeros3 = [("0", 0)] * 3  # three more DELTA codes of 0 (Rice, k = 0)
-    frag = _bits((1, 10), (0, 20), (0, 10), (2, 5), (5, 8), (3, 8), ("0" * 80, 0))
-    frag_above = _bits((1, 10), (0, 20), (0, 10), (2, 5), (3, 8), (11, 8), ("0" * 80, 0))
-    frag_plain = _bits((1, 10), (0, 20), (0, 10), (0, 5), ("0" * 80, 0))
+    # image 1, offset 0, marked, 2 marks (code 1), first packet 0, the marks, 10 data bytes
+    frag = _bits((1, 10), (0, 20), (1, 1), (1, 5), (0, 10), (5, 8), (3, 8), ("0" * 80, 0))
+    frag_above = _bits((1, 10), (0, 20), (1, 1), (1, 5), (0, 10), (3, 8), (11, 8), ("0" * 80, 0))
+    frag_plain = _bits((1, 10), (0, 20), (0, 1), ("0" * 80, 0))
     channel = _bits((1, 5), (0, 3), (_f32(0.0), 0), (_f32(1.0), 0), (_f32(0.1), 0), (1, 8), (0xFF, 8), (0, 8))
     return [
         ("rice_escape_not_needed", "message",

@@ -18,6 +18,7 @@ from coex_core.messages import (
     ImageByTimeRequest,
     ImageFragment,
     ImageGoal,
+    ImageRegionRequest,
     Message,
     TransferProgress,
 )
@@ -36,7 +37,7 @@ class ImageryModality(Modality):
     name: ClassVar[str] = "imagery"
     version: ClassVar[str] = "1.0"
     messages: ClassVar[tuple[type[Message], ...]] = (ImageAnnounce, ImageFragment, TransferProgress)
-    requests: ClassVar[tuple[type[Message], ...]] = (ImageAck, ImageGoal, ImageByTimeRequest)
+    requests: ClassVar[tuple[type[Message], ...]] = (ImageAck, ImageGoal, ImageByTimeRequest, ImageRegionRequest)
     #: acks of data: handled without expediting the stream
     routine: ClassVar[tuple[type[Message] | int, ...]] = (ImageAck,)
 

@@ -3,7 +3,8 @@
 The vehicle encodes an image with a PLT marker (packet lengths), then keeps only the *body*: the
 packet data between the tile-part's SOD marker and the EOC. The main header is the same for every
 image with the same coding parameters and size, so it is never sent: ``ImageAnnounce.params``
-carries a 13-bit code in its 15-bit field (the top two bits 0; :func:`params_code`, spec/payloads.md section 3.1) and topside rebuilds the header by encoding a dummy
+carries a 15-bit code (:func:`params_code`, spec/payloads.md section 3.1: progression,
+resolutions, layers, wavelet, colour and precinct size) and topside rebuilds the header by encoding a dummy
 image with the same parameters (:func:`main_header`, cached).
 
 Topside decodes *whole packets only* (:func:`assemble`): every packet that is missing or
@@ -41,21 +42,32 @@ __all__ = [
     "packet_order",
     "params_code",
     "parse_params",
+    "region_packets",
     "to_grey",
 ]
 
 PROGRESSIONS = ("LRCP", "RLCP", "RPCL", "PCRL", "CPRL")
+#: Precinct sizes by ``params`` code (bits 14..13): 0 = one precinct per resolution, else square
+#: precincts of this many samples at every resolution (only with LRCP or RLCP).
+PRECINCTS = (0, 256, 128, 64)
 MAX_LAYERS = 32
 MAX_RESOLUTIONS = 8
 #: The body of one image never exceeds this (the wire offset field has 20 bits).
 MAX_BODY_BYTES = 2**20 - 1
 #: Default layer ends (cumulative body bytes). Chosen by measurement on the NUI dive-040 images
-#: (``bench/imagery.py``): small first layers so that a recognisable image arrives in the first
-#: frame, then a geometric ladder up to 20 KB so that whole-packet cuts are close together.
+#: (``bench/imagery.py``, docs/imagery.md): a small first layer so that a recognisable image
+#: arrives in the first frame, few layers below 1 KB (each layer costs one packet header per
+#: precinct), then steps of about 1.3x up to 20 KB. With 256-sample precincts (for regions) the
+#: whole image reaches 25 / 30 / 35 dB in about the bytes of the earlier 22-layer ladder without
+#: precincts.
 DEFAULT_LAYER_BYTES: tuple[int, ...] = (
-    40, 60, 85, 120, 170, 240, 330, 450, 600, 800, 1050, 1400, 1850, 2400, 3100, 4000, 5200,
-    6700, 8700, 11300, 14700, 20480,
+    40, 100, 220, 400, 600, 800, 1050, 1400, 1850, 2400, 3100, 4000, 5200, 6700, 8700, 11300,
+    14700, 20480,
 )
+#: Default precinct size (samples, at every resolution): a 640 x 480 image has 6 precincts at
+#: full resolution and 2 at half resolution, so a quarter-frame region needs about a third of
+#: the full-resolution packets.
+DEFAULT_PRECINCTS = 256
 
 _SOT_LEN = 12
 _SOD = b"\xff\x93"
@@ -77,6 +89,7 @@ class CodingParams:
     irreversible: bool = True
     grey: bool = True
     max_size: int = 1024
+    precincts: int = DEFAULT_PRECINCTS
 
     def __post_init__(self) -> None:
         if self.progression not in PROGRESSIONS:
@@ -93,6 +106,10 @@ class CodingParams:
         object.__setattr__(self, "layer_bytes", lb)
         if not 8 <= self.max_size <= 4096:
             raise ConfigError(f"max_size must be in 8..4096, got {self.max_size}")
+        if self.precincts not in PRECINCTS:
+            raise ConfigError(f"precincts must be one of {PRECINCTS} (0 = none), got {self.precincts}")
+        if self.precincts and self.progression not in ("LRCP", "RLCP"):
+            raise ConfigError(f"precincts need progression LRCP or RLCP, not {self.progression}")
 
     @classmethod
     def from_config(cls, config: Mapping[str, Any] | None) -> CodingParams:
@@ -100,7 +117,8 @@ class CodingParams:
         if not config:
             return cls()
         kw: dict[str, Any] = {}
-        for key in ("progression", "resolutions", "layer_bytes", "irreversible", "grey", "max_size"):
+        for key in ("progression", "resolutions", "layer_bytes", "irreversible", "grey", "max_size",
+                    "precincts"):
             if key in config:
                 kw[key] = config[key]
         try:
@@ -110,6 +128,8 @@ class CodingParams:
                 kw["resolutions"] = int(kw["resolutions"])
             if "max_size" in kw:
                 kw["max_size"] = int(kw["max_size"])
+            if "precincts" in kw:
+                kw["precincts"] = int(kw["precincts"] or 0)
             if "progression" in kw:
                 kw["progression"] = str(kw["progression"]).upper()
         except (TypeError, ValueError) as exc:
@@ -117,13 +137,16 @@ class CodingParams:
         return cls(**kw)
 
 
-def params_code(progression: str, resolutions: int, layers: int, irreversible: bool, colour: bool) -> int:
-    """The 13-bit code sent in ``ImageAnnounce.params``.
+def params_code(progression: str, resolutions: int, layers: int, irreversible: bool, colour: bool,
+                precincts: int = 0) -> int:
+    """The 15-bit code sent in ``ImageAnnounce.params``.
 
-    Bits (MSB first): progression index (3), resolutions - 1 (3), layers - 1 (5), irreversible
-    9/7 wavelet (1), colour with multi-component transform (1)."""
+    Bits (MSB first): precinct size code (2, :data:`PRECINCTS`), progression index (3),
+    resolutions - 1 (3), layers - 1 (5), irreversible 9/7 wavelet (1), colour with
+    multi-component transform (1)."""
     p = PROGRESSIONS.index(progression)
-    return (p << 10) | ((resolutions - 1) << 7) | ((layers - 1) << 2) | (int(irreversible) << 1) | int(colour)
+    return ((PRECINCTS.index(precincts) << 13) | (p << 10) | ((resolutions - 1) << 7) | ((layers - 1) << 2)
+            | (int(irreversible) << 1) | int(colour))
 
 
 @persistent("imagery.StreamParams")
@@ -136,36 +159,96 @@ class StreamParams:
     layers: int
     irreversible: bool
     colour: bool
+    #: precinct size in samples at every resolution (0: one precinct per resolution)
+    precincts: int = 0
 
     @property
     def components(self) -> int:
         return 3 if self.colour else 1
 
-    @property
-    def n_packets(self) -> int:
-        return self.layers * self.resolutions * self.components
+    def precinct_grid(self, width: int, height: int) -> list[tuple[int, int]]:
+        """Precincts across and down at each resolution (0 = lowest) of a ``width x height`` image."""
+        out = []
+        for r in range(self.resolutions):
+            s = 1 << (self.resolutions - 1 - r)
+            w, h = -(-width // s), -(-height // s)
+            if self.precincts:
+                out.append((-(-w // self.precincts), -(-h // self.precincts)))
+            else:
+                out.append((1, 1))
+        return out
+
+    def n_packets(self, width: int, height: int) -> int:
+        """Packets in the body of a ``width x height`` image."""
+        per_layer = sum(nx * ny for nx, ny in self.precinct_grid(width, height))
+        return self.layers * per_layer * self.components
 
 
 def parse_params(code: int) -> StreamParams:
     """Inverse of :func:`params_code`; raises :class:`DecodeError` for an invalid code."""
-    if not 0 <= code < 1 << 13:
+    if not 0 <= code < 1 << 15:
         raise DecodeError(f"image params code {code} out of range")
-    p = code >> 10
+    p = (code >> 10) & 7
     if p >= len(PROGRESSIONS):
         raise DecodeError(f"image params code {code:#x}: unknown progression {p}")
+    precincts = PRECINCTS[code >> 13]
+    if precincts and PROGRESSIONS[p] not in ("LRCP", "RLCP"):
+        raise DecodeError(f"image params code {code:#x}: precincts with progression {PROGRESSIONS[p]}")
     return StreamParams(
-        PROGRESSIONS[p], ((code >> 7) & 7) + 1, ((code >> 2) & 31) + 1, bool(code >> 1 & 1), bool(code & 1)
+        PROGRESSIONS[p], ((code >> 7) & 7) + 1, ((code >> 2) & 31) + 1, bool(code >> 1 & 1), bool(code & 1),
+        precincts,
     )
 
 
-def packet_order(sp: StreamParams) -> npt.NDArray[np.int64]:
-    """``(n_packets, 3)`` array of (layer, resolution, component) in codestream order
-    (one precinct per resolution)."""
-    dims = {"L": sp.layers, "R": sp.resolutions, "C": sp.components, "P": 1}
-    order = sp.progression
-    grids = np.meshgrid(*[np.arange(dims[c]) for c in order], indexing="ij")
-    cols = {c: g.ravel() for c, g in zip(order, grids, strict=True)}
-    return np.stack([cols["L"], cols["R"], cols["C"]], axis=1).astype(np.int64)
+@functools.lru_cache(maxsize=64)
+def _packet_order(sp: StreamParams, width: int, height: int) -> npt.NDArray[np.int64]:
+    grid = sp.precinct_grid(width, height)
+    if not sp.precincts:
+        dims = {"L": sp.layers, "R": sp.resolutions, "C": sp.components, "P": 1}
+        grids = np.meshgrid(*[np.arange(dims[c]) for c in sp.progression], indexing="ij")
+        cols = {c: g.ravel() for c, g in zip(sp.progression, grids, strict=True)}
+        out = np.stack([cols["L"], cols["R"], cols["C"], cols["P"]], axis=1).astype(np.int64)
+    else:  # LRCP or RLCP: precincts innermost, in raster order, their count depends on r
+        rows = []
+        outer = [(layer, r) for layer in range(sp.layers) for r in range(sp.resolutions)]
+        if sp.progression == "RLCP":
+            outer = [(layer, r) for r in range(sp.resolutions) for layer in range(sp.layers)]
+        for layer, r in outer:
+            nx, ny = grid[r]
+            for c in range(sp.components):
+                rows.extend((layer, r, c, p) for p in range(nx * ny))
+        out = np.array(rows, np.int64).reshape(-1, 4)
+    out.setflags(write=False)
+    return out
+
+
+def packet_order(sp: StreamParams, width: int = 1, height: int = 1) -> npt.NDArray[np.int64]:
+    """``(n_packets, 4)`` array of (layer, resolution, component, precinct) in codestream order
+    for a ``width x height`` image (precincts in raster order within their resolution)."""
+    return _packet_order(sp, int(width), int(height))
+
+
+def region_packets(sp: StreamParams, width: int, height: int, box: tuple[int, int, int, int],
+                   margin: int = 8) -> npt.NDArray[np.bool_]:
+    """Which packets (codestream order) hold wavelet coefficients that shape the pixels of
+    ``box`` = (x0, y0, x1, y1) (x1, y1 exclusive): the packets of every precinct that meets the
+    box, mapped to each resolution and widened by ``margin`` samples there (the 9/7 filters'
+    reach). Without precincts, every packet."""
+    order = packet_order(sp, width, height)
+    if not sp.precincts:
+        return np.ones(len(order), bool)
+    x0, y0, x1, y1 = box
+    grid = sp.precinct_grid(width, height)
+    keep: dict[int, set[int]] = {}
+    for r, (nx, ny) in enumerate(grid):
+        s = 1 << (sp.resolutions - 1 - r)
+        lo_x, hi_x = x0 // s - margin, -(-x1 // s) + margin
+        lo_y, hi_y = y0 // s - margin, -(-y1 // s) + margin
+        p = sp.precincts
+        cols = [i for i in range(nx) if i * p < hi_x and (i + 1) * p > lo_x]
+        rows = [j for j in range(ny) if j * p < hi_y and (j + 1) * p > lo_y]
+        keep[r] = {j * nx + i for j in rows for i in cols}
+    return np.array([int(pr) in keep[int(r)] for _l, r, _c, pr in order], bool)
 
 
 def to_grey(img: npt.NDArray[Any]) -> npt.NDArray[np.uint8]:
@@ -233,7 +316,7 @@ class Encoded:
             return 0
         if k >= sp.layers:
             return len(self.body)
-        order = packet_order(sp)
+        order = packet_order(sp, self.width, self.height)
         last = int(np.nonzero(order[:, 0] < k)[0].max())
         return packet_end(self.packet_starts, len(self.body), last)
 
@@ -277,6 +360,8 @@ def _write_j2k(path: str, data: npt.NDArray[np.uint8], sp: StreamParams, targets
     )
     if plt:
         kwargs["plt"] = True
+    if sp.precincts:
+        kwargs["psizes"] = [(sp.precincts, sp.precincts)] * sp.resolutions
     if sp.colour:
         kwargs["mct"] = True
     with warnings.catch_warnings():
@@ -360,7 +445,7 @@ def encode_image(image: npt.NDArray[Any], params: CodingParams | None = None) ->
         raise ConfigError(f"image {w}x{h} is too small (8 px minimum)")
     colour = data.ndim == 3
     res = _feasible_resolutions(h, w, cp.resolutions)
-    code = params_code(cp.progression, res, len(cp.layer_bytes), cp.irreversible, colour)
+    code = params_code(cp.progression, res, len(cp.layer_bytes), cp.irreversible, colour, cp.precincts)
     sp = parse_params(code)
     hdr = main_header(code, w, h)
     overhead = len(hdr) + 39 + _SOT_LEN + 2  # rate control counts OpenJPEG's COM and SOT/SOD
@@ -370,9 +455,9 @@ def encode_image(image: npt.NDArray[Any], params: CodingParams | None = None) ->
     body = cs[start:end]
     if header != hdr:
         raise AssertionError("OpenJPEG wrote a main header that differs from the rebuilt one")
-    if len(lengths) != sp.n_packets or sum(lengths) != len(body):
+    if len(lengths) != sp.n_packets(w, h) or sum(lengths) != len(body):
         raise AssertionError(f"PLT gives {len(lengths)} packets / {sum(lengths)} B, expected "
-                             f"{sp.n_packets} / {len(body)}")
+                             f"{sp.n_packets(w, h)} / {len(body)}")
     starts = np.concatenate([[0], np.cumsum(lengths[:-1], dtype=np.int64)]).astype(np.int64)
     return Encoded(body, starts, code, w, h, not colour, data)
 
@@ -386,18 +471,19 @@ def assemble(
     """A decodable codestream from whole packets (``None`` = missing or incomplete).
 
     Returns ``(codestream, used)``: ``used`` counts the real packets kept. Trailing missing
-    packets are dropped; inner ones, and every later packet of the same resolution and
-    component, become empty packets."""
+    packets are dropped; inner ones, and every later packet of the same resolution, component
+    and precinct, become empty packets."""
     sp = parse_params(params)
-    if len(packets) > sp.n_packets:
-        raise DecodeError(f"{len(packets)} packets for a stream of {sp.n_packets}")
-    order = packet_order(sp)
+    n = sp.n_packets(width, height)
+    if len(packets) > n:
+        raise DecodeError(f"{len(packets)} packets for a stream of {n}")
+    order = packet_order(sp, width, height)
     last = max((i for i, p in enumerate(packets) if p is not None), default=-1)
-    poisoned: set[tuple[int, int]] = set()
+    poisoned: set[tuple[int, int, int]] = set()
     parts = [main_header(params, width, height), b"\xff\x90\x00\x0a\x00\x00\x00\x00\x00\x00\x00\x01", _SOD]
     used = 0
     for i in range(last + 1):
-        key = (int(order[i, 1]), int(order[i, 2]))
+        key = (int(order[i, 1]), int(order[i, 2]), int(order[i, 3]))
         p = packets[i]
         if p is None or key in poisoned:
             poisoned.add(key)

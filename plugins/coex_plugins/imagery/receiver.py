@@ -29,7 +29,9 @@ from coex_core.messages import (
     ImageByTimeRequest,
     ImageFragment,
     ImageGoal,
+    ImageRegionRequest,
     Message,
+    RegionGoal,
     TimeDirection,
     TransferProgress,
 )
@@ -38,7 +40,7 @@ from coex_core.requests import RequestTracker
 from coex_core.state import persistent
 from coex_core.timefmt import to_stamp, unwrap
 
-from .codec import StreamParams, decode_packets, packet_order, parse_params
+from .codec import StreamParams, decode_packets, packet_order, parse_params, region_packets
 
 log = logging.getLogger("coex.imagery")
 
@@ -58,15 +60,21 @@ class _Rx:
         n = ann.total_bytes
         self.buf = bytearray(n)
         self.have: npt.NDArray[np.bool_] = np.zeros(n, bool)
-        self.starts: npt.NDArray[np.int64] = np.full(sp.n_packets, -1, np.int64)
-        if sp.n_packets:
+        self.order = packet_order(sp, ann.width, ann.height)
+        self.starts: npt.NDArray[np.int64] = np.full(self.n_packets, -1, np.int64)
+        if self.n_packets:
             self.starts[0] = 0
-        self.order = packet_order(sp)
         self.version = 0
         self.used = 0
         self.signature: tuple[int, ...] = ()
         self.image: npt.NDArray[np.uint8] | None = None
         self.bytes_used = 0
+        #: region requests of this image: dicts with command_id, box, kind, value, state
+        self.regions: list[dict[str, Any]] = []
+
+    @property
+    def n_packets(self) -> int:
+        return len(self.order)
 
     def contiguous(self) -> int:
         miss = np.flatnonzero(~self.have)
@@ -81,7 +89,7 @@ class _Rx:
 
     def packets(self) -> list[bytes | None]:
         """Every complete packet (``None`` for missing ones), up to the last complete one."""
-        n = self.sp.n_packets
+        n = self.n_packets
         starts = self.starts
         ends = np.append(starts[1:], len(self.have))
         known = (starts >= 0) & (ends >= 0)
@@ -99,10 +107,10 @@ class _Rx:
 
     def usable(self, packets: list[bytes | None]) -> tuple[int, ...]:
         """Indices of packets a decode really uses (after the same-resolution repair rule)."""
-        poisoned: set[tuple[int, int]] = set()
+        poisoned: set[tuple[int, int, int]] = set()
         used = []
         for i, p in enumerate(packets):
-            key = (int(self.order[i, 1]), int(self.order[i, 2]))
+            key = (int(self.order[i, 1]), int(self.order[i, 2]), int(self.order[i, 3]))
             if p is None or key in poisoned:
                 poisoned.add(key)
             else:
@@ -153,6 +161,9 @@ class ImageryReceiver(ModalityReceiver):
 
     def _after_restore(self) -> None:
         """The listeners (not saved state): the image writer of ``out_dir``."""
+        for rx in self.images.values():
+            if rx.order.shape[1] == 3:  # saved before precincts: one per resolution
+                rx.order = packet_order(rx.sp, rx.ann.width, rx.ann.height)
         if getattr(self, "_waiting", None) is None:  # saved before requests could stand
             self._waiting: dict[int, tuple[Message, float]] = {}
         self.listeners: list[Callable[[Product], None]] = []
@@ -175,6 +186,7 @@ class ImageryReceiver(ModalityReceiver):
             self._progress_version += 1
             changed.append(self._progress_product())
         elif isinstance(message, CommandAck):
+            changed += self._region_answer(message)
             done = self._requests.answered(message.command_id)
             if message.status == AckStatus.PENDING:
                 # it stands on the vehicle (an image of that time is not captured yet): waiting,
@@ -231,11 +243,11 @@ class ImageryReceiver(ModalityReceiver):
             return []
         n = len(frag.data)
         marks = np.asarray(frag.packets, np.int64)
-        first = frag.packet + (0 if len(marks) and marks[0] == 0 else 1)
+        first = (frag.packet or 0) + (0 if len(marks) and marks[0] == 0 else 1)
         idx = first + np.arange(len(marks))
         ok = (frag.offset + n <= len(rx.have) and n > 0 and (len(marks) == 0 or (
-            bool(np.all(np.diff(marks) > 0)) and int(marks[-1]) <= n and int(idx[-1]) < rx.sp.n_packets))
-            and frag.packet < rx.sp.n_packets)
+            bool(np.all(np.diff(marks) > 0)) and int(marks[-1]) <= n and int(idx[-1]) < rx.n_packets))
+            and (len(marks) == 0 or (frag.packet or 0) < rx.n_packets))
         if ok and len(marks):
             known = rx.starts[idx]
             ok = bool(np.all((known < 0) | (known == frag.offset + marks)))
@@ -272,6 +284,28 @@ class ImageryReceiver(ModalityReceiver):
 
     # ------------------------------------------------------------------ products
 
+    def _region_answer(self, ack: CommandAck) -> list[Product]:
+        """The vehicle's answer to a region request: its state changes (accepted / rejected)."""
+        for rx in self.images.values():
+            for reg in getattr(rx, "regions", ()):
+                if reg["command_id"] == ack.command_id and reg["state"] == "requested":
+                    reg["state"] = ("accepted" if ack.status == AckStatus.ACCEPTED else
+                                    "waiting" if ack.status == AckStatus.PENDING else "rejected")
+                    rx.version += 1
+                    return [self._product(rx)]
+        return []
+
+    def _region_layers(self, rx: _Rx, box: tuple[int, int, int, int]) -> int:
+        """Quality layers complete (and used by the decode) over every packet of the region."""
+        inside = region_packets(rx.sp, rx.ann.width, rx.ann.height, box)
+        used = np.zeros(rx.n_packets, bool)
+        used[list(rx.signature)] = True
+        layers = rx.order[:, 0]
+        k = 0
+        while k < rx.sp.layers and bool(used[inside & (layers == k)].all()):
+            k += 1
+        return k
+
     def _product(self, rx: _Rx) -> Product:
         a = rx.ann
         layers = 0
@@ -285,9 +319,12 @@ class ImageryReceiver(ModalityReceiver):
             "image_id": a.image_id, "stamp": a.stamp, "time": rx.time, "x": a.x, "y": a.y,
             "width": a.width, "height": a.height, "grey": a.grey, "total_bytes": a.total_bytes,
             "held_bytes": int(np.count_nonzero(rx.have)), "contiguous": rx.contiguous(),
-            "packets_used": rx.used, "packets": rx.sp.n_packets, "bytes_used": rx.bytes_used,
+            "packets_used": rx.used, "packets": rx.n_packets, "bytes_used": rx.bytes_used,
             "layers_complete": layers, "layers": rx.sp.layers,
-            "complete": bool(rx.have.all()),
+            "complete": bool(rx.have.all()), "precincts": rx.sp.precincts,
+            "regions": [{**reg, "box": list(reg["box"]),
+                         "layers_complete": self._region_layers(rx, tuple(reg["box"]))}
+                        for reg in getattr(rx, "regions", ())],
         }
         return Product("image", str(a.image_id), rx.version, rx.image, meta)
 
@@ -326,6 +363,45 @@ class ImageryReceiver(ModalityReceiver):
         assert isinstance(msg, ImageGoal)
         return msg
 
+    def request_region(self, image_id: int, box: tuple[int, int, int, int],
+                       kind: RegionGoal | str = RegionGoal.QUALITY, value: float = 30.0,
+                       now: float = 0.0) -> ImageRegionRequest:
+        """Ask the vehicle to bring the rectangle ``box`` = (x0, y0, x1, y1) (pixels, x1 and y1
+        exclusive) of an announced image to a goal: ``"quality"`` (``value`` in dB PSNR inside
+        the region), ``"layer"`` (quality layers) or ``"bytes"`` (a budget of body bytes). The
+        vehicle sends the packets of the precincts covering it, beyond what topside holds; the
+        request is retried until acknowledged and listed in the image product's ``regions``.
+        Raises :class:`ConfigError` for an unknown image, an empty or outside box, an image
+        coded without precincts or an absurd goal."""
+        k = RegionGoal[kind.upper()] if isinstance(kind, str) else RegionGoal(kind)
+        rx = self.images.get(int(image_id))
+        if rx is None:
+            raise ConfigError(f"no image {image_id} announced")
+        if not rx.sp.precincts:
+            raise ConfigError(f"image {image_id} was coded without precincts: regions are not possible")
+        x0, y0, x1, y1 = (int(v) for v in box)
+        if not (0 <= x0 < x1 <= rx.ann.width and 0 <= y0 < y1 <= rx.ann.height):
+            raise ConfigError(f"region {box} is empty or outside the {rx.ann.width} x {rx.ann.height} image")
+        if k == RegionGoal.QUALITY:
+            if not 10.0 <= float(value) <= 60.0:
+                raise ConfigError(f"region quality {value} dB outside 10..60 dB")
+            code = round(float(value) * 10)
+        elif k == RegionGoal.LAYER:
+            code = int(value)
+            if not 1 <= code <= rx.sp.layers:
+                raise ConfigError(f"region goal of {code} layers outside 1..{rx.sp.layers}")
+        else:
+            code = int(value)
+            if not 1 <= code <= 65535:
+                raise ConfigError(f"region byte budget {code} outside 1..65535")
+        msg = self._new_command(lambda c: ImageRegionRequest(c, int(image_id), x0, y0, x1, y1, k, code), now)
+        assert isinstance(msg, ImageRegionRequest)
+        rx.regions = [*getattr(rx, "regions", []), {
+            "command_id": msg.command_id, "box": (x0, y0, x1, y1), "kind": k.name.lower(),
+            "value": float(value) if k == RegionGoal.QUALITY else code, "state": "requested", "time": now}]
+        rx.version += 1
+        return msg
+
     def request_by_time(self, t: float, direction: TimeDirection | str = TimeDirection.NEAREST,
                         now: float = 0.0) -> ImageByTimeRequest:
         """Ask for the image nearest absolute time ``t`` (or the one before / after it)."""
@@ -341,7 +417,15 @@ class ImageryReceiver(ModalityReceiver):
             rx = self.images.get(image_id)
             if rx is None:
                 continue
-            ranges = rx.ranges()[: self.ack_ranges]
+            ranges = rx.ranges()
+            if len(ranges) > self.ack_ranges:
+                # more held ranges than one ack carries (a region's packets are scattered): each
+                # ack goes on from where the last one stopped, so every range is reported in turn
+                start = getattr(rx, "ack_from", 0)
+                later = [r for r in ranges if r[0] >= start]
+                ranges = (later + [r for r in ranges if r[0] < start])[: self.ack_ranges]
+                rx.ack_from = ranges[-1][1]
+                ranges.sort()
             out.append(ImageAck(image_id, rx.contiguous(), tuple(ByteRange(s, e) for s, e in ranges)))
         return out
 

@@ -36,7 +36,9 @@ from coex_core.messages import (
     ImageByTimeRequest,
     ImageFragment,
     ImageGoal,
+    ImageRegionRequest,
     Message,
+    RegionGoal,
     TimeDirection,
     TransferProgress,
 )
@@ -45,17 +47,28 @@ from coex_core.state import persistent
 from coex_core.timefmt import to_stamp, unwrap
 from coex_core.wire import encoded_size
 
-from .codec import CodingParams, Encoded, encode_image
+from .codec import (
+    CodingParams,
+    Encoded,
+    decode_packets,
+    encode_image,
+    packet_end,
+    psnr,
+    region_packets,
+)
 from .goals import Goal, parse_goal
 
 __all__ = ["ImageInput", "ImagerySender", "fragment_size"]
 
-MAX_FRAGMENT_DATA = 242
+MAX_FRAGMENT_DATA = 244
 MAX_MARKS = 31
 #: A fragment message never exceeds this (the wire maximum).
 MAX_MESSAGE = 251
 MAX_NEXT = 8
-_FRAG_FIXED_BITS = 10 + 20 + 10 + 5
+#: image id, offset and the "marked" bit; a fragment with packet marks adds their count and
+#: the index of its first packet
+_FRAG_FIXED_BITS = 10 + 20 + 1
+_FRAG_MARKED_BITS = 5 + 10
 
 
 @persistent("imagery.ImageInput")
@@ -71,7 +84,8 @@ class ImageInput:
 
 def fragment_size(n_marks: int, n_data: int) -> int:
     """Encoded bytes of an ``ImageFragment`` with ``n_marks`` packet marks and ``n_data`` data bytes."""
-    body = (_FRAG_FIXED_BITS + 8 * n_marks + 7) // 8 + n_data
+    bits = _FRAG_FIXED_BITS + (_FRAG_MARKED_BITS + 8 * n_marks if n_marks else 0)
+    body = (bits + 7) // 8 + n_data
     return 1 + (1 if body < 128 else 2) + body
 
 
@@ -86,6 +100,7 @@ class _Tx:
         "goal",
         "heard",
         "image_id",
+        "region",
         "sends",
         "sent_at",
         "time",
@@ -110,16 +125,31 @@ class _Tx:
         self.default_goal = default_goal
         self.goal = default_goal
         self.explicit: int | None = None
+        #: bytes wanted beyond the goal prefix: the packets of requested regions (None: none)
+        self.region: npt.NDArray[np.bool_] | None = None
 
     @property
     def total(self) -> int:
         return len(self.enc.body)
 
+    def wanted(self, goal: int | None = None) -> npt.NDArray[np.bool_]:
+        """Bytes to deliver: the prefix up to ``goal`` (default: the image's goal) and the
+        packets of requested regions."""
+        m = np.zeros(self.total, bool)
+        m[: self.goal if goal is None else goal] = True
+        region = getattr(self, "region", None)
+        if region is not None:
+            m |= region
+        return m
+
     def needs(self) -> bool:
-        return self.goal > 0 and not bool(self.acked[: self.goal].all())
+        if self.goal > 0 and not bool(self.acked[: self.goal].all()):
+            return True
+        region = getattr(self, "region", None)
+        return region is not None and bool((region & ~self.acked).any())
 
     def unacked(self) -> int:
-        return int(self.goal - np.count_nonzero(self.acked[: self.goal])) if self.goal else 0
+        return int(np.count_nonzero(self.wanted() & ~self.acked))
 
     def announce(self) -> ImageAnnounce:
         return ImageAnnounce(self.image_id, to_stamp(self.time), self.x, self.y, self.enc.width,
@@ -253,7 +283,7 @@ class ImagerySender(ModalitySender):
             if tx.goal > 0 and not tx.needs():
                 n += int(np.count_nonzero(due))
             else:
-                n += int(np.count_nonzero(due[:tx.goal]))
+                n += int(np.count_nonzero(due & tx.wanted()))
         return n
 
     def unacked_fragments(self) -> int:
@@ -423,19 +453,19 @@ class ImagerySender(ModalitySender):
 
     def _fragment(self, tx: _Tx, left: int, now: float, trailing: bool = False,
                   goal: int | None = None) -> ImageFragment | None:
-        goal = tx.goal if goal is None else goal
-        ready = ~tx.acked[:goal] & (tx.sent_at[:goal] <= now - self.rto)
+        want = tx.wanted(goal) & ~tx.acked
+        ready = want & (tx.sent_at <= now - self.rto)
         sends = _sends(tx)
         copies = self.copies() if tx.explicit is not None else 1
         if copies > 1:
             # a requested image under loss: its bytes go again in the next packet, up to
             # ``copies`` times, without waiting for an ack that takes a TDMA cycle to come
-            ready |= ~tx.acked[:goal] & (sends[:goal] < copies) & (tx.sent_at[:goal] < now)
+            ready |= want & (sends < copies) & (tx.sent_at < now)
         if not ready.any():
             return None
         pos = int(np.argmax(ready))
         stop_rel = np.flatnonzero(~ready[pos:])
-        run = int(stop_rel[0]) if len(stop_rel) else goal - pos
+        run = int(stop_rel[0]) if len(stop_rel) else tx.total - pos
         starts = tx.enc.packet_starts
         left = min(left, MAX_MESSAGE)
         n = min(run, MAX_FRAGMENT_DATA, left - fragment_size(0, 0))
@@ -454,7 +484,7 @@ class ImagerySender(ModalitySender):
             squeezed = True
         if n <= 0 or (trailing and squeezed and n < self.min_fragment):
             return None  # a tiny fragment at the end of a packet costs more than it carries
-        packet = int(np.searchsorted(starts, pos, side="right")) - 1
+        packet = int(np.searchsorted(starts, pos, side="right")) - 1 if len(marks) else None
         frag = ImageFragment(tx.image_id, pos, packet, tuple(int(m) for m in marks), tx.enc.body[pos:pos + n])
         tx.sent_at[pos:pos + n] = now
         sends[pos:pos + n] = np.minimum(sends[pos:pos + n], 254) + 1
@@ -471,6 +501,8 @@ class ImagerySender(ModalitySender):
             return self._goal(message)
         if isinstance(message, ImageByTimeRequest):
             return self._by_time(message, now)
+        if isinstance(message, ImageRegionRequest):
+            return self._region(message)
         raise RequestRejected(f"imagery sender does not handle {type(message).__name__}")
 
     def _tx(self, image_id: int) -> _Tx:
@@ -509,6 +541,95 @@ class ImagerySender(ModalitySender):
             tx.goal = new
         self._progress_dirty = True
         return [CommandAck(msg.command_id, AckStatus.ACCEPTED)]
+
+    def _region(self, msg: ImageRegionRequest) -> list[Message]:
+        """Add the packets of the precincts covering the region, up to its goal, to what the
+        image is to deliver (packets topside holds are not sent again); serve it first."""
+        tx = self._tx(msg.image_id)
+        enc = tx.enc
+        sp = enc.stream
+        if not sp.precincts:
+            raise RequestRejected(f"image {msg.image_id} was coded without precincts: ask for more of the "
+                                  "whole image instead")
+        if msg.x1 > enc.width or msg.y1 > enc.height or msg.x0 >= msg.x1 or msg.y0 >= msg.y1:
+            raise RequestRejected(f"region x {msg.x0}..{msg.x1}, y {msg.y0}..{msg.y1} is empty or outside the "
+                                  f"{enc.width} x {enc.height} image {msg.image_id}")
+        box = (msg.x0, msg.y0, msg.x1, msg.y1)
+        inside = region_packets(sp, enc.width, enc.height, box)
+        layer = packet_layers(enc)
+        starts = enc.packet_starts
+        held = self._held_packets(tx)
+        kind = RegionGoal(msg.kind)
+        if kind == RegionGoal.LAYER:
+            if not 1 <= msg.value <= sp.layers:
+                raise RequestRejected(f"layer {msg.value} outside 1..{sp.layers}")
+            chosen = inside & (layer < msg.value)
+        elif kind == RegionGoal.BYTES:
+            if msg.value < 1:
+                raise RequestRejected("a byte budget of 0")
+            sizes = np.append(starts[1:], tx.total) - starts
+            cost = np.where(inside & ~held, sizes, 0)
+            within = np.cumsum(cost) <= msg.value
+            chosen = inside & (held | within)
+        else:
+            if not 100 <= msg.value <= 600:
+                raise RequestRejected(f"quality {msg.value / 10:.1f} dB outside 10..60 dB")
+            chosen = self._region_quality(tx, inside, held, layer, box, msg.value / 10)
+        mask = np.zeros(tx.total, bool)
+        for i in np.flatnonzero(chosen & ~held):
+            mask[int(starts[i]):packet_end(starts, tx.total, int(i))] = True
+        cur = getattr(tx, "region", None)
+        tx.region = mask if cur is None else (cur | mask)
+        sends = _sends(tx)
+        sends[mask] = np.where(tx.acked[mask], sends[mask], 0)
+        self._request_counter += 1
+        tx.explicit = self._request_counter
+        tx.announced_at = None if not tx.heard else tx.announced_at
+        self._progress_dirty = True
+        return [CommandAck(msg.command_id, AckStatus.ACCEPTED)]
+
+    @staticmethod
+    def _held_packets(tx: _Tx) -> npt.NDArray[np.bool_]:
+        """Packets whose every byte topside acknowledged."""
+        starts = tx.enc.packet_starts
+        cum = np.concatenate([[0], np.cumsum(tx.acked, dtype=np.int64)])
+        ends = np.append(starts[1:], tx.total)
+        out: npt.NDArray[np.bool_] = (cum[ends] - cum[starts]) == (ends - starts)
+        return out
+
+    @staticmethod
+    def _region_quality(tx: _Tx, inside: npt.NDArray[np.bool_], held: npt.NDArray[np.bool_],
+                        layer: npt.NDArray[np.int64], box: tuple[int, int, int, int],
+                        target: float) -> npt.NDArray[np.bool_]:
+        """The region's packets up to the fewest layers whose decode (with what topside holds)
+        reaches ``target`` dB PSNR inside the region, measured against the original (all
+        layers when none does)."""
+        enc = tx.enc
+        x0, y0, x1, y1 = box
+        ref = enc.image[y0:y1, x0:x1]
+        starts = enc.packet_starts
+
+        def chosen(k: int) -> npt.NDArray[np.bool_]:
+            out: npt.NDArray[np.bool_] = held | (inside & (layer < k))
+            return out
+
+        def quality(k: int) -> float:
+            sel = chosen(k)
+            pk: list[bytes | None] = [enc.body[int(s):packet_end(starts, tx.total, i)] if sel[i] else None
+                                      for i, s in enumerate(starts)]
+            img = decode_packets(enc.params, enc.width, enc.height, pk)
+            return psnr(img[y0:y1, x0:x1], ref)
+
+        lo, hi = 0, enc.stream.layers
+        if quality(hi) < target:
+            return chosen(hi)
+        while hi - lo > 1:  # quality(hi) >= target
+            mid = (lo + hi) // 2
+            if quality(mid) >= target:
+                hi = mid
+            else:
+                lo = mid
+        return chosen(hi)
 
     def find(self, stamp: int, direction: TimeDirection, now: float) -> _Tx | None:
         """The image nearest the time of ``stamp``, or the last one before / first one after it."""
@@ -575,6 +696,14 @@ class ImagerySender(ModalitySender):
         tx.goal = want
         tx.announced_at = None if not tx.heard else tx.announced_at  # re-announce if never heard
         self._progress_dirty = True
+
+
+def packet_layers(enc: Encoded) -> npt.NDArray[np.int64]:
+    """The quality layer of each packet of ``enc``, in codestream order."""
+    from .codec import packet_order
+
+    out: npt.NDArray[np.int64] = packet_order(enc.stream, enc.width, enc.height)[:, 0]
+    return out
 
 
 def _sends(tx: _Tx) -> npt.NDArray[np.uint8]:
