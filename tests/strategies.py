@@ -58,6 +58,9 @@ def _draw_field(draw: Any, con: Any, ctx: cs.Container) -> Any:
             return draw(st.binary(min_size=n, max_size=n))
     if isinstance(con, cs.IfThenElse):
         return _draw_field(draw, con.thensubcon, ctx) if _eval(con.condfunc, ctx) else None
+    if isinstance(con, cs.Rebuild):  # a derived count under a condition: choose the length here
+        sub = _unwrap(con.subcon)
+        return draw(st.integers(sub.lo, min(sub.hi, sub.lo + MAX_LIST)))
     if isinstance(con, cs.Array):
         n = _eval(con.count, ctx)
         return [_draw_element(draw, con.subcon, ctx) for _ in range(n)]

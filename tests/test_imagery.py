@@ -56,17 +56,22 @@ def test_params_code_roundtrip_and_invalid() -> None:
 
 def test_packet_order_lrcp_and_rlcp() -> None:
     lrcp = codec.packet_order(codec.parse_params(codec.params_code("LRCP", 3, 2, False, True)))
-    assert lrcp.shape == (18, 3)
-    assert lrcp[:4].tolist() == [[0, 0, 0], [0, 0, 1], [0, 0, 2], [0, 1, 0]]
+    assert lrcp.shape == (18, 4)
+    assert lrcp[:4].tolist() == [[0, 0, 0, 0], [0, 0, 1, 0], [0, 0, 2, 0], [0, 1, 0, 0]]
     rlcp = codec.packet_order(codec.parse_params(codec.params_code("RLCP", 3, 2, False, False)))
-    assert rlcp.tolist() == [[0, 0, 0], [1, 0, 0], [0, 1, 0], [1, 1, 0], [0, 2, 0], [1, 2, 0]]
+    assert rlcp.tolist() == [[0, 0, 0, 0], [1, 0, 0, 0], [0, 1, 0, 0], [1, 1, 0, 0], [0, 2, 0, 0], [1, 2, 0, 0]]
+    # 256-sample precincts on 640 x 480: packets per layer 1 x 5, then 2 x 1, then 3 x 2
+    sp = codec.parse_params(codec.params_code("LRCP", 7, 2, True, False, 256))
+    pre = codec.packet_order(sp, 640, 480)
+    assert len(pre) == sp.n_packets(640, 480) == 2 * 13
+    assert pre[5:13, 3].tolist() == [0, 1, 0, 1, 2, 3, 4, 5] and pre[13].tolist() == [1, 0, 0, 0]
 
 
 def test_header_is_not_sent_and_is_rebuilt(enc: codec.Encoded) -> None:
     hdr = codec.main_header(enc.params, enc.width, enc.height)
     assert hdr[:2] == b"\xff\x4f" and b"\xff\x64" not in hdr  # SOC, no COM
     assert not enc.body.startswith(b"\xff\x4f") and b"\xff\x90" not in enc.body[:2]
-    assert len(enc.packet_starts) == enc.stream.n_packets
+    assert len(enc.packet_starts) == enc.stream.n_packets(enc.width, enc.height)
     assert enc.packet_starts[0] == 0 and np.all(np.diff(enc.packet_starts) > 0)
     full = codec.decode_packets(enc.params, enc.width, enc.height, codec.split_packets(enc.body, enc.packet_starts))
     assert full.shape == (96, 128)

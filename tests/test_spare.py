@@ -451,7 +451,7 @@ def test_a_newer_image_ack_replaces_an_older_one_of_the_same_image_in_the_uplink
 
 
 def test_an_announcement_with_unusable_coding_parameters_is_refused_and_said(caplog: Any) -> None:
-    """Reserved params bits, or a grey flag that disagrees with params: the image is not
+    """Invalid params (precincts with the RPCL progression), or a grey flag that disagrees with params: the image is not
     decoded (spec/payloads.md 3.1), and the receiver says so instead of dropping it silently."""
     from coex_core.messages import ImageAnnounce
     from coex_plugins.imagery import ImageryModality
@@ -461,7 +461,7 @@ def test_an_announcement_with_unusable_coding_parameters_is_refused_and_said(cap
     good = params_code("LRCP", 3, 4, False, False)
     assert receiver.receive(ImageAnnounce(1, 10, None, None, 64, 64, True, 100, good), 10.0)
     with caplog.at_level("WARNING", logger="coex.imagery"):
-        assert receiver.receive(ImageAnnounce(2, 10, None, None, 64, 64, True, 100, good | 1 << 14), 10.0) == []
+        assert receiver.receive(ImageAnnounce(2, 10, None, None, 64, 64, True, 100, good | 1 << 14 | 2 << 10), 10.0) == []
         assert receiver.receive(ImageAnnounce(3, 10, None, None, 64, 64, False, 100, good), 10.0) == []
     assert receiver.rejected_announces == 2 and set(receiver.images) == {1}
     assert "unusable coding parameters" in caplog.text

@@ -441,14 +441,17 @@ QCD_IRREVERSIBLE = {  # d: (LL, HL/LH, HH)
 
 def spec_params(code: int) -> dict[str, Any]:
     """Section 3.1."""
-    if code >> 13:
-        raise SpecError("reserved bits set")
-    pr = code >> 10
+    if code >> 15:
+        raise SpecError("above 15 bits")
+    pr = (code >> 10) & 7
     if pr >= 5:
         raise SpecError("unknown progression")
+    precincts = (0, 256, 128, 512)[code >> 13]
+    if precincts and PROGRESSIONS[pr] not in ("LRCP", "RLCP"):
+        raise SpecError("precincts need LRCP or RLCP")
     return {"progression": PROGRESSIONS[pr], "resolutions": ((code >> 7) & 7) + 1,
             "layers": ((code >> 2) & 31) + 1, "irreversible": bool(code >> 1 & 1),
-            "colour": bool(code & 1)}
+            "colour": bool(code & 1), "precincts": precincts}
 
 
 def spec_main_header(code: int, width: int, height: int) -> bytes:
@@ -461,8 +464,11 @@ def spec_main_header(code: int, width: int, height: int) -> bytes:
     siz = (b"\xff\x51" + be(38 + 3 * comps, 2, "big") + be(0, 2, "big")
            + b"".join(be(v, 4, "big") for v in (width, height, 0, 0, width, height, 0, 0))
            + be(comps, 2, "big") + b"\x07\x01\x01" * comps)
-    cod = (b"\xff\x52" + be(12, 2, "big") + b"\x00" + bytes([PROGRESSIONS.index(p["progression"])])
-           + be(p["layers"], 2, "big") + bytes([int(p["colour"]), res - 1, 4, 4, 0, 0 if p["irreversible"] else 1]))
+    pp = p["precincts"].bit_length() - 1 if p["precincts"] else 0
+    cod_body = (bytes([1 if pp else 0, PROGRESSIONS.index(p["progression"])]) + be(p["layers"], 2, "big")
+                + bytes([int(p["colour"]), res - 1, 4, 4, 0, 0 if p["irreversible"] else 1])
+                + (bytes([pp << 4 | pp]) * res if pp else b""))
+    cod = b"\xff\x52" + be(2 + len(cod_body), 2, "big") + cod_body
     bands: list[bytes] = []
     if p["irreversible"]:
         bands.append(be(QCD_IRREVERSIBLE[res - 1][0], 2, "big"))
@@ -479,13 +485,30 @@ def spec_main_header(code: int, width: int, height: int) -> bytes:
     return b"\xff\x4f" + siz + cod + qcd
 
 
-def spec_packet_order(p: dict[str, Any]) -> list[tuple[int, int, int]]:
-    """(layer, resolution, component) of each packet, first letter outermost (3.2)."""
-    dims = {"L": p["layers"], "R": p["resolutions"], "C": 3 if p["colour"] else 1, "P": 1}
+def spec_packet_order(p: dict[str, Any], width: int = 1, height: int = 1) -> list[tuple[int, int, int, int]]:
+    """(layer, resolution, component, precinct) of each packet, first letter outermost (3.2);
+    with precincts (LRCP / RLCP only) P is innermost and counts depend on the resolution."""
+    res = p["resolutions"]
+
+    def count(r: int) -> int:
+        if not p["precincts"]:
+            return 1
+        s = 2 ** (res - 1 - r)
+        w, h = math.ceil(width / s), math.ceil(height / s)
+        return math.ceil(w / p["precincts"]) * math.ceil(h / p["precincts"])
+
+    dims = {"L": p["layers"], "R": res, "C": 3 if p["colour"] else 1}
     order: list[dict[str, int]] = [{}]
     for letter in p["progression"]:
-        order = [{**o, letter: v} for o in order for v in range(dims[letter])]
-    return [(o["L"], o["R"], o["C"]) for o in order]
+        if letter == "P":
+            order = [{**o, "P": 0} for o in order]
+        else:
+            order = [{**o, letter: v} for o in order for v in range(dims[letter])]
+    out = []
+    for o in order:
+        for pr in range(count(o["R"]) if p["precincts"] else 1):
+            out.append((o["L"], o["R"], o["C"], pr))
+    return out
 
 
 class SpecImage:
@@ -494,7 +517,7 @@ class SpecImage:
     def __init__(self, ann: ImageAnnounce) -> None:
         self.ann = ann
         self.p = spec_params(ann.params)
-        self.order = spec_packet_order(self.p)
+        self.order = spec_packet_order(self.p, ann.width, ann.height)
         self.buf = bytearray(ann.total_bytes)
         self.have = [False] * ann.total_bytes
         self.starts: list[int | None] = [None] * len(self.order)
@@ -502,11 +525,11 @@ class SpecImage:
 
     def add(self, f: ImageFragment) -> None:
         n, marks, npk = len(f.data), list(f.packets), len(self.order)
-        if n == 0 or f.offset + n > len(self.buf) or f.packet >= npk:
+        if n == 0 or f.offset + n > len(self.buf) or (marks and (f.packet is None or f.packet >= npk)):
             return
         if any(b <= a for a, b in itertools.pairwise(marks)) or (marks and marks[-1] > n):
             return
-        i0 = f.packet if marks and marks[0] == 0 else f.packet + 1
+        i0 = (f.packet or 0) + (0 if marks and marks[0] == 0 else 1)
         if marks and i0 + len(marks) - 1 >= npk:
             return
         for j, mk in enumerate(marks):
@@ -533,12 +556,12 @@ class SpecImage:
             return None
         parts = [spec_main_header(self.ann.params, self.ann.width, self.ann.height),
                  bytes.fromhex("ff90000a0000000000000001"), b"\xff\x93"]
-        replaced: set[tuple[int, int]] = set()
+        replaced: set[tuple[int, int, int]] = set()
         for i in range(complete[-1] + 1):
-            _, r, c = self.order[i]
+            _, r, c, pr = self.order[i]
             pk = packets[i]
-            if pk is None or (r, c) in replaced:
-                replaced.add((r, c))
+            if pk is None or (r, c, pr) in replaced:
+                replaced.add((r, c, pr))
                 parts.append(b"\x00")
             else:
                 parts.append(pk)
@@ -816,6 +839,8 @@ IMAGE_CONFIGS = [
     {"progression": "RLCP", "resolutions": 3, "irreversible": False, "grey": True},
     {"progression": "RPCL", "resolutions": 4, "irreversible": True, "grey": False},
     {"progression": "CPRL", "resolutions": 2, "irreversible": False, "grey": False},
+    {"progression": "LRCP", "resolutions": 4, "irreversible": True, "grey": True, "precincts": 128},
+    {"progression": "RLCP", "resolutions": 3, "irreversible": True, "grey": False, "precincts": 128},
 ]
 
 
@@ -825,16 +850,18 @@ def test_image_params_and_main_header_match_the_reference() -> None:
     progression, 1..8 resolutions, reversible and irreversible, grey and colour."""
     from coex_plugins.imagery import codec
 
-    combos = [(prog, res, layers, irr, col, 300, 256)
+    combos = [(prog, res, layers, irr, col, 300, 256, 0)
               for prog, res, layers, irr, col in [
                   ("LRCP", 1, 1, True, False), ("RLCP", 8, 32, True, False), ("RPCL", 8, 3, False, True),
                   ("PCRL", 6, 22, True, True), ("CPRL", 7, 2, False, False), ("LRCP", 4, 9, False, True)]]
-    combos += [("LRCP", r, 5, irr, False, 37, 17) for r in range(1, 5) for irr in (True, False)]
-    for prog, res, layers, irr, col, w, h in combos:
-        code = codec.params_code(prog, res, layers, irr, col)
+    combos += [("LRCP", r, 5, irr, False, 37, 17, 0) for r in range(1, 5) for irr in (True, False)]
+    combos += [("LRCP", 7, 18, True, False, 640, 480, 256), ("RLCP", 5, 4, False, True, 300, 256, 128),
+               ("LRCP", 3, 2, True, False, 200, 100, 512)]
+    for prog, res, layers, irr, col, w, h, pc in combos:
+        code = codec.params_code(prog, res, layers, irr, col, pc)
         p = spec_params(code)
         assert p == {"progression": prog, "resolutions": res, "layers": layers, "irreversible": irr,
-                     "colour": col}
+                     "colour": col, "precincts": pc}
         if res > 1 and min(w, h) < 1 << res:
             with pytest.raises(SpecError):
                 spec_main_header(code, w, h)
@@ -842,13 +869,21 @@ def test_image_params_and_main_header_match_the_reference() -> None:
                 codec.main_header(code, w, h)
             continue
         assert spec_main_header(code, w, h) == codec.main_header(code, w, h), (prog, res, irr, col)
-    for bad in (1 << 13, 1 << 14, 5 << 10, 7 << 10):
+    for bad in (1 << 15, 5 << 10, 7 << 10, (1 << 13) | (2 << 10), (3 << 13) | (4 << 10)):
         with pytest.raises(SpecError):
             spec_params(bad)
         with pytest.raises(DecodeError):
             codec.parse_params(bad)
     p = spec_params(codec.params_code("RLCP", 3, 2, False, False))
-    assert spec_packet_order(p) == [(0, 0, 0), (1, 0, 0), (0, 1, 0), (1, 1, 0), (0, 2, 0), (1, 2, 0)]
+    assert spec_packet_order(p) == [(0, 0, 0, 0), (1, 0, 0, 0), (0, 1, 0, 0), (1, 1, 0, 0), (0, 2, 0, 0),
+                                    (1, 2, 0, 0)]
+    # precincts: 640 x 480, 7 resolutions, 256: one precinct up to 160 x 120, 2 x 1, then 3 x 2
+    p = spec_params(codec.params_code("LRCP", 7, 2, True, False, 256))
+    order = spec_packet_order(p, 640, 480)
+    assert len(order) == 2 * (5 + 2 + 6)
+    assert order[:7] == [(0, r, 0, 0) for r in range(5)] + [(0, 5, 0, 0), (0, 5, 0, 1)]
+    sp = codec.parse_params(codec.params_code("LRCP", 7, 2, True, False, 256))
+    assert [tuple(int(v) for v in row) for row in codec.packet_order(sp, 640, 480)] == order
 
 
 @pytest.mark.parametrize("config", IMAGE_CONFIGS)
@@ -861,9 +896,9 @@ def test_image_codestream_rebuild_matches_the_reference(config: dict[str, Any], 
 
     mod = ImageryModality()
     layer_bytes = [30, 60, 120, 240, 480, 900, 1600, 3000]
-    s = mod.sender({**config, "layer_bytes": layer_bytes, "rto": 12.0, "default_goal": "full"})
+    s = mod.sender({"precincts": 0, **config, "layer_bytes": layer_bytes, "rto": 12.0, "default_goal": "full"})
     rx = mod.receiver({})
-    img = seafloor(96, 128, seed=5)
+    img = seafloor(300, 400, seed=5) if config.get("precincts") else seafloor(96, 128, seed=5)
     if not config["grey"]:
         img = np.stack([img, img // 2 + 40, 255 - img], axis=2).astype(np.uint8)
     s.ingest(img, 0.0)

@@ -49,7 +49,7 @@ __all__ = [
 PROGRESSIONS = ("LRCP", "RLCP", "RPCL", "PCRL", "CPRL")
 #: Precinct sizes by ``params`` code (bits 14..13): 0 = one precinct per resolution, else square
 #: precincts of this many samples at every resolution (only with LRCP or RLCP).
-PRECINCTS = (0, 256, 128, 64)
+PRECINCTS = (0, 256, 128, 512)
 MAX_LAYERS = 32
 MAX_RESOLUTIONS = 8
 #: The body of one image never exceeds this (the wire offset field has 20 bits).

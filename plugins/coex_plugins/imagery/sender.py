@@ -157,7 +157,7 @@ class _Tx:
 
 
 #: coding options (:class:`~coex_plugins.imagery.codec.CodingParams` fields)
-CODING_KEYS = ("progression", "resolutions", "layer_bytes", "irreversible", "grey", "max_size")
+CODING_KEYS = ("progression", "resolutions", "layer_bytes", "irreversible", "grey", "max_size", "precincts")
 #: the imagery sender's options and their defaults (coding options default to CodingParams')
 SENDER_DEFAULTS: dict[str, Any] = {**dict.fromkeys(CODING_KEYS), "default_goal": "layer:6",
                                    "request_goal": None, "max_images": 64, "rto": 60.0,
@@ -182,7 +182,7 @@ class ImagerySender(ModalitySender):
     """Subsea side. Configuration keys (all optional):
 
     * coding: ``progression``, ``resolutions``, ``layer_bytes``, ``irreversible``, ``grey``,
-      ``max_size`` (see :class:`~coex_plugins.imagery.codec.CodingParams`);
+      ``max_size``, ``precincts`` (256; 0 = none, then region requests are refused; see :class:`~coex_plugins.imagery.codec.CodingParams`);
     * ``default_goal`` (``"layer:6"``): the set-point every new image is sent to, in capture order;
     * ``request_goal`` (same as ``default_goal``): the goal given to an image found by an
       ``ImageByTimeRequest`` (it is then served first, like an operator goal);
@@ -468,20 +468,29 @@ class ImagerySender(ModalitySender):
         run = int(stop_rel[0]) if len(stop_rel) else tx.total - pos
         starts = tx.enc.packet_starts
         left = min(left, MAX_MESSAGE)
-        n = min(run, MAX_FRAGMENT_DATA, left - fragment_size(0, 0))
-        squeezed = n < min(run, MAX_FRAGMENT_DATA)  # the budget, not the data, limits this fragment
-        while n > 0:
+        top = min(run, MAX_FRAGMENT_DATA, left - fragment_size(0, 0))
+
+        def marks_for(k: int) -> npt.NDArray[np.int64]:
             lo = int(np.searchsorted(starts, pos, side="left"))
-            hi = int(np.searchsorted(starts, pos + n, side="right"))  # a start at pos + n ends a packet
-            marks = starts[lo:hi] - pos
-            if len(marks) > MAX_MARKS:  # end the data at the last allowed start: it is the end mark
-                n = int(marks[MAX_MARKS - 1])
-                marks = marks[:MAX_MARKS]
-            over = fragment_size(len(marks), n) - left
-            if over <= 0:
-                break
-            n -= over
-            squeezed = True
+            hi = int(np.searchsorted(starts, pos + k, side="right"))  # a start at pos + k ends a packet
+            out: npt.NDArray[np.int64] = starts[lo:hi] - pos
+            return out
+
+        def fits(k: int) -> bool:
+            m = len(marks_for(k))
+            return m <= MAX_MARKS and fragment_size(m, k) <= left
+
+        # the most data that fits with its marks (the size only grows with the data)
+        lo_k, hi_k = 0, max(top, 0)
+        while lo_k < hi_k:
+            mid = (lo_k + hi_k + 1) // 2
+            if fits(mid):
+                lo_k = mid
+            else:
+                hi_k = mid - 1
+        n = lo_k
+        marks = marks_for(n)
+        squeezed = n < min(run, MAX_FRAGMENT_DATA)  # the budget, not the data, limits this fragment
         if n <= 0 or (trailing and squeezed and n < self.min_fragment):
             return None  # a tiny fragment at the end of a packet costs more than it carries
         packet = int(np.searchsorted(starts, pos, side="right")) - 1 if len(marks) else None
