@@ -24,8 +24,8 @@ CAMERA_SPEED = 0.5
 MIN_ALTITUDE = 2.0
 #: seconds between camera frames on a transect
 CAMERA_PERIOD = 6.0
-#: the vehicle's default set-point for every image (``default_goal``)
-DEFAULT_LAYERS = 2
+#: the vehicle's default set-point for every image (``default_goal``: 40 B of a frame)
+DEFAULT_LAYERS = 1
 #: a target is identifiable at 1 m when a car-like candidate of the received 1 m map lies this
 #: close to it (m)
 IDENTIFY_RADIUS = 3.5

@@ -46,13 +46,16 @@ CAR = (4.5, 1.8, 1.5)
 FLAT = 0.93
 #: candidates scoring below this are not worth camera time
 MIN_SCORE = 0.05
-#: layers of a requested image the vehicle sends first (its ``request_goal``), and the most the
-#: operator asks for when an image is too blurry to tell
-CONFIRM_LAYERS = 10
-MORE_LAYERS = 16
+#: layers of a requested image the vehicle sends first (its ``request_goal``, about 800 B of a
+#: 640 x 480 frame with the default ladder), and the most the operator asks for, in the region
+#: of the frame where something too blurry to tell lies (about 4 KB for a whole frame)
+CONFIRM_LAYERS = 6
+MORE_LAYERS = 12
 #: the operator never confirms a car from a preview: an image needs this many quality layers
-#: (about 450 B of a 640 x 480 frame) before what it shows counts
-MIN_CONFIRM_LAYERS = 8
+#: (about 600 B of a 640 x 480 frame) before what it shows counts
+MIN_CONFIRM_LAYERS = 5
+#: pixels added around an unclear object's outline when the operator asks for its region
+REGION_MARGIN = 24
 #: images the operator looks at for one candidate before moving on
 MAX_LOOKS = 6
 #: an image is "at" a candidate when taken within this distance of it (m)
@@ -93,6 +96,7 @@ class CandidateView:
     passed_at: float | None = None
     want: tuple[float, str] | None = None  # (time, "nearest" | "before" | "after")
     want_goal: int | None = None  # image id of a pending request for more layers
+    want_region: int | None = None  # command id of that request when it asked for a region
     request_at: float | None = None
     command_id: int | None = None  # of the latest request
     first_request_at: float | None = None
@@ -247,6 +251,8 @@ class Operator:
         self.coarse_requested: list[tuple[float, float]] = []
         self.candidates: list[CandidateView] = []
         self.camera_phase = False
+        #: the region requests made (image id, pixel box, command id, time, candidate)
+        self.regions: list[dict[str, Any]] = []
         self.position: tuple[float, float] | None = None  # the newest reported position
         self.positions: list[tuple[float, float, float]] = []  # t, x, y of every status received
         #: the camera lines sent, by survey id
@@ -564,6 +570,7 @@ class Operator:
                 self.log(now, "image request", f"no answer for {now - (cv.request_at or now):.0f} s: asking again")
                 if cv.want_goal is not None and meta is not None:
                     cv.request_at = now
+                    cv.want_region = None
                     cv.command_id = self.imagery.request_goal(cv.want_goal, "layer", MORE_LAYERS, now).command_id
                 else:
                     self._ask(cv, t, direction, now)
@@ -601,6 +608,19 @@ class Operator:
         if "unclear" in kinds and cv.want_goal != image_id and layers < MORE_LAYERS:
             cv.want_goal = image_id
             cv.request_at = now
+            box = self._region_of(sights, truth, meta) if truth is not None else None
+            if box is not None:
+                # look where it matters: only the part of the frame with the unclear object
+                reg = self.imagery.request_region(image_id, box, "layer", MORE_LAYERS, now)
+                cv.command_id = cv.want_region = reg.command_id
+                self.regions.append({"image_id": image_id, "box": list(box), "command_id": reg.command_id,
+                                     "time": now, "candidate": (cv.x, cv.y)})
+                self.log(now, "image region", f"image {image_id} shows something at ({cv.x:.0f}, {cv.y:.0f}) "
+                         f"too blurry to tell [{self._seen(sights)}]: asking for {MORE_LAYERS} layers of "
+                         f"its region x {box[0]}..{box[2]}, y {box[1]}..{box[3]} px "
+                         f"[command {reg.command_id}]")
+                return
+            cv.want_region = None
             msg = self.imagery.request_goal(image_id, "layer", MORE_LAYERS, now)
             cv.command_id = msg.command_id
             self.log(now, "image goal", f"image {image_id} shows something at ({cv.x:.0f}, {cv.y:.0f}) "
@@ -628,8 +648,36 @@ class Operator:
                          f"sand, edges {s.sharpness:.1f}x the sand's and {s.edge_width:.1f} px wide" for s in sights)
 
     @staticmethod
+    def _region_of(sights: list[Any], truth: Any, meta: dict[str, Any]) -> tuple[int, int, int, int] | None:
+        """The pixel box around the unclear objects of a frame (their outline in the frame's
+        labels, plus :data:`REGION_MARGIN`), or None when the image cannot be asked for by region
+        (coded without precincts) or the box would be most of the frame."""
+        if not meta.get("precincts"):
+            return None
+        labels = truth.labels
+        width, height = int(meta["width"]), int(meta["height"])
+        mask = np.isin(labels, [s.label for s in sights if s.kind == "unclear"])
+        if not mask.any():
+            return None
+        rows, cols = np.flatnonzero(mask.any(1)), np.flatnonzero(mask.any(0))
+        sx, sy = width / labels.shape[1], height / labels.shape[0]
+        x0 = max(0, int(cols[0] * sx) - REGION_MARGIN)
+        x1 = min(width, math.ceil((cols[-1] + 1) * sx) + REGION_MARGIN)
+        y0 = max(0, int(rows[0] * sy) - REGION_MARGIN)
+        y1 = min(height, math.ceil((rows[-1] + 1) * sy) + REGION_MARGIN)
+        if (x1 - x0) * (y1 - y0) > 0.6 * width * height:
+            return None
+        return (x0, y0, x1, y1)
+
+    @staticmethod
     def _arrived(cv: CandidateView, meta: dict[str, Any]) -> bool:
-        """Whether the layers asked for of this image are all topside."""
+        """Whether the layers asked for of this image (or of its region) are all topside."""
+        if cv.want_goal == int(meta["image_id"]) and cv.want_region is not None:
+            for reg in meta.get("regions", ()):
+                if reg["command_id"] == cv.want_region:
+                    if reg["state"] == "rejected":
+                        return True  # nothing more will come: judge what is there
+                    return bool(meta.get("complete")) or int(reg.get("layers_complete", 0)) >= MORE_LAYERS
         want = MORE_LAYERS if cv.want_goal == int(meta["image_id"]) else CONFIRM_LAYERS
         return bool(meta.get("complete")) or int(meta.get("layers_complete", 0)) >= want
 
