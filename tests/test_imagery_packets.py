@@ -31,7 +31,7 @@ def ladder(layers: int) -> tuple[int, ...]:
     return tuple(out)
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def image(w: int, h: int, colour: bool, kind: str, seed: int = 0) -> np.ndarray:
     if kind == "flat":
         shape = (h, w, 3) if colour else (h, w)

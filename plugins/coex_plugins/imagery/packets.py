@@ -144,7 +144,7 @@ def _tree_paths(w: int, h: int) -> tuple[int, tuple[tuple[int, ...], ...]]:
 class _Band:
     """Header state of one band of one precinct: two tag trees and per code-block state."""
 
-    __slots__ = ("n", "paths", "incl_v", "incl_lo", "msb_v", "msb_lo", "included", "lblock", "passes")
+    __slots__ = ("incl_lo", "incl_v", "included", "lblock", "msb_lo", "msb_v", "n", "passes", "paths")
 
     def __init__(self, w: int, h: int) -> None:
         nodes, self.paths = _tree_paths(w, h)
@@ -157,19 +157,18 @@ class _Band:
         self.lblock = [3] * self.n
         self.passes = [0] * self.n
 
-    def snapshot(self) -> tuple[list[int], ...]:
-        return (self.incl_v[:], self.incl_lo[:], self.msb_v[:], self.msb_lo[:], self.included[:],  # type: ignore[return-value]
+    def snapshot(self) -> tuple[list[int], list[int], list[int], list[int], list[bool], list[int], list[int]]:
+        return (self.incl_v[:], self.incl_lo[:], self.msb_v[:], self.msb_lo[:], self.included[:],
                 self.lblock[:], self.passes[:])
 
-    def restore(self, s: tuple[list[int], ...]) -> None:
-        (self.incl_v, self.incl_lo, self.msb_v, self.msb_lo, self.included,  # type: ignore[assignment]
-         self.lblock, self.passes) = s
+    def restore(self, s: tuple[list[int], list[int], list[int], list[int], list[bool], list[int], list[int]]) -> None:
+        self.incl_v, self.incl_lo, self.msb_v, self.msb_lo, self.included, self.lblock, self.passes = s
 
 
 class _Bits:
     """Packet header bit reader (B.10.1) over ``buf[pos:limit]``; ``total`` is the body size."""
 
-    __slots__ = ("buf", "pos", "limit", "total", "byte", "ct")
+    __slots__ = ("buf", "byte", "ct", "limit", "pos", "total")
 
     def __init__(self, buf: bytes | bytearray | memoryview, pos: int, limit: int, total: int) -> None:
         self.buf, self.pos, self.limit, self.total = buf, pos, limit, total
