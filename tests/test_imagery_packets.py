@@ -88,7 +88,7 @@ def test_default_params_every_size_and_layer_count(w: int, h: int, layers: int) 
 
 @pytest.mark.parametrize("colour", [False, True])
 @pytest.mark.parametrize("prog", ["LRCP", "RLCP"])
-@pytest.mark.parametrize("precincts", [0, 128, 256])
+@pytest.mark.parametrize("precincts", [0, 128, 256, 512])
 def test_colour_and_grey_both_wavelets(colour: bool, prog: str, precincts: int) -> None:
     for irr in (True, False):
         check(encode(640, 480, colour, seed=3, progression=prog, precincts=precincts, irreversible=irr))
