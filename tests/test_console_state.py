@@ -407,6 +407,10 @@ def test_image_region_through_the_node_s_receiver() -> None:
     assert row["box"] == [0, 0, 64, 64] and row["state"] == "requested"
     assert isinstance(row["layers_complete"], int)
     assert [c["kind"] for c in st.snapshot()["commands"]] == ["ImageRegionRequest"]
+    for p in rx.receive(m.CommandAck(req.command_id, m.AckStatus.ACCEPTED), T0 + 5):
+        st.apply_product("imagery", p, T0 + 5)  # the receiver hears the answer
+    (row,) = next(i for i in st.snapshot()["images"]["items"] if i["image_id"] == iid)["regions"]
+    assert row["state"] == "accepted"
 
 
 # ----------------------------------------------------------------------------- server
@@ -830,6 +834,35 @@ def test_images_and_series_through_nodes() -> None:
     assert any(isinstance(x, m.TimeSeriesRequest) and x.channel == 0 for x in ts_tx.handled)
     status = {c["kind"]: c["status"] for c in hub.snapshot()["commands"]}
     assert status == {"ImageGoal": "accepted", "TimeSeriesRequest": "accepted"}
+
+
+def test_an_image_region_from_the_console_reaches_the_vehicle_through_nodes() -> None:
+    """``image_region`` on a topside node: the node's imagery receiver sends it, the vehicle's
+    imagery sender accepts it, and the console shows it accepted with the layers inside it."""
+    from coex_plugins.imagery import ImageryModality
+    from coex_plugins.imagery.sender import ImageInput
+    from coex_plugins.imagery.synth import seafloor
+
+    sched = Schedule.simple([1, 2], 5.0, 0.5)
+    clock = [2000.0]
+    top = Node(ChannelManager(1, [LinkConfig(0, sched, dst=2)]))
+    veh = Node(ChannelManager(2, [LinkConfig(0, sched, dst=1)]))
+    img_tx = RecordingSender(ImageryModality().sender())
+    img_tx.ingest(ImageInput(seafloor(96, 128, seed=0), 1900.0, 0.0, 5.0), 1990.0)
+    veh.add_sender(ImageryModality, img_tx, StreamConfig(4, "images", priority=30))
+    top.add_receiver(ImageryModality, ImageryModality().receiver())
+    state = ConsoleState(schedules={0: sched}, receivers=dict(top.receivers()))
+    hub = ConsoleHub(state, NodeCommands(top, lambda: clock[0]), lambda: clock[0])
+    _run(top, veh, hub, clock, 40)
+    iid = hub.snapshot()["images"]["items"][0]["image_id"]
+    hub.act("image_region", {"image_id": iid, "x0": 0, "y0": 0, "x1": 48, "y1": 48, "value": 35})
+    _run(top, veh, hub, clock, 60)
+    got = [x for x in img_tx.handled if isinstance(x, m.ImageRegionRequest)]
+    assert got and (got[0].x0, got[0].y0, got[0].x1, got[0].y1, got[0].value) == (0, 0, 48, 48, 350)
+    (row,) = hub.snapshot()["images"]["items"][0]["regions"]
+    assert row["state"] == "accepted" and isinstance(row["layers_complete"], int)
+    assert [(c["summary"], c["status"]) for c in hub.snapshot()["commands"]] == [
+        (f"image {iid} region 0..48 x 0..48 to 35 dB", "accepted")]
 
 
 # ------------------------------------------------------------------ one topside, two users

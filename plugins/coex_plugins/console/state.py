@@ -1211,10 +1211,15 @@ class ConsoleState:
             rx_row = known.pop((msg.command_id, box), None)
             state = {"sent": "requested", "queued": "requested", "pending": "waiting",
                      "accepted": "accepted"}.get(c.status, "rejected")
+            if c.status in OPEN_COMMAND_STATES and rx_row is not None \
+                    and rx_row.get("state") in ("accepted", "rejected", "waiting"):
+                state = str(rx_row["state"])  # the receiver heard the answer first
             out.append({"command_id": msg.command_id, "box": list(box),
                         "kind": m.RegionGoal(msg.kind).name.lower(),
                         "value": msg.value / 10 if msg.kind == m.RegionGoal.QUALITY else msg.value,
-                        "state": state, "reason": getattr(c, "reason", "") if state == "rejected" else "",
+                        "state": state,
+                        "reason": (getattr(c, "reason", "") or ack_reason(msg, "REJECTED"))
+                        if state == "rejected" else "",
                         "time": _num(c.sent, 1), "by": getattr(c, "by", ""),
                         "layers_complete": None if rx_row is None else rx_row.get("layers_complete"),
                         "layers": layers})
