@@ -874,3 +874,128 @@ def test_the_header_says_when_contact_is_lost_or_ended_and_the_page_fits_a_wide_
                                timeout=10_000)
         assert page.inner_text("#conn") == "ended: the dive is over"
     assert not errors, errors
+
+
+def _picture_point(page: Any, x: float, y: float) -> tuple[float, float]:
+    """Where image pixel (x, y) is on the page: the viewer's <img> box, less the bars that
+    ``object-fit: contain`` leaves around the picture (computed here, not by the page)."""
+    b = page.locator("#viewer-img").bounding_box()
+    nw, nh, fit = page.evaluate("[document.querySelector('#viewer-img').naturalWidth, "
+                                "document.querySelector('#viewer-img').naturalHeight, "
+                                "document.querySelector('#viewer-img').classList.contains('fit')]")
+    k = min(b["width"] / nw, b["height"] / nh) if fit else 1.0
+    left = b["x"] + (b["width"] - nw * k) / 2
+    top = b["y"] + (b["height"] - nh * k) / 2
+    return left + x * k, top + y * k
+
+
+def _drag(page: Any, a: tuple[float, float], b: tuple[float, float]) -> None:
+    page.mouse.move(*a)
+    page.mouse.down()
+    page.mouse.move((a[0] + b[0]) / 2, (a[1] + b[1]) / 2)
+    page.mouse.move(*b)
+    page.mouse.up()
+
+
+def test_an_image_region_dragged_in_the_viewer_is_asked_and_outlined(browser: Any, tmp_path: Path) -> None:
+    """The Region tool of the full-size viewer: a rectangle dragged on the (scaled) picture is
+    asked in image pixels at 30 dB (300 on the wire), outlined on the picture and on the card's
+    thumbnail with its state, at any zoom; the vehicle's refusal shows with its reason."""
+    from coex_core.channel.events import CommandResult
+
+    state = ConsoleState(schedules={0: Schedule.simple([1, 2, 2, 1, 2, 2], 20.0, 2.0)})
+    feed_sample(state, t0=T0)
+    sent: list[m.Message] = []
+    hub = ConsoleHub(state, sent.append, lambda: T0)
+    errors: list[str] = []
+    with serve(hub, "127.0.0.1", 0) as srv:
+        page = browser.new_page(viewport={"width": 1280, "height": 1000})
+        page.on("pageerror", lambda e: errors.append(str(e)))
+        page.goto(srv.url)
+        page.wait_for_function(
+            "[...document.querySelectorAll('#gallery .card img')].filter(i => i.naturalWidth > 0).length === 3",
+            timeout=10_000)
+        page.click('#gallery .card[data-image="1"] img')
+        page.wait_for_selector("#viewer:not(.hidden)")
+        page.wait_for_function("document.querySelector('#viewer-img').naturalWidth > 0", timeout=10_000)
+        assert page.is_visible("#region-draw") and page.is_disabled("#region-send")
+
+        # drag from image pixel (100, 60) to (20, 10) on the picture shown about 5x
+        page.click("#region-draw")
+        _drag(page, _picture_point(page, 100, 60), _picture_point(page, 20, 10))
+        assert "80 \u00d7 50 px" in page.inner_text("#region-box")  # 80 x 50
+        assert page.input_value("#region-value") == "30"
+        page.click("#region-send")
+        page.wait_for_function("document.querySelectorAll('#commands li[data-status]').length === 1",
+                               timeout=10_000)
+        (asked,) = sent
+        assert isinstance(asked, m.ImageRegionRequest), asked
+        assert (asked.image_id, asked.kind, asked.value) == (1, m.RegionGoal.QUALITY, 300)
+        for got, want in zip((asked.x0, asked.y0, asked.x1, asked.y1), (20, 10, 100, 60)):
+            assert abs(got - want) <= 2, asked
+        assert "image 1 region" in page.inner_text("#commands") and "to 30 dB" in page.inner_text("#commands")
+
+        # outlined where it was drawn, with its state in words, on the picture and the thumbnail
+        outline = page.locator('#viewer-overlay .iregion[data-state="requested"]')
+        outline.wait_for(timeout=10_000)
+
+        def placed(loc: Any, box: tuple[int, int, int, int]) -> None:
+            b = loc.bounding_box()
+            x0, y0 = _picture_point(page, box[0], box[1])
+            x1, y1 = _picture_point(page, box[2], box[3])
+            assert abs(b["x"] - x0) <= 3 and abs(b["y"] - y0) <= 3, (b, x0, y0)
+            assert abs(b["x"] + b["width"] - x1) <= 3 and abs(b["y"] + b["height"] - y1) <= 3, (b, x1, y1)
+
+        box = (asked.x0, asked.y0, asked.x1, asked.y1)
+        placed(outline, box)
+        assert "requested" in page.inner_text("#viewer-overlay")
+        assert page.locator('#gallery .card[data-image="1"] svg.thumb-regions rect').count() == 1
+
+        # a second one within a byte budget, then the vehicle refuses the first
+        page.click("#region-draw")
+        _drag(page, _picture_point(page, 110, 70), _picture_point(page, 150, 110))
+        page.select_option("#region-kind", "bytes")
+        assert page.input_value("#region-value") == "2000"
+        page.click("#region-send")
+        page.wait_for_function("document.querySelectorAll('#commands li[data-status]').length === 2",
+                               timeout=10_000)
+        assert (sent[1].kind, sent[1].value) == (m.RegionGoal.BYTES, 2000)
+        hub.update(lambda st: st.apply_event(CommandResult(T0 + 5, asked.command_id,
+                                                           m.AckStatus.REJECTED, asked)))
+        hub.update(lambda st: st.apply_event(CommandResult(T0 + 6, sent[1].command_id,
+                                                           m.AckStatus.ACCEPTED, sent[1])))
+        page.wait_for_selector('#region-list li[data-state="rejected"] .why', timeout=10_000)
+        assert "coded without precincts" in page.inner_text('#region-list li[data-state="rejected"]')
+        assert page.locator('#viewer-overlay .iregion[data-state="accepted"]').count() == 1
+        page.screenshot(path=str(tmp_path / "region.png"))
+        if os.environ.get("COEX_REGION_SHOT"):
+            shutil.copy(tmp_path / "region.png", os.environ["COEX_REGION_SHOT"])
+
+        # at 100 % the outline follows the picture
+        page.click("#viewer-zoom")
+        page.wait_for_function("!document.querySelector('#viewer-img').classList.contains('fit')")
+        placed(page.locator('#viewer-overlay .iregion[data-state="rejected"]'), box)
+        page.close()
+    assert not errors, errors
+
+
+def test_the_region_tool_says_why_an_image_without_precincts_has_none(browser: Any) -> None:
+    """An image coded without precincts cannot send a region on its own: the viewer's Region
+    tool is off and says so, and asks the operator for more of the whole image instead."""
+    def no_precincts(state: ConsoleState) -> None:
+        state.images[2].decoded_meta["precincts"] = 0
+
+    errors: list[str] = []
+    with sample_console(browser, ConsoleHub, [], errors, prepare=no_precincts) as page:
+        page.wait_for_selector('#gallery .card[data-image="2"] img', timeout=10_000)
+        page.click('#gallery .card[data-image="2"] img')
+        page.wait_for_selector("#viewer:not(.hidden)")
+        page.wait_for_selector("#region-off:not(.hidden)")
+        assert "coded without precincts" in page.inner_text("#region-off")
+        assert "whole image" in page.inner_text("#region-off")
+        assert not page.is_visible("#region-draw") and not page.is_visible("#region-send")
+        page.keyboard.press("Escape")
+        page.click('#gallery .card[data-image="1"] img')  # another image has the tool
+        page.wait_for_selector("#region-draw", state="visible")
+        assert not page.is_visible("#region-off")
+    assert not errors, errors

@@ -323,6 +323,96 @@ def test_every_action_is_a_wire_command(sample: tuple[ConsoleState, Any]) -> Non
     assert snap["link"]["schedules"][0]["proposed"]["status"] == "sent"
 
 
+def test_image_region_is_a_wire_command_drawn_with_its_state() -> None:
+    """``image_region``: quality in dB from the page, 0.1 dB on the wire; the command says it in
+    words; the image lists the region with its command's state, and a refusal's reason."""
+    st = ConsoleState(schedules={0: NUI})
+    feed_sample(st, t0=T0)
+    sent: list[m.Message] = []
+    acts = ConsoleActions(st, sent.append, lambda: T0)
+    (msg,) = acts.dispatch("image_region", {"image_id": 1, "x0": 100.4, "y0": 60, "x1": 20,
+                                            "y1": 10})  # corners in any order
+    assert msg == m.ImageRegionRequest(msg.command_id, 1, 20, 10, 100, 60, m.RegionGoal.QUALITY, 300)
+    assert wire.decode(wire.encode(msg)) == msg
+    budget = acts.image_region(2, 0, 0, 160, 120, kind="bytes", value=2000)
+    assert (budget.kind, budget.value) == (m.RegionGoal.BYTES, 2000)
+    layer = acts.image_region(2, 0, 0, 8, 8, kind="layer", value=18)
+    assert (layer.kind, layer.value) == (m.RegionGoal.LAYER, 18)
+    assert sent == [msg, budget, layer]
+    snap = st.snapshot()
+    assert snap["commands"][-1]["summary"] == "image 1 region 20..100 x 10..60 to 30 dB"
+    assert snap["commands"][-2]["summary"] == "image 2 region 0..160 x 0..120 within 2000 bytes"
+    item = next(i for i in snap["images"]["items"] if i["image_id"] == 1)
+    assert item["precincts"] and [(r["box"], r["kind"], r["value"], r["state"]) for r in item["regions"]] \
+        == [([20, 10, 100, 60], "quality", 30.0, "requested")]
+    st.apply_event(CommandResult(T0 + 5, msg.command_id, m.AckStatus.REJECTED, msg))
+    (row,) = next(i for i in st.snapshot()["images"]["items"] if i["image_id"] == 1)["regions"]
+    assert row["state"] == "rejected" and "coded without precincts" in row["reason"]
+    st.apply_event(CommandResult(T0 + 6, budget.command_id, m.AckStatus.ACCEPTED, budget))
+    rows = next(i for i in st.snapshot()["images"]["items"] if i["image_id"] == 2)["regions"]
+    assert [r["state"] for r in rows] == ["accepted", "requested"]
+
+
+@pytest.mark.parametrize("args,words", [
+    (dict(image_id=1, x0=10, y0=10, x1=10, y1=50), "empty"),
+    (dict(image_id=1, x0=0, y0=0, x1=161, y1=50), "outside the 160 x 120 image"),
+    (dict(image_id=1, x0=-3, y0=0, x1=16, y1=50), "outside"),
+    (dict(image_id=1, x0=0, y0=0, x1=16, y1="nan"), "finite"),
+    (dict(image_id=9, x0=0, y0=0, x1=16, y1=16), "not announced"),
+    (dict(image_id=1, x0=0, y0=0, x1=16, y1=16, value=5), "outside 10..60 dB"),
+    (dict(image_id=1, x0=0, y0=0, x1=16, y1=16, value=61), "outside 10..60 dB"),
+    (dict(image_id=1, x0=0, y0=0, x1=16, y1=16, kind="bytes", value=0), "1..65535"),
+    (dict(image_id=1, x0=0, y0=0, x1=16, y1=16, kind="bytes", value=70000), "1..65535"),
+    (dict(image_id=1, x0=0, y0=0, x1=16, y1=16, kind="layer", value=0), "outside 1..18"),
+    (dict(image_id=1, x0=0, y0=0, x1=16, y1=16, kind="layer", value=19), "outside 1..18"),
+    (dict(image_id=1, x0=0, y0=0, x1=16, y1=16, kind="sharpest"), "unknown region goal"),
+    (dict(image_id=0, x0=0, y0=0, x1=16, y1=16), "coded without precincts"),
+])
+def test_image_region_checks_its_box_and_goal(args: dict[str, Any], words: str) -> None:
+    st = ConsoleState(schedules={0: NUI})
+    feed_sample(st, t0=T0)
+    st.images[0].decoded_meta["precincts"] = 0  # as an image coded without precincts says
+    sent: list[m.Message] = []
+    acts = ConsoleActions(st, sent.append, lambda: T0)
+    before = st.snapshot()["commands"]
+    with pytest.raises(RequestRejected, match=words):
+        acts.dispatch("image_region", args)
+    assert sent == [] and st.snapshot()["commands"] == before
+
+
+def test_image_region_through_the_node_s_receiver() -> None:
+    """On a node, the imagery receiver sends the region (and retries it): the console records
+    it once, and shows the layers complete inside it as the receiver counts them."""
+    from coex_plugins.console.testing import drain
+    from coex_plugins.imagery import ImageryModality
+    from coex_plugins.imagery.sender import ImageInput
+    from coex_plugins.imagery.synth import seafloor
+
+    mod = ImageryModality()
+    tx, rx = mod.sender(), mod.receiver()
+    st = ConsoleState(schedules={0: NUI}, receivers={"imagery": rx})
+    tx.ingest(ImageInput(seafloor(120, 160, seed=1), T0 - 10, 1.0, 2.0), T0)
+    for msg in drain(tx, T0)[:30]:
+        for p in rx.receive(msg, T0):
+            st.apply_product("imagery", p, T0)
+    iid = next(iter(rx.images))
+    sent: list[m.Message] = []
+    acts = ConsoleActions(st, sent.append, lambda: T0)
+    req = acts.image_region(iid, 0, 0, 64, 64)
+    assert sent == []  # the receiver sends it at the node's next poll
+    assert [x for x in rx.poll(T0) if isinstance(x, m.ImageRegionRequest)] == [req]
+    for p in rx.products():
+        st.apply_product("imagery", p, T0)
+    (row,) = next(i for i in st.snapshot()["images"]["items"] if i["image_id"] == iid)["regions"]
+    assert row["box"] == [0, 0, 64, 64] and row["state"] == "requested"
+    assert isinstance(row["layers_complete"], int)
+    assert [c["kind"] for c in st.snapshot()["commands"]] == ["ImageRegionRequest"]
+    for p in rx.receive(m.CommandAck(req.command_id, m.AckStatus.ACCEPTED), T0 + 5):
+        st.apply_product("imagery", p, T0 + 5)  # the receiver hears the answer
+    (row,) = next(i for i in st.snapshot()["images"]["items"] if i["image_id"] == iid)["regions"]
+    assert row["state"] == "accepted"
+
+
 # ----------------------------------------------------------------------------- server
 
 
@@ -744,6 +834,35 @@ def test_images_and_series_through_nodes() -> None:
     assert any(isinstance(x, m.TimeSeriesRequest) and x.channel == 0 for x in ts_tx.handled)
     status = {c["kind"]: c["status"] for c in hub.snapshot()["commands"]}
     assert status == {"ImageGoal": "accepted", "TimeSeriesRequest": "accepted"}
+
+
+def test_an_image_region_from_the_console_reaches_the_vehicle_through_nodes() -> None:
+    """``image_region`` on a topside node: the node's imagery receiver sends it, the vehicle's
+    imagery sender accepts it, and the console shows it accepted with the layers inside it."""
+    from coex_plugins.imagery import ImageryModality
+    from coex_plugins.imagery.sender import ImageInput
+    from coex_plugins.imagery.synth import seafloor
+
+    sched = Schedule.simple([1, 2], 5.0, 0.5)
+    clock = [2000.0]
+    top = Node(ChannelManager(1, [LinkConfig(0, sched, dst=2)]))
+    veh = Node(ChannelManager(2, [LinkConfig(0, sched, dst=1)]))
+    img_tx = RecordingSender(ImageryModality().sender())
+    img_tx.ingest(ImageInput(seafloor(96, 128, seed=0), 1900.0, 0.0, 5.0), 1990.0)
+    veh.add_sender(ImageryModality, img_tx, StreamConfig(4, "images", priority=30))
+    top.add_receiver(ImageryModality, ImageryModality().receiver())
+    state = ConsoleState(schedules={0: sched}, receivers=dict(top.receivers()))
+    hub = ConsoleHub(state, NodeCommands(top, lambda: clock[0]), lambda: clock[0])
+    _run(top, veh, hub, clock, 40)
+    iid = hub.snapshot()["images"]["items"][0]["image_id"]
+    hub.act("image_region", {"image_id": iid, "x0": 0, "y0": 0, "x1": 48, "y1": 48, "value": 35})
+    _run(top, veh, hub, clock, 60)
+    got = [x for x in img_tx.handled if isinstance(x, m.ImageRegionRequest)]
+    assert got and (got[0].x0, got[0].y0, got[0].x1, got[0].y1, got[0].value) == (0, 0, 48, 48, 350)
+    (row,) = hub.snapshot()["images"]["items"][0]["regions"]
+    assert row["state"] == "accepted" and isinstance(row["layers_complete"], int)
+    assert [(c["summary"], c["status"]) for c in hub.snapshot()["commands"]] == [
+        (f"image {iid} region 0..48 x 0..48 to 35 dB", "accepted")]
 
 
 # ------------------------------------------------------------------ one topside, two users

@@ -27,7 +27,7 @@ import numpy as np
 import numpy.typing as npt
 
 from coex_core import messages as m
-from coex_core.errors import RequestRejected
+from coex_core.errors import CoexError, RequestRejected
 from coex_core.state import persistent
 from coex_core.timefmt import to_stamp, unwrap
 from coex_core.wire import encoded_size
@@ -57,6 +57,8 @@ OPEN_COMMAND_STATES = ("sent", "pending")
 #: The map section shows a level's coverage (the age of its data) in at most this many blocks:
 #: every subgrid of a small level, groups of receiver tiles of a big one.
 MAP_BLOCKS = 4096
+#: The regions of an image the images section lists and the page draws (the newest).
+MAX_IMAGE_REGIONS = 12
 #: The largest picture of what is on screen (``/map/<level>/window.png``), in pixels.
 MAP_WINDOW_CELLS = 8 * 1024 * 1024
 
@@ -173,7 +175,8 @@ class _Image:
     decoded: Any = None
     decoded_version: int = -1
     decoded_meta: dict[str, Any] = field(default_factory=dict)
-
+    #: the regions the imagery receiver lists for it (its product's ``regions``)
+    regions: list[dict[str, Any]] = field(default_factory=list)
 
 
 @persistent("console.Command")
@@ -588,6 +591,8 @@ class ConsoleState:
             img.decoded_version = int(getattr(product, "version", img.decoded_version + 1))
         img.decoded_meta = {k: v for k, v in meta.items()
                             if v is None or isinstance(v, int | float | str | bool)}
+        if isinstance(meta.get("regions"), list | tuple):
+            img.regions = [dict(r) for r in meta["regions"] if isinstance(r, Mapping)]
         if img.t is None and isinstance(meta.get("time"), int | float):
             img.t = float(meta["time"])
         img.version += 1
@@ -818,6 +823,8 @@ class ConsoleState:
         if isinstance(msg, m.ImageGoal):
             self._image(msg.image_id).goal = (msg.kind.name, msg.value)
             self._touch("images")
+        elif isinstance(msg, m.ImageRegionRequest):
+            self._touch("images")
         elif isinstance(msg, m.ImageByTimeRequest):
             self.image_queries.append({"command_id": msg.command_id, "stamp": msg.stamp,
                                        "direction": msg.direction.name, "sent": _num(now, 1)})
@@ -933,7 +940,7 @@ class ConsoleState:
             if sch is not None and sch.get("proposed"):
                 sch["proposed"]["status"] = new
             self._touch("link")
-        if isinstance(cmd.message, m.ImageByTimeRequest | m.ImageGoal):
+        if isinstance(cmd.message, m.ImageByTimeRequest | m.ImageGoal | m.ImageRegionRequest):
             self._touch("images")
         self._touch("commands")
         if isinstance(cmd.message, m.SurveyCommand):
@@ -1177,10 +1184,54 @@ class ConsoleState:
                 "packets": info.get("packets"), "packets_used": info.get("packets_used"),
                 "bytes_used": info.get("bytes_used"), "complete": info.get("complete"),
                 "footprint": self._footprint(img),
+                "precincts": info.get("precincts"),
+                "regions": self._image_regions(img),
                 "meta": img.decoded_meta,
             })
         return {"items": items, "queries": self.image_queries[-10:],
                 "progress": self.progress_info}
+
+    def _image_regions(self, img: _Image) -> list[dict[str, Any]]:
+        """The regions asked of an image (the newest :data:`MAX_IMAGE_REGIONS`): the ones this
+        console sent, with their command's state (and the rejection's reason), and the ones the
+        imagery receiver lists (asked through it: by this console on a node, or by a script),
+        with the quality layers complete inside each. ``box`` is ``[x0, y0, x1, y1]`` (image
+        pixels, x1 and y1 exclusive); ``state`` is ``requested``, ``waiting``, ``accepted`` or
+        ``rejected``; ``value`` is in dB for a quality goal."""
+        known = {(int(r.get("command_id", -1)), tuple(int(v) for v in r.get("box", ()))): r
+                 for r in getattr(img, "regions", ()) or ()}
+        layers = img.decoded_meta.get("layers")
+        out: list[dict[str, Any]] = []
+        for key in self.command_order:
+            c = self.commands.get(key)
+            msg = c.message if c is not None else None
+            if c is None or not isinstance(msg, m.ImageRegionRequest) or msg.image_id != img.image_id:
+                continue
+            box = (msg.x0, msg.y0, msg.x1, msg.y1)
+            rx_row = known.pop((msg.command_id, box), None)
+            state = {"sent": "requested", "queued": "requested", "pending": "waiting",
+                     "accepted": "accepted"}.get(c.status, "rejected")
+            if c.status in OPEN_COMMAND_STATES and rx_row is not None \
+                    and rx_row.get("state") in ("accepted", "rejected", "waiting"):
+                state = str(rx_row["state"])  # the receiver heard the answer first
+            out.append({"command_id": msg.command_id, "box": list(box),
+                        "kind": m.RegionGoal(msg.kind).name.lower(),
+                        "value": msg.value / 10 if msg.kind == m.RegionGoal.QUALITY else msg.value,
+                        "state": state,
+                        "reason": (getattr(c, "reason", "") or ack_reason(msg, "REJECTED"))
+                        if state == "rejected" else "",
+                        "time": _num(c.sent, 1), "by": getattr(c, "by", ""),
+                        "layers_complete": None if rx_row is None else rx_row.get("layers_complete"),
+                        "layers": layers})
+        for (cid, box), r in known.items():  # asked through the receiver by someone else
+            state = str(r.get("state", "requested"))
+            out.append({"command_id": cid, "box": list(box), "kind": str(r.get("kind", "quality")),
+                        "value": r.get("value"), "state": state,
+                        "reason": "refused by the vehicle" if state == "rejected" else "",
+                        "time": _num(r.get("time"), 1), "by": "",
+                        "layers_complete": r.get("layers_complete"), "layers": layers})
+        out.sort(key=lambda r: r["time"] or 0.0)
+        return out[-MAX_IMAGE_REGIONS:]
 
     def _footprint(self, img: _Image) -> list[float] | None:
         """The seafloor an image covers, ``[width, height]`` in metres: the camera's field of
@@ -1379,6 +1430,9 @@ def ack_reason(msg: m.Message, status: str, was_pending: bool = False) -> str:
         return f"the vehicle holds no image {d} that time"
     if isinstance(msg, m.ImageGoal):
         return f"the vehicle no longer holds image {msg.image_id}, or the goal is beyond it"
+    if isinstance(msg, m.ImageRegionRequest):
+        return (f"the vehicle no longer holds image {msg.image_id}, or it was coded without "
+                "precincts (ask for more of the whole image), or the region is outside it")
     if isinstance(msg, m.TimeSeriesRequest):
         return f"the vehicle has no channel {msg.channel}, or the window is not valid"
     if status == "UNKNOWN_TARGET":
@@ -1595,6 +1649,69 @@ class ConsoleActions:
         self._emit([msg], [f"{what} {hms(float(t))}"])
         return msg
 
+    def image_region(self, image_id: int, x0: float, y0: float, x1: float, y1: float,
+                     kind: str = "quality", value: float = 30) -> m.ImageRegionRequest:
+        """Bring the rectangle ``[x0, x1) x [y0, y1)`` (pixels of the image as announced) of an
+        image to a goal: ``quality`` (``value`` in dB PSNR inside the region, 10..60; 0.1 dB on
+        the wire), ``layer`` (quality layers, 1..the image's) or ``bytes`` (a budget of body
+        bytes, 1..65535). The vehicle sends the packets of the JPEG 2000 precincts covering it.
+        Through the node's imagery receiver when the console has one (it retries the request
+        and lists the region with the layers complete inside it), else as a command."""
+        iid = int(image_id)
+        img = self.state.images.get(iid)
+        info = img.decoded_meta if img is not None else {}
+        w, h = info.get("width"), info.get("height")
+        if img is None or not w or not h:
+            raise RequestRejected(f"image {iid} is not announced yet: its size is unknown")
+        w, h = int(w), int(h)
+        if info.get("precincts") == 0:
+            raise RequestRejected(f"image {iid} was coded without precincts: a region cannot be "
+                                  "sent on its own; ask for more of the whole image")
+        vals = [float(v) for v in (x0, y0, x1, y1)]
+        if not all(math.isfinite(v) for v in vals):
+            raise RequestRejected("region corners must be finite numbers")
+        (bx0, bx1), (by0, by1) = sorted(vals[0::2]), sorted(vals[1::2])
+        bx0, by0, bx1, by1 = (round(v) for v in (bx0, by0, bx1, by1))
+        if bx1 <= bx0 or by1 <= by0:
+            raise RequestRejected("the region is empty: drag a rectangle over the image")
+        if bx0 < 0 or by0 < 0 or bx1 > w or by1 > h:
+            raise RequestRejected(f"region {bx0}..{bx1} x {by0}..{by1} is outside the "
+                                  f"{w} x {h} image")
+        k = str(kind).lower()
+        v = float(value)
+        if not math.isfinite(v):
+            raise RequestRejected("the region's goal must be a finite number")
+        if k == "quality":
+            if not 10.0 <= v <= 60.0:
+                raise RequestRejected(f"a region quality of {v:g} dB is outside 10..60 dB")
+            goal, code, words = m.RegionGoal.QUALITY, round(v * 10), f"to {v:g} dB"
+        elif k in ("layer", "layers"):
+            layers = int(info.get("layers") or 255)
+            if v != int(v) or not 1 <= v <= layers:
+                raise RequestRejected(f"a region goal of {v:g} layers is outside 1..{layers}")
+            goal, code, words = m.RegionGoal.LAYER, int(v), f"to {int(v)} layer{'s' if v != 1 else ''}"
+        elif k == "bytes":
+            if v != int(v) or not 1 <= v <= 65535:
+                raise RequestRejected(f"a region budget of {v:g} bytes is outside 1..65535")
+            goal, code, words = m.RegionGoal.BYTES, int(v), f"within {int(v)} bytes"
+        else:
+            raise RequestRejected(f"unknown region goal {kind!r} (quality, layer or bytes)")
+        text = f"image {iid} region {bx0}..{bx1} x {by0}..{by1} {words}"
+        rx = None if self.state.own_receivers else self.state.receivers.get("imagery")
+        if rx is not None and iid in getattr(rx, "images", {}) and hasattr(rx, "request_region"):
+            # the node's receiver numbers it, retries it until answered and follows it
+            now = self.clock()
+            try:
+                msg = rx.request_region(iid, (bx0, by0, bx1, by1), goal.name.lower(),
+                                        v if goal == m.RegionGoal.QUALITY else code, now=now)
+            except CoexError as exc:
+                raise RequestRejected(str(exc)) from None
+            self.state.record_command(msg, now, text)
+            return cast(m.ImageRegionRequest, msg)
+        msg = m.ImageRegionRequest(self._cid(), iid, bx0, by0, bx1, by1, goal, code)
+        self._emit([msg], [text])
+        return msg
+
     # ------------------------------------------------------------------ time series
     def refine_series(self, channel: int, start: float, end: float,
                       max_error: float | None = None) -> m.TimeSeriesRequest:
@@ -1729,13 +1846,14 @@ class ConsoleActions:
     # ------------------------------------------------------------------- dispatcher
     def dispatch(self, action: str, args: Mapping[str, Any], operator: str = "") -> list[m.Message]:
         """Run an action named by the page (``request_region``, ``set_image_goal``,
-        ``image_by_time``, ``refine_series``, ``queue_config``, ``link_control``,
+        ``image_by_time``, ``image_region``, ``refine_series``, ``queue_config``, ``link_control``,
         ``spare_config``, ``propose_schedule``, ``survey``) with keyword ``args``; returns the
         messages sent."""
         fn = {
             "survey": self.survey,
             "request_region": self.request_region, "set_image_goal": self.set_image_goal,
-            "image_by_time": self.image_by_time, "refine_series": self.refine_series,
+            "image_by_time": self.image_by_time, "image_region": self.image_region,
+            "refine_series": self.refine_series,
             "queue_config": self.queue_config, "link_control": self.link_control,
             "spare_config": self.spare_config, "propose_schedule": self.propose_schedule,
         }.get(action)

@@ -886,8 +886,36 @@ function makeCard(it) {
   root.addEventListener("click", (ev) => { if (!ev.target.closest(".goal")) openViewer(it.image_id); });
   const set = el("button", { title: "transfer this image up to the goal" }, "Goal");
   set.addEventListener("click", () => act("set_image_goal", { image_id: it.image_id, kind: kind.value, value: Number(val.value || 0) }));
-  root.append(pic, meta, bar, bytes, el("div", { class: "goal" }, kind, val, set));
-  return { root, pic, meta, bar, bytes, thumb: null };
+  const wrap = el("div", { class: "thumbwrap" }, pic);
+  const regions = document.createElementNS(SVG_NS, "svg");
+  regions.setAttribute("class", "thumb-regions");
+  regions.setAttribute("preserveAspectRatio", "xMidYMid meet");  // as the thumb's object-fit
+  wrap.append(regions);
+  root.append(wrap, meta, bar, bytes, el("div", { class: "goal" }, kind, val, set));
+  return { root, pic, meta, bar, bytes, regions, thumb: null, regionSig: "" };
+}
+const SVG_NS = "http://www.w3.org/2000/svg";
+const REGION_COLOUR = { requested: "#f0b443", waiting: "#4fb3ff", accepted: "#58c47c", rejected: "#ef5f5f" };
+// the regions asked of an image, outlined on its card's thumbnail (in image pixels)
+function drawThumbRegions(c, it) {
+  const regs = it.regions || [];
+  const sig = JSON.stringify([it.width, it.height, regs.map((r) => [r.box, r.state])]);
+  if (sig === c.regionSig) return;
+  c.regionSig = sig;
+  c.regions.replaceChildren();
+  if (!it.width || !it.height) return;
+  c.regions.setAttribute("viewBox", `0 0 ${it.width} ${it.height}`);
+  for (const r of regs) {
+    const [x0, y0, x1, y1] = r.box;
+    const rect = document.createElementNS(SVG_NS, "rect");
+    for (const [k, v] of [["x", x0], ["y", y0], ["width", x1 - x0], ["height", y1 - y0],
+      ["fill", "none"], ["stroke", REGION_COLOUR[r.state] || "#f0b443"], ["stroke-width", 1.5],
+      ["vector-effect", "non-scaling-stroke"], ["stroke-dasharray", r.state === "accepted" ? "" : "4 2"]]) rect.setAttribute(k, v);
+    const title = document.createElementNS(SVG_NS, "title");
+    title.textContent = `region ${x0}..${x1} × ${y0}..${y1}: ${regionState(r)}`;
+    rect.append(title);
+    c.regions.append(rect);
+  }
 }
 function updateCard(c, it) {
   if (it.thumb && it.thumb !== c.thumb) {
@@ -904,6 +932,7 @@ function updateCard(c, it) {
   const answered = answeredBy().get(it.image_id);
   c.root.classList.toggle("answer", !!answered);
   c.root.title = answered ? `answers: ${answered}` : "click to open full size";
+  drawThumbRegions(c, it);
   if (viewer.id === it.image_id) showViewer();
 }
 // image id -> the by-time request it answered (the newest)
@@ -915,8 +944,11 @@ function answeredBy() {
 
 // ------------------------------------------------------------------ full-size viewer
 const viewer = { id: null, fit: true };
-function openViewer(id) { viewer.id = id; showViewer(); }
-function closeViewer() { viewer.id = null; $("#viewer").classList.add("hidden"); }
+function openViewer(id) {
+  if (viewer.id !== id) endRegion();
+  viewer.id = id; showViewer();
+}
+function closeViewer() { viewer.id = null; endRegion(); $("#viewer").classList.add("hidden"); }
 function showViewer() {
   const it = S.images && S.images.items.find((i) => i.image_id === viewer.id);
   if (!it) return;
@@ -940,10 +972,190 @@ function showViewer() {
   if (ans) rows.push(["answers", ans]);
   $("#viewer-meta").replaceChildren(...rows.map(([k, v]) => el("tr", {}, el("th", {}, k), el("td", {}, v))));
   $("#viewer-title").textContent = `Image #${it.image_id} · ${fmtT(it.t)}${it.complete ? " · complete" : ""}`;
+  showRegionTool(it);
+  placeOverlay();
 }
 $("#viewer-close").addEventListener("click", closeViewer);
-$("#viewer").addEventListener("click", (ev) => { if (ev.target.id === "viewer") closeViewer(); });
+$("#viewer").addEventListener("click", (ev) => {
+  // a drag that ends outside the box is not a click on the backdrop
+  if (ev.target.id === "viewer" && performance.now() - region.dragEnd > 400) closeViewer();
+});
 $("#viewer-zoom").addEventListener("click", () => { viewer.fit = !viewer.fit; showViewer(); });
+$("#viewer-img").addEventListener("load", placeOverlay);
+window.addEventListener("resize", () => { if (viewer.id !== null) placeOverlay(); });
+
+// ------------------------------------------------------------------ image regions
+// The Region tool of the viewer: drag a rectangle on the picture (screen pixels mapped to
+// image pixels whatever the zoom), choose a goal and ask for it (action image_region). The
+// regions asked are outlined on the picture with their state, and listed with the reason of a
+// refusal and the quality layers reached inside them.
+const region = { drawing: false, draft: null, start: null, dragEnd: -1e9 };
+const REGION_UNIT = { quality: "dB", bytes: "bytes", layer: "layers" };
+function viewerItem() { return S.images && S.images.items.find((i) => i.image_id === viewer.id); }
+function regionState(r) {
+  let s = r.state;
+  if (r.layers_complete !== null && r.layers_complete !== undefined && r.state !== "rejected")
+    s += ` · ${r.layers_complete} of ${r.layers ?? "?"} layers`;
+  return s;
+}
+function regionGoal(r) {
+  return r.kind === "quality" ? `${r.value} dB` : r.kind === "bytes" ? `${r.value} bytes` : `${r.value} layers`;
+}
+function endRegion() {
+  region.drawing = false; region.draft = null; region.start = null;
+  $("#region-draw").classList.remove("on");
+  $("#viewer-stage").classList.remove("drawing");
+  $("#region-error").classList.add("hidden");
+}
+// where the picture is drawn inside its <img> box (object-fit: contain leaves bars around it)
+function pictureRect() {
+  const img = $("#viewer-img");
+  const nw = img.naturalWidth, nh = img.naturalHeight;
+  if (!nw || !nh || img.classList.contains("hidden")) return null;
+  const bw = img.clientWidth, bh = img.clientHeight;
+  const k = viewer.fit ? Math.min(bw / nw, bh / nh) : 1;
+  return { left: img.offsetLeft + (bw - nw * k) / 2, top: img.offsetTop + (bh - nh * k) / 2,
+    width: nw * k, height: nh * k };
+}
+function placeOverlay() {
+  const ov = $("#viewer-overlay");
+  const r = pictureRect();
+  const it = viewerItem();
+  if (!r || !it || !it.width) { ov.classList.add("hidden"); return; }
+  ov.classList.remove("hidden");
+  Object.assign(ov.style, { left: `${r.left}px`, top: `${r.top}px`, width: `${r.width}px`, height: `${r.height}px` });
+  drawViewerRegions(it);
+}
+// an event's position in image pixels (clamped to the image)
+function imagePixel(ev) {
+  const it = viewerItem();
+  const b = $("#viewer-overlay").getBoundingClientRect();
+  const cl = (v, hi) => Math.max(0, Math.min(hi, v));
+  return [cl(Math.round((ev.clientX - b.left) / b.width * it.width), it.width),
+    cl(Math.round((ev.clientY - b.top) / b.height * it.height), it.height)];
+}
+function pct(v, of) { return `${(100 * v / of).toFixed(3)}%`; }
+function drawViewerRegions(it) {
+  const ov = $("#viewer-overlay");
+  const W = it.width, H = it.height;
+  const boxes = [], labels = [];
+  (it.regions || []).forEach((r, k) => {
+    const [x0, y0, x1, y1] = r.box;
+    const d = el("div", { class: `iregion st-${r.state}`, "data-region": k + 1, "data-state": r.state,
+      title: `${x0}..${x1} × ${y0}..${y1} px to ${regionGoal(r)}: ${regionState(r)}${r.reason ? ` (${r.reason})` : ""}` });
+    Object.assign(d.style, { left: pct(x0, W), top: pct(y0, H), width: pct(x1 - x0, W), height: pct(y1 - y0, H) });
+    boxes.push(d);
+    labels.push([el("span", { class: `iregion-label st-${r.state}` }, `${k + 1} · ${regionState(r)}`), r.box]);
+  });
+  if (region.draft) {
+    const [x0, y0, x1, y1] = region.draft;
+    const d = el("div", { class: "iregion draft" });
+    Object.assign(d.style, { left: pct(x0, W), top: pct(y0, H), width: pct(x1 - x0, W), height: pct(y1 - y0, H) });
+    boxes.push(d);
+    labels.push([el("span", { class: "iregion-label" }, `${x1 - x0} × ${y1 - y0} px`), region.draft]);
+  }
+  ov.replaceChildren(...boxes);
+  // labels clear of one another: above the box, inside its top, under it, inside its bottom;
+  // a label with no free spot keeps only its number (the list beside says the rest)
+  const sx = ov.clientWidth / W, sy = ov.clientHeight / H;
+  const placed = [];
+  const free = (a) => a.x >= 0 && a.y >= 0 && a.x + a.w <= ov.clientWidth + 1 && a.y + a.h <= ov.clientHeight + 1
+    && placed.every((b) => a.x + a.w <= b.x || b.x + b.w <= a.x || a.y + a.h <= b.y || b.y + b.h <= a.y);
+  for (const [lab, [x0, y0, x1, y1]] of labels.reverse()) {  // the newest first
+    ov.append(lab);
+    const tryAt = () => {
+      const w = lab.offsetWidth, h = lab.offsetHeight;
+      const left = Math.min(x0 * sx, ov.clientWidth - w);
+      for (const y of [y0 * sy - h - 1, y0 * sy + 2, y1 * sy + 1, y1 * sy - h - 2]) {
+        const a = { x: Math.max(0, left), y, w, h };
+        if (free(a)) return a;
+      }
+      return null;
+    };
+    let at = tryAt();
+    if (!at && lab.textContent.includes(" · ")) {
+      lab.textContent = lab.textContent.split(" · ")[0];
+      at = tryAt();
+    }
+    if (!at) { lab.remove(); continue; }
+    placed.push(at);
+    Object.assign(lab.style, { left: `${at.x}px`, top: `${at.y}px` });
+  }
+}
+function showRegionTool(it) {
+  const off = it.precincts === 0;
+  const viewerOnly = !ME.may_command;
+  $("#region-off").classList.toggle("hidden", !off && !viewerOnly);
+  $("#region-off").textContent = off
+    ? "This image was coded without precincts: a region of it cannot be sent on its own. Ask for more of the whole image instead (Get all of it, or a goal on its card)."
+    : viewerOnly ? "Viewers cannot ask for regions." : "";
+  $("#region-form").classList.toggle("hidden", off || viewerOnly);
+  if (off || viewerOnly) endRegion();
+  const d = region.draft;
+  $("#region-box").textContent = d ? `x ${d[0]}..${d[2]}, y ${d[1]}..${d[3]} (${d[2] - d[0]} × ${d[3] - d[1]} px)`
+    : region.drawing ? "drag a rectangle on the picture" : "no rectangle yet";
+  $("#region-send").disabled = !d || off || viewerOnly;
+  const regs = it.regions || [];
+  $("#region-list").replaceChildren(...regs.map((r, k) => {
+    const [x0, y0, x1, y1] = r.box;
+    const li = el("li", { "data-state": r.state, value: k + 1 },
+      `${x0}..${x1} × ${y0}..${y1} px to ${regionGoal(r)}: `, el("b", { class: `st-${r.state}` }, regionState(r)));
+    if (r.reason) li.append(el("span", { class: "why" }, r.reason));
+    return li;
+  }));
+}
+$("#region-draw").addEventListener("click", () => {
+  region.drawing = !region.drawing;
+  $("#region-draw").classList.toggle("on", region.drawing);
+  $("#viewer-stage").classList.toggle("drawing", region.drawing);
+  const it = viewerItem();
+  if (it) showRegionTool(it);
+});
+$("#region-cancel").addEventListener("click", () => { endRegion(); const it = viewerItem(); if (it) { showRegionTool(it); placeOverlay(); } });
+$("#region-kind").addEventListener("change", () => {
+  const k = $("#region-kind").value, it = viewerItem();
+  $("#region-unit").textContent = REGION_UNIT[k];
+  $("#region-value").value = k === "quality" ? "30" : k === "bytes" ? "2000"
+    : String(Math.min(it && it.layers ? it.layers : 1, ((it && it.layers_complete) || 0) + 3));
+});
+{
+  // on the whole stage: a drag may start in the bars beside the picture (clamped to its edge)
+  const ov = $("#viewer-stage");
+  ov.addEventListener("pointerdown", (ev) => {
+    if (!region.drawing || ev.button !== 0) return;
+    ev.preventDefault();
+    ov.setPointerCapture(ev.pointerId);
+    region.start = imagePixel(ev);
+    region.draft = null;
+  });
+  ov.addEventListener("pointermove", (ev) => {
+    if (!region.start) return;
+    const [a, b] = region.start, [c, d] = imagePixel(ev);
+    region.draft = [Math.min(a, c), Math.min(b, d), Math.max(a, c), Math.max(b, d)];
+    const it = viewerItem();
+    if (it) drawViewerRegions(it);
+  });
+  ov.addEventListener("pointerup", (ev) => {
+    if (!region.start) return;
+    region.start = null;
+    region.dragEnd = performance.now();
+    const d = region.draft;
+    if (d && (d[2] - d[0] < 1 || d[3] - d[1] < 1)) region.draft = null;  // a click, not a drag
+    const it = viewerItem();
+    if (it) { showRegionTool(it); drawViewerRegions(it); }
+  });
+}
+$("#region-send").addEventListener("click", async () => {
+  const it = viewerItem(), d = region.draft;
+  if (!it || !d) return;
+  const value = Number($("#region-value").value);
+  const r = await act("image_region", { image_id: it.image_id, x0: d[0], y0: d[1], x1: d[2], y1: d[3],
+    kind: $("#region-kind").value, value });
+  if (r) { endRegion(); showRegionTool(it); placeOverlay(); return; }
+  const box = $("#region-error");  // refused before it was sent: say why, keep the rectangle
+  box.textContent = `not sent: ${act.lastError}`;
+  box.classList.remove("hidden");
+});
 $("#viewer-full").addEventListener("click", () => { if (viewer.id !== null) act("set_image_goal", { image_id: viewer.id, kind: "full", value: 0 }); });
 window.addEventListener("keydown", (ev) => { if (ev.key === "Escape" && viewer.id !== null) closeViewer(); });
 for (const b of document.querySelectorAll(".img-time-btn")) {
@@ -1518,7 +1730,7 @@ async function whoami() {
 
 // ------------------------------------------------------------------ live connection
 // for tests and the curious: state, view, and world -> page coordinates of the map
-window.coex = { S, view, updates: 0, connected: false,
+window.coex = { S, view, updates: 0, connected: false, region,
   pagePoint(x, y) {
     const r = canvas.getBoundingClientRect(), [sx, sy] = w2s(x, y);
     return [r.left + (sx * r.width) / canvas.width, r.top + (sy * r.height) / canvas.height];
