@@ -104,7 +104,7 @@ def test_2022_failure_requested_image_survives_queue_limit_and_loss() -> None:
     k = 2
     for _ in range(400):
         t.step()
-        if t.now % 120 < t.round_seconds:  # a new image every two minutes fills the store
+        if t.now % 60 < t.round_seconds:  # a new image every minute fills the store
             s.ingest(ImageInput(seafloor(64, 96, seed=k), time=t.now), t.now)
             k += 1
         rx = r.images.get(0)

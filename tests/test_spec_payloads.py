@@ -542,6 +542,17 @@ class SpecImage:
         self.have[f.offset:f.offset + n] = [True] * n
 
     def packets(self) -> list[bytes | None]:
+        # 3.3: starts not marked come from the packet headers (T.800 B.10) of the held bytes;
+        # the parser is a T.800 implementation, checked against OpenJPEG's PLT in
+        # test_imagery_packets
+        from coex_plugins.imagery.packets import PacketParser
+
+        parsed = PacketParser(self.ann.params, self.ann.width, self.ann.height, len(self.buf)).parse(
+            self.buf, np.array(self.have, bool))
+        for i, st in enumerate(parsed):
+            if st >= 0:
+                assert self.starts[i] in (None, int(st)), "a mark contradicts the packet headers"
+                self.starts[i] = int(st)
         out: list[bytes | None] = []
         for i, s in enumerate(self.starts):
             e = len(self.buf) if i + 1 == len(self.starts) else self.starts[i + 1]

@@ -41,6 +41,7 @@ from coex_core.state import persistent
 from coex_core.timefmt import to_stamp, unwrap
 
 from .codec import StreamParams, decode_packets, packet_order, parse_params, region_packets
+from .packets import PacketParser
 
 log = logging.getLogger("coex.imagery")
 
@@ -124,7 +125,7 @@ RECEIVER_DEFAULTS: dict[str, Any] = {"max_images": 256, "max_early": 256, "ack_l
                                      "out_dir": None}
 
 
-@persistent("imagery.Receiver", transient=("listeners",))
+@persistent("imagery.Receiver", transient=("listeners", "_parsers"))
 class ImageryReceiver(ModalityReceiver):
     """Topside side. Configuration keys (all optional): ``max_images`` (256), ``max_early``
     (256), ``ack_limit`` (acks per poll, 4), ``retry`` (seconds between request retries, 60),
@@ -167,6 +168,8 @@ class ImageryReceiver(ModalityReceiver):
         if getattr(self, "_waiting", None) is None:  # saved before requests could stand
             self._waiting: dict[int, tuple[Message, float]] = {}
         self.listeners: list[Callable[[Product], None]] = []
+        #: image id -> packet-header parser (rebuilt from the held bytes after a restart)
+        self._parsers: dict[int, PacketParser | None] = {}
         out_dir = self.out_dir
         if out_dir:
             from .output import ImageWriter
@@ -262,7 +265,36 @@ class ImageryReceiver(ModalityReceiver):
         rx.have[frag.offset:frag.offset + n] = True
         if len(marks):
             rx.starts[idx] = frag.offset + marks
+        self._parse(frag.image_id, rx)
         return self._update(rx)
+
+    def _parse(self, image_id: int, rx: _Rx) -> None:
+        """Packet starts from the packet headers of the held bytes (spec/payloads.md 3.3): data
+        sent without marks is placed by them. A body whose headers do not parse, or disagree with
+        the marks, is left to the marks (and said)."""
+        parser = self._parsers.get(image_id, False)
+        if parser is False or (parser is not None and parser.total != len(rx.have)):
+            try:
+                parser = PacketParser(rx.ann.params, rx.ann.width, rx.ann.height, len(rx.have))
+            except CoexError:
+                parser = None
+            self._parsers[image_id] = parser
+        if parser is None or parser.done:
+            return
+        try:
+            starts = parser.parse(rx.buf, rx.have)
+        except CoexError as exc:
+            log.warning("image %d: packet headers do not parse (%s); using the fragments' marks only", image_id, exc)
+            self._parsers[image_id] = None
+            return
+        known = starts >= 0
+        clash = known & (rx.starts >= 0) & (rx.starts != starts)
+        if clash.any():
+            log.warning("image %d: packet headers disagree with the fragments' marks at %d packets; "
+                        "using the marks only", image_id, int(clash.sum()))
+            self._parsers[image_id] = None
+            return
+        rx.starts[known] = starts[known]
 
     def _update(self, rx: _Rx) -> list[Product]:
         packets = rx.packets()

@@ -162,7 +162,8 @@ CODING_KEYS = ("progression", "resolutions", "layer_bytes", "irreversible", "gre
 SENDER_DEFAULTS: dict[str, Any] = {**dict.fromkeys(CODING_KEYS), "default_goal": "layer:6",
                                    "request_goal": None, "max_images": 64, "rto": 60.0,
                                    "progress_interval": 60.0, "max_announces": 2,
-                                   "min_fragment": 16, "standing_expiry": 1800.0, "max_standing": 8}
+                                   "min_fragment": 16, "standing_expiry": 1800.0, "max_standing": 8,
+                                   "marks": "auto"}
 
 
 @persistent("imagery.Sender")
@@ -193,7 +194,11 @@ class ImagerySender(ModalitySender):
       ``standing_expiry`` (1800 s) and ``max_standing`` (8): an ``ImageByTimeRequest`` (nearest
       or after) for a time later than the newest image stands (answered ``PENDING``) until an
       image of that time is captured (then ``ACCEPTED`` and served like any request) or it
-      expires (then ``REJECTED``).
+      expires (then ``REJECTED``);
+    * ``marks`` (``"auto"``): when fragments carry packet marks. ``auto``: only where topside
+      cannot find the packets by parsing their headers, i.e. after bytes that will never be sent
+      (the packets of a region), and under loss (measured frame loss of 20 % or more: a lost
+      fragment then does not hold back the packets after it); ``always``: every fragment.
     """
 
     def __init__(self, config: Mapping[str, Any] | None = None) -> None:
@@ -210,8 +215,11 @@ class ImagerySender(ModalitySender):
             self.min_fragment = int(cfg.get("min_fragment", 16))
             self.standing_expiry = float(cfg["standing_expiry"])
             self.max_standing = int(cfg["max_standing"])
+            self.marks = str(cfg["marks"]).lower()
         except (TypeError, ValueError) as exc:
             raise ConfigError(f"invalid imagery sender option: {exc}") from exc
+        if self.marks not in ("auto", "always"):
+            raise ConfigError(f"marks must be auto or always, got {cfg['marks']!r}")
         if not 1 <= self.max_images <= 512:
             raise ConfigError("max_images must be in 1..512")
         if self.rto <= 0 or self.progress_interval <= 0 or self.max_announces < 1:
@@ -451,6 +459,18 @@ class ImagerySender(ModalitySender):
         now = self._last_now
         return sum(int(np.count_nonzero(~tx.acked & (tx.sent_at <= now - self.rto))) for tx in self._spare_order())
 
+    def _marked(self, tx: _Tx, pos: int, goal: int | None) -> bool:
+        """Whether a fragment starting at ``pos`` carries packet marks (see ``marks``)."""
+        if self.marks == "always":
+            return True
+        loss = self.frame_loss()
+        if loss is not None and loss >= 0.2:
+            return True
+        # topside parses packet headers in order: bytes after a gap that is never filled (bytes
+        # neither held nor to be sent) can only be placed with marks
+        before = tx.acked[:pos] | tx.wanted(goal)[:pos]
+        return not bool(before.all())
+
     def _fragment(self, tx: _Tx, left: int, now: float, trailing: bool = False,
                   goal: int | None = None) -> ImageFragment | None:
         want = tx.wanted(goal) & ~tx.acked
@@ -467,10 +487,13 @@ class ImagerySender(ModalitySender):
         stop_rel = np.flatnonzero(~ready[pos:])
         run = int(stop_rel[0]) if len(stop_rel) else tx.total - pos
         starts = tx.enc.packet_starts
+        marked = self._marked(tx, pos, goal)
         left = min(left, MAX_MESSAGE)
         top = min(run, MAX_FRAGMENT_DATA, left - fragment_size(0, 0))
 
         def marks_for(k: int) -> npt.NDArray[np.int64]:
+            if not marked:
+                return starts[:0]
             lo = int(np.searchsorted(starts, pos, side="left"))
             hi = int(np.searchsorted(starts, pos + k, side="right"))  # a start at pos + k ends a packet
             out: npt.NDArray[np.int64] = starts[lo:hi] - pos
