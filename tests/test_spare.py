@@ -371,6 +371,8 @@ def test_imagery_spare_work_sends_further_layers_newest_image_first() -> None:
     got = sender.spare(240, now)
     assert got and {m.image_id for m in got} == {new.image_id}
     assert min(m.offset for m in got) >= new.goal
+    for m in got:
+        sender.acked(m, now)
     now = drain(sender.spare, now, 500)
     assert new.acked.all() and old.acked.all() and sender.spare_bytes() == 0
     assert not [m for m in sender.fill(240, now) if not isinstance(m, TransferProgress)]

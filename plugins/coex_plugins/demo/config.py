@@ -24,7 +24,7 @@ CAMERA_SPEED = 0.5
 MIN_ALTITUDE = 2.0
 #: seconds between camera frames on a transect
 CAMERA_PERIOD = 6.0
-#: the vehicle's default set-point for every image (``default_goal``: 40 B of a frame)
+#: the vehicle's default set-point for every image (``default_goal``: the first quality mark, 20 dB, a few tens of bytes)
 DEFAULT_LAYERS = 1
 #: a target is identifiable at 1 m when a car-like candidate of the received 1 m map lies this
 #: close to it (m)

@@ -46,14 +46,15 @@ CAR = (4.5, 1.8, 1.5)
 FLAT = 0.93
 #: candidates scoring below this are not worth camera time
 MIN_SCORE = 0.05
-#: layers of a requested image the vehicle sends first (its ``request_goal``, about 800 B of a
-#: 640 x 480 frame with the default ladder), and the most the operator asks for, in the region
-#: of the frame where something too blurry to tell lies (about 4 KB for a whole frame)
-CONFIRM_LAYERS = 6
-MORE_LAYERS = 12
+#: layers of a requested image the vehicle sends first (its ``request_goal``: with the default
+#: quality marks 20 / 25 / 30 / 35 dB, layer 3 is where the frame first reaches 30 dB), and the
+#: most the operator asks for, in the region of the frame where something too blurry to tell
+#: lies (layer 4: 35 dB)
+CONFIRM_LAYERS = 3
+MORE_LAYERS = 4
 #: the operator never confirms a car from a preview: an image needs this many quality layers
-#: (about 600 B of a 640 x 480 frame) before what it shows counts
-MIN_CONFIRM_LAYERS = 5
+#: (30 dB) before what it shows counts
+MIN_CONFIRM_LAYERS = 3
 #: pixels added around an unclear object's outline when the operator asks for its region
 REGION_MARGIN = 24
 #: images the operator looks at for one candidate before moving on

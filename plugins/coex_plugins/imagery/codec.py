@@ -64,6 +64,17 @@ DEFAULT_LAYER_BYTES: tuple[int, ...] = (
     40, 100, 220, 400, 600, 800, 1050, 1400, 1850, 2400, 3100, 4000, 5200, 6700, 8700, 11300,
     14700, 20480,
 )
+#: Default quality marks (PSNR, dB): each image's layers end exactly where it first reaches each
+#: mark (:func:`quality_targets`), so a goal in dB never pays for the overshoot of a fixed byte
+#: ladder. Two preview marks, then the levels operators name (25 recognisable, 30 good, 35
+#: detailed) with steps of 2 to 3 dB around them; marks an image already reaches at an earlier
+#: layer are merged. Fewer layers below a mark cost fewer packet headers (each layer repeats one
+#: per precinct), so the marks are sparse (measured, ``bench/imagery.py``, docs/imagery.md).
+DEFAULT_LAYER_PSNR: tuple[float, ...] = (20.0, 25.0, 30.0, 35.0, 40.0)
+#: A quality layer's target is narrowed until its image is at most this far above its mark.
+QUALITY_TOLERANCE_DB = 0.06
+#: The largest body a quality layer may take (a mark not reached within it is dropped).
+QUALITY_CAP_BYTES = 65536
 #: Default precinct size (samples, at every resolution): a 640 x 480 image has 6 precincts at
 #: full resolution and 2 at half resolution, so a quarter-frame region needs about a third of
 #: the full-resolution packets.
@@ -79,8 +90,10 @@ _EOC = b"\xff\xd9"
 class CodingParams:
     """How the vehicle encodes images (all configurable; defaults measured, see ``docs/imagery.md``).
 
-    ``layer_bytes`` are cumulative targets for the *body* (packet data) at the end of each
-    quality layer; ``max_size`` bounds the larger side (images are reduced by whole factors with
+    ``layer_psnr`` are quality marks (dB): each image's layers end at the fewest body bytes that
+    reach each mark (the default; None = the default marks unless ``layer_bytes`` is given, an
+    empty tuple = fixed byte layers). ``layer_bytes`` are cumulative targets for the *body*
+    (packet data) at the end of each quality layer, used when there are no quality marks; ``max_size`` bounds the larger side (images are reduced by whole factors with
     a box filter until they fit); ``grey`` turns colour input into BT.601 luma."""
 
     progression: str = "LRCP"
@@ -90,6 +103,7 @@ class CodingParams:
     grey: bool = True
     max_size: int = 1024
     precincts: int = DEFAULT_PRECINCTS
+    layer_psnr: tuple[float, ...] | None = None
 
     def __post_init__(self) -> None:
         if self.progression not in PROGRESSIONS:
@@ -110,6 +124,18 @@ class CodingParams:
             raise ConfigError(f"precincts must be one of {PRECINCTS} (0 = none), got {self.precincts}")
         if self.precincts and self.progression not in ("LRCP", "RLCP"):
             raise ConfigError(f"precincts need progression LRCP or RLCP, not {self.progression}")
+        marks = self.layer_psnr
+        if marks is None:
+            marks = DEFAULT_LAYER_PSNR if lb == DEFAULT_LAYER_BYTES else ()
+        try:
+            mk = tuple(float(m) for m in marks)
+        except (TypeError, ValueError) as exc:
+            raise ConfigError(f"layer_psnr must be numbers (dB): {exc}") from None
+        if len(mk) > MAX_LAYERS:
+            raise ConfigError(f"at most {MAX_LAYERS} quality marks, got {len(mk)}")
+        if any(not 10.0 <= m <= 60.0 for m in mk) or any(b <= a for a, b in itertools.pairwise(mk)):
+            raise ConfigError(f"layer_psnr must be strictly increasing dB values in 10..60, got {mk}")
+        object.__setattr__(self, "layer_psnr", mk)
 
     @classmethod
     def from_config(cls, config: Mapping[str, Any] | None) -> CodingParams:
@@ -118,7 +144,7 @@ class CodingParams:
             return cls()
         kw: dict[str, Any] = {}
         for key in ("progression", "resolutions", "layer_bytes", "irreversible", "grey", "max_size",
-                    "precincts"):
+                    "precincts", "layer_psnr"):
             if key in config:
                 kw[key] = config[key]
         try:
@@ -130,6 +156,10 @@ class CodingParams:
                 kw["max_size"] = int(kw["max_size"])
             if "precincts" in kw:
                 kw["precincts"] = int(kw["precincts"] or 0)
+            if "layer_psnr" in kw:
+                v = kw["layer_psnr"]
+                kw["layer_psnr"] = None if v is None else () if v in ("", "none", False) else tuple(
+                    float(m) for m in v)
             if "progression" in kw:
                 kw["progression"] = str(kw["progression"]).upper()
         except (TypeError, ValueError) as exc:
@@ -427,6 +457,103 @@ def main_header(params: int, width: int, height: int) -> bytes:
     return _split(cs)[0]
 
 
+def _encode_body(data: npt.NDArray[np.uint8], code: int, targets: Sequence[int]) -> tuple[bytes, list[int]]:
+    """Encode with these parameters and cumulative body targets: (body, packet lengths)."""
+    sp = parse_params(code)
+    h, w = data.shape[:2]
+    hdr = main_header(code, w, h)
+    overhead = len(hdr) + 39 + _SOT_LEN + 2  # rate control counts OpenJPEG's COM and SOT/SOD
+    path = os.path.join(_scratch(), "enc.j2k")
+    cs = _write_j2k(path, data, sp, [overhead + b for b in targets], plt=True)
+    header, _sot, start, end, lengths = _split(cs)
+    body = cs[start:end]
+    if header != hdr:
+        raise AssertionError("OpenJPEG wrote a main header that differs from the rebuilt one")
+    if len(lengths) != sp.n_packets(w, h) or sum(lengths) != len(body):
+        raise AssertionError(f"PLT gives {len(lengths)} packets / {sum(lengths)} B, expected "
+                             f"{sp.n_packets(w, h)} / {len(body)}")
+    return body, lengths
+
+
+def layer_psnrs(data: npt.NDArray[np.uint8], code: int, body: bytes, lengths: Sequence[int]) -> list[float]:
+    """The PSNR (dB, against ``data``) of the image decoded from each layer prefix."""
+    sp = parse_params(code)
+    h, w = data.shape[:2]
+    layer_of = packet_order(sp, w, h)[:, 0]
+    ends = np.cumsum(lengths)
+    starts = ends - np.asarray(lengths)
+    out = []
+    for k in range(sp.layers):
+        pk = [body[int(a):int(b)] if layer_of[i] <= k else None
+              for i, (a, b) in enumerate(zip(starts, ends, strict=True))]
+        out.append(psnr(decode_packets(code, w, h, pk), data))
+    return out
+
+
+def quality_targets(data: npt.NDArray[np.uint8], cp: CodingParams, resolutions: int) -> list[int]:
+    """Cumulative body targets that end a layer at the fewest bytes reaching each quality mark.
+
+    OpenJPEG allocates layers in order (a layer's bytes do not depend on later layers), so the
+    marks are calibrated in order: one probe encode (24 layers, 16 B to
+    :data:`QUALITY_CAP_BYTES`) brackets every mark, then each mark's target is narrowed
+    (interpolation in log bytes, kept inside the bracket) until its image is at most
+    :data:`QUALITY_TOLERANCE_DB` above the mark, with the earlier layers fixed, each trial one
+    encode and one decode. Marks not reached within the cap, or already reached by the
+    layer before, are dropped. Deterministic for a given image."""
+    colour = data.ndim == 3
+    cap = min(QUALITY_CAP_BYTES, MAX_BODY_BYTES // 2)
+
+    def code_for(n: int) -> int:
+        return params_code(cp.progression, resolutions, n, cp.irreversible, colour, cp.precincts)
+
+    probe = [int(x) for x in np.unique(np.geomspace(16, cap, 24).astype(np.int64))]
+    code = code_for(len(probe))
+    body, lengths = _encode_body(data, code, probe)
+    pq = np.maximum.accumulate(np.asarray(layer_psnrs(data, code, body, lengths)))
+
+    def trial(targets: list[int]) -> float:
+        c = code_for(len(targets))
+        b, lens = _encode_body(data, c, targets)
+        ends = np.cumsum(lens)
+        pk = [b[int(e - n):int(e)] for e, n in zip(ends, lens, strict=True)]
+        return psnr(decode_packets(c, data.shape[1], data.shape[0], pk), data)
+
+    done: list[int] = []
+    q_done = 0.0
+    for mark in cp.layer_psnr or ():
+        if mark > pq[-1]:
+            break
+        if done and q_done >= mark:
+            continue  # the previous layer already reaches it
+        i = int(np.searchsorted(pq, mark))
+        floor = done[-1] + 1 if done else 1
+        # the probe's earlier layers differ from ``done``: its bracket is checked again
+        lo, q_lo = float(max(probe[i - 1], floor)) if i else float(floor), q_done
+        hi = float(max(probe[i], lo + 1))
+        q_hi = trial([*done, int(hi)])
+        if lo > floor:
+            q_lo = trial([*done, int(lo)])
+            if q_lo >= mark:
+                lo, q_lo, hi, q_hi = float(floor), q_done, lo, q_lo
+        while q_hi < mark and hi < cap:  # earlier layers changed what a target buys: widen
+            lo, q_lo, hi = hi, q_hi, min(hi * 2, cap)
+            q_hi = trial([*done, int(hi)])
+        if q_hi < mark:
+            break
+        while q_hi - mark > QUALITY_TOLERANCE_DB and hi > max(lo * 1.01, lo + 2):
+            f = (mark - q_lo) / (q_hi - q_lo) if q_hi > q_lo else 0.5
+            g = float(np.exp(np.log(lo) + min(max(f, 0.1), 0.9) * (np.log(hi) - np.log(lo))))
+            t = min(max(round(g), int(lo) + 1), int(hi) - 1)
+            q = trial([*done, t])
+            if q >= mark:
+                hi, q_hi = float(t), q
+            else:
+                lo, q_lo = float(t), q
+        done.append(int(hi))
+        q_done = q_hi
+    return done or [probe[-1]]
+
+
 def encode_image(image: npt.NDArray[Any], params: CodingParams | None = None) -> Encoded:
     """Encode an image; keep the body and the packet boundaries (from a PLT marker)."""
     cp = params or CodingParams()
@@ -445,19 +572,12 @@ def encode_image(image: npt.NDArray[Any], params: CodingParams | None = None) ->
         raise ConfigError(f"image {w}x{h} is too small (8 px minimum)")
     colour = data.ndim == 3
     res = _feasible_resolutions(h, w, cp.resolutions)
-    code = params_code(cp.progression, res, len(cp.layer_bytes), cp.irreversible, colour, cp.precincts)
-    sp = parse_params(code)
-    hdr = main_header(code, w, h)
-    overhead = len(hdr) + 39 + _SOT_LEN + 2  # rate control counts OpenJPEG's COM and SOT/SOD
-    path = os.path.join(_scratch(), "enc.j2k")
-    cs = _write_j2k(path, data, sp, [overhead + b for b in cp.layer_bytes], plt=True)
-    header, _sot, start, end, lengths = _split(cs)
-    body = cs[start:end]
-    if header != hdr:
-        raise AssertionError("OpenJPEG wrote a main header that differs from the rebuilt one")
-    if len(lengths) != sp.n_packets(w, h) or sum(lengths) != len(body):
-        raise AssertionError(f"PLT gives {len(lengths)} packets / {sum(lengths)} B, expected "
-                             f"{sp.n_packets(w, h)} / {len(body)}")
+    if cp.layer_psnr:
+        targets = quality_targets(data, cp, res)
+    else:
+        targets = list(cp.layer_bytes)
+    code = params_code(cp.progression, res, len(targets), cp.irreversible, colour, cp.precincts)
+    body, lengths = _encode_body(data, code, targets)
     starts = np.concatenate([[0], np.cumsum(lengths[:-1], dtype=np.int64)]).astype(np.int64)
     return Encoded(body, starts, code, w, h, not colour, data)
 
