@@ -334,6 +334,7 @@ def test_image_region_is_a_wire_command_drawn_with_its_state() -> None:
                                             "y1": 10})  # corners in any order
     assert msg == m.ImageRegionRequest(msg.command_id, 1, 20, 10, 100, 60, m.RegionGoal.QUALITY, 300)
     assert wire.decode(wire.encode(msg)) == msg
+    st.images[2].decoded_meta["layers"] = 18  # as an image coded with 18 layers says
     budget = acts.image_region(2, 0, 0, 160, 120, kind="bytes", value=2000)
     assert (budget.kind, budget.value) == (m.RegionGoal.BYTES, 2000)
     layer = acts.image_region(2, 0, 0, 8, 8, kind="layer", value=18)
@@ -372,6 +373,7 @@ def test_image_region_checks_its_box_and_goal(args: dict[str, Any], words: str) 
     st = ConsoleState(schedules={0: NUI})
     feed_sample(st, t0=T0)
     st.images[0].decoded_meta["precincts"] = 0  # as an image coded without precincts says
+    st.images[1].decoded_meta["layers"] = 18  # and one coded with 18 quality layers
     sent: list[m.Message] = []
     acts = ConsoleActions(st, sent.append, lambda: T0)
     before = st.snapshot()["commands"]

@@ -159,13 +159,13 @@ def test_eye_needs_a_sharp_enough_image_to_see_a_car() -> None:
     img, truth = _frame(50.0, 50.0)
     assert truth is not None and truth.objects == {1: ("target", 0)}
     eye = Eye()
-    blurry = eye.look(_received(img, 2), truth)
-    sharp = eye.look(_received(img, 12), truth)
+    blurry = eye.look(_received(img, 1), truth)  # the first quality mark, 20 dB
+    sharp = eye.look(_received(img, 3), truth)  # 30 dB
     assert [s.kind for s in blurry] == ["unclear"]  # a dark smudge: ask for more
     assert [s.kind for s in sharp] == ["car"]
     # the referee agrees that the sharp image shows target 1, and not the first layers
-    assert judge(_received(img, 12), truth) == [("target", 0)]
-    assert judge(_received(img, 2), truth) == []
+    assert judge(_received(img, 3), truth) == [("target", 0)]
+    assert judge(_received(img, 1), truth) == []
 
 
 def test_eye_never_takes_a_boulder_for_a_car() -> None:

@@ -14,6 +14,16 @@ writes:
   transfer whose wire bytes (``wire_total``) are at most B (mid-grey when nothing decodable
   arrived in that prefix);
 * ``DIR/image_<id>.tiff`` / ``.png``: the final topside image, and ``DIR/summary.json``.
+
+``coex image region IMAGE --box X0,Y0,X1,Y1 [--quality DB | --layers N | --bytes B] --mtu N
+--out DIR [--base GOAL] [--loss P] [--seed S]`` sends IMAGE to its ``--base`` goal (default
+``layer:1``, the first quality mark), then asks for the rectangle (pixels, X1 and Y1 exclusive)
+with one ``ImageRegionRequest`` at the goal (default ``--quality 30`` dB) and writes
+``DIR/before.png`` and ``DIR/after.png`` (what topside shows, the region outlined) and
+``DIR/summary.json``: ``box``, ``goal`` (kind and value), ``state`` (the vehicle's answer:
+accepted / rejected / requested when none arrived), ``base_wire_bytes`` and ``region_wire_bytes`` (vehicle-to-ship wire bytes for the base and
+after the request), ``psnr_inside_before`` / ``psnr_inside_after`` and ``psnr_outside_after``
+(dB against the vehicle's image), ``layers_complete`` (quality layers complete inside the box).
 """
 
 from __future__ import annotations
@@ -57,8 +67,116 @@ def register(subparsers: Any) -> None:
     r.add_argument("--seed", type=int, default=0, metavar="S", help="loss seed (default 0)")
     r.add_argument("--colour", action="store_true", help="send colour instead of grey")
     r.add_argument("--max-rounds", type=int, default=20000, help="give up after this many frames")
+    g = sub.add_parser("region", help="send one image to a base goal, then a region of it to a goal; write "
+                                      "before/after images and the bytes")
+    g.add_argument("image", metavar="IMAGE", help="image file (TIFF, PNG, JPEG ...)")
+    g.add_argument("--box", type=_box, required=True, metavar="X0,Y0,X1,Y1",
+                   help="the region in pixels (X1, Y1 exclusive)")
+    goal = g.add_mutually_exclusive_group()
+    goal.add_argument("--quality", type=float, metavar="DB", help="PSNR inside the region (default 30 dB)")
+    goal.add_argument("--layers", type=int, metavar="N", help="quality layers of the region's precincts")
+    goal.add_argument("--bytes", type=int, metavar="B", help="a budget of codestream bytes")
+    g.add_argument("--base", default="layer:1", metavar="GOAL",
+                   help="the whole image's goal first: none, full, layer:N, fraction:P, bytes:N (default layer:1)")
+    g.add_argument("--mtu", type=int, default=64, metavar="N", help="frame size in bytes (default 64)")
+    g.add_argument("--out", required=True, metavar="DIR", help="output directory")
+    g.add_argument("--loss", type=float, default=0.0, metavar="P", help="frame loss probability (default 0)")
+    g.add_argument("--seed", type=int, default=0, metavar="S", help="loss seed (default 0)")
+    g.add_argument("--max-rounds", type=int, default=20000, help="give up after this many frames")
     p.set_defaults(func=lambda a: p.print_help() or 2)
     r.set_defaults(func=run_roundtrip)
+    g.set_defaults(func=run_region)
+
+
+def _box(text: str) -> tuple[int, int, int, int]:
+    try:
+        x0, y0, x1, y1 = (int(v) for v in text.split(","))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"a box is four integers X0,Y0,X1,Y1: {text!r}") from None
+    return x0, y0, x1, y1
+
+
+def _outlined(image: Any, box: tuple[int, int, int, int]) -> Any:
+    """A copy of the image with the box drawn in white (grey) or yellow (colour), 1 px."""
+    out = np.array(image, copy=True)
+    x0, y0, x1, y1 = box
+    colour = 255 if out.ndim == 2 else np.array([255, 220, 0], np.uint8)
+    out[y0, x0:x1] = colour
+    out[y1 - 1, x0:x1] = colour
+    out[y0:y1, x0] = colour
+    out[y0:y1, x1 - 1] = colour
+    return out
+
+
+def run_region(args: argparse.Namespace) -> int:
+    from coex_core.messages import AckStatus, CommandAck
+
+    from . import ImageInput, ImageryModality
+    from .codec import psnr
+    from .sim import Bernoulli, Transfer
+
+    if args.mtu < 32:
+        raise ConfigError("--mtu must be at least 32")
+    if not 0.0 <= args.loss < 1.0:
+        raise ConfigError("--loss must be in [0, 1)")
+    kind, value = (("layer", args.layers) if args.layers is not None else ("bytes", args.bytes)
+                   if args.bytes is not None else ("quality", 30.0 if args.quality is None else args.quality))
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    image = load_image(args.image)
+    modality = ImageryModality()
+    sender = modality.sender({"default_goal": args.base, "progress_interval": 1e9})
+    receiver = modality.receiver({"max_ack_bytes": min(81, args.mtu - wire.header_size())})
+    sender.ingest(ImageInput(image), 0.0)
+    (image_id, tx), = sender.images.items()
+    t = Transfer(sender, receiver, mtu=args.mtu, down=Bernoulli(args.loss, args.seed),
+                 up=Bernoulli(args.loss, args.seed + 1))
+    t.run(lambda: image_id in receiver.images and not sender.order(), args.max_rounds)
+    t.step()  # the last acks
+
+    def down() -> int:
+        return max((e.down_total for e in t.events if e.direction == "down"), default=0)
+
+    def inside(img: Any) -> float | None:
+        if img is None:
+            return None
+        x0, y0, x1, y1 = args.box
+        return round(psnr(img[y0:y1, x0:x1], tx.enc.image[y0:y1, x0:x1]), 3)
+
+    blank = np.full(tx.enc.image.shape, 128, np.uint8)
+    before = receiver.image(image_id)
+    base_bytes = down()
+    request = receiver.request_region(image_id, args.box, kind, value, t.now)  # ConfigError if absurd
+    start = len(t.events)
+
+    def answered() -> CommandAck | None:
+        return next((e.message for e in t.events[start:] if e.direction == "down" and not e.lost
+                     and isinstance(e.message, CommandAck) and e.message.command_id == request.command_id), None)
+
+    t.run(lambda: (a := answered()) is not None and (a.status != AckStatus.ACCEPTED or (
+        tx.region is not None and not sender.order())), args.max_rounds)
+    t.step()
+    after = receiver.image(image_id)
+    product = next(p for p in receiver.products() if p.meta.get("image_id") == image_id)
+    reg = product.meta["regions"][-1]
+    outside = None
+    if after is not None:
+        mask = np.ones(after.shape[:2], bool)
+        x0, y0, x1, y1 = args.box
+        mask[y0:y1, x0:x1] = False
+        outside = round(psnr(after[mask], tx.enc.image[mask]), 3) if mask.any() else None
+    write_png(out / "before.png", _outlined(blank if before is None else before, args.box))
+    write_png(out / "after.png", _outlined(blank if after is None else after, args.box))
+    summary = {
+        "image": str(args.image), "width": tx.enc.width, "height": tx.enc.height, "box": list(args.box),
+        "goal": {"kind": kind, "value": value}, "base": args.base, "state": reg["state"],
+        "base_wire_bytes": base_bytes, "region_wire_bytes": down() - base_bytes,
+        "psnr_inside_before": inside(before), "psnr_inside_after": inside(after), "psnr_outside_after": outside,
+        "layers_complete": int(reg.get("layers_complete", 0)), "layers": tx.enc.stream.layers,
+    }
+    (out / "summary.json").write_text(json.dumps(summary, indent=1) + "\n")
+    print(json.dumps(summary))
+    return 0 if reg["state"] == "accepted" else 1
 
 
 def load_image(path: str | Path) -> Any:
