@@ -17,6 +17,7 @@ depends on it), is replaced by an empty packet (one ``0x00`` byte). The stream i
 from __future__ import annotations
 
 import functools
+import hashlib
 import itertools
 import os
 import tempfile
@@ -490,7 +491,26 @@ def layer_psnrs(data: npt.NDArray[np.uint8], code: int, body: bytes, lengths: Se
     return out
 
 
+#: calibrated targets of the last images encoded, by content (an image encoded again, e.g. the
+#: same frame for two senders, is not calibrated twice); bounded
+_TARGETS: dict[tuple[Any, ...], list[int]] = {}
+_TARGETS_MAX = 64
+
+
 def quality_targets(data: npt.NDArray[np.uint8], cp: CodingParams, resolutions: int) -> list[int]:
+    """The layer targets of :func:`calibrate_quality`, remembered for the last 64 images."""
+    key = (hashlib.blake2b(np.ascontiguousarray(data).tobytes(), digest_size=16).digest(), data.shape,
+           cp.progression, cp.irreversible, cp.precincts, cp.layer_psnr, resolutions)
+    hit = _TARGETS.get(key)
+    if hit is None:
+        hit = calibrate_quality(data, cp, resolutions)
+        if len(_TARGETS) >= _TARGETS_MAX:
+            del _TARGETS[next(iter(_TARGETS))]
+        _TARGETS[key] = hit
+    return list(hit)
+
+
+def calibrate_quality(data: npt.NDArray[np.uint8], cp: CodingParams, resolutions: int) -> list[int]:
     """Cumulative body targets that end a layer at the fewest bytes reaching each quality mark.
 
     OpenJPEG allocates layers in order (a layer's bytes do not depend on later layers), so the
