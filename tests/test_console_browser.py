@@ -109,15 +109,17 @@ def browser() -> Iterator[Any]:
 
 @contextlib.contextmanager
 def sample_console(browser: Any, hub_type: type[ConsoleHub], sent: list[m.Message],
-                   errors: list[str], prepare: Any = None) -> Iterator[Any]:
+                   errors: list[str], prepare: Any = None, hubs: list[ConsoleHub] | None = None) -> Iterator[Any]:
     """A page of a console fed with the sample dive (no link: ``sent`` records what the hub
     would send, ``errors`` the page's script errors), loaded and showing its first update;
-    ``prepare(state)`` adds to the sample first."""
+    ``prepare(state)`` adds to the sample first; ``hubs`` receives the hub (to feed it events)."""
     state = ConsoleState(schedules={0: Schedule.simple([1, 2, 2, 1, 2, 2], 20.0, 2.0)})
     feed_sample(state, t0=T0)
     if prepare is not None:
         prepare(state)
     hub = hub_type(state, sent.append, lambda: T0)
+    if hubs is not None:
+        hubs.append(hub)
     with serve(hub, "127.0.0.1", 0) as srv:
         page = browser.new_page(viewport={"width": 1400, "height": 1000})
         page.on("pageerror", lambda e: errors.append(str(e)))
@@ -903,15 +905,11 @@ def test_an_image_region_dragged_in_the_viewer_is_asked_and_outlined(browser: An
     thumbnail with its state, at any zoom; the vehicle's refusal shows with its reason."""
     from coex_core.channel.events import CommandResult
 
-    state = ConsoleState(schedules={0: Schedule.simple([1, 2, 2, 1, 2, 2], 20.0, 2.0)})
-    feed_sample(state, t0=T0)
     sent: list[m.Message] = []
-    hub = ConsoleHub(state, sent.append, lambda: T0)
     errors: list[str] = []
-    with serve(hub, "127.0.0.1", 0) as srv:
-        page = browser.new_page(viewport={"width": 1280, "height": 1000})
-        page.on("pageerror", lambda e: errors.append(str(e)))
-        page.goto(srv.url)
+    hubs: list[ConsoleHub] = []
+    with sample_console(browser, ConsoleHub, sent, errors, hubs=hubs) as page:
+        (hub,) = hubs
         page.wait_for_function(
             "[...document.querySelectorAll('#gallery .card img')].filter(i => i.naturalWidth > 0).length === 3",
             timeout=10_000)
