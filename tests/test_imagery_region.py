@@ -88,6 +88,8 @@ def test_absurd_regions_are_refused_by_both_sides(frame: np.ndarray) -> None:
         r.request_region(0, (0, 0, 641, 50), "quality", 30, t.now)  # type: ignore[attr-defined]
     with pytest.raises(ConfigError):
         r.request_region(0, BOX, "quality", 70, t.now)  # type: ignore[attr-defined]
+    with pytest.raises(ConfigError, match="unknown region goal"):
+        r.request_region(0, BOX, "sharpest", 1, t.now)  # type: ignore[attr-defined]
     with pytest.raises(RequestRejected):
         s.handle(ImageRegionRequest(9, 0, 0, 0, 700, 50, RegionGoal.QUALITY, 300), t.now)  # type: ignore[attr-defined]
     _t, s0, r0 = _announced(frame, precincts=0)

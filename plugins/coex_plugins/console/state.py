@@ -1663,39 +1663,17 @@ class ConsoleActions:
         w, h = info.get("width"), info.get("height")
         if img is None or not w or not h:
             raise RequestRejected(f"image {iid} is not announced yet: its size is unknown")
-        w, h = int(w), int(h)
-        if info.get("precincts") == 0:
-            raise RequestRejected(f"image {iid} was coded without precincts: a region cannot be "
-                                  "sent on its own; ask for more of the whole image")
-        vals = [float(v) for v in (x0, y0, x1, y1)]
-        if not all(math.isfinite(v) for v in vals):
-            raise RequestRejected("region corners must be finite numbers")
-        (bx0, bx1), (by0, by1) = sorted(vals[0::2]), sorted(vals[1::2])
-        bx0, by0, bx1, by1 = (round(v) for v in (bx0, by0, bx1, by1))
-        if bx1 <= bx0 or by1 <= by0:
-            raise RequestRejected("the region is empty: drag a rectangle over the image")
-        if bx0 < 0 or by0 < 0 or bx1 > w or by1 > h:
-            raise RequestRejected(f"region {bx0}..{bx1} x {by0}..{by1} is outside the "
-                                  f"{w} x {h} image")
-        k = str(kind).lower()
+        from coex_plugins.imagery.goals import region_fields
+
+        try:
+            (bx0, by0, bx1, by1), goal, code = region_fields(
+                (x0, y0, x1, y1), kind, value, int(w), int(h), int(info.get("layers") or 255),
+                1 if info.get("precincts") is None else int(info["precincts"]))  # unknown: let the vehicle say
+        except CoexError as exc:
+            raise RequestRejected(f"image {iid}: {exc}") from None
         v = float(value)
-        if not math.isfinite(v):
-            raise RequestRejected("the region's goal must be a finite number")
-        if k == "quality":
-            if not 10.0 <= v <= 60.0:
-                raise RequestRejected(f"a region quality of {v:g} dB is outside 10..60 dB")
-            goal, code, words = m.RegionGoal.QUALITY, round(v * 10), f"to {v:g} dB"
-        elif k in ("layer", "layers"):
-            layers = int(info.get("layers") or 255)
-            if v != int(v) or not 1 <= v <= layers:
-                raise RequestRejected(f"a region goal of {v:g} layers is outside 1..{layers}")
-            goal, code, words = m.RegionGoal.LAYER, int(v), f"to {int(v)} layer{'s' if v != 1 else ''}"
-        elif k == "bytes":
-            if v != int(v) or not 1 <= v <= 65535:
-                raise RequestRejected(f"a region budget of {v:g} bytes is outside 1..65535")
-            goal, code, words = m.RegionGoal.BYTES, int(v), f"within {int(v)} bytes"
-        else:
-            raise RequestRejected(f"unknown region goal {kind!r} (quality, layer or bytes)")
+        words = {m.RegionGoal.QUALITY: f"to {v:g} dB", m.RegionGoal.BYTES: f"within {code} bytes",
+                 m.RegionGoal.LAYER: f"to {code} layer{'s' if code != 1 else ''}"}[goal]
         text = f"image {iid} region {bx0}..{bx1} x {by0}..{by1} {words}"
         rx = None if self.state.own_receivers else self.state.receivers.get("imagery")
         if rx is not None and iid in getattr(rx, "images", {}) and hasattr(rx, "request_region"):

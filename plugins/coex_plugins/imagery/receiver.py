@@ -41,6 +41,7 @@ from coex_core.state import persistent
 from coex_core.timefmt import to_stamp, unwrap
 
 from .codec import StreamParams, decode_packets, packet_order, parse_params, region_packets
+from .goals import region_fields
 from .packets import PacketParser
 
 log = logging.getLogger("coex.imagery")
@@ -405,27 +406,14 @@ class ImageryReceiver(ModalityReceiver):
         request is retried until acknowledged and listed in the image product's ``regions``.
         Raises :class:`ConfigError` for an unknown image, an empty or outside box, an image
         coded without precincts or an absurd goal."""
-        k = RegionGoal[kind.upper()] if isinstance(kind, str) else RegionGoal(kind)
         rx = self.images.get(int(image_id))
         if rx is None:
             raise ConfigError(f"no image {image_id} announced")
-        if not rx.sp.precincts:
-            raise ConfigError(f"image {image_id} was coded without precincts: regions are not possible")
-        x0, y0, x1, y1 = (int(v) for v in box)
-        if not (0 <= x0 < x1 <= rx.ann.width and 0 <= y0 < y1 <= rx.ann.height):
-            raise ConfigError(f"region {box} is empty or outside the {rx.ann.width} x {rx.ann.height} image")
-        if k == RegionGoal.QUALITY:
-            if not 10.0 <= float(value) <= 60.0:
-                raise ConfigError(f"region quality {value} dB outside 10..60 dB")
-            code = round(float(value) * 10)
-        elif k == RegionGoal.LAYER:
-            code = int(value)
-            if not 1 <= code <= rx.sp.layers:
-                raise ConfigError(f"region goal of {code} layers outside 1..{rx.sp.layers}")
-        else:
-            code = int(value)
-            if not 1 <= code <= 65535:
-                raise ConfigError(f"region byte budget {code} outside 1..65535")
+        try:
+            (x0, y0, x1, y1), k, code = region_fields(box, kind, value, rx.ann.width, rx.ann.height,
+                                                      rx.sp.layers, rx.sp.precincts)
+        except ConfigError as exc:
+            raise ConfigError(f"image {image_id}: {exc}") from None
         msg = self._new_command(lambda c: ImageRegionRequest(c, int(image_id), x0, y0, x1, y1, k, code), now)
         assert isinstance(msg, ImageRegionRequest)
         rx.regions = [*getattr(rx, "regions", []), {
