@@ -56,7 +56,7 @@ import numpy as np
 from coex_core.messages import ImageFragment
 from coex_plugins.imagery import ImageInput, ImageryModality, codec
 from coex_plugins.imagery.sender import fragment_size
-from coex_plugins.imagery.sim import Transfer
+from coex_plugins.imagery.sim import Transfer, region_transfer
 from coex_plugins.imagery.synth import seafloor
 
 THRESHOLDS = (25.0, 30.0, 35.0)
@@ -206,26 +206,15 @@ def verify(img: np.ndarray, mtu: int, goal_bytes: int) -> tuple[int, float]:
 def region_cost(img: np.ndarray, box: tuple[int, int, int, int], mtu: int, quality: float = 30.0,
                 base: str = "none") -> dict[str, Any]:
     """With the image sent to ``base`` (``"none"``: only announced), one ImageRegionRequest at
-    ``quality`` dB: every vehicle-to-ship wire byte after the base until the vehicle has nothing
-    more to send, and the PSNR inside the box of what topside then shows."""
-    m = ImageryModality()
-    s = m.sender({"default_goal": base, "progress_interval": 1e9})
-    r = m.receiver({})
-    s.ingest(ImageInput(img, time=0.0), 0.0)
-    t = Transfer(s, r, mtu=mtu)
-    t.run(lambda: 0 in r.images and not s.order(), 10000)
-    t.step()  # the last acks
-    before = max((e.down_total for e in t.events if e.direction == "down"), default=0)
-    r.request_region(0, box, "quality", quality, t.now)
-    t.run(lambda: bool(s.images[0].region is not None and not s.order()), 10000)
-    t.step()
-    down = max(e.down_total for e in t.events if e.direction == "down") - before
+    ``quality`` dB (``coex image region``'s run): every vehicle-to-ship wire byte after the base
+    until the vehicle has nothing more to send, and the PSNR inside the box of what topside then
+    shows."""
+    run = region_transfer(img, box, "quality", quality, mtu=mtu, base=base)
     x0, y0, x1, y1 = box
-    shown = r.image(0)
-    q = 0.0 if shown is None else codec.psnr(shown[y0:y1, x0:x1], img[y0:y1, x0:x1])
-    reg = r.images[0].regions[-1]
-    return {"box": list(box), "base": base, "quality": quality, "wire_bytes": int(down), "base_wire_bytes": int(before),
-            "psnr": round(q, 3), "state": reg["state"], "layers_complete": int(reg.get("layers_complete", 0))}
+    q = 0.0 if run.after is None else codec.psnr(run.after[y0:y1, x0:x1], img[y0:y1, x0:x1])
+    return {"box": list(box), "base": base, "quality": quality, "wire_bytes": run.region_bytes,
+            "base_wire_bytes": run.base_bytes, "psnr": round(q, 3), "state": run.region["state"],
+            "layers_complete": int(run.region.get("layers_complete", 0))}
 
 
 def need(curve: list[tuple[int, float]], x: float) -> int | None:

@@ -109,11 +109,8 @@ def _outlined(image: Any, box: tuple[int, int, int, int]) -> Any:
 
 
 def run_region(args: argparse.Namespace) -> int:
-    from coex_core.messages import AckStatus, CommandAck
-
-    from . import ImageInput, ImageryModality
     from .codec import psnr
-    from .sim import Bernoulli, Transfer
+    from .sim import region_transfer
 
     if args.mtu < 32:
         raise ConfigError("--mtu must be at least 32")
@@ -123,60 +120,33 @@ def run_region(args: argparse.Namespace) -> int:
                    if args.bytes is not None else ("quality", 30.0 if args.quality is None else args.quality))
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    image = load_image(args.image)
-    modality = ImageryModality()
-    sender = modality.sender({"default_goal": args.base, "progress_interval": 1e9})
-    receiver = modality.receiver({"max_ack_bytes": min(81, args.mtu - wire.header_size())})
-    sender.ingest(ImageInput(image), 0.0)
-    (image_id, tx), = sender.images.items()
-    t = Transfer(sender, receiver, mtu=args.mtu, down=Bernoulli(args.loss, args.seed),
-                 up=Bernoulli(args.loss, args.seed + 1))
-    t.run(lambda: image_id in receiver.images and not sender.order(), args.max_rounds)
-    t.step()  # the last acks
-
-    def down() -> int:
-        return max((e.down_total for e in t.events if e.direction == "down"), default=0)
+    run = region_transfer(load_image(args.image), args.box, kind, value, mtu=args.mtu, base=args.base,
+                          loss=args.loss, seed=args.seed, max_rounds=args.max_rounds)
+    enc = run.sender.images[run.image_id].enc
+    x0, y0, x1, y1 = args.box
 
     def inside(img: Any) -> float | None:
-        if img is None:
-            return None
-        x0, y0, x1, y1 = args.box
-        return round(psnr(img[y0:y1, x0:x1], tx.enc.image[y0:y1, x0:x1]), 3)
+        return None if img is None else round(psnr(img[y0:y1, x0:x1], enc.image[y0:y1, x0:x1]), 3)
 
-    blank = np.full(tx.enc.image.shape, 128, np.uint8)
-    before = receiver.image(image_id)
-    base_bytes = down()
-    request = receiver.request_region(image_id, args.box, kind, value, t.now)  # ConfigError if absurd
-    start = len(t.events)
-
-    def answered() -> CommandAck | None:
-        return next((e.message for e in t.events[start:] if e.direction == "down" and not e.lost
-                     and isinstance(e.message, CommandAck) and e.message.command_id == request.command_id), None)
-
-    t.run(lambda: (a := answered()) is not None and (a.status != AckStatus.ACCEPTED or (
-        tx.region is not None and not sender.order())), args.max_rounds)
-    t.step()
-    after = receiver.image(image_id)
-    product = next(p for p in receiver.products() if p.meta.get("image_id") == image_id)
-    reg = product.meta["regions"][-1]
     outside = None
-    if after is not None:
-        mask = np.ones(after.shape[:2], bool)
-        x0, y0, x1, y1 = args.box
+    if run.after is not None:
+        mask = np.ones(run.after.shape[:2], bool)
         mask[y0:y1, x0:x1] = False
-        outside = round(psnr(after[mask], tx.enc.image[mask]), 3) if mask.any() else None
-    write_png(out / "before.png", _outlined(blank if before is None else before, args.box))
-    write_png(out / "after.png", _outlined(blank if after is None else after, args.box))
+        outside = round(psnr(run.after[mask], enc.image[mask]), 3) if mask.any() else None
+    blank = np.full(enc.image.shape, 128, np.uint8)
+    write_png(out / "before.png", _outlined(blank if run.before is None else run.before, args.box))
+    write_png(out / "after.png", _outlined(blank if run.after is None else run.after, args.box))
     summary = {
-        "image": str(args.image), "width": tx.enc.width, "height": tx.enc.height, "box": list(args.box),
-        "goal": {"kind": kind, "value": value}, "base": args.base, "state": reg["state"],
-        "base_wire_bytes": base_bytes, "region_wire_bytes": down() - base_bytes,
-        "psnr_inside_before": inside(before), "psnr_inside_after": inside(after), "psnr_outside_after": outside,
-        "layers_complete": int(reg.get("layers_complete", 0)), "layers": tx.enc.stream.layers,
+        "image": str(args.image), "width": enc.width, "height": enc.height, "box": list(args.box),
+        "goal": {"kind": kind, "value": value}, "base": args.base, "state": run.region["state"],
+        "base_wire_bytes": run.base_bytes, "region_wire_bytes": run.region_bytes,
+        "psnr_inside_before": inside(run.before), "psnr_inside_after": inside(run.after),
+        "psnr_outside_after": outside,
+        "layers_complete": int(run.region.get("layers_complete", 0)), "layers": enc.stream.layers,
     }
     (out / "summary.json").write_text(json.dumps(summary, indent=1) + "\n")
     print(json.dumps(summary))
-    return 0 if reg["state"] == "accepted" else 1
+    return 0 if run.region["state"] == "accepted" else 1
 
 
 def load_image(path: str | Path) -> Any:

@@ -1,6 +1,7 @@
 """A deterministic two-way simulation of an imagery transfer over lossy links (no clock, no I/O).
 
-Used by ``coex image roundtrip``, the tests and the benchmark. Each round the vehicle fills one
+Used by ``coex image roundtrip`` and ``coex image region`` (:func:`region_transfer`), the tests
+and the benchmark. Each round the vehicle fills one
 frame of at most ``mtu`` bytes; topside takes what arrives and answers with acks and requests in
 as many frames as they need; the vehicle handles those and its immediate replies (command acks)
 go down in one more frame. Loss is drawn per frame from seeded models: independent
@@ -14,6 +15,7 @@ import abc
 import random
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from typing import Any
 
 from coex_core import wire
 from coex_core.acoustic import GilbertElliott
@@ -21,7 +23,7 @@ from coex_core.errors import EncodeError, RequestRejected
 from coex_core.messages import FrameHeader, Message
 from coex_core.modality import ModalityReceiver, ModalitySender, Product
 
-__all__ = ["Bernoulli", "Burst", "LossModel", "Transfer", "WireEvent"]
+__all__ = ["Bernoulli", "Burst", "LossModel", "RegionRun", "Transfer", "WireEvent", "region_transfer"]
 
 
 class LossModel(abc.ABC):
@@ -163,3 +165,62 @@ class Transfer:
         if done():
             return max_rounds
         raise TimeoutError(f"transfer not done after {max_rounds} rounds")
+
+
+@dataclass
+class RegionRun:
+    """What :func:`region_transfer` did: the transfer, both sides, the image id, the vehicle-to-
+    ship wire bytes before the request (``base_bytes``) and after it (``region_bytes``), what
+    topside showed before and after (None: nothing decodable), the request and the region's
+    entry in the image product (``state``, ``layers_complete`` ...)."""
+
+    transfer: Transfer
+    sender: Any
+    receiver: Any
+    image_id: int
+    base_bytes: int
+    region_bytes: int
+    before: Any
+    after: Any
+    request: Message
+    region: dict[str, Any]
+
+
+def region_transfer(image: Any, box: tuple[int, int, int, int], kind: str = "quality", value: float = 30.0, *,
+                    mtu: int = 64, base: str = "none", loss: float = 0.0, seed: int = 0,
+                    max_rounds: int = 20000) -> RegionRun:
+    """Send one image to its ``base`` goal over a simulated link of ``mtu``-byte frames (each
+    lost with probability ``loss`` both ways, seeded), then ask for the rectangle ``box`` at a
+    goal with one ``ImageRegionRequest`` and run until the vehicle answered and, when it
+    accepted, has nothing more to send. Raises ``ConfigError`` for an absurd request (before it
+    is sent) and ``TimeoutError`` after ``max_rounds`` rounds of either phase."""
+    from coex_core.messages import AckStatus, CommandAck
+
+    from . import ImageInput, ImageryModality
+
+    modality = ImageryModality()
+    sender = modality.sender({"default_goal": base, "progress_interval": 1e9})
+    receiver = modality.receiver({"max_ack_bytes": min(81, mtu - wire.header_size())})
+    sender.ingest(ImageInput(image, time=0.0), 0.0)
+    (image_id, tx), = sender.images.items()
+    t = Transfer(sender, receiver, mtu=mtu, down=Bernoulli(loss, seed), up=Bernoulli(loss, seed + 1))
+    t.run(lambda: image_id in receiver.images and not sender.order(), max_rounds)
+    t.step()  # the last acks
+
+    def down() -> int:
+        return max((e.down_total for e in t.events if e.direction == "down"), default=0)
+
+    before, base_bytes = receiver.image(image_id), down()
+    request = receiver.request_region(image_id, box, kind, value, t.now)
+    start = len(t.events)
+
+    def answered() -> CommandAck | None:
+        return next((e.message for e in t.events[start:] if e.direction == "down" and not e.lost
+                     and isinstance(e.message, CommandAck) and e.message.command_id == request.command_id), None)
+
+    t.run(lambda: (a := answered()) is not None and (a.status != AckStatus.ACCEPTED or (
+        tx.region is not None and not sender.order())), max_rounds)
+    t.step()
+    product = next(p for p in receiver.products() if p.meta.get("image_id") == image_id)
+    return RegionRun(t, sender, receiver, image_id, base_bytes, down() - base_bytes, before,
+                     receiver.image(image_id), request, product.meta["regions"][-1])
