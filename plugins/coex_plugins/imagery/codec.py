@@ -8,7 +8,7 @@ resolutions, layers, wavelet, colour and precinct size) and topside rebuilds the
 image with the same parameters (:func:`main_header`, cached).
 
 Topside decodes *whole packets only* (:func:`assemble`): every packet that is missing or
-incomplete, and every later packet of the same resolution and component (their code-block state
+incomplete, and every later packet of the same precinct (resolution, component and precinct: their code-block state
 depends on it), is replaced by an empty packet (one ``0x00`` byte). The stream is closed with
 ``Psot = 0`` and an EOC marker, which stock OpenJPEG decodes in strict mode (recipe B of
 ``reference/imagery.md``).
