@@ -191,7 +191,7 @@ def our_curve(img: np.ndarray, mtu: int) -> tuple[list[tuple[int, float, int, li
     pts = []
     for n, q, inq in packet_curve(enc, img, quarters(img)):
         f, base = next((f, b) for f, b in frags if f.offset < n <= f.offset + len(f.data))
-        pts.append((base + fragment_size(0, n - f.offset), q, n, inq))
+        pts.append((base + fragment_size(0, n - f.offset, f.offset), q, n, inq))
     return pts, enc
 
 

@@ -25,6 +25,7 @@ from coex_core.messages import (
 )
 from coex_plugins.imagery import ImageInput, ImageryModality, ImageryReceiver, ImagerySender, codec
 from coex_plugins.imagery.codec import CodingParams
+from coex_plugins.imagery.sender import fragment_size
 from coex_plugins.imagery.sim import Transfer
 from coex_plugins.imagery.synth import seafloor
 
@@ -150,6 +151,21 @@ def test_max_size_reduces(img: np.ndarray) -> None:
 def _pair(**cfg: object) -> tuple[ImagerySender, ImageryReceiver]:
     m = ImageryModality()
     return m.sender({**SMALL, **cfg}), m.receiver({})
+
+
+@pytest.mark.parametrize("offset", [0, 4095, 4096, 2**20 - 1])
+def test_fragment_size_is_the_encoded_size(offset: int) -> None:
+    """The sender's size arithmetic agrees with the codec. Without marks: the type id and a
+    4-byte header below 4 KiB (5 bytes beyond), then the data."""
+    head = 4 if offset < 4096 else 5
+    for n_marks, n_data in [(0, 0), (0, 1), (0, 200), (1, 1), (2, 60), (31, 100)]:
+        frag = ImageFragment(3, offset, 9 if n_marks else None, tuple(range(n_marks)), bytes(n_data))
+        assert wire.encoded_size(frag) == fragment_size(n_marks, n_data, offset)
+        assert wire.decode(wire.encode(frag)) == frag
+        if not n_marks:
+            assert fragment_size(0, n_data, offset) == 1 + head + n_data
+    # two marks: 32 or 40 bits of header, 15 bits (count, first packet), 2 x 8 bits
+    assert fragment_size(2, 60, offset) == 1 + (8 if offset < 4096 else 9) + 60
 
 
 @pytest.mark.parametrize("mtu", [32, 33, 47, 64, 100, 256, 600])

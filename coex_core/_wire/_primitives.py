@@ -38,6 +38,9 @@ __all__ = [
     "Choice",
     "Enum",
     "FieldSpec",
+    "Flag",
+    "FarFlag",
+    "NearFar",
     "OptBool",
     "SInt",
     "Stamp",
@@ -422,14 +425,20 @@ class _MaxLen(cs.Adapter):  # type: ignore[misc]
         return obj
 
 
-def RawBytes(max_len: int | None = None, fixed: int | None = None) -> cs.Construct:
-    """Raw bytes, 8 bits each, continuing the bit stream (not aligned): a fixed count, or the rest
-    of a length-prefixed body (at most ``max_len``)."""
+def RawBytes(max_len: int | None = None, fixed: int | None = None, count: str = "") -> cs.Construct:
+    """Raw bytes, 8 bits each, continuing the bit stream (not aligned): a fixed count, as many as
+    an earlier count field says (``count``: its name, at most ``max_len``), or the rest of a
+    length-prefixed body (at most ``max_len``)."""
     if fixed is not None:
         c = cs.Bytewise(cs.Bytes(fixed))
         c.coex_spec = FieldSpec(str(8 * fixed), f"{fixed} bytes", unit="bytes", coding="bytes")
         return c
     assert max_len is not None
+    if count:
+        c = cs.Bytewise(_MaxLen(cs.Bytes(lambda ctx: ctx[count]), max_len))
+        c.coex_spec = FieldSpec("8 x n", f"0..{max_len} bytes", unit="bytes", note=f"`{count}` bytes",
+                                coding="bytes")
+        return c
     c = cs.Bytewise(_MaxLen(cs.GreedyBytes, max_len))
     c.coex_spec = FieldSpec("8 x n", f"0..{max_len} bytes", unit="bytes", note="rest of the body",
                             coding="bytes")
@@ -499,6 +508,29 @@ def Flag(of: str) -> cs.Construct:
     """A derived bit: 1 when ``<of>`` has entries (the fields that depend on it are then present)."""
     c = cs.Rebuild(Bool(), lambda ctx: len(ctx[of]) > 0)
     c.coex_spec = FieldSpec("1", "0..1", "1", note=f"1 when `{of}` has entries", coding="unsigned",
+                            presence="always (derived)")
+    c.coex_derived = True
+    return c
+
+
+class NearFar(UInt):
+    """An unsigned number in ``near`` bits when an earlier derived bit ``flag`` is 0 (the number is
+    below ``2**near``), else in ``far`` bits. Build the flag with :func:`FarFlag`, and add a
+    :class:`Rule` that rejects the long form of a number below ``2**near`` (one encoding each)."""
+
+    def __init__(self, near: int, far: int, flag: str, unit: str = "") -> None:
+        super().__init__(lambda ctx: far if ctx[flag] else near)
+        self.near, self.far, self.flag = near, far, flag
+        self.coex_spec = FieldSpec(f"{near} or {far}", f"0..{(1 << far) - 1}", "1", unit,
+                                   note=f"{near} bits when `{flag}` = 0, {far} bits when `{flag}` = 1",
+                                   coding="unsigned")
+
+
+def FarFlag(of: str, near: int) -> cs.Construct:
+    """The derived bit that says a :class:`NearFar` number ``of`` takes its long form: 1 exactly
+    when it is at least ``2**near``."""
+    c = cs.Rebuild(Bool(), lambda ctx: int(ctx[of]) >= (1 << near))
+    c.coex_spec = FieldSpec("1", "0..1", "1", note=f"1 when `{of}` >= {1 << near}", coding="unsigned",
                             presence="always (derived)")
     c.coex_derived = True
     return c

@@ -25,7 +25,9 @@ from ._primitives import (
     Count,
     Entries,
     Enum,
+    FarFlag,
     Flag,
+    NearFar,
     RawBytes,
     Rule,
     Stamp,
@@ -57,10 +59,15 @@ IMAGE_ANNOUNCE = Body(
     "params" / Bits(15) * "Coding parameter code (progression, resolutions, layers, wavelet)",
 )
 
+#: Offsets below 2**NEAR_OFFSET_BITS (4 KiB, where the first quality layers of an image lie) take
+#: the short form: the fragment header is then 4 bytes.
+NEAR_OFFSET_BITS = 12
+
 IMAGE_FRAGMENT = Body(
     "image_id" / IMAGE_ID,
-    "offset" / Bounded(0, OFFSET_MAX, unit="B") * "Offset of data in the codestream body",
     "marked" / Flag("packets"),
+    "far" / FarFlag("offset", NEAR_OFFSET_BITS),
+    "offset" / NearFar(NEAR_OFFSET_BITS, 20, "far", unit="B") * "Offset of data in the codestream body",
     "n_packets" / When("`marked` = 1", cs.this.marked, Count(1, MAX_PACKET_MARKS, "packets")),
     "packet" / When("`marked` = 1", cs.this.marked, Bounded(0, MAX_PACKET_INDEX))
     * "Index of the JPEG 2000 packet holding the first data byte",
@@ -68,7 +75,10 @@ IMAGE_FRAGMENT = Body(
                         Bounded(0, 255, unit="B"))
     * "Offsets in data where a packet starts, increasing, at most len(data) (0 = data starts packet "
     "`packet`; len(data) = the next packet starts right after data)",
-    "data" / RawBytes(max_len=MAX_FRAGMENT_DATA) * "Codestream bytes",
+    "n_data" / Count(0, MAX_FRAGMENT_DATA, "data"),
+    "data" / RawBytes(max_len=MAX_FRAGMENT_DATA, count="n_data") * "Codestream bytes",
+    Rule(lambda ctx: bool(ctx.far) == (ctx.offset >= 1 << NEAR_OFFSET_BITS),
+         f"`far` is 1 while `offset` is below {1 << NEAR_OFFSET_BITS} (not canonical: one encoding per offset)"),
     Rule(lambda ctx: (ctx.packet is None) == (not ctx.packets),
          "`packet` is given exactly when there are packet marks"),
     Rule(lambda ctx: all(a < b for a, b in zip(ctx.packets, ctx.packets[1:]))
@@ -124,7 +134,7 @@ TRANSFER_PROGRESS = Body(
 
 #: The largest fragment: every mark, and as much data as still fits in 251 bytes.
 _BIG_FRAG = ImageFragment(
-    1023, OFFSET_MAX, MAX_PACKET_INDEX, tuple(range(MAX_PACKET_MARKS)), b"\xff" * 211
+    1023, OFFSET_MAX, MAX_PACKET_INDEX, tuple(range(MAX_PACKET_MARKS)), b"\xff" * 212
 )
 _BIG_PLAIN = ImageFragment(1023, OFFSET_MAX, None, (), b"\xff" * MAX_FRAGMENT_DATA)
 _BIG_ACK = ImageAck(1023, OFFSET_MAX, (ByteRange(OFFSET_MAX, OFFSET_MAX),) * MAX_ACK_RANGES)
@@ -139,12 +149,14 @@ register(MessageSpec(
     ],
 ))
 register(MessageSpec(
-    33, ImageFragment, IMAGE_FRAGMENT, True, "imagery", "Bytes of an image's codestream body.",
+    33, ImageFragment, IMAGE_FRAGMENT, False, "imagery", "Bytes of an image's codestream body.",
     largest=lambda: _BIG_FRAG,
     cases=lambda: [
         ("empty", ImageFragment(0, 0, None, (), b"")),
         ("first_packet", ImageFragment(5, 0, 0, (0, 37), bytes(range(60)))),
         ("inside_packet", ImageFragment(17, 3120, None, (), bytes(range(200)))),
+        ("last_near_offset", ImageFragment(17, 4095, None, (), bytes(range(50)))),
+        ("first_far_offset", ImageFragment(17, 4096, 40, (3,), bytes(range(50)))),
         ("largest", _BIG_FRAG),
         ("largest_plain", _BIG_PLAIN),
     ],

@@ -253,21 +253,30 @@ def _subgrid_head(encoding: int, width: int, side: int = 2, partial: int = 0) ->
             (0, 20), (width, 5), (partial, 1)]
 
 
+def _longer_length(message: Message) -> bytes:
+    """A length-prefixed message (type id and length one byte each) with its length in two bytes."""
+    data = _codec.encode(message)
+    return data[:1] + bytes([0x80 | data[1], 0x00]) + data[2:]
+
+
 def _spec_rule_cases() -> list[tuple[str, str, bytes, str]]:
     """Inputs each invalid by one rule of the document that the encoder never produces."""
     zeros3 = [("0", 0)] * 3  # three more DELTA codes of 0 (Rice, k = 0)
-    # image 1, offset 0, marked, 2 marks (code 1), first packet 0, the marks, 10 data bytes
-    frag = _bits((1, 10), (0, 20), (1, 1), (1, 5), (0, 10), (5, 8), (3, 8), ("0" * 80, 0))
-    frag_above = _bits((1, 10), (0, 20), (1, 1), (1, 5), (0, 10), (3, 8), (11, 8), ("0" * 80, 0))
-    frag_plain = _bits((1, 10), (0, 20), (0, 1), ("0" * 80, 0))
+    # type 33, image 1, marked, near, offset 0, 2 marks (code 1), first packet 0, the marks,
+    # 10 data bytes
+    frag = _bits((33, 8), (1, 10), (1, 1), (0, 1), (0, 12), (1, 5), (0, 10), (5, 8), (3, 8), (10, 8),
+                 ("0" * 80, 0))
+    frag_above = _bits((33, 8), (1, 10), (1, 1), (0, 1), (0, 12), (1, 5), (0, 10), (3, 8), (11, 8), (10, 8),
+                       ("0" * 80, 0))
+    # image 1, not marked, far, offset 4095 (fits the near form), 0 data bytes
+    frag_far = _bits((33, 8), (1, 10), (0, 1), (1, 1), (4095, 20), (0, 8))
     channel = _bits((1, 5), (0, 3), (_f32(0.0), 0), (_f32(1.0), 0), (_f32(0.1), 0), (1, 8), (0xFF, 8), (0, 8))
     return [
         ("rice_escape_not_needed", "message",
          _bits(*_subgrid_head(1, 0), ("1" * 16 + "00001" + "1", 0), *zeros3), "canonical"),
         ("rice_escape_length_not_minimal", "message",
          _bits(*_subgrid_head(1, 0), ("1" * 16 + "00110" + "010100", 0), *zeros3), "canonical"),
-        ("varint_length_not_minimal", "message", bytes([0x21, 0x80 | len(frag_plain), 0x00]) + frag_plain,
-         "canonical"),
+        ("varint_length_not_minimal", "message", _longer_length(SPECS_BY_ID[48].cases()[0][1]), "canonical"),
         ("gradient_with_mask", "message", _bits(*_subgrid_head(3, 0, partial=1), (0b1111, 4), ("0000", 0)),
          "GRADIENT"),
         ("subgrid_values_too_large", "message", _bits(*_subgrid_head(0, 7, side=16), ("0" * 256 * 7, 0)),
@@ -275,8 +284,9 @@ def _spec_rule_cases() -> list[tuple[str, str, bytes, str]]:
         ("roi_held_too_many", "message",
          _bits((18, 8), (0, 8), (0, 4), (0, 14), (0, 14), (8, 4), (7, 4), (0, 1), ("0" * 19 * 72, 0)),
          "too many"),
-        ("fragment_packets_decreasing", "message", bytes([0x21, len(frag)]) + frag, "out of order"),
-        ("fragment_packet_beyond_data", "message", bytes([0x21, len(frag_above)]) + frag_above, "out of order"),
+        ("fragment_packets_decreasing", "message", frag, "out of order"),
+        ("fragment_packet_beyond_data", "message", frag_above, "out of order"),
+        ("fragment_far_offset_not_canonical", "message", frag_far, "canonical"),
         ("float_nan", "message", _bits((50, 8), (1, 8), (0, 5), (0, 18), (0, 18), (0, 7), (_f32(float("nan")), 0)),
          "non-finite"),
         ("text_not_utf8", "message", bytes([0x30, len(channel)]) + channel, "utf-8"),
@@ -303,12 +313,12 @@ def _invalid_cases() -> list[tuple[str, str, bytes, str]]:
         ("optional_bool_code_3", "message", bytes.fromhex("03000300000000"), "optional boolean"),
         ("bounded_code_above_max", "message",
          bytes.fromhex("08000000007f8000"), "above maximum"),
-        ("fragment_length_too_long", "message", bytes.fromhex("21ff0100"), "truncated"),
-        ("fragment_length_short", "message", bytes.fromhex("2102000000"), "truncated"),
-        ("fragment_data_too_large", "message",
-         bytes.fromhex("21f901") + bytes(6) + bytes(243), "exceed"),
+        # image 0, near offset 0, n_data 10 but only 2 data bytes
+        ("fragment_data_truncated", "message", bytes.fromhex("210000000a") + bytes(2), "truncated"),
+        # n_data 245: above the 244 a fragment may carry
+        ("fragment_data_too_large", "message", bytes.fromhex("21000000f5") + bytes(245), "above maximum"),
         ("fragment_above_251_bytes", "message", _codec.TYPE_ID.build(33) + _codec._BODIES[33].build(
-            _codec._to_container(ImageFragment(0, 0, 0, tuple(range(16)), bytes(227)))), "above"),
+            _codec._to_container(ImageFragment(0, 0, 0, tuple(range(31)), bytes(214)))), "above"),
         ("trailing_bytes", "message", _codec.encode(CommandAck(1, AckStatus.ACCEPTED)) + b"\x01", "after"),
         ("frame_too_short", "frame", b"\x40\x00", "truncated"),
         ("frame_bad_version", "frame", bytes.fromhex("800000"), "bad frame header"),

@@ -66,9 +66,10 @@ MAX_MARKS = 31
 #: A fragment message never exceeds this (the wire maximum).
 MAX_MESSAGE = 251
 MAX_NEXT = 8
-#: image id, offset and the "marked" bit; a fragment with packet marks adds their count and
-#: the index of its first packet
-_FRAG_FIXED_BITS = 10 + 20 + 1
+#: image id, the "marked" and "far" bits, the data count; the offset in 12 bits below 4 KiB,
+#: else 20; a fragment with packet marks adds their count and the index of its first packet
+_FRAG_FIXED_BITS = 10 + 1 + 1 + 8
+_NEAR_OFFSET = 1 << 12
 _FRAG_MARKED_BITS = 5 + 10
 
 
@@ -83,11 +84,12 @@ class ImageInput:
     y: float | None = None
 
 
-def fragment_size(n_marks: int, n_data: int) -> int:
-    """Encoded bytes of an ``ImageFragment`` with ``n_marks`` packet marks and ``n_data`` data bytes."""
-    bits = _FRAG_FIXED_BITS + (_FRAG_MARKED_BITS + 8 * n_marks if n_marks else 0)
-    body = (bits + 7) // 8 + n_data
-    return 1 + (1 if body < 128 else 2) + body
+def fragment_size(n_marks: int, n_data: int, offset: int = 0) -> int:
+    """Encoded bytes of an ``ImageFragment`` at ``offset`` with ``n_marks`` packet marks and
+    ``n_data`` data bytes (type id included; spec/wire-format.md, type 33)."""
+    bits = _FRAG_FIXED_BITS + (12 if offset < _NEAR_OFFSET else 20)
+    bits += _FRAG_MARKED_BITS + 8 * n_marks if n_marks else 0
+    return 1 + (bits + 7) // 8 + n_data
 
 
 @persistent("imagery.Tx")
@@ -365,7 +367,7 @@ class ImagerySender(ModalitySender):
                 if frag is None:
                     break
                 out.append(frag)
-                left -= fragment_size(len(frag.packets), len(frag.data))
+                left -= fragment_size(len(frag.packets), len(frag.data), frag.offset)
                 self._current = tx.image_id
             if left < fragment_size(0, 1):
                 break
@@ -448,7 +450,7 @@ class ImagerySender(ModalitySender):
                 if frag is None:
                     break
                 out.append(frag)
-                left -= fragment_size(len(frag.packets), len(frag.data))
+                left -= fragment_size(len(frag.packets), len(frag.data), frag.offset)
             if left < fragment_size(0, 1):
                 break
         return out
@@ -494,7 +496,7 @@ class ImagerySender(ModalitySender):
         starts = tx.enc.packet_starts
         marked = self._marked(tx, pos, goal)
         left = min(left, MAX_MESSAGE)
-        top = min(run, MAX_FRAGMENT_DATA, left - fragment_size(0, 0))
+        top = min(run, MAX_FRAGMENT_DATA, left - fragment_size(0, 0, pos))
 
         def marks_for(k: int) -> npt.NDArray[np.int64]:
             if not marked:
@@ -506,7 +508,7 @@ class ImagerySender(ModalitySender):
 
         def fits(k: int) -> bool:
             m = len(marks_for(k))
-            return m <= MAX_MARKS and fragment_size(m, k) <= left
+            return m <= MAX_MARKS and fragment_size(m, k, pos) <= left
 
         # the most data that fits with its marks (the size only grows with the data)
         lo_k, hi_k = 0, max(top, 0)
