@@ -15,6 +15,7 @@ from coex_core.errors import ConfigError
 from coex_plugins.bathymetry.sim import Seafloor, Target
 from coex_plugins.demo import DemoConfig, run_demo
 from coex_plugins.demo.camera import SandTexture, render_labelled
+from coex_plugins.demo.config import LAYER_PSNR
 from coex_plugins.demo.operator import car_likeness, measure
 from coex_plugins.demo.scenario import (
     PRESETS,
@@ -25,7 +26,7 @@ from coex_plugins.demo.scenario import (
     scenario_from_dict,
 )
 from coex_plugins.demo.truth import Eye, frame_truth, judge
-from coex_plugins.imagery.codec import decode_packets, encode_image, split_packets
+from coex_plugins.imagery.codec import CodingParams, decode_packets, encode_image, split_packets
 
 # ---------------------------------------------------------------------------------- scenarios
 
@@ -150,7 +151,7 @@ def _frame(x: float, y: float, altitude: float = 5.0) -> tuple[np.ndarray, objec
 
 
 def _received(img: np.ndarray, layers: int) -> np.ndarray:
-    enc = encode_image(img)
+    enc = encode_image(img, CodingParams(layer_psnr=LAYER_PSNR))  # the demo's marks
     return decode_packets(enc.params, enc.width, enc.height,
                           split_packets(enc.body, enc.packet_starts, enc.layer_end(layers)))
 

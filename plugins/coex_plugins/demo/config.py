@@ -24,6 +24,9 @@ CAMERA_SPEED = 0.5
 MIN_ALTITUDE = 2.0
 #: seconds between camera frames on a transect
 CAMERA_PERIOD = 6.0
+#: the demo's quality marks (``layer_psnr``, dB): the imagery default (25, 30, 35, 40) with a
+#: 20 dB preview mark first, because every frame of the camera pass goes up as a preview
+LAYER_PSNR = (20.0, 25.0, 30.0, 35.0, 40.0)
 #: the vehicle's default set-point for every image (``default_goal``: the first quality mark, 20 dB, a few tens of bytes)
 DEFAULT_LAYERS = 1
 #: a target is identifiable at 1 m when a car-like candidate of the received 1 m map lies this

@@ -26,6 +26,7 @@ from coex_plugins.timeseries import TimeSeriesModality
 from .config import (
     DEFAULT_LAYERS,
     EPOCH,
+    LAYER_PSNR,
     LINK_STREAM,
     MIN_ALTITUDE,
     SURVEY_STREAM,
@@ -143,7 +144,7 @@ def build_nodes(out: Path, channels: list[dict[str, Any]], command_key: bytes | 
                                   queue_status_interval=cycle, command_key=command_key))
     senders = {
         "bathymetry": BathymetryModality().sender({"send_delay": 20.0}),
-        "imagery": ImageryModality().sender({"default_goal": f"layer:{DEFAULT_LAYERS}",
+        "imagery": ImageryModality().sender({"layer_psnr": list(LAYER_PSNR), "default_goal": f"layer:{DEFAULT_LAYERS}",
                                              "request_goal": f"layer:{CONFIRM_LAYERS}"}),
         "timeseries": TimeSeriesModality().sender({"channels": channels}),
         # survey commands: checked against the vehicle's geofence, then flown by its autonomy

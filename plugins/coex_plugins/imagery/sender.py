@@ -163,7 +163,7 @@ class _Tx:
 CODING_KEYS = ("progression", "resolutions", "layer_bytes", "irreversible", "grey", "max_size", "precincts",
                "layer_psnr")
 #: the imagery sender's options and their defaults (coding options default to CodingParams')
-SENDER_DEFAULTS: dict[str, Any] = {**dict.fromkeys(CODING_KEYS), "default_goal": "layer:3",
+SENDER_DEFAULTS: dict[str, Any] = {**dict.fromkeys(CODING_KEYS), "default_goal": "layer:2",
                                    "request_goal": None, "max_images": 64, "rto": 60.0,
                                    "progress_interval": 60.0, "max_announces": 2,
                                    "min_fragment": 16, "standing_expiry": 1800.0, "max_standing": 8,
@@ -186,12 +186,12 @@ class ImagerySender(ModalitySender):
             self.max_standing = int(getattr(self, "max_standing", SENDER_DEFAULTS["max_standing"]))
     """Subsea side. Configuration keys (all optional):
 
-    * coding: ``progression``, ``resolutions``, ``layer_psnr`` (quality marks, dB: 20, 25, 30,
-      35, 40, 45; each image's layers end where it first reaches each), ``layer_bytes`` (fixed
+    * coding: ``progression``, ``resolutions``, ``layer_psnr`` (quality marks, dB: 25, 30, 35,
+      40; each image's layers end where it first reaches each), ``layer_bytes`` (fixed
       byte layers, used when given without ``layer_psnr`` or when ``layer_psnr`` is empty),
       ``irreversible``, ``grey``, ``max_size``, ``precincts`` (256; 0 = none, then region
       requests are refused; see :class:`~coex_plugins.imagery.codec.CodingParams`);
-    * ``default_goal`` (``"layer:3"``, 30 dB with the default quality marks): the set-point every new image is sent to, in capture order;
+    * ``default_goal`` (``"layer:2"``, 30 dB with the default quality marks): the set-point every new image is sent to, in capture order;
     * ``request_goal`` (same as ``default_goal``): the goal given to an image found by an
       ``ImageByTimeRequest`` (it is then served first, like an operator goal);
     * ``max_images`` (64), ``rto`` (60 s: resend unacked bytes after this long; keep it above the
