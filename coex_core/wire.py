@@ -22,9 +22,15 @@ from ._wire._codec import (
 from ._wire._registry import MAX_MESSAGE_BYTES, SPECS_BY_CLASS, SPECS_BY_ID, THIRD_PARTY_RANGES
 from ._wire.bathymetry import RESOLUTIONS as SUBGRID_RESOLUTIONS
 from ._wire.bathymetry import VERTICAL_RESOLUTIONS as SUBGRID_VERTICAL_RESOLUTIONS
+from ._wire.imagery import MAX_FRAGMENT_DATA as FRAGMENT_MAX_DATA
+from ._wire.imagery import MAX_PACKET_MARKS as FRAGMENT_MAX_MARKS
+from ._wire.imagery import NEAR_OFFSET_BITS as FRAGMENT_NEAR_OFFSET_BITS
 
 __all__ = [
     "CRC_BYTES",
+    "FRAGMENT_MAX_DATA",
+    "FRAGMENT_MAX_MARKS",
+    "FRAGMENT_NEAR_OFFSET_BITS",
     "FRAME_HEADER_BYTES",
     "MAX_MESSAGE_BYTES",
     "MAX_SIZES",

@@ -46,7 +46,12 @@ from coex_core.messages import (
 from coex_core.modality import ModalitySender
 from coex_core.state import persistent
 from coex_core.timefmt import to_stamp, unwrap
-from coex_core.wire import encoded_size
+from coex_core.wire import (
+    FRAGMENT_MAX_DATA,
+    FRAGMENT_MAX_MARKS,
+    FRAGMENT_NEAR_OFFSET_BITS,
+    encoded_size,
+)
 
 from .codec import (
     CodingParams,
@@ -61,15 +66,15 @@ from .goals import Goal, parse_goal
 
 __all__ = ["ImageInput", "ImagerySender", "fragment_size"]
 
-MAX_FRAGMENT_DATA = 244
-MAX_MARKS = 31
+MAX_FRAGMENT_DATA = FRAGMENT_MAX_DATA
+MAX_MARKS = FRAGMENT_MAX_MARKS
 #: A fragment message never exceeds this (the wire maximum).
 MAX_MESSAGE = 251
 MAX_NEXT = 8
 #: image id, the "marked" and "far" bits, the data count; the offset in 12 bits below 4 KiB,
 #: else 20; a fragment with packet marks adds their count and the index of its first packet
 _FRAG_FIXED_BITS = 10 + 1 + 1 + 8
-_NEAR_OFFSET = 1 << 12
+_NEAR_OFFSET = 1 << FRAGMENT_NEAR_OFFSET_BITS
 _FRAG_MARKED_BITS = 5 + 10
 
 
@@ -87,7 +92,7 @@ class ImageInput:
 def fragment_size(n_marks: int, n_data: int, offset: int = 0) -> int:
     """Encoded bytes of an ``ImageFragment`` at ``offset`` with ``n_marks`` packet marks and
     ``n_data`` data bytes (type id included; spec/wire-format.md, type 33)."""
-    bits = _FRAG_FIXED_BITS + (12 if offset < _NEAR_OFFSET else 20)
+    bits = _FRAG_FIXED_BITS + (FRAGMENT_NEAR_OFFSET_BITS if offset < _NEAR_OFFSET else 20)
     bits += _FRAG_MARKED_BITS + 8 * n_marks if n_marks else 0
     return 1 + (bits + 7) // 8 + n_data
 
