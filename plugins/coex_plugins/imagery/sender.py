@@ -16,6 +16,7 @@ Memory and queue bounds (documented in ``docs/imagery.md``):
 
 from __future__ import annotations
 
+import functools
 import itertools
 import math
 from collections import deque
@@ -71,11 +72,8 @@ MAX_MARKS = FRAGMENT_MAX_MARKS
 #: A fragment message never exceeds this (the wire maximum).
 MAX_MESSAGE = 251
 MAX_NEXT = 8
-#: image id, the "marked" and "far" bits, the data count; the offset in 12 bits below 4 KiB,
-#: else 20; a fragment with packet marks adds their count and the index of its first packet
-_FRAG_FIXED_BITS = 10 + 1 + 1 + 8
-_NEAR_OFFSET = 1 << FRAGMENT_NEAR_OFFSET_BITS
-_FRAG_MARKED_BITS = 5 + 10
+#: offsets from here on take the fragment header's long form
+_FAR_OFFSET = 1 << FRAGMENT_NEAR_OFFSET_BITS
 
 
 @persistent("imagery.ImageInput")
@@ -89,12 +87,19 @@ class ImageInput:
     y: float | None = None
 
 
+@functools.cache
+def _fragment_head(n_marks: int, far: bool) -> int:
+    """Bytes of a fragment's type id, header and marks, as the codec counts them: the data bytes
+    follow the header's bits, so every data byte adds exactly one byte to the message."""
+    probe = ImageFragment(0, _FAR_OFFSET if far else 0, 0 if n_marks else None, tuple(range(n_marks)),
+                          bytes(n_marks))
+    return encoded_size(probe) - n_marks
+
+
 def fragment_size(n_marks: int, n_data: int, offset: int = 0) -> int:
     """Encoded bytes of an ``ImageFragment`` at ``offset`` with ``n_marks`` packet marks and
     ``n_data`` data bytes (type id included; spec/wire-format.md, type 33)."""
-    bits = _FRAG_FIXED_BITS + (FRAGMENT_NEAR_OFFSET_BITS if offset < _NEAR_OFFSET else 20)
-    bits += _FRAG_MARKED_BITS + 8 * n_marks if n_marks else 0
-    return 1 + (bits + 7) // 8 + n_data
+    return _fragment_head(n_marks, offset >= _FAR_OFFSET) + n_data
 
 
 @persistent("imagery.Tx")
