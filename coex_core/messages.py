@@ -33,6 +33,7 @@ __all__ = [
     "FrameAckEntry",
     "FrameAck",
     "AuthTrailer",
+    "LinkHealth",
     "LinkStatus",
     "Opaque",
     # bathymetry
@@ -67,6 +68,7 @@ __all__ = [
     "SurveyPoint",
     "SurveyCommand",
     "SurveyStatus",
+    "SURVEY_DETAIL_MAX",
 ]
 
 
@@ -267,6 +269,20 @@ class LinkStatus(Message):
     bad_frames: int
     snr: float | None
     doppler: float | None
+
+
+@dataclass(frozen=True, slots=True)
+class LinkHealth(Message):
+    """Vehicle report: the outages of one of its modems (the device or stream gone and back),
+    sent when a modem goes down (on another link) or comes back, and with the status now and
+    then while it has had any."""
+
+    stamp: int
+    link: int
+    up: bool
+    outages: int
+    down_total: int
+    last_down: int
 
 
 @dataclass(frozen=True, slots=True)
@@ -652,6 +668,15 @@ class SurveyReason(enum.IntEnum):
     AUTONOMY_STOPPED = 9
     #: the speed asked is above the vehicle's maximum (``value``: the maximum, m/s)
     SPEED_LIMIT = 10
+    #: the vehicle's autonomy never answered (an autopilot that is down or not listening;
+    #: ``value``: the tries made before giving up)
+    AUTONOMY_NO_ANSWER = 11
+    #: someone or something on the vehicle took control (MOOS_MANUAL_OVERRIDE, a pilot's mode change)
+    MANUAL_OVERRIDE = 12
+    #: the vehicle's autonomy restarted and lost the survey (a helm restart mid-survey)
+    AUTONOMY_RESTARTED = 13
+    #: the autonomy stopped all motion (the IvP helm's all-stop; ``detail``: its reason)
+    ALL_STOP = 14
 
 
 @dataclass(frozen=True, slots=True)
@@ -688,7 +713,9 @@ class SurveyCommand(Message):
 
 @dataclass(frozen=True, slots=True)
 class SurveyStatus(Message):
-    """Vehicle report: the state of one survey (the newest state only; re-sent until acked)."""
+    """Vehicle report: the state of one survey (the newest state only; re-sent until acked).
+    ``detail`` is the autonomy's own words for a refusal or a stop (a helm's bad parameters, an
+    autopilot's result name), at most :data:`SURVEY_DETAIL_MAX` bytes of UTF-8."""
 
     survey_id: int
     state: SurveyState
@@ -696,3 +723,8 @@ class SurveyStatus(Message):
     stamp: int
     index: int | None = None
     value: float | None = None
+    detail: str | None = None
+
+
+#: Longest ``SurveyStatus.detail``, bytes of UTF-8.
+SURVEY_DETAIL_MAX = 48

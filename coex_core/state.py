@@ -99,12 +99,33 @@ def registered() -> dict[str, int]:
     return {n: c.version for n, c in sorted(_BY_NAME.items())}
 
 
+#: message classes whose saved form changed: name -> version (each change added optional fields,
+#: so an older saved one loads with those fields at their defaults)
+_MESSAGE_VERSIONS = {
+    "SurveyStatus": 2,  # 0.2.0: detail
+}
+
+
+def _with_defaults(cls: type) -> Callable[[dict[str, Any], int], dict[str, Any]]:
+    defaults = {f.name: f.default for f in dataclasses.fields(cls)  # type: ignore[arg-type]
+                if f.default is not dataclasses.MISSING}
+
+    def upgrade(fields: dict[str, Any], saved: int) -> dict[str, Any]:
+        return {**defaults, **fields}
+
+    return upgrade
+
+
 def _register_messages() -> None:
     """The wire format's messages, their parts and enums, by class name ("msg.Subgrid")."""
     for obj in vars(_messages).values():
         if not isinstance(obj, type) or obj.__module__ != _messages.__name__:
             continue
-        if dataclasses.is_dataclass(obj) or issubclass(obj, enum.Enum):
+        if dataclasses.is_dataclass(obj):
+            version = _MESSAGE_VERSIONS.get(obj.__name__, 1)
+            persistent("msg." + obj.__name__, version=version,
+                       upgrade=_with_defaults(obj) if version > 1 else None)(obj)
+        elif issubclass(obj, enum.Enum):
             persistent("msg." + obj.__name__)(obj)
 
 

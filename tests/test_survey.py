@@ -236,3 +236,66 @@ def test_lost_frames_delay_but_never_lose_the_states() -> None:
     assert rx.surveys[cmd.survey_id].state == "accepted"
     assert isinstance(vehicle, Node) and tx.surveys[cmd.survey_id].acked
     assert not [m for m in tx.fill(240, 2000.0) if isinstance(m, SurveyStatus)]
+
+
+# ------------------------------------------------------------------------------ autonomy outcomes
+@pytest.mark.parametrize(("report", "state", "reason", "words"), [
+    (SurveyReport(0, SurveyState.REJECTED, 61.0, SurveyReason.AUTONOMY_REFUSED, None, 15.0, "MAV_MISSION_DENIED"),
+     "rejected", "AUTONOMY_REFUSED", "the vehicle's autonomy refused it (code 15): MAV_MISSION_DENIED"),
+    (SurveyReport(0, SurveyState.REJECTED, 61.0, SurveyReason.AUTONOMY_REFUSED, None, None,
+                  "Faulty update for behavior: coex_survey. Bad parameter(s): speed, capture_radius"),
+     "rejected", "AUTONOMY_REFUSED", "refused it: Faulty update for behavior: coex_survey. Bad par"),
+    (SurveyReport(0, SurveyState.REJECTED, 61.0, SurveyReason.AUTONOMY_NO_ANSWER, None, 6.0),
+     "rejected", "AUTONOMY_NO_ANSWER", "no answer from the vehicle's autonomy (after 6 tries)"),
+    (SurveyReport(0, SurveyState.ABORTED, 61.0, SurveyReason.MANUAL_OVERRIDE, None, None, "MOOS_MANUAL_OVERRIDE"),
+     "aborted", "MANUAL_OVERRIDE", "taken over on the vehicle (manual override): MOOS_MANUAL_OVERRIDE"),
+    (SurveyReport(0, SurveyState.ABORTED, 61.0, SurveyReason.AUTONOMY_RESTARTED),
+     "aborted", "AUTONOMY_RESTARTED", "the vehicle's autonomy restarted and dropped it"),
+    (SurveyReport(0, SurveyState.ABORTED, 61.0, SurveyReason.ALL_STOP, None, None, "MissingDecVars:depth"),
+     "aborted", "ALL_STOP", "stopped all motion: MissingDecVars:depth"),
+])
+def test_each_autonomy_outcome_reaches_topside_in_its_own_words(report: SurveyReport, state: str, reason: str,
+                                                                words: str) -> None:
+    vehicle, topside, tx, rx = _nodes()
+    cmd = rx.request("goto", 1.0, 1.0, 0.0)
+    _run(vehicle, topside, 0.0, 60.0)
+    assert rx.surveys[cmd.survey_id].state == "accepted"
+    tx.ingest(report, 61.0)
+    _run(vehicle, topside, 61.0, 100.0)
+    rec = rx.surveys[cmd.survey_id]
+    assert (rec.state, rec.reason) == (state, reason)
+    assert words in rec.text
+    assert tx.active_plan() is None  # whatever ended it, the vehicle no longer flies it
+
+
+def test_a_long_detail_is_cut_to_what_the_wire_carries() -> None:
+    s = SurveySender({"geofence": FENCE})
+    s.handle(_cmd(1, 1), 0.0)
+    s.ingest(SurveyReport(1, SurveyState.REJECTED, 1.0, SurveyReason.AUTONOMY_REFUSED, detail="é" * 40 + "\nx"), 1.0)
+    [m] = s.fill(200, 2.0)
+    assert isinstance(m, SurveyStatus) and m.detail is not None
+    assert len(m.detail.encode()) <= 48 and m.detail == "é" * 24
+
+
+def test_history_is_in_the_vehicles_time_order_whatever_order_it_arrives_in() -> None:
+    r = SurveyReceiver()
+    cmd = r.request("line", 0.0, 0.0, 0.0, heading=0.0, length=10.0)
+    r.receive(CommandAck(cmd.command_id, AckStatus.ACCEPTED), 5.0)
+    r.receive(SurveyStatus(cmd.survey_id, SurveyState.COMPLETED, SurveyReason.NONE, 300), 400.0)
+    r.receive(SurveyStatus(cmd.survey_id, SurveyState.STARTED, SurveyReason.NONE, 100, 1), 410.0)
+    rec = r.surveys[cmd.survey_id]
+    assert rec.state == "completed"  # the late "started" is history, not the present
+    assert [h[0] for h in rec.history] == sorted(h[0] for h in rec.history)
+    assert [h[1] for h in rec.history] == ["requested", "accepted", "started", "completed"]
+
+
+def test_an_older_saved_status_without_detail_still_loads() -> None:
+    s = SurveySender({"geofence": FENCE})
+    s.handle(_cmd(1, 1), 0.0)
+    data = dumps(s)
+    n = int.from_bytes(data[10:14], "big")
+    doc = data[14:14 + n].replace(b'"survey.TxSurvey":2', b'"survey.TxSurvey":1').replace(b',"detail":null', b"")
+    doc = doc.replace(b'"detail":null,', b"")
+    assert b"detail" not in doc and b'"survey.TxSurvey":1' in doc
+    s2 = loads(data[:10] + len(doc).to_bytes(4, "big") + doc + data[14 + n:])
+    assert s2.surveys[1].detail is None and s2.surveys[1].status().detail is None

@@ -513,6 +513,15 @@ def Flag(of: str) -> cs.Construct:
     return c
 
 
+def Given(of: str) -> cs.Construct:
+    """A derived bit: 1 when the optional field ``<of>`` is given (it is then present)."""
+    c = cs.Rebuild(Bool(), lambda ctx: ctx[of] is not None)
+    c.coex_spec = FieldSpec("1", "0..1", "1", note=f"1 when `{of}` is given", coding="unsigned",
+                            presence="always (derived)")
+    c.coex_derived = True
+    return c
+
+
 class NearFar(UInt):
     """An unsigned number in ``near`` bits when an earlier derived bit ``flag`` is 0 (the number is
     below ``2**near``), else in ``far`` bits. Build the flag with :func:`FarFlag`, and add a

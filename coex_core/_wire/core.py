@@ -11,6 +11,7 @@ from ..messages import (
     FrameAck,
     FrameAckEntry,
     LinkControl,
+    LinkHealth,
     LinkStatus,
     QueueConfig,
     QueueStatus,
@@ -123,6 +124,17 @@ LINK_STATUS = Body(
     "bad_frames" / Bounded(0, 63, saturating=True) * "Frames that failed their CRC",
     "snr" / Bounded(-20, 50, 0.5, optional=True, unit="dB") * "Output SNR",
     "doppler" / Bounded(-12.7, 12.7, 0.1, optional=True, unit="m/s") * "Doppler",
+)
+
+
+LINK_HEALTH = Body(
+    "stamp" / Stamp() * "Time of the report",
+    "link" / LINK,
+    "up" / Bool() * "The modem is there now",
+    "outages" / Bounded(0, 255, saturating=True) * "Outages since the node started",
+    "down_total" / Bounded(0, 2**20 - 1, saturating=True, unit="s") * "Time down in all, outages so far",
+    "last_down" / Bounded(0, 2**20 - 1, saturating=True, unit="s")
+    * "Length of the last outage (up = 0: of the present one so far)",
 )
 
 
@@ -260,5 +272,16 @@ register(MessageSpec(
         ("one_frame", FrameAck(2, 0, (FrameAckEntry(0, 0b1),))),
         ("two_packets", FrameAck(1, 1, (FrameAckEntry(17, 0b11111111), FrameAckEntry(18, 0b00100101)))),
         ("largest", FrameAck(15, 7, tuple(FrameAckEntry(255, 255) for _ in range(16)))),
+    ],
+))
+register(MessageSpec(
+    13, LinkHealth, LINK_HEALTH, False, "core",
+    "Vehicle report: a modem's outages (gone and back), so the ship knows how long it was deaf.",
+    largest=lambda: LinkHealth(2**18 - 1, 7, True, 255, 2**20 - 1, 2**20 - 1),
+    cases=lambda: [
+        ("never_down", LinkHealth(0, 0, True, 0, 0, 0)),
+        ("back_after_3_min", LinkHealth(7200, 0, True, 2, 412, 185)),
+        ("down_now", LinkHealth(9000, 1, False, 1, 60, 60)),
+        ("saturated", LinkHealth(2**18 - 1, 7, True, 255, 2**20 - 1, 2**20 - 1)),
     ],
 ))

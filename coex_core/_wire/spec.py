@@ -290,6 +290,9 @@ def _spec_rule_cases() -> list[tuple[str, str, bytes, str]]:
         ("float_nan", "message", _bits((50, 8), (1, 8), (0, 5), (0, 18), (0, 18), (0, 7), (_f32(float("nan")), 0)),
          "non-finite"),
         ("text_not_utf8", "message", bytes([0x30, len(channel)]) + channel, "utf-8"),
+        # survey 1 REJECTED AUTONOMY_REFUSED at 0, no index, no value, has_detail 1 with 0 bytes
+        ("survey_detail_empty", "message",
+         _bits((12, 8), (1, 10), (1, 3), (6, 4), (0, 18), (0, 9), (0, 17), (1, 1), (0, 8)), "empty"),
     ]
 
 

@@ -6,6 +6,7 @@ from __future__ import annotations
 import construct as cs
 
 from ..messages import (
+    SURVEY_DETAIL_MAX,
     SurveyCommand,
     SurveyKind,
     SurveyPoint,
@@ -13,7 +14,7 @@ from ..messages import (
     SurveyState,
     SurveyStatus,
 )
-from ._primitives import Body, Bool, Bounded, Count, Enum, Rule, Stamp
+from ._primitives import Body, Bool, Bounded, Count, Enum, Given, Rule, Stamp, Text, When
 from ._registry import MessageSpec, register
 
 #: Further waypoints of a WAYPOINTS survey (the first is ``x``, ``y``).
@@ -69,7 +70,12 @@ SURVEY_STATUS = Body(
     "index" / Bounded(0, 255, optional=True)
     * "STARTED: the waypoint it heads for; REJECTED: the first waypoint that broke the rule",
     "value" / Bounded(0, 10000, 0.1, optional=True, unit="m, or m/s")
-    * "REJECTED: how far outside the geofence, or the limit that was broken",
+    * "REJECTED: how far outside the geofence, the limit that was broken, or the autonomy's code; "
+    "AUTONOMY_NO_ANSWER: the tries made",
+    "has_detail" / Given("detail"),
+    "detail" / When("`has_detail` = 1", cs.this.has_detail, Text(SURVEY_DETAIL_MAX))
+    * "REJECTED, ABORTED: the autonomy's own words (e.g. the helm's bad parameters)",
+    Rule(lambda ctx: ctx.detail is None or len(ctx.detail) > 0, "`has_detail` is 1 and `detail` is empty (absent is `has_detail` = 0)"),
 )
 
 _FAR = 50000.0
@@ -93,11 +99,19 @@ register(MessageSpec(
 register(MessageSpec(
     12, SurveyStatus, SURVEY_STATUS, False, "survey",
     "Vehicle report: the newest state of one survey (re-sent until acknowledged).",
-    largest=lambda: SurveyStatus(1023, SurveyState.ABORTED, SurveyReason.SPEED_LIMIT, 2**18 - 1, 255, 10000.0),
+    largest=lambda: SurveyStatus(1023, SurveyState.ABORTED, SurveyReason.ALL_STOP, 2**18 - 1, 255, 10000.0,
+                                 "x" * SURVEY_DETAIL_MAX),
     cases=lambda: [
         ("accepted", SurveyStatus(0, SurveyState.ACCEPTED, SurveyReason.NONE, 0)),
         ("outside_fence", SurveyStatus(17, SurveyState.REJECTED, SurveyReason.OUTSIDE_GEOFENCE, 5123, 3, 212.5)),
         ("started", SurveyStatus(3, SurveyState.STARTED, SurveyReason.NONE, 7200, 1)),
-        ("largest", SurveyStatus(1023, SurveyState.ABORTED, SurveyReason.SPEED_LIMIT, 2**18 - 1, 255, 10000.0)),
+        ("helm_refused", SurveyStatus(5, SurveyState.REJECTED, SurveyReason.AUTONOMY_REFUSED, 812, None, None,
+                                      "Bad parameter(s): speed")),
+        ("autopilot_refused", SurveyStatus(6, SurveyState.REJECTED, SurveyReason.AUTONOMY_REFUSED, 900, None, 15.0,
+                                           "MAV_MISSION_DENIED")),
+        ("no_answer", SurveyStatus(7, SurveyState.REJECTED, SurveyReason.AUTONOMY_NO_ANSWER, 950, None, 6.0)),
+        ("override", SurveyStatus(8, SurveyState.ABORTED, SurveyReason.MANUAL_OVERRIDE, 1000, 3)),
+        ("largest", SurveyStatus(1023, SurveyState.ABORTED, SurveyReason.ALL_STOP, 2**18 - 1, 255, 10000.0,
+                                 "x" * SURVEY_DETAIL_MAX)),
     ],
 ))

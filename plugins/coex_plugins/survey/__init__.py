@@ -35,7 +35,7 @@ from coex_core.state import persistent
 from coex_core.timefmt import to_stamp, unwrap
 from coex_core.wire import encode, encoded_size
 
-from .plan import Geofence, Refusal, SurveyPlan, SurveyReport, describe, plan_of
+from .plan import Geofence, Refusal, SurveyPlan, SurveyReport, cut_detail, describe, plan_of
 
 __all__ = ["SurveyModality", "SurveyPlan", "SurveyReceiver", "SurveyReport", "SurveySender"]
 
@@ -63,29 +63,36 @@ class InvalidReport(CoexError, ValueError):
 FINAL = (SurveyState.REJECTED, SurveyState.COMPLETED, SurveyState.ABORTED)
 
 
-@persistent("survey.TxSurvey")
+def _upgrade_tx_survey(fields: dict[str, Any], saved: int) -> dict[str, Any]:
+    return {"detail": None, **fields}  # version 1 had no detail
+
+
+@persistent("survey.TxSurvey", version=2, upgrade=_upgrade_tx_survey)
 class _Survey:
     """One survey on the vehicle: its plan (None when refused) and its newest state."""
 
-    __slots__ = ("acked", "command", "index", "plan", "reason", "sent_at", "state", "survey_id", "time",
-                 "value")
+    __slots__ = ("acked", "command", "detail", "index", "plan", "reason", "sent_at", "state", "survey_id",
+                 "time", "value")
 
     def __init__(self, survey_id: int, command: SurveyCommand | None, plan: SurveyPlan | None,
                  state: SurveyState, time: float, reason: SurveyReason = SurveyReason.NONE,
-                 index: int | None = None, value: float | None = None) -> None:
+                 index: int | None = None, value: float | None = None, detail: str | None = None) -> None:
         self.survey_id, self.command, self.plan = survey_id, command, plan
         self.state, self.time, self.reason, self.index, self.value = state, time, reason, index, value
+        self.detail = cut_detail(detail)
         self.sent_at: float | None = None
         self.acked = False
 
     def status(self) -> SurveyStatus:
         index = None if self.index is None else max(0, min(int(self.index), 255))
         value = None if self.value is None else round(max(0.0, min(float(self.value), 10000.0)), 1)
-        return SurveyStatus(self.survey_id, self.state, self.reason, to_stamp(self.time), index, value)
+        return SurveyStatus(self.survey_id, self.state, self.reason, to_stamp(self.time), index, value,
+                            self.detail)
 
     def set(self, state: SurveyState, time: float, reason: SurveyReason = SurveyReason.NONE,
-            index: int | None = None, value: float | None = None) -> None:
+            index: int | None = None, value: float | None = None, detail: str | None = None) -> None:
         self.state, self.time, self.reason, self.index, self.value = state, time, reason, index, value
+        self.detail = cut_detail(detail)
         self.sent_at, self.acked = None, False
 
 
@@ -133,7 +140,7 @@ class SurveySender(ModalitySender):
             return
         if s.state == r.state == SurveyState.STARTED and s.index == r.index:
             return
-        s.set(SurveyState(r.state), r.time, SurveyReason(r.reason), r.index, r.value)
+        s.set(SurveyState(r.state), r.time, SurveyReason(r.reason), r.index, r.value, r.detail)
         if s.state in FINAL and r.survey_id in self.queue:
             first = self.queue[0] == r.survey_id
             self.queue.remove(r.survey_id)
@@ -232,12 +239,16 @@ def _same(a: SurveyCommand, b: SurveyCommand) -> bool:
 
 
 # ================================================================================ topside
-@persistent("survey.RxSurvey")
+def _upgrade_rx_survey(fields: dict[str, Any], saved: int) -> dict[str, Any]:
+    return {"vtime": None, **fields}  # version 1 did not keep the newest vehicle time
+
+
+@persistent("survey.RxSurvey", version=2, upgrade=_upgrade_rx_survey)
 class SurveyRecord:
     """What topside knows of one survey it asked for (or heard of)."""
 
     __slots__ = ("command", "command_id", "history", "index", "reason", "state", "survey_id", "text",
-                 "time", "value", "version")
+                 "time", "value", "version", "vtime")
 
     def __init__(self, survey_id: int, command: SurveyCommand | None, now: float) -> None:
         self.survey_id = survey_id
@@ -252,10 +263,20 @@ class SurveyRecord:
         self.time = now
         self.history: list[tuple[float, str, str]] = [(now, self.state, "")]
         self.version = 1
+        #: the vehicle's time of the newest SurveyStatus taken (None: none yet)
+        self.vtime: float | None = None
 
     def set(self, state: str, time: float, text: str = "", reason: str | None = None) -> None:
         self.state, self.time, self.text, self.reason = state, time, text, reason
-        self.history.append((time, state, text))
+        self.note(time, state, text)
+
+    def note(self, time: float, state: str, text: str = "") -> None:
+        """Add a state to the history, in the vehicle's time order (reports can arrive out of
+        order over the link; what came to topside first is not what happened first)."""
+        at = len(self.history)
+        while at > 0 and self.history[at - 1][0] > time:
+            at -= 1
+        self.history.insert(at, (time, state, text))
         self.version += 1
 
 
@@ -328,13 +349,17 @@ class SurveyReceiver(ModalityReceiver):
         t = unwrap(message.stamp, now)
         state = SurveyState(message.state).name.lower()
         reason = SurveyReason(message.reason)
-        text = describe(reason, message.index, message.value) if reason != SurveyReason.NONE else ""
+        text = describe(reason, message.index, message.value, message.detail) if reason != SurveyReason.NONE else ""
         if state == "started" and message.index is not None:
             text = f"heading for waypoint {message.index}"
         same = (rec.state, rec.text, rec.index) == (state, text, message.index)
-        if same or (rec.state in ("completed", "aborted", "rejected") and rec.reason is not None
-                    and state in ("accepted", "started")):
-            return []  # a copy, or an older state arriving late
+        if same or any(h[0] == t and h[1] == state and h[2] == text for h in rec.history):
+            return []  # a copy
+        if (rec.vtime is not None and t < rec.vtime) or (
+                rec.state in ("completed", "aborted", "rejected") and state in ("accepted", "started")):
+            rec.note(t, state, text)  # an older state arriving late: history, not the present
+            return [self._product(rec)]
+        rec.vtime = t
         rec.index, rec.value = message.index, message.value
         rec.set(state, t, text, reason.name if reason != SurveyReason.NONE else None)
         if rec.command_id is not None:

@@ -18,10 +18,16 @@ from typing import Any
 import numpy as np
 
 from coex_core.errors import ConfigError
-from coex_core.messages import SurveyCommand, SurveyKind, SurveyReason, SurveyState
+from coex_core.messages import (
+    SURVEY_DETAIL_MAX,
+    SurveyCommand,
+    SurveyKind,
+    SurveyReason,
+    SurveyState,
+)
 from coex_core.state import persistent
 
-__all__ = ["Geofence", "Refusal", "SurveyPlan", "SurveyReport", "describe", "plan_of"]
+__all__ = ["Geofence", "Refusal", "SurveyPlan", "SurveyReport", "cut_detail", "describe", "plan_of"]
 
 #: most lawnmower rows a command may expand to (a 10 km wide box at 0.5 m is refused as INVALID)
 MAX_ROWS = 200
@@ -57,8 +63,11 @@ class SurveyPlan:
 @dataclass(frozen=True)
 class SurveyReport:
     """What the vehicle's autonomy says about a survey (the survey sender's input):
-    ``state`` STARTED (``index``: the waypoint it heads for), COMPLETED, ABORTED (``reason``)
-    or REJECTED (``reason`` AUTONOMY_REFUSED: the autopilot did not take it)."""
+    ``state`` STARTED (``index``: the waypoint it heads for), COMPLETED, ABORTED (``reason``:
+    AUTONOMY_STOPPED, MANUAL_OVERRIDE, AUTONOMY_RESTARTED, ALL_STOP) or REJECTED (``reason``
+    AUTONOMY_REFUSED: the autopilot or helm did not take it, ``value`` its code, ``detail`` its
+    words; AUTONOMY_NO_ANSWER: it never answered, ``value`` the tries made). ``detail`` goes
+    topside cut to :data:`~coex_core.messages.SURVEY_DETAIL_MAX` bytes."""
 
     survey_id: int
     state: SurveyState
@@ -66,6 +75,7 @@ class SurveyReport:
     reason: SurveyReason = SurveyReason.NONE
     index: int | None = None
     value: float | None = None
+    detail: str | None = None
 
 
 @dataclass(frozen=True)
@@ -269,13 +279,25 @@ _REASONS = {
     SurveyReason.NO_AUTONOMY: "the vehicle has no autonomy that takes surveys",
     SurveyReason.AUTONOMY_STOPPED: "the vehicle's autonomy stopped it",
     SurveyReason.SPEED_LIMIT: "faster than the vehicle's maximum speed",
+    SurveyReason.AUTONOMY_NO_ANSWER: "no answer from the vehicle's autonomy",
+    SurveyReason.MANUAL_OVERRIDE: "taken over on the vehicle (manual override)",
+    SurveyReason.AUTONOMY_RESTARTED: "the vehicle's autonomy restarted and dropped it",
+    SurveyReason.ALL_STOP: "the vehicle's autonomy stopped all motion",
 }
 
 
-def describe(reason: SurveyReason | int, index: int | None = None, value: float | None = None) -> str:
+def describe(reason: SurveyReason | int, index: int | None = None, value: float | None = None,
+             detail: str | None = None) -> str:
     """A reason in words, as the console shows it: "waypoint 3 is 212.5 m outside the
-    geofence", "below the vehicle's minimum altitude (3.0 m)"."""
-    reason = SurveyReason(reason)
+    geofence", "below the vehicle's minimum altitude (3.0 m)", "the vehicle's autonomy refused
+    it (code 15: MAV_MISSION_DENIED)", "no answer from the vehicle's autonomy (after 6 tries)"."""
+    text = _describe(SurveyReason(reason), index, value)
+    if detail:
+        text += f": {detail}"
+    return text
+
+
+def _describe(reason: SurveyReason, index: int | None, value: float | None) -> str:
     if reason == SurveyReason.OUTSIDE_GEOFENCE:
         where = f"waypoint {index}" if index is not None else "a waypoint"
         if value:
@@ -287,7 +309,22 @@ def describe(reason: SurveyReason | int, index: int | None = None, value: float 
         text += f" ({value:g} m)"
     elif value is not None and reason == SurveyReason.SPEED_LIMIT:
         text += f" ({value:g} m/s)"
+    elif value is not None and reason in (SurveyReason.AUTONOMY_REFUSED, SurveyReason.AUTONOMY_STOPPED):
+        text += f" (code {value:g})"
+    elif value is not None and reason == SurveyReason.AUTONOMY_NO_ANSWER:
+        text += f" (after {value:g} tries)"
     return text
+
+
+def cut_detail(text: str | None) -> str | None:
+    """``text`` as ``SurveyStatus.detail`` carries it: one line, at most SURVEY_DETAIL_MAX bytes of
+    UTF-8 (cut at a character), None when empty."""
+    if not text:
+        return None
+    line = " ".join(str(text).split())
+    data = line.encode("utf-8")[:SURVEY_DETAIL_MAX]
+    out = data.decode("utf-8", errors="ignore").rstrip()
+    return out or None
 
 
 def waypoints_array(plan: SurveyPlan) -> np.ndarray:
