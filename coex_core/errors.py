@@ -16,6 +16,7 @@ __all__ = [
     "PluginNotFound",
     "TransportError",
     "TransportTimeout",
+    "LinkDown",
     "FrameTooLarge",
     "RequestRejected",
     "AuthenticationError",
@@ -57,6 +58,12 @@ class TransportError(CoexError, OSError):
 
 class TransportTimeout(TransportError, TimeoutError):
     """A transport operation timed out."""
+
+
+class LinkDown(TransportError):
+    """A transport's device or stream is gone for now and being reopened: what was offered is not
+    sent (the protocol's acks recover it once the link is back). The run loop counts these
+    quietly instead of logging each one."""
 
 
 class FrameTooLarge(TransportError, EncodeError):

@@ -80,7 +80,7 @@ class Dive:
             for tx in self.vehicle.poll(now):
                 for f in tx.frames:
                     self.vtr.send(f)
-            self.app.transport.link.clock.advance(dt)  # the loopback's own clock
+            self.app.transport.inner.link.clock.advance(dt)  # the loopback's own clock (behind the resilient link)
             self.app.step()
             self.now[0] += dt
             k += 1

@@ -798,6 +798,45 @@ class ConsoleState:
         lk["history"].append((t, s.snr, s.frames, s.bad_frames))
         self._touch("link")
 
+    def _on_link_health(self, h: m.LinkHealth, now: float) -> None:
+        """The vehicle's report of one of its modems' outages (gone and back)."""
+        from coex_transports.recovery import describe_seconds
+
+        lk = self._link(h.link)
+        t = unwrap(h.stamp, now)
+        prev = lk.get("vehicle_modem")
+        if prev is not None and prev["t"] > t:
+            return  # an older report arriving late
+        lk["vehicle_modem"] = {"t": _num(t, 1), "up": h.up, "outages": h.outages, "down_total": h.down_total,
+                               "last_down": h.last_down}
+        if h.up:
+            text = (f"vehicle modem {h.link} was down {describe_seconds(h.last_down)} (outage {h.outages}; "
+                    f"{describe_seconds(h.down_total)} down in all)")
+        else:
+            text = f"vehicle modem {h.link} is down (outage {h.outages}, reported over another link)"
+        self._log(now, text, "warn")
+        self._touch("link")
+
+    def set_own_modem(self, link: int, up: bool, outages: int, down_total: float, last_down: float,
+                      last_error: str, now: float) -> None:
+        """Topside's own modem on ``link``: up or being reopened, its outages so far."""
+        from coex_transports.recovery import describe_seconds
+
+        lk = self._link(link)
+        new = {"up": up, "outages": outages, "down_total": _num(down_total, 0), "last_down": _num(last_down, 0),
+               "last_error": last_error if not up else ""}
+        old = lk.get("topside_modem")
+        if old is not None and (old["up"], old["outages"]) == (up, outages):
+            if not up:  # the outage grows: shown, not logged
+                lk["topside_modem"] = new
+            return
+        lk["topside_modem"] = new
+        if outages and (old is not None or not up):
+            self._log(now, f"topside modem {link}: " + (
+                f"back after {describe_seconds(last_down)} (outage {outages})" if up else
+                f"lost ({last_error}); reopening it"), "warn")
+        self._touch("link")
+
     # ------------------------------------------------------------------------ queues
     def _on_queue_status(self, q: m.QueueStatus, now: float) -> None:
         self.queue_stamp = unwrap(q.stamp, now)
@@ -1443,6 +1482,7 @@ def ack_reason(msg: m.Message, status: str, was_pending: bool = False) -> str:
 _HANDLERS: dict[type, Callable[[ConsoleState, Any, float, int | None], None]] = {
     m.VehicleStatus: lambda s, msg, now, link: s._on_status(msg, now),
     m.LinkStatus: lambda s, msg, now, link: s._on_link_status(msg, now),
+    m.LinkHealth: lambda s, msg, now, link: s._on_link_health(msg, now),
     m.QueueStatus: lambda s, msg, now, link: s._on_queue_status(msg, now),
     m.CommandAck: lambda s, msg, now, link: s._on_command_ack(msg, now),
 }

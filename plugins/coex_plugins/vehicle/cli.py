@@ -55,6 +55,8 @@ def _check(args: argparse.Namespace) -> int:
             problems = ["a MOOS mission's pCoex block configures the vehicle"]
     else:
         cfg, problems = check(args.file, args.role)
+    for text in cfg.warnings if cfg is not None else ():
+        print(f"{args.file}: warning: {text}")
     if problems:
         for text in problems:
             print(f"{args.file}: {text}")
@@ -93,7 +95,9 @@ def run_vehicle(args: argparse.Namespace) -> int:
         print(f"coex vehicle: {exc}", file=sys.stderr)
         return 2
     st = app.store
-    print(f"coex vehicle: node {cfg.node_id} on {', '.join(m.uri for m in cfg.modems)}; "
+    waiting = [f"link {lid} waiting for its modem" for lid, tr in app.transports.items() if not tr.up]
+    print(f"coex vehicle: node {cfg.node_id} on {', '.join(m.uri for m in cfg.modems)}"
+          + (f" ({', '.join(waiting)})" if waiting else "") + "; "
           f"modalities {', '.join(m.name for m in cfg.modalities)}; "
           f"{len(app.inputs)} input(s); autonomy {cfg.autonomy.get('type')}; "
           + (f"store {cfg.store} ({'resumed, ' + str(st.stats['replayed']) + ' journal rows replayed' if app.resumed else 'new'})"
@@ -109,5 +113,10 @@ def run_vehicle(args: argparse.Namespace) -> int:
             pass
         finally:
             app.close()
-            print(f"coex vehicle: stopped ({', '.join(f'{k} {v}' for k, v in app.counts.items())})", flush=True)
+            from coex_transports.recovery import describe_seconds
+
+            modems = [f"link {lid}: {h.outages} outage{'s' if h.outages != 1 else ''}, down "
+                      f"{describe_seconds(h.down_total)}" for lid, h in app.link_health().items() if h.outages]
+            print(f"coex vehicle: stopped ({', '.join(f'{k} {v}' for k, v in app.counts.items())})"
+                  + (f"; {'; '.join(modems)}" if modems else ""), flush=True)
     return 0

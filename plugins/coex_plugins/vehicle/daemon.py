@@ -37,12 +37,15 @@ TAKEN_MAX = 20000
 
 
 def open_transports(cfg: DeployConfig) -> dict[int, Any]:
-    from coex_core.registry import open_transport
+    """One :class:`~coex_transports.recovery.ResilientTransport` per modem (link 0, 1, ...): a
+    modem that goes away, or is not there at start, is reopened with backoff while the node runs
+    on (``required = true`` makes one missing at start an error)."""
+    from coex_transports.recovery import ResilientTransport
 
     out: dict[int, Any] = {}
     try:
         for i, m in enumerate(cfg.modems):
-            out[i] = open_transport(m.uri)
+            out[i] = ResilientTransport(m.uri, name=f"link {i}", required=m.required)
     except BaseException:
         for tr in out.values():
             tr.close()
@@ -157,6 +160,8 @@ class VehicleApp:
         self._broken: dict[str, float] = {}
         self.counts: dict[str, int] = {"points": 0, "images": 0, "samples": 0, "nav": 0, "skipped": 0,
                                        "plans": 0, "reports": 0}
+        #: per link: (up, outages) last reported topside in a LinkHealth
+        self._health_sent: dict[int, tuple[bool, int]] = {}
 
     # ------------------------------------------------------------------------ lifecycle
     def open(self) -> VehicleApp:
@@ -214,7 +219,27 @@ class VehicleApp:
             for item in items:
                 self._take(inp, item, now)
         self._status(now)
+        self._link_health(now)
         self._autonomy(now)
+
+    def link_health(self) -> dict[int, Any]:
+        """Each modem's :class:`~coex_transports.recovery.Health` (outages, time down)."""
+        return {lid: tr.health() for lid, tr in self.transports.items()}
+
+    def _link_health(self, now: float) -> None:
+        """A LinkHealth topside whenever a modem went down or came back (sent on whichever link is
+        up; the one that was down reports once it is back)."""
+        from coex_core.messages import LinkHealth
+        from coex_core.timefmt import to_stamp
+
+        for lid, h in self.link_health().items():
+            key = (h.up, h.outages)
+            if h.outages == 0 or self._health_sent.get(lid) == key:
+                continue
+            self._health_sent[lid] = key
+            cap = 2**20 - 1
+            self.node.push_link_health(LinkHealth(to_stamp(now), lid, h.up, min(h.outages, 255),
+                                                  min(round(h.down_total), cap), min(round(h.last_down), cap)), now)
 
     def _ingest(self, name: str, data: Any, what: str) -> bool:
         if name not in self.names:

@@ -15,6 +15,7 @@ from coex_core.errors import PluginLoadError
 
 __all__ = [
     "LogOnce",
+    "serial_device",
     "compass_from_enu_yaw",
     "finite",
     "need",
@@ -56,6 +57,14 @@ class LogOnce:
         self.counts[key] = n + 1
         if n == 0:
             self.logger.log(level, message, *args)
+
+
+def serial_device(connection: Any) -> list[tuple[str, str, str]]:
+    """The serial device of a pymavlink connection string (``/dev/ttyACM0``, ``/dev/ttyUSB0,57600``),
+    as an :meth:`Adapter.paths` entry of the option ``connection``; none for a network one."""
+    if not isinstance(connection, str) or not connection.startswith("/"):
+        return []
+    return [("connection", connection.split(",", 1)[0], "device")]
 
 
 # --------------------------------------------------------------------------- option checks

@@ -1324,7 +1324,7 @@ function renderLink() {
       : "none garbled";
     const rate = lastRate(lk);
     tb.append(el("tr", { "data-link": lk.link }, el("td", {}, lk.link),
-      el("td", { class: lk.enabled ? "on" : "off" }, state),
+      el("td", { class: lk.enabled ? "on" : "off" }, state, ...modemWords(lk)),
       el("td", { class: "words" }, lk.snr === null || lk.snr === undefined ? "–" : `${Number(lk.snr).toFixed(1)} dB`,
         el("div", { class: "expl" }, snrWords(lk.snr))),
       el("td", { class: "words", "data-col": "frames" }, heard, ours.length ? el("div", { class: "expl" }, ours.join(", ")) : "",
@@ -1339,6 +1339,27 @@ function renderLink() {
     sl.value = L.schedules[0].slots.map((s) => `${s.owner}:${s.duration}:${s.guard}`).join(", ");
     $("#sched-link").value = L.schedules[0].link;
   }
+}
+// the modems' outages: topside's own (being reopened, or back) and the vehicle's (its LinkHealth)
+function modemWords(lk) {
+  const out = [];
+  const own = lk.topside_modem;
+  if (own && !own.up) out.push(el("div", { class: "expl bad", "data-modem": "topside" },
+    `topside modem DOWN for ${fmtSecs(own.last_down)}: reopening it (${own.last_error || "no answer"})`));
+  else if (own && own.outages) out.push(el("div", { class: "expl", "data-modem": "topside" },
+    `topside modem: ${own.outages} outage${own.outages === 1 ? "" : "s"}, ${fmtSecs(own.down_total)} down in all`));
+  const veh = lk.vehicle_modem;
+  if (veh && !veh.up) out.push(el("div", { class: "expl bad", "data-modem": "vehicle" },
+    `vehicle modem DOWN (outage ${veh.outages}, reported over another link)`));
+  else if (veh && veh.outages) out.push(el("div", { class: "expl", "data-modem": "vehicle" },
+    `vehicle modem: ${veh.outages} outage${veh.outages === 1 ? "" : "s"}, last ${fmtSecs(veh.last_down)}, ${fmtSecs(veh.down_total)} down in all`));
+  return out;
+}
+function fmtSecs(s) {
+  s = Math.max(0, Math.round(Number(s) || 0));
+  if (s < 60) return `${s} s`;
+  if (s < 3600) return s % 60 ? `${Math.floor(s / 60)} min ${s % 60} s` : `${Math.floor(s / 60)} min`;
+  return `${Math.floor(s / 3600)} h ${Math.floor((s % 3600) / 60)} min`;
 }
 function snrWords(snr) {
   if (snr === null || snr === undefined) return "signal strength: not reported";

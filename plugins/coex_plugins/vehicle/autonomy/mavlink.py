@@ -249,6 +249,12 @@ class MavlinkAutonomy(Autonomy):
             p.append(f"autonomy 'mavlink': start must be one of {', '.join(_STARTS)}, got {options['start']!r}")
         return p
 
+    @classmethod
+    def paths(cls, options: Mapping[str, Any]) -> list[tuple[str, str, str]]:
+        from ..options import serial_device
+
+        return serial_device(options.get("connection"))
+
     def __init__(self, options: Mapping[str, Any], context: Any) -> None:
         super().__init__(options, context)
         cfg = self.config

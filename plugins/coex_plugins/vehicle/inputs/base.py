@@ -130,6 +130,15 @@ class Adapter:
         one sentence each, naming the key. Optional."""
         return []
 
+    @classmethod
+    def paths(cls, options: Mapping[str, Any]) -> list[tuple[str, str, str]]:
+        """The local files, folders and devices the adapter will open, as ``(option, path,
+        kind)`` with kind ``"file"``, ``"folder"``, ``"file or folder"`` (taken from the
+        configuration's directory when relative) or ``"device"`` (as given). ``coex config
+        check`` warns, naming the option, about any that is not there now (it may be by the time
+        the adapter opens it; a device may be plugged in later). Optional: the default is none."""
+        return []
+
     def open(self) -> None:
         """Start (open files, sockets, subscriptions; connect)."""
 

@@ -46,6 +46,7 @@ import numpy as np
 from ..options import (
     LogOnce,
     need,
+    serial_device,
     want_bool,
     want_choice,
     want_int,
@@ -128,6 +129,10 @@ class MavlinkInput(Input):
         if isinstance(dialect, str) and dialect and not dialect.isidentifier():
             problems.append(f"input {n!r}: option 'dialect' must be a pymavlink dialect name, not {dialect!r}")
         return problems
+
+    @classmethod
+    def paths(cls, options: Mapping[str, Any]) -> list[tuple[str, str, str]]:
+        return serial_device(options.get("connection"))
 
     def __init__(self, options: Mapping[str, Any], context: InputContext) -> None:
         super().__init__(options, context)

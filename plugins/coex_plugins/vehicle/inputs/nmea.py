@@ -160,6 +160,11 @@ class NmeaInput(Input):
                 problems.append(f"input {n!r}: option 'channels.{key}' must be a channel name")
         return problems
 
+    @classmethod
+    def paths(cls, options: Mapping[str, Any]) -> list[tuple[str, str, str]]:
+        port = options.get("serial")
+        return [("serial", port, "device")] if isinstance(port, str) and port.startswith("/") else []
+
     def __init__(self, options: Mapping[str, Any], context: InputContext) -> None:
         super().__init__(options, context)
         self.channels: dict[str, tuple[int, str]] = {}

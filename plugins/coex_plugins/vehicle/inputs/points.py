@@ -54,6 +54,10 @@ class PointsInput(WatchedInput):
         problems += want_bool(cls.name, options, "existing")
         return problems
 
+    @classmethod
+    def paths(cls, options: Mapping[str, Any]) -> list[tuple[str, str, str]]:
+        return [("path", str(options["path"]), "file or folder")] if isinstance(options.get("path"), str) else []
+
     def __init__(self, options: Mapping[str, Any], context: InputContext) -> None:
         super().__init__(options, context)
         self._problem = LogOnce(log)

@@ -125,6 +125,10 @@ class RosbagInput(Input):
         problems += want_choice(cls.name, options, "nav_frame", ("enu", "ned"))
         return problems
 
+    @classmethod
+    def paths(cls, options: Mapping[str, Any]) -> list[tuple[str, str, str]]:
+        return [("path", str(options["path"]), "file or folder")] if isinstance(options.get("path"), str) else []
+
     def __init__(self, options: Mapping[str, Any], context: InputContext) -> None:
         super().__init__(options, context)
         path = Path(self.config["path"]).expanduser()
