@@ -7,6 +7,7 @@ from __future__ import annotations
 import logging
 import socket
 import threading
+import time
 from typing import Any
 
 import pytest
@@ -237,3 +238,36 @@ def test_check_uri_says_mtu_devices_and_rate() -> None:
 
 def test_describe_seconds() -> None:
     assert [describe_seconds(s) for s in (4.4, 60, 192, 7500)] == ["4 s", "1 min", "3 min 12 s", "2 h 5 min"]
+
+
+def test_moosdb_restarted_under_a_resilient_link_is_counted_and_nothing_lost(moosdb_path: str) -> None:
+    """The MOOS client reconnects by itself: the link counts the outage (the vehicle tells topside)
+    and never reopens it; frames sent meanwhile arrive after MOOSDB is back."""
+    from ._moos import MoosDB, unique
+
+    db = MoosDB(moosdb_path)
+    db.start()
+    try:
+        a_name, b_name = unique("a"), unique("b")
+        base = f"moos://127.0.0.1:{db.port}"
+        a = ResilientTransport(f"{base}?name={a_name}&tx=X_UP&rx=X_DOWN&hold=3", name="link 0")
+        b = ResilientTransport(f"{base}?name={b_name}&tx=X_DOWN&rx=X_UP&hold=3", name="peer")
+        a.send(b"one")
+        assert b.recv(timeout=10) == b"one"
+        db.stop()
+        end = time.monotonic() + 20
+        while a.up and time.monotonic() < end:
+            a.recv(0.2)
+        assert not a.up and a.health().outages == 1
+        a.send(b"two")  # queued by the MOOS client while MOOSDB is away
+        db.start()
+        assert b.recv(timeout=20) == b"two"
+        end = time.monotonic() + 20
+        while not a.up and time.monotonic() < end:
+            a.recv(0.2)
+        h = a.health()
+        assert h.up and h.outages == 1 and h.last_down > 0
+        a.close()
+        b.close()
+    finally:
+        db.close()
