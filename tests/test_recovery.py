@@ -315,3 +315,32 @@ def test_lcm_link_that_fails_is_reopened_and_frames_flow_again() -> None:
     finally:
         link.close()
         peer.close()
+
+
+def test_a_packet_that_never_left_is_sent_again_at_once_and_is_not_an_acoustic_loss() -> None:
+    from coex_core import wire
+    from coex_core.channel import ChannelManager, LinkConfig, Schedule
+    from coex_core.messages import QueueConfig
+    from coex_core.node import Node
+
+    def commands(txs: list[Any]) -> list[Any]:
+        return [m for t in txs for f in t.frames for m in wire.unpack_frame(f).messages
+                if isinstance(m, QueueConfig)]
+
+    def node() -> Node:
+        return Node(ChannelManager(1, [LinkConfig(0, Schedule.simple([1, 2], 10.0, 1.0), rate=5, dst=2)]))
+
+    for down in (False, True):
+        top = node()
+        top.queue_config(3, 0.0, enabled=False)
+        [tx] = top.poll(0.0)  # slot 0 is topside's
+        assert len(commands([tx])) == 1
+        if down:
+            top.not_sent(tx, 0.5)  # the modem was down: it never left
+        again = commands([t for now in (4.0, 5.0, 6.0) for t in top.poll(now)])
+        if down:  # sent again in the same slot, not one ack timeout (a whole cycle) later
+            assert len(again) == 1
+            assert top.manager.stats["not_sent_frames"] == len(tx.frames)
+            assert not top.manager.frame_loss(0)  # not frames the water lost
+        else:
+            assert again == []  # it waits for its ack

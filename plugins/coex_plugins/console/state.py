@@ -834,7 +834,7 @@ class ConsoleState:
         if outages and (old is not None or not up):
             self._log(now, f"topside modem {link}: " + (
                 f"back after {describe_seconds(last_down)} (outage {outages})" if up else
-                f"lost ({last_error}); reopening it"), "warn")
+                f"{last_error}; reopening it"), "warn")
         self._touch("link")
 
     # ------------------------------------------------------------------------ queues

@@ -232,10 +232,13 @@ class VehicleApp:
         from coex_core.messages import LinkHealth
         from coex_core.timefmt import to_stamp
 
-        for lid, h in self.link_health().items():
+        health = self.link_health()
+        for lid, h in health.items():
             key = (h.up, h.outages)
             if h.outages == 0 or self._health_sent.get(lid) == key:
                 continue
+            if not h.up and not any(o.up for other, o in health.items() if other != lid):
+                continue  # nothing can carry it now: the report of its return says it all
             self._health_sent[lid] = key
             cap = 2**20 - 1
             self.node.push_link_health(LinkHealth(to_stamp(now), lid, h.up, min(h.outages, 255),

@@ -1344,8 +1344,9 @@ function renderLink() {
 function modemWords(lk) {
   const out = [];
   const own = lk.topside_modem;
-  if (own && !own.up) out.push(el("div", { class: "expl bad", "data-modem": "topside" },
-    `topside modem DOWN for ${fmtSecs(own.last_down)}: reopening it (${own.last_error || "no answer"})`));
+  if (own && !own.up) out.push(el("div", { class: "expl bad", "data-modem": "topside", title: own.last_error || "" },
+    `topside modem DOWN for ${fmtSecs(own.last_down)}: reopening it`),
+    el("div", { class: "expl clip", title: own.last_error || "" }, own.last_error || "no answer"));
   else if (own && own.outages) out.push(el("div", { class: "expl", "data-modem": "topside" },
     `topside modem: ${own.outages} outage${own.outages === 1 ? "" : "s"}, ${fmtSecs(own.down_total)} down in all`));
   const veh = lk.vehicle_modem;
