@@ -158,6 +158,8 @@ class VehicleApp:
         self._taken_set = set(self._taken)
         self._submitted = self.store.get("vehicle.submitted") if self.store else None
         self._broken: dict[str, float] = {}
+        #: what was taken; ``skipped``: the autonomy's reports not taken (an input's skipped items
+        #: are counted by the input, ``Input.counts["skipped"]``: :meth:`summary` adds them up)
         self.counts: dict[str, int] = {"points": 0, "images": 0, "samples": 0, "nav": 0, "skipped": 0,
                                        "plans": 0, "reports": 0}
         #: per link: (up, outages) last reported topside in a LinkHealth
@@ -244,14 +246,25 @@ class VehicleApp:
             self.node.push_link_health(LinkHealth(to_stamp(now), lid, h.up, min(h.outages, 255),
                                                   min(round(h.down_total), cap), min(round(h.last_down), cap)), now)
 
-    def _ingest(self, name: str, data: Any, what: str) -> bool:
+    def summary(self) -> dict[str, Any]:
+        """What the vehicle took, for its shutdown line: :attr:`counts` with ``skipped`` the
+        total of every input's skipped items and the autonomy reports not taken, and
+        ``skipped_by_input`` (input key -> its skipped items)."""
+        by_input = {inp.coex_key: int(inp.counts.get("skipped", 0)) for inp in self.inputs}
+        return {**self.counts, "skipped": self.counts["skipped"] + sum(by_input.values()),
+                "skipped_by_input": by_input}
+
+    def _ingest(self, name: str, data: Any, what: str, source: Any = None) -> bool:
         if name not in self.names:
             return False
         try:
             self.runner.ingest(name, data)
             return True
         except (CoexError, ValueError, TypeError) as exc:  # bad input: logged, skipped, nothing lost
-            self.counts["skipped"] += 1
+            if source is not None:
+                source.skip()  # counted as the input's
+            else:
+                self.counts["skipped"] += 1
             log.warning("%s not taken by %s: %s", what, name, exc)
             return False
 
@@ -263,15 +276,16 @@ class VehicleApp:
             xyz = np.asarray(item.xyz, float)
             if xyz.ndim != 2 or xyz.shape[1] != 3:
                 log.warning("%s: points of shape %s skipped (N x 3 expected)", inp.coex_key, xyz.shape)
+                inp.skip()
                 return
-            if self._ingest("bathymetry", xyz, f"{len(xyz)} points from {inp.coex_key}"):
+            if self._ingest("bathymetry", xyz, f"{len(xyz)} points from {inp.coex_key}", inp):
                 self.counts["points"] += len(xyz)
         elif isinstance(item, Image) and "imagery" in feeds:
             self._image(inp, item)
         elif isinstance(item, Samples) and "timeseries" in feeds:
             if self._ingest("timeseries", (item.channel, np.asarray(item.times, float),
                                            np.asarray(item.values, float)),
-                            f"samples of {item.channel!r} from {inp.coex_key}"):
+                            f"samples of {item.channel!r} from {inp.coex_key}", inp):
                 self.counts["samples"] += len(np.atleast_1d(item.times))
         elif isinstance(item, Nav) and "status" in feeds:
             self._nav(item)
@@ -286,7 +300,7 @@ class VehicleApp:
         if pixels is None and item.path:
             pixels = self._guard(f"{inp.coex_key} read {item.path}", _read_image, item.path)
             if pixels is None:
-                self.counts["skipped"] += 1
+                inp.skip()
                 return
         x, y = item.x, item.y
         stamp = getattr(inp, "stamp_images", None)  # an input whose "nav" option means something else
@@ -296,7 +310,7 @@ class VehicleApp:
             x, y = self.nav["x"], self.nav["y"]
         data = ImageInput(np.asarray(pixels), time=item.time,
                           x=None if x is None else round(float(x), 1), y=None if y is None else round(float(y), 1))
-        if self._ingest("imagery", data, f"image {item.path or ''} from {inp.coex_key}"):
+        if self._ingest("imagery", data, f"image {item.path or ''} from {inp.coex_key}", inp):
             self.counts["images"] += 1
             if key is not None:
                 self._taken.append(key)

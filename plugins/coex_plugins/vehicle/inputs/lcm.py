@@ -244,8 +244,8 @@ class LcmInput(Input):
         self._items: list[Item] = []
         self._samples: dict[str, list[tuple[float, float]]] = {}
         self._problem = LogOnce(log)
-        #: messages turned into items, and messages skipped
-        self.counts = {"messages": 0, "skipped": 0}
+        #: messages turned into items (and, as every input, ``skipped``: messages skipped)
+        self.counts.update(messages=0)
 
     def open(self) -> None:
         if self._lc is not None:
@@ -275,7 +275,7 @@ class LcmInput(Input):
                 convert(cls.decode(data))
                 self.counts["messages"] += 1
             except Exception as exc:  # a foreign or damaged message: skip it
-                self.counts["skipped"] += 1
+                self.skip()
                 self._problem(f"{channel}:{type(exc).__name__}",
                               "input lcm: a message on %s skipped (%s: %s)", channel, type(exc).__name__, exc)
         return handle

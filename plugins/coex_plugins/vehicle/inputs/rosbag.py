@@ -142,8 +142,8 @@ class RosbagInput(Input):
         self._anchor: float | None = None  # daemon time the first message is due
         self._opened = False
         self._problem = LogOnce(log)
-        #: messages replayed, skipped (undecodable) per role
-        self.counts = {"points": 0, "image": 0, "nav": 0, "skipped": 0}
+        #: messages replayed per role (and, as every input, ``skipped``: undecodable ones)
+        self.counts.update(points=0, image=0, nav=0)
 
     # ----------------------------------------------------------------- opening
     def open(self) -> None:
@@ -244,7 +244,7 @@ class RosbagInput(Input):
                 t = self._item_time(_stamp(msg) or bag_ns * 1e-9)
                 item = self._convert(role, conn.msgtype, msg, t)
             except Exception as exc:  # one bad message is skipped, the replay goes on
-                self.counts["skipped"] += 1
+                self.skip()
                 self._problem(f"{conn.topic}:{type(exc).__name__}",
                               "input rosbag: a %s message on %s skipped (%s: %s)",
                               conn.msgtype, conn.topic, type(exc).__name__, exc)
