@@ -107,7 +107,7 @@ register(MessageSpec(
         ("started", SurveyStatus(3, SurveyState.STARTED, SurveyReason.NONE, 7200, 1)),
         ("helm_refused", SurveyStatus(5, SurveyState.REJECTED, SurveyReason.AUTONOMY_REFUSED, 812, None, None,
                                       "Bad parameter(s): speed")),
-        ("autopilot_refused", SurveyStatus(6, SurveyState.REJECTED, SurveyReason.AUTONOMY_REFUSED, 900, None, 15.0,
+        ("autopilot_refused", SurveyStatus(6, SurveyState.REJECTED, SurveyReason.AUTONOMY_REFUSED, 900, None, 14.0,
                                            "MAV_MISSION_DENIED")),
         ("no_answer", SurveyStatus(7, SurveyState.REJECTED, SurveyReason.AUTONOMY_NO_ANSWER, 950, None, 6.0)),
         ("override", SurveyStatus(8, SurveyState.ABORTED, SurveyReason.MANUAL_OVERRIDE, 1000, 3)),

@@ -27,6 +27,7 @@ import numpy as np
 from coex_core.errors import CoexError, ConfigError
 
 from .config import DeployConfig
+from .options import LogOnce
 
 __all__ = ["VehicleApp", "build_vehicle_node", "open_transports"]
 
@@ -158,6 +159,7 @@ class VehicleApp:
         self._taken_set = set(self._taken)
         self._submitted = self.store.get("vehicle.submitted") if self.store else None
         self._broken: dict[str, float] = {}
+        self._problem = LogOnce(log)
         #: what was taken; ``skipped``: the autonomy's reports not taken (an input's skipped items
         #: are counted by the input, ``Input.counts["skipped"]``: :meth:`summary` adds them up)
         self.counts: dict[str, int] = {"points": 0, "images": 0, "samples": 0, "nav": 0, "skipped": 0,
@@ -265,7 +267,10 @@ class VehicleApp:
                 source.skip()  # counted as the input's
             else:
                 self.counts["skipped"] += 1
-            log.warning("%s not taken by %s: %s", what, name, exc)
+            # once per kind of problem (a sensor sending the same bad sample every second must
+            # not flood the log); every one is counted
+            self._problem(f"{getattr(source, 'coex_key', '')}:{name}:{type(exc).__name__}", "%s not taken by %s: %s (further "
+                          "ones like it are counted, not logged)", what, name, exc)
             return False
 
     def _take(self, inp: Any, item: Any, now: float) -> None:
