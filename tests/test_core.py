@@ -75,7 +75,9 @@ def test_registry_lists_builtin_and_third_party_plugins() -> None:
         assert ("coex.transports", name) in infos
     # the sample third-party plugin registers exactly like the built-ins
     assert infos[("coex.modalities", "pings")].status == "ok"
-    assert infos[("coex.modalities", "pings")].version == "0.3.0"
+    from coex_sample_plugin import PingModality
+
+    assert infos[("coex.modalities", "pings")].version == PingModality.version
 
 
 def test_registry_errors_are_typed() -> None:
