@@ -78,6 +78,13 @@ class _Sub:
     handle: Any = None
     closed: bool = False
 
+    def connections(self) -> int:
+        """How many publishers it is connected to now (0 before it exists)."""
+        try:
+            return int(self.handle.get_num_connections()) if self.handle is not None else 0
+        except Exception:  # shut down
+            return 0
+
 
 class RosPublisher:
     """A publisher of one topic, made in the node's thread; :meth:`publish` never waits (before
@@ -255,11 +262,21 @@ class RosNode:
         rospy = self.rospy
         os.environ["ROS_MASTER_URI"] = self.master  # rospy reads it at init_node
         self._set_state("waiting", "waiting for the ROS master")
+        root = logging.getLogger()
+        handlers, level = list(root.handlers), root.level
         try:
             rospy.init_node(self.name, anonymous=False, disable_signals=True)
         except Exception as exc:
             self._set_state("failed", f"rospy.init_node failed: {exc}", logging.ERROR)
             return
+        finally:
+            # rospy's logging configuration sends the root logger to a file under ROS_HOME: the
+            # process keeps its own (its log stays where its operators read it); rospy's chatter
+            # (each connection made) only from warnings up
+            root.handlers[:] = handlers
+            root.setLevel(level)
+            if logging.getLogger("rospy").level < logging.WARNING:
+                logging.getLogger("rospy").setLevel(logging.WARNING)
         self._pid = self._master_pid()
         self._set_state("up", "up")
         while not self._stop.is_set():

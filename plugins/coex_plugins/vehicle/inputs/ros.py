@@ -28,7 +28,7 @@ from typing import Any, ClassVar
 
 import numpy as np
 
-from ..options import LogOnce, compile_path, finite, want_choice, want_int, want_str
+from ..options import LogOnce, compile_path, finite, want_bool, want_choice, want_int, want_str
 from .base import Input, InputContext, Item, Samples
 from .rosmsg import ROLES, FrameMap, canonical, frame_problems, item_of, stamp_of
 
@@ -113,6 +113,7 @@ class RosInput(Input):
         "queue": (10, "messages kept per topic between two polls (the oldest dropped beyond)"),
         "stamps": ("header", "'header': an item's time is its header.stamp (when not zero); "
                              "'arrival': when the daemon took it"),
+        "nav_images": (True, "images get the newest vehicle position (a camera image has none of its own)"),
     }
 
     @classmethod
@@ -132,19 +133,27 @@ class RosInput(Input):
             problems += series_problems(cls.name, options["series"])
         problems += want_int(cls.name, options, "queue", 1, 10000)
         problems += want_choice(cls.name, options, "stamps", ("header", "arrival"))
+        problems += want_bool(cls.name, options, "nav_images")
         return problems
 
     def __init__(self, options: Mapping[str, Any], context: InputContext) -> None:
         super().__init__(options, context)
         self._frames = FrameMap(self.config["frames"], self.config["nav_frame"])
         q = int(self.config["queue"])
-        self.topics = [_Topic(role, self.config[key], q) for role, (key, _) in ROLES.items() if self.config[key]]
+        # navigation first: an image taken in the same poll gets the position of its time
+        roles = sorted(ROLES.items(), key=lambda kv: kv[0] != "nav")
+        self.topics = [_Topic(role, self.config[key], q) for role, (key, _) in roles if self.config[key]]
         self.topics += [_Topic("series", s["topic"], q, s) for s in self.config["series"]]
         self._node: Any = None
         self._lock = threading.Lock()
         self._problem = LogOnce(log)
         #: messages turned into items, skipped (wrong type, not convertible), dropped (queue full)
         self.counts = {"points": 0, "image": 0, "nav": 0, "series": 0, "skipped": 0, "dropped": 0}
+
+    @property
+    def stamp_images(self) -> bool:
+        """Whether the daemon gives images the newest vehicle position (option ``nav_images``)."""
+        return bool(self.config["nav_images"])
 
     @property
     def state(self) -> str:
