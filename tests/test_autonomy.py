@@ -39,7 +39,7 @@ def _plan(sid: int = 7, pts: tuple[tuple[float, float], ...] = ((10.0, 0.0), (10
 # ------------------------------------------------------------------ registration
 def test_every_output_is_registered_under_its_name() -> None:
     eps = _entry_points()
-    assert set(eps) == {"log", "sim", "mavlink", "lcm", "moos"} and DEFAULT == "log"
+    assert set(eps) == {"log", "sim", "mavlink", "lcm", "moos", "ros"} and DEFAULT == "log"
     assert eps["mavlink"].endswith("[mavlink]") and eps["lcm"].endswith("[lcm]")
     for name, value in eps.items():
         cls = metadata.EntryPoint(name, value, GROUP).load()

@@ -47,17 +47,17 @@ def load(value: str) -> type[Input]:
 # --------------------------------------------------------------------------- registrations
 def test_every_adapter_is_registered_with_its_extra_and_loads() -> None:
     eps = entry_points()
-    assert set(eps) == {"directory", "points", "rosbag", "lcm", "mavlink", "nmea", "moos"}
+    assert set(eps) == {"directory", "points", "rosbag", "ros", "lcm", "mavlink", "nmea", "moos"}
     extras = {name: value.split("[")[1].rstrip("] ") if "[" in value else "" for name, value in eps.items()}
     assert extras == {"directory": "imagery", "points": "bathymetry", "rosbag": "bathymetry",
-                      "lcm": "lcm", "mavlink": "mavlink", "nmea": "nmea", "moos": ""}
+                      "lcm": "lcm", "mavlink": "mavlink", "nmea": "nmea", "moos": "", "ros": ""}
     extras_defined = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]["optional-dependencies"]
     for name, value in eps.items():
         cls = load(value)
         assert issubclass(cls, Input) and cls.name == name
         assert cls.feeds and set(cls.feeds) <= set(FEEDS)
         assert all(isinstance(d, str) and d for _, d in cls.options.values())
-        assert extras[name] in extras_defined or not extras[name]  # moos needs no extra
+        assert extras[name] in extras_defined or not extras[name]  # moos, ros (Debian's rospy): no extra
 
 
 def test_unknown_and_missing_options_are_named() -> None:

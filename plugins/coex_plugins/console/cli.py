@@ -170,6 +170,8 @@ class TopsideApp:
         self.server = server
         self.clock = clock
         self.stop = threading.Event()
+        #: the products on ROS topics (``[ros]``), or None
+        self.ros: Any = None
         self._last_status: dict[int, Any] = {}
         self._commands_seen = self._commands_version()
         self.runner = Runner(node, self.transports, RealClock(clock), store=store,
@@ -252,6 +254,8 @@ class TopsideApp:
         if thread is not None and thread is not threading.current_thread():
             thread.join(timeout=5.0)
         self.server.close()
+        if self.ros is not None:
+            self.ros.close()
         for tr in self.transports.values():
             tr.close()
         if self.store is not None:
@@ -290,7 +294,8 @@ def build_topside(transport_uri: str | Sequence[str], host: str = "127.0.0.1", p
                   session_hours: float = 12.0,
                   receiver_options: dict[str, dict[str, Any]] | None = None,
                   link_options: Sequence[dict[str, Any]] | None = None,
-                  required: Sequence[bool] | None = None) -> TopsideApp:
+                  required: Sequence[bool] | None = None,
+                  ros: dict[str, Any] | None = None) -> TopsideApp:
     """Open the transports (several URIs: several modems, link ids ``link``, ``link + 1`` ...),
     build the topside node and its receivers, serve the console (not yet driving the node: call
     ``start()`` or ``run()``). With ``command_key`` every command is authenticated (spec
@@ -312,7 +317,9 @@ def build_topside(transport_uri: str | Sequence[str], host: str = "127.0.0.1", p
     ``link_options`` (one mapping per transport) sets LinkConfig fields (``rate``,
     ``frame_bytes``, ``spare``, ``packet_seconds``) link by link. Each transport is a
     :class:`~coex_transports.recovery.ResilientTransport`: a modem that goes away or is not
-    there yet is reopened with backoff (``required[i]`` true: an error at start instead)."""
+    there yet is reopened with backoff (``required[i]`` true: an error at start instead).
+    ``ros`` (the options of :class:`~coex_plugins.console.ros.RosProducts`) publishes what
+    arrives on ROS topics for rviz."""
     access, tls = console_access(host, operators, insecure_open, tls_cert, tls_key, session_hours)
     from coex_core.channel.manager import ChannelManager, LinkConfig
     from coex_core.channel.schedule import Schedule
@@ -422,7 +429,16 @@ def build_topside(transport_uri: str | Sequence[str], host: str = "127.0.0.1", p
         if nstore is not None:
             nstore.close()
         raise
-    return TopsideApp(node, transports, hub, server, clock, store=nstore)
+    app = TopsideApp(node, transports, hub, server, clock, store=nstore)
+    if ros is not None:
+        from .ros import RosProducts
+
+        try:
+            app.ros = RosProducts(ros, lock=hub.lock, clock=clock).attach(node)
+        except BaseException:
+            app.close()
+            raise
+    return app
 
 
 def topside_from_config(path: str, clock: Callable[[], float] = time.time) -> TopsideApp:
@@ -450,7 +466,7 @@ def topside_from_config(path: str, clock: Callable[[], float] = time.time) -> To
         link_options=[{k: v for k, v in (("rate", m.rate), ("frame_bytes", m.frame_bytes), ("spare", m.spare),
                                           ("packet_seconds", m.packet_seconds)) if v is not None}
                       for m in cfg.modems],
-        required=[m.required for m in cfg.modems])
+        required=[m.required for m in cfg.modems], ros=cfg.ros)
 
 
 def run(args: argparse.Namespace) -> int:

@@ -70,6 +70,9 @@ def _check(args: argparse.Namespace) -> int:
                      + (f" ({', '.join(i['type'] for i in cfg.inputs)})" if cfg.inputs else ""))
         parts.append(f"autonomy {cfg.autonomy.get('type')}")
     parts.append(f"store {cfg.store}" if cfg.store else "no store")
+    if cfg.ros is not None:
+        parts.append(f"products on ROS under {cfg.ros.get('prefix', '/coex')} "
+                     f"({cfg.ros.get('master') or 'ROS_MASTER_URI'})")
     parts.append("commands signed" if cfg.command_key else "commands NOT authenticated (no node.command_key_file)")
     print(f"{args.file}: ok: {cfg.role} node {cfg.node_id} (peer {cfg.peer}); " + "; ".join(parts))
     return 0
