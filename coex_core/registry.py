@@ -34,6 +34,8 @@ __all__ = [
     "load",
     "open_transport",
     "check_transport_uri",
+    "entry_points",
+    "names",
     "transport_scheme",
 ]
 
@@ -60,7 +62,10 @@ class PluginInfo:
     error: str = ""
 
 
-def _entry_points(group: str) -> dict[str, metadata.EntryPoint]:
+def entry_points(group: str) -> dict[str, metadata.EntryPoint]:
+    """Every plugin registered in ``group``, by name (the first of a name wins), not loaded: the
+    one place CoEx reads entry points (modalities, transports, commands, inputs, autonomy
+    outputs, detectors, conformance inputs ...)."""
     # imported here: importlib.metadata pulls in socket and threading, which the core avoids at import
     from importlib import metadata
 
@@ -68,6 +73,14 @@ def _entry_points(group: str) -> dict[str, metadata.EntryPoint]:
     for ep in metadata.entry_points(group=group):
         found.setdefault(ep.name, ep)
     return found
+
+
+def names(group: str) -> list[str]:
+    """The names registered in ``group``, sorted."""
+    return sorted(entry_points(group))
+
+
+_entry_points = entry_points
 
 
 def _dist_name(ep: metadata.EntryPoint) -> tuple[str, str]:

@@ -18,7 +18,6 @@ import math
 import threading
 import time
 from collections.abc import Callable
-from importlib import metadata
 from pathlib import Path
 from typing import Any
 
@@ -89,10 +88,9 @@ def build_vehicle_node(cfg: DeployConfig, transports: dict[int, Any]) -> Any:
 
 
 def _load(group: str, name: str) -> Any:
-    for ep in metadata.entry_points(group=group):
-        if ep.name == name:
-            return ep.load()
-    raise ConfigError(f"no {group} entry point {name!r}")
+    from coex_core.registry import load
+
+    return load(group, name)
 
 
 class VehicleApp:
