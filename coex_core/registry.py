@@ -62,10 +62,7 @@ class PluginInfo:
     error: str = ""
 
 
-def entry_points(group: str) -> dict[str, metadata.EntryPoint]:
-    """Every plugin registered in ``group``, by name (the first of a name wins), not loaded: the
-    one place CoEx reads entry points (modalities, transports, commands, inputs, autonomy
-    outputs, detectors, conformance inputs ...)."""
+def _entry_points(group: str) -> dict[str, metadata.EntryPoint]:
     # imported here: importlib.metadata pulls in socket and threading, which the core avoids at import
     from importlib import metadata
 
@@ -75,12 +72,16 @@ def entry_points(group: str) -> dict[str, metadata.EntryPoint]:
     return found
 
 
+def entry_points(group: str) -> dict[str, metadata.EntryPoint]:
+    """Every plugin registered in ``group``, by name (the first of a name wins), not loaded: the
+    one place CoEx reads entry points (modalities, transports, commands, inputs, autonomy
+    outputs, conformance inputs ...)."""
+    return _entry_points(group)
+
+
 def names(group: str) -> list[str]:
     """The names registered in ``group``, sorted."""
-    return sorted(entry_points(group))
-
-
-_entry_points = entry_points
+    return sorted(_entry_points(group))
 
 
 def _dist_name(ep: metadata.EntryPoint) -> tuple[str, str]:
