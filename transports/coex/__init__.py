@@ -19,6 +19,17 @@ import sys
 
 from coex_core import __version__, errors, messages, wire
 from coex_core.acoustic import AcousticChannel
+from coex_core.adapters import (
+    FEEDS,
+    Adapter,
+    Autonomy,
+    Image,
+    Input,
+    InputContext,
+    Nav,
+    Points,
+    Samples,
+)
 from coex_core.channel import (
     CONTROL_STREAM,
     Acked,
@@ -78,8 +89,11 @@ sys.modules.setdefault(__name__ + ".errors", errors)
 
 __all__ = [
     "CONTROL_STREAM",
+    "FEEDS",
     "AcousticChannel",
     "Acked",
+    "Adapter",
+    "Autonomy",
     "AuthenticationError",
     "BadFrame",
     "ChannelManager",
@@ -94,17 +108,22 @@ __all__ = [
     "FrameHeader",
     "FrameTooLarge",
     "Health",
+    "Image",
+    "Input",
+    "InputContext",
     "LinkChanged",
     "LinkConfig",
     "LinkDown",
     "LinkStats",
     "Message",
     "Modality",
+    "Nav",
     "ModalityReceiver",
     "ModalitySender",
     "Node",
     "NodeStore",
     "PluginLoadError",
+    "Points",
     "PluginNotFound",
     "Product",
     "ProductUpdated",
@@ -116,6 +135,7 @@ __all__ = [
     "ResilientTransport",
     "Runner",
     "Schedule",
+    "Samples",
     "SimNetwork",
     "SimulatedClock",
     "StateError",
