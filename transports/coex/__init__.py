@@ -29,6 +29,8 @@ from coex_core.adapters import (
     Nav,
     Points,
     Samples,
+    SurveyPlan,
+    SurveyReport,
 )
 from coex_core.channel import (
     CONTROL_STREAM,
@@ -140,6 +142,8 @@ __all__ = [
     "SimulatedClock",
     "StateError",
     "StreamConfig",
+    "SurveyPlan",
+    "SurveyReport",
     "TdmaSlot",
     "Transmission",
     "Transport",
