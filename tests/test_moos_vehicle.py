@@ -166,6 +166,18 @@ def test_a_pcoex_block_is_the_configuration_a_toml_file_gives(tmp_path: Path) ->
         del os.environ["COEX_TEST_MOOS_HOST"]
     assert raw is not None and raw["modems"][0]["uri"] == "moos://10.0.0.5:9123?name=pCoex_modem"
     assert raw["autonomy"]["server"] == raw["inputs"][0]["server"] == "10.0.0.5:9123"
+    assert "time_warp" not in raw["autonomy"] and "time_warp" not in raw["inputs"][0]  # no MOOSTimeWarp: 1
+    # MOOSTimeWarp: every MOOS client of pCoex stamps and reads warped MOOS times
+    warped = MISSION.replace("Community  = alpha\n", "Community  = alpha\nMOOSTimeWarp = 12.5\n")
+    raw, problems = read_mission(_mission(tmp_path, warped), "pCoex")
+    assert problems == [] and raw is not None
+    assert raw["autonomy"]["time_warp"] == raw["inputs"][0]["time_warp"] == 12.5
+    assert raw["modems"][0]["uri"] == "moos://127.0.0.1:9000?name=pCoex_modem&warp=12.5"
+    assert "time_warp" not in raw["inputs"][1]  # not a moos input
+    _, problems = read_mission(_mission(tmp_path, MISSION.replace("Community  = alpha\n", "Community  = alpha\n"
+                                                                  "MOOSTimeWarp = 0\n")), "pCoex")
+    assert problems == ["MOOSTimeWarp: a number above 0 and at most 400, got '0'"], problems
+    _mission(tmp_path)
     cfg, problems = check_mission(tmp_path / "m.moos")
     assert problems == [], problems
     assert cfg is not None and cfg.node_id == 2 and cfg.origin_lat == 42.358436 and cfg.slots == ("topside", "vehicle")
@@ -250,6 +262,40 @@ def test_nav_and_channels_become_items(moosdb: MoosDB, pymoos_client: Callable[.
         assert inp.poll(time.time()) == []  # never blocks, nothing twice
     finally:
         inp.close()
+
+
+def test_nav_times_are_real_seconds_under_time_warp(moosdb: MoosDB) -> None:
+    """Under MOOSTimeWarp a MOOS clock reads the Unix time times the warp: the input's items
+    are timed in real seconds again (the vehicle status topside must not be years ahead)."""
+    from coex_transports.moos import MoosClient
+
+    x_var, temp = unique("NAV_X"), unique("CTD_T")
+    inp = MoosInput({"server": f"127.0.0.1:{moosdb.port}", "name": unique("pCoex_in"), "time_warp": 25.0,
+                     "nav": {"x": x_var, "y": "", "depth": "", "altitude": "", "heading": "", "speed": "",
+                             "lat": "", "lon": ""}, "channels": {temp: "temperature"}}, InputContext())
+    nav = MoosClient("127.0.0.1", moosdb.port, unique("uSimMarine"), time_warp=25.0)
+    inp.open()
+    try:
+        assert nav.connect(5)
+        _wait(lambda: inp.client.connected, what="the input's connection")
+        time.sleep(0.3)
+        before = time.time()
+        nav.notify(x_var, 3.0)
+        nav.notify(temp, 4.5)
+        assert nav.flush(5)
+        items: list[Any] = []
+        _wait(lambda: items.extend(inp.poll(time.time())) or (
+            any(isinstance(i, Nav) for i in items) and any(isinstance(i, Samples) for i in items)), what="items")
+        times = [i.time for i in items if isinstance(i, Nav)] + [t for i in items if isinstance(i, Samples)
+                                                                   for t in i.times]
+        assert all(before - 1 <= t <= time.time() + 1 for t in times), (before, times)
+    finally:
+        inp.close()
+        nav.close()
+    with pytest.raises(ConfigError, match="time_warp"):
+        MoosInput({"time_warp": 0}, InputContext())
+    with pytest.raises(ConfigError, match="time_warp"):
+        MoosAutonomy({"time_warp": "fast"}, InputContext())
 
 
 def _autonomy(moosdb: MoosDB, **options: Any) -> MoosAutonomy:
