@@ -25,7 +25,7 @@ from ._moos_ivp import Community, Watcher, find_ivp, wait
 
 pytestmark = pytest.mark.slow
 
-WARP = 12.0
+WARP = 8.0
 #: the shipped coex.bhv's capture radius (metres): a waypoint is reached within it
 CAPTURE = 5.0
 #: the pCoex lines the test adds: a fast TDMA (MOOS carries frames instantly), status every
@@ -156,6 +156,8 @@ def _flown(c: Community, w: Watcher, top: Topside, kind: str, x: float, y: float
     assert top.states(sid) == [("requested", None, None, ""), ("accepted", None, None, ""),
                                *[("started", k, None, f"heading for waypoint {k}") for k in range(len(plan))],
                                ("completed", None, None, "")], top.states(sid)
+    with top.app.hub.lock:  # the console's history, in the vehicle's time order, says the same
+        assert [h[1:] for h in top.rx.surveys[sid].history] == [(s[0], s[3]) for s in top.states(sid)]
     at = 0
     for k, p in enumerate(plan):  # each waypoint in turn: the first fix within the capture radius
         near = [i for i in range(at, len(track)) if math.hypot(track[i][0] - p[0], track[i][1] - p[1]) <= CAPTURE]
@@ -202,13 +204,14 @@ def test_a_real_helm_flies_surveys_and_coex_reports_every_outcome(ivp_bin: Path,
 
         # a line, then the same line again (the helm must not drop it as a duplicate), then a
         # lawnmower: each flown, each waypoint passed, every state seen topside in order
-        # (legs of 20 m and more at 1 m/s: several TDMA cycles each, so that every waypoint's
-        # state reaches topside; the vehicle sends a survey's newest state in each of its slots)
-        line = dict(heading=90.0, length=24.0, depth=4.0, speed=1.0)
+        # (legs of 20 m and more at 1.5 m/s: more than one TDMA cycle each, so that every
+        # waypoint's state reaches topside, as the vehicle sends a survey's newest state in each
+        # of its slots; at 1.5 m/s the simulated vehicle turns within the capture radius)
+        line = dict(heading=90.0, length=24.0, depth=4.0, speed=1.5)
         _flown(c, w, top, "line", 0.0, -40.0, **line)
         _flown(c, w, top, "line", 0.0, -40.0, **line)
         _flown(c, w, top, "lawnmower", 12.0, -62.0, heading=90.0, length=30.0, width=24.0, spacing=24.0,
-               depth=4.0, speed=1.0)
+               depth=4.0, speed=1.5)
 
         # outside the geofence: refused by the vehicle, the helm never hears of it
         mark = w.mark()
