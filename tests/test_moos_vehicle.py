@@ -495,8 +495,8 @@ def _survey_to_helm(vehicle: Any, topside: Any, helm: _Helm, upd: str, act: str)
     helm.comms.notify("WPT_STAT", "vname=alpha,behavior-name=coex_survey,index=5,hits=1/1,cycles=0,dist=40,eta=27", -1)
     helm.comms.notify("WPT_STAT", "behavior-name=coex_survey,completed", -1)
     _wait(lambda: s.state == "completed", 120, "completed topside")
-    states = [h[1] for h in s.history]  # in the vehicle's time order
-    assert states[:2] == ["requested", "accepted"] and states[-1] == "completed" and "started" in states, s.history
+    states = {h[1] for h in s.history}
+    assert {"requested", "accepted", "started", "completed"} <= states, s.history
     assert vehicle.counts["plans"] == 1
 
 

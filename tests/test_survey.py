@@ -289,19 +289,6 @@ def test_history_is_in_the_vehicles_time_order_whatever_order_it_arrives_in() ->
     assert [h[1] for h in rec.history] == ["requested", "accepted", "started", "completed"]
 
 
-def test_an_acknowledgement_later_than_the_vehicle_set_off_is_moved_before_it() -> None:
-    """The vehicle's autonomy set off (STARTED, vehicle time 8) before its acknowledgement
-    reached topside (topside time 10): the history still reads accepted, then started."""
-    r = SurveyReceiver()
-    cmd = r.request("line", 0.0, 0.0, 0.0, heading=0.0, length=10.0)
-    r.receive(CommandAck(cmd.command_id, AckStatus.ACCEPTED), 10.0)
-    r.receive(SurveyStatus(cmd.survey_id, SurveyState.STARTED, SurveyReason.NONE, 8, 0), 10.0)
-    r.receive(SurveyStatus(cmd.survey_id, SurveyState.COMPLETED, SurveyReason.NONE, 9), 10.5)
-    rec = r.surveys[cmd.survey_id]
-    assert [h[:2] for h in rec.history] == [(0.0, "requested"), (8.0, "accepted"), (8.0, "started"),
-                                            (9.0, "completed")]
-
-
 def test_an_older_saved_status_without_detail_still_loads() -> None:
     s = SurveySender({"geofence": FENCE})
     s.handle(_cmd(1, 1), 0.0)

@@ -270,15 +270,6 @@ class SurveyRecord:
         self.state, self.time, self.text, self.reason = state, time, text, reason
         self.note(time, state, text)
 
-    def accepted_by(self, time: float) -> None:
-        """The vehicle had accepted the survey by ``time`` (its clock): an "accepted" in the
-        history later than that (topside's time of the acknowledgement, which reached topside
-        after the vehicle had already set off) is moved to ``time``."""
-        moved = [(min(h[0], time), *h[1:]) if h[1] == "accepted" else h for h in self.history]
-        if moved != self.history:
-            self.history = sorted(moved, key=lambda h: h[0])  # stable: "accepted" before what follows
-            self.version += 1
-
     def note(self, time: float, state: str, text: str = "") -> None:
         """Add a state to the history, in the vehicle's time order (reports can arrive out of
         order over the link; what came to topside first is not what happened first)."""
@@ -364,8 +355,6 @@ class SurveyReceiver(ModalityReceiver):
         same = (rec.state, rec.text, rec.index) == (state, text, message.index)
         if same or any(h[0] == t and h[1] == state and h[2] == text for h in rec.history):
             return []  # a copy
-        if state not in ("accepted", "rejected"):
-            rec.accepted_by(t)
         if (rec.vtime is not None and t < rec.vtime) or (
                 rec.state in ("completed", "aborted", "rejected") and state in ("accepted", "started")):
             rec.note(t, state, text)  # an older state arriving late: history, not the present
