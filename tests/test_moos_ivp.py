@@ -156,8 +156,9 @@ def _flown(c: Community, w: Watcher, top: Topside, kind: str, x: float, y: float
     assert top.states(sid) == [("requested", None, None, ""), ("accepted", None, None, ""),
                                *[("started", k, None, f"heading for waypoint {k}") for k in range(len(plan))],
                                ("completed", None, None, "")], top.states(sid)
-    with top.app.hub.lock:  # the console's history, in the vehicle's time order, says the same
-        assert [h[1:] for h in top.rx.surveys[sid].history] == [(s[0], s[3]) for s in top.states(sid)]
+    with top.app.hub.lock:  # the console's history holds the same states (sorted by time, where
+        # "accepted" is topside's time of the acknowledgement, the others the vehicle's)
+        assert sorted(h[1:] for h in top.rx.surveys[sid].history) == sorted((s[0], s[3]) for s in top.states(sid))
     at = 0
     for k, p in enumerate(plan):  # each waypoint in turn: the first fix within the capture radius
         near = [i for i in range(at, len(track)) if math.hypot(track[i][0] - p[0], track[i][1] - p[1]) <= CAPTURE]
@@ -207,10 +208,10 @@ def test_a_real_helm_flies_surveys_and_coex_reports_every_outcome(ivp_bin: Path,
         # (legs of 20 m and more at 1.5 m/s: more than one TDMA cycle each, so that every
         # waypoint's state reaches topside, as the vehicle sends a survey's newest state in each
         # of its slots; at 1.5 m/s the simulated vehicle turns within the capture radius)
-        line = dict(heading=90.0, length=24.0, depth=4.0, speed=1.5)
+        line = dict(heading=180.0, length=24.0, depth=4.0, speed=1.5)  # ahead of the vehicle
         _flown(c, w, top, "line", 0.0, -40.0, **line)
         _flown(c, w, top, "line", 0.0, -40.0, **line)
-        _flown(c, w, top, "lawnmower", 12.0, -62.0, heading=90.0, length=30.0, width=24.0, spacing=24.0,
+        _flown(c, w, top, "lawnmower", 15.0, -60.0, heading=90.0, length=30.0, width=30.0, spacing=30.0,
                depth=4.0, speed=1.5)
 
         # outside the geofence: refused by the vehicle, the helm never hears of it
