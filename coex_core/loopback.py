@@ -26,7 +26,7 @@ from typing import Any
 from urllib.parse import urlsplit
 
 from .errors import ConfigError
-from .transport import Transport, parse_query
+from .transport import Transport, UriInfo, parse_query
 
 __all__ = ["LoopbackLink", "LoopbackTransport", "SimClock"]
 
@@ -135,8 +135,8 @@ class LoopbackTransport(Transport):
     def stats(self) -> dict[str, Any]:
         return {"sent": self.link.sent[self.side], "lost": self.link.lost[self.side]}
 
-    @classmethod
-    def from_uri(cls, uri: str) -> LoopbackTransport:
+    @staticmethod
+    def _parse(uri: str) -> tuple[str, dict[str, Any]]:
         parts = urlsplit(uri)
         if parts.scheme != "loopback":
             raise ConfigError(f"not a loopback URI: {uri!r}")
@@ -144,6 +144,18 @@ class LoopbackTransport(Transport):
         opts = parse_query(
             parts.query, {"mtu": int, "rate": float, "loss": float, "seed": int, "delay": float}
         )
+        if opts.get("mtu", 256) <= 0:
+            raise ConfigError(f"{uri!r}: mtu must be positive")
+        return name, opts
+
+    @classmethod
+    def check_uri(cls, uri: str) -> UriInfo:
+        _, opts = cls._parse(uri)
+        return UriInfo(uri, int(opts.get("mtu", 256)))
+
+    @classmethod
+    def from_uri(cls, uri: str) -> LoopbackTransport:
+        name, opts = cls._parse(uri)
         link = cls._named.get(name)
         if link is None or cls._opened.get(name, 0) >= 2:
             link = LoopbackLink(

@@ -201,7 +201,7 @@ class Modality(abc.ABC):
     messages: ClassVar[tuple[type[Message], ...]] = ()
     #: built-in message types its receiver emits and its sender handles (requests, acks)
     requests: ClassVar[tuple[type[Message], ...]] = ()
-    #: third-party type ids (:class:`~coex_core.messages.Opaque`, spec section 3: 96..32767)
+    #: third-party type ids (:class:`~coex_core.messages.Opaque`, spec section 5: 96..32767)
     #: its sender emits and its receiver takes; a node routes those ids, and only those, to it
     message_ids: ClassVar[tuple[int, ...]] = ()
     #: third-party type ids its receiver emits and its sender handles

@@ -48,6 +48,7 @@ from .messages import (
     CommandAck,
     FrameAck,
     LinkControl,
+    LinkHealth,
     Message,
     Opaque,
     QueueConfig,
@@ -459,6 +460,16 @@ class Node:
     def push_status(self, status: VehicleStatus, now: float) -> None:
         """Queue the newest vehicle status (strict tier 0, newest only)."""
         self.manager.push(STATUS_STREAM, status, now)
+
+    def not_sent(self, tx: Transmission, now: float) -> None:
+        """A transmission from :meth:`poll` that never left (its modem was down): what it carried
+        is sent again as soon as the link is back (:meth:`ChannelManager.not_sent`)."""
+        self.manager.not_sent(tx, now)
+
+    def push_link_health(self, health: LinkHealth, now: float) -> None:
+        """Queue a report of a modem's outages (control stream: tier 0, re-sent until a frame
+        ack covers it, on whichever link is up). Push one when a modem goes down or comes back."""
+        self.manager.push(CONTROL_STREAM, health, now)
 
     # ================================================================== topside helpers
     def queue_config(self, stream: int, now: float, *, flush: bool = False,

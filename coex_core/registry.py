@@ -33,6 +33,10 @@ __all__ = [
     "load_transport",
     "load",
     "open_transport",
+    "check_transport_uri",
+    "entry_points",
+    "names",
+    "transport_scheme",
 ]
 
 MODALITY_GROUP = "coex.modalities"
@@ -66,6 +70,18 @@ def _entry_points(group: str) -> dict[str, metadata.EntryPoint]:
     for ep in metadata.entry_points(group=group):
         found.setdefault(ep.name, ep)
     return found
+
+
+def entry_points(group: str) -> dict[str, metadata.EntryPoint]:
+    """Every plugin registered in ``group``, by name (the first of a name wins), not loaded: the
+    one place CoEx reads entry points (modalities, transports, commands, inputs, autonomy
+    outputs, conformance inputs ...)."""
+    return _entry_points(group)
+
+
+def names(group: str) -> list[str]:
+    """The names registered in ``group``, sorted."""
+    return sorted(_entry_points(group))
 
 
 def _dist_name(ep: metadata.EntryPoint) -> tuple[str, str]:
@@ -104,16 +120,29 @@ def load_transport(name: str) -> Any:
     return load(TRANSPORT_GROUP, name)
 
 
+def transport_scheme(uri: str) -> str:
+    """The scheme of a transport URI (the text before the first ``:``), which picks the plugin."""
+    scheme = urlsplit(uri).scheme or uri.split(":", 1)[0]
+    if not scheme:
+        raise PluginNotFound(f"transport URI {uri!r} has no scheme")
+    return scheme
+
+
 def open_transport(uri: str) -> Any:
     """Create a transport from a URI; the scheme (text before the first ``:``) picks the plugin.
 
     ``micromodem:///dev/ttyUSB0?rate=5``, ``mavlink:udpout:127.0.0.1:14550``,
     ``lcm:udpm://239.255.76.67:7667?ttl=0``, ``loopback://name``."""
-    scheme = urlsplit(uri).scheme or uri.split(":", 1)[0]
-    if not scheme:
-        raise PluginNotFound(f"transport URI {uri!r} has no scheme")
-    cls = load_transport(scheme)
-    return cls.from_uri(uri)
+    return load_transport(transport_scheme(uri)).from_uri(uri)
+
+
+def check_transport_uri(uri: str) -> Any:
+    """Check a transport URI as :func:`open_transport` would take it, opening nothing: the
+    plugin's :meth:`~coex_core.transport.Transport.check_uri` (a
+    :class:`~coex_core.transport.UriInfo`, or None when the plugin cannot check without
+    opening); :class:`~coex_core.errors.ConfigError` for a bad URI, PluginNotFound /
+    PluginLoadError for an unknown or uninstalled scheme."""
+    return load_transport(transport_scheme(uri)).check_uri(uri)
 
 
 def available(check: bool = True) -> list[PluginInfo]:

@@ -2,7 +2,7 @@
 
 A modality declares the messages it owns (:class:`~coex_core.modality.Modality`):
 
-* ``messages`` / ``requests``: built-in message types (each has a type id, spec section 3);
+* ``messages`` / ``requests``: built-in message types (each has a type id, spec section 5);
 * ``message_ids`` / ``request_ids``: third-party type ids (96..32767), carried as
   :class:`~coex_core.messages.Opaque`;
 * ``routine``: the requests (types or ids) that do not expedite its stream (acks of data).
@@ -61,7 +61,7 @@ def _own_ids(cls: type[Modality], attr: str, what: str) -> tuple[int, ...]:
     for i in ids:
         if not third_party(i):
             raise ConfigError(f"modality {_name(cls)}: {what} id {i} is not a third-party type id "
-                              "(96..32767, spec section 3)")
+                              "(96..32767, spec section 5)")
     return ids
 
 

@@ -12,14 +12,28 @@ see :func:`coex_core.registry.open_transport`.
 from __future__ import annotations
 
 import abc
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
 from types import TracebackType
 from typing import Any, ClassVar
 from urllib.parse import parse_qsl
 
 from .errors import ConfigError, FrameTooLarge, TransportError
 
-__all__ = ["Transport", "parse_query"]
+__all__ = ["Transport", "UriInfo", "parse_query"]
+
+
+@dataclass(frozen=True)
+class UriInfo:
+    """What a transport URI says, found without opening anything (:meth:`Transport.check_uri`):
+    the largest frame the transport will accept (``mtu``), the local device nodes or files it
+    will open (``paths``: a missing one is a warning, the device may be plugged in later), and
+    the modem's packet ``rate`` when the URI sets one (the channel manager must plan for it)."""
+
+    uri: str
+    mtu: int
+    paths: tuple[str, ...] = ()
+    rate: int | None = None
 
 
 class Transport(abc.ABC):
@@ -57,6 +71,34 @@ class Transport(abc.ABC):
     def from_uri(cls, uri: str) -> Transport:
         """Create a transport from its URI."""
         raise ConfigError(f"{cls.__name__} cannot be created from a URI")
+
+    @classmethod
+    def check_uri(cls, uri: str) -> UriInfo | None:
+        """Parse and check ``uri`` exactly as :meth:`from_uri` will, **opening nothing** (no
+        device, socket or file): :class:`ConfigError` naming what is wrong (an unknown option,
+        a bad value, a malformed address), else what the URI says (:class:`UriInfo`). ``coex
+        config check`` and the daemons' reconnecting links use it, so a URI it passes is one
+        :meth:`from_uri` takes. Optional: the default, ``None``, means "cannot be checked without
+        opening it" (the config check says so; a link of such a transport must open at start)."""
+        return None
+
+    def link_up(self) -> bool:
+        """Whether the device or stream behind the transport is there now. A transport that
+        reconnects by itself (the MOOS client) says False while it is away, so the outage is
+        counted; the default is True (a transport that fails raises :class:`TransportError`
+        instead)."""
+        return True
+
+    def send_packet(self, frames: Sequence[bytes], rate: int | None = None) -> None:
+        """Send the frames of one packet: a modem sends them together at ``rate`` (default its
+        own). The default sends each frame with :meth:`send`; a modem transport overrides it."""
+        for frame in frames:
+            self.send(frame)
+
+    def link_status(self) -> Any:
+        """The latest receive statistics as a :class:`~coex_core.messages.LinkStatus` (a modem's
+        SNR, Doppler, bad frames), or ``None`` when the transport has none (the default)."""
+        return None
 
     # ---------------------------------------------------------------- public API
     def send(self, frame: bytes) -> None:

@@ -81,3 +81,81 @@ def test_the_topside_example_checks_clean() -> None:
     assert problems == [] and cfg is not None
     assert [m.name for m in cfg.modalities] == ["bathymetry", "imagery", "timeseries", "survey"]
     assert cfg.command_key is not None
+
+
+# --------------------------------------------------------------- what the daemon will do
+GOOD = """
+[node]
+role = "vehicle"
+id = 2
+peer = 1
+store = false
+[[modems]]
+uri = "{uri}"
+{modem}
+[modalities.survey]
+stream = 7
+{rest}
+"""
+
+
+@pytest.mark.parametrize(("uri", "words"), [
+    ("micromodem:///dev/ttyUSB0?dst=1", "unknown option 'dst'"),
+    ("micromodem:///dev/ttyUSB0?rate=9", "rate 9 is not valid for mode cycle"),
+    ("micromodem:socket://127.0.0.1?src=2", "expected HOST:PORT"),
+    ("mavlink:udpot:127.0.0.1:14550", "connection kind must be one of"),
+    ("lcm:udpm://239.255.76.67:7667?ttl=0&chanel=COEX", "unknown option 'chanel'"),
+    ("moos://localhost:9000?nmae=pCoex", "unknown option 'nmae'"),
+])
+def test_config_check_refuses_what_the_transport_would_refuse_by_key(tmp_path: Path, uri: str, words: str) -> None:
+    f = tmp_path / "v.toml"
+    f.write_text(GOOD.format(uri=uri, modem="", rest=""))
+    _, problems = check(f)
+    assert [p for p in problems if p.startswith("modems[0].uri: ") and words in p], problems
+    out = subprocess.run([sys.executable, "-m", "coex_core.cli", "config", "check", str(f)],
+                         capture_output=True, text=True, timeout=120)
+    assert out.returncode == 1 and words in out.stdout
+
+
+def test_a_rate_the_uri_contradicts_is_a_problem_and_one_it_gives_is_used(tmp_path: Path) -> None:
+    f = tmp_path / "v.toml"
+    f.write_text(GOOD.format(uri="micromodem:socket://127.0.0.1:4001?rate=1", modem="rate = 5", rest=""))
+    _, problems = check(f)
+    assert any(p.startswith("modems[0].rate: 5, but the modem's URI says rate=1") for p in problems), problems
+    f.write_text(GOOD.format(uri="micromodem:socket://127.0.0.1:4001?rate=1", modem="", rest=""))
+    cfg, problems = check(f)
+    assert not problems and cfg is not None and cfg.modems[0].rate == 1
+
+
+def test_missing_devices_files_and_folders_are_warnings_with_their_keys(tmp_path: Path) -> None:
+    rest = f"""
+[[inputs]]
+type = "rosbag"
+path = "no-such.bag"
+nav_topic = "/nav"
+feeds = ["status"]
+[[inputs]]
+type = "directory"
+path = "{tmp_path / 'no-such-dir'}"
+feeds = []
+[[inputs]]
+type = "nmea"
+serial = "/dev/ttyNOPE3"
+feeds = ["status"]
+[autonomy]
+type = "mavlink"
+connection = "/dev/ttyNOPE4"
+"""
+    f = tmp_path / "v.toml"
+    f.write_text(GOOD.format(uri="micromodem:///dev/ttyNOPE0?rate=5", modem="required = false", rest=rest))
+    cfg, problems = check(f)
+    assert not problems, problems
+    assert cfg is not None
+    keys = {w.split(":", 1)[0] for w in cfg.warnings}
+    assert keys == {"modems[0].uri", "inputs[0].path", "inputs[1].path", "inputs[2].serial", "autonomy.connection"}
+    assert any(str(tmp_path / "no-such.bag") in w for w in cfg.warnings)  # relative to the file
+    out = subprocess.run([sys.executable, "-m", "coex_core.cli", "config", "check", str(f)],
+                         capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0, out.stdout + out.stderr
+    assert "warning: modems[0].uri: /dev/ttyNOPE0 does not exist now" in out.stdout
+    assert ": ok: vehicle node 2" in out.stdout

@@ -80,9 +80,15 @@ def test_bad_uris_raise_config_error(uri: str) -> None:
         parse_lcm_uri(uri)
 
 
-def test_unknown_provider_is_a_transport_error() -> None:
-    with pytest.raises(TransportError, match="cannot open LCM"):
+def test_unknown_provider_or_option_is_a_config_error_before_anything_opens() -> None:
+    with pytest.raises(ConfigError, match="unknown LCM provider 'nosuchprovider'"):
         LcmTransport.from_uri("lcm:nosuchprovider://x")
+    with pytest.raises(ConfigError, match="unknown option 'chanel'"):  # LCM itself would only warn
+        LcmTransport.check_uri("lcm:udpm://239.255.76.67:7667?ttl=0&chanel=COEX")
+    with pytest.raises(ConfigError, match="unknown option 'speed'"):  # a file option on udpm
+        LcmTransport.check_uri("lcm:udpm://239.255.76.67:7667?speed=2")
+    assert LcmTransport.check_uri("lcm:file:///tmp/x.log?speed=2&channel=C").paths == ("/tmp/x.log",)
+    assert LcmTransport.check_uri("lcm:file:///tmp/x.log?mode=w").paths == ()
 
 
 def test_registered_and_opened_by_uri() -> None:

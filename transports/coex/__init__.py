@@ -46,6 +46,7 @@ from coex_core.errors import (
     DecodeError,
     EncodeError,
     FrameTooLarge,
+    LinkDown,
     PluginLoadError,
     PluginNotFound,
     RequestRejected,
@@ -55,10 +56,17 @@ from coex_core.errors import (
 from coex_core.messages import Frame, FrameHeader, Message
 from coex_core.modality import Modality, ModalityReceiver, ModalitySender, Product
 from coex_core.node import Node
-from coex_core.registry import available, load_modality, load_transport, open_transport
+from coex_core.registry import (
+    available,
+    check_transport_uri,
+    load_modality,
+    load_transport,
+    open_transport,
+)
 from coex_core.requests import RequestTracker
 from coex_core.state import StateError, persistent
-from coex_core.transport import Transport
+from coex_core.transport import Transport, UriInfo, parse_query
+from coex_transports.recovery import Health, ResilientTransport
 from coex_transports.runner import RealClock, Runner, SimNetwork, SimulatedClock
 from coex_transports.store import NodeStore
 
@@ -85,8 +93,10 @@ __all__ = [
     "Frame",
     "FrameHeader",
     "FrameTooLarge",
+    "Health",
     "LinkChanged",
     "LinkConfig",
+    "LinkDown",
     "LinkStats",
     "Message",
     "Modality",
@@ -103,6 +113,7 @@ __all__ = [
     "Rejected",
     "RequestRejected",
     "RequestTracker",
+    "ResilientTransport",
     "Runner",
     "Schedule",
     "SimNetwork",
@@ -114,14 +125,17 @@ __all__ = [
     "Transport",
     "TransportError",
     "TransportTimeout",
+    "UriInfo",
     "__version__",
     "available",
+    "check_transport_uri",
     "errors",
     "load_modality",
     "load_transport",
     "merged_config",
     "messages",
     "open_transport",
+    "parse_query",
     "persistent",
     "wire",
 ]

@@ -10,8 +10,10 @@ with real time, real transports, or a simulated clock.
   jumps from event to event (packet ends, transmit opportunities, scheduled callbacks), so a
   two-hour dive replays in seconds. It writes the link log (JSON lines) if given a file.
 
-A transport that has a ``send_packet(frames, rate)`` method gets each packet whole (a modem
-sends a packet's frames together); otherwise each frame is sent with ``send``. With
+Each packet goes to its transport whole (``Transport.send_packet``: a modem sends a packet's
+frames together). A link that is down for now (:class:`~coex_core.errors.LinkDown`, from a
+:class:`~coex_transports.recovery.ResilientTransport`) is counted in :attr:`Runner.not_sent`,
+not logged, and given back to the node (``Node.not_sent``: not an acoustic loss, sent again); any other transport error is logged once and then counted while it repeats. With
 ``settings_path`` the runner loads the node's operator settings (stream settings, links,
 schedules) at start and writes them whenever they change, so they survive a restart.
 
@@ -38,7 +40,7 @@ from typing import Any, Protocol, TextIO
 from coex_core.acoustic import AcousticChannel
 from coex_core.channel.linklog import to_json_line
 from coex_core.channel.manager import Transmission
-from coex_core.errors import CoexError, ConfigError, TransportError
+from coex_core.errors import CoexError, ConfigError, LinkDown, TransportError
 from coex_core.loopback import SimClock
 from coex_core.node import Node
 from coex_core.transport import Transport
@@ -106,12 +108,11 @@ def _write(sink: TextIO | Callable[[dict[str, Any]], None] | None, rec: dict[str
 
 
 def _send(transport: Transport, tx: Transmission) -> None:
-    send_packet = getattr(transport, "send_packet", None)
-    if callable(send_packet):
-        send_packet(list(tx.frames), tx.rate)
-        return
-    for frame in tx.frames:
-        transport.send(frame)
+    transport.send_packet(list(tx.frames), tx.rate)
+
+
+#: an error repeated within this many seconds is counted, not reported again
+REPEAT_WINDOW = 60.0
 
 
 class Runner:
@@ -165,9 +166,25 @@ class Runner:
         #: The last 100 transport errors (the loop never stops for one); ``error_count`` counts all.
         self.errors: collections.deque[str] = collections.deque(maxlen=100)
         self.error_count = 0
+        #: frames not sent because their link was down for now (per link id)
+        self.not_sent: dict[int, int] = {}
+        self._repeat: tuple[str, float, int] | None = None  # (text, first seen, repeats since)
 
     def _error(self, text: str) -> None:
+        """Record an error; the same text again within :data:`REPEAT_WINDOW` seconds is counted,
+        and reported once as "(repeated N times)" when something else happens or the window ends."""
         self.error_count += 1
+        now = time.monotonic()
+        rep = self._repeat
+        if rep is not None and rep[0] == text and now - rep[1] < REPEAT_WINDOW:
+            self._repeat = (text, rep[1], rep[2] + 1)
+            return
+        if rep is not None and rep[2]:
+            self._report(f"{rep[0]} (repeated {rep[2]} times in {now - rep[1]:.0f} s)")
+        self._repeat = (text, now, 0)
+        self._report(text)
+
+    def _report(self, text: str) -> None:
         self.errors.append(text)
         if self.on_error is not None:
             try:
@@ -217,6 +234,9 @@ class Runner:
                 continue
             try:
                 _send(out, tx)
+            except LinkDown:
+                self.not_sent[tx.link_id] = self.not_sent.get(tx.link_id, 0) + len(tx.frames)
+                self.node.not_sent(tx, now)  # sent again once the link is back, not after a timeout
             except CoexError as exc:
                 self._error(f"link {tx.link_id} send: {exc}")
             _write(self.link_log, {

@@ -170,6 +170,8 @@ class TopsideApp:
         self.server = server
         self.clock = clock
         self.stop = threading.Event()
+        #: the products on ROS topics (``[ros]``), or None
+        self.ros: Any = None
         self._last_status: dict[int, Any] = {}
         self._commands_seen = self._commands_version()
         self.runner = Runner(node, self.transports, RealClock(clock), store=store,
@@ -203,9 +205,14 @@ class TopsideApp:
         return float(self.runner.step())
 
     def _to_console(self, now: float) -> None:
+        from coex_transports.recovery import ResilientTransport
+
         self.hub.pump(self.node, now)
         for link, tr in self.transports.items():
             self._modem_status(link, tr)
+            if isinstance(tr, ResilientTransport):
+                h = tr.health()
+                self.hub.state.set_own_modem(link, h.up, h.outages, h.down_total, h.last_down, h.last_error, now)
 
     def _commands_version(self) -> int:
         """Changes whenever the operator's commands do (sent, queued, answered)."""
@@ -221,11 +228,8 @@ class TopsideApp:
     def _modem_status(self, link: int, transport: Any) -> None:
         """Receive statistics of topside's own modem (a transport with ``link_status()``, like
         the Micromodem's), shown with the link."""
-        get = getattr(transport, "link_status", None)
-        if not callable(get):
-            return
         try:
-            status = get()
+            status = transport.link_status()
         except Exception as exc:  # statistics are a nicety: never stop the loop for them
             self.runner._error(f"link {link} status: {exc}")
             return
@@ -250,6 +254,8 @@ class TopsideApp:
         if thread is not None and thread is not threading.current_thread():
             thread.join(timeout=5.0)
         self.server.close()
+        if self.ros is not None:
+            self.ros.close()
         for tr in self.transports.values():
             tr.close()
         if self.store is not None:
@@ -287,7 +293,9 @@ def build_topside(transport_uri: str | Sequence[str], host: str = "127.0.0.1", p
                   tls_cert: str | None = None, tls_key: str | None = None,
                   session_hours: float = 12.0,
                   receiver_options: dict[str, dict[str, Any]] | None = None,
-                  link_options: Sequence[dict[str, Any]] | None = None) -> TopsideApp:
+                  link_options: Sequence[dict[str, Any]] | None = None,
+                  required: Sequence[bool] | None = None,
+                  ros: dict[str, Any] | None = None) -> TopsideApp:
     """Open the transports (several URIs: several modems, link ids ``link``, ``link + 1`` ...),
     build the topside node and its receivers, serve the console (not yet driving the node: call
     ``start()`` or ``run()``). With ``command_key`` every command is authenticated (spec
@@ -307,12 +315,17 @@ def build_topside(transport_uri: str | Sequence[str], host: str = "127.0.0.1", p
     start without one, unless ``insecure_open`` (logged loudly). ``tls_cert`` and ``tls_key``
     serve HTTPS. ``receiver_options`` gives a modality's receiver its options by name;
     ``link_options`` (one mapping per transport) sets LinkConfig fields (``rate``,
-    ``frame_bytes``, ``spare``, ``packet_seconds``) link by link."""
+    ``frame_bytes``, ``spare``, ``packet_seconds``) link by link. Each transport is a
+    :class:`~coex_transports.recovery.ResilientTransport`: a modem that goes away or is not
+    there yet is reopened with backoff (``required[i]`` true: an error at start instead).
+    ``ros`` (the options of :class:`~coex_plugins.console.ros.RosProducts`) publishes what
+    arrives on ROS topics for rviz."""
     access, tls = console_access(host, operators, insecure_open, tls_cert, tls_key, session_hours)
     from coex_core.channel.manager import ChannelManager, LinkConfig
     from coex_core.channel.schedule import Schedule
     from coex_core.node import Node
-    from coex_core.registry import load_modality, open_transport
+    from coex_core.registry import load_modality
+    from coex_transports.recovery import ResilientTransport
 
     from .node import NodeCommands
     from .server import ConsoleHub, serve
@@ -333,7 +346,9 @@ def build_topside(transport_uri: str | Sequence[str], host: str = "127.0.0.1", p
         from coex_core.acoustic import rate_info
 
         for i, uri in enumerate(uris):
-            transports[link + i] = open_transport(uri)
+            # a modem that goes away (or is not there yet) is reopened while the console runs on
+            transports[link + i] = ResilientTransport(uri, name=f"link {link + i}",
+                                                      required=bool(required and i < len(required) and required[i]))
         extra = list(link_options or [])
         cfgs = [LinkConfig(lid, schedule, rate=rate,
                            frame_bytes=min(rate_info(rate).frame_bytes, int(tr.mtu)),
@@ -414,7 +429,16 @@ def build_topside(transport_uri: str | Sequence[str], host: str = "127.0.0.1", p
         if nstore is not None:
             nstore.close()
         raise
-    return TopsideApp(node, transports, hub, server, clock, store=nstore)
+    app = TopsideApp(node, transports, hub, server, clock, store=nstore)
+    if ros is not None:
+        from .ros import RosProducts
+
+        try:
+            app.ros = RosProducts(ros, lock=hub.lock, clock=clock).attach(node)
+        except BaseException:
+            app.close()
+            raise
+    return app
 
 
 def topside_from_config(path: str, clock: Callable[[], float] = time.time) -> TopsideApp:
@@ -441,7 +465,8 @@ def topside_from_config(path: str, clock: Callable[[], float] = time.time) -> To
         receiver_options={m.name: _resolved(m.options, cfg) for m in cfg.modalities},
         link_options=[{k: v for k, v in (("rate", m.rate), ("frame_bytes", m.frame_bytes), ("spare", m.spare),
                                           ("packet_seconds", m.packet_seconds)) if v is not None}
-                      for m in cfg.modems])
+                      for m in cfg.modems],
+        required=[m.required for m in cfg.modems], ros=cfg.ros)
 
 
 def run(args: argparse.Namespace) -> int:

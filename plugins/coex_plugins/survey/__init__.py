@@ -240,15 +240,16 @@ def _same(a: SurveyCommand, b: SurveyCommand) -> bool:
 
 # ================================================================================ topside
 def _upgrade_rx_survey(fields: dict[str, Any], saved: int) -> dict[str, Any]:
-    return {"vtime": None, **fields}  # version 1 did not keep the newest vehicle time
+    # version 1 kept neither the newest vehicle time nor which history entries carry one
+    return {"vtime": None, "stamped": [False] * len(fields.get("history", [])), **fields}
 
 
 @persistent("survey.RxSurvey", version=2, upgrade=_upgrade_rx_survey)
 class SurveyRecord:
     """What topside knows of one survey it asked for (or heard of)."""
 
-    __slots__ = ("command", "command_id", "history", "index", "reason", "state", "survey_id", "text",
-                 "time", "value", "version", "vtime")
+    __slots__ = ("command", "command_id", "history", "index", "reason", "stamped", "state", "survey_id",
+                 "text", "time", "value", "version", "vtime")
 
     def __init__(self, survey_id: int, command: SurveyCommand | None, now: float) -> None:
         self.survey_id = survey_id
@@ -261,22 +262,46 @@ class SurveyRecord:
         self.index: int | None = None
         self.value: float | None = None
         self.time = now
+        #: (time, state, text), in the order things happened: topside's own events (sent, the
+        #: vehicle's CommandAck heard) at topside's time as they come, the vehicle's reports at the
+        #: vehicle's time, a late one put back among them by its stamp
         self.history: list[tuple[float, str, str]] = [(now, self.state, "")]
+        #: for each history entry, whether its time is the vehicle's (a SurveyStatus stamp)
+        self.stamped: list[bool] = [False]
         self.version = 1
         #: the vehicle's time of the newest SurveyStatus taken (None: none yet)
         self.vtime: float | None = None
 
-    def set(self, state: str, time: float, text: str = "", reason: str | None = None) -> None:
+    def set(self, state: str, time: float, text: str = "", reason: str | None = None, *,
+            stamped: bool = False) -> None:
         self.state, self.time, self.text, self.reason = state, time, text, reason
-        self.note(time, state, text)
+        self.history.append((time, state, text))
+        self.stamped.append(stamped)
+        self.version += 1
 
-    def note(self, time: float, state: str, text: str = "") -> None:
-        """Add a state to the history, in the vehicle's time order (reports can arrive out of
-        order over the link; what came to topside first is not what happened first)."""
+    def restamp(self, state: str, time: float) -> None:
+        """The vehicle's report of a state topside already noted at its own time (the
+        CommandAck's "accepted"): the entry takes the vehicle's time, so the history's times
+        are the vehicle's wherever the vehicle said when."""
+        for i, (_t, st, text) in enumerate(self.history):
+            if st == state and not self.stamped[i]:
+                self.history[i] = (time, st, text)
+                self.stamped[i] = True
+                if self.state == state:
+                    self.time = time
+                self.version += 1
+                return
+
+    def note_late(self, time: float, state: str, text: str = "") -> None:
+        """A vehicle report older than one already taken: into the history by its stamp (after
+        the vehicle's reports up to that time), without changing the present state."""
         at = len(self.history)
-        while at > 0 and self.history[at - 1][0] > time:
+        while at > 0 and not (self.stamped[at - 1] and self.history[at - 1][0] <= time):
             at -= 1
+        if at == 0:  # older than every vehicle report: just before the first of them
+            at = next((i for i, st in enumerate(self.stamped) if st), len(self.history))
         self.history.insert(at, (time, state, text))
+        self.stamped.insert(at, True)
         self.version += 1
 
 
@@ -352,16 +377,17 @@ class SurveyReceiver(ModalityReceiver):
         text = describe(reason, message.index, message.value, message.detail) if reason != SurveyReason.NONE else ""
         if state == "started" and message.index is not None:
             text = f"heading for waypoint {message.index}"
+        rec.restamp(state, t)
         same = (rec.state, rec.text, rec.index) == (state, text, message.index)
-        if same or any(h[0] == t and h[1] == state and h[2] == text for h in rec.history):
+        if same or any(h == (t, state, text) for h in rec.history):
             return []  # a copy
         if (rec.vtime is not None and t < rec.vtime) or (
                 rec.state in ("completed", "aborted", "rejected") and state in ("accepted", "started")):
-            rec.note(t, state, text)  # an older state arriving late: history, not the present
+            rec.note_late(t, state, text)  # an older state arriving late: history, not the present
             return [self._product(rec)]
         rec.vtime = t
         rec.index, rec.value = message.index, message.value
-        rec.set(state, t, text, reason.name if reason != SurveyReason.NONE else None)
+        rec.set(state, t, text, reason.name if reason != SurveyReason.NONE else None, stamped=True)
         if rec.command_id is not None:
             self._requests.answered(rec.command_id)
         return [self._product(rec)]

@@ -9,7 +9,7 @@ from typing import Any
 
 from coex_core.errors import CoexError
 
-__all__ = ["register", "register_config", "run_vehicle"]
+__all__ = ["register", "register_config", "run_vehicle", "summary_text"]
 
 
 def register(subparsers: Any) -> None:
@@ -55,6 +55,8 @@ def _check(args: argparse.Namespace) -> int:
             problems = ["a MOOS mission's pCoex block configures the vehicle"]
     else:
         cfg, problems = check(args.file, args.role)
+    for text in cfg.warnings if cfg is not None else ():
+        print(f"{args.file}: warning: {text}")
     if problems:
         for text in problems:
             print(f"{args.file}: {text}")
@@ -68,9 +70,22 @@ def _check(args: argparse.Namespace) -> int:
                      + (f" ({', '.join(i['type'] for i in cfg.inputs)})" if cfg.inputs else ""))
         parts.append(f"autonomy {cfg.autonomy.get('type')}")
     parts.append(f"store {cfg.store}" if cfg.store else "no store")
+    if cfg.ros is not None:
+        parts.append(f"products on ROS under {cfg.ros.get('prefix', '/coex')} "
+                     f"({cfg.ros.get('master') or 'ROS_MASTER_URI'})")
     parts.append("commands signed" if cfg.command_key else "commands NOT authenticated (no node.command_key_file)")
     print(f"{args.file}: ok: {cfg.role} node {cfg.node_id} (peer {cfg.peer}); " + "; ".join(parts))
     return 0
+
+
+def summary_text(summary: dict[str, Any]) -> str:
+    """The shutdown line's words: "points 400, images 3, ..., skipped 6, plans 1, reports 2;
+    skipped by input: inputs[0] (directory) 4, inputs[1] (lcm) 2" (every input, zeros too)."""
+    by_input = summary.get("skipped_by_input") or {}
+    text = ", ".join(f"{k} {v}" for k, v in summary.items() if k != "skipped_by_input")
+    if by_input:
+        text += "; skipped by input: " + ", ".join(f"{k} {v}" for k, v in by_input.items())
+    return text
 
 
 def run_vehicle(args: argparse.Namespace) -> int:
@@ -93,7 +108,9 @@ def run_vehicle(args: argparse.Namespace) -> int:
         print(f"coex vehicle: {exc}", file=sys.stderr)
         return 2
     st = app.store
-    print(f"coex vehicle: node {cfg.node_id} on {', '.join(m.uri for m in cfg.modems)}; "
+    waiting = [f"link {lid} waiting for its modem" for lid, tr in app.transports.items() if not tr.up]
+    print(f"coex vehicle: node {cfg.node_id} on {', '.join(m.uri for m in cfg.modems)}"
+          + (f" ({', '.join(waiting)})" if waiting else "") + "; "
           f"modalities {', '.join(m.name for m in cfg.modalities)}; "
           f"{len(app.inputs)} input(s); autonomy {cfg.autonomy.get('type')}; "
           + (f"store {cfg.store} ({'resumed, ' + str(st.stats['replayed']) + ' journal rows replayed' if app.resumed else 'new'})"
@@ -109,5 +126,10 @@ def run_vehicle(args: argparse.Namespace) -> int:
             pass
         finally:
             app.close()
-            print(f"coex vehicle: stopped ({', '.join(f'{k} {v}' for k, v in app.counts.items())})", flush=True)
+            from coex_transports.recovery import describe_seconds
+
+            modems = [f"link {lid}: {h.outages} outage{'s' if h.outages != 1 else ''}, down "
+                      f"{describe_seconds(h.down_total)}" for lid, h in app.link_health().items() if h.outages]
+            print(f"coex vehicle: stopped ({summary_text(app.summary())})"
+                  + (f"; {'; '.join(modems)}" if modems else ""), flush=True)
     return 0

@@ -14,7 +14,6 @@ import re
 import tomllib
 from collections.abc import Mapping
 from dataclasses import dataclass, field
-from importlib import metadata
 from pathlib import Path
 from typing import Any
 
@@ -30,7 +29,7 @@ DEFAULT_MODALITIES: dict[str, tuple[int, int]] = {
 }
 #: the NUI 2022 cycle: 6 slots, topside in slots 0 and 3
 NUI_SLOTS = ("topside", "vehicle", "vehicle", "topside", "vehicle", "vehicle")
-TOP_KEYS = {"node", "modems", "tdma", "modalities", "status", "inputs", "autonomy", "console"}
+TOP_KEYS = {"node", "modems", "tdma", "modalities", "status", "inputs", "autonomy", "console", "ros"}
 
 
 @dataclass
@@ -49,6 +48,9 @@ class ModemConfig:
     frame_bytes: int | None = None
     spare: float | None = None
     packet_seconds: float | None = None
+    #: the daemon refuses to start without this modem (default: it waits for it, as for a
+    #: modem that goes away during the dive)
+    required: bool = False
 
 
 @dataclass
@@ -76,6 +78,11 @@ class DeployConfig:
     inputs: list[dict[str, Any]] = field(default_factory=list)
     autonomy: dict[str, Any] = field(default_factory=lambda: {"type": "log"})
     console: dict[str, Any] = field(default_factory=dict)
+    #: topside: the ``[ros]`` table (received products on ROS topics), None without one
+    ros: dict[str, Any] | None = None
+    #: what the daemon will meet but can live with (a device not plugged in yet, a file not
+    #: written yet), each naming its key; ``coex config check`` prints them
+    warnings: list[str] = field(default_factory=list)
 
     @property
     def base_dir(self) -> Path:
@@ -95,9 +102,21 @@ class DeployConfig:
 class _Problems:
     def __init__(self) -> None:
         self.items: list[str] = []
+        self.warnings: list[str] = []
 
     def add(self, key: str, text: str) -> None:
         self.items.append(f"{key}: {text}")
+
+    def warn(self, key: str, text: str) -> None:
+        self.warnings.append(f"{key}: {text}")
+
+    def path(self, key: str, path: str | Path, what: str, *, folder: bool = False) -> None:
+        """A warning when ``path`` (a device, a file or a folder the node will open) is not there now."""
+        p = Path(path)
+        if folder and not p.is_dir():
+            self.warn(key, f"no folder {p} now ({what})")
+        elif not folder and not p.exists():
+            self.warn(key, f"{p} does not exist now ({what})")
 
     def table(self, data: Any, key: str) -> dict[str, Any]:
         if data is None:
@@ -128,8 +147,10 @@ class _Problems:
         return v
 
 
-def _entry_points(group: str) -> dict[str, metadata.EntryPoint]:
-    return {ep.name: ep for ep in metadata.entry_points(group=group)}
+def _entry_points(group: str) -> dict[str, Any]:
+    from coex_core.registry import entry_points
+
+    return entry_points(group)
 
 
 def load(path: str | Path, role: str | None = None) -> DeployConfig:
@@ -250,11 +271,16 @@ def check_mapping(raw: Mapping[str, Any], path: Path, role: str | None) -> tuple
         for k in ("console",):
             if k in raw:
                 p.add(k, "only a topside node has a console")
+        if "ros" in raw:
+            p.add("ros", "only a topside node publishes its products on ROS: a vehicle reads ROS with "
+                         "[[inputs]] type = \"ros\" and flies surveys with [autonomy] type = \"ros\"")
     else:
         for k in ("inputs", "autonomy", "status"):
             if k in raw:
                 p.add(k, "only a vehicle node has inputs, an autonomy and a status")
         _console(raw, p, cfg)
+        _ros(raw, p, cfg)
+    cfg.warnings = p.warnings
     return cfg, p.items
 
 
@@ -268,19 +294,55 @@ def _modems(raw: Mapping[str, Any], p: _Problems, cfg: DeployConfig) -> None:
     for i, m in enumerate(modems):
         key = f"modems[{i}]"
         m = p.table(m, key)
-        p.unknown(m, {"uri", "rate", "frame_bytes", "spare", "packet_seconds"}, key)
+        p.unknown(m, {"uri", "rate", "frame_bytes", "spare", "packet_seconds", "required"}, key)
         uri = m.get("uri")
         if not isinstance(uri, str) or not uri:
             p.add(f"{key}.uri", "missing: the transport URI")
             continue
         scheme = uri.split(":", 1)[0]
+        info = None
         if scheme not in known:
             p.add(f"{key}.uri", f"no transport {scheme!r} (known: {', '.join(sorted(known))})")
-        rate = p.number(m, "rate", key, 5, lo=0, hi=6, integer=True)
+        else:
+            info = _check_uri(uri, f"{key}.uri", p, cfg)
+        rate = p.number(m, "rate", key, None, lo=0, hi=6, integer=True)
+        if info is not None and info.rate is not None:
+            if rate is None:
+                rate = info.rate  # the modem's rate, from its URI
+            elif rate != info.rate:
+                p.add(f"{key}.rate", f"{rate}, but the modem's URI says rate={info.rate}: give one rate "
+                                     "(the channel plans its packets for this one)")
         fb = p.number(m, "frame_bytes", key, None, lo=16, hi=4096, integer=True)
         spare = p.number(m, "spare", key, None, lo=0, hi=1)
         packet = p.number(m, "packet_seconds", key, None, lo=0.001, hi=600)
-        cfg.modems.append(ModemConfig(uri, rate, fb, spare, packet))
+        required = m.get("required", False)
+        if not isinstance(required, bool):
+            p.add(f"{key}.required", f"true or false, got {required!r}")
+            required = False
+        cfg.modems.append(ModemConfig(uri, 5 if rate is None else int(rate), fb, spare, packet, required))
+
+
+def _check_uri(uri: str, key: str, p: _Problems, cfg: DeployConfig) -> Any:
+    """A transport URI through the transport's own parser (``Transport.check_uri``), opening
+    nothing, exactly as the daemon's links take it; devices and files it names that are not
+    there now are warnings (the daemon waits for a modem)."""
+    from coex_core.registry import check_transport_uri
+
+    try:
+        info = check_transport_uri(uri)
+    except ConfigError as exc:
+        p.add(key, str(exc))
+        return None
+    except CoexError as exc:  # not installed (PluginLoadError names the extra)
+        p.add(key, str(exc))
+        return None
+    if info is None:
+        p.warn(key, f"the {uri.split(':', 1)[0]} transport cannot check its URI without opening it: "
+                    "the daemon will open it at start")
+        return None
+    for path in info.paths:  # opened as given (a device path), like the transport will
+        p.path(key, path, "the node waits for the modem")
+    return info
 
 
 def _tdma(raw: Mapping[str, Any], p: _Problems, cfg: DeployConfig) -> None:
@@ -393,9 +455,23 @@ def _inputs(raw: Mapping[str, Any], p: _Problems, cfg: DeployConfig) -> None:
                 if f in FEEDS and f != "status" and f not in running:
                     p.add(f"{key}.feeds", f"feeds {f}, but the {f} modality does not run on this node")
         options = {k: v for k, v in t.items() if k not in ("type", "feeds")}
-        for text in check_options(cls, options):
+        problems = check_options(cls, options)
+        for text in problems:
             p.add(key, text)
+        if not problems:
+            _paths(cls, options, key, p, cfg)
         cfg.inputs.append(dict(t))
+
+
+def _paths(cls: Any, options: Mapping[str, Any], key: str, p: _Problems, cfg: DeployConfig) -> None:
+    """Warnings for the files, folders and devices an adapter declares (``Adapter.paths``) that
+    are not there now."""
+    for option, path, kind in cls.paths(options):
+        where = Path(path).expanduser()
+        if kind != "device" and not where.is_absolute():
+            where = cfg.base_dir / where
+        p.path(f"{key}.{option}", where, f"the {cls.kind} {cls.name!r} waits for it" if kind != "folder" else
+               f"the {cls.kind} {cls.name!r} watches it", folder=kind == "folder")
 
 
 def _autonomy(raw: Mapping[str, Any], p: _Problems, cfg: DeployConfig) -> None:
@@ -409,11 +485,28 @@ def _autonomy(raw: Mapping[str, Any], p: _Problems, cfg: DeployConfig) -> None:
     cls = _adapter("autonomy output", "coex.autonomy", t, "autonomy", p)
     if cls is None:
         return
-    for text in check_autonomy_options(cls, {k: v for k, v in t.items() if k != "type"}):
+    options = {k: v for k, v in t.items() if k != "type"}
+    problems = check_autonomy_options(cls, options)
+    for text in problems:
         p.add("autonomy", text)
+    if not problems:
+        _paths(cls, options, "autonomy", p, cfg)
     cfg.autonomy = dict(t)
     if "survey" not in {m.name for m in cfg.modalities}:
         p.add("autonomy", "an autonomy output needs the survey modality ([modalities.survey])")
+
+
+def _ros(raw: Mapping[str, Any], p: _Problems, cfg: DeployConfig) -> None:
+    """Topside: the ``[ros]`` table (``coex_plugins.console.ros.RosProducts``)."""
+    if "ros" not in raw:
+        return
+    from coex_plugins.console.ros import RosProducts
+
+    t = p.table(raw.get("ros"), "ros")
+    for text in RosProducts.check(t):
+        key, _, rest = text.partition(": ")
+        p.add(key, rest)
+    cfg.ros = t
 
 
 def _console(raw: Mapping[str, Any], p: _Problems, cfg: DeployConfig) -> None:

@@ -7,7 +7,8 @@ from __future__ import annotations
 import importlib
 import logging
 import math
-from collections.abc import Mapping
+import re
+from collections.abc import Callable, Mapping
 from types import ModuleType
 from typing import Any
 
@@ -16,7 +17,9 @@ from coex_transports.moos.client import MAX_TIME_WARP
 
 __all__ = [
     "LogOnce",
+    "serial_device",
     "compass_from_enu_yaw",
+    "compile_path",
     "finite",
     "need",
     "want_bool",
@@ -58,6 +61,14 @@ class LogOnce:
         self.counts[key] = n + 1
         if n == 0:
             self.logger.log(level, message, *args)
+
+
+def serial_device(connection: Any) -> list[tuple[str, str, str]]:
+    """The serial device of a pymavlink connection string (``/dev/ttyACM0``, ``/dev/ttyUSB0,57600``),
+    as an :meth:`Adapter.paths` entry of the option ``connection``; none for a network one."""
+    if not isinstance(connection, str) or not connection.startswith("/"):
+        return []
+    return [("connection", connection.split(",", 1)[0], "device")]
 
 
 # --------------------------------------------------------------------------- option checks
@@ -142,6 +153,38 @@ def want_time_warp(who: str, options: Mapping[str, Any], key: str = "time_warp")
 
 
 # --------------------------------------------------------------------------- values
+_SEGMENT = r"[A-Za-z_][A-Za-z0-9_]*(?:\[\d+\])?"
+_PATH = re.compile(rf"^-?\s*{_SEGMENT}(?:\.{_SEGMENT})*$")
+
+
+def compile_path(path: str) -> tuple[Callable[[Any], Any], str]:
+    """A getter for a field path (``"-pos[2]"``, ``"pose.position.x"``) and the name of its
+    first field; ValueError if the path is not one. The ``lcm`` input's ``own`` types and the
+    ``ros`` input's ``series`` take fields with it."""
+    if not isinstance(path, str) or not _PATH.match(path.strip()):
+        raise ValueError(f"{path!r} is not a field path (name, name[index], a.b, optional leading -)")
+    text = path.strip()
+    negate = text.startswith("-")
+    steps: list[tuple[str, int | None]] = []
+    for seg in text.lstrip("-").strip().split("."):
+        name, _, index = seg.partition("[")
+        steps.append((name, int(index[:-1]) if index else None))
+
+    def get(msg: Any) -> Any:
+        v = msg
+        for name, index in steps:
+            v = getattr(v, name)
+            if index is not None:
+                v = v[index]
+        if negate:
+            import numpy as np
+
+            v = -np.asarray(v, dtype=np.float64) if isinstance(v, list | tuple | np.ndarray) else -v
+        return v
+
+    return get, steps[0][0]
+
+
 def finite(v: Any) -> float | None:
     """``v`` as a float, or None when it is missing, not a number, NaN or infinite."""
     try:

@@ -41,7 +41,7 @@ from urllib.parse import parse_qsl, urlencode, urlsplit
 import lcm
 
 from coex_core.errors import ConfigError, DecodeError, TransportError
-from coex_core.transport import Transport
+from coex_core.transport import Transport, UriInfo
 
 from ._codec import decode_frame, encode_frame
 
@@ -53,6 +53,15 @@ DEFAULT_URL = "udpm://239.255.76.67:7667?ttl=0"
 _MAX_CHANNEL = 63  # LCM_MAX_CHANNEL_NAME_LENGTH
 _OPTIONS: dict[str, type] = {
     "channel": str, "tx": str, "rx": str, "mtu": int, "share": str, "queue": int, "decoded": bool,
+}
+#: the options each LCM provider takes (LCM itself only warns about others, and runs on without
+#: them: a misspelt option must not pass silently)
+PROVIDER_OPTIONS: dict[str, frozenset[str]] = {
+    "udpm": frozenset({"ttl", "recv_buf_size", "transmit_only"}),
+    "mpudpm": frozenset({"ttl", "recv_buf_size", "transmit_only", "nports"}),
+    "file": frozenset({"speed", "mode", "start_timestamp"}),
+    "memq": frozenset(),
+    "tcpq": frozenset(),
 }
 
 
@@ -125,6 +134,15 @@ def parse_lcm_uri(uri: str) -> LcmConfig:
                 raise ConfigError(f"option {key}={value!r} is not a valid {_OPTIONS[key].__name__}") from None
         else:
             theirs.append((key, value))
+    provider = parts.scheme
+    if provider not in PROVIDER_OPTIONS:
+        raise ConfigError(f"{uri!r}: unknown LCM provider {provider!r} (known: {', '.join(sorted(PROVIDER_OPTIONS))})")
+    allowed = PROVIDER_OPTIONS[provider]
+    for key, _ in theirs:
+        if key not in allowed:
+            raise ConfigError(
+                f"{uri!r}: unknown option {key!r} (CoEx options: {', '.join(sorted(_OPTIONS))}; "
+                f"{provider} options: {', '.join(sorted(allowed)) or 'none'})")
     query = urlencode(theirs, safe="/:")
     url = f"{parts.scheme}://{parts.netloc}{parts.path}" + (f"?{query}" if query else "")
     channel = ours.pop("channel", "COEX")
@@ -175,6 +193,19 @@ class LcmTransport(Transport):
         except Exception:
             self._release()
             raise
+
+    @classmethod
+    def check_uri(cls, uri: str) -> UriInfo:
+        """The URI through :func:`parse_lcm_uri` (every option known, by name), opening nothing;
+        a ``file://`` log read back (mode ``r``, LCM's default) is listed in ``paths``."""
+        cfg = parse_lcm_uri(uri)
+        paths: tuple[str, ...] = ()
+        if cfg.provider == "file":
+            parts = urlsplit(cfg.url)
+            mode = dict(parse_qsl(parts.query)).get("mode", "r")
+            if mode == "r":
+                paths = (parts.netloc + parts.path,)
+        return UriInfo(uri, cfg.mtu, paths)
 
     # ------------------------------------------------------------------ instances
     def _acquire(self, instance: lcm.LCM | None) -> _Instance:

@@ -14,7 +14,7 @@ import sys
 from collections import OrderedDict
 from typing import Any
 
-from coex_core.errors import ConfigError, TransportError
+from coex_core.errors import ConfigError, LinkDown, TransportError
 
 __all__ = ["Link", "SerialLink", "TcpClientLink", "TcpServerLink", "UdpInLink", "UdpOutLink"]
 
@@ -141,7 +141,7 @@ class UdpInLink(_SocketLink):
 
     def write(self, packet: bytes) -> None:
         if not self.peers:
-            raise TransportError(
+            raise LinkDown(  # not a failure: the link is there, waiting for a peer to speak
                 f"udpin {self.local[0]}:{self.local[1]}: no peer has sent anything yet, nowhere to send"
             )
         for peer in list(self.peers):
@@ -258,7 +258,7 @@ class TcpServerLink(Link):
     def write(self, packet: bytes) -> None:
         self._accept()
         if not self.clients:
-            raise TransportError(f"tcpin {self.local[0]}:{self.local[1]}: no client connected")
+            raise LinkDown(f"tcpin {self.local[0]}:{self.local[1]}: no client connected")
         for conn in list(self.clients):
             conn.setblocking(True)
             try:
@@ -268,7 +268,7 @@ class TcpServerLink(Link):
             else:
                 conn.setblocking(False)
         if not self.clients:
-            raise TransportError(f"tcpin {self.local[0]}:{self.local[1]}: every client disconnected")
+            raise LinkDown(f"tcpin {self.local[0]}:{self.local[1]}: every client disconnected")
 
     def read(self, timeout: float | None) -> bytes | None:
         events: list[Any] = self.sel.select(None if timeout is None else max(0.0, timeout))

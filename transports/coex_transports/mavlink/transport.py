@@ -30,7 +30,7 @@ from typing import Any
 from urllib.parse import urlsplit
 
 from coex_core.errors import ConfigError
-from coex_core.transport import Transport, parse_query
+from coex_core.transport import Transport, UriInfo, parse_query
 
 from ._links import Link, SerialLink, TcpClientLink, TcpServerLink, UdpInLink, UdpOutLink
 from .codec import DEFAULT_COMPONENT_ID, DEFAULT_MTU, DEFAULT_SYSTEM_ID, PAYLOAD_TYPE, TunnelCodec
@@ -100,6 +100,21 @@ def parse_mavlink_uri(uri: str) -> MavlinkEndpoint:
     return MavlinkEndpoint(kind, host.strip("[]"), _port(port_text, uri), options)
 
 
+def _codec(ep: MavlinkEndpoint) -> TunnelCodec:
+    o = ep.options
+    return TunnelCodec(
+        system_id=o.get("sysid", DEFAULT_SYSTEM_ID),
+        component_id=o.get("compid", DEFAULT_COMPONENT_ID),
+        target_system=o.get("target_system", 0),
+        target_component=o.get("target_component", 0),
+        payload_type=o.get("payload_type", PAYLOAD_TYPE),
+        mtu=o.get("mtu", DEFAULT_MTU),
+        heartbeat_interval=o.get("heartbeat", 1.0),
+        reassembly_timeout=o.get("reassembly_timeout", 5.0),
+        max_partial=o.get("max_partial", 8),
+    )
+
+
 def _open_link(ep: MavlinkEndpoint) -> Link:
     if ep.kind == "udpout":
         return UdpOutLink(ep.address, ep.port)
@@ -135,19 +150,15 @@ class MavlinkTransport(Transport):
     @classmethod
     def from_uri(cls, uri: str) -> MavlinkTransport:
         ep = parse_mavlink_uri(uri)
-        o = ep.options
-        codec = TunnelCodec(
-            system_id=o.get("sysid", DEFAULT_SYSTEM_ID),
-            component_id=o.get("compid", DEFAULT_COMPONENT_ID),
-            target_system=o.get("target_system", 0),
-            target_component=o.get("target_component", 0),
-            payload_type=o.get("payload_type", PAYLOAD_TYPE),
-            mtu=o.get("mtu", DEFAULT_MTU),
-            heartbeat_interval=o.get("heartbeat", 1.0),
-            reassembly_timeout=o.get("reassembly_timeout", 5.0),
-            max_partial=o.get("max_partial", 8),
-        )
-        return cls(_open_link(ep), codec)
+        return cls(_open_link(ep), _codec(ep))
+
+    @classmethod
+    def check_uri(cls, uri: str) -> UriInfo:
+        """The URI through :func:`parse_mavlink_uri` and the options through the codec's own
+        checks (building a codec opens nothing); a serial device is listed in ``paths``."""
+        ep = parse_mavlink_uri(uri)
+        codec = _codec(ep)
+        return UriInfo(uri, codec.mtu, (ep.address,) if ep.kind == "serial" else ())
 
     # ---------------------------------------------------------------------------- internals
     def _write(self, packets: list[bytes]) -> None:

@@ -1,16 +1,22 @@
 """``coex modem-sim``: simulated Micromodem-2s on pseudo-terminals, joined by an acoustic channel.
 
-    coex modem-sim --nodes 1,2 [--tcp-base 4001] [--spacing 1000] [--loss 0.1] [--speed 1]
+    coex modem-sim --nodes 1,2 [--tcp-base 4001] [--link DIR] [--spacing 1000] [--loss 0.1] [--speed 1]
 
 prints one line per modem (``modem 1: /dev/pts/7``, plus ``tcp 127.0.0.1:4001`` with
 ``--tcp-base``) and serves until interrupted or ``--duration`` seconds have passed. Point a driver
 at a device path (``micromodem:///dev/pts/7?src=1``), at a TCP port
 (``micromodem:socket://127.0.0.1:4001?src=1``), or WHOI's ``acomms`` library at the path.
+
+``--link DIR`` also makes ``DIR/modem<N>`` a symbolic link to modem N's pseudo-terminal, the way
+udev makes ``/dev/serial/by-id/...`` for a USB modem: a simulator stopped and started again
+gets new pseudo-terminals behind the same names (the links go when it stops), so a configuration
+that names the link sees the modem go away and come back.
 """
 
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 import time
 from collections.abc import Sequence
@@ -43,6 +49,9 @@ def register(subparsers: Any) -> None:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--speed", type=float, default=1.0, help="simulated seconds per real second")
     p.add_argument("--duration", type=float, default=None, help="stop after this many real seconds")
+    p.add_argument("--link", metavar="DIR", default=None,
+                   help="make DIR/modem<N> a symbolic link to modem N's pseudo-terminal (stable names "
+                        "across restarts, like /dev/serial/by-id)")
     p.set_defaults(func=run)
 
 
@@ -59,8 +68,11 @@ def run(args: argparse.Namespace) -> int:
     network = ModemNetwork(positions, channel=channel)
     tcp = None if args.tcp_base is None else {n: args.tcp_base + i for i, n in enumerate(args.nodes)}
     sim = PtySimulator(network, tcp_ports=tcp, speed=args.speed)
+    links = _links(args.link, sim.paths) if args.link else {}
     for n in args.nodes:
-        line = f"modem {n}: {sim.paths[n]}"
+        line = f"modem {n}: {links.get(n, sim.paths[n])}"
+        if n in links:
+            line += f" -> {sim.paths[n]}"
         if n in sim.tcp_addresses:
             host, port = sim.tcp_addresses[n]
             line += f" tcp {host}:{port}"
@@ -74,7 +86,25 @@ def run(args: argparse.Namespace) -> int:
         pass
     finally:
         sim.stop()
+        for path in links.values():
+            try:
+                os.unlink(path)
+            except OSError:
+                pass
     return 0
+
+
+def _links(folder: str, paths: dict[int, str]) -> dict[int, str]:
+    """``folder/modem<N>`` -> modem N's pseudo-terminal, each replaced atomically."""
+    os.makedirs(folder, exist_ok=True)
+    out = {}
+    for n, target in paths.items():
+        link = os.path.join(folder, f"modem{n}")
+        tmp = f"{link}.{os.getpid()}.tmp"
+        os.symlink(target, tmp)
+        os.replace(tmp, link)
+        out[n] = link
+    return out
 
 
 if __name__ == "__main__":  # pragma: no cover

@@ -33,7 +33,7 @@ from typing import Any
 
 from coex_core.errors import ConfigError, TransportError, TransportTimeout
 from coex_core.messages import LinkStatus
-from coex_core.transport import Transport, parse_query
+from coex_core.transport import Transport, UriInfo, parse_query
 
 from .driver import DriverConfig, Event, MicromodemDriver
 
@@ -71,6 +71,23 @@ def parse_uri(uri: str) -> tuple[str, int, DriverConfig]:
     mapping = {"clock": "set_clock", "reset": "reset_nvram"}
     kwargs = {mapping.get(k, k): v for k, v in opts.items()}
     return port, baud, DriverConfig(nvram=tuple(nvram), **kwargs)
+
+
+def check_serial_url(url: str) -> None:
+    """Parse a pyserial URL (``socket://host:port``, ``rfc2217://host:port``, ``loop://`` ...)
+    with pyserial's own handler, without opening it; :class:`ConfigError` if it does not parse."""
+    try:
+        import serial
+    except ImportError:  # pragma: no cover - the extra's dependency
+        return
+    try:
+        handler = serial.serial_for_url(url, do_not_open=True)
+        from_url = getattr(handler, "from_url", None)  # what the handler's open() parses first
+        if callable(from_url):
+            from_url(url)
+    except (serial.SerialException, ValueError, TypeError) as exc:  # TypeError: socket:// without a port
+        raise ConfigError(f"{url!r} is not a serial URL pyserial can open: "
+                          f"{exc if not isinstance(exc, TypeError) else 'expected HOST:PORT'}") from None
 
 
 class _Backend(abc.ABC):
@@ -198,6 +215,21 @@ class MicromodemTransport(Transport):
     def from_uri(cls, uri: str) -> MicromodemTransport:
         port, baud, config = parse_uri(uri)
         return cls.open(port, config, baudrate=baud)
+
+    @classmethod
+    def check_uri(cls, uri: str) -> UriInfo:
+        """The URI's options through :func:`parse_uri` (the driver's own checks), and a pyserial
+        URL (``socket://``, ``rfc2217://`` ...) through pyserial's own URL parser, opening
+        nothing; a device path is listed in ``paths``."""
+        port, baud, config = parse_uri(uri)
+        if baud <= 0:
+            raise ConfigError(f"{uri!r}: baud must be positive, got {baud}")
+        if "://" in port:
+            check_serial_url(port)
+            paths: tuple[str, ...] = ()
+        else:
+            paths = (port,)
+        return UriInfo(uri, config.mtu, paths, config.rate)
 
     @classmethod
     def open(cls, port: str, config: DriverConfig | None = None, *, baudrate: int = 19200) -> MicromodemTransport:

@@ -31,7 +31,7 @@ from typing import Any
 from urllib.parse import urlsplit
 
 from coex_core.errors import ConfigError, TransportError
-from coex_core.transport import Transport, parse_query
+from coex_core.transport import Transport, UriInfo, parse_query
 
 from .client import MAX_TIME_WARP, MoosClient
 
@@ -140,6 +140,15 @@ class MoosTransport(Transport):
     @classmethod
     def from_uri(cls, uri: str) -> MoosTransport:
         return cls(parse_moos_uri(uri))
+
+    @classmethod
+    def check_uri(cls, uri: str) -> UriInfo:
+        """The URI through :func:`parse_moos_uri` (every option by name), connecting to nothing."""
+        return UriInfo(uri, parse_moos_uri(uri).mtu)
+
+    def link_up(self) -> bool:
+        """Whether the client is connected to MOOSDB now (it reconnects by itself)."""
+        return bool(self.client.connected)
 
     # ------------------------------------------------------------------ transport
     def _send_internal(self, frame: bytes) -> None:

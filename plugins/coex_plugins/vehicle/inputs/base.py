@@ -7,6 +7,11 @@ theirs. The daemon builds it with its options (the TOML table without ``type``),
 :meth:`Input.open`, then :meth:`Input.poll` often (never blocking: return what is there), and
 :meth:`Input.close` on shutdown. Items go to the node through the runner, which journals them,
 so a restart loses nothing.
+
+Every input counts in :attr:`Input.counts`; its ``skipped`` key (there from the start) is the
+number of items it read and could not use: a corrupt image, a message that does not decode, a
+garbled line, and the items the daemon could not take from it (:meth:`Input.skip`). The vehicle's
+shutdown summary gives it per input.
 """
 
 from __future__ import annotations
@@ -130,6 +135,15 @@ class Adapter:
         one sentence each, naming the key. Optional."""
         return []
 
+    @classmethod
+    def paths(cls, options: Mapping[str, Any]) -> list[tuple[str, str, str]]:
+        """The local files, folders and devices the adapter will open, as ``(option, path,
+        kind)`` with kind ``"file"``, ``"folder"``, ``"file or folder"`` (taken from the
+        configuration's directory when relative) or ``"device"`` (as given). ``coex config
+        check`` warns, naming the option, about any that is not there now (it may be by the time
+        the adapter opens it; a device may be plugged in later). Optional: the default is none."""
+        return []
+
     def open(self) -> None:
         """Start (open files, sockets, subscriptions; connect)."""
 
@@ -155,6 +169,24 @@ class Input(Adapter, abc.ABC):
     feeds: ClassVar[tuple[str, ...]] = ()
     kind: ClassVar[str] = "input"
     table_keys: ClassVar[tuple[str, ...]] = ("type", "feeds")
+
+    def __init__(self, options: Mapping[str, Any], context: InputContext) -> None:
+        super().__init__(options, context)
+        #: what this input counted, by name. Every input has ``skipped``: the items it read and
+        #: could not use (a corrupt file, a message that does not decode, a garbled line), by
+        #: itself or by the daemon (:meth:`skip`); an adapter adds its own keys with
+        #: ``self.counts.update(...)`` (never replace the dict).
+        self.counts: dict[str, int] = {"skipped": 0}
+
+    def skip(self, n: int = 1) -> None:
+        """Count ``n`` items read and not used: call it wherever an item is dropped (log the
+        reason once, e.g. with :class:`~coex_plugins.vehicle.options.LogOnce`)."""
+        self.counts["skipped"] = self.counts.get("skipped", 0) + int(n)
+
+    @property
+    def skipped(self) -> int:
+        """The items skipped so far (``counts["skipped"]``)."""
+        return int(self.counts.get("skipped", 0))
 
     @abc.abstractmethod
     def poll(self, now: float) -> list[Item]:

@@ -124,7 +124,7 @@ class MoosInput(Input):
         self.points_var: str = self.config["points_var"]
         self.client = client
         self._problem = LogOnce(log)
-        self.counts = {"nav": 0, "samples": 0, "images": 0, "points": 0, "skipped": 0}
+        self.counts.update(nav=0, samples=0, images=0, points=0)  # and skipped, as every input
 
     @property
     def stamp_images(self) -> bool:
@@ -196,7 +196,7 @@ class MoosInput(Input):
 
     # ------------------------------------------------------------------ helpers
     def _skip(self, key: str, message: str, *args: Any) -> None:
-        self.counts["skipped"] += 1
+        self.skip()
         self._problem(key, message, *args)
 
     def _path(self, text: str) -> Path:

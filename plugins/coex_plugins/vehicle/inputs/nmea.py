@@ -160,6 +160,11 @@ class NmeaInput(Input):
                 problems.append(f"input {n!r}: option 'channels.{key}' must be a channel name")
         return problems
 
+    @classmethod
+    def paths(cls, options: Mapping[str, Any]) -> list[tuple[str, str, str]]:
+        port = options.get("serial")
+        return [("serial", port, "device")] if isinstance(port, str) and port.startswith("/") else []
+
     def __init__(self, options: Mapping[str, Any], context: InputContext) -> None:
         super().__init__(options, context)
         self.channels: dict[str, tuple[int, str]] = {}
@@ -171,8 +176,9 @@ class NmeaInput(Input):
         self._retry_at = {"serial": -math.inf, "udp": -math.inf}
         self._buffers = {"serial": b"", "udp": b""}
         self._problem = LogOnce(log)
-        #: lines read, used, with a bad checksum, otherwise bad, of an unknown sentence
-        self.counts = {"lines": 0, "used": 0, "bad_checksum": 0, "bad": 0, "unknown": 0}
+        #: lines read, used, with a bad checksum, otherwise bad, of an unknown sentence; and, as
+        #: every input, ``skipped``: the lines with a bad checksum or otherwise bad
+        self.counts.update(lines=0, used=0, bad_checksum=0, bad=0, unknown=0)
 
     # ----------------------------------------------------------------- ports
     def open(self) -> None:
@@ -254,6 +260,7 @@ class NmeaInput(Input):
             *lines, rest = buf.split(b"\n")
             if len(rest) > MAX_LINE:  # no newline in sight: noise
                 self.counts["bad"] += 1
+                self.skip()
                 rest = b""
             self._buffers[source] = rest
             for raw in lines:
@@ -272,6 +279,7 @@ class NmeaInput(Input):
         except NmeaError as exc:
             key = "bad_checksum" if "checksum" in str(exc) else "bad"
             self.counts[key] += 1
+            self.skip()
             self._problem(key, "input nmea: line skipped (%s): %r", exc, line[:100])
             return
         address = fields[0]
@@ -286,6 +294,7 @@ class NmeaInput(Input):
                 used = True
         except (ValueError, IndexError) as exc:
             self.counts["bad"] += 1
+            self.skip()
             self._problem(f"bad:{kind}", "input nmea: %s skipped (%s): %r", kind, exc, line[:100])
             return
         self.counts["used" if used else "unknown"] += 1
