@@ -156,9 +156,8 @@ def _flown(c: Community, w: Watcher, top: Topside, kind: str, x: float, y: float
     assert top.states(sid) == [("requested", None, None, ""), ("accepted", None, None, ""),
                                *[("started", k, None, f"heading for waypoint {k}") for k in range(len(plan))],
                                ("completed", None, None, "")], top.states(sid)
-    with top.app.hub.lock:  # the console's history holds the same states (sorted by time, where
-        # "accepted" is topside's time of the acknowledgement, the others the vehicle's)
-        assert sorted(h[1:] for h in top.rx.surveys[sid].history) == sorted((s[0], s[3]) for s in top.states(sid))
+    with top.app.hub.lock:  # the console's history says the same, in the same order
+        assert [h[1:] for h in top.rx.surveys[sid].history] == [(s[0], s[3]) for s in top.states(sid)]
     at = 0
     for k, p in enumerate(plan):  # each waypoint in turn: the first fix within the capture radius
         near = [i for i in range(at, len(track)) if math.hypot(track[i][0] - p[0], track[i][1] - p[1]) <= CAPTURE]

@@ -15,10 +15,11 @@ A :class:`~coex_transports.moos.MoosClient` (pure Python, no libMOOS) registers 
   :class:`~.base.Points`.
 
 Items are timed with the writer's MOOS time turned back into Unix seconds: MOOS time is warped
-(``MOOSTimeWarp``: a MOOS clock reads the Unix time times the warp), so the option ``time_warp``
-must be the community's warp (pCoex takes it from the mission file). ``poll`` only takes what the client's thread
-received (never blocks); the client reconnects by itself, so MOOSDB may start after CoEx, stop
-and come back. A value of the wrong type or an unreadable file is logged once and skipped.
+(``MOOSTimeWarp``: a MOOS clock reads the Unix time times the warp), so the option
+``time_warp`` must be the community's warp (pCoex takes it from the mission file). ``poll``
+only takes what the client's thread received (never blocks); the client reconnects by itself,
+so MOOSDB may start after CoEx, stop and come back. A value of the wrong type or an unreadable
+file is logged once and skipped.
 """
 
 from __future__ import annotations
