@@ -272,6 +272,19 @@ class Autonomy(Adapter, abc.ABC):
     def poll(self, now: float) -> list[Any]:
         """SurveyReports since the last call (never blocks)."""
 
+    def resume(self, plan: Any, now: float) -> bool:
+        """After the daemon restarted: ``plan`` is the survey it had submitted before (the vehicle
+        may still be flying it). Follow its progress again **without** submitting it anew
+        (which would start it over); True when the output can. Optional: the default, False,
+        makes the daemon log that the survey's progress is no longer followed."""
+        return False
+
+    def position(self, now: float) -> tuple[float, float] | None:
+        """Where the vehicle is (local metres), for an output that knows (a simulated vehicle);
+        the daemon uses it for the vehicle status when no input gives navigation. Optional:
+        the default, None, is "not known"."""
+        return None
+
 
 def check_autonomy_options(cls: type[Autonomy], options: Mapping[str, Any]) -> list[str]:
     """Unknown and missing keys, then the output's own :meth:`Autonomy.check`."""

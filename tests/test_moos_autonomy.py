@@ -297,3 +297,14 @@ def test_registered_variables() -> None:
     b.take()
     b.helm("COEX_DONE", "true")
     assert [r[1] for r in b.poll()] == [SurveyState.STARTED, SurveyState.COMPLETED]
+
+
+def test_after_a_restart_the_survey_is_followed_again_without_a_post_to_the_helm() -> None:
+    b = Bench()  # a new pCoex process: the helm is flying LINE, submitted before the restart
+    assert b.a.resume(LINE, b.now) is True
+    assert b.posts() == []  # nothing posted: the helm goes on as it was
+    b.helm("WPT_INDEX", 1.0)
+    b.helm("WPT_STAT", "vname=alpha,behavior-name=coex_survey,index=1,hits=1/1,cycles=0,dist=10,eta=10")
+    assert b.poll() == [(3, SurveyState.STARTED, SurveyReason.NONE, 1, None)]
+    b.helm("WPT_STAT", "behavior-name=coex_survey,completed")
+    assert b.poll() == [(3, SurveyState.COMPLETED, SurveyReason.NONE, None, None)]

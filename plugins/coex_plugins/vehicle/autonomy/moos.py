@@ -293,6 +293,15 @@ class MoosAutonomy(Autonomy):
                  wpt if len(wpt) < 200 else wpt[:200] + "...",
                  "".join(f"; {k} = {v}" for k, v in list(self._pending.items())[1:]))
 
+    def resume(self, plan: Any, now: float) -> bool:
+        """The helm may still fly it: follow WPT_INDEX / WPT_STAT again, post nothing."""
+        if self.client is None:
+            self.open()
+        self.plan, self._phase, self._since, self._index, self._refusal = plan, _FLYING, now, None, ""
+        self._pending = {}
+        log.info("moos: following survey %s again after a restart (nothing posted to the helm)", plan.survey_id)
+        return True
+
     # ------------------------------------------------------------------ reports
     def _report(self, state: SurveyState, now: float, reason: SurveyReason = SurveyReason.NONE,
                 index: int | None = None, detail: str | None = None) -> None:

@@ -203,6 +203,13 @@ class RosAutonomy(Autonomy):
         if state != SurveyState.STARTED:
             self._done = True
 
+    def resume(self, plan: Any, now: float) -> bool:
+        """The planner may still fly the Path: its progress answers are followed again."""
+        if self.node is None:
+            self.open()
+        self.plan, self._since, self._answered, self._done, self._index = plan, float(now), True, False, None
+        return True
+
     def poll(self, now: float) -> list[Any]:
         if self.node is None:
             return []
