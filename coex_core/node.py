@@ -413,9 +413,6 @@ class Node:
 
     def _supersede(self, r: _ReceiverSlot, new: Message, now: float) -> None:
         """Withdraw from ``r``'s stream the earlier requests its receiver says ``new`` replaces."""
-        if getattr(type(r.receiver), "supersedes", ModalityReceiver.supersedes) is ModalityReceiver.supersedes:
-            return  # the default: nothing is ever superseded
-
         def outdated(old: Message) -> bool:
             return old is not new and type(old) is type(new) and r.receiver.supersedes(old, new)
 
