@@ -14,8 +14,9 @@ from typing import Any, ClassVar
 
 from coex_core.messages import MapMetadata, MapRoiReply, MapRoiRequest, Message, Subgrid
 from coex_core.modality import Modality
+from coex_core.subgrid import decode_subgrid, decode_subgrid_units, encode_subgrid, subgrid_bits
 
-from .codec import decode_subgrid, decode_subgrid_units, encode_subgrid, size_2022, subgrid_bits
+from .baseline import size_2022
 from .export import (
     Candidate,
     find_targets,

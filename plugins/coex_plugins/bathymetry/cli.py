@@ -31,8 +31,9 @@ from coex_core.messages import (
     Message,
     Subgrid,
 )
+from coex_core.subgrid import decode_subgrid_units
 
-from .codec import decode_subgrid_units, size_2022
+from .baseline import size_2022
 from .export import find_targets, write_level_geotiff, write_png
 from .points import iter_points
 from .receiver import BathymetryReceiver

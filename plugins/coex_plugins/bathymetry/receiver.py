@@ -32,9 +32,8 @@ from coex_core.messages import MapMetadata, MapRoiReply, MapRoiRequest, Message,
 from coex_core.modality import ModalityReceiver, Product
 from coex_core.state import StateError, persistent
 from coex_core.storage import MemoryStorage, Storage
+from coex_core.subgrid import decode_subgrid
 from coex_core.timefmt import STAMP_MODULUS, unwrap
-
-from .codec import decode_subgrid
 
 __all__ = ["BathymetryReceiver", "RECEIVER_DEFAULTS", "Region"]
 

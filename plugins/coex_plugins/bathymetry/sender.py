@@ -17,11 +17,11 @@ from coex_core.messages import MapMetadata, MapRoiReply, MapRoiRequest, Message,
 from coex_core.modality import ModalitySender
 from coex_core.state import persistent
 from coex_core.storage import Storage
+from coex_core.subgrid import encode_subgrid, subgrid_bits
 from coex_core.timefmt import to_stamp, unwrap
 from coex_core.wire import SUBGRID_RESOLUTIONS as RESOLUTIONS
 from coex_core.wire import SUBGRID_VERTICAL_RESOLUTIONS as VERTICAL_RESOLUTIONS
 
-from .codec import encode_subgrid, subgrid_bits
 from .points import pointcloud2_xyz
 from .quadtree import InputError, QuadtreeMap, _grow
 

@@ -18,6 +18,7 @@ from typing import Any
 import numpy as np
 
 from coex_core.messages import Subgrid, VehicleMode, VehicleStatus
+from coex_core.subgrid import decode_subgrid
 
 from ._types import map_level_t, vehicle_status_t
 
@@ -70,16 +71,6 @@ def vehicle_status_from_lcm(msg: vehicle_status_t) -> VehicleStatus:
     )
 
 
-def _default_decoder() -> Callable[[Subgrid], Any] | None:
-    from coex_core.registry import load_modality
-
-    try:  # through the registry: a transport never imports a modality plugin
-        decode = getattr(load_modality("bathymetry"), "decode_subgrid", None)
-    except Exception:  # the bathymetry plugin is optional: depths are then NaN
-        return None
-    return decode if callable(decode) else None
-
-
 def _cells(sub: Subgrid) -> int:
     if sub.mask is None:
         return int(sub.side) * int(sub.side)
@@ -92,16 +83,13 @@ class MapLevelSummary:
     :meth:`add` keeps the newest subgrid per ``(level, ix, iy)`` (the last one added wins: the
     order of reception); :meth:`summary` / :meth:`summaries` describe the levels. Depths come
     from ``decoder(subgrid) -> array of elevations (NaN = empty)``, by default
-    the ``bathymetry`` modality's ``decode_subgrid`` when that plugin is installed
-    (found through the registry)."""
+    :func:`coex_core.subgrid.decode_subgrid` (the wire format's own decoding)."""
 
     def __init__(self, decoder: Callable[[Subgrid], Any] | None = None) -> None:
-        self._decoder = decoder if decoder is not None else _default_decoder()
+        self._decoder: Callable[[Subgrid], Any] = decoder if decoder is not None else decode_subgrid
         self._blocks: dict[int, dict[tuple[int, int], tuple[Subgrid, float, float]]] = {}
 
     def _z_range(self, sub: Subgrid) -> tuple[float, float]:
-        if self._decoder is None:
-            return math.nan, math.nan
         try:
             z = np.asarray(self._decoder(sub), dtype=float)
         except Exception:

@@ -1,5 +1,9 @@
 """Subgrid coding: cell arrays to :class:`~coex_core.messages.Subgrid` messages and back.
 
+Part of the wire format (spec/payloads.md, Subgrid: the encodings are defined there and by
+:class:`~coex_core.messages.SubgridEncoding`), so every layer decodes a subgrid with this module:
+the bathymetry modality, the LCM decoded products, a third-party tool.
+
 The encoder tries every :class:`~coex_core.messages.SubgridEncoding` (OFFSET: fixed-width offsets
 above the block minimum; DELTA: serpentine differences; PLANE: residuals from a fitted plane;
 GRADIENT: second differences, complete blocks only; the last three Rice-coded with the best
@@ -13,7 +17,7 @@ from __future__ import annotations
 import numpy as np
 import numpy.typing as npt
 
-from coex_core.messages import Subgrid, SubgridEncoding
+from .messages import Subgrid, SubgridEncoding
 
 __all__ = [
     "HEADER_BITS",
@@ -21,7 +25,6 @@ __all__ = [
     "decode_subgrid",
     "decode_subgrid_units",
     "encode_subgrid",
-    "size_2022",
     "subgrid_bits",
 ]
 
@@ -205,14 +208,3 @@ def decode_subgrid_units(sg: Subgrid) -> IntArray:
         plane = (sg.slope_x * jj[present] + sg.slope_y * ii[present] + 4) >> 3
         out[present] = sg.z_base + plane + _unzigzag(v)
     return out.reshape(side, side)
-
-
-def size_2022(present: npt.ArrayLike, q: npt.ArrayLike) -> int:
-    """Bytes of the 2022 encoding of the same subgrid: a 16-byte header and one byte per cell
-    (two when the block's range exceeds 255 vertical units)."""
-    pa = np.asarray(present, bool)
-    qa = np.asarray(q, np.int64)[pa]
-    if qa.size == 0:
-        return 16 + pa.size
-    rng = int(qa.max() - qa.min())
-    return 16 + pa.size * (1 if rng <= 255 else 2)
