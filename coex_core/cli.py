@@ -18,7 +18,7 @@ from typing import Any
 
 from . import __version__
 from .errors import CoexError
-from .registry import COMMAND_GROUP, available, entry_points
+from .registry import CHECKER_GROUP, COMMAND_GROUP, available, entry_points
 
 __all__ = ["main", "build_parser"]
 
@@ -27,11 +27,14 @@ log = logging.getLogger("coex")
 
 def _cmd_plugins(args: argparse.Namespace) -> int:
     if args.action == "check":
-        import importlib
-
-        # the suite is an application of the core, shipped beside it: imported only here
-        check = importlib.import_module("coex_conformance.check")
-        return int(check.main(args.names, args.pytest_args or ()))
+        # the conformance kit registers its runner in coex.checkers (the core imports none)
+        checkers = entry_points(CHECKER_GROUP)
+        if not checkers:
+            print("coex plugins check: no conformance kit installed (it registers in "
+                  f"'{CHECKER_GROUP}'; reinstall coex)", file=sys.stderr)
+            return 2
+        check = next(iter(checkers.values())).load()
+        return int(check(args.names, args.pytest_args or ()))
     if args.names:
         print("coex plugins: plugin names go with 'check' (coex plugins check NAME ...)", file=sys.stderr)
         return 2

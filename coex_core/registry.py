@@ -27,6 +27,7 @@ __all__ = [
     "MODALITY_GROUP",
     "TRANSPORT_GROUP",
     "COMMAND_GROUP",
+    "CHECKER_GROUP",
     "PluginInfo",
     "available",
     "load_modality",
@@ -42,6 +43,8 @@ __all__ = [
 MODALITY_GROUP = "coex.modalities"
 TRANSPORT_GROUP = "coex.transports"
 COMMAND_GROUP = "coex.commands"
+#: the conformance kit's runner behind ``coex plugins check``: ``main(names, pytest_args) -> int``
+CHECKER_GROUP = "coex.checkers"
 #: the vehicle daemon's adapters (``coex vehicle``): inputs from the vehicle's middleware and
 #: outputs to its autonomy; listed by ``coex plugins``, loaded only by the daemon
 INPUT_GROUP = "coex.inputs"

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import ast
 import re
+import tomllib
 from pathlib import Path
 
 import pytest
@@ -50,12 +51,43 @@ def modules(root: Path) -> dict[str, Path]:
     return out
 
 
-def imports_of(name: str, path: Path, known: dict[str, Path]) -> set[str]:
-    """Every project module ``name`` imports, at any depth of the file (lazy imports count)."""
+#: registry calls that name the plugin they load: ``load_modality("bathymetry")`` imports the
+#: module registered under that name as surely as an import statement does
+REGISTRY_LOOKUPS = {"load_modality": "coex.modalities", "load_transport": "coex.transports"}
+
+
+def registered(root: Path) -> dict[tuple[str, str], str]:
+    """(entry-point group, name) -> the module it points at, from ``pyproject.toml``."""
+    path = root / "pyproject.toml"
+    if not path.exists():
+        return {}
+    groups = tomllib.loads(path.read_text()).get("project", {}).get("entry-points", {})
+    return {(group, name): target.split(":")[0].strip()
+            for group, eps in groups.items() for name, target in eps.items()}
+
+
+def _constant(node: ast.AST) -> str | None:
+    return node.value if isinstance(node, ast.Constant) and isinstance(node.value, str) else None
+
+
+def imports_of(name: str, path: Path, known: dict[str, Path],
+               entry: dict[tuple[str, str], str] | None = None) -> set[str]:
+    """Every project module ``name`` imports, at any depth of the file (lazy imports count), and
+    every module it loads by name: ``import_module("pkg.mod")`` and the registry's
+    ``load_modality("name")`` / ``load_transport("name")`` / ``load(group, "name")``."""
     found: set[str] = set()
     package = name.split(".") if path.name == "__init__.py" else name.split(".")[:-1]
     for node in ast.walk(ast.parse(path.read_text())):
-        if isinstance(node, ast.Import):
+        if isinstance(node, ast.Call):
+            func = node.func.attr if isinstance(node.func, ast.Attribute) else getattr(node.func, "id", "")
+            args = [_constant(a) for a in node.args]
+            if func == "import_module" and args and args[0]:
+                found.add(args[0])
+            elif func in REGISTRY_LOOKUPS and args and args[0]:
+                found.add((entry or {}).get((REGISTRY_LOOKUPS[func], args[0]), ""))
+            elif func == "load" and len(args) >= 2 and args[0] and args[1]:
+                found.add((entry or {}).get((args[0], args[1]), ""))
+        elif isinstance(node, ast.Import):
             found.update(a.name for a in node.names)
         elif isinstance(node, ast.ImportFrom):
             if node.level:
@@ -78,7 +110,8 @@ def imports_of(name: str, path: Path, known: dict[str, Path]) -> set[str]:
 
 def graph(root: Path) -> dict[str, set[str]]:
     known = modules(root)
-    return {name: imports_of(name, path, known) for name, path in known.items()}
+    entry = registered(root)
+    return {name: imports_of(name, path, known, entry) for name, path in known.items()}
 
 
 def upward(g: dict[str, set[str]]) -> list[str]:
@@ -170,8 +203,18 @@ def test_the_checks_catch_an_upward_import_and_a_cycle(tmp_path: Path) -> None:
     (console / "__init__.py").write_text("")
     (console / "node.py").write_text("def attach():\n    from .server import Hub\n")
     (console / "server.py").write_text("from .node import attach\n")
+    # links the wrong way without an import statement: a module named in a string, a plugin
+    # loaded by its registered name
+    (tmp_path / "coex_core" / "cli.py").write_text(
+        "import importlib\ndef f():\n    return importlib.import_module('coex_plugins.console.node')\n")
+    (tmp_path / "transports/coex_transports/products.py").write_text(
+        "from coex_core.registry import load_modality\nDECODE = load_modality('bathymetry').decode\n")
+    (tmp_path / "pyproject.toml").write_text(
+        '[project.entry-points."coex.modalities"]\nbathymetry = "coex_plugins.bathymetry:Modality [x]"\n')
     g = graph(tmp_path)
-    assert upward(g) == ["coex_transports.lcm (transports) imports coex_plugins.bathymetry "
+    assert upward(g) == ["coex_core.cli (core) imports coex_plugins.console.node (apps)",
+                         "coex_transports.lcm (transports) imports coex_plugins.bathymetry (modalities)",
+                         "coex_transports.products (transports) imports coex_plugins.bathymetry "
                          "(modalities)"]
     assert cycles(g) == [["coex_plugins.console.node", "coex_plugins.console.server"]]
     assert private_imports(g) == ["coex_plugins.bathymetry imports coex_core._codec"]

@@ -1,10 +1,5 @@
-"""Test helpers for the LCM transport: conformance fixtures and the loopback multicast check.
-
-``LcmMemqFixtures`` and ``LcmUdpmFixtures`` plug :class:`LcmTransport` into
-:class:`coex_conformance.TransportTests`::
-
-    class TestLcmMemq(TransportTests, LcmMemqFixtures):
-        pass
+"""Test helpers for the LCM transport: the loopback multicast check and unique channels (the
+conformance fixtures are in ``tests/test_lcm_conformance.py``).
 
 ``udpm://`` with ``ttl=0`` keeps traffic on the host, but the kernel still needs a route for
 multicast destinations. :func:`udpm_works` checks that an LCM instance hears its own multicast;
@@ -19,18 +14,10 @@ import shutil
 import subprocess
 import time
 import uuid
-from collections.abc import Callable, Iterator
-
-import pytest
-
-from coex_conformance import TransportFixtures
-
-from ._transport import LcmConfig, LcmTransport
+from collections.abc import Callable
 
 __all__ = [
     "TEST_UDPM_URL",
-    "LcmMemqFixtures",
-    "LcmUdpmFixtures",
     "ensure_multicast_route",
     "unique_channel",
     "udpm_works",
@@ -89,46 +76,3 @@ def ensure_multicast_route(url: str = TEST_UDPM_URL) -> Callable[[], None]:
             subprocess.run([ip, "route", "del", "224.0.0.0/4", "dev", "lo"], check=False, timeout=10)
 
     return undo
-
-
-class LcmMemqFixtures(TransportFixtures):
-    """Conformance fixtures: two ends sharing one ``memq://`` instance."""
-
-    @pytest.fixture
-    def transport_pair(self) -> Iterator[tuple[LcmTransport, LcmTransport]]:
-        a, b = LcmTransport.pair(LcmConfig(url="memq://", tx=unique_channel("UP"), rx=unique_channel("DOWN")))
-        yield a, b
-        a.close()
-        b.close()
-
-    @pytest.fixture
-    def recv_timeout(self) -> float:
-        return 2.0
-
-
-class LcmUdpmFixtures(TransportFixtures):
-    """Conformance fixtures: two ends with their own ``udpm://`` instances on one channel."""
-
-    @pytest.fixture(scope="class")
-    @classmethod
-    def multicast(cls) -> Iterator[None]:
-        undo = ensure_multicast_route()
-        yield
-        if not os.environ.get("PYTEST_XDIST_WORKER"):  # other workers may still need the route
-            undo()
-
-    @pytest.fixture
-    def transport_pair(self, multicast: None) -> Iterator[tuple[LcmTransport, LcmTransport]]:
-        # UDP drops fragmented datagrams once the socket buffer is full: bursts of 4 frames of
-        # up to 16 KiB fit a 1 MiB buffer (a single 64 KiB frame is tested separately)
-        channel = unique_channel()
-        config = LcmConfig(url=TEST_UDPM_URL + "&recv_buf_size=1048576", tx=channel, rx=channel, mtu=16384)
-        a = LcmTransport(config)
-        b = LcmTransport(config)
-        yield a, b
-        a.close()
-        b.close()
-
-    @pytest.fixture
-    def recv_timeout(self) -> float:
-        return 5.0
