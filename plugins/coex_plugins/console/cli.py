@@ -443,7 +443,7 @@ def build_topside(transport_uri: str | Sequence[str], host: str = "127.0.0.1", p
 
 def topside_from_config(path: str, clock: Callable[[], float] = time.time) -> TopsideApp:
     """The topside node, its modems and console as a configuration file describes them."""
-    from coex_plugins.vehicle.config import _resolved, load
+    from coex_plugins.vehicle.config import load
 
     cfg = load(path, "topside")
     c = cfg.console
@@ -462,7 +462,7 @@ def topside_from_config(path: str, clock: Callable[[], float] = time.time) -> To
         remap_ids={m.name: m.ids for m in cfg.modalities if m.ids} or None, operators=rel("operators"),
         insecure_open=bool(c.get("insecure_open", False)), tls_cert=rel("tls_cert"), tls_key=rel("tls_key"),
         session_hours=float(c.get("session_hours", 12.0)),
-        receiver_options={m.name: _resolved(m.options, cfg) for m in cfg.modalities},
+        receiver_options={m.name: cfg.options(m) for m in cfg.modalities},
         link_options=[{k: v for k, v in (("rate", m.rate), ("frame_bytes", m.frame_bytes), ("spare", m.spare),
                                           ("packet_seconds", m.packet_seconds)) if v is not None}
                       for m in cfg.modems],

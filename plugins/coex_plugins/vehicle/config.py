@@ -98,6 +98,15 @@ class DeployConfig:
 
         return Schedule.simple(self.owners(), self.slot_seconds, self.guard, epoch=self.epoch)
 
+    def options(self, modality: ModalityConfig) -> dict[str, Any]:
+        """A modality's options as its sender or receiver takes them: values that name files
+        (``out_dir``) taken from the configuration's directory."""
+        out = dict(modality.options)
+        for k in ("out_dir",):
+            if isinstance(out.get(k), str):
+                out[k] = str(self.base_dir / out[k])
+        return out
+
 
 class _Problems:
     def __init__(self) -> None:
@@ -399,7 +408,7 @@ def _modalities(raw: Mapping[str, Any], p: _Problems, cfg: DeployConfig) -> None
         try:
             cls = known[name].load()
             side = cls().sender if cfg.role == "vehicle" else cls().receiver
-            side(_resolved(options, cfg) or None)
+            side(cfg.options(mc) or None)
         except ConfigError as exc:
             p.add(f"{key}.options", str(exc))
         except ImportError as exc:
@@ -408,15 +417,6 @@ def _modalities(raw: Mapping[str, Any], p: _Problems, cfg: DeployConfig) -> None
         except (CoexError, TypeError, ValueError) as exc:
             p.add(f"{key}.options", f"{type(exc).__name__}: {exc}")
         cfg.modalities.append(mc)
-
-
-def _resolved(options: Mapping[str, Any], cfg: DeployConfig) -> dict[str, Any]:
-    """Options whose values name files (``out_dir``) taken from the configuration's directory."""
-    out = dict(options)
-    for k in ("out_dir",):
-        if isinstance(out.get(k), str):
-            out[k] = str(cfg.base_dir / out[k])
-    return out
 
 
 def _adapter(kind: str, group: str, table: Mapping[str, Any], key: str, p: _Problems) -> Any:

@@ -76,13 +76,11 @@ def build_vehicle_node(cfg: DeployConfig, transports: dict[int, Any]) -> Any:
     from coex_core.node import Node
     from coex_core.registry import load_modality
 
-    from .config import _resolved
-
     node = Node(ChannelManager(cfg.node_id, link_configs(cfg, transports), command_key=cfg.command_key,
                                queue_status_interval=cfg.slot_seconds * len(cfg.slots)))
     for m in cfg.modalities:
         cls = load_modality(m.name)
-        sender = cls().sender(_resolved(m.options, cfg) or None)
+        sender = cls().sender(cfg.options(m) or None)
         node.add_sender(cls, sender, StreamConfig(m.stream, m.name, priority=m.priority), ids=m.ids or None)
     return node
 
