@@ -26,7 +26,9 @@ from ._faults import T0, VEHICLE, Dive, build_dive, images_complete, map_converg
 from ._persist_node import ACK_TIMEOUT, PACKET_SECONDS
 
 ROOT = Path(__file__).resolve().parents[1]
-SPEED = 20.0  # dive seconds per wall-clock second
+#: dive seconds per wall-clock second: at 20 a loaded CI machine let a process read its socket
+#: seconds late, beyond the 32-s ack timeout, and acks arrived after the frames counted as lost
+SPEED = 10.0
 MINUTES = 5  # of sensor data
 
 
@@ -99,9 +101,9 @@ def test_kill_and_restart_both_sides_at_random_moments(tmp_path: Path, lcm_uri: 
              "topside": Proc("topside", tdb, lcm_uri, epoch, tmp_path / "topside.log")}
     kills: list[tuple[str, float]] = []
     try:
-        # six crashes during the first 400 s of the dive (20 s of wall time), mostly alternating
-        # sides, at random moments, each side down for a random 0.2-1.5 s (4-30 dive seconds)
-        moments = sorted(rng.uniform(1.0, 20.0) for _ in range(int(os.environ.get("COEX_KILLS", "6"))))
+        # six crashes during the first 400 s of the dive, mostly alternating sides, at random
+        # moments, each side down for a random 4-30 dive seconds
+        moments = sorted(rng.uniform(20.0, 400.0) / SPEED for _ in range(int(os.environ.get("COEX_KILLS", "6"))))
         for i, m in enumerate(moments):
             role = ("vehicle", "topside")[i % 2] if rng.random() < 0.7 else ("topside", "vehicle")[i % 2]
             wait = epoch + m - time.time()
@@ -109,7 +111,7 @@ def test_kill_and_restart_both_sides_at_random_moments(tmp_path: Path, lcm_uri: 
                 time.sleep(wait)
             procs[role].kill()
             kills.append((role, round(T0 + (time.time() - epoch) * SPEED, 1)))
-            time.sleep(rng.uniform(0.2, 1.5))
+            time.sleep(rng.uniform(4.0, 30.0) / SPEED)
             procs[role].start()
         # then until everything has arrived (at most 2400 dive seconds)
         deadline = epoch + 2400.0 / SPEED
@@ -148,7 +150,12 @@ def test_kill_and_restart_both_sides_at_random_moments(tmp_path: Path, lcm_uri: 
     acked: set[Any] = set()
     sent = again = again_asked = image_bytes = image_again = 0
     held: dict[int, list[tuple[int, int]]] = {}  # image id -> byte ranges topside acked
-    asked: set[Any] = set()  # acked subgrids that topside asked for again (a request race)
+    # (level, ix, iy) -> journal row of the newest request covering it; key -> row of its last send
+    requested: dict[tuple[int, int, int], int] = {}
+    last_tx: dict[Any, int] = {}
+    acked_at: dict[Any, tuple[float, str]] = {}  # key -> (when its ack came, what the acked copy was)
+    sent_as: dict[Any, str] = {}  # key -> the copy last sent
+    unasked: list[str] = []  # how each unasked re-send came about (for the failure message)
     for r in rows:
         if r.kind not in ("rx", "tx"):
             continue
@@ -157,35 +164,54 @@ def test_kill_and_restart_both_sides_at_random_moments(tmp_path: Path, lcm_uri: 
         except DecodeError:
             continue
         if r.kind == "tx":
-            keys = {(m.level, m.ix, m.iy, m.stamp) for m in frame.messages if isinstance(m, Subgrid)}
-            for m in frame.messages:
-                if isinstance(m, ImageFragment):
-                    image_bytes += len(m.data)
-                    a, b = m.offset, m.offset + len(m.data)
-                    image_again += sum(max(0, min(b, e) - max(a, s)) for s, e in held.get(m.image_id, []))
+            keys = {(msg.level, msg.ix, msg.iy, msg.stamp) for msg in frame.messages if isinstance(msg, Subgrid)}
+            for msg in frame.messages:
+                if isinstance(msg, ImageFragment):
+                    image_bytes += len(msg.data)
+                    a, b = msg.offset, msg.offset + len(msg.data)
+                    image_again += sum(max(0, min(b, e) - max(a, s)) for s, e in held.get(msg.image_id, []))
             sent += len(keys)
-            again += len(keys & acked)
-            again_asked += len(keys & acked & asked)
+            for msg in frame.messages:
+                k = (msg.level, msg.ix, msg.iy, msg.stamp) if isinstance(msg, Subgrid) else None
+                if k is None:
+                    continue
+                if k in acked:
+                    again += 1
+                    # topside asked for it since it last went (a request race: it asked before the
+                    # ack of an earlier copy was heard, or after a restart lost it)
+                    if requested.get(k[:3], -1) > last_tx.get(k, -1):
+                        again_asked += 1
+                    elif len(unasked) < 12:
+                        t, data = acked_at.get(k, (-1.0, ""))
+                        unasked.append(f"{k} seq {frame.header.seq} at {r.t:.1f}: acked at {t:.1f}, "
+                                       f"{'same' if data == repr(msg) else 'other'} content")
+                sent_as[k] = repr(msg)
+                last_tx[k] = r.id
             by_seq[frame.header.seq] = keys
             continue
-        for m in frame.messages:
-            if isinstance(m, MapRoiRequest):
-                asked |= {k for k in acked if k[0] == m.level and m.x0 <= k[1] < m.x0 + m.w
-                          and m.y0 <= k[2] < m.y0 + m.h}
-            if isinstance(m, ImageAck):
-                held[m.image_id] = [(0, m.contiguous), *((g.start, g.end) for g in m.ranges)]
-            if isinstance(m, FrameAck) and m.node == VEHICLE:
-                for e in m.entries:
-                    acked.update(*(by_seq.get((e.seq + d) % 256, set()) for d in range(8) if e.frames >> d & 1))
+        for msg in frame.messages:
+            if isinstance(msg, MapRoiRequest):
+                for i in range(msg.w * msg.h):
+                    requested[(msg.level, msg.x0 + i % msg.w, msg.y0 + i // msg.w)] = r.id
+            if isinstance(msg, ImageAck):
+                held[msg.image_id] = [(0, msg.contiguous), *((g.start, g.end) for g in msg.ranges)]
+            if isinstance(msg, FrameAck) and msg.node == VEHICLE:
+                for e in msg.entries:
+                    for bit in range(8):
+                        if e.frames >> bit & 1:
+                            for k in by_seq.get((e.seq + bit) % 256, set()):
+                                acked.add(k)
+                                acked_at.setdefault(k, (r.t, sent_as.get(k, "")))
     need = sum(tx.goal for tx in d.images.images.values())
     print(f"kills {kills}; {sent} subgrids sent, {again} of them after topside had acked them "
           f"({again_asked} asked for again by topside); "
           f"{image_bytes} image bytes sent for {need}, {image_again} of them after topside had "
-          "acked them")
+          f"acked them; unasked re-sends: {unasked[:6]}")
     assert sent > 200
     # the vehicle re-sends on its own (spare work) only what it did not hear acknowledged; what
     # topside asks for again after a restart (a request race) it sends, as asked
-    assert again - again_asked <= 0.02 * sent, f"{again - again_asked} of {sent} subgrids sent again unasked"
+    assert again - again_asked <= 0.02 * sent, (f"{again - again_asked} of {sent} subgrids sent again unasked",
+                                                unasked)
     # a topside killed between two snapshots forgets what it received since, and asks again
     # (more when spare traffic fills the link): bounded, not zero
     assert again_asked <= 0.10 * sent, f"{again_asked} of {sent} subgrids asked for again after their ack"
