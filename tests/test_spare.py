@@ -467,3 +467,42 @@ def test_an_announcement_with_unusable_coding_parameters_is_refused_and_said(cap
         assert receiver.receive(ImageAnnounce(3, 10, None, None, 64, 64, False, 100, good), 10.0) == []
     assert receiver.rejected_announces == 2 and set(receiver.images) == {1}
     assert "unusable coding parameters" in caplog.text
+
+
+_RESTARTED_SENDER = """
+import sys
+import coex_plugins.bathymetry  # registers its state classes
+from coex_core import state
+from coex_core.messages import Subgrid
+sender = state.loads(sys.stdin.buffer.read())
+sg = sender._built((0, 0, 0))[0]
+sender.lost(sg, 200.0)  # a copy sent before the restart was lost; another copy had arrived
+keys = [(m.level, m.ix, m.iy) for m in sender.spare(4096, 201.0) if isinstance(m, Subgrid)]
+print((0, 0, 0) in keys)
+"""
+
+
+def test_a_confirmed_subgrid_stays_confirmed_in_a_restarted_process() -> None:
+    """What an ack confirmed is saved with the sender in a form every process reads alike: after
+    a restart (another process, another hash seed), the loss of another copy of a confirmed
+    version does not make it spare work again (Python's hash() of a subgrid differs between
+    processes)."""
+    import os
+    import subprocess
+    import sys
+
+    from coex_core import state
+
+    sender = BathymetrySender({"levels": 3, "send_delay": 5.0})
+    xs, ys = np.meshgrid(np.arange(0.5, 16.0, 0.5), np.arange(0.5, 16.0, 0.5))
+    sender.ingest(np.column_stack([xs.ravel(), ys.ravel(), -50.0 + 0.01 * xs.ravel()]), 100.0)
+    sent = [m for m in sender.fill(4096, 110.0) if isinstance(m, Subgrid)]
+    sg = next(m for m in sent if (m.level, m.ix, m.iy) == (0, 0, 0))
+    sender.acked(sg, 150.0)
+    sender.lost(sg, 151.0)  # in the same process: confirmed, not spare work
+    assert (0, 0, 0) not in {(m.level, m.ix, m.iy) for m in sender.spare(4096, 152.0) if isinstance(m, Subgrid)}
+    blob = state.dumps(sender)
+    for seed in ("1", "2"):
+        out = subprocess.run([sys.executable, "-c", _RESTARTED_SENDER], input=blob, capture_output=True,
+                             env={**os.environ, "PYTHONHASHSEED": seed}, timeout=120)
+        assert out.returncode == 0 and out.stdout.decode().strip() == "False", out.stderr.decode()[-2000:]

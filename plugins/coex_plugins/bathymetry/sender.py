@@ -5,6 +5,7 @@ from __future__ import annotations
 import heapq
 import logging
 import math
+import zlib
 from collections.abc import Iterable, Mapping
 from typing import Any
 
@@ -66,6 +67,14 @@ STALE_REQUEST_S = 300.0
 STALE_REQUEST_IDS = 32
 #: regions whose newest request id is remembered
 MAX_REGIONS_REMEMBERED = 1024
+
+
+def _fingerprint(sg: Subgrid) -> int:
+    """A digest of a subgrid's wire bytes, the same in every process: it is saved with the
+    sender's state (Python's ``hash`` of a message differs between processes, through the
+    enum's name and ``None``, so a restarted vehicle took a confirmed subgrid's loss for a
+    real one and sent it again)."""
+    return zlib.crc32(wire.encode(sg))
 
 
 @persistent("bathymetry.Sender")
@@ -550,7 +559,7 @@ class BathymetrySender(ModalitySender):
         if not isinstance(message, Subgrid):
             return
         key = (message.level, message.ix, message.iy)
-        self._confirmed[key] = hash(message)  # a copy of this version arrived
+        self._confirmed[key] = _fingerprint(message)  # a copy of this version arrived
         if key not in self._queued and key not in self._resend:
             return
         built = self._built(key)
@@ -566,7 +575,7 @@ class BathymetrySender(ModalitySender):
         if not isinstance(message, Subgrid):
             return
         key = (message.level, message.ix, message.iy)
-        if self._confirmed.get(key) == hash(message):
+        if self._confirmed.get(key) == _fingerprint(message):
             return  # another copy of this version arrived (its ack may come after this copy's loss)
         built = self._built(key)
         if built is not None and built[0] == message:
