@@ -9,17 +9,14 @@ again loses nothing and sends nothing twice; SIGTERM stops it cleanly."""
 
 from __future__ import annotations
 
-import json
 import math
 import os
 import signal
 import socket
 import subprocess
-import sys
 import threading
 import time
-import urllib.request
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -27,6 +24,11 @@ import numpy as np
 import pytest
 
 from ._modemsim import free_tcp_base
+from ._procs import COEX
+from ._procs import act as _act
+from ._procs import start as _start
+from ._procs import state as _state
+from ._procs import wait_for as _wait
 
 pytest.importorskip("lcm")
 pytest.importorskip("pymavlink")
@@ -35,7 +37,6 @@ pytest.importorskip("rosbags")
 ROOT = Path(__file__).resolve().parents[1]
 EXAMPLES = ROOT / "examples" / "deploy"
 ORIGIN = (41.5245, -70.6712)  # examples/deploy/*.toml
-COEX = [sys.executable, "-m", "coex_core.cli"]
 
 pytestmark = pytest.mark.slow
 
@@ -43,60 +44,6 @@ pytestmark = pytest.mark.slow
 def _port(kind: int = socket.SOCK_STREAM, n: int = 1) -> int:
     """A base port with ``n`` consecutive free ports."""
     return free_tcp_base(n, kind)
-
-
-def _wait(what: str, cond: Callable[[], Any], timeout: float, procs: dict[str, subprocess.Popen[str]]) -> Any:
-    end = time.monotonic() + timeout
-    while time.monotonic() < end:
-        for name, p in procs.items():
-            if p.poll() is not None:
-                raise AssertionError(f"{name} exited ({p.returncode}) while waiting for {what}")
-        got = cond()
-        if got:
-            return got
-        time.sleep(0.5)
-    raise AssertionError(f"timed out after {timeout:.0f} s waiting for {what}")
-
-
-class _Lines:
-    """A process's output, read in a thread (the test looks for lines; nothing blocks)."""
-
-    def __init__(self, proc: subprocess.Popen[str], sink: Path) -> None:
-        self.lines: list[str] = []
-        self.sink = sink.open("a")
-        self.t = threading.Thread(target=self._read, args=(proc,), daemon=True)
-        self.t.start()
-
-    def _read(self, proc: subprocess.Popen[str]) -> None:
-        assert proc.stdout is not None
-        for line in proc.stdout:
-            self.lines.append(line.rstrip("\n"))
-            self.sink.write(line)
-            self.sink.flush()
-
-    def has(self, text: str) -> bool:
-        return any(text in line for line in self.lines)
-
-
-def _start(args: list[str], env: dict[str, str], log: Path) -> tuple[subprocess.Popen[str], _Lines]:
-    p = subprocess.Popen([*COEX, *args], env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
-                         cwd=ROOT)
-    return p, _Lines(p, log)
-
-
-def _state(http: str) -> dict[str, Any]:
-    try:
-        with urllib.request.urlopen(f"http://{http}/api/state", timeout=5) as r:
-            return json.loads(r.read())  # type: ignore[no-any-return]
-    except OSError:
-        return {}
-
-
-def _act(http: str, action: str, args: dict[str, Any]) -> Any:
-    req = urllib.request.Request(f"http://{http}/api/action", data=json.dumps({"action": action, "args": args}).encode(),
-                                 headers={"Content-Type": "application/json"}, method="POST")
-    with urllib.request.urlopen(req, timeout=10) as r:
-        return json.loads(r.read())
 
 
 def _write_image(path: Path, seed: int) -> None:
