@@ -222,6 +222,26 @@ class Modality(abc.ABC):
         """A new topside side."""
 
     @classmethod
+    def decode_body(cls, type_id: int, body: bytes) -> Any:
+        """The value of a third-party body: ``type_id`` is one of ``message_ids`` /
+        ``request_ids``; raises :class:`~coex_core.errors.DecodeError` for any other id and for
+        a damaged body. One encoding per value: ``encode_body(t, decode_body(t, b)) == b``.
+        A modality that declares third-party ids gives this and :meth:`encode_body`
+        (docs/plugins.md, "The body codec"); the default decodes nothing."""
+        from .errors import DecodeError
+
+        raise DecodeError(f"{cls.__name__} has no body codec (decode_body): type id {type_id} is not decoded")
+
+    @classmethod
+    def encode_body(cls, type_id: int, value: Any) -> bytes:
+        """The body bytes of ``value`` under ``type_id`` (the inverse of :meth:`decode_body`);
+        raises :class:`~coex_core.errors.EncodeError` for an id the modality does not declare.
+        The default encodes nothing."""
+        from .errors import EncodeError
+
+        raise EncodeError(f"{cls.__name__} has no body codec (encode_body): type id {type_id} is not encoded")
+
+    @classmethod
     def handles(cls, message: Message) -> bool:
         """Whether ``message`` is one of this modality's messages or requests (by type, or by
         declared third-party id)."""

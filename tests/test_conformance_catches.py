@@ -133,6 +133,20 @@ def test_a_body_codec_that_does_not_round_trip_fails_the_suite() -> None:
         SUITE.test_bodies_re_encode_to_the_same_bytes(Sloppy(), None, None, sample_inputs(), None)
 
 
+def test_a_modality_declaring_ids_without_a_body_codec_fails_the_suite() -> None:
+    """Modality declares decode_body/encode_body with defaults that decode nothing: a modality
+    that declares third-party ids and keeps them is told to give its codec."""
+    from coex_core.modality import Modality
+
+    class Codecless(SampleModality):
+        name: ClassVar[str] = "codecless"
+        decode_body = Modality.decode_body
+        encode_body = Modality.encode_body
+
+    with pytest.raises(AssertionError, match="rule: a modality that declares third-party ids gives their body codec"):
+        SUITE.test_bodies_re_encode_to_the_same_bytes(Codecless(), None, None, sample_inputs(), None)
+
+
 class RefusingReceiver(SampleReceiver):
     """Refuses a damaged chunk with RequestRejected (a sender's error), not DecodeError."""
 

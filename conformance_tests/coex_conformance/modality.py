@@ -9,7 +9,7 @@ from typing import Any
 import pytest
 
 from coex_core import state, wire
-from coex_core.errors import ConfigError, DecodeError, RequestRejected
+from coex_core.errors import ConfigError, DecodeError, EncodeError, RequestRejected
 from coex_core.messages import Message, Opaque, VehicleMode, VehicleStatus
 from coex_core.modality import Modality, ModalityReceiver, ModalitySender
 from coex_core.routing import declared_ids, routine_ids, type_id
@@ -298,7 +298,7 @@ class ModalityTests:
         run.run(3600.0)
         part = run.part(modality.name)
         sent = sum(n for t, n in part.sent if t >= mark)
-        allowed = int(getattr(type(modality), "keepalive_bytes_per_hour", 0) or 0)
+        allowed = int(type(modality).keepalive_bytes_per_hour)
         assert sent <= allowed, (
             f"rule: a converged sender goes quiet (at most keepalive_bytes_per_hour = {allowed} B); "
             f"{modality.name} sent {sent} B in the hour after it converged and settled")
@@ -331,7 +331,7 @@ class ModalityTests:
         receiver = modality.receiver(receiver_config)
         sender = modality.sender(sender_config)
         now = ingest_all(sender, sample_inputs) + 10.0
-        codec = getattr(type(modality), "decode_body", None)
+        codec = type(modality).decode_body
         rng = random.Random(13)
         tried = 0
         for m in own[:40]:
@@ -352,10 +352,10 @@ class ModalityTests:
                     continue
                 tried += 1
                 is_request = type(d) in tuple(modality.requests) or (
-                    isinstance(d, Opaque) and d.type_id in getattr(type(modality), "request_ids", ()))
+                    isinstance(d, Opaque) and d.type_id in type(modality).request_ids)
                 side = "sender" if is_request else "receiver"
                 rejected_by_codec = False
-                if isinstance(d, Opaque) and codec is not None:
+                if isinstance(d, Opaque):
                     try:
                         codec(d.type_id, d.body)
                     except DecodeError:
@@ -386,9 +386,9 @@ class ModalityTests:
         (``message_ids``, ``request_ids``) and raises DecodeError for any other id, whatever the
         body: given one of its own bodies under an id it does not declare, it refuses."""
         cls = type(modality)
-        dec = getattr(cls, "decode_body", None)
-        own_ids = set(getattr(cls, "message_ids", ()) or ()) | set(getattr(cls, "request_ids", ()) or ())
-        if dec is None or not own_ids:
+        dec = cls.decode_body
+        own_ids = set(cls.message_ids) | set(cls.request_ids)
+        if not own_ids:
             return
         by_id: dict[int, list[bytes]] = {}
         for m in self._own_messages(modality, sender_config, receiver_config, sample_inputs, start_requests):
@@ -417,16 +417,18 @@ class ModalityTests:
         cls = type(modality)
         own = self._own_messages(modality, sender_config, receiver_config, sample_inputs, start_requests)
         assert own, "the plugin produced no messages from the sample inputs"
-        third = bool(getattr(cls, "message_ids", ()) or getattr(cls, "request_ids", ()))
-        dec, enc = getattr(cls, "decode_body", None), getattr(cls, "encode_body", None)
-        assert not third or (dec is not None and enc is not None), (
-            "rule: a modality that declares third-party ids gives their body codec "
-            "(classmethods decode_body(type_id, body) and encode_body(type_id, value))")
+        dec, enc = cls.decode_body, cls.encode_body
         for m in own:
             data = wire.encode(m)
             again = wire.encode(wire.decode(data))
             assert again == data, f"rule: a message re-encodes to the same bytes; {m!r:.160} did not"
-            if isinstance(m, Opaque) and dec is not None and enc is not None:
-                body = enc(m.type_id, dec(m.type_id, m.body))
+            if isinstance(m, Opaque):
+                try:
+                    body = enc(m.type_id, dec(m.type_id, m.body))
+                except (DecodeError, EncodeError) as exc:
+                    raise AssertionError(
+                        "rule: a modality that declares third-party ids gives their body codec "
+                        "(classmethods decode_body(type_id, body) and encode_body(type_id, value)), "
+                        f"which takes its own bodies; type id {m.type_id}: {exc}") from exc
                 assert body == m.body, (f"rule: a third-party body re-encodes to the same bytes; type id "
                                         f"{m.type_id}: {m.body.hex()} became {bytes(body).hex()}")
