@@ -11,16 +11,16 @@ zlib level ``tile_compression``) and read back when needed. Each level also keep
 fits, else block means over 2 x 2, 4 x 4 ... cells (``meta["step"]`` of its product), so a level
 of any extent is drawn in bounded memory and nothing held is left out. :meth:`window` reads what
 is on screen (or a tile of an export) from the tiles.
+
+The tiles and their stored form are in :mod:`.tiles`, the overviews in :mod:`.overview`, a
+tracked region request in :mod:`.regions`, what version 1 saved in :mod:`.legacy`.
 """
 
 from __future__ import annotations
 
 import math
-import struct
-import zlib
 from collections import OrderedDict
 from collections.abc import Iterable, Mapping
-from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
@@ -34,6 +34,11 @@ from coex_core.state import StateError, persistent
 from coex_core.storage import MemoryStorage, Storage
 from coex_core.subgrid import decode_subgrid
 from coex_core.timefmt import STAMP_MODULUS, unwrap
+
+from .legacy import Held, Mosaic
+from .overview import CHUNK, Overview, block_sums, blocks_from, weighted
+from .regions import Region
+from .tiles import LevelIndex, LevelStats, Tile, decode_tile, encode_tile, same_storage
 
 __all__ = ["BathymetryReceiver", "RECEIVER_DEFAULTS", "Region"]
 
@@ -64,384 +69,13 @@ ROI_CHUNK = 8
 GAP_CHUNK = 16
 #: subgrid indices a MapRoiRequest can carry (14-bit two's complement, spec: MapRoiRequest x0/y0)
 SUBGRID_INDEX_MIN, SUBGRID_INDEX_MAX = -8192, 8191
-#: Overview cells per side of one stored overview chunk (``ov/<level>/<step>/<cx>/<cy>``).
-CHUNK = 128
 #: Largest array :meth:`BathymetryReceiver.window` returns by default (cells).
 WINDOW_CELLS = 4 * 1024 * 1024
 
-_TILE_HEADER = struct.Struct("<4sBBBB")
-_TILE_MAGIC = b"CXRT"
-_CHUNK_HEADER = struct.Struct("<4sBBBBI")
-_CHUNK_MAGIC = b"CXOV"
-
-
-@persistent("bathymetry.Region", version=3,
-            upgrade=lambda fields, saved: {"queued": None, "answered": None, "waiting": 0, **fields})
-@dataclass
-class Region:
-    """An active region request: re-sent (with fresh stamps) until the vehicle answers "nothing newer"."""
-
-    level: int
-    x0: int
-    y0: int
-    w: int
-    h: int
-    fill_gaps: bool
-    auto: bool = False
-    next_send: float = -math.inf
-    request_id: int | None = None
-    sends: int = 0
-    done: bool = False
-    #: what the vehicle last answered: subgrids it queued for the region, and when
-    queued: int | None = None
-    answered: float | None = None
-    #: subgrids of the region the vehicle has not surveyed yet: its request stands for them
-    waiting: int = 0
-
-
-# ------------------------------------------------------------------------- saved by version 1
-# (one object per subgrid and one dense mosaic per level): read only, to load an older state.
-
-@persistent("bathymetry.Held")
-@dataclass
-class _Held:
-    stamp: float
-    values: FloatArray
-    received: float
-
-
-@persistent("bathymetry.Mosaic")
-@dataclass
-class _Mosaic:
-    side: int
-    ix0: int = 0
-    iy0: int = 0
-    nx: int = 0
-    ny: int = 0
-    array: FloatArray = field(default_factory=lambda: np.full((0, 0), np.nan))
-
-
-# ------------------------------------------------------------------------------------ tiles
-
-@persistent("bathymetry.Tile")
-class _Tile:
-    """``n x n`` subgrids of one level: cells (row 0 = south, NaN where nothing) and, per
-    subgrid, stamp, arrival time and whether it is held. ``dirty``: the storage lacks it."""
-
-    def __init__(self, n: int, side: int) -> None:
-        self.values = np.full((n * side, n * side), np.nan)
-        self.stamp = np.zeros((n, n))
-        self.received = np.zeros((n, n))
-        self.held = np.zeros((n, n), bool)
-        self.dirty = True
-
-    @property
-    def nbytes(self) -> int:
-        return int(self.values.nbytes + self.stamp.nbytes + self.received.nbytes + self.held.nbytes)
-
-
-def _tile_nbytes(n: int, side: int) -> int:
-    return (n * side) ** 2 * 8 + n * n * 17
-
-
-def _encode_tile(t: _Tile, compression: int) -> bytes:
-    n = t.held.shape[0]
-    side = t.values.shape[0] // n
-    payload = b"".join((t.held.astype(np.uint8).tobytes(), t.stamp.astype("<f8").tobytes(),
-                        t.received.astype("<f8").tobytes(), t.values.astype("<f8").tobytes()))
-    flags = 0
-    if compression > 0:
-        payload, flags = zlib.compress(payload, compression), 1
-    return _TILE_HEADER.pack(_TILE_MAGIC, 1, flags, n, side) + payload
-
-
-def _decode_tile(data: bytes, n: int, side: int, where: str) -> _Tile:
-    try:
-        magic, version, flags, tn, tside = _TILE_HEADER.unpack_from(data)
-        if magic != _TILE_MAGIC or version != 1 or (tn, tside) != (n, side):
-            raise ValueError(f"header {magic!r} v{version} {tn}x{tside}")
-        payload = data[_TILE_HEADER.size:]
-        if flags & 1:
-            payload = zlib.decompress(payload)
-        buf = bytearray(payload)
-        cells = (n * side) ** 2
-        if len(buf) != n * n * 17 + cells * 8:
-            raise ValueError(f"{len(buf)} bytes")
-        t = object.__new__(_Tile)
-        t.held = np.frombuffer(buf, np.uint8, n * n).reshape(n, n).astype(bool)
-        o = n * n
-        t.stamp = np.frombuffer(buf, "<f8", n * n, o).reshape(n, n).astype(np.float64)
-        o += 8 * n * n
-        t.received = np.frombuffer(buf, "<f8", n * n, o).reshape(n, n).astype(np.float64)
-        o += 8 * n * n
-        t.values = np.frombuffer(buf, "<f8", cells, o).reshape(n * side, n * side).astype(np.float64)
-    except (ValueError, struct.error, zlib.error) as exc:
-        raise StateError(f"bathymetry receiver: stored tile {where} is damaged ({exc})") from exc
-    t.dirty = False
-    return t
-
-
-@persistent("bathymetry.LevelIndex", transient=("pos",))
-class _LevelIndex:
-    """Every tile of one level, and per tile a summary written whenever the tile is (its
-    resident copy may be newer): subgrids held, newest and oldest stamp, oldest arrival, and the
-    bytes the storage holds for it."""
-
-    def __init__(self) -> None:
-        self.n = 0
-        self.keys = np.zeros((0, 2), np.int64)
-        self.count = np.zeros(0, np.int64)
-        self.newest = np.zeros(0)
-        self.oldest = np.zeros(0)
-        self.oldest_rx = np.zeros(0)
-        self.stored = np.zeros(0, np.int64)
-        self.pos: dict[tuple[int, int], int] = {}
-
-    def _after_restore(self) -> None:
-        self.pos = {(int(a), int(b)): i for i, (a, b) in enumerate(self.keys[:self.n].tolist())}
-
-    def add(self, tx: int, ty: int) -> int:
-        if self.n == len(self.count):
-            cap = max(16, 2 * self.n)
-            self.keys = np.resize(self.keys, (cap, 2))
-            for name in ("count", "newest", "oldest", "oldest_rx", "stored"):
-                setattr(self, name, np.resize(getattr(self, name), cap))
-        i = self.n
-        self.keys[i] = (tx, ty)
-        self.count[i], self.stored[i] = 0, 0
-        self.newest[i], self.oldest[i], self.oldest_rx[i] = -math.inf, math.inf, math.inf
-        self.pos[(tx, ty)] = i
-        self.n += 1
-        return i
-
-    def summarise(self, i: int, t: _Tile) -> None:
-        held = t.held
-        n = int(np.count_nonzero(held))
-        self.count[i] = n
-        if n:
-            st = t.stamp[held]
-            self.newest[i], self.oldest[i] = st.max(), st.min()
-            self.oldest_rx[i] = t.received[held].min()
-        else:
-            self.newest[i], self.oldest[i], self.oldest_rx[i] = -math.inf, math.inf, math.inf
-
-
-@persistent("bathymetry.LevelStats")
-@dataclass
-class _LevelStats:
-    """What a level holds, kept as subgrids come: counts, stamps, extent (subgrid indices,
-    end exclusive, of everything received) and depth range. ``stale``: the oldest stamp or
-    arrival (or the newest stamp) left with a subgrid replaced or forgotten; recomputed from
-    the tile summaries when asked."""
-
-    subgrids: int = 0
-    cells: int = 0
-    newest: float = -math.inf
-    oldest: float = math.inf
-    oldest_rx: float = math.inf
-    stale: bool = False
-    ix0: int = 0
-    iy0: int = 0
-    ix1: int = 0
-    iy1: int = 0
-    zmin: float = math.inf
-    zmax: float = -math.inf
-
-
-# --------------------------------------------------------------------------------- overview
-
-def _starts(g0: int, n: int, s: int) -> npt.NDArray[np.intp]:
-    """Local indices where a global block of ``s`` cells starts, for ``n`` cells from global ``g0``."""
-    first = (-g0) % s
-    starts = np.arange(first, n, s)
-    if first:
-        starts = np.concatenate(([0], starts))
-    return starts
-
-
-def _block_sums(z: FloatArray, w: FloatArray, gy: int, gx: int, s: int) -> tuple[int, int, FloatArray, FloatArray]:
-    """Per global ``s x s`` block: the sums of ``z`` and of the weights ``w`` of an array whose
-    cell (0, 0) is global cell (gy, gx). Returns (first block row, first block column, sums, weights)."""
-    rs, cs = _starts(gy, z.shape[0], s), _starts(gx, z.shape[1], s)
-    sz = np.add.reduceat(np.add.reduceat(z, rs, axis=0), cs, axis=1)
-    sw = np.add.reduceat(np.add.reduceat(w, rs, axis=0), cs, axis=1)
-    return gy // s, gx // s, sz, sw
-
-
-def _weighted(values: FloatArray) -> tuple[FloatArray, FloatArray]:
-    fin = ~np.isnan(values)
-    return np.where(fin, values, 0.0), fin.astype(np.float64)
-
-
-@persistent("bathymetry.Overview")
-@dataclass
-class _Overview:
-    """One level drawn in bounded memory: overview cell (i, j) is the mean of level cells
-    ``[j*step, (j+1)*step) x [i*step, (i+1)*step)``; the array covers overview cells
-    ``[ox0, ox0 + nx) x [oy0, oy0 + ny)`` (row 0 = south), grown with slack as subgrids come.
-    At ``step`` 1 ``mean`` holds the cells themselves (float64); beyond, float32 means and how
-    many cells each is of (``count``)."""
-
-    step: int = 1
-    ox0: int = 0
-    oy0: int = 0
-    nx: int = 0
-    ny: int = 0
-    mean: npt.NDArray[Any] = field(default_factory=lambda: np.full((0, 0), np.nan))
-    count: npt.NDArray[np.float32] | None = None
-
-    def span(self, gx: int, gy: int, side: int) -> tuple[int, int, int, int]:
-        k = self.step
-        return gx // k, (gx + side - 1) // k + 1, gy // k, (gy + side - 1) // k + 1
-
-    def fits(self, a: int, b: int, c: int, d: int, max_cells: int) -> bool:
-        """Whether overview cells [a, b) x [c, d) fit with the rest in ``max_cells`` (growth
-        may double a side, so the bounding box is held to a quarter)."""
-        if self.nx == 0:
-            return True
-        w = max(self.ox0 + self.nx, b) - min(self.ox0, a)
-        h = max(self.oy0 + self.ny, d) - min(self.oy0, c)
-        return w * h <= max_cells // 4
-
-    def include(self, a: int, b: int, c: int, d: int) -> None:
-        """Grow the array (with slack, so steady growth costs amortised O(1)) to cover [a, b) x [c, d)."""
-        if self.nx == 0:
-            self.ox0, self.oy0, self.nx, self.ny = a, c, b - a, d - c
-            self.mean = np.full((d - c, b - a), np.nan, np.float64 if self.step == 1 else np.float32)
-            self.count = None if self.step == 1 else np.zeros((d - c, b - a), np.float32)
-            return
-        if self.ox0 <= a and b <= self.ox0 + self.nx and self.oy0 <= c and d <= self.oy0 + self.ny:
-            return
-        x0, y0 = min(self.ox0, a), min(self.oy0, c)
-        x1, y1 = max(self.ox0 + self.nx, b), max(self.oy0 + self.ny, d)
-        gx = max(x1 - x0, 2 * self.nx) if (x1 - x0) > self.nx else self.nx
-        gy = max(y1 - y0, 2 * self.ny) if (y1 - y0) > self.ny else self.ny
-        if a < self.ox0:
-            x0 = self.ox0 + self.nx - gx
-        if c < self.oy0:
-            y0 = self.oy0 + self.ny - gy
-        r, q = self.oy0 - y0, self.ox0 - x0
-        new = np.full((gy, gx), np.nan, self.mean.dtype)
-        new[r:r + self.ny, q:q + self.nx] = self.mean
-        self.mean = new
-        if self.count is not None:
-            cnt = np.zeros((gy, gx), np.float32)
-            cnt[r:r + self.ny, q:q + self.nx] = self.count
-            self.count = cnt
-        self.ox0, self.oy0, self.nx, self.ny = x0, y0, gx, gy
-
-    def weights(self, rows: slice = slice(None)) -> tuple[FloatArray, FloatArray]:
-        """(mean x count, count) of the overview cells of ``rows``, as float64."""
-        if self.count is None:
-            return _weighted(self.mean[rows])
-        cnt = self.count[rows].astype(np.float64)
-        return np.where(cnt > 0, self.mean[rows].astype(np.float64) * cnt, 0.0), cnt
-
-    def coarsen(self) -> None:
-        """Twice the step: every new cell the mean of 2 x 2 old ones (weighted by their counts),
-        a band of rows at a time (no full-size temporaries)."""
-        x0, y0 = self.ox0 // 2, self.oy0 // 2
-        px, py = self.ox0 - 2 * x0, self.oy0 - 2 * y0
-        nx, ny = (px + self.nx + 1) // 2, (py + self.ny + 1) // 2
-        mean = np.full((ny, nx), np.nan, np.float32)
-        count = np.zeros((ny, nx), np.float32)
-        band = 128
-        for r in range(0, ny, band):
-            h = min(band, ny - r)
-            lo, hi = max(0, 2 * r - py), min(self.ny, 2 * (r + h) - py)
-            z, w = self.weights(slice(lo, hi))
-            zz = np.zeros((2 * h, 2 * nx))
-            ww = np.zeros((2 * h, 2 * nx))
-            o = lo + py - 2 * r
-            zz[o:o + hi - lo, px:px + self.nx] = z
-            ww[o:o + hi - lo, px:px + self.nx] = w
-            zs = zz.reshape(h, 2, nx, 2).sum(axis=(1, 3))
-            ws = ww.reshape(h, 2, nx, 2).sum(axis=(1, 3))
-            mean[r:r + h] = np.where(ws > 0, zs / np.maximum(ws, 1.0), np.nan)
-            count[r:r + h] = ws
-        self.step *= 2
-        self.ox0, self.oy0, self.nx, self.ny = x0, y0, nx, ny
-        self.mean, self.count = mean, count
-
-    def draw(self, gx: int, gy: int, values: FloatArray, old: FloatArray | None) -> None:
-        """Level cells from global cell (gx, gy) now hold ``values`` (they held ``old``)."""
-        side = values.shape[0]
-        if self.count is None:
-            r, c = gy - self.oy0, gx - self.ox0
-            self.mean[r:r + side, c:c + side] = values
-            return
-        by, bx, sz, sw = _block_sums(*_weighted(values), gy, gx, self.step)
-        if old is not None:
-            _, _, oz, ow = _block_sums(*_weighted(old), gy, gx, self.step)
-            sz, sw = sz - oz, sw - ow
-        r, c = by - self.oy0, bx - self.ox0
-        h, w = sz.shape
-        m = self.mean[r:r + h, c:c + w]
-        n = self.count[r:r + h, c:c + w]
-        cnt = n.astype(np.float64)
-        tot = np.where(cnt > 0, m.astype(np.float64) * cnt, 0.0) + sz
-        cnt += sw
-        m[...] = np.where(cnt > 0.5, tot / np.maximum(cnt, 1.0), np.nan)
-        n[...] = np.maximum(cnt, 0.0)
-
-    def chunks(self) -> set[tuple[int, int]]:
-        """Every stored chunk the array touches."""
-        if self.nx == 0:
-            return set()
-        return {(cx, cy) for cy in range(self.oy0 // CHUNK, (self.oy0 + self.ny - 1) // CHUNK + 1)
-                for cx in range(self.ox0 // CHUNK, (self.ox0 + self.nx - 1) // CHUNK + 1)}
-
-    def _chunk_overlap(self, cx: int, cy: int) -> tuple[tuple[slice, slice], tuple[slice, slice]] | None:
-        """Where chunk ``(cx, cy)`` and this overview overlap: the overview's slices and the
-        chunk's (None: they do not)."""
-        a, c = cx * CHUNK, cy * CHUNK
-        x0, x1 = max(a, self.ox0), min(a + CHUNK, self.ox0 + self.nx)
-        y0, y1 = max(c, self.oy0), min(c + CHUNK, self.oy0 + self.ny)
-        if not (x0 < x1 and y0 < y1):
-            return None
-        return ((slice(y0 - self.oy0, y1 - self.oy0), slice(x0 - self.ox0, x1 - self.ox0)),
-                (slice(y0 - c, y1 - c), slice(x0 - a, x1 - a)))
-
-    def encode_chunk(self, cx: int, cy: int, compression: int) -> bytes:
-        mean = np.full((CHUNK, CHUNK), np.nan, self.mean.dtype)
-        count = np.zeros((CHUNK, CHUNK), np.float32)
-        overlap = self._chunk_overlap(cx, cy)
-        if overlap is not None:
-            mine, theirs = overlap
-            mean[theirs] = self.mean[mine]
-            if self.count is not None:
-                count[theirs] = self.count[mine]
-        parts = [mean.astype(mean.dtype.newbyteorder("<")).tobytes()]
-        if self.count is not None:
-            parts.append(count.astype("<f4").tobytes())
-        payload, flags = b"".join(parts), 0
-        if compression > 0:
-            payload, flags = zlib.compress(payload, compression), 1
-        return _CHUNK_HEADER.pack(_CHUNK_MAGIC, 1, flags, int(self.count is not None), 0, self.step) + payload
-
-    def paste_chunk(self, cx: int, cy: int, data: bytes, where: str) -> None:
-        try:
-            magic, version, flags, counted, _, step = _CHUNK_HEADER.unpack_from(data)
-            if magic != _CHUNK_MAGIC or version != 1 or step != self.step or counted != (self.count is not None):
-                raise ValueError(f"header {magic!r} v{version} step {step}")
-            payload = data[_CHUNK_HEADER.size:]
-            if flags & 1:
-                payload = zlib.decompress(payload)
-            n = CHUNK * CHUNK
-            mean = np.frombuffer(payload, "<f4" if counted else "<f8", n).reshape(CHUNK, CHUNK)
-            count = np.frombuffer(payload, "<f4", n, n * mean.itemsize).reshape(CHUNK, CHUNK) if counted else None
-        except (ValueError, struct.error, zlib.error) as exc:
-            raise StateError(f"bathymetry receiver: stored overview chunk {where} is damaged ({exc})") from exc
-        overlap = self._chunk_overlap(cx, cy)
-        if overlap is not None:
-            mine, theirs = overlap
-            self.mean[mine] = mean[theirs]
-            if self.count is not None and count is not None:
-                self.count[mine] = count[theirs]
 
 
 def _upgrade_receiver(fields: dict[str, Any], saved: int) -> dict[str, Any]:
-    """Version 1 held one ``_Held`` per subgrid and one dense mosaic per level: keep them aside
+    """Version 1 held one ``Held`` per subgrid and one dense mosaic per level: keep them aside
     for :meth:`BathymetryReceiver._after_restore`, which moves them into tiles."""
     if saved < 2:
         fields["_legacy"] = (fields.pop("held", {}), fields.pop("_mosaics", {}),
@@ -518,8 +152,8 @@ class BathymetryReceiver(ModalityReceiver):
             raise ConfigError("tile_compression must be a zlib level, 0..9 (0: none)")
         #: Subgrids that came with another geometry than the level's first one (ignored).
         self.mismatched = 0
-        self._stats: dict[int, _LevelStats] = {}
-        self._index: dict[int, _LevelIndex] = {}
+        self._stats: dict[int, LevelStats] = {}
+        self._index: dict[int, LevelIndex] = {}
         #: overview geometry as last written to an attached storage: level -> (step, ox0, oy0, nx, ny)
         self._overview_meta: dict[int, tuple[int, int, int, int, int]] = {}
         #: bytes of each overview chunk in that storage: (level, cx, cy) -> size
@@ -528,8 +162,8 @@ class BathymetryReceiver(ModalityReceiver):
         # with its state (``_own_*`` are the same objects); with a storage the node attached,
         # the state holds the index only and the rest is in the storage.
         self._own_store: MemoryStorage | None = MemoryStorage()
-        self._own_tiles: OrderedDict[tuple[int, int, int], _Tile] = OrderedDict()
-        self._own_overviews: dict[int, _Overview] = {}
+        self._own_tiles: OrderedDict[tuple[int, int, int], Tile] = OrderedDict()
+        self._own_overviews: dict[int, Overview] = {}
         self._after_restore()
 
     def _after_restore(self) -> None:
@@ -550,10 +184,10 @@ class BathymetryReceiver(ModalityReceiver):
             self._overviews = {}
         self._resident_nbytes = sum(t.nbytes for t in self._tiles.values())
 
-    def _import_v1(self, held: dict[int, dict[tuple[int, int], _Held]], mosaics: dict[int, _Mosaic],
+    def _import_v1(self, held: dict[int, dict[tuple[int, int], Held]], mosaics: dict[int, Mosaic],
                    off: set[tuple[int, int, int]]) -> None:
         for level, mos in mosaics.items():
-            self._overviews[level] = _Overview(1, mos.ix0 * mos.side, mos.iy0 * mos.side,
+            self._overviews[level] = Overview(1, mos.ix0 * mos.side, mos.iy0 * mos.side,
                                                mos.nx * mos.side, mos.ny * mos.side, mos.array)
         for level, cells in held.items():
             if level not in self._geometry:
@@ -570,7 +204,7 @@ class BathymetryReceiver(ModalityReceiver):
         """Keep spilled tiles (and, for snapshots, the overviews) in ``storage`` from now on.
         What the receiver's own storage held moves there; a receiver restored from a snapshot
         taken with a storage attached reads its overviews back from it."""
-        if _same_storage(storage, self._store):
+        if same_storage(storage, self._store):
             self._store = storage
             return
         old = self._store
@@ -585,7 +219,7 @@ class BathymetryReceiver(ModalityReceiver):
             self._ov_stored = {}
         else:
             for level, (step, ox0, oy0, nx, ny) in self._overview_meta.items():
-                ov = _Overview(step)
+                ov = Overview(step)
                 ov.include(ox0, ox0 + nx, oy0, oy0 + ny)
                 prefix = f"ov/{level}/{step}/"
                 for key in storage.keys(prefix):
@@ -639,7 +273,7 @@ class BathymetryReceiver(ModalityReceiver):
         tiles = sum(int(ix.stored[:ix.n].sum()) for ix in self._index.values())
         return tiles + sum(self._ov_stored.values())
 
-    def _tile(self, level: int, tx: int, ty: int, create: bool = False) -> _Tile | None:
+    def _tile(self, level: int, tx: int, ty: int, create: bool = False) -> Tile | None:
         """Tile (tx, ty) of ``level``, read back from storage if spilled; made when ``create``."""
         key = (level, tx, ty)
         tiles = self._tiles
@@ -654,9 +288,9 @@ class BathymetryReceiver(ModalityReceiver):
             if not create:
                 return None
             if index is None:
-                index = self._index[level] = _LevelIndex()
+                index = self._index[level] = LevelIndex()
             index.add(tx, ty)
-            t = _Tile(self.tile_subgrids, side)
+            t = Tile(self.tile_subgrids, side)
         else:
             name = f"tile/{level}/{tx}/{ty}"
             if self._store is None:
@@ -665,7 +299,7 @@ class BathymetryReceiver(ModalityReceiver):
             data = self._store.get(name)
             if data is None:
                 raise StateError(f"bathymetry receiver: tile {name} is missing from its storage")
-            t = _decode_tile(data, self.tile_subgrids, side, name)
+            t = decode_tile(data, self.tile_subgrids, side, name)
         tiles[key] = t
         self._resident_nbytes += t.nbytes
         if self._resident_nbytes > self.memory_budget:
@@ -676,10 +310,10 @@ class BathymetryReceiver(ModalityReceiver):
                     self._write_tile(old_key, old)
         return t
 
-    def _write_tile(self, key: tuple[int, int, int], t: _Tile) -> None:
+    def _write_tile(self, key: tuple[int, int, int], t: Tile) -> None:
         level, tx, ty = key
         assert self._store is not None
-        data = _encode_tile(t, self.tile_compression)
+        data = encode_tile(t, self.tile_compression)
         self._store.put(f"tile/{level}/{tx}/{ty}", data)
         index = self._index[level]
         row = index.pos[(tx, ty)]
@@ -688,7 +322,7 @@ class BathymetryReceiver(ModalityReceiver):
         t.dirty = False
 
     def _level_tiles(self, level: int, tx0: int | None = None, ty0: int | None = None,
-                     tx1: int | None = None, ty1: int | None = None) -> Iterable[tuple[int, int, _Tile]]:
+                     tx1: int | None = None, ty1: int | None = None) -> Iterable[tuple[int, int, Tile]]:
         """The level's tiles (within the tile range, end exclusive, if given), read as needed."""
         index = self._index.get(level)
         if index is None:
@@ -749,7 +383,7 @@ class BathymetryReceiver(ModalityReceiver):
         geometry = self._geometry.get(level)
         if geometry is None:
             self._geometry[level] = (cell, sg.side)
-            self._stats[level] = _LevelStats()
+            self._stats[level] = LevelStats()
         elif geometry[1] != sg.side or geometry[0] != cell:
             self.mismatched += 1  # the level's cells would not line up: ignored
             return []
@@ -772,12 +406,12 @@ class BathymetryReceiver(ModalityReceiver):
         tx, lx = divmod(ix, n)
         ty, ly = divmod(iy, n)
         if level not in self._stats:
-            self._stats[level] = _LevelStats()
+            self._stats[level] = LevelStats()
         tile = self._tile(level, tx, ty, create=True)
         assert tile is not None
         self._put(level, tile, ix, iy, lx, ly, stamp, values, received, draw=draw)
 
-    def _put(self, level: int, tile: _Tile, ix: int, iy: int, lx: int, ly: int, stamp: float,
+    def _put(self, level: int, tile: Tile, ix: int, iy: int, lx: int, ly: int, stamp: float,
              values: FloatArray, now: float, draw: bool) -> None:
         side = values.shape[0]
         r, c = ly * side, lx * side
@@ -819,7 +453,7 @@ class BathymetryReceiver(ModalityReceiver):
     def _draw(self, level: int, gx: int, gy: int, values: FloatArray, old: FloatArray | None) -> None:
         ov = self._overviews.get(level)
         if ov is None:
-            ov = self._overviews[level] = _Overview()
+            ov = self._overviews[level] = Overview()
         side = values.shape[0]
         a, b, c, d = ov.span(gx, gy, side)
         if not ov.fits(a, b, c, d, self.max_mosaic_cells):
@@ -862,7 +496,7 @@ class BathymetryReceiver(ModalityReceiver):
 
     # ---------------------------------------------------------------------------- products
 
-    def _overview(self, level: int) -> _Overview:
+    def _overview(self, level: int) -> Overview:
         ov = self._overviews.get(level)
         if ov is None and level in self._overview_meta and self._store is None:
             raise StateError("bathymetry receiver: its levels are in the node's storage, which is "
@@ -1085,7 +719,7 @@ class BathymetryReceiver(ModalityReceiver):
         ov = self._overviews.get(level)
         if s > 1 and ov is not None and s % ov.step == 0 and ov.nx:
             k = ov.step
-            return _blocks_from(ov, cx0 // k, cy0 // k, cx1 // k, cy1 // k, s // k)
+            return blocks_from(ov, cx0 // k, cy0 // k, cx1 // k, cy1 // k, s // k)
         size = self.tile_subgrids * side
         if s == 1:
             out = np.full((ny, nx), np.nan)
@@ -1100,7 +734,7 @@ class BathymetryReceiver(ModalityReceiver):
             if s == 1:
                 out[c - cy0:d - cy0, a - cx0:b - cx0] = part
                 continue
-            by, bx, z, w = _block_sums(*_weighted(part), c, a, s)
+            by, bx, z, w = block_sums(*weighted(part), c, a, s)
             r, q = by - cy0 // s, bx - cx0 // s
             zs[r:r + z.shape[0], q:q + z.shape[1]] += z
             ws[r:r + z.shape[0], q:q + z.shape[1]] += w
@@ -1221,35 +855,3 @@ class BathymetryReceiver(ModalityReceiver):
 
     def active_regions(self) -> list[Region]:
         return [r for r in self.regions if not r.done]
-
-
-def _same_storage(a: Storage | None, b: Storage | None) -> bool:
-    """Whether two storages are the same keys: the same object, or the same part (``child``)
-    of the same storage, as a node attaching its storage again gives."""
-    if a is b:
-        return True
-    pa, pb = getattr(a, "parent", None), getattr(b, "parent", None)
-    return pa is not None and _same_storage(pa, pb) and getattr(a, "prefix", None) == getattr(b, "prefix", None)
-
-
-def _blocks_from(ov: _Overview, ox0: int, oy0: int, ox1: int, oy1: int, s: int) -> FloatArray:
-    """Overview cells ``[ox0, ox1) x [oy0, oy1)`` (multiples of ``s``) in blocks of ``s``, means
-    weighted by the cells each overview cell is of."""
-    ny, nx = (oy1 - oy0) // s, (ox1 - ox0) // s
-    a, b = max(ox0, ov.ox0), min(ox1, ov.ox0 + ov.nx)
-    c, d = max(oy0, ov.oy0), min(oy1, ov.oy0 + ov.ny)
-    if a >= b or c >= d:
-        return np.full((ny, nx), np.nan)
-    part = _Overview(ov.step, a, c, b - a, d - c,
-                     ov.mean[c - ov.oy0:d - ov.oy0, a - ov.ox0:b - ov.ox0],
-                     None if ov.count is None else ov.count[c - ov.oy0:d - ov.oy0, a - ov.ox0:b - ov.ox0])
-    if s == 1:
-        out = np.full((ny, nx), np.nan)
-        out[c - oy0:d - oy0, a - ox0:b - ox0] = part.mean
-        return out
-    by, bx, z, w = _block_sums(*part.weights(), c, a, s)
-    zs, ws = np.zeros((ny, nx)), np.zeros((ny, nx))
-    r, q = by - oy0 // s, bx - ox0 // s
-    zs[r:r + z.shape[0], q:q + z.shape[1]] = z
-    ws[r:r + z.shape[0], q:q + z.shape[1]] = w
-    return np.where(ws > 0, zs / np.maximum(ws, 1.0), np.nan)
