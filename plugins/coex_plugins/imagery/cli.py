@@ -19,9 +19,13 @@ writes:
 --out DIR [--base GOAL] [--loss P] [--seed S]`` sends IMAGE to its ``--base`` goal (default
 ``layer:1``, the first quality mark), then asks for the rectangle (pixels, X1 and Y1 exclusive)
 with one ``ImageRegionRequest`` at the goal (default ``--quality 30`` dB) and writes
-``DIR/before.png`` and ``DIR/after.png`` (what topside shows, the region outlined) and
-``DIR/summary.json``: ``box``, ``goal`` (kind and value), ``state`` (the vehicle's answer:
-accepted / rejected / requested when none arrived), ``base_wire_bytes`` and ``region_wire_bytes`` (vehicle-to-ship wire bytes for the base and
+``DIR/before.png`` and ``DIR/after.png`` (what topside shows, the region outlined, a crop pasted
+over the image), ``DIR/crop.png`` when the vehicle answered with a crop (what the crop shows of
+the box) and ``DIR/summary.json``: ``box``, ``goal`` (kind and value), ``state`` (the vehicle's
+answer: accepted / rejected / requested when none arrived), ``served`` (``crop`` or
+``packets``), ``crop`` (its image id, size, body bytes, resolutions, layers, the parent packets
+it refines, the parent layers it covers, its PSNR inside the box and before it; null for
+packets), ``base_wire_bytes`` and ``region_wire_bytes`` (vehicle-to-ship wire bytes for the base and
 after the request), ``psnr_inside_before`` / ``psnr_inside_after`` and ``psnr_outside_after``
 (dB against the vehicle's image), ``layers_complete`` (quality layers complete inside the box).
 """
@@ -136,9 +140,20 @@ def run_region(args: argparse.Namespace) -> int:
     blank = np.full(enc.image.shape, 128, np.uint8)
     write_png(out / "before.png", _outlined(blank if run.before is None else run.before, args.box))
     write_png(out / "after.png", _outlined(blank if run.after is None else run.after, args.box))
+    crop = None
+    if run.crop is not None:
+        shown = run.receiver.image(run.crop.image_id)
+        if shown is not None:
+            write_png(out / "crop.png", shown)
+        c = run.crop.crop
+        crop = {"image_id": run.crop.image_id, "width": run.crop.enc.width, "height": run.crop.enc.height,
+                "body_bytes": len(run.crop.enc.body), "resolutions": run.crop.enc.stream.resolutions,
+                "layers": run.crop.enc.stream.layers, "base_packets": c.base, "cover": c.cover,
+                "psnr": c.psnr, "base_psnr": c.base_psnr, "shown": run.region.get("crop", {}).get("shown")}
     summary = {
         "image": str(args.image), "width": enc.width, "height": enc.height, "box": list(args.box),
         "goal": {"kind": kind, "value": value}, "base": args.base, "state": run.region["state"],
+        "served": run.region.get("served"), "crop": crop,
         "base_wire_bytes": run.base_bytes, "region_wire_bytes": run.region_bytes,
         "psnr_inside_before": inside(run.before), "psnr_inside_after": inside(run.after),
         "psnr_outside_after": outside,

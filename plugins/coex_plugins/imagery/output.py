@@ -1,4 +1,6 @@
-"""Writing topside images: ``image_<id>.tiff`` and ``image_<id>.png`` after every improvement."""
+"""Writing topside images: ``image_<id>.tiff`` and ``image_<id>.png`` after every improvement (an
+image as topside shows it, its crops pasted over it), ``crop_<id>.tiff`` and ``.png`` for a crop
+(what it shows of its box)."""
 
 from __future__ import annotations
 
@@ -39,9 +41,10 @@ class ImageWriter:
         self.written = 0
 
     def __call__(self, product: Product) -> None:
-        if product.kind != "image" or product.data is None:
+        if product.kind not in ("image", "image-crop") or product.data is None:
             return
-        base = self.out_dir / f"image_{int(product.meta['image_id']):04d}"
+        name = "image" if product.kind == "image" else "crop"
+        base = self.out_dir / f"{name}_{int(product.meta['image_id']):04d}"
         desc = f"coex image {product.key} version {product.version} bytes {product.meta.get('bytes_used')}"
         write_tiff(f"{base}.tiff", product.data, desc)
         write_png(f"{base}.png", product.data)
