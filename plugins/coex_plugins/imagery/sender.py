@@ -654,31 +654,35 @@ class ImagerySender(ModalitySender):
         held = self._held_packets(tx)
         kind = RegionGoal(msg.kind)
         target: float | None = None  # the PSNR the region is to reach (None: a byte budget)
+        everything = np.ones(len(held), bool)
         if kind == RegionGoal.LAYER:
             if not 1 <= msg.value <= sp.layers:
                 raise RequestRejected(f"layer {msg.value} outside 1..{sp.layers}")
             chosen = inside & (layer < msg.value)
             target = self._box_psnr(tx, layer < msg.value, box)
+            prefix = self._fewest(tx, everything, held, box, target)
         elif kind == RegionGoal.BYTES:
             if msg.value < 1:
                 raise RequestRejected("a byte budget of 0")
-            cost = np.where(inside & ~held, sizes, 0)
-            within = np.cumsum(cost) <= msg.value
-            chosen = inside & (held | within)
+            chosen = _within(inside, held, sizes, msg.value)
+            prefix = _within(everything, held, sizes, msg.value)
         else:
             if not 100 <= msg.value <= 600:
                 raise RequestRejected(f"quality {msg.value / 10:.1f} dB outside 10..60 dB")
             target = msg.value / 10
-            chosen = self._region_quality(tx, inside, held, layer, box, target)
-        chosen = _bridge(chosen, held, sizes)
-        mask = np.zeros(tx.total, bool)
-        for i in np.flatnonzero(chosen & ~held):
-            mask[int(starts[i]):packet_end(starts, tx.total, int(i))] = True
-        crop = None
+            chosen = self._fewest(tx, inside, held, box, target)
+            prefix = self._fewest(tx, everything, held, box, target)
+        # the region's packets (small gaps bridged), or the image's next packets in codestream
+        # order until the region is there: on a soft image these cost less than the region's
+        # own packets with their fragment headers and packet marks
+        ways = [self._way(tx, _bridge(chosen, held, sizes), held, box)]
         if self.crops != "never":
-            reached = self._box_psnr(tx, chosen | held, box)
-            if mask.any() or (target is not None and reached < target):
-                crop = self._crop_for(tx, box, msg, target, mask, reached)
+            ways.append(self._way(tx, prefix, held, box))
+        mask, reached, cost = min(ways, key=lambda w: (
+            (w[1] < target, w[2]) if target is not None else (-w[1], w[2])))  # reach the goal, fewest bytes
+        crop = None
+        if self.crops != "never" and (mask.any() or (target is not None and reached < target)):
+            crop = self._crop_for(tx, box, msg, target, cost, reached)
         self._request_counter += 1
         if crop is not None:
             crop_enc, crop_of = crop
@@ -697,7 +701,7 @@ class ImagerySender(ModalitySender):
         return [CommandAck(msg.command_id, AckStatus.ACCEPTED)]
 
     def _crop_for(self, tx: _Tx, box: tuple[int, int, int, int], msg: ImageRegionRequest, target: float | None,
-                  mask: npt.NDArray[np.bool_], reached: float) -> tuple[Encoded, CropOf] | None:
+                  packets_cost: int, reached: float) -> tuple[Encoded, CropOf] | None:
         """A crop of ``box`` for this request when it is the cheaper way (or when ``crops`` is
         ``always``), else None. The crop codes the box's difference to what topside shows of it
         from the longest prefix of the image's packets it acknowledged (``base``; nothing: mid-
@@ -749,7 +753,7 @@ class ImagerySender(ModalitySender):
             elif reached >= target:
                 crop_bytes = len(cenc.body) + encoded_size(self._crop_message(tx, cenc, box, msg, base, 0)) + \
                     fragment_size(0, 0)
-                if crop_bytes >= self._wire_estimate(tx, mask):
+                if crop_bytes >= packets_cost:
                     return None
         layer = packet_layers(enc)
         cover = 0
@@ -804,14 +808,13 @@ class ImagerySender(ModalitySender):
         out: npt.NDArray[np.bool_] = (cum[ends] - cum[starts]) == (ends - starts)
         return out
 
-    def _region_quality(self, tx: _Tx, inside: npt.NDArray[np.bool_], held: npt.NDArray[np.bool_],
-                        layer: npt.NDArray[np.int64], box: tuple[int, int, int, int],
-                        target: float) -> npt.NDArray[np.bool_]:
-        """The fewest of the region's packets, in codestream order (whole packets, so a layer may
-        be taken in part, lowest resolutions first), whose decode with what topside holds reaches
-        ``target`` dB PSNR inside the region, measured against the original (all of them when
-        none does). Bisection on the count: a few decodes."""
-        todo = np.flatnonzero(inside & ~held)
+    def _fewest(self, tx: _Tx, candidates: npt.NDArray[np.bool_], held: npt.NDArray[np.bool_],
+                box: tuple[int, int, int, int], target: float) -> npt.NDArray[np.bool_]:
+        """What topside holds and the fewest of the ``candidates`` packets not held, in codestream
+        order (whole packets, so a layer may be taken in part, lowest resolutions first), whose
+        decode reaches ``target`` dB PSNR inside the box, measured against the original (all of
+        them when none does). Bisection on the count: a few decodes."""
+        todo = np.flatnonzero(candidates & ~held)
 
         def chosen(k: int) -> npt.NDArray[np.bool_]:
             out = held.copy()
@@ -833,6 +836,16 @@ class ImagerySender(ModalitySender):
             else:
                 lo = mid
         return chosen(hi)
+
+    def _way(self, tx: _Tx, chosen: npt.NDArray[np.bool_], held: npt.NDArray[np.bool_],
+             box: tuple[int, int, int, int]) -> tuple[npt.NDArray[np.bool_], float, int]:
+        """Sending the packets ``chosen`` not held: the bytes (mask), the PSNR the box then has,
+        the wire bytes (estimated)."""
+        starts = tx.enc.packet_starts
+        mask = np.zeros(tx.total, bool)
+        for i in np.flatnonzero(chosen & ~held):
+            mask[int(starts[i]):packet_end(starts, tx.total, int(i))] = True
+        return mask, self._box_psnr(tx, chosen | held, box), self._wire_estimate(tx, mask)
 
     def _pictures(self) -> list[_Tx]:
         """The images captured (not the crops made of them)."""
@@ -920,6 +933,15 @@ def _bridge(chosen: npt.NDArray[np.bool_], held: npt.NDArray[np.bool_],
     for a, b in itertools.pairwise(idx):
         if b - a > 1 and not held[a + 1:b].any() and int(sizes[a + 1:b].sum()) <= BRIDGE_BYTES:
             out[a + 1:b] = True
+    return out
+
+
+def _within(candidates: npt.NDArray[np.bool_], held: npt.NDArray[np.bool_], sizes: npt.NDArray[np.int64],
+            budget: int) -> npt.NDArray[np.bool_]:
+    """What topside holds and the ``candidates`` packets not held, in codestream order, while
+    their bytes total at most ``budget``."""
+    cost = np.where(candidates & ~held, sizes, 0)
+    out: npt.NDArray[np.bool_] = held | (candidates & (np.cumsum(cost) <= budget))
     return out
 
 

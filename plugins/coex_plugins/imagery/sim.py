@@ -188,6 +188,9 @@ class RegionRun:
     #: the vehicle's crop answering the request (its ``enc`` and ``crop``), None when it sent
     #: the region's packets
     crop: Any = None
+    #: of ``region_bytes``, the frames that carried only the vehicle's answers (``CommandAck``),
+    #: which a request for more of the whole image would cost as well
+    answer_bytes: int = 0
 
 
 def region_transfer(image: Any, box: tuple[int, int, int, int], kind: str = "quality", value: float = 30.0, *,
@@ -229,5 +232,11 @@ def region_transfer(image: Any, box: tuple[int, int, int, int], kind: str = "qua
     product = next(p for p in receiver.products() if p.kind == "image" and p.meta.get("image_id") == image_id)
     crop = next((c for c in sender.images.values() if getattr(c, "crop", None) is not None
                  and c.crop.parent == image_id and c.crop.command_id == request.command_id), None)
+    frames: dict[int, list[WireEvent]] = {}
+    for e in t.events[start:]:
+        if e.direction == "down":
+            frames.setdefault(e.frame, []).append(e)
+    answers = sum(wire.header_size() + sum(e.size for e in es) for es in frames.values()
+                  if all(isinstance(e.message, CommandAck) for e in es))
     return RegionRun(t, sender, receiver, image_id, base_bytes, down() - base_bytes, before,
-                     receiver.image(image_id), request, product.meta["regions"][-1], crop)
+                     receiver.image(image_id), request, product.meta["regions"][-1], crop, answers)
