@@ -43,7 +43,7 @@ from coex_core import jsonfmt, wire
 from coex_core.errors import ConfigError
 from coex_core.modality import Product
 
-from .output import write_png
+from .output import outlined, write_png
 
 __all__ = ["register", "run_roundtrip", "load_image"]
 
@@ -100,18 +100,6 @@ def _box(text: str) -> tuple[int, int, int, int]:
     return x0, y0, x1, y1
 
 
-def _outlined(image: Any, box: tuple[int, int, int, int]) -> Any:
-    """A copy of the image with the box drawn in white (grey) or yellow (colour), 1 px."""
-    out = np.array(image, copy=True)
-    x0, y0, x1, y1 = box
-    colour = 255 if out.ndim == 2 else np.array([255, 220, 0], np.uint8)
-    out[y0, x0:x1] = colour
-    out[y1 - 1, x0:x1] = colour
-    out[y0:y1, x0] = colour
-    out[y0:y1, x1 - 1] = colour
-    return out
-
-
 def run_region(args: argparse.Namespace) -> int:
     from .codec import psnr
     from .sim import region_transfer
@@ -138,8 +126,8 @@ def run_region(args: argparse.Namespace) -> int:
         mask[y0:y1, x0:x1] = False
         outside = round(psnr(run.after[mask], enc.image[mask]), 3) if mask.any() else None
     blank = np.full(enc.image.shape, 128, np.uint8)
-    write_png(out / "before.png", _outlined(blank if run.before is None else run.before, args.box))
-    write_png(out / "after.png", _outlined(blank if run.after is None else run.after, args.box))
+    write_png(out / "before.png", outlined(blank if run.before is None else run.before, args.box))
+    write_png(out / "after.png", outlined(blank if run.after is None else run.after, args.box))
     crop = None
     if run.crop is not None:
         shown = run.receiver.image(run.crop.image_id)

@@ -12,7 +12,20 @@ import numpy as np
 
 from coex_core.modality import Product
 
-__all__ = ["ImageWriter", "write_png", "write_tiff"]
+__all__ = ["ImageWriter", "outlined", "write_png", "write_tiff"]
+
+
+def outlined(image: Any, box: tuple[int, int, int, int] | list[int]) -> Any:
+    """A copy of the image with the box (x0, y0, x1, y1; x1, y1 exclusive) drawn in white (grey)
+    or yellow (colour), 1 px."""
+    out = np.array(image, copy=True)
+    x0, y0, x1, y1 = (int(v) for v in box)
+    colour = 255 if out.ndim == 2 else np.array([255, 220, 0], np.uint8)
+    out[y0, x0:x1] = colour
+    out[y1 - 1, x0:x1] = colour
+    out[y0:y1, x0] = colour
+    out[y0:y1, x1 - 1] = colour
+    return out
 
 
 def write_png(path: str | Path, image: Any) -> None:
