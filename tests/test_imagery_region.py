@@ -307,3 +307,18 @@ def test_a_crop_announced_before_its_fragments_or_after_them(frame: np.ndarray) 
     r.receive(ImageAnnounce(0, to_stamp(run.transfer.now + 100), None, None, 64, 48, True, 10, old.params),
               run.transfer.now + 100)
     assert ann.image_id not in r.images
+
+
+def test_crops_survive_a_restart_of_both_sides(frame: np.ndarray) -> None:
+    """A vehicle and a topside saved with a crop (as a node store saves them) and restored: the
+    crop is still the vehicle's answer to its request, and topside shows the same picture."""
+    from coex_core.state import dumps, loads
+
+    run = region_transfer(frame, BOX, "quality", 33.0, mtu=128)
+    assert run.crop is not None
+    sender, receiver = loads(dumps(run.sender)), loads(dumps(run.receiver))
+    assert sender.images[run.crop.image_id].crop == run.crop.crop
+    assert np.array_equal(receiver.image(0), run.after)
+    assert np.array_equal(receiver.image(run.crop.image_id), run.receiver.image(run.crop.image_id))
+    (reg,) = next(p for p in receiver.products() if p.kind == "image").meta["regions"]
+    assert reg["served"] == "crop" and reg["crop"]["shown"]
