@@ -189,8 +189,10 @@ class RegionRun:
     #: the region's packets
     crop: Any = None
     #: of ``region_bytes``, the frames that carried only the vehicle's answers (``CommandAck``),
-    #: which a request for more of the whole image would cost as well
+    #: and the ``TransferProgress`` reports, which a request for more of the whole image would
+    #: cost as well
     answer_bytes: int = 0
+    progress_bytes: int = 0
 
 
 def region_transfer(image: Any, box: tuple[int, int, int, int], kind: str = "quality", value: float = 30.0, *,
@@ -202,7 +204,7 @@ def region_transfer(image: Any, box: tuple[int, int, int, int], kind: str = "qua
     accepted, has nothing more to send. ``sender_config`` adds sender options (``crops``
     ...). Raises ``ConfigError`` for an absurd request (before it is sent) and
     ``TimeoutError`` after ``max_rounds`` rounds of either phase."""
-    from coex_core.messages import AckStatus, CommandAck
+    from coex_core.messages import AckStatus, CommandAck, TransferProgress
 
     from . import ImageInput, ImageryModality
 
@@ -238,5 +240,6 @@ def region_transfer(image: Any, box: tuple[int, int, int, int], kind: str = "qua
             frames.setdefault(e.frame, []).append(e)
     answers = sum(wire.header_size() + sum(e.size for e in es) for es in frames.values()
                   if all(isinstance(e.message, CommandAck) for e in es))
+    progress = sum(e.size for es in frames.values() for e in es if isinstance(e.message, TransferProgress))
     return RegionRun(t, sender, receiver, image_id, base_bytes, down() - base_bytes, before,
-                     receiver.image(image_id), request, product.meta["regions"][-1], crop, answers)
+                     receiver.image(image_id), request, product.meta["regions"][-1], crop, answers, progress)
