@@ -322,3 +322,13 @@ def test_crops_survive_a_restart_of_both_sides(frame: np.ndarray) -> None:
     assert np.array_equal(receiver.image(run.crop.image_id), run.receiver.image(run.crop.image_id))
     (reg,) = next(p for p in receiver.products() if p.kind == "image").meta["regions"]
     assert reg["served"] == "crop" and reg["crop"]["shown"]
+
+
+def test_a_colour_image_is_cropped_in_colour() -> None:
+    img = seafloor(240, 320, seed=2, colour=True)
+    run = region_transfer(img, (0, 0, 160, 120), "quality", 33.0, mtu=128, base="layer:1",
+                          sender_config={"grey": False, "crops": "always"})
+    assert run.crop is not None and run.crop.enc.stream.colour and not run.crop.enc.grey
+    enc = run.sender.images[0].enc
+    assert run.after.shape == (240, 320, 3) and run.region["crop"]["shown"]
+    assert codec.psnr(run.after[:120, :160], enc.image[:120, :160]) >= 33.0
