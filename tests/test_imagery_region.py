@@ -138,6 +138,16 @@ def test_coex_image_region_writes_before_after_and_the_bytes(tmp_path: object, f
     assert summary["psnr_inside_after"] >= 32.0 > summary["psnr_inside_before"]
     assert summary["region_wire_bytes"] > 0 and summary["base_wire_bytes"] > 0
     assert (out / "before.png").stat().st_size > 0 and (out / "after.png").stat().st_size > 0
+    assert summary["crops"] == "auto"
+    # --crops never: the vehicle sends the region's packets, no crop
+    never = Path(str(tmp_path)) / "never"
+    proc = subprocess.run([sys.executable, "-m", "coex_core.cli", "image", "region", str(src), "--box", "0,0,320,240",
+                           "--layers", "2", "--mtu", "96", "--crops", "never", "--out", str(never)],
+                          capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stderr
+    summary = json.loads((never / "summary.json").read_text())
+    assert summary["crops"] == "never" and summary["served"] == "packets" and summary["crop"] is None
+    assert summary["goal"] == {"kind": "layer", "value": 2} and not (never / "crop.png").exists()
     bad = subprocess.run([sys.executable, "-m", "coex_core.cli", "image", "region", str(src), "--box", "0,0,700,240",
                           "--out", str(out)], capture_output=True, text=True, timeout=300)
     assert bad.returncode != 0 and "outside" in bad.stderr and "Traceback" not in bad.stderr

@@ -16,9 +16,10 @@ writes:
 * ``DIR/image_<id>.tiff`` / ``.png``: the final topside image, and ``DIR/summary.json``.
 
 ``coex image region IMAGE --box X0,Y0,X1,Y1 [--quality DB | --layers N | --bytes B] --mtu N
---out DIR [--base GOAL] [--loss P] [--seed S]`` sends IMAGE to its ``--base`` goal (default
-``layer:1``, the first quality mark), then asks for the rectangle (pixels, X1 and Y1 exclusive)
-with one ``ImageRegionRequest`` at the goal (default ``--quality 30`` dB) and writes
+--out DIR [--base GOAL] [--loss P] [--seed S] [--crops auto|never|always]`` sends IMAGE to its
+``--base`` goal (default ``layer:1``, the first quality mark), then asks for the rectangle
+(pixels, X1 and Y1 exclusive) with one ``ImageRegionRequest`` at the goal (default ``--quality
+30`` dB), the vehicle's option ``crops`` set to ``--crops`` (default ``auto``), and writes
 ``DIR/before.png`` and ``DIR/after.png`` (what topside shows, the region outlined, a crop pasted
 over the image), ``DIR/crop.png`` when the vehicle answered with a crop (what the crop shows of
 the box) and ``DIR/summary.json``: ``box``, ``goal`` (kind and value), ``state`` (the vehicle's
@@ -87,6 +88,9 @@ def register(subparsers: Any) -> None:
     g.add_argument("--loss", type=float, default=0.0, metavar="P", help="frame loss probability (default 0)")
     g.add_argument("--seed", type=int, default=0, metavar="S", help="loss seed (default 0)")
     g.add_argument("--max-rounds", type=int, default=20000, help="give up after this many frames")
+    g.add_argument("--crops", choices=("auto", "never", "always"), default="auto",
+                   help="how the vehicle may serve the region (its option crops): auto (the cheapest way it "
+                        "measures), never (the region's packets only) or always (a crop)")
     p.set_defaults(func=lambda a: p.print_help() or 2)
     r.set_defaults(func=run_roundtrip)
     g.set_defaults(func=run_region)
@@ -113,7 +117,8 @@ def run_region(args: argparse.Namespace) -> int:
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     run = region_transfer(load_image(args.image), args.box, kind, value, mtu=args.mtu, base=args.base,
-                          loss=args.loss, seed=args.seed, max_rounds=args.max_rounds)
+                          loss=args.loss, seed=args.seed, max_rounds=args.max_rounds,
+                          sender_config={"crops": args.crops})
     enc = run.sender.images[run.image_id].enc
     x0, y0, x1, y1 = args.box
 
@@ -141,7 +146,7 @@ def run_region(args: argparse.Namespace) -> int:
     summary = {
         "image": str(args.image), "width": enc.width, "height": enc.height, "box": list(args.box),
         "goal": {"kind": kind, "value": value}, "base": args.base, "state": run.region["state"],
-        "served": run.region.get("served"), "crop": crop,
+        "crops": args.crops, "served": run.region.get("served"), "crop": crop,
         "base_wire_bytes": run.base_bytes, "region_wire_bytes": run.region_bytes,
         "psnr_inside_before": inside(run.before), "psnr_inside_after": inside(run.after),
         "psnr_outside_after": outside,
