@@ -1014,6 +1014,7 @@ def test_the_region_tool_shows_the_crop_that_answered_a_region(browser: Any, tmp
         page.wait_for_function("document.querySelector('#region-list img.region-crop').naturalWidth === 160",
                                timeout=10_000)
         assert page.locator('#viewer-overlay .iregion[data-state="accepted"]').count() == 1
+        assert "accepted · crop" in page.locator("#viewer-overlay .iregion-label").first.inner_text()
         # the picture served is the image as topside shows it: the crop pasted over it
         with hub.lock:
             png = hub.state.image_png(0, full=True)

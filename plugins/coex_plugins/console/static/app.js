@@ -1013,6 +1013,9 @@ const REGION_UNIT = { quality: "dB", bytes: "bytes", layer: "layers" };
 function viewerItem() { return S.images && S.images.items.find((i) => i.image_id === viewer.id); }
 function regionState(r) {
   let s = r.state;
+  // served as a crop: the parent's layers say little about the region (the crop is coded to the goal)
+  if (r.served === "crop" && r.crop && r.state !== "rejected")
+    return s + (r.crop.complete ? " · crop" : " · crop arriving");
   if (r.layers_complete !== null && r.layers_complete !== undefined && r.state !== "rejected")
     s += ` · ${r.layers_complete} of ${r.layers ?? "?"} layers`;
   return s;
