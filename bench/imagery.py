@@ -38,12 +38,14 @@ present, else generated seafloor images (``coex_plugins.imagery.synth``). For ea
   never``: the region's packets alone, as before issue 42.
 
 Targets (issue 42; ``targets``): the region requests' bytes over the whole image's until the
-region is there, all bytes of a group over all bytes ("on average": the mean bytes over the mean
-bytes), at every MTU: a quarter to 30 dB from nothing at most 0.35, an eighth at most 0.25, a
-quarter from the default goal to 35 dB at most 0.4, every request accepted and reaching its
-quality; and no dive image above 2022 at any threshold and any MTU from 64 to 256. The mean of
-the per-request ratios is reported beside it (``met_by_mean_of_ratios``): on the softest images a
-region is as cheap as the whole image (both a few tens of bytes), so it stays near 1 there.
+region is there, at every MTU: a quarter to 30 dB from nothing at most 0.35, an eighth at most
+0.25, a quarter from the default goal to 35 dB at most 0.4, every request accepted and reaching
+its quality; and no dive image above 2022 at any threshold and any MTU from 64 to 256. The
+issue's "on average" has two readings, both judged: ``met`` takes all bytes of a group over all
+bytes (the mean bytes over the mean bytes; ``meets_targets``), ``met_by_mean_of_ratios`` the
+mean of the per-request ratios (``meets_targets_by_mean_of_ratios``). On the softest images the
+whole image brings a region to 30 dB in a few tens of bytes, less than a crop's announcement
+and first fragment, so the mean of the ratios stays high there.
 Issue 25's figures (bound, layout) are printed as before.
 
 Prints the tables; writes ``bench/results/imagery.json``.
@@ -167,7 +169,7 @@ def eighths(img: np.ndarray) -> list[tuple[int, int, int, int]]:
 
 
 def packet_curve(enc: codec.Encoded, img: np.ndarray,
-                 boxes: list[tuple[int, int, int, int]] = ()) -> list[tuple[int, float]]:  # type: ignore[assignment]
+                 boxes: list[tuple[int, int, int, int]] = ()) -> list[Any]:  # type: ignore[assignment]
     """(body prefix, PSNR) at every packet boundary of an encoded image; with ``boxes``, (body
     prefix, PSNR, [PSNR inside each box])."""
     ends = np.append(enc.packet_starts[1:], len(enc.body))
@@ -208,7 +210,8 @@ def sender_fragments(img: np.ndarray, mtu: int, upto: int | None = None) -> tupl
     figures end to end with a receiver."""
     s = ImageryModality().sender({"default_goal": "full", "progress_interval": 1e9})
     s.ingest(ImageInput(img, time=0.0), 0.0)
-    down, now, frags = 0, 0.0, []
+    down, now = 0, 0.0
+    frags: list[tuple[ImageFragment, int]] = []
     while upto is None or not frags or frags[-1][0].offset + len(frags[-1][0].data) < upto:
         now += 5.0
         out = s.fill(mtu - wire.header_size(), now)
@@ -273,7 +276,8 @@ def stress_images(images: list[tuple[str, np.ndarray]]) -> list[tuple[str, np.nd
     out = []
 
     def u8(a: np.ndarray) -> np.ndarray:
-        return np.clip(np.rint(a), 0, 255).astype(np.uint8)
+        out_: np.ndarray = np.clip(np.rint(a), 0, 255).astype(np.uint8)
+        return out_
 
     def down(a: np.ndarray, f: int) -> np.ndarray:
         h, w = a.shape
@@ -345,7 +349,7 @@ def region_runs(name: str, img: np.ndarray, enc: codec.Encoded, curves: dict[int
             for start, q in CONDITIONS:
                 goal = "none" if start == "none" else default
                 n0 = 0 if goal == "none" else parse_goal(goal).bytes_for(enc)
-                ways = [(m, None) for m in mtus]
+                ways: list[tuple[int, str | None]] = [(m, None) for m in mtus]
                 if packets_mtu is not None and kind == "quarter":
                     ways.append((packets_mtu, "never"))
                 for mtu, crops in ways:
@@ -553,6 +557,9 @@ def main(argv: list[str] | None = None) -> int:
                                                    "met": summary["meets_2022_every_image_every_mtu"]}
     summary["targets"] = targets
     summary["meets_targets"] = all(t["met"] for t in targets.values())
+    # the issue's "on average" read as the mean of the per-request ratios instead
+    summary["meets_targets_by_mean_of_ratios"] = all(t.get("met_by_mean_of_ratios", t["met"])
+                                                      for t in targets.values())
     summary["seconds"] = round(time.time() - t0, 1)
 
     print(f"\nsource: {source}, {len(images)} images; wire = every vehicle-to-ship byte (frame headers, "
@@ -567,9 +574,9 @@ def main(argv: list[str] | None = None) -> int:
     print(f"\n{'MTU':>4} | ours/2022 mean, worst image (25 / 30 / 35 dB)            | wire/bound 30")
     for mtu in mtus:
         e = summary["per_mtu"][str(mtu)]
-        cells = "  ".join(f"{e['ratio_to_2022'][str(x)]:.2f} {e['worst_ratio_to_2022'][str(x)]:.2f} "
-                          f"({e['worst_image'][str(x)]})" for x in THRESHOLDS)
-        print(f"{mtu:>4} | {cells} | {e['ratio_wire_to_bound_30']:13.3f}")
+        row = "  ".join(f"{e['ratio_to_2022'][str(x)]:.2f} {e['worst_ratio_to_2022'][str(x)]:.2f} "
+                        f"({e['worst_image'][str(x)]})" for x in THRESHOLDS)
+        print(f"{mtu:>4} | {row} | {e['ratio_wire_to_bound_30']:13.3f}")
     print(f"worst ours/2022 over every MTU {every[0]}..{every[-1]}" + (f" (step {every[1] - every[0]})"
                                                                         if len(every) > 1 and every[1] - every[0] > 1 else "")
           + ": " + ", ".join(f"{x:g} dB {v[0]:.3f} ({v[2]}, MTU {v[1]})" for x, v in worst_all.items() if v))
@@ -587,8 +594,8 @@ def main(argv: list[str] | None = None) -> int:
           f"{'bytes':>6} {'crops':>5} {'region B':>8} {'whole B':>8} reached")
     for key, c in sorted(regions.items(), key=lambda kv: (kv[0].split("/")[0] != "quarter", kv[0].split("/")[1:3],
                                                           int(kv[0].split("/")[3]), len(kv[0].split("/")))):
-        kind, start, q, mtu, *way = key.split("/")
-        print(f"{kind:8} {start:8} {q:>3} {mtu:>4} {'packets' if way else 'chosen':7} {c['count']:>3} "
+        kind, start, qs, mtu_s, *way = key.split("/")
+        print(f"{kind:8} {start:8} {qs:>3} {mtu_s:>4} {'packets' if way else 'chosen':7} {c['count']:>3} "
               f"{c['already']:>5} {c['mean_ratio'] if c['mean_ratio'] is not None else '-':>6} "
               f"{c['worst_ratio'] if c['worst_ratio'] is not None else '-':>6} {c['sum_ratio']:>6} {c['crops']:>5} "
               f"{c['mean_wire_bytes']:>8} {c['mean_whole_until_wire'] or '-':>8} {c['all_reached']}")
@@ -600,7 +607,8 @@ def main(argv: list[str] | None = None) -> int:
         print(f"  {label}: at most {t['limit']}x: all bytes {t['all_bytes_ratio_per_mtu']}: "
               f"{'MET' if t['met'] else 'NOT MET'}; mean of the requests' ratios {t['mean_ratio_per_mtu']}: "
               f"{'MET' if t['met_by_mean_of_ratios'] else 'NOT MET'}")
-    print(f"meets every target: {summary['meets_targets']}   ({summary['seconds']} s)")
+    print(f"meets every target, regions on all bytes: {summary['meets_targets']}; regions by the mean of the "
+          f"requests' ratios: {summary['meets_targets_by_mean_of_ratios']}   ({summary['seconds']} s)")
     out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(json.dumps({"summary": summary, "per_image": per_image, "regions": runs,

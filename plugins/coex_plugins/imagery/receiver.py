@@ -276,7 +276,7 @@ class ImageryReceiver(ModalityReceiver):
         if rx is None or getattr(rx, "crop", None) is not None:
             return
         for cid in [i for i, c in self.images.items()
-                    if getattr(c, "crop", None) is not None and c.crop.parent == image_id and c.time >= rx.time]:
+                    if (o := getattr(c, "crop", None)) is not None and o.parent == image_id and c.time >= rx.time]:
             self.images.pop(cid, None)
             self._parsers.pop(cid, None)
 

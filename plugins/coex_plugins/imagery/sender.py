@@ -777,8 +777,8 @@ class ImagerySender(ModalitySender):
         starts = tx.enc.packet_starts
         total = int(mask.sum())
         before = tx.acked | mask
-        for s, e in runs:
-            s, e = int(s), int(e)
+        for run_start, run_end in runs:
+            s, e = int(run_start), int(run_end)
             total += fragment_size(0, 0, s)
             if not bool(before[:s].all()):
                 lo, hi = np.searchsorted(starts, [s, e])
