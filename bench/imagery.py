@@ -1,42 +1,56 @@
 """Imagery benchmark: wire bytes to reach 25 / 30 / 35 dB PSNR against the 2022 configuration and
-the single-layer bound, at several MTUs, and the bytes of quarter-frame region requests.
+the single-layer bound, at several MTUs and at every MTU from 64, and the bytes of region
+requests (quarter- and eighth-frame regions, served as the vehicle chooses: packets or a crop).
 
 Reads the grey NUI dive-040 images from ``../shared/data/nui040/`` (or ``$COEX_NUI040``) when
 present, else generated seafloor images (``coex_plugins.imagery.synth``). For each image:
 
 * **2022**: grey, 6 resolutions, 10 LRCP layers from 640 to 20,480 B (5/3 wavelet), the raw
   codestream (OpenJPEG's headers and COM included) cut at whole packets, decoded with Psot = 0
-  plus EOC. Bytes = codestream prefix length.
+  plus EOC. Bytes = codestream prefix length, at every packet boundary.
 * **bound**: the best single-layer OpenJPEG 9/7 encode (5, 6 or 7 resolutions) that reaches the
   quality, found by bisection on its rate: its packet data (body) bytes.
 * **ours**, at each MTU (``--mtus``, default 64, 128, 256): the default ``CodingParams`` (quality
   layers, 256-sample precincts; no header sent), delivered by the real ``ImagerySender`` over
   frames of that many bytes. Bytes = every vehicle-to-ship wire byte: frame headers, the
   ``ImageAnnounce`` and each ``ImageFragment`` with its header. The cost of every
-  packet-aligned prefix is taken from a lossless transfer of the whole image (the sender cuts its
-  last fragment at the goal); the prefix at each threshold is then checked end to end: a sender
-  with that byte goal, a receiver, and the receiver's decoded image must reach the PSNR with
-  exactly that many wire bytes. ``body`` is the packet data of that prefix.
+  packet-aligned prefix (every packet boundary: the finest grid there is) is taken from a
+  lossless transfer of the whole image (the sender cuts its last fragment at the goal); the
+  prefix at each threshold is then checked end to end: a sender with that byte goal, a receiver,
+  and the receiver's decoded image must reach the PSNR with exactly that many wire bytes.
+  ``body`` is the packet data of that prefix.
+* **every MTU** (``--every-mtu``, default 64-256, each one): the worst ours / 2022 per threshold
+  over those MTUs (``every_mtu``), and the same on generated images unlike the development set
+  (``stress``: each image reduced to 213 x 160 and 160 x 120, with noise, with doubled contrast,
+  and synthetic frames; ``--stress-mtus``, default every 8th MTU from 64; ``--no-stress``).
 * **layout**: body bytes to each threshold with the default coding against the default before
   issue 25 (22 byte layers, one precinct per resolution): the layout that makes regions possible
   must keep the whole image within 3 % (ratio of the means).
-* **regions**: from an announced image with nothing else held, the wire bytes to bring each
-  quarter of the frame to 30 dB inside it (one ``ImageRegionRequest`` at quality 30 dB; PSNR
-  measured inside the quarter against the original), against the wire bytes to bring the whole
-  image to 30 dB, at ``--region-mtu`` (default 256).
+* **regions**: for each quarter and each eighth (4 x 2) of the frame, from an announced image with
+  nothing else held and from the image at the sender's default goal, one ``ImageRegionRequest``
+  at 30 dB and at 35 dB (``coex image region``'s run: the vehicle serves it with the region's
+  packets, the image's next packets or a crop), at each MTU: its wire bytes (the request's
+  ``CommandAck`` and the ``TransferProgress`` it prompts left out: asking for more of the whole
+  image costs them too), the PSNR inside the box, against the wire bytes of the whole image sent
+  on from the same start (new frames) until the shortest prefix whose decode reaches the quality
+  inside the box (``whole_until_region_wire``), and until the whole image reaches it
+  (``whole_to_quality_wire``). The quarters again at ``--packets-mtu`` (256) with ``crops =
+  never``: the region's packets alone, as before issue 42.
 
-Targets (issue 25): at every MTU and on every image and threshold, ours <= 2022
-(``meets_2022_every_image``); the mean packet data at 30 dB within 10 % of the mean bound
-(``meets_bound_body``); the layout within 3 %; every region request accepted and reaching its
-quality inside: together ``meets_target``. The same bound ratio for the wire bytes
-(``ratio_wire_to_bound_30``, ``meets_bound_wire`` per MTU, ``meets_bound_wire_every_mtu``) is
-reported beside it and is not met: the frame headers, type ids, fragment headers and the
-announcement add 8 % (MTU 256) to 19 % (MTU 64) to packet data that is itself 3 % above the bound.
-Also measured: quarter-frame regions asked to 35 dB from an image at the default goal (30 dB),
-against the whole image sent on until that quarter is at 35 dB (``regions_35_from_default``).
+Targets (issue 42; ``targets``): the region requests' bytes over the whole image's until the
+region is there, at every MTU: a quarter to 30 dB from nothing at most 0.35, an eighth at most
+0.25, a quarter from the default goal to 35 dB at most 0.4, every request accepted and reaching
+its quality; and no dive image above 2022 at any threshold and any MTU from 64 to 256. The
+issue's "on average" has two readings, both judged: ``met`` takes all bytes of a group over all
+bytes (the mean bytes over the mean bytes; ``meets_targets``), ``met_by_mean_of_ratios`` the
+mean of the per-request ratios (``meets_targets_by_mean_of_ratios``). On the softest images the
+whole image brings a region to 30 dB in a few tens of bytes, less than a crop's announcement
+and first fragment, so the mean of the ratios stays high there.
+Issue 25's figures (bound, layout) are printed as before.
 
 Prints the tables; writes ``bench/results/imagery.json``.
-Run: ``.venv/bin/python bench/imagery.py [--quick] [--mtus 64,128,256] [--region-mtu 256]``.
+Run: ``.venv/bin/python bench/imagery.py [--quick] [--mtus 64,128,256] [--every-mtu 64-256]
+[--no-stress] [--packets-mtu 256]`` (about 25 minutes for the 13 images on 2 cores).
 """
 
 from __future__ import annotations
@@ -53,9 +67,11 @@ from typing import Any
 
 import numpy as np
 
+from coex_core import wire
 from coex_core.messages import ImageFragment
 from coex_plugins.imagery import ImageInput, ImageryModality, codec
-from coex_plugins.imagery.sender import SENDER_DEFAULTS, fragment_size
+from coex_plugins.imagery.goals import parse_goal
+from coex_plugins.imagery.sender import MAX_FRAGMENT_DATA, SENDER_DEFAULTS, fragment_size
 from coex_plugins.imagery.sim import Transfer, region_transfer
 from coex_plugins.imagery.synth import seafloor
 
@@ -145,8 +161,15 @@ def quarters(img: np.ndarray) -> list[tuple[int, int, int, int]]:
     return [(0, 0, w // 2, h // 2), (w // 2, 0, w, h // 2), (0, h // 2, w // 2, h), (w // 2, h // 2, w, h)]
 
 
+def eighths(img: np.ndarray) -> list[tuple[int, int, int, int]]:
+    """The frame cut in 4 x 2: each quarter halved side by side (160 x 240 px of a 640 x 480 frame)."""
+    h, w = img.shape[:2]
+    xs, ys = [w * i // 4 for i in range(5)], [0, h // 2, h]
+    return [(xs[i], ys[j], xs[i + 1], ys[j + 1]) for j in range(2) for i in range(4)]
+
+
 def packet_curve(enc: codec.Encoded, img: np.ndarray,
-                 boxes: list[tuple[int, int, int, int]] = ()) -> list[tuple[int, float]]:  # type: ignore[assignment]
+                 boxes: list[tuple[int, int, int, int]] = ()) -> list[Any]:  # type: ignore[assignment]
     """(body prefix, PSNR) at every packet boundary of an encoded image; with ``boxes``, (body
     prefix, PSNR, [PSNR inside each box])."""
     ends = np.append(enc.packet_starts[1:], len(enc.body))
@@ -177,22 +200,97 @@ def transfer(img: np.ndarray, mtu: int, goal: str) -> tuple[Transfer, Any, Any]:
     return t, s, r
 
 
-def our_curve(img: np.ndarray, mtu: int) -> tuple[list[tuple[int, float, int, list[float]]], codec.Encoded]:
-    """(wire bytes, PSNR, body prefix, PSNR inside each quarter) at every packet boundary, from a
+def sender_fragments(img: np.ndarray, mtu: int, upto: int | None = None) -> tuple[codec.Encoded,
+                                                                                 list[tuple[ImageFragment, int]]]:
+    """A lossless transfer of the whole image as the vehicle makes it, frames of at most ``mtu``
+    bytes, the channel reporting each delivered (no receiver: fast enough for every MTU): each
+    fragment with the vehicle-to-ship wire bytes before it (frame headers, the announcement,
+    earlier fragments; a fragment first in its frame pays the frame header), until the body
+    prefix ``upto`` is sent (default: all of it). ``transfer`` and ``verify`` check the same
+    figures end to end with a receiver."""
+    s = ImageryModality().sender({"default_goal": "full", "progress_interval": 1e9})
+    s.ingest(ImageInput(img, time=0.0), 0.0)
+    down, now = 0, 0.0
+    frags: list[tuple[ImageFragment, int]] = []
+    while upto is None or not frags or frags[-1][0].offset + len(frags[-1][0].data) < upto:
+        now += 5.0
+        out = s.fill(mtu - wire.header_size(), now)
+        if not out:
+            break
+        for i, msg in enumerate(out):
+            head = wire.header_size() if i == 0 else 0
+            if isinstance(msg, ImageFragment):
+                if msg.packet is not None:
+                    raise AssertionError("a lossless transfer sent packet marks")
+                frags.append((msg, down + head))
+            down += head + wire.encoded_size(msg)
+            s.acked(msg, now)
+    return s.images[0].enc, frags
+
+
+def our_curve(img: np.ndarray, mtu: int, pcurve: list[Any] | None = None,
+              boxes: list[tuple[int, int, int, int]] = ()) -> tuple[list[tuple[int, float, int, list[float]]],  # type: ignore[assignment]
+                                                                codec.Encoded]:
+    """(wire bytes, PSNR, body prefix, PSNR inside each box) at every packet boundary of a
     lossless transfer of the whole image: every vehicle-to-ship byte before the fragment that
     ends the prefix, plus that fragment cut at the prefix (the sender cuts its last fragment at a
-    goal; no packet marks)."""
-    t, s, _r = transfer(img, mtu, "full")
-    enc = s.images[0].enc
-    frags = [(e.message, e.down_total - e.size) for e in t.events
-             if e.direction == "down" and isinstance(e.message, ImageFragment)]
-    if any(f.packet is not None for f, _ in frags):
-        raise AssertionError("a lossless transfer sent packet marks")
+    goal; no packet marks). ``pcurve``: :func:`packet_curve` with ``boxes``, when known."""
+    pc = pcurve if pcurve is not None else packet_curve(codec.encode_image(img), img, boxes or quarters(img))
+    upto = max(n for n, _q, _ in pc)
+    enc, frags = sender_fragments(img, mtu, upto)
     pts = []
-    for n, q, inq in packet_curve(enc, img, quarters(img)):
+    for n, q, inq in pc:
         f, base = next((f, b) for f, b in frags if f.offset < n <= f.offset + len(f.data))
         pts.append((base + fragment_size(0, n - f.offset, f.offset), q, n, inq))
     return pts, enc
+
+
+def worst_every_mtu(img: np.ndarray, base: list[tuple[int, float]], mtus: list[int],
+                    pcurve: list[Any] | None = None) -> dict[str, Any]:
+    """Ours / 2022 at each threshold, the worst over ``mtus`` (every MTU from 64 up), with the
+    MTU and both byte counts: ``{threshold: [ratio, mtu, ours, 2022]}``."""
+    enc = codec.encode_image(img)
+    pc = pcurve if pcurve is not None else [(n, q, []) for n, q in packet_curve(enc, img)]
+    # only the prefixes up to the highest threshold matter: the transfer stops there
+    last = next((i for i, (_n, q, _) in enumerate(pc) if q >= max(THRESHOLDS)), len(pc) - 1)
+    pc = pc[:last + 1]
+    worst: dict[str, Any] = {}
+    for mtu in mtus:
+        pts = our_curve(img, mtu, pc)[0]
+        for x in THRESHOLDS:
+            ours, old = need([(c, q) for c, q, _, _ in pts], x), need(base, x)
+            if ours is None or old is None:
+                continue
+            if str(x) not in worst or ours / old > worst[str(x)][0]:
+                worst[str(x)] = [round(ours / old, 4), mtu, ours, old]
+    return worst
+
+
+def stress_images(images: list[tuple[str, np.ndarray]]) -> list[tuple[str, np.ndarray]]:
+    """Generated images unlike the development set, for the 2022 comparison: each dive image
+    reduced to 213 x 160 and to 160 x 120, with and without sensor noise (small images: the
+    case that comes nearest 2022), and with doubled contrast (the most detailed); and synthetic
+    seafloor frames. (Blurred, noisier and 320 x 240 variants were measured while this was
+    written and stay further below 2022: docs/imagery.md.)"""
+    rng = np.random.default_rng(42)
+    out = []
+
+    def u8(a: np.ndarray) -> np.ndarray:
+        out_: np.ndarray = np.clip(np.rint(a), 0, 255).astype(np.uint8)
+        return out_
+
+    def down(a: np.ndarray, f: int) -> np.ndarray:
+        h, w = a.shape
+        return u8(a[:h // f * f, :w // f * f].reshape(h // f, f, w // f, f).mean(axis=(1, 3)))
+
+    for name, img in images:
+        h, w = img.shape
+        m = float(img.mean())
+        out += [(f"{name}/down3", down(img, 3)), (f"{name}/down4", down(img, 4)),
+                (f"{name}/down4+noise", u8(down(img, 4) + rng.normal(0, 2, (h // 4, w // 4)))),
+                (f"{name}/contrast", u8((img - m) * 2 + m))]
+    out += [(f"synth_{i}", seafloor(480, 640, seed=200 + i)) for i in range(4)]
+    return out
 
 
 def verify(img: np.ndarray, mtu: int, goal_bytes: int) -> tuple[int, float]:
@@ -203,18 +301,16 @@ def verify(img: np.ndarray, mtu: int, goal_bytes: int) -> tuple[int, float]:
     return down, (17.0 if image is None else codec.psnr(image, img))
 
 
-def region_cost(img: np.ndarray, box: tuple[int, int, int, int], mtu: int, quality: float = 30.0,
-                base: str = "none") -> dict[str, Any]:
-    """With the image sent to ``base`` (``"none"``: only announced), one ImageRegionRequest at
-    ``quality`` dB (``coex image region``'s run): every vehicle-to-ship wire byte after the base
-    until the vehicle has nothing more to send, and the PSNR inside the box of what topside then
-    shows."""
-    run = region_transfer(img, box, "quality", quality, mtu=mtu, base=base)
-    x0, y0, x1, y1 = box
-    q = 0.0 if run.after is None else codec.psnr(run.after[y0:y1, x0:x1], img[y0:y1, x0:x1])
-    return {"box": list(box), "base": base, "quality": quality, "wire_bytes": run.region_bytes,
-            "base_wire_bytes": run.base_bytes, "psnr": round(q, 3), "state": run.region["state"],
-            "layers_complete": int(run.region.get("layers_complete", 0))}
+def continuation(start: int, end: int, mtu: int) -> int:
+    """Wire bytes of sending body bytes ``start .. end`` of an announced image afresh, as the
+    sender does: one fragment per frame of at most ``mtu`` bytes, each frame with its header."""
+    total, off = 0, start
+    while off < end:
+        room = mtu - wire.header_size() - fragment_size(0, 0, off)
+        k = min(end - off, MAX_FRAGMENT_DATA, room)
+        total += wire.header_size() + fragment_size(0, k, off)
+        off += k
+    return total
 
 
 def need(curve: list[tuple[int, float]], x: float) -> int | None:
@@ -225,31 +321,145 @@ def _ratio(a: float | None, b: float | None) -> float | None:
     return None if a is None or not b else round(a / b, 4)
 
 
+#: region targets (issue 42): mean region wire bytes / the whole image's wire bytes until the
+#: region is there, at every MTU
+REGION_TARGETS = {("quarter", "none", 30.0): 0.35, ("eighth", "none", 30.0): 0.25,
+                  ("quarter", "default", 35.0): 0.40}
+#: (where the image starts, the quality asked inside the region): from an announced image with
+#: nothing held, and from the image at the sender's default goal
+CONDITIONS = (("none", 30.0), ("none", 35.0), ("default", 30.0), ("default", 35.0))
+
+
+def region_runs(name: str, img: np.ndarray, enc: codec.Encoded, curves: dict[int, list[Any]],
+                kinds: dict[str, list[tuple[int, int, int, int]]], mtus: list[int],
+                packets_mtu: int | None) -> list[dict[str, Any]]:
+    """Every region request of the benchmark on one image: for each box of each kind, each
+    condition and MTU, one ``coex image region`` run (the vehicle chooses packets or a crop),
+    against the whole image sent on from the same start until the region is there (the
+    shortest whole-packet prefix of the image whose decode reaches the quality inside the box).
+    With ``packets_mtu``, the quarters again at that MTU with ``crops = never`` (the packets of
+    the region only, as before crops)."""
+    default = str(SENDER_DEFAULTS["default_goal"])
+    out = []
+    offset = 0
+    for kind, boxes in kinds.items():
+        for j, box in enumerate(boxes):
+            jj = offset + j
+            x0, y0, x1, y1 = box
+            for start, q in CONDITIONS:
+                goal = "none" if start == "none" else default
+                n0 = 0 if goal == "none" else parse_goal(goal).bytes_for(enc)
+                ways: list[tuple[int, str | None]] = [(m, None) for m in mtus]
+                if packets_mtu is not None and kind == "quarter":
+                    ways.append((packets_mtu, "never"))
+                for mtu, crops in ways:
+                    pts = curves[mtu]
+                    # the whole image sent on from where it is (new frames and fragments), until
+                    # the prefix whose decode reaches the quality inside the box
+                    until_n = next((n for _c, _q, n, inq in pts if n >= n0 and inq[jj] >= q), None)
+                    already = n0 > 0 and any(n == n0 and inq[jj] >= q for _c, _q, n, inq in pts)
+                    whole_n = next((n for _c, wq, n, _ in pts if n >= n0 and wq >= q), None)
+                    until = None if until_n is None else continuation(n0, until_n, mtu)
+                    whole_q = None if whole_n is None else continuation(n0, whole_n, mtu)
+                    run = region_transfer(img, box, "quality", q, mtu=mtu, base=goal,
+                                          sender_config=None if crops is None else {"crops": crops})
+                    # the request's answer (a CommandAck) and the progress report it prompts are
+                    # left out: asking for more of the whole image costs them too
+                    data = run.region_bytes - run.answer_bytes - run.progress_bytes
+                    got = 0.0 if run.after is None else codec.psnr(run.after[y0:y1, x0:x1], img[y0:y1, x0:x1])
+                    whole_until = None if until is None or already else until
+                    out.append({
+                        "image": name, "kind": kind, "box": list(box), "start": start, "quality": q, "mtu": mtu,
+                        "crops": crops or "auto", "served": run.region.get("served"), "state": run.region["state"],
+                        "wire_bytes": data, "answer_bytes": run.answer_bytes, "progress_bytes": run.progress_bytes, "base_wire_bytes": run.base_bytes,
+                        "psnr": round(got, 3), "reached": got >= q,
+                        "already": already, "whole_until_region_wire": whole_until,
+                        "ratio_to_whole_until_region": None if already else _ratio(data, whole_until),
+                        "whole_to_quality_wire": whole_q,
+                        "ratio_to_whole_to_quality": _ratio(data, whole_q),
+                        "crop": None if run.crop is None else {
+                            "body_bytes": len(run.crop.enc.body), "base": run.crop.crop.base,
+                            "cover": run.crop.crop.cover, "psnr": run.crop.crop.psnr},
+                    })
+        offset += len(boxes)
+    return out
+
+
+def region_summary(runs: list[dict[str, Any]]) -> dict[str, Any]:
+    """Per kind, start, quality, MTU (and ``packets`` for the crops = never runs): the number
+    of requests, how many were already there at the start, the mean, worst and all-bytes ratio
+    of region wire bytes to the whole image's until the region is there (over the others), the
+    share served by crops, whether every one reached its quality inside."""
+    groups: dict[str, list[dict[str, Any]]] = {}
+    for r in runs:
+        key = f"{r['kind']}/{r['start']}/{r['quality']:g}/{r['mtu']}" + ("/packets" if r["crops"] == "never" else "")
+        groups.setdefault(key, []).append(r)
+    out = {}
+    for key, rs in groups.items():
+        rated = [r for r in rs if r["ratio_to_whole_until_region"] is not None]
+        ratios = [r["ratio_to_whole_until_region"] for r in rated]
+        out[key] = {
+            "count": len(rs), "already": sum(r["already"] for r in rs), "rated": len(rated),
+            "mean_ratio": round(float(np.mean(ratios)), 4) if ratios else None,
+            "worst_ratio": round(float(np.max(ratios)), 4) if ratios else None,
+            "sum_ratio": round(sum(r["wire_bytes"] for r in rated) / max(1, sum(r["whole_until_region_wire"]
+                                                                                  for r in rated)), 4),
+            "mean_wire_bytes": round(float(np.mean([r["wire_bytes"] for r in rs])), 1),
+            "mean_whole_until_wire": round(float(np.mean([r["whole_until_region_wire"] for r in rated])), 1)
+            if rated else None,
+            "crops": sum(r["served"] == "crop" for r in rs),
+            "all_reached": all(r["reached"] for r in rs), "all_accepted": all(r["state"] == "accepted" for r in rs),
+        }
+    return out
+
+
+def _mtu_range(text: str) -> list[int]:
+    lo, _, rest = text.partition("-")
+    hi, _, step = rest.partition(":")
+    return list(range(int(lo), int(hi or lo) + 1, int(step or 1)))
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--quick", action="store_true", help="4 images (3 generated), MTU 64 and 256, no layout check")
+    ap.add_argument("--quick", action="store_true",
+                    help="4 images (3 generated), MTU 64 and 256, every 16th MTU, no layout, stress or packets-only runs")
     ap.add_argument("--mtus", default="64,128,256", help="comma-separated MTUs (default 64,128,256)")
-    ap.add_argument("--region-mtu", type=int, default=256)
+    ap.add_argument("--every-mtu", default=None, metavar="LO-HI[:STEP]",
+                    help="MTUs of the 2022 check on every image (default 64-256, every one)")
+    ap.add_argument("--no-stress", action="store_true", help="leave out the generated images of the 2022 check")
+    ap.add_argument("--stress-mtus", default="64-256:8", metavar="LO-HI[:STEP]",
+                    help="MTUs of the 2022 check on the generated images (default 64-256:8)")
+    ap.add_argument("--packets-mtu", type=int, default=256,
+                    help="MTU of the quarter-frame requests with crops = never, for comparison (0: none)")
     ap.add_argument("--out", default=str(Path(__file__).parent / "results" / "imagery.json"))
     args = ap.parse_args(argv)
     mtus = [int(v) for v in args.mtus.split(",")]
     if args.quick and args.mtus == "64,128,256":
         mtus = [64, 256]
+    every = _mtu_range(args.every_mtu or ("64-256:16" if args.quick else "64-256"))
+    packets_mtu = None if args.quick or not args.packets_mtu else args.packets_mtu
     t0 = time.time()
     source, images = load_images(args.quick)
     per_image: list[dict[str, Any]] = []
+    runs: list[dict[str, Any]] = []
     for name, img in images:
         rec: dict[str, Any] = {"image": name, "base": {}, "bound": {}, "ours": {}, "body": {}, "verified": {},
-                               "layout": {}, "regions": [], "regions_35": []}
+                               "layout": {}}
         base = baseline_curve(img)
         for x in THRESHOLDS:
             rec["base"][str(x)] = need(base, x)
             rec["bound"][str(x)] = bound(img, x)
-        region_pts: list[Any] = []
-        for mtu in mtus:
-            pts, enc = our_curve(img, mtu)
-            if mtu == args.region_mtu:
-                region_pts = pts
+        enc = codec.encode_image(img)
+        kinds = {"quarter": quarters(img), "eighth": eighths(img)}
+        if args.quick:
+            kinds = {"quarter": quarters(img)[:2], "eighth": eighths(img)[:2]}
+        pcurve = packet_curve(enc, img, [b for bs in kinds.values() for b in bs])
+        curves: dict[int, list[Any]] = {}
+        for mtu in sorted({*mtus, *([packets_mtu] if packets_mtu else [])}):
+            pts, enc = our_curve(img, mtu, pcurve)
+            curves[mtu] = pts
+            if mtu not in mtus:
+                continue
             rec["layers"] = enc.stream.layers
             ours = [(c, q) for c, q, _, _ in pts]
             rec["ours"][str(mtu)] = {}
@@ -266,38 +476,27 @@ def main(argv: list[str] | None = None) -> int:
                 if down != c or abs(q - direct) > 1e-6:
                     raise AssertionError(f"{name} MTU {mtu}: end to end {down} B / {q:.2f} dB, "
                                          f"expected {c} B / {direct:.2f} dB")
+        rec["every_mtu"] = worst_every_mtu(img, base, every, pcurve)
         if not args.quick:
             prev = codec.encode_image(img, codec.CodingParams.from_config(PREVIOUS_DEFAULT))
             pn = body_needs(prev, img)
             for x in THRESHOLDS:
                 rec["layout"][str(x)] = {"previous": pn[str(x)], "now": rec["body"].get(str(x))}
-        rpts = our_curve(img, args.region_mtu)[0] if args.region_mtu not in mtus else None
-        if rpts is None:
-            rpts = region_pts
-        whole = need([(c, q) for c, q, _, _ in rpts], 30.0)
-        rec["whole_30_wire"] = whole
-        for i, box in enumerate(quarters(img)[:2] if args.quick else quarters(img)):
-            # from nothing to 30 dB inside; without regions the operator would ask for more of
-            # the whole image until this quarter is there
-            rc = region_cost(img, box, args.region_mtu)
-            rc["whole_until_region_wire"] = need([(c, inq[i]) for c, _, _, inq in rpts], 30.0)
-            rc["ratio_to_whole_until_region"] = _ratio(rc["wire_bytes"], rc["whole_until_region_wire"])
-            rc["ratio_to_whole_30"] = _ratio(rc["wire_bytes"], whole)
-            rec["regions"].append(rc)
-            # the usual case: the image is at the default goal (30 dB), the quarter asked to 35 dB
-            up = region_cost(img, box, args.region_mtu, 35.0, SENDER_DEFAULTS["default_goal"])
-            until = need([(c, inq[i]) for c, _, _, inq in rpts], 35.0)
-            up["whole_until_region_wire"] = None if until is None else until - up["base_wire_bytes"]
-            up["ratio_to_whole_until_region"] = _ratio(up["wire_bytes"], up["whole_until_region_wire"])
-            rec["regions_35"].append(up)
+        mine = region_runs(name, img, enc, curves, kinds, mtus, packets_mtu)
+        runs += mine
         per_image.append(rec)
+        q30 = [r for r in mine if r["kind"] == "quarter" and r["start"] == "none" and r["quality"] == 30.0
+               and r["crops"] == "auto" and r["ratio_to_whole_until_region"] is not None]
         print(f"{name}: 2022 {[rec['base'][str(x)] for x in THRESHOLDS]}  bound {[rec['bound'][str(x)] for x in THRESHOLDS]}"
               f"  body {[rec['body'].get(str(x)) for x in THRESHOLDS]}  "
               + "  ".join(f"MTU {m} {[rec['ours'][str(m)][str(x)] for x in THRESHOLDS]}" for m in mtus)
-              + f"  regions {[(r['wire_bytes'], r['whole_until_region_wire']) for r in rec['regions']]} (whole 30 dB: "
-              f"{whole})", flush=True)
+              + f"  worst/2022 over MTUs {every[0]}..{every[-1]} "
+              + str({x: v[:2] for x, v in rec["every_mtu"].items()})
+              + f"  quarters to 30 dB: {[round(r['ratio_to_whole_until_region'], 2) for r in q30]}"
+              + f"  ({time.time() - t0:.0f} s)", flush=True)
 
-    summary: dict[str, Any] = {"source": source, "images": len(images), "mtus": mtus, "region_mtu": args.region_mtu,
+    summary: dict[str, Any] = {"source": source, "images": len(images), "mtus": mtus,
+                               "every_mtu": [every[0], every[-1], every[1] - every[0] if len(every) > 1 else 1],
                                "thresholds": [str(x) for x in THRESHOLDS], "per_mtu": {}}
     bound30 = float(np.mean([r["bound"]["30.0"] for r in per_image]))
     body30 = float(np.mean([r["body"]["30.0"] for r in per_image]))
@@ -305,24 +504,23 @@ def main(argv: list[str] | None = None) -> int:
     summary["body_mean"] = {str(x): float(np.mean([r["body"][str(x)] for r in per_image])) for x in THRESHOLDS}
     summary["ratio_body_to_bound_30"] = round(body30 / bound30, 4)
     summary["meets_bound_body"] = body30 <= BOUND_SLACK * bound30
-    ok = summary["meets_bound_body"]
     for mtu in mtus:
         e: dict[str, Any] = {"ratio_to_2022": {}, "worst_ratio_to_2022": {}, "worst_image": {}}
-        every = True
         for x in THRESHOLDS:
             ratios = [(r["ours"][str(mtu)][str(x)] / r["base"][str(x)], r["image"]) for r in per_image]
             e["ratio_to_2022"][str(x)] = round(float(np.mean([v for v, _ in ratios])), 4)
             worst = max(ratios)
             e["worst_ratio_to_2022"][str(x)] = round(worst[0], 4)
             e["worst_image"][str(x)] = worst[1]
-            every &= worst[0] <= 1.0
         wire30 = float(np.mean([r["ours"][str(mtu)]["30.0"] for r in per_image]))
         e["wire_mean_30"] = wire30
         e["ratio_wire_to_bound_30"] = round(wire30 / bound30, 4)
-        e["meets_2022_every_image"] = every
         e["meets_bound_wire"] = wire30 <= BOUND_SLACK * bound30
-        ok &= every
         summary["per_mtu"][str(mtu)] = e
+    worst_all = {x: max(([r["every_mtu"][str(x)][0], r["every_mtu"][str(x)][1], r["image"]] for r in per_image
+                         if str(x) in r["every_mtu"]), default=None) for x in THRESHOLDS}
+    summary["worst_every_mtu"] = {str(x): v for x, v in worst_all.items()}
+    summary["meets_2022_every_image_every_mtu"] = all(v is None or v[0] <= 1.0 for v in worst_all.values())
     if not args.quick:
         lay = {}
         for x in THRESHOLDS:
@@ -331,31 +529,37 @@ def main(argv: list[str] | None = None) -> int:
             lay[str(x)] = {"previous_mean": prev, "now_mean": now, "ratio": round(now / prev, 4)}
         summary["layout"] = lay
         summary["meets_layout"] = all(v["ratio"] <= LAYOUT_SLACK for v in lay.values())
-        ok &= summary["meets_layout"]
-    regs = [rc for r in per_image for rc in r["regions"]]
-    until = [rc["ratio_to_whole_until_region"] for rc in regs if rc["ratio_to_whole_until_region"] is not None]
-    summary["regions"] = {
-        "count": len(regs),
-        "mean_ratio_to_whole_until_region": round(float(np.mean(until)), 4),
-        "worst_ratio_to_whole_until_region": round(float(np.max(until)), 4),
-        "sum_ratio_to_whole_until_region": round(sum(rc["wire_bytes"] for rc in regs) / sum(
-            rc["whole_until_region_wire"] for rc in regs if rc["whole_until_region_wire"]), 4),
-        "mean_ratio_to_whole_30": round(float(np.mean([rc["ratio_to_whole_30"] for rc in regs])), 4),
-        "all_reach_30": all(rc["psnr"] >= 30.0 for rc in regs),
-        "all_accepted": all(rc["state"] == "accepted" for rc in regs),
-    }
-    ok &= summary["regions"]["all_reach_30"] and summary["regions"]["all_accepted"]
-    r35 = [rc for r in per_image for rc in r["regions_35"]]
-    ok35 = [rc for rc in r35 if rc["whole_until_region_wire"]]
-    summary["regions_35_from_default"] = {
-        "count": len(r35),
-        "sum_ratio_to_whole_until_region": round(sum(rc["wire_bytes"] for rc in ok35) / max(1, sum(
-            rc["whole_until_region_wire"] for rc in ok35)), 4),
-        "all_reach_35": all(rc["psnr"] >= 35.0 for rc in r35),
-        "all_accepted": all(rc["state"] == "accepted" for rc in r35),
-    }
-    summary["meets_target"] = bool(ok)
-    summary["meets_bound_wire_every_mtu"] = all(e["meets_bound_wire"] for e in summary["per_mtu"].values())
+    stress: list[dict[str, Any]] = []
+    stress_mtus = _mtu_range(args.stress_mtus)
+    if not args.quick and not args.no_stress:
+        for name, img in stress_images(images if source == "nui040" else []):
+            base = baseline_curve(img)
+            stress.append({"image": name, "shape": list(img.shape), "2022": {str(x): need(base, x) for x in THRESHOLDS},
+                           "worst": worst_every_mtu(img, base, stress_mtus)})
+        summary["stress"] = {"images": len(stress), "mtus": [stress_mtus[0], stress_mtus[-1]], "worst": {
+            str(x): max(([s["worst"][str(x)][0], s["worst"][str(x)][1], s["image"]] for s in stress
+                         if str(x) in s["worst"]), default=None) for x in THRESHOLDS}}
+    regions = region_summary(runs)
+    summary["regions"] = regions
+    targets = {}
+    for (kind, start, q), limit in REGION_TARGETS.items():
+        cells = {m: regions.get(f"{kind}/{start}/{q:g}/{m}") for m in mtus}
+        ok = all(c["all_reached"] and c["all_accepted"] for c in cells.values() if c) and all(cells.values())
+        sums = {m: c["sum_ratio"] for m, c in cells.items() if c}
+        means = {m: c["mean_ratio"] for m, c in cells.items() if c}
+        # "on average": the region requests' mean bytes over the whole image's mean bytes (all
+        # bytes), at every MTU; the mean of the per-request ratios is reported beside it
+        targets[f"{kind} from {start} to {q:g} dB"] = {
+            "limit": limit, "all_bytes_ratio_per_mtu": sums, "mean_ratio_per_mtu": means,
+            "met": ok and all(v <= limit for v in sums.values()),
+            "met_by_mean_of_ratios": ok and all(v is not None and v <= limit for v in means.values())}
+    targets["every image <= 2022 at every MTU"] = {"limit": 1.0, "worst": summary["worst_every_mtu"],
+                                                   "met": summary["meets_2022_every_image_every_mtu"]}
+    summary["targets"] = targets
+    summary["meets_targets"] = all(t["met"] for t in targets.values())
+    # the issue's "on average" read as the mean of the per-request ratios instead
+    summary["meets_targets_by_mean_of_ratios"] = all(t.get("met_by_mean_of_ratios", t["met"])
+                                                      for t in targets.values())
     summary["seconds"] = round(time.time() - t0, 1)
 
     print(f"\nsource: {source}, {len(images)} images; wire = every vehicle-to-ship byte (frame headers, "
@@ -367,35 +571,48 @@ def main(argv: list[str] | None = None) -> int:
     for mtu in mtus:
         print(f"  ours {mtu:>3} B " + "  ".join(
             f"{np.mean([r['ours'][str(mtu)][str(x)] for r in per_image]):8.0f}" for x in THRESHOLDS))
-    print(f"\n{'MTU':>4} | ours/2022 mean, worst image (25 / 30 / 35 dB)            | wire/bound 30 | every image <= 2022")
+    print(f"\n{'MTU':>4} | ours/2022 mean, worst image (25 / 30 / 35 dB)            | wire/bound 30")
     for mtu in mtus:
         e = summary["per_mtu"][str(mtu)]
-        cells = "  ".join(f"{e['ratio_to_2022'][str(x)]:.2f} {e['worst_ratio_to_2022'][str(x)]:.2f} "
-                          f"({e['worst_image'][str(x)]})" for x in THRESHOLDS)
-        print(f"{mtu:>4} | {cells} | {e['ratio_wire_to_bound_30']:13.3f} | {e['meets_2022_every_image']}")
-    print(f"body / bound at 30 dB (means): {summary['ratio_body_to_bound_30']:.3f} (target <= {BOUND_SLACK}): "
-          f"{summary['meets_bound_body']}")
+        row = "  ".join(f"{e['ratio_to_2022'][str(x)]:.2f} {e['worst_ratio_to_2022'][str(x)]:.2f} "
+                        f"({e['worst_image'][str(x)]})" for x in THRESHOLDS)
+        print(f"{mtu:>4} | {row} | {e['ratio_wire_to_bound_30']:13.3f}")
+    print(f"worst ours/2022 over every MTU {every[0]}..{every[-1]}" + (f" (step {every[1] - every[0]})"
+                                                                        if len(every) > 1 and every[1] - every[0] > 1 else "")
+          + ": " + ", ".join(f"{x:g} dB {v[0]:.3f} ({v[2]}, MTU {v[1]})" for x, v in worst_all.items() if v))
+    if "stress" in summary:
+        print(f"generated images ({len(stress)}: small, small with noise, high contrast, synthetic), worst "
+              f"ours/2022 over MTUs {args.stress_mtus}: " + ", ".join(f"{x} dB {v[0]:.3f} ({v[2]}, MTU {v[1]})"
+                                                        for x, v in summary["stress"]["worst"].items() if v))
+    print(f"body / bound at 30 dB (means): {summary['ratio_body_to_bound_30']:.3f}")
     if "layout" in summary:
         print("layout, body now / previous default (means): " + ", ".join(
-            f"{x} dB {v['ratio']:.3f}" for x, v in summary["layout"].items())
-              + f" (target <= {LAYOUT_SLACK}): {summary['meets_layout']}")
-    rg = summary["regions"]
-    print(f"quarter-frame regions to 30 dB at MTU {args.region_mtu}: {rg['count']} requests; wire bytes against the "
-          f"whole image sent until that quarter is at 30 dB: mean {rg['mean_ratio_to_whole_until_region']:.2f}, "
-          f"worst {rg['worst_ratio_to_whole_until_region']:.2f}, all bytes {rg['sum_ratio_to_whole_until_region']:.2f}; "
-          f"against the whole image to 30 dB: mean {rg['mean_ratio_to_whole_30']:.2f}; all accepted "
-          f"{rg['all_accepted']}, all reach 30 dB inside {rg['all_reach_30']}")
-    r5 = summary["regions_35_from_default"]
-    print(f"quarter-frame regions from the default goal (30 dB) to 35 dB: {r5['count']} requests; wire bytes against "
-          f"the whole image sent on until that quarter is at 35 dB: {r5['sum_ratio_to_whole_until_region']:.2f}; "
-          f"all accepted {r5['all_accepted']}, all reach 35 dB inside {r5['all_reach_35']}")
-    print(f"meets targets (every image <= 2022 at every MTU, packet data within {BOUND_SLACK - 1:.0%} of the bound"
-          f"{', layout' if 'layout' in summary else ''}, regions accepted and reached): {summary['meets_target']}; "
-          f"wire bytes within {BOUND_SLACK - 1:.0%} of the bound at every MTU: {summary['meets_bound_wire_every_mtu']}"
-          f"   ({summary['seconds']} s)")
+            f"{x} dB {v['ratio']:.3f}" for x, v in summary["layout"].items()))
+    print("\nregions: wire bytes of one region request / the whole image's wire bytes from the same start until "
+          "the region is there (mean over requests not there at the start; worst; all bytes)")
+    print(f"{'region':8} {'start':8} {'dB':>3} {'MTU':>4} {'way':7} {'n':>3} {'there':>5} {'mean':>6} {'worst':>6} "
+          f"{'bytes':>6} {'crops':>5} {'region B':>8} {'whole B':>8} reached")
+    for key, c in sorted(regions.items(), key=lambda kv: (kv[0].split("/")[0] != "quarter", kv[0].split("/")[1:3],
+                                                          int(kv[0].split("/")[3]), len(kv[0].split("/")))):
+        kind, start, qs, mtu_s, *way = key.split("/")
+        print(f"{kind:8} {start:8} {qs:>3} {mtu_s:>4} {'packets' if way else 'chosen':7} {c['count']:>3} "
+              f"{c['already']:>5} {c['mean_ratio'] if c['mean_ratio'] is not None else '-':>6} "
+              f"{c['worst_ratio'] if c['worst_ratio'] is not None else '-':>6} {c['sum_ratio']:>6} {c['crops']:>5} "
+              f"{c['mean_wire_bytes']:>8} {c['mean_whole_until_wire'] or '-':>8} {c['all_reached']}")
+    print("\ntargets (issue 42):")
+    for label, t in targets.items():
+        if "worst" in t:
+            print(f"  {label}: worst {t['worst']}: {'MET' if t['met'] else 'NOT MET'}")
+            continue
+        print(f"  {label}: at most {t['limit']}x: all bytes {t['all_bytes_ratio_per_mtu']}: "
+              f"{'MET' if t['met'] else 'NOT MET'}; mean of the requests' ratios {t['mean_ratio_per_mtu']}: "
+              f"{'MET' if t['met_by_mean_of_ratios'] else 'NOT MET'}")
+    print(f"meets every target, regions on all bytes: {summary['meets_targets']}; regions by the mean of the "
+          f"requests' ratios: {summary['meets_targets_by_mean_of_ratios']}   ({summary['seconds']} s)")
     out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(json.dumps({"summary": summary, "per_image": per_image}, indent=1) + "\n")
+    out.write_text(json.dumps({"summary": summary, "per_image": per_image, "regions": runs,
+                               "stress": stress}, indent=1) + "\n")
     return 0
 
 

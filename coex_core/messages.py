@@ -53,6 +53,7 @@ __all__ = [
     "ImageByTimeRequest",
     "ImageRegionRequest",
     "RegionGoal",
+    "ImageCrop",
     "TransferProgress",
     # time series
     "TimeSeriesChannel",
@@ -516,6 +517,29 @@ class ImageRegionRequest(Message):
     y1: int
     kind: RegionGoal
     value: int
+
+
+@dataclass(frozen=True, slots=True)
+class ImageCrop(Message):
+    """A region of an image coded on its own: a small JPEG 2000 codestream of the rectangle
+    ``[x0, x1) x [y0, y1)`` of image ``parent``, sent in ``ImageFragment``s and acked by
+    ``ImageAck``s under its own ``image_id`` like any image. It answers the region request
+    ``command_id``. It codes the difference between the rectangle and what topside holds of
+    it: the parent decoded from its first ``base`` packets (spec/payloads.md 3.7); ``cover``
+    is the number of the parent's quality layers the whole crop is at least as good as inside
+    the rectangle."""
+
+    image_id: int
+    parent: int
+    command_id: int
+    x0: int
+    y0: int
+    x1: int
+    y1: int
+    total_bytes: int
+    params: int
+    base: int
+    cover: int
 
 
 @dataclass(frozen=True, slots=True)

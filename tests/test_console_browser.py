@@ -21,6 +21,7 @@ from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import pytest
 
 from coex import RealClock, Runner
@@ -974,6 +975,61 @@ def test_an_image_region_dragged_in_the_viewer_is_asked_and_outlined(browser: An
         page.wait_for_function("!document.querySelector('#viewer-img').classList.contains('fit')")
         placed(page.locator('#viewer-overlay .iregion[data-state="rejected"]'), box)
         page.close()
+    assert not errors, errors
+
+
+def test_the_region_tool_shows_the_crop_that_answered_a_region(browser: Any, tmp_path: Path) -> None:
+    """A region the vehicle served as a crop (the region coded on its own): the viewer's picture
+    is the image with the crop pasted over it, the region's outline is accepted, and the list
+    beside it says "crop", its bytes, and shows the crop itself."""
+    from coex_plugins.imagery import codec
+    from coex_plugins.imagery.sim import region_transfer
+    from coex_plugins.imagery.synth import seafloor
+
+    frame = seafloor(240, 320, seed=4)
+    box = (0, 0, 160, 120)
+    run = region_transfer(frame, box, "quality", 35.0, mtu=128, base="layer:1")
+    assert run.crop is not None and run.region["served"] == "crop"
+    crop_id = run.crop.image_id
+
+    def regions(state: ConsoleState) -> None:
+        state.images.clear()  # only the image with its region
+        for p in run.receiver.products():
+            state.apply_product("imagery", p, T0)
+
+    errors: list[str] = []
+    hubs: list[ConsoleHub] = []
+    with sample_console(browser, ConsoleHub, [], errors, prepare=regions, hubs=hubs) as page:
+        (hub,) = hubs
+        page.wait_for_selector('#gallery .card[data-image="0"] img', timeout=10_000)
+        assert page.locator("#gallery .card").count() == 1  # the crop is not an image of the gallery
+        page.click('#gallery .card[data-image="0"] img')
+        page.wait_for_selector("#viewer:not(.hidden)")
+        page.wait_for_function("document.querySelector('#viewer-img').naturalWidth === 320", timeout=10_000)
+        item = page.locator('#region-list li[data-served="crop"]')
+        item.wait_for(timeout=10_000)
+        text = item.inner_text()
+        size = len(run.crop.enc.body)
+        assert "crop 160 \u00d7 120 px" in text and f"{size} B of {size} B" in text and "shown over the picture" in text
+        page.wait_for_function("document.querySelector('#region-list img.region-crop').naturalWidth === 160",
+                               timeout=10_000)
+        assert page.locator('#viewer-overlay .iregion[data-state="accepted"]').count() == 1
+        assert "accepted · crop" in page.locator("#viewer-overlay .iregion-label").first.inner_text()
+        # the picture served is the image as topside shows it: the crop pasted over it
+        with hub.lock:
+            png = hub.state.image_png(0, full=True)
+            crop_png = hub.state.crop_png(crop_id)
+        import io
+
+        from PIL import Image
+
+        shown = np.asarray(Image.open(io.BytesIO(png)).convert("L"))
+        np.testing.assert_array_equal(shown, run.receiver.image(0))
+        assert codec.psnr(shown[:120, :160], frame[:120, :160]) >= 35.0
+        np.testing.assert_array_equal(np.asarray(Image.open(io.BytesIO(crop_png)).convert("L")), shown[:120, :160])
+        page.screenshot(path=str(tmp_path / "crop.png"))
+        if os.environ.get("COEX_CROP_SHOT"):
+            shutil.copy(tmp_path / "crop.png", os.environ["COEX_CROP_SHOT"])
     assert not errors, errors
 
 

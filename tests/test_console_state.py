@@ -415,6 +415,34 @@ def test_image_region_through_the_node_s_receiver() -> None:
     assert row["state"] == "accepted"
 
 
+def test_a_region_served_as_a_crop_is_listed_with_the_crop() -> None:
+    """A region the vehicle answered with a crop: the snapshot's region row says ``crop``, its
+    bytes and whether it is shown, with a link to the crop's picture (what it shows of the box);
+    the crop is not an image of its own in the images section; a console restored from a store
+    saved before crops has none."""
+    from coex_plugins.imagery.sim import region_transfer
+    from coex_plugins.imagery.synth import seafloor
+
+    run = region_transfer(seafloor(240, 320, seed=4), (0, 0, 160, 120), "quality", 35.0, mtu=128, base="layer:1")
+    assert run.crop is not None
+    st = ConsoleState(schedules={0: NUI}, receivers={"imagery": run.receiver})
+    for p in run.receiver.products():
+        st.apply_product("imagery", p, T0)
+    items = st.snapshot()["images"]["items"]
+    assert [i["image_id"] for i in items] == [0]
+    (row,) = items[0]["regions"]
+    crop = row["crop"]
+    assert row["served"] == "crop" and row["state"] == "accepted" and row["bytes"] == len(run.crop.enc.body)
+    assert crop["image_id"] == run.crop.image_id and (crop["width"], crop["height"]) == (160, 120)
+    assert crop["complete"] and crop["shown"] and crop["held_bytes"] == crop["total_bytes"]
+    assert crop["png"].startswith(f"/crop/{run.crop.image_id}.png?v=")
+    png = st.crop_png(run.crop.image_id)
+    assert png is not None and png.startswith(b"\x89PNG") and st.crop_png(999) is None
+    del st.crops
+    st._after_restore()
+    assert st.crops == {}
+
+
 # ----------------------------------------------------------------------------- server
 
 

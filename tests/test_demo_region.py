@@ -3,9 +3,11 @@
 The scripted operator's eye is made stricter than the default so that the first look at the
 confirming image finds the car "too blurry to tell": the operator then asks for the region of the
 frame around it (not the whole image). The request crosses the simulated acoustic link signed,
-the vehicle sends the JPEG 2000 packets of the precincts covering the region, and the received
-image sharpens there. Judged against the truth: the vehicle's original frame (what the camera
-rendered from the simulated seafloor) and the dive's targets.
+the vehicle answers with a crop (the region coded on its own as the difference to what topside
+holds, measured cheaper than the JPEG 2000 packets of the precincts covering the region), and
+the received image sharpens there: topside pastes the crop over it. Judged against the truth:
+the vehicle's original frame (what the camera rendered from the simulated seafloor) and the
+dive's targets; the report shows the region and its bytes.
 """
 
 from __future__ import annotations
@@ -71,7 +73,8 @@ def test_the_region_reaches_its_goal_against_the_original_without_the_whole_fram
         dive: tuple[DiveRun, Any]) -> None:
     run, _ = dive
     tx_images = run.senders["imagery"].images
-    checked = 0
+    rx = run.receivers["imagery"]
+    checked = crops = 0
     for reg in run.operator.regions:
         tx = tx_images.get(reg["image_id"])
         done = run.region_done.get(reg["command_id"])  # type: ignore[attr-defined]
@@ -100,24 +103,60 @@ def test_the_region_reaches_its_goal_against_the_original_without_the_whole_fram
         # inside: as good as the whole frame at the region's goal, better than before the request
         assert psnr(got, inside) >= psnr(goal, inside) - 0.3, (psnr(got, inside), psnr(goal, inside))
         assert psnr(got, inside) > psnr(base, inside) + 0.5, (psnr(got, inside), psnr(base, inside))
-        # what the request asked the vehicle for: only packets of the region's precincts, below
-        # the goal layer (packets topside held already were not asked again), and small runs of
-        # other packets that bridge a gap between two of them
-        asked = tx.region
-        assert asked is not None
-        starts = enc.packet_starts
-        ends = np.append(starts[1:], len(enc.body))
-        in_region = codec.region_packets(enc.stream, enc.width, enc.height, (x0, y0, x1, y1))
-        gap = 0  # bytes of the current run of other packets sent to bridge a small gap
-        for i in range(len(starts)):
-            if not asked[int(starts[i]):int(ends[i])].any():
-                gap = 0
-            elif in_region[i]:
-                assert layer[i] < MORE_LAYERS, (i, layer[i])
-                gap = 0
-            else:
-                gap += int(ends[i] - starts[i])
-                assert gap <= BRIDGE_BYTES, (i, gap)
+        meta = next(p.meta for p in rx.products() if p.kind == "image" and p.meta["image_id"] == reg["image_id"])
+        (row,) = [r for r in meta["regions"] if r["command_id"] == reg["command_id"]]
+        crop = next((c for c in tx_images.values() if getattr(c, "crop", None) is not None
+                     and c.crop.parent == reg["image_id"] and c.crop.command_id == reg["command_id"]), None)
+        if crop is not None:
+            # a crop of exactly the region, all of it held topside, shown over the image, for
+            # fewer bytes than the rest of the whole frame to the same layers
+            assert row["served"] == "crop" and row["crop"]["image_id"] == crop.image_id
+            assert crop.crop.box == (x0, y0, x1, y1) and crop.acked.all() and row["crop"]["complete"]
+            assert row["layers_complete"] >= MORE_LAYERS and crop.crop.cover >= MORE_LAYERS
+            assert len(crop.enc.body) < enc.layer_end(MORE_LAYERS) - enc.layer_end(CONFIRM_LAYERS)
+            assert tx.region is None  # none of the frame's own packets were asked for it
+            crops += 1
+        else:
+            # what the request asked the vehicle for: only packets of the region's precincts,
+            # below the goal layer (packets topside held already were not asked again), and small
+            # runs of other packets that bridge a gap between two of them
+            assert row["served"] == "packets"
+            asked = tx.region
+            assert asked is not None
+            starts = enc.packet_starts
+            ends = np.append(starts[1:], len(enc.body))
+            in_region = codec.region_packets(enc.stream, enc.width, enc.height, (x0, y0, x1, y1))
+            gap = 0  # bytes of the current run of other packets sent to bridge a small gap
+            for i in range(len(starts)):
+                if not asked[int(starts[i]):int(ends[i])].any():
+                    gap = 0
+                elif in_region[i]:
+                    assert layer[i] < MORE_LAYERS, (i, layer[i])
+                    gap = 0
+                else:
+                    gap += int(ends[i] - starts[i])
+                    assert gap <= BRIDGE_BYTES, (i, gap)
         assert held is not None
         checked += 1
     assert checked
+    assert crops, "no region of the camera pass was served as a crop"
+
+
+def test_the_report_shows_the_region_and_its_bytes(dive: tuple[DiveRun, Any]) -> None:
+    run, result = dive
+    out = Path(result.out)
+    rows = result.metrics["regions"]
+    assert {r["command_id"] for r in rows} >= {r["command_id"] for r in run.operator.regions}
+    html = (out / "report.html").read_text()
+    assert 'id="regions"' in html and "Image regions" in html
+    for r in rows:
+        if r["by"] != "script":
+            continue
+        assert r["state"] == "accepted" and r["bytes"] > 0 and (out / r["file"]).exists()
+        x0, y0, x1, y1 = r["box"]
+        assert f"x {x0}..{x1}, y {y0}..{y1}" in html
+        if r["served"] == "crop":
+            crop = r["crop"]
+            assert r["bytes"] == crop["held_bytes"] == crop["total_bytes"] and (out / r["crop_file"]).exists()
+            assert f"crop {crop['width']} x {crop['height']} px" in html
+            assert f"{crop['total_bytes']:,} of {crop['total_bytes']:,} B" in html

@@ -10,6 +10,7 @@ from ..messages import (
     ImageAck,
     ImageAnnounce,
     ImageByTimeRequest,
+    ImageCrop,
     ImageFragment,
     ImageGoal,
     ImageRegionRequest,
@@ -120,6 +121,23 @@ IMAGE_REGION = Body(
          "empty region"),
 )
 
+IMAGE_CROP = Body(
+    "image_id" / Bounded(0, 1023) * "The crop's own image id (the same sequence as images'; wraps at 1024)",
+    "parent" / Bounded(0, 1023) * "The image it is cut from",
+    "command_id" / Bounded(0, 255) * "The region request it answers",
+    "x0" / Bounded(0, 4095, unit="px") * "Left edge in the parent (first column of the crop)",
+    "y0" / Bounded(0, 4095, unit="px") * "Top edge in the parent (first row of the crop)",
+    "x1" / Bounded(1, 4096, unit="px") * "Right edge in the parent (one past the last column)",
+    "y1" / Bounded(1, 4096, unit="px") * "Bottom edge in the parent (one past the last row)",
+    "total_bytes" / Bounded(0, OFFSET_MAX, unit="B") * "The crop's codestream body size",
+    "params" / Bits(15) * "The crop's coding parameter code (as ImageAnnounce.params)",
+    "base" / Bounded(0, MAX_PACKET_INDEX + 1)
+    * "Packets of the parent, from its first, whose decode the crop refines (0: none, mid-grey)",
+    "cover" / Bounded(0, 32) * "Quality layers of the parent the whole crop is at least as good as inside the box",
+    Rule(lambda ctx: ctx.x0 < ctx.x1 and ctx.y0 < ctx.y1, "`x0` >= `x1` or `y0` >= `y1` (no pixel in the crop)",
+         "empty region"),
+)
+
 IMAGE_BY_TIME = Body(
     "command_id" / Bounded(0, 255) * "Command id",
     "stamp" / Stamp() * "Time of interest",
@@ -199,6 +217,17 @@ register(MessageSpec(
         ("quarter_30db", ImageRegionRequest(7, 17, 0, 0, 320, 240, RegionGoal.QUALITY, 300)),
         ("layers", ImageRegionRequest(8, 17, 400, 300, 640, 480, RegionGoal.LAYER, 12)),
         ("bytes_max", ImageRegionRequest(255, 1023, 4095, 4095, 4096, 4096, RegionGoal.BYTES, 65535)),
+    ],
+))
+register(MessageSpec(
+    39, ImageCrop, IMAGE_CROP, False, "imagery",
+    "A region of an image coded on its own (a crop answering a region request).",
+    largest=lambda: ImageCrop(1023, 1023, 255, 4095, 4095, 4096, 4096, OFFSET_MAX, 2**15 - 1, 1024, 32),
+    cases=lambda: [
+        ("minimum", ImageCrop(0, 0, 0, 0, 0, 1, 1, 0, 0, 0, 0)),
+        ("quarter_from_nothing", ImageCrop(18, 17, 7, 0, 0, 320, 240, 612, 0x0302, 0, 3)),
+        ("eighth_over_30db", ImageCrop(19, 17, 8, 480, 240, 640, 480, 1437, 0x0302, 26, 4)),
+        ("maximum", ImageCrop(1023, 1023, 255, 4095, 4095, 4096, 4096, OFFSET_MAX, 2**15 - 1, 1024, 32)),
     ],
 ))
 register(MessageSpec(

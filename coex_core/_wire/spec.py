@@ -312,6 +312,13 @@ def _region(x0: int, y0: int, x1: int, y1: int) -> bytes:
     return _bits((38, 8), (1, 8), (2, 10), (x0, 12), (y0, 12), (x1 - 1, 12), (y1 - 1, 12), (0, 2), (300, 16))
 
 
+def _crop(x0: int, y0: int, x1: int, y1: int) -> bytes:
+    """An ImageCrop (type 39): crop 3 of image 2 for command 1, the box (``x1``, ``y1`` sent minus
+    1), 100 bytes, params 0x302, base 0, cover 0."""
+    return _bits((39, 8), (3, 10), (2, 10), (1, 8), (x0, 12), (y0, 12), (x1 - 1, 12), (y1 - 1, 12), (100, 20),
+                 (0x302, 15), (0, 11), (0, 6))
+
+
 def _channel(name: bytes = b"t", lo: float = 0.0, hi: float = 1.0, resolution: float = 0.1) -> bytes:
     """A TimeSeriesChannel (type 48, VarInt length) from raw parts: channel 1, unit ''."""
     body = _bits((1, 5), (0, 3), (_f32(lo), 0), (_f32(hi), 0), (_f32(resolution), 0), (len(name), 8)) + name + b"\x00"
@@ -368,6 +375,8 @@ def _spec_rule_cases() -> list[tuple[str, str, bytes, str]]:
         ("survey_kind_unassigned", "message", _survey(4), "not a valid"),
         ("region_empty_columns", "message", _region(10, 0, 10, 10), "empty region"),
         ("region_empty_rows", "message", _region(0, 20, 10, 5), "empty region"),
+        ("crop_empty_columns", "message", _crop(64, 0, 64, 48), "empty region"),
+        ("crop_empty_rows", "message", _crop(0, 48, 64, 16), "empty region"),
     ]
 
 
@@ -385,7 +394,7 @@ def _invalid_cases() -> list[tuple[str, str, bytes, str]]:
         ("unassigned_builtin_id", "message", b"\x3f\x00", "unknown message type"),
         ("unassigned_core_id", "message", b"\x0e\x00", "unknown message type"),
         ("unassigned_bathymetry_id", "message", b"\x14\x00", "unknown message type"),
-        ("unassigned_imagery_id", "message", b"\x27\x00", "unknown message type"),
+        ("unassigned_imagery_id", "message", b"\x28\x00", "unknown message type"),
         ("unassigned_timeseries_id", "message", b"\x34\x00", "unknown message type"),
         ("reserved_id", "message", b"\x40\x00", "unknown message type"),
         ("overlong_type_id", "message", b"\x80\x06\x00\x00", "over-long"),

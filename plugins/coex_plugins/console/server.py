@@ -11,7 +11,8 @@ Endpoints (all on 127.0.0.1 unless told otherwise):
 * ``GET /map/<level>.png`` a map level (its drawn overview); ``GET
   /map/<level>/window.png?x0=&y0=&x1=&y1=&step=`` the part of a big level on screen, at
   ``step`` level cells per pixel, read from the receiver's tiles; ``GET /image/<id>.png`` an
-  image thumbnail.
+  image thumbnail (``?full=1``: at full size, its crops pasted over it); ``GET /crop/<id>.png``
+  what a crop (a region coded on its own) shows of its box.
 * ``POST /api/action`` ``{"action": name, "args": {...}}`` runs a :class:`ConsoleActions`
   method; answers ``{"ok": true, "sent": [messages as JSON]}`` or ``{"ok": false, "error": ...}``
   (HTTP 400).
@@ -173,6 +174,16 @@ class _Handler(BaseHTTPRequestHandler):
                 png, render = hub.state.map_png_job(level)
             if render is not None:
                 png = render()  # drawn outside the lock: the node's loop never waits for it
+            if png is None:
+                return self._not_found()
+            self._send(200, png, "image/png", cache=True)
+        elif path.startswith("/crop/") and path.endswith(".png"):
+            try:
+                cid = int(path[6:-4])
+            except ValueError:
+                return self._not_found()
+            with hub.lock:
+                png = hub.state.crop_png(cid)
             if png is None:
                 return self._not_found()
             self._send(200, png, "image/png", cache=True)

@@ -80,6 +80,8 @@ OPEN_COMMAND_STATES = ("sent", "pending")
 MAP_BLOCKS = 4096
 #: The regions of an image the images section lists and the page draws (the newest).
 MAX_IMAGE_REGIONS = 12
+#: Crops (regions coded on their own) kept for the region lists (the newest).
+MAX_CROPS = 64
 #: The largest picture of what is on screen (``/map/<level>/window.png``), in pixels.
 MAP_WINDOW_CELLS = 8 * 1024 * 1024
 
@@ -200,6 +202,20 @@ class _Image:
     regions: list[dict[str, Any]] = field(default_factory=list)
 
 
+@persistent("console.Crop")
+@dataclass
+class _Crop:
+    """A crop the imagery receiver holds (a region of an image coded on its own): what it shows
+    of its box and the receiver's meta (``parent``, ``box``, ``command_id``, bytes ...)."""
+
+    crop_id: int
+    decoded: Any = None
+    decoded_version: int = -1
+    meta: dict[str, Any] = field(default_factory=dict)
+    png: bytes | None = None
+    png_version: int = -1
+
+
 @persistent("console.Command")
 @dataclass
 class _Command:
@@ -289,6 +305,8 @@ class ConsoleState:
         self._survey_rows: dict[int, tuple[int, dict[str, Any]]] = {}
         # images
         self.images: dict[int, _Image] = {}
+        #: the crops of images the receiver holds, by crop id (the newest MAX_CROPS)
+        self.crops: dict[int, _Crop] = {}
         self.progress_info: dict[str, Any] | None = None
         self.image_queries: list[dict[str, Any]] = []
         #: (time, altitude) of the vehicle's statuses: where an image's footprint comes from
@@ -325,6 +343,8 @@ class ConsoleState:
         """A topside store saves the console with its node (:mod:`coex_core.state`); object
         ids are not state: the regions recorded are the ones the requests in ``roi`` hold."""
         self._region_ids = {id(r.region) for r in self.roi.values()}
+        if getattr(self, "crops", None) is None:  # saved before crops
+            self.crops = {}
         self._png = {}
         self._map_summary = {}
         self._targets_cache = (None, [])
@@ -454,6 +474,8 @@ class ConsoleState:
             self._series_product(data, meta)
         elif kind == "image":
             self._image_product(product, data, meta, now)
+        elif kind == "image-crop":
+            self._crop_product(product, data, meta)
         elif kind == "image-progress":
             self.progress_info = {"pending": meta.get("pending"), "current": meta.get("current"),
                                   "unacked_fragments": meta.get("unacked_fragments"),
@@ -668,6 +690,33 @@ class ConsoleState:
             img.t = float(meta["time"])
         img.version += 1
         self._touch("images")
+
+    def _crop_product(self, product: Any, data: Any, meta: dict[str, Any]) -> None:
+        """A crop's product: what it shows of its box (drawn in the region list of its image)."""
+        try:
+            cid = int(meta["image_id"])
+        except (KeyError, TypeError, ValueError):
+            return
+        crop = self.crops.pop(cid, None) or _Crop(cid)
+        self.crops[cid] = crop  # the newest last
+        if data is not None and hasattr(data, "shape"):
+            crop.decoded = data
+            crop.decoded_version = int(getattr(product, "version", crop.decoded_version + 1))
+        crop.meta = {k: (list(v) if isinstance(v, list | tuple) else v) for k, v in meta.items()
+                     if v is None or isinstance(v, int | float | str | bool | list | tuple)}
+        while len(self.crops) > MAX_CROPS:
+            del self.crops[next(iter(self.crops))]
+        self._touch("images")
+
+    def crop_png(self, crop_id: int) -> bytes | None:
+        """What a crop shows of its box, as a PNG at full size (None before it shows anything)."""
+        crop = self.crops.get(crop_id)
+        if crop is None or crop.decoded is None:
+            return None
+        if crop.png is None or crop.png_version != crop.decoded_version:
+            crop.png = png_bytes(_picture(np.asarray(crop.decoded), 1 << 16))
+            crop.png_version = crop.decoded_version
+        return crop.png
 
     def image_png(self, image_id: int, full: bool = False) -> bytes | None:
         """The newest decoded picture of an image, as a thumbnail PNG (at most
@@ -1353,16 +1402,34 @@ class ConsoleState:
                         if state == "rejected" else "",
                         "time": _num(c.sent, 1), "by": getattr(c, "by", ""),
                         "layers_complete": None if rx_row is None else rx_row.get("layers_complete"),
-                        "layers": layers})
+                        "layers": layers, **self._served(rx_row)})
         for (cid, box), r in known.items():  # asked through the receiver by someone else
             state = str(r.get("state", "requested"))
             out.append({"command_id": cid, "box": list(box), "kind": str(r.get("kind", "quality")),
                         "value": r.get("value"), "state": state,
                         "reason": "refused by the vehicle" if state == "rejected" else "",
                         "time": _num(r.get("time"), 1), "by": "",
-                        "layers_complete": r.get("layers_complete"), "layers": layers})
+                        "layers_complete": r.get("layers_complete"), "layers": layers, **self._served(r)})
         out.sort(key=lambda r: r["time"] or 0.0)
         return out[-MAX_IMAGE_REGIONS:]
+
+    def _served(self, rx_row: Mapping[str, Any] | None) -> dict[str, Any]:
+        """How the vehicle serves a region, from the receiver's row: ``served`` (``crop`` or
+        ``packets``; None while unknown), ``bytes`` that arrived for it, and ``crop``: the crop
+        (its image id, size, body bytes held and in all, complete, shown over the image, and
+        ``png``, the picture of what it shows) or None."""
+        if rx_row is None:
+            return {"served": None, "bytes": None, "crop": None}
+        crop = rx_row.get("crop")
+        out: dict[str, Any] = {"served": rx_row.get("served"), "bytes": rx_row.get("bytes"), "crop": None}
+        if isinstance(crop, Mapping):
+            cid = int(crop.get("image_id", -1))
+            held = self.crops.get(cid)
+            out["crop"] = {k: crop.get(k) for k in ("image_id", "width", "height", "total_bytes", "held_bytes",
+                                                    "complete", "shown")}
+            out["crop"]["png"] = (f"/crop/{cid}.png?v={held.decoded_version}"
+                                  if held is not None and held.decoded is not None else None)
+        return out
 
     def _footprint(self, img: _Image) -> list[float] | None:
         """The seafloor an image covers, ``[width, height]`` in metres: the camera's field of

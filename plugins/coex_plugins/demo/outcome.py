@@ -122,6 +122,44 @@ def _why_not(i: int, world: World, operator: Operator, visible: float | None) ->
 AFTER_SURVEY_S = 600.0
 
 
+def _regions(out: Path, rx: ImageryReceiver, operator: Operator, metas: dict[int, dict[str, Any]]
+             ) -> list[dict[str, Any]]:
+    """Every image region asked during the dive, as topside knows it: the image, the box, the
+    goal, the vehicle's answer and how it served it (a crop, or the image's packets), the bytes
+    that brought it (a crop's body held, or the region's packets) and the layers complete inside
+    it; ``file``: the image as shown topside with the box outlined (``images/region_<image>_<command>.png``),
+    ``crop_file``: what the crop shows (``images/crop_<id>.png``, written by the receiver)."""
+    from coex_plugins.imagery.output import outlined, write_png
+
+    script = {r["command_id"]: r for r in operator.regions}
+    rows = []
+    for image_id, meta in sorted(metas.items()):
+        for reg in meta.get("regions") or ():
+            cid = int(reg["command_id"])
+            crop = reg.get("crop")
+            row: dict[str, Any] = {
+                "image_id": image_id, "command_id": cid, "box": [int(v) for v in reg["box"]],
+                "goal": {"kind": reg["kind"], "value": reg["value"]}, "state": reg["state"],
+                "served": reg.get("served"), "bytes": reg.get("bytes"),
+                "layers_complete": reg.get("layers_complete"), "layers": meta.get("layers"),
+                "asked_s": round(float(reg["time"]) - EPOCH, 1), "by": "script" if cid in script else "console",
+                "candidate": list(script[cid]["candidate"]) if cid in script else None,
+                "image_bytes": int(meta["bytes_used"]), "image_total_bytes": int(meta["total_bytes"]),
+                "crop": None if not crop else {k: crop[k] for k in ("image_id", "width", "height", "total_bytes",
+                                                                    "held_bytes", "complete", "shown", "base",
+                                                                    "cover")},
+            }
+            shown = rx.image(image_id)
+            if shown is not None:
+                name = f"images/region_{image_id:04d}_{cid:03d}.png"
+                write_png(out / name, outlined(shown, row["box"]))
+                row["file"] = name
+            if crop and (out / "images" / f"crop_{int(crop['image_id']):04d}.png").exists():
+                row["crop_file"] = f"images/crop_{int(crop['image_id']):04d}.png"
+            rows.append(row)
+    return sorted(rows, key=lambda r: r["asked_s"])
+
+
 def finish(out: Path, cfg: DemoConfig, world: World, operator: Operator, receivers: dict[str, Any],
             coverage: dict[int, list[tuple[float, float]]], visible_at: dict[int, float],
             decisions: list[Decision], wall: float, runners: dict[int, Runner],
@@ -216,6 +254,8 @@ def finish(out: Path, cfg: DemoConfig, world: World, operator: Operator, receive
               for i, m in sorted(metas.items(), key=lambda kv: float(kv[1]["time"]))
               if (out / "images" / f"image_{i:04d}.png").exists()]
 
+    regions = _regions(out, img, operator, metas)
+
     all_identifiable = all(t["before_survey_end"] for t in targets)
     all_confirmed = all(t["confirmation"] is not None for t in targets)
     success = all_confirmed and not false
@@ -266,6 +306,7 @@ def finish(out: Path, cfg: DemoConfig, world: World, operator: Operator, receive
         "surveys": _surveys(receivers["survey"], operator, world.surveys),
         "candidates": candidates,
         "images_received": len(metas),
+        "regions": regions,
         "images_captured": len(world.camera_times),
         "link": link,
         "map_coverage": {str(k): v[-1][1] if v else 0.0 for k, v in coverage.items()},
@@ -292,7 +333,7 @@ def finish(out: Path, cfg: DemoConfig, world: World, operator: Operator, receive
     for k in ("capacity_series", "used_series", "delivered_series"):
         link.pop(k, None)
     write_report(out, metrics, charts=charts, maps=map_svgs, images=images,
-                 decisions=[asdict(d) for d in decisions])
+                 decisions=[asdict(d) for d in decisions], regions=regions)
     (out / "metrics.json").write_text(json.dumps(metrics, indent=2))
     with (out / "decisions.csv").open("w", newline="") as f:
         w = csv.writer(f)

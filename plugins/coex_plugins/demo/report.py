@@ -712,6 +712,52 @@ def _gallery(out: Path, images: Sequence[Mapping[str, Any]]) -> str:
     return head + f'</p><div class="gallery">{"".join(cards)}</div>'
 
 
+def _regions_section(out: Path, regions: Sequence[Mapping[str, Any]]) -> str:
+    """The image regions asked during the dive: what was asked, how the vehicle served it (a
+    crop: the region coded on its own and pasted over the image; or the image's packets) and
+    its bytes, with the image as shown topside (the region outlined) and the crop itself."""
+    if not regions:
+        return ('<h3 id="regions">Image regions</h3><p class="note">No image region was asked for: no '
+                "image showed an object too blurry to tell.</p>")
+    rows, cards = [], []
+    for r in regions:
+        goal = r.get("goal") or {}
+        unit = {"quality": " dB", "layer": " layers", "bytes": " B"}.get(str(goal.get("kind")), "")
+        x0, y0, x1, y1 = r["box"]
+        crop = r.get("crop")
+        how = "-"
+        if r.get("served") == "crop" and crop:
+            how = (f"crop {crop['width']} x {crop['height']} px (image {crop['image_id']}), "
+                   f"{_num(crop['held_bytes'], ',.0f')} of {_num(crop['total_bytes'], ',.0f')} B"
+                   + (", shown over the image" if crop.get("shown") else ", the image as good there by now"))
+        elif r.get("served") == "packets":
+            how = f"the image's packets, {_num(r.get('bytes'), ',.0f')} B"
+        rows.append(
+            f"<tr><td class='r'>{_num(r.get('asked_s'))}</td><td>{_e(r.get('by', ''))}</td>"
+            f"<td class='r'>{_e(r['image_id'])}</td><td>x {x0}..{x1}, y {y0}..{y1} ({x1 - x0} x {y1 - y0} px)</td>"
+            f"<td>{_e(goal.get('value'))}{unit}</td><td>{_e(r.get('state', ''))}</td><td>{_e(how)}</td>"
+            f"<td class='r'>{_num(r.get('bytes'), ',.0f')}</td>"
+            f"<td class='r'>{_num(r.get('layers_complete'))} of {_num(r.get('layers'))}</td>"
+            f"<td class='r'>{_num(r.get('image_bytes'), ',.0f')}</td></tr>")
+        for key, label in (("file", f"image {r['image_id']} as shown, region outlined"),
+                           ("crop_file", "the crop")):
+            file = r.get(key)
+            src, small = _thumb_src(out / str(file)) if file else (None, False)
+            if src:
+                pix = ' style="image-rendering:pixelated"' if small else ""
+                cards.append(f'<figure class="card"><a href="{_e(file)}"><img src="{src}" alt="{_e(label)}"{pix}></a>'
+                             f"<figcaption>{_e(label)} (command {r['command_id']})</figcaption></figure>")
+    return ('<h3 id="regions">Image regions</h3><p class="note">Regions of images the operator asked to see '
+            "sharper (around an object too blurry to tell). The vehicle serves each the cheaper way it "
+            "measures: a crop (the region coded on its own as the difference to what topside holds, "
+            "pasted over the image) or the image's own packets. Bytes: the crop's body, or the region's "
+            "packets, that arrived; the image's bytes are all it holds. Asked at dive seconds.</p>"
+            '<table class="regions"><tr><th>asked (s)</th><th>by</th><th>image</th><th>region</th>'
+            "<th>goal</th><th>answer</th><th>served as</th><th>bytes</th><th>layers inside</th>"
+            "<th>image bytes</th></tr>" + "".join(rows) + "</table>"
+            + (f'<div class="gallery">{"".join(cards)}</div>' if cards else ""))
+
+
 def _decisions_table(decisions: Sequence[Mapping[str, Any]]) -> str:
     """Every decision in time order; rows by a person highlighted."""
     if not decisions:
@@ -789,12 +835,14 @@ def write_report(
     maps: Sequence[str],
     images: Sequence[Mapping[str, Any]],
     decisions: Sequence[Mapping[str, Any]],
+    regions: Sequence[Mapping[str, Any]] = (),
 ) -> Path:
     """Write ``out/report.html`` (one self-contained file) and return its path.
 
     ``charts`` and ``maps`` are SVG/HTML fragments (from :func:`line_chart`, :func:`timeline_chart`,
     :func:`map_figure`), ``images`` one dict per received image (``file`` relative to ``out``),
-    ``decisions`` dicts with ``t``, ``kind``, ``text`` and ``who``.
+    ``decisions`` dicts with ``t``, ``kind``, ``text`` and ``who``, ``regions`` the image
+    regions asked (see ``outcome._regions``).
     """
     out = Path(out)
     sc_line = _scenario_line(metrics.get("scenario"))
@@ -834,6 +882,7 @@ orange diamonds decoys, cyan circles the candidates the operator flagged in the 
 {maps_html}
 <h2 id="images">Images</h2>
 {_gallery(out, images)}
+{_regions_section(out, regions)}
 <h2 id="time">The dive over time</h2>
 {link_html}
 {charts_html}

@@ -4,7 +4,9 @@ See ``docs/imagery.md``. The vehicle side (:class:`ImagerySender`) encodes each 
 it, sends it to a default set-point in capture order and serves operator goals first, with
 selective acks and retransmission; the topside side (:class:`ImageryReceiver`) rebuilds the
 JPEG 2000 header from a few parameter bits, decodes whole packets only (repairing around lost
-fragments) and produces an improved image after every useful fragment.
+fragments) and produces an improved image after every useful fragment. A region request is
+answered with the region's packets or a crop (the region coded on its own, ``ImageCrop``),
+which topside pastes over the image.
 """
 
 from __future__ import annotations
@@ -16,6 +18,7 @@ from coex_core.messages import (
     ImageAck,
     ImageAnnounce,
     ImageByTimeRequest,
+    ImageCrop,
     ImageFragment,
     ImageGoal,
     ImageRegionRequest,
@@ -36,7 +39,7 @@ class ImageryModality(Modality):
 
     name: ClassVar[str] = "imagery"
     version: ClassVar[str] = "1.0"
-    messages: ClassVar[tuple[type[Message], ...]] = (ImageAnnounce, ImageFragment, TransferProgress)
+    messages: ClassVar[tuple[type[Message], ...]] = (ImageAnnounce, ImageFragment, TransferProgress, ImageCrop)
     requests: ClassVar[tuple[type[Message], ...]] = (ImageAck, ImageGoal, ImageByTimeRequest, ImageRegionRequest)
     #: acks of data: handled without expediting the stream
     routine: ClassVar[tuple[type[Message] | int, ...]] = (ImageAck,)

@@ -16,12 +16,17 @@ writes:
 * ``DIR/image_<id>.tiff`` / ``.png``: the final topside image, and ``DIR/summary.json``.
 
 ``coex image region IMAGE --box X0,Y0,X1,Y1 [--quality DB | --layers N | --bytes B] --mtu N
---out DIR [--base GOAL] [--loss P] [--seed S]`` sends IMAGE to its ``--base`` goal (default
-``layer:1``, the first quality mark), then asks for the rectangle (pixels, X1 and Y1 exclusive)
-with one ``ImageRegionRequest`` at the goal (default ``--quality 30`` dB) and writes
-``DIR/before.png`` and ``DIR/after.png`` (what topside shows, the region outlined) and
-``DIR/summary.json``: ``box``, ``goal`` (kind and value), ``state`` (the vehicle's answer:
-accepted / rejected / requested when none arrived), ``base_wire_bytes`` and ``region_wire_bytes`` (vehicle-to-ship wire bytes for the base and
+--out DIR [--base GOAL] [--loss P] [--seed S] [--crops auto|never|always]`` sends IMAGE to its
+``--base`` goal (default ``layer:1``, the first quality mark), then asks for the rectangle
+(pixels, X1 and Y1 exclusive) with one ``ImageRegionRequest`` at the goal (default ``--quality
+30`` dB), the vehicle's option ``crops`` set to ``--crops`` (default ``auto``), and writes
+``DIR/before.png`` and ``DIR/after.png`` (what topside shows, the region outlined, a crop pasted
+over the image), ``DIR/crop.png`` when the vehicle answered with a crop (what the crop shows of
+the box) and ``DIR/summary.json``: ``box``, ``goal`` (kind and value), ``state`` (the vehicle's
+answer: accepted / rejected / requested when none arrived), ``served`` (``crop`` or
+``packets``), ``crop`` (its image id, size, body bytes, resolutions, layers, the parent packets
+it refines, the parent layers it covers, its PSNR inside the box and before it; null for
+packets), ``base_wire_bytes`` and ``region_wire_bytes`` (vehicle-to-ship wire bytes for the base and
 after the request), ``psnr_inside_before`` / ``psnr_inside_after`` and ``psnr_outside_after``
 (dB against the vehicle's image), ``layers_complete`` (quality layers complete inside the box).
 """
@@ -39,7 +44,7 @@ from coex_core import jsonfmt, wire
 from coex_core.errors import ConfigError
 from coex_core.modality import Product
 
-from .output import write_png
+from .output import outlined, write_png
 
 __all__ = ["register", "run_roundtrip", "load_image"]
 
@@ -83,6 +88,9 @@ def register(subparsers: Any) -> None:
     g.add_argument("--loss", type=float, default=0.0, metavar="P", help="frame loss probability (default 0)")
     g.add_argument("--seed", type=int, default=0, metavar="S", help="loss seed (default 0)")
     g.add_argument("--max-rounds", type=int, default=20000, help="give up after this many frames")
+    g.add_argument("--crops", choices=("auto", "never", "always"), default="auto",
+                   help="how the vehicle may serve the region (its option crops): auto (the cheapest way it "
+                        "measures), never (the region's packets only) or always (a crop)")
     p.set_defaults(func=lambda a: p.print_help() or 2)
     r.set_defaults(func=run_roundtrip)
     g.set_defaults(func=run_region)
@@ -94,18 +102,6 @@ def _box(text: str) -> tuple[int, int, int, int]:
     except ValueError:
         raise argparse.ArgumentTypeError(f"a box is four integers X0,Y0,X1,Y1: {text!r}") from None
     return x0, y0, x1, y1
-
-
-def _outlined(image: Any, box: tuple[int, int, int, int]) -> Any:
-    """A copy of the image with the box drawn in white (grey) or yellow (colour), 1 px."""
-    out = np.array(image, copy=True)
-    x0, y0, x1, y1 = box
-    colour = 255 if out.ndim == 2 else np.array([255, 220, 0], np.uint8)
-    out[y0, x0:x1] = colour
-    out[y1 - 1, x0:x1] = colour
-    out[y0:y1, x0] = colour
-    out[y0:y1, x1 - 1] = colour
-    return out
 
 
 def run_region(args: argparse.Namespace) -> int:
@@ -121,7 +117,8 @@ def run_region(args: argparse.Namespace) -> int:
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     run = region_transfer(load_image(args.image), args.box, kind, value, mtu=args.mtu, base=args.base,
-                          loss=args.loss, seed=args.seed, max_rounds=args.max_rounds)
+                          loss=args.loss, seed=args.seed, max_rounds=args.max_rounds,
+                          sender_config={"crops": args.crops})
     enc = run.sender.images[run.image_id].enc
     x0, y0, x1, y1 = args.box
 
@@ -134,11 +131,22 @@ def run_region(args: argparse.Namespace) -> int:
         mask[y0:y1, x0:x1] = False
         outside = round(psnr(run.after[mask], enc.image[mask]), 3) if mask.any() else None
     blank = np.full(enc.image.shape, 128, np.uint8)
-    write_png(out / "before.png", _outlined(blank if run.before is None else run.before, args.box))
-    write_png(out / "after.png", _outlined(blank if run.after is None else run.after, args.box))
+    write_png(out / "before.png", outlined(blank if run.before is None else run.before, args.box))
+    write_png(out / "after.png", outlined(blank if run.after is None else run.after, args.box))
+    crop = None
+    if run.crop is not None:
+        shown = run.receiver.image(run.crop.image_id)
+        if shown is not None:
+            write_png(out / "crop.png", shown)
+        c = run.crop.crop
+        crop = {"image_id": run.crop.image_id, "width": run.crop.enc.width, "height": run.crop.enc.height,
+                "body_bytes": len(run.crop.enc.body), "resolutions": run.crop.enc.stream.resolutions,
+                "layers": run.crop.enc.stream.layers, "base_packets": c.base, "cover": c.cover,
+                "psnr": c.psnr, "base_psnr": c.base_psnr, "shown": run.region.get("crop", {}).get("shown")}
     summary = {
         "image": str(args.image), "width": enc.width, "height": enc.height, "box": list(args.box),
         "goal": {"kind": kind, "value": value}, "base": args.base, "state": run.region["state"],
+        "crops": args.crops, "served": run.region.get("served"), "crop": crop,
         "base_wire_bytes": run.base_bytes, "region_wire_bytes": run.region_bytes,
         "psnr_inside_before": inside(run.before), "psnr_inside_after": inside(run.after),
         "psnr_outside_after": outside,

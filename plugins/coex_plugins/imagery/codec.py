@@ -36,14 +36,17 @@ __all__ = [
     "CodingParams",
     "Encoded",
     "PROGRESSIONS",
+    "add_residual",
     "assemble",
     "decode_packets",
     "encode_image",
+    "encode_residual",
     "main_header",
     "packet_order",
     "params_code",
     "parse_params",
     "region_packets",
+    "residual",
     "to_grey",
 ]
 
@@ -479,9 +482,11 @@ def _encode_body(data: npt.NDArray[np.uint8], code: int, targets: Sequence[int])
 
 
 def layer_psnrs(data: npt.NDArray[np.uint8], code: int, body: bytes, lengths: Sequence[int],
-                last_only: bool = False) -> list[float]:
+                last_only: bool = False, base: npt.NDArray[np.uint8] | None = None,
+                reference: npt.NDArray[np.uint8] | None = None) -> list[float]:
     """The PSNR (dB, against ``data``) of the image decoded from each layer prefix (only the
-    whole body with ``last_only``)."""
+    whole body with ``last_only``). With ``base``, ``data`` is a residual (:func:`residual`):
+    the PSNR is that of ``add_residual(base, decoded)`` against ``reference``."""
     sp = parse_params(code)
     h, w = data.shape[:2]
     layer_of = packet_order(sp, w, h)[:, 0]
@@ -491,8 +496,26 @@ def layer_psnrs(data: npt.NDArray[np.uint8], code: int, body: bytes, lengths: Se
     for k in range(sp.layers - 1 if last_only else 0, sp.layers):
         pk = [body[int(a):int(b)] if layer_of[i] <= k else None
               for i, (a, b) in enumerate(zip(starts, ends, strict=True))]
-        out.append(psnr(decode_packets(code, w, h, pk), data))
+        decoded = decode_packets(code, w, h, pk)
+        if base is None:
+            out.append(psnr(decoded, data))
+        else:
+            out.append(psnr(add_residual(base, decoded), data if reference is None else reference))
     return out
+
+
+def residual(original: npt.NDArray[Any], base: npt.NDArray[Any]) -> npt.NDArray[np.uint8]:
+    """What a crop codes (spec/payloads.md 3.7): ``original - base`` offset by 128 and clipped
+    to 0..255, for pixels topside already shows as ``base`` (a flat 128 base gives the original)."""
+    d = np.asarray(original, np.int16) - np.asarray(base, np.int16) + 128
+    return _u8(np.clip(d, 0, 255))
+
+
+def add_residual(base: npt.NDArray[Any], decoded: npt.NDArray[Any]) -> npt.NDArray[np.uint8]:
+    """The pixels a crop shows: ``base + decoded - 128`` clipped to 0..255 (inverse of
+    :func:`residual` up to the clipping)."""
+    d = np.asarray(base, np.int16) + np.asarray(decoded, np.int16) - 128
+    return _u8(np.clip(d, 0, 255))
 
 
 #: calibrated targets of the last images encoded, by content (an image encoded again, e.g. the
@@ -501,21 +524,31 @@ _TARGETS: dict[tuple[Any, ...], list[int]] = {}
 _TARGETS_MAX = 64
 
 
-def quality_targets(data: npt.NDArray[np.uint8], cp: CodingParams, resolutions: int) -> list[int]:
+def _digest(a: npt.NDArray[Any] | None) -> bytes:
+    return b"" if a is None else hashlib.blake2b(np.ascontiguousarray(a).tobytes(), digest_size=16).digest()
+
+
+def quality_targets(data: npt.NDArray[np.uint8], cp: CodingParams, resolutions: int,
+                    base: npt.NDArray[np.uint8] | None = None,
+                    reference: npt.NDArray[np.uint8] | None = None) -> list[int]:
     """The layer targets of :func:`calibrate_quality`, remembered for the last 64 images."""
-    key = (hashlib.blake2b(np.ascontiguousarray(data).tobytes(), digest_size=16).digest(), data.shape,
-           cp.progression, cp.irreversible, cp.precincts, cp.layer_psnr, resolutions)
+    key = (_digest(data), data.shape, cp.progression, cp.irreversible, cp.precincts, cp.layer_psnr, resolutions,
+           _digest(base), _digest(reference))
     hit = _TARGETS.get(key)
     if hit is None:
-        hit = calibrate_quality(data, cp, resolutions)
+        hit = calibrate_quality(data, cp, resolutions, base, reference)
         if len(_TARGETS) >= _TARGETS_MAX:
             del _TARGETS[next(iter(_TARGETS))]
         _TARGETS[key] = hit
     return list(hit)
 
 
-def calibrate_quality(data: npt.NDArray[np.uint8], cp: CodingParams, resolutions: int) -> list[int]:
-    """Cumulative body targets that end a layer at the fewest bytes reaching each quality mark.
+def calibrate_quality(data: npt.NDArray[np.uint8], cp: CodingParams, resolutions: int,
+                      base: npt.NDArray[np.uint8] | None = None,
+                      reference: npt.NDArray[np.uint8] | None = None) -> list[int]:
+    """Cumulative body targets that end a layer at the fewest bytes reaching each quality mark
+    (with ``base``, the quality of a residual's composite against ``reference``, as
+    :func:`layer_psnrs`).
 
     OpenJPEG allocates layers in order (a layer's bytes do not depend on later layers), so the
     marks are calibrated in order: one probe encode (24 layers, 16 B to
@@ -533,12 +566,12 @@ def calibrate_quality(data: npt.NDArray[np.uint8], cp: CodingParams, resolutions
     probe = [int(x) for x in np.unique(np.geomspace(16, cap, 24).astype(np.int64))]
     code = code_for(len(probe))
     body, lengths = _encode_body(data, code, probe)
-    pq = np.maximum.accumulate(np.asarray(layer_psnrs(data, code, body, lengths)))
+    pq = np.maximum.accumulate(np.asarray(layer_psnrs(data, code, body, lengths, base=base, reference=reference)))
 
     def trial(targets: list[int]) -> float:
         c = code_for(len(targets))
         b, lens = _encode_body(data, c, targets)
-        return layer_psnrs(data, c, b, lens, last_only=True)[0]
+        return layer_psnrs(data, c, b, lens, last_only=True, base=base, reference=reference)[0]
 
     done: list[int] = []
     q_done = 0.0
@@ -588,14 +621,32 @@ def encode_image(image: npt.NDArray[Any], params: CodingParams | None = None) ->
         if a.shape[2] not in (3, 4):
             raise ConfigError(f"colour images need 3 channels, got {a.shape[2]}")
         data = np.ascontiguousarray(_as_u8(a[..., :3]))
-    data = _reduce(data, cp.max_size)
+    return _encode(_reduce(data, cp.max_size), cp)
+
+
+def encode_residual(original: npt.NDArray[Any], base: npt.NDArray[Any], params: CodingParams) -> Encoded:
+    """Encode the difference of ``original`` to ``base`` (:func:`residual`; both ``(H, W)`` or
+    both ``(H, W, 3)`` uint8, as the receiver shows them): a crop's codestream (spec/payloads.md
+    3.7). Quality marks are met by the composite :func:`add_residual` of ``base`` and the
+    decoded residual, against ``original``. ``Encoded.image`` is the residual."""
+    o, b = np.asarray(original), np.asarray(base)
+    if o.shape != b.shape or o.dtype != np.uint8 or b.dtype != np.uint8 or o.ndim not in (2, 3):
+        raise ConfigError(f"a residual needs two uint8 images of one shape, got {o.shape} {o.dtype} and "
+                          f"{b.shape} {b.dtype}")
+    if o.ndim == 3 and (o.shape[2] != 3 or params.grey):
+        raise ConfigError("a colour residual needs 3 channels and grey=False")
+    return _encode(residual(o, b), params, b, o)
+
+
+def _encode(data: npt.NDArray[np.uint8], cp: CodingParams, base: npt.NDArray[np.uint8] | None = None,
+            reference: npt.NDArray[np.uint8] | None = None) -> Encoded:
     h, w = data.shape[:2]
     if min(h, w) < 8:
         raise ConfigError(f"image {w}x{h} is too small (8 px minimum)")
     colour = data.ndim == 3
     res = _feasible_resolutions(h, w, cp.resolutions)
     if cp.layer_psnr:
-        targets = quality_targets(data, cp, res)
+        targets = quality_targets(data, cp, res, base, reference)
     else:
         targets = list(cp.layer_bytes)
     code = params_code(cp.progression, res, len(targets), cp.irreversible, colour, cp.precincts)

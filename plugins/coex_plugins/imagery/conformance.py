@@ -18,11 +18,33 @@ def imagery_inputs() -> list[tuple[float, Any]]:
 
 
 def imagery_config() -> dict[str, Any]:
-    return {"layer_bytes": [30, 60, 120, 240, 480, 900], "default_goal": "layer:4", "rto": 12.0}
+    # crops = always: the region the suite asks for (imagery_start_requests) is answered with a
+    # crop, so ImageCrop travels through every two-node test too
+    return {"layer_bytes": [30, 60, 120, 240, 480, 900], "default_goal": "layer:4", "rto": 12.0,
+            "crops": "always"}
+
+
+def imagery_start_requests(receiver: ModalityReceiver, now: float) -> None:
+    """Once topside hears the first image, it asks for its top-left quarter at 30 dB (one
+    ``ImageRegionRequest``; the vehicle answers with a crop)."""
+    from . import ImageryReceiver
+
+    assert isinstance(receiver, ImageryReceiver)
+    asked: list[Any] = []
+
+    def ask(product: Any) -> None:
+        if asked or product.kind != "image":
+            return
+        meta = product.meta
+        asked.append(receiver.request_region(int(meta["image_id"]), (0, 0, int(meta["width"]) // 2,
+                                                                     int(meta["height"]) // 2), "quality", 30.0, now))
+
+    receiver.listeners.append(ask)
 
 
 def imagery_converged(sender: ModalitySender, receiver: ModalityReceiver) -> bool:
-    """Topside holds every image up to its goal, decodable."""
+    """Topside holds every image and crop up to its goal, decodable, and the vehicle answered
+    every region request topside made."""
     from . import ImageryReceiver, ImagerySender
 
     assert isinstance(sender, ImagerySender) and isinstance(receiver, ImageryReceiver)
@@ -30,6 +52,8 @@ def imagery_converged(sender: ModalitySender, receiver: ModalityReceiver) -> boo
         rx = receiver.images.get(image_id)
         if rx is None or rx.contiguous() < tx.goal or rx.image is None:
             return False
+    if any(reg["state"] == "requested" for rx in receiver.images.values() for reg in getattr(rx, "regions", ())):
+        return False
     return bool(sender.images)
 
 
@@ -37,4 +61,5 @@ def companion() -> Companion:
     """Entry point ``coex.conformance: imagery``."""
     from . import ImageryModality
 
-    return Companion("imagery", ImageryModality, imagery_inputs, imagery_converged, imagery_config)
+    return Companion("imagery", ImageryModality, imagery_inputs, imagery_converged, imagery_config,
+                     start_requests=imagery_start_requests)

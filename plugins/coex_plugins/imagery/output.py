@@ -1,4 +1,6 @@
-"""Writing topside images: ``image_<id>.tiff`` and ``image_<id>.png`` after every improvement."""
+"""Writing topside images: ``image_<id>.tiff`` and ``image_<id>.png`` after every improvement (an
+image as topside shows it, its crops pasted over it), ``crop_<id>.tiff`` and ``.png`` for a crop
+(what it shows of its box)."""
 
 from __future__ import annotations
 
@@ -10,7 +12,20 @@ import numpy as np
 
 from coex_core.modality import Product
 
-__all__ = ["ImageWriter", "write_png", "write_tiff"]
+__all__ = ["ImageWriter", "outlined", "write_png", "write_tiff"]
+
+
+def outlined(image: Any, box: tuple[int, int, int, int] | list[int]) -> Any:
+    """A copy of the image with the box (x0, y0, x1, y1; x1, y1 exclusive) drawn in white (grey)
+    or yellow (colour), 1 px."""
+    out = np.array(image, copy=True)
+    x0, y0, x1, y1 = (int(v) for v in box)
+    colour = 255 if out.ndim == 2 else np.array([255, 220, 0], np.uint8)
+    out[y0, x0:x1] = colour
+    out[y1 - 1, x0:x1] = colour
+    out[y0:y1, x0] = colour
+    out[y0:y1, x1 - 1] = colour
+    return out
 
 
 def write_png(path: str | Path, image: Any) -> None:
@@ -39,9 +54,10 @@ class ImageWriter:
         self.written = 0
 
     def __call__(self, product: Product) -> None:
-        if product.kind != "image" or product.data is None:
+        if product.kind not in ("image", "image-crop") or product.data is None:
             return
-        base = self.out_dir / f"image_{int(product.meta['image_id']):04d}"
+        name = "image" if product.kind == "image" else "crop"
+        base = self.out_dir / f"{name}_{int(product.meta['image_id']):04d}"
         desc = f"coex image {product.key} version {product.version} bytes {product.meta.get('bytes_used')}"
         write_tiff(f"{base}.tiff", product.data, desc)
         write_png(f"{base}.png", product.data)

@@ -27,6 +27,7 @@ from coex_core.messages import (
     ImageAck,
     ImageAnnounce,
     ImageByTimeRequest,
+    ImageCrop,
     ImageFragment,
     ImageGoal,
     ImageRegionRequest,
@@ -40,7 +41,14 @@ from coex_core.requests import RequestTracker
 from coex_core.state import persistent
 from coex_core.timefmt import to_stamp, unwrap
 
-from .codec import StreamParams, decode_packets, packet_order, parse_params, region_packets
+from .codec import (
+    StreamParams,
+    add_residual,
+    decode_packets,
+    packet_order,
+    parse_params,
+    region_packets,
+)
 from .goals import region_fields
 from .packets import PacketParser
 
@@ -73,6 +81,12 @@ class _Rx:
         self.bytes_used = 0
         #: region requests of this image: dicts with command_id, box, kind, value, state
         self.regions: list[dict[str, Any]] = []
+        #: for a crop: its announcement (None for an image)
+        self.crop: ImageCrop | None = None
+        #: for a crop: the parent's pixels in the box it refines (None until known)
+        self.base: npt.NDArray[np.uint8] | None = None
+        #: for an image: what topside shows, its crops pasted over it (None: its own decode)
+        self.shown: npt.NDArray[np.uint8] | None = None
 
     @property
     def n_packets(self) -> int:
@@ -183,6 +197,8 @@ class ImageryReceiver(ModalityReceiver):
         changed: list[Product] = []
         if isinstance(message, ImageAnnounce):
             changed += self._announce(message, now)
+        elif isinstance(message, ImageCrop):
+            changed += self._crop(message, now)
         elif isinstance(message, ImageFragment):
             changed += self._fragment(message, now)
         elif isinstance(message, TransferProgress):
@@ -204,10 +220,10 @@ class ImageryReceiver(ModalityReceiver):
                 listener(p)
         return changed
 
-    def _announce(self, ann: ImageAnnounce, now: float) -> list[Product]:
+    def _announce(self, ann: ImageAnnounce, now: float, crop: ImageCrop | None = None) -> list[Product]:
         self._ack_due[ann.image_id] = None
         old = self.images.get(ann.image_id)
-        if old is not None and old.ann == ann:
+        if old is not None and (old.ann == ann if crop is None else getattr(old, "crop", None) == crop):
             return []
         try:
             sp = parse_params(ann.params)
@@ -220,25 +236,49 @@ class ImageryReceiver(ModalityReceiver):
                         ann.params, exc)
             return []
         if old is not None:  # the id wrapped round: a new image replaces the old one
-            del self.images[ann.image_id]
+            self._forget(ann.image_id)
         # ids are given in sequence (mod 1024): an older image held under one of the next few ids
         # is from the previous cycle; forget it before its id is reused, so that fragments of the
         # new image arriving before their (lost) announcement never land in the old buffer
         t = unwrap(ann.stamp, now)
         for stale in [i for i, h in self.images.items()
                       if 0 < (i - ann.image_id) % 1024 <= REUSE_WINDOW and h.time < t]:
-            del self.images[stale]
+            self._forget(stale)
         rx = _Rx(ann, sp, now)
+        rx.crop = crop
         self.images[ann.image_id] = rx
         while len(self.images) > self.max_images:
-            self.images.popitem(last=False)
+            self._forget(next(iter(self.images)))
         early = [f for f in self._early if f.image_id == ann.image_id]
         for f in early:
             self._early.remove(f)
         out = [self._product(rx)]
+        if crop is not None:
+            out += self._parent_products(rx)
         for f in early:
             out += self._fragment(f, now)
         return out
+
+    def _crop(self, msg: ImageCrop, now: float) -> list[Product]:
+        """A crop's announcement (spec/payloads.md 3.7): an image of its own (its fragments and
+        acks like any image's), ``x1 - x0`` by ``y1 - y0`` pixels, shown over its parent."""
+        parent = self.images.get(msg.parent)
+        sp_colour = bool(msg.params & 1)
+        ann = ImageAnnounce(msg.image_id, to_stamp(now), None if parent is None else parent.ann.x,
+                            None if parent is None else parent.ann.y, msg.x1 - msg.x0, msg.y1 - msg.y0,
+                            not sp_colour, msg.total_bytes, msg.params)
+        return self._announce(ann, now, msg)
+
+    def _forget(self, image_id: int) -> None:
+        """Forget an image (and the crops made of it: they refine an image that is gone)."""
+        rx = self.images.pop(image_id, None)
+        self._parsers.pop(image_id, None)
+        if rx is None or getattr(rx, "crop", None) is not None:
+            return
+        for cid in [i for i, c in self.images.items()
+                    if (o := getattr(c, "crop", None)) is not None and o.parent == image_id and c.time >= rx.time]:
+            self.images.pop(cid, None)
+            self._parsers.pop(cid, None)
 
     def _fragment(self, frag: ImageFragment, now: float) -> list[Product]:
         rx = self.images.get(frag.image_id)
@@ -313,7 +353,90 @@ class ImageryReceiver(ModalityReceiver):
         rx.used = len(sig)
         rx.bytes_used = sum(len(packets[i] or b"") for i in sig)
         rx.version += 1
+        if getattr(rx, "crop", None) is not None:
+            return [self._product(rx), *self._parent_products(rx)]
+        self._compose(rx)
         return [self._product(rx)]
+
+    # ------------------------------------------------------------------ crops
+
+    def _crops_of(self, rx: _Rx) -> list[_Rx]:
+        """The crops of an image topside holds, oldest first (a newer one is pasted over it)."""
+        iid = rx.ann.image_id
+        return sorted((c for c in self.images.values()
+                       if (o := getattr(c, "crop", None)) is not None and o.parent == iid and c.time >= rx.time),
+                      key=lambda c: c.time)
+
+    def _parent_products(self, crop: _Rx) -> list[Product]:
+        """The parent of a crop, shown again with the crop (when it is held)."""
+        c = crop.crop
+        parent = self.images.get(c.parent) if c is not None else None
+        if parent is None or getattr(parent, "crop", None) is not None:
+            return []
+        self._compose(parent)
+        parent.version += 1
+        return [self._product(parent)]
+
+    def _crop_base(self, parent: _Rx, crop: _Rx) -> npt.NDArray[np.uint8] | None:
+        """The parent's pixels in the crop's box that the crop refines (spec/payloads.md 3.7): the
+        parent decoded from its first ``base`` packets (mid-grey for none); None while topside
+        lacks one of them."""
+        if crop.base is not None:
+            return crop.base
+        c = crop.crop
+        assert c is not None
+        packets = parent.packets()[: c.base]
+        if len(packets) < c.base or any(p is None for p in packets):
+            return None
+        try:
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore")
+                full = decode_packets(parent.ann.params, parent.ann.width, parent.ann.height, packets)
+        except CoexError:
+            return None
+        crop.base = full[c.y0:c.y1, c.x0:c.x1].copy()
+        return crop.base
+
+    def _crop_pixels(self, crop: _Rx) -> npt.NDArray[np.uint8] | None:
+        """What a crop shows of its box: its base and its decoded difference (None: not yet)."""
+        c = crop.crop
+        parent = self.images.get(c.parent) if c is not None else None
+        if c is None or crop.image is None:
+            return None
+        if c.base == 0:
+            base: npt.NDArray[np.uint8] | None = np.full(crop.image.shape, 128, np.uint8)
+        elif parent is None or getattr(parent, "crop", None) is not None:
+            return None
+        else:
+            base = self._crop_base(parent, crop)
+        if base is None or base.shape != crop.image.shape:
+            return None
+        return add_residual(base, crop.image)
+
+    def _crop_shown(self, parent: _Rx, crop: _Rx) -> bool:
+        """Whether a crop is shown over its parent: it has pixels, fits the parent, and the parent
+        holds no more quality layers inside the box than the crop covers (else the parent is at
+        least as good there)."""
+        c = crop.crop
+        if c is None or self._crop_pixels(crop) is None:
+            return False
+        if c.x1 > parent.ann.width or c.y1 > parent.ann.height or bool(c.params & 1) == parent.ann.grey:
+            return False
+        return self._region_layers(parent, (c.x0, c.y0, c.x1, c.y1)) <= c.cover
+
+    def _compose(self, rx: _Rx) -> None:
+        """What topside shows of an image: its decode with its crops pasted at their boxes."""
+        crops = [c for c in self._crops_of(rx) if self._crop_shown(rx, c)]
+        if not crops:
+            rx.shown = None
+            return
+        shape = (rx.ann.height, rx.ann.width) if rx.ann.grey else (rx.ann.height, rx.ann.width, 3)
+        out = np.array(rx.image, copy=True) if rx.image is not None else np.full(shape, 128, np.uint8)
+        for c in crops:
+            pix = self._crop_pixels(c)
+            assert c.crop is not None and pix is not None
+            out[c.crop.y0:c.crop.y1, c.crop.x0:c.crop.x1] = pix
+        rx.shown = out
 
     # ------------------------------------------------------------------ products
 
@@ -339,8 +462,12 @@ class ImageryReceiver(ModalityReceiver):
             k += 1
         return k
 
-    def _product(self, rx: _Rx) -> Product:
-        a = rx.ann
+    def _region_bytes(self, rx: _Rx, box: tuple[int, int, int, int]) -> int:
+        """Bytes of the complete packets of the region's precincts topside holds."""
+        inside = region_packets(rx.sp, rx.ann.width, rx.ann.height, box)
+        return sum(len(p) for i, p in enumerate(rx.packets()) if p is not None and inside[i])
+
+    def _layers_complete(self, rx: _Rx) -> int:
         layers = 0
         if rx.used:
             used = set(rx.signature)
@@ -348,18 +475,60 @@ class ImageryReceiver(ModalityReceiver):
                 int(i) in used for i in np.flatnonzero(rx.order[:, 0] == layers)
             ):
                 layers += 1
-        meta = {
+        return layers
+
+    def _region_meta(self, rx: _Rx, reg: dict[str, Any]) -> dict[str, Any]:
+        """A region request as the product lists it: its state, how it is served (``served``:
+        ``crop`` once a crop answering it is announced, else ``packets`` once accepted), the
+        quality layers complete inside it (a complete crop shown counts as the parent layers it
+        covers), its bytes (the crop's body held, or the region's packet bytes that arrived since
+        the request) and, for a crop, ``crop`` (its image id, size, bytes held, whether it is
+        complete and shown)."""
+        box = tuple(int(v) for v in reg["box"])
+        layers = self._region_layers(rx, box)  # type: ignore[arg-type]
+        crop = next((c for c in reversed(self._crops_of(rx)) if c.crop is not None
+                     and c.crop.command_id == reg["command_id"]
+                     and (c.crop.x0, c.crop.y0, c.crop.x1, c.crop.y1) == box), None)
+        out = {**reg, "box": list(box)}
+        if crop is not None and crop.crop is not None:
+            shown = self._crop_shown(rx, crop)
+            complete = bool(crop.have.all())
+            if shown and complete:
+                layers = max(layers, crop.crop.cover)
+            held = int(np.count_nonzero(crop.have))
+            out.update(served="crop", bytes=held, crop={
+                "image_id": crop.ann.image_id, "width": crop.ann.width, "height": crop.ann.height,
+                "total_bytes": crop.ann.total_bytes, "held_bytes": held, "complete": complete,
+                "shown": shown, "base": crop.crop.base, "cover": crop.crop.cover, "version": crop.version})
+        else:
+            before = int(reg.get("bytes_at_request", 0) or 0)
+            out.update(served="packets" if reg.get("state") == "accepted" else None,
+                       bytes=max(0, self._region_bytes(rx, box) - before))  # type: ignore[arg-type]
+        out["layers_complete"] = layers
+        return out
+
+    def _product(self, rx: _Rx) -> Product:
+        a = rx.ann
+        meta: dict[str, Any] = {
             "image_id": a.image_id, "stamp": a.stamp, "time": rx.time, "x": a.x, "y": a.y,
             "width": a.width, "height": a.height, "grey": a.grey, "total_bytes": a.total_bytes,
             "held_bytes": int(np.count_nonzero(rx.have)), "contiguous": rx.contiguous(),
             "packets_used": rx.used, "packets": rx.n_packets, "bytes_used": rx.bytes_used,
-            "layers_complete": layers, "layers": rx.sp.layers,
+            "layers_complete": self._layers_complete(rx), "layers": rx.sp.layers,
             "complete": bool(rx.have.all()), "precincts": rx.sp.precincts,
-            "regions": [{**reg, "box": list(reg["box"]),
-                         "layers_complete": self._region_layers(rx, tuple(reg["box"]))}
-                        for reg in getattr(rx, "regions", ())],
         }
-        return Product("image", str(a.image_id), rx.version, rx.image, meta)
+        crop = getattr(rx, "crop", None)
+        if crop is not None:
+            parent = self.images.get(crop.parent)
+            meta.update(parent=crop.parent, box=[crop.x0, crop.y0, crop.x1, crop.y1],
+                        command_id=crop.command_id, base=crop.base, cover=crop.cover,
+                        shown=parent is not None and getattr(parent, "crop", None) is None
+                        and self._crop_shown(parent, rx))
+            return Product("image-crop", str(a.image_id), rx.version, self._crop_pixels(rx), meta)
+        meta["regions"] = [self._region_meta(rx, reg) for reg in getattr(rx, "regions", ())]
+        meta["crops"] = [c.ann.image_id for c in self._crops_of(rx)]
+        shown = getattr(rx, "shown", None)
+        return Product("image", str(a.image_id), rx.version, rx.image if shown is None else shown, meta)
 
     def _progress_product(self) -> Product:
         p = self.progress
@@ -375,8 +544,14 @@ class ImageryReceiver(ModalityReceiver):
         return out
 
     def image(self, image_id: int) -> npt.NDArray[np.uint8] | None:
+        """What topside shows of an image (its crops pasted over it), or of a crop (its box)."""
         rx = self.images.get(image_id)
-        return None if rx is None else rx.image
+        if rx is None:
+            return None
+        if getattr(rx, "crop", None) is not None:
+            return self._crop_pixels(rx)
+        shown = getattr(rx, "shown", None)
+        return rx.image if shown is None else shown
 
     # ------------------------------------------------------------------ requests
 
@@ -409,6 +584,9 @@ class ImageryReceiver(ModalityReceiver):
         rx = self.images.get(int(image_id))
         if rx is None:
             raise ConfigError(f"no image {image_id} announced")
+        crop_of = getattr(rx, "crop", None)
+        if crop_of is not None:
+            raise ConfigError(f"image {image_id} is a crop of image {crop_of.parent}: ask for a region of that image")
         try:
             (x0, y0, x1, y1), k, code = region_fields(box, kind, value, rx.ann.width, rx.ann.height,
                                                       rx.sp.layers, rx.sp.precincts)
@@ -418,7 +596,8 @@ class ImageryReceiver(ModalityReceiver):
         assert isinstance(msg, ImageRegionRequest)
         rx.regions = [*getattr(rx, "regions", []), {
             "command_id": msg.command_id, "box": (x0, y0, x1, y1), "kind": k.name.lower(),
-            "value": float(value) if k == RegionGoal.QUALITY else code, "state": "requested", "time": now}]
+            "value": float(value) if k == RegionGoal.QUALITY else code, "state": "requested", "time": now,
+            "bytes_at_request": self._region_bytes(rx, (x0, y0, x1, y1))}]
         rx.version += 1
         return msg
 

@@ -28,7 +28,7 @@ import numpy as np
 import numpy.typing as npt
 
 from coex_core.config import merged_config
-from coex_core.errors import ConfigError, RequestRejected
+from coex_core.errors import CoexError, ConfigError, RequestRejected
 from coex_core.messages import (
     AckStatus,
     CommandAck,
@@ -36,6 +36,7 @@ from coex_core.messages import (
     ImageAck,
     ImageAnnounce,
     ImageByTimeRequest,
+    ImageCrop,
     ImageFragment,
     ImageGoal,
     ImageRegionRequest,
@@ -57,15 +58,17 @@ from coex_core.wire import (
 from .codec import (
     CodingParams,
     Encoded,
+    add_residual,
     decode_packets,
     encode_image,
+    encode_residual,
     packet_end,
     psnr,
     region_packets,
 )
 from .goals import Goal, parse_goal
 
-__all__ = ["ImageInput", "ImagerySender", "fragment_size"]
+__all__ = ["CropOf", "ImageInput", "ImagerySender", "fragment_size"]
 
 MAX_FRAGMENT_DATA = FRAGMENT_MAX_DATA
 MAX_MARKS = FRAGMENT_MAX_MARKS
@@ -85,6 +88,24 @@ class ImageInput:
     time: float | None = None
     x: float | None = None
     y: float | None = None
+
+
+@persistent("imagery.CropOf")
+@dataclass(frozen=True)
+class CropOf:
+    """What a crop (an image coded from a rectangle of another, answering a region request) is:
+    its ``parent`` image, the ``box`` (x0, y0, x1, y1) in the parent's pixels, the region request
+    ``command_id``, the parent packets ``base`` (from the first) whose decode it refines, the
+    parent layers ``cover`` it is at least as good as inside the box, and the PSNR it brings the
+    box to (``psnr``, dB, against the vehicle's image) from ``base_psnr``."""
+
+    parent: int
+    box: tuple[int, int, int, int]
+    command_id: int
+    base: int
+    cover: int
+    psnr: float
+    base_psnr: float
 
 
 @functools.cache
@@ -107,6 +128,7 @@ class _Tx:
     __slots__ = (
         "acked",
         "announced_at",
+        "crop",
         "default_goal",
         "enc",
         "explicit",
@@ -140,6 +162,8 @@ class _Tx:
         self.explicit: int | None = None
         #: bytes wanted beyond the goal prefix: the packets of requested regions (None: none)
         self.region: npt.NDArray[np.bool_] | None = None
+        #: a crop of another image (answering a region request), or None for an image
+        self.crop: CropOf | None = None
 
     @property
     def total(self) -> int:
@@ -164,7 +188,12 @@ class _Tx:
     def unacked(self) -> int:
         return int(np.count_nonzero(self.wanted() & ~self.acked))
 
-    def announce(self) -> ImageAnnounce:
+    def announce(self) -> ImageAnnounce | ImageCrop:
+        crop = getattr(self, "crop", None)
+        if crop is not None:
+            x0, y0, x1, y1 = crop.box
+            return ImageCrop(self.image_id, crop.parent, crop.command_id, x0, y0, x1, y1, self.total,
+                             self.enc.params, crop.base, crop.cover)
         return ImageAnnounce(self.image_id, to_stamp(self.time), self.x, self.y, self.enc.width,
                              self.enc.height, self.enc.grey, self.total, self.enc.params)
 
@@ -177,7 +206,7 @@ SENDER_DEFAULTS: dict[str, Any] = {**dict.fromkeys(CODING_KEYS), "default_goal":
                                    "request_goal": None, "max_images": 64, "rto": 60.0,
                                    "progress_interval": 60.0, "max_announces": 2,
                                    "min_fragment": 16, "standing_expiry": 1800.0, "max_standing": 8,
-                                   "marks": "auto"}
+                                   "marks": "auto", "crops": "auto"}
 
 
 @persistent("imagery.Sender")
@@ -233,10 +262,13 @@ class ImagerySender(ModalitySender):
             self.standing_expiry = float(cfg["standing_expiry"])
             self.max_standing = int(cfg["max_standing"])
             self.marks = str(cfg["marks"]).lower()
+            self.crops = str(cfg["crops"]).lower()
         except (TypeError, ValueError) as exc:
             raise ConfigError(f"invalid imagery sender option: {exc}") from exc
         if self.marks not in ("auto", "always"):
             raise ConfigError(f"marks must be auto or always, got {cfg['marks']!r}")
+        if self.crops not in ("auto", "never", "always"):
+            raise ConfigError(f"crops must be auto, never or always, got {cfg['crops']!r}")
         if not 1 <= self.max_images <= 512:
             raise ConfigError("max_images must be in 1..512")
         if self.rto <= 0 or self.progress_interval <= 0 or self.max_announces < 1:
@@ -265,14 +297,19 @@ class ImagerySender(ModalitySender):
             if v is not None and not (isinstance(v, int | float) and -50000 <= v <= 50000):
                 raise ConfigError(f"position {v!r} outside +-50 km")
         enc = encode_image(item.image, self.coding)  # raises ConfigError, nothing changed yet
+        image_id = self._new_id()
+        tx = _Tx(image_id, enc, t, item.x, item.y, self.default_goal.bytes_for(enc))
+        self.images[image_id] = tx
+
+    def _new_id(self) -> int:
+        """The next free image id (images and crops share one sequence), making room first."""
         if len(self.images) >= self.max_images:
             self._evict()
         image_id = self._next_id
         while image_id in self.images:
             image_id = (image_id + 1) % 1024
         self._next_id = (image_id + 1) % 1024
-        tx = _Tx(image_id, enc, t, item.x, item.y, self.default_goal.bytes_for(enc))
-        self.images[image_id] = tx
+        return image_id
 
     def _evict(self) -> None:
         by_age = sorted(self.images.values(), key=lambda tx: tx.time)
@@ -354,7 +391,7 @@ class ImagerySender(ModalitySender):
                 self._last_progress = key
         # 2. announcements, capture order
         announces = 0
-        for tx in sorted(self.images.values(), key=lambda t: t.time):
+        for tx in sorted(self.images.values(), key=lambda t: (getattr(t, "crop", None) is None, t.time)):
             if announces >= self.max_announces:
                 break
             due = tx.announced_at is None or (not tx.heard and now - tx.announced_at >= self.rto)
@@ -408,7 +445,7 @@ class ImagerySender(ModalitySender):
     def acked(self, message: Message, now: float) -> None:
         """A frame that carried a fragment arrived: its bytes are held topside (the ImageAck
         that follows says the same; this is only sooner). An announcement that arrived is heard."""
-        if isinstance(message, ImageAnnounce):
+        if isinstance(message, ImageAnnounce | ImageCrop):
             tx = self.images.get(message.image_id)
             if tx is not None:
                 tx.heard = True
@@ -423,7 +460,7 @@ class ImagerySender(ModalitySender):
     def lost(self, message: Message, now: float) -> None:
         """No frame that carried a fragment arrived: its bytes not held are due again at once
         (instead of after ``rto``). A lost announcement goes again at once."""
-        if isinstance(message, ImageAnnounce):
+        if isinstance(message, ImageAnnounce | ImageCrop):
             tx = self.images.get(message.image_id)
             if tx is not None and not tx.heard:
                 tx.announced_at = None
@@ -551,7 +588,7 @@ class ImagerySender(ModalitySender):
         if isinstance(message, ImageByTimeRequest):
             return self._by_time(message, now)
         if isinstance(message, ImageRegionRequest):
-            return self._region(message)
+            return self._region(message, now)
         raise RequestRejected(f"imagery sender does not handle {type(message).__name__}")
 
     def _tx(self, image_id: int) -> _Tx:
@@ -591,10 +628,16 @@ class ImagerySender(ModalitySender):
         self._progress_dirty = True
         return [CommandAck(msg.command_id, AckStatus.ACCEPTED)]
 
-    def _region(self, msg: ImageRegionRequest) -> list[Message]:
-        """Add the packets of the precincts covering the region, up to its goal, to what the
-        image is to deliver (packets topside holds are not sent again); serve it first."""
+    def _region(self, msg: ImageRegionRequest, now: float) -> list[Message]:
+        """Serve a region request first, the cheaper of two ways (option ``crops``): the packets
+        of the precincts covering the region, up to its goal, beyond what topside holds; or a
+        crop, the region coded on its own as the difference to what topside shows of it
+        (:meth:`_crop_for`), sent as an image of its own (``ImageCrop``)."""
         tx = self._tx(msg.image_id)
+        crop_of = getattr(tx, "crop", None)
+        if crop_of is not None:
+            raise RequestRejected(f"image {msg.image_id} is a crop of image {crop_of.parent}: ask for a region of "
+                                  "that image")
         enc = tx.enc
         sp = enc.stream
         if not sp.precincts:
@@ -607,36 +650,154 @@ class ImagerySender(ModalitySender):
         inside = region_packets(sp, enc.width, enc.height, box)
         layer = packet_layers(enc)
         starts = enc.packet_starts
+        sizes = np.append(starts[1:], tx.total) - starts
         held = self._held_packets(tx)
         kind = RegionGoal(msg.kind)
+        target: float | None = None  # the PSNR the region is to reach (None: a byte budget)
+        everything = np.ones(len(held), bool)
         if kind == RegionGoal.LAYER:
             if not 1 <= msg.value <= sp.layers:
                 raise RequestRejected(f"layer {msg.value} outside 1..{sp.layers}")
             chosen = inside & (layer < msg.value)
+            target = self._box_psnr(tx, layer < msg.value, box)
+            prefix = self._fewest(tx, everything, held, box, target)
         elif kind == RegionGoal.BYTES:
             if msg.value < 1:
                 raise RequestRejected("a byte budget of 0")
-            sizes = np.append(starts[1:], tx.total) - starts
-            cost = np.where(inside & ~held, sizes, 0)
-            within = np.cumsum(cost) <= msg.value
-            chosen = inside & (held | within)
+            chosen = _within(inside, held, sizes, msg.value)
+            prefix = _within(everything, held, sizes, msg.value)
         else:
             if not 100 <= msg.value <= 600:
                 raise RequestRejected(f"quality {msg.value / 10:.1f} dB outside 10..60 dB")
-            chosen = self._region_quality(tx, inside, held, layer, box, msg.value / 10)
-        chosen = _bridge(chosen, held, np.append(starts[1:], tx.total) - starts)
-        mask = np.zeros(tx.total, bool)
-        for i in np.flatnonzero(chosen & ~held):
-            mask[int(starts[i]):packet_end(starts, tx.total, int(i))] = True
-        cur = getattr(tx, "region", None)
-        tx.region = mask if cur is None else (cur | mask)
-        sends = _sends(tx)
-        sends[mask] = np.where(tx.acked[mask], sends[mask], 0)
+            target = msg.value / 10
+            chosen = self._fewest(tx, inside, held, box, target)
+            prefix = self._fewest(tx, everything, held, box, target)
+        # the region's packets (small gaps bridged), or the image's next packets in codestream
+        # order until the region is there: on a soft image these cost less than the region's
+        # own packets with their fragment headers and packet marks
+        ways = [self._way(tx, _bridge(chosen, held, sizes), held, box)]
+        if self.crops != "never":
+            ways.append(self._way(tx, prefix, held, box))
+        mask, reached, cost = min(ways, key=lambda w: (
+            (w[1] < target, w[2]) if target is not None else (-w[1], w[2])))  # reach the goal, fewest bytes
+        crop = None
+        if self.crops != "never" and (mask.any() or (target is not None and reached < target)):
+            crop = self._crop_for(tx, box, msg, target, cost, reached)
         self._request_counter += 1
-        tx.explicit = self._request_counter
-        tx.announced_at = None if not tx.heard else tx.announced_at
+        if crop is not None:
+            crop_enc, crop_of = crop
+            ctx = _Tx(self._new_id(), crop_enc, now, tx.x, tx.y, len(crop_enc.body))
+            ctx.crop = crop_of
+            ctx.explicit = self._request_counter
+            self.images[ctx.image_id] = ctx
+        else:
+            cur = getattr(tx, "region", None)
+            tx.region = mask if cur is None else (cur | mask)
+            sends = _sends(tx)
+            sends[mask] = np.where(tx.acked[mask], sends[mask], 0)
+            tx.explicit = self._request_counter
+            tx.announced_at = None if not tx.heard else tx.announced_at
         self._progress_dirty = True
         return [CommandAck(msg.command_id, AckStatus.ACCEPTED)]
+
+    def _crop_for(self, tx: _Tx, box: tuple[int, int, int, int], msg: ImageRegionRequest, target: float | None,
+                  packets_cost: int, reached: float) -> tuple[Encoded, CropOf] | None:
+        """A crop of ``box`` for this request when it is the cheaper way (or when ``crops`` is
+        ``always``), else None. The crop codes the box's difference to what topside shows of it
+        from the longest prefix of the image's packets it acknowledged (``base``; nothing: mid-
+        grey), so that nothing topside holds is sent again (spec/payloads.md 3.7), to
+        ``target`` dB inside the box, or within the byte budget. The packets' way (``mask``,
+        reaching ``reached`` dB) and the crop's are compared by their bytes on the wire (body,
+        fragment headers and packet marks; the crop's announcement), or for a budget by the
+        quality each brings."""
+        enc = tx.enc
+        x0, y0, x1, y1 = box
+        if min(x1 - x0, y1 - y0) < 8:
+            return None  # too small to be coded on its own
+        original = enc.image[y0:y1, x0:x1]
+        held = self._held_packets(tx)
+        prefix = int(np.argmin(held)) if not held.all() else len(held)
+        if target is not None:
+            cp = CodingParams(progression="LRCP", resolutions=self.coding.resolutions,
+                              irreversible=self.coding.irreversible, grey=enc.grey, precincts=0,
+                              layer_psnr=(float(target),))
+        else:
+            cp = CodingParams(progression="LRCP", resolutions=self.coding.resolutions,
+                              irreversible=self.coding.irreversible, grey=enc.grey, precincts=0,
+                              layer_bytes=(int(msg.value),), layer_psnr=())
+        # the difference to what topside holds (the acknowledged prefix of the image's packets),
+        # and the region from nothing: what topside holds does not always make the region
+        # cheaper (the base's own coding errors are detail to code again), so both are measured
+        best: tuple[tuple[float, float], Encoded, int, float, float] | None = None
+        for base in sorted({prefix, 0}, reverse=True):
+            base_box = self._decoded(tx, np.arange(len(held)) < base)[y0:y1, x0:x1]
+            try:
+                cenc = encode_residual(original, base_box, cp)
+                shown = add_residual(base_box, decode_packets(cenc.params, cenc.width, cenc.height, _packets(cenc)))
+            except CoexError:
+                continue
+            q = psnr(shown, original)
+            if target is not None and q < target:
+                continue  # this way cannot reach the goal (beyond the quality cap)
+            # a goal in dB: the fewest bytes; a budget: the most quality
+            key = (float(len(cenc.body)), -q) if target is not None else (-q, float(len(cenc.body)))
+            if best is None or key < best[0]:
+                best = (key, cenc, base, q, psnr(base_box, original))
+        if best is None:
+            return None
+        _key, cenc, base, q, base_psnr = best
+        if self.crops == "auto":
+            if target is None:
+                if q <= reached:
+                    return None  # within the budget, the packets bring more
+            elif reached >= target:
+                crop_bytes = len(cenc.body) + encoded_size(self._crop_message(tx, cenc, box, msg, base, 0)) + \
+                    fragment_size(0, 0)
+                if crop_bytes >= packets_cost:
+                    return None
+        layer = packet_layers(enc)
+        cover = 0
+        for k in range(1, enc.stream.layers + 1):
+            if self._box_psnr(tx, layer < k, box) <= q:
+                cover = k
+        return cenc, CropOf(tx.image_id, box, msg.command_id, base, cover, round(q, 3), round(base_psnr, 3))
+
+    @staticmethod
+    def _crop_message(tx: _Tx, cenc: Encoded, box: tuple[int, int, int, int], msg: ImageRegionRequest,
+                      base: int, cover: int) -> ImageCrop:
+        return ImageCrop(0, tx.image_id, msg.command_id, *box, len(cenc.body), cenc.params, base, cover)
+
+    def _wire_estimate(self, tx: _Tx, mask: npt.NDArray[np.bool_]) -> int:
+        """Wire bytes of sending the bytes of ``mask`` (at least): the bytes, a fragment header
+        per run and the packet marks of runs after a gap (see :meth:`_marked`)."""
+        if not mask.any():
+            return 0
+        edges = np.diff(mask.astype(np.int8), prepend=0, append=0)
+        runs = zip(np.flatnonzero(edges == 1), np.flatnonzero(edges == -1), strict=True)
+        starts = tx.enc.packet_starts
+        total = int(mask.sum())
+        before = tx.acked | mask
+        for run_start, run_end in runs:
+            s, e = int(run_start), int(run_end)
+            total += fragment_size(0, 0, s)
+            if not bool(before[:s].all()):
+                lo, hi = np.searchsorted(starts, [s, e])
+                total += fragment_size(int(hi - lo) + 1, 0, s) - fragment_size(0, 0, s)
+        return total
+
+    @staticmethod
+    def _decoded(tx: _Tx, sel: npt.NDArray[np.bool_]) -> npt.NDArray[np.uint8]:
+        """The image decoded from the packets ``sel`` (the receiver's rule, spec/payloads.md 3.4)."""
+        enc = tx.enc
+        starts = enc.packet_starts
+        pk: list[bytes | None] = [enc.body[int(s):packet_end(starts, tx.total, i)] if sel[i] else None
+                                  for i, s in enumerate(starts)]
+        return decode_packets(enc.params, enc.width, enc.height, pk)
+
+    def _box_psnr(self, tx: _Tx, sel: npt.NDArray[np.bool_], box: tuple[int, int, int, int]) -> float:
+        """PSNR inside ``box`` of the image decoded from the packets ``sel``, against the original."""
+        x0, y0, x1, y1 = box
+        return psnr(self._decoded(tx, sel)[y0:y1, x0:x1], tx.enc.image[y0:y1, x0:x1])
 
     @staticmethod
     def _held_packets(tx: _Tx) -> npt.NDArray[np.bool_]:
@@ -647,19 +808,13 @@ class ImagerySender(ModalitySender):
         out: npt.NDArray[np.bool_] = (cum[ends] - cum[starts]) == (ends - starts)
         return out
 
-    @staticmethod
-    def _region_quality(tx: _Tx, inside: npt.NDArray[np.bool_], held: npt.NDArray[np.bool_],
-                        layer: npt.NDArray[np.int64], box: tuple[int, int, int, int],
-                        target: float) -> npt.NDArray[np.bool_]:
-        """The fewest of the region's packets, in codestream order (whole packets, so a layer may
-        be taken in part, lowest resolutions first), whose decode with what topside holds reaches
-        ``target`` dB PSNR inside the region, measured against the original (all of them when
-        none does). Bisection on the count: a few decodes."""
-        enc = tx.enc
-        x0, y0, x1, y1 = box
-        ref = enc.image[y0:y1, x0:x1]
-        starts = enc.packet_starts
-        todo = np.flatnonzero(inside & ~held)
+    def _fewest(self, tx: _Tx, candidates: npt.NDArray[np.bool_], held: npt.NDArray[np.bool_],
+                box: tuple[int, int, int, int], target: float) -> npt.NDArray[np.bool_]:
+        """What topside holds and the fewest of the ``candidates`` packets not held, in codestream
+        order (whole packets, so a layer may be taken in part, lowest resolutions first), whose
+        decode reaches ``target`` dB PSNR inside the box, measured against the original (all of
+        them when none does). Bisection on the count: a few decodes."""
+        todo = np.flatnonzero(candidates & ~held)
 
         def chosen(k: int) -> npt.NDArray[np.bool_]:
             out = held.copy()
@@ -667,11 +822,7 @@ class ImagerySender(ModalitySender):
             return out
 
         def quality(k: int) -> float:
-            sel = chosen(k)
-            pk: list[bytes | None] = [enc.body[int(s):packet_end(starts, tx.total, i)] if sel[i] else None
-                                      for i, s in enumerate(starts)]
-            img = decode_packets(enc.params, enc.width, enc.height, pk)
-            return psnr(img[y0:y1, x0:x1], ref)
+            return self._box_psnr(tx, chosen(k), box)
 
         lo, hi = 0, len(todo)
         if quality(hi) < target:
@@ -686,12 +837,26 @@ class ImagerySender(ModalitySender):
                 lo = mid
         return chosen(hi)
 
+    def _way(self, tx: _Tx, chosen: npt.NDArray[np.bool_], held: npt.NDArray[np.bool_],
+             box: tuple[int, int, int, int]) -> tuple[npt.NDArray[np.bool_], float, int]:
+        """Sending the packets ``chosen`` not held: the bytes (mask), the PSNR the box then has,
+        the wire bytes (estimated)."""
+        starts = tx.enc.packet_starts
+        mask = np.zeros(tx.total, bool)
+        for i in np.flatnonzero(chosen & ~held):
+            mask[int(starts[i]):packet_end(starts, tx.total, int(i))] = True
+        return mask, self._box_psnr(tx, chosen | held, box), self._wire_estimate(tx, mask)
+
+    def _pictures(self) -> list[_Tx]:
+        """The images captured (not the crops made of them)."""
+        return [tx for tx in self.images.values() if getattr(tx, "crop", None) is None]
+
     def find(self, stamp: int, direction: TimeDirection, now: float) -> _Tx | None:
         """The image nearest the time of ``stamp``, or the last one before / first one after it."""
-        if not self.images:
+        txs = self._pictures()
+        if not txs:
             return None
         t = unwrap(stamp, now)
-        txs = list(self.images.values())
         times = np.array([tx.time for tx in txs])
         if direction == TimeDirection.NEAREST:
             return txs[int(np.argmin(np.abs(times - t)))]
@@ -704,7 +869,7 @@ class ImagerySender(ModalitySender):
     def _by_time(self, msg: ImageByTimeRequest, now: float) -> list[Message]:
         direction = TimeDirection(msg.direction)
         t = unwrap(msg.stamp, now)
-        newest = max((tx.time for tx in self.images.values()), default=-math.inf)
+        newest = max((tx.time for tx in self._pictures()), default=-math.inf)
         if direction != TimeDirection.BEFORE and t > newest + 0.5:
             # a time not captured yet: the request stands until an image of that time exists
             if len(self._standing) >= self.max_standing:
@@ -727,7 +892,7 @@ class ImagerySender(ModalitySender):
         out: list[Message] = []
         for cid, (msg, expires) in list(self._standing.items()):
             t = unwrap(msg.stamp, now)
-            later = [tx for tx in self.images.values()
+            later = [tx for tx in self._pictures()
                      if tx.time >= t - 0.5 and (msg.direction != TimeDirection.AFTER or tx.time > t + 0.5)]
             if later:
                 self._serve(min(later, key=lambda tx: tx.time))
@@ -771,12 +936,28 @@ def _bridge(chosen: npt.NDArray[np.bool_], held: npt.NDArray[np.bool_],
     return out
 
 
+def _within(candidates: npt.NDArray[np.bool_], held: npt.NDArray[np.bool_], sizes: npt.NDArray[np.int64],
+            budget: int) -> npt.NDArray[np.bool_]:
+    """What topside holds and the ``candidates`` packets not held, in codestream order, while
+    their bytes total at most ``budget``."""
+    cost = np.where(candidates & ~held, sizes, 0)
+    out: npt.NDArray[np.bool_] = held | (candidates & (np.cumsum(cost) <= budget))
+    return out
+
+
 def packet_layers(enc: Encoded) -> npt.NDArray[np.int64]:
     """The quality layer of each packet of ``enc``, in codestream order."""
     from .codec import packet_order
 
     out: npt.NDArray[np.int64] = packet_order(enc.stream, enc.width, enc.height)[:, 0]
     return out
+
+
+def _packets(enc: Encoded) -> list[bytes | None]:
+    """Every packet of ``enc``'s body."""
+    from .codec import split_packets
+
+    return split_packets(enc.body, enc.packet_starts)
 
 
 def _sends(tx: _Tx) -> npt.NDArray[np.uint8]:

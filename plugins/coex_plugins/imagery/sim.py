@@ -171,8 +171,9 @@ class Transfer:
 class RegionRun:
     """What :func:`region_transfer` did: the transfer, both sides, the image id, the vehicle-to-
     ship wire bytes before the request (``base_bytes``) and after it (``region_bytes``), what
-    topside showed before and after (None: nothing decodable), the request and the region's
-    entry in the image product (``state``, ``layers_complete`` ...)."""
+    topside showed before and after (None: nothing decodable), the request, the region's entry
+    in the image product (``state``, ``served``, ``layers_complete`` ...) and the crop that
+    answered it, if the vehicle made one."""
 
     transfer: Transfer
     sender: Any
@@ -184,25 +185,34 @@ class RegionRun:
     after: Any
     request: Message
     region: dict[str, Any]
+    #: the vehicle's crop answering the request (its ``enc`` and ``crop``), None when it sent
+    #: the region's packets
+    crop: Any = None
+    #: of ``region_bytes``, the frames that carried only the vehicle's answers (``CommandAck``),
+    #: and the ``TransferProgress`` reports, which a request for more of the whole image would
+    #: cost as well
+    answer_bytes: int = 0
+    progress_bytes: int = 0
 
 
 def region_transfer(image: Any, box: tuple[int, int, int, int], kind: str = "quality", value: float = 30.0, *,
                     mtu: int = 64, base: str = "none", loss: float = 0.0, seed: int = 0,
-                    max_rounds: int = 20000) -> RegionRun:
+                    max_rounds: int = 20000, sender_config: dict[str, Any] | None = None) -> RegionRun:
     """Send one image to its ``base`` goal over a simulated link of ``mtu``-byte frames (each
     lost with probability ``loss`` both ways, seeded), then ask for the rectangle ``box`` at a
     goal with one ``ImageRegionRequest`` and run until the vehicle answered and, when it
-    accepted, has nothing more to send. Raises ``ConfigError`` for an absurd request (before it
-    is sent) and ``TimeoutError`` after ``max_rounds`` rounds of either phase."""
-    from coex_core.messages import AckStatus, CommandAck
+    accepted, has nothing more to send. ``sender_config`` adds sender options (``crops``
+    ...). Raises ``ConfigError`` for an absurd request (before it is sent) and
+    ``TimeoutError`` after ``max_rounds`` rounds of either phase."""
+    from coex_core.messages import AckStatus, CommandAck, TransferProgress
 
     from . import ImageInput, ImageryModality
 
     modality = ImageryModality()
-    sender = modality.sender({"default_goal": base, "progress_interval": 1e9})
+    sender = modality.sender({"default_goal": base, "progress_interval": 1e9, **(sender_config or {})})
     receiver = modality.receiver({"max_ack_bytes": min(81, mtu - wire.header_size())})
     sender.ingest(ImageInput(image, time=0.0), 0.0)
-    (image_id, tx), = sender.images.items()
+    (image_id, _tx), = sender.images.items()
     t = Transfer(sender, receiver, mtu=mtu, down=Bernoulli(loss, seed), up=Bernoulli(loss, seed + 1))
     t.run(lambda: image_id in receiver.images and not sender.order(), max_rounds)
     t.step()  # the last acks
@@ -218,9 +228,18 @@ def region_transfer(image: Any, box: tuple[int, int, int, int], kind: str = "qua
         return next((e.message for e in t.events[start:] if e.direction == "down" and not e.lost
                      and isinstance(e.message, CommandAck) and e.message.command_id == request.command_id), None)
 
-    t.run(lambda: (a := answered()) is not None and (a.status != AckStatus.ACCEPTED or (
-        tx.region is not None and not sender.order())), max_rounds)
+    t.run(lambda: (a := answered()) is not None and (a.status != AckStatus.ACCEPTED or not sender.order()),
+          max_rounds)
     t.step()
-    product = next(p for p in receiver.products() if p.meta.get("image_id") == image_id)
+    product = next(p for p in receiver.products() if p.kind == "image" and p.meta.get("image_id") == image_id)
+    crop = next((c for c in sender.images.values() if (o := getattr(c, "crop", None)) is not None
+                 and o.parent == image_id and o.command_id == request.command_id), None)
+    frames: dict[int, list[WireEvent]] = {}
+    for e in t.events[start:]:
+        if e.direction == "down":
+            frames.setdefault(e.frame, []).append(e)
+    answers = sum(wire.header_size() + sum(e.size for e in es) for es in frames.values()
+                  if all(isinstance(e.message, CommandAck) for e in es))
+    progress = sum(e.size for es in frames.values() for e in es if isinstance(e.message, TransferProgress))
     return RegionRun(t, sender, receiver, image_id, base_bytes, down() - base_bytes, before,
-                     receiver.image(image_id), request, product.meta["regions"][-1])
+                     receiver.image(image_id), request, product.meta["regions"][-1], crop, answers, progress)

@@ -1013,6 +1013,9 @@ const REGION_UNIT = { quality: "dB", bytes: "bytes", layer: "layers" };
 function viewerItem() { return S.images && S.images.items.find((i) => i.image_id === viewer.id); }
 function regionState(r) {
   let s = r.state;
+  // served as a crop: the parent's layers say little about the region (the crop is coded to the goal)
+  if (r.served === "crop" && r.crop && r.state !== "rejected")
+    return s + (r.crop.complete ? " · crop" : " · crop arriving");
   if (r.layers_complete !== null && r.layers_complete !== undefined && r.state !== "rejected")
     s += ` · ${r.layers_complete} of ${r.layers ?? "?"} layers`;
   return s;
@@ -1117,9 +1120,20 @@ function showRegionTool(it) {
   const regs = it.regions || [];
   $("#region-list").replaceChildren(...regs.map((r, k) => {
     const [x0, y0, x1, y1] = r.box;
-    const li = el("li", { "data-state": r.state, value: k + 1 },
+    const li = el("li", { "data-state": r.state, value: k + 1, "data-served": r.served || "" },
       `${x0}..${x1} × ${y0}..${y1} px to ${regionGoal(r)}: `, el("b", { class: `st-${r.state}` }, regionState(r)));
     if (r.reason) li.append(el("span", { class: "why" }, r.reason));
+    const c = r.crop;
+    if (r.served === "crop" && c) {
+      // served as a crop: the region coded on its own, pasted over the picture; shown here too
+      const bytes = `${fmtBytes(c.held_bytes)} of ${fmtBytes(c.total_bytes)}`;
+      li.append(el("span", { class: "served" }, `crop ${c.width} × ${c.height} px · ${bytes}`
+        + (c.complete ? "" : " so far") + (c.shown ? " · shown over the picture" : " · the picture is as good there")));
+      if (c.png) li.append(el("img", { class: "region-crop", src: c.png, alt: `crop of region ${k + 1}`,
+        title: `what the crop shows of ${x0}..${x1} × ${y0}..${y1} px (${bytes})` }));
+    } else if (r.served === "packets") {
+      li.append(el("span", { class: "served" }, `the picture's own packets · ${fmtBytes(r.bytes ?? 0)}`));
+    }
     return li;
   }));
 }
