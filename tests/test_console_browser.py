@@ -1151,7 +1151,7 @@ def test_survey_outcomes_read_apart_with_their_history_in_the_vehicles_order(bro
         assert "heading for waypoint 0" in lines[2] and "heading for waypoint 1" in lines[3], lines
 
         # sixty drops: one counted line, and the events that matter still listed
-        page.wait_for_function("document.querySelector('#log').textContent.includes('60 dropped')", timeout=10_000)
+        page.wait_for_function("document.querySelector('#log').textContent.includes('60 dropped')", timeout=30_000)
         log = page.eval_on_selector_all("#log li", "els => els.map(e => e.textContent)")
         drops = [ln for ln in log if "stream 2:" in ln]
         assert len(drops) == 1 and "stream 2: 60 dropped (superseded) in 4 min 55 s" in drops[0], drops

@@ -379,7 +379,7 @@ def test_topside_products_appear_on_ros_topics(roscore: Roscore, tmp_path: Path)
             f(events)
         want = {"sensor_msgs/PointCloud2", "nav_msgs/OccupancyGrid", "sensor_msgs/Image", "nav_msgs/Odometry",
                 "nav_msgs/Path"}
-        _wait("every product on its topic", lambda: {e["type"] for e in lines.find(event="message")} >= want, 30)
+        _wait("every product on its topic", lambda: {e["type"] for e in lines.find(event="message")} >= want, 90)
         [cloud] = lines.find(type="sensor_msgs/PointCloud2")[:1]
         assert cloud["points"] == 3 and cloud["z"] == [-31.0, -28.0] and cloud["frame"] == "coex_local"
         [grid] = lines.find(type="nav_msgs/OccupancyGrid")[:1]
