@@ -216,6 +216,19 @@ class MavlinkInputFixtures(InputFixtures):
         yield send
         conn.close()
 
+    @pytest.fixture
+    def feed_bad(self, port: int) -> Iterator[Callable[[Input], Any]]:
+        # a MAVLink 2 frame whose checksum is wrong (pymavlink reads it as BAD_DATA)
+        sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+
+        def send(_: Input) -> None:
+            for _k in range(3):
+                sock.sendto(bytes([0xFD, 9, 0, 0, 7, 1, 1, 0, 0, 0]) + bytes(9) + b"\xde\xad", ("127.0.0.1", port))
+                time.sleep(0.05)
+
+        yield send
+        sock.close()
+
 
 class TestMavlinkInput(InputTests, MavlinkInputFixtures):
     pass
