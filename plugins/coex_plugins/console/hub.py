@@ -162,6 +162,10 @@ class ConsoleHub:
                 return {}
         if coalesce > 0:
             time.sleep(coalesce)
+        return self.changes_since(seen)
+
+    def changes_since(self, seen: dict[str, Any]) -> dict[str, Any]:
+        """The sections changed since ``seen`` (no waiting); updates ``seen``."""
         with self.lock:
             out = self.state.changes(seen)
             seen.update({k: self.state.versions[k] for k in out})

@@ -81,7 +81,7 @@ MAP_BLOCKS = 4096
 #: The regions of an image the images section lists and the page draws (the newest).
 MAX_IMAGE_REGIONS = 12
 #: The largest picture of what is on screen (``/map/<level>/window.png``), in pixels.
-MAP_WINDOW_CELLS = 8 * 1024 * 1024
+MAP_WINDOW_CELLS = 4 * 1024 * 1024
 
 
 FloatArray = npt.NDArray[np.float64]
@@ -592,20 +592,23 @@ class ConsoleState:
         return z, float(p.meta["x0"]), float(p.meta["y0"]), float(p.meta["cell_size"])
 
     def map_window_job(self, level: int, x0: float, y0: float, x1: float, y1: float,
-                       step: int = 1) -> Callable[[], bytes] | None:
+                       step: int = 1, max_pixels: int = MAP_WINDOW_CELLS) -> Callable[[], bytes] | None:
         """What is on screen of a big level, finer than its drawn overview: a job rendering
         ``[x0, x1) x [y0, y1)`` (metres) at ``step`` level cells per pixel as a PNG (north up),
         read from the receiver's tiles now (call it holding the node's lock; the job may run
-        without). None if nothing of the level is held or the picture would exceed
-        :data:`MAP_WINDOW_CELLS` pixels."""
+        without). None if nothing of the level is held; :class:`RequestRejected` if the picture
+        would exceed ``max_pixels`` pixels (:data:`MAP_WINDOW_CELLS` unless told)."""
         rx = self.map_receiver
         geometry = rx.geometry(level) if rx is not None else None
         if geometry is None or level not in rx.levels() or step < 1 or not x1 > x0 or not y1 > y0:
             return None
         span = geometry[0] * step
         cells = math.ceil((x1 - x0) / span - 1e-9) * math.ceil((y1 - y0) / span - 1e-9)
-        if not 0 < cells <= MAP_WINDOW_CELLS:
+        if cells <= 0:
             return None
+        if cells > max_pixels:
+            raise RequestRejected(f"a map window of {cells} pixels is larger than the {max_pixels} "
+                                  "allowed: ask for a smaller area or a larger step")
         z, (_, _, cell) = rx.window(level, x0, y0, x1, y1, max_cells=cells)
         lo, hi = self._zrange or (0.0, 1.0)
         return lambda: png_bytes(elevation_rgb(z, lo, hi, cell))

@@ -10,6 +10,7 @@ const el = (tag, attrs = {}, ...kids) => {
   for (const [k, v] of Object.entries(attrs)) {
     if (k === "class") e.className = v;
     else if (k.startsWith("on")) e.addEventListener(k.slice(2), v);
+    else if (k === "style") e.style.cssText = v;  // CSSOM: allowed by the page's CSP (no inline styles)
     else e.setAttribute(k, v);
   }
   for (const k of kids) e.append(k instanceof Node ? k : document.createTextNode(String(k)));
@@ -1785,6 +1786,13 @@ function connect() {
     S.now = JSON.parse(ev.data).now;
     showClock();
     renderVehicle(); drawTdma(); drawAllPlots();
+  });
+  // the server ends the stream when the session ends (signed out, expired, removed from the
+  // operators file, new password) and says when the person's role changed (made a viewer)
+  es.addEventListener("session", (ev) => {
+    const s = JSON.parse(ev.data);
+    if (s.ended) { es.close(); location.href = "/login"; return; }
+    whoami();
   });
   es.onopen = () => { pageConnected = true; showConn(); window.coex.connected = true; };
   es.onerror = () => { pageConnected = false; showConn(); window.coex.connected = false; };
