@@ -1723,14 +1723,15 @@ class ConsoleActions:
         return regions
 
     # ---------------------------------------------------------------------- surveys
-    def survey(self, kind: str, x: float, y: float, *, heading: float | None = None,
+    def survey(self, kind: str, x: float | None = None, y: float | None = None, *, heading: float | None = None,
                length: float | None = None, width: float | None = None,
                spacing: float | None = None, altitude: float | None = None,
                depth: float | None = None, speed: float | None = None, append: bool = False,
                points: Sequence[Sequence[float]] = ()) -> m.SurveyCommand:
         """Ask the vehicle to survey (``kind`` ``goto``, ``line``, ``lawnmower`` or
         ``waypoints``; ``x``, ``y`` metres east/north of the origin; a lawnmower is centred on
-        them with its rows along ``heading``) through the node's survey receiver, which sends the
+        them with its rows along ``heading``; waypoints fly ``x``, ``y`` then ``points``, or
+        with no ``x``, ``y`` all of ``points``) through the node's survey receiver, which sends the
         ``SurveyCommand``, re-sends it until answered and follows the survey's state. Returns
         the command (sent at the node's next poll)."""
         rx = self.state.survey_receiver
@@ -1748,16 +1749,21 @@ class ConsoleActions:
             if not math.isfinite(f):
                 raise RequestRejected(f"survey {name} must be a finite number, not {v!r}")
             nums[name] = f
-        if nums["x"] is None or nums["y"] is None:
-            raise RequestRejected("a survey needs x and y (metres east and north of the origin)")
         if nums["altitude"] is not None and nums["depth"] is not None:
             raise RequestRejected("give an altitude or a depth, not both")
+        if isinstance(points, str | bytes) or not isinstance(points, Sequence):
+            raise RequestRejected("survey points are a list of [x, y] pairs (metres)")
         try:
             pts = [(float(p[0]), float(p[1])) for p in points or ()]
         except (TypeError, ValueError, IndexError, KeyError):
             raise RequestRejected("survey points are [x, y] pairs (metres)") from None
         if not all(math.isfinite(a) and math.isfinite(b) for a, b in pts):
             raise RequestRejected("survey points must be finite numbers")
+        if nums["x"] is None and nums["y"] is None and pts and str(kind).lower() == "waypoints":
+            (nums["x"], nums["y"]), pts = pts[0], pts[1:]  # the waypoint form: every point in points
+        if nums["x"] is None or nums["y"] is None:
+            raise RequestRejected("a survey needs x and y (metres east and north of the origin; for "
+                                  "waypoints, or the first of at least one [x, y] in points)")
         now = self.clock()
         # the receiver checks the kind, the fields the kind needs and their wire ranges
         cmd = rx.request(str(kind), nums["x"], nums["y"], now, heading=nums["heading"],
@@ -1981,23 +1987,36 @@ class ConsoleActions:
         ``image_by_time``, ``image_region``, ``refine_series``, ``queue_config``, ``link_control``,
         ``spare_config``, ``propose_schedule``, ``survey``) with keyword ``args``; returns the
         messages sent."""
-        fn = {
-            "survey": self.survey,
-            "request_region": self.request_region, "set_image_goal": self.set_image_goal,
-            "image_by_time": self.image_by_time, "image_region": self.image_region,
-            "refine_series": self.refine_series,
-            "queue_config": self.queue_config, "link_control": self.link_control,
-            "spare_config": self.spare_config, "propose_schedule": self.propose_schedule,
-        }.get(action)
+        fn = getattr(self, action) if action in ACTIONS else None
         if fn is None:
-            raise RequestRejected(f"unknown action {action!r}")
+            raise RequestRejected(f"unknown action {action!r} (one of {', '.join(sorted(ACTIONS))})")
+        _check_arguments(action, fn, args)
         self.state.actor = str(operator)  # recorded with every command this action sends
         try:
             result = fn(**dict(args))  # type: ignore[operator]
-        except TypeError as exc:
-            raise RequestRejected(f"bad arguments for {action}: {exc}") from None
+        except TypeError as exc:  # a value of the wrong kind (a list for a number ...)
+            raise RequestRejected(f"bad value for {action}: {exc}") from None
         except (ValueError, OverflowError) as exc:
             raise RequestRejected(f"bad value for {action}: {exc}") from None
         finally:
             self.state.actor = ""
         return list(result) if isinstance(result, list) else [result]
+
+
+#: the actions of ``POST /api/action`` (:meth:`ConsoleActions.dispatch`; docs/console.md)
+ACTIONS = ("request_region", "survey", "set_image_goal", "image_by_time", "image_region", "refine_series",
+           "queue_config", "link_control", "spare_config", "propose_schedule")
+
+
+def _check_arguments(action: str, fn: Callable[..., Any], args: Mapping[str, Any]) -> None:
+    """:class:`RequestRejected` naming an argument ``fn`` does not take or one it needs."""
+    import inspect
+
+    params = inspect.signature(fn).parameters
+    takes = ", ".join(params)
+    for name in args:
+        if name not in params:
+            raise RequestRejected(f"{action} has no argument {name!r} (it takes {takes})")
+    missing = [n for n, p in params.items() if p.default is inspect.Parameter.empty and n not in args]
+    if missing:
+        raise RequestRejected(f"{action} needs {', '.join(missing)} (it takes {takes})")
