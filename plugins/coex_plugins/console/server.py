@@ -726,7 +726,8 @@ def serve(target: Any, host: str = "127.0.0.1", port: int = 8080, *,
           stream_names: dict[int, str] | None = None,
           access: Access | None = None, tls: ssl.SSLContext | None = None,
           allowed_hosts: list[str] | tuple[str, ...] | None = None,
-          limits: Limits | None = None) -> ConsoleServer:
+          limits: Limits | None = None,
+          trusted_proxies: list[str] | tuple[str, ...] | None = None) -> ConsoleServer:
     """Serve the console in a background thread and return the running server (``server.url``,
     ``server.hub``, ``server.close()``). Port 0 picks a free port.
 
@@ -735,7 +736,9 @@ def serve(target: Any, host: str = "127.0.0.1", port: int = 8080, *,
     ``server.hub.lock`` while stepping it and call ``server.hub.pump(node, now)``), or a
     :class:`ConsoleState` (view only: actions are refused). ``stream_names`` names the
     vehicle's streams in the queue table (with a node). ``allowed_hosts`` adds names the
-    console answers to (:func:`default_hosts`); ``limits`` the bounds of :class:`Limits`."""
+    console answers to (:func:`default_hosts`); ``limits`` the bounds of :class:`Limits`;
+    ``trusted_proxies`` the addresses of reverse proxies whose ``X-Forwarded-For`` names the
+    client (none by default: the peer address is the client)."""
     if isinstance(target, ConsoleHub):
         hub = target
     elif isinstance(target, ConsoleState):
@@ -748,7 +751,7 @@ def serve(target: Any, host: str = "127.0.0.1", port: int = 8080, *,
         raise TypeError(f"serve() needs a ConsoleHub, Node or ConsoleState, "
                         f"got {type(target).__name__}")
     return ConsoleServer(hub, host, port, access=access, tls=tls, allowed_hosts=allowed_hosts,
-                         limits=limits).start()
+                         limits=limits, trusted_proxies=trusted_proxies).start()
 
 
 def tls_context(cert: str, key: str) -> ssl.SSLContext:
