@@ -486,3 +486,69 @@ def test_the_page_runs_under_its_content_security_policy() -> None:
                 b.close()
     finally:
         c.close()
+
+
+def test_the_sign_in_page_keeps_its_style_under_its_policy(console: Console) -> None:
+    from playwright import sync_api
+
+    from .test_console_browser import ARGS, CHROMIUM
+
+    with sync_api.sync_playwright() as p:
+        b = p.chromium.launch(executable_path=CHROMIUM, args=ARGS)
+        try:
+            page = b.new_page()
+            messages: list[str] = []
+            page.on("console", lambda msg: messages.append(msg.text))
+            page.goto(console.server.url + "login")
+            assert page.evaluate("getComputedStyle(document.body).backgroundColor") == "rgb(13, 27, 38)"
+            page.fill("#name", "vic")
+            page.fill("#password", PASSWORDS["vic"])
+            page.click("#signin")
+            deadline = time.monotonic() + 20
+            while time.monotonic() < deadline and not page.evaluate("!!(window.coex && window.coex.me)"):
+                time.sleep(0.1)
+            assert page.evaluate("window.coex.me.role") == "viewer"
+            assert not [t for t in messages if "Content Security Policy" in t], messages
+        finally:
+            b.close()
+
+
+def test_sigterm_stops_an_https_console_that_holds_an_idle_connection(operators: Path, tmp_path: Path) -> None:
+    """The old console ignored SIGTERM while a silent connection held its TLS handshake."""
+    import signal
+    import subprocess
+    import sys
+
+    cert, key = _certificate(tmp_path)
+    proc = subprocess.Popen([sys.executable, "-m", "coex_core.cli", "topside", "--transport", "loopback://sigterm",
+                             "--http", "127.0.0.1:0", "--operators", str(operators), "--tls-cert", cert,
+                             "--tls-key", key], stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True)
+    idle = None
+    try:
+        assert proc.stdout is not None
+        line = proc.stdout.readline()
+        port = int(line.split("https://127.0.0.1:")[1].split("/")[0])
+        idle = socket.create_connection(("127.0.0.1", port))
+        time.sleep(0.3)
+        t = time.monotonic()
+        proc.send_signal(signal.SIGTERM)
+        assert proc.wait(timeout=15) == 0
+        assert time.monotonic() - t < 10.0
+    finally:
+        if idle is not None:
+            idle.close()
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+
+
+def test_every_refusal_is_logged_with_who_and_why(console: Console, caplog: pytest.LogCaptureFixture) -> None:
+    caplog.set_level("INFO")
+    cookie, csrf = console.login("vic")
+    console.act(cookie, csrf)
+    console.request("POST", "/login", form={"name": "ana", "password": "not her password"})
+    console.request("GET", "/api/state", headers={"Host": "evil.example"})
+    text = caplog.text
+    assert "(vic): vic is a viewer: viewers cannot command" in text
+    assert "sign-in failed for 'ana' from 127.0.0.1: wrong name or password" in text
+    assert "'evil.example'" in text and "HTTP 400" in text
