@@ -9,7 +9,6 @@ import http.client
 import json
 import socket
 import ssl
-import threading
 import time
 import urllib.parse
 from collections.abc import Iterator
@@ -121,7 +120,7 @@ class Stream:
         """The next event (name, data), or None when the server ended the stream."""
         name, data = "", None
         while True:
-            line = self.response.fp.readline()
+            line = self.response.readline()  # the chunked body, decoded: b"" at its end
             if not line:
                 return None
             text = line.decode().rstrip("\r\n")
@@ -166,7 +165,7 @@ def test_an_idle_tls_connection_does_not_block_anyone(operators: Path, tmp_path:
         t = time.monotonic()
         code, h, body = c.request("GET", "/login")
         assert code == 200 and b'name="password"' in body
-        assert time.monotonic() - t < 3.0
+        assert time.monotonic() - t < 5.0
         assert h["strict-transport-security"].startswith("max-age=")  # HSTS under TLS
     finally:
         for s in idle:
@@ -193,7 +192,7 @@ def test_connections_beyond_the_cap_are_refused() -> None:
     c = Console(limits=Limits(connections=4, header_seconds=5.0))
     held = [socket.create_connection(("127.0.0.1", c.port)) for _ in range(4)]
     try:
-        time.sleep(0.2)
+        time.sleep(0.5)
         code, _, body = c.request("GET", "/api/state")
         assert code == 503, (code, body[:200])
     finally:
@@ -382,7 +381,15 @@ def test_the_command_rate_is_per_operator_not_per_session(operators: Path) -> No
 
 
 # ------------------------------------------------------------------ sign-in
-def test_parallel_guesses_cannot_pass_the_limit_nor_lock_the_operator_out(console: Console) -> None:
+def test_parallel_guesses_cannot_pass_the_limit_nor_lock_the_operator_out(operators: Path) -> None:
+    console = Console(operators, backoff=30.0)
+    try:
+        _guesses(console)
+    finally:
+        console.close()
+
+
+def _guesses(console: Console) -> None:
     def guess(k: int) -> int:
         return console.request("POST", "/login", form={"name": "ana", "password": f"wrong guess {k}"})[0]
 
@@ -413,12 +420,10 @@ def test_an_oversized_map_window_is_refused_with_the_reason(console: Console) ->
 
 def test_pictures_are_drawn_a_few_at_a_time_and_the_rest_refused() -> None:
     c = Console(limits=Limits(renders=1, render_queue=1))
-    drawing = threading.Semaphore(0)
     real = c.state.image_png
 
     def slow(iid: int, full: bool = False) -> bytes | None:
-        drawing.release()
-        time.sleep(1.0)
+        time.sleep(2.0)
         return real(iid, full)
 
     c.state.image_png = slow  # type: ignore[method-assign]

@@ -308,6 +308,13 @@ class Access:
         with self._checking:
             op = self.operators.verify(name, secret)
         if op is None:
+            done = self.clock()
+            with self._lock:  # the backoff runs from when the failure was known
+                for key in (pair, addr):
+                    fails = self._failures.get(key)
+                    if fails is not None and now in fails:
+                        fails.remove(now)
+                        fails.append(done)
             log.warning("console sign-in failed for %r from %s: wrong name or password", name, client)
             raise SignInRefused(401, "wrong name or password")
         now2 = self.clock()
