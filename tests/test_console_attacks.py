@@ -557,3 +557,28 @@ def test_every_refusal_is_logged_with_who_and_why(console: Console, caplog: pyte
     assert "(vic): vic is a viewer: viewers cannot command" in text
     assert "sign-in failed for 'ana' from 127.0.0.1: wrong name or password" in text
     assert "'evil.example'" in text and "HTTP 400" in text
+
+
+def test_event_streams_are_capped_and_a_closed_one_frees_its_place() -> None:
+    c = Console(limits=Limits(streams=2))
+    streams = [c.stream(), c.stream()]
+    try:
+        for s in streams:
+            assert s.next()[0] == "snapshot"  # type: ignore[index]
+        code, _, body = c.request("GET", "/api/events")
+        assert code == 429 and b"event streams are open" in body
+        streams.pop().close()
+        deadline = time.monotonic() + 5
+        while True:  # the server sees the browser leave at its next write (a tenth of a second)
+            conn = c.connection(timeout=5.0)
+            conn.request("GET", "/api/events")
+            status = conn.getresponse().status
+            conn.close()
+            if status == 200:
+                break
+            assert time.monotonic() < deadline, "the closed stream's place was not freed"
+            time.sleep(0.2)
+    finally:
+        for s in streams:
+            s.close()
+        c.close()

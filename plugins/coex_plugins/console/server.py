@@ -497,12 +497,12 @@ class _App:
                 return snap, seen, hub.state.now
 
         snap, seen, last_now = await run_in_threadpool(first)
-        self.streams += 1
 
         async def stream() -> AsyncIterator[str]:
             nonlocal last_now
             role = session.role
             last_clock = time.monotonic()
+            self.streams += 1  # counted here: a stream whose browser left before it began never runs
             try:
                 yield _event("snapshot", snap)
                 while not hub.closed and not self.server.stopping:
