@@ -569,7 +569,7 @@ def test_event_streams_are_capped_and_a_closed_one_frees_its_place() -> None:
         assert code == 429 and b"event streams are open" in body
         streams.pop().close()
         deadline = time.monotonic() + 5
-        while True:  # the server sees the browser leave at its next write (a tenth of a second)
+        while True:  # the server notices the browser leave (Starlette listens for the disconnect)
             conn = c.connection(timeout=5.0)
             conn.request("GET", "/api/events")
             status = conn.getresponse().status
