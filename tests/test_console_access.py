@@ -149,6 +149,10 @@ def test_coex_operators_add_list_remove(tmp_path: Path) -> None:
     r = coex("list")
     assert r.stdout.split() == ["ana", "operator", "vic", "viewer"]
     assert OperatorsFile(path).verify("ana", token) is not None
+    r = coex("role", "vic", "--role", "operator")  # a new role, the same password
+    assert r.returncode == 0 and coex("list").stdout.split() == ["ana", "operator", "vic", "operator"]
+    assert OperatorsFile(path).verify("vic", "viewer password 1") is not None
+    assert coex("role", "nobody", "--role", "viewer").returncode == 2
     assert coex("remove", "vic").returncode == 0
     r = coex("remove", "vic")
     assert r.returncode == 2 and "no operator 'vic'" in r.stderr

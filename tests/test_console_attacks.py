@@ -9,6 +9,8 @@ import http.client
 import json
 import socket
 import ssl
+import subprocess
+import sys
 import time
 import urllib.parse
 from collections.abc import Iterator
@@ -323,9 +325,9 @@ def test_a_demoted_operator_cannot_command_and_their_page_is_told(console: Conso
     assert console.act(cookie, csrf)[0] == 200
     stream = console.stream(cookie)
     try:
-        f = OperatorsFile(operators)
-        f.operators["ana"] = f.operators["ana"].__class__(**{**vars(f.operators["ana"]), "role": "viewer"})
-        f.save()
+        r = subprocess.run([sys.executable, "-m", "coex_core.cli", "operators", "--file", str(operators),
+                            "role", "ana", "--role", "viewer"], capture_output=True, text=True, timeout=60)
+        assert r.returncode == 0 and "ana is now viewer" in r.stdout, r.stderr
         ev = stream.until("session")
         assert ev is not None and ev[1]["role"] == "viewer" and ev[1]["may_command"] is False
         code, reply = console.act(cookie, csrf)
@@ -521,8 +523,6 @@ def test_the_sign_in_page_keeps_its_style_under_its_policy(console: Console) -> 
 def test_sigterm_stops_an_https_console_that_holds_an_idle_connection(operators: Path, tmp_path: Path) -> None:
     """The old console ignored SIGTERM while a silent connection held its TLS handshake."""
     import signal
-    import subprocess
-    import sys
 
     cert, key = _certificate(tmp_path)
     proc = subprocess.Popen([sys.executable, "-m", "coex_core.cli", "topside", "--transport", "loopback://sigterm",

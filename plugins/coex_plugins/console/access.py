@@ -176,6 +176,17 @@ class OperatorsFile:
         self.operators[name] = Operator(name, role, salt.hex(), _hash(secret, salt), time.time())
         return made
 
+    def set_role(self, name: str, role: str) -> None:
+        """Give ``name`` another role, keeping their password (a running console downgrades an
+        operator made a viewer at once; a viewer made an operator signs in again)."""
+        name = _check_name(name)
+        if role not in ROLES:
+            raise ConfigError(f"role {role!r}: one of {', '.join(ROLES)}")
+        op = self.operators.get(name)
+        if op is None:
+            raise ConfigError(f"no operator {name!r} in {self.path}")
+        self.operators[name] = Operator(op.name, role, op.salt, op.hash, op.created)
+
     def remove(self, name: str) -> None:
         if self.operators.pop(_check_name(name), None) is None:
             raise ConfigError(f"no operator {name!r} in {self.path}")

@@ -548,7 +548,7 @@ def _serve(app: TopsideApp) -> int:
 
 # ------------------------------------------------------------------ coex operators
 def register_operators(subparsers: Any) -> None:
-    """``coex operators add|remove|list``: the console's operators file."""
+    """``coex operators add|role|remove|list``: the console's operators file."""
     p = subparsers.add_parser("operators", help="manage who may sign in to the console (operators "
                                                 "command, viewers watch)")
     p.add_argument("--file", default="coex-operators.json", help="the operators file (default "
@@ -560,6 +560,10 @@ def register_operators(subparsers: Any) -> None:
     a.add_argument("--role", choices=["operator", "viewer"], required=True)
     a.add_argument("--password-stdin", action="store_true", help="read a password (12+ characters, "
                    "not a common one) from standard input instead of making a token")
+    ro = sub.add_parser("role", help="change someone's role, keeping their password (a running console "
+                                     "applies it at once)")
+    ro.add_argument("name")
+    ro.add_argument("--role", choices=["operator", "viewer"], required=True)
     r = sub.add_parser("remove", help="remove an operator (a running console ends their sessions at once)")
     r.add_argument("name")
     sub.add_parser("list", help="names and roles")
@@ -576,6 +580,11 @@ def _operators(args: argparse.Namespace) -> int:
                 print(f"{op.name}\t{op.role}")
             if not f.operators:
                 print(f"(nobody in {args.file})", file=sys.stderr)
+            return 0
+        if args.op == "role":
+            f.set_role(args.name, args.role)
+            f.save()
+            print(f"{args.name} is now {args.role} in {args.file}")
             return 0
         if args.op == "remove":
             f.remove(args.name)
