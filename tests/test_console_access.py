@@ -287,6 +287,10 @@ def test_in_the_browser_a_viewer_sees_disabled_buttons_and_an_operator_commands(
                     disabled = page.eval_on_selector("#sched-send", "b => b.disabled")
                     if name == "vic":
                         assert disabled is True
+                        # the page keeps its layout (the image viewer's overlay class once
+                        # turned a viewer's whole page into a fixed overlay)
+                        assert page.evaluate("getComputedStyle(document.body).position") == "static"
+                        assert page.eval_on_selector("header", "h => h.getBoundingClientRect().top") == 0
                         assert page.eval_on_selector("#fit-btn", "b => b.disabled") is False
                     else:
                         assert disabled is False

@@ -1746,7 +1746,7 @@ function apply(data, full) {
 const ME = { auth: false, name: "", role: "operator", may_command: true, csrf: "" };
 const VIEW_ONLY = new Set(["fit-btn", "draw-btn", "roi-cancel", "logout-btn"]);
 function applyRole() {
-  document.body.classList.toggle("viewer", !ME.may_command);
+  document.body.classList.toggle("role-viewer", !ME.may_command);  // not "viewer": the image viewer's class
   if (ME.may_command) return;
   for (const b of document.querySelectorAll("main button, main select, #roi-form input, #sched-form input")) {
     if (!VIEW_ONLY.has(b.id)) { b.disabled = true; b.title = "viewers cannot command"; }
