@@ -476,14 +476,14 @@ def topside_from_config(path: str, clock: Callable[[], float] = time.time) -> To
         snapshot_interval=cfg.snapshot_interval,
         remap_ids={m.name: m.ids for m in cfg.modalities if m.ids} or None, operators=rel("operators"),
         insecure_open=bool(c.get("insecure_open", False)), tls_cert=rel("tls_cert"), tls_key=rel("tls_key"),
-        session_hours=float(c.get("session_hours", 12.0)), idle_minutes=float(c.get("idle_minutes", 30.0)),
-        allowed_hosts=[str(h) for h in c.get("allowed_hosts", [])],
-        trusted_proxies=[str(h) for h in c.get("trusted_proxies", [])],
+        session_hours=float(c.get("session_hours", 12.0)),
         receiver_options={m.name: _resolved(m.options, cfg) for m in cfg.modalities},
         link_options=[{k: v for k, v in (("rate", m.rate), ("frame_bytes", m.frame_bytes), ("spare", m.spare),
                                           ("packet_seconds", m.packet_seconds)) if v is not None}
                       for m in cfg.modems],
-        required=[m.required for m in cfg.modems], ros=cfg.ros)
+        required=[m.required for m in cfg.modems], ros=cfg.ros,
+        idle_minutes=float(c.get("idle_minutes", 30.0)), allowed_hosts=[str(h) for h in c.get("allowed_hosts", [])],
+        trusted_proxies=[str(h) for h in c.get("trusted_proxies", [])])
 
 
 def run(args: argparse.Namespace) -> int:
