@@ -99,6 +99,8 @@ class Limits:
     header_bytes: int = 16 * 1024
     #: the largest action body, bytes
     body_bytes: int = 64 * 1024
+    #: seconds for a request's body to arrive once its head has (408 beyond)
+    body_seconds: float = 10.0
     #: pictures (map levels, map windows, images) drawn at once; more wait
     renders: int = 2
     #: pictures waiting to be drawn; one more is refused (429)
@@ -331,11 +333,15 @@ class _App:
         if declared is not None and (not declared.isdigit() or int(declared) > limit):
             raise _Refused(413, f"the body is larger than {limit} bytes")
         chunks, size = [], 0
-        async for chunk in request.stream():
-            size += len(chunk)
-            if size > limit:
-                raise _Refused(413, f"the body is larger than {limit} bytes")
-            chunks.append(chunk)
+        try:
+            async with asyncio.timeout(self.limits.body_seconds):  # a body sent a byte at a time
+                async for chunk in request.stream():
+                    size += len(chunk)
+                    if size > limit:
+                        raise _Refused(413, f"the body is larger than {limit} bytes")
+                    chunks.append(chunk)
+        except TimeoutError:
+            raise _Refused(408, f"the body did not arrive within {self.limits.body_seconds:g} s") from None
         return b"".join(chunks)
 
     # -------------------------------------------------------------- sign-in
