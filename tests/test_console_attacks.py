@@ -314,6 +314,7 @@ def test_every_answer_forbids_framing_and_sniffing_and_names_no_server() -> None
             assert "server" not in h, h["server"]
             assert "strict-transport-security" not in h  # plain HTTP: HSTS would be ignored
         assert c.request("GET", "/nowhere")[0] == 404
+        assert c.request("GET", "//api/state")[0] == 200  # a base URL ending in / plus "/api/state"
     finally:
         c.close()
 

@@ -87,7 +87,7 @@ _LOCAL = Session("", "", "operator", "", float("inf"))  # a console without sign
 
 @dataclass(frozen=True)
 class Limits:
-    """What one client can make the console do (docs/console.md, "Limits")."""
+    """What clients can make the console do (docs/console.md, "The web server")."""
 
     #: open connections (event streams included); a request beyond gets 503
     connections: int = 64
@@ -197,6 +197,9 @@ class _Guard:
         if scope["type"] != "http":
             await self.app(scope, receive, send)
             return
+        path = str(scope.get("path", ""))
+        if path.startswith("//"):  # ``url + "/api/state"`` with a url ending in /: as http.server did
+            scope = {**scope, "path": "/" + path.lstrip("/"), "raw_path": b"/" + scope.get("raw_path", b"").lstrip(b"/")}
         extra = self.login_headers if scope.get("path") == "/login" else self.headers
 
         async def send_with_headers(message: AsgiMessage) -> None:
@@ -708,6 +711,7 @@ class ConsoleServer:
         deadline = time.monotonic() + 10.0
         while not self._uvicorn.started:
             if not self._thread.is_alive() or time.monotonic() > deadline:
+                self.close()
                 raise CoexError(f"the console server on {self.url} did not start")
             time.sleep(0.01)
         return self
