@@ -104,7 +104,7 @@ class Limits:
     #: pictures (map levels, map windows, images) drawn at once; more wait
     renders: int = 2
     #: pictures waiting to be drawn; one more is refused (429)
-    render_queue: int = 8
+    render_queue: int = 32
     #: the largest map window, pixels (about 86 bytes of memory each while drawn)
     window_pixels: int = MAP_WINDOW_CELLS
     #: event streams open at once (429 beyond)
