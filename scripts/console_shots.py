@@ -90,7 +90,7 @@ def main(argv: list[str] | None = None) -> int:
                 browser = p.chromium.launch(executable_path=CHROMIUM, args=ARGS)
                 page = browser.new_page(viewport={"width": args.width, "height": args.height})
                 page.goto(url + "/")
-                page.wait_for_function("window.coex && window.coex.updates > 0", timeout=30_000)
+                _wait(page, "window.coex && window.coex.updates > 0", 30)
                 shots = _take(page, args.out, over)
                 browser.close()
         finally:
@@ -102,6 +102,16 @@ def main(argv: list[str] | None = None) -> int:
     for name in shots:
         print(args.out / name)
     return 0 if len(shots) == 5 else 1
+
+
+def _wait(page: Any, expression: str, seconds: float) -> None:
+    """Poll ``expression`` until true. Not ``wait_for_function``: it evaluates with ``eval``,
+    which the console's Content-Security-Policy forbids (the shots show the page as served)."""
+    deadline = time.monotonic() + seconds
+    while not page.evaluate(expression):
+        if time.monotonic() > deadline:
+            raise TimeoutError(f"{expression} still false after {seconds:g} s")
+        page.wait_for_timeout(100)
 
 
 def _shot(page: Any, out: Path, name: str, taken: list[str]) -> None:
@@ -133,8 +143,7 @@ def _take(page: Any, out: Path, over: threading.Event) -> list[str]:
             best = max(st["images"], key=lambda i: i[1])[0]
             page.click(f'#gallery .card[data-image="{best}"] img')
             page.wait_for_selector("#viewer:not(.hidden)")
-            page.wait_for_function("document.querySelector('#viewer-img').naturalWidth > 0",
-                                   timeout=20_000)
+            _wait(page, "document.querySelector('#viewer-img').naturalWidth > 0", 20)
             page.wait_for_timeout(400)
             page.screenshot(path=str(out / "4-image.png"))  # the viewer fills the window
             taken.append("4-image.png")
@@ -144,8 +153,7 @@ def _take(page: Any, out: Path, over: threading.Event) -> list[str]:
             page.wait_for_timeout(500)
     # after the dive: the console says it ended
     over.wait(timeout=max(1.0, deadline - time.monotonic()))
-    page.wait_for_function("document.querySelector('#conn').textContent.startsWith('ended')",
-                           timeout=60_000)
+    _wait(page, "document.querySelector('#conn').textContent.startsWith('ended')", 60)
     _shot(page, out, "5-after.png", taken)
     return taken
 

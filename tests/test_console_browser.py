@@ -122,7 +122,7 @@ def sample_console(browser: Any, hub_type: type[ConsoleHub], sent: list[m.Messag
     if hubs is not None:
         hubs.append(hub)
     with serve(hub, "127.0.0.1", 0) as srv:
-        page = browser.new_page(viewport={"width": 1400, "height": 1000})
+        page = browser.new_page(bypass_csp=True, viewport={"width": 1400, "height": 1000})
         page.on("pageerror", lambda e: errors.append(str(e)))
         page.goto(srv.url)
         page.wait_for_function("window.coex && window.coex.updates > 0", timeout=10_000)
@@ -151,7 +151,7 @@ def test_console_map_updates_and_region_request_reaches_vehicle(
     errors: list[str] = []
     pages = []
     for _ in range(2):  # two operators on the same console
-        page = browser.new_page(viewport={"width": 1400, "height": 1000})
+        page = browser.new_page(bypass_csp=True, viewport={"width": 1400, "height": 1000})
         page.on("pageerror", lambda e: errors.append(str(e)))
         page.goto(app.url)
         pages.append(page)
@@ -325,7 +325,7 @@ def test_a_third_party_modality_shows_in_the_generic_panel(browser: Any, tmp_pat
         pings.ingest((T0 - 60 + 5 * k, 30.0 + k), T0)
     state.apply_messages(pings.fill(400, T0), T0)
     with serve(ConsoleHub(state, lambda msg: None, lambda: T0), "127.0.0.1", 0) as srv:
-        page = browser.new_page(viewport={"width": 1400, "height": 1300})
+        page = browser.new_page(bypass_csp=True, viewport={"width": 1400, "height": 1300})
         page.on("pageerror", lambda e: errors.append(str(e)))
         page.goto(srv.url)
         page.wait_for_function("window.coex && window.coex.updates > 0", timeout=10_000)
@@ -361,7 +361,7 @@ def test_a_big_level_zoomed_in_is_drawn_from_what_is_on_screen(browser: Any) -> 
     windows: list[str] = []
     hub = ConsoleHub(state, lambda msg: None, lambda: T0)
     with serve(hub, "127.0.0.1", 0) as srv:
-        page = browser.new_page(viewport={"width": 1400, "height": 1000})
+        page = browser.new_page(bypass_csp=True, viewport={"width": 1400, "height": 1000})
         page.on("pageerror", lambda e: errors.append(str(e)))
         page.on("requestfinished", lambda r: windows.append(r.url) if "/window.png" in r.url else None)
         page.goto(srv.url)
@@ -453,7 +453,7 @@ def test_a_survey_drawn_on_the_map_is_sent_and_its_rejection_shown(browser: Any,
         bathy.ingest(survey_points(), now)
         vehicle.send([m.VehicleStatus(to_stamp(now), 30.0, 20.0, 45.0, 20.0, 90.0, 1.5, 77,
                                       m.VehicleMode.SURVEY, 0), *drain(bathy, now)])
-        page = browser.new_page(viewport={"width": 1280, "height": 1000})
+        page = browser.new_page(bypass_csp=True, viewport={"width": 1280, "height": 1000})
         page.on("pageerror", lambda e: errors.append(str(e)))
         page.goto(app.url)
         page.wait_for_function("window.coex && window.coex.connected && window.coex.updates > 0",
@@ -582,7 +582,7 @@ def test_a_rejected_command_stays_rejected_with_its_reason(browser: Any) -> None
     hub = ConsoleHub(state, sent, lambda: T0)
     errors: list[str] = []
     with serve(hub, "127.0.0.1", 0) as srv:
-        page = browser.new_page(viewport={"width": 1280, "height": 1000})
+        page = browser.new_page(bypass_csp=True, viewport={"width": 1280, "height": 1000})
         page.on("pageerror", lambda e: errors.append(str(e)))
         page.goto(srv.url)
         page.wait_for_function("window.coex && window.coex.updates > 0", timeout=10_000)
@@ -687,7 +687,7 @@ def test_a_by_time_request_names_the_image_that_answered_it(browser: Any) -> Non
     hub = ConsoleHub(state, sent.append, lambda: T0)
     errors: list[str] = []
     with serve(hub, "127.0.0.1", 0) as srv:
-        page = browser.new_page(viewport={"width": 1280, "height": 1000})
+        page = browser.new_page(bypass_csp=True, viewport={"width": 1280, "height": 1000})
         page.on("pageerror", lambda e: errors.append(str(e)))
         page.goto(srv.url)
         page.wait_for_function("window.coex && window.coex.updates > 0", timeout=10_000)
@@ -728,7 +728,7 @@ def test_a_region_over_unsurveyed_ground_waits_then_fills(browser: Any, tmp_path
         bathy = BathymetrySender({"send_delay": 0.0, "levels": 4})
         bathy.ingest(survey_points(), now)
         vehicle.send(drain(bathy, now))
-        page = browser.new_page(viewport={"width": 1280, "height": 1000})
+        page = browser.new_page(bypass_csp=True, viewport={"width": 1280, "height": 1000})
         page.on("pageerror", lambda e: errors.append(str(e)))
         page.goto(app.url)
         page.wait_for_function("window.coex && window.coex.connected && document.querySelectorAll('#levels-table tbody tr').length >= 3",
@@ -1078,7 +1078,7 @@ def test_survey_outcomes_read_apart_with_their_history_in_the_vehicles_order(bro
         bathy.ingest(survey_points(), now)
         vehicle.send([m.VehicleStatus(to_stamp(now), 30.0, 20.0, 45.0, 20.0, 90.0, 1.5, 77,
                                       m.VehicleMode.SURVEY, 0), *drain(bathy, now)])
-        page = browser.new_page(viewport={"width": 1600, "height": 1000})
+        page = browser.new_page(bypass_csp=True, viewport={"width": 1600, "height": 1000})
         page.on("pageerror", lambda e: errors.append(str(e)))
         page.goto(app.url)
         page.wait_for_function("window.coex && window.coex.connected && window.coex.updates > 0",

@@ -1059,7 +1059,10 @@ def test_a_survey_that_cannot_be_sent_is_refused_with_a_clear_error() -> None:
                         ({"kind": "goto", "x": "nan", "y": 0}, "finite"),
                         ({"kind": "goto", "x": 0, "y": 0, "altitude": 5, "depth": 9}, "not both"),
                         ({"kind": "waypoints", "x": 0, "y": 0, "points": [[1]]}, "pairs"),
-                        ({"kind": "goto", "x": 0}, "bad arguments")]:
+                        ({"kind": "goto", "x": 0}, "needs x and y"),
+                        ({"kind": "waypoints", "points": []}, "needs x and y"),
+                        ({"kind": "waypoints", "points": "12"}, "list of"),
+                        ({"kind": "goto", "x": 0, "y": 0, "hdg": 5}, "no argument 'hdg'")]:
         with pytest.raises(RequestRejected, match=match):
             hub.act("survey", args)
     assert hub.snapshot()["surveys"]["items"] == [] and hub.snapshot()["commands"] == []
@@ -1068,6 +1071,12 @@ def test_a_survey_that_cannot_be_sent_is_refused_with_a_clear_error() -> None:
         code, ans = _post(srv.url + "api/action", {"action": "survey", "args": {
             "kind": "line", "x": 0, "y": 0, "length": 10}})
         assert code == 400 and not ans["ok"] and "heading" in ans["error"]
+        # the waypoint form: every waypoint in points (the first becomes x, y)
+        code, ans = _post(srv.url + "api/action", {"action": "survey", "args": {
+            "kind": "waypoints", "points": [[1, 2], [3, 4], [5, 6]]}})
+        assert code == 200, ans
+        (cmd,) = ans["sent"]
+        assert (cmd["x"], cmd["y"], len(cmd["points"])) == (1.0, 2.0, 2), cmd
     assert hub.snapshot()["surveys"]["available"] is True
     # a console without the survey receiver (view only) says so, and the page disables the tool
     view = ConsoleState()

@@ -159,3 +159,15 @@ connection = "/dev/ttyNOPE4"
     assert out.returncode == 0, out.stdout + out.stderr
     assert "warning: modems[0].uri: /dev/ttyNOPE0 does not exist now" in out.stdout
     assert ": ok: vehicle node 2" in out.stdout
+
+
+def test_the_console_s_host_and_idle_keys_are_checked(tmp_path: Path) -> None:
+    text = (EXAMPLES / "topside.toml").read_text()
+    assert "\n[console]\n" in text
+    f = tmp_path / "t.toml"
+    f.write_text(text.replace("\n[console]\n", '\n[console]\nallowed_hosts = "ship.example"\nidle_minutes = -1\n'
+                              'trusted_proxies = ["127.0.0.1"]\n'))
+    _, problems = check(f)
+    keys = [p.split(":", 1)[0] for p in problems]
+    assert "console.allowed_hosts" in keys and "console.idle_minutes" in keys, problems
+    assert "console.trusted_proxies" not in keys and "console" not in keys

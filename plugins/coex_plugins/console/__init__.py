@@ -13,9 +13,11 @@ See ``docs/console.md``.
 
 from __future__ import annotations
 
+from .actions import ConsoleActions
 from .node import NodeCommands, attach, drive_simulation, pump, tap_receiver
+from .render import elevation_rgb, png_bytes
 from .server import ConsoleHub, ConsoleServer, serve
-from .state import SECTIONS, ConsoleActions, ConsoleState, elevation_rgb, png_bytes
+from .state import SECTIONS, ConsoleState
 
 __all__ = [
     "SECTIONS",

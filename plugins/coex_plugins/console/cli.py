@@ -67,7 +67,8 @@ def parse_remap(text: str) -> tuple[str, dict[int, int]]:
 
 
 def console_access(host: str, operators: str | Path | None, insecure_open: bool,
-                   tls_cert: str | None, tls_key: str | None, session_hours: float = 12.0) -> tuple[Any, Any]:
+                   tls_cert: str | None, tls_key: str | None, session_hours: float = 12.0,
+                   idle_minutes: float = 30.0) -> tuple[Any, Any]:
     """The console's sign-in (:class:`~.access.Access`, or None) and TLS context (or None);
     :class:`ConfigError` for a console that would be open to the network without sign-in."""
     import ipaddress
@@ -83,7 +84,7 @@ def console_access(host: str, operators: str | Path | None, insecure_open: bool,
         if not path.exists():
             raise ConfigError(f"no operators file {path} (make one: coex operators add NAME --role operator "
                               f"--file {path})")
-        return Access(OperatorsFile(path), session_hours=session_hours), tls
+        return Access(OperatorsFile(path), session_hours=session_hours, idle_minutes=idle_minutes), tls
     try:
         loopback = host == "localhost" or ipaddress.ip_address(host).is_loopback
     except ValueError:
@@ -111,7 +112,7 @@ def register(subparsers: Any) -> None:
                         "TDMA, modalities, store and console in one place; replaces the options below")
     p.add_argument("--transport", metavar="URI", action="append",
                    help="transport URI (micromodem:///dev/ttyUSB0, mavlink:..., lcm:..., "
-                        "loopback://name); repeat it for several modems (links --link, "
+                        "moos://HOST:PORT?name=..., loopback://name); repeat it for several modems (links --link, "
                         "--link + 1, ...)")
     p.add_argument("--http", type=_hostport, default=("127.0.0.1", 8080), metavar="HOST:PORT",
                    help="where to serve the console (default 127.0.0.1:8080; port 0 = any)")
@@ -144,6 +145,15 @@ def register(subparsers: Any) -> None:
     p.add_argument("--tls-key", metavar="PEM", help="the certificate's private key")
     p.add_argument("--session-hours", type=float, default=12.0,
                    help="a sign-in lasts this long (default 12 h)")
+    p.add_argument("--idle-minutes", type=float, default=30.0,
+                   help="a sign-in not used for this long ends; an open console page is use (default 30)")
+    p.add_argument("--allowed-host", action="append", default=[], metavar="NAME",
+                   help="a name the console is reached by besides the loopback names and the --http "
+                        "address (a ship's DNS name, a reverse proxy's); other Host headers are refused "
+                        "(DNS rebinding). Repeat it for several")
+    p.add_argument("--trusted-proxy", action="append", default=[], metavar="ADDRESS",
+                   help="a reverse proxy whose X-Forwarded-For names the client (sign-in limits go by "
+                        "client address); repeat it for several")
     p.add_argument("--command-key-file", metavar="PATH",
                    help="shared command key (hex, or at least 16 raw bytes): every command is "
                         "signed (spec section 10); the vehicle must have the same key")
@@ -291,7 +301,8 @@ def build_topside(transport_uri: str | Sequence[str], host: str = "127.0.0.1", p
                   remap_ids: dict[str, dict[int, int]] | None = None,
                   operators: str | Path | None = None, insecure_open: bool = False,
                   tls_cert: str | None = None, tls_key: str | None = None,
-                  session_hours: float = 12.0,
+                  session_hours: float = 12.0, idle_minutes: float = 30.0,
+                  allowed_hosts: Sequence[str] = (), trusted_proxies: Sequence[str] = (),
                   receiver_options: dict[str, dict[str, Any]] | None = None,
                   link_options: Sequence[dict[str, Any]] | None = None,
                   required: Sequence[bool] | None = None,
@@ -313,14 +324,17 @@ def build_topside(transport_uri: str | Sequence[str], host: str = "127.0.0.1", p
     ``operators`` (an operators file, ``coex operators``) makes the console ask everyone to
     sign in: operators command, viewers watch. A console on a non-loopback address refuses to
     start without one, unless ``insecure_open`` (logged loudly). ``tls_cert`` and ``tls_key``
-    serve HTTPS. ``receiver_options`` gives a modality's receiver its options by name;
+    serve HTTPS; ``allowed_hosts`` are names the console answers to besides the loopback ones
+    and ``host``; ``trusted_proxies`` reverse proxies whose ``X-Forwarded-For`` is believed.
+    ``receiver_options`` gives a modality's receiver its options by name;
     ``link_options`` (one mapping per transport) sets LinkConfig fields (``rate``,
     ``frame_bytes``, ``spare``, ``packet_seconds``) link by link. Each transport is a
     :class:`~coex_transports.recovery.ResilientTransport`: a modem that goes away or is not
     there yet is reopened with backoff (``required[i]`` true: an error at start instead).
     ``ros`` (the options of :class:`~coex_plugins.console.ros.RosProducts`) publishes what
     arrives on ROS topics for rviz."""
-    access, tls = console_access(host, operators, insecure_open, tls_cert, tls_key, session_hours)
+    access, tls = console_access(host, operators, insecure_open, tls_cert, tls_key, session_hours,
+                                 idle_minutes)
     from coex_core.channel.manager import ChannelManager, LinkConfig
     from coex_core.channel.schedule import Schedule
     from coex_core.node import Node
@@ -422,7 +436,8 @@ def build_topside(transport_uri: str | Sequence[str], host: str = "127.0.0.1", p
                 state._log(clock(), f"resumed from {store}: {nstore.stats['replayed']} "
                                     "journaled frames replayed")
             nstore.extra = lambda: {"state": hub.state}
-        server = serve(hub, host, port, access=access, tls=tls)
+        server = serve(hub, host, port, access=access, tls=tls, allowed_hosts=list(allowed_hosts),
+                       trusted_proxies=list(trusted_proxies))
     except BaseException:
         for tr in transports.values():
             tr.close()
@@ -466,7 +481,9 @@ def topside_from_config(path: str, clock: Callable[[], float] = time.time) -> To
         link_options=[{k: v for k, v in (("rate", m.rate), ("frame_bytes", m.frame_bytes), ("spare", m.spare),
                                           ("packet_seconds", m.packet_seconds)) if v is not None}
                       for m in cfg.modems],
-        required=[m.required for m in cfg.modems], ros=cfg.ros)
+        required=[m.required for m in cfg.modems], ros=cfg.ros,
+        idle_minutes=float(c.get("idle_minutes", 30.0)), allowed_hosts=[str(h) for h in c.get("allowed_hosts", [])],
+        trusted_proxies=[str(h) for h in c.get("trusted_proxies", [])])
 
 
 def run(args: argparse.Namespace) -> int:
@@ -499,7 +516,9 @@ def run(args: argparse.Namespace) -> int:
             modalities=tuple(m for m in args.modalities.split(",") if m),
             stream_names=args.stream_names, command_key=key, store=args.store,
             remap_ids=dict(args.remap_ids), operators=args.operators, insecure_open=args.insecure_open,
-            tls_cert=args.tls_cert, tls_key=args.tls_key, session_hours=args.session_hours)
+            tls_cert=args.tls_cert, tls_key=args.tls_key, session_hours=args.session_hours,
+            idle_minutes=args.idle_minutes, allowed_hosts=args.allowed_host,
+            trusted_proxies=args.trusted_proxy)
     except (CoexError, OSError) as exc:
         print(f"coex topside: {exc}", file=sys.stderr)
         return 2
@@ -529,7 +548,7 @@ def _serve(app: TopsideApp) -> int:
 
 # ------------------------------------------------------------------ coex operators
 def register_operators(subparsers: Any) -> None:
-    """``coex operators add|remove|list``: the console's operators file."""
+    """``coex operators add|role|remove|list``: the console's operators file."""
     p = subparsers.add_parser("operators", help="manage who may sign in to the console (operators "
                                                 "command, viewers watch)")
     p.add_argument("--file", default="coex-operators.json", help="the operators file (default "
@@ -539,9 +558,13 @@ def register_operators(subparsers: Any) -> None:
                                    "--password-stdin")
     a.add_argument("name")
     a.add_argument("--role", choices=["operator", "viewer"], required=True)
-    a.add_argument("--password-stdin", action="store_true", help="read a password (8+ characters) "
-                   "from standard input instead of making a token")
-    r = sub.add_parser("remove", help="remove an operator (their sessions end)")
+    a.add_argument("--password-stdin", action="store_true", help="read a password (12+ characters, "
+                   "not a common one) from standard input instead of making a token")
+    ro = sub.add_parser("role", help="change someone's role, keeping their password (a running console "
+                                     "applies it at once)")
+    ro.add_argument("name")
+    ro.add_argument("--role", choices=["operator", "viewer"], required=True)
+    r = sub.add_parser("remove", help="remove an operator (a running console ends their sessions at once)")
     r.add_argument("name")
     sub.add_parser("list", help="names and roles")
     p.set_defaults(func=_operators)
@@ -557,6 +580,11 @@ def _operators(args: argparse.Namespace) -> int:
                 print(f"{op.name}\t{op.role}")
             if not f.operators:
                 print(f"(nobody in {args.file})", file=sys.stderr)
+            return 0
+        if args.op == "role":
+            f.set_role(args.name, args.role)
+            f.save()
+            print(f"{args.name} is now {args.role} in {args.file}")
             return 0
         if args.op == "remove":
             f.remove(args.name)

@@ -2,7 +2,8 @@
 :class:`ConsoleHub` (a :class:`~.state.ConsoleState`, its actions and one lock) and
 :func:`pump`, which moves a node's events into the state.
 
-Module order (no cycles): ``state`` <- ``hub`` <- ``node`` (attach a node) <- ``server``.
+Module order (no cycles): ``render``, ``words`` <- ``state`` <- ``actions`` <- ``hub`` <- ``node``
+(attach a node) <- ``server``.
 """
 
 from __future__ import annotations
@@ -14,7 +15,8 @@ from typing import Any
 
 from coex_core.messages import Message
 
-from .state import SECTIONS, ConsoleActions, ConsoleState
+from .actions import ConsoleActions
+from .state import SECTIONS, ConsoleState
 
 __all__ = ["ConsoleHub", "pump"]
 
@@ -162,6 +164,10 @@ class ConsoleHub:
                 return {}
         if coalesce > 0:
             time.sleep(coalesce)
+        return self.changes_since(seen)
+
+    def changes_since(self, seen: dict[str, Any]) -> dict[str, Any]:
+        """The sections changed since ``seen`` (no waiting); updates ``seen``."""
         with self.lock:
             out = self.state.changes(seen)
             seen.update({k: self.state.versions[k] for k in out})

@@ -1,6 +1,6 @@
 """Glue between the console and a topside :class:`coex_core.node.Node`.
 
-* :class:`NodeCommands` is the ``send`` of :class:`~.state.ConsoleActions` for a node: command
+* :class:`NodeCommands` is the ``send`` of :class:`~.actions.ConsoleActions` for a node: command
   ids come from the node's channel manager (so its ``CommandResult`` events match), schedules go
   through ``propose_schedule`` (both ends switch on the announced cycle), everything else through
   ``node.request`` (control stream, acked, tracked until the vehicle's ``CommandAck``).

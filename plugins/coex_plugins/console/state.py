@@ -6,10 +6,10 @@
   as plain JSON-able data; each section (``vehicle``, ``map``, ``surveys``, ``images``, ``series``,
   ``link``, ``queues``, ``commands``, ``log``) has a version, so :meth:`~ConsoleState.changes` gives only
   the sections that changed since a client last looked (the server pushes those).
-* :class:`ConsoleActions` turns an operator action into wire-format command messages
-  (:mod:`coex_core.messages`) and hands each one to ``send`` (the topside node's send path);
-  every command is recorded in the state so the page shows "requested" until the vehicle
-  answers (``CommandAck``/``MapRoiReply``) or the data arrives.
+* :class:`~.actions.ConsoleActions` (module :mod:`.actions`) turns an operator action into
+  wire-format command messages and records every command here, so the page shows "requested"
+  until the vehicle answers (``CommandAck``/``MapRoiReply``) or the data arrives. Pictures are
+  drawn by :mod:`.render`, words made by :mod:`.words`.
 
 Nothing here does I/O or reads a clock: time enters as ``now``. The server adds the locking.
 """
@@ -17,7 +17,6 @@ Nothing here does I/O or reads a clock: time enters as ``now``. The server adds 
 from __future__ import annotations
 
 import math
-import zlib
 from collections import deque
 from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
@@ -27,14 +26,16 @@ import numpy as np
 import numpy.typing as npt
 
 from coex_core import messages as m
-from coex_core.errors import CoexError, RequestRejected
+from coex_core.errors import RequestRejected
 from coex_core.state import persistent
-from coex_core.timefmt import to_stamp, unwrap
+from coex_core.timefmt import unwrap
 from coex_core.wire import encoded_size
+
+from .render import THUMB_SIDE, _picture, elevation_rgb, png_bytes
+from .words import _counted, _modality_of, ack_reason, gap_words, hms, region_words
 
 __all__ = [
     "SECTIONS",
-    "ConsoleActions",
     "ConsoleState",
     "png_bytes",
     "elevation_rgb",
@@ -83,80 +84,10 @@ MAX_IMAGE_REGIONS = 12
 #: Crops (regions coded on their own) kept for the region lists (the newest).
 MAX_CROPS = 64
 #: The largest picture of what is on screen (``/map/<level>/window.png``), in pixels.
-MAP_WINDOW_CELLS = 8 * 1024 * 1024
+MAP_WINDOW_CELLS = 4 * 1024 * 1024
 
 
 FloatArray = npt.NDArray[np.float64]
-
-
-# ------------------------------------------------------------------------------ rendering
-
-
-def png_bytes(rgb: npt.NDArray[np.uint8]) -> bytes:
-    """A PNG file of an ``H x W x 3`` (RGB) or ``H x W x 4`` (RGBA) uint8 image, row 0 at the top."""
-    img = np.ascontiguousarray(rgb, dtype=np.uint8)
-    if img.ndim == 2:
-        img = np.repeat(img[:, :, None], 3, axis=2)
-    h, w, c = img.shape
-    if c not in (3, 4):
-        raise ValueError(f"expected 3 or 4 channels, got {c}")
-    raw = np.zeros((h, 1 + w * c), np.uint8)  # filter byte 0 (None) before each row
-    raw[:, 1:] = img.reshape(h, w * c)
-
-    def chunk(tag: bytes, data: bytes) -> bytes:
-        body = tag + data
-        return len(data).to_bytes(4, "big") + body + zlib.crc32(body).to_bytes(4, "big")
-
-    ihdr = w.to_bytes(4, "big") + h.to_bytes(4, "big") + bytes([8, 6 if c == 4 else 2, 0, 0, 0])
-    return (b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", ihdr)
-            + chunk(b"IDAT", zlib.compress(raw.tobytes(), 6)) + chunk(b"IEND", b""))
-
-
-# A perceptually ordered colour ramp for depth (deep = dark blue, shallow = yellow).
-_RAMP_POS = np.array([0.0, 0.25, 0.5, 0.75, 1.0])
-_RAMP_RGB = np.array([[38, 20, 90], [40, 95, 160], [40, 160, 140], [140, 205, 80], [250, 230, 60]],
-                     float)
-
-
-def elevation_rgb(z: FloatArray, lo: float, hi: float, cell: float = 1.0) -> npt.NDArray[np.uint8]:
-    """RGBA image of an elevation grid (row 0 = south): colour ramp times a hillshade; NaN cells
-    are transparent. The image is flipped so that north is up."""
-    z = np.asarray(z, float)
-    ok = np.isfinite(z)
-    span = max(hi - lo, 1e-9)
-    t = np.clip((np.where(ok, z, lo) - lo) / span, 0.0, 1.0)
-    rgb = np.stack([np.interp(t, _RAMP_POS, _RAMP_RGB[:, k]) for k in range(3)], axis=-1)
-    from coex_plugins.bathymetry import hillshade  # the one hillshade (light from the NW)
-
-    rgb *= (0.55 + 0.45 * hillshade(z, cell))[..., None]
-    out = np.zeros((*z.shape, 4), np.uint8)
-    out[..., :3] = np.clip(rgb, 0, 255).astype(np.uint8)
-    out[..., 3] = np.where(ok, 255, 0)
-    return out[::-1]
-
-
-#: The side of an image thumbnail (px); the viewer shows the full picture.
-THUMB_SIDE = 320
-
-
-def _picture(a: npt.NDArray[Any], max_side: int) -> npt.NDArray[np.uint8]:
-    """An image as 8-bit RGB or grey, decimated to at most ``max_side`` pixels a side."""
-    if a.ndim == 3 and a.shape[2] >= 3:
-        step = max(1, math.ceil(max(a.shape[:2]) / max_side))
-        return np.ascontiguousarray(a[::step, ::step, :3]).astype(np.uint8)
-    return _grey_thumbnail(a, max_side)
-
-
-def _grey_thumbnail(img: npt.NDArray[Any], max_side: int = 160) -> npt.NDArray[np.uint8]:
-    a = np.asarray(img)
-    if a.ndim == 3 and a.shape[2] == 1:
-        a = a[:, :, 0]
-    if a.dtype != np.uint8:
-        f = a.astype(float)
-        lo, hi = float(np.nanmin(f)), float(np.nanmax(f))
-        a = ((f - lo) / max(hi - lo, 1e-9) * 255).astype(np.uint8)
-    step = max(1, math.ceil(max(a.shape[0], a.shape[1]) / max_side))
-    return np.ascontiguousarray(a[::step, ::step])
 
 
 def _num(x: float | None, nd: int = 3) -> float | None:
@@ -614,20 +545,23 @@ class ConsoleState:
         return z, float(p.meta["x0"]), float(p.meta["y0"]), float(p.meta["cell_size"])
 
     def map_window_job(self, level: int, x0: float, y0: float, x1: float, y1: float,
-                       step: int = 1) -> Callable[[], bytes] | None:
+                       step: int = 1, max_pixels: int = MAP_WINDOW_CELLS) -> Callable[[], bytes] | None:
         """What is on screen of a big level, finer than its drawn overview: a job rendering
         ``[x0, x1) x [y0, y1)`` (metres) at ``step`` level cells per pixel as a PNG (north up),
         read from the receiver's tiles now (call it holding the node's lock; the job may run
-        without). None if nothing of the level is held or the picture would exceed
-        :data:`MAP_WINDOW_CELLS` pixels."""
+        without). None if nothing of the level is held; :class:`RequestRejected` if the picture
+        would exceed ``max_pixels`` pixels (:data:`MAP_WINDOW_CELLS` unless told)."""
         rx = self.map_receiver
         geometry = rx.geometry(level) if rx is not None else None
         if geometry is None or level not in rx.levels() or step < 1 or not x1 > x0 or not y1 > y0:
             return None
         span = geometry[0] * step
         cells = math.ceil((x1 - x0) / span - 1e-9) * math.ceil((y1 - y0) / span - 1e-9)
-        if not 0 < cells <= MAP_WINDOW_CELLS:
+        if cells <= 0:
             return None
+        if cells > max_pixels:
+            raise RequestRejected(f"a map window of {cells} pixels is larger than the {max_pixels} "
+                                  "allowed: ask for a smaller area or a larger step")
         z, (_, _, cell) = rx.window(level, x0, y0, x1, y1, max_cells=cells)
         lo, hi = self._zrange or (0.0, 1.0)
         return lambda: png_bytes(elevation_rgb(z, lo, hi, cell))
@@ -1569,94 +1503,6 @@ def map_delta(full: Mapping[str, Any], held: dict[int, Any]) -> dict[str, Any]:
     return {**full, "levels": levels, "delta": True}
 
 
-def region_words(state: ConsoleState, r: Any) -> str:
-    """A region of subgrids in metres: ``32 x 24 m at (24, 32) m``."""
-    span = state.subgrid_metres(int(r.level))
-    return (f"{r.w * span:g} x {r.h * span:g} m at ({r.x0 * span:g}, {r.y0 * span:g}) m")
-
-
-def gap_words(empty: int, block_m: float, subgrid_cells: int, cells: int) -> str:
-    """The gaps of a level in words: empty squares inside its extent, and the cells missing
-    inside the subgrids held (between sonar swaths, beyond the beams: the map's stripes)."""
-    parts = []
-    if empty:
-        parts.append(f"{empty} empty {block_m:g} m square{'s' if empty != 1 else ''}")
-    inner = subgrid_cells - cells
-    if inner > 0 and subgrid_cells:
-        parts.append(f"{100.0 * inner / subgrid_cells:.0f} % of cells between swaths")
-    return ", ".join(parts) or "none"
-
-
-def _span(seconds: float) -> str:
-    """A duration in words: "40 s", "9 min 40 s", "2 h 5 min"."""
-    s = max(0, round(seconds))
-    if s < 60:
-        return f"{s} s"
-    if s < 3600:
-        return f"{s // 60} min" + (f" {s % 60} s" if s % 60 else "")
-    return f"{s // 3600} h" + (f" {s % 3600 // 60} min" if s % 3600 // 60 else "")
-
-
-def _counted(base: str, count: int, n: int, span: float) -> str:
-    """A log entry's text for ``n`` events of one kind over ``span`` seconds: ``{n}`` in
-    ``base`` is the total ``count``; otherwise the number of times is added."""
-    if "{n}" in base:
-        text = base.replace("{n}", str(count))
-        return text if n <= 1 else f"{text} in {_span(span)}"
-    return base if n <= 1 else f"{base} ({n} times in {_span(span)})"
-
-
-def hms(t: float | None) -> str:
-    """``hh:mm:ss`` of the day (UTC) of an absolute time, as the page shows it."""
-    if t is None or not math.isfinite(float(t)):
-        return "-"
-    s = math.floor(float(t)) % 86400
-    return f"{s // 3600:02d}:{s // 60 % 60:02d}:{s % 60:02d}"
-
-
-def ack_reason(msg: m.Message, status: str, was_pending: bool = False) -> str:
-    """What the vehicle's answer ``status`` (an :class:`~coex_core.messages.AckStatus` name)
-    to ``msg`` means, in words. A ``CommandAck`` carries no reason: this is the cause the
-    vehicle's code gives for that answer to that kind of command."""
-    if status == "ACCEPTED":
-        return ""
-    if status == "UNAUTHENTICATED":
-        return "not authenticated: the vehicle and topside command keys differ"
-    if status == "PENDING":
-        return "no image of that time yet: the request stands on the vehicle until one is taken"
-    if isinstance(msg, m.QueueConfig):
-        if status == "UNKNOWN_TARGET":
-            return f"the vehicle has no stream {msg.stream}"
-        return "the vehicle refused the setting (outside its limits)"
-    if isinstance(msg, m.LinkControl | m.SpareConfig | m.ScheduleUpdate):
-        link = getattr(msg, "link", None)
-        if status == "UNKNOWN_TARGET":
-            return f"the vehicle has no link {link}" if link is not None else \
-                f"the vehicle has no stream {getattr(msg, 'stream', '?')}"
-        if isinstance(msg, m.LinkControl):
-            return "it would leave the vehicle without a transmitting link"
-        if isinstance(msg, m.ScheduleUpdate):
-            return ("its activation cycle had passed when it arrived, or no slot of the "
-                    "vehicle fits a packet")
-        return "the vehicle refused the share"
-    if isinstance(msg, m.ImageByTimeRequest):
-        if was_pending:
-            return "no image of that time was taken before the request expired"
-        d = {m.TimeDirection.BEFORE: "before", m.TimeDirection.AFTER: "after"}.get(
-            msg.direction, "near")
-        return f"the vehicle holds no image {d} that time"
-    if isinstance(msg, m.ImageGoal):
-        return f"the vehicle no longer holds image {msg.image_id}, or the goal is beyond it"
-    if isinstance(msg, m.ImageRegionRequest):
-        return (f"the vehicle no longer holds image {msg.image_id}, or it was coded without "
-                "precincts (ask for more of the whole image), or the region is outside it")
-    if isinstance(msg, m.TimeSeriesRequest):
-        return f"the vehicle has no channel {msg.channel}, or the window is not valid"
-    if status == "UNKNOWN_TARGET":
-        return "the vehicle does not know what it names"
-    return "refused by the vehicle"
-
-
 _HANDLERS: dict[type, Callable[[ConsoleState, Any, float, int | None], None]] = {
     m.VehicleStatus: lambda s, msg, now, link: s._on_status(msg, now),
     m.LinkStatus: lambda s, msg, now, link: s._on_link_status(msg, now),
@@ -1664,404 +1510,3 @@ _HANDLERS: dict[type, Callable[[ConsoleState, Any, float, int | None], None]] = 
     m.QueueStatus: lambda s, msg, now, link: s._on_queue_status(msg, now),
     m.CommandAck: lambda s, msg, now, link: s._on_command_ack(msg, now),
 }
-
-
-_MODALITY_OF: dict[Any, str] | None = None
-
-
-def _modality_of(msg: m.Message) -> str | None:
-    """The installed modality whose receiver takes ``msg`` (by type, or by type id for the
-    opaque messages of third-party plugins), from the registry."""
-    global _MODALITY_OF
-    if _MODALITY_OF is None:
-        from coex_core.registry import available, load_modality
-
-        table: dict[Any, str] = {}
-        for info in available(check=False):
-            if info.group != "coex.modalities":
-                continue
-            try:
-                cls = load_modality(info.name)
-            except Exception:
-                continue
-            for t in cls.messages:
-                table.setdefault(t, info.name)
-            for tid in cls.message_ids:
-                table.setdefault(("opaque", int(tid)), info.name)
-        _MODALITY_OF = table
-    if isinstance(msg, m.Opaque):
-        name = _MODALITY_OF.get(("opaque", int(msg.type_id)))
-        if name is not None:
-            return name
-    return _MODALITY_OF.get(type(msg))
-
-
-# ----------------------------------------------------------------------------- actions
-
-
-def survey_summary(cmd: m.SurveyCommand) -> str:
-    """A survey command in words (the commands list and the event log)."""
-    def n(v: float | None) -> str:
-        return "?" if v is None else f"{v:g}"
-
-    kind = m.SurveyKind(cmd.kind)
-    at = f"({cmd.x:.0f}, {cmd.y:.0f})"
-    if kind == m.SurveyKind.GOTO:
-        what = f"go to {at}"
-    elif kind == m.SurveyKind.LINE:
-        what = f"line from {at}, heading {n(cmd.heading)}°, {n(cmd.length)} m"
-    elif kind == m.SurveyKind.LAWNMOWER:
-        what = (f"lawnmower {n(cmd.length)} x {n(cmd.width)} m at {at}, heading {n(cmd.heading)}°, "
-                f"rows {n(cmd.spacing)} m apart")
-    else:
-        what = f"{len(cmd.points) + 1} waypoints from {at}"
-    if cmd.altitude is not None:
-        what += f", altitude {n(cmd.altitude)} m"
-    if cmd.depth is not None:
-        what += f", depth {n(cmd.depth)} m"
-    if cmd.speed is not None:
-        what += f", {n(cmd.speed)} m/s"
-    return f"survey {cmd.survey_id}: {what}" + (" (after the others)" if cmd.append else "")
-
-
-class ConsoleActions:
-    """Operator actions as wire-format commands.
-
-    Each method builds :mod:`coex_core.messages` commands, records them in ``state`` (so the page
-    shows what was requested) and hands each one to ``send``. Invalid input raises
-    :class:`~coex_core.errors.RequestRejected` and sends nothing. ``clock`` gives ``now``
-    (the runner's clock; the actions never read one themselves)."""
-
-    def __init__(self, state: ConsoleState, send: Callable[[m.Message], Any],
-                 clock: Callable[[], float], *, first_command_id: int = 0,
-                 map_receiver: Any = None) -> None:
-        self.state = state
-        #: A bathymetry receiver (``request_area``): when set, map regions are asked through it
-        #: (it knows what topside holds, numbers the requests and retries them).
-        self.map_receiver = map_receiver
-        self.send = send
-        self.clock = clock
-        self._next_id = first_command_id % 256
-
-    def _cid(self) -> int:
-        source = getattr(self.send, "next_command_id", None)
-        if callable(source):
-            return int(source()) % 256
-        cid = self._next_id
-        self._next_id = (cid + 1) % 256
-        return cid
-
-    def _emit(self, msgs: Sequence[m.Message], summaries: Sequence[str]) -> list[m.Message]:
-        now = self.clock()
-        out: list[m.Message] = []
-        for msg, text in zip(msgs, summaries):
-            sent = self.send(msg)
-            actual = sent if isinstance(sent, m.Message) else msg
-            self.state.record_command(actual, now, text)
-            out.append(actual)
-        return out
-
-    # -------------------------------------------------------------------------- map
-    def request_region(self, level: int, x_min: float, y_min: float, x_max: float,
-                       y_max: float, *, fill_gaps: bool = False) -> list[Any]:
-        """Request the map at ``level`` over the rectangle ``[x_min, x_max] x [y_min, y_max]``
-        (metres) through the node's bathymetry receiver (:attr:`map_receiver`), which cuts it
-        into requests listing what topside holds (or, with ``fill_gaps``, a bitmap of it), so
-        the vehicle sends only what is newer or missing, numbers them and retries them until
-        the vehicle has nothing newer. Returns the receiver's regions."""
-        level = int(level)
-        if not 0 <= level <= 15:
-            raise RequestRejected(f"level {level} outside 0..15")
-        vals = [float(v) for v in (x_min, y_min, x_max, y_max)]
-        if not all(math.isfinite(v) for v in vals):
-            raise RequestRejected("region corners must be finite numbers")
-        x_min, x_max = sorted(vals[0::2])
-        y_min, y_max = sorted(vals[1::2])
-        rx = self.map_receiver
-        if rx is None:
-            raise RequestRejected("map requests need a topside node with a bathymetry receiver")
-        # the receiver checks the level, the size and the wire's index range
-        regions = list(rx.request_area(level, x_min, y_min, x_max, y_max, fill_gaps=bool(fill_gaps)))
-        self.state.record_regions(regions, self.clock(), f"map level {level}"
-                                  + (" (gaps)" if fill_gaps else ""))
-        return regions
-
-    # ---------------------------------------------------------------------- surveys
-    def survey(self, kind: str, x: float, y: float, *, heading: float | None = None,
-               length: float | None = None, width: float | None = None,
-               spacing: float | None = None, altitude: float | None = None,
-               depth: float | None = None, speed: float | None = None, append: bool = False,
-               points: Sequence[Sequence[float]] = ()) -> m.SurveyCommand:
-        """Ask the vehicle to survey (``kind`` ``goto``, ``line``, ``lawnmower`` or
-        ``waypoints``; ``x``, ``y`` metres east/north of the origin; a lawnmower is centred on
-        them with its rows along ``heading``) through the node's survey receiver, which sends the
-        ``SurveyCommand``, re-sends it until answered and follows the survey's state. Returns
-        the command (sent at the node's next poll)."""
-        rx = self.state.survey_receiver
-        if rx is None or self.state.own_receivers:
-            raise RequestRejected("survey requests need a topside node with the survey receiver "
-                                  "(coex topside runs it unless --modalities leaves out survey)")
-        nums: dict[str, float | None] = {}
-        for name, v in (("x", x), ("y", y), ("heading", heading), ("length", length),
-                        ("width", width), ("spacing", spacing), ("altitude", altitude),
-                        ("depth", depth), ("speed", speed)):
-            if v is None or v == "":
-                nums[name] = None
-                continue
-            f = float(v)
-            if not math.isfinite(f):
-                raise RequestRejected(f"survey {name} must be a finite number, not {v!r}")
-            nums[name] = f
-        if nums["x"] is None or nums["y"] is None:
-            raise RequestRejected("a survey needs x and y (metres east and north of the origin)")
-        if nums["altitude"] is not None and nums["depth"] is not None:
-            raise RequestRejected("give an altitude or a depth, not both")
-        try:
-            pts = [(float(p[0]), float(p[1])) for p in points or ()]
-        except (TypeError, ValueError, IndexError, KeyError):
-            raise RequestRejected("survey points are [x, y] pairs (metres)") from None
-        if not all(math.isfinite(a) and math.isfinite(b) for a, b in pts):
-            raise RequestRejected("survey points must be finite numbers")
-        now = self.clock()
-        # the receiver checks the kind, the fields the kind needs and their wire ranges
-        cmd = rx.request(str(kind), nums["x"], nums["y"], now, heading=nums["heading"],
-                         length=nums["length"], width=nums["width"], spacing=nums["spacing"],
-                         altitude=nums["altitude"], depth=nums["depth"], speed=nums["speed"],
-                         append=bool(append), points=pts)
-        self.state.record_command(cmd, now, survey_summary(cmd))
-        self.state.refresh_surveys()
-        return cmd
-
-    # ----------------------------------------------------------------------- images
-    def set_image_goal(self, image_id: int, kind: str, value: int = 0) -> m.ImageGoal:
-        """Transfer an image up to a goal: ``skip``, ``fraction`` (value in %), ``layer``, ``full``."""
-        try:
-            gk = m.GoalKind[str(kind).upper()]
-        except KeyError:
-            raise RequestRejected(f"unknown goal kind {kind!r}") from None
-        value = int(value)
-        if gk == m.GoalKind.FRACTION and not 1 <= value <= 100:
-            raise RequestRejected("a fraction goal is 1..100 (%)")
-        if gk == m.GoalKind.LAYER and not 0 <= value <= 255:
-            raise RequestRejected("a layer goal is 0..255")
-        if gk in (m.GoalKind.SKIP, m.GoalKind.FULL):
-            value = 0
-        msg = m.ImageGoal(self._cid(), int(image_id), gk, value)
-        text = f"image {image_id} goal {gk.name.lower()}" + (f" {value}" if value else "")
-        self._emit([msg], [text])
-        return msg
-
-    def image_by_time(self, t: float, direction: str = "nearest") -> m.ImageByTimeRequest:
-        """Ask for the image nearest time ``t`` (absolute seconds), or the one before/after it."""
-        try:
-            d = {"nearest": m.TimeDirection.NEAREST, "previous": m.TimeDirection.BEFORE,
-                 "before": m.TimeDirection.BEFORE, "next": m.TimeDirection.AFTER,
-                 "after": m.TimeDirection.AFTER}[str(direction).lower()]
-        except KeyError:
-            raise RequestRejected(f"unknown direction {direction!r}") from None
-        if not math.isfinite(float(t)):
-            raise RequestRejected("time must be finite")
-        msg = m.ImageByTimeRequest(self._cid(), to_stamp(float(t)), d)
-        what = {m.TimeDirection.BEFORE: "previous image before",
-                m.TimeDirection.AFTER: "next image after"}.get(d, "image nearest")
-        self._emit([msg], [f"{what} {hms(float(t))}"])
-        return msg
-
-    def image_region(self, image_id: int, x0: float, y0: float, x1: float, y1: float,
-                     kind: str = "quality", value: float = 30) -> m.ImageRegionRequest:
-        """Bring the rectangle ``[x0, x1) x [y0, y1)`` (pixels of the image as announced) of an
-        image to a goal: ``quality`` (``value`` in dB PSNR inside the region, 10..60; 0.1 dB on
-        the wire), ``layer`` (quality layers, 1..the image's) or ``bytes`` (a budget of body
-        bytes, 1..65535). The vehicle sends the packets of the JPEG 2000 precincts covering it.
-        Through the node's imagery receiver when the console has one (it retries the request
-        and lists the region with the layers complete inside it), else as a command."""
-        iid = int(image_id)
-        img = self.state.images.get(iid)
-        info = img.decoded_meta if img is not None else {}
-        w, h = info.get("width"), info.get("height")
-        if img is None or not w or not h:
-            raise RequestRejected(f"image {iid} is not announced yet: its size is unknown")
-        from coex_plugins.imagery.goals import region_fields
-
-        try:
-            (bx0, by0, bx1, by1), goal, code = region_fields(
-                (x0, y0, x1, y1), kind, value, int(w), int(h), int(info.get("layers") or 255),
-                1 if info.get("precincts") is None else int(info["precincts"]))  # unknown: let the vehicle say
-        except CoexError as exc:
-            raise RequestRejected(f"image {iid}: {exc}") from None
-        v = float(value)
-        words = {m.RegionGoal.QUALITY: f"to {v:g} dB", m.RegionGoal.BYTES: f"within {code} bytes",
-                 m.RegionGoal.LAYER: f"to {code} layer{'s' if code != 1 else ''}"}[goal]
-        text = f"image {iid} region {bx0}..{bx1} x {by0}..{by1} {words}"
-        rx = None if self.state.own_receivers else self.state.receivers.get("imagery")
-        if rx is not None and iid in getattr(rx, "images", {}) and hasattr(rx, "request_region"):
-            # the node's receiver numbers it, retries it until answered and follows it
-            now = self.clock()
-            try:
-                msg = rx.request_region(iid, (bx0, by0, bx1, by1), goal.name.lower(),
-                                        v if goal == m.RegionGoal.QUALITY else code, now=now)
-            except CoexError as exc:
-                raise RequestRejected(str(exc)) from None
-            self.state.record_command(msg, now, text)
-            return cast(m.ImageRegionRequest, msg)
-        msg = m.ImageRegionRequest(self._cid(), iid, bx0, by0, bx1, by1, goal, code)
-        self._emit([msg], [text])
-        return msg
-
-    # ------------------------------------------------------------------ time series
-    def refine_series(self, channel: int, start: float, end: float,
-                      max_error: float | None = None) -> m.TimeSeriesRequest:
-        """Refine a channel over ``[start, end]`` (absolute seconds) down to ``max_error``
-        (default: a quarter of the worst bound held in the window)."""
-        start, end = sorted((float(start), float(end)))
-        if not (math.isfinite(start) and math.isfinite(end)):
-            raise RequestRejected("window must be finite")
-        s = self.state.series.get(int(channel))
-        if s is None:
-            raise RequestRejected(f"unknown channel {channel}")
-        if max_error is None:
-            t, b = s.get("times"), s.get("bounds")
-            if t is None or b is None:
-                raise RequestRejected("no data in that window to refine; give max_error")
-            sel = (t >= start) & (t <= end) & np.isfinite(b)
-            if not sel.any():
-                raise RequestRejected("no data in that window to refine; give max_error")
-            max_error = float(b[sel].max()) / 4
-            if s.get("resolution"):
-                max_error = max(max_error, float(s["resolution"]) / 2)
-        if not (math.isfinite(max_error) and max_error > 0):
-            raise RequestRejected("max_error must be positive")
-        msg = m.TimeSeriesRequest(self._cid(), int(channel), to_stamp(start), to_stamp(end),
-                                  float(np.float32(max_error)))
-        name = s.get("name", f"channel {channel}")
-        self._emit([msg], [f"refine {name} {hms(start)} to {hms(end)} to ±{max_error:.3g}"])
-        return msg
-
-    # ------------------------------------------------------------------------ queues
-    def queue_config(self, stream: int, *, flush: bool = False, enabled: bool | None = None,
-                     priority: int | None = None, ttl: int | None = None,
-                     max_depth: int | None = None,
-                     newest_first: bool | None = None) -> m.QueueConfig:
-        """Change one stream's settings (``None`` leaves a setting unchanged) or flush it."""
-        stream = int(stream)
-        if not 0 <= stream <= 31:
-            raise RequestRejected(f"stream {stream} outside 0..31")
-        if priority is not None and not 0 <= int(priority) <= 127:
-            raise RequestRejected("priority is 0..127")
-        if ttl is not None and not 0 <= int(ttl) <= 16383:
-            raise RequestRejected("ttl is 0..16383 s")
-        if max_depth is not None and not 0 <= int(max_depth) <= 1023:
-            raise RequestRejected("max_depth is 0..1023")
-        msg = m.QueueConfig(self._cid(), stream, bool(flush), enabled,
-                            None if priority is None else int(priority),
-                            None if ttl is None else int(ttl),
-                            None if max_depth is None else int(max_depth), newest_first)
-        parts = [f"stream {stream}:"]
-        if flush:
-            parts.append("flush")
-        if enabled is not None:
-            parts.append("enable" if enabled else "disable")
-        if priority is not None:
-            parts.append(f"priority {priority}")
-        for k, v in (("ttl", ttl), ("max depth", max_depth), ("newest first", newest_first)):
-            if v is not None:
-                parts.append(f"{k} {v}")
-        self._emit([msg], [" ".join(parts)])
-        return msg
-
-    # -------------------------------------------------------------------------- link
-    def link_control(self, link: int, enabled: bool, mute: bool = False) -> m.LinkControl:
-        """Enable or disable one modem link (or mute it)."""
-        link = int(link)
-        if not 0 <= link <= 7:
-            raise RequestRejected(f"link {link} outside 0..7")
-        msg = m.LinkControl(self._cid(), link, bool(enabled), bool(mute))
-        self._emit([msg], [f"link {link} {'enable' if enabled else 'disable'}"
-                           + (" mute" if mute else "")])
-        return msg
-
-    def spare_config(self, percent: int, link: int | None = None,
-                     stream: int | None = None) -> m.SpareConfig:
-        """Cap spare traffic (re-sends, refinements, redundant copies) at ``percent`` of each
-        packet, 0 = off: on ``link``, on every link (both None), or for ``stream``'s spare work.
-        Acoustic transmissions cost the vehicle energy: this is the operator's lever."""
-        pct = int(percent)
-        if not 0 <= pct <= 100:
-            raise RequestRejected("spare share is 0..100 %")
-        if link is not None and stream is not None:
-            raise RequestRejected("set a spare share per link or per stream, not both")
-        if link is not None and not 0 <= int(link) <= 7:
-            raise RequestRejected(f"link {link} outside 0..7")
-        if stream is not None and not 0 <= int(stream) <= 31:
-            raise RequestRejected(f"stream {stream} outside 0..31")
-        msg = m.SpareConfig(self._cid(), None if link is None else int(link),
-                            None if stream is None else int(stream), pct)
-        target = (f"stream {stream}" if stream is not None else
-                  f"link {link}" if link is not None else "every link")
-        self._emit([msg], [f"spare traffic on {target}: {'off' if pct == 0 else f'at most {pct} % of each packet'}"])
-        return msg
-
-    def propose_schedule(self, link: int, slots: Sequence[Mapping[str, Any]],
-                         activate_cycle: int | None = None,
-                         version: int | None = None) -> m.ScheduleUpdate:
-        """Propose a new TDMA schedule for ``link``: ``slots`` of ``owner``, ``duration``,
-        ``guard``, ``min_priority``; active from ``activate_cycle`` (default: two cycles after
-        the current one) with ``version`` (default: the running one plus 1, mod 16)."""
-        link = int(link)
-        if not 0 <= link <= 7:
-            raise RequestRejected(f"link {link} outside 0..7")
-        if not 1 <= len(slots) <= 32:
-            raise RequestRejected("a schedule has 1..32 slots")
-        out = []
-        for s in slots:
-            try:
-                owner, dur = int(s["owner"]), float(s["duration"])
-                guard, minp = float(s.get("guard", 0.0)), int(s.get("min_priority", 0))
-            except (KeyError, TypeError, ValueError) as exc:
-                raise RequestRejected(f"bad slot {s!r}: {exc}") from None
-            if not (0 <= owner <= 15 and 0.1 <= dur <= 600 and 0 <= guard <= 25.5
-                    and guard < dur and 0 <= minp <= 127):
-                raise RequestRejected(f"slot {s!r} out of range")
-            out.append(m.Slot(owner, round(dur, 1), round(guard, 1), minp))
-        cur = self.state.schedules.get(link)
-        now = self.clock()
-        if version is None:
-            version = ((cur["active_version"] if cur else 0) + 1) % 16
-        if activate_cycle is None:
-            if cur and cur["cycle"] > 0:
-                activate_cycle = (cur["first_cycle"]
-                                  + int((now - cur["epoch"]) // cur["cycle"]) + 2)
-            else:
-                activate_cycle = 0
-        msg = m.ScheduleUpdate(self._cid(), link, int(version) % 16, int(activate_cycle) % 65536,
-                               tuple(out))
-        self._emit([msg], [f"schedule v{msg.version} for link {link} "
-                           f"({len(out)} slots, cycle {msg.activate_cycle})"])
-        return msg
-
-    # ------------------------------------------------------------------- dispatcher
-    def dispatch(self, action: str, args: Mapping[str, Any], operator: str = "") -> list[m.Message]:
-        """Run an action named by the page (``request_region``, ``set_image_goal``,
-        ``image_by_time``, ``image_region``, ``refine_series``, ``queue_config``, ``link_control``,
-        ``spare_config``, ``propose_schedule``, ``survey``) with keyword ``args``; returns the
-        messages sent."""
-        fn = {
-            "survey": self.survey,
-            "request_region": self.request_region, "set_image_goal": self.set_image_goal,
-            "image_by_time": self.image_by_time, "image_region": self.image_region,
-            "refine_series": self.refine_series,
-            "queue_config": self.queue_config, "link_control": self.link_control,
-            "spare_config": self.spare_config, "propose_schedule": self.propose_schedule,
-        }.get(action)
-        if fn is None:
-            raise RequestRejected(f"unknown action {action!r}")
-        self.state.actor = str(operator)  # recorded with every command this action sends
-        try:
-            result = fn(**dict(args))  # type: ignore[operator]
-        except TypeError as exc:
-            raise RequestRejected(f"bad arguments for {action}: {exc}") from None
-        except (ValueError, OverflowError) as exc:
-            raise RequestRejected(f"bad value for {action}: {exc}") from None
-        finally:
-            self.state.actor = ""
-        return list(result) if isinstance(result, list) else [result]

@@ -512,7 +512,7 @@ def _ros(raw: Mapping[str, Any], p: _Problems, cfg: DeployConfig) -> None:
 def _console(raw: Mapping[str, Any], p: _Problems, cfg: DeployConfig) -> None:
     c = p.table(raw.get("console"), "console")
     p.unknown(c, {"http", "operators", "insecure_open", "tls_cert", "tls_key", "session_hours",
-                  "stream_names"}, "console")
+                  "idle_minutes", "allowed_hosts", "trusted_proxies", "stream_names"}, "console")
     http = c.get("http", "127.0.0.1:8080")
     _host, sep, port = str(http).rpartition(":")
     if not sep or not port.isdigit() or not 0 <= int(port) <= 65535:
@@ -526,4 +526,9 @@ def _console(raw: Mapping[str, Any], p: _Problems, cfg: DeployConfig) -> None:
     if not isinstance(c.get("insecure_open", False), bool):
         p.add("console.insecure_open", "true or false")
     p.number(c, "session_hours", "console", 12.0, lo=0.01, hi=24 * 365)
+    p.number(c, "idle_minutes", "console", 30.0, lo=0.1, hi=24 * 60 * 365)
+    for k in ("allowed_hosts", "trusted_proxies"):
+        v = c.get(k, [])
+        if not isinstance(v, list) or not all(isinstance(h, str) and h for h in v):
+            p.add(f"console.{k}", f"a list of names or addresses, got {v!r}")
     cfg.console = c

@@ -10,6 +10,7 @@ const el = (tag, attrs = {}, ...kids) => {
   for (const [k, v] of Object.entries(attrs)) {
     if (k === "class") e.className = v;
     else if (k.startsWith("on")) e.addEventListener(k.slice(2), v);
+    else if (k === "style") e.style.cssText = v;  // CSSOM: allowed by the page's CSP (no inline styles)
     else e.setAttribute(k, v);
   }
   for (const k of kids) e.append(k instanceof Node ? k : document.createTextNode(String(k)));
@@ -1759,7 +1760,7 @@ function apply(data, full) {
 const ME = { auth: false, name: "", role: "operator", may_command: true, csrf: "" };
 const VIEW_ONLY = new Set(["fit-btn", "draw-btn", "roi-cancel", "logout-btn"]);
 function applyRole() {
-  document.body.classList.toggle("viewer", !ME.may_command);
+  document.body.classList.toggle("role-viewer", !ME.may_command);  // not "viewer": the image viewer's class
   if (ME.may_command) return;
   for (const b of document.querySelectorAll("main button, main select, #roi-form input, #sched-form input")) {
     if (!VIEW_ONLY.has(b.id)) { b.disabled = true; b.title = "viewers cannot command"; }
@@ -1799,6 +1800,13 @@ function connect() {
     S.now = JSON.parse(ev.data).now;
     showClock();
     renderVehicle(); drawTdma(); drawAllPlots();
+  });
+  // the server ends the stream when the session ends (signed out, expired, removed from the
+  // operators file, new password) and says when the person's role changed (made a viewer)
+  es.addEventListener("session", (ev) => {
+    const s = JSON.parse(ev.data);
+    if (s.ended) { es.close(); location.href = "/login"; return; }
+    whoami();
   });
   es.onopen = () => { pageConnected = true; showConn(); window.coex.connected = true; };
   es.onerror = () => { pageConnected = false; showConn(); window.coex.connected = false; };
