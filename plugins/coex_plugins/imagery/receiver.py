@@ -61,7 +61,19 @@ MAX_ACK_RANGES = 15
 REUSE_WINDOW = 16
 
 
-@persistent("imagery.Rx")
+def _upgrade_rx(fields: dict[str, Any], saved: int) -> dict[str, Any]:
+    """Version 1 (CoEx 0.1) had one packet per resolution (no precincts), no region requests
+    and no crops."""
+    if saved < 2:
+        order = fields.get("order")
+        if order is not None and order.shape[1] == 3:
+            fields["order"] = packet_order(fields["sp"], fields["ann"].width, fields["ann"].height)
+        for k, v in (("regions", []), ("crop", None), ("base", None), ("shown", None), ("ack_from", 0)):
+            fields.setdefault(k, v)
+    return fields
+
+
+@persistent("imagery.Rx", version=2, upgrade=_upgrade_rx)
 class _Rx:
     def __init__(self, ann: ImageAnnounce, sp: StreamParams, now: float) -> None:
         self.ann = ann
@@ -87,6 +99,8 @@ class _Rx:
         self.base: npt.NDArray[np.uint8] | None = None
         #: for an image: what topside shows, its crops pasted over it (None: its own decode)
         self.shown: npt.NDArray[np.uint8] | None = None
+        #: where the next ack's ranges start (acks take turns over a long list of held ranges)
+        self.ack_from = 0
 
     @property
     def n_packets(self) -> int:
@@ -140,7 +154,15 @@ RECEIVER_DEFAULTS: dict[str, Any] = {"max_images": 256, "max_early": 256, "ack_l
                                      "out_dir": None}
 
 
-@persistent("imagery.Receiver", transient=("listeners", "_parsers"))
+def _upgrade_receiver(fields: dict[str, Any], saved: int) -> dict[str, Any]:
+    """Version 1 (CoEx 0.1): no standing requests, no count of refused announcements."""
+    if saved < 2:
+        fields.setdefault("_waiting", {})
+        fields.setdefault("rejected_announces", 0)
+    return fields
+
+
+@persistent("imagery.Receiver", version=2, upgrade=_upgrade_receiver, transient=("listeners", "_parsers"))
 class ImageryReceiver(ModalityReceiver):
     """Topside side. Configuration keys (all optional): ``max_images`` (256), ``max_early``
     (256), ``ack_limit`` (acks per poll, 4), ``retry`` (seconds between request retries, 60),
@@ -172,16 +194,14 @@ class ImageryReceiver(ModalityReceiver):
         self.progress: TransferProgress | None = None
         self._progress_version = 0
         self.rejected_fragments = 0
+        self.rejected_announces = 0
+        #: standing by-time requests: command id -> (request, when it was answered PENDING)
+        self._waiting: dict[int, tuple[Message, float]] = {}
         self.out_dir = cfg.get("out_dir")
         self._after_restore()
 
     def _after_restore(self) -> None:
         """The listeners (not saved state): the image writer of ``out_dir``."""
-        for rx in self.images.values():
-            if rx.order.shape[1] == 3:  # saved before precincts: one per resolution
-                rx.order = packet_order(rx.sp, rx.ann.width, rx.ann.height)
-        if getattr(self, "_waiting", None) is None:  # saved before requests could stand
-            self._waiting: dict[int, tuple[Message, float]] = {}
         self.listeners: list[Callable[[Product], None]] = []
         #: image id -> packet-header parser (rebuilt from the held bytes after a restart)
         self._parsers: dict[int, PacketParser | None] = {}
@@ -223,7 +243,7 @@ class ImageryReceiver(ModalityReceiver):
     def _announce(self, ann: ImageAnnounce, now: float, crop: ImageCrop | None = None) -> list[Product]:
         self._ack_due[ann.image_id] = None
         old = self.images.get(ann.image_id)
-        if old is not None and (old.ann == ann if crop is None else getattr(old, "crop", None) == crop):
+        if old is not None and (old.ann == ann if crop is None else old.crop == crop):
             return []
         try:
             sp = parse_params(ann.params)
@@ -231,7 +251,7 @@ class ImageryReceiver(ModalityReceiver):
                 raise DecodeError(f"the grey flag ({ann.grey}) disagrees with params (colour={sp.colour})")
         except CoexError as exc:
             # spec/payloads.md 3.1: such an image is not decoded; said, not silent
-            self.rejected_announces = getattr(self, "rejected_announces", 0) + 1
+            self.rejected_announces += 1
             log.warning("image %d announced with unusable coding parameters %#x: %s", ann.image_id,
                         ann.params, exc)
             return []
@@ -273,10 +293,10 @@ class ImageryReceiver(ModalityReceiver):
         """Forget an image (and the crops made of it: they refine an image that is gone)."""
         rx = self.images.pop(image_id, None)
         self._parsers.pop(image_id, None)
-        if rx is None or getattr(rx, "crop", None) is not None:
+        if rx is None or rx.crop is not None:
             return
         for cid in [i for i, c in self.images.items()
-                    if (o := getattr(c, "crop", None)) is not None and o.parent == image_id and c.time >= rx.time]:
+                    if (o := c.crop) is not None and o.parent == image_id and c.time >= rx.time]:
             self.images.pop(cid, None)
             self._parsers.pop(cid, None)
 
@@ -353,7 +373,7 @@ class ImageryReceiver(ModalityReceiver):
         rx.used = len(sig)
         rx.bytes_used = sum(len(packets[i] or b"") for i in sig)
         rx.version += 1
-        if getattr(rx, "crop", None) is not None:
+        if rx.crop is not None:
             return [self._product(rx), *self._parent_products(rx)]
         self._compose(rx)
         return [self._product(rx)]
@@ -364,14 +384,14 @@ class ImageryReceiver(ModalityReceiver):
         """The crops of an image topside holds, oldest first (a newer one is pasted over it)."""
         iid = rx.ann.image_id
         return sorted((c for c in self.images.values()
-                       if (o := getattr(c, "crop", None)) is not None and o.parent == iid and c.time >= rx.time),
+                       if (o := c.crop) is not None and o.parent == iid and c.time >= rx.time),
                       key=lambda c: c.time)
 
     def _parent_products(self, crop: _Rx) -> list[Product]:
         """The parent of a crop, shown again with the crop (when it is held)."""
         c = crop.crop
         parent = self.images.get(c.parent) if c is not None else None
-        if parent is None or getattr(parent, "crop", None) is not None:
+        if parent is None or parent.crop is not None:
             return []
         self._compose(parent)
         parent.version += 1
@@ -405,7 +425,7 @@ class ImageryReceiver(ModalityReceiver):
             return None
         if c.base == 0:
             base: npt.NDArray[np.uint8] | None = np.full(crop.image.shape, 128, np.uint8)
-        elif parent is None or getattr(parent, "crop", None) is not None:
+        elif parent is None or parent.crop is not None:
             return None
         else:
             base = self._crop_base(parent, crop)
@@ -443,7 +463,7 @@ class ImageryReceiver(ModalityReceiver):
     def _region_answer(self, ack: CommandAck) -> list[Product]:
         """The vehicle's answer to a region request: its state changes (accepted / rejected)."""
         for rx in self.images.values():
-            for reg in getattr(rx, "regions", ()):
+            for reg in rx.regions:
                 if reg["command_id"] == ack.command_id and reg["state"] == "requested":
                     reg["state"] = ("accepted" if ack.status == AckStatus.ACCEPTED else
                                     "waiting" if ack.status == AckStatus.PENDING else "rejected")
@@ -517,17 +537,17 @@ class ImageryReceiver(ModalityReceiver):
             "layers_complete": self._layers_complete(rx), "layers": rx.sp.layers,
             "complete": bool(rx.have.all()), "precincts": rx.sp.precincts,
         }
-        crop = getattr(rx, "crop", None)
+        crop = rx.crop
         if crop is not None:
             parent = self.images.get(crop.parent)
             meta.update(parent=crop.parent, box=[crop.x0, crop.y0, crop.x1, crop.y1],
                         command_id=crop.command_id, base=crop.base, cover=crop.cover,
-                        shown=parent is not None and getattr(parent, "crop", None) is None
+                        shown=parent is not None and parent.crop is None
                         and self._crop_shown(parent, rx))
             return Product("image-crop", str(a.image_id), rx.version, self._crop_pixels(rx), meta)
-        meta["regions"] = [self._region_meta(rx, reg) for reg in getattr(rx, "regions", ())]
+        meta["regions"] = [self._region_meta(rx, reg) for reg in rx.regions]
         meta["crops"] = [c.ann.image_id for c in self._crops_of(rx)]
-        shown = getattr(rx, "shown", None)
+        shown = rx.shown
         return Product("image", str(a.image_id), rx.version, rx.image if shown is None else shown, meta)
 
     def _progress_product(self) -> Product:
@@ -548,9 +568,9 @@ class ImageryReceiver(ModalityReceiver):
         rx = self.images.get(image_id)
         if rx is None:
             return None
-        if getattr(rx, "crop", None) is not None:
+        if rx.crop is not None:
             return self._crop_pixels(rx)
-        shown = getattr(rx, "shown", None)
+        shown = rx.shown
         return rx.image if shown is None else shown
 
     # ------------------------------------------------------------------ requests
@@ -584,7 +604,7 @@ class ImageryReceiver(ModalityReceiver):
         rx = self.images.get(int(image_id))
         if rx is None:
             raise ConfigError(f"no image {image_id} announced")
-        crop_of = getattr(rx, "crop", None)
+        crop_of = rx.crop
         if crop_of is not None:
             raise ConfigError(f"image {image_id} is a crop of image {crop_of.parent}: ask for a region of that image")
         try:
@@ -594,7 +614,7 @@ class ImageryReceiver(ModalityReceiver):
             raise ConfigError(f"image {image_id}: {exc}") from None
         msg = self._new_command(lambda c: ImageRegionRequest(c, int(image_id), x0, y0, x1, y1, k, code), now)
         assert isinstance(msg, ImageRegionRequest)
-        rx.regions = [*getattr(rx, "regions", []), {
+        rx.regions = [*rx.regions, {
             "command_id": msg.command_id, "box": (x0, y0, x1, y1), "kind": k.name.lower(),
             "value": float(value) if k == RegionGoal.QUALITY else code, "state": "requested", "time": now,
             "bytes_at_request": self._region_bytes(rx, (x0, y0, x1, y1))}]
@@ -620,7 +640,7 @@ class ImageryReceiver(ModalityReceiver):
             if len(ranges) > self.ack_ranges:
                 # more held ranges than one ack carries (a region's packets are scattered): each
                 # ack goes on from where the last one stopped, so every range is reported in turn
-                start = getattr(rx, "ack_from", 0)
+                start = rx.ack_from
                 later = [r for r in ranges if r[0] >= start]
                 ranges = (later + [r for r in ranges if r[0] < start])[: self.ack_ranges]
                 rx.ack_from = ranges[-1][1]
