@@ -55,39 +55,48 @@ class _Delivery:
     frames: list[tuple[int, int]] = field(default_factory=list)
 
 
-class DeliveryMixin(LinksMixin):
-    def _delivery_state(self) -> None:
-        """Create the delivery and loss bookkeeping (``__init__``, and a manager restored from a
-        store saved before it existed)."""
-        if getattr(self, "_deliveries", None) is not None:
-            return
+def delivery_fields() -> dict[str, Any]:
+    """The delivery and loss bookkeeping of a new manager, by attribute (also what
+    ``channel.ChannelManager`` version 1, saved before it existed, is upgraded with)."""
+    return {
         #: token -> message in flight
-        self._deliveries: dict[int, _Delivery] = {}
-        self._delivery_ids = 0
+        "_deliveries": {},
+        "_delivery_ids": 0,
         #: link -> seq -> tokens carried by that frame
-        self._delivery_frames: dict[int, dict[int, list[int]]] = {}
+        "_delivery_frames": {},
         #: link -> tokens in the order their deadlines fall (one ack timeout per link)
-        self._delivery_order: dict[int, deque[int]] = {}
+        "_delivery_order": {},
         #: link -> seq -> (sent at, deadline) of every sent frame the peer should acknowledge
-        self._frame_watch: dict[int, dict[int, tuple[float, float]]] = {}
+        "_frame_watch": {},
         #: link -> recent outcomes of our frames (1 acknowledged, 0 not)
-        self._tx_outcomes: dict[int, deque[int]] = {}
+        "_tx_outcomes": {},
         #: link -> recent outcomes of the peer's frames (1 received, 0 a gap in its seqs)
-        self._rx_outcomes: dict[int, deque[int]] = {}
+        "_rx_outcomes": {},
         #: (src, link) -> seq of the newest frame heard from that peer
-        self._rx_last: dict[tuple[int, int], int] = {}
+        "_rx_last": {},
         #: token -> messages given to ``lost`` whose frames' late ack may still come: it then
         #: goes to ``acked`` (so the sender does not send again what arrived)
-        self._lost_recs: OrderedDict[int, _Delivery] = OrderedDict()
+        "_lost_recs": OrderedDict(),
+    }
 
-    def _after_restore(self) -> None:
-        self._delivery_state()
-        for k in ("delivered", "lost", "spare_bytes", "redundant_bytes"):
-            self.stats.setdefault(k, 0)
-        if getattr(self, "_lost_recs", None) is None:
-            self._lost_recs = OrderedDict()
-        if getattr(self, "_spare_turn", None) is None:
-            self._spare_turn: dict[int, float] = {}
+
+class DeliveryMixin(LinksMixin):
+    _deliveries: dict[int, _Delivery]
+    _delivery_ids: int
+    _delivery_frames: dict[int, dict[int, list[int]]]
+    _delivery_order: dict[int, deque[int]]
+    _frame_watch: dict[int, dict[int, tuple[float, float]]]
+    _tx_outcomes: dict[int, deque[int]]
+    _rx_outcomes: dict[int, deque[int]]
+    _rx_last: dict[tuple[int, int], int]
+    _lost_recs: OrderedDict[int, _Delivery]
+    #: stream -> when its sender last got spare capacity (the spare tier takes turns)
+    _spare_turn: dict[int, float]
+
+    def _delivery_state(self) -> None:
+        """Create the delivery and loss bookkeeping (``__init__``)."""
+        for k, v in delivery_fields().items():
+            setattr(self, k, v)
 
     # ----------------------------------------------------------------------- tracking
     def _track(self, link: int, stream: int, message: Message, now: float, token: int | None = None) -> int:

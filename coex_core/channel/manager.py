@@ -16,11 +16,13 @@ tracking commands), :mod:`.settings` (operator settings); the API is this class'
 from __future__ import annotations
 
 from collections.abc import Callable, Iterable, Sequence
+from typing import Any
 
 from ..auth import CommandSigner, CommandVerifier, is_command
 from ..errors import ConfigError
 from ..messages import Message
 from ..state import persistent
+from .delivery import delivery_fields
 from .events import Event
 from .links import (
     CONTROL_STREAM,
@@ -46,8 +48,21 @@ __all__ = [
 ]
 
 
+def _upgrade_manager(fields: dict[str, Any], saved: int) -> dict[str, Any]:
+    """Version 1 (CoEx 0.1) had no delivery tracking, no loss estimates and no spare turns."""
+    if saved < 2:
+        for k, v in delivery_fields().items():
+            fields.setdefault(k, v)
+        fields.setdefault("_spare_turn", {})
+        stats = fields.setdefault("stats", {})
+        for k in ("delivered", "lost", "spare_bytes", "redundant_bytes"):
+            stats.setdefault(k, 0)
+    return fields
+
+
 #: the clock, the command test and the key holders come from the node it is restored into
-@persistent("channel.ChannelManager", transient=("clock", "is_command", "signer", "verifier"))
+@persistent("channel.ChannelManager", version=2, upgrade=_upgrade_manager,
+            transient=("clock", "is_command", "signer", "verifier"))
 class ChannelManager(SettingsMixin):
     """Queues, packing, TDMA and links of one node (vehicle or topside).
 
