@@ -5,7 +5,6 @@ three modalities between a vehicle and a topside node (fixed seeds)."""
 from __future__ import annotations
 
 import dataclasses
-import heapq
 import random
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -25,7 +24,6 @@ from coex_plugins.imagery import ImageInput, ImageryModality, ImageryReceiver, I
 from coex_plugins.imagery.synth import seafloor
 from coex_plugins.timeseries import TimeSeriesModality, TimeSeriesReceiver, TimeSeriesSender
 from coex_plugins.timeseries import synth as ts_synth
-from coex_transports.runner import next_wakeup
 
 from ._bathy_data import small_survey
 
@@ -257,32 +255,19 @@ def run_modems(dive: Dive, until: float, reboots: list[float], loss: float = 0.1
     """The dive through the Micromodem simulator (NMEA drivers), the vehicle's modem rebooted
     at each time of ``reboots``."""
     from coex_core.loopback import SimClock
-    from coex_transports.micromodem.simulator import ModemNetwork
+    from coex_transports.micromodem.simulator import ModemNetwork, SimLoop
 
     clock = SimClock(T0)
     net = ModemNetwork({TOPSIDE: (100.0, 0.0, 0.0), VEHICLE: (0.0, 0.0, 500.0)},
                        channel=AcousticChannel(loss=loss, seed=seed), clock=clock)
     runners = [Runner(dive.vehicle, {0: net.transport(VEHICLE, rate=5, dest=TOPSIDE)}, SimulatedClock(sim=clock)),
                Runner(dive.topside, {0: net.transport(TOPSIDE, rate=5, dest=VEHICLE)}, SimulatedClock(sim=clock))]
-    events: list[tuple[float, int, Callable[[float], None]]] = []
-    for i, (t, fn) in enumerate(dive.inputs):
-        heapq.heappush(events, (t, i, fn))
-    for j, t in enumerate(reboots):
-        heapq.heappush(events, (t, 10**6 + j, lambda now: net.modems[VEHICLE].reboot(now)))
-    steps = 0
-    while clock.now < until:
-        t = next_wakeup(clock.now, until, events[0][0] if events else None,
-                        [net.next_event(), *(r.node.next_event(clock.now) for r in runners)],
-                        started=bool(steps))
-        t = min(t, clock.now + 1.0)
-        net.run_until(t)
-        while events and events[0][0] <= clock.now:
-            _, _, fn = heapq.heappop(events)
-            fn(clock.now)
-        for r in runners:
-            r.step()
-        net.step()
-        steps += 1
+    loop = SimLoop(net, runners, max_step=1.0)
+    for t, fn in dive.inputs:
+        loop.at(t, fn)
+    for t in reboots:
+        loop.at(t, lambda now: net.modems[VEHICLE].reboot(now))
+    loop.run(until)
     return net, runners
 
 
