@@ -15,10 +15,10 @@ import numpy as np
 from coex import Runner, SimNetwork, SimulatedClock
 from coex_core.acoustic import AcousticChannel, Arrival
 from coex_core.channel import ChannelManager, LinkConfig, Schedule, StreamConfig
-from coex_core.errors import RequestRejected
 from coex_core.messages import Message
 from coex_core.modality import ModalityReceiver, ModalitySender, Product
 from coex_core.node import Node
+from coex_plugins import convergence
 from coex_plugins.bathymetry import BathymetryModality, BathymetryReceiver, BathymetrySender
 from coex_plugins.imagery import ImageInput, ImageryModality, ImageryReceiver, ImagerySender
 from coex_plugins.imagery.synth import seafloor
@@ -272,60 +272,23 @@ def run_modems(dive: Dive, until: float, reboots: list[float], loss: float = 0.1
 
 
 # ------------------------------------------------------------------------------ checks
+# (the checks themselves are coex_plugins.convergence's, shared with the soak benchmark)
 
 
 def map_converged(dive: Dive) -> bool:
     """Every level of the topside map equals the vehicle's map (to the 0.1 m quantisation)."""
-    products = {p.key: p for p in dive.map_rx.products()}
-    for k in range(3):
-        grid, x0, y0 = dive.bathy.map.grid(k)
-        prod = products.get(f"level-{k}")
-        if prod is None:
-            return False
-        cell = prod.meta["cell_size"]
-        r0 = round((prod.meta["y0"] - y0) / cell)
-        c0 = round((prod.meta["x0"] - x0) / cell)
-        got = prod.data
-        rows, cols = np.nonzero(np.isfinite(grid))
-        tr, tc = rows - r0, cols - c0  # the same cells in topside's mosaic
-        inside = (tr >= 0) & (tr < got.shape[0]) & (tc >= 0) & (tc < got.shape[1])
-        if not inside.all() or int(np.isfinite(got).sum()) != rows.size:
-            return False
-        if np.abs(got[tr, tc] - grid[rows, cols]).max(initial=0.0) > 0.05 + 1e-9:  # 0.1 m quantum
-            return False
-    return True
+    return convergence.map_converged(dive.bathy, dive.map_rx)
 
 
 def images_complete(dive: Dive) -> bool:
     """Every image reached its goal topside (image 1: in full), decoded."""
-    s, r = dive.images, dive.image_rx
+    s = dive.images
     if len(s.images) < 4 or s.images[1].goal != s.images[1].total:
         return False
-    for image_id, tx in s.images.items():
-        rx = r.images.get(image_id)
-        if rx is None or rx.contiguous() < tx.goal or rx.image is None:
-            return False
-        if bytes(rx.buf[: tx.goal]) != tx.enc.body[: tx.goal]:
-            return False
-    return True
+    return not convergence.images_missing(s, dive.image_rx)
 
 
 def series_complete(dive: Dive) -> bool:
     """Topside holds every block the vehicle closed, of every channel, with the vehicle's error
     bound, and every reconstructed value is within its bound of the true sample."""
-    for data in dive.series_data:
-        sent = dive.series.bound(data.name)
-        try:
-            held = {round(s, 3): b for s, _, b in dive.series_rx.bounds(data.name)}
-        except RequestRejected:  # nothing of this channel received yet
-            return False
-        if not sent or any(held.get(round(s, 3), np.inf) > b + 1e-9 for s, _, b in sent):
-            return False
-        rec = dive.series_rx.series(data.name)
-        idx = np.searchsorted(data.times, rec.times)
-        idx = np.clip(idx, 0, len(data.times) - 1)
-        same = np.isclose(data.times[idx], rec.times)
-        err = np.abs(rec.values[same] - data.values[idx[same]])
-        if not np.all(err <= rec.bounds[same] + 1e-6):
-            return False
-    return True
+    return convergence.series_complete(dive.series, dive.series_rx, dive.series_data)
