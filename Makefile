@@ -1,6 +1,7 @@
 # CoEx developer entry points. `make demo` and `make test` work on a fresh machine: they create
 # .venv/, install every package editable with all extras and the dev tools, and install the Debian
-# packages that are missing (libopenjp2-7 for glymur, chromium for the browser tests).
+# packages that are missing (libopenjp2-7 for glymur, chromium for the browser tests, ROS 1 for
+# the ros adapters), then let the venv import Debian's rospy (`make ros`, scripts/ros.sh).
 
 PYTHON ?= python3
 VENV   := .venv
@@ -9,15 +10,16 @@ STAMP  := $(VENV)/.coex-installed
 PYTEST_ARGS ?=
 DEMO_ARGS ?=
 
-.PHONY: install demo test lint typecheck pytest moos bench clean
+.PHONY: install demo test lint typecheck pytest moos ros bench clean
 
 install: $(STAMP)
 
-$(STAMP): pyproject.toml examples/coex-sample-plugin/pyproject.toml scripts/system-deps.sh
+$(STAMP): pyproject.toml examples/coex-sample-plugin/pyproject.toml scripts/system-deps.sh scripts/ros.sh
 	@bash scripts/system-deps.sh
 	@test -x $(PY) || $(PYTHON) -m venv $(VENV)
 	@$(PY) -m pip install -q --disable-pip-version-check --upgrade pip
 	@$(PY) -m pip install -q --disable-pip-version-check -e ".[all,dev]" -e examples/coex-sample-plugin
+	@bash scripts/ros.sh $(PY)
 	@touch $(STAMP)
 	@echo "CoEx installed in $(VENV)/ (activate with: . $(VENV)/bin/activate)"
 
@@ -35,7 +37,12 @@ typecheck: install
 moos: install
 	@bash scripts/moos.sh $(PY)
 
-pytest: install moos
+# the venv imports Debian's rospy (ROS modules only, after site-packages); never fails (the ROS
+# tests are skipped with the reason)
+ros: install
+	@bash scripts/ros.sh $(PY)
+
+pytest: install moos ros
 	$(VENV)/bin/pytest -n 2 $(PYTEST_ARGS)
 
 test: lint typecheck pytest

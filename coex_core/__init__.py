@@ -21,7 +21,7 @@ from .messages import Frame, FrameHeader, Message
 from .modality import Modality, ModalityReceiver, ModalitySender, Product
 from .transport import Transport
 
-__version__ = "0.1.0"
+__version__ = "0.2.0"
 
 __all__ = [
     "CoexError",

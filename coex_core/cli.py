@@ -14,12 +14,11 @@ import json
 import logging
 import sys
 from collections.abc import Sequence
-from importlib import metadata
 from typing import Any
 
 from . import __version__
 from .errors import CoexError
-from .registry import COMMAND_GROUP, available
+from .registry import COMMAND_GROUP, available, entry_points
 
 __all__ = ["main", "build_parser"]
 
@@ -60,6 +59,9 @@ def _cmd_spec(args: argparse.Namespace) -> int:
         if not args.check_command:
             print("coex spec vectors: give --check-command CMD", file=sys.stderr)
             return 2
+        if not specgen.vector_cases(args.vectors):
+            print(f"coex spec vectors: no golden vectors in {args.vectors} (give --vectors DIR)", file=sys.stderr)
+            return 2
         n, problems = _check_command(specgen, args.check_command, args.vectors)
         for p in problems[:50]:
             print(p)
@@ -71,6 +73,9 @@ def _cmd_spec(args: argparse.Namespace) -> int:
 
     if args.write_vectors:
         specgen.write_vectors(args.write_vectors)
+        print(f"wrote the golden vectors to {args.write_vectors}")
+        if not (args.check or args.write):
+            return 0
     if args.check:
         stale = specgen.check_document(args.document)
         if stale:
@@ -105,6 +110,15 @@ def _check_command(specgen: Any, command: str, directory: str) -> tuple[int, lis
     return len(cases), problems + specgen.compare_answers(cases, run.stdout)
 
 
+def _default_vectors() -> str:
+    """The repository's golden vectors (beside the package in a source checkout), else
+    ``spec/vectors`` of the working directory."""
+    from pathlib import Path
+
+    here = Path(__file__).resolve().parents[1] / "spec" / "vectors"
+    return str(here) if here.is_dir() else "spec/vectors"
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="coex", description="CoEx: live science data from an underwater vehicle over an acoustic link."
@@ -131,14 +145,15 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--check-command", metavar="CMD",
                    help="with vectors: another implementation's decoder: reads 'message HEX' or "
                         "'frame HEX' lines, answers one JSON object per line (spec section 13)")
-    p.add_argument("--vectors", default="spec/vectors", metavar="DIR", help="the vectors (default spec/vectors)")
+    p.add_argument("--vectors", default=_default_vectors(), metavar="DIR",
+                   help="the vectors (default: the repository's spec/vectors)")
     p.add_argument("--document", default="spec/wire-format.md", help="the spec document")
     p.add_argument("--write", action="store_true", help="rewrite the generated tables in the document")
     p.add_argument("--check", action="store_true", help="exit 1 if the document's tables are stale")
     p.add_argument("--write-vectors", metavar="DIR", help="regenerate the golden vectors into DIR")
     p.set_defaults(func=_cmd_spec)
 
-    for ep in sorted(metadata.entry_points(group=COMMAND_GROUP), key=lambda e: e.name):
+    for ep in entry_points(COMMAND_GROUP).values():  # sorted by name
         try:
             register = ep.load()
             register(sub)

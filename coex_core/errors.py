@@ -33,7 +33,15 @@ class DecodeError(CoexError, ValueError):
     This is the *only* exception that :func:`coex_core.wire.decode` and
     :func:`coex_core.wire.unpack` raise, whatever bytes they are given: the peer (or the channel)
     was at fault, not the caller.
+
+    ``reason`` is the error word of ``spec/wire-format.md`` section 13 naming the rule the input
+    breaks (``"truncated"``, ``"canonical"``, ``"empty region"`` ...): the wire codec always
+    gives one for any bytes it is given; other decoders (a plugin's body codec) may leave it ``None``.
     """
+
+    def __init__(self, *args: object, reason: str | None = None) -> None:
+        super().__init__(*args)
+        self.reason = reason
 
 
 class EncodeError(CoexError, ValueError):

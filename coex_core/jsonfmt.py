@@ -1,7 +1,10 @@
 """JSON forms of messages, used by the golden vectors and by ``messages.jsonl`` outputs.
 
 ``to_json(m)`` gives ``{"type": "Subgrid", <field>: <value>, ...}`` with enums as their names,
-bytes as lowercase hex and nested entries as objects; ``from_json`` reverses it exactly.
+bytes as lowercase hex, bit masks as integers and nested entries as objects; ``from_json``
+reverses it exactly. The form is specified in ``spec/wire-format.md`` section 13.1 (normative);
+this module is its reference implementation, and a test decodes every vector to it from the
+document alone (``tests/test_spec_decoder.py``).
 """
 
 from __future__ import annotations

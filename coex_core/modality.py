@@ -201,7 +201,7 @@ class Modality(abc.ABC):
     messages: ClassVar[tuple[type[Message], ...]] = ()
     #: built-in message types its receiver emits and its sender handles (requests, acks)
     requests: ClassVar[tuple[type[Message], ...]] = ()
-    #: third-party type ids (:class:`~coex_core.messages.Opaque`, spec section 3: 96..32767)
+    #: third-party type ids (:class:`~coex_core.messages.Opaque`, spec section 5: 96..32767)
     #: its sender emits and its receiver takes; a node routes those ids, and only those, to it
     message_ids: ClassVar[tuple[int, ...]] = ()
     #: third-party type ids its receiver emits and its sender handles
@@ -225,14 +225,10 @@ class Modality(abc.ABC):
     def handles(cls, message: Message) -> bool:
         """Whether ``message`` is one of this modality's messages or requests (by type, or by
         declared third-party id)."""
-        from .messages import Opaque
-        from .routing import declared_ids, type_id, wildcard
+        from .routing import declared_ids, type_id
 
         tid = type_id(message)
-        if tid is None:
-            return False
-        return any(tid in declared_ids(cls, kind) or (isinstance(message, Opaque) and wildcard(cls, kind))
-                   for kind in ("messages", "requests"))
+        return tid is not None and any(tid in declared_ids(cls, kind) for kind in ("messages", "requests"))
 
 
 def total_size(messages: Sequence[Message]) -> int:

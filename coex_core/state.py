@@ -195,7 +195,7 @@ class _Writer:
         c = _BY_CLASS.get(type(x))
         if c is None:
             raise StateError(f"{path}: a {type(x).__module__}.{type(x).__qualname__} is not "
-                             "registered state (coex_core.state.persistent)")
+                             f"registered state (coex_core.state.persistent){_hint(type(x))}")
         self.used[c.name] = c.version
         return c
 
@@ -223,6 +223,23 @@ def _plain(items: list[Any] | tuple[Any, ...]) -> bool:
     without visiting each item, which costs most of a snapshot's time)."""
     return all(type(v) in _PLAIN for v in items) and all(
         math.isfinite(v) for v in items if type(v) is float)
+
+
+def _hint(cls: type) -> str:
+    """Why an unregistered class may look registered: a registered base class (registration is
+    not inherited) or a registered class of the same name (``@dataclass(slots=True)`` made a new
+    class after ``@persistent`` registered the first)."""
+    for base in cls.__mro__[1:]:
+        entry = _BY_CLASS.get(base)
+        if entry is not None and base is not object:
+            return (f": its base class {base.__qualname__} is registered as {entry.name!r}, but "
+                    f"@persistent is not inherited; register the subclass under a name of its own")
+    same = [e for e in _BY_NAME.values() if e.cls.__qualname__ == cls.__qualname__
+            and e.cls.__module__ == cls.__module__ and e.cls is not cls]
+    if same:
+        return (f": another class of that name is registered as {same[0].name!r}; with "
+                f"@dataclass(slots=True), which makes a new class, put @persistent above @dataclass")
+    return ""
 
 
 def _fields(x: Any) -> dict[str, Any]:

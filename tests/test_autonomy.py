@@ -39,7 +39,7 @@ def _plan(sid: int = 7, pts: tuple[tuple[float, float], ...] = ((10.0, 0.0), (10
 # ------------------------------------------------------------------ registration
 def test_every_output_is_registered_under_its_name() -> None:
     eps = _entry_points()
-    assert set(eps) == {"log", "sim", "mavlink", "lcm", "moos"} and DEFAULT == "log"
+    assert set(eps) == {"log", "sim", "mavlink", "lcm", "moos", "ros"} and DEFAULT == "log"
     assert eps["mavlink"].endswith("[mavlink]") and eps["lcm"].endswith("[lcm]")
     for name, value in eps.items():
         cls = metadata.EntryPoint(name, value, GROUP).load()
@@ -212,10 +212,55 @@ def test_lcm_drops_garbage_and_unknown_states() -> None:
     lc.publish(planner.state_channel, b"not an lcm message")
     lc.publish(planner.state_channel, _plan_request_bytes())
     planner.answer(7, 9)  # no such state
-    planner.answer(7, 0)  # ACCEPTED is the survey sender's, never the planner's
+    planner.answer(7, 0)  # RECEIVED: an answer, but nothing to report (ACCEPTED is the survey sender's)
     planner.answer(7, 2, 2)
     assert out.poll(1.0) == [SurveyReport(7, SurveyState.STARTED, 1.0, index=2)]
-    assert out.stats["bad"] == 4
+    assert out.stats["bad"] == 3 and out.stats["received"] == 2
+
+
+def test_lcm_maps_override_all_stop_restart_and_the_planners_codes() -> None:
+    out, planner, _lc = _lcm_pair()
+    planner.answer(1, 1, 42)  # refused, with the planner's code
+    planner.answer(2, 4, 7)
+    planner.answer(3, 5)
+    planner.answer(4, 6)
+    planner.answer(5, 7)
+    planner.answer(6, 2, -1)  # started, no index: heading for waypoint 0
+    assert out.poll(9.0) == [
+        SurveyReport(1, SurveyState.REJECTED, 9.0, SurveyReason.AUTONOMY_REFUSED, None, 42.0),
+        SurveyReport(2, SurveyState.ABORTED, 9.0, SurveyReason.AUTONOMY_STOPPED, None, 7.0),
+        SurveyReport(3, SurveyState.ABORTED, 9.0, SurveyReason.MANUAL_OVERRIDE),
+        SurveyReport(4, SurveyState.ABORTED, 9.0, SurveyReason.ALL_STOP),
+        SurveyReport(5, SurveyState.ABORTED, 9.0, SurveyReason.AUTONOMY_RESTARTED),
+        SurveyReport(6, SurveyState.STARTED, 9.0, index=0),
+    ]
+
+
+def test_lcm_a_silent_planner_gets_the_request_again_then_no_answer() -> None:
+    """No answer within answer_timeout: the same request again, ``retries`` times; then
+    REJECTED AUTONOMY_NO_ANSWER with the tries made (not AUTONOMY_REFUSED)."""
+    out, planner, lc = _lcm_pair()
+    out.config.update(answer_timeout=2.0, retries=2)
+    out.submit(_plan(), 100.0)
+    assert out.poll(101.9) == [] and len(planner.requests) == 1
+    assert out.poll(102.0) == [] and out.poll(104.0) == []
+    [r] = out.poll(106.0)
+    assert len(planner.requests) == 3 and {bytes(q.encode()) for q in planner.requests} == {
+        bytes(planner.requests[0].encode())}  # the same request, the same utime
+    assert (r.survey_id, r.state, r.time, r.reason, r.value) == (
+        7, SurveyState.REJECTED, 106.0, SurveyReason.AUTONOMY_NO_ANSWER, 3.0)
+    assert r.detail == f"no survey_state_t on {planner.state_channel}"[:48]
+    assert out.poll(500.0) == [] and len(planner.requests) == 3
+    # a planner that answers (even only "received") is waited for no longer
+    out.submit(_plan(8), 600.0)
+    planner.answer(8, 0)
+    assert out.poll(601.0) == [] and out.poll(700.0) == [] and out.poll(701.0) == []
+    assert len(planner.requests) == 4
+    # answer_timeout 0: nothing is waited for
+    out.config["answer_timeout"] = 0.0
+    out.submit(_plan(9), 800.0)
+    assert out.poll(10_000.0) == []
+    assert lc is planner.lc
 
 
 def _plan_request_bytes() -> bytes:
@@ -250,3 +295,7 @@ def test_lcm_checks_its_options() -> None:
         LcmAutonomy({"channel": "X" * 64}, CTX)
     with pytest.raises(ConfigError, match="state_channel must be a non-empty string"):
         LcmAutonomy({"state_channel": ""}, CTX)
+    with pytest.raises(ConfigError, match="answer_timeout must be a number >= 0"):
+        LcmAutonomy({"answer_timeout": -1}, CTX)
+    with pytest.raises(ConfigError, match="retries must be an integer"):
+        LcmAutonomy({"retries": 1.5}, CTX)

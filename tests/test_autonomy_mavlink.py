@@ -121,6 +121,7 @@ def test_items_heights_frames_and_speed() -> None:
     ({"connection": "udpout:h:1", "timeout": 0}, "timeout must be a number > 0"),
     ({"connection": "udpout:h:1", "target_system": 300}, "target_system must be an integer"),
     ({"connection": "udpout:h:1", "home_placeholder": "yes"}, "home_placeholder must be true or false"),
+    ({"connection": "udpout:h:1", "manual_modes": [2, "x"]}, "manual_modes must be a list"),
     ({"connection": "udpout:h:1", "frme": 3}, "unknown option 'frme'"),
 ])
 def test_options_are_checked(options: dict[str, object], match: str) -> None:
@@ -164,8 +165,29 @@ def test_peer_rejects_the_mission(make: Callable[..., MavlinkAutonomy], port: in
     with _peer(port, result=4):  # MAV_MISSION_NO_SPACE
         out = make()
         out.submit(_plan(), time.monotonic())
-        assert run(out)[-1] == SurveyReport(7, SurveyState.REJECTED, pytest.approx(time.monotonic(), abs=5),  # type: ignore[arg-type]
-                                            SurveyReason.AUTONOMY_REFUSED, None, 4.0)
+        assert run(out) == [SurveyReport(7, SurveyState.REJECTED, pytest.approx(time.monotonic(), abs=5),  # type: ignore[arg-type]
+                                         SurveyReason.AUTONOMY_REFUSED, None, 4.0, "MAV_MISSION_NO_SPACE")]
+
+
+def test_a_denied_mission_is_reported_with_its_code_and_name(make: Callable[..., MavlinkAutonomy], port: int) -> None:
+    with _peer(port, result=14):  # MAV_MISSION_DENIED (common.xml)
+        out = make()
+        out.submit(_plan(), time.monotonic())
+        [r] = run(out)
+        assert (r.state, r.reason, r.value, r.detail) == (SurveyState.REJECTED, SurveyReason.AUTONOMY_REFUSED, 14.0,
+                                                          "MAV_MISSION_DENIED")
+
+
+def test_result_and_mode_names_come_from_pymavlink_or_the_table(monkeypatch: pytest.MonkeyPatch) -> None:
+    from coex_plugins.vehicle.autonomy.mavlink import enum_name, mode_name
+
+    assert enum_name("MAV_MISSION_RESULT", 14) == "MAV_MISSION_DENIED"
+    assert enum_name("MAV_RESULT", 4) == "MAV_RESULT_FAILED"
+    assert enum_name("MAV_RESULT", 99) == "MAV_RESULT 99"
+    assert (mode_name(2), mode_name(9), mode_name(3, 2)) == ("ALT_HOLD", "SURFACE", "mode 3")  # 2: a quadrotor
+    monkeypatch.setitem(sys.modules, "pymavlink.dialects.v20.ardupilotmega", None)  # not installed
+    assert enum_name("MAV_MISSION_RESULT", 2) == "MAV_MISSION_UNSUPPORTED_FRAME"
+    assert enum_name("MAV_RESULT", 6) == "MAV_RESULT_CANCELLED" and mode_name(19) == "MANUAL"
 
 
 def test_peer_refuses_an_item_frame(make: Callable[..., MavlinkAutonomy], port: int) -> None:
@@ -173,12 +195,14 @@ def test_peer_refuses_an_item_frame(make: Callable[..., MavlinkAutonomy], port: 
         out = make()
         out.submit(_plan(altitude=5.0), time.monotonic())
         last = run(out)[-1]
-        assert (last.state, last.reason, last.value) == (SurveyState.REJECTED, SurveyReason.AUTONOMY_REFUSED, 1.0)
-        assert peer.acks_sent == [1]  # MAV_MISSION_UNSUPPORTED_FRAME
+        assert (last.state, last.reason, last.value, last.detail) == (
+            SurveyState.REJECTED, SurveyReason.AUTONOMY_REFUSED, 2.0, "MAV_MISSION_UNSUPPORTED_FRAME")
+        assert peer.acks_sent == [2]  # MAV_MISSION_UNSUPPORTED_FRAME
 
 
-def test_silent_peer_count_resent_then_refused(make: Callable[..., MavlinkAutonomy], port: int) -> None:
-    """Driven with a made-up clock: MISSION_COUNT again every 1.5 s, 5 times, then REJECTED."""
+def test_silent_peer_count_resent_then_no_answer(make: Callable[..., MavlinkAutonomy], port: int) -> None:
+    """Driven with a made-up clock: MISSION_COUNT again every 1.5 s, 5 times, then REJECTED
+    AUTONOMY_NO_ANSWER after 6 tries (not AUTONOMY_REFUSED: nobody refused it)."""
     with _peer(port, silent=True) as peer:
         out = make(heartbeat=0)
         out.submit(_plan(), 100.0)
@@ -186,7 +210,10 @@ def test_silent_peer_count_resent_then_refused(make: Callable[..., MavlinkAutono
         for k in range(1, 6):
             assert out.poll(100.0 + 1.5 * k) == []
         assert out.poll(108.9) == []
-        assert out.poll(109.0) == [SurveyReport(7, SurveyState.REJECTED, 109.0, SurveyReason.AUTONOMY_REFUSED)]
+        [r] = out.poll(109.0)
+        assert (r.survey_id, r.state, r.time, r.reason, r.value) == (
+            7, SurveyState.REJECTED, 109.0, SurveyReason.AUTONOMY_NO_ANSWER, 6.0)
+        assert r.detail is not None and r.detail.startswith("MISSION_COUNT unanswered")
         assert out.poll(200.0) == []
         deadline = time.monotonic() + 2
         while len(peer.counts) < 6 and time.monotonic() < deadline:
@@ -216,22 +243,60 @@ def test_legacy_mission_request_is_answered(make: Callable[..., MavlinkAutonomy]
 
 
 def test_start_refused_aborts(make: Callable[..., MavlinkAutonomy], port: int) -> None:
+    """Uploaded, but the start command is refused: never STARTED, ABORTED with the MAV_RESULT."""
     with _peer(port, start_result=4, fly_interval=0.02):  # MAV_RESULT_FAILED
         out = make()
         out.submit(_plan(), time.monotonic())
         got = run(out)
-        assert [(r.state, r.reason, r.value) for r in got] == [
-            (SurveyState.STARTED, SurveyReason.NONE, None), (SurveyState.ABORTED, SurveyReason.AUTONOMY_STOPPED, 4.0)]
+        assert [(r.state, r.reason, r.value, r.detail) for r in got] == [
+            (SurveyState.ABORTED, SurveyReason.AUTONOMY_STOPPED, 4.0, "MAV_RESULT_FAILED")]
 
 
-def test_leaving_auto_mid_mission_aborts(make: Callable[..., MavlinkAutonomy], port: int) -> None:
-    with _peer(port, fly_interval=0.3, stop_after=1, heartbeat=0.05):
+def test_start_never_answered_is_no_answer(make: Callable[..., MavlinkAutonomy], port: int) -> None:
+    """The mission is uploaded, then the autopilot answers no start command: REJECTED
+    AUTONOMY_NO_ANSWER with the tries (1 + retries), never STARTED."""
+    with _peer(port, start_result=None) as peer:
+        out = make(timeout=0.1, retries=2)
+        out.submit(_plan(), time.monotonic())
+        got = run(out)
+        assert [(r.state, r.reason, r.value, r.detail) for r in got] == [
+            (SurveyState.REJECTED, SurveyReason.AUTONOMY_NO_ANSWER, 3.0, "MAV_CMD_MISSION_START unanswered")]
+        assert peer.acks_sent == [0] and [c[0] for c in peer.commands_received] == [300] * 3
+
+
+def test_a_lost_start_ack_is_made_up_for_by_the_progress(make: Callable[..., MavlinkAutonomy], port: int) -> None:
+    with _peer(port, ack_start=False, fly_interval=0.05):
+        out = make(timeout=5.0)
+        out.submit(_plan(), time.monotonic())
+        got = run(out)
+        assert [(r.state, r.index) for r in got][:1] == [(SurveyState.STARTED, 0)]
+        assert got[-1].state == SurveyState.COMPLETED
+
+
+def test_a_pilot_taking_over_mid_mission_is_a_manual_override(make: Callable[..., MavlinkAutonomy],
+                                                               port: int) -> None:
+    with _peer(port, fly_interval=0.3, stop_after=1, heartbeat=0.05):  # to ALT_HOLD
         out = make()
         out.submit(_plan(), time.monotonic())
         got = run(out)
         assert [(r.state, r.index) for r in got] == [(SurveyState.STARTED, 0), (SurveyState.STARTED, 1),
                                                      (SurveyState.ABORTED, None)]
-        assert (got[-1].reason, got[-1].value) == (SurveyReason.AUTONOMY_STOPPED, 2.0)  # ALT_HOLD
+        assert (got[-1].reason, got[-1].value, got[-1].detail) == (
+            SurveyReason.MANUAL_OVERRIDE, 2.0, "left AUTO for ALT_HOLD")
+
+
+def test_leaving_auto_for_another_mode_is_the_autonomy_stopping(make: Callable[..., MavlinkAutonomy],
+                                                                port: int) -> None:
+    with _peer(port, fly_interval=0.3, stop_after=1, stop_mode=9, heartbeat=0.05):  # SURFACE (a failsafe's)
+        out = make()
+        out.submit(_plan(), time.monotonic())
+        last = run(out)[-1]
+        assert (last.state, last.reason, last.value, last.detail) == (
+            SurveyState.ABORTED, SurveyReason.AUTONOMY_STOPPED, 9.0, "left AUTO for SURFACE")
+    with _peer(port, fly_interval=0.3, stop_after=1, stop_mode=9, heartbeat=0.05):
+        out = make(manual_modes=[9])  # this vehicle's pilots surface it by hand
+        out.submit(_plan(8), time.monotonic())
+        assert run(out)[-1].reason == SurveyReason.MANUAL_OVERRIDE
 
 
 def test_target_from_the_vehicles_heartbeat(make: Callable[..., MavlinkAutonomy], port: int) -> None:
@@ -318,3 +383,18 @@ def test_mavpeer_as_a_program_prints_each_mission(make: Callable[..., MavlinkAut
     finally:
         proc.terminate()
         proc.wait(10)
+
+
+def test_after_a_restart_the_flown_mission_is_followed_not_uploaded_again(make: Callable[..., MavlinkAutonomy],
+                                                                         port: int) -> None:
+    with _peer(port, fly_interval=0.4) as peer:
+        first = make()
+        first.submit(_plan(), time.monotonic())
+        got = run(first, until=lambda rs: any(r.state == SurveyState.STARTED for r in rs))
+        assert got[0].index == 0
+        first.close()  # the daemon stops (kill, restart); the autopilot flies on
+        again = make()
+        assert again.resume(_plan(), time.monotonic()) is True
+        later = run(again)
+        assert later[-1].state == SurveyState.COMPLETED and all(r.survey_id == 7 for r in later)
+        assert peer.counts == [4]  # uploaded once: the restart did not start the mission over

@@ -2,7 +2,8 @@
 plugin-interoperability issue names: a receiver that raises IndexError on its own truncated
 message, a sender that resends forever after everything was acknowledged, a lenient receiver
 that accepts a body whose count disagrees with its length, a plugin that routes another's
-messages."""
+messages, a receiver that refuses damaged input with RequestRejected, a body codec that decodes
+ids its modality does not declare."""
 
 from __future__ import annotations
 
@@ -20,6 +21,7 @@ from coex_conformance.sample import (
     sample_converged,
     sample_inputs,
 )
+from coex_core.errors import DecodeError, RequestRejected
 from coex_core.messages import Message, Opaque
 from coex_core.modality import ModalityReceiver, ModalitySender, Product
 
@@ -131,10 +133,46 @@ def test_a_body_codec_that_does_not_round_trip_fails_the_suite() -> None:
         SUITE.test_bodies_re_encode_to_the_same_bytes(Sloppy(), None, None, sample_inputs(), None)
 
 
+class RefusingReceiver(SampleReceiver):
+    """Refuses a damaged chunk with RequestRejected (a sender's error), not DecodeError."""
+
+    def receive(self, message: Message, now: float) -> list[Product]:
+        try:
+            return super().receive(message, now)
+        except DecodeError as exc:
+            raise RequestRejected(str(exc)) from exc
+
+
+def test_a_receiver_raising_request_rejected_on_damaged_input_fails_the_suite() -> None:
+    """docs/plugins.md: a receiver raises nothing but DecodeError on damaged input (only a
+    sender may refuse a damaged request with RequestRejected)."""
+    m = variant("broken-refusing", receiver=RefusingReceiver)
+    with pytest.raises(AssertionError, match=r"rule: a damaged message raises DecodeError only; the receiver "
+                                             r"raised RequestRejected"):
+        SUITE.test_receiver_raises_only_decode_error_on_damaged_messages(m, None, None, sample_inputs(), None)
+
+
+def test_a_body_codec_that_decodes_ids_it_does_not_declare_fails_the_suite() -> None:
+    """decode_body takes any id it does not know for its ack (as the guide's codec once did)."""
+    from coex_conformance.sample import decode_ack, decode_data
+
+    class Careless(SampleModality):
+        name: ClassVar[str] = "careless"
+
+        @classmethod
+        def decode_body(cls, type_id: int, body: bytes) -> Any:
+            return decode_data(body) if type_id == SAMPLE_DATA else decode_ack(body)
+
+    with pytest.raises(AssertionError, match="rule: decode_body raises DecodeError for an id the modality does "
+                                             "not declare"):
+        SUITE.test_body_codec_refuses_ids_it_does_not_declare(Careless(), None, None, sample_inputs(), None)
+
+
 def test_the_unbroken_sample_passes_the_same_checks() -> None:
     m = SampleModality()
     SUITE.test_receiver_raises_only_decode_error_on_damaged_messages(m, None, None, sample_inputs(), None)
     SUITE.test_bodies_re_encode_to_the_same_bytes(m, None, None, sample_inputs(), None)
+    SUITE.test_body_codec_refuses_ids_it_does_not_declare(m, None, None, sample_inputs(), None)
 
 
 def test_every_suite_test_says_what_it_checks() -> None:

@@ -997,3 +997,117 @@ def test_the_region_tool_says_why_an_image_without_precincts_has_none(browser: A
         page.wait_for_selector("#region-draw", state="visible")
         assert not page.is_visible("#region-off")
     assert not errors, errors
+
+
+def test_survey_outcomes_read_apart_with_their_history_in_the_vehicles_order(browser: Any, tmp_path: Path) -> None:
+    """Seven surveys end seven ways, as the vehicle reports them over the link to a ``coex
+    topside`` page: refused by the autopilot (its code and name), no answer from it (the tries),
+    taken over by a pilot, a helm restart, an all-stop, completed, and refused by the geofence.
+    Each row says which, in words; a refusal is not mistaken for no answer. The completed one's
+    reports arrive out of order: its history, opened with a click, is in the vehicle's time
+    order. A stream dropping a message every few seconds takes one counted line in the event
+    log, not sixty. ``COEX_OUTCOME_SHOT=path.png`` keeps the screenshot."""
+    from coex_core.channel.events import Dropped
+    from coex_plugins.bathymetry import BathymetrySender
+    from coex_plugins.console.testing import drain
+
+    uri = f"loopback://outcomes-{uuid.uuid4().hex[:8]}?rate=100000&mtu=1024"
+    app = build_topside(uri, "127.0.0.1", 0, schedule=SCHEDULE)
+    vehicle = VehicleEnd(uri)
+    app.start()
+    errors: list[str] = []
+    try:
+        now = time.time()
+        bathy = BathymetrySender({"send_delay": 0.0, "levels": 4})
+        bathy.ingest(survey_points(), now)
+        vehicle.send([m.VehicleStatus(to_stamp(now), 30.0, 20.0, 45.0, 20.0, 90.0, 1.5, 77,
+                                      m.VehicleMode.SURVEY, 0), *drain(bathy, now)])
+        page = browser.new_page(viewport={"width": 1600, "height": 1000})
+        page.on("pageerror", lambda e: errors.append(str(e)))
+        page.goto(app.url)
+        page.wait_for_function("window.coex && window.coex.connected && window.coex.updates > 0",
+                               timeout=10_000)
+        rx = app.node.receiver("survey")
+        with app.hub.lock:
+            cmds = [rx.request("line", 8.0 + 12.0 * k, 10.0 + 4.0 * k, now, heading=0.0, length=40.0, altitude=5.0)
+                    for k in range(6)]
+            cmds.append(rx.request("line", 0.0, 0.0, now, heading=0.0, length=900.0, altitude=5.0))
+        for _ in cmds:
+            vehicle.wait_for(m.SurveyCommand)
+        ids = [c.survey_id for c in cmds]
+        R, S = m.SurveyReason, m.SurveyState
+
+        def status(k: int, state: m.SurveyState, dt: float, reason: m.SurveyReason = R.NONE, index: int | None = None,
+                   value: float | None = None, detail: str | None = None) -> m.SurveyStatus:
+            return m.SurveyStatus(ids[k], state, reason, to_stamp(now + dt), index, value, detail)
+
+        vehicle.send([m.CommandAck(c.command_id, m.AckStatus.ACCEPTED) for c in cmds[:6]]
+                     + [m.CommandAck(cmds[6].command_id, m.AckStatus.REJECTED)])
+        vehicle.send([
+            status(0, S.REJECTED, 2, R.AUTONOMY_REFUSED, None, 14.0, "MAV_MISSION_DENIED"),
+            status(1, S.REJECTED, 12, R.AUTONOMY_NO_ANSWER, None, 6.0, "MISSION_COUNT unanswered, no heartbeat heard"),
+            status(2, S.STARTED, 2, index=0), status(2, S.ABORTED, 20, R.MANUAL_OVERRIDE, None, 2.0,
+                                                      "left AUTO for ALT_HOLD"),
+            status(3, S.STARTED, 2, index=0), status(3, S.ABORTED, 30, R.AUTONOMY_RESTARTED),
+            status(4, S.STARTED, 2, index=0), status(4, S.ABORTED, 40, R.ALL_STOP, None, None, "MissingDecVars:depth"),
+            status(6, S.REJECTED, 1, R.OUTSIDE_GEOFENCE, 1, 400.0),
+        ])
+        # the completed one: its end first, the states before it late (lost frames re-sent)
+        vehicle.send([status(5, S.COMPLETED, 60)])
+        vehicle.send([status(5, S.STARTED, 40, index=1), status(5, S.STARTED, 20, index=0)])
+        for k in range(60):  # a stream dropping superseded messages every few seconds
+            app.hub.update(lambda st, k=k: st.apply_event(Dropped(now + 5.0 * k, 2, "superseded")))
+
+        def row(k: int) -> str:
+            return _surveys_row(page, ids[k])
+
+        page.wait_for_function(
+            "(() => { const r = document.querySelector('" + row(5) + "');"
+            " return r && r.dataset.state === 'completed'; })()", timeout=20_000)
+        page.wait_for_function(
+            "[...document.querySelectorAll('#surveys-table tr[data-survey]')]"
+            ".filter(r => !['requested', 'accepted', 'started'].includes(r.dataset.state)).length === 7",
+            timeout=20_000)
+        expect = [
+            ("refused by autonomy", "the vehicle's autonomy refused it (code 14): MAV_MISSION_DENIED"),
+            ("no answer from autonomy", "no answer from the vehicle's autonomy (after 6 tries): MISSION_COUNT "
+                                        "unanswered, no heartbeat heard"),
+            ("taken over", "taken over on the vehicle (manual override): left AUTO for ALT_HOLD"),
+            ("autonomy restarted", "the vehicle's autonomy restarted and dropped it"),
+            ("all-stop", "the vehicle's autonomy stopped all motion: MissingDecVars:depth"),
+            ("completed", "40 m, heading 0°, altitude 5 m"),
+            ("rejected", "waypoint 1 is 400 m outside the geofence"),
+        ]
+        for k, (outcome, words) in enumerate(expect):
+            assert page.get_attribute(row(k), "data-outcome") == outcome, k
+            text = page.inner_text(row(k))
+            assert outcome in text and words in text, (k, text)
+        assert "refused" not in page.inner_text(row(1))  # no answer is not a refusal
+        assert "refused" in page.inner_text(row(0))
+
+        # the history of the completed survey, opened under its row: the vehicle's order
+        page.click(row(5))
+        hist = f'#surveys-table tr[data-history="{ids[5]}"] li'
+        page.wait_for_selector(hist, timeout=5_000)
+        lines = page.eval_on_selector_all(hist, "els => els.map(e => e.textContent)")
+        assert [ln.split(" ", 1)[1].split(":")[0] for ln in lines] == [
+            "requested", "accepted", "started", "started", "completed"], lines
+        assert "heading for waypoint 0" in lines[2] and "heading for waypoint 1" in lines[3], lines
+
+        # sixty drops: one counted line, and the events that matter still listed
+        page.wait_for_function("document.querySelector('#log').textContent.includes('60 dropped')", timeout=10_000)
+        log = page.eval_on_selector_all("#log li", "els => els.map(e => e.textContent)")
+        drops = [ln for ln in log if "stream 2:" in ln]
+        assert len(drops) == 1 and "stream 2: 60 dropped (superseded) in 4 min 55 s" in drops[0], drops
+        assert any("no answer from autonomy" in ln for ln in log), log
+        page.wait_for_timeout(300)
+        shot = tmp_path / "outcomes.png"
+        page.screenshot(path=str(shot), full_page=True)
+        if os.environ.get("COEX_OUTCOME_SHOT"):
+            shutil.copy(shot, os.environ["COEX_OUTCOME_SHOT"])
+            page.locator("#map-panel").screenshot(path=os.environ["COEX_OUTCOME_SHOT"].replace(".png", "-map.png"))
+        page.close()
+    finally:
+        app.close()
+        vehicle.transport.close()
+    assert not errors, errors

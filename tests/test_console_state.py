@@ -1117,3 +1117,107 @@ def test_an_update_after_one_new_subgrid_sends_only_what_changed(subgrids: list[
     # without "_map" (an API client, a test): the whole section, as before
     plain = st.changes({k: v for k, v in seen.items() if k != "map" and k != "_map"})
     assert "tiles" in plain["map"]["levels"][0] and "delta" not in plain["map"]
+
+
+# ------------------------------------------------------------------ a quiet, true event log
+def test_repeated_events_are_counted_in_one_entry_not_listed() -> None:
+    """The flood seen at sea: 60 of 60 entries "stream 2: 1 dropped (superseded)". Drops of one
+    stream and reason within ten minutes of the first are one entry, updated in place (the
+    same entry, its total, its last time); the events that matter stay in the list; another
+    ten minutes start a new entry; bad frames count the same way."""
+    from coex_core.channel.events import Dropped
+
+    st = ConsoleState()
+    st.apply_event(LinkChanged(T0, 0, False, False))
+    for k in range(400):  # every 3 s for 20 min: 1 message each, sometimes 3 at once
+        st.apply_event(Dropped(T0 + 3.0 * k, 2, "superseded", 3 if k % 100 == 0 else 1))
+        if k == 50:
+            st.apply_event(LinkChanged(T0 + 3.0 * k, 0, True, False))
+    log = st.snapshot()["log"]
+    texts = [e["text"] for e in log]
+    # k = 0..200 (t within 600 s of the first): 201 events, 207 messages (3 at k = 0, 100, 200)
+    assert texts[:2] == ["link 0 disabled", "stream 2: 207 dropped (superseded) in 10 min"]
+    assert texts[2] == "link 0 enabled"  # still there: a drop does not push it out
+    assert texts[3] == "stream 2: 201 dropped (superseded) in 9 min 54 s"  # k = 201..399
+    assert len(log) == 4
+    first = log[1]
+    assert (first["t"], first["last"], first["n"], first["count"], first["level"]) == (T0, T0 + 600.0, 201, 207,
+                                                                                     "warn")
+    assert "key" not in first and "base" not in first  # the page gets what it shows
+    # another kind, another stream, another reason: their own entries
+    st.apply_event(Dropped(T0 + 1300.0, 3, "superseded"))
+    st.apply_event(Dropped(T0 + 1301.0, 2, "ttl", 4))
+    st.apply_event(BadFrame(T0 + 1302.0, 0, "crc"))
+    st.apply_event(BadFrame(T0 + 1310.0, 0, "crc"))
+    texts = [e["text"] for e in st.snapshot()["log"][-3:]]
+    assert texts == ["stream 3: 1 dropped (superseded)", "stream 2: 4 dropped (ttl)",
+                     "bad frame on link 0: crc (2 times in 8 s)"]
+
+
+def test_the_counted_log_is_bounded_and_survives_a_save() -> None:
+    from coex_core.channel.events import Dropped
+    from coex_core.state import dumps, loads
+    from coex_plugins.console.state import MAX_REPEATS
+
+    st = ConsoleState(max_log=50)
+    for k in range(1000):  # 1000 different streams and reasons: a bounded log, bounded keys
+        st.apply_event(Dropped(T0 + k, k % 250, f"reason {k}"))
+    assert len(st.log) == 50 and len(st._repeats) <= MAX_REPEATS
+    st.apply_event(Dropped(T0 + 2000.0, 7, "superseded"))
+    again = loads(dumps(st))
+    again.apply_event(Dropped(T0 + 2010.0, 7, "superseded", 2))
+    assert again.snapshot()["log"][-1]["text"] == "stream 7: 3 dropped (superseded) in 10 s"
+    assert len(again.log) == 50
+    # an entry that left the log is not updated out of sight: the next event is a new entry
+    small = ConsoleState(max_log=3)
+    small.apply_event(Dropped(T0, 1, "superseded"))
+    for k in range(3):
+        small.apply_event(LinkChanged(T0 + 1 + k, 0, bool(k % 2), False))
+    small.apply_event(Dropped(T0 + 10.0, 1, "superseded"))
+    assert small.snapshot()["log"][-1]["text"] == "stream 1: 1 dropped (superseded)"
+
+
+def test_survey_outcomes_come_from_the_receiver_in_words_and_in_the_vehicles_order() -> None:
+    """The console shows the survey receiver's records (no tracking of its own): a refusal by
+    the autonomy, no answer from it, a pilot's override and a completion read apart, in the
+    snapshot and in the event log; a history that arrived out of order is shown in the
+    receiver's (vehicle time) order, each state logged once."""
+    from coex_plugins.survey import SurveyReceiver
+
+    rx = SurveyReceiver()
+    st = ConsoleState(receivers={"survey": rx})
+    cmds = [rx.request("goto", 10.0 * k, 0.0, T0) for k in range(4)]
+    R, S = m.SurveyReason, m.SurveyState
+
+    def feed(msg: m.Message, now: float) -> None:
+        for p in rx.receive(msg, now):
+            st.apply_product("survey", p, now)
+
+    for c in cmds:
+        feed(m.CommandAck(c.command_id, m.AckStatus.ACCEPTED), T0 + 5)
+    feed(m.SurveyStatus(cmds[0].survey_id, S.REJECTED, R.AUTONOMY_REFUSED, to_stamp(T0 + 8), None, 14.0,
+                        "MAV_MISSION_DENIED"), T0 + 20)
+    feed(m.SurveyStatus(cmds[1].survey_id, S.REJECTED, R.AUTONOMY_NO_ANSWER, to_stamp(T0 + 9), None, 6.0), T0 + 20)
+    feed(m.SurveyStatus(cmds[2].survey_id, S.ABORTED, R.MANUAL_OVERRIDE, to_stamp(T0 + 30), None, 2.0,
+                        "left AUTO for ALT_HOLD"), T0 + 40)
+    feed(m.SurveyStatus(cmds[3].survey_id, S.COMPLETED, R.NONE, to_stamp(T0 + 60)), T0 + 70)
+    feed(m.SurveyStatus(cmds[3].survey_id, S.STARTED, R.NONE, to_stamp(T0 + 10), 0), T0 + 80)  # late
+    rows = {r["survey_id"]: r for r in st.snapshot()["surveys"]["items"]}
+    got = [(rows[c.survey_id]["outcome"], rows[c.survey_id]["text"]) for c in cmds]
+    assert got == [
+        ("refused by autonomy", "the vehicle's autonomy refused it (code 14): MAV_MISSION_DENIED"),
+        ("no answer from autonomy", "no answer from the vehicle's autonomy (after 6 tries)"),
+        ("taken over", "taken over on the vehicle (manual override): left AUTO for ALT_HOLD"),
+        ("completed", ""),
+    ]
+    done = rows[cmds[3].survey_id]
+    assert [h[1] for h in done["history"]] == ["requested", "accepted", "started", "completed"]
+    assert done["history"] == [[t, s, x] for t, s, x in rx.surveys[cmds[3].survey_id].history]  # as is
+    log = [(e["t"], e["text"]) for e in st.snapshot()["log"]]
+    sid = cmds[3].survey_id
+    assert [x for _, x in log if x.startswith(f"survey {sid} ")] == [
+        f"survey {sid} accepted", f"survey {sid} completed", f"survey {sid} started: heading for waypoint 0"]
+    assert (T0 + 10, f"survey {sid} started: heading for waypoint 0") in log  # at the vehicle's time, once
+    assert sum(x.startswith(f"survey {sid} completed") for _, x in log) == 1
+    assert any(x == f"survey {cmds[1].survey_id} no answer from autonomy: no answer from the vehicle's "
+                    "autonomy (after 6 tries)" for _, x in log)

@@ -75,7 +75,9 @@ def test_registry_lists_builtin_and_third_party_plugins() -> None:
         assert ("coex.transports", name) in infos
     # the sample third-party plugin registers exactly like the built-ins
     assert infos[("coex.modalities", "pings")].status == "ok"
-    assert infos[("coex.modalities", "pings")].version == "0.3.0"
+    from coex_sample_plugin import PingModality
+
+    assert infos[("coex.modalities", "pings")].version == PingModality.version
 
 
 def test_registry_errors_are_typed() -> None:
@@ -164,3 +166,24 @@ def test_cli_plugins_and_spec_check() -> None:
     chk = subprocess.run([sys.executable, "-m", "coex_core.cli", "spec", "--check"], capture_output=True,
                          text=True)
     assert chk.returncode == 0, chk.stderr
+
+
+def test_the_version_is_one_and_the_changelog_says_it(capsys: pytest.CaptureFixture[str]) -> None:
+    """pyproject.toml and coex.__version__ give one version (the package's); CHANGELOG.md
+    names it, and `coex --version` prints it."""
+    import re
+    import tomllib
+    from pathlib import Path
+
+    import coex
+    from coex_core import __version__
+    from coex_core.cli import build_parser
+
+    root = Path(__file__).resolve().parents[1]
+    declared = tomllib.loads((root / "pyproject.toml").read_text())["project"]["version"]
+    assert declared == __version__ == coex.__version__
+    assert re.fullmatch(r"\d+\.\d+\.\d+", declared)
+    assert f"package version is {declared}" in (root / "CHANGELOG.md").read_text()
+    with pytest.raises(SystemExit):
+        build_parser().parse_args(["--version"])
+    assert f"coexploration {declared}" in capsys.readouterr().out

@@ -47,17 +47,17 @@ def load(value: str) -> type[Input]:
 # --------------------------------------------------------------------------- registrations
 def test_every_adapter_is_registered_with_its_extra_and_loads() -> None:
     eps = entry_points()
-    assert set(eps) == {"directory", "points", "rosbag", "lcm", "mavlink", "nmea", "moos"}
+    assert set(eps) == {"directory", "points", "rosbag", "ros", "lcm", "mavlink", "nmea", "moos"}
     extras = {name: value.split("[")[1].rstrip("] ") if "[" in value else "" for name, value in eps.items()}
     assert extras == {"directory": "imagery", "points": "bathymetry", "rosbag": "bathymetry",
-                      "lcm": "lcm", "mavlink": "mavlink", "nmea": "nmea", "moos": ""}
+                      "lcm": "lcm", "mavlink": "mavlink", "nmea": "nmea", "moos": "", "ros": ""}
     extras_defined = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]["optional-dependencies"]
     for name, value in eps.items():
         cls = load(value)
         assert issubclass(cls, Input) and cls.name == name
         assert cls.feeds and set(cls.feeds) <= set(FEEDS)
         assert all(isinstance(d, str) and d for _, d in cls.options.values())
-        assert extras[name] in extras_defined or not extras[name]  # moos needs no extra
+        assert extras[name] in extras_defined or not extras[name]  # moos, ros (Debian's rospy): no extra
 
 
 def test_unknown_and_missing_options_are_named() -> None:
@@ -363,3 +363,49 @@ def test_log_once_logs_each_problem_once_and_stays_bounded(caplog: pytest.LogCap
     assert [r.getMessage() for r in caplog.records] == ["problem a", "problem b", "problem c", "problem d",
                                                        "problem a"]
     assert len(once.counts) == 3
+
+
+# ------------------------------------------------------------------ what every input counts
+#: the least options each built-in input is built with
+MINIMAL = {"directory": {"path": "."}, "points": {"path": "."}, "rosbag": {"path": "x.bag", "nav_topic": "/nav"},
+           "lcm": {"nav_channel": "NAV"}, "mavlink": {"connection": "udpin:127.0.0.1:0"},
+           "nmea": {"udp": "127.0.0.1:0"}, "moos": {}}
+
+
+@pytest.mark.parametrize("name", sorted(MINIMAL))
+def test_every_input_counts_what_it_skips_under_the_documented_key(name: str, tmp_path: Path) -> None:
+    """The contract of ``Input``: ``counts["skipped"]`` exists from the start (the adapters' own
+    keys are added beside it), and ``skip()`` / ``skipped`` count and read it."""
+    module, _, attr = entry_points()[name].partition(":")
+    cls = getattr(importlib.import_module(module), attr.split()[0])
+    adapter = cls(MINIMAL[name], InputContext(base_dir=str(tmp_path)))
+    assert isinstance(adapter, Input) and adapter.counts["skipped"] == 0 == adapter.skipped
+    adapter.skip()
+    adapter.skip(2)
+    assert adapter.skipped == 3 == adapter.counts["skipped"]
+
+
+def test_a_directory_counts_the_images_it_cannot_read(tmp_path: Path) -> None:
+    (tmp_path / "a.png").write_bytes(b"not a png")
+    (tmp_path / "b.tif").write_bytes(b"II*\x00 broken")
+    _png(tmp_path / "c.png", np.zeros((16, 16), np.uint8))
+    for p in tmp_path.iterdir():
+        os.utime(p, (OLD, OLD))
+    adapter = DirectoryInput({"path": str(tmp_path), "existing": True, "interval": 0.0}, InputContext())
+    adapter.open()
+    items = adapter.poll(100.0)
+    assert len(items) == 1 and adapter.counts == {"skipped": 2}
+
+
+def test_a_third_party_input_gets_the_counter_from_the_base_class() -> None:
+    class Mine(Input):
+        name = "mine"
+        feeds = ("status",)
+
+        def poll(self, now: float) -> list:  # type: ignore[type-arg]
+            self.skip()  # a line it could not parse
+            return []
+
+    adapter = Mine({}, InputContext())
+    adapter.poll(1.0)
+    assert adapter.counts == {"skipped": 1} and adapter.skipped == 1

@@ -113,7 +113,8 @@ def test_udp_every_sentence(caplog: pytest.LogCaptureFixture) -> None:
         "water_temperature": [9.5], "WATER": [4.25], "BARO": [1.013],
         "speed_through_water": [3.5], "air_temperature": [21.5]}
     assert samples["WATER"].times.tolist() == [500.0]
-    assert adapter.counts == {"lines": 19, "used": 14, "bad_checksum": 2, "bad": 2, "unknown": 1}
+    assert adapter.counts == {"lines": 19, "used": 14, "bad_checksum": 2, "bad": 2, "unknown": 1,
+                              "skipped": 4}  # the bad ones: every input counts what it skips
     assert sum("checksum" in r.getMessage() for r in caplog.records) == 1  # logged once, counted always
     adapter.close()
 

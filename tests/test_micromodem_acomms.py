@@ -112,7 +112,7 @@ def _drain(q: queue.Queue[Any]) -> None:
         q.get_nowait()
 
 
-def _wait_idle(modem: Any, timeout: float = 10.0) -> None:
+def _wait_idle(modem: Any, timeout: float = 30.0) -> None:
     end = time.monotonic() + timeout
     while str(modem.state) != "Idle" and time.monotonic() < end:
         time.sleep(0.05)

@@ -19,6 +19,7 @@ from coex_core.messages import (
     FrameAck,
     FrameHeader,
     ImageGoal,
+    LinkStatus,
     Opaque,
     QueueConfig,
 )
@@ -125,6 +126,33 @@ def test_a_flipped_tag_bit_or_altered_command_is_rejected() -> None:
     assert [a.message.status for a in acks] == [AckStatus.UNAUTHENTICATED] * 2
     p.vehicle.receive(0, frame, 3.0)  # the genuine frame still works
     assert p.vmgr.stream(5).config.priority == 77
+
+
+def test_a_trailer_not_last_or_twice_makes_the_frames_commands_unauthenticated() -> None:
+    """Spec section 10: such a frame is valid (the decoder takes it), but a keyed vehicle
+    rejects every command in it, answers UNAUTHENTICATED and takes the other messages; a node
+    without a key ignores trailers wherever they are."""
+    command = QueueConfig(4, 5, False, None, 77, None, None, None)
+    status = LinkStatus(10, 0, 8, 0, None, None)
+    genuine = wire.unpack(signed_frame([command]))
+    trailer = genuine[-1]
+    assert isinstance(trailer, AuthTrailer)
+    header = FrameHeader(src=TOPSIDE, dst=VEHICLE, seq=1)
+    for n, messages in enumerate(([trailer, command, status], [command, trailer, trailer, status])):
+        frame = wire.pack(messages, 256, header)
+        assert wire.unpack(frame) == messages, "a valid frame"
+        p = KeyedPair(KEY, KEY)
+        taken = p.vehicle.receive(0, frame, 1.0)
+        assert p.vmgr.stream(5).config.priority == 30, f"case {n}: the command was applied"
+        assert p.vehicle.stats["unauthenticated"] == 1
+        assert status in taken and command not in taken
+        acks = [e.message for e in p.vmgr.stream(2).entries if isinstance(e.message, CommandAck)]
+        assert acks == [CommandAck(4, AckStatus.UNAUTHENTICATED)]
+        assert any(isinstance(e, Rejected) and "last message and appear once" in e.reason
+                   for e in p.vehicle.events())
+    keyless = KeyedPair(None, None)
+    keyless.vehicle.receive(0, wire.pack([trailer, command], 256, header), 1.0)
+    assert keyless.vmgr.stream(5).config.priority == 77, "without a key the trailer is ignored"
 
 
 def test_a_replayed_frame_is_rejected_and_not_applied_twice() -> None:

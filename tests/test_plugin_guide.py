@@ -20,7 +20,7 @@ FILE = re.compile(r"<!-- file: (?P<path>[^ ]+) -->\n```[a-z]*\n(?P<body>.*?)\n``
 def guide_files() -> dict[str, str]:
     files = {m["path"]: m["body"] + "\n" for m in FILE.finditer(GUIDE.read_text())}
     assert {"coex-ctd/pyproject.toml", "coex-ctd/coex_ctd/__init__.py", "coex-ctd/tests/test_conformance.py"} <= set(files)
-    assert "CAST, ACK = 130, 131  # spec/third-party-ids.md" in files["coex-ctd/coex_ctd/__init__.py"]
+    assert "CAST, ACK = 32600, 32601  # CoEx's example ids" in files["coex-ctd/coex_ctd/__init__.py"]
     return files
 
 
@@ -65,3 +65,65 @@ def test_plugins_check_names_a_plugin_without_conformance_inputs(installed: dict
     r = run(["-m", "coex_core.cli", "plugins", "check", "no-such-plugin"], installed, installed["project"])
     assert r.returncode == 2
     assert "plugin 'no-such-plugin' registers no conformance inputs" in r.stderr
+
+
+EXAMPLE = re.compile(r"<!-- example: (?P<path>[^ ]+) -->\n```[a-z]*\n(?P<body>.*?)\n```", re.S)
+
+
+def _free_port() -> int:
+    import socket
+
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+def test_the_guides_transport_passes_the_transport_conformance_tests(tmp_path: Path) -> None:
+    """Section 7's UDP transport and its test, as written (on two free ports), pass
+    TransportTests; its URI parser refuses what it should, opening nothing."""
+    examples = {m["path"]: m["body"] + "\n" for m in EXAMPLE.finditer(GUIDE.read_text())}
+    assert set(examples) == {"coex_udp.py", "test_udp.py"}
+    a, b = _free_port(), _free_port()
+    (tmp_path / "coex_udp.py").write_text(examples["coex_udp.py"])
+    (tmp_path / "test_udp.py").write_text(examples["test_udp.py"].replace("47001", str(a)).replace("47002", str(b)))
+    env = dict(os.environ)
+    env["PYTHONPATH"] = os.pathsep.join([str(tmp_path), env.get("PYTHONPATH", "")])
+    r = subprocess.run([sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", "test_udp.py"], env=env,
+                       cwd=tmp_path, capture_output=True, text=True, timeout=600)
+    assert r.returncode == 0, r.stdout[-3000:] + r.stderr[-2000:]
+    assert re.search(r"\b\d+ passed\b", r.stdout) and " failed" not in r.stdout
+    check = subprocess.run([sys.executable, "-c", (
+        "from coex import ConfigError\n"
+        "from coex_udp import UdpTransport as U\n"
+        "assert U.check_uri('udp://10.0.0.2:5000?listen=5001&mtu=64').mtu == 64\n"
+        "for bad in ('udp://10.0.0.2:5000', 'udp://10.0.0.2:5000?listen=5001&mtu=0', "
+        "'udp://10.0.0.2:5000?listen=5001&speed=3', 'udp://10.0.0.2?listen=1', 'tcp://h:1?listen=2'):\n"
+        "    try:\n"
+        "        U.check_uri(bad)\n"
+        "    except ConfigError:\n"
+        "        continue\n"
+        "    raise SystemExit(bad)\n")], env=env, capture_output=True, text=True, timeout=60)
+    assert check.returncode == 0, check.stdout + check.stderr
+
+
+def test_every_coex_name_the_guide_uses_is_in_the_facade() -> None:
+    """docs/plugins.md names `coex.X` (and imports `from coex import ...`): each is exported by
+    the public facade, so an author never needs coex_core."""
+    import coex
+
+    text = GUIDE.read_text()
+    names = set(re.findall(r"\bcoex\.([A-Za-z_]\w*)", text))
+    for block in re.findall(r"from coex import \(?([^)]*?)\)?\n(?:\n|[a-z])", text):
+        names.update(n.strip() for n in block.replace("\n", ",").split(",") if n.strip())
+    names -= {"messages", "wire", "modalities", "transports", "conformance", "commands"}  # modules, entry-point groups
+    # section 7's table of what a transport author imports from coex
+    table = text.split("What a transport author imports", 1)[1].split("\n\n", 2)[1]
+    for row in table.splitlines()[2:]:
+        names.update(re.findall(r"`(\w+)", row.split("|")[1]))
+    names.discard("coex")
+    assert {"parse_query", "UriInfo", "LinkDown", "persistent", "DecodeError", "EncodeError", "TransportTimeout",
+            "FrameTooLarge", "load_transport", "Health"} <= names
+    missing = sorted(n for n in names if not hasattr(coex, n))
+    assert not missing, f"the guide names coex.{missing} which the facade does not export"
+    assert "coex_core" not in re.sub(r"`coex_core[^`]*`", "", text.split("## 9.", 1)[0]).replace(
+        "(`coex_core.*`)", ""), "the guide (before its upgrade notes) imports nothing from coex_core"

@@ -271,3 +271,76 @@ def test_moosdb_restarted_under_a_resilient_link_is_counted_and_nothing_lost(moo
         b.close()
     finally:
         db.close()
+
+
+def test_lcm_link_that_fails_is_reopened_and_frames_flow_again() -> None:
+    """A real LCM multicast end whose LCM instance fails (a network interface gone down and up
+    breaks a multicast membership; LCM then fails to publish or handle): the resilient link makes
+    a new LCM instance, which joins again, and frames flow."""
+    pytest.importorskip("lcm")
+    from ._modemsim import free_tcp_base
+
+    port = free_tcp_base(1, socket.SOCK_DGRAM)
+    url = f"udpm://239.255.76.67:{port}?ttl=0"
+    link = ResilientTransport(f"lcm:{url}&tx=R_UP&rx=R_DOWN", name="link 0", first_retry=0.05, max_retry=0.2)
+    peer = ResilientTransport(f"lcm:{url}&tx=R_DOWN&rx=R_UP", name="peer")
+    try:
+        link.send(b"before")
+        assert peer.recv(5.0) == b"before"
+
+        class Broken:
+            def publish(self, *a: Any) -> None:
+                raise OSError("Network is unreachable")
+
+            def handle_timeout(self, *a: Any) -> None:
+                raise OSError("Network is down")
+
+            def unsubscribe(self, *a: Any) -> None:
+                raise OSError("gone")
+
+        inner = link.inner
+        assert inner is not None
+        inner._inst.lcm = Broken()  # type: ignore[attr-defined]
+        with pytest.raises(LinkDown):
+            link.send(b"lost")
+        assert not link.up
+        end = time.monotonic() + 10
+        while not link.up and time.monotonic() < end:
+            link.recv(0.1)
+        assert link.up and link.inner is not inner and link.health().outages == 1
+        link.send(b"after")
+        assert peer.recv(5.0) == b"after"
+        peer.send(b"back")
+        assert link.recv(5.0) == b"back"
+    finally:
+        link.close()
+        peer.close()
+
+
+def test_a_packet_that_never_left_is_sent_again_at_once_and_is_not_an_acoustic_loss() -> None:
+    from coex_core import wire
+    from coex_core.channel import ChannelManager, LinkConfig, Schedule
+    from coex_core.messages import QueueConfig
+    from coex_core.node import Node
+
+    def commands(txs: list[Any]) -> list[Any]:
+        return [m for t in txs for f in t.frames for m in wire.unpack_frame(f).messages
+                if isinstance(m, QueueConfig)]
+
+    def node() -> Node:
+        return Node(ChannelManager(1, [LinkConfig(0, Schedule.simple([1, 2], 10.0, 1.0), rate=5, dst=2)]))
+
+    for down in (False, True):
+        top = node()
+        top.queue_config(3, 0.0, enabled=False)
+        [tx] = top.poll(0.0)  # slot 0 is topside's
+        assert len(commands([tx])) == 1
+        if down:
+            top.not_sent(tx, 0.5)  # the modem was down: it never left
+        again = commands([t for now in (4.0, 5.0, 6.0) for t in top.poll(now)])
+        if down:  # sent again in the same slot, not one ack timeout (a whole cycle) later
+            assert len(again) == 1
+            assert top.manager.stats["not_sent_frames"] == len(tx.frames)
+            assert not top.manager.frame_loss(0)  # not frames the water lost
+        else:
+            assert again == []  # it waits for its ack

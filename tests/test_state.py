@@ -124,3 +124,51 @@ def test_corrupt_or_foreign_data_is_a_state_error() -> None:
     for bad in (data[:20], data[:-10], data[:15] + b"x" + data[16:]):
         with pytest.raises(StateError):
             loads(bad)
+
+
+class SubBox(Box):
+    """A subclass of a registered class, not registered itself."""
+
+
+@persistent("test.SubBoxOwn")
+class SubBoxOwn(Box):
+    pass
+
+
+@persistent("test.FrozenSlots")
+@dataclass(frozen=True, slots=True)
+class FrozenSlots:
+    a: int
+    b: tuple[int, ...] = ()
+
+
+@dataclass(frozen=True, slots=True)
+@persistent("test.SlotsBelow")
+class SlotsBelow:  # @persistent below @dataclass(slots=True): the class registered is not this one
+    a: int
+
+
+@dataclass(frozen=True)
+@persistent("test.FrozenBelow")
+class FrozenBelow:  # without slots, @dataclass keeps the class: either order works
+    a: int
+
+
+def test_registration_is_not_inherited_and_the_error_says_so() -> None:
+    """docs/plugins.md: a subclass of a registered sender needs a name of its own; the error
+    names the registered base class and says so."""
+    with pytest.raises(StateError, match=r"SubBox is not registered state .*its base class Box is registered as "
+                                         r"'test.Box', but @persistent is not inherited"):
+        dumps(SubBox(1))
+    back = loads(dumps(SubBoxOwn(2)))
+    assert type(back) is SubBoxOwn and back.value == 2
+
+
+def test_frozen_and_slotted_dataclasses_are_state_with_persistent_outermost() -> None:
+    """docs/plugins.md: @persistent works on frozen dataclasses (slots too) when it is the
+    outermost decorator, above @dataclass; below @dataclass(slots=True) it registered a class
+    that @dataclass then replaced, and the error says where to put it."""
+    assert loads(dumps(FrozenSlots(1, (2, 3)))) == FrozenSlots(1, (2, 3))
+    assert loads(dumps(FrozenBelow(4))) == FrozenBelow(4)
+    with pytest.raises(StateError, match=r"put @persistent above @dataclass"):
+        dumps(SlotsBelow(5))

@@ -240,8 +240,8 @@ def test_lost_frames_delay_but_never_lose_the_states() -> None:
 
 # ------------------------------------------------------------------------------ autonomy outcomes
 @pytest.mark.parametrize(("report", "state", "reason", "words"), [
-    (SurveyReport(0, SurveyState.REJECTED, 61.0, SurveyReason.AUTONOMY_REFUSED, None, 15.0, "MAV_MISSION_DENIED"),
-     "rejected", "AUTONOMY_REFUSED", "the vehicle's autonomy refused it (code 15): MAV_MISSION_DENIED"),
+    (SurveyReport(0, SurveyState.REJECTED, 61.0, SurveyReason.AUTONOMY_REFUSED, None, 14.0, "MAV_MISSION_DENIED"),
+     "rejected", "AUTONOMY_REFUSED", "the vehicle's autonomy refused it (code 14): MAV_MISSION_DENIED"),
     (SurveyReport(0, SurveyState.REJECTED, 61.0, SurveyReason.AUTONOMY_REFUSED, None, None,
                   "Faulty update for behavior: coex_survey. Bad parameter(s): speed, capture_radius"),
      "rejected", "AUTONOMY_REFUSED", "refused it: Faulty update for behavior: coex_survey. Bad par"),
@@ -299,3 +299,15 @@ def test_an_older_saved_status_without_detail_still_loads() -> None:
     assert b"detail" not in doc and b'"survey.TxSurvey":1' in doc
     s2 = loads(data[:10] + len(doc).to_bytes(4, "big") + doc + data[14 + n:])
     assert s2.surveys[1].detail is None and s2.surveys[1].status().detail is None
+
+
+def test_the_acks_accepted_takes_the_vehicles_time_when_its_report_comes() -> None:
+    r = SurveyReceiver()
+    cmd = r.request("goto", 0.0, 0.0, 100.0)
+    r.receive(CommandAck(cmd.command_id, AckStatus.ACCEPTED), 130.7)  # heard topside at 130.7
+    r.receive(SurveyStatus(cmd.survey_id, SurveyState.STARTED, SurveyReason.NONE, 125, 0), 140.0)
+    r.receive(SurveyStatus(cmd.survey_id, SurveyState.ACCEPTED, SurveyReason.NONE, 120), 141.0)  # late
+    rec = r.surveys[cmd.survey_id]
+    assert [h[1] for h in rec.history] == ["requested", "accepted", "started"]
+    assert [h[0] for h in rec.history] == [100.0, 120.0, 125.0]  # the vehicle's times, in order
+    assert rec.state == "started"

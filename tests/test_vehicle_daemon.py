@@ -178,3 +178,104 @@ def test_the_daemons_run_on_given_transports_with_an_input_made_in_code(tmp_path
     finally:
         vehicle.close()
         topside.close()
+
+
+SKIPPING = """
+[node]
+role = "vehicle"
+id = 2
+store = false
+[modalities.bathymetry]
+stream = 3
+[modalities.imagery]
+stream = 4
+[[modems]]
+uri = "loopback://{name}"
+[[inputs]]
+type = "directory"
+path = "camera"
+existing = true
+settle = 0.0
+interval = 0.0
+[[inputs]]
+type = "lcm"
+url = "{url}"
+points_channel = "{channel}"
+feeds = ["bathymetry"]
+""" + COMMON
+
+
+def test_every_skipped_input_item_is_counted_per_input_in_the_summary(tmp_path: Path) -> None:
+    """The field report: "skipped 0" after 4 corrupt images and 2 bad LCM messages. Now every
+    item skipped, by an input itself (a file it cannot read, a message that does not decode) or
+    by the daemon (an image too small for the image sender), is counted as that input's
+    (``Input.counts["skipped"]``) and the shutdown summary gives the total and each input's."""
+    import uuid
+
+    import lcm
+    import numpy as np
+    from PIL import Image
+
+    from coex_plugins.vehicle.cli import summary_text
+    from coex_transports.lcm import points_t
+    from coex_transports.lcm.testing import TEST_UDPM_URL, ensure_multicast_route, unique_channel
+
+    undo = ensure_multicast_route()
+    camera = tmp_path / "camera"
+    camera.mkdir()
+    for k in range(4):  # what a camera leaves when the disk fills: not images at all
+        (camera / f"corrupt_{k}.png").write_bytes(b"\x89PNG\r\n\x1a\n" + b"\x00garbage" * k)
+    rng = np.random.default_rng(1)
+    Image.fromarray(rng.integers(0, 255, (48, 64), np.uint8)).save(camera / "good.png")
+    Image.fromarray(np.zeros((2, 2), np.uint8)).save(camera / "tiny.png")  # read, but too small to send
+    channel = unique_channel("PTS")
+    (tmp_path / "v.toml").write_text(SKIPPING.format(name=f"skip-{uuid.uuid4().hex[:8]}", url=TEST_UDPM_URL,
+                                                     channel=channel))
+    app = VehicleApp(load(tmp_path / "v.toml", "vehicle"))
+    directory, lcm_input = app.inputs
+    assert (directory.counts, lcm_input.counts) == ({"skipped": 0}, {"skipped": 0, "messages": 0})
+    pub = lcm.LCM(TEST_UDPM_URL)
+    try:
+        app.start()
+        good = points_t()
+        good.utime, good.n, good.x, good.y, good.z = 0, 2, [1.0, 2.0], [3.0, 4.0], [-30.0, -31.0]
+        pub.publish(channel, b"not a points_t")
+        pub.publish(channel, good.encode()[:-6])  # cut short
+        pub.publish(channel, good.encode())
+        _wait(lambda: app.counts["images"] == 1 and app.counts["points"] == 2
+              and directory.skipped == 5 and lcm_input.skipped == 2)
+    finally:
+        app.close()
+        undo()
+    summary = app.summary()
+    assert summary["skipped_by_input"] == {"inputs[0] (directory)": 5, "inputs[1] (lcm)": 2}
+    assert summary["skipped"] == 7 and summary["images"] == 1 and summary["points"] == 2
+    assert lcm_input.counts == {"skipped": 2, "messages": 1}
+    text = summary_text(summary)
+    assert "images 1, samples 0, nav 0, skipped 7," in text
+    assert text.endswith("; skipped by input: inputs[0] (directory) 5, inputs[1] (lcm) 2"), text
+
+
+def test_a_vehicle_restarted_mid_survey_follows_it_again_to_its_end(tmp_path: Path) -> None:
+    port = _free_udp_port()
+    (tmp_path / "k.key").write_text(KEY)
+    (tmp_path / "v.toml").write_text(VEHICLE.format(port=port).replace("speed = 40.0", "speed = 12.0"))
+    (tmp_path / "t.toml").write_text(TOPSIDE.format(port=port))
+    vehicle = VehicleApp(load(tmp_path / "v.toml", "vehicle")).start()
+    topside = topside_from_config(str(tmp_path / "t.toml")).start()
+    again = None
+    try:
+        rx = topside.node.receiver("survey")
+        with topside.hub.lock:
+            cmd = rx.request("line", 0.0, 0.0, time.time(), heading=90.0, length=120.0, altitude=5.0)
+        _wait(lambda: rx.surveys[cmd.survey_id].state == "started")
+        vehicle.close()  # mid-survey (120 m at 12 m/s)
+        again = VehicleApp(load(tmp_path / "v.toml", "vehicle")).start()
+        _wait(lambda: rx.surveys[cmd.survey_id].state == "completed", timeout=60.0)
+        assert again._resumed and again.counts["plans"] == 0  # followed again, not submitted as new
+        assert again.autonomy is not None and again.autonomy._plan.survey_id == cmd.survey_id
+    finally:
+        vehicle.close()
+        if again is not None:
+            again.close()
+        topside.close()

@@ -17,9 +17,8 @@ import construct as cs
 from ..errors import DecodeError, EncodeError
 from ..messages import Frame, FrameHeader, Message, Opaque
 from . import bathymetry, core, imagery, survey, timeseries  # noqa: F401  (they register their messages)
-from ._primitives import Bool, Bounded, UInt
+from ._primitives import Bool, Bounded, OutOfRange, UInt
 from ._registry import (
-    BUILTIN_RANGE,
     MAX_MESSAGE_BYTES,
     RESERVED_RANGE,
     SPECS_BY_CLASS,
@@ -45,7 +44,8 @@ class TypeIdCon(cs.Construct):  # type: ignore[misc]
             return b0
         value = ((b0 & 0x7F) << 8) | cs.stream_read(stream, 1, path)[0]
         if value < 128:
-            raise cs.ValidationError(f"over-long type id {value}", path=path)
+            raise OutOfRange(f"over-long type id {value} (two bytes for an id below 128)", path=path,
+                             reason="over-long")
         return value
 
     def _build(self, obj: Any, stream: Any, context: Any, path: str) -> int:
@@ -198,15 +198,24 @@ def _decode_at(data: bytes, stream: io.BytesIO) -> Message:
         message: Message = _from_container(spec.cls, container)
     elif any(tid in r for r in THIRD_PARTY_RANGES):
         message = Opaque(tid, bytes(OPAQUE_BODY.parse_stream(stream)))
-    elif tid in RESERVED_RANGE or tid not in BUILTIN_RANGE:
-        raise DecodeError(f"unknown message type {tid}")
+    elif tid == 0:
+        raise DecodeError("unknown message type 0 (the end marker, never a message)",
+                          reason="unknown message type")
+    elif tid in RESERVED_RANGE:
+        raise DecodeError(f"unknown message type {tid} (reserved for future built-in messages)",
+                          reason="unknown message type")
     else:
-        raise DecodeError(f"unknown message type {tid}")
+        raise DecodeError(f"unknown message type {tid} (a built-in id no message is assigned)",
+                          reason="unknown message type")
     end = stream.tell()
+    if end - start > MAX_MESSAGE_BYTES:
+        raise DecodeError(f"{type(message).__name__} of {end - start} B is above 251 bytes",
+                          reason="above 251 bytes")
     # Canonical form: the bytes must be exactly what encoding the message gives. This rejects bad
     # lengths, trailing bytes inside a length-prefixed body and over-long encodings.
     if encode(message) != data[start:end]:
-        raise DecodeError(f"{type(message).__name__} is not in canonical form (bad length or padding)")
+        raise DecodeError(f"{type(message).__name__} is not in canonical form (the bytes are not those "
+                          "that encoding its value gives)", reason="canonical")
     return message
 
 
@@ -215,10 +224,10 @@ def _decode_guarded(data: bytes, stream: io.BytesIO) -> Message:
         return _decode_at(data, stream)
     except DecodeError:
         raise
-    except EncodeError as exc:
-        raise DecodeError(f"invalid field value: {exc}") from exc
+    except EncodeError as exc:  # re-encoding a decoded value failed: it is not a valid value
+        raise DecodeError(f"invalid field value: {exc}", reason="canonical") from exc
     except Exception as exc:  # any other failure on received bytes is the peer's (or the channel's) fault
-        raise DecodeError(_describe(exc)) from exc
+        raise DecodeError(_describe(exc), reason=_reason_word(exc)) from exc
 
 
 def _describe(exc: BaseException) -> str:
@@ -227,17 +236,24 @@ def _describe(exc: BaseException) -> str:
     return f"{type(exc).__name__}: {_reason(exc)}"
 
 
+def _reason_word(exc: BaseException) -> str | None:
+    """The spec's error word (section 13) for an exception raised while parsing."""
+    if isinstance(exc, cs.StreamError):
+        return "truncated"
+    return getattr(exc, "reason", None)
+
+
 def decode(data: bytes) -> Message:
     """Decode exactly one message. Raises :class:`DecodeError` (only) for any invalid input."""
     if not isinstance(data, bytes | bytearray | memoryview):
         raise DecodeError(f"expected bytes, got {type(data).__name__}")
     data = bytes(data)
     if not data:
-        raise DecodeError("empty input")
+        raise DecodeError("empty input", reason="empty")
     stream = io.BytesIO(data)
     message = _decode_guarded(data, stream)
     if stream.tell() != len(data):
-        raise DecodeError(f"{len(data) - stream.tell()} bytes after the message")
+        raise DecodeError(f"{len(data) - stream.tell()} bytes after the message", reason="after the message")
     return message
 
 
@@ -288,12 +304,15 @@ def unpack_frame(packet: bytes) -> Frame:
         raise DecodeError(f"expected bytes, got {type(packet).__name__}")
     data = bytes(packet)
     if len(data) < FRAME_HEADER_BYTES:
-        raise DecodeError(f"truncated: frame of {len(data)} B is shorter than its header")
+        raise DecodeError(f"truncated: frame of {len(data)} B is shorter than its header", reason="truncated")
     stream = io.BytesIO(data)
     try:
         parsed = FRAME_HEADER.parse_stream(stream)
+    except cs.StreamError as exc:  # the CRC flag is set and the two CRC bytes are missing
+        raise DecodeError(f"truncated: the frame ends inside its header ({_reason(exc)})",
+                          reason="truncated") from exc
     except Exception as exc:
-        raise DecodeError(f"bad frame header: {_describe(exc)}") from exc
+        raise DecodeError(f"bad frame header: {_describe(exc)}", reason="bad frame header") from exc
     bits = parsed.bits
     header = FrameHeader(src=bits.src, dst=bits.dst, seq=bits.seq, schedule=bits.schedule, crc=bits.crc)
     body_start = stream.tell()
@@ -302,14 +321,15 @@ def unpack_frame(packet: bytes) -> Frame:
         if data[stream.tell()] == END_MARKER:
             rest = data[stream.tell():]
             if any(rest):
-                raise DecodeError("non-zero bytes after the end marker")
+                raise DecodeError("non-zero bytes after the end marker", reason="after the end marker")
             break
         messages.append(_decode_guarded(data, stream))
     end = stream.tell()
     if header.crc:
         expected = crc16(data[:FRAME_HEADER_BYTES] + data[body_start:end])
         if expected != parsed.checksum:
-            raise DecodeError(f"CRC mismatch: frame says {parsed.checksum:#06x}, computed {expected:#06x}")
+            raise DecodeError(f"CRC mismatch: frame says {parsed.checksum:#06x}, computed {expected:#06x}",
+                              reason="crc mismatch")
     return Frame(header, tuple(messages))
 
 

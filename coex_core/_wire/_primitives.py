@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import enum
 import math
+import struct
 from collections.abc import Callable, Sequence
 from typing import Any
 
@@ -56,7 +57,12 @@ STAMP_MODULUS = 1 << STAMP_BITS
 
 
 class OutOfRange(cs.ConstructError):
-    """Raised inside construct for a value or code outside its field's range."""
+    """Raised inside construct for a value or code outside its field's range, or a broken rule;
+    ``reason`` is the spec's error word for it (``spec/wire-format.md`` section 13)."""
+
+    def __init__(self, message: str, path: str | None = None, reason: str | None = None) -> None:
+        super().__init__(message, path=path)
+        self.reason = reason
 
 
 def nbits(lo: float, hi: float, res: float = 1.0, optional: bool = False) -> int:
@@ -246,7 +252,7 @@ class Bounded(cs.Adapter):  # type: ignore[misc]
                 return None
             obj -= 1
         if obj > self.steps:
-            raise OutOfRange(f"code {obj} above maximum {self.steps}", path=path)
+            raise OutOfRange(f"code {obj} above maximum {self.steps}", path=path, reason="above maximum")
         if self.integral:
             return int(self.lo) + obj * int(self.res)
         return round(self.lo + obj * self.res, self.ndigits)
@@ -306,7 +312,7 @@ class OptBool(cs.Adapter):  # type: ignore[misc]
 
     def _decode(self, obj: int, context: Any, path: str) -> bool | None:
         if obj == 3:
-            raise OutOfRange("code 3 is not a valid optional boolean", path=path)
+            raise OutOfRange("code 3 is not a valid optional boolean", path=path, reason="optional boolean")
         return None if obj == 0 else obj == 2
 
     def _encode(self, obj: Any, context: Any, path: str) -> int:
@@ -318,21 +324,29 @@ class OptBool(cs.Adapter):  # type: ignore[misc]
 
 
 class Enum(cs.Adapter):  # type: ignore[misc]
-    """An IntEnum in the fewest bits that hold its largest member; unknown codes are invalid."""
+    """An IntEnum in the fewest bits that hold its largest member, or in ``bits`` (more, leaving
+    room for members to come: the table shows the width); codes that name no member are invalid."""
 
     def __init__(self, enum_cls: type[enum.IntEnum], bits: int | None = None) -> None:
         top = max(int(m) for m in enum_cls)
-        self.bits = bits or max(1, top.bit_length())
+        fewest = max(1, top.bit_length())
+        self.bits = bits or fewest
+        if self.bits < fewest:
+            raise ValueError(f"{enum_cls.__name__} needs {fewest} bits, not {self.bits}")
         self.enum_cls = enum_cls
         super().__init__(UInt(self.bits))
         members = ", ".join(f"{int(m)} {m.name}" for m in enum_cls)
-        self.coex_spec = FieldSpec(str(self.bits), f"0..{top}", note=f"enum: {members}", coding="enum")
+        note = f"enum: {members}"
+        if self.bits > fewest:  # room for members to come (spec section 6: the table's width rules)
+            note += f"; {self.bits} bits, wider than the {fewest} its members need"
+        self.coex_spec = FieldSpec(str(self.bits), f"0..{top}", note=note, coding="enum")
 
     def _decode(self, obj: int, context: Any, path: str) -> enum.IntEnum:
         try:
             return self.enum_cls(obj)
         except ValueError:
-            raise OutOfRange(f"{obj} is not a valid {self.enum_cls.__name__}", path=path) from None
+            raise OutOfRange(f"{obj} is not a valid {self.enum_cls.__name__}", path=path,
+                             reason="not a valid") from None
 
     def _encode(self, obj: Any, context: Any, path: str) -> int:
         try:
@@ -354,7 +368,8 @@ class Choice(cs.Adapter):  # type: ignore[misc]
 
     def _decode(self, obj: int, context: Any, path: str) -> float:
         if obj >= len(self.table):
-            raise OutOfRange(f"table index {obj} out of range", path=path)
+            raise OutOfRange(f"table index {obj} above maximum {len(self.table) - 1}", path=path,
+                             reason="above maximum")
         return self.table[obj]
 
     def _encode(self, obj: Any, context: Any, path: str) -> int:
@@ -374,7 +389,7 @@ class Align8(cs.Construct):  # type: ignore[misc]
     def _parse(self, stream: Any, context: Any, path: str) -> None:
         pad = -cs.stream_tell(stream, path) % 8
         if any(cs.stream_read(stream, pad, path)):
-            raise OutOfRange("non-zero padding bits", path=path)
+            raise OutOfRange("non-zero padding bits", path=path, reason="padding")
         return None
 
     def _build(self, obj: Any, stream: Any, context: Any, path: str) -> None:
@@ -388,16 +403,31 @@ class Align8(cs.Construct):  # type: ignore[misc]
 
 class Rule(cs.Construct):  # type: ignore[misc]
     """A rule on the fields before it (no bits): ``predicate(context)`` must hold when parsing
-    and building; otherwise :class:`OutOfRange` with ``message`` (the spec's reason words)."""
+    and building; otherwise :class:`OutOfRange`.
 
-    def __init__(self, predicate: Callable[[Any], bool], message: str) -> None:
+    ``violation`` says, in the spec's words, what breaks the rule (the spec lists it under "A
+    decoder MUST reject the message when:", so it names the broken state, never the
+    requirement); ``reason`` is its error word (section 13), which the error text contains.
+    ``encode_only``: a rule that decoded bytes always meet (the layout implies it); it guards
+    the encoder against values the layout cannot carry, and the spec lists it apart."""
+
+    def __init__(self, predicate: Callable[[Any], bool], violation: str, reason: str | None = None, *,
+                 encode_only: bool = False) -> None:
         super().__init__()
-        self.predicate, self.message = predicate, message
+        if (reason is None) != encode_only:
+            raise ValueError(f"rule {violation!r}: a decoding rule has an error word, an encode-only one none")
+        self.predicate, self.violation, self.reason = predicate, violation, reason
+        self.encode_only = encode_only
         self.flagbuildnone = True
+
+    @property
+    def message(self) -> str:
+        """The error text: the violation and its error word."""
+        return self.violation if self.reason is None else f"{self.violation} ({self.reason})"
 
     def _check(self, context: Any, path: str) -> None:
         if not self.predicate(context):
-            raise OutOfRange(self.message, path=path)
+            raise OutOfRange(self.message, path=path, reason=self.reason)
 
     def _parse(self, stream: Any, context: Any, path: str) -> None:
         self._check(context, path)
@@ -416,7 +446,7 @@ class _MaxLen(cs.Adapter):  # type: ignore[misc]
 
     def _decode(self, obj: Any, context: Any, path: str) -> Any:
         if len(obj) > self.max_len:
-            raise OutOfRange(f"{len(obj)} bytes exceed the maximum {self.max_len}", path=path)
+            raise OutOfRange(f"{len(obj)} bytes exceed the maximum {self.max_len}", path=path, reason="exceed")
         return obj
 
     def _encode(self, obj: Any, context: Any, path: str) -> Any:
@@ -452,8 +482,11 @@ class _Text(cs.Adapter):  # type: ignore[misc]
 
     def _decode(self, obj: bytes, context: Any, path: str) -> str:
         if len(obj) > self.max_len:
-            raise OutOfRange(f"text of {len(obj)} bytes exceeds {self.max_len}", path=path)
-        return obj.decode("utf-8")
+            raise OutOfRange(f"text of {len(obj)} bytes exceeds {self.max_len}", path=path, reason="exceed")
+        try:
+            return obj.decode("utf-8")
+        except UnicodeDecodeError as exc:
+            raise OutOfRange(f"text is not valid utf-8: {exc}", path=path, reason="utf-8") from None
 
     def _encode(self, obj: Any, context: Any, path: str) -> bytes:
         if not isinstance(obj, str):
@@ -472,23 +505,36 @@ def Text(max_len: int) -> cs.Construct:
     return c
 
 
+_F32 = struct.Struct(">f")
+
+
 class _Float32(cs.Adapter):  # type: ignore[misc]
     def __init__(self) -> None:
         super().__init__(cs.Bytewise(cs.Float32b))
 
     def _decode(self, obj: float, context: Any, path: str) -> float:
         if not math.isfinite(obj):
-            raise OutOfRange("non-finite float", path=path)
+            raise OutOfRange("non-finite float", path=path, reason="non-finite")
+        if obj == 0 and math.copysign(1.0, obj) < 0:
+            # zero has one encoding, +0.0 (what the encoder writes for -0.0 too)
+            raise OutOfRange("-0.0 is not the canonical zero (+0.0)", path=path, reason="canonical")
         return float(obj)
 
     def _encode(self, obj: Any, context: Any, path: str) -> float:
         if isinstance(obj, bool) or not isinstance(obj, int | float) or not math.isfinite(obj):
             raise OutOfRange(f"expected a finite number, got {obj!r}", path=path)
-        return float(obj)
+        v = float(obj)
+        try:
+            if _F32.unpack(_F32.pack(v))[0] == 0:
+                return 0.0  # -0.0 (or a tiny negative rounding to it) is sent as +0.0: one zero
+        except (OverflowError, struct.error):
+            pass  # too large for binary32: construct refuses it
+        return v
 
 
 def Float32(unit: str = "") -> cs.Construct:
-    """IEEE 754 binary32, big-endian, continuing the bit stream; NaN and infinities are invalid."""
+    """IEEE 754 binary32, big-endian, continuing the bit stream; NaN and infinities are invalid,
+    and so is -0.0 (zero is sent as +0.0: one encoding per value)."""
     c = _Float32()
     c.coex_spec = FieldSpec("32", "finite", unit=unit, coding="IEEE 754 binary32, big-endian")
     return c

@@ -171,9 +171,9 @@ SUBGRID = Body(
                        "(side^2 without a mask, the mask's 1 bits with one)", _n_values, SubgridCode())
     * "Codes of the present cells, row-major (DELTA: serpentine order); spec/payloads.md",
     Rule(lambda ctx: _value_bits(ctx) <= MAX_SUBGRID_VALUE_BITS,
-         f"the values take more than {MAX_SUBGRID_VALUE_BITS} bits in all (too large)"),
+         f"the `values` take more than {MAX_SUBGRID_VALUE_BITS} bits in all", "too large"),
     Rule(lambda ctx: ctx.encoding != SubgridEncoding.GRADIENT or ctx.mask is None,
-         "`encoding` is GRADIENT and `partial` is 1 (a GRADIENT subgrid has no mask)"),
+         "`encoding` is GRADIENT and `partial` is 1 (a GRADIENT subgrid has no mask)", "GRADIENT"),
 )
 
 MAP_ROI_REQUEST = Body(
@@ -190,7 +190,7 @@ MAP_ROI_REQUEST = Body(
     "have" / When("`fill_gaps` = 1", cs.this.fill_gaps, _bitmask("w*h", lambda ctx: int(ctx.w) * int(ctx.h)))
     * "w*h bits, row-major, 1 = topside holds the subgrid",
     Rule(lambda ctx: ctx.fill_gaps or ctx.w * ctx.h <= MAX_ROI_HELD,
-         f"`fill_gaps` is 0 and w*h is above {MAX_ROI_HELD} (too many subgrids)"),
+         f"`fill_gaps` is 0 and w*h is above {MAX_ROI_HELD}", "too many"),
 )
 
 MAP_ROI_REPLY = Body(

@@ -78,12 +78,14 @@ IMAGE_FRAGMENT = Body(
     "n_data" / Count(0, MAX_FRAGMENT_DATA, "data"),
     "data" / RawBytes(max_len=MAX_FRAGMENT_DATA, count="n_data") * "Codestream bytes",
     Rule(lambda ctx: bool(ctx.far) == (ctx.offset >= 1 << NEAR_OFFSET_BITS),
-         f"`far` is 1 while `offset` is below {1 << NEAR_OFFSET_BITS} (not canonical: one encoding per offset)"),
+         f"`far` is 1 while `offset` is below {1 << NEAR_OFFSET_BITS} (the long form of a short offset: "
+         "one encoding per offset)", "canonical"),
     Rule(lambda ctx: (ctx.packet is None) == (not ctx.packets),
-         "`packet` is given exactly when there are packet marks"),
+         "`packet` is given without packet marks, or packet marks without `packet`", encode_only=True),
     Rule(lambda ctx: all(a < b for a, b in zip(ctx.packets, ctx.packets[1:]))
          and all(p <= len(ctx.data) for p in ctx.packets),
-         "the `packets` entries are out of order (not strictly increasing) or one is above the number of `data` bytes"),
+         "the `packets` entries are not strictly increasing, or one is above the number of `data` bytes",
+         "out of order"),
 )
 
 BYTE_RANGE = cs.Struct(
@@ -114,7 +116,8 @@ IMAGE_REGION = Body(
     "y1" / Bounded(1, 4096, unit="px") * "Bottom edge (one past the last row)",
     "kind" / Enum(RegionGoal) * "Goal kind",
     "value" / Bounded(0, 65535) * "QUALITY: PSNR in the region, 0.1 dB; LAYER: layers; BYTES: body bytes",
-    Rule(lambda ctx: ctx.x0 < ctx.x1 and ctx.y0 < ctx.y1, "the region is empty (x0 >= x1 or y0 >= y1)"),
+    Rule(lambda ctx: ctx.x0 < ctx.x1 and ctx.y0 < ctx.y1, "`x0` >= `x1` or `y0` >= `y1` (no pixel in the region)",
+         "empty region"),
 )
 
 IMAGE_BY_TIME = Body(

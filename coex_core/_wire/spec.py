@@ -18,6 +18,7 @@ from .. import jsonfmt
 from ..errors import DecodeError
 from ..messages import (
     AckStatus,
+    AuthTrailer,
     CommandAck,
     FrameHeader,
     ImageFragment,
@@ -85,7 +86,8 @@ def _rows(struct: Any, prefix: str = "") -> list[tuple[str, FieldSpec, str, Any]
             spec = spec_of(inner.thensubcon)
             if spec is None:
                 raise ValueError(f"field {name}: no FieldSpec")
-            rows.append((prefix + name, spec.but(presence=f"when {presence}"), doc, None))
+            derived = " (derived)" if _is_derived(inner.thensubcon) else ""
+            rows.append((prefix + name, spec.but(presence=f"when {presence}{derived}"), doc, None))
             continue
         if isinstance(inner, cs.Array):
             count = _count_text(inner)
@@ -123,10 +125,17 @@ def _table(struct: Any) -> list[str]:
                      f"| {spec.presence} | {desc} |")
         if sub is not None:
             subs.append((name, sub))
-    rules = [sc.message for sc in struct.subcons if isinstance(sc, Rule)]
-    if rules:
-        lines += ["", "A decoder MUST reject the message (and an encoder refuse it) when:", ""]
-        lines += [f"- {r}" for r in rules]
+    rules = [sc for sc in struct.subcons if isinstance(sc, Rule)]
+    decoding = [r for r in rules if not r.encode_only]
+    if decoding:
+        lines += ["", "A decoder MUST reject the message (and an encoder refuse it) when one of these holds "
+                  "(after the dash: its error word, section 13.2):", ""]
+        lines += [f"- {r.violation} — `{r.reason}`" for r in decoding]
+    encoding = [r for r in rules if r.encode_only]
+    if encoding:
+        lines += ["", "An encoder MUST refuse a value when (decoded bytes never break this: the layout "
+                  "above rules it out):", ""]
+        lines += [f"- {r.violation}" for r in encoding]
     for name, sub in subs:
         lines += ["", f"Each entry of `{name}`:", ""]
         lines += _table(sub)
@@ -214,7 +223,35 @@ FRAME_CASES: list[tuple[str, FrameHeader, list[Message], int]] = [
      [Opaque(96, b"\x01\x02"), Opaque(32767, b""), Opaque(200, bytes(range(16)))], 256),
     ("fragment_fills_subframe", FrameHeader(src=2, dst=1, seq=3, crc=True),
      [ImageFragment(9, 640, 12, (0,), bytes(241))], 256),
+    # valid frames, whatever command authentication makes of them (spec section 10): a decoder
+    # accepts a trailer anywhere, and two of them
+    ("trailer_not_last", FrameHeader(src=1, dst=2, seq=4),
+     [AuthTrailer(7, bytes(range(8))), CommandAck(3, AckStatus.ACCEPTED)], 64),
+    ("two_trailers", FrameHeader(src=1, dst=2, seq=5),
+     [AuthTrailer(8, bytes(8)), AuthTrailer(9, b"\xff" * 8)], 64),
 ]
+
+#: Third-party messages (any id 96..32767, spec section 5): the type name ``Opaque``, the id and
+#: the body in the fields.
+OPAQUE_CASES: list[tuple[str, Opaque]] = [
+    ("one_byte_id_min_empty", Opaque(96, b"")),
+    ("one_byte_id_max", Opaque(127, bytes(range(10)))),
+    ("two_byte_id_min", Opaque(128, b"\x01")),
+    ("assigned_range_top", Opaque(29999, b"ctd")),
+    ("experimental_max_largest", Opaque(32767, b"\xff" * 247)),
+]
+
+
+def opaque_vectors() -> dict[str, Any]:
+    """``Opaque.json``: ``type_id`` is null (each vector's fields carry the id)."""
+    vectors = []
+    for name, message in OPAQUE_CASES:
+        data = _codec.encode(message)
+        assert _codec.decode(data) == message, f"Opaque/{name} does not round-trip"
+        fields = jsonfmt.to_json(message)
+        fields.pop("type")
+        vectors.append({"name": name, "fields": fields, "hex": data.hex()})
+    return {"type": "Opaque", "type_id": None, "vectors": vectors}
 
 
 def frame_vectors() -> dict[str, Any]:
@@ -259,6 +296,28 @@ def _longer_length(message: Message) -> bytes:
     return data[:1] + bytes([0x80 | data[1], 0x00]) + data[2:]
 
 
+def _survey(kind: int, *, heading: int = 0, length: int = 0, width: int = 0, spacing: int = 0,
+            altitude: int = 0, depth: int = 0, points: int = 0) -> bytes:
+    """A SurveyCommand (type 11) from its codes: command 1, survey 2, at (0, 0), the optional
+    fields' codes (0 = absent), no speed, append 0, ``points`` waypoints at (0, 0)."""
+    centre = 500000  # x = y = 0.0 m: (0 - -50000) / 0.1
+    return _bits((11, 8), (1, 8), (2, 10), (kind, 3), (centre, 20), (centre, 20), (heading, 12), (length, 15),
+                 (width, 15), (spacing, 10), (altitude, 13), (depth, 16), (0, 7), (0, 1), (points, 5),
+                 *[(centre, 20)] * (2 * points))
+
+
+def _region(x0: int, y0: int, x1: int, y1: int) -> bytes:
+    """An ImageRegionRequest (type 38): command 1, image 2, the box (``x1``, ``y1`` sent minus 1),
+    QUALITY 30 dB."""
+    return _bits((38, 8), (1, 8), (2, 10), (x0, 12), (y0, 12), (x1 - 1, 12), (y1 - 1, 12), (0, 2), (300, 16))
+
+
+def _channel(name: bytes = b"t", lo: float = 0.0, hi: float = 1.0, resolution: float = 0.1) -> bytes:
+    """A TimeSeriesChannel (type 48, VarInt length) from raw parts: channel 1, unit ''."""
+    body = _bits((1, 5), (0, 3), (_f32(lo), 0), (_f32(hi), 0), (_f32(resolution), 0), (len(name), 8)) + name + b"\x00"
+    return bytes([0x30, len(body)]) + body
+
+
 def _spec_rule_cases() -> list[tuple[str, str, bytes, str]]:
     """Inputs each invalid by one rule of the document that the encoder never produces."""
     zeros3 = [("0", 0)] * 3  # three more DELTA codes of 0 (Rice, k = 0)
@@ -270,7 +329,8 @@ def _spec_rule_cases() -> list[tuple[str, str, bytes, str]]:
                        ("0" * 80, 0))
     # image 1, not marked, far, offset 4095 (fits the near form), 0 data bytes
     frag_far = _bits((33, 8), (1, 10), (0, 1), (1, 1), (4095, 20), (0, 8))
-    channel = _bits((1, 5), (0, 3), (_f32(0.0), 0), (_f32(1.0), 0), (_f32(0.1), 0), (1, 8), (0xFF, 8), (0, 8))
+    # a TimeSeriesChunk (type 49) with no data, then 233 data bytes (one above its 232)
+    chunk = _codec.encode(SPECS_BY_ID[49].cases()[0][1])[2:] + bytes(233)
     return [
         ("rice_escape_not_needed", "message",
          _bits(*_subgrid_head(1, 0), ("1" * 16 + "00001" + "1", 0), *zeros3), "canonical"),
@@ -289,26 +349,44 @@ def _spec_rule_cases() -> list[tuple[str, str, bytes, str]]:
         ("fragment_far_offset_not_canonical", "message", frag_far, "canonical"),
         ("float_nan", "message", _bits((50, 8), (1, 8), (0, 5), (0, 18), (0, 18), (0, 7), (_f32(float("nan")), 0)),
          "non-finite"),
-        ("text_not_utf8", "message", bytes([0x30, len(channel)]) + channel, "utf-8"),
+        # zero has one encoding, +0.0 (spec section 6): -0.0 anywhere a Float32 is
+        ("float_negative_zero", "message",
+         _bits((50, 8), (1, 8), (0, 5), (0, 18), (0, 18), (0, 7), (_f32(-0.0), 0)), "canonical"),
+        ("channel_resolution_negative_zero", "message", _channel(resolution=-0.0), "canonical"),
+        ("text_not_utf8", "message", _channel(name=b"\xff"), "utf-8"),
+        ("text_too_long", "message", _channel(name=b"n" * 33), "exceed"),
+        ("chunk_data_too_long", "message", bytes([0x31]) + bytes([0x80 | len(chunk) & 0x7F, len(chunk) >> 7]) + chunk,
+         "exceed"),
         # survey 1 REJECTED AUTONOMY_REFUSED at 0, no index, no value, has_detail 1 with 0 bytes
         ("survey_detail_empty", "message",
-         _bits((12, 8), (1, 10), (1, 3), (6, 4), (0, 18), (0, 9), (0, 17), (1, 1), (0, 8)), "empty"),
+         _bits((12, 8), (1, 10), (1, 3), (6, 4), (0, 18), (0, 9), (0, 17), (1, 1), (0, 8)), "empty detail"),
+        ("survey_line_without_length", "message", _survey(1, heading=1), "incomplete survey"),
+        ("survey_lawnmower_without_spacing", "message", _survey(2, heading=1, length=2, width=2),
+         "incomplete survey"),
+        ("survey_points_not_waypoints", "message", _survey(0, points=1), "points without WAYPOINTS"),
+        ("survey_altitude_and_depth", "message", _survey(0, altitude=1, depth=1), "altitude and depth"),
+        ("survey_kind_unassigned", "message", _survey(4), "not a valid"),
+        ("region_empty_columns", "message", _region(10, 0, 10, 10), "empty region"),
+        ("region_empty_rows", "message", _region(0, 20, 10, 5), "empty region"),
     ]
 
 
 def _invalid_cases() -> list[tuple[str, str, bytes, str]]:
-    """(name, scope, bytes, reason): reason is a word the DecodeError message must contain."""
+    """(name, scope, bytes, reason): reason is the error word (section 13) of the rule the input
+    breaks; the reference's DecodeError has it as ``reason`` and in its text."""
     cases: list[tuple[str, str, bytes, str]] = []
     for spec in sorted(SPECS_BY_ID.values(), key=lambda s: s.type_id):
         _, message = spec.cases()[-1]
         data = _codec.encode(message)
         cases.append((f"{spec.name}_truncated", "message", data[:-1], "truncated"))
-    status = _codec.encode(_status())
-    heading_max = bytearray(status)
     cases += [
         ("empty_input", "message", b"", "empty"),
         ("end_marker_alone", "message", b"\x00", "unknown message type"),
         ("unassigned_builtin_id", "message", b"\x3f\x00", "unknown message type"),
+        ("unassigned_core_id", "message", b"\x0e\x00", "unknown message type"),
+        ("unassigned_bathymetry_id", "message", b"\x14\x00", "unknown message type"),
+        ("unassigned_imagery_id", "message", b"\x27\x00", "unknown message type"),
+        ("unassigned_timeseries_id", "message", b"\x34\x00", "unknown message type"),
         ("reserved_id", "message", b"\x40\x00", "unknown message type"),
         ("overlong_type_id", "message", b"\x80\x06\x00\x00", "over-long"),
         ("nonzero_padding_bits", "message", bytes.fromhex("060001"), "padding"),
@@ -321,9 +399,13 @@ def _invalid_cases() -> list[tuple[str, str, bytes, str]]:
         # n_data 245: above the 244 a fragment may carry
         ("fragment_data_too_large", "message", bytes.fromhex("21000000f5") + bytes(245), "above maximum"),
         ("fragment_above_251_bytes", "message", _codec.TYPE_ID.build(33) + _codec._BODIES[33].build(
-            _codec._to_container(ImageFragment(0, 0, 0, tuple(range(31)), bytes(214)))), "above"),
-        ("trailing_bytes", "message", _codec.encode(CommandAck(1, AckStatus.ACCEPTED)) + b"\x01", "after"),
+            _codec._to_container(ImageFragment(0, 0, 0, tuple(range(31)), bytes(214)))), "above 251 bytes"),
+        # type 96, a VarInt length of 250 (fa 01) and 250 bytes: 253 bytes
+        ("opaque_above_251_bytes", "message", bytes.fromhex("60fa01") + bytes(250), "above 251 bytes"),
+        ("trailing_bytes", "message", _codec.encode(CommandAck(1, AckStatus.ACCEPTED)) + b"\x01", "after the message"),
         ("frame_too_short", "frame", b"\x40\x00", "truncated"),
+        # the crc flag set and one CRC byte
+        ("frame_crc_truncated", "frame", bytes.fromhex("60210900"), "truncated"),
         ("frame_bad_version", "frame", bytes.fromhex("800000"), "bad frame header"),
         ("frame_reserved_bit", "frame", bytes.fromhex("500000"), "bad frame header"),
         ("frame_crc_mismatch", "frame",
@@ -332,19 +414,22 @@ def _invalid_cases() -> list[tuple[str, str, bytes, str]]:
         ("frame_truncated_message", "frame", bytes.fromhex("40000001"), "truncated"),
         *_spec_rule_cases(),
     ]
-    _ = heading_max
     return cases
 
 
 def invalid_vectors() -> dict[str, Any]:
     out = []
+    names = set()
     for name, scope, data, reason in _invalid_cases():
+        assert name not in names, f"invalid vector {name} twice"
+        names.add(name)
         decoder = _codec.decode if scope == "message" else _codec.unpack_frame
         try:
             decoder(data)
         except DecodeError as exc:
-            if reason.lower() not in str(exc).lower():
-                raise AssertionError(f"invalid vector {name}: {exc!s} lacks {reason!r}") from exc
+            if exc.reason != reason or reason.lower() not in str(exc).lower():
+                raise AssertionError(f"invalid vector {name}: {exc!s} (reason {exc.reason!r}) is not "
+                                     f"{reason!r}") from exc
         else:
             raise AssertionError(f"invalid vector {name} decoded without error")
         out.append({"name": name, "scope": scope, "hex": data.hex(), "error": "DecodeError", "reason": reason})
@@ -353,6 +438,7 @@ def invalid_vectors() -> dict[str, Any]:
 
 def all_vector_files() -> dict[str, dict[str, Any]]:
     files = {f"{spec.name}.json": message_vectors(spec) for spec in SPECS_BY_ID.values()}
+    files["Opaque.json"] = opaque_vectors()
     files["frames.json"] = frame_vectors()
     files["invalid.json"] = invalid_vectors()
     return files
@@ -375,8 +461,9 @@ def write_vectors(directory: str | Path) -> None:
 # standard input: ``message <hex>`` or ``frame <hex>``. CMD answers with one JSON object per
 # line, in order: ``{"type": NAME, "fields": {...}}`` for a message, ``{"header": {...},
 # "messages": [{"type": NAME, ...fields}, ...]}`` for a frame (fields in the JSON form of the
-# vectors, spec section 13), or ``{"error": TEXT}`` when the input is invalid.
-# ``coex spec decode`` is the reference implementation of that protocol.
+# vectors, spec section 13.1), or ``{"error": WORD}`` when the input is invalid, WORD the error
+# word of the rule it breaks (section 13.2; other keys, such as the reference's ``detail``, are
+# ignored). ``coex spec decode`` is the reference implementation of that protocol.
 
 
 def decode_line(line: str) -> dict[str, Any]:
@@ -385,7 +472,7 @@ def decode_line(line: str) -> dict[str, Any]:
     try:
         data = bytes.fromhex(hexdata.strip())
     except ValueError:
-        return {"error": "bad hex"}
+        return {"error": "bad input", "detail": f"not hexadecimal: {hexdata.strip()[:40]!r}"}
     try:
         if scope == "message":
             m = _codec.decode(data)
@@ -397,9 +484,9 @@ def decode_line(line: str) -> dict[str, Any]:
             h = frame.header
             return {"header": {"src": h.src, "dst": h.dst, "seq": h.seq, "schedule": h.schedule, "crc": h.crc},
                     "messages": [jsonfmt.to_json(m) for m in frame.messages]}
-        return {"error": f"unknown scope {scope!r} (message or frame)"}
+        return {"error": "bad input", "detail": f"unknown scope {scope!r} (message or frame)"}
     except DecodeError as exc:
-        return {"error": str(exc)}
+        return {"error": exc.reason or "invalid", "detail": str(exc)}
 
 
 def serve_decoder(stdin: Any, stdout: Any) -> int:
@@ -429,11 +516,20 @@ def vector_cases(directory: str | Path) -> list[tuple[str, str, str, dict[str, A
     return out
 
 
+#: numbers agree when |a - b| <= TOLERANCE * max(1, |a|, |b|) (spec section 13.1)
+TOLERANCE = 1e-9
+
+
 def _same(a: Any, b: Any) -> bool:
+    """``a`` (an answer) agrees with ``b`` (the vector): booleans are booleans, an integer of the
+    vector is met exactly (masks, counts, codes: no tolerance), other numbers within
+    :data:`TOLERANCE`."""
     if isinstance(a, bool) or isinstance(b, bool):
         return a is b
+    if isinstance(a, int | float) and isinstance(b, int):
+        return a == b
     if isinstance(a, int | float) and isinstance(b, int | float):
-        return a == b or abs(float(a) - float(b)) <= 1e-9 * max(1.0, abs(float(a)), abs(float(b)))
+        return a == b or abs(float(a) - float(b)) <= TOLERANCE * max(1.0, abs(float(a)), abs(float(b)))
     if isinstance(a, dict) and isinstance(b, dict):
         return a.keys() == b.keys() and all(_same(a[k], b[k]) for k in a)
     if isinstance(a, list | tuple) and isinstance(b, list | tuple):
@@ -459,11 +555,18 @@ def compare_answers(cases: list[tuple[str, str, str, dict[str, Any]]], stdout: s
         except ValueError:
             problems.append(f"{name}: not JSON: {line[:120]}")
             continue
+        if not isinstance(got, dict):
+            problems.append(f"{name}: not a JSON object: {line[:120]}")
+            continue
         if "error" in want:
             if "error" not in got:
                 problems.append(f"{name}: accepted an invalid input ({want['error']}): {hx}")
+            elif got["error"] != want["error"]:
+                problems.append(f"{name}: rejected for {str(got['error'])[:80]!r}, but the input breaks the "
+                                f"rule of {want['error']!r} (section 13.2): {hx}")
         elif "error" in got:
-            problems.append(f"{name}: rejected a valid input: {got['error']}")
+            detail = f" ({str(got['detail'])[:120]})" if got.get("detail") else ""
+            problems.append(f"{name}: rejected a valid input: {got['error']}{detail}")
         elif not _same(got, want):
             problems.append(f"{name}: decoded {json.dumps(got)[:200]}, expected {json.dumps(want)[:200]}")
     return problems

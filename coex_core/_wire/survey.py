@@ -28,17 +28,13 @@ SURVEY_POINT = cs.Struct(
 )
 
 
-def _shape_ok(ctx: cs.Container) -> bool:
-    kind = int(ctx.kind)
-    need: tuple[object, ...]
-    if kind == SurveyKind.LINE:
-        need = (ctx.heading, ctx.length)
-    elif kind == SurveyKind.LAWNMOWER:
-        need = (ctx.heading, ctx.length, ctx.width, ctx.spacing)
-    else:
-        need = ()
-    points_ok = kind == SurveyKind.WAYPOINTS or len(ctx.points) == 0
-    return all(v is not None for v in need) and points_ok and (ctx.altitude is None or ctx.depth is None)
+#: the optional fields each kind needs (the others may be given; a kind that does not use them
+#: ignores them)
+NEEDS = {SurveyKind.LINE: ("heading", "length"), SurveyKind.LAWNMOWER: ("heading", "length", "width", "spacing")}
+
+
+def _complete(ctx: cs.Container) -> bool:
+    return all(ctx[f] is not None for f in NEEDS.get(SurveyKind(int(ctx.kind)), ()))
 
 
 SURVEY_COMMAND = Body(
@@ -58,8 +54,12 @@ SURVEY_COMMAND = Body(
     "append" / Bool() * "Queue after the surveys already accepted (0: replace them)",
     "n_points" / Count(0, MAX_SURVEY_POINTS, "points"),
     "points" / cs.Array(cs.this.n_points, SURVEY_POINT) * "Further waypoints of a WAYPOINTS survey, in order",
-    Rule(_shape_ok, "a LINE needs heading and length, a LAWNMOWER heading, length, width and spacing; "
-                    "only a WAYPOINTS survey has points; altitude and depth are not both given"),
+    Rule(_complete, "`kind` is LINE and `heading` or `length` is absent, or `kind` is LAWNMOWER and one of "
+                    "`heading`, `length`, `width`, `spacing` is absent", "incomplete survey"),
+    Rule(lambda ctx: int(ctx.kind) == SurveyKind.WAYPOINTS or len(ctx.points) == 0,
+         "`points` has entries and `kind` is not WAYPOINTS", "points without WAYPOINTS"),
+    Rule(lambda ctx: ctx.altitude is None or ctx.depth is None, "`altitude` and `depth` are both given",
+         "altitude and depth"),
 )
 
 SURVEY_STATUS = Body(
@@ -75,7 +75,8 @@ SURVEY_STATUS = Body(
     "has_detail" / Given("detail"),
     "detail" / When("`has_detail` = 1", cs.this.has_detail, Text(SURVEY_DETAIL_MAX))
     * "REJECTED, ABORTED: the autonomy's own words (e.g. the helm's bad parameters)",
-    Rule(lambda ctx: ctx.detail is None or len(ctx.detail) > 0, "`has_detail` is 1 and `detail` is empty (absent is `has_detail` = 0)"),
+    Rule(lambda ctx: ctx.detail is None or len(ctx.detail) > 0,
+         "`has_detail` is 1 and `detail` has no bytes (no detail is `has_detail` = 0)", "empty detail"),
 )
 
 _FAR = 50000.0
@@ -107,7 +108,7 @@ register(MessageSpec(
         ("started", SurveyStatus(3, SurveyState.STARTED, SurveyReason.NONE, 7200, 1)),
         ("helm_refused", SurveyStatus(5, SurveyState.REJECTED, SurveyReason.AUTONOMY_REFUSED, 812, None, None,
                                       "Bad parameter(s): speed")),
-        ("autopilot_refused", SurveyStatus(6, SurveyState.REJECTED, SurveyReason.AUTONOMY_REFUSED, 900, None, 15.0,
+        ("autopilot_refused", SurveyStatus(6, SurveyState.REJECTED, SurveyReason.AUTONOMY_REFUSED, 900, None, 14.0,
                                            "MAV_MISSION_DENIED")),
         ("no_answer", SurveyStatus(7, SurveyState.REJECTED, SurveyReason.AUTONOMY_NO_ANSWER, 950, None, 6.0)),
         ("override", SurveyStatus(8, SurveyState.ABORTED, SurveyReason.MANUAL_OVERRIDE, 1000, 3)),

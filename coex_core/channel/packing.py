@@ -13,7 +13,6 @@ from ..messages import (
     FrameHeader,
     Message,
 )
-from ..modality import ModalitySender
 from ..wire import encoded_size, header_size, pack
 from .acks import AcksMixin
 from .events import (
@@ -246,9 +245,8 @@ class PackingMixin(AcksMixin):
         cands = []
         for sid, s in self._streams.items():
             q = s.queue
-            if (s.sender is None or q.config.spare <= 0 or not self._eligible(q, link, w, now)
-                    or getattr(type(s.sender), "spare", ModalitySender.spare) is ModalitySender.spare):
-                continue
+            if s.sender is None or q.config.spare <= 0 or not self._eligible(q, link, w, now):
+                continue  # (a sender without spare work answers spare() with nothing: the declared default)
             cands.append(sid)
         if not cands:
             return 0
@@ -329,6 +327,26 @@ class PackingMixin(AcksMixin):
             if e is not None:
                 e.pending.pop((link, seq), None)
                 self._recompute_ready(e)
+
+    def not_sent(self, tx: Transmission, now: float) -> None:
+        """``tx`` never left: its modem was down (the transport raised
+        :class:`~coex_core.errors.LinkDown`). Its frames are not counted against the link's
+        acoustic loss; acknowledged streams' messages are sendable again at once, and the
+        messages of modalities go to their senders' ``lost`` now, instead of after the ack
+        timeout."""
+        st = self._links.get(tx.link_id)
+        if st is None:
+            return
+        for i in range(len(tx.frames)):
+            seq = (tx.seq + i) % SEQ_MODULUS
+            self._frame_watch.get(tx.link_id, {}).pop(seq, None)  # not an acoustic loss
+            for sid, eid in st.sent.pop(seq, None) or ():
+                e = self._find(sid, eid)
+                if e is not None:
+                    e.pending.pop((tx.link_id, seq), None)
+                    self._recompute_ready(e)
+            self._frame_lost(tx.link_id, seq, now)
+        self.stats["not_sent_frames"] = self.stats.get("not_sent_frames", 0) + len(tx.frames)
 
     def _mark_taken(self, q: StreamQueue, e: Entry, now: float) -> None:
         if e.first_sent is None:

@@ -12,7 +12,7 @@ from coex_core import state, wire
 from coex_core.errors import ConfigError, DecodeError, RequestRejected
 from coex_core.messages import Message, Opaque, VehicleMode, VehicleStatus
 from coex_core.modality import Modality, ModalityReceiver, ModalitySender
-from coex_core.routing import declared_ids, routine_ids, type_id, wildcard
+from coex_core.routing import declared_ids, routine_ids, type_id
 
 from .harness import LinkedPair, ingest_all, run_until
 
@@ -41,7 +41,7 @@ class ModalityTests:
             routine = routine_ids(cls)
         except ConfigError as exc:
             raise AssertionError(f"rule: declared ids are third-party type ids (96..32767); {exc}") from exc
-        assert sends or wildcard(cls, "messages"), (
+        assert sends, (
             "rule: a modality declares the messages it sends (messages or message_ids)")
         for t in (*modality.messages, *modality.requests):
             assert isinstance(t, type) and issubclass(t, Message), f"rule: messages and requests are Message types; {t!r}"
@@ -52,8 +52,7 @@ class ModalityTests:
     def _sends_own(modality: Modality, m: Message) -> bool:
         tid = type_id(m)
         cls = type(modality)
-        return tid is not None and (tid in declared_ids(cls, "messages")
-                                    or (isinstance(m, Opaque) and wildcard(cls, "messages")))
+        return tid is not None and tid in declared_ids(cls, "messages")
 
     @pytest.mark.parametrize("budget", [0, 1, 5, 17, 32, 64, 100, 251])
     def test_fill_honours_budget(
@@ -321,8 +320,9 @@ class ModalityTests:
         sample_inputs: Sequence[tuple[float, Any]], start_requests: Any,
     ) -> None:
         """Truncated and bit-flipped copies of the plugin's own messages: the wire layer rejects
-        them with DecodeError, or the receiver (and the sender, for requests) takes them and
-        raises nothing but DecodeError. A third-party body the modality's own codec
+        them with DecodeError, or the plugin takes them: the receiver raises nothing but
+        DecodeError, the sender (for its requests) nothing but DecodeError or RequestRejected
+        (a damaged request is one it refuses). A third-party body the modality's own codec
         (``decode_body``) rejects must be rejected by the receiver too: a lenient receiver
         would show damaged data as good."""
         own = [m for m in self._own_messages(modality, sender_config, receiver_config, sample_inputs,
@@ -360,21 +360,52 @@ class ModalityTests:
                         codec(d.type_id, d.body)
                     except DecodeError:
                         rejected_by_codec = True
+                allowed: tuple[type[Exception], ...] = (DecodeError, RequestRejected) if is_request else (DecodeError,)
                 try:
                     if is_request:
                         sender.handle(d, now)
                     else:
                         receiver.receive(d, now)
-                except (DecodeError, RequestRejected):
+                except allowed:
                     continue
                 except Exception as exc:
+                    what = "DecodeError or RequestRejected" if is_request else "DecodeError"
                     raise AssertionError(
-                        f"rule: a damaged message raises DecodeError only; the {side} raised "
+                        f"rule: a damaged message raises {what} only; the {side} raised "
                         f"{type(exc).__name__}: {exc} on {d!r:.160}") from exc
                 assert not rejected_by_codec, (
                     f"rule: the {side} rejects what the modality's decode_body rejects; it accepted "
                     f"{d!r:.160}")
         assert tried or own, "no damaged variant reached the plugin"
+
+    def test_body_codec_refuses_ids_it_does_not_declare(
+        self, modality: Modality, sender_config: Any, receiver_config: Any,
+        sample_inputs: Sequence[tuple[float, Any]], start_requests: Any,
+    ) -> None:
+        """``decode_body(type_id, body)`` decodes the bodies of the ids the modality declares
+        (``message_ids``, ``request_ids``) and raises DecodeError for any other id, whatever the
+        body: given one of its own bodies under an id it does not declare, it refuses."""
+        cls = type(modality)
+        dec = getattr(cls, "decode_body", None)
+        own_ids = set(getattr(cls, "message_ids", ()) or ()) | set(getattr(cls, "request_ids", ()) or ())
+        if dec is None or not own_ids:
+            return
+        by_id: dict[int, list[bytes]] = {}
+        for m in self._own_messages(modality, sender_config, receiver_config, sample_inputs, start_requests):
+            if isinstance(m, Opaque) and len(by_id.setdefault(m.type_id, [])) < 5:
+                by_id[m.type_id].append(m.body)  # a few bodies of each of its ids
+        bodies = [b for bs in by_id.values() for b in bs] or [b""]
+        others = [i for i in (96, 127, 128, 4242, 29999, 32767, *(i + 1 for i in own_ids))
+                  if i not in own_ids and 96 <= i <= 32767]
+        for tid in others:
+            for body in bodies:
+                try:
+                    value = dec(tid, body)
+                except DecodeError:
+                    continue
+                raise AssertionError(
+                    f"rule: decode_body raises DecodeError for an id the modality does not declare; "
+                    f"decode_body({tid}, {body.hex()[:40]}) gave {value!r:.80}")
 
     def test_bodies_re_encode_to_the_same_bytes(
         self, modality: Modality, sender_config: Any, receiver_config: Any,

@@ -14,7 +14,7 @@ import struct
 from collections.abc import Mapping
 from typing import Any, ClassVar
 
-from coex_core.errors import DecodeError, RequestRejected
+from coex_core.errors import DecodeError, EncodeError, RequestRejected
 from coex_core.messages import Message, Opaque
 from coex_core.modality import Modality, ModalityReceiver, ModalitySender, Product
 from coex_core.state import persistent
@@ -131,11 +131,19 @@ class SampleModality(Modality):
 
     @classmethod
     def decode_body(cls, type_id: int, body: bytes) -> Any:
-        return decode_data(body) if type_id == SAMPLE_DATA else decode_ack(body)
+        if type_id == SAMPLE_DATA:
+            return decode_data(body)
+        if type_id == SAMPLE_ACK:
+            return decode_ack(body)
+        raise DecodeError(f"the conformance sample declares no type id {type_id}")
 
     @classmethod
     def encode_body(cls, type_id: int, value: Any) -> bytes:
-        return encode_data(*value) if type_id == SAMPLE_DATA else encode_ack(value)
+        if type_id == SAMPLE_DATA:
+            return encode_data(*value)
+        if type_id == SAMPLE_ACK:
+            return encode_ack(value)
+        raise EncodeError(f"the conformance sample declares no type id {type_id}")
 
 
 def sample_inputs() -> list[tuple[float, Any]]:

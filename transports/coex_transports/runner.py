@@ -13,7 +13,7 @@ with real time, real transports, or a simulated clock.
 Each packet goes to its transport whole (``Transport.send_packet``: a modem sends a packet's
 frames together). A link that is down for now (:class:`~coex_core.errors.LinkDown`, from a
 :class:`~coex_transports.recovery.ResilientTransport`) is counted in :attr:`Runner.not_sent`,
-not logged; any other transport error is logged once and then counted while it repeats. With
+not logged, and given back to the node (``Node.not_sent``: not an acoustic loss, sent again); any other transport error is logged once and then counted while it repeats. With
 ``settings_path`` the runner loads the node's operator settings (stream settings, links,
 schedules) at start and writes them whenever they change, so they survive a restart.
 
@@ -236,6 +236,7 @@ class Runner:
                 _send(out, tx)
             except LinkDown:
                 self.not_sent[tx.link_id] = self.not_sent.get(tx.link_id, 0) + len(tx.frames)
+                self.node.not_sent(tx, now)  # sent again once the link is back, not after a timeout
             except CoexError as exc:
                 self._error(f"link {tx.link_id} send: {exc}")
             _write(self.link_log, {

@@ -17,6 +17,7 @@ from coex.wire import encoded_size
 from coex import (
     ConfigError,
     DecodeError,
+    EncodeError,
     Message,
     Modality,
     ModalityReceiver,
@@ -137,7 +138,7 @@ class PingReceiver(ModalityReceiver):
 
 class PingModality(Modality):
     name = "pings"
-    version = "0.3.0"
+    version = "0.3.1"
     # the third-party ids it owns (spec/third-party-ids.md): a node routes these, and only
     # these, to it; the ack is routine (it does not hurry the sender's stream)
     message_ids = (PING_TYPE,)
@@ -146,9 +147,12 @@ class PingModality(Modality):
 
     @classmethod
     def decode_body(cls, type_id: int, body: bytes) -> Any:
-        """The body codec the conformance suite checks: strict, canonical."""
+        """The body codec the conformance suite checks: strict, canonical, and only for the ids
+        this modality declares (DecodeError for any other)."""
         if type_id == PING_TYPE:
             return decode_pings(body)
+        if type_id != ACK_TYPE:
+            raise DecodeError(f"pings declares no type id {type_id}")
         if len(body) != 2:
             raise DecodeError(f"a ping ack is 2 bytes, not {len(body)}")
         return struct.unpack(">H", body)[0]
@@ -157,6 +161,8 @@ class PingModality(Modality):
     def encode_body(cls, type_id: int, value: Any) -> bytes:
         if type_id == PING_TYPE:
             return b"".join(RECORD.pack(*r) for r in value)
+        if type_id != ACK_TYPE:
+            raise EncodeError(f"pings declares no type id {type_id}")
         return struct.pack(">H", value)
 
     def sender(self, config: Mapping[str, Any] | None = None) -> PingSender:

@@ -97,7 +97,8 @@ def pointcloud2_xyz(msg: Any) -> FloatArray:
         "itemsize": int(msg.point_step),
     })
     n = int(msg.width) * int(msg.height)
-    data = np.asarray(msg.data, np.uint8)
+    raw = msg.data  # bytes (rospy), an array or a list (rosbags, rclpy)
+    data = np.frombuffer(raw, np.uint8) if isinstance(raw, bytes | bytearray | memoryview) else np.asarray(raw, np.uint8).ravel()
     if msg.height > 1 and msg.row_step != msg.width * msg.point_step:
         rows = data.reshape(int(msg.height), int(msg.row_step))[:, : int(msg.width) * int(msg.point_step)]
         data = np.ascontiguousarray(rows).ravel()

@@ -170,6 +170,8 @@ class TopsideApp:
         self.server = server
         self.clock = clock
         self.stop = threading.Event()
+        #: the products on ROS topics (``[ros]``), or None
+        self.ros: Any = None
         self._last_status: dict[int, Any] = {}
         self._commands_seen = self._commands_version()
         self.runner = Runner(node, self.transports, RealClock(clock), store=store,
@@ -252,6 +254,8 @@ class TopsideApp:
         if thread is not None and thread is not threading.current_thread():
             thread.join(timeout=5.0)
         self.server.close()
+        if self.ros is not None:
+            self.ros.close()
         for tr in self.transports.values():
             tr.close()
         if self.store is not None:
@@ -291,6 +295,7 @@ def build_topside(transport_uri: str | Sequence[str], host: str = "127.0.0.1", p
                   receiver_options: dict[str, dict[str, Any]] | None = None,
                   link_options: Sequence[dict[str, Any]] | None = None,
                   required: Sequence[bool] | None = None,
+                  ros: dict[str, Any] | None = None,
                   transports: Mapping[int, Any] | None = None) -> TopsideApp:
     """Open the transports (several URIs: several modems, link ids ``link``, ``link + 1`` ...),
     build the topside node and its receivers, serve the console (not yet driving the node: call
@@ -314,9 +319,10 @@ def build_topside(transport_uri: str | Sequence[str], host: str = "127.0.0.1", p
     ``frame_bytes``, ``spare``, ``packet_seconds``) link by link. Each transport is a
     :class:`~coex_transports.recovery.ResilientTransport`: a modem that goes away or is not
     there yet is reopened with backoff (``required[i]`` true: an error at start instead).
-    ``transports`` (link id -> an open transport, one per URI) replaces the transports the URIs
-    would open: a simulation's, a test's (the URIs then only name the links); the app closes
-    them."""
+    ``ros`` (the options of :class:`~coex_plugins.console.ros.RosProducts`) publishes what
+    arrives on ROS topics for rviz. ``transports`` (link id -> an open transport, one per URI)
+    replaces the transports the URIs would open: a simulation's, a test's (the URIs then only
+    name the links); the app closes them."""
     access, tls = console_access(host, operators, insecure_open, tls_cert, tls_key, session_hours)
     from coex_core.channel.manager import ChannelManager, LinkConfig
     from coex_core.channel.schedule import Schedule
@@ -408,7 +414,7 @@ def build_topside(transport_uri: str | Sequence[str], host: str = "127.0.0.1", p
             if sorted(node.manager.links) != sorted(links):
                 raise ConfigError(
                     f"{store} holds a node with links {sorted(node.manager.links)}, this run has "
-                    f"{sorted(transports)}: give the same transports, or another --store")
+                    f"{sorted(links)}: give the same transports, or another --store")
             if node.node_id != node_id:
                 raise ConfigError(f"{store} holds topside node {node.node_id}, not {node_id}")
             if resumed:
@@ -431,7 +437,16 @@ def build_topside(transport_uri: str | Sequence[str], host: str = "127.0.0.1", p
         if nstore is not None:
             nstore.close()
         raise
-    return TopsideApp(node, links, hub, server, clock, store=nstore)
+    app = TopsideApp(node, links, hub, server, clock, store=nstore)
+    if ros is not None:
+        from .ros import RosProducts
+
+        try:
+            app.ros = RosProducts(ros, lock=hub.lock, clock=clock).attach(node)
+        except BaseException:
+            app.close()
+            raise
+    return app
 
 
 def topside_from_config(path: str, clock: Callable[[], float] = time.time, *,
@@ -461,7 +476,7 @@ def topside_from_config(path: str, clock: Callable[[], float] = time.time, *,
         link_options=[{k: v for k, v in (("rate", m.rate), ("frame_bytes", m.frame_bytes), ("spare", m.spare),
                                           ("packet_seconds", m.packet_seconds)) if v is not None}
                       for m in cfg.modems],
-        required=[m.required for m in cfg.modems], transports=transports)
+        required=[m.required for m in cfg.modems], ros=cfg.ros, transports=transports)
 
 
 def run(args: argparse.Namespace) -> int:

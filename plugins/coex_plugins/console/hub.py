@@ -28,7 +28,8 @@ def pump(state: ConsoleState, node: Any, now: float, events: list[Any] | None = 
         try:
             state.apply_event(e)
         except Exception as exc:  # a display problem must never stop the node's loop
-            state._log(now, f"console could not show {type(e).__name__}: {exc}", "warn")
+            state._log(now, f"console could not show {type(e).__name__}: {exc}", "warn",
+                       key=f"could not show|{type(e).__name__}|{exc}")
     mgr = node.manager
     for link in mgr.links:
         info = mgr.link_state(link)

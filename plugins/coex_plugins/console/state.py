@@ -51,6 +51,27 @@ OWN_PANELS = ("bathymetry", "imagery", "timeseries", "survey")
 SURVEY_STATES = ("requested", "accepted", "started", "completed", "rejected", "aborted", "given up")
 #: The surveys the page lists and draws (the newest).
 MAX_SURVEYS = 40
+#: How a finished survey reads in the list and on the map when the state alone would hide what
+#: happened: (state, reason) -> words. A refusal by the autonomy (autopilot, helm, planner) is
+#: not the vehicle's own checks, an autonomy that never answered did not refuse anything, and an
+#: abort says who stopped it. Anything else reads as its state ("rejected" by the geofence or a
+#: limit, "completed", "given up": no answer from the vehicle over the link).
+SURVEY_OUTCOMES = {
+    ("rejected", "AUTONOMY_REFUSED"): "refused by autonomy",
+    ("rejected", "AUTONOMY_NO_ANSWER"): "no answer from autonomy",
+    ("rejected", "NO_AUTONOMY"): "no autonomy",
+    ("rejected", "UNAUTHENTICATED"): "not authenticated",
+    ("aborted", "SUPERSEDED"): "replaced",
+    ("aborted", "AUTONOMY_STOPPED"): "stopped by autonomy",
+    ("aborted", "MANUAL_OVERRIDE"): "taken over",
+    ("aborted", "AUTONOMY_RESTARTED"): "autonomy restarted",
+    ("aborted", "ALL_STOP"): "all-stop",
+}
+#: Events of one kind (one log key) within this many seconds of the first are counted in one
+#: entry of the event log, updated in place, instead of one entry each.
+REPEAT_WINDOW = 600.0
+#: Counted entries remembered at most (beyond it the oldest start again as a new entry).
+MAX_REPEATS = 64
 #: A command in these states may still be answered (``pending``: it stands on the vehicle).
 OPEN_COMMAND_STATES = ("sent", "pending")
 
@@ -198,7 +219,7 @@ class _Command:
 
 #: caches (pictures, summaries) are not state: they are made again when needed
 @persistent("console.State", transient=("_region_ids", "_png", "_map_summary", "_targets_cache",
-                                        "_survey_sig", "_survey_rows"))
+                                        "_survey_sig", "_survey_rows", "_repeats"))
 class ConsoleState:
     """Everything the console shows, built from messages, products and events.
 
@@ -293,6 +314,12 @@ class ConsoleState:
         self.command_order: deque[int] = deque(maxlen=64)
         self._foreign_acks: dict[int, tuple[str, float]] = {}
         self.log: deque[dict[str, Any]] = deque(maxlen=max_log)
+        #: the number of the next log entry
+        self._log_seq = 0
+        #: log key -> its counted entry (one in ``log``), see :meth:`_log`
+        self._repeats: dict[str, dict[str, Any]] = {}
+        #: survey id -> the history entries already in the event log
+        self._survey_logged: dict[int, list[tuple[float, str, str]]] = {}
 
     def _after_restore(self) -> None:
         """A topside store saves the console with its node (:mod:`coex_core.state`); object
@@ -311,15 +338,55 @@ class ConsoleState:
             self.versions.setdefault(s, 0)
         if not isinstance(getattr(self, "survey_products", None), dict):
             self.survey_products = {}
+        if not isinstance(getattr(self, "_log_seq", None), int):  # saved before entries had numbers
+            self._log_seq = max((int(e.get("id", -1)) for e in self.log), default=-1) + 1
+        if not isinstance(getattr(self, "_survey_logged", None), dict):
+            self._survey_logged = {}
+        self._repeats = {}
+        for e in self.log:  # the counted entries go on counting
+            if e.get("key") is not None:
+                self._repeats[str(e["key"])] = e
 
     # -------------------------------------------------------------------- bookkeeping
     def _touch(self, *sections: str) -> None:
         for s in sections:
             self.versions[s] += 1
 
-    def _log(self, now: float, text: str, level: str = "info") -> None:
-        self.log.append({"t": _num(now, 1), "level": level, "text": text})
+    def _log(self, now: float, text: str, level: str = "info", *, key: str | None = None,
+             count: int = 1) -> None:
+        """Add ``text`` to the event log at ``now``.
+
+        With a ``key`` (one kind of event: "dropped|2|superseded"), events of that kind are
+        counted, not listed: within :data:`REPEAT_WINDOW` of the first, a new one updates that
+        entry in place (its total ``count``, its number of events ``n``, its ``last`` time)
+        instead of adding one, so a stream dropping a message every few seconds takes one line
+        in ten minutes and the list keeps the events that matter. ``{n}`` in ``text`` is
+        replaced by the total of the ``count`` s ("stream 2: {n} dropped (superseded)"); without
+        it the text says how many times it happened. Memory is bounded: the log is a deque and
+        at most :data:`MAX_REPEATS` keys are followed."""
         self._touch("log")
+        entry = self._repeats.get(key) if key is not None else None
+        if entry is not None and (now - float(entry["t"] or 0.0) > REPEAT_WINDOW or not self.log
+                                  or int(entry.get("id", -1)) < int(self.log[0].get("id", -1))):
+            del self._repeats[key]  # its window is over, or it left the log: a new entry
+            entry = None
+        if entry is not None:
+            entry["n"] += 1
+            entry["count"] += int(count)
+            entry["last"] = _num(max(now, float(entry["last"] or now)), 1)
+            entry["level"] = "warn" if "warn" in (level, entry["level"]) else level
+            entry["text"] = _counted(entry["base"], entry["count"], entry["n"],
+                                     float(entry["last"] or now) - float(entry["t"] or now))
+            return
+        entry = {"id": self._log_seq, "t": _num(now, 1), "level": level,
+                 "text": _counted(text, int(count), 1, 0.0)}
+        self._log_seq += 1
+        if key is not None:
+            entry.update(key=key, base=text, n=1, count=int(count), last=_num(now, 1))
+            if len(self._repeats) >= MAX_REPEATS:
+                del self._repeats[next(iter(self._repeats))]
+            self._repeats[key] = entry
+        self.log.append(entry)
 
     def _advance(self, now: float) -> None:
         if now > self.now:
@@ -416,7 +483,8 @@ class ConsoleState:
             lk = self._link(int(event.link))
             lk["local_bad"] = lk.get("local_bad", 0) + 1
             self._touch("link")
-            self._log(now, f"bad frame on link {event.link}: {event.reason}", "warn")
+            self._log(now, f"bad frame on link {event.link}: {event.reason}", "warn",
+                      key=f"bad frame|{event.link}|{event.reason}")
         elif name == "LinkChanged":
             lk = self._link(int(event.link))
             lk["enabled"], lk["muted"] = bool(event.enabled), bool(event.muted)
@@ -430,11 +498,14 @@ class ConsoleState:
             self._touch("link")
             self._log(now, f"link {event.link} runs schedule v{event.version} ({event.reason})")
         elif name == "Dropped":
-            self._log(now, f"stream {event.stream}: {event.count} dropped ({event.reason})", "warn")
+            self._log(now, f"stream {event.stream}: {{n}} dropped ({event.reason})", "warn",
+                      key=f"dropped|{event.stream}|{event.reason}", count=int(getattr(event, "count", 1)))
         elif name == "Rejected":
-            self._log(now, f"rejected {type(event.message).__name__}: {event.reason}", "warn")
+            what = type(event.message).__name__
+            self._log(now, f"rejected {what}: {event.reason}", "warn", key=f"rejected|{what}|{event.reason}")
         elif name == "SenderFailed":
-            self._log(now, f"stream {event.stream} sender failed: {event.error}", "warn")
+            self._log(now, f"stream {event.stream} sender failed: {event.error}", "warn",
+                      key=f"sender failed|{event.stream}|{event.error}")
         return {s for s in SECTIONS if self.versions[s] != before[s]}
 
     def set_schedule(self, link: int, schedule: Any) -> None:
@@ -666,12 +737,31 @@ class ConsoleState:
             return
         if self.survey_receiver is None:  # nobody holds the records: keep what we were told
             self.survey_products[sid] = dict(meta)
-        state, text = str(meta.get("state", "")), str(meta.get("text") or "")
-        bad = state in ("rejected", "aborted", "given up")
-        self._log(float(meta.get("time") or now),
-                  f"survey {sid} {state}" + (f": {text}" if text else ""), "warn" if bad else "info")
+        self._log_survey(sid, meta, now)
         self._survey_sig = None  # shown again at once
         self._touch("surveys", "commands")
+
+    def _log_survey(self, sid: int, meta: Mapping[str, Any], now: float) -> None:
+        """One event-log line per state the survey receiver added to the survey's history (the
+        present state, or an older one that arrived late), at its time. The history is the
+        receiver's, in the vehicle's time order; nothing is re-sorted here. The present state
+        reads as its outcome ("survey 3 no answer from autonomy: ...")."""
+        history = [(float(h[0]), str(h[1]), str(h[2] or "")) for h in meta.get("history") or ()]
+        if not history:  # a receiver without a history: the present state
+            history = [(float(meta.get("time") or now), str(meta.get("state", "")), str(meta.get("text") or ""))]
+        present = (str(meta.get("state", "")), str(meta.get("text") or ""))
+        seen = self._survey_logged.get(sid)
+        if seen is None:  # first heard of: its present state (its request was logged when sent)
+            new = [h for h in history if (h[1], h[2]) == present][-1:]
+        else:
+            new = [h for h in history if h not in seen]
+        self._survey_logged[sid] = history
+        while len(self._survey_logged) > 2 * MAX_SURVEYS:
+            del self._survey_logged[next(iter(self._survey_logged))]
+        for t, state, text in new:
+            label = SURVEY_OUTCOMES.get((state, str(meta.get("reason"))), state) if (state, text) == present else state
+            bad = state in ("rejected", "aborted", "given up")
+            self._log(t, f"survey {sid} {label}" + (f": {text}" if text else ""), "warn" if bad else "info")
 
     def refresh_surveys(self) -> bool:
         """Look at the survey receiver's records (a request made by someone else, a survey given
@@ -720,8 +810,10 @@ class ConsoleState:
             history = [[_num(float(t), 1), str(st), str(tx)] for t, st, tx in meta.get("history") or ()]
             requested = history[0][0] if history else _num(meta.get("time"), 1)
             wps = [[_num(float(a), 2), _num(float(b), 2)] for a, b in meta.get("waypoints") or ()]
-            row = {"survey_id": sid, "kind": meta.get("kind"), "state": meta.get("state"),
-                   "text": meta.get("text") or "", "reason": meta.get("reason"),
+            state, reason = meta.get("state"), meta.get("reason")
+            row = {"survey_id": sid, "kind": meta.get("kind"), "state": state,
+                   "outcome": SURVEY_OUTCOMES.get((str(state), str(reason)), state),
+                   "text": meta.get("text") or "", "reason": reason,
                    "index": meta.get("index"), "time": _num(meta.get("time"), 1),
                    "requested": requested, "history": history, "waypoints": wps}
             for k in ("heading", "length", "width", "spacing", "altitude", "depth", "speed"):
@@ -834,7 +926,7 @@ class ConsoleState:
         if outages and (old is not None or not up):
             self._log(now, f"topside modem {link}: " + (
                 f"back after {describe_seconds(last_down)} (outage {outages})" if up else
-                f"lost ({last_error}); reopening it"), "warn")
+                f"{last_error}; reopening it"), "warn")
         self._touch("link")
 
     # ------------------------------------------------------------------------ queues
@@ -1380,7 +1472,7 @@ class ConsoleState:
         return out
 
     def _snap_log(self) -> list[dict[str, Any]]:
-        return list(self.log)[-60:]
+        return [{k: v for k, v in e.items() if k not in ("key", "base")} for e in list(self.log)[-60:]]
 
 
 def map_delta(full: Mapping[str, Any], held: dict[int, Any]) -> dict[str, Any]:
@@ -1426,6 +1518,25 @@ def gap_words(empty: int, block_m: float, subgrid_cells: int, cells: int) -> str
     if inner > 0 and subgrid_cells:
         parts.append(f"{100.0 * inner / subgrid_cells:.0f} % of cells between swaths")
     return ", ".join(parts) or "none"
+
+
+def _span(seconds: float) -> str:
+    """A duration in words: "40 s", "9 min 40 s", "2 h 5 min"."""
+    s = max(0, round(seconds))
+    if s < 60:
+        return f"{s} s"
+    if s < 3600:
+        return f"{s // 60} min" + (f" {s % 60} s" if s % 60 else "")
+    return f"{s // 3600} h" + (f" {s % 3600 // 60} min" if s % 3600 // 60 else "")
+
+
+def _counted(base: str, count: int, n: int, span: float) -> str:
+    """A log entry's text for ``n`` events of one kind over ``span`` seconds: ``{n}`` in
+    ``base`` is the total ``count``; otherwise the number of times is added."""
+    if "{n}" in base:
+        text = base.replace("{n}", str(count))
+        return text if n <= 1 else f"{text} in {_span(span)}"
+    return base if n <= 1 else f"{base} ({n} times in {_span(span)})"
 
 
 def hms(t: float | None) -> str:
@@ -1506,9 +1617,9 @@ def _modality_of(msg: m.Message) -> str | None:
                 cls = load_modality(info.name)
             except Exception:
                 continue
-            for t in getattr(cls, "messages", ()):
+            for t in cls.messages:
                 table.setdefault(t, info.name)
-            for tid in (*getattr(cls, "message_ids", ()), *getattr(cls, "opaque_messages", ())):
+            for tid in cls.message_ids:
                 table.setdefault(("opaque", int(tid)), info.name)
         _MODALITY_OF = table
     if isinstance(msg, m.Opaque):

@@ -279,6 +279,19 @@ class SurveyRecord:
         self.stamped.append(stamped)
         self.version += 1
 
+    def restamp(self, state: str, time: float) -> None:
+        """The vehicle's report of a state topside already noted at its own time (the
+        CommandAck's "accepted"): the entry takes the vehicle's time, so the history's times
+        are the vehicle's wherever the vehicle said when."""
+        for i, (_t, st, text) in enumerate(self.history):
+            if st == state and not self.stamped[i]:
+                self.history[i] = (time, st, text)
+                self.stamped[i] = True
+                if self.state == state:
+                    self.time = time
+                self.version += 1
+                return
+
     def note_late(self, time: float, state: str, text: str = "") -> None:
         """A vehicle report older than one already taken: into the history by its stamp (after
         the vehicle's reports up to that time), without changing the present state."""
@@ -364,6 +377,7 @@ class SurveyReceiver(ModalityReceiver):
         text = describe(reason, message.index, message.value, message.detail) if reason != SurveyReason.NONE else ""
         if state == "started" and message.index is not None:
             text = f"heading for waypoint {message.index}"
+        rec.restamp(state, t)
         same = (rec.state, rec.text, rec.index) == (state, text, message.index)
         if same or any(h == (t, state, text) for h in rec.history):
             return []  # a copy

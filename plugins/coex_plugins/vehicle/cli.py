@@ -9,7 +9,7 @@ from typing import Any
 
 from coex_core.errors import CoexError
 
-__all__ = ["register", "register_config", "run_vehicle"]
+__all__ = ["register", "register_config", "run_vehicle", "summary_text"]
 
 
 def register(subparsers: Any) -> None:
@@ -70,9 +70,22 @@ def _check(args: argparse.Namespace) -> int:
                      + (f" ({', '.join(i['type'] for i in cfg.inputs)})" if cfg.inputs else ""))
         parts.append(f"autonomy {cfg.autonomy.get('type')}")
     parts.append(f"store {cfg.store}" if cfg.store else "no store")
+    if cfg.ros is not None:
+        parts.append(f"products on ROS under {cfg.ros.get('prefix', '/coex')} "
+                     f"({cfg.ros.get('master') or 'ROS_MASTER_URI'})")
     parts.append("commands signed" if cfg.command_key else "commands NOT authenticated (no node.command_key_file)")
     print(f"{args.file}: ok: {cfg.role} node {cfg.node_id} (peer {cfg.peer}); " + "; ".join(parts))
     return 0
+
+
+def summary_text(summary: dict[str, Any]) -> str:
+    """The shutdown line's words: "points 400, images 3, ..., skipped 6, plans 1, reports 2;
+    skipped by input: inputs[0] (directory) 4, inputs[1] (lcm) 2" (every input, zeros too)."""
+    by_input = summary.get("skipped_by_input") or {}
+    text = ", ".join(f"{k} {v}" for k, v in summary.items() if k != "skipped_by_input")
+    if by_input:
+        text += "; skipped by input: " + ", ".join(f"{k} {v}" for k, v in by_input.items())
+    return text
 
 
 def run_vehicle(args: argparse.Namespace) -> int:
@@ -117,6 +130,6 @@ def run_vehicle(args: argparse.Namespace) -> int:
 
             modems = [f"link {lid}: {h.outages} outage{'s' if h.outages != 1 else ''}, down "
                       f"{describe_seconds(h.down_total)}" for lid, h in app.link_health().items() if h.outages]
-            print(f"coex vehicle: stopped ({', '.join(f'{k} {v}' for k, v in app.counts.items())})"
+            print(f"coex vehicle: stopped ({summary_text(app.summary())})"
                   + (f"; {'; '.join(modems)}" if modems else ""), flush=True)
     return 0

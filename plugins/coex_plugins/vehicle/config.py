@@ -14,7 +14,6 @@ import re
 import tomllib
 from collections.abc import Mapping
 from dataclasses import dataclass, field
-from importlib import metadata
 from pathlib import Path
 from typing import Any
 
@@ -30,7 +29,7 @@ DEFAULT_MODALITIES: dict[str, tuple[int, int]] = {
 }
 #: the NUI 2022 cycle: 6 slots, topside in slots 0 and 3
 NUI_SLOTS = ("topside", "vehicle", "vehicle", "topside", "vehicle", "vehicle")
-TOP_KEYS = {"node", "modems", "tdma", "modalities", "status", "inputs", "autonomy", "console"}
+TOP_KEYS = {"node", "modems", "tdma", "modalities", "status", "inputs", "autonomy", "console", "ros"}
 
 
 @dataclass
@@ -79,6 +78,8 @@ class DeployConfig:
     inputs: list[dict[str, Any]] = field(default_factory=list)
     autonomy: dict[str, Any] = field(default_factory=lambda: {"type": "log"})
     console: dict[str, Any] = field(default_factory=dict)
+    #: topside: the ``[ros]`` table (received products on ROS topics), None without one
+    ros: dict[str, Any] | None = None
     #: what the daemon will meet but can live with (a device not plugged in yet, a file not
     #: written yet), each naming its key; ``coex config check`` prints them
     warnings: list[str] = field(default_factory=list)
@@ -146,8 +147,10 @@ class _Problems:
         return v
 
 
-def _entry_points(group: str) -> dict[str, metadata.EntryPoint]:
-    return {ep.name: ep for ep in metadata.entry_points(group=group)}
+def _entry_points(group: str) -> dict[str, Any]:
+    from coex_core.registry import entry_points
+
+    return entry_points(group)
 
 
 def load(path: str | Path, role: str | None = None) -> DeployConfig:
@@ -268,11 +271,15 @@ def check_mapping(raw: Mapping[str, Any], path: Path, role: str | None) -> tuple
         for k in ("console",):
             if k in raw:
                 p.add(k, "only a topside node has a console")
+        if "ros" in raw:
+            p.add("ros", "only a topside node publishes its products on ROS: a vehicle reads ROS with "
+                         "[[inputs]] type = \"ros\" and flies surveys with [autonomy] type = \"ros\"")
     else:
         for k in ("inputs", "autonomy", "status"):
             if k in raw:
                 p.add(k, "only a vehicle node has inputs, an autonomy and a status")
         _console(raw, p, cfg)
+        _ros(raw, p, cfg)
     cfg.warnings = p.warnings
     return cfg, p.items
 
@@ -487,6 +494,19 @@ def _autonomy(raw: Mapping[str, Any], p: _Problems, cfg: DeployConfig) -> None:
     cfg.autonomy = dict(t)
     if "survey" not in {m.name for m in cfg.modalities}:
         p.add("autonomy", "an autonomy output needs the survey modality ([modalities.survey])")
+
+
+def _ros(raw: Mapping[str, Any], p: _Problems, cfg: DeployConfig) -> None:
+    """Topside: the ``[ros]`` table (``coex_plugins.console.ros.RosProducts``)."""
+    if "ros" not in raw:
+        return
+    from coex_plugins.console.ros import RosProducts
+
+    t = p.table(raw.get("ros"), "ros")
+    for text in RosProducts.check(t):
+        key, _, rest = text.partition(": ")
+        p.add(key, rest)
+    cfg.ros = t
 
 
 def _console(raw: Mapping[str, Any], p: _Problems, cfg: DeployConfig) -> None:

@@ -18,7 +18,6 @@ import math
 import threading
 import time
 from collections.abc import Callable, Mapping
-from importlib import metadata
 from pathlib import Path
 from typing import Any
 
@@ -27,6 +26,7 @@ import numpy as np
 from coex_core.errors import CoexError, ConfigError
 
 from .config import DeployConfig
+from .options import LogOnce
 
 __all__ = ["VehicleApp", "build_vehicle_node", "open_transports"]
 
@@ -88,10 +88,9 @@ def build_vehicle_node(cfg: DeployConfig, transports: dict[int, Any]) -> Any:
 
 
 def _load(group: str, name: str) -> Any:
-    for ep in metadata.entry_points(group=group):
-        if ep.name == name:
-            return ep.load()
-    raise ConfigError(f"no {group} entry point {name!r}")
+    from coex_core.registry import load
+
+    return load(group, name)
 
 
 class VehicleApp:
@@ -157,7 +156,12 @@ class VehicleApp:
         self._taken: list[str] = json.loads(self.store.get("vehicle.taken", "[]")) if self.store else []
         self._taken_set = set(self._taken)
         self._submitted = self.store.get("vehicle.submitted") if self.store else None
+        #: whether the survey submitted before a restart was handed back to the autonomy (resume)
+        self._resumed = False
         self._broken: dict[str, float] = {}
+        self._problem = LogOnce(log)
+        #: what was taken; ``skipped``: the autonomy's reports not taken (an input's skipped items
+        #: are counted by the input, ``Input.counts["skipped"]``: :meth:`summary` adds them up)
         self.counts: dict[str, int] = {"points": 0, "images": 0, "samples": 0, "nav": 0, "skipped": 0,
                                        "plans": 0, "reports": 0}
         #: per link: (up, outages) last reported topside in a LinkHealth
@@ -244,24 +248,41 @@ class VehicleApp:
         from coex_core.messages import LinkHealth
         from coex_core.timefmt import to_stamp
 
-        for lid, h in self.link_health().items():
+        health = self.link_health()
+        for lid, h in health.items():
             key = (h.up, h.outages)
             if h.outages == 0 or self._health_sent.get(lid) == key:
                 continue
+            if not h.up and not any(o.up for other, o in health.items() if other != lid):
+                continue  # nothing can carry it now: the report of its return says it all
             self._health_sent[lid] = key
             cap = 2**20 - 1
             self.node.push_link_health(LinkHealth(to_stamp(now), lid, h.up, min(h.outages, 255),
                                                   min(round(h.down_total), cap), min(round(h.last_down), cap)), now)
 
-    def _ingest(self, name: str, data: Any, what: str) -> bool:
+    def summary(self) -> dict[str, Any]:
+        """What the vehicle took, for its shutdown line: :attr:`counts` with ``skipped`` the
+        total of every input's skipped items and the autonomy reports not taken, and
+        ``skipped_by_input`` (input key -> its skipped items)."""
+        by_input = {inp.coex_key: int(inp.counts.get("skipped", 0)) for inp in self.inputs}
+        return {**self.counts, "skipped": self.counts["skipped"] + sum(by_input.values()),
+                "skipped_by_input": by_input}
+
+    def _ingest(self, name: str, data: Any, what: str, source: Any = None) -> bool:
         if name not in self.names:
             return False
         try:
             self.runner.ingest(name, data)
             return True
         except (CoexError, ValueError, TypeError) as exc:  # bad input: logged, skipped, nothing lost
-            self.counts["skipped"] += 1
-            log.warning("%s not taken by %s: %s", what, name, exc)
+            if source is not None:
+                source.skip()  # counted as the input's
+            else:
+                self.counts["skipped"] += 1
+            # once per kind of problem (a sensor sending the same bad sample every second must
+            # not flood the log); every one is counted
+            self._problem(f"{getattr(source, 'coex_key', '')}:{name}:{type(exc).__name__}", "%s not taken by %s: %s (further "
+                          "ones like it are counted, not logged)", what, name, exc)
             return False
 
     def _take(self, inp: Any, item: Any, now: float) -> None:
@@ -272,15 +293,16 @@ class VehicleApp:
             xyz = np.asarray(item.xyz, float)
             if xyz.ndim != 2 or xyz.shape[1] != 3:
                 log.warning("%s: points of shape %s skipped (N x 3 expected)", inp.coex_key, xyz.shape)
+                inp.skip()
                 return
-            if self._ingest("bathymetry", xyz, f"{len(xyz)} points from {inp.coex_key}"):
+            if self._ingest("bathymetry", xyz, f"{len(xyz)} points from {inp.coex_key}", inp):
                 self.counts["points"] += len(xyz)
         elif isinstance(item, Image) and "imagery" in feeds:
             self._image(inp, item)
         elif isinstance(item, Samples) and "timeseries" in feeds:
             if self._ingest("timeseries", (item.channel, np.asarray(item.times, float),
                                            np.asarray(item.values, float)),
-                            f"samples of {item.channel!r} from {inp.coex_key}"):
+                            f"samples of {item.channel!r} from {inp.coex_key}", inp):
                 self.counts["samples"] += len(np.atleast_1d(item.times))
         elif isinstance(item, Nav) and "status" in feeds:
             self._nav(item)
@@ -295,7 +317,7 @@ class VehicleApp:
         if pixels is None and item.path:
             pixels = self._guard(f"{inp.coex_key} read {item.path}", _read_image, item.path)
             if pixels is None:
-                self.counts["skipped"] += 1
+                inp.skip()
                 return
         x, y = item.x, item.y
         stamp = getattr(inp, "stamp_images", None)  # an input whose "nav" option means something else
@@ -305,7 +327,7 @@ class VehicleApp:
             x, y = self.nav["x"], self.nav["y"]
         data = ImageInput(np.asarray(pixels), time=item.time,
                           x=None if x is None else round(float(x), 1), y=None if y is None else round(float(y), 1))
-        if self._ingest("imagery", data, f"image {item.path or ''} from {inp.coex_key}"):
+        if self._ingest("imagery", data, f"image {item.path or ''} from {inp.coex_key}", inp):
             self.counts["images"] += 1
             if key is not None:
                 self._taken.append(key)
@@ -355,6 +377,16 @@ class VehicleApp:
         survey = self.node.sender("survey")
         plan = survey.active_plan()
         key = None if plan is None else f"{plan.survey_id}:{survey.plan_version}"
+        if not self._resumed:
+            self._resumed = True
+            if plan is not None and key == self._submitted:  # flown before the restart: follow it again
+                if self._guard("autonomy resume", self.autonomy.resume, plan, now):
+                    log.info("survey %d: following it again after the restart (%s)", plan.survey_id,
+                             self.cfg.autonomy.get("type"))
+                else:
+                    log.warning("survey %d was given to the %s autonomy before the restart; that output cannot "
+                                "follow it again, so its progress is no longer reported", plan.survey_id,
+                                self.cfg.autonomy.get("type"))
         if plan is not None and key != self._submitted:
             log.info("survey %d to the autonomy (%s)", plan.survey_id, self.cfg.autonomy.get("type"))
             self._guard("autonomy submit", self.autonomy.submit, plan, now)
@@ -366,12 +398,10 @@ class VehicleApp:
             if self._ingest("survey", report, f"autonomy report {report!r}"):
                 self.counts["reports"] += 1
         if not self._nav_real:  # without navigation inputs, a simulated autonomy knows where it is
-            pos = getattr(self.autonomy, "position", None)
-            if callable(pos):
-                xy = self._guard("autonomy position", pos, now)
-                if xy is not None:
-                    self.nav.update(x=float(xy[0]), y=float(xy[1]))
-                    self.nav_time = now
+            xy = self._guard("autonomy position", self.autonomy.position, now)
+            if xy is not None:
+                self.nav.update(x=float(xy[0]), y=float(xy[1]))
+                self.nav_time = now
 
 
 def _read_image(path: str) -> np.ndarray:

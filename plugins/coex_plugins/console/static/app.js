@@ -97,6 +97,7 @@ const hiddenLevels = new Set();
 const imgCache = new Map();
 let drawMode = false, drag = null, roi = null;
 let surveyMode = false, draft = null, hotSurvey = null;  // a survey being drawn; one hovered in the list
+const openSurveys = new Set();  // surveys whose history the list shows (a click on the row)
 
 function w2s(x, y) {
   return [canvas.width / 2 + (x - view.cx) * view.scale, canvas.height / 2 - (y - view.cy) * view.scale];
@@ -609,6 +610,12 @@ const SURVEY_COLOR = { requested: "#f0b443", accepted: "#6fb7ff", started: "#d08
   unknown: "#a3adb8" };
 const SURVEY_DASH = { requested: [7, 4], rejected: [4, 4], aborted: [2, 4], "given up": [6, 3, 2, 3] };
 const KIND_NAME = { goto: "go to", line: "line", lawnmower: "lawnmower", waypoints: "waypoints" };
+// How a survey is drawn: by its state, except that an autonomy that never answered refused
+// nothing: drawn like a survey given up, not like a refusal.
+function surveyLook(sv) { return sv.reason === "AUTONOMY_NO_ANSWER" ? "given up" : sv.state; }
+// What the list and the map call it: the console's outcome ("refused by autonomy", "no answer
+// from autonomy", "taken over" ...), else its state.
+function surveyWord(sv) { return sv.outcome || sv.state; }
 const DEG = Math.PI / 180;
 const round = (v, q) => Math.round(v / q) * q;
 
@@ -772,10 +779,11 @@ function drawSurveys() {
   const order = items.slice().sort((a, b) => (a.survey_id === hotSurvey) - (b.survey_id === hotSurvey)
     || ["requested", "accepted", "started"].includes(a.state) - ["requested", "accepted", "started"].includes(b.state));
   for (const sv of order) {
-    const color = SURVEY_COLOR[sv.state] || SURVEY_COLOR.unknown, w = sv.waypoints;
+    const look = surveyLook(sv);
+    const color = SURVEY_COLOR[look] || SURVEY_COLOR.unknown, w = sv.waypoints;
     if (!w.length) continue;
     const hot = sv.survey_id === hotSurvey;
-    const dim = ["completed", "aborted", "given up"].includes(sv.state) && !hot ? 0.55 : 1;
+    const dim = ["completed", "aborted", "given up"].includes(look) && !hot ? 0.55 : 1;
     const lw = hot ? 4 : sv.state === "started" ? 3 : 2;
     if (sv.state === "started" && sv.index !== null && sv.index !== undefined && sv.index < w.length) {
       const i = Math.max(0, sv.index);
@@ -787,11 +795,11 @@ function drawSurveys() {
       ctx.beginPath(); ctx.arc(x, y, 3, 0, 2 * Math.PI); ctx.fillStyle = color; ctx.fill();
       placeLabel(`→ waypoint ${sv.index}`, x + 11, y + 4, color);
     } else {
-      strokePath(w, color, lw, SURVEY_DASH[sv.state] || [], dim);
+      strokePath(w, color, lw, SURVEY_DASH[look] || [], dim);
     }
     const [x, y] = w2s(...w[0]);
     ctx.globalAlpha = dim;
-    placeLabel(`S${sv.survey_id} ${sv.state}`, x + 7, y - 7, color);
+    placeLabel(`S${sv.survey_id} ${surveyWord(sv)}`, x + 7, y - 7, color);
     ctx.globalAlpha = 1;
   }
   ctx.restore();
@@ -824,19 +832,30 @@ function renderSurveys() {
         : "No survey requested yet.")));
     return;
   }
-  tb.replaceChildren(...items.slice().reverse().map((sv) => {
+  tb.replaceChildren(...items.slice().reverse().flatMap((sv) => {
     const why = ["rejected", "aborted", "given up"].includes(sv.state);
-    const history = (sv.history || []).map((h) => `${fmtT(h[0])} ${h[1]}${h[2] ? ": " + h[2] : ""}`).join("\n");
+    // the survey receiver's history, in the vehicle's time order: shown as it comes, never re-sorted
+    const lines = (sv.history || []).map((h) => `${fmtT(h[0])} ${h[1]}${h[2] ? ": " + h[2] : ""}`);
     const changed = sv.time !== null && fmtT(sv.time) !== fmtT(sv.requested) ? ` → ${fmtT(sv.time)}` : "";
-    const tr = el("tr", { "data-survey": sv.survey_id, "data-state": sv.state, title: history },
-      el("td", {}, `S${sv.survey_id}`), el("td", {}, KIND_NAME[sv.kind] || sv.kind || "?"),
-      el("td", {}, el("span", { class: `sbadge st-${String(sv.state).replace(" ", "_")}` }, sv.state)),
+    const open = openSurveys.has(sv.survey_id);
+    const look = String(surveyLook(sv)).replace(" ", "_");
+    const tr = el("tr", { "data-survey": sv.survey_id, "data-state": sv.state, "data-outcome": surveyWord(sv),
+                          title: lines.join("\n") + "\n(click: the history under the row)" },
+      el("td", {}, `${open ? "▾" : "▸"} S${sv.survey_id}`), el("td", {}, KIND_NAME[sv.kind] || sv.kind || "?"),
+      el("td", {}, el("span", { class: `sbadge st-${look}` }, surveyWord(sv))),
       el("td", {}, `${fmtT(sv.requested)}${changed}`),
       el("td", { class: "details" + (why ? " why" : "") }, surveyDetails(sv)));
     tr.classList.toggle("hot", sv.survey_id === hotSurvey);
     tr.addEventListener("mouseenter", () => { hotSurvey = sv.survey_id; tr.classList.add("hot"); drawMap(); });
     tr.addEventListener("mouseleave", () => { hotSurvey = null; tr.classList.remove("hot"); drawMap(); });
-    return tr;
+    tr.addEventListener("click", () => {
+      if (openSurveys.has(sv.survey_id)) openSurveys.delete(sv.survey_id); else openSurveys.add(sv.survey_id);
+      renderSurveys();
+    });
+    if (!open) return [tr];
+    const hist = el("tr", { class: "survey-history", "data-history": sv.survey_id },
+      el("td", { colspan: 5 }, el("ol", {}, ...lines.map((l) => el("li", {}, l)))));
+    return [tr, hist];
   }));
 }
 for (const sel of ["#survey-kind", "#survey-heading", "#survey-spacing", "#survey-z", "#survey-zmode", "#survey-speed"]) {
@@ -1344,8 +1363,9 @@ function renderLink() {
 function modemWords(lk) {
   const out = [];
   const own = lk.topside_modem;
-  if (own && !own.up) out.push(el("div", { class: "expl bad", "data-modem": "topside" },
-    `topside modem DOWN for ${fmtSecs(own.last_down)}: reopening it (${own.last_error || "no answer"})`));
+  if (own && !own.up) out.push(el("div", { class: "expl bad", "data-modem": "topside", title: own.last_error || "" },
+    `topside modem DOWN for ${fmtSecs(own.last_down)}: reopening it`),
+    el("div", { class: "expl clip", title: own.last_error || "" }, own.last_error || "no answer"));
   else if (own && own.outages) out.push(el("div", { class: "expl", "data-modem": "topside" },
     `topside modem: ${own.outages} outage${own.outages === 1 ? "" : "s"}, ${fmtSecs(own.down_total)} down in all`));
   const veh = lk.vehicle_modem;
@@ -1663,8 +1683,9 @@ function renderCommands() {
 }
 function renderLog() {
   const ul = $("#log");
-  ul.replaceChildren(...S.log.slice().reverse().map((l) => el("li", { class: l.level },
-    el("span", { class: "t" }, fmtT(l.t)), l.text)));
+  // an entry counting repeated events (l.n of them) spans its first to its last time
+  ul.replaceChildren(...S.log.slice().reverse().map((l) => el("li", { class: l.level + (l.n > 1 ? " counted" : "") },
+    el("span", { class: "t" }, l.n > 1 ? `${fmtT(l.t)}–${fmtT(l.last)}` : fmtT(l.t)), l.text)));
 }
 
 // products of modalities the page has no panel for (a third-party plugin): a generic table

@@ -8,7 +8,9 @@ Built-in outputs (entry-point group ``coex.autonomy``; ``docs/autonomy.md``):
 * ``lcm``: publishes a ``coex.survey_request_t`` for an LCM planner and reads its
   ``coex.survey_state_t`` answers;
 * ``moos``: updates the MOOS-IvP helm's ``BHV_Waypoint`` and reads its ``WPT_INDEX`` /
-  ``WPT_STAT`` (``docs/moos.md``).
+  ``WPT_STAT`` (``docs/moos.md``);
+* ``ros``: publishes a ``nav_msgs/Path`` for a ROS 1 planner and reads its answers on a
+  ``std_msgs/String`` progress topic.
 
 :func:`open_autonomy` builds one from a configuration table (``[autonomy] type = "..."``).
 """

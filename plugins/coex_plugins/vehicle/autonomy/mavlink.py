@@ -7,26 +7,34 @@ Protocol (MAVLink devguide ``services/mission.md``; ``docs/autonomy.md``)::
     <- MISSION_REQUEST_INT{seq}   (or the legacy MISSION_REQUEST)
     -> MISSION_ITEM_INT{seq, frame, MAV_CMD_NAV_WAYPOINT, x=lat*1e7, y=lon*1e7, z}
        ... every item, in order ...
-    <- MISSION_ACK{type}          MAV_MISSION_ACCEPTED: start it, report STARTED index 0;
-                                  any other type: REJECTED AUTONOMY_REFUSED, value = the type
-                                  (except MAV_MISSION_INVALID_SEQUENCE: ArduPilot's NACK of a
-                                  duplicate item does not end the upload)
+    <- MISSION_ACK{type}          MAV_MISSION_ACCEPTED: start it;
+                                  any other type: REJECTED AUTONOMY_REFUSED, value = the type,
+                                  detail = its name (MAV_MISSION_DENIED ...); except
+                                  MAV_MISSION_INVALID_SEQUENCE: ArduPilot's NACK of a duplicate
+                                  item does not end the upload
     -> COMMAND_LONG MAV_CMD_MISSION_START (or MAV_CMD_DO_SET_MODE AUTO, or nothing)
+    <- COMMAND_ACK                accepted: STARTED index 0 (with ``start = "none"``: at the
+                                  upload's ack); refused: ABORTED AUTONOMY_STOPPED, value = the
+                                  MAV_RESULT, detail = its name
     <- MISSION_ITEM_REACHED{seq}, MISSION_CURRENT{seq}: STARTED with the next waypoint, then
        COMPLETED when the last one is reached
 
 MISSION_COUNT is sent again after ``timeout`` (1.5 s) without a request, the last item after
-``item_timeout`` (0.25 s) without the next request or the ack, at most ``retries`` (5) times in a
-row; then the survey is REJECTED (AUTONOMY_REFUSED, no value). A new plan during an upload
-restarts the upload with the new plan. With ``home_placeholder`` (ArduPilot: seq 0 is home) a
-placeholder goes at seq 0, so waypoint ``k`` is seq ``k + 1`` (``k + 2`` when a
+``item_timeout`` (0.25 s) without the next request or the ack, the start command after
+``timeout`` without its COMMAND_ACK, at most ``retries`` (5) times in a row; then the survey is
+REJECTED AUTONOMY_NO_ANSWER, value = the tries made (``retries`` + 1), detail = what went
+unanswered: an autopilot that never answers is not one that refused. A new plan during an
+upload restarts the upload with the new plan. With ``home_placeholder`` (ArduPilot: seq 0 is
+home) a placeholder goes at seq 0, so waypoint ``k`` is seq ``k + 1`` (``k + 2`` when a
 MAV_CMD_DO_CHANGE_SPEED item carries the plan's speed).
 
 HEARTBEAT goes out about every ``heartbeat`` seconds (as ``MAV_TYPE_ONBOARD_CONTROLLER``,
 ``MAV_AUTOPILOT_INVALID``). The target system/component are the options', else those of the
 first vehicle heartbeat heard, else 1/1. An ArduPilot vehicle seen in the AUTO mode
-(``auto_mode``) that leaves it before the survey's end stops it: ABORTED AUTONOMY_STOPPED, value =
-its new custom mode.
+(``auto_mode``) that leaves it before the survey's end stops it: ABORTED, value = its new custom
+mode, detail = "left AUTO for ALT_HOLD"; the reason is MANUAL_OVERRIDE when the new mode is one
+of ``manual_modes`` (a pilot's mode: ArduSub MANUAL, STABILIZE, ACRO, ALT_HOLD, POSHOLD), else
+AUTONOMY_STOPPED (SURFACE, a failsafe's mode, GUIDED ...).
 
 Never blocking (``recv_match(blocking=False)``), never reading a clock: time is ``now``. Bad
 input (garbage, a request out of range, a message for someone else) is logged and ignored.
@@ -43,10 +51,10 @@ from typing import Any
 from coex_core.errors import ConfigError
 from coex_core.messages import SurveyReason, SurveyState
 
-from ...survey.plan import SurveyReport
+from ...survey.plan import SurveyReport, cut_detail
 from .base import Autonomy
 
-__all__ = ["MavlinkAutonomy", "MissionItem", "connect", "mission_items"]
+__all__ = ["MavlinkAutonomy", "MissionItem", "connect", "enum_name", "mission_items", "mode_name"]
 
 log = logging.getLogger(__name__)
 
@@ -73,6 +81,57 @@ MAV_TYPE_ADSB = 27
 MAV_TYPE_ONBOARD_CONTROLLER = 18
 #: ArduSub's AUTO custom mode (ardupilotmega.xml SUB_MODE)
 SUB_MODE_AUTO = 3
+MAV_TYPE_SUBMARINE = 12
+#: ArduSub's modes a pilot flies in (ardupilotmega.xml SUB_MODE): STABILIZE, ACRO, ALT_HOLD,
+#: POSHOLD, MANUAL; leaving AUTO for one of them is a manual override
+SUB_MANUAL_MODES = (0, 1, 2, 16, 19)
+
+#: The names of the numbers this output reports, when pymavlink's dialect is not at hand
+#: (common.xml MAV_MISSION_RESULT and MAV_RESULT, ardupilotmega.xml SUB_MODE)
+_NAMES: dict[str, dict[int, str]] = {
+    "MAV_MISSION_RESULT": {
+        0: "MAV_MISSION_ACCEPTED", 1: "MAV_MISSION_ERROR", 2: "MAV_MISSION_UNSUPPORTED_FRAME",
+        3: "MAV_MISSION_UNSUPPORTED", 4: "MAV_MISSION_NO_SPACE", 5: "MAV_MISSION_INVALID",
+        6: "MAV_MISSION_INVALID_PARAM1", 7: "MAV_MISSION_INVALID_PARAM2", 8: "MAV_MISSION_INVALID_PARAM3",
+        9: "MAV_MISSION_INVALID_PARAM4", 10: "MAV_MISSION_INVALID_PARAM5_X", 11: "MAV_MISSION_INVALID_PARAM6_Y",
+        12: "MAV_MISSION_INVALID_PARAM7", 13: "MAV_MISSION_INVALID_SEQUENCE", 14: "MAV_MISSION_DENIED",
+        15: "MAV_MISSION_OPERATION_CANCELLED"},
+    "MAV_RESULT": {
+        0: "MAV_RESULT_ACCEPTED", 1: "MAV_RESULT_TEMPORARILY_REJECTED", 2: "MAV_RESULT_DENIED",
+        3: "MAV_RESULT_UNSUPPORTED", 4: "MAV_RESULT_FAILED", 5: "MAV_RESULT_IN_PROGRESS", 6: "MAV_RESULT_CANCELLED",
+        7: "MAV_RESULT_COMMAND_LONG_ONLY", 8: "MAV_RESULT_COMMAND_INT_ONLY"},
+    "SUB_MODE": {
+        0: "SUB_MODE_STABILIZE", 1: "SUB_MODE_ACRO", 2: "SUB_MODE_ALT_HOLD", 3: "SUB_MODE_AUTO",
+        4: "SUB_MODE_GUIDED", 7: "SUB_MODE_CIRCLE", 9: "SUB_MODE_SURFACE", 16: "SUB_MODE_POSHOLD",
+        19: "SUB_MODE_MANUAL", 20: "SUB_MODE_MOTORDETECT", 21: "SUB_MODE_SURFTRAK"},
+}
+_COMMANDS = {MAV_CMD_MISSION_START: "MAV_CMD_MISSION_START", MAV_CMD_DO_SET_MODE: "MAV_CMD_DO_SET_MODE"}
+
+
+def enum_name(enum: str, value: int) -> str:
+    """The name of ``value`` in the MAVLink enum ``enum`` ("MAV_MISSION_RESULT", 14 ->
+    "MAV_MISSION_DENIED"), from pymavlink's ardupilotmega dialect (which includes common.xml)
+    when it is installed, else from a small table; "MAV_RESULT 42" for a value neither knows."""
+    try:
+        from pymavlink.dialects.v20 import ardupilotmega as dialect
+
+        entry = dialect.enums.get(enum, {}).get(int(value))
+        if entry is not None and not str(entry.name).endswith("_ENUM_END"):
+            return str(entry.name)
+    except ImportError:
+        pass
+    return _NAMES.get(enum, {}).get(int(value), f"{enum} {int(value)}")
+
+
+def mode_name(mode: int, vehicle_type: int | None = MAV_TYPE_SUBMARINE) -> str:
+    """An ArduPilot custom mode in words: ArduSub's name without its prefix ("ALT_HOLD") for a
+    submarine (or a vehicle whose type is not known yet), else "mode 2" (other ArduPilot
+    vehicles number their modes differently)."""
+    if vehicle_type in (None, MAV_TYPE_SUBMARINE):
+        name = enum_name("SUB_MODE", mode)
+        if name.startswith("SUB_MODE_"):
+            return name[len("SUB_MODE_"):]
+    return f"mode {int(mode)}"
 
 _FRAMES = {MAV_FRAME_GLOBAL, MAV_FRAME_GLOBAL_RELATIVE_ALT, MAV_FRAME_GLOBAL_RELATIVE_ALT_INT,
            MAV_FRAME_GLOBAL_TERRAIN_ALT, MAV_FRAME_GLOBAL_TERRAIN_ALT_INT}
@@ -220,9 +279,13 @@ class MavlinkAutonomy(Autonomy):
         "start": ("mission_start", "how to start an accepted mission: mission_start (MAV_CMD_MISSION_START), "
                                    "auto_mode (MAV_CMD_DO_SET_MODE to auto_mode) or none"),
         "auto_mode": (SUB_MODE_AUTO, "the autopilot's custom mode that flies missions (ArduSub AUTO = 3)"),
+        "manual_modes": (list(SUB_MANUAL_MODES), "custom modes a pilot flies in: leaving AUTO for one of them "
+                                                 "is a manual override (ArduSub STABILIZE 0, ACRO 1, ALT_HOLD 2, "
+                                                 "POSHOLD 16, MANUAL 19)"),
         "timeout": (1.5, "seconds without a request before MISSION_COUNT (or a command) is sent again"),
         "item_timeout": (0.25, "seconds without the next request before the last item is sent again"),
-        "retries": (5, "resends in a row before the upload is given up (REJECTED)"),
+        "retries": (5, "resends in a row without an answer before the upload (or the start) is given up "
+                       "(REJECTED AUTONOMY_NO_ANSWER)"),
         "heartbeat": (1.0, "seconds between our HEARTBEATs (0 = none)"),
         "mavlink2": (True, "speak MAVLink 2 from the first packet"),
     }
@@ -245,6 +308,10 @@ class MavlinkAutonomy(Autonomy):
         p += _pos(options, "acceptance_radius") + _pos(options, "hold") + _pos(options, "heartbeat")
         p += _pos(options, "timeout", zero=False) + _pos(options, "item_timeout", zero=False)
         p += _int(options, "retries", 0, 100) + _int(options, "auto_mode", 0, 2**32 - 1)
+        modes = options.get("manual_modes", [])
+        if not isinstance(modes, list | tuple) or any(
+                isinstance(v, bool) or not isinstance(v, int) or not 0 <= v < 2**32 for v in modes):
+            p.append(f"autonomy 'mavlink': manual_modes must be a list of custom modes (integers), got {modes!r}")
         if "start" in options and options["start"] not in _STARTS:
             p.append(f"autonomy 'mavlink': start must be one of {', '.join(_STARTS)}, got {options['start']!r}")
         return p
@@ -267,7 +334,8 @@ class MavlinkAutonomy(Autonomy):
         # the mission being uploaded or flown
         self.plan: Any = None
         self.items: list[MissionItem] = []
-        self.phase = "idle"  # idle, upload, flying, done
+        #: idle, upload, starting (the start command sent, not acknowledged yet), flying, done
+        self.phase = "idle"
         self._sent: int | None = None  # the last item sent (None: only MISSION_COUNT)
         self._deadline = math.inf
         self._tries = 0
@@ -276,8 +344,8 @@ class MavlinkAutonomy(Autonomy):
         self._command: tuple[int, tuple[float, ...]] | None = None
         self._command_deadline = math.inf
         self._command_tries = 0
-        self._started = False  # start command acknowledged (or none needed)
         self._vehicle_mode: int | None = None
+        self._vehicle_type: int | None = None
         self._seen_auto = False
         #: counters for tests and status pages
         self.stats = {"bad": 0, "ignored": 0, "resent": 0, "uploads": 0, "items_sent": 0}
@@ -329,12 +397,29 @@ class MavlinkAutonomy(Autonomy):
                         "frame: its waypoints keep the present depth (z = 0)", plan.survey_id, plan.altitude,
                         cfg["altitude_frame"])
         self.phase, self._sent, self._tries = "upload", None, 0
-        self._heading_for, self._started, self._seen_auto = -1, False, False
+        self._heading_for, self._seen_auto = -1, False
         self._command = None
         self._command_deadline = math.inf
         self.stats["uploads"] += 1
         log.info("mavlink: uploading survey %s as %d mission items", plan.survey_id, len(self.items))
         self._send_count(now)
+
+    def resume(self, plan: Any, now: float) -> bool:
+        """The autopilot may still fly the uploaded mission: follow MISSION_CURRENT /
+        MISSION_ITEM_REACHED again, upload nothing."""
+        if self.conn is None:
+            self.open()
+        cfg = self.config
+        self.plan = plan
+        self.items = mission_items(plan, self.context, frame=cfg["frame"], altitude_frame=cfg["altitude_frame"],
+                                   home_placeholder=cfg["home_placeholder"],
+                                   acceptance_radius=cfg["acceptance_radius"], hold=cfg["hold"],
+                                   speed_item=cfg["speed_item"])
+        self.phase, self._sent, self._tries, self._heading_for, self._seen_auto = "flying", None, 0, -1, False
+        self._command, self._command_deadline = None, math.inf
+        self._deadline = math.inf
+        log.info("mavlink: following survey %s again after a restart (nothing uploaded)", plan.survey_id)
+        return True
 
     def poll(self, now: float) -> list[Any]:
         if self.conn is None:
@@ -358,8 +443,20 @@ class MavlinkAutonomy(Autonomy):
         return out
 
     def _report(self, state: SurveyState, now: float, reason: SurveyReason = SurveyReason.NONE,
-                index: int | None = None, value: float | None = None) -> None:
-        self._out.append(SurveyReport(self.plan.survey_id, state, float(now), reason, index, value))
+                index: int | None = None, value: float | None = None, detail: str | None = None) -> None:
+        self._out.append(SurveyReport(self.plan.survey_id, state, float(now), reason, index, value,
+                                      cut_detail(detail)))
+
+    def _no_answer(self, now: float, what: str, tries: int) -> None:
+        """Give the survey up: the autopilot did not answer ``what`` in ``tries`` tries."""
+        heard = "" if self._heard_vehicle else ", no heartbeat heard"
+        log.warning("mavlink: survey %s: no answer from the autopilot to %s after %d tries%s; given up",
+                    self.plan.survey_id, what, tries, heard)
+        self.phase = "idle"
+        self._command, self._command_deadline = None, math.inf
+        self._deadline = math.inf
+        self._report(SurveyState.REJECTED, now, SurveyReason.AUTONOMY_NO_ANSWER, value=float(tries),
+                     detail=f"{what} unanswered{heard}")
 
     # ------------------------------------------------------------------ upload
     def _send_count(self, now: float) -> None:
@@ -378,10 +475,8 @@ class MavlinkAutonomy(Autonomy):
     def _timeouts(self, now: float) -> None:
         if self.phase == "upload" and now >= self._deadline:
             if self._tries >= int(self.config["retries"]):
-                log.warning("mavlink: survey %s: no answer from the autopilot after %d retries; upload given up",
-                            self.plan.survey_id, self._tries)
-                self.phase = "idle"
-                self._report(SurveyState.REJECTED, now, SurveyReason.AUTONOMY_REFUSED)
+                what = "MISSION_COUNT" if self._sent is None else f"item {self._sent} of {len(self.items)}"
+                self._no_answer(now, what, self._tries + 1)
                 return
             self._tries += 1
             self.stats["resent"] += 1
@@ -391,11 +486,8 @@ class MavlinkAutonomy(Autonomy):
                 self._send_item(self._sent, now)
         if self._command is not None and now >= self._command_deadline:
             if self._command_tries >= int(self.config["retries"]):
-                log.warning("mavlink: survey %s: the start command %d was never acknowledged",
-                            self.plan.survey_id, self._command[0])
-                self._command = None
-                self._command_deadline = math.inf
-                self._started = True  # progress messages will tell whether it flies
+                self._no_answer(now, _COMMANDS.get(self._command[0], f"command {self._command[0]}"),
+                                self._command_tries + 1)
                 return
             self._command_tries += 1
             self._send_command(now)
@@ -436,6 +528,7 @@ class MavlinkAutonomy(Autonomy):
     def _heartbeat(self, msg: Any, now: float) -> None:
         if msg.type in _NOT_VEHICLES or msg.autopilot == MAV_AUTOPILOT_INVALID:
             return
+        self._vehicle_type = int(msg.type)
         if not self._heard_vehicle:
             self._heard_vehicle = True
             if self.target_system is None:
@@ -448,15 +541,20 @@ class MavlinkAutonomy(Autonomy):
             return
         mode = int(msg.custom_mode)
         previous, self._vehicle_mode = self._vehicle_mode, mode
-        if self.phase != "flying" or not self._started or self.config["start"] == "none":
+        if self.phase != "flying" or self.config["start"] == "none":
             return
         auto = int(self.config["auto_mode"])
         if mode == auto:
             self._seen_auto = True
         elif self._seen_auto and previous == auto:
-            log.warning("mavlink: survey %s stopped: the vehicle left AUTO for mode %d", self.plan.survey_id, mode)
+            manual = mode in self.config["manual_modes"]
+            words = f"left {mode_name(auto, self._vehicle_type)} for {mode_name(mode, self._vehicle_type)}"
+            log.warning("mavlink: survey %s stopped: the vehicle %s (%s)", self.plan.survey_id, words,
+                        "a pilot's mode: manual override" if manual else "not a pilot's mode")
             self.phase = "done"
-            self._report(SurveyState.ABORTED, now, SurveyReason.AUTONOMY_STOPPED, value=float(mode))
+            self._report(SurveyState.ABORTED, now,
+                         SurveyReason.MANUAL_OVERRIDE if manual else SurveyReason.AUTONOMY_STOPPED,
+                         value=float(mode), detail=words)
 
     def _request(self, msg: Any, now: float) -> None:
         seq = int(msg.seq)
@@ -484,9 +582,12 @@ class MavlinkAutonomy(Autonomy):
             log.info("mavlink: the autopilot NACKed an item out of sequence; the upload goes on")
             return
         if result != MAV_MISSION_ACCEPTED:
-            log.warning("mavlink: survey %s refused by the autopilot (MAV_MISSION_RESULT %d)", self.plan.survey_id, result)
+            name = enum_name("MAV_MISSION_RESULT", result)
+            log.warning("mavlink: survey %s refused by the autopilot (MAV_MISSION_RESULT %d %s)",
+                        self.plan.survey_id, result, name)
             self.phase = "idle"
-            self._report(SurveyState.REJECTED, now, SurveyReason.AUTONOMY_REFUSED, value=float(result))
+            self._deadline = math.inf
+            self._report(SurveyState.REJECTED, now, SurveyReason.AUTONOMY_REFUSED, value=float(result), detail=name)
             return
         if self._sent != len(self.items) - 1:
             # the vehicle accepts after the last item: this ack is an earlier upload's
@@ -494,10 +595,7 @@ class MavlinkAutonomy(Autonomy):
             log.info("mavlink: ignored an ack before the last item of survey %s was sent", self.plan.survey_id)
             return
         log.info("mavlink: survey %s uploaded", self.plan.survey_id)
-        self.phase = "flying"
         self._deadline = math.inf
-        self._report(SurveyState.STARTED, now, index=0)
-        self._heading_for = 0
         start = self.config["start"]
         if start == "mission_start":
             # p1 first item, p2 last item: 0, 0 = the whole mission (as pymavlink's set_mode_auto sends it)
@@ -506,10 +604,17 @@ class MavlinkAutonomy(Autonomy):
             self._command = (MAV_CMD_DO_SET_MODE, (MAV_MODE_FLAG_CUSTOM_MODE_ENABLED,
                                                    float(self.config["auto_mode"]), 0, 0, 0, 0, 0))
         else:
-            self._started = True
+            self._flying(now)  # the vehicle starts it itself
             return
+        self.phase = "starting"
         self._command_tries = 0
         self._send_command(now)
+
+    def _flying(self, now: float) -> None:
+        """The mission runs: STARTED, heading for waypoint 0."""
+        self.phase = "flying"
+        self._heading_for = 0
+        self._report(SurveyState.STARTED, now, index=0)
 
     def _send_command(self, now: float) -> None:
         assert self._command is not None
@@ -527,14 +632,16 @@ class MavlinkAutonomy(Autonomy):
             self._command_deadline = now + float(self.config["timeout"])
             return
         self._command, self._command_deadline = None, math.inf
-        if result == MAV_RESULT_ACCEPTED:
-            self._started = True
+        if self.phase != "starting":
             return
-        log.warning("mavlink: survey %s uploaded, but the autopilot refused to start it (MAV_RESULT %d)",
-                    self.plan.survey_id, result)
-        if self.phase == "flying":
-            self.phase = "done"
-            self._report(SurveyState.ABORTED, now, SurveyReason.AUTONOMY_STOPPED, value=float(result))
+        if result == MAV_RESULT_ACCEPTED:
+            self._flying(now)
+            return
+        name = enum_name("MAV_RESULT", result)
+        log.warning("mavlink: survey %s uploaded, but the autopilot refused to start it (MAV_RESULT %d %s)",
+                    self.plan.survey_id, result, name)
+        self.phase = "done"
+        self._report(SurveyState.ABORTED, now, SurveyReason.AUTONOMY_STOPPED, value=float(result), detail=name)
 
     # ------------------------------------------------------------------ progress
     def _waypoint_of(self, seq: int) -> int | None:
@@ -543,12 +650,15 @@ class MavlinkAutonomy(Autonomy):
         return None
 
     def _progress(self, kind: str, seq: int, now: float) -> None:
+        if self.phase == "starting" and kind == "MISSION_ITEM_REACHED" and self._waypoint_of(seq) is not None:
+            # it flies the new mission, though the start command's ack was lost
+            self._command, self._command_deadline = None, math.inf
+            self._flying(now)
         if self.phase != "flying":
             return
         if kind == "MISSION_CURRENT":
-            # before the start is acknowledged, MISSION_CURRENT may still name the old mission
-            if not self._started:
-                return
+            # (before the start is acknowledged, MISSION_CURRENT may still name the old mission:
+            # it is not read in the phase "starting")
             k = self._waypoint_of(seq)
             if k is not None and k > self._heading_for:
                 self._heading_for = k

@@ -54,7 +54,7 @@ log = logging.getLogger(__name__)
 
 MAV_TYPE_SUBMARINE = 12
 MAV_STATE_ACTIVE = 4
-MAV_MISSION_UNSUPPORTED_FRAME = 1
+MAV_MISSION_UNSUPPORTED_FRAME = 2  # common.xml (1 is MAV_MISSION_ERROR)
 MAV_MISSION_UNSUPPORTED = 3
 MAV_RESULT_UNSUPPORTED = 3
 SUB_MODE_ALT_HOLD = 2
@@ -68,22 +68,28 @@ class MissionPeer:
     ``MAV_MISSION_NO_SPACE`` refuses it at once); ``legacy``: request items with
     ``MISSION_REQUEST``; ``silent``: never answer (only count what arrives); ``frames`` /
     ``commands``: what an item may carry (otherwise ``MAV_MISSION_UNSUPPORTED_FRAME`` /
-    ``MAV_MISSION_UNSUPPORTED``); ``start_result``: the COMMAND_ACK result of a start command;
+    ``MAV_MISSION_UNSUPPORTED``); ``start_result``: the COMMAND_ACK result of a start command
+    (None: the start command is never answered nor obeyed); ``ack_start``: False starts the
+    mission without sending the COMMAND_ACK (an ack lost on the way);
     ``fly_interval``: seconds between MISSION_ITEM_REACHED messages once started (None: stays at
-    the first item); ``stop_after``: leave AUTO (for ALT_HOLD) after reaching this many items;
+    the first item); ``stop_after``: leave AUTO for ``stop_mode`` (ALT_HOLD: a pilot took over;
+    SURFACE 9: a failsafe) after reaching this many items;
     ``drop_items``: how many received items to pretend were lost (the first ones), to exercise
     the sender's resends."""
 
     def __init__(self, listen: str, *, system: int = 1, component: int = 1, result: int = MAV_MISSION_ACCEPTED,
                  legacy: bool = False, silent: bool = False, frames: Sequence[int] = (0, 3, 6, 10, 11),
-                 commands: Sequence[int] = (MAV_CMD_NAV_WAYPOINT, MAV_CMD_DO_CHANGE_SPEED), start_result: int = 0,
-                 fly_interval: float | None = None, stop_after: int | None = None, drop_items: int = 0,
+                 commands: Sequence[int] = (MAV_CMD_NAV_WAYPOINT, MAV_CMD_DO_CHANGE_SPEED),
+                 start_result: int | None = 0, ack_start: bool = True,
+                 fly_interval: float | None = None, stop_after: int | None = None,
+                 stop_mode: int = 2, drop_items: int = 0,
                  heartbeat: float = 1.0, request_timeout: float = 1.0, on_mission: Any = None) -> None:
         self.conn = connect(listen, system, component)
         self.result, self.legacy, self.silent = int(result), bool(legacy), bool(silent)
         self.frames, self.commands = set(frames), set(commands)
-        self.start_result = int(start_result)
-        self.fly_interval, self.stop_after = fly_interval, stop_after
+        self.start_result = None if start_result is None else int(start_result)
+        self.ack_start = bool(ack_start)
+        self.fly_interval, self.stop_after, self.stop_mode = fly_interval, stop_after, int(stop_mode)
         self.drop_items = int(drop_items)
         self.heartbeat, self.request_timeout = float(heartbeat), float(request_timeout)
         self.on_mission = on_mission
@@ -242,11 +248,12 @@ class MissionPeer:
     def _command(self, msg: Any, src: tuple[int, int], now: float) -> None:
         cmd = int(msg.command)
         self.commands_received.append((cmd, float(msg.param1), float(msg.param2)))
-        if cmd == MAV_CMD_MISSION_START or (cmd == MAV_CMD_DO_SET_MODE and int(msg.param2) == SUB_MODE_AUTO):
-            result = self.start_result
-        else:
-            result = MAV_RESULT_UNSUPPORTED
-        self._send("command_ack", command=cmd, result=result, target_system=src[0], target_component=src[1])
+        start = cmd == MAV_CMD_MISSION_START or (cmd == MAV_CMD_DO_SET_MODE and int(msg.param2) == SUB_MODE_AUTO)
+        if start and self.start_result is None:
+            return  # an autopilot that has stopped listening
+        result = self.start_result if start and self.start_result is not None else MAV_RESULT_UNSUPPORTED
+        if self.ack_start or not start:
+            self._send("command_ack", command=cmd, result=result, target_system=src[0], target_component=src[1])
         if result == 0 and self.missions:
             self.custom_mode = SUB_MODE_AUTO
             self._next_heartbeat = -math.inf  # tell the new mode at once
@@ -275,7 +282,7 @@ class MissionPeer:
         if nxt >= len(mission) or (self.stop_after is not None and len(self.reached) >= self.stop_after):
             self._flying = False
             self._next_reach = math.inf
-            self.custom_mode = SUB_MODE_ALT_HOLD
+            self.custom_mode = SUB_MODE_ALT_HOLD if nxt >= len(mission) else self.stop_mode
             self._next_heartbeat = -math.inf
             return
         self._current = nxt
@@ -291,6 +298,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--component", type=int, default=1)
     parser.add_argument("--result", type=int, default=0, help="MISSION_ACK type to give (0 = accepted)")
     parser.add_argument("--legacy", action="store_true", help="request items with MISSION_REQUEST")
+    parser.add_argument("--silent", action="store_true", help="never answer (an autopilot that is down)")
     parser.add_argument("--fly", type=float, default=None, metavar="SECONDS",
                         help="once started, reach one item every SECONDS")
     parser.add_argument("--duration", type=float, default=None, help="exit after this many seconds")
@@ -302,7 +310,7 @@ def main(argv: list[str] | None = None) -> int:
         print(json.dumps({**mission, "items": items}), flush=True)
 
     peer = MissionPeer(args.listen, system=args.system, component=args.component, result=args.result,
-                       legacy=args.legacy, fly_interval=args.fly, on_mission=printed)
+                       legacy=args.legacy, silent=args.silent, fly_interval=args.fly, on_mission=printed)
     peer.start()
     try:
         if args.duration is None:

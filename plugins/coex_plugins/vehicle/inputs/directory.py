@@ -7,7 +7,7 @@ PGM ... with Pillow). Its time and position come from a sidecar ``<image>.json``
 ``<stem>.json``) ``{"time": ..., "x": ..., "y": ...}`` (or ``"lat"``, ``"lon"``) when there is
 one, else the time is the file's modification time and the position is unknown (x, y None):
 with ``nav = true`` the daemon then stamps the image with the newest vehicle position.
-A file that cannot be read is logged once and skipped.
+A file that cannot be read is logged once, skipped and counted (``counts["skipped"]``).
 """
 
 from __future__ import annotations
@@ -70,6 +70,7 @@ class DirectoryInput(WatchedInput):
             except Exception as exc:  # any reader error: skip the file, never stop the daemon
                 self._problem(f"read:{path}", "input directory: cannot read %s, skipped (%s: %s)",
                               path, type(exc).__name__, exc)
+                self.skip()
                 continue
             side = read_sidecar(path, self.context)
             t = side.time if side is not None and side.time is not None else st.st_mtime

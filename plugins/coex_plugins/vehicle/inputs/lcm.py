@@ -44,7 +44,7 @@ import numpy as np
 
 from coex_core.errors import ConfigError
 
-from ..options import LogOnce, finite, need, want_str
+from ..options import LogOnce, compile_path, finite, need, want_str
 from .base import Input, InputContext, Item, Nav, Points, Samples
 
 __all__ = ["DEFAULT_URL", "LcmInput", "compile_path", "make_nav_t"]
@@ -56,34 +56,7 @@ NAV_FIELDS = ("x", "y", "lat", "lon", "depth", "altitude", "heading", "speed")
 OWN_KEYS = ("channel", "type", "feeds", "fields", "channels", "scale", "time")
 OWN_FEEDS = ("status", "timeseries", "bathymetry")
 
-_SEGMENT = r"[A-Za-z_][A-Za-z0-9_]*(?:\[\d+\])?"
-_PATH = re.compile(rf"^-?\s*{_SEGMENT}(?:\.{_SEGMENT})*$")
 _TYPE = re.compile(r"^[A-Za-z_][A-Za-z0-9_]*(?:\.[A-Za-z_][A-Za-z0-9_]*)+$")
-
-
-def compile_path(path: str) -> tuple[Callable[[Any], Any], str]:
-    """A getter for a field path (``"-pos[2]"``, ``"pose.position.x"``) and the name of its
-    first field; ValueError if the path is not one."""
-    if not isinstance(path, str) or not _PATH.match(path.strip()):
-        raise ValueError(f"{path!r} is not a field path (name, name[index], a.b, optional leading -)")
-    text = path.strip()
-    negate = text.startswith("-")
-    steps: list[tuple[str, int | None]] = []
-    for seg in text.lstrip("-").strip().split("."):
-        name, _, index = seg.partition("[")
-        steps.append((name, int(index[:-1]) if index else None))
-
-    def get(msg: Any) -> Any:
-        v = msg
-        for name, index in steps:
-            v = getattr(v, name)
-            if index is not None:
-                v = v[index]
-        if negate:
-            v = -np.asarray(v, dtype=np.float64) if isinstance(v, list | tuple | np.ndarray) else -v
-        return v
-
-    return get, steps[0][0]
 
 
 def make_nav_t(utime: int = 0, **fields: float) -> Any:
@@ -244,8 +217,8 @@ class LcmInput(Input):
         self._items: list[Item] = []
         self._samples: dict[str, list[tuple[float, float]]] = {}
         self._problem = LogOnce(log)
-        #: messages turned into items, and messages skipped
-        self.counts = {"messages": 0, "skipped": 0}
+        #: messages turned into items (and, as every input, ``skipped``: messages skipped)
+        self.counts.update(messages=0)
 
     def open(self) -> None:
         if self._lc is not None:
@@ -275,7 +248,7 @@ class LcmInput(Input):
                 convert(cls.decode(data))
                 self.counts["messages"] += 1
             except Exception as exc:  # a foreign or damaged message: skip it
-                self.counts["skipped"] += 1
+                self.skip()
                 self._problem(f"{channel}:{type(exc).__name__}",
                               "input lcm: a message on %s skipped (%s: %s)", channel, type(exc).__name__, exc)
         return handle

@@ -144,8 +144,10 @@ class MavlinkInput(Input):
         self._captures: list[_Capture] = []
         self._recent_captures: deque[tuple[str, int]] = deque(maxlen=256)
         self._problem = LogOnce(log)
-        #: messages read and used, and messages skipped
-        self.counts = {"messages": 0, "used": 0, "bad": 0}
+        #: messages read and used, bytes pymavlink could not parse (``bad``), and, as every input,
+        #: ``skipped``: items not used (garbage, a message whose values make no sense, a capture
+        #: that cannot be read)
+        self.counts.update(messages=0, used=0, bad=0)
 
     # ----------------------------------------------------------------- connection
     def open(self) -> None:
@@ -233,6 +235,7 @@ class MavlinkInput(Input):
             kind = msg.get_type()
             if kind == "BAD_DATA":
                 self.counts["bad"] += 1
+                self.skip()
                 continue
             self.counts["messages"] += 1
             system = int(self.config["system"])
@@ -243,6 +246,7 @@ class MavlinkInput(Input):
             except Exception as exc:  # a value pymavlink let through that makes no sense
                 self._problem(f"{kind}:{type(exc).__name__}", "input mavlink: a %s skipped (%s: %s)",
                               kind, type(exc).__name__, exc)
+                self.skip()
                 continue
             if item is not None:
                 self.counts["used"] += 1
@@ -305,6 +309,7 @@ class MavlinkInput(Input):
         self._recent_captures.append(key)
         if not url:
             self._problem("capture:nourl", "input mavlink: CAMERA_IMAGE_CAPTURED without file_url skipped")
+            self.skip()
             return
         parts = urlsplit(url)
         if parts.scheme == "file":
@@ -312,6 +317,7 @@ class MavlinkInput(Input):
         elif parts.scheme and len(parts.scheme) > 1:  # http:// ...; a one-letter scheme is a drive
             self._problem(f"capture:{parts.scheme}", "input mavlink: image %s is not a local file, "
                           "skipped", url)
+            self.skip()
             return
         else:
             path = Path(url)
@@ -335,6 +341,7 @@ class MavlinkInput(Input):
                 if now >= cap.deadline:
                     self._problem(f"missing:{cap.path}", "input mavlink: captured image %s never "
                                   "appeared, skipped", cap.path)
+                    self.skip()
                 else:
                     keep.append(cap)
                 continue
@@ -349,6 +356,7 @@ class MavlinkInput(Input):
             except Exception as exc:  # a damaged or unknown file
                 self._problem(f"read:{cap.path}", "input mavlink: cannot read %s, skipped (%s: %s)",
                               cap.path, type(exc).__name__, exc)
+                self.skip()
                 continue
             out.append(Image(cap.time, pixels=pixels, path=str(cap.path), x=cap.x, y=cap.y))
         self._captures = keep

@@ -176,8 +176,9 @@ class NmeaInput(Input):
         self._retry_at = {"serial": -math.inf, "udp": -math.inf}
         self._buffers = {"serial": b"", "udp": b""}
         self._problem = LogOnce(log)
-        #: lines read, used, with a bad checksum, otherwise bad, of an unknown sentence
-        self.counts = {"lines": 0, "used": 0, "bad_checksum": 0, "bad": 0, "unknown": 0}
+        #: lines read, used, with a bad checksum, otherwise bad, of an unknown sentence; and, as
+        #: every input, ``skipped``: the lines with a bad checksum or otherwise bad
+        self.counts.update(lines=0, used=0, bad_checksum=0, bad=0, unknown=0)
 
     # ----------------------------------------------------------------- ports
     def open(self) -> None:
@@ -259,6 +260,7 @@ class NmeaInput(Input):
             *lines, rest = buf.split(b"\n")
             if len(rest) > MAX_LINE:  # no newline in sight: noise
                 self.counts["bad"] += 1
+                self.skip()
                 rest = b""
             self._buffers[source] = rest
             for raw in lines:
@@ -277,6 +279,7 @@ class NmeaInput(Input):
         except NmeaError as exc:
             key = "bad_checksum" if "checksum" in str(exc) else "bad"
             self.counts[key] += 1
+            self.skip()
             self._problem(key, "input nmea: line skipped (%s): %r", exc, line[:100])
             return
         address = fields[0]
@@ -291,6 +294,7 @@ class NmeaInput(Input):
                 used = True
         except (ValueError, IndexError) as exc:
             self.counts["bad"] += 1
+            self.skip()
             self._problem(f"bad:{kind}", "input nmea: %s skipped (%s): %r", kind, exc, line[:100])
             return
         self.counts["used" if used else "unknown"] += 1

@@ -5,7 +5,8 @@ fields) and ``.csv`` files (x, y, z columns, header optional) for the bathymetry
 its size and modification time have settled; rewriting it makes it new again). Each file
 becomes one :class:`~.base.Points` item, timed by its sidecar ``<file>.json`` ``{"time": ...}``
 when there is one, else by its modification time. Rows with a NaN or infinite coordinate are
-dropped. A file that cannot be read is logged once and skipped.
+dropped. A file that cannot be read, or holds no finite point, is logged once, skipped and
+counted (``counts["skipped"]``).
 """
 
 from __future__ import annotations
@@ -67,6 +68,7 @@ class PointsInput(WatchedInput):
         for path, st in self.watch.poll(now):
             if path.suffix.lower() not in (".npy", ".csv", ".txt", ".xyz"):
                 self._problem(f"type:{path.suffix}", "input points: %s is not .npy or .csv, skipped", path)
+                self.skip()
                 continue
             try:
                 from coex_plugins.bathymetry.points import iter_points
@@ -74,13 +76,18 @@ class PointsInput(WatchedInput):
                 chunks = [xyz for _, xyz in iter_points(path)]
             except Exception as exc:  # InputError, or anything a damaged file provokes
                 self._problem(f"read:{path}", "input points: cannot read %s, skipped (%s)", path, exc)
+                self.skip()
                 continue
             side = read_sidecar(path, self.context)
             t = side.time if side is not None and side.time is not None else st.st_mtime
+            before = len(items)
             for xyz in chunks:
                 good = finite_rows(xyz)
                 if len(good):
                     items.append(Points(t, good))
+            if len(items) == before:
+                self._problem(f"empty:{path}", "input points: %s holds no finite point, skipped", path)
+                self.skip()
         return items
 
     def next_event(self, now: float) -> float | None:

@@ -12,6 +12,9 @@ Topics (at least one):
   ``PoseWithCovarianceStamped`` -> :class:`~.base.Nav` x, y, depth (-z), heading (from the
   yaw), speed (Odometry's twist); ``sensor_msgs/NavSatFix`` -> Nav lat, lon.
 
+What a message means (frames mapped to the local grid: ``frames``, ``nav_frame``; image
+encodings; navigation) is :mod:`.rosmsg`, shared with the live ``ros`` input.
+
 Timing: the first replayed message is due at the daemon's time when the input opens (the
 context's clock, else the first poll), each later one ``(its bag time - the first's) / speed``
 after it. An item's time is its message's header stamp (the bag's record time when the stamp is
@@ -22,77 +25,29 @@ like the message's due time, with ``start = "original"`` it is kept as recorded.
 from __future__ import annotations
 
 import logging
-import math
 from collections.abc import Iterator, Mapping
 from pathlib import Path
 from typing import Any, ClassVar
 
-import numpy as np
-
 from coex_core.errors import ConfigError
 
-from ..options import (
-    LogOnce,
-    compass_from_enu_yaw,
-    finite,
-    need,
-    want_choice,
-    want_number,
-    want_str,
-    yaw_of_quaternion,
+from ..options import LogOnce, need, want_choice, want_number, want_str
+from .base import Input, InputContext, Item
+from .rosmsg import (
+    IMAGE_TYPES,
+    NAV_TYPES,
+    POINTS_TYPES,
+    ROLES,
+    FrameMap,
+    frame_problems,
+    item_of,
+    stamp_of,
 )
-from ._files import as_pixels, decode_image
-from .base import Image, Input, InputContext, Item, Nav, Points
+from .rosmsg import ros_image_pixels as ros_image_pixels  # where it was before rosmsg
 
 __all__ = ["IMAGE_TYPES", "NAV_TYPES", "POINTS_TYPES", "RosbagInput", "ros_image_pixels"]
 
 log = logging.getLogger(__name__)
-
-POINTS_TYPES = ("sensor_msgs/msg/PointCloud2",)
-IMAGE_TYPES = ("sensor_msgs/msg/Image", "sensor_msgs/msg/CompressedImage")
-NAV_TYPES = ("nav_msgs/msg/Odometry", "geometry_msgs/msg/PoseStamped",
-             "geometry_msgs/msg/PoseWithCovarianceStamped", "sensor_msgs/msg/NavSatFix")
-
-#: sensor_msgs/Image encodings: channels, bytes per channel, channel order reversed (BGR)
-_ENCODINGS = {
-    "mono8": (1, 1, False), "8uc1": (1, 1, False), "mono16": (1, 2, False), "16uc1": (1, 2, False),
-    "rgb8": (3, 1, False), "bgr8": (3, 1, True), "8uc3": (3, 1, True),
-    "rgba8": (4, 1, False), "bgra8": (4, 1, True), "8uc4": (4, 1, True),
-    "rgb16": (3, 2, False), "bgr16": (3, 2, True), "16uc3": (3, 2, True),
-}
-
-
-def ros_image_pixels(msg: Any) -> np.ndarray:
-    """The pixels of a ``sensor_msgs/Image`` (rows padded to ``step`` are cut); ValueError for an
-    encoding it does not know or data shorter than height x step."""
-    enc = str(msg.encoding).lower()
-    if enc not in _ENCODINGS:
-        raise ValueError(f"image encoding {msg.encoding!r} not supported "
-                         f"(known: {', '.join(sorted(_ENCODINGS))})")
-    channels, size, reverse = _ENCODINGS[enc]
-    h, w, step = int(msg.height), int(msg.width), int(msg.step)
-    row = w * channels * size
-    data = np.asarray(msg.data, dtype=np.uint8).ravel()
-    if h <= 0 or w <= 0 or step < row or data.size < h * step:
-        raise ValueError(f"image {w} x {h} {enc} with step {step} and {data.size} bytes of data")
-    rows = np.ascontiguousarray(data[: h * step].reshape(h, step)[:, :row])
-    dtype = np.dtype(np.uint8) if size == 1 else np.dtype(">u2" if msg.is_bigendian else "<u2")
-    a = rows.view(dtype).reshape((h, w, channels) if channels > 1 else (h, w))
-    if reverse:
-        a = a[..., ::-1]
-    if channels == 4:
-        a = a[..., 1:] if reverse else a[..., :3]  # after reversing BGRA is ARGB
-    return as_pixels(a.astype(np.uint16) if size == 2 else a)
-
-
-def _stamp(msg: Any) -> float | None:
-    header = getattr(msg, "header", None)
-    stamp = getattr(header, "stamp", None)
-    if stamp is None:
-        return None
-    t = float(stamp.sec) + float(stamp.nanosec) * 1e-9
-    return t if t > 0 else None
-
 
 class RosbagInput(Input):
     """A bag replayed with its timing (see the module docstring)."""
@@ -110,6 +65,8 @@ class RosbagInput(Input):
         "speed": (1.0, "replay speed (2.0 = twice as fast)"),
         "nav_frame": ("enu", "frame of nav_topic poses: 'enu' (ROS REP 103: x east, y north, "
                              "z up, yaw from east) or 'ned' (x north, y east, z down, yaw from north)"),
+        "frames": ({}, "frame id -> 'enu' | 'ned' | {axes, x, y, z, yaw}: how each header.frame_id "
+                       "maps to the local grid (empty: points ENU, poses nav_frame, any frame id)"),
     }
 
     @classmethod
@@ -122,7 +79,7 @@ class RosbagInput(Input):
                             "'image_topic', 'nav_topic'")
         problems += want_choice(cls.name, options, "start", ("now", "original"))
         problems += want_number(cls.name, options, "speed", positive=True)
-        problems += want_choice(cls.name, options, "nav_frame", ("enu", "ned"))
+        problems += frame_problems(cls.name, options)
         return problems
 
     @classmethod
@@ -141,9 +98,10 @@ class RosbagInput(Input):
         self._t0: int | None = None  # bag time (ns) of the first replayed message
         self._anchor: float | None = None  # daemon time the first message is due
         self._opened = False
+        self._frames = FrameMap(self.config["frames"], self.config["nav_frame"])
         self._problem = LogOnce(log)
-        #: messages replayed, skipped (undecodable) per role
-        self.counts = {"points": 0, "image": 0, "nav": 0, "skipped": 0}
+        #: messages replayed per role (and, as every input, ``skipped``: undecodable ones)
+        self.counts.update(points=0, image=0, nav=0)
 
     # ----------------------------------------------------------------- opening
     def open(self) -> None:
@@ -178,9 +136,7 @@ class RosbagInput(Input):
     def _select(self, reader: Any) -> list[Any]:
         topics = sorted({f"{c.topic} ({c.msgtype})" for c in reader.connections})
         chosen: list[Any] = []
-        for role, key, types in (("points", "points_topic", POINTS_TYPES),
-                                 ("image", "image_topic", IMAGE_TYPES),
-                                 ("nav", "nav_topic", NAV_TYPES)):
+        for role, (key, types) in ROLES.items():
             topic = self.config[key]
             if not topic:
                 continue
@@ -241,10 +197,10 @@ class RosbagInput(Input):
             role = self._roles.get(conn.topic, "")
             try:
                 msg = self._reader.deserialize(raw, conn.msgtype)
-                t = self._item_time(_stamp(msg) or bag_ns * 1e-9)
-                item = self._convert(role, conn.msgtype, msg, t)
+                t = self._item_time(stamp_of(msg) or bag_ns * 1e-9)
+                item = item_of(role, conn.msgtype, msg, t, self._frames)
             except Exception as exc:  # one bad message is skipped, the replay goes on
-                self.counts["skipped"] += 1
+                self.skip()
                 self._problem(f"{conn.topic}:{type(exc).__name__}",
                               "input rosbag: a %s message on %s skipped (%s: %s)",
                               conn.msgtype, conn.topic, type(exc).__name__, exc)
@@ -253,47 +209,6 @@ class RosbagInput(Input):
                 self.counts[role] += 1
                 items.append(item)
         return items
-
-    # ----------------------------------------------------------------- messages
-    def _convert(self, role: str, msgtype: str, msg: Any, t: float) -> Item | None:
-        if role == "points":
-            from coex_plugins.bathymetry.points import pointcloud2_xyz
-
-            xyz = pointcloud2_xyz(msg)
-            xyz = xyz[np.isfinite(xyz).all(axis=1)]
-            return Points(t, xyz) if len(xyz) else None
-        if role == "image":
-            if msgtype.endswith("CompressedImage"):
-                pixels = decode_image(bytes(np.asarray(msg.data, np.uint8)))
-            else:
-                pixels = ros_image_pixels(msg)
-            return Image(t, pixels=pixels)
-        return self._nav(msgtype, msg, t)
-
-    def _nav(self, msgtype: str, msg: Any, t: float) -> Nav | None:
-        if msgtype == "sensor_msgs/msg/NavSatFix":
-            lat, lon = finite(msg.latitude), finite(msg.longitude)
-            if int(msg.status.status) < 0 or lat is None or lon is None:
-                return None  # no fix
-            return Nav(t, lat=lat, lon=lon)
-        speed = None
-        if msgtype == "nav_msgs/msg/Odometry":
-            pose = msg.pose.pose
-            lin = msg.twist.twist.linear
-            speed = finite(math.hypot(lin.x, lin.y))
-        elif msgtype == "geometry_msgs/msg/PoseWithCovarianceStamped":
-            pose = msg.pose.pose
-        else:
-            pose = msg.pose
-        p, q = pose.position, pose.orientation
-        yaw = yaw_of_quaternion(q.x, q.y, q.z, q.w)
-        if self.config["nav_frame"] == "ned":
-            x, y, depth = finite(p.y), finite(p.x), finite(p.z)
-            heading = None if yaw is None else math.degrees(yaw) % 360.0
-        else:
-            x, y, depth = finite(p.x), finite(p.y), finite(-p.z)
-            heading = None if yaw is None else compass_from_enu_yaw(yaw)
-        return Nav(t, x=x, y=y, depth=depth, heading=heading, speed=speed)
 
     def close(self) -> None:
         if self._reader is not None:

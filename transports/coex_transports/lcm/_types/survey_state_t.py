@@ -31,14 +31,19 @@ class survey_state_t(object):
 
         self.state = 0
         """
+        0 received (the planner has the request and will fly it later: no report, but an answer),
         1 rejected (the planner will not fly it), 2 started (index: the waypoint it heads for),
-        3 completed, 4 aborted (stopped before its end)
+        3 completed, 4 aborted (stopped before its end), 5 taken over (a pilot or another
+        process took control), 6 all stop (the planner stopped all motion), 7 restarted (the
+        planner restarted and dropped the survey). A request not answered at all is sent again,
+        then given up as "no answer" (docs/autonomy.md)
         LCM Type: int8_t
         """
 
         self.index = 0
         """
-        with state 2: the waypoint it heads for, 0-based in the request's x/y; otherwise -1
+        with state 2: the waypoint it heads for, 0-based in the request's x/y; with states 1 and
+        4..7: the planner's own code when >= 0 (shown topside as "code N"); otherwise -1
         LCM Type: int32_t
         """
 

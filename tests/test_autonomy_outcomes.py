@@ -1,0 +1,169 @@
+"""A refused mission and a silent autopilot told apart, end to end: ``coex vehicle`` and ``coex
+topside --config`` in one process over a MAVLink (UDP) link, the vehicle's ``mavlink`` autonomy
+output uploading each accepted survey to a mission-protocol peer built from stock pymavlink
+(:class:`~coex_plugins.vehicle.autonomy.mavpeer.MissionPeer`). The peer refuses one mission
+with ``MAV_MISSION_DENIED``, stays silent for the next, then flies a third: topside (the survey
+receiver's records, the console's state and its HTTP ``/api/state``) shows the code and its
+name for the first, "no answer" with the tries for the second (not a refusal), and the third
+completed."""
+
+from __future__ import annotations
+
+import json
+import socket
+import time
+import urllib.request
+from collections.abc import Callable, Iterator
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+pytest.importorskip("pymavlink")
+
+from coex_plugins.console.cli import TopsideApp, topside_from_config
+from coex_plugins.vehicle.autonomy.mavpeer import MissionPeer
+from coex_plugins.vehicle.config import load
+from coex_plugins.vehicle.daemon import VehicleApp
+
+KEY = "00112233445566778899aabbccddeeff00112233445566778899aabbccddeeff"
+COMMON = """
+[tdma]
+slots = ["topside", "vehicle"]
+slot_seconds = 1.0
+guard = 0.1
+"""
+VEHICLE = """
+[node]
+role = "vehicle"
+id = 2
+command_key_file = "k.key"
+store = false
+[modalities.survey]
+stream = 7
+priority = 90
+options = {{ geofence = {{ radius = 300.0 }} }}
+[[modems]]
+uri = "mavlink:udpout:127.0.0.1:{link}?sysid=2&compid=191"
+packet_seconds = 0.2
+[autonomy]
+type = "mavlink"
+connection = "udpout:127.0.0.1:{autopilot}"
+source_component = 192
+timeout = 0.3
+item_timeout = 0.1
+retries = 2
+heartbeat = 0.2
+""" + COMMON
+TOPSIDE = """
+[node]
+role = "topside"
+id = 1
+command_key_file = "k.key"
+store = false
+[modalities.survey]
+stream = 7
+[console]
+http = "127.0.0.1:0"
+[[modems]]
+uri = "mavlink:udpin:127.0.0.1:{link}?sysid=1&compid=190"
+packet_seconds = 0.2
+""" + COMMON
+
+
+def _free_udp_port() -> int:
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+def _wait(what: str, cond: Callable[[], Any], timeout: float = 60.0) -> Any:
+    end = time.monotonic() + timeout
+    while time.monotonic() < end:
+        got = cond()
+        if got:
+            return got
+        time.sleep(0.05)
+    raise AssertionError(f"timed out waiting for {what}")
+
+
+@pytest.fixture
+def pair(tmp_path: Path) -> Iterator[tuple[VehicleApp, TopsideApp, MissionPeer]]:
+    link, autopilot = _free_udp_port(), _free_udp_port()
+    (tmp_path / "k.key").write_text(KEY)
+    (tmp_path / "v.toml").write_text(VEHICLE.format(link=link, autopilot=autopilot))
+    (tmp_path / "t.toml").write_text(TOPSIDE.format(link=link))
+    peer = MissionPeer(f"udpin:127.0.0.1:{autopilot}", heartbeat=0.2)
+    peer.start()
+    vehicle = topside = None
+    try:
+        vehicle = VehicleApp(load(tmp_path / "v.toml", "vehicle")).start()
+        topside = topside_from_config(str(tmp_path / "t.toml")).start()
+        yield vehicle, topside, peer
+    finally:
+        if vehicle is not None:
+            vehicle.close()
+        if topside is not None:
+            topside.close()
+        peer.close()
+
+
+def _row(topside: TopsideApp, survey_id: int) -> dict[str, Any]:
+    """The survey's row as the console's page gets it, over HTTP."""
+    with urllib.request.urlopen(f"{topside.url}/api/state", timeout=10) as r:
+        state = json.loads(r.read())
+    [row] = [i for i in state["surveys"]["items"] if i["survey_id"] == survey_id]
+    return row  # type: ignore[no-any-return]
+
+
+def test_a_refusal_and_a_silent_autopilot_read_apart_topside(
+        pair: tuple[VehicleApp, TopsideApp, MissionPeer]) -> None:
+    vehicle, topside, peer = pair
+    rx = topside.node.receiver("survey")
+
+    def ask(x: float) -> int:
+        with topside.hub.lock:
+            cmd = rx.request("line", x, 0.0, time.time(), heading=0.0, length=30.0, depth=10.0)
+        return int(cmd.survey_id)
+
+    def ended(sid: int) -> Callable[[], bool]:
+        return lambda: rx.surveys[sid].state in ("rejected", "aborted", "completed", "given up")
+
+    # 1. the autopilot refuses the mission: MAV_MISSION_DENIED (14)
+    peer.result = 14
+    refused = ask(0.0)
+    _wait("the refusal topside", ended(refused))
+    rec = rx.surveys[refused]
+    assert (rec.state, rec.reason) == ("rejected", "AUTONOMY_REFUSED")
+    assert rec.text == "the vehicle's autonomy refused it (code 14): MAV_MISSION_DENIED"
+    row = _row(topside, refused)
+    assert (row["state"], row["outcome"]) == ("rejected", "refused by autonomy")
+    assert "code 14" in row["text"] and "MAV_MISSION_DENIED" in row["text"]
+    assert peer.acks_sent == [14]
+
+    # 2. the autopilot falls silent: given up after 1 + retries tries, as no answer
+    with peer._lock:
+        peer.silent, peer.result = True, 0
+    counts = len(peer.counts)
+    silent = ask(10.0)
+    _wait("no answer topside", ended(silent))
+    rec = rx.surveys[silent]
+    assert (rec.state, rec.reason) == ("rejected", "AUTONOMY_NO_ANSWER")
+    assert rec.text.startswith("no answer from the vehicle's autonomy (after 3 tries): MISSION_COUNT unanswered")
+    assert "refused" not in rec.text
+    row = _row(topside, silent)
+    assert (row["state"], row["outcome"]) == ("rejected", "no answer from autonomy")
+    assert len(peer.counts) - counts == 3  # MISSION_COUNT sent 3 times, never answered
+
+    # 3. the autopilot answers again and flies the next one
+    with peer._lock:
+        peer.silent, peer.fly_interval = False, 0.1
+    flown = ask(20.0)
+    _wait("the third survey completed", ended(flown))
+    assert rx.surveys[flown].state == "completed" and _row(topside, flown)["outcome"] == "completed"
+
+    # the console's event log says each in words, and the vehicle's summary counts the plans
+    log = [e["text"] for e in topside.hub.snapshot()["log"]]
+    assert any(f"survey {refused} refused by autonomy" in t and "MAV_MISSION_DENIED" in t for t in log), log
+    assert any(f"survey {silent} no answer from autonomy" in t and "after 3 tries" in t for t in log), log
+    assert vehicle.counts["plans"] == 3
