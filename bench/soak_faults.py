@@ -33,14 +33,19 @@ Faults (full run):
   survey sent meanwhile must end REJECTED with reason AUTONOMY_NO_ANSWER;
 * **MOOSDB restarted** (SIGKILL, then started again on the same port): navigation must resume.
 
-Then a drain without faults or new data, until topside holds everything (or two hours). Checks:
-every map cell, image (to its goal, byte-exact, decoded) and time-series block (with the
-vehicle's error bound) that the vehicle sent is held topside (``coex_plugins.convergence``, the
-fault suite's checks; images are checked every hour while the vehicle keeps them, since both
-sides keep a bounded number); the surveys ended as expected; the outages topside heard of
-(``LinkHealth``) equal the cuts. Measured every simulated hour: the process's RSS, the two store
-files (SQLite with its WAL), what the nodes hold; the log records the daemons emitted (by
-logger); wall time. JSON in ``bench/results/soak_faults.json`` (``soak_faults-quick.json``).
+Then a drain without faults or new data, until topside holds everything (or two hours). Checks
+(``checks`` in the JSON): every fault planned was injected; every map cell, image (to its goal,
+byte-exact, decoded) and time-series block (with the vehicle's error bound) that the vehicle
+sent is held topside (``coex_plugins.convergence``, the fault suite's checks; images are checked
+every hour while the vehicle keeps them, since both sides keep a bounded number); the surveys
+ended as expected; the outages both ends counted (topside from ``LinkHealth``) equal the cuts;
+navigation came back after each MOOSDB restart; RSS and both stores flat after the first hour
+(slopes within :data:`FLAT`; judged on runs of four hours or more); the daemons' log records
+within :data:`LOG_RECORDS_PER_HOUR`. Measured every simulated hour: the process's RSS, the two
+store files (SQLite with its WAL), what the nodes hold; the log records the daemons emitted (by
+logger); wall time. JSON in ``bench/results/soak_faults.json`` (``soak_faults-quick.json``); the
+hourly samples so far in ``soak_faults.partial.json`` while it runs (left there by a run cut
+short).
 
     python bench/soak_faults.py [--hours 24] [--quick] [--seed S] [--keep DIR]
 
@@ -75,12 +80,12 @@ from soak import camera_image, peak_mb, rss_mb, sensor_series, survey_passes
 
 from coex_core import state
 from coex_core.acoustic import AcousticChannel
+from coex_core.adapters import Image, Input, Item, Nav, Points, Samples
 from coex_plugins import convergence
 from coex_plugins.console.cli import TopsideApp, topside_from_config
 from coex_plugins.vehicle.autonomy.mavpeer import MissionPeer
 from coex_plugins.vehicle.config import load
 from coex_plugins.vehicle.daemon import VehicleApp
-from coex_plugins.vehicle.inputs.base import Image, Input, Item, Nav, Points, Samples
 from coex_transports.micromodem.simulator import ModemNetwork, SimLoop
 from coex_transports.recovery import ResilientTransport
 
@@ -93,6 +98,12 @@ TOPSIDE_URI = f"micromodem:///dev/coex-sim/modem{TOPSIDE}?src={TOPSIDE}&dest={VE
 SITE = 256.0
 #: the bench's own MOOS client (publishes navigation as the vehicle's navigation would)
 NAV_CLIENT = "soak_nav"
+#: what "flat after the first hour" means here: the least-squares slope of the hourly samples
+#: from hour 1 to the end of the dive, at most (MB/h). Topside holds every sample of the day's
+#: two series (what it is for), so its store may grow by that much.
+FLAT = {"rss": 2.0, "vehicle_store": 0.25, "topside_store": 1.0}
+#: log records from the daemons per simulated hour, at most (a state change is a line)
+LOG_RECORDS_PER_HOUR = 20
 
 
 # ------------------------------------------------------------------------------ the plan
@@ -248,7 +259,7 @@ class Soak:
                  progress: Callable[[str], Any] = print) -> None:
         self.dir = Path(workdir)
         #: ``light``: a 64 m site, 32 beams, 64 x 96 images (a smoke test's load)
-        self.load = dict(site=64.0, beams=32, image=(64, 96)) if light else {}
+        self.load: dict[str, Any] = dict(site=64.0, beams=32, image=(64, 96)) if light else {}
         self.hours, self.faults, self.seed, self.drain = hours, faults, seed, drain
         self.say = progress
         self.net = ModemNetwork({TOPSIDE: (300.0, 400.0, 0.0), VEHICLE: (0.0, 0.0, 500.0)},
@@ -274,10 +285,13 @@ class Soak:
         self._topside_written = self._topside_snapshots = 0  # of the topside processes killed
         self._written = self._count = (0, 0)  # snapshot bytes and count (vehicle, topside) at the last sample
         self.cuts_done = 0
+        self.silenced = self.autopilot_back = self.moos_restarted = 0
         self.surveys: list[tuple[int, str, float]] = []
         self.nav_changes: list[float] = []
         self._last_nav: float | None = None
         self.wall0 = time.perf_counter()
+        #: where the hourly samples go as they are taken (None: nowhere)
+        self.partial: Path | None = None
 
     # ------------------------------------------------------------------ set-up
     def _configs(self) -> None:
@@ -422,12 +436,15 @@ http = "127.0.0.1:0"
         assert self.peer is not None
         self.peer.close()  # the autopilot's process is gone: nothing answers on its port
         self.peer = None
+        self.silenced += 1
 
     def _autopilot_back(self, now: float) -> None:
         self.peer = MissionPeer(f"udpin:127.0.0.1:{self.mav_port}", fly_interval=30.0)
+        self.autopilot_back += 1
 
     def _restart_moos(self, now: float) -> None:
         self.moos.restart()
+        self.moos_restarted += 1
 
     # ------------------------------------------------------------------ the operator
     def _survey(self, now: float, expect: str) -> None:
@@ -507,6 +524,9 @@ http = "127.0.0.1:0"
             "wall_s": round(time.perf_counter() - self.wall0, 1),
         }
         self.samples.append(s)
+        if self.partial is not None:  # a run cut short still leaves its figures
+            self.partial.write_text(json.dumps({"complete": False, "hours": self.hours, "seed": self.seed,
+                                                "samples": self.samples}, indent=2))
         self.say(f"  hour {s['hour']:5.2f}: RSS {s['rss_mb']:6.1f} MB, stores {s['vehicle_store_mb']:6.2f} + "
                  f"{s['topside_store_mb']:6.2f} MB (snapshots {s['vehicle_snapshot_mb']:.2f} + "
                  f"{s['topside_snapshot_mb']:.2f} MB, written {s['vehicle_snapshots_mb_per_h']:.0f} + "
@@ -546,7 +566,7 @@ http = "127.0.0.1:0"
                     break
                 self.loop.run(self.net.now + 300.0)
             drain = self.net.now - self.end
-            if drain > 0:
+            if drain >= 1.0:
                 self._sample((self.net.now - self.t0) / HOUR)
             return self._result(ok, drain)
         finally:
@@ -611,10 +631,30 @@ http = "127.0.0.1:0"
             "wall_seconds": round(time.perf_counter() - self.wall0, 1),
             "samples": self.samples,
         }
-        res["ok"] = (all(ok.values()) and all(s["ok"] for s in surveys)
-                     and res["topside_heard"]["outages"] == len(self.faults.cuts)
-                     and health.outages == len(self.faults.cuts)
-                     and (self.moos is None or all(a is not None for a in after_restart)))
+        f = self.faults
+        judged = len(hours) >= 3 and hours[-1] - hours[0] >= 3.0  # slopes over three hours at least
+        flat = FLAT
+        res["checks"] = {
+            # every fault planned was injected
+            "faults_injected": self.cuts_done == len(f.cuts) and self.restarts == len(f.kills)
+            and self.silenced == self.autopilot_back == (f.silent is not None)
+            and (self.moos is None or self.moos_restarted == len(f.moos_restarts)),
+            "data_held_topside": all(ok.values()),
+            "surveys_ended_as_expected": all(s["ok"] for s in surveys),
+            "outages_counted_both_ends": res["topside_heard"]["outages"] == len(f.cuts) == health.outages,
+            "navigation_back_after_moosdb_restart": None if self.moos is None
+            else all(a is not None for a in after_restart),
+            # flat after the first hour (None: too short a run to judge)
+            "rss_flat": res["rss_slope_mb_per_h"] <= flat["rss"] if judged else None,
+            "vehicle_store_flat": res["vehicle_store_slope_mb_per_h"] <= flat["vehicle_store"] if judged else None,
+            "topside_store_flat": res["topside_store_slope_mb_per_h"] <= flat["topside_store"] if judged else None,
+            "log_bounded": self.log.total <= LOG_RECORDS_PER_HOUR * max(self.hours, 1.0),
+        }
+        res["flat_limits_mb_per_h"] = dict(flat)
+        res["faults_injected"] = {"cuts": self.cuts_done, "topside_kills": self.restarts,
+                                  "autopilot_silenced": self.silenced, "autopilot_back": self.autopilot_back,
+                                  "moosdb_restarts": self.moos_restarted}
+        res["ok"] = all(v is not False for v in res["checks"].values())
         return res
 
     def close(self) -> None:
@@ -666,6 +706,7 @@ def report(r: dict[str, Any]) -> list[str]:
         f"(vehicle) and {r['topside_store_slope_mb_per_h']} (topside) MB/h",
         f"log: {r['log_records']} records from the daemons "
         + ", ".join(f"{k} {v}" for k, v in r["log_by_logger"].items()),
+        "checks: " + ", ".join(f"{k} {'-' if v is None else 'yes' if v else 'NO'}" for k, v in r["checks"].items()),
         f"wall {r['wall_seconds']} s; {'ALL CHECKS PASSED' if r['ok'] else 'A CHECK FAILED'}",
     ]
     return lines
@@ -700,6 +741,10 @@ def main(argv: list[str] | None = None) -> int:
     soak = Soak(work, hours, faults, seed=args.seed, moosdb=exe, light=args.quick,
                 progress=lambda t: print(t, flush=True))
     soak.moos_why = why
+    out = ROOT / "bench" / "results"
+    out.mkdir(parents=True, exist_ok=True)
+    name = "soak_faults-quick.json" if args.quick else "soak_faults.json"
+    soak.partial = out / name.replace(".json", ".partial.json")
     try:
         r = soak.run()
     finally:
@@ -710,9 +755,8 @@ def main(argv: list[str] | None = None) -> int:
         (f" --seed {args.seed}" if args.seed != 1 else "")
     for line in report(r):
         print(line)
-    out = ROOT / "bench" / "results"
-    out.mkdir(parents=True, exist_ok=True)
-    (out / ("soak_faults-quick.json" if args.quick else "soak_faults.json")).write_text(json.dumps(r, indent=2))
+    (out / name).write_text(json.dumps(r, indent=2))
+    soak.partial.unlink(missing_ok=True)
     return 0 if r["ok"] else 1
 
 

@@ -134,8 +134,8 @@ def test_the_daemons_run_on_given_transports_with_an_input_made_in_code(tmp_path
     import numpy as np
     import pytest
 
+    from coex_core.adapters import Input, Samples
     from coex_core.errors import ConfigError
-    from coex_plugins.vehicle.inputs.base import Input, Samples
     from coex_transports.micromodem.simulator import ModemNetwork, SimLoop
 
     class Thermometer(Input):
