@@ -44,7 +44,7 @@ def image_held(sent: Any, got: Any) -> bool:
     ``got``, or None) up to its goal, byte-exact, and decoded."""
     if got is None or got.contiguous() < sent.goal or got.image is None:
         return False
-    return bytes(got.buf[: sent.goal]) == sent.enc.body[: sent.goal]
+    return bool(bytes(got.buf[: sent.goal]) == sent.enc.body[: sent.goal])
 
 
 def images_missing(sender: Any, receiver: Any, ids: Iterable[int] | None = None) -> list[int]:
