@@ -61,6 +61,26 @@ def peak_mb() -> float:
     return kb / 1024 if sys.platform != "darwin" else kb / 2**20
 
 
+def survey_passes(seed: int, size: float = 256.0, beams: int = 96) -> tuple[list[tuple[float, np.ndarray]], float]:
+    """One pass over the site (256 m) with a multibeam (96 beams, 1 ping/s, 1.5 m/s): ``(seconds
+    from the pass's start, N x 3 soundings)`` in batches of 10 pings, and the pass's length in
+    seconds with its turn."""
+    floor = Seafloor.default(size=size, seed=seed, relief=1.0)
+    survey = simulate_survey(floor, beams=beams, ping_rate=1.0, speed=1.5, seed=seed + 1)
+    passes = [(t, xyz) for t, xyz in survey.pings(batch=10)]
+    return passes, max(t for t, _ in passes) + 30.0
+
+
+def camera_image(k: int, shape: tuple[int, int] = (120, 160)) -> np.ndarray:
+    """The ``k``-th camera image of the day (one of 50 seafloor frames)."""
+    return seafloor(shape[0], shape[1], seed=k % 50)
+
+
+def sensor_series(duration: float, seed: int, t0: float) -> list[Any]:
+    """Two sensor channels (methane, temperature) at 1 Hz for ``duration`` seconds from ``t0``."""
+    return list(ts_synth.dataset(duration=duration, period=1.0, seed=seed, t0=t0))
+
+
 def build(hours: float, seed: int) -> tuple[SimNetwork, dict[str, Any]]:
     sched = Schedule.simple([TOPSIDE, VEHICLE, VEHICLE, TOPSIDE, VEHICLE, VEHICLE], 20.0, 2.0)
     vehicle = Node(
@@ -70,7 +90,7 @@ def build(hours: float, seed: int) -> tuple[SimNetwork, dict[str, Any]]:
     )
     topside = Node(ChannelManager(TOPSIDE, [LinkConfig(0, sched, rate=5, dst=VEHICLE)]))
     duration = hours * 3600.0
-    series = ts_synth.dataset(duration=duration, period=1.0, seed=seed, t0=T0)
+    series = sensor_series(duration, seed, T0)
     bathy = BathymetryModality().sender({"send_delay": 20.0})
     images = ImageryModality().sender(None)
     ts = TimeSeriesModality().sender({"channels": [s.channel() for s in series]})
@@ -93,10 +113,7 @@ def build(hours: float, seed: int) -> tuple[SimNetwork, dict[str, Any]]:
     net.add_node(vehicle, (0.0, 0.0, 500.0))
     net.add_node(topside, (300.0, 400.0, 0.0))
 
-    floor = Seafloor.default(size=256.0, seed=seed, relief=1.0)
-    survey = simulate_survey(floor, beams=96, ping_rate=1.0, speed=1.5, seed=seed + 1)
-    passes = [(t, xyz) for t, xyz in survey.pings(batch=10)]
-    pass_seconds = max(t for t, _ in passes) + 30.0
+    passes, pass_seconds = survey_passes(seed)
 
     def survey_pass(now: float) -> None:
         for t, xyz in passes:
@@ -109,7 +126,7 @@ def build(hours: float, seed: int) -> tuple[SimNetwork, dict[str, Any]]:
 
     def photo(now: float) -> None:
         k[0] += 1
-        images.ingest(ImageInput(seafloor(120, 160, seed=k[0] % 50), time=now, x=0.0, y=0.0), now)
+        images.ingest(ImageInput(camera_image(k[0]), time=now, x=0.0, y=0.0), now)
 
     net.every(300.0, photo, start=T0 + 60.0)
 

@@ -173,8 +173,12 @@ class _Writer:
             tag = "$b" if isinstance(x, bytes) else "$ba"
             return {tag: self.blob(np.frombuffer(bytes(x), np.uint8), x)}
         if isinstance(x, list) and type(x) is list:
+            if _plain(x):
+                return list(x)
             return [self.enc(v, f"{path}[{i}]") for i, v in enumerate(x)]
         if type(x) is tuple:
+            if _plain(x):
+                return {"$t": list(x)}
             return {"$t": [self.enc(v, f"{path}[{i}]") for i, v in enumerate(x)]}
         if type(x) in (set, frozenset):
             items = [self.enc(v, f"{path}{{}}") for v in x]
@@ -208,6 +212,17 @@ class _Writer:
         fields = _fields(x)
         out = {k: self.enc(v, f"{path}.{k}") for k, v in fields.items() if k not in c.transient}
         return {"$o": c.name, "id": ref, "f": out}
+
+
+#: values written as themselves (a finite float too)
+_PLAIN = frozenset((int, str, bool, float, type(None)))
+
+
+def _plain(items: list[Any] | tuple[Any, ...]) -> bool:
+    """Whether every item is written as itself (the common list of ints of a message: written
+    without visiting each item, which costs most of a snapshot's time)."""
+    return all(type(v) in _PLAIN for v in items) and all(
+        math.isfinite(v) for v in items if type(v) is float)
 
 
 def _hint(cls: type) -> str:

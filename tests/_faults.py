@@ -5,7 +5,6 @@ three modalities between a vehicle and a topside node (fixed seeds)."""
 from __future__ import annotations
 
 import dataclasses
-import heapq
 import random
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -16,16 +15,15 @@ import numpy as np
 from coex import Runner, SimNetwork, SimulatedClock
 from coex_core.acoustic import AcousticChannel, Arrival
 from coex_core.channel import ChannelManager, LinkConfig, Schedule, StreamConfig
-from coex_core.errors import RequestRejected
 from coex_core.messages import Message
 from coex_core.modality import ModalityReceiver, ModalitySender, Product
 from coex_core.node import Node
+from coex_plugins import convergence
 from coex_plugins.bathymetry import BathymetryModality, BathymetryReceiver, BathymetrySender
 from coex_plugins.imagery import ImageInput, ImageryModality, ImageryReceiver, ImagerySender
 from coex_plugins.imagery.synth import seafloor
 from coex_plugins.timeseries import TimeSeriesModality, TimeSeriesReceiver, TimeSeriesSender
 from coex_plugins.timeseries import synth as ts_synth
-from coex_transports.runner import next_wakeup
 
 from ._bathy_data import small_survey
 
@@ -257,90 +255,40 @@ def run_modems(dive: Dive, until: float, reboots: list[float], loss: float = 0.1
     """The dive through the Micromodem simulator (NMEA drivers), the vehicle's modem rebooted
     at each time of ``reboots``."""
     from coex_core.loopback import SimClock
-    from coex_transports.micromodem.simulator import ModemNetwork
+    from coex_transports.micromodem.simulator import ModemNetwork, SimLoop
 
     clock = SimClock(T0)
     net = ModemNetwork({TOPSIDE: (100.0, 0.0, 0.0), VEHICLE: (0.0, 0.0, 500.0)},
                        channel=AcousticChannel(loss=loss, seed=seed), clock=clock)
     runners = [Runner(dive.vehicle, {0: net.transport(VEHICLE, rate=5, dest=TOPSIDE)}, SimulatedClock(sim=clock)),
                Runner(dive.topside, {0: net.transport(TOPSIDE, rate=5, dest=VEHICLE)}, SimulatedClock(sim=clock))]
-    events: list[tuple[float, int, Callable[[float], None]]] = []
-    for i, (t, fn) in enumerate(dive.inputs):
-        heapq.heappush(events, (t, i, fn))
-    for j, t in enumerate(reboots):
-        heapq.heappush(events, (t, 10**6 + j, lambda now: net.modems[VEHICLE].reboot(now)))
-    steps = 0
-    while clock.now < until:
-        t = next_wakeup(clock.now, until, events[0][0] if events else None,
-                        [net.next_event(), *(r.node.next_event(clock.now) for r in runners)],
-                        started=bool(steps))
-        t = min(t, clock.now + 1.0)
-        net.run_until(t)
-        while events and events[0][0] <= clock.now:
-            _, _, fn = heapq.heappop(events)
-            fn(clock.now)
-        for r in runners:
-            r.step()
-        net.step()
-        steps += 1
+    loop = SimLoop(net, runners, max_step=1.0)
+    for t, fn in dive.inputs:
+        loop.at(t, fn)
+    for t in reboots:
+        loop.at(t, lambda now: net.modems[VEHICLE].reboot(now))
+    loop.run(until)
     return net, runners
 
 
 # ------------------------------------------------------------------------------ checks
+# (the checks themselves are coex_plugins.convergence's, shared with the soak benchmark)
 
 
 def map_converged(dive: Dive) -> bool:
     """Every level of the topside map equals the vehicle's map (to the 0.1 m quantisation)."""
-    products = {p.key: p for p in dive.map_rx.products()}
-    for k in range(3):
-        grid, x0, y0 = dive.bathy.map.grid(k)
-        prod = products.get(f"level-{k}")
-        if prod is None:
-            return False
-        cell = prod.meta["cell_size"]
-        r0 = round((prod.meta["y0"] - y0) / cell)
-        c0 = round((prod.meta["x0"] - x0) / cell)
-        got = prod.data
-        rows, cols = np.nonzero(np.isfinite(grid))
-        tr, tc = rows - r0, cols - c0  # the same cells in topside's mosaic
-        inside = (tr >= 0) & (tr < got.shape[0]) & (tc >= 0) & (tc < got.shape[1])
-        if not inside.all() or int(np.isfinite(got).sum()) != rows.size:
-            return False
-        if np.abs(got[tr, tc] - grid[rows, cols]).max(initial=0.0) > 0.05 + 1e-9:  # 0.1 m quantum
-            return False
-    return True
+    return convergence.map_converged(dive.bathy, dive.map_rx)
 
 
 def images_complete(dive: Dive) -> bool:
     """Every image reached its goal topside (image 1: in full), decoded."""
-    s, r = dive.images, dive.image_rx
+    s = dive.images
     if len(s.images) < 4 or s.images[1].goal != s.images[1].total:
         return False
-    for image_id, tx in s.images.items():
-        rx = r.images.get(image_id)
-        if rx is None or rx.contiguous() < tx.goal or rx.image is None:
-            return False
-        if bytes(rx.buf[: tx.goal]) != tx.enc.body[: tx.goal]:
-            return False
-    return True
+    return not convergence.images_missing(s, dive.image_rx)
 
 
 def series_complete(dive: Dive) -> bool:
     """Topside holds every block the vehicle closed, of every channel, with the vehicle's error
     bound, and every reconstructed value is within its bound of the true sample."""
-    for data in dive.series_data:
-        sent = dive.series.bound(data.name)
-        try:
-            held = {round(s, 3): b for s, _, b in dive.series_rx.bounds(data.name)}
-        except RequestRejected:  # nothing of this channel received yet
-            return False
-        if not sent or any(held.get(round(s, 3), np.inf) > b + 1e-9 for s, _, b in sent):
-            return False
-        rec = dive.series_rx.series(data.name)
-        idx = np.searchsorted(data.times, rec.times)
-        idx = np.clip(idx, 0, len(data.times) - 1)
-        same = np.isclose(data.times[idx], rec.times)
-        err = np.abs(rec.values[same] - data.values[idx[same]])
-        if not np.all(err <= rec.bounds[same] + 1e-6):
-            return False
-    return True
+    return convergence.series_complete(dive.series, dive.series_rx, dive.series_data)

@@ -449,3 +449,41 @@ def test_carxp_at_the_first_bit_data_after_the_last() -> None:
     net.run_until(t0 + 1.0 + RATES[5].packet_airtime(1) + 0.01)
     out = [x.split(",")[0].split("*")[0] for x in m2.data_to_send().decode().split("\r\n") if x]
     assert out == ["$CACYC", "$CARXD"]  # CST is off on this modem; no second CARXP
+
+
+def test_an_unplugged_simulated_modem_fails_like_a_serial_port_and_is_reopened() -> None:
+    """ModemNetwork.unplug pulls a modem's cable: the host's transport fails at its next use and
+    stays dead, opening one fails until ModemNetwork.plug; a ResilientTransport over the network's
+    opener reopens it on the simulated clock and counts the outage."""
+    from coex_core.errors import LinkDown, TransportError
+    from coex_transports.recovery import ResilientTransport
+
+    net = ModemNetwork({1: (0.0, 0.0, 0.0), 2: (1500.0, 0.0, 0.0)})
+    a = ResilientTransport("micromodem:///dev/sim/modem1?src=1&dest=2", name="link 0", clock=lambda: net.now,
+                           sleep=net.run_for, opener=net.open_uri)
+    b = net.transport(2, dest=1)
+    a.send(b"one")
+    assert b.recv(timeout=30) == b"one"
+    plain = a.inner
+    net.unplug(1)
+    with pytest.raises(LinkDown):
+        a.send(b"lost")
+    assert not a.up and plain is not None and plain.closed
+    with pytest.raises(TransportError, match="unplugged"):
+        net.transport(1)
+    net.run_for(120.0)
+    assert a.recv(timeout=0) is None and not a.up  # tried again meanwhile, in vain
+    assert a.health().attempts >= 1
+    net.plug(1)
+    net.run_for(31.0)
+    assert a.recv(timeout=0) is None and a.up
+    h = a.health()
+    assert h.outages == 1 and 120.0 <= h.last_down <= 200.0
+    a.send(b"two")
+    assert b.recv(timeout=30) == b"two"
+    # a plain transport whose cable is pulled fails at its next use, as a serial port does
+    net.unplug(2)
+    with pytest.raises(TransportError, match="serial port failed"):
+        b.recv(timeout=0)
+    b.close()
+    a.close()

@@ -194,6 +194,32 @@ def test_senders_hear_which_messages_were_acked_and_which_were_lost() -> None:
     assert m.frame_loss(0) is None  # three outcomes are not an estimate yet
 
 
+def test_a_lost_message_waits_for_a_late_ack_only_while_its_frames_seq_is_unused() -> None:
+    """A message given to ``lost`` still counts as delivered if its frame's ack comes late; once
+    that seq is used again no ack can reach it, and the manager forgets it (its saved state does
+    not hold thousands of lost messages)."""
+    s = Sender()
+    m = vehicle_manager(s, ack_timeout=30.0)
+    first = m.build(0, 0.0)
+    assert first is not None
+    m.poll(31.0)  # no ack in time: lost
+    lost = len(s.lost_msgs)
+    assert lost == sum(len(wire.unpack(f)) for f in first.frames) > 0
+    late = m.acknowledge(FrameAck(VEHICLE, 0, (FrameAckEntry(first.seq, 0b1),)), 32.0)
+    assert len(late) == len(wire.unpack(first.frames[0]))  # arrived after all
+    frames: list[int] = []  # messages per frame sent, in order
+    t = 40.0
+    while len(frames) < 600:  # nothing acked: every seq is used again, more than twice
+        tx = m.build(0, t)
+        assert tx is not None
+        frames += [len(wire.unpack(f)) for f in tx.frames]
+        t += 20.0
+        m.poll(t)
+    assert len(s.lost_msgs) > 2000
+    # remembered: at most the messages of the frames whose seqs are not used again yet
+    assert len(m._lost_recs) <= sum(frames[-256:])
+
+
 def test_urgent_messages_go_in_several_frames_as_the_measured_loss_grows() -> None:
     m = ChannelManager(VEHICLE, [LinkConfig(0, Schedule.simple([VEHICLE], 20.0, 2.0))])
     assert m.copies(0) == 1  # nothing measured yet

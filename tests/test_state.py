@@ -58,6 +58,9 @@ def test_values_round_trip() -> None:
         "array": np.arange(12, dtype=np.int16).reshape(3, 4), "scalar": np.float32(2.5),
         "message": m.QueueStatus(5, (m.StreamStatus(3, True, 1, 30, 2, 100, 7, 0),)),
         "enum": m.AckStatus.REJECTED,
+        # lists of plain values are written whole; anything else in one is visited
+        "plain": [1, 2.5, "a", None, True], "plain_tuple": (3, -4), "inf_tuple": (1.0, float("inf")),
+        "enum_tuple": (m.AckStatus.REJECTED, 1), "numpy_list": [np.int64(3), 4],
     }
     back = loads(dumps(value))
     assert np.isnan(back.pop("nan")) and np.isnan(value.pop("nan"))
@@ -67,6 +70,7 @@ def test_values_round_trip() -> None:
     assert type(back["deque"]) is deque and back["deque"].maxlen == 5
     assert list(back["od"]) == ["b", "a"] and type(back["scalar"]) is np.float32
     assert type(back["ba"]) is bytearray and back["enum"] is m.AckStatus.REJECTED
+    assert back["enum_tuple"][0] is m.AckStatus.REJECTED and type(back["numpy_list"][0]) is np.int64
 
 
 def test_shared_objects_stay_shared_and_cycles_work() -> None:

@@ -71,6 +71,9 @@ def test_the_journal_is_compacted_at_each_snapshot(tmp_path: Path) -> None:
         rows = [r.id for r in s2.journal()]
         assert rows and min(rows) > last  # nothing the snapshot holds is kept twice
         assert s1.count("rx") == s2.count("rx") + last  # the record-keeping store kept all
+        # what the snapshots wrote is counted (one snapshot here: the one in the file)
+        size = s2.db.execute("SELECT length(state) FROM snapshot").fetchone()[0]
+        assert s2.stats["snapshots"] == 1 and s2.stats["snapshot_bytes"] == size
     finally:
         s1.close()
         s2.close()

@@ -116,6 +116,70 @@ def test_a_survey_goes_up_is_flown_and_a_restart_resumes(tmp_path: Path) -> None
         topside.close()
 
 
+SIM_COMMON = """
+[tdma]
+slots = ["topside", "vehicle"]
+slot_seconds = 10.0
+guard = 1.0
+[modalities.timeseries]
+stream = 5
+{options}
+"""
+
+
+def test_the_daemons_run_on_given_transports_with_an_input_made_in_code(tmp_path: Path) -> None:
+    """``VehicleApp(transports=...)`` and ``topside_from_config(transports=...)`` run on links the
+    caller opened (here simulated Micromodems on a simulated clock), and ``VehicleApp.add_input``
+    polls an input made in code like a configured one: its samples reach the console."""
+    import numpy as np
+    import pytest
+
+    from coex_core.adapters import Input, Samples
+    from coex_core.errors import ConfigError
+    from coex_transports.micromodem.simulator import ModemNetwork, SimLoop
+
+    class Thermometer(Input):
+        name = "thermometer"
+        feeds = ("timeseries",)
+
+        def __init__(self, context: Any) -> None:
+            super().__init__({}, context)
+            self.next = net.now
+
+        def poll(self, now: float) -> list[Any]:
+            out = []
+            while self.next + 10.0 <= now:
+                t = self.next + np.arange(10.0)
+                out.append(Samples("temp", t, 4.0 + 0.01 * (t % 7)))
+                self.next += 10.0
+            return out
+
+    net = ModemNetwork({1: (0.0, 0.0, 0.0), 2: (500.0, 0.0, 100.0)})
+    channel = 'options = { channels = [{ name = "temp", unit = "degC", lo = -2.0, hi = 40.0, resolution = 0.01 }] }'
+    (tmp_path / "v.toml").write_text('[node]\nrole = "vehicle"\nid = 2\nstore = false\n'
+                                     '[[modems]]\nuri = "micromodem:///dev/sim2?src=2&dest=1&rate=5"\n'
+                                     + SIM_COMMON.format(options=channel))
+    (tmp_path / "t.toml").write_text('[node]\nrole = "topside"\nid = 1\n[console]\nhttp = "127.0.0.1:0"\n'
+                                     '[[modems]]\nuri = "micromodem:///dev/sim1?src=1&dest=2&rate=5"\n'
+                                     + SIM_COMMON.format(options=""))
+    clock = lambda: net.now  # noqa: E731
+    with pytest.raises(ConfigError, match="one per URI"):
+        topside_from_config(str(tmp_path / "t.toml"), clock, transports={1: net.transport(1, dest=2)})
+    assert not net._hosts  # the refused link was closed
+    vehicle = VehicleApp(load(tmp_path / "v.toml", "vehicle"), clock=clock, transports={0: net.transport(2, dest=1)})
+    topside = topside_from_config(str(tmp_path / "t.toml"), clock, transports={0: net.transport(1, dest=2)})
+    try:
+        thermometer = vehicle.add_input(Thermometer(vehicle.context))
+        assert thermometer.coex_key == "inputs[0] (thermometer)" and thermometer.coex_feeds == ("timeseries",)
+        SimLoop(net, [vehicle.runner, topside.runner], max_step=1.0).run(net.now + 1800.0)
+        assert vehicle.counts["samples"] >= 1700 and vehicle.runner.error_count == 0
+        held = topside.node.receiver("timeseries").series("temp")
+        assert len(held.times) > 0 and np.all(np.abs(held.values - 4.03) <= 0.04 + held.bounds)
+    finally:
+        vehicle.close()
+        topside.close()
+
+
 SKIPPING = """
 [node]
 role = "vehicle"

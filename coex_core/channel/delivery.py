@@ -38,7 +38,8 @@ LOSS_WINDOW = 256
 MAX_GAP = 64
 #: fewest outcomes before an estimate is trusted
 MIN_OUTCOMES = 8
-#: messages given to ``lost`` that a late ack can still turn into ``acked``
+#: messages given to ``lost`` that a late ack can still turn into ``acked``, at most (a message is
+#: forgotten sooner, when the seqs of the frames that carried it are used again)
 LOST_REMEMBERED = 4096
 #: an urgent message gets enough copies that all are lost with at most this probability
 REDUNDANCY_TARGET = 0.05
@@ -121,8 +122,14 @@ class DeliveryMixin(LinksMixin):
         self._frame_watch.setdefault(link, {})[seq] = (now, now + self._links[link].ack_timeout)
 
     def _forget_frame(self, link: int, seq: int) -> None:
-        """``seq`` is used again: the old frame's ack can no longer be told apart."""
-        self._delivery_frames.get(link, {}).pop(seq, None)
+        """``seq`` is used again: the old frame's ack can no longer be told apart, so a message
+        given to ``lost`` that no other recorded frame carried can no longer be acknowledged late:
+        it is forgotten (the saved state holds only what an ack can still reach)."""
+        tokens = self._delivery_frames.get(link, {}).pop(seq, ())
+        for token in tokens:
+            if token in self._lost_recs and not any(
+                    token in carried for frames in self._delivery_frames.values() for carried in frames.values()):
+                del self._lost_recs[token]
         if self._frame_watch.get(link, {}).pop(seq, None) is not None:
             self._outcome(self._tx_outcomes, link, 0)
 

@@ -200,7 +200,9 @@ class NodeStore:
         self.extra: Callable[[], Any] | None = None
         #: What ``extra()`` returned at the snapshot :meth:`restore` loaded (None without one).
         self.restored_extra: Any = None
-        self.stats = {"rx": 0, "tx": 0, "input": 0, "snapshots": 0, "replayed": 0}
+        #: rows journaled by kind, snapshots written (``snapshot_bytes``: their total size, what
+        #: the file's disk takes in writes), rows replayed at :meth:`restore`
+        self.stats = {"rx": 0, "tx": 0, "input": 0, "snapshots": 0, "snapshot_bytes": 0, "replayed": 0}
         self._storage: SqliteStorage | None = None
 
     def storage(self) -> SqliteStorage:
@@ -272,6 +274,7 @@ class NodeStore:
         self._last_snapshot = t
         self._dirty = False
         self.stats["snapshots"] += 1
+        self.stats["snapshot_bytes"] += len(blob)
 
     def maybe_snapshot(self, node: Node, t: float, *, force: bool = False) -> bool:
         """Snapshot when ``force`` (a transmission is about to leave) or when something was

@@ -15,7 +15,7 @@ import logging
 import sys
 import threading
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import replace
 from pathlib import Path
 from typing import Any
@@ -306,7 +306,8 @@ def build_topside(transport_uri: str | Sequence[str], host: str = "127.0.0.1", p
                   receiver_options: dict[str, dict[str, Any]] | None = None,
                   link_options: Sequence[dict[str, Any]] | None = None,
                   required: Sequence[bool] | None = None,
-                  ros: dict[str, Any] | None = None) -> TopsideApp:
+                  ros: dict[str, Any] | None = None,
+                  transports: Mapping[int, Any] | None = None) -> TopsideApp:
     """Open the transports (several URIs: several modems, link ids ``link``, ``link + 1`` ...),
     build the topside node and its receivers, serve the console (not yet driving the node: call
     ``start()`` or ``run()``). With ``command_key`` every command is authenticated (spec
@@ -332,7 +333,9 @@ def build_topside(transport_uri: str | Sequence[str], host: str = "127.0.0.1", p
     :class:`~coex_transports.recovery.ResilientTransport`: a modem that goes away or is not
     there yet is reopened with backoff (``required[i]`` true: an error at start instead).
     ``ros`` (the options of :class:`~coex_plugins.console.ros.RosProducts`) publishes what
-    arrives on ROS topics for rviz."""
+    arrives on ROS topics for rviz. ``transports`` (link id -> an open transport, one per URI)
+    replaces the transports the URIs would open: a simulation's, a test's (the URIs then only
+    name the links); the app closes them."""
     access, tls = console_access(host, operators, insecure_open, tls_cert, tls_key, session_hours,
                                  idle_minutes)
     from coex_core.channel.manager import ChannelManager, LinkConfig
@@ -354,19 +357,24 @@ def build_topside(transport_uri: str | Sequence[str], host: str = "127.0.0.1", p
     uris = [transport_uri] if isinstance(transport_uri, str) else list(transport_uri)
     if not uris:
         raise ConfigError("give at least one transport URI")
-    transports: dict[int, Any] = {}
+    links: dict[int, Any] = {}
     nstore: Any = None
     try:
         from coex_core.acoustic import rate_info
 
-        for i, uri in enumerate(uris):
+        if transports is not None:
+            links.update(transports)  # closed with the rest on an error
+            if sorted(transports) != [link + i for i in range(len(uris))]:
+                raise ConfigError(f"transports for links {sorted(transports)}, expected "
+                                  f"{[link + i for i in range(len(uris))]} (one per URI)")
+        for i, uri in enumerate(uris if transports is None else ()):
             # a modem that goes away (or is not there yet) is reopened while the console runs on
-            transports[link + i] = ResilientTransport(uri, name=f"link {link + i}",
-                                                      required=bool(required and i < len(required) and required[i]))
+            links[link + i] = ResilientTransport(uri, name=f"link {link + i}",
+                                                 required=bool(required and i < len(required) and required[i]))
         extra = list(link_options or [])
         cfgs = [LinkConfig(lid, schedule, rate=rate,
                            frame_bytes=min(rate_info(rate).frame_bytes, int(tr.mtu)),
-                           dst=vehicle_id) for lid, tr in transports.items()]
+                           dst=vehicle_id) for lid, tr in links.items()]
         for i, lc in enumerate(cfgs):  # per-link settings of a configuration file
             if i < len(extra) and extra[i]:
                 cfgs[i] = replace(lc, **extra[i])
@@ -396,7 +404,7 @@ def build_topside(transport_uri: str | Sequence[str], host: str = "127.0.0.1", p
                 names.update(stream_names or {})
                 state = ConsoleState(node_id=node_id, vehicle_id=vehicle_id, stream_names=names,
                                      receivers=dict(node.receivers()))
-                for lid in transports:
+                for lid in links:
                     state.set_schedule(lid, schedule)
             # the node's receivers are what the console shows (the saved console holds the
             # same objects as the restored node: they were saved in one document)
@@ -417,10 +425,10 @@ def build_topside(transport_uri: str | Sequence[str], host: str = "127.0.0.1", p
             nstore = NodeStore(store, snapshot_interval=snapshot_interval)
             resumed = nstore.has_state()
             node = nstore.restore(fresh, log=None, clock=None, before_replay=wire)
-            if sorted(node.manager.links) != sorted(transports):
+            if sorted(node.manager.links) != sorted(links):
                 raise ConfigError(
                     f"{store} holds a node with links {sorted(node.manager.links)}, this run has "
-                    f"{sorted(transports)}: give the same transports, or another --store")
+                    f"{sorted(links)}: give the same transports, or another --store")
             if node.node_id != node_id:
                 raise ConfigError(f"{store} holds topside node {node.node_id}, not {node_id}")
             if resumed:
@@ -439,12 +447,12 @@ def build_topside(transport_uri: str | Sequence[str], host: str = "127.0.0.1", p
         server = serve(hub, host, port, access=access, tls=tls, allowed_hosts=list(allowed_hosts),
                        trusted_proxies=list(trusted_proxies))
     except BaseException:
-        for tr in transports.values():
+        for tr in links.values():
             tr.close()
         if nstore is not None:
             nstore.close()
         raise
-    app = TopsideApp(node, transports, hub, server, clock, store=nstore)
+    app = TopsideApp(node, links, hub, server, clock, store=nstore)
     if ros is not None:
         from .ros import RosProducts
 
@@ -456,8 +464,10 @@ def build_topside(transport_uri: str | Sequence[str], host: str = "127.0.0.1", p
     return app
 
 
-def topside_from_config(path: str, clock: Callable[[], float] = time.time) -> TopsideApp:
-    """The topside node, its modems and console as a configuration file describes them."""
+def topside_from_config(path: str, clock: Callable[[], float] = time.time, *,
+                        transports: Mapping[int, Any] | None = None) -> TopsideApp:
+    """The topside node, its modems and console as a configuration file describes them
+    (``transports``: see :func:`build_topside`)."""
     from coex_plugins.vehicle.config import load
 
     cfg = load(path, "topside")
@@ -481,7 +491,7 @@ def topside_from_config(path: str, clock: Callable[[], float] = time.time) -> To
         link_options=[{k: v for k, v in (("rate", m.rate), ("frame_bytes", m.frame_bytes), ("spare", m.spare),
                                           ("packet_seconds", m.packet_seconds)) if v is not None}
                       for m in cfg.modems],
-        required=[m.required for m in cfg.modems], ros=cfg.ros,
+        required=[m.required for m in cfg.modems], ros=cfg.ros, transports=transports,
         idle_minutes=float(c.get("idle_minutes", 30.0)), allowed_hosts=[str(h) for h in c.get("allowed_hosts", [])],
         trusted_proxies=[str(h) for h in c.get("trusted_proxies", [])])
 

@@ -55,6 +55,19 @@ class Series:
         return float(self.bounds.max()) if self.bounds.size else math.inf
 
 
+def _narrow(codes: np.ndarray) -> np.ndarray:
+    """Integer codes in the narrowest integer type that holds them: topside keeps every pass of
+    the dive's blocks (and saves them in every snapshot), mostly small codes."""
+    if not codes.size:
+        return codes
+    lo, hi = int(codes.min()), int(codes.max())
+    for t in (np.int8, np.int16, np.int32):
+        info = np.iinfo(t)
+        if info.min <= lo and hi <= info.max:
+            return codes.astype(t)
+    return codes
+
+
 @persistent("timeseries.Part")
 @dataclass
 class _Part:
@@ -230,7 +243,7 @@ class TimeSeriesReceiver(ModalityReceiver):
             log.warning("chunk [%d, %d) of channel %d overlaps a chunk of its pass already held", first, end,
                         m.channel)
             return []
-        parts[first] = _Part(end, m.step, m.error, codes, m.samples)
+        parts[first] = _Part(end, m.step, m.error, _narrow(codes), m.samples)
         block.cache = None
         ch.version += 1
         return [self._product(ch)]

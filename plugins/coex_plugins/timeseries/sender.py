@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
@@ -35,6 +36,9 @@ MAX_CHUNK_DATA = 232
 _REQUESTED, _ALERT, _OVERVIEW = 0, 1, 2
 #: refinement passes made for spare capacity: sent only by ``spare``
 _SPARE = 3
+#: what a done block keeps of its samples, reconstruction and pass codes
+_NOTHING = np.zeros(0)
+_NO_CODES = np.zeros(0, np.int64)
 
 
 class InvalidSamples(CoexError, ValueError):
@@ -113,10 +117,19 @@ class _Block:
     recon: np.ndarray
     passes: list[codec.Pass] = field(default_factory=list)
     chunks: list[list[_Chunk]] = field(default_factory=list)
+    #: a done block's sample count (-1 while it is not done: ``x`` holds the samples). A block
+    #: is done when no pass is left to make and topside acknowledged all its chunks: its
+    #: samples, reconstruction, pass codes and chunks are dropped (nothing can need them), so
+    #: the sender's saved state does not grow with the length of the dive.
+    samples: int = -1
 
     @property
     def count(self) -> int:
-        return int(self.x.size)
+        return self.samples if self.samples >= 0 else int(self.x.size)
+
+    @property
+    def done(self) -> bool:
+        return self.samples >= 0
 
     @property
     def end(self) -> float:
@@ -463,8 +476,23 @@ class TimeSeriesSender(ModalitySender):
         return out
 
     def _refinable(self) -> list[tuple[_Channel, _Block]]:
-        return [(ch, b) for ch in self._channels for b in ch.blocks
-                if len(b.passes) < MAX_PASSES and b.bound() > ch.cfg.resolution / 2 * (1 + 1e-9)]
+        return [(ch, b) for ch in self._channels for b in ch.blocks if self._can_refine(ch, b)]
+
+    @staticmethod
+    def _can_refine(ch: _Channel, b: _Block) -> bool:
+        return not b.done and len(b.passes) < MAX_PASSES and b.bound() > ch.cfg.resolution / 2 * (1 + 1e-9)
+
+    def _retire(self, ch: _Channel) -> None:
+        """Drop what the channel's done blocks no longer need (see :attr:`_Block.samples`):
+        every pass made, none left to make, no chunk waiting for its acknowledgement."""
+        waiting = {c.key[:2] for c in ch.by_key.values()}  # (stamp, offset) of blocks with chunks out
+        for b in ch.blocks:
+            if b.done or not b.passes or (b.stamp, b.offset) in waiting or self._can_refine(ch, b):
+                continue
+            b.samples = b.count
+            b.x = b.recon = _NOTHING
+            b.passes = [dataclasses.replace(b.passes[-1], codes=_NO_CODES)]  # its bound
+            b.chunks = []
 
     def _refine_spare(self) -> bool:
         """Make the next spare refinement pass (newest block first); False when none is left."""
@@ -514,6 +542,7 @@ class TimeSeriesSender(ModalitySender):
                     chunk.acked = True
             for key in [k for k, c in ch.by_key.items() if c.acked]:
                 del ch.by_key[key]
+            self._retire(ch)
             return []
         if isinstance(message, TimeSeriesRequest):
             self._refine(message, now)
@@ -537,7 +566,7 @@ class TimeSeriesSender(ModalitySender):
         if ch.times.size and ch.times[0] <= t1:
             self._close(ch, ch.times.size)
         for block in ch.blocks:
-            if block.end < t0 or block.start > t1:
+            if block.end < t0 or block.start > t1 or block.done:  # a done block is held as well as it can be
                 continue
             while block.bound() > req.max_error and len(block.passes) < MAX_PASSES:
                 self._add_pass(ch, block, max(req.max_error, ch.cfg.resolution / 2), _REQUESTED)

@@ -17,7 +17,7 @@ import logging
 import math
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from pathlib import Path
 from typing import Any
 
@@ -93,9 +93,12 @@ def _load(group: str, name: str) -> Any:
 
 class VehicleApp:
     """The vehicle daemon (see the module docstring). ``clock`` is the wall clock (tests may
-    give another)."""
+    give another). ``transports`` (link id -> an open transport, one per ``[[modems]]`` entry)
+    replaces the modems the configuration would open: a simulation's, a test's; the app closes
+    them."""
 
-    def __init__(self, cfg: DeployConfig, *, clock: Callable[[], float] = time.time) -> None:
+    def __init__(self, cfg: DeployConfig, *, clock: Callable[[], float] = time.time,
+                 transports: Mapping[int, Any] | None = None) -> None:
         from coex_transports.runner import RealClock, Runner
 
         from .inputs.base import InputContext
@@ -103,7 +106,7 @@ class VehicleApp:
         self.cfg = cfg
         self.clock = clock
         self.stop = threading.Event()
-        self.transports = open_transports(cfg)
+        self.transports = dict(transports) if transports is not None else open_transports(cfg)
         self.store: Any = None
         self.inputs: list[Any] = []
         self.autonomy: Any = None
@@ -134,10 +137,7 @@ class VehicleApp:
             for i, t in enumerate(cfg.inputs):
                 cls = _load("coex.inputs", t["type"])
                 opts = {k: v for k, v in t.items() if k not in ("type", "feeds")}
-                inp = cls(opts, self.context)
-                inp.coex_feeds = tuple(t.get("feeds", cls.feeds))
-                inp.coex_key = f"inputs[{i}] ({t['type']})"
-                self.inputs.append(inp)
+                self.add_input(cls(opts, self.context), t.get("feeds"), f"inputs[{i}] ({t['type']})")
             a = dict(cfg.autonomy)
             if a:
                 self.autonomy = _load("coex.autonomy", a.pop("type"))(a, self.context)
@@ -164,6 +164,15 @@ class VehicleApp:
                                        "plans": 0, "reports": 0}
         #: per link: (up, outages) last reported topside in a LinkHealth
         self._health_sent: dict[int, tuple[bool, int]] = {}
+
+    def add_input(self, inp: Any, feeds: Any = None, key: str | None = None) -> Any:
+        """Poll ``inp`` (an :class:`~.inputs.base.Input`) like the ``[[inputs]]`` of the
+        configuration: one made in code (a simulated sensor). ``feeds`` defaults to the input's
+        own; ``key`` names it in the log. Open it yourself if the app is open already."""
+        inp.coex_feeds = tuple(feeds if feeds is not None else type(inp).feeds)
+        inp.coex_key = key or f"inputs[{len(self.inputs)}] ({inp.name})"
+        self.inputs.append(inp)
+        return inp
 
     # ------------------------------------------------------------------------ lifecycle
     def open(self) -> VehicleApp:
@@ -225,8 +234,11 @@ class VehicleApp:
         self._autonomy(now)
 
     def link_health(self) -> dict[int, Any]:
-        """Each modem's :class:`~coex_transports.recovery.Health` (outages, time down)."""
-        return {lid: tr.health() for lid, tr in self.transports.items()}
+        """Each modem's :class:`~coex_transports.recovery.Health` (outages, time down); a link
+        given as a plain transport (``transports=``) has none."""
+        from coex_transports.recovery import ResilientTransport
+
+        return {lid: tr.health() for lid, tr in self.transports.items() if isinstance(tr, ResilientTransport)}
 
     def _link_health(self, now: float) -> None:
         """A LinkHealth topside whenever a modem went down or came back (sent on whichever link is

@@ -12,7 +12,13 @@
 * :class:`ModemNetwork` owns the channel, the modems and a :class:`~coex_core.loopback.SimClock`;
   it runs everything in simulated time. :meth:`ModemNetwork.transport` gives a
   :class:`~.transport.MicromodemTransport` whose driver talks NMEA to a simulated modem in
-  process, so a two-hour dive runs in seconds through the real driver code.
+  process, so a two-hour dive runs in seconds through the real driver code;
+  :meth:`ModemNetwork.open_uri` opens a ``micromodem:`` URI there instead of on a serial port, and
+  :meth:`ModemNetwork.unplug` / :meth:`~ModemNetwork.plug` pull a modem's serial cable and put it
+  back (the host's transport fails as a real port does, and cannot be opened again meanwhile).
+* :class:`SimLoop` drives :class:`~coex_transports.runner.Runner` objects over a network, with
+  timed callbacks, on the network's clock: the loop of every simulation that runs the real
+  runners and drivers in one process (the fault suite, the soak with faults).
 * :class:`PtySimulator` serves the modems of a network on pseudo-terminals (``os.openpty``) and,
   optionally, TCP ports, in real time (or scaled by ``speed``): what ``coex modem-sim`` runs, and
   what WHOI's ``acomms`` library is pointed at in the interop tests.
@@ -42,13 +48,14 @@ from typing import Any
 
 from coex_core.acoustic import RATES as AIR_RATES
 from coex_core.acoustic import AcousticChannel, Arrival
-from coex_core.errors import ConfigError
+from coex_core.errors import ConfigError, TransportError
 from coex_core.loopback import SimClock
 
 from . import nmea
 from .nmea import FDP_RATES, RATES, FdpFrame, NmeaError, Sentence
 
-__all__ = ["SimulatedModem", "ModemNetwork", "NetworkClock", "PtySimulator", "DEFAULT_NVRAM", "FIRMWARE_VERSION"]
+__all__ = ["SimulatedModem", "ModemNetwork", "NetworkClock", "PtySimulator", "SimLoop", "DEFAULT_NVRAM",
+           "FIRMWARE_VERSION"]
 
 #: Reported by the simulated modems: a Micromodem-2 firmware without the odd-length FDP bug.
 FIRMWARE_VERSION = "2.0.35490"
@@ -596,6 +603,8 @@ class ModemNetwork:
         self.channel = channel or AcousticChannel()
         self.clock = clock or SimClock(1735689600.0)
         self.modems: dict[int, SimulatedModem] = {}
+        #: modems whose serial cable is pulled (:meth:`unplug`)
+        self.unplugged: set[int] = set()
         self._hosts: list[_Host] = []
         self._meta: list[tuple[int, float, _Meta]] = []
         positions = positions if positions is not None else {1: (0.0, 0.0, 0.0), 2: (1000.0, 0.0, 0.0)}
@@ -618,7 +627,9 @@ class ModemNetwork:
 
     def attach(self, node: int, driver: Any) -> None:
         """Wire an in-process host driver (``feed``/``poll``/``data_to_send``/``next_deadline``) to
-        ``node``'s modem."""
+        ``node``'s modem. :class:`TransportError` while that modem is unplugged (:meth:`unplug`)."""
+        if node in self.unplugged:
+            raise TransportError(f"cannot open simulated modem {node}: its cable is unplugged")
         if any(h.modem.node == node for h in self._hosts):
             raise ConfigError(f"modem {node} already has a host")
         self._hosts.append(_Host(driver, self.modems[node], pty=self.ptys))
@@ -630,6 +641,39 @@ class ModemNetwork:
             if h.driver is driver:
                 self._hosts.remove(h)
                 h.modem.orphan = True
+
+    def attached(self, driver: Any) -> bool:
+        """Whether ``driver`` is wired to its modem (not detached, its cable not pulled)."""
+        return any(h.driver is driver for h in self._hosts)
+
+    def unplug(self, node: int) -> None:
+        """Pull the serial cable of ``node``'s modem (a USB adapter unplugged, a serial-over-IP
+        server gone): the host's transport raises :class:`TransportError` at its next use and
+        stays dead, like a real port, and a new one cannot be opened until :meth:`plug`. The
+        modem itself keeps its power and settings; what it receives meanwhile is lost."""
+        self.unplugged.add(node)
+        for h in list(self._hosts):
+            if h.modem.node == node:
+                self._hosts.remove(h)
+                h.close()
+                h.modem.orphan = True
+
+    def plug(self, node: int) -> None:
+        """Put ``node``'s serial cable back: a transport can be opened on its modem again."""
+        self.unplugged.discard(node)
+
+    def open_uri(self, uri: str) -> Any:
+        """A ``micromodem:`` URI opened on this network instead of a serial port: the driver, with
+        the URI's options, on the simulated modem of its ``src`` (the device path is only a
+        name). An opener for :class:`~coex_transports.recovery.ResilientTransport`."""
+        import dataclasses
+
+        from .transport import MicromodemTransport, parse_uri
+
+        _, _, config = parse_uri(uri)
+        if config.src not in self.modems:
+            raise TransportError(f"cannot open {uri}: no simulated modem {config.src}")
+        return MicromodemTransport.simulated(self, config.src, **dataclasses.asdict(config))
 
     def transport(self, node: int, **options: Any) -> Any:
         """A :class:`~.transport.MicromodemTransport` on ``node``'s simulated modem, driven by this
@@ -788,6 +832,76 @@ class NetworkClock:
             return
         start = net.received_count()
         net.run_while(lambda: net.received_count() == start, t - net.now)
+
+
+class SimLoop:
+    """:class:`~coex_transports.runner.Runner` objects over a :class:`ModemNetwork`, with timed
+    callbacks, on the network's clock (each runner's clock must read that clock).
+
+    Each pass advances the network to the next thing due (a modem or driver deadline, a node's
+    next slot, a callback; at most ``max_step`` seconds on), calls the callbacks due, steps every
+    runner in :attr:`runners` (a list the caller may change: a node restarted), calls each of
+    :attr:`after` with the time, and lets the network take what the runners wrote. ``max_step``
+    bounds the jumps for parts the loop cannot see (an autonomy's protocol timers)."""
+
+    def __init__(self, network: ModemNetwork, runners: Sequence[Any] = (), *,
+                 max_step: float | None = None) -> None:
+        self.network = network
+        self.runners: list[Any] = list(runners)
+        self.max_step = max_step
+        #: called with the time after the runners, every pass
+        self.after: list[Callable[[float], Any]] = []
+        self._events: list[tuple[float, int, Callable[[float], Any]]] = []
+        self._count = itertools.count()
+        self.steps = 0
+
+    @property
+    def now(self) -> float:
+        return self.network.now
+
+    def at(self, t: float, fn: Callable[[float], Any]) -> None:
+        """Call ``fn(now)`` at time ``t`` (in the order given, for equal times)."""
+        heapq.heappush(self._events, (float(t), next(self._count), fn))
+
+    def every(self, period: float, fn: Callable[[float], Any], start: float | None = None,
+              until: float | None = None) -> None:
+        """Call ``fn(now)`` every ``period`` seconds from ``start`` (default: now), before ``until``."""
+        if period <= 0:
+            raise ConfigError("period must be positive")
+
+        def tick(now: float) -> None:
+            fn(now)
+            if until is None or now + period < until:
+                self.at(now + period, tick)
+
+        self.at(self.now if start is None else start, tick)
+
+    def run(self, until: float) -> None:
+        """Run to time ``until``."""
+        from ..runner import next_wakeup
+
+        net = self.network
+        while net.now < until:
+            t = next_wakeup(net.now, until, self._events[0][0] if self._events else None,
+                            [net.next_event(), *(r.node.next_event(net.now) for r in self.runners)],
+                            started=bool(self.steps))
+            if self.max_step is not None:
+                t = min(t, net.now + self.max_step)
+            self.step(t)
+
+    def step(self, t: float) -> None:
+        """One pass: the network to ``t``, the callbacks due, every runner, :attr:`after`."""
+        net = self.network
+        net.run_until(t)
+        while self._events and self._events[0][0] <= net.now:
+            _, _, fn = heapq.heappop(self._events)
+            fn(net.now)
+        for r in list(self.runners):
+            r.step()
+        for fn in self.after:
+            fn(net.now)
+        net.step()
+        self.steps += 1
 
 
 class PtySimulator:

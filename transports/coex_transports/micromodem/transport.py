@@ -180,7 +180,9 @@ class _SimBackend(_Backend):
     def __init__(self, driver: MicromodemDriver, network: Any, node: int) -> None:
         self.driver = driver
         self.network = network
+        self.node = node
         self.lock = threading.RLock()
+        self._closed = False
         network.attach(node, driver)
         driver.start(network.now)
 
@@ -189,7 +191,13 @@ class _SimBackend(_Backend):
         # back to back share a packet
         return
 
+    def check(self) -> None:
+        # the simulated cable was pulled (ModemNetwork.unplug): dead until closed and reopened
+        if not self._closed and not self.network.attached(self.driver):
+            raise TransportError(f"serial port failed: simulated modem {self.node} unplugged")
+
     def close(self) -> None:
+        self._closed = True
         self.network.detach(self.driver)
 
     def wait(self, ready: Callable[[], bool], timeout: float | None) -> bool:
