@@ -1258,3 +1258,20 @@ def test_survey_outcomes_come_from_the_receiver_in_words_and_in_the_vehicles_ord
     assert sum(x.startswith(f"survey {sid} completed") for _, x in log) == 1
     assert any(x == f"survey {cmds[1].survey_id} no answer from autonomy: no answer from the vehicle's "
                     "autonomy (after 6 tries)" for _, x in log)
+
+
+def test_the_console_keeps_the_newest_images_only() -> None:
+    """A dive of several days: the console's images (with their decoded pictures, saved with
+    the console) stay at MAX_IMAGES, the newest by time."""
+    from coex_core.modality import Product
+    from coex_plugins.console.state import MAX_IMAGES
+
+    st = ConsoleState(schedules={0: NUI})
+    n = MAX_IMAGES + 44
+    for i in range(n):
+        st.apply_product("imagery", Product("image", f"image-{i}", 1, np.zeros((8, 8), np.uint8),
+                                            {"image_id": i, "time": 100.0 + i}), 100.0 + i)
+    assert len(st.images) == MAX_IMAGES
+    assert sorted(st.images) == list(range(n - MAX_IMAGES, n))
+    items = st.snapshot()["images"]["items"]
+    assert len(items) <= MAX_IMAGES and {it["image_id"] for it in items} <= set(range(n - MAX_IMAGES, n))

@@ -83,6 +83,9 @@ MAP_BLOCKS = 4096
 MAX_IMAGE_REGIONS = 12
 #: Crops (regions coded on their own) kept for the region lists (the newest).
 MAX_CROPS = 64
+#: Images the console keeps (the newest by time; the imagery receiver's ``max_images`` default):
+#: a dive of several days does not grow the console's memory and saved state with every picture
+MAX_IMAGES = 256
 #: The largest picture of what is on screen (``/map/<level>/window.png``), in pixels.
 MAP_WINDOW_CELLS = 4 * 1024 * 1024
 
@@ -603,6 +606,10 @@ class ConsoleState:
         img = self.images.get(image_id)
         if img is None:
             img = self.images[image_id] = _Image(image_id)
+            if len(self.images) > MAX_IMAGES:  # the oldest goes (one without a time first)
+                oldest = min((i for i in self.images.values() if i is not img),
+                             key=lambda i: (i.t is not None, i.t or 0.0, i.image_id))
+                del self.images[oldest.image_id]
         return img
 
     def _image_product(self, product: Any, data: Any, meta: dict[str, Any], now: float) -> None:
