@@ -366,6 +366,14 @@ def _spec_rule_cases() -> list[tuple[str, str, bytes, str]]:
         ("survey_points_not_waypoints", "message", _survey(0, points=1), "points without WAYPOINTS"),
         ("survey_altitude_and_depth", "message", _survey(0, altitude=1, depth=1), "altitude and depth"),
         ("survey_kind_unassigned", "message", _survey(4), "not a valid"),
+        # detection 1 from the MAP at 0, x = y = 0, score 0.5, no height, length 2.0 (code 11),
+        # width 2.2 (code 12), no orientation or footprint
+        ("detection_width_above_length", "message",
+         _bits((14, 8), (1, 10), (0, 2), (0, 18), (500000, 20), (500000, 20), (50, 7), (0, 8), (11, 8), (12, 8),
+               (0, 8), (0, 10)), "width above length"),
+        ("detection_source_unassigned", "message",
+         _bits((14, 8), (1, 10), (3, 2), (0, 18), (500000, 20), (500000, 20), (50, 7), (0, 8), (0, 8), (0, 8),
+               (0, 8), (0, 10)), "not a valid"),
         ("region_empty_columns", "message", _region(10, 0, 10, 10), "empty region"),
         ("region_empty_rows", "message", _region(0, 20, 10, 5), "empty region"),
     ]
@@ -383,7 +391,7 @@ def _invalid_cases() -> list[tuple[str, str, bytes, str]]:
         ("empty_input", "message", b"", "empty"),
         ("end_marker_alone", "message", b"\x00", "unknown message type"),
         ("unassigned_builtin_id", "message", b"\x3f\x00", "unknown message type"),
-        ("unassigned_core_id", "message", b"\x0e\x00", "unknown message type"),
+        ("unassigned_core_id", "message", b"\x0f\x00", "unknown message type"),
         ("unassigned_bathymetry_id", "message", b"\x14\x00", "unknown message type"),
         ("unassigned_imagery_id", "message", b"\x27\x00", "unknown message type"),
         ("unassigned_timeseries_id", "message", b"\x34\x00", "unknown message type"),
