@@ -15,7 +15,6 @@ from ..messages import (
 )
 from ..modality import ModalitySender
 from ..wire import encoded_size, header_size, pack
-from .acks import AcksMixin
 from .events import (
     Dropped,
     SenderFailed,
@@ -25,6 +24,7 @@ from .links import (
     Transmission,
     _Link,
 )
+from .policy import PolicyMixin
 from .queue import Entry, StreamQueue
 from .schedule import SlotWindow
 
@@ -51,7 +51,7 @@ class _FrameBuild:
             self.taken.append(entry)
 
 
-class PackingMixin(AcksMixin):
+class PackingMixin(PolicyMixin):
     # ============================================================================= build
     def poll(self, now: float) -> list[Transmission]:
         """Housekeeping, then one packet for every link that may transmit now."""
@@ -77,6 +77,7 @@ class PackingMixin(AcksMixin):
         st = self._link(link)
         cfg = st.cfg
         self._build_no += 1
+        self._follow_link(now)  # the senders learn the measured throughput first
         w = self._window(st, now)
         hdr_bytes = header_size(FrameHeader(crc=cfg.crc))
         # stream -> largest budget for which it had nothing (inf: failed or slow, skip it)
