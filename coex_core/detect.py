@@ -42,7 +42,7 @@ class Finding:
     ``orientation`` of the long axis (degrees clockwise from north, 0..180), ``footprint`` (m²),
     ``image_id`` (the frame an image detector found it in). ``key``: the detector's own name for
     the object, when it can tell that a finding is one it reported before (findings without a
-    key are matched by position)."""
+    key are matched by position). ``source``: what it was found in, when not the detector's."""
 
     x: float
     y: float
@@ -55,6 +55,9 @@ class Finding:
     footprint: float | None = None
     image_id: int | None = None
     key: str | None = None
+    #: what it was found in, when not its detector's ``source`` (findings ingested from
+    #: outside, e.g. a vehicle's own detector process)
+    source: DetectionSource | None = None
 
 
 class Detector(abc.ABC):

@@ -185,3 +185,72 @@ def test_a_sender_finds_the_other_senders_of_its_node_also_after_a_restore() -> 
     assert isinstance(w2, Watcher) and w2 is not w
     t2 = w2.peer("thing")
     assert isinstance(t2, Listener) and t2 is not t
+
+
+class Tagged(Listener):
+    """Always has a 40-byte piece of its own id."""
+
+    def __init__(self, tid: int) -> None:
+        super().__init__()
+        self.tid = tid
+
+    def fill(self, max_bytes: int, now: float) -> list[Message]:
+        return [Opaque(self.tid, bytes(37))] if max_bytes >= 40 else []
+
+
+def _shares(rate: int) -> dict[int, int]:
+    """Messages of two always-backlogged streams over 20 cycles: priority 10 (90 on a low link)
+    against priority 30."""
+    from coex_core.wire import unpack
+
+    mgr = ChannelManager(VEHICLE, [LinkConfig(0, nui(), rate=rate, dst=TOPSIDE)])
+    mgr.add_stream(StreamConfig(3, "a", priority=10, low_priority=90), Tagged(200))
+    mgr.add_stream(StreamConfig(4, "b", priority=30), Tagged(201))
+    got = {200: 0, 201: 0}
+    t = 0.0
+    while t < 20 * 120.0:
+        t = mgr.next_event(t) or t + 1.0
+        for tx in mgr.poll(t):
+            for fr in tx.frames:
+                for msg in unpack(fr):
+                    if isinstance(msg, Opaque):
+                        got[msg.type_id] += 1
+            # every frame arrives: no loss measured, the link is as fast as its slots
+            mgr.on_ack(FrameAck(VEHICLE, 0, (FrameAckEntry(tx.seq, (1 << len(tx.frames)) - 1),)), t + 0.5)
+    return got
+
+
+def test_a_streams_low_priority_takes_over_while_the_link_is_low() -> None:
+    """Two backlogged streams share the packets by priority: 10 against 30 on a normal link
+    (rate 5), by ``low_priority`` (90 against 30) on a low one (rate 1)."""
+    normal, low = _shares(5), _shares(1)
+    assert normal[201] > 2 * normal[200], normal
+    assert low[200] > 2 * low[201], low
+    with pytest.raises(ConfigError):
+        StreamConfig(3, "a", low_priority=128)
+    assert StreamConfig(3, priority=10, low_priority=90).priority_now(True) == 90
+    assert StreamConfig(3, priority=10, low_priority=90).priority_now(False) == 10
+    assert StreamConfig(3, priority=10).priority_now(True) == 10
+
+
+def test_urgent_messages_get_at_most_two_copies_on_a_low_link() -> None:
+    """At 60 % measured loss an urgent message goes in 6 frames of a rate-5 packet (the
+    smallest k with 0.6^k <= 5 %); on a low link in at most 2."""
+    fast, _ = vehicle(5)
+    _acked(fast, 16, 24, fast.next_event(0.0) or 0.0)
+    assert fast.copies(0) == 6
+    fast.low_throughput = fast.normal_throughput = 1000.0  # the policy now finds it low
+    fast.poll(fast.next_event(2000.0) or 2000.0)
+    assert fast.link_low() and fast.copies(0) == 2
+
+
+def test_topside_tells_the_vehicles_throughput_from_the_frames_it_hears() -> None:
+    """``peer_throughput``: the peer's slots' capacity less the loss of its frames seen here
+    (gaps in their sequence numbers)."""
+    from coex_core.messages import FrameHeader
+
+    top = ChannelManager(TOPSIDE, [LinkConfig(0, nui(), rate=1, dst=VEHICLE)])
+    assert top.peer_throughput(VEHICLE) == pytest.approx(32.0)  # nothing heard: the capacity
+    for seq in range(0, 40, 2):  # every other frame of the vehicle's is missing
+        top.on_frame(0, FrameHeader(src=VEHICLE, dst=TOPSIDE, seq=seq), float(seq), True)
+    assert top.peer_throughput(VEHICLE) == pytest.approx(32.0 * 20 / 39, rel=0.01)

@@ -268,7 +268,7 @@ class PackingMixin(PolicyMixin):
             left = min(fb.left, budget - total)
             order = sorted(
                 (sid for sid in cands if left > exhausted.get(sid, -1) and per_stream[sid] > 0),
-                key=lambda sid: (-(self._streams[sid].queue.config.priority
+                key=lambda sid: (-(self._streams[sid].queue.config.priority_now(self._low)
                                    * (now - self._spare_turn.get(sid, -math.inf) + 1.0)), sid))
             got_any = False
             for sid in order:
@@ -424,10 +424,11 @@ class PackingMixin(PolicyMixin):
             last = q.last_access if q.last_access is not None else -math.inf
             # tier 0 is ordered by priority alone (status before queue status); other tiers
             # compete by value
-            value = float(q.config.priority) if q.config.tier == 0 else q.score(now)
+            prio = q.config.priority_now(self._low)
+            value = float(prio) if q.config.tier == 0 else q.score(now, self._low)
             if q.expedite:
                 value = math.inf
-            key = (-q.config.tier, value, q.config.priority, -last, -sid)
+            key = (-q.config.tier, value, prio, -last, -sid)
             if best is None or key > best[0]:
                 best = (key, q, entry)
         if best is None:
@@ -447,8 +448,8 @@ class PackingMixin(PolicyMixin):
             if s.sender is None or left <= exhausted.get(sid, -1) or not self._eligible(s.queue, link, w, now):
                 continue
             q = s.queue
-            score = math.inf if q.expedite else q.score(now)
-            cands.append(((q.config.tier, -score, -q.config.priority, sid), s))
+            score = math.inf if q.expedite else q.score(now, self._low)
+            cands.append(((q.config.tier, -score, -q.config.priority_now(self._low), sid), s))
         for _, s in sorted(cands, key=lambda c: c[0]):
             q = s.queue
             sender = s.sender

@@ -28,12 +28,14 @@ from typing import Any
 from .acks import AcksMixin
 from .events import SenderFailed
 
-__all__ = ["LOW_THROUGHPUT", "NORMAL_THROUGHPUT", "PolicyMixin"]
+__all__ = ["LOW_COPIES", "LOW_THROUGHPUT", "NORMAL_THROUGHPUT", "PolicyMixin"]
 
 #: below this throughput (bytes per second delivered, every link together) the link is low
 LOW_THROUGHPUT = 48.0
 #: a low link is normal again above this (hysteresis: the loss estimate moves frame by frame)
 NORMAL_THROUGHPUT = 64.0
+#: on a low link an urgent message goes in at most this many frames of a packet
+LOW_COPIES = 2
 
 
 class PolicyMixin(AcksMixin):
@@ -51,15 +53,17 @@ class PolicyMixin(AcksMixin):
         super()._after_restore()
         self._policy_state()
 
-    def capacity(self, link: int) -> float:
-        """Bytes per second this node's slots can carry on ``link`` (its current schedule): the
-        full packets that fit in each slot it owns before the slot's guard, per cycle."""
+    def capacity(self, link: int, node: int | None = None) -> float:
+        """Bytes per second this node's slots (or ``node``'s) can carry on ``link`` (its current
+        schedule): the full packets that fit in each slot it owns before the slot's guard, per
+        cycle."""
         st = self._link(link)
         cfg, sched = st.cfg, st.current
         per = cfg.packet_time + cfg.gap
+        owner = self.node_id if node is None else node
         packets = 0
         for s in sched.slots:
-            if s.owner != self.node_id:
+            if s.owner != owner:
                 continue
             room = s.duration - s.guard - cfg.packet_time
             if room >= -1e-9 and per > 0:
@@ -73,6 +77,22 @@ class PolicyMixin(AcksMixin):
             loss = self.frame_loss(link)
             return self.capacity(link) * (1.0 - (loss or 0.0))
         return sum(self.throughput(k) for k, st in self._links.items() if st.enabled and not st.muted)
+
+    def peer_throughput(self, peer: int, link: int | None = None) -> float:
+        """Bytes per second ``peer``'s frames deliver here: its slots' capacity on ``link`` less
+        the loss of its frames measured here (gaps in their sequence numbers), or (``None``) the
+        sum over the enabled links. What topside can tell of the vehicle's link."""
+        if link is not None:
+            seen = self._rx_outcomes.get(link)
+            loss = 1.0 - sum(seen) / len(seen) if seen else 0.0
+            return self.capacity(link, peer) * (1.0 - loss)
+        return sum(self.peer_throughput(peer, k) for k, st in self._links.items() if st.enabled)
+
+    def copies(self, link: int) -> int:
+        """:meth:`DeliveryMixin.copies`, at most :data:`LOW_COPIES` on a low link (its bytes
+        are too few for more spare copies)."""
+        k = super().copies(link)
+        return min(k, LOW_COPIES) if self._low else k
 
     def link_low(self) -> bool:
         """Whether the policy finds the link low (as of the last packet built)."""
