@@ -39,6 +39,7 @@ from coex_core.channel import (
     Transmission,
 )
 from coex_core.config import merged_config
+from coex_core.detect import Detector, Finding
 from coex_core.errors import (
     AuthenticationError,
     CoexError,
@@ -59,6 +60,7 @@ from coex_core.node import Node
 from coex_core.registry import (
     available,
     check_transport_uri,
+    load_detector,
     load_modality,
     load_transport,
     open_transport,
@@ -87,9 +89,11 @@ __all__ = [
     "CommandResult",
     "ConfigError",
     "DecodeError",
+    "Detector",
     "Dropped",
     "EncodeError",
     "Event",
+    "Finding",
     "Frame",
     "FrameHeader",
     "FrameTooLarge",
@@ -130,6 +134,7 @@ __all__ = [
     "available",
     "check_transport_uri",
     "errors",
+    "load_detector",
     "load_modality",
     "load_transport",
     "merged_config",

@@ -65,7 +65,7 @@ from .codec import (
 )
 from .goals import Goal, parse_goal
 
-__all__ = ["ImageInput", "ImagerySender", "fragment_size"]
+__all__ = ["Frame", "ImageInput", "ImagerySender", "fragment_size", "interest"]
 
 MAX_FRAGMENT_DATA = FRAGMENT_MAX_DATA
 MAX_MARKS = FRAGMENT_MAX_MARKS
@@ -117,6 +117,19 @@ class ImageInput:
     time: float | None = None
     x: float | None = None
     y: float | None = None
+
+
+@dataclass(frozen=True)
+class Frame:
+    """A frame the vehicle holds (:meth:`ImagerySender.frames`): its id, capture time, position
+    (None when unknown), pixels (as coded) and interest (:func:`interest`)."""
+
+    image_id: int
+    time: float
+    x: float | None
+    y: float | None
+    image: Any
+    interest: float
 
 
 @functools.cache
@@ -345,6 +358,13 @@ class ImagerySender(ModalitySender):
         else:
             default.sort(key=lambda tx: tx.time)
         return default
+
+    def frames(self, since: float = -math.inf) -> list[Frame]:
+        """The frames the vehicle holds captured after ``since`` (capture order): what an
+        onboard detector looks at (``coex.detectors``), the image as coded (grey, reduced like
+        the body sent), never what topside received."""
+        txs = sorted((tx for tx in self.images.values() if tx.time > since), key=lambda tx: tx.time)
+        return [Frame(tx.image_id, tx.time, tx.x, tx.y, tx.enc.image, getattr(tx, "interest", 0.0)) for tx in txs]
 
     def pending_bytes(self) -> int:
         return sum(tx.unacked() for tx in self.images.values())
