@@ -18,7 +18,7 @@ from coex_core.modality import ModalitySender
 from coex_core.registry import load_detector
 from coex_core.timefmt import to_stamp
 from coex_plugins.bathymetry import BathymetrySender
-from coex_plugins.bathymetry.relief import CAR, bumps, likeness, measure_bump
+from coex_plugins.bathymetry.relief import CAR, bumps, despike, likeness, measure_bump
 from coex_plugins.bathymetry.sim import Seafloor, Target, simulate_survey
 from coex_plugins.detections import (
     DetectionsModality,
@@ -52,6 +52,22 @@ def test_a_car_measures_as_a_car_and_scores_above_a_boulder_of_its_size() -> Non
     car_score = likeness(b.height, b.length, b.width, b.flatness, CAR)
     assert car_score > 0.5 and likeness(r.height, r.length, r.width, r.flatness, CAR) < 0.6 * car_score
     assert across is None or abs(across.orientation - b.orientation) > 45  # turned: another axis
+
+
+def test_a_wild_sounding_on_a_car_does_not_hide_it() -> None:
+    """One cell 5 m above a car (an outlier the rejection let through) made the car a one-cell
+    spike; despiked, it measures as a car again. A lone spike on sand is gone; a car keeps its
+    end cells."""
+    clean = _grid([Target(20.0, 24.0, heading=100.0)])
+    spiked = clean.copy()
+    (_, b0), = bumps(clean, cell=1.0)
+    spiked[int(b0.y), int(b0.x)] += 5.0
+    spiked[10, 40] += 6.0  # on sand
+    raw = bumps(spiked, cell=1.0, spikes=None)
+    assert max(r.height for _, r in raw) > 4.0 and min(r.length for _, r in raw) < 1.5
+    (_, b), = bumps(spiked, cell=1.0)
+    assert (b.length, b.width, round(b.height, 2)) == (b0.length, b0.width, round(b0.height, 2))
+    assert np.array_equal(despike(clean), clean)
 
 
 def _survey(size: float = 96.0, seed: int = 3) -> tuple[Seafloor, Any]:

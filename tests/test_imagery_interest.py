@@ -58,6 +58,10 @@ def test_on_a_low_link_the_previews_are_spare_work_the_most_interesting_first() 
     assert not [m for m in got if isinstance(m, ImageFragment)]
     spare = [m for m in s.spare(120, 201.0) if isinstance(m, ImageFragment)]
     assert spare and spare[0].image_id == 4
+    for k in range(60):  # every preview goes; no layer beyond the set-point unasked
+        spare += [m for m in s.spare(120, 202.0 + k) if isinstance(m, ImageFragment)]
+    assert {m.image_id for m in spare} == set(range(6))
+    assert all(m.offset + len(m.data) <= s.images[m.image_id].goal for m in spare)
 
 
 def test_a_requested_image_goes_at_most_twice_before_an_ack_on_a_low_link() -> None:

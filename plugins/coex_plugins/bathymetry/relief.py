@@ -10,6 +10,7 @@ operator on the map topside received.
 from __future__ import annotations
 
 import math
+import warnings
 from dataclasses import dataclass
 
 import numpy as np
@@ -17,7 +18,7 @@ import numpy.typing as npt
 
 from .export import Candidate, find_targets, opening
 
-__all__ = ["Bump", "bumps", "likeness", "measure_bump"]
+__all__ = ["Bump", "bumps", "despike", "likeness", "measure_bump"]
 
 #: a flat top (a car's): mean over maximum height across its footprint
 FLAT = 0.93
@@ -121,10 +122,35 @@ def grow(mask: npt.NDArray[np.bool_], r: int, c: int) -> npt.NDArray[np.bool_]:
         comp = grown
 
 
+def despike(grid: npt.ArrayLike, threshold: float = 1.0) -> npt.NDArray[np.float64]:
+    """``grid`` with its spikes replaced by the median of their 8 neighbours: a cell more than
+    ``threshold`` metres above or below that median with at most one neighbour within half of
+    ``threshold`` of it (a sounding the outlier rejection let through: it would stand for the
+    height of an object it sits on, or lower the background around it). An object two cells or
+    more across keeps every cell: its cells have neighbours of their height. Vectorised."""
+    z = np.asarray(grid, np.float64)
+    if z.ndim != 2 or min(z.shape) < 3:
+        return z.copy()
+    p = np.pad(z, 1, constant_values=np.nan)
+    h, w = z.shape
+    nb = np.stack([p[1 + dy:1 + dy + h, 1 + dx:1 + dx + w] for dy in (-1, 0, 1) for dx in (-1, 0, 1)
+                   if dy or dx])
+    with np.errstate(invalid="ignore"), warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN neighbourhoods
+        med = np.nanmedian(nb, axis=0)
+        alike = np.sum(np.abs(nb - z) <= 0.5 * threshold, axis=0)
+        spike = np.isfinite(z) & np.isfinite(med) & (np.abs(z - med) > threshold) & (alike <= 1)
+    return np.where(spike, med, z)
+
+
 def bumps(grid: npt.ArrayLike, *, cell: float, x0: float = 0.0, y0: float = 0.0, threshold: float = 0.7,
-          min_cells: int = 2, max_area: float = 40.0) -> list[tuple[Candidate, Bump]]:
+          min_cells: int = 2, max_area: float = 40.0, spikes: float | None = 1.0) -> list[tuple[Candidate, Bump]]:
     """Every bump of ``grid`` higher than ``threshold`` above its background
-    (:func:`find_targets`), measured (:func:`measure_bump`); highest first."""
+    (:func:`find_targets`), measured (:func:`measure_bump`); highest first. With ``spikes``
+    (metres) the grid is first despiked (:func:`despike`): a single wild sounding on a car would make
+    it a one-cell spike."""
+    if spikes is not None:
+        grid = despike(grid, spikes)
     out = []
     for c in find_targets(grid, cell=cell, x0=x0, y0=y0, threshold=threshold, min_cells=min_cells,
                           max_area=max_area):

@@ -475,7 +475,8 @@ class ImagerySender(ModalitySender):
     def throughput(self, bytes_per_second: float, low: bool, now: float) -> None:
         """On a low link only the answers to requests are sent ahead of spare work, a requested
         image's bytes at most :data:`LOW_COPIES` times before an ack; the previews are spare
-        work, the most interesting frames first (docs/channel.md)."""
+        work, the most interesting frames first, and layers beyond the goals are not sent
+        unasked (docs/channel.md)."""
         self._low = bool(low)
 
     def _fate(self, frag: ImageFragment, ok: int) -> None:
@@ -530,15 +531,17 @@ class ImagerySender(ModalitySender):
     def spare(self, max_bytes: int, now: float) -> list[Message]:
         """Further quality layers, beyond each image's goal up to its whole codestream: the
         requested images first (latest request first), then the others newest first. On a low
-        link the previews (images to their default set-point) come first, the most interesting
-        first. Bytes sent and not acknowledged go again after ``rto``, as in :meth:`fill`."""
+        link only the previews (images to their default set-point), the most interesting first:
+        layers beyond the goals go only when asked for. Bytes sent and not acknowledged go again
+        after ``rto``, as in :meth:`fill`."""
         out: list[Message] = []
         left = int(max_bytes)
         self._last_now = now
-        # a low link: the previews first, the most interesting first
-        for tx in (self._previews() if self._low else []) + self._spare_order():
+        # a low link: the previews only, the most interesting first (layers beyond the goals
+        # would take the spare bytes the finest map needs)
+        for tx in self._previews() if self._low else self._spare_order():
             while left >= fragment_size(0, 1):
-                frag = self._fragment(tx, left, now, trailing=bool(out), goal=tx.total)
+                frag = self._fragment(tx, left, now, trailing=bool(out), goal=tx.goal if self._low else tx.total)
                 if frag is None:
                     break
                 out.append(frag)
@@ -554,8 +557,12 @@ class ImagerySender(ModalitySender):
         return txs
 
     def spare_bytes(self) -> int:
-        """Bytes beyond the goals not held topside and not in flight (sent within ``rto``)."""
+        """Bytes beyond the goals (on a low link: of the previews) not held topside and not in
+        flight (sent within ``rto``)."""
         now = self._last_now
+        if self._low:
+            return sum(int(np.count_nonzero(tx.wanted() & ~tx.acked & (tx.sent_at <= now - self.rto)))
+                       for tx in self._previews())
         return sum(int(np.count_nonzero(~tx.acked & (tx.sent_at <= now - self.rto))) for tx in self._spare_order())
 
     def _marked(self, tx: _Tx, pos: int, goal: int | None) -> bool:
