@@ -160,6 +160,9 @@ def summarise(condition: str, dives: list[dict[str, Any]]) -> dict[str, Any]:
 #: issue 20's measures: condition -> the coverage that must reach 99.5 % ("after_survey": ten
 #: minutes after the survey's end; "end": by the end of the dive; None: not measured there)
 SPARE_COVERAGE = {"30% independent": "after_survey", "60% independent": "end"}
+#: the conditions the spare-capacity targets apply to (issue 20's, and the decoys beside them);
+#: lowrate's spare capacity is measured and shown, its target is issue 41's (success)
+SPARE_JUDGED = {"30% independent", "60% independent", "50% burst", "dive040", "30% + 2 decoys"}
 COVERAGE_TARGET = 0.995
 LINK_USE_TARGET = 0.90
 WITHIN_TWO_TARGET = 0.90
@@ -183,6 +186,9 @@ def _spare_summary(condition: str, dives: list[dict[str, Any]]) -> dict[str, Any
         "spare_bytes_median": _pct([d["spare_bytes"] for d in dives], 0.5),
         "redundant_bytes_median": _pct([d["redundant_bytes"] for d in dives], 0.5),
     }
+    if condition not in SPARE_JUDGED:  # measured, not judged: issue 20 set no target there
+        out["checks"], out["met"] = {}, None
+        return out
     checks: dict[str, bool] = {"link_use": bool(use) and min(use) >= LINK_USE_TARGET}
     which = SPARE_COVERAGE.get(condition)
     if which is not None:
@@ -246,7 +252,7 @@ def spare_table(summary: dict[str, dict[str, Any]]) -> str:
             f"| {cond} | {after} | {end} | {_fmt_pct(use['median'])}, {_fmt_pct(use['worst'])} "
             f"| {_fmt(sp['first_answer_vehicle_slots_median'], 1)} | {_fmt_pct(sp['dives_confirmed_within_two_cycles'])} "
             f"| {_fmt(sp['spare_bytes_median'])} / {_fmt(sp['redundant_bytes_median'])} "
-            f"| {'yes' if sp['met'] else 'NO (' + ', '.join(failed) + ')'} |")
+            f"| {'not judged' if sp['met'] is None else 'yes' if sp['met'] else 'NO (' + ', '.join(failed) + ')'} |")
     return "\n".join(lines)
 
 
@@ -315,7 +321,7 @@ def main(argv: list[str] | None = None) -> int:
     print("\nSpare capacity (issue 20):\n" + spare)
     detect = detection_table(summary)
     print("\nDetections (issue 41):\n" + detect)
-    all_met = all(s["met"] and s["spare"]["met"] for s in summary.values())
+    all_met = all(s["met"] and s["spare"]["met"] is not False for s in summary.values())
     print(f"\n{'all targets met' if all_met else 'TARGETS NOT MET'}; {len(results)} dives in "
           f"{time.perf_counter() - t0:.0f} s")
     args.out.parent.mkdir(parents=True, exist_ok=True)

@@ -233,17 +233,6 @@ def test_a_streams_low_priority_takes_over_while_the_link_is_low() -> None:
     assert StreamConfig(3, priority=10).priority_now(True) == 10
 
 
-def test_urgent_messages_get_at_most_two_copies_on_a_low_link() -> None:
-    """At 60 % measured loss an urgent message goes in 6 frames of a rate-5 packet (the
-    smallest k with 0.6^k <= 5 %); on a low link in at most 2."""
-    fast, _ = vehicle(5)
-    _acked(fast, 16, 24, fast.next_event(0.0) or 0.0)
-    assert fast.copies(0) == 6
-    fast.low_throughput = fast.normal_throughput = 1000.0  # the policy now finds it low
-    fast.poll(fast.next_event(2000.0) or 2000.0)
-    assert fast.link_low() and fast.copies(0) == 2
-
-
 def test_topside_tells_the_vehicles_throughput_from_the_frames_it_hears() -> None:
     """``peer_throughput``: the peer's slots' capacity less the loss of its frames seen here
     (gaps in their sequence numbers)."""

@@ -28,14 +28,12 @@ from typing import Any
 from .acks import AcksMixin
 from .events import SenderFailed
 
-__all__ = ["LOW_COPIES", "LOW_THROUGHPUT", "NORMAL_THROUGHPUT", "PolicyMixin"]
+__all__ = ["LOW_THROUGHPUT", "NORMAL_THROUGHPUT", "PolicyMixin"]
 
 #: below this throughput (bytes per second delivered, every link together) the link is low
 LOW_THROUGHPUT = 48.0
 #: a low link is normal again above this (hysteresis: the loss estimate moves frame by frame)
 NORMAL_THROUGHPUT = 64.0
-#: on a low link an urgent message goes in at most this many frames of a packet
-LOW_COPIES = 2
 
 
 class PolicyMixin(AcksMixin):
@@ -87,12 +85,6 @@ class PolicyMixin(AcksMixin):
             loss = 1.0 - sum(seen) / len(seen) if seen else 0.0
             return self.capacity(link, peer) * (1.0 - loss)
         return sum(self.peer_throughput(peer, k) for k, st in self._links.items() if st.enabled)
-
-    def copies(self, link: int) -> int:
-        """:meth:`DeliveryMixin.copies`, at most :data:`LOW_COPIES` on a low link (its bytes
-        are too few for more spare copies)."""
-        k = super().copies(link)
-        return min(k, LOW_COPIES) if self._low else k
 
     def link_low(self) -> bool:
         """Whether the policy finds the link low (as of the last packet built)."""
