@@ -193,7 +193,8 @@ class Scripted(Detector):
 def test_the_detections_sender_sends_the_best_first_once_again_when_lost_or_changed() -> None:
     """New findings go highest score first (those below ``min_score`` not at all); one is not
     sent again unless the channel reports it lost or its measures change; its neighbourhood is
-    asked of the detector's modality once (score at least ``focus_score``)."""
+    asked of the detector's modality (score at least ``focus_score``), again when newer data
+    changed it."""
     fake = FakeMapSender()
     det = Scripted([[Finding(10.0, 10.0, 0.3, 100.0, height=1.2), Finding(50.0, 50.0, 0.9, 100.0, height=1.5,
                                                                           length=4.4, width=1.9),
@@ -213,7 +214,9 @@ def test_the_detections_sender_sends_the_best_first_once_again_when_lost_or_chan
     assert [(m.detection_id, m.stamp, m.score) for m in resent] == [(0, 110, 0.31)]
     changed = sender.fill(64, 126.0)
     assert len(changed) == 1 and changed[0].detection_id == 1 and changed[0].score == 0.6
-    assert len(fake.focused) == 2  # moved less than a metre: no new neighbourhood
+    # the neighbourhood again whenever a finding rests on newer data (the modality sends only
+    # what changed)
+    assert [f[:2] for f in fake.focused[2:]] == [(10.2, 10.1), (50.1, 50.0)]
     assert sender.bytes_sent == sum(wire.encoded_size(m) for m in first + resent + changed)
     with pytest.raises(RequestRejected):
         sender.handle(MapRoiRequest(0, 0, 0, 0, 1, 1, False, (None,)), 0.0)

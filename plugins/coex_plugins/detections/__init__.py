@@ -104,7 +104,7 @@ def detection_message(detection_id: int, source: DetectionSource, f: Finding) ->
 class _Det:
     """A detection on the vehicle: the newest finding, what of it was last sent, its fate."""
 
-    __slots__ = ("acked", "detection_id", "detector", "finding", "first", "message", "sent", "source")
+    __slots__ = ("acked", "detection_id", "detector", "finding", "first", "focused", "message", "sent", "source")
 
     def __init__(self, detection_id: int, detector: int, source: DetectionSource, finding: Finding,
                  now: float) -> None:
@@ -116,6 +116,8 @@ class _Det:
         self.sent: Finding | None = None
         self.message: Detection | None = None
         self.acked = False
+        #: the time of the newest data its neighbourhood was asked for with (-inf: never)
+        self.focused = -math.inf
 
     def due(self, resend_score: float, resend_distance: float) -> bool:
         s, f = self.sent, self.finding
@@ -241,13 +243,15 @@ class DetectionsSender(ModalitySender):
                 self._next_id = (self._next_id + 1) % 1024
             self.detections[same.detection_id] = same
             self._forget()
-            moved = True
         else:
-            moved = math.hypot(same.finding.x - f.x, same.finding.y - f.y) >= self.resend_distance
             same.finding = f
-        if d is not None and moved and f.score >= self.focus_score and d.neighbourhood > 0:
+        # the neighbourhood, again whenever the finding rests on newer data (a later swath over
+        # it): the modality sends only what changed since it went
+        if (d is not None and f.score >= self.focus_score and d.neighbourhood > 0
+                and f.time > getattr(same, "focused", -math.inf)):
             data = self.peer(d.modality)
             if data is not None:
+                same.focused = f.time
                 try:
                     self.focused += int(data.focus(f.x, f.y, d.neighbourhood, now))
                 except Exception as exc:  # the neighbourhood is a bonus: never fatal
