@@ -129,8 +129,8 @@ class BenchReceiver(ModalityReceiver):
 def _modality(kind: int) -> type[Modality]:
     class Bench(Modality):
         name = f"bench{kind}"
-        opaque_messages: ClassVar[tuple[int, ...]] = (DATA,)
-        opaque_requests: ClassVar[tuple[int, ...]] = (REQUEST + kind,)
+        message_ids: ClassVar[tuple[int, ...]] = (DATA,)
+        request_ids: ClassVar[tuple[int, ...]] = (REQUEST + kind,)
 
         # only its message ids matter here: the benchmark drives the streams itself
         def sender(self, config: Mapping[str, Any] | None = None) -> ModalitySender:

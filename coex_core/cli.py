@@ -14,12 +14,11 @@ import json
 import logging
 import sys
 from collections.abc import Sequence
-from importlib import metadata
 from typing import Any
 
 from . import __version__
 from .errors import CoexError
-from .registry import COMMAND_GROUP, available
+from .registry import COMMAND_GROUP, available, entry_points
 
 __all__ = ["main", "build_parser"]
 
@@ -154,7 +153,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--write-vectors", metavar="DIR", help="regenerate the golden vectors into DIR")
     p.set_defaults(func=_cmd_spec)
 
-    for ep in sorted(metadata.entry_points(group=COMMAND_GROUP), key=lambda e: e.name):
+    for ep in entry_points(COMMAND_GROUP).values():  # sorted by name
         try:
             register = ep.load()
             register(sub)

@@ -258,14 +258,10 @@ class Modality(abc.ABC):
     def handles(cls, message: Message) -> bool:
         """Whether ``message`` is one of this modality's messages or requests (by type, or by
         declared third-party id)."""
-        from .messages import Opaque
-        from .routing import declared_ids, type_id, wildcard
+        from .routing import declared_ids, type_id
 
         tid = type_id(message)
-        if tid is None:
-            return False
-        return any(tid in declared_ids(cls, kind) or (isinstance(message, Opaque) and wildcard(cls, kind))
-                   for kind in ("messages", "requests"))
+        return tid is not None and any(tid in declared_ids(cls, kind) for kind in ("messages", "requests"))
 
 
 def total_size(messages: Sequence[Message]) -> int:

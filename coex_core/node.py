@@ -65,7 +65,6 @@ from .routing import (
     routine_ids,
     third_party,
     type_id,
-    wildcard,
 )
 from .state import StateError, dumps, loads
 from .storage import Storage
@@ -167,7 +166,7 @@ class Node:
         wire_ids = _on_wire(declared_ids(cls, "requests"), remap)
         slot = _SenderSlot(name, cls, RemappedSender(sender, remap) if remap else sender, stream.stream,
                            _on_wire(routine_ids(cls), remap))
-        self._request_routes.claim(name, cls, wire_ids, slot, wildcard(cls, "requests"))
+        self._request_routes.claim(name, cls, wire_ids, slot)
         self.manager.add_stream(stream, slot.sender)
         self._add_requests(cls, remap)
         self._senders.append(slot)
@@ -196,7 +195,7 @@ class Node:
         remap = check_remap(cls, ids)
         wire_ids = _on_wire(declared_ids(cls, "messages"), remap)
         slot = _ReceiverSlot(name, cls, RemappedReceiver(receiver, remap) if remap else receiver, stream)
-        self._message_routes.claim(name, cls, wire_ids, slot, wildcard(cls, "messages"))
+        self._message_routes.claim(name, cls, wire_ids, slot)
         self.manager.stream(stream)
         self._add_requests(cls, remap)
         slot.receiver.bind_command_ids(self.manager.next_command_id)  # one command id space per node
@@ -426,9 +425,6 @@ class Node:
 
     def _supersede(self, r: _ReceiverSlot, new: Message, now: float) -> None:
         """Withdraw from ``r``'s stream the earlier requests its receiver says ``new`` replaces."""
-        if getattr(type(r.receiver), "supersedes", ModalityReceiver.supersedes) is ModalityReceiver.supersedes:
-            return  # the default: nothing is ever superseded
-
         def outdated(old: Message) -> bool:
             return old is not new and type(old) is type(new) and r.receiver.supersedes(old, new)
 

@@ -37,6 +37,8 @@ __all__ = [
     "load",
     "open_transport",
     "check_transport_uri",
+    "entry_points",
+    "names",
     "transport_scheme",
 ]
 
@@ -73,6 +75,18 @@ def _entry_points(group: str) -> dict[str, metadata.EntryPoint]:
     for ep in metadata.entry_points(group=group):
         found.setdefault(ep.name, ep)
     return found
+
+
+def entry_points(group: str) -> dict[str, metadata.EntryPoint]:
+    """Every plugin registered in ``group``, by name (the first of a name wins), not loaded: the
+    one place CoEx reads entry points (modalities, transports, commands, inputs, autonomy
+    outputs, conformance inputs ...)."""
+    return _entry_points(group)
+
+
+def names(group: str) -> list[str]:
+    """The names registered in ``group``, sorted."""
+    return sorted(_entry_points(group))
 
 
 def _dist_name(ep: metadata.EntryPoint) -> tuple[str, str]:

@@ -34,10 +34,9 @@ from .messages import Message, Opaque
 #: a Modality subclass (this module is below coex_core.modality, which uses it)
 Modality = Any
 
-__all__ = ["Routes", "check_remap", "declared_ids", "routine_ids", "third_party", "type_id", "wildcard"]
+__all__ = ["Routes", "check_remap", "declared_ids", "routine_ids", "third_party", "type_id"]
 
-_KINDS = {"messages": ("messages", "message_ids", "opaque_messages"),
-          "requests": ("requests", "request_ids", "opaque_requests")}
+_KINDS = {"messages": ("messages", "message_ids"), "requests": ("requests", "request_ids")}
 
 
 def third_party(tid: int) -> bool:
@@ -52,12 +51,11 @@ def type_id(m: Message) -> int | None:
     return None if spec is None else spec.type_id
 
 
-def _own_ids(cls: type[Modality], attr: str, what: str) -> tuple[int, ...]:
-    raw = getattr(cls, attr, ()) or ()
+def _own_ids(cls: type[Modality], raw: Iterable[Any], what: str) -> tuple[int, ...]:
     try:
-        ids = tuple(int(i) for i in raw)
+        ids = tuple(int(i) for i in raw or ())
     except (TypeError, ValueError) as exc:
-        raise ConfigError(f"modality {_name(cls)}: {attr} must be type ids (integers): {exc}") from exc
+        raise ConfigError(f"modality {_name(cls)}: {what}_ids must be type ids (integers): {exc}") from exc
     for i in ids:
         if not third_party(i):
             raise ConfigError(f"modality {_name(cls)}: {what} id {i} is not a third-party type id "
@@ -67,27 +65,23 @@ def _own_ids(cls: type[Modality], attr: str, what: str) -> tuple[int, ...]:
 
 def declared_ids(cls: type[Modality], kind: str) -> frozenset[int]:
     """Wire type ids a modality owns: ``kind`` ``"messages"`` (its sender emits them) or
-    ``"requests"`` (its receiver emits them): built-in types and third-party ids (also the
-    legacy ``opaque_messages`` / ``opaque_requests`` attributes)."""
-    types_attr, ids_attr, legacy = _KINDS[kind]
-    ids = {SPECS_BY_CLASS[t].type_id for t in getattr(cls, types_attr, ()) if t in SPECS_BY_CLASS}
-    ids.update(_own_ids(cls, ids_attr, kind[:-1]))
-    ids.update(_own_ids(cls, legacy, kind[:-1]))
+    ``"requests"`` (its receiver emits them): the built-in types of ``messages`` / ``requests``
+    and the third-party ids of ``message_ids`` / ``request_ids`` (declared on
+    :class:`~coex_core.modality.Modality`)."""
+    types_attr, ids_attr = _KINDS[kind]
+    types = cls.messages if kind == "messages" else cls.requests
+    ids = {SPECS_BY_CLASS[t].type_id for t in types if t in SPECS_BY_CLASS}
+    if Opaque in tuple(types):
+        raise ConfigError(f"modality {_name(cls)}: Opaque in {types_attr} is not a declaration: list the "
+                          f"third-party type ids in {ids_attr} (the catch-all of 0.1 is gone)")
+    ids.update(_own_ids(cls, cls.message_ids if kind == "messages" else cls.request_ids, kind[:-1]))
     return frozenset(ids)
 
 
-def wildcard(cls: type[Modality], kind: str) -> bool:
-    """A legacy modality that lists ``Opaque`` among its types and declares no third-party ids:
-    it takes the third-party messages of that kind that no modality claims."""
-    types_attr, ids_attr, legacy = _KINDS[kind]
-    return Opaque in tuple(getattr(cls, types_attr, ())) and not (
-        getattr(cls, ids_attr, ()) or getattr(cls, legacy, ()))
-
-
 def routine_ids(cls: type[Modality]) -> frozenset[int]:
-    """Requests of a modality that are routine (``routine``, and the legacy ``opaque_routine``)."""
+    """Requests of a modality that are routine (``routine``: types or third-party ids)."""
     out: set[int] = set()
-    for r in tuple(getattr(cls, "routine", ()) or ()):
+    for r in tuple(cls.routine or ()):
         if isinstance(r, type):
             spec = SPECS_BY_CLASS.get(r)
             if spec is None:
@@ -95,7 +89,6 @@ def routine_ids(cls: type[Modality]) -> frozenset[int]:
             out.add(spec.type_id)
         else:
             out.add(int(r))
-    out.update(_own_ids(cls, "opaque_routine", "routine"))
     return frozenset(out)
 
 
@@ -107,8 +100,7 @@ def check_remap(cls: type[Modality], ids: Mapping[int, int] | None) -> dict[int,
     """A deployment's remap of ``cls``'s third-party ids (own id -> wire id), checked."""
     if not ids:
         return {}
-    own = set(_own_ids(cls, "message_ids", "message")) | set(_own_ids(cls, "request_ids", "request")) \
-        | set(_own_ids(cls, "opaque_messages", "message")) | set(_own_ids(cls, "opaque_requests", "request"))
+    own = set(_own_ids(cls, cls.message_ids, "message")) | set(_own_ids(cls, cls.request_ids, "request"))
     out: dict[int, int] = {}
     for a, b in dict(ids).items():
         try:
@@ -128,16 +120,13 @@ def check_remap(cls: type[Modality], ids: Mapping[int, int] | None) -> dict[int,
 
 @dataclass
 class Routes:
-    """One node's routing table for one direction: wire type id -> owner, and the legacy
-    catch-all owner of unclaimed third-party ids."""
+    """One node's routing table for one direction: wire type id -> owner."""
 
     kind: str
     owners: dict[int, Any] = field(default_factory=dict)
     names: dict[int, str] = field(default_factory=dict)
-    catch_all: Any = None
-    catch_all_name: str | None = None
 
-    def claim(self, name: str, cls: type[Modality], ids: Iterable[int], slot: Any, catch_all: bool) -> None:
+    def claim(self, name: str, cls: type[Modality], ids: Iterable[int], slot: Any) -> None:
         """Claim ``ids`` for ``slot`` (modality ``name``); :class:`ConfigError` naming both
         modalities when one is claimed already. Nothing is claimed unless all are free."""
         ids = sorted(set(ids))
@@ -146,20 +135,10 @@ class Routes:
                 raise ConfigError(
                     f"modalities {self.names[i]!r} and {name!r} both claim {self.kind[:-1]} type id {i}"
                     f"{' (a third-party id: remap one in the deployment configuration)' if third_party(i) else ''}")
-        if catch_all and self.catch_all is not None:
-            raise ConfigError(
-                f"modalities {self.catch_all_name!r} and {name!r} both take every third-party "
-                f"{self.kind[:-1]} (Opaque in {self.kind}, no {self.kind[:-1]}_ids declared): declare "
-                f"{self.kind[:-1]}_ids in each")
         for i in ids:
             self.owners[i] = slot
             self.names[i] = name
-        if catch_all:
-            self.catch_all, self.catch_all_name = slot, name
 
     def owner(self, m: Message) -> Any:
         tid = type_id(m)
-        slot = self.owners.get(tid) if tid is not None else None
-        if slot is None and isinstance(m, Opaque):
-            return self.catch_all
-        return slot
+        return self.owners.get(tid) if tid is not None else None

@@ -383,3 +383,18 @@ def test_mavpeer_as_a_program_prints_each_mission(make: Callable[..., MavlinkAut
     finally:
         proc.terminate()
         proc.wait(10)
+
+
+def test_after_a_restart_the_flown_mission_is_followed_not_uploaded_again(make: Callable[..., MavlinkAutonomy],
+                                                                         port: int) -> None:
+    with _peer(port, fly_interval=0.4) as peer:
+        first = make()
+        first.submit(_plan(), time.monotonic())
+        got = run(first, until=lambda rs: any(r.state == SurveyState.STARTED for r in rs))
+        assert got[0].index == 0
+        first.close()  # the daemon stops (kill, restart); the autopilot flies on
+        again = make()
+        assert again.resume(_plan(), time.monotonic()) is True
+        later = run(again)
+        assert later[-1].state == SurveyState.COMPLETED and all(r.survey_id == 7 for r in later)
+        assert peer.counts == [4]  # uploaded once: the restart did not start the mission over

@@ -150,8 +150,7 @@ def private_imports(g: dict[str, set[str]]) -> list[str]:
 
 
 def test_no_module_reaches_into_another_package_s_private_modules() -> None:
-    allowed = {"coex_transports._runner"}  # the deprecated alias (imports the public runner)
-    assert [p for p in private_imports(graph(ROOT)) if p.split()[0] not in allowed] == []
+    assert private_imports(graph(ROOT)) == []
 
 
 def test_the_checks_catch_an_upward_import_and_a_cycle(tmp_path: Path) -> None:
@@ -212,13 +211,3 @@ def test_the_facade_offers_what_integrators_and_plugin_authors_need() -> None:
     assert Opaque is coex.messages.Opaque
 
 
-def test_the_old_runner_path_still_works_and_warns() -> None:
-    import importlib
-    import sys
-
-    sys.modules.pop("coex_transports._runner", None)
-    with pytest.warns(DeprecationWarning, match="import Runner and SimNetwork from coex"):
-        old = importlib.import_module("coex_transports._runner")
-    import coex
-
-    assert old.Runner is coex.Runner and old.SimNetwork is coex.SimNetwork

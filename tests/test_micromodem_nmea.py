@@ -6,6 +6,7 @@ import base64
 
 import pytest
 
+from coex_core import acoustic
 from coex_core.errors import DecodeError
 from coex_transports.micromodem import nmea
 from coex_transports.micromodem.nmea import NmeaError
@@ -98,9 +99,10 @@ def test_legacy_sentences() -> None:
 
 
 def test_rate_tables_match_the_reference_note() -> None:
+    assert nmea.RATES is acoustic.RATES  # one rate table: the driver and the channel model share it
     assert [(r.frame_bytes, r.frames) for r in nmea.RATES.values()] == [
         (32, 1), (64, 3), (64, 3), (256, 2), (256, 2), (256, 8), (32, 6)]
-    assert {k: v.packet_bytes for k, v in nmea.FDP_RATES.items()} == {1: 192, 3: 512, 5: 2048}
+    assert {k: v.max_bytes for k, v in nmea.FDP_RATES.items()} == {1: 192, 3: 512, 5: 2048}
 
 
 def _cst_v6(**kw: object) -> str:

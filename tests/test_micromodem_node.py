@@ -10,7 +10,7 @@ from coex_core import wire
 from coex_core.acoustic import AcousticChannel
 from coex_core.channel import Acked, ChannelManager, LinkConfig, Schedule, StreamConfig
 from coex_core.messages import Message, Opaque
-from coex_core.modality import ModalitySender
+from coex_core.modality import Modality, ModalitySender
 from coex_core.node import Node
 from coex_transports.micromodem import ModemNetwork
 
@@ -38,7 +38,7 @@ def test_two_nodes_over_simulated_modems() -> None:
     sched = Schedule.simple([TOPSIDE, VEHICLE, VEHICLE], 10.0, 1.0)
     link = LinkConfig(0, sched, rate=1, frames=3)  # 3 x 64 B frames, ~3 s per packet
     vehicle = Node(ChannelManager(VEHICLE, [link]))
-    vehicle.add_sender(type("M", (), {"name": "m", "requests": (), "messages": ()}),  # type: ignore[arg-type]
+    vehicle.add_sender(type("M", (Modality,), {"name": "m"}),
                        Counter(), StreamConfig(5, "m", ack_required=True))
     topside = Node(ChannelManager(TOPSIDE, [link]))
     net = ModemNetwork({VEHICLE: (0.0, 0.0, 0.0), TOPSIDE: (1500.0, 0.0, 0.0)},

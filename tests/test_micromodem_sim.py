@@ -227,6 +227,9 @@ def test_coex_send_and_listen_over_simulated_modems(pty_sim: PtySimulator) -> No
         [*COEX, "listen", "--transport", f"micromodem://{pty_sim.paths[2]}?src=2&dest=1", "--count", "2",
          "--timeout", "40"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:
+        assert listen.stderr is not None
+        ready = listen.stderr.readline()  # sent before the listener's modem is open, a frame is gone
+        assert ready.startswith("coex listen: listening on"), ready
         sent = subprocess.run(
             [*COEX, "send", "--transport", f"micromodem://{pty_sim.paths[1]}?src=1&dest=2", "--hex", "c0ffee",
              "--hex", "00" * 3 + "ff"], capture_output=True, text=True, timeout=60)

@@ -175,6 +175,31 @@ def test_binary_double_string_through_moosdb(moosdb: MoosDB) -> None:
     rx.close()
 
 
+def test_time_warp_stamps_moos_time_and_undoes_it(moosdb: MoosDB) -> None:
+    """MOOS time is the Unix time times MOOSTimeWarp (MOOSLocalTime): a warped client stamps
+    its values that way, and real_time() takes a received time back to Unix seconds."""
+    var = unique("WARPED")
+    rx = _client(moosdb, unique("rx"))
+    rx.register(var)
+    assert rx.connect(5)
+    tx = MoosClient("127.0.0.1", moosdb.port, unique("tx"), time_warp=20.0)
+    assert tx.connect(5)
+    before = time.time()
+    assert before * 20 <= tx.moos_time() <= time.time() * 20
+    tx.notify(var, 1.0)
+    tx.notify(var, 2.0, time=12345.0)  # an explicit MOOS time is kept
+    assert tx.flush(5)
+    got = _collect(rx, 2)
+    assert before * 20 <= got[0].time <= time.time() * 20
+    assert got[1].time == 12345.0
+    assert before - 1 <= tx.real_time(got[0].time) <= time.time()
+    for bad in (0, -1.0, 401.0, float("nan"), True):
+        with pytest.raises(ValueError, match="time_warp"):
+            MoosClient("127.0.0.1", moosdb.port, "x", time_warp=bad)
+    tx.close()
+    rx.close()
+
+
 def test_stored_value_is_not_replayed_as_new(moosdb: MoosDB) -> None:
     var = unique("STORED")
     tx = _client(moosdb, unique("tx"))

@@ -60,8 +60,11 @@ def test_uri() -> None:
         ("10.0.0.2", 9001, "pCoex2", "A_TX", "A_RX", 512, 7, 0.0, 1.0)
     assert parse_moos_uri("moos://") == MoosConfig()
     assert parse_moos_uri(MoosConfig(port=1234, name="x").uri) == MoosConfig(port=1234, name="x")
+    assert parse_moos_uri("moos://h:1?warp=12.5").warp == 12.5  # the community's MOOSTimeWarp
+    assert parse_moos_uri(MoosConfig(warp=4).uri) == MoosConfig(warp=4)
     for bad in ("moos://h:1?color=red", "moos://h:99999", "moos://h:1?tx=", "moos://h:1?name=a%20b",
-                "moos://h:1/path", "lcm://h:1", "moos://h:1?mtu=0", "moos://h:1?hold=-1"):
+                "moos://h:1/path", "lcm://h:1", "moos://h:1?mtu=0", "moos://h:1?hold=-1", "moos://h:1?warp=0",
+                "moos://h:1?warp=nan", "moos://h:1?warp=500"):
         with pytest.raises(ConfigError):
             parse_moos_uri(bad)
 

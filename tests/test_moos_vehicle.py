@@ -51,7 +51,7 @@ def test_update_strings_carry_the_plans_own_waypoints() -> None:
     lawn = SurveyPlan(7, SurveyKind.LAWNMOWER, ((-40.0, 25.5), (40.0, 25.5), (40.0, -0.25), (-40.0, -0.25)),
                       altitude=5.0, speed=1.5, heading=90.0, length=80.0, width=25.75, spacing=25.75,
                       centre=(0.0, 12.6))
-    assert update_of(lawn) == "points=-40,25.5:40,25.5:40,-0.25:-40,-0.25#speed=1.5"
+    assert update_of(lawn) == "points=-40,25.5:40,25.5:40,-0.25:-40,-0.25#speed=1.5"  # posted after name=
     assert update_of(SurveyPlan(8, SurveyKind.GOTO, ((12.0, -3.0),))) == "point=12,-3"
     line = SurveyPlan(9, SurveyKind.LINE, ((0.0, 0.0), (0.0, 120.0)), speed=None)
     assert update_of(line, "capture_radius=5") == "points=0,0:0,120#capture_radius=5"
@@ -166,6 +166,18 @@ def test_a_pcoex_block_is_the_configuration_a_toml_file_gives(tmp_path: Path) ->
         del os.environ["COEX_TEST_MOOS_HOST"]
     assert raw is not None and raw["modems"][0]["uri"] == "moos://10.0.0.5:9123?name=pCoex_modem"
     assert raw["autonomy"]["server"] == raw["inputs"][0]["server"] == "10.0.0.5:9123"
+    assert "time_warp" not in raw["autonomy"] and "time_warp" not in raw["inputs"][0]  # no MOOSTimeWarp: 1
+    # MOOSTimeWarp: every MOOS client of pCoex stamps and reads warped MOOS times
+    warped = MISSION.replace("Community  = alpha\n", "Community  = alpha\nMOOSTimeWarp = 12.5\n")
+    raw, problems = read_mission(_mission(tmp_path, warped), "pCoex")
+    assert problems == [] and raw is not None
+    assert raw["autonomy"]["time_warp"] == raw["inputs"][0]["time_warp"] == 12.5
+    assert raw["modems"][0]["uri"] == "moos://127.0.0.1:9000?name=pCoex_modem&warp=12.5"
+    assert "time_warp" not in raw["inputs"][1]  # not a moos input
+    _, problems = read_mission(_mission(tmp_path, MISSION.replace("Community  = alpha\n", "Community  = alpha\n"
+                                                                  "MOOSTimeWarp = 0\n")), "pCoex")
+    assert problems == ["MOOSTimeWarp: a number above 0 and at most 400, got '0'"], problems
+    _mission(tmp_path)
     cfg, problems = check_mission(tmp_path / "m.moos")
     assert problems == [], problems
     assert cfg is not None and cfg.node_id == 2 and cfg.origin_lat == 42.358436 and cfg.slots == ("topside", "vehicle")
@@ -252,6 +264,40 @@ def test_nav_and_channels_become_items(moosdb: MoosDB, pymoos_client: Callable[.
         inp.close()
 
 
+def test_nav_times_are_real_seconds_under_time_warp(moosdb: MoosDB) -> None:
+    """Under MOOSTimeWarp a MOOS clock reads the Unix time times the warp: the input's items
+    are timed in real seconds again (the vehicle status topside must not be years ahead)."""
+    from coex_transports.moos import MoosClient
+
+    x_var, temp = unique("NAV_X"), unique("CTD_T")
+    inp = MoosInput({"server": f"127.0.0.1:{moosdb.port}", "name": unique("pCoex_in"), "time_warp": 25.0,
+                     "nav": {"x": x_var, "y": "", "depth": "", "altitude": "", "heading": "", "speed": "",
+                             "lat": "", "lon": ""}, "channels": {temp: "temperature"}}, InputContext())
+    nav = MoosClient("127.0.0.1", moosdb.port, unique("uSimMarine"), time_warp=25.0)
+    inp.open()
+    try:
+        assert nav.connect(5)
+        _wait(lambda: inp.client.connected, what="the input's connection")
+        time.sleep(0.3)
+        before = time.time()
+        nav.notify(x_var, 3.0)
+        nav.notify(temp, 4.5)
+        assert nav.flush(5)
+        items: list[Any] = []
+        _wait(lambda: items.extend(inp.poll(time.time())) or (
+            any(isinstance(i, Nav) for i in items) and any(isinstance(i, Samples) for i in items)), what="items")
+        times = [i.time for i in items if isinstance(i, Nav)] + [t for i in items if isinstance(i, Samples)
+                                                                   for t in i.times]
+        assert all(before - 1 <= t <= time.time() + 1 for t in times), (before, times)
+    finally:
+        inp.close()
+        nav.close()
+    with pytest.raises(ConfigError, match="time_warp"):
+        MoosInput({"time_warp": 0}, InputContext())
+    with pytest.raises(ConfigError, match="time_warp"):
+        MoosAutonomy({"time_warp": "fast"}, InputContext())
+
+
 def _autonomy(moosdb: MoosDB, **options: Any) -> MoosAutonomy:
     a = MoosAutonomy({"server": f"127.0.0.1:{moosdb.port}", "name": unique("pCoex_helm"), **options},
                      InputContext())
@@ -267,39 +313,77 @@ def _reports(a: MoosAutonomy, n: int) -> list[Any]:
     return got
 
 
-def test_refusal_override_and_endflag(moosdb: MoosDB, pymoos_client: Callable[..., Any]) -> None:
+class _Helm:
+    """pymoos playing the IvP helm's side of the hand-over: it answers each update of the
+    output as pHelmIvP does (IVPHELM_UPDATE_RESULT, BHV_WARNING) and records what it was sent."""
+
+    def __init__(self, comms: Any, *variables: str) -> None:
+        self.comms, self.seen = comms, []  # type: ignore[var-annotated]
+        self.variables = variables
+        self.answered = 0  # updates answered so far
+        self.stop = threading.Event()
+        # the helm's heartbeat: IVPHELM_STATE every iteration (the output watches for silence)
+        self.beat = threading.Thread(target=self._beat, daemon=True)
+        self.beat.start()
+
+    def _beat(self) -> None:
+        while not self.stop.wait(0.25):
+            self.comms.notify("IVPHELM_STATE", "DRIVE", -1)
+
+    def answer(self, bhv: str, var: str, result: str = "success") -> str:
+        """Answer the next update of ``var`` (not the output's ``name=`` separator)."""
+        def nxt() -> Any:
+            updates = [v for k, v in _collect(self.comms, self.seen) if k == var and "#" in str(v)]
+            return updates[self.answered] if len(updates) > self.answered else None
+
+        update = _wait(nxt, what=f"an update of {var}")
+        self.answered += 1
+        self.comms.notify("IVPHELM_UPDATE_RESULT", f"bhv={bhv},var={var},time=1.0,result={result},val={update}", -1)
+        return str(update)
+
+    def values(self, var: str) -> list[Any]:
+        _collect(self.comms, self.seen)
+        return [v for k, v in self.seen if k == var]
+
+
+def test_the_helm_hand_over_through_moosdb(moosdb: MoosDB, pymoos_client: Callable[..., Any]) -> None:
+    """What the output posts and reads, as MOOS values through a real MOOSDB: refused by the
+    helm (its words come back), flown, taken over, ended by the endflag."""
     upd, act, bhv = unique("UPD"), unique("SURVEY"), unique("bhv")
     done = unique("SURVEY_DONE")
     a = _autonomy(moosdb, updates_var=upd, activate=f"{act} = true", behavior=bhv,
                   wpt_index_var=unique("IDX"), wpt_status_var=unique("STAT"), endflag=f"{done} = true")
-    helm = pymoos_client(upd, act)
+    helm = _Helm(pymoos_client(upd, act), upd, act)
     try:
         plan = SurveyPlan(3, SurveyKind.LINE, ((0.0, 0.0), (50.0, 0.0)), depth=12.0)
         a.submit(plan, time.time())
-        seen = _wait(lambda: [v for k, v in _collect(helm, []) if k == act], what="the activation")
-        assert seen == ["true"]
-        # the helm refuses the update (as IvPBehavior::checkUpdates words it)
-        helm.notify("BHV_WARNING", f"Faulty update for behavior: {bhv}. Bad parameter(s): points", -1)
+        assert helm.answer(bhv, upd, "param_error") == f"name={bhv}#points=0,0:50,0"
+        helm.comms.notify("BHV_WARNING", f"Faulty update for behavior: {bhv}. Bad parameter(s): points", -1)
         [r] = _reports(a, 1)
-        assert (r.survey_id, r.state, r.reason) == (3, SurveyState.REJECTED, SurveyReason.AUTONOMY_REFUSED)
-        # manual override while flying: aborted, and the behaviour's condition cleared
+        assert (r.survey_id, r.state, r.reason, r.detail) == (3, SurveyState.REJECTED, SurveyReason.AUTONOMY_REFUSED,
+                                                              f"{bhv}: Bad parameter(s): points")
+        assert _wait(lambda: helm.values(act)[-1:] == ["false"], what="deactivated") and "true" not in helm.values(act)
+        # taken by the helm: activated; a manual override aborts it and deactivates it
         a.submit(SurveyPlan(4, SurveyKind.GOTO, ((5.0, 5.0),)), time.time())
-        _wait(lambda: "true" in [v for k, v in _collect(helm, []) if k == act], what="the activation")
-        helm.notify("MOOS_MANUAL_OVERRIDE", "true", -1)
+        assert helm.answer(bhv, upd) == f"name={bhv}#point=5,5"
+        _wait(lambda: a.poll(time.time()) == [] and helm.values(act)[-1:] == ["true"], what="the activation")
+        helm.comms.notify("MOOS_MANUAL_OVERRIDE", "true", -1)
         [r] = _reports(a, 1)
-        assert (r.survey_id, r.state, r.reason) == (4, SurveyState.ABORTED, SurveyReason.AUTONOMY_STOPPED)
-        assert _wait(lambda: "false" in [v for k, v in _collect(helm, []) if k == act], what="deactivation")
-        helm.notify("MOOS_MANUAL_OVERRIDE", "false", -1)
+        assert (r.survey_id, r.state, r.reason) == (4, SurveyState.ABORTED, SurveyReason.MANUAL_OVERRIDE)
+        assert _wait(lambda: helm.values(act)[-1:] == ["false"], what="deactivation")
+        helm.comms.notify("MOOS_MANUAL_OVERRIDE", "false", -1)
         # the endflag ends a survey (a STARTED first: it did set off)
-        a.submit(SurveyPlan(5, SurveyKind.GOTO, ((5.0, 5.0),)), time.time())
-        time.sleep(0.2)
-        helm.notify(done, "true", -1)
+        a.submit(SurveyPlan(5, SurveyKind.GOTO, ((6.0, 5.0),)), time.time())
+        helm.answer(bhv, upd)
+        _wait(lambda: a.poll(time.time()) == [] and helm.values(act)[-1:] == ["true"], what="the activation")
+        helm.comms.notify(done, "true", -1)
         got = _reports(a, 2)
         assert [(r.survey_id, r.state, r.index) for r in got] == [(5, SurveyState.STARTED, 0),
                                                                    (5, SurveyState.COMPLETED, None)]
         time.sleep(0.3)
         assert a.poll(time.time()) == []  # nothing after the end
     finally:
+        helm.stop.set()
         a.close()
 
 
@@ -367,7 +451,8 @@ def test_a_survey_command_reaches_the_helm_and_its_progress_comes_back(
         (tmp_path / "v.toml").write_text(VEHICLE.format(modem=modems[2], moos=moosdb.port, name=unique("pCoex"),
                                                         upd=upd, act=act))
         (tmp_path / "t.toml").write_text(TOPSIDE.format(modem=modems[1]))
-        helm = pymoos_client(upd, act)
+        helm = _Helm(pymoos_client(upd, act), upd, act)
+        stack.callback(helm.stop.set)
         vehicle = VehicleApp(load(tmp_path / "v.toml", "vehicle")).start()
         stack.callback(vehicle.close)
         topside = topside_from_config(str(tmp_path / "t.toml")).start()
@@ -375,45 +460,43 @@ def test_a_survey_command_reaches_the_helm_and_its_progress_comes_back(
         _survey_to_helm(vehicle, topside, helm, upd, act)
 
 
-def _survey_to_helm(vehicle: Any, topside: Any, helm: Any, upd: str, act: str) -> None:
-    seen: list[tuple[str, Any]] = []
+def _survey_to_helm(vehicle: Any, topside: Any, helm: _Helm, upd: str, act: str) -> None:
     # the navigation, as pNodeReporter reads it, reaches topside as the vehicle status
     def nav() -> Any:
         for var, value in [("NAV_X", 31.5), ("NAV_Y", -12.0), ("NAV_DEPTH", 22.4), ("NAV_ALTITUDE", 6.5),
                            ("NAV_HEADING", 135.0), ("NAV_SPEED", 1.2)]:
-            helm.notify(var, value, -1)
+            helm.comms.notify(var, value, -1)
         st = topside.hub.state.status
         return st is not None and abs(st.x - 31.5) < 0.1 and st
 
     st = _wait(nav, 120, "the vehicle status topside")
     assert (st.x, st.y, st.depth, st.altitude, st.heading) == (31.5, -12.0, 22.4, 6.5, 135.0)
-    # a lawnmower survey goes up and becomes a helm update, then the activation
+    # a lawnmower survey goes up and becomes a helm update; the helm takes it; the activation
     rx = topside.node.receiver("survey")
     with topside.hub.lock:
         req = rx.request("lawnmower", 20.0, 10.0, time.time(), heading=30.0, length=100.0, width=40.0,
                          spacing=20.0, depth=15.0, speed=1.5)
-    _wait(lambda: act in [k for k, _ in _collect(helm, seen)], 120, "the helm update and activation")
+    update = _wait(lambda: helm.answer("coex_survey", upd), 120, "the helm update")
     plan = vehicle.autonomy.plan
     assert plan is not None and plan.survey_id == req.survey_id and len(plan.waypoints) == 6
-    keys = [k for k, _ in seen]
-    assert keys.index(upd) < keys.index(act)  # the update first, then the behaviour's condition
-    update = dict(seen)[upd]
-    assert update == "points=" + ":".join(f"{x:g},{y:g}" for x, y in plan.waypoints) + "#speed=1.5"
-    assert dict(seen)[act] == "true"
+    assert update == "name=coex_survey#points=" + ":".join(f"{x:g},{y:g}" for x, y in plan.waypoints) + "#speed=1.5"
+    _wait(lambda: helm.values(act)[-1:] == ["true"], 30, "the activation")
+    keys = [k for k, _ in helm.seen]
+    assert keys.index(act) < keys.index(upd) < len(keys) - 1 - keys[::-1].index(act)  # off, update, on
     # the helm flies it: WPT_INDEX, then WPT_STAT completed, as BHV_Waypoint posts them
     for k in (0, 1, 3):
-        helm.notify("WPT_INDEX", float(k), -1)
+        helm.comms.notify("WPT_INDEX", float(k), -1)
         time.sleep(0.1)
     s = rx.surveys[req.survey_id]
     _wait(lambda: s.state == "started" and s.index == 3, 120, "started, heading for waypoint 3")
-    helm.notify("WPT_STAT", "vname=alpha,behavior-name=some_other_bhv,completed", -1)
+    helm.comms.notify("WPT_STAT", "vname=alpha,behavior-name=some_other_bhv,completed", -1)
     time.sleep(0.5)
     assert s.state == "started"  # another behaviour's completion is not ours
-    helm.notify("WPT_STAT", "vname=alpha,behavior-name=coex_survey,index=5,hits=1/1,cycles=0,dist=40,eta=27", -1)
-    helm.notify("WPT_STAT", "behavior-name=coex_survey,completed", -1)
+    helm.comms.notify("WPT_STAT", "vname=alpha,behavior-name=coex_survey,index=5,hits=1/1,cycles=0,dist=40,eta=27", -1)
+    helm.comms.notify("WPT_STAT", "behavior-name=coex_survey,completed", -1)
     _wait(lambda: s.state == "completed", 120, "completed topside")
-    states = [h[1] for h in s.history]
-    assert states[0] == "requested" and "started" in states and states[-1] == "completed", states
+    states = {h[1] for h in s.history}
+    assert {"requested", "accepted", "started", "completed"} <= states, s.history
     assert vehicle.counts["plans"] == 1
 
 

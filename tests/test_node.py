@@ -104,8 +104,8 @@ class FakeReceiver(ModalityReceiver):
 
 class FakeModality(Modality):
     name = "fake"
-    opaque_messages: ClassVar[tuple[int, ...]] = (DATA,)
-    opaque_requests: ClassVar[tuple[int, ...]] = (REQUEST,)
+    message_ids: ClassVar[tuple[int, ...]] = (DATA,)
+    request_ids: ClassVar[tuple[int, ...]] = (REQUEST,)
 
     def sender(self, config: Mapping[str, Any] | None = None) -> ModalitySender:
         return FakeSender()

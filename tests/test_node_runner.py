@@ -12,7 +12,7 @@ from coex_core import wire
 from coex_core.channel import Acked, ChannelManager, LinkConfig, Schedule, StreamConfig
 from coex_core.loopback import LoopbackLink
 from coex_core.messages import Message, Opaque
-from coex_core.modality import ModalitySender
+from coex_core.modality import Modality, ModalitySender
 from coex_core.node import Node
 
 VEHICLE, TOPSIDE = 2, 1
@@ -40,7 +40,7 @@ def _nodes() -> tuple[Node, Node, Counter]:
     link = LinkConfig(0, sched, rate=1, frames=3)  # 3 x 64 B frames, ~3 s per packet
     vehicle = Node(ChannelManager(VEHICLE, [link]))
     sender = Counter()
-    vehicle.add_sender(type("M", (), {"name": "m", "requests": (), "messages": ()}),  # type: ignore[arg-type]
+    vehicle.add_sender(type("M", (Modality,), {"name": "m"}),
                        sender, StreamConfig(5, "m", ack_required=True))
     topside = Node(ChannelManager(TOPSIDE, [link]))
     return vehicle, topside, sender

@@ -152,24 +152,22 @@ def test_an_id_outside_the_third_party_ranges_is_refused() -> None:
         node.add_receiver(bad, bad().receiver())
 
 
-def test_a_legacy_plugin_listing_opaque_works_on_its_own_and_takes_only_unclaimed_ids() -> None:
-    """A plugin written before ids were declared (``Opaque`` in ``messages`` and ``requests``)
-    still works alone; beside a plugin that declares its ids it takes only the rest; two such
-    plugins in one node are refused."""
+def test_a_plugin_listing_opaque_instead_of_its_ids_is_refused_with_the_upgrade() -> None:
+    """The catch-all of 0.1 (``Opaque`` in ``messages``/``requests``, no ids) is gone: such a
+    plugin is refused when added, with what to declare instead; the old ``opaque_*`` names are
+    not read."""
     legacy = modality("legacy", 250, 251)
     legacy.message_ids = legacy.request_ids = ()  # type: ignore[misc]
     legacy.messages = legacy.requests = (Opaque,)  # type: ignore[misc]
-    vehicle, topside, net = pair()
-    s0, r0 = attach(vehicle, topside, legacy, 5)
-    s1, r1 = attach(vehicle, topside, modality("ctd", 200, 201), 6)
-    net.run(900.0)
-    assert {m.type_id for m in r0.got} == {250} and {m.type_id for m in r1.got} == {200}
-    assert [m.type_id for m in s0.handled] == [251] and [m.type_id for m in s1.handled] == [201]
-    twin = modality("twin", 260, 261)
-    twin.message_ids = twin.request_ids = ()  # type: ignore[misc]
-    twin.messages = twin.requests = (Opaque,)  # type: ignore[misc]
-    with pytest.raises(ConfigError, match="'legacy' and 'twin' both take every third-party message"):
-        topside.add_receiver(twin, twin().receiver())
+    _vehicle, topside, _net = pair()
+    with pytest.raises(ConfigError, match="list the third-party type ids in message_ids"):
+        topside.add_receiver(legacy, legacy().receiver())
+    old = modality("old", 250, 251)
+    old.message_ids = old.request_ids = ()  # type: ignore[misc]
+    old.opaque_messages = (250,)  # type: ignore[attr-defined]
+    from coex_core.routing import declared_ids
+
+    assert declared_ids(old, "messages") == frozenset()
 
 
 def test_a_deployment_remaps_third_party_ids_on_the_wire() -> None:

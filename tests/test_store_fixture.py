@@ -17,7 +17,8 @@ from typing import Any
 import numpy as np
 import pytest
 
-from coex import AcousticChannel, NodeStore
+from coex import AcousticChannel, ConfigError, NodeStore
+from coex_transports.store import SCHEMA_VERSION
 
 from ._faults import T0, build_dive, run_sim
 
@@ -76,6 +77,9 @@ def test_a_store_of_an_earlier_version_loads(tmp_path: Path, version: str, role:
     store = NodeStore(db)
     again = NodeStore(tmp_path / "again.sqlite")
     try:
+        # the 0.1 file never set a schema version: it is migrated to the present one
+        assert store.schema_found == (0 if version == "v1" else store.schema_found)
+        assert store.db.execute("PRAGMA user_version").fetchone()[0] == SCHEMA_VERSION
         node = store.restore(lambda: getattr(build_dive(minutes=MINUTES), role))
         assert digest(node) == expected
         # and it goes on working: moved to another store (its modalities' out-of-core storage
@@ -89,6 +93,22 @@ def test_a_store_of_an_earlier_version_loads(tmp_path: Path, version: str, role:
     finally:
         again.close()
     assert digest(twin) == expected
+
+
+def test_a_store_of_a_newer_schema_is_refused_not_written(tmp_path: Path) -> None:
+    path = tmp_path / "future.sqlite"
+    NodeStore(path).close()
+    import sqlite3
+
+    with sqlite3.connect(path) as db:
+        db.execute(f"PRAGMA user_version = {SCHEMA_VERSION + 1}")
+    with pytest.raises(ConfigError, match="written by a newer CoEx"):
+        NodeStore(path)
+    fresh = NodeStore(tmp_path / "new.sqlite")
+    try:
+        assert fresh.schema_found == 0 and fresh.db.execute("PRAGMA user_version").fetchone()[0] == SCHEMA_VERSION
+    finally:
+        fresh.close()
 
 
 if __name__ == "__main__" and "--write" in sys.argv:

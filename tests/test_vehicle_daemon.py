@@ -190,3 +190,28 @@ def test_every_skipped_input_item_is_counted_per_input_in_the_summary(tmp_path: 
     text = summary_text(summary)
     assert "images 1, samples 0, nav 0, skipped 7," in text
     assert text.endswith("; skipped by input: inputs[0] (directory) 5, inputs[1] (lcm) 2"), text
+
+
+def test_a_vehicle_restarted_mid_survey_follows_it_again_to_its_end(tmp_path: Path) -> None:
+    port = _free_udp_port()
+    (tmp_path / "k.key").write_text(KEY)
+    (tmp_path / "v.toml").write_text(VEHICLE.format(port=port).replace("speed = 40.0", "speed = 12.0"))
+    (tmp_path / "t.toml").write_text(TOPSIDE.format(port=port))
+    vehicle = VehicleApp(load(tmp_path / "v.toml", "vehicle")).start()
+    topside = topside_from_config(str(tmp_path / "t.toml")).start()
+    again = None
+    try:
+        rx = topside.node.receiver("survey")
+        with topside.hub.lock:
+            cmd = rx.request("line", 0.0, 0.0, time.time(), heading=90.0, length=120.0, altitude=5.0)
+        _wait(lambda: rx.surveys[cmd.survey_id].state == "started")
+        vehicle.close()  # mid-survey (120 m at 12 m/s)
+        again = VehicleApp(load(tmp_path / "v.toml", "vehicle")).start()
+        _wait(lambda: rx.surveys[cmd.survey_id].state == "completed", timeout=60.0)
+        assert again._resumed and again.counts["plans"] == 0  # followed again, not submitted as new
+        assert again.autonomy is not None and again.autonomy._plan.survey_id == cmd.survey_id
+    finally:
+        vehicle.close()
+        if again is not None:
+            again.close()
+        topside.close()

@@ -171,11 +171,10 @@ class DeliveryMixin(LinksMixin):
             self._lost_recs.popitem(last=False)
         self.stats["lost"] += 1
         s = self._streams.get(rec.stream)
-        hook = getattr(s.sender, "lost", None) if s is not None and s.sender is not None else None
-        if hook is None:
+        if s is None or s.sender is None:
             return
         try:
-            hook(rec.message, now)
+            s.sender.lost(rec.message, now)  # declared on ModalitySender (default: nothing)
         except Exception as exc:  # a sender's hook never stops the channel
             self.stats["sender_failures"] += 1
             self._events.append(SenderFailed(now, rec.stream, f"lost() failed: {type(exc).__name__}: {exc}"))

@@ -13,7 +13,6 @@ from ..messages import (
     FrameHeader,
     Message,
 )
-from ..modality import ModalitySender
 from ..wire import encoded_size, header_size, pack
 from .events import (
     Dropped,
@@ -247,9 +246,8 @@ class PackingMixin(PolicyMixin):
         cands = []
         for sid, s in self._streams.items():
             q = s.queue
-            if (s.sender is None or q.config.spare <= 0 or not self._eligible(q, link, w, now)
-                    or getattr(type(s.sender), "spare", ModalitySender.spare) is ModalitySender.spare):
-                continue
+            if s.sender is None or q.config.spare <= 0 or not self._eligible(q, link, w, now):
+                continue  # (a sender without spare work answers spare() with nothing: the declared default)
             cands.append(sid)
         if not cands:
             return 0

@@ -23,10 +23,15 @@ from typing import Any
 
 import pytest
 
-pytest.register_assert_rewrite("coex_conformance.modality", "coex_conformance.transport", "coex_conformance.wire")
+pytest.register_assert_rewrite("coex_conformance.adapters", "coex_conformance.modality", "coex_conformance.transport", "coex_conformance.wire")
 
 # Imported on first use: pytest imports this package for its plugin in every run, so it stays cheap.
 _LAZY = {
+    "AutonomyFixtures": "adapters",
+    "AutonomyTests": "adapters",
+    "InputFixtures": "adapters",
+    "InputTests": "adapters",
+    "survey_plan": "adapters",
     "ModalityFixtures": "fixtures",
     "TransportFixtures": "fixtures",
     "LinkedPair": "harness",
@@ -45,6 +50,10 @@ def __getattr__(name: str) -> Any:
     raise AttributeError(name)
 
 __all__ = [
+    "AutonomyFixtures",
+    "AutonomyTests",
+    "InputFixtures",
+    "InputTests",
     "LinkedPair",
     "ModalityFixtures",
     "ModalityTests",
@@ -53,5 +62,6 @@ __all__ = [
     "WireVectorTests",
     "load_vectors",
     "run_until",
+    "survey_plan",
     "vectors_dir",
 ]

@@ -21,13 +21,13 @@ import subprocess
 import sys
 import tempfile
 from collections.abc import Sequence
-from importlib import metadata
 from pathlib import Path
 from typing import Any
 
 import pytest
 
 from coex_core.errors import ConfigError
+from coex_core.registry import entry_points
 
 from .companions import CONFORMANCE_GROUP, Companion
 from .fixtures import ModalityFixtures
@@ -37,9 +37,10 @@ __all__ = ["CONFORMANCE_GROUP", "load_companion", "main", "suite_class"]
 
 def load_companion(name: str) -> Companion:
     """The conformance inputs the plugin ``name`` registered (:class:`ConfigError` if none)."""
-    eps = [ep for ep in metadata.entry_points(group=CONFORMANCE_GROUP) if ep.name == name]
+    found = entry_points(CONFORMANCE_GROUP)
+    eps = [found[name]] if name in found else []
     if not eps:
-        known = sorted({ep.name for ep in metadata.entry_points(group=CONFORMANCE_GROUP)})
+        known = sorted(found)
         raise ConfigError(f"plugin {name!r} registers no conformance inputs (entry point group "
                           f"{CONFORMANCE_GROUP!r}; registered: {', '.join(known) or 'none'})")
     try:

@@ -11,10 +11,10 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass
-from importlib import metadata
 from typing import Any
 
 from coex_core.modality import Modality, ModalityReceiver, ModalitySender
+from coex_core.registry import entry_points
 
 __all__ = ["BUILT_IN", "CONFORMANCE_GROUP", "Companion", "companions", "sample"]
 
@@ -47,13 +47,13 @@ def sample() -> Companion:
 def registered(name: str) -> Companion | None:
     """The inputs registered under ``coex.conformance`` as ``name`` (None: none, or its plugin
     is not installed with what it needs, e.g. imagery without glymur)."""
-    for ep in metadata.entry_points(group=CONFORMANCE_GROUP):
-        if ep.name == name:
-            try:
-                return ep.load()()  # type: ignore[no-any-return]
-            except ImportError:
-                return None
-    return None
+    ep = entry_points(CONFORMANCE_GROUP).get(name)
+    if ep is None:
+        return None
+    try:
+        return ep.load()()  # type: ignore[no-any-return]
+    except ImportError:
+        return None
 
 
 def companions() -> list[Companion]:

@@ -2,7 +2,8 @@
 
 ``coex send --transport URI --hex HEX [--hex HEX ...]`` sends each frame;
 ``coex listen --transport URI --count N --timeout S`` prints each received frame as one line of
-lowercase hex and exits after N frames or S seconds (exit code 0 if N frames arrived, else 1).
+lowercase hex and exits after N frames or S seconds (exit code 0 if N frames arrived, else 1);
+once its transport is open it says so on standard error ("coex listen: listening on URI").
 """
 
 from __future__ import annotations
@@ -55,6 +56,7 @@ def run_listen(args: argparse.Namespace) -> int:
     got = 0
     deadline = time.monotonic() + args.timeout
     with open_transport(args.transport) as transport:
+        print(f"coex listen: listening on {args.transport}", file=sys.stderr, flush=True)
         while got < args.count:
             left = deadline - time.monotonic()
             if left <= 0:

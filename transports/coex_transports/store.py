@@ -36,13 +36,14 @@ from coex_core.errors import ConfigError
 from coex_core.node import Node
 from coex_core.storage import Storage
 
-__all__ = ["JournalRow", "NodeStore", "SqliteStorage"]
+__all__ = ["MIGRATIONS", "SCHEMA_VERSION", "JournalRow", "NodeStore", "SqliteStorage", "migrate"]
 
 #: Stores written before the explicit state format held pickled snapshots, which this version
 #: refuses (it never unpickles).
 _PICKLE_PROTOCOL_5 = b"\x80\x05"
 
-_SCHEMA = """
+#: Version 1 of the file's tables (what 0.1 wrote, without setting ``user_version``).
+_SCHEMA_1 = """
 CREATE TABLE IF NOT EXISTS journal (
     id INTEGER PRIMARY KEY AUTOINCREMENT,
     kind TEXT NOT NULL CHECK (kind IN ('rx', 'tx', 'input')),
@@ -66,6 +67,34 @@ CREATE TABLE IF NOT EXISTS storage (
     UNIQUE (key, gen)
 );
 """
+
+#: The file's schema, versioned with SQLite's ``PRAGMA user_version``: migration ``k`` (SQL, run
+#: in order in one transaction each) takes a store from version ``k`` to ``k + 1``. A store of
+#: 0.1 has version 0 and already the tables of version 1 (``IF NOT EXISTS``). A store newer than
+#: :data:`SCHEMA_VERSION` is refused: an older CoEx must not write into it.
+MIGRATIONS: tuple[str, ...] = (
+    _SCHEMA_1,  # 0 -> 1: journal, snapshot, meta, storage
+)
+SCHEMA_VERSION = len(MIGRATIONS)
+
+
+def migrate(db: sqlite3.Connection, path: Path) -> int:
+    """Bring the store's schema to :data:`SCHEMA_VERSION`; returns the version it had."""
+    found = int(db.execute("PRAGMA user_version").fetchone()[0])
+    if found > SCHEMA_VERSION:
+        raise ConfigError(f"{path} was written by a newer CoEx (store schema {found}; this one knows up to "
+                          f"{SCHEMA_VERSION}): open it with that version, or give another store")
+    for k in range(found, SCHEMA_VERSION):
+        db.execute("BEGIN IMMEDIATE")
+        try:
+            for statement in filter(None, (x.strip() for x in MIGRATIONS[k].split(";"))):
+                db.execute(statement)
+            db.execute(f"PRAGMA user_version = {k + 1}")
+            db.execute("COMMIT")
+        except BaseException:
+            db.execute("ROLLBACK")
+            raise
+    return found
 
 
 class SqliteStorage(Storage):
@@ -160,7 +189,8 @@ class NodeStore:
             if str(mode).lower() != "wal":
                 raise ConfigError(f"{self.path}: SQLite refused WAL mode ({mode})")
             self.db.execute("PRAGMA synchronous=NORMAL")
-            self.db.executescript(_SCHEMA)
+            #: the schema version the file had when opened (0: a store of CoEx 0.1)
+            self.schema_found = migrate(self.db, self.path)
         except sqlite3.Error as exc:
             raise ConfigError(f"cannot open the node store {self.path}: {exc}") from exc
         self._last_snapshot: float | None = None

@@ -1644,9 +1644,9 @@ def _modality_of(msg: m.Message) -> str | None:
                 cls = load_modality(info.name)
             except Exception:
                 continue
-            for t in getattr(cls, "messages", ()):
+            for t in cls.messages:
                 table.setdefault(t, info.name)
-            for tid in (*getattr(cls, "message_ids", ()), *getattr(cls, "opaque_messages", ())):
+            for tid in cls.message_ids:
                 table.setdefault(("opaque", int(tid)), info.name)
         _MODALITY_OF = table
     if isinstance(msg, m.Opaque):

@@ -17,13 +17,13 @@ from typing import Any
 
 import numpy as np
 
+from coex_core.adapters import SurveyPlan, SurveyReport
 from coex_core.errors import ConfigError
 from coex_core.messages import (
     SURVEY_DETAIL_MAX,
     SurveyCommand,
     SurveyKind,
     SurveyReason,
-    SurveyState,
 )
 from coex_core.state import persistent
 
@@ -31,51 +31,6 @@ __all__ = ["Geofence", "Refusal", "SurveyPlan", "SurveyReport", "cut_detail", "d
 
 #: most lawnmower rows a command may expand to (a 10 km wide box at 0.5 m is refused as INVALID)
 MAX_ROWS = 200
-
-
-@persistent("survey.Plan")
-@dataclass(frozen=True)
-class SurveyPlan:
-    """What the vehicle's autonomy flies: ``waypoints`` (``N x 2``, metres east/north of the
-    origin) in order, at ``altitude`` above the seafloor or ``depth`` below the surface (None:
-    keep the present one) and ``speed`` (None: the vehicle's own)."""
-
-    survey_id: int
-    kind: SurveyKind
-    waypoints: tuple[tuple[float, float], ...]
-    altitude: float | None = None
-    depth: float | None = None
-    speed: float | None = None
-    #: the command's own shape, for autonomies that have a native lawnmower (MOOS-IvP)
-    heading: float | None = None
-    length: float | None = None
-    width: float | None = None
-    spacing: float | None = None
-    centre: tuple[float, float] | None = None
-
-    @property
-    def path_length(self) -> float:
-        w = np.asarray(self.waypoints, float)
-        return float(np.hypot(*np.diff(w, axis=0).T).sum()) if len(w) > 1 else 0.0
-
-
-@persistent("survey.Report")
-@dataclass(frozen=True)
-class SurveyReport:
-    """What the vehicle's autonomy says about a survey (the survey sender's input):
-    ``state`` STARTED (``index``: the waypoint it heads for), COMPLETED, ABORTED (``reason``:
-    AUTONOMY_STOPPED, MANUAL_OVERRIDE, AUTONOMY_RESTARTED, ALL_STOP) or REJECTED (``reason``
-    AUTONOMY_REFUSED: the autopilot or helm did not take it, ``value`` its code, ``detail`` its
-    words; AUTONOMY_NO_ANSWER: it never answered, ``value`` the tries made). ``detail`` goes
-    topside cut to :data:`~coex_core.messages.SURVEY_DETAIL_MAX` bytes."""
-
-    survey_id: int
-    state: SurveyState
-    time: float
-    reason: SurveyReason = SurveyReason.NONE
-    index: int | None = None
-    value: float | None = None
-    detail: str | None = None
 
 
 @dataclass(frozen=True)

@@ -14,7 +14,6 @@ import re
 import tomllib
 from collections.abc import Mapping
 from dataclasses import dataclass, field
-from importlib import metadata
 from pathlib import Path
 from typing import Any
 
@@ -154,8 +153,10 @@ class _Problems:
         return v
 
 
-def _entry_points(group: str) -> dict[str, metadata.EntryPoint]:
-    return {ep.name: ep for ep in metadata.entry_points(group=group)}
+def _entry_points(group: str) -> dict[str, Any]:
+    from coex_core.registry import entry_points
+
+    return entry_points(group)
 
 
 def load(path: str | Path, role: str | None = None) -> DeployConfig:

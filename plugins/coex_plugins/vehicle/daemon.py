@@ -18,7 +18,6 @@ import math
 import threading
 import time
 from collections.abc import Callable
-from importlib import metadata
 from pathlib import Path
 from typing import Any
 
@@ -90,10 +89,9 @@ def build_vehicle_node(cfg: DeployConfig, transports: dict[int, Any]) -> Any:
 
 
 def _load(group: str, name: str) -> Any:
-    for ep in metadata.entry_points(group=group):
-        if ep.name == name:
-            return ep.load()
-    raise ConfigError(f"no {group} entry point {name!r}")
+    from coex_core.registry import load
+
+    return load(group, name)
 
 
 class VehicleApp:
@@ -159,6 +157,8 @@ class VehicleApp:
         self._taken: list[str] = json.loads(self.store.get("vehicle.taken", "[]")) if self.store else []
         self._taken_set = set(self._taken)
         self._submitted = self.store.get("vehicle.submitted") if self.store else None
+        #: whether the survey submitted before a restart was handed back to the autonomy (resume)
+        self._resumed = False
         self._broken: dict[str, float] = {}
         self._problem = LogOnce(log)
         #: what was taken; ``skipped``: the autonomy's reports not taken (an input's skipped items
@@ -366,6 +366,16 @@ class VehicleApp:
         survey = self.node.sender("survey")
         plan = survey.active_plan()
         key = None if plan is None else f"{plan.survey_id}:{survey.plan_version}"
+        if not self._resumed:
+            self._resumed = True
+            if plan is not None and key == self._submitted:  # flown before the restart: follow it again
+                if self._guard("autonomy resume", self.autonomy.resume, plan, now):
+                    log.info("survey %d: following it again after the restart (%s)", plan.survey_id,
+                             self.cfg.autonomy.get("type"))
+                else:
+                    log.warning("survey %d was given to the %s autonomy before the restart; that output cannot "
+                                "follow it again, so its progress is no longer reported", plan.survey_id,
+                                self.cfg.autonomy.get("type"))
         if plan is not None and key != self._submitted:
             log.info("survey %d to the autonomy (%s)", plan.survey_id, self.cfg.autonomy.get("type"))
             self._guard("autonomy submit", self.autonomy.submit, plan, now)
@@ -377,12 +387,10 @@ class VehicleApp:
             if self._ingest("survey", report, f"autonomy report {report!r}"):
                 self.counts["reports"] += 1
         if not self._nav_real:  # without navigation inputs, a simulated autonomy knows where it is
-            pos = getattr(self.autonomy, "position", None)
-            if callable(pos):
-                xy = self._guard("autonomy position", pos, now)
-                if xy is not None:
-                    self.nav.update(x=float(xy[0]), y=float(xy[1]))
-                    self.nav_time = now
+            xy = self._guard("autonomy position", self.autonomy.position, now)
+            if xy is not None:
+                self.nav.update(x=float(xy[0]), y=float(xy[1]))
+                self.nav_time = now
 
 
 def _read_image(path: str) -> np.ndarray:

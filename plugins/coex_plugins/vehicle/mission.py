@@ -28,12 +28,14 @@ strings::
   ``${LatOrigin}``, ``${LongOrigin}``), or by the environment.
 * Defaults from the mission: ``node.role = "vehicle"``; ``node.origin`` from ``LatOrigin`` /
   ``LongOrigin``; the ``server`` of every ``moos`` input and of the ``moos`` autonomy from
-  ``ServerHost:ServerPort``; their MOOS client names ``<process>_in`` and ``<process>_helm``.
+  ``ServerHost:ServerPort``; their MOOS client names ``<process>_in`` and ``<process>_helm``;
+  their ``time_warp`` and the ``warp`` of every ``moos://`` modem from ``MOOSTimeWarp``.
 """
 
 from __future__ import annotations
 
 import copy
+import math
 import os
 import re
 import tomllib
@@ -48,7 +50,7 @@ from .config import DeployConfig, check_mapping, expand
 __all__ = ["Mission", "check_mission", "load_mission", "parse_mission", "read_mission"]
 
 GLOBALS = {"serverhost": "ServerHost", "serverport": "ServerPort", "community": "Community",
-           "latorigin": "LatOrigin", "longorigin": "LongOrigin"}
+           "latorigin": "LatOrigin", "longorigin": "LongOrigin", "moostimewarp": "MOOSTimeWarp"}
 #: block keys MOOS applications take that CoEx does not use
 IGNORED = ("apptick", "commstick", "maxappticks")
 _VAR = re.compile(r"\$\{([A-Za-z_][A-Za-z0-9_]*)(?::-([^}]*))?\}")
@@ -240,6 +242,7 @@ def read_mission(path: str | Path, process: str = "pCoex", *, host: str | None =
     server_host, server_port = glob["serverhost"], glob["serverport"]
     if not server_port.isdigit() or not 0 < int(server_port) < 65536:
         problems.append(f"ServerPort: a TCP port, got {server_port!r}")
+    warp = _warp(glob.get("moostimewarp", "1"), problems)
     variables = {**{GLOBALS[k]: v for k, v in glob.items() if k in GLOBALS}, **mission.defines}
     sub = _expander(variables)
     found = mission.blocks.get(process.lower())
@@ -311,7 +314,29 @@ def read_mission(path: str | Path, process: str = "pCoex", *, host: str | None =
     if isinstance(autonomy, dict) and autonomy.get("type") == "moos":
         autonomy.setdefault("server", server)
         autonomy.setdefault("name", f"{process}_helm")
+    if warp != 1.0:  # MOOS times are warped: every MOOS client of pCoex takes the mission's warp
+        for t in [*(moos if isinstance(inputs, list) else []),
+                  *([autonomy] if isinstance(autonomy, dict) and autonomy.get("type") == "moos" else [])]:
+            t.setdefault("time_warp", warp)
+        for m in raw.get("modems") or []:
+            uri = m.get("uri") if isinstance(m, dict) else None
+            if isinstance(uri, str) and uri.startswith("moos:") and not re.search(r"[?&]warp=", uri):
+                m["uri"] = uri + ("&" if "?" in uri else "?") + f"warp={warp:g}"
     return raw, problems
+
+
+def _warp(text: str, problems: list[str]) -> float:
+    """The mission's ``MOOSTimeWarp`` (MOOS takes a number above 0, at most 400)."""
+    from coex_transports.moos.client import MAX_TIME_WARP
+
+    try:
+        warp = float(text)
+    except ValueError:
+        warp = math.nan
+    if not 0 < warp <= MAX_TIME_WARP:
+        problems.append(f"MOOSTimeWarp: a number above 0 and at most {MAX_TIME_WARP:g}, got {text!r}")
+        return 1.0
+    return warp
 
 
 def check_mission(path: str | Path, process: str = "pCoex", *, host: str | None = None,

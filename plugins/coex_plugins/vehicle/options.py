@@ -13,6 +13,7 @@ from types import ModuleType
 from typing import Any
 
 from coex_core.errors import PluginLoadError
+from coex_transports.moos.client import MAX_TIME_WARP
 
 __all__ = [
     "LogOnce",
@@ -27,6 +28,7 @@ __all__ = [
     "want_int",
     "want_number",
     "want_str",
+    "want_time_warp",
     "yaw_of_quaternion",
 ]
 
@@ -138,6 +140,18 @@ def want_host_port(name: str, options: Mapping[str, Any], key: str) -> list[str]
     return [f"input {name!r}: option {key!r} must be 'host:port' (e.g. '0.0.0.0:10110'), not {v!r}"]
 
 
+def want_time_warp(who: str, options: Mapping[str, Any], key: str = "time_warp") -> list[str]:
+    """A problem if ``key`` (a MOOS community's ``MOOSTimeWarp``) is given and is not a number
+    above 0 and at most MOOS's ``MAX_TIME_WARP`` (400)."""
+    if key not in options:
+        return []
+    v = options[key]
+    if not _is_number(v) or not math.isfinite(v) or not 0 < v <= MAX_TIME_WARP:
+        return [f"{who}: option {key!r} must be a number above 0 and at most {MAX_TIME_WARP:g} (the "
+                f"mission's MOOSTimeWarp), not {v!r}"]
+    return []
+
+
 # --------------------------------------------------------------------------- values
 _SEGMENT = r"[A-Za-z_][A-Za-z0-9_]*(?:\[\d+\])?"
 _PATH = re.compile(rf"^-?\s*{_SEGMENT}(?:\.{_SEGMENT})*$")
@@ -196,14 +210,15 @@ def compass_from_enu_yaw(yaw: float) -> float:
     return (90.0 - math.degrees(yaw)) % 360.0
 
 
-def moos_client(client: Any, host: str, port: int, name: str, variables: list[str]) -> Any:
-    """The MOOS input's and autonomy output's connection: ``client`` (made here when None) with
-    every one of ``variables`` registered, connecting (and reconnecting) in its own thread; never
-    waits for MOOSDB."""
+def moos_client(client: Any, host: str, port: int, name: str, variables: list[str],
+                time_warp: float = 1.0) -> Any:
+    """The MOOS input's and autonomy output's connection: ``client`` (made here when None, on
+    the community's ``time_warp``) with every one of ``variables`` registered, connecting (and
+    reconnecting) in its own thread; never waits for MOOSDB."""
     if client is None:
         from coex_transports.moos import MoosClient
 
-        client = MoosClient(host, port, name)
+        client = MoosClient(host, port, name, time_warp=time_warp)
     for var in variables:
         client.register(var, 0.0)
     client.connect(timeout=0.0)

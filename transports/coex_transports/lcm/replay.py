@@ -25,7 +25,6 @@ import math
 import re
 from collections import Counter
 from collections.abc import Mapping
-from importlib import metadata
 from pathlib import Path
 from typing import Any
 
@@ -53,7 +52,7 @@ log = logging.getLogger(__name__)
 
 def modality_names() -> list[str]:
     """Names registered in the ``coex.modalities`` entry-point group."""
-    return sorted({ep.name for ep in metadata.entry_points(group=registry.MODALITY_GROUP)})
+    return registry.names(registry.MODALITY_GROUP)
 
 
 def load_modalities() -> tuple[dict[str, Modality], dict[str, str]]:

@@ -26,13 +26,14 @@ import re
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
 
+from coex_core.acoustic import RATES as CORE_RATES
+from coex_core.acoustic import RateInfo
 from coex_core.errors import DecodeError
 
 __all__ = [
     "MAX_LINE",
     "RATES",
     "FDP_RATES",
-    "LegacyRate",
     "NmeaError",
     "Sentence",
     "LineSplitter",
@@ -76,32 +77,12 @@ class NmeaError(DecodeError):
     """A line is not a valid Micromodem NMEA sentence (or a field of it is out of range)."""
 
 
-@dataclass(frozen=True)
-class LegacyRate:
-    """One row of the legacy PSK/FSK rate table (reference note §2)."""
-
-    rate: int
-    frame_bytes: int
-    frames: int
-
-    @property
-    def packet_bytes(self) -> int:
-        return self.frame_bytes * self.frames
-
-
-#: Legacy rates 0-6: bytes per frame and frames per packet (PA ``messageparams.Rates``).
-RATES: dict[int, LegacyRate] = {
-    0: LegacyRate(0, 32, 1),
-    1: LegacyRate(1, 64, 3),
-    2: LegacyRate(2, 64, 3),
-    3: LegacyRate(3, 256, 2),
-    4: LegacyRate(4, 256, 2),
-    5: LegacyRate(5, 256, 8),
-    6: LegacyRate(6, 32, 6),
-}
+#: Legacy rates 0-6: bytes per frame and frames per packet (PA ``messageparams.Rates``): the
+#: core's one rate table (:data:`coex_core.acoustic.RATES`, which adds the airtime model).
+RATES: dict[int, RateInfo] = CORE_RATES
 
 #: FDP data rates of the Micromodem-2 (PA ``FDPDataRates``).
-FDP_RATES: dict[int, LegacyRate] = {1: RATES[1], 3: RATES[3], 5: RATES[5]}
+FDP_RATES: dict[int, RateInfo] = {1: RATES[1], 3: RATES[3], 5: RATES[5]}
 
 
 # ------------------------------------------------------------------------------ line level

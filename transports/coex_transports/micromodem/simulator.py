@@ -334,7 +334,7 @@ class SimulatedModem:
             return
         payload = nmea.unhex_field(s.field(4), ident=s.ident)
         info = FDP_RATES[rate]
-        if not payload or len(payload) > info.packet_bytes:
+        if not payload or len(payload) > info.max_bytes:
             self._emit("CAERR", [nmea.hhmmss(now), "TDP", 8, f"payload of {len(payload)} B"])
             return
         if self._cycle is not None or now < self._air_until:

@@ -10,6 +10,7 @@
 from __future__ import annotations
 
 from .client import (
+    MAX_TIME_WARP,
     MoosClient,
     MoosMessage,
     MoosProtocolError,
@@ -21,6 +22,7 @@ from .transport import DEFAULT_PORT, MoosConfig, MoosTransport, parse_moos_uri
 
 __all__ = [
     "DEFAULT_PORT",
+    "MAX_TIME_WARP",
     "MoosClient",
     "MoosConfig",
     "MoosMessage",

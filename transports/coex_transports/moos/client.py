@@ -34,6 +34,15 @@ registration). On the first registration of a variable this value is older than 
 interest and is dropped (counted in ``stats()["replays_ignored"]``); on a registration made
 again after a reconnect it is delivered unless it was already delivered (it may have been
 written while the client was away).
+
+**MOOS time.** Every value carries its writer's MOOS time, and MOOS time is warped: with
+``MOOSTimeWarp = W`` in the mission, a MOOS application's clock reads ``W`` times the Unix time
+(``MOOSLocalTime``: ``gettimeofday() * W``). ``MoosClient(..., time_warp=W)`` stamps what it
+writes the same way (:meth:`MoosClient.moos_time`), so that applications that drop values whose
+time is far from theirs (pHelmIvP's ``ok_skew``, 60 MOOS seconds by default) take them;
+:meth:`MoosClient.real_time` turns a received value's MOOS time back into Unix seconds. Clock
+skew between computers is not estimated (MOOS does it only for a MOOSDB on another host): the
+clocks must agree.
 """
 
 from __future__ import annotations
@@ -55,6 +64,7 @@ from typing import Any
 
 __all__ = [
     "PROTOCOL",
+    "MAX_TIME_WARP",
     "MoosClient",
     "MoosMessage",
     "MoosProtocolError",
@@ -65,6 +75,8 @@ __all__ = [
 
 log = logging.getLogger(__name__)
 
+#: the largest time warp MOOS accepts (``MAX_TIME_WARP``, ``SetMOOSTimeWarp``)
+MAX_TIME_WARP = 400.0
 #: the wire protocol name MOOSDB V10 expects first (``MOOS_PROTOCOL_STRING``), sent NUL-padded
 PROTOCOL = b"ELKS CAN'T DANCE 2/8/10"
 _PROTOCOL_FIELD = 32
@@ -211,7 +223,8 @@ class MoosMessage:
     value: float | str | bytes
     #: ``'D'`` (double), ``'S'`` (string) or ``'B'`` (binary string)
     kind: str
-    #: the time the writer gave the value (seconds since the epoch, its clock)
+    #: the time the writer gave the value: its MOOS time (seconds since the epoch times the
+    #: community's time warp; :meth:`MoosClient.real_time` undoes the warp)
     time: float
     #: the name of the client that wrote it
     source: str = ""
@@ -286,6 +299,8 @@ class MoosClient:
       would be written before the receiving client is back and lost.
     * ``on_connect()`` is called in the client's thread after each successful handshake,
       before anything is sent; it may call :meth:`register` and :meth:`notify` and must not block.
+    * ``time_warp``: the community's ``MOOSTimeWarp``; values are stamped with the warped MOOS
+      time (see the module documentation).
     """
 
     def __init__(
@@ -302,9 +317,14 @@ class MoosClient:
         max_inbox: int = 100000,
         dedupe_window: int = 16384,
         silence_timeout: float = 10.0,
+        time_warp: float = 1.0,
     ) -> None:
         if not name:
             raise ValueError("a MOOS client needs a name")
+        if isinstance(time_warp, bool) or not 0 < float(time_warp) <= MAX_TIME_WARP:
+            raise ValueError(f"time_warp must be a number above 0 and at most {MAX_TIME_WARP:g} "
+                             f"(MOOSTimeWarp), got {time_warp!r}")
+        self.time_warp = float(time_warp)
         self.host = host
         self.port = int(port)
         self.name = name
@@ -369,6 +389,14 @@ class MoosClient:
         """The MOOS community of the MOOSDB last connected to ("" before)."""
         return self._community
 
+    def moos_time(self) -> float:
+        """Now on the community's MOOS clock: Unix time times ``time_warp`` (``MOOSTime()``)."""
+        return _time.time() * self.time_warp
+
+    def real_time(self, moos_time: float) -> float:
+        """A MOOS time (a received value's ``time``) as Unix seconds: the warp undone."""
+        return moos_time / self.time_warp
+
     def register(self, var: str, interval: float = 0.0) -> None:
         """Ask for every write of ``var`` (at most one per ``interval`` seconds; 0 = all).
         Remembered: sent again after each reconnect."""
@@ -391,15 +419,16 @@ class MoosClient:
 
     def notify(self, var: str, value: float | str | bytes, time: float | None = None) -> None:
         """Publish ``value`` to ``var``: ``bytes`` as a binary string (``'B'``, any byte values),
-        ``str`` as a string (``'S'``), a number as a double (``'D'``). ``time`` defaults to now
-        (strictly increasing within this client). MOOSDB keeps the type of a variable's first
-        write and ignores writes of another type: use separate variables."""
+        ``str`` as a string (``'S'``), a number as a double (``'D'``). ``time`` (MOOS time)
+        defaults to :meth:`moos_time` (strictly increasing within this client). MOOSDB keeps the
+        type of a variable's first write and ignores writes of another type: use separate
+        variables."""
         if not var:
             raise ValueError("cannot notify an empty variable name")
         key = _bytes(var)
         with self._lock:
             if time is None:
-                now = _time.time()
+                now = self.moos_time()
                 time = now if now > self._last_time else math.nextafter(self._last_time, math.inf)
                 self._last_time = time
             if isinstance(value, bytes | bytearray | memoryview):
@@ -485,7 +514,7 @@ class MoosClient:
         """A message from this client (source and id filled in as ``CMOOSCommClient::Post``)."""
         ident = self._next_id
         self._next_id += 1
-        return RawMessage(mtype, dtype, key, _time.time() if time is None else time, dval, -1.0,
+        return RawMessage(mtype, dtype, key, self.moos_time() if time is None else time, dval, -1.0,
                           sval, self._name_b, b"", b"", ident)
 
     def _wake(self) -> None:
@@ -519,7 +548,7 @@ class MoosClient:
         try:
             sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
             sock.settimeout(5.0)
-            hello = RawMessage(DATA, STRING, b"asynchronous", _time.time(), -1.0, -1.0, self._name_b)
+            hello = RawMessage(DATA, STRING, b"asynchronous", self.moos_time(), -1.0, -1.0, self._name_b)
             sock.sendall(PROTOCOL.ljust(_PROTOCOL_FIELD, b"\0") + encode_packet([hello]))
             reply = decode_packet(self._read_packet(sock))
             if not reply:

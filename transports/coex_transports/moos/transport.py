@@ -13,6 +13,8 @@ MOOS's defaults, when left out). Options:
              (default 5; 0 sends at once)
 ``timeout``  seconds the constructor waits for the connection (default 5); if MOOSDB is not
              there yet the transport still opens, queues and keeps trying
+``warp``     the community's ``MOOSTimeWarp`` (default 1): frames are stamped with the warped
+             MOOS time, as MOOS applications stamp theirs
 
 A vehicle whose modem is run by a MOOS application (a modem driver that subscribes to
 ``COEX_TX`` and publishes what it receives as ``COEX_RX``) is reached with the defaults.
@@ -31,7 +33,7 @@ from urllib.parse import urlsplit
 from coex_core.errors import ConfigError, TransportError
 from coex_core.transport import Transport, UriInfo, parse_query
 
-from .client import MoosClient
+from .client import MAX_TIME_WARP, MoosClient
 
 __all__ = ["DEFAULT_PORT", "MoosConfig", "MoosTransport", "parse_moos_uri"]
 
@@ -40,6 +42,7 @@ log = logging.getLogger(__name__)
 DEFAULT_PORT = 9000  # DEFAULT_MOOS_SERVER_PORT
 _OPTIONS: dict[str, type] = {
     "name": str, "tx": str, "rx": str, "mtu": int, "queue": int, "hold": float, "timeout": float,
+    "warp": float,
 }
 
 
@@ -62,6 +65,8 @@ class MoosConfig:
     hold: float = 5.0
     #: seconds the constructor waits for the connection
     timeout: float = 5.0
+    #: the community's MOOSTimeWarp (values are stamped with the warped MOOS time)
+    warp: float = 1.0
 
     def __post_init__(self) -> None:
         for key in ("name", "tx", "rx"):
@@ -74,11 +79,15 @@ class MoosConfig:
             raise ConfigError(f"mtu and queue must be positive, got {self.mtu} and {self.queue}")
         if self.hold < 0 or self.timeout < 0:
             raise ConfigError("hold and timeout must be >= 0")
+        if not 0 < self.warp <= MAX_TIME_WARP:
+            raise ConfigError(f"warp (MOOSTimeWarp) must be above 0 and at most {MAX_TIME_WARP:g}, "
+                              f"got {self.warp:g}")
 
     @property
     def uri(self) -> str:
         return (f"moos://{self.host}:{self.port}?name={self.name}&tx={self.tx}&rx={self.rx}"
-                f"&mtu={self.mtu}&queue={self.queue}&hold={self.hold:g}&timeout={self.timeout:g}")
+                f"&mtu={self.mtu}&queue={self.queue}&hold={self.hold:g}&timeout={self.timeout:g}"
+                + (f"&warp={self.warp:g}" if self.warp != 1.0 else ""))
 
     def swapped(self, name: str) -> MoosConfig:
         """The other end: ``tx`` and ``rx`` exchanged, another client name."""
@@ -121,7 +130,7 @@ class MoosTransport(Transport):
         self.client = MoosClient(
             cfg.host, cfg.port, cfg.name,
             await_subscribers=(cfg.tx,) if cfg.hold > 0 else (),
-            await_timeout=cfg.hold, max_pending=cfg.queue,
+            await_timeout=cfg.hold, max_pending=cfg.queue, time_warp=cfg.warp,
         )
         self.client.register(cfg.rx, 0.0)
         if not self.client.connect(cfg.timeout):

@@ -168,6 +168,13 @@ class LcmAutonomy(Autonomy):
         self._waiting = (int(plan.survey_id), data, now + wait, 1) if wait > 0 else None
         log.info("lcm: survey %s (%d waypoints) published on %s", plan.survey_id, msg.n, self.config["channel"])
 
+    def resume(self, plan: Any, now: float) -> bool:
+        """The planner reports by survey id: its answers are followed again, nothing published."""
+        if self._sub is None:
+            self.open()
+        self._waiting = None
+        return True
+
     def poll(self, now: float) -> list[Any]:
         if self._sub is None:
             return []

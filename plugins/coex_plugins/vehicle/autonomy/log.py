@@ -80,6 +80,9 @@ class LogAutonomy(Autonomy):
         self.path = None if f is None else os.path.join(getattr(context, "base_dir", "."), f)
         self.plans = 0
 
+    def resume(self, plan: Any, now: float) -> bool:
+        return True  # nothing to follow: a log reports nothing
+
     def submit(self, plan: Any, now: float) -> None:
         self.plans += 1
         log.info("autonomy: fly %s", describe_plan(plan))

@@ -404,6 +404,23 @@ class MavlinkAutonomy(Autonomy):
         log.info("mavlink: uploading survey %s as %d mission items", plan.survey_id, len(self.items))
         self._send_count(now)
 
+    def resume(self, plan: Any, now: float) -> bool:
+        """The autopilot may still fly the uploaded mission: follow MISSION_CURRENT /
+        MISSION_ITEM_REACHED again, upload nothing."""
+        if self.conn is None:
+            self.open()
+        cfg = self.config
+        self.plan = plan
+        self.items = mission_items(plan, self.context, frame=cfg["frame"], altitude_frame=cfg["altitude_frame"],
+                                   home_placeholder=cfg["home_placeholder"],
+                                   acceptance_radius=cfg["acceptance_radius"], hold=cfg["hold"],
+                                   speed_item=cfg["speed_item"])
+        self.phase, self._sent, self._tries, self._heading_for, self._seen_auto = "flying", None, 0, -1, False
+        self._command, self._command_deadline = None, math.inf
+        self._deadline = math.inf
+        log.info("mavlink: following survey %s again after a restart (nothing uploaded)", plan.survey_id)
+        return True
+
     def poll(self, now: float) -> list[Any]:
         if self.conn is None:
             return self._take()

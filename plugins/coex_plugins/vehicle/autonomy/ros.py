@@ -185,13 +185,14 @@ class RosAutonomy(Autonomy):
         c = self.config
         z = -float(plan.depth) if plan.depth is not None else 0.0
         path = msgs.path(plan.waypoints, self.node.message_class, now, c["frame"], z=z, speed=plan.speed)
+        with self._lock:
+            self._answers.clear()  # answers about an older survey (before publishing: a quick
+            # planner's first answer to this one must not be cleared with them)
+        self.plan, self._since, self._answered, self._done, self._index = plan, float(now), False, False, None
         if self._plan_pub is not None:
             text = self.node.message("std_msgs/String", data=plan_json(plan, now, c["frame"]))
             self._plan_pub.publish(text)
         sent = self._path.publish(path)
-        with self._lock:
-            self._answers.clear()  # answers about an older survey
-        self.plan, self._since, self._answered, self._done, self._index = plan, float(now), False, False, None
         self.stats["published"] += 1
         log.info("ros: survey %s (%d waypoints) %s %s", plan.survey_id, len(plan.waypoints),
                  "published on" if sent else "waits for the ROS master to publish on", c["path_topic"])
@@ -202,6 +203,13 @@ class RosAutonomy(Autonomy):
         self._answered = True
         if state != SurveyState.STARTED:
             self._done = True
+
+    def resume(self, plan: Any, now: float) -> bool:
+        """The planner may still fly the Path: its progress answers are followed again."""
+        if self.node is None:
+            self.open()
+        self.plan, self._since, self._answered, self._done, self._index = plan, float(now), True, False, None
+        return True
 
     def poll(self, now: float) -> list[Any]:
         if self.node is None:

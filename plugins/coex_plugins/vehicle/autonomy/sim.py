@@ -69,6 +69,12 @@ class SimAutonomy(Autonomy):
         self.plans: list[Any] = []
 
     # ------------------------------------------------------------------ the autonomy
+    def resume(self, plan: Any, now: float) -> bool:
+        """A simulated vehicle keeps no state across a restart: it flies the plan again from
+        its start position."""
+        self.submit(plan, now)
+        return True
+
     def submit(self, plan: Any, now: float) -> None:
         self._flush(now)
         here = self.position(now)

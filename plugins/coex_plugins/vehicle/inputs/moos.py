@@ -14,9 +14,12 @@ A :class:`~coex_transports.moos.MoosClient` (pure Python, no libMOOS) registers 
 * ``points_var``: a string variable naming a ``.npy`` / ``.csv`` point file ->
   :class:`~.base.Points`.
 
-Items are timed with the writer's MOOS time. ``poll`` only takes what the client's thread
-received (never blocks); the client reconnects by itself, so MOOSDB may start after CoEx, stop
-and come back. A value of the wrong type or an unreadable file is logged once and skipped.
+Items are timed with the writer's MOOS time turned back into Unix seconds: MOOS time is warped
+(``MOOSTimeWarp``: a MOOS clock reads the Unix time times the warp), so the option
+``time_warp`` must be the community's warp (pCoex takes it from the mission file). ``poll``
+only takes what the client's thread received (never blocks); the client reconnects by itself,
+so MOOSDB may start after CoEx, stop and come back. A value of the wrong type or an unreadable
+file is logged once and skipped.
 """
 
 from __future__ import annotations
@@ -29,7 +32,7 @@ from typing import Any, ClassVar
 
 import numpy as np
 
-from ..options import LogOnce, moos_client, want_bool, want_str
+from ..options import LogOnce, moos_client, want_bool, want_str, want_time_warp
 from .base import Image, Input, InputContext, Item, Nav, Points, Samples
 
 __all__ = ["NAV_DEFAULTS", "MoosInput", "parse_server"]
@@ -70,6 +73,7 @@ class MoosInput(Input):
         "image_var": ("", "string variable whose value is an image file path"),
         "points_var": ("", "string variable whose value is a .npy / .csv point file"),
         "nav_images": (True, "images without a position get the newest vehicle position"),
+        "time_warp": (1.0, "the community's MOOSTimeWarp (pCoex: the mission's); MOOS times / warp = Unix times"),
     }
 
     @classmethod
@@ -84,6 +88,7 @@ class MoosInput(Input):
         problems += want_str(cls.name, options, "image_var")
         problems += want_str(cls.name, options, "points_var")
         problems += want_bool(cls.name, options, "nav_images")
+        problems += want_time_warp(f"input {cls.name!r}", options)
         nav = options.get("nav", {})
         if not isinstance(nav, Mapping):
             problems.append(f"input 'moos': option 'nav' must be a table like {{ x = \"USM_X\" }}, not {nav!r}")
@@ -134,7 +139,8 @@ class MoosInput(Input):
         return list(dict.fromkeys(out))
 
     def open(self) -> None:
-        self.client = moos_client(self.client, self.host, self.port, self.config["name"], self.variables)
+        self.client = moos_client(self.client, self.host, self.port, self.config["name"], self.variables,
+                                  float(self.config["time_warp"]))
 
     def close(self) -> None:
         if self.client is not None:
@@ -148,8 +154,11 @@ class MoosInput(Input):
         nav_time: float | None = None
         samples: dict[str, tuple[list[float], list[float]]] = {}
         items: list[Item] = []
+        warp = float(self.config["time_warp"])
         for m in self.client.fetch():
-            t = m.time if isinstance(m.time, float) and math.isfinite(m.time) and m.time > 1e8 else now
+            # the writer's MOOS time, unwarped; a value without a plausible time is timed now
+            t = m.time / warp if isinstance(m.time, float) and math.isfinite(m.time) else now
+            t = t if t > 1e8 else now
             if m.key in self.nav_vars or m.key in self.channels:
                 if not m.is_double:
                     self._skip(f"type:{m.key}", "input moos: %s is a %s, not a number: skipped", m.key,
