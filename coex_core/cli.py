@@ -45,7 +45,7 @@ def _cmd_plugins(args: argparse.Namespace) -> int:
     print(f"{'kind':<10} {'name':<12} {'version':<10} {'status':<20} target")
     for info in infos:
         kind = {"coex.modalities": "modality", "coex.transports": "transport", "coex.inputs": "input",
-                "coex.autonomy": "autonomy"}.get(info.group, info.group)
+                "coex.autonomy": "autonomy", "coex.detectors": "detector"}.get(info.group, info.group)
         line = f"{kind:<10} {info.name:<12} {info.version:<10} {info.status:<20} {info.target}"
         if info.error:
             line += f"  ({info.error})"

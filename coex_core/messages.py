@@ -70,6 +70,9 @@ __all__ = [
     "SurveyCommand",
     "SurveyStatus",
     "SURVEY_DETAIL_MAX",
+    # detections
+    "DetectionSource",
+    "Detection",
 ]
 
 
@@ -752,3 +755,41 @@ class SurveyStatus(Message):
 
 #: Longest ``SurveyStatus.detail``, bytes of UTF-8.
 SURVEY_DETAIL_MAX = 48
+
+
+# ----------------------------------------------------------------------------- detections
+class DetectionSource(enum.IntEnum):
+    """What a :class:`Detection` was found in, on the vehicle."""
+
+    #: the vehicle's own map (a relief anomaly of its full-resolution bathymetry)
+    MAP = 0
+    #: the vehicle's own camera frames (``image_id`` names the frame)
+    IMAGE = 1
+    #: another of the vehicle's sensors
+    OTHER = 2
+
+
+@dataclass(frozen=True, slots=True)
+class Detection(Message):
+    """Vehicle report: something a detector on the vehicle found in its own data, a suggestion
+    for the operator (not a confirmation). ``detection_id`` is the vehicle's (wrapping at 1024);
+    a detection sent again with the same id and a newer ``stamp`` replaces the older one (more
+    data came in). ``score`` (0..1) ranks detections: how well it matches what the detector
+    looks for. The measures of what stands out are optional (a detector gives those it has):
+    ``height`` above the local background (m), ``length`` and ``width`` of its footprint (m,
+    ``length`` the long axis), ``orientation`` of the long axis (degrees clockwise from north,
+    0..179: an axis, not a heading), ``footprint`` (its area, m²); ``image_id`` is the frame an
+    image detection was found in."""
+
+    detection_id: int
+    source: DetectionSource
+    stamp: int
+    x: float
+    y: float
+    score: float
+    height: float | None = None
+    length: float | None = None
+    width: float | None = None
+    orientation: float | None = None
+    footprint: int | None = None
+    image_id: int | None = None

@@ -129,6 +129,39 @@ class ModalitySender(_OutOfCore, abc.ABC):
         copy that is no longer needed. It must not raise (if it does, the node logs and counts
         it, and nothing else changes)."""
 
+    def focus(self, x: float, y: float, radius: float, now: float) -> int:
+        """Something on the vehicle (a detection, :mod:`coex_core.detect`) points at ``(x, y)``
+        (metres east and north of the origin): send the finest data held within ``radius``
+        metres of it next, as a region request from topside would have it (what topside is
+        known to hold left out), before background data elsewhere, without waiting for the
+        request. Returns how many messages it queued for it. Optional (default: nothing, 0).
+        It must not raise."""
+        return 0
+
+    def throughput(self, bytes_per_second: float, low: bool, now: float) -> None:
+        """The channel's measure of the link, before each packet it builds: the bytes per
+        second this node's frames deliver (its slots' capacity less the measured frame loss,
+        every enabled link together) and whether the channel's policy finds it ``low``
+        (``docs/channel.md``, priorities that follow the link). Optional: a sender may then
+        send what decides first (the bathymetry sender keeps its finest level away from the
+        background while the link is low). It must not raise."""
+
+    #: how this sender reaches the other senders of its node (:meth:`bind_peers`)
+    _peers: Callable[[str], ModalitySender | None] | None = None
+    #: not saved with the sender's state (:mod:`coex_core.state`): the node binds it again
+    _state_transient: ClassVar[tuple[str, ...]] = ("_peers",)
+
+    def bind_peers(self, peer: Callable[[str], ModalitySender | None]) -> None:
+        """The node calls this when the sender is added (and again after a restore):
+        ``peer(name)`` is the sender of the modality ``name`` on the same node (None: none).
+        A sender that works on what another modality holds on the vehicle (the detections
+        modality looks at the bathymetry sender's map) finds it through :meth:`peer`."""
+        self._peers = peer
+
+    def peer(self, name: str) -> ModalitySender | None:
+        """The sender of the modality ``name`` on this sender's node (None: none, or not bound)."""
+        return None if self._peers is None else self._peers(name)
+
 
 class ModalityReceiver(_OutOfCore, abc.ABC):
     """The topside side of a modality.

@@ -170,6 +170,19 @@ class Node:
         self.manager.add_stream(stream, slot.sender)
         self._add_requests(cls, remap)
         self._senders.append(slot)
+        self._bind_peers(slot.sender)
+
+    def _peer(self, name: str) -> ModalitySender | None:
+        """The sender of the modality ``name`` on this node, inside any wrapper (None: none)."""
+        for s in self._senders:
+            if s.name == name:
+                return _innermost(s.sender)  # type: ignore[no-any-return]
+        return None
+
+    def _bind_peers(self, sender: Any) -> None:
+        bind = getattr(_innermost(sender), "bind_peers", None)
+        if bind is not None:
+            bind(self._peer)
 
     def add_receiver(self, modality: Modality | type[Modality], receiver: ModalityReceiver,
                      stream: int = CONTROL_STREAM, *, ids: Mapping[int, int] | None = None) -> None:
@@ -600,6 +613,7 @@ class Node:
             mgr.verifier.rejected = int(auth["rejected"] or 0)
         for s in self._senders:
             s.sender = _install(s.sender, senders[s.name])
+            self._bind_peers(s.sender)
         for r in self._receivers:
             r.receiver = _install(r.receiver, receivers[r.name])
             r.receiver.bind_command_ids(mgr.next_command_id)

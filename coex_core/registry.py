@@ -1,8 +1,10 @@
 """The plugin registry: modalities and transports found through entry points.
 
 Groups: ``coex.modalities`` (a :class:`~coex_core.modality.Modality` subclass),
-``coex.transports`` (a :class:`~coex_core.transport.Transport` subclass) and ``coex.commands``
-(a function that adds a sub-command to the ``coex`` command line). Built-in plugins register
+``coex.transports`` (a :class:`~coex_core.transport.Transport` subclass), ``coex.detectors``
+(a :class:`~coex_core.detect.Detector` subclass, run on the vehicle by the ``detections``
+modality) and ``coex.commands`` (a function that adds a sub-command to the ``coex`` command
+line). Built-in plugins register
 exactly as a third party does, in ``pyproject.toml``::
 
     [project.entry-points."coex.modalities"]
@@ -30,6 +32,7 @@ __all__ = [
     "CHECKER_GROUP",
     "PluginInfo",
     "available",
+    "load_detector",
     "load_modality",
     "load_transport",
     "load",
@@ -49,6 +52,8 @@ CHECKER_GROUP = "coex.checkers"
 #: outputs to its autonomy; listed by ``coex plugins``, loaded only by the daemon
 INPUT_GROUP = "coex.inputs"
 AUTONOMY_GROUP = "coex.autonomy"
+#: onboard detectors (:mod:`coex_core.detect`), run by the ``detections`` modality on the vehicle
+DETECTOR_GROUP = "coex.detectors"
 
 
 @dataclass(frozen=True)
@@ -118,6 +123,11 @@ def load_modality(name: str) -> Any:
     return load(MODALITY_GROUP, name)
 
 
+def load_detector(name: str) -> Any:
+    """The :class:`~coex_core.detect.Detector` class registered as ``name``."""
+    return load(DETECTOR_GROUP, name)
+
+
 def load_transport(name: str) -> Any:
     """The :class:`~coex_core.transport.Transport` class registered as ``name``."""
     return load(TRANSPORT_GROUP, name)
@@ -149,10 +159,10 @@ def check_transport_uri(uri: str) -> Any:
 
 
 def available(check: bool = True) -> list[PluginInfo]:
-    """Every registered modality, transport, input and autonomy output; with ``check`` each is
-    imported to report status."""
+    """Every registered modality, transport, input, autonomy output and detector; with
+    ``check`` each is imported to report status."""
     out = []
-    for group in (MODALITY_GROUP, TRANSPORT_GROUP, INPUT_GROUP, AUTONOMY_GROUP):
+    for group in (MODALITY_GROUP, TRANSPORT_GROUP, INPUT_GROUP, AUTONOMY_GROUP, DETECTOR_GROUP):
         for name, ep in sorted(_entry_points(group).items()):
             dist, version = _dist_name(ep)
             status, error = "registered", ""

@@ -61,6 +61,15 @@ class RemappedSender(ModalitySender):
     def journal_form(self, data: Any) -> Any:
         return self.inner.journal_form(data)
 
+    def focus(self, x: float, y: float, radius: float, now: float) -> int:
+        return self.inner.focus(x, y, radius, now)
+
+    def throughput(self, bytes_per_second: float, low: bool, now: float) -> None:
+        self.inner.throughput(bytes_per_second, low, now)
+
+    def bind_peers(self, peer: Any) -> None:
+        self.inner.bind_peers(peer)
+
     def __getattr__(self, name: str) -> Any:  # the plugin's own API (request methods ...)
         if name == "inner":
             raise AttributeError(name)

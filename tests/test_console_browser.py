@@ -1167,3 +1167,41 @@ def test_survey_outcomes_read_apart_with_their_history_in_the_vehicles_order(bro
         app.close()
         vehicle.transport.close()
     assert not errors, errors
+
+
+def test_the_vehicles_detections_show_on_the_map_as_suggestions(browser: Any, tmp_path: Path) -> None:
+    """Detections (what the vehicle's own detectors found) are drawn on the map apart from the
+    candidate targets, labelled as the vehicle's suggestions with their measures, named in the
+    legend, logged once each, and a double-click on one selects the region around it."""
+    errors: list[str] = []
+
+    def prepare(state: ConsoleState) -> None:
+        state.apply_message(m.Detection(3, m.DetectionSource.MAP, to_stamp(T0 - 30), 40.0, 40.0, 0.87, 1.5, 4.6,
+                                        1.8, 30.0, 8), T0 - 20)
+        state.apply_message(m.Detection(4, m.DetectionSource.MAP, to_stamp(T0 - 30), 70.0, 30.0, 0.12, 0.9, 2.2,
+                                        2.0, 100.0, 4), T0 - 20)
+        state.apply_message(m.Detection(3, m.DetectionSource.MAP, to_stamp(T0 - 10), 40.2, 40.1, 0.9, 1.5, 4.6,
+                                        1.8, 32.0, 8), T0 - 5)  # a newer version of the first
+
+    with sample_console(browser, ConsoleHub, [], errors, prepare) as page:
+        page.wait_for_function("window.coex.detections && window.coex.detections.length === 2", timeout=10_000)
+        shown = {d["id"]: d for d in page.evaluate("window.coex.detections")}
+        assert shown[3]["text"] == "suggested D3: score 0.90 1.5 m high 4.6\u00d71.8 m"
+        assert shown[4]["text"].startswith("suggested D4: score 0.12")
+        assert "vehicle's detection (suggestion)" in page.inner_text(".legend")
+        log = page.inner_text("#log")
+        assert log.count("the vehicle suggests a detection") == 2, log
+        assert "(40, 40), 1.5 m high, 4.6 x 1.8 m, score 0.87 (detection 3, in its map)" in log
+        page.screenshot(path=str(tmp_path / "detections.png"))
+        if os.environ.get("COEX_DETECTIONS_SHOT"):
+            shutil.copy(tmp_path / "detections.png", os.environ["COEX_DETECTIONS_SHOT"])
+        page.mouse.dblclick(*_on_canvas(page, shown[4]["x"], shown[4]["y"]))
+        page.wait_for_selector("#roi-bar:not(.hidden)", timeout=5_000)
+    assert not errors, errors
+
+
+def _on_canvas(page: Any, x: float, y: float) -> tuple[float, float]:
+    """Page coordinates of canvas pixel (x, y)."""
+    box = page.evaluate("""(() => { const c = document.querySelector('#map-canvas');
+        const r = c.getBoundingClientRect(); return [r.left, r.top, r.width / c.width, r.height / c.height]; })()""")
+    return box[0] + x * box[2], box[1] + y * box[3]

@@ -171,3 +171,24 @@ def test_the_console_s_host_and_idle_keys_are_checked(tmp_path: Path) -> None:
     keys = [p.split(":", 1)[0] for p in problems]
     assert "console.allowed_hosts" in keys and "console.idle_minutes" in keys, problems
     assert "console.trusted_proxies" not in keys and "console" not in keys
+
+
+def test_detections_run_when_named_with_their_stream_and_a_low_link_priority(tmp_path: Path) -> None:
+    """Not run unless named (what a vehicle looks for is the mission's); named, detections take
+    stream 8 at priority 100; ``low_priority`` reaches the stream (docs/channel.md)."""
+    from coex_plugins.vehicle.daemon import build_vehicle_node
+
+    f = tmp_path / "v.toml"
+    head = '[node]\nrole = "vehicle"\nid = 2\npeer = 1\nstore = false\n[[modems]]\nuri = "loopback://d"\n'
+    f.write_text(head)
+    assert "detections" not in [m.name for m in load(f, "vehicle").modalities]
+    f.write_text(head + '[modalities.bathymetry]\nlow_priority = 40\n'
+                 '[modalities.detections]\noptions = { detectors = [{ type = "relief", threshold = 0.9 }] }\n')
+    cfg = load(f, "vehicle")
+    det = next(m for m in cfg.modalities if m.name == "detections")
+    assert (det.stream, det.priority, det.low_priority) == (8, 100, None)
+    node = build_vehicle_node(cfg, {0: type("T", (), {"mtu": 256})()})
+    assert node.manager.stream(3).config.low_priority == 40
+    assert node.sender("detections").detectors[0].threshold == 0.9
+    f.write_text(head + '[modalities.detections]\nlow_priority = 300\n')
+    assert any("low_priority" in p for p in check(f)[1])

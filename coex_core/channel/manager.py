@@ -34,6 +34,7 @@ from .links import (
     _Stream,
     default_streams,
 )
+from .policy import LOW_THROUGHPUT, NORMAL_THROUGHPUT
 from .queue import StreamConfig
 from .settings import SettingsMixin
 
@@ -93,6 +94,8 @@ class ChannelManager(SettingsMixin):
         ack_frames: bool = True,
         idle_interval: float = 1.0,
         command_key: bytes | None = None,
+        low_throughput: float = LOW_THROUGHPUT,
+        normal_throughput: float = NORMAL_THROUGHPUT,
     ) -> None:
         if not 1 <= node_id <= 15:
             raise ConfigError(f"node id {node_id} outside 1..15")
@@ -138,6 +141,12 @@ class ChannelManager(SettingsMixin):
         self._delivery_state()
         #: stream -> when its sender last gave spare work (the spare tier takes turns)
         self._spare_turn: dict[int, float] = {}
+        if not 0.0 <= low_throughput <= normal_throughput:
+            raise ConfigError("low_throughput must be >= 0 and at most normal_throughput")
+        #: the policy's thresholds (bytes per second, docs/channel.md)
+        self.low_throughput = float(low_throughput)
+        self.normal_throughput = float(normal_throughput)
+        self._policy_state()
 
     # ============================================================================ events
     def events(self) -> list[Event]:

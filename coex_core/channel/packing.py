@@ -14,7 +14,6 @@ from ..messages import (
     Message,
 )
 from ..wire import encoded_size, header_size, pack
-from .acks import AcksMixin
 from .events import (
     Dropped,
     SenderFailed,
@@ -24,6 +23,7 @@ from .links import (
     Transmission,
     _Link,
 )
+from .policy import PolicyMixin
 from .queue import Entry, StreamQueue
 from .schedule import SlotWindow
 
@@ -50,7 +50,7 @@ class _FrameBuild:
             self.taken.append(entry)
 
 
-class PackingMixin(AcksMixin):
+class PackingMixin(PolicyMixin):
     # ============================================================================= build
     def poll(self, now: float) -> list[Transmission]:
         """Housekeeping, then one packet for every link that may transmit now."""
@@ -76,6 +76,7 @@ class PackingMixin(AcksMixin):
         st = self._link(link)
         cfg = st.cfg
         self._build_no += 1
+        self._follow_link(now)  # the senders learn the measured throughput first
         w = self._window(st, now)
         hdr_bytes = header_size(FrameHeader(crc=cfg.crc))
         # stream -> largest budget for which it had nothing (inf: failed or slow, skip it)
@@ -265,7 +266,7 @@ class PackingMixin(AcksMixin):
             left = min(fb.left, budget - total)
             order = sorted(
                 (sid for sid in cands if left > exhausted.get(sid, -1) and per_stream[sid] > 0),
-                key=lambda sid: (-(self._streams[sid].queue.config.priority
+                key=lambda sid: (-(self._streams[sid].queue.config.priority_now(self._low)
                                    * (now - self._spare_turn.get(sid, -math.inf) + 1.0)), sid))
             got_any = False
             for sid in order:
@@ -421,10 +422,11 @@ class PackingMixin(AcksMixin):
             last = q.last_access if q.last_access is not None else -math.inf
             # tier 0 is ordered by priority alone (status before queue status); other tiers
             # compete by value
-            value = float(q.config.priority) if q.config.tier == 0 else q.score(now)
+            prio = q.config.priority_now(self._low)
+            value = float(prio) if q.config.tier == 0 else q.score(now, self._low)
             if q.expedite:
                 value = math.inf
-            key = (-q.config.tier, value, q.config.priority, -last, -sid)
+            key = (-q.config.tier, value, prio, -last, -sid)
             if best is None or key > best[0]:
                 best = (key, q, entry)
         if best is None:
@@ -444,8 +446,8 @@ class PackingMixin(AcksMixin):
             if s.sender is None or left <= exhausted.get(sid, -1) or not self._eligible(s.queue, link, w, now):
                 continue
             q = s.queue
-            score = math.inf if q.expedite else q.score(now)
-            cands.append(((q.config.tier, -score, -q.config.priority, sid), s))
+            score = math.inf if q.expedite else q.score(now, self._low)
+            cands.append(((q.config.tier, -score, -q.config.priority_now(self._low), sid), s))
         for _, s in sorted(cands, key=lambda c: c[0]):
             q = s.queue
             sender = s.sender

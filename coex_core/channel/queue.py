@@ -49,6 +49,9 @@ class StreamConfig:
     #: the largest share of a packet this stream's spare work (``ModalitySender.spare``) may
     #: fill: 0 switches its spare traffic off, 1 lets it use every idle byte
     spare: float = 1.0
+    #: the priority while the channel finds the link low (None: ``priority`` always): what
+    #: decides goes first on a slow link (docs/channel.md, priorities that follow the link)
+    low_priority: int | None = None
 
     def __post_init__(self) -> None:
         if not 0 <= self.stream <= 31:
@@ -61,6 +64,8 @@ class StreamConfig:
             raise ConfigError("ttl, blackout and max_depth must not be negative")
         if not 0.0 <= self.spare <= 1.0:
             raise ConfigError(f"spare {self.spare} outside 0..1 (a share of each packet)")
+        if self.low_priority is not None and not 0 <= self.low_priority <= 127:
+            raise ConfigError(f"low_priority {self.low_priority} outside 0..127")
 
     #: Settings an operator may change at runtime (and that :meth:`to_dict` saves).
     RUNTIME = ("enabled", "priority", "ttl", "max_depth", "newest_first", "blackout", "tier",
@@ -83,6 +88,10 @@ class StreamConfig:
         kw["tags"] = frozenset(kw.get("tags", ()))
         kw["link_max_bytes"] = tuple((int(a), int(b)) for a, b in kw.get("link_max_bytes", ()))
         return cls(**kw)
+
+    def priority_now(self, low: bool) -> int:
+        """The stream's priority, on a low link (``low_priority``, when set) or a normal one."""
+        return self.low_priority if low and self.low_priority is not None else self.priority
 
     def max_bytes_on(self, link: int) -> int | None:
         """The message size cap on ``link`` (``None``: only the frame limits it)."""
@@ -186,9 +195,9 @@ class StreamQueue:
         return (self.config.blackout > 0 and self.last_access is not None
                 and now < self.last_access + self.config.blackout)
 
-    def score(self, now: float) -> float:
+    def score(self, now: float, low: bool = False) -> float:
         """Goby's value: priority x time since the last send / ttl (never-sent streams count from
-        their oldest message)."""
+        their oldest message); ``low``: on a low link (the stream's ``low_priority``)."""
         ttl = self.config.ttl if self.config.ttl > 0 else DEFAULT_TTL
         if self.last_access is not None:
             since = self.last_access
@@ -196,4 +205,4 @@ class StreamQueue:
             since = min(e.pushed for e in self.entries)
         else:
             since = now
-        return self.config.priority * max(0.0, now - since) / ttl
+        return self.config.priority_now(low) * max(0.0, now - since) / ttl

@@ -20,7 +20,7 @@ __all__ = ["BUILT_IN", "CONFORMANCE_GROUP", "Companion", "companions", "sample"]
 
 CONFORMANCE_GROUP = "coex.conformance"
 #: the built-in modalities the two-node tests run beside every plugin (those installed)
-BUILT_IN = ("bathymetry", "imagery", "timeseries", "survey")
+BUILT_IN = ("bathymetry", "imagery", "timeseries", "survey", "detections")
 
 
 @dataclass(frozen=True)

@@ -101,7 +101,8 @@ class ModalityTests:
         lost (``lost``); both take any message the sender produced, in any order, more than
         once, without raising, and the sender keeps working."""
         sender = modality.sender(sender_config)
-        for hook in ("acked", "lost", "spare", "spare_bytes", "ready_bytes", "pending_bytes"):
+        for hook in ("acked", "lost", "spare", "spare_bytes", "ready_bytes", "pending_bytes", "focus", "throughput",
+                     "bind_peers", "peer"):
             assert callable(getattr(sender, hook, None)), (
                 f"rule: the channel calls the sender's {hook}(); an attribute of that name hides it")
         now = ingest_all(sender, sample_inputs)

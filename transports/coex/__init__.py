@@ -52,6 +52,7 @@ from coex_core.channel import (
     Transmission,
 )
 from coex_core.config import merged_config
+from coex_core.detect import Detector, Finding
 from coex_core.errors import (
     AuthenticationError,
     CoexError,
@@ -72,6 +73,7 @@ from coex_core.node import Node
 from coex_core.registry import (
     available,
     check_transport_uri,
+    load_detector,
     load_modality,
     load_transport,
     open_transport,
@@ -103,9 +105,11 @@ __all__ = [
     "CommandResult",
     "ConfigError",
     "DecodeError",
+    "Detector",
     "Dropped",
     "EncodeError",
     "Event",
+    "Finding",
     "Frame",
     "FrameHeader",
     "FrameTooLarge",
@@ -154,6 +158,7 @@ __all__ = [
     "available",
     "check_transport_uri",
     "errors",
+    "load_detector",
     "load_modality",
     "load_transport",
     "merged_config",

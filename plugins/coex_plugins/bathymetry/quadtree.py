@@ -46,6 +46,7 @@ read back on demand (see :class:`QuadtreeMap`).
 
 from __future__ import annotations
 
+import math
 from collections import OrderedDict
 from dataclasses import dataclass
 from typing import Any
@@ -745,6 +746,34 @@ class QuadtreeMap:
                 val = np.where(cnt > 0, sm / np.maximum(cnt, 1), np.nan)
             out[(ty - y0) * n:(ty - y0 + 1) * n, (tx - x0) * n:(tx - x0 + 1) * n] = val
         return out, float(x0 * self.tile * self.resolution), float(y0 * self.tile * self.resolution)
+
+    def window(self, x0: float, y0: float, x1: float, y1: float,
+               level: int = 0) -> tuple[FloatArray, FloatArray, float, float]:
+        """The cells of ``[x0, x1) x [y0, y1)`` (metres) at ``level``, snapped outwards to the
+        level's cells: ``(mean, updated, wx0, wy0)``, mean elevation (NaN where empty) and last
+        update (``-inf`` where empty), row 0 = south, and the south-west corner of the window.
+        Only the tiles it covers are read."""
+        self.flush()
+        cell = self.resolution * (1 << level)
+        c0, c1 = math.floor(x0 / cell), max(math.ceil(x1 / cell), math.floor(x0 / cell) + 1)
+        r0, r1 = math.floor(y0 / cell), max(math.ceil(y1 / cell), math.floor(y0 / cell) + 1)
+        mean = np.full((r1 - r0, c1 - c0), np.nan)
+        upd = np.full((r1 - r0, c1 - c0), -np.inf)
+        n = self.tile >> level
+        for ty in range(r0 // n, (r1 - 1) // n + 1):
+            for tx in range(c0 // n, (c1 - 1) // n + 1):
+                if (tx, ty) not in self._slots:
+                    continue
+                cnt, sm, _, tm = self.level_stats((tx, ty), level)
+                # the part of the tile inside the window, in tile and window coordinates
+                a0, a1 = max(c0, tx * n), min(c1, (tx + 1) * n)
+                b0, b1 = max(r0, ty * n), min(r1, (ty + 1) * n)
+                part = np.s_[b0 - ty * n:b1 - ty * n, a0 - tx * n:a1 - tx * n]
+                c = cnt[part]
+                with np.errstate(invalid="ignore", divide="ignore"):
+                    mean[b0 - r0:b1 - r0, a0 - c0:a1 - c0] = np.where(c > 0, sm[part] / np.maximum(c, 1), np.nan)
+                upd[b0 - r0:b1 - r0, a0 - c0:a1 - c0] = np.where(c > 0, tm[part], -np.inf)
+        return mean, upd, c0 * cell, r0 * cell
 
     def extent(self) -> tuple[float, float, float, float] | None:
         """``(x_min, y_min, x_max, y_max)`` in metres of the tiles holding data."""

@@ -67,6 +67,9 @@ STALE_REQUEST_S = 300.0
 STALE_REQUEST_IDS = 32
 #: regions whose newest request id is remembered
 MAX_REGIONS_REMEMBERED = 1024
+#: a subgrid queued around a detection (:meth:`BathymetrySender.focus`) that is lost is queued
+#: again until this long after the detection
+FOCUS_EXPIRY = 1800.0
 
 
 def _fingerprint(sg: Subgrid) -> int:
@@ -165,7 +168,15 @@ class BathymetrySender(ModalitySender):
                 tile, a, b = self.map.tile_of_subgrid(level, ix, iy)
                 if self.map.has_tile(tile):
                     self._sent_when[level][self._sent_row(tile), b, a] = when
+        if getattr(self, "_focused", None) is None:  # a sender saved before detections
+            #: level-0 subgrids queued around detections (key -> until when a loss queues it again)
+            self._focused: dict[Key, float] = {}
+            #: the channel finds the link low: the finest level is spare work, not background
+            self._low = False
+            #: bytes of the subgrids sent because a detection pointed at them (:meth:`focus`)
+            self.focus_bytes = 0
         if getattr(self, "_resend", None) is None:  # a sender saved before spare work existed
+
             #: subgrids whose last sent version was lost: spare work (key -> when it was lost)
             self._resend: dict[Key, float] = {}
             #: key -> hash of the newest version a frame ack confirmed (its other copies' losses
@@ -331,7 +342,8 @@ class BathymetrySender(ModalitySender):
         tile, a, b = self.map.tile_of_subgrid(level, ix, iy)
         if not self.map.has_tile(tile):
             return -math.inf
-        return float(self._sent_t[level][self._sent_row(tile), b, a])
+        n = self._sent_row(tile)  # first: it may grow the arrays
+        return float(self._sent_t[level][n, b, a])
 
     def last_transmitted(self, key: Key) -> float | None:
         """When subgrid ``key`` (level, ix, iy) was last handed to the link (None: never)."""
@@ -341,7 +353,8 @@ class BathymetrySender(ModalitySender):
         tile, a, b = self.map.tile_of_subgrid(level, ix, iy)
         if not self.map.has_tile(tile):
             return None
-        when = float(self._sent_when[level][self._sent_row(tile), b, a])
+        n = self._sent_row(tile)  # first: it may grow the arrays
+        when = float(self._sent_when[level][n, b, a])
         return None if math.isnan(when) else when
 
     def _background(self, now: float, limit: int = 64, quiet: bool = True) -> list[tuple[int, float, Key]]:
@@ -355,7 +368,10 @@ class BathymetrySender(ModalitySender):
             for n, last in list(self._recent.items()):
                 if now - last > self.send_delay + 1.0:
                     del self._recent[n]  # settled now: the background sends it
-        for level in range(self.map.levels - 1, -1, -1):
+        # on a low link the finest level is not background (only what is asked for, what
+        # detections point at and spare work send it: docs/channel.md)
+        lowest = 1 if quiet and self._low and self.map.levels > 1 else 0
+        for level in range(self.map.levels - 1, lowest - 1, -1):
             need = limit - len(out)
             if need <= 0:
                 break
@@ -486,6 +502,8 @@ class BathymetrySender(ModalitySender):
                 self._queued.discard(key)
                 self._gap_queued.discard(key)
                 answered.add(key)
+                if key in self._focused:
+                    self.focus_bytes += size
                 self._mark_sent(key, self.subgrid_time(key), now)
             else:
                 misses += 1
@@ -579,6 +597,12 @@ class BathymetrySender(ModalitySender):
             return  # another copy of this version arrived (its ack may come after this copy's loss)
         built = self._built(key)
         if built is not None and built[0] == message:
+            if self._focused.get(key, -math.inf) >= now and key not in self._queued \
+                    and len(self._queue) < self.max_queue:
+                self._queue.append(key)  # around a detection: again, ahead of the background
+                self._queued.add(key)
+                return
+            self._focused.pop(key, None)
             self._resend[key] = now
 
     def spare(self, max_bytes: int, now: float) -> list[Message]:
@@ -590,9 +614,51 @@ class BathymetrySender(ModalitySender):
         out: list[Message] = []
         lost = sorted(self._resend, key=lambda k: (-k[0], self._resend[k], k))
         left, misses = self._pack(((k, None) for k in lost), int(max_bytes), 0, out, now)
+        if self._low and left >= MIN_SUBGRID_BYTES and misses < MAX_MISSES:
+            # a low link: the finest level's background, longest quiet first
+            self._absorb()
+            fine = sorted(self._eligible_quiet(0, now, 64))
+            left, misses = self._pack(((k, u) for _, u, k in fine), left, misses, out, now)
         if left >= MIN_SUBGRID_BYTES and misses < MAX_MISSES:
             self._pack(((k, u) for _, u, k in self._background(now, quiet=False)), left, misses, out, now)
         return out
+
+    def throughput(self, bytes_per_second: float, low: bool, now: float) -> None:
+        """While the channel finds the link low, the finest level leaves the background: it
+        goes where it is asked for (requests), where a detection points (:meth:`focus`) and as
+        spare work; the coarse levels stay the background (docs/channel.md)."""
+        self._low = bool(low)
+
+    def focus(self, x: float, y: float, radius: float, now: float) -> int:
+        """A detection at ``(x, y)``: queue the finest level's subgrids within ``radius`` metres
+        of it (the square around it, nearest first), as a region request would, without the
+        round trip: those holding data whose current version was not sent, or was found lost.
+        A subgrid so queued that is lost is queued again (for :data:`FOCUS_EXPIRY` seconds).
+        Returns how many it queued."""
+        self.map.flush()
+        side = self.map.resolution * self.map.subgrid_side
+        if not (math.isfinite(x) and math.isfinite(y) and radius >= 0):
+            return 0
+        if len(self._focused) > self.max_queue:
+            self._focused = {k: t for k, t in self._focused.items() if t >= now}
+        ix0, ix1 = math.floor((x - radius) / side), math.floor((x + radius) / side)
+        iy0, iy1 = math.floor((y - radius) / side), math.floor((y + radius) / side)
+        if ix1 - ix0 > 16 or iy1 - iy0 > 16 or not (-8192 <= ix0 and ix1 < 8192 and -8192 <= iy0 and iy1 < 8192):
+            return 0  # bounded like a region request (16 x 16 subgrids)
+        keys = [(0, ix, iy) for iy in range(iy0, iy1 + 1) for ix in range(ix0, ix1 + 1)]
+        keys.sort(key=lambda k: math.hypot((k[1] + 0.5) * side - x, (k[2] + 0.5) * side - y))
+        queued = 0
+        for key in keys:
+            updated = self.subgrid_time(key)
+            if not math.isfinite(updated) or key in self._queued or len(self._queue) >= self.max_queue:
+                continue
+            self._focused[key] = now + FOCUS_EXPIRY
+            if self._sent_time(key) >= updated and key not in self._resend:
+                continue  # this version went out (a loss queues it again)
+            self._queue.append(key)
+            self._queued.add(key)
+            queued += 1
+        return queued
 
     def _pack(self, keys: Iterable[tuple[Key, float | None]], left: int, misses: int, out: list[Message],
               now: float) -> tuple[int, int]:

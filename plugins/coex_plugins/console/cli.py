@@ -28,7 +28,7 @@ log = logging.getLogger(__name__)
 
 #: The receivers ``coex topside`` runs unless told otherwise: every built-in modality (``survey``
 #: sends the operator's survey requests and follows their state).
-DEFAULT_MODALITIES = ("bathymetry", "imagery", "timeseries", "survey")
+DEFAULT_MODALITIES = ("bathymetry", "imagery", "timeseries", "survey", "detections")
 
 #: The NUI 2022 cycle: 6 slots, topside (node 1) in slots 0 and 3, the vehicle in the others.
 NUI_OWNERS = (1, 2, 2, 1, 2, 2)

@@ -46,7 +46,7 @@ SECTIONS = ("vehicle", "map", "surveys", "images", "series", "other", "link", "q
             "log")
 
 #: Modalities with a panel of their own; the products of any other go to the generic panel.
-OWN_PANELS = ("bathymetry", "imagery", "timeseries", "survey")
+OWN_PANELS = ("bathymetry", "imagery", "timeseries", "survey", "detections")
 
 #: The states of a survey the page draws (the survey receiver's ``SurveyRecord.state``).
 SURVEY_STATES = ("requested", "accepted", "started", "completed", "rejected", "aborted", "given up")
@@ -224,6 +224,9 @@ class ConsoleState:
         self.max_targets = 8
         self.target_spacing = 6.0
         self._targets_cache: tuple[Any, list[dict[str, Any]]] = (None, [])
+        #: the vehicle's detections (the detections receiver's rows): suggestions, shown on the
+        #: map apart from the candidates the console or the operator flagged
+        self.detections: list[dict[str, Any]] = []
         self.roi: dict[int, _RoiRequest] = {}
         self._region_count = 0
         self._region_sig: tuple[Any, ...] = ()
@@ -287,6 +290,8 @@ class ConsoleState:
             self.altitudes = deque(maxlen=2000)
         if not hasattr(self, "camera_fov"):
             self.camera_fov = (60.0, 45.0)
+        if not isinstance(getattr(self, "detections", None), list):
+            self.detections = []
         # a console saved before a section or an attribute existed
         for s in SECTIONS:
             self.versions.setdefault(s, 0)
@@ -402,6 +407,8 @@ class ConsoleState:
         meta = dict(getattr(product, "meta", {}) or {})
         if modality == "survey":
             self._survey_product(product, meta, now)
+        elif modality == "detections":
+            self._detections_product(data, now)
         elif modality not in OWN_PANELS:
             self._other_product(modality, product, meta)
         elif kind == "series":
@@ -699,6 +706,25 @@ class ConsoleState:
             s["values"] = np.asarray(data.values, float)
             s["bounds"] = np.asarray(data.bounds, float)
         self._touch("series")
+
+    def _detections_product(self, data: Any, now: float) -> None:
+        """The detections receiver's rows: what the vehicle's detectors suggest (new ones are
+        logged once)."""
+        known = {int(d["id"]) for d in self.detections}
+        rows = []
+        for r in data if isinstance(data, list | tuple) else ():
+            if not isinstance(r, Mapping) or r.get("x") is None or r.get("y") is None:
+                continue
+            rows.append({k: (_num(v, 2) if isinstance(v, float) else v) for k, v in r.items()
+                         if k in ("id", "source", "x", "y", "score", "height", "length", "width", "orientation",
+                                  "footprint", "image_id", "time", "first_at")})
+            if int(r["id"]) not in known:
+                size = "" if r.get("length") is None else f", {r['length']:.1f} x {r['width']:.1f} m"
+                high = "" if r.get("height") is None else f", {r['height']:.1f} m high"
+                self._log(now, f"the vehicle suggests a detection at ({r['x']:.0f}, {r['y']:.0f}){high}{size}, "
+                          f"score {r['score']:.2f} (detection {r['id']}, in its {r.get('source', 'data')})")
+        self.detections = rows
+        self._touch("map")
 
     def _targets_product(self, data: Any, meta: dict[str, Any]) -> None:
         rows = data if isinstance(data, list | tuple) else meta.get("targets", [])
@@ -1185,6 +1211,7 @@ class ConsoleState:
                 "pending": meta.pending},
             "levels": levels, "zrange": None if zr is None else [zr[0], zr[1]],
             "targets": list(self.targets) + self._auto_targets(),
+            "detections": list(self.detections),
             "requests": [self._snap_roi(r) for r in sorted(self.roi.values(),
                                                           key=lambda r: r.sent)][-40:],
         }

@@ -17,6 +17,8 @@ HOLD_ALTITUDE = 50.0
 LINK_STREAM = 6
 #: the survey modality's stream (the vehicle's answers to survey commands)
 SURVEY_STREAM = 7
+#: the detections modality's stream (what the vehicle's detectors found: a few bytes each, first)
+DETECTIONS_STREAM = 8
 #: the vehicle's speeds (m/s): between the camera lines, and along them
 TRANSIT_SPEED = 1.0
 CAMERA_SPEED = 0.5

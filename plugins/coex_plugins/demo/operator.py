@@ -32,7 +32,9 @@ from coex_core.messages import SurveyCommand, VehicleStatus
 from coex_core.node import Node
 from coex_core.timefmt import unwrap
 from coex_plugins.bathymetry import BathymetryReceiver, find_targets
-from coex_plugins.bathymetry.export import opening
+from coex_plugins.bathymetry.relief import CAR as CAR_DIMS
+from coex_plugins.bathymetry.relief import FLAT, Bump, bumps, likeness, measure_bump
+from coex_plugins.detections import DetectionsReceiver
 from coex_plugins.imagery import ImageryReceiver
 from coex_plugins.survey import SurveyReceiver
 
@@ -42,8 +44,7 @@ from .truth import Eye, FrameTruth
 __all__ = ["CameraLine", "CandidateView", "Operator", "car_likeness", "measure"]
 
 #: a car as the operator pictures it: length, width, height (m), and the flatness of its top
-CAR = (4.5, 1.8, 1.5)
-FLAT = 0.93
+CAR = CAR_DIMS
 #: candidates scoring below this are not worth camera time
 MIN_SCORE = 0.05
 #: layers of a requested image the vehicle sends first (its ``request_goal``: with the default
@@ -76,7 +77,8 @@ ANSWER_CYCLES = 3
 
 @dataclass
 class CandidateView:
-    """A bump in the received 1 m map as the operator measured it."""
+    """A bump in the received 1 m map as the operator measured it, or a detection the vehicle
+    sent (until the operator can measure it in the received map)."""
 
     x: float
     y: float
@@ -87,6 +89,11 @@ class CandidateView:
     score: float
     found_at: float
     flatness: float = FLAT
+    #: the vehicle's detection of it (its id) and when that first reached topside
+    detection: int | None = None
+    detected_at: float | None = None
+    #: the operator measured it in the received 1 m map (not only the vehicle's measures)
+    measured: bool = True
     #: the camera pass over it: a survey command sent for it (and not refused), then what the
     #: operator made of the images
     planned: bool = False
@@ -101,6 +108,8 @@ class CandidateView:
     request_at: float | None = None
     command_id: int | None = None  # of the latest request
     first_request_at: float | None = None
+    #: bytes held of the image answering the latest request, and when they last grew
+    progress: tuple[int, float] = (0, -math.inf)
     looked: list[int] = field(default_factory=list)
     looked_times: dict[int, float] = field(default_factory=dict)
     image_id: int | None = None
@@ -159,72 +168,22 @@ class CameraLine:
 def car_likeness(height: float, length: float, width: float, flatness: float = FLAT) -> float:
     """How car-like a bump is, in [0, 1]: Gaussian likelihoods of its height, length, width and
     flatness (mean over max height across its footprint) against a car's (4.5 x 1.8 x 1.5 m, a
-    flat top), with the spreads a 1 m map allows."""
-    h0, l0, w0 = CAR[2], CAR[0], CAR[1]
-    s = (((height - h0) / 0.6) ** 2 + ((length - l0) / 1.5) ** 2 + ((width - w0) / 1.0) ** 2
-         + ((min(flatness, FLAT) - FLAT) / 0.2) ** 2)
-    return float(math.exp(-0.5 * s))
+    flat top), with the spreads a 1 m map allows (:func:`~coex_plugins.bathymetry.relief.likeness`)."""
+    return likeness(height, length, width, flatness, CAR_DIMS)
 
 
 def measure(grid: np.ndarray, cell: float, x0: float, y0: float, cand: Any, now: float = 0.0,
             ) -> CandidateView | None:
-    """Measure a :func:`find_targets` candidate in the 1 m grid: the connected cells standing
-    more than half its height above the local background, their second moments giving length
-    and width (a uniform L x W rectangle has variances L^2/12 and W^2/12)."""
-    ny, nx = grid.shape
-    ci = int((cand.peak_x - x0) / cell)
-    ri = int((cand.peak_y - y0) / cell)
-    r = 12
-    r0, r1, c0, c1 = max(ri - r, 0), min(ri + r + 1, ny), max(ci - r, 0), min(ci + r + 1, nx)
-    win = np.asarray(grid[r0:r1, c0:c1], float)
-    if win.size < 9 or not np.isfinite(win).any():
-        return None
-    excess = win - opening(win, max(1, round(4.5 / cell)))
-    with np.errstate(invalid="ignore"):
-        above = np.isfinite(excess) & (excess > 0.5 * cand.height)
-    pr, pc = ri - r0, ci - c0
-    if not (0 <= pr < win.shape[0] and 0 <= pc < win.shape[1]) or not above[pr, pc]:
-        return None
-    comp = _grow(above, pr, pc)
-    # a car has a flat top: over its whole footprint (cells above 30 % of its height) it stands
-    # almost at full height; a boulder's dome falls away from its crest
-    with np.errstate(invalid="ignore"):
-        foot = _grow(np.isfinite(excess) & (excess > 0.3 * cand.height), pr, pc)
-    flatness = float(np.nanmean(excess[foot]) / max(float(np.nanmax(excess[foot])), 1e-6))
-    rows, cols = np.nonzero(comp)
-    n = rows.size
-    ys = (rows + 0.5) * cell
-    xs = (cols + 0.5) * cell
-    if n >= 2:
-        cov = np.cov(np.stack([xs, ys]))
-        ev = np.sort(np.linalg.eigvalsh(cov))[::-1]
-    else:
-        ev = np.zeros(2)
-    # a cell's own extent adds cell^2 / 12 to each variance
-    length = float(math.sqrt(12.0 * max(ev[0], 0.0) + cell * cell))
-    width = float(math.sqrt(12.0 * max(ev[1], 0.0) + cell * cell))
-    height = float(np.nanmax(excess[comp]))
-    cx = float(x0 + (c0 + cols.mean() + 0.5) * cell)
-    cy = float(y0 + (r0 + rows.mean() + 0.5) * cell)
-    return CandidateView(round(cx, 1), round(cy, 1), round(height, 2), int(n), round(length, 1),
-                         round(width, 1), round(car_likeness(height, length, width, flatness), 3), now,
-                         flatness=round(flatness, 2))
+    """Measure a :func:`find_targets` candidate in the 1 m grid
+    (:func:`~coex_plugins.bathymetry.relief.measure_bump`) and score how car-like it is."""
+    b = measure_bump(grid, cell, x0, y0, cand.peak_x, cand.peak_y, cand.height)
+    return None if b is None else _view(b, now)
 
 
-def _grow(mask: np.ndarray, r: int, c: int) -> np.ndarray:
-    """The 8-connected part of ``mask`` containing cell (r, c) (vectorised growth steps)."""
-    comp = np.zeros_like(mask)
-    comp[r, c] = bool(mask[r, c])
-    while True:
-        p = np.pad(comp, 1)
-        grown = comp.copy()
-        for dy in (0, 1, 2):
-            for dx in (0, 1, 2):
-                grown |= p[dy:dy + comp.shape[0], dx:dx + comp.shape[1]]
-        grown &= mask
-        if np.array_equal(grown, comp):
-            return comp
-        comp = grown
+def _view(b: Bump, now: float) -> CandidateView:
+    return CandidateView(round(b.x, 1), round(b.y, 1), round(b.height, 2), b.cells, round(b.length, 1),
+                         round(b.width, 1), round(car_likeness(b.height, b.length, b.width, b.flatness), 3), now,
+                         flatness=round(b.flatness, 2))
 
 
 class Operator:
@@ -238,6 +197,8 @@ class Operator:
                  active: bool = True) -> None:
         self.topside = topside
         self.bathy: BathymetryReceiver = receivers["bathymetry"]
+        #: the vehicle's detections (suggestions; absent: a vehicle without detectors)
+        self.detections: DetectionsReceiver | None = receivers.get("detections")
         self.imagery: ImageryReceiver = receivers["imagery"]
         self.survey: SurveyReceiver = receivers["survey"]
         self.box = box
@@ -298,12 +259,9 @@ class Operator:
         if g is None:
             return []
         grid, cell, (x0, y0) = g
-        out = []
-        for c in self.bumps(0, 0.7, min_cells=2, max_area=40.0):
-            v = measure(grid, cell, x0, y0, c, now)
-            if v is not None:
-                out.append(v)
-        return out
+        # a wild sounding on a car would make it a one-cell spike: the grid is despiked first
+        return [_view(b, now) for c, b in bumps(grid, cell=cell, x0=x0, y0=y0, threshold=0.7, min_cells=2,
+                                                max_area=40.0) if self.inside(c.x, c.y)]
 
     def ranked(self) -> list[CandidateView]:
         """Candidates worth camera time, most car-like first."""
@@ -314,12 +272,17 @@ class Operator:
         (``views``: :meth:`measured` at ``now``, if the caller has it already)."""
         if not self.active:
             return
+        self.watch_detections(now)
+        slow = self.slow_link()
+        suggested = [(c.x, c.y) for c in self.candidates if c.detection is not None]
         for level in (2, 1):
             if self.level_grid(level) is None:
                 continue
             for c in self.bumps(level, 0.3, min_cells=1):
                 if any(math.hypot(c.x - x, c.y - y) < 12.0 for x, y in self.coarse_requested):
                     continue
+                if slow and any(math.hypot(c.x - x, c.y - y) < 16.0 for x, y in suggested):
+                    continue  # a slow link: the vehicle sends the 1 m map around its detections itself
                 if self._map_requests_open() >= self._map_limit():
                     break  # the uplink is shared with image requests: a few map requests at a time
                 self.coarse_requested.append((c.x, c.y))
@@ -327,7 +290,8 @@ class Operator:
                 self.log(now, "ROI request", f"level 0 (1 m) around ({c.x:.0f}, {c.y:.0f}): a "
                          f"{c.height:.1f} m bump at level {level} ({2 ** level} m cells)")
             break
-        self._ask_for_gaps(now)
+        if not slow:  # on a slow link the vehicle sends the rest of the 1 m map as spare work
+            self._ask_for_gaps(now)
         while self.camera_phase and self._overview and self._map_requests_open() < self._map_limit():
             # the survey is over: complete the coarse levels of the box too (the overview maps),
             # a level at a time while the uplink has room
@@ -346,10 +310,52 @@ class Operator:
             elif not old.planned:  # more data came in: measure again; once flagged, stay flagged
                 was = old.score
                 old.x, old.y, old.height, old.cells = v.x, v.y, v.height, v.cells
-                old.length, old.width, old.score = v.length, v.width, max(v.score, was)
-                old.flatness = v.flatness
+                old.length, old.width = v.length, v.width
+                # a detection keeps the vehicle's score (measured on its whole map) unless the
+                # received map shows it more car-like
+                old.score = max(v.score, was)
+                old.flatness, old.measured = v.flatness, True
                 if was < MIN_SCORE <= v.score:
                     self.log(now, "candidate at 1 m", self._describe(old))
+
+    def slow_link(self) -> bool:
+        """Whether the vehicle's link is slow, as topside can tell: what the vehicle's slots
+        carry less the loss of its frames measured here, below the channel's low threshold."""
+        mgr = self.topside.manager
+        return bool(mgr.peer_throughput(self.vehicle_id) < mgr.low_throughput)
+
+    def watch_detections(self, now: float) -> None:
+        """The vehicle's detections are suggestions: each becomes a candidate (or marks the
+        candidate already there), ranked by the vehicle's score until the operator can measure
+        the bump in the received 1 m map (the vehicle sends the map around each detection)."""
+        if self.detections is None:
+            return
+        for row in self.detections.rows():
+            x, y = float(row["x"]), float(row["y"])
+            if not self.inside(x, y):
+                continue  # the operator planned the survey: nothing is sought outside it
+            old = next((c for c in self.candidates if c.detection == row["id"]), None) or next(
+                (c for c in self.candidates if c.detection is None and math.hypot(c.x - x, c.y - y) < 4.0), None)
+            if old is None:
+                cv = CandidateView(x, y, float(row["height"] or 0.0), int(row["footprint"] or 0),
+                                   float(row["length"] or 0.0), float(row["width"] or 0.0), float(row["score"]),
+                                   now, detection=int(row["id"]), detected_at=float(row["first_at"]),
+                                   measured=False)
+                self.candidates.append(cv)
+                if cv.score >= MIN_SCORE:
+                    self.log(now, "detection", f"the vehicle suggests ({x:.1f}, {y:.1f}): {row['height']} m high, "
+                             f"{row['length']} x {row['width']} m, oriented {row['orientation']} deg, score "
+                             f"{row['score']:.2f} [detection {row['id']}]")
+                continue
+            if old.detection is None:
+                old.detection, old.detected_at = int(row["id"]), float(row["first_at"])
+            elif not old.measured and not old.planned:  # the vehicle measured it again
+                old.x, old.y, old.score = x, y, float(row["score"])
+                old.height, old.length = float(row["height"] or 0.0), float(row["length"] or 0.0)
+                old.width = float(row["width"] or 0.0)
+
+    #: the vehicle's node id (for what topside can tell of its link)
+    vehicle_id: int = 2
 
     def _ask_for_gaps(self, now: float) -> None:
         """Holes in the 1 m map where the coarse map shows the ground was surveyed: ask for the
@@ -563,7 +569,10 @@ class Operator:
     def _look(self, cv: CandidateView, now: float) -> None:
         meta = self._answer(cv)
         pending = {getattr(m, "command_id", None) for m in self.imagery.pending_requests()}
-        stuck = (cv.request_at is not None and now - cv.request_at > ANSWER_CYCLES * self.cycle
+        if meta is not None and int(meta.get("bytes_used", 0)) > cv.progress[0]:
+            cv.progress = (int(meta["bytes_used"]), now)  # the answer is coming: not stuck
+        since = max(cv.request_at or now, cv.progress[1])
+        stuck = (cv.request_at is not None and now - since > ANSWER_CYCLES * self.cycle
                  and cv.command_id not in pending)  # still being retried by the receiver: wait
         if meta is None or (stuck and not self._arrived(cv, meta)):
             if stuck and cv.want is not None:  # no answer: the request may never have reached the vehicle
@@ -723,6 +732,7 @@ class Operator:
         cv.want = (t, direction)
         cv.want_goal = None
         cv.request_at = now
+        cv.progress = (0, -math.inf)
         if cv.first_request_at is None:
             cv.first_request_at = now
         self.log(now, "image request", f"image {direction} dive time {t - self.epoch:.0f} s, for the candidate "

@@ -3,6 +3,7 @@ map exports and decisions.csv."""
 
 from __future__ import annotations
 
+import contextlib
 import csv
 import json
 import math
@@ -13,7 +14,7 @@ from typing import Any
 
 import numpy as np
 
-from coex import Runner
+from coex import ConfigError, Runner
 from coex_plugins.bathymetry import (
     BathymetryReceiver,
     write_geotiff,
@@ -94,6 +95,34 @@ def _judge(world: World, operator: Operator, bytes_of: Callable[[int], int | Non
                           "confirmed_at_s": record["confirmed_at_s"],
                           "shows": ", ".join(others) or "no target (sand, or too little of one, or too blurry)"})
     return per_target, false
+
+
+def _detections(receivers: dict[str, Any], runners: dict[int, Runner],
+                truth_near: Callable[[float, float], str]) -> tuple[list[dict[str, Any]], dict[str, Any]]:
+    """What the vehicle's detectors suggested, as topside received it and judged against the
+    truth (what really lies within IDENTIFY_RADIUS of each), and what it cost on the link: the
+    Detection messages the vehicle sent (every version and re-send) and the 1 m subgrids it sent
+    around them."""
+    rx = receivers.get("detections")
+    rows = rx.rows() if rx is not None else []
+    out = []
+    for r in rows:
+        out.append({"id": r["id"], "source": r["source"], "x": r["x"], "y": r["y"], "score": r["score"],
+                    "height": r["height"], "length": r["length"], "width": r["width"],
+                    "orientation": r["orientation"], "footprint": r["footprint"], "image_id": r["image_id"],
+                    "first_at_s": round(r["first_at"] - EPOCH, 1), "updated_at_s": round(r["updated_at"] - EPOCH, 1),
+                    "bytes_received": r["bytes"], "truth": truth_near(r["x"], r["y"])})
+    vehicle = runners[VEHICLE].node
+    cost: dict[str, Any] = {"received": len(out),
+                            "true": sum(1 for d in out if d["truth"].startswith("target")),
+                            "decoys": sum(1 for d in out if d["truth"].startswith("decoy")),
+                            "false": sum(1 for d in out if d["truth"] == "none"),
+                            "bytes_received": sum(d["bytes_received"] for d in out)}
+    for name, attr, key in (("detections", "bytes_sent", "bytes_sent"),
+                            ("bathymetry", "focus_bytes", "neighbourhood_bytes_sent")):
+        with contextlib.suppress(ConfigError):
+            cost[key] = int(getattr(vehicle.sender(name), attr, 0))
+    return out, cost
 
 
 def _why_not(i: int, world: World, operator: Operator, visible: float | None) -> str:
@@ -181,10 +210,13 @@ def finish(out: Path, cfg: DemoConfig, world: World, operator: Operator, receive
         return "none"
 
     candidates = [{"x": c.x, "y": c.y, "height": c.height, "cells": c.cells, "length": c.length, "width": c.width,
-                   "score": c.score, "rank": rank_of.get(id(c)), "visited": world.visited(c.x, c.y),
+                   "score": c.score, "detection": c.detection, "measured_topside": c.measured,
+                   "rank": rank_of.get(id(c)), "visited": world.visited(c.x, c.y),
                    "survey_id": c.survey_id, "refused": c.refused, "verdict": c.verdict or None,
                    "truth": truth_near(c.x, c.y)}
                   for c in sorted(operator.candidates, key=lambda c: -c.score) if c.score >= MIN_SCORE]
+    det_rx = receivers.get("detections")
+    det_rows = det_rx.rows() if det_rx is not None else []
     map_svgs: list[str] = []
     for level in range(0, 6):
         try:
@@ -213,7 +245,8 @@ def finish(out: Path, cfg: DemoConfig, world: World, operator: Operator, receive
                 targets=[{"x": t.x, "y": t.y, "label": f"target {i + 1}"} for i, t in enumerate(world.cars)],
                 decoys=[{"x": t.x, "y": t.y, "label": f"decoy {i + 1} (rock)"} for i, t in enumerate(world.rocks)],
                 candidates=[{"x": c["x"], "y": c["y"], "label": f"#{c['rank']}", "visited": c["visited"]}
-                            for c in candidates if c["rank"] is not None] if level == 0 else []))
+                            for c in candidates if c["rank"] is not None] if level == 0 else [],
+                detections=[{"x": d["x"], "y": d["y"], "label": f"D{d['id']}"} for d in det_rows] if level == 0 else []))
     # ground truth at 1 m
     xs = np.arange(0.5, floor.size, 1.0) + floor.x0
     ys = np.arange(0.5, floor.size, 1.0) + floor.y0
@@ -237,14 +270,21 @@ def finish(out: Path, cfg: DemoConfig, world: World, operator: Operator, receive
 
     per_target, false = _judge(world, operator, bytes_of, scn.cycle)
     link = _link_summary(out / "link.jsonl")
+    detections, detection_cost = _detections(receivers, runners, truth_near)
     targets = []
     for i, t in enumerate(world.cars):
         seen = visible_at.get(i)
         conf = per_target[i]
+        first = min((d for d in detections if d["truth"] == names[("target", i)]),
+                    key=lambda d: d["first_at_s"], default=None)
         targets.append({"name": f"target {i + 1}", "x": t.x, "y": t.y, "heading": t.heading,
                         "identifiable_at_1m_s": None if seen is None else round(seen - EPOCH, 1),
                         "before_survey_end": seen is not None and seen <= world.survey_end,
+                        "first_detection": None if first is None else {
+                            "id": first["id"], "first_at_s": first["first_at_s"], "score": first["score"]},
                         "confirmation": conf,
+                        "detection_to_confirmation_s": None if first is None or conf is None
+                        else round(conf["confirmed_at_s"] - first["first_at_s"], 1),
                         "why_not": None if conf is not None else _why_not(i, world, operator, seen)})
     confirming = {c["image_id"]: t["name"] for t in targets if (c := t["confirmation"]) is not None}
     requested = {i for c in operator.candidates for i in c.looked + ([c.image_id] if c.image_id is not None else [])}
@@ -305,6 +345,8 @@ def finish(out: Path, cfg: DemoConfig, world: World, operator: Operator, receive
                    for i, t in enumerate(world.rocks)],
         "surveys": _surveys(receivers["survey"], operator, world.surveys),
         "candidates": candidates,
+        "detections": detections,
+        "detection_cost": detection_cost,
         "images_received": len(metas),
         "regions": regions,
         "images_captured": len(world.camera_times),

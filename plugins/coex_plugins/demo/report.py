@@ -33,6 +33,8 @@ _CMAP_RGB = np.array([
 ], np.float64)
 
 _TARGET, _DECOY, _CAND, _TRACK = "#e3171b", "#ff8c00", "#00d8ff", "#1a1a1a"
+#: the vehicle's detections (suggestions)
+_DETECT = "#d100d1"
 _SVG_HEAD = 'xmlns="http://www.w3.org/2000/svg" font-family="Helvetica, Arial, sans-serif"'
 _ids = itertools.count(1)  # unique ids for <defs> of several SVGs inlined in one page
 
@@ -255,6 +257,12 @@ def _marker(kind: str, x: float, y: float, filled: bool = False) -> str:
                 f'stroke-width="1.1"/>')
     if kind == "nodata":
         return ""
+    if kind == "detection":  # a suggestion of the vehicle's: a dashed triangle
+        r = 10.0
+        pts = f"{x:.1f},{y - r:.1f} {x + 0.87 * r:.1f},{y + 0.5 * r:.1f} {x - 0.87 * r:.1f},{y + 0.5 * r:.1f}"
+        return (f'<polygon points="{pts}" fill="none" stroke="#fff" stroke-width="4.2"/>'
+                f'<polygon points="{pts}" fill="none" stroke="{_DETECT}" stroke-width="2" '
+                f'stroke-dasharray="4 2"/>')
     fill = f'fill="{_CAND}" fill-opacity="0.3"' if filled else 'fill="none"'
     return (f'<circle cx="{x:.1f}" cy="{y:.1f}" r="12" fill="none" stroke="#000" stroke-width="4.2" '
             f'stroke-opacity="0.7"/>'
@@ -291,6 +299,7 @@ def map_figure(
     targets: Sequence[Mapping[str, Any]] = (),
     decoys: Sequence[Mapping[str, Any]] = (),
     candidates: Sequence[Mapping[str, Any]] = (),
+    detections: Sequence[Mapping[str, Any]] = (),
     width: int = 640,
 ) -> str:
     """A north-up map of an elevation grid as an inline ``<svg>``.
@@ -299,7 +308,8 @@ def map_figure(
     (``y0 .. y0 + cell``), column 0 the west edge. The figure has axes in metres, a colour bar of
     depth, a subtle hillshade, hatched gaps, a north arrow, a scale bar and a legend; ``track`` is
     a sequence of (x, y) vehicle positions, ``targets`` and ``decoys`` dicts with ``x``, ``y``,
-    ``label``, ``candidates`` the same plus ``visited``. Anything outside the grid is clipped.
+    ``label``, ``candidates`` the same plus ``visited``, ``detections`` (the vehicle's
+    suggestions) the same. Anything outside the grid is clipped.
     """
     z = np.asarray(grid, np.float64)
     if z.ndim != 2 or z.size == 0:
@@ -420,7 +430,8 @@ def map_figure(
     kinds_present: list[str] = []
     visited_present: set[bool] = set()
     # candidates underneath (the largest rings), true targets on top
-    for kind, items, colour, side, dy in (("candidate", candidates, "#005f73", "left", 21.0),
+    for kind, items, colour, side, dy in (("detection", detections, "#8a008a", "left", -14.0),
+                                          ("candidate", candidates, "#005f73", "left", 21.0),
                                           ("decoy", decoys, "#a34f00", "right", 17.0),
                                           ("target", targets, "#b30000", "right", -10.0)):
         for it in items:
@@ -468,8 +479,9 @@ def map_figure(
     entries: list[tuple[str, str]] = []
     if has_track:
         entries.append(("track", "vehicle track"))
-    names = {"target": "true target", "decoy": "decoy", "candidate": "flagged candidate"}
-    for kind in ("target", "decoy", "candidate"):
+    names = {"target": "true target", "decoy": "decoy", "candidate": "flagged candidate",
+             "detection": "vehicle's detection"}
+    for kind in ("target", "decoy", "candidate", "detection"):
         if kind not in kinds_present:
             continue
         if kind == "candidate":
@@ -596,6 +608,44 @@ def _targets_table(targets: Any) -> str:
     return ("<table><tr><th>target</th><th>position (m)</th><th>identifiable at 1 m (s)</th>"
             "<th>confirming image (id)</th><th>confirmed at (s)</th><th>bytes</th>"
             "<th>TDMA cycles after request</th></tr>" + "".join(rows) + "</table>")
+
+
+def _detections_table(items: Any, cost: Any, targets: Any) -> str:
+    """The vehicle's detections as topside received them, judged against the truth, what they
+    cost on the link, and per target the time from its first detection to its confirming image."""
+    if not isinstance(items, Sequence) or not items:
+        return "<p>Detections: <em>none received</em> (no detector on the vehicle, or nothing stood out).</p>"
+    rows = []
+    for d in items:
+        if not isinstance(d, Mapping):
+            continue
+        truth = str(d.get("truth", "none"))
+        cls = "ok" if truth.startswith("target") else ("bad" if truth == "none" else "")
+        size = "" if d.get("length") is None else f"{_num(d.get('length'), '.1f')} x {_num(d.get('width'), '.1f')}"
+        rows.append(f"<tr><td class='r'>{_num(d.get('id'))}</td><td>{_e(d.get('source'))}</td>"
+                    f"<td>{_pos(d.get('x'), d.get('y'))}</td><td class='r'>{_num(d.get('score'), '.2f')}</td>"
+                    f"<td class='r'>{_num(d.get('height'), '.1f')}</td><td class='r'>{size}</td>"
+                    f"<td class='r'>{_num(d.get('orientation'))}</td><td class='r'>{_num(d.get('first_at_s'))}</td>"
+                    f"<td class='{cls}'>{_e(truth)}</td></tr>")
+    c = cost if isinstance(cost, Mapping) else {}
+    words = (f"{_num(c.get('received'))} detections received: {_num(c.get('true'))} of a true target, "
+             f"{_num(c.get('decoys'))} of a decoy, {_num(c.get('false'))} of nothing. They cost "
+             f"{_num(c.get('bytes_sent'), ',.0f')} B of Detection messages sent by the vehicle "
+             f"({_num(c.get('bytes_received'), ',.0f')} B received) and "
+             f"{_num(c.get('neighbourhood_bytes_sent'), ',.0f')} B of 1 m subgrids sent around them.")
+    per = []
+    for t in targets if isinstance(targets, Sequence) else ():
+        if not isinstance(t, Mapping):
+            continue
+        fd = t.get("first_detection")
+        dc = t.get("detection_to_confirmation_s")
+        per.append(f"{_e(t.get('name'))}: " + ("never detected" if not isinstance(fd, Mapping) else
+                   f"first detected topside at {_num(fd.get('first_at_s'))} s"
+                   + (f", confirmed {_num(dc)} s later" if _f(dc) is not None else ", not confirmed")))
+    return (f'<p class="note">{words} {"; ".join(per)}.</p>'
+            "<table><tr><th>id</th><th>found in</th><th>position (m)</th><th>score</th><th>height (m)</th>"
+            "<th>length x width (m)</th><th>orientation (deg)</th><th>first received (s)</th>"
+            "<th>what is really there</th></tr>" + "".join(rows) + "</table>")
 
 
 def _false_table(items: Any) -> str:
@@ -874,11 +924,15 @@ def write_report(
 when a received image showing it was accepted; TDMA cycles are counted from the image request.</p>
 {_targets_table(metrics.get("targets"))}
 {_false_table(metrics.get("false_confirmations"))}
+<h3>Detections</h3>
+<p class="note">What the vehicle's own detectors found in its full-resolution data and sent as
+suggestions (the operator decides), judged here against the truth.</p>
+{_detections_table(metrics.get("detections"), metrics.get("detection_cost"), metrics.get("targets"))}
 <h2 id="map">Map</h2>
 <p class="note">The bathymetry as received topside, finest level first. Colour is depth (with light
 hillshading from the north-west); hatched grey areas hold no data. Red squares are the true targets,
 orange diamonds decoys, cyan circles the candidates the operator flagged in the received map
-(filled once imaged).</p>
+(filled once imaged), dashed magenta triangles the vehicle's detections.</p>
 {maps_html}
 <h2 id="images">Images</h2>
 {_gallery(out, images)}

@@ -33,6 +33,7 @@ from .camera import CameraModel, SandTexture, render_labelled
 from .config import (
     CAMERA_PERIOD,
     CAMERA_SPEED,
+    DETECTIONS_STREAM,
     EPOCH,
     IDENTIFY_RADIUS,
     LINK_STREAM,
@@ -92,7 +93,7 @@ def _start_gui(cfg: DemoConfig, topside: Node, log: Callable[..., None]) -> Any:
     access, _ = console_access(host, cfg.operators, cfg.insecure_open, None, None)
     server = serve(topside, host, int(port), access=access,
                    stream_names={3: "map", 4: "images", 5: "series", LINK_STREAM: "link",
-                                 SURVEY_STREAM: "survey"})
+                                 SURVEY_STREAM: "survey", DETECTIONS_STREAM: "detections"})
     hub = server.hub
     act = hub.act
 

@@ -392,6 +392,14 @@ PRESETS: dict[str, dict[str, Any]] = {
     # a lower Micromodem rate (rate 3: two 256-byte frames a packet) and bursty loss
     "harsh": {"name": "harsh", "modem": {"rate": 3},
               "loss": {"model": "gilbert-elliott", "rate": 0.4, "mean_burst": 6.0}},
+    # deep water and long range: Micromodem rate 1 (three 64-byte frames a packet, about 32 B/s
+    # of vehicle slots) with the ship far from the site; range-dependent loss of about 40 % over
+    # the near edge of the site, 50 % over its centre and 57 % over the far edge (about 14 B/s
+    # delivered when the vehicle's packets are full)
+    "lowrate": {"name": "lowrate", "water_depth": 1000.0, "modem": {"rate": 1},
+                "ship": {"x": 128.0, "y": -1200.0},
+                "loss": {"model": "range", "rate": 0.05, "range_50": 1620.0, "range_width": 250.0,
+                         "range_max": 0.9}},
 }
 
 

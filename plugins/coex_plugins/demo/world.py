@@ -19,12 +19,14 @@ from coex_plugins.bathymetry import (
     BathymetryModality,
 )
 from coex_plugins.bathymetry.sim import Seafloor
+from coex_plugins.detections import DetectionsModality
 from coex_plugins.imagery import ImageryModality
 from coex_plugins.survey import SurveyModality
 from coex_plugins.timeseries import TimeSeriesModality
 
 from .config import (
     DEFAULT_LAYERS,
+    DETECTIONS_STREAM,
     EPOCH,
     LAYER_PSNR,
     LINK_STREAM,
@@ -149,25 +151,35 @@ def build_nodes(out: Path, channels: list[dict[str, Any]], command_key: bytes | 
         "timeseries": TimeSeriesModality().sender({"channels": channels}),
         # survey commands: checked against the vehicle's geofence, then flown by its autonomy
         "survey": SurveyModality().sender({"geofence": site_geofence(scn) if geofence is None else geofence}),
+        # the vehicle's own detector: relief anomalies of its full-resolution map, car-sized
+        # ones scoring highest (the dive looks for cars)
+        "detections": DetectionsModality().sender({"detectors": [{"type": "relief"}]}),
     }
     receivers = {
         "bathymetry": BathymetryModality().receiver({"auto_fill": auto_fill}),
         "imagery": ImageryModality().receiver({"out_dir": str(out / "images")}),
         "timeseries": TimeSeriesModality().receiver(None),
         "survey": SurveyModality().receiver(None),
+        "detections": DetectionsModality().receiver(None),
     }
     # NUI 2022 priorities: map subgrids 30, image fragments 30, time series a little less
     vehicle.add_sender(BathymetryModality, senders["bathymetry"], StreamConfig(3, "map", priority=30))
-    vehicle.add_sender(ImageryModality, senders["imagery"], StreamConfig(4, "images", priority=30))
+    # on a low link (docs/channel.md) the images stream carries only the answers to the
+    # operator's requests ahead of spare work: they go before the map's coarse coverage
+    vehicle.add_sender(ImageryModality, senders["imagery"], StreamConfig(4, "images", priority=30, low_priority=90))
     vehicle.add_sender(TimeSeriesModality, senders["timeseries"], StreamConfig(5, "series", priority=20))
     # the vehicle modem's statistics (SNR, bad frames, Doppler) for the console: newest only
     vehicle.manager.add_stream(StreamConfig(LINK_STREAM, "link", priority=40, newest_first=True, max_depth=1))
     # a survey's answers (accepted, rejected with its reason, started, completed): few bytes, first
     vehicle.add_sender(SurveyModality, senders["survey"], StreamConfig(SURVEY_STREAM, "survey", priority=90))
+    # detections: suggestions of a few bytes each, ahead of every other science stream
+    vehicle.add_sender(DetectionsModality, senders["detections"],
+                       StreamConfig(DETECTIONS_STREAM, "detections", priority=100))
     topside.add_receiver(BathymetryModality, receivers["bathymetry"])
     topside.add_receiver(ImageryModality, receivers["imagery"])
     topside.add_receiver(TimeSeriesModality, receivers["timeseries"])
     topside.add_receiver(SurveyModality, receivers["survey"])
+    topside.add_receiver(DetectionsModality, receivers["detections"])
     return vehicle, topside, senders, receivers
 
 

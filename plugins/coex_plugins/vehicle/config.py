@@ -27,6 +27,10 @@ ROLES = ("vehicle", "topside")
 DEFAULT_MODALITIES: dict[str, tuple[int, int]] = {
     "bathymetry": (3, 30), "imagery": (4, 30), "timeseries": (5, 20), "survey": (7, 90),
 }
+#: stream and priority of a built-in modality a file names without them (detections: a few
+#: bytes each, ahead of the other science streams; not run unless the file names it: what a
+#: vehicle looks for is the mission's)
+STREAM_DEFAULTS: dict[str, tuple[int, int]] = {**DEFAULT_MODALITIES, "detections": (8, 100)}
 #: the NUI 2022 cycle: 6 slots, topside in slots 0 and 3
 NUI_SLOTS = ("topside", "vehicle", "vehicle", "topside", "vehicle", "vehicle")
 TOP_KEYS = {"node", "modems", "tdma", "modalities", "status", "inputs", "autonomy", "console", "ros"}
@@ -39,6 +43,8 @@ class ModalityConfig:
     priority: int
     options: dict[str, Any] = field(default_factory=dict)
     ids: dict[int, int] = field(default_factory=dict)
+    #: the stream's priority on a low link (docs/channel.md; None: ``priority`` always)
+    low_priority: int | None = None
 
 
 @dataclass
@@ -381,13 +387,13 @@ def _modalities(raw: Mapping[str, Any], p: _Problems, cfg: DeployConfig) -> None
     for name, m in table.items():
         key = f"modalities.{name}"
         m = p.table(m, key)
-        p.unknown(m, {"stream", "priority", "options", "ids", "enabled"}, key)
+        p.unknown(m, {"stream", "priority", "low_priority", "options", "ids", "enabled"}, key)
         if m.get("enabled", True) is False:
             continue
         if name not in known:
             p.add(key, f"no modality {name!r} installed (known: {', '.join(sorted(known))})")
             continue
-        d_stream, d_prio = DEFAULT_MODALITIES.get(name, (None, 30))
+        d_stream, d_prio = STREAM_DEFAULTS.get(name, (None, 30))
         stream = p.number(m, "stream", key, d_stream, lo=1, hi=31, integer=True)
         if stream is None:
             p.add(f"{key}.stream", "missing: the stream (queue) id of this modality, 1..31")
@@ -396,6 +402,7 @@ def _modalities(raw: Mapping[str, Any], p: _Problems, cfg: DeployConfig) -> None
             p.add(f"{key}.stream", f"stream {stream} is already {streams[stream]}'s")
         streams[stream] = name
         prio = p.number(m, "priority", key, d_prio, lo=0, hi=127, integer=True)
+        low = p.number(m, "low_priority", key, None, lo=0, hi=127, integer=True) if "low_priority" in m else None
         options = p.table(m.get("options"), f"{key}.options")
         ids: dict[int, int] = {}
         for own, wire_id in p.table(m.get("ids"), f"{key}.ids").items():
@@ -403,7 +410,7 @@ def _modalities(raw: Mapping[str, Any], p: _Problems, cfg: DeployConfig) -> None
                 ids[int(own)] = int(wire_id)
             except (TypeError, ValueError):
                 p.add(f"{key}.ids.{own}", f"type ids are integers, got {own!r} = {wire_id!r}")
-        mc = ModalityConfig(name, int(stream), int(prio), options, ids)
+        mc = ModalityConfig(name, int(stream), int(prio), options, ids, None if low is None else int(low))
         # the modality checks its own options (an unknown one is named)
         try:
             cls = known[name].load()

@@ -81,7 +81,8 @@ def build_vehicle_node(cfg: DeployConfig, transports: dict[int, Any]) -> Any:
     for m in cfg.modalities:
         cls = load_modality(m.name)
         sender = cls().sender(cfg.options(m) or None)
-        node.add_sender(cls, sender, StreamConfig(m.stream, m.name, priority=m.priority), ids=m.ids or None)
+        node.add_sender(cls, sender, StreamConfig(m.stream, m.name, priority=m.priority, low_priority=m.low_priority),
+                        ids=m.ids or None)
     return node
 
 

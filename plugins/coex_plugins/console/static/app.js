@@ -125,6 +125,7 @@ function bounds() {
   if (S.map) {
     for (const lv of S.map.levels) { add(lv.x0, lv.y0); add(lv.x1, lv.y1); }
     for (const t of S.map.targets) add(t.x, t.y);
+    for (const d of S.map.detections || []) add(d.x, d.y);
     for (const r of S.map.requests) { add(r.rect[0], r.rect[1]); add(r.rect[2], r.rect[3]); }
   }
   if (S.surveys) for (const sv of S.surveys.items) for (const p of sv.waypoints) add(p[0], p[1]);
@@ -243,6 +244,7 @@ function drawMap() {
       const size = t.cells && t.level !== undefined && S.map.meta ? `, ~${Math.round(t.cells * (S.map.meta.resolution * 2 ** t.level) ** 2)} m²` : "";
       placeLabel(`target${h}${size}`, x + 11, y - 6, "#ffb0b0");
     }
+    drawDetections(m.detections || []);
   }
   // region labels last: where targets and surveys leave no room they are left out (the box's
   // style and the commands list say the same)
@@ -554,7 +556,7 @@ canvas.addEventListener("dblclick", (ev) => {
   // double-click a target: select a 16 m box around it
   if (!S.map) return;
   const p = evPos(ev);
-  for (const t of S.map.targets) {
+  for (const t of [...S.map.targets, ...(S.map.detections || [])]) {
     const [x, y] = w2s(t.x, t.y);
     if (Math.hypot(x - p[0], y - p[1]) < 12) {
       roi = [t.x - 8, t.y - 8, t.x + 8, t.y + 8];
@@ -562,6 +564,30 @@ canvas.addEventListener("dblclick", (ev) => {
     }
   }
 });
+// The vehicle's detections: suggestions (a dashed magenta diamond, oriented along the object's
+// long axis when known), never drawn like the candidates the operator or the console flagged.
+const DETECTION_COLOR = "#e36bff";
+function drawDetections(items) {
+  window.coex.detections = [];
+  for (const d of items) {
+    const [x, y] = w2s(d.x, d.y);
+    const r = Math.max(13, Math.min(30, ((d.length || 4) / 2 + 1.5) * view.scale));
+    const a = ((d.orientation === null || d.orientation === undefined) ? 45 : d.orientation) * Math.PI / 180;
+    ctx.save();
+    ctx.translate(x, y); ctx.rotate(a);  // the long axis, clockwise from north
+    const w = Math.max(7, r * Math.min(1, (d.width || 2) / Math.max(d.length || 4, 0.1)));
+    ctx.beginPath(); ctx.moveTo(0, -r); ctx.lineTo(w, 0); ctx.lineTo(0, r); ctx.lineTo(-w, 0); ctx.closePath();
+    ctx.fillStyle = "rgba(227,107,255,0.18)"; ctx.fill();
+    ctx.lineWidth = 4; ctx.strokeStyle = "rgba(0,0,0,0.55)"; ctx.stroke();  // a halo: readable on any colour
+    ctx.setLineDash([5, 3]); ctx.lineWidth = 2.2; ctx.strokeStyle = DETECTION_COLOR; ctx.stroke();
+    ctx.restore(); ctx.setLineDash([]);
+    const dims = d.length !== null && d.length !== undefined ? ` ${Number(d.length).toFixed(1)}×${Number(d.width).toFixed(1)} m` : "";
+    const high = d.height !== null && d.height !== undefined ? ` ${Number(d.height).toFixed(1)} m high` : "";
+    const text = `suggested D${d.id}: score ${Number(d.score).toFixed(2)}${high}${dims}`;
+    placeLabel(text, x + r + 4, y + 12, "#f2b8ff");
+    window.coex.detections.push({ id: d.id, x, y, text });
+  }
+}
 function setDraw(on) {
   if (on) endSurvey();
   drawMode = on;

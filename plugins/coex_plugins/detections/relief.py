@@ -1,0 +1,119 @@
+"""The built-in ``relief`` detector (``coex.detectors: relief``): relief anomalies in the
+vehicle's own full-resolution map as it grows.
+
+Every run it looks at the map tiles that changed since it last looked them over (each with a
+``margin`` of its neighbours' cells, so that an object on a tile's edge is seen whole) and finds
+the bumps standing more than ``threshold`` metres above the local background (a top-hat: the
+map less its grey-scale opening with a 9 m square, so that slopes, rolling relief and ripples
+stay in the background; :func:`~coex_plugins.bathymetry.export.find_targets`). Each bump is
+measured (:func:`~coex_plugins.bathymetry.relief.measure_bump`: height, footprint, length,
+width, orientation, flatness of its top) and scored by how well it matches the ``target`` the
+vehicle is told to look for (length, width, height; a flat top), with the given ``spread``s.
+A bump is judged only once the cells around it have been quiet for ``settle`` seconds (the
+swath has passed): a tile with a bump still changing is looked at again at the next run.
+
+It reads only the vehicle's map (``BathymetrySender.map``): the soundings as the sonar gave
+them, outliers rejected, never the simulation's truth.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping
+from typing import Any, ClassVar
+
+import numpy as np
+
+from coex_core.config import merged_config
+from coex_core.detect import Detector, Finding
+from coex_core.errors import ConfigError
+from coex_core.messages import DetectionSource
+from coex_core.modality import ModalitySender
+from coex_core.state import persistent
+from coex_plugins.bathymetry.relief import CAR, SPREAD, bumps, likeness
+
+__all__ = ["DEFAULTS", "ReliefDetector"]
+
+DEFAULTS: dict[str, Any] = {
+    #: metres above the local background a bump must stand
+    "threshold": 0.7,
+    #: what the vehicle looks for: length, width, height (m); the score is how well a bump matches
+    "target": list(CAR),
+    #: spreads of the score's Gaussians: length, width, height (m) and flatness
+    "spread": list(SPREAD),
+    #: fewest cells and largest area (m²) of a bump (one cell is a spike; a large one is terrain)
+    "min_cells": 2,
+    "max_area": 40.0,
+    #: seconds the cells around a bump must have been quiet before it is judged
+    "settle": 20.0,
+    #: metres of neighbouring cells looked at around a changed tile
+    "margin": 16.0,
+    #: radius (m) of the neighbourhood whose 1 m subgrids are sent after a finding
+    "neighbourhood": 12.0,
+}
+
+
+@persistent("detections.ReliefDetector")
+class ReliefDetector(Detector):
+    """Relief anomalies of the vehicle's bathymetry map (see the module docstring)."""
+
+    name: ClassVar[str] = "relief"
+    modality: ClassVar[str] = "bathymetry"
+    source: ClassVar[DetectionSource] = DetectionSource.MAP
+
+    def __init__(self, config: Mapping[str, Any] | None = None) -> None:
+        cfg = merged_config(config, DEFAULTS, "relief detector")
+        try:
+            self.threshold = float(cfg["threshold"])
+            self.target = tuple(float(v) for v in cfg["target"])
+            self.spread = tuple(float(v) for v in cfg["spread"])
+            self.min_cells = int(cfg["min_cells"])
+            self.max_area = float(cfg["max_area"])
+            self.settle = float(cfg["settle"])
+            self.margin = float(cfg["margin"])
+            self.neighbourhood = float(cfg["neighbourhood"])
+        except (TypeError, ValueError) as exc:
+            raise ConfigError(f"relief detector: {exc}") from exc
+        if len(self.target) != 3 or len(self.spread) != 4 or min(self.spread) <= 0:
+            raise ConfigError("relief detector: target is [length, width, height] and spread "
+                              "[length, width, height, flatness], spreads > 0")
+        if self.threshold <= 0 or self.margin < 0 or self.neighbourhood < 0 or self.settle < 0:
+            raise ConfigError("relief detector: threshold > 0; margin, neighbourhood and settle >= 0")
+        #: tile -> the version of it last looked over completely
+        self._looked: dict[tuple[int, int], int] = {}
+
+    def detect(self, data: ModalitySender, now: float) -> list[Finding]:
+        qmap = getattr(data, "map", None)
+        if qmap is None or not hasattr(qmap, "window"):
+            return []
+        out: list[Finding] = []
+        span = qmap.tile * qmap.resolution
+        cell = qmap.resolution
+        for key in qmap.tiles:
+            version = qmap.tile_version(key)
+            if self._looked.get(key) == version:
+                continue
+            x0, y0 = key[0] * span, key[1] * span
+            grid, updated, wx0, wy0 = qmap.window(x0 - self.margin, y0 - self.margin, x0 + span + self.margin,
+                                                  y0 + span + self.margin)
+            done = True
+            for cand, b in bumps(grid, cell=cell, x0=wx0, y0=wy0, threshold=self.threshold,
+                                 min_cells=self.min_cells, max_area=self.max_area):
+                if not (x0 <= cand.peak_x < x0 + span and y0 <= cand.peak_y < y0 + span):
+                    continue  # its own tile looks at it
+                # the cells within 6 m of it, quiet for `settle` seconds
+                c = int((cand.peak_x - wx0) / cell)
+                r = int((cand.peak_y - wy0) / cell)
+                k = max(1, round(6.0 / cell))
+                near = updated[max(r - k, 0):r + k + 1, max(c - k, 0):c + k + 1]
+                newest = float(np.max(near)) if near.size else -math.inf
+                if now - newest < self.settle:
+                    done = False  # still changing: look again next run
+                    continue
+                score = likeness(b.height, b.length, b.width, b.flatness, self.target,  # type: ignore[arg-type]
+                                 self.spread)  # type: ignore[arg-type]
+                out.append(Finding(b.x, b.y, round(score, 3), newest, height=b.height, length=b.length,
+                                   width=b.width, orientation=b.orientation, footprint=b.footprint))
+            if done:
+                self._looked[key] = version
+        return out
