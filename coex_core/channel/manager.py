@@ -34,7 +34,7 @@ from .links import (
     _Stream,
     default_streams,
 )
-from .policy import LOW_THROUGHPUT, NORMAL_THROUGHPUT
+from .policy import LOW_THROUGHPUT, NORMAL_THROUGHPUT, policy_fields
 from .queue import StreamConfig
 from .settings import SettingsMixin
 
@@ -50,7 +50,11 @@ __all__ = [
 
 
 def _upgrade_manager(fields: dict[str, Any], saved: int) -> dict[str, Any]:
-    """Version 1 (CoEx 0.1) had no delivery tracking, no loss estimates and no spare turns."""
+    """Version 1 (CoEx 0.1) had no delivery tracking, no loss estimates and no spare turns;
+    version 2 no link-following policy."""
+    if saved < 3:
+        for k, v in policy_fields().items():
+            fields.setdefault(k, v)
     if saved < 2:
         for k, v in delivery_fields().items():
             fields.setdefault(k, v)
@@ -62,7 +66,7 @@ def _upgrade_manager(fields: dict[str, Any], saved: int) -> dict[str, Any]:
 
 
 #: the clock, the command test and the key holders come from the node it is restored into
-@persistent("channel.ChannelManager", version=2, upgrade=_upgrade_manager,
+@persistent("channel.ChannelManager", version=3, upgrade=_upgrade_manager,
             transient=("clock", "is_command", "signer", "verifier"))
 class ChannelManager(SettingsMixin):
     """Queues, packing, TDMA and links of one node (vehicle or topside).
@@ -143,10 +147,10 @@ class ChannelManager(SettingsMixin):
         self._spare_turn: dict[int, float] = {}
         if not 0.0 <= low_throughput <= normal_throughput:
             raise ConfigError("low_throughput must be >= 0 and at most normal_throughput")
+        self._policy_state()
         #: the policy's thresholds (bytes per second, docs/channel.md)
         self.low_throughput = float(low_throughput)
         self.normal_throughput = float(normal_throughput)
-        self._policy_state()
 
     # ============================================================================ events
     def events(self) -> list[Event]:

@@ -36,20 +36,22 @@ LOW_THROUGHPUT = 48.0
 NORMAL_THROUGHPUT = 64.0
 
 
-class PolicyMixin(AcksMixin):
-    def _policy_state(self) -> None:
-        """Create the policy's state (``__init__``, and a manager restored from a store saved
-        before it existed)."""
-        if getattr(self, "low_throughput", None) is None:
-            self.low_throughput = LOW_THROUGHPUT
-            self.normal_throughput = NORMAL_THROUGHPUT
-        if getattr(self, "_low", None) is None:
-            #: whether the policy finds the link low now
-            self._low = False
+def policy_fields() -> dict[str, Any]:
+    """The policy's state of a new manager, by attribute (also what a ``channel.ChannelManager``
+    saved before the policy existed is upgraded with)."""
+    return {"low_throughput": LOW_THROUGHPUT, "normal_throughput": NORMAL_THROUGHPUT, "_low": False}
 
-    def _after_restore(self) -> None:
-        super()._after_restore()
-        self._policy_state()
+
+class PolicyMixin(AcksMixin):
+    low_throughput: float
+    normal_throughput: float
+    #: whether the policy finds the link low now
+    _low: bool
+
+    def _policy_state(self) -> None:
+        """Create the policy's state (``__init__``)."""
+        for k, v in policy_fields().items():
+            setattr(self, k, v)
 
     def capacity(self, link: int, node: int | None = None) -> float:
         """Bytes per second this node's slots (or ``node``'s) can carry on ``link`` (its current

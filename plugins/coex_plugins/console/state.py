@@ -168,8 +168,28 @@ class _Command:
 
 
 #: caches (pictures, summaries) are not state: they are made again when needed
-@persistent("console.State", transient=("_region_ids", "_png", "_map_summary", "_targets_cache",
-                                        "_survey_sig", "_survey_rows", "_repeats"))
+def _upgrade_state(fields: dict[str, Any], saved: int) -> dict[str, Any]:
+    """Version 1 (CoEx 0.1 and earlier 0.2 work) may lack what came later: crops, the vehicle's
+    altitudes, the camera's field of view, detections, survey products, numbered log entries and
+    the surveys already logged."""
+    if saved < 2:
+        fields.setdefault("crops", {})
+        if not isinstance(fields.get("altitudes"), deque):
+            fields["altitudes"] = deque(fields.get("altitudes") or (), maxlen=2000)
+        fields.setdefault("camera_fov", (60.0, 45.0))
+        fields.setdefault("detections", [])
+        fields.setdefault("survey_products", {})
+        if not isinstance(fields.get("_log_seq"), int):  # saved before entries had numbers
+            fields["_log_seq"] = max((int(e.get("id", -1)) for e in fields.get("log", ())), default=-1) + 1
+        fields.setdefault("_survey_logged", {})
+        fields.setdefault("ended", None)
+        fields.setdefault("ended_t", None)
+    return fields
+
+
+@persistent("console.State", version=2, upgrade=_upgrade_state,
+            transient=("_region_ids", "_png", "_map_summary", "_targets_cache", "_survey_sig", "_survey_rows",
+                       "_repeats"))
 class ConsoleState:
     """Everything the console shows, built from messages, products and events.
 
@@ -278,31 +298,17 @@ class ConsoleState:
 
     def _after_restore(self) -> None:
         """A topside store saves the console with its node (:mod:`coex_core.state`); object
-        ids are not state: the regions recorded are the ones the requests in ``roi`` hold."""
+        ids and caches are not state: the regions recorded are the ones the requests in ``roi``
+        hold, and the counted log entries go on counting."""
         self._region_ids = {id(r.region) for r in self.roi.values()}
-        if getattr(self, "crops", None) is None:  # saved before crops
-            self.crops = {}
         self._png = {}
         self._map_summary = {}
         self._targets_cache = (None, [])
         self._survey_sig, self._survey_rows = None, {}
-        if not isinstance(getattr(self, "altitudes", None), deque):
-            self.altitudes = deque(maxlen=2000)
-        if not hasattr(self, "camera_fov"):
-            self.camera_fov = (60.0, 45.0)
-        if not isinstance(getattr(self, "detections", None), list):
-            self.detections = []
-        # a console saved before a section or an attribute existed
-        for s in SECTIONS:
+        for s in SECTIONS:  # a section added since the console was saved
             self.versions.setdefault(s, 0)
-        if not isinstance(getattr(self, "survey_products", None), dict):
-            self.survey_products = {}
-        if not isinstance(getattr(self, "_log_seq", None), int):  # saved before entries had numbers
-            self._log_seq = max((int(e.get("id", -1)) for e in self.log), default=-1) + 1
-        if not isinstance(getattr(self, "_survey_logged", None), dict):
-            self._survey_logged = {}
         self._repeats = {}
-        for e in self.log:  # the counted entries go on counting
+        for e in self.log:
             if e.get("key") is not None:
                 self._repeats[str(e["key"])] = e
 
@@ -510,8 +516,6 @@ class ConsoleState:
         self.status, self.status_t = s, t
         if not self.track or self.track[-1][1:3] != (s.x, s.y):
             self.track.append((t, s.x, s.y, s.depth))
-        if not isinstance(getattr(self, "altitudes", None), deque):
-            self.altitudes = deque(maxlen=2000)
         if s.altitude is not None:
             self.altitudes.append((t, float(s.altitude)))
         self._touch("vehicle")
@@ -1143,9 +1147,9 @@ class ConsoleState:
         if len(track) > 1500:  # keep the payload small: every k-th point plus the newest
             k = math.ceil(len(track) / 1500)
             track = [*track[::k], track[-1]]
-        ended = getattr(self, "ended", None)
+        ended = self.ended
         return {"status": status, "track": [[_num(t, 1), x, y, d] for t, x, y, d in track],
-                "ended": ended, "ended_t": _num(getattr(self, "ended_t", None), 1)}
+                "ended": ended, "ended_t": _num(self.ended_t, 1)}
 
     def _snap_map(self) -> dict[str, Any]:
         rx = self.map_receiver
@@ -1408,12 +1412,12 @@ class ConsoleState:
             return None
         alt = None
         best = math.inf
-        for t, a in getattr(self, "altitudes", ()):
+        for t, a in self.altitudes:
             if abs(t - img.t) < best and a is not None:
                 best, alt = abs(t - img.t), a
         if alt is None or best > 300:
             return None
-        fx, fy = getattr(self, "camera_fov", (60.0, 45.0))
+        fx, fy = self.camera_fov
         return [_num(2 * alt * math.tan(math.radians(fx) / 2), 2),
                 _num(2 * alt * math.tan(math.radians(fy) / 2), 2)]
 
