@@ -293,7 +293,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--jobs", type=int, default=os.cpu_count() or 2, help="parallel processes (default: CPUs)")
     ap.add_argument("--quick", action="store_true", help="the demo's short scenario and 2 seeds (a smoke run)")
     ap.add_argument("--conditions", default=",".join(CONDITIONS),
-                    help=f"comma-separated subset of: {', '.join(CONDITIONS)}")
+                    help="comma-separated subset of: " + ", ".join(CONDITIONS).replace("%", "%%"))
     ap.add_argument("--out", type=Path, default=ROOT / "bench" / "results" / "dives.json")
     args = ap.parse_args(argv)
     conds = [c.strip() for c in args.conditions.split(",") if c.strip()]
