@@ -25,7 +25,9 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-from ._moos import _die_with_parent, free_port
+from coex_transports.moos.testing import die_with_parent
+
+from ._moos import free_port
 
 ROOT = Path(__file__).resolve().parents[1]
 EXAMPLES = ROOT / "examples"
@@ -138,7 +140,7 @@ class Community:
                 cmd = [str(self.bin / name), self.mission.name, "--moos_suicide_disable"]
             env = dict(os.environ)
         p = subprocess.Popen(cmd, cwd=self.dir, stdout=log, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
-                             env=env, preexec_fn=_die_with_parent)
+                             env=env, preexec_fn=die_with_parent)
         log.close()
         self.procs[name] = p
         return p

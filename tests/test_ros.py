@@ -379,7 +379,13 @@ def test_topside_products_appear_on_ros_topics(roscore: Roscore, tmp_path: Path)
             f(events)
         want = {"sensor_msgs/PointCloud2", "nav_msgs/OccupancyGrid", "sensor_msgs/Image", "nav_msgs/Odometry",
                 "nav_msgs/Path"}
-        _wait("every product on its topic", lambda: {e["type"] for e in lines.find(event="message")} >= want, 90)
+        try:
+            _wait("every product on its topic", lambda: {e["type"] for e in lines.find(event="message")} >= want, 90)
+        except AssertionError as exc:
+            heard = sorted({e["type"] for e in lines.find(event="message")})
+            raise AssertionError(f"{exc}; heard {heard}; ROS node {products.node.state!r}, counts "
+                                 f"{products.counts}; listener: {(tmp_path / 'listen.log').read_text()[-1500:]}"
+                                 ) from None
         [cloud] = lines.find(type="sensor_msgs/PointCloud2")[:1]
         assert cloud["points"] == 3 and cloud["z"] == [-31.0, -28.0] and cloud["frame"] == "coex_local"
         [grid] = lines.find(type="nav_msgs/OccupancyGrid")[:1]

@@ -18,7 +18,7 @@ import tempfile
 import time
 from pathlib import Path
 
-__all__ = ["MoosDB", "find_moosdb", "free_port"]
+__all__ = ["MoosDB", "die_with_parent", "find_moosdb", "free_port"]
 
 
 def _build_dirs() -> list[Path]:
@@ -53,7 +53,7 @@ def find_moosdb() -> tuple[str | None, str]:
     return None, f"MOOSDB not found (not on PATH, not at {built}): {how}"
 
 
-def _die_with_parent() -> None:
+def die_with_parent() -> None:
     """In the child: on Linux, get SIGKILL when the test process dies (no MOOSDB left behind
     when pytest itself is killed)."""
     try:
@@ -90,7 +90,7 @@ class MoosDB:
         self.proc = subprocess.Popen(
             [self.exe, str(mission), f"--moos_port={self.port}", "--moos_suicide_disable"],
             stdout=logf, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL, cwd=self.dir,
-            preexec_fn=_die_with_parent,
+            preexec_fn=die_with_parent,
         )
         logf.close()
         deadline = time.monotonic() + timeout
