@@ -48,7 +48,7 @@ class Thing(Modality):
         return Listener()
 
     def receiver(self, config: Any = None) -> ModalityReceiver:
-        raise NotImplementedError
+        return Rx()  # the tests use the sender side only
 
 
 def vehicle(rate: int) -> tuple[ChannelManager, Listener]:
@@ -146,7 +146,7 @@ class Watching(Modality):
         return Watcher()
 
     def receiver(self, config: Any = None) -> ModalityReceiver:
-        raise NotImplementedError
+        return Rx()  # the tests use the sender side only
 
 
 class Rx(ModalityReceiver):
