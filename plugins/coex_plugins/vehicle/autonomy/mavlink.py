@@ -383,7 +383,9 @@ class MavlinkAutonomy(Autonomy):
             log.warning("mavlink: sending %s failed: %s", name.upper(), exc)
 
     # ------------------------------------------------------------------ the autonomy
-    def submit(self, plan: Any, now: float) -> None:
+    def _adopt(self, plan: Any) -> dict[str, Any]:
+        """Make ``plan`` the one flown: the connection open, its mission items built; returns the
+        configuration."""
         if self.conn is None:
             self.open()
         cfg = self.config
@@ -392,6 +394,10 @@ class MavlinkAutonomy(Autonomy):
                                    home_placeholder=cfg["home_placeholder"],
                                    acceptance_radius=cfg["acceptance_radius"], hold=cfg["hold"],
                                    speed_item=cfg["speed_item"])
+        return cfg
+
+    def submit(self, plan: Any, now: float) -> None:
+        cfg = self._adopt(plan)
         if plan.altitude is not None and plan.depth is None and cfg["altitude_frame"] not in _TERRAIN:
             log.warning("mavlink: survey %s asks for %g m altitude, but altitude_frame %s is not a terrain "
                         "frame: its waypoints keep the present depth (z = 0)", plan.survey_id, plan.altitude,
@@ -407,14 +413,7 @@ class MavlinkAutonomy(Autonomy):
     def resume(self, plan: Any, now: float) -> bool:
         """The autopilot may still fly the uploaded mission: follow MISSION_CURRENT /
         MISSION_ITEM_REACHED again, upload nothing."""
-        if self.conn is None:
-            self.open()
-        cfg = self.config
-        self.plan = plan
-        self.items = mission_items(plan, self.context, frame=cfg["frame"], altitude_frame=cfg["altitude_frame"],
-                                   home_placeholder=cfg["home_placeholder"],
-                                   acceptance_radius=cfg["acceptance_radius"], hold=cfg["hold"],
-                                   speed_item=cfg["speed_item"])
+        self._adopt(plan)
         self.phase, self._sent, self._tries, self._heading_for, self._seen_auto = "flying", None, 0, -1, False
         self._command, self._command_deadline = None, math.inf
         self._deadline = math.inf
