@@ -363,6 +363,12 @@ def test_topside_products_appear_on_ros_topics(roscore: Roscore, tmp_path: Path)
                 "/t5/vehicle/odometry", "/t5/vehicle/track"], roscore.env(), tmp_path / "listen.log")
     lines = _Out(spy)
     try:
+        # the listener subscribes before the publishers exist: rospy connects a subscriber twice to
+        # a publisher that registers while the subscriber registers (the master's answer and its
+        # publisherUpdate race), keeps one connection and the publisher the other, and a latched
+        # message sent once is lost; that race is rospy's, not what this test is about
+        topics = ["/t5/map/level_1", "/t5/map/level_1/grid", "/t5/image", "/t5/vehicle/odometry", "/t5/vehicle/track"]
+        _wait("the listener subscribed", lambda: all(_subscribed(roscore.uri, t, "/rviz_like") for t in topics), 60)
         level = np.full((4, 6), np.nan)
         level[1, 2], level[3, 5], level[0, 0] = -30.0, -28.0, -31.0
         now = time.time()
