@@ -172,6 +172,42 @@ def test_topside_ros_table_is_checked() -> None:
     assert any(p.startswith("ros: only a topside node publishes its products on ROS") for p in problems)
 
 
+def test_the_example_rviz_configuration_shows_what_the_examples_publish() -> None:
+    """examples/ros/coex.rviz (tried in rviz 1.14 under xvfb-run: docs/deploy.md) subscribes only
+    to topics the example topside publishes (or the vehicle's survey path), in the fixed frame the
+    topside's messages carry, with each display's type the one its topic carries."""
+    import tomllib
+
+    import yaml
+    from coex_plugins.vehicle.config import expand
+
+    rviz = yaml.safe_load((EXAMPLES / "coex.rviz").read_text())
+    topside = tomllib.loads(expand((EXAMPLES / "topside.toml").read_text()))["ros"]
+    vehicle = tomllib.loads(expand((EXAMPLES / "vehicle.toml").read_text()))
+    prefix, frame = topside["prefix"], topside["frame"]
+    manager = rviz["Visualization Manager"]
+    assert manager["Global Options"]["Fixed Frame"] == frame
+    published = {**{f"{prefix}/map/level_{k}": "rviz/PointCloud2" for k in range(8)},
+                 **{f"{prefix}/map/level_{k}/grid": "rviz/Map" for k in range(8)},
+                 f"{prefix}/image": "rviz/Image", f"{prefix}/vehicle/odometry": "rviz/Odometry",
+                 f"{prefix}/vehicle/track": "rviz/Path"}
+    path_topic = next(v["path_topic"] for v in _tables(vehicle) if "path_topic" in v)
+    published[path_topic] = "rviz/Path"
+    shown = {d.get("Topic") or d.get("Image Topic"): d["Class"] for d in manager["Displays"]
+             if d["Class"] != "rviz/Grid"}
+    assert shown and all(published.get(t) == c for t, c in shown.items()), shown
+    assert {c for c in shown.values()} == {"rviz/PointCloud2", "rviz/Map", "rviz/Image", "rviz/Odometry", "rviz/Path"}
+
+
+def _tables(doc: dict[str, Any]) -> list[dict[str, Any]]:
+    """Every table of a TOML document, nested ones included."""
+    out = [doc]
+    for v in doc.values():
+        if isinstance(v, dict):
+            out.extend(_tables(v))
+    return out
+
+
 # ============================================================================ with a roscore
 @pytest.fixture(scope="session")
 def roscore(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Roscore]:
