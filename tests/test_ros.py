@@ -179,6 +179,7 @@ def test_the_example_rviz_configuration_shows_what_the_examples_publish() -> Non
     import tomllib
 
     import yaml
+
     from coex_plugins.vehicle.config import expand
 
     rviz = yaml.safe_load((EXAMPLES / "coex.rviz").read_text())
