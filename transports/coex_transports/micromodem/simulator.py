@@ -37,6 +37,7 @@ import heapq
 import itertools
 import math
 import os
+import select
 import selectors
 import socket
 import threading
@@ -541,11 +542,17 @@ class _Host:
             self.path = os.ttyname(self.slave)
 
     @staticmethod
-    def _pipe(src: int, dst: int, data: bytes) -> bytes:
-        """Write ``data`` into ``src`` and return everything that comes out at ``dst``."""
+    def _pipe(src: int, dst: int, data: bytes, timeout: float = 10.0) -> bytes:
+        """Write ``data`` into ``src`` and return it as it comes out at ``dst``: all of it (a raw
+        terminal passes bytes one for one), however late the kernel moves it across: a read that
+        finds the terminal empty waits for the rest instead of leaving it for a later call, so a
+        loaded machine runs the same dive as an idle one. OSError when it does not come out."""
         got = bytearray()
         view = memoryview(data)
-        while True:
+        poller = select.poll()
+        poller.register(dst, select.POLLIN)
+        deadline = time.monotonic() + timeout
+        while len(got) < len(data):
             if view:
                 try:
                     n = os.write(src, view[:1024])
@@ -553,12 +560,14 @@ class _Host:
                 except BlockingIOError:
                     pass
             try:
-                chunk = os.read(dst, 4096)
+                got += os.read(dst, 4096)
+                continue
             except BlockingIOError:
-                chunk = b""
-            got += chunk
-            if not view and not chunk:
-                break
+                pass
+            left = deadline - time.monotonic()
+            if left <= 0:
+                raise OSError(f"pseudo-terminal: {len(got)} of {len(data)} bytes came through in {timeout:g} s")
+            poller.poll(min(left, 0.05 if view else left) * 1000.0)
         return bytes(got)
 
     def to_modem(self, data: bytes) -> bytes:
