@@ -249,3 +249,37 @@ def test_a_request_tracker_saved_by_version_1_loads() -> None:
     assert (items["sent"].state, items["sent"].due_at, items["sent"].tries) == (S.SENT, 110.0, 1)
     assert (items["new"].state, items["new"].due_at) == (S.QUEUED, -math.inf)
     assert old.due(105.0) == ["b"] and old.due(110.0) == ["a"]
+
+
+def test_a_bathymetry_region_saved_by_version_3_loads() -> None:
+    """Regions of version 3 kept ``next_send``, ``sends``, ``done`` and ``answered`` themselves:
+    they load as the core tracker's entries in the state those fields meant."""
+    from coex_plugins.bathymetry.regions import Region
+
+    regions = [Region(0, 0, 0, 8, 8, False) for _ in range(4)]
+    regions[1].track.send(100.0, 60.0)
+    regions[2].track.send(100.0, 60.0)
+    regions[2].track.apply(E.STAND, 110.0, due=500.0)
+    regions[3].track.send(100.0, 60.0)
+    regions[3].track.apply(E.ACCEPT, 120.0)
+    v3 = [{"next_send": {"$f": "-inf"}, "sends": 0, "done": False, "answered": None},
+          {"next_send": 160.0, "sends": 1, "done": False, "answered": None},
+          {"next_send": 500.0, "sends": 1, "done": False, "answered": 110.0},
+          {"next_send": 160.0, "sends": 1, "done": True, "answered": 120.0}]
+
+    def to_v3(doc: dict[str, Any]) -> None:
+        doc["classes"]["bathymetry.Region"] = 3
+        found = []
+
+        def edit(o: dict[str, Any]) -> None:
+            if o["$o"] == "bathymetry.Region":
+                del o["f"]["track"]
+                o["f"].update(v3[len(found)])
+                found.append(o)
+        _walk(doc, edit)
+        assert len(found) == 4
+
+    old = loads(_edit(dumps(regions), to_v3))
+    assert [r.track.state for r in old] == [S.QUEUED, S.SENT, S.PENDING, S.DONE]
+    assert [(r.sends, r.next_send, r.answered, r.done) for r in old] == \
+        [(r.sends, r.next_send, r.answered, r.done) for r in regions]
