@@ -283,3 +283,48 @@ def test_a_bathymetry_region_saved_by_version_3_loads() -> None:
     assert [r.track.state for r in old] == [S.QUEUED, S.SENT, S.PENDING, S.DONE]
     assert [(r.sends, r.next_send, r.answered, r.done) for r in old] == \
         [(r.sends, r.next_send, r.answered, r.done) for r in regions]
+
+
+@pytest.mark.parametrize(("status", "state", "answer"), [
+    ("sent", S.SENT, ""), ("queued", S.QUEUED, ""), ("pending", S.PENDING, "PENDING"),
+    ("accepted", S.DONE, "ACCEPTED"), ("rejected", S.REFUSED, "REJECTED"),
+    ("unknown_target", S.REFUSED, "UNKNOWN_TARGET"), ("unauthenticated", S.REFUSED, "UNAUTHENTICATED")])
+def test_a_console_command_saved_by_version_1_loads(status: str, state: State, answer: str) -> None:
+    """The console's commands of version 1 kept a ``status`` word and ``answered``: they load
+    as the core tracker's entries and list as they did."""
+    from coex_core import messages as m
+    from coex_plugins.console.commands import _Command
+
+    cmd = _Command(7, "QueueConfig", "q", 100.0, m.QueueConfig(7, 2, False, False, None, None, None, None))
+
+    def to_v1(doc: dict[str, Any]) -> None:
+        doc["classes"]["console.Command"] = 1
+
+        def edit(o: dict[str, Any]) -> None:
+            if o["$o"] == "console.Command":
+                del o["f"]["track"]
+                o["f"].update(status=status, answered=None if status in ("sent", "queued") else 120.0)
+        _walk(doc, edit)
+
+    old = loads(_edit(dumps(cmd), to_v1))
+    assert (old.track.state, old.track.answer, old.status) == (state, answer, status)
+    assert old.answered == (None if status in ("sent", "queued") else 120.0)
+
+
+def test_the_console_lists_a_command_as_the_tracker_has_it() -> None:
+    from coex_core import messages as m
+    from coex_plugins.console.state import ConsoleState
+
+    st = ConsoleState()
+    msg = m.QueueConfig(5, 2, False, False, None, None, None, None)
+    st.record_command(msg, 10.0, "stream 2 off")
+    (c,) = st.commands.values()
+    assert (c.track.state, c.track.sent_at, c.status) == (S.SENT, 10.0, "sent")
+    st.apply_message(m.CommandAck(5, m.AckStatus.PENDING), 11.0)
+    assert (c.track.state, c.status, c.answered) == (S.PENDING, "pending", 11.0)
+    st.apply_message(m.CommandAck(5, m.AckStatus.PENDING), 12.0)  # the same answer again
+    assert c.answered == 11.0
+    st.apply_message(m.CommandAck(5, m.AckStatus.UNKNOWN_TARGET), 13.0)
+    assert (c.track.state, c.status, c.answered) == (S.REFUSED, "unknown_target", 13.0)
+    st.apply_message(m.CommandAck(5, m.AckStatus.ACCEPTED), 14.0)  # late: changes nothing
+    assert (c.track.state, st.snapshot()["commands"][0]["status"]) == (S.REFUSED, "unknown_target")

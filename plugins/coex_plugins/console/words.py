@@ -9,7 +9,15 @@ from typing import Any
 
 from coex_core import messages as m
 
-__all__ = ["ack_reason", "gap_words", "hms", "region_words", "survey_summary"]
+__all__ = ["_num", "ack_reason", "gap_words", "hms", "region_words", "survey_summary"]
+
+
+def _num(x: float | None, nd: int = 3) -> float | None:
+    """A number as the page shows it: rounded to ``nd`` places, None when not finite."""
+    if x is None:
+        return None
+    x = float(x)
+    return round(x, nd) if math.isfinite(x) else None
 
 
 def region_words(state: Any, r: Any) -> str:
