@@ -328,3 +328,35 @@ def test_the_console_lists_a_command_as_the_tracker_has_it() -> None:
     assert (c.track.state, c.status, c.answered) == (S.REFUSED, "unknown_target", 13.0)
     st.apply_message(m.CommandAck(5, m.AckStatus.ACCEPTED), 14.0)  # late: changes nothing
     assert (c.track.state, st.snapshot()["commands"][0]["status"]) == (S.REFUSED, "unknown_target")
+
+
+def test_the_channel_managers_commands_go_through_the_tracker_and_load_from_version_3() -> None:
+    from coex_core.channel import ChannelManager, LinkConfig
+    from coex_core.channel.schedule import Schedule
+    from coex_core.messages import AckStatus, CommandAck, LinkControl, SpareConfig
+
+    t = ChannelManager(1, [LinkConfig(0, Schedule.simple([1], 4.0, 0.0), rate=5, dst=2)])
+    t.send_command(LinkControl(3, 0, True, False), 10.0)
+    t.send_command(SpareConfig(4, 0, None, 50), 10.0)
+    assert (t._commands[3].state, t._commands[3].sent_at) == (S.SENT, 10.0)
+    r = t.on_command_ack(CommandAck(3, AckStatus.PENDING), 11.0)
+    assert r.command == LinkControl(3, 0, True, False) and t._commands[3].state is S.PENDING
+    t.on_command_ack(CommandAck(3, AckStatus.REJECTED), 12.0)
+    assert 3 not in t._commands  # answered for good: no longer awaited
+    assert t.on_command_ack(CommandAck(3, AckStatus.ACCEPTED), 13.0).command is None  # late
+
+    def to_v3(doc: dict[str, Any]) -> None:
+        doc["classes"]["channel.ChannelManager"] = 3
+
+        def edit(o: dict[str, Any]) -> None:
+            if o["$o"] == "channel.ChannelManager":
+                cmds = o["f"]["_commands"]
+                key = next(iter(cmds))  # a dict of int keys: {"$d": [[k, v], ...]}
+                cmds[key] = [[k, v["f"]["message"]] for k, v in cmds[key]]
+        _walk(doc, edit)
+
+    old = loads(_edit(dumps(t), to_v3))
+    (tracked,) = old._commands.values()
+    assert (tracked.state, tracked.message, tracked.tries, tracked.sent_at) == (S.SENT, SpareConfig(4, 0, None, 50), 1, None)
+    assert old.on_command_ack(CommandAck(4, AckStatus.ACCEPTED), 20.0).command == SpareConfig(4, 0, None, 50)
+    assert old._commands == {}
