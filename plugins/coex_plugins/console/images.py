@@ -12,7 +12,7 @@ from __future__ import annotations
 import math
 from collections.abc import Mapping
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Any, cast
+from typing import Any, cast
 
 from coex_core import messages as m
 from coex_core.state import persistent
@@ -21,8 +21,8 @@ from coex_core.timefmt import unwrap
 from .commands import OPEN_COMMAND_STATES
 from .words import _num, ack_reason
 
-if TYPE_CHECKING:
-    from .state import _Image
+#: an image the console keeps (``state._Image``; the state module imports this one)
+_Image = Any
 
 __all__ = ["MAX_CROPS", "MAX_IMAGE_REGIONS", "ImagesView"]
 
