@@ -332,9 +332,9 @@ def test_the_console_shows_a_big_level_bounded_and_what_is_on_screen(monkeypatch
     from PIL import Image
 
     from coex_plugins.console import ConsoleState, serve
-    from coex_plugins.console import state as console_state
+    from coex_plugins.console import mapview as console_map
 
-    monkeypatch.setattr(console_state, "MAP_BLOCKS", 16)
+    monkeypatch.setattr(console_map, "MAP_BLOCKS", 16)
     rx = BathymetryReceiver({"levels": 1, "max_mosaic_cells": 4096, "tile_subgrids": 4,
                              "memory_budget": 1})
     st = ConsoleState(receivers={"bathymetry": rx})

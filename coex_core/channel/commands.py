@@ -16,6 +16,7 @@ from ..messages import (
     ScheduleUpdate,
     SpareConfig,
 )
+from ..tracker import Event, Tracked, answer_event
 from .events import (
     CommandApplied,
     CommandResult,
@@ -147,7 +148,8 @@ class CommandsMixin(PackingMixin):
         """Queue a command (on the control stream, acked) and remember it until its
         CommandAck arrives. Returns its command id."""
         cid = int(getattr(command, "command_id", 0))
-        self._commands[cid] = command
+        tracked = self._commands[cid] = Tracked(command)
+        tracked.apply(Event.SEND, now)
         self.push(CONTROL_STREAM, command, now)
         return cid
 
@@ -168,12 +170,16 @@ class CommandsMixin(PackingMixin):
         return msg
 
     def on_command_ack(self, ack: CommandAck, now: float) -> CommandResult:
-        """Topside: the vehicle's answer to one of our commands (a PENDING answer keeps the
-        command, whose final answer follows)."""
-        if ack.status == AckStatus.PENDING:
-            command = self._commands.get(ack.command_id)
-        else:
-            command = self._commands.pop(ack.command_id, None)
+        """Topside: the vehicle's answer to one of our commands, through the core tracker's
+        states (:mod:`coex_core.tracker`): a PENDING answer keeps the command, whose final
+        answer follows; a final one ends it."""
+        tracked = self._commands.get(ack.command_id)
+        command = None
+        if tracked is not None:
+            command = tracked.message
+            tracked.apply(answer_event(ack.status.name), now, answer=ack.status.name)
+            if not tracked.open:
+                del self._commands[ack.command_id]
         for link, st in self._links.items():
             prop = st.proposed.pop(ack.command_id, None)
             if prop is not None and ack.status == AckStatus.ACCEPTED:

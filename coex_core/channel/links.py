@@ -16,6 +16,7 @@ from ..messages import (
 )
 from ..modality import ModalitySender
 from ..state import persistent
+from ..tracker import Tracked
 from ..wire import header_size
 from .events import Event
 from .queue import StreamConfig, StreamQueue
@@ -218,6 +219,6 @@ class _ManagerState:
     _ack_times: dict[tuple[int, int, int], float]
     _last_qs: float | None
     _command_id: int
-    _commands: dict[int, Message]
+    _commands: dict[int, Tracked[Message]]
     stats: dict[str, int]
 

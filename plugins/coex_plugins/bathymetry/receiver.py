@@ -13,7 +13,8 @@ of any extent is drawn in bounded memory and nothing held is left out. :meth:`wi
 is on screen (or a tile of an export) from the tiles.
 
 The tiles and their stored form are in :mod:`.tiles`, the overviews in :mod:`.overview`, a
-tracked region request in :mod:`.regions`, what version 1 saved in :mod:`.legacy`.
+tracked region request in :mod:`.regions` (its states and retries are the core tracker's,
+:mod:`coex_core.tracker`), what version 1 saved in :mod:`.legacy`.
 """
 
 from __future__ import annotations
@@ -34,6 +35,7 @@ from coex_core.state import StateError, persistent
 from coex_core.storage import MemoryStorage, Storage
 from coex_core.subgrid import decode_subgrid
 from coex_core.timefmt import STAMP_MODULUS, unwrap
+from coex_core.tracker import Event
 
 from .legacy import Held, Mosaic
 from .overview import CHUNK, Overview, block_sums, blocks_from, weighted
@@ -365,15 +367,15 @@ class BathymetryReceiver(ModalityReceiver):
             region = self._by_id.get(message.request_id)
             if region is not None and not region.done:
                 region.queued = message.queued
-                region.answered = now
                 region.waiting = message.waiting
                 if message.queued == 0 and message.waiting == 0:
-                    region.done = True
+                    region.track.apply(Event.ACCEPT, now)
                 elif message.queued == 0:  # it stands on the vehicle: the data follows when surveyed
-                    region.next_send = now + self.standing_recheck
+                    region.track.apply(Event.STAND, now, due=now + self.standing_recheck)
                 else:
                     self._auto_found |= region.auto
-                    region.next_send = now + self.request_timeout + self.subgrid_wait * message.queued
+                    region.track.apply(Event.STAND, now,
+                                       due=now + self.request_timeout + self.subgrid_wait * message.queued)
             return []
         return []
 
@@ -839,10 +841,9 @@ class BathymetryReceiver(ModalityReceiver):
         for r in sorted(self.regions, key=lambda r: -r.level):
             if len(out) >= self.max_requests_per_poll:
                 break
-            if now >= r.next_send:
+            if r.track.is_due(now):
                 out.append(self._message(r))
-                r.sends += 1
-                r.next_send = now + self.request_timeout
+                r.track.send(now, self.request_timeout)
         return out
 
     def supersedes(self, old: Message, new: Message) -> bool:

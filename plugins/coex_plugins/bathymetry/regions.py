@@ -3,18 +3,41 @@
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
+from typing import Any
 
 from coex_core.state import persistent
+from coex_core.tracker import State, Tracked
 
 __all__ = ["Region"]
 
 
-@persistent("bathymetry.Region", version=3,
-            upgrade=lambda fields, saved: {"queued": None, "answered": None, "waiting": 0, **fields})
+def _upgrade_region(fields: dict[str, Any], saved: int) -> dict[str, Any]:
+    """Version 3 (and older) kept its own ``next_send``, ``sends``, ``done`` and ``answered``:
+    now the core tracker's entry (:class:`~coex_core.tracker.Tracked`) holds them."""
+    fields = {"queued": None, "waiting": 0, **fields}
+    if saved < 4:
+        sends = int(fields.pop("sends", 0) or 0)
+        answered = fields.pop("answered", None)
+        if fields.pop("done", False):
+            state = State.DONE
+        elif answered is not None:
+            state = State.PENDING
+        else:
+            state = State.SENT if sends else State.QUEUED
+        fields["track"] = Tracked(None, state, None, sends, float(fields.pop("next_send", -math.inf)),
+                                  answered)
+    return fields
+
+
+@persistent("bathymetry.Region", version=4, upgrade=_upgrade_region)
 @dataclass
 class Region:
-    """An active region request: re-sent (with fresh stamps) until the vehicle answers "nothing newer"."""
+    """An active region request: re-sent (with fresh stamps) until the vehicle answers "nothing newer".
+
+    Its state is the core tracker's (:mod:`coex_core.tracker`): ``queued`` (not sent yet),
+    ``sent``, ``pending`` (the vehicle queued subgrids for it, or it stands there for subgrids
+    not surveyed yet) and ``done`` (nothing newer)."""
 
     level: int
     x0: int
@@ -23,12 +46,29 @@ class Region:
     h: int
     fill_gaps: bool
     auto: bool = False
-    next_send: float = -math.inf
+    #: the id of the copy sent last
     request_id: int | None = None
-    sends: int = 0
-    done: bool = False
-    #: what the vehicle last answered: subgrids it queued for the region, and when
+    #: what the vehicle last answered: subgrids it queued for the region
     queued: int | None = None
-    answered: float | None = None
     #: subgrids of the region the vehicle has not surveyed yet: its request stands for them
     waiting: int = 0
+    #: its state, sends and answers, and when it goes out again
+    track: Tracked[None] = field(default_factory=lambda: Tracked(None))
+
+    @property
+    def done(self) -> bool:
+        """The vehicle answered that it has nothing newer."""
+        return self.track.state is State.DONE
+
+    @property
+    def sends(self) -> int:
+        return self.track.tries
+
+    @property
+    def next_send(self) -> float:
+        return self.track.due_at
+
+    @property
+    def answered(self) -> float | None:
+        """When the vehicle last answered (None: not yet)."""
+        return self.track.answered_at

@@ -11,6 +11,12 @@
   until the vehicle answers (``CommandAck``/``MapRoiReply``) or the data arrives. Pictures are
   drawn by :mod:`.render`, words made by :mod:`.words`.
 
+The state is one class; its concerns are in modules of their own, each a part of it:
+:mod:`.mapview` (levels, targets, map regions), :mod:`.surveys`, :mod:`.images` (images, regions
+of them, crops), :mod:`.linkview` (links, schedules, queues) and :mod:`.commands` (the commands
+list, a view of the core tracker's states, :mod:`coex_core.tracker`). Names they define are
+importable from here as before.
+
 Nothing here does I/O or reads a clock: time enters as ``now``. The server adds the locking.
 """
 
@@ -18,9 +24,9 @@ from __future__ import annotations
 
 import math
 from collections import deque
-from collections.abc import Callable, Iterable, Mapping, Sequence
+from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass, field
-from typing import Any, cast
+from typing import Any
 
 import numpy as np
 import numpy.typing as npt
@@ -29,14 +35,26 @@ from coex_core import messages as m
 from coex_core.errors import RequestRejected
 from coex_core.state import persistent
 from coex_core.timefmt import unwrap
-from coex_core.wire import encoded_size
 
+from .commands import OPEN_COMMAND_STATES, CommandsView, _Command
+from .images import MAX_CROPS, MAX_IMAGE_REGIONS, ImagesView, _Crop
+from .linkview import LinkView
+from .mapview import MAP_BLOCKS, MapView, _RoiRequest, map_delta
 from .render import THUMB_SIDE, _picture, elevation_rgb, png_bytes
-from .words import _counted, _modality_of, ack_reason, gap_words, hms, region_words
+from .surveys import MAX_SURVEYS, SURVEY_OUTCOMES, SURVEY_STATES, SurveysView
+from .words import _counted, _modality_of, _num
 
 __all__ = [
+    "MAP_BLOCKS",
+    "MAX_CROPS",
+    "MAX_IMAGE_REGIONS",
+    "MAX_SURVEYS",
+    "OPEN_COMMAND_STATES",
     "SECTIONS",
+    "SURVEY_OUTCOMES",
+    "SURVEY_STATES",
     "ConsoleState",
+    "map_delta",
     "png_bytes",
     "elevation_rgb",
 ]
@@ -48,41 +66,12 @@ SECTIONS = ("vehicle", "map", "surveys", "images", "series", "other", "link", "q
 #: Modalities with a panel of their own; the products of any other go to the generic panel.
 OWN_PANELS = ("bathymetry", "imagery", "timeseries", "survey", "detections")
 
-#: The states of a survey the page draws (the survey receiver's ``SurveyRecord.state``).
-SURVEY_STATES = ("requested", "accepted", "started", "completed", "rejected", "aborted", "given up")
-#: The surveys the page lists and draws (the newest).
-MAX_SURVEYS = 40
-#: How a finished survey reads in the list and on the map when the state alone would hide what
-#: happened: (state, reason) -> words. A refusal by the autonomy (autopilot, helm, planner) is
-#: not the vehicle's own checks, an autonomy that never answered did not refuse anything, and an
-#: abort says who stopped it. Anything else reads as its state ("rejected" by the geofence or a
-#: limit, "completed", "given up": no answer from the vehicle over the link).
-SURVEY_OUTCOMES = {
-    ("rejected", "AUTONOMY_REFUSED"): "refused by autonomy",
-    ("rejected", "AUTONOMY_NO_ANSWER"): "no answer from autonomy",
-    ("rejected", "NO_AUTONOMY"): "no autonomy",
-    ("rejected", "UNAUTHENTICATED"): "not authenticated",
-    ("aborted", "SUPERSEDED"): "replaced",
-    ("aborted", "AUTONOMY_STOPPED"): "stopped by autonomy",
-    ("aborted", "MANUAL_OVERRIDE"): "taken over",
-    ("aborted", "AUTONOMY_RESTARTED"): "autonomy restarted",
-    ("aborted", "ALL_STOP"): "all-stop",
-}
 #: Events of one kind (one log key) within this many seconds of the first are counted in one
 #: entry of the event log, updated in place, instead of one entry each.
 REPEAT_WINDOW = 600.0
 #: Counted entries remembered at most (beyond it the oldest start again as a new entry).
 MAX_REPEATS = 64
-#: A command in these states may still be answered (``pending``: it stands on the vehicle).
-OPEN_COMMAND_STATES = ("sent", "pending")
 
-#: The map section shows a level's coverage (the age of its data) in at most this many blocks:
-#: every subgrid of a small level, groups of receiver tiles of a big one.
-MAP_BLOCKS = 4096
-#: The regions of an image the images section lists and the page draws (the newest).
-MAX_IMAGE_REGIONS = 12
-#: Crops (regions coded on their own) kept for the region lists (the newest).
-MAX_CROPS = 64
 #: Images the console keeps (the newest by time; the imagery receiver's ``max_images`` default):
 #: a dive of several days does not grow the console's memory and saved state with every picture
 MAX_IMAGES = 256
@@ -91,33 +80,6 @@ MAP_WINDOW_CELLS = 4 * 1024 * 1024
 
 
 FloatArray = npt.NDArray[np.float64]
-
-
-def _num(x: float | None, nd: int = 3) -> float | None:
-    if x is None:
-        return None
-    x = float(x)
-    return round(x, nd) if math.isfinite(x) else None
-
-
-# ---------------------------------------------------------------------------- map model
-
-
-@persistent("console.RoiRequest")
-@dataclass
-class _RoiRequest:
-    """A map region asked from the console: the bathymetry receiver's region object (which
-    it sends, retries and closes), and when it was asked."""
-
-    level: int
-    x0: int
-    y0: int
-    w: int
-    h: int
-    sent: float
-    region: Any
-    #: the most subgrids the vehicle said it queued for it (0: it never sent anything)
-    got: int = 0
 
 
 @persistent("console.Image")
@@ -134,37 +96,6 @@ class _Image:
     decoded_meta: dict[str, Any] = field(default_factory=dict)
     #: the regions the imagery receiver lists for it (its product's ``regions``)
     regions: list[dict[str, Any]] = field(default_factory=list)
-
-
-@persistent("console.Crop")
-@dataclass
-class _Crop:
-    """A crop the imagery receiver holds (a region of an image coded on its own): what it shows
-    of its box and the receiver's meta (``parent``, ``box``, ``command_id``, bytes ...)."""
-
-    crop_id: int
-    decoded: Any = None
-    decoded_version: int = -1
-    meta: dict[str, Any] = field(default_factory=dict)
-    png: bytes | None = None
-    png_version: int = -1
-
-
-@persistent("console.Command")
-@dataclass
-class _Command:
-    command_id: int
-    kind: str
-    summary: str
-    sent: float
-    message: m.Message
-    status: str = "sent"
-    answered: float | None = None
-    roi_key: int | None = None
-    #: who sent it: the signed-in operator ("" for a console without sign-in)
-    by: str = ""
-    #: why the vehicle answered as it did, in words (a rejection's likely cause)
-    reason: str = ""
 
 
 #: caches (pictures, summaries) are not state: they are made again when needed
@@ -190,7 +121,7 @@ def _upgrade_state(fields: dict[str, Any], saved: int) -> dict[str, Any]:
 @persistent("console.State", version=2, upgrade=_upgrade_state,
             transient=("_region_ids", "_png", "_map_summary", "_targets_cache", "_survey_sig", "_survey_rows",
                        "_repeats"))
-class ConsoleState:
+class ConsoleState(MapView, SurveysView, ImagesView, LinkView, CommandsView):
     """Everything the console shows, built from messages, products and events.
 
     ``stream_names`` names queue streams (id -> name); ``schedules`` gives the TDMA schedule of
@@ -477,29 +408,6 @@ class ConsoleState:
                       key=f"sender failed|{event.stream}|{event.error}")
         return {s for s in SECTIONS if self.versions[s] != before[s]}
 
-    def set_schedule(self, link: int, schedule: Any) -> None:
-        """Record the TDMA schedule a link runs (for the timeline)."""
-        d = schedule.to_dict() if hasattr(schedule, "to_dict") else dict(schedule)
-        slots = [dict(s) for s in d.get("slots", [])]
-        self.schedules[int(link)] = {
-            "link": int(link), "version": int(d.get("version", 0)),
-            "active_version": int(d.get("version", 0)),
-            "epoch": float(d.get("epoch", 0.0)), "first_cycle": int(d.get("first_cycle", 0)),
-            "cycle": float(sum(float(s["duration"]) for s in slots)),
-            "slots": [{"owner": int(s["owner"]), "duration": float(s["duration"]),
-                       "guard": float(s.get("guard", 0.0)),
-                       "min_priority": int(s.get("min_priority", 0))} for s in slots],
-            "proposed": None,
-        }
-        self._link(int(link))
-        self._touch("link")
-
-    def add_targets(self, targets: Iterable[Mapping[str, Any]]) -> None:
-        """Add candidate targets (``x``, ``y`` and optionally ``height``, ``level``, ``score``)."""
-        for t in targets:
-            self.targets.append({k: (_num(v) if isinstance(v, float) else v) for k, v in t.items()})
-        self._touch("map")
-
     # ---------------------------------------------------------------------- vehicle
     def end_contact(self, now: float, why: str = "the dive is over") -> None:
         """Contact with the vehicle has ended for good (the dive is over, the link closed):
@@ -521,43 +429,6 @@ class ConsoleState:
         self._touch("vehicle")
 
     # -------------------------------------------------------------------------- map
-    def _map_product(self, data: Any, meta: Mapping[str, Any]) -> None:
-        """A level of the bathymetry receiver changed: its depth range widens the colour scale
-        (the receiver's ``zmin``/``zmax`` when it says them: a big level is not scanned)."""
-        if meta.get("zmin") is not None and meta.get("zmax") is not None:
-            lo, hi = float(meta["zmin"]), float(meta["zmax"])
-            zr = self._zrange or (lo, hi)
-            self._zrange = (min(zr[0], lo), max(zr[1], hi))
-            self._touch("map")
-            return
-        z = np.asarray(data, float)
-        finite = z[np.isfinite(z)]
-        if finite.size:
-            lo, hi = float(finite.min()), float(finite.max())
-            zr = self._zrange or (lo, hi)
-            self._zrange = (min(zr[0], lo), max(zr[1], hi))
-        self._touch("map")
-
-    def held_stamps(self, level: int, x0: int, y0: int, w: int, h: int) -> list[int | None]:
-        """Per subgrid of the region, row-major (rows = y): the stamp topside holds, or None."""
-        rx = self.map_receiver
-        if rx is None:
-            return [None] * (w * h)
-        return list(rx.region_stamps(level, x0, y0, w, h))
-
-    def level_grid(self, level: int) -> tuple[FloatArray, float, float, float] | None:
-        """A copy of the receiver's drawn level: ``(z, x0, y0, cell)`` with row 0 = south, or
-        None if nothing of it is held. A big level is a decimated overview (``cell`` is then a
-        multiple of the level's: at most the receiver's ``max_mosaic_cells``)."""
-        rx = self.map_receiver
-        if rx is None or level not in rx.levels():
-            return None
-        p = rx.level_product(level)
-        z = np.array(p.data, dtype=float)
-        if not np.isfinite(z).any():
-            return None
-        return z, float(p.meta["x0"]), float(p.meta["y0"]), float(p.meta["cell_size"])
-
     def map_window_job(self, level: int, x0: float, y0: float, x1: float, y1: float,
                        step: int = 1, max_pixels: int = MAP_WINDOW_CELLS) -> Callable[[], bytes] | None:
         """What is on screen of a big level, finer than its drawn overview: a job rendering
@@ -623,43 +494,6 @@ class ConsoleState:
                 del self.images[oldest.image_id]
         return img
 
-    def _image_product(self, product: Any, data: Any, meta: dict[str, Any], now: float) -> None:
-        iid = meta.get("image_id")
-        if iid is None:
-            try:
-                iid = int(str(getattr(product, "key", "")).rsplit("-", 1)[-1])
-            except ValueError:
-                return
-        img = self._image(int(iid))
-        if data is not None and hasattr(data, "shape"):
-            img.decoded = data
-            img.decoded_version = int(getattr(product, "version", img.decoded_version + 1))
-        img.decoded_meta = {k: v for k, v in meta.items()
-                            if v is None or isinstance(v, int | float | str | bool)}
-        if isinstance(meta.get("regions"), list | tuple):
-            img.regions = [dict(r) for r in meta["regions"] if isinstance(r, Mapping)]
-        if img.t is None and isinstance(meta.get("time"), int | float):
-            img.t = float(meta["time"])
-        img.version += 1
-        self._touch("images")
-
-    def _crop_product(self, product: Any, data: Any, meta: dict[str, Any]) -> None:
-        """A crop's product: what it shows of its box (drawn in the region list of its image)."""
-        try:
-            cid = int(meta["image_id"])
-        except (KeyError, TypeError, ValueError):
-            return
-        crop = self.crops.pop(cid, None) or _Crop(cid)
-        self.crops[cid] = crop  # the newest last
-        if data is not None and hasattr(data, "shape"):
-            crop.decoded = data
-            crop.decoded_version = int(getattr(product, "version", crop.decoded_version + 1))
-        crop.meta = {k: (list(v) if isinstance(v, list | tuple) else v) for k, v in meta.items()
-                     if v is None or isinstance(v, int | float | str | bool | list | tuple)}
-        while len(self.crops) > MAX_CROPS:
-            del self.crops[next(iter(self.crops))]
-        self._touch("images")
-
     def crop_png(self, crop_id: int) -> bytes | None:
         """What a crop shows of its box, as a PNG at full size (None before it shows anything)."""
         crop = self.crops.get(crop_id)
@@ -683,19 +517,6 @@ class ConsoleState:
             img.thumb_version = img.decoded_version
         return img.thumb
 
-    def by_time_answer(self, msg: m.ImageByTimeRequest, now: float) -> _Image | None:
-        """The image that answered an accepted by-time request: the one the vehicle's rule
-        picks (nearest, newest before, oldest after the time) among the images topside knows."""
-        t = unwrap(msg.stamp, now)
-        known = [i for i in self.images.values() if i.t is not None]
-        if msg.direction == m.TimeDirection.BEFORE:
-            known = [i for i in known if cast(float, i.t) < t - 0.5]
-            return max(known, key=lambda i: cast(float, i.t), default=None)
-        if msg.direction == m.TimeDirection.AFTER:
-            known = [i for i in known if cast(float, i.t) > t + 0.5]
-            return min(known, key=lambda i: cast(float, i.t), default=None)
-        return min(known, key=lambda i: abs(cast(float, i.t) - t), default=None)
-
     # ------------------------------------------------------------------ time series
     def _series_product(self, data: Any, meta: dict[str, Any]) -> None:
         cid = int(meta.get("channel", getattr(data, "channel", -1)))
@@ -710,142 +531,6 @@ class ConsoleState:
             s["values"] = np.asarray(data.values, float)
             s["bounds"] = np.asarray(data.bounds, float)
         self._touch("series")
-
-    def _detections_product(self, data: Any, now: float) -> None:
-        """The detections receiver's rows: what the vehicle's detectors suggest (new ones are
-        logged once)."""
-        known = {int(d["id"]) for d in self.detections}
-        rows = []
-        for r in data if isinstance(data, list | tuple) else ():
-            if not isinstance(r, Mapping) or r.get("x") is None or r.get("y") is None:
-                continue
-            rows.append({k: (_num(v, 2) if isinstance(v, float) else v) for k, v in r.items()
-                         if k in ("id", "source", "x", "y", "score", "height", "length", "width", "orientation",
-                                  "footprint", "image_id", "time", "first_at")})
-            if int(r["id"]) not in known:
-                size = "" if r.get("length") is None else f", {r['length']:.1f} x {r['width']:.1f} m"
-                high = "" if r.get("height") is None else f", {r['height']:.1f} m high"
-                self._log(now, f"the vehicle suggests a detection at ({r['x']:.0f}, {r['y']:.0f}){high}{size}, "
-                          f"score {r['score']:.2f} (detection {r['id']}, in its {r.get('source', 'data')})")
-        self.detections = rows
-        self._touch("map")
-
-    def _targets_product(self, data: Any, meta: dict[str, Any]) -> None:
-        rows = data if isinstance(data, list | tuple) else meta.get("targets", [])
-        out = []
-        for t in rows:
-            d = t if isinstance(t, Mapping) else getattr(t, "__dict__", {})
-            if "x" in d and "y" in d:
-                out.append({k: (_num(v) if isinstance(v, float) else v) for k, v in d.items()
-                            if isinstance(v, int | float | str | bool)})
-        self.targets = out
-        self._touch("map")
-
-    # ---------------------------------------------------------------------- surveys
-    @property
-    def survey_receiver(self) -> Any:
-        """The survey receiver (``coex_plugins.survey.SurveyReceiver``) that sends the operator's
-        survey requests and follows them (None: this console cannot ask for surveys)."""
-        return self.receivers.get("survey")
-
-    def _survey_product(self, product: Any, meta: dict[str, Any], now: float) -> None:
-        """A survey changed state (the survey receiver's product): shown in the surveys
-        section, and in the event log with its reason in words."""
-        try:
-            sid = int(meta.get("survey_id", getattr(product, "key", "")))
-        except (TypeError, ValueError):
-            return
-        if self.survey_receiver is None:  # nobody holds the records: keep what we were told
-            self.survey_products[sid] = dict(meta)
-        self._log_survey(sid, meta, now)
-        self._survey_sig = None  # shown again at once
-        self._touch("surveys", "commands")
-
-    def _log_survey(self, sid: int, meta: Mapping[str, Any], now: float) -> None:
-        """One event-log line per state the survey receiver added to the survey's history (the
-        present state, or an older one that arrived late), at its time. The history is the
-        receiver's, in the vehicle's time order; nothing is re-sorted here. The present state
-        reads as its outcome ("survey 3 no answer from autonomy: ...")."""
-        history = [(float(h[0]), str(h[1]), str(h[2] or "")) for h in meta.get("history") or ()]
-        if not history:  # a receiver without a history: the present state
-            history = [(float(meta.get("time") or now), str(meta.get("state", "")), str(meta.get("text") or ""))]
-        present = (str(meta.get("state", "")), str(meta.get("text") or ""))
-        seen = self._survey_logged.get(sid)
-        if seen is None:  # first heard of: its present state (its request was logged when sent)
-            new = [h for h in history if (h[1], h[2]) == present][-1:]
-        else:
-            new = [h for h in history if h not in seen]
-        self._survey_logged[sid] = history
-        while len(self._survey_logged) > 2 * MAX_SURVEYS:
-            del self._survey_logged[next(iter(self._survey_logged))]
-        for t, state, text in new:
-            label = SURVEY_OUTCOMES.get((state, str(meta.get("reason"))), state) if (state, text) == present else state
-            bad = state in ("rejected", "aborted", "given up")
-            self._log(t, f"survey {sid} {label}" + (f": {text}" if text else ""), "warn" if bad else "info")
-
-    def refresh_surveys(self) -> bool:
-        """Look at the survey receiver's records (a request made by someone else, a survey given
-        up for want of an answer): True, and the surveys section changed, if they did."""
-        rx = self.survey_receiver
-        records = getattr(rx, "surveys", None)
-        if not isinstance(records, Mapping):
-            return False
-        sig = tuple((int(k), int(getattr(r, "version", 0)), str(getattr(r, "state", "")))
-                    for k, r in list(records.items()))
-        if sig == self._survey_sig:
-            return False
-        self._survey_sig = sig
-        self._touch("surveys", "commands")
-        return True
-
-    def _survey_metas(self) -> dict[int, dict[str, Any]]:
-        """survey id -> the survey receiver's product metadata (cached per record version)."""
-        rx = self.survey_receiver
-        records = getattr(rx, "surveys", None)
-        if not isinstance(records, Mapping):
-            return dict(self.survey_products)
-        out: dict[int, dict[str, Any]] = {}
-        rows: dict[int, tuple[int, dict[str, Any]]] = {}
-        stale = [k for k, r in records.items()
-                 if self._survey_rows.get(int(k), (None,))[0] != getattr(r, "version", 0)]
-        fresh = ({int(p.key): dict(p.meta) for p in rx.products() if str(p.key).isdigit()}
-                 if stale else {})
-        for k, r in records.items():
-            k = int(k)
-            version = int(getattr(r, "version", 0))
-            cached = self._survey_rows.get(k)
-            meta = fresh.get(k) if cached is None or cached[0] != version else cached[1]
-            if meta is None:
-                continue
-            rows[k] = (version, meta)
-            out[k] = meta
-        self._survey_rows = rows
-        return out
-
-    def _snap_surveys(self) -> dict[str, Any]:
-        """Every survey asked (the newest :data:`MAX_SURVEYS`): its path (``waypoints``, metres
-        east/north), its state and, for a rejection or an abort, the reason in words."""
-        items = []
-        for sid, meta in self._survey_metas().items():
-            history = [[_num(float(t), 1), str(st), str(tx)] for t, st, tx in meta.get("history") or ()]
-            requested = history[0][0] if history else _num(meta.get("time"), 1)
-            wps = [[_num(float(a), 2), _num(float(b), 2)] for a, b in meta.get("waypoints") or ()]
-            state, reason = meta.get("state"), meta.get("reason")
-            row = {"survey_id": sid, "kind": meta.get("kind"), "state": state,
-                   "outcome": SURVEY_OUTCOMES.get((str(state), str(reason)), state),
-                   "text": meta.get("text") or "", "reason": reason,
-                   "index": meta.get("index"), "time": _num(meta.get("time"), 1),
-                   "requested": requested, "history": history, "waypoints": wps}
-            for k in ("heading", "length", "width", "spacing", "altitude", "depth", "speed"):
-                v = meta.get(k)
-                row[k] = _num(float(v), 2) if isinstance(v, int | float) else None
-            row["append"] = bool(meta.get("append", False))
-            items.append(row)
-        items.sort(key=lambda r: (r["requested"] or 0.0, r["survey_id"]))
-        # whether the page may ask for surveys (a node's survey receiver sends them)
-        available = self.survey_receiver is not None and not self.own_receivers
-        return {"items": items[-MAX_SURVEYS:], "available": available,
-                "states": list(SURVEY_STATES)}
 
     # ------------------------------------------------------------ other modalities
     def _other_product(self, modality: str, product: Any, meta: dict[str, Any]) -> None:
@@ -866,241 +551,6 @@ class ConsoleState:
             "version": int(getattr(product, "version", 0)), "fields": fields,
             "t": _num(self.now, 1)}
         self._touch("other")
-
-    # -------------------------------------------------------------------------- link
-    def _link(self, link: int) -> dict[str, Any]:
-        lk = self.links.get(link)
-        if lk is None:
-            lk = self.links[link] = {"link": link, "enabled": True, "muted": False,
-                                     "packets": 0, "frames": 0, "bad_frames": 0, "snr": None,
-                                     "doppler": None, "last": None, "history": deque(maxlen=240)}
-        return lk
-
-    def _count_rx(self, msg: m.Message, now: float, link: int | None) -> None:
-        """Throughput: the bytes of the messages received, per TDMA cycle of the link (60 s
-        without a schedule). Not a change of its own: the bins go out with the link section's
-        next change (the modem's report of the packet, topside's frame counters)."""
-        try:
-            size = encoded_size(msg)
-        except Exception:  # a message the codec cannot build (a test double): not counted
-            return
-        if link is None:
-            link = min(self.links, default=0)
-        lk = self._link(int(link))
-        sch = self.schedules.get(int(link))
-        cycle = float(sch["cycle"]) if sch and sch.get("cycle", 0) > 0 else 60.0
-        epoch = float(sch["epoch"]) if sch else 0.0
-        start = epoch + math.floor((now - epoch) / cycle) * cycle
-        bins = lk.get("_rx")
-        if not isinstance(bins, deque):
-            bins = lk["_rx"] = deque(maxlen=240)
-        if bins and abs(bins[-1][0] - start) < 1e-6:
-            bins[-1][1] += size
-        else:
-            bins.append([start, size, cycle])
-        lk["rx_bytes"] = int(lk.get("rx_bytes", 0)) + size
-
-    def _on_link_status(self, s: m.LinkStatus, now: float) -> None:
-        lk = self._link(s.link)
-        t = unwrap(s.stamp, now)
-        lk["packets"] += 1
-        lk["frames"] += s.frames
-        lk["bad_frames"] += s.bad_frames
-        lk["snr"], lk["doppler"], lk["last"] = s.snr, s.doppler, t
-        lk["history"].append((t, s.snr, s.frames, s.bad_frames))
-        self._touch("link")
-
-    def _on_link_health(self, h: m.LinkHealth, now: float) -> None:
-        """The vehicle's report of one of its modems' outages (gone and back)."""
-        from coex_transports.recovery import describe_seconds
-
-        lk = self._link(h.link)
-        t = unwrap(h.stamp, now)
-        prev = lk.get("vehicle_modem")
-        if prev is not None and prev["t"] > t:
-            return  # an older report arriving late
-        lk["vehicle_modem"] = {"t": _num(t, 1), "up": h.up, "outages": h.outages, "down_total": h.down_total,
-                               "last_down": h.last_down}
-        if h.up:
-            text = (f"vehicle modem {h.link} was down {describe_seconds(h.last_down)} (outage {h.outages}; "
-                    f"{describe_seconds(h.down_total)} down in all)")
-        else:
-            text = f"vehicle modem {h.link} is down (outage {h.outages}, reported over another link)"
-        self._log(now, text, "warn")
-        self._touch("link")
-
-    def set_own_modem(self, link: int, up: bool, outages: int, down_total: float, last_down: float,
-                      last_error: str, now: float) -> None:
-        """Topside's own modem on ``link``: up or being reopened, its outages so far."""
-        from coex_transports.recovery import describe_seconds
-
-        lk = self._link(link)
-        new = {"up": up, "outages": outages, "down_total": _num(down_total, 0), "last_down": _num(last_down, 0),
-               "last_error": last_error if not up else ""}
-        old = lk.get("topside_modem")
-        if old is not None and (old["up"], old["outages"]) == (up, outages):
-            if not up:  # the outage grows: shown, not logged
-                lk["topside_modem"] = new
-            return
-        lk["topside_modem"] = new
-        if outages and (old is not None or not up):
-            self._log(now, f"topside modem {link}: " + (
-                f"back after {describe_seconds(last_down)} (outage {outages})" if up else
-                f"{last_error}; reopening it"), "warn")
-        self._touch("link")
-
-    # ------------------------------------------------------------------------ queues
-    def _on_queue_status(self, q: m.QueueStatus, now: float) -> None:
-        self.queue_stamp = unwrap(q.stamp, now)
-        for st in q.streams:
-            row = self.streams.setdefault(st.stream, {"stream": st.stream, "drops_total": 0})
-            row.update(enabled=st.enabled, tier=st.tier, priority=st.priority, depth=st.depth,
-                       queued_bytes=st.queued_bytes, oldest_age=st.oldest_age, drops=st.drops)
-            row["drops_total"] += st.drops
-        self._touch("queues")
-
-    # ---------------------------------------------------------------------- commands
-    def record_command(self, msg: m.Message, now: float, summary: str = "") -> None:
-        """Remember a command the operator sent (shown as pending until answered)."""
-        self._advance(now)
-        cid = getattr(msg, "command_id", getattr(msg, "request_id", None))
-        if cid is None:
-            return
-        kind = type(msg).__name__
-        key = self._new_command_key()
-        self.commands[key] = _Command(int(cid), kind, summary or kind, now, msg, by=self.actor)
-        self.command_order.append(key)
-        self._prune_commands()
-        if isinstance(msg, m.ImageGoal):
-            self._image(msg.image_id).goal = (msg.kind.name, msg.value)
-            self._touch("images")
-        elif isinstance(msg, m.ImageRegionRequest):
-            self._touch("images")
-        elif isinstance(msg, m.ImageByTimeRequest):
-            self.image_queries.append({"command_id": msg.command_id, "stamp": msg.stamp,
-                                       "direction": msg.direction.name, "sent": _num(now, 1)})
-            self._touch("images")
-        elif isinstance(msg, m.TimeSeriesRequest):
-            self.series_requests.append({"command_id": msg.command_id, "channel": msg.channel,
-                                         "start": unwrap(msg.start, now),
-                                         "end": unwrap(msg.end, now),
-                                         "max_error": msg.max_error, "sent": _num(now, 1)})
-            self._touch("series")
-        elif isinstance(msg, m.ScheduleUpdate):
-            sch = self.schedules.get(msg.link)
-            if sch is not None:
-                sch["proposed"] = {"version": msg.version, "activate_cycle": msg.activate_cycle,
-                                   "command_id": msg.command_id, "status": "sent",
-                                   "slots": [{"owner": s.owner, "duration": s.duration,
-                                              "guard": s.guard, "min_priority": s.min_priority}
-                                             for s in msg.slots]}
-                self._touch("link")
-        self._touch("commands")
-        self._log(now, f"{self.actor + ' ' if self.actor else ''}sent {summary or kind}")
-
-    def _new_command_key(self) -> int:
-        """A key no other command of this console has (command ids wrap at 256 and are reused:
-        a command is never looked up by its id alone)."""
-        return max(self.commands, default=0) + 1
-
-    def _prune_commands(self) -> None:
-        """Forget commands that fell out of the list (``command_order`` keeps the newest 64)."""
-        keep = set(self.command_order)
-        for key in [k for k in self.commands if k not in keep]:
-            del self.commands[key]
-
-    def _find_command(self, command_id: int, message: m.Message | None = None) -> int | None:
-        """The key of the newest command with ``command_id`` (and, when given, that message)."""
-        for key in reversed(self.command_order):
-            c = self.commands.get(key)
-            if c is None or c.roi_key is not None or c.command_id != command_id:
-                continue
-            if message is None or c.message == message:
-                return key
-        return None
-
-    def replace_command(self, built: m.Message, sent: m.Message, now: float) -> None:
-        """The node sent ``sent`` for the command recorded as ``built`` (another command id)."""
-        key = self._find_command(int(getattr(built, "command_id", -1)), built)
-        if key is None:
-            return
-        old = self.commands[key]
-        old.message, old.command_id = sent, int(getattr(sent, "command_id", 0))
-        if isinstance(sent, m.ScheduleUpdate):
-            sch = self.schedules.get(sent.link)
-            if sch is not None and sch.get("proposed"):
-                sch["proposed"]["command_id"] = sent.command_id
-                sch["proposed"]["activate_cycle"] = sent.activate_cycle
-        self._touch("commands", "link")
-
-    def record_regions(self, regions: Sequence[Any], now: float, summary: str) -> None:
-        """Remember map regions a bathymetry receiver will request (and retry) for us."""
-        self._advance(now)
-        for r in regions:
-            if id(r) in self._region_ids:
-                continue
-            self._region_ids.add(id(r))
-            self._region_count += 1
-            key = -self._region_count
-            self.roi[key] = _RoiRequest(r.level, r.x0, r.y0, r.w, r.h, now, r)
-            text = f"{summary}: {region_words(self, r)}"
-            ckey = self._new_command_key()
-            self.commands[ckey] = _Command(-1, "MapRoiRequest", text, now,
-                                           m.MapRoiRequest(0, r.level, r.x0, r.y0, r.w, r.h,
-                                                           True, (), 0),
-                                           status="queued", roi_key=key, by=self.actor)
-            self.command_order.append(ckey)
-            self._prune_commands()
-            self._log(now, f"{self.actor + ' ' if self.actor else ''}requested {text}")
-        self._touch("map", "commands")
-
-    def _command_result(self, command_id: int, status: Any, now: float,
-                        command: m.Message | None = None) -> None:
-        """The vehicle's answer to a command. The node gives the command it answers the first
-        time (``command``); a repeated answer (the vehicle answers every re-send) comes without
-        it and changes nothing, nor does an answer to a command already answered: ids wrap at
-        256, so an old answer must never land on a newer command that reuses the id."""
-        name = status.name if hasattr(status, "name") else str(status)
-        new = name.lower()
-        key = self._find_command(command_id, command)
-        if key is None and command is None:
-            last = self._foreign_acks.get(command_id)
-            if last is None or last[0] != name or now - last[1] > 600:
-                self._log(now, f"vehicle answered command {command_id}: {new} "
-                               "(not sent from this console)")
-            self._foreign_acks[command_id] = (name, now)
-            return
-        if key is None:
-            # a command the topside node sent for someone else (a script, a receiver)
-            key = self._new_command_key()
-            self.commands[key] = _Command(command_id, type(command).__name__,
-                                          f"{type(command).__name__} (by the node)", now,
-                                          cast(m.Message, command))
-            self.command_order.append(key)
-            self._prune_commands()
-        cmd = self.commands[key]
-        if cmd.status == new:
-            return  # the same answer again (a re-send answered): nothing new
-        if cmd.status not in OPEN_COMMAND_STATES:
-            return  # already answered for good: a late or repeated answer changes nothing
-        was_pending = cmd.status == "pending"
-        cmd.status, cmd.answered = new, now
-        cmd.reason = ack_reason(cmd.message, name, was_pending)
-        if isinstance(cmd.message, m.ScheduleUpdate):
-            sch = self.schedules.get(cmd.message.link)
-            if sch is not None and sch.get("proposed"):
-                sch["proposed"]["status"] = new
-            self._touch("link")
-        if isinstance(cmd.message, m.ImageByTimeRequest | m.ImageGoal | m.ImageRegionRequest):
-            self._touch("images")
-        self._touch("commands")
-        if isinstance(cmd.message, m.SurveyCommand):
-            return  # the survey receiver's product says it, with the reason (_survey_product)
-        self._log(now, f"{cmd.summary}: {new}" + (f" ({cmd.reason})" if cmd.reason else ""),
-                  "info" if name in ("ACCEPTED", "PENDING") else "warn")
-
-    def _on_command_ack(self, a: m.CommandAck, now: float) -> None:
-        self._command_result(a.command_id, a.status, now)
 
     # -------------------------------------------------------------------- snapshots
     def changes(self, seen: Mapping[str, Any]) -> dict[str, Any]:
@@ -1151,276 +601,6 @@ class ConsoleState:
         return {"status": status, "track": [[_num(t, 1), x, y, d] for t, x, y, d in track],
                 "ended": ended, "ended_t": _num(self.ended_t, 1)}
 
-    def _snap_map(self) -> dict[str, Any]:
-        rx = self.map_receiver
-        levels = []
-        for level in sorted(rx.levels(), reverse=True) if rx is not None else ():
-            geometry = rx.geometry(level)
-            if geometry is None:
-                continue
-            c, side = geometry
-            version = rx.level_version(level)
-            cached = self._map_summary.get(level)
-            if cached is None or cached[0] != version:
-                # from the receiver's running summary and its coverage in at most MAP_BLOCKS
-                # blocks (every subgrid of a small level): a big level is never read whole
-                summary = rx.level_summary(level)
-                span, keys, ts = rx.coverage(level, MAP_BLOCKS)
-                p = rx.level_product(level)
-                pc = float(p.meta["cell_size"])
-                px0, py0 = float(p.meta["x0"]), float(p.meta["y0"])
-                image = [px0, py0, px0 + p.data.shape[1] * pc, py0 + p.data.shape[0] * pc]
-                cached = (version, summary, span, keys, ts, image, int(p.meta.get("step", 1)))
-                self._map_summary[level] = cached
-            _, summary, span, keys, ts, image, step = cached
-            if summary is None or not summary["subgrids"] or summary["extent"] is None:
-                continue
-            ix0, iy0, ix1, iy1 = summary["extent"]
-            cells = int(summary["cells"])
-            # gaps: blocks of tile_span x tile_span subgrids inside the extent with no data
-            bx = math.ceil(ix1 / span) - math.floor(ix0 / span)
-            by = math.ceil(iy1 / span) - math.floor(iy0 / span)
-            empty = max(0, bx * by - len(keys))
-            block_m = span * side * c
-            levels.append({
-                "level": level, "cell": c, "side": side, "subgrids": int(summary["subgrids"]),
-                "cells": cells, "coverage_m2": cells * c * c,
-                "fill_pct": round(100.0 * cells / max(1, (ix1 - ix0) * (iy1 - iy0) * side * side)),
-                "gaps": empty, "gap_block_m": block_m,
-                "gap_note": gap_words(empty, block_m, int(summary["subgrids"]) * side * side,
-                                      cells),
-                "x0": float(ix0 * side * c), "y0": float(iy0 * side * c),
-                "x1": float(ix1 * side * c), "y1": float(iy1 * side * c),
-                "newest_age": _num(self.now - float(summary["newest"]), 1),
-                "oldest_age": _num(self.now - float(summary["oldest"]), 1),
-                # absolute times (s): the page takes the ages from its clock, so that a level
-                # that did not change is the same in every update (and need not be resent)
-                "newest": _num(float(summary["newest"]), 1),
-                "oldest": _num(float(summary["oldest"]), 1),
-                "version": version, "png": f"/map/{level}.png?v={version}",
-                # where the picture goes (the receiver's drawn array, which may be larger than
-                # what is held, and coarser: ``step`` level cells per pixel)
-                "image": image, "step": step,
-                # per block of tile_span x tile_span subgrids: the time of its oldest data
-                "tile_span": span,
-                "tiles": np.column_stack([keys, np.round(ts)]).astype(np.int64).tolist(),
-            })
-        meta = rx.metadata if rx is not None else None
-        zr = self._zrange
-        return {
-            "meta": None if meta is None else {
-                "resolution": meta.resolution, "vertical_resolution": meta.vertical_resolution,
-                "subgrid_side": meta.subgrid_side, "levels": meta.levels,
-                "origin_lat": meta.origin_lat, "origin_lon": meta.origin_lon,
-                "pending": meta.pending},
-            "levels": levels, "zrange": None if zr is None else [zr[0], zr[1]],
-            "targets": list(self.targets) + self._auto_targets(),
-            "detections": list(self.detections),
-            "requests": [self._snap_roi(r) for r in sorted(self.roi.values(),
-                                                          key=lambda r: r.sent)][-40:],
-        }
-
-    def _auto_targets(self) -> list[dict[str, Any]]:
-        """Candidate targets flagged on the finest level held at 2 m or better (cells standing
-        out from their surroundings, the bathymetry plugin's ``find_targets``), if it is drawn
-        whole (a level too big for that is a decimated overview: no car stands out in it)."""
-        rx = self.map_receiver
-        if not self.auto_targets or rx is None:
-            return []
-        fine = [lv for lv in rx.levels() if (rx.geometry(lv) or (99.0, 0))[0] <= 2.0
-                and rx.level_product(lv).meta.get("step", 1) == 1]
-        if not fine:
-            return []
-        level = min(fine)
-        summary = rx.level_summary(level)
-        version, count = rx.level_version(level), int(summary["subgrids"]) if summary else 0
-        last = self._targets_cache[0]
-        # a big map changes with every subgrid: look again once 5% more of it has come in
-        stale = (last is None or last[0] != level or version < last[1]
-                 or version - last[1] >= max(1, count // 20))
-        if stale:
-            from coex_plugins.bathymetry import find_targets
-
-            grid = self.level_grid(level)
-            found: list[dict[str, Any]] = []
-            if grid is not None:
-                z, x0, y0, cell = grid
-                cands = find_targets(z, cell=cell, x0=x0, y0=y0, threshold=self.target_threshold,
-                                     min_cells=self.target_min_cells)
-                for c in sorted(cands, key=lambda c: -c.height):
-                    if len(found) >= self.max_targets:
-                        break
-                    if any(math.hypot(c.x - f["x"], c.y - f["y"]) < self.target_spacing
-                           for f in found):
-                        continue  # one marker per object
-                    found.append({"x": _num(c.x, 1), "y": _num(c.y, 1),
-                                  "height": _num(c.height, 2), "cells": int(c.cells),
-                                  "level": level, "auto": True})
-            self._targets_cache = ((level, version), found)
-        return list(self._targets_cache[1])
-
-    def subgrid_metres(self, level: int) -> float:
-        """The side of a subgrid of ``level`` in metres."""
-        rx = self.map_receiver
-        geometry = rx.geometry(level) if rx is not None else None
-        meta = rx.metadata if rx is not None else None
-        if geometry is not None:
-            return float(geometry[0] * geometry[1])
-        if meta is not None:
-            return float(meta.resolution * 2 ** level * meta.subgrid_side)
-        return 8.0 * 2 ** level
-
-    def _snap_roi(self, r: _RoiRequest) -> dict[str, Any]:
-        """A region request as the bathymetry receiver sends and retries it: ``waiting`` (not
-        sent yet), ``sent``, ``queued`` (the vehicle queued ``queued`` subgrids for it; asked
-        again until it has nothing newer), ``waiting for survey`` (the request stands on the
-        vehicle for ``awaiting_survey`` subgrids not surveyed yet) or ``nothing newer`` (done)."""
-        rx = self.map_receiver
-        geometry = rx.geometry(r.level) if rx is not None else None
-        meta = rx.metadata if rx is not None else None
-        if geometry is not None:
-            span = geometry[0] * geometry[1]
-        elif meta is not None:
-            span = meta.resolution * 2 ** r.level * meta.subgrid_side
-        else:
-            span = 8.0 * 2 ** r.level
-        region = r.region
-        rid = region.request_id if region.request_id is not None else -1
-        queued = getattr(region, "queued", None)
-        waiting = getattr(region, "waiting", 0)
-        got = max(int(getattr(r, "got", 0) or 0), int(queued or 0))
-        r.got = got
-        # ``status``: the request as the receiver sends it; ``state``: what it means for the
-        # operator (requested, in flight, waiting for data, filled, nothing to send)
-        if region.done:
-            status = "nothing newer"
-            state = "filled" if got else "nothing to send"
-        elif queued:
-            status, state = "queued", "in flight"
-        elif waiting:
-            status, state = "waiting for survey", "waiting for data"
-        elif region.sends:
-            status, state = "sent", "requested"
-        else:
-            status, state = "waiting", "requested"
-        text = {"requested": "asked" + (f" ({region.sends}x)" if region.sends > 1 else "")
-                             if region.sends else "waiting for a topside slot",
-                "in flight": f"{queued} subgrid{'s' if queued != 1 else ''} on the way",
-                "waiting for data": f"{waiting} subgrid{'s' if waiting != 1 else ''} not surveyed yet",
-                "filled": f"filled ({got} subgrid{'s' if got != 1 else ''})",
-                "nothing to send": "nothing to send: topside had it all"}[state]
-        return {"request_id": rid, "level": r.level, "x0": r.x0, "y0": r.y0,
-                "w": r.w, "h": r.h, "status": status, "state": state, "text": text,
-                "got": got, "queued": queued, "awaiting_survey": waiting,
-                "sent": _num(r.sent, 1),
-                "rect": [r.x0 * span, r.y0 * span, (r.x0 + r.w) * span, (r.y0 + r.h) * span]}
-
-    def _snap_images(self) -> dict[str, Any]:
-        items = []
-        for img in sorted(self.images.values(), key=lambda i: (i.t or 0, i.image_id)):
-            info = img.decoded_meta
-            total = info.get("total_bytes")
-            got = int(info.get("held_bytes", 0) or 0)
-            items.append({
-                "image_id": img.image_id, "t": _num(img.t, 1),
-                "stamp": info.get("stamp"), "x": info.get("x"), "y": info.get("y"),
-                "width": info.get("width"), "height": info.get("height"),
-                "total_bytes": total, "bytes_received": got,
-                "fraction": _num(got / total, 3) if total else None,
-                "goal": None if img.goal is None else {"kind": img.goal[0], "value": img.goal[1]},
-                "thumb": (f"/image/{img.image_id}.png?v={img.decoded_version}"
-                          if img.decoded is not None else None),
-                "full": (f"/image/{img.image_id}.png?full=1&v={img.decoded_version}"
-                         if img.decoded is not None else None),
-                "layers": info.get("layers"), "layers_complete": info.get("layers_complete"),
-                "packets": info.get("packets"), "packets_used": info.get("packets_used"),
-                "bytes_used": info.get("bytes_used"), "complete": info.get("complete"),
-                "footprint": self._footprint(img),
-                "precincts": info.get("precincts"),
-                "regions": self._image_regions(img),
-                "meta": img.decoded_meta,
-            })
-        return {"items": items, "queries": self.image_queries[-10:],
-                "progress": self.progress_info}
-
-    def _image_regions(self, img: _Image) -> list[dict[str, Any]]:
-        """The regions asked of an image (the newest :data:`MAX_IMAGE_REGIONS`): the ones this
-        console sent, with their command's state (and the rejection's reason), and the ones the
-        imagery receiver lists (asked through it: by this console on a node, or by a script),
-        with the quality layers complete inside each. ``box`` is ``[x0, y0, x1, y1]`` (image
-        pixels, x1 and y1 exclusive); ``state`` is ``requested``, ``waiting``, ``accepted`` or
-        ``rejected``; ``value`` is in dB for a quality goal."""
-        known = {(int(r.get("command_id", -1)), tuple(int(v) for v in r.get("box", ()))): r
-                 for r in getattr(img, "regions", ()) or ()}
-        layers = img.decoded_meta.get("layers")
-        out: list[dict[str, Any]] = []
-        for key in self.command_order:
-            c = self.commands.get(key)
-            msg = c.message if c is not None else None
-            if c is None or not isinstance(msg, m.ImageRegionRequest) or msg.image_id != img.image_id:
-                continue
-            box = (msg.x0, msg.y0, msg.x1, msg.y1)
-            rx_row = known.pop((msg.command_id, box), None)
-            state = {"sent": "requested", "queued": "requested", "pending": "waiting",
-                     "accepted": "accepted"}.get(c.status, "rejected")
-            if c.status in OPEN_COMMAND_STATES and rx_row is not None \
-                    and rx_row.get("state") in ("accepted", "rejected", "waiting"):
-                state = str(rx_row["state"])  # the receiver heard the answer first
-            out.append({"command_id": msg.command_id, "box": list(box),
-                        "kind": m.RegionGoal(msg.kind).name.lower(),
-                        "value": msg.value / 10 if msg.kind == m.RegionGoal.QUALITY else msg.value,
-                        "state": state,
-                        "reason": (getattr(c, "reason", "") or ack_reason(msg, "REJECTED"))
-                        if state == "rejected" else "",
-                        "time": _num(c.sent, 1), "by": getattr(c, "by", ""),
-                        "layers_complete": None if rx_row is None else rx_row.get("layers_complete"),
-                        "layers": layers, **self._served(rx_row)})
-        for (cid, box), r in known.items():  # asked through the receiver by someone else
-            state = str(r.get("state", "requested"))
-            out.append({"command_id": cid, "box": list(box), "kind": str(r.get("kind", "quality")),
-                        "value": r.get("value"), "state": state,
-                        "reason": "refused by the vehicle" if state == "rejected" else "",
-                        "time": _num(r.get("time"), 1), "by": "",
-                        "layers_complete": r.get("layers_complete"), "layers": layers, **self._served(r)})
-        out.sort(key=lambda r: r["time"] or 0.0)
-        return out[-MAX_IMAGE_REGIONS:]
-
-    def _served(self, rx_row: Mapping[str, Any] | None) -> dict[str, Any]:
-        """How the vehicle serves a region, from the receiver's row: ``served`` (``crop`` or
-        ``packets``; None while unknown), ``bytes`` that arrived for it, and ``crop``: the crop
-        (its image id, size, body bytes held and in all, complete, shown over the image, and
-        ``png``, the picture of what it shows) or None."""
-        if rx_row is None:
-            return {"served": None, "bytes": None, "crop": None}
-        crop = rx_row.get("crop")
-        out: dict[str, Any] = {"served": rx_row.get("served"), "bytes": rx_row.get("bytes"), "crop": None}
-        if isinstance(crop, Mapping):
-            cid = int(crop.get("image_id", -1))
-            held = self.crops.get(cid)
-            out["crop"] = {k: crop.get(k) for k in ("image_id", "width", "height", "total_bytes", "held_bytes",
-                                                    "complete", "shown")}
-            out["crop"]["png"] = (f"/crop/{cid}.png?v={held.decoded_version}"
-                                  if held is not None and held.decoded is not None else None)
-        return out
-
-    def _footprint(self, img: _Image) -> list[float] | None:
-        """The seafloor an image covers, ``[width, height]`` in metres: the camera's field of
-        view (:attr:`camera_fov`, degrees across and along) at the altitude the vehicle reported
-        nearest the image's time. None without a position or an altitude."""
-        info = img.decoded_meta
-        if info.get("x") is None or img.t is None:
-            return None
-        alt = None
-        best = math.inf
-        for t, a in self.altitudes:
-            if abs(t - img.t) < best and a is not None:
-                best, alt = abs(t - img.t), a
-        if alt is None or best > 300:
-            return None
-        fx, fy = self.camera_fov
-        return [_num(2 * alt * math.tan(math.radians(fx) / 2), 2),
-                _num(2 * alt * math.tan(math.radians(fy) / 2), 2)]
-
     def _snap_series(self) -> dict[str, Any]:
         chans = []
         for _cid, s in sorted(self.series.items()):
@@ -1455,90 +635,8 @@ class ConsoleState:
             {"name": name, "products": sorted(products.values(), key=lambda p: p["key"])[-50:]}
             for name, products in sorted(self.other.items())]}
 
-    def _snap_link(self) -> dict[str, Any]:
-        links = []
-        for lk in sorted(self.links.values(), key=lambda x: x["link"]):
-            d = {k: v for k, v in lk.items() if k != "history" and not k.startswith("_")}
-            d["history"] = [[_num(t, 1), snr, f, b] for t, snr, f, b in lk["history"]]
-            # bytes received per cycle: [cycle start, bytes, cycle length] (the open cycle last)
-            d["throughput"] = [[_num(t, 1), int(n), _num(c, 1)]
-                               for t, n, c in lk.get("_rx") or ()]
-            d["age"] = _num(self.now - lk["last"], 1) if lk["last"] is not None else None
-            links.append(d)
-        schedules = [{k: v for k, v in self.schedules[link].items() if not k.startswith("_")}
-                     for link in sorted(self.schedules)]
-        return {"links": links, "schedules": schedules,
-                "node_id": self.node_id, "vehicle_id": self.vehicle_id,
-                "bad_frames": self.bad_frames}
-
-    def _snap_queues(self) -> dict[str, Any]:
-        rows = []
-        for sid, row in sorted(self.streams.items()):
-            d = dict(row)
-            d["name"] = self.stream_names.get(sid, f"stream {sid}")
-            rows.append(d)
-        return {"t": self.queue_stamp,
-                "age": _num(self.now - self.queue_stamp, 1) if self.queue_stamp else None,
-                "streams": rows}
-
-    def _snap_commands(self) -> list[dict[str, Any]]:
-        out = []
-        surveys: dict[int, dict[str, Any]] | None = None
-        for key in reversed(self.command_order):
-            c = self.commands[key]
-            status, reason = c.status, getattr(c, "reason", "")
-            if c.roi_key is not None and c.roi_key in self.roi:
-                roi = self._snap_roi(self.roi[c.roi_key])
-                status, reason = roi["state"], roi["text"]
-            elif isinstance(c.message, m.SurveyCommand):  # the survey's own state
-                if surveys is None:
-                    surveys = self._survey_metas()
-                meta = surveys.get(int(c.message.survey_id))
-                if meta is not None:
-                    status = str(meta.get("state") or status)
-                    if status in ("rejected", "aborted", "given up") and meta.get("text"):
-                        reason = str(meta["text"])
-            answer, img = "", None
-            if isinstance(c.message, m.ImageByTimeRequest) and status == "accepted":
-                img = self.by_time_answer(c.message, c.sent)
-                answer = (f"answered by image #{img.image_id} taken {hms(img.t)}"
-                          if img is not None else "answered: the image is on its way")
-            out.append({"command_id": c.command_id, "kind": c.kind, "summary": c.summary,
-                        "answer": answer, "image_id": None if img is None else img.image_id,
-                        "sent": _num(c.sent, 1), "status": status,
-                        "answered": _num(c.answered, 1), "by": getattr(c, "by", ""),
-                        "reason": reason})
-        return out
-
     def _snap_log(self) -> list[dict[str, Any]]:
         return [{k: v for k, v in e.items() if k not in ("key", "base")} for e in list(self.log)[-60:]]
-
-
-def map_delta(full: Mapping[str, Any], held: dict[int, Any]) -> dict[str, Any]:
-    """The map section ``full`` as a delta against what a client holds (``held``: level ->
-    (version, {(ix, iy): t}, tile_span), updated to what it holds after it): see
-    :meth:`ConsoleState.changes`."""
-    levels = []
-    present = set()
-    for lv in full["levels"]:
-        n = int(lv["level"])
-        present.add(n)
-        tiles = {(int(a), int(b)): int(t) for a, b, t in lv["tiles"]}
-        had = held.get(n)
-        if had is None or had[2] != lv["tile_span"]:
-            levels.append(lv)
-        elif had[0] == lv["version"]:
-            levels.append({"level": n, "same": True})
-        else:
-            old = had[1]
-            part = {k: v for k, v in lv.items() if k != "tiles"}
-            part["tiles_changed"] = [[a, b, t] for (a, b), t in tiles.items() if old.get((a, b)) != t]
-            part["tiles_removed"] = [[a, b] for (a, b) in old if (a, b) not in tiles]
-            levels.append(part)
-        held[n] = (lv["version"], tiles, lv["tile_span"])
-    for n in [n for n in held if n not in present]:
-        del held[n]
-    return {**full, "levels": levels, "delta": True}
 
 
 _HANDLERS: dict[type, Callable[[ConsoleState, Any, float, int | None], None]] = {

@@ -1,6 +1,6 @@
 """The console's words: durations, times of day, gaps, regions, survey commands and what the
-vehicle's answer to a command means. Pure functions of their arguments (the modality table is
-read once from the registry)."""
+vehicle's answer to a command means. Pure functions of their arguments (the routing table of
+the installed modalities is made once, by the core's :mod:`coex_core.routing`)."""
 
 from __future__ import annotations
 
@@ -8,8 +8,17 @@ import math
 from typing import Any
 
 from coex_core import messages as m
+from coex_core.routing import Routes, declared_ids
 
-__all__ = ["ack_reason", "gap_words", "hms", "region_words", "survey_summary"]
+__all__ = ["_num", "ack_reason", "gap_words", "hms", "region_words", "survey_summary"]
+
+
+def _num(x: float | None, nd: int = 3) -> float | None:
+    """A number as the page shows it: rounded to ``nd`` places, None when not finite."""
+    if x is None:
+        return None
+    x = float(x)
+    return round(x, nd) if math.isfinite(x) else None
 
 
 def region_words(state: Any, r: Any) -> str:
@@ -100,34 +109,30 @@ def ack_reason(msg: m.Message, status: str, was_pending: bool = False) -> str:
     return "refused by the vehicle"
 
 
-_MODALITY_OF: dict[Any, str] | None = None
+_ROUTES: Routes | None = None
 
 
 def _modality_of(msg: m.Message) -> str | None:
-    """The installed modality whose receiver takes ``msg`` (by type, or by type id for the
-    opaque messages of third-party plugins), from the registry."""
-    global _MODALITY_OF
-    if _MODALITY_OF is None:
+    """The installed modality whose receiver takes ``msg``: the core's routing table
+    (:class:`coex_core.routing.Routes`, by wire type id, as a node routes) of the modalities in
+    the registry, made once. A modality that cannot be loaded, or whose ids another one claimed
+    first, is left out (a node would refuse it)."""
+    global _ROUTES
+    if _ROUTES is None:
         from coex_core.registry import available, load_modality
 
-        table: dict[Any, str] = {}
+        routes = Routes("messages")
         for info in available(check=False):
             if info.group != "coex.modalities":
                 continue
             try:
                 cls = load_modality(info.name)
+                routes.claim(info.name, cls, declared_ids(cls, "messages"), info.name)
             except Exception:
                 continue
-            for t in cls.messages:
-                table.setdefault(t, info.name)
-            for tid in cls.message_ids:
-                table.setdefault(("opaque", int(tid)), info.name)
-        _MODALITY_OF = table
-    if isinstance(msg, m.Opaque):
-        name = _MODALITY_OF.get(("opaque", int(msg.type_id)))
-        if name is not None:
-            return name
-    return _MODALITY_OF.get(type(msg))
+        _ROUTES = routes
+    owner = _ROUTES.owner(msg)
+    return None if owner is None else str(owner)
 
 
 def survey_summary(cmd: m.SurveyCommand) -> str:

@@ -227,7 +227,7 @@ class ImageryReceiver(ModalityReceiver):
             changed.append(self._progress_product())
         elif isinstance(message, CommandAck):
             changed += self._region_answer(message)
-            done = self._requests.answered(message.command_id)
+            done = self._requests.answered(message.command_id, now, message.status.name)
             if message.status == AckStatus.PENDING:
                 # it stands on the vehicle (an image of that time is not captured yet): waiting,
                 # not answered; the final CommandAck follows

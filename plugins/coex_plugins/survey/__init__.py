@@ -353,7 +353,7 @@ class SurveyReceiver(ModalityReceiver):
             rec = next((s for s in self.surveys.values() if s.command_id == message.command_id
                         and s.state == "requested"), None)
             if message.status != AckStatus.PENDING:
-                self._requests.answered(message.command_id)
+                self._requests.answered(message.command_id, now, message.status.name)
             if rec is None:
                 return []
             if message.status == AckStatus.ACCEPTED:
@@ -389,7 +389,7 @@ class SurveyReceiver(ModalityReceiver):
         rec.index, rec.value = message.index, message.value
         rec.set(state, t, text, reason.name if reason != SurveyReason.NONE else None, stamped=True)
         if rec.command_id is not None:
-            self._requests.answered(rec.command_id)
+            self._requests.answered(rec.command_id, now)
         return [self._product(rec)]
 
     def poll(self, now: float) -> list[Message]:
