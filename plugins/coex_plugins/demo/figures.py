@@ -35,7 +35,7 @@ P = ParamSpec("P")
 R = TypeVar("R")
 _ids = itertools.count(1)  # unique ids for the <defs> of several SVGs inlined in one page
 #: matplotlib settings of every figure: text as <text>, fixed ids (no random hash), small fonts
-_RC = {"svg.fonttype": "none", "font.size": 9.5, "axes.titlesize": 11, "axes.titleweight": "bold",
+_RC: dict[str, Any] = {"svg.fonttype": "none", "font.size": 9.5, "axes.titlesize": 11, "axes.titleweight": "bold",
        "axes.titlelocation": "left", "axes.spines.top": False, "axes.spines.right": False,
        "hatch.color": "#c4c4c4", "hatch.linewidth": 2.5, "legend.frameon": False}
 
