@@ -18,6 +18,7 @@ from coex_core.messages import (
     RegionGoal,
 )
 from coex_plugins.imagery import ImageInput, ImageryModality, codec
+from coex_plugins.imagery._regions import decoded
 from coex_plugins.imagery.sender import BRIDGE_BYTES, _bridge, packet_layers
 from coex_plugins.imagery.sim import Transfer, region_transfer
 from coex_plugins.imagery.synth import seafloor
@@ -239,7 +240,7 @@ def test_the_parent_is_shown_again_once_it_is_better_than_the_crop(frame: np.nda
     assert cover < tx.enc.stream.layers
     layer = packet_layers(tx.enc)
     # the crop is at least as good as the parent at `cover` layers inside the box, not at one more
-    at = [codec.psnr(_inside(run.sender._decoded(tx, layer < k), BOX), _inside(frame, BOX))
+    at = [codec.psnr(_inside(decoded(tx, layer < k), BOX), _inside(frame, BOX))
           for k in (cover, cover + 1)]
     assert at[0] <= run.crop.crop.psnr < at[1]
     run.receiver.request_goal(0, "full", now=run.transfer.now)
@@ -258,7 +259,7 @@ def test_layer_and_byte_goals_with_crops(frame: np.ndarray) -> None:
     run = region_transfer(frame, BOX, "layer", 3, mtu=128, sender_config={"crops": "always"})
     assert run.crop is not None and run.region["layers_complete"] >= 3
     tx = run.sender.images[0]
-    want = codec.psnr(_inside(run.sender._decoded(tx, packet_layers(tx.enc) < 3), BOX), _inside(frame, BOX))
+    want = codec.psnr(_inside(decoded(tx, packet_layers(tx.enc) < 3), BOX), _inside(frame, BOX))
     assert codec.psnr(_inside(run.after, BOX), _inside(frame, BOX)) >= want
     budget = region_transfer(frame, BOX, "bytes", 400, mtu=128)
     packets = region_transfer(frame, BOX, "bytes", 400, mtu=128, sender_config={"crops": "never"})

@@ -8,7 +8,8 @@ GeoKeyDirectory, GeoDoubleParams). :func:`write_level_geotiff` writes a receiver
 way, tiled (256 x 256) and deflate-compressed, streamed from the receiver's tiles: a 100 km² level
 at 1 m is never one array in memory.
 
-PNG: elevation through a colour map, multiplied by a hillshade (sun from the north-west, 45 deg).
+PNG: elevation through the depth colour map, multiplied by a hillshade (sun from the north-west,
+45 deg), drawn by :mod:`coex_plugins.render` as the console and the demo report draw it.
 
 Targets: cells higher than the background around them (a grey-scale opening, the "top-hat"
 transform) by more than ``threshold`` metres, grouped into 8-connected candidates with position,
@@ -24,6 +25,9 @@ from typing import Any
 
 import numpy as np
 import numpy.typing as npt
+
+from coex_plugins.render import elevation_rgba, hillshade
+from coex_plugins.render import write_png as _write_png
 
 __all__ = ["Candidate", "find_targets", "hillshade", "opening", "read_geotiff", "write_geotiff",
            "write_geotiff_tiled", "write_level_geotiff", "write_png"]
@@ -187,49 +191,13 @@ def read_geotiff(path: str | Path) -> tuple[FloatArray, dict[str, Any]]:
     return arr, geo
 
 
-def hillshade(grid: npt.ArrayLike, cell: float, azimuth: float = 315.0, altitude: float = 45.0) -> FloatArray:
-    """Lambertian hillshade in 0..1 (row 0 = south); NaN cells give 1 (unshaded)."""
-    z = np.asarray(grid, np.float64)
-    if z.size == 0:
-        return np.ones_like(z)
-    fill = np.where(np.isfinite(z), z, np.nanmean(z) if np.isfinite(z).any() else 0.0)
-    if min(z.shape) < 2:
-        return np.ones_like(z)
-    dzdy, dzdx = np.gradient(fill, cell)
-    az, alt = np.radians(azimuth), np.radians(altitude)
-    # sun direction (east, north, up)
-    sx, sy, sz = np.sin(az) * np.cos(alt), np.cos(az) * np.cos(alt), np.sin(alt)
-    norm = np.sqrt(dzdx**2 + dzdy**2 + 1.0)
-    shade = (-dzdx * sx - dzdy * sy + sz) / norm
-    shade = np.clip(shade, 0.0, 1.0)
-    return np.asarray(np.where(np.isfinite(z), shade, 1.0), np.float64)
-
-
-_STOPS = np.array([0.0, 0.25, 0.5, 0.75, 1.0])
-_COLOURS = np.array([
-    [68, 1, 84], [59, 82, 139], [33, 145, 140], [94, 201, 98], [253, 231, 37],
-], np.float64)  # viridis at five stops
-
-
 def write_png(path: str | Path, grid: npt.ArrayLike, cell: float = 1.0) -> Path:
-    """Colour-mapped elevation with hillshade, north up; no-data cells are transparent."""
-    from PIL import Image
-
+    """Elevation through the depth colour map (1st to 99th percentile) times a hillshade, north up;
+    no-data cells are transparent (:func:`coex_plugins.render.elevation_rgba`)."""
     z = np.asarray(grid, np.float64)
     ok = np.isfinite(z)
-    if ok.any():
-        lo, hi = np.percentile(z[ok], [1, 99])
-    else:
-        lo, hi = 0.0, 1.0
-    t = np.clip((np.where(ok, z, lo) - lo) / max(hi - lo, 1e-9), 0.0, 1.0)
-    rgb = np.stack([np.interp(t, _STOPS, _COLOURS[:, c]) for c in range(3)], axis=-1)
-    shade = 0.35 + 0.65 * hillshade(z, cell)
-    rgb = rgb * shade[..., None]
-    alpha = np.where(ok, 255, 0)
-    rgba = np.concatenate([rgb, alpha[..., None]], axis=-1).clip(0, 255).astype(np.uint8)
-    out = Path(path)
-    Image.fromarray(np.flipud(rgba), "RGBA").save(out)
-    return out
+    lo, hi = (float(v) for v in np.percentile(z[ok], [1, 99])) if ok.any() else (0.0, 1.0)
+    return _write_png(path, elevation_rgba(z, lo, hi, cell))
 
 
 @dataclass(frozen=True)

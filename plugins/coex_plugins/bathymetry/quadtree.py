@@ -42,6 +42,9 @@ logs it and tells topside in ``MapMetadata.dropped_k``).
 Out of core: at most ``memory_budget`` bytes of tiles stay in memory (least recently used leave
 first); the others are kept, losslessly compressed, in the map's :mod:`coex_core.storage` and
 read back on demand (see :class:`QuadtreeMap`).
+
+Beside this module: the outlier screen (``_outliers.py``), the stored tiles' format
+(``_tilecodec.py``) and the array helpers (``_arrays.py``).
 """
 
 from __future__ import annotations
@@ -57,6 +60,10 @@ import numpy.typing as npt
 from coex_core.errors import CoexError
 from coex_core.state import persistent
 from coex_core.storage import MemoryStorage, Storage
+
+from ._arrays import _group_tiles, _grow, _pool
+from ._outliers import screen
+from ._tilecodec import _decode_tile, _encode_tile, _tile_name
 
 __all__ = ["InputError", "QuadtreeMap", "LevelBlock"]
 
@@ -554,8 +561,9 @@ class QuadtreeMap:
         keep = np.ones(z.size, bool)
         hold = np.zeros(z.size, bool)
         if self.outlier_rejection:
-            keep, judged = self._screen(m, cnt.ravel(), sm.ravel(), ssq.ravel(), flat, local, inv, z,
-                                        n_b, s_b, ss_b)
+            keep, judged = screen(m, self.tile, cnt.ravel(), sm.ravel(), ssq.ravel(), flat, local, inv, z,
+                                  n_b, s_b, ss_b, min_count=self.min_count,
+                                  threshold=self.outlier_threshold, k=self.outlier_k)
             if not force:
                 hold = ~judged & (times > tmax - self.max_pending_age)
                 if hold.sum() > self.max_pending:
@@ -604,61 +612,6 @@ class QuadtreeMap:
             p //= 2
             cur = _pool(cur, m, p, 2, np.maximum)
             self._stimes[lv][ns] = cur
-
-    def _screen(
-        self,
-        m: int,
-        c_map: FloatArray,
-        s_map: FloatArray,
-        ss_map: FloatArray,
-        flat: IntArray,
-        local: IntArray,
-        inv: IntArray,
-        z: FloatArray,
-        n_b: npt.NDArray[Any],
-        s_b: npt.NDArray[Any],
-        ss_b: npt.NDArray[Any],
-    ) -> tuple[npt.NDArray[np.bool_], npt.NDArray[np.bool_]]:
-        """Which soundings of a batch to keep, and which could be judged (see the module docstring).
-
-        Two passes: the first judges every sounding against references that may include the
-        outliers themselves; the second recomputes the references from the map and the soundings
-        the first pass kept, and judges again (a clipped, robust mean per cell and per block)."""
-        size = m * self._tt
-        row = local >> self._shift
-        col = local & (self.tile - 1)
-        blocks = []
-        for f in (4, 16):  # 4 x 4 cells (level 2), then 16 x 16 cells (level 4) where sparser
-            if f > self.tile:
-                break
-            tf = self.tile // f
-            blocks.append(((tf, f), inv * (tf * tf) + (row // f) * tf + (col // f)))
-
-        def judge(c: FloatArray, sm: FloatArray, ss: FloatArray) -> tuple[npt.NDArray[np.bool_], npt.NDArray[np.bool_]]:
-            mean = sm / np.maximum(c, 1)
-            dense = c[flat] >= self.min_count
-            bad = dense & (np.abs(z - mean[flat]) > self.outlier_threshold)
-            judged = dense.copy()
-            for (tf, f), b in blocks:
-                cb = _pool(c, m, tf, f, np.add).ravel()
-                sb = _pool(sm, m, tf, f, np.add).ravel()
-                ssb = _pool(ss, m, tf, f, np.add).ravel()
-                mb = sb / np.maximum(cb, 1)
-                sd = np.sqrt(np.maximum(ssb / np.maximum(cb, 1) - mb * mb, 0.0))
-                thr = np.maximum(self.outlier_threshold, self.outlier_k * sd[b])
-                here = ~judged & (cb[b] >= self.min_count)
-                bad |= here & (np.abs(z - mb[b]) > thr)
-                judged |= here
-            return ~bad, judged
-
-        keep, judged = judge(c_map + n_b, s_map + s_b, ss_map + ss_b)
-        if keep.all():
-            return keep, judged
-        w = keep.astype(np.float64)
-        n_k = np.bincount(flat, weights=w, minlength=size)
-        s_k = np.bincount(flat, weights=z * w, minlength=size)
-        ss_k = np.bincount(flat, weights=z * z * w, minlength=size)
-        return judge(c_map + n_k, s_map + s_k, ss_map + ss_k)
 
     # --------------------------------------------------------------------------- queries
 
@@ -787,94 +740,8 @@ class QuadtreeMap:
         return float(x0), float(y0), float(x1), float(y1)
 
 
-def _pool(a: npt.NDArray[Any], m: int, k: int, f: int, op: np.ufunc) -> npt.NDArray[Any]:
-    """``m`` square tiles of ``k * f`` cells a side (``a``: ``m x (k f)^2``, any shape holding them)
-    pooled over ``f x f`` blocks with ``op`` (``np.add``, ``np.maximum``): ``m x k x k``. Two
-    reductions over contiguous axes, about three times faster than one over two strided axes."""
-    rows = op.reduce(a.reshape(m * k, f, k * f), axis=1)
-    return op.reduce(rows.reshape(m * k * k, f), axis=1).reshape(m, k, k)
-
-
 def _block(cnt: IntArray, sm: FloatArray, ss: FloatArray, upd: float) -> LevelBlock:
     with np.errstate(invalid="ignore", divide="ignore"):
         mean = np.where(cnt > 0, sm / np.maximum(cnt, 1), np.nan)
         var = np.where(cnt > 0, ss / np.maximum(cnt, 1) - mean * mean, np.nan)
     return LevelBlock(cnt, mean, np.sqrt(np.maximum(var, 0.0)), upd)
-
-
-def _tile_name(key: tuple[int, int]) -> str:
-    return f"tile/{key[0]}/{key[1]}"
-
-
-_TILE_MAGIC = b"CXT1"
-_COUNT_TYPES = (np.uint8, np.uint16, np.uint32, np.float64)
-_zstd: Any = None
-
-
-def _codec() -> Any:
-    global _zstd
-    if _zstd is None:
-        import zstandard
-
-        _zstd = (zstandard.ZstdCompressor(level=1), zstandard.ZstdDecompressor())
-    return _zstd
-
-
-def _shuffle(a: npt.NDArray[Any]) -> bytes:
-    """Bytes of ``a`` grouped by significance (all first bytes, then all second...): the high
-    bytes of nearby elevations repeat, so they compress."""
-    return np.ascontiguousarray(a.reshape(-1).view(np.uint8).reshape(-1, a.itemsize).T).tobytes()
-
-
-def _unshuffle(b: bytes, dtype: Any) -> npt.NDArray[Any]:
-    size = np.dtype(dtype).itemsize
-    return np.ascontiguousarray(np.frombuffer(b, np.uint8).reshape(size, -1).T).view(dtype).reshape(-1)
-
-
-def _encode_tile(cells: FloatArray) -> bytes:
-    """A tile's cells as bytes (lossless): ``CXT1``, the count's type code, then zstd of the
-    byte-shuffled count (the smallest unsigned type that holds it) and sums, sums of squares and
-    times (float64)."""
-    cmax = float(cells[0].max())
-    code = 3
-    for i, dt in enumerate(_COUNT_TYPES[:3]):
-        if cmax <= np.iinfo(dt).max:
-            code = i
-            break
-    count = cells[0].astype(_COUNT_TYPES[code])
-    payload = _shuffle(count) + _shuffle(cells[1:])
-    return _TILE_MAGIC + bytes([code]) + _codec()[0].compress(payload)
-
-
-def _decode_tile(data: bytes, out: FloatArray) -> None:
-    if data[:4] != _TILE_MAGIC or data[4] > 3:
-        raise CoexError("a stored map tile is not in the CXT1 format")
-    dt = _COUNT_TYPES[data[4]]
-    payload = _codec()[1].decompress(data[5:])
-    tt = out.shape[1]
-    nc = tt * np.dtype(dt).itemsize
-    out[0] = _unshuffle(payload[:nc], dt)
-    out[1:] = _unshuffle(payload[nc:], np.float64).reshape(3, tt)
-
-
-def _grow(a: npt.NDArray[Any], cap: int, fill: float) -> Any:
-    shape = (cap, *a.shape[1:])
-    out = np.full(shape, fill, dtype=a.dtype)
-    out[: a.shape[0]] = a
-    return out
-
-
-def _group_tiles(tx: IntArray, ty: IntArray) -> tuple[IntArray, IntArray, IntArray]:
-    """Distinct tiles of a batch and each point's index among them (O(n) for compact batches)."""
-    x0, y0 = int(tx.min()), int(ty.min())
-    wx, wy = int(tx.max()) - x0 + 1, int(ty.max()) - y0 + 1
-    if wx * wy <= 1 << 16:
-        key = (tx - x0) * wy + (ty - y0)
-        present = np.bincount(key, minlength=wx * wy) > 0
-        ids = np.flatnonzero(present)
-        lookup = np.zeros(wx * wy, np.int64)
-        lookup[ids] = np.arange(ids.size)
-        return ids // wy + x0, ids % wy + y0, lookup[key]
-    pairs = np.stack([tx, ty], axis=1)
-    uniq, inv = np.unique(pairs, axis=0, return_inverse=True)
-    return uniq[:, 0], uniq[:, 1], inv.ravel()

@@ -193,7 +193,8 @@ def finish(out: Path, cfg: DemoConfig, world: World, operator: Operator, receive
             coverage: dict[int, list[tuple[float, float]]], visible_at: dict[int, float],
             decisions: list[Decision], wall: float, runners: dict[int, Runner],
             responses: dict[str, Any] | None = None) -> dict[str, Any]:
-    from .report import line_chart, map_figure, timeline_chart, write_report
+    from .figures import line_chart, map_figure, timeline_chart
+    from .report import write_report
 
     scn, floor = world.scenario, world.floor
     bathy: BathymetryReceiver = receivers["bathymetry"]

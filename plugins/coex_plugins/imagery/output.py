@@ -11,6 +11,7 @@ from typing import Any
 import numpy as np
 
 from coex_core.modality import Product
+from coex_plugins.render import write_png as _write_png
 
 __all__ = ["ImageWriter", "outlined", "write_png", "write_tiff"]
 
@@ -29,12 +30,8 @@ def outlined(image: Any, box: tuple[int, int, int, int] | list[int]) -> Any:
 
 
 def write_png(path: str | Path, image: Any) -> None:
-    from PIL import Image
-
-    a = np.asarray(image, np.uint8)
-    tmp = f"{path}.part"
-    Image.fromarray(a).save(tmp, format="PNG", compress_level=1)  # fast: written at every improvement
-    os.replace(tmp, path)
+    """The shared PNG writer (atomic), fast compression: written at every improvement."""
+    _write_png(path, np.asarray(image, np.uint8), compress_level=1)
 
 
 def write_tiff(path: str | Path, image: Any, description: str = "") -> None:

@@ -16,8 +16,6 @@ Memory and queue bounds (documented in ``docs/imagery.md``):
 
 from __future__ import annotations
 
-import functools
-import itertools
 import math
 from collections import deque
 from collections.abc import Callable, Mapping
@@ -49,12 +47,20 @@ from coex_core.modality import ModalitySender
 from coex_core.state import persistent
 from coex_core.timefmt import to_stamp, unwrap
 from coex_core.wire import (
-    FRAGMENT_MAX_DATA,
-    FRAGMENT_MAX_MARKS,
-    FRAGMENT_NEAR_OFFSET_BITS,
     encoded_size,
 )
 
+from ._regions import BRIDGE_BYTES, _bridge, _within, box_psnr, decoded, fewest, held_packets, way
+from ._transfer import (
+    MAX_FRAGMENT_DATA,
+    MAX_MARKS,
+    CropOf,
+    _packets,
+    _sends,
+    _Tx,
+    fragment_size,
+    packet_layers,
+)
 from .codec import (
     CodingParams,
     Encoded,
@@ -62,55 +68,20 @@ from .codec import (
     decode_packets,
     encode_image,
     encode_residual,
-    packet_end,
     psnr,
     region_packets,
 )
 from .goals import Goal, parse_goal
+from .interest import interest
 
-__all__ = ["CropOf", "Frame", "ImageInput", "ImagerySender", "fragment_size", "interest"]
+__all__ = ["CropOf", "Frame", "ImageInput", "ImagerySender", "fragment_size", "interest",
+           "BRIDGE_BYTES", "MAX_FRAGMENT_DATA", "MAX_MARKS", "packet_layers"]
 
-MAX_FRAGMENT_DATA = FRAGMENT_MAX_DATA
-MAX_MARKS = FRAGMENT_MAX_MARKS
 #: A fragment message never exceeds this (the wire maximum).
 MAX_MESSAGE = 251
 MAX_NEXT = 8
-#: offsets from here on take the fragment header's long form
-_FAR_OFFSET = 1 << FRAGMENT_NEAR_OFFSET_BITS
 #: on a low link a requested image's bytes go at most this many times before an ack
 LOW_COPIES = 2
-#: the running background of the frames takes each new frame with this weight
-BACKDROP_WEIGHT = 0.2
-#: frames are compared with the background at this many columns (rows in proportion)
-INTEREST_COLUMNS = 32
-
-
-def interest(image: Any, backdrop: npt.NDArray[np.float64] | None
-             ) -> tuple[float, npt.NDArray[np.float64] | None]:
-    """How much a frame stands out from the frames before it, and the new running background:
-    the frame in grey, box-reduced to :data:`INTEREST_COLUMNS` columns, against the running
-    background (the frames before it, each new one weighted :data:`BACKDROP_WEIGHT`): the 95th
-    percentile of their absolute difference, relative to the background's mean brightness (the
-    first frame: against its own mean). Sand scores low (its texture averages out), a dark hull
-    over a tenth of the frame high. Vectorised; about 0.1 ms a frame."""
-    try:
-        a = np.asarray(image, np.float64)
-        if a.ndim == 3:
-            a = a[..., :3].mean(-1)
-        if a.ndim != 2 or min(a.shape) < 4:
-            return 0.0, backdrop
-        f = max(1, a.shape[1] // INTEREST_COLUMNS)
-        h, w = a.shape[0] // f * f, a.shape[1] // f * f
-        small = a[:h, :w].reshape(h // f, f, w // f, f).mean((1, 3))
-    except (TypeError, ValueError):
-        return 0.0, backdrop
-    ref = backdrop if backdrop is not None and backdrop.shape == small.shape else np.full_like(small, small.mean())
-    score = float(np.percentile(np.abs(small - ref), 95) / max(float(ref.mean()), 1.0))
-    new = small if backdrop is None or backdrop.shape != small.shape else \
-        (1 - BACKDROP_WEIGHT) * backdrop + BACKDROP_WEIGHT * small
-    return round(score, 4), new
-
-
 @persistent("imagery.ImageInput")
 @dataclass(frozen=True)
 class ImageInput:
@@ -120,24 +91,6 @@ class ImageInput:
     time: float | None = None
     x: float | None = None
     y: float | None = None
-
-
-@persistent("imagery.CropOf")
-@dataclass(frozen=True)
-class CropOf:
-    """What a crop (an image coded from a rectangle of another, answering a region request) is:
-    its ``parent`` image, the ``box`` (x0, y0, x1, y1) in the parent's pixels, the region request
-    ``command_id``, the parent packets ``base`` (from the first) whose decode it refines, the
-    parent layers ``cover`` it is at least as good as inside the box, and the PSNR it brings the
-    box to (``psnr``, dB, against the vehicle's image) from ``base_psnr``."""
-
-    parent: int
-    box: tuple[int, int, int, int]
-    command_id: int
-    base: int
-    cover: int
-    psnr: float
-    base_psnr: float
 
 
 @dataclass(frozen=True)
@@ -151,99 +104,6 @@ class Frame:
     y: float | None
     image: Any
     interest: float
-
-
-@functools.cache
-def _fragment_head(n_marks: int, far: bool) -> int:
-    """Bytes of a fragment's type id, header and marks, as the codec counts them: the data bytes
-    follow the header's bits, so every data byte adds exactly one byte to the message."""
-    probe = ImageFragment(0, _FAR_OFFSET if far else 0, 0 if n_marks else None, tuple(range(n_marks)),
-                          bytes(n_marks))
-    return encoded_size(probe) - n_marks
-
-
-def fragment_size(n_marks: int, n_data: int, offset: int = 0) -> int:
-    """Encoded bytes of an ``ImageFragment`` at ``offset`` with ``n_marks`` packet marks and
-    ``n_data`` data bytes (type id included; spec/wire-format.md, type 33)."""
-    return _fragment_head(n_marks, offset >= _FAR_OFFSET) + n_data
-
-
-@persistent("imagery.Tx")
-class _Tx:
-    __slots__ = (
-        "acked",
-        "announced_at",
-        "crop",
-        "default_goal",
-        "enc",
-        "explicit",
-        "goal",
-        "heard",
-        "image_id",
-        "interest",
-        "region",
-        "sends",
-        "sent_at",
-        "time",
-        "x",
-        "y",
-    )
-
-    def __init__(self, image_id: int, enc: Encoded, time: float, x: float | None, y: float | None,
-                 default_goal: int) -> None:
-        self.image_id = image_id
-        self.enc = enc
-        self.time = time
-        self.x = x
-        self.y = y
-        self.announced_at: float | None = None
-        self.heard = False
-        n = len(enc.body)
-        self.acked: npt.NDArray[np.bool_] = np.zeros(n, bool)
-        self.sent_at: npt.NDArray[np.float64] = np.full(n, -np.inf)
-        #: how often each byte was sent (a requested image's bytes are repeated under loss)
-        self.sends: npt.NDArray[np.uint8] = np.zeros(n, np.uint8)
-        self.default_goal = default_goal
-        self.goal = default_goal
-        self.explicit: int | None = None
-        #: bytes wanted beyond the goal prefix: the packets of requested regions (None: none)
-        self.region: npt.NDArray[np.bool_] | None = None
-        #: a crop of another image (answering a region request), or None for an image
-        self.crop: CropOf | None = None
-        #: how much the frame stands out from the frames before it (:func:`interest`)
-        self.interest = 0.0
-
-    @property
-    def total(self) -> int:
-        return len(self.enc.body)
-
-    def wanted(self, goal: int | None = None) -> npt.NDArray[np.bool_]:
-        """Bytes to deliver: the prefix up to ``goal`` (default: the image's goal) and the
-        packets of requested regions."""
-        m = np.zeros(self.total, bool)
-        m[: self.goal if goal is None else goal] = True
-        region = getattr(self, "region", None)
-        if region is not None:
-            m |= region
-        return m
-
-    def needs(self) -> bool:
-        if self.goal > 0 and not bool(self.acked[: self.goal].all()):
-            return True
-        region = getattr(self, "region", None)
-        return region is not None and bool((region & ~self.acked).any())
-
-    def unacked(self) -> int:
-        return int(np.count_nonzero(self.wanted() & ~self.acked))
-
-    def announce(self) -> ImageAnnounce | ImageCrop:
-        crop = getattr(self, "crop", None)
-        if crop is not None:
-            x0, y0, x1, y1 = crop.box
-            return ImageCrop(self.image_id, crop.parent, crop.command_id, x0, y0, x1, y1, self.total,
-                             self.enc.params, crop.base, crop.cover)
-        return ImageAnnounce(self.image_id, to_stamp(self.time), self.x, self.y, self.enc.width,
-                             self.enc.height, self.enc.grey, self.total, self.enc.params)
 
 
 #: coding options (:class:`~coex_plugins.imagery.codec.CodingParams` fields)
@@ -740,7 +600,7 @@ class ImagerySender(ModalitySender):
         layer = packet_layers(enc)
         starts = enc.packet_starts
         sizes = np.append(starts[1:], tx.total) - starts
-        held = self._held_packets(tx)
+        held = held_packets(tx)
         kind = RegionGoal(msg.kind)
         target: float | None = None  # the PSNR the region is to reach (None: a byte budget)
         everything = np.ones(len(held), bool)
@@ -748,8 +608,8 @@ class ImagerySender(ModalitySender):
             if not 1 <= msg.value <= sp.layers:
                 raise RequestRejected(f"layer {msg.value} outside 1..{sp.layers}")
             chosen = inside & (layer < msg.value)
-            target = self._box_psnr(tx, layer < msg.value, box)
-            prefix = self._fewest(tx, everything, held, box, target)
+            target = box_psnr(tx, layer < msg.value, box)
+            prefix = fewest(tx, everything, held, box, target)
         elif kind == RegionGoal.BYTES:
             if msg.value < 1:
                 raise RequestRejected("a byte budget of 0")
@@ -759,14 +619,14 @@ class ImagerySender(ModalitySender):
             if not 100 <= msg.value <= 600:
                 raise RequestRejected(f"quality {msg.value / 10:.1f} dB outside 10..60 dB")
             target = msg.value / 10
-            chosen = self._fewest(tx, inside, held, box, target)
-            prefix = self._fewest(tx, everything, held, box, target)
+            chosen = fewest(tx, inside, held, box, target)
+            prefix = fewest(tx, everything, held, box, target)
         # the region's packets (small gaps bridged), or the image's next packets in codestream
         # order until the region is there: on a soft image these cost less than the region's
         # own packets with their fragment headers and packet marks
-        ways = [self._way(tx, _bridge(chosen, held, sizes), held, box)]
+        ways = [way(tx, _bridge(chosen, held, sizes), held, box)]
         if self.crops != "never":
-            ways.append(self._way(tx, prefix, held, box))
+            ways.append(way(tx, prefix, held, box))
         mask, reached, cost = min(ways, key=lambda w: (
             (w[1] < target, w[2]) if target is not None else (-w[1], w[2])))  # reach the goal, fewest bytes
         crop = None
@@ -804,7 +664,7 @@ class ImagerySender(ModalitySender):
         if min(x1 - x0, y1 - y0) < 8:
             return None  # too small to be coded on its own
         original = enc.image[y0:y1, x0:x1]
-        held = self._held_packets(tx)
+        held = held_packets(tx)
         prefix = int(np.argmin(held)) if not held.all() else len(held)
         if target is not None:
             cp = CodingParams(progression="LRCP", resolutions=self.coding.resolutions,
@@ -819,7 +679,7 @@ class ImagerySender(ModalitySender):
         # cheaper (the base's own coding errors are detail to code again), so both are measured
         best: tuple[tuple[float, float], Encoded, int, float, float] | None = None
         for base in sorted({prefix, 0}, reverse=True):
-            base_box = self._decoded(tx, np.arange(len(held)) < base)[y0:y1, x0:x1]
+            base_box = decoded(tx, np.arange(len(held)) < base)[y0:y1, x0:x1]
             try:
                 cenc = encode_residual(original, base_box, cp)
                 shown = add_residual(base_box, decode_packets(cenc.params, cenc.width, cenc.height, _packets(cenc)))
@@ -847,7 +707,7 @@ class ImagerySender(ModalitySender):
         layer = packet_layers(enc)
         cover = 0
         for k in range(1, enc.stream.layers + 1):
-            if self._box_psnr(tx, layer < k, box) <= q:
+            if box_psnr(tx, layer < k, box) <= q:
                 cover = k
         return cenc, CropOf(tx.image_id, box, msg.command_id, base, cover, round(q, 3), round(base_psnr, 3))
 
@@ -855,86 +715,6 @@ class ImagerySender(ModalitySender):
     def _crop_message(tx: _Tx, cenc: Encoded, box: tuple[int, int, int, int], msg: ImageRegionRequest,
                       base: int, cover: int) -> ImageCrop:
         return ImageCrop(0, tx.image_id, msg.command_id, *box, len(cenc.body), cenc.params, base, cover)
-
-    def _wire_estimate(self, tx: _Tx, mask: npt.NDArray[np.bool_]) -> int:
-        """Wire bytes of sending the bytes of ``mask`` (at least): the bytes, a fragment header
-        per run and the packet marks of runs after a gap (see :meth:`_marked`)."""
-        if not mask.any():
-            return 0
-        edges = np.diff(mask.astype(np.int8), prepend=0, append=0)
-        runs = zip(np.flatnonzero(edges == 1), np.flatnonzero(edges == -1), strict=True)
-        starts = tx.enc.packet_starts
-        total = int(mask.sum())
-        before = tx.acked | mask
-        for run_start, run_end in runs:
-            s, e = int(run_start), int(run_end)
-            total += fragment_size(0, 0, s)
-            if not bool(before[:s].all()):
-                lo, hi = np.searchsorted(starts, [s, e])
-                total += fragment_size(int(hi - lo) + 1, 0, s) - fragment_size(0, 0, s)
-        return total
-
-    @staticmethod
-    def _decoded(tx: _Tx, sel: npt.NDArray[np.bool_]) -> npt.NDArray[np.uint8]:
-        """The image decoded from the packets ``sel`` (the receiver's rule, spec/payloads.md 3.4)."""
-        enc = tx.enc
-        starts = enc.packet_starts
-        pk: list[bytes | None] = [enc.body[int(s):packet_end(starts, tx.total, i)] if sel[i] else None
-                                  for i, s in enumerate(starts)]
-        return decode_packets(enc.params, enc.width, enc.height, pk)
-
-    def _box_psnr(self, tx: _Tx, sel: npt.NDArray[np.bool_], box: tuple[int, int, int, int]) -> float:
-        """PSNR inside ``box`` of the image decoded from the packets ``sel``, against the original."""
-        x0, y0, x1, y1 = box
-        return psnr(self._decoded(tx, sel)[y0:y1, x0:x1], tx.enc.image[y0:y1, x0:x1])
-
-    @staticmethod
-    def _held_packets(tx: _Tx) -> npt.NDArray[np.bool_]:
-        """Packets whose every byte topside acknowledged."""
-        starts = tx.enc.packet_starts
-        cum = np.concatenate([[0], np.cumsum(tx.acked, dtype=np.int64)])
-        ends = np.append(starts[1:], tx.total)
-        out: npt.NDArray[np.bool_] = (cum[ends] - cum[starts]) == (ends - starts)
-        return out
-
-    def _fewest(self, tx: _Tx, candidates: npt.NDArray[np.bool_], held: npt.NDArray[np.bool_],
-                box: tuple[int, int, int, int], target: float) -> npt.NDArray[np.bool_]:
-        """What topside holds and the fewest of the ``candidates`` packets not held, in codestream
-        order (whole packets, so a layer may be taken in part, lowest resolutions first), whose
-        decode reaches ``target`` dB PSNR inside the box, measured against the original (all of
-        them when none does). Bisection on the count: a few decodes."""
-        todo = np.flatnonzero(candidates & ~held)
-
-        def chosen(k: int) -> npt.NDArray[np.bool_]:
-            out = held.copy()
-            out[todo[:k]] = True
-            return out
-
-        def quality(k: int) -> float:
-            return self._box_psnr(tx, chosen(k), box)
-
-        lo, hi = 0, len(todo)
-        if quality(hi) < target:
-            return chosen(hi)
-        if quality(lo) >= target:
-            return chosen(lo)
-        while hi - lo > 1:  # quality(lo) < target <= quality(hi)
-            mid = (lo + hi) // 2
-            if quality(mid) >= target:
-                hi = mid
-            else:
-                lo = mid
-        return chosen(hi)
-
-    def _way(self, tx: _Tx, chosen: npt.NDArray[np.bool_], held: npt.NDArray[np.bool_],
-             box: tuple[int, int, int, int]) -> tuple[npt.NDArray[np.bool_], float, int]:
-        """Sending the packets ``chosen`` not held: the bytes (mask), the PSNR the box then has,
-        the wire bytes (estimated)."""
-        starts = tx.enc.packet_starts
-        mask = np.zeros(tx.total, bool)
-        for i in np.flatnonzero(chosen & ~held):
-            mask[int(starts[i]):packet_end(starts, tx.total, int(i))] = True
-        return mask, self._box_psnr(tx, chosen | held, box), self._wire_estimate(tx, mask)
 
     def _pictures(self) -> list[_Tx]:
         """The images captured (not the crops made of them)."""
@@ -1007,51 +787,3 @@ class ImagerySender(ModalitySender):
         self._progress_dirty = True
 
 
-#: a run of packets outside a region this small (bytes) between two region packets is sent too:
-#: cheaper than breaking the fragment (a new message header, fragment header and packet marks)
-BRIDGE_BYTES = 8
-
-
-def _bridge(chosen: npt.NDArray[np.bool_], held: npt.NDArray[np.bool_],
-            sizes: npt.NDArray[np.int64]) -> npt.NDArray[np.bool_]:
-    """``chosen`` plus every gap of unheld packets between two chosen unheld packets whose bytes
-    are at most :data:`BRIDGE_BYTES` (a gap with a held packet stays: it breaks the fragment
-    anyway)."""
-    out = chosen.copy()
-    idx = np.flatnonzero(chosen & ~held)
-    for a, b in itertools.pairwise(idx):
-        if b - a > 1 and not held[a + 1:b].any() and int(sizes[a + 1:b].sum()) <= BRIDGE_BYTES:
-            out[a + 1:b] = True
-    return out
-
-
-def _within(candidates: npt.NDArray[np.bool_], held: npt.NDArray[np.bool_], sizes: npt.NDArray[np.int64],
-            budget: int) -> npt.NDArray[np.bool_]:
-    """What topside holds and the ``candidates`` packets not held, in codestream order, while
-    their bytes total at most ``budget``."""
-    cost = np.where(candidates & ~held, sizes, 0)
-    out: npt.NDArray[np.bool_] = held | (candidates & (np.cumsum(cost) <= budget))
-    return out
-
-
-def packet_layers(enc: Encoded) -> npt.NDArray[np.int64]:
-    """The quality layer of each packet of ``enc``, in codestream order."""
-    from .codec import packet_order
-
-    out: npt.NDArray[np.int64] = packet_order(enc.stream, enc.width, enc.height)[:, 0]
-    return out
-
-
-def _packets(enc: Encoded) -> list[bytes | None]:
-    """Every packet of ``enc``'s body."""
-    from .codec import split_packets
-
-    return split_packets(enc.body, enc.packet_starts)
-
-
-def _sends(tx: _Tx) -> npt.NDArray[np.uint8]:
-    """How often each byte of ``tx`` was sent (an image saved before repeats existed gets zeros)."""
-    sends = getattr(tx, "sends", None)
-    if sends is None:
-        sends = tx.sends = np.zeros(tx.total, np.uint8)
-    return sends
