@@ -80,7 +80,23 @@ def _fingerprint(sg: Subgrid) -> int:
     return zlib.crc32(wire.encode(sg))
 
 
-@persistent("bathymetry.Sender")
+def _upgrade_sender(fields: dict[str, Any], saved: int) -> dict[str, Any]:
+    """Version 1 (0.1.0 and early 0.2 work) was saved before detections (no focused subgrids,
+    no low-link flag) or before spare work (no re-send list, confirmations or standing region
+    requests), and before that with one sent-array per (tile, level) (``_sent``, ``_sent_at``:
+    :meth:`BathymetrySender._after_restore` moves them into the per-level arrays, which need the
+    restored map). Version 2 always has them."""
+    out = dict(fields)
+    if out.get("_focused") is None:
+        out.update(_focused={}, _low=False, focus_bytes=0)
+    if out.get("_resend") is None:
+        out.update(_resend={}, _confirmed={}, _standing={}, _standing_checked=-math.inf)
+        out.setdefault("standing_expiry", float(SENDER_DEFAULTS["standing_expiry"]))
+        out.setdefault("max_standing", int(SENDER_DEFAULTS["max_standing"]))
+    return out
+
+
+@persistent("bathymetry.Sender", version=2, upgrade=_upgrade_sender)
 class BathymetrySender(ModalitySender):
     """Ingests soundings into a :class:`QuadtreeMap` and answers ``fill(max_bytes, now)``.
 
@@ -138,7 +154,23 @@ class BathymetrySender(ModalitySender):
         self._cache: dict[Key, tuple[int, Subgrid, int]] = {}
         #: Subgrids whose elevations do not fit the wire (|z| >= 2**19 vertical units): skipped.
         self.unsendable: set[Key] = set()
-        self._after_restore()
+        self._init_spare()
+
+    def _init_spare(self) -> None:
+        #: level-0 subgrids queued around detections (key -> until when a loss queues it again)
+        self._focused: dict[Key, float] = {}
+        #: the channel finds the link low: the finest level is spare work, not background
+        self._low = False
+        #: bytes of the subgrids sent because a detection pointed at them (:meth:`focus`)
+        self.focus_bytes = 0
+        #: subgrids whose last sent version was lost: spare work (key -> when it was lost)
+        self._resend: dict[Key, float] = {}
+        #: key -> CRC of the newest version a frame ack confirmed (its other copies' losses
+        #: do not make it spare work again)
+        self._confirmed: dict[Key, int] = {}
+        #: standing region requests: region -> (subgrids awaiting survey, expiry time)
+        self._standing: dict[tuple[int, int, int, int, int, bool], tuple[set[Key], float]] = {}
+        self._standing_checked = -math.inf
 
     def _init_sent(self) -> None:
         #: per level, by the map's tile number: the update time of the version of each subgrid
@@ -168,25 +200,6 @@ class BathymetrySender(ModalitySender):
                 tile, a, b = self.map.tile_of_subgrid(level, ix, iy)
                 if self.map.has_tile(tile):
                     self._sent_when[level][self._sent_row(tile), b, a] = when
-        if getattr(self, "_focused", None) is None:  # a sender saved before detections
-            #: level-0 subgrids queued around detections (key -> until when a loss queues it again)
-            self._focused: dict[Key, float] = {}
-            #: the channel finds the link low: the finest level is spare work, not background
-            self._low = False
-            #: bytes of the subgrids sent because a detection pointed at them (:meth:`focus`)
-            self.focus_bytes = 0
-        if getattr(self, "_resend", None) is None:  # a sender saved before spare work existed
-
-            #: subgrids whose last sent version was lost: spare work (key -> when it was lost)
-            self._resend: dict[Key, float] = {}
-            #: key -> hash of the newest version a frame ack confirmed (its other copies' losses
-            #: do not make it spare work again)
-            self._confirmed: dict[Key, int] = {}
-            #: standing region requests: region -> (subgrids awaiting survey, expiry time)
-            self._standing: dict[tuple[int, int, int, int, int, bool], tuple[set[Key], float]] = {}
-            self._standing_checked = -math.inf
-            self.standing_expiry = float(getattr(self, "standing_expiry", SENDER_DEFAULTS["standing_expiry"]))
-            self.max_standing = int(getattr(self, "max_standing", SENDER_DEFAULTS["max_standing"]))
 
     # ---------------------------------------------------------------------------- ingest
 

@@ -117,25 +117,28 @@ SENDER_DEFAULTS: dict[str, Any] = {**dict.fromkeys(CODING_KEYS), "default_goal":
                                    "marks": "auto", "crops": "auto"}
 
 
-@persistent("imagery.Sender")
+def _upgrade_sender(fields: dict[str, Any], saved: int) -> dict[str, Any]:
+    """Version 1 (0.1.0 and early 0.2 work) was saved in three shapes: before issue 41 (no
+    running background, no low-link flag), before frame fates were kept, before by-time requests
+    could stand. Version 2 always has them."""
+    out = dict(fields)
+    if "_low" not in out:
+        out.setdefault("_backdrop", None)
+        out["_low"] = False
+    if out.get("_fates") is None:
+        out["_fates"] = deque(maxlen=64)
+    if out.get("_standing") is None:
+        out["_standing"] = {}
+        out["_answers"] = []
+        out.setdefault("standing_expiry", float(SENDER_DEFAULTS["standing_expiry"]))
+        out.setdefault("max_standing", int(SENDER_DEFAULTS["max_standing"]))
+    return out
+
+
+@persistent("imagery.Sender", version=2, upgrade=_upgrade_sender)
 class ImagerySender(ModalitySender):
     _last_now: float = float("-inf")
 
-    def _after_restore(self) -> None:
-        if getattr(self, "_backdrop", None) is None and not hasattr(self, "_low"):  # saved before issue 41
-            #: the running background of the frames (:func:`interest`), and whether the channel
-            #: finds the link low
-            self._backdrop: npt.NDArray[np.float64] | None = None
-            self._low = False
-        if getattr(self, "_fates", None) is None:  # saved before frame fates were kept
-            self._fates = deque(maxlen=64)
-        if getattr(self, "_standing", None) is None:  # saved before requests could stand
-            #: command id -> (by-time request for a time not captured yet, expiry time)
-            self._standing: dict[int, tuple[ImageByTimeRequest, float]] = {}
-            #: final CommandAcks of served or expired standing requests, to send
-            self._answers: list[Message] = []
-            self.standing_expiry = float(getattr(self, "standing_expiry", SENDER_DEFAULTS["standing_expiry"]))
-            self.max_standing = int(getattr(self, "max_standing", SENDER_DEFAULTS["max_standing"]))
     """Subsea side. Configuration keys (all optional):
 
     * coding: ``progression``, ``resolutions``, ``layer_psnr`` (quality marks, dB: 25, 30, 35,
@@ -199,7 +202,14 @@ class ImagerySender(ModalitySender):
         self._last_now = float("-inf")
         #: fates of recent fragments (1 delivered, 0 lost), from the channel's frame acks
         self._fates: deque[int] = deque(maxlen=64)
-        self._after_restore()
+        #: the running background of the frames (:func:`interest`), and whether the channel
+        #: finds the link low
+        self._backdrop: npt.NDArray[np.float64] | None = None
+        self._low = False
+        #: command id -> (by-time request for a time not captured yet, expiry time)
+        self._standing: dict[int, tuple[ImageByTimeRequest, float]] = {}
+        #: final CommandAcks of served or expired standing requests, to send
+        self._answers: list[Message] = []
 
     # ------------------------------------------------------------------ ingest
 
