@@ -6,6 +6,7 @@ from __future__ import annotations
 import math
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from typing import Any
 
 from ..acoustic import RateInfo, rate_info
 from ..auth import CommandSigner, CommandVerifier
@@ -146,11 +147,26 @@ class Transmission:
     backlog: int = 0
 
 
-@persistent("channel.PendingSchedule")
+def _upgrade_pending(fields: dict[str, Any], saved: int) -> dict[str, Any]:
+    """Version 1 (before networks of several nodes): a proposal between two nodes."""
+    fields.setdefault("awaiting", set())
+    fields.setdefault("fleet", False)
+    fields.setdefault("committed", False)
+    return fields
+
+
+@persistent("channel.PendingSchedule", version=2, upgrade=_upgrade_pending)
 @dataclass
 class _PendingSchedule:
     schedule: Schedule  # with epoch/first_cycle set to its activation
     command_id: int
+    #: a network of several nodes (docs/channel.md): the peers whose ACCEPTED the proposer
+    #: still awaits (a peer silent for ``watchdog_cycles`` cycles is not awaited)
+    awaiting: set[int] = field(default_factory=set)
+    #: proposed to a network of several nodes: it takes effect only once committed
+    fleet: bool = False
+    #: every node agreed: the proposer announced it (a second ``ScheduleUpdate``, same content)
+    committed: bool = False
 
 
 @persistent("channel.Link")
@@ -219,5 +235,6 @@ class _ManagerState:
     _last_qs: float | None
     _command_id: int
     _commands: dict[int, Message]
+    _command_dst: dict[int, int | None]
     stats: dict[str, int]
 

@@ -22,7 +22,7 @@ from ..auth import CommandSigner, CommandVerifier, is_command
 from ..errors import ConfigError
 from ..messages import Message
 from ..state import persistent
-from .delivery import delivery_fields
+from .delivery import delivery_fields, peer_fields
 from .events import Event
 from .links import (
     CONTROL_STREAM,
@@ -51,7 +51,12 @@ __all__ = [
 
 def _upgrade_manager(fields: dict[str, Any], saved: int) -> dict[str, Any]:
     """Version 1 (CoEx 0.1) had no delivery tracking, no loss estimates and no spare turns;
-    version 2 no link-following policy."""
+    version 2 no link-following policy; version 3 no per-peer bookkeeping (a network of
+    several nodes: frame destinations, per-peer loss and last heard, command destinations)."""
+    if saved < 4:
+        for k, v in peer_fields().items():
+            fields.setdefault(k, v)
+        fields.setdefault("_command_dst", {})
     if saved < 3:
         for k, v in policy_fields().items():
             fields.setdefault(k, v)
@@ -66,7 +71,7 @@ def _upgrade_manager(fields: dict[str, Any], saved: int) -> dict[str, Any]:
 
 
 #: the clock, the command test and the key holders come from the node it is restored into
-@persistent("channel.ChannelManager", version=3, upgrade=_upgrade_manager,
+@persistent("channel.ChannelManager", version=4, upgrade=_upgrade_manager,
             transient=("clock", "is_command", "signer", "verifier"))
 class ChannelManager(SettingsMixin):
     """Queues, packing, TDMA and links of one node (vehicle or topside).
@@ -138,6 +143,8 @@ class ChannelManager(SettingsMixin):
         self._last_qs: float | None = None
         self._command_id = 0
         self._commands: dict[int, Message] = {}  # topside: sent commands awaiting a CommandAck
+        #: command id -> the node it was sent to (0: every node, None: the link's dst)
+        self._command_dst: dict[int, int | None] = {}
         self.stats: dict[str, int] = {"packets": 0, "frames": 0, "used_bytes": 0, "capacity": 0,
                                       "acked": 0, "resent": 0, "sender_failures": 0,
                                       "signed": 0, "stale_acks": 0, "delivered": 0, "lost": 0,
