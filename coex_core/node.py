@@ -243,7 +243,7 @@ class Node:
             return []
         messages = list(decoded.messages)
         replayed = False
-        verifier = self.manager.verifier
+        verifier = self.manager.verifier_for(h.src, h.dst)
         if verifier is not None:
             try:
                 messages = verifier.verify(frame, h, messages, self.is_command)
@@ -630,7 +630,12 @@ class Node:
             "manager": mgr,
             "auth": {"signed": mgr.signer.counter if mgr.signer is not None else None,
                      "accepted": mgr.verifier.counter if mgr.verifier is not None else None,
-                     "rejected": mgr.verifier.rejected if mgr.verifier is not None else None},
+                     "rejected": mgr.verifier.rejected if mgr.verifier is not None else None,
+                     # a network of several nodes: the counters of each peer's own key
+                     "peers": {p: {"signed": mgr.peer_signers[p].counter,
+                                   "accepted": mgr.peer_verifiers[p].counter,
+                                   "rejected": mgr.peer_verifiers[p].rejected}
+                               for p in sorted(mgr.peer_signers)}},
             "senders": {s.name: _innermost(s.sender) for s in self._senders},
             "receivers": {r.key: _innermost(r.receiver) for r in self._receivers},
             "extra": extra,
@@ -658,7 +663,13 @@ class Node:
                              f"{sorted(fresh.links)}")
         mgr.clock, mgr.is_command = fresh.clock, self.is_command
         mgr.signer, mgr.verifier = fresh.signer, fresh.verifier
+        mgr.peer_signers, mgr.peer_verifiers = fresh.peer_signers, fresh.peer_verifiers
         auth = root["auth"]
+        for p, c in (auth.get("peers") or {}).items():
+            if p in mgr.peer_signers:
+                mgr.peer_signers[p].counter = int(c["signed"])
+                mgr.peer_verifiers[p].counter = int(c["accepted"])
+                mgr.peer_verifiers[p].rejected = int(c["rejected"] or 0)
         if mgr.signer is not None and auth["signed"] is not None:
             mgr.signer.counter = int(auth["signed"])
         if mgr.verifier is not None and auth["accepted"] is not None:

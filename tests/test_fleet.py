@@ -377,3 +377,69 @@ def test_kill_9_of_one_vehicle_process_while_the_other_keeps_delivering(tmp_path
                 if p.poll() is None:
                     p.send_signal(signal.SIGKILL)
                     p.wait(timeout=10)
+
+
+def test_per_peer_command_keys_and_counters() -> None:
+    """Each vehicle shares its own key with topside (and all share the network key, for
+    broadcasts): a command for A is signed with A's key under A's counter; B cannot be made to
+    take a frame signed with A's key; broadcasts use the network key; the counters survive a
+    save."""
+    from coex_core import wire
+    from coex_core.auth import CommandVerifier
+
+    net_key, key_a, key_b = b"n" * 16, b"a" * 16, b"b" * 16
+    link = LinkConfig(0, safe())
+    top = ChannelManager(TOPSIDE, [link], command_key=net_key, peer_keys={A: key_a, B: key_b})
+    top_node = Node(top)
+    va = Node(ChannelManager(A, [LinkConfig(0, safe(), dst=TOPSIDE)], command_key=net_key, peer_keys={TOPSIDE: key_a}))
+    vb = Node(ChannelManager(B, [LinkConfig(0, safe(), dst=TOPSIDE)], command_key=net_key, peer_keys={TOPSIDE: key_b}))
+    top_node.queue_config(2, 0.0, priority=100, dst=A)
+    (tx,) = top.poll(0.0)
+    frame = tx.frames[0]
+    assert wire.unpack_frame(frame).header.dst == A
+    assert CommandVerifier(key_a).unpack(frame)  # signed with A's own key
+    assert top.peer_signers[A].counter == 1 and top.peer_signers[B].counter == 0 and top.signer.counter == 0
+    va.receive(0, frame, 1.0)
+    assert [e.status for e in va.events() if isinstance(e, CommandApplied)] == [AckStatus.ACCEPTED]
+    assert va.manager.peer_verifiers[TOPSIDE].counter == 1
+    for vtx in va.poll(21.0):  # A's ack and answer reach topside
+        for f in vtx.frames:
+            top_node.receive(0, f, 22.0)
+    assert not top.stream(2).entries
+    # the same frame re-addressed to B (header byte 1: src << 4 | dst) fails B's key
+    forged = frame[:1] + bytes([TOPSIDE << 4 | B]) + frame[2:]
+    vb.receive(0, forged, 1.0)
+    assert vb.stats["unauthenticated"] == 1 and not [e for e in vb.events() if isinstance(e, CommandApplied)]
+    # a broadcast command: the network key, which both check
+    top_node.spare_config(50, 60.0, dst=0)
+    txs = top.poll(60.0)
+    assert txs and top.signer.counter == 1
+    for v in (va, vb):
+        for f in txs[0].frames:
+            v.receive(0, f, 61.0)
+        assert [e.status for e in v.events() if isinstance(e, CommandApplied)] == [AckStatus.ACCEPTED]
+    # the counters are saved with the node and with the settings
+    saved = top_node.export_state()
+    fresh = Node(ChannelManager(TOPSIDE, [link], command_key=net_key, peer_keys={A: key_a, B: key_b}))
+    fresh.restore_state(saved)
+    assert fresh.manager.peer_signers[A].counter == 1 and fresh.manager.signer.counter == 1
+    settings = top.export_settings()
+    again = ChannelManager(TOPSIDE, [link], command_key=net_key, peer_keys={A: key_a, B: key_b})
+    again.import_settings(settings)
+    assert again.peer_signers[A].counter == 1 + ChannelManager.COUNTER_MARGIN
+
+
+def test_an_uncommitted_fleet_update_stays_uncommitted_across_a_settings_restart() -> None:
+    f = Fleet()
+    f.run(130.0)
+    f.mgr[TOPSIDE]._peer_heard[(0, 9)] = 10_000.0  # node 9 counts as heard but never answers:
+    f.node[TOPSIDE].schedule_update(0, Schedule.simple([TOPSIDE, A, B, A, B], 20.0, 2.0, version=4),
+                                    130.0, activate_cycle=8, peers=(A, B, 9))  # no commit comes
+    f.run(300.0)
+    pending = f.mgr[A].export_settings()["links"]["0"]["pending"]
+    assert pending["fleet"] is True and pending["committed"] is False
+    again = ChannelManager(A, [LinkConfig(0, safe(), dst=TOPSIDE)])
+    again.import_settings(f.mgr[A].export_settings(), 300.0)
+    assert again.pending_schedule(0) is not None
+    again.poll(8 * 60.0 + 1.0)  # its activation passes without a commit: it does not switch
+    assert again.schedule(0).version == 0

@@ -223,6 +223,8 @@ class _ManagerState:
     idle_interval: float
     signer: CommandSigner | None
     verifier: CommandVerifier | None
+    peer_signers: dict[int, CommandSigner]
+    peer_verifiers: dict[int, CommandVerifier]
     is_command: Callable[[Message], bool]
     _links: dict[int, _Link]
     _streams: dict[int, _Stream]
@@ -237,4 +239,15 @@ class _ManagerState:
     _commands: dict[int, Message]
     _command_dst: dict[int, int | None]
     stats: dict[str, int]
+
+    def signer_for(self, dst: int) -> CommandSigner | None:
+        """The signer of frames addressed to ``dst``: that peer's key, else the command key."""
+        return self.peer_signers.get(dst, self.signer)
+
+    def verifier_for(self, src: int, dst: int) -> CommandVerifier | None:
+        """The verifier of a frame from ``src`` addressed to ``dst``: the key shared with
+        ``src`` for a frame addressed to this node, the command key for a broadcast."""
+        if dst != 0 and src in self.peer_verifiers:
+            return self.peer_verifiers[src]
+        return self.verifier
 

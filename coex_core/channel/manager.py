@@ -15,7 +15,7 @@ tracking commands), :mod:`.settings` (operator settings); the API is this class'
 
 from __future__ import annotations
 
-from collections.abc import Callable, Iterable, Sequence
+from collections.abc import Callable, Iterable, Mapping, Sequence
 from typing import Any
 
 from ..auth import CommandSigner, CommandVerifier, is_command
@@ -72,7 +72,7 @@ def _upgrade_manager(fields: dict[str, Any], saved: int) -> dict[str, Any]:
 
 #: the clock, the command test and the key holders come from the node it is restored into
 @persistent("channel.ChannelManager", version=4, upgrade=_upgrade_manager,
-            transient=("clock", "is_command", "signer", "verifier"))
+            transient=("clock", "is_command", "signer", "verifier", "peer_signers", "peer_verifiers"))
 class ChannelManager(SettingsMixin):
     """Queues, packing, TDMA and links of one node (vehicle or topside).
 
@@ -85,6 +85,10 @@ class ChannelManager(SettingsMixin):
     authentication (spec section 10): frames this node sends that carry commands end with an
     ``AuthTrailer`` (13 bytes reserved while packing), signed by :attr:`signer`; the node checks
     received frames with :attr:`verifier`. Both counters are part of :meth:`export_settings`.
+    ``peer_keys`` (a network of several nodes: peer node id -> the key this node shares with
+    that peer alone) signs and checks the frames addressed to or coming from that peer (not
+    broadcasts) with that key, each under its own counters (:attr:`peer_signers`,
+    :attr:`peer_verifiers`); ``command_key`` is then the network key, for broadcast frames.
     """
 
     #: counters a restarted signer skips (frames it may have signed after its last save)
@@ -103,6 +107,7 @@ class ChannelManager(SettingsMixin):
         ack_frames: bool = True,
         idle_interval: float = 1.0,
         command_key: bytes | None = None,
+        peer_keys: Mapping[int, bytes] | None = None,
         low_throughput: float = LOW_THROUGHPUT,
         normal_throughput: float = NORMAL_THROUGHPUT,
     ) -> None:
@@ -119,6 +124,15 @@ class ChannelManager(SettingsMixin):
         self.idle_interval = float(idle_interval)
         self.signer = CommandSigner(command_key) if command_key is not None else None
         self.verifier = CommandVerifier(command_key) if command_key is not None else None
+        if peer_keys and command_key is None:
+            raise ConfigError("peer_keys need a command_key (the network key, for broadcast commands)")
+        for peer in peer_keys or {}:
+            if not 1 <= peer <= 15 or peer == node_id:
+                raise ConfigError(f"peer key for {peer}: not another node's id 1..15")
+        #: peer -> the signer and the verifier of the key shared with that peer alone
+        self.peer_signers: dict[int, CommandSigner] = {p: CommandSigner(k) for p, k in (peer_keys or {}).items()}
+        self.peer_verifiers: dict[int, CommandVerifier] = {
+            p: CommandVerifier(k) for p, k in (peer_keys or {}).items()}
         #: which messages are commands (signed when sent, verified when received); the node
         #: extends it with its modalities' request types
         self.is_command: Callable[[Message], bool] = is_command
@@ -158,6 +172,14 @@ class ChannelManager(SettingsMixin):
         #: the policy's thresholds (bytes per second, docs/channel.md)
         self.low_throughput = float(low_throughput)
         self.normal_throughput = float(normal_throughput)
+
+    def _after_restore(self) -> None:
+        """Loaded from saved state: no clock and no keys until the node it is restored into
+        gives its own (:meth:`coex_core.node.Node.restore_state`)."""
+        self.clock = None
+        self.is_command = is_command
+        self.signer = self.verifier = None
+        self.peer_signers, self.peer_verifiers = {}, {}
 
     # ============================================================================ events
     def events(self) -> list[Event]:

@@ -83,14 +83,14 @@ class PackingMixin(PolicyMixin):
         exhausted: dict[int, float] = {}
         t0 = self.clock() if self.clock is not None else 0.0
         acks = self._take_acks(now)
-        signer = self.signer
-        reserve = TRAILER_BYTES if signer is not None and any(
+        reserve = TRAILER_BYTES if (self.signer is not None or self.peer_signers) and any(
             self.is_command(e.message) for e in self._all_entries()) else 0
         room = cfg.fbytes - hdr_bytes - reserve
         # the node this packet is for: the link's ``dst`` unless the contest's winner is
         # addressed to another (a network of several nodes: one destination per packet)
         dst = self._packet_dst(link, w, room, now)
         own = dst == cfg.dst  # senders' pulls and spare work go to the link's destination
+        signer = self.signer_for(dst)
         # room kept in each frame for the extra copies of the urgent messages known now (frame
         # acks, tier-0 messages, replies queued on an expedited stream), so that background
         # traffic cannot crowd them out; unused, it goes to the spare tier
