@@ -24,7 +24,7 @@ refuses two modalities that claim one id.
 
 from __future__ import annotations
 
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass
 from typing import Any
 
@@ -95,6 +95,13 @@ class _ReceiverSlot:
     modality: type[Modality]
     receiver: ModalityReceiver
     stream: int
+    #: the node whose messages it takes and to which its requests go (None: any node)
+    peer: int | None = None
+
+    @property
+    def key(self) -> str:
+        """Its name in saved state and storage: the modality's, ``@peer`` for a per-peer one."""
+        return self.name if self.peer is None else f"{self.name}@{self.peer}"
 
 
 def _modality_class(m: Modality | type[Modality]) -> type[Modality]:
@@ -137,6 +144,8 @@ class Node:
         #: receiver (messages)
         self._request_routes = Routes("requests")
         self._message_routes = Routes("messages")
+        #: per-peer receivers (a network of several nodes): peer -> its routes
+        self._peer_routes: dict[int, Routes] = {}
         self._listeners: list[Callable[[list[Event]], Any]] = []
         manager.is_command = self.is_command
 
@@ -185,17 +194,28 @@ class Node:
             bind(self._peer)
 
     def add_receiver(self, modality: Modality | type[Modality], receiver: ModalityReceiver,
-                     stream: int = CONTROL_STREAM, *, ids: Mapping[int, int] | None = None) -> None:
+                     stream: int = CONTROL_STREAM, *, ids: Mapping[int, int] | None = None,
+                     peer: int | None = None) -> None:
         """Topside: ``receiver`` takes the modality's messages (routed by declared type ids);
         its requests (``poll``) go out on ``stream`` (default: the acked tier-0 control
         stream). ``ids`` as in :meth:`add_sender`. :class:`ConfigError` when another modality
-        on this node already claims one of its message ids."""
+        on this node already claims one of its message ids.
+
+        ``peer`` (a network of several nodes): the receiver takes only the messages of node
+        ``peer``, its requests go to that node alone, and its command answers count only from
+        it; one receiver per modality and peer (a receiver without ``peer`` takes the messages
+        of every node no per-peer receiver of the modality takes)."""
         cls = _modality_class(modality)
         name = str(getattr(cls, "name", cls.__name__))
         remap = check_remap(cls, ids)
         wire_ids = _on_wire(declared_ids(cls, "messages"), remap)
-        slot = _ReceiverSlot(name, cls, RemappedReceiver(receiver, remap) if remap else receiver, stream)
-        self._message_routes.claim(name, cls, wire_ids, slot)
+        if peer is not None and not 1 <= peer <= 15:
+            raise ConfigError(f"peer {peer} is not a node id 1..15")
+        slot = _ReceiverSlot(name, cls, RemappedReceiver(receiver, remap) if remap else receiver, stream, peer)
+        if peer is None:
+            self._message_routes.claim(name, cls, wire_ids, slot)
+        else:
+            self._peer_routes.setdefault(peer, Routes("messages")).claim(name, cls, wire_ids, slot)
         self.manager.stream(stream)
         self._add_requests(cls, remap)
         slot.receiver.bind_command_ids(self.manager.next_command_id)  # one command id space per node
@@ -215,12 +235,15 @@ class Node:
             self._events.append(BadFrame(now, link_id, str(exc), len(frame) if isinstance(frame, bytes | bytearray) else 0))
             return []
         h = decoded.header
-        if h.src == self.node_id or h.dst not in (0, self.node_id):
+        if h.src == self.node_id:
             self.stats["foreign"] += 1
+            return []
+        if h.dst not in (0, self.node_id):
+            self._overheard(link_id, h, decoded.messages, now)
             return []
         messages = list(decoded.messages)
         replayed = False
-        verifier = self.manager.verifier
+        verifier = self.manager.verifier_for(h.src, h.dst)
         if verifier is not None:
             try:
                 messages = verifier.verify(frame, h, messages, self.is_command)
@@ -247,9 +270,23 @@ class Node:
                 self._events.append(Rejected(now, m, f"{type(exc).__name__}: {exc}"))
         return messages
 
-    def _acked(self, ack: FrameAck, now: float) -> None:
+    def _overheard(self, link_id: int, h: Any, messages: Any, now: float) -> None:
+        """A frame addressed to another node (a network of several nodes): not consumed, not
+        acknowledged. It still shows the network is alive (watchdog, the sender's schedule
+        version and loss), and its frame acks that name this node apply: a frame ack is
+        addressed by its ``node`` field (spec section 7)."""
+        self.stats["foreign"] += 1
+        try:
+            self.manager.on_frame(link_id, h, now, ackable=False, addressed=False)
+        except CoexError as exc:
+            self._note(f"frame bookkeeping failed: {exc}")
+        for m in messages:
+            if isinstance(m, FrameAck) and m.node == self.node_id:
+                self._acked(m, now, h.src)
+
+    def _acked(self, ack: FrameAck, now: float, src: int | None = None) -> None:
         """Apply a frame ack, then tell each sender which of its messages were acknowledged."""
-        for stream, message in self.manager.acknowledge(ack, now):
+        for stream, message in self.manager.acknowledge(ack, now, src):
             for s in self._senders:
                 if s.stream != stream:
                     continue
@@ -280,12 +317,17 @@ class Node:
 
     def _route(self, link_id: int, src: int, m: Message, now: float) -> None:
         if isinstance(m, FrameAck):
-            self._acked(m, now)
+            self._acked(m, now, src)
             return
         if self._copy_seen(m, now):
             self.stats["duplicates"] += 1  # a redundant copy from the same packet: handled once
             return
         if isinstance(m, CommandAck):
+            known = self._command_owner.get(m.command_id)
+            if (known is not None and known.peer not in (None, src)) or \
+                    (known is None and not self.manager.answers(m.command_id, src)):
+                self.stats["foreign"] += 1  # an answer to a command another node was sent
+                return
             if m.status == AckStatus.PENDING:  # a standing request: its final answer follows
                 owner = self._command_owner.get(m.command_id)
             else:
@@ -294,7 +336,7 @@ class Node:
                 # a modality request: its receiver tracks it (and may stop retrying it)
                 for p in owner.receiver.receive(m, now) or ():
                     self._events.append(ProductUpdated(now, owner.name, p))
-            self.manager.on_command_ack(m, now)  # emits CommandResult
+            self.manager.on_command_ack(m, now, src)  # emits CommandResult
             return
         if self._duplicate(m, now):
             return
@@ -307,7 +349,10 @@ class Node:
         if s is not None:
             self._handle_request(s, m, now)
             return
-        r = self._message_routes.owner(m)
+        peer_routes = self._peer_routes.get(src)
+        r = peer_routes.owner(m) if peer_routes is not None else None
+        if r is None:
+            r = self._message_routes.owner(m)
         if r is not None:
             for p in r.receiver.receive(m, now):
                 self._events.append(ProductUpdated(now, r.name, p))
@@ -418,7 +463,7 @@ class Node:
             for m in reqs:
                 self._supersede(r, m, now)
                 try:
-                    self.manager.push(r.stream, m, now)
+                    self.manager.push(r.stream, m, now, dst=r.peer)
                 except CoexError as exc:
                     self._events.append(Rejected(now, m, f"request not sendable: {exc}"))
         return self.manager.poll(now)
@@ -429,7 +474,7 @@ class Node:
             return old is not new and type(old) is type(new) and r.receiver.supersedes(old, new)
 
         try:
-            self.manager.withdraw(r.stream, outdated, now)
+            self.manager.withdraw(r.stream, outdated, now, dst=r.peer)
         except Exception as exc:
             self._note(f"{r.name} receiver supersedes failed: {exc}")
 
@@ -481,38 +526,44 @@ class Node:
         self.manager.push(CONTROL_STREAM, health, now)
 
     # ================================================================== topside helpers
+    # In a network of several nodes, ``dst`` names the node a command is for (0: every node;
+    # None: the link's ``LinkConfig.dst``); only that node's CommandAck answers it.
     def queue_config(self, stream: int, now: float, *, flush: bool = False,
                      enabled: bool | None = None, priority: int | None = None,
                      ttl: int | None = None, max_depth: int | None = None,
-                     newest_first: bool | None = None) -> int:
+                     newest_first: bool | None = None, dst: int | None = None) -> int:
         """Send a QueueConfig; returns its command id (see :class:`CommandResult` events)."""
         cid = self.manager.next_command_id()
         msg = QueueConfig(cid, stream, flush, enabled, priority, ttl, max_depth, newest_first)
-        return self.manager.send_command(msg, now)
+        return self.manager.send_command(msg, now, dst=dst)
 
-    def link_control(self, link: int, now: float, *, enabled: bool = True, mute: bool = False) -> int:
+    def link_control(self, link: int, now: float, *, enabled: bool = True, mute: bool = False,
+                     dst: int | None = None) -> int:
         cid = self.manager.next_command_id()
-        return self.manager.send_command(LinkControl(cid, link, enabled, mute), now)
+        return self.manager.send_command(LinkControl(cid, link, enabled, mute), now, dst=dst)
 
     def spare_config(self, percent: int, now: float, *, link: int | None = None,
-                     stream: int | None = None) -> int:
+                     stream: int | None = None, dst: int | None = None) -> int:
         """Send a SpareConfig: cap spare traffic at ``percent`` of each packet (0: off) on
         ``link`` (every link when both are None) or for ``stream``; returns its command id."""
         cid = self.manager.next_command_id()
-        return self.manager.send_command(SpareConfig(cid, link, stream, int(percent)), now)
+        return self.manager.send_command(SpareConfig(cid, link, stream, int(percent)), now, dst=dst)
 
     def schedule_update(self, link: int, schedule: Schedule, now: float,
-                        activate_cycle: int | None = None) -> int:
-        """Announce a new schedule; both ends switch at the announced cycle boundary."""
-        return self.manager.propose_schedule(link, schedule, now, activate_cycle).command_id
+                        activate_cycle: int | None = None, *,
+                        peers: Iterable[int] | None = None) -> int:
+        """Announce a new schedule; both ends switch at the announced cycle boundary. In a
+        network of several nodes every node must agree first
+        (:meth:`ChannelManager.propose_schedule`, ``peers``)."""
+        return self.manager.propose_schedule(link, schedule, now, activate_cycle, peers=peers).command_id
 
-    def request(self, message: Message, now: float) -> int | None:
+    def request(self, message: Message, now: float, *, dst: int | None = None) -> int | None:
         """Send a modality request (or any message) on the control stream; a request with a
-        ``command_id`` is tracked until the vehicle's CommandAck."""
+        ``command_id`` is tracked until the vehicle's CommandAck. ``dst``: the node it is for."""
         cid = getattr(message, "command_id", None)
         if cid is not None:
-            return self.manager.send_command(message, now)
-        self.manager.push(CONTROL_STREAM, message, now)
+            return self.manager.send_command(message, now, dst=dst)
+        self.manager.push(CONTROL_STREAM, message, now, dst=dst)
         return None
 
     def command_results(self, events: list[Event]) -> list[CommandResult]:
@@ -526,12 +577,14 @@ class Node:
                 return s.sender
         raise ConfigError(f"no sender {name!r} on node {self.node_id}")
 
-    def receiver(self, name: str) -> ModalityReceiver:
-        """The receiver of the modality called ``name`` (:class:`ConfigError` if none)."""
+    def receiver(self, name: str, peer: int | None = None) -> ModalityReceiver:
+        """The receiver of the modality called ``name`` (for node ``peer``, if per-peer;
+        :class:`ConfigError` if none)."""
         for r in self._receivers:
-            if r.name == name:
+            if r.name == name and r.peer == peer:
                 return r.receiver
-        raise ConfigError(f"no receiver {name!r} on node {self.node_id}")
+        raise ConfigError(f"no receiver {name!r}{'' if peer is None else f' for node {peer}'} "
+                          f"on node {self.node_id}")
 
     def receivers(self) -> list[tuple[str, ModalityReceiver]]:
         """``(modality name, receiver)`` of every attached receiver, in attachment order."""
@@ -547,7 +600,7 @@ class Node:
         for s in self._senders:
             _innermost(s.sender).attach_storage(storage.child(f"tx/{s.name}/"))
         for r in self._receivers:
-            _innermost(r.receiver).attach_storage(storage.child(f"rx/{r.name}/"))
+            _innermost(r.receiver).attach_storage(storage.child(f"rx/{r.key}/"))
 
     def sync_storage(self) -> None:
         """Every modality writes to its storage what the storage does not have yet (before a
@@ -573,13 +626,18 @@ class Node:
         root = {
             "node_id": self.node_id,
             "node": {k: getattr(self, k) for k in self._STATE_FIELDS},
-            "command_owner": {cid: r.name for cid, r in self._command_owner.items()},
+            "command_owner": {cid: r.key for cid, r in self._command_owner.items()},
             "manager": mgr,
             "auth": {"signed": mgr.signer.counter if mgr.signer is not None else None,
                      "accepted": mgr.verifier.counter if mgr.verifier is not None else None,
-                     "rejected": mgr.verifier.rejected if mgr.verifier is not None else None},
+                     "rejected": mgr.verifier.rejected if mgr.verifier is not None else None,
+                     # a network of several nodes: the counters of each peer's own key
+                     "peers": {p: {"signed": mgr.peer_signers[p].counter,
+                                   "accepted": mgr.peer_verifiers[p].counter,
+                                   "rejected": mgr.peer_verifiers[p].rejected}
+                               for p in sorted(mgr.peer_signers)}},
             "senders": {s.name: _innermost(s.sender) for s in self._senders},
-            "receivers": {r.name: _innermost(r.receiver) for r in self._receivers},
+            "receivers": {r.key: _innermost(r.receiver) for r in self._receivers},
             "extra": extra,
         }
         return dumps(root)
@@ -594,18 +652,24 @@ class Node:
             raise StateError(f"the saved state is node {root.get('node_id')}'s, not {self.node_id}'s")
         senders, receivers = dict(root["senders"]), dict(root["receivers"])
         if set(senders) != {s.name for s in self._senders} or \
-                set(receivers) != {r.name for r in self._receivers}:
+                set(receivers) != {r.key for r in self._receivers}:
             raise StateError(f"the saved state has senders {sorted(senders)} and receivers "
                              f"{sorted(receivers)}; this node has "
                              f"{sorted(s.name for s in self._senders)} and "
-                             f"{sorted(r.name for r in self._receivers)}")
+                             f"{sorted(r.key for r in self._receivers)}")
         fresh, mgr = self.manager, root["manager"]
         if sorted(mgr.links) != sorted(fresh.links):
             raise StateError(f"the saved state has links {sorted(mgr.links)}, this node "
                              f"{sorted(fresh.links)}")
         mgr.clock, mgr.is_command = fresh.clock, self.is_command
         mgr.signer, mgr.verifier = fresh.signer, fresh.verifier
+        mgr.peer_signers, mgr.peer_verifiers = fresh.peer_signers, fresh.peer_verifiers
         auth = root["auth"]
+        for p, c in (auth.get("peers") or {}).items():
+            if p in mgr.peer_signers:
+                mgr.peer_signers[p].counter = int(c["signed"])
+                mgr.peer_verifiers[p].counter = int(c["accepted"])
+                mgr.peer_verifiers[p].rejected = int(c["rejected"] or 0)
         if mgr.signer is not None and auth["signed"] is not None:
             mgr.signer.counter = int(auth["signed"])
         if mgr.verifier is not None and auth["accepted"] is not None:
@@ -615,7 +679,7 @@ class Node:
             s.sender = _install(s.sender, senders[s.name])
             self._bind_peers(s.sender)
         for r in self._receivers:
-            r.receiver = _install(r.receiver, receivers[r.name])
+            r.receiver = _install(r.receiver, receivers[r.key])
             r.receiver.bind_command_ids(mgr.next_command_id)
         by_stream = {s.stream: s.sender for s in self._senders}
         for sid, st in mgr._streams.items():
@@ -624,7 +688,7 @@ class Node:
         self.manager = mgr
         for k, v in root["node"].items():
             setattr(self, k, v)
-        slots = {r.name: r for r in self._receivers}
+        slots = {r.key: r for r in self._receivers}
         self._command_owner = {int(cid): slots[name] for cid, name in root["command_owner"].items()
                                if name in slots}
         return root["extra"]

@@ -24,21 +24,22 @@ __all__ = ["AcksMixin"]
 
 class AcksMixin(DeliveryMixin):
     # ============================================================================== acks
-    def on_ack(self, ack: FrameAck, now: float) -> int:
-        """Apply a :class:`FrameAck` (received on any link): every ack-required message packed
-        in an acknowledged frame leaves its queue, and every link's pending records. Returns the
-        number of ack-required messages cleared."""
-        return len(self._acknowledge(ack, now)[0])
+    def on_ack(self, ack: FrameAck, now: float, src: int | None = None) -> int:
+        """Apply a :class:`FrameAck` (received on any link, from node ``src`` if known): every
+        ack-required message packed in an acknowledged frame leaves its queue, and every link's
+        pending records. Returns the number of ack-required messages cleared."""
+        return len(self._acknowledge(ack, now, src)[0])
 
-    def acknowledge(self, ack: FrameAck, now: float) -> list[tuple[int, Message]]:
+    def acknowledge(self, ack: FrameAck, now: float, src: int | None = None) -> list[tuple[int, Message]]:
         """:meth:`on_ack`, returning the ``(stream, message)`` pairs it cleared (each also gives
         an :class:`Acked` event), then the modality messages of other streams that the
         acknowledged frames delivered (see :mod:`.delivery`); the node gives each to the
-        sender that produced it (``ModalitySender.acked``)."""
-        cleared, delivered = self._acknowledge(ack, now)
+        sender that produced it (``ModalitySender.acked``). ``src`` (the node whose frame
+        carried the ack) keeps the loss inference to the frames that node was to acknowledge."""
+        cleared, delivered = self._acknowledge(ack, now, src)
         return cleared + delivered
 
-    def _acknowledge(self, ack: FrameAck, now: float
+    def _acknowledge(self, ack: FrameAck, now: float, src: int | None = None
                      ) -> tuple[list[tuple[int, Message]], list[tuple[int, Message]]]:
         if ack.node != self.node_id or ack.link not in self._links:
             return [], []
@@ -46,7 +47,7 @@ class AcksMixin(DeliveryMixin):
         cleared: list[tuple[int, Message]] = []
         delivered: list[tuple[int, Message]] = []
         seqs = [(ent.seq + i) % SEQ_MODULUS for ent in ack.entries for i in range(8) if ent.frames >> i & 1]
-        delivered.extend(self._delivered(ack.link, seqs, now))
+        delivered.extend(self._delivered(ack.link, seqs, now, src))
         for ent in ack.entries:
             for i in range(8):
                 if not ent.frames >> i & 1:
@@ -64,15 +65,22 @@ class AcksMixin(DeliveryMixin):
                     self._events.append(Acked(now, sid, e.message, now - (e.first_sent or now), ack.link))
         return cleared, delivered
 
-    def on_frame(self, link: int, header: FrameHeader, now: float, ackable: bool = True) -> None:
+    def on_frame(self, link: int, header: FrameHeader, now: float, ackable: bool = True,
+                 addressed: bool = True) -> None:
         """Bookkeeping for a good frame received on ``link``: the watchdog, the peer's schedule
-        version, and (if ``ackable``) the frame ack to send back."""
+        version, and (if ``ackable``) the frame ack to send back. A frame addressed to another
+        node (``addressed`` False: overheard in a network of several nodes) counts for the
+        watchdog, the sender's loss and schedule version, and is neither counted as received
+        nor acknowledged."""
         st = self._links.get(link)
         if st is None or header.src == self.node_id:
             return
         st.last_heard = now
-        st.frames_rx += 1
-        self._heard(link, header)
+        self._heard(link, header, now)
+        if not addressed:
+            ackable = False
+        else:
+            st.frames_rx += 1
         if self.ack_frames and ackable:
             seqs = self._to_ack.setdefault((header.src, link), {})
             seqs[header.seq] = now  # a newer use of a seq: the ack names the newest

@@ -4,6 +4,7 @@ A part of :class:`~coex_core.channel.manager.ChannelManager` (the API is the man
 
 from __future__ import annotations
 
+from collections.abc import Iterable
 from typing import Any
 
 from ..errors import ConfigError
@@ -96,7 +97,14 @@ class CommandsMixin(PackingMixin):
             if new.slots == st.current.slots and new.version == st.current.version:
                 return AckStatus.ACCEPTED, "already active"
             return AckStatus.REJECTED, f"activation cycle {n} is not after the current cycle {cur}"
-        st.pending = _PendingSchedule(new.starting_at(n, st.current.cycle_start(n)), c.command_id)
+        sched = new.starting_at(n, st.current.cycle_start(n))
+        if st.pending is not None and st.pending.schedule == sched:
+            # the same schedule again under a new command id: in a network of several nodes,
+            # the proposer's commit (every node agreed); it takes effect at its activation
+            st.pending.committed = True
+            st.pending.command_id = c.command_id
+            return AckStatus.ACCEPTED, "committed"
+        st.pending = _PendingSchedule(sched, c.command_id, fleet=self._fleet(st))
         return AckStatus.ACCEPTED, ""
 
     def _apply_spare(self, c: SpareConfig) -> tuple[AckStatus, str]:
@@ -144,43 +152,124 @@ class CommandsMixin(PackingMixin):
         self._command_id = (self._command_id + 1) % 256
         return self._command_id
 
-    def send_command(self, command: Message, now: float) -> int:
+    def send_command(self, command: Message, now: float, *, dst: int | None = None) -> int:
         """Queue a command (on the control stream, acked) and remember it until its
-        CommandAck arrives. Returns its command id."""
+        CommandAck arrives. Returns its command id. ``dst``: the node it is for (0: every
+        node; ``None``: the link's ``dst``); a CommandAck from another node does not answer it."""
         cid = int(getattr(command, "command_id", 0))
         tracked = self._commands[cid] = Tracked(command)
         tracked.apply(Event.SEND, now)
-        self.push(CONTROL_STREAM, command, now)
+        self._command_dst[cid] = dst
+        self.push(CONTROL_STREAM, command, now, dst=dst)
         return cid
 
+    def answers(self, command_id: int, src: int) -> bool:
+        """Whether a CommandAck from node ``src`` can answer our command ``command_id``: the
+        command was addressed to ``src``, to every node, or to the link's destination."""
+        dst = self._command_dst.get(command_id)
+        return dst is None or dst in (0, src)
+
     def propose_schedule(self, link: int, schedule: Schedule, now: float,
-                         activate_cycle: int | None = None, lead_cycles: int = 2) -> ScheduleUpdate:
+                         activate_cycle: int | None = None, lead_cycles: int | None = None,
+                         peers: Iterable[int] | None = None) -> ScheduleUpdate:
         """Topside: announce ``schedule`` for ``link`` from cycle ``activate_cycle`` (default: the
-        current cycle + ``lead_cycles``). Both ends switch at that cycle boundary once the vehicle
-        has acked; if the ack is late, topside switches when it first sees the new version."""
+        current cycle + ``lead_cycles``: 2, or 4 in a network of several nodes). Both ends switch
+        at that cycle boundary once the vehicle has acked; if the ack is late, topside switches
+        when it first sees the new version.
+
+        In a network of several nodes (the link's safe schedule gives slots to more than two
+        nodes, or ``peers`` is given) the update is broadcast and must be agreed by every
+        peer (default: every node the safe, current or new schedule gives a slot) before it
+        takes effect: when all have accepted, the proposer announces it again under a new
+        command id (the commit) and every node switches at the activation; a peer silent for
+        ``watchdog_cycles`` cycles is not waited for. Without every ACCEPTED before the
+        activation (a rejection, acks lost) nothing changes (docs/channel.md)."""
         st = self._link(link)
+        fleet = peers is not None or self._fleet(st)
+        lead = (4 if fleet else 2) if lead_cycles is None else lead_cycles
         cur = st.current.cycle_at(now)
-        n = cur + lead_cycles if activate_cycle is None else activate_cycle
+        n = cur + lead if activate_cycle is None else activate_cycle
         if n <= cur:
             raise ConfigError(f"activation cycle {n} is not after the current cycle {cur}")
+        if fleet:
+            members = set(peers) if peers is not None else {
+                s.owner for sch in (st.safe, st.current, schedule) for s in sch.slots}
+            awaiting = {p for p in members if p not in (0, self.node_id)}
+            for p in awaiting:
+                if not 1 <= p <= 15:
+                    raise ConfigError(f"peer {p} is not a node id 1..15")
         cid = self.next_command_id()
         msg = schedule.to_message(cid, link, n)
-        self.send_command(msg, now)
-        st.proposed[cid] = _PendingSchedule(schedule.starting_at(n, st.current.cycle_start(n)), cid)
+        self.send_command(msg, now, dst=0 if fleet else None)
+        sched = schedule.starting_at(n, st.current.cycle_start(n))
+        st.proposed[cid] = _PendingSchedule(sched, cid, awaiting if fleet else set(), fleet)
+        if fleet:
+            self._settle_proposals(link, now)
         return msg
 
-    def on_command_ack(self, ack: CommandAck, now: float) -> CommandResult:
+    def _tick(self, now: float) -> None:
+        for link, st in self._links.items():
+            if st.proposed:
+                self._settle_proposals(link, now)
+        super()._tick(now)
+
+    def _settle_proposals(self, link: int, now: float) -> None:
+        """The proposer's proposals to a network of several nodes: a peer silent for
+        ``watchdog_cycles`` cycles is no longer awaited; once none is, the proposal is committed
+        (announced again, and pending here); one not agreed before its activation is dropped."""
+        st = self._links[link]
+        silent_after = st.cfg.watchdog_cycles * st.current.cycle
+        for cid, prop in list(st.proposed.items()):
+            if not prop.fleet:
+                continue
+            if now >= prop.schedule.epoch - 1e-9:
+                del st.proposed[cid]
+                self.stats["schedules_not_agreed"] = self.stats.get("schedules_not_agreed", 0) + 1
+                continue
+            for p in list(prop.awaiting):
+                heard = self._peer_heard.get((link, p))
+                if heard is None or now - heard > silent_after:
+                    prop.awaiting.discard(p)
+            if prop.awaiting:
+                continue
+            del st.proposed[cid]
+            commit = self.next_command_id()
+            msg = prop.schedule.to_message(commit, link, prop.schedule.first_cycle)
+            self.send_command(msg, now, dst=0)
+            st.proposed.pop(commit, None)
+            st.pending = _PendingSchedule(prop.schedule, commit, set(), True, True)
+
+    def on_command_ack(self, ack: CommandAck, now: float, src: int | None = None) -> CommandResult | None:
         """Topside: the vehicle's answer to one of our commands, through the core tracker's
-        states (:mod:`coex_core.tracker`): a PENDING answer keeps the command, whose final
-        answer follows; a final one ends it."""
+        states (:mod:`coex_core.tracker`; a PENDING answer keeps the command, whose final answer
+        follows). ``src``: the node that answered; an answer to a
+        command addressed to another node is ignored (``None``). A command to every node
+        (``dst`` 0) stays known for every node's answer."""
+        if src is not None and not self.answers(ack.command_id, src):
+            self.stats["foreign_answers"] = self.stats.get("foreign_answers", 0) + 1
+            return None
+        # through the core tracker's states (coex_core.tracker): a PENDING answer keeps the
+        # command, a final one ends it; a command to every node stays for every node's answer
         tracked = self._commands.get(ack.command_id)
         command = None
         if tracked is not None:
             command = tracked.message
-            tracked.apply(answer_event(ack.status.name), now, answer=ack.status.name)
-            if not tracked.open:
-                del self._commands[ack.command_id]
+            if self._command_dst.get(ack.command_id) != 0:
+                tracked.apply(answer_event(ack.status.name), now, answer=ack.status.name)
+                if not tracked.open:
+                    del self._commands[ack.command_id]
+                    self._command_dst.pop(ack.command_id, None)
         for link, st in self._links.items():
+            fprop = st.proposed.get(ack.command_id)
+            if fprop is not None and fprop.fleet:
+                if ack.status == AckStatus.ACCEPTED:
+                    if src is not None:
+                        fprop.awaiting.discard(src)
+                elif ack.status != AckStatus.PENDING:  # a node refused it: nothing changes
+                    del st.proposed[ack.command_id]
+                    self.stats["schedules_not_agreed"] = self.stats.get("schedules_not_agreed", 0) + 1
+                self._settle_proposals(link, now)
+                continue
             prop = st.proposed.pop(ack.command_id, None)
             if prop is not None and ack.status == AckStatus.ACCEPTED:
                 if now >= prop.schedule.epoch:

@@ -81,6 +81,21 @@ def delivery_fields() -> dict[str, Any]:
     }
 
 
+def peer_fields() -> dict[str, Any]:
+    """The per-peer bookkeeping of a network of several nodes (also what
+    ``channel.ChannelManager`` version 3, saved before it existed, is upgraded with)."""
+    return {
+        #: link -> seq -> the node a watched frame was addressed to (0: broadcast)
+        "_frame_dst": {},
+        #: (link, peer) -> recent outcomes of our frames addressed to ``peer`` (0: broadcast)
+        "_peer_tx": {},
+        #: (link, peer) -> recent outcomes of ``peer``'s frames (1 received, 0 a gap)
+        "_peer_rx": {},
+        #: (link, peer) -> when a good frame of ``peer`` was last heard (addressed to us or not)
+        "_peer_heard": {},
+    }
+
+
 class DeliveryMixin(LinksMixin):
     _deliveries: dict[int, _Delivery]
     _delivery_ids: int
@@ -91,12 +106,16 @@ class DeliveryMixin(LinksMixin):
     _rx_outcomes: dict[int, deque[int]]
     _rx_last: dict[tuple[int, int], int]
     _lost_recs: OrderedDict[int, _Delivery]
+    _frame_dst: dict[int, dict[int, int]]
+    _peer_tx: dict[tuple[int, int], deque[int]]
+    _peer_rx: dict[tuple[int, int], deque[int]]
+    _peer_heard: dict[tuple[int, int], float]
     #: stream -> when its sender last got spare capacity (the spare tier takes turns)
     _spare_turn: dict[int, float]
 
     def _delivery_state(self) -> None:
         """Create the delivery and loss bookkeeping (``__init__``)."""
-        for k, v in delivery_fields().items():
+        for k, v in {**delivery_fields(), **peer_fields()}.items():
             setattr(self, k, v)
 
     # ----------------------------------------------------------------------- tracking
@@ -118,8 +137,22 @@ class DeliveryMixin(LinksMixin):
         rec.frames.append((link, seq))
         self._delivery_frames.setdefault(link, {}).setdefault(seq, []).append(token)
 
-    def _watch_frame(self, link: int, seq: int, now: float) -> None:
+    def _watch_frame(self, link: int, seq: int, now: float, dst: int = 0) -> None:
         self._frame_watch.setdefault(link, {})[seq] = (now, now + self._links[link].ack_timeout)
+        self._frame_dst.setdefault(link, {})[seq] = dst
+
+    def _tx_outcome(self, link: int, seq: int, ok: int) -> None:
+        """The fate of our frame ``seq``: the link's loss, and that of the frame's destination."""
+        self._outcome(self._tx_outcomes, link, ok)
+        peer = self._frame_dst.get(link, {}).pop(seq, None)
+        if peer is not None:
+            self._outcome(self._peer_tx, (link, peer), ok)
+
+    def _answerable(self, link: int, seq: int, src: int | None) -> bool:
+        """Whether node ``src`` was to acknowledge our frame ``seq``: it was addressed to it, or
+        to every node (or ``src`` or the frame's destination is not known)."""
+        dst = self._frame_dst.get(link, {}).get(seq)
+        return src is None or dst is None or dst in (0, src)
 
     def _forget_frame(self, link: int, seq: int) -> None:
         """``seq`` is used again: the old frame's ack can no longer be told apart, so a message
@@ -131,22 +164,24 @@ class DeliveryMixin(LinksMixin):
                     token in carried for frames in self._delivery_frames.values() for carried in frames.values()):
                 del self._lost_recs[token]
         if self._frame_watch.get(link, {}).pop(seq, None) is not None:
-            self._outcome(self._tx_outcomes, link, 0)
+            self._tx_outcome(link, seq, 0)
 
-    def _delivered(self, link: int, seqs: list[int], now: float) -> list[tuple[int, Message]]:
-        """The frames ``seqs`` on ``link`` were acknowledged (one FrameAck): the modality
-        messages they delivered. The peer acknowledges every frame it received in its next
-        transmission, so a watched frame sent in a packet before the newest one this ack covers,
-        and not acknowledged, was lost: its messages go to their senders' ``lost`` at once,
-        without waiting for the ack timeout."""
+    def _delivered(self, link: int, seqs: list[int], now: float,
+                   src: int | None = None) -> list[tuple[int, Message]]:
+        """The frames ``seqs`` on ``link`` were acknowledged (one FrameAck, by node ``src``):
+        the modality messages they delivered. The peer acknowledges every frame it received in
+        its next transmission, so a watched frame addressed to it (or broadcast) sent in a
+        packet before the newest one this ack covers, and not acknowledged, was lost: its
+        messages go to their senders' ``lost`` at once, without waiting for the ack timeout.
+        (Frames addressed to other nodes wait for their own acks.)"""
         watch = self._frame_watch.get(link, {})
         newest = -math.inf
         out = []
-        fates: list[tuple[float, int]] = []  # (sent, 1 acked / 0 lost), recorded in send order
+        fates: list[tuple[float, int, int]] = []  # (sent, seq, 1 acked / 0 lost), in send order
         for seq in seqs:
             w = watch.pop(seq, None)
             if w is not None:
-                fates.append((w[0], 1))
+                fates.append((w[0], seq, 1))
                 newest = max(newest, w[0])
             for token in self._delivery_frames.get(link, {}).pop(seq, ()):
                 rec = self._deliveries.pop(token, None)
@@ -159,11 +194,11 @@ class DeliveryMixin(LinksMixin):
                     out.append((rec.stream, rec.message))
         # strictly earlier packets only: frames of the newest acknowledged packet may still be
         # on their way through the peer's receiver (it may build its ack between two frames)
-        for seq in [q for q, (sent, _) in watch.items() if sent < newest]:
-            fates.append((watch.pop(seq)[0], 0))
+        for seq in [q for q, (sent, _) in watch.items() if sent < newest and self._answerable(link, q, src)]:
+            fates.append((watch.pop(seq)[0], seq, 0))
             self._frame_lost(link, seq, now)
-        for _, ok in sorted(fates):
-            self._outcome(self._tx_outcomes, link, ok)
+        for _, seq, ok in sorted(fates):
+            self._tx_outcome(link, seq, ok)
         return out
 
     def _frame_lost(self, link: int, seq: int, now: float) -> None:
@@ -212,7 +247,7 @@ class DeliveryMixin(LinksMixin):
             late = [seq for seq, (_, t) in watch.items() if t <= now]
             for seq in late:
                 del watch[seq]
-                self._outcome(self._tx_outcomes, link, 0)
+                self._tx_outcome(link, seq, 0)
 
     def _tick(self, now: float) -> None:
         super()._tick(now)
@@ -220,12 +255,16 @@ class DeliveryMixin(LinksMixin):
 
     # --------------------------------------------------------------------------- loss
     @staticmethod
-    def _outcome(book: dict[int, deque[int]], link: int, ok: int) -> None:
-        book.setdefault(link, deque(maxlen=LOSS_WINDOW)).append(ok)
+    def _outcome(book: dict[Any, deque[int]], key: Any, ok: int) -> None:
+        book.setdefault(key, deque(maxlen=LOSS_WINDOW)).append(ok)
 
-    def _heard(self, link: int, header: FrameHeader) -> None:
-        """A good frame from the peer: a gap in its seqs counts as frames lost on the way in."""
+    def _heard(self, link: int, header: FrameHeader, now: float | None = None) -> None:
+        """A good frame from the peer: a gap in its seqs counts as frames lost on the way in
+        (for the link, and for that peer)."""
         key = (header.src, link)
+        peer = (link, header.src)
+        if now is not None:
+            self._peer_heard[peer] = now
         last = self._rx_last.get(key)
         self._rx_last[key] = header.seq
         if last is not None:
@@ -233,7 +272,9 @@ class DeliveryMixin(LinksMixin):
             if gap < MAX_GAP:  # a larger jump is a restart or a long outage, not loss
                 for _ in range(gap):
                     self._outcome(self._rx_outcomes, link, 0)
+                    self._outcome(self._peer_rx, peer, 0)
         self._outcome(self._rx_outcomes, link, 1)
+        self._outcome(self._peer_rx, peer, 1)
 
     def link_state(self, link: int) -> dict[str, Any]:
         """:meth:`LinksMixin.link_state`, with the measured frame ``loss`` and the ``copies`` an
@@ -241,13 +282,29 @@ class DeliveryMixin(LinksMixin):
         out = super().link_state(link)
         out["loss"] = self.frame_loss(link)
         out["copies"] = self.copies(link)
+        out["peers"] = {p: {"loss": self.frame_loss(link, p), "last_heard": self._peer_heard.get((link, p))}
+                        for p in self.peers(link)}
         return out
 
-    def frame_loss(self, link: int) -> float | None:
+    def peers(self, link: int) -> list[int]:
+        """The nodes heard on ``link`` or sent frames to (0: broadcast), by id."""
+        keys = set(self._peer_tx) | set(self._peer_rx) | set(self._peer_heard)
+        return sorted({p for lk, p in keys if lk == link})
+
+    def last_heard(self, link: int, peer: int) -> float | None:
+        """When a good frame of node ``peer`` was last heard on ``link`` (``None``: never)."""
+        return self._peer_heard.get((link, peer))
+
+    def frame_loss(self, link: int, peer: int | None = None) -> float | None:
         """The measured frame loss on ``link``: of our frames (from the peer's frame acks) once
-        :data:`MIN_OUTCOMES` are known, else of the peer's frames; ``None`` before either."""
-        for book in (self._tx_outcomes, self._rx_outcomes):
-            seen = book.get(link)
+        :data:`MIN_OUTCOMES` are known, else of the peer's frames; ``None`` before either.
+        With ``peer``, the loss between this node and that one: of our frames addressed to it
+        (``peer`` 0: our broadcast frames), else of its frames."""
+        books: tuple[tuple[dict[Any, deque[int]], Any], ...] = (
+            ((self._tx_outcomes, link), (self._rx_outcomes, link)) if peer is None else
+            ((self._peer_tx, (link, peer)), (self._peer_rx, (link, peer))))
+        for book, key in books:
+            seen = book.get(key)
             if seen is not None and len(seen) >= MIN_OUTCOMES:
                 return 1.0 - sum(seen) / len(seen)
         return None

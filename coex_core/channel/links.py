@@ -6,6 +6,7 @@ from __future__ import annotations
 import math
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from typing import Any
 
 from ..acoustic import RateInfo, rate_info
 from ..auth import CommandSigner, CommandVerifier
@@ -147,11 +148,26 @@ class Transmission:
     backlog: int = 0
 
 
-@persistent("channel.PendingSchedule")
+def _upgrade_pending(fields: dict[str, Any], saved: int) -> dict[str, Any]:
+    """Version 1 (before networks of several nodes): a proposal between two nodes."""
+    fields.setdefault("awaiting", set())
+    fields.setdefault("fleet", False)
+    fields.setdefault("committed", False)
+    return fields
+
+
+@persistent("channel.PendingSchedule", version=2, upgrade=_upgrade_pending)
 @dataclass
 class _PendingSchedule:
     schedule: Schedule  # with epoch/first_cycle set to its activation
     command_id: int
+    #: a network of several nodes (docs/channel.md): the peers whose ACCEPTED the proposer
+    #: still awaits (a peer silent for ``watchdog_cycles`` cycles is not awaited)
+    awaiting: set[int] = field(default_factory=set)
+    #: proposed to a network of several nodes: it takes effect only once committed
+    fleet: bool = False
+    #: every node agreed: the proposer announced it (a second ``ScheduleUpdate``, same content)
+    committed: bool = False
 
 
 @persistent("channel.Link")
@@ -208,6 +224,8 @@ class _ManagerState:
     idle_interval: float
     signer: CommandSigner | None
     verifier: CommandVerifier | None
+    peer_signers: dict[int, CommandSigner]
+    peer_verifiers: dict[int, CommandVerifier]
     is_command: Callable[[Message], bool]
     _links: dict[int, _Link]
     _streams: dict[int, _Stream]
@@ -220,5 +238,17 @@ class _ManagerState:
     _last_qs: float | None
     _command_id: int
     _commands: dict[int, Tracked[Message]]
+    _command_dst: dict[int, int | None]
     stats: dict[str, int]
+
+    def signer_for(self, dst: int) -> CommandSigner | None:
+        """The signer of frames addressed to ``dst``: that peer's key, else the command key."""
+        return self.peer_signers.get(dst, self.signer)
+
+    def verifier_for(self, src: int, dst: int) -> CommandVerifier | None:
+        """The verifier of a frame from ``src`` addressed to ``dst``: the key shared with
+        ``src`` for a frame addressed to this node, the command key for a broadcast."""
+        if dst != 0 and src in self.peer_verifiers:
+            return self.peer_verifiers[src]
+        return self.verifier
 

@@ -15,7 +15,7 @@ tracking commands), :mod:`.settings` (operator settings); the API is this class'
 
 from __future__ import annotations
 
-from collections.abc import Callable, Iterable, Sequence
+from collections.abc import Callable, Iterable, Mapping, Sequence
 from typing import Any
 
 from ..auth import CommandSigner, CommandVerifier, is_command
@@ -23,7 +23,7 @@ from ..errors import ConfigError
 from ..messages import Message
 from ..state import persistent
 from ..tracker import State, Tracked
-from .delivery import delivery_fields
+from .delivery import delivery_fields, peer_fields
 from .events import Event
 from .links import (
     CONTROL_STREAM,
@@ -53,10 +53,15 @@ __all__ = [
 def _upgrade_manager(fields: dict[str, Any], saved: int) -> dict[str, Any]:
     """Version 1 (CoEx 0.1) had no delivery tracking, no loss estimates and no spare turns;
     version 2 no link-following policy; version 3 kept its commands awaiting an answer as bare
-    messages (now the core tracker's entries, :mod:`coex_core.tracker`)."""
+    messages (now the core tracker's entries, :mod:`coex_core.tracker`) and had no per-peer
+    bookkeeping (a network of several nodes: frame destinations, per-peer loss and last heard,
+    command destinations)."""
     if saved < 4:
         fields["_commands"] = {cid: c if isinstance(c, Tracked) else Tracked(c, State.SENT, None, 1)
                                for cid, c in dict(fields.get("_commands") or {}).items()}
+        for k, v in peer_fields().items():
+            fields.setdefault(k, v)
+        fields.setdefault("_command_dst", {})
     if saved < 3:
         for k, v in policy_fields().items():
             fields.setdefault(k, v)
@@ -72,7 +77,7 @@ def _upgrade_manager(fields: dict[str, Any], saved: int) -> dict[str, Any]:
 
 #: the clock, the command test and the key holders come from the node it is restored into
 @persistent("channel.ChannelManager", version=4, upgrade=_upgrade_manager,
-            transient=("clock", "is_command", "signer", "verifier"))
+            transient=("clock", "is_command", "signer", "verifier", "peer_signers", "peer_verifiers"))
 class ChannelManager(SettingsMixin):
     """Queues, packing, TDMA and links of one node (vehicle or topside).
 
@@ -85,6 +90,10 @@ class ChannelManager(SettingsMixin):
     authentication (spec section 10): frames this node sends that carry commands end with an
     ``AuthTrailer`` (13 bytes reserved while packing), signed by :attr:`signer`; the node checks
     received frames with :attr:`verifier`. Both counters are part of :meth:`export_settings`.
+    ``peer_keys`` (a network of several nodes: peer node id -> the key this node shares with
+    that peer alone) signs and checks the frames addressed to or coming from that peer (not
+    broadcasts) with that key, each under its own counters (:attr:`peer_signers`,
+    :attr:`peer_verifiers`); ``command_key`` is then the network key, for broadcast frames.
     """
 
     #: counters a restarted signer skips (frames it may have signed after its last save)
@@ -103,6 +112,7 @@ class ChannelManager(SettingsMixin):
         ack_frames: bool = True,
         idle_interval: float = 1.0,
         command_key: bytes | None = None,
+        peer_keys: Mapping[int, bytes] | None = None,
         low_throughput: float = LOW_THROUGHPUT,
         normal_throughput: float = NORMAL_THROUGHPUT,
     ) -> None:
@@ -119,6 +129,15 @@ class ChannelManager(SettingsMixin):
         self.idle_interval = float(idle_interval)
         self.signer = CommandSigner(command_key) if command_key is not None else None
         self.verifier = CommandVerifier(command_key) if command_key is not None else None
+        if peer_keys and command_key is None:
+            raise ConfigError("peer_keys need a command_key (the network key, for broadcast commands)")
+        for peer in peer_keys or {}:
+            if not 1 <= peer <= 15 or peer == node_id:
+                raise ConfigError(f"peer key for {peer}: not another node's id 1..15")
+        #: peer -> the signer and the verifier of the key shared with that peer alone
+        self.peer_signers: dict[int, CommandSigner] = {p: CommandSigner(k) for p, k in (peer_keys or {}).items()}
+        self.peer_verifiers: dict[int, CommandVerifier] = {
+            p: CommandVerifier(k) for p, k in (peer_keys or {}).items()}
         #: which messages are commands (signed when sent, verified when received); the node
         #: extends it with its modalities' request types
         self.is_command: Callable[[Message], bool] = is_command
@@ -144,6 +163,8 @@ class ChannelManager(SettingsMixin):
         self._command_id = 0
         #: topside: sent commands awaiting their final CommandAck (the core tracker's entries)
         self._commands: dict[int, Tracked[Message]] = {}
+        #: command id -> the node it was sent to (0: every node, None: the link's dst)
+        self._command_dst: dict[int, int | None] = {}
         self.stats: dict[str, int] = {"packets": 0, "frames": 0, "used_bytes": 0, "capacity": 0,
                                       "acked": 0, "resent": 0, "sender_failures": 0,
                                       "signed": 0, "stale_acks": 0, "delivered": 0, "lost": 0,
@@ -157,6 +178,14 @@ class ChannelManager(SettingsMixin):
         #: the policy's thresholds (bytes per second, docs/channel.md)
         self.low_throughput = float(low_throughput)
         self.normal_throughput = float(normal_throughput)
+
+    def _after_restore(self) -> None:
+        """Loaded from saved state: no clock and no keys until the node it is restored into
+        gives its own (:meth:`coex_core.node.Node.restore_state`)."""
+        self.clock = None
+        self.is_command = is_command
+        self.signer = self.verifier = None
+        self.peer_signers, self.peer_verifiers = {}, {}
 
     # ============================================================================ events
     def events(self) -> list[Event]:

@@ -83,14 +83,18 @@ class PackingMixin(PolicyMixin):
         exhausted: dict[int, float] = {}
         t0 = self.clock() if self.clock is not None else 0.0
         acks = self._take_acks(now)
-        signer = self.signer
-        reserve = TRAILER_BYTES if signer is not None and any(
+        reserve = TRAILER_BYTES if (self.signer is not None or self.peer_signers) and any(
             self.is_command(e.message) for e in self._all_entries()) else 0
         room = cfg.fbytes - hdr_bytes - reserve
+        # the node this packet is for: the link's ``dst`` unless the contest's winner is
+        # addressed to another (a network of several nodes: one destination per packet)
+        dst = self._packet_dst(link, w, room, now)
+        own = dst == cfg.dst  # senders' pulls and spare work go to the link's destination
+        signer = self.signer_for(dst)
         # room kept in each frame for the extra copies of the urgent messages known now (frame
         # acks, tier-0 messages, replies queued on an expedited stream), so that background
         # traffic cannot crowd them out; unused, it goes to the spare tier
-        keep = self._copy_reserve(link, acks, room, now)
+        keep = self._copy_reserve(link, acks, room, now, dst)
         frames_b: list[_FrameBuild] = []
         urgent: list[tuple[Message, int, Entry | None]] = []  # message, size, its entry
         for _ in range(cfg.n_frames):
@@ -100,9 +104,10 @@ class PackingMixin(PolicyMixin):
                 fb.add(a, encoded_size(a))
                 urgent.append((a, encoded_size(a), None))
             while fb.left > 0:
-                pick = self._contest(link, w, fb.left, now, keep)
+                pick = self._contest(link, w, fb.left, now, keep, dst)
                 if pick is None:
-                    if fb.left - keep <= 0 or not self._pull(link, w, fb.left - keep, now, exhausted, t0):
+                    if not own or fb.left - keep <= 0 or \
+                            not self._pull(link, w, fb.left - keep, now, exhausted, t0):
                         break
                     continue
                 q, e = pick
@@ -126,7 +131,7 @@ class PackingMixin(PolicyMixin):
                 self._streams[e.stream].queue.expedite = False
         spare_budget = int(st.spare * cfg.n_frames * room)
         redundant = self._add_copies(link, frames_b, urgent, room, spare_budget)
-        spare = self._fill_spare(link, w, frames_b, room, spare_budget - redundant, now, t0)
+        spare = self._fill_spare(link, w, frames_b, room, spare_budget - redundant, now, t0) if own else 0
         frames_b = [fb for fb in frames_b if fb.msgs]
         if not frames_b:
             return None
@@ -138,7 +143,7 @@ class PackingMixin(PolicyMixin):
         for i, fb in enumerate(frames_b):
             seq = (seq0 + i) % SEQ_MODULUS
             self._claim_seq(st, link, seq)
-            header = FrameHeader(src=self.node_id, dst=cfg.dst, seq=seq, schedule=st.current.version,
+            header = FrameHeader(src=self.node_id, dst=dst, seq=seq, schedule=st.current.version,
                                  crc=cfg.crc)
             if signer is not None and any(self.is_command(m) for m in fb.msgs):
                 frames.append(signer.pack(fb.msgs, cfg.fbytes, header))
@@ -163,7 +168,7 @@ class PackingMixin(PolicyMixin):
                 token = tokens[id(m)] = self._track(link, sid, m, now, tokens.get(id(m)))
                 self._carried(link, seq, token)
             if any(not isinstance(m, FrameAck) for m in fb.msgs):
-                self._watch_frame(link, seq, now)
+                self._watch_frame(link, seq, now, dst)
         st.seq = (seq0 + len(frames)) % SEQ_MODULUS
         duration = cfg.airtime(len(frames))
         st.busy_until = now + duration
@@ -341,6 +346,7 @@ class PackingMixin(PolicyMixin):
         for i in range(len(tx.frames)):
             seq = (tx.seq + i) % SEQ_MODULUS
             self._frame_watch.get(tx.link_id, {}).pop(seq, None)  # not an acoustic loss
+            self._frame_dst.get(tx.link_id, {}).pop(seq, None)
             for sid, eid in st.sent.pop(seq, None) or ():
                 e = self._find(sid, eid)
                 if e is not None:
@@ -384,7 +390,18 @@ class PackingMixin(PolicyMixin):
                 return False
         return True
 
-    def _copy_reserve(self, link: int, acks: list[Message], room: int, now: float) -> int:
+    def _dst_of(self, e: Entry, link: int) -> int:
+        """The node ``e`` is for when it goes out on ``link``."""
+        return self._links[link].cfg.dst if e.dst is None else e.dst
+
+    def _packet_dst(self, link: int, w: SlotWindow, room: int, now: float) -> int:
+        """The destination of the packet built now on ``link``: that of the message the
+        contest picks first (the link's ``dst`` when no queued message is sendable)."""
+        pick = self._contest(link, w, room, now)
+        return self._links[link].cfg.dst if pick is None else self._dst_of(pick[1], link)
+
+    def _copy_reserve(self, link: int, acks: list[Message], room: int, now: float,
+                      dst: int | None = None) -> int:
         """Bytes per frame that only urgent messages (tier 0, expedited streams) may use: room
         for ``copies - 1`` extra copies of the urgent messages waiting now, spread over the
         other frames (at most half a frame)."""
@@ -398,12 +415,14 @@ class PackingMixin(PolicyMixin):
         for s in self._streams.values():
             q = s.queue
             if (q.config.tier == 0 or q.expedite) and q.entries and self._eligible(q, link, w, now):
-                urgent += sum(e.size for e in q.entries if self._sendable(e, now, link))
+                urgent += sum(e.size for e in q.entries if self._sendable(e, now, link)
+                              and (dst is None or self._dst_of(e, link) == dst))
         return min(room // 2, math.ceil((k - 1) * urgent / (n - 1)))
 
     def _contest(self, link: int, w: SlotWindow, left: int, now: float,
-                 keep: int = 0) -> tuple[StreamQueue, Entry] | None:
-        """The message to pack next: ``keep`` bytes of ``left`` are for urgent messages only."""
+                 keep: int = 0, dst: int | None = None) -> tuple[StreamQueue, Entry] | None:
+        """The message to pack next: ``keep`` bytes of ``left`` are for urgent messages only;
+        with ``dst``, only messages for that node compete."""
         best: tuple[tuple[float, ...], StreamQueue, Entry] | None = None
         for sid in sorted(self._streams):
             q = self._streams[sid].queue
@@ -414,7 +433,8 @@ class PackingMixin(PolicyMixin):
             room = left if q.config.tier == 0 or q.expedite else left - keep
             room = room if cap is None else min(room, cap)
             for e in q.ordered():
-                if e.size <= room and self._sendable(e, now, link):
+                if e.size <= room and self._sendable(e, now, link) and (
+                        dst is None or self._dst_of(e, link) == dst):
                     entry = e
                     break
             if entry is None:

@@ -104,7 +104,13 @@ class StreamConfig:
         return replace(self, **changes)
 
 
-@persistent("channel.Entry")
+def _upgrade_entry(fields: dict[str, Any], saved: int) -> dict[str, Any]:
+    """Version 1 (before networks of several nodes) had no ``dst``: the link's destination."""
+    fields.setdefault("dst", None)
+    return fields
+
+
+@persistent("channel.Entry", version=2, upgrade=_upgrade_entry)
 @dataclass
 class Entry:
     """A queued message and its bookkeeping."""
@@ -124,6 +130,9 @@ class Entry:
     ready_at: float = float("-inf")
     #: Links on which a send of this entry timed out (re-sends prefer other links).
     failed_links: set[int] = field(default_factory=set)
+    #: The node it is for (frame header ``dst``; 0: every node); ``None``: the ``dst`` of the
+    #: link it goes out on (``LinkConfig.dst``)
+    dst: int | None = None
 
 
 @persistent("channel.StreamQueue")

@@ -30,7 +30,9 @@ class SettingsMixin(CommandsMixin):
                     "spare": st.spare,
                     "schedule": st.current.to_dict(),
                     "pending": None if st.pending is None else {
-                        "schedule": st.pending.schedule.to_dict(), "command_id": st.pending.command_id},
+                        "schedule": st.pending.schedule.to_dict(), "command_id": st.pending.command_id,
+                        # a network of several nodes: an update awaiting its commit, or committed
+                        **({"fleet": True, "committed": st.pending.committed} if st.pending.fleet else {})},
                 }
                 for link, st in sorted(self._links.items())
             },
@@ -39,6 +41,10 @@ class SettingsMixin(CommandsMixin):
                 # a restart resumes above the last counter it may have used (see import_settings)
                 "sent": self.signer.counter if self.signer is not None else None,
                 "accepted": self.verifier.counter if self.verifier is not None else None,
+                # a network of several nodes: the counters of each peer's own key
+                **({"peers": {str(p): {"sent": self.peer_signers[p].counter,
+                                       "accepted": self.peer_verifiers[p].counter}
+                              for p in sorted(self.peer_signers)}} if self.peer_signers else {}),
             },
         }
 
@@ -61,7 +67,8 @@ class SettingsMixin(CommandsMixin):
                     st.switched_at = now
                 p = d.get("pending")
                 st.pending = None if not p else _PendingSchedule(
-                    Schedule.from_dict(p["schedule"]), int(p["command_id"]))
+                    Schedule.from_dict(p["schedule"]), int(p["command_id"]),
+                    fleet=bool(p.get("fleet", False)), committed=bool(p.get("committed", False)))
             self._command_id = int(settings.get("command_id", self._command_id))
             auth = settings.get("auth") or {}
             if self.signer is not None and auth.get("sent") is not None:
@@ -70,5 +77,10 @@ class SettingsMixin(CommandsMixin):
                                           int(auth["sent"]) + self.COUNTER_MARGIN)
             if self.verifier is not None and auth.get("accepted") is not None:
                 self.verifier.counter = max(self.verifier.counter, int(auth["accepted"]))
+            for p, c in (auth.get("peers") or {}).items():
+                if int(p) in self.peer_signers:
+                    signer, verifier = self.peer_signers[int(p)], self.peer_verifiers[int(p)]
+                    signer.counter = max(signer.counter, int(c["sent"]) + self.COUNTER_MARGIN)
+                    verifier.counter = max(verifier.counter, int(c["accepted"]))
         except (KeyError, TypeError, ValueError) as exc:
             raise ConfigError(f"invalid channel settings: {exc}") from exc

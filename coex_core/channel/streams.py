@@ -57,12 +57,18 @@ class StreamsMixin(_ManagerState):
     def streams(self) -> list[StreamQueue]:
         return [self._streams[k].queue for k in sorted(self._streams)]
 
-    def push(self, stream: int, message: Message, now: float) -> int:
+    def push(self, stream: int, message: Message, now: float, *, dst: int | None = None) -> int:
         """Queue ``message`` on ``stream``; returns its entry id. An unencodable message raises
-        :class:`EncodeError` (nothing is queued)."""
+        :class:`EncodeError` (nothing is queued). ``dst`` addresses it to one node (0: every
+        node, a broadcast) in a network of several nodes; ``None`` (the default) sends it to the
+        ``LinkConfig.dst`` of the link it goes out on. A packet carries messages for one
+        destination (docs/channel.md, "A network of several nodes")."""
+        if dst is not None and not 0 <= dst <= 15:
+            raise ConfigError(f"destination {dst} is not a node id 0..15")
         q = self.stream(stream)
         size = encoded_size(message)  # raises EncodeError for a bad message
         entry = self._new_entry(q, message, size, now)
+        entry.dst = dst
         for st in self._links.values():
             st.idle_until = -math.inf  # new data: the next opportunity is worth a look
         dropped = q.push(entry)
@@ -79,15 +85,19 @@ class StreamsMixin(_ManagerState):
         """Empty ``stream`` (counted as ``flush`` drops); returns how many messages left."""
         return self._remove(stream, lambda m: True, "flush", now)
 
-    def withdraw(self, stream: int, match: Callable[[Message], bool], now: float) -> int:
+    def withdraw(self, stream: int, match: Callable[[Message], bool], now: float, *,
+                 dst: int | None = None) -> int:
         """Take off ``stream`` every entry whose message ``match`` accepts, queued or sent and
         awaiting its ack (a later ack for it then clears nothing). Counted as ``superseded``
-        drops; returns how many were withdrawn."""
-        return self._remove(stream, match, "superseded", now)
+        drops; returns how many were withdrawn. With ``dst``, only entries pushed for that
+        node."""
+        return self._remove(stream, match, "superseded", now, dst)
 
-    def _remove(self, stream: int, match: Callable[[Message], bool], reason: str, now: float) -> int:
+    def _remove(self, stream: int, match: Callable[[Message], bool], reason: str, now: float,
+                dst: int | None = None) -> int:
         q = self.stream(stream)
-        flags = [bool(match(e.message)) for e in q.entries]  # a match that raises changes nothing
+        # a match that raises changes nothing
+        flags = [(dst is None or e.dst == dst) and bool(match(e.message)) for e in q.entries]
         gone = [e for e, f in zip(q.entries, flags, strict=True) if f]
         q.entries[:] = [e for e, f in zip(q.entries, flags, strict=True) if not f]
         for e in gone:

@@ -52,6 +52,11 @@ class LinksMixin(StreamsMixin):
         """The schedule link ``link`` runs now."""
         return self._link(link).current
 
+    def _fleet(self, st: _Link) -> bool:
+        """Whether ``st`` is a network of several nodes: its safe schedule gives slots to more
+        than two nodes (this one counted). Schedule changes then need every node's agreement."""
+        return len({s.owner for s in st.safe.slots if s.owner} | {self.node_id}) > 2
+
     def pending_schedule(self, link: int) -> Schedule | None:
         p = self._link(link).pending
         return None if p is None else p.schedule
@@ -131,7 +136,7 @@ class LinksMixin(StreamsMixin):
             if t is not None:
                 times.append(t)
             if st.pending is not None:
-                times.append(max(now, st.pending.schedule.epoch))
+                times.append(max(now, self._activation(st)))
             wd = self._watchdog_deadline(st)
             if wd is not None:
                 times.append(max(now, wd))
@@ -148,13 +153,27 @@ class LinksMixin(StreamsMixin):
         late = ref + st.cfg.watchdog_cycles * st.current.cycle
         return st.current.cycle_start(st.current.cycle_at(late) + 1)
 
+    def _activation(self, st: _Link) -> float:
+        """When ``st``'s pending schedule is due: its epoch; in a network of several nodes, one
+        not committed is kept ``watchdog_cycles`` cycles past it (it is taken when a peer is
+        heard on it), then dropped."""
+        p = st.pending
+        assert p is not None
+        if not p.fleet or p.committed:
+            return p.schedule.epoch
+        return p.schedule.epoch + st.cfg.watchdog_cycles * p.schedule.cycle
+
     def _tick(self, now: float) -> None:
         """Schedule activations, watchdog, expiry, queue status."""
         for link, st in self._links.items():
             if st.switched_at is None:
                 st.switched_at = now
-            if st.pending is not None and now >= st.pending.schedule.epoch - 1e-9:
-                self._switch(link, st.pending.schedule, now, "activation")
+            if st.pending is not None and now >= self._activation(st) - 1e-9:
+                if not st.pending.fleet or st.pending.committed:
+                    self._switch(link, st.pending.schedule, now, "activation")
+                else:  # never committed (a node did not agree), never heard in use: dropped
+                    st.pending = None
+                    self.stats["schedules_not_agreed"] = self.stats.get("schedules_not_agreed", 0) + 1
             wd = self._watchdog_deadline(st)
             if wd is not None and now >= wd:
                 self._fallback(link, now, "watchdog")
