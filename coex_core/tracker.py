@@ -19,11 +19,13 @@ state          meaning
 ``aborted``    withdrawn before it finished (by topside, or replaced)
 =============  ========================================================================
 
-``done``, ``refused``, ``no answer`` and ``aborted`` are final. An event the table does not list
-for the current state is **ignored** (the state stays and :meth:`Tracked.apply` returns None):
-over a lossy, slow link a late or repeated answer is normal, and it must never change what a
-command already ended as (command ids wrap at 256: an old answer must not land on a newer
-command). That is the one difference from h11, which raises.
+``done``, ``refused``, ``no answer`` and ``aborted`` are final: nothing in them is sent or
+awaited again. An event the table does not list for the current state is **ignored** (the state
+stays and :meth:`Tracked.apply` returns None): over a lossy, slow link a late or repeated answer
+is normal, and it must never change what a command already ended as (command ids wrap at 256: an
+old answer must not land on a newer command). That is the one difference from h11, which raises.
+The one exception is ``no answer``: it says only that no answer came in time, so an answer that
+comes after all is taken (the vehicle did act on it: the ship must show what it did).
 
 Sans-I/O: time comes in as ``now``; nothing here reads a clock. The retrying trackers built on
 it: :class:`coex_core.requests.RequestTracker` (fixed retry and try count), the bathymetry
@@ -100,13 +102,18 @@ TRANSITIONS: dict[State, dict[Event, State]] = {
     },
     State.DONE: {},
     State.REFUSED: {},
-    State.NO_ANSWER: {},
+    State.NO_ANSWER: {  # an answer that comes after all
+        Event.STAND: State.PENDING,
+        Event.ACCEPT: State.DONE,
+        Event.REFUSE: State.REFUSED,
+    },
     State.ABORTED: {},
 }
 
-#: states that may still change (an answer may come)
-OPEN = frozenset(s for s, moves in TRANSITIONS.items() if moves)
-#: states a request or command ends in
+#: states still sent or awaited
+OPEN = frozenset((State.QUEUED, State.SENT, State.PENDING))
+#: states a request or command ends in (nothing more is sent; only ``no answer`` takes a late
+#: answer)
 FINAL = frozenset(TRANSITIONS) - OPEN
 
 _ANSWERED = frozenset((Event.STAND, Event.ACCEPT, Event.REFUSE))

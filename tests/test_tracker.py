@@ -35,13 +35,16 @@ EXPECTED = {
     (S.PENDING, E.REFUSE): S.REFUSED,
     (S.PENDING, E.GIVE_UP): S.NO_ANSWER,
     (S.PENDING, E.ABORT): S.ABORTED,
+    (S.NO_ANSWER, E.STAND): S.PENDING,
+    (S.NO_ANSWER, E.ACCEPT): S.DONE,
+    (S.NO_ANSWER, E.REFUSE): S.REFUSED,
 }
 
 
 def test_the_table_is_the_one_written_here() -> None:
     got = {(s, e): t for s, moves in TRANSITIONS.items() for e, t in moves.items()}
     assert got == EXPECTED
-    assert set(TRANSITIONS) == set(State)  # every state has its row, final ones empty
+    assert set(TRANSITIONS) == set(State)  # every state has its row, final ones empty but "no answer"
     assert OPEN == {S.QUEUED, S.SENT, S.PENDING}
     assert FINAL == {S.DONE, S.REFUSED, S.NO_ANSWER, S.ABORTED}
     assert [s.value for s in State] == ["queued", "sent", "pending", "done", "refused", "no answer",
@@ -152,7 +155,7 @@ def _final(state: State) -> Tracked[str]:
     return t
 
 
-@pytest.mark.parametrize("state", sorted(FINAL, key=lambda s: s.value))
+@pytest.mark.parametrize("state", sorted(FINAL - {S.NO_ANSWER}, key=lambda s: s.value))
 @pytest.mark.parametrize("event", list(Event), ids=lambda e: e.value)
 def test_a_final_state_ignores_every_event(state: State, event: Event) -> None:
     """A late or repeated answer never changes what a command ended as."""
@@ -161,6 +164,22 @@ def test_a_final_state_ignores_every_event(state: State, event: Event) -> None:
     assert t.apply(event, 500.0, answer="ACCEPTED", due=9.0) is None
     assert (t.state, t.sent_at, t.tries, t.due_at, t.answered_at, t.answer) == before
     assert not t.is_due(1e9)
+
+
+@pytest.mark.parametrize("event", [E.SEND, E.GIVE_UP, E.ABORT], ids=lambda e: e.value)
+def test_no_answer_is_never_sent_again_nor_withdrawn(event: Event) -> None:
+    t = _final(S.NO_ANSWER)
+    before = (t.state, t.sent_at, t.tries, t.due_at)
+    assert t.apply(event, 500.0, due=9.0) is None
+    assert (t.state, t.sent_at, t.tries, t.due_at) == before and not t.is_due(1e9)
+
+
+@pytest.mark.parametrize(("event", "state"), [(E.ACCEPT, S.DONE), (E.REFUSE, S.REFUSED), (E.STAND, S.PENDING)])
+def test_an_answer_after_no_answer_is_taken(event: Event, state: State) -> None:
+    """"no answer" says only that none came in time: the vehicle's late answer is the truth."""
+    t = _final(S.NO_ANSWER)
+    assert t.apply(event, 500.0, answer="LATE") is state
+    assert (t.answered_at, t.answer) == (500.0, "LATE")
 
 
 @pytest.mark.parametrize(("state", "event"), [(S.QUEUED, E.STAND), (S.QUEUED, E.REFUSE),

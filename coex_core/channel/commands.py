@@ -17,10 +17,11 @@ from ..messages import (
     ScheduleUpdate,
     SpareConfig,
 )
-from ..tracker import Event, Tracked, answer_event
+from ..tracker import Event, State, Tracked, answer_event
 from .events import (
     CommandApplied,
     CommandResult,
+    CommandUnanswered,
     Dropped,
 )
 from .links import (
@@ -30,7 +31,12 @@ from .links import (
 from .packing import PackingMixin
 from .schedule import Schedule, resolve_cycle
 
-__all__ = ["CommandsMixin"]
+__all__ = ["ANSWER_CYCLES", "CommandsMixin"]
+
+#: TDMA cycles (of the node's longest) after its last send within which a command should be
+#: answered: past them it shows as "no answer" (:class:`CommandUnanswered`); an answer that comes
+#: after all still counts
+ANSWER_CYCLES = 3.0
 
 
 class CommandsMixin(PackingMixin):
@@ -211,7 +217,21 @@ class CommandsMixin(PackingMixin):
         for link, st in self._links.items():
             if st.proposed:
                 self._settle_proposals(link, now)
+        self._expire_commands(now)
         super()._tick(now)
+
+    def _expire_commands(self, now: float) -> None:
+        """Commands sent to one node and unanswered for :data:`ANSWER_CYCLES` cycles: "no
+        answer" (kept, so that an answer that comes after all still lands)."""
+        if not self._commands:
+            return
+        wait = ANSWER_CYCLES * max((st.current.cycle for st in self._links.values()), default=0.0)
+        for cid, tracked in self._commands.items():
+            if (tracked.state is State.SENT and tracked.sent_at is not None and now - tracked.sent_at >= wait
+                    and self._command_dst.get(cid) != 0):
+                tracked.apply(Event.GIVE_UP, now)
+                self.stats["unanswered"] = self.stats.get("unanswered", 0) + 1
+                self._events.append(CommandUnanswered(now, cid, tracked.message))
 
     def _settle_proposals(self, link: int, now: float) -> None:
         """The proposer's proposals to a network of several nodes: a peer silent for

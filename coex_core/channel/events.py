@@ -79,6 +79,16 @@ class CommandResult(Event):
 
 
 @dataclass(frozen=True)
+class CommandUnanswered(Event):
+    """Topside: no answer came to one of its commands within
+    :data:`~coex_core.channel.commands.ANSWER_CYCLES` TDMA cycles of its last send (it shows as
+    "no answer"; an answer that comes later is still a :class:`CommandResult`)."""
+
+    command_id: int
+    command: Message | None = None
+
+
+@dataclass(frozen=True)
 class ScheduleSwitched(Event):
     """A link now runs schedule ``version`` (``reason``: ``activation``, ``watchdog``, ``peer``,
     ``restore``)."""

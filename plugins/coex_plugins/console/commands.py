@@ -226,6 +226,24 @@ class CommandsView:
         self._log(now, f"{cmd.summary}: {new}" + (f" ({cmd.reason})" if cmd.reason else ""),
                   "info" if name in ("ACCEPTED", "PENDING") else "warn")
 
+    def _command_unanswered(self, command_id: int, now: float, command: m.Message | None = None) -> None:
+        """The node's word that a command went unanswered for its answer time: "no answer" (an
+        answer that comes after all still lands: :func:`_command_result`)."""
+        key = self._find_command(command_id, command)
+        if key is None:
+            return
+        cmd = self.commands[key]
+        if cmd.track.apply(Event.GIVE_UP, now) is None:
+            return
+        self._touch("commands")
+        if isinstance(cmd.message, m.ScheduleUpdate):
+            sch = self.schedules.get(cmd.message.link)
+            if sch is not None and sch.get("proposed"):
+                sch["proposed"]["status"] = State.NO_ANSWER.value
+            self._touch("link")
+        self._log(now, f"{cmd.summary}: no answer from the vehicle yet (sent {now - (cmd.track.sent_at or now):.0f} s "
+                       "ago; the link keeps sending it, and a late answer still counts)", "warn")
+
     def _on_command_ack(self, a: m.CommandAck, now: float) -> None:
         self._command_result(a.command_id, a.status, now)
 

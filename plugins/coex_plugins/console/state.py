@@ -378,6 +378,8 @@ class ConsoleState(MapView, SurveysView, ImagesView, LinkView, CommandsView):
         elif name == "CommandResult":
             self._command_result(int(event.command_id), event.status, now,
                                  getattr(event, "command", None))
+        elif name == "CommandUnanswered":
+            self._command_unanswered(int(event.command_id), now, getattr(event, "command", None))
         elif name == "BadFrame":
             self.bad_frames += 1
             lk = self._link(int(event.link))
