@@ -90,6 +90,13 @@ class DeployConfig:
     #: what the daemon will meet but can live with (a device not plugged in yet, a file not
     #: written yet), each naming its key; ``coex config check`` prints them
     warnings: list[str] = field(default_factory=list)
+    #: the link id of the first modem (the others follow it: +1, +2 ...); 0 from a file,
+    #: ``coex topside --link`` on the command line
+    first_link: int = 0
+    #: a TDMA schedule given whole (a :class:`~coex_core.channel.schedule.Schedule`: ``coex
+    #: topside --schedule JSON``, ``build_topside(schedule=...)``) in place of ``slots``; None
+    #: from a file
+    explicit_schedule: Any = None
 
     @property
     def base_dir(self) -> Path:
@@ -100,9 +107,15 @@ class DeployConfig:
         vehicle, topside = ((self.node_id, self.peer) if self.role == "vehicle" else (self.peer, self.node_id))
         return [topside if s == "topside" else vehicle for s in self.slots]
 
+    def link_ids(self) -> list[int]:
+        """The link id of each modem, in order."""
+        return [self.first_link + i for i in range(len(self.modems))]
+
     def schedule(self) -> Any:
         from coex_core.channel.schedule import Schedule
 
+        if self.explicit_schedule is not None:
+            return self.explicit_schedule
         return Schedule.simple(self.owners(), self.slot_seconds, self.guard, epoch=self.epoch)
 
     def options(self, modality: ModalityConfig) -> dict[str, Any]:
