@@ -19,10 +19,13 @@ import time
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import replace
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from coex_core.config import Problems
 from coex_core.errors import CoexError, ConfigError
+
+if TYPE_CHECKING:
+    from coex_plugins.vehicle.config import DeployConfig
 
 __all__ = ["TopsideApp", "build_topside", "register", "run", "topside_app", "topside_config", "topside_from_config"]
 
@@ -315,7 +318,7 @@ def topside_config(transport_uri: str | Sequence[str], *, node_id: int = 1, vehi
                    receiver_options: Mapping[str, Mapping[str, Any]] | None = None,
                    link_options: Sequence[Mapping[str, Any]] | None = None,
                    required: Sequence[bool] | None = None, ros: Mapping[str, Any] | None = None,
-                   missing: list[str] | None = None) -> Any:
+                   missing: list[str] | None = None) -> DeployConfig:
     """The topside's :class:`~coex_plugins.vehicle.config.DeployConfig` from ``coex topside``'s
     options (and :func:`build_topside`'s arguments), checked by the one checker of a
     configuration file (:func:`~coex_plugins.vehicle.config.check_problems`): :class:`ConfigError`
@@ -451,7 +454,7 @@ def build_topside(transport_uri: str | Sequence[str], host: str = "127.0.0.1", p
                        allowed_hosts=allowed_hosts, trusted_proxies=trusted_proxies)
 
 
-def topside_app(cfg: Any, host: str = "127.0.0.1", port: int = 8080, *,
+def topside_app(cfg: DeployConfig, host: str = "127.0.0.1", port: int = 8080, *,
                 clock: Callable[[], float] = time.time, transports: Mapping[int, Any] | None = None,
                 stream_names: Mapping[int, str] | None = None, missing: Sequence[str] = (),
                 operators: str | Path | None = None, insecure_open: bool = False,
