@@ -22,6 +22,7 @@ from typing import Any, ClassVar
 
 import numpy as np
 
+from .config import Problems
 from .errors import ConfigError
 from .messages import SurveyKind, SurveyReason, SurveyState
 from .state import persistent
@@ -154,14 +155,18 @@ class Adapter:
 
 
 def adapter_problems(cls: type[Adapter], options: Mapping[str, Any]) -> list[str]:
-    """Unknown and missing keys, then the adapter's own :meth:`Adapter.check`."""
-    problems = [f"unknown option {k!r} for {cls.kind} {cls.name!r} (known: {', '.join(sorted(cls.options))})"
-                for k in options if k not in cls.options and k not in cls.table_keys]
-    problems += [f"{cls.kind} {cls.name!r} needs option {k!r} ({desc})"
-                 for k, (default, desc) in cls.options.items() if default is ... and k not in options]
-    if not problems:
-        problems += cls.check(options)
-    return problems
+    """Unknown and missing keys, then the adapter's own :meth:`Adapter.check` (collected in one
+    :class:`~coex_core.config.Problems`, each with the option it names)."""
+    p = Problems()
+    for k in options:
+        if k not in cls.options and k not in cls.table_keys:
+            p.said(str(k), f"unknown option {k!r} for {cls.kind} {cls.name!r} (known: {', '.join(sorted(cls.options))})")
+    for k, (default, desc) in cls.options.items():
+        if default is ... and k not in options:
+            p.said(k, f"{cls.kind} {cls.name!r} needs option {k!r} ({desc})")
+    if not p:
+        p.extend("", cls.check(options))
+    return p.items
 
 
 class Input(Adapter, abc.ABC):

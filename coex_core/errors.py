@@ -7,6 +7,8 @@ the built-in exception that best describes them, so callers that do not know CoE
 
 from __future__ import annotations
 
+from typing import Any
+
 __all__ = [
     "CoexError",
     "ConfigError",
@@ -49,7 +51,12 @@ class EncodeError(CoexError, ValueError):
 
 
 class ConfigError(CoexError, ValueError):
-    """A configuration value (URI, option, schedule, queue setting) is invalid."""
+    """A configuration value (URI, option, schedule, queue setting) is invalid.
+
+    ``problems``: each problem with the key it names, when a validator collected several
+    (:class:`coex_core.config.Problems`); empty otherwise."""
+
+    problems: tuple[Any, ...] = ()
 
 
 class PluginNotFound(CoexError, LookupError):

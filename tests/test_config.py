@@ -3,10 +3,12 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import pytest
 
 from coex import ConfigError, load_modality
-from coex_core.config import merged_config
+from coex_core.config import Problems, merged_config
 
 MODALITIES = ["bathymetry", "imagery", "timeseries"]
 
@@ -48,6 +50,40 @@ def test_merged_config() -> None:
         merged_config({"c": 1}, {"a": 1, "b": 2}, "imagery sender")
     with pytest.raises(ConfigError, match="mapping"):
         merged_config([("a", 1)], {"a": 1})  # type: ignore[arg-type]
+
+
+def test_merged_config_names_every_unknown_option_at_once() -> None:
+    with pytest.raises(ConfigError) as err:
+        merged_config({"c": 1, "a": 2, "d": 3}, {"a": 1, "b": 2}, "imagery sender")
+    assert [p.key for p in err.value.problems] == ["c", "d"]
+    assert str(err.value) == ("2 problems:\n  unknown imagery sender option 'c' (known: a, b)\n"
+                              "  unknown imagery sender option 'd' (known: a, b)")
+
+
+def test_problems_collects_every_problem_with_its_key(tmp_path: Path) -> None:
+    """The one collector: ``add`` words "key: text", ``said`` keeps a sentence, the common checks
+    add theirs, and ``error`` lists them all (one alone on its line) with each key."""
+    p = Problems()
+    assert not p and p.error.__doc__
+    p.check()  # nothing found: nothing raised
+    t = p.table({"speed": "x", "size": 99, "colour": 1}, "boat")
+    p.unknown(t, {"speed", "size"}, "boat")
+    assert p.number(t, "speed", "boat", 1.0) == 1.0
+    assert p.number(t, "size", "boat", 5, lo=1, hi=10, integer=True) == 5
+    p.said("crew", "a boat needs a crew")
+    p.extend("engine", ["no fuel", "no oil"])
+    p.path("log", tmp_path / "nothere", "written at the end")
+    assert p.keys() == ["boat.colour", "boat.speed", "boat.size", "crew", "engine", "engine"]
+    assert p.items == ["boat.colour: unknown key (known: size, speed)", "boat.speed: a number, got 'x'",
+                       "boat.size: 99 is outside 1..10", "a boat needs a crew", "engine: no fuel", "engine: no oil"]
+    assert p.warnings == [f"log: {tmp_path / 'nothere'} does not exist now (written at the end)"]
+    with pytest.raises(ConfigError) as err:
+        p.check("boat.toml")
+    assert str(err.value).startswith("boat.toml: 6 problems:\n  boat.colour: unknown key")
+    assert [x.key for x in err.value.problems] == p.keys()
+    one = Problems()
+    one.add("crew", "missing")
+    assert str(one.error("boat.toml")) == "boat.toml: crew: missing"
 
 
 def test_request_tracker_sends_retries_and_gives_up() -> None:

@@ -111,6 +111,25 @@ def test_bad_scenario_values_are_config_errors(data: dict) -> None:  # type: ign
         scenario_from_dict(data)
 
 
+def test_every_scenario_problem_is_reported_together_with_its_key() -> None:
+    """The scenario's checker collects (``coex_core.config.Problems``): a wrong type, an unknown
+    key and the out-of-range values all in one ConfigError, each with its key and its own words."""
+    data = {"area": 5.0, "survey": {"speed": "fast"}, "loss": {"rate": 1.2}, "colour": "red",
+            "targets": [{"x": 1.0}]}
+    with pytest.raises(ConfigError) as err:
+        scenario_from_dict(data)
+    keys = [p.key for p in err.value.problems]
+    assert sorted(keys) == ["area", "colour", "loss.rate", "survey.speed", "targets[0]"], keys
+    text = str(err.value)
+    assert text.startswith("5 problems:")
+    for words in ("area must be 16-4096 m, got 5.0", "survey.speed must be a number, got 'fast'",
+                  "loss.rate must be in [0, 1), got 1.2", "unknown scenario key colour", "targets[0] needs x and y"):
+        assert words in text, (words, text)
+    with pytest.raises(ConfigError) as err:  # one problem: its sentence alone, as before
+        scenario_from_dict({"area": 5.0})
+    assert str(err.value) == "area must be 16-4096 m, got 5.0"
+
+
 def test_presets() -> None:
     assert set(PRESETS) >= {"default", "dive040", "harsh"}
     assert preset("default") == Scenario()

@@ -192,3 +192,50 @@ def test_detections_run_when_named_with_their_stream_and_a_low_link_priority(tmp
     assert node.sender("detections").detectors[0].threshold == 0.9
     f.write_text(head + '[modalities.detections]\nlow_priority = 300\n')
     assert any("low_priority" in p for p in check(f)[1])
+
+
+def test_one_build_node_for_the_vehicle_and_the_topside_from_a_file_or_the_options(tmp_path: Path) -> None:
+    """``build_node(config, role, transports)`` builds both nodes; the topside's command-line
+    options make the same checked configuration as a file saying the same (``topside_config``)."""
+    from coex_plugins.console.cli import topside_config
+    from coex_plugins.vehicle.build import build_node, link_configs
+
+    link = type("T", (), {"mtu": 128})()
+    f = tmp_path / "t.toml"
+    f.write_text('[node]\nrole = "topside"\nid = 1\npeer = 2\nstore = false\n[tdma]\nslot_seconds = 10.0\n'
+                 'guard = 1.0\n[[modems]]\nuri = "loopback://b1"\nrate = 3\n'
+                 '[modalities.bathymetry]\n[modalities.pings]\nstream = 9\nids = { 100 = 4100 }\n')
+    from_file = load(f, "topside")
+    from_options = topside_config("loopback://b1", rate=3, slot=10.0, guard=1.0,
+                                  modalities=("bathymetry", "pings"), remap_ids={"pings": {100: 4100}})
+    for cfg in (from_file, from_options):
+        (lc,) = link_configs(cfg, {0: link})
+        assert (lc.link, lc.rate, lc.frame_bytes, lc.dst) == (0, 3, 128, 2)
+        assert lc.schedule.to_dict() == from_file.schedule().to_dict()
+        node = build_node(cfg, "topside", {0: link})
+        assert sorted(dict(node.receivers())) == ["bathymetry", "pings"]
+        assert [m.ids for m in cfg.modalities] == [{}, {100: 4100}]
+    with pytest.raises(ConfigError, match="the topside's, not the vehicle's"):
+        build_node(from_file, "vehicle", {0: link})
+    missing: list[str] = []
+    cfg = topside_config(["loopback://b2", "loopback://b3"], link=4, modalities=("nosuch", "survey"),
+                         missing=missing)  # a modality not installed stays a warning, as it was
+    assert cfg.link_ids() == [4, 5] and [m.name for m in cfg.modalities] == ["survey"]
+    assert len(missing) == 1 and missing[0].startswith("modality nosuch not available: no modality 'nosuch'")
+    node = build_node(cfg, "topside", {4: link, 5: link})
+    assert node.manager.links == [4, 5]
+
+
+def test_the_topside_options_are_checked_by_the_files_checker_naming_each_option() -> None:
+    from coex_plugins.console.cli import topside_config
+
+    with pytest.raises(ConfigError) as err:
+        topside_config("loopback://c1", node_id=20, slot=1.0, guard=3.0, rate=9)
+    text = str(err.value)
+    assert text.startswith("3 problems:"), text
+    assert "--node-id: 20 is outside 1..15" in text and "--rate: 9 is outside 0..6" in text
+    assert "--guard: the guard (3 s) must be shorter than a slot (1 s)" in text
+    assert {p.key for p in err.value.problems} == {"node.id", "modems[0].rate", "tdma.guard"}
+    out = subprocess.run([str(Path(sys.executable).with_name("coex")), "topside", "--transport", "loopback://c2",
+                          "--vehicle-id", "1"], capture_output=True, text=True, timeout=120)
+    assert out.returncode == 2 and "coex topside: --vehicle-id: the other node's id must differ" in out.stderr

@@ -72,6 +72,25 @@ def test_unknown_and_missing_options_are_named() -> None:
     assert check_options(PointsInput, {"path": "x", "type": "points"}) == []
 
 
+def test_every_problem_of_an_adapters_options_is_reported_together_with_its_key(tmp_path: Path) -> None:
+    """An adapter's options are checked by the one collector: every unknown and missing option at
+    once, in one ConfigError (the adapter) or under the input's key (the deployment file)."""
+    from coex_plugins.vehicle.config import check
+
+    with pytest.raises(ConfigError) as err:
+        DirectoryInput({"paht": "y", "setle": 1}, InputContext())
+    text = str(err.value)
+    assert "unknown option 'paht'" in text and "unknown option 'setle'" in text and "needs option 'path'" in text
+    f = tmp_path / "v.toml"
+    f.write_text('[node]\nrole = "vehicle"\nid = 2\nstore = false\n[[modems]]\nuri = "loopback://p"\n'
+                 '[[inputs]]\ntype = "directory"\npaht = "y"\nsetle = 1\n')
+    _, problems = check(f)
+    mine = [p for p in problems if p.startswith("inputs[0]: ")]
+    assert len(mine) == 3, problems
+    assert any("'paht'" in p for p in mine) and any("'setle'" in p for p in mine)
+    assert any("needs option 'path'" in p for p in mine)
+
+
 def test_heading_helpers() -> None:
     assert compass_from_enu_yaw(0.0) == pytest.approx(90.0)  # ENU east
     assert compass_from_enu_yaw(math.pi / 2) == pytest.approx(0.0)  # north

@@ -12,27 +12,28 @@ from __future__ import annotations
 import argparse
 import json
 import logging
+import re
 import sys
 import threading
 import time
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import replace
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
+from coex_core.config import Problems
 from coex_core.errors import CoexError, ConfigError
 
-__all__ = ["TopsideApp", "build_topside", "register", "run"]
+if TYPE_CHECKING:
+    from coex_plugins.vehicle.config import DeployConfig
+
+__all__ = ["TopsideApp", "build_topside", "register", "run", "topside_app", "topside_config", "topside_from_config"]
 
 log = logging.getLogger(__name__)
 
 #: The receivers ``coex topside`` runs unless told otherwise: every built-in modality (``survey``
 #: sends the operator's survey requests and follows their state).
 DEFAULT_MODALITIES = ("bathymetry", "imagery", "timeseries", "survey", "detections")
-
-#: The NUI 2022 cycle: 6 slots, topside (node 1) in slots 0 and 3, the vehicle in the others.
-NUI_OWNERS = (1, 2, 2, 1, 2, 2)
-
 
 def _hostport(text: str) -> tuple[str, int]:
     host, sep, port = text.rpartition(":")
@@ -119,7 +120,8 @@ def register(subparsers: Any) -> None:
     p.add_argument("--node-id", type=int, default=1, help="topside node id (default 1)")
     p.add_argument("--vehicle-id", type=int, default=2, help="vehicle node id (default 2)")
     p.add_argument("--link", type=int, default=0, help="link id of the transport (default 0)")
-    p.add_argument("--rate", type=int, default=5, help="Micromodem rate of packets (default 5)")
+    p.add_argument("--rate", type=int, default=None,
+                   help="Micromodem rate of packets (default: the URI's rate=, else 5)")
     p.add_argument("--slot", type=float, default=20.0,
                    help="TDMA slot length in seconds (NUI cycle of 6 slots, default 20)")
     p.add_argument("--guard", type=float, default=2.0, help="slot guard time (default 2 s)")
@@ -276,21 +278,121 @@ class TopsideApp:
                     self.store.close()
 
 
-def _schedule(args: argparse.Namespace) -> Any:
+def _schedule(text: str | None) -> Any:
+    """``--schedule JSON`` as a :class:`~coex_core.channel.schedule.Schedule` (None without one)."""
     from coex_core.channel.schedule import Schedule
 
-    if args.schedule:
-        try:
-            d = json.loads(args.schedule)
-            return Schedule.from_dict(d)
-        except (ValueError, KeyError, TypeError) as exc:
-            raise ConfigError(f"invalid --schedule: {exc}") from exc
-    owners = [args.node_id if o == 1 else args.vehicle_id for o in NUI_OWNERS]
-    return Schedule.simple(owners, args.slot, args.guard)
+    if not text:
+        return None
+    try:
+        return Schedule.from_dict(json.loads(text))
+    except (ValueError, KeyError, TypeError) as exc:
+        raise ConfigError(f"invalid --schedule: {exc}") from exc
+
+
+#: the option that gives a configuration key on the command line (problems are named by it)
+_OPTIONS = (("node.id", "--node-id"), ("node.peer", "--vehicle-id"), ("node.store", "--store"),
+            ("node.command_key_file", "--command-key-file"), ("tdma.slot_seconds", "--slot"),
+            ("tdma.guard", "--guard"))
+
+
+def _option(key: str, uris: Sequence[str]) -> str:
+    """The command-line option that gave configuration key ``key`` (the key itself when none
+    did: a :func:`build_topside` argument)."""
+    modem = re.fullmatch(r"modems\[(\d+)\](?:\.(\w+))?", key)
+    if modem and modem.group(2) in (None, "uri") and int(modem.group(1)) < len(uris):
+        return f"--transport {uris[int(modem.group(1))]}"
+    if modem and modem.group(2) == "rate":
+        return "--rate"
+    modality = re.fullmatch(r"modalities\.([^.]+)\.ids(?:\..*)?", key)
+    if modality:
+        return f"--remap-ids {modality.group(1)}"
+    return dict(_OPTIONS).get(key, key)
+
+
+def topside_config(transport_uri: str | Sequence[str], *, node_id: int = 1, vehicle_id: int = 2,
+                   link: int = 0, rate: int | None = None, schedule: Any = None, slot: float = 20.0,
+                   guard: float = 2.0, modalities: Sequence[str] = DEFAULT_MODALITIES,
+                   remap_ids: Mapping[str, Mapping[int, int]] | None = None, store: str | Path | None = None,
+                   command_key_file: str | Path | None = None,
+                   receiver_options: Mapping[str, Mapping[str, Any]] | None = None,
+                   link_options: Sequence[Mapping[str, Any]] | None = None,
+                   required: Sequence[bool] | None = None, ros: Mapping[str, Any] | None = None,
+                   missing: list[str] | None = None) -> DeployConfig:
+    """The topside's :class:`~coex_plugins.vehicle.config.DeployConfig` from ``coex topside``'s
+    options (and :func:`build_topside`'s arguments), checked by the one checker of a
+    configuration file (:func:`~coex_plugins.vehicle.config.check_problems`): :class:`ConfigError`
+    lists every problem, each named by its option (``--node-id: 20 is outside 1..15``).
+
+    ``transport_uri`` one or more modems (links ``link``, ``link + 1`` ...); ``rate`` every
+    modem's (None: the URI's ``rate=``, else 5); ``schedule`` a whole
+    :class:`~coex_core.channel.schedule.Schedule` (``--schedule``), else the NUI cycle of
+    ``slot`` and ``guard`` seconds; ``modalities`` the receivers (a modality not installed, or
+    whose extra is missing, is left out and said in ``missing``, as the console always did);
+    ``remap_ids``, ``receiver_options`` by modality name; ``link_options`` and ``required`` by
+    modem (the keys of a file's ``[[modems]]``); ``store`` None: none."""
+    from coex_plugins.vehicle.config import STREAM_DEFAULTS, check_problems
+
+    uris = [transport_uri] if isinstance(transport_uri, str) else list(transport_uri)
+    if not uris:
+        raise ConfigError("give at least one transport URI")
+    unknown = sorted(set(remap_ids or {}) - set(modalities))
+    if unknown:
+        raise ConfigError(f"--remap-ids names modalities not run here: {', '.join(unknown)}")
+    modems: list[dict[str, Any]] = []
+    for i, uri in enumerate(uris):
+        m: dict[str, Any] = {"uri": uri}
+        if rate is not None:
+            m["rate"] = rate
+        if required and i < len(required):
+            m["required"] = bool(required[i])
+        if link_options and i < len(link_options):
+            m.update(link_options[i] or {})
+        modems.append(m)
+    # a modality without a built-in stream gets a free one: the checker asks every modality for
+    # its stream, which a topside's receiver does not use
+    taken = {STREAM_DEFAULTS[n][0] for n in modalities if n in STREAM_DEFAULTS}
+    free = iter([s for s in range(1, 32) if s not in taken])
+    table: dict[str, dict[str, Any]] = {}
+    for name in modalities:
+        t: dict[str, Any] = {} if name in STREAM_DEFAULTS else {"stream": next(free, 31)}
+        if (receiver_options or {}).get(name):
+            t["options"] = dict((receiver_options or {})[name])
+        if (remap_ids or {}).get(name):
+            t["ids"] = {str(k): v for k, v in (remap_ids or {})[name].items()}
+        table[name] = t
+    node: dict[str, Any] = {"role": "topside", "id": node_id, "peer": vehicle_id,
+                            "store": False if store is None else str(store)}
+    if command_key_file is not None:
+        node["command_key_file"] = str(command_key_file)
+    raw: dict[str, Any] = {"node": node, "modems": modems, "modalities": table}
+    if schedule is None:
+        raw["tdma"] = {"slot_seconds": slot, "guard": guard}
+    if ros is not None:
+        raw["ros"] = dict(ros)
+    # relative file names (--store, --command-key-file) are taken from the working directory
+    cfg, found = check_problems(raw, Path.cwd() / "coex-topside", "topside")
+    problems = Problems()
+    left_out = set()
+    for problem in found:
+        key, text = problem.key, problem.text
+        if key.startswith("modalities.") and key[len("modalities."):] in table:  # not installed, no extra
+            left_out.add(key[len("modalities."):])
+            if missing is not None:
+                missing.append(f"modality {key[len('modalities.'):]} not available: {text[len(key) + 2:]}")
+        elif text.startswith(f"{key}: ") and _option(key, uris) != key:
+            problems.said(key, f"{_option(key, uris)}: {text[len(key) + 2:]}")
+        else:
+            problems.said(key, text)
+    problems.check()
+    cfg.modalities = [m for m in cfg.modalities if m.name not in left_out]
+    cfg.first_link = link
+    cfg.explicit_schedule = schedule
+    return cfg
 
 
 def build_topside(transport_uri: str | Sequence[str], host: str = "127.0.0.1", port: int = 8080,
-                  *, node_id: int = 1, vehicle_id: int = 2, link: int = 0, rate: int = 5,
+                  *, node_id: int = 1, vehicle_id: int = 2, link: int = 0, rate: int | None = None,
                   schedule: Any = None,
                   modalities: tuple[str, ...] = DEFAULT_MODALITIES,
                   stream_names: dict[int, str] | None = None,
@@ -310,8 +412,11 @@ def build_topside(transport_uri: str | Sequence[str], host: str = "127.0.0.1", p
                   transports: Mapping[int, Any] | None = None) -> TopsideApp:
     """Open the transports (several URIs: several modems, link ids ``link``, ``link + 1`` ...),
     build the topside node and its receivers, serve the console (not yet driving the node: call
-    ``start()`` or ``run()``). With ``command_key`` every command is authenticated (spec
-    section 10).
+    ``start()`` or ``run()``). The node's settings are checked as a configuration file's
+    (:func:`topside_config`, every problem at once); the node is built by the one
+    ``build_node(config, "topside", transports)`` of ``coex vehicle`` and ``coex topside
+    --config``. With ``command_key`` every command is authenticated (spec section 10).
+    ``rate`` is every modem's (None: the URI's ``rate=``, else 5).
 
     With ``store`` (an SQLite file, :class:`coex_transports.store.NodeStore`) every received
     frame is journaled before the node sees it and the node with its console state (map, images,
@@ -328,69 +433,72 @@ def build_topside(transport_uri: str | Sequence[str], host: str = "127.0.0.1", p
     serve HTTPS; ``allowed_hosts`` are names the console answers to besides the loopback ones
     and ``host``; ``trusted_proxies`` reverse proxies whose ``X-Forwarded-For`` is believed.
     ``receiver_options`` gives a modality's receiver its options by name;
-    ``link_options`` (one mapping per transport) sets LinkConfig fields (``rate``,
-    ``frame_bytes``, ``spare``, ``packet_seconds``) link by link. Each transport is a
-    :class:`~coex_transports.recovery.ResilientTransport`: a modem that goes away or is not
-    there yet is reopened with backoff (``required[i]`` true: an error at start instead).
-    ``ros`` (the options of :class:`~coex_plugins.console.ros.RosProducts`) publishes what
-    arrives on ROS topics for rviz. ``transports`` (link id -> an open transport, one per URI)
-    replaces the transports the URIs would open: a simulation's, a test's (the URIs then only
-    name the links); the app closes them."""
+    ``link_options`` (one mapping per transport) sets a modem's ``rate``, ``frame_bytes``,
+    ``spare``, ``packet_seconds`` (the keys of a file's ``[[modems]]``) link by link. Each
+    transport is a :class:`~coex_transports.recovery.ResilientTransport`: a modem that goes away
+    or is not there yet is reopened with backoff (``required[i]`` true: an error at start
+    instead). ``ros`` (the options of :class:`~coex_plugins.console.ros.RosProducts`) publishes
+    what arrives on ROS topics for rviz. ``transports`` (link id -> an open transport, one per
+    URI) replaces the transports the URIs would open: a simulation's, a test's (the URIs then
+    only name the links); the app closes them."""
+    missing: list[str] = []
+    cfg = topside_config(transport_uri, node_id=node_id, vehicle_id=vehicle_id, link=link, rate=rate,
+                         schedule=schedule, modalities=modalities, remap_ids=remap_ids, store=store,
+                         receiver_options=receiver_options, link_options=link_options, required=required,
+                         ros=ros, missing=missing)
+    cfg.command_key = command_key
+    cfg.snapshot_interval = snapshot_interval
+    return topside_app(cfg, host, port, clock=clock, transports=transports, stream_names=stream_names,
+                       missing=missing, operators=operators, insecure_open=insecure_open, tls_cert=tls_cert,
+                       tls_key=tls_key, session_hours=session_hours, idle_minutes=idle_minutes,
+                       allowed_hosts=allowed_hosts, trusted_proxies=trusted_proxies)
+
+
+def topside_app(cfg: DeployConfig, host: str = "127.0.0.1", port: int = 8080, *,
+                clock: Callable[[], float] = time.time, transports: Mapping[int, Any] | None = None,
+                stream_names: Mapping[int, str] | None = None, missing: Sequence[str] = (),
+                operators: str | Path | None = None, insecure_open: bool = False,
+                tls_cert: str | None = None, tls_key: str | None = None,
+                session_hours: float = 12.0, idle_minutes: float = 30.0,
+                allowed_hosts: Sequence[str] = (), trusted_proxies: Sequence[str] = ()) -> TopsideApp:
+    """The topside a checked :class:`~coex_plugins.vehicle.config.DeployConfig` describes (from
+    a file, :func:`topside_from_config`, or the options, :func:`build_topside`): its transports
+    (one per modem, or ``transports``), the node of ``build_node(cfg, "topside", ...)``, the
+    store (``cfg.store``), the console served on ``host:port`` with the sign-in and TLS of the
+    other arguments (see :func:`build_topside`), and the products on ROS (``cfg.ros``).
+    ``missing``: modalities already left out, shown in the console's log."""
     access, tls = console_access(host, operators, insecure_open, tls_cert, tls_key, session_hours,
                                  idle_minutes)
-    from coex_core.channel.manager import ChannelManager, LinkConfig
-    from coex_core.channel.schedule import Schedule
-    from coex_core.node import Node
-    from coex_core.registry import load_modality
+    from coex_plugins.vehicle.build import build_node
     from coex_transports.recovery import ResilientTransport
 
     from .node import NodeCommands
     from .server import ConsoleHub, serve
     from .state import ConsoleState
 
-    if schedule is None:
-        schedule = Schedule.simple([node_id if o == 1 else vehicle_id for o in NUI_OWNERS],
-                                   20.0, 2.0)
-    unknown = sorted(set(remap_ids or {}) - set(modalities))
-    if unknown:
-        raise ConfigError(f"--remap-ids names modalities not run here: {', '.join(unknown)}")
-    uris = [transport_uri] if isinstance(transport_uri, str) else list(transport_uri)
-    if not uris:
-        raise ConfigError("give at least one transport URI")
+    node_id, vehicle_id, store = cfg.node_id, cfg.peer, cfg.store
+    schedule = cfg.schedule()
     links: dict[int, Any] = {}
     nstore: Any = None
     try:
-        from coex_core.acoustic import rate_info
-
         if transports is not None:
             links.update(transports)  # closed with the rest on an error
-            if sorted(transports) != [link + i for i in range(len(uris))]:
+            if sorted(transports) != cfg.link_ids():
                 raise ConfigError(f"transports for links {sorted(transports)}, expected "
-                                  f"{[link + i for i in range(len(uris))]} (one per URI)")
-        for i, uri in enumerate(uris if transports is None else ()):
+                                  f"{cfg.link_ids()} (one per URI)")
+        for lid, m in zip(cfg.link_ids() if transports is None else (), cfg.modems, strict=False):
             # a modem that goes away (or is not there yet) is reopened while the console runs on
-            links[link + i] = ResilientTransport(uri, name=f"link {link + i}",
-                                                 required=bool(required and i < len(required) and required[i]))
-        extra = list(link_options or [])
-        cfgs = [LinkConfig(lid, schedule, rate=rate,
-                           frame_bytes=min(rate_info(rate).frame_bytes, int(tr.mtu)),
-                           dst=vehicle_id) for lid, tr in links.items()]
-        for i, lc in enumerate(cfgs):  # per-link settings of a configuration file
-            if i < len(extra) and extra[i]:
-                cfgs[i] = replace(lc, **extra[i])
-        missing: list[str] = []
+            links[lid] = ResilientTransport(m.uri, name=f"link {lid}", required=m.required)
+        left_out = list(missing)
+        for text in left_out:
+            log.warning("%s", text)
 
         def fresh() -> Any:
-            node = Node(ChannelManager(node_id, cfgs, command_key=command_key))
-            for name in modalities:
-                try:
-                    cls = load_modality(name)
-                    receiver = cls().receiver((receiver_options or {}).get(name) or None)
-                except (CoexError, ImportError, AttributeError, TypeError) as exc:
-                    log.warning("modality %s not available: %s", name, exc)
-                    missing.append(f"modality {name} not available: {exc}")
-                    continue
-                node.add_receiver(cls, receiver, ids=(remap_ids or {}).get(name))
+            built: list[str] = []
+            node = build_node(cfg, "topside", links, missing=built)
+            for text in built:
+                log.warning("%s", text)
+            left_out.extend(built)
             return node
 
         hubs: list[Any] = []
@@ -422,7 +530,7 @@ def build_topside(transport_uri: str | Sequence[str], host: str = "127.0.0.1", p
         else:
             from coex_transports.store import NodeStore
 
-            nstore = NodeStore(store, snapshot_interval=snapshot_interval)
+            nstore = NodeStore(store, snapshot_interval=cfg.snapshot_interval)
             resumed = nstore.has_state()
             node = nstore.restore(fresh, log=None, clock=None, before_replay=wire)
             if sorted(node.manager.links) != sorted(links):
@@ -437,7 +545,7 @@ def build_topside(transport_uri: str | Sequence[str], host: str = "127.0.0.1", p
         node.set_log(lambda text: log.info("%s", text))
         hub = hubs[-1]
         state = hub.state
-        for text in missing:
+        for text in left_out:
             state._log(0.0, text, "warn")
         if nstore is not None:
             if nstore.restored_extra is not None or nstore.stats["replayed"]:
@@ -453,11 +561,11 @@ def build_topside(transport_uri: str | Sequence[str], host: str = "127.0.0.1", p
             nstore.close()
         raise
     app = TopsideApp(node, links, hub, server, clock, store=nstore)
-    if ros is not None:
+    if cfg.ros is not None:
         from .ros import RosProducts
 
         try:
-            app.ros = RosProducts(ros, lock=hub.lock, clock=clock).attach(node)
+            app.ros = RosProducts(cfg.ros, lock=hub.lock, clock=clock).attach(node)
         except BaseException:
             app.close()
             raise
@@ -479,19 +587,10 @@ def topside_from_config(path: str, clock: Callable[[], float] = time.time, *,
 
     names = {m.stream: m.name for m in cfg.modalities}
     names.update({int(k): str(v) for k, v in (c.get("stream_names") or {}).items()})
-    return build_topside(
-        [m.uri for m in cfg.modems], host or "127.0.0.1", int(port), node_id=cfg.node_id, vehicle_id=cfg.peer,
-        rate=cfg.modems[0].rate, schedule=cfg.schedule(), modalities=tuple(m.name for m in cfg.modalities),
-        stream_names=names, clock=clock, command_key=cfg.command_key, store=cfg.store,
-        snapshot_interval=cfg.snapshot_interval,
-        remap_ids={m.name: m.ids for m in cfg.modalities if m.ids} or None, operators=rel("operators"),
-        insecure_open=bool(c.get("insecure_open", False)), tls_cert=rel("tls_cert"), tls_key=rel("tls_key"),
-        session_hours=float(c.get("session_hours", 12.0)),
-        receiver_options={m.name: cfg.options(m) for m in cfg.modalities},
-        link_options=[{k: v for k, v in (("rate", m.rate), ("frame_bytes", m.frame_bytes), ("spare", m.spare),
-                                          ("packet_seconds", m.packet_seconds)) if v is not None}
-                      for m in cfg.modems],
-        required=[m.required for m in cfg.modems], ros=cfg.ros, transports=transports,
+    return topside_app(
+        cfg, host or "127.0.0.1", int(port), clock=clock, transports=transports, stream_names=names,
+        operators=rel("operators"), insecure_open=bool(c.get("insecure_open", False)), tls_cert=rel("tls_cert"),
+        tls_key=rel("tls_key"), session_hours=float(c.get("session_hours", 12.0)),
         idle_minutes=float(c.get("idle_minutes", 30.0)), allowed_hosts=[str(h) for h in c.get("allowed_hosts", [])],
         trusted_proxies=[str(h) for h in c.get("trusted_proxies", [])])
 
@@ -512,22 +611,16 @@ def run(args: argparse.Namespace) -> int:
         return 2
     host, port = args.http
     try:
-        key = None
-        if args.command_key_file:
-            from coex_core.auth import parse_key
-
-            try:
-                key = parse_key(Path(args.command_key_file).read_bytes())
-            except OSError as exc:
-                raise ConfigError(f"cannot read --command-key-file: {exc}") from exc
-        app = build_topside(
-            args.transport, host, port, node_id=args.node_id, vehicle_id=args.vehicle_id,
-            link=args.link, rate=args.rate, schedule=_schedule(args),
-            modalities=tuple(m for m in args.modalities.split(",") if m),
-            stream_names=args.stream_names, command_key=key, store=args.store,
-            remap_ids=dict(args.remap_ids), operators=args.operators, insecure_open=args.insecure_open,
-            tls_cert=args.tls_cert, tls_key=args.tls_key, session_hours=args.session_hours,
-            idle_minutes=args.idle_minutes, allowed_hosts=args.allowed_host,
+        missing: list[str] = []
+        cfg = topside_config(
+            args.transport, node_id=args.node_id, vehicle_id=args.vehicle_id, link=args.link, rate=args.rate,
+            schedule=_schedule(args.schedule), slot=args.slot, guard=args.guard,
+            modalities=tuple(m for m in args.modalities.split(",") if m), remap_ids=dict(args.remap_ids),
+            store=args.store, command_key_file=args.command_key_file, missing=missing)
+        app = topside_app(
+            cfg, host, port, stream_names=args.stream_names, missing=missing, operators=args.operators,
+            insecure_open=args.insecure_open, tls_cert=args.tls_cert, tls_key=args.tls_key,
+            session_hours=args.session_hours, idle_minutes=args.idle_minutes, allowed_hosts=args.allowed_host,
             trusted_proxies=args.trusted_proxy)
     except (CoexError, OSError) as exc:
         print(f"coex topside: {exc}", file=sys.stderr)

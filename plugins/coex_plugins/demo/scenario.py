@@ -70,6 +70,7 @@ from typing import Any
 import numpy as np
 
 from coex_core.acoustic import RATES, GilbertElliott
+from coex_core.config import Problem, Problems
 from coex_core.errors import ConfigError
 from coex_plugins.bathymetry.sim import Target
 
@@ -161,50 +162,60 @@ class Scenario:
     ship: tuple[float, float] = (128.0, -200.0)
 
     def __post_init__(self) -> None:
+        p = Problems()
+        self.check(p)
+        p.check()
+
+    def check(self, p: Problems) -> None:
+        """Every problem of the scenario's values, each with its key, into ``p``."""
         if not 16.0 <= self.area <= 4096.0:
-            raise ConfigError(f"area must be 16-4096 m, got {self.area}")
+            p.said("area", f"area must be 16-4096 m, got {self.area}")
         if not 10.0 <= self.water_depth <= 11000.0:
-            raise ConfigError(f"water_depth must be 10-11000 m, got {self.water_depth}")
+            p.said("water_depth", f"water_depth must be 10-11000 m, got {self.water_depth}")
         if not 600.0 <= self.duration <= 86400.0:
-            raise ConfigError(f"duration must be 600-86400 s, got {self.duration}")
+            p.said("duration", f"duration must be 600-86400 s, got {self.duration}")
         if not 2.0 <= self.survey_altitude <= 200.0:
-            raise ConfigError(f"survey.altitude must be 2-200 m, got {self.survey_altitude}")
+            p.said("survey.altitude", f"survey.altitude must be 2-200 m, got {self.survey_altitude}")
         if self.line_spacing < 0:
-            raise ConfigError("survey.line_spacing must be >= 0 (0: 70 % of the swath)")
+            p.said("survey.line_spacing", "survey.line_spacing must be >= 0 (0: 70 % of the swath)")
         if not 0.2 <= self.survey_speed <= 5.0:
-            raise ConfigError(f"survey.speed must be 0.2-5 m/s, got {self.survey_speed}")
+            p.said("survey.speed", f"survey.speed must be 0.2-5 m/s, got {self.survey_speed}")
         if not 1.0 <= self.camera_altitude <= 10.0:
-            raise ConfigError(f"camera.altitude must be 1-10 m, got {self.camera_altitude}")
+            p.said("camera.altitude", f"camera.altitude must be 1-10 m, got {self.camera_altitude}")
         if not 0 <= self.random_targets <= 20 or not 0 <= self.random_decoys <= 20:
-            raise ConfigError("seafloor.random_targets and random_decoys must be 0-20")
+            p.said("seafloor.random_targets" if not 0 <= self.random_targets <= 20 else "seafloor.random_decoys",
+                   "seafloor.random_targets and random_decoys must be 0-20")
         if self.modem_rate not in RATES:
-            raise ConfigError(f"modem.rate must be one of {sorted(RATES)}, got {self.modem_rate}")
+            p.said("modem.rate", f"modem.rate must be one of {sorted(RATES)}, got {self.modem_rate}")
         if not self.slots or any(s not in ("topside", "vehicle") for s in self.slots):
-            raise ConfigError(f"modem.slots must list 'topside' or 'vehicle' per slot, got {list(self.slots)}")
-        if "topside" not in self.slots or "vehicle" not in self.slots:
-            raise ConfigError("modem.slots needs at least one topside and one vehicle slot")
+            p.said("modem.slots", f"modem.slots must list 'topside' or 'vehicle' per slot, got {list(self.slots)}")
+        elif "topside" not in self.slots or "vehicle" not in self.slots:
+            p.said("modem.slots", "modem.slots needs at least one topside and one vehicle slot")
         if not 0.0 <= self.spare <= 1.0:
-            raise ConfigError(f"modem.spare must be in [0, 1] (a share of each packet), got {self.spare}")
+            p.said("modem.spare", f"modem.spare must be in [0, 1] (a share of each packet), got {self.spare}")
         if not 0.0 <= self.guard_seconds < self.slot_seconds:
-            raise ConfigError("modem.guard_seconds must be >= 0 and below modem.slot_seconds")
-        packet = RATES[self.modem_rate].packet_airtime()
-        if packet > self.slot_seconds - self.guard_seconds:
-            raise ConfigError(f"a rate-{self.modem_rate} packet lasts {packet:.1f} s: modem.slot_seconds "
-                              f"minus guard_seconds must be at least that")
+            p.said("modem.guard_seconds", "modem.guard_seconds must be >= 0 and below modem.slot_seconds")
+        elif self.modem_rate in RATES:
+            packet = RATES[self.modem_rate].packet_airtime()
+            if packet > self.slot_seconds - self.guard_seconds:
+                p.said("modem.slot_seconds", f"a rate-{self.modem_rate} packet lasts {packet:.1f} s: "
+                                             "modem.slot_seconds minus guard_seconds must be at least that")
         if self.loss.model not in LOSS_MODELS:
-            raise ConfigError(f"loss.model must be one of {', '.join(LOSS_MODELS)}, got {self.loss.model!r}")
+            p.said("loss.model", f"loss.model must be one of {', '.join(LOSS_MODELS)}, got {self.loss.model!r}")
         if not 0.0 <= self.loss.rate < 1.0:
-            raise ConfigError(f"loss.rate must be in [0, 1), got {self.loss.rate}")
+            p.said("loss.rate", f"loss.rate must be in [0, 1), got {self.loss.rate}")
         if self.loss.mean_burst < 1.0:
-            raise ConfigError("loss.mean_burst must be at least 1 frame")
+            p.said("loss.mean_burst", "loss.mean_burst must be at least 1 frame")
         if self.loss.range_width <= 0 or not 0.0 <= self.loss.range_max <= 1.0:
-            raise ConfigError("loss.range_width must be positive and loss.range_max in [0, 1]")
+            p.said("loss.range_width" if self.loss.range_width <= 0 else "loss.range_max",
+                   "loss.range_width must be positive and loss.range_max in [0, 1]")
         for kind, objs in (("targets", self.targets), ("decoys", self.decoys)):
-            for o in objs:
+            for i, o in enumerate(objs):
                 if not (0.0 <= o.x <= self.area and 0.0 <= o.y <= self.area):
-                    raise ConfigError(f"{kind}: ({o.x}, {o.y}) is outside the area [0, {self.area}]")
+                    p.said(f"{kind}[{i}]", f"{kind}: ({o.x}, {o.y}) is outside the area [0, {self.area}]")
                 if not (0.5 <= o.length <= 30 and 0.5 <= o.width <= 30 and 0.2 <= o.height <= 10):
-                    raise ConfigError(f"{kind}: size {o.length} x {o.width} x {o.height} m is not a plausible object")
+                    p.said(f"{kind}[{i}]", f"{kind}: size {o.length} x {o.width} x {o.height} m is not a "
+                                           "plausible object")
 
     # ------------------------------------------------------------------ derived
     @property
@@ -285,84 +296,116 @@ _OBJECT_KEYS = {"x", "y", "length", "width", "height", "heading"}
 _LOSS_KEYS = {"model", "rate", "mean_burst", "range_50", "range_width", "range_max"}
 
 
-def _number(where: str, v: Any, kind: type = float) -> Any:
+_NOT_GIVEN = object()
+
+
+def _number(p: Problems, where: str, v: Any, kind: type = float) -> Any:
+    """``v`` as a number (``kind`` int: a whole one); a problem of ``where`` and ``_NOT_GIVEN``
+    when it is not one."""
     if isinstance(v, bool) or not isinstance(v, int | float):
-        raise ConfigError(f"{where} must be a number, got {v!r}")
+        p.said(where, f"{where} must be a number, got {v!r}")
+        return _NOT_GIVEN
     if kind is int:
         if float(v) != int(v):
-            raise ConfigError(f"{where} must be a whole number, got {v!r}")
+            p.said(where, f"{where} must be a whole number, got {v!r}")
+            return _NOT_GIVEN
         return int(v)
     if not math.isfinite(float(v)):
-        raise ConfigError(f"{where} must be finite")
+        p.said(where, f"{where} must be finite")
+        return _NOT_GIVEN
     return float(v)
 
 
-def _unknown(where: str, got: Mapping[str, Any], known: set[str] | Mapping[str, Any]) -> None:
-    bad = sorted(set(got) - set(known))
-    if bad:
-        prefix = f"{where}." if where else ""
-        raise ConfigError(f"unknown scenario key {prefix}{bad[0]} (known: {', '.join(sorted(known))})")
+def _unknown(p: Problems, where: str, got: Mapping[str, Any], known: set[str] | Mapping[str, Any]) -> None:
+    prefix = f"{where}." if where else ""
+    for bad in sorted(set(got) - set(known)):
+        p.said(f"{prefix}{bad}", f"unknown scenario key {prefix}{bad} (known: {', '.join(sorted(known))})")
+
+
+def _table(p: Problems, data: Mapping[str, Any], section: str, text: str) -> Mapping[str, Any] | None:
+    if section not in data:
+        return None
+    sec = data[section]
+    if not isinstance(sec, Mapping):
+        p.said(section, text)
+        return None
+    return sec
 
 
 def scenario_from_dict(data: Mapping[str, Any], base: Scenario | None = None) -> Scenario:
-    """A :class:`Scenario` from the TOML structure, on top of ``base`` (default: preset ``default``)."""
-    _unknown("", data, _TOP)
+    """A :class:`Scenario` from the TOML structure, on top of ``base`` (default: preset
+    ``default``). :class:`ConfigError` lists every problem, each with its key."""
+    p = Problems()
+    _unknown(p, "", data, _TOP)
     kw: dict[str, Any] = {}
     ints = {"random_targets", "random_decoys", "modem_rate"}
+
+    def put(attr: str, value: Any) -> None:
+        if value is not _NOT_GIVEN:
+            kw[attr] = value
     for key in ("area", "water_depth", "duration"):
         if key in data:
-            kw[key] = _number(key, data[key])
+            put(key, _number(p, key, data[key]))
     if "name" in data:
         if not isinstance(data["name"], str) or not data["name"]:
-            raise ConfigError("name must be a non-empty string")
-        kw["name"] = data["name"]
+            p.said("name", "name must be a non-empty string")
+        else:
+            kw["name"] = data["name"]
     for section, keys in _SECTIONS.items():
-        if section not in data:
+        sec = _table(p, data, section, f"[{section}] must be a table")
+        if sec is None:
             continue
-        sec = data[section]
-        if not isinstance(sec, Mapping):
-            raise ConfigError(f"[{section}] must be a table")
-        _unknown(section, sec, keys)
+        _unknown(p, section, sec, keys)
         for k, attr in keys.items():
             if k not in sec:
                 continue
             if attr == "slots":
                 if not isinstance(sec[k], list) or not all(isinstance(s, str) for s in sec[k]):
-                    raise ConfigError("modem.slots must be a list of 'topside' / 'vehicle'")
-                kw[attr] = tuple(sec[k])
+                    p.said("modem.slots", "modem.slots must be a list of 'topside' / 'vehicle'")
+                else:
+                    kw[attr] = tuple(sec[k])
             else:
-                kw[attr] = _number(f"{section}.{k}", sec[k], int if attr in ints else float)
+                put(attr, _number(p, f"{section}.{k}", sec[k], int if attr in ints else float))
     for kind in ("targets", "decoys"):
         if kind not in data:
             continue
         items = data[kind]
         if not isinstance(items, list):
-            raise ConfigError(f"[[{kind}]] must be an array of tables")
+            p.said(kind, f"[[{kind}]] must be an array of tables")
+            continue
         objs = []
         for i, item in enumerate(items):
             if not isinstance(item, Mapping):
-                raise ConfigError(f"{kind}[{i}] must be a table")
-            _unknown(f"{kind}[{i}]", item, _OBJECT_KEYS)
+                p.said(f"{kind}[{i}]", f"{kind}[{i}] must be a table")
+                continue
+            before = len(p)
+            _unknown(p, f"{kind}[{i}]", item, _OBJECT_KEYS)
             if "x" not in item or "y" not in item:
-                raise ConfigError(f"{kind}[{i}] needs x and y")
-            defaults = ROCK if kind == "decoys" else {}
-            objs.append(ObjectSpec(**{**defaults, **{k: _number(f"{kind}[{i}].{k}", v) for k, v in item.items()}}))
+                p.said(f"{kind}[{i}]", f"{kind}[{i}] needs x and y")
+            values = {k: _number(p, f"{kind}[{i}].{k}", v) for k, v in item.items() if k in _OBJECT_KEYS}
+            if len(p) == before:
+                defaults = ROCK if kind == "decoys" else {}
+                objs.append(ObjectSpec(**{**defaults, **values}))
         kw[kind] = tuple(objs)
     base = base or Scenario()
-    if "loss" in data:
-        sec = data["loss"]
-        if not isinstance(sec, Mapping):
-            raise ConfigError("[loss] must be a table")
-        _unknown("loss", sec, _LOSS_KEYS)
-        lk = {k: (v if k == "model" else _number(f"loss.{k}", v)) for k, v in sec.items()}
-        kw["loss"] = replace(base.loss, **lk)
-    if "ship" in data:
-        sec = data["ship"]
-        if not isinstance(sec, Mapping):
-            raise ConfigError("[ship] must be a table")
-        _unknown("ship", sec, {"x", "y"})
-        kw["ship"] = (_number("ship.x", sec.get("x", base.ship[0])), _number("ship.y", sec.get("y", base.ship[1])))
-    return replace(base, **kw)
+    sec = _table(p, data, "loss", "[loss] must be a table")
+    if sec is not None:
+        _unknown(p, "loss", sec, _LOSS_KEYS)
+        lk = {k: (v if k == "model" else _number(p, f"loss.{k}", v)) for k, v in sec.items() if k in _LOSS_KEYS}
+        kw["loss"] = replace(base.loss, **{k: v for k, v in lk.items() if v is not _NOT_GIVEN})
+    sec = _table(p, data, "ship", "[ship] must be a table")
+    if sec is not None:
+        _unknown(p, "ship", sec, {"x", "y"})
+        x, y = (_number(p, f"ship.{k}", sec.get(k, d)) for k, d in zip("xy", base.ship, strict=True))
+        if x is not _NOT_GIVEN and y is not _NOT_GIVEN:
+            kw["ship"] = (x, y)
+    try:
+        scenario = replace(base, **kw)
+    except ConfigError as exc:  # the values' ranges: every one, with the problems above
+        p.merge(exc.problems or [Problem("", str(exc))])
+        raise p.error() from None
+    p.check()
+    return scenario
 
 
 def load_scenario(path: str | Path) -> Scenario:

@@ -8,7 +8,6 @@ one sentence that names its key (``modems[0].uri: no transport 'micromodm' (know
 
 from __future__ import annotations
 
-import math
 import os
 import re
 import tomllib
@@ -17,9 +16,11 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from coex_core.config import Problems
 from coex_core.errors import CoexError, ConfigError
 
-__all__ = ["DEFAULT_MODALITIES", "DeployConfig", "ModalityConfig", "check", "check_mapping", "from_mapping", "load"]
+__all__ = ["DEFAULT_MODALITIES", "DeployConfig", "ModalityConfig", "check", "check_mapping",
+           "check_problems", "from_mapping", "load"]
 
 ROLES = ("vehicle", "topside")
 #: streams and priorities of the built-in modalities when the file names none (NUI 2022:
@@ -89,6 +90,13 @@ class DeployConfig:
     #: what the daemon will meet but can live with (a device not plugged in yet, a file not
     #: written yet), each naming its key; ``coex config check`` prints them
     warnings: list[str] = field(default_factory=list)
+    #: the link id of the first modem (the others follow it: +1, +2 ...); 0 from a file,
+    #: ``coex topside --link`` on the command line
+    first_link: int = 0
+    #: a TDMA schedule given whole (a :class:`~coex_core.channel.schedule.Schedule`: ``coex
+    #: topside --schedule JSON``, ``build_topside(schedule=...)``) in place of ``slots``; None
+    #: from a file
+    explicit_schedule: Any = None
 
     @property
     def base_dir(self) -> Path:
@@ -99,9 +107,15 @@ class DeployConfig:
         vehicle, topside = ((self.node_id, self.peer) if self.role == "vehicle" else (self.peer, self.node_id))
         return [topside if s == "topside" else vehicle for s in self.slots]
 
+    def link_ids(self) -> list[int]:
+        """The link id of each modem, in order."""
+        return [self.first_link + i for i in range(len(self.modems))]
+
     def schedule(self) -> Any:
         from coex_core.channel.schedule import Schedule
 
+        if self.explicit_schedule is not None:
+            return self.explicit_schedule
         return Schedule.simple(self.owners(), self.slot_seconds, self.guard, epoch=self.epoch)
 
     def options(self, modality: ModalityConfig) -> dict[str, Any]:
@@ -114,54 +128,6 @@ class DeployConfig:
         return out
 
 
-class _Problems:
-    def __init__(self) -> None:
-        self.items: list[str] = []
-        self.warnings: list[str] = []
-
-    def add(self, key: str, text: str) -> None:
-        self.items.append(f"{key}: {text}")
-
-    def warn(self, key: str, text: str) -> None:
-        self.warnings.append(f"{key}: {text}")
-
-    def path(self, key: str, path: str | Path, what: str, *, folder: bool = False) -> None:
-        """A warning when ``path`` (a device, a file or a folder the node will open) is not there now."""
-        p = Path(path)
-        if folder and not p.is_dir():
-            self.warn(key, f"no folder {p} now ({what})")
-        elif not folder and not p.exists():
-            self.warn(key, f"{p} does not exist now ({what})")
-
-    def table(self, data: Any, key: str) -> dict[str, Any]:
-        if data is None:
-            return {}
-        if not isinstance(data, Mapping):
-            self.add(key, f"a table, got {type(data).__name__}")
-            return {}
-        return dict(data)
-
-    def unknown(self, data: Mapping[str, Any], known: set[str] | tuple[str, ...], key: str) -> None:
-        for k in data:
-            if k not in known:
-                self.add(f"{key}.{k}" if key else k, f"unknown key (known: {', '.join(sorted(known))})")
-
-    def number(self, data: Mapping[str, Any], k: str, key: str, default: Any, *, lo: float | None = None,
-               hi: float | None = None, integer: bool = False) -> Any:
-        v = data.get(k, default)
-        if v is default:
-            return v
-        ok = isinstance(v, int) if integer else isinstance(v, int | float)
-        if isinstance(v, bool) or not ok or (not integer and not math.isfinite(v)):
-            self.add(f"{key}.{k}", f"{'an integer' if integer else 'a number'}, got {v!r}")
-            return default
-        if (lo is not None and v < lo) or (hi is not None and v > hi):
-            self.add(f"{key}.{k}", f"{v!r} is outside {lo:g}..{hi:g}" if lo is not None and hi is not None
-                     else f"{v!r} is below {lo:g}" if lo is not None else f"{v!r} is above {hi:g}")
-            return default
-        return v
-
-
 def _entry_points(group: str) -> dict[str, Any]:
     from coex_core.registry import entry_points
 
@@ -172,17 +138,16 @@ def load(path: str | Path, role: str | None = None) -> DeployConfig:
     """Read and check a node's configuration. :class:`ConfigError` lists every problem, each
     naming its key. ``role`` (``"vehicle"`` or ``"topside"``) must match the file's
     ``node.role`` when given."""
-    cfg, problems = _parse(Path(path), role)
-    if problems:
-        raise ConfigError(f"{path}: " + "; ".join(problems) if len(problems) == 1 else
-                          f"{path}: {len(problems)} problems:\n  " + "\n  ".join(problems))
+    cfg, p = _parse(Path(path), role)
+    p.check(str(path))
     assert cfg is not None
     return cfg
 
 
 def check(path: str | Path, role: str | None = None) -> tuple[DeployConfig | None, list[str]]:
     """``(config, problems)``: what ``coex config check`` prints."""
-    return _parse(Path(path), role)
+    cfg, p = _parse(Path(path), role)
+    return cfg, p.items
 
 
 _VAR = re.compile(r"\$\{([A-Za-z_][A-Za-z0-9_]*)(?::-([^}]*))?\}")
@@ -201,33 +166,43 @@ def expand(text: str) -> str:
     return _VAR.sub(sub, text)
 
 
-def _parse(path: Path, role: str | None) -> tuple[DeployConfig | None, list[str]]:
+def _parse(path: Path, role: str | None) -> tuple[DeployConfig | None, Problems]:
+    p = Problems()
     try:
         raw = tomllib.loads(expand(path.read_text()))
     except ConfigError as exc:
-        return None, [str(exc)]
+        p.add("", str(exc))
+        return None, p
     except OSError as exc:
-        return None, [f"cannot read the file: {exc.strerror or exc}"]
+        p.add("", f"cannot read the file: {exc.strerror or exc}")
+        return None, p
     except tomllib.TOMLDecodeError as exc:
-        return None, [f"not valid TOML: {exc}"]
-    return check_mapping(raw, path, role)
+        p.add("", f"not valid TOML: {exc}")
+        return None, p
+    return check_problems(raw, path, role)
 
 
 def from_mapping(raw: Mapping[str, Any], path: str | Path, role: str | None = None) -> DeployConfig:
     """A configuration given as the mapping a TOML file would hold (another front end, such as a
     MOOS mission file's ``ProcessConfig`` block, builds it); ``path`` is where relative file
     names are taken from (its directory). :class:`ConfigError` lists every problem."""
-    cfg, problems = check_mapping(raw, Path(path), role)
-    if problems:
-        raise ConfigError(f"{path}: " + "; ".join(problems) if len(problems) == 1 else
-                          f"{path}: {len(problems)} problems:\n  " + "\n  ".join(problems))
+    cfg, p = check_problems(raw, Path(path), role)
+    p.check(str(path))
     assert cfg is not None
     return cfg
 
 
 def check_mapping(raw: Mapping[str, Any], path: Path, role: str | None) -> tuple[DeployConfig | None, list[str]]:
     """``(config, problems)`` of a configuration mapping (see :func:`from_mapping`)."""
-    p = _Problems()
+    cfg, p = check_problems(raw, path, role)
+    return cfg, p.items
+
+
+def check_problems(raw: Mapping[str, Any], path: Path, role: str | None) -> tuple[DeployConfig, Problems]:
+    """The configuration a mapping describes and its :class:`~coex_core.config.Problems` (each
+    with its key: a front end other than a file, like ``coex topside``'s options, names them its
+    own way)."""
+    p = Problems()
     p.unknown(raw, TOP_KEYS, "")
     node = p.table(raw.get("node"), "node")
     p.unknown(node, {"role", "id", "peer", "origin", "command_key_file", "store", "snapshot_interval",
@@ -296,10 +271,10 @@ def check_mapping(raw: Mapping[str, Any], path: Path, role: str | None) -> tuple
         _console(raw, p, cfg)
         _ros(raw, p, cfg)
     cfg.warnings = p.warnings
-    return cfg, p.items
+    return cfg, p
 
 
-def _modems(raw: Mapping[str, Any], p: _Problems, cfg: DeployConfig) -> None:
+def _modems(raw: Mapping[str, Any], p: Problems, cfg: DeployConfig) -> None:
     modems = raw.get("modems")
     if not isinstance(modems, list) or not modems:
         p.add("modems", "at least one [[modems]] table with a transport uri "
@@ -337,7 +312,7 @@ def _modems(raw: Mapping[str, Any], p: _Problems, cfg: DeployConfig) -> None:
         cfg.modems.append(ModemConfig(uri, 5 if rate is None else int(rate), fb, spare, packet, required))
 
 
-def _check_uri(uri: str, key: str, p: _Problems, cfg: DeployConfig) -> Any:
+def _check_uri(uri: str, key: str, p: Problems, cfg: DeployConfig) -> Any:
     """A transport URI through the transport's own parser (``Transport.check_uri``), opening
     nothing, exactly as the daemon's links take it; devices and files it names that are not
     there now are warnings (the daemon waits for a modem)."""
@@ -360,7 +335,7 @@ def _check_uri(uri: str, key: str, p: _Problems, cfg: DeployConfig) -> Any:
     return info
 
 
-def _tdma(raw: Mapping[str, Any], p: _Problems, cfg: DeployConfig) -> None:
+def _tdma(raw: Mapping[str, Any], p: Problems, cfg: DeployConfig) -> None:
     t = p.table(raw.get("tdma"), "tdma")
     p.unknown(t, {"slots", "slot_seconds", "guard", "epoch"}, "tdma")
     slots = t.get("slots", list(NUI_SLOTS))
@@ -378,7 +353,7 @@ def _tdma(raw: Mapping[str, Any], p: _Problems, cfg: DeployConfig) -> None:
     cfg.epoch = float(p.number(t, "epoch", "tdma", 0.0))
 
 
-def _modalities(raw: Mapping[str, Any], p: _Problems, cfg: DeployConfig) -> None:
+def _modalities(raw: Mapping[str, Any], p: Problems, cfg: DeployConfig) -> None:
     known = _entry_points("coex.modalities")
     table = p.table(raw.get("modalities"), "modalities")
     if "modalities" not in raw:
@@ -426,7 +401,7 @@ def _modalities(raw: Mapping[str, Any], p: _Problems, cfg: DeployConfig) -> None
         cfg.modalities.append(mc)
 
 
-def _adapter(kind: str, group: str, table: Mapping[str, Any], key: str, p: _Problems) -> Any:
+def _adapter(kind: str, group: str, table: Mapping[str, Any], key: str, p: Problems) -> Any:
     known = _entry_points(group)
     t = table.get("type")
     if t not in known:
@@ -440,7 +415,7 @@ def _adapter(kind: str, group: str, table: Mapping[str, Any], key: str, p: _Prob
         return None
 
 
-def _inputs(raw: Mapping[str, Any], p: _Problems, cfg: DeployConfig) -> None:
+def _inputs(raw: Mapping[str, Any], p: Problems, cfg: DeployConfig) -> None:
     from .inputs.base import FEEDS, check_options
 
     inputs = raw.get("inputs", [])
@@ -463,14 +438,13 @@ def _inputs(raw: Mapping[str, Any], p: _Problems, cfg: DeployConfig) -> None:
                     p.add(f"{key}.feeds", f"feeds {f}, but the {f} modality does not run on this node")
         options = {k: v for k, v in t.items() if k not in ("type", "feeds")}
         problems = check_options(cls, options)
-        for text in problems:
-            p.add(key, text)
+        p.extend(key, problems)
         if not problems:
             _paths(cls, options, key, p, cfg)
         cfg.inputs.append(dict(t))
 
 
-def _paths(cls: Any, options: Mapping[str, Any], key: str, p: _Problems, cfg: DeployConfig) -> None:
+def _paths(cls: Any, options: Mapping[str, Any], key: str, p: Problems, cfg: DeployConfig) -> None:
     """Warnings for the files, folders and devices an adapter declares (``Adapter.paths``) that
     are not there now."""
     for option, path, kind in cls.paths(options):
@@ -481,7 +455,7 @@ def _paths(cls: Any, options: Mapping[str, Any], key: str, p: _Problems, cfg: De
                f"the {cls.kind} {cls.name!r} watches it", folder=kind == "folder")
 
 
-def _autonomy(raw: Mapping[str, Any], p: _Problems, cfg: DeployConfig) -> None:
+def _autonomy(raw: Mapping[str, Any], p: Problems, cfg: DeployConfig) -> None:
     from .autonomy.base import check_autonomy_options
 
     if "autonomy" not in raw and "survey" not in {m.name for m in cfg.modalities}:
@@ -494,8 +468,7 @@ def _autonomy(raw: Mapping[str, Any], p: _Problems, cfg: DeployConfig) -> None:
         return
     options = {k: v for k, v in t.items() if k != "type"}
     problems = check_autonomy_options(cls, options)
-    for text in problems:
-        p.add("autonomy", text)
+    p.extend("autonomy", problems)
     if not problems:
         _paths(cls, options, "autonomy", p, cfg)
     cfg.autonomy = dict(t)
@@ -503,7 +476,7 @@ def _autonomy(raw: Mapping[str, Any], p: _Problems, cfg: DeployConfig) -> None:
         p.add("autonomy", "an autonomy output needs the survey modality ([modalities.survey])")
 
 
-def _ros(raw: Mapping[str, Any], p: _Problems, cfg: DeployConfig) -> None:
+def _ros(raw: Mapping[str, Any], p: Problems, cfg: DeployConfig) -> None:
     """Topside: the ``[ros]`` table (``coex_plugins.console.ros.RosProducts``)."""
     if "ros" not in raw:
         return
@@ -516,7 +489,7 @@ def _ros(raw: Mapping[str, Any], p: _Problems, cfg: DeployConfig) -> None:
     cfg.ros = t
 
 
-def _console(raw: Mapping[str, Any], p: _Problems, cfg: DeployConfig) -> None:
+def _console(raw: Mapping[str, Any], p: Problems, cfg: DeployConfig) -> None:
     c = p.table(raw.get("console"), "console")
     p.unknown(c, {"http", "operators", "insecure_open", "tls_cert", "tls_key", "session_hours",
                   "idle_minutes", "allowed_hosts", "trusted_proxies", "stream_names"}, "console")

@@ -25,10 +25,11 @@ import numpy as np
 
 from coex_core.errors import CoexError, ConfigError
 
+from .build import build_node, link_configs
 from .config import DeployConfig
 from .options import LogOnce
 
-__all__ = ["VehicleApp", "build_vehicle_node", "open_transports"]
+__all__ = ["VehicleApp", "build_node", "build_vehicle_node", "link_configs", "open_transports"]
 
 log = logging.getLogger("coex.vehicle")
 
@@ -53,37 +54,11 @@ def open_transports(cfg: DeployConfig) -> dict[int, Any]:
     return out
 
 
-def link_configs(cfg: DeployConfig, transports: dict[int, Any]) -> list[Any]:
-    from coex_core.acoustic import rate_info
-    from coex_core.channel.manager import LinkConfig
-
-    schedule = cfg.schedule()
-    out = []
-    for lid, tr in transports.items():
-        m = cfg.modems[lid]
-        fb = m.frame_bytes or min(rate_info(m.rate).frame_bytes, int(tr.mtu))
-        kw: dict[str, Any] = {} if m.spare is None else {"spare": m.spare}
-        if m.packet_seconds is not None:
-            kw["packet_seconds"] = m.packet_seconds
-        out.append(LinkConfig(lid, schedule, rate=m.rate, frame_bytes=fb, dst=cfg.peer, **kw))
-    return out
-
-
-def build_vehicle_node(cfg: DeployConfig, transports: dict[int, Any]) -> Any:
-    """The vehicle node the configuration describes: its links, one sender per modality on its
-    stream and priority (with the file's options and id remapping)."""
-    from coex_core.channel import ChannelManager, StreamConfig
-    from coex_core.node import Node
-    from coex_core.registry import load_modality
-
-    node = Node(ChannelManager(cfg.node_id, link_configs(cfg, transports), command_key=cfg.command_key,
-                               queue_status_interval=cfg.slot_seconds * len(cfg.slots)))
-    for m in cfg.modalities:
-        cls = load_modality(m.name)
-        sender = cls().sender(cfg.options(m) or None)
-        node.add_sender(cls, sender, StreamConfig(m.stream, m.name, priority=m.priority, low_priority=m.low_priority),
-                        ids=m.ids or None)
-    return node
+def build_vehicle_node(cfg: DeployConfig, transports: Mapping[int, Any]) -> Any:
+    """The vehicle node the configuration describes: ``build_node(cfg, "vehicle", transports)``
+    (:mod:`.build`): its links, one sender per modality on its stream and priority (with the
+    file's options and id remapping)."""
+    return build_node(cfg, "vehicle", transports)
 
 
 def _load(group: str, name: str) -> Any:
