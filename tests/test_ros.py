@@ -319,6 +319,10 @@ def test_a_survey_goes_out_as_a_path_and_its_progress_comes_back(roscore: Roscor
     ctx = InputContext(41.5, -70.6)
     out = RosAutonomy({"master": roscore.uri, "answer_timeout": 30.0}, ctx)
     out.open()
+    # the path's publisher and the progress subscriber registered before the planner starts
+    # (rospy's double-connect race otherwise: see test_topside_products_appear_on_ros_topics)
+    _wait("the output's topics registered", lambda: _registered(roscore.uri, out._path.topic, 0)
+          and _registered(roscore.uri, out._sub.topic, 1), 30)
     planner = peer(["--name", "planner_fly", "--planner", "fly", "--leg", "0.1"], roscore.env(), tmp_path / "fly.log")
     lines = _Out(planner)
     try:
@@ -450,6 +454,12 @@ def _system_state(uri: str) -> Any:
         return xmlrpc.client.ServerProxy(uri).getSystemState("/coex_test")[2]
     except OSError:
         return None
+
+
+def _registered(uri: str, topic: str, kind: int) -> bool:
+    """Whether some node publishes (``kind`` 0) or subscribes to (1) ``topic`` on the master."""
+    state = _system_state(uri)
+    return bool(state) and any(t == topic and nodes for t, nodes in state[kind])
 
 
 def _subscribed(uri: str, topic: str, node: str) -> bool:
