@@ -5,6 +5,11 @@
 const S = { now: 0, vehicle: null, map: null, surveys: null, images: null, series: null, other: null, link: null,
   queues: null, commands: [], log: [], versions: {} };
 const $ = (sel) => document.querySelector(sel);
+// A fleet console (several vehicles): the page shows the vehicle named by ?vehicle= (none:
+// the first); every request and picture names it, and every action carries it.
+const VEHICLE = new URLSearchParams(location.search).get("vehicle");
+const withVehicle = (url) => (VEHICLE === null || !url ? url
+  : `${url}${url.includes("?") ? "&" : "?"}vehicle=${encodeURIComponent(VEHICLE)}`);
 const el = (tag, attrs = {}, ...kids) => {
   const e = document.createElement(tag);
   for (const [k, v] of Object.entries(attrs)) {
@@ -76,7 +81,7 @@ async function sendAction(action, args) {
   try {
     const r = await fetch("/api/action", { method: "POST",
       headers: { "Content-Type": "application/json", "X-CSRF-Token": ME.csrf || "" },
-      body: JSON.stringify({ action, args }) });
+      body: JSON.stringify({ action, args: S.fleet ? { ...args, vehicle: S.fleet.vehicle } : args }) });
     if (r.status === 401) { location.href = "/login"; return null; }
     const body = await r.json();
     if (!body.ok) { act.lastError = body.error || "failed"; toast(act.lastError, true); return null; }
@@ -146,7 +151,7 @@ function levelImage(lv) {
     const fresh = new Image();
     fresh.dataset.src = lv.png;
     fresh.onload = () => { imgCache.set(lv.level, fresh); drawMap(); };
-    fresh.src = lv.png;
+    fresh.src = withVehicle(lv.png);
     if (!img) return null;  // keep drawing the previous picture until the new one loads
   }
   return img && img.complete ? img : null;
@@ -175,7 +180,7 @@ function levelWindow(lv) {
       if (entry.pending === key) entry.pending = null;
       drawMap();
     };
-    fresh.src = key;
+    fresh.src = withVehicle(key);
   }
   return c.img && c.img.complete ? c : null;  // the previous one until the new one loads
 }
@@ -965,7 +970,7 @@ function drawThumbRegions(c, it) {
 }
 function updateCard(c, it) {
   if (it.thumb && it.thumb !== c.thumb) {
-    const img = el("img", { class: "thumb", src: it.thumb, alt: `image ${it.image_id}` });
+    const img = el("img", { class: "thumb", src: withVehicle(it.thumb), alt: `image ${it.image_id}` });
     c.pic.replaceWith(img); c.pic = img; c.thumb = it.thumb;
   }
   const pos = it.x !== null && it.x !== undefined ? ` · (${Number(it.x).toFixed(0)}, ${Number(it.y).toFixed(0)})` : "";
@@ -1000,7 +1005,7 @@ function showViewer() {
   if (!it) return;
   $("#viewer").classList.remove("hidden");
   const img = $("#viewer-img");
-  if (it.full && img.dataset.src !== it.full) { img.src = it.full; img.dataset.src = it.full; }
+  if (it.full && img.dataset.src !== it.full) { img.src = withVehicle(it.full); img.dataset.src = it.full; }
   img.classList.toggle("hidden", !it.full);
   $("#viewer-none").classList.toggle("hidden", !!it.full);
   img.classList.toggle("fit", viewer.fit);
@@ -1156,7 +1161,7 @@ function showRegionTool(it) {
       const bytes = `${fmtBytes(c.held_bytes)} of ${fmtBytes(c.total_bytes)}`;
       li.append(el("span", { class: "served" }, `crop ${c.width} × ${c.height} px · ${bytes}`
         + (c.complete ? "" : " so far") + (c.shown ? " · shown over the picture" : " · the picture is as good there")));
-      if (c.png) li.append(el("img", { class: "region-crop", src: c.png, alt: `crop of region ${k + 1}`,
+      if (c.png) li.append(el("img", { class: "region-crop", src: withVehicle(c.png), alt: `crop of region ${k + 1}`,
         title: `what the crop shows of ${x0}..${x1} × ${y0}..${y1} px (${bytes})` }));
     } else if (r.served === "packets") {
       li.append(el("span", { class: "served" }, `the picture's own packets · ${fmtBytes(r.bytes ?? 0)}`));
@@ -1768,8 +1773,28 @@ function mergeMap(old, upd) {
   delete upd.delta;
   return upd;
 }
+// the fleet strip: every vehicle of a fleet console (position, mode, status age, link loss and
+// last heard, queued bytes, open commands), each a link to its own page
+function renderFleet() {
+  const f = S.fleet, strip = $("#fleet");
+  if (!f || !strip) return;
+  strip.classList.remove("hidden");
+  strip.replaceChildren(...f.vehicles.map((v) => {
+    const lk = Object.values(v.links || {})[0] || {};
+    const age = v.status_t == null ? "no status" : `status ${Math.max(0, S.now - v.status_t).toFixed(0)} s ago`;
+    const pos = v.x == null ? "" : ` at ${v.x.toFixed(0)}, ${v.y.toFixed(0)} m, ${v.depth.toFixed(0)} m deep, ${v.mode}`;
+    const loss = lk.loss == null ? "loss ?" : `loss ${(100 * lk.loss).toFixed(0)} %`;
+    const a = el("a", { class: "fleet-vehicle" + (v.id === f.vehicle ? " current" : ""),
+      href: `/?vehicle=${encodeURIComponent(v.name)}`, "data-vehicle": v.name },
+      el("b", {}, `${v.name} (${v.id})`), ` ${age}${pos}; ${loss}; ${v.queued_bytes || 0} B queued; `
+      + `${v.open_commands || 0} open command${v.open_commands === 1 ? "" : "s"}; ${v.images || 0} images`);
+    if (v.id === f.vehicle) a.setAttribute("aria-current", "page");
+    return a;
+  }));
+}
 function apply(data, full) {
   if (data.now !== undefined) S.now = data.now;
+  if (data.fleet) { S.fleet = data.fleet; renderFleet(); }
   if (data.map) data.map = mergeMap(full ? null : S.map, data.map);
   if (data.versions) S.versions = data.versions;
   for (const k of Object.keys(RENDER)) {
@@ -1819,7 +1844,7 @@ window.coex = { S, view, updates: 0, connected: false, region,
     return [r.left + (sx * r.width) / canvas.width, r.top + (sy * r.height) / canvas.height];
   } };
 function connect() {
-  const es = new EventSource("/api/events");
+  const es = new EventSource(withVehicle("/api/events"));
   es.addEventListener("snapshot", (ev) => { apply(JSON.parse(ev.data), true); });
   es.addEventListener("update", (ev) => { apply(JSON.parse(ev.data), false); });
   es.addEventListener("clock", (ev) => {
