@@ -214,3 +214,34 @@ def test_the_fleet_console_refuses_a_vehicle_it_does_not_have(tmp_path: Path) ->
         assert all(surveys(v) == {} for v in f.veh.values())
     finally:
         f.server.close()
+
+
+def test_the_store_keeps_each_vehicles_console(tmp_path: Path) -> None:
+    from coex_plugins.console.cli import topside_app
+    from coex_plugins.console.fleet import FleetHub
+
+    raw = topside_raw()
+    raw["node"]["store"] = "top.sqlite"
+    cfg = from_mapping(raw, tmp_path / "t.toml", "topside")
+    now = [1000.0]
+
+    def start() -> Any:
+        tr = open_transport(f"loopback://store-{uuid.uuid4().hex[:6]}")
+        return topside_app(cfg, "127.0.0.1", 0, clock=lambda: now[0], transports={0: tr})
+
+    app = start()
+    try:
+        assert isinstance(app.hub, FleetHub)
+        app.hub.act("survey", {"vehicle": "camera", "kind": "goto", "x": 3.0, "y": 4.0})
+        app.step()
+        assert {v: len(s.commands) for v, s in app.hub.states().items()} == {2: 0, 3: 1}
+    finally:
+        app.close()
+    app = start()  # the topside restarts: each vehicle's page as it was
+    try:
+        states = app.hub.states()
+        assert {v: len(s.commands) for v, s in states.items()} == {2: 0, 3: 1}
+        assert states[3].receivers["survey"] is app.node.receiver("survey", 3)
+        assert states[2].receivers["survey"] is app.node.receiver("survey", 2)
+    finally:
+        app.close()
