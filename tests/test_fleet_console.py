@@ -24,6 +24,7 @@ from coex_plugins.console.fleet import fleet_hub
 from coex_plugins.console.server import serve
 from coex_plugins.vehicle.build import build_node
 from coex_plugins.vehicle.config import check_mapping, from_mapping
+from tests.test_console_browser import browser  # noqa: F401 (headless Chromium, a fixture)
 
 ROOT = Path(__file__).resolve().parents[1]
 COEX = str(Path(sys.executable).with_name("coex"))
@@ -115,7 +116,7 @@ class FleetConsole:
     """Topside (from a ``[[vehicles]]`` configuration) and the mapper and camera vehicles on one
     simulated acoustic network; the topside's fleet console served over HTTP."""
 
-    def __init__(self, tmp_path: Path) -> None:
+    def __init__(self, tmp_path: Path, move: bool = False) -> None:
         tr = open_transport(f"loopback://fleet-{uuid.uuid4().hex[:6]}")
         try:
             cfg = from_mapping(topside_raw(), tmp_path / "t.toml", "topside")
@@ -129,8 +130,9 @@ class FleetConsole:
         self.net.add_node(self.veh[2], (300.0, 400.0, 900.0))
         self.net.add_node(self.veh[3], (-400.0, 300.0, 900.0))
         for v, x in ((2, 100.0), (3, -250.0)):
-            self.net.every(10.0, lambda now, v=v, x=x: self.veh[v].push_status(
-                VehicleStatus(int(now), x, 50.0 * v, 900.0, 12.0, 90.0, 1.2, 80, VehicleMode.SURVEY, 0), now))
+            self.net.every(10.0, lambda now, v=v, x=x: self.veh[v].push_status(VehicleStatus(
+                int(now), x + (0.3 * now if move else 0.0), 50.0 * v - (0.2 * now if move else 0.0), 900.0, 12.0,
+                90.0, 1.2, 80, VehicleMode.SURVEY, 0), now))
         self.hub = fleet_hub(self.top, {2: "mapper", 3: "camera"}, lambda: self.net.now)
         self.server = serve(self.hub, "127.0.0.1", 0)
 
@@ -245,3 +247,63 @@ def test_the_store_keeps_each_vehicles_console(tmp_path: Path) -> None:
         assert states[2].receivers["survey"] is app.node.receiver("survey", 2)
     finally:
         app.close()
+
+
+def test_the_fleet_page_shows_every_vehicle_and_commands_the_one_shown(
+        tmp_path: Path, browser: Any) -> None:  # noqa: F811 (the fixture of test_console_browser)
+    """In headless Chromium: the fleet strip lists both vehicles, the camera's page shows the
+    camera, and an action from that page reaches the camera alone."""
+    f = FleetConsole(tmp_path, move=True)
+    try:
+        f.run(120.0)
+        page = browser.new_page(viewport={"width": 1280, "height": 900})
+        errors: list[str] = []
+        page.on("pageerror", lambda exc: errors.append(str(exc)))
+        page.goto(f.server.url + "?vehicle=camera")
+        page.wait_for_selector("#fleet a.current[data-vehicle=camera]")
+        strip = page.inner_text("#fleet")
+        assert "mapper (2)" in strip and "camera (3)" in strip, strip
+        assert page.get_attribute("#fleet a[data-vehicle=mapper]", "href") == "/?vehicle=mapper"
+        page.wait_for_function("document.querySelector('#vehicle-status').textContent.includes('pos')")
+        # the page's own action carries its vehicle (the operator never types it)
+        page.evaluate("act('survey', {kind: 'goto', x: 40, y: -20})")
+        page.wait_for_function("act.lastError === ''")
+        page.click("#fleet a[data-vehicle=mapper]")
+        page.wait_for_selector("#fleet a.current[data-vehicle=mapper]")
+        assert errors == []
+        f.run(400.0)
+        assert [(s.command.x, s.command.y) for s in surveys(f.veh[3]).values()] == [(40.0, -20.0)]
+        assert surveys(f.veh[2]) == {}
+    finally:
+        f.server.close()
+
+
+def test_a_vehicle_that_restarts_does_not_disturb_the_other(tmp_path: Path) -> None:
+    """The camera's node is replaced by a fresh one (a restart without its store) while the
+    mapper keeps delivering: the mapper's page keeps moving, the camera's comes back, and a
+    survey for the restarted camera reaches it alone."""
+    f = FleetConsole(tmp_path, move=True)
+    try:
+        f.run(200.0)
+        mapper_t = f.get("api/state?vehicle=mapper")["vehicle"]["status"]["t"]
+        del f.net.nodes[3]  # the camera goes silent ...
+        f.run(400.0)
+        silent_t = f.get("api/state?vehicle=camera")["vehicle"]["status"]["t"]
+        assert f.get("api/state?vehicle=mapper")["vehicle"]["status"]["t"] > mapper_t + 100  # the mapper did not
+        tr = open_transport(f"loopback://re-{uuid.uuid4().hex[:6]}")
+        try:
+            f.veh[3] = build_node(from_mapping(vehicle_raw(3), tmp_path / "v.toml", "vehicle"), "vehicle", {0: tr})
+        finally:
+            tr.close()
+        f.net.add_node(f.veh[3], (-400.0, 300.0, 900.0))  # ... and comes back, fresh
+        f.run(700.0)
+        assert f.get("api/state?vehicle=camera")["vehicle"]["status"]["t"] > silent_t + 100
+        code, body = f.act("survey", {"vehicle": "camera", "kind": "goto", "x": 7.0, "y": 8.0})
+        assert code == 200, body
+        f.run(1000.0)
+        assert [(s.command.x, s.command.y) for s in surveys(f.veh[3]).values()] == [(7.0, 8.0)]
+        assert surveys(f.veh[2]) == {}
+        rows = {r["name"]: r for r in f.get("api/state?vehicle=mapper")["fleet"]["vehicles"]}
+        assert rows["mapper"]["status_t"] > 900 and rows["camera"]["status_t"] > 900
+    finally:
+        f.server.close()

@@ -164,7 +164,7 @@ class FleetHub:
                 "id": vid, "name": self.names[vid],
                 "x": _round(s.x) if s else None, "y": _round(s.y) if s else None,
                 "depth": _round(s.depth) if s else None, "mode": s.mode.name if s else None,
-                "status_t": _round(st.status_t), "track": len(st.track),
+                "status_t": _round(st.status_t), "track": _track(st.track),
                 "links": links, "queued_bytes": queued, "open_commands": open_cmds,
                 "images": len(st.images), "ended": st.ended})
         if rows != self._summary:
@@ -173,7 +173,8 @@ class FleetHub:
 
     def summary(self) -> list[dict[str, Any]]:
         """Every vehicle's line of the fleet strip (id, name, position, mode, status time, link
-        loss and last heard per link, queued bytes, open commands, images)."""
+        loss and last heard per link, queued bytes, open commands, images) and its track
+        (``[x, y]`` points, for the other vehicles' maps)."""
         with self.lock:
             return [dict(r) for r in self._summary] or [{"id": v, "name": n} for v, n in self.names.items()]
 
@@ -252,6 +253,16 @@ def _concerns(event: Any, vehicle: int) -> bool:
     if isinstance(event, ProductUpdated | CommandResult | CommandUnanswered):
         return event.peer in (None, 0, vehicle)
     return True
+
+
+def _track(track: Any, most: int = 200) -> list[list[float]]:
+    """A vehicle's track for the other vehicles' maps: at most ``most`` ``[x, y]`` points (every
+    k-th and the newest)."""
+    pts = [[round(float(x), 1), round(float(y), 1)] for _t, x, y, _d in list(track)]
+    if len(pts) > most:
+        k = -(-len(pts) // most)
+        pts = [*pts[::k], pts[-1]]
+    return pts
 
 
 def _round(v: Any) -> Any:

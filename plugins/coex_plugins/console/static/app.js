@@ -135,6 +135,7 @@ function bounds() {
   }
   if (S.surveys) for (const sv of S.surveys.items) for (const p of sv.waypoints) add(p[0], p[1]);
   if (S.vehicle) for (const p of S.vehicle.track) add(p[1], p[2]);
+  if (S.fleet) for (const v of S.fleet.vehicles) for (const p of v.track || []) add(p[0], p[1]);
   return b;
 }
 function fit() {
@@ -237,6 +238,7 @@ function drawMap() {
       regionLabels.push([`L${r.level} ${r.text}`, ax + 3, ay + 12, style[0]]);
     }
   }
+  if (S.fleet && $("#show-track").checked) drawFleet();
   if (S.vehicle && $("#show-track").checked) drawTrack();
   if ($("#show-images").checked) drawImages();
   drawSurveys();
@@ -381,6 +383,24 @@ function drawScale() {
   ctx.beginPath(); ctx.moveTo(x, y); ctx.lineTo(x + px, y); ctx.stroke();
   ctx.fillStyle = "#dce6ee"; ctx.font = "11px system-ui";
   ctx.fillText(`${m} m`, x + px + 6, y + 4);
+}
+// a fleet console: the other vehicles, dashed, with their names (this page's vehicle is drawn
+// by drawTrack)
+function drawFleet() {
+  ctx.save();
+  for (const v of S.fleet.vehicles) {
+    if (v.id === S.fleet.vehicle || !v.track || !v.track.length) continue;
+    ctx.strokeStyle = "rgba(180,200,215,0.6)"; ctx.lineWidth = 1.2; ctx.setLineDash([5, 4]);
+    ctx.beginPath();
+    v.track.forEach((p, i) => { const [x, y] = w2s(p[0], p[1]); if (i) ctx.lineTo(x, y); else ctx.moveTo(x, y); });
+    ctx.stroke(); ctx.setLineDash([]);
+    const last = v.track[v.track.length - 1], [x, y] = w2s(last[0], last[1]);
+    ctx.fillStyle = "#b4c8d7"; ctx.beginPath(); ctx.arc(x, y, 5, 0, 2 * Math.PI); ctx.fill();
+    ctx.font = "bold 11px system-ui";  // label's: left of the dot near the right edge
+    const wide = ctx.measureText(v.name).width;
+    label(v.name, x + 8 + wide > canvas.width - 4 ? x - 8 - wide : x + 8, y - 6, "#b4c8d7");
+  }
+  ctx.restore();
 }
 function drawTrack() {
   const tr = S.vehicle.track;
@@ -1778,6 +1798,7 @@ function mergeMap(old, upd) {
 function renderFleet() {
   const f = S.fleet, strip = $("#fleet");
   if (!f || !strip) return;
+  drawMap();
   strip.classList.remove("hidden");
   strip.replaceChildren(...f.vehicles.map((v) => {
     const lk = Object.values(v.links || {})[0] || {};
