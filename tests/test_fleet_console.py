@@ -307,3 +307,28 @@ def test_a_vehicle_that_restarts_does_not_disturb_the_other(tmp_path: Path) -> N
         assert rows["mapper"]["status_t"] > 900 and rows["camera"]["status_t"] > 900
     finally:
         f.server.close()
+
+
+def test_coex_topside_config_lists_the_vehicles(tmp_path: Path) -> None:
+    lines = ['[node]', 'role = "topside"', 'id = 1', 'store = false',
+             '[[vehicles]]', 'id = 2', 'name = "mapper"', '[[vehicles]]', 'id = 3', 'name = "camera"',
+             '[[modems]]', f'uri = "loopback://fleet-cli-{uuid.uuid4().hex[:6]}"',
+             '[tdma]', 'slots = ["topside", "mapper", 3]', 'slot_seconds = 5', 'guard = 1',
+             '[modalities.survey]', '[console]', 'http = "127.0.0.1:0"']
+    (tmp_path / "topside.toml").write_text("\n".join(lines) + "\n")
+    proc = subprocess.Popen([COEX, "topside", "--config", str(tmp_path / "topside.toml")],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        assert proc.stdout is not None
+        line = proc.stdout.readline()
+        assert "vehicles mapper (2), camera (3)" in line, line + proc.stderr.read()
+        url = line.split()[3]
+        with urllib.request.urlopen(url + "api/state?vehicle=camera", timeout=10) as r:
+            state = json.loads(r.read())
+        assert state["fleet"]["name"] == "camera"
+        assert [v["name"] for v in state["fleet"]["vehicles"]] == ["mapper", "camera"]
+        (sched,) = state["link"]["schedules"]
+        assert [s["owner"] for s in sched["slots"]] == [1, 2, 3]
+    finally:
+        proc.terminate()
+        proc.wait(timeout=10)
