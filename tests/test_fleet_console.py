@@ -105,6 +105,11 @@ def test_the_one_checker_says_every_fleet_problem(tmp_path: Path) -> None:
     raw["node"]["command_key_file"] = "k"
     cfg = from_mapping(raw, tmp_path / "t.toml", "topside")
     assert cfg.vehicles[0].command_key == bytes(16) and cfg.vehicles[1].command_key is None
+    # a one-vehicle topside gives slots to its vehicle alone
+    _cfg, problems = check_mapping({"node": {"role": "topside", "id": 1, "peer": 2, "store": False},
+                                    "modems": [{"uri": "loopback://x"}], "tdma": {"slots": [1, 2, 3]}},
+                                   tmp_path / "t.toml", "topside")
+    assert any("node 3 is neither this topside nor its vehicle" in p for p in problems), problems
     # a one-vehicle file is as it was
     with pytest.raises(ConfigError, match="both the topside and the vehicle"):
         from_mapping({"node": {"role": "topside", "id": 1, "peer": 2, "store": False},

@@ -453,6 +453,10 @@ def _tdma(raw: Mapping[str, Any], p: Problems, cfg: DeployConfig) -> None:
         topside, vehicle = ((cfg.peer, cfg.node_id) if cfg.role == "vehicle" else (cfg.node_id, cfg.peer))
         if topside not in owners or vehicle not in owners:
             p.add("tdma.slots", "both the topside and the vehicle need at least one slot")
+        others = sorted(owners - {topside, vehicle})
+        if others and cfg.role == "topside":
+            p.add("tdma.slots", f"node {', '.join(map(str, others))} is neither this topside nor its vehicle "
+                                "(node.peer): list a fleet's vehicles in [[vehicles]]")
     cfg.slot_seconds = float(p.number(t, "slot_seconds", "tdma", 20.0, lo=0.5, hi=600))
     cfg.guard = float(p.number(t, "guard", "tdma", 2.0, lo=0, hi=25.5))
     if cfg.guard >= cfg.slot_seconds:
