@@ -121,12 +121,14 @@ class FleetConsole:
     """Topside (from a ``[[vehicles]]`` configuration) and the mapper and camera vehicles on one
     simulated acoustic network; the topside's fleet console served over HTTP."""
 
-    def __init__(self, tmp_path: Path, move: bool = False) -> None:
+    def __init__(self, tmp_path: Path, move: bool = False, *, top: dict[str, Any] | None = None,
+                 vehicles: dict[int, dict[str, Any]] | None = None) -> None:
         tr = open_transport(f"loopback://fleet-{uuid.uuid4().hex[:6]}")
         try:
-            cfg = from_mapping(topside_raw(), tmp_path / "t.toml", "topside")
+            cfg = from_mapping(top or topside_raw(), tmp_path / "t.toml", "topside")
             self.top = build_node(cfg, "topside", {0: tr})
-            self.veh = {v: build_node(from_mapping(vehicle_raw(v), tmp_path / "v.toml", "vehicle"), "vehicle", {0: tr})
+            self.veh = {v: build_node(from_mapping((vehicles or {}).get(v) or vehicle_raw(v), tmp_path / "v.toml",
+                                                   "vehicle"), "vehicle", {0: tr})
                         for v in (2, 3)}
         finally:
             tr.close()
@@ -337,3 +339,39 @@ def test_coex_topside_config_lists_the_vehicles(tmp_path: Path) -> None:
     finally:
         proc.terminate()
         proc.wait(timeout=10)
+
+
+def test_a_vehicle_with_its_own_key(tmp_path: Path) -> None:
+    """The camera shares a key with the topside alone (``[[vehicles]] command_key_file`` and the
+    camera's ``node.peer_key_file``); the mapper holds only the network key. Each accepts the
+    surveys signed for it; the topside signs each vehicle's commands with that vehicle's key."""
+    (tmp_path / "network.key").write_text("11" * 16)
+    (tmp_path / "camera.key").write_text("22" * 16)
+    top = topside_raw(vehicles=[{"id": 2, "name": "mapper"},
+                                {"id": 3, "name": "camera", "command_key_file": "camera.key"}])
+    top["node"]["command_key_file"] = "network.key"
+    mapper, camera = vehicle_raw(2), vehicle_raw(3)
+    mapper["node"]["command_key_file"] = camera["node"]["command_key_file"] = "network.key"
+    camera["node"]["peer_key_file"] = "camera.key"
+    f = FleetConsole(tmp_path, top=top, vehicles={2: mapper, 3: camera})
+    try:
+        assert set(f.top.manager.peer_signers) == {3} and set(f.veh[3].manager.peer_signers) == {1}
+        assert f.veh[2].manager.peer_signers == {}
+        f.run(120.0)
+        for vehicle, x in (("camera", 40.0), ("mapper", 5.0)):
+            code, body = f.act("survey", {"vehicle": vehicle, "kind": "goto", "x": x, "y": 1.0})
+            assert code == 200, body
+        f.run(600.0)
+        assert [s.command.x for s in surveys(f.veh[3]).values()] == [40.0]
+        assert [s.command.x for s in surveys(f.veh[2]).values()] == [5.0]
+        assert f.top.manager.peer_signers[3].counter > 0  # the camera's commands: under its own key
+        assert f.veh[3].manager.peer_verifiers[1].counter > 0
+    finally:
+        f.server.close()
+    # the checker: a vehicle's own key needs the network key; a topside has none of its own
+    del camera["node"]["command_key_file"]
+    _cfg, problems = check_mapping(camera, tmp_path / "v.toml", "vehicle")
+    assert any(p.startswith("node.peer_key_file: a key shared with the topside alone needs") for p in problems)
+    top["node"]["peer_key_file"] = "camera.key"
+    _cfg, problems = check_mapping(top, tmp_path / "t.toml", "topside")
+    assert any(p.startswith("node.peer_key_file: a topside gives each vehicle's own key") for p in problems)

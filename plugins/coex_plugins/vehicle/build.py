@@ -51,7 +51,7 @@ def build_node(cfg: DeployConfig, role: str, transports: Mapping[int, Any], *,
     ``missing`` (``"modality NAME not available: why"``), the console runs on without it. A
     topside of several vehicles (``[[vehicles]]``) gets one receiver per modality and vehicle
     (``add_receiver(..., peer=id)``, saved under ``name@id``) and the vehicles' own command
-    keys (``peer_keys``)."""
+    keys (``peer_keys``); a vehicle with ``node.peer_key_file`` holds its key the same way."""
     from coex_core.channel import ChannelManager, StreamConfig
     from coex_core.node import Node
     from coex_core.registry import load_modality
@@ -62,6 +62,8 @@ def build_node(cfg: DeployConfig, role: str, transports: Mapping[int, Any], *,
     if role == "vehicle":
         kw["queue_status_interval"] = cfg.slot_seconds * len(cfg.slots)
     keys = {v.id: v.command_key for v in cfg.vehicles if v.command_key is not None}
+    if cfg.peer_key is not None:  # a vehicle's key shared with its topside alone
+        keys = {cfg.peer: cfg.peer_key}
     if keys:
         kw["peer_keys"] = keys
     node = Node(ChannelManager(cfg.node_id, link_configs(cfg, transports), command_key=cfg.command_key, **kw))

@@ -88,6 +88,9 @@ class DeployConfig:
     origin_lon: float = 0.0
     command_key: bytes | None = None
     command_key_file: Path | None = None
+    #: vehicle of a fleet: the key it shares with its topside alone (``node.peer_key_file``;
+    #: the topside's ``[[vehicles]]`` ``command_key_file`` for this vehicle), or None
+    peer_key: bytes | None = None
     store: Path | None = None
     snapshot_interval: float = 30.0
     log_level: str = "info"
@@ -237,8 +240,8 @@ def check_problems(raw: Mapping[str, Any], path: Path, role: str | None) -> tupl
     p = Problems()
     p.unknown(raw, TOP_KEYS, "")
     node = p.table(raw.get("node"), "node")
-    p.unknown(node, {"role", "id", "peer", "origin", "command_key_file", "store", "snapshot_interval",
-                     "log_level"}, "node")
+    p.unknown(node, {"role", "id", "peer", "origin", "command_key_file", "peer_key_file", "store",
+                     "snapshot_interval", "log_level"}, "node")
     r = node.get("role", role)
     if r not in ROLES:
         p.add("node.role", f"'vehicle' or 'topside', got {r!r}" if r is not None else
@@ -269,6 +272,14 @@ def check_problems(raw: Mapping[str, Any], path: Path, role: str | None) -> tupl
     keyfile = node.get("command_key_file")
     if keyfile is not None:
         cfg.command_key, cfg.command_key_file = _key(p, cfg, keyfile, "node.command_key_file")
+    if node.get("peer_key_file") is not None:
+        if r != "vehicle":
+            p.add("node.peer_key_file", "a topside gives each vehicle's own key in [[vehicles]] command_key_file")
+        elif keyfile is None:
+            p.add("node.peer_key_file", "a key shared with the topside alone needs the network key in "
+                                        "node.command_key_file (broadcast commands are signed with it)")
+        else:
+            cfg.peer_key = _key(p, cfg, node["peer_key_file"], "node.peer_key_file")[0]
     store = node.get("store", f"{r}.sqlite")
     if store is False:
         cfg.store = None
