@@ -335,7 +335,7 @@ class Node:
             if owner is not None:
                 # a modality request: its receiver tracks it (and may stop retrying it)
                 for p in owner.receiver.receive(m, now) or ():
-                    self._events.append(ProductUpdated(now, owner.name, p))
+                    self._events.append(ProductUpdated(now, owner.name, p, owner.peer))
             self.manager.on_command_ack(m, now, src)  # emits CommandResult
             return
         if self._duplicate(m, now):
@@ -355,7 +355,7 @@ class Node:
             r = self._message_routes.owner(m)
         if r is not None:
             for p in r.receiver.receive(m, now):
-                self._events.append(ProductUpdated(now, r.name, p))
+                self._events.append(ProductUpdated(now, r.name, p, r.peer))
             return
         self._events.append(Received(now, link_id, src, m))
 

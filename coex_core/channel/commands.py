@@ -231,7 +231,7 @@ class CommandsMixin(PackingMixin):
                     and self._command_dst.get(cid) != 0):
                 tracked.apply(Event.GIVE_UP, now)
                 self.stats["unanswered"] = self.stats.get("unanswered", 0) + 1
-                self._events.append(CommandUnanswered(now, cid, tracked.message))
+                self._events.append(CommandUnanswered(now, cid, tracked.message, self._command_dst.get(cid)))
 
     def _settle_proposals(self, link: int, now: float) -> None:
         """The proposer's proposals to a network of several nodes: a peer silent for
@@ -300,6 +300,6 @@ class CommandsMixin(PackingMixin):
             target = self._links.get(command.link)
             if target is not None and target.enabled != command.enabled:
                 self.set_link_enabled(command.link, command.enabled, now)
-        result = CommandResult(now, ack.command_id, ack.status, command)
+        result = CommandResult(now, ack.command_id, ack.status, command, src)
         self._events.append(result)
         return result

@@ -71,11 +71,13 @@ class CommandApplied(Event):
 
 @dataclass(frozen=True)
 class CommandResult(Event):
-    """Topside learned the outcome of one of its commands."""
+    """Topside learned the outcome of one of its commands (``peer``: the node that answered,
+    when known)."""
 
     command_id: int
     status: AckStatus
     command: Message | None = None
+    peer: int | None = None
 
 
 @dataclass(frozen=True)
@@ -86,6 +88,8 @@ class CommandUnanswered(Event):
 
     command_id: int
     command: Message | None = None
+    #: the node it was sent to (None: unknown)
+    peer: int | None = None
 
 
 @dataclass(frozen=True)
@@ -129,10 +133,12 @@ class Received(Event):
 
 @dataclass(frozen=True)
 class ProductUpdated(Event):
-    """A topside receiver improved a product."""
+    """A topside receiver improved a product (``peer``: the node whose data it is, for a
+    per-peer receiver of a network of several nodes; None otherwise)."""
 
     modality: str
     product: Any
+    peer: int | None = None
 
 
 @dataclass(frozen=True)

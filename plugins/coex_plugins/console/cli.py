@@ -224,11 +224,18 @@ class TopsideApp:
             self._modem_status(link, tr)
             if isinstance(tr, ResilientTransport):
                 h = tr.health()
-                self.hub.state.set_own_modem(link, h.up, h.outages, h.down_total, h.last_down, h.last_error, now)
+                for state in self._states():
+                    state.set_own_modem(link, h.up, h.outages, h.down_total, h.last_down, h.last_error, now)
+
+    def _states(self) -> list[Any]:
+        """The console states: one, or a fleet's, one per vehicle."""
+        from .fleet import FleetHub
+
+        return list(self.hub.states().values()) if isinstance(self.hub, FleetHub) else [self.hub.state]
 
     def _commands_version(self) -> int:
         """Changes whenever the operator's commands do (sent, queued, answered)."""
-        return int(self.hub.state.versions.get("commands", 0))
+        return sum(int(state.versions.get("commands", 0)) for state in self._states())
 
     def _commands_changed(self) -> bool:
         """Whether the store must be saved now: the operator's commands changed."""
@@ -472,6 +479,7 @@ def topside_app(cfg: DeployConfig, host: str = "127.0.0.1", port: int = 8080, *,
     from coex_plugins.vehicle.build import build_node
     from coex_transports.recovery import ResilientTransport
 
+    from .fleet import FleetHub, fleet_hub
     from .node import NodeCommands
     from .server import ConsoleHub, serve
     from .state import ConsoleState
@@ -503,17 +511,16 @@ def topside_app(cfg: DeployConfig, host: str = "127.0.0.1", port: int = 8080, *,
 
         hubs: list[Any] = []
 
-        def wire(node: Any, extra: Any) -> None:
-            """The console around ``node``: a fresh one, or the one saved with it."""
-            if isinstance(extra, dict) and isinstance(extra.get("state"), ConsoleState):
-                state = extra["state"]
-            else:
-                names = {s.id: s.config.name for s in node.manager.streams}
-                names.update(stream_names or {})
-                state = ConsoleState(node_id=node_id, vehicle_id=vehicle_id, stream_names=names,
-                                     receivers=dict(node.receivers()))
-                for lid in links:
-                    state.set_schedule(lid, schedule)
+        def new_state(node: Any, vehicle: int) -> Any:
+            names = {s.id: s.config.name for s in node.manager.streams}
+            names.update(stream_names or {})
+            state = ConsoleState(node_id=node_id, vehicle_id=vehicle, stream_names=names,
+                                 receivers=dict(node.receivers()))
+            for lid in links:
+                state.set_schedule(lid, schedule)
+            return state
+
+        def vehicle_hub(node: Any, state: Any) -> Any:
             # the node's receivers are what the console shows (the saved console holds the
             # same objects as the restored node: they were saved in one document)
             state.receivers = dict(node.receivers())
@@ -522,7 +529,22 @@ def topside_app(cfg: DeployConfig, host: str = "127.0.0.1", port: int = 8080, *,
             rx = state.receivers.get("bathymetry")
             if rx is not None and hasattr(rx, "request_area"):
                 hub.actions.map_receiver = state.region_source = rx
-            hubs.append(hub)
+            return hub
+
+        def wire(node: Any, extra: Any) -> None:
+            """The console around ``node``: a fresh one, or the one saved with it (a fleet:
+            one console state per vehicle, each with that vehicle's receivers)."""
+            if cfg.fleet:
+                saved = extra.get("states") if isinstance(extra, dict) else None
+                states = {v.id: saved.get(str(v.id)) for v in cfg.vehicles} if isinstance(saved, dict) else {}
+                hubs.append(fleet_hub(node, {v.id: v.name for v in cfg.vehicles}, clock, states=states,
+                                      stream_names=stream_names, schedule=schedule))
+                return
+            if isinstance(extra, dict) and isinstance(extra.get("state"), ConsoleState):
+                state = extra["state"]
+            else:
+                state = new_state(node, vehicle_id)
+            hubs.append(vehicle_hub(node, state))
 
         if store is None:
             node = fresh()
@@ -544,14 +566,20 @@ def topside_app(cfg: DeployConfig, host: str = "127.0.0.1", port: int = 8080, *,
                          nstore.stats["replayed"])
         node.set_log(lambda text: log.info("%s", text))
         hub = hubs[-1]
-        state = hub.state
-        for text in left_out:
-            state._log(0.0, text, "warn")
+        states = list(hub.states().values()) if isinstance(hub, FleetHub) else [hub.state]
+        for state in states:
+            for text in left_out:
+                state._log(0.0, text, "warn")
         if nstore is not None:
             if nstore.restored_extra is not None or nstore.stats["replayed"]:
-                state._log(clock(), f"resumed from {store}: {nstore.stats['replayed']} "
-                                    "journaled frames replayed")
-            nstore.extra = lambda: {"state": hub.state}
+                for state in states:
+                    state._log(clock(), f"resumed from {store}: {nstore.stats['replayed']} "
+                                        "journaled frames replayed")
+            if isinstance(hub, FleetHub):
+                fleet = hub
+                nstore.extra = lambda: {"states": {str(v): st for v, st in fleet.states().items()}}
+            else:
+                nstore.extra = lambda: {"state": hub.state}
         server = serve(hub, host, port, access=access, tls=tls, allowed_hosts=list(allowed_hosts),
                        trusted_proxies=list(trusted_proxies))
     except BaseException:
@@ -604,7 +632,11 @@ def run(args: argparse.Namespace) -> int:
             return 2
         logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(levelname)s %(message)s",
                             force=True)
-        print(f"CoEx console on {app.url} (topside node {app.node.node_id}, from {args.config})", flush=True)
+        from .fleet import FleetHub
+
+        fleet = (", vehicles " + ", ".join(f"{n} ({v})" for v, n in app.hub.names.items())
+                 if isinstance(app.hub, FleetHub) else "")
+        print(f"CoEx console on {app.url} (topside node {app.node.node_id}{fleet}, from {args.config})", flush=True)
         return _serve(app)
     if not args.transport:
         print("coex topside: give --config FILE or at least one --transport URI", file=sys.stderr)

@@ -153,6 +153,11 @@ class ConsoleHub:
         with self.lock:
             return self.state.snapshot()
 
+    def seen(self) -> dict[str, Any]:
+        """The section versions of a client that has just taken :meth:`snapshot`."""
+        with self.lock:
+            return dict(self.state.versions)
+
     def wait_changes(self, seen: dict[str, int], timeout: float,
                      coalesce: float = 0.0) -> dict[str, Any]:
         """Sections changed since ``seen`` (waits up to ``timeout`` s, then ``coalesce`` s more

@@ -41,8 +41,12 @@ class NodeCommands:
     message than the one built (a schedule gets its command id from the channel manager)."""
 
     def __init__(self, node: Any, clock: Callable[[], float], *, deferred: bool = False,
-                 on_sent: Callable[[Message, Message], Any] | None = None) -> None:
+                 on_sent: Callable[[Message, Message], Any] | None = None,
+                 dst: int | None = None) -> None:
         self.node = node
+        #: the node every command goes to (a fleet console: one vehicle's id); None: the
+        #: link's peer
+        self.dst = dst
         self.clock = clock
         self.deferred = deferred
         self.on_sent = on_sent
@@ -76,6 +80,9 @@ class NodeCommands:
             cycle = resolve_cycle(msg.activate_cycle, current)
             out: Message = self.node.manager.propose_schedule(
                 msg.link, Schedule.from_message(msg), now, cycle)
+        elif self.dst is not None:
+            self.node.request(msg, now, dst=self.dst)
+            out = msg
         else:
             self.node.request(msg, now)
             out = msg

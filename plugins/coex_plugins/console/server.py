@@ -71,6 +71,7 @@ from coex_core.errors import CoexError, RequestRejected
 from coex_core.messages import Message
 
 from .access import Access, Session, SignInRefused, describe
+from .fleet import FleetHub
 from .hub import ConsoleHub
 from .node import attach
 from .state import MAP_WINDOW_CELLS, ConsoleState
@@ -315,6 +316,20 @@ class _App:
             raise _Refused(401, "sign in first (/login)")
         return s
 
+    def view(self, request: Request, vehicle: Any = None) -> Any:
+        """The hub a request is about: a fleet console's vehicle named by ``?vehicle=`` (or
+        ``vehicle``; none: the first vehicle), refused with 400 when the fleet has no such
+        vehicle; a one-vehicle console's hub."""
+        hub = self.hub
+        if not isinstance(hub, FleetHub):
+            return hub
+        if vehicle is None:
+            vehicle = request.query_params.get("vehicle")
+        try:
+            return hub.view(vehicle)
+        except RequestRejected as exc:
+            raise _Refused(400, str(exc)) from None
+
     def cookie(self, response: Response, sid: str, max_age: int) -> None:
         response.set_cookie(COOKIE, sid, max_age=max_age, path="/", secure=self.server.tls is not None,
                             httponly=True, samesite="strict")
@@ -421,7 +436,7 @@ class _App:
 
     async def state(self, request: Request) -> Response:
         self.signed_in(request)
-        return _json(200, await run_in_threadpool(self.hub.snapshot))
+        return _json(200, await run_in_threadpool(self.view(request).snapshot))
 
     # -------------------------------------------------------------- pictures
     def _level(self, request: Request) -> int:
@@ -432,7 +447,7 @@ class _App:
 
     async def map_level(self, request: Request) -> Response:
         self.signed_in(request)
-        level, hub = self._level(request), self.hub
+        level, hub = self._level(request), self.view(request)
 
         def draw() -> bytes | None:
             with hub.lock:
@@ -446,7 +461,7 @@ class _App:
 
     async def map_window(self, request: Request) -> Response:
         self.signed_in(request)
-        level, hub, q = self._level(request), self.hub, request.query_params
+        level, hub, q = self._level(request), self.view(request), request.query_params
         try:
             box = [float(q[k]) for k in ("x0", "y0", "x1", "y1")]
             step = int(q.get("step", "1"))
@@ -481,7 +496,7 @@ class _App:
         except ValueError:
             raise _Refused(400, "an image id is a whole number") from None
         full = request.query_params.get("full") == "1"
-        hub = self.hub
+        hub = self.view(request)
 
         def draw() -> bytes | None:
             with hub.lock:
@@ -498,7 +513,7 @@ class _App:
             cid = int(request.path_params["cid"])
         except ValueError:
             raise _Refused(400, "a crop id is a whole number") from None
-        hub = self.hub
+        hub = self.view(request)
 
         def draw() -> bytes | None:
             with hub.lock:
@@ -514,12 +529,12 @@ class _App:
         session = self.signed_in(request)
         if self.streams >= self.limits.streams:
             raise _Refused(429, f"{self.streams} event streams are open already (at most {self.limits.streams})")
-        hub, access, sid = self.hub, self.access, request.cookies.get(COOKIE)
+        hub, access, sid = self.view(request), self.access, request.cookies.get(COOKIE)
 
         def first() -> tuple[dict[str, Any], dict[str, Any], float]:
             with hub.lock:
-                snap = hub.state.snapshot()
-                seen: dict[str, Any] = dict(hub.state.versions)
+                snap = hub.snapshot()
+                seen: dict[str, Any] = hub.seen()
                 # what this page holds of the map: its updates carry only what changed
                 seen["_map"] = hub.state.map_held(snap["map"])
                 return snap, seen, hub.state.now
@@ -680,7 +695,7 @@ class ConsoleServer:
     own event loop once :meth:`start` is called. The socket is bound at construction (port 0
     picks a free port: :attr:`server_address`)."""
 
-    def __init__(self, hub: ConsoleHub, host: str = "127.0.0.1", port: int = 8080, *,
+    def __init__(self, hub: ConsoleHub | FleetHub, host: str = "127.0.0.1", port: int = 8080, *,
                  access: Access | None = None, tls: ssl.SSLContext | None = None,
                  allowed_hosts: list[str] | tuple[str, ...] | None = None,
                  limits: Limits | None = None,
@@ -760,7 +775,8 @@ def serve(target: Any, host: str = "127.0.0.1", port: int = 8080, *,
     """Serve the console in a background thread and return the running server (``server.url``,
     ``server.hub``, ``server.close()``). Port 0 picks a free port.
 
-    ``target`` is a :class:`ConsoleHub`, a topside :class:`~coex_core.node.Node` (a hub is made
+    ``target`` is a :class:`ConsoleHub` (a :class:`~.fleet.FleetHub`: a console of several
+    vehicles, each request naming its vehicle), a topside :class:`~coex_core.node.Node` (a hub is made
     with :func:`~coex_plugins.console.node.attach`; the loop driving the node must then hold
     ``server.hub.lock`` while stepping it and call ``server.hub.pump(node, now)``), or a
     :class:`ConsoleState` (view only: actions are refused). ``stream_names`` names the
@@ -768,7 +784,8 @@ def serve(target: Any, host: str = "127.0.0.1", port: int = 8080, *,
     console answers to (:func:`default_hosts`); ``limits`` the bounds of :class:`Limits`;
     ``trusted_proxies`` the addresses of reverse proxies whose ``X-Forwarded-For`` names the
     client (none by default: the peer address is the client)."""
-    if isinstance(target, ConsoleHub):
+    hub: ConsoleHub | FleetHub
+    if isinstance(target, ConsoleHub | FleetHub):
         hub = target
     elif isinstance(target, ConsoleState):
         def refuse(msg: Message) -> None:

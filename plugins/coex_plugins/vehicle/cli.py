@@ -74,7 +74,14 @@ def _check(args: argparse.Namespace) -> int:
         parts.append(f"products on ROS under {cfg.ros.get('prefix', '/coex')} "
                      f"({cfg.ros.get('master') or 'ROS_MASTER_URI'})")
     parts.append("commands signed" if cfg.command_key else "commands NOT authenticated (no node.command_key_file)")
-    print(f"{args.file}: ok: {cfg.role} node {cfg.node_id} (peer {cfg.peer}); " + "; ".join(parts))
+    if cfg.fleet:
+        parts.append("keys per vehicle: " + ", ".join(v.name for v in cfg.vehicles if v.command_key)
+                     if any(v.command_key for v in cfg.vehicles) else "one key for every vehicle"
+                     if cfg.command_key else "")
+        who = "vehicles " + ", ".join(f"{v.name} ({v.id})" for v in cfg.vehicles)
+    else:
+        who = f"peer {cfg.peer}"
+    print(f"{args.file}: ok: {cfg.role} node {cfg.node_id} ({who}); " + "; ".join(p for p in parts if p))
     return 0
 
 

@@ -19,7 +19,7 @@ from typing import Any
 from coex_core.config import Problems
 from coex_core.errors import CoexError, ConfigError
 
-__all__ = ["DEFAULT_MODALITIES", "DeployConfig", "ModalityConfig", "check", "check_mapping",
+__all__ = ["DEFAULT_MODALITIES", "DeployConfig", "FleetVehicle", "ModalityConfig", "check", "check_mapping",
            "check_problems", "from_mapping", "load"]
 
 ROLES = ("vehicle", "topside")
@@ -34,7 +34,11 @@ DEFAULT_MODALITIES: dict[str, tuple[int, int]] = {
 STREAM_DEFAULTS: dict[str, tuple[int, int]] = {**DEFAULT_MODALITIES, "detections": (8, 100)}
 #: the NUI 2022 cycle: 6 slots, topside in slots 0 and 3
 NUI_SLOTS = ("topside", "vehicle", "vehicle", "topside", "vehicle", "vehicle")
-TOP_KEYS = {"node", "modems", "tdma", "modalities", "status", "inputs", "autonomy", "console", "ros"}
+TOP_KEYS = {"node", "modems", "tdma", "modalities", "status", "inputs", "autonomy", "console", "ros",
+            "vehicles"}
+#: a vehicle's name in a fleet topside's ``[[vehicles]]`` (it names the vehicle in TDMA slots
+#: and in the console's ``vehicle`` argument)
+_NAME = re.compile(r"[A-Za-z][A-Za-z0-9_-]{0,31}")
 
 
 @dataclass
@@ -61,6 +65,18 @@ class ModemConfig:
 
 
 @dataclass
+class FleetVehicle:
+    """One vehicle of a fleet topside's ``[[vehicles]]`` (a network of several nodes)."""
+
+    id: int
+    name: str
+    #: the key this topside shares with this vehicle alone (``command_key_file``), or None: the
+    #: node's ``command_key`` (the network key) signs its commands
+    command_key: bytes | None = None
+    command_key_file: Path | None = None
+
+
+@dataclass
 class DeployConfig:
     """One node's deployment, checked (see :func:`load`)."""
 
@@ -72,11 +88,16 @@ class DeployConfig:
     origin_lon: float = 0.0
     command_key: bytes | None = None
     command_key_file: Path | None = None
+    #: vehicle of a fleet: the key it shares with its topside alone (``node.peer_key_file``;
+    #: the topside's ``[[vehicles]]`` ``command_key_file`` for this vehicle), or None
+    peer_key: bytes | None = None
     store: Path | None = None
     snapshot_interval: float = 30.0
     log_level: str = "info"
     modems: list[ModemConfig] = field(default_factory=list)
-    slots: tuple[str, ...] = NUI_SLOTS
+    #: ``"topside"``, ``"vehicle"`` (the one vehicle, or this vehicle), a vehicle's name from
+    #: ``[[vehicles]]`` or a node id
+    slots: tuple[str | int, ...] = NUI_SLOTS
     slot_seconds: float = 20.0
     guard: float = 2.0
     epoch: float = 0.0
@@ -97,15 +118,29 @@ class DeployConfig:
     #: topside --schedule JSON``, ``build_topside(schedule=...)``) in place of ``slots``; None
     #: from a file
     explicit_schedule: Any = None
+    #: topside: the vehicles of a fleet (``[[vehicles]]``), empty for the one vehicle of
+    #: ``node.peer``
+    vehicles: list[FleetVehicle] = field(default_factory=list)
+
+    @property
+    def fleet(self) -> bool:
+        """A topside of several vehicles (``[[vehicles]]``)."""
+        return bool(self.vehicles)
+
+    def vehicle_ids(self) -> list[int]:
+        """The ids of the vehicles this topside talks to (``[[vehicles]]``, else ``node.peer``)."""
+        return [v.id for v in self.vehicles] if self.vehicles else [self.peer] if self.role == "topside" else []
 
     @property
     def base_dir(self) -> Path:
         return self.path.parent
 
     def owners(self) -> list[int]:
-        """The TDMA slot owners as node ids."""
+        """The TDMA slot owners as node ids (a vehicle's name: its ``[[vehicles]]`` id)."""
         vehicle, topside = ((self.node_id, self.peer) if self.role == "vehicle" else (self.peer, self.node_id))
-        return [topside if s == "topside" else vehicle for s in self.slots]
+        names = {v.name: v.id for v in self.vehicles}
+        return [s if isinstance(s, int) else topside if s == "topside" else vehicle if s == "vehicle"
+                else names[s] for s in self.slots]
 
     def link_ids(self) -> list[int]:
         """The link id of each modem, in order."""
@@ -205,8 +240,8 @@ def check_problems(raw: Mapping[str, Any], path: Path, role: str | None) -> tupl
     p = Problems()
     p.unknown(raw, TOP_KEYS, "")
     node = p.table(raw.get("node"), "node")
-    p.unknown(node, {"role", "id", "peer", "origin", "command_key_file", "store", "snapshot_interval",
-                     "log_level"}, "node")
+    p.unknown(node, {"role", "id", "peer", "origin", "command_key_file", "peer_key_file", "store",
+                     "snapshot_interval", "log_level"}, "node")
     r = node.get("role", role)
     if r not in ROLES:
         p.add("node.role", f"'vehicle' or 'topside', got {r!r}" if r is not None else
@@ -225,6 +260,10 @@ def check_problems(raw: Mapping[str, Any], path: Path, role: str | None) -> tupl
     p.unknown(origin, {"lat", "lon"}, "node.origin")
     cfg.origin_lat = float(p.number(origin, "lat", "node.origin", 0.0, lo=-90, hi=90))
     cfg.origin_lon = float(p.number(origin, "lon", "node.origin", 0.0, lo=-180, hi=180))
+    if r == "topside" and "vehicles" in raw:
+        _vehicles(raw, p, cfg, "peer" in node)
+    elif "vehicles" in raw:
+        p.add("vehicles", "only a topside lists vehicles (a vehicle names its topside in node.peer)")
     cfg.snapshot_interval = float(p.number(node, "snapshot_interval", "node", 30.0, lo=1, hi=3600))
     level = node.get("log_level", "info")
     if level not in ("debug", "info", "warning", "error"):
@@ -232,16 +271,15 @@ def check_problems(raw: Mapping[str, Any], path: Path, role: str | None) -> tupl
     cfg.log_level = str(level)
     keyfile = node.get("command_key_file")
     if keyfile is not None:
-        from coex_core.auth import parse_key
-
-        kp = cfg.base_dir / str(keyfile)
-        try:
-            cfg.command_key = parse_key(kp.read_bytes())
-            cfg.command_key_file = kp
-        except OSError as exc:
-            p.add("node.command_key_file", f"cannot read {kp}: {exc.strerror or exc}")
-        except (CoexError, ValueError) as exc:
-            p.add("node.command_key_file", str(exc))
+        cfg.command_key, cfg.command_key_file = _key(p, cfg, keyfile, "node.command_key_file")
+    if node.get("peer_key_file") is not None:
+        if r != "vehicle":
+            p.add("node.peer_key_file", "a topside gives each vehicle's own key in [[vehicles]] command_key_file")
+        elif keyfile is None:
+            p.add("node.peer_key_file", "a key shared with the topside alone needs the network key in "
+                                        "node.command_key_file (broadcast commands are signed with it)")
+        else:
+            cfg.peer_key = _key(p, cfg, node["peer_key_file"], "node.peer_key_file")[0]
     store = node.get("store", f"{r}.sqlite")
     if store is False:
         cfg.store = None
@@ -335,17 +373,101 @@ def _check_uri(uri: str, key: str, p: Problems, cfg: DeployConfig) -> Any:
     return info
 
 
+def _vehicles(raw: Mapping[str, Any], p: Problems, cfg: DeployConfig, peer_given: bool) -> None:
+    """A fleet topside's ``[[vehicles]]``: ``id``, ``name``, ``command_key_file``."""
+    vs = raw.get("vehicles")
+    if not isinstance(vs, list) or not vs:
+        p.add("vehicles", "a list of [[vehicles]] tables, each with an id and a name")
+        return
+    if peer_given:
+        p.add("node.peer", "give the vehicles in [[vehicles]] or the one vehicle in node.peer, not both")
+    ids: dict[int, str] = {}
+    names: set[str] = set()
+    for i, v in enumerate(vs):
+        key = f"vehicles[{i}]"
+        v = p.table(v, key)
+        p.unknown(v, {"id", "name", "command_key_file"}, key)
+        if "id" not in v:
+            p.add(f"{key}.id", "missing: the vehicle's node id (1..15)")
+            continue
+        vid = p.number(v, "id", key, None, lo=1, hi=15, integer=True)
+        if vid is None:
+            continue
+        vid = int(vid)
+        name = v.get("name", f"vehicle{vid}")
+        if not isinstance(name, str) or not _NAME.fullmatch(name) or name in ("topside", "vehicle"):
+            p.add(f"{key}.name", "a name of 1 to 32 letters, digits, '-' or '_' starting with a letter "
+                                 f"(not 'topside' or 'vehicle'), got {name!r}")
+            name = f"vehicle{vid}"
+        if vid == cfg.node_id:
+            p.add(f"{key}.id", f"{vid} is this topside's own id (node.id)")
+        elif vid in ids:
+            p.add(f"{key}.id", f"{vid} is already {ids[vid]}'s id")
+        if name in names:
+            p.add(f"{key}.name", f"{name!r} names another vehicle already")
+        ids[vid] = name
+        names.add(name)
+        fv = FleetVehicle(vid, name)
+        keyfile = v.get("command_key_file")
+        if keyfile is not None:
+            fv.command_key, fv.command_key_file = _key(p, cfg, keyfile, f"{key}.command_key_file")
+            if "command_key_file" not in p.table(raw.get("node"), "node"):
+                p.add(f"{key}.command_key_file", "a vehicle's own key needs the network key in "
+                                                 "node.command_key_file (it signs commands to every vehicle)")
+        cfg.vehicles.append(fv)
+    if cfg.vehicles:
+        cfg.peer = cfg.vehicles[0].id
+
+
+def _key(p: Problems, cfg: DeployConfig, keyfile: Any, key: str) -> tuple[bytes | None, Path | None]:
+    """A command key file's key (a problem under ``key`` if it cannot be read)."""
+    from coex_core.auth import parse_key
+
+    kp = cfg.base_dir / str(keyfile)
+    try:
+        return parse_key(kp.read_bytes()), kp
+    except OSError as exc:
+        p.add(key, f"cannot read {kp}: {exc.strerror or exc}")
+    except (CoexError, ValueError) as exc:
+        p.add(key, str(exc))
+    return None, None
+
+
 def _tdma(raw: Mapping[str, Any], p: Problems, cfg: DeployConfig) -> None:
     t = p.table(raw.get("tdma"), "tdma")
     p.unknown(t, {"slots", "slot_seconds", "guard", "epoch"}, "tdma")
     slots = t.get("slots", list(NUI_SLOTS))
+    names = {v.name: v.id for v in cfg.vehicles}
     if (not isinstance(slots, list) or not slots or len(slots) > 32
-            or any(s not in ("topside", "vehicle") for s in slots)):
-        p.add("tdma.slots", f"a list of 1 to 32 'topside' / 'vehicle' entries, got {slots!r}")
+            or any(not (s in ("topside", "vehicle") or s in names
+                        or (isinstance(s, int) and not isinstance(s, bool) and 1 <= s <= 15)) for s in slots)):
+        what = "'topside', a vehicle's name or id" if cfg.fleet else "'topside' / 'vehicle' entries or node ids"
+        p.add("tdma.slots", f"a list of 1 to 32 {what}, got {slots!r}")
+    elif cfg.fleet:
+        if "vehicle" in slots:
+            p.add("tdma.slots", "with several [[vehicles]], name each slot's vehicle (its name or id), "
+                                "not 'vehicle'")
+            return
+        cfg.slots = tuple(slots)
+        owners = set(cfg.owners())
+        for s in slots:
+            if isinstance(s, int) and s not in names.values() and s != cfg.node_id:
+                p.add("tdma.slots", f"node {s} is neither this topside nor one of the [[vehicles]]")
+        if cfg.node_id not in owners:
+            p.add("tdma.slots", "the topside needs at least one slot")
+        silent = [v.name for v in cfg.vehicles if v.id not in owners]
+        if silent:
+            p.add("tdma.slots", f"every vehicle needs at least one slot: {', '.join(silent)} has none")
     else:
         cfg.slots = tuple(slots)
-        if "topside" not in slots or "vehicle" not in slots:
+        owners = set(cfg.owners())
+        topside, vehicle = ((cfg.peer, cfg.node_id) if cfg.role == "vehicle" else (cfg.node_id, cfg.peer))
+        if topside not in owners or vehicle not in owners:
             p.add("tdma.slots", "both the topside and the vehicle need at least one slot")
+        others = sorted(owners - {topside, vehicle})
+        if others and cfg.role == "topside":
+            p.add("tdma.slots", f"node {', '.join(map(str, others))} is neither this topside nor its vehicle "
+                                "(node.peer): list a fleet's vehicles in [[vehicles]]")
     cfg.slot_seconds = float(p.number(t, "slot_seconds", "tdma", 20.0, lo=0.5, hi=600))
     cfg.guard = float(p.number(t, "guard", "tdma", 2.0, lo=0, hi=25.5))
     if cfg.guard >= cfg.slot_seconds:

@@ -5,6 +5,11 @@
 const S = { now: 0, vehicle: null, map: null, surveys: null, images: null, series: null, other: null, link: null,
   queues: null, commands: [], log: [], versions: {} };
 const $ = (sel) => document.querySelector(sel);
+// A fleet console (several vehicles): the page shows the vehicle named by ?vehicle= (none:
+// the first); every request and picture names it, and every action carries it.
+const VEHICLE = new URLSearchParams(location.search).get("vehicle");
+const withVehicle = (url) => (VEHICLE === null || !url ? url
+  : `${url}${url.includes("?") ? "&" : "?"}vehicle=${encodeURIComponent(VEHICLE)}`);
 const el = (tag, attrs = {}, ...kids) => {
   const e = document.createElement(tag);
   for (const [k, v] of Object.entries(attrs)) {
@@ -76,7 +81,7 @@ async function sendAction(action, args) {
   try {
     const r = await fetch("/api/action", { method: "POST",
       headers: { "Content-Type": "application/json", "X-CSRF-Token": ME.csrf || "" },
-      body: JSON.stringify({ action, args }) });
+      body: JSON.stringify({ action, args: S.fleet ? { ...args, vehicle: S.fleet.vehicle } : args }) });
     if (r.status === 401) { location.href = "/login"; return null; }
     const body = await r.json();
     if (!body.ok) { act.lastError = body.error || "failed"; toast(act.lastError, true); return null; }
@@ -130,6 +135,7 @@ function bounds() {
   }
   if (S.surveys) for (const sv of S.surveys.items) for (const p of sv.waypoints) add(p[0], p[1]);
   if (S.vehicle) for (const p of S.vehicle.track) add(p[1], p[2]);
+  if (S.fleet) for (const v of S.fleet.vehicles) for (const p of v.track || []) add(p[0], p[1]);
   return b;
 }
 function fit() {
@@ -146,7 +152,7 @@ function levelImage(lv) {
     const fresh = new Image();
     fresh.dataset.src = lv.png;
     fresh.onload = () => { imgCache.set(lv.level, fresh); drawMap(); };
-    fresh.src = lv.png;
+    fresh.src = withVehicle(lv.png);
     if (!img) return null;  // keep drawing the previous picture until the new one loads
   }
   return img && img.complete ? img : null;
@@ -175,7 +181,7 @@ function levelWindow(lv) {
       if (entry.pending === key) entry.pending = null;
       drawMap();
     };
-    fresh.src = key;
+    fresh.src = withVehicle(key);
   }
   return c.img && c.img.complete ? c : null;  // the previous one until the new one loads
 }
@@ -232,6 +238,7 @@ function drawMap() {
       regionLabels.push([`L${r.level} ${r.text}`, ax + 3, ay + 12, style[0]]);
     }
   }
+  if (S.fleet && $("#show-track").checked) drawFleet();
   if (S.vehicle && $("#show-track").checked) drawTrack();
   if ($("#show-images").checked) drawImages();
   drawSurveys();
@@ -376,6 +383,24 @@ function drawScale() {
   ctx.beginPath(); ctx.moveTo(x, y); ctx.lineTo(x + px, y); ctx.stroke();
   ctx.fillStyle = "#dce6ee"; ctx.font = "11px system-ui";
   ctx.fillText(`${m} m`, x + px + 6, y + 4);
+}
+// a fleet console: the other vehicles, dashed, with their names (this page's vehicle is drawn
+// by drawTrack)
+function drawFleet() {
+  ctx.save();
+  for (const v of S.fleet.vehicles) {
+    if (v.id === S.fleet.vehicle || !v.track || !v.track.length) continue;
+    ctx.strokeStyle = "rgba(180,200,215,0.6)"; ctx.lineWidth = 1.2; ctx.setLineDash([5, 4]);
+    ctx.beginPath();
+    v.track.forEach((p, i) => { const [x, y] = w2s(p[0], p[1]); if (i) ctx.lineTo(x, y); else ctx.moveTo(x, y); });
+    ctx.stroke(); ctx.setLineDash([]);
+    const last = v.track[v.track.length - 1], [x, y] = w2s(last[0], last[1]);
+    ctx.fillStyle = "#b4c8d7"; ctx.beginPath(); ctx.arc(x, y, 5, 0, 2 * Math.PI); ctx.fill();
+    ctx.font = "bold 11px system-ui";  // label's: left of the dot near the right edge
+    const wide = ctx.measureText(v.name).width;
+    label(v.name, x + 8 + wide > canvas.width - 4 ? x - 8 - wide : x + 8, y - 6, "#b4c8d7");
+  }
+  ctx.restore();
 }
 function drawTrack() {
   const tr = S.vehicle.track;
@@ -965,7 +990,7 @@ function drawThumbRegions(c, it) {
 }
 function updateCard(c, it) {
   if (it.thumb && it.thumb !== c.thumb) {
-    const img = el("img", { class: "thumb", src: it.thumb, alt: `image ${it.image_id}` });
+    const img = el("img", { class: "thumb", src: withVehicle(it.thumb), alt: `image ${it.image_id}` });
     c.pic.replaceWith(img); c.pic = img; c.thumb = it.thumb;
   }
   const pos = it.x !== null && it.x !== undefined ? ` · (${Number(it.x).toFixed(0)}, ${Number(it.y).toFixed(0)})` : "";
@@ -1000,7 +1025,7 @@ function showViewer() {
   if (!it) return;
   $("#viewer").classList.remove("hidden");
   const img = $("#viewer-img");
-  if (it.full && img.dataset.src !== it.full) { img.src = it.full; img.dataset.src = it.full; }
+  if (it.full && img.dataset.src !== it.full) { img.src = withVehicle(it.full); img.dataset.src = it.full; }
   img.classList.toggle("hidden", !it.full);
   $("#viewer-none").classList.toggle("hidden", !!it.full);
   img.classList.toggle("fit", viewer.fit);
@@ -1156,7 +1181,7 @@ function showRegionTool(it) {
       const bytes = `${fmtBytes(c.held_bytes)} of ${fmtBytes(c.total_bytes)}`;
       li.append(el("span", { class: "served" }, `crop ${c.width} × ${c.height} px · ${bytes}`
         + (c.complete ? "" : " so far") + (c.shown ? " · shown over the picture" : " · the picture is as good there")));
-      if (c.png) li.append(el("img", { class: "region-crop", src: c.png, alt: `crop of region ${k + 1}`,
+      if (c.png) li.append(el("img", { class: "region-crop", src: withVehicle(c.png), alt: `crop of region ${k + 1}`,
         title: `what the crop shows of ${x0}..${x1} × ${y0}..${y1} px (${bytes})` }));
     } else if (r.served === "packets") {
       li.append(el("span", { class: "served" }, `the picture's own packets · ${fmtBytes(r.bytes ?? 0)}`));
@@ -1768,8 +1793,29 @@ function mergeMap(old, upd) {
   delete upd.delta;
   return upd;
 }
+// the fleet strip: every vehicle of a fleet console (position, mode, status age, link loss and
+// last heard, queued bytes, open commands), each a link to its own page
+function renderFleet() {
+  const f = S.fleet, strip = $("#fleet");
+  if (!f || !strip) return;
+  drawMap();
+  strip.classList.remove("hidden");
+  strip.replaceChildren(...f.vehicles.map((v) => {
+    const lk = Object.values(v.links || {})[0] || {};
+    const age = v.status_t == null ? "no status" : `status ${Math.max(0, S.now - v.status_t).toFixed(0)} s ago`;
+    const pos = v.x == null ? "" : ` at ${v.x.toFixed(0)}, ${v.y.toFixed(0)} m, ${v.depth.toFixed(0)} m deep, ${v.mode}`;
+    const loss = lk.loss == null ? "loss ?" : `loss ${(100 * lk.loss).toFixed(0)} %`;
+    const a = el("a", { class: "fleet-vehicle" + (v.id === f.vehicle ? " current" : ""),
+      href: `/?vehicle=${encodeURIComponent(v.name)}`, "data-vehicle": v.name },
+      el("b", {}, `${v.name} (${v.id})`), ` ${age}${pos}; ${loss}; ${v.queued_bytes || 0} B queued; `
+      + `${v.open_commands || 0} open command${v.open_commands === 1 ? "" : "s"}; ${v.images || 0} images`);
+    if (v.id === f.vehicle) a.setAttribute("aria-current", "page");
+    return a;
+  }));
+}
 function apply(data, full) {
   if (data.now !== undefined) S.now = data.now;
+  if (data.fleet) { S.fleet = data.fleet; renderFleet(); }
   if (data.map) data.map = mergeMap(full ? null : S.map, data.map);
   if (data.versions) S.versions = data.versions;
   for (const k of Object.keys(RENDER)) {
@@ -1819,7 +1865,7 @@ window.coex = { S, view, updates: 0, connected: false, region,
     return [r.left + (sx * r.width) / canvas.width, r.top + (sy * r.height) / canvas.height];
   } };
 function connect() {
-  const es = new EventSource("/api/events");
+  const es = new EventSource(withVehicle("/api/events"));
   es.addEventListener("snapshot", (ev) => { apply(JSON.parse(ev.data), true); });
   es.addEventListener("update", (ev) => { apply(JSON.parse(ev.data), false); });
   es.addEventListener("clock", (ev) => {
