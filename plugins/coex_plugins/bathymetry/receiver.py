@@ -6,7 +6,7 @@ subgrids of 8 x 8 cells: 128 x 128 cells). A tile holds the cells (float64, NaN 
 and, per subgrid, its stamp, its arrival time and whether it is held. Tiles stay in memory up to
 ``memory_budget`` bytes; beyond it the least recently used one is written to the receiver's
 :class:`~coex_core.storage.Storage` (``tile/<level>/<tx>/<ty>``, the plugin's tile store
-:mod:`.tilestore`, as the vehicle's map: byte-shuffled arrays, zstd level ``tile_compression``)
+:mod:`.tilestore`, as the vehicle's map: the tile's arrays, zstd at level ``tile_compression``)
 and read back when needed. Each level also keeps one drawn
 *overview* array of at most ``max_mosaic_cells`` cells: the level at full resolution while it
 fits, else block means over 2 x 2, 4 x 4 ... cells (``meta["step"]`` of its product), so a level
@@ -113,7 +113,8 @@ class BathymetryReceiver(ModalityReceiver):
     (default 256 MB, :meth:`resident_bytes`) stay in memory, the least recently used beyond it
     go to the storage the node attaches (:meth:`attach_storage`; by default a
     :class:`~coex_core.storage.MemoryStorage` saved with the receiver), compressed by the tile
-    store's codec at zstd level ``tile_compression`` (0: not compressed). Each level's drawn overview (its product) holds at most
+    store's codec at zstd level ``tile_compression`` (0: not compressed; a zlib level before
+    the tile store, same range). Each level's drawn overview (its product) holds at most
     ``max_mosaic_cells`` cells (8 bytes each). A storage attached, the receiver's saved state
     holds the tile index and summaries only; :meth:`sync_storage` (called before every
     snapshot) writes what the storage lacks.
