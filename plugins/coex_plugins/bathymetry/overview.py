@@ -1,10 +1,9 @@
 """A level drawn in bounded memory: the receiver's overview arrays (the level at full resolution
-while it fits, else block means), stored in chunks, and reading blocks back out of them."""
+while it fits, else block means), stored in chunks (the plugin's tile store, :mod:`.tilestore`;
+chunks stored before it in ``CXOV`` form still read), and reading blocks back out of them."""
 
 from __future__ import annotations
 
-import struct
-import zlib
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -13,15 +12,14 @@ import numpy.typing as npt
 
 from coex_core.state import StateError, persistent
 
+from . import tilestore
+
 __all__ = ["CHUNK", "Overview", "block_sums", "blocks_from", "weighted"]
 
 FloatArray = npt.NDArray[np.float64]
 
 #: Overview cells per side of one stored overview chunk (``ov/<level>/<step>/<cx>/<cy>``).
 CHUNK = 128
-
-_CHUNK_HEADER = struct.Struct("<4sBBBBI")
-_CHUNK_MAGIC = b"CXOV"
 
 
 def _starts(g0: int, n: int, s: int) -> npt.NDArray[np.intp]:
@@ -185,26 +183,21 @@ class Overview:
             mean[theirs] = self.mean[mine]
             if self.count is not None:
                 count[theirs] = self.count[mine]
-        parts = [mean.astype(mean.dtype.newbyteorder("<")).tobytes()]
+        arrays = {"step": np.array([self.step], np.int64), "mean": mean}
         if self.count is not None:
-            parts.append(count.astype("<f4").tobytes())
-        payload, flags = b"".join(parts), 0
-        if compression > 0:
-            payload, flags = zlib.compress(payload, compression), 1
-        return _CHUNK_HEADER.pack(_CHUNK_MAGIC, 1, flags, int(self.count is not None), 0, self.step) + payload
+            arrays["count"] = count
+        # float32 means of blocks compress better byte-shuffled, the level's own decimetres as they are
+        return tilestore.encode(arrays, compression, shuffle=self.count is not None)
 
     def paste_chunk(self, cx: int, cy: int, data: bytes, where: str) -> None:
         try:
-            magic, version, flags, counted, _, step = _CHUNK_HEADER.unpack_from(data)
-            if magic != _CHUNK_MAGIC or version != 1 or step != self.step or counted != (self.count is not None):
-                raise ValueError(f"header {magic!r} v{version} step {step}")
-            payload = data[_CHUNK_HEADER.size:]
-            if flags & 1:
-                payload = zlib.decompress(payload)
-            n = CHUNK * CHUNK
-            mean = np.frombuffer(payload, "<f4" if counted else "<f8", n).reshape(CHUNK, CHUNK)
-            count = np.frombuffer(payload, "<f4", n, n * mean.itemsize).reshape(CHUNK, CHUNK) if counted else None
-        except (ValueError, struct.error, zlib.error) as exc:
+            arrays = tilestore.decode(data)
+            step, mean, count = int(arrays["step"][0]), arrays["mean"], arrays.get("count")
+            if step != self.step or (count is None) != (self.count is None):
+                raise ValueError(f"step {step}{' with counts' if count is not None else ''}")
+            if mean.shape != (CHUNK, CHUNK) or (count is not None and count.shape != (CHUNK, CHUNK)):
+                raise ValueError(f"a chunk of {mean.shape}, not {CHUNK} x {CHUNK}")
+        except (ValueError, KeyError, IndexError) as exc:
             raise StateError(f"bathymetry receiver: stored overview chunk {where} is damaged ({exc})") from exc
         overlap = self._chunk_overlap(cx, cy)
         if overlap is not None:

@@ -41,10 +41,11 @@ logs it and tells topside in ``MapMetadata.dropped_k``).
 
 Out of core: at most ``memory_budget`` bytes of tiles stay in memory (least recently used leave
 first); the others are kept, losslessly compressed, in the map's :mod:`coex_core.storage` and
-read back on demand (see :class:`QuadtreeMap`).
+read back on demand (see :class:`QuadtreeMap`). The resident tiles, their budget and their
+stored form are the plugin's one tile store (:mod:`.tilestore`), which the topside receiver
+uses too.
 
-Beside this module: the outlier screen (``_outliers.py``), the stored tiles' format
-(``_tilecodec.py``) and the array helpers (``_arrays.py``).
+Beside this module: the outlier screen (``_outliers.py``) and the array helpers (``_arrays.py``).
 """
 
 from __future__ import annotations
@@ -58,12 +59,12 @@ import numpy as np
 import numpy.typing as npt
 
 from coex_core.errors import CoexError
-from coex_core.state import persistent
+from coex_core.state import StateError, persistent
 from coex_core.storage import MemoryStorage, Storage
 
+from . import tilestore
 from ._arrays import _group_tiles, _grow, _pool
 from ._outliers import screen
-from ._tilecodec import _decode_tile, _encode_tile, _tile_name
 
 __all__ = ["InputError", "QuadtreeMap", "LevelBlock"]
 
@@ -97,17 +98,24 @@ class LevelBlock:
     updated: float
 
 
+def _tile_name(key: tuple[int, int]) -> str:
+    return f"tile/{key[0]}/{key[1]}"
+
+
 def _upgrade_map(fields: dict[str, Any], saved: int) -> dict[str, Any]:
     """A map saved by version 1 (every tile in four arrays of the saved state) keeps its tiles
-    in a :class:`MemoryStorage` of the saved state now; ``_after_restore`` finishes the index."""
+    in a :class:`MemoryStorage` of the saved state now; ``_after_restore`` finishes the index.
+    Version 3 writes its tiles in the tile store's format (:mod:`.tilestore`, ``CXTS``); the
+    ``CXT1`` tiles a version-2 map stored are read as they are (its fields are unchanged)."""
     if saved < 2 and "_count" in fields:
         fields["_v1_arrays"] = {k: fields.pop(k) for k in ("_count", "_sum", "_sumsq", "_time")}
         fields.pop("_times_cache", None)
+        fields["_mem"] = MemoryStorage()  # where its tiles go
     return fields
 
 
-@persistent("bathymetry.QuadtreeMap", version=2,
-            transient=("_res", "_ext", "_free", "_changed_all", "_summ", "_summ_ok"),
+@persistent("bathymetry.QuadtreeMap", version=3,
+            transient=("_res", "_cache", "_ext", "_free", "_changed_all", "_summ", "_summ_ok"),
             upgrade=_upgrade_map)
 class QuadtreeMap:
     """A 2.5-D seafloor map: mean elevation per cell at ``resolution`` metres (level 0) and at every
@@ -212,8 +220,14 @@ class QuadtreeMap:
         self._after_restore()
 
     def _after_restore(self) -> None:
-        #: resident tiles, least recently used first: number -> (4, T*T) [count, sum, sumsq, time]
-        self._res: OrderedDict[int, FloatArray] = OrderedDict()
+        #: resident tiles (the tile store's cache), least recently used first: number -> (4, T*T)
+        #: [count, sum, sumsq, time]; ``max_resident`` tiles at most
+        self._cache: tilestore.TileCache[int, FloatArray] = tilestore.TileCache(
+            name=lambda n: _tile_name(self._keys[n]), encode=self._encode_cells, decode=self._decode_cells,
+            nbytes=lambda cells: self.tile_bytes, budget=lambda: self.max_resident * self.tile_bytes,
+            min_resident=0, written=self._written, dropped=self._dropped, failed=self._failed,
+            storage=self._mem, owner="bathymetry map")
+        self._res: OrderedDict[int, FloatArray] = self._cache.resident
         #: per tile, its cells at level ``levels - 2`` (count, sum, sumsq, time): the two
         #: coarsest levels' subgrids are built from it without bringing the tile back (a cache,
         #: filled as tiles are ingested or read; not saved)
@@ -228,7 +242,6 @@ class QuadtreeMap:
         self._changed_all = True
         old = self.__dict__.pop("_v1_arrays", None)
         if old is not None:  # a version-1 map: its tiles go to a memory storage, its index is built
-            self._mem = MemoryStorage()
             self._ext = None
             n = len(self._keys)
             self.memory_budget = DEFAULT_MEMORY_BUDGET
@@ -248,7 +261,7 @@ class QuadtreeMap:
                 cells = np.stack([np.asarray(old["_count"][i], np.float64), old["_sum"][i], old["_sumsq"][i],
                                   old["_time"][i]])
                 self._index_times(np.array([i]), cells[None, 3])
-                self._put(i, cells)
+                self._cache.write(i, cells)
 
     # ------------------------------------------------------------------------- structure
 
@@ -308,13 +321,12 @@ class QuadtreeMap:
                     storage.put(key, data)
         self._mem = None
         self._ext = storage
+        self._cache.storage = storage
 
     def sync(self) -> None:
         """Write every resident tile that changed since it was last stored (before a snapshot)."""
         self.flush()
-        for n, cells in self._res.items():
-            if self._stored[n] != self._version[n]:
-                self._put(n, cells)
+        self._cache.sync()
 
     def _before_save(self) -> None:
         self.sync()
@@ -370,47 +382,41 @@ class QuadtreeMap:
 
     def _cells(self, n: int, protect: set[int] | frozenset[int] = frozenset()) -> FloatArray:
         """Tile ``n``'s cells, brought into memory if needed (others may leave)."""
-        cells = self._res.get(n)
-        if cells is not None:
-            self._res.move_to_end(n)
-            return cells
-        cells = self._blank()
-        if self._stored[n] >= 0:
-            data = self.storage.get(_tile_name(self._keys[n]))
-            if data is None:
-                raise CoexError(f"tile {self._keys[n]} is missing from the map's storage")
-            _decode_tile(data, cells)
-            self.loads += 1
-            if not self._summ_ok[n]:
-                self._summarise(np.array([n]), cells[None, 0], cells[None, 1], cells[None, 2], cells[None, 3])
-        self._res[n] = cells
-        self._evict(protect | {n})
+        if n in self._cache or self._stored[n] >= 0:
+            return self._cache.get(n, protect)
+        return self._cache.add(n, self._blank(), protect)
+
+    # The tile store's hooks: a tile's stored form (the count, in the smallest integer type that
+    # holds it, and the sums, sums of squares and times), what a write and an eviction leave.
+
+    def _encode_cells(self, n: int, cells: FloatArray) -> bytes:
+        return tilestore.encode({"count": cells[0].astype(np.int64), "stats": cells[1:]})
+
+    def _decode_cells(self, n: int, data: bytes) -> FloatArray:
+        try:
+            arrays = tilestore.decode(data)
+            cells = self._blank()
+            cells[0] = arrays["count"]
+            cells[1:] = arrays["stats"]
+        except (ValueError, KeyError) as exc:
+            raise StateError(f"bathymetry map: stored tile {self._keys[n]} is damaged ({exc})") from exc
+        self.loads += 1
+        if not self._summ_ok[n]:
+            self._summarise(np.array([n]), cells[None, 0], cells[None, 1], cells[None, 2], cells[None, 3])
         return cells
 
-    def _evict(self, protect: set[int] | frozenset[int]) -> None:
-        while len(self._res) > self.max_resident:
-            victim = next((k for k in self._res if k not in protect), None)
-            if victim is None:
-                return
-            cells = self._res[victim]
-            if self._stored[victim] != self._version[victim] and not self._put(victim, cells):
-                self._res.move_to_end(victim)  # the storage failed: it stays (reported in overflow)
-                return
-            del self._res[victim]
-            if len(self._free) < 4:
-                self._free.append(cells)
-
-    def _put(self, n: int, cells: FloatArray) -> bool:
-        data = _encode_tile(cells)
-        try:
-            self.storage.put(_tile_name(self._keys[n]), data)
-        except Exception as exc:  # a full disk: keep the tile in memory, say so, never crash
-            self.overflow = f"the map's storage failed ({exc}): new ground is not mapped"
-            return False
+    def _written(self, n: int, cells: FloatArray, size: int) -> None:
         self._stored[n] = self._version[n]
-        self._stored_size[n] = len(data)
+        self._stored_size[n] = size
         self.spills += 1
-        return True
+
+    def _dropped(self, cells: FloatArray) -> None:
+        if len(self._free) < 4:
+            self._free.append(cells)
+
+    def _failed(self, exc: Exception) -> None:
+        # a full disk: the tile stays in memory (the cache keeps it), say so, never crash
+        self.overflow = f"the map's storage failed ({exc}): new ground is not mapped"
 
     def _room(self) -> int:
         """New tiles allowed now (the tile cap and the disk budget)."""
@@ -583,6 +589,8 @@ class QuadtreeMap:
         for i, cells in enumerate(tiles):
             cells[0], cells[1], cells[2], cells[3] = cnt[i], sm[i], ssq[i], tim[i]
         self._version[ns] += 1
+        for n in ns.tolist():
+            self._cache.touch(n)
         self._index_times(ns, tim)
         self._summarise(ns, cnt, sm, ssq, tim)
         self._changed.update(keys)

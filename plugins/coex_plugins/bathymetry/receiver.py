@@ -5,8 +5,9 @@ Every level is cut into *receiver tiles* of ``tile_subgrids x tile_subgrids`` su
 subgrids of 8 x 8 cells: 128 x 128 cells). A tile holds the cells (float64, NaN where nothing)
 and, per subgrid, its stamp, its arrival time and whether it is held. Tiles stay in memory up to
 ``memory_budget`` bytes; beyond it the least recently used one is written to the receiver's
-:class:`~coex_core.storage.Storage` (``tile/<level>/<tx>/<ty>``, raw arrays behind a small header,
-zlib level ``tile_compression``) and read back when needed. Each level also keeps one drawn
+:class:`~coex_core.storage.Storage` (``tile/<level>/<tx>/<ty>``, the plugin's tile store
+:mod:`.tilestore`, as the vehicle's map: the tile's arrays, zstd at level ``tile_compression``)
+and read back when needed. Each level also keeps one drawn
 *overview* array of at most ``max_mosaic_cells`` cells: the level at full resolution while it
 fits, else block means over 2 x 2, 4 x 4 ... cells (``meta["step"]`` of its product), so a level
 of any extent is drawn in bounded memory and nothing held is left out. :meth:`window` reads what
@@ -40,7 +41,8 @@ from coex_core.tracker import Event
 from .legacy import Held, Mosaic
 from .overview import CHUNK, Overview, block_sums, blocks_from, weighted
 from .regions import Region
-from .tiles import LevelIndex, LevelStats, Tile, decode_tile, encode_tile, same_storage
+from .tiles import LevelIndex, LevelStats, Tile, decode_tile, encode_tile, same_storage, tile_name
+from .tilestore import TileCache
 
 __all__ = ["BathymetryReceiver", "RECEIVER_DEFAULTS", "Region"]
 
@@ -78,7 +80,9 @@ WINDOW_CELLS = 4 * 1024 * 1024
 
 def _upgrade_receiver(fields: dict[str, Any], saved: int) -> dict[str, Any]:
     """Version 1 held one ``Held`` per subgrid and one dense mosaic per level: keep them aside
-    for :meth:`BathymetryReceiver._after_restore`, which moves them into tiles."""
+    for :meth:`BathymetryReceiver._after_restore`, which moves them into tiles. Version 3
+    stores its tiles and overview chunks in the tile store's format (:mod:`.tilestore`); the
+    ``CXRT`` tiles and ``CXOV`` chunks of version 2 are read as they are (same fields)."""
     if saved < 2:
         fields["_legacy"] = (fields.pop("held", {}), fields.pop("_mosaics", {}),
                              fields.pop("off_mosaic", set()))
@@ -86,8 +90,8 @@ def _upgrade_receiver(fields: dict[str, Any], saved: int) -> dict[str, Any]:
     return fields
 
 
-@persistent("bathymetry.Receiver", version=2, upgrade=_upgrade_receiver,
-            transient=("_tiles", "_store", "_overviews", "_ov_dirty", "_resident_nbytes"))
+@persistent("bathymetry.Receiver", version=3, upgrade=_upgrade_receiver,
+            transient=("_tiles", "_cache", "_overviews", "_ov_dirty"))
 class BathymetryReceiver(ModalityReceiver):
     """Assembles every level as subgrids arrive and keeps, per subgrid, its stamp and arrival time.
 
@@ -108,8 +112,9 @@ class BathymetryReceiver(ModalityReceiver):
     ``tile_subgrids`` x ``tile_subgrids`` subgrids; at most ``memory_budget`` bytes of tiles
     (default 256 MB, :meth:`resident_bytes`) stay in memory, the least recently used beyond it
     go to the storage the node attaches (:meth:`attach_storage`; by default a
-    :class:`~coex_core.storage.MemoryStorage` saved with the receiver), zlib-compressed at level
-    ``tile_compression`` (0: raw). Each level's drawn overview (its product) holds at most
+    :class:`~coex_core.storage.MemoryStorage` saved with the receiver), compressed by the tile
+    store's codec at zstd level ``tile_compression`` (0: not compressed; a zlib level before
+    the tile store, same range). Each level's drawn overview (its product) holds at most
     ``max_mosaic_cells`` cells (8 bytes each). A storage attached, the receiver's saved state
     holds the tile index and summaries only; :meth:`sync_storage` (called before every
     snapshot) writes what the storage lacks.
@@ -151,7 +156,7 @@ class BathymetryReceiver(ModalityReceiver):
         if not 1 <= self.tile_subgrids <= 255:
             raise ConfigError("tile_subgrids must be within 1..255")
         if not 0 <= self.tile_compression <= 9:
-            raise ConfigError("tile_compression must be a zlib level, 0..9 (0: none)")
+            raise ConfigError("tile_compression must be a compression level, 0..9 (0: none)")
         #: Subgrids that came with another geometry than the level's first one (ignored).
         self.mismatched = 0
         self._stats: dict[int, LevelStats] = {}
@@ -175,16 +180,28 @@ class BathymetryReceiver(ModalityReceiver):
             self._import_v1(*legacy)
             return
         self._ov_dirty: dict[int, set[tuple[int, int]]] = {}
-        self._store: Storage | None
+        store: Storage | None
         if self._own_store is not None:
-            self._store = self._own_store
-            self._tiles = self._own_tiles
+            store, resident = self._own_store, self._own_tiles
             self._overviews = self._own_overviews
         else:  # the tiles are in the node's storage: attach_storage reads the overviews back
-            self._store = None
-            self._tiles = OrderedDict()
+            store, resident = None, OrderedDict()
             self._overviews = {}
-        self._resident_nbytes = sum(t.nbytes for t in self._tiles.values())
+        #: the resident tiles under ``memory_budget`` (the plugin's tile store)
+        self._cache: TileCache[tuple[int, int, int], Tile] = TileCache(
+            name=tile_name, encode=lambda key, t: encode_tile(t, self.tile_compression),
+            decode=self._decode_tile, nbytes=lambda t: t.nbytes, budget=lambda: self.memory_budget,
+            min_resident=1, written=self._written, storage=store, owner="bathymetry receiver",
+            resident=resident, dirty=[k for k, t in resident.items() if t.dirty])
+        self._tiles = self._cache.resident
+
+    def _before_save(self) -> None:
+        for key, t in self._own_tiles.items():  # saved with the state: whether the storage lacks it
+            t.dirty = key in self._cache.dirty
+
+    @property
+    def _store(self) -> Storage | None:
+        return self._cache.storage
 
     def _import_v1(self, held: dict[int, dict[tuple[int, int], Held]], mosaics: dict[int, Mosaic],
                    off: set[tuple[int, int, int]]) -> None:
@@ -207,7 +224,7 @@ class BathymetryReceiver(ModalityReceiver):
         What the receiver's own storage held moves there; a receiver restored from a snapshot
         taken with a storage attached reads its overviews back from it."""
         if same_storage(storage, self._store):
-            self._store = storage
+            self._cache.storage = storage
             return
         old = self._store
         if old is not None:
@@ -230,7 +247,7 @@ class BathymetryReceiver(ModalityReceiver):
                         cx, cy = (int(v) for v in key[len(prefix):].split("/"))
                         ov.paste_chunk(cx, cy, data, key)
                 self._overviews[level] = ov
-        self._store = storage
+        self._cache.storage = storage
         self._own_store = None
         self._own_tiles = OrderedDict()
         self._own_overviews = {}
@@ -242,9 +259,7 @@ class BathymetryReceiver(ModalityReceiver):
         if store is None or self._own_store is not None:
             self._ov_dirty.clear()
             return
-        for key, t in self._tiles.items():
-            if t.dirty:
-                self._write_tile(key, t)
+        self._cache.sync()
         for level, ov in self._overviews.items():
             meta = self._overview_meta.get(level)
             dirty = self._ov_dirty.get(level, set())
@@ -262,7 +277,7 @@ class BathymetryReceiver(ModalityReceiver):
 
     def resident_bytes(self) -> int:
         """Bytes of the tiles held in memory (at most ``memory_budget``, or one tile)."""
-        return self._resident_nbytes
+        return self._cache.nbytes
 
     def overview_bytes(self) -> int:
         """Bytes of the levels' drawn overviews (each at most ``max_mosaic_cells`` cells)."""
@@ -278,50 +293,30 @@ class BathymetryReceiver(ModalityReceiver):
     def _tile(self, level: int, tx: int, ty: int, create: bool = False) -> Tile | None:
         """Tile (tx, ty) of ``level``, read back from storage if spilled; made when ``create``."""
         key = (level, tx, ty)
-        tiles = self._tiles
-        t = tiles.get(key)
-        if t is not None:
-            tiles.move_to_end(key)
-            return t
+        if key in self._cache:
+            return self._cache.get(key)
         index = self._index.get(level)
         row = None if index is None else index.pos.get((tx, ty))
+        if row is not None:
+            return self._cache.get(key)
+        if not create:
+            return None
+        if index is None:
+            index = self._index[level] = LevelIndex()
+        index.add(tx, ty)
         side = self._geometry[level][1] if level in self._geometry else 0
-        if row is None:
-            if not create:
-                return None
-            if index is None:
-                index = self._index[level] = LevelIndex()
-            index.add(tx, ty)
-            t = Tile(self.tile_subgrids, side)
-        else:
-            name = f"tile/{level}/{tx}/{ty}"
-            if self._store is None:
-                raise StateError("bathymetry receiver: its tiles are in the node's storage, which is "
-                                 "not attached (Node.attach_storage; NodeStore.restore does it)")
-            data = self._store.get(name)
-            if data is None:
-                raise StateError(f"bathymetry receiver: tile {name} is missing from its storage")
-            t = decode_tile(data, self.tile_subgrids, side, name)
-        tiles[key] = t
-        self._resident_nbytes += t.nbytes
-        if self._resident_nbytes > self.memory_budget:
-            while self._resident_nbytes > self.memory_budget and len(tiles) > 1:
-                old_key, old = tiles.popitem(last=False)
-                self._resident_nbytes -= old.nbytes
-                if old.dirty:
-                    self._write_tile(old_key, old)
-        return t
+        return self._cache.add(key, Tile(self.tile_subgrids, side))
 
-    def _write_tile(self, key: tuple[int, int, int], t: Tile) -> None:
-        level, tx, ty = key
-        assert self._store is not None
-        data = encode_tile(t, self.tile_compression)
-        self._store.put(f"tile/{level}/{tx}/{ty}", data)
-        index = self._index[level]
-        row = index.pos[(tx, ty)]
+    def _decode_tile(self, key: tuple[int, int, int], data: bytes) -> Tile:
+        side = self._geometry[key[0]][1] if key[0] in self._geometry else 0
+        return decode_tile(data, self.tile_subgrids, side, tile_name(key))
+
+    def _written(self, key: tuple[int, int, int], t: Tile, size: int) -> None:
+        """A tile was written: its summary in the index and the bytes stored follow."""
+        index = self._index[key[0]]
+        row = index.pos[(key[1], key[2])]
         index.summarise(row, t)
-        index.stored[row] = len(data)
-        t.dirty = False
+        index.stored[row] = size
 
     def _level_tiles(self, level: int, tx0: int | None = None, ty0: int | None = None,
                      tx1: int | None = None, ty1: int | None = None) -> Iterable[tuple[int, int, Tile]]:
@@ -438,7 +433,7 @@ class BathymetryReceiver(ModalityReceiver):
         block[...] = values
         tile.stamp[ly, lx] = stamp
         tile.received[ly, lx] = now
-        tile.dirty = True
+        self._cache.touch((level, ix // self.tile_subgrids, iy // self.tile_subgrids))
         st.newest = max(st.newest, stamp)
         st.oldest = min(st.oldest, stamp)
         st.oldest_rx = min(st.oldest_rx, now)
@@ -491,7 +486,7 @@ class BathymetryReceiver(ModalityReceiver):
         block[...] = np.nan
         tile.held[ly, lx] = False
         tile.stamp[ly, lx] = tile.received[ly, lx] = 0.0
-        tile.dirty = True
+        self._cache.touch((level, tx, ty))
         self._draw(level, ix * side, iy * side, np.full((side, side), np.nan), old)
         self._versions[level] = self._versions.get(level, 0) + 1
         return True
@@ -573,7 +568,7 @@ class BathymetryReceiver(ModalityReceiver):
         index = self._index.get(level)
         if index is not None:
             for (lv, tx, ty), t in self._tiles.items():
-                if lv == level and t.dirty:
+                if lv == level and (lv, tx, ty) in self._cache.dirty:
                     index.summarise(index.pos[(tx, ty)], t)
             m = index.count[:index.n] > 0
             if m.any():
@@ -639,7 +634,7 @@ class BathymetryReceiver(ModalityReceiver):
             return 1, keys, stamps
         index = self._index[level]
         for (lv, tx, ty), t in self._tiles.items():
-            if lv == level and t.dirty:
+            if lv == level and (lv, tx, ty) in self._cache.dirty:
                 index.summarise(index.pos[(tx, ty)], t)
         m = index.count[:index.n] > 0
         keys, oldest = index.keys[:index.n][m], index.oldest[:index.n][m]

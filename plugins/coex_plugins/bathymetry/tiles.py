@@ -1,12 +1,11 @@
-"""The topside receiver's tile store: ``n x n`` subgrids of one level per tile (cells, and per
-subgrid its stamp, arrival time and whether it is held), the tiles' stored form (a small header,
-raw arrays, zlib), and the per-level index and statistics the receiver keeps beside them."""
+"""The topside receiver's tiles: ``n x n`` subgrids of one level per tile (cells, and per
+subgrid its stamp, arrival time and whether it is held), their stored form (the plugin's tile
+store, :mod:`.tilestore`: named arrays, byte-shuffled, zstd; tiles stored before it in ``CXRT``
+form still read), and the per-level index and statistics the receiver keeps beside them."""
 
 from __future__ import annotations
 
 import math
-import struct
-import zlib
 from dataclasses import dataclass
 
 import numpy as np
@@ -14,16 +13,22 @@ import numpy as np
 from coex_core.state import StateError, persistent
 from coex_core.storage import Storage
 
-__all__ = ["LevelIndex", "LevelStats", "Tile", "decode_tile", "encode_tile", "same_storage", "tile_nbytes"]
+from . import tilestore
 
-_TILE_HEADER = struct.Struct("<4sBBBB")
-_TILE_MAGIC = b"CXRT"
+__all__ = ["LevelIndex", "LevelStats", "Tile", "decode_tile", "encode_tile", "same_storage", "tile_name",
+           "tile_nbytes"]
+
+
+def tile_name(key: tuple[int, int, int]) -> str:
+    """Where tile ``(level, tx, ty)`` is in the receiver's storage."""
+    return f"tile/{key[0]}/{key[1]}/{key[2]}"
 
 
 @persistent("bathymetry.Tile")
 class Tile:
     """``n x n`` subgrids of one level: cells (row 0 = south, NaN where nothing) and, per
-    subgrid, stamp, arrival time and whether it is held. ``dirty``: the storage lacks it."""
+    subgrid, stamp, arrival time and whether it is held. ``dirty`` (the storage lacks it) is
+    what the receiver's tile cache knew when the tile was saved with the receiver's state."""
 
     def __init__(self, n: int, side: int) -> None:
         self.values = np.full((n * side, n * side), np.nan)
@@ -42,37 +47,26 @@ def tile_nbytes(n: int, side: int) -> int:
 
 
 def encode_tile(t: Tile, compression: int) -> bytes:
-    n = t.held.shape[0]
-    side = t.values.shape[0] // n
-    payload = b"".join((t.held.astype(np.uint8).tobytes(), t.stamp.astype("<f8").tobytes(),
-                        t.received.astype("<f8").tobytes(), t.values.astype("<f8").tobytes()))
-    flags = 0
-    if compression > 0:
-        payload, flags = zlib.compress(payload, compression), 1
-    return _TILE_HEADER.pack(_TILE_MAGIC, 1, flags, n, side) + payload
+    """A tile's stored form: the tile store's codec at zstd level ``compression`` (0: none),
+    not shuffled (the cells are whole decimetres, or NaN, which compress best as they are)."""
+    return tilestore.encode({"held": t.held, "stamp": t.stamp, "received": t.received, "values": t.values},
+                            compression, shuffle=False)
 
 
 def decode_tile(data: bytes, n: int, side: int, where: str) -> Tile:
+    """A stored tile of ``n x n`` subgrids of ``side`` cells (the tile store's form, or the
+    ``CXRT`` form stored before it)."""
     try:
-        magic, version, flags, tn, tside = _TILE_HEADER.unpack_from(data)
-        if magic != _TILE_MAGIC or version != 1 or (tn, tside) != (n, side):
-            raise ValueError(f"header {magic!r} v{version} {tn}x{tside}")
-        payload = data[_TILE_HEADER.size:]
-        if flags & 1:
-            payload = zlib.decompress(payload)
-        buf = bytearray(payload)
-        cells = (n * side) ** 2
-        if len(buf) != n * n * 17 + cells * 8:
-            raise ValueError(f"{len(buf)} bytes")
+        arrays = tilestore.decode(data)
         t = object.__new__(Tile)
-        t.held = np.frombuffer(buf, np.uint8, n * n).reshape(n, n).astype(bool)
-        o = n * n
-        t.stamp = np.frombuffer(buf, "<f8", n * n, o).reshape(n, n).astype(np.float64)
-        o += 8 * n * n
-        t.received = np.frombuffer(buf, "<f8", n * n, o).reshape(n, n).astype(np.float64)
-        o += 8 * n * n
-        t.values = np.frombuffer(buf, "<f8", cells, o).reshape(n * side, n * side).astype(np.float64)
-    except (ValueError, struct.error, zlib.error) as exc:
+        t.held = arrays["held"].astype(bool, copy=False)
+        t.stamp = arrays["stamp"].astype(np.float64, copy=False)
+        t.received = arrays["received"].astype(np.float64, copy=False)
+        t.values = arrays["values"].astype(np.float64, copy=False)
+        shapes = (t.held.shape, t.stamp.shape, t.received.shape, t.values.shape)
+        if shapes != ((n, n), (n, n), (n, n), (n * side, n * side)):
+            raise ValueError(f"shapes {shapes}, not a tile of {n} x {n} subgrids of {side} cells")
+    except (ValueError, KeyError) as exc:
         raise StateError(f"bathymetry receiver: stored tile {where} is damaged ({exc})") from exc
     t.dirty = False
     return t
