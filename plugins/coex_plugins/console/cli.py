@@ -346,7 +346,7 @@ def build_topside(transport_uri: str | Sequence[str], host: str = "127.0.0.1", p
 
     from .node import NodeCommands
     from .server import ConsoleHub, serve
-    from .state import ConsoleState
+    from .state import MAX_IMAGES, ConsoleState
 
     if schedule is None:
         schedule = Schedule.simple([node_id if o == 1 else vehicle_id for o in NUI_OWNERS],
@@ -410,6 +410,11 @@ def build_topside(transport_uri: str | Sequence[str], host: str = "127.0.0.1", p
             # same objects as the restored node: they were saved in one document)
             state.receivers = dict(node.receivers())
             state.own_receivers = False
+            from coex_plugins.imagery.receiver import ImageryReceiver
+
+            images = state.receivers.get("imagery")
+            if isinstance(images, ImageryReceiver):  # the console keeps what the receiver keeps
+                state.max_images = min(MAX_IMAGES, images.max_images)
             hub = ConsoleHub(state, NodeCommands(node, clock), clock)
             rx = state.receivers.get("bathymetry")
             if rx is not None and hasattr(rx, "request_area"):
