@@ -6,7 +6,10 @@ The production pieces run as they do on a ship, in one process on one simulated 
   TOML configuration by :func:`coex_plugins.vehicle.config.load`: its runner, SQLite store,
   inputs and autonomy handling, link health reports) and the topside console node
   (:func:`coex_plugins.console.cli.topside_from_config`: runner, store, console state, HTTP
-  server on a free loopback port); each modem link a
+  server on a free loopback port; its products written to ``products/``: every image as TIFF
+  and PNG by the imagery receiver's ``out_dir``, which keeps the newest :data:`TOPSIDE_IMAGES`
+  in memory, and each series block older than :data:`SERIES_KEEP` appended to a CSV by the
+  time-series receiver's ``keep`` and ``out_dir``); each modem link a
   :class:`~coex_transports.recovery.ResilientTransport` around the real Micromodem NMEA driver
   (:class:`~coex_transports.micromodem.MicromodemTransport`); the MAVLink mission upload of the
   ``mavlink`` autonomy output over UDP on loopback; the ``moos`` input reading navigation from a
@@ -36,8 +39,10 @@ Faults (full run):
 Then a drain without faults or new data, until topside holds everything (or two hours). Checks
 (``checks`` in the JSON): every fault planned was injected; every map cell, image (to its goal,
 byte-exact, decoded) and time-series block (with the vehicle's error bound) that the vehicle
-sent is held topside (``coex_plugins.convergence``, the fault suite's checks; images are checked
-every hour while the vehicle keeps them, since both sides keep a bounded number); the surveys
+sent is held topside (``coex_plugins.convergence``, the fault suite's checks): an image counts
+when topside held it byte-exact to its goal and its TIFF and PNG were written from at least the
+goal's bytes (checked every 10 minutes while the vehicle keeps it, since both sides keep a
+bounded number in memory), a series block when it is in topside's memory or its archive file; the surveys
 ended as expected; the outages both ends counted (topside from ``LinkHealth``) equal the cuts;
 navigation came back after each MOOSDB restart; RSS and both stores flat after the first hour
 (slopes within :data:`FLAT`; judged on runs of four hours or more); the daemons' log records

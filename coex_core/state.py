@@ -25,6 +25,11 @@ that many bytes of UTF-8 JSON ``{"format": "coex-state", "version": 1, "classes"
 version}, "root": ...}``, then a numpy ``.npz`` archive (stored uncompressed: a node saves before every transmission; read with ``allow_pickle=False``) of the arrays
 and byte strings the JSON refers to by index (``{"$a": i}``, ``{"$b": i}``). The tagged JSON
 forms are listed in ``docs/persistence.md``.
+
+In parts (:func:`dumps_parts` / :func:`loads_parts`, what a node store writes incrementally): the
+same JSON document (``"version": 2``) with arrays and byte strings named by their content
+(``{"$a": "<blake2b-128 hex>"}``) and an ``id`` only on objects reached twice, and the arrays by
+name: what did not change between two saves gives the same text and names.
 """
 
 from __future__ import annotations

@@ -10,11 +10,15 @@ The core is sans-I/O, so the store lives here, next to the runner. One SQLite fi
 * ``snapshot``: the whole sans-I/O state of the node (channel manager with its queues, pending
   acks, sequence numbers, command ids and authentication counters, operator settings; every
   modality sender and receiver with what it has captured, sent, acked and built) as
-  :meth:`Node.export_state <coex_core.node.Node.export_state>` writes it (explicit, versioned
+  :meth:`Node.export_parts <coex_core.node.Node.export_parts>` gives it (explicit, versioned
   state: never pickle), with the id of the last journal row it includes. It is written in one
   transaction before every transmission leaves (so a restarted node knows what it already sent)
   and after received frames, at most every ``snapshot_interval`` seconds; the journal rows it
-  includes are deleted in the same transaction.
+  includes are deleted in the same transaction. **Incremental** (schema 2): the snapshot row
+  holds a manifest, the hashes of the document text's content-defined chunks; the ``chunk``
+  table holds those chunks and the state's arrays (named by their content), zlib-compressed,
+  each written once and deleted when no snapshot uses it, so a snapshot writes only what
+  changed since the last one (``docs/persistence.md``, "Incremental snapshots").
 
 :meth:`NodeStore.restore` builds the node (the application's ``build()``), loads the snapshot into
 it, and replays the journal rows written after it, in order: received frames go through
