@@ -6,7 +6,10 @@ The production pieces run as they do on a ship, in one process on one simulated 
   TOML configuration by :func:`coex_plugins.vehicle.config.load`: its runner, SQLite store,
   inputs and autonomy handling, link health reports) and the topside console node
   (:func:`coex_plugins.console.cli.topside_from_config`: runner, store, console state, HTTP
-  server on a free loopback port); each modem link a
+  server on a free loopback port; its products written to ``products/``: every image as TIFF
+  and PNG by the imagery receiver's ``out_dir``, which keeps the newest :data:`TOPSIDE_IMAGES`
+  in memory, and each series block older than :data:`SERIES_KEEP` appended to a CSV by the
+  time-series receiver's ``keep`` and ``out_dir``); each modem link a
   :class:`~coex_transports.recovery.ResilientTransport` around the real Micromodem NMEA driver
   (:class:`~coex_transports.micromodem.MicromodemTransport`); the MAVLink mission upload of the
   ``mavlink`` autonomy output over UDP on loopback; the ``moos`` input reading navigation from a
@@ -36,8 +39,10 @@ Faults (full run):
 Then a drain without faults or new data, until topside holds everything (or two hours). Checks
 (``checks`` in the JSON): every fault planned was injected; every map cell, image (to its goal,
 byte-exact, decoded) and time-series block (with the vehicle's error bound) that the vehicle
-sent is held topside (``coex_plugins.convergence``, the fault suite's checks; images are checked
-every hour while the vehicle keeps them, since both sides keep a bounded number); the surveys
+sent is held topside (``coex_plugins.convergence``, the fault suite's checks): an image counts
+when topside held it byte-exact to its goal and its TIFF and PNG were written from at least the
+goal's bytes (checked every 10 minutes while the vehicle keeps it, since both sides keep a
+bounded number in memory), a series block when it is in topside's memory or its archive file; the surveys
 ended as expected; the outages both ends counted (topside from ``LinkHealth``) equal the cuts;
 navigation came back after each MOOSDB restart; RSS and both stores flat after the first hour
 (slopes within :data:`FLAT`; judged on runs of four hours or more); the daemons' log records
@@ -104,6 +109,11 @@ NAV_CLIENT = "soak_nav"
 FLAT = {"rss": 2.0, "vehicle_store": 0.25, "topside_store": 1.0}
 #: log records from the daemons per simulated hour, at most (a state change is a line)
 LOG_RECORDS_PER_HOUR = 20
+#: topside's working state: the newest images in memory (``max_images``) and the newest
+#: two hours of each series (``keep``); everything it received is written to the products
+#: folder as it comes (images) or leaves memory (series)
+TOPSIDE_IMAGES = 32
+SERIES_KEEP = 7200.0
 
 
 # ------------------------------------------------------------------------------ the plan
@@ -279,11 +289,14 @@ class Soak:
         self.peer: MissionPeer | None = None
         self.topside: TopsideApp | None = None
         self.log = LogCount(self.dir / "daemons.log")
+        #: topside's products folder (images as TIFF and PNG, the series' archive as CSV)
+        self.products = self.dir / "products"
         self.samples: list[dict[str, Any]] = []
         self.delivered: set[int] = set()
         self.restarts = 0
-        self._topside_written = self._topside_snapshots = 0  # of the topside processes killed
-        self._written = self._count = (0, 0)  # snapshot bytes and count (vehicle, topside) at the last sample
+        self._topside_written = self._topside_snapshots = self._topside_state = 0  # of the topside processes killed
+        # snapshot bytes written, state bytes saved, snapshots (vehicle, topside) at the last sample
+        self._written = self._state = self._count = (0, 0)
         self.cuts_done = 0
         self.silenced = self.autopilot_back = self.moos_restarted = 0
         self.surveys: list[tuple[int, str, float]] = []
@@ -354,7 +367,11 @@ store = "topside.sqlite"
 uri = "{TOPSIDE_URI}"
 [console]
 http = "127.0.0.1:0"
-""" + common + modalities.replace("BATHY", "").replace("OPTIONS", "").replace("SURVEY", ""))
+""" + common + modalities.replace("BATHY", "").replace(
+            "stream = 4\n", f"stream = 4\noptions = {{ max_images = {TOPSIDE_IMAGES}, out_dir = "
+            f"{json.dumps(str(self.products / 'images'))} }}\n").replace(
+            "OPTIONS", f"options = {{ keep = {SERIES_KEEP}, out_dir = {json.dumps(str(self.products / 'series'))} }}"
+        ).replace("SURVEY", ""))
 
     def _link(self, uri: str) -> ResilientTransport:
         """A modem link as the daemons make it, on the simulated modems and clock."""
@@ -401,6 +418,7 @@ http = "127.0.0.1:0"
         for t, expect in f.surveys:
             self.loop.at(self.t0 + t, lambda now, expect=expect: self._survey(now, expect))
         self.loop.every(HOUR, self._ask_full_image, start=self.t0 + HOUR / 2, until=self.end)
+        self.loop.every(600.0, self._mark_images, start=self.t0 + 600.0)
 
     def _start_topside(self, now: float) -> None:
         self.topside = topside_from_config(str(self.dir / "topside.toml"), lambda: self.net.now,
@@ -426,6 +444,7 @@ http = "127.0.0.1:0"
             tr.close()
         if app.store is not None:
             self._topside_written += app.store.stats["snapshot_bytes"]
+            self._topside_state += app.store.stats["state_bytes"]
             self._topside_snapshots += app.store.stats["snapshots"]
             app.store.close()  # closes the file (nothing written: no snapshot)
         self.topside = None
@@ -483,16 +502,31 @@ http = "127.0.0.1:0"
             self.nav_changes.append(now)
 
     # ------------------------------------------------------------------ measuring
-    def _mark_images(self) -> None:
-        """Images the vehicle keeps that topside holds to their goal (both keep a bounded number:
-        marked while both have them)."""
+    def _mark_images(self, now: float | None = None) -> None:
+        """Images the vehicle keeps that topside holds to their goal and has written out (both
+        keep a bounded number in memory: marked while both have them, every 10 minutes): byte-
+        exact in topside's memory, and its TIFF and PNG in the products folder, written from at
+        least the goal's bytes (the TIFF's description)."""
         tx = self.vehicle.node.sender("imagery")
         if self.topside is None:
             return
         rx = self.topside.node.receiver("imagery")
         for i, img in tx.images.items():
-            if i not in self.delivered and convergence.image_held(img, rx.images.get(i)):
+            if i not in self.delivered and convergence.image_held(img, rx.images.get(i)) \
+                    and self._written_out(i, img.goal):
                 self.delivered.add(i)
+
+    def _written_out(self, image_id: int, goal: int) -> bool:
+        base = self.products / "images" / f"image_{image_id:04d}"
+        tiff, png = Path(f"{base}.tiff"), Path(f"{base}.png")
+        if not (tiff.exists() and png.exists()):
+            return False
+        import tifffile
+
+        with tifffile.TiffFile(tiff) as f:
+            desc = f.pages[0].description or ""
+        words = desc.split()
+        return "bytes" in words and int(words[words.index("bytes") + 1]) >= goal
 
     def _sample(self, hour: float) -> dict[str, Any]:
         self._mark_images()
@@ -500,12 +534,14 @@ http = "127.0.0.1:0"
         top = self.topside
         written = (self.vehicle.store.stats["snapshot_bytes"], self._topside_written
                    + (top.store.stats["snapshot_bytes"] if top is not None else 0))
+        saved = (self.vehicle.store.stats["state_bytes"], self._topside_state
+                 + (top.store.stats["state_bytes"] if top is not None else 0))
         count = (self.vehicle.store.stats["snapshots"], self._topside_snapshots
                  + (top.store.stats["snapshots"] if top is not None else 0))
         since = (self.samples[-1]["hour"] if self.samples else 0.0, hour)
         per_h = [(a - b) / 2**20 / max(since[1] - since[0], 1e-9) for a, b in zip(written, self._written, strict=True)]
-        size = [(a - b) / 2**20 / max(n - m, 1) for a, b, n, m in zip(written, self._written, count, self._count, strict=True)]
-        self._written, self._count = written, count
+        size = [(a - b) / 2**20 / max(n - m, 1) for a, b, n, m in zip(saved, self._state, count, self._count, strict=True)]
+        self._written, self._state, self._count = written, saved, count
         s = {
             "hour": round(hour, 3),
             "rss_mb": round(rss_mb(), 1),
@@ -518,6 +554,8 @@ http = "127.0.0.1:0"
             "vehicle_imagery_state_mb": round(len(state.dumps(tx)) / 2**20, 2),
             "images_vehicle": len(tx.images),
             "images_topside": len(top.node.receiver("imagery").images) if top is not None else None,
+            "image_files": len(list((self.products / "images").glob("image_*.tiff"))),
+            "products_mb": round(sum(p.stat().st_size for p in self.products.rglob("*") if p.is_file()) / 2**20, 2),
             "images_taken": self.sensors.photos,
             "images_delivered": len(self.delivered),
             "log_records": self.log.total,
@@ -528,7 +566,7 @@ http = "127.0.0.1:0"
             self.partial.write_text(json.dumps({"complete": False, "hours": self.hours, "seed": self.seed,
                                                 "samples": self.samples}, indent=2))
         self.say(f"  hour {s['hour']:5.2f}: RSS {s['rss_mb']:6.1f} MB, stores {s['vehicle_store_mb']:6.2f} + "
-                 f"{s['topside_store_mb']:6.2f} MB (snapshots {s['vehicle_snapshot_mb']:.2f} + "
+                 f"{s['topside_store_mb']:6.2f} MB, products {s['products_mb']:.2f} MB (snapshots {s['vehicle_snapshot_mb']:.2f} + "
                  f"{s['topside_snapshot_mb']:.2f} MB, written {s['vehicle_snapshots_mb_per_h']:.0f} + "
                  f"{s['topside_snapshots_mb_per_h']:.0f} MB/h), images {s['images_delivered']}/{s['images_taken']} held "
                  f"topside ({s['images_vehicle']} kept on the vehicle), log {s['log_records']} records "

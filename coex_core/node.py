@@ -66,7 +66,7 @@ from .routing import (
     third_party,
     type_id,
 )
-from .state import StateError, dumps, loads
+from .state import StateError, dumps, dumps_parts, loads, loads_parts
 from .storage import Storage
 from .wire import unpack_frame
 
@@ -621,6 +621,15 @@ class Node:
         sender and receiver (by modality name), its own counters and command bookkeeping, and
         ``extra`` (an application's state saved with it, e.g. the console's: objects it shares
         with the node stay shared). Keys, clocks and callbacks are not state."""
+        return dumps(self._state_root(extra))
+
+    def export_parts(self, extra: Any = None) -> tuple[bytes, dict[str, Any]]:
+        """What :meth:`export_state` saves, as :func:`coex_core.state.dumps_parts` gives it: the
+        document's text and its arrays by content (a store writes only the parts that changed
+        since its last save)."""
+        return dumps_parts(self._state_root(extra))
+
+    def _state_root(self, extra: Any) -> dict[str, Any]:
         self.sync_storage()
         mgr = self.manager
         root = {
@@ -640,14 +649,20 @@ class Node:
             "receivers": {r.key: _innermost(r.receiver) for r in self._receivers},
             "extra": extra,
         }
-        return dumps(root)
+        return root
 
     def restore_state(self, data: bytes) -> Any:
         """Load what :meth:`export_state` saved into this node, which must have been built the
         same way (node id, modalities; a sender or receiver wrapped by the application keeps
         its wrapper). Returns the saved ``extra``. :class:`~coex_core.state.StateError` when the
         state does not fit this node."""
-        root = loads(data)
+        return self._restore_root(loads(data))
+
+    def restore_parts(self, text: bytes, arrays: Mapping[str, Any]) -> Any:
+        """:meth:`restore_state` from what :meth:`export_parts` gave."""
+        return self._restore_root(loads_parts(text, arrays))
+
+    def _restore_root(self, root: Any) -> Any:
         if root.get("node_id") != self.node_id:
             raise StateError(f"the saved state is node {root.get('node_id')}'s, not {self.node_id}'s")
         senders, receivers = dict(root["senders"]), dict(root["receivers"])

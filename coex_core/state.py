@@ -25,12 +25,18 @@ that many bytes of UTF-8 JSON ``{"format": "coex-state", "version": 1, "classes"
 version}, "root": ...}``, then a numpy ``.npz`` archive (stored uncompressed: a node saves before every transmission; read with ``allow_pickle=False``) of the arrays
 and byte strings the JSON refers to by index (``{"$a": i}``, ``{"$b": i}``). The tagged JSON
 forms are listed in ``docs/persistence.md``.
+
+In parts (:func:`dumps_parts` / :func:`loads_parts`, what a node store writes incrementally): the
+same JSON document (``"version": 2``) with arrays and byte strings named by their content
+(``{"$a": "<blake2b-128 hex>"}``) and an ``id`` only on objects reached twice, and the arrays by
+name: what did not change between two saves gives the same text and names.
 """
 
 from __future__ import annotations
 
 import dataclasses
 import enum
+import hashlib
 import io
 import json
 import math
@@ -44,10 +50,13 @@ import numpy as np
 from . import messages as _messages
 from .errors import CoexError
 
-__all__ = ["FORMAT", "VERSION", "StateError", "dumps", "loads", "persistent", "registered"]
+__all__ = ["FORMAT", "PARTS_VERSION", "VERSION", "StateError", "dumps", "dumps_parts", "loads", "loads_parts",
+           "persistent", "registered"]
 
 FORMAT = "coex-state"
 VERSION = 1
+#: the document's version in parts (:func:`dumps_parts`)
+PARTS_VERSION = 2
 MAGIC = b"COEXSTATE\n"
 
 
@@ -135,7 +144,13 @@ _register_messages()
 # --------------------------------------------------------------------------------- encode
 
 class _Writer:
-    def __init__(self) -> None:
+    def __init__(self, by_content: bool = False) -> None:
+        #: :func:`dumps_parts`: arrays named by their content, shared objects alone numbered
+        self.by_content = by_content
+        self.named: dict[str, np.ndarray] = {}
+        self.objects: list[dict[str, Any]] = []
+        self.refs: list[dict[str, Any]] = []
+        self._names: list[str] = []
         self.blobs: list[np.ndarray] = []
         #: id() of an array or byte string already written -> its blob (written once, and
         #: restored as one object where several places share it)
@@ -147,7 +162,21 @@ class _Writer:
     def blob(self, arr: np.ndarray, source: Any) -> int:
         known = self.blob_of.get(id(source))
         if known is not None:
-            return known
+            return self._names[known] if self.by_content else known  # type: ignore[return-value]
+        if self.by_content:  # the name is the content's (a second equal array: "<hash>.1", ...)
+            digest = hashlib.blake2b(arr.data if arr.flags.c_contiguous else arr.tobytes(), digest_size=16)
+            digest.update(f"{arr.dtype.str}{arr.shape}".encode())
+            base = name = digest.hexdigest()
+            k = 0
+            while name in self.named:
+                k += 1
+                name = f"{base}.{k}"
+            self.named[name] = arr
+            self._names.append(name)
+            self.blobs.append(arr)
+            self.blob_of[id(source)] = len(self.blobs) - 1
+            self.keep.append(source)
+            return name  # type: ignore[return-value]
         self.blobs.append(arr)
         self.blob_of[id(source)] = len(self.blobs) - 1
         self.keep.append(source)
@@ -203,15 +232,32 @@ class _Writer:
         c = self._cls(x, path)
         ref = self.memo.get(id(x))
         if ref is not None:
-            return {"$r": ref}
+            r = {"$r": ref}
+            self.refs.append(r)
+            return r
         ref = self.memo[id(x)] = len(self.memo)
         self.keep.append(x)
         before = getattr(x, "_before_save", None)
         if callable(before):  # e.g. a map writes its resident tiles to its storage first
             before()
         fields = _fields(x)
-        out = {k: self.enc(v, f"{path}.{k}") for k, v in fields.items() if k not in c.transient}
-        return {"$o": c.name, "id": ref, "f": out}
+        o = {"$o": c.name, "id": ref, "f": {}}
+        self.objects.append(o)
+        o["f"] = {k: self.enc(v, f"{path}.{k}") for k, v in fields.items() if k not in c.transient}
+        return o
+
+    def renumber(self) -> None:
+        """Only objects reached twice keep an id, numbered in order: adding an object to a
+        queue leaves the rest of the document's text as it was."""
+        shared = sorted({int(r["$r"]) for r in self.refs})
+        new = {old: i for i, old in enumerate(shared)}
+        for o in self.objects:
+            if o["id"] in new:
+                o["id"] = new[o["id"]]
+            else:
+                del o["id"]
+        for r in self.refs:
+            r["$r"] = new[int(r["$r"])]
 
 
 #: values written as themselves (a finite float too)
@@ -264,6 +310,29 @@ def dumps(root: Any) -> bytes:
     return MAGIC + struct.pack(">I", len(text)) + text + buf.getvalue()
 
 
+def dumps_parts(root: Any) -> tuple[bytes, dict[str, np.ndarray]]:
+    """``root`` as :func:`dumps` saves it, in parts a store can write apart: the document's
+    UTF-8 JSON text (container version 2: arrays and byte strings referred to by the name of
+    their content, ``{"$a": "<blake2b-128 hex>"}``, a second distinct equal one by
+    ``"<hex>.1"``; only objects reached twice carry an ``id``) and the arrays by those names.
+    What did not change between two saves gives the same text and names (see
+    ``docs/persistence.md``, "Incremental snapshots"); :func:`loads_parts` reads it."""
+    w = _Writer(by_content=True)
+    doc = {"format": FORMAT, "version": 2, "root": w.enc(root, "root")}
+    w.renumber()
+    doc["classes"] = dict(sorted(w.used.items()))
+    return json.dumps(doc, separators=(",", ":"), allow_nan=False).encode(), dict(w.named)
+
+
+def loads_parts(text: bytes, arrays: Any) -> Any:
+    """The object :func:`dumps_parts` wrote (``arrays``: its arrays by name)."""
+    try:
+        doc = json.loads(bytes(text).decode())
+    except Exception as exc:
+        raise StateError(f"corrupt CoEx state: {exc}") from exc
+    return _load_doc(doc, arrays)
+
+
 # --------------------------------------------------------------------------------- decode
 
 class _Reader:
@@ -286,14 +355,13 @@ class _Reader:
         if tag == "$f":
             return float(v)
         if tag == "$a":
-            i = int(v)
-            if i not in self.arrays:
-                self.arrays[i] = np.array(self.blobs[f"b{i}"])
-            return self.arrays[i]
+            if v not in self.arrays:
+                self.arrays[v] = np.array(self.blobs[_blob_name(v)])
+            return self.arrays[v]
         if tag == "$b":
-            return self.blobs[f"b{int(v)}"].tobytes()
+            return np.asarray(self.blobs[_blob_name(v)]).tobytes()
         if tag == "$ba":
-            return bytearray(self.blobs[f"b{int(v)}"].tobytes())
+            return bytearray(np.asarray(self.blobs[_blob_name(v)]).tobytes())
         if tag == "$n":
             return np.dtype(v).type(self.dec(x["v"]))
         if tag == "$t":
@@ -332,7 +400,8 @@ class _Reader:
         if saved > c.version:
             raise StateError(f"{c.name} was saved by a newer version ({saved} > {c.version})")
         obj: Any = object.__new__(c.cls)
-        self.memo[int(x["id"])] = obj
+        if "id" in x:  # (version 2 numbers only the objects reached twice)
+            self.memo[int(x["id"])] = obj
         fields = {k: self.dec(v) for k, v in x["f"].items()}
         if saved < c.version and c.upgrade is not None:
             fields = c.upgrade(fields, saved)
@@ -354,12 +423,21 @@ def loads(data: bytes) -> Any:
         blobs = np.load(io.BytesIO(data[start + n:]), allow_pickle=False)
     except Exception as exc:  # bad JSON, a damaged zip archive: never a crash of the caller
         raise StateError(f"corrupt CoEx state: {exc}") from exc
+    return _load_doc(doc, blobs)
+
+
+def _blob_name(v: Any) -> str:
+    """The array part's name: ``b<i>`` in the container, the content's name in parts."""
+    return v if isinstance(v, str) else f"b{int(v)}"
+
+
+def _load_doc(doc: Any, blobs: Any) -> Any:
     if not isinstance(doc, dict):
         raise StateError("corrupt CoEx state: the document is not an object")
     if doc.get("format") != FORMAT:
         raise StateError(f"not a {FORMAT} document")
-    if int(doc.get("version", 0)) > VERSION:
-        raise StateError(f"state container version {doc['version']} is newer than {VERSION}")
+    if int(doc.get("version", 0)) > PARTS_VERSION:
+        raise StateError(f"state container version {doc['version']} is newer than {PARTS_VERSION}")
     reader = _Reader(blobs, {str(k): int(v) for k, v in doc.get("classes", {}).items()})
     try:
         root = reader.dec(doc["root"])

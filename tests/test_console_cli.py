@@ -134,3 +134,33 @@ def test_topside_remaps_a_modalitys_third_party_ids() -> None:
         assert ack.type_id == 4101
     finally:
         app.close()
+
+
+def test_the_console_keeps_as_many_images_as_the_imagery_receiver(tmp_path: Path) -> None:
+    """A topside whose imagery receiver keeps few images (a long dive, its images written out
+    with ``out_dir``): the console keeps no more than the receiver, also after a restart from
+    its store; with the defaults it keeps MAX_IMAGES."""
+    import numpy as np
+
+    from coex_core.modality import Product
+    from coex_plugins.console.cli import build_topside
+    from coex_plugins.console.state import MAX_IMAGES
+
+    options = {"imagery": {"max_images": 3, "out_dir": str(tmp_path / "images")}}
+    db = tmp_path / "topside.sqlite"
+    for _ in range(2):  # new, then resumed from its store
+        app = build_topside("loopback://cli-images", "127.0.0.1", 0, modalities=("imagery",),
+                            receiver_options=options, store=db)
+        try:
+            assert app.hub.state.max_images == 3
+            for i in range(5):  # the newest three stay
+                app.hub.state.apply_product("imagery", Product("image", f"image-{i}", 1, np.zeros((8, 8), np.uint8),
+                                                               {"image_id": i, "time": 100.0 + i}), 100.0 + i)
+            assert sorted(app.hub.state.images) == [2, 3, 4]
+        finally:
+            app.close()
+    app = build_topside("loopback://cli-images-default", "127.0.0.1", 0, modalities=("imagery",))
+    try:
+        assert app.hub.state.max_images == MAX_IMAGES
+    finally:
+        app.close()

@@ -34,6 +34,7 @@ from coex_plugins.console.cli import TopsideApp, build_topside
 from coex_plugins.console.testing import survey_points
 from coex_plugins.imagery import ImageInput, ImageryModality
 from coex_plugins.imagery.synth import seafloor
+from coex_transports.store import snapshot_text
 
 T0 = 36000.0
 SCHEDULE = Schedule.simple([1, 2], 4.0, 0.5)
@@ -214,8 +215,8 @@ def test_coex_topside_store_survives_kill_9(tmp_path: Path) -> None:
         held = False
         while time.monotonic() < deadline and not held:
             with sqlite3.connect(db) as db_:
-                row = db_.execute("SELECT state FROM snapshot").fetchone()
-            held = row is not None and all(s in bytes(row[0]) for s in summaries)
+                text = snapshot_text(db_)
+            held = text is not None and all(s in text for s in summaries)
             time.sleep(0.1)
         assert held
     finally:

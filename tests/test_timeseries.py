@@ -514,3 +514,56 @@ def test_topside_keeps_each_pass_in_the_narrowest_integer_codes(record: list[syn
     assert np.all(np.abs(series.values - methane.values) <= series.bounds)
     again = state.loads(state.dumps(rx)).series(methane.name)
     assert np.array_equal(again.values, series.values) and np.array_equal(again.bounds, series.bounds)
+
+
+def test_keep_archives_old_blocks_to_csv_and_bounds_memory(tmp_path: Any, record: list[synth.SynthSeries]) -> None:
+    """With ``keep`` and ``out_dir`` topside holds a window of each series in memory (and in its
+    saved state) and appends every older block to ``series_<name>.csv``: together they hold
+    every sample the vehicle sent, within its bound; a chunk of an archived block is acked and
+    not taken; the archive and the window survive a save and restore."""
+    sender = _sender(record)
+    rx = TimeSeriesReceiver({"keep": 1800.0, "out_dir": str(tmp_path)})
+    whole = TimeSeriesReceiver()  # the same messages, every block kept
+    sent: list[Message] = []
+    now = _drain(sender, rx, _feed(sender, record), sent)
+    for m in sent:
+        whole.receive(m, now)
+    for s in record:
+        path = rx.archive_path(s.name)
+        assert path is not None and path.exists()
+        assert path.read_text().splitlines()[0] == "time,value,bound,block_start"
+        live = rx.series(s.name)
+        newest = live.times.max()
+        assert live.times.min() >= newest - 1800.0 - 1300.0  # a window (blocks of at most 1200 s)
+        assert live.times.size < s.times.size / 2
+        held = rx.held(s.name)
+        np.testing.assert_allclose(held.times, s.times, atol=1e-3)
+        assert np.all(np.abs(held.values - s.values) <= held.bounds + 1e-6)
+        assert [round(a, 3) for a, _, _ in rx.bounds(s.name)] == [round(a, 3) for a, _, _ in whole.bounds(s.name)]
+    assert len(state.dumps(rx)) < len(state.dumps(whole)) / 2
+    # a chunk of an archived block again: acked, not taken, nothing changes
+    first = next(m for m in sent if isinstance(m, TimeSeriesChunk))
+    before, late = rx.held(record[0].name).times.size, rx.archived_late
+    rx.poll(now)
+    assert rx.receive(first, now) == []
+    assert rx.archived_late == late + 1 and any(isinstance(a, TimeSeriesAck) and a.parts for a in rx.poll(now))
+    again = state.loads(state.dumps(rx))
+    assert again.keep == 1800.0 and again.held(record[0].name).times.size == before
+    with pytest.raises(ConfigError, match="out_dir"):
+        TimeSeriesReceiver({"keep": 600})
+    with pytest.raises(ConfigError, match="positive"):
+        TimeSeriesReceiver({"keep": -1, "out_dir": str(tmp_path)})
+
+
+def test_a_receiver_saved_before_the_archive_loads_with_every_block_kept(record: list[synth.SynthSeries]) -> None:
+    """Version 1 of the saved receiver (no ``keep``): upgraded, it keeps every block as before."""
+    sender = _sender(record[:1])
+    rx = TimeSeriesReceiver()
+    _drain(sender, rx, _feed(sender, record[:1]))
+    bounds = rx.bounds(record[0].name)
+    for k in ("keep", "out_dir", "_archived", "_archived_floor", "archived_late"):
+        delattr(rx, k)
+    blob = state.dumps(rx).replace(b'"timeseries.Receiver":2', b'"timeseries.Receiver":1')
+    back = state.loads(blob)
+    assert back.keep is None and back.out_dir is None and back.archived_late == 0
+    assert back.bounds(record[0].name) == bounds

@@ -58,7 +58,8 @@ def images_missing(sender: Any, receiver: Any, ids: Iterable[int] | None = None)
 def series_complete(sender: Any, receiver: Any, truth: Sequence[Any] = ()) -> bool:
     """Topside holds every block the vehicle closed, of every channel of ``truth`` (each with
     ``name``, ``times``, ``values``), with the vehicle's error bound, and every reconstructed
-    value is within its bound of the true sample."""
+    value is within its bound of the true sample: in memory, or in the receiver's archive file
+    (``keep`` and ``out_dir``)."""
     for data in truth:
         sent = sender.bound(data.name)
         try:
@@ -67,7 +68,7 @@ def series_complete(sender: Any, receiver: Any, truth: Sequence[Any] = ()) -> bo
             return False
         if not sent or any(held.get(round(s, 3), np.inf) > b + 1e-9 for s, _, b in sent):
             return False
-        rec = receiver.series(data.name)
+        rec = receiver.held(data.name)  # what memory and the archive hold (docs/timeseries.md)
         idx = np.searchsorted(data.times, rec.times)
         idx = np.clip(idx, 0, len(data.times) - 1)
         same = np.isclose(data.times[idx], rec.times)

@@ -10,11 +10,15 @@ The core is sans-I/O, so the store lives here, next to the runner. One SQLite fi
 * ``snapshot``: the whole sans-I/O state of the node (channel manager with its queues, pending
   acks, sequence numbers, command ids and authentication counters, operator settings; every
   modality sender and receiver with what it has captured, sent, acked and built) as
-  :meth:`Node.export_state <coex_core.node.Node.export_state>` writes it (explicit, versioned
+  :meth:`Node.export_parts <coex_core.node.Node.export_parts>` gives it (explicit, versioned
   state: never pickle), with the id of the last journal row it includes. It is written in one
   transaction before every transmission leaves (so a restarted node knows what it already sent)
   and after received frames, at most every ``snapshot_interval`` seconds; the journal rows it
-  includes are deleted in the same transaction.
+  includes are deleted in the same transaction. **Incremental** (schema 2): the snapshot row
+  holds a manifest, the hashes of the document text's content-defined chunks; the ``chunk``
+  table holds those chunks and the state's arrays (named by their content), zlib-compressed,
+  each written once and deleted when no snapshot uses it, so a snapshot writes only what
+  changed since the last one (``docs/persistence.md``, "Incremental snapshots").
 
 :meth:`NodeStore.restore` builds the node (the application's ``build()``), loads the snapshot into
 it, and replays the journal rows written after it, in order: received frames go through
@@ -25,18 +29,23 @@ committed row across a process crash.
 
 from __future__ import annotations
 
+import hashlib
 import sqlite3
-from collections.abc import Callable, Iterator
+import zlib
+from collections.abc import Callable, Iterator, Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
+
+import numpy as np
 
 from coex_core import state
 from coex_core.errors import ConfigError
 from coex_core.node import Node
 from coex_core.storage import Storage
 
-__all__ = ["MIGRATIONS", "SCHEMA_VERSION", "JournalRow", "NodeStore", "SqliteStorage", "migrate"]
+__all__ = ["MIGRATIONS", "SCHEMA_VERSION", "JournalRow", "NodeStore", "SqliteStorage", "chunk_text", "migrate",
+           "snapshot_text"]
 
 #: Stores written before the explicit state format held pickled snapshots, which this version
 #: refuses (it never unpickles).
@@ -74,6 +83,16 @@ CREATE TABLE IF NOT EXISTS storage (
 #: :data:`SCHEMA_VERSION` is refused: an older CoEx must not write into it.
 MIGRATIONS: tuple[str, ...] = (
     _SCHEMA_1,  # 0 -> 1: journal, snapshot, meta, storage
+    # 1 -> 2: incremental snapshots. The snapshot row's state becomes a manifest (the text's
+    # chunk hashes); the chunks (pieces of the document's text, and its arrays by content;
+    # zlib-compressed) are rows of their own, written once and kept while a snapshot uses them. A store of version 1
+    # keeps its last snapshot (a whole container) until the next snapshot replaces it.
+    """CREATE TABLE IF NOT EXISTS chunk (
+        hash BLOB PRIMARY KEY,
+        dtype TEXT,
+        shape TEXT,
+        data BLOB NOT NULL
+    )""",
 )
 SCHEMA_VERSION = len(MIGRATIONS)
 
@@ -95,6 +114,97 @@ def migrate(db: sqlite3.Connection, path: Path) -> int:
             db.execute("ROLLBACK")
             raise
     return found
+
+
+#: a snapshot row's state in version 2: this, then the 16-byte hashes of the text's chunks
+_MANIFEST = b"COEXPARTS\n"
+#: content-defined chunking of the text: a cut where the hash of the last 32 bytes has its low
+#: bits zero (512 bytes apart on average), at least 128 bytes and at most 4 KiB apart
+_WINDOW, _MASK, _MIN_CHUNK, _MAX_CHUNK = 32, 511, 128, 4096
+_GEAR = np.random.default_rng(0xC0E5).integers(0, 2**32, 256, dtype=np.uint64).astype(np.uint32)
+_MIX = np.random.default_rng(0xC0E6).integers(1, 2**32, _WINDOW, dtype=np.uint64).astype(np.uint32) | np.uint32(1)
+
+
+def chunk_text(data: bytes, mask: int = _MASK, min_chunk: int = _MIN_CHUNK, max_chunk: int = _MAX_CHUNK) -> list[bytes]:
+    """``data`` cut where its content says (content-defined chunking): an edit changes the
+    chunks around it, and the rest cut as before, whatever moved."""
+    b = np.frombuffer(data, np.uint8)
+    n = b.size
+    if n <= min_chunk:
+        return [bytes(data)] if n else []
+    g = _GEAR[b]
+    h = np.zeros(n, np.uint32)
+    for j in range(_WINDOW):  # h[i] = sum_j MIX[j] * GEAR[b[i - j]] (mod 2^32)
+        h[j:] += _MIX[j] * g[: n - j]
+    h ^= h >> np.uint32(15)
+    h *= np.uint32(0x2C1B3C6D)
+    h ^= h >> np.uint32(12)
+    candidates = np.flatnonzero((h & np.uint32(mask)) == 0) + 1
+    out: list[bytes] = []
+    start = 0
+    for c in candidates.tolist():
+        while c - start > max_chunk:
+            out.append(bytes(data[start:start + max_chunk]))
+            start += max_chunk
+        if c - start >= min_chunk and c < n:
+            out.append(bytes(data[start:c]))
+            start = c
+    while n - start > max_chunk:
+        out.append(bytes(data[start:start + max_chunk]))
+        start += max_chunk
+    out.append(bytes(data[start:]))
+    return out
+
+
+def _digest(data: bytes) -> bytes:
+    return hashlib.blake2b(data, digest_size=16).digest()
+
+
+class _ChunkArrays(Mapping[str, np.ndarray]):
+    """A snapshot's arrays by name, read from the store's chunks when the state asks for them."""
+
+    def __init__(self, db: sqlite3.Connection) -> None:
+        self.db = db
+
+    def __getitem__(self, name: str) -> np.ndarray:
+        row = self.db.execute("SELECT dtype, shape, data FROM chunk WHERE hash = ?",
+                              (bytes.fromhex(name.split(".")[0]),)).fetchone()
+        if row is None or row[0] is None:
+            raise KeyError(f"array {name} is not in the store")
+        shape = tuple(int(x) for x in str(row[1]).split(",") if x)
+        return np.frombuffer(zlib.decompress(bytes(row[2])), np.dtype(str(row[0]))).reshape(shape)
+
+    def __iter__(self) -> Iterator[str]:
+        return iter(())
+
+    def __len__(self) -> int:
+        return 0
+
+
+def _manifest_text(db: sqlite3.Connection, blob: bytes) -> bytes:
+    """The document text a version-2 snapshot row's manifest lists."""
+    hashes = [blob[i:i + 16] for i in range(len(_MANIFEST), len(blob), 16)]
+    parts = []
+    for h in hashes:
+        row = db.execute("SELECT data FROM chunk WHERE hash = ?", (h,)).fetchone()
+        if row is None:
+            raise state.StateError(f"text chunk {h.hex()} is missing")
+        parts.append(zlib.decompress(bytes(row[0])))
+    return b"".join(parts)
+
+
+def snapshot_text(db: sqlite3.Connection) -> bytes | None:
+    """The JSON text of the snapshot an open store file holds (the document of
+    :func:`coex_core.state.dumps_parts`, or of the whole container a version-1 store kept;
+    None without a snapshot): for a look from outside the node's process."""
+    row = db.execute("SELECT state FROM snapshot WHERE id = 1").fetchone()
+    if row is None:
+        return None
+    blob = bytes(row[0])
+    if blob.startswith(_MANIFEST):
+        return _manifest_text(db, blob)
+    n = int.from_bytes(blob[len(state.MAGIC):len(state.MAGIC) + 4], "big")
+    return blob[len(state.MAGIC) + 4:len(state.MAGIC) + 4 + n]
 
 
 class SqliteStorage(Storage):
@@ -189,6 +299,10 @@ class NodeStore:
             if str(mode).lower() != "wal":
                 raise ConfigError(f"{self.path}: SQLite refused WAL mode ({mode})")
             self.db.execute("PRAGMA synchronous=NORMAL")
+            # a checkpoint every 256 pages (1 MiB), and the WAL file shrinks back to 1 MiB after
+            # one (it kept its high-water size, about four times the snapshot, before 0.3)
+            self.db.execute("PRAGMA wal_autocheckpoint=256")
+            self.db.execute("PRAGMA journal_size_limit=1048576")
             #: the schema version the file had when opened (0: a store of CoEx 0.1)
             self.schema_found = migrate(self.db, self.path)
         except sqlite3.Error as exc:
@@ -202,8 +316,11 @@ class NodeStore:
         self.restored_extra: Any = None
         #: rows journaled by kind, snapshots written (``snapshot_bytes``: their total size, what
         #: the file's disk takes in writes), rows replayed at :meth:`restore`
-        self.stats = {"rx": 0, "tx": 0, "input": 0, "snapshots": 0, "snapshot_bytes": 0, "replayed": 0}
+        self.stats = {"rx": 0, "tx": 0, "input": 0, "snapshots": 0, "snapshot_bytes": 0, "state_bytes": 0,
+                      "replayed": 0}
         self._storage: SqliteStorage | None = None
+        #: the chunks the file holds (None: not read yet)
+        self._held: set[bytes] | None = None
 
     def storage(self) -> SqliteStorage:
         """The modalities' out-of-core storage in this file (:class:`SqliteStorage`); what
@@ -253,16 +370,44 @@ class NodeStore:
 
     # ------------------------------------------------------------------------ snapshots
     def snapshot(self, node: Node, t: float) -> None:
-        """Save the node's whole state, consistent with the journal so far (one transaction)."""
+        """Save the node's state, consistent with the journal so far (one transaction).
+
+        Incremental: the state (:meth:`Node.export_parts <coex_core.node.Node.export_parts>`)
+        is its document's text, cut into content-defined chunks, and its arrays, named by their
+        content; only the chunks the file does not hold yet are written, with the snapshot row
+        (the list of the text's chunks), and the chunks no longer used are deleted, all in the
+        same transaction. ``stats["snapshot_bytes"]`` counts what was written,
+        ``stats["state_bytes"]`` the size of the states saved."""
         extra = self.extra() if self.extra is not None else None
-        blob = node.export_state(extra)
+        text, arrays = node.export_parts(extra)
+        pieces = chunk_text(text)
+        digests = [_digest(p) for p in pieces]
+        wanted: dict[bytes, tuple[str | None, str | None, Any]] = {
+            d: (None, None, p) for d, p in zip(digests, pieces, strict=True)}
+        for name, a in arrays.items():
+            a = np.ascontiguousarray(a)
+            wanted[bytes.fromhex(name.split(".")[0])] = (a.dtype.str, ",".join(map(str, a.shape)),
+                                                         a.reshape(-1).view(np.uint8) if a.size else b"")
+        manifest = _MANIFEST + b"".join(digests)
         storage = self.storage()
         gen = storage.committed
+        written = len(manifest)
         self.db.execute("BEGIN IMMEDIATE")
         try:
+            if self._held is None:  # the first snapshot since the file was opened
+                self._held = {bytes(r[0]) for r in self.db.execute("SELECT hash FROM chunk")}
+            new = [(h, v) for h, v in wanted.items() if h not in self._held]
+            gone = [(h,) for h in self._held if h not in wanted]
+            if gone:
+                self.db.executemany("DELETE FROM chunk WHERE hash = ?", gone)
+            if new:
+                rows = [(h, dt, sh, zlib.compress(d, 1)) for h, (dt, sh, d) in new]
+                self.db.executemany("INSERT OR REPLACE INTO chunk (hash, dtype, shape, data) VALUES (?, ?, ?, ?)",
+                                    rows)
+                written += sum(len(r[3]) for r in rows)
             last = self.db.execute("SELECT COALESCE(MAX(id), 0) FROM journal").fetchone()[0]
             self.db.execute("INSERT OR REPLACE INTO snapshot (id, journal_id, t, state) VALUES (1, ?, ?, ?)",
-                            (int(last), float(t), sqlite3.Binary(blob)))
+                            (int(last), float(t), sqlite3.Binary(manifest)))
             if self.compact:
                 self.db.execute("DELETE FROM journal WHERE id <= ?", (int(last),))
             storage.commit()
@@ -270,11 +415,14 @@ class NodeStore:
         except BaseException:
             self.db.execute("ROLLBACK")
             storage.committed = gen
+            self._held = None  # read again from the file
             raise
+        self._held = set(wanted)
         self._last_snapshot = t
         self._dirty = False
         self.stats["snapshots"] += 1
-        self.stats["snapshot_bytes"] += len(blob)
+        self.stats["snapshot_bytes"] += written
+        self.stats["state_bytes"] += len(text) + sum(int(a.nbytes) for a in arrays.values())
 
     def maybe_snapshot(self, node: Node, t: float, *, force: bool = False) -> bool:
         """Snapshot when ``force`` (a transmission is about to leave) or when something was
@@ -284,6 +432,10 @@ class NodeStore:
             self.snapshot(node, t)
             return True
         return False
+
+    def saved_text(self) -> bytes | None:
+        """The JSON text of the snapshot in the file (:func:`snapshot_text`)."""
+        return snapshot_text(self.db)
 
     def has_state(self) -> bool:
         return self.db.execute("SELECT COUNT(*) FROM snapshot").fetchone()[0] > 0 or self.count("input") > 0 \
@@ -308,7 +460,10 @@ class NodeStore:
                                   "which this version does not read; move the file away to "
                                   "start afresh")
             try:
-                extra = node.restore_state(blob)
+                if blob.startswith(_MANIFEST):
+                    extra = node.restore_parts(_manifest_text(self.db, blob), _ChunkArrays(self.db))
+                else:  # a whole container (a store of schema 1, not saved since)
+                    extra = node.restore_state(blob)
             except Exception as exc:  # a damaged or foreign file: a clear error, never a crash
                 if not isinstance(exc, state.StateError | KeyError | TypeError | ValueError |
                                   AttributeError):

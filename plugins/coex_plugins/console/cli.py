@@ -482,7 +482,7 @@ def topside_app(cfg: DeployConfig, host: str = "127.0.0.1", port: int = 8080, *,
     from .fleet import FleetHub, fleet_hub
     from .node import NodeCommands
     from .server import ConsoleHub, serve
-    from .state import ConsoleState
+    from .state import MAX_IMAGES, ConsoleState
 
     node_id, vehicle_id, store = cfg.node_id, cfg.peer, cfg.store
     schedule = cfg.schedule()
@@ -525,6 +525,11 @@ def topside_app(cfg: DeployConfig, host: str = "127.0.0.1", port: int = 8080, *,
             # same objects as the restored node: they were saved in one document)
             state.receivers = dict(node.receivers())
             state.own_receivers = False
+            from coex_plugins.imagery.receiver import ImageryReceiver
+
+            images = state.receivers.get("imagery")
+            if isinstance(images, ImageryReceiver):  # the console keeps what the receiver keeps
+                state.max_images = min(MAX_IMAGES, images.max_images)
             hub = ConsoleHub(state, NodeCommands(node, clock), clock)
             rx = state.receivers.get("bathymetry")
             if rx is not None and hasattr(rx, "request_area"):

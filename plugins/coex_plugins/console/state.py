@@ -120,7 +120,7 @@ def _upgrade_state(fields: dict[str, Any], saved: int) -> dict[str, Any]:
 
 @persistent("console.State", version=2, upgrade=_upgrade_state,
             transient=("_region_ids", "_png", "_map_summary", "_targets_cache", "_survey_sig", "_survey_rows",
-                       "_repeats"))
+                       "_repeats", "max_images"))
 class ConsoleState(MapView, SurveysView, ImagesView, LinkView, CommandsView):
     """Everything the console shows, built from messages, products and events.
 
@@ -131,6 +131,9 @@ class ConsoleState(MapView, SurveysView, ImagesView, LinkView, CommandsView):
 
     #: the operator whose action is running (set by :meth:`ConsoleActions.dispatch`)
     actor: str = ""
+    #: images kept (the newest): :data:`MAX_IMAGES`, or fewer when the imagery receiver shown
+    #: keeps fewer (``coex topside`` sets it from the receiver's ``max_images``; not saved)
+    max_images: int = MAX_IMAGES
 
     def __init__(
         self,
@@ -490,7 +493,7 @@ class ConsoleState(MapView, SurveysView, ImagesView, LinkView, CommandsView):
         img = self.images.get(image_id)
         if img is None:
             img = self.images[image_id] = _Image(image_id)
-            if len(self.images) > MAX_IMAGES:  # the oldest goes (one without a time first)
+            while len(self.images) > max(self.max_images, 1):  # the oldest go (those without a time first)
                 oldest = min((i for i in self.images.values() if i is not img),
                              key=lambda i: (i.t is not None, i.t or 0.0, i.image_id))
                 del self.images[oldest.image_id]

@@ -151,15 +151,36 @@ class _RChannel:
 
 
 #: the time-series receiver's options and their defaults
-RECEIVER_DEFAULTS: dict[str, Any] = {"request_retry": 120.0, "request_tries": 10}
+RECEIVER_DEFAULTS: dict[str, Any] = {"request_retry": 120.0, "request_tries": 10, "keep": None,
+                                     "out_dir": None}
+#: archived block starts remembered one by one (per channel); older ones count as archived
+MAX_ARCHIVED_KEYS = 1024
+#: the archive's columns (``series_<name>.csv``)
+ARCHIVE_COLUMNS = ("time", "value", "bound", "block_start")
 
 
-@persistent("timeseries.Receiver")
+def _upgrade_receiver(fields: dict[str, Any], saved: int) -> dict[str, Any]:
+    """Version 1 kept every block in memory (no ``keep``, no archive)."""
+    if saved < 2:
+        fields.setdefault("keep", None)
+        fields.setdefault("out_dir", None)
+        fields.setdefault("_archived", {})
+        fields.setdefault("_archived_floor", {})
+        fields.setdefault("archived_late", 0)
+    return fields
+
+
+@persistent("timeseries.Receiver", version=2, upgrade=_upgrade_receiver)
 class TimeSeriesReceiver(ModalityReceiver):
     """Takes channel registrations and chunks, acks them, tracks requests, reconstructs.
 
     Configuration: ``request_retry`` (120 s: an unsatisfied request is sent again after this
-    long), ``request_tries`` (10: then it is dropped).
+    long), ``request_tries`` (10: then it is dropped); ``keep`` (seconds, default None: every
+    block of the dive stays in memory) with ``out_dir`` (a directory): a block that ends more
+    than ``keep`` seconds before the newest block of its channel is appended to
+    ``out_dir/series_<name>.csv`` (:data:`ARCHIVE_COLUMNS`) and leaves memory, so memory and
+    the saved state hold a window of the series while the file holds the whole dive
+    (``docs/timeseries.md``, "Archive").
     """
 
     def __init__(self, config: Mapping[str, Any] | None = None) -> None:
@@ -167,10 +188,23 @@ class TimeSeriesReceiver(ModalityReceiver):
         try:
             self.request_retry = float(config.get("request_retry", 120.0))
             self.request_tries = int(config.get("request_tries", 10))
+            keep = config.get("keep")
+            self.keep: float | None = None if keep is None else float(keep)
         except (TypeError, ValueError) as exc:
             raise ConfigError(f"invalid time-series receiver option: {exc}") from exc
         if not (self.request_retry > 0 and self.request_tries > 0):
             raise ConfigError("request_retry and request_tries must be positive")
+        out_dir = config.get("out_dir")
+        self.out_dir: str | None = None if out_dir in (None, "") else str(out_dir)
+        if self.keep is not None and not (math.isfinite(self.keep) and self.keep > 0):
+            raise ConfigError(f"keep must be a positive number of seconds, got {keep!r}")
+        if self.keep is not None and self.out_dir is None:
+            raise ConfigError("keep needs out_dir: the blocks leaving memory are written there")
+        #: channel -> block starts (centiseconds) archived, the newest; older than the floor too
+        self._archived: dict[int, list[int]] = {}
+        self._archived_floor: dict[int, int] = {}
+        #: chunks of blocks already archived (acked, not taken)
+        self.archived_late = 0
         self._channels: dict[int, _RChannel] = {}
         self._pending: RequestTracker[TimeSeriesRequest] = RequestTracker(
             self.request_retry, self.request_tries)
@@ -212,6 +246,11 @@ class TimeSeriesReceiver(ModalityReceiver):
             log.warning("chunk of channel %d covers [%d, %d) outside 0..%d", m.channel, first, end, total)
             return []
         block = ch.blocks.get(key)
+        if block is None and self._was_archived(m.channel, key):
+            # its block is in the archive already: acked (the vehicle stops sending it), not taken
+            ch.to_ack.append(TimeSeriesPart(m.start, m.offset, m.level, 0 if m.first is None else m.first))
+            self.archived_late += 1
+            return []
         if block is not None and (block.count, block.period, block.wavelet) != (m.count, m.period, m.wavelet):
             self.ignored += 1
             log.warning("chunk of channel %d disagrees with its block's geometry", m.channel)
@@ -246,7 +285,95 @@ class TimeSeriesReceiver(ModalityReceiver):
         parts[first] = _Part(end, m.step, m.error, _narrow(codes), m.samples)
         block.cache = None
         ch.version += 1
+        self._archive_old(ch)
         return [self._product(ch)]
+
+    # ------------------------------------------------------------------ archive
+
+    def _was_archived(self, cid: int, key: int) -> bool:
+        return key in self._archived.get(cid, ()) or key <= self._archived_floor.get(cid, -(2**62))
+
+    def archive_path(self, channel: str | int) -> Path | None:
+        """The channel's archive file (None without ``out_dir``)."""
+        if self.out_dir is None:
+            return None
+        name = self._find(channel).name
+        safe = "".join(c if c.isalnum() or c in "-_." else "_" for c in name)
+        return Path(self.out_dir) / f"series_{safe}.csv"
+
+    def _archive_old(self, ch: _RChannel) -> None:
+        """Blocks that end more than ``keep`` before the channel's newest go to the archive."""
+        if self.keep is None or not ch.blocks:
+            return
+        newest = max(b.end for b in ch.blocks.values())
+        old = sorted((k for k, b in ch.blocks.items() if b.end < newest - self.keep))
+        if not old:
+            return
+        path = self.archive_path(ch.cid)
+        assert path is not None
+        path.parent.mkdir(parents=True, exist_ok=True)
+        rows = []
+        for k in old:
+            block = ch.blocks[k]
+            r = block.reconstruct()
+            if r is not None:
+                t = block.start + block.period * np.arange(block.count)
+                rows.append(np.stack([np.char.mod("%.3f", t), np.char.mod("%.10g", r[0]),
+                                      np.full(block.count, f"{r[1]:.10g}"),
+                                      np.full(block.count, f"{block.start:.3f}")], axis=1))
+        new_file = not path.exists()
+        with path.open("a", newline="") as fh:  # appended and flushed before the blocks leave memory
+            w = csv.writer(fh, lineterminator="\n")
+            if new_file:
+                w.writerow(ARCHIVE_COLUMNS)
+            for table in rows:
+                w.writerows(table.tolist())
+        keys = self._archived.setdefault(ch.cid, [])
+        for k in old:
+            del ch.blocks[k]
+            keys.append(k)
+        keys.sort()
+        if len(keys) > MAX_ARCHIVED_KEYS:
+            floor = keys[-MAX_ARCHIVED_KEYS - 1]
+            self._archived_floor[ch.cid] = max(self._archived_floor.get(ch.cid, floor), floor)
+            del keys[:-MAX_ARCHIVED_KEYS]
+        ch.version += 1
+
+    def archived(self, channel: str | int) -> tuple[Series, list[tuple[float, float, float]]]:
+        """What the archive file holds of a channel: its samples (a :class:`Series`) and
+        ``(start, end, bound)`` of each block, as :meth:`series` and :meth:`bounds` give them
+        (a block written twice, after a crash between its writing and the next snapshot:
+        the last)."""
+        ch = self._find(channel)
+        unit = ch.registration.unit if ch.registration else ""
+        path = self.archive_path(channel)
+        empty = Series(ch.cid, ch.name, unit, np.zeros(0), np.zeros(0), np.zeros(0))
+        if path is None or not path.exists():
+            return empty, []
+        table = np.loadtxt(path, delimiter=",", skiprows=1, ndmin=2)
+        if not table.size:
+            return empty, []
+        t, v, b, blk = table.T
+        keep = np.zeros(t.size, bool)
+        starts, idx = np.unique(blk, return_inverse=True)
+        blocks = []
+        for j, s0 in enumerate(starts.tolist()):
+            rows = np.flatnonzero(idx == j)
+            # one writing of a block is a run of consecutive rows: the last run wins
+            cut = np.flatnonzero(np.diff(rows) != 1)
+            rows = rows[cut[-1] + 1:] if cut.size else rows
+            keep[rows] = True
+            blocks.append((float(s0), float(t[rows].max()), float(b[rows].max())))
+        sel = np.flatnonzero(keep)
+        sel = sel[np.argsort(t[sel], kind="stable")]
+        return Series(ch.cid, ch.name, unit, t[sel], v[sel], b[sel]), blocks
+
+    def held(self, channel: str | int) -> Series:
+        """Every sample held topside: the archive's and memory's (time order)."""
+        arch, _ = self.archived(channel)
+        live = self.series(channel)
+        return Series(live.channel, live.name, live.unit, np.concatenate([arch.times, live.times]),
+                      np.concatenate([arch.values, live.values]), np.concatenate([arch.bounds, live.bounds]))
 
     # ----------------------------------------------------------------- requests
 
@@ -345,9 +472,11 @@ class TimeSeriesReceiver(ModalityReceiver):
         return [self._product(ch) for _, ch in sorted(self._channels.items())]
 
     def bounds(self, channel: str | int) -> list[tuple[float, float, float]]:
-        """``(start, end, bound)`` of every block held for a channel (``inf``: incomplete)."""
+        """``(start, end, bound)`` of every block held for a channel (``inf``: incomplete), in
+        memory and, with ``keep``, in the archive."""
         ch = self._find(channel)
-        return [(b.start, b.end, b.bound()) for b in sorted(ch.blocks.values(), key=lambda b: b.start)]
+        live = [(b.start, b.end, b.bound()) for b in sorted(ch.blocks.values(), key=lambda b: b.start)]
+        return (self.archived(channel)[1] if self.keep is not None else []) + live
 
     # ---------------------------------------------------------------------- CSV
 
