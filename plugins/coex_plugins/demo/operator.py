@@ -356,6 +356,9 @@ class Operator:
 
     #: the vehicle's node id (for what topside can tell of its link)
     vehicle_id: int = 2
+    #: a fleet dive: a camera vehicle looks at the candidates while the survey still runs, so
+    #: the operator asks for images before the survey ends (set by the demo)
+    imaging: bool = False
 
     def _ask_for_gaps(self, now: float) -> None:
         """Holes in the 1 m map where the coarse map shows the ground was surveyed: ask for the
@@ -553,7 +556,7 @@ class Operator:
         return est if est is not None and now > est + self.cycle else None
 
     def watch_images(self, now: float) -> None:
-        if not self.active or not self.camera_phase:
+        if not self.active or not (self.camera_phase or self.imaging):
             return
         for cv in self.ranked():
             if not cv.planned or cv.done:
