@@ -359,6 +359,11 @@ class Operator:
     #: a fleet dive: a camera vehicle looks at the candidates while the survey still runs, so
     #: the operator asks for images before the survey ends (set by the demo)
     imaging: bool = False
+    #: take a candidate's pass time from the vehicle's reports of its camera line only (the
+    #: line's start reached or the line done, exact stamps; else from when it set off), never
+    #: from the received track: a camera vehicle with one slot a cycle sends few statuses, and
+    #: the track between two of them can cut across a transit (set by the demo in a fleet dive)
+    trust_reports: bool = False
 
     def _ask_for_gaps(self, now: float) -> None:
         """Holes in the 1 m map where the coarse map shows the ground was surveyed: ask for the
@@ -537,7 +542,7 @@ class Operator:
         for this line, a cycle on. Never from another line's reports: the vehicle flies the lines
         in the order their commands reached it, which loss can make unlike the order sent."""
         x_now, y_now = self.position or (self.track[-1][1:3] if self.track else (cv.x, cv.y))
-        if self.track:
+        if self.track and not self.trust_reports:
             d, t_close = closest_approach(self.track, cv.x, cv.y)
             if d < NEAR and math.hypot(x_now - cv.x, y_now - cv.y) > 10.0:
                 return t_close
@@ -551,6 +556,11 @@ class Operator:
         est = None
         if line.set_off is not None:
             start = self._position_at(line.set_off)
+            if self.trust_reports:  # it set off from the end of the line it had just completed
+                before = [ln for ln in self.lines.values()
+                          if ln.completed is not None and abs(ln.completed - line.set_off) <= 1.0]
+                if before:
+                    start = before[0].end
             if start is not None:
                 est = line.set_off + math.hypot(line.start[0] - start[0], line.start[1] - start[1]) / TRANSIT_SPEED + half
         return est if est is not None and now > est + self.cycle else None

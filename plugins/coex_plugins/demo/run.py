@@ -161,6 +161,7 @@ class DiveRun:
         self.operator.epoch = EPOCH
         # a fleet: the camera vehicle looks at candidates while the mapper's survey runs
         self.operator.imaging = self.fleet is not None
+        self.operator.trust_reports = self.fleet is not None
         self.received_track: list[tuple[float, float]] = []
         #: the camera vehicle's positions as topside received them (a fleet dive)
         self.received_camera_track: list[tuple[float, float]] = []
