@@ -41,7 +41,7 @@ def test_fleet_preset_schedule() -> None:
 
 
 def test_fleet_quick_dive_meets_its_goals(dive: tuple[DiveRun, dict[str, Any], Path]) -> None:
-    run, m, out = dive
+    _, m, out = dive
     assert m["success"], m["summary"]
     assert all(g["met"] for g in m["goals"].values()), m["goals"]
     assert not m["false_confirmations"]
