@@ -119,7 +119,8 @@ def _vehicles_section(vehicles: Any) -> str:
     for v in vehicles:
         if not isinstance(v, Mapping):
             continue
-        link = v.get("link") if isinstance(v.get("link"), Mapping) else {}
+        raw = v.get("link")
+        link: Mapping[str, Any] = raw if isinstance(raw, Mapping) else {}
         loss = _f(link.get("frame_loss"))
         rows = [("packets sent", _num(link.get("packets_sent"), ",.0f")),
                 ("bytes sent / capacity", f"{_num(link.get('used_bytes'), ',.0f')} / {_num(link.get('capacity_bytes'), ',.0f')}"),
