@@ -472,6 +472,14 @@ class Operator:
     def _open_lines(self) -> list[CameraLine]:
         return [ln for _, ln in sorted(self.lines.items()) if ln.open]
 
+    def _position_before(self, t: float) -> tuple[float, float] | None:
+        """The newest reported position stamped no later than ``t``."""
+        before = [p for p in self.positions if p[0] <= t]
+        if not before:
+            return None
+        _, x, y = max(before, key=lambda p: p[0])
+        return x, y
+
     def _position_at(self, t: float) -> tuple[float, float] | None:
         if not self.positions:
             return None
@@ -535,6 +543,21 @@ class Operator:
             cv.planned, cv.survey_id = False, None  # never reached the vehicle: sent again next round
 
     def _pass_time(self, cv: CandidateView, now: float) -> float | None:
+        """When the camera passed ``cv`` (:meth:`_pass_estimate`); with :attr:`trust_reports`,
+        then the capture time of the announced image taken nearest ``cv`` within two cycles of
+        that estimate (every image is announced with where it was taken), if one lies within
+        :data:`NEAR` of it."""
+        t = self._pass_estimate(cv, now)
+        if t is None or not self.trust_reports:
+            return t
+        near = [(math.hypot(float(p.meta["x"]) - cv.x, float(p.meta["y"]) - cv.y), float(p.meta["time"]))
+                for p in self.imagery.products()
+                if p.kind == "image" and p.meta.get("x") is not None and p.meta.get("time") is not None
+                and abs(float(p.meta["time"]) - t) <= 2 * self.cycle]
+        best = min((d_t for d_t in near if d_t[0] <= NEAR), default=None)
+        return t if best is None else best[1]
+
+    def _pass_estimate(self, cv: CandidateView, now: float) -> float | None:
         """When the camera passed ``cv``, from what reached topside, once it is past: the
         closest approach of the received track (the vehicle more than 10 m beyond); else the
         vehicle's report of reaching the line's start (or of finishing it), once the next frame
@@ -556,7 +579,9 @@ class Operator:
         est = None
         if line.set_off is not None:
             start = self._position_at(line.set_off)
-            if self.trust_reports:  # it set off from the end of the line it had just completed
+            if self.trust_reports:  # where the last status before it set off put it ...
+                start = self._position_before(line.set_off) or start
+                # ... or the end of the line it had just completed
                 before = [ln for ln in self.lines.values()
                           if ln.completed is not None and abs(ln.completed - line.set_off) <= 1.0]
                 if before:
