@@ -10,6 +10,8 @@ Runs the demo's full two-hour dive for every seed under each condition, in paral
   issue's list; a confirmation of a boulder fails the dive).
 * ``lowrate``: preset ``lowrate`` (issue 41: Micromodem rate 1, the ship 1.2 km from the site in
   1000 m of water, range-dependent loss of about 50 %: about 14 B/s delivered).
+* ``fleet``: preset ``fleet`` (issue 43: a mapping AUV and a camera vehicle on one network, 30 %
+  independent loss; the camera is sent to candidates while the survey runs).
 
 Per condition it prints and records:
 
@@ -20,11 +22,14 @@ Per condition it prints and records:
 * **request to confirmation** in TDMA cycles (from the request that brought the confirming
   image; median and 90th percentile), and the share within two cycles;
 * **map completeness** per level at the end of the dive (median and worst);
-* **link use**: vehicle bytes used / capacity of its transmissions (median).
+* **link use**: vehicle bytes used / capacity of its transmissions (median);
+* **decision time** (issue 43): from a target becoming identifiable at 1 m topside to its
+  confirming image, median and worst over every confirmed target of the condition's dives.
 
 Targets (issue: the main job tells the truth): at least 95 % success at 30 % independent, 50 %
 burst and dive040; at least 80 % at 60 % independent; at least 90 % at lowrate (issue 41), with
-no false confirmation.
+no false confirmation. Fleet (issue 43): every dive true to its truth (success, no false
+confirmation) and decision time median at most 10 minutes, worst at most 20.
 
 A second table measures spare capacity (issue: spend every idle byte), judged against the
 simulated seafloor and the wire:
@@ -75,11 +80,15 @@ CONDITIONS: dict[str, tuple[str, float | None, bool, float, dict[str, Any]]] = {
     # issue 41: deep water and long range, Micromodem rate 1 and about 50 % range-dependent loss
     # (about 14 B/s delivered): the vehicle's detections carry the decision
     "lowrate": ("lowrate", None, False, 0.90, {}),
+    # issue 43: a mapping AUV and a camera vehicle on one network (30 % independent loss)
+    "fleet": ("fleet", None, False, 1.0, {}),
 }
 
 
 #: conditions whose target also wants no false confirmation in any dive
-NO_FALSE = {"lowrate"}
+NO_FALSE = {"lowrate", "fleet"}
+#: issue 43: decision time targets (s) per condition: median, worst
+DECISION_TARGETS = {"fleet": (600.0, 1200.0)}
 
 
 def one_dive(condition: str, seed: int, quick: bool) -> dict[str, Any]:
@@ -114,6 +123,8 @@ def one_dive(condition: str, seed: int, quick: bool) -> dict[str, Any]:
         # issue 41: the vehicle's detections, judged against the truth, and what they cost
         "detected": [t.get("first_detection") is not None for t in m["targets"]],
         "detection_to_confirmation_s": [t.get("detection_to_confirmation_s") for t in m["targets"]],
+        # issue 43: identifiable at 1 m topside to the confirming image (None: not both)
+        "decision_time_s": [t.get("decision_time_s") for t in m["targets"]],
         "detections": {k: m.get("detection_cost", {}).get(k) for k in
                        ("received", "true", "decoys", "false", "bytes_sent", "neighbourhood_bytes_sent")},
         "goals": {k: v["met"] for k, v in m["goals"].items()},
@@ -138,10 +149,13 @@ def summarise(condition: str, dives: list[dict[str, Any]]) -> dict[str, Any]:
     levels = sorted({k for d in dives for k in d["map_coverage"]}, key=int)
     cover = {k: {"median": _pct([d["map_coverage"].get(k, 0.0) for d in dives], 0.5),
                  "worst": min(d["map_coverage"].get(k, 0.0) for d in dives)} for k in levels}
+    decision = _decision_summary(condition, dives)
+    met = n > 0 and ok / n >= target and not (condition in NO_FALSE and sum(d["false_confirmations"] for d in dives))
     return {
         "dives": n, "success": ok, "success_rate": round(ok / n, 3) if n else None, "target": target,
         # lowrate's target (issue 41) also wants no false confirmation in any dive
-        "met": n > 0 and ok / n >= target and not (condition in NO_FALSE and sum(d["false_confirmations"] for d in dives)),
+        "met": met and decision["met"] is not False,
+        "decision_time_s": decision,
         "false_confirmations": sum(d["false_confirmations"] for d in dives),
         "decoys_visited": decoys,
         "identifiable_at_1m_s": {"median": _pct(times, 0.5), "worst": max(times) if times else None,
@@ -203,6 +217,30 @@ def _spare_summary(condition: str, dives: list[dict[str, Any]]) -> dict[str, Any
     return out
 
 
+def _decision_summary(condition: str, dives: list[dict[str, Any]]) -> dict[str, Any]:
+    """Decision time (issue 43) over every target of the condition's dives: median and worst of
+    the confirmed ones (a target never confirmed has none: the dive's success counts it), and
+    the condition's targets where it has some (``met``: None where none is set)."""
+    times = [t for d in dives for t in d.get("decision_time_s", []) if t is not None]
+    missing = sum(1 for d in dives for t in d.get("decision_time_s", []) if t is None)
+    med, worst = _pct_median(times), max(times) if times else None
+    out: dict[str, Any] = {"median": med, "worst": worst, "n": len(times), "missing": missing, "met": None}
+    if condition in DECISION_TARGETS:
+        tm, tw = DECISION_TARGETS[condition]
+        out["target"] = {"median": tm, "worst": tw}
+        out["met"] = med is not None and worst is not None and med <= tm and worst <= tw and not missing
+    return out
+
+
+def _pct_median(values: list[float]) -> float | None:
+    """The median (mean of the middle two of an even count)."""
+    if not values:
+        return None
+    v = sorted(values)
+    k = len(v) // 2
+    return v[k] if len(v) % 2 else (v[k - 1] + v[k]) / 2
+
+
 def _detection_summary(dives: list[dict[str, Any]]) -> dict[str, Any]:
     """Issue 41: targets the vehicle detected, detections of nothing, time from a target's first
     detection topside to its confirming image (median, worst), bytes the detections cost."""
@@ -253,6 +291,21 @@ def spare_table(summary: dict[str, dict[str, Any]]) -> str:
             f"| {_fmt(sp['first_answer_vehicle_slots_median'], 1)} | {_fmt_pct(sp['dives_confirmed_within_two_cycles'])} "
             f"| {_fmt(sp['spare_bytes_median'])} / {_fmt(sp['redundant_bytes_median'])} "
             f"| {'not judged' if sp['met'] is None else 'yes' if sp['met'] else 'NO (' + ', '.join(failed) + ')'} |")
+    return "\n".join(lines)
+
+
+def decision_table(summary: dict[str, dict[str, Any]]) -> str:
+    head = "| condition | targets with a decision time | median (min) | worst (min) | target (median / worst min) | met |"
+    lines = [head, "|" + "---|" * 6]
+    for cond, s in summary.items():
+        d = s["decision_time_s"]
+        tgt = d.get("target")
+        med = None if d["median"] is None else d["median"] / 60
+        worst = None if d["worst"] is None else d["worst"] / 60
+        lines.append(
+            f"| {cond} | {d['n']}/{d['n'] + d['missing']} | {_fmt(med, 1)} | {_fmt(worst, 1)} "
+            f"| {'-' if tgt is None else '{:g} / {:g}'.format(tgt['median'] / 60, tgt['worst'] / 60)} "
+            f"| {'not judged' if d['met'] is None else 'yes' if d['met'] else 'NO'} |")
     return "\n".join(lines)
 
 
@@ -321,12 +374,14 @@ def main(argv: list[str] | None = None) -> int:
     print("\nSpare capacity (issue 20):\n" + spare)
     detect = detection_table(summary)
     print("\nDetections (issue 41):\n" + detect)
+    decide = decision_table(summary)
+    print("\nDecision time (issue 43: identifiable at 1 m topside to the confirming image):\n" + decide)
     all_met = all(s["met"] and s["spare"]["met"] is not False for s in summary.values())
     print(f"\n{'all targets met' if all_met else 'TARGETS NOT MET'}; {len(results)} dives in "
           f"{time.perf_counter() - t0:.0f} s")
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps({"quick": args.quick, "seeds": list(seeds), "summary": summary,
-                                    "table": text, "spare_table": spare, "detection_table": detect,
+                                    "table": text, "spare_table": spare, "detection_table": detect, "decision_table": decide,
                                     "dives": results}, indent=2))
     return 0
 

@@ -24,7 +24,8 @@ def register(sub: Any) -> None:
     scn = p.add_mutually_exclusive_group()
     scn.add_argument("--preset", default=None, metavar="NAME",
                      help="a built-in scenario: default (today's dive), dive040 (the ship 1.5 water depths "
-                          "away, range-dependent loss), harsh (Micromodem rate 3, bursty loss)")
+                          "away, range-dependent loss), harsh (Micromodem rate 3, bursty loss), lowrate (rate 1, "
+                          "far from the site), fleet (a mapping AUV and a camera vehicle on one network)")
     scn.add_argument("--scenario", type=Path, default=None, metavar="FILE.toml",
                      help="a scenario file (site, survey, targets and decoys, modem, TDMA, loss model, ship; "
                           "see docs/demo.md)")

@@ -11,6 +11,9 @@ from coex_core.errors import ConfigError
 from .scenario import Scenario, preset
 
 TOPSIDE, VEHICLE = 1, 2
+#: the camera vehicle of a fleet dive (preset ``fleet``: TDMA slots ``"camera"``); ``VEHICLE`` is
+#: then the mapping AUV
+CAMERA = 3
 EPOCH = 1_656_633_600.0  # 2022-07-01T00:00:00Z: the dive's clock (simulated)
 TRANSIT_ALTITUDE = 10.0
 HOLD_ALTITUDE = 50.0

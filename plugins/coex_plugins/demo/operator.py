@@ -356,6 +356,14 @@ class Operator:
 
     #: the vehicle's node id (for what topside can tell of its link)
     vehicle_id: int = 2
+    #: a fleet dive: a camera vehicle looks at the candidates while the survey still runs, so
+    #: the operator asks for images before the survey ends (set by the demo)
+    imaging: bool = False
+    #: take a candidate's pass time from the vehicle's reports of its camera line only (the
+    #: line's start reached or the line done, exact stamps; else from when it set off), never
+    #: from the received track: a camera vehicle with one slot a cycle sends few statuses, and
+    #: the track between two of them can cut across a transit (set by the demo in a fleet dive)
+    trust_reports: bool = False
 
     def _ask_for_gaps(self, now: float) -> None:
         """Holes in the 1 m map where the coarse map shows the ground was surveyed: ask for the
@@ -464,6 +472,14 @@ class Operator:
     def _open_lines(self) -> list[CameraLine]:
         return [ln for _, ln in sorted(self.lines.items()) if ln.open]
 
+    def _position_before(self, t: float) -> tuple[float, float] | None:
+        """The newest reported position stamped no later than ``t``."""
+        before = [p for p in self.positions if p[0] <= t]
+        if not before:
+            return None
+        _, x, y = max(before, key=lambda p: p[0])
+        return x, y
+
     def _position_at(self, t: float) -> tuple[float, float] | None:
         if not self.positions:
             return None
@@ -527,6 +543,21 @@ class Operator:
             cv.planned, cv.survey_id = False, None  # never reached the vehicle: sent again next round
 
     def _pass_time(self, cv: CandidateView, now: float) -> float | None:
+        """When the camera passed ``cv`` (:meth:`_pass_estimate`); with :attr:`trust_reports`,
+        then the capture time of the announced image taken nearest ``cv`` within two cycles of
+        that estimate (every image is announced with where it was taken), if one lies within
+        :data:`NEAR` of it."""
+        t = self._pass_estimate(cv, now)
+        if t is None or not self.trust_reports:
+            return t
+        near = [(math.hypot(float(p.meta["x"]) - cv.x, float(p.meta["y"]) - cv.y), float(p.meta["time"]))
+                for p in self.imagery.products()
+                if p.kind == "image" and p.meta.get("x") is not None and p.meta.get("time") is not None
+                and abs(float(p.meta["time"]) - t) <= 2 * self.cycle]
+        best = min((d_t for d_t in near if d_t[0] <= NEAR), default=None)
+        return t if best is None else best[1]
+
+    def _pass_estimate(self, cv: CandidateView, now: float) -> float | None:
         """When the camera passed ``cv``, from what reached topside, once it is past: the
         closest approach of the received track (the vehicle more than 10 m beyond); else the
         vehicle's report of reaching the line's start (or of finishing it), once the next frame
@@ -534,7 +565,7 @@ class Operator:
         for this line, a cycle on. Never from another line's reports: the vehicle flies the lines
         in the order their commands reached it, which loss can make unlike the order sent."""
         x_now, y_now = self.position or (self.track[-1][1:3] if self.track else (cv.x, cv.y))
-        if self.track:
+        if self.track and not self.trust_reports:
             d, t_close = closest_approach(self.track, cv.x, cv.y)
             if d < NEAR and math.hypot(x_now - cv.x, y_now - cv.y) > 10.0:
                 return t_close
@@ -548,12 +579,19 @@ class Operator:
         est = None
         if line.set_off is not None:
             start = self._position_at(line.set_off)
+            if self.trust_reports:  # where the last status before it set off put it ...
+                start = self._position_before(line.set_off) or start
+                # ... or the end of the line it had just completed
+                before = [ln for ln in self.lines.values()
+                          if ln.completed is not None and abs(ln.completed - line.set_off) <= 1.0]
+                if before:
+                    start = before[0].end
             if start is not None:
                 est = line.set_off + math.hypot(line.start[0] - start[0], line.start[1] - start[1]) / TRANSIT_SPEED + half
         return est if est is not None and now > est + self.cycle else None
 
     def watch_images(self, now: float) -> None:
-        if not self.active or not self.camera_phase:
+        if not self.active or not (self.camera_phase or self.imaging):
             return
         for cv in self.ranked():
             if not cv.planned or cv.done:

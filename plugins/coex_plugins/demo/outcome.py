@@ -48,6 +48,9 @@ class World:
     camera_legs: list[Any] = field(default_factory=list)
     #: the vehicle's side of every survey command, by survey id (``Autonomy.summary``)
     surveys: dict[int, dict[str, Any]] = field(default_factory=dict)
+    #: one entry per vehicle (node id, role, what it did: :func:`vehicle_summary`); one in a
+    #: single-vehicle dive, two in a fleet dive
+    vehicles: list[dict[str, Any]] = field(default_factory=list)
 
     def visited(self, x: float, y: float) -> bool:
         """Whether the camera really flew within :data:`~.operator.NEAR` metres of (x, y)."""
@@ -284,6 +287,11 @@ def finish(out: Path, cfg: DemoConfig, world: World, operator: Operator, receive
                         "first_detection": None if first is None else {
                             "id": first["id"], "first_at_s": first["first_at_s"], "score": first["score"]},
                         "confirmation": conf,
+                        # issue 43's decision time: from identifiable at 1 m topside to the
+                        # confirming image (negative: confirmed from a detection before the
+                        # received 1 m map showed it)
+                        "decision_time_s": None if seen is None or conf is None
+                        else round(conf["confirmed_at_s"] - (seen - EPOCH), 1),
                         "detection_to_confirmation_s": None if first is None or conf is None
                         else round(conf["confirmed_at_s"] - first["first_at_s"], 1),
                         "why_not": None if conf is not None else _why_not(i, world, operator, seen)})
@@ -357,6 +365,8 @@ def finish(out: Path, cfg: DemoConfig, world: World, operator: Operator, receive
             str(k): max((f for t, f in v if t <= world.survey_end - EPOCH + AFTER_SURVEY_S), default=0.0)
             for k, v in coverage.items()},
         "responses": responses,
+        "decision_time_s": _decision_summary(targets),
+        "vehicles": world.vehicles,
         "bad_frames": {"topside": runners[TOPSIDE].node.stats.get("bad_frames", 0),
                        "vehicle": runners[VEHICLE].node.stats.get("bad_frames", 0)},
         "goals": goals,
@@ -482,7 +492,35 @@ def _summary(targets: list[dict[str, Any]], false: list[dict[str, Any]], operato
     return " ".join(parts)
 
 
-def _link_summary(path: Path) -> dict[str, Any]:
+def _decision_summary(targets: list[dict[str, Any]]) -> dict[str, Any]:
+    """Decision time (issue 43) over the dive's targets: median and worst of those confirmed,
+    and how many targets have none (never identifiable at 1 m, or never confirmed)."""
+    times = sorted(t["decision_time_s"] for t in targets if t["decision_time_s"] is not None)
+    med = None if not times else float(np.median(times))
+    return {"median": None if med is None else round(med, 1), "worst": times[-1] if times else None,
+            "missing": len(targets) - len(times)}
+
+
+def vehicle_summary(node_id: int, role: str, runner: Runner, link_log: Path, *,
+                    surveys: dict[int, dict[str, Any]], images_captured: int,
+                    received_positions: int) -> dict[str, Any]:
+    """One vehicle's section of the report: its link (what it sent, how much arrived), the
+    frames it overheard for another node (a fleet), the survey commands that reached it and the
+    ones it flew (the simulation's truth), the images it took and the statuses topside heard."""
+    link = _link_summary(link_log, src=node_id)
+    for k in ("capacity_series", "used_series", "delivered_series"):
+        link.pop(k, None)
+    stats = runner.node.stats
+    return {"node": node_id, "role": role, "link": link,
+            "frames_overheard_for_others": int(stats.get("foreign", 0)),
+            "bad_frames": int(stats.get("bad_frames", 0)),
+            "survey_commands_received": sum(1 for s in surveys.values() if s.get("received_by_vehicle_s") is not None),
+            "survey_commands_flown": sum(1 for s in surveys.values() if s.get("set_off_s") is not None),
+            "survey_ids": sorted(surveys),
+            "images_captured": images_captured, "statuses_received_topside": received_positions}
+
+
+def _link_summary(path: Path, src: int = VEHICLE) -> dict[str, Any]:
     cap = used = delivered = 0
     cap_s: list[tuple[float, float]] = []
     used_s: list[tuple[float, float]] = []
@@ -494,7 +532,7 @@ def _link_summary(path: Path) -> dict[str, Any]:
             rec = json.loads(line)
         except ValueError:
             continue
-        if rec.get("src") != VEHICLE:
+        if rec.get("src") != src:
             continue
         t = float(rec.get("time", 0.0)) - EPOCH
         if rec.get("cause") == "sent":
@@ -508,7 +546,7 @@ def _link_summary(path: Path) -> dict[str, Any]:
                 work_used += int(rec.get("used_bytes") or 0)
             cap_s.append((round(t, 1), cap))
             used_s.append((round(t, 1), used))
-        elif rec.get("delivered") is not None:
+        elif rec.get("delivered") is not None and rec.get("dst") in (None, TOPSIDE):  # not the other vehicle's copy
             d = rec.get("delivered")
             n = sum(1 for x in d if x) if isinstance(d, list) else int(d)
             delivered += int(rec.get("delivered_bytes", rec.get("used_bytes") if n else 0) or 0)

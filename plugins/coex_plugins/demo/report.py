@@ -99,14 +99,41 @@ def _targets_table(targets: Any) -> str:
         c = t.get("confirmation")
         if isinstance(c, Mapping):
             conf = (f"<td class='r'>{_num(c.get('image_id'))}</td><td class='r'>{_num(c.get('confirmed_at_s'))}</td>"
-                    f"<td class='r'>{_num(c.get('bytes'), ',.0f')}</td><td class='r'>{_num(c.get('tdma_cycles'), '.2f')}</td>")
+                    f"<td class='r'>{_num(c.get('bytes'), ',.0f')}</td><td class='r'>{_num(c.get('tdma_cycles'), '.2f')}</td>"
+                    f"<td class='r'>{_num(t.get('decision_time_s')) if _f(t.get('decision_time_s')) is not None else '-'}</td>")
         else:
-            conf = "<td colspan='4' class='bad c'>never confirmed</td>"
+            conf = "<td colspan='5' class='bad c'>never confirmed</td>"
         rows.append(f"<tr><td>{_e(name)}</td><td>{_pos(t.get('x'), t.get('y'))}</td>"
                     f"<td class='r'>{seen_s}</td>{conf}</tr>")
     return ("<table><tr><th>target</th><th>position (m)</th><th>identifiable at 1 m (s)</th>"
             "<th>confirming image (id)</th><th>confirmed at (s)</th><th>bytes</th>"
-            "<th>TDMA cycles after request</th></tr>" + "".join(rows) + "</table>")
+            "<th>TDMA cycles after request</th><th>decision time (s)</th></tr>" + "".join(rows) + "</table>")
+
+
+def _vehicles_section(vehicles: Any) -> str:
+    """One section per vehicle: its role, its link, what it overheard for the other vehicle, the
+    survey commands that reached it and those it flew (the truth), its images and statuses."""
+    if not isinstance(vehicles, Sequence) or not vehicles:
+        return ""
+    parts = []
+    for v in vehicles:
+        if not isinstance(v, Mapping):
+            continue
+        raw = v.get("link")
+        link: Mapping[str, Any] = raw if isinstance(raw, Mapping) else {}
+        loss = _f(link.get("frame_loss"))
+        rows = [("packets sent", _num(link.get("packets_sent"), ",.0f")),
+                ("bytes sent / capacity", f"{_num(link.get('used_bytes'), ',.0f')} / {_num(link.get('capacity_bytes'), ',.0f')}"),
+                ("bytes delivered topside", _num(link.get("delivered_bytes"), ",.0f")),
+                ("frame loss", "-" if loss is None else f"{loss:.0%}"),
+                ("frames overheard for another node (not handled)", _num(v.get("frames_overheard_for_others"), ",.0f")),
+                ("survey commands that reached it / it flew",
+                 f"{_num(v.get('survey_commands_received'))} / {_num(v.get('survey_commands_flown'))}"),
+                ("images taken", _num(v.get("images_captured"), ",.0f")),
+                ("statuses received topside", _num(v.get("statuses_received_topside"), ",.0f"))]
+        body = "".join(f"<tr><td>{_e(k)}</td><td class='r'>{_e(val)}</td></tr>" for k, val in rows)
+        parts.append(f"<h3>Vehicle {_e(v.get('node'))}: {_e(v.get('role'))}</h3><table>{body}</table>")
+    return '<h2 id="vehicles">Vehicles</h2>' + "".join(parts)
 
 
 def _detections_table(items: Any, cost: Any, targets: Any) -> str:
@@ -413,14 +440,15 @@ def write_report(
 <h1>CoEx demo: nested survey over a simulated acoustic link</h1>
 <p class="sub">{_e(sc_line)}</p>
 <p class="nav"><a href="#outcome">Outcome</a><a href="#map">Map</a><a href="#images">Images</a>
-<a href="#time">The dive over time</a><a href="#decisions">Decisions</a><a href="#raw">Raw metrics</a></p>
+<a href="#vehicles">Vehicles</a><a href="#time">The dive over time</a><a href="#decisions">Decisions</a><a href="#raw">Raw metrics</a></p>
 <h2 id="outcome">Outcome</h2>
 {summary_html}{facts_html}
 <h3>Goals</h3>
 {_goals_table(metrics.get("goals"))}
 <h3>Targets</h3>
 <p class="note">Identifiable at 1 m: when the 1 m map held topside first showed the target. Confirmed at:
-when a received image showing it was accepted; TDMA cycles are counted from the image request.</p>
+when a received image showing it was accepted; TDMA cycles are counted from the image request.
+Decision time: from identifiable at 1 m to the confirming image.</p>
 {_targets_table(metrics.get("targets"))}
 {_false_table(metrics.get("false_confirmations"))}
 <h3>Detections</h3>
@@ -436,6 +464,7 @@ orange diamonds decoys, cyan circles the candidates the operator flagged in the 
 <h2 id="images">Images</h2>
 {_gallery(out, images)}
 {_regions_section(out, regions)}
+{_vehicles_section(metrics.get("vehicles"))}
 <h2 id="time">The dive over time</h2>
 {link_html}
 {charts_html}

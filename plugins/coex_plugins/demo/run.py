@@ -31,10 +31,12 @@ from coex_transports.runner import next_wakeup
 from .autonomy import Autonomy
 from .camera import CameraModel, SandTexture, render_labelled
 from .config import (
+    CAMERA,
     CAMERA_PERIOD,
     CAMERA_SPEED,
     DETECTIONS_STREAM,
     EPOCH,
+    HOLD_ALTITUDE,
     IDENTIFY_RADIUS,
     LINK_STREAM,
     SURVEY_STREAM,
@@ -45,13 +47,14 @@ from .config import (
     DemoResult,
 )
 from .operator import MIN_SCORE, Operator
-from .outcome import World, finish
+from .outcome import World, finish, vehicle_summary
 from .timing import ResponseTimer
 from .truth import FrameTruth, frame_truth
 from .world import (
     Leg,
     Track,
     area_fraction,
+    build_fleet,
     build_nodes,
     dive_schedule,
     image_files,
@@ -139,10 +142,15 @@ class DiveRun:
         self.half = 30.0 if not cfg.quick else 15.0
         self.reserve = 2 * scn.cycle  # the last frames need time to come up before the dive ends
         mid = scn.area / 2
-        self.autonomy = Autonomy(self.senders["survey"], self.track, self.at, self.end,
+        # in a fleet dive this is the camera vehicle's autonomy (on its own track); the mapper's
+        # only holds once its survey is over (it is never sent a survey command)
+        self.autonomy = Autonomy(self.senders["survey"], self.camera_track, self.at, self.end,
                                  camera_altitude=scn.camera_altitude, camera_speed=CAMERA_SPEED,
                                  mission=None if operator_mode == "script" else
                                  ((mid, mid - self.half), (mid, mid + self.half)))
+        self.mapper_autonomy = None if self.fleet is None else Autonomy(
+            self.fleet.mapper_senders["survey"], self.track, self.at, self.end,
+            camera_altitude=scn.camera_altitude, camera_speed=CAMERA_SPEED)
         # what the camera saw, for the operator's eye and the referee (frames showing an object)
         self.frames: dict[float, FrameTruth] = {}
         floor = self.floor
@@ -151,7 +159,12 @@ class DiveRun:
                                  self.log, frames=self.frame_at, camera_altitude=scn.camera_altitude,
                                  cycle=scn.cycle, active=operator_mode == "script")
         self.operator.epoch = EPOCH
+        # a fleet: the camera vehicle looks at candidates while the mapper's survey runs
+        self.operator.imaging = self.fleet is not None
+        self.operator.trust_reports = self.fleet is not None
         self.received_track: list[tuple[float, float]] = []
+        #: the camera vehicle's positions as topside received them (a fleet dive)
+        self.received_camera_track: list[tuple[float, float]] = []
         self.coverage: dict[int, list[tuple[float, float]]] = {}
         self.visible_at: dict[int, float] = {}
         # timed events (simulated): sensor data, status, operator, camera
@@ -180,6 +193,9 @@ class DiveRun:
         self.texture = SandTexture(seed=cfg.seed)
         self.camera = CameraModel()
         self.track = Track(self.floor)
+        #: the track the camera flies: the vehicle's, or in a fleet dive the camera vehicle's own
+        #: (it descends at the centre of the site and holds there until sent somewhere)
+        self.camera_track = Track(self.floor) if scn.fleet else self.track
         self.descent = 300.0 if not cfg.quick else 120.0
         self.survey: Survey = simulate_survey(
             self.floor, altitude=scn.survey_altitude, line_spacing=scn.line_spacing or None,
@@ -199,16 +215,31 @@ class DiveRun:
                                       channel=self.channel, clock=clock, ptys=True)
         self.series = ts_synth.dataset(duration=max(scn.duration, 1200.0), period=1.0, seed=cfg.seed,
                                        t0=EPOCH)
-        self.vehicle, self.topside, self.senders, self.receivers = build_nodes(
-            out, [s.channel() for s in self.series], cfg.command_key, scn,
-            auto_fill=self.operator_mode != "script", geofence=cfg.geofence)
+        self.fleet = None
+        if scn.fleet:
+            # issue 43: three nodes on one network; topside's modem broadcasts (dest 0,
+            # docs/micromodem.md), each frame header names the vehicle it is for
+            net.add_modem(CAMERA, (scn.area / 2, scn.area / 2, 0.0))
+            self.fleet = fleet = build_fleet(out, [s.channel() for s in self.series], cfg.command_key, scn,
+                                             auto_fill=self.operator_mode != "script", geofence=cfg.geofence)
+            self.vehicle, self.topside, self.receivers = fleet.mapper, fleet.topside, fleet.receivers
+            self.senders = {**fleet.mapper_senders, **fleet.camera_senders}  # the survey: the camera's
+        else:
+            self.vehicle, self.topside, self.senders, self.receivers = build_nodes(
+                out, [s.channel() for s in self.series], cfg.command_key, scn,
+                auto_fill=self.operator_mode != "script", geofence=cfg.geofence)
         self.link_log = (out / "link.jsonl").open("w")
         self.runners = {
             VEHICLE: Runner(self.vehicle, {0: net.transport(VEHICLE, rate=scn.modem_rate, dest=TOPSIDE)},
                             SimulatedClock(sim=clock), link_log=self.link_log),
-            TOPSIDE: Runner(self.topside, {0: net.transport(TOPSIDE, rate=scn.modem_rate, dest=VEHICLE)},
+            TOPSIDE: Runner(self.topside, {0: net.transport(TOPSIDE, rate=scn.modem_rate,
+                                                             dest=0 if self.fleet else VEHICLE)},
                             SimulatedClock(sim=clock), link_log=self.link_log),
         }
+        if self.fleet is not None:
+            self.runners[CAMERA] = Runner(self.fleet.camera, {0: net.transport(CAMERA, rate=scn.modem_rate,
+                                                                                dest=TOPSIDE)},
+                                          SimulatedClock(sim=clock), link_log=self.link_log)
         self.vehicle_modem = self.runners[VEHICLE].transports[0]
         self.timer = ResponseTimer(self.topside, dive_schedule(scn), VEHICLE, EPOCH)
 
@@ -234,17 +265,31 @@ class DiveRun:
         # topside slot, so that its survey commands reach the vehicle as its survey ends (it queues
         # them until then); then at every topside slot for the candidates found meanwhile, while
         # camera time remains
-        self.at(self.survey_end, self.start_autonomy)
-        self.at(self.survey_end + 30.0, self.camera_phase)
-        rounds = self.topside_slots(self.survey_end + 30.0 - scn.cycle, self.end - self.reserve)
-        first = max((t for t in rounds if t <= self.survey_end + 30.0), default=self.survey_end + 30.0)
+        if self.fleet is None:
+            self.camera_start = self.survey_end
+            self.at(self.survey_end, self.start_autonomy)
+            self.at(self.survey_end + 30.0, self.camera_phase)
+            rounds = self.topside_slots(self.survey_end + 30.0 - scn.cycle, self.end - self.reserve)
+            first = max((t for t in rounds if t <= self.survey_end + 30.0), default=self.survey_end + 30.0)
+        else:
+            # a fleet: the camera vehicle descends at the centre of the site while the mapper
+            # starts its survey, then holds; the operator sends it to candidates from then on, at
+            # every topside slot, while the mapper keeps mapping (it holds when its survey ends)
+            self.camera_start = EPOCH + self.descent
+            mid = (scn.area / 2, scn.area / 2)
+            self.camera_track.legs.append(Leg(EPOCH, self.camera_start, mid, mid, HOLD_ALTITUDE))
+            self.at(self.camera_start, self.start_autonomy)
+            self.at(self.survey_end, self.start_mapper_autonomy)
+            self.at(self.survey_end + 30.0, self.camera_phase)  # the map's end-of-survey requests
+            rounds = self.topside_slots(self.camera_start, self.end - self.reserve)
+            first = rounds[0] if rounds else self.camera_start
         for t in [first] + [t for t in rounds if t > first]:
             self.at(t, functools.partial(self.camera_round, first=t == first))
         self.real_images = image_files(self.cfg.images)
         self._shot = iter(range(10**9))
         self.taken: list[float] = []
         self.hfov = math.tan(math.radians(self.camera.hfov_deg) / 2)
-        t = self.survey_end + CAMERA_PERIOD
+        t = self.camera_start + CAMERA_PERIOD
         while t < self.end:
             self.at(t, self.take_picture)
             t += CAMERA_PERIOD
@@ -258,6 +303,10 @@ class DiveRun:
         status = vehicle_status(self.track, now)
         self.channel.set_position(VEHICLE, (status.x, status.y, status.depth or 0.0))  # range loss
         self.vehicle.push_status(status, now)
+        if self.fleet is not None:
+            status = vehicle_status(self.camera_track, now)
+            self.channel.set_position(CAMERA, (status.x, status.y, status.depth or 0.0))
+            self.fleet.camera.push_status(status, now)
 
     def push_link_status(self, now: float) -> None:
         status = self.vehicle_modem.link_status()
@@ -296,6 +345,11 @@ class DiveRun:
         camera pass (fewer map requests, the overview maps)."""
         self.operator.camera_phase = True
 
+    def start_mapper_autonomy(self, now: float) -> None:
+        """A fleet dive: the mapper's survey is over; it holds (nobody sends it anywhere)."""
+        if self.mapper_autonomy is not None:
+            self.mapper_autonomy.start(now)
+
     def start_autonomy(self, now: float) -> None:
         self.autonomy.start(now)
         if self.autonomy.mission is not None:
@@ -305,10 +359,10 @@ class DiveRun:
     def camera_round(self, now: float, first: bool = False) -> None:
         """The operator's camera-pass round: survey commands for the candidates not yet sent."""
         self.operator.camera_round(now, end=self.end, reserve=self.reserve, half=self.half, first=first,
-                                   free_at=self.survey_end)
+                                   free_at=self.camera_start)
 
     def take_picture(self, now: float) -> None:
-        track, camera, cars, rocks = self.track, self.camera, self.cars, self.rocks
+        track, camera, cars, rocks = self.camera_track, self.camera, self.cars, self.rocks
         if not any(leg.camera and leg.t0 <= now <= leg.t1 for leg in track.legs):
             return  # the camera runs on the transects only
         x, y, depth, alt, heading = track.position(now)
@@ -387,29 +441,53 @@ class DiveRun:
         for r in self.runners.values():
             r.step()
         self.autonomy.check(clock.now)  # a survey command arrived: the vehicle flies it
+        if self.mapper_autonomy is not None:
+            self.mapper_autonomy.check(clock.now)
         self.net.step()
+        camera = CAMERA if self.fleet is not None else VEHICLE
         for ev in self.topside.events():
             if isinstance(ev, Received) and isinstance(ev.message, VehicleStatus):
-                self.operator.on_status(ev.message, clock.now)
-                self.received_track.append((ev.message.x, ev.message.y))
+                if ev.src == camera:  # the operator follows the vehicle with the camera
+                    self.operator.on_status(ev.message, clock.now)
+                if ev.src == VEHICLE:
+                    self.received_track.append((ev.message.x, ev.message.y))
+                else:
+                    self.received_camera_track.append((ev.message.x, ev.message.y))
             elif isinstance(ev, ProductUpdated) and ev.modality == "survey":
                 self.operator.on_survey(dict(ev.product.meta), clock.now)
         self.vehicle.events()
+        if self.fleet is not None:
+            self.fleet.camera.events()
         for rec in self.channel.log():  # what arrived, per packet and receiver: delivered or lost frames
             self.link_log.write(json.dumps(rec, sort_keys=True, separators=(",", ":")) + "\n")
 
     def _outputs(self, ptys: dict[int, str]) -> DemoResult:
         cfg, scn, out = self.cfg, self.scn, self.out
         wall = time.perf_counter() - self.wall0
+        surveys = self.autonomy.summary()
+        if self.fleet is None:
+            vehicles = [vehicle_summary(VEHICLE, "vehicle (multibeam and camera)", self.runners[VEHICLE],
+                                        out / "link.jsonl", surveys=surveys, images_captured=len(self.taken),
+                                        received_positions=len(self.received_track))]
+        else:
+            assert self.mapper_autonomy is not None
+            vehicles = [vehicle_summary(VEHICLE, "mapping AUV (multibeam)", self.runners[VEHICLE], out / "link.jsonl",
+                                        surveys=self.mapper_autonomy.summary(), images_captured=0,
+                                        received_positions=len(self.received_track)),
+                        vehicle_summary(CAMERA, "camera vehicle", self.runners[CAMERA], out / "link.jsonl",
+                                        surveys=surveys, images_captured=len(self.taken),
+                                        received_positions=len(self.received_camera_track))]
         world = World(scn, self.floor, self.cars, self.rocks, self.survey_end, self.frames,
                       self.received_track, self.taken, self.operator_mode, self.autonomy.camera_legs(),
-                      self.autonomy.summary())
+                      surveys, vehicles)
         metrics = finish(out, cfg, world, self.operator, self.receivers, self.coverage, self.visible_at,
                          self.decisions, wall, self.runners, self.timer.summary())
         metrics["modems"] = {"nmea_over": {str(k): v for k, v in ptys.items()}, "rate": scn.modem_rate,
                              "tdma": f"{len(scn.slots)} x {scn.slot_seconds:g} s, guard {scn.guard_seconds:g} s; "
                                      f"topside slots {', '.join(str(i) for i, s in enumerate(scn.slots) if s == 'topside')}; "
-                                     f"vehicle slots {', '.join(str(i) for i, s in enumerate(scn.slots) if s == 'vehicle')}"}
+                                     f"vehicle slots {', '.join(str(i) for i, s in enumerate(scn.slots) if s == 'vehicle')}"
+                                     + (f"; camera vehicle slots {', '.join(str(i) for i, s in enumerate(scn.slots) if s == 'camera')}"
+                                        if scn.fleet else "")}
         metrics["authentication"] = {
             "enabled": cfg.command_key is not None,
             "signed_frames": self.topside.manager.stats["signed"],

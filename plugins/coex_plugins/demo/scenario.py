@@ -39,6 +39,8 @@ A scenario is a TOML file (``coex demo --scenario FILE.toml``) or a built-in pre
     [modem]
     rate = 5                      # Micromodem packet rate (0-6)
     slots = ["topside", "vehicle", "vehicle", "topside", "vehicle", "vehicle"]
+                                  # "camera" slots make a fleet dive: a second vehicle (node 3)
+                                  # with the camera; "vehicle" is then the mapping AUV (node 2)
     slot_seconds = 20.0
     guard_seconds = 2.0
 
@@ -77,6 +79,9 @@ from coex_plugins.bathymetry.sim import Target
 __all__ = ["LossSpec", "ObjectSpec", "PRESETS", "Scenario", "load_scenario", "preset"]
 
 LOSS_MODELS = ("independent", "gilbert-elliott", "range")
+#: who a TDMA slot belongs to: topside, the vehicle (in a fleet: the mapping AUV) or, in a fleet
+#: dive, the camera vehicle
+SLOT_OWNERS = ("topside", "vehicle", "camera")
 
 
 #: An object of the scenario: a car (``shape="box"``, the targets) or a boulder (``"dome"``, the
@@ -187,8 +192,8 @@ class Scenario:
                    "seafloor.random_targets and random_decoys must be 0-20")
         if self.modem_rate not in RATES:
             p.said("modem.rate", f"modem.rate must be one of {sorted(RATES)}, got {self.modem_rate}")
-        if not self.slots or any(s not in ("topside", "vehicle") for s in self.slots):
-            p.said("modem.slots", f"modem.slots must list 'topside' or 'vehicle' per slot, got {list(self.slots)}")
+        if not self.slots or any(s not in SLOT_OWNERS for s in self.slots):
+            p.said("modem.slots", f"modem.slots must list 'topside', 'vehicle' or 'camera' per slot, got {list(self.slots)}")
         elif "topside" not in self.slots or "vehicle" not in self.slots:
             p.said("modem.slots", "modem.slots needs at least one topside and one vehicle slot")
         if not 0.0 <= self.spare <= 1.0:
@@ -218,6 +223,11 @@ class Scenario:
                                            "plausible object")
 
     # ------------------------------------------------------------------ derived
+    @property
+    def fleet(self) -> bool:
+        """A fleet dive (issue 43): the schedule gives slots to a camera vehicle too."""
+        return "camera" in self.slots
+
     @property
     def cycle(self) -> float:
         """Length of one TDMA cycle (s)."""
@@ -361,7 +371,7 @@ def scenario_from_dict(data: Mapping[str, Any], base: Scenario | None = None) ->
                 continue
             if attr == "slots":
                 if not isinstance(sec[k], list) or not all(isinstance(s, str) for s in sec[k]):
-                    p.said("modem.slots", "modem.slots must be a list of 'topside' / 'vehicle'")
+                    p.said("modem.slots", "modem.slots must be a list of 'topside' / 'vehicle' / 'camera'")
                 else:
                     kw[attr] = tuple(sec[k])
             else:
@@ -443,6 +453,11 @@ PRESETS: dict[str, dict[str, Any]] = {
                 "ship": {"x": 128.0, "y": -1200.0},
                 "loss": {"model": "range", "rate": 0.05, "range_50": 1620.0, "range_width": 250.0,
                          "range_max": 0.9}},
+    # issue 43: a mapping AUV (node 2) and a camera vehicle (node 3) in one dive over the default
+    # seafloor, three nodes on one acoustic network: the mapper keeps three slots of the NUI cycle,
+    # the camera vehicle takes the fourth; the operator sends the camera to the candidates of the
+    # mapper's received 1 m map while the survey runs
+    "fleet": {"name": "fleet", "modem": {"slots": ["topside", "vehicle", "camera", "topside", "vehicle", "vehicle"]}},
 }
 
 

@@ -25,6 +25,7 @@ from coex_plugins.survey import SurveyModality
 from coex_plugins.timeseries import TimeSeriesModality
 
 from .config import (
+    CAMERA,
     DEFAULT_LAYERS,
     DETECTIONS_STREAM,
     EPOCH,
@@ -110,8 +111,10 @@ class Track:
 
 def dive_schedule(scn: Scenario) -> Schedule:
     """The scenario's TDMA cycle (the NUI 2022 one by default: 6 x 20 s slots, 2 s guard, topside
-    slots 0 and 3, vehicle slots 1, 2, 4, 5)."""
-    owners = [TOPSIDE if s == "topside" else VEHICLE for s in scn.slots]
+    slots 0 and 3, vehicle slots 1, 2, 4, 5). In a fleet dive the ``"camera"`` slots are the
+    camera vehicle's (:data:`~.config.CAMERA`)."""
+    ids = {"topside": TOPSIDE, "vehicle": VEHICLE, "camera": CAMERA}
+    owners = [ids[s] for s in scn.slots]
     return Schedule.simple(owners, scn.slot_seconds, scn.guard_seconds, epoch=EPOCH)
 
 
@@ -181,6 +184,77 @@ def build_nodes(out: Path, channels: list[dict[str, Any]], command_key: bytes | 
     topside.add_receiver(SurveyModality, receivers["survey"])
     topside.add_receiver(DetectionsModality, receivers["detections"])
     return vehicle, topside, senders, receivers
+
+
+@dataclass
+class Fleet:
+    """The three nodes of a fleet dive (issue 43) on one network: topside, the mapping AUV
+    (:data:`~.config.VEHICLE`) and the camera vehicle (:data:`~.config.CAMERA`), each vehicle's
+    senders, and topside's receivers: per peer (``Node.add_receiver(..., peer=N)``), so that a
+    request or survey command goes to that vehicle alone and only its answers count."""
+
+    mapper: Node
+    camera: Node
+    topside: Node
+    mapper_senders: dict[str, Any]
+    camera_senders: dict[str, Any]
+    #: topside's receivers by modality: the map, detections and time series are the mapper's,
+    #: the images and survey commands the camera vehicle's
+    receivers: dict[str, Any]
+
+
+def build_fleet(out: Path, channels: list[dict[str, Any]], command_key: bytes | None, scn: Scenario, *,
+                auto_fill: bool = True, geofence: dict[str, Any] | None = None) -> Fleet:
+    """The nodes of a fleet dive (see :class:`Fleet`). The mapper carries the multibeam, its
+    detector, the sensor channels and a survey sender of its own (it could be retargeted; the
+    demo never does, and a command for the camera vehicle must never reach it); the camera
+    vehicle carries the camera and the survey sender its autonomy flies. Topside's link
+    broadcasts by default (``dst`` 0, docs/channel.md); its per-peer receivers address their
+    requests to their vehicle."""
+    sched = dive_schedule(scn)
+    cycle = scn.cycle
+    fence = site_geofence(scn) if geofence is None else geofence
+
+    def vehicle(node_id: int) -> Node:
+        return Node(ChannelManager(node_id, [LinkConfig(0, sched, rate=scn.modem_rate, dst=TOPSIDE, spare=scn.spare)],
+                                   queue_status_interval=cycle, command_key=command_key))
+    mapper, camera = vehicle(VEHICLE), vehicle(CAMERA)
+    topside = Node(ChannelManager(TOPSIDE, [LinkConfig(0, sched, rate=scn.modem_rate, dst=0)],
+                                  queue_status_interval=cycle, command_key=command_key))
+    ms = {
+        "bathymetry": BathymetryModality().sender({"send_delay": 20.0}),
+        "timeseries": TimeSeriesModality().sender({"channels": channels}),
+        "survey": SurveyModality().sender({"geofence": fence}),
+        "detections": DetectionsModality().sender({"detectors": [{"type": "relief"}]}),
+    }
+    cs = {
+        "imagery": ImageryModality().sender({"layer_psnr": list(LAYER_PSNR), "default_goal": f"layer:{DEFAULT_LAYERS}",
+                                             "request_goal": f"layer:{CONFIRM_LAYERS}"}),
+        "survey": SurveyModality().sender({"geofence": fence}),
+    }
+    mapper.add_sender(BathymetryModality, ms["bathymetry"], StreamConfig(3, "map", priority=30))
+    mapper.add_sender(TimeSeriesModality, ms["timeseries"], StreamConfig(5, "series", priority=20))
+    mapper.manager.add_stream(StreamConfig(LINK_STREAM, "link", priority=40, newest_first=True, max_depth=1))
+    mapper.add_sender(SurveyModality, ms["survey"], StreamConfig(SURVEY_STREAM, "survey", priority=90))
+    mapper.add_sender(DetectionsModality, ms["detections"], StreamConfig(DETECTIONS_STREAM, "detections", priority=100))
+    camera.add_sender(ImageryModality, cs["imagery"], StreamConfig(4, "images", priority=30, low_priority=90))
+    camera.add_sender(SurveyModality, cs["survey"], StreamConfig(SURVEY_STREAM, "survey", priority=90))
+    receivers = {
+        "bathymetry": BathymetryModality().receiver({"auto_fill": auto_fill}),
+        "timeseries": TimeSeriesModality().receiver(None),
+        "detections": DetectionsModality().receiver(None),
+        "imagery": ImageryModality().receiver({"out_dir": str(out / "images")}),
+        "survey": SurveyModality().receiver(None),
+        # the mapper's answers to survey commands (it is never sent one: what would come is shown)
+        "mapper_survey": SurveyModality().receiver(None),
+    }
+    topside.add_receiver(BathymetryModality, receivers["bathymetry"], peer=VEHICLE)
+    topside.add_receiver(TimeSeriesModality, receivers["timeseries"], peer=VEHICLE)
+    topside.add_receiver(DetectionsModality, receivers["detections"], peer=VEHICLE)
+    topside.add_receiver(SurveyModality, receivers["mapper_survey"], peer=VEHICLE)
+    topside.add_receiver(ImageryModality, receivers["imagery"], peer=CAMERA)
+    topside.add_receiver(SurveyModality, receivers["survey"], peer=CAMERA)
+    return Fleet(mapper, camera, topside, ms, cs, receivers)
 
 
 def rng_for(seed: int, salt: int) -> np.random.Generator:
