@@ -25,9 +25,17 @@ import time
 
 import numpy as np
 
+_OUT = threading.Lock()
+
 
 def out(**event: object) -> None:
-    print(json.dumps(event), flush=True)
+    """One JSON line on stdout, whole: rospy calls the callbacks of several topics from threads of
+    their own, and print() writes a line and its newline separately, so two lines written at
+    once interleave into one that is not JSON (the reader dropped both)."""
+    line = json.dumps(event) + "\n"
+    with _OUT:
+        sys.stdout.write(line)
+        sys.stdout.flush()
 
 
 def stamp(header: object, t: float) -> None:

@@ -59,6 +59,7 @@ class _Out:
 
     def __init__(self, proc: subprocess.Popen[str]) -> None:
         self.events: list[dict[str, Any]] = []
+        self.bad: list[str] = []
         self.t = threading.Thread(target=self._read, args=(proc,), daemon=True)
         self.t.start()
 
@@ -68,7 +69,7 @@ class _Out:
             try:
                 self.events.append(json.loads(line))
             except ValueError:
-                pass
+                self.bad.append(line)  # not JSON: said in a failure's message
 
     def find(self, **match: Any) -> list[dict[str, Any]]:
         return [e for e in list(self.events) if all(e.get(k) == v for k, v in match.items())]
@@ -319,8 +320,8 @@ def test_a_survey_goes_out_as_a_path_and_its_progress_comes_back(roscore: Roscor
     ctx = InputContext(41.5, -70.6)
     out = RosAutonomy({"master": roscore.uri, "answer_timeout": 30.0}, ctx)
     out.open()
-    # the path's publisher and the progress subscriber registered before the planner starts
-    # (rospy's double-connect race otherwise: see test_topside_products_appear_on_ros_topics)
+    # the path's publisher and the progress subscriber registered before the planner starts (the
+    # node makes them in its own thread: under load the planner could otherwise start first)
     _wait("the output's topics registered", lambda: _registered(roscore.uri, out._path.topic, 0)
           and _registered(roscore.uri, out._sub.topic, 1), 30)
     planner = peer(["--name", "planner_fly", "--planner", "fly", "--leg", "0.1"], roscore.env(), tmp_path / "fly.log")
@@ -404,10 +405,8 @@ def test_topside_products_appear_on_ros_topics(roscore: Roscore, tmp_path: Path)
                 "/t5/vehicle/odometry", "/t5/vehicle/track"], roscore.env(), tmp_path / "listen.log")
     lines = _Out(spy)
     try:
-        # the listener subscribes before the publishers exist: rospy connects a subscriber twice to
-        # a publisher that registers while the subscriber registers (the master's answer and its
-        # publisherUpdate race), keeps one connection and the publisher the other, and a latched
-        # message sent once is lost; that race is rospy's, not what this test is about
+        # the listener subscribes before the publishers exist, so that each latched message
+        # reaches it once, by the master's publisherUpdate (the order does not depend on load)
         topics = ["/t5/map/level_1", "/t5/map/level_1/grid", "/t5/image", "/t5/vehicle/odometry", "/t5/vehicle/track"]
         _wait("the listener subscribed", lambda: all(_subscribed(roscore.uri, t, "/rviz_like") for t in topics), 60)
         level = np.full((4, 6), np.nan)
@@ -430,9 +429,20 @@ def test_topside_products_appear_on_ros_topics(roscore: Roscore, tmp_path: Path)
             _wait("every product on its topic", lambda: {e["type"] for e in lines.find(event="message")} >= want, 90)
         except AssertionError as exc:
             heard = sorted({e["type"] for e in lines.find(event="message")})
+            state = _system_state(roscore.uri) or [[], []]
+            pubs = {t: ns for t, ns in state[0] if t.startswith("/t5")}
+            conns = {t: (p.connections(), p.counts) for t, p in products._pubs.items()}
+
+            def bus(name: str) -> Any:
+                try:
+                    code, _, uri = xmlrpc.client.ServerProxy(roscore.uri).lookupNode("/coex_test", name)
+                    return xmlrpc.client.ServerProxy(uri).getBusInfo("/coex_test")[2] if code == 1 else None
+                except OSError as e:
+                    return repr(e)
+            conns = {**conns, "bus_listener": bus("/rviz_like"), "bus_ours": bus(products.node.rospy.get_name())}
             raise AssertionError(f"{exc}; heard {heard}; ROS node {products.node.state!r}, counts "
-                                 f"{products.counts}; listener: {(tmp_path / 'listen.log').read_text()[-1500:]}"
-                                 ) from None
+                                 f"{products.counts}; the master's publishers {pubs}; connections {conns}; "
+                                 f"lines not JSON: {lines.bad[-5:]}; listener: {(tmp_path / 'listen.log').read_text()[-1500:]}") from None
         [cloud] = lines.find(type="sensor_msgs/PointCloud2")[:1]
         assert cloud["points"] == 3 and cloud["z"] == [-31.0, -28.0] and cloud["frame"] == "coex_local"
         [grid] = lines.find(type="nav_msgs/OccupancyGrid")[:1]
