@@ -375,3 +375,18 @@ def test_a_vehicle_with_its_own_key(tmp_path: Path) -> None:
     top["node"]["peer_key_file"] = "camera.key"
     _cfg, problems = check_mapping(top, tmp_path / "t.toml", "topside")
     assert any(p.startswith("node.peer_key_file: a topside gives each vehicle's own key") for p in problems)
+
+
+def test_checking_the_example_leaves_nothing_behind(tmp_path: Path) -> None:
+    """`coex config check` builds the receivers to check their options; it must not make their
+    output folders (the imagery receiver's ``out_dir``) or anything else beside the file."""
+    import shutil
+
+    for f in (ROOT / "examples/fleet").iterdir():
+        if f.is_file():
+            shutil.copy(f, tmp_path / f.name)
+    before = sorted(p.name for p in tmp_path.iterdir())
+    r = subprocess.run([COEX, "config", "check", str(tmp_path / "topside.toml")], capture_output=True, text=True,
+                       timeout=120)
+    assert r.returncode == 0, r.stdout + r.stderr
+    assert sorted(p.name for p in tmp_path.iterdir()) == before

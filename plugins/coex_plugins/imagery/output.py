@@ -46,13 +46,15 @@ class ImageWriter:
     """A product listener that writes each improved image (atomically: write, then rename)."""
 
     def __init__(self, out_dir: str | Path) -> None:
+        # the folder is made with the first image, not here: building a receiver (as `coex
+        # config check` does, to check its options) must not leave folders behind
         self.out_dir = Path(out_dir)
-        self.out_dir.mkdir(parents=True, exist_ok=True)
         self.written = 0
 
     def __call__(self, product: Product) -> None:
         if product.kind not in ("image", "image-crop") or product.data is None:
             return
+        self.out_dir.mkdir(parents=True, exist_ok=True)
         name = "image" if product.kind == "image" else "crop"
         base = self.out_dir / f"{name}_{int(product.meta['image_id']):04d}"
         desc = f"coex image {product.key} version {product.version} bytes {product.meta.get('bytes_used')}"
