@@ -455,6 +455,49 @@ def test_a_requested_images_lost_bytes_get_all_their_repeats_again_after_each_lo
     assert not tx.needs() and not round_of_sends()
 
 
+def test_a_requested_images_announcement_goes_as_many_times_as_its_bytes_until_heard() -> None:
+    """Topside can decode none of a requested image's bytes without its announcement: under loss
+    the announcement goes in ``copies()`` packets, as the bytes do (issue 41: one copy per ack
+    round lost four rounds running at 60 % loss and held a confirmation back by three TDMA
+    cycles); once every copy is reported lost it gets its copies again; once heard, it stops.
+    An image nobody asked for is announced once per round."""
+    from coex_core.messages import ImageAnnounce, ImageByTimeRequest, ImageFragment, TimeDirection
+    from coex_core.timefmt import to_stamp
+    from coex_plugins.imagery import ImageryModality
+    from coex_plugins.imagery.sender import ImageInput
+
+    sender = ImageryModality().sender({"default_goal": "layer:16", "request_goal": "layer:24"})
+    rng = np.random.default_rng(3)
+    for t in (10.0, 11.0):
+        sender.ingest(ImageInput(rng.integers(0, 255, (256, 256), np.uint8), time=t), t)
+    asked, other = sorted(sender.images.values(), key=lambda tx: tx.time)
+    now = 20.0
+    first = sender.fill(4000, now)
+    for i, m in enumerate(first):  # three frames in four lost, the announcements among them
+        (sender.acked if isinstance(m, ImageFragment) and i % 4 == 0 else sender.lost)(m, now)
+    k = sender.copies()
+    assert k > 1 and not asked.heard and not other.heard
+    sender.handle(ImageByTimeRequest(1, to_stamp(10.0), TimeDirection.NEAREST), now)
+
+    def round_of_announces() -> list[ImageAnnounce]:
+        nonlocal now
+        sent: list[ImageAnnounce] = []
+        for _ in range(3 * k):  # one packet a second, no answer from topside yet
+            now += 1.0
+            sent += [m for m in sender.fill(50000, now) if isinstance(m, ImageAnnounce)]
+        return sent
+
+    sent = round_of_announces()
+    assert sum(m.image_id == asked.image_id for m in sent) == k
+    assert sum(m.image_id == other.image_id for m in sent) == 1  # not asked for: once a round
+    for m in sent:  # every copy lost
+        sender.lost(m, now)
+    again = round_of_announces()
+    assert sum(m.image_id == asked.image_id for m in again) == k
+    sender.acked(next(m for m in again if m.image_id == asked.image_id), now)
+    assert asked.heard and not [m for m in round_of_announces() if m.image_id == asked.image_id]
+
+
 def test_a_newer_image_ack_replaces_an_older_one_of_the_same_image_in_the_uplink() -> None:
     """Topside's acks of one image are not stacked up in the uplink under loss: the newest
     replaces the older ones still queued or in flight; acks of other images stay."""

@@ -120,8 +120,10 @@ SENDER_DEFAULTS: dict[str, Any] = {**dict.fromkeys(CODING_KEYS), "default_goal":
 def _upgrade_sender(fields: dict[str, Any], saved: int) -> dict[str, Any]:
     """Version 1 (0.1.0 and early 0.2 work) was saved in three shapes: before issue 41 (no
     running background, no low-link flag), before frame fates were kept, before by-time requests
-    could stand. Version 2 always has them."""
+    could stand. Version 2 always has them. Version 3 counts the copies of requested images'
+    announcements (none counted in an older save)."""
     out = dict(fields)
+    out.setdefault("_announce_sends", {})
     if "_low" not in out:
         out.setdefault("_backdrop", None)
         out["_low"] = False
@@ -135,7 +137,7 @@ def _upgrade_sender(fields: dict[str, Any], saved: int) -> dict[str, Any]:
     return out
 
 
-@persistent("imagery.Sender", version=2, upgrade=_upgrade_sender)
+@persistent("imagery.Sender", version=3, upgrade=_upgrade_sender)
 class ImagerySender(ModalitySender):
     _last_now: float = float("-inf")
 
@@ -210,6 +212,8 @@ class ImagerySender(ModalitySender):
         self._standing: dict[int, tuple[ImageByTimeRequest, float]] = {}
         #: final CommandAcks of served or expired standing requests, to send
         self._answers: list[Message] = []
+        #: image id -> copies of a requested image's announcement sent since it was last due
+        self._announce_sends: dict[int, int] = {}
 
     # ------------------------------------------------------------------ ingest
 
@@ -244,6 +248,7 @@ class ImagerySender(ModalitySender):
             victims = [tx for tx in by_age if pick(tx)]
             if victims:
                 del self.images[victims[0].image_id]
+                self._announce_sends.pop(victims[0].image_id, None)
                 self.evicted += 1
                 return
 
@@ -335,7 +340,11 @@ class ImagerySender(ModalitySender):
             if announces >= self.max_announces:
                 break
             due = tx.announced_at is None or (not tx.heard and now - tx.announced_at >= self.rto)
-            if not due:
+            # a requested image's announcement goes in later packets too, as many times as its
+            # bytes (copies()): without it topside can decode none of them
+            again = (not due and tx.explicit is not None and not tx.heard and tx.announced_at is not None
+                     and tx.announced_at < now and self._announce_sends.get(tx.image_id, 0) < self.copies())
+            if not (due or again):
                 continue
             msg = tx.announce()
             size = encoded_size(msg)
@@ -344,6 +353,7 @@ class ImagerySender(ModalitySender):
             out.append(msg)
             left -= size
             tx.announced_at = now
+            self._announce_sends[tx.image_id] = self._announce_sends.get(tx.image_id, 0) + 1 if again else 1
             announces += 1
         # 3. data: goals first, then the default set-point in capture order (on a low link the
         # previews are spare work: only the answers to requests go here)
@@ -400,6 +410,7 @@ class ImagerySender(ModalitySender):
             tx = self.images.get(message.image_id)
             if tx is not None:
                 tx.heard = True
+            self._announce_sends.pop(message.image_id, None)
             return
         if isinstance(message, ImageFragment):
             self._fate(message, 1)
@@ -565,6 +576,7 @@ class ImagerySender(ModalitySender):
         for s, e in spans:
             tx.acked[s:e] = True
         tx.heard = True
+        self._announce_sends.pop(ack.image_id, None)
 
     def _goal(self, msg: ImageGoal) -> list[Message]:
         tx = self._tx(msg.image_id)
