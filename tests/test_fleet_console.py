@@ -272,6 +272,9 @@ def test_the_fleet_page_shows_every_vehicle_and_commands_the_one_shown(
         assert "mapper (2)" in strip and "camera (3)" in strip, strip
         assert page.get_attribute("#fleet a[data-vehicle=mapper]", "href") == "/?vehicle=mapper"
         page.wait_for_function("document.querySelector('#vehicle-status').textContent.includes('pos')")
+        # the TDMA bar names each slot's vehicle, not "veh"
+        page.wait_for_function("S.link && S.link.schedules.length > 0")
+        assert page.evaluate("[1, 2, 3].map((o) => slotOwner(o, S.link))") == ["top", "mapper", "camera"]
         # the page's own action carries its vehicle (the operator never types it)
         page.evaluate("act('survey', {kind: 'goto', x: 40, y: -20})")
         page.wait_for_function("act.lastError === ''")

@@ -1577,6 +1577,12 @@ function drawLinkPlots() {
     }
   }
 }
+// a TDMA slot's owner: "top" for topside, the vehicle's name in a fleet console, else "veh"
+function slotOwner(owner, L) {
+  if (owner === L.node_id) return "top";
+  const v = S.fleet && S.fleet.vehicles.find((x) => x.id === owner);
+  return v ? v.name : "veh";
+}
 function drawTdma() {
   const L = S.link;
   if (!L) return;
@@ -1597,7 +1603,7 @@ function drawTdma() {
         c.fillStyle = col; c.globalAlpha = 0.75; c.fillRect(x + 1, y, w - 2, h);
         c.globalAlpha = 1; c.fillStyle = "rgba(0,0,0,0.45)";
         const gw = ((W - LW - 2) * s.guard) / total; c.fillRect(x + w - 1 - gw, y, gw, h);
-        c.fillStyle = "#05090d"; c.fillText(`${i}:${s.owner === L.node_id ? "top" : "veh"}`, x + 4, y + h - 5);
+        c.fillStyle = "#05090d"; c.fillText(`${i}:${slotOwner(s.owner, L)}`, x + 4, y + h - 5);
         x += w;
       });
       return total;
