@@ -82,9 +82,9 @@ from coex_core.registry import (
 from coex_core.requests import RequestTracker
 from coex_core.state import StateError, persistent
 from coex_core.transport import Transport, UriInfo, parse_query
+from coex_runtime.runner import RealClock, Runner, SimNetwork, SimulatedClock
+from coex_runtime.store import NodeStore
 from coex_transports.recovery import Health, ResilientTransport
-from coex_transports.runner import RealClock, Runner, SimNetwork, SimulatedClock
-from coex_transports.store import NodeStore
 
 # ``from coex.messages import Opaque``, ``coex.wire.pack``: the core's message, wire and error
 # modules under the facade's name (the same module objects)

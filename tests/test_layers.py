@@ -239,9 +239,10 @@ def test_docs_import_core_names_only_from_the_public_facade(doc: Path) -> None:
 
 
 def test_the_facade_offers_what_integrators_and_plugin_authors_need() -> None:
+    from coex_transports.runner import Runner
+
     import coex
     from coex_core.modality import ModalitySender
-    from coex_transports.runner import Runner
 
     names = {"Node", "ChannelManager", "LinkConfig", "Schedule", "StreamConfig", "Modality",
              "ModalitySender", "ModalityReceiver", "Transport", "Product", "open_transport",

@@ -146,7 +146,7 @@ class Runner:
             node.manager.import_settings(saved)
             self._saved = saved
         self.node = node
-        #: with a :class:`~coex_transports.store.NodeStore`: every received frame and ingested
+        #: with a :class:`~coex_runtime.store.NodeStore`: every received frame and ingested
         #: input is journaled, the node's state is saved before every transmission (restore
         #: the node with ``store.restore(build)`` before making the runner)
         self.store = store

@@ -25,7 +25,7 @@ from coex_core.config import Problems
 from coex_core.errors import CoexError, ConfigError
 
 if TYPE_CHECKING:
-    from coex_plugins.vehicle.config import DeployConfig
+    from coex_apps.vehicle.config import DeployConfig
 
 __all__ = ["TopsideApp", "build_topside", "register", "run", "topside_app", "topside_config", "topside_from_config"]
 
@@ -172,7 +172,7 @@ class TopsideApp:
 
     def __init__(self, node: Any, transports: dict[int, Any], hub: Any, server: Any,
                  clock: Callable[[], float], *, store: Any = None) -> None:
-        from coex_transports.runner import RealClock, Runner
+        from coex_runtime.runner import RealClock, Runner
 
         self.node = node
         #: A :class:`coex.NodeStore` (or None): journal and snapshots.
@@ -326,9 +326,9 @@ def topside_config(transport_uri: str | Sequence[str], *, node_id: int = 1, vehi
                    link_options: Sequence[Mapping[str, Any]] | None = None,
                    required: Sequence[bool] | None = None, ros: Mapping[str, Any] | None = None,
                    missing: list[str] | None = None) -> DeployConfig:
-    """The topside's :class:`~coex_plugins.vehicle.config.DeployConfig` from ``coex topside``'s
+    """The topside's :class:`~coex_apps.vehicle.config.DeployConfig` from ``coex topside``'s
     options (and :func:`build_topside`'s arguments), checked by the one checker of a
-    configuration file (:func:`~coex_plugins.vehicle.config.check_problems`): :class:`ConfigError`
+    configuration file (:func:`~coex_apps.vehicle.config.check_problems`): :class:`ConfigError`
     lists every problem, each named by its option (``--node-id: 20 is outside 1..15``).
 
     ``transport_uri`` one or more modems (links ``link``, ``link + 1`` ...); ``rate`` every
@@ -338,7 +338,7 @@ def topside_config(transport_uri: str | Sequence[str], *, node_id: int = 1, vehi
     whose extra is missing, is left out and said in ``missing``, as the console always did);
     ``remap_ids``, ``receiver_options`` by modality name; ``link_options`` and ``required`` by
     modem (the keys of a file's ``[[modems]]``); ``store`` None: none."""
-    from coex_plugins.vehicle.config import STREAM_DEFAULTS, check_problems
+    from coex_apps.vehicle.config import STREAM_DEFAULTS, check_problems
 
     uris = [transport_uri] if isinstance(transport_uri, str) else list(transport_uri)
     if not uris:
@@ -425,7 +425,7 @@ def build_topside(transport_uri: str | Sequence[str], host: str = "127.0.0.1", p
     --config``. With ``command_key`` every command is authenticated (spec section 10).
     ``rate`` is every modem's (None: the URI's ``rate=``, else 5).
 
-    With ``store`` (an SQLite file, :class:`coex_transports.store.NodeStore`) every received
+    With ``store`` (an SQLite file, :class:`coex_runtime.store.NodeStore`) every received
     frame is journaled before the node sees it and the node with its console state (map, images,
     series, requests, goals, schedules, command log) is saved before each transmission, after
     each operator command and at most every ``snapshot_interval`` seconds otherwise; when the
@@ -444,7 +444,7 @@ def build_topside(transport_uri: str | Sequence[str], host: str = "127.0.0.1", p
     ``spare``, ``packet_seconds`` (the keys of a file's ``[[modems]]``) link by link. Each
     transport is a :class:`~coex_transports.recovery.ResilientTransport`: a modem that goes away
     or is not there yet is reopened with backoff (``required[i]`` true: an error at start
-    instead). ``ros`` (the options of :class:`~coex_plugins.console.ros.RosProducts`) publishes
+    instead). ``ros`` (the options of :class:`~coex_apps.console.ros.RosProducts`) publishes
     what arrives on ROS topics for rviz. ``transports`` (link id -> an open transport, one per
     URI) replaces the transports the URIs would open: a simulation's, a test's (the URIs then
     only name the links); the app closes them."""
@@ -468,7 +468,7 @@ def topside_app(cfg: DeployConfig, host: str = "127.0.0.1", port: int = 8080, *,
                 tls_cert: str | None = None, tls_key: str | None = None,
                 session_hours: float = 12.0, idle_minutes: float = 30.0,
                 allowed_hosts: Sequence[str] = (), trusted_proxies: Sequence[str] = ()) -> TopsideApp:
-    """The topside a checked :class:`~coex_plugins.vehicle.config.DeployConfig` describes (from
+    """The topside a checked :class:`~coex_apps.vehicle.config.DeployConfig` describes (from
     a file, :func:`topside_from_config`, or the options, :func:`build_topside`): its transports
     (one per modem, or ``transports``), the node of ``build_node(cfg, "topside", ...)``, the
     store (``cfg.store``), the console served on ``host:port`` with the sign-in and TLS of the
@@ -476,7 +476,7 @@ def topside_app(cfg: DeployConfig, host: str = "127.0.0.1", port: int = 8080, *,
     ``missing``: modalities already left out, shown in the console's log."""
     access, tls = console_access(host, operators, insecure_open, tls_cert, tls_key, session_hours,
                                  idle_minutes)
-    from coex_plugins.vehicle.build import build_node
+    from coex_apps.vehicle.build import build_node
     from coex_transports.recovery import ResilientTransport
 
     from .fleet import FleetHub, fleet_hub
@@ -555,7 +555,7 @@ def topside_app(cfg: DeployConfig, host: str = "127.0.0.1", port: int = 8080, *,
             node = fresh()
             wire(node, None)
         else:
-            from coex_transports.store import NodeStore
+            from coex_runtime.store import NodeStore
 
             nstore = NodeStore(store, snapshot_interval=cfg.snapshot_interval)
             resumed = nstore.has_state()
@@ -609,7 +609,7 @@ def topside_from_config(path: str, clock: Callable[[], float] = time.time, *,
                         transports: Mapping[int, Any] | None = None) -> TopsideApp:
     """The topside node, its modems and console as a configuration file describes them
     (``transports``: see :func:`build_topside`)."""
-    from coex_plugins.vehicle.config import load
+    from coex_apps.vehicle.config import load
 
     cfg = load(path, "topside")
     c = cfg.console
@@ -674,7 +674,7 @@ def _serve(app: TopsideApp) -> int:
         print(f"store {app.store.path}: " + (f"resumed ({st.stats['replayed']} journaled frames "
                                          "replayed)" if resumed else "new"), flush=True)
 
-    from coex_transports.runner import sigterm_as_interrupt
+    from coex_runtime.runner import sigterm_as_interrupt
 
     with sigterm_as_interrupt():  # a polite stop (SIGTERM) saves the store like Ctrl-C
         try:

@@ -1,6 +1,6 @@
 """The console's commands: what the operator (or the node) sent and what became of it.
 
-A part of :class:`~coex_plugins.console.state.ConsoleState` (its API is the state's). Each
+A part of :class:`~coex_apps.console.state.ConsoleState` (its API is the state's). Each
 command's state is the core tracker's (:mod:`coex_core.tracker`: one table of states and
 transitions); the list the page shows is a view of it: ``status`` is the vehicle's answer
 (``accepted``, ``rejected``, ``unknown_target``, ``unauthenticated``, ``pending``) or the
@@ -84,7 +84,7 @@ class _Command:
 
 
 class CommandsView:
-    """The commands part of :class:`~coex_plugins.console.state.ConsoleState`."""
+    """The commands part of :class:`~coex_apps.console.state.ConsoleState`."""
 
     def record_command(self, msg: m.Message, now: float, summary: str = "") -> None:
         """Remember a command the operator sent (shown as pending until answered)."""

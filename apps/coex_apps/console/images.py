@@ -2,7 +2,7 @@
 bytes, layers, footprint on the seafloor), the regions asked of it and its crops, and which image
 answered a by-time request.
 
-A part of :class:`~coex_plugins.console.state.ConsoleState` (its API is the state's); the images
+A part of :class:`~coex_apps.console.state.ConsoleState` (its API is the state's); the images
 it keeps and their pictures stay with the state (:meth:`ConsoleState._image`,
 :meth:`ConsoleState.image_png`).
 """
@@ -48,7 +48,7 @@ class _Crop:
 
 
 class ImagesView:
-    """The images part of :class:`~coex_plugins.console.state.ConsoleState`."""
+    """The images part of :class:`~coex_apps.console.state.ConsoleState`."""
 
     def _image_product(self, product: Any, data: Any, meta: dict[str, Any], now: float) -> None:
         iid = meta.get("image_id")

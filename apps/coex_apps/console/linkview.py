@@ -1,7 +1,7 @@
 """The console's links and queues: packets, frames and throughput per link, both ends' modems,
 the TDMA schedules, and the vehicle's queue report.
 
-A part of :class:`~coex_plugins.console.state.ConsoleState` (its API is the state's).
+A part of :class:`~coex_apps.console.state.ConsoleState` (its API is the state's).
 """
 
 from __future__ import annotations
@@ -20,7 +20,7 @@ __all__ = ["LinkView"]
 
 
 class LinkView:
-    """The link and queues part of :class:`~coex_plugins.console.state.ConsoleState`."""
+    """The link and queues part of :class:`~coex_apps.console.state.ConsoleState`."""
 
     def set_schedule(self, link: int, schedule: Any) -> None:
         """Record the TDMA schedule a link runs (for the timeline)."""

@@ -1,7 +1,7 @@
 """The console's map: the bathymetry receiver's levels as the page draws them (coverage blocks,
 gaps, ages), candidate targets and the vehicle's detections, and the map regions asked.
 
-A part of :class:`~coex_plugins.console.state.ConsoleState` (its API is the state's); the
+A part of :class:`~coex_apps.console.state.ConsoleState` (its API is the state's); the
 pictures of the levels stay with the state (:meth:`ConsoleState.map_png`). A region's state is
 the bathymetry receiver's (the core tracker's, :mod:`coex_core.tracker`).
 """
@@ -48,7 +48,7 @@ class _RoiRequest:
 
 
 class MapView:
-    """The map part of :class:`~coex_plugins.console.state.ConsoleState`."""
+    """The map part of :class:`~coex_apps.console.state.ConsoleState`."""
 
     def _map_product(self, data: Any, meta: Mapping[str, Any]) -> None:
         """A level of the bathymetry receiver changed: its depth range widens the colour scale

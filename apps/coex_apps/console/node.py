@@ -8,7 +8,7 @@
   from the node's events: it decodes nothing itself).
 * :func:`pump` moves what the node reported (``node.events()``, link state, schedules) into a
   :class:`~.state.ConsoleState`; the loop that drives the node calls it (via
-  :meth:`ConsoleHub.pump <coex_plugins.console.server.ConsoleHub.pump>`).
+  :meth:`ConsoleHub.pump <coex_apps.console.server.ConsoleHub.pump>`).
 
 Not thread-safe by itself: call everything here with the hub's lock held (the node is not
 thread-safe either).
@@ -102,7 +102,7 @@ def tap_receiver(receiver: ModalityReceiver, hub: Any = None) -> ModalityReceive
 
 def attach(node: Any, clock: Callable[[], float] | None = None, *,
            map_receiver: Any = None, stream_names: dict[int, str] | None = None) -> Any:
-    """A :class:`~coex_plugins.console.server.ConsoleHub` fed by a topside ``node``, whatever
+    """A :class:`~coex_apps.console.server.ConsoleHub` fed by a topside ``node``, whatever
     loop drives it.
 
     * The hub subscribes to the node's events (:meth:`Node.subscribe

@@ -18,7 +18,7 @@ Endpoints (all on 127.0.0.1 unless told otherwise; docs/console.md has the table
   (HTTP 400 with the reason).
 * ``GET /api/whoami``: ``{"auth", "name", "role", "may_command", "csrf"}``.
 
-With an :class:`~coex_plugins.console.access.Access` (an operators file), everything but
+With an :class:`~coex_apps.console.access.Access` (an operators file), everything but
 ``/login`` needs a session: ``GET /login`` the sign-in page, ``POST /login`` (form or JSON
 ``name``, ``password``) sets the session cookie (HttpOnly, SameSite=Strict, Secure under TLS),
 ``POST /logout`` ends it (and its event streams). An unauthenticated page request is redirected
@@ -777,7 +777,7 @@ def serve(target: Any, host: str = "127.0.0.1", port: int = 8080, *,
 
     ``target`` is a :class:`ConsoleHub` (a :class:`~.fleet.FleetHub`: a console of several
     vehicles, each request naming its vehicle), a topside :class:`~coex_core.node.Node` (a hub is made
-    with :func:`~coex_plugins.console.node.attach`; the loop driving the node must then hold
+    with :func:`~coex_apps.console.node.attach`; the loop driving the node must then hold
     ``server.hub.lock`` while stepping it and call ``server.hub.pump(node, now)``), or a
     :class:`ConsoleState` (view only: actions are refused). ``stream_names`` names the
     vehicle's streams in the queue table (with a node). ``allowed_hosts`` adds names the

@@ -1,7 +1,7 @@
 """The console's surveys: the survey receiver's records (what was asked, what the vehicle and
 its autonomy answered) as the page lists and draws them, and their lines in the event log.
 
-A part of :class:`~coex_plugins.console.state.ConsoleState` (its API is the state's).
+A part of :class:`~coex_apps.console.state.ConsoleState` (its API is the state's).
 """
 
 from __future__ import annotations
@@ -36,7 +36,7 @@ SURVEY_OUTCOMES = {
 
 
 class SurveysView:
-    """The surveys part of :class:`~coex_plugins.console.state.ConsoleState`."""
+    """The surveys part of :class:`~coex_apps.console.state.ConsoleState`."""
 
     @property
     def survey_receiver(self) -> Any:

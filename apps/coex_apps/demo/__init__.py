@@ -1,5 +1,5 @@
 """``coex demo``: a time-compressed replay of a nested survey (NUI dive 040) through the whole
-CoEx stack and two simulated Micromodems. See :mod:`coex_plugins.demo.dive`."""
+CoEx stack and two simulated Micromodems. See :mod:`coex_apps.demo.dive`."""
 
 from __future__ import annotations
 

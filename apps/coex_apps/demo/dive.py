@@ -4,7 +4,7 @@ Two CoEx nodes (vehicle 2, topside 1), each a channel manager with the built-in 
 through two simulated WHOI Micromodems (:class:`~coex_transports.micromodem.simulator.ModemNetwork`):
 the bytes between each node and its modem are the NMEA sentences of the real driver
 (:class:`~coex_transports.micromodem.MicromodemTransport`), so the demo runs the same code path
-as a vehicle with real hardware. The scenario (:mod:`coex_plugins.demo.scenario`: a preset or a
+as a vehicle with real hardware. The scenario (:mod:`coex_apps.demo.scenario`: a preset or a
 TOML file) sets the site, the survey, the modem rate, the TDMA slots, the loss model and where
 the ship is. Everything runs on one simulated clock that jumps from event to event, so a
 two-hour dive takes well under a minute.
@@ -13,8 +13,8 @@ The dive: descent; a lawnmower multibeam survey over a seafloor with ripples, ca
 and possibly car-sized boulders (decoys) that the operator does not know about; camera transects
 at low altitude over the candidates the operator ranked in the received 1 m map, most car-like
 first, while camera time remains; then the vehicle holds until the end of the dive. The scripted
-operator (:mod:`coex_plugins.demo.operator`) decides only from what reached topside. The goals
-are judged against the simulation's truth (:mod:`coex_plugins.demo.truth`), never against the
+operator (:mod:`coex_apps.demo.operator`) decides only from what reached topside. The goals
+are judged against the simulation's truth (:mod:`coex_apps.demo.truth`), never against the
 operator's belief.
 """
 

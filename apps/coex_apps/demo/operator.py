@@ -12,7 +12,7 @@ operators did by hand, deciding only from what reached topside.
 * **The images.** Once the vehicle has passed over a candidate (closest approach along the track
   topside received, or the time the vehicle reported reaching the line's start, plus half the
   line), it asks for the image nearest that time. It looks at the image as received
-  (:class:`~coex_plugins.demo.truth.Eye`): a car confirms the candidate; a blurry object makes it
+  (:class:`~coex_apps.demo.truth.Eye`): a car confirms the candidate; a blurry object makes it
   ask for more layers of that image; sand makes it step to the previous or next image (towards
   the candidate, by the frame's position); a boulder, or too many tries, makes it move on.
 """

@@ -25,8 +25,8 @@ from coex_core.node import Node
 from coex_plugins.bathymetry.sim import Seafloor, Survey, simulate_survey
 from coex_plugins.imagery import ImageInput
 from coex_plugins.timeseries import synth as ts_synth
+from coex_runtime.runner import next_wakeup
 from coex_transports.micromodem.simulator import ModemNetwork
-from coex_transports.runner import next_wakeup
 
 from .autonomy import Autonomy
 from .camera import CameraModel, SandTexture, render_labelled
@@ -87,8 +87,8 @@ class _Progress:
 
 
 def _start_gui(cfg: DemoConfig, topside: Node, log: Callable[..., None]) -> Any:
-    from coex_plugins.console import serve
-    from coex_plugins.console.cli import console_access
+    from coex_apps.console import serve
+    from coex_apps.console.cli import console_access
 
     host, _, port = cfg.http.rpartition(":")
     host = host or "127.0.0.1"
@@ -124,7 +124,7 @@ class DiveRun:
     two nodes, the operator, the vehicle's autonomy (it flies the survey commands that crossed
     the link), and the timed events (sensor data, status, the operator's rounds, the camera) on
     one simulated clock. :meth:`run` runs it and writes the
-    outputs (:mod:`coex_plugins.demo.outcome`)."""
+    outputs (:mod:`coex_apps.demo.outcome`)."""
 
     def __init__(self, config: DemoConfig, on_decision: Callable[[Decision], None] | None = None) -> None:
         self.cfg = cfg = config

@@ -126,7 +126,7 @@ def nui_schedule() -> Schedule:
 def site_geofence(scn: Scenario) -> dict[str, Any]:
     """The vehicle's geofence for survey commands: the site (``[0, area]`` square) with a margin
     of a quarter of its side (room for a camera line's run-in past the edge), and
-    :data:`~coex_plugins.demo.config.MIN_ALTITUDE`."""
+    :data:`~coex_apps.demo.config.MIN_ALTITUDE`."""
     m, a = scn.area / 4, scn.area
     return {"polygon": [[-m, -m], [a + m, -m], [a + m, a + m], [-m, a + m]], "min_altitude": MIN_ALTITUDE}
 

@@ -123,7 +123,7 @@ def run_vehicle(args: argparse.Namespace) -> int:
           + (f"store {cfg.store} ({'resumed, ' + str(st.stats['replayed']) + ' journal rows replayed' if app.resumed else 'new'})"
              if st is not None else "no store"), flush=True)
 
-    from coex_transports.runner import sigterm_as_interrupt
+    from coex_runtime.runner import sigterm_as_interrupt
 
     with sigterm_as_interrupt():  # SIGTERM stops like Ctrl-C: cleanly, the store saved
         try:

@@ -24,10 +24,10 @@ from typing import Any
 import numpy as np
 
 from coex_core.errors import CoexError, ConfigError
+from coex_plugins.options import LogOnce
 
 from .build import build_node, link_configs
 from .config import DeployConfig
-from .options import LogOnce
 
 __all__ = ["VehicleApp", "build_node", "build_vehicle_node", "link_configs", "open_transports"]
 
@@ -75,9 +75,8 @@ class VehicleApp:
 
     def __init__(self, cfg: DeployConfig, *, clock: Callable[[], float] = time.time,
                  transports: Mapping[int, Any] | None = None) -> None:
-        from coex_transports.runner import RealClock, Runner
-
-        from .inputs.base import InputContext
+        from coex_plugins.inputs.base import InputContext
+        from coex_runtime.runner import RealClock, Runner
 
         self.cfg = cfg
         self.clock = clock
@@ -88,7 +87,7 @@ class VehicleApp:
         self.autonomy: Any = None
         try:
             if cfg.store is not None:
-                from coex_transports.store import NodeStore
+                from coex_runtime.store import NodeStore
 
                 self.store = NodeStore(cfg.store, snapshot_interval=cfg.snapshot_interval)
                 resumed = self.store.has_state()
@@ -260,7 +259,7 @@ class VehicleApp:
             return False
 
     def _take(self, inp: Any, item: Any, now: float) -> None:
-        from .inputs.base import Image, Nav, Points, Samples
+        from coex_plugins.inputs.base import Image, Nav, Points, Samples
 
         feeds = inp.coex_feeds
         if isinstance(item, Points) and "bathymetry" in feeds:

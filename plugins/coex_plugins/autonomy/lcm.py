@@ -34,7 +34,7 @@ from coex_transports.lcm import DEFAULT_URL
 from coex_transports.lcm._types.survey_request_t import survey_request_t
 from coex_transports.lcm._types.survey_state_t import survey_state_t
 
-from ...survey.plan import SurveyReport, cut_detail
+from ..survey.plan import SurveyReport, cut_detail
 from .base import Autonomy
 
 __all__ = ["LcmAutonomy", "report_of", "request_of"]

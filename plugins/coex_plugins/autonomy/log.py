@@ -59,7 +59,7 @@ def plan_record(plan: Any, now: float, context: Any = None) -> dict[str, Any]:
 
 
 class LogAutonomy(Autonomy):
-    """Logs each plan (logger ``coex_plugins.vehicle.autonomy.log``, level INFO)."""
+    """Logs each plan (logger ``coex_plugins.autonomy.log``, level INFO)."""
 
     name = "log"
     options = {

@@ -51,7 +51,7 @@ from typing import Any
 from coex_core.errors import ConfigError
 from coex_core.messages import SurveyReason, SurveyState
 
-from ...survey.plan import SurveyReport, cut_detail
+from ..survey.plan import SurveyReport, cut_detail
 from .base import Autonomy
 
 __all__ = ["MavlinkAutonomy", "MissionItem", "connect", "enum_name", "mission_items", "mode_name"]

@@ -14,7 +14,7 @@ to ALT_HOLD at the end, as ArduSub does). It keeps what it received: :attr:`Miss
 
 As a program it prints one JSON line per received mission::
 
-    python -m coex_plugins.vehicle.autonomy.mavpeer --listen udpin:127.0.0.1:14551 [--fly 1.0]
+    python -m coex_plugins.autonomy.mavpeer --listen udpin:127.0.0.1:14551 [--fly 1.0]
 
 In a test (a thread reading the socket; :meth:`MissionPeer.step` to drive it by hand)::
 

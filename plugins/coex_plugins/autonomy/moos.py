@@ -86,9 +86,9 @@ from typing import Any
 
 from coex_core.messages import SurveyKind, SurveyReason, SurveyState
 
-from ...survey.plan import SurveyReport, cut_detail
 from ..inputs.moos import parse_server
 from ..options import LogOnce, moos_client, want_number, want_time_warp
+from ..survey.plan import SurveyReport, cut_detail
 from .base import Autonomy
 
 __all__ = ["MoosAutonomy", "parse_flag", "parse_update_result", "update_of"]

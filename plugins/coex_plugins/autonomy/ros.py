@@ -41,8 +41,8 @@ from typing import Any
 
 from coex_core.messages import SurveyKind, SurveyReason, SurveyState
 
-from ...survey.plan import SurveyReport
 from ..options import LogOnce
+from ..survey.plan import SurveyReport
 from .base import Autonomy
 
 __all__ = ["RosAutonomy", "parse_progress", "plan_json"]

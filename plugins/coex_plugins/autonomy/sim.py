@@ -21,7 +21,7 @@ from typing import Any
 
 from coex_core.messages import SurveyState
 
-from ...survey.plan import SurveyReport
+from ..survey.plan import SurveyReport
 from .base import Autonomy
 
 __all__ = ["SimAutonomy"]
