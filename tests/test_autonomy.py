@@ -13,13 +13,13 @@ from pathlib import Path
 
 import pytest
 
+from coex import InputContext
 from coex_core import registry
 from coex_core.errors import ConfigError
 from coex_core.messages import SurveyKind, SurveyReason, SurveyState
 from coex_plugins.autonomy import DEFAULT, GROUP, Autonomy, open_autonomy
 from coex_plugins.autonomy.log import LogAutonomy
 from coex_plugins.autonomy.sim import SimAutonomy
-from coex_plugins.inputs.base import InputContext
 from coex_plugins.survey.plan import SurveyPlan, SurveyReport
 
 ROOT = Path(__file__).resolve().parents[1]

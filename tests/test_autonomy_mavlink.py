@@ -17,11 +17,11 @@ import pytest
 
 pytest.importorskip("pymavlink")
 
+from coex import InputContext
 from coex_core.errors import ConfigError
 from coex_core.messages import SurveyKind, SurveyReason, SurveyState
 from coex_plugins.autonomy.mavlink import MavlinkAutonomy, mission_items
 from coex_plugins.autonomy.mavpeer import MissionPeer
-from coex_plugins.inputs.base import InputContext
 from coex_plugins.survey.plan import SurveyPlan, SurveyReport
 
 CTX = InputContext(origin_lat=41.5, origin_lon=-70.7)

@@ -15,9 +15,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from coex_core.errors import ConfigError
-from coex_plugins.inputs._files import as_pixels
-from coex_plugins.inputs.base import (
+from coex import (
     FEEDS,
     Image,
     Input,
@@ -25,6 +23,8 @@ from coex_plugins.inputs.base import (
     Points,
     check_options,
 )
+from coex_core.errors import ConfigError
+from coex_plugins.inputs._files import as_pixels
 from coex_plugins.inputs.directory import DirectoryInput
 from coex_plugins.inputs.points import PointsInput
 from coex_plugins.options import compass_from_enu_yaw, yaw_of_quaternion
@@ -358,7 +358,7 @@ def test_adapters_load_without_their_optional_libraries() -> None:
         "import sys\n"
         "for m in ('lcm', 'pymavlink', 'serial', 'rosbags', 'tifffile', 'PIL'): sys.modules[m] = None\n"
         "from coex_core.errors import PluginLoadError\n"
-        "from coex_plugins.inputs.base import InputContext\n"
+        "from coex import InputContext\n"
         "from coex_plugins.inputs import directory, points, rosbag, lcm, mavlink, nmea\n"
         "try:\n"
         "    lcm.LcmInput({'nav_channel': 'NAV'}, InputContext()).open()\n"

@@ -13,8 +13,8 @@ from typing import Any
 import numpy as np
 import pytest
 
+from coex import Image, InputContext, Item, Nav, Samples, check_options
 from coex_core.errors import ConfigError
-from coex_plugins.inputs.base import Image, InputContext, Item, Nav, Samples, check_options
 from coex_plugins.inputs.mavlink import MavlinkInput, pressure_depth
 
 mavutil = pytest.importorskip("pymavlink.mavutil")

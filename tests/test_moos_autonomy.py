@@ -9,9 +9,9 @@ from typing import Any
 
 import pytest
 
+from coex import InputContext
 from coex_core.messages import SurveyKind, SurveyReason, SurveyState
 from coex_plugins.autonomy.moos import MoosAutonomy, parse_update_result
-from coex_plugins.inputs.base import InputContext
 from coex_plugins.survey.plan import SurveyPlan
 from coex_transports.moos import MoosMessage
 

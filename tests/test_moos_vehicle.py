@@ -20,11 +20,11 @@ from typing import Any
 import numpy as np
 import pytest
 
+from coex import InputContext, Nav, Samples
 from coex_apps.vehicle.mission import check_mission, read_mission
 from coex_core.errors import ConfigError
 from coex_core.messages import SurveyKind, SurveyReason, SurveyState
 from coex_plugins.autonomy.moos import MoosAutonomy, update_of
-from coex_plugins.inputs.base import InputContext, Nav, Samples
 from coex_plugins.inputs.moos import MoosInput
 from coex_plugins.survey.plan import SurveyPlan
 

@@ -24,10 +24,10 @@ from typing import Any
 import numpy as np
 import pytest
 
+from coex import Image, InputContext, Nav, Points, Samples
 from coex_core.errors import ConfigError
 from coex_core.messages import SurveyKind, SurveyReason, SurveyState
 from coex_plugins.autonomy.ros import RosAutonomy, parse_progress
-from coex_plugins.inputs.base import Image, InputContext, Nav, Points, Samples
 from coex_plugins.inputs.ros import RosInput
 from coex_plugins.inputs.rosmsg import FrameMap, frame_problems, nav_of, points_of
 from coex_plugins.survey.plan import SurveyPlan

@@ -12,8 +12,8 @@ from collections.abc import Callable, Mapping
 from types import ModuleType
 from typing import Any
 
-from coex_core.errors import PluginLoadError
-from coex_transports.moos.client import MAX_TIME_WARP
+from coex import PluginLoadError
+from coex.moos import MAX_TIME_WARP
 
 __all__ = [
     "LogOnce",
@@ -216,7 +216,7 @@ def moos_client(client: Any, host: str, port: int, name: str, variables: list[st
     the community's ``time_warp``) with every one of ``variables`` registered, connecting (and
     reconnecting) in its own thread; never waits for MOOSDB."""
     if client is None:
-        from coex_transports.moos import MoosClient
+        from coex.moos import MoosClient
 
         client = MoosClient(host, port, name, time_warp=time_warp)
     for var in variables:

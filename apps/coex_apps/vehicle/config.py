@@ -538,7 +538,7 @@ def _adapter(kind: str, group: str, table: Mapping[str, Any], key: str, p: Probl
 
 
 def _inputs(raw: Mapping[str, Any], p: Problems, cfg: DeployConfig) -> None:
-    from coex_plugins.inputs.base import FEEDS, check_options
+    from coex import FEEDS, check_options
 
     inputs = raw.get("inputs", [])
     if not isinstance(inputs, list):
@@ -578,7 +578,7 @@ def _paths(cls: Any, options: Mapping[str, Any], key: str, p: Problems, cfg: Dep
 
 
 def _autonomy(raw: Mapping[str, Any], p: Problems, cfg: DeployConfig) -> None:
-    from coex_plugins.autonomy.base import check_autonomy_options
+    from coex import check_autonomy_options
 
     if "autonomy" not in raw and "survey" not in {m.name for m in cfg.modalities}:
         cfg.autonomy = {}

@@ -75,7 +75,7 @@ class VehicleApp:
 
     def __init__(self, cfg: DeployConfig, *, clock: Callable[[], float] = time.time,
                  transports: Mapping[int, Any] | None = None) -> None:
-        from coex_plugins.inputs.base import InputContext
+        from coex import InputContext
         from coex_runtime.runner import RealClock, Runner
 
         self.cfg = cfg
@@ -141,7 +141,7 @@ class VehicleApp:
         self._health_sent: dict[int, tuple[bool, int]] = {}
 
     def add_input(self, inp: Any, feeds: Any = None, key: str | None = None) -> Any:
-        """Poll ``inp`` (an :class:`~.inputs.base.Input`) like the ``[[inputs]]`` of the
+        """Poll ``inp`` (an :class:`coex.Input`) like the ``[[inputs]]`` of the
         configuration: one made in code (a simulated sensor). ``feeds`` defaults to the input's
         own; ``key`` names it in the log. Open it yourself if the app is open already."""
         inp.coex_feeds = tuple(feeds if feeds is not None else type(inp).feeds)
@@ -259,7 +259,7 @@ class VehicleApp:
             return False
 
     def _take(self, inp: Any, item: Any, now: float) -> None:
-        from coex_plugins.inputs.base import Image, Nav, Points, Samples
+        from coex import Image, Nav, Points, Samples
 
         feeds = inp.coex_feeds
         if isinstance(item, Points) and "bathymetry" in feeds:

@@ -20,7 +20,7 @@ from __future__ import annotations
 from collections.abc import Mapping
 from typing import Any
 
-from .base import Autonomy, check_autonomy_options
+from coex import Autonomy, check_autonomy_options
 
 __all__ = ["DEFAULT", "GROUP", "Autonomy", "check_autonomy_options", "load_autonomy", "open_autonomy"]
 
@@ -32,11 +32,11 @@ DEFAULT = "log"
 
 def load_autonomy(name: str) -> type[Autonomy]:
     """The :class:`Autonomy` subclass registered as ``name`` (PluginNotFound, PluginLoadError)."""
-    from coex_core import registry
+    from coex import registry
 
     cls = registry.load(GROUP, name)
     if not (isinstance(cls, type) and issubclass(cls, Autonomy)):
-        from coex_core.errors import PluginLoadError
+        from coex import PluginLoadError
 
         raise PluginLoadError(f"{GROUP} plugin {name!r} is not an Autonomy subclass")
     return cls

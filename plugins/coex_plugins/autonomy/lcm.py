@@ -28,14 +28,12 @@ import math
 from collections.abc import Mapping
 from typing import Any
 
-from coex_core.errors import ConfigError
-from coex_core.messages import SurveyReason, SurveyState
-from coex_transports.lcm import DEFAULT_URL
-from coex_transports.lcm._types.survey_request_t import survey_request_t
-from coex_transports.lcm._types.survey_state_t import survey_state_t
+from coex.messages import SurveyReason, SurveyState
+
+from coex import Autonomy, ConfigError
+from coex.lcm import DEFAULT_URL, survey_request_t, survey_state_t
 
 from ..survey.plan import SurveyReport, cut_detail
-from .base import Autonomy
 
 __all__ = ["LcmAutonomy", "report_of", "request_of"]
 

@@ -10,7 +10,7 @@ import math
 import os
 from typing import Any
 
-from .base import Autonomy
+from coex import Autonomy
 
 __all__ = ["LogAutonomy", "describe_plan", "plan_record"]
 

@@ -48,11 +48,11 @@ from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any
 
-from coex_core.errors import ConfigError
-from coex_core.messages import SurveyReason, SurveyState
+from coex.messages import SurveyReason, SurveyState
+
+from coex import Autonomy, ConfigError
 
 from ..survey.plan import SurveyReport, cut_detail
-from .base import Autonomy
 
 __all__ = ["MavlinkAutonomy", "MissionItem", "connect", "enum_name", "mission_items", "mode_name"]
 

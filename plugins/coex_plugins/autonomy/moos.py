@@ -84,12 +84,13 @@ import math
 from collections.abc import Mapping
 from typing import Any
 
-from coex_core.messages import SurveyKind, SurveyReason, SurveyState
+from coex.messages import SurveyKind, SurveyReason, SurveyState
+
+from coex import Autonomy
 
 from ..inputs.moos import parse_server
 from ..options import LogOnce, moos_client, want_number, want_time_warp
 from ..survey.plan import SurveyReport, cut_detail
-from .base import Autonomy
 
 __all__ = ["MoosAutonomy", "parse_flag", "parse_update_result", "update_of"]
 

@@ -39,11 +39,12 @@ from collections import deque
 from collections.abc import Mapping
 from typing import Any
 
-from coex_core.messages import SurveyKind, SurveyReason, SurveyState
+from coex.messages import SurveyKind, SurveyReason, SurveyState
+
+from coex import Autonomy
 
 from ..options import LogOnce
 from ..survey.plan import SurveyReport
-from .base import Autonomy
 
 __all__ = ["RosAutonomy", "parse_progress", "plan_json"]
 
@@ -145,7 +146,7 @@ class RosAutonomy(Autonomy):
     def open(self) -> None:
         if self.node is not None:
             return
-        from coex_transports.ros import RosNode
+        from coex.ros import RosNode
 
         c = self.config
         node = RosNode.get(c["master"], c["node"])
@@ -180,7 +181,7 @@ class RosAutonomy(Autonomy):
     def submit(self, plan: Any, now: float) -> None:
         if self.node is None:
             self.open()
-        from coex_transports.ros import msgs
+        from coex.ros import msgs
 
         c = self.config
         z = -float(plan.depth) if plan.depth is not None else 0.0

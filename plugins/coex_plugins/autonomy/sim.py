@@ -19,10 +19,11 @@ from __future__ import annotations
 import math
 from typing import Any
 
-from coex_core.messages import SurveyState
+from coex.messages import SurveyState
+
+from coex import Autonomy
 
 from ..survey.plan import SurveyReport
-from .base import Autonomy
 
 __all__ = ["SimAutonomy"]
 

@@ -6,8 +6,9 @@ import math
 from dataclasses import dataclass, field
 from typing import Any
 
-from coex_core.state import persistent
-from coex_core.tracker import State, Tracked
+from coex.tracker import State, Tracked
+
+from coex import persistent
 
 __all__ = ["Region"]
 

@@ -24,10 +24,7 @@ from typing import Any
 
 import numpy as np
 import numpy.typing as npt
-
-from coex_core.config import merged_config
-from coex_core.errors import CoexError, ConfigError, RequestRejected
-from coex_core.messages import (
+from coex.messages import (
     AckStatus,
     CommandAck,
     GoalKind,
@@ -43,11 +40,19 @@ from coex_core.messages import (
     TimeDirection,
     TransferProgress,
 )
-from coex_core.modality import ModalitySender
-from coex_core.state import persistent
-from coex_core.timefmt import to_stamp, unwrap
-from coex_core.wire import (
+from coex.wire import (
     encoded_size,
+)
+
+from coex import (
+    CoexError,
+    ConfigError,
+    ModalitySender,
+    RequestRejected,
+    merged_config,
+    persistent,
+    to_stamp,
+    unwrap,
 )
 
 from ._regions import BRIDGE_BYTES, _bridge, _within, box_psnr, decoded, fewest, held_packets, way

@@ -18,7 +18,7 @@ from typing import Any
 
 import numpy as np
 
-from .base import Input, InputContext
+from coex import Input, InputContext
 
 __all__ = ["DirectoryWatch", "Sidecar", "as_pixels", "decode_image", "read_image", "read_sidecar", "split_patterns"]
 

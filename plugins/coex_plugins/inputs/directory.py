@@ -1,5 +1,5 @@
 """The ``directory`` input: new image files in a watched directory (the 2022 system's "transmit
-directory") become :class:`~.base.Image` items for the imagery sender.
+directory") become :class:`~coex.Image` items for the imagery sender.
 
 A file is taken once its size and modification time have not changed for ``settle`` seconds, so
 a half-written file is never read. Its pixels are read here (TIFF with tifffile, PNG / JPEG /
@@ -16,9 +16,10 @@ import logging
 from collections.abc import Mapping
 from typing import Any, ClassVar
 
+from coex import Image, InputContext, Item
+
 from ..options import LogOnce, want_bool, want_number, want_str
 from ._files import WatchedInput, read_image, read_sidecar, split_patterns
-from .base import Image, InputContext, Item
 
 __all__ = ["DirectoryInput"]
 

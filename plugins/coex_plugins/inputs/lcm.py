@@ -1,7 +1,7 @@
 """The ``lcm`` input: LCM channels of the vehicle's own middleware.
 
-* ``points_channel``: ``coex.points_t`` -> :class:`~.base.Points` (bathymetry);
-* ``nav_channel``: ``coex.nav_t`` -> :class:`~.base.Nav` (status; NaN fields are unknown);
+* ``points_channel``: ``coex.points_t`` -> :class:`~coex.Points` (bathymetry);
+* ``nav_channel``: ``coex.nav_t`` -> :class:`~coex.Nav` (status; NaN fields are unknown);
 * ``own``: the vehicle's own LCM types, mapped field by field with a tiny path language::
 
       [[inputs.own]]
@@ -19,7 +19,7 @@
 
   A path is a field name, optionally indexed (``pos[2]``), possibly of a nested type
   (``pose.position.x``), with an optional leading ``-``; ``scale`` multiplies the value of a
-  field (or channel) by a factor. ``feeds = "status"`` maps :class:`~.base.Nav` fields (x, y,
+  field (or channel) by a factor. ``feeds = "status"`` maps :class:`~coex.Nav` fields (x, y,
   lat, lon, depth, altitude, heading, speed), ``"timeseries"`` maps channel names
   (``channels``), ``"bathymetry"`` maps ``x``, ``y`` and ``z`` to arrays of equal length.
   ``type`` is the Python class lcm-gen generated (``package.module.Class`` or
@@ -42,10 +42,9 @@ from typing import Any, ClassVar
 
 import numpy as np
 
-from coex_core.errors import ConfigError
+from coex import ConfigError, Input, InputContext, Item, Nav, Points, Samples
 
 from ..options import LogOnce, compile_path, finite, need, want_str
-from .base import Input, InputContext, Item, Nav, Points, Samples
 
 __all__ = ["DEFAULT_URL", "LcmInput", "compile_path", "make_nav_t"]
 
@@ -62,7 +61,7 @@ _TYPE = re.compile(r"^[A-Za-z_][A-Za-z0-9_]*(?:\.[A-Za-z_][A-Za-z0-9_]*)+$")
 def make_nav_t(utime: int = 0, **fields: float) -> Any:
     """A ``coex.nav_t`` with every field NaN (unknown) but those given (lcm-gen's default is 0,
     which would claim the vehicle is at the origin, at the surface, heading north)."""
-    from coex_transports.lcm import nav_t
+    from coex.lcm import nav_t
 
     msg = nav_t()
     msg.utime = int(utime)
@@ -224,7 +223,7 @@ class LcmInput(Input):
         if self._lc is not None:
             return
         lcm = need("lcm", "lcm")
-        from coex_transports.lcm import nav_t, points_t
+        from coex.lcm import nav_t, points_t
 
         for own in self.own:
             own.resolve()

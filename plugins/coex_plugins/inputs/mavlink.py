@@ -43,6 +43,8 @@ from urllib.parse import unquote, urlsplit
 
 import numpy as np
 
+from coex import Image, Input, InputContext, Item, Nav, Samples
+
 from ..options import (
     LogOnce,
     need,
@@ -54,7 +56,6 @@ from ..options import (
     want_str,
 )
 from ._files import read_image
-from .base import Image, Input, InputContext, Item, Nav, Samples
 
 __all__ = ["MavlinkInput", "pressure_depth"]
 
@@ -162,7 +163,7 @@ class MavlinkInput(Input):
         try:
             dialect = importlib.import_module(f"pymavlink.dialects.v20.{self.config['dialect']}")
         except ImportError as exc:
-            from coex_core.errors import ConfigError
+            from coex import ConfigError
 
             raise ConfigError(f"input 'mavlink': option 'dialect': no pymavlink dialect "
                               f"{self.config['dialect']!r} ({exc})") from exc

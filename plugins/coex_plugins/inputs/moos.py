@@ -4,15 +4,15 @@ A :class:`~coex_transports.moos.MoosClient` (pure Python, no libMOOS) registers 
 
 * the navigation variables (``NAV_X``, ``NAV_Y``, ``NAV_DEPTH``, ``NAV_ALTITUDE``,
   ``NAV_HEADING``, ``NAV_SPEED``, ``NAV_LAT``, ``NAV_LONG``; each renamed or switched off with
-  ``nav = { x = "USM_X", lat = "" }``) -> one :class:`~.base.Nav` per poll holding the newest
+  ``nav = { x = "USM_X", lat = "" }``) -> one :class:`~coex.Nav` per poll holding the newest
   value of each (x, y metres east/north of the origin, which must be the mission's
   ``LatOrigin``/``LongOrigin``; depth positive down; heading degrees clockwise from north, as
   MOOS-IvP has them; ``lat``/``lon`` are used only when x/y are not given);
-* ``channels`` (``{ MOOS_VAR = "channel" }``): numeric variables -> :class:`~.base.Samples`;
+* ``channels`` (``{ MOOS_VAR = "channel" }``): numeric variables -> :class:`~coex.Samples`;
 * ``image_var``: a string variable whose value is an image file path (or
-  ``file=PATH,x=..,y=..,time=..``) -> :class:`~.base.Image` (the daemon reads the file);
+  ``file=PATH,x=..,y=..,time=..``) -> :class:`~coex.Image` (the daemon reads the file);
 * ``points_var``: a string variable naming a ``.npy`` / ``.csv`` point file ->
-  :class:`~.base.Points`.
+  :class:`~coex.Points`.
 
 Items are timed with the writer's MOOS time turned back into Unix seconds: MOOS time is warped
 (``MOOSTimeWarp``: a MOOS clock reads the Unix time times the warp), so the option
@@ -32,8 +32,9 @@ from typing import Any, ClassVar
 
 import numpy as np
 
+from coex import Image, Input, InputContext, Item, Nav, Points, Samples
+
 from ..options import LogOnce, moos_client, want_bool, want_str, want_time_warp
-from .base import Image, Input, InputContext, Item, Nav, Points, Samples
 
 __all__ = ["NAV_DEFAULTS", "MoosInput", "parse_server"]
 

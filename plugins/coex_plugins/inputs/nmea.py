@@ -36,8 +36,9 @@ from typing import Any, ClassVar
 
 import numpy as np
 
+from coex import Input, InputContext, Item, Nav, Samples
+
 from ..options import LogOnce, need, want_bool, want_host_port, want_int, want_number, want_str
-from .base import Input, InputContext, Item, Nav, Samples
 
 __all__ = ["NmeaError", "NmeaInput", "checksum", "parse_sentence"]
 

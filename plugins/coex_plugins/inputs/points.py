@@ -3,7 +3,7 @@ fields) and ``.csv`` files (x, y, z columns, header optional) for the bathymetry
 
 ``path`` is one file or a directory watched like the ``directory`` input's (a file is read once
 its size and modification time have settled; rewriting it makes it new again). Each file
-becomes one :class:`~.base.Points` item, timed by its sidecar ``<file>.json`` ``{"time": ...}``
+becomes one :class:`~coex.Points` item, timed by its sidecar ``<file>.json`` ``{"time": ...}``
 when there is one, else by its modification time. Rows with a NaN or infinite coordinate are
 dropped. A file that cannot be read, or holds no finite point, is logged once, skipped and
 counted (``counts["skipped"]``).
@@ -17,9 +17,10 @@ from typing import Any, ClassVar
 
 import numpy as np
 
+from coex import InputContext, Item, Points
+
 from ..options import LogOnce, want_bool, want_number, want_str
 from ._files import WatchedInput, read_sidecar
-from .base import InputContext, Item, Points
 
 __all__ = ["PointsInput", "finite_rows"]
 

@@ -2,12 +2,12 @@
 :class:`~coex_transports.ros.RosNode`), with the same choices as the ``rosbag`` input
 (:mod:`.rosmsg`: frames mapped to the local grid, image encodings, navigation):
 
-* ``points_topic``: ``sensor_msgs/PointCloud2`` -> :class:`~.base.Points` (in the local grid
+* ``points_topic``: ``sensor_msgs/PointCloud2`` -> :class:`~coex.Points` (in the local grid
   through ``frames``; rows with a NaN dropped);
-* ``image_topic``: ``sensor_msgs/Image`` or ``CompressedImage`` -> :class:`~.base.Image`;
+* ``image_topic``: ``sensor_msgs/Image`` or ``CompressedImage`` -> :class:`~coex.Image`;
 * ``nav_topic``: ``nav_msgs/Odometry``, ``geometry_msgs/PoseStamped`` (``WithCovariance``) or
-  ``sensor_msgs/NavSatFix`` -> :class:`~.base.Nav`;
-* ``series``: numeric fields of any message -> :class:`~.base.Samples`, a field path per
+  ``sensor_msgs/NavSatFix`` -> :class:`~coex.Nav`;
+* ``series``: numeric fields of any message -> :class:`~coex.Samples`, a field path per
   channel (``{ topic = "/ctd", channels = { temperature = "temperature" } }``).
 
 Subscriptions take any type and check it against the role when a message arrives (a topic of
@@ -28,8 +28,9 @@ from typing import Any, ClassVar
 
 import numpy as np
 
+from coex import Input, InputContext, Item, Samples
+
 from ..options import LogOnce, compile_path, finite, want_bool, want_choice, want_int, want_str
-from .base import Input, InputContext, Item, Samples
 from .rosmsg import ROLES, FrameMap, canonical, frame_problems, item_of, stamp_of
 
 __all__ = ["RosInput", "series_problems"]
@@ -163,7 +164,7 @@ class RosInput(Input):
     def open(self) -> None:
         if self._node is not None:
             return
-        from coex_transports.ros import RosNode
+        from coex.ros import RosNode
 
         node = RosNode.get(self.config["master"], self.config["node"])
         for t in self.topics:

@@ -4,12 +4,12 @@
 
 Topics (at least one):
 
-* ``points_topic``: ``sensor_msgs/PointCloud2`` -> :class:`~.base.Points` (x east, y north,
+* ``points_topic``: ``sensor_msgs/PointCloud2`` -> :class:`~coex.Points` (x east, y north,
   z up; rows with a NaN are dropped);
 * ``image_topic``: ``sensor_msgs/Image`` (mono8, mono16, rgb8, bgr8, rgba8, bgra8, 8UC1,
-  16UC1, 8UC3 as bgr) or ``sensor_msgs/CompressedImage`` (JPEG, PNG) -> :class:`~.base.Image`;
+  16UC1, 8UC3 as bgr) or ``sensor_msgs/CompressedImage`` (JPEG, PNG) -> :class:`~coex.Image`;
 * ``nav_topic``: ``nav_msgs/Odometry``, ``geometry_msgs/PoseStamped`` or
-  ``PoseWithCovarianceStamped`` -> :class:`~.base.Nav` x, y, depth (-z), heading (from the
+  ``PoseWithCovarianceStamped`` -> :class:`~coex.Nav` x, y, depth (-z), heading (from the
   yaw), speed (Odometry's twist); ``sensor_msgs/NavSatFix`` -> Nav lat, lon.
 
 What a message means (frames mapped to the local grid: ``frames``, ``nav_frame``; image
@@ -29,10 +29,9 @@ from collections.abc import Iterator, Mapping
 from pathlib import Path
 from typing import Any, ClassVar
 
-from coex_core.errors import ConfigError
+from coex import ConfigError, Input, InputContext, Item
 
 from ..options import LogOnce, need, want_choice, want_number, want_str
-from .base import Input, InputContext, Item
 from .rosmsg import (
     IMAGE_TYPES,
     NAV_TYPES,

@@ -26,9 +26,10 @@ from typing import Any
 
 import numpy as np
 
+from coex import Image, Item, Nav, Points
+
 from ..options import compass_from_enu_yaw, finite, yaw_of_quaternion
 from ._files import as_pixels, decode_image
-from .base import Image, Item, Nav, Points
 
 __all__ = [
     "IMAGE_TYPES",

@@ -26,11 +26,9 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from coex.messages import Message
 
-from coex_core import wire
-from coex_core.errors import ConfigError
-from coex_core.jsonfmt import to_json
-from coex_core.messages import Message
+from coex import ConfigError, to_json, wire
 
 from . import synth
 from .receiver import TimeSeriesReceiver, sample_series

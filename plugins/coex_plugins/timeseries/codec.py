@@ -37,9 +37,9 @@ from dataclasses import dataclass
 
 import numpy as np
 import pywt
+from coex.messages import Wavelet
 
-from coex_core.messages import Wavelet
-from coex_core.state import persistent
+from coex import persistent
 
 __all__ = [
     "CODE_BIAS",
