@@ -28,10 +28,9 @@ import math
 from collections.abc import Mapping
 from typing import Any
 
-from coex.messages import SurveyReason, SurveyState
-
 from coex import Autonomy, ConfigError
 from coex.lcm import DEFAULT_URL, survey_request_t, survey_state_t
+from coex.messages import SurveyReason, SurveyState
 
 from ..survey.plan import SurveyReport, cut_detail
 

@@ -48,9 +48,8 @@ from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any
 
-from coex.messages import SurveyReason, SurveyState
-
 from coex import Autonomy, ConfigError
+from coex.messages import SurveyReason, SurveyState
 
 from ..survey.plan import SurveyReport, cut_detail
 

@@ -84,9 +84,8 @@ import math
 from collections.abc import Mapping
 from typing import Any
 
-from coex.messages import SurveyKind, SurveyReason, SurveyState
-
 from coex import Autonomy
+from coex.messages import SurveyKind, SurveyReason, SurveyState
 
 from ..inputs.moos import parse_server
 from ..options import LogOnce, moos_client, want_number, want_time_warp

@@ -39,9 +39,8 @@ from collections import deque
 from collections.abc import Mapping
 from typing import Any
 
-from coex.messages import SurveyKind, SurveyReason, SurveyState
-
 from coex import Autonomy
+from coex.messages import SurveyKind, SurveyReason, SurveyState
 
 from ..options import LogOnce
 from ..survey.plan import SurveyReport

@@ -19,9 +19,8 @@ from __future__ import annotations
 import math
 from typing import Any
 
-from coex.messages import SurveyState
-
 from coex import Autonomy
+from coex.messages import SurveyState
 
 from ..survey.plan import SurveyReport
 

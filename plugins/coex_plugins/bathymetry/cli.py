@@ -18,6 +18,8 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+
+from coex import CoexError, ConfigError, LoopbackLink, decode_subgrid_units, to_json, wire
 from coex.messages import (
     FrameHeader,
     MapMetadata,
@@ -26,8 +28,6 @@ from coex.messages import (
     Message,
     Subgrid,
 )
-
-from coex import CoexError, ConfigError, LoopbackLink, decode_subgrid_units, to_json, wire
 
 from .baseline import size_2022
 from .export import find_targets, write_level_geotiff, write_png

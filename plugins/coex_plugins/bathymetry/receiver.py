@@ -27,8 +27,6 @@ from typing import Any
 
 import numpy as np
 import numpy.typing as npt
-from coex.messages import MapMetadata, MapRoiReply, MapRoiRequest, Message, Subgrid
-from coex.tracker import Event
 
 from coex import (
     STAMP_MODULUS,
@@ -44,6 +42,8 @@ from coex import (
     persistent,
     unwrap,
 )
+from coex.messages import MapMetadata, MapRoiReply, MapRoiRequest, Message, Subgrid
+from coex.tracker import Event
 
 from .legacy import Held, Mosaic
 from .overview import CHUNK, Overview, block_sums, blocks_from, weighted

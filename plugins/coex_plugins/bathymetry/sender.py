@@ -10,9 +10,6 @@ from collections.abc import Iterable, Mapping
 from typing import Any
 
 import numpy as np
-from coex.messages import MapMetadata, MapRoiReply, MapRoiRequest, Message, Subgrid
-from coex.wire import SUBGRID_RESOLUTIONS as RESOLUTIONS
-from coex.wire import SUBGRID_VERTICAL_RESOLUTIONS as VERTICAL_RESOLUTIONS
 
 from coex import (
     ConfigError,
@@ -27,6 +24,9 @@ from coex import (
     unwrap,
     wire,
 )
+from coex.messages import MapMetadata, MapRoiReply, MapRoiRequest, Message, Subgrid
+from coex.wire import SUBGRID_RESOLUTIONS as RESOLUTIONS
+from coex.wire import SUBGRID_VERTICAL_RESOLUTIONS as VERTICAL_RESOLUTIONS
 
 from .points import pointcloud2_xyz
 from .quadtree import InputError, QuadtreeMap, _grow

@@ -24,9 +24,6 @@ import math
 from collections.abc import Mapping, Sequence
 from typing import Any, ClassVar
 
-from coex.messages import Detection, DetectionSource, Message
-from coex.wire import encoded_size
-
 from coex import (
     CoexError,
     ConfigError,
@@ -44,6 +41,8 @@ from coex import (
     to_stamp,
     unwrap,
 )
+from coex.messages import Detection, DetectionSource, Message
+from coex.wire import encoded_size
 
 __all__ = ["DetectionsModality", "DetectionsReceiver", "DetectionsSender", "SENDER_DEFAULTS",
            "detection_message"]

@@ -12,9 +12,8 @@ from coex_conformance.companions import Companion
 
 
 def detection_inputs() -> list[tuple[float, Any]]:
-    from coex.messages import DetectionSource
-
     from coex import Finding
+    from coex.messages import DetectionSource
 
     return [(10.0, Finding(12.0, 30.5, 0.9, 8.0, height=1.4, length=4.4, width=1.9, orientation=35.0,
                            footprint=8.0)),

@@ -23,9 +23,9 @@ from collections.abc import Mapping
 from typing import Any, ClassVar
 
 import numpy as np
-from coex.messages import DetectionSource
 
 from coex import ConfigError, Detector, Finding, ModalitySender, merged_config, persistent
+from coex.messages import DetectionSource
 from coex_plugins.bathymetry.relief import CAR, SPREAD, bumps, likeness
 
 __all__ = ["DEFAULTS", "ReliefDetector"]

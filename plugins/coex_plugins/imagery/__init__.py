@@ -14,6 +14,7 @@ from __future__ import annotations
 from collections.abc import Mapping
 from typing import Any, ClassVar
 
+from coex import Modality
 from coex.messages import (
     ImageAck,
     ImageAnnounce,
@@ -25,8 +26,6 @@ from coex.messages import (
     Message,
     TransferProgress,
 )
-
-from coex import Modality
 
 from .codec import CodingParams, encode_image
 from .receiver import ImageryReceiver

@@ -10,6 +10,8 @@ from dataclasses import dataclass
 
 import numpy as np
 import numpy.typing as npt
+
+from coex import persistent, to_stamp
 from coex.messages import ImageAnnounce, ImageCrop, ImageFragment
 from coex.wire import (
     FRAGMENT_MAX_DATA,
@@ -17,8 +19,6 @@ from coex.wire import (
     FRAGMENT_NEAR_OFFSET_BITS,
     encoded_size,
 )
-
-from coex import persistent, to_stamp
 
 from .codec import Encoded
 

@@ -5,9 +5,8 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
-from coex.messages import RegionGoal
-
 from coex import ConfigError, persistent
+from coex.messages import RegionGoal
 
 from .codec import Encoded
 

@@ -16,6 +16,19 @@ from typing import Any
 
 import numpy as np
 import numpy.typing as npt
+
+from coex import (
+    CoexError,
+    ConfigError,
+    DecodeError,
+    ModalityReceiver,
+    Product,
+    RequestTracker,
+    merged_config,
+    persistent,
+    to_stamp,
+    unwrap,
+)
 from coex.messages import (
     AckStatus,
     ByteRange,
@@ -32,19 +45,6 @@ from coex.messages import (
     RegionGoal,
     TimeDirection,
     TransferProgress,
-)
-
-from coex import (
-    CoexError,
-    ConfigError,
-    DecodeError,
-    ModalityReceiver,
-    Product,
-    RequestTracker,
-    merged_config,
-    persistent,
-    to_stamp,
-    unwrap,
 )
 
 from .codec import (

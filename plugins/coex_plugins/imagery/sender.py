@@ -24,6 +24,17 @@ from typing import Any
 
 import numpy as np
 import numpy.typing as npt
+
+from coex import (
+    CoexError,
+    ConfigError,
+    ModalitySender,
+    RequestRejected,
+    merged_config,
+    persistent,
+    to_stamp,
+    unwrap,
+)
 from coex.messages import (
     AckStatus,
     CommandAck,
@@ -42,17 +53,6 @@ from coex.messages import (
 )
 from coex.wire import (
     encoded_size,
-)
-
-from coex import (
-    CoexError,
-    ConfigError,
-    ModalitySender,
-    RequestRejected,
-    merged_config,
-    persistent,
-    to_stamp,
-    unwrap,
 )
 
 from ._regions import BRIDGE_BYTES, _bridge, _within, box_psnr, decoded, fewest, held_packets, way

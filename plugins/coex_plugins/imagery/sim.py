@@ -17,8 +17,6 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
-from coex.messages import FrameHeader, Message
-
 from coex import (
     EncodeError,
     GilbertElliott,
@@ -28,6 +26,7 @@ from coex import (
     RequestRejected,
     wire,
 )
+from coex.messages import FrameHeader, Message
 
 __all__ = ["Bernoulli", "Burst", "LossModel", "RegionRun", "Transfer", "WireEvent", "region_transfer"]
 

@@ -16,19 +16,6 @@ from __future__ import annotations
 from collections.abc import Mapping, Sequence
 from typing import Any, ClassVar
 
-from coex.messages import (
-    AckStatus,
-    CommandAck,
-    Message,
-    SurveyCommand,
-    SurveyKind,
-    SurveyPoint,
-    SurveyReason,
-    SurveyState,
-    SurveyStatus,
-)
-from coex.wire import encode, encoded_size
-
 from coex import (
     CoexError,
     EncodeError,
@@ -43,6 +30,18 @@ from coex import (
     to_stamp,
     unwrap,
 )
+from coex.messages import (
+    AckStatus,
+    CommandAck,
+    Message,
+    SurveyCommand,
+    SurveyKind,
+    SurveyPoint,
+    SurveyReason,
+    SurveyState,
+    SurveyStatus,
+)
+from coex.wire import encode, encoded_size
 
 from .plan import Geofence, Refusal, SurveyPlan, SurveyReport, cut_detail, describe, plan_of
 

@@ -6,9 +6,8 @@ from __future__ import annotations
 
 from typing import Any
 
-from coex.messages import SurveyReason, SurveyState
-
 from coex import ModalityReceiver, ModalitySender
+from coex.messages import SurveyReason, SurveyState
 from coex_conformance.companions import Companion
 
 

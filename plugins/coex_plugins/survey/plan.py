@@ -16,14 +16,14 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
+
+from coex import ConfigError, SurveyPlan, SurveyReport, persistent
 from coex.messages import (
     SURVEY_DETAIL_MAX,
     SurveyCommand,
     SurveyKind,
     SurveyReason,
 )
-
-from coex import ConfigError, SurveyPlan, SurveyReport, persistent
 
 __all__ = ["Geofence", "Refusal", "SurveyPlan", "SurveyReport", "cut_detail", "describe", "plan_of"]
 

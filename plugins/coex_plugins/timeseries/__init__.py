@@ -13,6 +13,7 @@ from __future__ import annotations
 from collections.abc import Mapping
 from typing import Any, ClassVar
 
+from coex import Modality
 from coex.messages import (
     Message,
     TimeSeriesAck,
@@ -20,8 +21,6 @@ from coex.messages import (
     TimeSeriesChunk,
     TimeSeriesRequest,
 )
-
-from coex import Modality
 
 from .receiver import Series, TimeSeriesReceiver
 from .sender import ChannelConfig, InvalidSamples, Samples, TimeSeriesSender

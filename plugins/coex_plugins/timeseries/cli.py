@@ -26,9 +26,9 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from coex.messages import Message
 
 from coex import ConfigError, to_json, wire
+from coex.messages import Message
 
 from . import synth
 from .receiver import TimeSeriesReceiver, sample_series

@@ -37,9 +37,9 @@ from dataclasses import dataclass
 
 import numpy as np
 import pywt
-from coex.messages import Wavelet
 
 from coex import persistent
+from coex.messages import Wavelet
 
 __all__ = [
     "CODE_BIAS",

@@ -12,15 +12,6 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from coex.messages import (
-    Message,
-    TimeSeriesAck,
-    TimeSeriesChannel,
-    TimeSeriesChunk,
-    TimeSeriesPart,
-    TimeSeriesRequest,
-    Wavelet,
-)
 
 from coex import (
     ConfigError,
@@ -32,6 +23,15 @@ from coex import (
     persistent,
     to_stamp,
     unwrap,
+)
+from coex.messages import (
+    Message,
+    TimeSeriesAck,
+    TimeSeriesChannel,
+    TimeSeriesChunk,
+    TimeSeriesPart,
+    TimeSeriesRequest,
+    Wavelet,
 )
 
 from . import codec

@@ -9,13 +9,6 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
-from coex.messages import (
-    Message,
-    TimeSeriesAck,
-    TimeSeriesChannel,
-    TimeSeriesChunk,
-    TimeSeriesRequest,
-)
 
 from coex import (
     STAMP_MODULUS,
@@ -27,6 +20,13 @@ from coex import (
     persistent,
     unwrap,
     wire,
+)
+from coex.messages import (
+    Message,
+    TimeSeriesAck,
+    TimeSeriesChannel,
+    TimeSeriesChunk,
+    TimeSeriesRequest,
 )
 
 from . import codec
