@@ -32,7 +32,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from coex_core.errors import ConfigError
+from coex import ConfigError
 
 __all__ = ["Access", "Operator", "OperatorsFile", "Session", "SignInRefused", "ROLES", "password_problem"]
 

@@ -12,9 +12,8 @@ from typing import Any, cast
 
 import numpy as np
 
-from coex_core import messages as m
-from coex_core.errors import CoexError, RequestRejected
-from coex_core.timefmt import to_stamp
+from coex import CoexError, RequestRejected, to_stamp
+from coex import messages as m
 
 from .state import ConsoleState
 from .words import hms, survey_summary

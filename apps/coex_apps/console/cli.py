@@ -21,8 +21,7 @@ from dataclasses import replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from coex_core.config import Problems
-from coex_core.errors import CoexError, ConfigError
+from coex import CoexError, ConfigError, Problems
 
 if TYPE_CHECKING:
     from coex_apps.vehicle.config import DeployConfig
@@ -172,7 +171,7 @@ class TopsideApp:
 
     def __init__(self, node: Any, transports: dict[int, Any], hub: Any, server: Any,
                  clock: Callable[[], float], *, store: Any = None) -> None:
-        from coex_runtime.runner import RealClock, Runner
+        from coex import RealClock, Runner
 
         self.node = node
         #: A :class:`coex.NodeStore` (or None): journal and snapshots.
@@ -217,7 +216,7 @@ class TopsideApp:
         return float(self.runner.step())
 
     def _to_console(self, now: float) -> None:
-        from coex_transports.recovery import ResilientTransport
+        from coex import ResilientTransport
 
         self.hub.pump(self.node, now)
         for link, tr in self.transports.items():
@@ -287,7 +286,7 @@ class TopsideApp:
 
 def _schedule(text: str | None) -> Any:
     """``--schedule JSON`` as a :class:`~coex_core.channel.schedule.Schedule` (None without one)."""
-    from coex_core.channel.schedule import Schedule
+    from coex import Schedule
 
     if not text:
         return None
@@ -476,8 +475,8 @@ def topside_app(cfg: DeployConfig, host: str = "127.0.0.1", port: int = 8080, *,
     ``missing``: modalities already left out, shown in the console's log."""
     access, tls = console_access(host, operators, insecure_open, tls_cert, tls_key, session_hours,
                                  idle_minutes)
+    from coex import ResilientTransport
     from coex_apps.vehicle.build import build_node
-    from coex_transports.recovery import ResilientTransport
 
     from .fleet import FleetHub, fleet_hub
     from .node import NodeCommands
@@ -555,7 +554,7 @@ def topside_app(cfg: DeployConfig, host: str = "127.0.0.1", port: int = 8080, *,
             node = fresh()
             wire(node, None)
         else:
-            from coex_runtime.store import NodeStore
+            from coex import NodeStore
 
             nstore = NodeStore(store, snapshot_interval=cfg.snapshot_interval)
             resumed = nstore.has_state()

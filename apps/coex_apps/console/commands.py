@@ -13,10 +13,9 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any, cast
 
-from coex_core import messages as m
-from coex_core.state import persistent
-from coex_core.timefmt import unwrap
-from coex_core.tracker import TRANSITIONS, Event, State, Tracked, answer_event
+from coex import messages as m
+from coex import persistent, unwrap
+from coex.tracker import TRANSITIONS, Event, State, Tracked, answer_event
 
 from .mapview import _RoiRequest
 from .words import _num, ack_reason, hms, region_words

@@ -23,8 +23,14 @@ import threading
 from collections.abc import Callable, Mapping, Sequence
 from typing import Any
 
-from coex_core.channel.events import CommandResult, CommandUnanswered, ProductUpdated, Received
-from coex_core.errors import ConfigError, RequestRejected
+from coex import (
+    CommandResult,
+    CommandUnanswered,
+    ConfigError,
+    ProductUpdated,
+    Received,
+    RequestRejected,
+)
 
 from .hub import ConsoleHub, pump
 

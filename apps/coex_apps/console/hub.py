@@ -13,7 +13,7 @@ import time
 from collections.abc import Callable, Iterable
 from typing import Any
 
-from coex_core.messages import Message
+from coex import Message
 
 from .actions import ConsoleActions
 from .state import SECTIONS, ConsoleState

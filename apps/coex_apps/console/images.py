@@ -14,9 +14,8 @@ from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import Any, cast
 
-from coex_core import messages as m
-from coex_core.state import persistent
-from coex_core.timefmt import unwrap
+from coex import messages as m
+from coex import persistent, unwrap
 
 from .commands import OPEN_COMMAND_STATES
 from .words import _num, ack_reason

@@ -10,9 +10,9 @@ import math
 from collections import deque
 from typing import Any
 
-from coex_core import messages as m
-from coex_core.timefmt import unwrap
-from coex_core.wire import encoded_size
+from coex import messages as m
+from coex import unwrap
+from coex.wire import encoded_size
 
 from .words import _num
 

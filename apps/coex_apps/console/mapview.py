@@ -16,7 +16,7 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
-from coex_core.state import persistent
+from coex import persistent
 
 from .words import _num, gap_words
 

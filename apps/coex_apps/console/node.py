@@ -21,9 +21,9 @@ from collections import deque
 from collections.abc import Callable
 from typing import Any
 
+from coex import ModalityReceiver
+from coex.messages import Message, ScheduleUpdate
 from coex_core.channel.schedule import Schedule, resolve_cycle
-from coex_core.messages import Message, ScheduleUpdate
-from coex_core.modality import ModalityReceiver
 
 from .hub import ConsoleHub, pump
 from .state import ConsoleState

@@ -34,7 +34,7 @@ from typing import Any
 
 import numpy as np
 
-from coex_core.errors import ConfigError
+from coex import ConfigError
 
 __all__ = ["RosProducts"]
 
@@ -109,7 +109,7 @@ class RosProducts:
     # ------------------------------------------------------------------ wiring
     def attach(self, coex_node: Any) -> RosProducts:
         """Watch ``coex_node``'s events, start the ROS node and the publishing thread."""
-        from coex_transports.ros import RosNode
+        from coex.ros import RosNode
 
         self.node = RosNode.get(self.config["master"], self.config["node"])
         self._unsubscribe = coex_node.subscribe(self.on_events)
@@ -119,8 +119,8 @@ class RosProducts:
 
     def on_events(self, events: list[Any]) -> None:
         """The node's events (in the thread driving the node): only remembers what changed."""
-        from coex_core.channel.events import ProductUpdated, Received
-        from coex_core.messages import VehicleStatus
+        from coex import ProductUpdated, Received
+        from coex.messages import VehicleStatus
 
         changed = False
         with self._mu:
@@ -175,8 +175,8 @@ class RosProducts:
     def publish_pending(self) -> None:
         """Publish what changed since the last call (the thread does it, at most every
         ``interval`` s; a test may call it)."""
-        from coex_core.timefmt import unwrap
-        from coex_transports.ros import msgs
+        from coex import unwrap
+        from coex.ros import msgs
 
         with self._mu:
             levels, self._levels = self._levels, {}

@@ -66,9 +66,8 @@ from starlette.types import ASGIApp, Receive, Scope, Send
 from starlette.types import Message as AsgiMessage
 from uvicorn.protocols.http.h11_impl import H11Protocol
 
+from coex import CoexError, Message, RequestRejected
 from coex_core import jsonfmt
-from coex_core.errors import CoexError, RequestRejected
-from coex_core.messages import Message
 
 from .access import Access, Session, SignInRefused, describe
 from .fleet import FleetHub

@@ -31,10 +31,8 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
-from coex_core import messages as m
-from coex_core.errors import RequestRejected
-from coex_core.state import persistent
-from coex_core.timefmt import unwrap
+from coex import RequestRejected, persistent, unwrap
+from coex import messages as m
 
 from .commands import OPEN_COMMAND_STATES, CommandsView, _Command
 from .images import MAX_CROPS, MAX_IMAGE_REGIONS, ImagesView, _Crop
@@ -316,7 +314,7 @@ class ConsoleState(MapView, SurveysView, ImagesView, LinkView, CommandsView):
             return None
         rx = self.receivers.get(name)
         if rx is None and self.own_receivers:
-            from coex_core.registry import load_modality
+            from coex import load_modality
 
             try:
                 rx = self.receivers[name] = load_modality(name)().receiver()

@@ -15,9 +15,8 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
-from coex_core import messages as m
-from coex_core.modality import ModalitySender
-from coex_core.timefmt import to_stamp
+from coex import ModalitySender, to_stamp
+from coex import messages as m
 
 from .state import ConsoleState
 

@@ -7,7 +7,7 @@ from __future__ import annotations
 import math
 from typing import Any
 
-from coex_core import messages as m
+from coex import messages as m
 from coex_core.routing import Routes, declared_ids
 
 __all__ = ["_num", "ack_reason", "gap_words", "hms", "region_words", "survey_summary"]
@@ -119,7 +119,7 @@ def _modality_of(msg: m.Message) -> str | None:
     first, is left out (a node would refuse it)."""
     global _ROUTES
     if _ROUTES is None:
-        from coex_core.registry import available, load_modality
+        from coex import available, load_modality
 
         routes = Routes("messages")
         for info in available(check=False):

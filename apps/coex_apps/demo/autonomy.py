@@ -21,7 +21,7 @@ import math
 from collections.abc import Callable
 from typing import Any
 
-from coex_core.messages import SurveyState
+from coex.messages import SurveyState
 from coex_plugins.survey import SurveyPlan, SurveyReport, SurveySender
 from coex_plugins.survey.plan import describe
 

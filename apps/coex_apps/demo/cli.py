@@ -61,7 +61,7 @@ def register(sub: Any) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from coex_core.errors import ConfigError
+    from coex import ConfigError
 
     from .dive import Decision, DemoConfig, run_demo
 

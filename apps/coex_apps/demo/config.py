@@ -6,7 +6,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from coex_core.errors import ConfigError
+from coex import ConfigError
 
 from .scenario import Scenario, preset
 

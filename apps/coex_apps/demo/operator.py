@@ -27,10 +27,8 @@ from typing import Any
 
 import numpy as np
 
-from coex_core.errors import RequestRejected
-from coex_core.messages import SurveyCommand, VehicleStatus
-from coex_core.node import Node
-from coex_core.timefmt import unwrap
+from coex import Node, RequestRejected, unwrap
+from coex.messages import SurveyCommand, VehicleStatus
 from coex_plugins.bathymetry import BathymetryReceiver, find_targets
 from coex_plugins.bathymetry.relief import CAR as CAR_DIMS
 from coex_plugins.bathymetry.relief import FLAT, Bump, bumps, likeness, measure_bump

@@ -16,12 +16,9 @@ from typing import Any
 
 import numpy as np
 
-from coex import Runner, SimulatedClock
-from coex_core.acoustic import AcousticChannel
-from coex_core.channel.events import ProductUpdated, Received
+from coex import AcousticChannel, Node, ProductUpdated, Received, Runner, SimulatedClock
+from coex.messages import VehicleStatus
 from coex_core.loopback import SimClock
-from coex_core.messages import VehicleStatus
-from coex_core.node import Node
 from coex_plugins.bathymetry.sim import Seafloor, Survey, simulate_survey
 from coex_plugins.imagery import ImageInput
 from coex_plugins.timeseries import synth as ts_synth

@@ -71,9 +71,8 @@ from typing import Any
 
 import numpy as np
 
+from coex import ConfigError, Problem, Problems
 from coex_core.acoustic import RATES, GilbertElliott
-from coex_core.config import Problem, Problems
-from coex_core.errors import ConfigError
 from coex_plugins.bathymetry.sim import Target
 
 __all__ = ["LossSpec", "ObjectSpec", "PRESETS", "Scenario", "load_scenario", "preset"]

@@ -14,9 +14,8 @@ import statistics
 from collections.abc import Hashable
 from typing import Any
 
-from coex_core.channel import Schedule
-from coex_core.errors import CoexError
-from coex_core.messages import (
+from coex import CoexError, Node, Schedule
+from coex.messages import (
     CommandAck,
     ImageByTimeRequest,
     ImageGoal,
@@ -25,8 +24,7 @@ from coex_core.messages import (
     Message,
     TimeSeriesRequest,
 )
-from coex_core.node import Node
-from coex_core.wire import unpack
+from coex.wire import unpack
 
 __all__ = ["ResponseTimer"]
 

@@ -11,10 +11,8 @@ from typing import Any
 
 import numpy as np
 
-from coex_core.channel import ChannelManager, LinkConfig, Schedule, StreamConfig
-from coex_core.messages import VehicleMode, VehicleStatus
-from coex_core.node import Node
-from coex_core.timefmt import to_stamp
+from coex import ChannelManager, LinkConfig, Node, Schedule, StreamConfig, to_stamp
+from coex.messages import VehicleMode, VehicleStatus
 from coex_plugins.bathymetry import (
     BathymetryModality,
 )

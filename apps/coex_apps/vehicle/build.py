@@ -9,7 +9,7 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
-from coex_core.errors import CoexError, ConfigError
+from coex import CoexError, ConfigError
 
 from .config import ROLES, DeployConfig
 
@@ -23,8 +23,8 @@ def link_configs(cfg: DeployConfig, transports: Mapping[int, Any]) -> list[Any]:
     ``packet_seconds`` when given, the configuration's schedule, sent to the peer (a topside of
     several vehicles: to every node, ``dst`` 0, each message and command then naming its
     vehicle; a Micromodem topside in a fleet needs ``dest=0``, docs/micromodem.md)."""
+    from coex import LinkConfig
     from coex_core.acoustic import rate_info
-    from coex_core.channel.manager import LinkConfig
 
     schedule = cfg.schedule()
     out = []
@@ -52,9 +52,7 @@ def build_node(cfg: DeployConfig, role: str, transports: Mapping[int, Any], *,
     topside of several vehicles (``[[vehicles]]``) gets one receiver per modality and vehicle
     (``add_receiver(..., peer=id)``, saved under ``name@id``) and the vehicles' own command
     keys (``peer_keys``); a vehicle with ``node.peer_key_file`` holds its key the same way."""
-    from coex_core.channel import ChannelManager, StreamConfig
-    from coex_core.node import Node
-    from coex_core.registry import load_modality
+    from coex import ChannelManager, Node, StreamConfig, load_modality
 
     if role not in ROLES or role != cfg.role:
         raise ConfigError(f"this configuration is the {cfg.role}'s, not the {role}'s")

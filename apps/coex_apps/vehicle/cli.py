@@ -7,7 +7,7 @@ import logging
 import sys
 from typing import Any
 
-from coex_core.errors import CoexError
+from coex import CoexError
 
 __all__ = ["register", "register_config", "run_vehicle", "summary_text"]
 

@@ -16,8 +16,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from coex_core.config import Problems
-from coex_core.errors import CoexError, ConfigError
+from coex import CoexError, ConfigError, Problems
 
 __all__ = ["DEFAULT_MODALITIES", "DeployConfig", "FleetVehicle", "ModalityConfig", "check", "check_mapping",
            "check_problems", "from_mapping", "load"]
@@ -147,7 +146,7 @@ class DeployConfig:
         return [self.first_link + i for i in range(len(self.modems))]
 
     def schedule(self) -> Any:
-        from coex_core.channel.schedule import Schedule
+        from coex import Schedule
 
         if self.explicit_schedule is not None:
             return self.explicit_schedule
@@ -164,7 +163,7 @@ class DeployConfig:
 
 
 def _entry_points(group: str) -> dict[str, Any]:
-    from coex_core.registry import entry_points
+    from coex.registry import entry_points
 
     return entry_points(group)
 
@@ -354,7 +353,7 @@ def _check_uri(uri: str, key: str, p: Problems, cfg: DeployConfig) -> Any:
     """A transport URI through the transport's own parser (``Transport.check_uri``), opening
     nothing, exactly as the daemon's links take it; devices and files it names that are not
     there now are warnings (the daemon waits for a modem)."""
-    from coex_core.registry import check_transport_uri
+    from coex import check_transport_uri
 
     try:
         info = check_transport_uri(uri)

@@ -23,7 +23,7 @@ from typing import Any
 
 import numpy as np
 
-from coex_core.errors import CoexError, ConfigError
+from coex import CoexError, ConfigError
 from coex_plugins.options import LogOnce
 
 from .build import build_node, link_configs
@@ -41,7 +41,7 @@ def open_transports(cfg: DeployConfig) -> dict[int, Any]:
     """One :class:`~coex_transports.recovery.ResilientTransport` per modem (link 0, 1, ...): a
     modem that goes away, or is not there at start, is reopened with backoff while the node runs
     on (``required = true`` makes one missing at start an error)."""
-    from coex_transports.recovery import ResilientTransport
+    from coex import ResilientTransport
 
     out: dict[int, Any] = {}
     try:
@@ -62,7 +62,7 @@ def build_vehicle_node(cfg: DeployConfig, transports: Mapping[int, Any]) -> Any:
 
 
 def _load(group: str, name: str) -> Any:
-    from coex_core.registry import load
+    from coex.registry import load
 
     return load(group, name)
 
@@ -75,8 +75,7 @@ class VehicleApp:
 
     def __init__(self, cfg: DeployConfig, *, clock: Callable[[], float] = time.time,
                  transports: Mapping[int, Any] | None = None) -> None:
-        from coex import InputContext
-        from coex_runtime.runner import RealClock, Runner
+        from coex import InputContext, RealClock, Runner
 
         self.cfg = cfg
         self.clock = clock
@@ -87,7 +86,7 @@ class VehicleApp:
         self.autonomy: Any = None
         try:
             if cfg.store is not None:
-                from coex_runtime.store import NodeStore
+                from coex import NodeStore
 
                 self.store = NodeStore(cfg.store, snapshot_interval=cfg.snapshot_interval)
                 resumed = self.store.has_state()
@@ -211,15 +210,15 @@ class VehicleApp:
     def link_health(self) -> dict[int, Any]:
         """Each modem's :class:`~coex_transports.recovery.Health` (outages, time down); a link
         given as a plain transport (``transports=``) has none."""
-        from coex_transports.recovery import ResilientTransport
+        from coex import ResilientTransport
 
         return {lid: tr.health() for lid, tr in self.transports.items() if isinstance(tr, ResilientTransport)}
 
     def _link_health(self, now: float) -> None:
         """A LinkHealth topside whenever a modem went down or came back (sent on whichever link is
         up; the one that was down reports once it is back)."""
-        from coex_core.messages import LinkHealth
-        from coex_core.timefmt import to_stamp
+        from coex import to_stamp
+        from coex.messages import LinkHealth
 
         health = self.link_health()
         for lid, h in health.items():
@@ -322,8 +321,8 @@ class VehicleApp:
         self.counts["nav"] += 1
 
     def _status(self, now: float) -> None:
-        from coex_core.messages import VehicleMode, VehicleStatus
-        from coex_core.timefmt import to_stamp
+        from coex import to_stamp
+        from coex.messages import VehicleMode, VehicleStatus
 
         if "x" not in self.nav or (self._last_status is not None
                                    and now - self._last_status < self.cfg.status_interval):

@@ -43,7 +43,7 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
-from coex_core.errors import ConfigError
+from coex import ConfigError
 
 from .config import DeployConfig, check_mapping, expand
 
@@ -327,7 +327,7 @@ def read_mission(path: str | Path, process: str = "pCoex", *, host: str | None =
 
 def _warp(text: str, problems: list[str]) -> float:
     """The mission's ``MOOSTimeWarp`` (MOOS takes a number above 0, at most 400)."""
-    from coex_transports.moos.client import MAX_TIME_WARP
+    from coex.moos import MAX_TIME_WARP
 
     try:
         warp = float(text)
