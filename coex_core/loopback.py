@@ -356,6 +356,25 @@ class RoundTrip:
     def step(self) -> None:
         """One round (see the class)."""
         self.now += self.round_seconds
+        self._exchange(self._fill())
+
+    def poll(self) -> None:
+        """The second half of a round at ``now``, without a fill: the receiver's poll goes up
+        and the sender's answers come down (a request made between rounds)."""
+        self._exchange([])
+
+    def drain(self) -> int:
+        """Rounds at ``now``, ``now + round_seconds`` ... while the sender has something to send:
+        the first empty fill ends it, at its time, before the receiver polls. Returns the
+        rounds that sent something."""
+        rounds = 0
+        while out := self._fill():
+            self._exchange(out)
+            self.now += self.round_seconds
+            rounds += 1
+        return rounds
+
+    def _fill(self) -> list[Message]:
         budget = self.mtu - wire.header_size()
         out = self.sender.fill(budget, self.now)
         total = sum(wire.encoded_size(m) for m in out)
@@ -363,6 +382,11 @@ class RoundTrip:
             raise self.overfill(f"sender returned {total} B for a budget of {budget} B")
         self.last_fill = out
         self.sent.extend(out)
+        return out
+
+    def _exchange(self, out: list[Message]) -> None:
+        """The round after the fill: ``out`` goes down, the receiver polls, its requests go up,
+        the sender's answers come down."""
         late, self._late = self._late, []
         filled = self._send("down", out)
         for frame in late:  # the last round's answers were on the wire first
