@@ -389,17 +389,17 @@ class RoundTrip:
         the sender's answers come down."""
         late, self._late = self._late, []
         filled = self._send("down", out)
-        for frame in late:  # the last round's answers were on the wire first
-            self._to_receiver(frame)
+        for answers in late:  # the last round's answers were on the wire first
+            self._to_receiver(answers)
         self._to_receiver(filled)
         requests = self.receiver.poll(self.now)
         self.last_requests = requests
         self.requests.extend(requests)
         replies: list[Message] = []
         for batch in self.batches(requests):
-            frame = self._send("up", batch)
-            if frame is not None:
-                self._to_sender(frame, replies)
+            asked = self._send("up", batch)
+            if asked is not None:
+                self._to_sender(asked, replies)
         for batch in ([[r] for r in replies] if self.replies_next_round else self.batches(replies)):
             try:
                 answer = self._send("down", batch)
