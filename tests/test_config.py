@@ -102,6 +102,12 @@ def test_an_adapters_option_checks_collect_every_problem_with_its_option() -> No
         "input 'nmea': option 'variation' must be a number, not nan",
     ]
     assert adapter_problems(NmeaInput, options) == p.items
+    from coex_plugins.vehicle.autonomy.mavlink import MavlinkAutonomy
+
+    out = adapter_check(MavlinkAutonomy, {"connection": "udpout:127.0.0.1:14550", "baud": 0, "hold": -1,
+                                          "start": "soon"})
+    assert out.keys() == ["baud", "hold", "start"]
+    assert out.items[0] == "autonomy 'mavlink': baud must be an integer in 1..10000000, got 0"
     q = Problems()
     q.option_str("input 'x'", {"path": " "}, "path", nonempty=True)
     q.option_number("input 'x'", {"settle": -1}, "settle", minimum=0)

@@ -10,6 +10,7 @@ import math
 import os
 from typing import Any
 
+from ..options import Problems
 from .base import Autonomy
 
 __all__ = ["LogAutonomy", "describe_plan", "plan_record"]
@@ -68,11 +69,12 @@ class LogAutonomy(Autonomy):
     }
 
     @classmethod
-    def check(cls, options: Any) -> list[str]:
+    def check(cls, options: Any) -> Problems:
+        p = Problems()
         f = options.get("file")
         if f is not None and (not isinstance(f, str) or not f):
-            return [f"autonomy 'log': file must be a path, got {f!r}"]
-        return []
+            p.said("file", f"autonomy 'log': file must be a path, got {f!r}")
+        return p
 
     def __init__(self, options: Any, context: Any) -> None:
         super().__init__(options, context)
