@@ -20,7 +20,7 @@ URI form: ``loopback://NAME?mtu=256&rate=100&loss=0.1&seed=1&delay=0``; the firs
 :class:`RoundTrip` is the one sender↔receiver loop: a modality's sender and receiver joined
 by two lossy links (seeded :class:`LossModel` per direction), driven round by round without a
 node (the conformance kit's ``LinkedPair``, ``coex image roundtrip``/``region``, ``coex bathy
-roundtrip`` and the benchmarks all run on it).
+roundtrip``, ``coex timeseries roundtrip`` and the imagery and time-series benchmarks run on it).
 """
 
 from __future__ import annotations
