@@ -90,7 +90,7 @@ def test_an_adapters_option_checks_collect_every_problem_with_its_option() -> No
     """The vehicle adapters' option checks are the collector's ``option_*``: an NMEA input with
     four bad options gives four problems, each keyed by its option, in the adapter's words."""
     from coex_core.adapters import adapter_check, adapter_problems
-    from coex_plugins.vehicle.inputs.nmea import NmeaInput
+    from coex_plugins.inputs.nmea import NmeaInput
 
     options = {"udp": "nowhere", "baud": 0, "require_checksum": "yes", "variation": float("nan")}
     p = adapter_check(NmeaInput, options)
@@ -102,7 +102,7 @@ def test_an_adapters_option_checks_collect_every_problem_with_its_option() -> No
         "input 'nmea': option 'variation' must be a number, not nan",
     ]
     assert adapter_problems(NmeaInput, options) == p.items
-    from coex_plugins.vehicle.autonomy.mavlink import MavlinkAutonomy
+    from coex_plugins.autonomy.mavlink import MavlinkAutonomy
 
     out = adapter_check(MavlinkAutonomy, {"connection": "udpout:127.0.0.1:14550", "baud": 0, "hold": -1,
                                           "start": "soon"})
@@ -123,7 +123,7 @@ def test_an_adapters_option_checks_collect_every_problem_with_its_option() -> No
 def test_a_nodes_file_names_every_bad_input_option_and_ros_key_in_one_error(tmp_path: Path) -> None:
     """A deployment file with two inputs, each with bad options, and a bad ``[ros]`` table: one
     ConfigError lists them all, each under its full key (``inputs[0].baud``, ``ros.interval``)."""
-    from coex_plugins.vehicle.config import load
+    from coex_apps.vehicle.config import load
 
     (tmp_path / "t.toml").write_text("""
 [node]
@@ -177,7 +177,7 @@ existing = "yes"
 
 
 def test_ros_products_refuse_every_bad_key_at_once() -> None:
-    from coex_plugins.console.ros import RosProducts
+    from coex_apps.console.ros import RosProducts
 
     with pytest.raises(ConfigError) as err:
         RosProducts({"master": "ship:11311", "interval": 0, "topics": 1})

@@ -34,7 +34,7 @@ from typing import Any
 
 import numpy as np
 
-from coex import ConfigError, Problems
+from coex import Problems
 
 __all__ = ["RosProducts"]
 

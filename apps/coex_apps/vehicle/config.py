@@ -537,7 +537,7 @@ def _adapter(kind: str, group: str, table: Mapping[str, Any], key: str, p: Probl
 
 
 def _inputs(raw: Mapping[str, Any], p: Problems, cfg: DeployConfig) -> None:
-    from coex import FEEDS, adapter_check, check_options
+    from coex import FEEDS, adapter_check
 
     inputs = raw.get("inputs", [])
     if not isinstance(inputs, list):
@@ -577,7 +577,7 @@ def _paths(cls: Any, options: Mapping[str, Any], key: str, p: Problems, cfg: Dep
 
 
 def _autonomy(raw: Mapping[str, Any], p: Problems, cfg: DeployConfig) -> None:
-    from coex import adapter_check, check_autonomy_options
+    from coex import adapter_check
 
     if "autonomy" not in raw and "survey" not in {m.name for m in cfg.modalities}:
         cfg.autonomy = {}

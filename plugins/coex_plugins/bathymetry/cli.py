@@ -19,9 +19,16 @@ from typing import Any
 
 import numpy as np
 
-from coex import Bernoulli, CoexError, ConfigError, LoopbackLink, RoundTrip, decode_subgrid_units, to_json, wire
+from coex import (
+    Bernoulli,
+    CoexError,
+    ConfigError,
+    RoundTrip,
+    decode_subgrid_units,
+    to_json,
+    wire,
+)
 from coex.messages import (
-    FrameHeader,
     MapMetadata,
     MapRoiReply,
     MapRoiRequest,

@@ -21,7 +21,6 @@ from typing import Any
 
 from coex import (
     Bernoulli,
-    EncodeError,
     GilbertElliott,
     LossModel,
     ModalityReceiver,
@@ -32,7 +31,7 @@ from coex import (
     WireEvent,
     wire,
 )
-from coex.messages import FrameHeader, Message
+from coex.messages import Message
 
 __all__ = ["Bernoulli", "Burst", "LossModel", "RegionRun", "Transfer", "WireEvent", "region_transfer"]
 

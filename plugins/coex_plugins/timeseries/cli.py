@@ -28,7 +28,6 @@ from typing import Any
 import numpy as np
 
 from coex import ConfigError, RoundTrip, to_json, wire
-from coex.messages import Message
 
 from . import synth
 from .receiver import TimeSeriesReceiver, sample_series
