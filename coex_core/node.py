@@ -189,9 +189,7 @@ class Node:
         return None
 
     def _bind_peers(self, sender: Any) -> None:
-        bind = getattr(_innermost(sender), "bind_peers", None)
-        if bind is not None:
-            bind(self._peer)
+        _innermost(sender).bind_peers(self._peer)  # declared on ModalitySender
 
     def add_receiver(self, modality: Modality | type[Modality], receiver: ModalityReceiver,
                      stream: int = CONTROL_STREAM, *, ids: Mapping[int, int] | None = None,
