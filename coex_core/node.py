@@ -717,9 +717,9 @@ class Node:
 def _wrappers(part: Any) -> list[Any]:
     """``part`` and the senders or receivers it wraps (``inner``), outermost first."""
     chain = [part]
-    while isinstance(getattr(chain[-1], "inner", None), ModalitySender | ModalityReceiver) \
-            and len(chain) < 8:
-        chain.append(chain[-1].inner)
+    while isinstance(chain[-1], ModalitySender | ModalityReceiver) \
+            and isinstance(chain[-1].inner, ModalitySender | ModalityReceiver) and len(chain) < 8:
+        chain.append(chain[-1].inner)  # declared on both bases (None: wraps none)
     return chain
 
 

@@ -271,3 +271,34 @@ def test_every_sender_is_told_through_the_declared_hook_and_a_failing_one_is_rep
     failed = [e for e in mgr.events() if isinstance(e, SenderFailed)]
     assert failed and failed[0].stream == 4 and "throughput() failed: RuntimeError: boom" in failed[0].error
     assert mgr.stats["sender_failures"] >= 1
+
+
+def test_a_wrapper_declares_what_it_wraps_through_inner() -> None:
+    """``inner`` is declared on ModalitySender and ModalityReceiver (None: wraps none); the node
+    reaches the innermost sender through it (bind_peers, state), through nested wrappers, and
+    never through an ``inner`` that is not a sender."""
+    from coex_core.node import _innermost
+    from coex_core.remap import RemappedSender
+
+    assert ModalitySender.inner is None and ModalityReceiver.inner is None
+    plain = Listener()
+    assert _innermost(plain) is plain
+
+    class Recording(Listener):
+        def __init__(self, inner: ModalitySender) -> None:
+            super().__init__()
+            self.inner = inner
+
+    class NotAWrapper(Listener):
+        def __init__(self) -> None:
+            super().__init__()
+            self.inner = "a name of its own"  # type: ignore[assignment]
+
+    core = Listener()
+    outer = RemappedSender(Recording(core), {200: 201})
+    assert _innermost(outer) is core
+    odd = NotAWrapper()
+    assert _innermost(odd) is odd
+    node = Node(ChannelManager(VEHICLE, [LinkConfig(0, nui(), rate=1, dst=TOPSIDE)]))
+    node.add_sender(Thing, Recording(core), StreamConfig(3, "thing"))
+    assert core.peer("thing") is core  # bound on the innermost sender, which the peer lookup gives
