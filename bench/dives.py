@@ -92,8 +92,8 @@ DECISION_TARGETS = {"fleet": (600.0, 1200.0)}
 
 
 def one_dive(condition: str, seed: int, quick: bool) -> dict[str, Any]:
-    from coex_plugins.demo import DemoConfig, run_demo
-    from coex_plugins.demo.scenario import preset, scenario_from_dict
+    from coex_apps.demo import DemoConfig, run_demo
+    from coex_apps.demo.scenario import preset, scenario_from_dict
 
     name, loss, burst, _, extra = CONDITIONS[condition]
     scenario = scenario_from_dict(extra, base=preset(name)) if extra else preset(name)

@@ -2,10 +2,10 @@
 
 The production pieces run as they do on a ship, in one process on one simulated clock:
 
-* **Real:** the vehicle daemon (:class:`coex_plugins.vehicle.daemon.VehicleApp`, built from a
-  TOML configuration by :func:`coex_plugins.vehicle.config.load`: its runner, SQLite store,
+* **Real:** the vehicle daemon (:class:`coex_apps.vehicle.daemon.VehicleApp`, built from a
+  TOML configuration by :func:`coex_apps.vehicle.config.load`: its runner, SQLite store,
   inputs and autonomy handling, link health reports) and the topside console node
-  (:func:`coex_plugins.console.cli.topside_from_config`: runner, store, console state, HTTP
+  (:func:`coex_apps.console.cli.topside_from_config`: runner, store, console state, HTTP
   server on a free loopback port; its products written to ``products/``: every image as TIFF
   and PNG by the imagery receiver's ``out_dir``, which keeps the newest :data:`TOPSIDE_IMAGES`
   in memory, and each series block older than :data:`SERIES_KEEP` appended to a CSV by the
@@ -83,14 +83,14 @@ if str(Path(__file__).resolve().parent) not in sys.path:  # imported from elsewh
 
 from soak import camera_image, peak_mb, rss_mb, sensor_series, survey_passes
 
+from coex_apps.console.cli import TopsideApp, topside_from_config
+from coex_apps.vehicle.config import load
+from coex_apps.vehicle.daemon import VehicleApp
 from coex_core import state
 from coex_core.acoustic import AcousticChannel
 from coex_core.adapters import Image, Input, Item, Nav, Points, Samples
 from coex_plugins import convergence
-from coex_plugins.console.cli import TopsideApp, topside_from_config
-from coex_plugins.vehicle.autonomy.mavpeer import MissionPeer
-from coex_plugins.vehicle.config import load
-from coex_plugins.vehicle.daemon import VehicleApp
+from coex_plugins.autonomy.mavpeer import MissionPeer
 from coex_transports.micromodem.simulator import ModemNetwork, SimLoop
 from coex_transports.recovery import ResilientTransport
 

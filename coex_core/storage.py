@@ -4,7 +4,7 @@ A modality whose state can outgrow memory (the bathymetry map of a 100 km² surv
 is not working on in a :class:`Storage`: named byte strings it writes and reads back. The core
 never opens a file: whoever runs the node gives each modality its storage with
 :meth:`Node.attach_storage <coex_core.node.Node.attach_storage>`. A node with a store
-(``coex_transports.store.NodeStore.storage``) backs it with the node's SQLite file; without one,
+(``coex_runtime.store.NodeStore.storage``) backs it with the node's SQLite file; without one,
 :class:`MemoryStorage` keeps the bytes in memory (and in the node's saved state).
 
 The contract, which a storage implements and a modality may rely on:

@@ -30,7 +30,7 @@ comes after all is taken (the vehicle did act on it: the ship must show what it 
 Sans-I/O: time comes in as ``now``; nothing here reads a clock. The retrying trackers built on
 it: :class:`coex_core.requests.RequestTracker` (fixed retry and try count), the bathymetry
 receiver's regions (a retry time per answer), the channel manager's commands and the console's
-command list (:mod:`coex_plugins.console.commands`).
+command list (:mod:`coex_apps.console.commands`).
 """
 
 from __future__ import annotations

@@ -91,7 +91,7 @@ def _env() -> dict[str, str]:
     from ._moos import moos_entry_points
 
     env = dict(os.environ)
-    extra = [str(ROOT), str(ROOT / "plugins"), str(ROOT / "transports"), str(ROOT / "conformance_tests")]
+    extra = [str(ROOT / p) for p in ("", "transports", "runtime", "conformance_tests", "plugins", "apps")]
     shim = moos_entry_points()
     if shim is not None:
         extra.append(shim)

@@ -19,7 +19,7 @@ from typing import Any
 
 from coex import Runner
 from coex_core.registry import open_transport
-from coex_transports.store import NodeStore
+from coex_runtime.store import NodeStore
 
 from ._faults import T0, build_dive
 

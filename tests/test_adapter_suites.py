@@ -34,7 +34,7 @@ def _send_udp(port: int, data: bytes) -> None:
 class DirectoryFixtures(InputFixtures):
     @pytest.fixture
     def input_class(self) -> type[Input]:
-        from coex_plugins.vehicle.inputs.directory import DirectoryInput
+        from coex_plugins.inputs.directory import DirectoryInput
 
         return DirectoryInput
 
@@ -50,7 +50,7 @@ class DirectoryFixtures(InputFixtures):
 
     @staticmethod
     def _options() -> Any:
-        from coex_plugins.vehicle.inputs.directory import DirectoryInput
+        from coex_plugins.inputs.directory import DirectoryInput
 
         return DirectoryInput.options
 
@@ -77,7 +77,7 @@ class TestDirectoryInput(InputTests, DirectoryFixtures):
 class PointsFixtures(InputFixtures):
     @pytest.fixture
     def input_class(self) -> type[Input]:
-        from coex_plugins.vehicle.inputs.points import PointsInput
+        from coex_plugins.inputs.points import PointsInput
 
         return PointsInput
 
@@ -112,7 +112,7 @@ class TestPointsInput(InputTests, PointsFixtures):
 class NmeaFixtures(InputFixtures):
     @pytest.fixture
     def input_class(self) -> type[Input]:
-        from coex_plugins.vehicle.inputs.nmea import NmeaInput
+        from coex_plugins.inputs.nmea import NmeaInput
 
         return NmeaInput
 
@@ -148,7 +148,7 @@ class LcmFixtures(InputFixtures):
     @pytest.fixture
     def input_class(self) -> type[Input]:
         pytest.importorskip("lcm")
-        from coex_plugins.vehicle.inputs.lcm import LcmInput
+        from coex_plugins.inputs.lcm import LcmInput
 
         return LcmInput
 
@@ -189,7 +189,7 @@ class MavlinkInputFixtures(InputFixtures):
     @pytest.fixture
     def input_class(self) -> type[Input]:
         pytest.importorskip("pymavlink")
-        from coex_plugins.vehicle.inputs.mavlink import MavlinkInput
+        from coex_plugins.inputs.mavlink import MavlinkInput
 
         return MavlinkInput
 
@@ -238,7 +238,7 @@ class TestMavlinkInput(InputTests, MavlinkInputFixtures):
 class LogFixtures(AutonomyFixtures):
     @pytest.fixture
     def autonomy_class(self) -> type[Autonomy]:
-        from coex_plugins.vehicle.autonomy.log import LogAutonomy
+        from coex_plugins.autonomy.log import LogAutonomy
 
         return LogAutonomy
 
@@ -258,7 +258,7 @@ class LogFixtures(AutonomyFixtures):
 class TestLogAutonomy(AutonomyTests, LogFixtures):
     def test_the_plan_is_in_the_file(self, autonomy_options: dict[str, Any], context: Any) -> None:
         from coex_conformance import survey_plan
-        from coex_plugins.vehicle.autonomy.log import LogAutonomy
+        from coex_plugins.autonomy.log import LogAutonomy
 
         out = LogAutonomy(autonomy_options, context)
         out.open()
@@ -271,7 +271,7 @@ class TestLogAutonomy(AutonomyTests, LogFixtures):
 class SimFixtures(AutonomyFixtures):
     @pytest.fixture
     def autonomy_class(self) -> type[Autonomy]:
-        from coex_plugins.vehicle.autonomy.sim import SimAutonomy
+        from coex_plugins.autonomy.sim import SimAutonomy
 
         return SimAutonomy
 
@@ -296,7 +296,7 @@ class MavlinkSilentFixtures(AutonomyFixtures):
     @pytest.fixture
     def autonomy_class(self) -> type[Autonomy]:
         pytest.importorskip("pymavlink")
-        from coex_plugins.vehicle.autonomy.mavlink import MavlinkAutonomy
+        from coex_plugins.autonomy.mavlink import MavlinkAutonomy
 
         return MavlinkAutonomy
 
@@ -320,7 +320,7 @@ class MavlinkFlyingFixtures(MavlinkSilentFixtures):
 
     @pytest.fixture
     def peer(self, port: int) -> Iterator[str]:
-        from coex_plugins.vehicle.autonomy.mavpeer import MissionPeer
+        from coex_plugins.autonomy.mavpeer import MissionPeer
 
         with MissionPeer(f"udpin:127.0.0.1:{port}", fly_interval=0.5):
             yield "flies"
@@ -338,7 +338,7 @@ class LcmSilentFixtures(AutonomyFixtures):
     @pytest.fixture
     def autonomy_class(self) -> type[Autonomy]:
         pytest.importorskip("lcm")
-        from coex_plugins.vehicle.autonomy.lcm import LcmAutonomy
+        from coex_plugins.autonomy.lcm import LcmAutonomy
 
         return LcmAutonomy
 

@@ -13,14 +13,14 @@ from pathlib import Path
 
 import pytest
 
+from coex import InputContext
 from coex_core import registry
 from coex_core.errors import ConfigError
 from coex_core.messages import SurveyKind, SurveyReason, SurveyState
+from coex_plugins.autonomy import DEFAULT, GROUP, Autonomy, open_autonomy
+from coex_plugins.autonomy.log import LogAutonomy
+from coex_plugins.autonomy.sim import SimAutonomy
 from coex_plugins.survey.plan import SurveyPlan, SurveyReport
-from coex_plugins.vehicle.autonomy import DEFAULT, GROUP, Autonomy, open_autonomy
-from coex_plugins.vehicle.autonomy.log import LogAutonomy
-from coex_plugins.vehicle.autonomy.sim import SimAutonomy
-from coex_plugins.vehicle.inputs.base import InputContext
 
 ROOT = Path(__file__).resolve().parents[1]
 CTX = InputContext(origin_lat=41.5, origin_lon=-70.7)
@@ -64,7 +64,7 @@ def test_open_autonomy_builds_the_named_output(monkeypatch: pytest.MonkeyPatch, 
 # ------------------------------------------------------------------ log
 def test_log_says_the_plan_in_words_and_reports_nothing(caplog: pytest.LogCaptureFixture) -> None:
     out = LogAutonomy({}, CTX)
-    with caplog.at_level(logging.INFO, logger="coex_plugins.vehicle.autonomy.log"):
+    with caplog.at_level(logging.INFO, logger="coex_plugins.autonomy.log"):
         out.submit(_plan(kind=SurveyKind.LAWNMOWER, altitude=5.0, speed=1.5), 100.0)
         out.submit(_plan(8, ((3.0, 4.0),), kind=SurveyKind.GOTO, depth=20.0), 101.0)
     assert out.poll(200.0) == []
@@ -146,7 +146,7 @@ def test_sim_refuses_bad_options(options: dict[str, object]) -> None:
 # ------------------------------------------------------------------ lcm
 lcm = pytest.importorskip("lcm")
 
-from coex_plugins.vehicle.autonomy.lcm import LcmAutonomy  # noqa: E402
+from coex_plugins.autonomy.lcm import LcmAutonomy  # noqa: E402
 from coex_transports.lcm._types.survey_request_t import survey_request_t  # noqa: E402
 from coex_transports.lcm._types.survey_state_t import survey_state_t  # noqa: E402
 from coex_transports.lcm.testing import TEST_UDPM_URL, udpm_works, unique_channel  # noqa: E402

@@ -1,5 +1,5 @@
 """The ``mavlink`` autonomy output against a MAVLink mission-protocol peer built from stock
-pymavlink (coex_plugins.vehicle.autonomy.mavpeer), over UDP on 127.0.0.1."""
+pymavlink (coex_plugins.autonomy.mavpeer), over UDP on 127.0.0.1."""
 
 from __future__ import annotations
 
@@ -17,12 +17,12 @@ import pytest
 
 pytest.importorskip("pymavlink")
 
+from coex import InputContext
 from coex_core.errors import ConfigError
 from coex_core.messages import SurveyKind, SurveyReason, SurveyState
+from coex_plugins.autonomy.mavlink import MavlinkAutonomy, mission_items
+from coex_plugins.autonomy.mavpeer import MissionPeer
 from coex_plugins.survey.plan import SurveyPlan, SurveyReport
-from coex_plugins.vehicle.autonomy.mavlink import MavlinkAutonomy, mission_items
-from coex_plugins.vehicle.autonomy.mavpeer import MissionPeer
-from coex_plugins.vehicle.inputs.base import InputContext
 
 CTX = InputContext(origin_lat=41.5, origin_lon=-70.7)
 PTS = ((10.0, 0.0), (10.0, 10.0), (0.0, 10.0))
@@ -179,7 +179,7 @@ def test_a_denied_mission_is_reported_with_its_code_and_name(make: Callable[...,
 
 
 def test_result_and_mode_names_come_from_pymavlink_or_the_table(monkeypatch: pytest.MonkeyPatch) -> None:
-    from coex_plugins.vehicle.autonomy.mavlink import enum_name, mode_name
+    from coex_plugins.autonomy.mavlink import enum_name, mode_name
 
     assert enum_name("MAV_MISSION_RESULT", 14) == "MAV_MISSION_DENIED"
     assert enum_name("MAV_RESULT", 4) == "MAV_RESULT_FAILED"
@@ -367,8 +367,8 @@ def test_garbage_and_wrong_requests_are_logged_and_ignored(make: Callable[..., M
 
 
 def test_mavpeer_as_a_program_prints_each_mission(make: Callable[..., MavlinkAutonomy], port: int) -> None:
-    env = dict(os.environ, PYTHONPATH=os.pathsep.join(str(ROOT / p) for p in ("", "plugins", "transports")))
-    proc = subprocess.Popen([sys.executable, "-m", "coex_plugins.vehicle.autonomy.mavpeer", "--listen",
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join(str(ROOT / p) for p in ("", "transports", "runtime", "plugins")))
+    proc = subprocess.Popen([sys.executable, "-m", "coex_plugins.autonomy.mavpeer", "--listen",
                              f"udpin:127.0.0.1:{port}", "--duration", "20"], stdout=subprocess.PIPE, text=True,
                             env=env)
     try:

@@ -1,7 +1,7 @@
 """A refused mission and a silent autopilot told apart, end to end: ``coex vehicle`` and ``coex
 topside --config`` in one process over a MAVLink (UDP) link, the vehicle's ``mavlink`` autonomy
 output uploading each accepted survey to a mission-protocol peer built from stock pymavlink
-(:class:`~coex_plugins.vehicle.autonomy.mavpeer.MissionPeer`). The peer refuses one mission
+(:class:`~coex_plugins.autonomy.mavpeer.MissionPeer`). The peer refuses one mission
 with ``MAV_MISSION_DENIED``, stays silent for the next, then flies a third: topside (the survey
 receiver's records, the console's state and its HTTP ``/api/state``) shows the code and its
 name for the first, "no answer" with the tries for the second (not a refusal), and the third
@@ -21,10 +21,10 @@ import pytest
 
 pytest.importorskip("pymavlink")
 
-from coex_plugins.console.cli import TopsideApp, topside_from_config
-from coex_plugins.vehicle.autonomy.mavpeer import MissionPeer
-from coex_plugins.vehicle.config import load
-from coex_plugins.vehicle.daemon import VehicleApp
+from coex_apps.console.cli import TopsideApp, topside_from_config
+from coex_apps.vehicle.config import load
+from coex_apps.vehicle.daemon import VehicleApp
+from coex_plugins.autonomy.mavpeer import MissionPeer
 
 KEY = "00112233445566778899aabbccddeeff00112233445566778899aabbccddeeff"
 COMMON = """

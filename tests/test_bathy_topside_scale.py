@@ -330,8 +330,8 @@ def test_the_console_shows_a_big_level_bounded_and_what_is_on_screen(monkeypatch
 
     from PIL import Image
 
-    from coex_plugins.console import ConsoleState, serve
-    from coex_plugins.console import mapview as console_map
+    from coex_apps.console import ConsoleState, serve
+    from coex_apps.console import mapview as console_map
 
     monkeypatch.setattr(console_map, "MAP_BLOCKS", 16)
     rx = BathymetryReceiver({"levels": 1, "max_mosaic_cells": 4096, "tile_subgrids": 4,

@@ -16,13 +16,13 @@ from typing import Any
 
 import pytest
 
+from coex_apps.console import ConsoleHub, ConsoleState, serve
+from coex_apps.console.access import Access, OperatorsFile
+from coex_apps.console.cli import console_access
+from coex_apps.console.testing import feed_sample
 from coex_core import messages as m
 from coex_core.channel.schedule import Schedule
 from coex_core.errors import ConfigError
-from coex_plugins.console import ConsoleHub, ConsoleState, serve
-from coex_plugins.console.access import Access, OperatorsFile
-from coex_plugins.console.cli import console_access
-from coex_plugins.console.testing import feed_sample
 
 T0 = 36000.0
 PASSWORDS = {"ana": "correct horse battery", "vic": "viewer password 1"}
@@ -317,10 +317,10 @@ def test_who_sent_a_command_is_saved_with_the_console(console: Console) -> None:
 def test_the_demo_console_follows_the_same_rule_and_logs_who_acted(operators: Path, tmp_path: Path) -> None:
     """`coex demo --gui` refuses an address beyond loopback without sign-in; with an operators
     file a signed-in person's action reaches the decision list with their name."""
+    from coex_apps.demo.config import DemoConfig
+    from coex_apps.demo.run import _start_gui
     from coex_core.channel import ChannelManager, LinkConfig
     from coex_core.node import Node
-    from coex_plugins.demo.config import DemoConfig
-    from coex_plugins.demo.run import _start_gui
 
     r = subprocess.run([sys.executable, "-m", "coex_core.cli", "demo", "--quick", "--gui", "--http", "0.0.0.0:0",
                         "--quiet", "--out", str(tmp_path / "out")], capture_output=True, text=True, timeout=120)

@@ -20,12 +20,12 @@ from typing import Any
 
 import pytest
 
+from coex_apps.console import ConsoleHub, ConsoleState, serve
+from coex_apps.console.access import Access, OperatorsFile
+from coex_apps.console.server import Limits
+from coex_apps.console.testing import feed_sample
 from coex_core import messages as m
 from coex_core.channel.schedule import Schedule
-from coex_plugins.console import ConsoleHub, ConsoleState, serve
-from coex_plugins.console.access import Access, OperatorsFile
-from coex_plugins.console.server import Limits
-from coex_plugins.console.testing import feed_sample
 
 from .test_console_access import _certificate
 
@@ -159,7 +159,7 @@ def console(operators: Path) -> Iterator[Console]:
 def test_an_idle_tls_connection_does_not_block_anyone(operators: Path, tmp_path: Path) -> None:
     """The old server ran every TLS handshake inside accept(): one silent TCP connection froze
     the HTTPS console for everyone."""
-    from coex_plugins.console.server import tls_context
+    from coex_apps.console.server import tls_context
 
     c = Console(operators, tls=tls_context(*_certificate(tmp_path)))
     idle = [socket.create_connection(("127.0.0.1", c.port)) for _ in range(3)]  # no ClientHello

@@ -25,6 +25,9 @@ import numpy as np
 import pytest
 
 from coex import RealClock, Runner
+from coex_apps.console import ConsoleHub, ConsoleState, serve
+from coex_apps.console.cli import TopsideApp, build_topside
+from coex_apps.console.testing import RecordingSender, feed_sample, survey_points
 from coex_core import messages as m
 from coex_core.channel.manager import ChannelManager, LinkConfig
 from coex_core.channel.queue import StreamConfig
@@ -33,9 +36,6 @@ from coex_core.node import Node
 from coex_core.registry import open_transport
 from coex_core.timefmt import to_stamp
 from coex_plugins.bathymetry import BathymetryModality, BathymetrySender
-from coex_plugins.console import ConsoleHub, ConsoleState, serve
-from coex_plugins.console.cli import TopsideApp, build_topside
-from coex_plugins.console.testing import RecordingSender, feed_sample, survey_points
 
 CHROMIUM = os.environ.get("COEX_CHROMIUM", "/usr/bin/chromium")
 ARGS = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
@@ -438,8 +438,8 @@ def test_a_survey_drawn_on_the_map_is_sent_and_its_rejection_shown(browser: Any,
     requested; the SurveyCommand goes out over the link. The vehicle answers CommandAck
     REJECTED and SurveyStatus REJECTED OUTSIDE_GEOFENCE: the page shows "rejected" with the
     reason in words. A line survey then shows accepted, then started towards its waypoint."""
+    from coex_apps.console.testing import drain
     from coex_plugins.bathymetry import BathymetrySender
-    from coex_plugins.console.testing import drain
 
     uri = f"loopback://survey-{uuid.uuid4().hex[:8]}?rate=100000&mtu=1024"
     app = build_topside(uri, "127.0.0.1", 0, schedule=SCHEDULE)
@@ -714,8 +714,8 @@ def test_a_region_over_unsurveyed_ground_waits_then_fills(browser: Any, tmp_path
     bar says the size sent (whole 8 m subgrids), not only the size drawn."""
     import numpy as np
 
+    from coex_apps.console.testing import drain
     from coex_plugins.bathymetry import BathymetrySender, encode_subgrid
-    from coex_plugins.console.testing import drain
 
     uri = f"loopback://roi-{uuid.uuid4().hex[:8]}?rate=100000&mtu=1024"
     app = build_topside(uri, "127.0.0.1", 0, schedule=SCHEDULE)
@@ -1063,9 +1063,9 @@ def test_survey_outcomes_read_apart_with_their_history_in_the_vehicles_order(bro
     reports arrive out of order: its history, opened with a click, is in the vehicle's time
     order. A stream dropping a message every few seconds takes one counted line in the event
     log, not sixty. ``COEX_OUTCOME_SHOT=path.png`` keeps the screenshot."""
+    from coex_apps.console.testing import drain
     from coex_core.channel.events import Dropped
     from coex_plugins.bathymetry import BathymetrySender
-    from coex_plugins.console.testing import drain
 
     uri = f"loopback://outcomes-{uuid.uuid4().hex[:8]}?rate=100000&mtu=1024"
     app = build_topside(uri, "127.0.0.1", 0, schedule=SCHEDULE)

@@ -50,9 +50,9 @@ def test_coex_topside_bad_options() -> None:
 
 
 def test_topside_app_shows_its_own_modem_statistics() -> None:
+    from coex_apps.console.cli import build_topside
     from coex_core.messages import LinkStatus
     from coex_core.timefmt import to_stamp
-    from coex_plugins.console.cli import build_topside
 
     now = [50_000.0]
     app = build_topside("loopback://cli-stats", "127.0.0.1", 0, modalities=(), clock=lambda: now[0])
@@ -71,7 +71,7 @@ def test_topside_app_shows_its_own_modem_statistics() -> None:
 
 
 def test_topside_with_two_modems() -> None:
-    from coex_plugins.console.cli import build_topside
+    from coex_apps.console.cli import build_topside
 
     app = build_topside(["loopback://two-a", "loopback://two-b?mtu=128"], "127.0.0.1", 0,
                         modalities=())
@@ -89,8 +89,8 @@ def test_topside_with_two_modems() -> None:
 
 
 def test_topside_stream_names() -> None:
+    from coex_apps.console.cli import build_topside
     from coex_core.messages import QueueStatus, StreamStatus
-    from coex_plugins.console.cli import build_topside
 
     app = build_topside("loopback://names", "127.0.0.1", 0, modalities=(),
                         stream_names={3: "map"}, clock=lambda: 100.0)
@@ -111,10 +111,10 @@ def test_topside_remaps_a_modalitys_third_party_ids() -> None:
 
     import pytest
 
+    from coex_apps.console.cli import build_topside, parse_remap
     from coex_core import wire
     from coex_core.errors import ConfigError
     from coex_core.messages import FrameHeader, Opaque
-    from coex_plugins.console.cli import build_topside, parse_remap
 
     assert parse_remap("pings:100=4100,101=4101") == ("pings", {100: 4100, 101: 4101})
     with pytest.raises(argparse.ArgumentTypeError):
@@ -142,9 +142,9 @@ def test_the_console_keeps_as_many_images_as_the_imagery_receiver(tmp_path: Path
     its store; with the defaults it keeps MAX_IMAGES."""
     import numpy as np
 
+    from coex_apps.console.cli import build_topside
+    from coex_apps.console.state import MAX_IMAGES
     from coex_core.modality import Product
-    from coex_plugins.console.cli import build_topside
-    from coex_plugins.console.state import MAX_IMAGES
 
     options = {"imagery": {"max_images": 3, "out_dir": str(tmp_path / "images")}}
     db = tmp_path / "topside.sqlite"

@@ -14,6 +14,9 @@ from typing import Any
 import numpy as np
 import pytest
 
+from coex_apps.console import ConsoleActions, ConsoleHub, ConsoleState, serve
+from coex_apps.console.node import NodeCommands, pump
+from coex_apps.console.testing import RecordingSender, feed_sample, survey_points
 from coex_core import messages as m
 from coex_core import wire
 from coex_core.channel.events import BadFrame, CommandResult, LinkChanged
@@ -29,9 +32,6 @@ from coex_plugins.bathymetry import (
     BathymetrySender,
     decode_subgrid,
 )
-from coex_plugins.console import ConsoleActions, ConsoleHub, ConsoleState, serve
-from coex_plugins.console.node import NodeCommands, pump
-from coex_plugins.console.testing import RecordingSender, feed_sample, survey_points
 from coex_plugins.timeseries.synth import dataset
 
 T0 = 36000.0
@@ -385,7 +385,7 @@ def test_image_region_checks_its_box_and_goal(args: dict[str, Any], words: str) 
 def test_image_region_through_the_node_s_receiver() -> None:
     """On a node, the imagery receiver sends the region (and retries it): the console records
     it once, and shows the layers complete inside it as the receiver counts them."""
-    from coex_plugins.console.testing import drain
+    from coex_apps.console.testing import drain
     from coex_plugins.imagery import ImageryModality
     from coex_plugins.imagery.sender import ImageInput
     from coex_plugins.imagery.synth import seafloor
@@ -439,7 +439,7 @@ def test_a_region_served_as_a_crop_is_listed_with_the_crop() -> None:
     png = st.crop_png(run.crop.image_id)
     assert png is not None and png.startswith(b"\x89PNG") and st.crop_png(999) is None
     # a console saved before crops (state version 1) is given none on load
-    from coex_plugins.console.state import _upgrade_state
+    from coex_apps.console.state import _upgrade_state
 
     assert _upgrade_state({"log": []}, 1)["crops"] == {}
 
@@ -695,8 +695,8 @@ def test_serve_a_node_or_a_view_only_state() -> None:
 
 def test_drive_simulation_feeds_the_console_and_the_caller() -> None:
     from coex import SimNetwork
+    from coex_apps.console import attach, drive_simulation
     from coex_core.acoustic import AcousticChannel
-    from coex_plugins.console import attach, drive_simulation
 
     top = Node(ChannelManager(1, [LinkConfig(0, NUI)]))
     top.add_receiver(BathymetryModality, BathymetryReceiver())
@@ -779,8 +779,8 @@ def test_attached_node_driven_like_the_demo_loop() -> None:
     sees everything, and page commands (a schedule gets a new command id from the manager) are
     sent from the loop's thread and end up accepted."""
     from coex import SimNetwork
+    from coex_apps.console import attach
     from coex_core.acoustic import AcousticChannel
-    from coex_plugins.console import attach
 
     sched = Schedule.simple([1, 2], 10.0, 1.0)
     top = Node(ChannelManager(1, [LinkConfig(0, sched)]))
@@ -902,8 +902,8 @@ def test_a_console_leaves_the_node_s_receivers_alone() -> None:
     """``coex topside`` and ``demo --gui`` attach the console to the node: its receivers stay
     the node's own objects (no wrapper that could lose a hook, as a wrapper once lost
     ``supersedes``), and a retried region request still replaces the earlier copy."""
+    from coex_apps.console import attach
     from coex_core.channel import CONTROL_STREAM
-    from coex_plugins.console import attach
 
     receiver = BathymetryReceiver({"levels": 3, "request_timeout": 100.0})
     tmgr = ChannelManager(1, [LinkConfig(0, Schedule.simple([1, 2], 5.0, 0.5), dst=2)])
@@ -928,8 +928,8 @@ def test_a_script_and_the_console_never_share_a_command_id() -> None:
     a queue change the vehicle refuses. Each must get its own answer: the person's command shows
     rejected, the script's goal reaches the vehicle's sender and is accepted."""
     from coex import SimNetwork
+    from coex_apps.console import attach
     from coex_core.acoustic import AcousticChannel
-    from coex_plugins.console import attach
     from coex_plugins.imagery import ImageryModality
     from coex_plugins.imagery.sender import ImageInput
     from coex_plugins.imagery.synth import seafloor
@@ -967,7 +967,7 @@ def test_a_script_and_the_console_never_share_a_command_id() -> None:
 
 
 def test_tap_receiver_is_deprecated_and_wraps_nothing() -> None:
-    from coex_plugins.console import tap_receiver
+    from coex_apps.console import tap_receiver
 
     rx = BathymetryReceiver()
     with pytest.warns(DeprecationWarning, match="node's receivers"):
@@ -1089,7 +1089,7 @@ def test_a_survey_that_cannot_be_sent_is_refused_with_a_clear_error() -> None:
 
 
 def test_topside_runs_the_survey_receiver_by_default() -> None:
-    from coex_plugins.console.cli import build_topside
+    from coex_apps.console.cli import build_topside
 
     app = build_topside("loopback://survey-default", "127.0.0.1", 0, clock=lambda: 100.0)
     try:
@@ -1193,9 +1193,9 @@ def test_repeated_events_are_counted_in_one_entry_not_listed() -> None:
 
 
 def test_the_counted_log_is_bounded_and_survives_a_save() -> None:
+    from coex_apps.console.state import MAX_REPEATS
     from coex_core.channel.events import Dropped
     from coex_core.state import dumps, loads
-    from coex_plugins.console.state import MAX_REPEATS
 
     st = ConsoleState(max_log=50)
     for k in range(1000):  # 1000 different streams and reasons: a bounded log, bounded keys
@@ -1264,8 +1264,8 @@ def test_survey_outcomes_come_from_the_receiver_in_words_and_in_the_vehicles_ord
 def test_the_console_keeps_the_newest_images_only() -> None:
     """A dive of several days: the console's images (with their decoded pictures, saved with
     the console) stay at MAX_IMAGES, the newest by time."""
+    from coex_apps.console.state import MAX_IMAGES
     from coex_core.modality import Product
-    from coex_plugins.console.state import MAX_IMAGES
 
     st = ConsoleState(schedules={0: NUI})
     n = MAX_IMAGES + 44

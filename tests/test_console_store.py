@@ -23,6 +23,8 @@ from typing import Any
 
 import pytest
 
+from coex_apps.console.cli import TopsideApp, build_topside
+from coex_apps.console.testing import survey_points
 from coex_core import messages as m
 from coex_core.channel import ChannelManager, LinkConfig, Schedule, StreamConfig
 from coex_core.errors import ConfigError
@@ -30,11 +32,9 @@ from coex_core.node import Node
 from coex_core.registry import open_transport
 from coex_core.timefmt import to_stamp
 from coex_plugins.bathymetry import BathymetryModality, BathymetrySender
-from coex_plugins.console.cli import TopsideApp, build_topside
-from coex_plugins.console.testing import survey_points
 from coex_plugins.imagery import ImageInput, ImageryModality
 from coex_plugins.imagery.synth import seafloor
-from coex_transports.store import snapshot_text
+from coex_runtime.store import snapshot_text
 
 T0 = 36000.0
 SCHEDULE = Schedule.simple([1, 2], 4.0, 0.5)

@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from coex_plugins.demo import DemoConfig, run_demo
+from coex_apps.demo import DemoConfig, run_demo
 
 
 @pytest.fixture(scope="module")
@@ -98,7 +98,7 @@ def test_a_slow_link_still_finds_and_confirms_the_cars(tmp_path: Path) -> None:
     """Preset lowrate (Micromodem rate 1, about 50 % loss), short scenario: the vehicle's link is
     low (the operator leaves the 1 m map to it), both cars are detected on the vehicle and
     confirmed by images that show them, and nothing else is confirmed."""
-    from coex_plugins.demo.scenario import preset
+    from coex_apps.demo.scenario import preset
 
     metrics = run_demo(DemoConfig(out=tmp_path, quick=True, seed=1, progress=False,
                                   scenario=preset("lowrate"))).metrics
@@ -221,7 +221,7 @@ def test_the_dive_spends_idle_bytes_and_sends_none_when_spare_traffic_is_off(
     """With spare traffic on (the default) the vehicle fills the packets it sends while work is
     ready, lost subgrids come back, requests are answered at the next vehicle slot in the
     median; with ``modem.spare = 0`` not one spare or redundant byte leaves the vehicle."""
-    from coex_plugins.demo.scenario import preset, scenario_from_dict
+    from coex_apps.demo.scenario import preset, scenario_from_dict
 
     _, metrics = demo
     link = metrics["link"]
@@ -242,7 +242,7 @@ def test_the_camera_pass_flew_only_after_a_survey_command_crossed_the_link(
     """No side channel: every camera line the vehicle flew was a survey command topside sent,
     that arrived in a topside packet the simulated modem delivered, that the vehicle accepted
     (and topside heard so) before it set off; every camera frame came after that."""
-    from coex_plugins.demo.config import EPOCH, TOPSIDE, VEHICLE
+    from coex_apps.demo.config import EPOCH, TOPSIDE, VEHICLE
 
     out, metrics = demo
     surveys = metrics["surveys"]

@@ -11,12 +11,12 @@ from typing import Any
 
 import pytest
 
+from coex_apps.demo import DemoConfig
+from coex_apps.demo.config import CAMERA, TOPSIDE, VEHICLE
+from coex_apps.demo.run import DiveRun
+from coex_apps.demo.scenario import preset, scenario_from_dict
+from coex_apps.demo.world import dive_schedule
 from coex_core.errors import ConfigError
-from coex_plugins.demo import DemoConfig
-from coex_plugins.demo.config import CAMERA, TOPSIDE, VEHICLE
-from coex_plugins.demo.run import DiveRun
-from coex_plugins.demo.scenario import preset, scenario_from_dict
-from coex_plugins.demo.world import dive_schedule
 
 
 @pytest.fixture(scope="module")

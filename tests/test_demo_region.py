@@ -18,10 +18,10 @@ from typing import Any
 import numpy as np
 import pytest
 
-from coex_plugins.demo import DemoConfig
-from coex_plugins.demo.operator import CONFIRM_LAYERS, MORE_LAYERS
-from coex_plugins.demo.run import DiveRun
-from coex_plugins.demo.truth import Eye
+from coex_apps.demo import DemoConfig
+from coex_apps.demo.operator import CONFIRM_LAYERS, MORE_LAYERS
+from coex_apps.demo.run import DiveRun
+from coex_apps.demo.truth import Eye
 from coex_plugins.imagery import codec
 from coex_plugins.imagery.sender import BRIDGE_BYTES, packet_layers
 

@@ -11,13 +11,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from coex_core.errors import ConfigError
-from coex_plugins.bathymetry.sim import Seafloor, Target
-from coex_plugins.demo import DemoConfig, run_demo
-from coex_plugins.demo.camera import SandTexture, render_labelled
-from coex_plugins.demo.config import LAYER_PSNR
-from coex_plugins.demo.operator import car_likeness, measure
-from coex_plugins.demo.scenario import (
+from coex_apps.demo import DemoConfig, run_demo
+from coex_apps.demo.camera import SandTexture, render_labelled
+from coex_apps.demo.config import LAYER_PSNR
+from coex_apps.demo.operator import car_likeness, measure
+from coex_apps.demo.scenario import (
     PRESETS,
     ObjectSpec,
     Scenario,
@@ -25,7 +23,9 @@ from coex_plugins.demo.scenario import (
     preset,
     scenario_from_dict,
 )
-from coex_plugins.demo.truth import Eye, frame_truth, judge
+from coex_apps.demo.truth import Eye, frame_truth, judge
+from coex_core.errors import ConfigError
+from coex_plugins.bathymetry.sim import Seafloor, Target
 from coex_plugins.imagery.codec import CodingParams, decode_packets, encode_image, split_packets
 
 # ---------------------------------------------------------------------------------- scenarios

@@ -121,7 +121,7 @@ class _Feeds:
 
 @pytest.fixture
 def deployment(tmp_path: Path) -> Iterator[dict[str, Any]]:
-    from coex_plugins.vehicle.autonomy.mavpeer import MissionPeer
+    from coex_plugins.autonomy.mavpeer import MissionPeer
 
     tcp = _port(n=2)
     udp = _port(socket.SOCK_DGRAM, n=2)

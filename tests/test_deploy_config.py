@@ -9,8 +9,8 @@ from pathlib import Path
 
 import pytest
 
+from coex_apps.vehicle.config import check, expand, load
 from coex_core.errors import ConfigError
-from coex_plugins.vehicle.config import check, expand, load
 
 EXAMPLES = Path(__file__).resolve().parents[1] / "examples" / "deploy"
 
@@ -176,7 +176,7 @@ def test_the_console_s_host_and_idle_keys_are_checked(tmp_path: Path) -> None:
 def test_detections_run_when_named_with_their_stream_and_a_low_link_priority(tmp_path: Path) -> None:
     """Not run unless named (what a vehicle looks for is the mission's); named, detections take
     stream 8 at priority 100; ``low_priority`` reaches the stream (docs/channel.md)."""
-    from coex_plugins.vehicle.daemon import build_vehicle_node
+    from coex_apps.vehicle.daemon import build_vehicle_node
 
     f = tmp_path / "v.toml"
     head = '[node]\nrole = "vehicle"\nid = 2\npeer = 1\nstore = false\n[[modems]]\nuri = "loopback://d"\n'
@@ -197,8 +197,8 @@ def test_detections_run_when_named_with_their_stream_and_a_low_link_priority(tmp
 def test_one_build_node_for_the_vehicle_and_the_topside_from_a_file_or_the_options(tmp_path: Path) -> None:
     """``build_node(config, role, transports)`` builds both nodes; the topside's command-line
     options make the same checked configuration as a file saying the same (``topside_config``)."""
-    from coex_plugins.console.cli import topside_config
-    from coex_plugins.vehicle.build import build_node, link_configs
+    from coex_apps.console.cli import topside_config
+    from coex_apps.vehicle.build import build_node, link_configs
 
     link = type("T", (), {"mtu": 128})()
     f = tmp_path / "t.toml"
@@ -227,7 +227,7 @@ def test_one_build_node_for_the_vehicle_and_the_topside_from_a_file_or_the_optio
 
 
 def test_the_topside_options_are_checked_by_the_files_checker_naming_each_option() -> None:
-    from coex_plugins.console.cli import topside_config
+    from coex_apps.console.cli import topside_config
 
     with pytest.raises(ConfigError) as err:
         topside_config("loopback://c1", node_id=20, slot=1.0, guard=3.0, rate=9)

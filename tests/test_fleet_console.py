@@ -16,14 +16,14 @@ from typing import Any
 import pytest
 
 from coex import SimNetwork
+from coex_apps.console.fleet import fleet_hub
+from coex_apps.console.server import serve
+from coex_apps.vehicle.build import build_node
+from coex_apps.vehicle.config import check_mapping, from_mapping
 from coex_core.acoustic import AcousticChannel
 from coex_core.errors import ConfigError
 from coex_core.messages import VehicleMode, VehicleStatus
 from coex_core.registry import open_transport
-from coex_plugins.console.fleet import fleet_hub
-from coex_plugins.console.server import serve
-from coex_plugins.vehicle.build import build_node
-from coex_plugins.vehicle.config import check_mapping, from_mapping
 from tests.test_console_browser import browser  # noqa: F401 (headless Chromium, a fixture)
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -226,8 +226,8 @@ def test_the_fleet_console_refuses_a_vehicle_it_does_not_have(tmp_path: Path) ->
 
 
 def test_the_store_keeps_each_vehicles_console(tmp_path: Path) -> None:
-    from coex_plugins.console.cli import topside_app
-    from coex_plugins.console.fleet import FleetHub
+    from coex_apps.console.cli import topside_app
+    from coex_apps.console.fleet import FleetHub
 
     raw = topside_raw()
     raw["node"]["store"] = "top.sqlite"
@@ -272,6 +272,9 @@ def test_the_fleet_page_shows_every_vehicle_and_commands_the_one_shown(
         assert "mapper (2)" in strip and "camera (3)" in strip, strip
         assert page.get_attribute("#fleet a[data-vehicle=mapper]", "href") == "/?vehicle=mapper"
         page.wait_for_function("document.querySelector('#vehicle-status').textContent.includes('pos')")
+        # the TDMA bar names each slot's vehicle, not "veh"
+        page.wait_for_function("S.link && S.link.schedules.length > 0")
+        assert page.evaluate("[1, 2, 3].map((o) => slotOwner(o, S.link))") == ["top", "mapper", "camera"]
         # the page's own action carries its vehicle (the operator never types it)
         page.evaluate("act('survey', {kind: 'goto', x: 40, y: -20})")
         page.wait_for_function("act.lastError === ''")

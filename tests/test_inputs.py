@@ -15,9 +15,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from coex_core.errors import ConfigError
-from coex_plugins.vehicle.inputs._files import as_pixels
-from coex_plugins.vehicle.inputs.base import (
+from coex import (
     FEEDS,
     Image,
     Input,
@@ -25,9 +23,11 @@ from coex_plugins.vehicle.inputs.base import (
     Points,
     check_options,
 )
-from coex_plugins.vehicle.inputs.directory import DirectoryInput
-from coex_plugins.vehicle.inputs.points import PointsInput
-from coex_plugins.vehicle.options import compass_from_enu_yaw, yaw_of_quaternion
+from coex_core.errors import ConfigError
+from coex_plugins.inputs._files import as_pixels
+from coex_plugins.inputs.directory import DirectoryInput
+from coex_plugins.inputs.points import PointsInput
+from coex_plugins.options import compass_from_enu_yaw, yaw_of_quaternion
 
 ROOT = Path(__file__).resolve().parents[1]
 OLD = time.time() - 3600.0  # an mtime that has long settled
@@ -75,7 +75,7 @@ def test_unknown_and_missing_options_are_named() -> None:
 def test_every_problem_of_an_adapters_options_is_reported_together_with_its_key(tmp_path: Path) -> None:
     """An adapter's options are checked by the one collector: every unknown and missing option at
     once, in one ConfigError (the adapter) or under the input's key (the deployment file)."""
-    from coex_plugins.vehicle.config import check
+    from coex_apps.vehicle.config import check
 
     with pytest.raises(ConfigError) as err:
         DirectoryInput({"paht": "y", "setle": 1}, InputContext())
@@ -358,8 +358,8 @@ def test_adapters_load_without_their_optional_libraries() -> None:
         "import sys\n"
         "for m in ('lcm', 'pymavlink', 'serial', 'rosbags', 'tifffile', 'PIL'): sys.modules[m] = None\n"
         "from coex_core.errors import PluginLoadError\n"
-        "from coex_plugins.vehicle.inputs.base import InputContext\n"
-        "from coex_plugins.vehicle.inputs import directory, points, rosbag, lcm, mavlink, nmea\n"
+        "from coex import InputContext\n"
+        "from coex_plugins.inputs import directory, points, rosbag, lcm, mavlink, nmea\n"
         "try:\n"
         "    lcm.LcmInput({'nav_channel': 'NAV'}, InputContext()).open()\n"
         "except PluginLoadError as exc:\n"
@@ -372,7 +372,7 @@ def test_adapters_load_without_their_optional_libraries() -> None:
 
 
 def test_log_once_logs_each_problem_once_and_stays_bounded(caplog: pytest.LogCaptureFixture) -> None:
-    from coex_plugins.vehicle.options import LogOnce
+    from coex_plugins.options import LogOnce
 
     once = LogOnce(logging.getLogger("test.inputs"))
     once.LIMIT = 3

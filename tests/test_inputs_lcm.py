@@ -13,9 +13,9 @@ from typing import Any
 
 import pytest
 
+from coex import InputContext, Item, Nav, Points, Samples, check_options
 from coex_core.errors import ConfigError
-from coex_plugins.vehicle.inputs.base import InputContext, Item, Nav, Points, Samples, check_options
-from coex_plugins.vehicle.inputs.lcm import LcmInput, compile_path, make_nav_t
+from coex_plugins.inputs.lcm import LcmInput, compile_path, make_nav_t
 
 lcm = pytest.importorskip("lcm")
 

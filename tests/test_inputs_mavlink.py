@@ -13,9 +13,9 @@ from typing import Any
 import numpy as np
 import pytest
 
+from coex import Image, InputContext, Item, Nav, Samples, check_options
 from coex_core.errors import ConfigError
-from coex_plugins.vehicle.inputs.base import Image, InputContext, Item, Nav, Samples, check_options
-from coex_plugins.vehicle.inputs.mavlink import MavlinkInput, pressure_depth
+from coex_plugins.inputs.mavlink import MavlinkInput, pressure_depth
 
 mavutil = pytest.importorskip("pymavlink.mavutil")
 from pymavlink.dialects.v20 import ardupilotmega as v20  # noqa: E402

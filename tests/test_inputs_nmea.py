@@ -11,9 +11,9 @@ import time
 import numpy as np
 import pytest
 
+from coex import InputContext, Item, Nav, Samples, check_options
 from coex_core.errors import ConfigError
-from coex_plugins.vehicle.inputs.base import InputContext, Item, Nav, Samples, check_options
-from coex_plugins.vehicle.inputs.nmea import NmeaError, NmeaInput, checksum, parse_sentence
+from coex_plugins.inputs.nmea import NmeaError, NmeaInput, checksum, parse_sentence
 
 KNOT = 1852.0 / 3600.0
 

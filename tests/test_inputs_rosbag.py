@@ -13,9 +13,9 @@ from typing import Any
 import numpy as np
 import pytest
 
+from coex import Image, InputContext, Nav, Points
 from coex_core.errors import ConfigError
-from coex_plugins.vehicle.inputs.base import Image, InputContext, Nav, Points
-from coex_plugins.vehicle.inputs.rosbag import RosbagInput
+from coex_plugins.inputs.rosbag import RosbagInput
 
 Build = Callable[[Any, Any], Any]  # (typestore, header) -> message
 

@@ -1,11 +1,16 @@
-"""The layers import only downward: core <- transports (and the ``coex`` facade, and the
-conformance kit) <- modalities <- apps (console, demo, vehicle); no module imports itself back through
-others (no cycles); README and docs show only the public facade for core and run-loop names."""
+"""The layers import only downward: core <- transports (the transports' protocol code, the runtime,
+the ``coex`` facade, the conformance kit) <- modalities (the built-in plugins, the sample plugin)
+<- apps (console, demo, vehicle); inside the transports layer the protocol code imports neither the
+runtime nor the facade, and the runtime does not import the facade; the plugins import only
+``coex`` and their own package; no module imports itself back through others (no cycles); README
+and docs show only the public facade for core and run-loop names."""
 
 from __future__ import annotations
 
 import ast
 import re
+import subprocess
+import sys
 import tomllib
 from pathlib import Path
 
@@ -17,22 +22,38 @@ ROOT = Path(__file__).resolve().parents[1]
 PACKAGES = {
     "coex_core": "coex_core",
     "coex_transports": "transports/coex_transports",
-    "coex": "transports/coex",
+    "coex_runtime": "runtime/coex_runtime",
+    "coex": "coex",
     "coex_conformance": "conformance_tests/coex_conformance",
     "coex_plugins": "plugins/coex_plugins",
+    "coex_sample_plugin": "examples/coex-sample-plugin/coex_sample_plugin",
+    "coex_apps": "apps/coex_apps",
 }
-APPS = ("coex_plugins.console", "coex_plugins.demo", "coex_plugins.vehicle")
 LAYER_NAMES = ("core", "transports", "modalities", "apps")
+#: the transports layer from the bottom: protocol code, runtime, facade, conformance kit
+TIERS = ("coex_transports", "coex_runtime", "coex", "coex_conformance")
+#: packages of plugins: each imports only ``coex`` and itself (and libraries that are not CoEx, the
+#: conformance kit among them: a plugin's conformance companion is written with it)
+PLUGINS = ("coex_plugins", "coex_sample_plugin")
+BESIDE_PLUGINS = ("coex", "coex_conformance")
+#: imports inside the transports layer that go up a tier, each with why it is still there; an
+#: entry no longer needed fails the test (delete it)
+KNOWN_TIER_IMPORTS = {
+    ("coex_transports.micromodem.simnetwork", "coex_runtime.runner"):
+        "SimLoop (runners over simulated modems) uses the runner's next_wakeup: a run loop, not "
+        "protocol code, to join the runtime's loops",
+}
 
 
 def layer(module: str) -> int:
-    """0 core, 1 transports (with the facade and the conformance kit), 2 modalities, 3 apps."""
+    """0 core, 1 transports (protocol code, runtime, facade, conformance kit), 2 modalities,
+    3 apps."""
     top = module.split(".")[0]
     if top == "coex_core":
         return 0
-    if top in ("coex_transports", "coex", "coex_conformance"):
+    if top in TIERS:
         return 1
-    if module.startswith(APPS) or module == "coex_plugins":
+    if top == "coex_apps":
         return 3
     return 2
 
@@ -158,8 +179,37 @@ def cycles(g: dict[str, set[str]]) -> list[list[str]]:
     return found
 
 
+def up_a_tier(g: dict[str, set[str]]) -> list[str]:
+    """Imports inside the transports layer from a lower tier to a higher one (protocol code
+    importing the runtime or the facade, the runtime importing the facade, anything below the
+    conformance kit importing it)."""
+    def tier(m: str) -> int:
+        return TIERS.index(m.split(".")[0])
+
+    return [f"{a} imports {b}" for a, deps in sorted(g.items()) if layer(a) == 1
+            for b in sorted(deps) if layer(b) == 1 and tier(b) > tier(a)]
+
+
+def beside_the_facade(g: dict[str, set[str]]) -> list[str]:
+    """Imports of a plugin package's modules that are neither ``coex`` (nor the conformance kit)
+    nor the package itself."""
+    return [f"{a} imports {b}" for a, deps in sorted(g.items()) if a.split(".")[0] in PLUGINS
+            for b in sorted(deps) if b.split(".")[0] not in (*BESIDE_PLUGINS, a.split(".")[0])]
+
+
 def test_no_layer_imports_a_layer_above_it() -> None:
     assert upward(graph(ROOT)) == []
+
+
+def test_protocol_code_imports_neither_runtime_nor_facade() -> None:
+    found = up_a_tier(graph(ROOT))
+    known = [f"{a} imports {b}" for a, b in KNOWN_TIER_IMPORTS]
+    assert [f for f in found if f not in known] == []
+    assert [k for k in known if k not in found] == [], "no longer imported: delete from KNOWN_TIER_IMPORTS"
+
+
+def test_plugins_import_only_the_facade_and_themselves() -> None:
+    assert beside_the_facade(graph(ROOT)) == []
 
 
 def test_no_module_imports_itself_back_through_others() -> None:
@@ -188,7 +238,8 @@ def test_no_module_reaches_into_another_package_s_private_modules() -> None:
 
 def test_the_checks_catch_an_upward_import_and_a_cycle(tmp_path: Path) -> None:
     """The checks above on a made-up tree: a transport importing a plugin, two console modules
-    importing each other (lazily, inside a function), a plugin using a core private module."""
+    importing each other (lazily, inside a function), a plugin using a core private module and
+    the core beside the facade, protocol code using the runtime, the runtime the facade."""
     for where in PACKAGES.values():
         (tmp_path / where).mkdir(parents=True, exist_ok=True)
         (tmp_path / where / "__init__.py").write_text("")
@@ -197,33 +248,51 @@ def test_the_checks_catch_an_upward_import_and_a_cycle(tmp_path: Path) -> None:
         "def f():\n    from coex_plugins.bathymetry import decode\n")
     (tmp_path / "coex_core" / "_codec.py").write_text("from . import wire\n")
     (tmp_path / "plugins/coex_plugins/bathymetry.py").write_text(
-        "from coex_core import wire\nfrom coex_core._codec import X\n")
-    console = tmp_path / "plugins/coex_plugins/console"
+        "import numpy\nimport coex\nfrom coex.messages import Subgrid\nfrom coex_core import wire\n"
+        "from coex_core._codec import X\nfrom . import render\n")
+    (tmp_path / "plugins/coex_plugins/render.py").write_text("from coex_runtime import runner\n")
+    console = tmp_path / "apps/coex_apps/console"
     console.mkdir()
     (console / "__init__.py").write_text("")
     (console / "node.py").write_text("def attach():\n    from .server import Hub\n")
-    (console / "server.py").write_text("from .node import attach\n")
+    (console / "server.py").write_text("from .node import attach\nfrom coex_core import wire\n")
+    (tmp_path / "runtime/coex_runtime/runner.py").write_text("from coex_core import wire\n")
+    (tmp_path / "runtime/coex_runtime/store.py").write_text("import coex\n")
+    (tmp_path / "transports/coex_transports/sim.py").write_text(
+        "def run():\n    from coex_runtime.runner import next_wakeup\n")
+    (tmp_path / "examples/coex-sample-plugin/coex_sample_plugin/dark.py").write_text(
+        "from coex import Modality\nfrom coex_sample_plugin import X\nfrom coex_plugins import render\n"
+        "from coex_conformance import companions\n")
     # links the wrong way without an import statement: a module named in a string, a plugin
     # loaded by its registered name
     (tmp_path / "coex_core" / "cli.py").write_text(
-        "import importlib\ndef f():\n    return importlib.import_module('coex_plugins.console.node')\n")
+        "import importlib\ndef f():\n    return importlib.import_module('coex_apps.console.node')\n")
     (tmp_path / "transports/coex_transports/products.py").write_text(
         "from coex_core.registry import load_modality\nDECODE = load_modality('bathymetry').decode\n")
     (tmp_path / "pyproject.toml").write_text(
         '[project.entry-points."coex.modalities"]\nbathymetry = "coex_plugins.bathymetry:Modality [x]"\n')
     g = graph(tmp_path)
-    assert upward(g) == ["coex_core.cli (core) imports coex_plugins.console.node (apps)",
+    assert upward(g) == ["coex_core.cli (core) imports coex_apps.console.node (apps)",
                          "coex_transports.lcm (transports) imports coex_plugins.bathymetry (modalities)",
                          "coex_transports.products (transports) imports coex_plugins.bathymetry "
                          "(modalities)"]
-    assert cycles(g) == [["coex_plugins.console.node", "coex_plugins.console.server"]]
+    assert cycles(g) == [["coex_apps.console.node", "coex_apps.console.server"]]
     assert private_imports(g) == ["coex_plugins.bathymetry imports coex_core._codec"]
+    assert up_a_tier(g) == ["coex_runtime.store imports coex",
+                            "coex_transports.sim imports coex_runtime.runner"]
+    assert beside_the_facade(g) == ["coex_plugins.bathymetry imports coex_core",
+                                    "coex_plugins.bathymetry imports coex_core._codec",
+                                    "coex_plugins.bathymetry imports coex_core.wire",
+                                    "coex_plugins.render imports coex_runtime",
+                                    "coex_plugins.render imports coex_runtime.runner",
+                                    "coex_sample_plugin.dark imports coex_plugins",
+                                    "coex_sample_plugin.dark imports coex_plugins.render"]
 
 
 DOCS = [ROOT / "README.md", *sorted((ROOT / "docs").glob("*.md"))]
-#: core modules and run loops are imported from the facade; a plugin's or a transport plugin's
-#: own API (``coex_plugins.bathymetry``, ``coex_transports.lcm``) from its package
-PRIVATE = re.compile(r"^\s*(from|import)\s+(coex_core\b|coex_transports\.(_\w+|runner|store)\b)")
+#: core modules and the runtime (run loops, store) are imported from the facade; a plugin's or a
+#: transport plugin's own API (``coex_plugins.bathymetry``, ``coex_transports.lcm``) from its package
+PRIVATE = re.compile(r"^\s*(from|import)\s+(coex_core\b|coex_runtime\b|coex_transports\._\w+\b)")
 
 
 @pytest.mark.parametrize("doc", DOCS, ids=[p.name for p in DOCS])
@@ -241,16 +310,30 @@ def test_docs_import_core_names_only_from_the_public_facade(doc: Path) -> None:
 def test_the_facade_offers_what_integrators_and_plugin_authors_need() -> None:
     import coex
     from coex_core.modality import ModalitySender
-    from coex_transports.runner import Runner
+    from coex_core.storage import Storage
+    from coex_runtime.runner import Runner
 
     names = {"Node", "ChannelManager", "LinkConfig", "Schedule", "StreamConfig", "Modality",
              "ModalitySender", "ModalityReceiver", "Transport", "Product", "open_transport",
-             "Runner", "SimNetwork", "NodeStore", "CoexError", "ConfigError", "DecodeError"}
+             "Runner", "SimNetwork", "NodeStore", "CoexError", "ConfigError", "DecodeError",
+             # plugin, input and autonomy authors
+             "Storage", "MemoryStorage", "Input", "InputContext", "Item", "Autonomy", "SurveyPlan",
+             "SurveyReport", "Detector", "Finding", "persistent", "StateError", "merged_config",
+             "Problems", "RequestTracker", "to_stamp", "unwrap", "STAMP_MODULUS", "encode_subgrid",
+             "decode_subgrid"}
     assert names <= set(coex.__all__)
     assert all(getattr(coex, n) is not None for n in coex.__all__)
-    assert coex.Runner is Runner and coex.ModalitySender is ModalitySender
+    assert coex.Runner is Runner and coex.ModalitySender is ModalitySender and coex.Storage is Storage
     from coex.messages import Opaque  # the core's modules under the facade's name
+    from coex.tracker import State
 
-    assert Opaque is coex.messages.Opaque
+    assert Opaque is coex.messages.Opaque and State is coex.tracker.State
 
 
+def test_importing_the_facade_loads_no_plugin_app_or_middleware() -> None:
+    code = ("import sys, coex; print(sorted(m for m in sys.modules if m.startswith(('coex_plugins', "
+            "'coex_apps', 'coex_conformance', 'coex.lcm', 'coex.moos', 'coex.ros', 'coex_transports.lcm', "
+            "'coex_transports.moos', 'coex_transports.ros', 'coex_transports.mavlink', "
+            "'coex_transports.micromodem'))))")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == "[]"

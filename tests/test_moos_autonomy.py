@@ -9,10 +9,10 @@ from typing import Any
 
 import pytest
 
+from coex import InputContext
 from coex_core.messages import SurveyKind, SurveyReason, SurveyState
+from coex_plugins.autonomy.moos import MoosAutonomy, parse_update_result
 from coex_plugins.survey.plan import SurveyPlan
-from coex_plugins.vehicle.autonomy.moos import MoosAutonomy, parse_update_result
-from coex_plugins.vehicle.inputs.base import InputContext
 from coex_transports.moos import MoosMessage
 
 WPT = "name=coex_survey#points=0,-40:30,-40#speed=1"

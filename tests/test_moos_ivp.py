@@ -115,7 +115,7 @@ class Topside:
 
 @contextlib.contextmanager
 def community(ivp_bin: Path, tmp_path: Path) -> Iterator[tuple[Community, Watcher, Topside]]:
-    from coex_plugins.console.cli import topside_from_config
+    from coex_apps.console.cli import topside_from_config
 
     c = Community(ivp_bin, tmp_path, WARP, EXTRA)
     watcher = topside = None

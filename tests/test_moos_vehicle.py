@@ -20,13 +20,13 @@ from typing import Any
 import numpy as np
 import pytest
 
+from coex import InputContext, Nav, Samples
+from coex_apps.vehicle.mission import check_mission, read_mission
 from coex_core.errors import ConfigError
 from coex_core.messages import SurveyKind, SurveyReason, SurveyState
+from coex_plugins.autonomy.moos import MoosAutonomy, update_of
+from coex_plugins.inputs.moos import MoosInput
 from coex_plugins.survey.plan import SurveyPlan
-from coex_plugins.vehicle.autonomy.moos import MoosAutonomy, update_of
-from coex_plugins.vehicle.inputs.base import InputContext, Nav, Samples
-from coex_plugins.vehicle.inputs.moos import MoosInput
-from coex_plugins.vehicle.mission import check_mission, read_mission
 
 from ._moos import MoosDB, moos_entry_points, unique
 
@@ -438,9 +438,9 @@ uri = "{modem}?src=1&dest=2&rate=5"
 def test_a_survey_command_reaches_the_helm_and_its_progress_comes_back(
         tmp_path: Path, moosdb: MoosDB, pymoos_client: Callable[..., Any]) -> None:
     pytest.importorskip("serial")
-    from coex_plugins.console.cli import topside_from_config
-    from coex_plugins.vehicle.config import load
-    from coex_plugins.vehicle.daemon import VehicleApp
+    from coex_apps.console.cli import topside_from_config
+    from coex_apps.vehicle.config import load
+    from coex_apps.vehicle.daemon import VehicleApp
 
     from ._modemsim import modem_sim
 
@@ -508,7 +508,7 @@ def test_pcoex_runs_from_the_example_mission_and_stops_on_sigterm(
     mission = tmp_path / "moos" / "coex_alpha.moos"
     watcher = pymoos_client("COEX_WPT_UPDATE")
     env = dict(os.environ)
-    extra = [str(ROOT), str(ROOT / "plugins"), str(ROOT / "transports"), str(ROOT / "conformance_tests")]
+    extra = [str(ROOT / p) for p in ("", "transports", "runtime", "conformance_tests", "plugins", "apps")]
     if SHIM is not None:
         extra.append(SHIM)
     env["PYTHONPATH"] = os.pathsep.join(extra + [p for p in env.get("PYTHONPATH", "").split(os.pathsep) if p])

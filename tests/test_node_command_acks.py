@@ -27,10 +27,10 @@ def test_command_ack_reaches_the_requesting_receiver() -> None:
 def test_a_command_unanswered_for_three_cycles_shows_no_answer_and_a_late_answer_still_lands() -> None:
     """The ship knows a command's true state: unanswered for ANSWER_CYCLES TDMA cycles it is "no
     answer" (an event, the console's word); the vehicle's answer that comes after all is taken."""
+    from coex_apps.console.state import ConsoleState
     from coex_core.channel import CommandResult, CommandUnanswered
     from coex_core.channel.commands import ANSWER_CYCLES
     from coex_core.tracker import State
-    from coex_plugins.console.state import ConsoleState
 
     sched = Schedule.simple([1, 2], 20.0, 2.0)
     topside = Node(ChannelManager(1, [LinkConfig(0, sched, rate=5, dst=2)]))

@@ -19,8 +19,8 @@ import pytest
 from coex_core import wire
 from coex_core.errors import DecodeError
 from coex_core.messages import FrameAck, ImageAck, ImageFragment, MapRoiRequest, Subgrid
+from coex_runtime.store import NodeStore
 from coex_transports.lcm.testing import TEST_UDPM_URL, ensure_multicast_route, unique_channel
-from coex_transports.store import NodeStore
 
 from ._faults import T0, VEHICLE, Dive, build_dive, images_complete, map_converged, series_complete
 from ._persist_node import ACK_TIMEOUT, PACKET_SECONDS

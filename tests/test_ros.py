@@ -24,13 +24,13 @@ from typing import Any
 import numpy as np
 import pytest
 
+from coex import Image, InputContext, Nav, Points, Samples
 from coex_core.errors import ConfigError
 from coex_core.messages import SurveyKind, SurveyReason, SurveyState
+from coex_plugins.autonomy.ros import RosAutonomy, parse_progress
+from coex_plugins.inputs.ros import RosInput
+from coex_plugins.inputs.rosmsg import FrameMap, frame_problems, nav_of, points_of
 from coex_plugins.survey.plan import SurveyPlan
-from coex_plugins.vehicle.autonomy.ros import RosAutonomy, parse_progress
-from coex_plugins.vehicle.inputs.base import Image, InputContext, Nav, Points, Samples
-from coex_plugins.vehicle.inputs.ros import RosInput
-from coex_plugins.vehicle.inputs.rosmsg import FrameMap, frame_problems, nav_of, points_of
 
 from ._ros import Roscore, kill, peer, ros_entry_points, ros_env, why_no_ros
 
@@ -158,7 +158,7 @@ def test_progress_answers() -> None:
 
 
 def test_topside_ros_table_is_checked() -> None:
-    from coex_plugins.vehicle.config import check_mapping
+    from coex_apps.vehicle.config import check_mapping
 
     base: dict[str, Any] = {"node": {"role": "topside", "id": 1}, "modems": [{"uri": "loopback://t"}],
                             "modalities": {"survey": {}}}
@@ -181,7 +181,7 @@ def test_the_example_rviz_configuration_shows_what_the_examples_publish() -> Non
 
     import yaml
 
-    from coex_plugins.vehicle.config import expand
+    from coex_apps.vehicle.config import expand
 
     rviz = yaml.safe_load((EXAMPLES / "coex.rviz").read_text())
     topside = tomllib.loads(expand((EXAMPLES / "topside.toml").read_text()))["ros"]
@@ -392,10 +392,10 @@ def test_no_planner_is_no_answer(roscore: Roscore) -> None:
 
 @needs_ros
 def test_topside_products_appear_on_ros_topics(roscore: Roscore, tmp_path: Path) -> None:
+    from coex_apps.console.ros import RosProducts
     from coex_core.channel.events import ProductUpdated, Received
     from coex_core.messages import VehicleMode, VehicleStatus
     from coex_core.modality import Product
-    from coex_plugins.console.ros import RosProducts
 
     listeners: list[Callable[[list[Any]], Any]] = []
     coex_node = SimpleNamespace(subscribe=lambda f: listeners.append(f) or (lambda: listeners.remove(f)))

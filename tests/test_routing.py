@@ -17,7 +17,7 @@ from coex_core.messages import FrameHeader, ImageAck, Message, Opaque
 from coex_core.modality import Modality, ModalityReceiver, ModalitySender, Product
 from coex_core.node import Node
 from coex_plugins.imagery import ImageryModality
-from coex_transports.runner import SimNetwork
+from coex_runtime.runner import SimNetwork
 
 VEHICLE, TOPSIDE = 2, 1
 

@@ -84,6 +84,23 @@ def test_an_imagery_sender_of_version_1_with_fates_keeps_them() -> None:
     assert list(old._fates) == [1, 0, 1] and old._standing == {}
 
 
+def test_an_imagery_sender_of_version_2_loads_with_no_announcement_copies_counted() -> None:
+    from coex_plugins.imagery.sender import ImagerySender
+
+    s = ImagerySender()
+    s._fates.extend([0, 0, 1])
+
+    def v2(doc: dict[str, Any]) -> None:
+        doc["classes"]["imagery.Sender"] = 2
+
+        def strip(o: dict[str, Any]) -> None:
+            if o["$o"] == "imagery.Sender":
+                o["f"].pop("_announce_sends", None)
+        _walk(doc, strip)
+    old = loads(_edit(dumps(s), v2))
+    assert old._announce_sends == {} and list(old._fates) == [0, 0, 1]
+
+
 def test_an_imagery_transfer_saved_before_regions_crops_repeats_and_interest_loads() -> None:
     """``imagery.Tx`` version 1 was saved without ``region``, ``crop``, ``sends`` and
     ``interest`` (0.1.0, and each added later in 0.2 work without a version): its upgrade fills

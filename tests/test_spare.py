@@ -34,7 +34,7 @@ from coex_core.messages import (
 from coex_core.modality import ModalitySender
 from coex_core.node import Node
 from coex_plugins.bathymetry import BathymetryModality, BathymetryReceiver, BathymetrySender
-from coex_transports.runner import SimNetwork
+from coex_runtime.runner import SimNetwork
 
 from ._bathy_data import small_survey
 

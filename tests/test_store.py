@@ -130,8 +130,8 @@ def test_a_wrapped_sender_keeps_its_wrapper_and_gets_the_saved_state() -> None:
     """An application that wraps a sender (here a recorder) saves the sender inside; restored,
     the node's wrapper is still the one it built, around the saved sender."""
     from coex import ChannelManager, LinkConfig, Node, Schedule, StreamConfig
+    from coex_apps.console.testing import RecordingSender, survey_points
     from coex_plugins.bathymetry import BathymetryModality, BathymetrySender
-    from coex_plugins.console.testing import RecordingSender, survey_points
 
     def build() -> tuple[Node, RecordingSender]:
         node = Node(ChannelManager(2, [LinkConfig(0, Schedule.simple([1, 2], 5.0, 0.5), dst=1)]))
@@ -154,7 +154,7 @@ def test_snapshots_are_incremental(tmp_path: Path) -> None:
     """A snapshot writes only the chunks the file does not hold: a second one of an unchanged
     node writes its manifest alone, one after a little more of the dive writes a small part of
     the state, and the chunks no snapshot uses any more are deleted; the node comes back whole."""
-    from coex_transports.store import chunk_text
+    from coex_runtime.store import chunk_text
 
     db = tmp_path / "topside.sqlite"
     dive, store = _dive_with_store(db, compact=True, snapshot_at=T0 + 150.0, until=T0 + 300.0)
@@ -194,7 +194,7 @@ def test_content_defined_chunks_resynchronise() -> None:
     """An insertion changes the chunks around it; the others are cut as before."""
     import numpy as np
 
-    from coex_transports.store import chunk_text
+    from coex_runtime.store import chunk_text
 
     rng = np.random.default_rng(1)
     data = rng.integers(32, 127, 200_000, dtype=np.uint8).tobytes()

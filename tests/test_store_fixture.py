@@ -18,7 +18,7 @@ import numpy as np
 import pytest
 
 from coex import AcousticChannel, ConfigError, NodeStore
-from coex_transports.store import SCHEMA_VERSION
+from coex_runtime.store import SCHEMA_VERSION
 
 from ._faults import T0, build_dive, run_sim
 

@@ -311,8 +311,8 @@ def test_a_bathymetry_region_saved_by_version_3_loads() -> None:
 def test_a_console_command_saved_by_version_1_loads(status: str, state: State, answer: str) -> None:
     """The console's commands of version 1 kept a ``status`` word and ``answered``: they load
     as the core tracker's entries and list as they did."""
+    from coex_apps.console.commands import _Command
     from coex_core import messages as m
-    from coex_plugins.console.commands import _Command
 
     cmd = _Command(7, "QueueConfig", "q", 100.0, m.QueueConfig(7, 2, False, False, None, None, None, None))
 
@@ -331,8 +331,8 @@ def test_a_console_command_saved_by_version_1_loads(status: str, state: State, a
 
 
 def test_the_console_lists_a_command_as_the_tracker_has_it() -> None:
+    from coex_apps.console.state import ConsoleState
     from coex_core import messages as m
-    from coex_plugins.console.state import ConsoleState
 
     st = ConsoleState()
     msg = m.QueueConfig(5, 2, False, False, None, None, None, None)

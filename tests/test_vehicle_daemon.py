@@ -10,9 +10,9 @@ import time
 from pathlib import Path
 from typing import Any
 
-from coex_plugins.console.cli import topside_from_config
-from coex_plugins.vehicle.config import load
-from coex_plugins.vehicle.daemon import VehicleApp
+from coex_apps.console.cli import topside_from_config
+from coex_apps.vehicle.config import load
+from coex_apps.vehicle.daemon import VehicleApp
 
 KEY = "00112233445566778899aabbccddeeff00112233445566778899aabbccddeeff"
 
@@ -216,7 +216,7 @@ def test_every_skipped_input_item_is_counted_per_input_in_the_summary(tmp_path: 
     import numpy as np
     from PIL import Image
 
-    from coex_plugins.vehicle.cli import summary_text
+    from coex_apps.vehicle.cli import summary_text
     from coex_transports.lcm import points_t
     from coex_transports.lcm.testing import TEST_UDPM_URL, ensure_multicast_route, unique_channel
 

@@ -18,7 +18,7 @@ from coex_core.messages import CommandAck, Message
 from coex_core.modality import Modality, ModalityReceiver, ModalitySender
 from coex_core.node import Node
 from coex_core.wire import encoded_size
-from coex_transports.runner import SimNetwork, SimulatedClock
+from coex_runtime.runner import SimNetwork, SimulatedClock
 
 from .companions import Companion, companions
 

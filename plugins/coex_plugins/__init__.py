@@ -1,1 +1,1 @@
-"""Built-in CoEx plugins (modalities and tools); each sub-package registers through entry points."""
+"""Built-in CoEx plugins: modalities, vehicle inputs and autonomy outputs; each registers through entry points."""

@@ -11,7 +11,7 @@ from typing import Any
 
 import numpy as np
 
-from coex_core.errors import RequestRejected
+from coex import RequestRejected
 
 __all__ = ["image_held", "images_missing", "map_converged", "series_complete"]
 

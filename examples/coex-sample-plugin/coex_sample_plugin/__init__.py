@@ -11,9 +11,6 @@ import struct
 from collections.abc import Mapping
 from typing import Any
 
-from coex.messages import Opaque
-from coex.wire import encoded_size
-
 from coex import (
     ConfigError,
     DecodeError,
@@ -26,6 +23,8 @@ from coex import (
     RequestRejected,
     persistent,
 )
+from coex.messages import Opaque
+from coex.wire import encoded_size
 
 PING_TYPE = 100  # third-party, one-byte form
 ACK_TYPE = 101

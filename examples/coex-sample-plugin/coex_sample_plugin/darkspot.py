@@ -17,9 +17,9 @@ from collections.abc import Mapping
 from typing import Any, ClassVar
 
 import numpy as np
-from coex.messages import DetectionSource
 
 from coex import ConfigError, Detector, Finding, ModalitySender, merged_config, persistent
+from coex.messages import DetectionSource
 
 __all__ = ["DarkSpotDetector"]
 

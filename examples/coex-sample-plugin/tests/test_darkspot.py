@@ -5,9 +5,9 @@ holds, it points at the frame with a dark hull and at no frame of sand."""
 from __future__ import annotations
 
 import numpy as np
-from coex.messages import Detection, DetectionSource
 
 import coex
+from coex.messages import Detection, DetectionSource
 from coex_sample_plugin.darkspot import DarkSpotDetector
 
 

@@ -12,9 +12,8 @@ from __future__ import annotations
 from collections.abc import Mapping
 from typing import Any, ClassVar
 
-from coex_core.messages import MapMetadata, MapRoiReply, MapRoiRequest, Message, Subgrid
-from coex_core.modality import Modality
-from coex_core.subgrid import decode_subgrid, decode_subgrid_units, encode_subgrid, subgrid_bits
+from coex import Modality, decode_subgrid, decode_subgrid_units, encode_subgrid, subgrid_bits
+from coex.messages import MapMetadata, MapRoiReply, MapRoiRequest, Message, Subgrid
 
 from .baseline import size_2022
 from .export import (

@@ -19,11 +19,8 @@ from typing import Any
 
 import numpy as np
 
-from coex_core import wire
-from coex_core.errors import CoexError, ConfigError
-from coex_core.jsonfmt import to_json
-from coex_core.loopback import LoopbackLink
-from coex_core.messages import (
+from coex import CoexError, ConfigError, LoopbackLink, decode_subgrid_units, to_json, wire
+from coex.messages import (
     FrameHeader,
     MapMetadata,
     MapRoiReply,
@@ -31,7 +28,6 @@ from coex_core.messages import (
     Message,
     Subgrid,
 )
-from coex_core.subgrid import decode_subgrid_units
 
 from .baseline import size_2022
 from .export import find_targets, write_level_geotiff, write_png

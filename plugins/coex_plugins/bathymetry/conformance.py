@@ -7,8 +7,8 @@ from __future__ import annotations
 from functools import lru_cache
 from typing import Any
 
+from coex import ModalityReceiver, ModalitySender
 from coex_conformance.companions import Companion
-from coex_core.modality import ModalityReceiver, ModalitySender
 
 BATHY_LEVELS = 3
 

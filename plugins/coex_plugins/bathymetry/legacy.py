@@ -9,7 +9,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import numpy.typing as npt
 
-from coex_core.state import persistent
+from coex import persistent
 
 __all__ = ["Held", "Mosaic"]
 

@@ -10,7 +10,7 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
-from coex_core.state import StateError, persistent
+from coex import StateError, persistent
 
 from . import tilestore
 

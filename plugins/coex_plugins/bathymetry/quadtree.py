@@ -58,9 +58,7 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
-from coex_core.errors import CoexError
-from coex_core.state import StateError, persistent
-from coex_core.storage import MemoryStorage, Storage
+from coex import CoexError, MemoryStorage, StateError, Storage, persistent
 
 from . import tilestore
 from ._arrays import _group_tiles, _grow, _pool

@@ -28,15 +28,22 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
-from coex_core.config import merged_config
-from coex_core.errors import ConfigError, RequestRejected
-from coex_core.messages import MapMetadata, MapRoiReply, MapRoiRequest, Message, Subgrid
-from coex_core.modality import ModalityReceiver, Product
-from coex_core.state import StateError, persistent
-from coex_core.storage import MemoryStorage, Storage
-from coex_core.subgrid import decode_subgrid
-from coex_core.timefmt import STAMP_MODULUS, unwrap
-from coex_core.tracker import Event
+from coex import (
+    STAMP_MODULUS,
+    ConfigError,
+    MemoryStorage,
+    ModalityReceiver,
+    Product,
+    RequestRejected,
+    StateError,
+    Storage,
+    decode_subgrid,
+    merged_config,
+    persistent,
+    unwrap,
+)
+from coex.messages import MapMetadata, MapRoiReply, MapRoiRequest, Message, Subgrid
+from coex.tracker import Event
 
 from .legacy import Held, Mosaic
 from .overview import CHUNK, Overview, block_sums, blocks_from, weighted

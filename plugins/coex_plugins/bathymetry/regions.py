@@ -6,8 +6,8 @@ import math
 from dataclasses import dataclass, field
 from typing import Any
 
-from coex_core.state import persistent
-from coex_core.tracker import State, Tracked
+from coex import persistent
+from coex.tracker import State, Tracked
 
 __all__ = ["Region"]
 

@@ -11,17 +11,22 @@ from typing import Any
 
 import numpy as np
 
-from coex_core import wire
-from coex_core.config import merged_config
-from coex_core.errors import ConfigError, RequestRejected
-from coex_core.messages import MapMetadata, MapRoiReply, MapRoiRequest, Message, Subgrid
-from coex_core.modality import ModalitySender
-from coex_core.state import persistent
-from coex_core.storage import Storage
-from coex_core.subgrid import encode_subgrid, subgrid_bits
-from coex_core.timefmt import to_stamp, unwrap
-from coex_core.wire import SUBGRID_RESOLUTIONS as RESOLUTIONS
-from coex_core.wire import SUBGRID_VERTICAL_RESOLUTIONS as VERTICAL_RESOLUTIONS
+from coex import (
+    ConfigError,
+    ModalitySender,
+    RequestRejected,
+    Storage,
+    encode_subgrid,
+    merged_config,
+    persistent,
+    subgrid_bits,
+    to_stamp,
+    unwrap,
+    wire,
+)
+from coex.messages import MapMetadata, MapRoiReply, MapRoiRequest, Message, Subgrid
+from coex.wire import SUBGRID_RESOLUTIONS as RESOLUTIONS
+from coex.wire import SUBGRID_VERTICAL_RESOLUTIONS as VERTICAL_RESOLUTIONS
 
 from .points import pointcloud2_xyz
 from .quadtree import InputError, QuadtreeMap, _grow

@@ -10,8 +10,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from coex_core.state import StateError, persistent
-from coex_core.storage import Storage
+from coex import StateError, Storage, persistent
 
 from . import tilestore
 

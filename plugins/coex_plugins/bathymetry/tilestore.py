@@ -31,8 +31,7 @@ from typing import Any, Generic, TypeVar
 import numpy as np
 import numpy.typing as npt
 
-from coex_core.state import StateError
-from coex_core.storage import Storage
+from coex import StateError, Storage
 
 __all__ = ["MAGIC", "TileCache", "decode", "encode"]
 

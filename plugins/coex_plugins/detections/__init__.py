@@ -24,20 +24,25 @@ import math
 from collections.abc import Mapping, Sequence
 from typing import Any, ClassVar
 
-from coex_core.config import merged_config
-from coex_core.detect import Detector, Finding
-from coex_core.errors import (
+from coex import (
     CoexError,
     ConfigError,
+    Detector,
+    Finding,
+    Modality,
+    ModalityReceiver,
+    ModalitySender,
     PluginLoadError,
     PluginNotFound,
+    Product,
     RequestRejected,
+    merged_config,
+    persistent,
+    to_stamp,
+    unwrap,
 )
-from coex_core.messages import Detection, DetectionSource, Message
-from coex_core.modality import Modality, ModalityReceiver, ModalitySender, Product
-from coex_core.state import persistent
-from coex_core.timefmt import to_stamp, unwrap
-from coex_core.wire import encoded_size
+from coex.messages import Detection, DetectionSource, Message
+from coex.wire import encoded_size
 
 __all__ = ["DetectionsModality", "DetectionsReceiver", "DetectionsSender", "SENDER_DEFAULTS",
            "detection_message"]
@@ -148,7 +153,7 @@ def _build_detector(spec: Any, where: str) -> Detector:
         spec = {"type": spec}
     if not isinstance(spec, Mapping) or not isinstance(spec.get("type"), str):
         raise ConfigError(f"{where}: a detector is {{\"type\": NAME, ...options}}, got {spec!r}")
-    from coex_core.registry import load_detector
+    from coex import load_detector
 
     try:
         cls = load_detector(spec["type"])

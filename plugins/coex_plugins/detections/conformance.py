@@ -7,13 +7,13 @@ from __future__ import annotations
 
 from typing import Any
 
+from coex import ModalityReceiver, ModalitySender
 from coex_conformance.companions import Companion
-from coex_core.modality import ModalityReceiver, ModalitySender
 
 
 def detection_inputs() -> list[tuple[float, Any]]:
-    from coex_core.detect import Finding
-    from coex_core.messages import DetectionSource
+    from coex import Finding
+    from coex.messages import DetectionSource
 
     return [(10.0, Finding(12.0, 30.5, 0.9, 8.0, height=1.4, length=4.4, width=1.9, orientation=35.0,
                            footprint=8.0)),

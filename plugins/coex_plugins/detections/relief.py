@@ -24,12 +24,8 @@ from typing import Any, ClassVar
 
 import numpy as np
 
-from coex_core.config import merged_config
-from coex_core.detect import Detector, Finding
-from coex_core.errors import ConfigError
-from coex_core.messages import DetectionSource
-from coex_core.modality import ModalitySender
-from coex_core.state import persistent
+from coex import ConfigError, Detector, Finding, ModalitySender, merged_config, persistent
+from coex.messages import DetectionSource
 from coex_plugins.bathymetry.relief import CAR, SPREAD, bumps, likeness
 
 __all__ = ["DEFAULTS", "ReliefDetector"]

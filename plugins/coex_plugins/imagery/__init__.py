@@ -14,7 +14,8 @@ from __future__ import annotations
 from collections.abc import Mapping
 from typing import Any, ClassVar
 
-from coex_core.messages import (
+from coex import Modality
+from coex.messages import (
     ImageAck,
     ImageAnnounce,
     ImageByTimeRequest,
@@ -25,7 +26,6 @@ from coex_core.messages import (
     Message,
     TransferProgress,
 )
-from coex_core.modality import Modality
 
 from .codec import CodingParams, encode_image
 from .receiver import ImageryReceiver

@@ -12,10 +12,9 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
-from coex_core.messages import ImageAnnounce, ImageCrop, ImageFragment
-from coex_core.state import persistent
-from coex_core.timefmt import to_stamp
-from coex_core.wire import (
+from coex import persistent, to_stamp
+from coex.messages import ImageAnnounce, ImageCrop, ImageFragment
+from coex.wire import (
     FRAGMENT_MAX_DATA,
     FRAGMENT_MAX_MARKS,
     FRAGMENT_NEAR_OFFSET_BITS,

@@ -40,9 +40,7 @@ from typing import Any
 
 import numpy as np
 
-from coex_core import jsonfmt, wire
-from coex_core.errors import ConfigError
-from coex_core.modality import Product
+from coex import ConfigError, Product, to_json, wire
 
 from .output import outlined, write_png
 
@@ -204,7 +202,7 @@ def run_roundtrip(args: argparse.Namespace) -> int:
         obj = {"type": type(ev.message).__name__, "hex": wire.encode(ev.message).hex(),
                "direction": ev.direction, "frame": ev.frame, "bytes": ev.size, "lost": ev.lost,
                "wire_total": ev.wire_total}
-        fields = jsonfmt.to_json(ev.message)
+        fields = to_json(ev.message)
         fields.pop("type", None)
         obj.update({k: v for k, v in fields.items() if k not in obj})
         lines.append(json.dumps(obj))

@@ -29,8 +29,7 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
-from coex_core.errors import ConfigError, DecodeError
-from coex_core.state import persistent
+from coex import ConfigError, DecodeError, persistent
 
 __all__ = [
     "CodingParams",

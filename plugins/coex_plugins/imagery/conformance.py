@@ -6,8 +6,8 @@ from __future__ import annotations
 
 from typing import Any
 
+from coex import ModalityReceiver, ModalitySender
 from coex_conformance.companions import Companion
-from coex_core.modality import ModalityReceiver, ModalitySender
 
 
 def imagery_inputs() -> list[tuple[float, Any]]:

@@ -5,9 +5,8 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
-from coex_core.errors import ConfigError
-from coex_core.messages import RegionGoal
-from coex_core.state import persistent
+from coex import ConfigError, persistent
+from coex.messages import RegionGoal
 
 from .codec import Encoded
 

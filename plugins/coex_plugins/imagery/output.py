@@ -10,7 +10,7 @@ from typing import Any
 
 import numpy as np
 
-from coex_core.modality import Product
+from coex import Product
 from coex_plugins.render import write_png as _write_png
 
 __all__ = ["ImageWriter", "outlined", "write_png", "write_tiff"]

@@ -56,7 +56,7 @@ from collections.abc import Sequence
 import numpy as np
 import numpy.typing as npt
 
-from coex_core.errors import DecodeError
+from coex import DecodeError
 
 from .codec import StreamParams, packet_order, parse_params
 

@@ -17,9 +17,19 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
-from coex_core.config import merged_config
-from coex_core.errors import CoexError, ConfigError, DecodeError
-from coex_core.messages import (
+from coex import (
+    CoexError,
+    ConfigError,
+    DecodeError,
+    ModalityReceiver,
+    Product,
+    RequestTracker,
+    merged_config,
+    persistent,
+    to_stamp,
+    unwrap,
+)
+from coex.messages import (
     AckStatus,
     ByteRange,
     CommandAck,
@@ -36,10 +46,6 @@ from coex_core.messages import (
     TimeDirection,
     TransferProgress,
 )
-from coex_core.modality import ModalityReceiver, Product
-from coex_core.requests import RequestTracker
-from coex_core.state import persistent
-from coex_core.timefmt import to_stamp, unwrap
 
 from .codec import (
     StreamParams,

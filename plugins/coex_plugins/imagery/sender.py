@@ -25,9 +25,17 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
-from coex_core.config import merged_config
-from coex_core.errors import CoexError, ConfigError, RequestRejected
-from coex_core.messages import (
+from coex import (
+    CoexError,
+    ConfigError,
+    ModalitySender,
+    RequestRejected,
+    merged_config,
+    persistent,
+    to_stamp,
+    unwrap,
+)
+from coex.messages import (
     AckStatus,
     CommandAck,
     GoalKind,
@@ -43,10 +51,7 @@ from coex_core.messages import (
     TimeDirection,
     TransferProgress,
 )
-from coex_core.modality import ModalitySender
-from coex_core.state import persistent
-from coex_core.timefmt import to_stamp, unwrap
-from coex_core.wire import (
+from coex.wire import (
     encoded_size,
 )
 

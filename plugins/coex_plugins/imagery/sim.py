@@ -17,11 +17,16 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
-from coex_core import wire
-from coex_core.acoustic import GilbertElliott
-from coex_core.errors import EncodeError, RequestRejected
-from coex_core.messages import FrameHeader, Message
-from coex_core.modality import ModalityReceiver, ModalitySender, Product
+from coex import (
+    EncodeError,
+    GilbertElliott,
+    ModalityReceiver,
+    ModalitySender,
+    Product,
+    RequestRejected,
+    wire,
+)
+from coex.messages import FrameHeader, Message
 
 __all__ = ["Bernoulli", "Burst", "LossModel", "RegionRun", "Transfer", "WireEvent", "region_transfer"]
 
@@ -204,7 +209,7 @@ def region_transfer(image: Any, box: tuple[int, int, int, int], kind: str = "qua
     accepted, has nothing more to send. ``sender_config`` adds sender options (``crops``
     ...). Raises ``ConfigError`` for an absurd request (before it is sent) and
     ``TimeoutError`` after ``max_rounds`` rounds of either phase."""
-    from coex_core.messages import AckStatus, CommandAck, TransferProgress
+    from coex.messages import AckStatus, CommandAck, TransferProgress
 
     from . import ImageInput, ImageryModality
 

@@ -16,9 +16,21 @@ from __future__ import annotations
 from collections.abc import Mapping, Sequence
 from typing import Any, ClassVar
 
-from coex_core.config import merged_config
-from coex_core.errors import CoexError, EncodeError, RequestRejected
-from coex_core.messages import (
+from coex import (
+    CoexError,
+    EncodeError,
+    Modality,
+    ModalityReceiver,
+    ModalitySender,
+    Product,
+    RequestRejected,
+    RequestTracker,
+    merged_config,
+    persistent,
+    to_stamp,
+    unwrap,
+)
+from coex.messages import (
     AckStatus,
     CommandAck,
     Message,
@@ -29,11 +41,7 @@ from coex_core.messages import (
     SurveyState,
     SurveyStatus,
 )
-from coex_core.modality import Modality, ModalityReceiver, ModalitySender, Product
-from coex_core.requests import RequestTracker
-from coex_core.state import persistent
-from coex_core.timefmt import to_stamp, unwrap
-from coex_core.wire import encode, encoded_size
+from coex.wire import encode, encoded_size
 
 from .plan import Geofence, Refusal, SurveyPlan, SurveyReport, cut_detail, describe, plan_of
 

@@ -6,9 +6,9 @@ from __future__ import annotations
 
 from typing import Any
 
+from coex import ModalityReceiver, ModalitySender
+from coex.messages import SurveyReason, SurveyState
 from coex_conformance.companions import Companion
-from coex_core.messages import SurveyReason, SurveyState
-from coex_core.modality import ModalityReceiver, ModalitySender
 
 
 def survey_inputs() -> list[tuple[float, Any]]:

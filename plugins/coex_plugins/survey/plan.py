@@ -17,15 +17,13 @@ from typing import Any
 
 import numpy as np
 
-from coex_core.adapters import SurveyPlan, SurveyReport
-from coex_core.errors import ConfigError
-from coex_core.messages import (
+from coex import ConfigError, SurveyPlan, SurveyReport, persistent
+from coex.messages import (
     SURVEY_DETAIL_MAX,
     SurveyCommand,
     SurveyKind,
     SurveyReason,
 )
-from coex_core.state import persistent
 
 __all__ = ["Geofence", "Refusal", "SurveyPlan", "SurveyReport", "cut_detail", "describe", "plan_of"]
 

@@ -13,14 +13,14 @@ from __future__ import annotations
 from collections.abc import Mapping
 from typing import Any, ClassVar
 
-from coex_core.messages import (
+from coex import Modality
+from coex.messages import (
     Message,
     TimeSeriesAck,
     TimeSeriesChannel,
     TimeSeriesChunk,
     TimeSeriesRequest,
 )
-from coex_core.modality import Modality
 
 from .receiver import Series, TimeSeriesReceiver
 from .sender import ChannelConfig, InvalidSamples, Samples, TimeSeriesSender

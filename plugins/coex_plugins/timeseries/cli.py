@@ -27,10 +27,8 @@ from typing import Any
 
 import numpy as np
 
-from coex_core import wire
-from coex_core.errors import ConfigError
-from coex_core.jsonfmt import to_json
-from coex_core.messages import Message
+from coex import ConfigError, to_json, wire
+from coex.messages import Message
 
 from . import synth
 from .receiver import TimeSeriesReceiver, sample_series

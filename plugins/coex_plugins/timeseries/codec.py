@@ -38,8 +38,8 @@ from dataclasses import dataclass
 import numpy as np
 import pywt
 
-from coex_core.messages import Wavelet
-from coex_core.state import persistent
+from coex import persistent
+from coex.messages import Wavelet
 
 __all__ = [
     "CODE_BIAS",

@@ -13,9 +13,18 @@ from typing import Any
 
 import numpy as np
 
-from coex_core.config import merged_config
-from coex_core.errors import ConfigError, RequestRejected
-from coex_core.messages import (
+from coex import (
+    ConfigError,
+    ModalityReceiver,
+    Product,
+    RequestRejected,
+    RequestTracker,
+    merged_config,
+    persistent,
+    to_stamp,
+    unwrap,
+)
+from coex.messages import (
     Message,
     TimeSeriesAck,
     TimeSeriesChannel,
@@ -24,10 +33,6 @@ from coex_core.messages import (
     TimeSeriesRequest,
     Wavelet,
 )
-from coex_core.modality import ModalityReceiver, Product
-from coex_core.requests import RequestTracker
-from coex_core.state import persistent
-from coex_core.timefmt import to_stamp, unwrap
 
 from . import codec
 

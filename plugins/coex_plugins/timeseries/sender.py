@@ -10,19 +10,24 @@ from typing import Any
 
 import numpy as np
 
-from coex_core import wire
-from coex_core.config import merged_config
-from coex_core.errors import CoexError, ConfigError, RequestRejected
-from coex_core.messages import (
+from coex import (
+    STAMP_MODULUS,
+    CoexError,
+    ConfigError,
+    ModalitySender,
+    RequestRejected,
+    merged_config,
+    persistent,
+    unwrap,
+    wire,
+)
+from coex.messages import (
     Message,
     TimeSeriesAck,
     TimeSeriesChannel,
     TimeSeriesChunk,
     TimeSeriesRequest,
 )
-from coex_core.modality import ModalitySender
-from coex_core.state import persistent
-from coex_core.timefmt import STAMP_MODULUS, unwrap
 
 from . import codec
 

@@ -6,7 +6,8 @@
 * :mod:`~coex_transports.lcm.products`: ``coex.vehicle_status_t`` and ``coex.map_level_t``
   for LCM tools (lcm-spy, consoles).
 * ``coex.points_t`` and ``coex.nav_t``: what the vehicle's ``lcm`` input reads (soundings and
-  the vehicle's position) from an LCM vehicle.
+  the vehicle's position) from an LCM vehicle; ``coex.survey_request_t`` and
+  ``coex.survey_state_t``: what its ``lcm`` autonomy output publishes and reads.
 * :mod:`~coex_transports.lcm.replay`: offline re-analysis of an ``lcm-logger`` log
   (``coex replay --lcm-log FILE``).
 
@@ -26,7 +27,15 @@ from ._codec import (
     unpack_event,
 )
 from ._transport import DEFAULT_URL, LcmConfig, LcmTransport, parse_lcm_uri
-from ._types import frame_t, map_level_t, nav_t, points_t, vehicle_status_t
+from ._types import (
+    frame_t,
+    map_level_t,
+    nav_t,
+    points_t,
+    survey_request_t,
+    survey_state_t,
+    vehicle_status_t,
+)
 
 __all__ = [
     "DEFAULT_URL",
@@ -43,6 +52,8 @@ __all__ = [
     "nav_t",
     "parse_lcm_uri",
     "points_t",
+    "survey_request_t",
+    "survey_state_t",
     "unpack_event",
     "vehicle_status_t",
 ]

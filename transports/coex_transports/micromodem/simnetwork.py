@@ -344,7 +344,7 @@ class NetworkClock:
 
 
 class SimLoop:
-    """:class:`~coex_transports.runner.Runner` objects over a :class:`ModemNetwork`, with timed
+    """:class:`~coex_runtime.runner.Runner` objects over a :class:`ModemNetwork`, with timed
     callbacks, on the network's clock (each runner's clock must read that clock).
 
     Each pass advances the network to the next thing due (a modem or driver deadline, a node's
@@ -387,7 +387,7 @@ class SimLoop:
 
     def run(self, until: float) -> None:
         """Run to time ``until``."""
-        from ..runner import next_wakeup
+        from coex_runtime.runner import next_wakeup
 
         net = self.network
         while net.now < until:

@@ -16,7 +16,7 @@
   :meth:`ModemNetwork.open_uri` opens a ``micromodem:`` URI there instead of on a serial port, and
   :meth:`ModemNetwork.unplug` / :meth:`~ModemNetwork.plug` pull a modem's serial cable and put it
   back (the host's transport fails as a real port does, and cannot be opened again meanwhile).
-* :class:`SimLoop` drives :class:`~coex_transports.runner.Runner` objects over a network, with
+* :class:`SimLoop` drives :class:`~coex_runtime.runner.Runner` objects over a network, with
   timed callbacks, on the network's clock: the loop of every simulation that runs the real
   runners and drivers in one process (the fault suite, the soak with faults).
 * :class:`PtySimulator` serves the modems of a network on pseudo-terminals (``os.openpty``) and,

@@ -5,9 +5,10 @@
 * :mod:`.msgs`: CoEx data as standard messages (``nav_msgs/Odometry``, ``PointCloud2`` and
   ``OccupancyGrid`` per map level, ``sensor_msgs/Image``, ``nav_msgs/Path``), pure functions.
 
-The vehicle's ``ros`` input and ``ros`` autonomy output (``coex_plugins.vehicle``) and the
-topside's ROS products (``coex_plugins.console.ros``) are built on them. rospy is imported only
-when a node starts: everything else of CoEx runs without ROS.
+The vehicle's ``ros`` input and ``ros`` autonomy output (``coex_plugins.inputs.ros``,
+``coex_plugins.autonomy.ros``, through :mod:`coex.ros`) and the topside's ROS products
+(``coex_apps.console.ros``) are built on them. rospy is imported only when a node starts:
+everything else of CoEx runs without ROS.
 """
 
 from __future__ import annotations

@@ -1,0 +1,107 @@
+"""The demo's options, its result and its fixed numbers (node ids, the dive's clock, altitudes)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from coex import ConfigError
+
+from .scenario import Scenario, preset
+
+TOPSIDE, VEHICLE = 1, 2
+#: the camera vehicle of a fleet dive (preset ``fleet``: TDMA slots ``"camera"``); ``VEHICLE`` is
+#: then the mapping AUV
+CAMERA = 3
+EPOCH = 1_656_633_600.0  # 2022-07-01T00:00:00Z: the dive's clock (simulated)
+TRANSIT_ALTITUDE = 10.0
+HOLD_ALTITUDE = 50.0
+LINK_STREAM = 6
+#: the survey modality's stream (the vehicle's answers to survey commands)
+SURVEY_STREAM = 7
+#: the detections modality's stream (what the vehicle's detectors found: a few bytes each, first)
+DETECTIONS_STREAM = 8
+#: the vehicle's speeds (m/s): between the camera lines, and along them
+TRANSIT_SPEED = 1.0
+CAMERA_SPEED = 0.5
+#: the lowest altitude (m) the vehicle's geofence lets a survey ask for
+MIN_ALTITUDE = 2.0
+#: seconds between camera frames on a transect
+CAMERA_PERIOD = 6.0
+#: the demo's quality marks (``layer_psnr``, dB): the imagery default (25, 30, 35, 40) with a
+#: 20 dB preview mark first, because every frame of the camera pass goes up as a preview
+LAYER_PSNR = (20.0, 25.0, 30.0, 35.0, 40.0)
+#: the vehicle's default set-point for every image (``default_goal``: the first quality mark, 20 dB, a few tens of bytes)
+DEFAULT_LAYERS = 1
+#: a target is identifiable at 1 m when a car-like candidate of the received 1 m map lies this
+#: close to it (m)
+IDENTIFY_RADIUS = 3.5
+OPERATORS = ("script", "none")
+
+
+#: The demo's embedded command key (not a secret: real deployments configure their own).
+DEMO_COMMAND_KEY = b"coex-demo-command-key-not-secret"
+
+
+@dataclass
+class DemoConfig:
+    """Options of ``coex demo`` (see ``coex demo --help``)."""
+
+    out: Path = Path("coex-demo-out")
+    #: frame loss; ``None`` keeps the scenario's loss model (``--loss``)
+    loss: float | None = None
+    seed: int = 1
+    images: Path | None = None
+    gui: bool = False
+    http: str = "127.0.0.1:8080"
+    quick: bool = False
+    progress: bool = True
+    #: bursty (Gilbert-Elliott) loss at ``loss`` (or the scenario's rate) instead of independent
+    burst: bool = False
+    #: with ``gui``: simulated seconds per wall-clock second, so that a person can act
+    speed: float = 20.0
+    #: with ``gui``: keep serving the console after the dive until interrupted
+    linger: bool = True
+    #: shared command key (spec section 10): topside signs every command, the vehicle checks
+    #: them; ``None`` turns authentication off
+    command_key: bytes | None = DEMO_COMMAND_KEY
+    #: the dive (``--scenario FILE`` / ``--preset NAME``); ``None`` is preset ``default``
+    scenario: Scenario | None = None
+    #: ``"script"`` or ``"none"``; ``None``: the script, unless a person has the console (``gui``)
+    operator: str | None = None
+    #: with ``gui``: the console's operators file (everyone signs in; required beyond loopback)
+    operators: Path | None = None
+    #: with ``gui``: serve beyond loopback without sign-in
+    insecure_open: bool = False
+    #: the vehicle's geofence for survey commands (:class:`~coex_plugins.survey.plan.Geofence`
+    #: keys); ``None``: the site with a margin of a quarter of its side, and
+    #: :data:`MIN_ALTITUDE`
+    geofence: dict[str, Any] | None = None
+
+    def resolved(self) -> tuple[Scenario, str]:
+        """The scenario with ``--quick``, ``--loss`` and ``--burst`` applied, and the operator."""
+        scn = self.scenario or preset("default")
+        scn = scn.with_loss(self.loss, self.burst)
+        if self.quick:
+            scn = scn.quick()
+        op = self.operator or ("none" if self.gui else "script")
+        if op not in OPERATORS:
+            raise ConfigError(f"operator must be one of {', '.join(OPERATORS)}, got {op!r}")
+        return scn, op
+
+
+@dataclass
+class Decision:
+    t: float
+    kind: str
+    text: str
+    #: ``"script"`` (the scripted operator), ``"person"`` (an action in the console) or ``"system"``
+    who: str = "script"
+
+
+@dataclass
+class DemoResult:
+    out: Path
+    metrics: dict[str, Any]
+    decisions: list[Decision] = field(default_factory=list)

@@ -1,0 +1,312 @@
+"""The simulated world of the demo: the vehicle's track, the two nodes, the schedules and the
+sensor feeds."""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from coex import ChannelManager, LinkConfig, Node, Schedule, StreamConfig, to_stamp
+from coex.messages import VehicleMode, VehicleStatus
+from coex_plugins.bathymetry import (
+    BathymetryModality,
+)
+from coex_plugins.bathymetry.sim import Seafloor
+from coex_plugins.detections import DetectionsModality
+from coex_plugins.imagery import ImageryModality
+from coex_plugins.survey import SurveyModality
+from coex_plugins.timeseries import TimeSeriesModality
+
+from .config import (
+    CAMERA,
+    DEFAULT_LAYERS,
+    DETECTIONS_STREAM,
+    EPOCH,
+    LAYER_PSNR,
+    LINK_STREAM,
+    MIN_ALTITUDE,
+    SURVEY_STREAM,
+    TOPSIDE,
+    VEHICLE,
+)
+from .operator import CONFIRM_LAYERS
+from .scenario import Scenario
+
+
+@dataclass
+class Leg:
+    """A straight leg of the vehicle's track at constant depth offset above the seafloor."""
+
+    t0: float
+    t1: float
+    p0: tuple[float, float]
+    p1: tuple[float, float]
+    altitude: float
+    camera: bool = False
+
+    def at(self, t: float) -> tuple[float, float]:
+        f = 0.0 if self.t1 <= self.t0 else min(max((t - self.t0) / (self.t1 - self.t0), 0.0), 1.0)
+        return (self.p0[0] + f * (self.p1[0] - self.p0[0]), self.p0[1] + f * (self.p1[1] - self.p0[1]))
+
+    @property
+    def heading(self) -> float:
+        dx, dy = self.p1[0] - self.p0[0], self.p1[1] - self.p0[1]
+        return (math.degrees(math.atan2(dx, dy)) + 360.0) % 360.0 if (dx or dy) else 0.0
+
+
+class Track:
+    """The vehicle's position over time: survey pings first, then planned legs."""
+
+    def __init__(self, floor: Seafloor) -> None:
+        self.floor = floor
+        # the seafloor on a 1 m grid (with a margin), interpolated for the track's depths
+        xs = np.arange(floor.x0 - 64.0, floor.x0 + floor.size + 64.0, 1.0)
+        ys = np.arange(floor.y0 - 64.0, floor.y0 + floor.size + 64.0, 1.0)
+        self._xs, self._ys = xs, ys
+        gx, gy = np.meshgrid(xs, ys)
+        self._grid = floor.elevation(gx, gy)
+        self.samples: list[tuple[float, float, float, float]] = []  # t, x, y, altitude
+        self.legs: list[Leg] = []
+
+    def add_sample(self, t: float, x: float, y: float, altitude: float) -> None:
+        self.samples.append((t, x, y, altitude))
+
+    def position(self, t: float) -> tuple[float, float, float, float, float]:
+        """x, y, depth, altitude, heading at time ``t``."""
+        for leg in self.legs:
+            if leg.t0 <= t <= leg.t1:
+                x, y = leg.at(t)
+                return (*self._depth(x, y, leg.altitude), leg.heading)
+        if self.samples:
+            ts = [s[0] for s in self.samples]
+            i = int(np.searchsorted(ts, t))
+            i = min(max(i, 0), len(self.samples) - 1)
+            _, x, y, alt = self.samples[i]
+            j = max(i - 1, 0)
+            dx, dy = x - self.samples[j][1], y - self.samples[j][2]
+            heading = (math.degrees(math.atan2(dx, dy)) + 360.0) % 360.0 if (dx or dy) else 0.0
+            return (*self._depth(x, y, alt), heading)
+        return (0.0, 0.0, 0.0, 0.0, 0.0)
+
+    def floor_z(self, x: float, y: float) -> float:
+        i = float(np.clip(np.interp(y, self._ys, np.arange(len(self._ys))), 0, len(self._ys) - 1.001))
+        j = float(np.clip(np.interp(x, self._xs, np.arange(len(self._xs))), 0, len(self._xs) - 1.001))
+        i0, j0 = int(i), int(j)
+        fi, fj = i - i0, j - j0
+        g = self._grid
+        return float(g[i0, j0] * (1 - fi) * (1 - fj) + g[i0, j0 + 1] * (1 - fi) * fj
+                     + g[i0 + 1, j0] * fi * (1 - fj) + g[i0 + 1, j0 + 1] * fi * fj)
+
+    def _depth(self, x: float, y: float, altitude: float) -> tuple[float, float, float, float]:
+        floor_z = self.floor_z(x, y)
+        return x, y, max(0.0, -(floor_z + altitude)), altitude
+
+
+def dive_schedule(scn: Scenario) -> Schedule:
+    """The scenario's TDMA cycle (the NUI 2022 one by default: 6 x 20 s slots, 2 s guard, topside
+    slots 0 and 3, vehicle slots 1, 2, 4, 5). In a fleet dive the ``"camera"`` slots are the
+    camera vehicle's (:data:`~.config.CAMERA`)."""
+    ids = {"topside": TOPSIDE, "vehicle": VEHICLE, "camera": CAMERA}
+    owners = [ids[s] for s in scn.slots]
+    return Schedule.simple(owners, scn.slot_seconds, scn.guard_seconds, epoch=EPOCH)
+
+
+def nui_schedule() -> Schedule:
+    """6 x 20 s slots, 2 s guard: topside owns slots 0 and 3, the vehicle 1, 2, 4, 5."""
+    return dive_schedule(Scenario())
+
+
+def site_geofence(scn: Scenario) -> dict[str, Any]:
+    """The vehicle's geofence for survey commands: the site (``[0, area]`` square) with a margin
+    of a quarter of its side (room for a camera line's run-in past the edge), and
+    :data:`~coex_apps.demo.config.MIN_ALTITUDE`."""
+    m, a = scn.area / 4, scn.area
+    return {"polygon": [[-m, -m], [a + m, -m], [a + m, a + m], [-m, a + m]], "min_altitude": MIN_ALTITUDE}
+
+
+def build_nodes(out: Path, channels: list[dict[str, Any]], command_key: bytes | None = None,
+                scenario: Scenario | None = None, *, auto_fill: bool = True,
+                geofence: dict[str, Any] | None = None,
+                ) -> tuple[Node, Node, dict[str, Any], dict[str, Any]]:
+    """The two nodes of the dive. ``auto_fill=False`` when the scripted operator asks for the
+    holes of the map itself (the receiver's own gap rounds over the whole map would compete with
+    it, and with image requests, for the uplink). ``geofence``: the vehicle's limits for survey
+    commands (default :func:`site_geofence`)."""
+    scn = scenario or Scenario()
+    sched = dive_schedule(scn)
+    cycle = scn.cycle
+    vehicle = Node(ChannelManager(VEHICLE, [LinkConfig(0, sched, rate=scn.modem_rate, dst=TOPSIDE,
+                                                       spare=scn.spare)],
+                                  queue_status_interval=cycle, command_key=command_key))
+    topside = Node(ChannelManager(TOPSIDE, [LinkConfig(0, sched, rate=scn.modem_rate, dst=VEHICLE)],
+                                  queue_status_interval=cycle, command_key=command_key))
+    senders = {
+        "bathymetry": BathymetryModality().sender({"send_delay": 20.0}),
+        "imagery": ImageryModality().sender({"layer_psnr": list(LAYER_PSNR), "default_goal": f"layer:{DEFAULT_LAYERS}",
+                                             "request_goal": f"layer:{CONFIRM_LAYERS}"}),
+        "timeseries": TimeSeriesModality().sender({"channels": channels}),
+        # survey commands: checked against the vehicle's geofence, then flown by its autonomy
+        "survey": SurveyModality().sender({"geofence": site_geofence(scn) if geofence is None else geofence}),
+        # the vehicle's own detector: relief anomalies of its full-resolution map, car-sized
+        # ones scoring highest (the dive looks for cars)
+        "detections": DetectionsModality().sender({"detectors": [{"type": "relief"}]}),
+    }
+    receivers = {
+        "bathymetry": BathymetryModality().receiver({"auto_fill": auto_fill}),
+        "imagery": ImageryModality().receiver({"out_dir": str(out / "images")}),
+        "timeseries": TimeSeriesModality().receiver(None),
+        "survey": SurveyModality().receiver(None),
+        "detections": DetectionsModality().receiver(None),
+    }
+    # NUI 2022 priorities: map subgrids 30, image fragments 30, time series a little less
+    vehicle.add_sender(BathymetryModality, senders["bathymetry"], StreamConfig(3, "map", priority=30))
+    # on a low link (docs/channel.md) the images stream carries only the answers to the
+    # operator's requests ahead of spare work: they go before the map's coarse coverage
+    vehicle.add_sender(ImageryModality, senders["imagery"], StreamConfig(4, "images", priority=30, low_priority=90))
+    vehicle.add_sender(TimeSeriesModality, senders["timeseries"], StreamConfig(5, "series", priority=20))
+    # the vehicle modem's statistics (SNR, bad frames, Doppler) for the console: newest only
+    vehicle.manager.add_stream(StreamConfig(LINK_STREAM, "link", priority=40, newest_first=True, max_depth=1))
+    # a survey's answers (accepted, rejected with its reason, started, completed): few bytes, first
+    vehicle.add_sender(SurveyModality, senders["survey"], StreamConfig(SURVEY_STREAM, "survey", priority=90))
+    # detections: suggestions of a few bytes each, ahead of every other science stream
+    vehicle.add_sender(DetectionsModality, senders["detections"],
+                       StreamConfig(DETECTIONS_STREAM, "detections", priority=100))
+    topside.add_receiver(BathymetryModality, receivers["bathymetry"])
+    topside.add_receiver(ImageryModality, receivers["imagery"])
+    topside.add_receiver(TimeSeriesModality, receivers["timeseries"])
+    topside.add_receiver(SurveyModality, receivers["survey"])
+    topside.add_receiver(DetectionsModality, receivers["detections"])
+    return vehicle, topside, senders, receivers
+
+
+@dataclass
+class Fleet:
+    """The three nodes of a fleet dive (issue 43) on one network: topside, the mapping AUV
+    (:data:`~.config.VEHICLE`) and the camera vehicle (:data:`~.config.CAMERA`), each vehicle's
+    senders, and topside's receivers: per peer (``Node.add_receiver(..., peer=N)``), so that a
+    request or survey command goes to that vehicle alone and only its answers count."""
+
+    mapper: Node
+    camera: Node
+    topside: Node
+    mapper_senders: dict[str, Any]
+    camera_senders: dict[str, Any]
+    #: topside's receivers by modality: the map, detections and time series are the mapper's,
+    #: the images and survey commands the camera vehicle's
+    receivers: dict[str, Any]
+
+
+def build_fleet(out: Path, channels: list[dict[str, Any]], command_key: bytes | None, scn: Scenario, *,
+                auto_fill: bool = True, geofence: dict[str, Any] | None = None) -> Fleet:
+    """The nodes of a fleet dive (see :class:`Fleet`). The mapper carries the multibeam, its
+    detector, the sensor channels and a survey sender of its own (it could be retargeted; the
+    demo never does, and a command for the camera vehicle must never reach it); the camera
+    vehicle carries the camera and the survey sender its autonomy flies. Topside's link
+    broadcasts by default (``dst`` 0, docs/channel.md); its per-peer receivers address their
+    requests to their vehicle."""
+    sched = dive_schedule(scn)
+    cycle = scn.cycle
+    fence = site_geofence(scn) if geofence is None else geofence
+
+    def vehicle(node_id: int) -> Node:
+        return Node(ChannelManager(node_id, [LinkConfig(0, sched, rate=scn.modem_rate, dst=TOPSIDE, spare=scn.spare)],
+                                   queue_status_interval=cycle, command_key=command_key))
+    mapper, camera = vehicle(VEHICLE), vehicle(CAMERA)
+    topside = Node(ChannelManager(TOPSIDE, [LinkConfig(0, sched, rate=scn.modem_rate, dst=0)],
+                                  queue_status_interval=cycle, command_key=command_key))
+    ms = {
+        "bathymetry": BathymetryModality().sender({"send_delay": 20.0}),
+        "timeseries": TimeSeriesModality().sender({"channels": channels}),
+        "survey": SurveyModality().sender({"geofence": fence}),
+        "detections": DetectionsModality().sender({"detectors": [{"type": "relief"}]}),
+    }
+    cs = {
+        "imagery": ImageryModality().sender({"layer_psnr": list(LAYER_PSNR), "default_goal": f"layer:{DEFAULT_LAYERS}",
+                                             "request_goal": f"layer:{CONFIRM_LAYERS}"}),
+        "survey": SurveyModality().sender({"geofence": fence}),
+    }
+    mapper.add_sender(BathymetryModality, ms["bathymetry"], StreamConfig(3, "map", priority=30))
+    mapper.add_sender(TimeSeriesModality, ms["timeseries"], StreamConfig(5, "series", priority=20))
+    mapper.manager.add_stream(StreamConfig(LINK_STREAM, "link", priority=40, newest_first=True, max_depth=1))
+    mapper.add_sender(SurveyModality, ms["survey"], StreamConfig(SURVEY_STREAM, "survey", priority=90))
+    mapper.add_sender(DetectionsModality, ms["detections"], StreamConfig(DETECTIONS_STREAM, "detections", priority=100))
+    camera.add_sender(ImageryModality, cs["imagery"], StreamConfig(4, "images", priority=30, low_priority=90))
+    camera.add_sender(SurveyModality, cs["survey"], StreamConfig(SURVEY_STREAM, "survey", priority=90))
+    receivers = {
+        "bathymetry": BathymetryModality().receiver({"auto_fill": auto_fill}),
+        "timeseries": TimeSeriesModality().receiver(None),
+        "detections": DetectionsModality().receiver(None),
+        "imagery": ImageryModality().receiver({"out_dir": str(out / "images")}),
+        "survey": SurveyModality().receiver(None),
+        # the mapper's answers to survey commands (it is never sent one: what would come is shown)
+        "mapper_survey": SurveyModality().receiver(None),
+    }
+    topside.add_receiver(BathymetryModality, receivers["bathymetry"], peer=VEHICLE)
+    topside.add_receiver(TimeSeriesModality, receivers["timeseries"], peer=VEHICLE)
+    topside.add_receiver(DetectionsModality, receivers["detections"], peer=VEHICLE)
+    topside.add_receiver(SurveyModality, receivers["mapper_survey"], peer=VEHICLE)
+    topside.add_receiver(ImageryModality, receivers["imagery"], peer=CAMERA)
+    topside.add_receiver(SurveyModality, receivers["survey"], peer=CAMERA)
+    return Fleet(mapper, camera, topside, ms, cs, receivers)
+
+
+def rng_for(seed: int, salt: int) -> np.random.Generator:
+    return np.random.default_rng([seed, salt])
+
+
+def vehicle_status(track: Track, t: float) -> VehicleStatus:
+    x, y, depth, alt, heading = track.position(t)
+    return VehicleStatus(to_stamp(t), round(x, 1), round(y, 1), round(min(depth, 6000.0), 1),
+                         round(min(alt, 500.0), 1), round(heading % 359.9, 1), 0.5,
+                         max(0, 100 - int((t - EPOCH) / 120)), VehicleMode.SURVEY, 0)
+
+
+def image_files(path: Path | None) -> list[Path]:
+    if path is None:
+        return []
+    files = sorted(p for p in Path(path).iterdir() if p.suffix.lower() in (".tif", ".tiff", ".png", ".jpg"))
+    if not files:
+        raise FileNotFoundError(f"no images (.tif, .tiff, .png, .jpg) in {path}")
+    return files
+
+
+def load_image(path: Path) -> np.ndarray:
+    from PIL import Image
+
+    with Image.open(path) as im:
+        return np.asarray(im.convert("RGB"))
+
+
+def area_fraction(grid: np.ndarray, cell: float, origin: tuple[float, float], floor: Seafloor) -> float:
+    """Fraction of the survey area's cells that the topside grid holds."""
+    ny, nx = grid.shape
+    xs = origin[0] + (np.arange(nx) + 0.5) * cell
+    ys = origin[1] + (np.arange(ny) + 0.5) * cell
+    cx = (xs >= floor.x0) & (xs <= floor.x0 + floor.size)
+    cy = (ys >= floor.y0) & (ys <= floor.y0 + floor.size)
+    sub = grid[np.ix_(cy, cx)]
+    total = (floor.size / cell) ** 2
+    return float(min(1.0, np.count_nonzero(np.isfinite(sub)) / max(total, 1.0)))
+
+
+def schedule_series(at: Callable[[float, Callable[[float], None]], None], sender: Any, series: Any,
+                     t0: float, end: float) -> None:
+    """Feed the synthetic sensor channels to the vehicle in 60 s batches."""
+    step = 60.0
+    t = t0 + step
+    while t <= end:
+        def feed(now: float, lo: float = t - step, hi: float = t) -> None:
+            batch = {}
+            for s in series:
+                m = (s.times >= lo) & (s.times < hi)
+                if m.any():
+                    batch[s.name] = (s.times[m], s.values[m])
+            if batch:
+                sender.ingest(batch, now)
+        at(t, feed)
+        t += step

@@ -1,0 +1,682 @@
+"""The ``mavlink`` autonomy output: each plan becomes a MAVLink mission (ArduSub, PX4), uploaded
+with the standard mission protocol through pymavlink and then started.
+
+Protocol (MAVLink devguide ``services/mission.md``; ``docs/autonomy.md``)::
+
+    -> MISSION_COUNT{count, mission_type=0}
+    <- MISSION_REQUEST_INT{seq}   (or the legacy MISSION_REQUEST)
+    -> MISSION_ITEM_INT{seq, frame, MAV_CMD_NAV_WAYPOINT, x=lat*1e7, y=lon*1e7, z}
+       ... every item, in order ...
+    <- MISSION_ACK{type}          MAV_MISSION_ACCEPTED: start it;
+                                  any other type: REJECTED AUTONOMY_REFUSED, value = the type,
+                                  detail = its name (MAV_MISSION_DENIED ...); except
+                                  MAV_MISSION_INVALID_SEQUENCE: ArduPilot's NACK of a duplicate
+                                  item does not end the upload
+    -> COMMAND_LONG MAV_CMD_MISSION_START (or MAV_CMD_DO_SET_MODE AUTO, or nothing)
+    <- COMMAND_ACK                accepted: STARTED index 0 (with ``start = "none"``: at the
+                                  upload's ack); refused: ABORTED AUTONOMY_STOPPED, value = the
+                                  MAV_RESULT, detail = its name
+    <- MISSION_ITEM_REACHED{seq}, MISSION_CURRENT{seq}: STARTED with the next waypoint, then
+       COMPLETED when the last one is reached
+
+MISSION_COUNT is sent again after ``timeout`` (1.5 s) without a request, the last item after
+``item_timeout`` (0.25 s) without the next request or the ack, the start command after
+``timeout`` without its COMMAND_ACK, at most ``retries`` (5) times in a row; then the survey is
+REJECTED AUTONOMY_NO_ANSWER, value = the tries made (``retries`` + 1), detail = what went
+unanswered: an autopilot that never answers is not one that refused. A new plan during an
+upload restarts the upload with the new plan. With ``home_placeholder`` (ArduPilot: seq 0 is
+home) a placeholder goes at seq 0, so waypoint ``k`` is seq ``k + 1`` (``k + 2`` when a
+MAV_CMD_DO_CHANGE_SPEED item carries the plan's speed).
+
+HEARTBEAT goes out about every ``heartbeat`` seconds (as ``MAV_TYPE_ONBOARD_CONTROLLER``,
+``MAV_AUTOPILOT_INVALID``). The target system/component are the options', else those of the
+first vehicle heartbeat heard, else 1/1. An ArduPilot vehicle seen in the AUTO mode
+(``auto_mode``) that leaves it before the survey's end stops it: ABORTED, value = its new custom
+mode, detail = "left AUTO for ALT_HOLD"; the reason is MANUAL_OVERRIDE when the new mode is one
+of ``manual_modes`` (a pilot's mode: ArduSub MANUAL, STABILIZE, ACRO, ALT_HOLD, POSHOLD), else
+AUTONOMY_STOPPED (SURFACE, a failsafe's mode, GUIDED ...).
+
+Never blocking (``recv_match(blocking=False)``), never reading a clock: time is ``now``. Bad
+input (garbage, a request out of range, a message for someone else) is logged and ignored.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from collections.abc import Mapping
+from dataclasses import dataclass
+from typing import Any
+
+from coex import Autonomy, ConfigError
+from coex.messages import SurveyReason, SurveyState
+
+from ..survey.plan import SurveyReport, cut_detail
+
+__all__ = ["MavlinkAutonomy", "MissionItem", "connect", "enum_name", "mission_items", "mode_name"]
+
+log = logging.getLogger(__name__)
+
+# MAVLink numbers (common.xml), so that building items needs no pymavlink import
+MAV_CMD_NAV_WAYPOINT = 16
+MAV_CMD_DO_CHANGE_SPEED = 178
+MAV_CMD_DO_SET_MODE = 176
+MAV_CMD_MISSION_START = 300
+MAV_FRAME_GLOBAL = 0
+MAV_FRAME_GLOBAL_RELATIVE_ALT = 3
+MAV_FRAME_GLOBAL_RELATIVE_ALT_INT = 6
+MAV_FRAME_GLOBAL_TERRAIN_ALT = 10
+MAV_FRAME_GLOBAL_TERRAIN_ALT_INT = 11
+MAV_MISSION_ACCEPTED = 0
+MAV_MISSION_INVALID_SEQUENCE = 13
+MAV_RESULT_ACCEPTED = 0
+MAV_RESULT_IN_PROGRESS = 5
+MAV_MODE_FLAG_CUSTOM_MODE_ENABLED = 1
+MAV_AUTOPILOT_ARDUPILOTMEGA = 3
+MAV_AUTOPILOT_INVALID = 8
+MAV_TYPE_GCS = 6
+MAV_TYPE_GIMBAL = 26
+MAV_TYPE_ADSB = 27
+MAV_TYPE_ONBOARD_CONTROLLER = 18
+#: ArduSub's AUTO custom mode (ardupilotmega.xml SUB_MODE)
+SUB_MODE_AUTO = 3
+MAV_TYPE_SUBMARINE = 12
+#: ArduSub's modes a pilot flies in (ardupilotmega.xml SUB_MODE): STABILIZE, ACRO, ALT_HOLD,
+#: POSHOLD, MANUAL; leaving AUTO for one of them is a manual override
+SUB_MANUAL_MODES = (0, 1, 2, 16, 19)
+
+#: The names of the numbers this output reports, when pymavlink's dialect is not at hand
+#: (common.xml MAV_MISSION_RESULT and MAV_RESULT, ardupilotmega.xml SUB_MODE)
+_NAMES: dict[str, dict[int, str]] = {
+    "MAV_MISSION_RESULT": {
+        0: "MAV_MISSION_ACCEPTED", 1: "MAV_MISSION_ERROR", 2: "MAV_MISSION_UNSUPPORTED_FRAME",
+        3: "MAV_MISSION_UNSUPPORTED", 4: "MAV_MISSION_NO_SPACE", 5: "MAV_MISSION_INVALID",
+        6: "MAV_MISSION_INVALID_PARAM1", 7: "MAV_MISSION_INVALID_PARAM2", 8: "MAV_MISSION_INVALID_PARAM3",
+        9: "MAV_MISSION_INVALID_PARAM4", 10: "MAV_MISSION_INVALID_PARAM5_X", 11: "MAV_MISSION_INVALID_PARAM6_Y",
+        12: "MAV_MISSION_INVALID_PARAM7", 13: "MAV_MISSION_INVALID_SEQUENCE", 14: "MAV_MISSION_DENIED",
+        15: "MAV_MISSION_OPERATION_CANCELLED"},
+    "MAV_RESULT": {
+        0: "MAV_RESULT_ACCEPTED", 1: "MAV_RESULT_TEMPORARILY_REJECTED", 2: "MAV_RESULT_DENIED",
+        3: "MAV_RESULT_UNSUPPORTED", 4: "MAV_RESULT_FAILED", 5: "MAV_RESULT_IN_PROGRESS", 6: "MAV_RESULT_CANCELLED",
+        7: "MAV_RESULT_COMMAND_LONG_ONLY", 8: "MAV_RESULT_COMMAND_INT_ONLY"},
+    "SUB_MODE": {
+        0: "SUB_MODE_STABILIZE", 1: "SUB_MODE_ACRO", 2: "SUB_MODE_ALT_HOLD", 3: "SUB_MODE_AUTO",
+        4: "SUB_MODE_GUIDED", 7: "SUB_MODE_CIRCLE", 9: "SUB_MODE_SURFACE", 16: "SUB_MODE_POSHOLD",
+        19: "SUB_MODE_MANUAL", 20: "SUB_MODE_MOTORDETECT", 21: "SUB_MODE_SURFTRAK"},
+}
+_COMMANDS = {MAV_CMD_MISSION_START: "MAV_CMD_MISSION_START", MAV_CMD_DO_SET_MODE: "MAV_CMD_DO_SET_MODE"}
+
+
+def enum_name(enum: str, value: int) -> str:
+    """The name of ``value`` in the MAVLink enum ``enum`` ("MAV_MISSION_RESULT", 14 ->
+    "MAV_MISSION_DENIED"), from pymavlink's ardupilotmega dialect (which includes common.xml)
+    when it is installed, else from a small table; "MAV_RESULT 42" for a value neither knows."""
+    try:
+        from pymavlink.dialects.v20 import ardupilotmega as dialect
+
+        entry = dialect.enums.get(enum, {}).get(int(value))
+        if entry is not None and not str(entry.name).endswith("_ENUM_END"):
+            return str(entry.name)
+    except ImportError:
+        pass
+    return _NAMES.get(enum, {}).get(int(value), f"{enum} {int(value)}")
+
+
+def mode_name(mode: int, vehicle_type: int | None = MAV_TYPE_SUBMARINE) -> str:
+    """An ArduPilot custom mode in words: ArduSub's name without its prefix ("ALT_HOLD") for a
+    submarine (or a vehicle whose type is not known yet), else "mode 2" (other ArduPilot
+    vehicles number their modes differently)."""
+    if vehicle_type in (None, MAV_TYPE_SUBMARINE):
+        name = enum_name("SUB_MODE", mode)
+        if name.startswith("SUB_MODE_"):
+            return name[len("SUB_MODE_"):]
+    return f"mode {int(mode)}"
+
+_FRAMES = {MAV_FRAME_GLOBAL, MAV_FRAME_GLOBAL_RELATIVE_ALT, MAV_FRAME_GLOBAL_RELATIVE_ALT_INT,
+           MAV_FRAME_GLOBAL_TERRAIN_ALT, MAV_FRAME_GLOBAL_TERRAIN_ALT_INT}
+_TERRAIN = {MAV_FRAME_GLOBAL_TERRAIN_ALT, MAV_FRAME_GLOBAL_TERRAIN_ALT_INT}
+_STARTS = ("mission_start", "auto_mode", "none")
+_NOT_VEHICLES = {MAV_TYPE_GCS, MAV_TYPE_GIMBAL, MAV_TYPE_ADSB, MAV_TYPE_ONBOARD_CONTROLLER}
+#: most messages read in one poll (the rest wait for the next)
+MAX_READ = 500
+
+
+@dataclass(frozen=True)
+class MissionItem:
+    """One MISSION_ITEM_INT (``x``/``y`` in degE7). ``waypoint``: the plan's waypoint index it
+    flies to (None: the home placeholder or a DO command)."""
+
+    seq: int
+    frame: int
+    command: int
+    param1: float
+    param2: float
+    param3: float
+    param4: float
+    x: int
+    y: int
+    z: float
+    waypoint: int | None = None
+
+    def fields(self) -> dict[str, Any]:
+        return dict(seq=self.seq, frame=self.frame, command=self.command, current=0, autocontinue=1,
+                    param1=self.param1, param2=self.param2, param3=self.param3, param4=self.param4,
+                    x=self.x, y=self.y, z=self.z)
+
+
+def _deg_e7(v: float) -> int:
+    return round(v * 1e7)
+
+
+def mission_items(plan: Any, context: Any, *, frame: int = MAV_FRAME_GLOBAL_RELATIVE_ALT,
+                  altitude_frame: int = MAV_FRAME_GLOBAL_TERRAIN_ALT, home_placeholder: bool = True,
+                  acceptance_radius: float = 2.0, hold: float = 0.0, speed_item: bool = True,
+                  ) -> list[MissionItem]:
+    """The mission of ``plan``: its waypoints as MAV_CMD_NAV_WAYPOINT items (lat/lon from
+    ``context.geodetic``), after the home placeholder and a speed change when asked.
+
+    Height: a depth gives ``z = -depth`` in ``frame`` (ArduSub: altitude above home, the
+    surface); otherwise an altitude gives ``z = altitude`` in ``altitude_frame`` when that is a
+    terrain frame (10, 11: height above the seafloor), else ``z = 0``; neither gives ``z = 0``
+    in ``frame`` (ArduSub reads alt 0 as "keep the present depth")."""
+    if plan.depth is not None:
+        fr, z = frame, -float(plan.depth)
+    elif plan.altitude is not None and altitude_frame in _TERRAIN:
+        fr, z = altitude_frame, float(plan.altitude)
+    else:
+        fr, z = (altitude_frame if plan.altitude is not None else frame), 0.0
+    items: list[MissionItem] = []
+    if home_placeholder:
+        lat, lon = context.geodetic(0.0, 0.0)
+        items.append(MissionItem(0, MAV_FRAME_GLOBAL, MAV_CMD_NAV_WAYPOINT, 0.0, 0.0, 0.0, 0.0,
+                                 _deg_e7(lat), _deg_e7(lon), 0.0))
+    if speed_item and plan.speed is not None:
+        # p1 speed type 1 = ground speed, p2 m/s, p3 throttle -1 = no change
+        items.append(MissionItem(len(items), fr, MAV_CMD_DO_CHANGE_SPEED, 1.0, float(plan.speed), -1.0,
+                                 0.0, 0, 0, 0.0))
+    for k, (x, y) in enumerate(plan.waypoints):
+        lat, lon = context.geodetic(float(x), float(y))
+        items.append(MissionItem(len(items), fr, MAV_CMD_NAV_WAYPOINT, float(hold), float(acceptance_radius),
+                                 0.0, math.nan, _deg_e7(lat), _deg_e7(lon), z, waypoint=k))
+    return items
+
+
+def connect(connection: str, source_system: int, source_component: int, *, baud: int = 115200,
+            mavlink2: bool = True) -> Any:
+    """A pymavlink connection (``mavutil.mavlink_connection``) that speaks MAVLink 2 from its
+    first packet when ``mavlink2`` (pymavlink otherwise starts with MAVLink 1 and switches only
+    when it hears a MAVLink 2 packet), without changing pymavlink's process-wide dialect."""
+    from pymavlink import mavutil
+
+    conn = mavutil.mavlink_connection(connection, baud=baud, source_system=source_system,
+                                      source_component=source_component, autoreconnect=False)
+    if mavlink2 and conn.WIRE_PROTOCOL_VERSION != "2.0":
+        from pymavlink.dialects.v20 import ardupilotmega as v20
+
+        conn.mav = v20.MAVLink(conn, srcSystem=source_system, srcComponent=source_component)
+        conn.mav.robust_parsing = True
+        conn.WIRE_PROTOCOL_VERSION = "2.0"
+        conn.first_byte = False  # no auto-switch (it would change the global dialect)
+    return conn
+
+
+def read(conn: Any, limit: int = MAX_READ) -> list[Any]:
+    """Every message waiting on ``conn`` (at most ``limit``), never blocking. A receive error
+    is logged and ends the read."""
+    out = []
+    for _ in range(limit):
+        try:
+            msg = conn.recv_match(blocking=False)
+        except Exception as exc:  # garbage pymavlink cannot parse, a socket error
+            log.warning("mavlink: receive failed: %s", exc)
+            break
+        if msg is None:
+            break
+        out.append(msg)
+    return out
+
+
+def _int(options: Mapping[str, Any], key: str, low: int, high: int, none: bool = False) -> list[str]:
+    v = options.get(key)
+    if v is None and (none or key not in options):
+        return []
+    if isinstance(v, bool) or not isinstance(v, int) or not low <= v <= high:
+        return [f"autonomy 'mavlink': {key} must be an integer in {low}..{high}, got {v!r}"]
+    return []
+
+
+def _pos(options: Mapping[str, Any], key: str, zero: bool = True) -> list[str]:
+    if key not in options:
+        return []
+    v = options[key]
+    if isinstance(v, bool) or not isinstance(v, int | float) or not math.isfinite(v) or v < 0 or (v == 0 and not zero):
+        return [f"autonomy 'mavlink': {key} must be a number {'>=' if zero else '>'} 0, got {v!r}"]
+    return []
+
+
+class MavlinkAutonomy(Autonomy):
+    """Uploads each plan as a MAVLink mission and follows its progress (module docstring)."""
+
+    name = "mavlink"
+    options = {
+        "connection": (..., "pymavlink connection string: udpout:HOST:PORT, udpin:HOST:PORT, "
+                            "tcp:HOST:PORT or a serial device such as /dev/ttyACM0"),
+        "baud": (115200, "serial baud rate"),
+        "source_system": (1, "our MAVLink system id (a companion computer shares the vehicle's)"),
+        "source_component": (191, "our component id (191 = MAV_COMP_ID_ONBOARD_COMPUTER)"),
+        "target_system": (None, "the autopilot's system id (default: from its first heartbeat, else 1)"),
+        "target_component": (None, "the autopilot's component id (default: from its first heartbeat, else 1)"),
+        "frame": (MAV_FRAME_GLOBAL_RELATIVE_ALT, "MAV_FRAME of depth items (3 = GLOBAL_RELATIVE_ALT, "
+                                                 "z = -depth above home = the surface)"),
+        "altitude_frame": (MAV_FRAME_GLOBAL_TERRAIN_ALT, "MAV_FRAME of altitude items (10 = "
+                                                         "GLOBAL_TERRAIN_ALT, z = altitude above the "
+                                                         "seafloor; any other: z = 0, the present depth)"),
+        "home_placeholder": (True, "send a placeholder at seq 0 (ArduPilot: seq 0 is home)"),
+        "acceptance_radius": (2.0, "param2 of each waypoint: metres"),
+        "hold": (0.0, "param1 of each waypoint: seconds to hold there"),
+        "speed_item": (True, "when the plan gives a speed, a MAV_CMD_DO_CHANGE_SPEED item before the waypoints"),
+        "start": ("mission_start", "how to start an accepted mission: mission_start (MAV_CMD_MISSION_START), "
+                                   "auto_mode (MAV_CMD_DO_SET_MODE to auto_mode) or none"),
+        "auto_mode": (SUB_MODE_AUTO, "the autopilot's custom mode that flies missions (ArduSub AUTO = 3)"),
+        "manual_modes": (list(SUB_MANUAL_MODES), "custom modes a pilot flies in: leaving AUTO for one of them "
+                                                 "is a manual override (ArduSub STABILIZE 0, ACRO 1, ALT_HOLD 2, "
+                                                 "POSHOLD 16, MANUAL 19)"),
+        "timeout": (1.5, "seconds without a request before MISSION_COUNT (or a command) is sent again"),
+        "item_timeout": (0.25, "seconds without the next request before the last item is sent again"),
+        "retries": (5, "resends in a row without an answer before the upload (or the start) is given up "
+                       "(REJECTED AUTONOMY_NO_ANSWER)"),
+        "heartbeat": (1.0, "seconds between our HEARTBEATs (0 = none)"),
+        "mavlink2": (True, "speak MAVLink 2 from the first packet"),
+    }
+
+    @classmethod
+    def check(cls, options: Mapping[str, Any]) -> list[str]:
+        p: list[str] = []
+        c = options.get("connection")
+        if not isinstance(c, str) or not c:
+            p.append(f"autonomy 'mavlink': connection must be a pymavlink connection string, got {c!r}")
+        p += _int(options, "baud", 1, 10_000_000)
+        p += _int(options, "source_system", 1, 255) + _int(options, "source_component", 0, 255)
+        p += _int(options, "target_system", 0, 255, none=True) + _int(options, "target_component", 0, 255, none=True)
+        for key in ("frame", "altitude_frame"):
+            if key in options and options[key] not in _FRAMES:
+                p.append(f"autonomy 'mavlink': {key} must be one of {sorted(_FRAMES)}, got {options[key]!r}")
+        for key in ("home_placeholder", "speed_item", "mavlink2"):
+            if key in options and not isinstance(options[key], bool):
+                p.append(f"autonomy 'mavlink': {key} must be true or false, got {options[key]!r}")
+        p += _pos(options, "acceptance_radius") + _pos(options, "hold") + _pos(options, "heartbeat")
+        p += _pos(options, "timeout", zero=False) + _pos(options, "item_timeout", zero=False)
+        p += _int(options, "retries", 0, 100) + _int(options, "auto_mode", 0, 2**32 - 1)
+        modes = options.get("manual_modes", [])
+        if not isinstance(modes, list | tuple) or any(
+                isinstance(v, bool) or not isinstance(v, int) or not 0 <= v < 2**32 for v in modes):
+            p.append(f"autonomy 'mavlink': manual_modes must be a list of custom modes (integers), got {modes!r}")
+        if "start" in options and options["start"] not in _STARTS:
+            p.append(f"autonomy 'mavlink': start must be one of {', '.join(_STARTS)}, got {options['start']!r}")
+        return p
+
+    @classmethod
+    def paths(cls, options: Mapping[str, Any]) -> list[tuple[str, str, str]]:
+        from ..options import serial_device
+
+        return serial_device(options.get("connection"))
+
+    def __init__(self, options: Mapping[str, Any], context: Any) -> None:
+        super().__init__(options, context)
+        cfg = self.config
+        self.conn: Any = None
+        self.target_system: int | None = cfg["target_system"]
+        self.target_component: int | None = cfg["target_component"]
+        self._heard_vehicle = False
+        self._next_heartbeat = -math.inf
+        self._out: list[SurveyReport] = []
+        # the mission being uploaded or flown
+        self.plan: Any = None
+        self.items: list[MissionItem] = []
+        #: idle, upload, starting (the start command sent, not acknowledged yet), flying, done
+        self.phase = "idle"
+        self._sent: int | None = None  # the last item sent (None: only MISSION_COUNT)
+        self._deadline = math.inf
+        self._tries = 0
+        self._heading_for = -1  # the waypoint last reported in STARTED
+        # the start command
+        self._command: tuple[int, tuple[float, ...]] | None = None
+        self._command_deadline = math.inf
+        self._command_tries = 0
+        self._vehicle_mode: int | None = None
+        self._vehicle_type: int | None = None
+        self._seen_auto = False
+        #: counters for tests and status pages
+        self.stats = {"bad": 0, "ignored": 0, "resent": 0, "uploads": 0, "items_sent": 0}
+
+    # ------------------------------------------------------------------ connection
+    def open(self) -> None:
+        if self.conn is not None:
+            return
+        cfg = self.config
+        try:
+            self.conn = connect(cfg["connection"], cfg["source_system"], cfg["source_component"],
+                                baud=cfg["baud"], mavlink2=cfg["mavlink2"])
+        except Exception as exc:
+            raise ConfigError(f"autonomy 'mavlink': cannot open {cfg['connection']!r}: {exc}") from exc
+
+    def close(self) -> None:
+        if self.conn is not None:
+            try:
+                self.conn.close()
+            finally:
+                self.conn = None
+
+    @property
+    def _targets(self) -> tuple[int, int]:
+        ts = 1 if self.target_system is None else self.target_system
+        tc = 1 if self.target_component is None else self.target_component
+        return ts, tc
+
+    def _send(self, name: str, **fields: Any) -> None:
+        if self.conn is None:
+            raise RuntimeError("autonomy 'mavlink' is not open")
+        try:
+            getattr(self.conn.mav, f"{name}_send")(**fields)
+        except OSError as exc:  # a serial port gone, a network down: the retries deal with it
+            log.warning("mavlink: sending %s failed: %s", name.upper(), exc)
+
+    # ------------------------------------------------------------------ the autonomy
+    def _adopt(self, plan: Any) -> dict[str, Any]:
+        """Make ``plan`` the one flown: the connection open, its mission items built; returns the
+        configuration."""
+        if self.conn is None:
+            self.open()
+        cfg = self.config
+        self.plan = plan
+        self.items = mission_items(plan, self.context, frame=cfg["frame"], altitude_frame=cfg["altitude_frame"],
+                                   home_placeholder=cfg["home_placeholder"],
+                                   acceptance_radius=cfg["acceptance_radius"], hold=cfg["hold"],
+                                   speed_item=cfg["speed_item"])
+        return cfg
+
+    def submit(self, plan: Any, now: float) -> None:
+        cfg = self._adopt(plan)
+        if plan.altitude is not None and plan.depth is None and cfg["altitude_frame"] not in _TERRAIN:
+            log.warning("mavlink: survey %s asks for %g m altitude, but altitude_frame %s is not a terrain "
+                        "frame: its waypoints keep the present depth (z = 0)", plan.survey_id, plan.altitude,
+                        cfg["altitude_frame"])
+        self.phase, self._sent, self._tries = "upload", None, 0
+        self._heading_for, self._seen_auto = -1, False
+        self._command = None
+        self._command_deadline = math.inf
+        self.stats["uploads"] += 1
+        log.info("mavlink: uploading survey %s as %d mission items", plan.survey_id, len(self.items))
+        self._send_count(now)
+
+    def resume(self, plan: Any, now: float) -> bool:
+        """The autopilot may still fly the uploaded mission: follow MISSION_CURRENT /
+        MISSION_ITEM_REACHED again, upload nothing."""
+        self._adopt(plan)
+        self.phase, self._sent, self._tries, self._heading_for, self._seen_auto = "flying", None, 0, -1, False
+        self._command, self._command_deadline = None, math.inf
+        self._deadline = math.inf
+        log.info("mavlink: following survey %s again after a restart (nothing uploaded)", plan.survey_id)
+        return True
+
+    def poll(self, now: float) -> list[Any]:
+        if self.conn is None:
+            return self._take()
+        every = float(self.config["heartbeat"])
+        if every > 0 and now >= self._next_heartbeat:
+            self._send("heartbeat", type=MAV_TYPE_ONBOARD_CONTROLLER, autopilot=MAV_AUTOPILOT_INVALID,
+                       base_mode=0, custom_mode=0, system_status=4)  # MAV_STATE_ACTIVE
+            self._next_heartbeat = now + every
+        for msg in read(self.conn):
+            try:
+                self._handle(msg, now)
+            except Exception as exc:  # a message with fields we did not expect
+                self.stats["bad"] += 1
+                log.warning("mavlink: ignored %s: %s", _type(msg), exc)
+        self._timeouts(now)
+        return self._take()
+
+    def _take(self) -> list[SurveyReport]:
+        out, self._out = self._out, []
+        return out
+
+    def _report(self, state: SurveyState, now: float, reason: SurveyReason = SurveyReason.NONE,
+                index: int | None = None, value: float | None = None, detail: str | None = None) -> None:
+        self._out.append(SurveyReport(self.plan.survey_id, state, float(now), reason, index, value,
+                                      cut_detail(detail)))
+
+    def _no_answer(self, now: float, what: str, tries: int) -> None:
+        """Give the survey up: the autopilot did not answer ``what`` in ``tries`` tries."""
+        heard = "" if self._heard_vehicle else ", no heartbeat heard"
+        log.warning("mavlink: survey %s: no answer from the autopilot to %s after %d tries%s; given up",
+                    self.plan.survey_id, what, tries, heard)
+        self.phase = "idle"
+        self._command, self._command_deadline = None, math.inf
+        self._deadline = math.inf
+        self._report(SurveyState.REJECTED, now, SurveyReason.AUTONOMY_NO_ANSWER, value=float(tries),
+                     detail=f"{what} unanswered{heard}")
+
+    # ------------------------------------------------------------------ upload
+    def _send_count(self, now: float) -> None:
+        ts, tc = self._targets
+        self._send("mission_count", target_system=ts, target_component=tc, count=len(self.items), mission_type=0)
+        self._deadline = now + float(self.config["timeout"])
+
+    def _send_item(self, seq: int, now: float) -> None:
+        ts, tc = self._targets
+        self._send("mission_item_int", target_system=ts, target_component=tc, mission_type=0,
+                   **self.items[seq].fields())
+        self._sent = seq
+        self.stats["items_sent"] += 1
+        self._deadline = now + float(self.config["item_timeout"])
+
+    def _timeouts(self, now: float) -> None:
+        if self.phase == "upload" and now >= self._deadline:
+            if self._tries >= int(self.config["retries"]):
+                what = "MISSION_COUNT" if self._sent is None else f"item {self._sent} of {len(self.items)}"
+                self._no_answer(now, what, self._tries + 1)
+                return
+            self._tries += 1
+            self.stats["resent"] += 1
+            if self._sent is None:
+                self._send_count(now)
+            else:
+                self._send_item(self._sent, now)
+        if self._command is not None and now >= self._command_deadline:
+            if self._command_tries >= int(self.config["retries"]):
+                self._no_answer(now, _COMMANDS.get(self._command[0], f"command {self._command[0]}"),
+                                self._command_tries + 1)
+                return
+            self._command_tries += 1
+            self._send_command(now)
+
+    def _mine(self, msg: Any) -> bool:
+        """Whether a message addressed to a system/component is for us (0 = broadcast)."""
+        ts = getattr(msg, "target_system", 0)
+        tc = getattr(msg, "target_component", 0)
+        return ts in (0, self.config["source_system"]) and tc in (0, self.config["source_component"])
+
+    def _from_vehicle(self, msg: Any) -> bool:
+        return self.target_system is None or msg.get_srcSystem() == self.target_system
+
+    def _handle(self, msg: Any, now: float) -> None:
+        kind = msg.get_type()
+        if kind == "BAD_DATA":
+            self.stats["bad"] += 1
+            log.debug("mavlink: bad data (%d bytes)", len(getattr(msg, "data", b"") or b""))
+            return
+        if kind == "HEARTBEAT":
+            self._heartbeat(msg, now)
+            return
+        if kind in ("MISSION_REQUEST_INT", "MISSION_REQUEST", "MISSION_ACK"):
+            if not (self._mine(msg) and self._from_vehicle(msg)) or getattr(msg, "mission_type", 0) != 0:
+                self.stats["ignored"] += 1
+                return
+            if kind == "MISSION_ACK":
+                self._ack(msg, now)
+            else:
+                self._request(msg, now)
+        elif kind in ("MISSION_ITEM_REACHED", "MISSION_CURRENT"):
+            if self._from_vehicle(msg):
+                self._progress(kind, int(msg.seq), now)
+        elif kind == "COMMAND_ACK":
+            if self._mine(msg) and self._from_vehicle(msg):
+                self._command_ack(msg, now)
+
+    def _heartbeat(self, msg: Any, now: float) -> None:
+        if msg.type in _NOT_VEHICLES or msg.autopilot == MAV_AUTOPILOT_INVALID:
+            return
+        self._vehicle_type = int(msg.type)
+        if not self._heard_vehicle:
+            self._heard_vehicle = True
+            if self.target_system is None:
+                self.target_system = msg.get_srcSystem()
+            if self.target_component is None:
+                self.target_component = msg.get_srcComponent()
+            log.info("mavlink: vehicle %d/%d (type %d, autopilot %d)", msg.get_srcSystem(),
+                     msg.get_srcComponent(), msg.type, msg.autopilot)
+        if msg.get_srcSystem() != self.target_system or msg.autopilot != MAV_AUTOPILOT_ARDUPILOTMEGA:
+            return
+        mode = int(msg.custom_mode)
+        previous, self._vehicle_mode = self._vehicle_mode, mode
+        if self.phase != "flying" or self.config["start"] == "none":
+            return
+        auto = int(self.config["auto_mode"])
+        if mode == auto:
+            self._seen_auto = True
+        elif self._seen_auto and previous == auto:
+            manual = mode in self.config["manual_modes"]
+            words = f"left {mode_name(auto, self._vehicle_type)} for {mode_name(mode, self._vehicle_type)}"
+            log.warning("mavlink: survey %s stopped: the vehicle %s (%s)", self.plan.survey_id, words,
+                        "a pilot's mode: manual override" if manual else "not a pilot's mode")
+            self.phase = "done"
+            self._report(SurveyState.ABORTED, now,
+                         SurveyReason.MANUAL_OVERRIDE if manual else SurveyReason.AUTONOMY_STOPPED,
+                         value=float(mode), detail=words)
+
+    def _request(self, msg: Any, now: float) -> None:
+        seq = int(msg.seq)
+        if self.phase != "upload":
+            self.stats["ignored"] += 1
+            log.debug("mavlink: request for item %d outside an upload", seq)
+            return
+        if not 0 <= seq < len(self.items):
+            self.stats["bad"] += 1
+            log.warning("mavlink: the autopilot asked for item %d (the mission has %d); ignored", seq, len(self.items))
+            return
+        expected = 0 if self._sent is None else self._sent + 1
+        if seq > expected:
+            log.warning("mavlink: the autopilot skipped to item %d (expected %d)", seq, expected)
+        if seq >= expected:
+            self._tries = 0  # progress
+        self._send_item(seq, now)
+
+    def _ack(self, msg: Any, now: float) -> None:
+        result = int(msg.type)
+        if self.phase != "upload":
+            self.stats["ignored"] += 1
+            return
+        if result == MAV_MISSION_INVALID_SEQUENCE:  # ArduPilot: a NACK that does not end the upload
+            log.info("mavlink: the autopilot NACKed an item out of sequence; the upload goes on")
+            return
+        if result != MAV_MISSION_ACCEPTED:
+            name = enum_name("MAV_MISSION_RESULT", result)
+            log.warning("mavlink: survey %s refused by the autopilot (MAV_MISSION_RESULT %d %s)",
+                        self.plan.survey_id, result, name)
+            self.phase = "idle"
+            self._deadline = math.inf
+            self._report(SurveyState.REJECTED, now, SurveyReason.AUTONOMY_REFUSED, value=float(result), detail=name)
+            return
+        if self._sent != len(self.items) - 1:
+            # the vehicle accepts after the last item: this ack is an earlier upload's
+            self.stats["ignored"] += 1
+            log.info("mavlink: ignored an ack before the last item of survey %s was sent", self.plan.survey_id)
+            return
+        log.info("mavlink: survey %s uploaded", self.plan.survey_id)
+        self._deadline = math.inf
+        start = self.config["start"]
+        if start == "mission_start":
+            # p1 first item, p2 last item: 0, 0 = the whole mission (as pymavlink's set_mode_auto sends it)
+            self._command = (MAV_CMD_MISSION_START, (0, 0, 0, 0, 0, 0, 0))
+        elif start == "auto_mode":
+            self._command = (MAV_CMD_DO_SET_MODE, (MAV_MODE_FLAG_CUSTOM_MODE_ENABLED,
+                                                   float(self.config["auto_mode"]), 0, 0, 0, 0, 0))
+        else:
+            self._flying(now)  # the vehicle starts it itself
+            return
+        self.phase = "starting"
+        self._command_tries = 0
+        self._send_command(now)
+
+    def _flying(self, now: float) -> None:
+        """The mission runs: STARTED, heading for waypoint 0."""
+        self.phase = "flying"
+        self._heading_for = 0
+        self._report(SurveyState.STARTED, now, index=0)
+
+    def _send_command(self, now: float) -> None:
+        assert self._command is not None
+        ts, tc = self._targets
+        cmd, params = self._command
+        self._send("command_long", target_system=ts, target_component=tc, command=cmd,
+                   confirmation=self._command_tries, **{f"param{i + 1}": float(p) for i, p in enumerate(params)})
+        self._command_deadline = now + float(self.config["timeout"])
+
+    def _command_ack(self, msg: Any, now: float) -> None:
+        if self._command is None or int(msg.command) != self._command[0]:
+            return
+        result = int(msg.result)
+        if result == MAV_RESULT_IN_PROGRESS:
+            self._command_deadline = now + float(self.config["timeout"])
+            return
+        self._command, self._command_deadline = None, math.inf
+        if self.phase != "starting":
+            return
+        if result == MAV_RESULT_ACCEPTED:
+            self._flying(now)
+            return
+        name = enum_name("MAV_RESULT", result)
+        log.warning("mavlink: survey %s uploaded, but the autopilot refused to start it (MAV_RESULT %d %s)",
+                    self.plan.survey_id, result, name)
+        self.phase = "done"
+        self._report(SurveyState.ABORTED, now, SurveyReason.AUTONOMY_STOPPED, value=float(result), detail=name)
+
+    # ------------------------------------------------------------------ progress
+    def _waypoint_of(self, seq: int) -> int | None:
+        if 0 <= seq < len(self.items):
+            return self.items[seq].waypoint
+        return None
+
+    def _progress(self, kind: str, seq: int, now: float) -> None:
+        if self.phase == "starting" and kind == "MISSION_ITEM_REACHED" and self._waypoint_of(seq) is not None:
+            # it flies the new mission, though the start command's ack was lost
+            self._command, self._command_deadline = None, math.inf
+            self._flying(now)
+        if self.phase != "flying":
+            return
+        if kind == "MISSION_CURRENT":
+            # (before the start is acknowledged, MISSION_CURRENT may still name the old mission:
+            # it is not read in the phase "starting")
+            k = self._waypoint_of(seq)
+            if k is not None and k > self._heading_for:
+                self._heading_for = k
+                self._report(SurveyState.STARTED, now, index=k)
+            return
+        k = self._waypoint_of(seq)
+        if k is None:
+            return
+        n = len(self.plan.waypoints)
+        if k == n - 1:
+            log.info("mavlink: survey %s completed", self.plan.survey_id)
+            self.phase = "done"
+            self._report(SurveyState.COMPLETED, now)
+        elif k + 1 > self._heading_for:
+            self._heading_for = k + 1
+            self._report(SurveyState.STARTED, now, index=k + 1)
+
+
+def _type(msg: Any) -> str:
+    try:
+        return str(msg.get_type())
+    except Exception:
+        return type(msg).__name__

@@ -1,0 +1,254 @@
+"""The ``ros`` autonomy output: each accepted survey is published on ROS 1 for the vehicle's own
+planner, whose answers on a progress topic become survey reports.
+
+What it publishes (both latched: a planner that starts later still gets the newest survey):
+
+* ``path_topic`` (``/coex/survey/path``): a ``nav_msgs/Path`` in ``frame`` (``coex_local``: x
+  east, y north of ``node.origin``, z up, metres), one ``PoseStamped`` per waypoint in order. A
+  pose's z is ``-depth`` when the survey gives a depth, else 0; its orientation faces the next
+  leg; its stamp is when it is reached at the survey's speed from the path's stamp (all the
+  path's stamp without a speed).
+* ``plan_topic`` (``/coex/survey/plan``, ``""`` for none): a ``std_msgs/String`` holding JSON,
+  published just before the path: ``survey_id``, ``kind`` (goto, line, lawnmower, waypoints),
+  ``waypoints`` (their count), ``altitude`` and ``depth`` (metres, null = keep the present one),
+  ``speed`` (m/s, null = the vehicle's own), ``frame`` and ``stamp`` (the path's, seconds).
+
+What it reads: ``progress_topic`` (``/coex/survey/progress``), a ``std_msgs/String`` per answer,
+``[SURVEY_ID] WORD [MORE]`` (case ignored; without the id, the newest survey):
+
+* ``started K`` (or ``started``: K = 0) -> STARTED, heading for waypoint K (0-based);
+* ``completed`` -> COMPLETED;
+* ``refused WHY`` (or ``rejected WHY``) -> REJECTED, AUTONOMY_REFUSED, detail WHY;
+* ``aborted WHY`` -> ABORTED, AUTONOMY_STOPPED, detail WHY; ``aborted manual WHY`` ->
+  MANUAL_OVERRIDE, ``aborted all_stop WHY`` -> ALL_STOP, ``aborted restarted WHY`` ->
+  AUTONOMY_RESTARTED.
+
+An answer naming another survey, an answer after the survey ended, a repeated ``started K`` and
+anything else are logged (once) and dropped. No answer within ``answer_timeout`` seconds of the
+submit -> REJECTED, AUTONOMY_NO_ANSWER (``value``: the seconds waited; ``detail`` says whether a
+planner was subscribed to the path at all). Reports are stamped with the daemon's ``now``.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+import threading
+from collections import deque
+from collections.abc import Mapping
+from typing import Any
+
+from coex import Autonomy
+from coex.messages import SurveyKind, SurveyReason, SurveyState
+
+from ..options import LogOnce
+from ..survey.plan import SurveyReport
+
+__all__ = ["RosAutonomy", "parse_progress", "plan_json"]
+
+log = logging.getLogger(__name__)
+
+#: the word after ``aborted`` -> the reason it reports
+ABORT_WORDS = {"manual": SurveyReason.MANUAL_OVERRIDE, "all_stop": SurveyReason.ALL_STOP,
+               "restarted": SurveyReason.AUTONOMY_RESTARTED}
+
+
+def parse_progress(text: str) -> tuple[int | None, SurveyState, SurveyReason, int | None, str | None]:
+    """``(survey_id or None, state, reason, index, detail)`` of a progress answer (module
+    docstring); ValueError when it is not one."""
+    words = str(text).strip().split(None, 1)
+    sid: int | None = None
+    if words and words[0].isdigit():
+        sid = int(words[0])
+        words = words[1].split(None, 1) if len(words) > 1 else []
+    if not words:
+        raise ValueError(f"no state in {text!r}")
+    word, rest = words[0].lower(), (words[1].strip() if len(words) > 1 else "")
+    if word == "started":
+        head = rest.split(None, 1)
+        if head and not head[0].isdigit():
+            raise ValueError(f"'started' takes a waypoint index, not {head[0]!r}")
+        return sid, SurveyState.STARTED, SurveyReason.NONE, int(head[0]) if head else 0, None
+    if word == "completed":
+        return sid, SurveyState.COMPLETED, SurveyReason.NONE, None, None
+    if word in ("refused", "rejected"):
+        return sid, SurveyState.REJECTED, SurveyReason.AUTONOMY_REFUSED, None, rest or None
+    if word == "aborted":
+        head = rest.split(None, 1)
+        reason = ABORT_WORDS.get(head[0].lower()) if head else None
+        if reason is not None:
+            return sid, SurveyState.ABORTED, reason, None, (head[1].strip() if len(head) > 1 else None)
+        return sid, SurveyState.ABORTED, SurveyReason.AUTONOMY_STOPPED, None, rest or None
+    raise ValueError(f"unknown state {words[0]!r} (started K, completed, refused WHY, aborted WHY)")
+
+
+def plan_json(plan: Any, stamp: float, frame: str) -> str:
+    """The JSON of ``plan_topic`` (module docstring)."""
+    return json.dumps({
+        "survey_id": int(plan.survey_id), "kind": SurveyKind(plan.kind).name.lower(),
+        "waypoints": len(plan.waypoints), "altitude": plan.altitude, "depth": plan.depth,
+        "speed": plan.speed, "frame": frame, "stamp": round(float(stamp), 6),
+    })
+
+
+class RosAutonomy(Autonomy):
+    """Surveys as ``nav_msgs/Path`` for a ROS planner, its answers as reports (module docstring)."""
+
+    name = "ros"
+    options = {
+        "master": ("", "the ROS master URI; empty: $ROS_MASTER_URI, else http://localhost:11311"),
+        "node": ("coex_vehicle", "the name of CoEx's ROS node (one per process)"),
+        "path_topic": ("/coex/survey/path", "where the survey goes: nav_msgs/Path (latched)"),
+        "plan_topic": ("/coex/survey/plan", "the survey's id, kind, altitude, depth and speed: "
+                                            "std_msgs/String JSON (latched; '' = none)"),
+        "progress_topic": ("/coex/survey/progress", "the planner's answers: std_msgs/String "
+                                                    "'[ID] started K | completed | refused WHY | aborted WHY'"),
+        "frame": ("coex_local", "frame_id of the path: the local grid (x east, y north, z up)"),
+        "answer_timeout": (10.0, "seconds without any answer after a submit before it is reported "
+                                 "REJECTED / AUTONOMY_NO_ANSWER (0: wait forever)"),
+    }
+
+    @classmethod
+    def check(cls, options: Mapping[str, Any]) -> list[str]:
+        problems = []
+        for key in ("master", "node", "path_topic", "plan_topic", "progress_topic", "frame"):
+            v = options.get(key, "x")
+            if not isinstance(v, str) or (key in ("node", "path_topic", "progress_topic") and not v.strip()):
+                problems.append(f"autonomy 'ros': option {key!r} must be a "
+                                f"{'non-empty ' if key in ('node', 'path_topic', 'progress_topic') else ''}"
+                                f"string, not {v!r}")
+        master = options.get("master", "")
+        if isinstance(master, str) and master and not master.startswith(("http://", "https://")):
+            problems.append(f"autonomy 'ros': option 'master' must be an http:// URI, not {master!r}")
+        t = options.get("answer_timeout", 10.0)
+        if isinstance(t, bool) or not isinstance(t, int | float) or not math.isfinite(t) or t < 0:
+            problems.append(f"autonomy 'ros': option 'answer_timeout' must be a number of seconds >= 0, not {t!r}")
+        return problems
+
+    def __init__(self, options: Mapping[str, Any], context: Any) -> None:
+        super().__init__(options, context)
+        self.node: Any = None
+        self._path: Any = None
+        self._plan_pub: Any = None
+        self._sub: Any = None
+        self._answers: deque[str] = deque(maxlen=1000)
+        self._lock = threading.Lock()
+        self.plan: Any = None
+        self._since = 0.0
+        self._answered = True
+        self._done = True
+        self._index: int | None = None
+        self._problem = LogOnce(log)
+        self.stats = {"published": 0, "received": 0, "ignored": 0}
+
+    def open(self) -> None:
+        if self.node is not None:
+            return
+        from coex.ros import RosNode
+
+        c = self.config
+        node = RosNode.get(c["master"], c["node"])
+        self._path = node.publisher(c["path_topic"], "nav_msgs/Path", latch=True)
+        if c["plan_topic"]:
+            self._plan_pub = node.publisher(c["plan_topic"], "std_msgs/String", latch=True)
+        self._sub = node.subscribe(c["progress_topic"], self._on_answer, queue=100)
+        self.node = node
+
+    def _on_answer(self, msgtype: str, data: bytes) -> None:  # in a rospy thread
+        if msgtype not in ("std_msgs/String", "std_msgs/msg/String"):
+            self._problem(f"type:{msgtype}", "ros: %s carries %s, not std_msgs/String: dropped",
+                          self.config["progress_topic"], msgtype)
+            return
+        try:
+            text = str(self.node.deserialize("std_msgs/String", data).data)
+        except ValueError as exc:
+            self._problem("bad", "ros: an answer that does not decode: %s", exc)
+            return
+        with self._lock:
+            self._answers.append(text)
+
+    def close(self) -> None:
+        if self.node is not None:
+            for pub in (self._path, self._plan_pub):
+                if pub is not None:
+                    pub.close()
+            if self._sub is not None:
+                self.node.unsubscribe(self._sub)
+            self.node = None
+
+    def submit(self, plan: Any, now: float) -> None:
+        if self.node is None:
+            self.open()
+        from coex.ros import msgs
+
+        c = self.config
+        z = -float(plan.depth) if plan.depth is not None else 0.0
+        path = msgs.path(plan.waypoints, self.node.message_class, now, c["frame"], z=z, speed=plan.speed)
+        with self._lock:
+            self._answers.clear()  # answers about an older survey (before publishing: a quick
+            # planner's first answer to this one must not be cleared with them)
+        self.plan, self._since, self._answered, self._done, self._index = plan, float(now), False, False, None
+        if self._plan_pub is not None:
+            text = self.node.message("std_msgs/String", data=plan_json(plan, now, c["frame"]))
+            self._plan_pub.publish(text)
+        sent = self._path.publish(path)
+        self.stats["published"] += 1
+        log.info("ros: survey %s (%d waypoints) %s %s", plan.survey_id, len(plan.waypoints),
+                 "published on" if sent else "waits for the ROS master to publish on", c["path_topic"])
+
+    def _report(self, out: list[Any], state: SurveyState, now: float, reason: SurveyReason = SurveyReason.NONE,
+                index: int | None = None, value: float | None = None, detail: str | None = None) -> None:
+        out.append(SurveyReport(int(self.plan.survey_id), state, float(now), reason, index, value, detail))
+        self._answered = True
+        if state != SurveyState.STARTED:
+            self._done = True
+
+    def resume(self, plan: Any, now: float) -> bool:
+        """The planner may still fly the Path: its progress answers are followed again."""
+        if self.node is None:
+            self.open()
+        self.plan, self._since, self._answered, self._done, self._index = plan, float(now), True, False, None
+        return True
+
+    def poll(self, now: float) -> list[Any]:
+        if self.node is None:
+            return []
+        with self._lock:
+            answers = list(self._answers)
+            self._answers.clear()
+        out: list[Any] = []
+        for text in answers:
+            self.stats["received"] += 1
+            try:
+                sid, state, reason, index, detail = parse_progress(text)
+            except ValueError as exc:
+                self.stats["ignored"] += 1
+                self._problem(f"parse:{text[:40]}", "ros: answer %r not understood: %s", text, exc)
+                continue
+            if self.plan is None or self._done or (sid is not None and sid != int(self.plan.survey_id)):
+                self.stats["ignored"] += 1
+                log.info("ros: answer %r dropped (survey %s %s)", text,
+                         None if self.plan is None else self.plan.survey_id,
+                         "ended" if self._done else "flown now")
+                continue
+            if state == SurveyState.STARTED:
+                n = len(self.plan.waypoints)
+                if index is None or not 0 <= index < n or index == self._index:
+                    self.stats["ignored"] += 1
+                    if index is None or not 0 <= index < n:
+                        self._problem(f"index:{index}", "ros: waypoint %s of a %d-waypoint survey ignored", index, n)
+                    continue
+                self._index = index
+            elif state == SurveyState.COMPLETED and self._index is None:
+                self._report(out, SurveyState.STARTED, now, index=0)  # it did set off
+            self._report(out, state, now, reason, index, None, detail)
+        timeout = float(self.config["answer_timeout"])
+        if self.plan is not None and not self._answered and timeout > 0 and now - self._since >= timeout:
+            listeners = self._path.connections() if self._path is not None else 0
+            why = (f"no answer on {self.config['progress_topic']}" if listeners else
+                   f"no planner subscribed to {self.config['path_topic']}")
+            log.warning("ros: survey %s: %s within %g s", self.plan.survey_id, why, timeout)
+            self._report(out, SurveyState.REJECTED, now, SurveyReason.AUTONOMY_NO_ANSWER,
+                         value=round(now - self._since, 1), detail=why)
+        return out

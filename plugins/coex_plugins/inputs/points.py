@@ -1,0 +1,95 @@
+"""The ``points`` input: soundings from ``.npy`` (``N x 3``, or a structured array with x, y, z
+fields) and ``.csv`` files (x, y, z columns, header optional) for the bathymetry map.
+
+``path`` is one file or a directory watched like the ``directory`` input's (a file is read once
+its size and modification time have settled; rewriting it makes it new again). Each file
+becomes one :class:`~coex.Points` item, timed by its sidecar ``<file>.json`` ``{"time": ...}``
+when there is one, else by its modification time. Rows with a NaN or infinite coordinate are
+dropped. A file that cannot be read, or holds no finite point, is logged once, skipped and
+counted (``counts["skipped"]``).
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Mapping
+from typing import Any, ClassVar
+
+import numpy as np
+
+from coex import InputContext, Item, Points
+
+from ..options import LogOnce, want_bool, want_number, want_str
+from ._files import WatchedInput, read_sidecar
+
+__all__ = ["PointsInput", "finite_rows"]
+
+log = logging.getLogger(__name__)
+
+
+def finite_rows(xyz: np.ndarray) -> np.ndarray:
+    """The rows of an ``N x 3`` array whose three coordinates are finite, as float64."""
+    a = np.asarray(xyz, dtype=np.float64).reshape(-1, 3)
+    return a[np.isfinite(a).all(axis=1)]
+
+
+class PointsInput(WatchedInput):
+    """Point files (see the module docstring)."""
+
+    name = "points"
+    feeds = ("bathymetry",)
+    options: ClassVar[Mapping[str, tuple[Any, str]]] = {
+        "path": (..., "a .npy / .csv file, or a directory to watch for them"),
+        "pattern": ("*.npy,*.csv", "comma-separated file name patterns in a directory, case ignored"),
+        "settle": (1.0, "seconds a file's size and mtime must stay unchanged before it is read"),
+        "existing": (False, "also take the files already in the directory when the input opens "
+                            "(a single named file is always taken)"),
+        "interval": (0.5, "seconds between two scans of the directory"),
+    }
+
+    @classmethod
+    def check(cls, options: Mapping[str, Any]) -> list[str]:
+        problems = want_str(cls.name, options, "path", nonempty=True)
+        problems += want_str(cls.name, options, "pattern", nonempty=True)
+        problems += want_number(cls.name, options, "settle", minimum=0)
+        problems += want_number(cls.name, options, "interval", minimum=0)
+        problems += want_bool(cls.name, options, "existing")
+        return problems
+
+    @classmethod
+    def paths(cls, options: Mapping[str, Any]) -> list[tuple[str, str, str]]:
+        return [("path", str(options["path"]), "file or folder")] if isinstance(options.get("path"), str) else []
+
+    def __init__(self, options: Mapping[str, Any], context: InputContext) -> None:
+        super().__init__(options, context)
+        self._problem = LogOnce(log)
+
+    def poll(self, now: float) -> list[Item]:
+        items: list[Item] = []
+        for path, st in self.watch.poll(now):
+            if path.suffix.lower() not in (".npy", ".csv", ".txt", ".xyz"):
+                self._problem(f"type:{path.suffix}", "input points: %s is not .npy or .csv, skipped", path)
+                self.skip()
+                continue
+            try:
+                from coex_plugins.bathymetry.points import iter_points
+
+                chunks = [xyz for _, xyz in iter_points(path)]
+            except Exception as exc:  # InputError, or anything a damaged file provokes
+                self._problem(f"read:{path}", "input points: cannot read %s, skipped (%s)", path, exc)
+                self.skip()
+                continue
+            side = read_sidecar(path, self.context)
+            t = side.time if side is not None and side.time is not None else st.st_mtime
+            before = len(items)
+            for xyz in chunks:
+                good = finite_rows(xyz)
+                if len(good):
+                    items.append(Points(t, good))
+            if len(items) == before:
+                self._problem(f"empty:{path}", "input points: %s holds no finite point, skipped", path)
+                self.skip()
+        return items
+
+    def next_event(self, now: float) -> float | None:
+        return self.watch.next_event(now)

@@ -1,0 +1,225 @@
+"""What the vehicle's adapters (inputs and autonomy outputs) share: option checks, logging a
+problem once, headings, the import of an optional library with the extra that installs it, and
+the MOOS connection."""
+
+from __future__ import annotations
+
+import importlib
+import logging
+import math
+import re
+from collections.abc import Callable, Mapping
+from types import ModuleType
+from typing import Any
+
+from coex import PluginLoadError
+from coex.moos import MAX_TIME_WARP
+
+__all__ = [
+    "LogOnce",
+    "serial_device",
+    "compass_from_enu_yaw",
+    "compile_path",
+    "finite",
+    "need",
+    "want_bool",
+    "want_choice",
+    "want_host_port",
+    "want_int",
+    "want_number",
+    "want_str",
+    "want_time_warp",
+    "yaw_of_quaternion",
+]
+
+
+def need(module: str, extra: str) -> ModuleType:
+    """Import an optional library, or raise :class:`PluginLoadError` naming the extra."""
+    try:
+        return importlib.import_module(module)
+    except ImportError as exc:
+        raise PluginLoadError(
+            f"this input needs {module.split('.')[0]}: pip install 'coexploration[{extra}]' ({exc})"
+        ) from exc
+
+
+class LogOnce:
+    """Logs each distinct problem (by key) once, then counts it quietly: a camera writing a broken
+    file every second must not flood the vehicle's log."""
+
+    #: distinct problems remembered; beyond it the oldest are forgotten (and may be logged again)
+    LIMIT = 4096
+
+    def __init__(self, logger: logging.Logger) -> None:
+        self.logger = logger
+        self.counts: dict[str, int] = {}
+
+    def __call__(self, key: str, message: str, *args: Any, level: int = logging.WARNING) -> None:
+        n = self.counts.get(key, 0)
+        if n == 0 and len(self.counts) >= self.LIMIT:  # a dive of broken files: stay bounded
+            del self.counts[next(iter(self.counts))]
+        self.counts[key] = n + 1
+        if n == 0:
+            self.logger.log(level, message, *args)
+
+
+def serial_device(connection: Any) -> list[tuple[str, str, str]]:
+    """The serial device of a pymavlink connection string (``/dev/ttyACM0``, ``/dev/ttyUSB0,57600``),
+    as an :meth:`Adapter.paths` entry of the option ``connection``; none for a network one."""
+    if not isinstance(connection, str) or not connection.startswith("/"):
+        return []
+    return [("connection", connection.split(",", 1)[0], "device")]
+
+
+# --------------------------------------------------------------------------- option checks
+def _is_number(v: Any) -> bool:
+    return isinstance(v, int | float) and not isinstance(v, bool)
+
+
+def want_str(name: str, options: Mapping[str, Any], key: str, *, nonempty: bool = False) -> list[str]:
+    """A problem if ``key`` is given and is not a string (or is empty when ``nonempty``)."""
+    if key not in options:
+        return []
+    v = options[key]
+    if not isinstance(v, str):
+        return [f"input {name!r}: option {key!r} must be a string, not {v!r}"]
+    if nonempty and not v.strip():
+        return [f"input {name!r}: option {key!r} must not be empty"]
+    return []
+
+
+def want_number(name: str, options: Mapping[str, Any], key: str, *, minimum: float | None = None,
+                positive: bool = False) -> list[str]:
+    """A problem if ``key`` is given and is not a finite number in range."""
+    if key not in options:
+        return []
+    v = options[key]
+    if not _is_number(v) or not math.isfinite(v):
+        return [f"input {name!r}: option {key!r} must be a number, not {v!r}"]
+    if positive and v <= 0:
+        return [f"input {name!r}: option {key!r} must be greater than 0, not {v!r}"]
+    if minimum is not None and v < minimum:
+        return [f"input {name!r}: option {key!r} must be at least {minimum}, not {v!r}"]
+    return []
+
+
+def want_int(name: str, options: Mapping[str, Any], key: str, lo: int, hi: int) -> list[str]:
+    """A problem if ``key`` is given and is not an integer in ``lo..hi``."""
+    if key not in options:
+        return []
+    v = options[key]
+    if not isinstance(v, int) or isinstance(v, bool) or not lo <= v <= hi:
+        return [f"input {name!r}: option {key!r} must be an integer from {lo} to {hi}, not {v!r}"]
+    return []
+
+
+def want_bool(name: str, options: Mapping[str, Any], key: str) -> list[str]:
+    """A problem if ``key`` is given and is not true or false."""
+    if key in options and not isinstance(options[key], bool):
+        return [f"input {name!r}: option {key!r} must be true or false, not {options[key]!r}"]
+    return []
+
+
+def want_choice(name: str, options: Mapping[str, Any], key: str, choices: tuple[str, ...]) -> list[str]:
+    """A problem if ``key`` is given and is not one of ``choices``."""
+    if key in options and options[key] not in choices:
+        return [f"input {name!r}: option {key!r} must be one of {', '.join(map(repr, choices))}, "
+                f"not {options[key]!r}"]
+    return []
+
+
+def want_host_port(name: str, options: Mapping[str, Any], key: str) -> list[str]:
+    """A problem if ``key`` is given, not empty, and not ``host:port``."""
+    v = options.get(key, "")
+    if v == "":
+        return []
+    if isinstance(v, str):
+        host, sep, port = v.rpartition(":")
+        if sep and host and port.isdigit() and 0 <= int(port) <= 65535:
+            return []
+    return [f"input {name!r}: option {key!r} must be 'host:port' (e.g. '0.0.0.0:10110'), not {v!r}"]
+
+
+def want_time_warp(who: str, options: Mapping[str, Any], key: str = "time_warp") -> list[str]:
+    """A problem if ``key`` (a MOOS community's ``MOOSTimeWarp``) is given and is not a number
+    above 0 and at most MOOS's ``MAX_TIME_WARP`` (400)."""
+    if key not in options:
+        return []
+    v = options[key]
+    if not _is_number(v) or not math.isfinite(v) or not 0 < v <= MAX_TIME_WARP:
+        return [f"{who}: option {key!r} must be a number above 0 and at most {MAX_TIME_WARP:g} (the "
+                f"mission's MOOSTimeWarp), not {v!r}"]
+    return []
+
+
+# --------------------------------------------------------------------------- values
+_SEGMENT = r"[A-Za-z_][A-Za-z0-9_]*(?:\[\d+\])?"
+_PATH = re.compile(rf"^-?\s*{_SEGMENT}(?:\.{_SEGMENT})*$")
+
+
+def compile_path(path: str) -> tuple[Callable[[Any], Any], str]:
+    """A getter for a field path (``"-pos[2]"``, ``"pose.position.x"``) and the name of its
+    first field; ValueError if the path is not one. The ``lcm`` input's ``own`` types and the
+    ``ros`` input's ``series`` take fields with it."""
+    if not isinstance(path, str) or not _PATH.match(path.strip()):
+        raise ValueError(f"{path!r} is not a field path (name, name[index], a.b, optional leading -)")
+    text = path.strip()
+    negate = text.startswith("-")
+    steps: list[tuple[str, int | None]] = []
+    for seg in text.lstrip("-").strip().split("."):
+        name, _, index = seg.partition("[")
+        steps.append((name, int(index[:-1]) if index else None))
+
+    def get(msg: Any) -> Any:
+        v = msg
+        for name, index in steps:
+            v = getattr(v, name)
+            if index is not None:
+                v = v[index]
+        if negate:
+            import numpy as np
+
+            v = -np.asarray(v, dtype=np.float64) if isinstance(v, list | tuple | np.ndarray) else -v
+        return v
+
+    return get, steps[0][0]
+
+
+def finite(v: Any) -> float | None:
+    """``v`` as a float, or None when it is missing, not a number, NaN or infinite."""
+    try:
+        f = float(v)
+    except (TypeError, ValueError):
+        return None
+    return f if math.isfinite(f) else None
+
+
+def yaw_of_quaternion(x: float, y: float, z: float, w: float) -> float | None:
+    """The yaw (rotation about z, radians, counter-clockwise) of a quaternion, or None if it is
+    all zeros (unset orientation) or not finite."""
+    n = x * x + y * y + z * z + w * w
+    if not math.isfinite(n) or n < 1e-12:
+        return None
+    # atan2 of unnormalised terms: the same angle for any scale of the quaternion
+    return math.atan2(2.0 * (w * z + x * y), w * w + x * x - y * y - z * z)
+
+
+def compass_from_enu_yaw(yaw: float) -> float:
+    """A compass heading (degrees clockwise from north, 0..360) from an ENU yaw (radians
+    counter-clockwise from east, as ROS gives it): yaw 0 (east) is heading 90."""
+    return (90.0 - math.degrees(yaw)) % 360.0
+
+
+def moos_client(client: Any, host: str, port: int, name: str, variables: list[str],
+                time_warp: float = 1.0) -> Any:
+    """The MOOS input's and autonomy output's connection: ``client`` (made here when None, on
+    the community's ``time_warp``) with every one of ``variables`` registered, connecting (and
+    reconnecting) in its own thread; never waits for MOOSDB."""
+    if client is None:
+        from coex.moos import MoosClient
+
+        client = MoosClient(host, port, name, time_warp=time_warp)
+    for var in variables:
+        client.register(var, 0.0)
+    client.connect(timeout=0.0)
+    return client
