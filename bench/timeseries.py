@@ -29,6 +29,7 @@ from typing import Any
 import numpy as np
 
 from coex_core import wire
+from coex_core.loopback import RoundTrip
 from coex_core.messages import Message
 from coex_plugins.timeseries import TimeSeriesReceiver, TimeSeriesSender, synth
 from coex_plugins.timeseries.codec import _rice_k
@@ -69,19 +70,18 @@ def deltas_entropy_bytes(x: np.ndarray, error: float) -> int:
 # ---------------------------------------------------------------------------- our code
 
 
+def _link(sender: TimeSeriesSender, receiver: TimeSeriesReceiver, now: float) -> RoundTrip:
+    """A lossless link of 251-byte fills, one round a second; acks go back at once."""
+    return RoundTrip(sender, receiver, mtu=251 + wire.header_size(), round_seconds=1.0, now=now)
+
+
 def _stream(sender: TimeSeriesSender, receiver: TimeSeriesReceiver, now: float,
             sent: list[Message]) -> float:
     """Lossless link: fill whole messages until the sender is idle; acks go back at once."""
-    while True:
-        batch = sender.fill(251, now)
-        if not batch:
-            return now
-        for m in batch:
-            sent.append(m)
-            receiver.receive(m, now)
-        for reply in receiver.poll(now):
-            sender.handle(reply, now)
-        now += 1.0
+    link = _link(sender, receiver, now)
+    link.drain()
+    sent.extend(link.sent)
+    return link.now
 
 
 def live_sender(series: synth.SynthSeries, config: dict[str, Any], batch: int = 60) -> tuple[TimeSeriesSender, float]:
@@ -151,14 +151,13 @@ def bytes_to_error(series: synth.SynthSeries, config: dict[str, Any], error: flo
     """Progressive (default stream, then a request down to ``error``) and direct bytes."""
     sender, now = live_sender(series, config)
     rx = TimeSeriesReceiver()
-    sent: list[Message] = []
-    now = _stream(sender, rx, now, sent)
-    overview = sum(wire.encoded_size(m) for m in sent)
+    link = _link(sender, rx, now)
+    link.drain()
+    overview = sum(wire.encoded_size(m) for m in link.sent)
     rx.request(series.name, float(series.times[0]), float(series.times[-1]), error)
-    for req in rx.poll(now):
-        sender.handle(req, now)
-    now = _stream(sender, rx, now, sent)
-    progressive = sum(wire.encoded_size(m) for m in sent)
+    link.poll()
+    link.drain()
+    progressive = sum(wire.encoded_size(m) for m in link.sent)
     s = rx.series(series.name)
     got, _ = sample_series(s, series.times)
     achieved = float(np.max(np.abs(got - series.values)))

@@ -39,6 +39,7 @@ from coex_core.adapters import (
     Samples,
     SurveyPlan,
     SurveyReport,
+    adapter_check,
     adapter_problems,
     check_autonomy_options,
     check_options,
@@ -80,7 +81,7 @@ from coex_core.errors import (
     TransportTimeout,
 )
 from coex_core.jsonfmt import from_json, to_json
-from coex_core.loopback import LoopbackLink
+from coex_core.loopback import Bernoulli, LoopbackLink, LossModel, RoundTrip, WireEvent
 from coex_core.messages import Frame, FrameHeader, Message
 from coex_core.modality import Modality, ModalityReceiver, ModalitySender, Product
 from coex_core.node import Node
@@ -116,6 +117,7 @@ __all__ = [
     "AuthenticationError",
     "Autonomy",
     "BadFrame",
+    "Bernoulli",
     "CONTROL_STREAM",
     "ChannelManager",
     "CoexError",
@@ -143,6 +145,7 @@ __all__ = [
     "LinkDown",
     "LinkStats",
     "LoopbackLink",
+    "LossModel",
     "MemoryStorage",
     "Message",
     "Modality",
@@ -164,6 +167,7 @@ __all__ = [
     "RequestRejected",
     "RequestTracker",
     "ResilientTransport",
+    "RoundTrip",
     "Runner",
     "STAMP_MODULUS",
     "Samples",
@@ -181,7 +185,8 @@ __all__ = [
     "TransportError",
     "TransportTimeout",
     "UriInfo",
-    "__version__",
+    "WireEvent",
+    "adapter_check",
     "adapter_problems",
     "available",
     "check_autonomy_options",
@@ -207,4 +212,5 @@ __all__ = [
     "tracker",
     "unwrap",
     "wire",
+    "__version__",
 ]

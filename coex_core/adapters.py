@@ -28,7 +28,7 @@ from .messages import SurveyKind, SurveyReason, SurveyState
 from .state import persistent
 
 __all__ = ["FEEDS", "Adapter", "Autonomy", "Image", "Input", "InputContext", "Item", "Nav", "Points", "Samples",
-           "SurveyPlan", "SurveyReport", "adapter_problems", "check_autonomy_options", "check_options"]
+           "SurveyPlan", "SurveyReport", "adapter_check", "adapter_problems", "check_autonomy_options", "check_options"]
 
 #: what an input may feed: the bathymetry map, the image sender, time-series channels, the
 #: vehicle status
@@ -133,9 +133,11 @@ class Adapter:
         self.context = context
 
     @classmethod
-    def check(cls, options: Mapping[str, Any]) -> list[str]:
+    def check(cls, options: Mapping[str, Any]) -> list[str] | Problems:
         """Problems with ``options`` beyond unknown and missing keys (``coex config check``):
-        one sentence each, naming the key. Optional."""
+        one sentence each, naming the key; or a :class:`~coex_core.config.Problems` that keeps
+        each problem's option as its key (its ``option_*`` checks: ``option_int``,
+        ``option_bool`` ...). Optional."""
         return []
 
     @classmethod
@@ -155,8 +157,14 @@ class Adapter:
 
 
 def adapter_problems(cls: type[Adapter], options: Mapping[str, Any]) -> list[str]:
-    """Unknown and missing keys, then the adapter's own :meth:`Adapter.check` (collected in one
-    :class:`~coex_core.config.Problems`, each with the option it names)."""
+    """Unknown and missing keys, then the adapter's own :meth:`Adapter.check`: the sentences of
+    :func:`adapter_check`."""
+    return adapter_check(cls, options).items
+
+
+def adapter_check(cls: type[Adapter], options: Mapping[str, Any]) -> Problems:
+    """Unknown and missing keys, then the adapter's own :meth:`Adapter.check`, collected in one
+    :class:`~coex_core.config.Problems`, each with the option it names."""
     p = Problems()
     for k in options:
         if k not in cls.options and k not in cls.table_keys:
@@ -165,8 +173,13 @@ def adapter_problems(cls: type[Adapter], options: Mapping[str, Any]) -> list[str
         if default is ... and k not in options:
             p.said(k, f"{cls.kind} {cls.name!r} needs option {k!r} ({desc})")
     if not p:
-        p.extend("", cls.check(options))
-    return p.items
+        found = cls.check(options)
+        if isinstance(found, Problems):
+            p.merge(found)
+            p.warned.extend(found.warned)
+        else:
+            p.extend("", found)
+    return p
 
 
 class Input(Adapter, abc.ABC):

@@ -152,6 +152,75 @@ class Problems:
         return v
 
 
+    # ------------------------------------------------------------------ an adapter's options
+    # (``who`` names the adapter in the sentence, e.g. ``"input 'nmea'"``; each problem's key is
+    # the option's name; an option not given is no problem: its default applies)
+    def option_str(self, who: str, options: Mapping[str, Any], key: str, *, nonempty: bool = False) -> None:
+        """A problem if ``key`` is given and is not a string (or is empty when ``nonempty``)."""
+        if key not in options:
+            return
+        v = options[key]
+        if not isinstance(v, str):
+            self.said(key, f"{who}: option {key!r} must be a string, not {v!r}")
+        elif nonempty and not v.strip():
+            self.said(key, f"{who}: option {key!r} must not be empty")
+
+    def option_number(self, who: str, options: Mapping[str, Any], key: str, *, minimum: float | None = None,
+                      positive: bool = False) -> None:
+        """A problem if ``key`` is given and is not a finite number in range."""
+        if key not in options:
+            return
+        v = options[key]
+        if not _is_number(v) or not math.isfinite(v):
+            self.said(key, f"{who}: option {key!r} must be a number, not {v!r}")
+        elif positive and v <= 0:
+            self.said(key, f"{who}: option {key!r} must be greater than 0, not {v!r}")
+        elif minimum is not None and v < minimum:
+            self.said(key, f"{who}: option {key!r} must be at least {minimum}, not {v!r}")
+
+    def option_int(self, who: str, options: Mapping[str, Any], key: str, lo: int, hi: int) -> None:
+        """A problem if ``key`` is given and is not an integer in ``lo..hi``."""
+        if key not in options:
+            return
+        v = options[key]
+        if not isinstance(v, int) or isinstance(v, bool) or not lo <= v <= hi:
+            self.said(key, f"{who}: option {key!r} must be an integer from {lo} to {hi}, not {v!r}")
+
+    def option_bool(self, who: str, options: Mapping[str, Any], key: str) -> None:
+        """A problem if ``key`` is given and is not true or false."""
+        if key in options and not isinstance(options[key], bool):
+            self.said(key, f"{who}: option {key!r} must be true or false, not {options[key]!r}")
+
+    def option_choice(self, who: str, options: Mapping[str, Any], key: str, choices: tuple[str, ...]) -> None:
+        """A problem if ``key`` is given and is not one of ``choices``."""
+        if key in options and options[key] not in choices:
+            self.said(key, f"{who}: option {key!r} must be one of {', '.join(map(repr, choices))}, "
+                           f"not {options[key]!r}")
+
+    def option_host_port(self, who: str, options: Mapping[str, Any], key: str) -> None:
+        """A problem if ``key`` is given, not empty, and not ``host:port``."""
+        v = options.get(key, "")
+        if v == "":
+            return
+        if isinstance(v, str):
+            host, sep, port = v.rpartition(":")
+            if sep and host and port.isdigit() and 0 <= int(port) <= 65535:
+                return
+        self.said(key, f"{who}: option {key!r} must be 'host:port' (e.g. '0.0.0.0:10110'), not {v!r}")
+
+    def nest(self, key: str, other: Iterable[Problem]) -> None:
+        """Problems a part found by itself (an adapter's options) as problems of ``key``: each
+        shown ``"key: text"``, its key under ``key`` (``inputs[0]`` and ``baud`` make
+        ``inputs[0].baud``)."""
+        for q in other:
+            self.found.append(Problem(f"{key}.{q.key}" if key and q.key else key or q.key,
+                                      f"{key}: {q.text}" if key else q.text))
+
+
+def _is_number(v: Any) -> bool:
+    return isinstance(v, int | float) and not isinstance(v, bool)
+
+
 def merged_config(config: Mapping[str, Any] | None, defaults: Mapping[str, Any],
                   what: str = "") -> dict[str, Any]:
     """``defaults`` updated with ``config``; :class:`ConfigError` naming every key not in

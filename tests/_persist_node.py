@@ -14,10 +14,9 @@ from __future__ import annotations
 import argparse
 import signal
 import sys
-import time
 from typing import Any
 
-from coex import Runner
+from coex import RealClock, Runner
 from coex_core.registry import open_transport
 from coex_runtime.store import NodeStore
 
@@ -28,21 +27,6 @@ from ._faults import T0, build_dive
 PACKET_SECONDS = 1.0
 #: two TDMA cycles: processes on a busy machine answer late; wait for their acks before re-sending
 ACK_TIMEOUT = 32.0
-
-
-class DiveClock:
-    """Dive time: ``T0`` at wall time ``epoch``, running ``speed`` times faster."""
-
-    def __init__(self, epoch: float, speed: float) -> None:
-        self.epoch, self.speed = epoch, speed
-
-    def time(self) -> float:
-        return T0 + (time.time() - self.epoch) * self.speed
-
-    def wait_until(self, t: float) -> None:
-        dt = (t - self.time()) / self.speed
-        if dt > 0:
-            time.sleep(dt)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -59,7 +43,7 @@ def main(argv: list[str] | None = None) -> int:
         raise SystemExit(0)
 
     signal.signal(signal.SIGTERM, stop)
-    clock = DiveClock(args.epoch, args.speed)
+    clock = RealClock(speed=args.speed, at=(args.epoch, T0))  # dive time: T0 at wall time epoch
     store = NodeStore(args.db, snapshot_interval=5.0, compact=False)  # the test audits the journal
     template = build_dive(minutes=args.minutes, packet_seconds=PACKET_SECONDS, ack_timeout=ACK_TIMEOUT)
     feed = template.feed
@@ -72,20 +56,21 @@ def main(argv: list[str] | None = None) -> int:
     transport = open_transport(args.uri)
     runner = Runner(node, {0: transport}, clock, store=store, max_wait=1.0)
     store.set(f"starts_{args.role}", str(int(store.get(f"starts_{args.role}", "0") or 0) + 1))
+
+    def due(now: float) -> None:
+        if args.role == "vehicle":
+            done = store.count("input")  # the feed items taken so far, in order
+            while done < len(feed) and feed[done][0] <= now:
+                runner.ingest(feed[done][1], feed[done][2])
+                done += 1
+        elif now >= T0 + 200.0 and store.get("goal") is None:
+            node.receiver("imagery").request_goal(1, "full", now=now)  # type: ignore[attr-defined]
+            store.snapshot(node, now)  # the request is in the saved state ...
+            store.set("goal", "asked")  # ... before it is marked done
+
+    runner.before_step.append(due)
     try:
-        while True:
-            now = clock.time()
-            if args.role == "vehicle":
-                done = store.count("input")  # the feed items taken so far, in order
-                while done < len(feed) and feed[done][0] <= now:
-                    runner.ingest(feed[done][1], feed[done][2])
-                    done += 1
-            elif now >= T0 + 200.0 and store.get("goal") is None:
-                node.receiver("imagery").request_goal(1, "full", now=now)  # type: ignore[attr-defined]
-                store.snapshot(node, now)  # the request is in the saved state ...
-                store.set("goal", "asked")  # ... before it is marked done
-            nxt = runner.step()
-            clock.wait_until(min(nxt, clock.time() + 1.0))
+        runner.run()
     finally:
         transport.close()
         store.close()

@@ -86,6 +86,105 @@ def test_problems_collects_every_problem_with_its_key(tmp_path: Path) -> None:
     assert str(one.error("boat.toml")) == "boat.toml: crew: missing"
 
 
+def test_an_adapters_option_checks_collect_every_problem_with_its_option() -> None:
+    """The vehicle adapters' option checks are the collector's ``option_*``: an NMEA input with
+    four bad options gives four problems, each keyed by its option, in the adapter's words."""
+    from coex_core.adapters import adapter_check, adapter_problems
+    from coex_plugins.vehicle.inputs.nmea import NmeaInput
+
+    options = {"udp": "nowhere", "baud": 0, "require_checksum": "yes", "variation": float("nan")}
+    p = adapter_check(NmeaInput, options)
+    assert p.keys() == ["udp", "baud", "require_checksum", "variation"]
+    assert p.items == [
+        "input 'nmea': option 'udp' must be 'host:port' (e.g. '0.0.0.0:10110'), not 'nowhere'",
+        "input 'nmea': option 'baud' must be an integer from 1 to 10000000, not 0",
+        "input 'nmea': option 'require_checksum' must be true or false, not 'yes'",
+        "input 'nmea': option 'variation' must be a number, not nan",
+    ]
+    assert adapter_problems(NmeaInput, options) == p.items
+    from coex_plugins.vehicle.autonomy.mavlink import MavlinkAutonomy
+
+    out = adapter_check(MavlinkAutonomy, {"connection": "udpout:127.0.0.1:14550", "baud": 0, "hold": -1,
+                                          "start": "soon"})
+    assert out.keys() == ["baud", "hold", "start"]
+    assert out.items[0] == "autonomy 'mavlink': baud must be an integer in 1..10000000, got 0"
+    q = Problems()
+    q.option_str("input 'x'", {"path": " "}, "path", nonempty=True)
+    q.option_number("input 'x'", {"settle": -1}, "settle", minimum=0)
+    q.option_number("input 'x'", {"speed": 0}, "speed", positive=True)
+    q.option_choice("input 'x'", {"start": "later"}, "start", ("now", "original"))
+    q.option_bool("input 'x'", {}, "nav")  # not given: its default applies
+    assert q.items == ["input 'x': option 'path' must not be empty",
+                       "input 'x': option 'settle' must be at least 0, not -1",
+                       "input 'x': option 'speed' must be greater than 0, not 0",
+                       "input 'x': option 'start' must be one of 'now', 'original', not 'later'"]
+
+
+def test_a_nodes_file_names_every_bad_input_option_and_ros_key_in_one_error(tmp_path: Path) -> None:
+    """A deployment file with two inputs, each with bad options, and a bad ``[ros]`` table: one
+    ConfigError lists them all, each under its full key (``inputs[0].baud``, ``ros.interval``)."""
+    from coex_plugins.vehicle.config import load
+
+    (tmp_path / "t.toml").write_text("""
+[node]
+role = "topside"
+id = 1
+[[modems]]
+uri = "loopback://t"
+[ros]
+prefix = "coex"
+interval = 0
+track = -1
+""")
+    with pytest.raises(ConfigError) as err:
+        load(tmp_path / "t.toml")
+    assert [x.key for x in err.value.problems] == ["ros.prefix", "ros.interval", "ros.track"]
+    assert str(err.value) == (f"{tmp_path / 't.toml'}: 3 problems:\n"
+                              "  ros.prefix: a global namespace starting with '/', got 'coex'\n"
+                              "  ros.interval: seconds from 0.05 to 3600, got 0\n"
+                              "  ros.track: an integer from 0 to 100000, got -1")
+    (tmp_path / "v.toml").write_text("""
+[node]
+role = "vehicle"
+id = 2
+[[modems]]
+uri = "loopback://v"
+[modalities.timeseries]
+[modalities.imagery]
+[[inputs]]
+type = "nmea"
+feeds = ["timeseries"]
+udp = "nowhere"
+baud = 0
+[[inputs]]
+type = "directory"
+feeds = ["imagery"]
+path = ""
+settle = -1
+existing = "yes"
+""")
+    with pytest.raises(ConfigError) as err:
+        load(tmp_path / "v.toml")
+    assert [x.key for x in err.value.problems] == [
+        "inputs[0].udp", "inputs[0].baud", "inputs[1].path", "inputs[1].settle", "inputs[1].existing"]
+    assert str(err.value).splitlines()[1:] == [
+        "  inputs[0]: input 'nmea': option 'udp' must be 'host:port' (e.g. '0.0.0.0:10110'), not 'nowhere'",
+        "  inputs[0]: input 'nmea': option 'baud' must be an integer from 1 to 10000000, not 0",
+        "  inputs[1]: input 'directory': option 'path' must not be empty",
+        "  inputs[1]: input 'directory': option 'settle' must be at least 0, not -1",
+        "  inputs[1]: input 'directory': option 'existing' must be true or false, not 'yes'",
+    ]
+
+
+def test_ros_products_refuse_every_bad_key_at_once() -> None:
+    from coex_plugins.console.ros import RosProducts
+
+    with pytest.raises(ConfigError) as err:
+        RosProducts({"master": "ship:11311", "interval": 0, "topics": 1})
+    assert [x.key for x in err.value.problems] == ["ros.topics", "ros.master", "ros.interval"]
+    assert str(err.value).startswith("3 problems:\n  ros.topics: unknown key (known: ")
+
+
 def test_request_tracker_sends_retries_and_gives_up() -> None:
     from coex_core.requests import RequestTracker
 

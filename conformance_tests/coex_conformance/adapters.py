@@ -145,6 +145,18 @@ def _unknown_refused(cls: type[Adapter], options: dict[str, Any], context: Input
             cls(missing, context)
 
 
+def _no_problem(cls: type[Adapter], options: dict[str, Any]) -> None:
+    """``check`` answers with a list of sentences or a :class:`~coex_core.config.Problems`, and
+    finds nothing in working options."""
+    from coex_core.config import Problems
+
+    problems = cls.check(options)
+    assert isinstance(problems, list | Problems), (
+        f"rule: check() answers with a list of sentences or a Problems, got {type(problems).__name__}")
+    texts = problems.items if isinstance(problems, Problems) else problems
+    assert texts == [], f"rule: check() of working options finds no problem, got {texts!r}"
+
+
 def _paths_declared(cls: type[Adapter], options: dict[str, Any]) -> None:
     paths = cls.paths(options)
     assert isinstance(paths, list), "rule: paths() is a list of (option, path, kind)"
@@ -170,8 +182,7 @@ class InputTests:
 
     def test_check_and_paths_answer_in_their_forms(self, input_class: type[Input],
                                                   input_options: dict[str, Any]) -> None:
-        problems = input_class.check(input_options)
-        assert problems == [], f"rule: check() of working options finds no problem, got {problems!r}"
+        _no_problem(input_class, input_options)
         _paths_declared(input_class, input_options)
 
     def test_poll_never_blocks_and_close_is_harmless_twice(self, input_class: type[Input],
@@ -246,8 +257,7 @@ class AutonomyTests:
 
     def test_check_and_paths_answer_in_their_forms(self, autonomy_class: type[Autonomy],
                                                   autonomy_options: dict[str, Any]) -> None:
-        problems = autonomy_class.check(autonomy_options)
-        assert problems == [], f"rule: check() of working options finds no problem, got {problems!r}"
+        _no_problem(autonomy_class, autonomy_options)
         _paths_declared(autonomy_class, autonomy_options)
 
     def _reports(self, out: Autonomy, start: float, seconds: float, *, realtime: bool,

@@ -1,4 +1,5 @@
-"""What the vehicle's adapters (inputs and autonomy outputs) share: option checks, logging a
+"""What the vehicle's adapters (inputs and autonomy outputs) share: option checks (collected in
+``coex_core.config.Problems``, re-exported here), logging a
 problem once, headings, the import of an optional library with the extra that installs it, and
 the MOOS connection."""
 
@@ -12,23 +13,18 @@ from collections.abc import Callable, Mapping
 from types import ModuleType
 from typing import Any
 
-from coex import PluginLoadError
+from coex import PluginLoadError, Problems
 from coex.moos import MAX_TIME_WARP
 
 __all__ = [
     "LogOnce",
+    "Problems",
     "serial_device",
+    "check_time_warp",
     "compass_from_enu_yaw",
     "compile_path",
     "finite",
     "need",
-    "want_bool",
-    "want_choice",
-    "want_host_port",
-    "want_int",
-    "want_number",
-    "want_str",
-    "want_time_warp",
     "yaw_of_quaternion",
 ]
 
@@ -72,84 +68,16 @@ def serial_device(connection: Any) -> list[tuple[str, str, str]]:
 
 
 # --------------------------------------------------------------------------- option checks
-def _is_number(v: Any) -> bool:
-    return isinstance(v, int | float) and not isinstance(v, bool)
-
-
-def want_str(name: str, options: Mapping[str, Any], key: str, *, nonempty: bool = False) -> list[str]:
-    """A problem if ``key`` is given and is not a string (or is empty when ``nonempty``)."""
-    if key not in options:
-        return []
-    v = options[key]
-    if not isinstance(v, str):
-        return [f"input {name!r}: option {key!r} must be a string, not {v!r}"]
-    if nonempty and not v.strip():
-        return [f"input {name!r}: option {key!r} must not be empty"]
-    return []
-
-
-def want_number(name: str, options: Mapping[str, Any], key: str, *, minimum: float | None = None,
-                positive: bool = False) -> list[str]:
-    """A problem if ``key`` is given and is not a finite number in range."""
-    if key not in options:
-        return []
-    v = options[key]
-    if not _is_number(v) or not math.isfinite(v):
-        return [f"input {name!r}: option {key!r} must be a number, not {v!r}"]
-    if positive and v <= 0:
-        return [f"input {name!r}: option {key!r} must be greater than 0, not {v!r}"]
-    if minimum is not None and v < minimum:
-        return [f"input {name!r}: option {key!r} must be at least {minimum}, not {v!r}"]
-    return []
-
-
-def want_int(name: str, options: Mapping[str, Any], key: str, lo: int, hi: int) -> list[str]:
-    """A problem if ``key`` is given and is not an integer in ``lo..hi``."""
-    if key not in options:
-        return []
-    v = options[key]
-    if not isinstance(v, int) or isinstance(v, bool) or not lo <= v <= hi:
-        return [f"input {name!r}: option {key!r} must be an integer from {lo} to {hi}, not {v!r}"]
-    return []
-
-
-def want_bool(name: str, options: Mapping[str, Any], key: str) -> list[str]:
-    """A problem if ``key`` is given and is not true or false."""
-    if key in options and not isinstance(options[key], bool):
-        return [f"input {name!r}: option {key!r} must be true or false, not {options[key]!r}"]
-    return []
-
-
-def want_choice(name: str, options: Mapping[str, Any], key: str, choices: tuple[str, ...]) -> list[str]:
-    """A problem if ``key`` is given and is not one of ``choices``."""
-    if key in options and options[key] not in choices:
-        return [f"input {name!r}: option {key!r} must be one of {', '.join(map(repr, choices))}, "
-                f"not {options[key]!r}"]
-    return []
-
-
-def want_host_port(name: str, options: Mapping[str, Any], key: str) -> list[str]:
-    """A problem if ``key`` is given, not empty, and not ``host:port``."""
-    v = options.get(key, "")
-    if v == "":
-        return []
-    if isinstance(v, str):
-        host, sep, port = v.rpartition(":")
-        if sep and host and port.isdigit() and 0 <= int(port) <= 65535:
-            return []
-    return [f"input {name!r}: option {key!r} must be 'host:port' (e.g. '0.0.0.0:10110'), not {v!r}"]
-
-
-def want_time_warp(who: str, options: Mapping[str, Any], key: str = "time_warp") -> list[str]:
+# (the checks themselves are coex_core.config.Problems' option_* methods: the one checker)
+def check_time_warp(p: Problems, who: str, options: Mapping[str, Any], key: str = "time_warp") -> None:
     """A problem if ``key`` (a MOOS community's ``MOOSTimeWarp``) is given and is not a number
     above 0 and at most MOOS's ``MAX_TIME_WARP`` (400)."""
     if key not in options:
-        return []
+        return
     v = options[key]
-    if not _is_number(v) or not math.isfinite(v) or not 0 < v <= MAX_TIME_WARP:
-        return [f"{who}: option {key!r} must be a number above 0 and at most {MAX_TIME_WARP:g} (the "
-                f"mission's MOOSTimeWarp), not {v!r}"]
-    return []
+    if isinstance(v, bool) or not isinstance(v, int | float) or not math.isfinite(v) or not 0 < v <= MAX_TIME_WARP:
+        p.said(key, f"{who}: option {key!r} must be a number above 0 and at most {MAX_TIME_WARP:g} (the "
+                    f"mission's MOOSTimeWarp), not {v!r}")
 
 
 # --------------------------------------------------------------------------- values

@@ -57,16 +57,32 @@ class Clock(Protocol):
 
 
 class RealClock:
-    """Wall-clock time (``time.time`` unless another source is given); waiting sleeps."""
+    """Wall-clock time (``time.time`` unless another source is given); waiting sleeps.
 
-    def __init__(self, source: Callable[[], float] = time.time) -> None:
+    With ``speed`` and ``at=(wall, reading)`` it is a faster clock (a dive replayed on real
+    transports): it reads ``reading`` when the source reads ``wall`` and runs ``speed`` times
+    as fast."""
+
+    def __init__(self, source: Callable[[], float] = time.time, *, speed: float = 1.0,
+                 at: tuple[float, float] | None = None) -> None:
+        if speed <= 0:
+            raise ConfigError("speed must be positive")
         self.source = source
+        self.speed = float(speed)
+        self.at = at
 
     def time(self) -> float:
-        return self.source()
+        if self.at is None and self.speed == 1.0:
+            return self.source()
+        wall, reading = self.at or (0.0, 0.0)
+        return reading + (self.source() - wall) * self.speed
+
+    def wall_seconds(self, dt: float) -> float:
+        """The wall-clock seconds ``dt`` seconds of this clock take."""
+        return dt / self.speed
 
     def wait_until(self, t: float) -> None:
-        dt = t - self.source()
+        dt = self.wall_seconds(t - self.time())
         if dt > 0:
             time.sleep(dt)
 
@@ -130,6 +146,7 @@ class Runner:
         store: NodeStore | None = None,
         lock: contextlib.AbstractContextManager[Any] | None = None,
         after_step: Sequence[Callable[[float], Any]] = (),
+        before_step: Sequence[Callable[[float], Any]] = (),
         snapshot_due: Callable[[], bool] | None = None,
         on_error: Callable[[str], Any] | None = None,
     ) -> None:
@@ -160,6 +177,10 @@ class Runner:
         #: called with ``now`` at the end of every step, under :attr:`lock` (a hook that
         #: raises is recorded in :attr:`errors`; the loop goes on)
         self.after_step: list[Callable[[float], Any]] = list(after_step)
+        #: called by :meth:`run` with ``now`` before every step, outside :attr:`lock` (a hook
+        #: may :meth:`ingest` what is due: a sensor log replayed); one that raises is recorded
+        #: in :attr:`errors` and the loop goes on
+        self.before_step: list[Callable[[float], Any]] = list(before_step)
         #: with a store: ``snapshot_due()`` true saves the node at once (an operator command)
         self.snapshot_due = snapshot_due
         self.on_error = on_error
@@ -303,12 +324,17 @@ class Runner:
         end = until if until is not None else (
             self.clock.time() + duration if duration is not None else float("inf"))
         while self.clock.time() < end and not (stop is not None and stop()):
+            for hook in self.before_step:
+                try:
+                    hook(self.clock.time())
+                except Exception as exc:
+                    self._error(f"before_step {getattr(hook, '__name__', hook)}: {exc}")
             nxt = self.step()
             wake = min(nxt, end, self.clock.time() + self.max_wait)
             if len(self.transports) == 1 and isinstance(self.clock, RealClock):
                 # block in the transport's receive until a frame comes or it is time to poll
                 (link, tr), = self.transports.items()
-                left = wake - self.clock.time()
+                left = self.clock.wall_seconds(wake - self.clock.time())
                 if left > 0:
                     try:
                         frame = tr.recv(timeout=left)

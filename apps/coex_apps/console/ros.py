@@ -34,7 +34,7 @@ from typing import Any
 
 import numpy as np
 
-from coex import ConfigError
+from coex import ConfigError, Problems
 
 __all__ = ["RosProducts"]
 
@@ -56,35 +56,34 @@ class RosProducts:
     }
 
     @classmethod
-    def check(cls, options: Mapping[str, Any]) -> list[str]:
-        """Problems of a ``[ros]`` table, one sentence each naming the key."""
-        problems = [f"ros.{k}: unknown key (known: {', '.join(sorted(cls.options))})"
-                    for k in options if k not in cls.options]
+    def check(cls, options: Mapping[str, Any]) -> Problems:
+        """Problems of a ``[ros]`` table (keys ``ros.master`` ...), one sentence each naming
+        the key."""
+        p = Problems()
+        p.unknown(options, tuple(cls.options), "ros")
         for key in ("master", "node", "prefix", "frame"):
             v = options.get(key, "x")
             if not isinstance(v, str) or (key != "master" and not v.strip()):
-                problems.append(f"ros.{key}: a {'non-empty ' if key != 'master' else ''}string, got {v!r}")
+                p.add(f"ros.{key}", f"a {'non-empty ' if key != 'master' else ''}string, got {v!r}")
         master = options.get("master", "")
         if isinstance(master, str) and master and not master.startswith(("http://", "https://")):
-            problems.append(f"ros.master: an http:// URI (http://localhost:11311), got {master!r}")
+            p.add("ros.master", f"an http:// URI (http://localhost:11311), got {master!r}")
         prefix = options.get("prefix", "/coex")
         if isinstance(prefix, str) and prefix and not prefix.startswith("/"):
-            problems.append(f"ros.prefix: a global namespace starting with '/', got {prefix!r}")
+            p.add("ros.prefix", f"a global namespace starting with '/', got {prefix!r}")
         v = options.get("interval", 1.0)
         if isinstance(v, bool) or not isinstance(v, int | float) or not math.isfinite(v) or not 0.05 <= v <= 3600:
-            problems.append(f"ros.interval: seconds from 0.05 to 3600, got {v!r}")
+            p.add("ros.interval", f"seconds from 0.05 to 3600, got {v!r}")
         v = options.get("track", 1000)
         if isinstance(v, bool) or not isinstance(v, int) or not 0 <= v <= 100000:
-            problems.append(f"ros.track: an integer from 0 to 100000, got {v!r}")
-        return problems
+            p.add("ros.track", f"an integer from 0 to 100000, got {v!r}")
+        return p
 
     def __init__(self, options: Mapping[str, Any] | None = None, *,
                  lock: AbstractContextManager[Any] | None = None,
                  clock: Callable[[], float] = time.time) -> None:
         options = dict(options or {})
-        problems = self.check(options)
-        if problems:
-            raise ConfigError("; ".join(problems))
+        self.check(options).check()
         self.config = {k: v[0] for k, v in self.options.items()}
         self.config.update(options)
         self.prefix = str(self.config["prefix"]).rstrip("/")

@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import contextlib
 import functools
-import heapq
 import json
 import math
 import sys
@@ -22,8 +21,7 @@ from coex_core.loopback import SimClock
 from coex_plugins.bathymetry.sim import Seafloor, Survey, simulate_survey
 from coex_plugins.imagery import ImageInput
 from coex_plugins.timeseries import synth as ts_synth
-from coex_runtime.runner import next_wakeup
-from coex_transports.micromodem.simulator import ModemNetwork
+from coex_transports.micromodem.simulator import ModemNetwork, SimLoop
 
 from .autonomy import Autonomy
 from .camera import CameraModel, SandTexture, render_labelled
@@ -165,8 +163,6 @@ class DiveRun:
         self.coverage: dict[int, list[tuple[float, float]]] = {}
         self.visible_at: dict[int, float] = {}
         # timed events (simulated): sensor data, status, operator, camera
-        self.events: list[tuple[float, int, Callable[[float], None]]] = []
-        self._counter = iter(range(10**9))
         self._schedule()
 
     # ------------------------------------------------------------------------ set-up
@@ -177,7 +173,7 @@ class DiveRun:
             self.on_decision(d)
 
     def at(self, t: float, fn: Callable[[float], None]) -> None:
-        heapq.heappush(self.events, (t, next(self._counter), fn))
+        self.loop.at(t, fn)
 
     def _build_world(self) -> None:
         """Cars (the targets) and boulders (decoys) where the operator does not know, the
@@ -238,6 +234,10 @@ class DiveRun:
                                                                                 dest=TOPSIDE)},
                                           SimulatedClock(sim=clock), link_log=self.link_log)
         self.vehicle_modem = self.runners[VEHICLE].transports[0]
+        #: the dive's one loop: the modems, the timed events, the runners (then :meth:`_after_runners`; :meth:`_heard` at the end of each pass)
+        self.loop = SimLoop(net, list(self.runners.values()))
+        self.loop.after.append(self._after_runners)
+        self.loop.settled.append(self._heard)
         self.timer = ResponseTimer(self.topside, dive_schedule(scn), VEHICLE, EPOCH)
 
     def _schedule(self) -> None:
@@ -392,23 +392,12 @@ class DiveRun:
         cfg, clock, net, end = self.cfg, self.clock, self.net, self.end
         server = _start_gui(cfg, self.topside, self.log) if cfg.gui else None
         lock = server.hub.lock if server is not None else contextlib.nullcontext()
-        wall_start, sim_start = time.monotonic(), clock.now
         progress = _Progress(self.scn.duration, cfg.progress)
-        steps = 0
-        events, runners = self.events, self.runners
-        while clock.now < end:
-            t = next_wakeup(clock.now, end, events[0][0] if events else None,
-                            [net.next_event(), *(r.node.next_event(clock.now) for r in runners.values())],
-                            started=bool(steps))
-            if server is not None:  # pace the dive so that a person at the console can act
-                t = min(t, clock.now + 1.0)
-                ahead = (t - sim_start) / cfg.speed - (time.monotonic() - wall_start)
-                if ahead > 0:
-                    time.sleep(ahead)
-            with lock:
-                self._step(t)
-            steps += 1
-            progress.update(clock.now - EPOCH)
+        loop = self.loop
+        if server is not None:  # pace the dive so that a person at the console can act
+            loop.max_step, loop.speed, loop.lock = 1.0, cfg.speed, lock
+        loop.settled.append(lambda now: progress.update(now - EPOCH))
+        loop.run(end)
         progress.close()
         self.link_log.close()
         ptys = net.pty_paths()
@@ -428,19 +417,15 @@ class DiveRun:
             server.close()
         return self._outputs(ptys)
 
-    def _step(self, t: float) -> None:
-        """Everything due up to ``t``: the modems, the timed events, both runners."""
-        clock, events = self.clock, self.events
-        self.net.run_until(t)
-        while events and events[0][0] <= clock.now:
-            _, _, fn = heapq.heappop(events)
-            fn(clock.now)
-        for r in self.runners.values():
-            r.step()
-        self.autonomy.check(clock.now)  # a survey command arrived: the vehicle flies it
+    def _after_runners(self, now: float) -> None:
+        """After the runners, each pass of the loop: the autonomies."""
+        self.autonomy.check(now)  # a survey command arrived: the vehicle flies it
         if self.mapper_autonomy is not None:
-            self.mapper_autonomy.check(clock.now)
-        self.net.step()
+            self.mapper_autonomy.check(now)
+
+    def _heard(self, now: float) -> None:
+        """At the end of each pass of the loop: what topside heard, the channel's log."""
+        clock = self.clock
         camera = CAMERA if self.fleet is not None else VEHICLE
         for ev in self.topside.events():
             if isinstance(ev, Received) and isinstance(ev.message, VehicleStatus):

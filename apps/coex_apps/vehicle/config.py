@@ -537,7 +537,7 @@ def _adapter(kind: str, group: str, table: Mapping[str, Any], key: str, p: Probl
 
 
 def _inputs(raw: Mapping[str, Any], p: Problems, cfg: DeployConfig) -> None:
-    from coex import FEEDS, check_options
+    from coex import FEEDS, adapter_check, check_options
 
     inputs = raw.get("inputs", [])
     if not isinstance(inputs, list):
@@ -558,8 +558,8 @@ def _inputs(raw: Mapping[str, Any], p: Problems, cfg: DeployConfig) -> None:
                 if f in FEEDS and f != "status" and f not in running:
                     p.add(f"{key}.feeds", f"feeds {f}, but the {f} modality does not run on this node")
         options = {k: v for k, v in t.items() if k not in ("type", "feeds")}
-        problems = check_options(cls, options)
-        p.extend(key, problems)
+        problems = adapter_check(cls, options)
+        p.nest(key, problems)
         if not problems:
             _paths(cls, options, key, p, cfg)
         cfg.inputs.append(dict(t))
@@ -577,7 +577,7 @@ def _paths(cls: Any, options: Mapping[str, Any], key: str, p: Problems, cfg: Dep
 
 
 def _autonomy(raw: Mapping[str, Any], p: Problems, cfg: DeployConfig) -> None:
-    from coex import check_autonomy_options
+    from coex import adapter_check, check_autonomy_options
 
     if "autonomy" not in raw and "survey" not in {m.name for m in cfg.modalities}:
         cfg.autonomy = {}
@@ -588,8 +588,8 @@ def _autonomy(raw: Mapping[str, Any], p: Problems, cfg: DeployConfig) -> None:
     if cls is None:
         return
     options = {k: v for k, v in t.items() if k != "type"}
-    problems = check_autonomy_options(cls, options)
-    p.extend("autonomy", problems)
+    problems = adapter_check(cls, options)
+    p.nest("autonomy", problems)
     if not problems:
         _paths(cls, options, "autonomy", p, cfg)
     cfg.autonomy = dict(t)
@@ -604,9 +604,7 @@ def _ros(raw: Mapping[str, Any], p: Problems, cfg: DeployConfig) -> None:
     from coex_apps.console.ros import RosProducts
 
     t = p.table(raw.get("ros"), "ros")
-    for text in RosProducts.check(t):
-        key, _, rest = text.partition(": ")
-        p.add(key, rest)
+    p.merge(RosProducts.check(t))
     cfg.ros = t
 
 

@@ -32,6 +32,7 @@ from coex import Autonomy, ConfigError
 from coex.lcm import DEFAULT_URL, survey_request_t, survey_state_t
 from coex.messages import SurveyReason, SurveyState
 
+from ..options import Problems
 from ..survey.plan import SurveyReport, cut_detail
 
 __all__ = ["LcmAutonomy", "report_of", "request_of"]
@@ -101,21 +102,21 @@ class LcmAutonomy(Autonomy):
     }
 
     @classmethod
-    def check(cls, options: Mapping[str, Any]) -> list[str]:
-        problems = []
+    def check(cls, options: Mapping[str, Any]) -> Problems:
+        p = Problems()
         for key in ("url", "channel", "state_channel"):
             v = options.get(key, "x")
             if not isinstance(v, str) or not v:
-                problems.append(f"autonomy 'lcm': {key} must be a non-empty string, got {v!r}")
+                p.said(key, f"autonomy 'lcm': {key} must be a non-empty string, got {v!r}")
             elif key != "url" and len(v) > 63:
-                problems.append(f"autonomy 'lcm': {key} is longer than LCM's 63 characters")
+                p.said(key, f"autonomy 'lcm': {key} is longer than LCM's 63 characters")
         t = options.get("answer_timeout", 0.0)
         if isinstance(t, bool) or not isinstance(t, int | float) or not math.isfinite(t) or t < 0:
-            problems.append(f"autonomy 'lcm': answer_timeout must be a number >= 0 (seconds), got {t!r}")
+            p.said("answer_timeout", f"autonomy 'lcm': answer_timeout must be a number >= 0 (seconds), got {t!r}")
         r = options.get("retries", 0)
         if isinstance(r, bool) or not isinstance(r, int) or not 0 <= r <= 100:
-            problems.append(f"autonomy 'lcm': retries must be an integer in 0..100, got {r!r}")
-        return problems
+            p.said("retries", f"autonomy 'lcm': retries must be an integer in 0..100, got {r!r}")
+        return p
 
     def __init__(self, options: Mapping[str, Any], context: Any, instance: Any = None) -> None:
         super().__init__(options, context)

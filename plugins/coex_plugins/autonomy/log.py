@@ -12,6 +12,8 @@ from typing import Any
 
 from coex import Autonomy
 
+from ..options import Problems
+
 __all__ = ["LogAutonomy", "describe_plan", "plan_record"]
 
 log = logging.getLogger(__name__)
@@ -68,11 +70,12 @@ class LogAutonomy(Autonomy):
     }
 
     @classmethod
-    def check(cls, options: Any) -> list[str]:
+    def check(cls, options: Any) -> Problems:
+        p = Problems()
         f = options.get("file")
         if f is not None and (not isinstance(f, str) or not f):
-            return [f"autonomy 'log': file must be a path, got {f!r}"]
-        return []
+            p.said("file", f"autonomy 'log': file must be a path, got {f!r}")
+        return p
 
     def __init__(self, options: Any, context: Any) -> None:
         super().__init__(options, context)

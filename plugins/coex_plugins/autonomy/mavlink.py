@@ -51,6 +51,7 @@ from typing import Any
 from coex import Autonomy, ConfigError
 from coex.messages import SurveyReason, SurveyState
 
+from ..options import Problems
 from ..survey.plan import SurveyReport, cut_detail
 
 __all__ = ["MavlinkAutonomy", "MissionItem", "connect", "enum_name", "mission_items", "mode_name"]
@@ -236,22 +237,23 @@ def read(conn: Any, limit: int = MAX_READ) -> list[Any]:
     return out
 
 
-def _int(options: Mapping[str, Any], key: str, low: int, high: int, none: bool = False) -> list[str]:
+def _int(p: Problems, options: Mapping[str, Any], key: str, low: int, high: int, none: bool = False) -> None:
+    """A problem (into ``p``) if ``key`` is given and not an integer in range."""
     v = options.get(key)
     if v is None and (none or key not in options):
-        return []
+        return
     if isinstance(v, bool) or not isinstance(v, int) or not low <= v <= high:
-        return [f"autonomy 'mavlink': {key} must be an integer in {low}..{high}, got {v!r}"]
-    return []
+        p.said(key, f"autonomy 'mavlink': {key} must be an integer in {low}..{high}, got {v!r}")
 
 
-def _pos(options: Mapping[str, Any], key: str, zero: bool = True) -> list[str]:
+def _pos(p: Problems, options: Mapping[str, Any], key: str, zero: bool = True) -> None:
+    """A problem (into ``p``) if ``key`` is given and not a number >= 0
+    (> 0 unless ``zero``)."""
     if key not in options:
-        return []
+        return
     v = options[key]
     if isinstance(v, bool) or not isinstance(v, int | float) or not math.isfinite(v) or v < 0 or (v == 0 and not zero):
-        return [f"autonomy 'mavlink': {key} must be a number {'>=' if zero else '>'} 0, got {v!r}"]
-    return []
+        p.said(key, f"autonomy 'mavlink': {key} must be a number {'>=' if zero else '>'} 0, got {v!r}")
 
 
 class MavlinkAutonomy(Autonomy):
@@ -290,29 +292,35 @@ class MavlinkAutonomy(Autonomy):
     }
 
     @classmethod
-    def check(cls, options: Mapping[str, Any]) -> list[str]:
-        p: list[str] = []
+    def check(cls, options: Mapping[str, Any]) -> Problems:
+        p = Problems()
         c = options.get("connection")
         if not isinstance(c, str) or not c:
-            p.append(f"autonomy 'mavlink': connection must be a pymavlink connection string, got {c!r}")
-        p += _int(options, "baud", 1, 10_000_000)
-        p += _int(options, "source_system", 1, 255) + _int(options, "source_component", 0, 255)
-        p += _int(options, "target_system", 0, 255, none=True) + _int(options, "target_component", 0, 255, none=True)
+            p.said("connection", f"autonomy 'mavlink': connection must be a pymavlink connection string, got {c!r}")
+        _int(p, options, "baud", 1, 10_000_000)
+        _int(p, options, "source_system", 1, 255)
+        _int(p, options, "source_component", 0, 255)
+        _int(p, options, "target_system", 0, 255, none=True)
+        _int(p, options, "target_component", 0, 255, none=True)
         for key in ("frame", "altitude_frame"):
             if key in options and options[key] not in _FRAMES:
-                p.append(f"autonomy 'mavlink': {key} must be one of {sorted(_FRAMES)}, got {options[key]!r}")
+                p.said(key, f"autonomy 'mavlink': {key} must be one of {sorted(_FRAMES)}, got {options[key]!r}")
         for key in ("home_placeholder", "speed_item", "mavlink2"):
             if key in options and not isinstance(options[key], bool):
-                p.append(f"autonomy 'mavlink': {key} must be true or false, got {options[key]!r}")
-        p += _pos(options, "acceptance_radius") + _pos(options, "hold") + _pos(options, "heartbeat")
-        p += _pos(options, "timeout", zero=False) + _pos(options, "item_timeout", zero=False)
-        p += _int(options, "retries", 0, 100) + _int(options, "auto_mode", 0, 2**32 - 1)
+                p.said(key, f"autonomy 'mavlink': {key} must be true or false, got {options[key]!r}")
+        for key in ("acceptance_radius", "hold", "heartbeat"):
+            _pos(p, options, key)
+        _pos(p, options, "timeout", zero=False)
+        _pos(p, options, "item_timeout", zero=False)
+        _int(p, options, "retries", 0, 100)
+        _int(p, options, "auto_mode", 0, 2**32 - 1)
         modes = options.get("manual_modes", [])
         if not isinstance(modes, list | tuple) or any(
                 isinstance(v, bool) or not isinstance(v, int) or not 0 <= v < 2**32 for v in modes):
-            p.append(f"autonomy 'mavlink': manual_modes must be a list of custom modes (integers), got {modes!r}")
+            p.said("manual_modes", f"autonomy 'mavlink': manual_modes must be a list of custom modes (integers), "
+                                   f"got {modes!r}")
         if "start" in options and options["start"] not in _STARTS:
-            p.append(f"autonomy 'mavlink': start must be one of {', '.join(_STARTS)}, got {options['start']!r}")
+            p.said("start", f"autonomy 'mavlink': start must be one of {', '.join(_STARTS)}, got {options['start']!r}")
         return p
 
     @classmethod

@@ -88,7 +88,7 @@ from coex import Autonomy
 from coex.messages import SurveyKind, SurveyReason, SurveyState
 
 from ..inputs.moos import parse_server
-from ..options import LogOnce, moos_client, want_number, want_time_warp
+from ..options import LogOnce, Problems, check_time_warp, moos_client
 from ..survey.plan import SurveyReport, cut_detail
 
 __all__ = ["MoosAutonomy", "parse_flag", "parse_update_result", "update_of"]
@@ -195,34 +195,33 @@ class MoosAutonomy(Autonomy):
     }
 
     @classmethod
-    def check(cls, options: Mapping[str, Any]) -> list[str]:
-        problems: list[str] = []
+    def check(cls, options: Mapping[str, Any]) -> Problems:
+        p, who = Problems(), "autonomy 'moos'"
         if "server" in options:
             try:
                 parse_server(options["server"])
             except ValueError as exc:
-                problems.append(f"autonomy 'moos': option 'server' must be {exc}")
+                p.said("server", f"{who}: option 'server' must be {exc}")
         for key in ("activate", "endflag"):
             if key in options and not (key == "endflag" and options[key] == ""):
                 try:
                     parse_flag(options[key])
                 except ValueError as exc:
-                    problems.append(f"autonomy 'moos': option {key!r} must be {exc}")
+                    p.said(key, f"{who}: option {key!r} must be {exc}")
         for key in ("name", "behavior", "updates_var", "wpt_status_var", "wpt_index_var", "depth_var",
                     "altitude_var", "deactivate", "update_extra"):
             v = options.get(key, "x")
             must = key in ("name", "behavior", "updates_var", "wpt_status_var", "wpt_index_var", "deactivate")
             if not isinstance(v, str) or (must and not v) or (
                     key not in ("deactivate", "update_extra") and any(c.isspace() for c in v)):
-                problems.append(f"autonomy 'moos': option {key!r} must be a "
-                                f"{'non-empty ' if must else ''}MOOS name without spaces, not {v!r}")
+                p.said(key, f"{who}: option {key!r} must be a "
+                            f"{'non-empty ' if must else ''}MOOS name without spaces, not {v!r}")
         if isinstance(options.get("update_extra"), str) and "name=" in options["update_extra"].lower():
-            problems.append("autonomy 'moos': option 'update_extra' must not set name= (the output sends "
-                            "the behaviour's name itself)")
-        problems += want_time_warp("autonomy 'moos'", options)
-        problems += [p.replace("input 'moos'", "autonomy 'moos'")
-                     for p in want_number("moos", options, "timeout", positive=True)]
-        return problems
+            p.said("update_extra", f"{who}: option 'update_extra' must not set name= (the output sends "
+                                   "the behaviour's name itself)")
+        check_time_warp(p, who, options)
+        p.option_number(who, options, "timeout", positive=True)
+        return p
 
     def __init__(self, options: Mapping[str, Any], context: Any, client: Any = None) -> None:
         super().__init__(options, context)

@@ -42,7 +42,7 @@ from typing import Any
 from coex import Autonomy
 from coex.messages import SurveyKind, SurveyReason, SurveyState
 
-from ..options import LogOnce
+from ..options import LogOnce, Problems
 from ..survey.plan import SurveyReport
 
 __all__ = ["RosAutonomy", "parse_progress", "plan_json"]
@@ -110,21 +110,22 @@ class RosAutonomy(Autonomy):
     }
 
     @classmethod
-    def check(cls, options: Mapping[str, Any]) -> list[str]:
-        problems = []
+    def check(cls, options: Mapping[str, Any]) -> Problems:
+        p = Problems()
         for key in ("master", "node", "path_topic", "plan_topic", "progress_topic", "frame"):
             v = options.get(key, "x")
             if not isinstance(v, str) or (key in ("node", "path_topic", "progress_topic") and not v.strip()):
-                problems.append(f"autonomy 'ros': option {key!r} must be a "
-                                f"{'non-empty ' if key in ('node', 'path_topic', 'progress_topic') else ''}"
-                                f"string, not {v!r}")
+                p.said(key, f"autonomy 'ros': option {key!r} must be a "
+                            f"{'non-empty ' if key in ('node', 'path_topic', 'progress_topic') else ''}"
+                            f"string, not {v!r}")
         master = options.get("master", "")
         if isinstance(master, str) and master and not master.startswith(("http://", "https://")):
-            problems.append(f"autonomy 'ros': option 'master' must be an http:// URI, not {master!r}")
+            p.said("master", f"autonomy 'ros': option 'master' must be an http:// URI, not {master!r}")
         t = options.get("answer_timeout", 10.0)
         if isinstance(t, bool) or not isinstance(t, int | float) or not math.isfinite(t) or t < 0:
-            problems.append(f"autonomy 'ros': option 'answer_timeout' must be a number of seconds >= 0, not {t!r}")
-        return problems
+            p.said("answer_timeout",
+                   f"autonomy 'ros': option 'answer_timeout' must be a number of seconds >= 0, not {t!r}")
+        return p
 
     def __init__(self, options: Mapping[str, Any], context: Any) -> None:
         super().__init__(options, context)

@@ -22,6 +22,7 @@ from typing import Any
 from coex import Autonomy
 from coex.messages import SurveyState
 
+from ..options import Problems
 from ..survey.plan import SurveyReport
 
 __all__ = ["SimAutonomy"]
@@ -45,14 +46,14 @@ class SimAutonomy(Autonomy):
     }
 
     @classmethod
-    def check(cls, options: Any) -> list[str]:
-        problems = []
+    def check(cls, options: Any) -> Problems:
+        p = Problems()
         s = options.get("speed", 1.0)
         if isinstance(s, bool) or not isinstance(s, int | float) or not math.isfinite(s) or s <= 0:
-            problems.append(f"autonomy 'sim': speed must be a number above 0, got {s!r}")
+            p.said("speed", f"autonomy 'sim': speed must be a number above 0, got {s!r}")
         if "start" in options and _pair(options["start"]) is None:
-            problems.append(f"autonomy 'sim': start must be [x, y] (metres), got {options['start']!r}")
-        return problems
+            p.said("start", f"autonomy 'sim': start must be [x, y] (metres), got {options['start']!r}")
+        return p
 
     def __init__(self, options: Any, context: Any) -> None:
         super().__init__(options, context)

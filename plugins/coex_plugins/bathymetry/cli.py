@@ -19,7 +19,7 @@ from typing import Any
 
 import numpy as np
 
-from coex import CoexError, ConfigError, LoopbackLink, decode_subgrid_units, to_json, wire
+from coex import Bernoulli, CoexError, ConfigError, LoopbackLink, RoundTrip, decode_subgrid_units, to_json, wire
 from coex.messages import (
     FrameHeader,
     MapMetadata,
@@ -45,12 +45,6 @@ def _level_of(m: Message) -> int | None:
     if isinstance(m, Subgrid | MapRoiRequest | MapRoiReply):
         return int(m.level)
     return None
-
-
-def _send(link: LoopbackLink, messages: list[Message]) -> int:
-    frame = wire.pack(messages, FRAME_BYTES, FrameHeader(src=1, dst=2))
-    link.a.send(frame)
-    return len(frame)
 
 
 def _record(m: Message, t: float, direction: str) -> dict[str, Any]:
@@ -89,71 +83,29 @@ def roundtrip(
         sender.map.add_points(xyz, t or 0.0)
         n_points += len(xyz)
     sender.map.flush(force=True)
-    down = LoopbackLink(mtu=FRAME_BYTES, bytes_per_s=1e9, loss=loss, seed=seed)
-    up = LoopbackLink(mtu=FRAME_BYTES, bytes_per_s=1e9, loss=loss, seed=seed + 1)
-    now = t_data + sender.send_delay
-    records: list[dict[str, Any]] = []
-    bytes_down = bytes_up = 0
-    subgrid_bytes: dict[int, list[int]] = {}
-    bytes_2022: dict[int, list[int]] = {}
-    budget = FRAME_BYTES - wire.header_size()
+    link = RoundTrip(sender, receiver, mtu=FRAME_BYTES, down=Bernoulli(loss, seed), up=Bernoulli(loss, seed + 1),
+                     round_seconds=round_seconds, now=t_data + sender.send_delay, decode=True, rejects=(CoexError,))
     rounds = 0
     idle = 0
-    seq = 0
     while rounds < max_rounds:
         rounds += 1
-        now += round_seconds
-        down.clock.advance_to(now - 1.0)
-        msgs = sender.fill(budget, now)
-        if msgs:
-            seq = (seq + 1) % 256
-            frame = wire.pack(msgs, FRAME_BYTES, FrameHeader(src=2, dst=1, seq=seq))
-            bytes_down += len(frame)
-            down.a.send(frame)
-            for m in msgs:
-                records.append(_record(m, now, "down"))
-                if isinstance(m, Subgrid):
-                    subgrid_bytes.setdefault(m.level, []).append(wire.encoded_size(m))
-                    q = decode_subgrid_units(m)
-                    present = q != np.iinfo(np.int64).min
-                    bytes_2022.setdefault(m.level, []).append(size_2022(present, np.where(present, q, 0)))
-        down.clock.advance_to(now)
-        while (f := down.b.recv(timeout=0.0)) is not None:
-            for m in wire.unpack(f):
-                receiver.receive(m, now)
-        reqs = receiver.poll(now)
-        replies: list[Message] = []
-        if reqs:
-            for m in reqs:
-                records.append(_record(m, now, "up"))
-            frame_msgs: list[Message] = []
-            for m in reqs:
-                if frame_msgs and sum(wire.encoded_size(x) for x in [*frame_msgs, m]) > budget:
-                    bytes_up += _send(up, frame_msgs)
-                    frame_msgs = []
-                frame_msgs.append(m)
-            bytes_up += _send(up, frame_msgs)
-        up.clock.advance_to(now + 1.0)
-        while (f := up.b.recv(timeout=0.0)) is not None:
-            for m in wire.unpack(f):
-                try:
-                    replies.extend(sender.handle(m, now))
-                except CoexError:
-                    pass
-        if replies:
-            f = wire.pack(replies, FRAME_BYTES, FrameHeader(src=2, dst=1))
-            bytes_down += len(f)
-            down.a.send(f)
-            for m in replies:
-                records.append(_record(m, now, "down"))
-            down.clock.advance_to(now + 2.0)
-            while (f2 := down.b.recv(timeout=0.0)) is not None:
-                for m in wire.unpack(f2):
-                    receiver.receive(m, now)
-        busy = bool(msgs) or bool(reqs) or bool(receiver.active_regions()) or sender.pending_bytes() > 0
+        link.step()
+        busy = (bool(link.last_fill) or bool(link.last_requests) or bool(receiver.active_regions())
+                or sender.pending_bytes() > 0)
         idle = 0 if busy else idle + 1
         if idle >= 3 and (receiver.metadata is not None or loss == 0.0):
             break
+    records = [_record(e.message, e.now, e.direction) for e in link.events]
+    bytes_down = link.events[-1].down_total if link.events else 0
+    bytes_up = link.events[-1].wire_total - bytes_down if link.events else 0
+    subgrid_bytes: dict[int, list[int]] = {}
+    bytes_2022: dict[int, list[int]] = {}
+    for m in link.sent:
+        if isinstance(m, Subgrid):
+            subgrid_bytes.setdefault(m.level, []).append(wire.encoded_size(m))
+            q = decode_subgrid_units(m)
+            present = q != np.iinfo(np.int64).min
+            bytes_2022.setdefault(m.level, []).append(size_2022(present, np.where(present, q, 0)))
     with (out_dir / "messages.jsonl").open("w") as fh:
         for rec in records:
             fh.write(json.dumps(rec) + "\n")

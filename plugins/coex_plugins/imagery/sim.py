@@ -1,4 +1,7 @@
-"""A deterministic two-way simulation of an imagery transfer over lossy links (no clock, no I/O).
+"""A deterministic two-way simulation of an imagery transfer over lossy links (no clock, no I/O):
+the core's one sender↔receiver loop (:class:`coex_core.loopback.RoundTrip`, whose
+:class:`~coex_core.loopback.LossModel`, :class:`~coex_core.loopback.Bernoulli` and
+:class:`~coex_core.loopback.WireEvent` this module re-exports) as :class:`Transfer`.
 
 Used by ``coex image roundtrip`` and ``coex image region`` (:func:`region_transfer`), the tests
 and the benchmark. Each round the vehicle fills one
@@ -11,45 +14,27 @@ go down in one more frame. Loss is drawn per frame from seeded models: independe
 
 from __future__ import annotations
 
-import abc
 import random
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Any
 
 from coex import (
+    Bernoulli,
     EncodeError,
     GilbertElliott,
+    LossModel,
     ModalityReceiver,
     ModalitySender,
     Product,
     RequestRejected,
+    RoundTrip,
+    WireEvent,
     wire,
 )
 from coex.messages import FrameHeader, Message
 
 __all__ = ["Bernoulli", "Burst", "LossModel", "RegionRun", "Transfer", "WireEvent", "region_transfer"]
-
-
-class LossModel(abc.ABC):
-    """Decides, frame by frame, whether a frame is lost."""
-
-    @abc.abstractmethod
-    def lost(self) -> bool:
-        """Whether the next frame is lost."""
-
-
-class Bernoulli(LossModel):
-    """Each frame is lost independently with probability ``p``."""
-
-    def __init__(self, p: float, seed: int = 0) -> None:
-        if not 0.0 <= p <= 1.0:
-            raise ValueError(f"loss must be in [0, 1], got {p}")
-        self.p = p
-        self.rng = random.Random(seed)
-
-    def lost(self) -> bool:
-        return self.p > 0 and self.rng.random() < self.p
 
 
 class Burst(LossModel):
@@ -65,111 +50,17 @@ class Burst(LossModel):
         return self.model.step(self.rng)
 
 
-@dataclass
-class WireEvent:
-    """One message on the wire, in send order."""
+class Transfer(RoundTrip):
+    """:class:`~coex_core.loopback.RoundTrip` as ``coex image`` runs it: each side gets the
+    other's objects, the vehicle's answers arrive in the same round."""
 
-    direction: str  # "down" (vehicle to ship) or "up"
-    frame: int
-    message: Message
-    size: int
-    lost: bool
-    now: float
-    wire_total: int  # cumulative wire bytes (both directions, frame headers included)
-    down_total: int  # cumulative vehicle-to-ship wire bytes
-
-
-@dataclass
-class Transfer:
-    sender: ModalitySender
-    receiver: ModalityReceiver
-    mtu: int = 256
-    down: LossModel = field(default_factory=lambda: Bernoulli(0.0))
-    up: LossModel = field(default_factory=lambda: Bernoulli(0.0))
-    round_seconds: float = 5.0
-    now: float = 0.0
-    events: list[WireEvent] = field(default_factory=list)
-    on_message: Callable[[WireEvent, list[Product]], None] | None = None
-
-    def __post_init__(self) -> None:
-        if self.mtu < 32:
+    def __init__(self, sender: ModalitySender, receiver: ModalityReceiver, mtu: int = 256,
+                 down: LossModel | None = None, up: LossModel | None = None, round_seconds: float = 5.0,
+                 now: float = 0.0, on_message: Callable[[WireEvent, list[Product]], None] | None = None) -> None:
+        if mtu < 32:
             raise ValueError("the MTU must be at least 32 bytes")
-        self._frame = 0
-        self._wire = 0
-        self._down = 0
-
-    def _send_frame(self, direction: str, messages: list[Message]) -> None:
-        if not messages:
-            return
-        header = FrameHeader(src=2 if direction == "down" else 1, dst=1 if direction == "down" else 2,
-                             seq=self._frame % 256)
-        frame = wire.pack(messages, self.mtu, header)
-        lost = (self.down if direction == "down" else self.up).lost()
-        self._frame += 1
-        first = True
-        for m in messages:
-            size = wire.encoded_size(m)
-            extra = wire.header_size(header) if first else 0
-            first = False
-            self._wire += size + extra
-            if direction == "down":
-                self._down += size + extra
-            ev = WireEvent(direction, self._frame - 1, m, size, lost, self.now, self._wire, self._down)
-            self.events.append(ev)
-            if lost:
-                if self.on_message:
-                    self.on_message(ev, [])
-                continue
-            if direction == "down":
-                products = self.receiver.receive(m, self.now)
-                if self.on_message:
-                    self.on_message(ev, products)
-            else:
-                if self.on_message:
-                    self.on_message(ev, [])
-                try:
-                    self._replies.extend(self.sender.handle(m, self.now))
-                except RequestRejected:
-                    pass
-        _ = frame
-
-    def _frames(self, messages: list[Message]) -> list[list[Message]]:
-        batches: list[list[Message]] = []
-        batch: list[Message] = []
-        used = wire.header_size()
-        for m in messages:
-            size = wire.encoded_size(m)
-            if used + size > self.mtu and batch:
-                batches.append(batch)
-                batch, used = [], wire.header_size()
-            batch.append(m)
-            used += size
-        if batch:
-            batches.append(batch)
-        return batches
-
-    def step(self) -> None:
-        self.now += self.round_seconds
-        self._replies: list[Message] = []
-        out = self.sender.fill(self.mtu - wire.header_size(), self.now)
-        self._send_frame("down", out)
-        for batch in self._frames(self.receiver.poll(self.now)):
-            self._send_frame("up", batch)
-        for batch in self._frames(self._replies):
-            try:
-                self._send_frame("down", batch)
-            except EncodeError:
-                pass
-
-    def run(self, done: Callable[[], bool], max_rounds: int) -> int:
-        """Step until ``done()``; return the rounds used (raises ``TimeoutError`` after ``max_rounds``)."""
-        for i in range(max_rounds):
-            if done():
-                return i
-            self.step()
-        if done():
-            return max_rounds
-        raise TimeoutError(f"transfer not done after {max_rounds} rounds")
+        super().__init__(sender, receiver, mtu=mtu, down=down, up=up, round_seconds=round_seconds, now=now,
+                         rejects=(RequestRejected,), on_message=on_message)
 
 
 @dataclass

@@ -18,7 +18,7 @@ from typing import Any, ClassVar
 
 from coex import Image, InputContext, Item
 
-from ..options import LogOnce, want_bool, want_number, want_str
+from ..options import LogOnce, Problems
 from ._files import WatchedInput, read_image, read_sidecar, split_patterns
 
 __all__ = ["DirectoryInput"]
@@ -44,16 +44,18 @@ class DirectoryInput(WatchedInput):
     }
 
     @classmethod
-    def check(cls, options: Mapping[str, Any]) -> list[str]:
-        problems = want_str(cls.name, options, "path", nonempty=True)
-        problems += want_str(cls.name, options, "pattern", nonempty=True)
+    def check(cls, options: Mapping[str, Any]) -> Problems:
+        p, who = Problems(), f"input {cls.name!r}"
+        p.option_str(who, options, "path", nonempty=True)
+        p.option_str(who, options, "pattern", nonempty=True)
         if isinstance(options.get("pattern"), str) and options["pattern"].strip() \
                 and not split_patterns(options["pattern"]):
-            problems.append(f"input {cls.name!r}: option 'pattern' holds no pattern")
-        problems += want_number(cls.name, options, "settle", minimum=0)
-        problems += want_number(cls.name, options, "interval", minimum=0)
-        problems += want_bool(cls.name, options, "existing") + want_bool(cls.name, options, "nav")
-        return problems
+            p.said("pattern", f"{who}: option 'pattern' holds no pattern")
+        p.option_number(who, options, "settle", minimum=0)
+        p.option_number(who, options, "interval", minimum=0)
+        p.option_bool(who, options, "existing")
+        p.option_bool(who, options, "nav")
+        return p
 
     @classmethod
     def paths(cls, options: Mapping[str, Any]) -> list[tuple[str, str, str]]:

@@ -44,7 +44,7 @@ import numpy as np
 
 from coex import ConfigError, Input, InputContext, Item, Nav, Points, Samples
 
-from ..options import LogOnce, compile_path, finite, need, want_str
+from ..options import LogOnce, Problems, compile_path, finite, need
 
 __all__ = ["DEFAULT_URL", "LcmInput", "compile_path", "make_nav_t"]
 
@@ -196,15 +196,16 @@ class LcmInput(Input):
     }
 
     @classmethod
-    def check(cls, options: Mapping[str, Any]) -> list[str]:
-        problems = want_str(cls.name, options, "url")
-        problems += want_str(cls.name, options, "points_channel") + want_str(cls.name, options, "nav_channel")
+    def check(cls, options: Mapping[str, Any]) -> Problems:
+        p, who = Problems(), f"input {cls.name!r}"
+        for key in ("url", "points_channel", "nav_channel"):
+            p.option_str(who, options, key)
         if "own" in options:
-            problems += _own_problems(cls.name, options["own"])
+            for text in _own_problems(cls.name, options["own"]):
+                p.said("own", text)
         if not (options.get("points_channel") or options.get("nav_channel") or options.get("own")):
-            problems.append(f"input {cls.name!r} needs at least one of the options 'points_channel', "
-                            "'nav_channel', 'own'")
-        return problems
+            p.said("", f"{who} needs at least one of the options 'points_channel', 'nav_channel', 'own'")
+        return p
 
     def __init__(self, options: Mapping[str, Any], context: InputContext) -> None:
         super().__init__(options, context)

@@ -47,13 +47,9 @@ from coex import Image, Input, InputContext, Item, Nav, Samples
 
 from ..options import (
     LogOnce,
+    Problems,
     need,
     serial_device,
-    want_bool,
-    want_choice,
-    want_int,
-    want_number,
-    want_str,
 )
 from ._files import read_image
 
@@ -110,26 +106,27 @@ class MavlinkInput(Input):
     }
 
     @classmethod
-    def check(cls, options: Mapping[str, Any]) -> list[str]:
-        n = cls.name
-        problems = want_str(n, options, "connection", nonempty=True)
-        problems += want_int(n, options, "baud", 1, 10_000_000)
-        problems += want_int(n, options, "source_system", 1, 255)
-        problems += want_int(n, options, "source_component", 0, 255)
-        problems += want_int(n, options, "system", 0, 255)
-        problems += want_str(n, options, "dialect", nonempty=True)
-        problems += want_number(n, options, "heartbeat", minimum=0)
-        problems += want_choice(n, options, "pressure_message", PRESSURE_MESSAGES)
-        problems += want_number(n, options, "surface_pressure", positive=True)
-        problems += want_number(n, options, "water_density", positive=True)
-        problems += want_str(n, options, "temperature_channel") + want_str(n, options, "image_dir")
-        problems += want_bool(n, options, "images")
-        problems += want_number(n, options, "settle", minimum=0)
-        problems += want_number(n, options, "image_timeout", minimum=0)
+    def check(cls, options: Mapping[str, Any]) -> Problems:
+        p, who = Problems(), f"input {cls.name!r}"
+        p.option_str(who, options, "connection", nonempty=True)
+        p.option_int(who, options, "baud", 1, 10_000_000)
+        p.option_int(who, options, "source_system", 1, 255)
+        p.option_int(who, options, "source_component", 0, 255)
+        p.option_int(who, options, "system", 0, 255)
+        p.option_str(who, options, "dialect", nonempty=True)
+        p.option_number(who, options, "heartbeat", minimum=0)
+        p.option_choice(who, options, "pressure_message", PRESSURE_MESSAGES)
+        p.option_number(who, options, "surface_pressure", positive=True)
+        p.option_number(who, options, "water_density", positive=True)
+        p.option_str(who, options, "temperature_channel")
+        p.option_str(who, options, "image_dir")
+        p.option_bool(who, options, "images")
+        p.option_number(who, options, "settle", minimum=0)
+        p.option_number(who, options, "image_timeout", minimum=0)
         dialect = options.get("dialect")
         if isinstance(dialect, str) and dialect and not dialect.isidentifier():
-            problems.append(f"input {n!r}: option 'dialect' must be a pymavlink dialect name, not {dialect!r}")
-        return problems
+            p.said("dialect", f"{who}: option 'dialect' must be a pymavlink dialect name, not {dialect!r}")
+        return p
 
     @classmethod
     def paths(cls, options: Mapping[str, Any]) -> list[tuple[str, str, str]]:

@@ -34,7 +34,7 @@ import numpy as np
 
 from coex import Image, Input, InputContext, Item, Nav, Points, Samples
 
-from ..options import LogOnce, moos_client, want_bool, want_str, want_time_warp
+from ..options import LogOnce, Problems, check_time_warp, moos_client
 
 __all__ = ["NAV_DEFAULTS", "MoosInput", "parse_server"]
 
@@ -78,42 +78,42 @@ class MoosInput(Input):
     }
 
     @classmethod
-    def check(cls, options: Mapping[str, Any]) -> list[str]:
-        problems: list[str] = []
+    def check(cls, options: Mapping[str, Any]) -> Problems:
+        p, who = Problems(), f"input {cls.name!r}"
         if "server" in options:
             try:
                 parse_server(options["server"])
             except ValueError as exc:
-                problems.append(f"input 'moos': option 'server' must be {exc}")
-        problems += want_str(cls.name, options, "name", nonempty=True)
-        problems += want_str(cls.name, options, "image_var")
-        problems += want_str(cls.name, options, "points_var")
-        problems += want_bool(cls.name, options, "nav_images")
-        problems += want_time_warp(f"input {cls.name!r}", options)
+                p.said("server", f"input 'moos': option 'server' must be {exc}")
+        p.option_str(who, options, "name", nonempty=True)
+        p.option_str(who, options, "image_var")
+        p.option_str(who, options, "points_var")
+        p.option_bool(who, options, "nav_images")
+        check_time_warp(p, who, options)
         nav = options.get("nav", {})
         if not isinstance(nav, Mapping):
-            problems.append(f"input 'moos': option 'nav' must be a table like {{ x = \"USM_X\" }}, not {nav!r}")
+            p.said("nav", f"input 'moos': option 'nav' must be a table like {{ x = \"USM_X\" }}, not {nav!r}")
         else:
             for k, v in nav.items():
                 if k not in NAV_DEFAULTS:
-                    problems.append(f"input 'moos': nav.{k} is not a navigation field "
-                                    f"(known: {', '.join(NAV_DEFAULTS)})")
+                    p.said(f"nav.{k}", f"input 'moos': nav.{k} is not a navigation field "
+                                       f"(known: {', '.join(NAV_DEFAULTS)})")
                 elif not _var_ok(v):
-                    problems.append(f"input 'moos': nav.{k} must be a MOOS variable name (or ''), not {v!r}")
+                    p.said(f"nav.{k}", f"input 'moos': nav.{k} must be a MOOS variable name (or ''), not {v!r}")
         channels = options.get("channels", {})
         if not isinstance(channels, Mapping):
-            problems.append(f"input 'moos': option 'channels' must be a table {{ MOOS_VAR = \"channel\" }}, "
-                            f"not {channels!r}")
+            p.said("channels", f"input 'moos': option 'channels' must be a table {{ MOOS_VAR = \"channel\" }}, "
+                               f"not {channels!r}")
         else:
             for k, v in channels.items():
                 if not _var_ok(k) or not k:
-                    problems.append(f"input 'moos': channels: {k!r} is not a MOOS variable name")
+                    p.said("channels", f"input 'moos': channels: {k!r} is not a MOOS variable name")
                 if not isinstance(v, str) or not v:
-                    problems.append(f"input 'moos': channels.{k} must be a channel name, not {v!r}")
+                    p.said(f"channels.{k}", f"input 'moos': channels.{k} must be a channel name, not {v!r}")
         for key in ("image_var", "points_var"):
             if isinstance(options.get(key), str) and not _var_ok(options[key]):
-                problems.append(f"input 'moos': option {key!r} must be a MOOS variable name, not {options[key]!r}")
-        return problems
+                p.said(key, f"input 'moos': option {key!r} must be a MOOS variable name, not {options[key]!r}")
+        return p
 
     def __init__(self, options: Mapping[str, Any], context: InputContext, client: Any = None) -> None:
         super().__init__(options, context)

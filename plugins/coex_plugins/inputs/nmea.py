@@ -38,7 +38,7 @@ import numpy as np
 
 from coex import Input, InputContext, Item, Nav, Samples
 
-from ..options import LogOnce, need, want_bool, want_host_port, want_int, want_number, want_str
+from ..options import LogOnce, Problems, need
 
 __all__ = ["NmeaError", "NmeaInput", "checksum", "parse_sentence"]
 
@@ -141,25 +141,27 @@ class NmeaInput(Input):
     }
 
     @classmethod
-    def check(cls, options: Mapping[str, Any]) -> list[str]:
-        n = cls.name
-        problems = want_str(n, options, "serial") + want_host_port(n, options, "udp")
-        problems += want_int(n, options, "baud", 1, 10_000_000)
-        problems += want_bool(n, options, "require_checksum") + want_bool(n, options, "dbt_is_altitude")
-        problems += want_number(n, options, "variation")
+    def check(cls, options: Mapping[str, Any]) -> Problems:
+        p, who = Problems(), f"input {cls.name!r}"
+        p.option_str(who, options, "serial")
+        p.option_host_port(who, options, "udp")
+        p.option_int(who, options, "baud", 1, 10_000_000)
+        p.option_bool(who, options, "require_checksum")
+        p.option_bool(who, options, "dbt_is_altitude")
+        p.option_number(who, options, "variation")
         if not options.get("serial") and not options.get("udp"):
-            problems.append(f"input {n!r} needs the option 'serial' or 'udp' (or both)")
+            p.said("", f"{who} needs the option 'serial' or 'udp' (or both)")
         channels = options.get("channels", {})
         if not isinstance(channels, Mapping):
-            problems.append(f"input {n!r}: option 'channels' must be a table of \"SENTENCE.index\" = \"channel\"")
+            p.said("channels", f"{who}: option 'channels' must be a table of \"SENTENCE.index\" = \"channel\"")
             channels = {}
         for key, channel in channels.items():
             if not _CHANNEL_KEY.match(str(key)) or int(str(key).rpartition(".")[2]) == 0:
-                problems.append(f"input {n!r}: option 'channels.{key}': the key must be a sentence "
-                                "and a field index from 1, like \"VHW.5\" or \"IIVHW.5\"")
+                p.said(f"channels.{key}", f"{who}: option 'channels.{key}': the key must be a sentence "
+                                          "and a field index from 1, like \"VHW.5\" or \"IIVHW.5\"")
             if not isinstance(channel, str) or not channel.strip():
-                problems.append(f"input {n!r}: option 'channels.{key}' must be a channel name")
-        return problems
+                p.said(f"channels.{key}", f"{who}: option 'channels.{key}' must be a channel name")
+        return p
 
     @classmethod
     def paths(cls, options: Mapping[str, Any]) -> list[tuple[str, str, str]]:

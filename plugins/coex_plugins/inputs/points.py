@@ -19,7 +19,7 @@ import numpy as np
 
 from coex import InputContext, Item, Points
 
-from ..options import LogOnce, want_bool, want_number, want_str
+from ..options import LogOnce, Problems
 from ._files import WatchedInput, read_sidecar
 
 __all__ = ["PointsInput", "finite_rows"]
@@ -48,13 +48,14 @@ class PointsInput(WatchedInput):
     }
 
     @classmethod
-    def check(cls, options: Mapping[str, Any]) -> list[str]:
-        problems = want_str(cls.name, options, "path", nonempty=True)
-        problems += want_str(cls.name, options, "pattern", nonempty=True)
-        problems += want_number(cls.name, options, "settle", minimum=0)
-        problems += want_number(cls.name, options, "interval", minimum=0)
-        problems += want_bool(cls.name, options, "existing")
-        return problems
+    def check(cls, options: Mapping[str, Any]) -> Problems:
+        p, who = Problems(), f"input {cls.name!r}"
+        p.option_str(who, options, "path", nonempty=True)
+        p.option_str(who, options, "pattern", nonempty=True)
+        p.option_number(who, options, "settle", minimum=0)
+        p.option_number(who, options, "interval", minimum=0)
+        p.option_bool(who, options, "existing")
+        return p
 
     @classmethod
     def paths(cls, options: Mapping[str, Any]) -> list[tuple[str, str, str]]:

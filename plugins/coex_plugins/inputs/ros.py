@@ -30,8 +30,8 @@ import numpy as np
 
 from coex import Input, InputContext, Item, Samples
 
-from ..options import LogOnce, compile_path, finite, want_bool, want_choice, want_int, want_str
-from .rosmsg import ROLES, FrameMap, canonical, frame_problems, item_of, stamp_of
+from ..options import LogOnce, Problems, compile_path, finite
+from .rosmsg import ROLES, FrameMap, canonical, check_frames, item_of, stamp_of
 
 __all__ = ["RosInput", "series_problems"]
 
@@ -118,24 +118,24 @@ class RosInput(Input):
     }
 
     @classmethod
-    def check(cls, options: Mapping[str, Any]) -> list[str]:
-        problems: list[str] = []
+    def check(cls, options: Mapping[str, Any]) -> Problems:
+        p, who = Problems(), f"input {cls.name!r}"
         for key in ("master", "node", "points_topic", "image_topic", "nav_topic"):
-            problems += want_str(cls.name, options, key, nonempty=key == "node")
+            p.option_str(who, options, key, nonempty=key == "node")
         master = options.get("master", "")
         if isinstance(master, str) and master and not master.startswith(("http://", "https://")):
-            problems.append(f"input {cls.name!r}: option 'master' must be an http:// URI "
-                            f"(http://localhost:11311), not {master!r}")
+            p.said("master", f"{who}: option 'master' must be an http:// URI (http://localhost:11311), not {master!r}")
         if not any(options.get(k) for k in ("points_topic", "image_topic", "nav_topic", "series")):
-            problems.append(f"input {cls.name!r} needs at least one of the options 'points_topic', "
-                            "'image_topic', 'nav_topic', 'series'")
-        problems += frame_problems(cls.name, options)
+            p.said("", f"{who} needs at least one of the options 'points_topic', 'image_topic', 'nav_topic', "
+                       "'series'")
+        check_frames(p, cls.name, options)
         if "series" in options:
-            problems += series_problems(cls.name, options["series"])
-        problems += want_int(cls.name, options, "queue", 1, 10000)
-        problems += want_choice(cls.name, options, "stamps", ("header", "arrival"))
-        problems += want_bool(cls.name, options, "nav_images")
-        return problems
+            for text in series_problems(cls.name, options["series"]):
+                p.said("series", text)
+        p.option_int(who, options, "queue", 1, 10000)
+        p.option_choice(who, options, "stamps", ("header", "arrival"))
+        p.option_bool(who, options, "nav_images")
+        return p
 
     def __init__(self, options: Mapping[str, Any], context: InputContext) -> None:
         super().__init__(options, context)

@@ -31,14 +31,14 @@ from typing import Any, ClassVar
 
 from coex import ConfigError, Input, InputContext, Item
 
-from ..options import LogOnce, need, want_choice, want_number, want_str
+from ..options import LogOnce, Problems, need
 from .rosmsg import (
     IMAGE_TYPES,
     NAV_TYPES,
     POINTS_TYPES,
     ROLES,
     FrameMap,
-    frame_problems,
+    check_frames,
     item_of,
     stamp_of,
 )
@@ -69,17 +69,17 @@ class RosbagInput(Input):
     }
 
     @classmethod
-    def check(cls, options: Mapping[str, Any]) -> list[str]:
-        problems = want_str(cls.name, options, "path", nonempty=True)
+    def check(cls, options: Mapping[str, Any]) -> Problems:
+        p, who = Problems(), f"input {cls.name!r}"
+        p.option_str(who, options, "path", nonempty=True)
         for key in ("points_topic", "image_topic", "nav_topic"):
-            problems += want_str(cls.name, options, key)
+            p.option_str(who, options, key)
         if not any(options.get(k) for k in ("points_topic", "image_topic", "nav_topic")):
-            problems.append(f"input {cls.name!r} needs at least one of the options 'points_topic', "
-                            "'image_topic', 'nav_topic'")
-        problems += want_choice(cls.name, options, "start", ("now", "original"))
-        problems += want_number(cls.name, options, "speed", positive=True)
-        problems += frame_problems(cls.name, options)
-        return problems
+            p.said("", f"{who} needs at least one of the options 'points_topic', 'image_topic', 'nav_topic'")
+        p.option_choice(who, options, "start", ("now", "original"))
+        p.option_number(who, options, "speed", positive=True)
+        check_frames(p, cls.name, options)
+        return p
 
     @classmethod
     def paths(cls, options: Mapping[str, Any]) -> list[tuple[str, str, str]]:

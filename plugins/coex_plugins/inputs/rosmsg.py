@@ -28,7 +28,7 @@ import numpy as np
 
 from coex import Image, Item, Nav, Points
 
-from ..options import compass_from_enu_yaw, finite, yaw_of_quaternion
+from ..options import Problems, compass_from_enu_yaw, finite, yaw_of_quaternion
 from ._files import as_pixels, decode_image
 
 __all__ = [
@@ -39,6 +39,7 @@ __all__ = [
     "Frame",
     "FrameMap",
     "canonical",
+    "check_frames",
     "frame_problems",
     "image_pixels",
     "item_of",
@@ -143,30 +144,36 @@ def _frame(spec: Any) -> Frame:
 def frame_problems(name: str, options: Mapping[str, Any]) -> list[str]:
     """Problems of the options ``frames`` (frame id -> ``"enu"`` | ``"ned"`` | ``{axes, x, y, z,
     yaw}``) and ``nav_frame``."""
-    problems: list[str] = []
+    p = Problems()
+    check_frames(p, name, options)
+    return p.items
+
+
+def check_frames(p: Problems, name: str, options: Mapping[str, Any]) -> None:
+    """:func:`frame_problems` into ``p``, each with the option it names."""
     nav = options.get("nav_frame", "enu")
     if nav not in ("enu", "ned"):
-        problems.append(f"input {name!r}: option 'nav_frame' must be one of 'enu', 'ned', not {nav!r}")
+        p.said("nav_frame", f"input {name!r}: option 'nav_frame' must be one of 'enu', 'ned', not {nav!r}")
     frames = options.get("frames", {})
     if not isinstance(frames, Mapping):
-        return [*problems, f"input {name!r}: option 'frames' must be a table of frame id = "
-                           "\"enu\" | \"ned\" | {axes, x, y, z, yaw}"]
+        p.said("frames", f"input {name!r}: option 'frames' must be a table of frame id = "
+                         "\"enu\" | \"ned\" | {axes, x, y, z, yaw}")
+        return
     for fid, spec in frames.items():
         key = f"frames.{fid}"
         if isinstance(spec, str):
             spec = {"axes": spec}
         if not isinstance(spec, Mapping):
-            problems.append(f"input {name!r}: option {key!r} must be \"enu\", \"ned\" or a table "
-                            "{axes, x, y, z, yaw}")
+            p.said(key, f"input {name!r}: option {key!r} must be \"enu\", \"ned\" or a table "
+                        "{axes, x, y, z, yaw}")
             continue
         for k, v in spec.items():
             if k not in _FRAME_KEYS:
-                problems.append(f"input {name!r}: option '{key}.{k}' is not one of {', '.join(_FRAME_KEYS)}")
+                p.said(f"{key}.{k}", f"input {name!r}: option '{key}.{k}' is not one of {', '.join(_FRAME_KEYS)}")
             elif k == "axes" and v not in ("enu", "ned"):
-                problems.append(f"input {name!r}: option '{key}.axes' must be 'enu' or 'ned', not {v!r}")
+                p.said(f"{key}.axes", f"input {name!r}: option '{key}.axes' must be 'enu' or 'ned', not {v!r}")
             elif k != "axes" and (isinstance(v, bool) or not isinstance(v, int | float) or not math.isfinite(v)):
-                problems.append(f"input {name!r}: option '{key}.{k}' must be a number, not {v!r}")
-    return problems
+                p.said(f"{key}.{k}", f"input {name!r}: option '{key}.{k}' must be a number, not {v!r}")
 
 
 class FrameMap:

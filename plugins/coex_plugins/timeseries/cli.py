@@ -27,7 +27,7 @@ from typing import Any
 
 import numpy as np
 
-from coex import ConfigError, to_json, wire
+from coex import ConfigError, RoundTrip, to_json, wire
 from coex.messages import Message
 
 from . import synth
@@ -130,29 +130,14 @@ def roundtrip(csv_path: str | Path, out: str | Path, budgets: list[int], *, wave
     sender.flush(now)
 
     topside = TimeSeriesReceiver()
-    sent: list[Message] = []
+    # a lossless link of whole frames; acks go back at once
+    link = RoundTrip(sender, topside, mtu=FRAME_PAYLOAD + wire.header_size(), round_seconds=1.0, now=now)
     limit = max(budgets)
-    total = 0
-
-    def drain() -> None:
-        nonlocal total, now
-        while True:
-            batch = sender.fill(FRAME_PAYLOAD, now)
-            if not batch:
-                return
-            for m in batch:
-                sent.append(m)
-                total += wire.encoded_size(m)
-                topside.receive(m, now)
-            for reply in topside.poll(now):
-                sender.handle(reply, now)
-            now += 1.0
-
-    drain()
+    link.drain()
     # refine the whole record as a topside asking for "finer detail" would, until each channel
     # reaches half its resolution or the largest budget is spent
     finished: set[str] = set()
-    while total < limit and len(finished) < len(names):
+    while sum(wire.encoded_size(m) for m in link.sent) < limit and len(finished) < len(names):
         for j, name in enumerate(names):
             if name in finished:
                 continue
@@ -162,12 +147,11 @@ def roundtrip(csv_path: str | Path, out: str | Path, budgets: list[int], *, wave
                 finished.add(name)
                 continue
             topside.request(name, float(times[0]), float(times[-1]), max(worst / 4, floor))
-        for req in topside.poll(now):
-            sender.handle(req, now)
-        before = total
-        drain()
-        if total == before:
+        link.poll()
+        if not link.drain():
             break
+    sent = link.sent
+    total = sum(wire.encoded_size(m) for m in sent)
 
     outdir = Path(out)
     outdir.mkdir(parents=True, exist_ok=True)

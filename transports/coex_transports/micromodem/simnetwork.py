@@ -4,6 +4,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import heapq
 import itertools
@@ -345,21 +346,34 @@ class NetworkClock:
 
 class SimLoop:
     """:class:`~coex_runtime.runner.Runner` objects over a :class:`ModemNetwork`, with timed
-    callbacks, on the network's clock (each runner's clock must read that clock).
+    callbacks, on the network's clock (each runner's clock must read that clock): the one paced
+    loop of a simulated dive (``coex demo``, the fault suite, ``bench/soak_faults.py``).
 
     Each pass advances the network to the next thing due (a modem or driver deadline, a node's
     next slot, a callback; at most ``max_step`` seconds on), calls the callbacks due, steps every
     runner in :attr:`runners` (a list the caller may change: a node restarted), calls each of
-    :attr:`after` with the time, and lets the network take what the runners wrote. ``max_step``
-    bounds the jumps for parts the loop cannot see (an autonomy's protocol timers)."""
+    :attr:`after` with the time, lets the network take what the runners wrote, and calls each
+    of :attr:`settled`. ``max_step``
+    bounds the jumps for parts the loop cannot see (an autonomy's protocol timers). With
+    ``speed`` the simulated clock runs at most that many times as fast as the wall clock (a
+    person at a console can follow the dive); ``lock`` is held around each pass (the console's
+    lock: nothing else touches the nodes meanwhile)."""
 
     def __init__(self, network: ModemNetwork, runners: Sequence[Any] = (), *,
-                 max_step: float | None = None) -> None:
+                 max_step: float | None = None, speed: float | None = None,
+                 lock: contextlib.AbstractContextManager[Any] | None = None) -> None:
+        if speed is not None and speed <= 0:
+            raise ConfigError("speed must be positive")
         self.network = network
         self.runners: list[Any] = list(runners)
         self.max_step = max_step
+        self.speed = speed
+        self.lock: contextlib.AbstractContextManager[Any] = lock if lock is not None else contextlib.nullcontext()
         #: called with the time after the runners, every pass
         self.after: list[Callable[[float], Any]] = []
+        #: called with the time at the end of every pass, once the network took what the
+        #: runners wrote (what a node heard, the channel's log)
+        self.settled: list[Callable[[float], Any]] = []
         self._events: list[tuple[float, int, Callable[[float], Any]]] = []
         self._count = itertools.count()
         self.steps = 0
@@ -390,16 +404,23 @@ class SimLoop:
         from coex_runtime.runner import next_wakeup
 
         net = self.network
+        wall_start, sim_start = time.monotonic(), net.now
         while net.now < until:
             t = next_wakeup(net.now, until, self._events[0][0] if self._events else None,
                             [net.next_event(), *(r.node.next_event(net.now) for r in self.runners)],
                             started=bool(self.steps))
             if self.max_step is not None:
                 t = min(t, net.now + self.max_step)
-            self.step(t)
+            if self.speed is not None:  # no faster than the wall clock allows
+                ahead = (t - sim_start) / self.speed - (time.monotonic() - wall_start)
+                if ahead > 0:
+                    time.sleep(ahead)
+            with self.lock:
+                self.step(t)
 
     def step(self, t: float) -> None:
-        """One pass: the network to ``t``, the callbacks due, every runner, :attr:`after`."""
+        """One pass: the network to ``t``, the callbacks due, every runner, :attr:`after`, the
+        network, :attr:`settled`."""
         net = self.network
         net.run_until(t)
         while self._events and self._events[0][0] <= net.now:
@@ -410,4 +431,6 @@ class SimLoop:
         for fn in self.after:
             fn(net.now)
         net.step()
+        for fn in self.settled:
+            fn(net.now)
         self.steps += 1
