@@ -217,6 +217,14 @@ class Input(Adapter, abc.ABC):
         daemon polls it at its own pace."""
         return None
 
+    @property
+    def stamp_images(self) -> bool:
+        """Whether the daemon gives the images this input yields without a position the
+        vehicle's newest position. The default: the input's ``nav`` option, when it has one
+        (the directory input's), else False; an input whose ``nav`` means something else (the
+        MOOS input's navigation variables) or that says it with another option overrides it."""
+        return bool(self.config.get("nav", False))
+
 
 def check_options(cls: type[Input], options: Mapping[str, Any]) -> list[str]:
     """Unknown and missing keys, then the adapter's own :meth:`Input.check`."""

@@ -146,6 +146,11 @@ class ModalitySender(_OutOfCore, abc.ABC):
         send what decides first (the bathymetry sender keeps its finest level away from the
         background while the link is low). It must not raise."""
 
+    #: the sender this one wraps, when it is a wrapper an application put around a modality's
+    #: sender (remapped ids, a recorder, a fault injector): the node saves, restores, binds and
+    #: gives storage to the innermost sender, and a restore puts the restored one in the
+    #: innermost wrapper's ``inner``. None (the default): it wraps none.
+    inner: ModalitySender | None = None
     #: how this sender reaches the other senders of its node (:meth:`bind_peers`)
     _peers: Callable[[str], ModalitySender | None] | None = None
     #: not saved with the sender's state (:mod:`coex_core.state`): the node binds it again
@@ -184,6 +189,8 @@ class ModalityReceiver(_OutOfCore, abc.ABC):
     def products(self) -> list[Product]:
         """Every current product."""
 
+    #: the receiver this one wraps (as :attr:`ModalitySender.inner`); None (the default): none
+    inner: ModalityReceiver | None = None
     #: where this receiver's command ids come from (:meth:`bind_command_ids`)
     _command_ids: Callable[[], int] | None = None
     #: not saved with the receiver's state (:mod:`coex_core.state`): the node binds it again

@@ -189,9 +189,7 @@ class Node:
         return None
 
     def _bind_peers(self, sender: Any) -> None:
-        bind = getattr(_innermost(sender), "bind_peers", None)
-        if bind is not None:
-            bind(self._peer)
+        _innermost(sender).bind_peers(self._peer)  # declared on ModalitySender
 
     def add_receiver(self, modality: Modality | type[Modality], receiver: ModalityReceiver,
                      stream: int = CONTROL_STREAM, *, ids: Mapping[int, int] | None = None,
@@ -719,9 +717,9 @@ class Node:
 def _wrappers(part: Any) -> list[Any]:
     """``part`` and the senders or receivers it wraps (``inner``), outermost first."""
     chain = [part]
-    while isinstance(getattr(chain[-1], "inner", None), ModalitySender | ModalityReceiver) \
-            and len(chain) < 8:
-        chain.append(chain[-1].inner)
+    while isinstance(chain[-1], ModalitySender | ModalityReceiver) \
+            and isinstance(chain[-1].inner, ModalitySender | ModalityReceiver) and len(chain) < 8:
+        chain.append(chain[-1].inner)  # declared on both bases (None: wraps none)
     return chain
 
 

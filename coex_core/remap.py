@@ -24,7 +24,7 @@ class RemappedSender(ModalitySender):
     carries the remapped ones (``inner`` is the plugin's sender: its state is saved)."""
 
     def __init__(self, inner: ModalitySender, to_wire: Mapping[int, int]) -> None:
-        self.inner = inner
+        self.inner: ModalitySender = inner
         self.to_wire = dict(to_wire)
         self.from_wire = {b: a for a, b in self.to_wire.items()}
 
@@ -80,7 +80,7 @@ class RemappedReceiver(ModalityReceiver):
     """The topside side of :class:`RemappedSender`."""
 
     def __init__(self, inner: ModalityReceiver, to_wire: Mapping[int, int]) -> None:
-        self.inner = inner
+        self.inner: ModalityReceiver = inner
         self.to_wire = dict(to_wire)
         self.from_wire = {b: a for a, b in self.to_wire.items()}
 

@@ -11,9 +11,14 @@ and writing only what this module knows how to write:
 * the wire format's messages and their parts (``coex_core.messages``), by message type name;
 * objects of classes **registered** with :func:`persistent` under a stable name (a plugin's
   own state classes: ``"bathymetry.Region"``), with a version, and the attributes that are not
-  state (callbacks, clocks: ``transient``), which the class's ``_after_restore()`` rebuilds;
-  an object with a ``_before_save()`` method has it called just before its fields are read
-  (a map writes its resident tiles to its storage).
+  state (callbacks, clocks: ``transient``), which the class's ``_after_restore()`` rebuilds.
+
+The persistence hooks are declared by the registered class itself: a class that defines
+``_before_save(self)`` has it called just before its fields are read (a map writes its resident
+tiles to its storage), one that defines ``_after_restore(self)`` has it called once the whole
+state is restored. :func:`persistent` records at decoration time which of the two the class
+declares (its own or inherited methods); nothing is looked up on the objects while saving or
+loading.
 
 Anything else is a :class:`StateError` naming the type and where it was found: nothing is saved
 by accident, and renaming or moving a module does not break a saved dive (names are stable,
@@ -72,7 +77,14 @@ class _Class:
     version: int
     transient: frozenset[str]
     upgrade: Callable[[dict[str, Any], int], dict[str, Any]] | None
+    #: the class declares ``_before_save(self)`` (called before its fields are read)
+    before_save: bool = False
+    #: the class declares ``_after_restore(self)`` (called once the whole state is restored)
+    after_restore: bool = False
 
+
+#: the persistence hooks a registered class may declare (:func:`persistent`)
+_HOOKS = ("_before_save", "_after_restore")
 
 _BY_NAME: dict[str, _Class] = {}
 _BY_CLASS: dict[type, _Class] = {}
@@ -88,14 +100,24 @@ def persistent(name: str, *, version: int = 1, transient: tuple[str, ...] = (),
     class's ``_after_restore()`` sets them), nor those a base class lists in its
     ``_state_transient`` class attribute. ``upgrade(fields, saved_version)`` turns the fields
     saved by an older version into this version's (without it, an older version loads as is,
-    and a newer one is refused)."""
+    and a newer one is refused).
+
+    The class may declare the persistence hooks ``_before_save(self)`` (called just before its
+    fields are saved) and ``_after_restore(self)`` (called once everything is restored, in the
+    order restored); which of them it declares is recorded here, once. A non-callable attribute
+    of either name is a :class:`StateError`."""
 
     def deco(cls: T) -> T:
         old = _BY_NAME.get(name)
         if old is not None and old.cls.__qualname__ != cls.__qualname__:
             raise StateError(f"state name {name!r} is taken by {old.cls.__qualname__}")
         inherited = {t for k in cls.__mro__ for t in getattr(k, "_state_transient", ())}
-        entry = _Class(name, cls, int(version), frozenset(transient) | inherited, upgrade)
+        declared = {h: any(h in vars(k) for k in cls.__mro__) for h in _HOOKS}
+        for h in _HOOKS:
+            if declared[h] and not callable(getattr(cls, h)):
+                raise StateError(f"{cls.__qualname__}.{h} is not a method (a persistence hook of {name!r})")
+        entry = _Class(name, cls, int(version), frozenset(transient) | inherited, upgrade,
+                       before_save=declared["_before_save"], after_restore=declared["_after_restore"])
         _BY_NAME[name] = entry
         _BY_CLASS[cls] = entry
         return cls
@@ -237,9 +259,8 @@ class _Writer:
             return r
         ref = self.memo[id(x)] = len(self.memo)
         self.keep.append(x)
-        before = getattr(x, "_before_save", None)
-        if callable(before):  # e.g. a map writes its resident tiles to its storage first
-            before()
+        if c.before_save:  # e.g. a map writes its resident tiles to its storage first
+            x._before_save()
         fields = _fields(x)
         o = {"$o": c.name, "id": ref, "f": {}}
         self.objects.append(o)
@@ -407,13 +428,15 @@ class _Reader:
             fields = c.upgrade(fields, saved)
         for k, v in fields.items():
             object.__setattr__(obj, k, v)
-        self.restored.append(obj)
+        if c.after_restore:
+            self.restored.append(obj)
         return obj
 
 
 def loads(data: bytes) -> Any:
-    """The object :func:`dumps` wrote. Each restored object with an ``_after_restore()``
-    method has it called once everything is restored (in the order restored)."""
+    """The object :func:`dumps` wrote. Each restored object of a class that declares
+    ``_after_restore()`` (:func:`persistent`) has it called once everything is restored (in the
+    order restored)."""
     if not data.startswith(MAGIC) or len(data) < len(MAGIC) + 4:
         raise StateError("not a CoEx state (no COEXSTATE header)")
     (n,) = struct.unpack(">I", data[len(MAGIC):len(MAGIC) + 4])
@@ -445,8 +468,6 @@ def _load_doc(doc: Any, blobs: Any) -> Any:
         raise
     except Exception as exc:  # a missing array, a wrong field: the file is damaged
         raise StateError(f"corrupt CoEx state: {exc}") from exc
-    for obj in reader.restored:
-        hook = getattr(obj, "_after_restore", None)
-        if callable(hook):
-            hook()
+    for obj in reader.restored:  # the objects of classes that declare the hook, in order
+        obj._after_restore()
     return root

@@ -53,6 +53,12 @@ class Storage(abc.ABC):
         """The part of this storage under ``prefix`` (a modality's own namespace)."""
         return _Child(self, prefix)
 
+    def same_keys(self, other: Storage | None) -> bool:
+        """Whether ``other`` holds exactly this storage's keys: the same object, or the same
+        part (:meth:`child`) of the same storage, as a node attaching its storage again gives
+        (a modality then has nothing to move). The default: the same object."""
+        return other is self
+
 
 class _Child(Storage):
     def __init__(self, parent: Storage, prefix: str) -> None:
@@ -74,6 +80,10 @@ class _Child(Storage):
 
     def child(self, prefix: str) -> Storage:
         return _Child(self.parent, self.prefix + prefix)
+
+    def same_keys(self, other: Storage | None) -> bool:
+        return other is self or (isinstance(other, _Child) and other.prefix == self.prefix
+                                 and self.parent.same_keys(other.parent))
 
 
 @persistent("core.MemoryStorage")

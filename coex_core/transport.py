@@ -100,6 +100,14 @@ class Transport(abc.ABC):
         SNR, Doppler, bad frames), or ``None`` when the transport has none (the default)."""
         return None
 
+    def flush(self) -> None:  # noqa: B027  (optional hook, deliberately not abstract)
+        """Wait until every frame given to :meth:`send` has left (a modem's queue, a serial
+        port's buffer, a MOOSDB that has not taken them yet); raises
+        :class:`~coex_core.errors.TransportError` when they cannot. ``coex send`` calls it
+        before it closes the transport. Optional: the default does nothing (a transport whose
+        :meth:`send` returns once the frame is out). A transport may add a ``timeout``
+        keyword with a default of its own."""
+
     # ---------------------------------------------------------------- public API
     def send(self, frame: bytes) -> None:
         if self._closed:

@@ -300,3 +300,19 @@ def test_the_receiver_tiles_its_state_saved_dirty_are_written_after_a_restore() 
     for key in back._tiles:
         t = decode_tile(st.get(f"tile/{key[0]}/{key[1]}/{key[2]}") or b"", 16, 8, "t")
         assert same(t.values, back._tiles[key].values) and same(t.held, back._tiles[key].held)
+
+
+def test_a_storage_says_whether_another_holds_the_same_keys() -> None:
+    """``Storage.same_keys`` (declared on the base: the same object; a child: the same part of
+    the same storage): what the receiver asks before moving its tiles to a storage attached
+    again."""
+    from coex_plugins.bathymetry.tiles import same_storage
+
+    root, other = MemoryStorage(), MemoryStorage()
+    a, again = root.child("bathymetry/"), root.child("bathymetry/")
+    assert a is not again and a.same_keys(again) and same_storage(a, again)
+    assert root.child("x/").child("y/").same_keys(root.child("x/y/"))
+    assert not a.same_keys(root.child("imagery/")) and not a.same_keys(other.child("bathymetry/"))
+    assert not a.same_keys(root) and not root.same_keys(a) and not a.same_keys(None)
+    assert root.same_keys(root) and not root.same_keys(other)
+    assert same_storage(None, None) and not same_storage(None, root) and not same_storage(root, None)

@@ -106,6 +106,28 @@ def test_open_transport_by_uri_pairs_loopback_ends() -> None:
         registry.open_transport("loopback://x?bogus=1")
 
 
+def test_coex_send_flushes_through_the_declared_transport_hook(monkeypatch: pytest.MonkeyPatch) -> None:
+    """``Transport.flush`` is declared on the base (default: nothing to wait for) and ``coex
+    send`` calls it after its frames, before closing; a transport that buffers overrides it."""
+    import argparse
+
+    from coex_core.transport import Transport
+    from coex_transports import _cli
+
+    link = LoopbackLink(mtu=64, bytes_per_s=1000)
+    assert LoopbackTransport.flush is Transport.flush and link.a.flush() is None
+    calls: list[int] = []
+
+    class Buffering(LoopbackTransport):
+        def flush(self) -> None:
+            calls.append(self.link.in_flight())
+
+    monkeypatch.setattr(_cli, "open_transport", lambda uri: Buffering(link, 0))
+    assert _cli.run_send(argparse.Namespace(transport="loopback://x", frames=[b"ab", b"cd"])) == 0
+    assert calls == [2]  # once, after both frames were handed over
+    assert link.b.recv(timeout=1.0) == b"ab" and link.b.recv(timeout=1.0) == b"cd"
+
+
 def test_parse_query_types_and_rejects() -> None:
     assert parse_query("rate=5&src=1&fdp=true", {"rate": int, "src": int, "fdp": bool}) == {
         "rate": 5, "src": 1, "fdp": True}

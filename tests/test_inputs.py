@@ -428,3 +428,23 @@ def test_a_third_party_input_gets_the_counter_from_the_base_class() -> None:
     adapter = Mine({}, InputContext())
     adapter.poll(1.0)
     assert adapter.counts == {"skipped": 1} and adapter.skipped == 1
+
+
+def test_whether_the_daemon_stamps_an_inputs_images_is_declared_on_input(tmp_path: Path) -> None:
+    """``Input.stamp_images`` (the vehicle daemon gives images without a position the newest
+    vehicle position): by default the input's ``nav`` option (the directory input's), False for
+    an input without one; an input overrides it (the MOOS and ROS inputs: ``nav_images``)."""
+    assert _directory(tmp_path).stamp_images is False
+    assert _directory(tmp_path, nav=True).stamp_images is True
+
+    class Camera(Input):
+        name = "camera"
+        feeds = ("imagery",)
+
+        def poll(self, now: float) -> list[Image]:
+            return []
+
+    ctx = InputContext(origin_lat=41.0, origin_lon=-71.0, base_dir=str(tmp_path))
+    assert Camera({}, ctx).stamp_images is False
+    moos = load(entry_points()["moos"])
+    assert moos.stamp_images is not Input.stamp_images  # its own (option nav_images)

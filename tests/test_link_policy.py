@@ -243,3 +243,62 @@ def test_topside_tells_the_vehicles_throughput_from_the_frames_it_hears() -> Non
     for seq in range(0, 40, 2):  # every other frame of the vehicle's is missing
         top.on_frame(0, FrameHeader(src=VEHICLE, dst=TOPSIDE, seq=seq), float(seq), True)
     assert top.peer_throughput(VEHICLE) == pytest.approx(32.0 * 20 / 39, rel=0.01)
+
+
+class _Failing(Listener):
+    def throughput(self, bytes_per_second: float, low: bool, now: float) -> None:
+        raise RuntimeError("boom")
+
+
+class _Quiet(Listener):
+    """Keeps the base class's throughput() (declared, documented default: nothing)."""
+
+    throughput = ModalitySender.throughput
+
+
+def test_every_sender_is_told_through_the_declared_hook_and_a_failing_one_is_reported() -> None:
+    """``throughput`` is declared on ModalitySender (default: nothing); the channel calls it on
+    every sender and a hook that raises is a SenderFailed event, never a failed packet."""
+    from coex_core.channel.events import SenderFailed
+
+    mgr = ChannelManager(VEHICLE, [LinkConfig(0, nui(), rate=1, dst=TOPSIDE)])
+    told, failing, quiet = Listener(), _Failing(), _Quiet()
+    for sid, s in ((3, told), (4, failing), (5, quiet)):
+        mgr.add_stream(StreamConfig(sid, f"s{sid}"), s)
+    t = mgr.next_event(0.0) or 0.0
+    assert mgr.poll(t)  # a packet, in spite of the failing hook
+    assert told.told and told.told[-1][2] == t and quiet.told == []
+    failed = [e for e in mgr.events() if isinstance(e, SenderFailed)]
+    assert failed and failed[0].stream == 4 and "throughput() failed: RuntimeError: boom" in failed[0].error
+    assert mgr.stats["sender_failures"] >= 1
+
+
+def test_a_wrapper_declares_what_it_wraps_through_inner() -> None:
+    """``inner`` is declared on ModalitySender and ModalityReceiver (None: wraps none); the node
+    reaches the innermost sender through it (bind_peers, state), through nested wrappers, and
+    never through an ``inner`` that is not a sender."""
+    from coex_core.node import _innermost
+    from coex_core.remap import RemappedSender
+
+    assert ModalitySender.inner is None and ModalityReceiver.inner is None
+    plain = Listener()
+    assert _innermost(plain) is plain
+
+    class Recording(Listener):
+        def __init__(self, inner: ModalitySender) -> None:
+            super().__init__()
+            self.inner = inner
+
+    class NotAWrapper(Listener):
+        def __init__(self) -> None:
+            super().__init__()
+            self.inner = "a name of its own"  # type: ignore[assignment]
+
+    core = Listener()
+    outer = RemappedSender(Recording(core), {200: 201})
+    assert _innermost(outer) is core
+    odd = NotAWrapper()
+    assert _innermost(odd) is odd
+    node = Node(ChannelManager(VEHICLE, [LinkConfig(0, nui(), rate=1, dst=TOPSIDE)]))
+    node.add_sender(Thing, Recording(core), StreamConfig(3, "thing"))
+    assert core.peer("thing") is core  # bound on the innermost sender, which the peer lookup gives

@@ -94,6 +94,57 @@ def test_transient_attributes_are_not_saved_and_are_rebuilt() -> None:
     assert back.callback is print and back.value == 1
 
 
+class _Saving:
+    """Declares both persistence hooks; they log into ``calls``."""
+
+    calls: list[tuple[str, int]] = []
+
+    def __init__(self, value: int) -> None:
+        self.value = value
+
+    def _before_save(self) -> None:
+        self.calls.append(("save", self.value))
+
+    def _after_restore(self) -> None:
+        self.calls.append(("restore", self.value))
+
+
+@persistent("test.SavingChild")
+class SavingChild(_Saving):
+    """Inherits both hooks from an unregistered base: still declared."""
+
+
+@persistent("test.Plain")
+class Plain:
+    def __init__(self) -> None:
+        self.value = 3
+
+
+def test_persistence_hooks_are_declared_by_the_class_and_recorded_once() -> None:
+    """``_before_save`` / ``_after_restore`` are the class's declared protocol: recorded when
+    ``@persistent`` registers it, not looked up on each object; an instance attribute of that
+    name is not a hook, and a non-method of that name is refused at registration."""
+    from coex_core.state import _BY_NAME
+
+    assert (_BY_NAME["test.SavingChild"].before_save, _BY_NAME["test.SavingChild"].after_restore) == (True, True)
+    assert (_BY_NAME["test.Hooked"].before_save, _BY_NAME["test.Hooked"].after_restore) == (False, True)
+    assert (_BY_NAME["test.Plain"].before_save, _BY_NAME["test.Plain"].after_restore) == (False, False)
+    _Saving.calls.clear()
+    back = loads(dumps([SavingChild(1), SavingChild(2)]))
+    assert _Saving.calls == [("save", 1), ("save", 2), ("restore", 1), ("restore", 2)]
+    assert [b.value for b in back] == [1, 2]
+    p = Plain()
+    p.__dict__["_after_restore"] = 5  # a field of that name is a field, never called
+    assert loads(dumps(p))._after_restore == 5
+
+    class NotAHook:
+        _before_save = 1
+
+    with pytest.raises(StateError, match=r"NotAHook._before_save is not a method"):
+        persistent("test.NotAHook")(NotAHook)
+    assert "test.NotAHook" not in _BY_NAME
+
+
 def test_unregistered_types_are_refused_with_where_they_were() -> None:
     with pytest.raises(StateError, match=r"root\['x'\]\[1\]: a .*Unknown is not registered"):
         dumps({"x": [1, Unknown()]})

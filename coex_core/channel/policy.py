@@ -100,11 +100,10 @@ class PolicyMixin(AcksMixin):
         elif not self._low and bps < self.low_throughput:
             self._low = True
         for sid, s in self._streams.items():
-            hook = getattr(s.sender, "throughput", None) if s.sender is not None else None
-            if hook is None:
+            if s.sender is None:
                 continue
-            try:
-                hook(bps, self._low, now)
+            try:  # declared on ModalitySender (default: nothing)
+                s.sender.throughput(bps, self._low, now)
             except Exception as exc:  # a sender's hook never stops the channel
                 self.stats["sender_failures"] += 1
                 self._events.append(SenderFailed(now, sid, f"throughput() failed: {type(exc).__name__}: {exc}"))

@@ -44,9 +44,7 @@ def run_send(args: argparse.Namespace) -> int:
     with open_transport(args.transport) as transport:
         for frame in args.frames:
             transport.send(frame)
-        flush = getattr(transport, "flush", None)
-        if callable(flush):
-            flush()
+        transport.flush()  # declared on Transport (default: nothing to wait for)
     return 0
 
 

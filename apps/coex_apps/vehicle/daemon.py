@@ -292,10 +292,7 @@ class VehicleApp:
                 inp.skip()
                 return
         x, y = item.x, item.y
-        stamp = getattr(inp, "stamp_images", None)  # an input whose "nav" option means something else
-        if stamp is None:
-            stamp = getattr(inp, "config", {}).get("nav", False)
-        if (x is None or y is None) and "x" in self.nav and stamp:
+        if (x is None or y is None) and "x" in self.nav and inp.stamp_images:  # declared on Input
             x, y = self.nav["x"], self.nav["y"]
         data = ImageInput(np.asarray(pixels), time=item.time,
                           x=None if x is None else round(float(x), 1), y=None if y is None else round(float(y), 1))

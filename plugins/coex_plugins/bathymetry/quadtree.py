@@ -104,8 +104,12 @@ def _upgrade_map(fields: dict[str, Any], saved: int) -> dict[str, Any]:
     """A map saved by version 1 (every tile in four arrays of the saved state) keeps its tiles
     in a :class:`MemoryStorage` of the saved state now; ``_after_restore`` finishes the index.
     Version 3 writes its tiles in the tile store's format (:mod:`.tilestore`, ``CXTS``); the
-    ``CXT1`` tiles a version-2 map stored are read as they are (its fields are unchanged)."""
+    ``CXT1`` tiles a version-2 map stored are read as they are (its fields are unchanged).
+    A version-1 ``max_tiles`` of 1024 or less was the old memory guard, which the storage
+    replaces: it becomes None (no limit)."""
     if saved < 2 and "_count" in fields:
+        if fields.get("max_tiles") is not None and fields["max_tiles"] <= 1024:
+            fields["max_tiles"] = None
         fields["_v1_arrays"] = {k: fields.pop(k) for k in ("_count", "_sum", "_sumsq", "_time")}
         fields.pop("_times_cache", None)
         fields["_mem"] = MemoryStorage()  # where its tiles go
@@ -244,8 +248,6 @@ class QuadtreeMap:
             n = len(self._keys)
             self.memory_budget = DEFAULT_MEMORY_BUDGET
             self.disk_budget = DEFAULT_DISK_BUDGET
-            if getattr(self, "max_tiles", None) is not None and self.max_tiles <= 1024:
-                self.max_tiles = None  # the old memory guard, which the storage replaces
             self.overflow, self.spills, self.loads = None, 0, 0
             self._changed = set()
             cap = max(4, n)

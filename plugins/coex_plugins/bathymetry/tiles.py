@@ -141,7 +141,4 @@ class LevelStats:
 def same_storage(a: Storage | None, b: Storage | None) -> bool:
     """Whether two storages are the same keys: the same object, or the same part (``child``)
     of the same storage, as a node attaching its storage again gives."""
-    if a is b:
-        return True
-    pa, pb = getattr(a, "parent", None), getattr(b, "parent", None)
-    return pa is not None and same_storage(pa, pb) and getattr(a, "prefix", None) == getattr(b, "prefix", None)
+    return a is b or (a is not None and a.same_keys(b))  # declared on Storage

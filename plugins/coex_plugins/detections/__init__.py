@@ -105,7 +105,14 @@ def detection_message(detection_id: int, source: DetectionSource, f: Finding) ->
         orient, foot, f.image_id if source == DetectionSource.IMAGE and f.image_id is not None else None)
 
 
-@persistent("detections.Det")
+def _upgrade_det(fields: dict[str, Any], saved: int) -> dict[str, Any]:
+    """Version 1 was saved before the neighbourhood was asked for again on newer data (no
+    ``focused``): an older detection loads as never focused (its neighbourhood is asked for
+    with its next finding). Version 2 always has it."""
+    return {"focused": -math.inf, **fields}
+
+
+@persistent("detections.Det", version=2, upgrade=_upgrade_det)
 class _Det:
     """A detection on the vehicle: the newest finding, what of it was last sent, its fate."""
 
@@ -253,7 +260,7 @@ class DetectionsSender(ModalitySender):
         # the neighbourhood, again whenever the finding rests on newer data (a later swath over
         # it): the modality sends only what changed since it went
         if (d is not None and f.score >= self.focus_score and d.neighbourhood > 0
-                and f.time > getattr(same, "focused", -math.inf)):
+                and f.time > same.focused):
             data = self.peer(d.modality)
             if data is not None:
                 same.focused = f.time

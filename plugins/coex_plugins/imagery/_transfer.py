@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import functools
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 import numpy.typing as npt
@@ -61,7 +62,21 @@ def fragment_size(n_marks: int, n_data: int, offset: int = 0) -> int:
     return _fragment_head(n_marks, offset >= _FAR_OFFSET) + n_data
 
 
-@persistent("imagery.Tx")
+def _upgrade_tx(fields: dict[str, Any], saved: int) -> dict[str, Any]:
+    """Version 1 (0.1.0 and early 0.2 work) was saved in the shapes it had before region requests
+    (no ``region``), crops (no ``crop``), repeated bytes (no ``sends``) and frame interest (no
+    ``interest``). Version 2 always has them: an older transfer loads with no region requested,
+    as an image (not a crop), every byte counted as sent no time yet, and interest 0."""
+    out = dict(fields)
+    out.setdefault("region", None)
+    out.setdefault("crop", None)
+    out.setdefault("interest", 0.0)
+    if out.get("sends") is None:
+        out["sends"] = np.zeros(len(out["enc"].body), np.uint8)
+    return out
+
+
+@persistent("imagery.Tx", version=2, upgrade=_upgrade_tx)
 class _Tx:
     __slots__ = (
         "acked",
@@ -115,22 +130,20 @@ class _Tx:
         packets of requested regions."""
         m = np.zeros(self.total, bool)
         m[: self.goal if goal is None else goal] = True
-        region = getattr(self, "region", None)
-        if region is not None:
-            m |= region
+        if self.region is not None:
+            m |= self.region
         return m
 
     def needs(self) -> bool:
         if self.goal > 0 and not bool(self.acked[: self.goal].all()):
             return True
-        region = getattr(self, "region", None)
-        return region is not None and bool((region & ~self.acked).any())
+        return self.region is not None and bool((self.region & ~self.acked).any())
 
     def unacked(self) -> int:
         return int(np.count_nonzero(self.wanted() & ~self.acked))
 
     def announce(self) -> ImageAnnounce | ImageCrop:
-        crop = getattr(self, "crop", None)
+        crop = self.crop
         if crop is not None:
             x0, y0, x1, y1 = crop.box
             return ImageCrop(self.image_id, crop.parent, crop.command_id, x0, y0, x1, y1, self.total,
@@ -153,10 +166,3 @@ def _packets(enc: Encoded) -> list[bytes | None]:
 
     return split_packets(enc.body, enc.packet_starts)
 
-
-def _sends(tx: _Tx) -> npt.NDArray[np.uint8]:
-    """How often each byte of ``tx`` was sent (an image saved before repeats existed gets zeros)."""
-    sends = getattr(tx, "sends", None)
-    if sends is None:
-        sends = tx.sends = np.zeros(tx.total, np.uint8)
-    return sends

@@ -52,7 +52,7 @@ def imagery_converged(sender: ModalitySender, receiver: ModalityReceiver) -> boo
         rx = receiver.images.get(image_id)
         if rx is None or rx.contiguous() < tx.goal or rx.image is None:
             return False
-    if any(reg["state"] == "requested" for rx in receiver.images.values() for reg in getattr(rx, "regions", ())):
+    if any(reg["state"] == "requested" for rx in receiver.images.values() for reg in rx.regions):
         return False
     return bool(sender.images)
 

@@ -61,7 +61,6 @@ from ._transfer import (
     MAX_MARKS,
     CropOf,
     _packets,
-    _sends,
     _Tx,
     fragment_size,
     packet_layers,
@@ -271,7 +270,7 @@ class ImagerySender(ModalitySender):
         capture order, or on a low link (it cannot send them all) the most interesting first."""
         default = [tx for tx in self.images.values() if tx.explicit is None and tx.needs()]
         if self._low:
-            default.sort(key=lambda tx: (-getattr(tx, "interest", 0.0), tx.time))
+            default.sort(key=lambda tx: (-tx.interest, tx.time))
         else:
             default.sort(key=lambda tx: tx.time)
         return default
@@ -281,7 +280,7 @@ class ImagerySender(ModalitySender):
         onboard detector looks at (``coex.detectors``), the image as coded (grey, reduced like
         the body sent), never what topside received."""
         txs = sorted((tx for tx in self.images.values() if tx.time > since), key=lambda tx: tx.time)
-        return [Frame(tx.image_id, tx.time, tx.x, tx.y, tx.enc.image, getattr(tx, "interest", 0.0)) for tx in txs]
+        return [Frame(tx.image_id, tx.time, tx.x, tx.y, tx.enc.image, tx.interest) for tx in txs]
 
     def pending_bytes(self) -> int:
         return sum(tx.unacked() for tx in self.images.values())
@@ -341,7 +340,7 @@ class ImagerySender(ModalitySender):
                 self._last_progress = key
         # 2. announcements, capture order
         announces = 0
-        for tx in sorted(self.images.values(), key=lambda t: (getattr(t, "crop", None) is None, t.time)):
+        for tx in sorted(self.images.values(), key=lambda t: (t.crop is None, t.time)):
             if announces >= self.max_announces:
                 break
             due = tx.announced_at is None or (not tx.heard and now - tx.announced_at >= self.rto)
@@ -404,8 +403,7 @@ class ImagerySender(ModalitySender):
     def _fate(self, frag: ImageFragment, ok: int) -> None:
         """Count a fragment sent once (a repeated one says little about a frame's loss)."""
         tx = self.images.get(frag.image_id)
-        sends = getattr(tx, "sends", None)
-        if sends is not None and frag.offset < len(sends) and sends[frag.offset] <= 1:
+        if tx is not None and frag.offset < len(tx.sends) and tx.sends[frag.offset] <= 1:
             self._fates.append(ok)
 
     def acked(self, message: Message, now: float) -> None:
@@ -441,7 +439,7 @@ class ImagerySender(ModalitySender):
                 if tx.explicit is not None:
                     # every copy of these bytes was lost: a requested image's missing bytes get
                     # their repeats again, or each ack round would carry a single copy
-                    sends = _sends(tx)
+                    sends = tx.sends
                     sends[span] = np.where(tx.acked[span], sends[span], 0)
 
     def _span(self, frag: ImageFragment) -> tuple[_Tx, slice] | None:
@@ -504,7 +502,7 @@ class ImagerySender(ModalitySender):
                   goal: int | None = None) -> ImageFragment | None:
         want = tx.wanted(goal) & ~tx.acked
         ready = want & (tx.sent_at <= now - self.rto)
-        sends = _sends(tx)
+        sends = tx.sends
         copies = self.copies() if tx.explicit is not None else 1
         if copies > 1:
             # a requested image under loss: its bytes go again in the next packet, up to
@@ -610,7 +608,7 @@ class ImagerySender(ModalitySender):
         crop, the region coded on its own as the difference to what topside shows of it
         (:meth:`_crop_for`), sent as an image of its own (``ImageCrop``)."""
         tx = self._tx(msg.image_id)
-        crop_of = getattr(tx, "crop", None)
+        crop_of = tx.crop
         if crop_of is not None:
             raise RequestRejected(f"image {msg.image_id} is a crop of image {crop_of.parent}: ask for a region of "
                                   "that image")
@@ -667,9 +665,8 @@ class ImagerySender(ModalitySender):
             ctx.explicit = self._request_counter
             self.images[ctx.image_id] = ctx
         else:
-            cur = getattr(tx, "region", None)
-            tx.region = mask if cur is None else (cur | mask)
-            sends = _sends(tx)
+            tx.region = mask if tx.region is None else (tx.region | mask)
+            sends = tx.sends
             sends[mask] = np.where(tx.acked[mask], sends[mask], 0)
             tx.explicit = self._request_counter
             tx.announced_at = None if not tx.heard else tx.announced_at
@@ -745,7 +742,7 @@ class ImagerySender(ModalitySender):
 
     def _pictures(self) -> list[_Tx]:
         """The images captured (not the crops made of them)."""
-        return [tx for tx in self.images.values() if getattr(tx, "crop", None) is None]
+        return [tx for tx in self.images.values() if tx.crop is None]
 
     def find(self, stamp: int, direction: TimeDirection, now: float) -> _Tx | None:
         """The image nearest the time of ``stamp``, or the last one before / first one after it."""
@@ -804,7 +801,7 @@ class ImagerySender(ModalitySender):
         want = max(self.request_goal.bytes_for(tx.enc), tx.goal)
         # bytes sent before the request (as the default set-point) count for nothing now: the
         # requested ones get their full repeats
-        sends = _sends(tx)
+        sends = tx.sends
         sends[:want] = np.where(tx.acked[:want], sends[:want], 0)
         if tx.explicit is None or want != tx.goal:
             self._request_counter += 1

@@ -127,7 +127,7 @@ def region_transfer(image: Any, box: tuple[int, int, int, int], kind: str = "qua
           max_rounds)
     t.step()
     product = next(p for p in receiver.products() if p.kind == "image" and p.meta.get("image_id") == image_id)
-    crop = next((c for c in sender.images.values() if (o := getattr(c, "crop", None)) is not None
+    crop = next((c for c in sender.images.values() if (o := c.crop) is not None
                  and o.parent == image_id and o.command_id == request.command_id), None)
     frames: dict[int, list[WireEvent]] = {}
     for e in t.events[start:]:

@@ -223,13 +223,13 @@ class SurveySender(ModalitySender):
         return out
 
     def acked(self, message: Message, now: float) -> None:
-        s = self.surveys.get(getattr(message, "survey_id", -1))
-        if isinstance(message, SurveyStatus) and s is not None and s.status() == message:
+        s = self.surveys.get(message.survey_id) if isinstance(message, SurveyStatus) else None
+        if s is not None and s.status() == message:
             s.acked = True
 
     def lost(self, message: Message, now: float) -> None:
-        s = self.surveys.get(getattr(message, "survey_id", -1))
-        if isinstance(message, SurveyStatus) and s is not None and s.status() == message and not s.acked:
+        s = self.surveys.get(message.survey_id) if isinstance(message, SurveyStatus) else None
+        if s is not None and s.status() == message and not s.acked:
             s.sent_at = None
 
     def pending_bytes(self) -> int:
