@@ -4,6 +4,7 @@ copied to a temporary directory, installed, passes its own conformance tests, an
 
 from __future__ import annotations
 
+import importlib.util
 import os
 import re
 import subprocess
@@ -123,7 +124,8 @@ def test_every_coex_name_the_guide_uses_is_in_the_facade() -> None:
     names.discard("coex")
     assert {"parse_query", "UriInfo", "LinkDown", "persistent", "DecodeError", "EncodeError", "TransportTimeout",
             "FrameTooLarge", "load_transport", "Health"} <= names
-    missing = sorted(n for n in names if not hasattr(coex, n))
+    # coex.lcm, coex.moos, coex.ros: the facade's middleware modules, not loaded by import coex
+    missing = sorted(n for n in names if not hasattr(coex, n) and importlib.util.find_spec(f"coex.{n}") is None)
     assert not missing, f"the guide names coex.{missing} which the facade does not export"
     assert "coex_core" not in re.sub(r"`coex_core[^`]*`", "", text.split("## 9.", 1)[0]).replace(
         "(`coex_core.*`)", ""), "the guide (before its upgrade notes) imports nothing from coex_core"
