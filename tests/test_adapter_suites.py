@@ -144,6 +144,19 @@ class TestNmeaInput(InputTests, NmeaFixtures):
     pass
 
 
+class NmeaSamplesFixtures(NmeaFixtures):
+    """The same input fed a water temperature: it gives ``Samples`` (with ``times``, not a
+    ``time``), which the suite's item rule checks as a series."""
+
+    @pytest.fixture
+    def feed(self, port: int) -> Callable[[Input], Any]:
+        return lambda _: _send_udp(port, self._line("YXMTW,12.5,C"))
+
+
+class TestNmeaInputSamples(InputTests, NmeaSamplesFixtures):
+    pass
+
+
 class LcmFixtures(InputFixtures):
     @pytest.fixture
     def input_class(self) -> type[Input]:

@@ -32,6 +32,7 @@ import time
 from collections.abc import Callable, Mapping
 from typing import Any
 
+import numpy as np
 import pytest
 
 from coex_core.adapters import (
@@ -221,8 +222,13 @@ class InputTests:
                 assert isinstance(item, allowed), (
                     f"rule: an input gives only the items of what it feeds ({input_class.feeds}), "
                     f"got {type(item).__name__}")
-                assert isinstance(getattr(item, "time", None), float) and math.isfinite(item.time), (
-                    "rule: every item has its time (POSIX seconds, finite)")
+                if isinstance(item, Samples):  # a series: its times, one per value
+                    times = np.asarray(item.times, dtype=float)
+                    assert times.shape == np.shape(item.values) and bool(np.isfinite(times).all()), (
+                        "rule: every sample has its time (POSIX seconds, finite), one per value")
+                else:
+                    assert isinstance(item.time, float) and math.isfinite(item.time), (
+                        "rule: every item has its time (POSIX seconds, finite)")
         finally:
             inp.close()
 
