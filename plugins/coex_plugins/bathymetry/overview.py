@@ -4,6 +4,8 @@ chunks stored before it in ``CXOV`` form still read), and reading blocks back ou
 
 from __future__ import annotations
 
+import math
+from collections.abc import Iterable
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -14,7 +16,7 @@ from coex import StateError, persistent
 
 from . import tilestore
 
-__all__ = ["CHUNK", "Overview", "block_sums", "blocks_from", "weighted"]
+__all__ = ["CHUNK", "Overview", "block_sums", "blocks_from", "cells_from", "weighted", "window_blocks"]
 
 FloatArray = npt.NDArray[np.float64]
 
@@ -227,4 +229,47 @@ def blocks_from(ov: Overview, ox0: int, oy0: int, ox1: int, oy1: int, s: int) ->
     r, q = by - oy0 // s, bx - ox0 // s
     zs[r:r + z.shape[0], q:q + z.shape[1]] = z
     ws[r:r + z.shape[0], q:q + z.shape[1]] = w
+    return np.where(ws > 0, zs / np.maximum(ws, 1.0), np.nan)
+
+
+def window_blocks(cell: float, x_min: float, y_min: float, x_max: float, y_max: float,
+                  max_cells: int) -> tuple[int, tuple[int, int, int, int]]:
+    """The blocks of a window over ``[x_min, x_max) x [y_min, y_max)`` metres on a level of
+    ``cell`` metres: ``(s, (bx0, by0, bx1, by1))``, blocks of ``s x s`` cells (``s`` the
+    smallest power of two that keeps the window within ``max_cells``), aligned on the level's
+    grid so a pan shows the same cells."""
+    cx0 = math.floor(x_min / cell + 1e-9)
+    cy0 = math.floor(y_min / cell + 1e-9)
+    cx1 = max(cx0 + 1, math.ceil(x_max / cell - 1e-9))
+    cy1 = max(cy0 + 1, math.ceil(y_max / cell - 1e-9))
+    s = 1
+    while -(-(cx1 - cx0) // s) * -(-(cy1 - cy0) // s) > max(1, max_cells):
+        s *= 2
+    return s, (cx0 // s, cy0 // s, -(-cx1 // s), -(-cy1 // s))
+
+
+def cells_from(parts: Iterable[tuple[int, int, FloatArray]], cx0: int, cy0: int, cx1: int, cy1: int,
+               s: int) -> FloatArray:
+    """Level cells ``[cx0, cx1) x [cy0, cy1)`` (multiples of ``s``) in blocks of ``s`` (the mean
+    of the held cells of each block, NaN where none), from ``parts``: ``(gx, gy, values)``, a
+    tile's cells with its south-west cell at ``(gx, gy)``."""
+    ny, nx = (cy1 - cy0) // s, (cx1 - cx0) // s
+    out = np.full((ny, nx), np.nan)
+    zs, ws = np.zeros((ny, nx)), np.zeros((ny, nx))
+    for gx, gy, values in parts:
+        h, w = values.shape
+        a, b = max(cx0, gx), min(cx1, gx + w)
+        c, d = max(cy0, gy), min(cy1, gy + h)
+        if a >= b or c >= d:
+            continue
+        part = values[c - gy:d - gy, a - gx:b - gx]
+        if s == 1:
+            out[c - cy0:d - cy0, a - cx0:b - cx0] = part
+            continue
+        by, bx, z, wt = block_sums(*weighted(part), c, a, s)
+        r, q = by - cy0 // s, bx - cx0 // s
+        zs[r:r + z.shape[0], q:q + z.shape[1]] += z
+        ws[r:r + z.shape[0], q:q + z.shape[1]] += wt
+    if s == 1:
+        return out
     return np.where(ws > 0, zs / np.maximum(ws, 1.0), np.nan)

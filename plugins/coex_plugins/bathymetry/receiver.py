@@ -45,9 +45,9 @@ from coex import (
 from coex.messages import MapMetadata, MapRoiReply, MapRoiRequest, Message, Subgrid
 from coex.tracker import Event
 
-from .legacy import Held, Mosaic
-from .overview import CHUNK, Overview, block_sums, blocks_from, weighted
-from .regions import Region
+from .legacy import import_v1
+from .overview import CHUNK, Overview, blocks_from, cells_from, window_blocks
+from .regions import Region, plan
 from .tiles import LevelIndex, LevelStats, Tile, decode_tile, encode_tile, same_storage, tile_name
 from .tilestore import TileCache
 
@@ -75,11 +75,6 @@ RECEIVER_DEFAULTS: dict[str, Any] = {
     "tile_compression": 1,
 }
 
-#: Largest region of one request with stamps (8 x 8 = 64 subgrids) and of one gap-filling request.
-ROI_CHUNK = 8
-GAP_CHUNK = 16
-#: subgrid indices a MapRoiRequest can carry (14-bit two's complement, spec: MapRoiRequest x0/y0)
-SUBGRID_INDEX_MIN, SUBGRID_INDEX_MAX = -8192, 8191
 #: Largest array :meth:`BathymetryReceiver.window` returns by default (cells).
 WINDOW_CELLS = 4 * 1024 * 1024
 
@@ -184,7 +179,7 @@ class BathymetryReceiver(ModalityReceiver):
         legacy = self.__dict__.pop("_legacy", None)
         if legacy is not None:
             self._init_tiles(self.config)
-            self._import_v1(*legacy)
+            import_v1(self, *legacy)
             return
         self._ov_dirty: dict[int, set[tuple[int, int]]] = {}
         store: Storage | None
@@ -209,20 +204,6 @@ class BathymetryReceiver(ModalityReceiver):
     @property
     def _store(self) -> Storage | None:
         return self._cache.storage
-
-    def _import_v1(self, held: dict[int, dict[tuple[int, int], Held]], mosaics: dict[int, Mosaic],
-                   off: set[tuple[int, int, int]]) -> None:
-        for level, mos in mosaics.items():
-            self._overviews[level] = Overview(1, mos.ix0 * mos.side, mos.iy0 * mos.side,
-                                               mos.nx * mos.side, mos.ny * mos.side, mos.array)
-        for level, cells in held.items():
-            if level not in self._geometry:
-                continue
-            for (ix, iy), h in cells.items():
-                drawn = level in mosaics and mosaics[level].side == self._geometry[level][1] \
-                    and (level, ix, iy) not in off
-                self._hold(level, ix, iy, float(h.stamp), np.asarray(h.values, np.float64),
-                           float(h.received), draw=not drawn)
 
     # ---------------------------------------------------------------------------- storage
 
@@ -698,53 +679,20 @@ class BathymetryReceiver(ModalityReceiver):
         decimated (the mean of the held cells of each ``2^j x 2^j`` block, blocks aligned on
         the level's grid, so a pan shows the same cells). Reads only the tiles it covers (or,
         when decimated at least as much as the level's overview, the overview)."""
-        geometry = self._geometry.get(level) or self._geometry_for(level)
-        cell = geometry[0]
-        cx0 = math.floor(x_min / cell + 1e-9)
-        cy0 = math.floor(y_min / cell + 1e-9)
-        cx1 = max(cx0 + 1, math.ceil(x_max / cell - 1e-9))
-        cy1 = max(cy0 + 1, math.ceil(y_max / cell - 1e-9))
-        s = 1
-        while -(-(cx1 - cx0) // s) * -(-(cy1 - cy0) // s) > max(1, max_cells):
-            s *= 2
-        bx0, by0 = cx0 // s, cy0 // s
-        bx1, by1 = -(-cx1 // s), -(-cy1 // s)
+        cell = (self._geometry.get(level) or self._geometry_for(level))[0]
+        s, (bx0, by0, bx1, by1) = window_blocks(cell, x_min, y_min, x_max, y_max, max_cells)
         geo = (bx0 * s * cell, by0 * s * cell, s * cell)
         st = self._stats.get(level)
         if st is None or st.subgrids == 0:
             return np.full((by1 - by0, bx1 - bx0), np.nan), geo
-        out = self._cells(level, bx0 * s, by0 * s, bx1 * s, by1 * s, s)
-        return out, geo
-
-    def _cells(self, level: int, cx0: int, cy0: int, cx1: int, cy1: int, s: int) -> FloatArray:
-        """Level cells ``[cx0, cx1) x [cy0, cy1)`` (multiples of ``s``) in blocks of ``s``."""
-        ny, nx = (cy1 - cy0) // s, (cx1 - cx0) // s
-        side = self._geometry[level][1]
+        cx0, cy0, cx1, cy1 = bx0 * s, by0 * s, bx1 * s, by1 * s
         ov = self._overviews.get(level)
         if s > 1 and ov is not None and s % ov.step == 0 and ov.nx:
             k = ov.step
-            return blocks_from(ov, cx0 // k, cy0 // k, cx1 // k, cy1 // k, s // k)
-        size = self.tile_subgrids * side
-        if s == 1:
-            out = np.full((ny, nx), np.nan)
-        else:
-            zs, ws = np.zeros((ny, nx)), np.zeros((ny, nx))
-        for tx, ty, t in self._level_tiles(level, cx0 // size, cy0 // size, (cx1 - 1) // size + 1,
-                                           (cy1 - 1) // size + 1):
-            gx, gy = tx * size, ty * size
-            a, b = max(cx0, gx), min(cx1, gx + size)
-            c, d = max(cy0, gy), min(cy1, gy + size)
-            part = t.values[c - gy:d - gy, a - gx:b - gx]
-            if s == 1:
-                out[c - cy0:d - cy0, a - cx0:b - cx0] = part
-                continue
-            by, bx, z, w = block_sums(*weighted(part), c, a, s)
-            r, q = by - cy0 // s, bx - cx0 // s
-            zs[r:r + z.shape[0], q:q + z.shape[1]] += z
-            ws[r:r + z.shape[0], q:q + z.shape[1]] += w
-        if s == 1:
-            return out
-        return np.where(ws > 0, zs / np.maximum(ws, 1.0), np.nan)
+            return blocks_from(ov, cx0 // k, cy0 // k, cx1 // k, cy1 // k, s // k), geo
+        size = self.tile_subgrids * self._geometry[level][1]
+        tiles = self._level_tiles(level, cx0 // size, cy0 // size, (cx1 - 1) // size + 1, (cy1 - 1) // size + 1)
+        return cells_from(((tx * size, ty * size, t.values) for tx, ty, t in tiles), cx0, cy0, cx1, cy1, s), geo
 
     # ---------------------------------------------------------------------------- requests
 
@@ -784,24 +732,9 @@ class BathymetryReceiver(ModalityReceiver):
     def _regions(self, level: int, x0: int, y0: int, w: int, h: int, *, fill_gaps: bool,
                  auto: bool = False) -> list[Region]:
         levels = self.metadata.levels if self.metadata else int(self.config["levels"])
-        if not 0 <= level < levels:
-            raise RequestRejected(f"level {level} outside 0..{levels - 1}")
-        if w < 1 or h < 1:
-            raise RequestRejected("empty region")
-        if not (SUBGRID_INDEX_MIN <= x0 and x0 + w - 1 <= SUBGRID_INDEX_MAX
-                and SUBGRID_INDEX_MIN <= y0 and y0 + h - 1 <= SUBGRID_INDEX_MAX):
-            raise RequestRejected(f"region outside the map's subgrid index range "
-                                  f"({SUBGRID_INDEX_MIN}..{SUBGRID_INDEX_MAX}, the wire's limit)")
-        chunk = GAP_CHUNK if fill_gaps else ROI_CHUNK
-        n = math.ceil(w / chunk) * math.ceil(h / chunk)
-        if n > self.max_regions:
-            raise RequestRejected(f"region of {w} x {h} subgrids needs {n} requests (max {self.max_regions})")
-        out = []
-        for cy in range(y0, y0 + h, chunk):
-            for cx in range(x0, x0 + w, chunk):
-                r = Region(level, cx, cy, min(chunk, x0 + w - cx), min(chunk, y0 + h - cy), fill_gaps, auto)
-                self._add(r)
-                out.append(r)
+        out = plan(level, x0, y0, w, h, levels=levels, fill_gaps=fill_gaps, auto=auto, max_regions=self.max_regions)
+        for r in out:
+            self._add(r)
         return out
 
     def _schedule_auto_fill(self, meta: MapMetadata) -> bool:

@@ -6,10 +6,16 @@ import math
 from dataclasses import dataclass, field
 from typing import Any
 
-from coex import persistent
+from coex import RequestRejected, persistent
 from coex.tracker import State, Tracked
 
-__all__ = ["Region"]
+__all__ = ["GAP_CHUNK", "ROI_CHUNK", "SUBGRID_INDEX_MAX", "SUBGRID_INDEX_MIN", "Region", "plan"]
+
+#: Largest region of one request with stamps (8 x 8 = 64 subgrids) and of one gap-filling request.
+ROI_CHUNK = 8
+GAP_CHUNK = 16
+#: subgrid indices a MapRoiRequest can carry (14-bit two's complement, spec: MapRoiRequest x0/y0)
+SUBGRID_INDEX_MIN, SUBGRID_INDEX_MAX = -8192, 8191
 
 
 def _upgrade_region(fields: dict[str, Any], saved: int) -> dict[str, Any]:
@@ -72,3 +78,25 @@ class Region:
     def answered(self) -> float | None:
         """When the vehicle last answered (None: not yet)."""
         return self.track.answered_at
+
+
+def plan(level: int, x0: int, y0: int, w: int, h: int, *, levels: int, fill_gaps: bool, auto: bool,
+         max_regions: int) -> list[Region]:
+    """The requests that ask for subgrids ``[x0, x0+w) x [y0, y0+h)`` at ``level``: chunks of at
+    most :data:`ROI_CHUNK` (with stamps) or :data:`GAP_CHUNK` (gap filling) subgrids a side.
+    :class:`RequestRejected` for a level outside ``0..levels-1``, an empty region, one beyond
+    the wire's subgrid indices or one that needs more than ``max_regions`` requests."""
+    if not 0 <= level < levels:
+        raise RequestRejected(f"level {level} outside 0..{levels - 1}")
+    if w < 1 or h < 1:
+        raise RequestRejected("empty region")
+    if not (SUBGRID_INDEX_MIN <= x0 and x0 + w - 1 <= SUBGRID_INDEX_MAX
+            and SUBGRID_INDEX_MIN <= y0 and y0 + h - 1 <= SUBGRID_INDEX_MAX):
+        raise RequestRejected(f"region outside the map's subgrid index range "
+                              f"({SUBGRID_INDEX_MIN}..{SUBGRID_INDEX_MAX}, the wire's limit)")
+    chunk = GAP_CHUNK if fill_gaps else ROI_CHUNK
+    n = math.ceil(w / chunk) * math.ceil(h / chunk)
+    if n > max_regions:
+        raise RequestRejected(f"region of {w} x {h} subgrids needs {n} requests (max {max_regions})")
+    return [Region(level, cx, cy, min(chunk, x0 + w - cx), min(chunk, y0 + h - cy), fill_gaps, auto)
+            for cy in range(y0, y0 + h, chunk) for cx in range(x0, x0 + w, chunk)]
