@@ -208,6 +208,27 @@ class Problems:
                 return
         self.said(key, f"{who}: option {key!r} must be 'host:port' (e.g. '0.0.0.0:10110'), not {v!r}")
 
+    def option_tables(self, who: str, options: Mapping[str, Any], key: str, known: tuple[str, ...], *,
+                      hint: str, entry_hint: str = "") -> Iterator[tuple[str, Mapping[str, Any]]]:
+        """The entries of option ``key``, a list of tables (``[[inputs.KEY]]``), each with its
+        name ``KEY[i]``: a problem of ``key`` when the value is not a list (``hint`` shows how
+        to write it), for each entry that is not a table (``entry_hint`` after "a table") and
+        each unknown key of an entry (``known``). Yields the tables, each after its own
+        problems, so an entry's further problems follow them in order."""
+        value = options[key]
+        if not isinstance(value, list):
+            self.said(key, f"{who}: option {key!r} must be a list of tables ({hint})")
+            return
+        for i, entry in enumerate(value):
+            name = f"{key}[{i}]"
+            if not isinstance(entry, Mapping):
+                self.said(key, f"{who}: option {name!r} must be a table{entry_hint}")
+                continue
+            for k in entry:
+                if k not in known:
+                    self.said(key, f"{who}: unknown option '{name}.{k}' (known: {', '.join(known)})")
+            yield name, entry
+
     def nest(self, key: str, other: Iterable[Problem]) -> None:
         """Problems a part found by itself (an adapter's options) as problems of ``key``: each
         shown ``"key: text"``, its key under ``key`` (``inputs[0]`` and ``baud`` make

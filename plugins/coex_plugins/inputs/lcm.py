@@ -86,65 +86,57 @@ def import_type(spec: str) -> Any:
     return obj
 
 
-def _own_problems(name: str, own: Any) -> list[str]:
-    if not isinstance(own, list):
-        return [f"input {name!r}: option 'own' must be a list of tables ([[inputs.own]] or own = [{{...}}])"]
-    problems: list[str] = []
-    for i, entry in enumerate(own):
-        key = f"own[{i}]"
-        if not isinstance(entry, Mapping):
-            problems.append(f"input {name!r}: option {key!r} must be a table")
-            continue
-        problems += [f"input {name!r}: unknown option '{key}.{k}' (known: {', '.join(OWN_KEYS)})"
-                     for k in entry if k not in OWN_KEYS]
+def _check_own(p: Problems, who: str, options: Mapping[str, Any]) -> None:
+    """Problems of the option ``own``: a list of ``{channel, type, feeds, fields or channels,
+    scale}`` tables (the input's own LCM types)."""
+    for key, entry in p.option_tables(who, options, "own", OWN_KEYS, hint="[[inputs.own]] or own = [{...}]"):
         for k in ("channel", "type", "feeds"):
             if not isinstance(entry.get(k), str) or not entry[k].strip():
-                problems.append(f"input {name!r}: option '{key}.{k}' is required (a string)")
+                p.said("own", f"{who}: option '{key}.{k}' is required (a string)")
         if isinstance(entry.get("type"), str) and entry["type"].strip() and not _TYPE.match(entry["type"]):
-            problems.append(f"input {name!r}: option '{key}.type' must be 'package.Class' or "
+            p.said("own", f"{who}: option '{key}.type' must be 'package.Class' or "
                             f"'package.module.Class', not {entry['type']!r}")
         feeds = entry.get("feeds")
         if isinstance(feeds, str) and feeds and feeds not in OWN_FEEDS:
-            problems.append(f"input {name!r}: option '{key}.feeds' must be one of "
+            p.said("own", f"{who}: option '{key}.feeds' must be one of "
                             f"{', '.join(map(repr, OWN_FEEDS))}, not {feeds!r}")
             continue
         table = "channels" if feeds == "timeseries" else "fields"
         other = "fields" if table == "channels" else "channels"
         if other in entry:
-            problems.append(f"input {name!r}: option '{key}.{other}' does not apply to feeds = {feeds!r} "
+            p.said("own", f"{who}: option '{key}.{other}' does not apply to feeds = {feeds!r} "
                             f"(use '{key}.{table}')")
         mapping = entry.get(table)
         if not isinstance(mapping, Mapping) or not mapping:
-            problems.append(f"input {name!r}: option '{key}.{table}' is required (a table of "
+            p.said("own", f"{who}: option '{key}.{table}' is required (a table of "
                             f"{'channel' if table == 'channels' else 'field'} = \"path\")")
             mapping = {}
         wanted: tuple[str, ...] = {"status": NAV_FIELDS, "bathymetry": ("x", "y", "z")}.get(str(feeds), ())
         for field, path in mapping.items():
             if wanted and field not in wanted:
-                problems.append(f"input {name!r}: option '{key}.{table}.{field}': not one of "
+                p.said("own", f"{who}: option '{key}.{table}.{field}': not one of "
                                 f"{', '.join(wanted)}")
             try:
                 compile_path(path)
             except ValueError as exc:
-                problems.append(f"input {name!r}: option '{key}.{table}.{field}': {exc}")
+                p.said("own", f"{who}: option '{key}.{table}.{field}': {exc}")
         if feeds == "bathymetry" and mapping and not all(c in mapping for c in "xyz"):
-            problems.append(f"input {name!r}: option '{key}.fields' needs x, y and z for bathymetry")
+            p.said("own", f"{who}: option '{key}.fields' needs x, y and z for bathymetry")
         scale = entry.get("scale", {})
         if not isinstance(scale, Mapping):
-            problems.append(f"input {name!r}: option '{key}.scale' must be a table of name = factor")
+            p.said("own", f"{who}: option '{key}.scale' must be a table of name = factor")
             scale = {}
         for field, factor in scale.items():
             if field not in mapping:
-                problems.append(f"input {name!r}: option '{key}.scale.{field}' scales nothing "
+                p.said("own", f"{who}: option '{key}.scale.{field}' scales nothing "
                                 f"(not in '{key}.{table}')")
             if isinstance(factor, bool) or not isinstance(factor, int | float) or not math.isfinite(factor):
-                problems.append(f"input {name!r}: option '{key}.scale.{field}' must be a number")
+                p.said("own", f"{who}: option '{key}.scale.{field}' must be a number")
         if "time" in entry:
             try:
                 compile_path(entry["time"])
             except ValueError as exc:
-                problems.append(f"input {name!r}: option '{key}.time': {exc}")
-    return problems
+                p.said("own", f"{who}: option '{key}.time': {exc}")
 
 
 class _Own:
@@ -201,8 +193,7 @@ class LcmInput(Input):
         for key in ("url", "points_channel", "nav_channel"):
             p.option_str(who, options, key)
         if "own" in options:
-            for text in _own_problems(cls.name, options["own"]):
-                p.said("own", text)
+            _check_own(p, who, options)
         if not (options.get("points_channel") or options.get("nav_channel") or options.get("own")):
             p.said("", f"{who} needs at least one of the options 'points_channel', 'nav_channel', 'own'")
         return p

@@ -33,49 +33,41 @@ from coex import Input, InputContext, Item, Samples
 from ..options import LogOnce, Problems, compile_path, finite
 from .rosmsg import ROLES, FrameMap, canonical, check_frames, item_of, stamp_of
 
-__all__ = ["RosInput", "series_problems"]
+__all__ = ["RosInput", "check_series"]
 
 log = logging.getLogger(__name__)
 
 SERIES_KEYS = ("topic", "channels", "scale")
 
 
-def series_problems(name: str, series: Any) -> list[str]:
+def check_series(p: Problems, who: str, options: Mapping[str, Any]) -> None:
     """Problems of the option ``series``: a list of ``{topic, channels, scale}`` tables."""
-    if not isinstance(series, list):
-        return [f"input {name!r}: option 'series' must be a list of tables ([[inputs.series]])"]
-    problems: list[str] = []
-    for i, entry in enumerate(series):
-        key = f"series[{i}]"
-        if not isinstance(entry, Mapping):
-            problems.append(f"input {name!r}: option {key!r} must be a table {{topic, channels, scale}}")
-            continue
-        problems += [f"input {name!r}: unknown option '{key}.{k}' (known: {', '.join(SERIES_KEYS)})"
-                     for k in entry if k not in SERIES_KEYS]
+    tables = p.option_tables(who, options, "series", SERIES_KEYS, hint="[[inputs.series]]",
+                             entry_hint=" {topic, channels, scale}")
+    for key, entry in tables:
         topic = entry.get("topic")
         if not isinstance(topic, str) or not topic.strip():
-            problems.append(f"input {name!r}: option '{key}.topic' is required (a topic name)")
+            p.said("series", f"{who}: option '{key}.topic' is required (a topic name)")
         channels = entry.get("channels")
         if not isinstance(channels, Mapping) or not channels:
-            problems.append(f"input {name!r}: option '{key}.channels' is required (a table of "
+            p.said("series", f"{who}: option '{key}.channels' is required (a table of "
                             "channel = \"field path\")")
             channels = {}
         for channel, path in channels.items():
             try:
                 compile_path(path)
             except ValueError as exc:
-                problems.append(f"input {name!r}: option '{key}.channels.{channel}': {exc}")
+                p.said("series", f"{who}: option '{key}.channels.{channel}': {exc}")
         scale = entry.get("scale", {})
         if not isinstance(scale, Mapping):
-            problems.append(f"input {name!r}: option '{key}.scale' must be a table of channel = factor")
+            p.said("series", f"{who}: option '{key}.scale' must be a table of channel = factor")
             scale = {}
         for channel, factor in scale.items():
             if channel not in channels:
-                problems.append(f"input {name!r}: option '{key}.scale.{channel}' scales nothing "
+                p.said("series", f"{who}: option '{key}.scale.{channel}' scales nothing "
                                 f"(not in '{key}.channels')")
             if isinstance(factor, bool) or not isinstance(factor, int | float):
-                problems.append(f"input {name!r}: option '{key}.scale.{channel}' must be a number")
-    return problems
+                p.said("series", f"{who}: option '{key}.scale.{channel}' must be a number")
 
 
 class _Topic:
@@ -130,8 +122,7 @@ class RosInput(Input):
                        "'series'")
         check_frames(p, cls.name, options)
         if "series" in options:
-            for text in series_problems(cls.name, options["series"]):
-                p.said("series", text)
+            check_series(p, who, options)
         p.option_int(who, options, "queue", 1, 10000)
         p.option_choice(who, options, "stamps", ("header", "arrival"))
         p.option_bool(who, options, "nav_images")
