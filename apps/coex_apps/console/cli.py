@@ -530,8 +530,10 @@ def topside_app(cfg: DeployConfig, host: str = "127.0.0.1", port: int = 8080, *,
             if isinstance(images, ImageryReceiver):  # the console keeps what the receiver keeps
                 state.max_images = min(MAX_IMAGES, images.max_images)
             hub = ConsoleHub(state, NodeCommands(node, clock), clock)
+            from coex_plugins.bathymetry import BathymetryReceiver
+
             rx = state.receivers.get("bathymetry")
-            if rx is not None and hasattr(rx, "request_area"):
+            if isinstance(rx, BathymetryReceiver):
                 hub.actions.map_receiver = state.region_source = rx
             return hub
 

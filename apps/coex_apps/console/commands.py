@@ -251,7 +251,7 @@ class CommandsView:
         surveys: dict[int, dict[str, Any]] | None = None
         for key in reversed(self.command_order):
             c = self.commands[key]
-            status, reason = c.status, getattr(c, "reason", "")
+            status, reason = c.status, c.reason
             if c.roi_key is not None and c.roi_key in self.roi:
                 roi = self._snap_roi(self.roi[c.roi_key])
                 status, reason = roi["state"], roi["text"]
@@ -271,6 +271,6 @@ class CommandsView:
             out.append({"command_id": c.command_id, "kind": c.kind, "summary": c.summary,
                         "answer": answer, "image_id": None if img is None else img.image_id,
                         "sent": _num(c.sent, 1), "status": status,
-                        "answered": _num(c.answered, 1), "by": getattr(c, "by", ""),
+                        "answered": _num(c.answered, 1), "by": c.by,
                         "reason": reason})
         return out

@@ -66,7 +66,7 @@ from starlette.types import ASGIApp, Receive, Scope, Send
 from starlette.types import Message as AsgiMessage
 from uvicorn.protocols.http.h11_impl import H11Protocol
 
-from coex import CoexError, Message, RequestRejected
+from coex import CoexError, Message, Node, RequestRejected
 from coex_core import jsonfmt
 
 from .access import Access, Session, SignInRefused, describe
@@ -790,7 +790,7 @@ def serve(target: Any, host: str = "127.0.0.1", port: int = 8080, *,
         def refuse(msg: Message) -> None:
             raise RequestRejected("this console is view-only (no topside node to send with)")
         hub = ConsoleHub(target, refuse, clock or (lambda: target.now))
-    elif hasattr(target, "manager") and hasattr(target, "events"):
+    elif isinstance(target, Node):
         hub = attach(target, clock, stream_names=stream_names)
     else:
         raise TypeError(f"serve() needs a ConsoleHub, Node or ConsoleState, "
