@@ -9,6 +9,7 @@ tracker's state (``sent``, ``queued``, ``no answer``, ``aborted``).
 
 from __future__ import annotations
 
+import enum
 from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any, cast
@@ -185,7 +186,7 @@ class CommandsView:
         time (``command``); a repeated answer (the vehicle answers every re-send) comes without
         it and changes nothing, nor does an answer to a command already answered: ids wrap at
         256, so an old answer must never land on a newer command that reuses the id."""
-        name = status.name if hasattr(status, "name") else str(status)
+        name = status.name if isinstance(status, enum.Enum) else str(status)
         new = name.lower()
         key = self._find_command(command_id, command)
         if key is None and command is None:

@@ -21,7 +21,7 @@ from collections import deque
 from collections.abc import Callable
 from typing import Any
 
-from coex import ModalityReceiver
+from coex import Event, ModalityReceiver
 from coex.messages import Message, ScheduleUpdate
 from coex_core.channel.schedule import Schedule, resolve_cycle
 from coex_plugins.bathymetry import BathymetryReceiver
@@ -135,9 +135,9 @@ def attach(node: Any, clock: Callable[[], float] | None = None, *,
         hub.actions.map_receiver = bathymetry if isinstance(bathymetry, BathymetryReceiver) else None
     state.region_source = hub.actions.map_receiver
 
-    def on_events(evs: list[Any]) -> None:
+    def on_events(evs: list[Event]) -> None:
         commands.flush()  # the page's commands go out from the thread driving the node
-        now = max((float(getattr(e, "time", 0.0)) for e in evs), default=state.now)
+        now = max((float(e.time) for e in evs), default=state.now)
         hub.update(lambda st: pump(st, node, now, evs))
 
     node.subscribe(on_events)

@@ -68,6 +68,7 @@ from uvicorn.protocols.http.h11_impl import H11Protocol
 
 from coex import CoexError, Message, Node, RequestRejected
 from coex_core import jsonfmt
+from coex_plugins.bathymetry import Region
 
 from .access import Access, Session, SignInRefused, describe
 from .fleet import FleetHub
@@ -659,13 +660,12 @@ def _login_html(error: str) -> str:
 """
 
 
-def _describe(item: Any) -> dict[str, Any]:
+def _describe(item: Message | Region) -> dict[str, Any]:
     if isinstance(item, Message):
         return jsonfmt.to_json(item)
     # a region the bathymetry receiver will send as MapRoiRequest (and retry)
-    fields = ("level", "x0", "y0", "w", "h", "fill_gaps")
-    return {"type": "MapRoiRequest", "queued": True,
-            **{k: getattr(item, k) for k in fields if hasattr(item, k)}}
+    return {"type": "MapRoiRequest", "queued": True, "level": item.level, "x0": item.x0,
+            "y0": item.y0, "w": item.w, "h": item.h, "fill_gaps": item.fill_gaps}
 
 
 def _asset(name: str) -> bytes:

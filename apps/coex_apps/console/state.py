@@ -50,6 +50,7 @@ from coex import (
 from coex import messages as m
 from coex_core.channel.events import ScheduleSwitched, SenderFailed
 from coex_plugins.bathymetry import BathymetryReceiver
+from coex_plugins.timeseries import Series
 
 from .commands import OPEN_COMMAND_STATES, CommandsView, _Command
 from .images import MAX_CROPS, MAX_IMAGE_REGIONS, ImagesView, _Crop
@@ -538,17 +539,18 @@ class ConsoleState(MapView, SurveysView, ImagesView, LinkView, CommandsView):
 
     # ------------------------------------------------------------------ time series
     def _series_product(self, data: Any, meta: dict[str, Any]) -> None:
-        cid = int(meta.get("channel", getattr(data, "channel", -1)))
+        series = data if isinstance(data, Series) else None
+        cid = int(meta.get("channel", series.channel if series is not None else -1))
         if cid < 0:
             return
         s = self.series.setdefault(cid, {"channel": cid})
         for k in ("name", "unit", "lo", "hi", "resolution"):
             if meta.get(k) is not None:
                 s[k] = meta[k]
-        if data is not None and hasattr(data, "times"):
-            s["times"] = np.asarray(data.times, float)
-            s["values"] = np.asarray(data.values, float)
-            s["bounds"] = np.asarray(data.bounds, float)
+        if series is not None:
+            s["times"] = np.asarray(series.times, float)
+            s["values"] = np.asarray(series.values, float)
+            s["bounds"] = np.asarray(series.bounds, float)
         self._touch("series")
 
     # ------------------------------------------------------------ other modalities
