@@ -21,7 +21,7 @@ from coex_plugins.imagery import ImageryReceiver
 from .state import ConsoleState
 from .words import hms, survey_summary
 
-__all__ = ["ACTIONS", "CommandSink", "ConsoleActions"]
+__all__ = ["ACTIONS", "CallSink", "CommandSink", "ConsoleActions", "as_sink"]
 
 
 class CommandSink(abc.ABC):

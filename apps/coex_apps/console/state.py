@@ -386,7 +386,9 @@ class ConsoleState(MapView, SurveysView, ImagesView, LinkView, CommandsView):
 
     def apply_event(self, event: Event) -> set[str]:
         """Take a node/channel event (:mod:`coex_core.channel.events`), dispatched on its type
-        (the others change nothing shown)."""
+        (the others, and anything not an event, change nothing shown)."""
+        if not isinstance(event, Event):
+            return set()
         now = float(event.time)
         self._advance(now)
         before = dict(self.versions)
