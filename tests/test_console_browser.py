@@ -26,6 +26,7 @@ import pytest
 
 from coex import RealClock, Runner
 from coex_apps.console import ConsoleHub, ConsoleState, serve
+from coex_apps.console.actions import CommandSink
 from coex_apps.console.cli import TopsideApp, build_topside
 from coex_apps.console.testing import RecordingSender, feed_sample, survey_points
 from coex_core import messages as m
@@ -560,7 +561,7 @@ def test_a_survey_drawn_on_the_map_is_sent_and_its_rejection_shown(browser: Any,
     assert not errors, errors
 
 
-class _SameIds(list):
+class _SameIds(list[m.Message], CommandSink):
     """A send that numbers every command 5, as a node does after its ids wrap around."""
 
     def __call__(self, msg: m.Message) -> None:

@@ -161,6 +161,44 @@ def test_image_products_thumbnails_and_bytes(sample: tuple[ConsoleState, Any]) -
         assert png is not None and max(png_size(png)) <= 160
 
 
+def test_the_console_send_is_a_command_sink() -> None:
+    """The console's ``send`` is a declared CommandSink: a plain callable is wrapped with the
+    defaults (the console numbers its commands from ``first_command_id``, nothing is queued to
+    flush); a sink's own ``next_command_id`` numbers them and ``pump`` calls its ``flush``."""
+    from coex_apps.console.actions import CallSink, CommandSink
+
+    st = ConsoleState(schedules={0: NUI})
+    sent: list[m.Message] = []
+    acts = ConsoleActions(st, sent.append, lambda: 10.0, first_command_id=7)
+    assert isinstance(acts.send, CallSink) and acts.send.next_command_id() is None
+    assert acts.send.flush() == 0
+    assert [acts.link_control(0, True).command_id, acts.link_control(0, False).command_id] == [7, 8]
+    assert len(sent) == 2
+
+    class Queued(CommandSink):
+        def __init__(self) -> None:
+            self.queue: list[m.Message] = []
+            self.flushed: list[m.Message] = []
+
+        def __call__(self, msg: m.Message) -> None:
+            self.queue.append(msg)
+
+        def next_command_id(self) -> int:
+            return 300  # the console keeps it within 0..255
+
+        def flush(self) -> int:
+            n, self.flushed, self.queue = len(self.queue), self.flushed + self.queue, []
+            return n
+
+    sink = Queued()
+    hub = ConsoleHub(ConsoleState(schedules={0: NUI}), sink, lambda: 10.0)
+    assert hub.actions.send is sink
+    assert hub.actions.link_control(0, True).command_id == 300 % 256
+    top = Node(ChannelManager(1, [LinkConfig(0, NUI)]))
+    hub.pump(top, 11.0)
+    assert [type(x) for x in sink.flushed] == [m.LinkControl] and not sink.queue
+
+
 def test_link_queue_and_command_acks() -> None:
     st = ConsoleState(schedules={0: NUI})
     sent: list[m.Message] = []

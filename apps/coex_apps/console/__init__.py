@@ -13,7 +13,7 @@ See ``docs/console.md``.
 
 from __future__ import annotations
 
-from .actions import ConsoleActions
+from .actions import CallSink, CommandSink, ConsoleActions
 from .node import NodeCommands, attach, drive_simulation, pump, tap_receiver
 from .render import elevation_rgb, png_bytes
 from .server import ConsoleHub, ConsoleServer, serve
@@ -21,6 +21,8 @@ from .state import SECTIONS, ConsoleState
 
 __all__ = [
     "SECTIONS",
+    "CallSink",
+    "CommandSink",
     "ConsoleActions",
     "ConsoleHub",
     "ConsoleServer",

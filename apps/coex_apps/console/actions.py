@@ -6,6 +6,7 @@ the reason, nothing sent), builds :mod:`coex_core.messages` commands, records th
 
 from __future__ import annotations
 
+import abc
 import math
 from collections.abc import Callable, Mapping, Sequence
 from typing import Any, cast
@@ -14,11 +15,55 @@ import numpy as np
 
 from coex import CoexError, RequestRejected, to_stamp
 from coex import messages as m
+from coex_plugins.bathymetry import BathymetryReceiver
+from coex_plugins.imagery import ImageryReceiver
 
 from .state import ConsoleState
 from .words import hms, survey_summary
 
-__all__ = ["ACTIONS", "ConsoleActions"]
+__all__ = ["ACTIONS", "CallSink", "CommandSink", "ConsoleActions", "as_sink"]
+
+
+class CommandSink(abc.ABC):
+    """Where the console's commands go (the ``send`` of :class:`ConsoleActions` and
+    :class:`~.hub.ConsoleHub`): ``sink(msg)`` sends or queues one command message.
+
+    :class:`~.node.NodeCommands` is the one for a topside node. A plain callable given as
+    ``send`` is wrapped in a :class:`CallSink`, which has the defaults below."""
+
+    @abc.abstractmethod
+    def __call__(self, msg: m.Message) -> m.Message | None:
+        """Send (or queue) ``msg``; return the message actually sent when it differs (a
+        schedule numbered by the node), else ``msg`` or None."""
+
+    def next_command_id(self) -> int | None:
+        """The command id of the next command the console builds, when the sink numbers
+        commands (a node: one id space with its channel manager). Default: None, the console
+        numbers its own (from ``first_command_id``, modulo 256)."""
+        return None
+
+    def flush(self) -> int:
+        """Send what :meth:`__call__` queued; the thread driving the node calls it (through
+        :meth:`ConsoleHub.pump <coex_apps.console.hub.ConsoleHub.pump>`) and it returns how many
+        went. Default: nothing is queued, 0."""
+        return 0
+
+
+class CallSink(CommandSink):
+    """A plain callable as a :class:`CommandSink` (``fn(msg)``; its answer is the message sent
+    when it is one), with the defaults: the console numbers its commands, nothing is queued."""
+
+    def __init__(self, fn: Callable[[m.Message], Any]) -> None:
+        self.fn = fn
+
+    def __call__(self, msg: m.Message) -> m.Message | None:
+        out = self.fn(msg)
+        return out if isinstance(out, m.Message) else None
+
+
+def as_sink(send: CommandSink | Callable[[m.Message], Any]) -> CommandSink:
+    """``send`` as a :class:`CommandSink` (a plain callable wrapped in a :class:`CallSink`)."""
+    return send if isinstance(send, CommandSink) else CallSink(send)
 
 
 class ConsoleActions:
@@ -29,21 +74,21 @@ class ConsoleActions:
     :class:`~coex_core.errors.RequestRejected` and sends nothing. ``clock`` gives ``now``
     (the runner's clock; the actions never read one themselves)."""
 
-    def __init__(self, state: ConsoleState, send: Callable[[m.Message], Any],
+    def __init__(self, state: ConsoleState, send: CommandSink | Callable[[m.Message], Any],
                  clock: Callable[[], float], *, first_command_id: int = 0,
-                 map_receiver: Any = None) -> None:
+                 map_receiver: BathymetryReceiver | None = None) -> None:
         self.state = state
         #: A bathymetry receiver (``request_area``): when set, map regions are asked through it
         #: (it knows what topside holds, numbers the requests and retries them).
         self.map_receiver = map_receiver
-        self.send = send
+        self.send = as_sink(send)
         self.clock = clock
         self._next_id = first_command_id % 256
 
     def _cid(self) -> int:
-        source = getattr(self.send, "next_command_id", None)
-        if callable(source):
-            return int(source()) % 256
+        given = self.send.next_command_id()
+        if given is not None:
+            return int(given) % 256
         cid = self._next_id
         self._next_id = (cid + 1) % 256
         return cid
@@ -198,7 +243,7 @@ class ConsoleActions:
                  m.RegionGoal.LAYER: f"to {code} layer{'s' if code != 1 else ''}"}[goal]
         text = f"image {iid} region {bx0}..{bx1} x {by0}..{by1} {words}"
         rx = None if self.state.own_receivers else self.state.receivers.get("imagery")
-        if rx is not None and iid in getattr(rx, "images", {}) and hasattr(rx, "request_region"):
+        if isinstance(rx, ImageryReceiver) and iid in rx.images:
             # the node's receiver numbers it, retries it until answered and follows it
             now = self.clock()
             try:

@@ -22,6 +22,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from coex import CoexError, ConfigError, Problems
+from coex.messages import LinkStatus
 
 if TYPE_CHECKING:
     from coex_apps.vehicle.config import DeployConfig
@@ -173,6 +174,8 @@ class TopsideApp:
                  clock: Callable[[], float], *, store: Any = None) -> None:
         from coex import RealClock, Runner
 
+        #: the thread :meth:`start` runs the loop in (None: not started)
+        self._thread: threading.Thread | None = None
         self.node = node
         #: A :class:`coex.NodeStore` (or None): journal and snapshots.
         self.store = store
@@ -253,7 +256,7 @@ class TopsideApp:
             return
         if status is not None and status != self._last_status.get(link):
             self._last_status[link] = status
-            if getattr(status, "link", link) != link:
+            if isinstance(status, LinkStatus) and status.link != link:
                 status = replace(status, link=link)
             self.hub.messages([status], self.clock(), link)
 
@@ -268,7 +271,7 @@ class TopsideApp:
 
     def close(self) -> None:
         self.stop.set()
-        thread = getattr(self, "_thread", None)
+        thread = self._thread
         if thread is not None and thread is not threading.current_thread():
             thread.join(timeout=5.0)
         self.server.close()
@@ -530,8 +533,10 @@ def topside_app(cfg: DeployConfig, host: str = "127.0.0.1", port: int = 8080, *,
             if isinstance(images, ImageryReceiver):  # the console keeps what the receiver keeps
                 state.max_images = min(MAX_IMAGES, images.max_images)
             hub = ConsoleHub(state, NodeCommands(node, clock), clock)
+            from coex_plugins.bathymetry import BathymetryReceiver
+
             rx = state.receivers.get("bathymetry")
-            if rx is not None and hasattr(rx, "request_area"):
+            if isinstance(rx, BathymetryReceiver):
                 hub.actions.map_receiver = state.region_source = rx
             return hub
 

@@ -9,6 +9,7 @@ tracker's state (``sent``, ``queued``, ``no answer``, ``aborted``).
 
 from __future__ import annotations
 
+import enum
 from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any, cast
@@ -185,7 +186,7 @@ class CommandsView:
         time (``command``); a repeated answer (the vehicle answers every re-send) comes without
         it and changes nothing, nor does an answer to a command already answered: ids wrap at
         256, so an old answer must never land on a newer command that reuses the id."""
-        name = status.name if hasattr(status, "name") else str(status)
+        name = status.name if isinstance(status, enum.Enum) else str(status)
         new = name.lower()
         key = self._find_command(command_id, command)
         if key is None and command is None:
@@ -251,7 +252,7 @@ class CommandsView:
         surveys: dict[int, dict[str, Any]] | None = None
         for key in reversed(self.command_order):
             c = self.commands[key]
-            status, reason = c.status, getattr(c, "reason", "")
+            status, reason = c.status, c.reason
             if c.roi_key is not None and c.roi_key in self.roi:
                 roi = self._snap_roi(self.roi[c.roi_key])
                 status, reason = roi["state"], roi["text"]
@@ -271,6 +272,6 @@ class CommandsView:
             out.append({"command_id": c.command_id, "kind": c.kind, "summary": c.summary,
                         "answer": answer, "image_id": None if img is None else img.image_id,
                         "sent": _num(c.sent, 1), "status": status,
-                        "answered": _num(c.answered, 1), "by": getattr(c, "by", ""),
+                        "answered": _num(c.answered, 1), "by": c.by,
                         "reason": reason})
         return out

@@ -31,6 +31,7 @@ from coex import (
     Received,
     RequestRejected,
 )
+from coex_plugins.bathymetry import BathymetryReceiver
 
 from .hub import ConsoleHub, pump
 
@@ -62,7 +63,7 @@ def fleet_hub(node: Any, names: Mapping[int, str], clock: Callable[[], float], *
         state.own_receivers = False
         hub = ConsoleHub(state, NodeCommands(node, clock, dst=vid), clock)
         rx = own.get("bathymetry")
-        if rx is not None and hasattr(rx, "request_area"):
+        if isinstance(rx, BathymetryReceiver):
             hub.actions.map_receiver = state.region_source = rx
         hubs[vid] = hub
     return FleetHub(hubs, names)
@@ -132,9 +133,7 @@ class FleetHub:
         own and the network's; refresh the fleet summary. Returns the events."""
         with self.changed:
             for hub in self.hubs.values():
-                flush = getattr(hub.actions.send, "flush", None)
-                if callable(flush):
-                    flush()
+                hub.actions.send.flush()
             if events is None:
                 events = list(node.events())
             for vid, hub in self.hubs.items():

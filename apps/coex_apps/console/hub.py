@@ -14,8 +14,9 @@ from collections.abc import Callable, Iterable
 from typing import Any
 
 from coex import Message
+from coex_plugins.bathymetry import BathymetryReceiver
 
-from .actions import ConsoleActions
+from .actions import CommandSink, ConsoleActions
 from .state import SECTIONS, ConsoleState
 
 __all__ = ["ConsoleHub", "pump"]
@@ -54,8 +55,7 @@ def pump(state: ConsoleState, node: Any, now: float, events: list[Any] | None = 
     # regions asked of the bathymetry receiver by others (a script): show them too
     source = state.region_source
     if source is not None:
-        others = [r for r in list(getattr(source, "regions", ()))
-                  if not getattr(r, "auto", False) and id(r) not in state._region_ids]
+        others = [r for r in list(source.regions) if not r.auto and id(r) not in state._region_ids]
         if others:
             state.record_regions(others, now, "map level "
                                  + ",".join(sorted({str(r.level) for r in others}))
@@ -63,7 +63,7 @@ def pump(state: ConsoleState, node: Any, now: float, events: list[Any] | None = 
     # regions a bathymetry receiver sends for us: show when they go out (ids, retries)
     for r in state.roi.values():  # what the vehicle queued for it: filled, or nothing to send
         if r.region.queued:
-            r.got = max(int(getattr(r, "got", 0) or 0), int(r.region.queued))
+            r.got = max(int(r.got or 0), int(r.region.queued))
     sig = tuple((k, r.region.request_id, r.region.sends, r.region.done, r.region.queued,
                  r.region.waiting) for k, r in state.roi.items())
     if sig != state._region_sig:
@@ -85,8 +85,8 @@ class ConsoleHub:
     ``send`` takes each command message (the topside node's send path); ``clock`` gives ``now``.
     """
 
-    def __init__(self, state: ConsoleState, send: Callable[[Message], Any],
-                 clock: Callable[[], float], *, map_receiver: Any = None) -> None:
+    def __init__(self, state: ConsoleState, send: CommandSink | Callable[[Message], Any],
+                 clock: Callable[[], float], *, map_receiver: BathymetryReceiver | None = None) -> None:
         self.state = state
         self.clock = clock
         self.lock = threading.RLock()
@@ -117,11 +117,9 @@ class ConsoleHub:
         the page queued, applies the node's events (``node.events()``, or ``events`` drained by
         the caller) and refreshes link and schedule state. Returns the events."""
         with self.changed:
-            flush = getattr(self.actions.send, "flush", None)
-            if callable(flush):
-                flush()
+            self.actions.send.flush()
             before = dict(self.state.versions)
-            wrapped = getattr(self, "attached_to", None) is node  # it feeds the hub itself
+            wrapped = self.attached_to is node  # it feeds the hub itself
             if events is None:
                 events = list(node.events())  # an attached node feeds the console itself
                 if not wrapped:

@@ -14,8 +14,8 @@ from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import Any, cast
 
+from coex import Product, persistent, unwrap
 from coex import messages as m
-from coex import persistent, unwrap
 
 from .commands import OPEN_COMMAND_STATES
 from .words import _num, ack_reason
@@ -49,17 +49,17 @@ class _Crop:
 class ImagesView:
     """The images part of :class:`~coex_apps.console.state.ConsoleState`."""
 
-    def _image_product(self, product: Any, data: Any, meta: dict[str, Any], now: float) -> None:
+    def _image_product(self, product: Product, data: Any, meta: dict[str, Any], now: float) -> None:
         iid = meta.get("image_id")
         if iid is None:
             try:
-                iid = int(str(getattr(product, "key", "")).rsplit("-", 1)[-1])
+                iid = int(str(product.key).rsplit("-", 1)[-1])
             except ValueError:
                 return
         img = self._image(int(iid))
         if data is not None and hasattr(data, "shape"):
             img.decoded = data
-            img.decoded_version = int(getattr(product, "version", img.decoded_version + 1))
+            img.decoded_version = int(product.version)
         img.decoded_meta = {k: v for k, v in meta.items()
                             if v is None or isinstance(v, int | float | str | bool)}
         if isinstance(meta.get("regions"), list | tuple):
@@ -69,7 +69,7 @@ class ImagesView:
         img.version += 1
         self._touch("images")
 
-    def _crop_product(self, product: Any, data: Any, meta: dict[str, Any]) -> None:
+    def _crop_product(self, product: Product, data: Any, meta: dict[str, Any]) -> None:
         """A crop's product: what it shows of its box (drawn in the region list of its image)."""
         try:
             cid = int(meta["image_id"])
@@ -79,7 +79,7 @@ class ImagesView:
         self.crops[cid] = crop  # the newest last
         if data is not None and hasattr(data, "shape"):
             crop.decoded = data
-            crop.decoded_version = int(getattr(product, "version", crop.decoded_version + 1))
+            crop.decoded_version = int(product.version)
         crop.meta = {k: (list(v) if isinstance(v, list | tuple) else v) for k, v in meta.items()
                      if v is None or isinstance(v, int | float | str | bool | list | tuple)}
         while len(self.crops) > MAX_CROPS:
@@ -135,7 +135,7 @@ class ImagesView:
         pixels, x1 and y1 exclusive); ``state`` is ``requested``, ``waiting``, ``accepted`` or
         ``rejected``; ``value`` is in dB for a quality goal."""
         known = {(int(r.get("command_id", -1)), tuple(int(v) for v in r.get("box", ()))): r
-                 for r in getattr(img, "regions", ()) or ()}
+                 for r in img.regions}
         layers = img.decoded_meta.get("layers")
         out: list[dict[str, Any]] = []
         for key in self.command_order:
@@ -154,9 +154,9 @@ class ImagesView:
                         "kind": m.RegionGoal(msg.kind).name.lower(),
                         "value": msg.value / 10 if msg.kind == m.RegionGoal.QUALITY else msg.value,
                         "state": state,
-                        "reason": (getattr(c, "reason", "") or ack_reason(msg, "REJECTED"))
+                        "reason": (c.reason or ack_reason(msg, "REJECTED"))
                         if state == "rejected" else "",
-                        "time": _num(c.sent, 1), "by": getattr(c, "by", ""),
+                        "time": _num(c.sent, 1), "by": c.by,
                         "layers_complete": None if rx_row is None else rx_row.get("layers_complete"),
                         "layers": layers, **self._served(rx_row)})
         for (cid, box), r in known.items():  # asked through the receiver by someone else

@@ -17,6 +17,7 @@ import numpy as np
 import numpy.typing as npt
 
 from coex import persistent
+from coex_plugins.bathymetry import Region
 
 from .words import _num, gap_words
 
@@ -41,7 +42,7 @@ class _RoiRequest:
     w: int
     h: int
     sent: float
-    region: Any
+    region: Region
     #: the most subgrids the vehicle said it queued for it (0: it never sent anything)
     got: int = 0
 
@@ -222,9 +223,8 @@ class MapView:
             span = 8.0 * 2 ** r.level
         region = r.region
         rid = region.request_id if region.request_id is not None else -1
-        queued = getattr(region, "queued", None)
-        waiting = getattr(region, "waiting", 0)
-        got = max(int(getattr(r, "got", 0) or 0), int(queued or 0))
+        queued, waiting = region.queued, region.waiting
+        got = max(int(r.got or 0), int(queued or 0))
         r.got = got
         # ``status``: the request as the receiver sends it; ``state``: what it means for the
         # operator (requested, in flight, waiting for data, filled, nothing to send)

@@ -21,17 +21,19 @@ from collections import deque
 from collections.abc import Callable
 from typing import Any
 
-from coex import ModalityReceiver
+from coex import Event, ModalityReceiver
 from coex.messages import Message, ScheduleUpdate
 from coex_core.channel.schedule import Schedule, resolve_cycle
+from coex_plugins.bathymetry import BathymetryReceiver
 
+from .actions import CommandSink
 from .hub import ConsoleHub, pump
 from .state import ConsoleState
 
 __all__ = ["NodeCommands", "attach", "drive_simulation", "pump", "tap_receiver"]
 
 
-class NodeCommands:
+class NodeCommands(CommandSink):
     """Send console commands through a topside node (``clock()`` gives ``now``).
 
     With ``deferred``, a command is only queued when the page asks (from an HTTP thread) and
@@ -101,7 +103,7 @@ def tap_receiver(receiver: ModalityReceiver, hub: Any = None) -> ModalityReceive
 
 
 def attach(node: Any, clock: Callable[[], float] | None = None, *,
-           map_receiver: Any = None, stream_names: dict[int, str] | None = None) -> Any:
+           map_receiver: BathymetryReceiver | None = None, stream_names: dict[int, str] | None = None) -> Any:
     """A :class:`~coex_apps.console.server.ConsoleHub` fed by a topside ``node``, whatever
     loop drives it.
 
@@ -129,12 +131,13 @@ def attach(node: Any, clock: Callable[[], float] | None = None, *,
     commands.on_sent = lambda built, sent: hub.update(
         lambda st: st.replace_command(built, sent, now_of()))
     if map_receiver is None:
-        hub.actions.map_receiver = receivers.get("bathymetry")
+        bathymetry = receivers.get("bathymetry")
+        hub.actions.map_receiver = bathymetry if isinstance(bathymetry, BathymetryReceiver) else None
     state.region_source = hub.actions.map_receiver
 
-    def on_events(evs: list[Any]) -> None:
+    def on_events(evs: list[Event]) -> None:
         commands.flush()  # the page's commands go out from the thread driving the node
-        now = max((float(getattr(e, "time", 0.0)) for e in evs), default=state.now)
+        now = max((float(e.time) for e in evs), default=state.now)
         hub.update(lambda st: pump(st, node, now, evs))
 
     node.subscribe(on_events)

@@ -66,8 +66,9 @@ from starlette.types import ASGIApp, Receive, Scope, Send
 from starlette.types import Message as AsgiMessage
 from uvicorn.protocols.http.h11_impl import H11Protocol
 
-from coex import CoexError, Message, RequestRejected
+from coex import CoexError, Message, Node, RequestRejected
 from coex_core import jsonfmt
+from coex_plugins.bathymetry import Region
 
 from .access import Access, Session, SignInRefused, describe
 from .fleet import FleetHub
@@ -659,13 +660,12 @@ def _login_html(error: str) -> str:
 """
 
 
-def _describe(item: Any) -> dict[str, Any]:
+def _describe(item: Message | Region) -> dict[str, Any]:
     if isinstance(item, Message):
         return jsonfmt.to_json(item)
     # a region the bathymetry receiver will send as MapRoiRequest (and retry)
-    fields = ("level", "x0", "y0", "w", "h", "fill_gaps")
-    return {"type": "MapRoiRequest", "queued": True,
-            **{k: getattr(item, k) for k in fields if hasattr(item, k)}}
+    return {"type": "MapRoiRequest", "queued": True, "level": item.level, "x0": item.x0,
+            "y0": item.y0, "w": item.w, "h": item.h, "fill_gaps": item.fill_gaps}
 
 
 def _asset(name: str) -> bytes:
@@ -790,7 +790,7 @@ def serve(target: Any, host: str = "127.0.0.1", port: int = 8080, *,
         def refuse(msg: Message) -> None:
             raise RequestRejected("this console is view-only (no topside node to send with)")
         hub = ConsoleHub(target, refuse, clock or (lambda: target.now))
-    elif hasattr(target, "manager") and hasattr(target, "events"):
+    elif isinstance(target, Node):
         hub = attach(target, clock, stream_names=stream_names)
     else:
         raise TypeError(f"serve() needs a ConsoleHub, Node or ConsoleState, "

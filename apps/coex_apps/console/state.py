@@ -31,8 +31,26 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
-from coex import RequestRejected, persistent, unwrap
+from coex import (
+    BadFrame,
+    CommandResult,
+    CommandUnanswered,
+    Dropped,
+    Event,
+    LinkChanged,
+    ModalityReceiver,
+    Product,
+    ProductUpdated,
+    Received,
+    Rejected,
+    RequestRejected,
+    persistent,
+    unwrap,
+)
 from coex import messages as m
+from coex_core.channel.events import ScheduleSwitched, SenderFailed
+from coex_plugins.bathymetry import BathymetryReceiver
+from coex_plugins.timeseries import Series
 
 from .commands import OPEN_COMMAND_STATES, CommandsView, _Command
 from .images import MAX_CROPS, MAX_IMAGE_REGIONS, ImagesView, _Crop
@@ -143,7 +161,7 @@ class ConsoleState(MapView, SurveysView, ImagesView, LinkView, CommandsView):
         max_track: int = 5000,
         max_log: int = 200,
         auto_targets: bool = True,
-        receivers: Mapping[str, Any] | None = None,
+        receivers: Mapping[str, ModalityReceiver] | None = None,
     ) -> None:
         self.node_id = node_id
         self.vehicle_id = vehicle_id
@@ -161,7 +179,7 @@ class ConsoleState(MapView, SurveysView, ImagesView, LinkView, CommandsView):
         #: and never decodes anything itself), or, without ``receivers``, the console's own,
         #: made from the registry when a modality's first message arrives (a view of raw
         #: messages: a log replay, a test)
-        self.receivers: dict[str, Any] = dict(receivers or {})
+        self.receivers: dict[str, ModalityReceiver] = dict(receivers or {})
         self.own_receivers = receivers is None
         # map (the bathymetry receiver's levels)
         #: per level: (version, summary, coverage span, keys, oldest stamps, image box, step)
@@ -185,7 +203,8 @@ class ConsoleState(MapView, SurveysView, ImagesView, LinkView, CommandsView):
         self._region_ids: set[int] = set()
         #: A bathymetry receiver whose operator regions (not its automatic gap filling) are
         #: shown even when someone else asked for them (a script, another tool).
-        self.region_source: Any = self.receivers.get("bathymetry")
+        bathymetry = self.receivers.get("bathymetry")
+        self.region_source = bathymetry if isinstance(bathymetry, BathymetryReceiver) else None
         self._zrange: tuple[float, float] | None = None
         # surveys: the survey receiver's records (what it asked and what the vehicle answered);
         # products of a survey receiver the console does not hold (rare) are kept here
@@ -320,14 +339,15 @@ class ConsoleState(MapView, SurveysView, ImagesView, LinkView, CommandsView):
                 rx = self.receivers[name] = load_modality(name)().receiver()
             except Exception:
                 return None
-            if name == "bathymetry":
+            if isinstance(rx, BathymetryReceiver):
                 self.region_source = rx
         return rx
 
     @property
-    def map_receiver(self) -> Any:
+    def map_receiver(self) -> BathymetryReceiver | None:
         """The bathymetry receiver whose levels the map shows (None before any)."""
-        return self.receivers.get("bathymetry")
+        rx = self.receivers.get("bathymetry")
+        return rx if isinstance(rx, BathymetryReceiver) else None
 
     def apply_messages(self, msgs: Iterable[m.Message], now: float,
                        link: int | None = None) -> set[str]:
@@ -336,13 +356,11 @@ class ConsoleState(MapView, SurveysView, ImagesView, LinkView, CommandsView):
             out |= self.apply_message(msg, now, link)
         return out
 
-    def apply_product(self, modality: str, product: Any, now: float) -> set[str]:
+    def apply_product(self, modality: str, product: Product, now: float) -> set[str]:
         """Take a receiver product (:class:`coex_core.modality.Product`)."""
         self._advance(now)
         before = dict(self.versions)
-        kind = str(getattr(product, "kind", ""))
-        data = getattr(product, "data", None)
-        meta = dict(getattr(product, "meta", {}) or {})
+        kind, data, meta = str(product.kind), product.data, dict(product.meta or {})
         if modality == "survey":
             self._survey_product(product, meta, now)
         elif modality == "detections":
@@ -366,47 +384,48 @@ class ConsoleState(MapView, SurveysView, ImagesView, LinkView, CommandsView):
             self._map_product(data, meta)
         return {s for s in SECTIONS if self.versions[s] != before[s]}
 
-    def apply_event(self, event: Any) -> set[str]:
-        """Take a node/channel event (:mod:`coex_core.channel.events`), duck-typed by name."""
-        name = type(event).__name__
-        now = float(getattr(event, "time", self.now))
+    def apply_event(self, event: Event) -> set[str]:
+        """Take a node/channel event (:mod:`coex_core.channel.events`), dispatched on its type
+        (the others, and anything not an event, change nothing shown)."""
+        if not isinstance(event, Event):
+            return set()
+        now = float(event.time)
         self._advance(now)
         before = dict(self.versions)
-        if name == "Received":
-            self.apply_message(event.message, now, getattr(event, "link", None))
-        elif name == "ProductUpdated":
+        if isinstance(event, Received):
+            self.apply_message(event.message, now, event.link)
+        elif isinstance(event, ProductUpdated):
             self.apply_product(str(event.modality), event.product, now)
-        elif name == "CommandResult":
-            self._command_result(int(event.command_id), event.status, now,
-                                 getattr(event, "command", None))
-        elif name == "CommandUnanswered":
-            self._command_unanswered(int(event.command_id), now, getattr(event, "command", None))
-        elif name == "BadFrame":
+        elif isinstance(event, CommandResult):
+            self._command_result(int(event.command_id), event.status, now, event.command)
+        elif isinstance(event, CommandUnanswered):
+            self._command_unanswered(int(event.command_id), now, event.command)
+        elif isinstance(event, BadFrame):
             self.bad_frames += 1
             lk = self._link(int(event.link))
             lk["local_bad"] = lk.get("local_bad", 0) + 1
             self._touch("link")
             self._log(now, f"bad frame on link {event.link}: {event.reason}", "warn",
                       key=f"bad frame|{event.link}|{event.reason}")
-        elif name == "LinkChanged":
+        elif isinstance(event, LinkChanged):
             lk = self._link(int(event.link))
             lk["enabled"], lk["muted"] = bool(event.enabled), bool(event.muted)
             self._touch("link")
             state = "enabled" if event.enabled else "disabled"
             self._log(now, f"link {event.link} {state}{' (muted)' if event.muted else ''}")
-        elif name == "ScheduleSwitched":
+        elif isinstance(event, ScheduleSwitched):
             sch = self.schedules.get(int(event.link))
             if sch is not None:
                 sch["active_version"] = int(event.version)
             self._touch("link")
             self._log(now, f"link {event.link} runs schedule v{event.version} ({event.reason})")
-        elif name == "Dropped":
+        elif isinstance(event, Dropped):
             self._log(now, f"stream {event.stream}: {{n}} dropped ({event.reason})", "warn",
-                      key=f"dropped|{event.stream}|{event.reason}", count=int(getattr(event, "count", 1)))
-        elif name == "Rejected":
+                      key=f"dropped|{event.stream}|{event.reason}", count=int(event.count))
+        elif isinstance(event, Rejected):
             what = type(event.message).__name__
             self._log(now, f"rejected {what}: {event.reason}", "warn", key=f"rejected|{what}|{event.reason}")
-        elif name == "SenderFailed":
+        elif isinstance(event, SenderFailed):
             self._log(now, f"stream {event.stream} sender failed: {event.error}", "warn",
                       key=f"sender failed|{event.stream}|{event.error}")
         return {s for s in SECTIONS if self.versions[s] != before[s]}
@@ -522,36 +541,37 @@ class ConsoleState(MapView, SurveysView, ImagesView, LinkView, CommandsView):
 
     # ------------------------------------------------------------------ time series
     def _series_product(self, data: Any, meta: dict[str, Any]) -> None:
-        cid = int(meta.get("channel", getattr(data, "channel", -1)))
+        series = data if isinstance(data, Series) else None
+        cid = int(meta.get("channel", series.channel if series is not None else -1))
         if cid < 0:
             return
         s = self.series.setdefault(cid, {"channel": cid})
         for k in ("name", "unit", "lo", "hi", "resolution"):
             if meta.get(k) is not None:
                 s[k] = meta[k]
-        if data is not None and hasattr(data, "times"):
-            s["times"] = np.asarray(data.times, float)
-            s["values"] = np.asarray(data.values, float)
-            s["bounds"] = np.asarray(data.bounds, float)
+        if series is not None:
+            s["times"] = np.asarray(series.times, float)
+            s["values"] = np.asarray(series.values, float)
+            s["bounds"] = np.asarray(series.bounds, float)
         self._touch("series")
 
     # ------------------------------------------------------------ other modalities
-    def _other_product(self, modality: str, product: Any, meta: dict[str, Any]) -> None:
+    def _other_product(self, modality: str, product: Product, meta: dict[str, Any]) -> None:
         """A product of a modality without a panel of its own: the generic panel shows its
         kind, key, version and the receiver's ``view`` of it (else its plain metadata)."""
         view: Any = None
-        show = getattr(self.receivers.get(modality), "view", None)
-        if callable(show):
+        rx = self.receivers.get(modality)
+        if rx is not None:
             try:
-                view = show(product)
+                view = rx.view(product)  # declared on ModalityReceiver (default: None)
             except Exception as exc:  # a plugin's view must never stop the console
                 view = {"error": f"view failed: {exc}"}
         shown = view if isinstance(view, Mapping) else meta
         fields = {str(k): (_num(v) if isinstance(v, float) else v) for k, v in shown.items()
                   if v is None or isinstance(v, int | float | str | bool)}
-        self.other.setdefault(modality, {})[str(getattr(product, "key", ""))] = {
-            "kind": str(getattr(product, "kind", "")), "key": str(getattr(product, "key", "")),
-            "version": int(getattr(product, "version", 0)), "fields": fields,
+        self.other.setdefault(modality, {})[str(product.key)] = {
+            "kind": str(product.kind), "key": str(product.key),
+            "version": int(product.version), "fields": fields,
             "t": _num(self.now, 1)}
         self._touch("other")
 

@@ -9,6 +9,9 @@ from __future__ import annotations
 from collections.abc import Mapping
 from typing import Any
 
+from coex import Product
+from coex_plugins.survey import SurveyReceiver
+
 from .words import _num
 
 __all__ = ["MAX_SURVEYS", "SURVEY_OUTCOMES", "SURVEY_STATES", "SurveysView"]
@@ -44,11 +47,11 @@ class SurveysView:
         survey requests and follows them (None: this console cannot ask for surveys)."""
         return self.receivers.get("survey")
 
-    def _survey_product(self, product: Any, meta: dict[str, Any], now: float) -> None:
+    def _survey_product(self, product: Product, meta: dict[str, Any], now: float) -> None:
         """A survey changed state (the survey receiver's product): shown in the surveys
         section, and in the event log with its reason in words."""
         try:
-            sid = int(meta.get("survey_id", getattr(product, "key", "")))
+            sid = int(meta.get("survey_id", product.key))
         except (TypeError, ValueError):
             return
         if self.survey_receiver is None:  # nobody holds the records: keep what we were told
@@ -83,11 +86,9 @@ class SurveysView:
         """Look at the survey receiver's records (a request made by someone else, a survey given
         up for want of an answer): True, and the surveys section changed, if they did."""
         rx = self.survey_receiver
-        records = getattr(rx, "surveys", None)
-        if not isinstance(records, Mapping):
+        if not isinstance(rx, SurveyReceiver):
             return False
-        sig = tuple((int(k), int(getattr(r, "version", 0)), str(getattr(r, "state", "")))
-                    for k, r in list(records.items()))
+        sig = tuple((int(k), int(r.version), str(r.state)) for k, r in list(rx.surveys.items()))
         if sig == self._survey_sig:
             return False
         self._survey_sig = sig
@@ -97,18 +98,18 @@ class SurveysView:
     def _survey_metas(self) -> dict[int, dict[str, Any]]:
         """survey id -> the survey receiver's product metadata (cached per record version)."""
         rx = self.survey_receiver
-        records = getattr(rx, "surveys", None)
-        if not isinstance(records, Mapping):
+        if not isinstance(rx, SurveyReceiver):
             return dict(self.survey_products)
+        records = rx.surveys
         out: dict[int, dict[str, Any]] = {}
         rows: dict[int, tuple[int, dict[str, Any]]] = {}
         stale = [k for k, r in records.items()
-                 if self._survey_rows.get(int(k), (None,))[0] != getattr(r, "version", 0)]
+                 if self._survey_rows.get(int(k), (None,))[0] != r.version]
         fresh = ({int(p.key): dict(p.meta) for p in rx.products() if str(p.key).isdigit()}
                  if stale else {})
         for k, r in records.items():
             k = int(k)
-            version = int(getattr(r, "version", 0))
+            version = int(r.version)
             cached = self._survey_rows.get(k)
             meta = fresh.get(k) if cached is None or cached[0] != version else cached[1]
             if meta is None:

@@ -81,10 +81,10 @@ def ack_reason(msg: m.Message, status: str, was_pending: bool = False) -> str:
             return f"the vehicle has no stream {msg.stream}"
         return "the vehicle refused the setting (outside its limits)"
     if isinstance(msg, m.LinkControl | m.SpareConfig | m.ScheduleUpdate):
-        link = getattr(msg, "link", None)
+        link = msg.link
         if status == "UNKNOWN_TARGET":
             return f"the vehicle has no link {link}" if link is not None else \
-                f"the vehicle has no stream {getattr(msg, 'stream', '?')}"
+                f"the vehicle has no stream {msg.stream if isinstance(msg, m.SpareConfig) else '?'}"
         if isinstance(msg, m.LinkControl):
             return "it would leave the vehicle without a transmitting link"
         if isinstance(msg, m.ScheduleUpdate):

@@ -21,7 +21,9 @@ from coex_plugins.bathymetry import (
     write_level_geotiff,
     write_png,
 )
+from coex_plugins.bathymetry.sender import BathymetrySender
 from coex_plugins.bathymetry.sim import Seafloor, Target
+from coex_plugins.detections import DetectionsSender
 from coex_plugins.imagery import ImageryReceiver
 from coex_plugins.timeseries import TimeSeriesReceiver
 
@@ -121,10 +123,12 @@ def _detections(receivers: dict[str, Any], runners: dict[int, Runner],
                             "decoys": sum(1 for d in out if d["truth"].startswith("decoy")),
                             "false": sum(1 for d in out if d["truth"] == "none"),
                             "bytes_received": sum(d["bytes_received"] for d in out)}
-    for name, attr, key in (("detections", "bytes_sent", "bytes_sent"),
-                            ("bathymetry", "focus_bytes", "neighbourhood_bytes_sent")):
-        with contextlib.suppress(ConfigError):
-            cost[key] = int(getattr(vehicle.sender(name), attr, 0))
+    with contextlib.suppress(ConfigError):
+        det = vehicle.sender("detections")
+        cost["bytes_sent"] = int(det.bytes_sent) if isinstance(det, DetectionsSender) else 0
+    with contextlib.suppress(ConfigError):
+        bathy = vehicle.sender("bathymetry")
+        cost["neighbourhood_bytes_sent"] = int(bathy.focus_bytes) if isinstance(bathy, BathymetrySender) else 0
     return out, cost
 
 

@@ -23,7 +23,7 @@ from typing import Any
 
 import numpy as np
 
-from coex import CoexError, ConfigError
+from coex import CoexError, ConfigError, Nav
 from coex_plugins.options import LogOnce
 
 from .build import build_node, link_configs
@@ -80,6 +80,8 @@ class VehicleApp:
         self.cfg = cfg
         self.clock = clock
         self.stop = threading.Event()
+        #: the thread :meth:`start` runs the loop in (None: not started)
+        self._thread: threading.Thread | None = None
         self.transports = dict(transports) if transports is not None else open_transports(cfg)
         self.store: Any = None
         self.inputs: list[Any] = []
@@ -176,7 +178,7 @@ class VehicleApp:
     def close(self) -> None:
         """Stop the loop, close inputs, autonomy and modems, save the node and close the store."""
         self.stop.set()
-        thread = getattr(self, "_thread", None)
+        thread = self._thread
         if thread is not None and thread is not threading.current_thread():
             thread.join(timeout=10.0)
         self._close_io()
@@ -253,12 +255,13 @@ class VehicleApp:
                 self.counts["skipped"] += 1
             # once per kind of problem (a sensor sending the same bad sample every second must
             # not flood the log); every one is counted
-            self._problem(f"{getattr(source, 'coex_key', '')}:{name}:{type(exc).__name__}", "%s not taken by %s: %s (further "
+            key = source.coex_key if source is not None else ""
+            self._problem(f"{key}:{name}:{type(exc).__name__}", "%s not taken by %s: %s (further "
                           "ones like it are counted, not logged)", what, name, exc)
             return False
 
     def _take(self, inp: Any, item: Any, now: float) -> None:
-        from coex import Image, Nav, Points, Samples
+        from coex import Image, Points, Samples
 
         feeds = inp.coex_feeds
         if isinstance(item, Points) and "bathymetry" in feeds:
@@ -305,9 +308,10 @@ class VehicleApp:
                 if self.store is not None:
                     self.store.set("vehicle.taken", json.dumps(self._taken))
 
-    def _nav(self, nav: Any) -> None:
-        got = {k: getattr(nav, k) for k in ("x", "y", "depth", "altitude", "heading", "speed")
-               if getattr(nav, k) is not None and math.isfinite(getattr(nav, k))}
+    def _nav(self, nav: Nav) -> None:
+        fields = {"x": nav.x, "y": nav.y, "depth": nav.depth, "altitude": nav.altitude,
+                  "heading": nav.heading, "speed": nav.speed}
+        got = {k: v for k, v in fields.items() if v is not None and math.isfinite(v)}
         if ("x" not in got or "y" not in got) and nav.lat is not None and nav.lon is not None:
             got["x"], got["y"] = self.context.local(nav.lat, nav.lon)
         if not got:
