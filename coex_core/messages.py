@@ -11,10 +11,13 @@ are metres east/north in the survey's local frame; ``level`` 0 is the finest map
 
 from __future__ import annotations
 
+import dataclasses
 import enum
 from dataclasses import dataclass
 
 __all__ = [
+    "WITH_COMMAND_ID",
+    "command_id",
     "Message",
     "FrameHeader",
     "Frame",
@@ -793,3 +796,23 @@ class Detection(Message):
     orientation: float | None = None
     footprint: int | None = None
     image_id: int | None = None
+
+
+def _with_command_id() -> frozenset[type[Message]]:
+    out = set()
+    for cls in list(globals().values()):
+        if isinstance(cls, type) and issubclass(cls, Message) and dataclasses.is_dataclass(cls) \
+                and any(f.name == "command_id" for f in dataclasses.fields(cls)):
+            out.add(cls)
+    return frozenset(out)
+
+
+#: the message types that declare a ``command_id`` field: commands, requests answered with a
+#: ``CommandAck``, the answers themselves
+WITH_COMMAND_ID: frozenset[type[Message]] = _with_command_id()
+
+
+def command_id(message: object) -> int | None:
+    """The command id ``message`` carries, or None for a message whose type declares none
+    (:data:`WITH_COMMAND_ID`)."""
+    return int(message.command_id) if type(message) in WITH_COMMAND_ID else None  # type: ignore[attr-defined]

@@ -56,6 +56,7 @@ from .messages import (
     SpareConfig,
     VehicleStatus,
 )
+from .messages import command_id as command_id_of
 from .modality import Modality, ModalityReceiver, ModalitySender
 from .remap import RemappedReceiver, RemappedSender
 from .routing import (
@@ -308,7 +309,7 @@ class Node:
                 rest.append(m)
                 continue
             self._events.append(Rejected(now, m, f"{type(exc).__name__}: {exc}"))
-            cid = getattr(m, "command_id", None)
+            cid = command_id_of(m)
             if cid is not None and not isinstance(exc, ReplayError):
                 self.manager.push(CONTROL_STREAM, CommandAck(int(cid), AckStatus.UNAUTHENTICATED), now)
         return rest
@@ -373,7 +374,7 @@ class Node:
         return False
 
     def _duplicate(self, m: Message, now: float) -> bool:
-        cid = getattr(m, "command_id", None)
+        cid = command_id_of(m)
         if cid is None:
             return False
         seen = self._recent.get(int(cid))
@@ -386,7 +387,7 @@ class Node:
         return True
 
     def _remember(self, m: Message, status: AckStatus, now: float) -> None:
-        cid = getattr(m, "command_id", None)
+        cid = command_id_of(m)
         if cid is not None:
             self._recent[int(cid)] = (m, status, now)
 
@@ -397,7 +398,7 @@ class Node:
         return type_id(m) in s.routine
 
     def _handle_request(self, s: _SenderSlot, m: Message, now: float) -> None:
-        cid = getattr(m, "command_id", None)
+        cid = command_id_of(m)
         try:
             replies = s.sender.handle(m, now)
         except RequestRejected as exc:
@@ -455,7 +456,7 @@ class Node:
                 self._note(f"{r.name} receiver poll failed: {exc}")
                 continue
             for m in reqs:
-                cid = getattr(m, "command_id", None)
+                cid = command_id_of(m)
                 if cid is not None:
                     self._command_owner[int(cid)] = r
             for m in reqs:
@@ -558,7 +559,7 @@ class Node:
     def request(self, message: Message, now: float, *, dst: int | None = None) -> int | None:
         """Send a modality request (or any message) on the control stream; a request with a
         ``command_id`` is tracked until the vehicle's CommandAck. ``dst``: the node it is for."""
-        cid = getattr(message, "command_id", None)
+        cid = command_id_of(message)
         if cid is not None:
             return self.manager.send_command(message, now, dst=dst)
         self.manager.push(CONTROL_STREAM, message, now, dst=dst)

@@ -537,3 +537,16 @@ def test_subscribers_see_every_drained_event_and_never_cost_the_node() -> None:
     stop()
     p.run(400.0)
     assert len(p.tevents) > len(seen)  # unsubscribed: no longer told
+
+
+def test_command_id_is_read_from_the_types_that_declare_it() -> None:
+    """coex.messages.command_id: the id of a command, a request answered with a CommandAck and
+    the answer; None for any other message (no getattr on whatever comes)."""
+    from coex_core import messages as m
+
+    assert m.command_id(m.CommandAck(7, m.AckStatus.ACCEPTED)) == 7
+    assert m.command_id(m.ImageByTimeRequest(9, 100, m.TimeDirection.NEAREST)) == 9
+    assert m.command_id(m.MapRoiRequest(3, 0, 0, 0, 1, 1, False, (None,))) is None  # a request_id, not a command
+    assert m.command_id(object()) is None
+    assert {m.CommandAck, m.SurveyCommand, m.ImageRegionRequest} <= m.WITH_COMMAND_ID
+    assert m.VehicleStatus not in m.WITH_COMMAND_ID

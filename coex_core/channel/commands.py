@@ -17,6 +17,7 @@ from ..messages import (
     ScheduleUpdate,
     SpareConfig,
 )
+from ..messages import command_id as command_id_of
 from ..tracker import Event, State, Tracked, answer_event
 from .events import (
     CommandApplied,
@@ -53,7 +54,7 @@ class CommandsMixin(PackingMixin):
             status, reason = self._apply_link_control(command, now)
         elif isinstance(command, SpareConfig):
             status, reason = self._apply_spare(command)
-        cid = int(getattr(command, "command_id", 0))
+        cid = command_id_of(command) or 0
         self._events.append(CommandApplied(now, command, status, reason))
         return CommandAck(cid, status)
 
@@ -162,7 +163,7 @@ class CommandsMixin(PackingMixin):
         """Queue a command (on the control stream, acked) and remember it until its
         CommandAck arrives. Returns its command id. ``dst``: the node it is for (0: every
         node; ``None``: the link's ``dst``); a CommandAck from another node does not answer it."""
-        cid = int(getattr(command, "command_id", 0))
+        cid = command_id_of(command) or 0
         tracked = self._commands[cid] = Tracked(command)
         tracked.apply(Event.SEND, now)
         self._command_dst[cid] = dst

@@ -89,7 +89,7 @@ class CommandsView:
     def record_command(self, msg: m.Message, now: float, summary: str = "") -> None:
         """Remember a command the operator sent (shown as pending until answered)."""
         self._advance(now)
-        cid = getattr(msg, "command_id", getattr(msg, "request_id", None))
+        cid = msg.request_id if isinstance(msg, m.MapRoiRequest) else m.command_id(msg)
         if cid is None:
             return
         kind = type(msg).__name__
@@ -147,11 +147,12 @@ class CommandsView:
 
     def replace_command(self, built: m.Message, sent: m.Message, now: float) -> None:
         """The node sent ``sent`` for the command recorded as ``built`` (another command id)."""
-        key = self._find_command(int(getattr(built, "command_id", -1)), built)
+        built_id = m.command_id(built)
+        key = self._find_command(-1 if built_id is None else built_id, built)
         if key is None:
             return
         old = self.commands[key]
-        old.message, old.command_id = sent, int(getattr(sent, "command_id", 0))
+        old.message, old.command_id = sent, m.command_id(sent) or 0
         if isinstance(sent, m.ScheduleUpdate):
             sch = self.schedules.get(sent.link)
             if sch is not None and sch.get("proposed"):

@@ -29,6 +29,7 @@ import numpy as np
 
 from coex import Node, RequestRejected, unwrap
 from coex.messages import SurveyCommand, VehicleStatus
+from coex.messages import command_id as command_id_of
 from coex_plugins.bathymetry import BathymetryReceiver, find_targets
 from coex_plugins.bathymetry.relief import CAR as CAR_DIMS
 from coex_plugins.bathymetry.relief import FLAT, Bump, bumps, likeness, measure_bump
@@ -604,7 +605,7 @@ class Operator:
 
     def _look(self, cv: CandidateView, now: float) -> None:
         meta = self._answer(cv)
-        pending = {getattr(m, "command_id", None) for m in self.imagery.pending_requests()}
+        pending = {command_id_of(m) for m in self.imagery.pending_requests()}
         if meta is not None and int(meta.get("bytes_used", 0)) > cv.progress[0]:
             cv.progress = (int(meta["bytes_used"]), now)  # the answer is coming: not stuck
         since = max(cv.request_at or now, cv.progress[1])
