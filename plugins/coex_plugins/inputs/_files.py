@@ -20,6 +20,8 @@ import numpy as np
 
 from coex import Input, InputContext
 
+from ..options import LogOnce, Problems
+
 __all__ = ["DirectoryWatch", "Sidecar", "as_pixels", "decode_image", "read_image", "read_sidecar", "split_patterns"]
 
 log = logging.getLogger(__name__)
@@ -280,8 +282,32 @@ class WatchedInput(Input):
     configuration's directory), ``pattern``, ``settle``, ``existing``, ``interval``. Subclasses
     turn each settled file into items in :meth:`poll`."""
 
+    #: what ``path`` names, for ``coex config check`` (:meth:`paths`)
+    path_kind = "folder"
+
+    @classmethod
+    def check(cls, options: Mapping[str, Any]) -> Problems:
+        """The watch's options: ``path``, ``pattern`` (at least one pattern), ``settle``,
+        ``interval``, ``existing``. A subclass adds its own to these."""
+        p, who = Problems(), f"input {cls.name!r}"
+        p.option_str(who, options, "path", nonempty=True)
+        p.option_str(who, options, "pattern", nonempty=True)
+        if isinstance(options.get("pattern"), str) and options["pattern"].strip() \
+                and not split_patterns(options["pattern"]):
+            p.said("pattern", f"{who}: option 'pattern' holds no pattern")
+        p.option_number(who, options, "settle", minimum=0)
+        p.option_number(who, options, "interval", minimum=0)
+        p.option_bool(who, options, "existing")
+        return p
+
+    @classmethod
+    def paths(cls, options: Mapping[str, Any]) -> list[tuple[str, str, str]]:
+        return [("path", str(options["path"]), cls.path_kind)] if isinstance(options.get("path"), str) else []
+
     def __init__(self, options: Mapping[str, Any], context: InputContext) -> None:
         super().__init__(options, context)
+        #: a problem with one file logged once (by the subclass's module logger)
+        self._problem = LogOnce(logging.getLogger(type(self).__module__))
         path = Path(self.config["path"]).expanduser()
         if not path.is_absolute():
             path = Path(context.base_dir) / path

@@ -12,18 +12,16 @@ A file that cannot be read is logged once, skipped and counted (``counts["skippe
 
 from __future__ import annotations
 
-import logging
 from collections.abc import Mapping
 from typing import Any, ClassVar
 
-from coex import Image, InputContext, Item
+from coex import Image, Item
 
-from ..options import LogOnce, Problems
-from ._files import WatchedInput, read_image, read_sidecar, split_patterns
+from ..options import Problems
+from ._files import WatchedInput, read_image, read_sidecar
 
 __all__ = ["DirectoryInput"]
 
-log = logging.getLogger(__name__)
 
 IMAGE_PATTERNS = "*.tif,*.tiff,*.png,*.jpg,*.jpeg,*.pgm"
 
@@ -45,25 +43,9 @@ class DirectoryInput(WatchedInput):
 
     @classmethod
     def check(cls, options: Mapping[str, Any]) -> Problems:
-        p, who = Problems(), f"input {cls.name!r}"
-        p.option_str(who, options, "path", nonempty=True)
-        p.option_str(who, options, "pattern", nonempty=True)
-        if isinstance(options.get("pattern"), str) and options["pattern"].strip() \
-                and not split_patterns(options["pattern"]):
-            p.said("pattern", f"{who}: option 'pattern' holds no pattern")
-        p.option_number(who, options, "settle", minimum=0)
-        p.option_number(who, options, "interval", minimum=0)
-        p.option_bool(who, options, "existing")
-        p.option_bool(who, options, "nav")
+        p = super().check(options)
+        p.option_bool(f"input {cls.name!r}", options, "nav")
         return p
-
-    @classmethod
-    def paths(cls, options: Mapping[str, Any]) -> list[tuple[str, str, str]]:
-        return [("path", str(options["path"]), "folder")] if isinstance(options.get("path"), str) else []
-
-    def __init__(self, options: Mapping[str, Any], context: InputContext) -> None:
-        super().__init__(options, context)
-        self._problem = LogOnce(log)
 
     def poll(self, now: float) -> list[Item]:
         items: list[Item] = []

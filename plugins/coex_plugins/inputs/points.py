@@ -11,20 +11,17 @@ counted (``counts["skipped"]``).
 
 from __future__ import annotations
 
-import logging
 from collections.abc import Mapping
 from typing import Any, ClassVar
 
 import numpy as np
 
-from coex import InputContext, Item, Points
+from coex import Item, Points
 
-from ..options import LogOnce, Problems
 from ._files import WatchedInput, read_sidecar
 
 __all__ = ["PointsInput", "finite_rows"]
 
-log = logging.getLogger(__name__)
 
 
 def finite_rows(xyz: np.ndarray) -> np.ndarray:
@@ -47,23 +44,7 @@ class PointsInput(WatchedInput):
         "interval": (0.5, "seconds between two scans of the directory"),
     }
 
-    @classmethod
-    def check(cls, options: Mapping[str, Any]) -> Problems:
-        p, who = Problems(), f"input {cls.name!r}"
-        p.option_str(who, options, "path", nonempty=True)
-        p.option_str(who, options, "pattern", nonempty=True)
-        p.option_number(who, options, "settle", minimum=0)
-        p.option_number(who, options, "interval", minimum=0)
-        p.option_bool(who, options, "existing")
-        return p
-
-    @classmethod
-    def paths(cls, options: Mapping[str, Any]) -> list[tuple[str, str, str]]:
-        return [("path", str(options["path"]), "file or folder")] if isinstance(options.get("path"), str) else []
-
-    def __init__(self, options: Mapping[str, Any], context: InputContext) -> None:
-        super().__init__(options, context)
-        self._problem = LogOnce(log)
+    path_kind = "file or folder"
 
     def poll(self, now: float) -> list[Item]:
         items: list[Item] = []
