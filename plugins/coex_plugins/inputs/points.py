@@ -23,7 +23,6 @@ from ._files import WatchedInput, read_sidecar
 __all__ = ["PointsInput", "finite_rows"]
 
 
-
 def finite_rows(xyz: np.ndarray) -> np.ndarray:
     """The rows of an ``N x 3`` array whose three coordinates are finite, as float64."""
     a = np.asarray(xyz, dtype=np.float64).reshape(-1, 3)
