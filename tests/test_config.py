@@ -206,3 +206,20 @@ def test_request_tracker_sends_retries_and_gives_up() -> None:
     assert t3.pending(done=lambda m: True) == [] and t3.due(30.0, done=lambda m: True) == []
     assert "k" not in t3  # done: dropped as answered, not given up
     assert t3.given_up == 0
+
+
+def test_a_scale_table_is_checked_the_same_for_lcm_and_ros_inputs() -> None:
+    """The LCM input's ``own`` and the ROS input's ``series`` check their ``scale`` tables with
+    one function: a name not in the entry's table scales nothing, a factor must be a finite
+    number (NaN included, for both)."""
+    from coex_plugins.inputs.lcm import LcmInput
+    from coex_plugins.inputs.ros import RosInput
+
+    ros = RosInput.check({"series": [{"topic": "/ctd", "channels": {"t": "temperature"},
+                                      "scale": {"t": float("nan"), "s": 2.0}}]})
+    lcm = LcmInput.check({"own": [{"channel": "CTD", "type": "ctd.ctd_t", "feeds": "timeseries",
+                                   "channels": {"t": "temperature"}, "scale": {"t": float("nan"), "s": 2.0}}]})
+    for p, option, table in ((ros, "series", "channels"), (lcm, "own", "channels")):
+        texts = [q.text for q in p.found if q.key == option]
+        assert f"option '{option}[0].scale.t' must be a number" in " ".join(texts), texts
+        assert f"option '{option}[0].scale.s' scales nothing (not in '{option}[0].{table}')" in " ".join(texts), texts

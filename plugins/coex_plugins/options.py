@@ -85,6 +85,22 @@ _SEGMENT = r"[A-Za-z_][A-Za-z0-9_]*(?:\[\d+\])?"
 _PATH = re.compile(rf"^-?\s*{_SEGMENT}(?:\.{_SEGMENT})*$")
 
 
+def check_scale(p: Problems, who: str, option: str, key: str, entry: Mapping[str, Any], names: Any,
+                table: str, what: str) -> None:
+    """The ``scale`` table of entry ``key`` (``own[0]``) of a list-of-tables ``option``:
+    ``what = factor``, each name one of ``names`` (the entry's ``table``), each factor a finite
+    number. Its problems are problems of ``option``."""
+    scale = entry.get("scale", {})
+    if not isinstance(scale, Mapping):
+        p.said(option, f"{who}: option '{key}.scale' must be a table of {what} = factor")
+        return
+    for name, factor in scale.items():
+        if name not in names:
+            p.said(option, f"{who}: option '{key}.scale.{name}' scales nothing (not in '{key}.{table}')")
+        if isinstance(factor, bool) or not isinstance(factor, int | float) or not math.isfinite(factor):
+            p.said(option, f"{who}: option '{key}.scale.{name}' must be a number")
+
+
 def compile_path(path: str) -> tuple[Callable[[Any], Any], str]:
     """A getter for a field path (``"-pos[2]"``, ``"pose.position.x"``) and the name of its
     first field; ValueError if the path is not one. The ``lcm`` input's ``own`` types and the

@@ -44,7 +44,7 @@ import numpy as np
 
 from coex import ConfigError, Input, InputContext, Item, Nav, Points, Samples
 
-from ..options import LogOnce, Problems, compile_path, finite, need
+from ..options import LogOnce, Problems, check_scale, compile_path, finite, need
 
 __all__ = ["DEFAULT_URL", "LcmInput", "compile_path", "make_nav_t"]
 
@@ -122,16 +122,7 @@ def _check_own(p: Problems, who: str, options: Mapping[str, Any]) -> None:
                 p.said("own", f"{who}: option '{key}.{table}.{field}': {exc}")
         if feeds == "bathymetry" and mapping and not all(c in mapping for c in "xyz"):
             p.said("own", f"{who}: option '{key}.fields' needs x, y and z for bathymetry")
-        scale = entry.get("scale", {})
-        if not isinstance(scale, Mapping):
-            p.said("own", f"{who}: option '{key}.scale' must be a table of name = factor")
-            scale = {}
-        for field, factor in scale.items():
-            if field not in mapping:
-                p.said("own", f"{who}: option '{key}.scale.{field}' scales nothing "
-                                f"(not in '{key}.{table}')")
-            if isinstance(factor, bool) or not isinstance(factor, int | float) or not math.isfinite(factor):
-                p.said("own", f"{who}: option '{key}.scale.{field}' must be a number")
+        check_scale(p, who, "own", key, entry, mapping, table, "name")
         if "time" in entry:
             try:
                 compile_path(entry["time"])

@@ -30,7 +30,7 @@ import numpy as np
 
 from coex import Input, InputContext, Item, Samples
 
-from ..options import LogOnce, Problems, compile_path, finite
+from ..options import LogOnce, Problems, check_scale, compile_path, finite
 from .rosmsg import ROLES, FrameMap, canonical, check_frames, item_of, stamp_of
 
 __all__ = ["RosInput", "check_series"]
@@ -58,16 +58,7 @@ def check_series(p: Problems, who: str, options: Mapping[str, Any]) -> None:
                 compile_path(path)
             except ValueError as exc:
                 p.said("series", f"{who}: option '{key}.channels.{channel}': {exc}")
-        scale = entry.get("scale", {})
-        if not isinstance(scale, Mapping):
-            p.said("series", f"{who}: option '{key}.scale' must be a table of channel = factor")
-            scale = {}
-        for channel, factor in scale.items():
-            if channel not in channels:
-                p.said("series", f"{who}: option '{key}.scale.{channel}' scales nothing "
-                                f"(not in '{key}.channels')")
-            if isinstance(factor, bool) or not isinstance(factor, int | float):
-                p.said("series", f"{who}: option '{key}.scale.{channel}' must be a number")
+        check_scale(p, who, "series", key, entry, channels, "channels", "channel")
 
 
 class _Topic:
