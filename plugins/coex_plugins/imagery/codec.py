@@ -378,9 +378,23 @@ def _scratch() -> str:
     return _tmpdir.name
 
 
+_THREADS_SET = False
+
+
 def _glymur() -> Any:
+    """glymur, set once to code in the caller's thread: its default (``lib.num_threads`` 1)
+    hands every encode and decode to a thread pool of one, made and joined each time, which
+    costs CPU and, on a loaded machine, waits (the bytes are the same either way)."""
+    global _THREADS_SET
     import glymur
 
+    if not _THREADS_SET:
+        _THREADS_SET = True
+        if glymur.get_option("lib.num_threads") == 1:
+            try:
+                glymur.set_option("lib.num_threads", 0)
+            except RuntimeError:  # an OpenJPEG without thread support: nothing to turn off
+                pass
     return glymur
 
 
