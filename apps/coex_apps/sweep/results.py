@@ -261,7 +261,7 @@ def plot(summary: dict[str, Any], rows: Sequence[dict[str, Any]], path: Path, ti
 
     conds = list(summary["conditions"])
     k = max(len(conds), 1)
-    fig, (ax1, ax2) = plt.subplots(1, 2, figsize=(10, 0.9 + 0.45 * k), sharey=True,
+    fig, (ax1, ax2) = plt.subplots(1, 2, figsize=(10, max(2.4, 1.2 + 0.45 * k)), sharey=True,
                                    gridspec_kw={"width_ratios": [1, 1.3]})
     y = np.arange(len(conds))[::-1]
     for yi, name in zip(y, conds, strict=True):

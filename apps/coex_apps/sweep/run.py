@@ -160,8 +160,10 @@ def run_sweep(conditions: Sequence[Condition], dives: int, out: Path, *, seeds: 
         seen_workers: set[str] = set()
 
         def postfix() -> None:
-            try:
-                busy = sum(1 for keys in client.processing().values() for k in keys if k in futures)
+            try:  # a worker runs as many dives as it has threads; the scheduler may have sent it more
+                threads = {a: int(w.get("nthreads", 1)) for a, w in client.scheduler_info()["workers"].items()}
+                busy = sum(min(sum(1 for k in keys if k in futures), threads.get(a, 1))
+                           for a, keys in client.processing().items())
             except Exception:
                 busy = -1
             rates = []
