@@ -103,8 +103,9 @@ def run_dive(spec: DiveSpec) -> DiveOutcome:
         t0 = time.perf_counter()
         try:
             with tempfile.TemporaryDirectory(prefix="coex-sweep-") as tmp:
+                # one dive per core: its image coding in its own thread
                 result = run_demo(DemoConfig(out=Path(tmp), seed=spec.seed, quick=c.quick, progress=False,
-                                             scenario=c.scenario, operator=c.operator))
+                                             scenario=c.scenario, operator=c.operator, codec_threads=0))
         except Exception as exc:
             wall = time.perf_counter() - t0
             return DiveOutcome(error_row(c.name, spec.seed, f"{type(exc).__name__}: {exc}", wall, worker),

@@ -135,10 +135,11 @@ def run_sweep(conditions: Sequence[Condition], dives: int, out: Path, *, seeds: 
         return [r for r in table.rows if (r["condition"], r["seed"]) in mine]
 
     extra = {"dives_per_condition": len(chosen)}
+    title = f"coex sweep: {len(chosen)} dive(s) per condition" + (" (quick)" if any(c.quick for c in conditions) else "")
     summary = write_summary(out, names, rows(), chosen, extra)
     result = SweepResult(out, chosen, summary, rows(), skipped=skipped)
     if not todo:
-        plot(summary, result.rows, out / "sweep.png")
+        plot(summary, result.rows, out / "sweep.png", title)
         return result
 
     with ExitStack() as stack:
@@ -201,7 +202,7 @@ def run_sweep(conditions: Sequence[Condition], dives: int, out: Path, *, seeds: 
                 result.ran += 1
                 summary = write_summary(out, names, rows(), chosen, extra)
                 if time.monotonic() - last_plot > PLOT_EVERY:
-                    plot(summary, rows(), out / "sweep.png")
+                    plot(summary, rows(), out / "sweep.png", title)
                     last_plot = time.monotonic()
                 postfix()
         except KeyboardInterrupt:
@@ -212,5 +213,5 @@ def run_sweep(conditions: Sequence[Condition], dives: int, out: Path, *, seeds: 
     result.rows = rows()
     result.summary = write_summary(out, names, result.rows, chosen, extra)
     result.workers = sorted(w for w in seen_workers if w)
-    plot(result.summary, result.rows, out / "sweep.png")
+    plot(result.summary, result.rows, out / "sweep.png", title)
     return result
