@@ -82,26 +82,13 @@ def run(args: argparse.Namespace) -> int:
     conditions = grid(bases or ["default"],
                       Overrides(rate=args.rate, loss_model=args.loss_model, loss=args.loss, slots=slots,
                                 vehicles=args.vehicles, operator=args.operator), quick=args.quick)
-    if not getattr(args, "verbose", 0):  # Dask's INFO and closing chatter (coex -v shows it)
-        _quiet_dask()
     result = run_sweep(conditions, args.dives, args.out, seeds=args.seeds, scheduler=args.scheduler,
-                       workers=args.workers, retry_failed=args.retry_failed, progress=not args.quiet)
+                       workers=args.workers, retry_failed=args.retry_failed, progress=not args.quiet,
+                       quiet_dask=not getattr(args, "verbose", 0))
     print(table(result.summary))
     print(f"outputs in {result.out}/ (dives.csv, summary.json, sweep.png); {result.ran} dive(s) run, "
           f"{result.skipped} skipped as done" + (f"; workers: {', '.join(result.workers)}" if result.workers else ""))
     return 130 if result.interrupted else 0
-
-
-def _quiet_dask() -> None:
-    import logging
-
-    try:
-        import distributed  # noqa: F401  (configures its loggers, which are then turned down)
-    except ImportError:  # run_sweep says what to install
-        return
-
-    for name in [n for n in logging.root.manager.loggerDict if n == "distributed" or n.startswith("distributed.")]:
-        logging.getLogger(name).setLevel(logging.ERROR)
 
 
 def table(summary: dict[str, Any]) -> str:

@@ -87,6 +87,13 @@ def _connect(stack: ExitStack, scheduler: str | None, workers: int | None) -> An
     return stack.enter_context(Client(cluster))  # type: ignore[no-untyped-call]
 
 
+def _quiet_dask() -> None:
+    import logging
+
+    for name in [n for n in logging.root.manager.loggerDict if n == "distributed" or n.startswith("distributed.")]:
+        logging.getLogger(name).setLevel(logging.ERROR)
+
+
 def _dashboard(client: Any) -> str | None:
     try:
         up = "dashboard" in client.scheduler_info().get("services", {})
@@ -98,14 +105,15 @@ def _dashboard(client: Any) -> str | None:
 def run_sweep(conditions: Sequence[Condition], dives: int, out: Path, *, seeds: Sequence[int] | None = None,
               scheduler: str | None = None, workers: int | None = None, retry_failed: bool = False,
               progress: bool = True, client: Any = None, stream: TextIO | None = None,
-              dive: Callable[[DiveSpec], DiveOutcome] = run_dive) -> SweepResult:
+              dive: Callable[[DiveSpec], DiveOutcome] = run_dive, quiet_dask: bool = True) -> SweepResult:
     """Run ``dives`` dives of every condition on Dask (``client``, else the scheduler at
     ``scheduler``, else a local cluster of ``workers`` processes), writing ``OUT/dives.csv``,
     ``OUT/metrics.jsonl``, ``OUT/summary.json`` and ``OUT/sweep.png`` as dives finish. Dives
     already in ``OUT/dives.csv`` are skipped (those that raised too, unless ``retry_failed``).
     A dive that raises is a row with its error; a dive whose worker dies is run again on
     another (the scheduler's ``allowed_failures``), and is a row with the error only when that
-    fails too. Ctrl+C stops the sweep where it is (``interrupted``): run it again to resume."""
+    fails too. Ctrl+C stops the sweep where it is (``interrupted``): run it again to resume.
+    ``quiet_dask`` turns Dask's loggers down to errors (its INFO lines and closing chatter)."""
     from tqdm import tqdm
 
     stream = stream or sys.stderr
@@ -145,6 +153,8 @@ def run_sweep(conditions: Sequence[Condition], dives: int, out: Path, *, seeds: 
     with ExitStack() as stack:
         from distributed import as_completed
 
+        if quiet_dask:
+            _quiet_dask()
         client = client if client is not None else _connect(stack, scheduler, workers)
         link = _dashboard(client)
         if link:
