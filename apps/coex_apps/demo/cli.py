@@ -56,6 +56,9 @@ def register(sub: Any) -> None:
                    help="shared command key (hex, or at least 16 raw bytes) instead of the demo's "
                         "embedded one")
     p.add_argument("--no-auth", action="store_true", help="commands unauthenticated")
+    p.add_argument("--threads", type=int, default=None, metavar="N",
+                   help="threads for the image coding (OpenJPEG; the same images either way; default: one per "
+                        "CPU, up to 4; 0: in the dive's own thread)")
     p.add_argument("--quiet", action="store_true", help="no progress bar and no decision log")
     p.set_defaults(func=run)
 
@@ -69,6 +72,8 @@ def run(args: argparse.Namespace) -> int:
         raise ConfigError("--loss must be in [0, 1)")
     if args.speed <= 0:
         raise ConfigError("--speed must be positive")
+    if args.threads is not None and args.threads < 0:
+        raise ConfigError("--threads must be >= 0")
     if args.images is not None and not args.images.is_dir():
         raise ConfigError(f"--images {args.images} is not a directory")
 
@@ -95,7 +100,7 @@ def run(args: argparse.Namespace) -> int:
     cfg = DemoConfig(out=args.out, loss=args.loss, seed=args.seed, images=args.images, gui=args.gui,
                      http=args.http, quick=args.quick, progress=not args.quiet, burst=args.burst,
                      speed=args.speed, command_key=key, scenario=scenario, operator=args.operator,
-                     operators=args.operators, insecure_open=args.insecure_open)
+                     operators=args.operators, insecure_open=args.insecure_open, codec_threads=args.threads)
     result = run_demo(cfg, on_decision=say)
     m = result.metrics
     print(f"scenario {m['scenario']['name']}: {m['scenario']['loss_description']}; operator {m['operator']}")

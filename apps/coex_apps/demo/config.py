@@ -74,6 +74,10 @@ class DemoConfig:
     operators: Path | None = None
     #: with ``gui``: serve beyond loopback without sign-in
     insecure_open: bool = False
+    #: OpenJPEG threads for the dive's image coding (:func:`coex_plugins.imagery.codec.set_threads`;
+    #: the same images either way); ``None``: one per CPU, up to 4 (a dive alone on a machine).
+    #: A sweep runs one dive per core with 0
+    codec_threads: int | None = None
     #: the vehicle's geofence for survey commands (:class:`~coex_plugins.survey.plan.Geofence`
     #: keys); ``None``: the site with a margin of a quarter of its side, and
     #: :data:`MIN_ALTITUDE`

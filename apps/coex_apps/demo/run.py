@@ -7,6 +7,7 @@ import contextlib
 import functools
 import json
 import math
+import os
 import sys
 import time
 from collections.abc import Callable
@@ -497,4 +498,8 @@ def _stop_on_interrupt() -> None:
 
 def run_demo(config: DemoConfig, *, on_decision: Callable[[Decision], None] | None = None) -> DemoResult:
     """Run one demo dive (:class:`DiveRun`) and write its outputs to ``config.out``."""
+    from coex_plugins.imagery.codec import set_threads
+
+    threads = config.codec_threads
+    set_threads(min(os.cpu_count() or 1, 4) if threads is None else threads)
     return DiveRun(config, on_decision).run()
