@@ -171,7 +171,7 @@ class NmeaInput(Input):
     def __init__(self, options: Mapping[str, Any], context: InputContext) -> None:
         super().__init__(options, context)
         self.channels: dict[str, tuple[int, str]] = {}
-        for key, channel in self.config["channels"].items():
+        for key, channel in self.config.get("channels", {}).items():
             sentence, _, index = str(key).rpartition(".")
             self.channels[sentence] = (int(index), channel)
         self._serial: Any = None
