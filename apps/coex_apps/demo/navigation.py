@@ -41,7 +41,7 @@ from coex_plugins.navigation.usbl import gga_sentence, psimssb_sentence, tll_sen
 
 from .world import Track
 
-__all__ = ["BIAS_TIME", "WALK", "DeadReckoning", "UsblTracker", "track_positions"]
+__all__ = ["BIAS_TIME", "WALK", "DeadReckoning", "DiveNavigation", "UsblTracker", "track_positions"]
 
 FloatArray = npt.NDArray[np.float64]
 
@@ -258,3 +258,207 @@ class UsblTracker:
         n = len(self.log)
         return {"fixes": n, "wild": sum(1 for r in self.log if r[6]), "format": self.form,
                 "sigma": self.sigma, "outliers": self.outliers}
+
+
+# ================================================================================ the dive's hooks
+class DiveNavigation:
+    """Navigation in one dive (:class:`~.run.DiveRun`): each vehicle's :class:`DeadReckoning`,
+    the ship's :class:`UsblTracker` writing to topside's
+    :class:`~coex_plugins.navigation.usbl.UsblInput` over UDP, and topside's
+    :class:`~coex_plugins.navigation.Navigation` (the estimate; applied unless the dive runs with
+    ``--no-correction``). With ``drift = 0`` nothing is active: every hook gives back what it got,
+    no fix is drawn and no event is scheduled (today's dive)."""
+
+    def __init__(self, run: Any) -> None:
+        from coex import InputContext
+        from coex_plugins.navigation import Navigation, UsblInput
+
+        from .config import CAMERA, EPOCH, VEHICLE
+        from .world import rng_for
+
+        self.run = run
+        scn, cfg = run.scn, run.cfg
+        bottom = EPOCH + run.descent
+        self.models: dict[int, DeadReckoning] = {
+            VEHICLE: DeadReckoning(run.track, EPOCH, bottom, run.end, drift=scn.drift, heading_bias=scn.heading_bias,
+                                   seed_offset=scn.seed_offset, rng=rng_for(cfg.seed, 560))}
+        self.tracks: dict[int, Track] = {VEHICLE: run.track}
+        if run.fleet is not None:
+            self.models[CAMERA] = DeadReckoning(run.camera_track, EPOCH, bottom, run.end, drift=scn.drift,
+                                                heading_bias=scn.heading_bias, seed_offset=scn.seed_offset,
+                                                rng=rng_for(cfg.seed, 561))
+            self.tracks[CAMERA] = run.camera_track
+        self.camera_vehicle = CAMERA if run.fleet is not None else VEHICLE
+        self.active = scn.drift > 0.0
+        self.navigation = Navigation(apply=bool(getattr(cfg, "correction", True)))
+        for v in self.models:
+            self.navigation.estimator(v)
+        self.input: Any = None
+        self.tracker: UsblTracker | None = None
+        self.stats = {"fixes_read": 0}
+        if not self.active:
+            return
+        self.input = UsblInput({"udp": "127.0.0.1:0"}, InputContext(0.0, 0.0))
+        self.input.open()
+        address = self.input.udp_address()
+        self.tracker = UsblTracker(scn.ship, self.input.frame, sigma=scn.usbl_sigma, outliers=scn.usbl_outliers,
+                                   rng=rng_for(cfg.seed, 562), address=address)
+        t = EPOCH + scn.usbl_interval
+        while t < run.end:
+            run.at(t, self.usbl_round)
+            t += scn.usbl_interval
+
+    # ------------------------------------------------------------------ the vehicle's side
+    def model(self, vehicle: int) -> DeadReckoning:
+        return self.models.get(vehicle, self.models[min(self.models)])
+
+    def status(self, vehicle: int, status: Any, now: float) -> Any:
+        """The status the vehicle sends: its believed position and heading."""
+        if not self.active:
+            return status
+        from dataclasses import replace
+
+        dr = self.model(vehicle)
+        x, y = dr.believed(now, status.x, status.y)
+        return replace(status, x=round(x, 1), y=round(y, 1), heading=round(dr.heading(status.heading) % 359.9, 1))
+
+    def soundings(self, xyz: FloatArray, pings: npt.NDArray[np.int64], times: FloatArray) -> FloatArray:
+        """A batch of soundings as the vehicle places them: each ping turned by the heading bias
+        about the vehicle (the ping's centre) and moved by the error at its time (linear over the
+        batch)."""
+        if not self.active or len(xyz) == 0:
+            return xyz
+        dr = self.model(min(self.models))
+        _, inv = np.unique(pings, return_inverse=True)
+        n = np.bincount(inv).astype(float)
+        cx = (np.bincount(inv, xyz[:, 0]) / n)[inv]
+        cy = (np.bincount(inv, xyz[:, 1]) / n)[inv]
+        e0, e1 = dr.error(float(times[0])), dr.error(float(times[-1]))
+        span = float(times[-1] - times[0])
+        f = (times - times[0]) / span if span > 0 else np.ones(len(times))
+        c, s = math.cos(dr.psi), math.sin(dr.psi)
+        dx, dy = xyz[:, 0] - cx, xyz[:, 1] - cy
+        out = np.array(xyz, dtype=float, copy=True)
+        out[:, 0] = cx + c * dx + s * dy + e0[0] + f * (e1[0] - e0[0])
+        out[:, 1] = cy - s * dx + c * dy + e0[1] + f * (e1[1] - e0[1])
+        return out
+
+    def believed(self, vehicle: int, now: float, x: float, y: float) -> tuple[float, float]:
+        return self.model(vehicle).believed(now, x, y) if self.active else (x, y)
+
+    # ------------------------------------------------------------------ the ship's side
+    def usbl_round(self, now: float) -> None:
+        """The ship's USBL fixes every vehicle; topside reads the sentences from its UDP port."""
+        assert self.tracker is not None
+        for vehicle, track in self.tracks.items():
+            x, y, depth, _alt, _h = track.position(now)
+            self.tracker.send(now, vehicle, x, y, depth)
+        self.read_fixes(now)
+
+    def read_fixes(self, now: float) -> None:
+        if self.input is None:
+            return
+        for item in self.input.poll(now):
+            if self.navigation.fix(item) is not None:
+                self.stats["fixes_read"] += 1
+
+    def heard_status(self, vehicle: int, status: Any, now: float) -> Any:
+        """A status topside received: a point of the vehicle's track for the estimate; the
+        status in the corrected frame (what the operator follows)."""
+        if not self.active:
+            return status
+        from dataclasses import replace
+
+        from coex import unwrap
+
+        self.navigation.status(vehicle, status, now)
+        x, y = self.navigation.corrected(vehicle, unwrap(status.stamp, now), status.x, status.y)
+        return replace(status, x=round(x, 1), y=round(y, 1))
+
+    def views(self, receivers: dict[str, Any]) -> dict[str, Any]:
+        """The receivers as the operator (and the outputs) see them: in the corrected frame."""
+        if not self.active:
+            return receivers
+        from coex_plugins.navigation import CorrectedDetections, CorrectedImages, CorrectedMap, VehicleFrameSurveys
+
+        from .config import VEHICLE
+
+        nav, cam = self.navigation, self.camera_vehicle
+        out = dict(receivers)
+        out["bathymetry"] = CorrectedMap(receivers["bathymetry"], nav, VEHICLE)
+        if receivers.get("detections") is not None:
+            out["detections"] = CorrectedDetections(receivers["detections"], nav, VEHICLE)
+        out["imagery"] = CorrectedImages(receivers["imagery"], nav, cam)
+        out["survey"] = VehicleFrameSurveys(receivers["survey"], nav, cam)
+        return out
+
+    def close(self) -> None:
+        if self.tracker is not None:
+            self.tracker.close()
+        if self.input is not None:
+            self.input.close()
+
+    # ------------------------------------------------------------------ judged against the truth
+    def metrics(self, cars: Sequence[Any], candidates: Sequence[Any], camera_legs: Sequence[Any], end: float
+                ) -> dict[str, Any]:
+        """``metrics.json`` ``navigation``: ``drift_at_end_m`` (true less believed position at
+        the end of the dive, m) and per true target ``x``, ``y`` (truth), ``map_error_m`` (the
+        corrected topside map's estimate of it, the nearest car-like candidate within
+        :data:`MAP_MATCH` m, against the truth; null if none) and ``camera_pass_m`` (closest
+        distance of the camera's true track to its centre; null if the camera never went); and
+        how the estimate did against the truth."""
+        from .operator import MIN_SCORE
+
+        dr = self.model(self.camera_vehicle)
+        out: dict[str, Any] = {
+            "drift_at_end_m": round(float(np.hypot(*dr.error(end))), 2),
+            "correction": "on" if self.navigation.apply else "off",
+            "active": self.active,
+        }
+        targets = []
+        for car in cars:
+            near = [(math.hypot(c.x - car.x, c.y - car.y), c) for c in candidates if c.score >= MIN_SCORE]
+            best = min(near, key=lambda d: d[0], default=None)
+            targets.append({"x": car.x, "y": car.y,
+                            "map_error_m": round(best[0], 2) if best is not None and best[0] <= MAP_MATCH else None,
+                            "camera_pass_m": _closest(camera_legs, car.x, car.y)})
+        out["targets"] = targets
+        if self.active:
+            out["estimate"] = {str(v): self._judge(v) for v in self.models}
+            out["usbl"] = {**(self.tracker.summary() if self.tracker else {}), "fixes_read": self.stats["fixes_read"],
+                           "input_counts": dict(self.input.counts) if self.input is not None else {}}
+        return out
+
+    def _judge(self, vehicle: int) -> dict[str, Any]:
+        """The smoothed correction against the true error, at the times of the track topside
+        received; the fixes flagged wild against the truth."""
+        est = self.navigation.estimator(vehicle)
+        track = est.track()
+        sol = est.solution()
+        dr = self.model(vehicle)
+        if sol is None or not len(track):
+            return {"track_points": len(track), "fixes": est.fix_count}
+        truth = np.array([dr.error(float(t)) for t in track[:, 0]])
+        err = np.hypot(*(est.correction(track[:, 0]) - truth).T)
+        wild = {round(r[0], 3) for r in (self.tracker.log if self.tracker else []) if r[1] == vehicle and r[6]}
+        flagged = {round(float(r[0]), 3) for r in sol.fixes if r[4] > 0}
+        return {"track_points": int(len(track)), "fixes": est.fix_count,
+                "error_median_m": round(float(np.median(err)), 2), "error_p95_m": round(float(np.percentile(err, 95)), 2),
+                "error_max_m": round(float(err.max()), 2), "fix_sigma_m": round(sol.fix_sigma, 2),
+                "wild_fixes": len(wild), "flagged": len(flagged), "wild_flagged": len(wild & flagged)}
+
+
+#: a target's map estimate is the nearest car-like candidate within this distance (m)
+MAP_MATCH = 25.0
+
+
+def _closest(legs: Sequence[Any], x: float, y: float) -> float | None:
+    """Closest distance (m) of the camera legs (straight, true) to ``(x, y)``; None without legs."""
+    best = math.inf
+    for leg in legs:
+        (ax, ay), (bx, by) = leg.p0, leg.p1
+        dx, dy = bx - ax, by - ay
+        seg = dx * dx + dy * dy
+        f = 0.0 if seg == 0 else min(max(((x - ax) * dx + (y - ay) * dy) / seg, 0.0), 1.0)
+        best = min(best, math.hypot(ax + f * dx - x, ay + f * dy - y))
+    return None if best == math.inf else round(best, 2)

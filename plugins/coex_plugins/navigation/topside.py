@@ -114,9 +114,10 @@ class Navigation:
                         ) -> tuple[FloatArray, float, tuple[float, float]] | None:
         """A bathymetry receiver's level in the corrected frame: ``(grid, cell, (x0, y0))``,
         row 0 south, NaN where nothing is held, or None. Each cell is taken from the received
-        level where the correction of its subgrid (at the subgrid's stamp) puts it: nearest cell,
-        so depths are never blended (a subgrid moves whole; two subgrids whose corrections
-        differ may leave a one-cell seam). Cached until the level or the estimate changes."""
+        level where the correction of its subgrid (at the subgrid's stamp) puts it, bilinear
+        between the four received cells around that point (the nearest where one of them is
+        empty), so a subgrid moves whole by a fraction of a cell and two neighbours whose
+        corrections differ meet without a gap. Cached until the level or the estimate changes."""
         try:
             p = receiver.level_product(level)
         except Exception:
@@ -176,11 +177,21 @@ class Navigation:
         # source's correction found by two fixed-point steps
         c = field(gx + fill[0], gy + fill[1])
         c = field(gx + c[..., 0], gy + c[..., 1])
-        sj = np.floor((gx + c[..., 0] - x0) / cell).astype(np.int64)
-        si = np.floor((gy + c[..., 1] - y0) / cell).astype(np.int64)
-        valid = (sj >= 0) & (si >= 0) & (sj < nx) & (si < ny)
-        out = np.full((oy, ox), np.nan)
-        out[valid] = z[si[valid], sj[valid]]
+        # bilinear between the four source cells around that point (a subgrid lands where its
+        # correction puts it, to a fraction of a cell); nearest where one of them is empty
+        u = (gx + c[..., 0] - x0) / cell - 0.5
+        v = (gy + c[..., 1] - y0) / cell - 0.5
+        j0, i0 = np.floor(u).astype(np.int64), np.floor(v).astype(np.int64)
+        fu, fv = u - j0, v - i0
+        zp = np.pad(z, 1, constant_values=np.nan)  # index + 1: one empty cell all round
+
+        def at(i: npt.NDArray[np.int64], j: npt.NDArray[np.int64]) -> FloatArray:
+            return zp[np.clip(i + 1, 0, ny + 1), np.clip(j + 1, 0, nx + 1)]
+
+        z00, z01, z10, z11 = at(i0, j0), at(i0, j0 + 1), at(i0 + 1, j0), at(i0 + 1, j0 + 1)
+        out = (z00 * (1 - fu) * (1 - fv) + z01 * fu * (1 - fv) + z10 * (1 - fu) * fv + z11 * fu * fv)
+        near = at(np.where(fv < 0.5, i0, i0 + 1), np.where(fu < 0.5, j0, j0 + 1))
+        out = np.where(np.isfinite(out), out, near)
         return out, cell, (X0, Y0)
 
     # ------------------------------------------------------------------ what is shown
@@ -242,6 +253,52 @@ class CorrectedMap(_View):
         grid, cell, (x0, y0) = got
         return Product(p.kind, p.key, p.version, grid, {**p.meta, "x0": x0, "y0": y0, "cell_size": cell,
                                                          "corrected": self._nav.apply})
+
+    def _corrected(self, level: int) -> tuple[FloatArray, float, tuple[float, float]] | None:
+        """The corrected level when it is at the level's own cells (not a decimated overview)."""
+        if not self._nav.apply:
+            return None
+        got = self._nav.corrected_level(self._rx, level, self._vehicle)
+        geometry = self._rx.geometry(level)
+        if got is None or geometry is None or abs(got[1] - float(geometry[0])) > 1e-9:
+            return None
+        return got
+
+    def level_summary(self, level: int) -> dict[str, Any] | None:
+        """The receiver's summary with the extent (subgrid indices) of the corrected level."""
+        summary: dict[str, Any] | None = self._rx.level_summary(level)
+        got = self._corrected(level)
+        if summary is None or got is None:
+            return summary
+        grid, cell, (x0, y0) = got
+        rows, cols = np.nonzero(np.isfinite(grid))
+        if not len(rows):
+            return summary
+        size = cell * int(summary["side"])
+        extent = (math.floor((x0 + cols.min() * cell) / size + 1e-9), math.floor((y0 + rows.min() * cell) / size + 1e-9),
+                  math.ceil((x0 + (cols.max() + 1) * cell) / size - 1e-9),
+                  math.ceil((y0 + (rows.max() + 1) * cell) / size - 1e-9))
+        return {**summary, "extent": extent}
+
+    def window(self, level: int, x_min: float, y_min: float, x_max: float, y_max: float,
+               max_cells: int | None = None) -> tuple[FloatArray, tuple[float, float, float]]:
+        """A part of the corrected level at its own cells (the receiver's :meth:`window` when the
+        correction is off, or the window would need decimating: the raw level then)."""
+        got = self._corrected(level)
+        if got is not None:
+            grid, cell, (x0, y0) = got
+            c0, r0 = round((x_min - x0) / cell), round((y_min - y0) / cell)
+            w, h = max(round((x_max - x_min) / cell), 0), max(round((y_max - y_min) / cell), 0)
+            if max_cells is None or w * h <= max_cells:
+                out = np.full((h, w), np.nan)
+                a, b = max(c0, 0), min(c0 + w, grid.shape[1])
+                c, d = max(r0, 0), min(r0 + h, grid.shape[0])
+                if a < b and c < d:
+                    out[c - r0:d - r0, a - c0:b - c0] = grid[c:d, a:b]
+                return out, (x0 + c0 * cell, y0 + r0 * cell, cell)
+        if max_cells is None:
+            return self._rx.window(level, x_min, y_min, x_max, y_max)  # type: ignore[no-any-return]
+        return self._rx.window(level, x_min, y_min, x_max, y_max, max_cells)  # type: ignore[no-any-return]
 
     def request_area(self, level: int, x_min: float, y_min: float, x_max: float, y_max: float,
                      *args: Any, **kw: Any) -> Any:

@@ -160,6 +160,13 @@ class UsblInput(NmeaInput):
         #: fixes given, lost or void targets, fixes of other targets
         self.counts.update(fixes=0, void=0, other_target=0)
 
+    def udp_address(self) -> tuple[str, int] | None:
+        """The address the UDP port is bound to once open (a ``udp`` of port 0 gets a free one)."""
+        if self._udp is None:
+            return None
+        host, port = self._udp.getsockname()[:2]
+        return str(host), int(port)
+
     def _fix(self, items: list[Item], t_day: float | None, now: float, x: float, y: float, target: str,
              depth: float | None = None, accuracy: float | None = None) -> None:
         if self._target and _target_key(target) != self._target:
