@@ -88,7 +88,7 @@ class DeadReckoning:
         self.t0, self.bottom = float(t0), float(bottom)
         self.drift = float(drift)
         self.psi = math.radians(heading_bias)
-        n = int(math.ceil((end + 600.0 - self.bottom) / STEP)) + 2
+        n = math.ceil((end + 600.0 - self.bottom) / STEP) + 2
         #: the grid after the bottom: times, the bias (n x 2), the random walk's unit draws
         self.times = self.bottom + STEP * np.arange(n)
         sd = self.drift / math.sqrt(2.0)
@@ -379,7 +379,12 @@ class DiveNavigation:
         """The receivers as the operator (and the outputs) see them: in the corrected frame."""
         if not self.active:
             return receivers
-        from coex_plugins.navigation import CorrectedDetections, CorrectedImages, CorrectedMap, VehicleFrameSurveys
+        from coex_plugins.navigation import (
+            CorrectedDetections,
+            CorrectedImages,
+            CorrectedMap,
+            VehicleFrameSurveys,
+        )
 
         from .config import VEHICLE
 
@@ -442,7 +447,7 @@ class DiveNavigation:
         err = np.hypot(*(est.correction(track[:, 0]) - truth).T)
         wild = {round(r[0], 3) for r in (self.tracker.log if self.tracker else []) if r[1] == vehicle and r[6]}
         flagged = {round(float(r[0]), 3) for r in sol.fixes if r[4] > 0}
-        return {"track_points": int(len(track)), "fixes": est.fix_count,
+        return {"track_points": len(track), "fixes": est.fix_count,
                 "error_median_m": round(float(np.median(err)), 2), "error_p95_m": round(float(np.percentile(err, 95)), 2),
                 "error_max_m": round(float(err.max()), 2), "fix_sigma_m": round(sol.fix_sigma, 2),
                 "wild_fixes": len(wild), "flagged": len(flagged), "wild_flagged": len(wild & flagged)}

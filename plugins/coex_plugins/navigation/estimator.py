@@ -213,8 +213,9 @@ class DriftEstimator:
             d = np.abs((h - bearing + 180.0) % 360.0 - 180.0)
             return np.where(np.isfinite(h), d, 0.0)
 
-        straight = (moved < 2.0) | ((off(heading[a]) <= cfg.max_turn) & (off(heading[b]) <= cfg.max_turn))
-        ok |= inside & (gap <= cfg.max_gap) & straight
+        straight = (off(heading[a]) <= cfg.max_turn) & (off(heading[b]) <= cfg.max_turn)
+        still = moved < 2.0  # holding: the track between is known however long the gap (within an hour)
+        ok |= inside & (((gap <= cfg.max_gap) & (straight | still)) | (still & (gap <= 3600.0)))
         ok |= (j == n) & (ft - tt[-1] <= cfg.extrapolate)
         ok |= (j == 0) & (tt[0] - ft <= cfg.extrapolate) & (tt[0] - ft >= 0)
         return ok

@@ -155,7 +155,7 @@ class Navigation:
         lut[keys[:, 1] - ky0, keys[:, 0] - kx0] = corr
         fill = np.nanmean(corr, axis=0) if np.isfinite(corr).any() else np.zeros(2)
         lim = float(np.nanmax(np.abs(corr))) if np.isfinite(corr).any() else 0.0
-        pad = int(math.ceil(lim / cell)) + 1
+        pad = math.ceil(lim / cell) + 1
         ny, nx = z.shape
         oy, ox = ny + 2 * pad, nx + 2 * pad
         X0, Y0 = x0 - pad * cell, y0 - pad * cell
@@ -253,6 +253,11 @@ class CorrectedMap(_View):
         grid, cell, (x0, y0) = got
         return Product(p.kind, p.key, p.version, grid, {**p.meta, "x0": x0, "y0": y0, "cell_size": cell,
                                                          "corrected": self._nav.apply})
+
+    def level_version(self, level: int) -> int:
+        """Changes when the level or the estimate does (a corrected level moves with the estimate)."""
+        est = self._nav.estimators.get(self._vehicle)
+        return int(self._rx.level_version(level)) * 1_000_000 + (est.version % 1_000_000 if est is not None else 0)
 
     def _corrected(self, level: int) -> tuple[FloatArray, float, tuple[float, float]] | None:
         """The corrected level when it is at the level's own cells (not a decimated overview)."""
