@@ -405,7 +405,11 @@ function drawFleet() {
 }
 function drawTrack() {
   const tr = S.vehicle.track;
-  if (tr.length > 1) {
+  // with topside's drift correction applied the corrected track is drawn (drawNavigation) and the
+  // vehicle's arrow stands at its newest corrected point
+  const N = S.navigation, ct = N && N.enabled && N.applied && N.corrected_track && N.corrected_track.length
+    && $("#show-usbl").checked ? N.corrected_track : null;
+  if (tr.length > 1 && !ct) {
     ctx.strokeStyle = "rgba(255,255,255,0.75)"; ctx.lineWidth = 1.5;
     ctx.beginPath();
     tr.forEach((p, i) => { const [x, y] = w2s(p[1], p[2]); if (i) ctx.lineTo(x, y); else ctx.moveTo(x, y); });
@@ -413,7 +417,8 @@ function drawTrack() {
   }
   const st = S.vehicle.status;
   if (st) {
-    const [x, y] = w2s(st.x, st.y), a = (st.heading * Math.PI) / 180;
+    const last = ct ? ct[ct.length - 1] : null;
+    const [x, y] = last ? w2s(last[1], last[2]) : w2s(st.x, st.y), a = (st.heading * Math.PI) / 180;
     ctx.save(); ctx.translate(x, y); ctx.rotate(a);
     ctx.fillStyle = "#f28f3b"; ctx.strokeStyle = "#000";
     ctx.beginPath(); ctx.moveTo(0, -11); ctx.lineTo(7, 8); ctx.lineTo(-7, 8); ctx.closePath();
