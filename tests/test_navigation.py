@@ -13,7 +13,14 @@ import numpy as np
 import pytest
 
 from coex import ConfigError, InputContext, Nav, PositionAid
-from coex.messages import AckStatus, CommandAck, PositionFix, PositionSource, VehicleMode, VehicleStatus
+from coex.messages import (
+    AckStatus,
+    CommandAck,
+    PositionFix,
+    PositionSource,
+    VehicleMode,
+    VehicleStatus,
+)
 from coex.wire import decode, encode
 from coex_plugins.navigation import (
     CorrectedMap,
@@ -84,7 +91,7 @@ def test_the_estimate_follows_the_drift_and_rejects_wild_fixes() -> None:
     """With fixes of 4 m per axis every 10 s and a few wild ones 30-120 m off, the smoothed
     correction stays within about a metre of the true drift over the whole dive (while the drift
     itself grows to several metres), and the wild fixes are the ones flagged."""
-    est, t, xy, err, wild = _fed(3)
+    est, t, _xy, err, wild = _fed(3)
     c = est.correction(t)
     miss = np.hypot(*(c - err).T)
     assert np.hypot(*err[-1]) > 3.0  # the drift is real ...
@@ -127,7 +134,7 @@ def test_no_fix_or_no_track_is_no_correction() -> None:
 
 
 def test_to_vehicle_adds_the_correction() -> None:
-    est, t, xy, err, _ = _fed(7)
+    est, t, _xy, _err, _ = _fed(7)
     end = float(t[-1])
     vx, vy = est.to_vehicle(100.0, 100.0, end)
     c = est.correction(end)

@@ -47,8 +47,10 @@ class UsblFeed:
     def poll(self, now: float, states: Sequence[Any]) -> int:
         """Read the fixes that arrived; the number taken."""
         taken = 0
+        from coex import Nav
+
         for item in self.input.poll(now):
-            if self.navigation.fix(item) is not None:
+            if isinstance(item, Nav) and self.navigation.fix(item) is not None:
                 taken += 1
         if taken:
             self.fixes += taken

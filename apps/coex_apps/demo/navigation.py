@@ -127,7 +127,7 @@ class DeadReckoning:
         k = min(k, len(self.times) - 1)
         if k <= self._done:
             return
-        pos = track_positions(self.track, self.times[self._done:k + 1])
+        pos = track_positions(self.track, np.asarray(self.times[self._done:k + 1], dtype=np.float64))
         self._err[self._done + 1:k + 1] = self._err[self._done] + np.cumsum(
             self._increments(self._done, pos), axis=0)
         self._done = k
@@ -143,7 +143,7 @@ class DeadReckoning:
         k = min(int((t - self.bottom) // STEP), len(self.times) - 2)
         self._integrate(k)
         pos = track_positions(self.track, np.array([self.times[k], t]))
-        return self._err[k] + self._increments(k, pos)[0]
+        return np.asarray(self._err[k] + self._increments(k, pos)[0], dtype=np.float64)
 
     def believed(self, t: float, x: float, y: float) -> tuple[float, float]:
         """Where the vehicle believes it is at ``t`` when truly at ``(x, y)``."""
@@ -234,7 +234,7 @@ class UsblTracker:
         lat, lon = self.frame.geodetic(fx, fy)
         if self.form == "psimssb":
             e, n = self.frame.to_utm(fx, fy)
-            return psimssb_sentence(t, target, e, n, depth, zone=self.frame.utm_zone)
+            return psimssb_sentence(t, target, e, n, depth)
         if self.form == "gga":
             return gga_sentence(t, lat, lon, -depth)
         return tll_sentence(t, target, lat, lon)

@@ -127,7 +127,7 @@ class NmeaInput(Input):
     """NMEA-0183 over serial and / or UDP (see the module docstring)."""
 
     name = "nmea"
-    feeds = ("status", "timeseries")
+    feeds: ClassVar[tuple[str, ...]] = ("status", "timeseries")
     options: ClassVar[Mapping[str, tuple[Any, str]]] = {
         "serial": ("", "pyserial port or URL: /dev/ttyUSB2, socket://host:port ..."),
         "baud": (4800, "baud rate of the serial port"),

@@ -170,7 +170,7 @@ class DriftEstimator:
         if sol is None:
             return np.full(times.shape, math.inf)
         sd = np.sqrt(np.maximum(sol.covs[:, 0, 0], sol.covs[:, 1, 1]))
-        return np.interp(times, sol.times, sd)
+        return np.asarray(np.interp(times, sol.times, sd), dtype=np.float64)
 
     def predict(self, t: float, dx: float, dy: float) -> FloatArray:
         """The correction expected after the vehicle, from time ``t``, moves ``(dx, dy)`` metres
@@ -183,7 +183,7 @@ class DriftEstimator:
         i = int(np.clip(np.searchsorted(sol.times, t), 0, len(sol.times) - 1))
         bx, by, psi = sol.states[i, 2:]
         d = math.hypot(dx, dy)
-        return c + np.array([bx * d + psi * dy, by * d - psi * dx])
+        return np.asarray(c + np.array([bx * d + psi * dy, by * d - psi * dx]), dtype=np.float64)
 
     def to_vehicle(self, x: float, y: float, t: float, start: tuple[float, float] | None = None
                    ) -> tuple[float, float]:

@@ -115,7 +115,7 @@ class UsblInput(NmeaInput):
     target number or transponder) and ``accuracy`` (m, when said)."""
 
     name = "usbl"
-    feeds = ()
+    feeds: ClassVar[tuple[str, ...]] = ()
     options: ClassVar[Mapping[str, tuple[Any, str]]] = {
         "serial": ("", "pyserial port or URL of the tracking system's output: /dev/ttyUSB3, socket://host:port ..."),
         "baud": (4800, "baud rate of the serial port"),
@@ -231,18 +231,19 @@ class UsblInput(NmeaInput):
                 self.counts["void"] += 1
                 return True
             coords, orient = f[5].strip().upper(), f[6].strip().upper()
-            a, b, depth, accuracy = _num(f, 8), _num(f, 9), _num(f, 10), _num(f, 11)
-            if a is None or b is None:
+            east, north = _num(f, 8), _num(f, 9)
+            below, accuracy = _num(f, 10), _num(f, 11)
+            if east is None or north is None:
                 self.counts["void"] += 1
                 return True
             if coords == "U":
-                x, y = self.frame.from_utm(a, b)
+                x, y = self.frame.from_utm(east, north)
             elif coords == "C" and orient == "N" and self.ship is not None:
-                x, y = self.ship[0] + a, self.ship[1] + b
+                x, y = self.ship[0] + east, self.ship[1] + north
             else:
                 raise ValueError(f"PSIMSSB coordinates {coords}{orient} are not read (U+E, or C+N with the "
                                  "ship's GGA)")
-            self._fix(items, _seconds_of_day(f[1]), now, x, y, f[2], depth=depth, accuracy=accuracy)
+            self._fix(items, _seconds_of_day(f[1]), now, x, y, f[2], depth=below, accuracy=accuracy)
         else:
             return False
         return True
