@@ -18,7 +18,7 @@ from coex_apps.demo.scenario import scenario_from_dict
 class _NoNavigation(DiveNavigation):
     """No navigation code at all in the dive: every hook gives back what it got."""
 
-    def __init__(self, run: Any) -> None:  # noqa: D107 (no model, no fix, no estimate)
+    def __init__(self, run: Any) -> None:
         from coex_apps.demo.config import VEHICLE
 
         self.active = False

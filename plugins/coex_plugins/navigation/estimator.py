@@ -172,18 +172,22 @@ class DriftEstimator:
         sd = np.sqrt(np.maximum(sol.covs[:, 0, 0], sol.covs[:, 1, 1]))
         return np.asarray(np.interp(times, sol.times, sd), dtype=np.float64)
 
-    def predict(self, t: float, dx: float, dy: float) -> FloatArray:
-        """The correction expected after the vehicle, from time ``t``, moves ``(dx, dy)`` metres
-        in a straight line: the correction at ``t`` plus what the estimated bias and heading bias
-        add over that leg."""
-        c = self.correction(t)
+    def drift_along(self, t: float, dx: float, dy: float) -> FloatArray:
+        """What the estimated bias and heading bias (at ``t``) add to the correction while the
+        vehicle moves ``(dx, dy)`` metres in a straight line (zeros before any solution)."""
         sol = self.solution()
         if sol is None:
-            return c
+            return np.zeros(2)
         i = int(np.clip(np.searchsorted(sol.times, t), 0, len(sol.times) - 1))
         bx, by, psi = sol.states[i, 2:]
         d = math.hypot(dx, dy)
-        return np.asarray(c + np.array([bx * d + psi * dy, by * d - psi * dx]), dtype=np.float64)
+        return np.array([bx * d + psi * dy, by * d - psi * dx], dtype=np.float64)
+
+    def predict(self, t: float, dx: float, dy: float) -> FloatArray:
+        """The correction expected after the vehicle, from time ``t``, moves ``(dx, dy)`` metres
+        in a straight line: the correction at ``t`` plus what the estimated bias and heading bias
+        add over that leg (:meth:`drift_along`)."""
+        return np.asarray(self.correction(t) + self.drift_along(t, dx, dy), dtype=np.float64)
 
     def to_vehicle(self, x: float, y: float, t: float, start: tuple[float, float] | None = None
                    ) -> tuple[float, float]:

@@ -18,6 +18,7 @@ put back into the vehicle's frame. They hold no data of their own.
 
 from __future__ import annotations
 
+import itertools
 import math
 from collections.abc import Mapping, Sequence
 from dataclasses import replace
@@ -350,21 +351,47 @@ class VehicleFrameSurveys(_View):
     own: each point moved by the correction the vehicle will have when it gets there (from the end
     of the survey queued before it, or from where it is: :attr:`position`, corrected frame)."""
 
-    #: where the vehicle sets off from for the next survey (corrected frame; None: unknown)
+    #: where the vehicle sets off from for the next survey (corrected frame; None: where it was
+    #: last heard of) and the correction predicted there (None: the correction now)
     position: tuple[float, float] | None = None
+    carry: FloatArray | None = None
+    #: when the surveys queued so far should be flown (1 m/s between them, their own speed along):
+    #: after that the vehicle is where it was last heard of, with the correction of then
+    busy_until: float = -math.inf
 
     def request(self, kind: Any, x: float, y: float, now: float, *, points: Sequence[tuple[float, float]] = (),
                 **kw: Any) -> SurveyCommand:
+        nav, vid = self._nav, self._vehicle
+        est = nav.estimators.get(vid)
+        if not nav.apply or est is None:
+            return self._rx.request(kind, x, y, now, points=points, **kw)  # type: ignore[no-any-return]
+        if now > self.busy_until:
+            self.position, self.carry = None, None
         start = self.position
-        vx, vy = self._nav.to_vehicle(self._vehicle, x, y, now, start)
-        pts = [self._nav.to_vehicle(self._vehicle, a, b, now, start) for a, b in points]
-        cmd: SurveyCommand = self._rx.request(kind, vx, vy, now, points=pts, **kw)
-        end = (x, y)
+        if start is None:
+            track = est.track()
+            if len(track):
+                start = nav.corrected(vid, float(track[-1, 0]), float(track[-1, 1]), float(track[-1, 2]))
+        c = np.asarray(est.correction(now) if self.carry is None else self.carry, dtype=float)
+        if start is not None:  # what the estimated biases add on the way there
+            c = c + est.drift_along(now, x - start[0], y - start[1])
+        path = [(x, y)]
         if kw.get("length") is not None and kw.get("heading") is not None:
             h = math.radians(float(kw["heading"]))
-            end = (x + float(kw["length"]) * math.sin(h), y + float(kw["length"]) * math.cos(h))
-        elif points:
-            end = tuple(points[-1])  # type: ignore[assignment]
+            path.append((x + float(kw["length"]) * math.sin(h), y + float(kw["length"]) * math.cos(h)))
+        pts = []
+        ends = np.array(c)
+        for a, b in points:  # each further waypoint: the correction carried along the path
+            prev = path[-1]
+            ends = ends + est.drift_along(now, a - prev[0], b - prev[1])
+            pts.append((a + float(ends[0]), b + float(ends[1])))
+            path.append((a, b))
+        cmd: SurveyCommand = self._rx.request(kind, x + float(c[0]), y + float(c[1]), now, points=pts, **kw)
         if kw.get("append"):
-            self.position = end
+            if len(path) > 1 and not points:
+                ends = c + est.drift_along(now, path[-1][0] - x, path[-1][1] - y)
+            self.position, self.carry = path[-1], ends
+            along = sum(math.hypot(b[0] - a[0], b[1] - a[1]) for a, b in itertools.pairwise(path))
+            transit = 0.0 if start is None else math.hypot(x - start[0], y - start[1])
+            self.busy_until = max(self.busy_until, now) + transit / 1.0 + along / max(float(kw.get("speed") or 1.0), 0.1)
         return replace(cmd)
