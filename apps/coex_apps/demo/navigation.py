@@ -447,10 +447,12 @@ class DiveNavigation:
         err = np.hypot(*(est.correction(track[:, 0]) - truth).T)
         wild = {round(r[0], 3) for r in (self.tracker.log if self.tracker else []) if r[1] == vehicle and r[6]}
         flagged = {round(float(r[0]), 3) for r in sol.fixes if r[4] > 0}
+        used = {round(float(r[0]), 3) for r in sol.fixes if r[3] > 0}
         return {"track_points": len(track), "fixes": est.fix_count,
                 "error_median_m": round(float(np.median(err)), 2), "error_p95_m": round(float(np.percentile(err, 95)), 2),
                 "error_max_m": round(float(err.max()), 2), "fix_sigma_m": round(sol.fix_sigma, 2),
-                "wild_fixes": len(wild), "flagged": len(flagged), "wild_flagged": len(wild & flagged)}
+                "wild_fixes": len(wild), "flagged": len(flagged), "wild_flagged": len(wild & flagged),
+                "wild_used": len(wild & used), "fixes_used": len(used)}
 
 
 #: a target's map estimate is the nearest car-like candidate within this distance (m)
