@@ -400,6 +400,8 @@ class DiveRun:
         """Run the dive to its end on the simulated clock, then judge it and write the outputs."""
         cfg, clock, net, end = self.cfg, self.clock, self.net, self.end
         server = _start_gui(cfg, self.topside, self.log) if cfg.gui else None
+        if server is not None and self.navsim.active:  # the console shows and applies topside's navigation
+            server.hub.state.navigation = self.navsim.navigation
         lock = server.hub.lock if server is not None else contextlib.nullcontext()
         progress = _Progress(self.scn.duration, cfg.progress)
         loop = self.loop
