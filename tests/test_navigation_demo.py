@@ -14,7 +14,6 @@ from coex_apps.demo import run as run_module
 from coex_apps.demo.navigation import DiveNavigation
 from coex_apps.demo.scenario import scenario_from_dict
 
-
 #: a small, short dive (a 64 m site, one car, 25 minutes): the navigation's every path, quickly
 SMALL: dict[str, Any] = {"name": "small", "area": 64.0, "duration": 1500.0, "seafloor": {"random_targets": 1}}
 
