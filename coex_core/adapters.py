@@ -27,7 +27,7 @@ from .errors import ConfigError
 from .messages import SurveyKind, SurveyReason, SurveyState
 from .state import persistent
 
-__all__ = ["FEEDS", "Adapter", "Autonomy", "Image", "Input", "InputContext", "Item", "Nav", "Points", "Samples",
+__all__ = ["FEEDS", "Adapter", "Autonomy", "Image", "Input", "InputContext", "Item", "Nav", "Points", "PositionAid", "Samples",
            "SurveyPlan", "SurveyReport", "adapter_check", "adapter_problems", "check_autonomy_options", "check_options"]
 
 #: what an input may feed: the bathymetry map, the image sender, time-series channels, the
@@ -278,6 +278,22 @@ class SurveyReport:
 
 
 
+@persistent("survey.PositionAid")
+@dataclass(frozen=True)
+class PositionAid:
+    """Where topside says the vehicle truly was (a ``PositionFix`` command, spec type 15), for
+    an autonomy whose navigation accepts aiding: ``time`` (Unix seconds), ``x``/``y`` local metres
+    east/north of the origin, ``sigma`` the 1-sigma horizontal error (m), ``depth`` (None:
+    unknown), ``source`` ``"usbl"``, ``"estimate"`` or ``"other"``."""
+
+    time: float
+    x: float
+    y: float
+    sigma: float
+    depth: float | None = None
+    source: str = "usbl"
+
+
 class Autonomy(Adapter, abc.ABC):
     """An autonomy output: the bridge from accepted survey commands to the vehicle's own autonomy
     (a MAVLink autopilot's mission, an LCM planner, the MOOS-IvP helm, ROS, or just a log).
@@ -303,6 +319,14 @@ class Autonomy(Adapter, abc.ABC):
         may still be flying it). Follow its progress again **without** submitting it anew
         (which would start it over); True when the output can. Optional: the default, False,
         makes the daemon log that the survey's progress is no longer followed."""
+        return False
+
+    def aid(self, fix: Any, now: float) -> bool:
+        """Give the vehicle's navigation a position fix (a :class:`PositionAid`): the MAVLink
+        output sends it as ``GPS_INPUT``, the MOOS output posts it for the vehicle's navigation,
+        the ROS output publishes a ``PoseWithCovarianceStamped`` (``docs/autonomy.md``). True when
+        the output passed it on. Optional: the default, False, is an autonomy that takes no
+        aiding (the daemon logs it once)."""
         return False
 
     def position(self, now: float) -> tuple[float, float] | None:

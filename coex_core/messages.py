@@ -76,6 +76,9 @@ __all__ = [
     # detections
     "DetectionSource",
     "Detection",
+    # navigation aiding (issue 56)
+    "PositionSource",
+    "PositionFix",
 ]
 
 
@@ -796,6 +799,33 @@ class Detection(Message):
     orientation: float | None = None
     footprint: int | None = None
     image_id: int | None = None
+
+
+class PositionSource(enum.IntEnum):
+    """Where a :class:`PositionFix` comes from."""
+
+    #: one fix of the ship's USBL, as measured
+    USBL = 0
+    #: topside's estimate (the USBL fixes fused with the vehicle's own track, docs/navigation.md)
+    ESTIMATE = 1
+    #: another positioning system (LBL, a surface fix)
+    OTHER = 2
+
+
+@dataclass(frozen=True, slots=True)
+class PositionFix(Message):
+    """Topside command: where the vehicle truly was at ``stamp`` (metres east/north of the
+    origin, ``depth`` optional), with its 1-sigma horizontal uncertainty ``sigma`` (m). A vehicle
+    that accepts aiding gives it to its navigation (which resets or fuses its estimate); it answers
+    with a :class:`CommandAck` (REJECTED: it does not take aiding)."""
+
+    command_id: int
+    source: PositionSource
+    stamp: int
+    x: float
+    y: float
+    sigma: float
+    depth: float | None = None
 
 
 def _with_command_id() -> frozenset[type[Message]]:

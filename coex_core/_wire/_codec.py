@@ -16,7 +16,7 @@ import construct as cs
 
 from ..errors import DecodeError, EncodeError
 from ..messages import Frame, FrameHeader, Message, Opaque
-from . import bathymetry, core, detections, imagery, survey, timeseries  # noqa: F401  (they register their messages)
+from . import bathymetry, core, detections, imagery, navigation, survey, timeseries  # noqa: F401  (they register their messages)
 from ._primitives import Bool, Bounded, OutOfRange, UInt
 from ._registry import (
     MAX_MESSAGE_BYTES,

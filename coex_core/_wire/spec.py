@@ -400,7 +400,6 @@ def _invalid_cases() -> list[tuple[str, str, bytes, str]]:
         ("empty_input", "message", b"", "empty"),
         ("end_marker_alone", "message", b"\x00", "unknown message type"),
         ("unassigned_builtin_id", "message", b"\x3f\x00", "unknown message type"),
-        ("unassigned_core_id", "message", b"\x0f\x00", "unknown message type"),
         ("unassigned_bathymetry_id", "message", b"\x14\x00", "unknown message type"),
         ("unassigned_imagery_id", "message", b"\x28\x00", "unknown message type"),
         ("unassigned_timeseries_id", "message", b"\x34\x00", "unknown message type"),

@@ -186,6 +186,8 @@ class TopsideApp:
         self.stop = threading.Event()
         #: the products on ROS topics (``[ros]``), or None
         self.ros: Any = None
+        #: the ship's USBL and topside's drift estimate (``[usbl]``, :mod:`.usbl`), or None
+        self.usbl: Any = None
         self._last_status: dict[int, Any] = {}
         self._commands_seen = self._commands_version()
         self.runner = Runner(node, self.transports, RealClock(clock), store=store,
@@ -222,6 +224,8 @@ class TopsideApp:
         from coex import ResilientTransport
 
         self.hub.pump(self.node, now)
+        if self.usbl is not None:
+            self.usbl.poll(now, self._states())
         for link, tr in self.transports.items():
             self._modem_status(link, tr)
             if isinstance(tr, ResilientTransport):
@@ -277,6 +281,8 @@ class TopsideApp:
         self.server.close()
         if self.ros is not None:
             self.ros.close()
+        if self.usbl is not None:
+            self.usbl.close()
         for tr in self.transports.values():
             tr.close()
         if self.store is not None:
@@ -598,6 +604,15 @@ def topside_app(cfg: DeployConfig, host: str = "127.0.0.1", port: int = 8080, *,
             nstore.close()
         raise
     app = TopsideApp(node, links, hub, server, clock, store=nstore)
+    if cfg.usbl is not None:
+        from .usbl import UsblFeed
+
+        try:
+            app.usbl = UsblFeed(cfg, clock).attach(app._states())
+            app.usbl.open()
+        except BaseException:
+            app.close()
+            raise
     if cfg.ros is not None:
         from .ros import RosProducts
 

@@ -60,6 +60,9 @@ def register(sub: Any) -> None:
                    help="threads for the image coding (OpenJPEG; the same images either way; default: one per "
                         "CPU, up to 4; 0: in the dive's own thread)")
     p.add_argument("--quiet", action="store_true", help="no progress bar and no decision log")
+    p.add_argument("--no-correction", dest="correction", action="store_false",
+                   help="topside estimates the vehicle's drift from the USBL fixes but does not apply it: the map, "
+                        "images and survey commands stay in the vehicle's drifting frame (docs/navigation.md)")
     p.set_defaults(func=run)
 
 
@@ -100,7 +103,8 @@ def run(args: argparse.Namespace) -> int:
     cfg = DemoConfig(out=args.out, loss=args.loss, seed=args.seed, images=args.images, gui=args.gui,
                      http=args.http, quick=args.quick, progress=not args.quiet, burst=args.burst,
                      speed=args.speed, command_key=key, scenario=scenario, operator=args.operator,
-                     operators=args.operators, insecure_open=args.insecure_open, codec_threads=args.threads)
+                     operators=args.operators, insecure_open=args.insecure_open, codec_threads=args.threads,
+                     correction=args.correction)
     result = run_demo(cfg, on_decision=say)
     m = result.metrics
     print(f"scenario {m['scenario']['name']}: {m['scenario']['loss_description']}; operator {m['operator']}")

@@ -82,6 +82,10 @@ class DemoConfig:
     #: keys); ``None``: the site with a margin of a quarter of its side, and
     #: :data:`MIN_ALTITUDE`
     geofence: dict[str, Any] | None = None
+    #: issue 56: topside applies its estimate of the vehicle's drift (the map, images and
+    #: detections corrected, survey commands put into the vehicle's frame); False
+    #: (``--no-correction``) keeps estimating but shows and sends everything in the vehicle's frame
+    correction: bool = True
 
     def resolved(self) -> tuple[Scenario, str]:
         """The scenario with ``--quick``, ``--loss`` and ``--burst`` applied, and the operator."""

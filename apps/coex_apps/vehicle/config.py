@@ -34,7 +34,7 @@ STREAM_DEFAULTS: dict[str, tuple[int, int]] = {**DEFAULT_MODALITIES, "detections
 #: the NUI 2022 cycle: 6 slots, topside in slots 0 and 3
 NUI_SLOTS = ("topside", "vehicle", "vehicle", "topside", "vehicle", "vehicle")
 TOP_KEYS = {"node", "modems", "tdma", "modalities", "status", "inputs", "autonomy", "console", "ros",
-            "vehicles"}
+            "vehicles", "usbl"}
 #: a vehicle's name in a fleet topside's ``[[vehicles]]`` (it names the vehicle in TDMA slots
 #: and in the console's ``vehicle`` argument)
 _NAME = re.compile(r"[A-Za-z][A-Za-z0-9_-]{0,31}")
@@ -107,6 +107,8 @@ class DeployConfig:
     console: dict[str, Any] = field(default_factory=dict)
     #: topside: the ``[ros]`` table (received products on ROS topics), None without one
     ros: dict[str, Any] | None = None
+    #: topside: the ``[usbl]`` table (the ship's USBL tracking system, issue 56), None without one
+    usbl: dict[str, Any] | None = None
     #: what the daemon will meet but can live with (a device not plugged in yet, a file not
     #: written yet), each naming its key; ``coex config check`` prints them
     warnings: list[str] = field(default_factory=list)
@@ -301,12 +303,16 @@ def check_problems(raw: Mapping[str, Any], path: Path, role: str | None) -> tupl
         if "ros" in raw:
             p.add("ros", "only a topside node publishes its products on ROS: a vehicle reads ROS with "
                          "[[inputs]] type = \"ros\" and flies surveys with [autonomy] type = \"ros\"")
+        if "usbl" in raw:
+            p.add("usbl", "only a topside node reads the ship's USBL (a vehicle takes position fixes through "
+                          "its survey modality's aiding option, docs/navigation.md)")
     else:
         for k in ("inputs", "autonomy", "status"):
             if k in raw:
                 p.add(k, "only a vehicle node has inputs, an autonomy and a status")
         _console(raw, p, cfg)
         _ros(raw, p, cfg)
+        _usbl(raw, p, cfg)
     cfg.warnings = p.warnings
     return cfg, p
 
@@ -606,6 +612,29 @@ def _ros(raw: Mapping[str, Any], p: Problems, cfg: DeployConfig) -> None:
     t = p.table(raw.get("ros"), "ros")
     p.merge(RosProducts.check(t))
     cfg.ros = t
+
+
+def _usbl(raw: Mapping[str, Any], p: Problems, cfg: DeployConfig) -> None:
+    """Topside: the ``[usbl]`` table, the ship's USBL tracking system
+    (:class:`coex_plugins.navigation.UsblInput` options, and ``apply``)."""
+    if "usbl" not in raw:
+        return
+    from coex import adapter_check
+
+    try:
+        from coex_plugins.navigation import UsblInput
+    except ImportError as exc:
+        p.add("usbl", f"the USBL input cannot load: {exc} (pip install 'coexploration[navigation]')")
+        return
+    t = p.table(raw.get("usbl"), "usbl")
+    options = {k: v for k, v in t.items() if k != "apply"}
+    if not isinstance(t.get("apply", True), bool):
+        p.add("usbl.apply", f"true or false (apply the drift correction topside), got {t.get('apply')!r}")
+    problems = adapter_check(UsblInput, options)
+    p.nest("usbl", problems)
+    if not problems:
+        _paths(UsblInput, options, "usbl", p, cfg)
+    cfg.usbl = dict(t)
 
 
 def _console(raw: Mapping[str, Any], p: Problems, cfg: DeployConfig) -> None:

@@ -137,7 +137,7 @@ class VehicleApp:
         #: what was taken; ``skipped``: the autonomy's reports not taken (an input's skipped items
         #: are counted by the input, ``Input.counts["skipped"]``: :meth:`summary` adds them up)
         self.counts: dict[str, int] = {"points": 0, "images": 0, "samples": 0, "nav": 0, "skipped": 0,
-                                       "plans": 0, "reports": 0}
+                                       "plans": 0, "reports": 0, "aids": 0}
         #: per link: (up, outages) last reported topside in a LinkHealth
         self._health_sent: dict[int, tuple[bool, int]] = {}
 
@@ -367,6 +367,12 @@ class VehicleApp:
             self.counts["plans"] += 1
             if self.store is not None:
                 self.store.set("vehicle.submitted", key)
+        for fix in survey.take_aids():  # topside's position fixes (issue 56): to the vehicle's navigation
+            if self._guard("autonomy aid", self.autonomy.aid, fix, now):
+                self.counts["aids"] += 1
+            else:
+                self._problem("no-aid", "a position fix from topside was not taken: the %s autonomy output "
+                              "gives the vehicle's navigation no fixes (docs/autonomy.md)", self.cfg.autonomy.get("type"))
         for report in self._guard("autonomy poll", self.autonomy.poll, now) or []:
             if self._ingest("survey", report, f"autonomy report {report!r}"):
                 self.counts["reports"] += 1

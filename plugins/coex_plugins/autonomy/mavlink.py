@@ -256,6 +256,17 @@ def _pos(p: Problems, options: Mapping[str, Any], key: str, zero: bool = True) -
         p.said(key, f"autonomy 'mavlink': {key} must be a number {'>=' if zero else '>'} 0, got {v!r}")
 
 
+#: GPS_INPUT's ignore flags (MAVLink common GPS_INPUT_IGNORE_FLAGS)
+GPS_INPUT_IGNORE_ALT = 1
+GPS_INPUT_IGNORE_VEL_HORIZ = 8
+GPS_INPUT_IGNORE_VEL_VERT = 16
+GPS_INPUT_IGNORE_SPEED_ACCURACY = 32
+GPS_INPUT_IGNORE_VERTICAL_ACCURACY = 128
+#: the GPS epoch (1980-01-06) in Unix seconds, and GPS less UTC (s)
+GPS_EPOCH = 315964800.0
+GPS_LEAP_SECONDS = 18.0
+
+
 class MavlinkAutonomy(Autonomy):
     """Uploads each plan as a MAVLink mission and follows its progress (module docstring)."""
 
@@ -289,6 +300,9 @@ class MavlinkAutonomy(Autonomy):
                        "(REJECTED AUTONOMY_NO_ANSWER)"),
         "heartbeat": (1.0, "seconds between our HEARTBEATs (0 = none)"),
         "mavlink2": (True, "speak MAVLink 2 from the first packet"),
+        "position_fix": (True, "pass topside's position fixes (PositionFix) to the autopilot as GPS_INPUT "
+                               "(ArduSub: GPS_TYPE = 14, MAV); false: refuse them"),
+        "gps_id": (0, "GPS_INPUT gps_id of the fixes (which GPS instance of the autopilot they feed)"),
     }
 
     @classmethod
@@ -305,7 +319,8 @@ class MavlinkAutonomy(Autonomy):
         for key in ("frame", "altitude_frame"):
             if key in options and options[key] not in _FRAMES:
                 p.said(key, f"autonomy 'mavlink': {key} must be one of {sorted(_FRAMES)}, got {options[key]!r}")
-        for key in ("home_placeholder", "speed_item", "mavlink2"):
+        _int(p, options, "gps_id", 0, 255)
+        for key in ("home_placeholder", "speed_item", "mavlink2", "position_fix"):
             if key in options and not isinstance(options[key], bool):
                 p.said(key, f"autonomy 'mavlink': {key} must be true or false, got {options[key]!r}")
         for key in ("acceptance_radius", "hold", "heartbeat"):
@@ -374,6 +389,27 @@ class MavlinkAutonomy(Autonomy):
                 self.conn.close()
             finally:
                 self.conn = None
+
+    def aid(self, fix: Any, now: float) -> bool:
+        """A position fix as ``GPS_INPUT`` (latitude and longitude from ``node.origin``, horizontal
+        accuracy ``sigma``, altitude ``-depth``; velocities ignored): ArduSub and PX4 take it as a
+        GPS (ArduSub ``GPS_TYPE = 14``), the way a USBL feeds them."""
+        if not self.config["position_fix"]:
+            return False
+        if self.conn is None:
+            self.open()
+        lat, lon = self.context.geodetic(float(fix.x), float(fix.y))
+        gps = float(fix.time) - GPS_EPOCH + GPS_LEAP_SECONDS
+        week, ms = int(gps // 604800), round((gps % 604800) * 1000)
+        ignore = GPS_INPUT_IGNORE_VEL_HORIZ | GPS_INPUT_IGNORE_VEL_VERT | GPS_INPUT_IGNORE_SPEED_ACCURACY \
+            | GPS_INPUT_IGNORE_VERTICAL_ACCURACY | (GPS_INPUT_IGNORE_ALT if fix.depth is None else 0)
+        sigma = max(float(fix.sigma), 0.1)
+        self._send("gps_input", time_usec=int(float(fix.time) * 1e6), gps_id=int(self.config["gps_id"]),
+                   ignore_flags=ignore, time_week_ms=ms, time_week=week, fix_type=3, lat=_deg_e7(lat),
+                   lon=_deg_e7(lon), alt=0.0 if fix.depth is None else -float(fix.depth), hdop=sigma, vdop=sigma,
+                   vn=0.0, ve=0.0, vd=0.0, speed_accuracy=0.0, horiz_accuracy=sigma, vert_accuracy=0.0,
+                   satellites_visible=0)
+        return True
 
     @property
     def _targets(self) -> tuple[int, int]:

@@ -192,6 +192,11 @@ class MoosAutonomy(Autonomy):
         "time_warp": (1.0, "the community's MOOSTimeWarp (pCoex: the mission's): posts carry the warped MOOS time"),
         "timeout": (10.0, "seconds (real) to wait for the helm's answer, for the behaviour to run, "
                           "and the longest helm silence while flying"),
+        "position_fix_var": ("USM_RESET", "variable topside's position fixes are posted to as 'x=X,y=Y' "
+                                          "(uSimMarine's USM_RESET moves the simulated vehicle there; a vehicle's "
+                                          "navigation names its own); '' = refuse them"),
+        "position_fix_full_var": ("COEX_POSITION_FIX", "also posted: 'x=X,y=Y,time=T,sigma=S,depth=D,source=...' "
+                                                       "for a navigation that fuses fixes; '' = none"),
     }
 
     @classmethod
@@ -209,7 +214,7 @@ class MoosAutonomy(Autonomy):
                 except ValueError as exc:
                     p.said(key, f"{who}: option {key!r} must be {exc}")
         for key in ("name", "behavior", "updates_var", "wpt_status_var", "wpt_index_var", "depth_var",
-                    "altitude_var", "deactivate", "update_extra"):
+                    "altitude_var", "deactivate", "update_extra", "position_fix_var", "position_fix_full_var"):
             v = options.get(key, "x")
             must = key in ("name", "behavior", "updates_var", "wpt_status_var", "wpt_index_var", "deactivate")
             if not isinstance(v, str) or (must and not v) or (
@@ -268,6 +273,22 @@ class MoosAutonomy(Autonomy):
             self.client.flush(timeout=2.0)  # what was posted reaches MOOSDB
             self.client.close()
             self.client = None
+
+    def aid(self, fix: Any, now: float) -> bool:
+        """A position fix posted to ``position_fix_var`` as ``x=X,y=Y`` (local metres: the MOOS
+        community's NAV frame at ``node.origin``) and to ``position_fix_full_var`` with its time,
+        sigma, depth and source."""
+        var, full = self.config["position_fix_var"], self.config["position_fix_full_var"]
+        if not var:
+            return False
+        if self.client is None:
+            self.open()
+        self.client.notify(var, f"x={_n(fix.x)},y={_n(fix.y)}")
+        if full:
+            depth = "" if fix.depth is None else f",depth={_n(fix.depth)}"
+            self.client.notify(full, f"x={_n(fix.x)},y={_n(fix.y)},time={fix.time:.1f},sigma={_n(fix.sigma)}"
+                                     f"{depth},source={fix.source}")
+        return True
 
     # ------------------------------------------------------------------ submit
     def submit(self, plan: Any, now: float) -> None:

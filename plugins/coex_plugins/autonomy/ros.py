@@ -107,12 +107,15 @@ class RosAutonomy(Autonomy):
         "frame": ("coex_local", "frame_id of the path: the local grid (x east, y north, z up)"),
         "answer_timeout": (10.0, "seconds without any answer after a submit before it is reported "
                                  "REJECTED / AUTONOMY_NO_ANSWER (0: wait forever)"),
+        "position_fix_topic": ("/coex/position_fix", "where topside's position fixes go: "
+                                                     "geometry_msgs/PoseWithCovarianceStamped (robot_localization's "
+                                                     "pose input); '' = refuse them"),
     }
 
     @classmethod
     def check(cls, options: Mapping[str, Any]) -> Problems:
         p = Problems()
-        for key in ("master", "node", "path_topic", "plan_topic", "progress_topic", "frame"):
+        for key in ("master", "node", "path_topic", "plan_topic", "progress_topic", "frame", "position_fix_topic"):
             v = options.get(key, "x")
             if not isinstance(v, str) or (key in ("node", "path_topic", "progress_topic") and not v.strip()):
                 p.said(key, f"autonomy 'ros': option {key!r} must be a "
@@ -132,6 +135,7 @@ class RosAutonomy(Autonomy):
         self.node: Any = None
         self._path: Any = None
         self._plan_pub: Any = None
+        self._fix_pub: Any = None
         self._sub: Any = None
         self._answers: deque[str] = deque(maxlen=1000)
         self._lock = threading.Lock()
@@ -153,6 +157,8 @@ class RosAutonomy(Autonomy):
         self._path = node.publisher(c["path_topic"], "nav_msgs/Path", latch=True)
         if c["plan_topic"]:
             self._plan_pub = node.publisher(c["plan_topic"], "std_msgs/String", latch=True)
+        if c["position_fix_topic"]:
+            self._fix_pub = node.publisher(c["position_fix_topic"], "geometry_msgs/PoseWithCovarianceStamped")
         self._sub = node.subscribe(c["progress_topic"], self._on_answer, queue=100)
         self.node = node
 
@@ -171,12 +177,24 @@ class RosAutonomy(Autonomy):
 
     def close(self) -> None:
         if self.node is not None:
-            for pub in (self._path, self._plan_pub):
+            for pub in (self._path, self._plan_pub, self._fix_pub):
                 if pub is not None:
                     pub.close()
             if self._sub is not None:
                 self.node.unsubscribe(self._sub)
             self.node = None
+
+    def aid(self, fix: Any, now: float) -> bool:
+        """A position fix published on ``position_fix_topic`` as a
+        ``geometry_msgs/PoseWithCovarianceStamped`` in ``frame``."""
+        if not self.config["position_fix_topic"]:
+            return False
+        if self.node is None:
+            self.open()
+        from coex.ros import msgs
+
+        self._fix_pub.publish(msgs.position_fix(fix, self.node.message_class, self.config["frame"]))
+        return True
 
     def submit(self, plan: Any, now: float) -> None:
         if self.node is None:

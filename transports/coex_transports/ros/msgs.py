@@ -73,6 +73,26 @@ def odometry(status: Any, cls: ClassOf, t: float, frame: str, child_frame: str =
     return msg
 
 
+def position_fix(fix: Any, cls: ClassOf, frame: str) -> Any:
+    """A ``geometry_msgs/PoseWithCovarianceStamped`` of a position fix (``time``, ``x``, ``y``,
+    ``sigma``, ``depth`` or None): position (x, y, -depth), variance ``sigma``² on x and y, the
+    depth's 0.01 m² when known (else 1e6), orientation unknown (identity, variance 1e6): what
+    robot_localization's ``pose0`` input takes."""
+    msg = cls("geometry_msgs/PoseWithCovarianceStamped")()
+    _header(msg, float(fix.time), frame)
+    p = msg.pose.pose.position
+    p.x, p.y, p.z = float(fix.x), float(fix.y), 0.0 if fix.depth is None else -float(fix.depth)
+    o = msg.pose.pose.orientation
+    o.x, o.y, o.z, o.w = 0.0, 0.0, 0.0, 1.0
+    var = float(fix.sigma) ** 2
+    cov = [0.0] * 36
+    cov[0] = cov[7] = var
+    cov[14] = 1e6 if fix.depth is None else 0.01
+    cov[21] = cov[28] = cov[35] = 1e6
+    msg.pose.covariance = cov
+    return msg
+
+
 def cloud(xyz: np.ndarray, cls: ClassOf, t: float, frame: str) -> Any:
     """A ``sensor_msgs/PointCloud2`` of ``N x 3`` points (float32 x, y, z; little-endian)."""
     pts = np.ascontiguousarray(np.asarray(xyz, dtype="<f4").reshape(-1, 3))
