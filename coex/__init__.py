@@ -100,7 +100,7 @@ from coex_core.subgrid import decode_subgrid, decode_subgrid_units, encode_subgr
 from coex_core.timefmt import STAMP_MODULUS, to_stamp, unwrap
 from coex_core.transport import Transport, UriInfo, parse_query
 from coex_runtime.runner import RealClock, Runner, SimNetwork, SimulatedClock
-from coex_runtime.store import NodeStore
+from coex_runtime.store import NodeStore, StoreError
 from coex_transports.recovery import Health, ResilientTransport
 
 # ``from coex.messages import Opaque``, ``coex.wire.pack``, ``from coex.tracker import State``: the
@@ -176,6 +176,7 @@ __all__ = [
     "SimulatedClock",
     "StateError",
     "Storage",
+    "StoreError",
     "StreamConfig",
     "SurveyPlan",
     "SurveyReport",

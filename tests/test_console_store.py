@@ -91,7 +91,7 @@ class Dive:
         again from its store on the same link end."""
         old = self.app
         old.server.close()
-        old.store.db.close()  # the file as last committed; nothing else is written
+        old.store.close()  # the file as last committed; nothing else is written (and its lock released)
         self.app = self.topside(f"loopback://spare-{uuid.uuid4().hex[:8]}")
         self.app.transports[0] = old.transports[0]
         return self.app

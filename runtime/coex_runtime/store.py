@@ -29,13 +29,19 @@ committed row across a process crash.
 
 from __future__ import annotations
 
+import contextlib
+import errno
+import fcntl
 import hashlib
+import os
+import shutil
 import sqlite3
 import zlib
 from collections.abc import Callable, Iterator, Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
+from urllib.parse import quote
 
 import numpy as np
 
@@ -44,12 +50,87 @@ from coex_core.errors import ConfigError
 from coex_core.node import Node
 from coex_core.storage import Storage
 
-__all__ = ["MIGRATIONS", "SCHEMA_VERSION", "JournalRow", "NodeStore", "SqliteStorage", "chunk_text", "migrate",
-           "snapshot_text"]
+__all__ = ["MIGRATIONS", "SCHEMA_VERSION", "JournalRow", "NodeStore", "SqliteStorage", "StoreError", "chunk_text",
+           "migrate", "snapshot_text", "store_error"]
 
 #: Stores written before the explicit state format held pickled snapshots, which this version
 #: refuses (it never unpickles).
 _PICKLE_PROTOCOL_5 = b"\x80\x05"
+
+
+class StoreError(ConfigError):
+    """The node's store cannot be opened, read or written. ``str()`` is one sentence that names
+    the file, says what is wrong and what to do; ``kind`` says which:
+
+    * ``"full"``: the disk is full (SQLite's ``SQLITE_FULL``, ``ENOSPC``);
+    * ``"read-only"``: the file, its folder or its file system is not writable;
+    * ``"damaged"``: the file is not a store, or a page of it is corrupt;
+    * ``"in use"``: another process has the store open for writing;
+    * ``"no folder"``: the folder the store should be in does not exist;
+    * ``"io"``: the disk failed to read or write (``SQLITE_IOERR``);
+    * ``"error"``: anything else SQLite refused.
+
+    A :class:`~coex_core.errors.ConfigError` (the daemons print it without a traceback); a
+    running node that meets one keeps its link and commands running (``docs/persistence.md``,
+    "When the disk fails")."""
+
+    def __init__(self, text: str, *, kind: str, path: Path) -> None:
+        super().__init__(text)
+        self.kind = kind
+        self.path = path
+
+
+# SQLite's primary result codes (https://sqlite.org/rescode.html)
+_SQLITE_PERM, _SQLITE_BUSY, _SQLITE_LOCKED, _SQLITE_READONLY, _SQLITE_IOERR = 3, 5, 6, 8, 10
+_SQLITE_CORRUPT, _SQLITE_FULL, _SQLITE_CANTOPEN, _SQLITE_NOTADB = 11, 13, 14, 26
+
+
+def _free(path: Path) -> str:
+    """" (N bytes free on its disk)", or "" when the disk cannot be asked."""
+    try:
+        free = shutil.disk_usage(path.parent if path.parent.exists() else Path.cwd()).free
+    except OSError:
+        return ""
+    return f" ({free / 1e6:.1f} MB free)" if free >= 10**5 else f" ({free} bytes free)"
+
+
+def store_error(path: Path, exc: BaseException, doing: str) -> StoreError:
+    """``exc`` (an :class:`sqlite3.Error` or :class:`OSError` met while ``doing`` something to
+    the store ``path``) as the :class:`StoreError` that names the file and the remedy."""
+    if isinstance(exc, StoreError):
+        return exc
+    code = getattr(exc, "sqlite_errorcode", None)
+    primary = code & 0xFF if isinstance(code, int) else None
+    if isinstance(exc, OSError):
+        primary = {errno.ENOSPC: _SQLITE_FULL, errno.EDQUOT: _SQLITE_FULL, errno.EROFS: _SQLITE_READONLY,
+                   errno.EACCES: _SQLITE_READONLY, errno.EPERM: _SQLITE_READONLY,
+                   errno.ENOENT: _SQLITE_CANTOPEN, errno.EIO: _SQLITE_IOERR}.get(exc.errno or 0, primary)
+    why = exc.strerror if isinstance(exc, OSError) and exc.strerror else str(exc)
+    if primary == _SQLITE_FULL:
+        return StoreError(f"{path}: the disk is full{_free(path)} ({doing}): free space on it; until then "
+                          "the node runs on (link and commands) but keeps nothing new across a restart",
+                          kind="full", path=path)
+    if primary in (_SQLITE_READONLY, _SQLITE_PERM):
+        return StoreError(f"{path} is read-only ({doing}: {why}): make the file and its folder writable by "
+                          "this user, or give another node.store", kind="read-only", path=path)
+    if primary in (_SQLITE_CORRUPT, _SQLITE_NOTADB):
+        return StoreError(f"{path} is damaged ({doing}: {why}): move it away (mv {path} {path}.damaged) "
+                          "to start afresh; the node then starts empty", kind="damaged", path=path)
+    if primary in (_SQLITE_BUSY, _SQLITE_LOCKED):
+        return StoreError(f"{path} is in use by another process ({doing}: {why}): stop the other "
+                          "coex process that has it open, or give this node another store",
+                          kind="in use", path=path)
+    if primary == _SQLITE_CANTOPEN and not path.parent.is_dir():
+        return StoreError(f"{path}: no folder {path.parent} ({doing}): create it, or give another "
+                          "node.store", kind="no folder", path=path)
+    if primary == _SQLITE_CANTOPEN:
+        return StoreError(f"cannot open {path} ({doing}: {why}): its folder must be writable by this "
+                          "user (SQLite writes its -wal and -shm files beside it)", kind="read-only", path=path)
+    if primary == _SQLITE_IOERR:
+        return StoreError(f"{path}: the disk failed ({doing}: {why}): check the disk (dmesg); if the "
+                          f"file is damaged, move it away (mv {path} {path}.damaged) to start afresh",
+                          kind="io", path=path)
+    return StoreError(f"{path}: {doing} failed: {why}", kind="error", path=path)
 
 #: Version 1 of the file's tables (what 0.1 wrote, without setting ``user_version``).
 _SCHEMA_1 = """
@@ -111,7 +192,7 @@ def migrate(db: sqlite3.Connection, path: Path) -> int:
             db.execute(f"PRAGMA user_version = {k + 1}")
             db.execute("COMMIT")
         except BaseException:
-            db.execute("ROLLBACK")
+            _rollback(db)
             raise
     return found
 
@@ -193,16 +274,42 @@ def _manifest_text(db: sqlite3.Connection, blob: bytes) -> bytes:
     return b"".join(parts)
 
 
+def _rollback(db: sqlite3.Connection) -> None:
+    """Roll back the open transaction, if SQLite has not already (it may have, on a full disk or
+    an I/O error): never an error of its own that would hide the one being handled."""
+    if db.in_transaction:
+        with contextlib.suppress(sqlite3.Error):
+            db.execute("ROLLBACK")
+
+
+@contextlib.contextmanager
+def _read_transaction(db: sqlite3.Connection) -> Iterator[None]:
+    """One read transaction: every SELECT inside sees the same committed state of the file,
+    whatever another process commits meanwhile (WAL). Without it, a reader that read the
+    snapshot's manifest and then its chunks could see a newer snapshot's transaction delete
+    chunks in between, and take a sound store for a damaged one."""
+    if db.in_transaction:  # already in one (the caller's)
+        yield
+        return
+    db.execute("BEGIN")
+    try:
+        yield
+    finally:
+        _rollback(db)  # nothing was written: ending it is all
+
+
 def snapshot_text(db: sqlite3.Connection) -> bytes | None:
     """The JSON text of the snapshot an open store file holds (the document of
     :func:`coex_core.state.dumps_parts`, or of the whole container a version-1 store kept;
-    None without a snapshot): for a look from outside the node's process."""
-    row = db.execute("SELECT state FROM snapshot WHERE id = 1").fetchone()
-    if row is None:
-        return None
-    blob = bytes(row[0])
-    if blob.startswith(_MANIFEST):
-        return _manifest_text(db, blob)
+    None without a snapshot): for a look from outside the node's process, which may be
+    writing it meanwhile (read in one transaction)."""
+    with _read_transaction(db):
+        row = db.execute("SELECT state FROM snapshot WHERE id = 1").fetchone()
+        if row is None:
+            return None
+        blob = bytes(row[0])
+        if blob.startswith(_MANIFEST):
+            return _manifest_text(db, blob)
     n = int.from_bytes(blob[len(state.MAGIC):len(state.MAGIC) + 4], "big")
     return blob[len(state.MAGIC) + 4:len(state.MAGIC) + 4 + n]
 
@@ -216,57 +323,125 @@ class SqliteStorage(Storage):
     spilled tile leaves memory) but counts only once the next snapshot commits, in the
     snapshot's own transaction, which also deletes the rows it supersedes. Opening the store
     discards rows newer than the last snapshot: the snapshot and the journal replayed after it
-    rebuild them, so nothing is counted twice after a crash."""
+    rebuild them, so nothing is counted twice after a crash.
 
-    def __init__(self, db: sqlite3.Connection, path: Path | None = None) -> None:
+    When the file cannot be written (a full disk, ``on_error`` is told), what is put stays in
+    memory and is written with the next snapshot that commits: nothing is lost while the node
+    runs. A read-only look (``NodeStore(path, read_only=True)``) holds the committed rows in
+    memory (:meth:`load_committed`), so the node it restored reads what its snapshot named
+    whatever the writing process does next."""
+
+    def __init__(self, db: sqlite3.Connection, path: Path | None = None, *,
+                 on_error: Callable[[BaseException, str], None] | None = None, read_only: bool = False) -> None:
         self.db = db
         self.path = path
+        self.on_error = on_error
         #: after :meth:`detach`: what was put since (the file is only read then)
         self._overlay: dict[str, bytes] | None = None
+        #: put while the file could not be written: written with the next snapshot
+        self._unsaved: dict[str, bytes] = {}
+        #: rows of a generation newer than the last snapshot (left by a crash) could not be
+        #: deleted at open (a full disk): the next snapshot deletes them first, and until then
+        #: nothing is written to the file's generation ``committed + 1``
+        self._stale = False
+        #: every committed row is in :attr:`_overlay` (:meth:`load_committed`)
+        self._loaded = False
         row = db.execute("SELECT value FROM meta WHERE key = 'storage_gen'").fetchone()
         self.committed = int(row[0]) if row is not None else 0
-        db.execute("DELETE FROM storage WHERE gen > ?", (self.committed,))
+        if not read_only:
+            try:
+                db.execute("DELETE FROM storage WHERE gen > ?", (self.committed,))
+            except sqlite3.Error as exc:
+                self._stale = True
+                self._failed(exc, "discarding what was put after the last snapshot")
         self.writes = 0
+
+    def _failed(self, exc: BaseException, doing: str) -> None:
+        if self.on_error is None:
+            raise store_error(self.path or Path("store"), exc, doing) from exc
+        self.on_error(exc, doing)
+
+    def load_committed(self) -> None:
+        """Hold every row of the last committed snapshot in memory and read the file no more
+        (a read-only look at a store another process writes)."""
+        rows = self.db.execute("SELECT key, data FROM storage WHERE gen <= ? ORDER BY gen", (self.committed,))
+        self._overlay = {str(k): bytes(d) for k, d in rows}
+        self._loaded = True
 
     def detach(self) -> None:
         """The store closes: a node restored from it may still be used (a look at a stopped or
         running node's state). Reads go on from the file through a read-only connection; puts
         stay in memory and are never written."""
-        self._overlay = {}
+        if self._overlay is not None:
+            return  # already in memory
+        self._overlay = dict(self._unsaved)
         if self.path is not None:
-            self.db = sqlite3.connect(f"file:{self.path}?mode=ro", uri=True, isolation_level=None,
+            self.db = sqlite3.connect(f"file:{quote(str(self.path))}?mode=ro", uri=True, isolation_level=None,
                                       check_same_thread=False)
 
     def get(self, key: str) -> bytes | None:
         if self._overlay is not None and key in self._overlay:
             return self._overlay[key]
-        row = self.db.execute("SELECT data FROM storage WHERE key = ? ORDER BY gen DESC LIMIT 1",
-                              (key,)).fetchone()
+        if key in self._unsaved:
+            return self._unsaved[key]
+        if self._loaded:
+            return None  # a look holds the committed rows: what is not there was not committed
+        newest = self.committed if self._stale else self.committed + 1
+        try:
+            row = self.db.execute("SELECT data FROM storage WHERE key = ? AND gen <= ? ORDER BY gen DESC LIMIT 1",
+                                  (key, newest)).fetchone()
+        except sqlite3.Error as exc:
+            raise store_error(self.path or Path("store"), exc, f"reading {key}") from exc
         return None if row is None else bytes(row[0])
 
     def put(self, key: str, data: bytes) -> None:
         if self._overlay is not None:
             self._overlay[key] = bytes(data)
             return
-        self.db.execute("INSERT OR REPLACE INTO storage (key, gen, data) VALUES (?, ?, ?)",
-                        (key, self.committed + 1, sqlite3.Binary(data)))
+        if self._unsaved or self._stale:  # the file is failing: keep the order of what was put
+            self._unsaved[key] = bytes(data)
+            return
+        try:
+            self.db.execute("INSERT OR REPLACE INTO storage (key, gen, data) VALUES (?, ?, ?)",
+                            (key, self.committed + 1, sqlite3.Binary(data)))
+        except sqlite3.Error as exc:
+            self._unsaved[key] = bytes(data)
+            self._failed(exc, f"writing {key}")
+            return
         self.writes += 1
 
     def keys(self, prefix: str = "") -> list[str]:
         rows = self.db.execute("SELECT DISTINCT key FROM storage WHERE substr(key, 1, ?) = ?",
                                (len(prefix), prefix))
-        return [str(r[0]) for r in rows]
+        out = {str(r[0]) for r in rows}
+        out.update(k for k in self._unsaved if k.startswith(prefix))
+        if self._overlay is not None:
+            out.update(k for k in self._overlay if k.startswith(prefix))
+        return sorted(out)
 
     def nbytes(self) -> int:
-        return int(self.db.execute("SELECT COALESCE(SUM(length(data)), 0) FROM storage").fetchone()[0])
+        held = int(self.db.execute("SELECT COALESCE(SUM(length(data)), 0) FROM storage").fetchone()[0])
+        return held + sum(len(v) for v in self._unsaved.values())
 
     def commit(self) -> None:
-        """Make what was put count (inside the snapshot's transaction)."""
+        """Make what was put count (inside the snapshot's transaction; :meth:`committed_now`
+        once it committed, :meth:`rolled_back` if it did not)."""
         g = self.committed + 1
+        if self._stale:
+            self.db.execute("DELETE FROM storage WHERE gen > ?", (self.committed,))
+        if self._unsaved:
+            self.db.executemany("INSERT OR REPLACE INTO storage (key, gen, data) VALUES (?, ?, ?)",
+                                [(k, g, sqlite3.Binary(v)) for k, v in self._unsaved.items()])
         self.db.execute("INSERT OR REPLACE INTO meta (key, value) VALUES ('storage_gen', ?)", (str(g),))
         self.db.execute("DELETE FROM storage WHERE gen < ? AND key IN (SELECT key FROM storage WHERE gen = ?)",
                         (g, g))
-        self.committed = g
+
+    def committed_now(self) -> None:
+        """The snapshot's transaction committed: what was put is generation ``committed``."""
+        self.committed += 1
+        self.writes += len(self._unsaved)
+        self._unsaved.clear()
+        self._stale = False
 
 
 @dataclass(frozen=True)
@@ -280,10 +455,20 @@ class JournalRow:
 
 
 class NodeStore:
-    """The persistent state of one node in the SQLite file ``path`` (created if missing)."""
+    """The persistent state of one node in the SQLite file ``path`` (created if missing).
+
+    One process writes a store at a time: a second one is refused (:class:`StoreError`, ``"in
+    use"``), as two daemons on one file would undo each other's snapshots. ``read_only=True``
+    opens it for a look (another process may be writing it): nothing is written, and
+    :meth:`restore` reads the last committed snapshot whole.
+
+    Anything the file cannot do is a :class:`StoreError` naming it, what is wrong and what to do:
+    at open, a damaged file (SQLite's ``quick_check``), a read-only one, a missing folder; while
+    the node runs, a write that fails (a full disk) raises it too, and :attr:`problem` holds it
+    until a snapshot commits again."""
 
     def __init__(self, path: str | Path, *, snapshot_interval: float = 5.0,
-                 journal_tx: bool = True, compact: bool = True) -> None:
+                 journal_tx: bool = True, compact: bool = True, read_only: bool = False) -> None:
         self.path = Path(path)
         #: drop the journal rows a snapshot includes, in the snapshot's transaction (the file
         #: stays the size of one snapshot plus what came since); ``False`` keeps the whole
@@ -291,22 +476,24 @@ class NodeStore:
         self.compact = compact
         self.snapshot_interval = float(snapshot_interval)
         self.journal_tx = journal_tx
+        #: a look at the file, never a write (see the class docstring)
+        self.read_only = read_only
+        #: the newest write that failed (None: the store keeps everything); cleared when a
+        #: snapshot commits
+        self.problem: StoreError | None = None
+        self._lock_fd: int | None = None
+        self.db: sqlite3.Connection
         try:
-            # a daemon opens its store in one thread and may run its loop in another (one at a
-            # time: the runner's steps and the final snapshot never overlap)
-            self.db = sqlite3.connect(self.path, isolation_level=None, check_same_thread=False)
-            mode = self.db.execute("PRAGMA journal_mode=WAL").fetchone()[0]
-            if str(mode).lower() != "wal":
-                raise ConfigError(f"{self.path}: SQLite refused WAL mode ({mode})")
-            self.db.execute("PRAGMA synchronous=NORMAL")
-            # a checkpoint every 256 pages (1 MiB), and the WAL file shrinks back to 1 MiB after
-            # one (it kept its high-water size, about four times the snapshot, before 0.3)
-            self.db.execute("PRAGMA wal_autocheckpoint=256")
-            self.db.execute("PRAGMA journal_size_limit=1048576")
-            #: the schema version the file had when opened (0: a store of CoEx 0.1)
-            self.schema_found = migrate(self.db, self.path)
-        except sqlite3.Error as exc:
-            raise ConfigError(f"cannot open the node store {self.path}: {exc}") from exc
+            if read_only:
+                self._open_read_only()
+            else:
+                self._open()
+        except StoreError:
+            self._close_quietly()
+            raise
+        except (sqlite3.Error, OSError) as exc:
+            self._close_quietly()
+            raise store_error(self.path, exc, "opening it") from exc
         self._last_snapshot: float | None = None
         self._dirty = False
         #: ``extra()`` is saved with every snapshot, in the same document as the node (objects
@@ -315,40 +502,147 @@ class NodeStore:
         #: What ``extra()`` returned at the snapshot :meth:`restore` loaded (None without one).
         self.restored_extra: Any = None
         #: rows journaled by kind, snapshots written (``snapshot_bytes``: their total size, what
-        #: the file's disk takes in writes), rows replayed at :meth:`restore`
+        #: the file's disk takes in writes), rows replayed at :meth:`restore`; ``failed``:
+        #: writes the file refused (a full disk)
         self.stats = {"rx": 0, "tx": 0, "input": 0, "snapshots": 0, "snapshot_bytes": 0, "state_bytes": 0,
-                      "replayed": 0}
+                      "replayed": 0, "failed": 0}
         self._storage: SqliteStorage | None = None
         #: the chunks the file holds (None: not read yet)
         self._held: set[bytes] | None = None
+
+    def _open(self) -> None:
+        if not self.path.parent.is_dir():
+            raise StoreError(f"{self.path}: no folder {self.path.parent}: create it, or give another node.store",
+                             kind="no folder", path=self.path)
+        # one writer at a time: an advisory lock on the file, held while the store is open
+        # (released by the kernel if the process dies, kill -9 included)
+        fd = os.open(self.path, os.O_RDWR | os.O_CREAT, 0o666)
+        self._lock_fd = fd
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            raise StoreError(f"{self.path} is in use by another process (a second coex vehicle or topside on "
+                             "the same store?): stop it, or give this node another store",
+                             kind="in use", path=self.path) from None
+        # a daemon opens its store in one thread and may run its loop in another (one at a
+        # time: the runner's steps and the final snapshot never overlap)
+        self.db = sqlite3.connect(self.path, isolation_level=None, check_same_thread=False)
+        mode = self.db.execute("PRAGMA journal_mode=WAL").fetchone()[0]
+        if str(mode).lower() != "wal":
+            raise StoreError(f"{self.path}: SQLite refused WAL mode ({mode})", kind="error", path=self.path)
+        self.db.execute("PRAGMA synchronous=NORMAL")
+        # a checkpoint every 256 pages (1 MiB), and the WAL file shrinks back to 1 MiB after
+        # one (it kept its high-water size, about four times the snapshot, before 0.3)
+        self.db.execute("PRAGMA wal_autocheckpoint=256")
+        self.db.execute("PRAGMA journal_size_limit=1048576")
+        self._check_pages()
+        #: the schema version the file had when opened (0: a store of CoEx 0.1)
+        self.schema_found = migrate(self.db, self.path)
+
+    def _open_read_only(self) -> None:
+        if not self.path.is_file():
+            raise StoreError(f"no store {self.path}", kind="no folder" if not self.path.parent.is_dir() else "error",
+                             path=self.path)
+        self.db = sqlite3.connect(f"file:{quote(str(self.path))}?mode=ro", uri=True, isolation_level=None,
+                                  check_same_thread=False)
+        found = int(self.db.execute("PRAGMA user_version").fetchone()[0])
+        if found > SCHEMA_VERSION:
+            raise ConfigError(f"{self.path} was written by a newer CoEx (store schema {found}; this one knows up to "
+                              f"{SCHEMA_VERSION}): open it with that version")
+        self.schema_found = found
+
+    def _check_pages(self) -> None:
+        """A damaged file is named now, at start, not by a crash in the middle of the dive
+        (``PRAGMA quick_check``: every page of every table and index read; a few ms for a
+        node's store)."""
+        rows = [str(r[0]) for r in self.db.execute("PRAGMA quick_check(5)")]
+        if rows != ["ok"]:
+            raise StoreError(f"{self.path} is damaged (SQLite's check: {'; '.join(rows)}): move it away "
+                             f"(mv {self.path} {self.path}.damaged) to start afresh; the node then starts empty",
+                             kind="damaged", path=self.path)
+
+    def _close_quietly(self) -> None:
+        with contextlib.suppress(Exception):
+            if getattr(self, "db", None) is not None:
+                self.db.close()
+        if self._lock_fd is not None:
+            with contextlib.suppress(OSError):
+                os.close(self._lock_fd)
+            self._lock_fd = None
+
+    # --------------------------------------------------------------------- failures
+    def _failed(self, exc: BaseException, doing: str) -> StoreError:
+        """A write that failed: :attr:`problem`, counted; the error to raise."""
+        err = store_error(self.path, exc, doing)
+        self.problem = err
+        self.stats["failed"] += 1
+        return err
+
+    def _storage_failed(self, exc: BaseException, doing: str) -> None:
+        self._failed(exc, doing)
+
+    def _writable(self) -> None:
+        if self.read_only:
+            raise StoreError(f"{self.path} was opened read-only (a look): it is not written",
+                             kind="read-only", path=self.path)
 
     def storage(self) -> SqliteStorage:
         """The modalities' out-of-core storage in this file (:class:`SqliteStorage`); what
         :meth:`restore` attaches to the node."""
         if self._storage is None:
-            self._storage = SqliteStorage(self.db, self.path)
+            try:
+                self._storage = SqliteStorage(self.db, self.path, on_error=self._storage_failed,
+                                              read_only=self.read_only)
+            except sqlite3.Error as exc:
+                raise store_error(self.path, exc, "reading its storage") from exc
         return self._storage
 
     # ------------------------------------------------------------------------- journal
     def _append(self, kind: str, t: float, data: bytes, link: int | None = None,
-                name: str | None = None) -> int:
-        cur = self.db.execute("INSERT INTO journal (kind, t, link, name, data) VALUES (?, ?, ?, ?, ?)",
-                              (kind, float(t), link, name, sqlite3.Binary(data)))
+                name: str | None = None, mark: str | None = None) -> int:
+        self._writable()
+        try:
+            if mark is None:
+                cur = self.db.execute("INSERT INTO journal (kind, t, link, name, data) VALUES (?, ?, ?, ?, ?)",
+                                      (kind, float(t), link, name, sqlite3.Binary(data)))
+            else:  # the row and the mark, in one transaction: both or neither
+                self.db.execute("BEGIN IMMEDIATE")
+                try:
+                    cur = self.db.execute("INSERT INTO journal (kind, t, link, name, data) VALUES (?, ?, ?, ?, ?)",
+                                          (kind, float(t), link, name, sqlite3.Binary(data)))
+                    self.db.execute("INSERT OR REPLACE INTO meta (key, value) VALUES (?, ?)", (mark, str(t)))
+                    self.db.execute("COMMIT")
+                except BaseException:
+                    _rollback(self.db)
+                    raise
+        except sqlite3.Error as exc:
+            raise self._failed(exc, f"journaling {'a received frame' if kind == 'rx' else 'a sent frame' if kind == 'tx' else 'an input of ' + str(name)}") from exc
         self.stats[kind] += 1
         return int(cur.lastrowid or 0)
 
     def record_rx(self, link: int, frame: bytes, t: float) -> int:
         """Journal a received frame (before the node sees it)."""
+        row = self._append("rx", t, bytes(frame), link=link)
         self._dirty = True
-        return self._append("rx", t, bytes(frame), link=link)
+        return row
 
     def record_tx(self, link: int, frame: bytes, t: float) -> int:
         return self._append("tx", t, bytes(frame), link=link)
 
-    def record_input(self, name: str, data: Any, t: float) -> int:
-        """Journal an input of sender ``name`` (before the sender ingests it)."""
+    def record_input(self, name: str, data: Any, t: float, *, mark: str | None = None) -> int:
+        """Journal an input of sender ``name`` (before the sender ingests it). ``mark``: a
+        ``meta`` key set in the same transaction (an application's record that it took this
+        input, e.g. an image file: :meth:`marked`), so the two never disagree after a crash."""
+        row = self._append("input", t, state.dumps(data), name=name, mark=mark)
         self._dirty = True
-        return self._append("input", t, state.dumps(data), name=name)
+        return row
+
+    def marked(self, prefix: str) -> list[str]:
+        """The ``meta`` keys that start with ``prefix`` (the marks of :meth:`record_input`), oldest
+        first."""
+        rows = self.db.execute("SELECT key FROM meta WHERE substr(key, 1, ?) = ? ORDER BY rowid",
+                               (len(prefix), prefix))
+        return [str(r[0]) for r in rows]
 
     def journal(self, kind: str | None = None, after: int = 0) -> Iterator[JournalRow]:
         """Journal rows after id ``after`` (all kinds, or one), in order."""
@@ -376,8 +670,12 @@ class NodeStore:
         is its document's text, cut into content-defined chunks, and its arrays, named by their
         content; only the chunks the file does not hold yet are written, with the snapshot row
         (the list of the text's chunks), and the chunks no longer used are deleted, all in the
-        same transaction. ``stats["snapshot_bytes"]`` counts what was written,
-        ``stats["state_bytes"]`` the size of the states saved."""
+        same transaction: a manifest is never committed without its chunks, nor a chunk deleted
+        while the committed manifest names it, wherever the process dies.
+        ``stats["snapshot_bytes"]`` counts what was written, ``stats["state_bytes"]`` the size
+        of the states saved. :class:`StoreError` when the file refuses (a full disk): nothing
+        of this snapshot is in the file, the previous one stands."""
+        self._writable()
         extra = self.extra() if self.extra is not None else None
         text, arrays = node.export_parts(extra)
         pieces = chunk_text(text)
@@ -390,10 +688,9 @@ class NodeStore:
                                                          a.reshape(-1).view(np.uint8) if a.size else b"")
         manifest = _MANIFEST + b"".join(digests)
         storage = self.storage()
-        gen = storage.committed
         written = len(manifest)
-        self.db.execute("BEGIN IMMEDIATE")
         try:
+            self.db.execute("BEGIN IMMEDIATE")
             if self._held is None:  # the first snapshot since the file was opened
                 self._held = {bytes(r[0]) for r in self.db.execute("SELECT hash FROM chunk")}
             new = [(h, v) for h, v in wanted.items() if h not in self._held]
@@ -412,23 +709,27 @@ class NodeStore:
                 self.db.execute("DELETE FROM journal WHERE id <= ?", (int(last),))
             storage.commit()
             self.db.execute("COMMIT")
-        except BaseException:
-            self.db.execute("ROLLBACK")
-            storage.committed = gen
+        except BaseException as exc:
+            _rollback(self.db)
             self._held = None  # read again from the file
+            if isinstance(exc, sqlite3.Error):
+                raise self._failed(exc, "saving a snapshot") from exc
             raise
+        storage.committed_now()
         self._held = set(wanted)
         self._last_snapshot = t
         self._dirty = False
+        self.problem = None
         self.stats["snapshots"] += 1
         self.stats["snapshot_bytes"] += written
         self.stats["state_bytes"] += len(text) + sum(int(a.nbytes) for a in arrays.values())
 
     def maybe_snapshot(self, node: Node, t: float, *, force: bool = False) -> bool:
         """Snapshot when ``force`` (a transmission is about to leave) or when something was
-        journaled and ``snapshot_interval`` has passed since the last one."""
-        if force or (self._dirty and (self._last_snapshot is None
-                                      or t - self._last_snapshot >= self.snapshot_interval)):
+        journaled and ``snapshot_interval`` has passed since the last one (or a write failed
+        since: the next snapshot writes what could not be written)."""
+        if force or ((self._dirty or self.problem is not None)
+                     and (self._last_snapshot is None or t - self._last_snapshot >= self.snapshot_interval)):
             self.snapshot(node, t)
             return True
         return False
@@ -449,7 +750,44 @@ class NodeStore:
         it, replayed in order. ``log`` and ``clock`` (not saved), when given, are attached to the
         restored node. ``before_replay(node, extra)`` runs between the two (``extra``: what
         :attr:`extra` returned at that snapshot, or None), so an application can re-attach its
-        own state and see the replayed frames too."""
+        own state and see the replayed frames too.
+
+        The snapshot, its chunks, the storage's generation and the journal are read in one read
+        transaction: what another process commits meanwhile (a look at a running node's
+        store) is not half seen."""
+        try:
+            if not self.read_only:
+                # discards what was put after the last snapshot: a write, before the reads
+                self.storage()
+            with _read_transaction(self.db):
+                node, extra, rows = self._load(build)
+        except sqlite3.Error as exc:
+            raise store_error(self.path, exc, "reading it") from exc
+        node.attach_storage(self.storage())
+        if log is not None:
+            node.set_log(log)
+        if clock is not None:
+            node.manager.clock = clock
+        self.restored_extra = extra
+        if before_replay is not None:
+            before_replay(node, extra)
+        for r in rows:
+            if r.kind == "rx":
+                node.receive(int(r.link or 0), r.data, r.t)
+            elif r.kind == "input":
+                try:
+                    node.sender(str(r.name)).ingest(state.loads(r.data), r.t)
+                except Exception as exc:  # it failed the first time too; the rest still counts
+                    if log is not None:
+                        log(f"journaled input {r.id} of {r.name} not taken again: {exc}")
+            else:
+                continue
+            self.stats["replayed"] += 1
+        return node
+
+    def _load(self, build: Callable[[], Node]) -> tuple[Node, Any, list[JournalRow]]:
+        """In one read transaction: the node built and its snapshot loaded, what ``extra`` was,
+        and the journal rows after the snapshot (a look also reads the storage's committed rows)."""
         row = self.db.execute("SELECT journal_id, state FROM snapshot WHERE id = 1").fetchone()
         extra: Any = None
         node, after = build(), 0
@@ -466,32 +804,15 @@ class NodeStore:
                     extra = node.restore_state(blob)
             except Exception as exc:  # a damaged or foreign file: a clear error, never a crash
                 if not isinstance(exc, state.StateError | KeyError | TypeError | ValueError |
-                                  AttributeError):
+                                  AttributeError | zlib.error):
                     raise
-                raise ConfigError(f"{self.path}: unreadable snapshot ({exc}); move the file away "
-                                  "to start afresh") from exc
+                raise StoreError(f"{self.path}: unreadable snapshot ({exc}); move the file away "
+                                 f"(mv {self.path} {self.path}.damaged) to start afresh",
+                                 kind="damaged", path=self.path) from exc
             after = int(row[0])
-        node.attach_storage(self.storage())
-        if log is not None:
-            node.set_log(log)
-        if clock is not None:
-            node.manager.clock = clock
-        self.restored_extra = extra
-        if before_replay is not None:
-            before_replay(node, extra)
-        for r in self.journal(after=after):
-            if r.kind == "rx":
-                node.receive(int(r.link or 0), r.data, r.t)
-            elif r.kind == "input":
-                try:
-                    node.sender(str(r.name)).ingest(state.loads(r.data), r.t)
-                except Exception as exc:  # it failed the first time too; the rest still counts
-                    if log is not None:
-                        log(f"journaled input {r.id} of {r.name} not taken again: {exc}")
-            else:
-                continue
-            self.stats["replayed"] += 1
-        return node
+        if self.read_only:
+            self.storage().load_committed()
+        return node, extra, list(self.journal(after=after))
 
     # ----------------------------------------------------------------------------- meta
     def get(self, key: str, default: str | None = None) -> str | None:
@@ -500,9 +821,30 @@ class NodeStore:
         return default if row is None else str(row[0])
 
     def set(self, key: str, value: str) -> None:
-        self.db.execute("INSERT OR REPLACE INTO meta (key, value) VALUES (?, ?)", (key, value))
+        """Set a small persistent value (:class:`StoreError` when the file refuses it)."""
+        self._writable()
+        try:
+            self.db.execute("INSERT OR REPLACE INTO meta (key, value) VALUES (?, ?)", (key, value))
+        except sqlite3.Error as exc:
+            raise self._failed(exc, f"setting {key}") from exc
+
+    def delete(self, keys: list[str]) -> None:
+        """Delete ``meta`` keys (one transaction; :class:`StoreError` when the file refuses)."""
+        self._writable()
+        try:
+            self.db.execute("BEGIN IMMEDIATE")
+            self.db.executemany("DELETE FROM meta WHERE key = ?", [(k,) for k in keys])
+            self.db.execute("COMMIT")
+        except sqlite3.Error as exc:
+            _rollback(self.db)
+            raise self._failed(exc, "deleting keys") from exc
 
     def close(self) -> None:
+        with contextlib.suppress(sqlite3.Error):
+            self.db.close()
+        if self._lock_fd is not None:  # after SQLite's own descriptors of the file are closed
+            with contextlib.suppress(OSError):
+                os.close(self._lock_fd)
+            self._lock_fd = None
         if self._storage is not None:
             self._storage.detach()
-        self.db.close()
