@@ -50,8 +50,8 @@ from coex_core.errors import ConfigError
 from coex_core.node import Node
 from coex_core.storage import Storage
 
-__all__ = ["MIGRATIONS", "SCHEMA_VERSION", "JournalRow", "NodeStore", "SqliteStorage", "StoreError", "chunk_text",
-           "migrate", "snapshot_text", "store_error"]
+__all__ = ["MIGRATIONS", "SCHEMA_VERSION", "JournalRow", "NodeStore", "SqliteStorage", "StoreError", "check_store",
+           "chunk_text", "migrate", "snapshot_text", "store_error"]
 
 #: Stores written before the explicit state format held pickled snapshots, which this version
 #: refuses (it never unpickles).
@@ -86,12 +86,14 @@ _SQLITE_CORRUPT, _SQLITE_FULL, _SQLITE_CANTOPEN, _SQLITE_NOTADB = 11, 13, 14, 26
 
 
 def _free(path: Path) -> str:
-    """" (N bytes free on its disk)", or "" when the disk cannot be asked."""
+    """" (N bytes free)", or "" when the disk cannot be asked."""
     try:
         free = shutil.disk_usage(path.parent if path.parent.exists() else Path.cwd()).free
     except OSError:
         return ""
-    return f" ({free / 1e6:.1f} MB free)" if free >= 10**5 else f" ({free} bytes free)"
+    if free < 10**6:
+        return f" ({free} bytes free)"
+    return f" ({free / 1e6:.0f} MB free on it: a quota or a size limit refuses more)"
 
 
 def store_error(path: Path, exc: BaseException, doing: str) -> StoreError:
@@ -114,15 +116,13 @@ def store_error(path: Path, exc: BaseException, doing: str) -> StoreError:
         return StoreError(f"{path} is read-only ({doing}: {why}): make the file and its folder writable by "
                           "this user, or give another node.store", kind="read-only", path=path)
     if primary in (_SQLITE_CORRUPT, _SQLITE_NOTADB):
-        return StoreError(f"{path} is damaged ({doing}: {why}): move it away (mv {path} {path}.damaged) "
-                          "to start afresh; the node then starts empty", kind="damaged", path=path)
+        return _damaged(path, f"{doing}: {why}")
     if primary in (_SQLITE_BUSY, _SQLITE_LOCKED):
         return StoreError(f"{path} is in use by another process ({doing}: {why}): stop the other "
                           "coex process that has it open, or give this node another store",
                           kind="in use", path=path)
     if primary == _SQLITE_CANTOPEN and not path.parent.is_dir():
-        return StoreError(f"{path}: no folder {path.parent} ({doing}): create it, or give another "
-                          "node.store", kind="no folder", path=path)
+        return _no_folder(path)
     if primary == _SQLITE_CANTOPEN:
         return StoreError(f"cannot open {path} ({doing}: {why}): its folder must be writable by this "
                           "user (SQLite writes its -wal and -shm files beside it)", kind="read-only", path=path)
@@ -195,6 +195,53 @@ def migrate(db: sqlite3.Connection, path: Path) -> int:
             _rollback(db)
             raise
     return found
+
+
+def _no_folder(path: Path) -> StoreError:
+    return StoreError(f"{path}: no folder {path.parent}: create it, or give another node.store",
+                      kind="no folder", path=path)
+
+
+def _damaged(path: Path, why: str) -> StoreError:
+    return StoreError(f"{path} is damaged ({why}): move it away (mv {path} {path}.damaged) to start afresh; "
+                      "the node then starts empty", kind="damaged", path=path)
+
+
+def check_store(path: str | Path) -> list[StoreError]:
+    """What :class:`NodeStore` would refuse when the daemon opens ``path`` (``coex config
+    check`` asks this, writing nothing): its folder missing or not writable, the file
+    read-only, damaged (SQLite's ``quick_check``) or written by a newer CoEx. A file that is not
+    there yet is no problem (it is created)."""
+    path = Path(path)
+    if not path.parent.is_dir():
+        return [_no_folder(path)]
+    if not os.access(path.parent, os.W_OK | os.X_OK):
+        return [StoreError(f"{path} is read-only: its folder {path.parent} cannot be written (SQLite writes "
+                           f"{path.name}-wal and -shm beside it): make the folder writable by this user, or give "
+                           "another node.store", kind="read-only", path=path)]
+    if not path.exists():
+        return []
+    if not path.is_file() or not os.access(path, os.R_OK | os.W_OK):
+        return [StoreError(f"{path} is read-only (or not a file): make it writable by this user, or give "
+                           "another node.store", kind="read-only", path=path)]
+    try:
+        db = sqlite3.connect(f"file:{quote(str(path))}?mode=ro", uri=True, isolation_level=None)
+    except sqlite3.Error as exc:
+        return [store_error(path, exc, "opening it")]
+    try:
+        rows = [str(r[0]) for r in db.execute("PRAGMA quick_check(5)")]
+        if rows != ["ok"]:
+            return [_damaged(path, f"SQLite's check: {'; '.join(rows)}")]
+        found = int(db.execute("PRAGMA user_version").fetchone()[0])
+        if found > SCHEMA_VERSION:
+            return [StoreError(f"{path} was written by a newer CoEx (store schema {found}; this one knows up to "
+                               f"{SCHEMA_VERSION}): open it with that version, or give another store",
+                               kind="error", path=path)]
+    except sqlite3.Error as exc:
+        return [store_error(path, exc, "reading it")]
+    finally:
+        db.close()
+    return []
 
 
 #: a snapshot row's state in version 2: this, then the 16-byte hashes of the text's chunks
@@ -512,8 +559,7 @@ class NodeStore:
 
     def _open(self) -> None:
         if not self.path.parent.is_dir():
-            raise StoreError(f"{self.path}: no folder {self.path.parent}: create it, or give another node.store",
-                             kind="no folder", path=self.path)
+            raise _no_folder(self.path)
         # one writer at a time: an advisory lock on the file, held while the store is open
         # (released by the kernel if the process dies, kill -9 included)
         fd = os.open(self.path, os.O_RDWR | os.O_CREAT, 0o666)
@@ -557,9 +603,7 @@ class NodeStore:
         node's store)."""
         rows = [str(r[0]) for r in self.db.execute("PRAGMA quick_check(5)")]
         if rows != ["ok"]:
-            raise StoreError(f"{self.path} is damaged (SQLite's check: {'; '.join(rows)}): move it away "
-                             f"(mv {self.path} {self.path}.damaged) to start afresh; the node then starts empty",
-                             kind="damaged", path=self.path)
+            raise _damaged(self.path, f"SQLite's check: {'; '.join(rows)}")
 
     def _close_quietly(self) -> None:
         with contextlib.suppress(Exception):

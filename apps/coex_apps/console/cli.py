@@ -125,6 +125,10 @@ def register(subparsers: Any) -> None:
     p.add_argument("--slot", type=float, default=20.0,
                    help="TDMA slot length in seconds (NUI cycle of 6 slots, default 20)")
     p.add_argument("--guard", type=float, default=2.0, help="slot guard time (default 2 s)")
+    p.add_argument("--packet-seconds", type=float, default=None, metavar="S",
+                   help="time a packet takes on every modem (default: a full packet's airtime at the "
+                        "rate; a link without airtime, LCM, MAVLink, MOOS, loopback, takes less: "
+                        "docs/deploy.md, modems[0].packet_seconds)")
     p.add_argument("--schedule", metavar="JSON",
                    help='explicit schedule: {"slots": [{"owner": 1, "duration": 20, '
                         '"guard": 2}, ...], "epoch": 0}')
@@ -190,9 +194,16 @@ class TopsideApp:
         self._commands_seen = self._commands_version()
         self.runner = Runner(node, self.transports, RealClock(clock), store=store,
                              lock=hub.lock, after_step=[self._to_console],
-                             snapshot_due=self._commands_changed,
-                             on_error=lambda text: log.warning("%s", text))
+                             snapshot_due=self._commands_changed, on_error=self._error)
         self.transports = self.runner.transports  # one dict: a link's transport may be swapped
+
+    def _error(self, text: str) -> None:
+        """The runner's errors to the log; the store's (a full disk, and its end) to the
+        console's event log too: the operator must know what topside cannot keep."""
+        log.warning("%s", text)
+        if text.startswith("store"):
+            for state in self._states():
+                state._log(self.clock(), text, "warn")
 
     @property
     def errors(self) -> list[str]:
@@ -283,6 +294,8 @@ class TopsideApp:
             with self.hub.lock:
                 try:
                     self.store.snapshot(self.node, self.clock())
+                except CoexError as exc:  # a full disk: said, never a traceback
+                    log.warning("last snapshot not saved: %s", exc)
                 finally:
                     self.store.close()
 
@@ -313,6 +326,8 @@ def _option(key: str, uris: Sequence[str]) -> str:
         return f"--transport {uris[int(modem.group(1))]}"
     if modem and modem.group(2) == "rate":
         return "--rate"
+    if modem and modem.group(2) == "packet_seconds":
+        return "--packet-seconds"
     modality = re.fullmatch(r"modalities\.([^.]+)\.ids(?:\..*)?", key)
     if modality:
         return f"--remap-ids {modality.group(1)}"
@@ -639,6 +654,9 @@ def run(args: argparse.Namespace) -> int:
         except (CoexError, OSError) as exc:
             print(f"coex topside: {exc}", file=sys.stderr)
             return 2
+        except Exception as exc:  # what no check foresaw: named, never a traceback
+            print(f"coex topside: cannot start: {type(exc).__name__}: {exc}", file=sys.stderr)
+            return 2
         logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(levelname)s %(message)s",
                             force=True)
         from .fleet import FleetHub
@@ -657,7 +675,9 @@ def run(args: argparse.Namespace) -> int:
             args.transport, node_id=args.node_id, vehicle_id=args.vehicle_id, link=args.link, rate=args.rate,
             schedule=_schedule(args.schedule), slot=args.slot, guard=args.guard,
             modalities=tuple(m for m in args.modalities.split(",") if m), remap_ids=dict(args.remap_ids),
-            store=args.store, command_key_file=args.command_key_file, missing=missing)
+            store=args.store, command_key_file=args.command_key_file, missing=missing,
+            link_options=None if args.packet_seconds is None else
+            [{"packet_seconds": args.packet_seconds} for _ in args.transport])
         app = topside_app(
             cfg, host, port, stream_names=args.stream_names, missing=missing, operators=args.operators,
             insecure_open=args.insecure_open, tls_cert=args.tls_cert, tls_key=args.tls_key,
