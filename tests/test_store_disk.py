@@ -95,7 +95,7 @@ class Dive:
         app.nav.update(x=1.0, y=2.0)  # a position, so that the vehicle sends its status
         return app
 
-    def run(self, seconds: float, dt: float = 0.1) -> None:
+    def run(self, seconds: float, dt: float = 0.1, *, topside_sends: bool = True) -> None:
         end = self.now[0] + seconds
         while self.now[0] < end:
             now = self.now[0]
@@ -104,7 +104,8 @@ class Dive:
                 self.topside.receive(0, f, now)
             for tx in self.topside.poll(now):
                 for f in tx.frames:
-                    self.ttr.send(f)
+                    if topside_sends:
+                        self.ttr.send(f)
             for e in self.topside.events():
                 self.events.append(e)
                 msg = getattr(e, "message", None)

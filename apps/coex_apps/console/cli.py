@@ -190,6 +190,8 @@ class TopsideApp:
         self.stop = threading.Event()
         #: the products on ROS topics (``[ros]``), or None
         self.ros: Any = None
+        #: the vehicles heard nothing from (:class:`coex.PeerWatch`; set by :func:`topside_app`)
+        self.peer_watch: Any = None
         self._last_status: dict[int, Any] = {}
         self._commands_seen = self._commands_version()
         self.runner = Runner(node, self.transports, RealClock(clock), store=store,
@@ -233,6 +235,16 @@ class TopsideApp:
         from coex import ResilientTransport
 
         self.hub.pump(self.node, now)
+        if self.peer_watch is not None:
+            from .fleet import FleetHub
+
+            for change in self.peer_watch.check(now):
+                fleet = isinstance(self.hub, FleetHub)
+                text = change.text(self.hub.names.get(change.peer, "") if fleet else "the vehicle")
+                (log.warning if change.silent else log.info)("%s", text)
+                states = self.hub.states() if fleet else {change.peer: self.hub.state}
+                if change.peer in states:
+                    states[change.peer]._log(now, text, "warn" if change.silent else "info")
         for link, tr in self.transports.items():
             self._modem_status(link, tr)
             if isinstance(tr, ResilientTransport):
@@ -613,6 +625,9 @@ def topside_app(cfg: DeployConfig, host: str = "127.0.0.1", port: int = 8080, *,
             nstore.close()
         raise
     app = TopsideApp(node, links, hub, server, clock, store=nstore)
+    from coex import PeerWatch
+
+    app.peer_watch = PeerWatch(node.manager, cfg.vehicle_ids())  # a vehicle not heard: said
     if cfg.ros is not None:
         from .ros import RosProducts
 

@@ -30,8 +30,10 @@ from coex_plugins.options import LogOnce
 
 from .build import build_node, link_configs
 from .config import DeployConfig
+from .faults import FAULT_PEER_SILENT, FAULT_STORE
 
-__all__ = ["VehicleApp", "build_node", "build_vehicle_node", "link_configs", "open_transports"]
+__all__ = ["FAULT_PEER_SILENT", "FAULT_STORE", "VehicleApp", "build_node", "build_vehicle_node", "link_configs",
+           "open_transports"]
 
 log = logging.getLogger("coex.vehicle")
 
@@ -42,9 +44,6 @@ TAKEN_MAX = 20000
 TAKEN_PREFIX = "vehicle.taken:"
 #: images and autonomy reports held while the store cannot journal them (taken once it can)
 HELD_MAX = 64
-#: bits of ``VehicleStatus.faults`` the daemon sets (docs/deploy.md, "Faults shown topside")
-FAULT_STORE = 0x01
-FAULT_PEER_SILENT = 0x02
 
 
 def open_transports(cfg: DeployConfig) -> dict[int, Any]:
@@ -147,7 +146,11 @@ class VehicleApp:
         #: a small value to set in the store once it takes writes again
         self._unsaved: dict[str, str] = {}
         self._store_down = False
-        #: hearing nothing from topside (:class:`~coex_runtime.peers.PeerWatch`)
+        #: hearing nothing from topside for ``SILENT_CYCLES`` TDMA cycles (logged, and a fault
+        #: bit of the status topside gets)
+        from coex_runtime.peers import PeerWatch
+
+        self.peer_watch = PeerWatch(self.node.manager, [cfg.peer])
         self._peer_silent = False
         #: whether the survey submitted before a restart was handed back to the autonomy (resume)
         self._resumed = False
@@ -227,6 +230,9 @@ class VehicleApp:
             for item in items:
                 self._take(inp, item, now)
         self._store_state()
+        for change in self.peer_watch.check(now):
+            (log.warning if change.silent else log.info)("%s", change.text("topside"))
+        self._peer_silent = self.peer_watch.any_silent()
         self._status(now)
         self._link_health(now)
         self._autonomy(now)
