@@ -87,9 +87,13 @@ def _saved_time(store: NodeStore) -> float:
     return float(row[0]) if row is not None else T0
 
 
-def work(folder: str, seed: int, until: float = T0 + DIVE_SECONDS) -> None:
-    """The writer (see the module docstring); returns when the dive's clock reaches ``until``."""
+def work(folder: str, seed: int, until: float = T0 + DIVE_SECONDS, ready: Any = None) -> None:
+    """The writer (see the module docstring); returns when the dive's clock reaches ``until``.
+    ``ready`` (an event) is set once the dive has advanced by a snapshot in this life."""
     here = Path(folder)
+    import coex_runtime.store
+
+    coex_runtime.store.GARBAGE_CHUNKS = 64  # chunks no snapshot names are deleted often: killed then too
     stores = {r: NodeStore(here / f"{r}.sqlite", snapshot_interval=SNAPSHOT_INTERVAL) for r in ROLES}
     try:
         nodes = {r: stores[r].restore(build(r)) for r in ROLES}
@@ -117,9 +121,12 @@ def work(folder: str, seed: int, until: float = T0 + DIVE_SECONDS) -> None:
                 tstore.set("goal", "asked")  # ... before it is marked done
 
         net.every(1.0, inputs, start=start)
+        first = {r: stores[r].stats["snapshots"] for r in ROLES}
         while net.step(until):
             for r in ROLES:
                 stores[r].maybe_snapshot(nodes[r], net.now)
+            if ready is not None and not ready.is_set() and all(stores[r].stats["snapshots"] > first[r] for r in ROLES):
+                ready.set()  # both stores moved on in this life
         for r in ROLES:
             stores[r].snapshot(nodes[r], net.now)
     finally:
@@ -127,8 +134,9 @@ def work(folder: str, seed: int, until: float = T0 + DIVE_SECONDS) -> None:
             s.close()
 
 
-def _work_and_exit(folder: str, seed: int) -> None:
-    work(folder, seed)
+def _work_and_exit(folder: str, seed: int, ready: Any) -> None:
+    work(folder, seed, ready=ready)
+    ready.set()
     os._exit(0)
 
 
@@ -160,9 +168,10 @@ class KillReport:
 
 def kill_loop(folder: Path, kills: int, *, seed: int = 1, max_alive: float = 1.2,
               log: Callable[[str], None] | None = None) -> KillReport:
-    """Run the writer ``kills`` times into ``folder``, each killed with SIGKILL after a random
-    0 to ``max_alive`` seconds (a look at its stores at a random moment before), and check the
-    stores after each kill. A dive that finishes is checked whole (topside holds the vehicle's
+    """Run the writer ``kills`` times into ``folder``, each killed with SIGKILL a random 0 to
+    ``max_alive`` seconds after it has moved its dive on by a snapshot (one in four: that long
+    after it started, while it opens its stores, replays its journal, takes its first snapshot),
+    a look at its stores at a random moment before, and check the stores after each kill. A dive that finishes is checked whole (topside holds the vehicle's
     map, images and series) and the next one starts in a fresh folder."""
     ctx = multiprocessing.get_context("forkserver")
     ctx.set_forkserver_preload(["tests._store_kill"])
@@ -173,8 +182,14 @@ def kill_loop(folder: Path, kills: int, *, seed: int = 1, max_alive: float = 1.2
     here = folder / f"dive{dive_no}"
     here.mkdir(parents=True, exist_ok=True)
     while report.kills < kills:
-        p = ctx.Process(target=_work_and_exit, args=(str(here), rng.randrange(1 << 30)), daemon=True)
+        ready = ctx.Event()
+        p = ctx.Process(target=_work_and_exit, args=(str(here), rng.randrange(1 << 30), ready), daemon=True)
         p.start()
+        # most kills come after the writer has moved its dive on by a snapshot (so the dive
+        # advances whatever the machine's load), a random time later; one in four at a random
+        # moment of its start (the stores opening, the journal replayed, the first snapshot)
+        if report.kills % 4 != 3:
+            ready.wait(300.0)
         alive = rng.uniform(0.0, max_alive)
         look_at = rng.uniform(0.0, alive)
         time.sleep(look_at)

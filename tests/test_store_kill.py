@@ -178,13 +178,17 @@ def _state(node: Node, role: str, store: NodeStore | None = None) -> Any:
 
 
 @pytest.mark.parametrize("role", ["topside", "vehicle"])
-def test_a_write_refused_at_any_write_point_leaves_a_store_that_restores(tmp_path: Path, role: str) -> None:
+def test_a_write_refused_at_any_write_point_leaves_a_store_that_restores(tmp_path: Path, role: str,
+                                                                        monkeypatch: pytest.MonkeyPatch) -> None:
     """Every statement a node's store runs (journal rows, marks, snapshots: chunks, manifest,
     journal compaction, the storage's rows and generation) refused in turn, as by a full disk
     or an I/O error: the store raises :class:`StoreError` naming the file (never an
     sqlite3 error); a process that dies there leaves a file that restores the node as after
     the last operation that committed (or the one that failed, when what failed was a spilled
     tile kept in memory); a node that carries on writes it all with its next snapshot."""
+    import coex_runtime.store
+
+    monkeypatch.setattr(coex_runtime.store, "GARBAGE_CHUNKS", 1)  # unnamed chunks deleted at every snapshot
     ops = _topside_ops() if role == "topside" else _vehicle_ops()
     # the states the restored node may be in: before and after each operation
     ref_store = NodeStore(tmp_path / "ref.sqlite")
@@ -200,9 +204,10 @@ def test_a_write_refused_at_any_write_point_leaves_a_store_that_restores(tmp_pat
     writes = [i + 1 for i, q in enumerate(counter.sql) if not q.startswith("SELECT")]
     kinds = {q for q in counter.sql if not q.startswith("SELECT")}
     assert len(writes) > 30 and len(kinds) >= 10, kinds
-    if role == "topside":  # the map's spilled tiles, and their generation's commit, among them
+    if role == "topside":  # the map's spilled tiles, their generation's commit, chunks no snapshot names
         assert {"INSERT OR REPLACE INTO storage (key, gen, data) VALUES (?, ?, ?)",
-                "INSERT OR REPLACE INTO meta (key, value) VALUES ('storage_gen', ?)"} <= kinds, kinds
+                "INSERT OR REPLACE INTO meta (key, value) VALUES ('storage_gen', ?)",
+                "DELETE FROM chunk WHERE id = ?"} <= kinds, kinds
     else:  # an input and its mark, in one transaction
         assert "INSERT OR REPLACE INTO meta (key, value) VALUES (?, ?)" in kinds, kinds
     # every kind of write (and the reads inside a snapshot's transaction), the first and the

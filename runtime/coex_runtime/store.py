@@ -14,11 +14,12 @@ The core is sans-I/O, so the store lives here, next to the runner. One SQLite fi
   state: never pickle), with the id of the last journal row it includes. It is written in one
   transaction before every transmission leaves (so a restarted node knows what it already sent)
   and after received frames, at most every ``snapshot_interval`` seconds; the journal rows it
-  includes are deleted in the same transaction. **Incremental** (schema 2): the snapshot row
-  holds a manifest, the hashes of the document text's content-defined chunks; the ``chunk``
-  table holds those chunks and the state's arrays (named by their content), zlib-compressed,
-  each written once and deleted when no snapshot uses it, so a snapshot writes only what
-  changed since the last one (``docs/persistence.md``, "Incremental snapshots").
+  includes are deleted in the same transaction. **Incremental** (schemas 2 and 3): the
+  snapshot row holds a manifest, the ids of the document text's content-defined chunks; the
+  ``chunk`` table holds those chunks and the state's arrays (named by their content),
+  zlib-compressed, each written once and deleted (together with others) when no snapshot uses
+  it, so a snapshot writes only what changed since the last one (``docs/persistence.md``,
+  "Incremental snapshots").
 
 :meth:`NodeStore.restore` builds the node (the application's ``build()``), loads the snapshot into
 it, and replays the journal rows written after it, in order: received frames go through
@@ -96,6 +97,14 @@ def _free(path: Path) -> str:
     return f" ({free / 1e6:.0f} MB free on it: a quota or a size limit refuses more)"
 
 
+def _no_room(path: Path) -> bool:
+    """Whether the disk holding ``path`` has no room left (less than 64 KiB)."""
+    try:
+        return shutil.disk_usage(path.parent).free < 65536
+    except OSError:
+        return False
+
+
 def store_error(path: Path, exc: BaseException, doing: str) -> StoreError:
     """``exc`` (an :class:`sqlite3.Error` or :class:`OSError` met while ``doing`` something to
     the store ``path``) as the :class:`StoreError` that names the file and the remedy."""
@@ -108,6 +117,8 @@ def store_error(path: Path, exc: BaseException, doing: str) -> StoreError:
                    errno.EACCES: _SQLITE_READONLY, errno.EPERM: _SQLITE_READONLY,
                    errno.ENOENT: _SQLITE_CANTOPEN, errno.EIO: _SQLITE_IOERR}.get(exc.errno or 0, primary)
     why = exc.strerror if isinstance(exc, OSError) and exc.strerror else str(exc)
+    if primary in (_SQLITE_IOERR, _SQLITE_CANTOPEN) and _no_room(path):
+        primary = _SQLITE_FULL  # SQLite could not make or grow its -shm or -wal file: no room
     if primary == _SQLITE_FULL:
         return StoreError(f"{path}: the disk is full{_free(path)} ({doing}): free space on it; until then "
                           "the node runs on (link and commands) but keeps nothing new across a restart",
@@ -174,6 +185,21 @@ MIGRATIONS: tuple[str, ...] = (
         shape TEXT,
         data BLOB NOT NULL
     )""",
+    # 2 -> 3: chunks by row id, in the order written, with no index on their hash (the store
+    # keeps the hash -> id map in memory); a manifest lists the text's chunk ids (compressed).
+    # A snapshot's new chunks then fill pages at the end of the table, where a hash key put each
+    # on a page of its own, and its manifest is a few hundred bytes, not 16 per chunk: the pages
+    # a snapshot writes (bench/disk_writes.py). Manifests of version 2 (hashes) are still read.
+    """CREATE TABLE chunk3 (
+        id INTEGER PRIMARY KEY,
+        hash BLOB NOT NULL,
+        dtype TEXT,
+        shape TEXT,
+        data BLOB NOT NULL
+    );
+    INSERT INTO chunk3 (hash, dtype, shape, data) SELECT hash, dtype, shape, data FROM chunk;
+    DROP TABLE chunk;
+    ALTER TABLE chunk3 RENAME TO chunk""",
 )
 SCHEMA_VERSION = len(MIGRATIONS)
 
@@ -244,8 +270,18 @@ def check_store(path: str | Path) -> list[StoreError]:
     return []
 
 
+#: WAL pages (of 4 KiB) between two checkpoints; the WAL file is kept to that size
+WAL_PAGES = 2048
+
+#: chunks no manifest names any more, or their bytes (uncompressed, of those this process saw),
+#: at least, before a snapshot deletes them (together, in its transaction)
+GARBAGE_CHUNKS = 2048
+GARBAGE_BYTES = 2**20
+
 #: a snapshot row's state in version 2: this, then the 16-byte hashes of the text's chunks
 _MANIFEST = b"COEXPARTS\n"
+#: in version 3: this, then the text's chunk ids (their differences, int64, zlib)
+_MANIFEST3 = b"COEXPART3\n"
 #: content-defined chunking of the text: a cut where the hash of the last 32 bytes has its low
 #: bits zero (512 bytes apart on average), at least 128 bytes and at most 4 KiB apart
 _WINDOW, _MASK, _MIN_CHUNK, _MAX_CHUNK = 32, 511, 128, 4096
@@ -288,15 +324,22 @@ def _digest(data: bytes) -> bytes:
     return hashlib.blake2b(data, digest_size=16).digest()
 
 
+def _chunk_ids(db: sqlite3.Connection) -> dict[bytes, int]:
+    """Every chunk the file holds: its hash -> its row id (a scan: the table has no index on
+    the hash)."""
+    return {bytes(h): int(i) for i, h in db.execute("SELECT id, hash FROM chunk")}
+
+
 class _ChunkArrays(Mapping[str, np.ndarray]):
     """A snapshot's arrays by name, read from the store's chunks when the state asks for them."""
 
-    def __init__(self, db: sqlite3.Connection) -> None:
-        self.db = db
+    def __init__(self, db: sqlite3.Connection, ids: Mapping[bytes, int]) -> None:
+        self.db, self.ids = db, ids
 
     def __getitem__(self, name: str) -> np.ndarray:
-        row = self.db.execute("SELECT dtype, shape, data FROM chunk WHERE hash = ?",
-                              (bytes.fromhex(name.split(".")[0]),)).fetchone()
+        i = self.ids.get(bytes.fromhex(name.split(".")[0]))
+        row = None if i is None else self.db.execute("SELECT dtype, shape, data FROM chunk WHERE id = ?",
+                                                     (i,)).fetchone()
         if row is None or row[0] is None:
             raise KeyError(f"array {name} is not in the store")
         shape = tuple(int(x) for x in str(row[1]).split(",") if x)
@@ -309,14 +352,32 @@ class _ChunkArrays(Mapping[str, np.ndarray]):
         return 0
 
 
-def _manifest_text(db: sqlite3.Connection, blob: bytes) -> bytes:
-    """The document text a version-2 snapshot row's manifest lists."""
-    hashes = [blob[i:i + 16] for i in range(len(_MANIFEST), len(blob), 16)]
+def _manifest_ids(blob: bytes) -> list[int]:
+    """The chunk ids a version-3 manifest lists (zlib of their differences, int64)."""
+    deltas = np.frombuffer(zlib.decompress(blob[len(_MANIFEST3):]), "<i8")
+    return [int(x) for x in np.cumsum(deltas)]
+
+
+def _encode_manifest(ids: list[int]) -> bytes:
+    return _MANIFEST3 + zlib.compress(np.diff(np.asarray(ids, np.int64), prepend=0).astype("<i8").tobytes(), 6)
+
+
+def _manifest_text(db: sqlite3.Connection, blob: bytes, ids: Mapping[bytes, int] | None = None) -> bytes:
+    """The document text a snapshot row's manifest lists (version 3: chunk ids; version 2:
+    chunk hashes, found through ``ids``, the hash -> id map, read when not given)."""
+    if blob.startswith(_MANIFEST3):
+        wanted: list[int | None] = list(_manifest_ids(blob))
+        names = [f"#{i}" for i in wanted]
+    else:
+        hashes = [blob[i:i + 16] for i in range(len(_MANIFEST), len(blob), 16)]
+        ids = _chunk_ids(db) if ids is None else ids
+        wanted = [ids.get(h) for h in hashes]
+        names = [h.hex() for h in hashes]
     parts = []
-    for h in hashes:
-        row = db.execute("SELECT data FROM chunk WHERE hash = ?", (h,)).fetchone()
+    for i, name in zip(wanted, names, strict=True):
+        row = None if i is None else db.execute("SELECT data FROM chunk WHERE id = ?", (i,)).fetchone()
         if row is None:
-            raise state.StateError(f"text chunk {h.hex()} is missing")
+            raise state.StateError(f"text chunk {name} is missing")
         parts.append(zlib.decompress(bytes(row[0])))
     return b"".join(parts)
 
@@ -355,7 +416,7 @@ def snapshot_text(db: sqlite3.Connection) -> bytes | None:
         if row is None:
             return None
         blob = bytes(row[0])
-        if blob.startswith(_MANIFEST):
+        if blob.startswith((_MANIFEST, _MANIFEST3)):
             return _manifest_text(db, blob)
     n = int.from_bytes(blob[len(state.MAGIC):len(state.MAGIC) + 4], "big")
     return blob[len(state.MAGIC) + 4:len(state.MAGIC) + 4 + n]
@@ -522,19 +583,32 @@ class NodeStore:
         #: journal as a record (a test that audits what was sent and received)
         self.compact = compact
         self.snapshot_interval = float(snapshot_interval)
-        self.journal_tx = journal_tx
+        #: journal every frame sent (``tx`` rows, a record, never replayed): only a store that
+        #: keeps its journal (``compact=False``) keeps them; a compacted one would delete each at
+        #: the snapshot that follows it at once, so it does not write them (they were a fifth of
+        #: the vehicle's disk writes: ``bench/disk_writes.py``)
+        self.journal_tx = journal_tx and not compact
         #: a look at the file, never a write (see the class docstring)
         self.read_only = read_only
         #: the newest write that failed (None: the store keeps everything); cleared when a
         #: snapshot commits
         self.problem: StoreError | None = None
         self._lock_fd: int | None = None
+        #: the disk was full at open: the node runs from the file as it is (read only) and
+        #: every write is refused, until a snapshot finds room to open it for writing
+        self.degraded = False
         self.db: sqlite3.Connection
         try:
             if read_only:
                 self._open_read_only()
             else:
-                self._open()
+                try:
+                    self._open()
+                except (sqlite3.Error, OSError) as exc:
+                    err = store_error(self.path, exc, "opening it")
+                    if err.kind != "full" or self._lock_fd is None:
+                        raise err from exc
+                    self._open_degraded(err)
         except StoreError:
             self._close_quietly()
             raise
@@ -554,8 +628,15 @@ class NodeStore:
         self.stats = {"rx": 0, "tx": 0, "input": 0, "snapshots": 0, "snapshot_bytes": 0, "state_bytes": 0,
                       "replayed": 0, "failed": 0}
         self._storage: SqliteStorage | None = None
-        #: the chunks the file holds (None: not read yet)
-        self._held: set[bytes] | None = None
+        #: the chunks the file holds, hash -> row id (None: not read yet); the next row id
+        self._held: dict[bytes, int] | None = None
+        self._next_id = 1
+        #: chunks the file holds that no committed manifest names any more: deleted together
+        #: once there are :data:`GARBAGE_CHUNKS` of them (or as many as the state has), in the
+        #: transaction of a snapshot that does not name them either
+        self._garbage: set[bytes] = set()
+        #: the size of the chunks this store saw (uncompressed), for :data:`GARBAGE_BYTES`
+        self._sizes: dict[bytes, int] = {}
 
     def _open(self) -> None:
         if not self.path.parent.is_dir():
@@ -577,13 +658,63 @@ class NodeStore:
         if str(mode).lower() != "wal":
             raise StoreError(f"{self.path}: SQLite refused WAL mode ({mode})", kind="error", path=self.path)
         self.db.execute("PRAGMA synchronous=NORMAL")
-        # a checkpoint every 256 pages (1 MiB), and the WAL file shrinks back to 1 MiB after
-        # one (it kept its high-water size, about four times the snapshot, before 0.3)
-        self.db.execute("PRAGMA wal_autocheckpoint=256")
-        self.db.execute("PRAGMA journal_size_limit=1048576")
+        # a checkpoint every WAL_PAGES pages (8 MiB), and the WAL file shrinks back to that size
+        # after one (it kept its high-water size, about four times the snapshot, before 0.3). A
+        # checkpoint copies each page the WAL holds into the file once, however many snapshots
+        # changed it: every 256 pages (1 MiB) it copied the pages every snapshot touches (the
+        # manifest's, the chunk index's) ten times as often (bench/disk_writes.py: a fifth of
+        # the vehicle's disk writes)
+        self.db.execute(f"PRAGMA wal_autocheckpoint={WAL_PAGES}")
+        self.db.execute(f"PRAGMA journal_size_limit={WAL_PAGES * 4096}")
         self._check_pages()
         #: the schema version the file had when opened (0: a store of CoEx 0.1)
         self.schema_found = migrate(self.db, self.path)
+
+    def _open_degraded(self, err: StoreError) -> None:
+        """The disk is full at open (SQLite cannot even make its ``-shm`` file): read the file as
+        it is, with no WAL (a store closed cleanly has none; one with a WAL still there cannot
+        be read without it: refused), and refuse every write with ``err`` until
+        :meth:`snapshot` finds room to open it for writing (:meth:`_reopen`)."""
+        with contextlib.suppress(Exception):
+            self.db.close()
+        wal = Path(f"{self.path}-wal")
+        if wal.exists() and wal.stat().st_size > 0:
+            raise err
+        self.db = sqlite3.connect(f"file:{quote(str(self.path))}?mode=ro&immutable=1", uri=True,
+                                  isolation_level=None, check_same_thread=False)
+        self._check_pages()
+        found = int(self.db.execute("PRAGMA user_version").fetchone()[0])
+        if found > SCHEMA_VERSION:
+            raise ConfigError(f"{self.path} was written by a newer CoEx (store schema {found}; this one knows up to "
+                              f"{SCHEMA_VERSION}): open it with that version, or give another store")
+        self.schema_found = found
+        self.degraded = True
+        self.problem = StoreError(f"{err} (at start: the node runs from the store as it was, and writes it "
+                                  "again once there is room)", kind="full", path=self.path)
+
+    def _reopen(self) -> None:
+        """Degraded: open the file for writing now, if the disk has room (:class:`StoreError`
+        if not); the storage and the snapshots go on with the new connection."""
+        try:
+            db = sqlite3.connect(self.path, isolation_level=None, check_same_thread=False)
+            try:
+                if str(db.execute("PRAGMA journal_mode=WAL").fetchone()[0]).lower() != "wal":
+                    raise StoreError(f"{self.path}: SQLite refused WAL mode", kind="error", path=self.path)
+                db.execute("PRAGMA synchronous=NORMAL")
+                db.execute(f"PRAGMA wal_autocheckpoint={WAL_PAGES}")
+                db.execute(f"PRAGMA journal_size_limit={WAL_PAGES * 4096}")
+                migrate(db, self.path)
+            except BaseException:
+                db.close()
+                raise
+        except sqlite3.Error as exc:
+            raise self._failed(exc, "opening it for writing") from exc
+        old, self.db = self.db, db
+        old.close()
+        if self._storage is not None:
+            self._storage.db = db  # still stale: the next snapshot discards rows of no snapshot
+        self.degraded = False
+        self._held = None
 
     def _open_read_only(self) -> None:
         if not self.path.is_file():
@@ -629,6 +760,10 @@ class NodeStore:
         if self.read_only:
             raise StoreError(f"{self.path} was opened read-only (a look): it is not written",
                              kind="read-only", path=self.path)
+        if self.degraded:
+            assert self.problem is not None
+            self.stats["failed"] += 1
+            raise self.problem
 
     def storage(self) -> SqliteStorage:
         """The modalities' out-of-core storage in this file (:class:`SqliteStorage`); what
@@ -636,9 +771,11 @@ class NodeStore:
         if self._storage is None:
             try:
                 self._storage = SqliteStorage(self.db, self.path, on_error=self._storage_failed,
-                                              read_only=self.read_only)
+                                              read_only=self.read_only or self.degraded)
             except sqlite3.Error as exc:
                 raise store_error(self.path, exc, "reading its storage") from exc
+            if self.degraded:
+                self._storage._stale = True  # puts kept in memory; the first snapshot discards the rest
         return self._storage
 
     # ------------------------------------------------------------------------- journal
@@ -671,6 +808,9 @@ class NodeStore:
         return row
 
     def record_tx(self, link: int, frame: bytes, t: float) -> int:
+        """Journal a sent frame (a record; nothing when :attr:`journal_tx` is off: 0)."""
+        if not self.journal_tx:
+            return 0
         return self._append("tx", t, bytes(frame), link=link)
 
     def record_input(self, name: str, data: Any, t: float, *, mark: str | None = None) -> int:
@@ -719,7 +859,10 @@ class NodeStore:
         ``stats["snapshot_bytes"]`` counts what was written, ``stats["state_bytes"]`` the size
         of the states saved. :class:`StoreError` when the file refuses (a full disk): nothing
         of this snapshot is in the file, the previous one stands."""
-        self._writable()
+        if self.read_only:
+            self._writable()
+        if self.degraded:
+            self._reopen()
         extra = self.extra() if self.extra is not None else None
         text, arrays = node.export_parts(extra)
         pieces = chunk_text(text)
@@ -730,22 +873,33 @@ class NodeStore:
             a = np.ascontiguousarray(a)
             wanted[bytes.fromhex(name.split(".")[0])] = (a.dtype.str, ",".join(map(str, a.shape)),
                                                          a.reshape(-1).view(np.uint8) if a.size else b"")
-        manifest = _MANIFEST + b"".join(digests)
         storage = self.storage()
-        written = len(manifest)
+        written = 0
         try:
             self.db.execute("BEGIN IMMEDIATE")
             if self._held is None:  # the first snapshot since the file was opened
-                self._held = {bytes(r[0]) for r in self.db.execute("SELECT hash FROM chunk")}
-            new = [(h, v) for h, v in wanted.items() if h not in self._held]
-            gone = [(h,) for h in self._held if h not in wanted]
-            if gone:
-                self.db.executemany("DELETE FROM chunk WHERE hash = ?", gone)
-            if new:
-                rows = [(h, dt, sh, zlib.compress(d, 1)) for h, (dt, sh, d) in new]
-                self.db.executemany("INSERT OR REPLACE INTO chunk (hash, dtype, shape, data) VALUES (?, ?, ?, ?)",
-                                    rows)
-                written += sum(len(r[3]) for r in rows)
+                self._held = _chunk_ids(self.db)
+                self._next_id = int(self.db.execute("SELECT COALESCE(MAX(id), 0) FROM chunk").fetchone()[0]) + 1
+            held = self._held
+            garbage = (self._garbage | (held.keys() - wanted.keys())) - wanted.keys()
+            gone: set[bytes] = set()
+            if len(garbage) >= GARBAGE_CHUNKS or sum(self._sizes.get(h, 0) for h in garbage) >= GARBAGE_BYTES:
+                # a chunk no manifest names is deleted together with others (deleting each at
+                # the snapshot that dropped it rewrote as many pages of the file every time)
+                gone = garbage
+                self.db.executemany("DELETE FROM chunk WHERE id = ?", [(held[h],) for h in gone])
+            ids = {h: held[h] for h in wanted if h in held}
+            rows = []
+            for h, (dt, sh, d) in wanted.items():
+                if h not in ids:  # new: at the end of the table, in the order written
+                    ids[h] = self._next_id
+                    self._next_id += 1
+                    rows.append((ids[h], h, dt, sh, zlib.compress(d, 1)))
+            if rows:
+                self.db.executemany("INSERT INTO chunk (id, hash, dtype, shape, data) VALUES (?, ?, ?, ?, ?)", rows)
+                written += sum(len(r[4]) for r in rows)
+            manifest = _encode_manifest([ids[d] for d in digests])
+            written += len(manifest)
             last = self.db.execute("SELECT COALESCE(MAX(id), 0) FROM journal").fetchone()[0]
             self.db.execute("INSERT OR REPLACE INTO snapshot (id, journal_id, t, state) VALUES (1, ?, ?, ?)",
                             (int(last), float(t), sqlite3.Binary(manifest)))
@@ -756,11 +910,17 @@ class NodeStore:
         except BaseException as exc:
             _rollback(self.db)
             self._held = None  # read again from the file
+            self._garbage = set()  # (what the file holds and no manifest names: found again)
             if isinstance(exc, sqlite3.Error):
                 raise self._failed(exc, "saving a snapshot") from exc
             raise
         storage.committed_now()
-        self._held = set(wanted)
+        self._garbage = garbage - gone
+        self._held = {**ids, **{h: held[h] for h in self._garbage}}
+        for h, (_, _, d) in wanted.items():
+            self._sizes[h] = len(d)
+        for h in gone:
+            self._sizes.pop(h, None)
         self._last_snapshot = t
         self._dirty = False
         self.problem = None
@@ -842,8 +1002,9 @@ class NodeStore:
                                   "which this version does not read; move the file away to "
                                   "start afresh")
             try:
-                if blob.startswith(_MANIFEST):
-                    extra = node.restore_parts(_manifest_text(self.db, blob), _ChunkArrays(self.db))
+                if blob.startswith((_MANIFEST, _MANIFEST3)):
+                    ids = _chunk_ids(self.db)
+                    extra = node.restore_parts(_manifest_text(self.db, blob, ids), _ChunkArrays(self.db, ids))
                 else:  # a whole container (a store of schema 1, not saved since)
                     extra = node.restore_state(blob)
             except Exception as exc:  # a damaged or foreign file: a clear error, never a crash

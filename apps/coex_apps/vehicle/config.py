@@ -289,7 +289,10 @@ def check_problems(raw: Mapping[str, Any], path: Path, role: str | None) -> tupl
         from coex_runtime.store import check_store
 
         for err in check_store(cfg.store):  # what the daemon's store would refuse at start
-            p.add("node.store", str(err))
+            if err.kind == "full":  # the daemon starts, and writes its store once there is room
+                p.warn("node.store", str(err))
+            else:
+                p.add("node.store", str(err))
     else:
         p.add("node.store", f"a file name (default {r}.sqlite) or false, got {store!r}")
     infos = _modems(raw, p, cfg)

@@ -257,13 +257,17 @@ class VehicleApp:
         kept; once it can again, take what was held and say what was not kept."""
         if self.store is None:
             return
-        down = self.runner.store_problem is not None
+        down = self.runner.store_problem is not None or self.store.problem is not None
         if down and not self._store_down:
             log.warning("store cannot keep anything new: link and commands run on; images wait in "
                         "their folder and survey reports are held (up to %d) until it writes again; "
                         "soundings and series samples taken meanwhile are not kept", HELD_MAX)
         self._store_down = down
         if down or not (self._held or self._unsaved or self._not_kept):
+            return
+        if not (self._held or self._not_kept):  # a small value to write again, nothing to say
+            for key, value in list(self._unsaved.items()):
+                self._keep(key, value)
             return
         held, self._held = self._held, []
         for key, value in list(self._unsaved.items()):
