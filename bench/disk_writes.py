@@ -44,15 +44,15 @@ from typing import Any
 if str(Path(__file__).resolve().parent) not in sys.path:
     sys.path.append(str(Path(__file__).resolve().parent))
 
-from soak_faults import KEY, TOPSIDE, TOPSIDE_URI, VEHICLE, VEHICLE_URI, SimSensors, _inline  # noqa: E402
+from soak_faults import KEY, TOPSIDE, TOPSIDE_URI, VEHICLE, VEHICLE_URI, SimSensors, _inline
 
-from coex_apps.console.cli import topside_from_config  # noqa: E402
-from coex_apps.vehicle.config import load  # noqa: E402
-from coex_apps.vehicle.daemon import VehicleApp  # noqa: E402
-from coex_core.acoustic import AcousticChannel  # noqa: E402
-from coex_runtime.store import NodeStore, SqliteStorage  # noqa: E402
-from coex_transports.micromodem.simulator import ModemNetwork, SimLoop  # noqa: E402
-from coex_transports.recovery import ResilientTransport  # noqa: E402
+from coex_apps.console.cli import topside_from_config
+from coex_apps.vehicle.config import load
+from coex_apps.vehicle.daemon import VehicleApp
+from coex_core.acoustic import AcousticChannel
+from coex_runtime.store import NodeStore, SqliteStorage
+from coex_transports.micromodem.simulator import ModemNetwork, SimLoop
+from coex_transports.recovery import ResilientTransport
 
 ROOT = Path(__file__).resolve().parents[1]
 HOUR = 3600.0
@@ -211,6 +211,16 @@ http = "127.0.0.1:0"
     return {"samples": samples}
 
 
+def _tmpfs(path: Path) -> bool:
+    """Whether ``path`` is on a file system in memory (the longest mount point above it)."""
+    best, kind = "", ""
+    for line in Path("/proc/mounts").read_text().splitlines():
+        parts = line.split()
+        if len(parts) > 2 and str(path.resolve()).startswith(parts[1]) and len(parts[1]) > len(best):
+            best, kind = parts[1], parts[2]
+    return kind in ("tmpfs", "ramfs")
+
+
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--hours", type=float, default=3.0)
@@ -219,7 +229,10 @@ def main(argv: list[str] | None = None) -> int:
     args = p.parse_args(argv)
     logging.basicConfig(level=logging.WARNING)
     hours = 1.0 if args.quick else args.hours
-    work = Path(args.dir) if args.dir else Path(tempfile.mkdtemp(prefix="coex-disk-writes-", dir=ROOT / "bench"))
+    work = Path(args.dir) if args.dir else Path(tempfile.mkdtemp(prefix="coex-disk-writes-"))
+    if _tmpfs(work):
+        print(f"{work} is on a tmpfs, where write_bytes counts nothing: give --dir on a real disk")
+        return 2
     work.mkdir(parents=True, exist_ok=True)
     print(f"vehicle disk writes: {hours:g} simulated hours in {work}", flush=True)
     try:

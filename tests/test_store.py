@@ -3,6 +3,7 @@ the journal is compacted at each snapshot (what a snapshot holds is not kept twi
 
 from __future__ import annotations
 
+import itertools
 from pathlib import Path
 from typing import Any
 
@@ -235,7 +236,7 @@ def test_chunks_no_snapshot_names_are_deleted_together_and_never_while_named(tmp
         live = digest(dive.topside, products_only=True)
     finally:
         store.close()
-    assert max(unnamed) < 40 + 40 and any(b < a for a, b in zip(unnamed, unnamed[1:], strict=False)), unnamed
+    assert max(unnamed) < 40 + 40 and any(b < a for a, b in itertools.pairwise(unnamed)), unnamed
     assert max(unnamed) > 0  # kept for a while, not deleted at once
     store = NodeStore(db)
     try:
