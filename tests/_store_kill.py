@@ -211,7 +211,7 @@ def kill_loop(folder: Path, kills: int, *, seed: int = 1, max_alive: float = 1.2
                     check_store(here / f"{r}.sqlite", r)
                     report.reopened += 1
                 except Exception as exc:
-                    report.failures.append((report.kills, r, f"{type(exc).__name__}: {exc}"))
+                    report.failures.append((report.kills, r, f"{type(exc).__name__}: {exc}{_holders(here / f'{r}.sqlite')}"))
                     if isinstance(exc, StoreError) and exc.kind == "damaged":
                         raise AssertionError(f"kill {report.kills}: {r} store unreadable: {exc}") from exc
             report.dive_times.append(round(_dive_clock(here), 1))
@@ -232,6 +232,22 @@ def kill_loop(folder: Path, kills: int, *, seed: int = 1, max_alive: float = 1.2
         here.mkdir(parents=True, exist_ok=True)
     report.seconds = round(time.monotonic() - started, 1)
     return report
+
+
+def _holders(path: Path) -> str:
+    """" (open in: pid cmdline, ...)": the processes that have ``path`` open (for a failure's
+    text; Linux /proc, what this user may read)."""
+    out = []
+    for proc in Path("/proc").iterdir():
+        if not proc.name.isdigit():
+            continue
+        try:
+            if any(Path(os.readlink(fd)) == path for fd in (proc / "fd").iterdir()):
+                cmd = (proc / "cmdline").read_bytes().replace(b"\0", b" ").decode()
+                out.append(f"{proc.name} {cmd[:80]}")
+        except OSError:
+            continue
+    return f" (open in: {'; '.join(out)})" if out else ""
 
 
 def _dive_clock(folder: Path) -> float:

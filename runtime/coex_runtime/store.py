@@ -37,6 +37,7 @@ import hashlib
 import os
 import shutil
 import sqlite3
+import time
 import zlib
 from collections.abc import Callable, Iterator, Mapping
 from dataclasses import dataclass
@@ -269,6 +270,9 @@ def check_store(path: str | Path) -> list[StoreError]:
         db.close()
     return []
 
+
+#: seconds a store waits for another process to let go of it before it is "in use"
+LOCK_WAIT = 2.0
 
 #: WAL pages (of 4 KiB) between two checkpoints; the WAL file is kept to that size
 WAL_PAGES = 2048
@@ -645,12 +649,19 @@ class NodeStore:
         # (released by the kernel if the process dies, kill -9 included)
         fd = os.open(self.path, os.O_RDWR | os.O_CREAT, 0o666)
         self._lock_fd = fd
-        try:
-            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except BlockingIOError:
-            raise StoreError(f"{self.path} is in use by another process (a second coex vehicle or topside on "
-                             "the same store?): stop it, or give this node another store",
-                             kind="in use", path=self.path) from None
+        deadline = time.monotonic() + LOCK_WAIT
+        while True:
+            try:
+                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+                break
+            except BlockingIOError:
+                # a process that was killed a moment ago may have left a child of its own between
+                # fork and exec (a library running a command), which holds the lock until it execs
+                if time.monotonic() >= deadline:
+                    raise StoreError(f"{self.path} is in use by another process (a second coex vehicle or topside "
+                                     "on the same store?): stop it, or give this node another store",
+                                     kind="in use", path=self.path) from None
+                time.sleep(0.05)
         # a daemon opens its store in one thread and may run its loop in another (one at a
         # time: the runner's steps and the final snapshot never overlap)
         self.db = sqlite3.connect(self.path, isolation_level=None, check_same_thread=False)
