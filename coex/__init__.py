@@ -100,8 +100,9 @@ from coex_core.storage import MemoryStorage, Storage
 from coex_core.subgrid import decode_subgrid, decode_subgrid_units, encode_subgrid, subgrid_bits
 from coex_core.timefmt import STAMP_MODULUS, to_stamp, unwrap
 from coex_core.transport import Transport, UriInfo, parse_query
+from coex_runtime.peers import SILENT_CYCLES, PeerSilence, PeerWatch
 from coex_runtime.runner import RealClock, Runner, SimNetwork, SimulatedClock
-from coex_runtime.store import NodeStore
+from coex_runtime.store import NodeStore, StoreError
 from coex_transports.recovery import Health, ResilientTransport
 
 # ``from coex.messages import Opaque``, ``coex.wire.pack``, ``from coex.tracker import State``: the
@@ -155,6 +156,8 @@ __all__ = [
     "Nav",
     "Node",
     "NodeStore",
+    "PeerSilence",
+    "PeerWatch",
     "PluginLoadError",
     "PluginNotFound",
     "Points",
@@ -170,6 +173,7 @@ __all__ = [
     "ResilientTransport",
     "RoundTrip",
     "Runner",
+    "SILENT_CYCLES",
     "STAMP_MODULUS",
     "Samples",
     "Schedule",
@@ -177,6 +181,7 @@ __all__ = [
     "SimulatedClock",
     "StateError",
     "Storage",
+    "StoreError",
     "StreamConfig",
     "PositionAid",
     "SurveyPlan",

@@ -119,10 +119,10 @@ def test_config_check_refuses_what_the_transport_would_refuse_by_key(tmp_path: P
 
 def test_a_rate_the_uri_contradicts_is_a_problem_and_one_it_gives_is_used(tmp_path: Path) -> None:
     f = tmp_path / "v.toml"
-    f.write_text(GOOD.format(uri="micromodem:socket://127.0.0.1:4001?rate=1", modem="rate = 5", rest=""))
+    f.write_text(GOOD.format(uri="micromodem:socket://127.0.0.1:4001?src=2&rate=1", modem="rate = 5", rest=""))
     _, problems = check(f)
     assert any(p.startswith("modems[0].rate: 5, but the modem's URI says rate=1") for p in problems), problems
-    f.write_text(GOOD.format(uri="micromodem:socket://127.0.0.1:4001?rate=1", modem="", rest=""))
+    f.write_text(GOOD.format(uri="micromodem:socket://127.0.0.1:4001?src=2&rate=1", modem="", rest=""))
     cfg, problems = check(f)
     assert not problems and cfg is not None and cfg.modems[0].rate == 1
 
@@ -147,7 +147,7 @@ type = "mavlink"
 connection = "/dev/ttyNOPE4"
 """
     f = tmp_path / "v.toml"
-    f.write_text(GOOD.format(uri="micromodem:///dev/ttyNOPE0?rate=5", modem="required = false", rest=rest))
+    f.write_text(GOOD.format(uri="micromodem:///dev/ttyNOPE0?src=2&rate=5", modem="required = false", rest=rest))
     cfg, problems = check(f)
     assert not problems, problems
     assert cfg is not None

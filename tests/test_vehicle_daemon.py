@@ -191,6 +191,7 @@ stream = 3
 stream = 4
 [[modems]]
 uri = "loopback://{name}"
+packet_seconds = 0.2
 [[inputs]]
 type = "directory"
 path = "camera"

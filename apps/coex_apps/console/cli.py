@@ -125,6 +125,10 @@ def register(subparsers: Any) -> None:
     p.add_argument("--slot", type=float, default=20.0,
                    help="TDMA slot length in seconds (NUI cycle of 6 slots, default 20)")
     p.add_argument("--guard", type=float, default=2.0, help="slot guard time (default 2 s)")
+    p.add_argument("--packet-seconds", type=float, default=None, metavar="S",
+                   help="time a packet takes on every modem (default: a full packet's airtime at the "
+                        "rate; a link without airtime, LCM, MAVLink, MOOS, loopback, takes less: "
+                        "docs/deploy.md, modems[0].packet_seconds)")
     p.add_argument("--schedule", metavar="JSON",
                    help='explicit schedule: {"slots": [{"owner": 1, "duration": 20, '
                         '"guard": 2}, ...], "epoch": 0}')
@@ -188,13 +192,22 @@ class TopsideApp:
         self.ros: Any = None
         #: the ship's USBL and topside's drift estimate (``[usbl]``, :mod:`.usbl`), or None
         self.usbl: Any = None
+        #: the vehicles heard nothing from (:class:`coex.PeerWatch`; set by :func:`topside_app`)
+        self.peer_watch: Any = None
         self._last_status: dict[int, Any] = {}
         self._commands_seen = self._commands_version()
         self.runner = Runner(node, self.transports, RealClock(clock), store=store,
                              lock=hub.lock, after_step=[self._to_console],
-                             snapshot_due=self._commands_changed,
-                             on_error=lambda text: log.warning("%s", text))
+                             snapshot_due=self._commands_changed, on_error=self._error)
         self.transports = self.runner.transports  # one dict: a link's transport may be swapped
+
+    def _error(self, text: str) -> None:
+        """The runner's errors to the log; the store's (a full disk, and its end) to the
+        console's event log too: the operator must know what topside cannot keep."""
+        log.warning("%s", text)
+        if text.startswith("store"):
+            for state in self._states():
+                state._log(self.clock(), text, "warn")
 
     @property
     def errors(self) -> list[str]:
@@ -226,6 +239,16 @@ class TopsideApp:
         self.hub.pump(self.node, now)
         if self.usbl is not None:
             self.usbl.poll(now, self._states())
+        if self.peer_watch is not None:
+            from .fleet import FleetHub
+
+            for change in self.peer_watch.check(now):
+                fleet = isinstance(self.hub, FleetHub)
+                text = change.text(self.hub.names.get(change.peer, "") if fleet else "the vehicle")
+                (log.warning if change.silent else log.info)("%s", text)
+                states = self.hub.states() if fleet else {change.peer: self.hub.state}
+                if change.peer in states:
+                    states[change.peer]._log(now, text, "warn" if change.silent else "info")
         for link, tr in self.transports.items():
             self._modem_status(link, tr)
             if isinstance(tr, ResilientTransport):
@@ -289,6 +312,8 @@ class TopsideApp:
             with self.hub.lock:
                 try:
                     self.store.snapshot(self.node, self.clock())
+                except CoexError as exc:  # a full disk: said, never a traceback
+                    log.warning("last snapshot not saved: %s", exc)
                 finally:
                     self.store.close()
 
@@ -319,6 +344,8 @@ def _option(key: str, uris: Sequence[str]) -> str:
         return f"--transport {uris[int(modem.group(1))]}"
     if modem and modem.group(2) == "rate":
         return "--rate"
+    if modem and modem.group(2) == "packet_seconds":
+        return "--packet-seconds"
     modality = re.fullmatch(r"modalities\.([^.]+)\.ids(?:\..*)?", key)
     if modality:
         return f"--remap-ids {modality.group(1)}"
@@ -613,6 +640,9 @@ def topside_app(cfg: DeployConfig, host: str = "127.0.0.1", port: int = 8080, *,
         except BaseException:
             app.close()
             raise
+    from coex import PeerWatch
+
+    app.peer_watch = PeerWatch(node.manager, cfg.vehicle_ids())  # a vehicle not heard: said
     if cfg.ros is not None:
         from .ros import RosProducts
 
@@ -654,6 +684,9 @@ def run(args: argparse.Namespace) -> int:
         except (CoexError, OSError) as exc:
             print(f"coex topside: {exc}", file=sys.stderr)
             return 2
+        except Exception as exc:  # what no check foresaw: named, never a traceback
+            print(f"coex topside: cannot start: {type(exc).__name__}: {exc}", file=sys.stderr)
+            return 2
         logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(levelname)s %(message)s",
                             force=True)
         from .fleet import FleetHub
@@ -672,7 +705,9 @@ def run(args: argparse.Namespace) -> int:
             args.transport, node_id=args.node_id, vehicle_id=args.vehicle_id, link=args.link, rate=args.rate,
             schedule=_schedule(args.schedule), slot=args.slot, guard=args.guard,
             modalities=tuple(m for m in args.modalities.split(",") if m), remap_ids=dict(args.remap_ids),
-            store=args.store, command_key_file=args.command_key_file, missing=missing)
+            store=args.store, command_key_file=args.command_key_file, missing=missing,
+            link_options=None if args.packet_seconds is None else
+            [{"packet_seconds": args.packet_seconds} for _ in args.transport])
         app = topside_app(
             cfg, host, port, stream_names=args.stream_names, missing=missing, operators=args.operators,
             insecure_open=args.insecure_open, tls_cert=args.tls_cert, tls_key=args.tls_key,

@@ -455,6 +455,10 @@ class ConsoleState(MapView, SurveysView, ImagesView, LinkView, CommandsView):
         t = unwrap(s.stamp, now)
         if self.status_t is not None and t < self.status_t:
             return  # an older status arrived late: keep the newest
+        from coex_apps.vehicle.faults import fault_changes
+
+        for text, came in fault_changes(self.status.faults if self.status is not None else 0, s.faults):
+            self._log(now, text, "warn" if came else "info")  # the vehicle's store, its hearing topside
         self.status, self.status_t = s, t
         if not self.track or self.track[-1][1:3] != (s.x, s.y):
             self.track.append((t, s.x, s.y, s.depth))

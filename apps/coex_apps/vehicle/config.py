@@ -243,7 +243,9 @@ def check_problems(raw: Mapping[str, Any], path: Path, role: str | None) -> tupl
     node = p.table(raw.get("node"), "node")
     p.unknown(node, {"role", "id", "peer", "origin", "command_key_file", "peer_key_file", "store",
                      "snapshot_interval", "log_level"}, "node")
-    r = node.get("role", role)
+    # required, also when the caller knows the role (coex vehicle, coex topside): the daemon
+    # refuses what coex config check refuses
+    r = node.get("role")
     if r not in ROLES:
         p.add("node.role", f"'vehicle' or 'topside', got {r!r}" if r is not None else
               "missing: say whether this node is the 'vehicle' or the 'topside'")
@@ -286,10 +288,18 @@ def check_problems(raw: Mapping[str, Any], path: Path, role: str | None) -> tupl
         cfg.store = None
     elif isinstance(store, str) and store:
         cfg.store = cfg.base_dir / store
+        from coex_runtime.store import check_store
+
+        for err in check_store(cfg.store):  # what the daemon's store would refuse at start
+            if err.kind == "full":  # the daemon starts, and writes its store once there is room
+                p.warn("node.store", str(err))
+            else:
+                p.add("node.store", str(err))
     else:
         p.add("node.store", f"a file name (default {r}.sqlite) or false, got {store!r}")
-    _modems(raw, p, cfg)
+    infos = _modems(raw, p, cfg)
     _tdma(raw, p, cfg)
+    _airtime(p, cfg, infos)
     _modalities(raw, p, cfg)
     if r == "vehicle":
         status = p.table(raw.get("status"), "status")
@@ -317,12 +327,15 @@ def check_problems(raw: Mapping[str, Any], path: Path, role: str | None) -> tupl
     return cfg, p
 
 
-def _modems(raw: Mapping[str, Any], p: Problems, cfg: DeployConfig) -> None:
+def _modems(raw: Mapping[str, Any], p: Problems, cfg: DeployConfig) -> list[Any]:
+    """``[[modems]]`` into ``cfg.modems``; returns what each URI said (its ``UriInfo``, None when
+    it could not be checked), in order."""
     modems = raw.get("modems")
+    infos: list[Any] = []
     if not isinstance(modems, list) or not modems:
         p.add("modems", "at least one [[modems]] table with a transport uri "
                         "(micromodem:///dev/ttyUSB0?rate=5, mavlink:udpout:host:port, lcm:udpm://...)")
-        return
+        return infos
     known = _entry_points("coex.transports")
     for i, m in enumerate(modems):
         key = f"modems[{i}]"
@@ -338,6 +351,8 @@ def _modems(raw: Mapping[str, Any], p: Problems, cfg: DeployConfig) -> None:
             p.add(f"{key}.uri", f"no transport {scheme!r} (known: {', '.join(sorted(known))})")
         else:
             info = _check_uri(uri, f"{key}.uri", p, cfg)
+            if info is not None:
+                _addresses(info, f"{key}.uri", p, cfg)
         rate = p.number(m, "rate", key, None, lo=0, hi=6, integer=True)
         if info is not None and info.rate is not None:
             if rate is None:
@@ -353,6 +368,66 @@ def _modems(raw: Mapping[str, Any], p: Problems, cfg: DeployConfig) -> None:
             p.add(f"{key}.required", f"true or false, got {required!r}")
             required = False
         cfg.modems.append(ModemConfig(uri, 5 if rate is None else int(rate), fb, spare, packet, required))
+        infos.append(info)
+    return infos
+
+
+def _addresses(info: Any, key: str, p: Problems, cfg: DeployConfig) -> None:
+    """A modem that addresses its packets (``UriInfo.src``, ``dest``) must send as this node and
+    to its peer (or to every node): anything else is a link that carries nothing."""
+    peers = [v.id for v in cfg.vehicles] if cfg.fleet else [cfg.peer]
+    if info.src is not None and info.src != cfg.node_id:
+        given = f"src={info.src}" if "src=" in info.uri else f"src {info.src} (the default: the URI gives no src=)"
+        p.add(key, f"the modem sends as {given}, but this node is {cfg.node_id} (node.id): its peer would "
+                   f"take its packets for another node's; give src={cfg.node_id}")
+    if info.dest is None:
+        return
+    if info.dest == cfg.node_id:
+        p.add(key, f"dest={info.dest} is this node's own id: its packets would go to itself and reach nobody "
+                   f"(give dest={peers[0] if len(peers) == 1 else 0}, or 0: every node)")
+    elif cfg.fleet and info.dest != 0:
+        p.add(key, f"dest={info.dest}: a topside of several vehicles sends to every node (dest=0), or the other "
+                   "vehicles never hear it")
+    elif info.dest not in (0, *peers):
+        p.add(key, f"dest={info.dest} is neither the peer's id ({peers[0]}, node.peer) nor 0 (every node): the "
+                   "peer's modem would not take its packets")
+
+
+def _airtime(p: Problems, cfg: DeployConfig, infos: list[Any]) -> None:
+    """Every TDMA slot of this link's nodes must hold a packet before its guard
+    (``LinkConfig.packet_time``: ``packet_seconds``, else the airtime of a full packet at the
+    modem's rate): in a shorter one nothing is ever sent, and the link carries nothing."""
+    from coex import LinkConfig
+    from coex_core.acoustic import rate_info
+
+    if any(k.startswith("tdma") for k in p.keys()) or len(infos) != len(cfg.modems):
+        return  # the schedule itself is wrong: said already
+    try:
+        schedule = cfg.schedule()
+    except CoexError:
+        return
+    nodes = {cfg.node_id, cfg.peer, *(v.id for v in cfg.vehicles)}
+    slots = [s for s in schedule.slots if s.owner in nodes]
+    for i, (m, info) in enumerate(zip(cfg.modems, infos, strict=True)):
+        try:
+            ri = rate_info(m.rate)
+            fb = m.frame_bytes or min(ri.frame_bytes, int(info.mtu) if info is not None else ri.frame_bytes)
+            link = LinkConfig(i, schedule, rate=m.rate, frame_bytes=fb, packet_seconds=m.packet_seconds)
+        except CoexError:
+            continue  # the rate or the frame size is wrong: said already
+        need = link.packet_time
+        short = [s for s in slots if s.duration - s.guard < need]
+        if not short:
+            continue
+        s = min(short, key=lambda s: s.duration - s.guard)
+        how = (f"modems[{i}].packet_seconds" if m.packet_seconds is not None
+               else f"the airtime of a full rate-{m.rate} packet")
+        p.add("tdma.slot_seconds", f"a {s.duration:g} s slot less its {s.guard:g} s guard leaves "
+                                   f"{s.duration - s.guard:g} s, shorter than a packet on modems[{i}] ({need:.2f} s, "
+                                   f"{how}): nothing would ever be sent in it. Make the slots longer, or, on a "
+                                   f"link without airtime (LCM, MAVLink, MOOS, a simulation), set "
+                                   f"modems[{i}].packet_seconds to the time a packet takes (coex topside: "
+                                   f"--packet-seconds; docs/deploy.md)")
 
 
 def _check_uri(uri: str, key: str, p: Problems, cfg: DeployConfig) -> Any:

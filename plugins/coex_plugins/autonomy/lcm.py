@@ -32,7 +32,7 @@ from coex import Autonomy, ConfigError
 from coex.lcm import DEFAULT_URL, survey_request_t, survey_state_t
 from coex.messages import SurveyReason, SurveyState
 
-from ..options import Problems
+from ..options import Problems, check_lcm_url
 from ..survey.plan import SurveyReport, cut_detail
 
 __all__ = ["LcmAutonomy", "report_of", "request_of"]
@@ -110,6 +110,7 @@ class LcmAutonomy(Autonomy):
                 p.said(key, f"autonomy 'lcm': {key} must be a non-empty string, got {v!r}")
             elif key != "url" and len(v) > 63:
                 p.said(key, f"autonomy 'lcm': {key} is longer than LCM's 63 characters")
+        check_lcm_url(p, "autonomy 'lcm'", options)
         t = options.get("answer_timeout", 0.0)
         if isinstance(t, bool) or not isinstance(t, int | float) or not math.isfinite(t) or t < 0:
             p.said("answer_timeout", f"autonomy 'lcm': answer_timeout must be a number >= 0 (seconds), got {t!r}")

@@ -51,7 +51,7 @@ from typing import Any
 from coex import Autonomy, ConfigError
 from coex.messages import SurveyReason, SurveyState
 
-from ..options import Problems
+from ..options import Problems, check_mavlink_connection
 from ..survey.plan import SurveyReport, cut_detail
 
 __all__ = ["MavlinkAutonomy", "MissionItem", "connect", "enum_name", "mission_items", "mode_name"]
@@ -311,6 +311,7 @@ class MavlinkAutonomy(Autonomy):
         c = options.get("connection")
         if not isinstance(c, str) or not c:
             p.said("connection", f"autonomy 'mavlink': connection must be a pymavlink connection string, got {c!r}")
+        check_mavlink_connection(p, "autonomy 'mavlink'", options)
         _int(p, options, "baud", 1, 10_000_000)
         _int(p, options, "source_system", 1, 255)
         _int(p, options, "source_component", 0, 255)
