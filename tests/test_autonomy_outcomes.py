@@ -139,7 +139,8 @@ def test_a_refusal_and_a_silent_autopilot_read_apart_topside(
     row = _row(topside, refused)
     assert (row["state"], row["outcome"]) == ("rejected", "refused by autonomy")
     assert "code 14" in row["text"] and "MAV_MISSION_DENIED" in row["text"]
-    assert peer.acks_sent == [14]
+    assert peer.acks_sent[0] == 14  # then 0: the ended survey's mission cleared (MISSION_CLEAR_ALL)
+    _wait("the refused survey's mission cleared", lambda: peer.clears == [0])
 
     # 2. the autopilot falls silent: given up after 1 + retries tries, as no answer
     with peer._lock:

@@ -190,8 +190,9 @@ class MoosAutonomy(Autonomy):
         "wpt_index_var": ("WPT_INDEX", "the behaviour's wpt_index_var"),
         "endflag": ("", "another 'VAR = value' the behaviour posts at its end (COMPLETED); '' = none"),
         "time_warp": (1.0, "the community's MOOSTimeWarp (pCoex: the mission's): posts carry the warped MOOS time"),
-        "timeout": (10.0, "seconds (real) to wait for the helm's answer, for the behaviour to run, "
-                          "and the longest helm silence while flying"),
+        "timeout": (10.0, "seconds (real) to wait for the helm's answer and for the behaviour to run"),
+        "silence": (10.0, "seconds (real) without IVPHELM_STATE while a survey flies before it is aborted "
+                          "AUTONOMY_SILENT (0: not watched)"),
     }
 
     @classmethod
@@ -221,6 +222,7 @@ class MoosAutonomy(Autonomy):
                                    "the behaviour's name itself)")
         check_time_warp(p, who, options)
         p.option_number(who, options, "timeout", positive=True)
+        p.option_number(who, options, "silence", minimum=0.0)
         return p
 
     def __init__(self, options: Mapping[str, Any], context: Any, client: Any = None) -> None:
@@ -301,6 +303,34 @@ class MoosAutonomy(Autonomy):
         log.info("moos: following survey %s again after a restart (nothing posted to the helm)", plan.survey_id)
         return True
 
+    def end(self, survey_id: int, now: float) -> None:
+        """The survey ended: stop following it and, unless a newer survey was handed over since,
+        post the ended form: ``activate``'s variable = ``deactivate`` (the behaviour off) and
+        ``updates_var`` = ``name=<behavior>`` (no points: MOOSDB keeps the newest value of a
+        variable, and a helm that starts later reads it, so what it reads is no survey)."""
+        if self.client is None:
+            self.open()
+        sid = int(survey_id)
+        if self.plan is not None and int(self.plan.survey_id) != sid:
+            return  # a newer survey is the helm's now
+        self._phase = None
+        self.client.notify(self.activate_var, self.deactivate_value)
+        self.client.notify(self.config["updates_var"], f"name={self.behavior}")
+        log.info("moos: survey %s ended: %s = %s, %s holds no survey", sid, self.activate_var,
+                 self.deactivate_value, self.config["updates_var"])
+
+    def heard(self, now: float) -> float | None:
+        """When the helm last posted IVPHELM_STATE (it does every iteration; -inf: never); while
+        the MOOSDB itself is out of reach, now (no helm can be heard, nor be called silent)."""
+        if self.client is None:
+            return None
+        if not self.client.connected:
+            return float(now)
+        return -math.inf if self.helm_state_at is None else self.helm_state_at
+
+    def silent_detail(self) -> str:
+        return "no IVPHELM_STATE from the helm"
+
     # ------------------------------------------------------------------ reports
     def _report(self, state: SurveyState, now: float, reason: SurveyReason = SurveyReason.NONE,
                 index: int | None = None, detail: str | None = None) -> None:
@@ -370,8 +400,6 @@ class MoosAutonomy(Autonomy):
         elif self._phase == _ACTIVATED and waited > self.timeout:
             stop = self.allstop if self.allstop and self.allstop.lower() != "clear" else f"helm {self.helm_state}"
             self._end(SurveyReason.AUTONOMY_STOPPED, now, self._no_helm(now) or f"{self.behavior} did not run ({stop})")
-        elif self._phase == _FLYING and self.helm_state_at is not None and now - self.helm_state_at > self.timeout:
-            self._end(SurveyReason.AUTONOMY_STOPPED, now, f"no IVPHELM_STATE for {now - self.helm_state_at:.0f} s")
 
     def _no_helm(self, now: float) -> str:
         """Why no helm answers, or "" when one is heard."""
