@@ -9,8 +9,10 @@ line per event on stdout. Run with the venv's Python (rospy through `make ros`):
 swath (PointCloud2 in ``--points-frame``), a camera frame (``--image raw|compressed``), the
 vehicle's Odometry (``--nav-frame`` enu: 30 m east, 10 m north, 25 m deep, heading 90), a
 NavSatFix and a sensor_msgs/Temperature (the series). ``--planner fly|refuse|silent`` answers
-each nav_msgs/Path on /coex/survey/path: ``fly`` reports ``ID started 0``, each waypoint, then
-``ID completed``; ``refuse`` reports ``ID refused no thrusters``; ``silent`` says nothing.
+each nav_msgs/Path on /coex/survey/path (``--survey-ns``): ``fly`` reports ``ID started 0``, each waypoint, then
+``ID completed``; ``refuse`` reports ``ID refused no thrusters``; ``silent`` says nothing. An
+empty path (CoEx's ended form) is flown by none of them (``{"event": "ended"}``), and stops a
+survey ``fly`` is flying.
 """
 
 from __future__ import annotations
@@ -137,19 +139,34 @@ def planner(args: argparse.Namespace, stop: threading.Event) -> None:
     from nav_msgs.msg import Path
     from std_msgs.msg import String
 
-    answer = rospy.Publisher("/coex/survey/progress", String, queue_size=100)
+    ns = args.survey_ns.rstrip("/")
+    answer = rospy.Publisher(f"{ns}/progress", String, queue_size=100)
     plans: dict[str, object] = {}
 
     def on_plan(msg: String) -> None:
         plans["latest"] = json.loads(msg.data)
 
+    flying: dict[str, object] = {}
+
     def fly(path: Path) -> None:
+        # the path's plan: the one of the same stamp (the two topics' messages may come in
+        # either order: a newer path may come before its plan)
+        stamp = path.header.stamp.to_sec()
+
+        def mine() -> bool:
+            latest = plans.get("latest")
+            return isinstance(latest, dict) and abs(float(latest.get("stamp") or 0.0) - stamp) < 1e-3
+
         deadline = time.monotonic() + 5.0
-        while "latest" not in plans and time.monotonic() < deadline:
+        while not mine() and time.monotonic() < deadline:
             time.sleep(0.05)
         plan = dict(plans.get("latest") or {})  # type: ignore[call-overload]
         sid = plan.get("survey_id")
         pts = [[p.pose.position.x, p.pose.position.y, p.pose.position.z] for p in path.poses]
+        if not pts:  # the ended form: fly nothing, stop flying it
+            flying.pop("sid", None)
+            out(event="ended", frame=path.header.frame_id, plan=plan)
+            return
         out(event="path", frame=path.header.frame_id, poses=pts, plan=plan,
             stamps=[p.header.stamp.to_sec() for p in path.poses])
         if args.planner == "refuse":
@@ -157,14 +174,19 @@ def planner(args: argparse.Namespace, stop: threading.Event) -> None:
             return
         if args.planner == "silent":
             return
+        flying["sid"] = sid
         for k in range(len(pts)):
+            if flying.get("sid") != sid:
+                out(event="stopped", survey_id=sid, at=k)
+                return
             answer.publish(String(f"{sid} started {k}"))
+            out(event="started", survey_id=sid, index=k)
             time.sleep(args.leg)
         answer.publish(String(f"{sid} completed"))
         out(event="flown", survey_id=sid)
 
-    rospy.Subscriber("/coex/survey/plan", String, on_plan, queue_size=10)
-    rospy.Subscriber("/coex/survey/path", Path, lambda p: threading.Thread(target=fly, args=(p,), daemon=True).start(),
+    rospy.Subscriber(f"{ns}/plan", String, on_plan, queue_size=10)
+    rospy.Subscriber(f"{ns}/path", Path, lambda p: threading.Thread(target=fly, args=(p,), daemon=True).start(),
                      queue_size=10)
 
 
@@ -217,6 +239,7 @@ def main() -> int:
     p.add_argument("--nav-frame-id", default="map")
     p.add_argument("--planner", choices=("fly", "refuse", "silent"))
     p.add_argument("--leg", type=float, default=0.3)
+    p.add_argument("--survey-ns", default="/coex/survey", help="the planner's topics: NS/path, NS/plan, NS/progress")
     p.add_argument("--listen", nargs="*", default=[])
     p.add_argument("--seconds", type=float, default=600.0)
     args = p.parse_args()

@@ -37,9 +37,10 @@ planner flies nothing, and stops flying what it flies) and ``plan_topic`` by ``{
 "ended": true, "waypoints": 0, ...}``. A planner that starts or respawns later gets that, never
 the ended survey.
 
-**Liveness** (:meth:`RosAutonomy.heard`): the planner is alive while it is connected to the path
-or the progress topic (ROS 1 connections are peer to peer: a roscore restart does not break
-them) or answers; the daemon aborts a survey it flies when that stops for ``silence`` seconds.
+**Liveness** (:meth:`RosAutonomy.heard`): the planner is alive while its publisher of the
+progress topic is connected to CoEx (ROS 1 connections are peer to peer: a roscore restart does
+not break them; a planner that dies closes it) or it answers; the daemon aborts a survey it
+flies when neither holds for ``silence`` seconds.
 """
 
 from __future__ import annotations
@@ -128,8 +129,8 @@ class RosAutonomy(Autonomy):
         "frame": ("coex_local", "frame_id of the path: the local grid (x east, y north, z up)"),
         "answer_timeout": (10.0, "seconds without any answer after a submit before it is reported "
                                  "REJECTED / AUTONOMY_NO_ANSWER (0: wait forever)"),
-        "silence": (10.0, "seconds without the planner (connected to the path or progress topic, or "
-                          "answering) while a survey flies before it is aborted AUTONOMY_SILENT (0: not watched)"),
+        "silence": (10.0, "seconds without the planner (its progress publisher connected, or an answer) "
+                          "while a survey flies before it is aborted AUTONOMY_SILENT (0: not watched)"),
     }
 
     @classmethod
@@ -266,17 +267,19 @@ class RosAutonomy(Autonomy):
         log.info("ros: survey %s ended: %s holds the ended form (an empty path)", sid, c["path_topic"])
 
     def heard(self, now: float) -> float | None:
-        """Now while a planner is connected to the path or the progress topic, else when it last
-        was or last answered (None: not opened)."""
+        """Now while a planner's publisher of the progress topic is connected to CoEx, else when
+        one last was or last answered (-inf: never since this output opened; None: not opened).
+        Only that side is read: a subscriber that dies (the planner's to the path) is noticed
+        by rospy only when the next message is sent, a publisher that dies at once (its
+        connection's end of stream)."""
         if self.node is None:
             return None
-        if (self._path is not None and self._path.connections() > 0) or (
-                self._sub is not None and self._sub.connections() > 0):
+        if self._sub is not None and self._sub.connections() > 0:
             self._heard = float(now)
-        return self._heard
+        return -math.inf if self._heard is None else self._heard
 
     def silent_detail(self) -> str:
-        return f"no planner on {self.config['path_topic']}"
+        return f"no planner on {self.config['progress_topic']}"
 
     def poll(self, now: float) -> list[Any]:
         if self.node is None:
@@ -293,7 +296,7 @@ class RosAutonomy(Autonomy):
             log.warning("ros: survey %s: %s within %g s", self.plan.survey_id, why, timeout)
             # the seconds first: a long topic name is what the 48 bytes of detail cut
             self._report(out, SurveyState.REJECTED, now, SurveyReason.AUTONOMY_NO_ANSWER,
-                         detail=f"{waited:.0f} s, {why}")
+                         detail=f"{round(waited, 1):g} s, {why}")
         return out
 
     def _drain(self, now: float) -> None:
