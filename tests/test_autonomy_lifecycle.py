@@ -16,9 +16,10 @@ import pytest
 from coex import Autonomy, InputContext
 from coex_core.messages import AckStatus, SurveyCommand, SurveyKind, SurveyReason, SurveyState
 from coex_core.state import dumps, loads
-from coex_plugins.autonomy.lifecycle import REEND, SurveyLifecycle
-from coex_plugins.survey import SurveySender
+from coex_plugins.autonomy.lifecycle import REEND
 from coex_plugins.survey.plan import SurveyReport
+
+from ._lifecycle import Vehicle
 
 
 class Scripted(Autonomy):
@@ -57,29 +58,6 @@ class Scripted(Autonomy):
     def says(self, sid: int, state: SurveyState, t: float, reason: SurveyReason = SurveyReason.NONE,
              index: int | None = None) -> None:
         self.queue.append(SurveyReport(sid, state, t, reason, index))
-
-
-class Vehicle:
-    """A survey sender, a store (a dict), the lifecycle between them and the output; ``step``
-    ingests the reports as the daemon does."""
-
-    def __init__(self, out: Scripted, store: dict[str, str] | None = None, sender: SurveySender | None = None):
-        self.out = out
-        self.store = {} if store is None else store
-        self.sender = sender or SurveySender({"geofence": {"radius": 1000.0}})
-        self.life = SurveyLifecycle(out, self.sender, get=self.store.get, put=self.store.__setitem__,
-                                    name="scripted")
-        self.cid = 0
-
-    def ask(self, sid: int, now: float, x: float = 10.0) -> None:
-        self.cid += 1
-        [ack] = self.sender.handle(SurveyCommand(self.cid, sid, SurveyKind.GOTO, x, 0.0), now)
-        assert ack.status == AckStatus.ACCEPTED
-
-    def step(self, now: float) -> list[tuple[int, SurveyState, SurveyReason]]:
-        reports = self.life.step(now)
-        self.sender.ingest(reports, now)
-        return [(r.survey_id, SurveyState(r.state), SurveyReason(r.reason)) for r in reports]
 
 
 @pytest.mark.parametrize("final", [SurveyState.COMPLETED, SurveyState.REJECTED, SurveyState.ABORTED])

@@ -5,7 +5,7 @@ output uploading each accepted survey to a mission-protocol peer built from stoc
 with ``MAV_MISSION_DENIED``, stays silent for the next, then flies a third: topside (the survey
 receiver's records, the console's state and its HTTP ``/api/state``) shows the code and its
 name for the first, "no answer" with the tries for the second (not a refusal), and the third
-completed."""
+completed; a fourth, whose autopilot dies while flying it, "autopilot silent"."""
 
 from __future__ import annotations
 
@@ -54,6 +54,7 @@ timeout = 0.3
 item_timeout = 0.1
 retries = 2
 heartbeat = 0.2
+silence = 1.5
 """ + COMMON
 TOPSIDE = """
 [node]
@@ -163,8 +164,21 @@ def test_a_refusal_and_a_silent_autopilot_read_apart_topside(
     _wait("the third survey completed", ended(flown))
     assert rx.surveys[flown].state == "completed" and _row(topside, flown)["outcome"] == "completed"
 
+    # 4. the autopilot dies while it flies the next one: aborted, autopilot silent, told topside
+    with peer._lock:
+        peer.fly_interval = 60.0
+    dying = ask(30.0)
+    _wait("the fourth survey started topside", lambda: rx.surveys[dying].state == "started")
+    peer.close()  # no more heartbeats, no more answers
+    _wait("the fourth survey ended topside", ended(dying))
+    rec = rx.surveys[dying]
+    assert (rec.state, rec.reason) == ("aborted", "AUTONOMY_SILENT")
+    assert rec.text.startswith("autopilot silent for ") and rec.text.endswith(": no HEARTBEAT from 1/1"), rec.text
+    assert _row(topside, dying)["outcome"] == "autopilot silent"
+
     # the console's event log says each in words, and the vehicle's summary counts the plans
     log = [e["text"] for e in topside.hub.snapshot()["log"]]
     assert any(f"survey {refused} refused by autonomy" in t and "MAV_MISSION_DENIED" in t for t in log), log
     assert any(f"survey {silent} no answer from autonomy" in t and "after 3 tries" in t for t in log), log
-    assert vehicle.counts["plans"] == 3
+    assert any(f"survey {dying} autopilot silent" in t for t in log), log
+    assert vehicle.counts["plans"] == 4

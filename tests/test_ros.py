@@ -32,6 +32,7 @@ from coex_plugins.inputs.ros import RosInput
 from coex_plugins.inputs.rosmsg import FrameMap, frame_problems, nav_of, points_of
 from coex_plugins.survey.plan import SurveyPlan
 
+from ._lifecycle import Vehicle
 from ._ros import Roscore, kill, peer, ros_entry_points, ros_env, why_no_ros
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -384,40 +385,6 @@ def test_a_survey_goes_out_as_a_path_and_its_progress_comes_back(roscore: Roscor
     out.close()
 
 
-class _Vehicle:
-    """The daemon's composition around an autonomy output: the survey sender, the survey
-    lifecycle between them (coex_plugins.autonomy.lifecycle), the reports ingested."""
-
-    def __init__(self, out: Any) -> None:
-        from coex_plugins.autonomy.lifecycle import SurveyLifecycle
-        from coex_plugins.survey import SurveySender
-
-        self.out = out
-        self.sender = SurveySender({"geofence": {"radius": 1000.0}})
-        self.life = SurveyLifecycle(out, self.sender, name="ros")
-        self.reports: list[Any] = []
-        self._cid = 0
-
-    def ask(self, sid: int, x: float, y: float, length: float = 20.0) -> None:
-        from coex_core.messages import SurveyCommand
-
-        self._cid += 1
-        self.sender.handle(SurveyCommand(self._cid, sid, SurveyKind.LINE, x, y, 90.0, length, depth=5.0), time.time())
-
-    def step(self) -> list[Any]:
-        now = time.time()
-        got = self.life.step(now)
-        self.sender.ingest(got, now)
-        self.reports += got
-        return got
-
-    def until(self, what: str, cond: Callable[[], Any], timeout: float = 60.0) -> Any:
-        return _wait(what, lambda: self.step() is not None and cond(), timeout)
-
-    def state(self, sid: int) -> Any:
-        return self.sender.state_of(sid)
-
-
 @needs_ros
 def test_an_ended_survey_is_never_handed_to_a_planner_started_later(roscore: Roscore, tmp_path: Path) -> None:
     """Issue 51: a survey completed, refused or unanswered leaves the ended form latched (an empty
@@ -430,7 +397,7 @@ def test_an_ended_survey_is_never_handed_to_a_planner_started_later(roscore: Ros
                        "progress_topic": f"{ns}/progress", "answer_timeout": 4.0, "silence": silence},
                       InputContext(41.5, -70.6))
     out.open()
-    v = _Vehicle(out)
+    v = Vehicle(out, name="ros")
     _wait("the output's topics registered", lambda: _registered(roscore.uri, f"{ns}/path", 0)
           and _registered(roscore.uri, f"{ns}/progress", 1), 30)
     env = roscore.env()
@@ -462,7 +429,7 @@ def test_an_ended_survey_is_never_handed_to_a_planner_started_later(roscore: Ros
     fly, lines = planner("p6_fly", "fly")
     try:
         _wait("the planner connected both ways", connected, 30)
-        v.ask(1, 0.0, 0.0)
+        v.ask(1, x=0.0, kind=SurveyKind.LINE, depth=5.0)
         v.until("survey 1 completed", lambda: v.state(1) == SurveyState.COMPLETED)
         _wait("the flying planner told it ended", lambda: lines.find(event="ended"), 30)
     finally:
@@ -473,7 +440,7 @@ def test_an_ended_survey_is_never_handed_to_a_planner_started_later(roscore: Ros
     refuser, _ = planner("p6_refuse", "refuse")
     try:
         _wait("the refusing planner connected both ways", connected, 30)
-        v.ask(2, 10.0, 0.0)
+        v.ask(2, x=10.0, kind=SurveyKind.LINE, depth=5.0)
         v.until("survey 2 refused", lambda: v.state(2) == SurveyState.REJECTED)
     finally:
         kill(refuser)
@@ -481,7 +448,7 @@ def test_an_ended_survey_is_never_handed_to_a_planner_started_later(roscore: Ros
 
     # no planner at all: no answer; one that starts later does not fly it either
     _wait("no planner left", lambda: out._sub.connections() == 0, 30)
-    v.ask(3, 20.0, 0.0)
+    v.ask(3, x=20.0, kind=SurveyKind.LINE, depth=5.0)
     v.until("survey 3 unanswered", lambda: v.state(3) == SurveyState.REJECTED, 30)
     [r] = [r for r in v.reports if r.survey_id == 3]
     assert (r.reason, r.value) == (SurveyReason.AUTONOMY_NO_ANSWER, None) and r.detail.endswith(
@@ -501,7 +468,7 @@ def test_an_ended_survey_is_never_handed_to_a_planner_started_later(roscore: Ros
     slow, lines = planner("p6_slow", "fly", leg=60.0)
     try:
         _wait("the slow planner connected both ways", connected, 30)
-        v.ask(4, 30.0, 0.0)
+        v.ask(4, x=30.0, kind=SurveyKind.LINE, depth=5.0)
         v.until("survey 4 started", lambda: v.state(4) == SurveyState.STARTED)
     finally:
         killed = time.time()
