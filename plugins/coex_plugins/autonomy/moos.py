@@ -61,13 +61,16 @@ so nothing of a refused survey is flown. Then, from what the helm posts after th
 * once the behaviour ran, ``IVPHELM_ALLSTOP`` other than ``clear`` -> ALL_STOP, ``detail`` the
   all-stop (``MissingDecVars:depth``);
 * ``COEX_SURVEY`` set to anything else by someone else, the behaviour idle again before its end,
-  ``IVPHELM_STATE`` neither DRIVE nor PARK (DISABLED, MALCONFIG), no ``IVPHELM_STATE`` for
-  ``timeout`` seconds (the helm gone), or the behaviour not running ``timeout`` seconds after its
-  activation -> AUTONOMY_STOPPED, ``detail`` what was seen.
+  ``IVPHELM_STATE`` neither DRIVE nor PARK (DISABLED, MALCONFIG), or the behaviour not running
+  ``timeout`` seconds after its activation -> AUTONOMY_STOPPED, ``detail`` what was seen.
 
 These end a survey REJECTED when the helm had not taken its updates yet (no answer within
 ``timeout``: AUTONOMY_NO_ANSWER), ABORTED after; every end but COMPLETED posts ``deactivate``
-again so the helm does not resume the survey by itself.
+again so the helm does not resume the survey by itself. Every end is followed by the daemon's
+:meth:`MoosAutonomy.end`: the ended form (``deactivate``, and ``updates_var`` = ``name=<behavior>``,
+no points) stays in MOOSDB for a helm that starts later. The helm's ``IVPHELM_STATE`` is the sign
+of life (:meth:`MoosAutonomy.heard`): the daemon aborts a survey flown while the helm is silent
+for ``silence`` seconds (AUTONOMY_SILENT).
 
 **Time.** ``now`` (reports, timeouts) is CoEx's clock, real seconds. What is posted carries the
 community's MOOS time (``time_warp``, pCoex: the mission's ``MOOSTimeWarp``), so a warped helm
