@@ -71,6 +71,10 @@ def make(port: int) -> Iterator[Callable[..., MavlinkAutonomy]]:
     made: list[MavlinkAutonomy] = []
 
     def build(**options: object) -> MavlinkAutonomy:
+        # a peer thread on a loaded machine may answer late: unless a test is about them, the
+        # resend timeouts are long enough that no answer is taken for a lost one (the exact
+        # counts of items, acks and commands the tests assert hold)
+        options = {"timeout": 3.0, "item_timeout": 1.0, **options}
         out = MavlinkAutonomy({"connection": f"udpout:127.0.0.1:{port}", **options}, CTX)
         out.open()
         made.append(out)
@@ -204,7 +208,7 @@ def test_silent_peer_count_resent_then_no_answer(make: Callable[..., MavlinkAuto
     """Driven with a made-up clock: MISSION_COUNT again every 1.5 s, 5 times, then REJECTED
     AUTONOMY_NO_ANSWER after 6 tries (not AUTONOMY_REFUSED: nobody refused it)."""
     with _peer(port, silent=True) as peer:
-        out = make(heartbeat=0)
+        out = make(heartbeat=0, timeout=1.5)
         out.submit(_plan(), 100.0)
         assert out.poll(101.49) == []
         for k in range(1, 6):
@@ -225,7 +229,7 @@ def test_lost_item_is_resent_after_the_item_timeout(make: Callable[..., MavlinkA
     with _peer(port, drop_items=2, request_timeout=60.0) as peer:  # the peer never asks again itself
         out = make(start="none")
         out.submit(_plan(), time.monotonic())
-        got = run(out, lambda r: bool(r))
+        got = run(out, lambda r: bool(r), timeout=30)
         assert got == [SurveyReport(7, SurveyState.STARTED, got[0].time, index=0)]
         assert out.stats["resent"] == 2 and [i["seq"] for i in peer.items] == [0, 1, 2, 3]
         assert peer.commands_received == []
