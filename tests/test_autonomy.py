@@ -85,6 +85,9 @@ def test_log_appends_one_json_line_per_plan(tmp_path: Path) -> None:
     assert a["waypoints"] == [[10.0, 0.0], [10.0, 10.0], [0.0, 10.0]]
     assert a["latlon"][0] == pytest.approx(list(CTX.geodetic(10.0, 0.0)))
     assert (b["survey_id"], b["kind"], b["depth"], b["speed"]) == (9, "LINE", 12.0, 0.8)
+    out.end(9, 120.0)  # its ended form: a script following the file stops flying it
+    assert json.loads((tmp_path / "plans.jsonl").read_text().splitlines()[-1]) == {
+        "time": 120.0, "survey_id": 9, "ended": True}
 
 
 def test_log_checks_its_file_option() -> None:
