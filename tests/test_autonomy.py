@@ -302,6 +302,8 @@ def test_lcm_checks_its_options() -> None:
         LcmAutonomy({"answer_timeout": -1}, CTX)
     with pytest.raises(ConfigError, match="retries must be an integer"):
         LcmAutonomy({"retries": 1.5}, CTX)
+    with pytest.raises(ConfigError, match="silence must be a number >= 0"):
+        LcmAutonomy({"silence": float("nan")}, CTX)
 
 
 def test_lcm_an_ended_survey_is_never_handed_to_a_planner_started_later() -> None:
