@@ -388,6 +388,7 @@ def test_a_survey_goes_out_as_a_path_and_its_progress_comes_back(roscore: Roscor
                                 "ended": False}
     finally:
         kill(planner)
+    out.end(7, time.time())  # as the daemon's lifecycle does: the next planner is not handed survey 7
     refuser = peer(["--name", "planner_refuse", "--planner", "refuse"], roscore.env(), tmp_path / "refuse.log")
     try:
         _wait("the refusing planner connected both ways",
