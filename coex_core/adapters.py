@@ -335,6 +335,38 @@ class Autonomy(Adapter, abc.ABC):
         the default, None, is "not known"."""
         return None
 
+    # ------------------------------------------------------------------ the survey lifecycle
+    # (the daemon drives it for every output: coex_plugins.autonomy.lifecycle, docs/autonomy.md)
+    def end(self, survey_id: int, now: float) -> None:
+        """Survey ``survey_id`` ended (completed, refused, no answer, aborted, or the daemon
+        found it ended after a restart): take it back from the vehicle's autonomy, so that
+        nothing that starts or restarts later is handed it again. An output that leaves
+        something behind (a latched topic, a variable the database keeps, a mission stored on
+        the autopilot) replaces it with its ended form; an output that was following the survey
+        stops. Called again when a late answer shows the autonomy still flies it, and after a
+        restart of the daemon; so it must be harmless twice. Optional: the default does
+        nothing (an output that leaves nothing behind)."""
+        return None
+
+    def heard(self, now: float) -> float | None:
+        """When the vehicle's autonomy last showed it is alive (``now``'s clock): its heartbeat,
+        the helm's postings, its planner's answers or presence. While a survey flies, the daemon
+        aborts it (``AUTONOMY_SILENT``) when this is older than :meth:`silence` seconds. None:
+        this output cannot tell (no liveness watch), the default."""
+        return None
+
+    def silence(self) -> float:
+        """Seconds without a sign of life (:meth:`heard`) while a survey flies before it is
+        aborted, ``AUTONOMY_SILENT``; 0: not watched. The default: the option ``silence`` when
+        the output declares one, else 0."""
+        v = self.config.get("silence", 0.0)
+        return float(v) if isinstance(v, int | float) and not isinstance(v, bool) and v > 0 else 0.0
+
+    def silent_detail(self) -> str:
+        """What was not heard when the autonomy fell silent, in a few words (the report's
+        ``detail``: ``no HEARTBEAT from 1/1``); "" for none, the default."""
+        return ""
+
 
 def check_autonomy_options(cls: type[Autonomy], options: Mapping[str, Any]) -> list[str]:
     """Unknown and missing keys, then the output's own :meth:`Autonomy.check`."""

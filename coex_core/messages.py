@@ -710,6 +710,10 @@ class SurveyReason(enum.IntEnum):
     AUTONOMY_RESTARTED = 13
     #: the autonomy stopped all motion (the IvP helm's all-stop; ``detail``: its reason)
     ALL_STOP = 14
+    #: the vehicle's autonomy fell silent while it flew the survey (no heartbeat, no helm
+    #: posting, its planner gone) for longer than the vehicle's bound (``value``: the seconds of
+    #: silence; ``detail``: what was not heard)
+    AUTONOMY_SILENT = 15
 
 
 @dataclass(frozen=True, slots=True)

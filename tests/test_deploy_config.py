@@ -194,6 +194,27 @@ def test_detections_run_when_named_with_their_stream_and_a_low_link_priority(tmp
     assert any("low_priority" in p for p in check(f)[1])
 
 
+def test_the_map_metadata_names_node_origin(tmp_path: Path) -> None:
+    """Issue 51: the vehicle's map metadata (and so the console's map) gives ``node.origin``, not
+    0, 0; an origin the bathymetry options give themselves still wins."""
+    from coex_apps.vehicle.daemon import build_vehicle_node
+    from coex_core.messages import MapMetadata
+
+    f = tmp_path / "v.toml"
+    head = ('[node]\nrole = "vehicle"\nid = 2\npeer = 1\nstore = false\norigin = { lat = 41.5245, lon = -70.6712 }\n'
+            '[[modems]]\nuri = "loopback://d"\n[modalities.bathymetry]\n')
+    f.write_text(head)
+    node = build_vehicle_node(load(f, "vehicle"), {0: type("T", (), {"mtu": 256})()})
+    sender = node.sender("bathymetry")
+    assert sender.origin == (41.5245, -70.6712)
+    meta = sender.metadata(0.0)
+    assert isinstance(meta, MapMetadata)
+    assert (meta.origin_lat, meta.origin_lon) == pytest.approx((41.5245, -70.6712), abs=1e-6)
+    f.write_text(head + "options = { origin_lat = 10.0, origin_lon = 20.0 }\n")
+    node = build_vehicle_node(load(f, "vehicle"), {0: type("T", (), {"mtu": 256})()})
+    assert node.sender("bathymetry").origin == (10.0, 20.0)
+
+
 def test_one_build_node_for_the_vehicle_and_the_topside_from_a_file_or_the_options(tmp_path: Path) -> None:
     """``build_node(config, role, transports)`` builds both nodes; the topside's command-line
     options make the same checked configuration as a file saying the same (``topside_config``)."""

@@ -71,6 +71,8 @@ def test_options_are_checked() -> None:
         MoosAutonomy({"activate": "COEX_SURVEY"}, ctx)
     with pytest.raises(ConfigError, match="unknown option 'updates'"):
         MoosAutonomy({"updates": "X"}, ctx)
+    with pytest.raises(ConfigError, match="option 'silence' must be at least 0"):
+        MoosAutonomy({"silence": -2}, ctx)
 
 
 # ------------------------------------------------------------------ the mission file (no MOOSDB)

@@ -325,3 +325,30 @@ class AutonomyTests:
             assert started == sorted(started), "rule: STARTED reports head for waypoints in order"
         elif peer is None:
             assert reports == [], "rule: an output with no autonomy behind it reports nothing"
+
+    def test_the_survey_lifecycle_hooks_answer_in_their_forms(
+            self, autonomy_class: type[Autonomy], autonomy_options: dict[str, Any], context: InputContext) -> None:
+        """``end`` (the daemon takes an ended survey back: twice harmless, never waiting; before
+        the output was told anything too, as after a restart), ``heard``, ``silence`` and
+        ``silent_detail`` (the liveness watch) answer in their declared forms."""
+        out = autonomy_class(autonomy_options, context)
+        out.open()
+        try:
+            t0 = time.monotonic()
+            out.end(6, 999.0)  # a survey handed over before a restart: nothing known of it
+            plan = survey_plan(7)
+            out.submit(plan, 1000.0)
+            out.poll(1000.5)
+            for _ in range(2):
+                out.end(plan.survey_id, 1001.0)
+                assert isinstance(out.poll(1001.5), list), "rule: poll after an end returns a list"
+            assert time.monotonic() - t0 < 3 * NO_WAIT, "rule: end never waits for the autonomy"
+            heard = out.heard(1002.0)
+            assert heard is None or (isinstance(heard, int | float) and not isinstance(heard, bool)), (
+                f"rule: heard() is a time (now's clock) or None, got {heard!r}")
+            bound = out.silence()
+            assert isinstance(bound, float) and math.isfinite(bound) and bound >= 0, (
+                f"rule: silence() is seconds >= 0 (0: not watched), got {bound!r}")
+            assert isinstance(out.silent_detail(), str), "rule: silent_detail() is text"
+        finally:
+            out.close()

@@ -679,6 +679,11 @@ def topside_from_config(path: str, clock: Callable[[], float] = time.time, *,
 
 def run(args: argparse.Namespace) -> int:
     if args.config:
+        # before the app starts its threads: the ROS node's thread puts back the logging it found
+        # after rospy's set-up, so configured later the log would keep the level of before (the
+        # ROS master's loss, a warning, logged; its return, information, not)
+        logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(levelname)s %(message)s",
+                            force=True)
         try:
             app = topside_from_config(args.config)
         except (CoexError, OSError) as exc:
@@ -687,8 +692,6 @@ def run(args: argparse.Namespace) -> int:
         except Exception as exc:  # what no check foresaw: named, never a traceback
             print(f"coex topside: cannot start: {type(exc).__name__}: {exc}", file=sys.stderr)
             return 2
-        logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(levelname)s %(message)s",
-                            force=True)
         from .fleet import FleetHub
 
         fleet = (", vehicles " + ", ".join(f"{n} ({v})" for v, n in app.hub.names.items())

@@ -138,7 +138,6 @@ class VehicleApp:
         self._last_status: float | None = None
         self._taken: list[str] = self._taken_files()
         self._taken_set = set(self._taken)
-        self._submitted = self.store.get("vehicle.submitted") if self.store else None
         #: while the store cannot journal: images (input, item) and autonomy reports held,
         #: taken once it can; streamed data not kept, counted by kind
         self._held: list[tuple[Any, Any]] = []
@@ -152,8 +151,16 @@ class VehicleApp:
 
         self.peer_watch = PeerWatch(self.node.manager, [cfg.peer])
         self._peer_silent = False
-        #: whether the survey submitted before a restart was handed back to the autonomy (resume)
-        self._resumed = False
+        #: the survey lifecycle between the survey sender and the autonomy output (None: no
+        #: autonomy, or no survey modality)
+        self.lifecycle: Any = None
+        if self.autonomy is not None and "survey" in self.names:
+            from coex_plugins.autonomy.lifecycle import SurveyLifecycle
+
+            store = self.store
+            self.lifecycle = SurveyLifecycle(
+                self.autonomy, self.node.sender("survey"), name=str(cfg.autonomy.get("type")),
+                get=None if store is None else store.get, put=None if store is None else self._keep)
         self._broken: dict[str, float] = {}
         self._problem = LogOnce(log)
         #: what was taken; ``skipped``: the autonomy's reports not taken (an input's skipped items
@@ -446,37 +453,22 @@ class VehicleApp:
         self._last_status = now
 
     def _autonomy(self, now: float) -> None:
-        if self.autonomy is None or "survey" not in self.names:
+        """The survey lifecycle's step (:mod:`coex_plugins.autonomy.lifecycle`: hand over the survey
+        to fly now, poll the output, end what ended, record late answers, abort on silence); its
+        reports to the survey sender."""
+        if self.lifecycle is None:
             return
-        survey = self.node.sender("survey")
-        plan = survey.active_plan()
-        key = None if plan is None else f"{plan.survey_id}:{survey.plan_version}"
-        if not self._resumed:
-            self._resumed = True
-            if plan is not None and key == self._submitted:  # flown before the restart: follow it again
-                if self._guard("autonomy resume", self.autonomy.resume, plan, now):
-                    log.info("survey %d: following it again after the restart (%s)", plan.survey_id,
-                             self.cfg.autonomy.get("type"))
-                else:
-                    log.warning("survey %d was given to the %s autonomy before the restart; that output cannot "
-                                "follow it again, so its progress is no longer reported", plan.survey_id,
-                                self.cfg.autonomy.get("type"))
-        if plan is not None and key != self._submitted:
-            log.info("survey %d to the autonomy (%s)", plan.survey_id, self.cfg.autonomy.get("type"))
-            self._guard("autonomy submit", self.autonomy.submit, plan, now)
-            self._submitted = key
-            self.counts["plans"] += 1
-            if self.store is not None:
-                self._keep("vehicle.submitted", str(key))
-        for fix in survey.take_aids():  # topside's position fixes (issue 56): to the vehicle's navigation
+        before = self.lifecycle.counts["submitted"]
+        for report in self._guard("autonomy", self.lifecycle.step, now) or []:
+            if self._ingest("survey", report, f"autonomy report {report!r}", hold=(None, report)):
+                self.counts["reports"] += 1
+        self.counts["plans"] += self.lifecycle.counts["submitted"] - before
+        for fix in self.node.sender("survey").take_aids():  # topside's position fixes (issue 56)
             if self._guard("autonomy aid", self.autonomy.aid, fix, now):
                 self.counts["aids"] += 1
             else:
                 self._problem("no-aid", "a position fix from topside was not taken: the %s autonomy output "
                               "gives the vehicle's navigation no fixes (docs/autonomy.md)", self.cfg.autonomy.get("type"))
-        for report in self._guard("autonomy poll", self.autonomy.poll, now) or []:
-            if self._ingest("survey", report, f"autonomy report {report!r}", hold=(None, report)):
-                self.counts["reports"] += 1
         if not self._nav_real:  # without navigation inputs, a simulated autonomy knows where it is
             xy = self._guard("autonomy position", self.autonomy.position, now)
             if xy is not None:

@@ -303,6 +303,10 @@ class MavlinkAutonomy(Autonomy):
         "position_fix": (True, "pass topside's position fixes (PositionFix) to the autopilot as GPS_INPUT "
                                "(ArduSub: GPS_TYPE = 14, MAV); false: refuse them"),
         "gps_id": (0, "GPS_INPUT gps_id of the fixes (which GPS instance of the autopilot they feed)"),
+        "silence": (5.0, "seconds without the autopilot's HEARTBEAT while a survey flies before it is "
+                         "aborted AUTONOMY_SILENT (0: not watched)"),
+        "clear": (True, "clear the autopilot's mission (MISSION_CLEAR_ALL) once a survey ended, so that "
+                        "AUTO does not fly it again"),
     }
 
     @classmethod
@@ -321,10 +325,10 @@ class MavlinkAutonomy(Autonomy):
             if key in options and options[key] not in _FRAMES:
                 p.said(key, f"autonomy 'mavlink': {key} must be one of {sorted(_FRAMES)}, got {options[key]!r}")
         _int(p, options, "gps_id", 0, 255)
-        for key in ("home_placeholder", "speed_item", "mavlink2", "position_fix"):
+        for key in ("home_placeholder", "speed_item", "mavlink2", "position_fix", "clear"):
             if key in options and not isinstance(options[key], bool):
                 p.said(key, f"autonomy 'mavlink': {key} must be true or false, got {options[key]!r}")
-        for key in ("acceptance_radius", "hold", "heartbeat"):
+        for key in ("acceptance_radius", "hold", "heartbeat", "silence"):
             _pos(p, options, key)
         _pos(p, options, "timeout", zero=False)
         _pos(p, options, "item_timeout", zero=False)
@@ -370,8 +374,17 @@ class MavlinkAutonomy(Autonomy):
         self._vehicle_mode: int | None = None
         self._vehicle_type: int | None = None
         self._seen_auto = False
+        #: when the target vehicle's HEARTBEAT was last heard (None: never)
+        self.heard_at: float | None = None
+        #: the clearing of an ended survey's mission: survey id, deadline of the answer, tries
+        #: made (None: nothing to clear); ``_clear_later``: given up for now, sent again when the
+        #: autopilot is heard again after a silence or leaves AUTO
+        self._clear: tuple[int, float, int] | None = None
+        self._clear_later: int | None = None
+        #: the survey whose mission may still be on the autopilot (None: cleared, or none)
+        self.on_autopilot: int | None = None
         #: counters for tests and status pages
-        self.stats = {"bad": 0, "ignored": 0, "resent": 0, "uploads": 0, "items_sent": 0}
+        self.stats = {"bad": 0, "ignored": 0, "resent": 0, "uploads": 0, "items_sent": 0, "cleared": 0}
 
     # ------------------------------------------------------------------ connection
     def open(self) -> None:
@@ -450,6 +463,8 @@ class MavlinkAutonomy(Autonomy):
         self._heading_for, self._seen_auto = -1, False
         self._command = None
         self._command_deadline = math.inf
+        self._clear, self._clear_later = None, None  # the new mission replaces whatever is there
+        self.on_autopilot = int(plan.survey_id)
         self.stats["uploads"] += 1
         log.info("mavlink: uploading survey %s as %d mission items", plan.survey_id, len(self.items))
         self._send_count(now)
@@ -461,8 +476,58 @@ class MavlinkAutonomy(Autonomy):
         self.phase, self._sent, self._tries, self._heading_for, self._seen_auto = "flying", None, 0, -1, False
         self._command, self._command_deadline = None, math.inf
         self._deadline = math.inf
+        self.on_autopilot = int(plan.survey_id)
         log.info("mavlink: following survey %s again after a restart (nothing uploaded)", plan.survey_id)
         return True
+
+    def end(self, survey_id: int, now: float) -> None:
+        """The survey ended: stop following it (an upload or a start under way is abandoned) and,
+        with ``clear``, clear the autopilot's mission (``MISSION_CLEAR_ALL``), answered by a
+        ``MISSION_ACK``: sent again after ``timeout``, at most ``retries`` times, then again when
+        the autopilot is heard after a silence, or leaves AUTO after refusing (ArduPilot does not
+        clear the mission it flies)."""
+        if self.conn is None:
+            self.open()
+        sid = int(survey_id)
+        if self.plan is not None and int(self.plan.survey_id) == sid and self.phase != "done":
+            self.phase = "done"
+            self._deadline = math.inf
+            self._command, self._command_deadline = None, math.inf
+        if self.on_autopilot is None:
+            self.on_autopilot = sid  # after a restart: whatever it holds may be that survey's
+        if not self.config["clear"] or self.on_autopilot != sid:
+            return  # nothing of it there, or a newer survey's mission replaced it
+        self._clear_later = None
+        self._send_clear(sid, 0, now)
+
+    def _send_clear(self, sid: int, tries: int, now: float) -> None:
+        ts, tc = self._targets
+        self._send("mission_clear_all", target_system=ts, target_component=tc, mission_type=0)
+        self._clear = (sid, now + float(self.config["timeout"]), tries)
+
+    def _clear_answered(self, result: int, now: float) -> None:
+        assert self._clear is not None
+        sid = self._clear[0]
+        self._clear = None
+        if result == MAV_MISSION_ACCEPTED:
+            self.on_autopilot = None
+            self.stats["cleared"] += 1
+            log.info("mavlink: survey %s ended: the autopilot's mission cleared", sid)
+            return
+        name = enum_name("MAV_MISSION_RESULT", result)
+        log.warning("mavlink: survey %s ended, but the autopilot refused to clear its mission (%s)%s", sid, name,
+                    ": cleared once it leaves AUTO" if self._vehicle_mode == int(self.config["auto_mode"]) else "")
+        self._clear_later = sid
+
+    def heard(self, now: float) -> float | None:
+        """When the autopilot's HEARTBEAT was last heard (-inf: never, since this output opened)."""
+        if self.conn is None:
+            return None
+        return -math.inf if self.heard_at is None else self.heard_at
+
+    def silent_detail(self) -> str:
+        ts, tc = self._targets
+        return f"no HEARTBEAT from {ts}/{tc}"
 
     def poll(self, now: float) -> list[Any]:
         if self.conn is None:
@@ -527,6 +592,14 @@ class MavlinkAutonomy(Autonomy):
                 self._send_count(now)
             else:
                 self._send_item(self._sent, now)
+        if self._clear is not None and now >= self._clear[1]:
+            sid, _, tries = self._clear
+            if tries >= int(self.config["retries"]):
+                log.warning("mavlink: survey %s ended; the autopilot did not answer MISSION_CLEAR_ALL (%d tries): "
+                            "its mission may still be on the autopilot (sent again when it is heard)", sid, tries + 1)
+                self._clear, self._clear_later = None, sid
+            else:
+                self._send_clear(sid, tries + 1, now)
         if self._command is not None and now >= self._command_deadline:
             if self._command_tries >= int(self.config["retries"]):
                 self._no_answer(now, _COMMANDS.get(self._command[0], f"command {self._command[0]}"),
@@ -558,7 +631,10 @@ class MavlinkAutonomy(Autonomy):
                 self.stats["ignored"] += 1
                 return
             if kind == "MISSION_ACK":
-                self._ack(msg, now)
+                if self._clear is not None and self.phase != "upload":
+                    self._clear_answered(int(msg.type), now)
+                else:
+                    self._ack(msg, now)
             else:
                 self._request(msg, now)
         elif kind in ("MISSION_ITEM_REACHED", "MISSION_CURRENT"):
@@ -580,10 +656,23 @@ class MavlinkAutonomy(Autonomy):
                 self.target_component = msg.get_srcComponent()
             log.info("mavlink: vehicle %d/%d (type %d, autopilot %d)", msg.get_srcSystem(),
                      msg.get_srcComponent(), msg.type, msg.autopilot)
-        if msg.get_srcSystem() != self.target_system or msg.autopilot != MAV_AUTOPILOT_ARDUPILOTMEGA:
+        if msg.get_srcSystem() != self.target_system:
+            return
+        silence = float(self.config["silence"]) or float(self.config["timeout"])
+        back = self.heard_at is None or now - self.heard_at > silence
+        self.heard_at = float(now)
+        if back and self._clear_later is not None and self._clear is None:
+            sid, self._clear_later = self._clear_later, None
+            log.info("mavlink: the autopilot is heard again: clearing survey %s's mission", sid)
+            self._send_clear(sid, 0, now)
+        if msg.autopilot != MAV_AUTOPILOT_ARDUPILOTMEGA:
             return
         mode = int(msg.custom_mode)
         previous, self._vehicle_mode = self._vehicle_mode, mode
+        if (previous == int(self.config["auto_mode"]) and mode != previous and self._clear_later is not None
+                and self._clear is None):
+            sid, self._clear_later = self._clear_later, None
+            self._send_clear(sid, 0, now)  # it refused while flying it: now it does not
         if self.phase != "flying" or self.config["start"] == "none":
             return
         auto = int(self.config["auto_mode"])
@@ -693,6 +782,15 @@ class MavlinkAutonomy(Autonomy):
         return None
 
     def _progress(self, kind: str, seq: int, now: float) -> None:
+        if (self.phase == "done" and kind == "MISSION_ITEM_REACHED" and self.plan is not None
+                and self.on_autopilot == int(self.plan.survey_id) and self._waypoint_of(seq) is not None):
+            # the autopilot flies the mission of a survey that ended: a late answer (the daemon's
+            # lifecycle records it and ends the survey again)
+            k = self._waypoint_of(seq)
+            assert k is not None
+            last = k == len(self.plan.waypoints) - 1
+            self._report(SurveyState.COMPLETED if last else SurveyState.STARTED, now, index=None if last else k + 1)
+            return
         if self.phase == "starting" and kind == "MISSION_ITEM_REACHED" and self._waypoint_of(seq) is not None:
             # it flies the new mission, though the start command's ack was lost
             self._command, self._command_deadline = None, math.inf

@@ -77,16 +77,23 @@ class InvalidReport(CoexError, ValueError):
 FINAL = (SurveyState.REJECTED, SurveyState.COMPLETED, SurveyState.ABORTED)
 
 
+#: late answers kept per survey (the newest)
+LATE_MAX = 8
+
+
 def _upgrade_tx_survey(fields: dict[str, Any], saved: int) -> dict[str, Any]:
-    return {"detail": None, **fields}  # version 1 had no detail
+    # version 1 had no detail, versions 1 and 2 kept no late answers
+    return {"detail": None, "late": [], **fields}
 
 
-@persistent("survey.TxSurvey", version=2, upgrade=_upgrade_tx_survey)
+@persistent("survey.TxSurvey", version=3, upgrade=_upgrade_tx_survey)
 class _Survey:
-    """One survey on the vehicle: its plan (None when refused) and its newest state."""
+    """One survey on the vehicle: its plan (None when refused), its newest state, and the
+    autonomy's answers that came after it ended (``late``: ``(time, state, index, reason,
+    detail)``, the newest :data:`LATE_MAX`; kept, never sent: an ended survey's state is final)."""
 
-    __slots__ = ("acked", "command", "detail", "index", "plan", "reason", "sent_at", "state", "survey_id",
-                 "time", "value")
+    __slots__ = ("acked", "command", "detail", "index", "late", "plan", "reason", "sent_at", "state",
+                 "survey_id", "time", "value")
 
     def __init__(self, survey_id: int, command: SurveyCommand | None, plan: SurveyPlan | None,
                  state: SurveyState, time: float, reason: SurveyReason = SurveyReason.NONE,
@@ -96,6 +103,7 @@ class _Survey:
         self.detail = cut_detail(detail)
         self.sent_at: float | None = None
         self.acked = False
+        self.late: list[tuple[float, str, int | None, str, str | None]] = []
 
     def status(self) -> SurveyStatus:
         index = None if self.index is None else max(0, min(int(self.index), 255))
@@ -143,8 +151,9 @@ class SurveySender(ModalitySender):
     def ingest(self, data: Any, now: float) -> None:
         """Take what the vehicle's autonomy reports (:class:`SurveyReport`, or a sequence of
         them): the survey's new state goes topside. A report on a survey that was already
-        finished (a late "completed" of a superseded plan) is ignored; one on a survey this
-        sender never saw (the vehicle's own mission) is reported as it is."""
+        finished (a late "completed" of a superseded plan, a planner's "started" after it was
+        given up) changes nothing and is kept in the survey's record (:meth:`late`); one on a
+        survey this sender never saw (the vehicle's own mission) is reported as it is."""
         reports = [data] if isinstance(data, SurveyReport) else list(data) if isinstance(data, list | tuple) else None
         if reports is None or not all(isinstance(r, SurveyReport) for r in reports):
             raise InvalidReport(f"the survey sender takes SurveyReports, not {type(data).__name__}")
@@ -160,6 +169,11 @@ class SurveySender(ModalitySender):
         if s is None:
             s = self.surveys[r.survey_id] = _Survey(r.survey_id, None, None, r.state, r.time)
         elif s.state in FINAL:
+            entry = (float(r.time), SurveyState(r.state).name, r.index, SurveyReason(r.reason).name,
+                     cut_detail(r.detail))
+            if not s.late or s.late[-1][1:] != entry[1:]:  # the same answer repeated: kept once
+                s.late.append(entry)
+                del s.late[:-LATE_MAX]
             return
         if s.state == r.state == SurveyState.STARTED and s.index == r.index:
             return
@@ -170,6 +184,17 @@ class SurveySender(ModalitySender):
             if first:
                 self.plan_version += 1
         self._forget()
+
+    def state_of(self, survey_id: int) -> SurveyState | None:
+        """The newest state of a survey this sender holds (None: not known, or forgotten)."""
+        s = self.surveys.get(int(survey_id))
+        return None if s is None else SurveyState(s.state)
+
+    def late(self, survey_id: int) -> list[tuple[float, str, int | None, str, str | None]]:
+        """The autonomy's answers about a survey that came after it ended: ``(time, state,
+        index, reason, detail)``, oldest first (the newest :data:`LATE_MAX`)."""
+        s = self.surveys.get(int(survey_id))
+        return [] if s is None else list(s.late)
 
     # ------------------------------------------------------------------ topside's commands
     def take_aids(self) -> list[PositionAid]:

@@ -44,7 +44,8 @@ log = logging.getLogger(__name__)
 
 #: how to get rospy into CoEx's Python (docs/deploy.md)
 ROSPY_HINT = ("Debian's ROS 1: apt-get install python3-rospy python3-rosmaster python3-roslaunch "
-              "python3-sensor-msgs python3-nav-msgs python3-geometry-msgs python3-std-msgs, then "
+              "python3-sensor-msgs python3-nav-msgs python3-geometry-msgs python3-std-msgs python3-tf2-msgs "
+              "python3-rostopic python3-rosnode python3-rosbag, then "
               "`make ros` (scripts/ros.sh) so the venv imports it (docs/deploy.md)")
 
 
