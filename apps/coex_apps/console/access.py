@@ -36,6 +36,8 @@ from typing import Any
 
 from coex import ConfigError
 
+from .admission import Said
+
 __all__ = ["Access", "Operator", "OperatorsFile", "Session", "SignInRefused", "SignInTry", "ROLES",
            "password_problem", "secret_file_problem"]
 
@@ -314,6 +316,9 @@ class Access:
         self._checked = -float("inf")
         #: password checks at once (scrypt takes 16 MB each)
         self._checking = threading.BoundedSemaphore(self.sign_ins)
+        #: failed and refused sign-ins are logged with the name and the address, a flood of
+        #: them from one address in one line every ten seconds
+        self.say = Said(logger=log)
 
     # ------------------------------------------------------------------ the operators file
     def refresh(self, force: bool = False) -> None:
@@ -411,10 +416,13 @@ class Access:
             keys = self._keys(name, client, known)
             wait = max(self._wait(k, now, free) for k, free in keys)
             if wait > 0:
-                log.warning("console sign-in refused for %s from %s%s: too many failures, %.0f s to wait",
-                            self.shown(name), client, f" ({known})" if known else "", wait)
+                self.say(client, f"console sign-in refused for {self.shown(name)} from {client}"
+                                 f"{f' ({known})' if known else ''}: too many failures, {wait:.0f} s to wait",
+                         kind=f"refused {self.shown(name)} {known}")
                 raise SignInRefused(429, f"too many failed sign-ins: try again in {wait:.0f} s", wait)
-            clean = not self._failures.get(f"\0{client}")
+            # class 1: neither this address nor this name failed lately (a guesser's tries of a
+            # name under attack, or from an address that failed, wait behind)
+            clean = not self._failures.get(f"\0{client}") and not self._failures.get(f"{name}\0*")
             for k, _ in keys:
                 self._failures.setdefault(k, deque()).append(now)
         return SignInTry(name, client, [k for k, _ in keys], known is not None,
@@ -434,8 +442,8 @@ class Access:
                     if fails is not None and t.at in fails:
                         fails.remove(t.at)
                         fails.append(done)
-            log.warning("console sign-in failed for %s from %s: wrong name or password", self.shown(t.name),
-                        t.client)
+            self.say(t.client, f"console sign-in failed for {self.shown(t.name)} from {t.client}: wrong name or "
+                               "password", kind=f"failed {self.shown(t.name)}")
             raise SignInRefused(401, "wrong name or password")
         now2 = self.clock()
         s = Session(secrets.token_urlsafe(32), op.name, op.role, secrets.token_urlsafe(24),

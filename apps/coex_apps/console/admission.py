@@ -34,7 +34,9 @@ import ctypes
 import ctypes.util
 import functools
 import logging
+import os
 import resource
+import threading
 import time
 from collections import OrderedDict, deque
 from collections.abc import Callable, Iterable
@@ -44,7 +46,8 @@ from typing import Any
 
 from .state import MAP_WINDOW_CELLS
 
-__all__ = ["Doors", "FairQueue", "Lanes", "Limits", "Said", "raise_fd_limit", "trim_memory"]
+__all__ = ["Doors", "FairQueue", "Lanes", "Limits", "Said", "limit_arenas", "lower_priority", "raise_fd_limit",
+           "trim_memory"]
 
 log = logging.getLogger("coex_apps.console.server")
 
@@ -115,8 +118,13 @@ class Said:
         self.limit = limit
         #: (address, kind) -> [first time, count since the line, level, text]
         self._open: OrderedDict[tuple[str, str], list[Any]] = OrderedDict()
+        self._lock = threading.Lock()
 
     def __call__(self, address: str, text: str, level: int = logging.WARNING, kind: str | None = None) -> None:
+        with self._lock:
+            self._say(address, text, level, kind)
+
+    def _say(self, address: str, text: str, level: int, kind: str | None) -> None:
         key = (address, text if kind is None else kind)
         now = self.clock()
         seen = self._open.get(key)
@@ -140,8 +148,9 @@ class Said:
     def flush(self, force: bool = False) -> None:
         """Say the counts whose time has come (all of them with ``force``)."""
         now = self.clock()
-        for key in [k for k, v in self._open.items() if force or now - v[0] >= self.every]:
-            self._flush_one(key, self._open.pop(key))
+        with self._lock:
+            for key in [k for k, v in self._open.items() if force or now - v[0] >= self.every]:
+                self._flush_one(key, self._open.pop(key))
 
 
 # ------------------------------------------------------------------ connections
@@ -385,15 +394,21 @@ class _Job:
 
 
 class FairQueue:
-    """At most ``running`` jobs at once in ``executor``; the others wait in class order (class 0
-    first) and, within a class, client by client in turn (a client with many jobs waiting does
-    not delay another's first). ``waiting[k]`` jobs of class ``k`` may wait; ``per_client`` jobs
-    of one client may wait or run. Beyond, :class:`Busy` (with the reason)."""
+    """At most ``running`` jobs at once; the others wait in class order (class 0 first) and,
+    within a class, client by client in turn (a client with many jobs waiting does not delay
+    another's first). ``waiting[k]`` jobs of class ``k`` may wait; ``per_client`` jobs of one
+    client may wait or run. Beyond, :class:`Busy` (with the reason). Classes before ``low``
+    run in ``executors[0]`` and may take every running place; the classes from ``low`` on run
+    in ``executors[-1]`` and leave ``reserved`` places to the others (whose jobs then start at
+    once, never behind theirs)."""
 
-    def __init__(self, executor: Executor, running: int, waiting: tuple[int, ...], per_client: int,
-                 what: str) -> None:
-        self.executor = executor
+    def __init__(self, executors: Executor | list[Executor], running: int, waiting: tuple[int, ...],
+                 per_client: int, what: str, reserved: int = 0, low: int = 1) -> None:
+        self.executors = list(executors) if isinstance(executors, list) else [executors]
         self.running_max = max(1, running)
+        self.low = max(1, low)
+        #: running places the classes from ``low`` on may take
+        self.others_max = max(1, self.running_max - max(0, reserved))
         self.waiting_max = tuple(max(0, w) for w in waiting)
         self.per_client = max(1, per_client)
         self.what = what
@@ -402,6 +417,7 @@ class FairQueue:
         self.waiting = [0] * len(waiting)
         self.of_client: dict[str, int] = {}
         self.running = 0
+        self.running_others = 0
         #: jobs done since :func:`trim_memory` last looked
         self.done = 0
 
@@ -443,14 +459,15 @@ class FairQueue:
 
     def _next(self) -> _Job | None:
         for klass, ring in enumerate(self.rings):
-            if ring:
-                client, jobs = next(iter(ring.items()))
-                job = jobs.popleft()
-                del ring[client]
-                if jobs:
-                    ring[client] = jobs  # to the back: the next client goes first
-                self.waiting[klass] -= 1
-                return job
+            if not ring or (klass >= self.low and self.running_others >= self.others_max):
+                continue
+            client, jobs = next(iter(ring.items()))
+            job = jobs.popleft()
+            del ring[client]
+            if jobs:
+                ring[client] = jobs  # to the back: the next client goes first
+            self.waiting[klass] -= 1
+            return job
         return None
 
     def _dispatch(self) -> None:
@@ -460,11 +477,16 @@ class FairQueue:
             if job is None:
                 return
             self.running += 1
-            done = loop.run_in_executor(self.executor, job.fn, *job.args)
+            if job.klass >= self.low:
+                self.running_others += 1
+            pool = self.executors[0] if job.klass < self.low else self.executors[-1]
+            done = loop.run_in_executor(pool, job.fn, *job.args)
             done.add_done_callback(functools.partial(self._finished, job))
 
     def _finished(self, job: _Job, f: asyncio.Future[Any]) -> None:
         self.running -= 1
+        if job.klass >= self.low:
+            self.running_others -= 1
         self.done += 1
         self._done_with(job.client)
         if not job.future.done():
@@ -479,25 +501,59 @@ class FairQueue:
         self._dispatch()
 
 
+def lower_priority(niceness: int = 10) -> None:
+    """Make the calling thread yield the processor to the others (Linux: threads have their own
+    nice value): the heavy work of viewers and strangers (their pictures, their password
+    checks) gives way to the web server's loop and the operator's work. A no-op elsewhere."""
+    try:
+        os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), niceness)
+    except (AttributeError, OSError):
+        pass
+
+
 # ------------------------------------------------------------------ memory and descriptors
 _libc: Any = None
+
+
+def _glibc() -> Any:
+    """The C library's ``malloc_trim`` and ``mallopt`` (glibc), or None."""
+    global _libc
+    if _libc is None:
+        try:
+            lib = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6")
+            lib.malloc_trim.argtypes = [ctypes.c_size_t]
+            lib.malloc_trim.restype = ctypes.c_int
+            lib.mallopt.argtypes = [ctypes.c_int, ctypes.c_int]
+            lib.mallopt.restype = ctypes.c_int
+            _libc = lib
+        except (OSError, AttributeError):
+            _libc = False
+    return _libc or None
 
 
 def trim_memory() -> bool:
     """Give freed heap memory back to the system (glibc ``malloc_trim(0)``, all arenas). True
     if it ran (False where the C library has no ``malloc_trim``)."""
-    global _libc
-    if _libc is None:
-        try:
-            _libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6")
-            _libc.malloc_trim.argtypes = [ctypes.c_size_t]
-            _libc.malloc_trim.restype = ctypes.c_int
-        except (OSError, AttributeError):
-            _libc = False
-    if not _libc:
+    lib = _glibc()
+    if lib is None:
         return False
-    _libc.malloc_trim(0)
+    lib.malloc_trim(0)
     return True
+
+
+#: glibc's ``mallopt`` parameter for the number of malloc arenas
+M_ARENA_MAX = -8
+
+
+def limit_arenas(n: int = 2) -> bool:
+    """At most ``n`` malloc arenas in this process (glibc ``mallopt(M_ARENA_MAX)``). glibc
+    gives threads arenas of their own (up to eight per processor), each keeping what it freed:
+    the console's worker threads drawing pictures and checking passwords held some 100 MB
+    after a flood; with two arenas the memory goes back. True if set."""
+    lib = _glibc()
+    if lib is None:
+        return False
+    return bool(lib.mallopt(M_ARENA_MAX, max(1, n)))
 
 
 def raise_fd_limit(want: int) -> int:

@@ -81,6 +81,8 @@ from .admission import (
     Lanes,
     Limits,
     Said,
+    limit_arenas,
+    lower_priority,
     raise_fd_limit,
     trim_memory,
 )
@@ -159,9 +161,8 @@ def _protocol(limits: Limits, doors: Doors) -> type[H11Protocol]:
 
     class Protocol(H11Protocol):
         _head_timer: asyncio.TimerHandle | None = None
-        #: the connection's place in :class:`Doors` (None: not admitted)
+        #: the connection's place in :class:`Doors` (set by :class:`_Door`)
         door: Connection | None = None
-        refused = False
 
         def __init__(self, *args: Any, **kw: Any) -> None:
             super().__init__(*args, **kw)
@@ -171,13 +172,6 @@ def _protocol(limits: Limits, doors: Doors) -> type[H11Protocol]:
         def idle(self) -> bool:
             """No request being answered (between requests, or a head still arriving)."""
             return self.cycle is None or self.cycle.response_complete
-
-        def admit(self, transport: asyncio.BaseTransport) -> bool:
-            """Take a place for the connection (by its peer address); False: refused."""
-            peer = transport.get_extra_info("peername")
-            address, port = (str(peer[0]), int(peer[1])) if isinstance(peer, tuple) else ("?", id(self))
-            self.door = doors.admit(address, port, self.idle, cast(asyncio.Transport, transport).abort)
-            return self.door is not None
 
         def _arm(self) -> None:
             if self._head_timer is not None:
@@ -198,14 +192,6 @@ def _protocol(limits: Limits, doors: Doors) -> type[H11Protocol]:
                 self.transport.close()
 
         def connection_made(self, transport: asyncio.Transport) -> None:  # type: ignore[override]
-            if self.door is None and not self.admit(transport):  # plain HTTP: refused at the door
-                self.refused = True
-                reason = b"the console has no room for another connection from your address: try again"
-                transport.write(b"HTTP/1.1 503 Service Unavailable\r\ncontent-type: text/plain; charset=utf-8\r\n"
-                                b"retry-after: 1\r\nconnection: close\r\ncontent-length: "
-                                + str(len(reason)).encode() + b"\r\n\r\n" + reason)
-                transport.close()
-                return
             super().connection_made(transport)
             self._arm()
 
@@ -239,8 +225,6 @@ def _protocol(limits: Limits, doors: Doors) -> type[H11Protocol]:
 
         def connection_lost(self, exc: Exception | None) -> None:
             doors.release(self.door)
-            if self.refused:
-                return
             if self._head_timer is not None:
                 self._head_timer.cancel()
                 self._head_timer = None
@@ -250,10 +234,9 @@ def _protocol(limits: Limits, doors: Doors) -> type[H11Protocol]:
 
 
 class _Tls(sslproto.SSLProtocol):
-    """TLS for one connection, admitted by its client address *before* its handshake (asyncio's
-    own server TLS would count it only after), with a read buffer of 16 KiB instead of asyncio's
-    256 KiB (which every idle TLS socket held: 5,000 of them kept 1.2 GB), and the console's
-    deadline for the handshake."""
+    """TLS for one admitted connection, with a read buffer of 16 KiB instead of asyncio's 256
+    KiB (which every idle TLS socket held: 5,000 of them kept 1.2 GB, and after they closed
+    until a full garbage collection), and the console's deadline for the handshake."""
 
     max_size = 16 * 1024
 
@@ -262,20 +245,55 @@ class _Tls(sslproto.SSLProtocol):
         super().__init__(loop, app, context, None, server_side=True,  # type: ignore[arg-type]
                          ssl_handshake_timeout=handshake_seconds, ssl_shutdown_timeout=5.0)  # type: ignore[arg-type]
         self.coex_app = app
-        self.coex_refused = False
-
-    def connection_made(self, transport: asyncio.BaseTransport) -> None:
-        if not self.coex_app.admit(transport):
-            self.coex_refused = True
-            cast(asyncio.Transport, transport).abort()
-            return
-        super().connection_made(transport)
 
     def connection_lost(self, exc: BaseException | None) -> None:
-        self.coex_app.release_door()
-        if self.coex_refused:
-            return
+        self.coex_app.release_door()  # (a handshake that failed never reaches the app)
         super().connection_lost(exc)
+
+
+class _Door(asyncio.Protocol):
+    """The first protocol of every accepted connection: it admits the connection by its client
+    address (:class:`~.admission.Doors`) before anything else is made for it (a refused one
+    costs no HTTP or TLS state), then hands it to TLS (the handshake counted as the
+    connection's) or straight to HTTP."""
+
+    def __init__(self, make: Callable[[], Any], doors: Doors, tls: ssl.SSLContext | None,
+                 handshake_seconds: float, loop: asyncio.AbstractEventLoop) -> None:
+        self.make, self.doors, self.tls, self.handshake_seconds, self.loop = make, doors, tls, handshake_seconds, loop
+        self.app: Any = None
+
+    def idle(self) -> bool:
+        return self.app is None or bool(self.app.idle())
+
+    def connection_made(self, transport: asyncio.BaseTransport) -> None:
+        t = cast(asyncio.Transport, transport)
+        peer = t.get_extra_info("peername")
+        address, port = (str(peer[0]), int(peer[1])) if isinstance(peer, tuple) else ("?", id(self))
+        door = self.doors.admit(address, port, self.idle, t.abort)
+        if door is None:
+            if self.tls is None:
+                t.write(_NO_ROOM)
+                t.close()
+            else:
+                t.abort()
+            return
+        app = self.app = self.make()
+        app.door = door
+        if self.tls is not None:
+            tls = _Tls(self.loop, app, self.tls, self.handshake_seconds)
+            t.set_protocol(tls)
+            tls.connection_made(t)
+        else:
+            t.set_protocol(app)
+            app.connection_made(t)
+
+    def data_received(self, data: bytes) -> None:
+        pass  # a refused connection's request: not read
+
+
+_NO_REASON = b"the console has no room for another connection from your address: try again"
+_NO_ROOM = (b"HTTP/1.1 503 Service Unavailable\r\ncontent-type: text/plain; charset=utf-8\r\nretry-after: 1\r\n"
+            b"connection: close\r\ncontent-length: " + str(len(_NO_REASON)).encode() + b"\r\n\r\n" + _NO_REASON)
 
 
 class _Uvicorn(uvicorn.Server):
@@ -298,11 +316,11 @@ class _Uvicorn(uvicorn.Server):
         console, config = self.console, self.config
         proto = console.protocol
 
+        def app() -> H11Protocol:
+            return proto(config=config, server_state=self.server_state, app_state=self.lifespan.state, _loop=loop)
+
         def make() -> asyncio.BaseProtocol:
-            app = proto(config=config, server_state=self.server_state, app_state=self.lifespan.state, _loop=loop)
-            if console.tls is not None:
-                return _Tls(loop, app, console.tls, console.limits.header_seconds)
-            return app
+            return _Door(app, console.doors, console.tls, console.limits.header_seconds, loop)
 
         self.servers = [await loop.create_server(make, sock=sock, backlog=1024) for sock in sockets or []]
         self.started = True
@@ -311,13 +329,19 @@ class _Uvicorn(uvicorn.Server):
         if counter % 10 == 0:
             console = self.console
             console.say.flush()
+            if console.access is not None:
+                console.access.say.flush()
             closed = console.doors.closed
             activity = closed + console.app_routes.renders.done + console.app_routes.sign_ins.done
             now = time.monotonic()
-            if activity - self._activity >= 16 and now - self._trimmed_at >= 5.0 and not self._trimming:
-                # many connections closed: their objects may be held by reference cycles (a TLS
-                # handshake that failed keeps its exception's frames) until a full collection
-                collect = closed - self._closed >= 256 and now - self._collected_at >= 30.0
+            if activity > self._activity and now - self._trimmed_at >= 5.0 and not self._trimming:
+                # connections closed, pictures drawn, passwords checked: memory to give back.
+                # Objects of closed connections may be held by reference cycles (a TLS
+                # handshake that failed keeps its exception's frames) until a full collection:
+                # one after many closed (at most every 30 s), and one when it has gone quiet
+                quiet = activity - self._activity < 16
+                collect = closed > self._closed and (
+                    (closed - self._closed >= 256 and now - self._collected_at >= 30.0) or quiet)
                 if collect:
                     self._closed, self._collected_at = closed, now
                 self._activity, self._trimmed_at, self._trimming = activity, now, True
@@ -520,12 +544,14 @@ class _App:
         self.access = server.access
         self.limits = lim = server.limits
         #: pictures: drawn ``renders`` at once, an operator's first, client by client in turn
-        self.renders = FairQueue(server.render_threads, lim.renders,
+        self.renders = FairQueue([server.render_threads, server.other_render_threads], lim.renders,
                                  (lim.operator_render_queue, lim.render_queue), lim.renders_per_client,
-                                 "pictures")
-        #: password checks: a known browser's first, then addresses without failures, the rest
-        self.sign_ins = FairQueue(server.sign_in_threads, server.access.sign_ins if server.access else 1,
-                                  lim.sign_in_queue, 8, "sign-ins")
+                                 "pictures", reserved=1)
+        #: password checks: a known browser's first, then addresses without failures, then the
+        #: rest (addresses that failed: at a lower priority, one at a time)
+        self.sign_ins = FairQueue([server.sign_in_threads, server.other_sign_in_threads],
+                                  server.access.sign_ins if server.access else 1, lim.sign_in_queue, 8,
+                                  "sign-ins", reserved=1, low=2)
         #: per hub: (key, time, JSON of the snapshot) and the one being made
         self._snapshots: dict[int, tuple[Any, float, bytes]] = {}
         self._making: dict[int, asyncio.Future[tuple[Any, bytes]]] = {}
@@ -1115,8 +1141,10 @@ class ConsoleServer:
         #: console's own scheme and port with each allowed host name, and ``public_origins``
         #: (a reverse proxy's, e.g. https://console.ship.example)
         self.public_origins = {(own[0], h, own[1]) for h in self.allowed_hosts} | set(origins)
-        # open files: enough for the connections allowed (and the node's own)
+        # open files: enough for the connections allowed (and the node's own); memory: the
+        # worker threads share two malloc arenas (each thread's own arena kept what it freed)
         raise_fd_limit(lim.connections + 256)
+        limit_arenas(2)
         trusted = list(trusted_proxies or ())
         #: refusals logged with the client address, a flood of them in one line
         self.say = Said()
@@ -1125,8 +1153,15 @@ class ConsoleServer:
         #: worker threads: operators' work, everyone else's, pictures, password checks, upkeep
         self.operator_threads = ThreadPoolExecutor(2, "coex-console-operator")
         self.other_threads = ThreadPoolExecutor(4, "coex-console-work")
+        # operators' pictures and known browsers' sign-ins at the usual priority; everyone else's
+        # heavy work at a lower one (it gives way to the loop and to the operator's work)
         self.render_threads = ThreadPoolExecutor(max(1, lim.renders), "coex-console-picture")
-        self.sign_in_threads = ThreadPoolExecutor(access.sign_ins if access else 1, "coex-console-sign-in")
+        self.other_render_threads = ThreadPoolExecutor(max(1, lim.renders), "coex-console-picture-low",
+                                                       initializer=lower_priority)
+        sign_ins = access.sign_ins if access else 1
+        self.sign_in_threads = ThreadPoolExecutor(sign_ins, "coex-console-sign-in")
+        self.other_sign_in_threads = ThreadPoolExecutor(sign_ins, "coex-console-sign-in-low",
+                                                        initializer=lower_priority)
         self.housekeeping = ThreadPoolExecutor(1, "coex-console-upkeep")
         self.app_routes = app = _App(self)
         starlette = Starlette(
@@ -1204,8 +1239,8 @@ class ConsoleServer:
         if self._thread is not None:
             self._thread.join(timeout=5)
         self.socket.close()
-        for pool in (self.operator_threads, self.other_threads, self.render_threads, self.sign_in_threads,
-                     self.housekeeping):
+        for pool in (self.operator_threads, self.other_threads, self.render_threads, self.other_render_threads,
+                     self.sign_in_threads, self.other_sign_in_threads, self.housekeeping):
             pool.shutdown(wait=False, cancel_futures=True)
 
     def __enter__(self) -> ConsoleServer:
