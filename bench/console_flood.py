@@ -73,7 +73,9 @@ def serve_main(operators: str, tls: bool) -> None:
         from coex_apps.console.server import tls_context
 
         d = Path(operators).parent
-        subprocess.run(["openssl", "req", "-x509", "-newkey", "rsa:2048", "-nodes", "-keyout", str(d / "key.pem"),
+        key = (["-newkey", "rsa:2048"] if os.environ.get("COEX_FLOOD_RSA") else
+               ["-newkey", "ec", "-pkeyopt", "ec_paramgen_curve:prime256v1"])  # (an ECDSA key: cheap handshakes)
+        subprocess.run(["openssl", "req", "-x509", *key, "-nodes", "-keyout", str(d / "key.pem"),
                         "-out", str(d / "cert.pem"), "-days", "1", "-subj", "/CN=127.0.0.1"],
                        check=True, capture_output=True, timeout=60)
         os.chmod(d / "key.pem", 0o600)
@@ -229,7 +231,10 @@ async def attack(port: int, seconds: float, kinds: set[str], tls: bool) -> dict[
                 c[str(status)] += 1
                 if status == 200:
                     while time.monotonic() < stop:
-                        data = await asyncio.wait_for(reader.read(65536), max(0.1, stop - time.monotonic()))
+                        try:
+                            data = await asyncio.wait_for(reader.read(65536), max(0.1, stop - time.monotonic()))
+                        except TimeoutError:
+                            break  # the time is up
                         if not data:
                             break
                 writer.close()

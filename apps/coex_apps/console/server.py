@@ -168,6 +168,7 @@ def _protocol(limits: Limits, doors: Doors) -> type[H11Protocol]:
             super().__init__(*args, **kw)
             self.h11 = _H11(limits.header_bytes)
             self.conn = self.h11
+            self.logger = _UVICORN  # its "Invalid HTTP request received." is said with the address
 
         def idle(self) -> bool:
             """No request being answered (between requests, or a head still arriving)."""
@@ -231,6 +232,19 @@ def _protocol(limits: Limits, doors: Doors) -> type[H11Protocol]:
             super().connection_lost(exc)
 
     return Protocol
+
+
+class _WithoutAddress(logging.Filter):
+    """uvicorn's line about a bad request names no client: the console says it with the address
+    (``send_400_response``)."""
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        return record.getMessage() != "Invalid HTTP request received."
+
+
+_UVICORN = logging.getLogger("uvicorn.error.console")
+_UVICORN.addFilter(_WithoutAddress())
+_UVICORN.setLevel(logging.INFO)  # (not TRACE: uvicorn would format a line for every connection)
 
 
 class _Tls(sslproto.SSLProtocol):
