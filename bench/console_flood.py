@@ -83,7 +83,12 @@ def serve_main(operators: str, tls: bool) -> None:
     server = serve(hub, "127.0.0.1", 0, access=Access(OperatorsFile(operators)), tls=context)
     print(server.server_address[1], os.getpid(), flush=True)
     done = threading.Event()
-    threading.Thread(target=lambda: (sys.stdin.read(), done.set()), daemon=True).start()
+
+    def until_stdin_closes() -> None:
+        sys.stdin.read()
+        done.set()
+
+    threading.Thread(target=until_stdin_closes, daemon=True).start()
     signal.signal(signal.SIGTERM, lambda *a: done.set())
     done.wait()
     server.close()

@@ -30,6 +30,9 @@ from coex_core.errors import ConfigError
 
 from .test_console_attacks import PASSWORDS, Console, _raw
 
+#: the operator's answers come within this many seconds (the availability the console promises)
+BOUND = 3.0
+
 # ------------------------------------------------------------------ helpers
 
 
@@ -225,9 +228,19 @@ def test_operators_keep_stream_places_that_viewers_cannot_take(operators: Path) 
 # ------------------------------------------------------------------ requests and pictures
 def test_a_viewers_flood_of_pictures_leaves_the_operator_served(operators: Path) -> None:
     """One viewer once filled the shared picture queue: the operator's map waited 32 s or got
-    429. Now her requests have their own places and her pictures go first."""
-    c = Console(operators, limits=Limits(renders=1, requests_per_session=40, requests_per_address=40))
-    iid = slow_pictures(c, 0.4)
+    429. Now her requests have their own places and her picture is drawn next, in the drawing
+    place kept for operators, not after the viewer's queue."""
+    c = Console(operators, limits=Limits(renders=2, requests_per_session=40, requests_per_address=40))
+    real = c.state.image_png
+    started: list[tuple[str, float]] = []  # (whose thread, when) of every picture drawn
+
+    def slow(iid: int, full: bool = False) -> bytes | None:
+        started.append((threading.current_thread().name, time.monotonic()))
+        time.sleep(0.4)
+        return real(iid, full)
+
+    c.state.image_png = slow  # type: ignore[method-assign]
+    iid = next(iter(c.state.images))
     try:
         vic, _ = c.login("vic", source="127.0.0.3")
         ana, csrf = c.login("ana")
@@ -237,16 +250,20 @@ def test_a_viewers_flood_of_pictures_leaves_the_operator_served(operators: Path)
 
         with ThreadPoolExecutor(30) as pool:
             flood = [pool.submit(viewer, k) for k in range(30)]
-            time.sleep(0.8)  # the queue is full of the viewer's pictures
-            t = time.monotonic()
+            time.sleep(0.8)  # the viewer's pictures wait in the queue
+            asked = time.monotonic()
             assert get(c, f"/image/{iid}.png?full=1", ana)[0] == 200
-            picture = time.monotonic() - t
             t = time.monotonic()
             assert get(c, "/api/state", ana)[0] == 200
             assert c.act(ana, csrf)[0] == 200
             rest = time.monotonic() - t
             codes = [f.result() for f in flood]
-        assert picture < 2.0 and rest < 1.0, (picture, rest)  # one picture drawing ahead of hers at most
+        mine = [when for name, when in started if "low" not in name]
+        theirs = [when for name, when in started if "low" in name]
+        assert len(mine) == 1 and len(theirs) >= 2, started
+        # hers started before any viewer's picture that was asked before her began after her ask
+        assert sum(asked < when < mine[0] for when in theirs) == 0, (asked, mine, theirs)
+        assert rest < BOUND, rest
         assert codes.count(429) >= 20 and set(codes) <= {200, 429}, codes  # 6 of one session at once
     finally:
         c.close()
@@ -406,7 +423,8 @@ def test_every_action_refuses_huge_but_allowed_numbers_with_a_reason() -> None:
 
     c = Console()
     try:
-        samples = {"request_region": {"level": 0, "x_min": 0, "y_min": 0, "x_max": 1, "y_max": 1},
+        samples: dict[str, dict[str, Any]] = {
+                   "request_region": {"level": 0, "x_min": 0, "y_min": 0, "x_max": 1, "y_max": 1},
                    "survey": {"kind": "goto", "x": 0, "y": 0},
                    "set_image_goal": {"image_id": 0, "kind": "fraction", "value": 50},
                    "image_by_time": {"t": 36000},

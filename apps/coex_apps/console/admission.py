@@ -360,17 +360,19 @@ class Lanes:
             return why
         return Ticket(self.counts, [(k, key) for k, key, _, _ in wanted])
 
-    def stream(self, operator: bool, address: str, session: str) -> Ticket | str:
-        """Places for one event stream: a :class:`Ticket`, or why there is none."""
+    def stream(self, operator: bool, address: str, session: str | None) -> Ticket | str:
+        """Places for one event stream: a :class:`Ticket`, or why there is none (``session``
+        None: a console without sign-in, where everyone is the operator)."""
         lim = self.limits
         others = max(0, lim.streams - lim.operator_streams)
         wanted: list[tuple[str, str, int, str]] = [
             ("streams", "all", lim.streams if operator else others,
              f"{self.counts.get('streams', 'all')} event streams are open already (at most "
              f"{lim.streams if operator else others}"
-             f"{'' if operator else f', {lim.operator_streams} more kept for operators'})"),
-            ("stream-session", session, lim.streams_per_session,
-             f"this session has {lim.streams_per_session} event streams open already (close a tab)")]
+             f"{'' if operator else f', {lim.operator_streams} more kept for operators'})")]
+        if session:
+            wanted.append(("stream-session", session, lim.streams_per_session,
+                           f"this session has {lim.streams_per_session} event streams open already (close a tab)"))
         if not operator:
             wanted.append(("stream-addr", address, lim.streams_per_address,
                            f"{lim.streams_per_address} event streams are open from this address already"))

@@ -51,6 +51,7 @@ import time
 from asyncio import sslproto
 from collections.abc import AsyncIterator, Callable
 from concurrent.futures import ThreadPoolExecutor
+from http import HTTPStatus
 from importlib import resources
 from typing import Any, cast
 from urllib.parse import parse_qs, urlsplit
@@ -204,11 +205,11 @@ def _protocol(limits: Limits, doors: Doors) -> type[H11Protocol]:
             address = self.client[0] if self.client else "?"
             doors.say(address, f"console refused a request from {address}: HTTP {status}, {reason}",
                       kind=f"HTTP {status}")
-            body = reason.encode()
+            body = reason[:300].encode("utf-8", "replace")
             try:
-                out = self.conn.send(h11.Response(status_code=status, reason=b"", headers=[
-                    (b"content-type", b"text/plain; charset=utf-8"), (b"connection", b"close"),
-                    (b"content-length", str(len(body)).encode())]))
+                out = self.conn.send(h11.Response(status_code=status, reason=HTTPStatus(status).phrase.encode(), headers=[
+                    (b"content-type", b"text/plain; charset=utf-8"), (b"x-content-type-options", b"nosniff"),
+                    (b"connection", b"close"), (b"content-length", str(len(body)).encode())]))
                 out += self.conn.send(h11.Data(data=body)) or b""
                 out += self.conn.send(h11.EndOfMessage()) or b""
                 self.transport.write(out)
@@ -470,15 +471,17 @@ class _Admission:
         client = str((scope.get("client") or ("?",))[0])
         operator, session = server.classify(scope)
         scope["coex.operator"] = operator
+        scope["coex.session"] = session
         scope["coex.key"] = session or client
         peer = scope.get("coex.peer")
-        # (without sign-in everyone is the operator: no connection is kept for being one)
-        if operator and server.access is not None and isinstance(peer, tuple | list) and len(peer) == 2:
+        # a connection that carried an operator's session is kept (without sign-in everyone is
+        # the operator: none is kept for it; a known browser's sign-in has no session yet)
+        if operator and session and isinstance(peer, tuple | list) and len(peer) == 2:
             server.doors.mark_operator(str(peer[0]), int(peer[1]))
         if scope.get("path") == "/api/events":
             await self.app(scope, receive, send)
             return
-        ticket = server.lanes.request(operator, client, session if server.access is not None else client)
+        ticket = server.lanes.request(operator, client, session)
         if isinstance(ticket, str):
             scope["coex.logged"] = True
             server.say(client, f"console answered 503 to {scope.get('method')} {str(scope.get('path'))[:100]} "
@@ -916,7 +919,8 @@ class _App:
         hub, access, sid = self.view(request), self.access, request.cookies.get(COOKIE)
         # the stream's places are taken here, before anything waits: streams opened together
         # are counted one by one (per session, per address, in all; operators' own places)
-        ticket = self.server.lanes.stream(self.operator(request), self.client(request), self.key(request))
+        ticket = self.server.lanes.stream(self.operator(request), self.client(request),
+                                          request.scope.get("coex.session"))
         if isinstance(ticket, str):
             raise _Refused(429, ticket)
         try:
