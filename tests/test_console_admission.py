@@ -269,7 +269,9 @@ def test_a_viewers_flood_of_pictures_leaves_the_operator_served(operators: Path)
         c.close()
 
 
-def test_requests_beyond_the_lanes_are_answered_503_with_the_reason(operators: Path) -> None:
+def test_requests_beyond_the_lanes_are_answered_503_with_the_reason(operators: Path,
+                                                                   caplog: pytest.LogCaptureFixture) -> None:
+    caplog.set_level(logging.INFO)
     c = Console(operators, limits=Limits(requests=3, requests_per_address=3, requests_per_session=3,
                                          renders_per_client=20, render_queue=20))
     iid = slow_pictures(c, 0.6)
@@ -280,6 +282,7 @@ def test_requests_beyond_the_lanes_are_answered_503_with_the_reason(operators: P
         codes = [code for code, _ in got]
         assert codes.count(200) >= 3 and codes.count(503) >= 3, codes
         assert any(b"requests" in body and b"being answered" in body for code, body in got if code == 503)
+        assert "console answered 503 to GET /image/" in caplog.text and "from 127.0.0.3" in caplog.text
         ana, _ = c.login("ana")
         assert get(c, "/api/state", ana)[0] == 200
     finally:
