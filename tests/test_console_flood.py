@@ -34,7 +34,7 @@ def test_the_operator_is_served_within_3_s_under_every_flood_at_once(tmp_path: P
     flood = _bench()
     result = flood.run_flood(seconds=14.0, every=2.0, workdir=tmp_path, settle=15.0)
     rounds = result["rounds"]
-    assert len(rounds) >= 4, result
+    assert len(rounds) >= 3, result
     for what, want in (("sign_in", 303), ("state", 200), ("action", 200)):
         codes, slowest = flood.worst(rounds, what)
         assert codes == [want] * len(rounds) and slowest <= BOUND, (what, codes, slowest, result)
