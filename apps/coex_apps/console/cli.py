@@ -74,17 +74,24 @@ def console_access(host: str, operators: str | Path | None, insecure_open: bool,
     :class:`ConfigError` for a console that would be open to the network without sign-in."""
     import ipaddress
 
-    from .access import Access, OperatorsFile
+    from .access import Access, OperatorsFile, secret_file_problem
     from .server import tls_context
 
     if (tls_cert is None) != (tls_key is None):
         raise ConfigError("give both --tls-cert and --tls-key")
+    if tls_key:  # a secret other users may read is refused (docs/console.md)
+        problem = secret_file_problem(tls_key, "TLS key")
+        if problem:
+            raise ConfigError(problem)
     tls = tls_context(tls_cert, tls_key) if tls_cert and tls_key else None
     if operators is not None:
         path = Path(operators)
         if not path.exists():
             raise ConfigError(f"no operators file {path} (make one: coex operators add NAME --role operator "
                               f"--file {path})")
+        problem = secret_file_problem(path, "operators file")
+        if problem:
+            raise ConfigError(problem)
         return Access(OperatorsFile(path), session_hours=session_hours, idle_minutes=idle_minutes), tls
     try:
         loopback = host == "localhost" or ipaddress.ip_address(host).is_loopback
@@ -158,8 +165,12 @@ def register(subparsers: Any) -> None:
                         "address (a ship's DNS name, a reverse proxy's); other Host headers are refused "
                         "(DNS rebinding). Repeat it for several")
     p.add_argument("--trusted-proxy", action="append", default=[], metavar="ADDRESS",
-                   help="a reverse proxy whose X-Forwarded-For names the client (sign-in limits go by "
-                        "client address); repeat it for several")
+                   help="a reverse proxy whose X-Forwarded-For names the client (limits go by client "
+                        "address) and whose X-Forwarded-Proto says https (Secure cookies); repeat it for several")
+    p.add_argument("--public-origin", action="append", default=[], metavar="URL",
+                   help="an origin the console's page is reached at besides its own address and names, "
+                        "e.g. a reverse proxy's https://console.ship.example (scheme, host and port are "
+                        "compared with a request's Origin); repeat it for several")
     p.add_argument("--command-key-file", metavar="PATH",
                    help="shared command key (hex, or at least 16 raw bytes): every command is "
                         "signed (spec section 10); the vehicle must have the same key")
@@ -447,6 +458,7 @@ def build_topside(transport_uri: str | Sequence[str], host: str = "127.0.0.1", p
                   tls_cert: str | None = None, tls_key: str | None = None,
                   session_hours: float = 12.0, idle_minutes: float = 30.0,
                   allowed_hosts: Sequence[str] = (), trusted_proxies: Sequence[str] = (),
+                  public_origins: Sequence[str] = (),
                   receiver_options: dict[str, dict[str, Any]] | None = None,
                   link_options: Sequence[dict[str, Any]] | None = None,
                   required: Sequence[bool] | None = None,
@@ -473,7 +485,8 @@ def build_topside(transport_uri: str | Sequence[str], host: str = "127.0.0.1", p
     sign in: operators command, viewers watch. A console on a non-loopback address refuses to
     start without one, unless ``insecure_open`` (logged loudly). ``tls_cert`` and ``tls_key``
     serve HTTPS; ``allowed_hosts`` are names the console answers to besides the loopback ones
-    and ``host``; ``trusted_proxies`` reverse proxies whose ``X-Forwarded-For`` is believed.
+    and ``host``; ``trusted_proxies`` reverse proxies whose ``X-Forwarded-For`` is believed;
+    ``public_origins`` origins the page is reached at besides the console's own (a proxy's).
     ``receiver_options`` gives a modality's receiver its options by name;
     ``link_options`` (one mapping per transport) sets a modem's ``rate``, ``frame_bytes``,
     ``spare``, ``packet_seconds`` (the keys of a file's ``[[modems]]``) link by link. Each
@@ -493,7 +506,8 @@ def build_topside(transport_uri: str | Sequence[str], host: str = "127.0.0.1", p
     return topside_app(cfg, host, port, clock=clock, transports=transports, stream_names=stream_names,
                        missing=missing, operators=operators, insecure_open=insecure_open, tls_cert=tls_cert,
                        tls_key=tls_key, session_hours=session_hours, idle_minutes=idle_minutes,
-                       allowed_hosts=allowed_hosts, trusted_proxies=trusted_proxies)
+                       allowed_hosts=allowed_hosts, trusted_proxies=trusted_proxies,
+                       public_origins=public_origins)
 
 
 def topside_app(cfg: DeployConfig, host: str = "127.0.0.1", port: int = 8080, *,
@@ -502,7 +516,8 @@ def topside_app(cfg: DeployConfig, host: str = "127.0.0.1", port: int = 8080, *,
                 operators: str | Path | None = None, insecure_open: bool = False,
                 tls_cert: str | None = None, tls_key: str | None = None,
                 session_hours: float = 12.0, idle_minutes: float = 30.0,
-                allowed_hosts: Sequence[str] = (), trusted_proxies: Sequence[str] = ()) -> TopsideApp:
+                allowed_hosts: Sequence[str] = (), trusted_proxies: Sequence[str] = (),
+                public_origins: Sequence[str] = ()) -> TopsideApp:
     """The topside a checked :class:`~coex_apps.vehicle.config.DeployConfig` describes (from
     a file, :func:`topside_from_config`, or the options, :func:`build_topside`): its transports
     (one per modem, or ``transports``), the node of ``build_node(cfg, "topside", ...)``, the
@@ -623,7 +638,7 @@ def topside_app(cfg: DeployConfig, host: str = "127.0.0.1", port: int = 8080, *,
             else:
                 nstore.extra = lambda: {"state": hub.state}
         server = serve(hub, host, port, access=access, tls=tls, allowed_hosts=list(allowed_hosts),
-                       trusted_proxies=list(trusted_proxies))
+                       trusted_proxies=list(trusted_proxies), public_origins=list(public_origins))
     except BaseException:
         for tr in links.values():
             tr.close()
@@ -674,7 +689,8 @@ def topside_from_config(path: str, clock: Callable[[], float] = time.time, *,
         operators=rel("operators"), insecure_open=bool(c.get("insecure_open", False)), tls_cert=rel("tls_cert"),
         tls_key=rel("tls_key"), session_hours=float(c.get("session_hours", 12.0)),
         idle_minutes=float(c.get("idle_minutes", 30.0)), allowed_hosts=[str(h) for h in c.get("allowed_hosts", [])],
-        trusted_proxies=[str(h) for h in c.get("trusted_proxies", [])])
+        trusted_proxies=[str(h) for h in c.get("trusted_proxies", [])],
+        public_origins=[str(h) for h in c.get("public_origins", [])])
 
 
 def run(args: argparse.Namespace) -> int:
@@ -715,7 +731,7 @@ def run(args: argparse.Namespace) -> int:
             cfg, host, port, stream_names=args.stream_names, missing=missing, operators=args.operators,
             insecure_open=args.insecure_open, tls_cert=args.tls_cert, tls_key=args.tls_key,
             session_hours=args.session_hours, idle_minutes=args.idle_minutes, allowed_hosts=args.allowed_host,
-            trusted_proxies=args.trusted_proxy)
+            trusted_proxies=args.trusted_proxy, public_origins=args.public_origin)
     except (CoexError, OSError) as exc:
         print(f"coex topside: {exc}", file=sys.stderr)
         return 2
@@ -748,22 +764,25 @@ def register_operators(subparsers: Any) -> None:
     """``coex operators add|role|remove|list``: the console's operators file."""
     p = subparsers.add_parser("operators", help="manage who may sign in to the console (operators "
                                                 "command, viewers watch)")
-    p.add_argument("--file", default="coex-operators.json", help="the operators file (default "
-                   "coex-operators.json; created with mode 0600)")
+    file_help = "the operators file (default coex-operators.json; created with mode 0600)"
+    p.add_argument("--file", default="coex-operators.json", help=file_help)
+    # --file also after the action (coex operators add ana --role operator --file ops.json)
+    here = argparse.ArgumentParser(add_help=False)
+    here.add_argument("--file", default=argparse.SUPPRESS, help=file_help)
     sub = p.add_subparsers(dest="op", metavar="ACTION", required=True)
-    a = sub.add_parser("add", help="add or replace an operator; prints a new random token unless "
-                                   "--password-stdin")
+    a = sub.add_parser("add", parents=[here], help="add or replace an operator; prints a new random token "
+                                                   "unless --password-stdin")
     a.add_argument("name")
     a.add_argument("--role", choices=["operator", "viewer"], required=True)
     a.add_argument("--password-stdin", action="store_true", help="read a password (12+ characters, "
                    "not a common one) from standard input instead of making a token")
-    ro = sub.add_parser("role", help="change someone's role, keeping their password (a running console "
+    ro = sub.add_parser("role", parents=[here], help="change someone's role, keeping their password (a running console "
                                      "applies it at once)")
     ro.add_argument("name")
     ro.add_argument("--role", choices=["operator", "viewer"], required=True)
-    r = sub.add_parser("remove", help="remove an operator (a running console ends their sessions at once)")
+    r = sub.add_parser("remove", parents=[here], help="remove an operator (a running console ends their sessions at once)")
     r.add_argument("name")
-    sub.add_parser("list", help="names and roles")
+    sub.add_parser("list", parents=[here], help="names and roles")
     p.set_defaults(func=_operators)
 
 

@@ -505,7 +505,11 @@ def _key(p: Problems, cfg: DeployConfig, keyfile: Any, key: str) -> tuple[bytes 
 
     kp = cfg.base_dir / str(keyfile)
     try:
-        return parse_key(kp.read_bytes()), kp
+        key_bytes = parse_key(kp.read_bytes())
+        if os.name == "posix" and kp.stat().st_mode & 0o077:  # warned, not refused: git keeps no modes
+            p.warn(key, f"{kp} can be read by other users (mode {kp.stat().st_mode & 0o777:04o}): "
+                        f"chmod 600 {kp}")
+        return key_bytes, kp
     except OSError as exc:
         p.add(key, f"cannot read {kp}: {exc.strerror or exc}")
     except (CoexError, ValueError) as exc:
@@ -715,7 +719,7 @@ def _usbl(raw: Mapping[str, Any], p: Problems, cfg: DeployConfig) -> None:
 def _console(raw: Mapping[str, Any], p: Problems, cfg: DeployConfig) -> None:
     c = p.table(raw.get("console"), "console")
     p.unknown(c, {"http", "operators", "insecure_open", "tls_cert", "tls_key", "session_hours",
-                  "idle_minutes", "allowed_hosts", "trusted_proxies", "stream_names"}, "console")
+                  "idle_minutes", "allowed_hosts", "trusted_proxies", "public_origins", "stream_names"}, "console")
     http = c.get("http", "127.0.0.1:8080")
     _host, sep, port = str(http).rpartition(":")
     if not sep or not port.isdigit() or not 0 <= int(port) <= 65535:
@@ -726,12 +730,25 @@ def _console(raw: Mapping[str, Any], p: Problems, cfg: DeployConfig) -> None:
                 p.add(f"console.{k}", f"a file name, got {c[k]!r}")
             elif not (cfg.base_dir / c[k]).exists():
                 p.add(f"console.{k}", f"no file {cfg.base_dir / c[k]}")
+            elif k != "tls_cert":  # secrets other users may read are refused (docs/console.md)
+                from coex_apps.console.access import secret_file_problem
+
+                problem = secret_file_problem(cfg.base_dir / c[k], "operators file" if k == "operators" else "TLS key")
+                if problem:
+                    p.add(f"console.{k}", problem)
     if not isinstance(c.get("insecure_open", False), bool):
         p.add("console.insecure_open", "true or false")
     p.number(c, "session_hours", "console", 12.0, lo=0.01, hi=24 * 365)
     p.number(c, "idle_minutes", "console", 30.0, lo=0.1, hi=24 * 60 * 365)
-    for k in ("allowed_hosts", "trusted_proxies"):
+    for k in ("allowed_hosts", "trusted_proxies", "public_origins"):
         v = c.get(k, [])
         if not isinstance(v, list) or not all(isinstance(h, str) and h for h in v):
             p.add(f"console.{k}", f"a list of names or addresses, got {v!r}")
+        elif k == "public_origins":
+            from urllib.parse import urlsplit
+
+            for h in v:
+                parts = urlsplit(h)
+                if parts.scheme not in ("http", "https") or not parts.hostname or parts.path not in ("", "/"):
+                    p.add("console.public_origins", f"an origin is scheme://host[:port] (http or https), got {h!r}")
     cfg.console = c
