@@ -324,7 +324,7 @@ def test_the_facade_offers_what_integrators_and_plugin_authors_need() -> None:
     assert names <= set(coex.__all__)
     assert all(getattr(coex, n) is not None for n in coex.__all__)
     assert coex.Runner is Runner and coex.ModalitySender is ModalitySender and coex.Storage is Storage
-    from coex.messages import Opaque  # the core's modules under the facade's name
+    from coex.messages import Opaque  # the facade's modules (files re-exporting the core's names)
     from coex.tracker import State
 
     assert Opaque is coex.messages.Opaque and State is coex.tracker.State
