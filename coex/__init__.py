@@ -67,7 +67,7 @@ from coex_core.channel import (
     Transmission,
 )
 from coex_core.config import Problem, Problems, merged_config
-from coex_core.detect import Detector, Finding
+from coex_core.detect import Detector, Finding, ImageFrame, ImageFrames, MapView
 from coex_core.errors import (
     AuthenticationError,
     CoexError,
@@ -134,6 +134,8 @@ __all__ = [
     "GilbertElliott",
     "Health",
     "Image",
+    "ImageFrame",
+    "ImageFrames",
     "Input",
     "InputContext",
     "Item",
@@ -143,6 +145,7 @@ __all__ = [
     "LinkStats",
     "LoopbackLink",
     "LossModel",
+    "MapView",
     "MemoryStorage",
     "Message",
     "Modality",

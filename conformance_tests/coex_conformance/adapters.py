@@ -225,7 +225,7 @@ class InputTests:
                     times = np.asarray(item.times, dtype=float)
                     assert times.shape == np.shape(item.values) and bool(np.isfinite(times).all()), (
                         "rule: every sample has its time (POSIX seconds, finite), one per value")
-                else:
+                elif isinstance(item, Points | Image | Nav):
                     assert isinstance(item.time, float) and math.isfinite(item.time), (
                         "rule: every item has its time (POSIX seconds, finite)")
         finally:

@@ -111,7 +111,7 @@ class ModalityTests:
         once, without raising, and the sender keeps working."""
         sender = modality.sender(sender_config)
         for hook in ("acked", "lost", "spare", "spare_bytes", "ready_bytes", "pending_bytes", "focus", "throughput",
-                     "bind_peers", "peer"):
+                     "bind_peers", "peer", "detector_view"):
             assert callable(getattr(sender, hook, None)), (
                 f"rule: the channel calls the sender's {hook}(); an attribute of that name hides it")
         now = ingest_all(sender, sample_inputs)

@@ -119,10 +119,10 @@ class NodeRun:
                 return out
             return wrapped
 
-        receiver.receive = checked_receive  # type: ignore[method-assign]
-        sender.handle = checked_handle  # type: ignore[method-assign]
-        sender.fill = counted(fill)  # type: ignore[method-assign]
-        sender.spare = counted(spare)  # type: ignore[method-assign]
+        receiver.receive = checked_receive  # type: ignore[method-assign,assignment]
+        sender.handle = checked_handle  # type: ignore[method-assign,assignment]
+        sender.fill = counted(fill)  # type: ignore[method-assign,assignment]
+        sender.spare = counted(spare)  # type: ignore[method-assign,assignment]
 
     @property
     def now(self) -> float:
