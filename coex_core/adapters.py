@@ -16,7 +16,7 @@ node through the runner, which journals them, so a restart loses nothing.
 from __future__ import annotations
 
 import abc
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from typing import Any, ClassVar
 
@@ -90,12 +90,13 @@ Item = Points | Image | Samples | Nav
 @dataclass(frozen=True)
 class InputContext:
     """What every adapter may need from the daemon: the local origin (for lat/lon -> x/y),
-    the directory relative paths are taken from, and the clock the daemon runs on."""
+    the directory relative paths are taken from, and the clock the daemon runs on (a function
+    giving its time now, POSIX seconds, as ``time.time``; None: none given)."""
 
     origin_lat: float = 0.0
     origin_lon: float = 0.0
     base_dir: str = "."
-    clock: Any = None
+    clock: Callable[[], float] | None = None
 
     def local(self, lat: float, lon: float) -> tuple[float, float]:
         """Metres east/north of the origin (equirectangular; good to a few cm over a few km)."""

@@ -107,9 +107,9 @@ def test_the_relief_detector_finds_the_cars_in_the_vehicles_map_once_the_swath_h
         nxt = t if nxt is None else nxt
         if t >= nxt:
             nxt += 10.0
-            found += [(float(t), f) for f in det.detect(sender, float(t))]
+            found += [(float(t), f) for f in det.detect(sender.detector_view(), float(t))]
     end = float(survey.times[-1])
-    found += [(end + 30.0, f) for f in det.detect(sender, end + 30.0)]
+    found += [(end + 30.0, f) for f in det.detect(sender.detector_view(), end + 30.0)]
     for car in floor.targets:
         near = [(t, f) for t, f in found if math.hypot(f.x - car.x, f.y - car.y) <= 3.5]
         assert near, f"the car at ({car.x:.0f}, {car.y:.0f}) was never found"
@@ -119,7 +119,7 @@ def test_the_relief_detector_finds_the_cars_in_the_vehicles_map_once_the_swath_h
     for _, f in found:
         if all(math.hypot(f.x - c.x, f.y - c.y) > 3.5 for c in floor.targets):
             assert f.score < 0.2, f"a false finding that scores like a car: {f}"
-    assert det.detect(sender, end + 60.0) == []  # nothing changed since: nothing looked at
+    assert det.detect(sender.detector_view(), end + 60.0) == []  # nothing changed since: nothing looked at
 
 
 def _sender_with_map() -> tuple[Seafloor, BathymetrySender, float]:
@@ -190,22 +190,98 @@ class FakeMapSender(ModalitySender):
         self.focused.append((x, y, radius))
         return 4
 
+    def detector_view(self) -> FakeMapSender:
+        return self
 
-class Scripted(Detector):
+
+class Scripted(Detector[FakeMapSender]):
     """Finds what the test tells it to."""
 
     name = "scripted"
     modality = "fakemap"
+    view = FakeMapSender
     source = DetectionSource.MAP
     neighbourhood = 10.0
 
     def __init__(self, script: list[list[Finding]]) -> None:
         self.script = script
         self.calls = 0
+        self.seen: list[object] = []
 
-    def detect(self, data: ModalitySender, now: float) -> list[Finding]:
+    def detect(self, data: FakeMapSender, now: float) -> list[Finding]:
         self.calls += 1
+        self.seen.append(data)
         return self.script.pop(0) if self.script else []
+
+
+class Silent(FakeMapSender):
+    """A sender of the same modality that offers detectors nothing."""
+
+    def detector_view(self) -> None:
+        return None
+
+
+def test_a_detector_is_handed_only_a_view_of_the_type_it_declares(caplog: pytest.LogCaptureFixture) -> None:
+    """The detections sender gives a detector the view its modality's sender offers when it is
+    of the detector's declared ``view`` type; a sender offering none (or another type) is
+    told in the log once, and the detector is not called."""
+    fake = FakeMapSender()
+    det = Scripted([[Finding(10.0, 10.0, 0.5, 100.0)]])
+    sender = DetectionsSender({"detectors": [det], "interval": 10.0})
+    sender.bind_peers(lambda name: fake if name == "fakemap" else None)
+    assert sender.run(100.0) == 1 and det.seen == [fake]
+    other = Scripted([[Finding(10.0, 10.0, 0.5, 100.0)]])
+    quiet = DetectionsSender({"detectors": [other], "interval": 10.0})
+    quiet.bind_peers(lambda name: Silent() if name == "fakemap" else None)
+    with caplog.at_level("WARNING"):
+        assert quiet.run(100.0) == 0 and quiet.run(110.0) == 0
+    assert other.calls == 0
+    told = [r.getMessage() for r in caplog.records if "scripted" in r.getMessage()]
+    assert told == ["detector scripted takes a FakeMapSender of modality 'fakemap', whose sender offers none"]
+
+
+def test_a_detector_declares_the_modality_and_the_view_it_takes() -> None:
+    """A detector class that implements ``detect`` without ``view`` (or ``modality``), or with a
+    view that cannot be checked, is refused when it is defined; an abstract one is not."""
+    from typing import Protocol
+
+    with pytest.raises(TypeError, match="declares no view"):
+        class NoView(Detector[Any]):
+            modality = "bathymetry"
+
+            def detect(self, data: Any, now: float) -> list[Finding]:
+                return []
+
+    class Unchecked(Protocol):
+        def frames(self) -> list[Any]: ...
+
+    with pytest.raises(TypeError, match="cannot be checked"):
+        class Bad(Detector[Any]):
+            modality, view = "imagery", Unchecked
+
+            def detect(self, data: Any, now: float) -> list[Finding]:
+                return []
+
+    class Base(Detector[Any]):  # abstract: its subclasses declare them
+        name = "base"
+
+    assert Base.__abstractmethods__ == frozenset({"detect"})
+
+
+def test_the_built_in_senders_offer_the_views_their_detectors_declare() -> None:
+    """The bathymetry sender's view is its map (a ``MapView``, what the relief detector takes);
+    the imagery sender's its frames (``ImageFrames``, what the sample's darkspot takes)."""
+    from coex_core.detect import ImageFrames, MapView
+
+    bathy = BathymetrySender({"levels": 2})
+    assert isinstance(bathy.detector_view(), MapView) and bathy.detector_view() is bathy.map
+    assert ReliefDetector.view is MapView and ReliefDetector.modality == "bathymetry"
+    pytest.importorskip("glymur")
+    from coex_plugins.imagery import ImageryModality
+
+    frames = ImageryModality().sender(None)
+    assert isinstance(frames.detector_view(), ImageFrames)
+    assert not isinstance(bathy.detector_view(), ImageFrames)
 
 
 def test_the_detections_sender_sends_the_best_first_once_again_when_lost_or_changed() -> None:

@@ -3,7 +3,7 @@
 The vectors are JSON files (``spec/vectors/*.json``, shipped in this package as ``vectors/``):
 
 * one file per message type: ``{"type": NAME, "type_id": N, "vectors": [{"name", "fields", "hex"}]}``
-  (``fields`` as :func:`coex_core.jsonfmt.to_json` writes them, minus ``type``);
+  (``fields`` as :func:`coex.to_json` writes them, minus ``type``);
 * ``frames.json``: ``{"vectors": [{"name", "header", "messages", "budget", "hex"}]}``;
 * ``Opaque.json``: third-party messages in the same form, ``type_id`` null (the fields carry it);
 * ``invalid.json``: ``{"vectors": [{"name", "scope", "hex", "error", "reason"}]}``: bytes every
@@ -23,9 +23,7 @@ from typing import Any
 
 import pytest
 
-from coex_core import jsonfmt, wire
-from coex_core.errors import DecodeError
-from coex_core.messages import FrameHeader
+from coex import DecodeError, FrameHeader, from_json, to_json, wire
 
 
 def vectors_dir() -> Path:
@@ -67,12 +65,12 @@ class WireVectorTests:
     @pytest.fixture
     def encode_message(self) -> Callable[[dict[str, Any]], bytes]:
         """Optional: encode a JSON message (``{"type": ..., fields}``) to bytes."""
-        return lambda obj: wire.encode(jsonfmt.from_json(obj))
+        return lambda obj: wire.encode(from_json(obj))
 
     @pytest.fixture
     def decode_message(self) -> Callable[[bytes], dict[str, Any]]:
         """Optional: decode bytes to a JSON message; must raise for invalid input."""
-        return lambda data: jsonfmt.to_json(wire.decode(data))
+        return lambda data: to_json(wire.decode(data))
 
     @pytest.fixture
     def decode_error(self) -> type[BaseException]:
@@ -97,7 +95,7 @@ class WireVectorTests:
     def test_frames(self, vector: dict[str, Any]) -> None:
         """A frame vector's header and messages pack to its bytes, and unpack back."""
         header = FrameHeader(**vector["header"])
-        messages = [jsonfmt.from_json(m) for m in vector["messages"]]
+        messages = [from_json(m) for m in vector["messages"]]
         assert wire.pack(messages, vector["budget"], header).hex() == vector["hex"], (
             f"rule: a frame packs to the vector's bytes ({vector['name']})")
         frame = wire.unpack_frame(bytes.fromhex(vector["hex"]))

@@ -227,6 +227,10 @@ class BathymetrySender(ModalitySender):
             return pointcloud2_xyz(data)
         return data
 
+    def detector_view(self) -> QuadtreeMap:
+        """Detectors look at the vehicle's full-resolution map (a ``coex.MapView``)."""
+        return self.map
+
     def attach_storage(self, storage: Storage) -> None:
         """Spilled map tiles go to ``storage`` (the node's store)."""
         self.map.attach_storage(storage)

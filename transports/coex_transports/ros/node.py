@@ -157,7 +157,7 @@ class RosNode:
         #: master outages seen, registrations made again after a master restart
         self.counts = {"outages": 0, "reregistered": 0}
         self._lock = threading.Lock()
-        self._todo: list[Any] = []
+        self._todo: list[_Sub | RosPublisher] = []
         self._wake = threading.Event()
         self._stop = threading.Event()
         self._pid: int | None = None
@@ -239,7 +239,7 @@ class RosNode:
         return {"state": self.state, "master": self.master, "node": self.name, **self.counts}
 
     # ---------------------------------------------------------------- the node's thread
-    def _ask(self, item: Any) -> None:
+    def _ask(self, item: _Sub | RosPublisher) -> None:
         with self._lock:
             self._todo.append(item)
         self._wake.set()
@@ -319,8 +319,7 @@ class RosNode:
                         item._made(rospy.Publisher(item.topic, self.message_class(item.msgtype),
                                                    latch=item.latch, queue_size=item.queue))
             except Exception as exc:  # one bad topic never stops the others
-                self._problem(f"make {getattr(item, 'topic', item)}",
-                              f"cannot subscribe or publish {getattr(item, 'topic', item)}: {exc}")
+                self._problem(f"make {item.topic}", f"cannot subscribe or publish {item.topic}: {exc}")
 
     def _proxy(self, uri: str) -> Any:
         return xmlrpc.client.ServerProxy(uri, transport=_TimeoutTransport(2.0), allow_none=True)
