@@ -5,29 +5,39 @@ from __future__ import annotations
 import heapq
 import logging
 import math
-import zlib
 from collections.abc import Iterable, Mapping
-from typing import Any
+from typing import Any, TypeAlias
 
 import numpy as np
+import numpy.typing as npt
 
 from coex import (
     ConfigError,
     ModalitySender,
     RequestRejected,
     Storage,
+    SubgridParent,
+    encode_predicted,
     encode_subgrid,
     merged_config,
     persistent,
+    region_digest,
     subgrid_bits,
     to_stamp,
     unwrap,
     wire,
 )
-from coex.messages import MapMetadata, MapRoiReply, MapRoiRequest, Message, Subgrid
+from coex.messages import (
+    MapMetadata,
+    MapRoiReply,
+    MapRoiRequest,
+    Message,
+    SubgridMessage,
+)
 from coex.wire import SUBGRID_RESOLUTIONS as RESOLUTIONS
 from coex.wire import SUBGRID_VERTICAL_RESOLUTIONS as VERTICAL_RESOLUTIONS
 
+from .context import ContextBook, Digests, content_id
 from .points import pointcloud2_xyz
 from .quadtree import InputError, QuadtreeMap, _grow
 
@@ -36,6 +46,9 @@ __all__ = ["BathymetrySender", "SENDER_DEFAULTS"]
 log = logging.getLogger(__name__)
 
 Key = tuple[int, int, int]  # (level, ix, iy)
+#: a built subgrid: tile version, message, size, the parent digest it was built knowing (0:
+#: none), its version (content digest), its quarters' digests (a parent level)
+Built: TypeAlias = tuple[int, SubgridMessage, int, int, int, Digests | None]
 
 #: Sender configuration keys and defaults (the NUI 2022 values where they exist).
 SENDER_DEFAULTS: dict[str, Any] = {
@@ -60,8 +73,9 @@ SENDER_DEFAULTS: dict[str, Any] = {
     "max_standing": 32,
 }
 
-#: Smallest possible subgrid message (an all-equal block): stop filling below this.
-MIN_SUBGRID_BYTES = 12
+#: Smallest possible subgrid message (a predicted block equal to its prediction): stop filling
+#: below this.
+MIN_SUBGRID_BYTES = 10
 #: a provisional subgrid (spare work) has been quiet for at least this long (s)
 PROVISIONAL_QUIET = 3.0
 #: After this many subgrids that did not fit, ``fill`` stops looking for smaller ones (keeps it cheap).
@@ -77,14 +91,6 @@ MAX_REGIONS_REMEMBERED = 1024
 FOCUS_EXPIRY = 1800.0
 
 
-def _fingerprint(sg: Subgrid) -> int:
-    """A digest of a subgrid's wire bytes, the same in every process: it is saved with the
-    sender's state (Python's ``hash`` of a message differs between processes, through the
-    enum's name and ``None``, so a restarted vehicle took a confirmed subgrid's loss for a
-    real one and sent it again)."""
-    return zlib.crc32(wire.encode(sg))
-
-
 def _upgrade_sender(fields: dict[str, Any], saved: int) -> dict[str, Any]:
     """Version 1 (0.1.0 and early 0.2 work) was saved before detections (no focused subgrids,
     no low-link flag) or before spare work (no re-send list, confirmations or standing region
@@ -98,10 +104,15 @@ def _upgrade_sender(fields: dict[str, Any], saved: int) -> dict[str, Any]:
         out.update(_resend={}, _confirmed={}, _standing={}, _standing_checked=-math.inf)
         out.setdefault("standing_expiry", float(SENDER_DEFAULTS["standing_expiry"]))
         out.setdefault("max_standing", int(SENDER_DEFAULTS["max_standing"]))
+    if saved < 3:
+        # version 3 predicts subgrids from what topside holds (ContextBook, built in
+        # _after_restore) and confirms versions by their cells, not their bytes: the cache and
+        # the confirmations of version 2 are dropped (at worst a confirmed subgrid goes again)
+        out.update(_cache={}, _confirmed={}, _book=None)
     return out
 
 
-@persistent("bathymetry.Sender", version=2, upgrade=_upgrade_sender)
+@persistent("bathymetry.Sender", version=3, upgrade=_upgrade_sender)
 class BathymetrySender(ModalitySender):
     """Ingests soundings into a :class:`QuadtreeMap` and answers ``fill(max_bytes, now)``.
 
@@ -156,7 +167,7 @@ class BathymetrySender(ModalitySender):
         self._meta_due = False
         self._had_background = False
         self._pending = 0
-        self._cache: dict[Key, tuple[int, Subgrid, int]] = {}
+        self._cache: dict[Key, Built] = {}
         #: Subgrids whose elevations do not fit the wire (|z| >= 2**19 vertical units): skipped.
         self.unsendable: set[Key] = set()
         self._init_spare()
@@ -170,8 +181,8 @@ class BathymetrySender(ModalitySender):
         self.focus_bytes = 0
         #: subgrids whose last sent version was lost: spare work (key -> when it was lost)
         self._resend: dict[Key, float] = {}
-        #: key -> CRC of the newest version a frame ack confirmed (its other copies' losses
-        #: do not make it spare work again)
+        #: key -> the newest version (content digest) a frame ack confirmed (its other copies'
+        #: losses do not make it spare work again)
         self._confirmed: dict[Key, int] = {}
         #: standing region requests: region -> (subgrids awaiting survey, expiry time)
         self._standing: dict[tuple[int, int, int, int, int, bool], tuple[set[Key], float]] = {}
@@ -183,6 +194,8 @@ class BathymetrySender(ModalitySender):
         cap = 4
         self._sent_t = [np.full((cap, p, p), -np.inf) for p in self._per_tile()]
         self._sent_when = [np.full((cap, p, p), np.nan) for p in self._per_tile()]
+        #: what topside is known to hold of the parent levels (subgrids predicted from them)
+        self._book: ContextBook | None = ContextBook(self._per_tile(), cap)
         #: tiles that may hold subgrids changed since they were sent (the sender looks only there)
         self._reset_index()
         #: what the map reported when it began dropping soundings (logged once)
@@ -192,6 +205,8 @@ class BathymetrySender(ModalitySender):
         return [self.map.subgrids_per_tile(lv) for lv in range(self.map.levels)]
 
     def _after_restore(self) -> None:
+        if self._book is None:  # saved by version 2 (before predicted subgrids)
+            self._book = ContextBook(self._per_tile(), self._sent_t[0].shape[0])
         old_sent = self.__dict__.pop("_sent", None)
         old_at = self.__dict__.pop("_sent_at", None)
         if old_sent is not None:  # saved by a version that kept one array per (tile, level)
@@ -251,6 +266,7 @@ class BathymetrySender(ModalitySender):
             self._sent_when = [_grow(a, cap, np.nan) for a in self._sent_when]
             self._tmin = [_grow(a, cap, np.inf) for a in self._tmin]
             self._dcount = [_grow(a, cap, 0) for a in self._dcount]
+            self.book.grow(cap)
         return n
 
     def _refresh(self, tile: tuple[int, int], levels: Iterable[int] | None = None) -> None:
@@ -300,54 +316,99 @@ class BathymetrySender(ModalitySender):
             return -math.inf
         return float(self.map.subgrid_times(tile, level)[b, a])
 
-    def build(self, key: Key) -> Subgrid | None:
-        """The current Subgrid message for ``key`` (None when the map has nothing there)."""
+    @property
+    def book(self) -> ContextBook:
+        """What topside is known to hold of the parent levels (:mod:`.context`)."""
+        assert self._book is not None  # made by __init__ or _after_restore
+        return self._book
+
+    def build(self, key: Key) -> SubgridMessage | None:
+        """The current subgrid message for ``key`` (None when the map has nothing there)."""
         built = self._built(key)
         return None if built is None else built[0]
 
-    def _built(self, key: Key) -> tuple[Subgrid, int] | None:
-        """The current Subgrid for ``key`` and its encoded size, cached until its tile changes (a
-        subgrid that did not fit one packet is not coded again for the next)."""
+    def _built(self, key: Key) -> tuple[SubgridMessage, int] | None:
+        """The current subgrid message for ``key`` and its encoded size, cached until its tile
+        changes or what topside is known to hold of its parent does (a subgrid that did not fit
+        one packet is not coded again for the next)."""
+        hit = self._entry(key)
+        return None if hit is None else (hit[1], hit[2])
+
+    def _entry(self, key: Key) -> Built | None:
         level, ix, iy = key
         tile, _, _ = self.map.tile_of_subgrid(level, ix, iy)
         version = self.map.tile_version(tile)
+        known = self.book.known(self._sent_row(tile), key) if self.map.has_tile(tile) else 0
         hit = self._cache.get(key)
-        if hit is not None and hit[0] == version:
-            return hit[1], hit[2]
+        if hit is not None and hit[0] == version and hit[3] == known:
+            return hit
         try:
-            sg = self._build(key)
+            built = self._build(key, known)
         except ValueError as exc:  # elevations outside the wire's range: skip, never crash
             self.unsendable.add(key)
             log.warning("subgrid %s cannot be sent: %s", key, exc)
             self._mark_sent(key, self.subgrid_time(key))
             return None
-        if sg is None:
+        if built is None:
             return None
-        size = (subgrid_bits(sg) + 7) // 8
-        self._cache[key] = (version, sg, size)
-        return sg, size
+        sg, size, content, digests = built
+        entry: Built = (version, sg, size, known, content, digests)
+        self._cache[key] = entry
+        self.book.record(sg, key, content, digests)
+        return entry
 
-    def _build(self, key: Key) -> Subgrid | None:
-        level, ix, iy = key
-        blk = self.map.block(level, ix, iy)
+    def _cells(self, key: Key) -> tuple[npt.NDArray[np.int64], npt.NDArray[np.bool_], float] | None:
+        """A subgrid's cells in vertical units, their presence and its last update (None: empty)."""
+        blk = self.map.block(*key)
         if blk is None or not (blk.count > 0).any():
             return None
         present = blk.count > 0
         q = np.zeros(blk.mean.shape, np.int64)
         q[present] = np.rint(blk.mean[present] / self.map.vertical_resolution).astype(np.int64)
-        return encode_subgrid(
-            q, present, level=level, ix=ix, iy=iy, stamp=to_stamp(blk.updated),
-            resolution=self.map.resolution, vertical_resolution=self.map.vertical_resolution,
-        )
+        return q, present, blk.updated
+
+    def _build(self, key: Key, known: int) -> tuple[SubgridMessage, int, int, Digests | None] | None:
+        """The smallest message for ``key``: coded on its own (a Subgrid or a PredictedSubgrid
+        from its own base) or, when topside is known to hold its parent's cells around it
+        (``known``, their digest), predicted from them. Returns it, its size, its version and,
+        at a parent level, the digests of its quarters' surroundings."""
+        level, ix, iy = key
+        cells = self._cells(key)
+        if cells is None:
+            return None
+        q, present, updated = cells
+        stamp = to_stamp(updated)
+        geo = dict(level=level, ix=ix, iy=iy, stamp=stamp, resolution=self.map.resolution,
+                   vertical_resolution=self.map.vertical_resolution)
+        alone = encode_subgrid(q, present, **geo)  # type: ignore[arg-type]
+        best: tuple[SubgridMessage, int] = (alone, (subgrid_bits(alone) + 7) // 8)
+        parent = None
+        if known:
+            pc = self._cells((level + 1, ix >> 1, iy >> 1))
+            if pc is not None:
+                parent = SubgridParent(pc[0], pc[1])
+                if region_digest(parent, ix & 1, iy & 1) != known:
+                    parent = None  # the parent changed there since: topside holds other cells
+        got = encode_predicted(q, present, parent=parent, **geo)  # type: ignore[arg-type]
+        if got is not None and (got[1] + 7) // 8 < best[1]:
+            best = (got[0], (got[1] + 7) // 8)
+        digests: Digests | None = None
+        if level >= 1:
+            me = SubgridParent(q, present)
+            d = [region_digest(me, qx, qy) for qy in (0, 1) for qx in (0, 1)]
+            digests = (d[0], d[1], d[2], d[3])
+        return best[0], best[1], content_id(stamp, q, present), digests
 
     def _mark_sent(self, key: Key, updated: float, now: float | None = None) -> None:
-        self._cache.pop(key, None)
+        entry = self._cache.pop(key, None)
         self._resend.pop(key, None)
         level, ix, iy = key
         tile, a, b = self.map.tile_of_subgrid(level, ix, iy)
         if not self.map.has_tile(tile):
             return
         n = self._sent_row(tile)
+        if entry is not None and now is not None:  # a version went to the link (not a skip)
+            self.book.on_sent(n, key, entry[5])
         arr = self._sent_t[level][n]
         arr[b, a] = max(arr[b, a], updated)
         if now is not None:
@@ -588,18 +649,40 @@ class BathymetrySender(ModalitySender):
         self._gap_queued -= keys
         self._queue = [k for k in self._queue if k not in keys]
 
+    def _version(self, message: Message) -> tuple[Key, int | None] | None:
+        """The subgrid key of a subgrid message and its version (None: not built here lately)."""
+        if not isinstance(message, SubgridMessage):
+            return None
+        key = (message.level, message.ix, message.iy)
+        rec = self.book.version(message)
+        return key, (rec[1] if rec is not None and rec[0] == key else None)
+
+    def _is_current(self, key: Key, message: SubgridMessage, version: int | None) -> bool:
+        """Whether ``message`` carries the current version of ``key`` (however it is coded)."""
+        entry = self._entry(key)
+        if entry is None:
+            return False
+        return entry[4] == version if version is not None else entry[1] == message
+
     def acked(self, message: Message, now: float) -> None:
         """A frame that carried a subgrid was acknowledged: a re-send of it (spare work) or a
         request for it still queued is answered, if the acknowledged copy is its current version
-        (a newer version stays queued)."""
-        if not isinstance(message, Subgrid):
+        (a newer version stays queued); at a parent level, topside now holds its cells
+        (predicted children may use them, :mod:`.context`)."""
+        got = self._version(message)
+        if got is None:
             return
-        key = (message.level, message.ix, message.iy)
-        self._confirmed[key] = _fingerprint(message)  # a copy of this version arrived
+        assert isinstance(message, SubgridMessage)
+        key, version = got
+        if version is not None:
+            self._confirmed[key] = version  # a copy of this version arrived
+            rec = self.book.version(message)
+            tile, _, _ = self.map.tile_of_subgrid(*key)
+            if rec is not None and self.map.has_tile(tile):
+                self.book.on_acked(self._sent_row(tile), key, rec[2])
         if key not in self._queued and key not in self._resend:
             return
-        built = self._built(key)
-        if built is not None and built[0] == message:
+        if self._is_current(key, message, version):
             self._resend.pop(key, None)
             if key in self._queued:
                 self._unqueue({key})
@@ -608,13 +691,14 @@ class BathymetrySender(ModalitySender):
         """No frame that carried a subgrid was acknowledged: if it is still the subgrid's
         current version (a newer one goes out with the background anyway), it becomes spare
         work."""
-        if not isinstance(message, Subgrid):
+        got = self._version(message)
+        if got is None:
             return
-        key = (message.level, message.ix, message.iy)
-        if self._confirmed.get(key) == _fingerprint(message):
+        assert isinstance(message, SubgridMessage)
+        key, version = got
+        if version is not None and self._confirmed.get(key) == version:
             return  # another copy of this version arrived (its ack may come after this copy's loss)
-        built = self._built(key)
-        if built is not None and built[0] == message:
+        if self._is_current(key, message, version):
             if self._focused.get(key, -math.inf) >= now and key not in self._queued \
                     and len(self._queue) < self.max_queue:
                 self._queue.append(key)  # around a detection: again, ahead of the background
@@ -751,9 +835,13 @@ class BathymetrySender(ModalitySender):
             if r.fill_gaps:
                 assert r.have is not None
                 want = not (r.have >> (n - 1 - i)) & 1
+                lacks = want
             else:
                 held = r.held[i]
                 want = held is None or math.floor(updated) > unwrap(held, now)
+                lacks = held is None
+            if lacks:
+                self._lacks(key)
             if want:
                 queued += 1
                 if key not in self._queued:
@@ -767,6 +855,14 @@ class BathymetrySender(ModalitySender):
             self._unqueue(held_now)
         waiting = self._stand(region, unsurveyed, now)
         return [MapRoiReply(r.request_id, r.level, min(queued, 1023), min(waiting, 1023))]
+
+    def _lacks(self, key: Key) -> None:
+        """Topside says it lacks ``key`` (whatever frame acks said): no confirmation of it
+        stands, and no child is predicted from its cells until a copy is acknowledged again."""
+        self._confirmed.pop(key, None)
+        tile, _, _ = self.map.tile_of_subgrid(*key)
+        if self.map.has_tile(tile):
+            self.book.forget(self._sent_row(tile), key)
 
     def _stand(self, region: tuple[int, int, int, int, int, bool], keys: set[Key], now: float) -> int:
         """Make the request for ``region`` stand for its ``keys`` not surveyed yet (replacing an
