@@ -383,7 +383,7 @@ class Subgrid(Message):
 
 
 class SubgridContext(enum.IntEnum):
-    """What a :class:`PredictedSubgrid` is predicted from (``spec/payloads.md`` section 1.7).
+    """What a :class:`PredictedSubgrid` is predicted from (``spec/payloads.md`` section 1.6).
 
     * ``NONE``: its own ``z_base``: it decodes on its own, like a :class:`Subgrid`.
     * ``PARENT``: the cells of its parent subgrid (the level above, ``(ix >> 1, iy >> 1)``) as

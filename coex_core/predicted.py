@@ -1,5 +1,5 @@
 """Subgrids predicted from what topside holds: :class:`~coex_core.messages.PredictedSubgrid`
-(type 20) to cells and back. Part of the wire format (``spec/payloads.md`` section 1.7).
+(type 20) to cells and back. Part of the wire format (``spec/payloads.md`` sections 1.6 to 1.10).
 
 A subgrid at level ``L`` is predicted from the cells of its *parent*, the subgrid at level
 ``L + 1`` that covers it (``(ix >> 1, iy >> 1)``, of which it is the quarter ``(ix & 1, iy &
@@ -35,8 +35,9 @@ from collections.abc import Sequence
 import numpy as np
 import numpy.typing as npt
 
-from ._wire._subgrid_code import MAX_RESIDUAL, CodedCells, encode_cells
-from .messages import PredictedSubgrid, SubgridCells, SubgridContext
+from ._wire._subgrid_code import MAX_RESIDUAL, CodedCells, encode_cells, table_for
+from .messages import PredictedSubgrid, SubgridCells, SubgridContext, SubgridMessage
+from .subgrid import decode_subgrid_units
 
 __all__ = [
     "ABSENT",
@@ -49,9 +50,12 @@ __all__ = [
     "decode_predicted_units",
     "encode_predicted",
     "parent_key",
+    "parent_from_rows",
     "parent_from_values",
     "predicted_table",
     "region_digest",
+    "subgrid_units",
+    "units_rows",
 ]
 
 IntArray = npt.NDArray[np.int64]
@@ -107,9 +111,7 @@ def parent_key(level: int, ix: int, iy: int) -> tuple[int, int, int]:
 
 def predicted_table(context: SubgridContext, level: int) -> int:
     """The initial probability table of a subgrid (spec/payloads.md 1.7)."""
-    if context == SubgridContext.NONE:
-        return 3
-    return min(level, 2)
+    return table_for(context == SubgridContext.PARENT, level)
 
 
 def _region(side: int, qx: int, qy: int) -> tuple[int, int, int, int]:
@@ -306,13 +308,15 @@ def encode_predicted(
     parent: SubgridParent | None = None,
     standalone: bool = True,
     exact: int = 2,
+    only: tuple[SubgridContext, int, int] | None = None,
 ) -> tuple[PredictedSubgrid, int] | None:
     """The smallest PredictedSubgrid for integer elevations ``q`` (side x side, vertical units,
     row 0 south) where ``present``, and its size in bits (type id included, before the padding
-    to a byte): predicted from ``parent`` (the parent
-    subgrid's cells as topside holds them) when given, on its own (``NONE``) when
-    ``standalone``, whichever is smaller. ``exact``: how many of the best-looking candidates
-    are coded exactly. None when nothing fits (no present cell, or too many bits)."""
+    to a byte): predicted from ``parent`` (the parent subgrid's cells as topside holds them)
+    when given, on its own (``NONE``) when ``standalone``, whichever is smaller. ``exact``: how
+    many of the best-looking candidates are coded exactly; ``only``: that one ``(context,
+    predictor, shift)`` (tests, vectors). None when nothing fits (no present cell, no parent
+    cell near the subgrid, or too many bits)."""
     qa = np.asarray(q, np.int64)
     pa = np.asarray(present, bool)
     side = qa.shape[0]
@@ -324,10 +328,13 @@ def encode_predicted(
     mask = _mask_int(pa)
     qx, qy = ix & 1, iy & 1
     cands: list[tuple[float, SubgridContext, int, IntArray, int | None, int | None]] = []
-    if parent is not None and parent.z.shape == (side, side):
+    want_parent = only is None or only[0] == SubgridContext.PARENT
+    if parent is not None and parent.z.shape == (side, side) and want_parent:
         chk = context_check(parent, qx, qy)
         surfaces: dict[str, IntArray | None] = {}
         for code, (surf, corr) in enumerate(PREDICTORS[SubgridContext.PARENT]):
+            if only is not None and only[1] != code:
+                continue
             if surf not in surfaces:
                 surfaces[surf] = _surface(parent, qx, qy, surf)
             u = surfaces[surf]
@@ -335,15 +342,17 @@ def encode_predicted(
                 break
             d = qa - u
             e = (d - _correction_all(d, pa, corr))[pa]
-            cands.append((_cost_estimate(e) + HEADER_BITS[SubgridContext.PARENT], SubgridContext.PARENT, code, e, chk,
-                          None))
-    if standalone:
+            cost = _cost_estimate(e) + HEADER_BITS[SubgridContext.PARENT]
+            cands.append((cost, SubgridContext.PARENT, code, e, chk, None))
+    if (standalone and only is None) or (only is not None and only[0] == SubgridContext.NONE):
         z_base = int(vals[0])
         d = qa - z_base
         for code, (_, corr) in enumerate(PREDICTORS[SubgridContext.NONE]):
+            if only is not None and only[1] != code:
+                continue
             e = (d - _correction_all(d, pa, corr))[pa]
-            cands.append((_cost_estimate(e) + HEADER_BITS[SubgridContext.NONE], SubgridContext.NONE, code, e, None,
-                          z_base))
+            cost = _cost_estimate(e) + HEADER_BITS[SubgridContext.NONE]
+            cands.append((cost, SubgridContext.NONE, code, e, None, z_base))
     if not cands:
         return None
     cands.sort(key=lambda c: c[0])
@@ -354,19 +363,19 @@ def encode_predicted(
         residuals = tuple(int(v) for v in e.tolist())
         cells = CodedCells(None if mask is None else pa.ravel().tolist(), residuals)
         table = predicted_table(context, level)
-        for shift in _shifts(e):
+        for shift in (range(only[2], only[2] + 1) if only is not None else _shifts(e)):
             nbits = len(encode_cells(side, cells, shift, table))
             if nbits > MAX_CELL_BITS:
                 continue
-            head = HEADER_BITS[context]
-            if best is None or nbits + head < best[0]:
+            total = nbits + HEADER_BITS[context]
+            if best is None or total < best[0]:
                 geo = context == SubgridContext.NONE
                 sg = PredictedSubgrid(
                     level=level, ix=ix, iy=iy, stamp=stamp, side=side, context=context, predictor=code,
                     shift=shift, cells=SubgridCells(mask, residuals), check=check,
                     resolution=resolution if geo else None,
                     vertical_resolution=vertical_resolution if geo else None, z_base=zb)
-                best = (nbits + head, sg)
+                best = (total, sg)
     if best is None:
         return None
     return best[1], best[0]
@@ -425,6 +434,27 @@ def decode_predicted(sg: PredictedSubgrid, parent: SubgridParent | None = None,
     ok = units != ABSENT
     out[ok] = units[ok] * vres
     return out
+
+
+def subgrid_units(sg: SubgridMessage, parent: SubgridParent | None = None) -> IntArray:
+    """The integer elevations (:data:`ABSENT` where no cell) a receiver holding ``parent`` rebuilds
+    from either form of a subgrid; :class:`ContextMismatch` for a PARENT one it cannot rebuild."""
+    if isinstance(sg, PredictedSubgrid):
+        return decode_predicted_units(sg, parent)
+    return decode_subgrid_units(sg)
+
+
+def parent_from_rows(rows: Sequence[Sequence[int | None]]) -> SubgridParent:
+    """A :class:`SubgridParent` from rows of integer elevations (row 0 south, None where absent):
+    the form of the vectors' ``parent`` (wire-format.md 13)."""
+    present = np.array([[v is not None for v in row] for row in rows], bool)
+    z = np.array([[0 if v is None else int(v) for v in row] for row in rows], np.int64)
+    return SubgridParent(z, present)
+
+
+def units_rows(units: IntArray) -> list[list[int | None]]:
+    """Integer elevations as rows (row 0 south), None where :data:`ABSENT` (the vectors' form)."""
+    return [[None if int(v) == ABSENT else int(v) for v in row] for row in units.tolist()]
 
 
 def parent_from_values(values: Sequence[Sequence[float]] | npt.ArrayLike, vertical_resolution: float) -> SubgridParent:

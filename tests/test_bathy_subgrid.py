@@ -11,7 +11,13 @@ from hypothesis import strategies as st
 
 from coex_core import wire
 from coex_core.errors import DecodeError
-from coex_core.messages import FrameHeader, PredictedSubgrid, Subgrid, SubgridContext, SubgridEncoding
+from coex_core.messages import (
+    FrameHeader,
+    PredictedSubgrid,
+    Subgrid,
+    SubgridContext,
+    SubgridEncoding,
+)
 from coex_core.predicted import decode_predicted
 from coex_plugins.bathymetry import (
     BathymetrySender,

@@ -27,7 +27,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 
-__all__ = ["ArithDecoder", "ArithEncoder", "HALF_P", "RATE", "adapt"]
+__all__ = ["ArithDecoder", "ArithEncoder", "CodeError", "HALF_P", "RATE", "adapt"]
 
 _TOP = (1 << 32) - 1
 _HALF = 1 << 31
@@ -39,6 +39,14 @@ PROB_BITS = 12
 HALF_P = 2048
 #: adaptation shift
 RATE = 4
+
+
+class CodeError(ValueError):
+    """A coded stream breaks a rule: ``reason`` is the spec's error word."""
+
+    def __init__(self, message: str, reason: str) -> None:
+        super().__init__(f"{message} ({reason})")
+        self.reason = reason
 
 
 def adapt(p0: int, bit: int) -> int:
@@ -112,12 +120,14 @@ class ArithEncoder:
 
 class ArithDecoder:
     """Reads decisions from ``read`` (the next bit of the stream, 0 or 1); :attr:`length` is the
-    number of bits the encoder wrote for the decisions read so far (once finished)."""
+    number of bits the encoder wrote for the decisions read so far (once finished). A decision
+    that makes that length pass ``max_bits`` raises :class:`CodeError` (``too large``)."""
 
-    __slots__ = ("high", "low", "read", "shifts", "value")
+    __slots__ = ("high", "limit", "low", "read", "shifts", "value")
 
-    def __init__(self, read: Callable[[], int]) -> None:
+    def __init__(self, read: Callable[[], int], max_bits: int | None = None) -> None:
         self.read = read
+        self.limit = (1 << 62) if max_bits is None else max_bits - 2
         self.low = 0
         self.high = _TOP
         v = 0
@@ -162,6 +172,8 @@ class ArithDecoder:
             shifts += 1
         self.low, self.high, self.value = low, high, value
         self.shifts += shifts
+        if self.shifts > self.limit:
+            raise CodeError(f"the code passes {self.limit + 2} bits", "too large")
         return bit
 
     @property

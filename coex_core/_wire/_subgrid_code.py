@@ -25,9 +25,10 @@ from __future__ import annotations
 import functools
 from collections.abc import Callable, Sequence
 
-from ._arith import HALF_P, ArithDecoder, ArithEncoder
+from ._arith import HALF_P, ArithDecoder, ArithEncoder, CodeError
 
 __all__ = [
+    "CodeError",
     "CodedCells",
     "INITIAL",
     "MAX_ESCAPE_BITS",
@@ -35,6 +36,7 @@ __all__ = [
     "UNARY_LIMIT",
     "decode_cells",
     "encode_cells",
+    "table_for",
 ]
 
 #: unary decisions ``u > t`` up to this ``t``; larger ``u`` take the escape
@@ -62,6 +64,12 @@ INITIAL: tuple[Table, ...] = (
     Table([3163, 2499, 782, 536], [[3832, 2238, 2057, 1934], [3180, 1997, 2030, 1947], [1589, 1742, 1836, 2127], [1040, 1171, 1452, 1772]], 1827, [4002, 1856, 1490, 16]),
     Table([2967, 2447, 1565, 995], [[3330, 2253, 1607, 911], [3463, 3102, 2541, 1479], [2227, 2551, 2543, 1599], [913, 793, 887, 900]], 2030, [3967, 1480, 1457, 16]),
 )
+
+
+def table_for(parent_context: bool, level: int) -> int:
+    """The initial table of a subgrid: predicted from its parent, by level (0, 1, 2 and up: 0,
+    1, 2); from its own base: 3."""
+    return min(int(level), 2) if parent_context else 3
 
 
 class CodedCells:
@@ -175,21 +183,14 @@ def _encode(side: int, present_in: tuple[bool, ...] | None, residuals: tuple[int
     return enc.finish()
 
 
-class CodeError(ValueError):
-    """The coded cells are invalid: ``reason`` is the spec's error word."""
-
-    def __init__(self, message: str, reason: str) -> None:
-        super().__init__(message)
-        self.reason = reason
-
-
 def decode_cells(read: Callable[[], int], side: int, partial: bool, shift: int,
-                 table: int) -> tuple[CodedCells, int]:
-    """The cells coded at the reader's position and the length of their code in bits."""
+                 table: int, max_bits: int | None = None) -> tuple[CodedCells, int]:
+    """The cells coded at the reader's position and the length of their code in bits;
+    :class:`CodeError` (``too large``) as soon as the code passes ``max_bits``."""
     t = INITIAL[table]
     z, u, p = list(t.z), [list(r) for r in t.u], list(t.p)
     sgn = [t.s]
-    dec = ArithDecoder(read)
+    dec = ArithDecoder(read, max_bits)
     n_cells = side * side
     present: list[bool]
     if partial:

@@ -33,7 +33,7 @@ from ._primitives import (
     When,
 )
 from ._registry import MessageSpec, register
-from ._subgrid_code import CodedCells, CodeError, decode_cells, encode_cells
+from ._subgrid_code import CodedCells, CodeError, decode_cells, encode_cells, table_for
 
 #: Horizontal cell size at level 0 (metres): a 3-bit code.
 RESOLUTIONS = (0.125, 0.25, 0.5, 1.0, 2.0, 4.0, 8.0, 16.0)
@@ -194,15 +194,13 @@ MAX_PREDICTED_CELL_BITS = 1536
 
 
 def _table(ctx: Any) -> int:
-    """The initial probability table (spec/payloads.md 1.7): PARENT by level (0, 1, 2 and up),
-    NONE 3."""
-    if ctx.context == SubgridContext.NONE:
-        return 3
-    return min(int(ctx.level), 2)
+    """The initial probability table (spec/payloads.md 1.7)."""
+    return table_for(ctx.context == SubgridContext.PARENT, int(ctx.level))
 
 
-def _peek(stream: Any, n: int) -> list[int]:
-    """The next ``n`` bits of a construct bit stream without consuming them (0 past its end)."""
+def _peek(stream: Any, n: int) -> tuple[list[int], int]:
+    """The next ``n`` bits of a construct bit stream without consuming them (0 past its end),
+    and how many of them are in the stream."""
     if isinstance(stream, cs.core.RestreamedBytesIO):
         have = bytes(stream.rbuffer)
         sub = stream.substream
@@ -215,7 +213,7 @@ def _peek(stream: Any, n: int) -> list[int]:
         bits = list(stream.read(n))
         stream.seek(pos)
     bits = bits[:n]
-    return bits + [0] * (n - len(bits))
+    return bits + [0] * (n - len(bits)), len(bits)
 
 
 class ArithCells(cs.Construct):  # type: ignore[misc]
@@ -231,8 +229,7 @@ class ArithCells(cs.Construct):  # type: ignore[misc]
 
     def _parse(self, stream: Any, context: Any, path: str) -> dict[str, Any]:
         side = int(context.side)
-        limit = MAX_PREDICTED_CELL_BITS + 32
-        ahead = _peek(stream, limit)
+        ahead, real = _peek(stream, MAX_PREDICTED_CELL_BITS + 64)
         pos = [0]
 
         def read() -> int:
@@ -241,13 +238,13 @@ class ArithCells(cs.Construct):  # type: ignore[misc]
             return ahead[k] if k < len(ahead) else 0
 
         try:
-            cells, length = decode_cells(read, side, bool(context.partial), int(context.shift), _table(context))
+            cells, length = decode_cells(read, side, bool(context.partial), int(context.shift), _table(context),
+                                         MAX_PREDICTED_CELL_BITS)
         except CodeError as exc:
+            if pos[0] > real:  # a rule broken by bits past the end of the input, which were not there
+                raise OutOfRange(f"truncated: {exc}", path=path, reason="truncated") from None
             raise OutOfRange(str(exc), path=path, reason=exc.reason) from None
-        if length > MAX_PREDICTED_CELL_BITS:
-            raise OutOfRange(f"the coded cells take {length} bits, more than {MAX_PREDICTED_CELL_BITS}",
-                             path=path, reason="too large")
-        cs.stream_read(stream, length, path)  # consume the code (truncated input fails here)
+        cs.stream_read(stream, length, path)  # consume the code (an input ending inside it: truncated)
         mask = None
         if cells.present is not None:
             mask = int("".join("1" if p else "0" for p in cells.present), 2)
@@ -277,7 +274,7 @@ class ArithCells(cs.Construct):  # type: ignore[misc]
 
 def _crc(width: int) -> Any:
     c = UInt(width)
-    c.coex_spec = FieldSpec(str(width), f"0..{(1 << width) - 1}", coding="CRC-8 (spec/payloads.md 1.7)")
+    c.coex_spec = FieldSpec(str(width), f"0..{(1 << width) - 1}", coding="CRC-8 (spec/payloads.md 1.9)")
     return c
 
 
@@ -287,9 +284,9 @@ PREDICTED_SUBGRID = Body(
     "iy" / SInt(14) * "Subgrid row index at this level",
     "stamp" / Stamp() * "Newest update of any cell in the subgrid",
     "side" / Choice(PREDICTED_SIDES, unit="cells") * "Subgrid side",
-    "context" / Enum(SubgridContext) * "What the cells are predicted from (spec/payloads.md 1.7)",
+    "context" / Enum(SubgridContext) * "What the cells are predicted from (spec/payloads.md 1.6)",
     "check" / When("`context` = PARENT", cs.this.context == SubgridContext.PARENT, _crc(8))
-    * "CRC-8 of the parent's cells the prediction reads (spec/payloads.md 1.7)",
+    * "CRC-8 of the parent's cells the prediction reads (spec/payloads.md 1.9)",
     "resolution" / When("`context` = NONE", cs.this.context == SubgridContext.NONE,
                         Choice(RESOLUTIONS, unit="m")) * "Cell size at level 0 (PARENT: the parent's)",
     "vertical_resolution" / When("`context` = NONE", cs.this.context == SubgridContext.NONE,
@@ -297,11 +294,11 @@ PREDICTED_SUBGRID = Body(
     * "Elevation quantum (PARENT: the parent's)",
     "z_base" / When("`context` = NONE", cs.this.context == SubgridContext.NONE, SInt(20))
     * "Base elevation in vertical-resolution units",
-    "predictor" / Bounded(0, 3) * "The prediction, from the context's table (spec/payloads.md 1.7)",
+    "predictor" / Bounded(0, 3) * "The prediction, from the context's table (spec/payloads.md 1.8)",
     "shift" / Bounded(0, 3, unit="bits") * "Low bits of each residual sent raw",
     "partial" / cs.Rebuild(Bool(), lambda ctx: ctx.cells["mask"] is not None)
     * "1 if the presence of each cell is coded (derived)",
-    "cells" / ArithCells() * "Presence and residuals (JSON: `{\"mask\": ..., \"residuals\": [...]}`)",
+    "cells" / ArithCells() * "Presence and residuals (JSON: an object, section 13.1)",
 )
 
 
