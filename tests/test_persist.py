@@ -146,7 +146,7 @@ def test_kill_and_restart_both_sides_at_random_moments(tmp_path: Path, lcm_uri: 
     finally:
         store.close()
     assert starts == 1 + sum(r == "topside" for r, _ in kills)
-    assert received > 100
+    assert received > 60  # frames (fewer since subgrids are predicted from their parents)
     store = NodeStore(vdb)
     try:
         rows = list(store.journal())

@@ -38,8 +38,9 @@ from coex.messages import Message
 __all__ = ["ContextBook", "Key", "content_id", "message_id"]
 
 Key = tuple[int, int, int]  # (level, ix, iy)
-#: messages remembered by their bytes (those in flight and a margin for late acks)
-MAX_VERSIONS = 65536
+#: messages remembered by their bytes (those in flight and a margin for late acks: the channel
+#: remembers 4096 lost ones)
+MAX_VERSIONS = 8192
 Digests = tuple[int, int, int, int]
 
 
@@ -62,11 +63,13 @@ def quarter(ix: int, iy: int) -> int:
     return (iy & 1) * 2 + (ix & 1)
 
 
-@persistent("bathymetry.ContextBook")
+@persistent("bathymetry.ContextBook", transient=("versions",))
 class ContextBook:
     """Per parent-level subgrid (levels 1 and up) and quarter: the digest of the cells topside
     is known to hold (``top``, 0: unknown) and of the newest version sent (``last_sent``); and the
-    versions of the messages built, by :func:`message_id`."""
+    versions of the messages built, by :func:`message_id` (not saved: after a restart an ack of a
+    message built before it is taken as the sender took it before predicted subgrids, by
+    comparing the message with the current one, and teaches nothing of the parent's cells)."""
 
     def __init__(self, per_tile: list[int], cap: int = 4) -> None:
         #: subgrids per tile side, by level
@@ -74,6 +77,9 @@ class ContextBook:
         self.top: dict[int, npt.NDArray[np.uint32]] = {
             lv: np.zeros((cap, p, p, 4), np.uint32) for lv, p in enumerate(self.per_tile) if lv >= 1}
         self.last_sent: dict[int, npt.NDArray[np.uint32]] = {lv: a.copy() for lv, a in self.top.items()}
+        self._after_restore()
+
+    def _after_restore(self) -> None:
         #: message id -> (key, version, quarter digests at a parent level)
         self.versions: OrderedDict[int, tuple[Key, int, Digests | None]] = OrderedDict()
 

@@ -205,8 +205,6 @@ class BathymetrySender(ModalitySender):
         return [self.map.subgrids_per_tile(lv) for lv in range(self.map.levels)]
 
     def _after_restore(self) -> None:
-        if self._book is None:  # saved by version 2 (before predicted subgrids)
-            self._book = ContextBook(self._per_tile(), self._sent_t[0].shape[0])
         old_sent = self.__dict__.pop("_sent", None)
         old_at = self.__dict__.pop("_sent_at", None)
         if old_sent is not None:  # saved by a version that kept one array per (tile, level)
@@ -220,6 +218,8 @@ class BathymetrySender(ModalitySender):
                 tile, a, b = self.map.tile_of_subgrid(level, ix, iy)
                 if self.map.has_tile(tile):
                     self._sent_when[level][self._sent_row(tile), b, a] = when
+        if self._book is None:  # saved by version 2 (before predicted subgrids)
+            self._book = ContextBook(self._per_tile(), self._sent_t[0].shape[0])
 
     # ---------------------------------------------------------------------------- ingest
 
