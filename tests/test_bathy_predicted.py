@@ -225,3 +225,22 @@ def test_what_topside_holds_survives_a_saved_and_restored_sender() -> None:
     built = restored.build((0, 2, 2))
     assert isinstance(built, PredictedSubgrid) and built.context == SubgridContext.PARENT
     assert built == dataclasses.replace(sender.build((0, 2, 2)))  # type: ignore[type-var]
+
+
+def test_lcm_map_summaries_rebuild_predicted_subgrids_from_their_parents() -> None:
+    pytest.importorskip("lcm")
+    from coex_transports.lcm.products import MapLevelSummary
+
+    sender, now = _sender()
+    receiver = BathymetryReceiver({"levels": LEVELS, "auto_fill": False})
+    sent = _drain(sender, receiver, now, ack=True)
+    assert any(isinstance(m, PredictedSubgrid) and m.context == SubgridContext.PARENT for m in sent)
+    summary = MapLevelSummary()
+    for m in sent:
+        summary.add(m)
+    for level in range(LEVELS):
+        grid, _, _ = sender.map.grid(level)
+        lv = summary.summary(level)
+        assert lv.resolution == 2.0**level and lv.subgrids == len(receiver.holdings(level))
+        assert lv.z_min == pytest.approx(np.rint(np.nanmin(grid) / 0.1) * 0.1)
+        assert lv.z_max == pytest.approx(np.rint(np.nanmax(grid) / 0.1) * 0.1)

@@ -134,8 +134,9 @@ class MapLevelSummary:
                 z = np.asarray(self._predicted(sub), dtype=float)
             else:
                 self._resolution = sub.resolution
-                self._keep(sub.level, sub.ix, sub.iy, decode_subgrid_units(sub), sub.vertical_resolution)
                 z = np.asarray(self._decoder(sub), dtype=float)
+                if sub.level > 0:  # a parent of predicted subgrids: its cells as the wire says
+                    self._keep(sub.level, sub.ix, sub.iy, decode_subgrid_units(sub), sub.vertical_resolution)
         except Exception:
             return math.nan, math.nan
         finite = z[np.isfinite(z)]
