@@ -178,12 +178,14 @@ def cells_code(side: int, partial: bool, shift: int, table: int, coder: Coder,
         ms = mags.get(n - side) if i > 0 else None
         if mw is not None and ms is not None:
             a = (mw + ms) // 2 ** shift
-        elif mw is not None or ms is not None:
-            a = 2 * (mw if mw is not None else ms) // 2 ** shift  # type: ignore[operator]
+        elif mw is not None:
+            a = 2 * mw // 2 ** shift
+        elif ms is not None:
+            a = 2 * ms // 2 ** shift
         else:
             a = None
         c = 1 if a is None else 0 if a == 0 else 1 if a <= 2 else 2 if a <= 5 else 3
-        e = residuals[k] if enc else 0
+        e = residuals[k] if residuals is not None else 0
         k += 1
         u = abs(e) // 2 ** shift
         if adapt(Z, c, (1 if u > 0 else 0) if enc else None):
@@ -273,7 +275,7 @@ def _rice(b: Bits, k: int) -> int:
             if v >> k <= 15 or m != v.bit_length():
                 raise Invalid("canonical")
             return v
-    return q * 2 ** k + b.read(k)
+    return int(q * 2 ** k + b.read(k))
 
 
 def subgrid(b: Bits) -> dict[str, Any]:
@@ -363,7 +365,9 @@ def subgrid_cells(f: dict[str, Any]) -> list[list[int | None]]:
         for c in range(n):
             i, j = divmod(c, side)
             def at(a: int, b: int) -> int:
-                return f["z_base"] if a < 0 or b < 0 else z[a * side + b]  # type: ignore[return-value]
+                v = f["z_base"] if a < 0 or b < 0 else z[a * side + b]
+                assert v is not None
+                return int(v)
             z[c] = at(i - 1, j) + at(i, j - 1) - at(i - 1, j - 1) + _uz(vals[c])
     return [z[i * side:(i + 1) * side] for i in range(side)]
 
@@ -412,29 +416,33 @@ def predicted_cells(f: dict[str, Any], parent: list[list[int | None]] | None) ->
             raise Context("the check fails")
         M = sum(held) // len(held)
 
-        def has(a: int, b: int) -> bool:
-            return 0 <= a < side and 0 <= b < side and parent[a][b] is not None  # type: ignore[index]
+        held_rows = parent
+
+        def P(a: int, b: int) -> int | None:
+            return held_rows[a][b] if 0 <= a < side and 0 <= b < side else None
 
         def surface(i: int, j: int) -> int:
             pa, pb = qy * h + i // 2, qx * h + j // 2
-            C = parent[pa][pb] if has(pa, pb) else M  # type: ignore[index]
+            centre = P(pa, pb)
+            C = centre if centre is not None else M
             if surface_kind == "nearest":
-                return C  # type: ignore[return-value]
+                return C
             even, odd, D = BILINEAR if surface_kind == "bilinear" else CUBIC
             total = 0
             for da, wa in (even if i % 2 == 0 else odd).items():
                 for db, wb in (even if j % 2 == 0 else odd).items():
-                    if has(pa + da, pb + db):
-                        V = parent[pa + da][pb + db]  # type: ignore[index]
-                    elif has(pa - da, pb - db):
-                        V = 2 * C - parent[pa - da][pb - db]  # type: ignore[index,operator]
+                    tap, mirror = P(pa + da, pb + db), P(pa - da, pb - db)
+                    if tap is not None:
+                        V = tap
+                    elif mirror is not None:
+                        V = 2 * C - mirror
                     else:
                         V = C
-                    total += wa * wb * V  # type: ignore[operator]
+                    total += wa * wb * V
             return (total + D // 2) // D
     else:
         def surface(i: int, j: int) -> int:
-            return f["z_base"]  # type: ignore[no-any-return]
+            return int(f["z_base"])
     z: list[int | None] = [None] * n
     d: dict[tuple[int, int], int] = {}
     res = iter(f["cells"]["residuals"])
@@ -454,12 +462,14 @@ def predicted_cells(f: dict[str, Any], parent: list[list[int | None]] | None) ->
                 g = (2 * W + 2 * S - SW + 2) // 4
         elif W is not None or S is not None:
             x = W if W is not None else S
-            g = (x + 1) // 2 if correction == "half" else x  # type: ignore[operator]
+            assert x is not None
+            g = (x + 1) // 2 if correction == "half" else x
         else:
             g = 0
         u = surface(i, j)
-        z[c] = u + g + next(res)
-        d[(i, j)] = z[c] - u  # type: ignore[operator]
+        value = u + g + next(res)
+        z[c] = value
+        d[(i, j)] = value - u
     return [z[i * side:(i + 1) * side] for i in range(side)]
 
 

@@ -1,4 +1,5 @@
-"""The receiver's side of predicted subgrids (:class:`~coex.messages.PredictedSubgrid`).
+"""The receiver's intake of subgrids, either form: a ``Subgrid`` decodes on its own; a
+:class:`~coex.messages.PredictedSubgrid` is rebuilt from its own base or from its parent.
 
 A subgrid predicted from its parent (``context`` PARENT) is decoded with the parent's cells as
 the receiver holds them (:func:`coex.decode_predicted`), at the parent level's geometry. When the
@@ -18,8 +19,17 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
-from coex import ContextMismatch, decode_predicted, decode_subgrid, parent_from_values
+from coex import (
+    ContextMismatch,
+    Product,
+    decode_predicted,
+    decode_subgrid,
+    parent_from_values,
+    unwrap,
+)
 from coex.messages import PredictedSubgrid, Subgrid, SubgridContext, SubgridMessage
+
+from .tiles import LevelStats
 
 __all__ = ["MAX_WAITING", "PredictedInput"]
 
@@ -42,11 +52,74 @@ class PredictedInput:
     set_aside: int
     resolved: int
 
-    def _held_block(self, level: int, ix: int, iy: int) -> FloatArray | None:
+    mismatched: int
+    duplicates: int
+    tile_subgrids: int
+    _stats: dict[int, LevelStats]
+    _versions: dict[int, int]
+
+    def _tile(self, level: int, tx: int, ty: int, create: bool = False) -> Any:
         raise NotImplementedError
 
-    def _subgrid(self, sg: SubgridMessage, now: float) -> list[Any]:
+    def _put(self, level: int, tile: Any, ix: int, iy: int, lx: int, ly: int, stamp: float,
+             values: FloatArray, now: float, draw: bool) -> None:
         raise NotImplementedError
+
+    def level_product(self, level: int, now: float | None = None) -> Product:
+        raise NotImplementedError
+
+    def _subgrid(self, sg: SubgridMessage, now: float) -> list[Product]:
+        level = sg.level
+        geo = self._geometry_of(sg)
+        if geo is None:  # predicted from a level of which nothing came yet
+            assert isinstance(sg, PredictedSubgrid)
+            self._set_aside(sg, now)
+            return []
+        cell, side, vres = geo
+        geometry = self._geometry.get(level)
+        if geometry is not None and (geometry[1] != side or geometry[0] != cell):
+            self.mismatched += 1  # the level's cells would not line up: ignored
+            return []
+        stamp = unwrap(sg.stamp, now)
+        n = self.tile_subgrids
+        tx, lx = divmod(sg.ix, n)
+        ty, ly = divmod(sg.iy, n)
+        known = self._tile(level, tx, ty)
+        if known is not None and known.held[ly, lx] and known.stamp[ly, lx] >= stamp:
+            self.duplicates += 1
+            return []
+        values = self._cells_of(sg, vres)
+        if values is None:  # predicted from parent cells not held (yet)
+            assert isinstance(sg, PredictedSubgrid)
+            self._set_aside(sg, now)
+            return []
+        waiting = self._waiting.get((level, sg.ix, sg.iy))
+        if waiting is not None and unwrap(waiting[0].stamp, now) <= stamp:
+            del self._waiting[(level, sg.ix, sg.iy)]  # a newer version came whole
+        if geometry is None:
+            self._geometry[level] = (cell, side)
+            self._stats[level] = LevelStats()
+        self._vres[level] = vres
+        tile = self._tile(level, tx, ty, create=True)
+        assert tile is not None
+        self._put(level, tile, sg.ix, sg.iy, lx, ly, stamp, values, now, draw=True)
+        self._versions[level] = self._versions.get(level, 0) + 1
+        return [self.level_product(level), *self._resolve_children(level, sg.ix, sg.iy, now)]
+
+    def _held_block(self, level: int, ix: int, iy: int) -> FloatArray | None:
+        """The cells (m, NaN where none) of a held subgrid, None when it is not held."""
+        geometry = self._geometry.get(level)
+        if geometry is None:
+            return None
+        n = self.tile_subgrids
+        tx, lx = divmod(ix, n)
+        ty, ly = divmod(iy, n)
+        tile = self._tile(level, tx, ty)
+        if tile is None or not tile.held[ly, lx]:
+            return None
+        side = geometry[1]
+        block: FloatArray = tile.values[ly * side:(ly + 1) * side, lx * side:(lx + 1) * side].copy()
+        return block
 
     def _init_waiting(self) -> None:
         self._waiting = {}
@@ -92,11 +165,11 @@ class PredictedInput:
         while len(self._waiting) > MAX_WAITING:
             del self._waiting[next(iter(self._waiting))]
 
-    def _resolve_children(self, level: int, ix: int, iy: int, now: float) -> list[Any]:
+    def _resolve_children(self, level: int, ix: int, iy: int, now: float) -> list[Product]:
         """Try again the subgrids set aside under ``(level, ix, iy)``, which just changed."""
         if level == 0 or not self._waiting:
             return []
-        out: list[Any] = []
+        out: list[Product] = []
         for b in (0, 1):
             for a in (0, 1):
                 key = (level - 1, 2 * ix + a, 2 * iy + b)

@@ -39,14 +39,12 @@ from coex import (
     Storage,
     merged_config,
     persistent,
-    unwrap,
 )
 from coex.messages import (
     MapMetadata,
     MapRoiReply,
     MapRoiRequest,
     Message,
-    PredictedSubgrid,
     SubgridMessage,
 )
 from coex.tracker import Event
@@ -375,59 +373,6 @@ class BathymetryReceiver(PredictedInput, ModalityReceiver):
                                        due=now + self.request_timeout + self.subgrid_wait * message.queued)
             return []
         return []
-
-    def _subgrid(self, sg: SubgridMessage, now: float) -> list[Product]:
-        level = sg.level
-        geo = self._geometry_of(sg)
-        if geo is None:  # predicted from a level of which nothing came yet
-            assert isinstance(sg, PredictedSubgrid)
-            self._set_aside(sg, now)
-            return []
-        cell, side, vres = geo
-        geometry = self._geometry.get(level)
-        if geometry is not None and (geometry[1] != side or geometry[0] != cell):
-            self.mismatched += 1  # the level's cells would not line up: ignored
-            return []
-        stamp = unwrap(sg.stamp, now)
-        n = self.tile_subgrids
-        tx, lx = divmod(sg.ix, n)
-        ty, ly = divmod(sg.iy, n)
-        known = self._tile(level, tx, ty)
-        if known is not None and known.held[ly, lx] and known.stamp[ly, lx] >= stamp:
-            self.duplicates += 1
-            return []
-        values = self._cells_of(sg, vres)
-        if values is None:  # predicted from parent cells not held (yet)
-            assert isinstance(sg, PredictedSubgrid)
-            self._set_aside(sg, now)
-            return []
-        waiting = self._waiting.get((level, sg.ix, sg.iy))
-        if waiting is not None and unwrap(waiting[0].stamp, now) <= stamp:
-            del self._waiting[(level, sg.ix, sg.iy)]  # a newer version came whole
-        if geometry is None:
-            self._geometry[level] = (cell, side)
-            self._stats[level] = LevelStats()
-        self._vres[level] = vres
-        tile = self._tile(level, tx, ty, create=True)
-        assert tile is not None
-        self._put(level, tile, sg.ix, sg.iy, lx, ly, stamp, values, now, draw=True)
-        self._versions[level] = self._versions.get(level, 0) + 1
-        return [self.level_product(level), *self._resolve_children(level, sg.ix, sg.iy, now)]
-
-    def _held_block(self, level: int, ix: int, iy: int) -> FloatArray | None:
-        """The cells (m, NaN where none) of a held subgrid, None when it is not held."""
-        geometry = self._geometry.get(level)
-        if geometry is None:
-            return None
-        n = self.tile_subgrids
-        tx, lx = divmod(ix, n)
-        ty, ly = divmod(iy, n)
-        tile = self._tile(level, tx, ty)
-        if tile is None or not tile.held[ly, lx]:
-            return None
-        side = geometry[1]
-        block: FloatArray = tile.values[ly * side:(ly + 1) * side, lx * side:(lx + 1) * side].copy()
-        return block
 
     def _hold(self, level: int, ix: int, iy: int, stamp: float, values: FloatArray, received: float,
               draw: bool) -> None:

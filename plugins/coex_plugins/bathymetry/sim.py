@@ -23,7 +23,7 @@ from __future__ import annotations
 import itertools
 from collections.abc import Iterator
 from dataclasses import dataclass, field
-from typing import Protocol
+from typing import Any, Protocol
 
 import numpy as np
 import numpy.typing as npt
@@ -166,7 +166,7 @@ class DemSeafloor:
         """A square of matplotlib's sample DEM ``name`` (its ``elevation`` array, north row first)."""
         import matplotlib.cbook as cbook
 
-        data = cbook.get_sample_data(name)
+        data: Any = cbook.get_sample_data(name)  # an NpzFile for a .npz
         heights = np.asarray(data["elevation"], np.float64)[::-1]  # row 0 south
         return cls(heights, **kw)  # type: ignore[arg-type]
 
