@@ -19,7 +19,7 @@ from coex import (
     subgrid_bits,
     to_stamp,
 )
-from coex.messages import Message, SubgridMessage
+from coex.messages import Message, PredictedSubgrid, SubgridContext, SubgridMessage
 
 from .context import ContextBook, Digests, Key, content_id
 
@@ -113,9 +113,6 @@ class SubgridCoding:
         q, present, updated = cells
         stamp = to_stamp(updated)
         res, vres = float(self.map.resolution), float(self.map.vertical_resolution)
-        alone = encode_subgrid(q, present, level=level, ix=ix, iy=iy, stamp=stamp, resolution=res,
-                               vertical_resolution=vres)
-        best: tuple[SubgridMessage, int] = (alone, (subgrid_bits(alone) + 7) // 8)
         parent = None
         if known:
             pc = self._cells((level + 1, ix >> 1, iy >> 1))
@@ -125,8 +122,15 @@ class SubgridCoding:
                     parent = None  # the parent changed there since: topside holds other cells
         got = encode_predicted(q, present, level=level, ix=ix, iy=iy, stamp=stamp, resolution=res,
                                vertical_resolution=vres, parent=parent)
-        if got is not None and (got[1] + 7) // 8 < best[1]:
-            best = (got[0], (got[1] + 7) // 8)
+        best: tuple[SubgridMessage, int] | None = None if got is None else (got[0], (got[1] + 7) // 8)
+        if best is None or not (isinstance(best[0], PredictedSubgrid) and best[0].context == SubgridContext.PARENT):
+            # coded on its own: the Subgrid encodings may be smaller (against a parent they
+            # almost never are, and are not tried: the time goes to the candidates that win)
+            alone = encode_subgrid(q, present, level=level, ix=ix, iy=iy, stamp=stamp, resolution=res,
+                                   vertical_resolution=vres)
+            size = (subgrid_bits(alone) + 7) // 8
+            if best is None or size < best[1]:
+                best = (alone, size)
         digests: Digests | None = None
         if level >= 1:
             me = SubgridParent(q, present)
