@@ -347,8 +347,11 @@ def encode_predicted(
     if (standalone and only is None) or (only is not None and only[0] == SubgridContext.NONE):
         z_base = int(vals[0])
         d = qa - z_base
+        # beside a usable parent, the median edge detector alone stands for NONE: the others
+        # (and NONE itself) almost never win there, and each candidate costs time
+        beside = only is None and any(c[1] == SubgridContext.PARENT for c in cands)
         for code, (_, corr) in enumerate(PREDICTORS[SubgridContext.NONE]):
-            if only is not None and only[1] != code:
+            if (only is not None and only[1] != code) or (beside and code != 1):
                 continue
             e = (d - _correction_all(d, pa, corr))[pa]
             cost = _cost_estimate(e) + HEADER_BITS[SubgridContext.NONE]

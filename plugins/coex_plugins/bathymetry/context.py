@@ -32,7 +32,7 @@ from collections import OrderedDict
 import numpy as np
 import numpy.typing as npt
 
-from coex import persistent, wire
+from coex import persistent
 from coex.messages import Message
 
 __all__ = ["ContextBook", "Key", "content_id", "message_id"]
@@ -45,8 +45,10 @@ Digests = tuple[int, int, int, int]
 
 
 def message_id(message: Message) -> int:
-    """A 64-bit digest of a message's wire bytes (the same in every process)."""
-    return int.from_bytes(hashlib.blake2b(wire.encode(message), digest_size=8).digest(), "big")
+    """A 64-bit digest of a message's fields (the same in every process: a message's ``repr``
+    holds its type, field values and enum members, never an address; cheaper than its bytes,
+    which a message built but not sent never needs)."""
+    return int.from_bytes(hashlib.blake2b(repr(message).encode(), digest_size=8).digest(), "big")
 
 
 def content_id(stamp: int, q: npt.NDArray[np.int64], present: npt.NDArray[np.bool_]) -> int:
