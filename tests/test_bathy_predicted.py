@@ -244,3 +244,40 @@ def test_lcm_map_summaries_rebuild_predicted_subgrids_from_their_parents() -> No
         assert lv.resolution == 2.0**level and lv.subgrids == len(receiver.holdings(level))
         assert lv.z_min == pytest.approx(np.rint(np.nanmin(grid) / 0.1) * 0.1)
         assert lv.z_max == pytest.approx(np.rint(np.nanmax(grid) / 0.1) * 0.1)
+
+
+def test_a_round_trip_with_acks_tells_the_sender_each_frames_fate() -> None:
+    """RoundTrip(acks=True): every message of a frame that arrived and whose ack came back is
+    acknowledged to the sender; every message of a lost frame (or of a lost ack) is lost."""
+    from coex_core.loopback import Bernoulli, RoundTrip
+
+    class Recorder(BathymetrySender):
+        def __init__(self) -> None:
+            super().__init__({"levels": LEVELS})
+            self.fates: list[tuple[str, object]] = []
+
+        def acked(self, message: object, now: float) -> None:  # type: ignore[override]
+            self.fates.append(("acked", message))
+            super().acked(message, now)  # type: ignore[arg-type]
+
+        def lost(self, message: object, now: float) -> None:  # type: ignore[override]
+            self.fates.append(("lost", message))
+            super().lost(message, now)  # type: ignore[arg-type]
+
+    _, survey = small_survey(48.0, 128)
+    sender = Recorder()
+    for t, xyz in survey.pings(batch=10):
+        sender.ingest(xyz, t)
+    receiver = BathymetryReceiver({"levels": LEVELS, "auto_fill": False})
+    link = RoundTrip(sender, receiver, down=Bernoulli(0.3, 5), up=Bernoulli(0.3, 6),
+                     now=float(survey.times[-1]) + 30.0, acks=True)
+    for _ in range(40):
+        link.step()
+    by_id = {id(m): fate for fate, m in sender.fates}
+    sent = [e for e in link.events if e.direction == "down"]
+    assert sent and len(by_id) == len({id(e.message) for e in sent})  # each message told once
+    assert {by_id[id(e.message)] for e in sent if e.lost} == {"lost"}
+    arrived = [by_id[id(e.message)] for e in sent if not e.lost]
+    assert "acked" in arrived and "lost" in arrived  # some acks were lost on the way up
+    quiet = RoundTrip(BathymetrySender({"levels": LEVELS}), BathymetryReceiver({"levels": LEVELS}))
+    assert quiet.acks is False  # by default the sender is told nothing (as before)
