@@ -281,3 +281,17 @@ def test_a_round_trip_with_acks_tells_the_sender_each_frames_fate() -> None:
     assert "acked" in arrived and "lost" in arrived  # some acks were lost on the way up
     quiet = RoundTrip(BathymetrySender({"levels": LEVELS}), BathymetryReceiver({"levels": LEVELS}))
     assert quiet.acks is False  # by default the sender is told nothing (as before)
+
+
+def test_the_largest_predicted_subgrid_takes_the_most_bytes_one_can() -> None:
+    """The size the spec gives for type 20 (its largest vector) is the true maximum: NONE (the
+    longest header) with coded cells within a few bits of the 1536 allowed (bytes round up)."""
+    from coex_core._wire._subgrid_code import CodedCells, encode_cells, table_for
+    from coex_core._wire.bathymetry import _LARGEST_PREDICTED as largest
+    from coex_core.predicted import HEADER_BITS
+
+    bits = len(encode_cells(largest.side, CodedCells(None, largest.cells.residuals), largest.shift,
+                            table_for(False, largest.level)))
+    assert 1536 - 3 <= bits <= 1536
+    assert len(wire.encode(largest)) == (HEADER_BITS[SubgridContext.NONE] + 1536 + 7) // 8 == wire.MAX_SIZES[
+        "PredictedSubgrid"]

@@ -402,11 +402,12 @@ def _pred(**kw: object) -> PredictedSubgrid:
     return PredictedSubgrid(**base)  # type: ignore[arg-type]
 
 
-#: The largest PredictedSubgrid: NONE (geometry and base), side 16, 1536 bits of coded cells.
+#: The largest PredictedSubgrid: NONE (geometry and base), side 16, coded cells within 3 bits of
+#: the 1536 allowed (so it takes the most bytes any can; a test checks it).
 _LARGEST_PREDICTED = _pred(
     level=15, ix=-8192, iy=8191, stamp=2**18 - 1, side=16, context=SubgridContext.NONE, predictor=3, shift=0,
     resolution=16.0, vertical_resolution=2.0, z_base=-(2**19),
-    cells=SubgridCells(None, tuple(11 if i % 2 else -11 for i in range(250)) + (0,) * 6))
+    cells=SubgridCells(None, tuple(12 if i % 2 else -12 for i in range(245)) + (0,) * 11))
 #: residuals of a typical 1 m subgrid predicted from its parent (0.1 m units)
 _TYPICAL = (0, 1, -1, 0, 2, 0, 0, -1, 1, 0, 0, -2, 1, 0, 0, 0, -1, 0, 3, 1, 0, 0, -1, 0, 0, 0, 1, -1, 0,
             2, 0, 0, 1, 0, 0, -1, 0, 0, 0, 1, 0, -3, 1, 0, 0, 0, 1, 0, -1, 0, 0, 2, -1, 0, 0, 0, 1, 0, 0, -1,
