@@ -87,6 +87,18 @@ from coex_core.loopback import Bernoulli, LoopbackLink, LossModel, RoundTrip, Wi
 from coex_core.messages import Frame, FrameHeader, Message
 from coex_core.modality import Modality, ModalityReceiver, ModalitySender, Product
 from coex_core.node import Node
+from coex_core.predicted import (
+    ContextMismatch,
+    SubgridParent,
+    decode_predicted,
+    decode_predicted_units,
+    encode_predicted,
+    parent_from_rows,
+    parent_from_values,
+    region_digest,
+    subgrid_units,
+    units_rows,
+)
 from coex_core.registry import (
     available,
     check_transport_uri,
@@ -198,9 +210,19 @@ __all__ = [
     "check_autonomy_options",
     "check_options",
     "check_transport_uri",
+    "ContextMismatch",
+    "SubgridParent",
+    "decode_predicted",
+    "decode_predicted_units",
     "decode_subgrid",
     "decode_subgrid_units",
+    "encode_predicted",
     "encode_subgrid",
+    "parent_from_rows",
+    "parent_from_values",
+    "region_digest",
+    "subgrid_units",
+    "units_rows",
     "errors",
     "from_json",
     "load_detector",

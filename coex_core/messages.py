@@ -45,6 +45,10 @@ __all__ = [
     "MapRoiRequest",
     "MapRoiReply",
     "SubgridEncoding",
+    "SubgridContext",
+    "SubgridCells",
+    "PredictedSubgrid",
+    "SubgridMessage",
     # imagery
     "ImageAnnounce",
     "ImageFragment",
@@ -379,6 +383,59 @@ class Subgrid(Message):
     values: tuple[int, ...]
     slope_x: int | None = None
     slope_y: int | None = None
+
+
+class SubgridContext(enum.IntEnum):
+    """What a :class:`PredictedSubgrid` is predicted from (``spec/payloads.md`` section 1.6).
+
+    * ``NONE``: its own ``z_base``: it decodes on its own, like a :class:`Subgrid`.
+    * ``PARENT``: the cells of its parent subgrid (the level above, ``(ix >> 1, iy >> 1)``) as
+      the receiver holds them; ``check`` is a CRC-8 of the parent's cells the prediction reads,
+      so a receiver that holds other cells there knows it cannot decode the subgrid (yet)."""
+
+    NONE = 0
+    PARENT = 1
+
+
+@dataclass(frozen=True, slots=True)
+class SubgridCells:
+    """The arithmetic-coded part of a :class:`PredictedSubgrid`: ``mask`` (one bit per cell,
+    row-major, most significant bit = cell (0, 0), 1 = present; ``None``: every cell present)
+    and the residual of each present cell in row-major order (signed integers, vertical units)."""
+
+    mask: int | None
+    residuals: tuple[int, ...]
+
+
+@dataclass(frozen=True, slots=True)
+class PredictedSubgrid(Message):
+    """A square block of ``side x side`` cells at one level, predicted from what topside already
+    holds (its parent subgrid, ``context`` PARENT) or from its own base (``NONE``), the residuals
+    arithmetic-coded. Cells and geometry as :class:`Subgrid`; elevations (vertical units) are
+    rebuilt by ``coex_core.predicted.decode_predicted_units`` from the message and, for PARENT,
+    the parent's cells. ``predictor`` (0..3) picks the prediction of the context's table and
+    ``shift`` (0..3) how many low bits of each residual are sent raw. ``resolution``,
+    ``vertical_resolution`` and ``z_base`` are sent with ``NONE`` only (``PARENT``: the parent's
+    geometry; ``None`` here); ``check`` with ``PARENT`` only."""
+
+    level: int
+    ix: int
+    iy: int
+    stamp: int
+    side: int
+    context: SubgridContext
+    predictor: int
+    shift: int
+    cells: SubgridCells
+    check: int | None = None
+    resolution: float | None = None
+    vertical_resolution: float | None = None
+    z_base: int | None = None
+
+
+#: Either form of a subgrid on the wire: ``isinstance(m, SubgridMessage)`` (a receiver, a filter
+#: of what a sender filled) takes both.
+SubgridMessage = Subgrid | PredictedSubgrid
 
 
 @dataclass(frozen=True, slots=True)

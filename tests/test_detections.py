@@ -13,7 +13,13 @@ import pytest
 from coex_core import wire
 from coex_core.detect import Detector, Finding
 from coex_core.errors import ConfigError, RequestRejected
-from coex_core.messages import Detection, DetectionSource, MapRoiRequest, Message, Subgrid
+from coex_core.messages import (
+    Detection,
+    DetectionSource,
+    MapRoiRequest,
+    Message,
+    SubgridMessage,
+)
 from coex_core.modality import ModalitySender
 from coex_core.registry import load_detector
 from coex_core.timefmt import to_stamp
@@ -139,17 +145,17 @@ def test_focus_queues_the_finest_subgrids_around_a_detection_ahead_of_the_backgr
     n = sender.focus(car.x, car.y, 12.0, now)
     assert 4 <= n <= 16
     first = sender.fill(240, now)
-    subs = [m for m in first if isinstance(m, Subgrid)]
+    subs = [m for m in first if isinstance(m, SubgridMessage)]
     assert subs and all(s.level == 0 for s in subs)
     nearest = subs[0]
     assert math.hypot((nearest.ix + 0.5) * 8 - car.x, (nearest.iy + 0.5) * 8 - car.y) <= 8.0
     sent = list(subs)
     while len(sent) < n:
-        sent += [m for m in sender.fill(240, now) if isinstance(m, Subgrid) and m.level == 0]
+        sent += [m for m in sender.fill(240, now) if isinstance(m, SubgridMessage) and m.level == 0]
     assert sender.focus(car.x, car.y, 12.0, now) == 0  # sent (and not found lost) already
     assert sender.focus_bytes == sum(wire.encoded_size(s) for s in sent[:n])
     sender.lost(sent[0], now + 1.0)
-    again = [m for m in sender.fill(240, now + 2.0) if isinstance(m, Subgrid)]
+    again = [m for m in sender.fill(240, now + 2.0) if isinstance(m, SubgridMessage)]
     assert again[0] == sent[0], "a lost neighbourhood subgrid goes again, ahead of the background"
 
 
@@ -161,14 +167,14 @@ def test_on_a_low_link_the_finest_level_is_spare_work_not_background() -> None:
     levels: set[int] = set()
     for i in range(400):
         got = sender.fill(240, now + i)
-        if not any(isinstance(m, Subgrid) for m in got):
+        if not any(isinstance(m, SubgridMessage) for m in got):
             break
-        levels |= {m.level for m in got if isinstance(m, Subgrid)}
+        levels |= {m.level for m in got if isinstance(m, SubgridMessage)}
     assert levels and 0 not in levels
-    spare = [m for m in sender.spare(240, now + 500) if isinstance(m, Subgrid)]
+    spare = [m for m in sender.spare(240, now + 500) if isinstance(m, SubgridMessage)]
     assert spare and {m.level for m in spare} == {0}
     sender.throughput(300.0, False, now + 501)
-    assert any(isinstance(m, Subgrid) and m.level == 0 for m in sender.fill(240, now + 502))
+    assert any(isinstance(m, SubgridMessage) and m.level == 0 for m in sender.fill(240, now + 502))
 
 
 class FakeMapSender(ModalitySender):

@@ -18,7 +18,13 @@ import pytest
 
 from coex_core import wire
 from coex_core.errors import DecodeError
-from coex_core.messages import FrameAck, ImageAck, ImageFragment, MapRoiRequest, Subgrid
+from coex_core.messages import (
+    FrameAck,
+    ImageAck,
+    ImageFragment,
+    MapRoiRequest,
+    SubgridMessage,
+)
 from coex_runtime.store import NodeStore
 from coex_transports.lcm.testing import TEST_UDPM_URL, ensure_multicast_route, unique_channel
 
@@ -143,7 +149,7 @@ def test_kill_and_restart_both_sides_at_random_moments(tmp_path: Path, lcm_uri: 
     finally:
         store.close()
     assert starts == 1 + sum(r == "topside" for r, _ in kills)
-    assert received > 100
+    assert received > 60  # frames (fewer since subgrids are predicted from their parents)
     store = NodeStore(vdb, read_only=True)
     try:
         rows = list(store.journal())
@@ -168,7 +174,7 @@ def test_kill_and_restart_both_sides_at_random_moments(tmp_path: Path, lcm_uri: 
         except DecodeError:
             continue
         if r.kind == "tx":
-            keys = {(msg.level, msg.ix, msg.iy, msg.stamp) for msg in frame.messages if isinstance(msg, Subgrid)}
+            keys = {(msg.level, msg.ix, msg.iy, msg.stamp) for msg in frame.messages if isinstance(msg, SubgridMessage)}
             for msg in frame.messages:
                 if isinstance(msg, ImageFragment):
                     image_bytes += len(msg.data)
@@ -176,7 +182,7 @@ def test_kill_and_restart_both_sides_at_random_moments(tmp_path: Path, lcm_uri: 
                     image_again += sum(max(0, min(b, e) - max(a, s)) for s, e in held.get(msg.image_id, []))
             sent += len(keys)
             for msg in frame.messages:
-                k = (msg.level, msg.ix, msg.iy, msg.stamp) if isinstance(msg, Subgrid) else None
+                k = (msg.level, msg.ix, msg.iy, msg.stamp) if isinstance(msg, SubgridMessage) else None
                 if k is None:
                     continue
                 if k in acked:

@@ -325,7 +325,7 @@ class LcmTransport(Transport):
 
     def _publish_decoded(self, data: bytes) -> None:
         """Publish the decoded types of one received frame (never disturbs frame delivery)."""
-        from coex_core.messages import Subgrid, VehicleStatus
+        from coex_core.messages import SubgridMessage, VehicleStatus
         from coex_core.wire import unpack
 
         from .products import (
@@ -348,7 +348,7 @@ class LcmTransport(Transport):
                 if isinstance(message, VehicleStatus):
                     self._inst.lcm.publish(VEHICLE_STATUS_CHANNEL, vehicle_status_to_lcm(message, utime).encode())
                     self._counts["decoded"] += 1
-                elif isinstance(message, Subgrid):
+                elif isinstance(message, SubgridMessage):
                     if self._maps is None:
                         self._maps = MapLevelSummary()
                     levels.add(self._maps.add(message))

@@ -34,7 +34,7 @@ import numpy as np
 from coex_core import registry
 from coex_core.errors import ConfigError, DecodeError
 from coex_core.jsonfmt import to_json
-from coex_core.messages import Message, Subgrid, VehicleStatus
+from coex_core.messages import Message, SubgridMessage, VehicleStatus
 from coex_core.modality import Modality, ModalityReceiver, Product
 
 from ._codec import is_frame_t, unpack_event
@@ -270,7 +270,7 @@ class _Replay:
             self.last_status = message
             self.decoded_events.append(
                 (utime, VEHICLE_STATUS_CHANNEL, vehicle_status_to_lcm(message, utime).encode()))
-        elif isinstance(message, Subgrid):
+        elif isinstance(message, SubgridMessage):
             levels.add(self.maps.add(message))
         targets = self.routes.get(type(message), [])
         if not targets:
