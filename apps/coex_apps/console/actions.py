@@ -9,7 +9,7 @@ from __future__ import annotations
 import abc
 import math
 from collections.abc import Callable, Mapping, Sequence
-from typing import Any, cast
+from typing import Any
 
 import numpy as np
 
@@ -259,7 +259,7 @@ class ConsoleActions:
             except CoexError as exc:
                 raise RequestRejected(str(exc)) from None
             self.state.record_command(msg, now, text)
-            return cast(m.ImageRegionRequest, msg)
+            return msg
         msg = m.ImageRegionRequest(self._cid(), iid, bx0, by0, bx1, by1, goal, code)
         self._emit([msg], [text])
         return msg

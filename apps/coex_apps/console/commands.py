@@ -11,80 +11,24 @@ from __future__ import annotations
 
 import enum
 from collections.abc import Sequence
-from dataclasses import dataclass
 from typing import Any, cast
 
 from coex import messages as m
-from coex import persistent, unwrap
+from coex import unwrap
 from coex.tracker import TRANSITIONS, Event, State, Tracked, answer_event
 
-from .mapview import _RoiRequest
+from .images import ImagesView
+from .mapview import MapView
+from .model import OPEN_COMMAND_STATES
+from .records import _Command, _RoiRequest
+from .surveys import SurveysView
 from .words import _num, ack_reason, hms, region_words
 
 __all__ = ["OPEN_COMMAND_STATES", "CommandsView"]
 
-#: A command in these states may still be answered (``pending``: it stands on the vehicle).
-OPEN_COMMAND_STATES = ("sent", "pending")
-
-#: saved ``status`` of version 1 -> the tracker's state
-_V1_STATES = {"queued": State.QUEUED, "sent": State.SENT, "pending": State.PENDING, "accepted": State.DONE}
-
-
-def _upgrade_command(fields: dict[str, Any], saved: int) -> dict[str, Any]:
-    """Version 1 kept its own ``status`` (a word) and ``answered``: now the core tracker's
-    entry holds them (the vehicle's answer, upper case, in ``answer``)."""
-    if saved < 2:
-        status = str(fields.pop("status", "sent"))
-        answered = fields.pop("answered", None)
-        state = _V1_STATES.get(status, State.REFUSED)
-        sent = float(fields.get("sent", 0.0))
-        fields["track"] = Tracked(None, state, None if state is State.QUEUED else sent,
-                                  0 if state is State.QUEUED else 1, answered_at=answered,
-                                  answer="" if state in (State.QUEUED, State.SENT) else status.upper())
-    return fields
-
-
-@persistent("console.Command", version=2, upgrade=_upgrade_command)
-@dataclass
-class _Command:
-    """A command in the console's list: what it was, who sent it and when, and its state in
-    the core tracker (``track``; sent at ``sent`` unless given)."""
-
-    command_id: int
-    kind: str
-    summary: str
-    sent: float
-    message: m.Message
-    roi_key: int | None = None
-    #: who sent it: the signed-in operator ("" for a console without sign-in)
-    by: str = ""
-    #: why the vehicle answered as it did, in words (a rejection's likely cause)
-    reason: str = ""
-    #: its state (None when made: sent at ``sent``)
-    track: Tracked[None] = None  # type: ignore[assignment]
-
-    def __post_init__(self) -> None:
-        if self.track is None:
-            self.track = Tracked(None)
-            self.track.apply(Event.SEND, self.sent)
-
-    @property
-    def status(self) -> str:
-        """The command as the page lists it: the vehicle's answer (lower case) once there is
-        one, else the tracker's state."""
-        t = self.track
-        if t.answer and t.state in (State.PENDING, State.DONE, State.REFUSED):
-            return t.answer.lower()
-        return t.state.value
-
-    @property
-    def answered(self) -> float | None:
-        """When the vehicle answered (None: not yet)."""
-        return self.track.answered_at
-
-
-class CommandsView:
-    """The commands part of :class:`~coex_apps.console.state.ConsoleState`."""
+class CommandsView(MapView, SurveysView, ImagesView):
+    """The commands part of :class:`~coex_apps.console.state.ConsoleState`: a map, surveys and
+    images view too, since the list shows what became of a map region, a survey and an image."""
 
     def record_command(self, msg: m.Message, now: float, summary: str = "") -> None:
         """Remember a command the operator sent (shown as pending until answered)."""

@@ -11,17 +11,14 @@ from __future__ import annotations
 
 import math
 from collections.abc import Mapping
-from dataclasses import dataclass, field
 from typing import Any, cast
 
-from coex import Product, persistent, unwrap
+from coex import Product, unwrap
 from coex import messages as m
 
-from .commands import OPEN_COMMAND_STATES
+from .model import OPEN_COMMAND_STATES, ConsoleModel
+from .records import _Crop, _Image
 from .words import _num, ack_reason
-
-#: an image the console keeps (``state._Image``; the state module imports this one)
-_Image = Any
 
 __all__ = ["MAX_CROPS", "MAX_IMAGE_REGIONS", "ImagesView"]
 
@@ -31,23 +28,18 @@ MAX_IMAGE_REGIONS = 12
 MAX_CROPS = 64
 
 
-@persistent("console.Crop")
-@dataclass
-class _Crop:
-    """A crop the imagery receiver holds (a region of an image coded on its own): what it shows
-    of its box and the receiver's meta (``parent``, ``box``, ``command_id``, bytes ...)."""
-
-    crop_id: int
-    decoded: Any = None
-    decoded_version: int = -1
-    meta: dict[str, Any] = field(default_factory=dict)
-    png: bytes | None = None
-    png_version: int = -1
-
-
-
-class ImagesView:
+class ImagesView(ConsoleModel):
     """The images part of :class:`~coex_apps.console.state.ConsoleState`."""
+
+    def _image(self, image_id: int) -> _Image:
+        img = self.images.get(image_id)
+        if img is None:
+            img = self.images[image_id] = _Image(image_id)
+            while len(self.images) > max(self.max_images, 1):  # the oldest go (those without a time first)
+                oldest = min((i for i in self.images.values() if i is not img),
+                             key=lambda i: (i.t is not None, i.t or 0.0, i.image_id))
+                del self.images[oldest.image_id]
+        return img
 
     def _image_product(self, product: Product, data: Any, meta: dict[str, Any], now: float) -> None:
         iid = meta.get("image_id")
@@ -143,7 +135,7 @@ class ImagesView:
             msg = c.message if c is not None else None
             if c is None or not isinstance(msg, m.ImageRegionRequest) or msg.image_id != img.image_id:
                 continue
-            box = (msg.x0, msg.y0, msg.x1, msg.y1)
+            box: tuple[int, ...] = (msg.x0, msg.y0, msg.x1, msg.y1)
             rx_row = known.pop((msg.command_id, box), None)
             state = {"sent": "requested", "queued": "requested", "pending": "waiting",
                      "accepted": "accepted"}.get(c.status, "rejected")
@@ -187,7 +179,7 @@ class ImagesView:
                                   if held is not None and held.decoded is not None else None)
         return out
 
-    def _footprint(self, img: _Image) -> list[float] | None:
+    def _footprint(self, img: _Image) -> list[float | None] | None:
         """The seafloor an image covers, ``[width, height]`` in metres: the camera's field of
         view (:attr:`camera_fov`, degrees across and along) at the altitude the vehicle reported
         nearest the image's time. None without a position or an altitude."""

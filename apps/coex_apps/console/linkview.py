@@ -14,12 +14,13 @@ from coex import messages as m
 from coex import unwrap
 from coex.wire import encoded_size
 
+from .model import ConsoleModel
 from .words import _num
 
 __all__ = ["LinkView"]
 
 
-class LinkView:
+class LinkView(ConsoleModel):
     """The link and queues part of :class:`~coex_apps.console.state.ConsoleState`."""
 
     def set_schedule(self, link: int, schedule: Any) -> None:

@@ -10,15 +10,15 @@ from __future__ import annotations
 
 import math
 from collections.abc import Iterable, Mapping
-from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 import numpy.typing as npt
 
-from coex import persistent
-from coex_plugins.bathymetry import Region
+from coex_plugins.bathymetry import BathymetryReceiver
 
+from .model import ConsoleModel
+from .records import _RoiRequest
 from .words import _num, gap_words
 
 __all__ = ["MAP_BLOCKS", "MapView", "map_delta"]
@@ -30,26 +30,23 @@ FloatArray = npt.NDArray[np.float64]
 MAP_BLOCKS = 4096
 
 
-@persistent("console.RoiRequest")
-@dataclass
-class _RoiRequest:
-    """A map region asked from the console: the bathymetry receiver's region object (which
-    it sends, retries and closes), and when it was asked."""
-
-    level: int
-    x0: int
-    y0: int
-    w: int
-    h: int
-    sent: float
-    region: Region
-    #: the most subgrids the vehicle said it queued for it (0: it never sent anything)
-    got: int = 0
-
-
-
-class MapView:
+class MapView(ConsoleModel):
     """The map part of :class:`~coex_apps.console.state.ConsoleState`."""
+
+    @property
+    def map_receiver(self) -> BathymetryReceiver | None:
+        """The bathymetry receiver whose levels the map shows (None before any): with topside's
+        navigation applied, seen through it (each subgrid placed by the drift correction at its
+        stamp, :class:`coex_plugins.navigation.CorrectedMap`)."""
+        rx = self.receivers.get("bathymetry")
+        if not isinstance(rx, BathymetryReceiver):
+            return None
+        nav = self.navigation
+        if nav is not None and nav.apply:
+            from coex_plugins.navigation import CorrectedMap
+
+            return CorrectedMap(rx, nav, self.vehicle_id)  # type: ignore[return-value]
+        return rx
 
     def _map_product(self, data: Any, meta: Mapping[str, Any]) -> None:
         """A level of the bathymetry receiver changed: its depth range widens the colour scale
@@ -92,6 +89,7 @@ class MapView:
         rx = self.map_receiver
         levels = []
         for level in sorted(rx.levels(), reverse=True) if rx is not None else ():
+            assert rx is not None
             geometry = rx.geometry(level)
             if geometry is None:
                 continue
@@ -205,7 +203,7 @@ class MapView:
             return float(geometry[0] * geometry[1])
         if meta is not None:
             return float(meta.resolution * 2 ** level * meta.subgrid_side)
-        return 8.0 * 2 ** level
+        return float(8.0 * 2 ** level)
 
     def _snap_roi(self, r: _RoiRequest) -> dict[str, Any]:
         """A region request as the bathymetry receiver sends and retries it: ``waiting`` (not

@@ -11,11 +11,14 @@
   until the vehicle answers (``CommandAck``/``MapRoiReply``) or the data arrives. Pictures are
   drawn by :mod:`.render`, words made by :mod:`.words`.
 
-The state is one class; its concerns are in modules of their own, each a part of it:
-:mod:`.mapview` (levels, targets, map regions), :mod:`.surveys`, :mod:`.images` (images, regions
-of them, crops), :mod:`.linkview` (links, schedules, queues) and :mod:`.commands` (the commands
-list, a view of the core tracker's states, :mod:`coex_core.tracker`). Names they define are
-importable from here as before.
+The state is one declared class: :class:`~.model.ConsoleModel` (module :mod:`.model`) declares
+and makes every attribute, with its type, and keeps the bookkeeping (section versions, the event
+log); its concerns are in modules of their own, each a subclass of it: :mod:`.mapview` (levels,
+targets, map regions), :mod:`.surveys`, :mod:`.images` (images, regions of them, crops),
+:mod:`.linkview` (links, schedules, queues) and :mod:`.commands` (the commands list, a view of the
+core tracker's states, :mod:`coex_core.tracker`; a map, surveys and images view too, since it
+shows what became of each). Strict mypy reads every part against that one declaration. Names
+they define are importable from here as before.
 
 Nothing here does I/O or reads a clock: time enters as ``now``. The server adds the locking.
 """
@@ -25,7 +28,6 @@ from __future__ import annotations
 import math
 from collections import deque
 from collections.abc import Callable, Iterable, Mapping
-from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
@@ -52,20 +54,24 @@ from coex_core.channel.events import ScheduleSwitched, SenderFailed
 from coex_plugins.bathymetry import BathymetryReceiver
 from coex_plugins.timeseries import Series
 
-from .commands import OPEN_COMMAND_STATES, CommandsView, _Command
-from .images import MAX_CROPS, MAX_IMAGE_REGIONS, ImagesView, _Crop
+from .commands import OPEN_COMMAND_STATES, CommandsView
+from .images import MAX_CROPS, MAX_IMAGE_REGIONS
 from .linkview import LinkView
-from .mapview import MAP_BLOCKS, MapView, _RoiRequest, map_delta
+from .mapview import MAP_BLOCKS, map_delta
+from .model import MAX_IMAGES, MAX_REPEATS, REPEAT_WINDOW, SECTIONS
 from .render import THUMB_SIDE, _picture, elevation_rgb, png_bytes
-from .surveys import MAX_SURVEYS, SURVEY_OUTCOMES, SURVEY_STATES, SurveysView
-from .words import _counted, _modality_of, _num
+from .surveys import MAX_SURVEYS, SURVEY_OUTCOMES, SURVEY_STATES
+from .words import _modality_of, _num
 
 __all__ = [
     "MAP_BLOCKS",
     "MAX_CROPS",
     "MAX_IMAGE_REGIONS",
+    "MAX_IMAGES",
+    "MAX_REPEATS",
     "MAX_SURVEYS",
     "OPEN_COMMAND_STATES",
+    "REPEAT_WINDOW",
     "SECTIONS",
     "SURVEY_OUTCOMES",
     "SURVEY_STATES",
@@ -75,43 +81,14 @@ __all__ = [
     "elevation_rgb",
 ]
 
-#: The sections of a snapshot, in the order the page lays them out.
-SECTIONS = ("vehicle", "map", "surveys", "images", "series", "other", "link", "queues", "commands",
-            "log", "navigation")
-
 #: Modalities with a panel of their own; the products of any other go to the generic panel.
 OWN_PANELS = ("bathymetry", "imagery", "timeseries", "survey", "detections")
 
-#: Events of one kind (one log key) within this many seconds of the first are counted in one
-#: entry of the event log, updated in place, instead of one entry each.
-REPEAT_WINDOW = 600.0
-#: Counted entries remembered at most (beyond it the oldest start again as a new entry).
-MAX_REPEATS = 64
-
-#: Images the console keeps (the newest by time; the imagery receiver's ``max_images`` default):
-#: a dive of several days does not grow the console's memory and saved state with every picture
-MAX_IMAGES = 256
 #: The largest picture of what is on screen (``/map/<level>/window.png``), in pixels.
 MAP_WINDOW_CELLS = 4 * 1024 * 1024
 
 
 FloatArray = npt.NDArray[np.float64]
-
-
-@persistent("console.Image")
-@dataclass
-class _Image:
-    image_id: int
-    t: float | None = None
-    goal: tuple[str, int] | None = None
-    version: int = 0
-    thumb: bytes | None = None
-    thumb_version: int = -1
-    decoded: Any = None
-    decoded_version: int = -1
-    decoded_meta: dict[str, Any] = field(default_factory=dict)
-    #: the regions the imagery receiver lists for it (its product's ``regions``)
-    regions: list[dict[str, Any]] = field(default_factory=list)
 
 
 #: caches (pictures, summaries) are not state: they are made again when needed
@@ -137,22 +114,13 @@ def _upgrade_state(fields: dict[str, Any], saved: int) -> dict[str, Any]:
 @persistent("console.State", version=2, upgrade=_upgrade_state,
             transient=("_region_ids", "_png", "_map_summary", "_targets_cache", "_survey_sig", "_survey_rows",
                        "_repeats", "max_images", "navigation"))
-class ConsoleState(MapView, SurveysView, ImagesView, LinkView, CommandsView):
+class ConsoleState(CommandsView, LinkView):
     """Everything the console shows, built from messages, products and events.
 
     ``stream_names`` names queue streams (id -> name); ``schedules`` gives the TDMA schedule of
     each link (``link -> coex_core.channel.schedule.Schedule`` or anything with ``to_dict()``, or
     a plain dict ``{"version", "epoch", "slots": [{"owner", "duration", "guard", ...}]}``);
     ``node_id`` is topside's node id (its slots are drawn as "ours")."""
-
-    #: the operator whose action is running (set by :meth:`ConsoleActions.dispatch`)
-    actor: str = ""
-    #: images kept (the newest): :data:`MAX_IMAGES`, or fewer when the imagery receiver shown
-    #: keeps fewer (``coex topside`` sets it from the receiver's ``max_images``; not saved)
-    max_images: int = MAX_IMAGES
-    #: topside's navigation (:class:`coex_plugins.navigation.Navigation`: USBL fixes, the drift
-    #: estimate; ``[usbl]`` of the topside file, issue 56), or None; not saved
-    navigation: Any = None
 
     def __init__(
         self,
@@ -166,89 +134,11 @@ class ConsoleState(MapView, SurveysView, ImagesView, LinkView, CommandsView):
         auto_targets: bool = True,
         receivers: Mapping[str, ModalityReceiver] | None = None,
     ) -> None:
-        self.node_id = node_id
-        self.vehicle_id = vehicle_id
-        self.now = 0.0
-        self.stream_names = dict(stream_names or {})
-        self.versions: dict[str, int] = dict.fromkeys(SECTIONS, 0)
-        # vehicle
-        self.status: m.VehicleStatus | None = None
-        self.status_t: float | None = None
-        #: why contact ended for good (the dive is over, the link closed), or None
-        self.ended: str | None = None
-        self.ended_t: float | None = None
-        self.track: deque[tuple[float, float, float, float]] = deque(maxlen=max_track)
-        #: modality name -> its topside receiver: a node's (the console shows what they hold
-        #: and never decodes anything itself), or, without ``receivers``, the console's own,
-        #: made from the registry when a modality's first message arrives (a view of raw
-        #: messages: a log replay, a test)
-        self.receivers: dict[str, ModalityReceiver] = dict(receivers or {})
-        self.own_receivers = receivers is None
-        # map (the bathymetry receiver's levels)
-        #: per level: (version, summary, coverage span, keys, oldest stamps, image box, step)
-        self._map_summary: dict[int, tuple[int, Any, int, Any, Any, list[float], int]] = {}
-        self._png: dict[int, tuple[int, bytes]] = {}
-        self.targets: list[dict[str, Any]] = []
-        #: Flag candidate targets on the finest level (threshold in metres, minimum cells).
-        self.auto_targets = auto_targets
-        self.target_threshold = 0.8
-        self.target_min_cells = 3
-        #: At most this many markers, at least this far apart (metres).
-        self.max_targets = 8
-        self.target_spacing = 6.0
-        self._targets_cache: tuple[Any, list[dict[str, Any]]] = (None, [])
-        #: the vehicle's detections (the detections receiver's rows): suggestions, shown on the
-        #: map apart from the candidates the console or the operator flagged
-        self.detections: list[dict[str, Any]] = []
-        self.roi: dict[int, _RoiRequest] = {}
-        self._region_count = 0
-        self._region_sig: tuple[Any, ...] = ()
-        self._region_ids: set[int] = set()
-        #: A bathymetry receiver whose operator regions (not its automatic gap filling) are
-        #: shown even when someone else asked for them (a script, another tool).
-        bathymetry = self.receivers.get("bathymetry")
-        self.region_source = bathymetry if isinstance(bathymetry, BathymetryReceiver) else None
-        self._zrange: tuple[float, float] | None = None
-        # surveys: the survey receiver's records (what it asked and what the vehicle answered);
-        # products of a survey receiver the console does not hold (rare) are kept here
-        self.survey_products: dict[int, dict[str, Any]] = {}
-        self._survey_sig: tuple[Any, ...] | None = None
-        self._survey_rows: dict[int, tuple[int, dict[str, Any]]] = {}
-        # images
-        self.images: dict[int, _Image] = {}
-        #: the crops of images the receiver holds, by crop id (the newest MAX_CROPS)
-        self.crops: dict[int, _Crop] = {}
-        self.progress_info: dict[str, Any] | None = None
-        self.image_queries: list[dict[str, Any]] = []
-        #: (time, altitude) of the vehicle's statuses: where an image's footprint comes from
-        self.altitudes: deque[tuple[float, float]] = deque(maxlen=2000)
-        #: The camera's field of view in degrees (across, along): image footprints on the map.
-        self.camera_fov = (60.0, 45.0)
-        # series
-        self.series: dict[int, dict[str, Any]] = {}
-        self.series_requests: list[dict[str, Any]] = []
-        # other modalities: name -> product key -> what the generic panel shows
-        self.other: dict[str, dict[str, dict[str, Any]]] = {}
-        # link
-        self.links: dict[int, dict[str, Any]] = {}
-        self.schedules: dict[int, dict[str, Any]] = {}
+        super().__init__(node_id=node_id, vehicle_id=vehicle_id, stream_names=stream_names,
+                         max_track=max_track, max_log=max_log, auto_targets=auto_targets,
+                         receivers=receivers)
         for link, sch in (schedules or {}).items():
             self.set_schedule(link, sch)
-        self.bad_frames = 0
-        # queues
-        self.queue_stamp: float | None = None
-        self.streams: dict[int, dict[str, Any]] = {}
-        # commands and log
-        self.commands: dict[int, _Command] = {}
-        self.command_order: deque[int] = deque(maxlen=64)
-        self._foreign_acks: dict[int, tuple[str, float]] = {}
-        self.log: deque[dict[str, Any]] = deque(maxlen=max_log)
-        #: the number of the next log entry
-        self._log_seq = 0
-        #: log key -> its counted entry (one in ``log``), see :meth:`_log`
-        self._repeats: dict[str, dict[str, Any]] = {}
-        #: survey id -> the history entries already in the event log
-        self._survey_logged: dict[int, list[tuple[float, str, str]]] = {}
 
     def _after_restore(self) -> None:
         """A topside store saves the console with its node (:mod:`coex_core.state`); object
@@ -266,51 +156,6 @@ class ConsoleState(MapView, SurveysView, ImagesView, LinkView, CommandsView):
             if e.get("key") is not None:
                 self._repeats[str(e["key"])] = e
 
-    # -------------------------------------------------------------------- bookkeeping
-    def _touch(self, *sections: str) -> None:
-        for s in sections:
-            self.versions[s] += 1
-
-    def _log(self, now: float, text: str, level: str = "info", *, key: str | None = None,
-             count: int = 1) -> None:
-        """Add ``text`` to the event log at ``now``.
-
-        With a ``key`` (one kind of event: "dropped|2|superseded"), events of that kind are
-        counted, not listed: within :data:`REPEAT_WINDOW` of the first, a new one updates that
-        entry in place (its total ``count``, its number of events ``n``, its ``last`` time)
-        instead of adding one, so a stream dropping a message every few seconds takes one line
-        in ten minutes and the list keeps the events that matter. ``{n}`` in ``text`` is
-        replaced by the total of the ``count`` s ("stream 2: {n} dropped (superseded)"); without
-        it the text says how many times it happened. Memory is bounded: the log is a deque and
-        at most :data:`MAX_REPEATS` keys are followed."""
-        self._touch("log")
-        entry = self._repeats.get(key) if key is not None else None
-        if entry is not None and (now - float(entry["t"] or 0.0) > REPEAT_WINDOW or not self.log
-                                  or int(entry.get("id", -1)) < int(self.log[0].get("id", -1))):
-            del self._repeats[key]  # its window is over, or it left the log: a new entry
-            entry = None
-        if entry is not None:
-            entry["n"] += 1
-            entry["count"] += int(count)
-            entry["last"] = _num(max(now, float(entry["last"] or now)), 1)
-            entry["level"] = "warn" if "warn" in (level, entry["level"]) else level
-            entry["text"] = _counted(entry["base"], entry["count"], entry["n"],
-                                     float(entry["last"] or now) - float(entry["t"] or now))
-            return
-        entry = {"id": self._log_seq, "t": _num(now, 1), "level": level,
-                 "text": _counted(text, int(count), 1, 0.0)}
-        self._log_seq += 1
-        if key is not None:
-            entry.update(key=key, base=text, n=1, count=int(count), last=_num(now, 1))
-            if len(self._repeats) >= MAX_REPEATS:
-                del self._repeats[next(iter(self._repeats))]
-            self._repeats[key] = entry
-        self.log.append(entry)
-
-    def _advance(self, now: float) -> None:
-        if now > self.now:
-            self.now = float(now)
-
     # ------------------------------------------------------------------------ inputs
     def apply_message(self, msg: m.Message, now: float, link: int | None = None) -> set[str]:
         """Take one received message (any type; unknown ones are ignored). Returns the sections
@@ -324,12 +169,12 @@ class ConsoleState(MapView, SurveysView, ImagesView, LinkView, CommandsView):
         elif self.own_receivers:  # a node's receivers get their messages from the node
             name = _modality_of(msg)
             rx = self._receiver(name) if name is not None else None
-            if rx is not None:
+            if name is not None and rx is not None:
                 for p in rx.receive(msg, now) or ():
                     self.apply_product(name, p, now)
         return {s for s in SECTIONS if self.versions[s] != before[s]}
 
-    def _receiver(self, name: str | None) -> Any:
+    def _receiver(self, name: str | None) -> ModalityReceiver | None:
         """The receiver of modality ``name``: the node's, or one the console makes (view of raw
         messages) from the registry (None when the modality is not installed)."""
         if name is None:
@@ -344,21 +189,6 @@ class ConsoleState(MapView, SurveysView, ImagesView, LinkView, CommandsView):
                 return None
             if isinstance(rx, BathymetryReceiver):
                 self.region_source = rx
-        return rx
-
-    @property
-    def map_receiver(self) -> BathymetryReceiver | None:
-        """The bathymetry receiver whose levels the map shows (None before any): with topside's
-        navigation applied, seen through it (each subgrid placed by the drift correction at its
-        stamp, :class:`coex_plugins.navigation.CorrectedMap`)."""
-        rx = self.receivers.get("bathymetry")
-        if not isinstance(rx, BathymetryReceiver):
-            return None
-        nav = self.navigation
-        if nav is not None and nav.apply:
-            from coex_plugins.navigation import CorrectedMap
-
-            return CorrectedMap(rx, nav, self.vehicle_id)  # type: ignore[return-value]
         return rx
 
     def apply_messages(self, msgs: Iterable[m.Message], now: float,
@@ -479,7 +309,8 @@ class ConsoleState(MapView, SurveysView, ImagesView, LinkView, CommandsView):
         would exceed ``max_pixels`` pixels (:data:`MAP_WINDOW_CELLS` unless told)."""
         rx = self.map_receiver
         geometry = rx.geometry(level) if rx is not None else None
-        if geometry is None or level not in rx.levels() or step < 1 or not x1 > x0 or not y1 > y0:
+        if rx is None or geometry is None or level not in rx.levels() or step < 1 or not x1 > x0 \
+                or not y1 > y0:
             return None
         span = geometry[0] * step
         cells = math.ceil((x1 - x0) / span - 1e-9) * math.ceil((y1 - y0) / span - 1e-9)
@@ -525,16 +356,6 @@ class ConsoleState(MapView, SurveysView, ImagesView, LinkView, CommandsView):
         return None, render
 
     # ----------------------------------------------------------------------- images
-    def _image(self, image_id: int) -> _Image:
-        img = self.images.get(image_id)
-        if img is None:
-            img = self.images[image_id] = _Image(image_id)
-            while len(self.images) > max(self.max_images, 1):  # the oldest go (those without a time first)
-                oldest = min((i for i in self.images.values() if i is not img),
-                             key=lambda i: (i.t is not None, i.t or 0.0, i.image_id))
-                del self.images[oldest.image_id]
-        return img
-
     def crop_png(self, crop_id: int) -> bytes | None:
         """What a crop shows of its box, as a PNG at full size (None before it shows anything)."""
         crop = self.crops.get(crop_id)

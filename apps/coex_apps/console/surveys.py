@@ -12,6 +12,7 @@ from typing import Any
 from coex import Product
 from coex_plugins.survey import SurveyReceiver
 
+from .model import ConsoleModel
 from .words import _num
 
 __all__ = ["MAX_SURVEYS", "SURVEY_OUTCOMES", "SURVEY_STATES", "SurveysView"]
@@ -39,7 +40,7 @@ SURVEY_OUTCOMES = {
 }
 
 
-class SurveysView:
+class SurveysView(ConsoleModel):
     """The surveys part of :class:`~coex_apps.console.state.ConsoleState`."""
 
     @property

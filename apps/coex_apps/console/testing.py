@@ -30,18 +30,26 @@ class RecordingSender(ModalitySender):
         self.inner = inner
         self.handled: list[m.Message] = []
 
+    @property
+    def _wrapped(self) -> ModalitySender:
+        """The sender wrapped (``inner``, which a restore may replace)."""
+        inner = self.inner
+        if inner is None:
+            raise RuntimeError("a RecordingSender wraps a sender")
+        return inner
+
     def ingest(self, data: Any, now: float) -> None:
-        self.inner.ingest(data, now)
+        self._wrapped.ingest(data, now)
 
     def fill(self, max_bytes: int, now: float) -> list[m.Message]:
-        return self.inner.fill(max_bytes, now)
+        return self._wrapped.fill(max_bytes, now)
 
     def handle(self, message: m.Message, now: float) -> list[m.Message]:
         self.handled.append(message)
-        return self.inner.handle(message, now)
+        return self._wrapped.handle(message, now)
 
     def pending_bytes(self) -> int:
-        return self.inner.pending_bytes()
+        return self._wrapped.pending_bytes()
 
 
 def survey_points(size: float = 96.0, seed: int = 0) -> npt.NDArray[np.float64]:
