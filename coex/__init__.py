@@ -85,7 +85,7 @@ from coex_core.errors import (
 from coex_core.jsonfmt import from_json, to_json
 from coex_core.loopback import Bernoulli, LoopbackLink, LossModel, RoundTrip, WireEvent
 from coex_core.messages import Frame, FrameHeader, Message
-from coex_core.modality import Modality, ModalityReceiver, ModalitySender, Product
+from coex_core.modality import Modality, ModalityReceiver, ModalitySender, Product, TypedProduct
 from coex_core.node import Node
 from coex_core.predicted import (
     ContextMismatch,
@@ -202,6 +202,7 @@ __all__ = [
     "Transport",
     "TransportError",
     "TransportTimeout",
+    "TypedProduct",
     "UriInfo",
     "WireEvent",
     "adapter_check",

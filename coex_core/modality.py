@@ -18,13 +18,13 @@ from __future__ import annotations
 
 import abc
 from collections.abc import Callable, Mapping, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
 from typing import Any, ClassVar
 
 from .messages import Message
 from .storage import Storage
 
-__all__ = ["Modality", "ModalityReceiver", "ModalitySender", "Product"]
+__all__ = ["Modality", "ModalityReceiver", "ModalitySender", "Product", "TypedProduct"]
 
 
 @dataclass(frozen=True)
@@ -33,13 +33,47 @@ class Product:
 
     ``kind`` names it (``"map-level"``, ``"image"``, ``"series"`` ...), ``key`` identifies it
     within the kind, ``version`` increases whenever it improves, ``data`` holds the payload
-    (numpy arrays, bytes ...) and ``meta`` describes it (JSON-serialisable)."""
+    (numpy arrays, bytes ...) and ``meta`` describes it (JSON-serialisable).
+
+    The built-in modalities' products are typed: each kind is a :class:`TypedProduct`
+    subclass (``coex_plugins.bathymetry.MapLevel``, ``coex_plugins.imagery.ImageProduct`` ...)
+    whose fields are read by attribute. A modality that declares no type of its own emits this
+    generic product, its description in ``meta`` (a mapping of names to JSON values): the
+    console shows it in its generic panel (through :meth:`ModalityReceiver.view`, or its
+    ``meta``), the log export writes ``meta`` as JSON."""
 
     kind: str
     key: str
     version: int
     data: Any = None
     meta: Mapping[str, Any] = field(default_factory=dict)
+
+
+@dataclass(frozen=True, kw_only=True)
+class TypedProduct(Product):
+    """A product kind declared as a frozen dataclass: the fields a subclass adds describe it,
+    typed, and whoever reads it (the console, exports, the ROS view) reads them by attribute.
+
+    A modality declares its product type by subclassing this one with
+    ``@dataclass(frozen=True, kw_only=True)``; its receiver makes them
+    (``MapLevel("map-level", key, version, grid, level=3, cell_size=1.0, ...)``), and the
+    receiver's :meth:`ModalityReceiver.products` may say so in its return type. ``kind``,
+    ``key``, ``version`` and ``data`` are :class:`Product`'s. ``meta`` is not given: it is made
+    from the declared fields (a plain dict, field name -> value; :attr:`META_NAMES` renames a
+    field there), for readers that take any product (the JSON export of a log, the console's
+    generic panel, code written before typed products)."""
+
+    meta: Mapping[str, Any] = field(init=False, default_factory=dict, repr=False, compare=False)
+
+    #: field name -> its name in :attr:`meta`, where a declared field cannot be named as the
+    #: description always called it (``kind`` is :class:`Product`'s own)
+    META_NAMES: ClassVar[Mapping[str, str]] = {}
+
+    def __post_init__(self) -> None:
+        own = {f.name for f in fields(Product)}
+        names = self.META_NAMES
+        object.__setattr__(self, "meta", {names.get(f.name, f.name): getattr(self, f.name)
+                                          for f in fields(self) if f.name not in own})
 
 
 class _OutOfCore:

@@ -8,6 +8,8 @@ import sys
 import urllib.request
 from pathlib import Path
 
+from . import _products as typed
+
 COEX = str(Path(sys.executable).with_name("coex"))
 
 
@@ -144,7 +146,6 @@ def test_the_console_keeps_as_many_images_as_the_imagery_receiver(tmp_path: Path
 
     from coex_apps.console.cli import build_topside
     from coex_apps.console.state import MAX_IMAGES
-    from coex_core.modality import Product
 
     options = {"imagery": {"max_images": 3, "out_dir": str(tmp_path / "images")}}
     db = tmp_path / "topside.sqlite"
@@ -154,8 +155,8 @@ def test_the_console_keeps_as_many_images_as_the_imagery_receiver(tmp_path: Path
         try:
             assert app.hub.state.max_images == 3
             for i in range(5):  # the newest three stay
-                app.hub.state.apply_product("imagery", Product("image", f"image-{i}", 1, np.zeros((8, 8), np.uint8),
-                                                               {"image_id": i, "time": 100.0 + i}), 100.0 + i)
+                app.hub.state.apply_product("imagery", typed.image(i, np.zeros((8, 8), np.uint8), 100.0 + i),
+                                            100.0 + i)
             assert sorted(app.hub.state.images) == [2, 3, 4]
         finally:
             app.close()

@@ -38,6 +38,8 @@ from coex_plugins.bathymetry import (
 )
 from coex_plugins.timeseries.synth import dataset
 
+from . import _products as typed
+
 T0 = 36000.0
 NUI = Schedule.simple([1, 2, 2, 1, 2, 2], 20.0, 2.0)
 
@@ -790,15 +792,13 @@ def test_the_map_is_the_receiver_s(subgrids: list[m.Subgrid]) -> None:
 
 def test_pump_survives_an_event_the_console_cannot_show() -> None:
     from coex_core.channel.events import ProductUpdated, Received
-    from coex_core.modality import Product
 
     class FakeNode:
         manager = ChannelManager(1, [LinkConfig(0, NUI)])
 
         def __init__(self) -> None:
             self._events = [
-                ProductUpdated(1.0, "bathymetry", Product("map-level", "level-0", 1,
-                                                          np.zeros((3, 5)), {"level": 0})),
+                ProductUpdated(1.0, "bathymetry", typed.map_level(0, np.zeros((3, 5)))),
                 Received(1.5, 0, 2, m.Subgrid(0, 0, 0, 1, 1.0, 0.1, 8, m.SubgridEncoding.OFFSET,
                                               0, 4, None, (1, 2, 3))),  # 3 values for 64 cells
                 Received(2.0, 0, 2, m.VehicleStatus(2, 1.0, 2.0, 3.0, None, 0.0, 0.0, 50,
@@ -1308,13 +1308,11 @@ def test_the_console_keeps_the_newest_images_only() -> None:
     """A dive of several days: the console's images (with their decoded pictures, saved with
     the console) stay at MAX_IMAGES, the newest by time."""
     from coex_apps.console.state import MAX_IMAGES
-    from coex_core.modality import Product
 
     st = ConsoleState(schedules={0: NUI})
     n = MAX_IMAGES + 44
     for i in range(n):
-        st.apply_product("imagery", Product("image", f"image-{i}", 1, np.zeros((8, 8), np.uint8),
-                                            {"image_id": i, "time": 100.0 + i}), 100.0 + i)
+        st.apply_product("imagery", typed.image(i, np.zeros((8, 8), np.uint8), 100.0 + i), 100.0 + i)
     assert len(st.images) == MAX_IMAGES
     assert sorted(st.images) == list(range(n - MAX_IMAGES, n))
     items = st.snapshot()["images"]["items"]

@@ -36,6 +36,8 @@ from coex_plugins.navigation import (
 )
 from coex_plugins.survey import SurveyModality
 
+from . import _products as typed
+
 T0 = 1_656_633_600.0  # 2022-07-01T00:00:00Z
 
 
@@ -313,9 +315,7 @@ class _Rx:
         self.requested: list[tuple] = []
 
     def level_product(self, level: int, now: float | None = None):  # type: ignore[no-untyped-def]
-        from coex import Product
-
-        return Product("map-level", "level-0", 1, self.z, {"cell_size": 1.0, "x0": 0.0, "y0": 0.0})
+        return typed.map_level(0, self.z)
 
     def level_version(self, level: int) -> int:
         return 1

@@ -32,6 +32,7 @@ from coex_plugins.inputs.ros import RosInput
 from coex_plugins.inputs.rosmsg import FrameMap, frame_problems, nav_of, points_of
 from coex_plugins.survey.plan import SurveyPlan
 
+from . import _products as typed
 from ._lifecycle import Vehicle
 from ._ros import Roscore, kill, peer, ros_entry_points, ros_env, why_no_ros
 
@@ -544,7 +545,6 @@ def test_topside_products_appear_on_ros_topics(roscore: Roscore, tmp_path: Path)
     from coex_apps.console.ros import RosProducts
     from coex_core.channel.events import ProductUpdated, Received
     from coex_core.messages import VehicleMode, VehicleStatus
-    from coex_core.modality import Product
 
     listeners: list[Callable[[list[Any]], Any]] = []
     coex_node = SimpleNamespace(subscribe=lambda f: listeners.append(f) or (lambda: listeners.remove(f)))
@@ -567,16 +567,15 @@ def test_topside_products_appear_on_ros_topics(roscore: Roscore, tmp_path: Path)
         older = np.zeros((48, 64), np.uint8)
         series = SimpleNamespace(times=np.array([now - 2.0, now - 1.0]), values=np.array([3.5, 4.25]),
                                  bounds=np.array([0.1, np.inf]))
-        survey = {"survey_id": 7, "state": "started", "text": "heading for waypoint 1", "reason": None, "index": 1,
-                  "time": now, "kind": "line", "waypoints": [[0.0, 0.0], [20.0, 0.0]]}
+        survey = typed.survey(7, "started", now, 2, text="heading for waypoint 1", index=1, survey_kind="line",
+                                 waypoints=[[0.0, 0.0], [20.0, 0.0]])
         events = [
-            ProductUpdated(now, "bathymetry", Product("map-level", "level-1", 3, level,
-                                                      {"level": 1, "cell_size": 2.0, "x0": -10.0, "y0": 20.0,
-                                                       "newest": now})),
-            ProductUpdated(now, "imagery", Product("image", "4", 1, pixels, {"image_id": 4, "time": now - 5})),
-            ProductUpdated(now, "imagery", Product("image", "3", 9, older, {"image_id": 3, "time": now - 100})),
-            ProductUpdated(now, "timeseries", Product("series", "methane-2", 1, series, {"name": "methane-2"})),
-            ProductUpdated(now, "survey", Product("survey", "7", 2, None, survey)),
+            ProductUpdated(now, "bathymetry", typed.map_level(1, level, 3, cell_size=2.0, x0=-10.0, y0=20.0,
+                                                                 newest=now)),
+            ProductUpdated(now, "imagery", typed.image(4, pixels, now - 5)),
+            ProductUpdated(now, "imagery", typed.image(3, older, now - 100, 9)),
+            ProductUpdated(now, "timeseries", typed.series("methane-2", series)),
+            ProductUpdated(now, "survey", survey),
             Received(now, 0, 2, status),
         ]
         for f in listeners:

@@ -13,6 +13,8 @@ import numpy as np
 
 from coex import RequestRejected
 
+from .bathymetry.product import MapLevel
+
 __all__ = ["image_held", "images_missing", "map_converged", "series_complete"]
 
 
@@ -25,9 +27,11 @@ def map_converged(sender: Any, receiver: Any) -> bool:
         prod = products.get(f"level-{k}")
         if prod is None:
             return False
-        cell = prod.meta["cell_size"]
-        r0 = round((prod.meta["y0"] - y0) / cell)
-        c0 = round((prod.meta["x0"] - x0) / cell)
+        if not isinstance(prod, MapLevel):
+            return False
+        cell = prod.cell_size
+        r0 = round((prod.y0 - y0) / cell)
+        c0 = round((prod.x0 - x0) / cell)
         got = prod.data
         rows, cols = np.nonzero(np.isfinite(grid))
         tr, tc = rows - r0, cols - c0  # the same cells in topside's mosaic

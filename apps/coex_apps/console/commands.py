@@ -16,6 +16,7 @@ from typing import Any, cast
 from coex import messages as m
 from coex import unwrap
 from coex.tracker import TRANSITIONS, Event, State, Tracked, answer_event
+from coex_plugins.survey import SurveyProduct
 
 from .images import ImagesView
 from .mapview import MapView
@@ -194,7 +195,7 @@ class CommandsView(MapView, SurveysView, ImagesView):
 
     def _snap_commands(self) -> list[dict[str, Any]]:
         out = []
-        surveys: dict[int, dict[str, Any]] | None = None
+        surveys: dict[int, SurveyProduct] | None = None
         for key in reversed(self.command_order):
             c = self.commands[key]
             status, reason = c.status, c.reason
@@ -204,11 +205,11 @@ class CommandsView(MapView, SurveysView, ImagesView):
             elif isinstance(c.message, m.SurveyCommand):  # the survey's own state
                 if surveys is None:
                     surveys = self._survey_metas()
-                meta = surveys.get(int(c.message.survey_id))
-                if meta is not None:
-                    status = str(meta.get("state") or status)
-                    if status in ("rejected", "aborted", "given up") and meta.get("text"):
-                        reason = str(meta["text"])
+                survey = surveys.get(int(c.message.survey_id))
+                if survey is not None:
+                    status = str(survey.state or status)
+                    if status in ("rejected", "aborted", "given up") and survey.text:
+                        reason = str(survey.text)
             answer, img = "", None
             if isinstance(c.message, m.ImageByTimeRequest) and status == "accepted":
                 img = self.by_time_answer(c.message, c.sent)

@@ -13,8 +13,9 @@ import math
 from collections.abc import Mapping
 from typing import Any, cast
 
-from coex import Product, unwrap
 from coex import messages as m
+from coex import unwrap
+from coex_plugins.imagery import CropProduct, ImageProduct
 
 from .model import OPEN_COMMAND_STATES, ConsoleModel
 from .records import _Crop, _Image
@@ -41,38 +42,32 @@ class ImagesView(ConsoleModel):
                 del self.images[oldest.image_id]
         return img
 
-    def _image_product(self, product: Product, data: Any, meta: dict[str, Any], now: float) -> None:
-        iid = meta.get("image_id")
-        if iid is None:
-            try:
-                iid = int(str(product.key).rsplit("-", 1)[-1])
-            except ValueError:
-                return
-        img = self._image(int(iid))
+    def _image_product(self, product: ImageProduct, now: float) -> None:
+        """An image's product: its picture, and what the page lists of it (its scalar fields,
+        kept as the image's ``decoded_meta``), the regions asked of it, its time."""
+        img = self._image(int(product.image_id))
+        data = product.data
         if data is not None and hasattr(data, "shape"):
             img.decoded = data
             img.decoded_version = int(product.version)
-        img.decoded_meta = {k: v for k, v in meta.items()
+        img.decoded_meta = {k: v for k, v in product.meta.items()
                             if v is None or isinstance(v, int | float | str | bool)}
-        if isinstance(meta.get("regions"), list | tuple):
-            img.regions = [dict(r) for r in meta["regions"] if isinstance(r, Mapping)]
-        if img.t is None and isinstance(meta.get("time"), int | float):
-            img.t = float(meta["time"])
+        img.regions = [dict(r) for r in product.regions if isinstance(r, Mapping)]
+        if img.t is None:
+            img.t = float(product.time)
         img.version += 1
         self._touch("images")
 
-    def _crop_product(self, product: Product, data: Any, meta: dict[str, Any]) -> None:
+    def _crop_product(self, product: CropProduct) -> None:
         """A crop's product: what it shows of its box (drawn in the region list of its image)."""
-        try:
-            cid = int(meta["image_id"])
-        except (KeyError, TypeError, ValueError):
-            return
+        cid = int(product.image_id)
         crop = self.crops.pop(cid, None) or _Crop(cid)
         self.crops[cid] = crop  # the newest last
+        data = product.data
         if data is not None and hasattr(data, "shape"):
             crop.decoded = data
             crop.decoded_version = int(product.version)
-        crop.meta = {k: (list(v) if isinstance(v, list | tuple) else v) for k, v in meta.items()
+        crop.meta = {k: (list(v) if isinstance(v, list | tuple) else v) for k, v in product.meta.items()
                      if v is None or isinstance(v, int | float | str | bool | list | tuple)}
         while len(self.crops) > MAX_CROPS:
             del self.crops[next(iter(self.crops))]

@@ -15,7 +15,7 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
-from coex_plugins.bathymetry import BathymetryReceiver
+from coex_plugins.bathymetry import BathymetryReceiver, MapLevel
 
 from .model import ConsoleModel
 from .records import _RoiRequest
@@ -48,11 +48,12 @@ class MapView(ConsoleModel):
             return CorrectedMap(rx, nav, self.vehicle_id)  # type: ignore[return-value]
         return rx
 
-    def _map_product(self, data: Any, meta: Mapping[str, Any]) -> None:
+    def _map_product(self, product: MapLevel) -> None:
         """A level of the bathymetry receiver changed: its depth range widens the colour scale
         (the receiver's ``zmin``/``zmax`` when it says them: a big level is not scanned)."""
-        if meta.get("zmin") is not None and meta.get("zmax") is not None:
-            lo, hi = float(meta["zmin"]), float(meta["zmax"])
+        data = product.data
+        if product.zmin is not None and product.zmax is not None:
+            lo, hi = float(product.zmin), float(product.zmax)
             zr = self._zrange or (lo, hi)
             self._zrange = (min(zr[0], lo), max(zr[1], hi))
             self._touch("map")
@@ -83,7 +84,7 @@ class MapView(ConsoleModel):
         z = np.array(p.data, dtype=float)
         if not np.isfinite(z).any():
             return None
-        return z, float(p.meta["x0"]), float(p.meta["y0"]), float(p.meta["cell_size"])
+        return z, float(p.x0), float(p.y0), float(p.cell_size)
 
     def _snap_map(self) -> dict[str, Any]:
         rx = self.map_receiver
@@ -102,10 +103,10 @@ class MapView(ConsoleModel):
                 summary = rx.level_summary(level)
                 span, keys, ts = rx.coverage(level, MAP_BLOCKS)
                 p = rx.level_product(level)
-                pc = float(p.meta["cell_size"])
-                px0, py0 = float(p.meta["x0"]), float(p.meta["y0"])
+                pc = float(p.cell_size)
+                px0, py0 = float(p.x0), float(p.y0)
                 image = [px0, py0, px0 + p.data.shape[1] * pc, py0 + p.data.shape[0] * pc]
-                cached = (version, summary, span, keys, ts, image, int(p.meta.get("step", 1)))
+                cached = (version, summary, span, keys, ts, image, int(p.step))
                 self._map_summary[level] = cached
             _, summary, span, keys, ts, image, step = cached
             if summary is None or not summary["subgrids"] or summary["extent"] is None:
@@ -163,7 +164,7 @@ class MapView(ConsoleModel):
         if not self.auto_targets or rx is None:
             return []
         fine = [lv for lv in rx.levels() if (rx.geometry(lv) or (99.0, 0))[0] <= 2.0
-                and rx.level_product(lv).meta.get("step", 1) == 1]
+                and rx.level_product(lv).step == 1]
         if not fine:
             return []
         level = min(fine)
@@ -268,7 +269,7 @@ class MapView(ConsoleModel):
         self.detections = rows
         self._touch("map")
 
-    def _targets_product(self, data: Any, meta: dict[str, Any]) -> None:
+    def _targets_product(self, data: Any, meta: Mapping[str, Any]) -> None:
         rows = data if isinstance(data, list | tuple) else meta.get("targets", [])
         out = []
         for t in rows:

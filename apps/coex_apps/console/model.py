@@ -20,6 +20,7 @@ from typing import TYPE_CHECKING, Any
 from coex import ModalityReceiver
 from coex import messages as m
 from coex_plugins.bathymetry import BathymetryReceiver
+from coex_plugins.survey import SurveyProduct
 
 from .records import _Command, _Crop, _Image, _RoiRequest
 from .words import _counted, _num
@@ -128,11 +129,11 @@ class ConsoleModel:
         self._zrange: tuple[float, float] | None = None
         # surveys: the survey receiver's records (what it asked and what the vehicle answered);
         # products of a survey receiver the console does not hold (rare) are kept here
-        self.survey_products: dict[int, dict[str, Any]] = {}
+        self.survey_products: dict[int, SurveyProduct] = {}
         #: (survey id, record version, state) of every record last looked at (None: look again)
         self._survey_sig: tuple[tuple[int, int, str], ...] | None = None
-        #: survey id -> (record version, its product's metadata)
-        self._survey_rows: dict[int, tuple[int, dict[str, Any]]] = {}
+        #: survey id -> (record version, its product)
+        self._survey_rows: dict[int, tuple[int, SurveyProduct]] = {}
         #: survey id -> the history entries already in the event log
         self._survey_logged: dict[int, list[tuple[float, str, str]]] = {}
         # images

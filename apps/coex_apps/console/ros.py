@@ -45,6 +45,10 @@ from typing import Any
 import numpy as np
 
 from coex import Problems
+from coex_plugins.bathymetry import MapLevel
+from coex_plugins.imagery import ImageProduct
+from coex_plugins.survey import SurveyProduct
+from coex_plugins.timeseries import SeriesProduct
 
 __all__ = ["RosProducts", "grid_scale", "topic_name"]
 
@@ -120,12 +124,12 @@ class RosProducts:
         self.clock = clock
         self.node: Any = None
         self._mu = threading.Lock()
-        self._levels: dict[int, Any] = {}  # level -> newest map-level product not yet published
-        self._image: Any = None
+        self._levels: dict[int, MapLevel] = {}  # level -> newest map-level product not yet published
+        self._image: ImageProduct | None = None
         #: (capture time, image id) of the newest image seen: only it goes on the image topics
         self._newest: tuple[float, int] | None = None
         self._status: Any = None
-        self._series: dict[str, Any] = {}  # channel name -> newest series product not yet published
+        self._series: dict[str, SeriesProduct] = {}  # channel name -> newest series product not yet published
         self._surveys: dict[int, dict[str, Any]] = {}  # survey id -> its newest product's meta
         self._surveys_changed = False
         lo, hi = self.config["grid_min"], self.config["grid_max"]
@@ -162,19 +166,17 @@ class RosProducts:
             for e in events:
                 if isinstance(e, ProductUpdated):
                     p = e.product
-                    if p.kind == "map-level" and "level" in p.meta:
-                        self._levels[int(p.meta["level"])] = p
+                    if isinstance(p, MapLevel):
+                        self._levels[int(p.level)] = p
                         changed = True
-                    elif p.kind == "image" and p.data is not None:
+                    elif isinstance(p, ImageProduct) and p.data is not None:
                         changed = self._take_image(p) or changed
-                    elif p.kind == "series" and p.data is not None:
+                    elif isinstance(p, SeriesProduct) and p.data is not None:
                         self._series[str(p.key)] = p
                         changed = True
-                    elif p.kind == "survey":
-                        try:
-                            self._surveys[int(p.meta.get("survey_id", p.key))] = dict(p.meta)
-                        except (TypeError, ValueError):
-                            continue
+                    elif isinstance(p, SurveyProduct):
+                        # the survey as the topic's JSON lists it: its description (``kind`` ...)
+                        self._surveys[int(p.survey_id)] = dict(p.meta)
                         self._surveys_changed = changed = True
                 elif isinstance(e, Received) and isinstance(e.message, VehicleStatus):
                     self._status = (e.message, float(e.time))
@@ -182,13 +184,10 @@ class RosProducts:
         if changed:
             self._wake.set()
 
-    def _take_image(self, p: Any) -> bool:
+    def _take_image(self, p: ImageProduct) -> bool:
         """Keep an image product for the image topics if it is the newest image (by capture time,
         then id) or a refinement of it."""
-        try:
-            key = (float(p.meta.get("time") or 0.0), int(p.meta.get("image_id", p.key)))
-        except (TypeError, ValueError):
-            return False
+        key = (float(p.time or 0.0), int(p.image_id))
         if self._newest is not None and key < self._newest and key[1] != self._newest[1]:
             return False  # an older image refined: the topics keep showing the newest
         self._newest = key
@@ -245,19 +244,20 @@ class RosProducts:
             self._publish_image(image, now)
         if status is not None:
             self._publish_status(*status)
-        for name, product in sorted(series.items()):
-            self._publish_series(name, product)
+        for name, channel in sorted(series.items()):
+            self._publish_series(name, channel)
         if surveys is not None:
             self._publish_surveys(surveys, now)
 
-    def _publish_level(self, level: int, product: Any, now: float) -> None:
+    def _publish_level(self, level: int, product: MapLevel, now: float) -> None:
         from coex.ros import msgs
 
         cls = self.node.message_class
         with self.lock:  # the receiver may be writing the level's array in the node's thread
             grid = np.array(product.data, dtype=np.float64, copy=True)
-            meta = dict(product.meta)
-        t = float(meta.get("newest") or now)
+        # where the grid lies, as the messages read it
+        meta = {"x0": product.x0, "y0": product.y0, "cell_size": product.cell_size}
+        t = float(product.newest or now)
         if self.grid_range is None and np.isfinite(grid).any():
             self.grid_range = grid_scale(grid)
             log.info("ROS products: OccupancyGrid values 0..100 are elevations %g..%g m from now on (fixed for "
@@ -277,14 +277,13 @@ class RosProducts:
             self.counts["failed"] += 1
             log.warning("ROS products: map level %d not published: %s", level, exc)
 
-    def _publish_image(self, image: Any, now: float) -> None:
+    def _publish_image(self, image: ImageProduct, now: float) -> None:
         from coex.ros import msgs
 
         cls = self.node.message_class
         with self.lock:
             pixels = np.array(image.data, copy=True)
-            meta = dict(image.meta)
-        t = float(meta.get("time") or now)
+        t = float(image.time or now)
         try:
             self._pub(f"{self.prefix}/image", "sensor_msgs/Image").publish(msgs.image(pixels, cls, t, self.frame))
             self._pub(f"{self.prefix}/image/compressed", "sensor_msgs/CompressedImage").publish(
@@ -292,7 +291,7 @@ class RosProducts:
             self.counts["image"] += 1
         except (ValueError, OSError) as exc:
             self.counts["failed"] += 1
-            log.warning("ROS products: image %s not published: %s", meta.get("image_id"), exc)
+            log.warning("ROS products: image %s not published: %s", image.image_id, exc)
 
     def _publish_status(self, st: Any, received: float) -> None:
         from coex import unwrap
@@ -321,7 +320,7 @@ class RosProducts:
             self._pub("/tf", "tf2_msgs/TFMessage", latch=False).publish(tf)
             self.counts["tf"] += 1
 
-    def _publish_series(self, name: str, product: Any) -> None:
+    def _publish_series(self, name: str, product: SeriesProduct) -> None:
         from coex.ros import msgs
 
         n = int(self.config["series_samples"])

@@ -51,8 +51,10 @@ from coex import (
 )
 from coex import messages as m
 from coex_core.channel.events import ScheduleSwitched, SenderFailed
-from coex_plugins.bathymetry import BathymetryReceiver
-from coex_plugins.timeseries import Series
+from coex_plugins.bathymetry import BathymetryReceiver, MapLevel
+from coex_plugins.imagery import CropProduct, ImageProduct, ProgressProduct
+from coex_plugins.survey import SurveyProduct
+from coex_plugins.timeseries import Series, SeriesProduct
 
 from .commands import OPEN_COMMAND_STATES, CommandsView
 from .images import MAX_CROPS, MAX_IMAGE_REGIONS
@@ -60,7 +62,7 @@ from .linkview import LinkView
 from .mapview import MAP_BLOCKS, map_delta
 from .model import MAX_IMAGES, MAX_REPEATS, REPEAT_WINDOW, SECTIONS
 from .render import THUMB_SIDE, _picture, elevation_rgb, png_bytes
-from .surveys import MAX_SURVEYS, SURVEY_OUTCOMES, SURVEY_STATES
+from .surveys import MAX_SURVEYS, SURVEY_OUTCOMES, SURVEY_STATES, saved_survey
 from .words import _modality_of, _num
 
 __all__ = [
@@ -95,7 +97,7 @@ FloatArray = npt.NDArray[np.float64]
 def _upgrade_state(fields: dict[str, Any], saved: int) -> dict[str, Any]:
     """Version 1 (CoEx 0.1 and earlier 0.2 work) may lack what came later: crops, the vehicle's
     altitudes, the camera's field of view, detections, survey products, numbered log entries and
-    the surveys already logged."""
+    the surveys already logged. Version 2 kept survey products as dicts (now typed products)."""
     if saved < 2:
         fields.setdefault("crops", {})
         if not isinstance(fields.get("altitudes"), deque):
@@ -108,10 +110,13 @@ def _upgrade_state(fields: dict[str, Any], saved: int) -> dict[str, Any]:
         fields.setdefault("_survey_logged", {})
         fields.setdefault("ended", None)
         fields.setdefault("ended_t", None)
+    if saved < 3:  # survey products were kept as their metadata (dicts) before they were typed
+        fields["survey_products"] = {int(k): saved_survey(int(k), v) if isinstance(v, Mapping) else v
+                                     for k, v in (fields.get("survey_products") or {}).items()}
     return fields
 
 
-@persistent("console.State", version=2, upgrade=_upgrade_state,
+@persistent("console.State", version=3, upgrade=_upgrade_state,
             transient=("_region_ids", "_png", "_map_summary", "_targets_cache", "_survey_sig", "_survey_rows",
                        "_repeats", "max_images", "navigation"))
 class ConsoleState(CommandsView, LinkView):
@@ -199,31 +204,35 @@ class ConsoleState(CommandsView, LinkView):
         return out
 
     def apply_product(self, modality: str, product: Product, now: float) -> set[str]:
-        """Take a receiver product (:class:`coex_core.modality.Product`)."""
+        """Take a receiver product (:class:`coex_core.modality.Product`). The built-in
+        modalities' products are typed (``MapLevel``, ``ImageProduct``, ``CropProduct``,
+        ``ProgressProduct``, ``SeriesProduct``, ``SurveyProduct``) and read by attribute; a
+        product of any other modality, typed or generic, goes to the generic panel."""
         self._advance(now)
         before = dict(self.versions)
-        kind, data, meta = str(product.kind), product.data, dict(product.meta or {})
         if modality == "survey":
-            self._survey_product(product, meta, now)
+            if isinstance(product, SurveyProduct):
+                self._survey_product(product, now)
         elif modality == "detections":
-            self._detections_product(data, now)
+            self._detections_product(product.data, now)
         elif modality not in OWN_PANELS:
-            self._other_product(modality, product, meta)
-        elif kind == "series":
-            self._series_product(data, meta)
-        elif kind == "image":
-            self._image_product(product, data, meta, now)
-        elif kind == "image-crop":
-            self._crop_product(product, data, meta)
-        elif kind == "image-progress":
-            self.progress_info = {"pending": meta.get("pending"), "current": meta.get("current"),
-                                  "unacked_fragments": meta.get("unacked_fragments"),
-                                  "next": list(meta.get("next_images") or [])}
+            self._other_product(modality, product)
+        elif isinstance(product, SeriesProduct):
+            self._series_product(product)
+        elif isinstance(product, ImageProduct):
+            self._image_product(product, now)
+        elif isinstance(product, CropProduct):
+            self._crop_product(product)
+        elif isinstance(product, ProgressProduct):
+            self.progress_info = {"pending": product.pending, "current": product.current,
+                                  "unacked_fragments": product.unacked_fragments,
+                                  "next": list(product.next_images)}
             self._touch("images")
-        elif "target" in kind:
-            self._targets_product(data, meta)
-        elif kind == "map-level" and hasattr(data, "shape"):
-            self._map_product(data, meta)
+        elif isinstance(product, MapLevel):
+            if hasattr(product.data, "shape"):
+                self._map_product(product)
+        elif "target" in str(product.kind):  # a generic product of candidate targets
+            self._targets_product(product.data, product.meta)
         return {s for s in SECTIONS if self.versions[s] != before[s]}
 
     def apply_event(self, event: Event) -> set[str]:
@@ -380,15 +389,16 @@ class ConsoleState(CommandsView, LinkView):
         return img.thumb
 
     # ------------------------------------------------------------------ time series
-    def _series_product(self, data: Any, meta: dict[str, Any]) -> None:
-        series = data if isinstance(data, Series) else None
-        cid = int(meta.get("channel", series.channel if series is not None else -1))
+    def _series_product(self, product: SeriesProduct) -> None:
+        series = product.data if isinstance(product.data, Series) else None
+        cid = int(product.channel)
         if cid < 0:
             return
         s = self.series.setdefault(cid, {"channel": cid})
-        for k in ("name", "unit", "lo", "hi", "resolution"):
-            if meta.get(k) is not None:
-                s[k] = meta[k]
+        for k, v in (("name", product.name), ("unit", product.unit), ("lo", product.lo), ("hi", product.hi),
+                     ("resolution", product.resolution)):
+            if v is not None:
+                s[k] = v
         if series is not None:
             s["times"] = np.asarray(series.times, float)
             s["values"] = np.asarray(series.values, float)
@@ -396,9 +406,10 @@ class ConsoleState(CommandsView, LinkView):
         self._touch("series")
 
     # ------------------------------------------------------------ other modalities
-    def _other_product(self, modality: str, product: Product, meta: dict[str, Any]) -> None:
+    def _other_product(self, modality: str, product: Product) -> None:
         """A product of a modality without a panel of its own: the generic panel shows its
-        kind, key, version and the receiver's ``view`` of it (else its plain metadata)."""
+        kind, key, version and the receiver's ``view`` of it (else its description, ``meta``:
+        a generic product's, or the fields of a typed one)."""
         view: Any = None
         rx = self.receivers.get(modality)
         if rx is not None:
@@ -406,7 +417,7 @@ class ConsoleState(CommandsView, LinkView):
                 view = rx.view(product)  # declared on ModalityReceiver (default: None)
             except Exception as exc:  # a plugin's view must never stop the console
                 view = {"error": f"view failed: {exc}"}
-        shown = view if isinstance(view, Mapping) else meta
+        shown = view if isinstance(view, Mapping) else product.meta
         fields = {str(k): (_num(v) if isinstance(v, float) else v) for k, v in shown.items()
                   if v is None or isinstance(v, int | float | str | bool)}
         self.other.setdefault(modality, {})[str(product.key)] = {

@@ -9,13 +9,12 @@ from __future__ import annotations
 from collections.abc import Mapping
 from typing import Any
 
-from coex import Product
-from coex_plugins.survey import SurveyReceiver
+from coex_plugins.survey import SurveyProduct, SurveyReceiver
 
 from .model import ConsoleModel
 from .words import _num
 
-__all__ = ["MAX_SURVEYS", "SURVEY_OUTCOMES", "SURVEY_STATES", "SurveysView"]
+__all__ = ["MAX_SURVEYS", "SURVEY_OUTCOMES", "SURVEY_STATES", "SurveysView", "saved_survey"]
 
 #: The states of a survey the page draws (the survey receiver's ``SurveyRecord.state``).
 SURVEY_STATES = ("requested", "accepted", "started", "completed", "rejected", "aborted", "given up")
@@ -40,6 +39,24 @@ SURVEY_OUTCOMES = {
 }
 
 
+def saved_survey(sid: int, meta: Mapping[str, Any]) -> SurveyProduct:
+    """A survey product a console of state version 2 saved as its metadata (a dict), typed."""
+    def num(k: str) -> float | None:
+        v = meta.get(k)
+        return float(v) if isinstance(v, int | float) else None
+
+    return SurveyProduct(
+        "survey", str(sid), 0, None, survey_id=sid, state=str(meta.get("state", "")),
+        text=str(meta.get("text") or ""), reason=None if meta.get("reason") is None else str(meta["reason"]),
+        index=meta.get("index") if isinstance(meta.get("index"), int) else None, time=float(meta.get("time") or 0.0),
+        history=[list(h) for h in meta.get("history") or ()],
+        survey_kind=None if meta.get("kind") is None else str(meta["kind"]),
+        waypoints=[[float(a), float(b)] for a, b in meta.get("waypoints") or ()] or None,
+        heading=num("heading"), length=num("length"), width=num("width"), spacing=num("spacing"),
+        altitude=num("altitude"), depth=num("depth"), speed=num("speed"),
+        append=None if meta.get("append") is None else bool(meta["append"]))
+
+
 class SurveysView(ConsoleModel):
     """The surveys part of :class:`~coex_apps.console.state.ConsoleState`."""
 
@@ -49,28 +66,25 @@ class SurveysView(ConsoleModel):
         survey requests and follows them (None: this console cannot ask for surveys)."""
         return self.receivers.get("survey")
 
-    def _survey_product(self, product: Product, meta: dict[str, Any], now: float) -> None:
+    def _survey_product(self, product: SurveyProduct, now: float) -> None:
         """A survey changed state (the survey receiver's product): shown in the surveys
         section, and in the event log with its reason in words."""
-        try:
-            sid = int(meta.get("survey_id", product.key))
-        except (TypeError, ValueError):
-            return
+        sid = int(product.survey_id)
         if self.survey_receiver is None:  # nobody holds the records: keep what we were told
-            self.survey_products[sid] = dict(meta)
-        self._log_survey(sid, meta, now)
+            self.survey_products[sid] = product
+        self._log_survey(sid, product, now)
         self._survey_sig = None  # shown again at once
         self._touch("surveys", "commands")
 
-    def _log_survey(self, sid: int, meta: Mapping[str, Any], now: float) -> None:
+    def _log_survey(self, sid: int, product: SurveyProduct, now: float) -> None:
         """One event-log line per state the survey receiver added to the survey's history (the
         present state, or an older one that arrived late), at its time. The history is the
         receiver's, in the vehicle's time order; nothing is re-sorted here. The present state
         reads as its outcome ("survey 3 no answer from autonomy: ...")."""
-        history = [(float(h[0]), str(h[1]), str(h[2] or "")) for h in meta.get("history") or ()]
+        history = [(float(h[0]), str(h[1]), str(h[2] or "")) for h in product.history]
         if not history:  # a receiver without a history: the present state
-            history = [(float(meta.get("time") or now), str(meta.get("state", "")), str(meta.get("text") or ""))]
-        present = (str(meta.get("state", "")), str(meta.get("text") or ""))
+            history = [(float(product.time or now), str(product.state), str(product.text or ""))]
+        present = (str(product.state), str(product.text or ""))
         seen = self._survey_logged.get(sid)
         if seen is None:  # first heard of: its present state (its request was logged when sent)
             new = [h for h in history if (h[1], h[2]) == present][-1:]
@@ -80,7 +94,7 @@ class SurveysView(ConsoleModel):
         while len(self._survey_logged) > 2 * MAX_SURVEYS:
             del self._survey_logged[next(iter(self._survey_logged))]
         for t, state, text in new:
-            label = SURVEY_OUTCOMES.get((state, str(meta.get("reason"))), state) if (state, text) == present else state
+            label = SURVEY_OUTCOMES.get((state, str(product.reason)), state) if (state, text) == present else state
             bad = state in ("rejected", "aborted", "given up")
             self._log(t, f"survey {sid} {label}" + (f": {text}" if text else ""), "warn" if bad else "info")
 
@@ -97,17 +111,17 @@ class SurveysView(ConsoleModel):
         self._touch("surveys", "commands")
         return True
 
-    def _survey_metas(self) -> dict[int, dict[str, Any]]:
-        """survey id -> the survey receiver's product metadata (cached per record version)."""
+    def _survey_metas(self) -> dict[int, SurveyProduct]:
+        """survey id -> the survey receiver's product (cached per record version)."""
         rx = self.survey_receiver
         if not isinstance(rx, SurveyReceiver):
             return dict(self.survey_products)
         records = rx.surveys
-        out: dict[int, dict[str, Any]] = {}
-        rows: dict[int, tuple[int, dict[str, Any]]] = {}
+        out: dict[int, SurveyProduct] = {}
+        rows: dict[int, tuple[int, SurveyProduct]] = {}
         stale = [k for k, r in records.items()
                  if self._survey_rows.get(int(k), (None,))[0] != r.version]
-        fresh = ({int(p.key): dict(p.meta) for p in rx.products() if str(p.key).isdigit()}
+        fresh = ({int(p.survey_id): p for p in rx.products() if isinstance(p, SurveyProduct)}
                  if stale else {})
         for k, r in records.items():
             k = int(k)
@@ -125,20 +139,21 @@ class SurveysView(ConsoleModel):
         """Every survey asked (the newest :data:`MAX_SURVEYS`): its path (``waypoints``, metres
         east/north), its state and, for a rejection or an abort, the reason in words."""
         items = []
-        for sid, meta in self._survey_metas().items():
-            history = [[_num(float(t), 1), str(st), str(tx)] for t, st, tx in meta.get("history") or ()]
-            requested = history[0][0] if history else _num(meta.get("time"), 1)
-            wps = [[_num(float(a), 2), _num(float(b), 2)] for a, b in meta.get("waypoints") or ()]
-            state, reason = meta.get("state"), meta.get("reason")
-            row = {"survey_id": sid, "kind": meta.get("kind"), "state": state,
-                   "outcome": SURVEY_OUTCOMES.get((str(state), str(reason)), state),
-                   "text": meta.get("text") or "", "reason": reason,
-                   "index": meta.get("index"), "time": _num(meta.get("time"), 1),
-                   "requested": requested, "history": history, "waypoints": wps}
-            for k in ("heading", "length", "width", "spacing", "altitude", "depth", "speed"):
-                v = meta.get(k)
+        for sid, p in self._survey_metas().items():
+            history = [[_num(float(t), 1), str(st), str(tx)] for t, st, tx in p.history]
+            requested = history[0][0] if history else _num(p.time, 1)
+            wps = [[_num(float(a), 2), _num(float(b), 2)] for a, b in p.waypoints or ()]
+            state, reason = p.state, p.reason
+            row: dict[str, Any] = {
+                "survey_id": sid, "kind": p.survey_kind, "state": state,
+                "outcome": SURVEY_OUTCOMES.get((str(state), str(reason)), state),
+                "text": p.text or "", "reason": reason, "index": p.index, "time": _num(p.time, 1),
+                "requested": requested, "history": history, "waypoints": wps}
+            for k, v in (("heading", p.heading), ("length", p.length), ("width", p.width),
+                         ("spacing", p.spacing), ("altitude", p.altitude), ("depth", p.depth),
+                         ("speed", p.speed)):
                 row[k] = _num(float(v), 2) if isinstance(v, int | float) else None
-            row["append"] = bool(meta.get("append", False))
+            row["append"] = bool(p.append)
             items.append(row)
         items.sort(key=lambda r: (r["requested"] or 0.0, r["survey_id"]))
         # whether the page may ask for surveys (a node's survey receiver sends them)

@@ -35,6 +35,7 @@ from .export import (
     write_png,
 )
 from .points import iter_points, load_points, pointcloud2_xyz, write_pointcloud_bag
+from .product import MapLevel
 from .quadtree import InputError, LevelBlock, QuadtreeMap
 from .receiver import RECEIVER_DEFAULTS, BathymetryReceiver, Region
 from .sender import SENDER_DEFAULTS, BathymetrySender
@@ -46,6 +47,7 @@ __all__ = [
     "Candidate",
     "InputError",
     "LevelBlock",
+    "MapLevel",
     "QuadtreeMap",
     "RECEIVER_DEFAULTS",
     "Region",

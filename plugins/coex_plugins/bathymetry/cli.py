@@ -142,12 +142,12 @@ def roundtrip(
             # the candidates from its drawn overview (the level itself while it is small)
             write_level_geotiff(out_dir / f"level_{k}.tif", receiver, k, origin_lat=lat, origin_lon=lon)
             prod = receiver.level_product(k)
-            cell = float(prod.meta["cell_size"])
+            cell = float(prod.cell_size)
             write_png(out_dir / f"level_{k}.png", prod.data, cell)
             info["tif"] = f"level_{k}.tif"
             if k == 0:
-                candidates = [c.to_dict() for c in find_targets(prod.data, cell=cell, x0=prod.meta["x0"],
-                                                                y0=prod.meta["y0"])[:20]]
+                candidates = [c.to_dict() for c in find_targets(prod.data, cell=cell, x0=prod.x0,
+                                                                y0=prod.y0)[:20]]
         levels.append(info)
     sent_all = [b for v in subgrid_bytes.values() for b in v]
     old_all = [b for v in bytes_2022.values() for b in v]

@@ -52,6 +52,7 @@ from coex.tracker import Event
 from .legacy import import_v1
 from .overview import CHUNK, Overview, blocks_from, cells_from, window_blocks
 from .predicted_rx import PredictedInput
+from .product import MapLevel
 from .regions import Region, plan
 from .tiles import LevelIndex, LevelStats, Tile, decode_tile, encode_tile, same_storage, tile_name
 from .tilestore import TileCache
@@ -479,7 +480,7 @@ class BathymetryReceiver(PredictedInput, ModalityReceiver):
             raise KeyError(level)
         return ov
 
-    def level_product(self, level: int, now: float | None = None) -> Product:
+    def level_product(self, level: int, now: float | None = None) -> MapLevel:
         """Level ``level`` as one array (row 0 = south, NaN where nothing is held) of at most
         ``max_mosaic_cells`` cells: the level's own cells while they fit, else means of
         ``meta["step"] x meta["step"]`` cells (a decimated overview; :meth:`window` reads any part
@@ -493,25 +494,17 @@ class BathymetryReceiver(PredictedInput, ModalityReceiver):
         st = self._stats[level]
         k = ov.step
         lat, lon = self.origin()
-        meta: dict[str, Any] = {
-            "level": level,
-            "cell_size": cell * k,
-            "step": k,
-            "level_cell": cell,
-            "x0": ov.ox0 * k * cell,
-            "y0": ov.oy0 * k * cell,
-            "subgrids": st.subgrids,
-            "cells": st.cells,
-            "newest": st.newest if st.subgrids else 0.0,
-            "origin_lat": lat,
-            "origin_lon": lon,
-        }
-        if st.zmin <= st.zmax:
-            meta["zmin"], meta["zmax"] = st.zmin, st.zmax
+        oldest_age = None
         if now is not None:
             self._refresh(level)
-            meta["oldest_age"] = now - st.oldest_rx if st.subgrids else 0.0
-        return Product("map-level", f"level-{level}", self._versions.get(level, 0), ov.mean, meta)
+            oldest_age = now - st.oldest_rx if st.subgrids else 0.0
+        held = st.zmin <= st.zmax
+        return MapLevel("map-level", f"level-{level}", self._versions.get(level, 0), ov.mean,
+                        level=level, cell_size=cell * k, step=k, level_cell=cell,
+                        x0=ov.ox0 * k * cell, y0=ov.oy0 * k * cell, subgrids=st.subgrids,
+                        cells=st.cells, newest=st.newest if st.subgrids else 0.0,
+                        origin_lat=lat, origin_lon=lon, zmin=st.zmin if held else None,
+                        zmax=st.zmax if held else None, oldest_age=oldest_age)
 
     def products(self) -> list[Product]:
         levels = set(self._overviews) | set(self._overview_meta)

@@ -44,7 +44,9 @@ from coex import (
 from coex.messages import Detection, DetectionSource, Message
 from coex.wire import encoded_size
 
-__all__ = ["DetectionsModality", "DetectionsReceiver", "DetectionsSender", "SENDER_DEFAULTS",
+from .product import DetectionsProduct
+
+__all__ = ["DetectionsModality", "DetectionsProduct", "DetectionsReceiver", "DetectionsSender", "SENDER_DEFAULTS",
            "detection_message"]
 
 log = logging.getLogger(__name__)
@@ -377,9 +379,9 @@ class DetectionsReceiver(ModalityReceiver):
         rows.sort(key=lambda r: (-r["score"], r["first_at"]))
         return rows
 
-    def _product(self) -> Product:
+    def _product(self) -> DetectionsProduct:
         rows = self.rows()
-        return Product("detections", "detections", self.version, rows, {"count": len(rows)})
+        return DetectionsProduct("detections", "detections", self.version, rows, count=len(rows))
 
     def poll(self, now: float) -> list[Message]:
         return []

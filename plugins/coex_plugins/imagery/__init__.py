@@ -28,10 +28,12 @@ from coex.messages import (
 )
 
 from .codec import CodingParams, encode_image
+from .product import CropProduct, ImageProduct, ProgressProduct
 from .receiver import ImageryReceiver
 from .sender import ImageInput, ImagerySender
 
-__all__ = ["CodingParams", "ImageInput", "ImageryModality", "ImageryReceiver", "ImagerySender", "encode_image"]
+__all__ = ["CodingParams", "CropProduct", "ImageInput", "ImageProduct", "ImageryModality", "ImageryReceiver",
+           "ImagerySender", "ProgressProduct", "encode_image"]
 
 
 class ImageryModality(Modality):

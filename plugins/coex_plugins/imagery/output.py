@@ -13,6 +13,8 @@ import numpy as np
 from coex import Product
 from coex_plugins.render import write_png as _write_png
 
+from .product import CropProduct, ImageProduct
+
 __all__ = ["ImageWriter", "outlined", "write_png", "write_tiff"]
 
 
@@ -52,12 +54,12 @@ class ImageWriter:
         self.written = 0
 
     def __call__(self, product: Product) -> None:
-        if product.kind not in ("image", "image-crop") or product.data is None:
+        if not isinstance(product, ImageProduct | CropProduct) or product.data is None:
             return
         self.out_dir.mkdir(parents=True, exist_ok=True)
-        name = "image" if product.kind == "image" else "crop"
-        base = self.out_dir / f"{name}_{int(product.meta['image_id']):04d}"
-        desc = f"coex image {product.key} version {product.version} bytes {product.meta.get('bytes_used')}"
+        name = "image" if isinstance(product, ImageProduct) else "crop"
+        base = self.out_dir / f"{name}_{int(product.image_id):04d}"
+        desc = f"coex image {product.key} version {product.version} bytes {product.bytes_used}"
         write_tiff(f"{base}.tiff", product.data, desc)
         write_png(f"{base}.png", product.data)
         self.written += 1

@@ -57,6 +57,7 @@ from .codec import (
 )
 from .goals import region_fields
 from .packets import PacketParser
+from .product import CropProduct, ImageProduct, ProgressProduct
 
 log = logging.getLogger("coex.imagery")
 
@@ -533,9 +534,9 @@ class ImageryReceiver(ModalityReceiver):
         out["layers_complete"] = layers
         return out
 
-    def _product(self, rx: _Rx) -> Product:
+    def _product(self, rx: _Rx) -> ImageProduct | CropProduct:
         a = rx.ann
-        meta: dict[str, Any] = {
+        held: dict[str, Any] = {
             "image_id": a.image_id, "stamp": a.stamp, "time": rx.time, "x": a.x, "y": a.y,
             "width": a.width, "height": a.height, "grey": a.grey, "total_bytes": a.total_bytes,
             "held_bytes": int(np.count_nonzero(rx.have)), "contiguous": rx.contiguous(),
@@ -546,22 +547,22 @@ class ImageryReceiver(ModalityReceiver):
         crop = rx.crop
         if crop is not None:
             parent = self.images.get(crop.parent)
-            meta.update(parent=crop.parent, box=[crop.x0, crop.y0, crop.x1, crop.y1],
-                        command_id=crop.command_id, base=crop.base, cover=crop.cover,
-                        shown=parent is not None and parent.crop is None
-                        and self._crop_shown(parent, rx))
-            return Product("image-crop", str(a.image_id), rx.version, self._crop_pixels(rx), meta)
-        meta["regions"] = [self._region_meta(rx, reg) for reg in rx.regions]
-        meta["crops"] = [c.ann.image_id for c in self._crops_of(rx)]
+            return CropProduct("image-crop", str(a.image_id), rx.version, self._crop_pixels(rx), **held,
+                               parent=crop.parent, box=[crop.x0, crop.y0, crop.x1, crop.y1],
+                               command_id=crop.command_id, base=crop.base, cover=crop.cover,
+                               shown=parent is not None and parent.crop is None
+                               and self._crop_shown(parent, rx))
         shown = rx.shown
-        return Product("image", str(a.image_id), rx.version, rx.image if shown is None else shown, meta)
+        return ImageProduct("image", str(a.image_id), rx.version, rx.image if shown is None else shown, **held,
+                            regions=[self._region_meta(rx, reg) for reg in rx.regions],
+                            crops=[c.ann.image_id for c in self._crops_of(rx)])
 
-    def _progress_product(self) -> Product:
+    def _progress_product(self) -> ProgressProduct:
         p = self.progress
         assert p is not None
-        meta = {"stamp": p.stamp, "pending": p.pending, "current": p.current,
-                "unacked_fragments": p.unacked_fragments, "next_images": list(p.next_images)}
-        return Product("image-progress", "vehicle", self._progress_version, None, meta)
+        return ProgressProduct("image-progress", "vehicle", self._progress_version, None, stamp=p.stamp,
+                               pending=p.pending, current=p.current, unacked_fragments=p.unacked_fragments,
+                               next_images=list(p.next_images))
 
     def products(self) -> list[Product]:
         out = [self._product(rx) for rx in self.images.values()]

@@ -30,6 +30,8 @@ import numpy.typing as npt
 from coex import Nav, Product, unwrap
 from coex.messages import SurveyCommand, VehicleStatus
 
+from ..bathymetry.product import MapLevel
+from ..imagery.product import ImageProduct
 from .estimator import DriftEstimator, NavConfig
 
 __all__ = ["CorrectedDetections", "CorrectedImages", "CorrectedMap", "Navigation", "VehicleFrameSurveys"]
@@ -126,8 +128,8 @@ class Navigation:
         if p.data is None:
             return None
         z = np.asarray(p.data, dtype=float)
-        cell = float(p.meta["cell_size"])
-        x0, y0 = float(p.meta["x0"]), float(p.meta["y0"])
+        cell = float(p.cell_size)
+        x0, y0 = float(p.x0), float(p.y0)
         est = self.estimators.get(vehicle)
         if not self.apply or est is None or est.solution() is None or z.size == 0:
             return z, cell, (x0, y0)
@@ -246,14 +248,13 @@ class CorrectedMap(_View):
     """A bathymetry receiver whose levels are corrected (:meth:`Navigation.corrected_level`)
     and whose area requests are put back into the vehicle's frame."""
 
-    def level_product(self, level: int, now: float | None = None) -> Product:
-        p = self._rx.level_product(level) if now is None else self._rx.level_product(level, now)
+    def level_product(self, level: int, now: float | None = None) -> MapLevel:
+        p: MapLevel = self._rx.level_product(level) if now is None else self._rx.level_product(level, now)
         got = self._nav.corrected_level(self._rx, level, self._vehicle)
         if got is None:
-            return p  # type: ignore[no-any-return]
+            return p
         grid, cell, (x0, y0) = got
-        return Product(p.kind, p.key, p.version, grid, {**p.meta, "x0": x0, "y0": y0, "cell_size": cell,
-                                                         "corrected": self._nav.apply})
+        return replace(p, data=grid, x0=x0, y0=y0, cell_size=cell, corrected=self._nav.apply)
 
     def level_version(self, level: int) -> int:
         """Changes when the level or the estimate does (a corrected level moves with the estimate)."""
@@ -338,10 +339,9 @@ class CorrectedImages(_View):
     def products(self) -> list[Product]:
         out = []
         for p in self._rx.products():
-            meta = p.meta
-            if p.kind == "image" and meta.get("x") is not None and meta.get("time") is not None:
-                x, y = self._nav.corrected(self._vehicle, float(meta["time"]), float(meta["x"]), float(meta["y"]))
-                p = Product(p.kind, p.key, p.version, p.data, {**meta, "x": round(x, 1), "y": round(y, 1)})
+            if isinstance(p, ImageProduct) and p.x is not None and p.y is not None:
+                x, y = self._nav.corrected(self._vehicle, float(p.time), float(p.x), float(p.y))
+                p = replace(p, x=round(x, 1), y=round(y, 1))
             out.append(p)
         return out
 

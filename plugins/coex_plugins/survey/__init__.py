@@ -47,8 +47,10 @@ from coex.messages import (
 from coex.wire import encode, encoded_size
 
 from .plan import Geofence, Refusal, SurveyPlan, SurveyReport, cut_detail, describe, plan_of
+from .product import SurveyProduct
 
-__all__ = ["PositionAid", "SurveyModality", "SurveyPlan", "SurveyReceiver", "SurveyReport", "SurveySender"]
+__all__ = ["PositionAid", "SurveyModality", "SurveyPlan", "SurveyProduct", "SurveyReceiver", "SurveyReport",
+           "SurveySender"]
 
 SENDER_DEFAULTS: dict[str, Any] = {
     #: the vehicle's limits (:class:`~.plan.Geofence` keys); empty: no geofence
@@ -513,28 +515,32 @@ class SurveyReceiver(ModalityReceiver):
     def pending_requests(self) -> list[Message]:
         return self._requests.pending()
 
-    def _product(self, rec: SurveyRecord) -> Product:
-        meta: dict[str, Any] = {"survey_id": rec.survey_id, "state": rec.state, "text": rec.text,
-                                "reason": rec.reason, "index": rec.index, "time": rec.time,
-                                "history": [list(h) for h in rec.history[-12:]]}
-        if rec.command is not None:
-            c = rec.command
-            meta["kind"] = SurveyKind(c.kind).name.lower()
-            try:
-                meta["waypoints"] = [list(p) for p in plan_of(c).waypoints]
-            except Refusal:
-                meta["waypoints"] = [[c.x, c.y]]
-            for k in ("heading", "length", "width", "spacing", "altitude", "depth", "speed", "append"):
-                meta[k] = getattr(c, k)
-        return Product("survey", str(rec.survey_id), rec.version, None, meta)
+    def _product(self, rec: SurveyRecord) -> SurveyProduct:
+        history: list[list[float | str]] = [list(h) for h in rec.history[-12:]]
+        c = rec.command
+        if c is None:
+            return SurveyProduct("survey", str(rec.survey_id), rec.version, None, survey_id=rec.survey_id,
+                                 state=rec.state, text=rec.text, reason=rec.reason, index=rec.index,
+                                 time=rec.time, history=history)
+        try:
+            waypoints = [[float(v) for v in p] for p in plan_of(c).waypoints]
+        except Refusal:
+            waypoints = [[c.x, c.y]]
+        return SurveyProduct("survey", str(rec.survey_id), rec.version, None, survey_id=rec.survey_id,
+                             state=rec.state, text=rec.text, reason=rec.reason, index=rec.index,
+                             time=rec.time, history=history, survey_kind=SurveyKind(c.kind).name.lower(),
+                             waypoints=waypoints, heading=c.heading, length=c.length, width=c.width,
+                             spacing=c.spacing, altitude=c.altitude, depth=c.depth, speed=c.speed,
+                             append=c.append)
 
     def products(self) -> list[Product]:
         return [self._product(r) for r in self.surveys.values()]
 
     def view(self, product: Product) -> Mapping[str, Any] | None:
-        m = product.meta
-        return {"survey": m.get("survey_id"), "kind": m.get("kind", "?"), "state": m.get("state"),
-                "why": m.get("text") or ""}
+        if not isinstance(product, SurveyProduct):
+            return None
+        return {"survey": product.survey_id, "kind": product.survey_kind or "?", "state": product.state,
+                "why": product.text or ""}
 
     def supersedes(self, old: Message, new: Message) -> bool:
         return False

@@ -22,6 +22,7 @@ from coex.messages import (
     TimeSeriesRequest,
 )
 
+from .product import SeriesProduct
 from .receiver import Series, TimeSeriesReceiver
 from .sender import ChannelConfig, InvalidSamples, Samples, TimeSeriesSender
 
@@ -30,6 +31,7 @@ __all__ = [
     "InvalidSamples",
     "Samples",
     "Series",
+    "SeriesProduct",
     "TimeSeriesModality",
     "TimeSeriesReceiver",
     "TimeSeriesSender",

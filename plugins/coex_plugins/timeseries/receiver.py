@@ -35,6 +35,7 @@ from coex.messages import (
 )
 
 from . import codec
+from .product import SeriesProduct
 
 __all__ = ["Series", "TimeSeriesReceiver", "sample_series"]
 
@@ -460,18 +461,16 @@ class TimeSeriesReceiver(ModalityReceiver):
         unit = ch.registration.unit if ch.registration else ""
         return Series(ch.cid, ch.name, unit, _cat(ts), _cat(vs), _cat(bs))
 
-    def _product(self, ch: _RChannel) -> Product:
+    def _product(self, ch: _RChannel) -> SeriesProduct:
         s = self._series(ch)
         reg = ch.registration
-        meta: dict[str, Any] = {
-            "channel": ch.cid, "name": ch.name, "unit": s.unit, "samples": int(s.times.size),
-            "blocks": len(ch.blocks),
+        return SeriesProduct(
+            "series", ch.name, ch.version, s, channel=ch.cid, name=ch.name, unit=s.unit,
+            samples=int(s.times.size), blocks=len(ch.blocks),
             # JSON-safe: None while nothing is held or a bound is unknown (incomplete pass)
-            "max_bound": s.max_bound if s.times.size and math.isfinite(s.max_bound) else None,
-        }
-        if reg is not None:
-            meta.update(lo=reg.lo, hi=reg.hi, resolution=reg.resolution)
-        return Product("series", ch.name, ch.version, s, meta)
+            max_bound=s.max_bound if s.times.size and math.isfinite(s.max_bound) else None,
+            lo=None if reg is None else reg.lo, hi=None if reg is None else reg.hi,
+            resolution=None if reg is None else reg.resolution)
 
     def products(self) -> list[Product]:
         return [self._product(ch) for _, ch in sorted(self._channels.items())]
