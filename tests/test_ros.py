@@ -625,7 +625,7 @@ def test_topside_products_appear_on_ros_topics(roscore: Roscore, tmp_path: Path)
         assert ts["data"][:4] == [pytest.approx(now - 2.0), pytest.approx(now - 1.0), 3.5, 4.25]
         assert ts["data"][4] == 0.1 and ts["data"][5] == math.inf
         [sv] = lines.find(topic="/t5/surveys")
-        assert sv["data"]["surveys"] == [survey]
+        assert sv["data"]["surveys"] == [dict(survey.meta)]  # its description, as JSON
         assert products.counts["failed"] == 0 and products.counts["image"] == 1
     finally:
         kill(spy)
