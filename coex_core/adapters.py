@@ -22,7 +22,7 @@ from typing import Any, ClassVar
 
 import numpy as np
 
-from .config import Problems
+from .config import Option, Options, Problems
 from .errors import ConfigError
 from .messages import SurveyKind, SurveyReason, SurveyState
 from .state import persistent
@@ -119,8 +119,11 @@ class Adapter:
 
     #: the entry-point name
     name: ClassVar[str] = ""
-    #: its options: name -> (default, one-line description); ``...`` as default = required
-    options: ClassVar[Mapping[str, tuple[Any, str]]] = {}
+    #: its options: name -> an :class:`~coex_core.config.Option` (type, default, range, unit,
+    #: doc: ``number(30.0, "...", unit="s", above=0)``) or ``(default, one-line description)``,
+    #: whose default's type is the option's (a float or int default: a finite number; a bool:
+    #: true or false); ``...`` (``REQUIRED``) as default = required
+    options: ClassVar[Mapping[str, tuple[Any, str] | Option]] = {}
     #: what the configuration says of it ("input", "autonomy"), and table keys that are not options
     kind: ClassVar[str] = "adapter"
     table_keys: ClassVar[tuple[str, ...]] = ("type",)
@@ -129,7 +132,7 @@ class Adapter:
         problems = adapter_problems(type(self), options)
         if problems:
             raise ConfigError("; ".join(problems))
-        self.config: dict[str, Any] = {k: v[0] for k, v in self.options.items() if v[0] is not ...}
+        self.config: dict[str, Any] = Options.of(self.options).defaults()
         self.config.update(options)
         self.context = context
 
@@ -167,12 +170,17 @@ def adapter_check(cls: type[Adapter], options: Mapping[str, Any]) -> Problems:
     """Unknown and missing keys, then the adapter's own :meth:`Adapter.check`, collected in one
     :class:`~coex_core.config.Problems`, each with the option it names."""
     p = Problems()
+    declared = Options.of(cls.options)
     for k in options:
-        if k not in cls.options and k not in cls.table_keys:
-            p.said(str(k), f"unknown option {k!r} for {cls.kind} {cls.name!r} (known: {', '.join(sorted(cls.options))})")
-    for k, (default, desc) in cls.options.items():
-        if default is ... and k not in options:
-            p.said(k, f"{cls.kind} {cls.name!r} needs option {k!r} ({desc})")
+        if k not in declared and k not in cls.table_keys:
+            p.said(str(k), f"unknown option {k!r} for {cls.kind} {cls.name!r} (known: {', '.join(sorted(declared))})")
+    for k, option in declared.items():
+        if option.required and k not in options:
+            p.said(k, f"{cls.kind} {cls.name!r} needs option {k!r} ({option.doc})")
+        elif k in options:
+            text = option.problem(options[k])  # the declared type and range: the one check of a value
+            if text is not None:
+                p.add(k, text)
     if not p:
         found = cls.check(options)
         if isinstance(found, Problems):
