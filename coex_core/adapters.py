@@ -167,8 +167,10 @@ def adapter_problems(cls: type[Adapter], options: Mapping[str, Any]) -> list[str
 
 
 def adapter_check(cls: type[Adapter], options: Mapping[str, Any]) -> Problems:
-    """Unknown and missing keys, then the adapter's own :meth:`Adapter.check`, collected in one
-    :class:`~coex_core.config.Problems`, each with the option it names."""
+    """Unknown and missing keys; else the adapter's own :meth:`Adapter.check` and each value
+    against its declared :class:`~coex_core.config.Option` (a value the declaration refuses is
+    said once, in the declaration's words: ``variation: not a finite number, got nan``),
+    collected in one :class:`~coex_core.config.Problems`, each with the option it names."""
     p = Problems()
     declared = Options.of(cls.options)
     for k in options:
@@ -177,17 +179,20 @@ def adapter_check(cls: type[Adapter], options: Mapping[str, Any]) -> Problems:
     for k, option in declared.items():
         if option.required and k not in options:
             p.said(k, f"{cls.kind} {cls.name!r} needs option {k!r} ({option.doc})")
-        elif k in options:
-            text = option.problem(options[k])  # the declared type and range: the one check of a value
-            if text is not None:
-                p.add(k, text)
-    if not p:
-        found = cls.check(options)
-        if isinstance(found, Problems):
-            p.merge(found)
-            p.warned.extend(found.warned)
-        else:
-            p.extend("", found)
+    if p:
+        return p
+    typed = Problems()  # the declared type and range of each value: the one check of a value
+    for k, option in declared.items():
+        if k in options:
+            option.checked(typed, k, options[k])
+    found = cls.check(options)
+    if isinstance(found, Problems):
+        # the adapter's own checks, less what they say again of a value the declaration refused
+        p.merge(q for q in found if not q.key or q.key not in typed.keys())
+        p.warned.extend(found.warned)
+    else:
+        p.extend("", found)
+    p.merge(typed)
     return p
 
 

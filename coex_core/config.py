@@ -466,7 +466,8 @@ class Options(Mapping[str, Option]):
                 continue
             option = self._fields.get(str(k))
             if option is None:
-                p.add(full(str(k)), f"unknown option (known: {', '.join(sorted(self))})")
+                p.said(full(str(k)), f"unknown {what + ' ' if what else ''}option {str(k)!r} "
+                                     f"(known: {', '.join(sorted(self))})")
                 continue
             out[str(k)] = option.checked(p, full(str(k)), v, option.default)
         for k, option in self._fields.items():
@@ -480,9 +481,11 @@ def merged_config(config: Mapping[str, Any] | None, defaults: Mapping[str, Any],
     """``config`` checked against the declared options (an :class:`Options`, or a plain mapping
     of defaults, :meth:`Options.of`) and merged over their defaults, numbers as floats: one
     :class:`ConfigError` (``what`` names the component, e.g. ``"imagery sender"``) listing
-    every problem, each keyed by its option (``send_delay: not a finite number, got nan``)."""
+    every problem, each keyed by its option (``send_delay: not a finite number, got nan``; an
+    unknown one ``unknown imagery sender option 'x' (known: ...)``)."""
+    if config is not None and not isinstance(config, Mapping):
+        raise ConfigError(f"{what or 'the'} configuration must be a mapping, got {type(config).__name__}")
     p = Problems()
     cfg = Options.of(defaults).check(config, p, what=what)
-    if p:
-        raise p.error(what)
+    p.check()
     return cfg
