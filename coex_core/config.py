@@ -266,7 +266,8 @@ def shown(v: Any) -> str:
 @dataclass(frozen=True)
 class Option:
     """One declared option: its ``kind`` (:data:`OptionKind`), ``default`` (:data:`REQUIRED`: it
-    must be given), the range ``lo..hi`` (``lo_open``: above ``lo``, not at it), its ``unit``
+    must be given), the range ``lo..hi`` (``lo_open``: above ``lo``, not at it; ``hi_open``:
+    below ``hi``), its ``unit``
     (``"s"``, ``"m"``, ``"B"``), the ``choices`` a text may take, ``none`` (None is a value:
     "not set"), a one-line ``doc``; ``coerce``: a number is taken as a float (else as given).
 
@@ -283,6 +284,7 @@ class Option:
     choices: tuple[Any, ...] = ()
     none: bool = False
     coerce: bool = True
+    hi_open: bool = False
 
     @property
     def required(self) -> bool:
@@ -298,16 +300,17 @@ class Option:
         unit = f" {self.unit}" if self.unit else ""
         lo = "" if self.lo is None else f"{self.lo:g}"
         hi = "" if self.hi is None else f"{self.hi:g}"
+        closed = not (self.lo_open or self.hi_open)
         if v is None:
-            if lo and hi and not self.lo_open:
+            if lo and hi and closed:
                 return f"{lo}..{hi}{unit}"
             parts = ([f"above {lo}{unit}" if self.lo_open else f"at least {lo}{unit}"] if lo else []) + (
-                [f"at most {hi}{unit}"] if hi else [])
+                [f"below {hi}{unit}" if self.hi_open else f"at most {hi}{unit}"] if hi else [])
             return " and ".join(parts)
-        if lo and hi and not self.lo_open:
+        if lo and hi and closed:
             return f"is outside {lo}..{hi}{unit}"
-        if self.hi is not None and v > self.hi:
-            return f"is above {hi}{unit}"
+        if self.hi is not None and (v > self.hi or (self.hi_open and v == self.hi)):
+            return f"is not below {hi}{unit}" if self.hi_open else f"is above {hi}{unit}"
         return f"is not above {lo}{unit}" if self.lo_open else f"is below {lo}{unit}"
 
     def problem(self, v: Any) -> str | None:
@@ -330,7 +333,7 @@ class Option:
         if self.choices and v not in self.choices:
             return f"one of {', '.join(map(shown, self.choices))}, got {shown(v)}"
         if self.numeric and ((self.lo is not None and (v < self.lo or (self.lo_open and v == self.lo)))
-                             or (self.hi is not None and v > self.hi)):
+                             or (self.hi is not None and (v > self.hi or (self.hi_open and v == self.hi)))):
             return f"{shown(v)} {self._range(v)}"
         return None
 
@@ -362,12 +365,13 @@ class Option:
 
 
 def number(default: Any = REQUIRED, doc: str = "", *, unit: str = "", lo: float | None = None,
-           hi: float | None = None, above: float | None = None, choices: tuple[float, ...] = (),
-           none: bool = False) -> Option:
+           hi: float | None = None, above: float | None = None, below: float | None = None,
+           choices: tuple[float, ...] = (), none: bool = False) -> Option:
     """A number option (an int or a finite float, taken as a float): ``lo``/``hi`` inclusive,
-    ``above`` exclusive, one of ``choices`` when given."""
-    return Option("number", default, doc, unit, above if above is not None else lo, hi, above is not None,
-                  choices=choices, none=none)
+    ``above``/``below`` exclusive, one of ``choices`` when given."""
+    return Option("number", default, doc, unit, above if above is not None else lo,
+                  below if below is not None else hi, above is not None, choices=choices, none=none,
+                  hi_open=below is not None)
 
 
 def integer(default: Any = REQUIRED, doc: str = "", *, unit: str = "", lo: int | None = None,

@@ -175,7 +175,7 @@ SENDER_OPTIONS = Options(
     block_samples=integer(4096, "samples per block", lo=16, hi=4096),
     max_latency=number(120.0, "a block closes this long after its first sample", unit="s", above=0),
     overview_factor=number(12.0, "the overview's error target, in noise sigmas", above=0),
-    alert_fraction=number(0.4, "the first pass of a block with spikes (0: none; below 1)", lo=0, hi=1),
+    alert_fraction=number(0.4, "the first pass of a block with spikes (0: none)", lo=0, below=1),
     retry_after=number(90.0, "an unacknowledged chunk is sent again after", unit="s", above=0),
     spike_close=number(60.0, "a block closes early this long after a spike (0: never)", unit="s", lo=0),
 )
@@ -212,8 +212,6 @@ class TimeSeriesSender(ModalitySender):
         self.max_latency = float(config["max_latency"])
         self.overview_factor = float(config["overview_factor"])
         self.retry_after = float(config["retry_after"])
-        if config["alert_fraction"] == 1:
-            raise ConfigError("time-series sender: alert_fraction: 1 is outside [0, 1)")
         self.alert_fraction = float(config["alert_fraction"])
         self.spike_close = float(config["spike_close"])
         self._channels: list[_Channel] = []
