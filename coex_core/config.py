@@ -178,7 +178,7 @@ class Problems:
         if key not in options:
             return
         v = options[key]
-        if not _is_number(v) or not math.isfinite(v):
+        if _NUMBER.problem(v) is not None:  # the one test of a number (Option.problem)
             self.said(key, f"{who}: option {key!r} must be a number, not {v!r}")
         elif positive and v <= 0:
             self.said(key, f"{who}: option {key!r} must be greater than 0, not {v!r}")
@@ -190,12 +190,12 @@ class Problems:
         if key not in options:
             return
         v = options[key]
-        if not isinstance(v, int) or isinstance(v, bool) or not lo <= v <= hi:
+        if Option("integer", lo=lo, hi=hi).problem(v) is not None:
             self.said(key, f"{who}: option {key!r} must be an integer from {lo} to {hi}, not {v!r}")
 
     def option_bool(self, who: str, options: Mapping[str, Any], key: str) -> None:
         """A problem if ``key`` is given and is not true or false."""
-        if key in options and not isinstance(options[key], bool):
+        if key in options and Option("bool").problem(options[key]) is not None:
             self.said(key, f"{who}: option {key!r} must be true or false, not {options[key]!r}")
 
     def option_choice(self, who: str, options: Mapping[str, Any], key: str, choices: tuple[str, ...]) -> None:
@@ -478,6 +478,10 @@ class Options(Mapping[str, Option]):
             if option.required and k not in given:
                 p.add(full(k), f"missing{': ' + option.doc if option.doc else ''}")
         return out
+
+
+#: any finite number (the adapters' ``option_number``)
+_NUMBER = Option("number")
 
 
 def merged_config(config: Mapping[str, Any] | None, defaults: Mapping[str, Any],
