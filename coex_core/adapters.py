@@ -129,9 +129,13 @@ class Adapter:
     table_keys: ClassVar[tuple[str, ...]] = ("type",)
 
     def __init__(self, options: Mapping[str, Any], context: InputContext) -> None:
-        problems = adapter_problems(type(self), options)
-        if problems:
-            raise ConfigError("; ".join(problems))
+        found = adapter_check(type(self), options)
+        if found:  # a declaration's problem ("speed: ...") says whose it is, as the adapter's own do
+            who = f"{self.kind} {self.name!r}"
+            exc = ConfigError("; ".join(f"{who}: {q.text}" if q.key and q.text.startswith(f"{q.key}: ") else q.text
+                                        for q in found))
+            exc.problems = tuple(found)
+            raise exc
         self.config: dict[str, Any] = Options.of(self.options).defaults()
         self.config.update(options)
         self.context = context

@@ -22,6 +22,7 @@ adapter's options, a demo scenario) collects its problems in one :class:`Problem
 from __future__ import annotations
 
 import math
+import numbers
 from collections.abc import Iterable, Iterator, Mapping
 from dataclasses import dataclass
 from pathlib import Path
@@ -251,7 +252,8 @@ class Problems:
 
 
 def _is_number(v: Any) -> bool:
-    return isinstance(v, int | float) and not isinstance(v, bool)
+    """An int or a float (numpy's scalars too), never a bool."""
+    return isinstance(v, numbers.Real) and not isinstance(v, bool) and type(v).__name__ != "bool_"
 
 
 def shown(v: Any) -> str:
@@ -326,7 +328,7 @@ class Option:
             if not isinstance(v, str):
                 return f"a string, got {shown(v)}"
         elif self.kind == "integer":
-            if not isinstance(v, int) or isinstance(v, bool):
+            if not isinstance(v, numbers.Integral) or not _is_number(v):
                 return f"not an integer, got {shown(v)}"
         elif not _is_number(v) or not math.isfinite(v):
             return f"not a finite number, got {shown(v)}"
@@ -341,6 +343,8 @@ class Option:
         """``v`` (that passed :meth:`problem`) as the component takes it: a number as a float."""
         if self.kind == "number" and self.coerce and v is not None:
             return float(v)
+        if self.kind == "integer" and self.coerce and v is not None:
+            return int(v)
         return v
 
     def checked(self, p: Problems, key: str, v: Any, fallback: Any = None) -> Any:
