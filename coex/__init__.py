@@ -66,7 +66,7 @@ from coex_core.channel import (
     TdmaSlot,
     Transmission,
 )
-from coex_core.config import Problem, Problems, merged_config
+from coex_core.config import REQUIRED, Option, Options, Problem, Problems, merged_config
 from coex_core.detect import Detector, Finding, ImageFrame, ImageFrames, MapView
 from coex_core.errors import (
     AuthenticationError,
@@ -230,6 +230,9 @@ __all__ = [
     "load_modality",
     "load_transport",
     "merged_config",
+    "Option",
+    "Options",
+    "REQUIRED",
     "messages",
     "open_transport",
     "parse_query",

@@ -22,7 +22,7 @@ from typing import Any, ClassVar
 
 import numpy as np
 
-from .config import Problems
+from .config import Option, Options, Problems
 from .errors import ConfigError
 from .messages import SurveyKind, SurveyReason, SurveyState
 from .state import persistent
@@ -119,17 +119,24 @@ class Adapter:
 
     #: the entry-point name
     name: ClassVar[str] = ""
-    #: its options: name -> (default, one-line description); ``...`` as default = required
-    options: ClassVar[Mapping[str, tuple[Any, str]]] = {}
+    #: its options: name -> an :class:`~coex_core.config.Option` (type, default, range, unit,
+    #: doc: ``number(30.0, "...", unit="s", above=0)``) or ``(default, one-line description)``,
+    #: whose default's type is the option's (a float or int default: a finite number; a bool:
+    #: true or false); ``...`` (``REQUIRED``) as default = required
+    options: ClassVar[Mapping[str, tuple[Any, str] | Option]] = {}
     #: what the configuration says of it ("input", "autonomy"), and table keys that are not options
     kind: ClassVar[str] = "adapter"
     table_keys: ClassVar[tuple[str, ...]] = ("type",)
 
     def __init__(self, options: Mapping[str, Any], context: InputContext) -> None:
-        problems = adapter_problems(type(self), options)
-        if problems:
-            raise ConfigError("; ".join(problems))
-        self.config: dict[str, Any] = {k: v[0] for k, v in self.options.items() if v[0] is not ...}
+        found = adapter_check(type(self), options)
+        if found:  # a declaration's problem ("speed: ...") says whose it is, as the adapter's own do
+            who = f"{self.kind} {self.name!r}"
+            exc = ConfigError("; ".join(f"{who}: {q.text}" if q.key and q.text.startswith(f"{q.key}: ") else q.text
+                                        for q in found))
+            exc.problems = tuple(found)
+            raise exc
+        self.config: dict[str, Any] = Options.of(self.options).defaults()
         self.config.update(options)
         self.context = context
 
@@ -164,22 +171,32 @@ def adapter_problems(cls: type[Adapter], options: Mapping[str, Any]) -> list[str
 
 
 def adapter_check(cls: type[Adapter], options: Mapping[str, Any]) -> Problems:
-    """Unknown and missing keys, then the adapter's own :meth:`Adapter.check`, collected in one
-    :class:`~coex_core.config.Problems`, each with the option it names."""
+    """Unknown and missing keys; else the adapter's own :meth:`Adapter.check` and each value
+    against its declared :class:`~coex_core.config.Option` (a value the declaration refuses is
+    said once, in the declaration's words: ``variation: not a finite number, got nan``),
+    collected in one :class:`~coex_core.config.Problems`, each with the option it names."""
     p = Problems()
+    declared = Options.of(cls.options)
     for k in options:
-        if k not in cls.options and k not in cls.table_keys:
-            p.said(str(k), f"unknown option {k!r} for {cls.kind} {cls.name!r} (known: {', '.join(sorted(cls.options))})")
-    for k, (default, desc) in cls.options.items():
-        if default is ... and k not in options:
-            p.said(k, f"{cls.kind} {cls.name!r} needs option {k!r} ({desc})")
-    if not p:
-        found = cls.check(options)
-        if isinstance(found, Problems):
-            p.merge(found)
-            p.warned.extend(found.warned)
-        else:
-            p.extend("", found)
+        if k not in declared and k not in cls.table_keys:
+            p.said(str(k), f"unknown option {k!r} for {cls.kind} {cls.name!r} (known: {', '.join(sorted(declared))})")
+    for k, option in declared.items():
+        if option.required and k not in options:
+            p.said(k, f"{cls.kind} {cls.name!r} needs option {k!r} ({option.doc})")
+    if p:
+        return p
+    typed = Problems()  # the declared type and range of each value: the one check of a value
+    for k, option in declared.items():
+        if k in options:
+            option.checked(typed, k, options[k])
+    found = cls.check(options)
+    if isinstance(found, Problems):
+        # the adapter's own checks, less what they say again of a value the declaration refused
+        p.merge(q for q in found if not q.key or q.key not in typed.keys())
+        p.warned.extend(found.warned)
+    else:
+        p.extend("", found)
+    p.merge(typed)
     return p
 
 

@@ -2,9 +2,15 @@
 configuration's problems.
 
 A sender's or receiver's configuration is a plain mapping (from TOML, JSON or code). Every
-plugin declares its options with their defaults and merges with :func:`merged_config`: an
-unknown key (a misspelling) is a :class:`~coex_core.errors.ConfigError` that names the key and
-lists the known ones, never silently ignored.
+component declares its options once, as an :class:`Options` schema of :class:`Option` fields
+(type, default, range, unit, one line of doc), and merges with :func:`merged_config`: an
+unknown key (a misspelling), a missing required one and a value of the wrong type or out of
+range are each a problem naming the key, all of them in one
+:class:`~coex_core.errors.ConfigError`, never silently ignored. A number is an ``int`` or a
+finite ``float``: NaN, infinities, booleans and words (``"10"``, ``"soon"``) are refused.
+The same fields check a modality's options, a vehicle adapter's, a transport URI's query
+(:func:`coex_core.transport.parse_query`), the deployment file's numbers
+(:meth:`Problems.number`) and a demo scenario's.
 
 Every validator of a configuration (the options of a plugin, a node's deployment file, a vehicle
 adapter's options, a demo scenario) collects its problems in one :class:`Problems`: it checks
@@ -16,14 +22,23 @@ adapter's options, a demo scenario) collects its problems in one :class:`Problem
 from __future__ import annotations
 
 import math
+import numbers
 from collections.abc import Iterable, Iterator, Mapping
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, Final, Literal
 
 from .errors import ConfigError
 
-__all__ = ["Problem", "Problems", "merged_config"]
+__all__ = ["REQUIRED", "Option", "OptionKind", "Options", "Problem", "Problems", "anything", "flag", "inferred",
+           "integer", "merged_config", "number", "shown", "text"]
+
+#: what an :class:`Option` holds: ``number`` (an int or a finite float, taken as a float),
+#: ``integer``, ``bool``, ``text`` (a string), ``any`` (checked by the component itself: a list,
+#: a table)
+OptionKind = Literal["number", "integer", "bool", "text", "any"]
+#: the default of an option that must be given
+REQUIRED: Final[Any] = ...
 
 
 @dataclass(frozen=True)
@@ -136,20 +151,13 @@ class Problems:
 
     def number(self, data: Mapping[str, Any], k: str, key: str, default: Any, *, lo: float | None = None,
                hi: float | None = None, integer: bool = False) -> Any:
-        """``data[k]`` checked as a (finite) number or an integer in ``lo..hi``; ``default``
-        when it is not given or is wrong (a problem then)."""
+        """``data[k]`` checked as a (finite) number or an integer in ``lo..hi`` (an
+        :class:`Option`'s check); ``default`` when it is not given or is wrong (a problem then)."""
         v = data.get(k, default)
         if v is default:
             return v
-        ok = isinstance(v, int) if integer else isinstance(v, int | float)
-        if isinstance(v, bool) or not ok or (not integer and not math.isfinite(v)):
-            self.add(f"{key}.{k}", f"{'an integer' if integer else 'a number'}, got {v!r}")
-            return default
-        if (lo is not None and v < lo) or (hi is not None and v > hi):
-            self.add(f"{key}.{k}", f"{v!r} is outside {lo:g}..{hi:g}" if lo is not None and hi is not None
-                     else f"{v!r} is below {lo:g}" if lo is not None else f"{v!r} is above {hi:g}")
-            return default
-        return v
+        option = Option("integer" if integer else "number", default, lo=lo, hi=hi, coerce=False)
+        return option.checked(self, f"{key}.{k}" if key else k, v, default)
 
 
     # ------------------------------------------------------------------ an adapter's options
@@ -171,7 +179,7 @@ class Problems:
         if key not in options:
             return
         v = options[key]
-        if not _is_number(v) or not math.isfinite(v):
+        if _NUMBER.problem(v) is not None:  # the one test of a number (Option.problem)
             self.said(key, f"{who}: option {key!r} must be a number, not {v!r}")
         elif positive and v <= 0:
             self.said(key, f"{who}: option {key!r} must be greater than 0, not {v!r}")
@@ -183,12 +191,12 @@ class Problems:
         if key not in options:
             return
         v = options[key]
-        if not isinstance(v, int) or isinstance(v, bool) or not lo <= v <= hi:
+        if Option("integer", lo=lo, hi=hi).problem(v) is not None:
             self.said(key, f"{who}: option {key!r} must be an integer from {lo} to {hi}, not {v!r}")
 
     def option_bool(self, who: str, options: Mapping[str, Any], key: str) -> None:
         """A problem if ``key`` is given and is not true or false."""
-        if key in options and not isinstance(options[key], bool):
+        if key in options and Option("bool").problem(options[key]) is not None:
             self.said(key, f"{who}: option {key!r} must be true or false, not {options[key]!r}")
 
     def option_choice(self, who: str, options: Mapping[str, Any], key: str, choices: tuple[str, ...]) -> None:
@@ -230,32 +238,266 @@ class Problems:
             yield name, entry
 
     def nest(self, key: str, other: Iterable[Problem]) -> None:
-        """Problems a part found by itself (an adapter's options) as problems of ``key``: each
-        shown ``"key: text"``, its key under ``key`` (``inputs[0]`` and ``baud`` make
-        ``inputs[0].baud``)."""
+        """Problems a part found by itself (an adapter's options, a modality's) as problems of
+        ``key``: each key under ``key`` (``inputs[0]`` and ``baud`` make ``inputs[0].baud``),
+        and shown with it: ``"inputs[0].baud: text"`` when the part's problem was
+        ``"baud: text"`` (an :class:`Option`'s), else ``"inputs[0]: sentence"``."""
         for q in other:
-            self.found.append(Problem(f"{key}.{q.key}" if key and q.key else key or q.key,
-                                      f"{key}: {q.text}" if key else q.text))
+            full = f"{key}.{q.key}" if key and q.key else key or q.key
+            if key and q.key and q.text.startswith(f"{q.key}: "):
+                text = f"{full}: {q.text[len(q.key) + 2:]}"
+            else:
+                text = f"{key}: {q.text}" if key else q.text
+            self.found.append(Problem(full, text))
 
 
 def _is_number(v: Any) -> bool:
-    return isinstance(v, int | float) and not isinstance(v, bool)
+    """An int or a float (numpy's scalars too), never a bool."""
+    return isinstance(v, numbers.Real) and not isinstance(v, bool) and type(v).__name__ != "bool_"
+
+
+def shown(v: Any) -> str:
+    """A value as a configuration file writes it (``true``, ``nan``, ``-inf``, ``'soon'``)."""
+    if isinstance(v, bool):
+        return "true" if v else "false"
+    if isinstance(v, float) and not math.isfinite(v):
+        return "nan" if math.isnan(v) else "inf" if v > 0 else "-inf"
+    return repr(v)
+
+
+@dataclass(frozen=True)
+class Option:
+    """One declared option: its ``kind`` (:data:`OptionKind`), ``default`` (:data:`REQUIRED`: it
+    must be given), the range ``lo..hi`` (``lo_open``: above ``lo``, not at it; ``hi_open``:
+    below ``hi``), its ``unit``
+    (``"s"``, ``"m"``, ``"B"``), the ``choices`` a text may take, ``none`` (None is a value:
+    "not set"), a one-line ``doc``; ``coerce``: a number is taken as a float (else as given).
+
+    :meth:`problem` is the one check of a value: a ``number`` is an ``int`` or a finite
+    ``float``, never a bool, NaN, an infinity or a word; an ``integer`` an ``int``."""
+
+    kind: OptionKind
+    default: Any = REQUIRED
+    doc: str = ""
+    unit: str = ""
+    lo: float | None = None
+    hi: float | None = None
+    lo_open: bool = False
+    choices: tuple[Any, ...] = ()
+    none: bool = False
+    coerce: bool = True
+    hi_open: bool = False
+
+    @property
+    def required(self) -> bool:
+        return self.default is REQUIRED
+
+    @property
+    def numeric(self) -> bool:
+        return self.kind in ("number", "integer")
+
+    def _range(self, v: float | None = None) -> str:
+        """Why ``v`` is out of range (``"is outside 1..8"``, ``"is below 0 s"``); with no
+        value, the range itself (``"1..8"``, ``"above 0 s"``)."""
+        unit = f" {self.unit}" if self.unit else ""
+        lo = "" if self.lo is None else f"{self.lo:g}"
+        hi = "" if self.hi is None else f"{self.hi:g}"
+        closed = not (self.lo_open or self.hi_open)
+        if v is None:
+            if lo and hi and closed:
+                return f"{lo}..{hi}{unit}"
+            parts = ([f"above {lo}{unit}" if self.lo_open else f"at least {lo}{unit}"] if lo else []) + (
+                [f"below {hi}{unit}" if self.hi_open else f"at most {hi}{unit}"] if hi else [])
+            return " and ".join(parts)
+        if lo and hi and closed:
+            return f"is outside {lo}..{hi}{unit}"
+        if self.hi is not None and (v > self.hi or (self.hi_open and v == self.hi)):
+            return f"is not below {hi}{unit}" if self.hi_open else f"is above {hi}{unit}"
+        return f"is not above {lo}{unit}" if self.lo_open else f"is below {lo}{unit}"
+
+    def problem(self, v: Any) -> str | None:
+        """What is wrong with ``v`` as this option's value (``"not a finite number, got nan"``),
+        or None."""
+        if v is None and (self.none or self.default is None):
+            return None
+        if self.kind == "any":
+            return None
+        if self.kind == "bool":
+            return None if isinstance(v, bool) else f"true or false, got {shown(v)}"
+        if self.kind == "text":
+            if not isinstance(v, str):
+                return f"a string, got {shown(v)}"
+        elif self.kind == "integer":
+            if not isinstance(v, numbers.Integral) or not _is_number(v):
+                return f"not an integer, got {shown(v)}"
+        elif not _is_number(v) or not math.isfinite(v):
+            return f"not a finite number, got {shown(v)}"
+        if self.choices and v not in self.choices:
+            return f"one of {', '.join(map(shown, self.choices))}, got {shown(v)}"
+        if self.numeric and ((self.lo is not None and (v < self.lo or (self.lo_open and v == self.lo)))
+                             or (self.hi is not None and (v > self.hi or (self.hi_open and v == self.hi)))):
+            return f"{shown(v)} {self._range(v)}"
+        return None
+
+    def value(self, v: Any) -> Any:
+        """``v`` (that passed :meth:`problem`) as the component takes it: a number as a float."""
+        if self.kind == "number" and self.coerce and v is not None:
+            return float(v)
+        if self.kind == "integer" and self.coerce and v is not None:
+            return int(v)
+        return v
+
+    def checked(self, p: Problems, key: str, v: Any, fallback: Any = None) -> Any:
+        """``v`` as :meth:`value`; a problem of ``key`` and ``fallback`` when it is wrong."""
+        text = self.problem(v)
+        if text is not None:
+            p.add(key, text)
+            return fallback
+        return self.value(v)
+
+    def describe(self) -> str:
+        """Its type, range and unit in a few words (docs, ``coex plugins`` listings)."""
+        what = {"number": "number", "integer": "integer", "bool": "true/false", "text": "string",
+                "any": "value"}[self.kind]
+        if self.choices:
+            what += " (" + ", ".join(map(shown, self.choices)) + ")"
+        if self.numeric and (self.lo is not None or self.hi is not None):
+            what += ", " + self._range()
+        elif self.unit:
+            what += f" ({self.unit})"
+        return what
+
+
+def number(default: Any = REQUIRED, doc: str = "", *, unit: str = "", lo: float | None = None,
+           hi: float | None = None, above: float | None = None, below: float | None = None,
+           choices: tuple[float, ...] = (), none: bool = False) -> Option:
+    """A number option (an int or a finite float, taken as a float): ``lo``/``hi`` inclusive,
+    ``above``/``below`` exclusive, one of ``choices`` when given."""
+    return Option("number", default, doc, unit, above if above is not None else lo,
+                  below if below is not None else hi, above is not None, choices=choices, none=none,
+                  hi_open=below is not None)
+
+
+def integer(default: Any = REQUIRED, doc: str = "", *, unit: str = "", lo: int | None = None,
+            hi: int | None = None, choices: tuple[int, ...] = (), none: bool = False) -> Option:
+    """An integer option."""
+    return Option("integer", default, doc, unit, lo, hi, choices=choices, none=none)
+
+
+def flag(default: Any = REQUIRED, doc: str = "") -> Option:
+    """A true/false option."""
+    return Option("bool", default, doc)
+
+
+def text(default: Any = REQUIRED, doc: str = "", *, choices: tuple[str, ...] = (), none: bool = False) -> Option:
+    """A string option (one of ``choices`` when given)."""
+    return Option("text", default, doc, choices=choices, none=none)
+
+
+def anything(default: Any = REQUIRED, doc: str = "") -> Option:
+    """An option the component checks itself (a list, a table)."""
+    return Option("any", default, doc)
+
+
+def inferred(default: Any, doc: str = "") -> Option:
+    """The option a bare default declares (a plain ``{name: default}`` mapping, an adapter's
+    ``(default, doc)``): a float or an int default a number (kept as given), a bool one true or
+    false, anything else a value the component checks itself."""
+    if isinstance(default, bool):
+        return Option("bool", default, doc)
+    if isinstance(default, int | float) and not isinstance(default, bool):
+        return Option("number", default, doc, coerce=False)
+    return Option("any", default, doc)
+
+
+class Options(Mapping[str, Option]):
+    """A component's declared options, by name (the schema :func:`merged_config` checks):
+    ``Options(send_delay=number(20.0, "...", unit="s", lo=0), ...)``, or
+    :meth:`inferred` from a plain mapping of defaults."""
+
+    def __init__(self, fields: Mapping[str, Option] | None = None, /, **more: Option) -> None:
+        self._fields: dict[str, Option] = {**(fields or {}), **more}
+
+    @classmethod
+    def of(cls, declared: Mapping[str, Any]) -> Options:
+        """``declared`` as an :class:`Options`: itself, or each value an :class:`Option`, a
+        ``(default, doc)`` pair or a bare default (:func:`inferred`)."""
+        if isinstance(declared, Options):
+            return declared
+        out: dict[str, Option] = {}
+        for k, v in declared.items():
+            if isinstance(v, Option):
+                out[str(k)] = v
+            elif isinstance(v, tuple) and len(v) == 2 and isinstance(v[1], str):
+                out[str(k)] = inferred(v[0], v[1])
+            else:
+                out[str(k)] = inferred(v)
+        return cls(out)
+
+    def __getitem__(self, key: str) -> Option:
+        return self._fields[key]
+
+    def __iter__(self) -> Iterator[str]:
+        return iter(self._fields)
+
+    def __len__(self) -> int:
+        return len(self._fields)
+
+    def __or__(self, other: Mapping[str, Option]) -> Options:
+        return Options({**self._fields, **other})
+
+    def defaults(self) -> dict[str, Any]:
+        """Each option's default (required ones left out)."""
+        return {k: o.default for k, o in self._fields.items() if not o.required}
+
+    def numeric(self) -> list[str]:
+        """The names of the number and integer options."""
+        return [k for k, o in self._fields.items() if o.numeric]
+
+    def check(self, config: Mapping[str, Any] | None, p: Problems, key: str = "", *, what: str = "",
+              ignore: Iterable[str] = ()) -> dict[str, Any]:
+        """``config`` merged over the defaults and coerced; every problem into ``p`` under
+        ``key`` (``modalities.bathymetry.options`` makes ``modalities.bathymetry.options.send_delay``):
+        a key not declared (nor in ``ignore``), a required one missing, a value :meth:`Option.problem`
+        refuses (its default kept then). ``what`` names the component ("bathymetry sender")."""
+        def full(k: str) -> str:
+            return f"{key}.{k}" if key else k
+
+        out = self.defaults()
+        if config is not None and not isinstance(config, Mapping):
+            p.add(key, f"the {what + ' ' if what else ''}options must be a table, got {type(config).__name__}")
+            return out
+        skip = set(ignore)
+        given = config or {}
+        for k, v in given.items():
+            if k in skip:
+                continue
+            option = self._fields.get(str(k))
+            if option is None:
+                p.said(full(str(k)), f"unknown {what + ' ' if what else ''}option {str(k)!r} "
+                                     f"(known: {', '.join(sorted(self))})")
+                continue
+            out[str(k)] = option.checked(p, full(str(k)), v, option.default)
+        for k, option in self._fields.items():
+            if option.required and k not in given:
+                p.add(full(k), f"missing{': ' + option.doc if option.doc else ''}")
+        return out
+
+
+#: any finite number (the adapters' ``option_number``)
+_NUMBER = Option("number")
 
 
 def merged_config(config: Mapping[str, Any] | None, defaults: Mapping[str, Any],
                   what: str = "") -> dict[str, Any]:
-    """``defaults`` updated with ``config``; :class:`ConfigError` naming every key not in
-    ``defaults`` (``what`` names the component in the message, e.g. ``"imagery sender"``)."""
+    """``config`` checked against the declared options (an :class:`Options`, or a plain mapping
+    of defaults, :meth:`Options.of`) and merged over their defaults, numbers as floats: one
+    :class:`ConfigError` (``what`` names the component, e.g. ``"imagery sender"``) listing
+    every problem, each keyed by its option (``send_delay: not a finite number, got nan``; an
+    unknown one ``unknown imagery sender option 'x' (known: ...)``)."""
     if config is not None and not isinstance(config, Mapping):
-        raise ConfigError(f"{what or 'the'} configuration must be a mapping, "
-                          f"got {type(config).__name__}")
-    cfg = dict(defaults)
+        raise ConfigError(f"{what or 'the'} configuration must be a mapping, got {type(config).__name__}")
     p = Problems()
-    for key, value in (config or {}).items():
-        if key not in defaults:
-            p.said(str(key), f"unknown {what + ' ' if what else ''}option {key!r} "
-                             f"(known: {', '.join(sorted(map(str, defaults)))})")
-            continue
-        cfg[key] = value
+    cfg = Options.of(defaults).check(config, p, what=what)
     p.check()
     return cfg

@@ -33,6 +33,7 @@ from typing import Any, ClassVar, Generic, Protocol, TypeVar, runtime_checkable
 import numpy as np
 from numpy.typing import NDArray
 
+from .config import Options
 from .errors import ConfigError
 from .messages import DetectionSource
 from .registry import DETECTOR_GROUP
@@ -180,6 +181,10 @@ class Detector(abc.ABC, Generic[V]):
         except TypeError as exc:  # a protocol without @runtime_checkable
             raise TypeError(f"detector {cls.__name__}: its view {cls.view.__name__} cannot be checked "
                             f"({exc})") from None
+
+    #: its declared options (:class:`~coex_core.config.Options`), taken in ``__init__`` with
+    #: ``merged_config(config, self.options, "NAME detector")``
+    options: ClassVar[Options] = Options()
 
     def __init__(self, config: Mapping[str, Any] | None = None) -> None:
         """A detector without options (subclasses take theirs with ``coex.merged_config``)."""

@@ -34,6 +34,7 @@ from typing import Any
 from urllib.parse import urlsplit
 
 from . import wire
+from .config import Options, integer, number
 from .errors import ConfigError, EncodeError, RequestRejected
 from .messages import FrameHeader, Message
 from .modality import ModalityReceiver, ModalitySender, Product
@@ -129,6 +130,13 @@ class LoopbackTransport(Transport):
     """One end of a :class:`LoopbackLink`."""
 
     scheme = "loopback"
+    options = Options(
+        mtu=integer(256, "largest frame", unit="B", lo=1),
+        rate=number(100.0, "bytes per second the link carries", unit="B/s", above=0),
+        loss=number(0.0, "share of frames lost", lo=0, hi=1),
+        seed=integer(0, "the loss's random seed"),
+        delay=number(0.0, "each frame's delay", unit="s", lo=0),
+    )
     _named: dict[str, LoopbackLink] = {}
     _opened: dict[str, int] = {}
 
@@ -152,12 +160,7 @@ class LoopbackTransport(Transport):
         if parts.scheme != "loopback":
             raise ConfigError(f"not a loopback URI: {uri!r}")
         name = parts.netloc or parts.path or "default"
-        opts = parse_query(
-            parts.query, {"mtu": int, "rate": float, "loss": float, "seed": int, "delay": float}
-        )
-        if opts.get("mtu", 256) <= 0:
-            raise ConfigError(f"{uri!r}: mtu must be positive")
-        return name, opts
+        return name, parse_query(parts.query, LoopbackTransport.options)
 
     @classmethod
     def check_uri(cls, uri: str) -> UriInfo:

@@ -21,6 +21,7 @@ from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field, fields
 from typing import Any, ClassVar
 
+from .config import Options
 from .messages import Message
 from .storage import Storage
 
@@ -105,6 +106,12 @@ class ModalitySender(_OutOfCore, abc.ABC):
     * Bad sensor input given to :meth:`ingest` raises a :class:`~coex_core.errors.CoexError`
       subclass and loses nothing already ingested.
     """
+
+    #: its declared options (:class:`~coex_core.config.Options`: type, default, range, unit and
+    #: doc of each); its ``__init__`` takes its configuration with
+    #: ``merged_config(config, self.options, "NAME sender")``, the one check of them (``coex
+    #: config check`` builds the side, so the file's problems are the constructor's)
+    options: ClassVar[Options] = Options()
 
     @abc.abstractmethod
     def ingest(self, data: Any, now: float) -> None:
@@ -219,6 +226,9 @@ class ModalityReceiver(_OutOfCore, abc.ABC):
     products it changed. :meth:`poll` returns requests to send to the vehicle (acks, retries
     of unanswered requests); it returns each request once per call that should send it.
     """
+
+    #: its declared options (as :attr:`ModalitySender.options`)
+    options: ClassVar[Options] = Options()
 
     @abc.abstractmethod
     def receive(self, message: Message, now: float) -> list[Product]:

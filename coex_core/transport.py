@@ -18,9 +18,10 @@ from types import TracebackType
 from typing import Any, ClassVar
 from urllib.parse import parse_qsl
 
+from .config import Option, OptionKind
 from .errors import ConfigError, FrameTooLarge, TransportError
 
-__all__ = ["Transport", "UriInfo", "parse_query"]
+__all__ = ["Transport", "UriInfo", "parse_query", "query_value"]
 
 
 @dataclass(frozen=True)
@@ -53,6 +54,10 @@ class Transport(abc.ABC):
 
     #: URI scheme this transport answers to (``micromodem``, ``mavlink`` ...).
     scheme: ClassVar[str] = ""
+    #: the options its URI's query takes, each declared as an
+    #: :class:`~coex_core.config.Option` or a type (``float``: a finite number, ``int``, ``bool``,
+    #: ``str``), read with :func:`parse_query`, the one check of them
+    options: ClassVar[Mapping[str, type | Option]] = {}
 
     def __init__(self, mtu: int) -> None:
         if mtu <= 0:
@@ -150,20 +155,45 @@ class Transport(abc.ABC):
         self.close()
 
 
-def parse_query(query: str, allowed: Mapping[str, type]) -> dict[str, Any]:
-    """Parse a URI query string into typed options, rejecting unknown or malformed ones."""
+#: the kind of option a URI query's value of each type declares (:func:`query_value`)
+_QUERY_KINDS: dict[type, OptionKind] = {float: "number", int: "integer", bool: "bool", str: "text"}
+_TRUE, _FALSE = ("1", "true", "yes"), ("0", "false", "no")
+
+
+def query_value(key: str, value: str, declared: type | Option) -> Any:
+    """One value of a URI query (text) as its declared option takes it: ``declared`` an
+    :class:`~coex_core.config.Option` or a type (``float``: a number, ``int``, ``bool``:
+    1/0/true/false/yes/no, ``str``), checked by the option (``nan``, ``inf`` and words are no
+    number); :class:`ConfigError` naming the option."""
+    if not isinstance(declared, Option) and declared not in _QUERY_KINDS:
+        try:  # another type: its constructor takes the text
+            return declared(value)
+        except ValueError:
+            raise ConfigError(f"option {key}={value!r} is not a valid {declared.__name__}") from None
+    option = declared if isinstance(declared, Option) else Option(_QUERY_KINDS[declared], None)
+    v: Any = value
+    try:
+        if option.kind == "bool" and value.lower() in _TRUE + _FALSE:
+            v = value.lower() in _TRUE
+        elif option.kind == "integer":
+            v = int(value)
+        elif option.kind == "number":
+            v = float(value)
+    except ValueError:
+        pass  # the option says what it is not
+    problem = option.problem(v)
+    if problem is not None:
+        raise ConfigError(f"option {key}: {problem}")
+    return option.value(v)
+
+
+def parse_query(query: str, allowed: Mapping[str, type | Option]) -> dict[str, Any]:
+    """Parse a URI query string into typed options (each declared as an
+    :class:`~coex_core.config.Option` or a type, :func:`query_value`), rejecting unknown or
+    malformed ones."""
     out: dict[str, Any] = {}
     for key, value in parse_qsl(query, keep_blank_values=True, strict_parsing=False):
         if key not in allowed:
             raise ConfigError(f"unknown option {key!r}; expected one of {sorted(allowed)}")
-        typ = allowed[key]
-        try:
-            if typ is bool:
-                if value.lower() not in ("1", "0", "true", "false", "yes", "no"):
-                    raise ValueError(value)
-                out[key] = value.lower() in ("1", "true", "yes")
-            else:
-                out[key] = typ(value)
-        except ValueError:
-            raise ConfigError(f"option {key}={value!r} is not a valid {typ.__name__}") from None
+        out[key] = query_value(key, value, allowed[key])
     return out

@@ -74,7 +74,7 @@ def test_problems_collects_every_problem_with_its_key(tmp_path: Path) -> None:
     p.extend("engine", ["no fuel", "no oil"])
     p.path("log", tmp_path / "nothere", "written at the end")
     assert p.keys() == ["boat.colour", "boat.speed", "boat.size", "crew", "engine", "engine"]
-    assert p.items == ["boat.colour: unknown key (known: size, speed)", "boat.speed: a number, got 'x'",
+    assert p.items == ["boat.colour: unknown key (known: size, speed)", "boat.speed: not a finite number, got 'x'",
                        "boat.size: 99 is outside 1..10", "a boat needs a crew", "engine: no fuel", "engine: no oil"]
     assert p.warnings == [f"log: {tmp_path / 'nothere'} does not exist now (written at the end)"]
     with pytest.raises(ConfigError) as err:
@@ -98,8 +98,8 @@ def test_an_adapters_option_checks_collect_every_problem_with_its_option() -> No
     assert p.items == [
         "input 'nmea': option 'udp' must be 'host:port' (e.g. '0.0.0.0:10110'), not 'nowhere'",
         "input 'nmea': option 'baud' must be an integer from 1 to 10000000, not 0",
-        "input 'nmea': option 'require_checksum' must be true or false, not 'yes'",
-        "input 'nmea': option 'variation' must be a number, not nan",
+        "require_checksum: true or false, got 'yes'",
+        "variation: not a finite number, got nan",
     ]
     assert adapter_problems(NmeaInput, options) == p.items
     from coex_plugins.autonomy.mavlink import MavlinkAutonomy
@@ -172,7 +172,7 @@ existing = "yes"
         "  inputs[0]: input 'nmea': option 'baud' must be an integer from 1 to 10000000, not 0",
         "  inputs[1]: input 'directory': option 'path' must not be empty",
         "  inputs[1]: input 'directory': option 'settle' must be at least 0, not -1",
-        "  inputs[1]: input 'directory': option 'existing' must be true or false, not 'yes'",
+        "  inputs[1].existing: true or false, got 'yes'",  # the declared type: the full key
     ]
 
 

@@ -45,7 +45,7 @@ def test_every_problem_is_reported_with_its_key(tmp_path: Path) -> None:
     keys = [p.split(":", 1)[0] for p in problems]
     for key in ("node.colour", "node.id", "node.store", "modems[0].uri", "modems[0].rate", "tdma.slots",
                 "tdma.guard", "modalities.bathymetry.options", "modalities.survey.stream",
-                "modalities.survey.options", "console"):
+                "modalities.survey.options.geofence.polygon", "console"):
         assert key in keys, (key, problems)
     text = "\n".join(problems)
     assert "send_dleay" in text and "micromodm" in text and "polygon" in text

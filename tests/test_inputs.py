@@ -68,7 +68,7 @@ def test_unknown_and_missing_options_are_named() -> None:
     with pytest.raises(ConfigError, match="'settle' must be at least 0"):
         DirectoryInput({"path": "x", "settle": -1}, InputContext())
     assert check_options(DirectoryInput, {"path": "x", "existing": "yes"}) == [
-        "input 'directory': option 'existing' must be true or false, not 'yes'"]
+        "existing: true or false, got 'yes'"]
     assert check_options(PointsInput, {"path": "x", "type": "points"}) == []
 
 

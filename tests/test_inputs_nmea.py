@@ -62,7 +62,7 @@ def test_options() -> None:
         "like \"VHW.5\" or \"IIVHW.5\"",
         "input 'nmea': option 'channels.VHW.5' must be a channel name",
     ]
-    with pytest.raises(ConfigError, match="'baud' must be an integer"):
+    with pytest.raises(ConfigError, match="input 'nmea': baud: not a finite number"):
         NmeaInput({"serial": "loop://", "baud": "fast"}, InputContext())
 
 

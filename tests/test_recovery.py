@@ -221,7 +221,7 @@ def test_mavlink_tcp_peer_gone_and_back() -> None:
     ("mavlink:udpout:127.0.0.1:14550?mtu=99999", "mtu must be"),
     ("lcm:udpm://239.255.76.67:7667?ttl=0&chanel=COEX", "unknown option 'chanel'"),
     ("moos://localhost:9000?nme=pCoex", "unknown option 'nme'"),
-    ("loopback://x?mtu=0", "mtu must be positive"),
+    ("loopback://x?mtu=0", "option mtu: 0 is below 1"),
 ])
 def test_every_transport_checks_its_uri_without_opening_anything(uri: str, words: str) -> None:
     with pytest.raises(ConfigError, match=words):

@@ -551,7 +551,7 @@ def test_keep_archives_old_blocks_to_csv_and_bounds_memory(tmp_path: Any, record
     assert again.keep == 1800.0 and again.held(record[0].name).times.size == before
     with pytest.raises(ConfigError, match="out_dir"):
         TimeSeriesReceiver({"keep": 600})
-    with pytest.raises(ConfigError, match="positive"):
+    with pytest.raises(ConfigError, match="keep: -1 is not above 0 s"):
         TimeSeriesReceiver({"keep": -1, "out_dir": str(tmp_path)})
 
 

@@ -44,6 +44,8 @@ from coex import (
     Input,
     InputContext,
     Nav,
+    Option,
+    Options,
     Points,
     Problems,
     Samples,
@@ -130,17 +132,18 @@ class AutonomyFixtures(_AdapterFixtures):
 
 def _declared(cls: type[Adapter]) -> None:
     assert isinstance(cls.name, str) and cls.name, "rule: an adapter has a name (its entry point's)"
-    assert isinstance(cls.options, Mapping), "rule: options is a mapping name -> (default, description)"
+    assert isinstance(cls.options, Mapping), "rule: options is a mapping name -> Option or (default, description)"
     for key, spec in cls.options.items():
-        assert isinstance(key, str) and isinstance(spec, tuple) and len(spec) == 2 and isinstance(spec[1], str), (
-            f"rule: option {key!r} is declared as (default, one-line description), got {spec!r}")
+        assert isinstance(key, str) and (isinstance(spec, Option) or (
+            isinstance(spec, tuple) and len(spec) == 2 and isinstance(spec[1], str))), (
+            f"rule: option {key!r} is declared as an Option or (default, one-line description), got {spec!r}")
 
 
 def _unknown_refused(cls: type[Adapter], options: dict[str, Any], context: InputContext) -> None:
     bad = dict(options, coex_no_such_option=1)
     with pytest.raises(ConfigError, match="coex_no_such_option"):
         cls(bad, context)
-    required = [k for k, (default, _) in cls.options.items() if default is ...]
+    required = [k for k, option in Options.of(cls.options).items() if option.required]
     for key in required:
         missing = {k: v for k, v in options.items() if k != key}
         with pytest.raises(ConfigError, match=key):

@@ -15,6 +15,7 @@ from typing import Any
 
 from coex import PluginLoadError, Problems
 from coex.moos import MAX_TIME_WARP
+from coex.options import number
 
 __all__ = [
     "LogOnce",
@@ -128,7 +129,7 @@ def check_time_warp(p: Problems, who: str, options: Mapping[str, Any], key: str 
     if key not in options:
         return
     v = options[key]
-    if isinstance(v, bool) or not isinstance(v, int | float) or not math.isfinite(v) or not 0 < v <= MAX_TIME_WARP:
+    if number(above=0, hi=MAX_TIME_WARP).problem(v) is not None:
         p.said(key, f"{who}: option {key!r} must be a number above 0 and at most {MAX_TIME_WARP:g} (the "
                     f"mission's MOOSTimeWarp), not {v!r}")
 
@@ -150,7 +151,7 @@ def check_scale(p: Problems, who: str, option: str, key: str, entry: Mapping[str
     for name, factor in scale.items():
         if name not in names:
             p.said(option, f"{who}: option '{key}.scale.{name}' scales nothing (not in '{key}.{table}')")
-        if isinstance(factor, bool) or not isinstance(factor, int | float) or not math.isfinite(factor):
+        if number().problem(factor) is not None:
             p.said(option, f"{who}: option '{key}.scale.{name}' must be a number")
 
 

@@ -81,7 +81,7 @@ from typing import Any
 
 import numpy as np
 
-from coex import ConfigError, Problem, Problems
+from coex import ConfigError, Option, Problem, Problems
 from coex_core.acoustic import RATES, GilbertElliott
 from coex_plugins.bathymetry.sim import Target
 
@@ -336,36 +336,18 @@ _NOT_GIVEN = object()
 
 
 def _number(p: Problems, where: str, v: Any, kind: type = float) -> Any:
-    """``v`` as a number (``kind`` int: a whole one); a problem of ``where`` and ``_NOT_GIVEN``
-    when it is not one."""
-    if isinstance(v, bool) or not isinstance(v, int | float):
-        p.said(where, f"{where} must be a number, got {v!r}")
-        return _NOT_GIVEN
-    if kind is int:
-        if float(v) != int(v):
-            p.said(where, f"{where} must be a whole number, got {v!r}")
-            return _NOT_GIVEN
-        return int(v)
-    if not math.isfinite(float(v)):
-        p.said(where, f"{where} must be finite")
-        return _NOT_GIVEN
-    return float(v)
+    """``v`` as a number (``kind`` int: an integer), checked by the core's option schema (NaN,
+    infinities, booleans and words refused); a problem of ``where`` and ``_NOT_GIVEN`` when it
+    is not one."""
+    return Option("integer" if kind is int else "number", None).checked(p, where, v, _NOT_GIVEN)
 
 
 def _unknown(p: Problems, where: str, got: Mapping[str, Any], known: set[str] | Mapping[str, Any]) -> None:
-    prefix = f"{where}." if where else ""
-    for bad in sorted(set(got) - set(known)):
-        p.said(f"{prefix}{bad}", f"unknown scenario key {prefix}{bad} (known: {', '.join(sorted(known))})")
+    p.unknown(got, tuple(known), where)
 
 
-def _table(p: Problems, data: Mapping[str, Any], section: str, text: str) -> Mapping[str, Any] | None:
-    if section not in data:
-        return None
-    sec = data[section]
-    if not isinstance(sec, Mapping):
-        p.said(section, text)
-        return None
-    return sec
+def _table(p: Problems, data: Mapping[str, Any], section: str) -> Mapping[str, Any] | None:
+    return p.table(data[section], section) if section in data else None
 
 
 def scenario_from_dict(data: Mapping[str, Any], base: Scenario | None = None) -> Scenario:
@@ -388,7 +370,7 @@ def scenario_from_dict(data: Mapping[str, Any], base: Scenario | None = None) ->
         else:
             kw["name"] = data["name"]
     for section, keys in _SECTIONS.items():
-        sec = _table(p, data, section, f"[{section}] must be a table")
+        sec = _table(p, data, section)
         if sec is None:
             continue
         _unknown(p, section, sec, keys)
@@ -424,12 +406,12 @@ def scenario_from_dict(data: Mapping[str, Any], base: Scenario | None = None) ->
                 objs.append(ObjectSpec(**{**defaults, **values}))
         kw[kind] = tuple(objs)
     base = base or Scenario()
-    sec = _table(p, data, "loss", "[loss] must be a table")
+    sec = _table(p, data, "loss")
     if sec is not None:
         _unknown(p, "loss", sec, _LOSS_KEYS)
         lk = {k: (v if k == "model" else _number(p, f"loss.{k}", v)) for k, v in sec.items() if k in _LOSS_KEYS}
         kw["loss"] = replace(base.loss, **{k: v for k, v in lk.items() if v is not _NOT_GIVEN})
-    sec = _table(p, data, "ship", "[ship] must be a table")
+    sec = _table(p, data, "ship")
     if sec is not None:
         _unknown(p, "ship", sec, {"x", "y"})
         x, y = (_number(p, f"ship.{k}", sec.get(k, d)) for k, d in zip("xy", base.ship, strict=True))

@@ -592,13 +592,17 @@ def _modalities(raw: Mapping[str, Any], p: Problems, cfg: DeployConfig) -> None:
             except (TypeError, ValueError):
                 p.add(f"{key}.ids.{own}", f"type ids are integers, got {own!r} = {wire_id!r}")
         mc = ModalityConfig(name, int(stream), int(prio), options, ids, None if low is None else int(low))
-        # the modality checks its own options (an unknown one is named)
+        # the modality checks its own options with their declared schema (merged_config), each
+        # problem keyed by its option: modalities.bathymetry.options.send_delay
         try:
             cls = known[name].load()
             side = cls().sender if cfg.role == "vehicle" else cls().receiver
             side(cfg.options(mc) or None)
         except ConfigError as exc:
-            p.add(f"{key}.options", str(exc))
+            if exc.problems:
+                p.nest(f"{key}.options", exc.problems)
+            else:
+                p.add(f"{key}.options", str(exc))
         except ImportError as exc:
             p.add(key, f"cannot load the {name} plugin: {exc} (install its extra: pip install "
                        f"'coexploration[{name}]')")

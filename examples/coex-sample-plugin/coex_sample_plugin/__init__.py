@@ -19,11 +19,14 @@ from coex import (
     Modality,
     ModalityReceiver,
     ModalitySender,
+    Options,
     Product,
     RequestRejected,
+    merged_config,
     persistent,
 )
 from coex.messages import Opaque
+from coex.options import number
 from coex.wire import encoded_size
 
 PING_TYPE = 100  # third-party, one-byte form
@@ -61,6 +64,9 @@ def conformance() -> Any:
 
 @persistent("pings.Sender")  # saved with the node by a store (stable name, not module path)
 class PingSender(ModalitySender):
+    #: its options, declared once: ``PingModality.sender`` checks a configuration against them
+    options = Options(resend_after=number(30.0, "an unacknowledged ping is sent again after", unit="s", above=0))
+
     def __init__(self, resend_after: float = 30.0) -> None:
         self.records: dict[int, tuple[int, int]] = {}  # seq -> (time, range_cm)
         self.acked_below = 0
@@ -175,7 +181,8 @@ class PingModality(Modality):
         return struct.pack(">H", value)
 
     def sender(self, config: Mapping[str, Any] | None = None) -> PingSender:
-        return PingSender(**dict(config or {}))
+        cfg = merged_config(config, PingSender.options, "pings sender")  # each problem named by its option
+        return PingSender(cfg["resend_after"])
 
     def receiver(self, config: Mapping[str, Any] | None = None) -> PingReceiver:
         return PingReceiver()

@@ -19,17 +19,19 @@ from typing import Any, ClassVar
 
 import numpy as np
 
-from coex import ConfigError, Detector, Finding, ImageFrames, merged_config, persistent
+from coex import Detector, Finding, ImageFrames, Options, merged_config, persistent
 from coex.messages import DetectionSource
+from coex.options import number
 
 __all__ = ["DarkSpotDetector"]
 
-DEFAULTS = {
-    #: a pixel is dark below this share of the frame's median brightness
-    "darkness": 0.5,
-    #: a frame is reported when at least this share of its pixels is dark
-    "min_share": 0.05,
-}
+#: its options, declared once (type, default, range, doc): the constructor and ``coex config
+#: check`` refuse anything else by name (``...detectors[0].darkness: not a finite number, got nan``)
+OPTIONS = Options(
+    darkness=number(0.5, "a pixel is dark below this share of the frame's median brightness", above=0, below=1),
+    min_share=number(0.05, "a frame is reported when at least this share of its pixels is dark", above=0, below=1),
+)
+DEFAULTS = OPTIONS.defaults()
 
 
 @persistent("sample.DarkSpotDetector")
@@ -41,12 +43,12 @@ class DarkSpotDetector(Detector[ImageFrames]):
     view = ImageFrames
     source: ClassVar[DetectionSource] = DetectionSource.IMAGE
 
+    options = OPTIONS
+
     def __init__(self, config: Mapping[str, Any] | None = None) -> None:
-        cfg = merged_config(config, DEFAULTS, "darkspot detector")
+        cfg = merged_config(config, self.options, "darkspot detector")
         self.darkness = float(cfg["darkness"])
         self.min_share = float(cfg["min_share"])
-        if not (0 < self.darkness < 1 and 0 < self.min_share < 1):
-            raise ConfigError("darkspot detector: darkness and min_share in (0, 1)")
         #: capture time of the newest frame looked at
         self.seen = -math.inf
 

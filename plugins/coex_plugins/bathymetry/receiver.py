@@ -33,6 +33,7 @@ from coex import (
     ConfigError,
     MemoryStorage,
     ModalityReceiver,
+    Options,
     Product,
     RequestRejected,
     StateError,
@@ -47,6 +48,7 @@ from coex.messages import (
     Message,
     SubgridMessage,
 )
+from coex.options import flag, integer, number
 from coex.tracker import Event
 
 from .legacy import import_v1
@@ -57,29 +59,33 @@ from .regions import Region, plan
 from .tiles import LevelIndex, LevelStats, Tile, decode_tile, encode_tile, same_storage, tile_name
 from .tilestore import TileCache
 
-__all__ = ["BathymetryReceiver", "RECEIVER_DEFAULTS", "Region"]
+__all__ = ["BathymetryReceiver", "RECEIVER_DEFAULTS", "RECEIVER_OPTIONS", "Region"]
 
 FloatArray = npt.NDArray[np.float64]
 
-#: Receiver configuration keys and defaults.
-RECEIVER_DEFAULTS: dict[str, Any] = {
-    "resolution": 1.0,
-    "subgrid_side": 8,
-    "levels": 5,
-    "origin_lat": None,
-    "origin_lon": None,
-    "request_timeout": 60.0,
-    "subgrid_wait": 4.0,
-    "standing_recheck": 1800.0,
-    "auto_fill": True,
-    "auto_fill_interval": 300.0,
-    "max_regions": 256,
-    "max_requests_per_poll": 4,
-    "max_mosaic_cells": 16 * 1024 * 1024,
-    "memory_budget": 256 * 1024 * 1024,
-    "tile_subgrids": 16,
-    "tile_compression": 1,
-}
+#: The receiver's options: the one declaration of their types, ranges and units.
+RECEIVER_OPTIONS = Options(
+    resolution=number(1.0, "the sender's finest cell size", unit="m", above=0),
+    subgrid_side=integer(8, "the sender's cells per subgrid side", choices=(2, 4, 8)),
+    levels=integer(5, "the sender's quadtree levels", lo=1, hi=8),
+    origin_lat=number(None, "the map's origin (None: the vehicle's MapMetadata)", unit="deg", lo=-90, hi=90,
+                      none=True),
+    origin_lon=number(None, "the map's origin (None: the vehicle's MapMetadata)", unit="deg", lo=-180, hi=180,
+                      none=True),
+    request_timeout=number(60.0, "an unanswered region request is sent again after", unit="s", above=0),
+    subgrid_wait=number(4.0, "a region's subgrids are awaited this long", unit="s", lo=0),
+    standing_recheck=number(1800.0, "a standing region is asked again after", unit="s", lo=0),
+    auto_fill=flag(True, "ask for the gaps of the map by itself"),
+    auto_fill_interval=number(300.0, "between two automatic gap requests", unit="s", lo=0),
+    max_regions=integer(256, "regions tracked at most", lo=1),
+    max_requests_per_poll=integer(4, "region requests one poll sends at most", lo=1),
+    max_mosaic_cells=integer(16 * 1024 * 1024, "cells of a level's drawn overview", lo=64),
+    memory_budget=integer(256 * 1024 * 1024, "tiles kept in memory", unit="B", lo=0),
+    tile_subgrids=integer(16, "subgrids per tile side", lo=1, hi=255),
+    tile_compression=integer(1, "the tile store's zstd level (0: none)", lo=0, hi=9),
+)
+#: their defaults (a name kept for 0.x code)
+RECEIVER_DEFAULTS: dict[str, Any] = RECEIVER_OPTIONS.defaults()
 
 #: Largest array :meth:`BathymetryReceiver.window` returns by default (cells).
 WINDOW_CELLS = 4 * 1024 * 1024
@@ -130,8 +136,10 @@ class BathymetryReceiver(PredictedInput, ModalityReceiver):
     snapshot) writes what the storage lacks.
     """
 
+    options = RECEIVER_OPTIONS
+
     def __init__(self, config: Mapping[str, Any] | None = None) -> None:
-        cfg = merged_config(config, RECEIVER_DEFAULTS, "bathymetry receiver")
+        cfg = merged_config(config, self.options, "bathymetry receiver")
         self.config = cfg
         self.request_timeout = float(cfg["request_timeout"])
         self.subgrid_wait = float(cfg["subgrid_wait"])
@@ -140,10 +148,6 @@ class BathymetryReceiver(PredictedInput, ModalityReceiver):
         self.auto_fill_interval = float(cfg["auto_fill_interval"])
         self.max_regions = int(cfg["max_regions"])
         self.max_requests_per_poll = int(cfg["max_requests_per_poll"])
-        if self.max_requests_per_poll < 1:
-            raise ConfigError("max_requests_per_poll must be at least 1")
-        if self.request_timeout <= 0:
-            raise ConfigError("request_timeout must be positive")
         self.metadata: MapMetadata | None = None
         self._versions: dict[int, int] = {}
         self._geometry: dict[int, tuple[float, int]] = {}

@@ -13,6 +13,7 @@ import numpy as np
 from coex import (
     ConfigError,
     ModalitySender,
+    Options,
     RequestRejected,
     Storage,
     merged_config,
@@ -28,6 +29,7 @@ from coex.messages import (
     Message,
     SubgridMessage,
 )
+from coex.options import anything, flag, integer, number
 from coex.wire import SUBGRID_RESOLUTIONS as RESOLUTIONS
 from coex.wire import SUBGRID_VERTICAL_RESOLUTIONS as VERTICAL_RESOLUTIONS
 
@@ -36,34 +38,38 @@ from .context import ContextBook
 from .points import pointcloud2_xyz
 from .quadtree import InputError, QuadtreeMap, _grow
 
-__all__ = ["BathymetrySender", "SENDER_DEFAULTS"]
+__all__ = ["BathymetrySender", "SENDER_DEFAULTS", "SENDER_OPTIONS"]
 
 log = logging.getLogger(__name__)
 
 Key = tuple[int, int, int]  # (level, ix, iy)
 
-#: Sender configuration keys and defaults (the NUI 2022 values where they exist).
-SENDER_DEFAULTS: dict[str, Any] = {
-    "resolution": 1.0,
-    "vertical_resolution": 0.1,
-    "subgrid_side": 8,
-    "levels": 5,
-    "send_delay": 20.0,
-    "metadata_interval": 60.0,
-    "origin_lat": 0.0,
-    "origin_lon": 0.0,
-    "outlier_rejection": True,
-    "outlier_threshold": 1.0,
-    "outlier_k": 3.0,
-    "batch_points": 20_000,
-    "max_tiles": None,
-    "memory_budget": 512 * 2**20,
-    "disk_budget": 16 * 2**30,
-    "topic": None,
-    "max_queue": 4096,
-    "standing_expiry": 1800.0,
-    "max_standing": 32,
-}
+#: The sender's options (the NUI 2022 values where they exist): the one declaration of their
+#: types, ranges and units (``coex config check`` and the constructor check them alike).
+SENDER_OPTIONS = Options(
+    resolution=number(1.0, "finest cell size (the wire's table)", unit="m", choices=tuple(RESOLUTIONS)),
+    vertical_resolution=number(0.1, "depth quantum (the wire's table)", unit="m",
+                               choices=tuple(VERTICAL_RESOLUTIONS)),
+    subgrid_side=integer(8, "cells per subgrid side", choices=(2, 4, 8)),
+    levels=integer(5, "quadtree levels", lo=1, hi=8),
+    send_delay=number(20.0, "a changed subgrid waits this quiet before it is sent", unit="s", lo=0),
+    metadata_interval=number(60.0, "between two MapMetadata", unit="s", lo=0),
+    origin_lat=number(0.0, "the map's origin", unit="deg", lo=-90, hi=90),
+    origin_lon=number(0.0, "the map's origin", unit="deg", lo=-180, hi=180),
+    outlier_rejection=flag(True, "drop soundings far from their cell's median"),
+    outlier_threshold=number(1.0, "an outlier is at least this far from the median", unit="m", lo=0),
+    outlier_k=number(3.0, "... and this many spreads", lo=0),
+    batch_points=integer(20_000, "soundings gridded at a time", lo=1),
+    max_tiles=integer(None, "tiles held at most (None: no limit)", lo=1, none=True),
+    memory_budget=integer(512 * 2**20, "tiles kept in memory", unit="B", lo=0),
+    disk_budget=integer(16 * 2**30, "tiles kept on disk (None: no limit)", unit="B", lo=0, none=True),
+    topic=anything(None, "the input's topic name (a label)"),
+    max_queue=integer(4096, "subgrids queued at most", lo=1),
+    standing_expiry=number(1800.0, "a standing region request lasts", unit="s", lo=0),
+    max_standing=integer(32, "standing region requests kept", lo=0),
+)
+#: their defaults (a name kept for 0.x code)
+SENDER_DEFAULTS: dict[str, Any] = SENDER_OPTIONS.defaults()
 
 #: Smallest possible subgrid message (a predicted block equal to its prediction): stop filling
 #: below this.
@@ -118,18 +124,13 @@ class BathymetrySender(SubgridCoding, ModalitySender):
     queue empties.
     """
 
+    options = SENDER_OPTIONS
+
     def __init__(self, config: Mapping[str, Any] | None = None) -> None:
-        cfg = merged_config(config, SENDER_DEFAULTS, "bathymetry sender")
+        # subgrid_side 2, 4 or 8: 8 x 8 cells of up to 20 bits always fit one message; 16 x 16
+        # rough blocks may not
+        cfg = merged_config(config, self.options, "bathymetry sender")
         self.config = cfg
-        if float(cfg["resolution"]) not in RESOLUTIONS:
-            raise ConfigError(f"resolution must be one of {RESOLUTIONS} m (the wire's table)")
-        if float(cfg["vertical_resolution"]) not in VERTICAL_RESOLUTIONS:
-            raise ConfigError(f"vertical_resolution must be one of {VERTICAL_RESOLUTIONS} m (the wire's table)")
-        if not 1 <= int(cfg["levels"]) <= 8:
-            raise ConfigError("levels must be in 1..8")
-        if int(cfg["subgrid_side"]) not in (2, 4, 8):
-            # 8 x 8 cells of up to 20 bits always fit one message; 16 x 16 rough blocks may not.
-            raise ConfigError("subgrid_side must be 2, 4 or 8")
         try:
             self.map = QuadtreeMap(
                 float(cfg["resolution"]), float(cfg["vertical_resolution"]),
@@ -149,8 +150,6 @@ class BathymetrySender(SubgridCoding, ModalitySender):
         self.max_queue = int(cfg["max_queue"])
         self.standing_expiry = float(cfg["standing_expiry"])
         self.max_standing = int(cfg["max_standing"])
-        if not (self.standing_expiry >= 0 and self.max_standing >= 0):
-            raise ConfigError("standing_expiry and max_standing must not be negative")
         self._init_sent()
         self._queue: list[Key] = []
         self._queued: set[Key] = set()

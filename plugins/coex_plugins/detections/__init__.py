@@ -32,8 +32,10 @@ from coex import (
     Modality,
     ModalityReceiver,
     ModalitySender,
+    Options,
     PluginLoadError,
     PluginNotFound,
+    Problems,
     Product,
     RequestRejected,
     merged_config,
@@ -42,36 +44,35 @@ from coex import (
     unwrap,
 )
 from coex.messages import Detection, DetectionSource, Message
+from coex.options import anything, integer, number
 from coex.wire import encoded_size
 
 from .product import DetectionsProduct
 
-__all__ = ["DetectionsModality", "DetectionsProduct", "DetectionsReceiver", "DetectionsSender", "SENDER_DEFAULTS",
+__all__ = ["DetectionsModality", "DetectionsProduct", "DetectionsReceiver", "DetectionsSender", "RECEIVER_OPTIONS",
+           "SENDER_DEFAULTS", "SENDER_OPTIONS",
            "detection_message"]
 
 log = logging.getLogger(__name__)
 
-SENDER_DEFAULTS: dict[str, Any] = {
-    #: the detectors to run: each ``{"type": NAME, ...its options}`` (NAME in ``coex.detectors``)
-    "detectors": [{"type": "relief"}],
-    #: seconds between two runs of the detectors
-    "interval": 10.0,
-    #: findings scoring below this are kept on the vehicle, not sent
-    "min_score": 0.05,
-    #: findings scoring at least this have their neighbourhood sent next (``focus``)
-    "focus_score": 0.2,
-    #: a finding of the same detector within this many metres of a detection updates it
-    "merge_radius": 4.0,
-    #: a detection is sent again when its score changes by this much, or it moves this far (m)
-    "resend_score": 0.1,
-    "resend_distance": 1.0,
-    #: detections kept (the lowest scores go first)
-    "max_detections": 256,
-}
-RECEIVER_DEFAULTS: dict[str, Any] = {
-    #: detections kept topside (the oldest go first)
-    "max_detections": 1024,
-}
+#: the sender's options: the one declaration of their types, ranges and units
+SENDER_OPTIONS = Options(
+    detectors=anything([{"type": "relief"}], "the detectors to run: each {type = NAME, ...its options} "
+                                             "(NAME in coex.detectors)"),
+    interval=number(10.0, "between two runs of the detectors", unit="s", above=0),
+    min_score=number(0.05, "findings scoring below this are kept on the vehicle, not sent", lo=0, hi=1),
+    focus_score=number(0.2, "findings scoring at least this have their neighbourhood sent next", lo=0, hi=1),
+    merge_radius=number(4.0, "a finding of the same detector this near a detection updates it", unit="m", lo=0),
+    resend_score=number(0.1, "a detection is sent again when its score changes by this much", lo=0),
+    resend_distance=number(1.0, "... or it moves this far", unit="m", lo=0),
+    max_detections=integer(256, "detections kept (the lowest scores go first)", lo=1),
+)
+SENDER_DEFAULTS: dict[str, Any] = SENDER_OPTIONS.defaults()
+#: the receiver's options
+RECEIVER_OPTIONS = Options(
+    max_detections=integer(1024, "detections kept topside (the oldest go first)", lo=1),
+)
+RECEIVER_DEFAULTS: dict[str, Any] = RECEIVER_OPTIONS.defaults()
 #: a finding from outside (:meth:`DetectionsSender.ingest`) is numbered as this detector
 EXTERNAL = -1
 
@@ -170,27 +171,30 @@ def _build_detector(spec: Any, where: str) -> Detector[Any]:
 class DetectionsSender(ModalitySender):
     """The vehicle side (see the module docstring). Options: :data:`SENDER_DEFAULTS`."""
 
+    options = SENDER_OPTIONS
+
     def __init__(self, config: Mapping[str, Any] | None = None) -> None:
-        cfg = merged_config(config, SENDER_DEFAULTS, "detections sender")
+        cfg = merged_config(config, self.options, "detections sender")
         specs = cfg["detectors"]
         if not isinstance(specs, list | tuple):
             raise ConfigError("detections sender: detectors must be a list")
-        self.detectors: list[Detector[Any]] = [_build_detector(d, f"detections sender: detectors[{i}]")
-                                               for i, d in enumerate(specs)]
-        try:
-            self.interval = float(cfg["interval"])
-            self.min_score = float(cfg["min_score"])
-            self.focus_score = float(cfg["focus_score"])
-            self.merge_radius = float(cfg["merge_radius"])
-            self.resend_score = float(cfg["resend_score"])
-            self.resend_distance = float(cfg["resend_distance"])
-            self.max_detections = int(cfg["max_detections"])
-        except (TypeError, ValueError) as exc:
-            raise ConfigError(f"detections sender: {exc}") from exc
-        if self.interval <= 0 or self.merge_radius < 0 or self.max_detections < 1:
-            raise ConfigError("detections sender: interval > 0, merge_radius >= 0 and max_detections >= 1")
-        if not 0.0 <= self.min_score <= 1.0:
-            raise ConfigError("detections sender: min_score in [0, 1]")
+        p = Problems()
+        self.detectors: list[Detector[Any]] = []
+        for i, spec in enumerate(specs):
+            try:
+                self.detectors.append(_build_detector(spec, f"detections sender: detectors[{i}]"))
+            except ConfigError as exc:  # a detector's own options: keyed detectors[i].NAME
+                if not exc.problems:
+                    raise
+                p.nest(f"detectors[{i}]", exc.problems)
+        p.check("detections sender")
+        self.interval = float(cfg["interval"])
+        self.min_score = float(cfg["min_score"])
+        self.focus_score = float(cfg["focus_score"])
+        self.merge_radius = float(cfg["merge_radius"])
+        self.resend_score = float(cfg["resend_score"])
+        self.resend_distance = float(cfg["resend_distance"])
+        self.max_detections = int(cfg["max_detections"])
         self.detections: dict[int, _Det] = {}
         self._next_id = 0
         self._last_run = -math.inf
@@ -347,8 +351,10 @@ class DetectionsReceiver(ModalityReceiver):
     first and last arrived; one ``detections`` product (data: the detections as dicts, highest
     score first)."""
 
+    options = RECEIVER_OPTIONS
+
     def __init__(self, config: Mapping[str, Any] | None = None) -> None:
-        cfg = merged_config(config, RECEIVER_DEFAULTS, "detections receiver")
+        cfg = merged_config(config, self.options, "detections receiver")
         self.max_detections = int(cfg["max_detections"])
         self.detections: dict[int, dict[str, Any]] = {}
         self.version = 0

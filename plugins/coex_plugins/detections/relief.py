@@ -25,29 +25,26 @@ from typing import Any, ClassVar
 
 import numpy as np
 
-from coex import ConfigError, Detector, Finding, MapView, merged_config, persistent
+from coex import Detector, Finding, MapView, Options, Problems, merged_config, persistent
 from coex.messages import DetectionSource
+from coex.options import anything, integer, number
 from coex_plugins.bathymetry.relief import CAR, SPREAD, bumps, likeness
 
-__all__ = ["DEFAULTS", "ReliefDetector"]
+__all__ = ["DEFAULTS", "OPTIONS", "ReliefDetector"]
 
-DEFAULTS: dict[str, Any] = {
-    #: metres above the local background a bump must stand
-    "threshold": 0.7,
-    #: what the vehicle looks for: length, width, height (m); the score is how well a bump matches
-    "target": list(CAR),
-    #: spreads of the score's Gaussians: length, width, height (m) and flatness
-    "spread": list(SPREAD),
-    #: fewest cells and largest area (m²) of a bump (one cell is a spike; a large one is terrain)
-    "min_cells": 2,
-    "max_area": 40.0,
-    #: seconds the cells around a bump must have been quiet before it is judged
-    "settle": 20.0,
-    #: metres of neighbouring cells looked at around a changed tile
-    "margin": 16.0,
-    #: radius (m) of the neighbourhood whose 1 m subgrids are sent after a finding
-    "neighbourhood": 12.0,
-}
+#: the detector's options: the one declaration of their types, ranges and units
+OPTIONS = Options(
+    threshold=number(0.7, "a bump stands this far above the local background", unit="m", above=0),
+    target=anything(list(CAR), "what the vehicle looks for: [length, width, height] (m)"),
+    spread=anything(list(SPREAD), "the score's spreads: [length, width, height] (m) and flatness, each > 0"),
+    min_cells=integer(2, "fewest cells of a bump (one cell is a spike)", lo=1),
+    max_area=number(40.0, "largest area of a bump (a large one is terrain)", unit="m2", above=0),
+    settle=number(20.0, "the cells around a bump are quiet this long before it is judged", unit="s", lo=0),
+    margin=number(16.0, "neighbouring cells looked at around a changed tile", unit="m", lo=0),
+    neighbourhood=number(12.0, "radius whose 1 m subgrids are sent after a finding", unit="m", lo=0),
+)
+#: their defaults (a name kept for 0.x code)
+DEFAULTS: dict[str, Any] = OPTIONS.defaults()
 
 
 @persistent("detections.ReliefDetector")
@@ -59,24 +56,22 @@ class ReliefDetector(Detector[MapView]):
     view = MapView
     source: ClassVar[DetectionSource] = DetectionSource.MAP
 
+    options = OPTIONS
+
     def __init__(self, config: Mapping[str, Any] | None = None) -> None:
-        cfg = merged_config(config, DEFAULTS, "relief detector")
-        try:
-            self.threshold = float(cfg["threshold"])
-            self.target = tuple(float(v) for v in cfg["target"])
-            self.spread = tuple(float(v) for v in cfg["spread"])
-            self.min_cells = int(cfg["min_cells"])
-            self.max_area = float(cfg["max_area"])
-            self.settle = float(cfg["settle"])
-            self.margin = float(cfg["margin"])
-            self.neighbourhood = float(cfg["neighbourhood"])
-        except (TypeError, ValueError) as exc:
-            raise ConfigError(f"relief detector: {exc}") from exc
-        if len(self.target) != 3 or len(self.spread) != 4 or min(self.spread) <= 0:
-            raise ConfigError("relief detector: target is [length, width, height] and spread "
-                              "[length, width, height, flatness], spreads > 0")
-        if self.threshold <= 0 or self.margin < 0 or self.neighbourhood < 0 or self.settle < 0:
-            raise ConfigError("relief detector: threshold > 0; margin, neighbourhood and settle >= 0")
+        cfg = merged_config(config, self.options, "relief detector")
+        self.threshold = float(cfg["threshold"])
+        self.min_cells = int(cfg["min_cells"])
+        self.max_area = float(cfg["max_area"])
+        self.settle = float(cfg["settle"])
+        self.margin = float(cfg["margin"])
+        self.neighbourhood = float(cfg["neighbourhood"])
+        p = Problems()
+        target = _measures(p, "target", cfg["target"], 3)
+        spread = _measures(p, "spread", cfg["spread"], 4, positive=True)
+        p.check("relief detector")
+        self.target = target
+        self.spread = spread
         #: tile -> the version of it last looked over completely
         self._looked: dict[tuple[int, int], int] = {}
 
@@ -113,3 +108,13 @@ class ReliefDetector(Detector[MapView]):
             if done:
                 self._looked[key] = version
         return out
+
+
+def _measures(p: Problems, key: str, value: Any, n: int, *, positive: bool = False) -> tuple[float, ...]:
+    """``value``, a list of ``n`` finite numbers (above 0 when ``positive``), as floats; a
+    problem of ``key`` (``key[i]`` for one entry) when it is not."""
+    if not isinstance(value, list | tuple) or len(value) != n:
+        p.add(key, f"a list of {n} numbers, got {value!r}")
+        return (0.0,) * n
+    entry = number(0.0, above=0) if positive else number(0.0)
+    return tuple(float(entry.checked(p, f"{key}[{i}]", v, 1.0)) for i, v in enumerate(value))

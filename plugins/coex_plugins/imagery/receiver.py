@@ -22,6 +22,7 @@ from coex import (
     ConfigError,
     DecodeError,
     ModalityReceiver,
+    Options,
     Product,
     RequestTracker,
     merged_config,
@@ -46,6 +47,7 @@ from coex.messages import (
     TimeDirection,
     TransferProgress,
 )
+from coex.options import anything, integer, number
 
 from .codec import (
     StreamParams,
@@ -61,7 +63,7 @@ from .product import CropProduct, ImageProduct, ProgressProduct
 
 log = logging.getLogger("coex.imagery")
 
-__all__ = ["ImageryReceiver"]
+__all__ = ["RECEIVER_OPTIONS", "ImageryReceiver"]
 
 MAX_ACK_RANGES = 15
 #: Ids ahead of a new announcement whose older images are forgotten (previous id cycle).
@@ -155,10 +157,19 @@ class _Rx:
         return tuple(used)
 
 
-#: the imagery receiver's options and their defaults
-RECEIVER_DEFAULTS: dict[str, Any] = {"max_images": 256, "max_early": 256, "ack_limit": 4,
-                                     "retry": 60.0, "max_tries": 10, "max_ack_bytes": 81,
-                                     "out_dir": None}
+#: the imagery receiver's options: the one declaration of their types, ranges and units
+RECEIVER_OPTIONS = Options(
+    max_images=integer(256, "images held", lo=1),
+    max_early=integer(256, "fragments held before their image's announcement", lo=0),
+    ack_limit=integer(4, "acks per poll", lo=1),
+    retry=number(60.0, "between request retries", unit="s", above=0),
+    max_tries=integer(10, "sends of a request before it is given up", lo=1),
+    max_ack_bytes=integer(81, "largest ack (at least 6: an ack without ranges; lower it to fit a small "
+                              "uplink MTU, e.g. MTU - 3)", unit="B", lo=6),
+    out_dir=anything(None, "a folder: write image_<id>.tiff and .png after every useful fragment"),
+)
+#: their defaults (a name kept for 0.x code)
+RECEIVER_DEFAULTS: dict[str, Any] = RECEIVER_OPTIONS.defaults()
 
 
 def _upgrade_receiver(fields: dict[str, Any], saved: int) -> dict[str, Any]:
@@ -177,21 +188,16 @@ class ImageryReceiver(ModalityReceiver):
     MTU, e.g. MTU - 3), ``out_dir`` (write ``image_<id>.tiff`` and ``.png`` after every useful
     fragment, see :class:`~coex_plugins.imagery.output.ImageWriter`)."""
 
+    options = RECEIVER_OPTIONS
+
     def __init__(self, config: Mapping[str, Any] | None = None) -> None:
-        cfg = merged_config(config, RECEIVER_DEFAULTS, "imagery receiver")
-        try:
-            self.max_images = int(cfg.get("max_images", 256))
-            self.max_early = int(cfg.get("max_early", 256))
-            self.ack_limit = int(cfg.get("ack_limit", 4))
-            self.retry = float(cfg.get("retry", 60.0))
-            self.max_tries = int(cfg.get("max_tries", 10))
-            self.max_ack_bytes = int(cfg.get("max_ack_bytes", 81))
-        except (TypeError, ValueError) as exc:
-            raise ConfigError(f"invalid imagery receiver option: {exc}") from exc
-        if self.max_images < 1 or self.max_early < 0 or self.ack_limit < 1 or self.retry <= 0:
-            raise ConfigError("invalid imagery receiver limits")
-        if self.max_ack_bytes < 6:
-            raise ConfigError("max_ack_bytes must be at least 6 (an ack without ranges)")
+        cfg = merged_config(config, self.options, "imagery receiver")
+        self.max_images = int(cfg["max_images"])
+        self.max_early = int(cfg["max_early"])
+        self.ack_limit = int(cfg["ack_limit"])
+        self.retry = float(cfg["retry"])
+        self.max_tries = int(cfg["max_tries"])
+        self.max_ack_bytes = int(cfg["max_ack_bytes"])
         #: ranges per ack: type id + ceil((34 + 40 k) / 8) bytes must fit max_ack_bytes
         self.ack_ranges = min(MAX_ACK_RANGES, (8 * (self.max_ack_bytes - 1) - 34) // 40)
         self.images: OrderedDict[int, _Rx] = OrderedDict()

@@ -29,6 +29,7 @@ from coex import (
     CoexError,
     ConfigError,
     ModalitySender,
+    Options,
     RequestRejected,
     merged_config,
     persistent,
@@ -51,6 +52,7 @@ from coex.messages import (
     TimeDirection,
     TransferProgress,
 )
+from coex.options import anything, flag, integer, number, text
 from coex.wire import (
     encoded_size,
 )
@@ -78,7 +80,7 @@ from .codec import (
 from .goals import Goal, parse_goal
 from .interest import interest
 
-__all__ = ["CropOf", "Frame", "ImageInput", "ImagerySender", "fragment_size", "interest",
+__all__ = ["CropOf", "Frame", "ImageInput", "ImagerySender", "SENDER_OPTIONS", "fragment_size", "interest",
            "BRIDGE_BYTES", "MAX_FRAGMENT_DATA", "MAX_MARKS", "packet_layers"]
 
 #: A fragment message never exceeds this (the wire maximum).
@@ -113,12 +115,31 @@ class Frame:
 #: coding options (:class:`~coex_plugins.imagery.codec.CodingParams` fields)
 CODING_KEYS = ("progression", "resolutions", "layer_bytes", "irreversible", "grey", "max_size", "precincts",
                "layer_psnr")
-#: the imagery sender's options and their defaults (coding options default to CodingParams')
-SENDER_DEFAULTS: dict[str, Any] = {**dict.fromkeys(CODING_KEYS), "default_goal": "layer:2",
-                                   "request_goal": None, "max_images": 64, "rto": 60.0,
-                                   "progress_interval": 60.0, "max_announces": 2,
-                                   "min_fragment": 16, "standing_expiry": 1800.0, "max_standing": 8,
-                                   "marks": "auto", "crops": "auto"}
+#: the imagery sender's options: the one declaration of their types, ranges and units (the
+#: coding options, None by default, take CodingParams' defaults and are checked there too)
+SENDER_OPTIONS = Options(
+    progression=text(None, "JPEG 2000 progression order (CodingParams)", none=True),
+    resolutions=integer(None, "wavelet resolutions (CodingParams)", lo=1, none=True),
+    layer_bytes=anything(None, "bytes of each quality layer (CodingParams)"),
+    irreversible=flag(None, "the irreversible 9/7 wavelet (CodingParams)"),
+    grey=flag(None, "code images in grey (CodingParams)"),
+    max_size=integer(None, "largest image side, in pixels (CodingParams)", lo=1, none=True),
+    precincts=integer(None, "precinct size, 0: none (CodingParams)", lo=0, none=True),
+    layer_psnr=anything(None, "the quality layers' PSNR targets (CodingParams)"),
+    default_goal=anything("layer:2", "how far each image is sent unasked (a goal: layer:N, psnr:DB ...)"),
+    request_goal=anything(None, "how far a requested image is sent (None: default_goal)"),
+    max_images=integer(64, "images held", lo=1, hi=512),
+    rto=number(60.0, "an unacknowledged fragment is sent again after", unit="s", above=0),
+    progress_interval=number(60.0, "between two progress reports", unit="s", above=0),
+    max_announces=integer(2, "sends of an image's announcement", lo=1),
+    min_fragment=integer(16, "smallest fragment worth sending", unit="B", lo=1),
+    standing_expiry=number(1800.0, "a standing request lasts", unit="s", lo=0),
+    max_standing=integer(8, "standing requests kept", lo=0),
+    marks=text("auto", "mark detections on the images", choices=("auto", "always")),
+    crops=text("auto", "send crops around detections", choices=("auto", "never", "always")),
+)
+#: their defaults (a name kept for 0.x code)
+SENDER_DEFAULTS: dict[str, Any] = SENDER_OPTIONS.defaults()
 
 
 def _upgrade_sender(fields: dict[str, Any], saved: int) -> dict[str, Any]:
@@ -169,32 +190,23 @@ class ImagerySender(ModalitySender):
       fragment then does not hold back the packets after it); ``always``: every fragment.
     """
 
+    options = SENDER_OPTIONS
+
     def __init__(self, config: Mapping[str, Any] | None = None) -> None:
-        cfg = merged_config(config, SENDER_DEFAULTS, "imagery sender")
+        cfg = merged_config(config, self.options, "imagery sender")
         self.coding = CodingParams.from_config({k: cfg[k] for k in CODING_KEYS if cfg[k] is not None})
         self.default_goal: Goal = parse_goal(cfg["default_goal"])
         self.request_goal: Goal = parse_goal(cfg["request_goal"] if cfg["request_goal"] is not None
                                              else self.default_goal)
-        try:
-            self.max_images = int(cfg.get("max_images", 64))
-            self.rto = float(cfg.get("rto", 60.0))
-            self.progress_interval = float(cfg.get("progress_interval", 60.0))
-            self.max_announces = int(cfg.get("max_announces", 2))
-            self.min_fragment = int(cfg.get("min_fragment", 16))
-            self.standing_expiry = float(cfg["standing_expiry"])
-            self.max_standing = int(cfg["max_standing"])
-            self.marks = str(cfg["marks"]).lower()
-            self.crops = str(cfg["crops"]).lower()
-        except (TypeError, ValueError) as exc:
-            raise ConfigError(f"invalid imagery sender option: {exc}") from exc
-        if self.marks not in ("auto", "always"):
-            raise ConfigError(f"marks must be auto or always, got {cfg['marks']!r}")
-        if self.crops not in ("auto", "never", "always"):
-            raise ConfigError(f"crops must be auto, never or always, got {cfg['crops']!r}")
-        if not 1 <= self.max_images <= 512:
-            raise ConfigError("max_images must be in 1..512")
-        if self.rto <= 0 or self.progress_interval <= 0 or self.max_announces < 1:
-            raise ConfigError("rto and progress_interval must be positive, max_announces >= 1")
+        self.max_images = int(cfg["max_images"])
+        self.rto = float(cfg["rto"])
+        self.progress_interval = float(cfg["progress_interval"])
+        self.max_announces = int(cfg["max_announces"])
+        self.min_fragment = int(cfg["min_fragment"])
+        self.standing_expiry = float(cfg["standing_expiry"])
+        self.max_standing = int(cfg["max_standing"])
+        self.marks = str(cfg["marks"])
+        self.crops = str(cfg["crops"])
         self.images: dict[int, _Tx] = {}
         self._next_id = 0
         self._request_counter = 0

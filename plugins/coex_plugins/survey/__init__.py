@@ -22,6 +22,7 @@ from coex import (
     Modality,
     ModalityReceiver,
     ModalitySender,
+    Options,
     PositionAid,
     Product,
     RequestRejected,
@@ -44,6 +45,7 @@ from coex.messages import (
     SurveyState,
     SurveyStatus,
 )
+from coex.options import anything, flag, integer, number
 from coex.wire import encode, encoded_size
 
 from .plan import Geofence, Refusal, SurveyPlan, SurveyReport, cut_detail, describe, plan_of
@@ -52,26 +54,22 @@ from .product import SurveyProduct
 __all__ = ["PositionAid", "SurveyModality", "SurveyPlan", "SurveyProduct", "SurveyReceiver", "SurveyReport",
            "SurveySender"]
 
-SENDER_DEFAULTS: dict[str, Any] = {
-    #: the vehicle's limits (:class:`~.plan.Geofence` keys); empty: no geofence
-    "geofence": {},
-    #: whether the vehicle has an autonomy that takes surveys (False: every survey is rejected
-    #: with NO_AUTONOMY)
-    "autonomy": True,
-    #: seconds before an unacknowledged status is sent again
-    "rto": 120.0,
-    #: surveys remembered (finished ones beyond this are forgotten, oldest first)
-    "keep": 64,
-    #: whether the vehicle's navigation takes position fixes from topside (``PositionFix``, issue
-    #: 56): accepted and handed to the autonomy output's ``aid`` (False: rejected)
-    "aiding": False,
-}
-RECEIVER_DEFAULTS: dict[str, Any] = {
-    #: seconds between re-sends of an unanswered survey command
-    "retry": 300.0,
-    #: sends of a survey command before it is given up
-    "max_tries": 6,
-}
+#: the sender's options: the one declaration of their types, ranges and units
+SENDER_OPTIONS = Options(
+    geofence=anything({}, "the vehicle's limits (GEOFENCE_OPTIONS); empty: no geofence"),
+    autonomy=flag(True, "the vehicle has an autonomy that takes surveys (false: every survey is "
+                        "rejected with NO_AUTONOMY)"),
+    rto=number(120.0, "an unacknowledged status is sent again after", unit="s", above=0),
+    keep=integer(64, "surveys remembered (finished ones beyond this are forgotten, oldest first)", lo=1),
+    aiding=flag(False, "the vehicle's navigation takes position fixes from topside (PositionFix, issue 56)"),
+)
+SENDER_DEFAULTS: dict[str, Any] = SENDER_OPTIONS.defaults()
+#: the receiver's options
+RECEIVER_OPTIONS = Options(
+    retry=number(300.0, "between re-sends of an unanswered survey command", unit="s", above=0),
+    max_tries=integer(6, "sends of a survey command before it is given up", lo=1),
+)
+RECEIVER_DEFAULTS: dict[str, Any] = RECEIVER_OPTIONS.defaults()
 class InvalidReport(CoexError, ValueError):
     """What was given to :meth:`SurveySender.ingest` is not a survey report."""
 
@@ -128,9 +126,11 @@ def _upgrade_sender(fields: dict[str, Any], saved: int) -> dict[str, Any]:
 class SurveySender(ModalitySender):
     """The vehicle side (see the module docstring)."""
 
+    options = SENDER_OPTIONS
+
     def __init__(self, config: Mapping[str, Any] | None = None) -> None:
-        cfg = merged_config(config, SENDER_DEFAULTS, "survey sender")
-        self.geofence = Geofence.from_config(cfg["geofence"], "survey sender geofence")
+        cfg = merged_config(config, self.options, "survey sender")
+        self.geofence = Geofence.from_config(cfg["geofence"], "survey sender")
         self.autonomy = bool(cfg["autonomy"])
         self.rto = float(cfg["rto"])
         self.keep = int(cfg["keep"])
@@ -385,8 +385,10 @@ def _upgrade_receiver(fields: dict[str, Any], saved: int) -> dict[str, Any]:
 class SurveyReceiver(ModalityReceiver):
     """The topside side (see the module docstring)."""
 
+    options = RECEIVER_OPTIONS
+
     def __init__(self, config: Mapping[str, Any] | None = None) -> None:
-        cfg = merged_config(config, RECEIVER_DEFAULTS, "survey receiver")
+        cfg = merged_config(config, self.options, "survey receiver")
         self._requests: RequestTracker[Message] = RequestTracker(float(cfg["retry"]), int(cfg["max_tries"]))
         self.surveys: dict[int, SurveyRecord] = {}
         self._next_id = 0

@@ -17,13 +17,14 @@ from typing import Any
 
 import numpy as np
 
-from coex import ConfigError, SurveyPlan, SurveyReport, persistent
+from coex import Options, Problems, SurveyPlan, SurveyReport, persistent
 from coex.messages import (
     SURVEY_DETAIL_MAX,
     SurveyCommand,
     SurveyKind,
     SurveyReason,
 )
+from coex.options import anything, flag, number
 
 __all__ = ["Geofence", "Refusal", "SurveyPlan", "SurveyReport", "cut_detail", "describe", "plan_of"]
 
@@ -90,6 +91,19 @@ def plan_of(cmd: SurveyCommand) -> SurveyPlan:
                       cmd.altitude, cmd.depth, cmd.speed, **shape)
 
 
+#: the geofence table's options (``[modalities.survey.options.geofence]``), each a limit the
+#: vehicle holds a survey to (None: no limit)
+GEOFENCE_OPTIONS = Options(
+    polygon=anything(None, "the area surveys must stay in: a list of [x, y] (m east, north of the origin)"),
+    radius=number(None, "surveys stay within this of the origin", unit="m", lo=0, none=True),
+    min_altitude=number(None, "lowest altitude a survey may fly", unit="m", lo=0, none=True),
+    max_depth=number(None, "deepest a survey may fly", unit="m", lo=0, none=True),
+    max_speed=number(None, "fastest a survey may fly", unit="m/s", lo=0, none=True),
+    max_length=number(None, "longest path a survey may have", unit="m", lo=0, none=True),
+    require_height=flag(False, "a survey must give an altitude or a depth"),
+)
+
+
 @persistent("survey.Geofence")
 @dataclass(frozen=True)
 class Geofence:
@@ -109,36 +123,28 @@ class Geofence:
     extra: Mapping[str, Any] = field(default_factory=dict)
 
     KEYS = ("polygon", "radius", "min_altitude", "max_depth", "max_speed", "max_length", "require_height")
+    #: (the keys' declared options: :data:`GEOFENCE_OPTIONS`)
 
     @classmethod
-    def from_config(cls, cfg: Mapping[str, Any] | None, where: str = "geofence") -> Geofence:
-        """From a configuration table; :class:`ConfigError` names the key at fault."""
-        cfg = dict(cfg or {})
-        unknown = sorted(set(cfg) - set(cls.KEYS))
-        if unknown:
-            raise ConfigError(f"{where}: unknown key {unknown[0]!r} (known: {', '.join(cls.KEYS)})")
-        poly = cfg.get("polygon")
+    def from_config(cls, cfg: Mapping[str, Any] | None, where: str = "") -> Geofence:
+        """From a configuration table (:data:`GEOFENCE_OPTIONS`); one :class:`ConfigError`
+        (``where`` names the component) listing every problem, each keyed ``geofence.KEY``."""
+        p = Problems()
+        values = GEOFENCE_OPTIONS.check(cfg, p, "geofence")
+        poly = values["polygon"]
         if poly is not None:
             try:
-                poly = tuple((float(p[0]), float(p[1])) for p in poly)
-                if any(len(p) != 2 for p in cfg["polygon"]):
+                poly = tuple((float(v[0]), float(v[1])) for v in poly)
+                if any(len(v) != 2 for v in values["polygon"]) or not all(map(math.isfinite, np.ravel(poly))):
                     raise ValueError
             except (TypeError, ValueError, IndexError):
-                raise ConfigError(f"{where}.polygon: a list of [x, y] pairs (metres east, north of the "
-                                  "origin)") from None
-            if len(poly) < 3:
-                raise ConfigError(f"{where}.polygon: at least 3 vertices, got {len(poly)}")
-        nums: dict[str, float | None] = {}
-        for k in ("radius", "min_altitude", "max_depth", "max_speed", "max_length"):
-            v = cfg.get(k)
-            if v is not None and (isinstance(v, bool) or not isinstance(v, int | float)
-                                  or not math.isfinite(v) or v < 0):
-                raise ConfigError(f"{where}.{k}: a number >= 0, got {v!r}")
-            nums[k] = None if v is None else float(v)
-        req = cfg.get("require_height", False)
-        if not isinstance(req, bool):
-            raise ConfigError(f"{where}.require_height: true or false, got {req!r}")
-        return cls(poly, require_height=req, **nums)  # type: ignore[arg-type]
+                p.add("geofence.polygon", "a list of [x, y] pairs (metres east, north of the origin)")
+            else:
+                if len(poly) < 3:
+                    p.add("geofence.polygon", f"at least 3 vertices, got {len(poly)}")
+        p.check(where)
+        nums = {k: values[k] for k in ("radius", "min_altitude", "max_depth", "max_speed", "max_length")}
+        return cls(poly, require_height=values["require_height"], **nums)
 
     # ---------------------------------------------------------------------------- checks
     def check(self, plan: SurveyPlan) -> None:

@@ -16,6 +16,7 @@ import numpy as np
 from coex import (
     ConfigError,
     ModalityReceiver,
+    Options,
     Product,
     RequestRejected,
     RequestTracker,
@@ -33,6 +34,7 @@ from coex.messages import (
     TimeSeriesRequest,
     Wavelet,
 )
+from coex.options import anything, integer, number
 
 from . import codec
 from .product import SeriesProduct
@@ -156,9 +158,16 @@ class _RChannel:
         return self.registration.name if self.registration else f"channel{self.cid}"
 
 
-#: the time-series receiver's options and their defaults
-RECEIVER_DEFAULTS: dict[str, Any] = {"request_retry": 120.0, "request_tries": 10, "keep": None,
-                                     "out_dir": None}
+#: the time-series receiver's options: the one declaration of their types, ranges and units
+RECEIVER_OPTIONS = Options(
+    request_retry=number(120.0, "an unsatisfied request is sent again after", unit="s", above=0),
+    request_tries=integer(10, "sends of a request before it is dropped", lo=1),
+    keep=number(None, "blocks older than this leave memory for out_dir (None: all stay)", unit="s", above=0,
+                none=True),
+    out_dir=anything(None, "a folder: series_<name>.csv, the whole dive (needed by keep)"),
+)
+#: their defaults (a name kept for 0.x code)
+RECEIVER_DEFAULTS: dict[str, Any] = RECEIVER_OPTIONS.defaults()
 #: archived block starts remembered one by one (per channel); older ones count as archived
 MAX_ARCHIVED_KEYS = 1024
 #: the archive's columns (``series_<name>.csv``)
@@ -189,21 +198,15 @@ class TimeSeriesReceiver(ModalityReceiver):
     (``docs/timeseries.md``, "Archive").
     """
 
+    options = RECEIVER_OPTIONS
+
     def __init__(self, config: Mapping[str, Any] | None = None) -> None:
-        config = merged_config(config, RECEIVER_DEFAULTS, "time-series receiver")
-        try:
-            self.request_retry = float(config.get("request_retry", 120.0))
-            self.request_tries = int(config.get("request_tries", 10))
-            keep = config.get("keep")
-            self.keep: float | None = None if keep is None else float(keep)
-        except (TypeError, ValueError) as exc:
-            raise ConfigError(f"invalid time-series receiver option: {exc}") from exc
-        if not (self.request_retry > 0 and self.request_tries > 0):
-            raise ConfigError("request_retry and request_tries must be positive")
+        config = merged_config(config, self.options, "time-series receiver")
+        self.request_retry = float(config["request_retry"])
+        self.request_tries = int(config["request_tries"])
+        self.keep: float | None = config["keep"]
         out_dir = config.get("out_dir")
         self.out_dir: str | None = None if out_dir in (None, "") else str(out_dir)
-        if self.keep is not None and not (math.isfinite(self.keep) and self.keep > 0):
-            raise ConfigError(f"keep must be a positive number of seconds, got {keep!r}")
         if self.keep is not None and self.out_dir is None:
             raise ConfigError("keep needs out_dir: the blocks leaving memory are written there")
         #: channel -> block starts (centiseconds) archived, the newest; older than the floor too

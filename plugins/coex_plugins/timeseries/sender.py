@@ -15,6 +15,8 @@ from coex import (
     CoexError,
     ConfigError,
     ModalitySender,
+    Options,
+    Problems,
     RequestRejected,
     merged_config,
     persistent,
@@ -28,10 +30,12 @@ from coex.messages import (
     TimeSeriesChunk,
     TimeSeriesRequest,
 )
+from coex.options import REQUIRED, anything, integer, number, text
 
 from . import codec
 
-__all__ = ["InvalidSamples", "Samples", "TimeSeriesSender", "ChannelConfig", "WAVELETS"]
+__all__ = ["CHANNEL_OPTIONS", "SENDER_OPTIONS", "InvalidSamples", "Samples", "TimeSeriesSender", "ChannelConfig",
+           "WAVELETS"]
 
 WAVELETS = {name: w for w, name in codec.WAVELET_NAMES.items()}
 MAX_CHANNELS = 32
@@ -75,26 +79,18 @@ class ChannelConfig:
     overview_error: float | None = None
 
     @classmethod
-    def from_mapping(cls, m: Mapping[str, Any]) -> ChannelConfig:
-        try:
-            cfg = cls(
-                name=str(m["name"]), unit=str(m.get("unit", "")), lo=float(m["lo"]), hi=float(m["hi"]),
-                resolution=float(m["resolution"]),
-                period=None if m.get("period") is None else float(m["period"]),
-                overview_error=None if m.get("overview_error") is None else float(m["overview_error"]),
-            )
-        except (KeyError, TypeError, ValueError) as exc:
-            raise ConfigError(f"invalid channel {dict(m)!r}: {exc}") from exc
+    def from_mapping(cls, m: Mapping[str, Any], key: str = "") -> ChannelConfig:
+        """A channel from its table (:data:`CHANNEL_OPTIONS`); one :class:`ConfigError` listing
+        every problem, each keyed under ``key`` (``channels[0].lo``)."""
+        p = Problems()
+        v = CHANNEL_OPTIONS.check(m, p, key)
+        p.check()
+        cfg = cls(name=v["name"], unit=v["unit"], lo=v["lo"], hi=v["hi"], resolution=v["resolution"],
+                  period=v["period"], overview_error=v["overview_error"])
         if not cfg.name or len(cfg.name.encode()) > 32 or len(cfg.unit.encode()) > 16:
             raise ConfigError(f"channel name must be 1..32 bytes and unit at most 16: {cfg.name!r}")
-        if not (math.isfinite(cfg.lo) and math.isfinite(cfg.hi) and cfg.lo < cfg.hi):
-            raise ConfigError(f"channel {cfg.name}: need finite lo < hi")
-        if not (math.isfinite(cfg.resolution) and cfg.resolution > 0):
-            raise ConfigError(f"channel {cfg.name}: resolution must be positive")
-        if cfg.period is not None and not 0.01 <= cfg.period <= 655.35:
-            raise ConfigError(f"channel {cfg.name}: period must be in 0.01..655.35 s")
-        if cfg.overview_error is not None and not cfg.overview_error > 0:
-            raise ConfigError(f"channel {cfg.name}: overview_error must be positive")
+        if not cfg.lo < cfg.hi:
+            raise ConfigError(f"channel {cfg.name}: need lo < hi")
         return cfg
 
 
@@ -161,21 +157,28 @@ class _Channel:
     by_key: dict[tuple[int, float, int, int], _Chunk] = field(default_factory=dict)
 
 
-def _positive(config: Mapping[str, Any], key: str, default: float) -> float:
-    v = config.get(key, default)
-    try:
-        f = float(v)
-    except (TypeError, ValueError) as exc:
-        raise ConfigError(f"{key} must be a number, got {v!r}") from exc
-    if not (math.isfinite(f) and f > 0):
-        raise ConfigError(f"{key} must be positive, got {v!r}")
-    return f
-
-
-#: the time-series sender's options (None: the default documented below)
-SENDER_OPTIONS: dict[str, Any] = dict.fromkeys((
-    "channels", "wavelet", "block_samples", "max_latency", "overview_factor", "alert_fraction",
-    "retry_after", "spike_close"))
+#: a channel's options (``channels = [{name = ..., lo = ..., ...}]``)
+CHANNEL_OPTIONS = Options(
+    name=text(REQUIRED, "the channel's name (1..32 bytes)"),
+    unit=text("", "its unit (at most 16 bytes)"),
+    lo=number(REQUIRED, "lowest value it codes"),
+    hi=number(REQUIRED, "highest value it codes"),
+    resolution=number(REQUIRED, "its quantum", above=0),
+    period=number(None, "its sampling period", unit="s", lo=0.01, hi=655.35, none=True),
+    overview_error=number(None, "the overview's error target (None: overview_factor noise sigmas)", above=0,
+                          none=True),
+)
+#: the time-series sender's options: the one declaration of their types, ranges and units
+SENDER_OPTIONS = Options(
+    channels=anything([], "the channels: a list of CHANNEL_OPTIONS tables (at most 32)"),
+    wavelet=text("bior4.4", "the wavelet", choices=tuple(sorted(WAVELETS))),
+    block_samples=integer(4096, "samples per block", lo=16, hi=4096),
+    max_latency=number(120.0, "a block closes this long after its first sample", unit="s", above=0),
+    overview_factor=number(12.0, "the overview's error target, in noise sigmas", above=0),
+    alert_fraction=number(0.4, "the first pass of a block with spikes (0: none)", lo=0, below=1),
+    retry_after=number(90.0, "an unacknowledged chunk is sent again after", unit="s", above=0),
+    spike_close=number(60.0, "a block closes early this long after a spike (0: never)", unit="s", lo=0),
+)
 
 
 @persistent("timeseries.Sender")
@@ -200,34 +203,34 @@ class TimeSeriesSender(ModalitySender):
       long before its newest sample; 0 disables it).
     """
 
+    options = SENDER_OPTIONS
+
     def __init__(self, config: Mapping[str, Any] | None = None) -> None:
-        config = {k: v for k, v in merged_config(config, SENDER_OPTIONS, "time-series sender").items()
-                  if v is not None}
-        name = str(config.get("wavelet", "bior4.4"))
-        if name not in WAVELETS:
-            raise ConfigError(f"wavelet must be one of {sorted(WAVELETS)}, got {name!r}")
-        self.wavelet = WAVELETS[name]
-        bs = config.get("block_samples", 4096)
-        if not isinstance(bs, int) or isinstance(bs, bool) or not 16 <= bs <= 4096:
-            raise ConfigError(f"block_samples must be an integer in 16..4096, got {bs!r}")
-        self.block_samples = bs
-        self.max_latency = _positive(config, "max_latency", 120.0)
-        self.overview_factor = _positive(config, "overview_factor", 12.0)
-        self.retry_after = _positive(config, "retry_after", 90.0)
-        af = config.get("alert_fraction", 0.4)
-        if isinstance(af, bool) or not isinstance(af, int | float) or not 0 <= af < 1:
-            raise ConfigError(f"alert_fraction must be in [0, 1), got {af!r}")
-        self.alert_fraction = float(af)
-        sc = config.get("spike_close", 60.0)
-        if isinstance(sc, bool) or not isinstance(sc, int | float) or not 0 <= sc < math.inf:
-            raise ConfigError(f"spike_close must be a non-negative number of seconds, got {sc!r}")
-        self.spike_close = float(sc)
+        config = merged_config(config, self.options, "time-series sender")
+        self.wavelet = WAVELETS[config["wavelet"]]
+        self.block_samples = int(config["block_samples"])
+        self.max_latency = float(config["max_latency"])
+        self.overview_factor = float(config["overview_factor"])
+        self.retry_after = float(config["retry_after"])
+        self.alert_fraction = float(config["alert_fraction"])
+        self.spike_close = float(config["spike_close"])
         self._channels: list[_Channel] = []
         self._by_name: dict[str, _Channel] = {}
         self._order = 0
-        for entry in config.get("channels", ()) or ():
-            cfg = entry if isinstance(entry, ChannelConfig) else ChannelConfig.from_mapping(entry)
+        channels = config["channels"] or ()
+        if not isinstance(channels, list | tuple):
+            raise ConfigError(f"time-series sender: channels: a list of channel tables, got {channels!r}")
+        p = Problems()
+        for i, entry in enumerate(channels):
+            try:
+                cfg = entry if isinstance(entry, ChannelConfig) else ChannelConfig.from_mapping(entry, f"channels[{i}]")
+            except ConfigError as exc:
+                if not exc.problems:
+                    raise
+                p.merge(exc.problems)
+                continue
             self.register(cfg)
+        p.check()
 
     # ------------------------------------------------------------------ channels
 

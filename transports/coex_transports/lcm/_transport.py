@@ -42,7 +42,7 @@ from urllib.parse import parse_qsl, urlencode, urlsplit
 import lcm
 
 from coex_core.errors import ConfigError, DecodeError, TransportError
-from coex_core.transport import Transport, UriInfo
+from coex_core.transport import Transport, UriInfo, query_value
 
 from ._codec import decode_frame, encode_frame
 
@@ -172,15 +172,7 @@ def parse_lcm_uri(uri: str) -> LcmConfig:
     theirs: list[tuple[str, str]] = []
     for key, value in parse_qsl(parts.query, keep_blank_values=True):
         if key in _OPTIONS:
-            try:
-                if _OPTIONS[key] is bool:
-                    if value.lower() not in ("1", "0", "true", "false", "yes", "no"):
-                        raise ValueError(value)
-                    ours[key] = value.lower() in ("1", "true", "yes")
-                else:
-                    ours[key] = _OPTIONS[key](value)
-            except ValueError:
-                raise ConfigError(f"option {key}={value!r} is not a valid {_OPTIONS[key].__name__}") from None
+            ours[key] = query_value(key, value, _OPTIONS[key])  # the one check of a declared value
         else:
             theirs.append((key, value))
     provider = parts.scheme
@@ -224,6 +216,7 @@ class LcmTransport(Transport):
     """One end of a CoEx link over LCM (see the module documentation for the URI)."""
 
     scheme = "lcm"
+    options = _OPTIONS  # its URI query options (parse_query)
     _shared: ClassVar[dict[tuple[str, str], _Instance]] = {}
     _shared_lock: ClassVar[threading.Lock] = threading.Lock()
 

@@ -135,6 +135,7 @@ class MavlinkTransport(Transport):
     only; bad packets and fragments are counted in :meth:`stats` and never end a ``recv``."""
 
     scheme = "mavlink"
+    options = _OPTIONS  # its URI query options (parse_query)
 
     def __init__(self, link: Link, codec: TunnelCodec) -> None:
         super().__init__(codec.mtu)

@@ -212,6 +212,7 @@ class MicromodemTransport(Transport):
     """CoEx frames over a WHOI Micromodem (see the module docstring)."""
 
     scheme = "micromodem"
+    options = _OPTIONS  # its URI query options (parse_query)
 
     def __init__(self, driver: MicromodemDriver, backend: _Backend) -> None:
         super().__init__(driver.mtu)

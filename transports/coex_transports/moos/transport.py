@@ -120,6 +120,7 @@ class MoosTransport(Transport):
     """
 
     scheme = "moos"
+    options = _OPTIONS  # its URI query options (parse_query)
 
     def __init__(self, config: MoosConfig | None = None) -> None:
         self.config = config or MoosConfig()
