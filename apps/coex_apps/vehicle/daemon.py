@@ -367,7 +367,7 @@ class VehicleApp:
             self.counts["plans"] += 1
             if self.store is not None:
                 self.store.set("vehicle.submitted", key)
-        for fix in survey.take_aids():  # topside's position fixes (issue 56): to the vehicle's navigation
+        for fix in survey.take_aids(now):  # topside's position fixes (issue 56): to the vehicle's navigation
             if self._guard("autonomy aid", self.autonomy.aid, fix, now):
                 self.counts["aids"] += 1
             else:
