@@ -568,3 +568,31 @@ def test_the_scenario_key_aiding() -> None:
     with pytest.raises(ConfigError) as exc:
         scenario_from_dict({"navigation": {"aiding": 1}})
     assert {p.key for p in exc.value.problems or []} == {"navigation.aiding"}
+
+
+def test_version_2_survey_state_loads() -> None:
+    """A store saved before ``aid_delay`` and the fixes' own re-send tracker (state version 2)
+    loads: no delay, a fix it was re-sending is still answered, new fixes use their own tracker."""
+    import json
+
+    from coex_core.state import dumps_parts, loads_parts
+
+    rx = SurveyModality().receiver(None)
+    old = rx.position_fix(1.0, 2.0, T0, sigma=1.0)
+    tx = SurveyModality().sender({"aiding": True})
+    text, arrays = dumps_parts([rx, tx])
+    doc = json.loads(text)
+    rf, sf = doc["root"][0]["f"], doc["root"][1]["f"]
+    rf["_requests"] = rf.pop("_fix_requests")  # version 2 re-sent fixes with the surveys
+    rf["_requests"]["f"]["retry"] = 300.0
+    del sf["aid_delay"], sf["_newest_taken"]
+    doc["classes"]["survey.Receiver"] = doc["classes"]["survey.Sender"] = 2
+    rx2, tx2 = loads_parts(json.dumps(doc).encode(), arrays)
+    assert tx2.aid_delay == 0.0 and tx2.aiding
+    assert rx2.poll(T0) == [old]
+    ack = tx2.handle(old, T0 + 1.0)
+    assert ack == [CommandAck(old.command_id, AckStatus.ACCEPTED)] and len(tx2.take_aids(T0 + 1.0)) == 1
+    rx2.receive(ack[0], T0 + 2.0)
+    assert rx2.fixes[old.command_id][0] == "accepted" and rx2.pending_requests() == []
+    new = rx2.position_fix(3.0, 4.0, T0 + 10.0)
+    assert rx2.poll(T0 + 10.0) == [new] and rx2.poll(T0 + 71.0) == [new]  # its own 60 s re-send
