@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from coex import ConfigError, InputContext, Nav, PositionAid
+from coex import ConfigError, InputContext, Nav, PositionAid, to_stamp
 from coex.messages import (
     AckStatus,
     CommandAck,
@@ -445,3 +445,154 @@ def test_the_console_survey_action_sends_in_the_vehicles_frame() -> None:
     snap = state.section("navigation")
     assert snap["enabled"] and snap["correction"]["size"] == pytest.approx(7.1, abs=0.4)
     assert snap["fix_count"] == 10 and snap["raw_track"] and snap["corrected_track"]
+
+
+# ------------------------------------------------------------------ the map placed by its passes
+class _KnownCorrection(Navigation):
+    """A navigation whose correction is given (by time), to test where the map is placed."""
+
+    def correction(self, vehicle: int, t: object) -> np.ndarray:
+        times = np.asarray(t, float)
+        out = np.zeros((*times.shape, 2))
+        out[..., 0] = np.where(times < T0 + 220.0, 2.0, -2.0)  # line 1: +2 m east, line 2: -2 m
+        return out
+
+
+def _two_passes(nav: Navigation) -> None:
+    """Statuses every 5 s: north along x = 0 (30 m up), east to x = 40, south along x = 40, and a
+    hold there (not a pass)."""
+    pts = [(t, 0.0, t) for t in np.arange(0.0, 200.0, 5.0)]
+    pts += [(t, t - 200.0, 200.0) for t in np.arange(200.0, 240.0, 5.0)]
+    pts += [(t, 40.0, 200.0 - (t - 240.0)) for t in np.arange(240.0, 440.0, 5.0)]
+    pts += [(t, 40.0, 0.0) for t in np.arange(440.0, 740.0, 5.0)]
+    for t, x, y in pts:
+        nav.status(2, VehicleStatus(to_stamp(T0 + t), x, y, 400.0, 30.0, 0.0, 1.0, 90, VehicleMode.SURVEY, 0), T0 + t)
+
+
+def test_a_map_block_is_placed_by_the_passes_whose_swath_covered_it() -> None:
+    """A block seen by two passes with different drifts sits where the passes' corrections,
+    weighted by the multibeam's sounding density there (cos² of the beam angle), put it; a block
+    stamped before the second pass, or a navigation that does not know the swath, takes the
+    correction at its stamp."""
+    nav = _KnownCorrection(swath=135.0)
+    nav.estimator(2)
+    _two_passes(nav)
+    size = 8.0
+    centres = np.array([[4.0, 100.0], [36.0, 100.0], [20.0, 100.0], [4.0, 100.0]])
+    stamps = np.array([T0 + 700.0, T0 + 700.0, T0 + 700.0, T0 + 150.0])
+    got = nav.map_correction(2, centres, stamps, size)
+    w_near, w_far = 1.0 / (1.0 + (4.0 / 30.0) ** 2), 1.0 / (1.0 + (36.0 / 30.0) ** 2)
+    expect = (2.0 * w_near - 2.0 * w_far) / (w_near + w_far)  # about 0.8 m, not the stamp's -2 m
+    assert got[0, 0] == pytest.approx(expect, abs=0.15) and got[1, 0] == pytest.approx(-expect, abs=0.15)
+    assert got[2, 0] == pytest.approx(0.0, abs=0.15)  # half-way between the lines: both alike
+    assert got[3, 0] == pytest.approx(2.0)  # only line 1 had passed by its stamp
+    assert np.allclose(got[:, 1], 0.0)
+    plain = _KnownCorrection()
+    plain.estimator(2)
+    _two_passes(plain)
+    assert plain.map_correction(2, centres, stamps, size)[:, 0] == pytest.approx([-2.0, -2.0, -2.0, 2.0])
+    # a block beyond the swath's reach (72 m at 30 m up) of every pass keeps its stamp's correction
+    assert nav.map_correction(2, np.array([[150.0, 100.0]]), np.array([T0 + 700.0]), size)[0, 0] == -2.0
+    with pytest.raises(ValueError):
+        Navigation(swath=180.0)
+
+
+# ------------------------------------------------------------------ aiding the vehicle's navigation
+def test_a_fix_is_handed_on_after_its_delay_and_a_late_or_older_one_is_refused() -> None:
+    rx = SurveyModality().receiver(None)
+    vehicle = SurveyModality().sender({"aiding": True, "aid_delay": 100.0})
+    first = rx.position_fix(10.0, 20.0, T0 + 50.0, stamp=T0, sigma=1.0)
+    assert rx.poll(T0 + 50.0) == [first]
+    assert rx.poll(T0 + 100.0) == [] and rx.poll(T0 + 111.0) == [first]  # a fix is re-sent after 60 s
+    assert vehicle.handle(first, T0 + 60.0) == [CommandAck(first.command_id, AckStatus.ACCEPTED)]
+    assert vehicle.take_aids(T0 + 99.0) == []  # not yet: taken 100 s after its stamp
+    assert [a.time for a in vehicle.take_aids(T0 + 100.0)] == [T0]
+    older = rx.position_fix(11.0, 21.0, T0 + 120.0, stamp=T0 - 10.0)
+    late = rx.position_fix(12.0, 22.0, T0 + 120.0, stamp=T0 + 10.0)
+    assert vehicle.handle(older, T0 + 121.0) == [CommandAck(older.command_id, AckStatus.REJECTED)]
+    assert vehicle.handle(late, T0 + 105.0) == [CommandAck(late.command_id, AckStatus.ACCEPTED)]
+    late2 = rx.position_fix(12.0, 22.0, T0 + 200.0, stamp=T0 + 20.0)
+    assert vehicle.handle(late2, T0 + 121.0) == [CommandAck(late2.command_id, AckStatus.REJECTED)]  # past due
+    with pytest.raises(ConfigError):
+        SurveyModality().sender({"aid_delay": -1.0})
+
+
+def test_topside_aids_the_vehicle_and_keeps_the_aids_out_of_its_estimate() -> None:
+    """The vehicle believes it is 5 m east and 3 m south of the truth; topside's fixes say so.
+    Topside sends its estimate as a position fix; the vehicle takes it 100 s after its stamp and
+    its statuses are true from then on. Topside still sees one dead-reckoned track (no jump in
+    its estimate), knows the vehicle's frame is now right, and sends a survey point uncorrected;
+    an aid the vehicle refused is not counted."""
+    from coex_plugins.navigation import AidConfig
+
+    e = np.array([5.0, -3.0])
+    for answer in (AckStatus.ACCEPTED, AckStatus.REJECTED):
+        nav = Navigation()
+        nav.aiding[2] = AidConfig(delay=100.0, blend=0.0, interval=1000.0, max_sigma=5.0)
+        rx = SurveyModality().receiver(None)
+        shift = np.zeros(2)
+        aid = None
+        for k in range(0, 600, 10):
+            t = T0 + k
+            true = np.array([float(k), 0.0])  # east at 1 m/s
+            if aid is not None and answer == AckStatus.ACCEPTED and t >= aid.stamp + 100.0:
+                shift = e  # the vehicle took the fix
+            bx, by = true + e - shift
+            nav.status(2, VehicleStatus(to_stamp(t), round(bx, 1), round(by, 1), 400.0, 30.0, 90.0, 1.0, 90,
+                                        VehicleMode.SURVEY, 0), t)
+            nav.estimator(2).add_fix(t, float(true[0]), float(true[1]))
+            if k == 200:
+                aid = nav.aid(2, rx, t)
+                assert aid is not None and (aid.x, aid.y) == pytest.approx((200.0, 0.0), abs=0.3)
+                fix = rx.poll(t)[0]
+                assert isinstance(fix, PositionFix)
+                rx.receive(CommandAck(fix.command_id, answer), t + 30.0)
+                assert nav.aid(2, rx, t + 30.0) is None  # the answer is followed, nothing new is due
+        assert aid is not None
+        if answer == AckStatus.ACCEPTED:
+            assert aid.counted and aid.delta == pytest.approx(tuple(e), abs=0.3)
+            assert nav.estimate(2, T0 + 250.0) == pytest.approx(e, abs=0.3)  # before the vehicle took it
+            assert nav.estimate(2, T0 + 550.0) == pytest.approx((0.0, 0.0), abs=0.3)  # its frame is true now
+            raw = nav.estimator(2).track()
+            assert raw[-1, 1:] == pytest.approx((590.0 + 5.0, -3.0), abs=0.3)  # the estimator's track: no jump
+        else:
+            assert not aid.counted and nav.estimate(2, T0 + 550.0) == pytest.approx(e, abs=0.3)
+        assert nav.corrected(2, T0 + 590.0, *nav.track(2)[-1, 1:]) == pytest.approx((590.0, 0.0), abs=0.4)
+
+
+def test_the_scenario_key_aiding() -> None:
+    from coex_apps.demo.scenario import preset, scenario_from_dict
+
+    assert preset("default").aiding is False
+    assert scenario_from_dict({"navigation": {"aiding": True}}).aiding is True
+    with pytest.raises(ConfigError) as exc:
+        scenario_from_dict({"navigation": {"aiding": 1}})
+    assert {p.key for p in exc.value.problems or []} == {"navigation.aiding"}
+
+
+def test_version_2_survey_state_loads() -> None:
+    """A store saved before ``aid_delay`` and the fixes' own re-send tracker (state version 2)
+    loads: no delay, a fix it was re-sending is still answered, new fixes use their own tracker."""
+    import json
+
+    from coex_core.state import dumps_parts, loads_parts
+
+    rx = SurveyModality().receiver(None)
+    old = rx.position_fix(1.0, 2.0, T0, sigma=1.0)
+    tx = SurveyModality().sender({"aiding": True})
+    text, arrays = dumps_parts([rx, tx])
+    doc = json.loads(text)
+    rf, sf = doc["root"][0]["f"], doc["root"][1]["f"]
+    rf["_requests"] = rf.pop("_fix_requests")  # version 2 re-sent fixes with the surveys
+    rf["_requests"]["f"]["retry"] = 300.0
+    del sf["aid_delay"], sf["_newest_taken"]
+    doc["classes"]["survey.Receiver"] = doc["classes"]["survey.Sender"] = 2
+    rx2, tx2 = loads_parts(json.dumps(doc).encode(), arrays)
+    assert tx2.aid_delay == 0.0 and tx2.aiding
+    assert rx2.poll(T0) == [old]
+    ack = tx2.handle(old, T0 + 1.0)
+    assert ack == [CommandAck(old.command_id, AckStatus.ACCEPTED)] and len(tx2.take_aids(T0 + 1.0)) == 1
+    rx2.receive(ack[0], T0 + 2.0)
+    assert rx2.fixes[old.command_id][0] == "accepted" and rx2.pending_requests() == []
+    new = rx2.position_fix(3.0, 4.0, T0 + 10.0)
+    assert rx2.poll(T0 + 10.0) == [new] and rx2.poll(T0 + 71.0) == [new]  # its own 60 s re-send

@@ -26,6 +26,7 @@ class _NoNavigation(DiveNavigation):
 
         self.active = False
         self.camera_vehicle = VEHICLE
+        self.aid_sender = self.aid_receiver = None
 
     def model(self, vehicle: int) -> Any:
         return None

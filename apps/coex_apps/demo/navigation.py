@@ -41,7 +41,8 @@ from coex_plugins.navigation.usbl import gga_sentence, psimssb_sentence, tll_sen
 
 from .world import Track
 
-__all__ = ["BIAS_TIME", "WALK", "DeadReckoning", "DiveNavigation", "UsblTracker", "track_positions"]
+__all__ = ["AID_BLEND", "AID_DELAY", "AID_INTERVAL", "BIAS_TIME", "SWATH", "WALK", "DeadReckoning", "DiveNavigation",
+           "UsblTracker", "believed_soundings", "track_positions"]
 
 FloatArray = npt.NDArray[np.float64]
 
@@ -51,6 +52,16 @@ BIAS_TIME = 1800.0
 WALK = math.sqrt(10.0)
 #: the grid (s) the error is integrated on
 STEP = 1.0
+#: the demo's multibeam swath across track (degrees: ``simulate_survey``'s): topside knows its
+#: vehicle's multibeam, and places each map block by the passes that covered it (docs/navigation.md)
+SWATH = 135.0
+#: aiding (``[navigation] aiding``, docs/navigation.md "Aiding the vehicle"): the vehicle takes a
+#: position fix this long after its stamp (its survey sender's ``aid_delay``, s) ...
+AID_DELAY = 300.0
+#: ... and blends its correction in linearly over this long (s), so its map has no jump
+AID_BLEND = 60.0
+#: topside sends an aid every this many seconds during the vehicle's survey
+AID_INTERVAL = 120.0
 
 
 def track_positions(track: Track, ts: FloatArray) -> FloatArray:
@@ -106,6 +117,9 @@ class DeadReckoning:
         self._err = np.zeros((n, 2))
         self._err[0] = self.at_bottom
         self._done = 0  # the grid index the error is integrated to
+        #: the position fixes the vehicle's navigation took (aiding): when each is blended in from,
+        #: over how long (s), and the correction it makes (m)
+        self.aids: list[tuple[float, float, FloatArray]] = []
 
     @property
     def active(self) -> bool:
@@ -132,11 +146,36 @@ class DeadReckoning:
             self._increments(self._done, pos), axis=0)
         self._done = k
 
+    def shift(self, t: float) -> FloatArray:
+        """How far the fixes taken have moved the vehicle's estimate by ``t`` (m): each fix's
+        correction blended in linearly over its blend time."""
+        out = np.zeros(2)
+        for at, blend, delta in self.aids:
+            f = (1.0 if t >= at else 0.0) if blend <= 0 else min(max((t - at) / blend, 0.0), 1.0)
+            out += f * delta
+        return out
+
+    def aid(self, stamp: float, x: float, y: float, at: float, blend: float) -> FloatArray:
+        """The navigation takes a position fix: the vehicle truly was at ``(x, y)`` at ``stamp``
+        (no later than now). Its correction is where the vehicle places itself at ``stamp`` in the
+        frame of the fixes it took before, less the fix; it is blended in linearly from ``at`` over
+        ``blend`` seconds (no jump in the map) and is returned."""
+        true = track_positions(self.track, np.array([float(stamp)]))[0]
+        taken = sum((d for _, _, d in self.aids), np.zeros(2))
+        delta = np.asarray(true + self._raw(float(stamp)) - taken - np.array([x, y]), dtype=np.float64)
+        self.aids.append((float(at), float(blend), delta))
+        return delta
+
     def error(self, t: float) -> FloatArray:
         """Believed less true position (m) at ``t`` (``t`` no later than now: the track beyond
-        it may still change)."""
+        it may still change): the dead-reckoning error less the fixes taken (:meth:`shift`)."""
         if not self.active:
             return np.zeros(2)
+        e = self._raw(t)
+        return e - self.shift(t) if self.aids else e
+
+    def _raw(self, t: float) -> FloatArray:
+        """The dead-reckoning error at ``t`` without the fixes taken."""
         if t <= self.bottom:  # the descent: no bottom lock, the error grows in time
             f = 0.0 if self.bottom <= self.t0 else min(max((t - self.t0) / (self.bottom - self.t0), 0.0), 1.0)
             return self.at_bottom * f
@@ -190,8 +229,32 @@ class DeadReckoning:
             inc = self._increments(k0, pos)
             err = np.vstack([e_now, e_now + np.cumsum(inc, axis=0)])
             at = np.column_stack([np.interp(arrive, grid, err[:, 0]), np.interp(arrive, grid, err[:, 1])])
+            if self.aids:  # fixes taken on the way move the vehicle's estimate too
+                at -= np.array([self.shift(float(a)) for a in arrive]) - self.shift(now)
             true = wps - at
         return [(float(a), float(b)) for a, b in true]
+
+
+def believed_soundings(dr: DeadReckoning, xyz: FloatArray, pings: npt.NDArray[np.int64], times: FloatArray
+                       ) -> FloatArray:
+    """A batch of soundings (true positions, their pings and times) as the vehicle ``dr`` places
+    them: each ping turned by the heading bias about the vehicle (the ping's centre) and moved by
+    the error at its time (linear over the batch)."""
+    if not dr.active or len(xyz) == 0:
+        return xyz
+    _, inv = np.unique(pings, return_inverse=True)
+    n = np.bincount(inv).astype(float)
+    cx = (np.bincount(inv, xyz[:, 0]) / n)[inv]
+    cy = (np.bincount(inv, xyz[:, 1]) / n)[inv]
+    e0, e1 = dr.error(float(times[0])), dr.error(float(times[-1]))
+    span = float(times[-1] - times[0])
+    f = (times - times[0]) / span if span > 0 else np.ones(len(times))
+    c, s = math.cos(dr.psi), math.sin(dr.psi)
+    dx, dy = xyz[:, 0] - cx, xyz[:, 1] - cy
+    out = np.array(xyz, dtype=float, copy=True)
+    out[:, 0] = cx + c * dx + s * dy + e0[0] + f * (e1[0] - e0[0])
+    out[:, 1] = cy - s * dx + c * dy + e0[1] + f * (e1[1] - e0[1])
+    return out
 
 
 class UsblTracker:
@@ -290,14 +353,30 @@ class DiveNavigation:
             self.tracks[CAMERA] = run.camera_track
         self.camera_vehicle = CAMERA if run.fleet is not None else VEHICLE
         self.active = scn.drift > 0.0
-        self.navigation = Navigation(apply=bool(getattr(cfg, "correction", True)))
+        self.navigation = Navigation(apply=bool(getattr(cfg, "correction", True)), swath=SWATH)
         for v in self.models:
             self.navigation.estimator(v)
         self.input: Any = None
         self.tracker: UsblTracker | None = None
         self.stats = {"fixes_read": 0}
+        #: aiding: the mapping vehicle's survey sender (it takes the fixes) and topside's survey
+        #: receiver of that vehicle (it sends them); None: no aiding
+        self.aid_sender: Any = None
+        self.aid_receiver: Any = None
+        self._aids_seen: set[float] = set()
+        #: the aids the vehicle took: stamp, its correction (m), topside's idea of it (m)
+        self.aids_taken: list[tuple[float, FloatArray]] = []
         if not self.active:
             return
+        if scn.aiding and self.navigation.apply:
+            from coex_plugins.navigation import AidConfig
+
+            fleet = run.fleet
+            self.aid_sender = fleet.mapper_senders["survey"] if fleet is not None else run.senders["survey"]
+            self.aid_receiver = run.receivers["mapper_survey" if fleet is not None else "survey"]
+            self.aid_sender.aiding, self.aid_sender.aid_delay = True, AID_DELAY
+            self.navigation.aiding[VEHICLE] = AidConfig(delay=AID_DELAY, blend=AID_BLEND, interval=AID_INTERVAL,
+                                                        until=run.survey_end)
         self.input = UsblInput({"udp": "127.0.0.1:0"}, InputContext(0.0, 0.0))
         self.input.open()
         address = self.input.udp_address()
@@ -323,28 +402,38 @@ class DiveNavigation:
         return replace(status, x=round(x, 1), y=round(y, 1), heading=round(dr.heading(status.heading) % 359.9, 1))
 
     def soundings(self, xyz: FloatArray, pings: npt.NDArray[np.int64], times: FloatArray) -> FloatArray:
-        """A batch of soundings as the vehicle places them: each ping turned by the heading bias
-        about the vehicle (the ping's centre) and moved by the error at its time (linear over the
-        batch)."""
+        """A batch of soundings as the vehicle places them (:func:`believed_soundings`)."""
         if not self.active or len(xyz) == 0:
             return xyz
-        dr = self.model(min(self.models))
-        _, inv = np.unique(pings, return_inverse=True)
-        n = np.bincount(inv).astype(float)
-        cx = (np.bincount(inv, xyz[:, 0]) / n)[inv]
-        cy = (np.bincount(inv, xyz[:, 1]) / n)[inv]
-        e0, e1 = dr.error(float(times[0])), dr.error(float(times[-1]))
-        span = float(times[-1] - times[0])
-        f = (times - times[0]) / span if span > 0 else np.ones(len(times))
-        c, s = math.cos(dr.psi), math.sin(dr.psi)
-        dx, dy = xyz[:, 0] - cx, xyz[:, 1] - cy
-        out = np.array(xyz, dtype=float, copy=True)
-        out[:, 0] = cx + c * dx + s * dy + e0[0] + f * (e1[0] - e0[0])
-        out[:, 1] = cy - s * dx + c * dy + e0[1] + f * (e1[1] - e0[1])
-        return out
+        return believed_soundings(self.model(min(self.models)), xyz, pings, times)
 
     def believed(self, vehicle: int, now: float, x: float, y: float) -> tuple[float, float]:
         return self.model(vehicle).believed(now, x, y) if self.active else (x, y)
+
+    def vehicle_aids(self, now: float) -> None:
+        """The vehicle's side of aiding, after its node took what arrived: each position fix its
+        survey sender accepted is taken by its navigation when due (``aid_delay`` after its stamp)."""
+        sender = self.aid_sender
+        if sender is None:
+            return
+        for a in sender.aids:
+            if a.time not in self._aids_seen:
+                self._aids_seen.add(a.time)
+                self.run.at(a.time + sender.aid_delay, self._take_aids)
+
+    def _take_aids(self, now: float) -> None:
+        from .config import VEHICLE
+
+        for a in self.aid_sender.take_aids(now):
+            delta = self.models[VEHICLE].aid(a.time, a.x, a.y, a.time + self.aid_sender.aid_delay, AID_BLEND)
+            self.aids_taken.append((a.time, delta))
+
+    def topside_aids(self, now: float) -> None:
+        """Topside's side of aiding: an aid when it is time (:meth:`Navigation.aid`)."""
+        if self.aid_receiver is not None:
+            from .config import VEHICLE
+
+            self.navigation.aid(VEHICLE, self.aid_receiver, now)
 
     # ------------------------------------------------------------------ the ship's side
     def usbl_round(self, now: float) -> None:
@@ -394,7 +483,10 @@ class DiveNavigation:
         if receivers.get("detections") is not None:
             out["detections"] = CorrectedDetections(receivers["detections"], nav, VEHICLE)
         out["imagery"] = CorrectedImages(receivers["imagery"], nav, cam)
-        out["survey"] = VehicleFrameSurveys(receivers["survey"], nav, cam)
+        view = getattr(self, "_surveys_view", None)
+        if view is None:  # one view per dive: it remembers what it sent (metrics "lines")
+            view = self._surveys_view = VehicleFrameSurveys(receivers["survey"], nav, cam)
+        out["survey"] = view
         return out
 
     def close(self) -> None:
@@ -428,23 +520,67 @@ class DiveNavigation:
                             "map_error_m": round(best[0], 2) if best is not None and best[0] <= MAP_MATCH else None,
                             "camera_pass_m": _closest(camera_legs, car.x, car.y)})
         out["targets"] = targets
+        lines = self._lines()
+        if lines:
+            out["lines"] = lines
         if self.active:
             out["estimate"] = {str(v): self._judge(v) for v in self.models}
+            out["aiding"] = self._aiding()
             out["usbl"] = {**(self.tracker.summary() if self.tracker else {}), "fixes_read": self.stats["fixes_read"],
                            "input_counts": dict(self.input.counts) if self.input is not None else {}}
         return out
+
+    def _lines(self) -> list[dict[str, Any]]:
+        """Each survey command topside put into the vehicle's frame, judged against the truth:
+        when it was sent and the vehicle reached its first point (dive seconds), the correction
+        topside moved that point by, the vehicle's true error then (so the miss of the first point,
+        m), and how far topside's live estimate was from the truth when it sent the command."""
+        from .config import EPOCH
+
+        view = getattr(self, "_surveys_view", None)
+        sent = getattr(view, "sent", None) or []
+        truth = getattr(getattr(self.run, "autonomy", None), "truth", {})
+        dr = self.model(self.camera_vehicle)
+        out = []
+        for sid, at, c in sent:
+            reached = (truth.get(sid) or {}).get("reached") or []
+            live = float(np.hypot(*(self.navigation.estimate(self.camera_vehicle, at) - dr.error(at))))
+            row: dict[str, Any] = {"survey_id": sid, "sent_s": round(at - EPOCH, 1), "predicted": [round(v, 2) for v in c],
+                                   "live_error_m": round(live, 2)}
+            if reached:
+                e = dr.error(float(reached[0]))
+                row.update(reached_s=round(float(reached[0]) - EPOCH, 1), true=[round(float(v), 2) for v in e],
+                           start_miss_m=round(float(np.hypot(e[0] - c[0], e[1] - c[1])), 2))
+            out.append(row)
+        return out
+
+    def _aiding(self) -> dict[str, Any]:
+        """Aids sent, counted by topside, refused, taken by the vehicle; and how far topside's
+        idea of each taken aid's correction was from the vehicle's (m, the worst)."""
+        from .config import VEHICLE
+
+        if self.aid_receiver is None:
+            return {"enabled": False}
+        sent = self.navigation.aids.get(VEHICLE, [])
+        mine = {a.stamp: np.asarray(a.delta) for a in sent if a.counted}
+        worst = max((float(np.hypot(*(d - mine[t]))) if t in mine else math.inf for t, d in self.aids_taken),
+                    default=0.0)
+        return {"enabled": True, "sent": len(sent), "counted": len(mine),
+                "refused": sum(a.state == "rejected" for a in sent), "taken": len(self.aids_taken),
+                "largest_m": round(max((float(np.hypot(*d)) for _, d in self.aids_taken), default=0.0), 2),
+                "mismatch_m": round(worst, 3) if math.isfinite(worst) else None}
 
     def _judge(self, vehicle: int) -> dict[str, Any]:
         """The smoothed correction against the true error, at the times of the track topside
         received; the fixes flagged wild against the truth."""
         est = self.navigation.estimator(vehicle)
-        track = est.track()
+        track = self.navigation.track(vehicle)
         sol = est.solution()
         dr = self.model(vehicle)
         if sol is None or not len(track):
             return {"track_points": len(track), "fixes": est.fix_count}
         truth = np.array([dr.error(float(t)) for t in track[:, 0]])
-        err = np.hypot(*(est.correction(track[:, 0]) - truth).T)
+        err = np.hypot(*(self.navigation.estimate(vehicle, track[:, 0]) - truth).T)
         wild = {round(r[0], 3) for r in (self.tracker.log if self.tracker else []) if r[1] == vehicle and r[6]}
         flagged = {round(float(r[0]), 3) for r in sol.fixes if r[4] > 0}
         used = {round(float(r[0]), 3) for r in sol.fixes if r[3] > 0}

@@ -431,6 +431,7 @@ class DiveRun:
 
     def _after_runners(self, now: float) -> None:
         """After the runners, each pass of the loop: the autonomies."""
+        self.navsim.vehicle_aids(now)  # a position fix arrived: the vehicle's navigation takes it when due
         self.autonomy.check(now)  # a survey command arrived: the vehicle flies it
         if self.mapper_autonomy is not None:
             self.mapper_autonomy.check(now)
@@ -450,6 +451,7 @@ class DiveRun:
                     self.received_camera_track.append((status.x, status.y))
             elif isinstance(ev, ProductUpdated) and ev.modality == "survey":
                 self.operator.on_survey(dict(ev.product.meta), clock.now)
+        self.navsim.topside_aids(clock.now)  # topside aids the vehicle's navigation when it is time
         self.vehicle.events()
         if self.fleet is not None:
             self.fleet.camera.events()

@@ -60,6 +60,7 @@ A scenario is a TOML file (``coex demo --scenario FILE.toml``) or a built-in pre
     drift = 0.005                 # 1-sigma bias, fraction of the distance travelled (0: perfect navigation)
     heading_bias = 0.5            # degrees: the vehicle's heading reads this much clockwise of the truth
     seed_offset = 2.0             # metres of error at the bottom (the descent has no bottom lock)
+    aiding = false                # the vehicle takes topside's estimate as position fixes during its survey
 
     [usbl]                        # the ship's USBL fixes of the vehicle
     interval = 10.0               # seconds between fixes
@@ -179,6 +180,9 @@ class Scenario:
     drift: float = 0.005
     heading_bias: float = 0.5
     seed_offset: float = 2.0
+    #: the vehicle's navigation takes topside's estimate as position fixes during its survey
+    #: (issue 56 follow-up; coex_apps.demo.navigation, docs/navigation.md "Aiding the vehicle")
+    aiding: bool = False
     usbl_interval: float = 10.0
     usbl_sigma: float = 0.01
     usbl_outliers: float = 0.02
@@ -325,7 +329,8 @@ _SECTIONS: dict[str, dict[str, str]] = {
                  "random_decoys": "random_decoys"},
     "modem": {"rate": "modem_rate", "slots": "slots", "slot_seconds": "slot_seconds",
               "guard_seconds": "guard_seconds", "spare": "spare"},
-    "navigation": {"drift": "drift", "heading_bias": "heading_bias", "seed_offset": "seed_offset"},
+    "navigation": {"drift": "drift", "heading_bias": "heading_bias", "seed_offset": "seed_offset",
+                   "aiding": "aiding"},
     "usbl": {"interval": "usbl_interval", "sigma": "usbl_sigma", "outliers": "usbl_outliers"},
 }
 _OBJECT_KEYS = {"x", "y", "length", "width", "height", "heading"}
@@ -382,6 +387,11 @@ def scenario_from_dict(data: Mapping[str, Any], base: Scenario | None = None) ->
                     p.said("modem.slots", "modem.slots must be a list of 'topside' / 'vehicle' / 'camera'")
                 else:
                     kw[attr] = tuple(sec[k])
+            elif attr == "aiding":
+                if not isinstance(sec[k], bool):
+                    p.said("navigation.aiding", "navigation.aiding must be true or false")
+                else:
+                    kw[attr] = sec[k]
             else:
                 put(attr, _number(p, f"{section}.{k}", sec[k], int if attr in ints else float))
     for kind in ("targets", "decoys"):

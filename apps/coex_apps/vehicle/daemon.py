@@ -463,7 +463,7 @@ class VehicleApp:
             if self._ingest("survey", report, f"autonomy report {report!r}", hold=(None, report)):
                 self.counts["reports"] += 1
         self.counts["plans"] += self.lifecycle.counts["submitted"] - before
-        for fix in self.node.sender("survey").take_aids():  # topside's position fixes (issue 56)
+        for fix in self.node.sender("survey").take_aids(now):  # topside's position fixes (issue 56)
             if self._guard("autonomy aid", self.autonomy.aid, fix, now):
                 self.counts["aids"] += 1
             else:

@@ -9,6 +9,8 @@ from __future__ import annotations
 from .estimator import DriftEstimator, NavConfig, Solution
 from .frame import LocalFrame
 from .topside import (
+    Aid,
+    AidConfig,
     CorrectedDetections,
     CorrectedImages,
     CorrectedMap,
@@ -17,6 +19,6 @@ from .topside import (
 )
 from .usbl import UsblInput, gga_sentence, psimssb_sentence, resolve_time, tll_sentence
 
-__all__ = ["CorrectedDetections", "CorrectedImages", "CorrectedMap", "DriftEstimator", "LocalFrame", "NavConfig",
+__all__ = ["Aid", "AidConfig", "CorrectedDetections", "CorrectedImages", "CorrectedMap", "DriftEstimator", "LocalFrame", "NavConfig",
            "Navigation", "Solution", "UsblInput", "VehicleFrameSurveys", "gga_sentence", "psimssb_sentence",
            "resolve_time", "tll_sentence"]

@@ -10,6 +10,15 @@ passes. :meth:`Navigation.to_vehicle` turns a point of the corrected map into th
 frame (the correction now, and what the estimated biases add on the way there), which is where a
 survey command must send it.
 
+A vehicle whose navigation takes aiding can be sent topside's estimate of where it was
+(:meth:`Navigation.aid`, a ``PositionFix`` of source ESTIMATE every :attr:`AidConfig.interval`
+seconds): the vehicle takes each fix a set time after its stamp (its survey sender's
+``aid_delay``) and blends the correction in (:attr:`AidConfig.blend`), so its own map is laid down
+with a small error. Topside sent every aid, so it knows how the vehicle's frame moved: it keeps
+the statuses as received, gives the estimator the track with the aids taken out (the
+dead-reckoned track the model describes) and takes the aids' shift off the correction of
+anything stamped after them (:meth:`Navigation.shift`).
+
 The views below (:class:`CorrectedMap`, :class:`CorrectedDetections`, :class:`CorrectedImages`,
 :class:`VehicleFrameSurveys`) wrap a topside receiver for a client that works in the corrected
 frame (the demo's scripted operator, a script): what they read is corrected, what they send is
@@ -21,7 +30,7 @@ from __future__ import annotations
 import itertools
 import math
 from collections.abc import Mapping, Sequence
-from dataclasses import replace
+from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
@@ -34,11 +43,63 @@ from ..bathymetry.product import MapLevel
 from ..imagery.product import ImageProduct
 from .estimator import DriftEstimator, NavConfig
 
-__all__ = ["CorrectedDetections", "CorrectedImages", "CorrectedMap", "Navigation", "VehicleFrameSurveys"]
+__all__ = ["Aid", "AidConfig", "CorrectedDetections", "CorrectedImages", "CorrectedMap", "Navigation",
+           "VehicleFrameSurveys"]
 
 FloatArray = npt.NDArray[np.float64]
 #: blocks of subgrids the correction of a big level is looked up in (the receiver's coverage)
 MAP_BLOCKS = 4096
+#: the received track is sampled every this many seconds to find the passes over a map block
+PASS_STEP = 5.0
+#: ... and counts as a pass of the multibeam only while the vehicle moves at least this fast (m/s):
+#: a vehicle holding or descending on the spot is not surveying
+PASS_SPEED = 0.2
+
+
+@dataclass(frozen=True)
+class AidConfig:
+    """Topside aiding a vehicle's navigation with its estimate (:meth:`Navigation.aid`), and how
+    that vehicle takes a fix (``docs/navigation.md``, "Aiding the vehicle")."""
+
+    #: the vehicle takes a fix this long after its stamp (s): its survey sender's ``aid_delay``
+    delay: float = 300.0
+    #: the vehicle's navigation blends a fix's correction in linearly over this long (s; 0: at once)
+    blend: float = 60.0
+    #: seconds between two aids
+    interval: float = 120.0
+    #: an aid is sent only when the correction it would make is at least this (m) ...
+    min_correction: float = 0.5
+    #: ... and the estimate's 1-sigma at its stamp is at most this (m)
+    max_sigma: float = 1.5
+    #: no aid is sent that the vehicle would still be blending in after this time (None: no end)
+    until: float | None = None
+
+
+@dataclass
+class Aid:
+    """A position fix topside sent to aid the vehicle's navigation: its command id, stamp, position
+    (as sent, rounded) and sigma; when the vehicle takes it (``at``) and blends it in (``blend``);
+    the survey receiver's state of it ("requested", "accepted", "rejected", "given up"); and the
+    correction it moves the vehicle's frame by (``delta``: believed less true at its stamp, in the
+    frame of the aids before it; zero unless counted)."""
+
+    command_id: int
+    stamp: float
+    x: float
+    y: float
+    sigma: float
+    at: float
+    blend: float
+    sent: float
+    state: str = "requested"
+    delta: tuple[float, float] = (0.0, 0.0)
+
+    @property
+    def counted(self) -> bool:
+        """Taken by the vehicle, as far as topside knows: accepted, or not answered yet (a fix
+        goes out every ``fix_retry`` s until its time: it is the likely case). A refused one, or
+        one given up without an answer, is not."""
+        return self.state in ("requested", "accepted")
 
 
 class Navigation:
@@ -49,12 +110,25 @@ class Navigation:
     node id; a fix without one, such as a GGA, is the only vehicle's)."""
 
     def __init__(self, config: NavConfig | None = None, *, apply: bool = True,
-                 targets: Mapping[int, int] | None = None) -> None:
+                 targets: Mapping[int, int] | None = None, swath: float | None = None) -> None:
         self.config = config or NavConfig()
         self.apply = apply
+        #: the vehicle's multibeam swath (degrees, across track): each subgrid is placed by the
+        #: correction of the passes that mapped it (:meth:`map_correction`); None: by the
+        #: correction at its stamp
+        if swath is not None and not 0.0 < float(swath) < 180.0:
+            raise ValueError(f"the swath must be 0-180 degrees, got {swath!r}")
+        self.swath = None if swath is None else float(swath)
         self.targets = dict(targets or {})
         self.estimators: dict[int, DriftEstimator] = {}
         self._levels: dict[tuple[int, int, int], tuple[tuple[int, int], Any]] = {}
+        #: per vehicle: the statuses as received (stamp -> x, y, heading: the vehicle's frame of the
+        #: time), aiding's configuration and the aids sent (by stamp)
+        self._received: dict[int, dict[float, tuple[float, float, float]]] = {}
+        #: per vehicle: the altitude of each status received (stamp -> m; the swath's width)
+        self._altitude: dict[int, dict[float, float]] = {}
+        self.aiding: dict[int, AidConfig] = {}
+        self.aids: dict[int, list[Aid]] = {}
         #: fixes that named no vehicle this topside follows
         self.unrouted = 0
 
@@ -66,9 +140,23 @@ class Navigation:
 
     # ------------------------------------------------------------------ data in
     def status(self, vehicle: int, status: VehicleStatus, now: float) -> None:
-        """A vehicle status topside received: a point of its dead-reckoned track at its stamp."""
-        self.estimator(vehicle).add_track(unwrap(status.stamp, now), float(status.x), float(status.y),
-                                          float(status.heading))
+        """A vehicle status topside received: a point of its dead-reckoned track at its stamp (the
+        aids' shift taken out for the estimator)."""
+        t = unwrap(status.stamp, now)
+        x, y, h = float(status.x), float(status.y), float(status.heading)
+        self._received.setdefault(vehicle, {})[t] = (x, y, h)
+        if status.altitude is not None:
+            self._altitude.setdefault(vehicle, {})[t] = float(status.altitude)
+        s = self.shift(vehicle, t)
+        self.estimator(vehicle).add_track(t, x + float(s[0]), y + float(s[1]), h)
+
+    def track(self, vehicle: int) -> FloatArray:
+        """The vehicle's track as received (t, x, y; its own frame at each time), in time order."""
+        got = self._received.get(vehicle)
+        if not got:
+            return np.zeros((0, 3))
+        tt = np.array(sorted(got))
+        return np.column_stack([tt, np.array([got[t][:2] for t in tt.tolist()])])
 
     def fix(self, nav: Nav, vehicle: int | None = None) -> int | None:
         """A USBL fix (an item of :class:`~.usbl.UsblInput`) for ``vehicle`` or the vehicle its
@@ -89,15 +177,120 @@ class Navigation:
         self.estimator(vehicle).add_fix(float(nav.time), float(nav.x), float(nav.y))
         return vehicle
 
+    # ------------------------------------------------------------------ aiding the vehicle
+    def shift(self, vehicle: int, t: npt.ArrayLike) -> FloatArray:
+        """How far the aids topside counts as taken have moved the vehicle's frame by ``t``
+        (``(..., 2)``, m): each aid's correction, blended in linearly from when the vehicle takes
+        it. The vehicle believes it is at its dead-reckoned position less this."""
+        times = np.asarray(t, float)
+        out = np.zeros((*times.shape, 2))
+        for a in self.aids.get(vehicle, ()):
+            if not a.counted:
+                continue
+            f = (times >= a.at).astype(float) if a.blend <= 0 else np.clip((times - a.at) / a.blend, 0.0, 1.0)
+            out += f[..., None] * np.asarray(a.delta)
+        return out
+
+    def final_shift(self, vehicle: int) -> FloatArray:
+        """The shift once every aid counted is blended in (the frame the vehicle will be in)."""
+        return np.asarray(sum((np.asarray(a.delta) for a in self.aids.get(vehicle, ()) if a.counted),
+                              np.zeros(2)), dtype=np.float64)
+
+    def _received_at(self, vehicle: int, t: float) -> tuple[float, float] | None:
+        got = self._received.get(vehicle) or {}
+        if t in got:
+            return got[t][:2]
+        track = self.track(vehicle)
+        if not len(track):
+            return None
+        return float(np.interp(t, track[:, 0], track[:, 1])), float(np.interp(t, track[:, 0], track[:, 2]))
+
+    def _rebuild(self, vehicle: int) -> None:
+        """Work out each counted aid's correction in stamp order (as the vehicle does: its
+        position at the stamp, in the frame of the aids before it, less the fix) and give the
+        estimator the received track with the aids' shift taken out again."""
+        total = np.zeros(2)
+        for a in sorted(self.aids.get(vehicle, ()), key=lambda a: a.stamp):
+            if not a.counted:
+                a.delta = (0.0, 0.0)
+                continue
+            got = self._received_at(vehicle, a.stamp)
+            if got is None:
+                a.delta = (0.0, 0.0)
+                continue
+            raw = np.asarray(got) + self.shift(vehicle, a.stamp)  # the dead-reckoned position then
+            d = raw - np.array([a.x, a.y]) - total
+            a.delta = (float(d[0]), float(d[1]))
+            total = total + d
+        est = self.estimator(vehicle)
+        got = self._received.get(vehicle) or {}
+        if got:
+            tt = np.array(sorted(got))
+            sh = self.shift(vehicle, tt)
+            for t, (dx, dy) in zip(tt.tolist(), sh.tolist(), strict=True):
+                x, y, h = got[t]
+                est.add_track(t, x + dx, y + dy, h)
+
+    def aid(self, vehicle: int, receiver: Any, now: float) -> Aid | None:
+        """Aid ``vehicle``'s navigation when it is time to (:attr:`aiding`, an
+        :class:`AidConfig` per vehicle; nothing without): every :attr:`AidConfig.interval` seconds,
+        a ``PositionFix`` through ``receiver`` (the vehicle's survey receiver) saying where the
+        vehicle truly was at the newest status received, by the estimate (its dead-reckoned
+        position then less the correction), when the correction it would make is worth it and
+        the estimate good enough. Also follows the answers to the aids sent (a refused one is no
+        longer counted). The aid sent, or None."""
+        cfg = self.aiding.get(vehicle)
+        if cfg is None:
+            return None
+        aids = self.aids.setdefault(vehicle, [])
+        changed = False
+        for a in aids:
+            state = receiver.fixes.get(a.command_id)
+            if state is not None and state[0] != a.state:
+                a.state, changed = str(state[0]), True
+        if changed:
+            self._rebuild(vehicle)
+        est = self.estimators.get(vehicle)
+        if not self.apply or est is None or (aids and now - aids[-1].sent < cfg.interval):
+            return None
+        track = self.track(vehicle)
+        if not len(track):
+            return None
+        stamp = float(track[-1, 0])
+        if (aids and stamp <= aids[-1].stamp) or (cfg.until is not None and stamp + cfg.delay + cfg.blend > cfg.until):
+            return None
+        if est.solution() is None or float(est.sigma(stamp)) > cfg.max_sigma:
+            return None
+        c_raw = est.correction(stamp)
+        if float(np.hypot(*(c_raw - self.final_shift(vehicle)))) < cfg.min_correction:
+            return None
+        raw = track[-1, 1:] + self.shift(vehicle, stamp)
+        x, y = raw - c_raw
+        fix = receiver.position_fix(float(x), float(y), now, stamp=stamp, sigma=float(est.sigma(stamp)),
+                                    source="estimate")
+        aid = Aid(int(fix.command_id), stamp, float(fix.x), float(fix.y), float(fix.sigma), stamp + cfg.delay,
+                  cfg.blend, now)
+        aids.append(aid)
+        self._rebuild(vehicle)
+        return aid
+
     # ------------------------------------------------------------------ the correction
+    def estimate(self, vehicle: int, t: npt.ArrayLike) -> FloatArray:
+        """The estimated correction (believed - true, m) of what the vehicle placed at times ``t``,
+        in its frame of then (the aids' shift included), applied or not: ``(..., 2)``."""
+        est = self.estimators.get(vehicle)
+        times = np.asarray(t, float)
+        if est is None:
+            return np.zeros((*times.shape, 2))
+        return np.asarray(est.correction(times) - self.shift(vehicle, times), dtype=np.float64)
+
     def correction(self, vehicle: int, t: npt.ArrayLike) -> FloatArray:
         """The correction applied (believed - true, m) at times ``t``: ``(..., 2)``; zeros when
         :attr:`apply` is off or nothing is known of the vehicle."""
-        est = self.estimators.get(vehicle)
         times = np.asarray(t, float)
-        if not self.apply or est is None:
+        if not self.apply or vehicle not in self.estimators:
             return np.zeros((*times.shape, 2))
-        return est.correction(times)
+        return self.estimate(vehicle, times)
 
     def corrected(self, vehicle: int, t: float, x: float, y: float) -> tuple[float, float]:
         """A point the vehicle placed at ``(x, y)`` at ``t``, in the corrected frame."""
@@ -111,7 +304,9 @@ class Navigation:
         est = self.estimators.get(vehicle)
         if not self.apply or est is None:
             return float(x), float(y)
-        return est.to_vehicle(x, y, t, start)
+        vx, vy = est.to_vehicle(x, y, t, start)
+        s = self.final_shift(vehicle)  # the frame the vehicle will be in once the aids sent are taken
+        return vx - float(s[0]), vy - float(s[1])
 
     def corrected_level(self, receiver: Any, level: int, vehicle: int
                         ) -> tuple[FloatArray, float, tuple[float, float]] | None:
@@ -138,11 +333,11 @@ class Navigation:
         cached = self._levels.get(key)
         if cached is not None and cached[0] == stamp:
             return cached[1]  # type: ignore[no-any-return]
-        out = self._resample(receiver, level, est, z, cell, x0, y0)
+        out = self._resample(receiver, level, vehicle, z, cell, x0, y0)
         self._levels[key] = (stamp, out)
         return out
 
-    def _resample(self, receiver: Any, level: int, est: DriftEstimator, z: FloatArray, cell: float,
+    def _resample(self, receiver: Any, level: int, vehicle: int, z: FloatArray, cell: float,
                   x0: float, y0: float) -> tuple[FloatArray, float, tuple[float, float]]:
         geometry = receiver.geometry(level)
         span, keys, stamps = receiver.coverage(level, MAP_BLOCKS)
@@ -151,7 +346,8 @@ class Navigation:
         level_cell, side = geometry
         block = float(level_cell) * int(side) * int(span)  # metres per coverage block
         # the correction of every coverage block (at its oldest stamp: one subgrid at fine levels)
-        corr = est.correction(np.asarray(stamps, float))
+        centres = (np.asarray(keys, float) + 0.5) * block
+        corr = self.map_correction(vehicle, centres, np.asarray(stamps, float), block)
         kx0, ky0 = keys.min(axis=0)
         kx1, ky1 = keys.max(axis=0)
         lut = np.full((ky1 - ky0 + 1, kx1 - kx0 + 1, 2), np.nan)
@@ -166,7 +362,24 @@ class Navigation:
         qy = Y0 + (np.arange(oy) + 0.5) * cell
         gx, gy = np.meshgrid(qx, qy)
 
+        smooth = self.swath is not None  # pass-weighted corrections vary across blocks: no tears
+
         def field(px: FloatArray, py: FloatArray) -> FloatArray:
+            if smooth:  # bilinear between block centres (over the blocks held)
+                u, v = px / block - 0.5 - kx0, py / block - 0.5 - ky0
+                j0, i0 = np.floor(u).astype(np.int64), np.floor(v).astype(np.int64)
+                fu, fv = (u - j0)[..., None], (v - i0)[..., None]
+                acc = np.zeros((*px.shape, 2))
+                wsum = np.zeros((*px.shape, 1))
+                for di, dj, w in ((0, 0, (1 - fu) * (1 - fv)), (0, 1, fu * (1 - fv)), (1, 0, (1 - fu) * fv),
+                                  (1, 1, fu * fv)):
+                    ii, jj = i0 + di, j0 + dj
+                    inside = (ii >= 0) & (jj >= 0) & (ii < lut.shape[0]) & (jj < lut.shape[1])
+                    got = lut[np.clip(ii, 0, lut.shape[0] - 1), np.clip(jj, 0, lut.shape[1] - 1)]
+                    ok = (inside & np.isfinite(got[..., 0]))[..., None]
+                    acc += np.where(ok, w * got, 0.0)
+                    wsum += np.where(ok, w, 0.0)
+                return np.where(wsum > 1e-9, acc / np.maximum(wsum, 1e-9), fill)
             bx = np.floor(px / block).astype(np.int64) - kx0
             by = np.floor(py / block).astype(np.int64) - ky0
             inside = (bx >= 0) & (by >= 0) & (bx < lut.shape[1]) & (by < lut.shape[0])
@@ -197,6 +410,54 @@ class Navigation:
         out = np.where(np.isfinite(out), out, near)
         return out, cell, (X0, Y0)
 
+    def map_correction(self, vehicle: int, centres: FloatArray, stamps: FloatArray, size: float) -> FloatArray:
+        """The correction (``n x 2``, m) of map blocks of side ``size`` m centred at ``centres``
+        (the vehicle's frame) whose newest soundings date from ``stamps``. A block of the vehicle's
+        map mixes the soundings of every pass over it, taken with different drifts (and a target
+        keeps the place the densest pass gave it: the vehicle's outlier screen refuses a later
+        sounding metres off the cell's mean). So with :attr:`swath` known, a block is placed by the
+        mean of the correction over the moments the multibeam swath covered it, up to its stamp,
+        each weighted by how densely an equiangular multibeam sounds there (``cos² θ``, ``θ`` the
+        beam angle: ``h² / (h² + u²)`` at altitude ``h`` and ``u`` m across track); the received
+        track (linear between statuses, every :data:`PASS_STEP` s) says where the vehicle was. A
+        block no pass is known to have covered, or without :attr:`swath`, takes the correction at
+        its stamp."""
+        stamps = np.asarray(stamps, float)
+        at_stamp = self.correction(vehicle, stamps)
+        if self.swath is None or not self.apply or not len(stamps):
+            return at_stamp
+        track = self.track(vehicle)
+        alt = self._altitude.get(vehicle) or {}
+        if len(track) < 2 or not alt:
+            return at_stamp
+        t0, t1 = float(track[0, 0]), float(min(track[-1, 0], np.nanmax(stamps)))
+        if t1 <= t0:
+            return at_stamp
+        ts = np.arange(t0, t1 + PASS_STEP, PASS_STEP)
+        px = np.interp(ts, track[:, 0], track[:, 1])
+        py = np.interp(ts, track[:, 0], track[:, 2])
+        at = np.array(sorted(alt))
+        h = np.interp(ts, at, np.array([alt[t] for t in at.tolist()]))
+        vx, vy = np.gradient(px, ts), np.gradient(py, ts)
+        speed = np.hypot(vx, vy)
+        moving = speed >= PASS_SPEED
+        ux, uy = np.where(moving, vx / np.maximum(speed, 1e-9), 0.0), np.where(moving, vy / np.maximum(speed, 1e-9), 0.0)
+        reach = h * math.tan(math.radians(self.swath / 2.0))
+        c = self.correction(vehicle, ts)
+        out = at_stamp.copy()
+        for i0 in range(0, len(centres), 256):  # blocks in batches: (blocks x samples) arrays
+            q = centres[i0:i0 + 256]
+            dx, dy = q[:, 0:1] - px[None, :], q[:, 1:2] - py[None, :]
+            along = dx * ux[None, :] + dy * uy[None, :]
+            across = np.abs(dx * uy[None, :] - dy * ux[None, :])
+            hit = (moving[None, :] & (np.abs(along) <= size / 2.0 + PASS_STEP * speed[None, :] / 2.0)
+                   & (across <= reach[None, :]) & (ts[None, :] <= stamps[i0:i0 + 256, None] + PASS_STEP))
+            w = np.where(hit, h[None, :] ** 2 / (h[None, :] ** 2 + across**2), 0.0)
+            total = w.sum(axis=1)
+            ok = total > 0
+            out[i0:i0 + 256][ok] = (w[ok] @ c) / total[ok, None]
+        return out
+
     # ------------------------------------------------------------------ what is shown
     def state(self, vehicle: int, now: float, *, recent: int = 200) -> dict[str, Any]:
         """What the console shows of a vehicle's navigation: the correction now (``dx``, ``dy``,
@@ -207,13 +468,13 @@ class Navigation:
                                "corrected_track": [], "correction": None, "fix_count": 0, "outliers": 0}
         if est is None:
             return out
-        track = est.track()
+        track = self.track(vehicle)
         sol = est.solution()
         out["fix_count"] = est.fix_count
         out["raw_track"] = [[round(float(a), 1), round(float(b), 1), round(float(c), 1)] for a, b, c in track[-2000:]]
         if sol is None:
             return out
-        c_track = est.correction(track[:, 0]) if len(track) else np.zeros((0, 2))
+        c_track = self.estimate(vehicle, track[:, 0]) if len(track) else np.zeros((0, 2))
         out["corrected_track"] = [[round(float(t), 1), round(float(x - cx), 1), round(float(y - cy), 1)]
                                   for (t, x, y), (cx, cy) in zip(track[-2000:], c_track[-2000:], strict=True)]
         fx = sol.fixes
@@ -222,12 +483,16 @@ class Navigation:
         out["outliers"] = int(fx[:, 4].sum())
         used = fx[fx[:, 3] > 0]
         newest = float(used[:, 0].max()) if len(used) else None
-        c = est.correction(now)
+        c = self.estimate(vehicle, now)
         out["correction"] = {"dx": round(float(c[0]), 2), "dy": round(float(c[1]), 2),
                              "size": round(float(math.hypot(c[0], c[1])), 2),
                              "sigma": round(float(est.sigma(now)), 2),
                              "age": None if newest is None else round(max(now - newest, 0.0), 1),
                              "fix_sigma": round(sol.fix_sigma, 2)}
+        aids = self.aids.get(vehicle, [])
+        if aids:
+            out["aids"] = {"sent": len(aids), "counted": sum(a.counted for a in aids),
+                           "refused": sum(a.state == "rejected" for a in aids)}
         return out
 
 
@@ -315,8 +580,7 @@ class CorrectedMap(_View):
                                      y_max + float(c[1]), *args, **kw)
 
     def _newest(self) -> float:
-        est = self._nav.estimators.get(self._vehicle)
-        track = est.track() if est is not None else np.zeros((0, 3))
+        track = self._nav.track(self._vehicle)
         return float(track[-1, 0]) if len(track) else 0.0
 
 
@@ -358,6 +622,9 @@ class VehicleFrameSurveys(_View):
     #: when the surveys queued so far should be flown (1 m/s between them, their own speed along):
     #: after that the vehicle is where it was last heard of, with the correction of then
     busy_until: float = -math.inf
+    #: every command sent through the view: (survey id, when, the correction its first point was
+    #: moved by, m): what topside predicted the vehicle's error to be when it gets there
+    sent: list[tuple[int, float, tuple[float, float]]]
 
     def request(self, kind: Any, x: float, y: float, now: float, *, points: Sequence[tuple[float, float]] = (),
                 **kw: Any) -> SurveyCommand:
@@ -369,10 +636,12 @@ class VehicleFrameSurveys(_View):
             self.position, self.carry = None, None
         start = self.position
         if start is None:
-            track = est.track()
+            track = nav.track(vid)
             if len(track):
                 start = nav.corrected(vid, float(track[-1, 0]), float(track[-1, 1]), float(track[-1, 2]))
-        c = np.asarray(est.correction(now) if self.carry is None else self.carry, dtype=float)
+        # the correction now, in the frame the vehicle will be in once the aids sent are taken
+        c = np.asarray(est.correction(now) - nav.final_shift(vid) if self.carry is None else self.carry,
+                       dtype=float)
         if start is not None:  # what the estimated biases add on the way there
             c = c + est.drift_along(now, x - start[0], y - start[1])
         path = [(x, y)]
@@ -387,6 +656,9 @@ class VehicleFrameSurveys(_View):
             pts.append((a + float(ends[0]), b + float(ends[1])))
             path.append((a, b))
         cmd: SurveyCommand = self._rx.request(kind, x + float(c[0]), y + float(c[1]), now, points=pts, **kw)
+        if "sent" not in self.__dict__:
+            self.sent = []
+        self.sent.append((int(cmd.survey_id), float(now), (float(c[0]), float(c[1]))))
         if kw.get("append"):
             if len(path) > 1 and not points:
                 ends = c + est.drift_along(now, path[-1][0] - x, path[-1][1] - y)

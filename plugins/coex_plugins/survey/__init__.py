@@ -18,6 +18,7 @@ from typing import Any, ClassVar
 
 from coex import (
     CoexError,
+    ConfigError,
     EncodeError,
     Modality,
     ModalityReceiver,
@@ -62,12 +63,18 @@ SENDER_OPTIONS = Options(
     rto=number(120.0, "an unacknowledged status is sent again after", unit="s", above=0),
     keep=integer(64, "surveys remembered (finished ones beyond this are forgotten, oldest first)", lo=1),
     aiding=flag(False, "the vehicle's navigation takes position fixes from topside (PositionFix, issue 56)"),
+    aid_delay=number(0.0, "after its stamp a position fix is handed to the vehicle's navigation (0: at "
+                          "once); a fix arriving later than that, or older than one handed on, is refused",
+                     unit="s", lo=0, below=86400),
 )
 SENDER_DEFAULTS: dict[str, Any] = SENDER_OPTIONS.defaults()
 #: the receiver's options
 RECEIVER_OPTIONS = Options(
     retry=number(300.0, "between re-sends of an unanswered survey command", unit="s", above=0),
     max_tries=integer(6, "sends of a survey command before it is given up", lo=1),
+    fix_retry=number(60.0, "between re-sends of an unanswered position fix (sooner than a survey: a "
+                           "fix is soon stale)", unit="s", above=0),
+    fix_tries=integer(6, "sends of a position fix before it is given up", lo=1),
 )
 RECEIVER_DEFAULTS: dict[str, Any] = RECEIVER_OPTIONS.defaults()
 class InvalidReport(CoexError, ValueError):
@@ -119,10 +126,12 @@ class _Survey:
 
 
 def _upgrade_sender(fields: dict[str, Any], saved: int) -> dict[str, Any]:
-    return {"aiding": False, "aids": [], "_fixes_seen": [], **fields}  # version 1 took no position fixes
+    # version 1 took no position fixes; version 2 handed every fix on at once
+    return {"aiding": False, "aids": [], "_fixes_seen": [], "aid_delay": 0.0, "_newest_taken": -float("inf"),
+            **fields}
 
 
-@persistent("survey.Sender", version=2, upgrade=_upgrade_sender)
+@persistent("survey.Sender", version=3, upgrade=_upgrade_sender)
 class SurveySender(ModalitySender):
     """The vehicle side (see the module docstring)."""
 
@@ -135,8 +144,11 @@ class SurveySender(ModalitySender):
         self.rto = float(cfg["rto"])
         self.keep = int(cfg["keep"])
         self.aiding = bool(cfg["aiding"])
-        #: position fixes accepted and not yet taken by the autonomy (:meth:`take_aids`)
+        self.aid_delay = float(cfg["aid_delay"])
+        #: position fixes accepted and not yet taken by the autonomy (:meth:`take_aids`), by stamp
         self.aids: list[PositionAid] = []
+        #: the stamp (s) of the newest fix handed on: an older one is refused
+        self._newest_taken = -float("inf")
         #: the newest fixes taken (stamp, x, y, sigma): a repeat is answered, not handed on twice
         self._fixes_seen: list[tuple[int, float, float, float]] = []
         self.surveys: dict[int, _Survey] = {}
@@ -199,24 +211,31 @@ class SurveySender(ModalitySender):
         return [] if s is None else list(s.late)
 
     # ------------------------------------------------------------------ topside's commands
-    def take_aids(self) -> list[PositionAid]:
-        """The position fixes accepted since the last call, oldest first (the daemon hands them
-        to the autonomy output's ``aid``)."""
-        out, self.aids = self.aids, []
-        return out
+    def take_aids(self, now: float | None = None) -> list[PositionAid]:
+        """The position fixes accepted and due, oldest first (the daemon hands them to the
+        autonomy output's ``aid``): due ``aid_delay`` seconds after their stamp (every one
+        accepted when ``now`` is None)."""
+        due = [a for a in self.aids if now is None or a.time + self.aid_delay <= now]
+        if due:
+            self.aids = self.aids[len(due):]
+            self._newest_taken = max(self._newest_taken, due[-1].time)
+        return due
 
     def _position_fix(self, message: PositionFix, now: float) -> list[Message]:
         cid = int(message.command_id)
         if not self.aiding:
             return [CommandAck(cid, AckStatus.REJECTED)]
         key = (int(message.stamp), float(message.x), float(message.y), float(message.sigma))
-        if key not in self._fixes_seen:
-            self._fixes_seen = [*self._fixes_seen[-31:], key]
-            t = unwrap(message.stamp, now)
-            newest = max((a.time for a in self.aids), default=-float("inf"))
-            if t >= newest:
-                self.aids.append(PositionAid(t, float(message.x), float(message.y), float(message.sigma),
-                                             message.depth, PositionSource(message.source).name.lower()))
+        if key in self._fixes_seen:  # a repeat of a fix taken: answered again, handed on once
+            return [CommandAck(cid, AckStatus.ACCEPTED)]
+        t = unwrap(message.stamp, now)
+        late = self.aid_delay > 0.0 and now > t + self.aid_delay
+        if late or t <= self._newest_taken or any(a.time == t for a in self.aids):
+            return [CommandAck(cid, AckStatus.REJECTED)]  # stale, or older than a fix already taken
+        self._fixes_seen = [*self._fixes_seen[-31:], key]
+        self.aids.append(PositionAid(t, float(message.x), float(message.y), float(message.sigma), message.depth,
+                                     PositionSource(message.source).name.lower()))
+        self.aids.sort(key=lambda a: a.time)
         return [CommandAck(cid, AckStatus.ACCEPTED)]
 
     def handle(self, message: Message, now: float) -> list[Message]:
@@ -378,10 +397,12 @@ class SurveyRecord:
 
 
 def _upgrade_receiver(fields: dict[str, Any], saved: int) -> dict[str, Any]:
-    return {"fixes": {}, **fields}  # version 1 sent no position fixes
+    # version 1 sent no position fixes; version 2 re-sent them with the surveys' retry
+    return {"fixes": {}, "_fix_requests": RequestTracker(RECEIVER_DEFAULTS["fix_retry"], RECEIVER_DEFAULTS["fix_tries"]),
+            **fields}
 
 
-@persistent("survey.Receiver", version=2, upgrade=_upgrade_receiver)
+@persistent("survey.Receiver", version=3, upgrade=_upgrade_receiver)
 class SurveyReceiver(ModalityReceiver):
     """The topside side (see the module docstring)."""
 
@@ -390,6 +411,8 @@ class SurveyReceiver(ModalityReceiver):
     def __init__(self, config: Mapping[str, Any] | None = None) -> None:
         cfg = merged_config(config, self.options, "survey receiver")
         self._requests: RequestTracker[Message] = RequestTracker(float(cfg["retry"]), int(cfg["max_tries"]))
+        #: the position fixes awaiting an answer (re-sent every ``fix_retry`` s)
+        self._fix_requests: RequestTracker[Message] = RequestTracker(float(cfg["fix_retry"]), int(cfg["fix_tries"]))
         self.surveys: dict[int, SurveyRecord] = {}
         self._next_id = 0
         #: position fixes sent (command id -> ``[state, stamp, x, y, sigma]``; state "requested",
@@ -449,7 +472,7 @@ class SurveyReceiver(ModalityReceiver):
         from dataclasses import replace
 
         fix = replace(fix, command_id=self.next_command_id())
-        self._requests.add(fix.command_id, fix)
+        self._fix_requests.add(fix.command_id, fix)
         self.fixes[fix.command_id] = ["requested", now if stamp is None else stamp, fix.x, fix.y, fix.sigma]
         return fix
 
@@ -457,7 +480,8 @@ class SurveyReceiver(ModalityReceiver):
         if isinstance(message, CommandAck) and message.command_id in self.fixes:
             state = self.fixes[message.command_id]
             if message.status != AckStatus.PENDING:
-                self._requests.answered(message.command_id, now, message.status.name)
+                self._fix_requests.answered(message.command_id, now, message.status.name)
+                self._requests.answered(message.command_id, now, message.status.name)  # sent by version 2
             if state[0] == "requested" and message.status in (AckStatus.ACCEPTED, AckStatus.REJECTED):
                 state[0] = message.status.name.lower()
             return []
@@ -505,9 +529,9 @@ class SurveyReceiver(ModalityReceiver):
         return [self._product(rec)]
 
     def poll(self, now: float) -> list[Message]:
-        out = self._requests.due(now)
+        out = self._requests.due(now) + self._fix_requests.due(now)
         for cid, state in self.fixes.items():
-            if state[0] == "requested" and cid not in self._requests:
+            if state[0] == "requested" and cid not in self._requests and cid not in self._fix_requests:
                 state[0] = "given up"
         for rec in self.surveys.values():
             if rec.state == "requested" and rec.command_id is not None and rec.command_id not in self._requests:
@@ -515,7 +539,7 @@ class SurveyReceiver(ModalityReceiver):
         return out
 
     def pending_requests(self) -> list[Message]:
-        return self._requests.pending()
+        return self._requests.pending() + self._fix_requests.pending()
 
     def _product(self, rec: SurveyRecord) -> SurveyProduct:
         history: list[list[float | str]] = [list(h) for h in rec.history[-12:]]
