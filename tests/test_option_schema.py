@@ -205,7 +205,7 @@ def _scenario_keys() -> list[str]:
 
     keys = ["area", "water_depth", "duration", "ship.x", "ship.y", "loss.rate", "loss.mean_burst",
             "targets[0].x", "decoys[0].height"]
-    return keys + [f"{s}.{k}" for s, ks in _SECTIONS.items() for k, attr in ks.items() if attr != "slots"]
+    return keys + [f"{s}.{k}" for s, ks in _SECTIONS.items() for k, attr in ks.items() if attr not in ("slots", "aiding")]
 
 
 @pytest.mark.parametrize("bad", BAD, ids=BAD_IDS)

@@ -18,7 +18,6 @@ from typing import Any, ClassVar
 
 from coex import (
     CoexError,
-    ConfigError,
     EncodeError,
     Modality,
     ModalityReceiver,
