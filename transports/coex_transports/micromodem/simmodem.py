@@ -9,12 +9,15 @@ import itertools
 import math
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
-from typing import Any
+from typing import TYPE_CHECKING
 
 from coex_core.acoustic import Arrival
 
 from . import nmea
 from .nmea import FDP_RATES, RATES, FdpFrame, NmeaError, Sentence
+
+if TYPE_CHECKING:  # the network imports this module
+    from .simnetwork import ModemNetwork
 
 __all__ = ['SimulatedModem', 'DEFAULT_NVRAM', 'FIRMWARE_VERSION']
 
@@ -62,7 +65,7 @@ class SimulatedModem:
     """One simulated Micromodem-2 (sans-I/O; driven by its ``network``, a
     :class:`~.simnetwork.ModemNetwork`)."""
 
-    def __init__(self, node: int, network: Any, *, snr: float = 15.0, doppler: float = 0.0) -> None:
+    def __init__(self, node: int, network: ModemNetwork, *, snr: float = 15.0, doppler: float = 0.0) -> None:
         self.node = node
         self.network = network
         self.nvram = dict(DEFAULT_NVRAM)
