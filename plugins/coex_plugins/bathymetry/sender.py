@@ -9,6 +9,7 @@ from collections.abc import Iterable, Mapping
 from typing import Any
 
 import numpy as np
+import numpy.typing as npt
 
 from coex import (
     ConfigError,
@@ -31,10 +32,11 @@ from coex.messages import (
 from coex.wire import SUBGRID_RESOLUTIONS as RESOLUTIONS
 from coex.wire import SUBGRID_VERTICAL_RESOLUTIONS as VERTICAL_RESOLUTIONS
 
+from ._arrays import _grow
 from .coding import Built, SubgridCoding
 from .context import ContextBook
 from .points import pointcloud2_xyz
-from .quadtree import InputError, QuadtreeMap, _grow
+from .quadtree import InputError, QuadtreeMap
 
 __all__ = ["BathymetrySender", "SENDER_DEFAULTS"]
 
@@ -117,6 +119,11 @@ class BathymetrySender(SubgridCoding, ModalitySender):
     :class:`MapMetadata` goes out every ``metadata_interval`` seconds and when the background
     queue empties.
     """
+
+    #: per level, by the map's tile number: the oldest update among its changed subgrids and
+    #: their count (the index of changed tiles; made by ``_reset_index``)
+    _tmin: list[npt.NDArray[np.float64]]
+    _dcount: list[npt.NDArray[np.int64]]
 
     def __init__(self, config: Mapping[str, Any] | None = None) -> None:
         cfg = merged_config(config, SENDER_DEFAULTS, "bathymetry sender")
