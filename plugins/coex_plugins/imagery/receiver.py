@@ -339,8 +339,8 @@ class ImageryReceiver(ModalityReceiver):
         """Packet starts from the packet headers of the held bytes (spec/payloads.md 3.3): data
         sent without marks is placed by them. A body whose headers do not parse, or disagree with
         the marks, is left to the marks (and said)."""
-        parser = self._parsers.get(image_id, False)
-        if parser is False or (parser is not None and parser.total != len(rx.have)):
+        parser = self._parsers.get(image_id)
+        if image_id not in self._parsers or (parser is not None and parser.total != len(rx.have)):
             try:
                 parser = PacketParser(rx.ann.params, rx.ann.width, rx.ann.height, len(rx.have))
             except CoexError:
