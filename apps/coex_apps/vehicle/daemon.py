@@ -96,25 +96,7 @@ class VehicleApp:
         self.inputs: list[Any] = []
         self.autonomy: Any = None
         try:
-            if cfg.store is not None:
-                from coex import NodeStore
-
-                self.store = NodeStore(cfg.store, snapshot_interval=cfg.snapshot_interval)
-                resumed = self.store.has_state()
-                self.node = self.store.restore(lambda: build_vehicle_node(cfg, self.transports),
-                                               log=lambda t: log.info("%s", t))
-                if sorted(self.node.manager.links) != sorted(self.transports):
-                    raise ConfigError(f"{cfg.store} holds a node with links {sorted(self.node.manager.links)}; "
-                                      f"this configuration has {sorted(self.transports)}: give the same "
-                                      "modems, or another node.store")
-                if self.node.node_id != cfg.node_id:
-                    raise ConfigError(f"{cfg.store} holds node {self.node.node_id}, not {cfg.node_id}")
-                self.resumed = resumed
-                if resumed:
-                    log.info("resumed from %s (%d journal rows replayed)", cfg.store, self.store.stats["replayed"])
-            else:
-                self.node = build_vehicle_node(cfg, self.transports)
-                self.resumed = False
+            self._open_node(cfg)
             self.node.set_log(lambda t: log.info("%s", t))
             self.context = InputContext(cfg.origin_lat, cfg.origin_lon, str(cfg.base_dir), clock)
             self.runner = Runner(self.node, self.transports, RealClock(clock), store=self.store,
@@ -169,6 +151,29 @@ class VehicleApp:
                                        "plans": 0, "reports": 0, "aids": 0}
         #: per link: (up, outages) last reported topside in a LinkHealth
         self._health_sent: dict[int, tuple[bool, int]] = {}
+
+    def _open_node(self, cfg: DeployConfig) -> None:
+        """The node: restored from ``node.store`` when there is one (which must hold this
+        configuration's node and links), else built from the configuration."""
+        if cfg.store is None:
+            self.node = build_vehicle_node(cfg, self.transports)
+            self.resumed = False
+            return
+        from coex import NodeStore
+
+        self.store = NodeStore(cfg.store, snapshot_interval=cfg.snapshot_interval)
+        resumed = self.store.has_state()
+        self.node = self.store.restore(lambda: build_vehicle_node(cfg, self.transports),
+                                       log=lambda t: log.info("%s", t))
+        if sorted(self.node.manager.links) != sorted(self.transports):
+            raise ConfigError(f"{cfg.store} holds a node with links {sorted(self.node.manager.links)}; "
+                              f"this configuration has {sorted(self.transports)}: give the same "
+                              "modems, or another node.store")
+        if self.node.node_id != cfg.node_id:
+            raise ConfigError(f"{cfg.store} holds node {self.node.node_id}, not {cfg.node_id}")
+        self.resumed = resumed
+        if resumed:
+            log.info("resumed from %s (%d journal rows replayed)", cfg.store, self.store.stats["replayed"])
 
     def add_input(self, inp: Any, feeds: Any = None, key: str | None = None) -> Any:
         """Poll ``inp`` (an :class:`coex.Input`) like the ``[[inputs]]`` of the
