@@ -21,7 +21,7 @@ import time
 from collections.abc import Callable, Mapping
 from dataclasses import replace
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -31,6 +31,10 @@ from coex_plugins.options import LogOnce
 from .build import build_node, link_configs
 from .config import DeployConfig
 from .faults import FAULT_PEER_SILENT, FAULT_STORE
+
+if TYPE_CHECKING:  # imported where they are made (optional parts)
+    from coex import Autonomy, NodeStore
+    from coex_plugins.autonomy.lifecycle import SurveyLifecycle
 
 __all__ = ["FAULT_PEER_SILENT", "FAULT_STORE", "VehicleApp", "build_node", "build_vehicle_node", "link_configs",
            "open_transports"]
@@ -92,9 +96,9 @@ class VehicleApp:
         #: the thread :meth:`start` runs the loop in (None: not started)
         self._thread: threading.Thread | None = None
         self.transports = dict(transports) if transports is not None else open_transports(cfg)
-        self.store: Any = None
+        self.store: NodeStore | None = None
         self.inputs: list[Any] = []
-        self.autonomy: Any = None
+        self.autonomy: Autonomy | None = None
         try:
             self._open_node(cfg)
             self.node.set_log(lambda t: log.info("%s", t))
@@ -135,7 +139,7 @@ class VehicleApp:
         self._peer_silent = False
         #: the survey lifecycle between the survey sender and the autonomy output (None: no
         #: autonomy, or no survey modality)
-        self.lifecycle: Any = None
+        self.lifecycle: SurveyLifecycle | None = None
         if self.autonomy is not None and "survey" in self.names:
             from coex_plugins.autonomy.lifecycle import SurveyLifecycle
 
@@ -251,6 +255,9 @@ class VehicleApp:
 
     def _keep(self, key: str, value: str) -> None:
         """A small value into the store now, or once it takes writes again."""
+        if self.store is None:  # closed (the daemon stopping): kept in memory only
+            self._unsaved[key] = value
+            return
         try:
             self.store.set(key, value)
             self._unsaved.pop(key, None)
@@ -461,7 +468,7 @@ class VehicleApp:
         """The survey lifecycle's step (:mod:`coex_plugins.autonomy.lifecycle`: hand over the survey
         to fly now, poll the output, end what ended, record late answers, abort on silence); its
         reports to the survey sender."""
-        if self.lifecycle is None:
+        if self.lifecycle is None or self.autonomy is None:  # made together
             return
         before = self.lifecycle.counts["submitted"]
         for report in self._guard("autonomy", self.lifecycle.step, now) or []:
