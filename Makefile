@@ -29,8 +29,11 @@ demo: install
 lint: install
 	$(VENV)/bin/ruff check .
 
+# strict mypy over every package (pyproject's [tool.mypy] files), then the sample plugin checked
+# from its own directory as its author would run it
 typecheck: install
 	$(VENV)/bin/mypy
+	cd examples/coex-sample-plugin && ../../$(VENV)/bin/mypy coex_sample_plugin tests
 
 # a real MOOSDB and pymoos for the MOOS tests, built from ../shared/vendor/moos when there is no
 # MOOSDB on PATH; never fails (the tests needing them are skipped with the reason)

@@ -31,6 +31,7 @@ import functools
 import math
 import zlib
 from collections.abc import Sequence
+from typing import TypeAlias
 
 import numpy as np
 import numpy.typing as npt
@@ -295,6 +296,47 @@ def _shifts(e: IntArray) -> range:
     return range(max(0, k - 1), min(3, k + 1) + 1)
 
 
+#: a way to code a subgrid: estimated bits, context, predictor, residuals of the present cells,
+#: the parent check (PARENT) and the base elevation (NONE)
+_Candidate: TypeAlias = tuple[float, SubgridContext, int, IntArray, int | None, int | None]
+
+
+def _parent_candidates(qa: IntArray, pa: npt.NDArray[np.bool_], parent: SubgridParent, qx: int, qy: int,
+                       only: tuple[SubgridContext, int, int] | None) -> list[_Candidate]:
+    """The PARENT predictors of ``qa`` (``only``'s, when given), from the parent's surfaces."""
+    chk = context_check(parent, qx, qy)
+    surfaces: dict[str, IntArray | None] = {}
+    cands: list[_Candidate] = []
+    for code, (surf, corr) in enumerate(PREDICTORS[SubgridContext.PARENT]):
+        if only is not None and only[1] != code:
+            continue
+        if surf not in surfaces:
+            surfaces[surf] = _surface(parent, qx, qy, surf)
+        u = surfaces[surf]
+        if u is None:
+            break
+        d = qa - u
+        e = (d - _correction_all(d, pa, corr))[pa]
+        cost = _cost_estimate(e) + HEADER_BITS[SubgridContext.PARENT]
+        cands.append((cost, SubgridContext.PARENT, code, e, chk, None))
+    return cands
+
+
+def _standalone_candidates(qa: IntArray, pa: npt.NDArray[np.bool_], z_base: int,
+                           only: tuple[SubgridContext, int, int] | None, beside: bool) -> list[_Candidate]:
+    """The NONE predictors of ``qa`` from ``z_base`` (``only``'s; the median edge detector alone
+    ``beside`` a usable parent)."""
+    d = qa - z_base
+    cands: list[_Candidate] = []
+    for code, (_, corr) in enumerate(PREDICTORS[SubgridContext.NONE]):
+        if (only is not None and only[1] != code) or (beside and code != 1):
+            continue
+        e = (d - _correction_all(d, pa, corr))[pa]
+        cost = _cost_estimate(e) + HEADER_BITS[SubgridContext.NONE]
+        cands.append((cost, SubgridContext.NONE, code, e, None, z_base))
+    return cands
+
+
 def encode_predicted(
     q: npt.ArrayLike,
     present: npt.ArrayLike,
@@ -326,36 +368,15 @@ def encode_predicted(
     if np.abs(vals).max() >= Z_LIMIT:
         raise ValueError("elevation outside the wire range (|z| < 2**19 vertical units)")
     mask = _mask_int(pa)
-    qx, qy = ix & 1, iy & 1
-    cands: list[tuple[float, SubgridContext, int, IntArray, int | None, int | None]] = []
+    cands: list[_Candidate] = []
     want_parent = only is None or only[0] == SubgridContext.PARENT
     if parent is not None and parent.z.shape == (side, side) and want_parent:
-        chk = context_check(parent, qx, qy)
-        surfaces: dict[str, IntArray | None] = {}
-        for code, (surf, corr) in enumerate(PREDICTORS[SubgridContext.PARENT]):
-            if only is not None and only[1] != code:
-                continue
-            if surf not in surfaces:
-                surfaces[surf] = _surface(parent, qx, qy, surf)
-            u = surfaces[surf]
-            if u is None:
-                break
-            d = qa - u
-            e = (d - _correction_all(d, pa, corr))[pa]
-            cost = _cost_estimate(e) + HEADER_BITS[SubgridContext.PARENT]
-            cands.append((cost, SubgridContext.PARENT, code, e, chk, None))
+        cands += _parent_candidates(qa, pa, parent, ix & 1, iy & 1, only)
     if (standalone and only is None) or (only is not None and only[0] == SubgridContext.NONE):
-        z_base = int(vals[0])
-        d = qa - z_base
         # beside a usable parent, the median edge detector alone stands for NONE: the others
         # (and NONE itself) almost never win there, and each candidate costs time
         beside = only is None and any(c[1] == SubgridContext.PARENT for c in cands)
-        for code, (_, corr) in enumerate(PREDICTORS[SubgridContext.NONE]):
-            if (only is not None and only[1] != code) or (beside and code != 1):
-                continue
-            e = (d - _correction_all(d, pa, corr))[pa]
-            cost = _cost_estimate(e) + HEADER_BITS[SubgridContext.NONE]
-            cands.append((cost, SubgridContext.NONE, code, e, None, z_base))
+        cands += _standalone_candidates(qa, pa, int(vals[0]), only, beside)
     if not cands:
         return None
     cands.sort(key=lambda c: c[0])

@@ -18,16 +18,11 @@ MAX_LINES = 80
 #: files whose long functions are being split by work in progress elsewhere (issue 53's later
 #: parts, after the branches editing them are merged); each entry goes when its files comply
 ALLOWED = (
-    "apps/coex_apps/demo/*",
-    "apps/coex_apps/console/*",
-    "apps/coex_apps/sweep/*",
-    "apps/coex_apps/vehicle/*",
-    "plugins/coex_plugins/autonomy/*",
-    "plugins/coex_plugins/navigation/*",
-    "plugins/coex_plugins/bathymetry/*",
-    "plugins/coex_plugins/imagery/*",
-    "runtime/coex_runtime/store.py",
-    "coex_core/subgrid.py",
+    "apps/coex_apps/demo/*",  # the demo's scenes, operator and outcome (being edited)
+    "apps/coex_apps/console/*",  # the console's declared state (being edited)
+    # the deployment file's checks and its mission (one option schema, in progress)
+    "apps/coex_apps/vehicle/config.py",
+    "apps/coex_apps/vehicle/mission.py",
 )
 
 
@@ -47,8 +42,8 @@ def long_functions(root: Path, packages: tuple[str, ...] = PACKAGES, limit: int 
     return out
 
 
-def allowed(entry: str) -> bool:
-    return any(fnmatch(entry.split(":")[0], pattern) for pattern in ALLOWED)
+def allowed(entry: str, patterns: tuple[str, ...] = ALLOWED) -> bool:
+    return any(fnmatch(entry.split(":")[0], pattern) for pattern in patterns)
 
 
 def test_no_function_in_the_packages_is_longer_than_80_lines() -> None:
@@ -69,4 +64,7 @@ def test_the_scan_finds_a_long_function_nested_or_not(tmp_path: Path) -> None:
     found = long_functions(tmp_path, ("coex_core",))
     assert found == ["coex_core/a.py:84 long (86 lines)", "coex_core/b.py:1 outer (93 lines)",
                      "coex_core/b.py:2 inner (91 lines)"]
-    assert allowed("coex_core/subgrid.py:3 f (99 lines)") and not allowed("coex_core/a.py:84 long (86 lines)")
+    patterns = ("coex_core/subgrid.py", "apps/x/*")
+    assert allowed("coex_core/subgrid.py:3 f (99 lines)", patterns)
+    assert allowed("apps/x/y.py:3 f (99 lines)", patterns)
+    assert not allowed("coex_core/a.py:84 long (86 lines)", patterns)

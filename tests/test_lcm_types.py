@@ -51,7 +51,7 @@ def test_stale_check_detects_a_changed_binding(tmp_path: Path) -> None:
     bindings.mkdir()
     text = (regen.BINDINGS_DIR / "coex.lcm").read_text()
     (bindings / "coex.lcm").write_text(text.replace("int64_t origin;", "int64_t origin;\n    int8_t extra;"))
-    assert regen.stale_files(regen.TYPES_DIR, bindings) == ["frame_t.py"]
+    assert regen.stale_files(regen.TYPES_DIR, bindings) == ["frame_t.py", "frame_t.pyi"]
     # and the script's --check exits 1 on it, 0 on the real bindings
     script = regen.__file__
     bad = subprocess.run([sys.executable, script, "--check", "--bindings", str(bindings)],
@@ -64,10 +64,34 @@ def test_stale_check_detects_a_changed_binding(tmp_path: Path) -> None:
 def test_regen_writes_an_importable_package(tmp_path: Path) -> None:
     out = tmp_path / "types"
     names = regen.write(out)
-    assert names == ["__init__.py", "frame_t.py", "map_level_t.py", "nav_t.py", "points_t.py",
-                     "survey_request_t.py", "survey_state_t.py", "vehicle_status_t.py"]
+    types = ["frame_t", "map_level_t", "nav_t", "points_t", "survey_request_t", "survey_state_t",
+             "vehicle_status_t"]
+    assert names == sorted(["__init__.py", *(f"{t}.py" for t in types), *(f"{t}.pyi" for t in types)])
     assert regen.stale_files(out) == []
     assert "import coex" not in (out / "frame_t.py").read_text()  # flat types: no absolute imports
+    (out / "nav_t.pyi").write_text((out / "nav_t.pyi").read_text().replace("x: float", "x: int"))
+    assert regen.stale_files(out) == ["nav_t.pyi"]  # a stub edited by hand is stale
+
+
+def test_stubs_type_every_field_as_lcm_gen_holds_it() -> None:
+    """The typing stub of a made-up lcm-gen class: primitives, a byte array as bytes, numeric and
+    string arrays as sequences (one per dimension), a nested type by its class name."""
+    source = (
+        "class demo_t(object):\n"
+        "    __slots__ = ['utime', 'ok', 'name', 'blob', 'xs', 'grid', 'tags', 'inner']\n"
+        "    __typenames__ = ['int64_t', 'boolean', 'string', 'byte', 'double', 'float', 'string',"
+        " 'coex.nav_t']\n"
+        "    __dimensions__ = [None, None, None, ['n'], ['n'], [3, 'm'], ['k'], None]\n"
+    )
+    text = regen.stub(source)
+    body = [line.strip() for line in text.splitlines()]
+    for field in ("utime: int", "ok: bool", "name: str", "blob: bytes", "xs: Sequence[float]",
+                  "grid: Sequence[Sequence[float]]", "tags: Sequence[str]", "inner: nav_t",
+                  "def encode(self) -> bytes: ...", "def decode(data: bytes | BinaryIO) -> demo_t: ..."):
+        assert field in body, field
+    committed = (regen.TYPES_DIR / "frame_t.pyi").read_text()
+    assert "from .nav_t import nav_t" in body
+    assert "data: bytes" in committed and "length: int" in committed
 
 
 def test_lcm_gen_is_the_wheel_binary() -> None:

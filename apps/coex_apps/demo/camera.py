@@ -24,14 +24,21 @@ HeightFn = Callable[[np.ndarray, np.ndarray], np.ndarray]
 
 
 class BoxLike(Protocol):
-    """A box-shaped target (``coex_plugins.bathymetry.sim.Target``): centre, size (m), heading (deg)."""
+    """A box-shaped target (``coex_plugins.bathymetry.sim.Target``, a frozen dataclass: read
+    only): centre, size (m), heading (deg)."""
 
-    x: float
-    y: float
-    length: float
-    width: float
-    height: float
-    heading: float
+    @property
+    def x(self) -> float: ...
+    @property
+    def y(self) -> float: ...
+    @property
+    def length(self) -> float: ...
+    @property
+    def width(self) -> float: ...
+    @property
+    def height(self) -> float: ...
+    @property
+    def heading(self) -> float: ...
 
 
 def _inside(box: BoxLike, gx: np.ndarray, gy: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -102,7 +109,8 @@ def _coarse_heights(height_fn: HeightFn, gx: np.ndarray, gy: np.ndarray, step: i
     b = coarse[r0][:, c0 + 1]
     c = coarse[r0 + 1][:, c0]
     d = coarse[r0 + 1][:, c0 + 1]
-    return (a * (1 - fr) * (1 - fc) + b * (1 - fr) * fc + c * fr * (1 - fc) + d * fr * fc)
+    out: np.ndarray = a * (1 - fr) * (1 - fc) + b * (1 - fr) * fc + c * fr * (1 - fc) + d * fr * fc
+    return out
 
 
 def render_labelled(

@@ -17,12 +17,15 @@ import itertools
 import math
 import re
 from collections.abc import Callable, Iterable, Mapping, Sequence
-from typing import Any, ParamSpec, TypeVar
+from typing import TYPE_CHECKING, Any, ParamSpec, TypeVar
 
 import numpy as np
 import numpy.typing as npt
 
 from coex_plugins.render import depth_cmap, elevation_rgba
+
+if TYPE_CHECKING:  # matplotlib is imported where a figure is drawn
+    from matplotlib.typing import RcKeyType
 
 __all__ = ["line_chart", "map_figure", "timeline_chart"]
 
@@ -35,7 +38,7 @@ P = ParamSpec("P")
 R = TypeVar("R")
 _ids = itertools.count(1)  # unique ids for the <defs> of several SVGs inlined in one page
 #: matplotlib settings of every figure: text as <text>, fixed ids (no random hash), small fonts
-_RC: dict[str, Any] = {"svg.fonttype": "none", "font.size": 9.5, "axes.titlesize": 11, "axes.titleweight": "bold",
+_RC: dict[RcKeyType, Any] = {"svg.fonttype": "none", "font.size": 9.5, "axes.titlesize": 11, "axes.titleweight": "bold",
        "axes.titlelocation": "left", "axes.spines.top": False, "axes.spines.right": False,
        "hatch.color": "#c4c4c4", "hatch.linewidth": 2.5, "legend.frameon": False}
 

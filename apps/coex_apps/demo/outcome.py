@@ -279,7 +279,7 @@ def finish(out: Path, cfg: DemoConfig, world: World, operator: Operator, receive
     per_target, false = _judge(world, operator, bytes_of, scn.cycle)
     link = _link_summary(out / "link.jsonl")
     detections, detection_cost = _detections(receivers, runners, truth_near)
-    targets = []
+    targets: list[dict[str, Any]] = []  # the results JSON's rows
     for i, t in enumerate(world.cars):
         seen = visible_at.get(i)
         conf = per_target[i]

@@ -375,7 +375,7 @@ details summary{cursor:pointer;font-weight:600}.note{color:#555;font-size:.92em}
 """
 
 
-def _link_note(metrics: dict[str, Any]) -> str:
+def _link_note(metrics: Mapping[str, Any]) -> str:
     """One paragraph on how the vehicle used its link: fill, spare and redundant bytes, request
     to first answer, the map ten minutes after the survey."""
     link = metrics.get("link") or {}

@@ -86,6 +86,7 @@ class _Progress:
 def _start_gui(cfg: DemoConfig, topside: Node, log: Callable[..., None]) -> Any:
     from coex_apps.console import serve
     from coex_apps.console.cli import console_access
+    from coex_apps.console.hub import ConsoleHub
 
     host, _, port = cfg.http.rpartition(":")
     host = host or "127.0.0.1"
@@ -95,6 +96,7 @@ def _start_gui(cfg: DemoConfig, topside: Node, log: Callable[..., None]) -> Any:
                    stream_names={3: "map", 4: "images", 5: "series", LINK_STREAM: "link",
                                  SURVEY_STREAM: "survey", DETECTIONS_STREAM: "detections"})
     hub = server.hub
+    assert isinstance(hub, ConsoleHub)  # one node's console, not a fleet's
     act = hub.act
 
     def logged(action: str, args: dict[str, Any], operator: str = "") -> list[Any]:
@@ -110,7 +112,7 @@ def _start_gui(cfg: DemoConfig, topside: Node, log: Callable[..., None]) -> Any:
         log(now, "console action", f"{by}{action} {json.dumps(args, default=str)}", "person")
         return sent
 
-    hub.act = logged
+    hub.act = logged  # type: ignore[method-assign]  # the console has no action hook yet (issue 53, console)
     print(f"coex demo: web console at {server.url} (the dive runs at {cfg.speed:g}x)", file=sys.stderr)
     return server
 
@@ -253,8 +255,11 @@ class DiveRun:
                              scn.survey_altitude)
             rows = slice(off, off + len(xyz))
             off += len(xyz)
-            self.at(float(t), lambda now, xyz=xyz, rows=rows: self.senders["bathymetry"].ingest(
-                self.navsim.soundings(xyz, survey.ping[rows], survey.times[rows]), now))
+            def ingest(now: float, xyz: np.ndarray = xyz, rows: slice = rows) -> None:
+                self.senders["bathymetry"].ingest(
+                    self.navsim.soundings(xyz, survey.ping[rows], survey.times[rows]), now)
+
+            self.at(float(t), ingest)
         track.samples.sort()
         track.legs.append(Leg(EPOCH, EPOCH + self.descent, (0.0, 0.0), (0.0, 0.0), scn.survey_altitude))
         schedule_series(self.at, self.senders["timeseries"], self.series, EPOCH, self.end)

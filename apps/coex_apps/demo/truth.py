@@ -35,14 +35,15 @@ def shrink(image: npt.ArrayLike, factor: int = SCALE) -> npt.NDArray[np.float32]
     if a.ndim == 3:
         a = a[..., :3].mean(-1)
     h, w = a.shape[0] // factor * factor, a.shape[1] // factor * factor
-    return a[:h, :w].reshape(h // factor, factor, w // factor, factor).mean((1, 3))
+    small: npt.NDArray[np.float32] = a[:h, :w].reshape(h // factor, factor, w // factor, factor).mean((1, 3))
+    return small
 
 
 def shrink_labels(labels: npt.NDArray[np.uint8], factor: int = SCALE) -> npt.NDArray[np.uint8]:
     """Labels at the reduced size: the most common label of each block (ties to the higher)."""
     h, w = labels.shape[0] // factor * factor, labels.shape[1] // factor * factor
-    blocks = labels[:h, :w].reshape(h // factor, factor, w // factor, factor).transpose(0, 2, 1, 3)
-    blocks = blocks.reshape(h // factor, w // factor, factor * factor)
+    tiled = labels[:h, :w].reshape(h // factor, factor, w // factor, factor).transpose(0, 2, 1, 3)
+    blocks = tiled.reshape(h // factor, w // factor, factor * factor)
     n = int(labels.max()) + 1
     counts = (blocks[..., None] == np.arange(n, dtype=np.uint8)).sum(2)
     return np.asarray(counts.argmax(-1), np.uint8)
@@ -171,7 +172,8 @@ def _detail(a: npt.NDArray[np.float32], r: int = 4) -> npt.NDArray[np.float64]:
     c = np.pad(p.cumsum(0).cumsum(1), ((1, 0), (1, 0)))
     k = 2 * r + 1
     mean = (c[k:, k:] - c[:-k, k:] - c[k:, :-k] + c[:-k, :-k]) / (k * k)
-    return np.asarray(a, np.float64) - mean
+    detail: npt.NDArray[np.float64] = np.asarray(a, np.float64) - mean
+    return detail
 
 
 def judge(received: npt.ArrayLike, truth: FrameTruth, *, min_visible: float = 0.15,

@@ -9,7 +9,7 @@ import os
 import sys
 import time
 import uuid
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterable, Mapping, Sequence
 from contextlib import ExitStack
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -94,12 +94,80 @@ def _quiet_dask() -> None:
         logging.getLogger(name).setLevel(logging.ERROR)
 
 
-def _dashboard(client: Any) -> str | None:
+def _say_dashboard(client: Any, stream: TextIO) -> None:
+    """Say where the Dask dashboard is, when the scheduler runs one."""
     try:
         up = "dashboard" in client.scheduler_info().get("services", {})
     except Exception:
-        return None
-    return str(client.dashboard_link) if up else None
+        return
+    if up:
+        print(f"coex sweep: Dask dashboard at {client.dashboard_link}", file=stream)
+
+
+def _plan(conditions: Sequence[Condition], dives: int, out: Path, seeds: Sequence[int] | None,
+          retry_failed: bool, stream: TextIO) -> tuple[list[int], DiveTable, list[DiveSpec]]:
+    """The seeds of the sweep, its table of dives (the failed ones of this sweep forgotten when
+    ``retry_failed``) and the dives still to run; said on ``stream``."""
+    if not conditions:
+        raise ConfigError("a sweep needs at least one condition")
+    if dives < 1 and seeds is None:
+        raise ConfigError("a sweep needs at least one dive per condition")
+    out.mkdir(parents=True, exist_ok=True)
+    chosen = plan_seeds(out, conditions, dives, seeds)
+    dev = [s for s in chosen if is_development_seed(s)]
+    print(f"coex sweep: {len(conditions)} condition(s) x {len(chosen)} dive(s); seeds "
+          f"{', '.join(str(s) for s in chosen)}", file=stream)
+    if dev:
+        print(f"coex sweep: warning: seed(s) {', '.join(map(str, dev))} are development seeds: "
+              "not for reporting", file=stream)
+    table = DiveTable(out)
+    mine = {(c.name, s) for c in conditions for s in chosen}
+    if retry_failed:
+        table.forget([k for r in table.failed() if (k := (str(r["condition"]), int(r["seed"]))) in mine])
+    todo = [DiveSpec(c, s) for c in conditions for s in chosen if not table.done(c.name, s)]
+    skipped = len(conditions) * len(chosen) - len(todo)
+    if skipped:
+        print(f"coex sweep: {skipped} dive(s) already in {out / 'dives.csv'}: skipped", file=stream)
+    return chosen, table, todo
+
+
+def _outcome(fut: Any, spec: DiveSpec) -> DiveOutcome:
+    """A finished Dask future's dive (an error row when the worker died too often, or the task
+    could not run); the future released."""
+    if fut.status == "error":
+        exc = fut.exception()
+        outcome = DiveOutcome(error_row(spec.condition.name, spec.seed, f"{type(exc).__name__}: {exc}"))
+    else:
+        outcome = fut.result()
+    fut.release()
+    return outcome
+
+
+def _verdict(row: Mapping[str, Any]) -> str:
+    """A dive's row in a word or two: ERROR (why), ok or FAIL, and its false confirmations."""
+    if row.get("error"):
+        return f"ERROR {row['error']}"
+    verdict = "ok" if row["success"] else "FAIL"
+    if row.get("false_confirmations"):
+        verdict += f", {row['false_confirmations']} false confirmation(s)"
+    return verdict
+
+
+def _status(client: Any, futures: Mapping[str, tuple[Any, DiveSpec]], table: DiveTable,
+            names: Iterable[str], mine: set[tuple[str, int]], failed: int) -> str:
+    """The progress bar's status: dives running, failed, and each condition's successes."""
+    try:  # a worker runs as many dives as it has threads; the scheduler may have sent it more
+        threads = {a: int(w.get("nthreads", 1)) for a, w in client.scheduler_info()["workers"].items()}
+        busy = sum(min(sum(1 for k in keys if k in futures), threads.get(a, 1))
+                   for a, keys in client.processing().items())
+    except Exception:
+        busy = -1
+    rates = []
+    for name in names:
+        rs = [r for r in table.rows if r["condition"] == name and (name, r["seed"]) in mine]
+        if rs:
+            rates.append(f"{name}: {sum(1 for r in rs if r.get('success') is True)}/{len(rs)}")
+    return f"running {busy if busy >= 0 else '?'}, failed {failed}" + ("; " + "; ".join(rates) if rates else "")
 
 
 def run_sweep(conditions: Sequence[Condition], dives: int, out: Path, *, seeds: Sequence[int] | None = None,
@@ -117,27 +185,10 @@ def run_sweep(conditions: Sequence[Condition], dives: int, out: Path, *, seeds: 
     from tqdm import tqdm
 
     stream = stream or sys.stderr
-    if not conditions:
-        raise ConfigError("a sweep needs at least one condition")
-    if dives < 1 and seeds is None:
-        raise ConfigError("a sweep needs at least one dive per condition")
-    out.mkdir(parents=True, exist_ok=True)
-    chosen = plan_seeds(out, conditions, dives, seeds)
-    dev = [s for s in chosen if is_development_seed(s)]
-    print(f"coex sweep: {len(conditions)} condition(s) x {len(chosen)} dive(s); seeds "
-          f"{', '.join(str(s) for s in chosen)}", file=stream)
-    if dev:
-        print(f"coex sweep: warning: seed(s) {', '.join(map(str, dev))} are development seeds: "
-              "not for reporting", file=stream)
-    table = DiveTable(out)
+    chosen, table, todo = _plan(conditions, dives, out, seeds, retry_failed, stream)
     mine = {(c.name, s) for c in conditions for s in chosen}
-    if retry_failed:
-        table.forget([k for r in table.failed() if (k := (str(r["condition"]), int(r["seed"]))) in mine])
     names = {c.name: c.describe() for c in conditions}
-    todo = [DiveSpec(c, s) for c in conditions for s in chosen if not table.done(c.name, s)]
     skipped = len(conditions) * len(chosen) - len(todo)
-    if skipped:
-        print(f"coex sweep: {skipped} dive(s) already in {out / 'dives.csv'}: skipped", file=stream)
 
     def rows() -> list[dict[str, Any]]:
         return [r for r in table.rows if (r["condition"], r["seed"]) in mine]
@@ -156,11 +207,9 @@ def run_sweep(conditions: Sequence[Condition], dives: int, out: Path, *, seeds: 
         if quiet_dask:
             _quiet_dask()
         client = client if client is not None else _connect(stack, scheduler, workers)
-        link = _dashboard(client)
-        if link:
-            print(f"coex sweep: Dask dashboard at {link}", file=stream)
+        _say_dashboard(client, stream)
         token = uuid.uuid4().hex[:8]
-        futures = {}
+        futures: dict[str, tuple[Any, DiveSpec]] = {}
         for i, spec in enumerate(todo):
             key = f"coex-dive-{token}-{i}"
             futures[key] = (client.submit(dive, spec, key=key, pure=False), spec)
@@ -171,42 +220,17 @@ def run_sweep(conditions: Sequence[Condition], dives: int, out: Path, *, seeds: 
         seen_workers: set[str] = set()
 
         def postfix() -> None:
-            try:  # a worker runs as many dives as it has threads; the scheduler may have sent it more
-                threads = {a: int(w.get("nthreads", 1)) for a, w in client.scheduler_info()["workers"].items()}
-                busy = sum(min(sum(1 for k in keys if k in futures), threads.get(a, 1))
-                           for a, keys in client.processing().items())
-            except Exception:
-                busy = -1
-            rates = []
-            for name in names:
-                rs = [r for r in table.rows if r["condition"] == name and (name, r["seed"]) in mine]
-                if rs:
-                    rates.append(f"{name}: {sum(1 for r in rs if r.get('success') is True)}/{len(rs)}")
-            bar.set_postfix_str(f"running {busy if busy >= 0 else '?'}, failed {failed}"
-                                + ("; " + "; ".join(rates) if rates else ""), refresh=True)
+            bar.set_postfix_str(_status(client, futures, table, names, mine, failed), refresh=True)
 
         postfix()
         try:
             for fut in as_completed([f for f, _ in futures.values()]):  # type: ignore[no-untyped-call]
-                _, spec = futures[fut.key]
-                if fut.status == "error":  # the worker died too often, or the task could not run
-                    exc = fut.exception()
-                    outcome = DiveOutcome(error_row(spec.condition.name, spec.seed,
-                                                    f"{type(exc).__name__}: {exc}"))
-                else:
-                    outcome = fut.result()
-                fut.release()
+                outcome = _outcome(fut, futures[fut.key][1])
                 table.add(outcome)
                 row = outcome.row
                 seen_workers.add(str(row.get("worker") or ""))
-                if row.get("error"):
-                    failed += 1
-                    verdict = f"ERROR {row['error']}"
-                else:
-                    verdict = "ok" if row["success"] else "FAIL"
-                    if row.get("false_confirmations"):
-                        verdict += f", {row['false_confirmations']} false confirmation(s)"
-                bar.write(f"  {row['condition']} seed {row['seed']}: {verdict} "
+                failed += bool(row.get("error"))
+                bar.write(f"  {row['condition']} seed {row['seed']}: {_verdict(row)} "
                           f"({row.get('wall_s') or '-'} s on {row.get('worker') or '?'})", file=stream)
                 bar.update(1)
                 result.ran += 1

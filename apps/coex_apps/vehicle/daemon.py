@@ -21,7 +21,7 @@ import time
 from collections.abc import Callable, Mapping
 from dataclasses import replace
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -31,6 +31,10 @@ from coex_plugins.options import LogOnce
 from .build import build_node, link_configs
 from .config import DeployConfig
 from .faults import FAULT_PEER_SILENT, FAULT_STORE
+
+if TYPE_CHECKING:  # imported where they are made (optional parts)
+    from coex import Autonomy, NodeStore
+    from coex_plugins.autonomy.lifecycle import SurveyLifecycle
 
 __all__ = ["FAULT_PEER_SILENT", "FAULT_STORE", "VehicleApp", "build_node", "build_vehicle_node", "link_configs",
            "open_transports"]
@@ -92,29 +96,11 @@ class VehicleApp:
         #: the thread :meth:`start` runs the loop in (None: not started)
         self._thread: threading.Thread | None = None
         self.transports = dict(transports) if transports is not None else open_transports(cfg)
-        self.store: Any = None
+        self.store: NodeStore | None = None
         self.inputs: list[Any] = []
-        self.autonomy: Any = None
+        self.autonomy: Autonomy | None = None
         try:
-            if cfg.store is not None:
-                from coex import NodeStore
-
-                self.store = NodeStore(cfg.store, snapshot_interval=cfg.snapshot_interval)
-                resumed = self.store.has_state()
-                self.node = self.store.restore(lambda: build_vehicle_node(cfg, self.transports),
-                                               log=lambda t: log.info("%s", t))
-                if sorted(self.node.manager.links) != sorted(self.transports):
-                    raise ConfigError(f"{cfg.store} holds a node with links {sorted(self.node.manager.links)}; "
-                                      f"this configuration has {sorted(self.transports)}: give the same "
-                                      "modems, or another node.store")
-                if self.node.node_id != cfg.node_id:
-                    raise ConfigError(f"{cfg.store} holds node {self.node.node_id}, not {cfg.node_id}")
-                self.resumed = resumed
-                if resumed:
-                    log.info("resumed from %s (%d journal rows replayed)", cfg.store, self.store.stats["replayed"])
-            else:
-                self.node = build_vehicle_node(cfg, self.transports)
-                self.resumed = False
+            self._open_node(cfg)
             self.node.set_log(lambda t: log.info("%s", t))
             self.context = InputContext(cfg.origin_lat, cfg.origin_lon, str(cfg.base_dir), clock)
             self.runner = Runner(self.node, self.transports, RealClock(clock), store=self.store,
@@ -153,7 +139,7 @@ class VehicleApp:
         self._peer_silent = False
         #: the survey lifecycle between the survey sender and the autonomy output (None: no
         #: autonomy, or no survey modality)
-        self.lifecycle: Any = None
+        self.lifecycle: SurveyLifecycle | None = None
         if self.autonomy is not None and "survey" in self.names:
             from coex_plugins.autonomy.lifecycle import SurveyLifecycle
 
@@ -169,6 +155,29 @@ class VehicleApp:
                                        "plans": 0, "reports": 0, "aids": 0}
         #: per link: (up, outages) last reported topside in a LinkHealth
         self._health_sent: dict[int, tuple[bool, int]] = {}
+
+    def _open_node(self, cfg: DeployConfig) -> None:
+        """The node: restored from ``node.store`` when there is one (which must hold this
+        configuration's node and links), else built from the configuration."""
+        if cfg.store is None:
+            self.node = build_vehicle_node(cfg, self.transports)
+            self.resumed = False
+            return
+        from coex import NodeStore
+
+        self.store = NodeStore(cfg.store, snapshot_interval=cfg.snapshot_interval)
+        resumed = self.store.has_state()
+        self.node = self.store.restore(lambda: build_vehicle_node(cfg, self.transports),
+                                       log=lambda t: log.info("%s", t))
+        if sorted(self.node.manager.links) != sorted(self.transports):
+            raise ConfigError(f"{cfg.store} holds a node with links {sorted(self.node.manager.links)}; "
+                              f"this configuration has {sorted(self.transports)}: give the same "
+                              "modems, or another node.store")
+        if self.node.node_id != cfg.node_id:
+            raise ConfigError(f"{cfg.store} holds node {self.node.node_id}, not {cfg.node_id}")
+        self.resumed = resumed
+        if resumed:
+            log.info("resumed from %s (%d journal rows replayed)", cfg.store, self.store.stats["replayed"])
 
     def add_input(self, inp: Any, feeds: Any = None, key: str | None = None) -> Any:
         """Poll ``inp`` (an :class:`coex.Input`) like the ``[[inputs]]`` of the
@@ -246,6 +255,9 @@ class VehicleApp:
 
     def _keep(self, key: str, value: str) -> None:
         """A small value into the store now, or once it takes writes again."""
+        if self.store is None:  # closed (the daemon stopping): kept in memory only
+            self._unsaved[key] = value
+            return
         try:
             self.store.set(key, value)
             self._unsaved.pop(key, None)
@@ -456,7 +468,7 @@ class VehicleApp:
         """The survey lifecycle's step (:mod:`coex_plugins.autonomy.lifecycle`: hand over the survey
         to fly now, poll the output, end what ended, record late answers, abort on silence); its
         reports to the survey sender."""
-        if self.lifecycle is None:
+        if self.lifecycle is None or self.autonomy is None:  # made together
             return
         before = self.lifecycle.counts["submitted"]
         for report in self._guard("autonomy", self.lifecycle.step, now) or []:

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import struct
 from collections.abc import Mapping
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from coex import (
     ConfigError,
@@ -28,6 +28,9 @@ from coex import (
 from coex.messages import Opaque
 from coex.options import number
 from coex.wire import encoded_size
+
+if TYPE_CHECKING:  # the conformance kit is a test dependency, imported when it is run
+    from coex_conformance.companions import Companion
 
 PING_TYPE = 100  # third-party, one-byte form
 ACK_TYPE = 101
@@ -55,7 +58,7 @@ def converged(sender: ModalitySender, receiver: ModalityReceiver) -> bool:
     return len(receiver.records) == len(sender.records)
 
 
-def conformance() -> Any:
+def conformance() -> Companion:
     """Entry point ``coex.conformance: pings``: what ``coex plugins check pings`` runs it on."""
     from coex_conformance.companions import Companion
 

@@ -3,12 +3,15 @@ a batch's points by tile."""
 
 from __future__ import annotations
 
-from typing import Any
+from typing import Any, TypeVar
 
 import numpy as np
 import numpy.typing as npt
 
 IntArray = npt.NDArray[np.int64]
+#: the array a helper gives back has the shape and dtype of the one it was given
+ShapeT = TypeVar("ShapeT", bound=tuple[Any, ...])
+DTypeT = TypeVar("DTypeT", bound=np.dtype[Any])
 
 
 def _pool(a: npt.NDArray[Any], m: int, k: int, f: int, op: np.ufunc) -> npt.NDArray[Any]:
@@ -16,12 +19,14 @@ def _pool(a: npt.NDArray[Any], m: int, k: int, f: int, op: np.ufunc) -> npt.NDAr
     pooled over ``f x f`` blocks with ``op`` (``np.add``, ``np.maximum``): ``m x k x k``. Two
     reductions over contiguous axes, about three times faster than one over two strided axes."""
     rows = op.reduce(a.reshape(m * k, f, k * f), axis=1)
-    return op.reduce(rows.reshape(m * k * k, f), axis=1).reshape(m, k, k)
+    pooled: npt.NDArray[Any] = op.reduce(rows.reshape(m * k * k, f), axis=1)  # ufunc.reduce: Any
+    return pooled.reshape(m, k, k)
 
 
-def _grow(a: npt.NDArray[Any], cap: int, fill: float) -> Any:
+def _grow(a: np.ndarray[ShapeT, DTypeT], cap: int, fill: float) -> np.ndarray[ShapeT, DTypeT]:
+    """``a`` with ``cap`` rows, the new ones set to ``fill``."""
     shape = (cap, *a.shape[1:])
-    out = np.full(shape, fill, dtype=a.dtype)
+    out: np.ndarray[ShapeT, DTypeT] = np.full(shape, fill, dtype=a.dtype)
     out[: a.shape[0]] = a
     return out
 

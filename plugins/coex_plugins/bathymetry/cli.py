@@ -97,58 +97,16 @@ def roundtrip(
     link = RoundTrip(sender, receiver, mtu=FRAME_BYTES, down=Bernoulli(loss, seed), up=Bernoulli(loss, seed + 1),
                      round_seconds=round_seconds, now=t_data + sender.send_delay, decode=True, rejects=(CoexError,),
                      acks=True)
-    rounds = 0
-    idle = 0
-    while rounds < max_rounds:
-        rounds += 1
-        link.step()
-        busy = (bool(link.last_fill) or bool(link.last_requests) or bool(receiver.active_regions())
-                or sender.pending_bytes() > 0)
-        idle = 0 if busy else idle + 1
-        if idle >= 3 and (receiver.metadata is not None or loss == 0.0):
-            break
+    rounds = _run(link, sender, receiver, loss, max_rounds)
     records = [_record(e.message, e.now, e.direction) for e in link.events]
     bytes_down = link.events[-1].down_total if link.events else 0
     bytes_up = link.events[-1].wire_total - bytes_down if link.events else 0
-    subgrid_bytes: dict[int, list[int]] = {}
-    bytes_2022: dict[int, list[int]] = {}
-    for m in link.sent:
-        if isinstance(m, SubgridMessage):
-            subgrid_bytes.setdefault(m.level, []).append(wire.encoded_size(m))
-            blk = sender.map.block(m.level, m.ix, m.iy)  # every sounding was in before the first fill
-            assert blk is not None
-            present = blk.count > 0
-            q = np.rint(np.where(present, blk.mean, 0.0) / sender.map.vertical_resolution).astype(np.int64)
-            bytes_2022.setdefault(m.level, []).append(size_2022(present, q))
+    subgrid_bytes, bytes_2022 = _subgrid_sizes(link, sender)
     with (out_dir / "messages.jsonl").open("w") as fh:
         for rec in records:
             fh.write(json.dumps(rec) + "\n")
-    inventory = sender.inventory()
-    levels: list[dict[str, Any]] = []
+    levels, candidates = _levels(out_dir, sender, receiver, subgrid_bytes, bytes_2022)
     lat, lon = sender.origin
-    candidates: list[dict[str, Any]] = []
-    for k in range(sender.map.levels):
-        held = receiver.holdings(k)
-        want = {(ix, iy): st for (lv, ix, iy), st in inventory.items() if lv == k}
-        info: dict[str, Any] = {
-            "level": k, "cell_size": sender.map.resolution * (1 << k), "subgrids": len(want),
-            "received": sum(1 for key, st in want.items() if held.get(key) == st),
-            "sent": len(subgrid_bytes.get(k, [])),
-            "mean_bytes": float(np.mean(subgrid_bytes[k])) if subgrid_bytes.get(k) else None,
-            "mean_bytes_2022": float(np.mean(bytes_2022[k])) if bytes_2022.get(k) else None,
-        }
-        if k in receiver.levels():
-            # the GeoTIFF at full resolution, streamed from the receiver's tiles; the PNG and
-            # the candidates from its drawn overview (the level itself while it is small)
-            write_level_geotiff(out_dir / f"level_{k}.tif", receiver, k, origin_lat=lat, origin_lon=lon)
-            prod = receiver.level_product(k)
-            cell = float(prod.cell_size)
-            write_png(out_dir / f"level_{k}.png", prod.data, cell)
-            info["tif"] = f"level_{k}.tif"
-            if k == 0:
-                candidates = [c.to_dict() for c in find_targets(prod.data, cell=cell, x0=prod.x0,
-                                                                y0=prod.y0)[:20]]
-        levels.append(info)
     sent_all = [b for v in subgrid_bytes.values() for b in v]
     old_all = [b for v in bytes_2022.values() for b in v]
     summary: dict[str, Any] = {
@@ -176,6 +134,71 @@ def roundtrip(
     }
     (out_dir / "summary.json").write_text(json.dumps(summary, indent=2, default=_json_default))
     return summary
+
+
+def _run(link: RoundTrip, sender: BathymetrySender, receiver: BathymetryReceiver, loss: float,
+         max_rounds: int) -> int:
+    """Step the link until it has been idle three rounds (and topside has the map's metadata,
+    when frames may be lost) or ``max_rounds``; return the rounds run."""
+    rounds = 0
+    idle = 0
+    while rounds < max_rounds:
+        rounds += 1
+        link.step()
+        busy = (bool(link.last_fill) or bool(link.last_requests) or bool(receiver.active_regions())
+                or sender.pending_bytes() > 0)
+        idle = 0 if busy else idle + 1
+        if idle >= 3 and (receiver.metadata is not None or loss == 0.0):
+            break
+    return rounds
+
+
+def _subgrid_sizes(link: RoundTrip, sender: BathymetrySender) -> tuple[dict[int, list[int]], dict[int, list[int]]]:
+    """Per level, the bytes of each subgrid sent and of the same subgrid in the 2022 coding."""
+    subgrid_bytes: dict[int, list[int]] = {}
+    bytes_2022: dict[int, list[int]] = {}
+    for m in link.sent:
+        if isinstance(m, SubgridMessage):
+            subgrid_bytes.setdefault(m.level, []).append(wire.encoded_size(m))
+            blk = sender.map.block(m.level, m.ix, m.iy)  # every sounding was in before the first fill
+            assert blk is not None
+            present = blk.count > 0
+            q = np.rint(np.where(present, blk.mean, 0.0) / sender.map.vertical_resolution).astype(np.int64)
+            bytes_2022.setdefault(m.level, []).append(size_2022(present, q))
+    return subgrid_bytes, bytes_2022
+
+
+def _levels(out_dir: Path, sender: BathymetrySender, receiver: BathymetryReceiver,
+            subgrid_bytes: dict[int, list[int]], bytes_2022: dict[int, list[int]],
+            ) -> tuple[list[dict[str, Any]], list[dict[str, Any]]]:
+    """Each level's summary (writing its GeoTIFF and PNG) and the target candidates of level 0."""
+    inventory = sender.inventory()
+    levels: list[dict[str, Any]] = []
+    lat, lon = sender.origin
+    candidates: list[dict[str, Any]] = []
+    for k in range(sender.map.levels):
+        held = receiver.holdings(k)
+        want = {(ix, iy): st for (lv, ix, iy), st in inventory.items() if lv == k}
+        info: dict[str, Any] = {
+            "level": k, "cell_size": sender.map.resolution * (1 << k), "subgrids": len(want),
+            "received": sum(1 for key, st in want.items() if held.get(key) == st),
+            "sent": len(subgrid_bytes.get(k, [])),
+            "mean_bytes": float(np.mean(subgrid_bytes[k])) if subgrid_bytes.get(k) else None,
+            "mean_bytes_2022": float(np.mean(bytes_2022[k])) if bytes_2022.get(k) else None,
+        }
+        if k in receiver.levels():
+            # the GeoTIFF at full resolution, streamed from the receiver's tiles; the PNG and
+            # the candidates from its drawn overview (the level itself while it is small)
+            write_level_geotiff(out_dir / f"level_{k}.tif", receiver, k, origin_lat=lat, origin_lon=lon)
+            prod = receiver.level_product(k)
+            cell = float(prod.cell_size)
+            write_png(out_dir / f"level_{k}.png", prod.data, cell)
+            info["tif"] = f"level_{k}.tif"
+            if k == 0:
+                candidates = [c.to_dict() for c in find_targets(prod.data, cell=cell, x0=prod.x0,
+                                                                y0=prod.y0)[:20]]
+        levels.append(info)
+    return levels, candidates
 
 
 def _json_default(o: Any) -> Any:

@@ -6,7 +6,7 @@ holds its cells; cached until the tile or that knowledge changes. Mixed into
 from __future__ import annotations
 
 import logging
-from typing import Any, TypeAlias
+from typing import TypeAlias
 
 import numpy as np
 import numpy.typing as npt
@@ -22,6 +22,7 @@ from coex import (
 from coex.messages import Message, PredictedSubgrid, SubgridContext, SubgridMessage
 
 from .context import ContextBook, Digests, Key, content_id
+from .quadtree import QuadtreeMap
 
 __all__ = ["Built", "SubgridCoding"]
 
@@ -36,7 +37,7 @@ class SubgridCoding:
     """The sender's coding of subgrids (uses its ``map``, ``_cache``, ``_book``, ``unsendable``,
     ``_sent_row``, ``_mark_sent`` and ``subgrid_time``)."""
 
-    map: Any
+    map: QuadtreeMap
     _cache: dict[Key, Built]
     _book: ContextBook | None
     unsendable: set[Key]

@@ -116,6 +116,21 @@ def _upgrade_map(fields: dict[str, Any], saved: int) -> dict[str, Any]:
     return fields
 
 
+def _check_geometry(resolution: float, vertical_resolution: float, subgrid_side: int, levels: int,
+                    max_tiles: int | None) -> None:
+    """:class:`InputError` unless the map's cell sizes, subgrid side, levels and tile limit hold."""
+    if not resolution > 0 or not vertical_resolution > 0:
+        raise InputError("resolution and vertical_resolution must be positive")
+    if subgrid_side < 2 or subgrid_side & (subgrid_side - 1):
+        raise InputError("subgrid_side must be a power of two >= 2")
+    if not 1 <= levels <= 8:
+        raise InputError("levels must be in 1..8")
+    if subgrid_side << (levels - 1) > 4096:
+        raise InputError("subgrid_side * 2**(levels - 1) must be at most 4096 cells")
+    if max_tiles is not None and int(max_tiles) < 1:
+        raise InputError("max_tiles must be at least 1 (or None: no limit)")
+
+
 @persistent("bathymetry.QuadtreeMap", version=3,
             transient=("_res", "_cache", "_ext", "_free", "_changed_all", "_summ", "_summ_ok"),
             upgrade=_upgrade_map)
@@ -152,16 +167,7 @@ class QuadtreeMap:
         max_pending_age: float = 60.0,
         max_pending: int = 200_000,
     ) -> None:
-        if not resolution > 0 or not vertical_resolution > 0:
-            raise InputError("resolution and vertical_resolution must be positive")
-        if subgrid_side < 2 or subgrid_side & (subgrid_side - 1):
-            raise InputError("subgrid_side must be a power of two >= 2")
-        if not 1 <= levels <= 8:
-            raise InputError("levels must be in 1..8")
-        if subgrid_side << (levels - 1) > 4096:
-            raise InputError("subgrid_side * 2**(levels - 1) must be at most 4096 cells")
-        if max_tiles is not None and int(max_tiles) < 1:
-            raise InputError("max_tiles must be at least 1 (or None: no limit)")
+        _check_geometry(resolution, vertical_resolution, subgrid_side, levels, max_tiles)
         self.resolution = float(resolution)
         self.vertical_resolution = float(vertical_resolution)
         self.subgrid_side = int(subgrid_side)
@@ -205,10 +211,16 @@ class QuadtreeMap:
         self.spills = 0
         self.loads = 0
         self._mem: MemoryStorage | None = MemoryStorage()
-        self._buffer: list[tuple[FloatArray, float]] = []
-        self._buffered = 0
         self.max_pending_age = float(max_pending_age)
         self.max_pending = int(max_pending)
+        self._init_intake()
+        self._after_restore()
+
+    def _init_intake(self) -> None:
+        """Empty input buffers: soundings batched for :meth:`add_points`, and those pending
+        outlier rejection (a cell's first few)."""
+        self._buffer: list[tuple[FloatArray, float]] = []
+        self._buffered = 0
         self._pending_pts = np.zeros((0, 3))
         self._pending_t = np.zeros(0)
         self._pending_ids = np.zeros(0, np.int64)
@@ -219,7 +231,6 @@ class QuadtreeMap:
         self.rejected_ids: list[npt.NDArray[np.int64]] = []
         #: tiles changed since :meth:`take_changed` was last called
         self._changed: set[tuple[int, int]] = set()
-        self._after_restore()
 
     def _after_restore(self) -> None:
         #: resident tiles (the tile store's cache), least recently used first: number -> (4, T*T)

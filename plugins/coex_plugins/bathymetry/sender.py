@@ -9,6 +9,7 @@ from collections.abc import Iterable, Mapping
 from typing import Any
 
 import numpy as np
+import numpy.typing as npt
 
 from coex import (
     ConfigError,
@@ -33,10 +34,11 @@ from coex.options import anything, flag, integer, number
 from coex.wire import SUBGRID_RESOLUTIONS as RESOLUTIONS
 from coex.wire import SUBGRID_VERTICAL_RESOLUTIONS as VERTICAL_RESOLUTIONS
 
+from ._arrays import _grow
 from .coding import Built, SubgridCoding
 from .context import ContextBook
 from .points import pointcloud2_xyz
-from .quadtree import InputError, QuadtreeMap, _grow
+from .quadtree import InputError, QuadtreeMap
 
 __all__ = ["BathymetrySender", "SENDER_DEFAULTS", "SENDER_OPTIONS"]
 
@@ -125,6 +127,10 @@ class BathymetrySender(SubgridCoding, ModalitySender):
     """
 
     options = SENDER_OPTIONS
+    #: per level, by the map's tile number: the oldest update among its changed subgrids and
+    #: their count (the index of changed tiles; made by ``_reset_index``)
+    _tmin: list[npt.NDArray[np.float64]]
+    _dcount: list[npt.NDArray[np.int64]]
 
     def __init__(self, config: Mapping[str, Any] | None = None) -> None:
         # subgrid_side 2, 4 or 8: 8 x 8 cells of up to 20 bits always fit one message; 16 x 16

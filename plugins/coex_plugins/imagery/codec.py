@@ -244,7 +244,7 @@ def _packet_order(sp: StreamParams, width: int, height: int) -> npt.NDArray[np.i
         cols = {c: g.ravel() for c, g in zip(sp.progression, grids, strict=True)}
         out = np.stack([cols["L"], cols["R"], cols["C"], cols["P"]], axis=1).astype(np.int64)
     else:  # LRCP or RLCP: precincts innermost, in raster order, their count depends on r
-        rows = []
+        rows: list[tuple[int, int, int, int]] = []
         outer = [(layer, r) for layer in range(sp.layers) for r in range(sp.resolutions)]
         if sp.progression == "RLCP":
             outer = [(layer, r) for r in range(sp.resolutions) for layer in range(sp.layers)]

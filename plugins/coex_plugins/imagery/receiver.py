@@ -285,7 +285,7 @@ class ImageryReceiver(ModalityReceiver):
         early = [f for f in self._early if f.image_id == ann.image_id]
         for f in early:
             self._early.remove(f)
-        out = [self._product(rx)]
+        out: list[Product] = [self._product(rx)]
         if crop is not None:
             out += self._parent_products(rx)
         for f in early:
@@ -346,8 +346,8 @@ class ImageryReceiver(ModalityReceiver):
         """Packet starts from the packet headers of the held bytes (spec/payloads.md 3.3): data
         sent without marks is placed by them. A body whose headers do not parse, or disagree with
         the marks, is left to the marks (and said)."""
-        parser = self._parsers.get(image_id, False)
-        if parser is False or (parser is not None and parser.total != len(rx.have)):
+        parser = self._parsers.get(image_id)
+        if image_id not in self._parsers or (parser is not None and parser.total != len(rx.have)):
             try:
                 parser = PacketParser(rx.ann.params, rx.ann.width, rx.ann.height, len(rx.have))
             except CoexError:
@@ -571,7 +571,7 @@ class ImageryReceiver(ModalityReceiver):
                                next_images=list(p.next_images))
 
     def products(self) -> list[Product]:
-        out = [self._product(rx) for rx in self.images.values()]
+        out: list[Product] = [self._product(rx) for rx in self.images.values()]
         if self.progress is not None:
             out.append(self._progress_product())
         return out

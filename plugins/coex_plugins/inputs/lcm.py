@@ -72,6 +72,14 @@ def make_nav_t(utime: int = 0, **fields: float) -> Any:
     return msg
 
 
+def nav_item(t: float, fields: Mapping[str, float | None]) -> Nav:
+    """The :class:`~coex.Nav` at ``t`` of ``fields`` (names of :data:`NAV_FIELDS`, as the options
+    were checked to give; a field missing or None is unknown)."""
+    get = fields.get
+    return Nav(t, x=get("x"), y=get("y"), lat=get("lat"), lon=get("lon"), depth=get("depth"),
+               altitude=get("altitude"), heading=get("heading"), speed=get("speed"))
+
+
 def import_type(spec: str) -> Any:
     """The lcm-gen Python class ``package.module.Class`` or ``package.Class``."""
     module_name, _, attr = spec.rpartition(".")
@@ -255,7 +263,7 @@ class LcmInput(Input):
             self._items.append(Points(self._time(msg.utime), xyz))
 
     def _nav(self, msg: Any) -> None:
-        self._items.append(Nav(self._time(msg.utime), **{f: finite(getattr(msg, f)) for f in NAV_FIELDS}))
+        self._items.append(nav_item(self._time(msg.utime), {f: finite(getattr(msg, f)) for f in NAV_FIELDS}))
 
     def _own(self, own: _Own) -> Callable[[Any], None]:
         def convert(msg: Any) -> None:
@@ -277,7 +285,7 @@ class LcmInput(Input):
                 f = finite(v)
                 scaled[name] = None if f is None else f * factor
             if own.feeds == "status":
-                self._items.append(Nav(t, **scaled))
+                self._items.append(nav_item(t, scaled))
             else:
                 for channel, v in scaled.items():
                     if v is not None:

@@ -138,7 +138,12 @@ _FRAME_KEYS = ("axes", "x", "y", "z", "yaw")
 def _frame(spec: Any) -> Frame:
     if isinstance(spec, str):
         return Frame(axes=spec)
-    return Frame(**{k: (str(v) if k == "axes" else float(v)) for k, v in dict(spec).items()})
+    given = dict(spec)
+    unknown = set(given) - set(_FRAME_KEYS)
+    if unknown:  # refused by frame_problems first
+        raise TypeError(f"a frame has no {', '.join(sorted(unknown))}")
+    x, y, z, yaw = (float(given.get(k, 0.0)) for k in ("x", "y", "z", "yaw"))
+    return Frame(axes=str(given.get("axes", "enu")), x=x, y=y, z=z, yaw=yaw)
 
 
 def frame_problems(name: str, options: Mapping[str, Any]) -> list[str]:

@@ -223,12 +223,12 @@ class Navigation:
             a.delta = (float(d[0]), float(d[1]))
             total = total + d
         est = self.estimator(vehicle)
-        got = self._received.get(vehicle) or {}
-        if got:
-            tt = np.array(sorted(got))
+        track = self._received.get(vehicle) or {}
+        if track:
+            tt = np.array(sorted(track))
             sh = self.shift(vehicle, tt)
             for t, (dx, dy) in zip(tt.tolist(), sh.tolist(), strict=True):
-                x, y, h = got[t]
+                x, y, h = track[t]
                 est.add_track(t, x + dx, y + dy, h)
 
     def aid(self, vehicle: int, receiver: Any, now: float) -> Aid | None:

@@ -477,12 +477,12 @@ class SurveyReceiver(ModalityReceiver):
 
     def receive(self, message: Message, now: float) -> list[Product]:
         if isinstance(message, CommandAck) and message.command_id in self.fixes:
-            state = self.fixes[message.command_id]
+            fix = self.fixes[message.command_id]
             if message.status != AckStatus.PENDING:
                 self._fix_requests.answered(message.command_id, now, message.status.name)
                 self._requests.answered(message.command_id, now, message.status.name)  # sent by version 2
-            if state[0] == "requested" and message.status in (AckStatus.ACCEPTED, AckStatus.REJECTED):
-                state[0] = message.status.name.lower()
+            if fix[0] == "requested" and message.status in (AckStatus.ACCEPTED, AckStatus.REJECTED):
+                fix[0] = message.status.name.lower()
             return []
         if isinstance(message, CommandAck):
             rec = next((s for s in self.surveys.values() if s.command_id == message.command_id

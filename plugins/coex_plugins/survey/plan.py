@@ -188,7 +188,8 @@ def _inside(points: np.ndarray, poly: np.ndarray) -> np.ndarray:
     with np.errstate(divide="ignore", invalid="ignore"):
         xc = ax + (y - ay) * (bx - ax) / (by - ay)
     odd = (crosses & (x < xc)).sum(axis=1) % 2 == 1
-    return odd | (_edge_distances(points, poly) < 1e-6)
+    inside: np.ndarray = odd | (_edge_distances(points, poly) < 1e-6)
+    return inside
 
 
 def _edge_distances(points: np.ndarray, poly: np.ndarray) -> np.ndarray:
@@ -198,7 +199,8 @@ def _edge_distances(points: np.ndarray, poly: np.ndarray) -> np.ndarray:
     p = points[:, None, :]
     t = np.clip(((p - a) * ab).sum(2) / np.maximum((ab * ab).sum(2), 1e-12), 0.0, 1.0)
     d = p - (a + t[..., None] * ab)
-    return np.hypot(d[..., 0], d[..., 1]).min(axis=1) if len(points) else np.zeros(0)
+    nearest: np.ndarray = np.hypot(d[..., 0], d[..., 1]).min(axis=1) if len(points) else np.zeros(0)
+    return nearest
 
 
 def _distance_to_edges(p: np.ndarray, poly: np.ndarray) -> float:
@@ -213,7 +215,8 @@ def _first_crossing(w: np.ndarray, poly: np.ndarray) -> int | None:
     q, s = poly[None, :, :], (np.roll(poly, -1, axis=0) - poly)[None, :, :]
 
     def cross(u: np.ndarray, v: np.ndarray) -> np.ndarray:
-        return u[..., 0] * v[..., 1] - u[..., 1] * v[..., 0]
+        z: np.ndarray = u[..., 0] * v[..., 1] - u[..., 1] * v[..., 0]
+        return z
 
     den = cross(r, s)
     qp = q - p

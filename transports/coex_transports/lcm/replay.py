@@ -134,7 +134,7 @@ def write_products(products: Mapping[str, list[Product]], out_dir: Path) -> list
             elif arrays := _arrays_of(data):
                 path = stem.with_name(stem.name + ".npz")
                 path.parent.mkdir(parents=True, exist_ok=True)
-                np.savez(path, **arrays)
+                np.savez(path, allow_pickle=False, **arrays)
             else:
                 continue
             side = stem.with_name(stem.name + ".json")

@@ -9,9 +9,9 @@ import itertools
 import math
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Protocol
 
-from coex_core.acoustic import Arrival
+from coex_core.acoustic import AcousticChannel, Arrival
 
 from . import nmea
 from .nmea import FDP_RATES, RATES, FdpFrame, NmeaError, Sentence
@@ -58,11 +58,21 @@ class _TxCycle:
     next_frame: int = 1
 
 
+class Network(Protocol):
+    """What a simulated modem needs of its network (:class:`~.simnetwork.ModemNetwork`): the
+    acoustic channel between the nodes, and a transmission put on the water."""
+
+    channel: AcousticChannel
+
+    def _transmit(self, modem: SimulatedModem, meta: _Meta, frames: list[bytes], rate: int,
+                  now: float) -> float: ...
+
+
 class SimulatedModem:
     """One simulated Micromodem-2 (sans-I/O; driven by its ``network``, a
     :class:`~.simnetwork.ModemNetwork`)."""
 
-    def __init__(self, node: int, network: Any, *, snr: float = 15.0, doppler: float = 0.0) -> None:
+    def __init__(self, node: int, network: Network, *, snr: float = 15.0, doppler: float = 0.0) -> None:
         self.node = node
         self.network = network
         self.nvram = dict(DEFAULT_NVRAM)

@@ -35,7 +35,8 @@ from coex_core.errors import ConfigError, TransportError, TransportTimeout
 from coex_core.messages import LinkStatus
 from coex_core.transport import Transport, UriInfo, parse_query
 
-from .driver import DriverConfig, Event, MicromodemDriver
+from .driver import DriverConfig, MicromodemDriver
+from .events import Event
 
 __all__ = ["MicromodemTransport", "parse_uri"]
 

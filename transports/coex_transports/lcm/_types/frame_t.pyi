@@ -1,0 +1,21 @@
+# Typing stub of the lcm-gen module beside it, written by regen.py from the class's
+# __slots__, __typenames__ and __dimensions__. DO NOT MODIFY BY HAND.
+
+from typing import BinaryIO
+
+
+class frame_t:
+    __slots__: list[str]
+    __typenames__: list[str]
+    __dimensions__: list[list[int | str] | None]
+    utime: int
+    origin: int
+    length: int
+    data: bytes
+    def __init__(self) -> None: ...
+    def encode(self) -> bytes: ...
+    @staticmethod
+    def decode(data: bytes | BinaryIO) -> frame_t: ...
+    @staticmethod
+    def _get_packed_fingerprint() -> bytes: ...
+    def get_hash(self) -> int: ...

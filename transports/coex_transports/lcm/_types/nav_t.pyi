@@ -1,0 +1,26 @@
+# Typing stub of the lcm-gen module beside it, written by regen.py from the class's
+# __slots__, __typenames__ and __dimensions__. DO NOT MODIFY BY HAND.
+
+from typing import BinaryIO
+
+
+class nav_t:
+    __slots__: list[str]
+    __typenames__: list[str]
+    __dimensions__: list[list[int | str] | None]
+    utime: int
+    x: float
+    y: float
+    lat: float
+    lon: float
+    depth: float
+    altitude: float
+    heading: float
+    speed: float
+    def __init__(self) -> None: ...
+    def encode(self) -> bytes: ...
+    @staticmethod
+    def decode(data: bytes | BinaryIO) -> nav_t: ...
+    @staticmethod
+    def _get_packed_fingerprint() -> bytes: ...
+    def get_hash(self) -> int: ...

@@ -1,0 +1,21 @@
+# Typing stub of the lcm-gen module beside it, written by regen.py from the class's
+# __slots__, __typenames__ and __dimensions__. DO NOT MODIFY BY HAND.
+
+from typing import BinaryIO
+
+
+class survey_state_t:
+    __slots__: list[str]
+    __typenames__: list[str]
+    __dimensions__: list[list[int | str] | None]
+    utime: int
+    survey_id: int
+    state: int
+    index: int
+    def __init__(self) -> None: ...
+    def encode(self) -> bytes: ...
+    @staticmethod
+    def decode(data: bytes | BinaryIO) -> survey_state_t: ...
+    @staticmethod
+    def _get_packed_fingerprint() -> bytes: ...
+    def get_hash(self) -> int: ...
