@@ -402,7 +402,7 @@ def _invalid_cases() -> list[tuple[str, str, bytes, str]]:
         ("unassigned_builtin_id", "message", b"\x3f\x00", "unknown message type"),
         ("unassigned_core_id", "message", b"\x0f\x00", "unknown message type"),
         ("unassigned_bathymetry_id", "message", b"\x14\x00", "unknown message type"),
-        ("unassigned_imagery_id", "message", b"\x28\x00", "unknown message type"),
+        ("unassigned_imagery_id", "message", b"\x29\x00", "unknown message type"),
         ("unassigned_timeseries_id", "message", b"\x34\x00", "unknown message type"),
         ("reserved_id", "message", b"\x40\x00", "unknown message type"),
         ("overlong_type_id", "message", b"\x80\x06\x00\x00", "over-long"),
