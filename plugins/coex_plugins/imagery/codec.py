@@ -109,6 +109,9 @@ class CodingParams:
     max_size: int = 1024
     precincts: int = DEFAULT_PRECINCTS
     layer_psnr: tuple[float, ...] | None = None
+    #: with quality marks, end each layer at the fewest bytes that still reach its mark, inside
+    #: a coding pass if need be (:mod:`.tighten`); false: where OpenJPEG ends it
+    tighten: bool = True
 
     def __post_init__(self) -> None:
         if self.progression not in PROGRESSIONS:
@@ -149,7 +152,7 @@ class CodingParams:
             return cls()
         kw: dict[str, Any] = {}
         for key in ("progression", "resolutions", "layer_bytes", "irreversible", "grey", "max_size",
-                    "precincts", "layer_psnr"):
+                    "precincts", "layer_psnr", "tighten"):
             if key in config:
                 kw[key] = config[key]
         try:
@@ -167,6 +170,8 @@ class CodingParams:
                     float(m) for m in v)
             if "progression" in kw:
                 kw["progression"] = str(kw["progression"]).upper()
+            if "tighten" in kw and not isinstance(kw["tighten"], bool):
+                raise ConfigError(f"tighten must be true or false, got {kw['tighten']!r}")
         except (TypeError, ValueError) as exc:
             raise ConfigError(f"invalid coding parameter: {exc}") from exc
         return cls(**kw)
@@ -650,6 +655,10 @@ def _encode(data: npt.NDArray[np.uint8], cp: CodingParams, base: npt.NDArray[np.
         targets = list(cp.layer_bytes)
     code = params_code(cp.progression, res, len(targets), cp.irreversible, colour, cp.precincts)
     body, lengths = _encode_body(data, code, targets)
+    if cp.layer_psnr and cp.tighten:
+        from .tighten import tighten  # it reads and writes packets (.packets imports this module)
+
+        body, lengths = tighten(data, code, body, cp.layer_psnr, base, reference)
     starts = np.concatenate([[0], np.cumsum(lengths[:-1], dtype=np.int64)]).astype(np.int64)
     return Encoded(body, starts, code, w, h, not colour, data)
 

@@ -130,7 +130,7 @@ class Frame:
 
 #: coding options (:class:`~coex_plugins.imagery.codec.CodingParams` fields)
 CODING_KEYS = ("progression", "resolutions", "layer_bytes", "irreversible", "grey", "max_size", "precincts",
-               "layer_psnr")
+               "layer_psnr", "tighten")
 #: the imagery sender's options and their defaults (coding options default to CodingParams')
 SENDER_DEFAULTS: dict[str, Any] = {**dict.fromkeys(CODING_KEYS), "default_goal": "layer:2",
                                    "request_goal": None, "max_images": 64, "rto": 60.0,
