@@ -59,7 +59,7 @@ import numpy.typing as npt
 
 from coex import DecodeError
 
-from .codec import StreamParams, packet_order, parse_params
+from ._stream import StreamParams, packet_order, parse_params
 
 __all__ = ["CodeBlock", "CodeBlocks", "PacketParser", "code_blocks", "packet_lengths", "precinct_codeblocks",
            "write_packets"]

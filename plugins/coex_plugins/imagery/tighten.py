@@ -18,16 +18,20 @@ layer, fewer on large images) and deterministic."""
 from __future__ import annotations
 
 import hashlib
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from typing import Any
 
 import numpy as np
-import numpy.typing as npt
 
-from .codec import StreamParams, add_residual, decode_packets, params_code, parse_params, psnr
-from .packets import CodeBlock, CodeBlocks, code_blocks, write_packets
+from ._stream import StreamParams, params_code, parse_params
+from .packets import CodeBlock, CodeBlocks, code_blocks, packet_lengths, write_packets
 
-__all__ = ["DECODES", "decodes_for", "tighten"]
+__all__ = ["DECODES", "Quality", "decodes_for", "tighten"]
+
+#: How a layer's quality is measured: the PSNR (dB) of the image decoded from a body's packets
+#: (its params code and its packets); the codec gives it (:func:`.codec.layer_psnrs` measures
+#: the same way).
+Quality = Callable[[int, Sequence[bytes | None]], float]
 
 #: Decodes per layer on a small image; a large one gets fewer (:func:`decodes_for`).
 DECODES = 160
@@ -49,34 +53,32 @@ def decodes_for(width: int, height: int) -> int:
     return int(max(12, min(DECODES, DECODES * 30000 // max(1, width * height))))
 
 
-def tighten(data: npt.NDArray[np.uint8], code: int, body: bytes, marks: Sequence[float],
-            base: npt.NDArray[np.uint8] | None = None, reference: npt.NDArray[np.uint8] | None = None,
-            budget: int | None = None) -> tuple[bytes, list[int]]:
-    """``body`` (of ``data`` coded with ``code``) with each layer ending at fewer bytes where
-    it still reaches its mark, the largest of ``marks`` its own decode reaches (with ``base``,
-    ``data`` is a residual: the PSNR is that of its composite against ``reference``, as
-    :func:`.codec.layer_psnrs`). Returns the body and its packet lengths."""
-    key = hashlib.blake2b(b"".join([np.ascontiguousarray(data).tobytes(), code.to_bytes(4, "big"), body,
-                                    repr(tuple(marks)).encode(), b"" if base is None else base.tobytes(),
-                                    b"" if reference is None else reference.tobytes(), repr(budget).encode()]),
-                          digest_size=16).digest()
+def tighten(code: int, width: int, height: int, body: bytes, marks: Sequence[float], quality: Quality,
+            key: bytes, budget: int | None = None) -> tuple[bytes, list[int]]:
+    """``body`` (a ``width x height`` image coded with ``code``) with each layer ending at fewer
+    bytes where it still reaches its mark, the largest of ``marks`` its own decode reaches, as
+    ``quality`` measures it. ``key`` names what ``quality`` measures against (the image, and for
+    a crop its base and reference): with the rest of the arguments it keys the cache of the last
+    results. Returns the body and its packet lengths."""
+    key = hashlib.blake2b(b"".join([key, code.to_bytes(4, "big"), width.to_bytes(4, "big"),
+                                    height.to_bytes(4, "big"), body, repr(tuple(marks)).encode(),
+                                    repr(budget).encode()]), digest_size=16).digest()
     hit = _CACHE.get(key)
     if hit is None:
-        hit = _tighten(data, code, body, marks, base, reference, budget)
+        hit = _tighten(code, width, height, body, marks, quality, budget)
         if len(_CACHE) >= _CACHE_MAX:
             del _CACHE[next(iter(_CACHE))]
         _CACHE[key] = hit
     return hit[0], list(hit[1])
 
 
-def _tighten(data: npt.NDArray[np.uint8], code: int, body: bytes, marks: Sequence[float],
-             base: npt.NDArray[np.uint8] | None, reference: npt.NDArray[np.uint8] | None,
+def _tighten(code: int, w: int, h: int, body: bytes, marks: Sequence[float], quality: Quality,
              budget: int | None) -> tuple[bytes, list[int]]:
     sp = parse_params(code)
-    h, w = data.shape[:2]
     blocks = code_blocks(sp, w, h, body)
     allocs = [blocks.allocation(layer) for layer in range(sp.layers)]
-    one = parse_params(params_code(sp.progression, sp.resolutions, 1, sp.irreversible, sp.colour, sp.precincts))
+    one_code = params_code(sp.progression, sp.resolutions, 1, sp.irreversible, sp.colour, sp.precincts)
+    one = parse_params(one_code)
     per_layer = decodes_for(w, h) if budget is None else budget
 
     def measure(alloc: Allocation) -> tuple[int, float]:
@@ -84,12 +86,8 @@ def _tighten(data: npt.NDArray[np.uint8], code: int, body: bytes, marks: Sequenc
         every layer up to one is that of their union)."""
         b, lengths = write_packets(one, w, h, [alloc], blocks)
         ends = np.cumsum(lengths)
-        packets = [b[int(e - n):int(e)] for e, n in zip(ends, lengths, strict=True)]
-        decoded = decode_packets(params_code(one.progression, one.resolutions, 1, one.irreversible, one.colour,
-                                             one.precincts), w, h, packets)
-        if base is None:
-            return len(b), psnr(decoded, data)
-        return len(b), psnr(add_residual(base, decoded), data if reference is None else reference)
+        packets: list[bytes | None] = [b[int(e - n):int(e)] for e, n in zip(ends, lengths, strict=True)]
+        return len(b), quality(one_code, packets)
 
     changed = False
     for layer in range(sp.layers):
@@ -160,6 +158,4 @@ def _search(start: Allocation, n_start: int, q_start: float, prev: Allocation, n
 
 def _lengths(sp: StreamParams, w: int, h: int, body: bytes, blocks: CodeBlocks) -> list[int]:
     """The packet lengths of an unchanged body."""
-    from .packets import packet_lengths
-
     return [int(v) for v in packet_lengths(sp, w, h, body)]
