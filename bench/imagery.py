@@ -52,6 +52,10 @@ Issue 25's figures (bound, layout) are printed as before.
 Prints the tables; writes ``bench/results/imagery.json``.
 Run: ``.venv/bin/python bench/imagery.py [--quick] [--mtus 64,128,256] [--every-mtu 64-256]
 [--no-stress] [--packets-mtu 256]`` (6 to 25 minutes for the 13 images on 2 cores, with what else runs).
+``--issue54`` runs only the issue 54 table (every frame at MTU 64, 128, 256; about 4 minutes) and
+writes ``bench/results/imagery-issue54.json``; ``--option KEY=JSON`` (repeatable, e.g.
+``tighten=false``, ``short_fragments=false``) runs every sender with that option, coding options
+coding the measured images too.
 """
 
 from __future__ import annotations
@@ -73,6 +77,7 @@ from coex_core.messages import ImageFragment, ImageShortFragment
 from coex_plugins.imagery import ImageInput, ImageryModality, codec
 from coex_plugins.imagery.goals import parse_goal
 from coex_plugins.imagery.sender import (
+    CODING_KEYS,
     MAX_FRAGMENT_DATA,
     SENDER_DEFAULTS,
     SHORT_HEAD,
@@ -91,6 +96,17 @@ PREVIOUS_DEFAULT = {"layer_bytes": (40, 60, 85, 120, 170, 240, 330, 450, 600, 80
                                     3100, 4000, 5200, 6700, 8700, 11300, 14700, 20480),
                     "precincts": 0, "layer_psnr": ()}
 DATA = Path(os.environ.get("COEX_NUI040", Path(__file__).resolve().parents[2] / "shared" / "data" / "nui040"))
+
+
+#: sender options every run of the benchmark uses (``--option KEY=VALUE``; coding options among
+#: them code the images the curves are measured on too): empty = the defaults
+OPTIONS: dict[str, Any] = {}
+
+
+def encode(img: np.ndarray) -> codec.Encoded:
+    """``img`` encoded as the benchmark's sender encodes it (the default coding and OPTIONS)."""
+    return codec.encode_image(img, codec.CodingParams.from_config({k: v for k, v in OPTIONS.items()
+                                                                   if k in CODING_KEYS}))
 
 
 def load_images(quick: bool) -> tuple[str, list[tuple[str, np.ndarray]]]:
@@ -200,7 +216,7 @@ def body_needs(enc: codec.Encoded, img: np.ndarray) -> dict[str, int | None]:
 
 def transfer(img: np.ndarray, mtu: int, goal: str) -> tuple[Transfer, Any, Any]:
     m = ImageryModality()
-    s = m.sender({"default_goal": goal, "progress_interval": 1e9})
+    s = m.sender({**OPTIONS, "default_goal": goal, "progress_interval": 1e9})
     r = m.receiver({})
     s.ingest(ImageInput(img, time=0.0), 0.0)
     t = Transfer(s, r, mtu=mtu)
@@ -220,7 +236,7 @@ def sender_fragments(img: np.ndarray, mtu: int, upto: int | None = None) -> tupl
     prefix ``upto`` is sent (default: all of it), and whether the image could go in short
     fragments then (a last fragment cut short at a goal may be one). ``transfer`` and ``verify``
     check the same figures end to end with a receiver."""
-    s = ImageryModality().sender({"default_goal": "full", "progress_interval": 1e9})
+    s = ImageryModality().sender({**OPTIONS, "default_goal": "full", "progress_interval": 1e9})
     s.ingest(ImageInput(img, time=0.0), 0.0)
     down, now = 0, 0.0
     frags: list[tuple[Fragment, int, bool]] = []
@@ -248,7 +264,7 @@ def our_curve(img: np.ndarray, mtu: int, pcurve: list[Any] | None = None,
     lossless transfer of the whole image: every vehicle-to-ship byte before the fragment that
     ends the prefix, plus that fragment cut at the prefix (the sender cuts its last fragment at a
     goal; no packet marks). ``pcurve``: :func:`packet_curve` with ``boxes``, when known."""
-    pc = pcurve if pcurve is not None else packet_curve(codec.encode_image(img), img, boxes or quarters(img))
+    pc = pcurve if pcurve is not None else packet_curve(encode(img), img, boxes or quarters(img))
     upto = max(n for n, _q, _ in pc)
     enc, frags = sender_fragments(img, mtu, upto)
     pts = []
@@ -263,7 +279,7 @@ def our_curve(img: np.ndarray, mtu: int, pcurve: list[Any] | None = None,
 
 def wire_at(img: np.ndarray, mtus: list[int], pcurve: list[Any] | None = None) -> dict[int, dict[str, int | None]]:
     """Our wire bytes to each threshold at each MTU: ``{mtu: {threshold: bytes or None}}``."""
-    enc = codec.encode_image(img)
+    enc = encode(img)
     pc = pcurve if pcurve is not None else [(n, q, []) for n, q in packet_curve(enc, img)]
     # only the prefixes up to the highest threshold matter: the transfer stops there
     last = next((i for i, (_n, q, _) in enumerate(pc) if q >= max(THRESHOLDS)), len(pc) - 1)
@@ -494,6 +510,87 @@ def region_summary(runs: list[dict[str, Any]]) -> dict[str, Any]:
     return out
 
 
+def issue54(args: argparse.Namespace) -> int:
+    """``--issue54``: only the issue 54 table (every frame: the dive images, the bench's generated
+    images and the held-out frames, at TARGET_MTUS to each threshold against 2022), each frame's
+    worst point checked end to end (a sender with that byte goal, a receiver, its decoded image
+    must reach the threshold with exactly those wire bytes). Prints the table and writes
+    ``bench/results/imagery-issue54.json`` (``--out`` overrides)."""
+    t0 = time.time()
+    source, images = load_images(False)
+    frames: list[tuple[str, str, np.ndarray]] = [(n, "dive" if source == "nui040" else "synthetic", i)
+                                                 for n, i in images]
+    dive = images if source == "nui040" else []
+    if not args.no_stress:
+        frames += [(n, "bench", i) for n, i in stress_images(dive)]
+    if not args.no_held_out:
+        frames += [(n, "held-out", i) for n, i in held_out_images(dive)]
+    rows: list[dict[str, Any]] = []
+    for name, group, img in frames:
+        base = baseline_curve(img)
+        enc = encode(img)
+        pc: list[Any] = [(n, q, []) for n, q in packet_curve(enc, img)]
+        last = next((i for i, (_n, q, _) in enumerate(pc) if q >= max(THRESHOLDS)), len(pc) - 1)
+        pc = pc[:last + 1]
+        wire: dict[int, dict[str, int | None]] = {}
+        bodies: dict[int, dict[str, int]] = {}
+        for mtu in TARGET_MTUS:
+            pts = our_curve(img, mtu, pc)[0]
+            wire[mtu] = {str(x): need([(c, q) for c, q, _, _ in pts], x) for x in THRESHOLDS}
+            bodies[mtu] = {str(x): next(n for c, q, n, _ in pts if c == wire[mtu][str(x)] and q >= x)
+                           for x in THRESHOLDS if wire[mtu][str(x)] is not None}
+        row = target_rows(name, group, img, base, wire)
+        row["layers"] = enc.stream.layers
+        row["body"] = {str(m): bodies[m] for m in TARGET_MTUS}
+        if row["worst"] is not None:
+            _, mtu, x = row["worst"]
+            down, q = verify(img, mtu, bodies[mtu][x])
+            row["verified"] = {"mtu": mtu, "threshold": x, "wire_bytes": down, "psnr": round(q, 3)}
+            if down != wire[mtu][x] or q < float(x):
+                raise AssertionError(f"{name} MTU {mtu}: end to end {down} B / {q:.2f} dB, expected "
+                                     f"{wire[mtu][x]} B / at least {x} dB")
+        rows.append(row)
+        print(f"{name:24} {group:9} 2022 {list(row['2022'].values())}  MTU 64 {list(wire[64].values())}  "
+              f"worst {row['worst']} {'MET' if row['met'] else 'NOT MET'}  ({time.time() - t0:.0f} s)", flush=True)
+    sets: dict[str, Any] = {}
+    for group in dict.fromkeys(r["set"] for r in rows):
+        mine = [r for r in rows if r["set"] == group]
+        worst = max(([*r["worst"], r["frame"]] for r in mine if r["worst"]), default=None)
+        per_cell = {f"{m}/{x}": max(r["ratio"][str(m)][str(x)] for r in mine if r["ratio"][str(m)][str(x)] is not None)
+                    for m in TARGET_MTUS for x in THRESHOLDS
+                    if any(r["ratio"][str(m)][str(x)] is not None for r in mine)}
+        means = {f"{m}/{x}": round(float(np.mean([r["ratio"][str(m)][str(x)] for r in mine
+                                                  if r["ratio"][str(m)][str(x)] is not None])), 4)
+                 for m in TARGET_MTUS for x in THRESHOLDS
+                 if any(r["ratio"][str(m)][str(x)] is not None for r in mine)}
+        sets[group] = {"frames": len(mine), "worst": worst, "worst_per_mtu_threshold": per_cell,
+                       "mean_per_mtu_threshold": means, "met": all(r["met"] for r in mine),
+                       "not_met": [r["frame"] for r in mine if not r["met"]]}
+    summary = {"source": source, "options": OPTIONS, "limit": TARGET_2022, "mtus": list(TARGET_MTUS),
+               "thresholds": [str(x) for x in THRESHOLDS], "sets": sets,
+               "met": all(v["met"] for v in sets.values()), "seconds": round(time.time() - t0, 1)}
+    print(f"\nissue 54: ours / 2022 per frame at MTU {', '.join(map(str, TARGET_MTUS))} and "
+          f"{' / '.join(f'{x:g}' for x in THRESHOLDS)} dB (- : 2022 or ours never reaches it); at most {TARGET_2022}")
+    print(f"{'frame':24} {'set':9} " + " ".join(f"{'MTU ' + str(m):^17}" for m in TARGET_MTUS) + "  worst")
+    for r in rows:
+        cells = " ".join(" ".join(f"{v:5.3f}" if v is not None else "    -" for v in r["ratio"][str(m)].values())
+                         for m in TARGET_MTUS)
+        w = r["worst"]
+        print(f"{r['frame']:24} {r['set']:9} {cells}  {w[0] if w else '-'} {'MET' if r['met'] else 'NOT MET'}")
+    for group, v in sets.items():
+        w = v["worst"]
+        print(f"  {group}: {v['frames']} frames, worst {w[0]} ({w[3]}, MTU {w[1]}, {w[2]} dB)" if w
+              else f"  {group}: {v['frames']} frames", f"-> {'MET' if v['met'] else 'NOT MET'}"
+              + (f" ({len(v['not_met'])} above: {', '.join(v['not_met'])})" if v["not_met"] else ""))
+        print("    worst per MTU/dB: " + ", ".join(f"{k} {val:.3f}" for k, val in v["worst_per_mtu_threshold"].items()))
+        print("    mean per MTU/dB:  " + ", ".join(f"{k} {val:.3f}" for k, val in v["mean_per_mtu_threshold"].items()))
+    print(f"every frame at most {TARGET_2022}x 2022: {'MET' if summary['met'] else 'NOT MET'}   ({summary['seconds']} s)")
+    out = Path(args.out if args.out else Path(__file__).parent / "results" / "imagery-issue54.json")
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(json.dumps({"summary": summary, "frames_2022": rows}, indent=1) + "\n")
+    return 0
+
+
 def _mtu_range(text: str) -> list[int]:
     lo, _, rest = text.partition("-")
     hi, _, step = rest.partition(":")
@@ -514,8 +611,22 @@ def main(argv: list[str] | None = None) -> int:
                     help="MTUs of the 2022 check on the generated images (default 64-256:8)")
     ap.add_argument("--packets-mtu", type=int, default=256,
                     help="MTU of the quarter-frame requests with crops = never, for comparison (0: none)")
-    ap.add_argument("--out", default=str(Path(__file__).parent / "results" / "imagery.json"))
+    ap.add_argument("--issue54", action="store_true",
+                    help="only the issue 54 table (every frame at MTU 64, 128, 256 against 0.95x 2022), each "
+                         "frame's worst point checked end to end; writes bench/results/imagery-issue54.json")
+    ap.add_argument("--option", action="append", default=[], metavar="KEY=JSON",
+                    help="a sender option for every run (e.g. tighten=false, short_fragments=false): what a "
+                         "change buys, measured by turning it off")
+    ap.add_argument("--out", default=None, help="JSON output (default bench/results/imagery.json, "
+                                                 "imagery-issue54.json with --issue54)")
     args = ap.parse_args(argv)
+    for item in args.option:
+        key, _, value = item.partition("=")
+        OPTIONS[key] = json.loads(value)
+    if args.issue54:
+        return issue54(args)
+    if args.out is None:
+        args.out = str(Path(__file__).parent / "results" / "imagery.json")
     mtus = [int(v) for v in args.mtus.split(",")]
     if args.quick and args.mtus == "64,128,256":
         mtus = [64, 256]
@@ -533,7 +644,7 @@ def main(argv: list[str] | None = None) -> int:
         for x in THRESHOLDS:
             rec["base"][str(x)] = need(base, x)
             rec["bound"][str(x)] = bound(img, x)
-        enc = codec.encode_image(img)
+        enc = encode(img)
         kinds = {"quarter": quarters(img), "eighth": eighths(img)}
         if args.quick:
             kinds = {"quarter": quarters(img)[:2], "eighth": eighths(img)[:2]}
