@@ -52,6 +52,7 @@ __all__ = [
     # imagery
     "ImageAnnounce",
     "ImageFragment",
+    "ImageShortFragment",
     "ImageAck",
     "ByteRange",
     "GoalKind",
@@ -508,6 +509,19 @@ class ImageFragment(Message):
     offset: int
     packet: int | None
     packets: tuple[int, ...]
+    data: bytes
+
+
+@dataclass(frozen=True, slots=True)
+class ImageShortFragment(Message):
+    """Bytes ``[offset, offset + len(data))`` of an image's codestream body, the image named by
+    ``slot``: its id modulo 32, among the 32 newest image ids announced to the receiver
+    (spec/payloads.md 3.3). An :class:`ImageFragment` without packet marks for small frames: one
+    byte shorter (two from 4 KiB on), at most 64 data bytes and offsets below 8 KiB. The vehicle
+    sends it only for bytes it sends the first time, of an image topside has heard announced."""
+
+    slot: int
+    offset: int
     data: bytes
 
 

@@ -20,6 +20,7 @@ from coex_core.messages import (
     ImageByTimeRequest,
     ImageFragment,
     ImageGoal,
+    ImageShortFragment,
     TimeDirection,
     TransferProgress,
 )
@@ -174,7 +175,7 @@ def test_fragments_fit_any_mtu(mtu: int, img: np.ndarray) -> None:
     s.ingest(img, 0.0)
     t = Transfer(s, r, mtu=mtu)  # wire.pack raises if a frame exceeds the MTU
     t.run(lambda: not s.order(), 5000)
-    frags = [e.message for e in t.events if isinstance(e.message, ImageFragment)]
+    frags = [e.message for e in t.events if isinstance(e.message, ImageFragment | ImageShortFragment)]
     assert frags and all(wire.encoded_size(f) <= mtu - 3 for f in frags)
     rx = r.images[0]
     assert rx.have.all() and bytes(rx.buf) == s.images[0].enc.body
@@ -196,8 +197,8 @@ def test_announce_then_default_set_point_in_capture_order() -> None:
     t.run(lambda: not s.order(), 2000)
     order = [1]
     for e in t.events:
-        if isinstance(e.message, ImageFragment) and e.message.image_id not in order:
-            order.append(e.message.image_id)
+        if isinstance(e.message, ImageFragment | ImageShortFragment) and s.image_of(e.message) not in order:
+            order.append(s.image_of(e.message))
     assert order == [1, 2, 0]
     for image_id, tx in s.images.items():
         assert r.images[image_id].contiguous() >= tx.goal > 0

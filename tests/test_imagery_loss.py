@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from coex_core.acoustic import GilbertElliott
-from coex_core.messages import ImageFragment
+from coex_core.messages import ImageFragment, ImageShortFragment
 from coex_plugins.imagery import ImageInput, ImageryModality, ImageryReceiver, ImagerySender
 from coex_plugins.imagery.codec import psnr
 from coex_plugins.imagery.sim import Bernoulli, Burst, LossModel, Transfer
@@ -82,10 +82,10 @@ def test_burst_loss_with_lost_acks(seed: int) -> None:
 
 def test_resends_only_what_is_missing() -> None:
     s, _r, t = _scenario(Bernoulli(0.3, 9), Bernoulli(0.3, 10), 3000)
-    sent = sum(len(e.message.data) for e in t.events if isinstance(e.message, ImageFragment))
+    frags = ImageFragment | ImageShortFragment
+    sent = sum(len(e.message.data) for e in t.events if isinstance(e.message, frags))
     needed = sum(tx.goal for tx in s.images.values())
-    delivered = sum(len(e.message.data) for e in t.events
-                    if isinstance(e.message, ImageFragment) and not e.lost)
+    delivered = sum(len(e.message.data) for e in t.events if isinstance(e.message, frags) and not e.lost)
     # with 30 % loss each way a go-back-N sender would resend far more
     assert sent < 2.0 * needed, (sent, needed)
     assert delivered >= needed

@@ -15,9 +15,11 @@ from coex_core.messages import (
     ImageCrop,
     ImageFragment,
     ImageRegionRequest,
+    ImageShortFragment,
+    Message,
     RegionGoal,
 )
-from coex_plugins.imagery import ImageInput, ImageryModality, codec
+from coex_plugins.imagery import ImageInput, ImageryModality, ImagerySender, codec
 from coex_plugins.imagery._regions import decoded
 from coex_plugins.imagery.sender import BRIDGE_BYTES, _bridge, packet_layers
 from coex_plugins.imagery.sim import Transfer, region_transfer
@@ -65,7 +67,7 @@ def test_a_quality_region_reaches_its_quality_inside_with_only_its_packets(frame
     inside = codec.region_packets(enc.stream, enc.width, enc.height, BOX)
     sent = np.zeros(len(enc.body), bool)
     for e in t.events[start:]:
-        if isinstance(e.message, ImageFragment):
+        if isinstance(e.message, ImageFragment | ImageShortFragment) and s.image_of(e.message) == 0:  # type: ignore[attr-defined]
             sent[e.message.offset:e.message.offset + len(e.message.data)] = True
     starts = enc.packet_starts
     ends = np.append(starts[1:], len(enc.body))
@@ -157,6 +159,15 @@ def test_coex_image_region_writes_before_after_and_the_bytes(tmp_path: object, f
 # ------------------------------------------------------------------ crops
 
 
+def _plain(sender: ImagerySender, m: Message) -> Message:
+    """A short fragment the sender sent as the ImageFragment it stands for (its image named)."""
+    if isinstance(m, ImageShortFragment):
+        image_id = sender.image_of(m)
+        assert image_id is not None
+        return ImageFragment(image_id, m.offset, None, (), m.data)
+    return m
+
+
 def _inside(image: np.ndarray, box: tuple[int, int, int, int]) -> np.ndarray:
     x0, y0, x1, y1 = box
     return image[y0:y1, x0:x1]
@@ -178,7 +189,7 @@ def test_a_crop_brings_the_region_to_its_quality_for_fewer_bytes_than_its_packet
     (ann,) = {m for m in sent if isinstance(m, ImageCrop)}
     assert (ann.parent, (ann.x0, ann.y0, ann.x1, ann.y1), ann.base) == (0, BOX, 0)
     assert ann.image_id == crop.crop.image_id != 0 and ann.command_id == crop.request.command_id
-    frags = [m for m in sent if isinstance(m, ImageFragment)]
+    frags = [_plain(crop.sender, m) for m in sent if isinstance(m, ImageFragment | ImageShortFragment)]
     assert {f.image_id for f in frags} == {ann.image_id}  # nothing of the parent's body
     # the crop is listed as an image-crop product, the parent shows it; outside the box nothing changed
     (cp,) = [p for p in crop.receiver.products() if p.kind == "image-crop"]
@@ -222,8 +233,8 @@ def test_a_crop_arrives_through_loss(frame: np.ndarray, seed: int) -> None:
     image's, so lost fragments are sent again until topside holds the whole crop."""
     run = region_transfer(frame, BOX, "quality", 35.0, mtu=96, base="layer:1", loss=0.4, seed=seed)
     assert run.crop is not None and run.region["served"] == "crop"
-    lost = [e for e in run.transfer.events if e.lost and isinstance(e.message, ImageFragment)
-            and e.message.image_id == run.crop.image_id]
+    lost = [e for e in run.transfer.events if e.lost and isinstance(e.message, ImageFragment | ImageShortFragment)
+            and run.sender.image_of(e.message) == run.crop.image_id]
     assert lost, "no crop fragment was lost: the test proves nothing"
     assert run.region["crop"]["complete"] and run.region["crop"]["shown"]
     assert run.sender.images[run.crop.image_id].acked.all()
@@ -295,16 +306,14 @@ def test_a_crop_announced_before_its_fragments_or_after_them(frame: np.ndarray) 
     that is then reused by a new image is forgotten with it."""
     run = region_transfer(frame, BOX, "quality", 33.0, mtu=128)
     assert run.crop is not None
-    sent = [e.message for e in run.transfer.events if e.direction == "down"]
+    sent = [_plain(run.sender, e.message) for e in run.transfer.events if e.direction == "down"]
     ann = next(m for m in sent if isinstance(m, ImageCrop))
     frags = [m for m in sent if isinstance(m, ImageFragment) and m.image_id == ann.image_id]
     m = ImageryModality()
     r = m.receiver({})
-    for msg in [e.message for e in run.transfer.events if e.direction == "down"
-                and not isinstance(e.message, ImageCrop | ImageFragment)]:
+    for msg in [m for m in sent if not isinstance(m, ImageCrop | ImageFragment)]:
         r.receive(msg, run.transfer.now)
-    parent = [e.message for e in run.transfer.events if e.direction == "down"
-              and isinstance(e.message, ImageFragment) and e.message.image_id == 0]
+    parent = [m for m in sent if isinstance(m, ImageFragment) and m.image_id == 0]
     for f in frags + parent:
         r.receive(f, run.transfer.now)
     assert r.image(0) is None or not np.array_equal(r.image(0), run.after)

@@ -17,11 +17,12 @@ from typing import Any
 import pytest
 
 from coex_core import wire
-from coex_core.errors import DecodeError
+from coex_core.errors import ConfigError, DecodeError
 from coex_core.messages import (
     FrameAck,
     ImageAck,
     ImageFragment,
+    ImageShortFragment,
     MapRoiRequest,
     SubgridMessage,
 )
@@ -126,7 +127,12 @@ def test_kill_and_restart_both_sides_at_random_moments(tmp_path: Path, lcm_uri: 
         deadline = epoch + 9000.0 / SPEED
         while True:
             time.sleep(4.0)
-            d = both(vdb, tdb)
+            try:
+                d = both(vdb, tdb)
+            except ConfigError:  # read while a node wrote its next snapshot (no read transaction)
+                if time.time() > deadline:
+                    break
+                continue
             if converged(d) or time.time() > deadline:
                 break
     finally:
@@ -176,6 +182,8 @@ def test_kill_and_restart_both_sides_at_random_moments(tmp_path: Path, lcm_uri: 
         if r.kind == "tx":
             keys = {(msg.level, msg.ix, msg.iy, msg.stamp) for msg in frame.messages if isinstance(msg, SubgridMessage)}
             for msg in frame.messages:
+                if isinstance(msg, ImageShortFragment):  # a first send, never after an ack
+                    image_bytes += len(msg.data)
                 if isinstance(msg, ImageFragment):
                     image_bytes += len(msg.data)
                     a, b = msg.offset, msg.offset + len(msg.data)

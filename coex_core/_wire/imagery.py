@@ -14,6 +14,7 @@ from ..messages import (
     ImageFragment,
     ImageGoal,
     ImageRegionRequest,
+    ImageShortFragment,
     RegionGoal,
     TimeDirection,
     TransferProgress,
@@ -87,6 +88,21 @@ IMAGE_FRAGMENT = Body(
          and all(p <= len(ctx.data) for p in ctx.packets),
          "the `packets` entries are not strictly increasing, or one is above the number of `data` bytes",
          "out of order"),
+)
+
+#: The short fragment (type 40): the image by its id modulo 2**SHORT_SLOT_BITS among the newest
+#: ids announced, offsets below 2**SHORT_OFFSET_BITS, at most SHORT_MAX_DATA bytes; 3 header bytes.
+SHORT_SLOT_BITS = 5
+SHORT_OFFSET_BITS = 13
+SHORT_MAX_DATA = 64
+
+IMAGE_SHORT_FRAGMENT = Body(
+    "slot" / Bounded(0, 2**SHORT_SLOT_BITS - 1)
+    * f"The image: its id modulo {2**SHORT_SLOT_BITS}, among the {2**SHORT_SLOT_BITS} newest ids announced "
+    "(spec/payloads.md 3.3)",
+    "offset" / Bounded(0, 2**SHORT_OFFSET_BITS - 1, unit="B") * "Offset of data in the codestream body",
+    "n_data" / Count(1, SHORT_MAX_DATA, "data"),
+    "data" / RawBytes(max_len=SHORT_MAX_DATA, count="n_data") * "Codestream bytes",
 )
 
 BYTE_RANGE = cs.Struct(
@@ -180,6 +196,16 @@ register(MessageSpec(
         ("first_far_offset", ImageFragment(17, 4096, 40, (3,), bytes(range(50)))),
         ("largest", _BIG_FRAG),
         ("largest_plain", _BIG_PLAIN),
+    ],
+))
+register(MessageSpec(
+    40, ImageShortFragment, IMAGE_SHORT_FRAGMENT, False, "imagery",
+    "Bytes of the codestream body of one of the newest images, for small frames (no packet marks).",
+    largest=lambda: ImageShortFragment(31, 2**SHORT_OFFSET_BITS - 1, b"\xff" * SHORT_MAX_DATA),
+    cases=lambda: [
+        ("one_byte", ImageShortFragment(0, 0, b"\x00")),
+        ("mtu_64", ImageShortFragment(17, 1140, bytes(range(57)))),
+        ("largest", ImageShortFragment(31, 2**SHORT_OFFSET_BITS - 1, b"\xff" * SHORT_MAX_DATA)),
     ],
 ))
 register(MessageSpec(

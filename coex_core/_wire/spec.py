@@ -470,7 +470,7 @@ def _invalid_cases() -> list[tuple[str, str, bytes, str]]:
         ("end_marker_alone", "message", b"\x00", "unknown message type"),
         ("unassigned_builtin_id", "message", b"\x3f\x00", "unknown message type"),
         ("unassigned_bathymetry_id", "message", b"\x15\x00", "unknown message type"),
-        ("unassigned_imagery_id", "message", b"\x28\x00", "unknown message type"),
+        ("unassigned_imagery_id", "message", b"\x29\x00", "unknown message type"),
         ("unassigned_timeseries_id", "message", b"\x34\x00", "unknown message type"),
         ("reserved_id", "message", b"\x40\x00", "unknown message type"),
         ("overlong_type_id", "message", b"\x80\x06\x00\x00", "over-long"),

@@ -23,6 +23,7 @@ from coex.messages import (
     ImageFragment,
     ImageGoal,
     ImageRegionRequest,
+    ImageShortFragment,
     Message,
     TransferProgress,
 )
@@ -41,7 +42,8 @@ class ImageryModality(Modality):
 
     name: ClassVar[str] = "imagery"
     version: ClassVar[str] = "1.0"
-    messages: ClassVar[tuple[type[Message], ...]] = (ImageAnnounce, ImageFragment, TransferProgress, ImageCrop)
+    messages: ClassVar[tuple[type[Message], ...]] = (ImageAnnounce, ImageFragment, TransferProgress, ImageCrop,
+                                                     ImageShortFragment)
     requests: ClassVar[tuple[type[Message], ...]] = (ImageAck, ImageGoal, ImageByTimeRequest, ImageRegionRequest)
     #: acks of data: handled without expediting the stream
     routine: ClassVar[tuple[type[Message] | int, ...]] = (ImageAck,)

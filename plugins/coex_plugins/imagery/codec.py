@@ -22,7 +22,7 @@ import itertools
 import os
 import tempfile
 import warnings
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -31,10 +31,15 @@ import numpy.typing as npt
 
 from coex import ConfigError, DecodeError, persistent
 
+from ._stream import PRECINCTS, PROGRESSIONS, StreamParams, packet_order, params_code, parse_params
+from .tighten import tighten
+
 __all__ = [
     "CodingParams",
     "Encoded",
+    "PRECINCTS",
     "PROGRESSIONS",
+    "StreamParams",
     "add_residual",
     "assemble",
     "decode_packets",
@@ -49,10 +54,6 @@ __all__ = [
     "to_grey",
 ]
 
-PROGRESSIONS = ("LRCP", "RLCP", "RPCL", "PCRL", "CPRL")
-#: Precinct sizes by ``params`` code (bits 14..13): 0 = one precinct per resolution, else square
-#: precincts of this many samples at every resolution (only with LRCP or RLCP).
-PRECINCTS = (0, 256, 128, 512)
 MAX_LAYERS = 32
 MAX_RESOLUTIONS = 8
 #: The body of one image never exceeds this (the wire offset field has 20 bits).
@@ -109,6 +110,9 @@ class CodingParams:
     max_size: int = 1024
     precincts: int = DEFAULT_PRECINCTS
     layer_psnr: tuple[float, ...] | None = None
+    #: with quality marks, end each layer at the fewest bytes that still reach its mark, inside
+    #: a coding pass if need be (:mod:`.tighten`); false: where OpenJPEG ends it
+    tighten: bool = True
 
     def __post_init__(self) -> None:
         if self.progression not in PROGRESSIONS:
@@ -149,7 +153,7 @@ class CodingParams:
             return cls()
         kw: dict[str, Any] = {}
         for key in ("progression", "resolutions", "layer_bytes", "irreversible", "grey", "max_size",
-                    "precincts", "layer_psnr"):
+                    "precincts", "layer_psnr", "tighten"):
             if key in config:
                 kw[key] = config[key]
         try:
@@ -167,100 +171,11 @@ class CodingParams:
                     float(m) for m in v)
             if "progression" in kw:
                 kw["progression"] = str(kw["progression"]).upper()
+            if "tighten" in kw and not isinstance(kw["tighten"], bool):
+                raise ConfigError(f"tighten must be true or false, got {kw['tighten']!r}")
         except (TypeError, ValueError) as exc:
             raise ConfigError(f"invalid coding parameter: {exc}") from exc
         return cls(**kw)
-
-
-def params_code(progression: str, resolutions: int, layers: int, irreversible: bool, colour: bool,
-                precincts: int = 0) -> int:
-    """The 15-bit code sent in ``ImageAnnounce.params``.
-
-    Bits (MSB first): precinct size code (2, :data:`PRECINCTS`), progression index (3),
-    resolutions - 1 (3), layers - 1 (5), irreversible 9/7 wavelet (1), colour with
-    multi-component transform (1)."""
-    p = PROGRESSIONS.index(progression)
-    return ((PRECINCTS.index(precincts) << 13) | (p << 10) | ((resolutions - 1) << 7) | ((layers - 1) << 2)
-            | (int(irreversible) << 1) | int(colour))
-
-
-@persistent("imagery.StreamParams")
-@dataclass(frozen=True)
-class StreamParams:
-    """Decoded ``params`` code."""
-
-    progression: str
-    resolutions: int
-    layers: int
-    irreversible: bool
-    colour: bool
-    #: precinct size in samples at every resolution (0: one precinct per resolution)
-    precincts: int = 0
-
-    @property
-    def components(self) -> int:
-        return 3 if self.colour else 1
-
-    def precinct_grid(self, width: int, height: int) -> list[tuple[int, int]]:
-        """Precincts across and down at each resolution (0 = lowest) of a ``width x height`` image."""
-        out = []
-        for r in range(self.resolutions):
-            s = 1 << (self.resolutions - 1 - r)
-            w, h = -(-width // s), -(-height // s)
-            if self.precincts:
-                out.append((-(-w // self.precincts), -(-h // self.precincts)))
-            else:
-                out.append((1, 1))
-        return out
-
-    def n_packets(self, width: int, height: int) -> int:
-        """Packets in the body of a ``width x height`` image."""
-        per_layer = sum(nx * ny for nx, ny in self.precinct_grid(width, height))
-        return self.layers * per_layer * self.components
-
-
-def parse_params(code: int) -> StreamParams:
-    """Inverse of :func:`params_code`; raises :class:`DecodeError` for an invalid code."""
-    if not 0 <= code < 1 << 15:
-        raise DecodeError(f"image params code {code} out of range")
-    p = (code >> 10) & 7
-    if p >= len(PROGRESSIONS):
-        raise DecodeError(f"image params code {code:#x}: unknown progression {p}")
-    precincts = PRECINCTS[code >> 13]
-    if precincts and PROGRESSIONS[p] not in ("LRCP", "RLCP"):
-        raise DecodeError(f"image params code {code:#x}: precincts with progression {PROGRESSIONS[p]}")
-    return StreamParams(
-        PROGRESSIONS[p], ((code >> 7) & 7) + 1, ((code >> 2) & 31) + 1, bool(code >> 1 & 1), bool(code & 1),
-        precincts,
-    )
-
-
-@functools.lru_cache(maxsize=64)
-def _packet_order(sp: StreamParams, width: int, height: int) -> npt.NDArray[np.int64]:
-    grid = sp.precinct_grid(width, height)
-    if not sp.precincts:
-        dims = {"L": sp.layers, "R": sp.resolutions, "C": sp.components, "P": 1}
-        grids = np.meshgrid(*[np.arange(dims[c]) for c in sp.progression], indexing="ij")
-        cols = {c: g.ravel() for c, g in zip(sp.progression, grids, strict=True)}
-        out = np.stack([cols["L"], cols["R"], cols["C"], cols["P"]], axis=1).astype(np.int64)
-    else:  # LRCP or RLCP: precincts innermost, in raster order, their count depends on r
-        rows: list[tuple[int, int, int, int]] = []
-        outer = [(layer, r) for layer in range(sp.layers) for r in range(sp.resolutions)]
-        if sp.progression == "RLCP":
-            outer = [(layer, r) for r in range(sp.resolutions) for layer in range(sp.layers)]
-        for layer, r in outer:
-            nx, ny = grid[r]
-            for c in range(sp.components):
-                rows.extend((layer, r, c, p) for p in range(nx * ny))
-        out = np.array(rows, np.int64).reshape(-1, 4)
-    out.setflags(write=False)
-    return out
-
-
-def packet_order(sp: StreamParams, width: int = 1, height: int = 1) -> npt.NDArray[np.int64]:
-    """``(n_packets, 4)`` array of (layer, resolution, component, precinct) in codestream order
-    for a ``width x height`` image (precincts in raster order within their resolution)."""
-    return _packet_order(sp, int(width), int(height))
 
 
 def region_packets(sp: StreamParams, width: int, height: int, box: tuple[int, int, int, int],
@@ -523,16 +438,29 @@ def layer_psnrs(data: npt.NDArray[np.uint8], code: int, body: bytes, lengths: Se
     layer_of = packet_order(sp, w, h)[:, 0]
     ends = np.cumsum(lengths)
     starts = ends - np.asarray(lengths)
+    quality = _quality(data, base, reference)
     out = []
     for k in range(sp.layers - 1 if last_only else 0, sp.layers):
         pk = [body[int(a):int(b)] if layer_of[i] <= k else None
               for i, (a, b) in enumerate(zip(starts, ends, strict=True))]
-        decoded = decode_packets(code, w, h, pk)
-        if base is None:
-            out.append(psnr(decoded, data))
-        else:
-            out.append(psnr(add_residual(base, decoded), data if reference is None else reference))
+        out.append(quality(code, pk))
     return out
+
+
+def _quality(data: npt.NDArray[np.uint8], base: npt.NDArray[np.uint8] | None = None,
+             reference: npt.NDArray[np.uint8] | None = None) -> Callable[[int, Sequence[bytes | None]], float]:
+    """The PSNR (dB) of the image decoded from packets of ``data``'s encode (a params code and
+    the packets), against ``data``; with ``base``, ``data`` is a residual (:func:`residual`): the
+    PSNR is that of ``add_residual(base, decoded)`` against ``reference``."""
+    h, w = data.shape[:2]
+
+    def quality(code: int, packets: Sequence[bytes | None]) -> float:
+        decoded = decode_packets(code, w, h, packets)
+        if base is None:
+            return psnr(decoded, data)
+        return psnr(add_residual(base, decoded), data if reference is None else reference)
+
+    return quality
 
 
 def residual(original: npt.NDArray[Any], base: npt.NDArray[Any]) -> npt.NDArray[np.uint8]:
@@ -682,6 +610,9 @@ def _encode(data: npt.NDArray[np.uint8], cp: CodingParams, base: npt.NDArray[np.
         targets = list(cp.layer_bytes)
     code = params_code(cp.progression, res, len(targets), cp.irreversible, colour, cp.precincts)
     body, lengths = _encode_body(data, code, targets)
+    if cp.layer_psnr and cp.tighten:
+        body, lengths = tighten(code, w, h, body, cp.layer_psnr, _quality(data, base, reference),
+                                _digest(data) + _digest(base) + _digest(reference))
     starts = np.concatenate([[0], np.cumsum(lengths[:-1], dtype=np.int64)]).astype(np.int64)
     return Encoded(body, starts, code, w, h, not colour, data)
 

@@ -51,16 +51,18 @@ error is a :class:`DecodeError`.
 from __future__ import annotations
 
 import functools
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
 
 import numpy as np
 import numpy.typing as npt
 
 from coex import DecodeError
 
-from .codec import StreamParams, packet_order, parse_params
+from ._stream import StreamParams, packet_order, parse_params
 
-__all__ = ["PacketParser", "packet_lengths", "precinct_codeblocks"]
+__all__ = ["CodeBlock", "CodeBlocks", "PacketParser", "code_blocks", "packet_lengths", "precinct_codeblocks",
+           "write_packets"]
 
 #: Code-block size exponent (COD: exponents 4, 4 -> 2^6 = 64 samples).
 _CBLK_EXP = 6
@@ -242,14 +244,18 @@ def _num_passes(rd: _Bits) -> int:
     return 37 + rd.bits(7)
 
 
-def _read_header(bands: list[_Band], layer: int, rd: _Bits) -> int:
-    """Read one packet header (state updated in place); return the sum of contribution lengths."""
+def _read_header(bands: list[_Band], layer: int, rd: _Bits,
+                 record: list[tuple[int, int, int, int, int]] | None = None) -> int:
+    """Read one packet header (state updated in place); return the sum of contribution lengths.
+    With ``record``, append each contribution: (band, code-block, zero bit-planes or -1 when
+    included before, passes, bytes), in the order their bytes follow the header."""
     if not rd.bit():
         return 0  # empty packet (B.10.3)
     total = 0
-    for band in bands:
+    for b, band in enumerate(bands):
         included, lblock, passes, paths = band.included, band.lblock, band.passes, band.paths
         for k in range(band.n):
+            zero = -1
             if included[k]:
                 if not rd.bit():
                     continue
@@ -262,6 +268,7 @@ def _read_header(bands: list[_Band], layer: int, rd: _Bits) -> int:
                     if i > _MAX_ZERO_PLANES:
                         raise DecodeError(f"packet header: more than {_MAX_ZERO_PLANES} zero bit-planes")
                 included[k] = True
+                zero = i - 1
             n = _num_passes(rd)
             passes[k] += n
             if passes[k] > _MAX_PASSES:
@@ -270,7 +277,10 @@ def _read_header(bands: list[_Band], layer: int, rd: _Bits) -> int:
                 lblock[k] += 1
                 if lblock[k] > _MAX_LBLOCK:
                     raise DecodeError(f"packet header: Lblock above {_MAX_LBLOCK}")
-            total += rd.bits(lblock[k] + n.bit_length() - 1)
+            length = rd.bits(lblock[k] + n.bit_length() - 1)
+            total += length
+            if record is not None:
+                record.append((b, k, zero, n, length))
     return total
 
 
@@ -396,3 +406,264 @@ def packet_lengths(params: int | StreamParams, width: int, height: int, body: by
     if not pp.done:  # cannot happen with every byte held, but be explicit
         raise DecodeError("body ends before its last packet")
     return np.diff(np.append(starts, len(body))).astype(np.int64)
+
+
+# ------------------------------------------------------------------ code-blocks and the writer
+
+#: A code-block of a body: (resolution, component, precinct, band in the precinct, index in the
+#: band's raster order).
+CodeBlock = tuple[int, int, int, int, int]
+
+
+@dataclass(frozen=True)
+class CodeBlocks:
+    """What the packets of a body say about each code-block that contributes to it: its
+    codeword (the bytes of all its contributions, in order), its zero bit-planes, and after each
+    layer ``l`` the passes and codeword bytes included so far (``cum[cb][l]``)."""
+
+    layers: int
+    data: dict[CodeBlock, bytes]
+    zero: dict[CodeBlock, int]
+    cum: dict[CodeBlock, list[tuple[int, int]]]
+
+    def allocation(self, layer: int) -> dict[CodeBlock, tuple[int, int]]:
+        """``{code-block: (passes, bytes)}`` included up to and with ``layer`` (0 = the first)."""
+        return {cb: c[layer] for cb, c in self.cum.items() if c[layer][0] > 0}
+
+
+def code_blocks(params: int | StreamParams, width: int, height: int, body: bytes | bytearray) -> CodeBlocks:
+    """Every contribution of a complete body, by code-block (raises :class:`DecodeError` if it
+    is not a body of these parameters)."""
+    sp = params if isinstance(params, StreamParams) else parse_params(int(params))
+    order = packet_order(sp, width, height)
+    state: dict[tuple[int, int, int], list[_Band]] = {}
+    data: dict[CodeBlock, bytearray] = {}
+    zero: dict[CodeBlock, int] = {}
+    cum: dict[CodeBlock, list[tuple[int, int]]] = {}
+    pos, total = 0, len(body)
+    for layer, r, c, p in order.tolist():
+        key = (r, c, p)
+        bands = state.get(key)
+        if bands is None:
+            bands = [_Band(w, h) for w, h in _precinct_codeblocks(sp, width, height, r, p) if w * h]
+            state[key] = bands
+        rd = _Bits(body, pos, total, total)
+        record: list[tuple[int, int, int, int, int]] = []
+        try:
+            length = _read_header(bands, layer, rd, record)
+        except _NeedMore:  # cannot happen with every byte held; said plainly
+            raise DecodeError("the body ends inside a packet header") from None
+        pos = rd.align()
+        if pos + length > total:
+            raise DecodeError(f"a packet runs past the end of the body ({total} B)")
+        for b, k, z, n, ln in record:
+            cb = (r, c, p, b, k)
+            if cb not in data:
+                data[cb], zero[cb], cum[cb] = bytearray(), z, [(0, 0)] * sp.layers
+            data[cb] += body[pos:pos + ln]
+            pos += ln
+            passes = (cum[cb][layer - 1][0] if layer else 0) + n
+            for later in range(layer, sp.layers):
+                cum[cb][later] = (passes, len(data[cb]))
+    if pos != total:
+        raise DecodeError(f"the packets end at {pos}, the body has {total} B")
+    return CodeBlocks(sp.layers, {cb: bytes(d) for cb, d in data.items()}, zero, cum)
+
+
+class _Writer:
+    """Packet header bit writer (B.10.1): MSB first, a 0 bit stuffed after every ``FF`` byte."""
+
+    __slots__ = ("byte", "ct", "out")
+
+    def __init__(self) -> None:
+        self.out = bytearray()
+        self.byte = 0
+        self.ct = 8  # bits still free in ``byte``
+
+    def bit(self, v: int) -> None:
+        if self.ct == 0:
+            self.out.append(self.byte)
+            self.ct = 7 if self.byte == 0xFF else 8
+            self.byte = 0
+        self.ct -= 1
+        self.byte |= (v & 1) << self.ct
+
+    def bits(self, v: int, n: int) -> None:
+        for i in range(n - 1, -1, -1):
+            self.bit((v >> i) & 1)
+
+    def end(self) -> bytes:
+        """The header's bytes: the last one padded with 0 bits, and a 0 byte after a last ``FF``."""
+        self.out.append(self.byte)
+        if self.byte == 0xFF:
+            self.out.append(0)
+        return bytes(self.out)
+
+
+def _tag_encode(path: Sequence[int], values: list[int], lows: list[int], known: list[bool], threshold: int,
+                wr: _Writer) -> None:
+    """Tag tree coding (B.10.2) of the leaf at the end of ``path`` against ``threshold``."""
+    low = 0
+    for node in path:
+        if low > lows[node]:
+            lows[node] = low
+        else:
+            low = lows[node]
+        while low < threshold:
+            if low >= values[node]:
+                if not known[node]:
+                    wr.bit(1)
+                    known[node] = True
+                break
+            wr.bit(0)
+            low += 1
+        lows[node] = low
+
+
+def _write_passes(n: int, wr: _Writer) -> None:
+    """Number of coding passes (B.10.6, Table B.4)."""
+    if n == 1:
+        wr.bit(0)
+    elif n == 2:
+        wr.bits(0b10, 2)
+    elif n <= 5:
+        wr.bits(0b11, 2)
+        wr.bits(n - 3, 2)
+    elif n <= 36:
+        wr.bits(0b1111, 4)
+        wr.bits(n - 6, 5)
+    else:
+        wr.bits(0b1111_11111, 9)
+        wr.bits(n - 37, 7)
+
+
+class _BandWriter:
+    """The header state of one band of one precinct while writing: its two tag trees (values,
+    lower bounds sent, nodes known) and per code-block whether it was included and its ``Lblock``."""
+
+    __slots__ = ("incl", "incl_known", "incl_lo", "included", "lblock", "msb", "msb_known", "msb_lo", "paths")
+
+    def __init__(self, w: int, h: int, first: Mapping[int, int], zero: Mapping[int, int]) -> None:
+        nodes, self.paths = _tree_paths(w, h)
+        self.incl, self.msb = [_INF] * nodes, [_INF] * nodes
+        for k, path in enumerate(self.paths):
+            f = first.get(k)
+            if f is None:
+                continue
+            for node in path:  # a node's value is the least of its leaves' (those included)
+                self.incl[node] = min(self.incl[node], f)
+                self.msb[node] = min(self.msb[node], zero[k])
+        self.incl_lo, self.incl_known = [0] * nodes, [False] * nodes
+        self.msb_lo, self.msb_known = [0] * nodes, [False] * nodes
+        self.included, self.lblock = [False] * (w * h), [3] * (w * h)
+
+    def snapshot(self) -> tuple[list[int], list[bool], list[int], list[bool], list[bool], list[int]]:
+        return (self.incl_lo[:], self.incl_known[:], self.msb_lo[:], self.msb_known[:], self.included[:],
+                self.lblock[:])
+
+    def restore(self, s: tuple[list[int], list[bool], list[int], list[bool], list[bool], list[int]]) -> None:
+        self.incl_lo, self.incl_known, self.msb_lo, self.msb_known, self.included, self.lblock = s
+
+
+class _PrecinctWriter:
+    """The header state of one precinct while writing (a :class:`_BandWriter` per band)."""
+
+    def __init__(self, geometry: Sequence[tuple[int, int]], first: Mapping[int, Mapping[int, int]],
+                 zero: Mapping[int, Mapping[int, int]]) -> None:
+        self.bands = [_BandWriter(w, h, first.get(b, {}), zero.get(b, {})) for b, (w, h) in enumerate(geometry)]
+
+    def header(self, layer: int, contributions: Mapping[tuple[int, int], tuple[int, int]]) -> bytes:
+        """The header of this precinct's packet of ``layer``: ``contributions`` maps (band,
+        code-block) to (passes, bytes) for the code-blocks in it. A packet without any is written
+        as one saying so code-block by code-block when that fits in its one byte (the inclusion
+        trees then say some of what later packets would; OpenJPEG does so), else as an empty
+        packet."""
+        saved = [band.snapshot() for band in self.bands] if not contributions else []
+        wr = _Writer()
+        self._codeblocks(layer, contributions, wr)
+        out = wr.end()
+        if contributions or len(out) == 1:
+            return out
+        for band, old in zip(self.bands, saved, strict=True):  # as it was: an empty packet
+            band.restore(old)
+        empty = _Writer()
+        empty.bit(0)  # an empty packet (B.10.3)
+        return empty.end()
+
+    def _codeblocks(self, layer: int, contributions: Mapping[tuple[int, int], tuple[int, int]], wr: _Writer) -> None:
+        wr.bit(1)
+        for b, band in enumerate(self.bands):
+            for k in range(len(band.included)):
+                got = contributions.get((b, k))
+                if band.included[k]:
+                    wr.bit(1 if got else 0)
+                else:
+                    _tag_encode(band.paths[k], band.incl, band.incl_lo, band.incl_known, layer + 1, wr)
+                if got is None:
+                    continue
+                if not band.included[k]:
+                    _tag_encode(band.paths[k], band.msb, band.msb_lo, band.msb_known, _INF, wr)
+                    band.included[k] = True
+                n, length = got
+                _write_passes(n, wr)
+                extra = max(0, length.bit_length() - (band.lblock[k] + n.bit_length() - 1))
+                for _ in range(extra):  # Lblock grows (B.10.7.1)
+                    wr.bit(1)
+                wr.bit(0)
+                band.lblock[k] += extra
+                wr.bits(length, band.lblock[k] + n.bit_length() - 1)
+
+
+def write_packets(sp: StreamParams, width: int, height: int, allocations: Sequence[Mapping[CodeBlock, tuple[int, int]]],
+                  blocks: CodeBlocks) -> tuple[bytes, list[int]]:
+    """A body of ``len(allocations)`` layers whose layer ``l`` includes, of each code-block, the
+    passes and codeword bytes ``allocations[l][cb]`` (cumulative: each layer at least the
+    previous; a code-block a layer leaves out has nothing yet), taken from ``blocks``; returns the
+    body and the length of every packet. A layer may end inside a coding pass (fewer bytes than
+    its passes have): a decoder reads the rest of the codeword as 1 bits (T.800 C.3.4), and the
+    next layer that includes the code-block brings the rest of that pass with at least one more
+    pass. ``sp.layers`` is ignored: the layers are the allocations'."""
+    layers = len(allocations)
+    spl = StreamParams(sp.progression, sp.resolutions, layers, sp.irreversible, sp.colour, sp.precincts)
+    first: dict[tuple[int, int, int], dict[int, dict[int, int]]] = {}
+    zero: dict[tuple[int, int, int], dict[int, dict[int, int]]] = {}
+    for layer, alloc in enumerate(allocations):
+        for (r, c, p, b, k), (n, _nb) in alloc.items():
+            if n > 0 and k not in first.setdefault((r, c, p), {}).setdefault(b, {}):
+                first[(r, c, p)][b][k] = layer
+                zero.setdefault((r, c, p), {}).setdefault(b, {})[k] = blocks.zero[(r, c, p, b, k)]
+    writers: dict[tuple[int, int, int], _PrecinctWriter] = {}
+    done: dict[CodeBlock, tuple[int, int]] = {}
+    # per layer, per precinct, per (band, code-block): (passes added, first byte, end byte)
+    by_precinct: list[dict[tuple[int, int, int], dict[tuple[int, int], tuple[int, int, int]]]] = []
+    for alloc in allocations:
+        now: dict[tuple[int, int, int], dict[tuple[int, int], tuple[int, int, int]]] = {}
+        for cb, (n, nb) in alloc.items():
+            r, c, p, b, k = cb
+            n0, b0 = done.get(cb, (0, 0))
+            if n > n0:
+                if nb < b0 or nb > len(blocks.data[cb]):
+                    raise ValueError(f"code-block {cb}: bytes {nb} outside {b0}..{len(blocks.data[cb])}")
+                now.setdefault((r, c, p), {})[(b, k)] = (n - n0, b0, nb)
+                done[cb] = (n, nb)
+            elif (n, nb) != (n0, b0):
+                raise ValueError(f"code-block {cb}: a layer adds bytes {b0}..{nb} but no pass")
+        by_precinct.append(now)
+    out = bytearray()
+    lengths: list[int] = []
+    for layer, r, c, p in packet_order(spl, width, height).tolist():
+        key = (r, c, p)
+        wr_state = writers.get(key)
+        if wr_state is None:
+            geometry = [g for g in _precinct_codeblocks(spl, width, height, r, p) if g[0] * g[1]]
+            wr_state = writers[key] = _PrecinctWriter(geometry, first.get(key, {}), zero.get(key, {}))
+        got = by_precinct[layer].get(key, {})
+        packet = bytearray(wr_state.header(layer, {bk: (v[0], v[2] - v[1]) for bk, v in got.items()}))
+        for b, band in enumerate(wr_state.bands):
+            for k in range(len(band.included)):
+                v = got.get((b, k))
+                if v is not None:
+                    packet += blocks.data[(r, c, p, b, k)][v[1]:v[2]]
+        out += packet
+        lengths.append(len(packet))
+    return bytes(out), lengths

@@ -29,6 +29,7 @@ from coex import (
     persistent,
     to_stamp,
     unwrap,
+    wire,
 )
 from coex.messages import (
     AckStatus,
@@ -42,6 +43,7 @@ from coex.messages import (
     ImageFragment,
     ImageGoal,
     ImageRegionRequest,
+    ImageShortFragment,
     Message,
     RegionGoal,
     TimeDirection,
@@ -68,6 +70,8 @@ __all__ = ["RECEIVER_OPTIONS", "ImageryReceiver"]
 MAX_ACK_RANGES = 15
 #: Ids ahead of a new announcement whose older images are forgotten (previous id cycle).
 REUSE_WINDOW = 16
+#: ``ImageShortFragment.slot`` names an image by its id modulo this (spec/payloads.md 3.3)
+SHORT_SLOTS = 1 << wire.SHORT_FRAGMENT_SLOT_BITS
 
 
 def _upgrade_rx(fields: dict[str, Any], saved: int) -> dict[str, Any]:
@@ -173,14 +177,19 @@ RECEIVER_DEFAULTS: dict[str, Any] = RECEIVER_OPTIONS.defaults()
 
 
 def _upgrade_receiver(fields: dict[str, Any], saved: int) -> dict[str, Any]:
-    """Version 1 (CoEx 0.1): no standing requests, no count of refused announcements."""
+    """Version 1 (CoEx 0.1): no standing requests, no count of refused announcements. Version 2
+    (before issue 54): no slots of short fragments (none known: short fragments are ignored
+    until the next announcement of their slot, and the vehicle sends their bytes again in
+    ImageFragments)."""
     if saved < 2:
         fields.setdefault("_waiting", {})
         fields.setdefault("rejected_announces", 0)
+    if saved < 3:
+        fields.setdefault("_slots", {})
     return fields
 
 
-@persistent("imagery.Receiver", version=2, upgrade=_upgrade_receiver, transient=("listeners", "_parsers"))
+@persistent("imagery.Receiver", version=3, upgrade=_upgrade_receiver, transient=("listeners", "_parsers"))
 class ImageryReceiver(ModalityReceiver):
     """Topside side. Configuration keys (all optional): ``max_images`` (256), ``max_early``
     (256), ``ack_limit`` (acks per poll, 4), ``retry`` (seconds between request retries, 60),
@@ -210,6 +219,9 @@ class ImageryReceiver(ModalityReceiver):
         self.rejected_announces = 0
         #: standing by-time requests: command id -> (request, when it was answered PENDING)
         self._waiting: dict[int, tuple[Message, float]] = {}
+        #: slot (image id modulo 32) -> the id of the last announcement received in it (every
+        #: ImageAnnounce and ImageCrop, refused ones too): the image its short fragments are of
+        self._slots: dict[int, int] = {}
         self.out_dir = cfg.get("out_dir")
         self._after_restore()
 
@@ -234,6 +246,8 @@ class ImageryReceiver(ModalityReceiver):
             changed += self._crop(message, now)
         elif isinstance(message, ImageFragment):
             changed += self._fragment(message, now)
+        elif isinstance(message, ImageShortFragment):
+            changed += self._short_fragment(message, now)
         elif isinstance(message, TransferProgress):
             self.progress = message
             self._progress_version += 1
@@ -254,6 +268,9 @@ class ImageryReceiver(ModalityReceiver):
         return changed
 
     def _announce(self, ann: ImageAnnounce, now: float, crop: ImageCrop | None = None) -> list[Product]:
+        # every announcement takes its slot, a refused one too (spec/payloads.md 3.3): the
+        # vehicle counts on the last one it sent in a slot being the last topside received
+        self._slots[ann.image_id % SHORT_SLOTS] = ann.image_id
         self._ack_due[ann.image_id] = None
         old = self.images.get(ann.image_id)
         if old is not None and (old.ann == ann if crop is None else old.crop == crop):
@@ -341,6 +358,15 @@ class ImageryReceiver(ModalityReceiver):
             rx.starts[idx] = frag.offset + marks
         self._parse(frag.image_id, rx)
         return self._update(rx)
+
+    def _short_fragment(self, frag: ImageShortFragment, now: float) -> list[Product]:
+        """A short fragment (spec/payloads.md 3.3) is of the image of the last announcement
+        received in its slot; ignored (and counted) when there is none or it is not held."""
+        image_id = self._slots.get(frag.slot)
+        if image_id is None or image_id not in self.images:
+            self.rejected_fragments += 1
+            return []
+        return self._fragment(ImageFragment(image_id, frag.offset, None, (), frag.data), now)
 
     def _parse(self, image_id: int, rx: _Rx) -> None:
         """Packet starts from the packet headers of the held bytes (spec/payloads.md 3.3): data

@@ -47,6 +47,7 @@ from coex.messages import (
     ImageFragment,
     ImageGoal,
     ImageRegionRequest,
+    ImageShortFragment,
     Message,
     RegionGoal,
     TimeDirection,
@@ -54,6 +55,9 @@ from coex.messages import (
 )
 from coex.options import anything, flag, integer, number, text
 from coex.wire import (
+    SHORT_FRAGMENT_MAX_DATA,
+    SHORT_FRAGMENT_OFFSET_BITS,
+    SHORT_FRAGMENT_SLOT_BITS,
     encoded_size,
 )
 
@@ -88,6 +92,20 @@ MAX_MESSAGE = 251
 MAX_NEXT = 8
 #: on a low link a requested image's bytes go at most this many times before an ack
 LOW_COPIES = 2
+#: ``ImageShortFragment``: slots (image id modulo this), offsets below this, data at most this
+SHORT_SLOTS = 1 << SHORT_FRAGMENT_SLOT_BITS
+SHORT_OFFSETS = 1 << SHORT_FRAGMENT_OFFSET_BITS
+SHORT_MAX_DATA = SHORT_FRAGMENT_MAX_DATA
+#: a short fragment's type id and header
+SHORT_HEAD = encoded_size(ImageShortFragment(0, 0, b"\0")) - 1
+#: seconds a frame may still be on its way (across links) after the sender made it: an image
+#: takes its slot for short fragments cleanly only this long after another image's announcement
+#: in that slot was last sent (spec/payloads.md 3.3)
+SHORT_HORIZON = 60.0
+#: short fragments remembered with their image, for the channel's acked / lost
+SHORT_RECORDS = 1024
+
+
 @persistent("imagery.ImageInput")
 @dataclass(frozen=True)
 class ImageInput:
@@ -114,7 +132,7 @@ class Frame:
 
 #: coding options (:class:`~coex_plugins.imagery.codec.CodingParams` fields)
 CODING_KEYS = ("progression", "resolutions", "layer_bytes", "irreversible", "grey", "max_size", "precincts",
-               "layer_psnr")
+               "layer_psnr", "tighten")
 #: the imagery sender's options: the one declaration of their types, ranges and units (the
 #: coding options, None by default, take CodingParams' defaults and are checked there too)
 SENDER_OPTIONS = Options(
@@ -126,6 +144,7 @@ SENDER_OPTIONS = Options(
     max_size=integer(None, "largest image side, in pixels (CodingParams)", lo=1, none=True),
     precincts=integer(None, "precinct size, 0: none (CodingParams)", lo=0, none=True),
     layer_psnr=anything(None, "the quality layers' PSNR targets (CodingParams)"),
+    tighten=flag(None, "quality layers tightened to their marks (CodingParams)"),
     default_goal=anything("layer:2", "how far each image is sent unasked (a goal: layer:N, psnr:DB ...)"),
     request_goal=anything(None, "how far a requested image is sent (None: default_goal)"),
     max_images=integer(64, "images held", lo=1, hi=512),
@@ -137,6 +156,7 @@ SENDER_OPTIONS = Options(
     max_standing=integer(8, "standing requests kept", lo=0),
     marks=text("auto", "mark detections on the images", choices=("auto", "always")),
     crops=text("auto", "send crops around detections", choices=("auto", "never", "always")),
+    short_fragments=flag(True, "bytes first sent of an image topside heard go in ImageShortFragment (type 40)"),
 )
 #: their defaults (a name kept for 0.x code)
 SENDER_DEFAULTS: dict[str, Any] = SENDER_OPTIONS.defaults()
@@ -146,9 +166,16 @@ def _upgrade_sender(fields: dict[str, Any], saved: int) -> dict[str, Any]:
     """Version 1 (0.1.0 and early 0.2 work) was saved in three shapes: before issue 41 (no
     running background, no low-link flag), before frame fates were kept, before by-time requests
     could stand. Version 2 always has them. Version 3 counts the copies of requested images'
-    announcements (none counted in an older save)."""
+    announcements (none counted in an older save). Version 4 keeps the slots of short fragments
+    (an older save has none: its images take their slots afresh, with their next announcement,
+    and until then send ImageFragments)."""
     out = dict(fields)
     out.setdefault("_announce_sends", {})
+    out.setdefault("short_fragments", True)
+    out.setdefault("_slot_owner", {})
+    out.setdefault("_slot_last", {})
+    out.setdefault("_announced", set())
+    out.setdefault("_shorts", deque(maxlen=SHORT_RECORDS))
     if "_low" not in out:
         out.setdefault("_backdrop", None)
         out["_low"] = False
@@ -162,7 +189,7 @@ def _upgrade_sender(fields: dict[str, Any], saved: int) -> dict[str, Any]:
     return out
 
 
-@persistent("imagery.Sender", version=3, upgrade=_upgrade_sender)
+@persistent("imagery.Sender", version=4, upgrade=_upgrade_sender)
 class ImagerySender(ModalitySender):
     _last_now: float = float("-inf")
 
@@ -188,6 +215,10 @@ class ImagerySender(ModalitySender):
       cannot find the packets by parsing their headers, i.e. after bytes that will never be sent
       (the packets of a region), and under loss (measured frame loss of 20 % or more: a lost
       fragment then does not hold back the packets after it); ``always``: every fragment.
+    * ``short_fragments`` (true): bytes sent the first time, of an image whose announcement
+      topside heard, go in ``ImageShortFragment`` (3 header bytes instead of 4 or 5) where it
+      carries as much as an ``ImageFragment`` would (frames of up to about 70 bytes), when that
+      image holds its slot (spec/payloads.md 3.3); false: ``ImageFragment`` only.
     """
 
     options = SENDER_OPTIONS
@@ -207,6 +238,7 @@ class ImagerySender(ModalitySender):
         self.max_standing = int(cfg["max_standing"])
         self.marks = str(cfg["marks"])
         self.crops = str(cfg["crops"])
+        self.short_fragments = bool(cfg["short_fragments"])
         self.images: dict[int, _Tx] = {}
         self._next_id = 0
         self._request_counter = 0
@@ -230,6 +262,15 @@ class ImagerySender(ModalitySender):
         self._answers: list[Message] = []
         #: image id -> copies of a requested image's announcement sent since it was last due
         self._announce_sends: dict[int, int] = {}
+        #: short fragments (spec/payloads.md 3.3): slot -> (image id of the last announcement
+        #: sent in it, whether that image took the slot cleanly: its first announcement, at
+        #: least SHORT_HORIZON after another image's in that slot); slot -> when an announcement
+        #: was last sent in it; the ids announced (an id leaves when a new image takes it)
+        self._slot_owner: dict[int, tuple[int, bool]] = {}
+        self._slot_last: dict[int, float] = {}
+        self._announced: set[int] = set()
+        #: the short fragments sent lately, (slot, offset, data bytes, image id), for acked / lost
+        self._shorts: deque[tuple[int, int, int, int]] = deque(maxlen=SHORT_RECORDS)
 
     # ------------------------------------------------------------------ ingest
 
@@ -253,6 +294,7 @@ class ImagerySender(ModalitySender):
         while image_id in self.images:
             image_id = (image_id + 1) % 1024
         self._next_id = (image_id + 1) % 1024
+        self._announced.discard(image_id)  # a new image under this id: never announced
         return image_id
 
     def _evict(self) -> None:
@@ -373,6 +415,7 @@ class ImagerySender(ModalitySender):
             out.append(msg)
             left -= size
             tx.announced_at = now
+            self._claim_slot(tx.image_id, now)
             self._announce_sends[tx.image_id] = self._announce_sends.get(tx.image_id, 0) + 1 if again else 1
             announces += 1
         # 3. data: goals first, then the default set-point in capture order (on a low link the
@@ -385,7 +428,7 @@ class ImagerySender(ModalitySender):
                 if frag is None:
                     break
                 out.append(frag)
-                left -= fragment_size(len(frag.packets), len(frag.data), frag.offset)
+                left -= encoded_size(frag)
                 self._current = tx.image_id
             if left < fragment_size(0, 1):
                 break
@@ -416,11 +459,48 @@ class ImagerySender(ModalitySender):
         unasked (docs/channel.md)."""
         self._low = bool(low)
 
-    def _fate(self, frag: ImageFragment, ok: int) -> None:
+    def _fate(self, frag: ImageFragment | ImageShortFragment, ok: int) -> None:
         """Count a fragment sent once (a repeated one says little about a frame's loss)."""
-        tx = self.images.get(frag.image_id)
+        tx = self.images.get(self._whose(frag))
         if tx is not None and frag.offset < len(tx.sends) and tx.sends[frag.offset] <= 1:
             self._fates.append(ok)
+
+    def image_of(self, frag: ImageFragment | ImageShortFragment) -> int | None:
+        """The id of the image a fragment this sender made is of: an ``ImageFragment`` names it, a
+        short fragment's is remembered for the last SHORT_RECORDS sent (None: not remembered)."""
+        if isinstance(frag, ImageFragment):
+            return frag.image_id
+        key = (frag.slot, frag.offset, len(frag.data))
+        return next((rec[3] for rec in reversed(self._shorts) if rec[:3] == key), None)
+
+    def _whose(self, frag: ImageFragment | ImageShortFragment) -> int:
+        image_id = self.image_of(frag)
+        return -1 if image_id is None else image_id
+
+    def _claim_slot(self, image_id: int, now: float) -> None:
+        """An announcement of ``image_id`` was sent: it holds its slot from now on (topside takes
+        the last announcement it receives in a slot as the slot's image). It took the slot cleanly
+        when it is the image's first announcement and no other image's in that slot was sent in
+        the last SHORT_HORIZON seconds (that one cannot arrive after it); only then may its bytes
+        go in short fragments."""
+        slot = image_id % SHORT_SLOTS
+        owner = self._slot_owner.get(slot)
+        if owner is None or owner[0] != image_id:
+            last = self._slot_last.get(slot)
+            clean = image_id not in self._announced and (last is None or now - last >= SHORT_HORIZON)
+            self._slot_owner[slot] = (image_id, clean)
+            if owner is not None:  # the short fragments of the image it held are not its now
+                kept = [rec for rec in self._shorts if rec[3] != owner[0]]
+                self._shorts.clear()
+                self._shorts.extend(kept)
+        self._slot_last[slot] = now
+        self._announced.add(image_id)
+
+    def _short_ok(self, tx: _Tx) -> bool:
+        """Whether ``tx``'s bytes may go in short fragments: the option is on, topside heard its
+        announcement and it holds its slot, taken cleanly (:meth:`_claim_slot`)."""
+        owner = self._slot_owner.get(tx.image_id % SHORT_SLOTS)
+        return self.short_fragments and tx.heard and owner == (tx.image_id, True)
 
     def acked(self, message: Message, now: float) -> None:
         """A frame that carried a fragment arrived: its bytes are held topside (the ImageAck
@@ -431,7 +511,7 @@ class ImagerySender(ModalitySender):
                 tx.heard = True
             self._announce_sends.pop(message.image_id, None)
             return
-        if isinstance(message, ImageFragment):
+        if isinstance(message, ImageFragment | ImageShortFragment):
             self._fate(message, 1)
             held = self._span(message)
             if held is not None:
@@ -446,7 +526,7 @@ class ImagerySender(ModalitySender):
             if tx is not None and not tx.heard:
                 tx.announced_at = None
             return
-        if isinstance(message, ImageFragment):
+        if isinstance(message, ImageFragment | ImageShortFragment):
             self._fate(message, 0)
             held = self._span(message)
             if held is not None:
@@ -458,10 +538,10 @@ class ImagerySender(ModalitySender):
                     sends = tx.sends
                     sends[span] = np.where(tx.acked[span], sends[span], 0)
 
-    def _span(self, frag: ImageFragment) -> tuple[_Tx, slice] | None:
+    def _span(self, frag: ImageFragment | ImageShortFragment) -> tuple[_Tx, slice] | None:
         """The image a fragment belongs to and the bytes it carried (None: an image no longer
-        held, or bytes outside it)."""
-        tx = self.images.get(frag.image_id)
+        held, a short fragment not remembered, or bytes outside it)."""
+        tx = self.images.get(self._whose(frag))
         end = frag.offset + len(frag.data)
         return None if tx is None or end > tx.total else (tx, slice(frag.offset, end))
 
@@ -482,7 +562,7 @@ class ImagerySender(ModalitySender):
                 if frag is None:
                     break
                 out.append(frag)
-                left -= fragment_size(len(frag.packets), len(frag.data), frag.offset)
+                left -= encoded_size(frag)
             if left < fragment_size(0, 1):
                 break
         return out
@@ -515,7 +595,7 @@ class ImagerySender(ModalitySender):
         return not bool(before.all())
 
     def _fragment(self, tx: _Tx, left: int, now: float, trailing: bool = False,
-                  goal: int | None = None) -> ImageFragment | None:
+                  goal: int | None = None) -> ImageFragment | ImageShortFragment | None:
         want = tx.wanted(goal) & ~tx.acked
         ready = want & (tx.sent_at <= now - self.rto)
         sends = tx.sends
@@ -556,11 +636,26 @@ class ImagerySender(ModalitySender):
                 hi_k = mid - 1
         n = lo_k
         marks = marks_for(n)
-        squeezed = n < min(run, MAX_FRAGMENT_DATA)  # the budget, not the data, limits this fragment
-        if n <= 0 or (trailing and squeezed and n < self.min_fragment):
-            return None  # a tiny fragment at the end of a packet costs more than it carries
-        packet = int(np.searchsorted(starts, pos, side="right")) - 1 if len(marks) else None
-        frag = ImageFragment(tx.image_id, pos, packet, tuple(int(m) for m in marks), tx.enc.body[pos:pos + n])
+        frag: ImageFragment | ImageShortFragment
+        # a short fragment where it carries as much: bytes sent the first time, of an image
+        # topside heard announced that holds its slot, no marks (spec/payloads.md 3.3)
+        short = 0
+        if not marked and pos < SHORT_OFFSETS and self._short_ok(tx):
+            fresh = np.flatnonzero(sends[pos:pos + min(run, SHORT_MAX_DATA)] != 0)
+            short = min(int(fresh[0]) if len(fresh) else min(run, SHORT_MAX_DATA), left - SHORT_HEAD)
+        if short > 0 and short >= n:
+            squeezed = short < min(run, SHORT_MAX_DATA)
+            if trailing and squeezed and short < self.min_fragment:
+                return None
+            n = short
+            frag = ImageShortFragment(tx.image_id % SHORT_SLOTS, pos, tx.enc.body[pos:pos + n])
+            self._shorts.append((frag.slot, pos, n, tx.image_id))
+        else:
+            squeezed = n < min(run, MAX_FRAGMENT_DATA)  # the budget, not the data, limits this fragment
+            if n <= 0 or (trailing and squeezed and n < self.min_fragment):
+                return None  # a tiny fragment at the end of a packet costs more than it carries
+            packet = int(np.searchsorted(starts, pos, side="right")) - 1 if len(marks) else None
+            frag = ImageFragment(tx.image_id, pos, packet, tuple(int(m) for m in marks), tx.enc.body[pos:pos + n])
         tx.sent_at[pos:pos + n] = now
         sends[pos:pos + n] = np.minimum(sends[pos:pos + n], 254) + 1
         self._inflight.append((tx.image_id, pos, pos + n))
