@@ -39,7 +39,8 @@ def register(sub: Any) -> None:
                    help="who operates topside: the scripted operator (default without --gui) or nobody but a "
                         "person at the console (default with --gui)")
     p.add_argument("--images", type=Path, default=None,
-                   help="use real image files from DIR along the camera transect instead of rendered frames")
+                   help="build the simulated sand from real seafloor frames in DIR (e.g. ../shared/data/nui040) "
+                        "instead of the generated texture")
     gui = p.add_mutually_exclusive_group()
     gui.add_argument("--gui", action="store_true", help="serve the live web console during the dive")
     gui.add_argument("--no-gui", dest="gui", action="store_false", help="no web console (default)")
@@ -57,6 +58,9 @@ def register(sub: Any) -> None:
                         "embedded one")
     p.add_argument("--no-auth", action="store_true", help="commands unauthenticated")
     p.add_argument("--quiet", action="store_true", help="no progress bar and no decision log")
+    p.add_argument("--zero-labels", action="store_true",
+                   help="a check: the simulator's per-pixel labels are zeros (frames unchanged), so the referee "
+                        "sees nothing; the operator's decisions must not change (metrics.json verdicts)")
     p.set_defaults(func=run)
 
 
@@ -95,7 +99,7 @@ def run(args: argparse.Namespace) -> int:
     cfg = DemoConfig(out=args.out, loss=args.loss, seed=args.seed, images=args.images, gui=args.gui,
                      http=args.http, quick=args.quick, progress=not args.quiet, burst=args.burst,
                      speed=args.speed, command_key=key, scenario=scenario, operator=args.operator,
-                     operators=args.operators, insecure_open=args.insecure_open)
+                     operators=args.operators, insecure_open=args.insecure_open, zero_labels=args.zero_labels)
     result = run_demo(cfg, on_decision=say)
     m = result.metrics
     print(f"scenario {m['scenario']['name']}: {m['scenario']['loss_description']}; operator {m['operator']}")
