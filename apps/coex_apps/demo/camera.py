@@ -51,14 +51,21 @@ HeightFn = Callable[[np.ndarray, np.ndarray], np.ndarray]
 
 
 class BoxLike(Protocol):
-    """A box-shaped target (``coex_plugins.bathymetry.sim.Target``): centre, size (m), heading (deg)."""
+    """An object on the seafloor (``coex_plugins.bathymetry.sim.Target``): centre, size (m),
+    heading (deg)."""
 
-    x: float
-    y: float
-    length: float
-    width: float
-    height: float
-    heading: float
+    @property
+    def x(self) -> float: ...
+    @property
+    def y(self) -> float: ...
+    @property
+    def length(self) -> float: ...
+    @property
+    def width(self) -> float: ...
+    @property
+    def height(self) -> float: ...
+    @property
+    def heading(self) -> float: ...
 
 
 def _local(obj: BoxLike, gx: np.ndarray, gy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -127,7 +134,7 @@ def _coarse_heights(height_fn: HeightFn, gx: np.ndarray, gy: np.ndarray, step: i
     b = coarse[r0][:, c0 + 1]
     c = coarse[r0 + 1][:, c0]
     d = coarse[r0 + 1][:, c0 + 1]
-    return (a * (1 - fr) * (1 - fc) + b * (1 - fr) * fc + c * fr * (1 - fc) + d * fr * fc)
+    return np.asarray(a * (1 - fr) * (1 - fc) + b * (1 - fr) * fc + c * fr * (1 - fc) + d * fr * fc)
 
 
 def _noise(gx: np.ndarray, gy: np.ndarray, k: float, phase: float) -> np.ndarray:
@@ -141,7 +148,8 @@ def _paint(obj: Target, kind: str, u: np.ndarray, v: np.ndarray, gx: np.ndarray,
     """Albedo of ``obj``'s top at its points (``u``, ``v``: along and across it; ``sand``: the
     sand's albedo there)."""
     base, mottle = APPEARANCE.get(kind, APPEARANCE["car"])
-    tone = obj.albedo if obj.albedo is not None else base
+    own = obj.albedo if obj.albedo is not None else base
+    tone = 0.55 if own is None else float(own)  # the sand's mean: only a boulder of the sand's colour has none
     ph = float((obj.x * 7.3 + obj.y * 3.1) % (2 * np.pi))
     if kind == "car":
         # a wreck: corroded panels, bright encrusting growth, a frame of hard dark edges
@@ -173,7 +181,7 @@ def _paint(obj: Target, kind: str, u: np.ndarray, v: np.ndarray, gx: np.ndarray,
     if kind == "dark rock":
         return tone * (1.0 + mottle * (0.6 * lumps + 0.4 * _noise(gx, gy, 5.0, ph)))
     # a boulder of the sand's colour, lightly mottled
-    return (sand if base is None and obj.albedo is None else np.full_like(sand, tone)) * (0.95 + mottle * lumps)
+    return np.asarray((sand if own is None else np.full_like(sand, tone)) * (0.95 + mottle * lumps))
 
 
 def _as_target(obj: BoxLike, decoy: bool) -> Target:

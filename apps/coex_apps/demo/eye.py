@@ -390,6 +390,7 @@ class Eye:
     def _verdict(self, length: float, width: float, box_fill: float, on_sides: float, bow: float, solid: float,
                  sharp: float, settled: bool, cut: tuple[str, ...]) -> tuple[str, str]:
         p = self.params
+        m = p.margin
 
         def within(x: float, r: tuple[float, float]) -> bool:
             return r[0] <= x <= r[1]
@@ -397,25 +398,31 @@ class Eye:
             return ("natural", "a soft patch with no outline") if settled else ("unclear", "no clear outline")
         if cut:
             return "partial", "cut by the frame"
+        long = length / max(width, 1e-6) >= p.min_hull_aspect and within(length, p.hull_length)
+        hull = long and bow <= p.max_bow_ratio and on_sides >= p.min_hull_sides and box_fill >= p.min_hull_fill
         rect = box_fill >= p.min_box_fill and on_sides >= p.min_on_sides
-        near_solid = abs(solid - p.max_debris_solidity) <= p.margin and within(length, p.debris_extent)
-        near = ((abs(box_fill - p.min_box_fill) <= p.margin and on_sides >= p.min_on_sides - p.margin)
-                or (abs(on_sides - p.min_on_sides) <= p.margin and box_fill >= p.min_box_fill - p.margin))
-        if (length / max(width, 1e-6) >= p.min_hull_aspect and bow <= p.max_bow_ratio
-                and on_sides >= p.min_hull_sides and box_fill >= p.min_hull_fill and within(length, p.hull_length)):
+        debris = solid <= p.max_debris_solidity and within(length, p.debris_extent)
+        # a measure this close to its threshold could go either way: a sharper look would tell
+        near_bow = long and abs(bow - p.max_bow_ratio) <= m and on_sides >= p.min_hull_sides - m
+        near_rect = ((abs(box_fill - p.min_box_fill) <= m and on_sides >= p.min_on_sides - m)
+                     or (abs(on_sides - p.min_on_sides) <= m and box_fill >= p.min_box_fill - m))
+        near_ragged = abs(solid - p.max_debris_solidity) <= m and within(length, p.debris_extent)
+        for close, hit, what in ((near_bow, hull, "a tapering end"), (near_rect, rect, "a rectangle"),
+                                 (near_ragged, debris, "a ragged patch")):
+            if close and not settled:
+                return "unclear", f"nearly {what}: a sharper look would tell"
+            if hit:
+                break
+        if hull:
             return "hull", "long, straight-sided, one end tapering"
-        if near and not settled:
-            return "unclear", "nearly a straight-edged rectangle: a sharper look would tell"
         if rect:
             if within(length, p.car_length) and within(width, p.car_width):
                 return "car", "a straight-edged rectangle of a car's size"
             if within(length, p.container_length) and within(width, p.container_width):
                 return "container", "a straight-edged rectangle of a container's size"
             return "object", "a straight-edged rectangle of no known size"
-        if solid <= p.max_debris_solidity and within(length, p.debris_extent):
+        if debris:
             return "debris", "a ragged patch of pieces"
-        if near_solid and not settled:
-            return "unclear", "a ragged outline: a sharper look would tell"
         return "natural", "a rounded or irregular outline"
 
 

@@ -712,11 +712,13 @@ class Operator:
         settled = self._arrived(cv, meta)
         layers = int(meta.get("layers_complete", 0))
         preview = layers < MIN_CONFIRM_LAYERS and not meta.get("complete")
+        # the best image of it the operator will get: the sharper look asked for has arrived
+        final = settled and (cv.want_goal == image_id or bool(meta.get("complete")) or layers >= MORE_LAYERS)
         sights: list[Sight] = []
         mine: list[Sight] = []
         if img is not None and (settled or not preview):  # a preview is a smudge: not worth a look
             mpp, heading = self.frame_geometry(cv, meta)
-            sights = self.eye.look(img, mpp, settled=settled)
+            sights = self.eye.look(img, mpp, settled=final)
             self.sights[image_id] = [s.as_dict() for s in sights]
             mine = [s for s in sights
                     if math.hypot(*(a - b for a, b in zip(self.ground(s, meta, mpp, heading), (cv.x, cv.y), strict=True)))

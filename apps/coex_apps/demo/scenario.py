@@ -569,6 +569,14 @@ PRESETS: dict[str, dict[str, Any]] = {
     # the camera vehicle takes the fourth; the operator sends the camera to the candidates of the
     # mapper's received 1 m map while the survey runs
     "fleet": {"name": "fleet", "modem": {"slots": ["topside", "vehicle", "camera", "topside", "vehicle", "vehicle"]}},
+    # issue 50: a site with a 20-ft container, a 7 m boat hull and a small car (the kinds and sizes
+    # the car-only demo could not see), on the default dive's link
+    "container-hull-car": {
+        "name": "container-hull-car",
+        "targets": [{"kind": "container", "x": 90.0, "y": 170.0, "heading": 35.0},
+                    {"kind": "hull", "x": 172.0, "y": 92.0, "length": 7.0, "width": 2.3, "height": 1.4, "heading": -60.0},
+                    {"kind": "car", "x": 70.0, "y": 68.0, "length": 3.0, "width": 1.6, "height": 1.4, "heading": 10.0,
+                     "albedo": 0.3}]},
 }
 
 

@@ -55,8 +55,8 @@ def shrink(image: npt.ArrayLike, factor: int = SCALE) -> npt.NDArray[np.float32]
 def shrink_labels(labels: npt.NDArray[np.uint8], factor: int = SCALE) -> npt.NDArray[np.uint8]:
     """Labels at the reduced size: the most common label of each block (ties to the higher)."""
     h, w = labels.shape[0] // factor * factor, labels.shape[1] // factor * factor
-    blocks = labels[:h, :w].reshape(h // factor, factor, w // factor, factor).transpose(0, 2, 1, 3)
-    blocks = blocks.reshape(h // factor, w // factor, factor * factor)
+    tiles = labels[:h, :w].reshape(h // factor, factor, w // factor, factor).transpose(0, 2, 1, 3)
+    blocks = tiles.reshape(h // factor, w // factor, factor * factor)
     n = int(labels.max()) + 1
     counts = (blocks[..., None] == np.arange(n, dtype=np.uint8)).sum(2)
     return np.asarray(counts.argmax(-1), np.uint8)
