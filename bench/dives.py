@@ -128,6 +128,13 @@ def one_dive(condition: str, seed: int, quick: bool) -> dict[str, Any]:
         "detections": {k: m.get("detection_cost", {}).get(k) for k in
                        ("received", "true", "decoys", "false", "bytes_sent", "neighbourhood_bytes_sent")},
         "goals": {k: v["met"] for k, v in m["goals"].items()},
+        # issue 50: what went wrong, counted, and the eye's kinds against the truth
+        "false_confirmation_count": m.get("false_confirmation_count", len(m["false_confirmations"])),
+        "rejected_frames": m.get("failures", {}).get("rejected_frames"),
+        "sender_failures": m.get("failures", {}).get("sender_failures"),
+        "runner_errors": m.get("failures", {}).get("runner_errors"),
+        "target_kinds": [t.get("kind") for t in m["targets"]],
+        "car_verdicts_on_cars": m.get("verdicts", {}).get("car_verdicts_on_cars"),
     }
 
 

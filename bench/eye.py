@@ -5,10 +5,10 @@ For each development seed (``coex_apps.demo.config.DEVELOPMENT_SEEDS`` by defaul
 scene: an object of a random kind (the scenario's kinds and ranges, ``scenario.KINDS``), or sand
 only (one scene in eight), on generated sand or, when ``--images DIR`` is given (e.g.
 ``../shared/data/nui040``), on sand built from those real frames (every other scene). The camera
-passes as the operator sends it: across the object's long axis (its heading known to +-15
-degrees), at the altitude the operator picks for its size (``operator.camera_altitude``, from
-the size known to +-15 %), the object anywhere between two frames along the line and up to a
-metre off it across. The frame is coded as the demo's vehicle codes it and decoded at 1, 3 and 4
+passes as the operator sends it: across the object's long axis (its heading known to +-20
+degrees), at the operator's camera altitude (``operator.camera_altitude`` for the largest object
+sought), the object anywhere between two frames along the line (``LINE_SPEED`` x the camera
+period apart) and up to a metre off it across. The frame is coded as the demo's vehicle codes it and decoded at 1, 3 and 4
 quality layers (20, 30, 35 dB), and the eye looks at each (up to 3 layers as at the operator's first
 look, when a marginal object is "unclear"; at 4 layers as at its sharper look, when it decides).
 
@@ -36,8 +36,9 @@ ROOT = Path(__file__).resolve().parents[1]
 
 def scene(seed: int, real: Any | None) -> dict[str, Any]:
     from coex_apps.demo.camera import CameraModel, SandTexture, render_labelled
-    from coex_apps.demo.operator import camera_altitude
+    from coex_apps.demo.operator import LINE_ALTITUDE_FOR, LINE_SPEED, camera_altitude
     from coex_apps.demo.scenario import DECOY_KINDS, TARGET_KINDS, draw_object
+    from coex_apps.demo.specs import CAMERA_PERIOD
     from coex_plugins.bathymetry.sim import Seafloor
 
     rng = np.random.default_rng([seed, 42])
@@ -46,11 +47,9 @@ def scene(seed: int, real: Any | None) -> dict[str, Any]:
     obj = draw_object(kind if kind != "sand" else "car", rng, 50.0, 50.0, (2.0, 8.0))
     objs = () if kind == "sand" else (obj,)
     floor = Seafloor(size=100.0, depth=500.0, relief=1.0, targets=objs, seed=seed)
-    length = obj.length * rng.uniform(0.85, 1.15)
-    width = obj.width * rng.uniform(0.85, 1.15)
-    alt = camera_altitude(length, width, 5.0)
-    across = math.radians(obj.heading + 90.0 + rng.uniform(-15, 15))  # the line's heading
-    along = rng.uniform(-1.5, 1.5)
+    alt = camera_altitude(*LINE_ALTITUDE_FOR, 5.0)
+    across = math.radians(obj.heading + 90.0 + rng.uniform(-20, 20))  # the line's heading
+    along = rng.uniform(-0.5, 0.5) * LINE_SPEED * CAMERA_PERIOD
     off = rng.uniform(-1.0, 1.0)
     x = 50.0 + along * math.sin(across) + off * math.cos(across)
     y = 50.0 + along * math.cos(across) - off * math.sin(across)
@@ -145,7 +144,7 @@ def main() -> None:
         if not got:
             continue
         cols = []
-        for key in ("length_m", "width_m", "box_fill", "on_sides", "bow_ratio", "edge_width", "sharpness"):
+        for key in ("length_m", "width_m", "box_fill", "on_sides", "bow_ratio", "solidity", "sharpness"):
             v = np.array([g[key] for g in got], float)
             cols.append(f"{key} {v.min():.2f}/{np.median(v):.2f}/{v.max():.2f}")
         print(f"  {kind:<10} n={len(got):<3} " + ", ".join(cols))

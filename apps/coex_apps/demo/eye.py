@@ -117,6 +117,10 @@ class EyeParams:
     #: debris: a ragged patch, filling at most this share of its convex hull (a rock, a mound
     #: or a car fills 0.9 or more)
     max_debris_solidity: float = 0.82
+    #: ... at least this wide (m), its outline this many times the sand's gradient (wreckage has
+    #: hard edges; a burrow's trail or a patch of spines on real sand is thin and soft)
+    min_debris_width: float = 1.0
+    min_debris_sharpness: float = 3.0
     #: sizes (m) of the kinds it knows
     car_length: tuple[float, float] = (2.4, 5.8)
     car_width: tuple[float, float] = (1.3, 2.35)
@@ -401,12 +405,14 @@ class Eye:
         long = length / max(width, 1e-6) >= p.min_hull_aspect and within(length, p.hull_length)
         hull = long and bow <= p.max_bow_ratio and on_sides >= p.min_hull_sides and box_fill >= p.min_hull_fill
         rect = box_fill >= p.min_box_fill and on_sides >= p.min_on_sides
-        debris = solid <= p.max_debris_solidity and within(length, p.debris_extent)
+        debris = (solid <= p.max_debris_solidity and within(length, p.debris_extent) and width >= p.min_debris_width
+                  and sharp >= p.min_debris_sharpness)
         # a measure this close to its threshold could go either way: a sharper look would tell
         near_bow = long and abs(bow - p.max_bow_ratio) <= m and on_sides >= p.min_hull_sides - m
         near_rect = ((abs(box_fill - p.min_box_fill) <= m and on_sides >= p.min_on_sides - m)
                      or (abs(on_sides - p.min_on_sides) <= m and box_fill >= p.min_box_fill - m))
-        near_ragged = abs(solid - p.max_debris_solidity) <= m and within(length, p.debris_extent)
+        near_ragged = (abs(solid - p.max_debris_solidity) <= m and within(length, p.debris_extent)
+                       and width >= p.min_debris_width and sharp >= p.min_debris_sharpness)
         for close, hit, what in ((near_bow, hull, "a tapering end"), (near_rect, rect, "a rectangle"),
                                  (near_ragged, debris, "a ragged patch")):
             if close and not settled:

@@ -94,6 +94,14 @@ MAX_CAMERA_ALTITUDE = TRANSIT_ALTITUDE - 1.0
 #: metres added to an object's length across a camera line: where the line passes (a metre
 #: either side) and the object's orientation measured in the 1 m map (15 degrees)
 LINE_MARGIN = 2.5
+#: the camera lines' speed (m/s): slower than the vehicle's usual camera speed, so that frames
+#: are 1.8 m apart and one of them holds an object up to 6 m along the line whole
+LINE_SPEED = 0.3
+#: a camera line reaches this far (m) either side of its candidate
+LINE_HALF = 15.0
+#: every camera line is flown at the altitude that holds the largest object sought (length,
+#: width; :data:`TARGET_SIZES`) in a frame (:func:`camera_altitude`)
+LINE_ALTITUDE_FOR = (TARGET_SIZES[0][1], TARGET_SIZES[1][1])
 
 
 @dataclass
@@ -202,16 +210,17 @@ class CameraLine:
 
 
 def camera_altitude(length: float, width: float, lowest: float) -> float:
-    """The altitude (m) of a camera line over an object ``length`` x ``width`` metres (as the
-    received 1 m map measured it), flown across its long axis: high enough that one frame holds
-    the object across the line (its length and :data:`LINE_MARGIN` for the line's and the
-    map's errors) and along it (its width, the distance between two frames,
-    :data:`CAMERA_SPEED` x :data:`CAMERA_PERIOD`, and a metre), so that some frame shows its
-    whole outline; at least ``lowest`` (the scenario's camera altitude) and at most
-    :data:`MAX_CAMERA_ALTITUDE`."""
+    """The altitude (m) of a camera line over an object ``length`` x ``width`` metres, flown
+    across its long axis: high enough that one frame holds the object across the line (its
+    length and :data:`LINE_MARGIN` for the line's and the map's errors) and along it (its width,
+    the distance between two frames, :data:`LINE_SPEED` x :data:`CAMERA_PERIOD`, and a metre),
+    so that some frame shows its whole outline; at least ``lowest`` (the scenario's camera
+    altitude) and at most :data:`MAX_CAMERA_ALTITUDE`. The operator flies every line at the
+    altitude for the largest object sought (:data:`LINE_ALTITUDE_FOR`): the 1 m map measures a
+    rounded or tapering object (a hull, a small car) shorter than it is."""
     span = 2.0 * math.tan(math.radians(CAMERA_HFOV_DEG) / 2.0)
     across = (length + LINE_MARGIN) / span
-    along = (width + CAMERA_SPEED * CAMERA_PERIOD + 1.0) / (span * CAMERA_ASPECT)
+    along = (width + LINE_SPEED * CAMERA_PERIOD + 1.0) / (span * CAMERA_ASPECT)
     return round(min(max(across, along, lowest), MAX_CAMERA_ALTITUDE), 1)
 
 
@@ -470,9 +479,10 @@ class Operator:
     def camera_round(self, now: float, *, end: float, reserve: float, half: float, first: bool = False,
                      free_at: float | None = None) -> None:
         """Send the vehicle over the candidates not yet sent, most target-like first, while camera
-        time remains: one survey command per candidate, a camera line of ``2 * half`` metres
-        across the candidate's long axis (as the map measured it) through it, at the altitude
-        :func:`camera_altitude` gives for its size and :data:`CAMERA_SPEED`, queued behind the
+        time remains: one survey command per candidate, a camera line of ``2 * half`` metres (at
+        most twice :data:`LINE_HALF`) across the candidate's long axis (as the map measured it)
+        through it, at the altitude that holds the largest object sought in a frame
+        (:func:`camera_altitude`, :data:`LINE_ALTITUDE_FOR`) and :data:`LINE_SPEED`, queued behind the
         lines already sent (``append``: commands that cross the link out of order cannot undo
         each other; the vehicle holds with an empty queue, so the first starts at once). Camera
         time is counted from topside's estimate of when the vehicle is done with its queue, and
@@ -486,31 +496,32 @@ class Operator:
         t, pos = self._queue_end(now)
         t = max(t, free_at or t)
         sent = 0
+        half = min(half, LINE_HALF)
+        altitude = camera_altitude(*LINE_ALTITUDE_FOR, self.camera_altitude)
         for cv in self.ranked():
             if cv.planned or cv.refused is not None:
                 continue
             heading = (cv.orientation + 90.0) % 180.0
             h = math.radians(heading)
             start = (cv.x - half * math.sin(h), cv.y - half * math.cos(h))
-            altitude = camera_altitude(cv.length, cv.width, self.camera_altitude)
             dist = math.hypot(start[0] - pos[0], start[1] - pos[1])
-            if t + dist / TRANSIT_SPEED + 2 * half / CAMERA_SPEED > end - reserve:
+            if t + dist / TRANSIT_SPEED + 2 * half / LINE_SPEED > end - reserve:
                 break  # no camera time left for the next in rank order
             try:
                 cmd = self.survey.request("line", round(start[0], 1), round(start[1], 1), now, heading=round(heading, 1),
-                                          length=2 * half, altitude=altitude, speed=CAMERA_SPEED, append=True)
+                                          length=2 * half, altitude=altitude, speed=LINE_SPEED, append=True)
             except RequestRejected as exc:
                 cv.refused = f"cannot be sent: {exc}"
                 self.log(now, "survey command", f"a camera line over ({cv.x:.0f}, {cv.y:.0f}) {cv.refused}")
                 continue
             line = self._line(cmd, cv, now)
             cv.planned, cv.survey_id = True, cmd.survey_id
-            t += dist / TRANSIT_SPEED + 2 * half / CAMERA_SPEED
+            t += dist / TRANSIT_SPEED + 2 * half / LINE_SPEED
             pos = line.end
             sent += 1
             self.log(now, "survey command", f"survey {cmd.survey_id} sent: a {2 * half:.0f} m camera line over "
                      f"({cv.x:.0f}, {cv.y:.0f}) [target-likeness {cv.score:.2f}, {cv.length:.1f} x {cv.width:.1f} m], "
-                     f"heading {line.heading:.0f} deg at {line.altitude:g} m and {CAMERA_SPEED:g} m/s, queued after "
+                     f"heading {line.heading:.0f} deg at {line.altitude:g} m and {LINE_SPEED:g} m/s, queued after "
                      f"{len(self._open_lines()) - 1} line(s) [command {cmd.command_id}]")
         if first and not sent:
             self.log(now, "camera pass", "no target-like candidate in the 1 m map yet: the vehicle holds")
