@@ -6,8 +6,11 @@ Runs the demo's full two-hour dive for every seed under each condition, in paral
 * ``60% independent``: preset ``default`` with ``--loss 0.6``;
 * ``50% burst``: preset ``default`` with ``--loss 0.5 --burst`` (Gilbert-Elliott, mean burst 4 frames);
 * ``dive040``: preset ``dive040`` (the ship 1.5 water depths from the site, range-dependent loss);
-* ``30% + 2 decoys``: preset ``default`` with two car-sized boulders placed at random (not in the
-  issue's list; a confirmation of a boulder fails the dive).
+* ``30% + 2 decoys``: preset ``default`` with two decoys placed at random, each a rock, a dark
+  rock (as dark as a car) or dark biology (issue 50: a scene where the wrong answer is possible;
+  a confirmation of a decoy fails the dive).
+* ``container-hull-car``: preset ``container-hull-car`` (issue 50: a 20-ft container, a 7 m boat
+  hull and a small pale car on the default dive's link).
 * ``lowrate``: preset ``lowrate`` (issue 41: Micromodem rate 1, the ship 1.2 km from the site in
   1000 m of water, range-dependent loss of about 50 %: about 14 B/s delivered).
 * ``fleet``: preset ``fleet`` (issue 43: a mapping AUV and a camera vehicle on one network, 30 %
@@ -46,12 +49,19 @@ A third table (issue 41) gives the vehicle's detections per condition: the targe
 the detections received judged against the truth (of a target, of a decoy, of nothing), the time
 from a target's first detection topside to its confirming image, and what they cost in bytes.
 
-    python bench/dives.py [--seeds N] [--first-seed S] [--jobs J] [--quick] [--conditions NAME,...]
+It runs on ``coex sweep``'s code (:mod:`coex_apps.sweep`: one sweep implementation): each
+condition below is a sweep condition, the dives run on Dask (a local cluster of ``--workers``
+processes by default, or the scheduler at ``--scheduler``), each at a seed drawn fresh for the run
+(never a development seed; printed) unless ``--seeds`` gives them. The sweep's own outputs
+(``dives.csv``, ``metrics.jsonl``, ``summary.json``, ``sweep.png``) go to ``--out``; run it again
+with the same ``--out`` to resume an interrupted run. The reporting protocol (issue 50): per
+condition n, successes, the Wilson 95 % interval and false confirmations, and the seeds.
 
-Development runs use other seeds than the reported ones (``--first-seed 101``): the reported
-sweep is seeds 1..N, never tuned to.
+    python bench/dives.py [--dives N] [--seeds S,S,...] [--workers J] [--scheduler tcp://HOST:PORT]
+                          [--quick] [--conditions NAME,...] [--out DIR]
 
-Writes ``bench/results/dives.json`` (every dive's metrics summary and the table).
+Writes ``bench/results/dives.json`` (every dive's metrics summary, the tables, the seeds and the
+dives per hour per worker).
 """
 
 from __future__ import annotations
@@ -59,10 +69,9 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import statistics
 import sys
-import tempfile
 import time
-from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 from typing import Any
 
@@ -74,9 +83,11 @@ CONDITIONS: dict[str, tuple[str, float | None, bool, float, dict[str, Any]]] = {
     "60% independent": ("default", 0.6, False, 0.80, {}),
     "50% burst": ("default", 0.5, True, 0.95, {}),
     "dive040": ("dive040", None, False, 0.95, {}),
-    # not in the issue's list: two car-sized boulders beside the two cars, to show that the
-    # operator's eye is not fooled (any confirmation of a boulder fails the dive)
+    # two decoys of random kind (rock, dark rock as dark as a car, dark biology) beside the two
+    # targets: the operator's eye can be wrong here (any confirmation of a decoy fails the dive)
     "30% + 2 decoys": ("default", None, False, 0.95, {"seafloor": {"random_decoys": 2}}),
+    # issue 50: a container, a boat hull and a small pale car (issue 50's target: 90 %)
+    "container-hull-car": ("container-hull-car", None, False, 0.90, {}),
     # issue 41: deep water and long range, Micromodem rate 1 and about 50 % range-dependent loss
     # (about 14 B/s delivered): the vehicle's detections carry the decision
     "lowrate": ("lowrate", None, False, 0.90, {}),
@@ -91,20 +102,23 @@ NO_FALSE = {"lowrate", "fleet"}
 DECISION_TARGETS = {"fleet": (600.0, 1200.0)}
 
 
-def one_dive(condition: str, seed: int, quick: bool) -> dict[str, Any]:
-    from coex_apps.demo import DemoConfig, run_demo
+def conditions(names: list[str], quick: bool) -> list[Any]:
+    """The bench's conditions as sweep conditions (:class:`coex_apps.sweep.Condition`)."""
     from coex_apps.demo.scenario import preset, scenario_from_dict
+    from coex_apps.sweep import Condition
 
-    name, loss, burst, _, extra = CONDITIONS[condition]
-    scenario = scenario_from_dict(extra, base=preset(name)) if extra else preset(name)
-    with tempfile.TemporaryDirectory(prefix="coex-dive-") as tmp:
-        t0 = time.perf_counter()
-        r = run_demo(DemoConfig(out=Path(tmp), seed=seed, loss=loss, burst=burst, quick=quick,
-                                progress=False, scenario=scenario))
-        wall = time.perf_counter() - t0
-    m = r.metrics
+    out = []
+    for name in names:
+        base, loss, burst, _, extra = CONDITIONS[name]
+        scenario = scenario_from_dict(extra, base=preset(base)) if extra else preset(base)
+        out.append(Condition(name, scenario.with_loss(loss, burst), quick=quick))
+    return out
+
+
+def digest(condition: str, seed: int, m: dict[str, Any], wall: float) -> dict[str, Any]:
+    """What the bench's tables read of one dive's ``metrics.json``."""
     return {
-        "condition": condition, "seed": seed, "success": bool(m["success"]), "wall_s": round(wall, 1),
+        "condition": condition, "seed": seed, "success": bool(m["success"]), "wall_s": wall,
         "identifiable_at_1m_s": [t["identifiable_at_1m_s"] for t in m["targets"]],
         "confirmed": [t["confirmation"] is not None for t in m["targets"]],
         "tdma_cycles": [t["confirmation"]["tdma_cycles"] for t in m["targets"] if t["confirmation"]],
@@ -345,51 +359,75 @@ def _fmt_pct(v: float | None) -> str:
     return "-" if v is None else f"{v:.0%}"
 
 
+def protocol_table(sweep: dict[str, Any]) -> str:
+    """The reporting protocol (issue 50): per condition n, successes, the success rate with its
+    Wilson 95 % interval, false confirmations (and dives with one), dives that raised."""
+    head = "| condition | n | successes | success rate | Wilson 95 % interval | false conf. (dives) | errors |"
+    lines = [head, "|" + "---|" * 7]
+    for cond, s in sweep["conditions"].items():
+        lo, hi = s["success_wilson95"]
+        lines.append(f"| {cond} | {s['n']} | {s['successes']} | {_fmt_pct(s['success_rate'])} "
+                     f"| [{lo:.2f}, {hi:.2f}] | {s['false_confirmations']} ({s['dives_with_false_confirmation']}) "
+                     f"| {s['errors']} |")
+    return "\n".join(lines)
+
+
 def main(argv: list[str] | None = None) -> int:
+    from coex_apps.sweep import DiveTable, run_sweep
+
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--seeds", type=int, default=8, help="seeds per condition (default 8: seeds 1..8)")
-    ap.add_argument("--first-seed", type=int, default=1,
-                    help="the first seed (default 1; development runs use other seeds than the reported ones)")
-    ap.add_argument("--jobs", type=int, default=os.cpu_count() or 2, help="parallel processes (default: CPUs)")
-    ap.add_argument("--quick", action="store_true", help="the demo's short scenario and 2 seeds (a smoke run)")
+    ap.add_argument("--dives", type=int, default=None, help="dives per condition (default 8; 2 with --quick)")
+    ap.add_argument("--seeds", default=None, metavar="S,S,...",
+                    help="these seeds instead of fresh ones (to reproduce dives; never to report development seeds)")
+    ap.add_argument("--workers", "--jobs", type=int, default=os.cpu_count() or 2,
+                    help="local cluster: worker processes, one dive each at a time (default: CPUs)")
+    ap.add_argument("--scheduler", default=None, metavar="tcp://HOST:PORT",
+                    help="an existing Dask scheduler instead of a local cluster")
+    ap.add_argument("--quick", action="store_true", help="the demo's short scenario and 2 dives (a smoke run)")
     ap.add_argument("--conditions", default=",".join(CONDITIONS),
                     help="comma-separated subset of: " + ", ".join(CONDITIONS).replace("%", "%%"))
-    ap.add_argument("--out", type=Path, default=ROOT / "bench" / "results" / "dives.json")
+    ap.add_argument("--out", type=Path, default=ROOT / "bench" / "results" / "dives",
+                    help="the sweep's directory (dives.csv, summary.json ...; the same one resumes)")
+    ap.add_argument("--json", type=Path, default=ROOT / "bench" / "results" / "dives.json")
     args = ap.parse_args(argv)
     conds = [c.strip() for c in args.conditions.split(",") if c.strip()]
     unknown = [c for c in conds if c not in CONDITIONS]
     if unknown:
         ap.error(f"unknown condition(s): {', '.join(unknown)}")
-    seeds = range(args.first_seed, args.first_seed + (2 if args.quick else args.seeds))
-    jobs = [(c, s) for c in conds for s in seeds]
+    seeds = [int(x) for x in args.seeds.split(",")] if args.seeds else None
+    dives = len(seeds) if seeds else args.dives or (2 if args.quick else 8)
     t0 = time.perf_counter()
-    results: list[dict[str, Any]] = []
-    with ProcessPoolExecutor(max_workers=max(1, args.jobs)) as pool:
-        futures = [pool.submit(one_dive, c, s, args.quick) for c, s in jobs]
-        for f in futures:
-            d = f.result()
-            results.append(d)
-            status = "ok  " if d["success"] else "FAIL"
-            why = "" if d["success"] else " " + "; ".join(d["why_not"])
-            false = f" false confirmations: {d['false_confirmations']}" if d["false_confirmations"] else ""
-            print(f"  {d['condition']:<18} seed {d['seed']:>3}: {status} ({d['wall_s']} s){why}{false}",
-                  file=sys.stderr, flush=True)
-    summary = {c: summarise(c, [d for d in results if d["condition"] == c]) for c in conds}
+    sweep = run_sweep(conditions(conds, args.quick), dives, args.out, seeds=seeds, scheduler=args.scheduler,
+                      workers=None if args.scheduler else args.workers, progress=sys.stderr.isatty())
+    elapsed = time.perf_counter() - t0
+    stored = DiveTable(args.out).metrics()  # each finished dive's metrics.json (metrics.jsonl)
+    results = [digest(str(r["condition"]), int(r["seed"]), m, float(r["wall_s"] or 0.0)) for r in sweep.rows
+               if (m := stored.get((str(r["condition"]), int(r["seed"])))) is not None]
+    summary = {c: summarise(c, [d for d in results if d["condition"] == c]) for c in conds
+               if any(d["condition"] == c for d in results)}
+    protocol = protocol_table(sweep.summary)
+    print(f"seeds (drawn fresh for this run unless given): {', '.join(str(s) for s in sweep.seeds)}")
+    print("\nReporting protocol (Wilson 95 % intervals; n counts every dive run):\n" + protocol)
     text = table(summary)
-    print(text)
+    print("\n" + text)
     spare = spare_table(summary)
     print("\nSpare capacity (issue 20):\n" + spare)
     detect = detection_table(summary)
     print("\nDetections (issue 41):\n" + detect)
     decide = decision_table(summary)
     print("\nDecision time (issue 43: identifiable at 1 m topside to the confirming image):\n" + decide)
-    all_met = all(s["met"] and s["spare"]["met"] is not False for s in summary.values())
-    print(f"\n{'all targets met' if all_met else 'TARGETS NOT MET'}; {len(results)} dives in "
-          f"{time.perf_counter() - t0:.0f} s")
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps({"quick": args.quick, "seeds": list(seeds), "summary": summary,
-                                    "table": text, "spare_table": spare, "detection_table": detect, "decision_table": decide,
-                                    "dives": results}, indent=2))
+    walls = [float(r["wall_s"]) for r in sweep.rows if r.get("wall_s") and not r.get("error")]
+    per_worker = round(3600.0 / statistics.mean(walls), 1) if walls else None
+    all_met = bool(summary) and all(s["met"] and s["spare"]["met"] is not False for s in summary.values())
+    print(f"\n{'all targets met' if all_met else 'TARGETS NOT MET'}; {sweep.ran} dives run in {elapsed:.0f} s "
+          f"({sweep.skipped} already done); {_fmt(per_worker, 1)} dives per hour per worker "
+          f"(mean wall time {_fmt(statistics.mean(walls) if walls else None, 1)} s a dive)")
+    args.json.parent.mkdir(parents=True, exist_ok=True)
+    args.json.write_text(json.dumps({
+        "quick": args.quick, "seeds": sweep.seeds, "sweep": str(args.out), "protocol": sweep.summary["conditions"],
+        "summary": summary, "protocol_table": protocol, "table": text, "spare_table": spare,
+        "detection_table": detect, "decision_table": decide, "dives_per_hour_per_worker": per_worker,
+        "workers": sweep.workers, "dives": results}, indent=2, default=str))
     return 0
 
 

@@ -145,8 +145,8 @@ def main() -> None:
             continue
         cols = []
         for key in ("length_m", "width_m", "box_fill", "on_sides", "bow_ratio", "solidity", "sharpness"):
-            v = np.array([g[key] for g in got], float)
-            cols.append(f"{key} {v.min():.2f}/{np.median(v):.2f}/{v.max():.2f}")
+            vals = np.array([g[key] for g in got], float)
+            cols.append(f"{key} {vals.min():.2f}/{np.median(vals):.2f}/{vals.max():.2f}")
         print(f"  {kind:<10} n={len(got):<3} " + ", ".join(cols))
     ms = 1000 * float(np.median(cost))
     print(f"\neye cost per frame: median {ms:.1f} ms, worst {1000 * max(cost):.1f} ms (shared machine)")

@@ -14,17 +14,18 @@ and detectors, storage, state registration, stamps, subgrid coding, errors) and 
 loops, store, the transport that comes back); it imports no plugin (load those by name with
 :func:`load_modality`) and no application. The built-in plugins import only this package.
 
-Modules under the facade's name: :mod:`coex.messages`, :mod:`coex.wire`, :mod:`coex.errors`,
-:mod:`coex.tracker` and :mod:`coex.registry` are the core's (the same module objects);
+Modules of the facade, each a file of its own with an explicit ``__all__`` (so that a plugin
+author's type checker finds ``from coex.messages import Opaque``): :mod:`coex.messages`,
+:mod:`coex.wire`, :mod:`coex.errors`, :mod:`coex.tracker`, :mod:`coex.registry` and
+:mod:`coex.state` re-export the core's modules of those names (the same objects),
+:mod:`coex.routing` what a node routes to a modality (for tools like the conformance kit);
 :mod:`coex.lcm`, :mod:`coex.moos` and :mod:`coex.ros` give what an input or autonomy output for
 those middlewares needs from their transports (imported on demand: ``import coex`` loads none).
 """
 
 from __future__ import annotations
 
-import sys
-
-from coex_core import __version__, errors, messages, registry, tracker, wire
+from coex_core import __version__
 from coex_core.acoustic import AcousticChannel, GilbertElliott
 from coex_core.adapters import (
     FEEDS,
@@ -36,6 +37,7 @@ from coex_core.adapters import (
     Item,
     Nav,
     Points,
+    PositionAid,
     Samples,
     SurveyPlan,
     SurveyReport,
@@ -65,7 +67,7 @@ from coex_core.channel import (
     Transmission,
 )
 from coex_core.config import Problem, Problems, merged_config
-from coex_core.detect import Detector, Finding
+from coex_core.detect import Detector, Finding, ImageFrame, ImageFrames, MapView
 from coex_core.errors import (
     AuthenticationError,
     CoexError,
@@ -85,6 +87,18 @@ from coex_core.loopback import Bernoulli, LoopbackLink, LossModel, RoundTrip, Wi
 from coex_core.messages import Frame, FrameHeader, Message
 from coex_core.modality import Modality, ModalityReceiver, ModalitySender, Product
 from coex_core.node import Node
+from coex_core.predicted import (
+    ContextMismatch,
+    SubgridParent,
+    decode_predicted,
+    decode_predicted_units,
+    encode_predicted,
+    parent_from_rows,
+    parent_from_values,
+    region_digest,
+    subgrid_units,
+    units_rows,
+)
 from coex_core.registry import (
     available,
     check_transport_uri,
@@ -99,16 +113,12 @@ from coex_core.storage import MemoryStorage, Storage
 from coex_core.subgrid import decode_subgrid, decode_subgrid_units, encode_subgrid, subgrid_bits
 from coex_core.timefmt import STAMP_MODULUS, to_stamp, unwrap
 from coex_core.transport import Transport, UriInfo, parse_query
+from coex_runtime.peers import SILENT_CYCLES, PeerSilence, PeerWatch
 from coex_runtime.runner import RealClock, Runner, SimNetwork, SimulatedClock
-from coex_runtime.store import NodeStore
+from coex_runtime.store import NodeStore, StoreError
 from coex_transports.recovery import Health, ResilientTransport
 
-# ``from coex.messages import Opaque``, ``coex.wire.pack``, ``from coex.tracker import State``: the
-# core's message, wire, error, tracker and registry modules under the facade's name (the same
-# module objects)
-for _module in (messages, wire, errors, tracker, registry):
-    sys.modules.setdefault(f"{__name__}.{_module.__name__.rsplit('.', 1)[1]}", _module)
-del _module
+from . import errors, messages, registry, routing, state, tracker, wire
 
 __all__ = [
     "Acked",
@@ -137,6 +147,8 @@ __all__ = [
     "GilbertElliott",
     "Health",
     "Image",
+    "ImageFrame",
+    "ImageFrames",
     "Input",
     "InputContext",
     "Item",
@@ -146,6 +158,7 @@ __all__ = [
     "LinkStats",
     "LoopbackLink",
     "LossModel",
+    "MapView",
     "MemoryStorage",
     "Message",
     "Modality",
@@ -154,6 +167,8 @@ __all__ = [
     "Nav",
     "Node",
     "NodeStore",
+    "PeerSilence",
+    "PeerWatch",
     "PluginLoadError",
     "PluginNotFound",
     "Points",
@@ -169,6 +184,7 @@ __all__ = [
     "ResilientTransport",
     "RoundTrip",
     "Runner",
+    "SILENT_CYCLES",
     "STAMP_MODULUS",
     "Samples",
     "Schedule",
@@ -176,7 +192,9 @@ __all__ = [
     "SimulatedClock",
     "StateError",
     "Storage",
+    "StoreError",
     "StreamConfig",
+    "PositionAid",
     "SurveyPlan",
     "SurveyReport",
     "TdmaSlot",
@@ -192,9 +210,19 @@ __all__ = [
     "check_autonomy_options",
     "check_options",
     "check_transport_uri",
+    "ContextMismatch",
+    "SubgridParent",
+    "decode_predicted",
+    "decode_predicted_units",
     "decode_subgrid",
     "decode_subgrid_units",
+    "encode_predicted",
     "encode_subgrid",
+    "parent_from_rows",
+    "parent_from_values",
+    "region_digest",
+    "subgrid_units",
+    "units_rows",
     "errors",
     "from_json",
     "load_detector",
@@ -206,6 +234,8 @@ __all__ = [
     "parse_query",
     "persistent",
     "registry",
+    "routing",
+    "state",
     "subgrid_bits",
     "to_json",
     "to_stamp",

@@ -16,7 +16,7 @@ node through the runner, which journals them, so a restart loses nothing.
 from __future__ import annotations
 
 import abc
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from typing import Any, ClassVar
 
@@ -27,7 +27,7 @@ from .errors import ConfigError
 from .messages import SurveyKind, SurveyReason, SurveyState
 from .state import persistent
 
-__all__ = ["FEEDS", "Adapter", "Autonomy", "Image", "Input", "InputContext", "Item", "Nav", "Points", "Samples",
+__all__ = ["FEEDS", "Adapter", "Autonomy", "Image", "Input", "InputContext", "Item", "Nav", "Points", "PositionAid", "Samples",
            "SurveyPlan", "SurveyReport", "adapter_check", "adapter_problems", "check_autonomy_options", "check_options"]
 
 #: what an input may feed: the bathymetry map, the image sender, time-series channels, the
@@ -90,12 +90,13 @@ Item = Points | Image | Samples | Nav
 @dataclass(frozen=True)
 class InputContext:
     """What every adapter may need from the daemon: the local origin (for lat/lon -> x/y),
-    the directory relative paths are taken from, and the clock the daemon runs on."""
+    the directory relative paths are taken from, and the clock the daemon runs on (a function
+    giving its time now, POSIX seconds, as ``time.time``; None: none given)."""
 
     origin_lat: float = 0.0
     origin_lon: float = 0.0
     base_dir: str = "."
-    clock: Any = None
+    clock: Callable[[], float] | None = None
 
     def local(self, lat: float, lon: float) -> tuple[float, float]:
         """Metres east/north of the origin (equirectangular; good to a few cm over a few km)."""
@@ -278,6 +279,22 @@ class SurveyReport:
 
 
 
+@persistent("survey.PositionAid")
+@dataclass(frozen=True)
+class PositionAid:
+    """Where topside says the vehicle truly was (a ``PositionFix`` command, spec type 15), for
+    an autonomy whose navigation accepts aiding: ``time`` (Unix seconds), ``x``/``y`` local metres
+    east/north of the origin, ``sigma`` the 1-sigma horizontal error (m), ``depth`` (None:
+    unknown), ``source`` ``"usbl"``, ``"estimate"`` or ``"other"``."""
+
+    time: float
+    x: float
+    y: float
+    sigma: float
+    depth: float | None = None
+    source: str = "usbl"
+
+
 class Autonomy(Adapter, abc.ABC):
     """An autonomy output: the bridge from accepted survey commands to the vehicle's own autonomy
     (a MAVLink autopilot's mission, an LCM planner, the MOOS-IvP helm, ROS, or just a log).
@@ -305,11 +322,51 @@ class Autonomy(Adapter, abc.ABC):
         makes the daemon log that the survey's progress is no longer followed."""
         return False
 
+    def aid(self, fix: Any, now: float) -> bool:
+        """Give the vehicle's navigation a position fix (a :class:`PositionAid`): the MAVLink
+        output sends it as ``GPS_INPUT``, the MOOS output posts it for the vehicle's navigation,
+        the ROS output publishes a ``PoseWithCovarianceStamped`` (``docs/autonomy.md``). True when
+        the output passed it on. Optional: the default, False, is an autonomy that takes no
+        aiding (the daemon logs it once)."""
+        return False
+
     def position(self, now: float) -> tuple[float, float] | None:
         """Where the vehicle is (local metres), for an output that knows (a simulated vehicle);
         the daemon uses it for the vehicle status when no input gives navigation. Optional:
         the default, None, is "not known"."""
         return None
+
+    # ------------------------------------------------------------------ the survey lifecycle
+    # (the daemon drives it for every output: coex_plugins.autonomy.lifecycle, docs/autonomy.md)
+    def end(self, survey_id: int, now: float) -> None:
+        """Survey ``survey_id`` ended (completed, refused, no answer, aborted, or the daemon
+        found it ended after a restart): take it back from the vehicle's autonomy, so that
+        nothing that starts or restarts later is handed it again. An output that leaves
+        something behind (a latched topic, a variable the database keeps, a mission stored on
+        the autopilot) replaces it with its ended form; an output that was following the survey
+        stops. Called again when a late answer shows the autonomy still flies it, and after a
+        restart of the daemon; so it must be harmless twice. Optional: the default does
+        nothing (an output that leaves nothing behind)."""
+        return None
+
+    def heard(self, now: float) -> float | None:
+        """When the vehicle's autonomy last showed it is alive (``now``'s clock): its heartbeat,
+        the helm's postings, its planner's answers or presence. While a survey flies, the daemon
+        aborts it (``AUTONOMY_SILENT``) when this is older than :meth:`silence` seconds. None:
+        this output cannot tell (no liveness watch), the default."""
+        return None
+
+    def silence(self) -> float:
+        """Seconds without a sign of life (:meth:`heard`) while a survey flies before it is
+        aborted, ``AUTONOMY_SILENT``; 0: not watched. The default: the option ``silence`` when
+        the output declares one, else 0."""
+        v = self.config.get("silence", 0.0)
+        return float(v) if isinstance(v, int | float) and not isinstance(v, bool) and v > 0 else 0.0
+
+    def silent_detail(self) -> str:
+        """What was not heard when the autonomy fell silent, in a few words (the report's
+        ``detail``: ``no HEARTBEAT from 1/1``); "" for none, the default."""
+        return ""
 
 
 def check_autonomy_options(cls: type[Autonomy], options: Mapping[str, Any]) -> list[str]:

@@ -65,7 +65,7 @@ def _cmd_spec(args: argparse.Namespace) -> int:
         if not specgen.vector_cases(args.vectors):
             print(f"coex spec vectors: no golden vectors in {args.vectors} (give --vectors DIR)", file=sys.stderr)
             return 2
-        n, problems = _check_command(specgen, args.check_command, args.vectors)
+        n, problems = _check_command(specgen, args.check_command, args.vectors, args.only)
         for p in problems[:50]:
             print(p)
         if len(problems) > 50:
@@ -94,14 +94,19 @@ def _cmd_spec(args: argparse.Namespace) -> int:
     return 0
 
 
-def _check_command(specgen: Any, command: str, directory: str) -> tuple[int, list[str]]:
-    """Run another implementation's decoder on every vector (``coex spec vectors``)."""
+def _check_command(specgen: Any, command: str, directory: str,
+                   only: list[str] | None = None) -> tuple[int, list[str]]:
+    """Run another implementation's decoder on every vector (``coex spec vectors``), or on those
+    whose names match one of the ``only`` patterns."""
+    import fnmatch
     import shlex
     import subprocess
 
     cases = specgen.vector_cases(directory)
+    if only:
+        cases = [c for c in cases if any(fnmatch.fnmatchcase(c[0], pat) for pat in only)]
     if not cases:
-        return 0, [f"no vectors in {directory}"]
+        return 0, [f"no vectors in {directory}" + (f" match {' '.join(only)}" if only else "")]
     try:
         run = subprocess.run(shlex.split(command), input=specgen.vector_input(cases), capture_output=True,
                              text=True, timeout=600)
@@ -146,8 +151,11 @@ def build_parser() -> argparse.ArgumentParser:
                    help="vectors: feed every vector to --check-command and report differences; "
                         "decode: the reference decoder of that protocol (lines on stdin, JSON out)")
     p.add_argument("--check-command", metavar="CMD",
-                   help="with vectors: another implementation's decoder: reads 'message HEX' or "
-                        "'frame HEX' lines, answers one JSON object per line (spec section 13)")
+                   help="with vectors: another implementation's decoder: reads 'message HEX', "
+                        "'frame HEX' or 'cells JSON' lines, answers one JSON object per line (spec section 13)")
+    p.add_argument("--only", action="append", metavar="PATTERN",
+                   help="with vectors: only the vectors whose names match (shell-style, repeatable: "
+                        "'cells/*', 'PredictedSubgrid/*', 'invalid/PredictedSubgrid*')")
     p.add_argument("--vectors", default=_default_vectors(), metavar="DIR",
                    help="the vectors (default: the repository's spec/vectors)")
     p.add_argument("--document", default="spec/wire-format.md", help="the spec document")

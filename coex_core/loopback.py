@@ -239,7 +239,11 @@ class RoundTrip:
     sender handles what arrives (a request it refuses with one of ``rejects`` is recorded in
     :attr:`rejected`) and its answers go down in as many frames as they need, arriving in the same
     round, or with ``replies_next_round`` one answer a frame arriving before the next round's
-    frame. With ``decode`` each side gets the messages decoded from the frame's bytes
+    frame. With ``acks`` the sender learns the fate of each filled frame, as a node's channel
+    manager tells it from frame acks: ``acked`` for every message of a frame that arrived and
+    whose ack (one draw of the up link's loss, riding the receiver's transmission) came back,
+    ``lost`` otherwise (a frame's ack that is lost makes its messages look lost, as it does on a
+    real link). With ``decode`` each side gets the messages decoded from the frame's bytes
     (``wire.unpack``), otherwise the other side's objects. A sender that fills more than the
     budget raises ``overfill`` (default :class:`~coex_core.errors.EncodeError`).
 
@@ -262,6 +266,7 @@ class RoundTrip:
         rejects: tuple[type[BaseException], ...] = (RequestRejected,),
         overfill: type[Exception] = EncodeError,
         on_message: Callable[[WireEvent, list[Product]], None] | None = None,
+        acks: bool = False,
     ) -> None:
         self.sender = sender
         self.receiver = receiver
@@ -275,6 +280,7 @@ class RoundTrip:
         self.rejects = rejects
         self.overfill = overfill
         self.on_message = on_message
+        self.acks = acks
         self.events: list[WireEvent] = []
         #: what the sender filled, every message the receiver was handed, every request the
         #: receiver polled (lost or not), and the requests the sender refused
@@ -392,6 +398,15 @@ class RoundTrip:
         for answers in late:  # the last round's answers were on the wire first
             self._to_receiver(answers)
         self._to_receiver(filled)
+        if self.acks and filled is not None:
+            # the frame ack rides up with the receiver's next transmission (its own loss draw):
+            # the sender learns which of its messages arrived, as a node's channel tells it
+            acked = bool(filled.got) and not self.up.lost()
+            for ev in filled.events:
+                if acked:
+                    self.sender.acked(ev.message, self.now)
+                else:
+                    self.sender.lost(ev.message, self.now)
         requests = self.receiver.poll(self.now)
         self.last_requests = requests
         self.requests.extend(requests)

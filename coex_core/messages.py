@@ -45,6 +45,10 @@ __all__ = [
     "MapRoiRequest",
     "MapRoiReply",
     "SubgridEncoding",
+    "SubgridContext",
+    "SubgridCells",
+    "PredictedSubgrid",
+    "SubgridMessage",
     # imagery
     "ImageAnnounce",
     "ImageFragment",
@@ -76,6 +80,9 @@ __all__ = [
     # detections
     "DetectionSource",
     "Detection",
+    # navigation aiding (issue 56)
+    "PositionSource",
+    "PositionFix",
 ]
 
 
@@ -376,6 +383,59 @@ class Subgrid(Message):
     values: tuple[int, ...]
     slope_x: int | None = None
     slope_y: int | None = None
+
+
+class SubgridContext(enum.IntEnum):
+    """What a :class:`PredictedSubgrid` is predicted from (``spec/payloads.md`` section 1.6).
+
+    * ``NONE``: its own ``z_base``: it decodes on its own, like a :class:`Subgrid`.
+    * ``PARENT``: the cells of its parent subgrid (the level above, ``(ix >> 1, iy >> 1)``) as
+      the receiver holds them; ``check`` is a CRC-8 of the parent's cells the prediction reads,
+      so a receiver that holds other cells there knows it cannot decode the subgrid (yet)."""
+
+    NONE = 0
+    PARENT = 1
+
+
+@dataclass(frozen=True, slots=True)
+class SubgridCells:
+    """The arithmetic-coded part of a :class:`PredictedSubgrid`: ``mask`` (one bit per cell,
+    row-major, most significant bit = cell (0, 0), 1 = present; ``None``: every cell present)
+    and the residual of each present cell in row-major order (signed integers, vertical units)."""
+
+    mask: int | None
+    residuals: tuple[int, ...]
+
+
+@dataclass(frozen=True, slots=True)
+class PredictedSubgrid(Message):
+    """A square block of ``side x side`` cells at one level, predicted from what topside already
+    holds (its parent subgrid, ``context`` PARENT) or from its own base (``NONE``), the residuals
+    arithmetic-coded. Cells and geometry as :class:`Subgrid`; elevations (vertical units) are
+    rebuilt by ``coex_core.predicted.decode_predicted_units`` from the message and, for PARENT,
+    the parent's cells. ``predictor`` (0..3) picks the prediction of the context's table and
+    ``shift`` (0..3) how many low bits of each residual are sent raw. ``resolution``,
+    ``vertical_resolution`` and ``z_base`` are sent with ``NONE`` only (``PARENT``: the parent's
+    geometry; ``None`` here); ``check`` with ``PARENT`` only."""
+
+    level: int
+    ix: int
+    iy: int
+    stamp: int
+    side: int
+    context: SubgridContext
+    predictor: int
+    shift: int
+    cells: SubgridCells
+    check: int | None = None
+    resolution: float | None = None
+    vertical_resolution: float | None = None
+    z_base: int | None = None
+
+
+#: Either form of a subgrid on the wire: ``isinstance(m, SubgridMessage)`` (a receiver, a filter
+#: of what a sender filled) takes both.
+SubgridMessage = Subgrid | PredictedSubgrid
 
 
 @dataclass(frozen=True, slots=True)
@@ -707,6 +767,10 @@ class SurveyReason(enum.IntEnum):
     AUTONOMY_RESTARTED = 13
     #: the autonomy stopped all motion (the IvP helm's all-stop; ``detail``: its reason)
     ALL_STOP = 14
+    #: the vehicle's autonomy fell silent while it flew the survey (no heartbeat, no helm
+    #: posting, its planner gone) for longer than the vehicle's bound (``value``: the seconds of
+    #: silence; ``detail``: what was not heard)
+    AUTONOMY_SILENT = 15
 
 
 @dataclass(frozen=True, slots=True)
@@ -796,6 +860,33 @@ class Detection(Message):
     orientation: float | None = None
     footprint: int | None = None
     image_id: int | None = None
+
+
+class PositionSource(enum.IntEnum):
+    """Where a :class:`PositionFix` comes from."""
+
+    #: one fix of the ship's USBL, as measured
+    USBL = 0
+    #: topside's estimate (the USBL fixes fused with the vehicle's own track, docs/navigation.md)
+    ESTIMATE = 1
+    #: another positioning system (LBL, a surface fix)
+    OTHER = 2
+
+
+@dataclass(frozen=True, slots=True)
+class PositionFix(Message):
+    """Topside command: where the vehicle truly was at ``stamp`` (metres east/north of the
+    origin, ``depth`` optional), with its 1-sigma horizontal uncertainty ``sigma`` (m). A vehicle
+    that accepts aiding gives it to its navigation (which resets or fuses its estimate); it answers
+    with a :class:`CommandAck` (REJECTED: it does not take aiding)."""
+
+    command_id: int
+    source: PositionSource
+    stamp: int
+    x: float
+    y: float
+    sigma: float
+    depth: float | None = None
 
 
 def _with_command_id() -> frozenset[type[Message]]:

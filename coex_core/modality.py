@@ -138,6 +138,15 @@ class ModalitySender(_OutOfCore, abc.ABC):
         It must not raise."""
         return 0
 
+    def detector_view(self) -> object | None:
+        """What onboard detectors of this modality look at (:mod:`coex_core.detect`): one view
+        of the data this sender holds on the vehicle, of a type detectors declare as their
+        ``view`` (the bathymetry sender's map is a :class:`~coex_core.detect.MapView`, the
+        imagery sender's frames :class:`~coex_core.detect.ImageFrames`; a third-party modality
+        documents its own). Optional (default: None, nothing for detectors). It must not
+        raise, and it is called every few seconds: a view, not a copy."""
+        return None
+
     def throughput(self, bytes_per_second: float, low: bool, now: float) -> None:
         """The channel's measure of the link, before each packet it builds: the bytes per
         second this node's frames deliver (its slots' capacity less the measured frame loss,
@@ -289,6 +298,17 @@ class Modality(abc.ABC):
 
         tid = type_id(message)
         return tid is not None and any(tid in declared_ids(cls, kind) for kind in ("messages", "requests"))
+
+
+def modality_name(cls: type[Modality]) -> str:
+    """The name a modality class declares (``Modality.name``, required); a
+    :class:`~coex_core.errors.ConfigError` naming the class when it declares none."""
+    try:
+        return cls.name
+    except AttributeError:
+        from .errors import ConfigError
+
+        raise ConfigError(f"modality {cls.__qualname__} declares no name (Modality.name)") from None
 
 
 def total_size(messages: Sequence[Message]) -> int:

@@ -57,7 +57,7 @@ from .messages import (
     VehicleStatus,
 )
 from .messages import command_id as command_id_of
-from .modality import Modality, ModalityReceiver, ModalitySender
+from .modality import Modality, ModalityReceiver, ModalitySender, modality_name
 from .remap import RemappedReceiver, RemappedSender
 from .routing import (
     Routes,
@@ -171,7 +171,7 @@ class Node:
         node must remap them the same way). :class:`ConfigError` when another modality on this
         node already claims one of its request ids (the message names both)."""
         cls = _modality_class(modality)
-        name = str(getattr(cls, "name", cls.__name__))
+        name = modality_name(cls)
         remap = check_remap(cls, ids)
         wire_ids = _on_wire(declared_ids(cls, "requests"), remap)
         slot = _SenderSlot(name, cls, RemappedSender(sender, remap) if remap else sender, stream.stream,
@@ -205,7 +205,7 @@ class Node:
         it; one receiver per modality and peer (a receiver without ``peer`` takes the messages
         of every node no per-peer receiver of the modality takes)."""
         cls = _modality_class(modality)
-        name = str(getattr(cls, "name", cls.__name__))
+        name = modality_name(cls)
         remap = check_remap(cls, ids)
         wire_ids = _on_wire(declared_ids(cls, "messages"), remap)
         if peer is not None and not 1 <= peer <= 15:

@@ -1,14 +1,19 @@
 """A modality whose third-party ids a deployment remapped (:mod:`coex_core.routing`): the plugin
 speaks its own ids, the wire carries the remapped ones; these wrappers translate both ways.
-``inner`` is the plugin's own sender or receiver (its state is what a node store saves)."""
+``inner`` is the plugin's own sender or receiver (its state is what a node store saves).
+
+Each wrapper declares every hook of its base class and hands it to ``inner`` (translating ids
+where a message passes); nothing else is delegated: the plugin's own API (its request
+methods, its data) is on ``inner``."""
 
 from __future__ import annotations
 
-from collections.abc import Iterable, Mapping
+from collections.abc import Callable, Iterable, Mapping
 from typing import Any
 
 from .messages import Message, Opaque
 from .modality import ModalityReceiver, ModalitySender, Product
+from .storage import Storage
 
 __all__ = ["RemappedReceiver", "RemappedSender"]
 
@@ -67,13 +72,20 @@ class RemappedSender(ModalitySender):
     def throughput(self, bytes_per_second: float, low: bool, now: float) -> None:
         self.inner.throughput(bytes_per_second, low, now)
 
-    def bind_peers(self, peer: Any) -> None:
+    def detector_view(self) -> object | None:
+        return self.inner.detector_view()
+
+    def bind_peers(self, peer: Callable[[str], ModalitySender | None]) -> None:
         self.inner.bind_peers(peer)
 
-    def __getattr__(self, name: str) -> Any:  # the plugin's own API (request methods ...)
-        if name == "inner":
-            raise AttributeError(name)
-        return getattr(self.inner, name)
+    def peer(self, name: str) -> ModalitySender | None:
+        return self.inner.peer(name)
+
+    def attach_storage(self, storage: Storage) -> None:
+        self.inner.attach_storage(storage)
+
+    def sync_storage(self) -> None:
+        self.inner.sync_storage()
 
 
 class RemappedReceiver(ModalityReceiver):
@@ -93,7 +105,7 @@ class RemappedReceiver(ModalityReceiver):
     def products(self) -> list[Product]:
         return self.inner.products()
 
-    def bind_command_ids(self, allocate: Any) -> None:
+    def bind_command_ids(self, allocate: Callable[[], int]) -> None:
         self.inner.bind_command_ids(allocate)
 
     def next_command_id(self) -> int:
@@ -105,7 +117,8 @@ class RemappedReceiver(ModalityReceiver):
     def supersedes(self, old: Message, new: Message) -> bool:
         return self.inner.supersedes(_translate(old, self.from_wire), _translate(new, self.from_wire))
 
-    def __getattr__(self, name: str) -> Any:
-        if name == "inner":
-            raise AttributeError(name)
-        return getattr(self.inner, name)
+    def attach_storage(self, storage: Storage) -> None:
+        self.inner.attach_storage(storage)
+
+    def sync_storage(self) -> None:
+        self.inner.sync_storage()

@@ -27,13 +27,18 @@ __all__ = ["Transport", "UriInfo", "parse_query"]
 class UriInfo:
     """What a transport URI says, found without opening anything (:meth:`Transport.check_uri`):
     the largest frame the transport will accept (``mtu``), the local device nodes or files it
-    will open (``paths``: a missing one is a warning, the device may be plugged in later), and
-    the modem's packet ``rate`` when the URI sets one (the channel manager must plan for it)."""
+    will open (``paths``: a missing one is a warning, the device may be plugged in later), the
+    modem's packet ``rate`` when the URI sets one (the channel manager must plan for it), and,
+    for a modem that addresses its packets, its own address (``src``) and the one it sends to
+    (``dest``, 0: every node): ``coex config check`` refuses a ``src`` that is not the node's
+    id and a ``dest`` that is the node's own or not its peer's (a link that carries nothing)."""
 
     uri: str
     mtu: int
     paths: tuple[str, ...] = ()
     rate: int | None = None
+    src: int | None = None
+    dest: int | None = None
 
 
 class Transport(abc.ABC):

@@ -27,7 +27,7 @@ if [ ! -d "$DIST/rospy" ]; then
   rm -f "$PTH"
   say "Debian's rospy is not installed ($DIST/rospy): the ROS input, autonomy output and topside"
   say "products need it, and the ROS tests will be skipped (install: scripts/system-deps.sh, or"
-  say "apt-get install python3-rospy python3-rosmaster python3-roslaunch python3-sensor-msgs python3-nav-msgs python3-geometry-msgs python3-std-msgs)"
+  say "apt-get install python3-rospy python3-rosmaster python3-roslaunch python3-sensor-msgs python3-nav-msgs python3-geometry-msgs python3-std-msgs python3-tf2-msgs python3-rostopic python3-rosnode python3-rosbag)"
   exit 0
 fi
 WANT=$("$PY" -c 'import sys; print("%d.%d" % sys.version_info[:2])')
@@ -44,7 +44,7 @@ fi
 
 # the python3-* packages rospy and the message packages need, followed through Depends
 ROOTS="python3-rospy python3-rosmaster python3-roslaunch python3-rosgraph python3-roslib python3-genpy
-       python3-std-msgs python3-sensor-msgs python3-nav-msgs python3-geometry-msgs"
+       python3-std-msgs python3-sensor-msgs python3-nav-msgs python3-geometry-msgs python3-tf2-msgs"
 seen=" "
 queue=$ROOTS
 while [ -n "$(echo $queue)" ]; do

@@ -18,7 +18,7 @@ def small_survey(size: float = 64.0, beams: int = 96, seed: int = 1) -> tuple[Se
 
 def survey_subgrids(size: float = 64.0, beams: int = 256, levels: int = 3) -> tuple[Any, list[Any]]:
     """A bathymetry sender fed :func:`small_survey`, and every Subgrid it sends (fill until idle)."""
-    from coex_core.messages import Subgrid
+    from coex_core.messages import Subgrid, SubgridMessage
     from coex_plugins.bathymetry import BathymetrySender
 
     _, survey = small_survey(size, beams)
@@ -31,6 +31,6 @@ def survey_subgrids(size: float = 64.0, beams: int = 256, levels: int = 3) -> tu
         batch = sender.fill(240, now + i)
         if not batch:
             break
-        out.extend(m for m in batch if isinstance(m, Subgrid))
+        out.extend(m for m in batch if isinstance(m, SubgridMessage))
     return sender, out
 

@@ -8,9 +8,12 @@ line per event on stdout. Run with the venv's Python (rospy through `make ros`):
 ``ROS_MASTER_URI`` names the master. ``--publish`` publishes every ``--every`` seconds: a multibeam
 swath (PointCloud2 in ``--points-frame``), a camera frame (``--image raw|compressed``), the
 vehicle's Odometry (``--nav-frame`` enu: 30 m east, 10 m north, 25 m deep, heading 90), a
-NavSatFix and a sensor_msgs/Temperature (the series). ``--planner fly|refuse|silent`` answers
-each nav_msgs/Path on /coex/survey/path: ``fly`` reports ``ID started 0``, each waypoint, then
-``ID completed``; ``refuse`` reports ``ID refused no thrusters``; ``silent`` says nothing.
+NavSatFix, a sensor_msgs/Temperature (the series) and an altimeter's sensor_msgs/Range on
+/altimeter (5 m; every third one no bottom, inf). ``--planner fly|refuse|silent`` answers
+each nav_msgs/Path on /coex/survey/path (``--survey-ns``): ``fly`` reports ``ID started 0``, each waypoint, then
+``ID completed``; ``refuse`` reports ``ID refused no thrusters``; ``silent`` says nothing. An
+empty path (CoEx's ended form) is flown by none of them (``{"event": "ended"}``), and stops a
+survey ``fly`` is flying.
 """
 
 from __future__ import annotations
@@ -67,6 +70,7 @@ def publish(args: argparse.Namespace, stop: threading.Event) -> None:
         NavSatFix,
         PointCloud2,
         PointField,
+        Range,
         Temperature,
     )
 
@@ -77,6 +81,7 @@ def publish(args: argparse.Namespace, stop: threading.Event) -> None:
         "odom": rospy.Publisher(args.nav_topic, Odometry, queue_size=10),
         "fix": rospy.Publisher("/gps/fix", NavSatFix, queue_size=10),
         "ctd": rospy.Publisher("/ctd/temperature", Temperature, queue_size=10),
+        "alt": rospy.Publisher("/altimeter", Range, queue_size=10),
     }
     deadline = time.monotonic() + 10.0  # CoEx connects (it subscribed before this started)
     while time.monotonic() < deadline and not any(p.get_num_connections() for p in pubs.values()):
@@ -128,6 +133,12 @@ def publish(args: argparse.Namespace, stop: threading.Event) -> None:
         temp = Temperature(temperature=4.0 + 0.01 * k, variance=0.0)
         stamp(temp.header, now)
         pubs["ctd"].publish(temp)
+        # an altimeter 5 m above the seafloor; every third ping finds no bottom (beyond max_range)
+        alt = Range(radiation_type=Range.ULTRASOUND, field_of_view=0.1, min_range=0.3, max_range=50.0,
+                    range=5.0 if k % 3 else math.inf)
+        stamp(alt.header, now)
+        alt.header.frame_id = "altimeter"
+        pubs["alt"].publish(alt)
         k += 1
         stop.wait(args.every)
 
@@ -137,19 +148,34 @@ def planner(args: argparse.Namespace, stop: threading.Event) -> None:
     from nav_msgs.msg import Path
     from std_msgs.msg import String
 
-    answer = rospy.Publisher("/coex/survey/progress", String, queue_size=100)
+    ns = args.survey_ns.rstrip("/")
+    answer = rospy.Publisher(f"{ns}/progress", String, queue_size=100)
     plans: dict[str, object] = {}
 
     def on_plan(msg: String) -> None:
         plans["latest"] = json.loads(msg.data)
 
+    flying: dict[str, object] = {}
+
     def fly(path: Path) -> None:
+        # the path's plan: the one of the same stamp (the two topics' messages may come in
+        # either order: a newer path may come before its plan)
+        stamp = path.header.stamp.to_sec()
+
+        def mine() -> bool:
+            latest = plans.get("latest")
+            return isinstance(latest, dict) and abs(float(latest.get("stamp") or 0.0) - stamp) < 1e-3
+
         deadline = time.monotonic() + 5.0
-        while "latest" not in plans and time.monotonic() < deadline:
+        while not mine() and time.monotonic() < deadline:
             time.sleep(0.05)
         plan = dict(plans.get("latest") or {})  # type: ignore[call-overload]
         sid = plan.get("survey_id")
         pts = [[p.pose.position.x, p.pose.position.y, p.pose.position.z] for p in path.poses]
+        if not pts:  # the ended form: fly nothing, stop flying it
+            flying.pop("sid", None)
+            out(event="ended", frame=path.header.frame_id, plan=plan)
+            return
         out(event="path", frame=path.header.frame_id, poses=pts, plan=plan,
             stamps=[p.header.stamp.to_sec() for p in path.poses])
         if args.planner == "refuse":
@@ -157,14 +183,19 @@ def planner(args: argparse.Namespace, stop: threading.Event) -> None:
             return
         if args.planner == "silent":
             return
+        flying["sid"] = sid
         for k in range(len(pts)):
+            if flying.get("sid") != sid:
+                out(event="stopped", survey_id=sid, at=k)
+                return
             answer.publish(String(f"{sid} started {k}"))
+            out(event="started", survey_id=sid, index=k)
             time.sleep(args.leg)
         answer.publish(String(f"{sid} completed"))
         out(event="flown", survey_id=sid)
 
-    rospy.Subscriber("/coex/survey/plan", String, on_plan, queue_size=10)
-    rospy.Subscriber("/coex/survey/path", Path, lambda p: threading.Thread(target=fly, args=(p,), daemon=True).start(),
+    rospy.Subscriber(f"{ns}/plan", String, on_plan, queue_size=10)
+    rospy.Subscriber(f"{ns}/path", Path, lambda p: threading.Thread(target=fly, args=(p,), daemon=True).start(),
                      queue_size=10)
 
 
@@ -184,9 +215,23 @@ def listen(topics: list[str]) -> None:
                 info.update(points=len(xyz), z=[float(xyz[:, 2].min()), float(xyz[:, 2].max())] if len(xyz) else None)
             elif kind == "nav_msgs/OccupancyGrid":
                 info.update(width=m.info.width, height=m.info.height, resolution=m.info.resolution,
-                            known=sum(1 for v in m.data if v >= 0))
+                            known=sum(1 for v in m.data if v >= 0), values=sorted(v for v in m.data if v >= 0))
             elif kind == "sensor_msgs/Image":
-                info.update(width=m.width, height=m.height, encoding=m.encoding)
+                info.update(width=m.width, height=m.height, encoding=m.encoding,
+                            stamp=m.header.stamp.to_sec())
+            elif kind == "sensor_msgs/CompressedImage":
+                from PIL import Image as PilImage
+
+                pic = np.asarray(PilImage.open(io.BytesIO(bytes(m.data))))
+                info.update(format=m.format, shape=list(pic.shape), sum=int(pic.astype(np.int64).sum()),
+                            stamp=m.header.stamp.to_sec())
+            elif kind == "std_msgs/String":
+                info.update(data=json.loads(m.data))
+            elif kind == "std_msgs/Float64MultiArray":
+                info.update(dims=[[d.label, d.size, d.stride] for d in m.layout.dim], data=list(m.data))
+            elif kind == "tf2_msgs/TFMessage":
+                info.update(transforms=[[t.header.frame_id, t.child_frame_id, t.transform.translation.x,
+                                         t.transform.translation.y, t.transform.translation.z] for t in m.transforms])
             elif kind == "nav_msgs/Odometry":
                 p = m.pose.pose.position
                 info.update(x=p.x, y=p.y, z=p.z)
@@ -217,6 +262,7 @@ def main() -> int:
     p.add_argument("--nav-frame-id", default="map")
     p.add_argument("--planner", choices=("fly", "refuse", "silent"))
     p.add_argument("--leg", type=float, default=0.3)
+    p.add_argument("--survey-ns", default="/coex/survey", help="the planner's topics: NS/path, NS/plan, NS/progress")
     p.add_argument("--listen", nargs="*", default=[])
     p.add_argument("--seconds", type=float, default=600.0)
     args = p.parse_args()

@@ -10,6 +10,8 @@ from hypothesis import strategies as st
 from coex_core._wire import _primitives as P
 from coex_core._wire._codec import _from_container
 from coex_core._wire._registry import SPECS_BY_ID, MessageSpec
+from coex_core._wire._subgrid_code import CodedCells, encode_cells, table_for
+from coex_core._wire.bathymetry import MAX_PREDICTED_CELL_BITS, ArithCells
 from coex_core.messages import Message
 
 MAX_LIST = 6
@@ -58,6 +60,13 @@ def _draw_field(draw: Any, con: Any, ctx: cs.Container) -> Any:
             return draw(st.binary(min_size=n, max_size=n))
     if isinstance(con, cs.IfThenElse):
         return _draw_field(draw, con.thensubcon, ctx) if _eval(con.condfunc, ctx) else None
+    if isinstance(con, ArithCells):  # presence (when partial) and residuals, small or huge
+        n = int(ctx.side) ** 2
+        mask = draw(st.integers(0, (1 << n) - 1)) if ctx.partial else None
+        count = n if mask is None else mask.bit_count()
+        big = st.integers(-(1 << 20), (1 << 20))
+        return {"mask": mask, "residuals": draw(st.lists(st.one_of(st.integers(-4, 4), big), min_size=count,
+                                                        max_size=count))}
     if isinstance(con, cs.Rebuild):  # a derived count under a condition: choose the length here
         sub = _unwrap(con.subcon)
         return draw(st.integers(sub.lo, min(sub.hi, sub.lo + MAX_LIST)))
@@ -133,9 +142,25 @@ def _survey_rule(ctx: cs.Container) -> None:
         ctx.depth = None
 
 
+def _predicted_rule(ctx: cs.Container) -> None:
+    """PredictedSubgrid: the coded cells take at most 1536 bits (residuals zeroed from the end
+    until they do)."""
+    res = list(ctx.cells["residuals"])
+    n = int(ctx.side) ** 2
+    mask = ctx.cells["mask"]
+    present = None if mask is None else [bool((mask >> (n - 1 - k)) & 1) for k in range(n)]
+    table = table_for(int(ctx.context) == 1, int(ctx.level))
+    k = len(res)
+    while k > 0 and len(encode_cells(int(ctx.side), CodedCells(present, res), int(ctx.shift), table)) \
+            > MAX_PREDICTED_CELL_BITS:
+        k = k * 3 // 4
+        res = res[:k] + [0] * (len(res) - k)
+    ctx.cells = {"mask": mask, "residuals": res}
+
+
 #: per message type, the rules a drawn message is made to follow (the table's "MUST reject when")
 _RULES: dict[str, Any] = {"ImageFragment": _fragment_rule, "SurveyCommand": _survey_rule,
-                          "ImageRegionRequest": _region_rule}
+                          "ImageRegionRequest": _region_rule, "PredictedSubgrid": _predicted_rule}
 
 
 def message_strategy(spec: MessageSpec) -> st.SearchStrategy[Message]:

@@ -85,6 +85,9 @@ def test_log_appends_one_json_line_per_plan(tmp_path: Path) -> None:
     assert a["waypoints"] == [[10.0, 0.0], [10.0, 10.0], [0.0, 10.0]]
     assert a["latlon"][0] == pytest.approx(list(CTX.geodetic(10.0, 0.0)))
     assert (b["survey_id"], b["kind"], b["depth"], b["speed"]) == (9, "LINE", 12.0, 0.8)
+    out.end(9, 120.0)  # its ended form: a script following the file stops flying it
+    assert json.loads((tmp_path / "plans.jsonl").read_text().splitlines()[-1]) == {
+        "time": 120.0, "survey_id": 9, "ended": True}
 
 
 def test_log_checks_its_file_option() -> None:
@@ -299,3 +302,78 @@ def test_lcm_checks_its_options() -> None:
         LcmAutonomy({"answer_timeout": -1}, CTX)
     with pytest.raises(ConfigError, match="retries must be an integer"):
         LcmAutonomy({"retries": 1.5}, CTX)
+    with pytest.raises(ConfigError, match="silence must be a number >= 0"):
+        LcmAutonomy({"silence": float("nan")}, CTX)
+
+
+def test_lcm_an_ended_survey_is_never_handed_to_a_planner_started_later() -> None:
+    """Through the daemon's survey lifecycle (tests/_lifecycle.py): after a survey ended (no
+    answer, completed, refused) the request is never published again; its ended form (the same
+    survey_id, n = 0) goes out once; a planner started later gets nothing of it; an answer after
+    the end is recorded in the survey's record; a planner that falls silent mid-survey aborts it
+    AUTONOMY_SILENT after `silence` (its repeated state is its heartbeat)."""
+    from ._lifecycle import Vehicle
+
+    channel, state = unique_channel("REQ"), unique_channel("STATE")
+    lc = lcm.LCM("memq://")
+    out = LcmAutonomy({"url": "memq://", "channel": channel, "state_channel": state, "answer_timeout": 2.0,
+                       "retries": 1, "silence": 5.0}, CTX, instance=lc)
+    out.open()
+    clock = [1000.0]
+    v = Vehicle(out, clock=lambda: clock[0], name="lcm")
+
+    def run(seconds: float) -> None:
+        end = clock[0] + seconds
+        while clock[0] < end:
+            clock[0] += 0.5
+            v.step()
+
+    sent: list[survey_request_t] = []
+    lc.subscribe(re.escape(channel), lambda _c, data: sent.append(survey_request_t.decode(data)))
+    # 1. nobody answers: published twice, given up, then its ended form, and nothing more
+    v.ask(1, clock[0], depth=5.0)
+    run(10.0)
+    assert v.state(1) == SurveyState.REJECTED and v.final(1).reason == SurveyReason.AUTONOMY_NO_ANSWER
+    assert [(q.survey_id, q.n) for q in sent] == [(1, 1), (1, 1), (1, 0)]
+    planner = Planner(lc, channel, state)  # a planner that starts now
+    run(60.0)
+    assert planner.requests == []
+    # 2. completed: its ended form once it ended
+    v.ask(2, clock[0], depth=5.0)
+    run(0.5)
+    planner.answer(2, 2, 0)
+    run(1.0)
+    planner.answer(2, 3)
+    run(1.0)
+    assert v.state(2) == SurveyState.COMPLETED
+    assert [(q.survey_id, q.n) for q in planner.requests] == [(2, 1), (2, 0)]
+    # 3. refused: likewise; an answer after the end is recorded, and the survey taken back again
+    v.ask(3, clock[0], depth=5.0)
+    run(0.5)
+    planner.answer(3, 1, 42)
+    run(1.0)
+    assert v.state(3) == SurveyState.REJECTED and v.final(3).value == 42.0
+    planner.answer(3, 2, 0)  # late: the planner flies it all the same
+    run(1.0)
+    assert v.state(3) == SurveyState.REJECTED and v.sender.late(3)[0][1:3] == ("STARTED", 0)
+    assert [(q.survey_id, q.n) for q in planner.requests][2:] == [(3, 1), (3, 0)]  # ended 1 s ago
+    run(10.0)
+    planner.answer(3, 2, 1)  # still flying it: taken back again
+    run(1.0)
+    assert [(q.survey_id, q.n) for q in planner.requests][2:] == [(3, 1), (3, 0), (3, 0)]
+    run(60.0)
+    assert len(planner.requests) == 5  # nothing published again
+    # 4. a planner that repeats its state is alive; one that falls silent aborts the survey
+    v.ask(4, clock[0], depth=5.0)
+    run(0.5)
+    for _ in range(8):
+        planner.answer(4, 2, 0)
+        run(3.0)
+    assert v.state(4) == SurveyState.STARTED
+    run(6.0)
+    r = v.final(4)
+    assert (r.state, r.reason, r.detail) == (SurveyState.ABORTED, SurveyReason.AUTONOMY_SILENT,
+                                             f"no survey_state_t on {state}"[:48])
+    assert 5.0 < r.value <= 6.0
+    assert [(q.survey_id, q.n) for q in planner.requests][-1] == (4, 0)
+    out.close()

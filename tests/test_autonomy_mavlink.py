@@ -71,6 +71,10 @@ def make(port: int) -> Iterator[Callable[..., MavlinkAutonomy]]:
     made: list[MavlinkAutonomy] = []
 
     def build(**options: object) -> MavlinkAutonomy:
+        # a peer thread on a loaded machine may answer late: unless a test is about them, the
+        # resend timeouts are long enough that no answer is taken for a lost one (the exact
+        # counts of items, acks and commands the tests assert hold)
+        options = {"timeout": 3.0, "item_timeout": 1.0, **options}
         out = MavlinkAutonomy({"connection": f"udpout:127.0.0.1:{port}", **options}, CTX)
         out.open()
         made.append(out)
@@ -123,6 +127,8 @@ def test_items_heights_frames_and_speed() -> None:
     ({"connection": "udpout:h:1", "home_placeholder": "yes"}, "home_placeholder must be true or false"),
     ({"connection": "udpout:h:1", "manual_modes": [2, "x"]}, "manual_modes must be a list"),
     ({"connection": "udpout:h:1", "frme": 3}, "unknown option 'frme'"),
+    ({"connection": "udpout:h:1", "silence": -1}, "silence must be a number >= 0"),
+    ({"connection": "udpout:h:1", "clear": "no"}, "clear must be true or false"),
 ])
 def test_options_are_checked(options: dict[str, object], match: str) -> None:
     with pytest.raises(ConfigError, match=match):
@@ -204,7 +210,7 @@ def test_silent_peer_count_resent_then_no_answer(make: Callable[..., MavlinkAuto
     """Driven with a made-up clock: MISSION_COUNT again every 1.5 s, 5 times, then REJECTED
     AUTONOMY_NO_ANSWER after 6 tries (not AUTONOMY_REFUSED: nobody refused it)."""
     with _peer(port, silent=True) as peer:
-        out = make(heartbeat=0)
+        out = make(heartbeat=0, timeout=1.5)
         out.submit(_plan(), 100.0)
         assert out.poll(101.49) == []
         for k in range(1, 6):
@@ -225,7 +231,7 @@ def test_lost_item_is_resent_after_the_item_timeout(make: Callable[..., MavlinkA
     with _peer(port, drop_items=2, request_timeout=60.0) as peer:  # the peer never asks again itself
         out = make(start="none")
         out.submit(_plan(), time.monotonic())
-        got = run(out, lambda r: bool(r))
+        got = run(out, lambda r: bool(r), timeout=30)
         assert got == [SurveyReport(7, SurveyState.STARTED, got[0].time, index=0)]
         assert out.stats["resent"] == 2 and [i["seq"] for i in peer.items] == [0, 1, 2, 3]
         assert peer.commands_received == []
@@ -373,6 +379,9 @@ def test_mavpeer_as_a_program_prints_each_mission(make: Callable[..., MavlinkAut
                             env=env)
     try:
         out = make(start="none", timeout=0.5)
+        # the program is up once its heartbeat is heard (its start takes seconds on a loaded
+        # machine: the upload's 3 s of retries must not run meanwhile)
+        run(out, lambda r: out.heard_at is not None, timeout=60)
         out.submit(_plan(depth=20.0), time.monotonic())
         got = run(out, lambda r: bool(r), timeout=15)
         assert got[0].state == SurveyState.STARTED
@@ -398,3 +407,111 @@ def test_after_a_restart_the_flown_mission_is_followed_not_uploaded_again(make: 
         later = run(again)
         assert later[-1].state == SurveyState.COMPLETED and all(r.survey_id == 7 for r in later)
         assert peer.counts == [4]  # uploaded once: the restart did not start the mission over
+
+
+# ------------------------------------------------------------------ the survey lifecycle (issue 51)
+def _mavpeer_process(port: int, *args: str) -> subprocess.Popen[str]:
+    """``python -m coex_plugins.autonomy.mavpeer`` as a process of its own (an autopilot that can be
+    killed), printing one JSON line per mission received or cleared."""
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join(str(ROOT / p) for p in ("", "transports", "runtime", "plugins")))
+    return subprocess.Popen([sys.executable, "-m", "coex_plugins.autonomy.mavpeer", "--listen",
+                             f"udpin:127.0.0.1:{port}", "--heartbeat", "0.2", *args], stdout=subprocess.PIPE,
+                            text=True, env=env)
+
+
+def _lines(proc: subprocess.Popen[str]) -> list[dict[str, object]]:
+    """The JSON lines a mavpeer process printed (read in a thread; the list grows)."""
+    import threading
+
+    out: list[dict[str, object]] = []
+
+    def read() -> None:
+        assert proc.stdout is not None
+        for line in proc.stdout:
+            out.append(json.loads(line))
+
+    threading.Thread(target=read, daemon=True).start()
+    return out
+
+
+def test_an_ended_survey_is_cleared_and_never_uploaded_to_an_autopilot_started_later(
+        make: Callable[..., MavlinkAutonomy], port: int) -> None:
+    from ._lifecycle import Vehicle
+
+    out = make(timeout=0.3, item_timeout=0.1, retries=2, silence=1.0)
+    v = Vehicle(out, clock=time.monotonic, name="mavlink")
+    # no autopilot: the upload is given up (no answer); the clearing of what it may have left
+    # waits for the autopilot to be heard
+    v.ask(1, x=10.0, depth=5.0)
+    v.until("survey 1 given up", lambda: v.state(1) == SurveyState.REJECTED)
+    assert v.final(1).reason == SurveyReason.AUTONOMY_NO_ANSWER
+    v.until("the clearing kept for later", lambda: out._clear_later == 1)
+    uploads = out.stats["uploads"]
+    with _peer(port) as peer:  # the autopilot starts: cleared, never handed survey 1
+        v.until("the mission cleared", lambda: peer.clears == [0])
+        for _ in range(100):
+            v.step()
+            time.sleep(0.01)
+        assert peer.counts == [] and out.stats["uploads"] == uploads
+    # completed: the mission is cleared once it ended (AUTO would fly it again)
+    with _peer(port, fly_interval=0.05) as peer:
+        v.ask(2, x=20.0, depth=5.0)
+        v.until("survey 2 completed", lambda: v.state(2) == SurveyState.COMPLETED)
+        v.until("its mission cleared", lambda: peer.clears == [0] and not peer.mission_held)
+        assert peer.counts == [2] and out.stats["cleared"] == 2
+    # refused (ArduPilot's uploads are not atomic: part of it may be there): cleared; an autopilot
+    # restarted after gets nothing
+    with _peer(port, result=14) as peer:
+        v.ask(3, x=30.0, depth=5.0)
+        v.until("survey 3 refused", lambda: v.state(3) == SurveyState.REJECTED)
+        v.until("its mission cleared", lambda: peer.clears == [0])
+    with _peer(port) as peer:
+        for _ in range(100):
+            v.step()
+            time.sleep(0.01)
+        assert (peer.counts, peer.clears) == ([], [])
+    assert [c for c in (v.final(s).reason for s in (1, 2, 3))] == [
+        SurveyReason.AUTONOMY_NO_ANSWER, SurveyReason.NONE, SurveyReason.AUTONOMY_REFUSED]
+
+
+def test_an_autopilot_killed_mid_mission_is_reported_silent_within_the_bound(
+        make: Callable[..., MavlinkAutonomy], port: int) -> None:
+    """A mavpeer process (stock pymavlink, heartbeats every 0.2 s) flying survey 1 is killed
+    (SIGKILL): the survey is ABORTED, AUTONOMY_SILENT, `silence` seconds after its last
+    heartbeat; when an autopilot answers on that link again, the aborted mission is cleared and
+    nothing is uploaded."""
+    from ._lifecycle import Vehicle
+
+    silence = 2.0
+    proc = _mavpeer_process(port, "--fly", "60")
+    again = None
+    try:
+        out = make(timeout=0.5, silence=silence)
+        v = Vehicle(out, clock=time.monotonic, name="mavlink")
+        v.until("the autopilot process heard", lambda: out.heard_at is not None, 60)
+        v.ask(1, x=10.0, depth=5.0)
+        v.until("survey 1 started", lambda: v.state(1) == SurveyState.STARTED, 30)
+        v.until("heartbeats heard", lambda: time.monotonic() - out.heard_at < 0.5)
+        proc.kill()
+        killed = time.monotonic()
+        proc.wait(10)
+        v.until("survey 1 aborted", lambda: v.state(1) == SurveyState.ABORTED, 30)
+        took = time.monotonic() - killed
+        r = v.final(1)
+        assert (r.reason, r.detail) == (SurveyReason.AUTONOMY_SILENT, "no HEARTBEAT from 1/1"), r
+        # the bound, plus what a loaded machine adds to the test's own polling
+        assert silence <= r.value < silence + 5.0 and took < silence + 5.0, (r.value, took)
+        print(f"autopilot killed: survey aborted {took:.2f} s later (silence {silence:g} s)")
+        again = _mavpeer_process(port)
+        lines = _lines(again)
+        v.until("the aborted mission cleared on the restarted autopilot", lambda: any(ln.get("clear") for ln in lines))
+        for _ in range(50):
+            v.step()
+            time.sleep(0.01)
+        assert [ln for ln in lines if not ln.get("clear")] == []  # nothing uploaded
+        assert v.state(1) == SurveyState.ABORTED
+    finally:
+        for p in (proc, again):
+            if p is not None and p.poll() is None:
+                p.kill()
+                p.wait(10)

@@ -5,7 +5,7 @@ output uploading each accepted survey to a mission-protocol peer built from stoc
 with ``MAV_MISSION_DENIED``, stays silent for the next, then flies a third: topside (the survey
 receiver's records, the console's state and its HTTP ``/api/state``) shows the code and its
 name for the first, "no answer" with the tries for the second (not a refusal), and the third
-completed."""
+completed; a fourth, whose autopilot dies while flying it, "autopilot silent"."""
 
 from __future__ import annotations
 
@@ -54,6 +54,7 @@ timeout = 0.3
 item_timeout = 0.1
 retries = 2
 heartbeat = 0.2
+silence = 1.5
 """ + COMMON
 TOPSIDE = """
 [node]
@@ -139,7 +140,8 @@ def test_a_refusal_and_a_silent_autopilot_read_apart_topside(
     row = _row(topside, refused)
     assert (row["state"], row["outcome"]) == ("rejected", "refused by autonomy")
     assert "code 14" in row["text"] and "MAV_MISSION_DENIED" in row["text"]
-    assert peer.acks_sent == [14]
+    assert peer.acks_sent[0] == 14  # then 0: the ended survey's mission cleared (MISSION_CLEAR_ALL)
+    _wait("the refused survey's mission cleared", lambda: peer.clears == [0])
 
     # 2. the autopilot falls silent: given up after 1 + retries tries, as no answer
     with peer._lock:
@@ -162,8 +164,70 @@ def test_a_refusal_and_a_silent_autopilot_read_apart_topside(
     _wait("the third survey completed", ended(flown))
     assert rx.surveys[flown].state == "completed" and _row(topside, flown)["outcome"] == "completed"
 
+    # 4. the autopilot dies while it flies the next one: aborted, autopilot silent, told topside
+    with peer._lock:
+        peer.fly_interval = 60.0
+    dying = ask(30.0)
+    _wait("the fourth survey started topside", lambda: rx.surveys[dying].state == "started")
+    peer.close()  # no more heartbeats, no more answers
+    _wait("the fourth survey ended topside", ended(dying))
+    rec = rx.surveys[dying]
+    assert (rec.state, rec.reason) == ("aborted", "AUTONOMY_SILENT")
+    assert rec.text.startswith("autopilot silent for ") and rec.text.endswith(": no HEARTBEAT from 1/1"), rec.text
+    assert _row(topside, dying)["outcome"] == "autopilot silent"
+
     # the console's event log says each in words, and the vehicle's summary counts the plans
     log = [e["text"] for e in topside.hub.snapshot()["log"]]
     assert any(f"survey {refused} refused by autonomy" in t and "MAV_MISSION_DENIED" in t for t in log), log
     assert any(f"survey {silent} no answer from autonomy" in t and "after 3 tries" in t for t in log), log
-    assert vehicle.counts["plans"] == 3
+    assert any(f"survey {dying} autopilot silent" in t for t in log), log
+    assert vehicle.counts["plans"] == 4
+
+
+def test_a_completed_survey_is_never_uploaded_again_whatever_restarts(tmp_path: Path) -> None:
+    """Issue 51, with the vehicle daemon's store: a survey flown to its end leaves the autopilot's
+    mission cleared; the daemon restarted afterwards uploads nothing and clears nothing again; one
+    restarted before it could tell the output the survey ended (a crash between the two) clears it
+    at start; the autopilot restarted meanwhile (a new peer) is handed nothing."""
+    link, autopilot = _free_udp_port(), _free_udp_port()
+    (tmp_path / "k.key").write_text(KEY)
+    (tmp_path / "v.toml").write_text(VEHICLE.format(link=link, autopilot=autopilot)
+                                     .replace("store = false", 'store = "vehicle.sqlite"'))
+    (tmp_path / "t.toml").write_text(TOPSIDE.format(link=link))
+    peer = MissionPeer(f"udpin:127.0.0.1:{autopilot}", heartbeat=0.2, fly_interval=0.1)
+    peer.start()
+    vehicle = topside = again = None
+    try:
+        vehicle = VehicleApp(load(tmp_path / "v.toml", "vehicle")).start()
+        topside = topside_from_config(str(tmp_path / "t.toml")).start()
+        rx = topside.node.receiver("survey")
+        with topside.hub.lock:
+            sid = int(rx.request("line", 0.0, 0.0, time.time(), heading=0.0, length=30.0, depth=10.0).survey_id)
+        _wait("the survey completed topside", lambda: rx.surveys[sid].state == "completed")
+        _wait("its mission cleared", lambda: peer.clears == [0] and not peer.mission_held)
+        vehicle.close()
+        vehicle = None
+        assert peer.counts == [3]
+        # restarted after the end: nothing uploaded, nothing cleared again
+        again = VehicleApp(load(tmp_path / "v.toml", "vehicle")).start()
+        _wait("the restarted vehicle polling", lambda: again.lifecycle is not None and not again.lifecycle._first)
+        time.sleep(1.5)
+        assert (peer.counts, peer.clears, again.counts["plans"]) == ([3], [0], 0)
+        again.close()
+        # restarted as if the end had not reached the output: a new autopilot is cleared, nothing more
+        peer.close()
+        peer = MissionPeer(f"udpin:127.0.0.1:{autopilot}", heartbeat=0.2)
+        peer.start()
+        again = VehicleApp(load(tmp_path / "v.toml", "vehicle"))
+        assert again.lifecycle.ended_key == again.lifecycle.submitted
+        again.lifecycle.ended_key = None  # the store as a crash between the report and the end leaves it
+        again.start()
+        _wait("the ended survey's mission cleared at start", lambda: peer.clears == [0])
+        time.sleep(1.0)
+        assert peer.counts == [] and again.counts["plans"] == 0
+        assert again.node.sender("survey").state_of(sid).name == "COMPLETED"
+    finally:
+        for app in (vehicle, again, topside):
+            if app is not None:
+                app.close()
+        peer.close()

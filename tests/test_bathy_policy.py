@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
@@ -15,6 +16,7 @@ from coex_core.messages import (
     MapRoiReply,
     MapRoiRequest,
     Subgrid,
+    SubgridMessage,
     VehicleMode,
     VehicleStatus,
 )
@@ -46,7 +48,7 @@ def _drain(sender: BathymetrySender, now: float, budget: int = 240, step: float 
     out: list[Subgrid] = []
     for i in range(5000):
         batch = sender.fill(budget, now + i * step)
-        subs = [m for m in batch if isinstance(m, Subgrid)]
+        subs = [m for m in batch if isinstance(m, SubgridMessage)]
         out.extend(subs)
         if not subs and (sender.pending_bytes() == 0 or step == 0):
             break
@@ -66,7 +68,7 @@ def test_nothing_is_sent_until_quiet_for_send_delay_then_coarsest_level_first() 
     remaining = set(sender.inventory())
     sent: list[Subgrid] = []
     for i in range(1000):
-        subs = [m for m in sender.fill(240, last + 21.0 + i) if isinstance(m, Subgrid)]
+        subs = [m for m in sender.fill(240, last + 21.0 + i) if isinstance(m, SubgridMessage)]
         if not subs:
             break
         # Each packet starts with the coarsest level still unsent; leftover room may take a
@@ -95,7 +97,7 @@ def test_a_changed_subgrid_is_sent_again_once_quiet_and_only_it() -> None:
     _drain(sender, last + 21.0)
     t2 = last + 1000.0
     _bump(sender, 3.2, 4.1, t2)
-    assert not [m for m in sender.fill(240, t2 + 10.0) if isinstance(m, Subgrid)]
+    assert not [m for m in sender.fill(240, t2 + 10.0) if isinstance(m, SubgridMessage)]
     again = _drain(sender, t2 + 21.0)
     assert sorted((s.level, s.ix, s.iy) for s in again) == [(k, 0, 0) for k in range(LEVELS)]
     assert all(s.stamp == to_stamp(t2) for s in again)
@@ -126,7 +128,7 @@ def test_region_request_with_current_stamps_resends_nothing() -> None:
     unsurveyed = sum(1 for i in range(36) if not math.isfinite(sender.subgrid_time((0, -2 + i % 6, -2 + i // 6))))
     assert unsurveyed > 0
     assert replies == [MapRoiReply(req.request_id, 0, 0, unsurveyed)]
-    assert not [m for m in sender.fill(240, now) if isinstance(m, Subgrid)]
+    assert not [m for m in sender.fill(240, now) if isinstance(m, SubgridMessage)]
     receiver.receive(replies[0], now)
     (region,) = receiver.active_regions()  # it stands on the vehicle: waiting, not answered
     assert region.waiting == unsurveyed and not region.done
@@ -157,7 +159,7 @@ def test_region_request_resends_only_missing_and_newer_subgrids() -> None:
     req = _request(receiver, 0, t2 + 1.0)
     (reply,) = sender.handle(req, t2 + 1.0)
     assert isinstance(reply, MapRoiReply) and reply.queued == 2
-    out = [m for m in sender.fill(240, t2 + 2.0) if isinstance(m, Subgrid)]
+    out = [m for m in sender.fill(240, t2 + 2.0) if isinstance(m, SubgridMessage)]
     assert sorted((s.ix, s.iy) for s in out if s.level == 0)[:2] == sorted([missing, newer_key])
     assert {(s.level, s.ix, s.iy) for s in out[:2]} == {(0, *missing), (0, *newer_key)}
 
@@ -168,7 +170,7 @@ def test_requested_subgrids_go_out_ahead_of_background() -> None:
     receiver.request_region(0, 1, 1, 1, 1)
     (req,) = receiver.poll(last + 21.0)
     sender.handle(req, last + 21.0)
-    out = [m for m in sender.fill(240, last + 21.0) if isinstance(m, Subgrid)]
+    out = [m for m in sender.fill(240, last + 21.0) if isinstance(m, SubgridMessage)]
     assert (out[0].level, out[0].ix, out[0].iy) == (0, 1, 1)
     assert out[1].level == LEVELS - 1  # then the background, coarsest first
 
@@ -275,7 +277,7 @@ def test_receiver_keeps_the_newest_version_and_ages() -> None:
     stamp = receiver.holdings(0)[key]
     sg = sender.build((0, *key))
     assert sg is not None
-    older = Subgrid(**{**{f: getattr(sg, f) for f in sg.__slots__}, "stamp": stamp - 50})  # type: ignore[arg-type]
+    older = dataclasses.replace(sg, stamp=stamp - 50)
     assert receiver.receive(older, now) == []
     assert receiver.holdings(0)[key] == stamp
     age = receiver.age(0, *key, now)
@@ -326,7 +328,7 @@ def test_elevations_beyond_the_wire_range_are_skipped_not_a_crash() -> None:
     deep = np.array([[1.5, 1.5, -6000.0]] * 5)  # 600,000 cm: beyond 20 signed bits
     ok = np.array([[20.5, 20.5, -50.0]] * 5)
     sender.ingest(np.vstack([deep, ok]), 0.0)
-    out = [m for m in sender.fill(240, 30.0) if isinstance(m, Subgrid)]
+    out = [m for m in sender.fill(240, 30.0) if isinstance(m, SubgridMessage)]
     assert {(m.level, m.ix, m.iy) for m in out} == {(1, 1, 1), (0, 2, 2)}
     assert (0, 0, 0) in sender.unsendable
 

@@ -14,7 +14,7 @@ import pytest
 
 from coex import ChannelManager, LinkConfig, Node, NodeStore, Schedule, StreamConfig
 from coex_core import state, wire
-from coex_core.messages import MapMetadata, MapRoiRequest, Subgrid
+from coex_core.messages import MapMetadata, MapRoiRequest, Subgrid, SubgridMessage
 from coex_plugins.bathymetry import BathymetryModality, BathymetrySender
 from coex_plugins.bathymetry.quadtree import QuadtreeMap
 
@@ -84,7 +84,7 @@ def _drain(s: BathymetrySender, now: float) -> list[Subgrid]:
         got = s.fill(4000, now)
         if not got:
             return out
-        out.extend(m for m in got if isinstance(m, Subgrid))
+        out.extend(m for m in got if isinstance(m, SubgridMessage))
 
 
 def test_a_request_for_an_evicted_region_is_served_as_from_memory() -> None:

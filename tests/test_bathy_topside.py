@@ -11,7 +11,7 @@ from PIL import Image
 
 from coex_core import wire
 from coex_core.cli import main
-from coex_core.messages import Subgrid
+from coex_core.messages import Subgrid, SubgridMessage
 from coex_plugins.bathymetry import (
     BathymetryReceiver,
     BathymetrySender,
@@ -121,11 +121,14 @@ def test_coex_bathy_roundtrip_writes_messages_levels_and_summary(tmp_path: Path)
     assert summary["ratio_vs_2022"] < 0.6
     lines = [json.loads(line) for line in (out / "messages.jsonl").read_text().splitlines()]
     assert lines and all({"type", "level", "hex"} <= set(rec) for rec in lines)
-    subgrids = [rec for rec in lines if rec["type"] == "Subgrid"]
+    subgrids = [rec for rec in lines if rec["type"] in ("Subgrid", "PredictedSubgrid")]
     assert subgrids
     for rec in subgrids[:50]:
         msg = wire.decode(bytes.fromhex(rec["hex"]))
-        assert isinstance(msg, Subgrid) and msg.level == rec["level"]
+        assert isinstance(msg, SubgridMessage) and type(msg).__name__ == rec["type"] and msg.level == rec["level"]
+    # frame acks tell the sender what topside holds: most subgrids are predicted from their parents
+    parent = [rec for rec in subgrids if rec.get("context") == "PARENT"]
+    assert len(parent) > len(subgrids) / 3
     for level in summary["levels"]:
         k = level["level"]
         grid, geo = read_geotiff(out / f"level_{k}.tif")

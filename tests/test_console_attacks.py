@@ -199,7 +199,12 @@ def test_a_body_that_never_arrives_is_refused_in_time() -> None:
         s.sendall(b"POST /api/action HTTP/1.1\r\nHost: 127.0.0.1\r\nContent-Type: application/json\r\n"
                   b"Content-Length: 100\r\n\r\n{\"action\"")
         t = time.monotonic()
-        answer = s.recv(4096)
+        answer = b""
+        while b"did not arrive" not in answer and time.monotonic() - t < 5.0:
+            got = s.recv(4096)
+            if not got:
+                break
+            answer += got
         assert answer.startswith(b"HTTP/1.1 408") and b"did not arrive" in answer, answer
         assert time.monotonic() - t < 3.0
         s.close()
@@ -208,26 +213,25 @@ def test_a_body_that_never_arrives_is_refused_in_time() -> None:
         c.close()
 
 
-def test_connections_beyond_the_cap_are_refused() -> None:
+def test_idle_connections_beyond_the_cap_make_room() -> None:
+    """Idle connections at the cap once got everyone 503 (uvicorn's limit was shared by all):
+    now the oldest idle one makes room (busy ones: tests/test_console_admission.py)."""
     c = Console(limits=Limits(connections=4, header_seconds=5.0))
     held = [socket.create_connection(("127.0.0.1", c.port)) for _ in range(4)]
     try:
         time.sleep(0.5)
         code, _, body = c.request("GET", "/api/state")
-        assert code == 503, (code, body[:200])
+        assert code == 200, (code, body[:200])
+        assert c.server.doors.count <= 4
     finally:
         for s in held:
             s.close()
-    time.sleep(0.2)
-    try:
-        assert c.request("GET", "/api/state")[0] == 200
-    finally:
         c.close()
 
 
-def _raw(port: int, data: bytes, seconds: float = 1.5) -> bytes:
+def _raw(port: int, data: bytes, seconds: float = 1.5, source: str = "127.0.0.1") -> bytes:
     """Send ``data`` on one connection and read what comes back for ``seconds``."""
-    s = socket.create_connection(("127.0.0.1", port), timeout=seconds)
+    s = socket.create_connection(("127.0.0.1", port), timeout=seconds, source_address=(source, 0))
     s.sendall(data)
     out = b""
     deadline = time.monotonic() + seconds
@@ -270,8 +274,8 @@ def test_a_request_hidden_in_a_body_is_never_answered(framing: str) -> None:
         out = _raw(c.port, head.encode() + body)
         assert _after_first_answer(out) == b"", out  # one answer, nothing else
         assert b"smuggled" not in out
-        # both framings at once (a proxy reading one and the server the other): still one
-        # request, framed by Transfer-Encoding as RFC 9112 says, whatever Content-Length claims
+        # both framings at once (a proxy reading one and the server the other): refused, one
+        # answer and the connection closed (test_console_admission.py)
         hidden_head = (b"POST /logout HTTP/1.1\r\nHost: 127.0.0.1\r\nContent-Length: 4\r\n"
                        b"Transfer-Encoding: chunked\r\n\r\n")
         chunked = f"{len(hidden):x}\r\n".encode() + hidden + b"\r\n0\r\n\r\n"
@@ -440,7 +444,8 @@ def test_an_oversized_map_window_is_refused_with_the_reason(console: Console) ->
 
 
 def test_pictures_are_drawn_a_few_at_a_time_and_the_rest_refused() -> None:
-    c = Console(limits=Limits(renders=1, render_queue=1))
+    # without sign-in everyone is the operator: the operators' queue is the one that fills
+    c = Console(limits=Limits(renders=1, render_queue=1, operator_render_queue=1))
     real = c.state.image_png
 
     def slow(iid: int, full: bool = False) -> bytes | None:

@@ -91,7 +91,7 @@ class Dive:
         again from its store on the same link end."""
         old = self.app
         old.server.close()
-        old.store.db.close()  # the file as last committed; nothing else is written
+        old.store.close()  # the file as last committed; nothing else is written (and its lock released)
         self.app = self.topside(f"loopback://spare-{uuid.uuid4().hex[:8]}")
         self.app.transports[0] = old.transports[0]
         return self.app
@@ -185,7 +185,7 @@ def test_coex_topside_store_survives_kill_9(tmp_path: Path) -> None:
     """The real command: operator actions, then ``kill -9``, then the same command again."""
     db = tmp_path / "topside.db"
     cmd = [COEX, "topside", "--transport", "loopback://k9", "--http", "127.0.0.1:0",
-           "--slot", "2", "--guard", "0.2", "--store", str(db)]
+           "--slot", "2", "--guard", "0.2", "--packet-seconds", "0.2", "--store", str(db)]
 
     said: list[str] = []
 

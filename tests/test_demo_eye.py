@@ -35,7 +35,7 @@ OPERATOR = ("coex_apps.demo.operator", "coex_apps.demo.eye", "coex_apps.demo.spe
 TRUTH = ("coex_apps.demo.truth", "coex_apps.demo.camera", "coex_apps.demo.seabed", "coex_apps.demo.scenario",
          "coex_apps.demo.world", "coex_apps.demo.run", "coex_apps.demo.outcome", "coex_apps.demo.failures",
          "coex_apps.demo.dive", "coex_apps.demo.config", "coex_apps.demo.figures", "coex_apps.demo.report",
-         "coex_plugins.bathymetry.sim")
+         "coex_apps.demo.navigation", "coex_plugins.bathymetry.sim")
 
 
 def _path(module: str) -> Path | None:

@@ -187,6 +187,17 @@ def test_the_container_hull_and_small_car_site() -> None:
     assert car.length <= 3.0 and hull.length == 7.0 and site.decoys == ()
 
 
+def test_a_sweep_never_draws_the_seeds_the_eye_was_developed_on() -> None:
+    """Issue 50's development seeds (the demo's own ``DEVELOPMENT_SEEDS``) count as development
+    seeds for ``coex sweep`` besides its own (below 1000): never drawn fresh, flagged if given."""
+    from coex_apps.demo import DEVELOPMENT_SEEDS
+    from coex_apps.sweep.conditions import is_development_seed
+
+    assert 1000 in DEVELOPMENT_SEEDS and 1099 in DEVELOPMENT_SEEDS
+    assert all(is_development_seed(s) for s in (0, 999, 1000, 1050, 1099))
+    assert not is_development_seed(1100) and not is_development_seed(123456)
+
+
 def test_cli_rejects_a_bad_scenario(tmp_path: Path) -> None:
     f = tmp_path / "bad.toml"
     f.write_text("area = 100.0\nwater_dpeth = 3.0\n")

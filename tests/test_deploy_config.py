@@ -119,10 +119,10 @@ def test_config_check_refuses_what_the_transport_would_refuse_by_key(tmp_path: P
 
 def test_a_rate_the_uri_contradicts_is_a_problem_and_one_it_gives_is_used(tmp_path: Path) -> None:
     f = tmp_path / "v.toml"
-    f.write_text(GOOD.format(uri="micromodem:socket://127.0.0.1:4001?rate=1", modem="rate = 5", rest=""))
+    f.write_text(GOOD.format(uri="micromodem:socket://127.0.0.1:4001?src=2&rate=1", modem="rate = 5", rest=""))
     _, problems = check(f)
     assert any(p.startswith("modems[0].rate: 5, but the modem's URI says rate=1") for p in problems), problems
-    f.write_text(GOOD.format(uri="micromodem:socket://127.0.0.1:4001?rate=1", modem="", rest=""))
+    f.write_text(GOOD.format(uri="micromodem:socket://127.0.0.1:4001?src=2&rate=1", modem="", rest=""))
     cfg, problems = check(f)
     assert not problems and cfg is not None and cfg.modems[0].rate == 1
 
@@ -147,7 +147,7 @@ type = "mavlink"
 connection = "/dev/ttyNOPE4"
 """
     f = tmp_path / "v.toml"
-    f.write_text(GOOD.format(uri="micromodem:///dev/ttyNOPE0?rate=5", modem="required = false", rest=rest))
+    f.write_text(GOOD.format(uri="micromodem:///dev/ttyNOPE0?src=2&rate=5", modem="required = false", rest=rest))
     cfg, problems = check(f)
     assert not problems, problems
     assert cfg is not None
@@ -192,6 +192,27 @@ def test_detections_run_when_named_with_their_stream_and_a_low_link_priority(tmp
     assert node.sender("detections").detectors[0].threshold == 0.9
     f.write_text(head + '[modalities.detections]\nlow_priority = 300\n')
     assert any("low_priority" in p for p in check(f)[1])
+
+
+def test_the_map_metadata_names_node_origin(tmp_path: Path) -> None:
+    """Issue 51: the vehicle's map metadata (and so the console's map) gives ``node.origin``, not
+    0, 0; an origin the bathymetry options give themselves still wins."""
+    from coex_apps.vehicle.daemon import build_vehicle_node
+    from coex_core.messages import MapMetadata
+
+    f = tmp_path / "v.toml"
+    head = ('[node]\nrole = "vehicle"\nid = 2\npeer = 1\nstore = false\norigin = { lat = 41.5245, lon = -70.6712 }\n'
+            '[[modems]]\nuri = "loopback://d"\n[modalities.bathymetry]\n')
+    f.write_text(head)
+    node = build_vehicle_node(load(f, "vehicle"), {0: type("T", (), {"mtu": 256})()})
+    sender = node.sender("bathymetry")
+    assert sender.origin == (41.5245, -70.6712)
+    meta = sender.metadata(0.0)
+    assert isinstance(meta, MapMetadata)
+    assert (meta.origin_lat, meta.origin_lon) == pytest.approx((41.5245, -70.6712), abs=1e-6)
+    f.write_text(head + "options = { origin_lat = 10.0, origin_lon = 20.0 }\n")
+    node = build_vehicle_node(load(f, "vehicle"), {0: type("T", (), {"mtu": 256})()})
+    assert node.sender("bathymetry").origin == (10.0, 20.0)
 
 
 def test_one_build_node_for_the_vehicle_and_the_topside_from_a_file_or_the_options(tmp_path: Path) -> None:

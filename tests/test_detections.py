@@ -13,7 +13,13 @@ import pytest
 from coex_core import wire
 from coex_core.detect import Detector, Finding
 from coex_core.errors import ConfigError, RequestRejected
-from coex_core.messages import Detection, DetectionSource, MapRoiRequest, Message, Subgrid
+from coex_core.messages import (
+    Detection,
+    DetectionSource,
+    MapRoiRequest,
+    Message,
+    SubgridMessage,
+)
 from coex_core.modality import ModalitySender
 from coex_core.registry import load_detector
 from coex_core.timefmt import to_stamp
@@ -70,6 +76,24 @@ def test_a_wild_sounding_on_a_car_does_not_hide_it() -> None:
     assert np.array_equal(despike(clean), clean)
 
 
+def test_the_despike_median_is_numpys_bit_for_bit() -> None:
+    """despike's median of the neighbours (one sort, issue 55's speed) is np.nanmedian's, NaN
+    and infinite neighbours included."""
+    import warnings
+
+    from coex_plugins.bathymetry.relief import _nanmedian0
+
+    rng = np.random.default_rng(2)
+    for t in range(100):
+        a = rng.normal(size=(8, 13, 11)) * 10.0 ** rng.integers(-3, 4)
+        a[rng.random(a.shape) < rng.random()] = np.nan
+        if t % 4 == 0:
+            a[rng.random(a.shape) < 0.05] = rng.choice([np.inf, -np.inf])
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)
+            assert np.array_equal(np.nanmedian(a, axis=0), _nanmedian0(a), equal_nan=True), t
+
+
 def _survey(size: float = 96.0, seed: int = 3) -> tuple[Seafloor, Any]:
     floor = Seafloor.default(size=size, seed=seed, relief=1.0)
     return floor, simulate_survey(floor, beams=128, ping_rate=2.0, seed=seed + 1)
@@ -89,9 +113,9 @@ def test_the_relief_detector_finds_the_cars_in_the_vehicles_map_once_the_swath_h
         nxt = t if nxt is None else nxt
         if t >= nxt:
             nxt += 10.0
-            found += [(float(t), f) for f in det.detect(sender, float(t))]
+            found += [(float(t), f) for f in det.detect(sender.detector_view(), float(t))]
     end = float(survey.times[-1])
-    found += [(end + 30.0, f) for f in det.detect(sender, end + 30.0)]
+    found += [(end + 30.0, f) for f in det.detect(sender.detector_view(), end + 30.0)]
     for car in floor.targets:
         near = [(t, f) for t, f in found if math.hypot(f.x - car.x, f.y - car.y) <= 3.5]
         assert near, f"the car at ({car.x:.0f}, {car.y:.0f}) was never found"
@@ -101,7 +125,7 @@ def test_the_relief_detector_finds_the_cars_in_the_vehicles_map_once_the_swath_h
     for _, f in found:
         if all(math.hypot(f.x - c.x, f.y - c.y) > 3.5 for c in floor.targets):
             assert f.score < 0.2, f"a false finding that scores like a car: {f}"
-    assert det.detect(sender, end + 60.0) == []  # nothing changed since: nothing looked at
+    assert det.detect(sender.detector_view(), end + 60.0) == []  # nothing changed since: nothing looked at
 
 
 def _sender_with_map() -> tuple[Seafloor, BathymetrySender, float]:
@@ -121,17 +145,17 @@ def test_focus_queues_the_finest_subgrids_around_a_detection_ahead_of_the_backgr
     n = sender.focus(car.x, car.y, 12.0, now)
     assert 4 <= n <= 16
     first = sender.fill(240, now)
-    subs = [m for m in first if isinstance(m, Subgrid)]
+    subs = [m for m in first if isinstance(m, SubgridMessage)]
     assert subs and all(s.level == 0 for s in subs)
     nearest = subs[0]
     assert math.hypot((nearest.ix + 0.5) * 8 - car.x, (nearest.iy + 0.5) * 8 - car.y) <= 8.0
     sent = list(subs)
     while len(sent) < n:
-        sent += [m for m in sender.fill(240, now) if isinstance(m, Subgrid) and m.level == 0]
+        sent += [m for m in sender.fill(240, now) if isinstance(m, SubgridMessage) and m.level == 0]
     assert sender.focus(car.x, car.y, 12.0, now) == 0  # sent (and not found lost) already
     assert sender.focus_bytes == sum(wire.encoded_size(s) for s in sent[:n])
     sender.lost(sent[0], now + 1.0)
-    again = [m for m in sender.fill(240, now + 2.0) if isinstance(m, Subgrid)]
+    again = [m for m in sender.fill(240, now + 2.0) if isinstance(m, SubgridMessage)]
     assert again[0] == sent[0], "a lost neighbourhood subgrid goes again, ahead of the background"
 
 
@@ -143,14 +167,14 @@ def test_on_a_low_link_the_finest_level_is_spare_work_not_background() -> None:
     levels: set[int] = set()
     for i in range(400):
         got = sender.fill(240, now + i)
-        if not any(isinstance(m, Subgrid) for m in got):
+        if not any(isinstance(m, SubgridMessage) for m in got):
             break
-        levels |= {m.level for m in got if isinstance(m, Subgrid)}
+        levels |= {m.level for m in got if isinstance(m, SubgridMessage)}
     assert levels and 0 not in levels
-    spare = [m for m in sender.spare(240, now + 500) if isinstance(m, Subgrid)]
+    spare = [m for m in sender.spare(240, now + 500) if isinstance(m, SubgridMessage)]
     assert spare and {m.level for m in spare} == {0}
     sender.throughput(300.0, False, now + 501)
-    assert any(isinstance(m, Subgrid) and m.level == 0 for m in sender.fill(240, now + 502))
+    assert any(isinstance(m, SubgridMessage) and m.level == 0 for m in sender.fill(240, now + 502))
 
 
 class FakeMapSender(ModalitySender):
@@ -172,22 +196,98 @@ class FakeMapSender(ModalitySender):
         self.focused.append((x, y, radius))
         return 4
 
+    def detector_view(self) -> FakeMapSender:
+        return self
 
-class Scripted(Detector):
+
+class Scripted(Detector[FakeMapSender]):
     """Finds what the test tells it to."""
 
     name = "scripted"
     modality = "fakemap"
+    view = FakeMapSender
     source = DetectionSource.MAP
     neighbourhood = 10.0
 
     def __init__(self, script: list[list[Finding]]) -> None:
         self.script = script
         self.calls = 0
+        self.seen: list[object] = []
 
-    def detect(self, data: ModalitySender, now: float) -> list[Finding]:
+    def detect(self, data: FakeMapSender, now: float) -> list[Finding]:
         self.calls += 1
+        self.seen.append(data)
         return self.script.pop(0) if self.script else []
+
+
+class Silent(FakeMapSender):
+    """A sender of the same modality that offers detectors nothing."""
+
+    def detector_view(self) -> None:
+        return None
+
+
+def test_a_detector_is_handed_only_a_view_of_the_type_it_declares(caplog: pytest.LogCaptureFixture) -> None:
+    """The detections sender gives a detector the view its modality's sender offers when it is
+    of the detector's declared ``view`` type; a sender offering none (or another type) is
+    told in the log once, and the detector is not called."""
+    fake = FakeMapSender()
+    det = Scripted([[Finding(10.0, 10.0, 0.5, 100.0)]])
+    sender = DetectionsSender({"detectors": [det], "interval": 10.0})
+    sender.bind_peers(lambda name: fake if name == "fakemap" else None)
+    assert sender.run(100.0) == 1 and det.seen == [fake]
+    other = Scripted([[Finding(10.0, 10.0, 0.5, 100.0)]])
+    quiet = DetectionsSender({"detectors": [other], "interval": 10.0})
+    quiet.bind_peers(lambda name: Silent() if name == "fakemap" else None)
+    with caplog.at_level("WARNING"):
+        assert quiet.run(100.0) == 0 and quiet.run(110.0) == 0
+    assert other.calls == 0
+    told = [r.getMessage() for r in caplog.records if "scripted" in r.getMessage()]
+    assert told == ["detector scripted takes a FakeMapSender of modality 'fakemap', whose sender offers none"]
+
+
+def test_a_detector_declares_the_modality_and_the_view_it_takes() -> None:
+    """A detector class that implements ``detect`` without ``view`` (or ``modality``), or with a
+    view that cannot be checked, is refused when it is defined; an abstract one is not."""
+    from typing import Protocol
+
+    with pytest.raises(TypeError, match="declares no view"):
+        class NoView(Detector[Any]):
+            modality = "bathymetry"
+
+            def detect(self, data: Any, now: float) -> list[Finding]:
+                return []
+
+    class Unchecked(Protocol):
+        def frames(self) -> list[Any]: ...
+
+    with pytest.raises(TypeError, match="cannot be checked"):
+        class Bad(Detector[Any]):
+            modality, view = "imagery", Unchecked
+
+            def detect(self, data: Any, now: float) -> list[Finding]:
+                return []
+
+    class Base(Detector[Any]):  # abstract: its subclasses declare them
+        name = "base"
+
+    assert Base.__abstractmethods__ == frozenset({"detect"})
+
+
+def test_the_built_in_senders_offer_the_views_their_detectors_declare() -> None:
+    """The bathymetry sender's view is its map (a ``MapView``, what the relief detector takes);
+    the imagery sender's its frames (``ImageFrames``, what the sample's darkspot takes)."""
+    from coex_core.detect import ImageFrames, MapView
+
+    bathy = BathymetrySender({"levels": 2})
+    assert isinstance(bathy.detector_view(), MapView) and bathy.detector_view() is bathy.map
+    assert ReliefDetector.view is MapView and ReliefDetector.modality == "bathymetry"
+    pytest.importorskip("glymur")
+    from coex_plugins.imagery import ImageryModality
+
+    frames = ImageryModality().sender(None)
+    assert isinstance(frames.detector_view(), ImageFrames)
+    assert not isinstance(bathy.detector_view(), ImageFrames)
 
 
 def test_the_detections_sender_sends_the_best_first_once_again_when_lost_or_changed() -> None:

@@ -424,3 +424,25 @@ def test_receiver_forgets_images_of_the_previous_id_cycle(img: np.ndarray) -> No
     # a re-announced old image (an earlier capture time) never removes newer ones
     r.receive(ImageAnnounce(690, 3, None, None, e.width, e.height, True, len(e.body), e.params), 3.0)
     assert sorted(r.images) == [690, 700, 1020]
+
+
+def test_codec_threads_change_no_byte(img: np.ndarray) -> None:
+    """OpenJPEG's threads (issue 55: a lone demo codes on every core, a sweep's dive on one)
+    give the same codestream and the same decoded pixels as coding in the caller's thread."""
+    import glymur
+
+    before = glymur.get_option("lib.num_threads")
+    cp = CodingParams(layer_psnr=(25.0, 30.0))
+    try:
+        out = []
+        for n in (0, 2):
+            codec.set_threads(n)
+            codec._TARGETS.clear()
+            e = codec.encode_image(img, cp)
+            out.append((e.body, codec.decode_packets(e.params, e.width, e.height,
+                                                     codec.split_packets(e.body, e.packet_starts)).tobytes()))
+        assert out[0] == out[1]
+        with pytest.raises(ConfigError):
+            codec.set_threads(-1)
+    finally:
+        glymur.set_option("lib.num_threads", before)

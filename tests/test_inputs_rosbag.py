@@ -194,13 +194,9 @@ def test_ros2_bag_replays_with_its_timing(tmp_path: Path, caplog: pytest.LogCapt
 def test_speed_original_times_and_the_context_clock(tmp_path: Path) -> None:
     ros2_bag(tmp_path)
 
-    class Clock:
-        def time(self) -> float:
-            return 500.0
-
     adapter = RosbagInput({"path": str(tmp_path / "dive_ros2"), "points_topic": "/sonar/points",
                            "nav_topic": "/odom", "start": "original", "speed": 2.0},
-                          InputContext(clock=Clock()))
+                          InputContext(clock=lambda: 500.0))  # the daemon's clock: a function
     adapter.open()  # anchored at the clock's time, not the first poll
     assert adapter.next_event(900.0) == pytest.approx(500.0)
     items = adapter.poll(500.26)  # 100.5 is due at 500.25 at twice the speed

@@ -1,9 +1,10 @@
 """The layers import only downward: core <- transports (the transports' protocol code, the runtime,
 the ``coex`` facade, the conformance kit) <- modalities (the built-in plugins, the sample plugin)
 <- apps (console, demo, vehicle); inside the transports layer the protocol code imports neither the
-runtime nor the facade, and the runtime does not import the facade; the plugins import only
-``coex`` and their own package; no module imports itself back through others (no cycles); README
-and docs show only the public facade for core and run-loop names."""
+runtime nor the facade, and the runtime does not import the facade; the conformance kit imports
+only ``coex`` and itself, the plugins only ``coex`` (and the kit) and their own package; no module
+imports itself back through others (no cycles); README and docs show only the public facade for
+core and run-loop names."""
 
 from __future__ import annotations
 
@@ -32,10 +33,14 @@ PACKAGES = {
 LAYER_NAMES = ("core", "transports", "modalities", "apps")
 #: the transports layer from the bottom: protocol code, runtime, facade, conformance kit
 TIERS = ("coex_transports", "coex_runtime", "coex", "coex_conformance")
-#: packages of plugins: each imports only ``coex`` and itself (and libraries that are not CoEx, the
-#: conformance kit among them: a plugin's conformance companion is written with it)
-PLUGINS = ("coex_plugins", "coex_sample_plugin")
-BESIDE_PLUGINS = ("coex", "coex_conformance")
+#: packages that import only the facade ``coex`` and themselves (and libraries that are not CoEx):
+#: the conformance kit, shipped to third parties, and the plugins, which may also use the kit (a
+#: plugin's conformance companion is written with it)
+ONLY_THE_FACADE = {
+    "coex_conformance": ("coex",),
+    "coex_plugins": ("coex", "coex_conformance"),
+    "coex_sample_plugin": ("coex", "coex_conformance"),
+}
 #: imports inside the transports layer that go up a tier, each with why it is still there; an
 #: entry no longer needed fails the test (delete it)
 KNOWN_TIER_IMPORTS = {
@@ -191,10 +196,11 @@ def up_a_tier(g: dict[str, set[str]]) -> list[str]:
 
 
 def beside_the_facade(g: dict[str, set[str]]) -> list[str]:
-    """Imports of a plugin package's modules that are neither ``coex`` (nor the conformance kit)
-    nor the package itself."""
-    return [f"{a} imports {b}" for a, deps in sorted(g.items()) if a.split(".")[0] in PLUGINS
-            for b in sorted(deps) if b.split(".")[0] not in (*BESIDE_PLUGINS, a.split(".")[0])]
+    """Imports of a module of the conformance kit or of a plugin package that are neither
+    ``coex`` (nor, for a plugin, the conformance kit) nor its own package."""
+    return [f"{a} imports {b}" for a, deps in sorted(g.items()) if a.split(".")[0] in ONLY_THE_FACADE
+            for b in sorted(deps)
+            if b.split(".")[0] not in (*ONLY_THE_FACADE[a.split(".")[0]], a.split(".")[0])]
 
 
 def test_no_layer_imports_a_layer_above_it() -> None:
@@ -208,8 +214,12 @@ def test_protocol_code_imports_neither_runtime_nor_facade() -> None:
     assert [k for k in known if k not in found] == [], "no longer imported: delete from KNOWN_TIER_IMPORTS"
 
 
-def test_plugins_import_only_the_facade_and_themselves() -> None:
-    assert beside_the_facade(graph(ROOT)) == []
+def test_the_kit_and_the_plugins_import_only_the_facade_and_themselves() -> None:
+    """The conformance kit (shipped to third parties), the built-in plugins and the sample
+    third-party plugin import ``coex`` (the plugins also the kit) and their own package only."""
+    found = beside_the_facade(graph(ROOT))
+    assert found == []
+    assert {m.split(".")[0] for m in modules(ROOT)} >= set(ONLY_THE_FACADE)
 
 
 def test_no_module_imports_itself_back_through_others() -> None:
@@ -263,6 +273,11 @@ def test_the_checks_catch_an_upward_import_and_a_cycle(tmp_path: Path) -> None:
     (tmp_path / "examples/coex-sample-plugin/coex_sample_plugin/dark.py").write_text(
         "from coex import Modality\nfrom coex_sample_plugin import X\nfrom coex_plugins import render\n"
         "from coex_conformance import companions\n")
+    # the kit: the facade and itself, not the core or the runtime behind the facade
+    kit = tmp_path / "conformance_tests/coex_conformance"
+    (kit / "companions.py").write_text("from coex import Modality\nfrom coex.messages import Opaque\n")
+    (kit / "noderun.py").write_text(
+        "from .companions import X\nfrom coex_core import wire\n\ndef f():\n    from coex_runtime import runner\n")
     # links the wrong way without an import statement: a module named in a string, a plugin
     # loaded by its registered name
     (tmp_path / "coex_core" / "cli.py").write_text(
@@ -280,7 +295,11 @@ def test_the_checks_catch_an_upward_import_and_a_cycle(tmp_path: Path) -> None:
     assert private_imports(g) == ["coex_plugins.bathymetry imports coex_core._codec"]
     assert up_a_tier(g) == ["coex_runtime.store imports coex",
                             "coex_transports.sim imports coex_runtime.runner"]
-    assert beside_the_facade(g) == ["coex_plugins.bathymetry imports coex_core",
+    assert beside_the_facade(g) == ["coex_conformance.noderun imports coex_core",
+                                    "coex_conformance.noderun imports coex_core.wire",
+                                    "coex_conformance.noderun imports coex_runtime",
+                                    "coex_conformance.noderun imports coex_runtime.runner",
+                                    "coex_plugins.bathymetry imports coex_core",
                                     "coex_plugins.bathymetry imports coex_core._codec",
                                     "coex_plugins.bathymetry imports coex_core.wire",
                                     "coex_plugins.render imports coex_runtime",
@@ -324,7 +343,7 @@ def test_the_facade_offers_what_integrators_and_plugin_authors_need() -> None:
     assert names <= set(coex.__all__)
     assert all(getattr(coex, n) is not None for n in coex.__all__)
     assert coex.Runner is Runner and coex.ModalitySender is ModalitySender and coex.Storage is Storage
-    from coex.messages import Opaque  # the core's modules under the facade's name
+    from coex.messages import Opaque  # the facade's modules (files re-exporting the core's names)
     from coex.tracker import State
 
     assert Opaque is coex.messages.Opaque and State is coex.tracker.State

@@ -71,6 +71,8 @@ def test_options_are_checked() -> None:
         MoosAutonomy({"activate": "COEX_SURVEY"}, ctx)
     with pytest.raises(ConfigError, match="unknown option 'updates'"):
         MoosAutonomy({"updates": "X"}, ctx)
+    with pytest.raises(ConfigError, match="option 'silence' must be at least 0"):
+        MoosAutonomy({"silence": -2}, ctx)
 
 
 # ------------------------------------------------------------------ the mission file (no MOOSDB)
@@ -99,6 +101,7 @@ ProcessConfig = pCoex
   node.store = false
   modems[0].uri = moos://${{ServerHost}}:${{ServerPort}}?name=pCoex_modem   // a URI is not a comment
   modems[0].rate = 3
+  modems[0].packet_seconds = 0.3                // a MOOS variable has no airtime: a packet in a 2 s slot
   tdma.slots = ["topside", "vehicle"]
   modalities.survey.stream = ${{STREAM}}
   modalities.survey.options.geofence.radius = 500
@@ -147,7 +150,7 @@ def test_a_pcoex_block_is_the_configuration_a_toml_file_gives(tmp_path: Path) ->
         "node": {"role": "vehicle", "id": 2, "log_level": "debug", "command_key_file": "k.key", "store": False,
                  "origin": {"lat": 42.358436, "lon": -71.087448}},
         "tdma": {"slot_seconds": 2.0, "guard": 0.5, "slots": ["topside", "vehicle"]},
-        "modems": [{"uri": "moos://127.0.0.1:9000?name=pCoex_modem", "rate": 3}],
+        "modems": [{"uri": "moos://127.0.0.1:9000?name=pCoex_modem", "rate": 3, "packet_seconds": 0.3}],
         "modalities": {"timeseries": {"stream": 5, "options": {"channels": [
                            {"name": "temperature", "lo": -2.0, "hi": 40.0, "resolution": 0.01}]}},
                        "survey": {"stream": 7, "priority": 80, "options": {"geofence": {"radius": 500}}},

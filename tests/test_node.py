@@ -42,7 +42,7 @@ from coex_core.messages import (
     Opaque,
     QueueConfig,
     QueueStatus,
-    Subgrid,
+    SubgridMessage,
     VehicleMode,
     VehicleStatus,
 )
@@ -453,19 +453,19 @@ def test_a_gap_request_packed_before_the_ack_of_what_it_asks_for_resends_nothing
         now += 1.0
     (tx,) = vehicle.poll(now)
     seq, first = next((tx.seq + i, sg) for i, f in enumerate(tx.frames)
-                      for sg in wire.unpack(f) if isinstance(sg, Subgrid))
+                      for sg in wire.unpack(f) if isinstance(sg, SubgridMessage))
     key = (first.level, first.ix, first.iy)
     request = MapRoiRequest(7, first.level, first.ix, first.iy, 1, 1, True, (), 0)  # "I lack it"
     ack = FrameAck(VEHICLE, 0, (FrameAckEntry(seq, 1),))
     frame = wire.pack([ack, request], 256, FrameHeader(src=TOPSIDE, dst=VEHICLE, seq=3))
     vehicle.receive(0, frame, now + 10.0)
     assert [e for e in vehicle.events() if isinstance(e, Acked)]
-    again = [(m.level, m.ix, m.iy) for m in sender.fill(10_000, now + 11.0) if isinstance(m, Subgrid)]
+    again = [(m.level, m.ix, m.iy) for m in sender.fill(10_000, now + 11.0) if isinstance(m, SubgridMessage)]
     assert key not in again
     # the same request after the ack (a real new loss) is served
     vehicle.receive(0, wire.pack([MapRoiRequest(8, *key, 1, 1, True, (), 0)], 256,
                                  FrameHeader(src=TOPSIDE, dst=VEHICLE, seq=4)), now + 12.0)
-    assert key in [(m.level, m.ix, m.iy) for m in sender.fill(10_000, now + 13.0) if isinstance(m, Subgrid)]
+    assert key in [(m.level, m.ix, m.iy) for m in sender.fill(10_000, now + 13.0) if isinstance(m, SubgridMessage)]
 
 
 def test_a_retried_region_request_replaces_the_unacked_one_in_the_channel() -> None:

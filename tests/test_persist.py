@@ -18,7 +18,13 @@ import pytest
 
 from coex_core import wire
 from coex_core.errors import DecodeError
-from coex_core.messages import FrameAck, ImageAck, ImageFragment, MapRoiRequest, Subgrid
+from coex_core.messages import (
+    FrameAck,
+    ImageAck,
+    ImageFragment,
+    MapRoiRequest,
+    SubgridMessage,
+)
 from coex_runtime.store import NodeStore
 from coex_transports.lcm.testing import TEST_UDPM_URL, ensure_multicast_route, unique_channel
 
@@ -37,7 +43,8 @@ def restored(db: Path, role: str) -> Any:
         d = build_dive(minutes=MINUTES, packet_seconds=PACKET_SECONDS, ack_timeout=ACK_TIMEOUT)
         return d.vehicle if role == "vehicle" else d.topside
 
-    store = NodeStore(db)
+    # a look at a store its process may be writing: read-only, the last committed snapshot whole
+    store = NodeStore(db, read_only=True)
     try:
         return store.restore(build)
     finally:
@@ -80,7 +87,7 @@ class Proc:
         if self.p.poll() is None:
             self.p.send_signal(signal.SIGTERM)
             try:
-                self.p.wait(10)
+                self.p.wait(120)  # its last snapshot, on a loaded machine
             except subprocess.TimeoutExpired:
                 self.p.kill()
                 self.p.wait()
@@ -113,8 +120,10 @@ def test_kill_and_restart_both_sides_at_random_moments(tmp_path: Path, lcm_uri: 
             kills.append((role, round(T0 + (time.time() - epoch) * SPEED, 1)))
             time.sleep(rng.uniform(4.0, 30.0) / SPEED)
             procs[role].start()
-        # then until everything has arrived (at most 2400 dive seconds)
-        deadline = epoch + 2400.0 / SPEED
+        # then until everything has arrived: on an idle machine within about 1500 dive seconds;
+        # a loaded one runs the processes late and they miss slots, so the bound is generous (the
+        # loop ends as soon as everything is there)
+        deadline = epoch + 9000.0 / SPEED
         while True:
             time.sleep(4.0)
             d = both(vdb, tdb)
@@ -133,27 +142,28 @@ def test_kill_and_restart_both_sides_at_random_moments(tmp_path: Path, lcm_uri: 
     # the topside's journal has every frame it received, and after every restart the vehicle did
     # not send again a map subgrid that topside had acknowledged (the vehicle's journal has what
     # it sent and the acks it got), nor much more image data than the images need
-    store = NodeStore(tdb)
+    store = NodeStore(tdb, read_only=True)
     try:
         starts = int(store.get("starts_topside") or 0)
         received = store.count("rx")
     finally:
         store.close()
     assert starts == 1 + sum(r == "topside" for r, _ in kills)
-    assert received > 100
-    store = NodeStore(vdb)
+    assert received > 60  # frames (fewer since subgrids are predicted from their parents)
+    store = NodeStore(vdb, read_only=True)
     try:
         rows = list(store.journal())
     finally:
         store.close()
-    by_seq: dict[int, set[Any]] = {}
+    by_seq: dict[int, tuple[set[Any], float]] = {}  # seq -> the subgrids its frame carried, when it went
     acked: set[Any] = set()
-    sent = again = again_asked = image_bytes = image_again = 0
+    sent = again = again_asked = again_late = image_bytes = image_again = 0
     held: dict[int, list[tuple[int, int]]] = {}  # image id -> byte ranges topside acked
     # (level, ix, iy) -> journal row of the newest request covering it; key -> row of its last send
     requested: dict[tuple[int, int, int], int] = {}
     last_tx: dict[Any, int] = {}
-    acked_at: dict[Any, tuple[float, str]] = {}  # key -> (when its ack came, what the acked copy was)
+    # key -> (when its newest ack came, what the acked copy was, when that copy went)
+    acked_at: dict[Any, tuple[float, str, float]] = {}
     sent_as: dict[Any, str] = {}  # key -> the copy last sent
     unasked: list[str] = []  # how each unasked re-send came about (for the failure message)
     for r in rows:
@@ -164,7 +174,7 @@ def test_kill_and_restart_both_sides_at_random_moments(tmp_path: Path, lcm_uri: 
         except DecodeError:
             continue
         if r.kind == "tx":
-            keys = {(msg.level, msg.ix, msg.iy, msg.stamp) for msg in frame.messages if isinstance(msg, Subgrid)}
+            keys = {(msg.level, msg.ix, msg.iy, msg.stamp) for msg in frame.messages if isinstance(msg, SubgridMessage)}
             for msg in frame.messages:
                 if isinstance(msg, ImageFragment):
                     image_bytes += len(msg.data)
@@ -172,22 +182,27 @@ def test_kill_and_restart_both_sides_at_random_moments(tmp_path: Path, lcm_uri: 
                     image_again += sum(max(0, min(b, e) - max(a, s)) for s, e in held.get(msg.image_id, []))
             sent += len(keys)
             for msg in frame.messages:
-                k = (msg.level, msg.ix, msg.iy, msg.stamp) if isinstance(msg, Subgrid) else None
+                k = (msg.level, msg.ix, msg.iy, msg.stamp) if isinstance(msg, SubgridMessage) else None
                 if k is None:
                     continue
                 if k in acked:
                     again += 1
                     # topside asked for it since it last went (a request race: it asked before the
                     # ack of an earlier copy was heard, or after a restart lost it)
+                    t, data, went = acked_at.get(k, (-1.0, "", -1.0))
                     if requested.get(k[:3], -1) > last_tx.get(k, -1):
                         again_asked += 1
+                    elif t - went > ACK_TIMEOUT:
+                        # the ack came after the ack timeout of the copy it acknowledged: the
+                        # vehicle had given that copy up as lost and queued it again by then (as
+                        # after any loss; a loaded machine runs the processes that late)
+                        again_late += 1
                     elif len(unasked) < 12:
-                        t, data = acked_at.get(k, (-1.0, ""))
-                        unasked.append(f"{k} seq {frame.header.seq} at {r.t:.1f}: acked at {t:.1f}, "
-                                       f"{'same' if data == repr(msg) else 'other'} content")
+                        unasked.append(f"{k} seq {frame.header.seq} at {r.t:.1f}: acked at {t:.1f} (sent at "
+                                       f"{went:.1f}), {'same' if data == repr(msg) else 'other'} content")
                 sent_as[k] = repr(msg)
                 last_tx[k] = r.id
-            by_seq[frame.header.seq] = keys
+            by_seq[frame.header.seq] = (keys, r.t)
             continue
         for msg in frame.messages:
             if isinstance(msg, MapRoiRequest):
@@ -199,19 +214,23 @@ def test_kill_and_restart_both_sides_at_random_moments(tmp_path: Path, lcm_uri: 
                 for e in msg.entries:
                     for bit in range(8):
                         if e.frames >> bit & 1:
-                            for k in by_seq.get((e.seq + bit) % 256, set()):
+                            keys, went = by_seq.get((e.seq + bit) % 256, (set(), r.t))
+                            for k in keys:
                                 acked.add(k)
-                                acked_at.setdefault(k, (r.t, sent_as.get(k, "")))
+                                acked_at[k] = (r.t, sent_as.get(k, ""), went)
     need = sum(tx.goal for tx in d.images.images.values())
     print(f"kills {kills}; {sent} subgrids sent, {again} of them after topside had acked them "
-          f"({again_asked} asked for again by topside); "
+          f"({again_asked} asked for again by topside, {again_late} after an ack that came later than "
+          f"the ack timeout); "
           f"{image_bytes} image bytes sent for {need}, {image_again} of them after topside had "
           f"acked them; unasked re-sends: {unasked[:6]}")
     assert sent > 200
     # the vehicle re-sends on its own (spare work) only what it did not hear acknowledged; what
     # topside asks for again after a restart (a request race) it sends, as asked
-    assert again - again_asked <= 0.02 * sent, (f"{again - again_asked} of {sent} subgrids sent again unasked",
-                                                unasked)
+    # (what it had given up before the ack came, it sent again, as after a loss: counted, not
+    # asserted, as it depends on how late the machine runs the processes)
+    unasked_again = again - again_asked - again_late
+    assert unasked_again <= 0.02 * sent, (f"{unasked_again} of {sent} subgrids sent again unasked", unasked)
     # a topside killed between two snapshots forgets what it received since, and asks again
     # (more when spare traffic fills the link): bounded, not zero
     assert again_asked <= 0.10 * sent, f"{again_asked} of {sent} subgrids asked for again after their ack"

@@ -32,6 +32,7 @@ from coex_plugins.inputs.ros import RosInput
 from coex_plugins.inputs.rosmsg import FrameMap, frame_problems, nav_of, points_of
 from coex_plugins.survey.plan import SurveyPlan
 
+from ._lifecycle import Vehicle
 from ._ros import Roscore, kill, peer, ros_entry_points, ros_env, why_no_ros
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -134,8 +135,13 @@ def test_the_ros_adapters_check_their_options_without_ros() -> None:
     with pytest.raises(ConfigError, match="option 'queue' must be an integer"):
         RosInput({"nav_topic": "/odom", "queue": 0}, ctx)
     RosInput({"series": [{"topic": "/ctd", "channels": {"t": "temperature"}}]}, ctx)  # builds, opens nothing
+    RosInput({"altitude_topic": "/altimeter"}, ctx)  # an altimeter alone is enough
+    with pytest.raises(ConfigError, match=r"option 'altitude_field': 'range\[' is not a field path"):
+        RosInput({"altitude_topic": "/dvl", "altitude_field": "range["}, ctx)
     with pytest.raises(ConfigError, match="answer_timeout"):
         RosAutonomy({"answer_timeout": -1}, ctx)
+    with pytest.raises(ConfigError, match="option 'silence' must be a number of seconds >= 0"):
+        RosAutonomy({"silence": "10"}, ctx)
     with pytest.raises(ConfigError, match="unknown option 'topic'"):
         RosAutonomy({"topic": "/x"}, ctx)
 
@@ -163,14 +169,38 @@ def test_topside_ros_table_is_checked() -> None:
     base: dict[str, Any] = {"node": {"role": "topside", "id": 1}, "modems": [{"uri": "loopback://t"}],
                             "modalities": {"survey": {}}}
     cfg, problems = check_mapping({**base, "ros": {"prefix": "coex", "interval": 0, "topic": "/x"}}, ROOT / "t.toml", None)
-    assert problems == ["ros.topic: unknown key (known: frame, interval, master, node, prefix, track)",
+    assert problems == ["ros.topic: unknown key (known: frame, grid_max, grid_min, interval, master, node, prefix, "
+                        "series_samples, track, vehicle_frame)",
                         "ros.prefix: a global namespace starting with '/', got 'coex'",
                         "ros.interval: seconds from 0.05 to 3600, got 0"]
+    _, problems = check_mapping({**base, "ros": {"grid_min": -30.0, "series_samples": 0}}, ROOT / "t.toml", None)
+    assert problems == ["ros.series_samples: an integer from 1 to 1000000, got 0",
+                        "ros.grid_max: give grid_min and grid_max together"]
+    _, problems = check_mapping({**base, "ros": {"grid_min": -30.0, "grid_max": -40}}, ROOT / "t.toml", None)
+    assert problems == ["ros.grid_max: above grid_min (-30.0), got -40"]
     cfg, problems = check_mapping({**base, "ros": {"master": "http://ship:11311"}}, ROOT / "t.toml", None)
     assert problems == [] and cfg is not None and cfg.ros == {"master": "http://ship:11311"}
     vehicle = {**base, "node": {"role": "vehicle", "id": 2}, "ros": {}}
     _, problems = check_mapping(vehicle, ROOT / "v.toml", None)
     assert any(p.startswith("ros: only a topside node publishes its products on ROS") for p in problems)
+
+
+def test_the_ship_s_grids_share_one_depth_scale() -> None:
+    """OccupancyGrid values are elevations on one scale for every message (not each level's own
+    deepest..shallowest): the configured one, or the first level's widened to whole 10 m."""
+    from coex_apps.console.ros import grid_scale, topic_name
+    from coex_transports.ros.msgs import grid_values
+
+    a = np.array([[-31.0, np.nan], [-28.0, -30.0]])
+    assert grid_values(a, -40.0, -20.0).tolist() == [[45, -1], [60, 50]]
+    assert grid_values(a + 5.0, -40.0, -20.0).tolist() == [[70, -1], [85, 75]]  # shallower: higher
+    assert grid_values(np.array([[-100.0, 0.0]]), -40.0, -20.0).tolist() == [[0, 100]]  # clipped
+    assert grid_scale(a) == (-40.0, -20.0) and grid_scale(np.array([[-30.0]])) == (-30.0, -20.0)
+    assert grid_values(a).tolist() == [[0, -1], [100, 33]]  # without a scale: the grid's own
+    with pytest.raises(ValueError):
+        grid_scale(np.full((2, 2), np.nan))
+    assert [topic_name(n) for n in ("methane", "CTD temp (C)", "2nd", "")] == [
+        "methane", "CTD_temp__C_", "ch_2nd", "ch"]
 
 
 def test_the_example_rviz_configuration_shows_what_the_examples_publish() -> None:
@@ -245,7 +275,8 @@ def test_the_ros_input_reads_live_topics_and_survives_a_roscore_restart(roscore:
     inp = RosInput({"master": roscore.uri, "points_topic": "/t1/points", "image_topic": "/t1/image",
                     "nav_topic": "/t1/odom", "frames": {"world_ned": "ned", "map": "enu"},
                     "series": [{"topic": "/ctd/temperature", "channels": {"water_temperature": "temperature"},
-                                "scale": {"water_temperature": 10.0}}]}, InputContext())
+                                "scale": {"water_temperature": 10.0}}], "altitude_topic": "/altimeter"},
+                   InputContext())
     inp.open()
     args = ["--publish", "--every", "0.3", "--swaths", "1000", "--images", "1000", "--image", "raw",
             "--points-topic", "/t1/points", "--image-topic", "/t1/image", "--nav-topic", "/t1/odom",
@@ -261,8 +292,12 @@ def test_the_ros_input_reads_live_topics_and_survives_a_roscore_restart(roscore:
         assert -20.5 < pts.xyz[:, 0].min() and pts.xyz[:, 0].max() < 20.5
         img = next(i for i in items if isinstance(i, Image))
         assert img.pixels is not None and img.pixels.shape == (96, 128) and img.pixels.dtype == np.uint8
-        nav = next(i for i in items if isinstance(i, Nav))
+        nav = next(i for i in items if isinstance(i, Nav) and i.x is not None)
         assert (nav.x, nav.y, nav.depth, nav.speed) == (30.0, 10.0, 25.0, 1.0) and nav.heading == pytest.approx(90.0)
+        # the altimeter: altitude alone (a ping without a bottom gives none)
+        items += _items(inp, lambda got: inp.counts["no_altitude"] >= 1 and inp.counts["altitude"] >= 1)
+        alts = [i for i in items if isinstance(i, Nav) and i.altitude is not None]
+        assert alts and {(i.x, i.altitude) for i in alts} == {(None, 5.0)}
         assert abs(nav.time - time.time()) < 60  # the header stamp
         series = next(i for i in items if isinstance(i, Samples))
         assert series.channel == "water_temperature" and 39.9 < series.values[0] < 45.0  # scaled by 10
@@ -301,10 +336,10 @@ def test_a_topic_of_another_type_is_skipped_and_counted(roscore: Roscore, tmp_pa
         inp.close()
 
 
-def _reports(out: RosAutonomy) -> list[Any]:
-    """The output's reports once it has some (a few more polls for what comes with them)."""
+def _reports(out: RosAutonomy, n: int = 1) -> list[Any]:
+    """The output's reports once it has ``n`` (a few more polls for what comes with them)."""
     got: list[Any] = []
-    _wait("a report", lambda: got.extend(out.poll(time.time())) or got, 30)
+    _wait(f"{n} report(s)", lambda: got.extend(out.poll(time.time())) or len(got) >= n, 30)
     for _ in range(5):
         time.sleep(0.05)
         got.extend(out.poll(time.time()))
@@ -337,16 +372,23 @@ def test_a_survey_goes_out_as_a_path_and_its_progress_comes_back(roscore: Roscor
             return bool(reports) and reports[-1].state == SurveyState.COMPLETED
 
         _wait("the survey flown", done, 30)
-        assert [(r.state, r.index) for r in reports] == [(SurveyState.STARTED, k) for k in range(4)] + [
-            (SurveyState.COMPLETED, None)]
+        # the planner said "started 0" .. "started 3", "completed"; any it said may be superseded
+        # by a newer one before CoEx reads it (a loaded machine): what comes is in order, once each,
+        # ending completed
+        started = [r.index for r in reports if r.state == SurveyState.STARTED]
+        assert started == sorted(set(started)) and set(started) <= {0, 1, 2, 3}, reports
+        assert [r.state for r in reports][-1] == SurveyState.COMPLETED
+        assert [r.state for r in reports].count(SurveyState.COMPLETED) == 1
         [path] = lines.find(event="path")
         assert path["frame"] == "coex_local"
         assert path["poses"] == [[x, y, -20.0] for x, y in LAWN.waypoints]  # z = -depth
         assert path["stamps"][1] - path["stamps"][0] == pytest.approx(30.0, abs=1e-3)  # 60 m at 2 m/s
         assert path["plan"] == {"survey_id": 7, "kind": "lawnmower", "waypoints": 4, "altitude": None,
-                                "depth": 20.0, "speed": 2.0, "frame": "coex_local", "stamp": path["plan"]["stamp"]}
+                                "depth": 20.0, "speed": 2.0, "frame": "coex_local", "stamp": path["plan"]["stamp"],
+                                "ended": False}
     finally:
         kill(planner)
+    out.end(7, time.time())  # as the daemon's lifecycle does: the next planner is not handed survey 7
     refuser = peer(["--name", "planner_refuse", "--planner", "refuse"], roscore.env(), tmp_path / "refuse.log")
     try:
         _wait("the refusing planner connected both ways",
@@ -359,7 +401,9 @@ def test_a_survey_goes_out_as_a_path_and_its_progress_comes_back(roscore: Roscor
     finally:
         kill(refuser)
 
-    # answers from the planner's topic: aborted with reasons, stale answers dropped
+    # answers from the planner's topic: aborted with reasons; an answer about the previous survey
+    # (handed over by this output) is reported as that survey's, for the daemon's lifecycle to
+    # record as a late answer; one about a survey never handed over is dropped
     answer = out.node.publisher("/coex/survey/progress", "std_msgs/String")
     _wait("the answer topic connected", lambda: answer.connections() > 0, 30)
     for sid, text, want in ((9, "9 aborted manual pilot took over", SurveyReason.MANUAL_OVERRIDE),
@@ -367,10 +411,110 @@ def test_a_survey_goes_out_as_a_path_and_its_progress_comes_back(roscore: Roscor
                             (11, "11 aborted restarted", SurveyReason.AUTONOMY_RESTARTED)):
         out.submit(SurveyPlan(sid, SurveyKind.GOTO, ((1.0, 1.0),)), time.time())
         answer.publish(out.node.message("std_msgs/String", data=f"{sid - 1} started 0"))  # the previous survey's
+        answer.publish(out.node.message("std_msgs/String", data="500 started 0"))  # never handed over
         answer.publish(out.node.message("std_msgs/String", data=text))
-        got = _reports(out)
-        assert [(r.survey_id, r.state, r.reason) for r in got] == [(sid, SurveyState.ABORTED, want)], got
-    assert got[0].detail is None
+        got = _reports(out, 2)
+        assert sorted((r.survey_id, r.state, r.reason) for r in got) == [
+            (sid - 1, SurveyState.STARTED, SurveyReason.NONE), (sid, SurveyState.ABORTED, want)], got
+    assert [r.detail for r in got if r.survey_id == 11] == [None]
+    out.close()
+
+
+@needs_ros
+def test_an_ended_survey_is_never_handed_to_a_planner_started_later(roscore: Roscore, tmp_path: Path) -> None:
+    """Issue 51: a survey completed, refused or unanswered leaves the ended form latched (an empty
+    path, the plan's JSON with "ended": true), so a planner started (or respawned) after it flies
+    nothing; an answer after the end is kept in the survey's record; a planner killed mid-survey
+    is reported aborted, AUTONOMY_SILENT, within `silence`."""
+    ns = "/t6/survey"
+    silence = 3.0
+    out = RosAutonomy({"master": roscore.uri, "path_topic": f"{ns}/path", "plan_topic": f"{ns}/plan",
+                       "progress_topic": f"{ns}/progress", "answer_timeout": 4.0, "silence": silence},
+                      InputContext(41.5, -70.6))
+    out.open()
+    v = Vehicle(out, name="ros")
+    _wait("the output's topics registered", lambda: _registered(roscore.uri, f"{ns}/path", 0)
+          and _registered(roscore.uri, f"{ns}/progress", 1), 30)
+    env = roscore.env()
+
+    def planner(name: str, kind: str, leg: float = 0.1) -> tuple[subprocess.Popen[str], _Out]:
+        p = peer(["--name", name, "--planner", kind, "--leg", str(leg), "--survey-ns", ns], env,
+                 tmp_path / f"{name}.log")
+        return p, _Out(p)
+
+    def connected() -> bool:
+        return out._path.connections() > 0 and out._sub.connections() > 0
+
+    def gets_only_the_ended_form(name: str, sid: int) -> None:
+        """A planner started now gets survey ``sid``'s ended form and flies nothing."""
+        p, lines = planner(name, "fly")
+        try:
+            [ended] = _wait(f"{name} given the ended form", lambda: lines.find(event="ended"), 30)
+            _wait(f"{name} given the ended plan", lambda: [e for e in lines.find(event="ended")
+                                                         if e["plan"].get("survey_id") == sid], 10)
+            assert ended["frame"] == "coex_local"
+            for _ in range(10):  # a while later: still nothing flown, nothing answered
+                v.step()
+                time.sleep(0.1)
+            assert lines.find(event="path") == [] and lines.find(event="started") == [], lines.events
+        finally:
+            kill(p)
+
+    # completed, then a planner started later
+    fly, lines = planner("p6_fly", "fly")
+    try:
+        _wait("the planner connected both ways", connected, 30)
+        v.ask(1, x=0.0, kind=SurveyKind.LINE, depth=5.0)
+        v.until("survey 1 completed", lambda: v.state(1) == SurveyState.COMPLETED)
+        _wait("the flying planner told it ended", lambda: lines.find(event="ended"), 30)
+    finally:
+        kill(fly)
+    gets_only_the_ended_form("p6_after_completed", 1)
+
+    # refused, then a planner started later
+    refuser, _ = planner("p6_refuse", "refuse")
+    try:
+        _wait("the refusing planner connected both ways", connected, 30)
+        v.ask(2, x=10.0, kind=SurveyKind.LINE, depth=5.0)
+        v.until("survey 2 refused", lambda: v.state(2) == SurveyState.REJECTED)
+    finally:
+        kill(refuser)
+    gets_only_the_ended_form("p6_after_refused", 2)
+
+    # no planner at all: no answer; one that starts later does not fly it either
+    _wait("no planner left", lambda: out._sub.connections() == 0, 30)
+    v.ask(3, x=20.0, kind=SurveyKind.LINE, depth=5.0)
+    v.until("survey 3 unanswered", lambda: v.state(3) == SurveyState.REJECTED, 30)
+    [r] = [r for r in v.reports if r.survey_id == 3]
+    assert (r.reason, r.value) == (SurveyReason.AUTONOMY_NO_ANSWER, None) and r.detail.endswith(
+        f"no planner subscribed to {ns}/path"), r
+    gets_only_the_ended_form("p6_after_no_answer", 3)
+
+    # an answer after the end is the survey's late answer: kept in its record, never applied
+    answer = out.node.publisher(f"{ns}/progress", "std_msgs/String")
+    _wait("the answer topic connected", lambda: answer.connections() > 0, 30)
+    answer.publish(out.node.message("std_msgs/String", data="3 started 0"))
+    v.until("the late answer recorded", lambda: v.sender.late(3))
+    assert v.state(3) == SurveyState.REJECTED and v.sender.late(3)[0][1:3] == ("STARTED", 0)
+    answer.close()
+    _wait("the test's publisher gone", lambda: out._sub.connections() == 0, 30)
+
+    # a planner killed mid-survey: aborted, autopilot silent, within the bound
+    slow, lines = planner("p6_slow", "fly", leg=60.0)
+    try:
+        _wait("the slow planner connected both ways", connected, 30)
+        v.ask(4, x=30.0, kind=SurveyKind.LINE, depth=5.0)
+        v.until("survey 4 started", lambda: v.state(4) == SurveyState.STARTED)
+    finally:
+        killed = time.time()
+        kill(slow)
+    v.until("survey 4 aborted", lambda: v.state(4) == SurveyState.ABORTED, 60)
+    took = time.time() - killed
+    print(f"planner killed: survey aborted {took:.1f} s later (silence {silence:g} s)")
+    [r] = [r for r in v.reports if r.survey_id == 4 and r.state == SurveyState.ABORTED]
+    assert (r.reason, r.detail) == (SurveyReason.AUTONOMY_SILENT, f"no planner on {ns}/progress"), r
+    assert silence <= r.value and took < silence + 5.0, (r.value, took)  # the bound, plus the test's polling
+    gets_only_the_ended_form("p6_after_silent", 4)
     out.close()
 
 
@@ -383,8 +527,10 @@ def test_no_planner_is_no_answer(roscore: Roscore) -> None:
         out.submit(SurveyPlan(12, SurveyKind.GOTO, ((1.0, 1.0),)), 1000.0)
         assert out.poll(1009.0) == []
         [r] = out.poll(1010.5)
-        assert (r.state, r.reason, r.value, r.detail) == (SurveyState.REJECTED, SurveyReason.AUTONOMY_NO_ANSWER, 10.5,
-                                                          "no planner subscribed to /t4/path")
+        # the seconds waited in words ("no answer from the vehicle's autonomy: 10.5 s, no planner
+        # ..."): a value would read as tries
+        assert (r.state, r.reason, r.value, r.detail) == (SurveyState.REJECTED, SurveyReason.AUTONOMY_NO_ANSWER, None,
+                                                          "10.5 s, no planner subscribed to /t4/path")
         assert out.poll(1100.0) == []  # once
     finally:
         out.close()
@@ -392,6 +538,9 @@ def test_no_planner_is_no_answer(roscore: Roscore) -> None:
 
 @needs_ros
 def test_topside_products_appear_on_ros_topics(roscore: Roscore, tmp_path: Path) -> None:
+    """The ship's ROS view (issue 51): map levels as clouds and grids on one fixed depth scale,
+    the newest image (an older one refined later does not replace it) raw and compressed, the
+    vehicle's odometry, track and TF, each time series, the surveys' states; all in coex_local."""
     from coex_apps.console.ros import RosProducts
     from coex_core.channel.events import ProductUpdated, Received
     from coex_core.messages import VehicleMode, VehicleStatus
@@ -400,62 +549,127 @@ def test_topside_products_appear_on_ros_topics(roscore: Roscore, tmp_path: Path)
     listeners: list[Callable[[list[Any]], Any]] = []
     coex_node = SimpleNamespace(subscribe=lambda f: listeners.append(f) or (lambda: listeners.remove(f)))
     lock = threading.Lock()
-    products = RosProducts({"master": roscore.uri, "prefix": "/t5", "interval": 0.2}, lock=lock).attach(coex_node)
-    spy = peer(["--name", "rviz_like", "--listen", "/t5/map/level_1", "/t5/map/level_1/grid", "/t5/image",
-                "/t5/vehicle/odometry", "/t5/vehicle/track"], roscore.env(), tmp_path / "listen.log")
+    products = RosProducts({"master": roscore.uri, "prefix": "/t5", "interval": 0.2, "grid_min": -40.0,
+                            "grid_max": -20.0}, lock=lock).attach(coex_node)
+    topics = ["/t5/map/level_1", "/t5/map/level_1/grid", "/t5/map/grid_range", "/t5/image", "/t5/image/compressed",
+              "/t5/vehicle/odometry", "/t5/vehicle/track", "/t5/series/methane_2", "/t5/surveys", "/tf"]
+    spy = peer(["--name", "rviz_like", "--listen", *topics], roscore.env(), tmp_path / "listen.log")
     lines = _Out(spy)
     try:
         # the listener subscribes before the publishers exist, so that each latched message
         # reaches it once, by the master's publisherUpdate (the order does not depend on load)
-        topics = ["/t5/map/level_1", "/t5/map/level_1/grid", "/t5/image", "/t5/vehicle/odometry", "/t5/vehicle/track"]
         _wait("the listener subscribed", lambda: all(_subscribed(roscore.uri, t, "/rviz_like") for t in topics), 60)
         level = np.full((4, 6), np.nan)
         level[1, 2], level[3, 5], level[0, 0] = -30.0, -28.0, -31.0
         now = time.time()
         status = VehicleStatus(int(now) % 2**18, 30.0, 10.0, 25.0, 5.0, 90.0, 1.0, 80, VehicleMode.SURVEY, 0)
         pixels = (np.arange(96 * 128) % 256).astype(np.uint8).reshape(96, 128)
+        older = np.zeros((48, 64), np.uint8)
+        series = SimpleNamespace(times=np.array([now - 2.0, now - 1.0]), values=np.array([3.5, 4.25]),
+                                 bounds=np.array([0.1, np.inf]))
+        survey = {"survey_id": 7, "state": "started", "text": "heading for waypoint 1", "reason": None, "index": 1,
+                  "time": now, "kind": "line", "waypoints": [[0.0, 0.0], [20.0, 0.0]]}
         events = [
             ProductUpdated(now, "bathymetry", Product("map-level", "level-1", 3, level,
                                                       {"level": 1, "cell_size": 2.0, "x0": -10.0, "y0": 20.0,
                                                        "newest": now})),
             ProductUpdated(now, "imagery", Product("image", "4", 1, pixels, {"image_id": 4, "time": now - 5})),
+            ProductUpdated(now, "imagery", Product("image", "3", 9, older, {"image_id": 3, "time": now - 100})),
+            ProductUpdated(now, "timeseries", Product("series", "methane-2", 1, series, {"name": "methane-2"})),
+            ProductUpdated(now, "survey", Product("survey", "7", 2, None, survey)),
             Received(now, 0, 2, status),
         ]
         for f in listeners:
             f(events)
         want = {"sensor_msgs/PointCloud2", "nav_msgs/OccupancyGrid", "sensor_msgs/Image", "nav_msgs/Odometry",
-                "nav_msgs/Path"}
+                "nav_msgs/Path", "sensor_msgs/CompressedImage", "std_msgs/String", "std_msgs/Float64MultiArray",
+                "tf2_msgs/TFMessage"}
+
+        def heard_all() -> bool:
+            if not lines.find(type="tf2_msgs/TFMessage"):  # /tf is not latched: a status until one is heard
+                for f in listeners:
+                    f([Received(time.time(), 0, 2, status)])
+            return {e["type"] for e in lines.find(event="message")} >= want
+
         try:
-            _wait("every product on its topic", lambda: {e["type"] for e in lines.find(event="message")} >= want, 90)
+            _wait("every product on its topic", heard_all, 90)
         except AssertionError as exc:
             heard = sorted({e["type"] for e in lines.find(event="message")})
             state = _system_state(roscore.uri) or [[], []]
             pubs = {t: ns for t, ns in state[0] if t.startswith("/t5")}
             conns = {t: (p.connections(), p.counts) for t, p in products._pubs.items()}
-
-            def bus(name: str) -> Any:
-                try:
-                    code, _, uri = xmlrpc.client.ServerProxy(roscore.uri).lookupNode("/coex_test", name)
-                    return xmlrpc.client.ServerProxy(uri).getBusInfo("/coex_test")[2] if code == 1 else None
-                except OSError as e:
-                    return repr(e)
-            conns = {**conns, "bus_listener": bus("/rviz_like"), "bus_ours": bus(products.node.rospy.get_name())}
             raise AssertionError(f"{exc}; heard {heard}; ROS node {products.node.state!r}, counts "
                                  f"{products.counts}; the master's publishers {pubs}; connections {conns}; "
                                  f"lines not JSON: {lines.bad[-5:]}; listener: {(tmp_path / 'listen.log').read_text()[-1500:]}") from None
+        assert {e["frame"] for e in lines.find(event="message") if e["frame"] is not None} == {"coex_local"}
         [cloud] = lines.find(type="sensor_msgs/PointCloud2")[:1]
-        assert cloud["points"] == 3 and cloud["z"] == [-31.0, -28.0] and cloud["frame"] == "coex_local"
+        assert cloud["points"] == 3 and cloud["z"] == [-31.0, -28.0]
+        # absolute depths: 0 = -40 m, 100 = -20 m, in every message alike
         [grid] = lines.find(type="nav_msgs/OccupancyGrid")[:1]
         assert (grid["width"], grid["height"], grid["resolution"], grid["known"]) == (6, 4, 2.0, 3)
-        [img] = lines.find(type="sensor_msgs/Image")[:1]
-        assert (img["width"], img["height"], img["encoding"]) == (128, 96, "mono8")
+        assert grid["values"] == [45, 50, 60]
+        [rng] = lines.find(topic="/t5/map/grid_range")
+        assert rng["data"] == {"min": -40.0, "max": -20.0, "unknown": -1, "frame": "coex_local"}
+        # the newest image (4), not the older one refined after it
+        images = lines.find(type="sensor_msgs/Image")
+        assert [(i["width"], i["height"], i["encoding"]) for i in images] == [(128, 96, "mono8")]
+        assert images[0]["stamp"] == pytest.approx(now - 5, abs=1e-3)
+        [png] = lines.find(type="sensor_msgs/CompressedImage")
+        assert png["format"] == "mono8; png compressed mono8" and png["shape"] == [96, 128]
+        assert png["sum"] == int(pixels.astype(np.int64).sum())  # lossless
         [odom] = lines.find(type="nav_msgs/Odometry")[:1]
         assert (odom["x"], odom["y"], odom["z"]) == (30.0, 10.0, -25.0)
-        assert products.counts == {"map": 1, "image": 1, "status": 1, "failed": 0}
+        tf = lines.find(type="tf2_msgs/TFMessage")[0]
+        assert tf["transforms"] == [["coex_local", "coex_vehicle", 30.0, 10.0, -25.0]]
+        [ts] = lines.find(type="std_msgs/Float64MultiArray")
+        assert ts["topic"] == "/t5/series/methane_2" and ts["dims"] == [["time,value,bound", 3, 6], ["sample", 2, 2]]
+        assert ts["data"][:4] == [pytest.approx(now - 2.0), pytest.approx(now - 1.0), 3.5, 4.25]
+        assert ts["data"][4] == 0.1 and ts["data"][5] == math.inf
+        [sv] = lines.find(topic="/t5/surveys")
+        assert sv["data"]["surveys"] == [survey]
+        assert products.counts["failed"] == 0 and products.counts["image"] == 1
     finally:
         kill(spy)
         products.close()
     assert listeners == []
+
+
+@needs_ros
+def test_topside_logs_the_ros_master_lost_and_back(tmp_path: Path) -> None:
+    """``coex topside --config`` with a ``[ros]`` table: the ship's roscore killed and started
+    again; the topside's log says it was lost and that it is back (issue 51: only the loss was
+    logged, the ROS node's thread having put back the logging level of before the CLI's set-up)."""
+    from ._procs import start
+
+    core = Roscore()
+    proc = None
+    try:
+        core.start()
+        (tmp_path / "t.toml").write_text(f"""
+[node]
+role = "topside"
+id = 1
+store = false
+[[modems]]
+uri = "loopback://ship"
+[console]
+http = "127.0.0.1:0"
+[ros]
+master = "{core.uri}"
+node = "coex_topside_t7"
+prefix = "/t7"
+""")
+        env = ros_env(core.uri, tmp_path / "ros-home")
+        proc, out = start(["topside", "--config", str(tmp_path / "t.toml")], env, tmp_path / "topside.log")
+        procs = {"topside": proc}
+        _wait("the topside's ROS node up", lambda: out.has("coex_topside_t7") and out.has("): up"), 60, procs)
+        core.stop()
+        _wait("the master's loss logged", lambda: out.has("the ROS master does not answer"), 30, procs)
+        core.start()
+        _wait("the master's return logged", lambda: out.has("a new ROS master (pid"), 30, procs)
+    finally:
+        kill(proc)  # type: ignore[arg-type]
+        core.close()
 
 
 # ============================================================================ the pair
@@ -557,6 +771,7 @@ def test_a_ros_vehicle_and_ship_through_two_micromodems(tmp_path: Path) -> None:
         s = _wait("map, image and vehicle status topside", arrived, 240, procs)
         status = s["vehicle"]["status"]
         assert abs(status["x"] - 30.0) < 0.2 and abs(status["y"] - 10.0) < 0.2 and abs(status["depth"] - 25.0) < 0.2
+        assert status["altitude"] == 5.0, status  # from the altimeter's sensor_msgs/Range
         [img] = [i for i in s["images"]["items"] if i.get("bytes_received")][:1]
         assert (img["width"], img["height"]) == (128, 96) and abs(img["x"] - 30.0) < 1.0, img  # placed by nav
 

@@ -249,3 +249,41 @@ def test_the_register_of_third_party_ids_is_consistent_with_the_plugins_that_use
     assert "CAST, ACK = 32600, 32601" in (root / "docs" / "plugins.md").read_text()
     sample = declared_ids(SampleModality, "messages") | declared_ids(SampleModality, "requests")
     assert all(30000 <= i <= 32767 for i in sample) and "32700, 32701" in text
+
+
+def _hooks(base: type) -> set[str]:
+    """The public methods a base class declares (its hooks and the methods it calls them with)."""
+    return {n for k in base.__mro__ if k is not object for n, v in vars(k).items()
+            if callable(v) and not n.startswith("_")}
+
+
+def test_the_remap_wrappers_declare_every_hook_and_delegate_nothing_else() -> None:
+    """Each hook of ModalitySender / ModalityReceiver is defined by the remap wrapper itself
+    (handed to ``inner``, ids translated): no ``__getattr__`` makes an optional hook look present
+    or passes the plugin's own API through; that is on ``inner``."""
+    from coex_core.remap import RemappedReceiver, RemappedSender
+
+    assert _hooks(ModalitySender) - set(vars(RemappedSender)) == set()
+    assert _hooks(ModalityReceiver) - set(vars(RemappedReceiver)) == set()
+    assert "__getattr__" not in vars(RemappedSender) and "__getattr__" not in vars(RemappedReceiver)
+
+    class Own(TagReceiver):
+        def request_more(self) -> str:  # a plugin's own API
+            return "more"
+
+    inner = Own()
+    outer = RemappedReceiver(inner, {200: 4200})
+    assert not hasattr(outer, "request_more") and outer.inner is inner
+    assert outer.products() == inner.products()
+
+
+def test_a_modality_without_a_name_is_refused_by_the_node() -> None:
+    """``Modality.name`` is required (declared on the base class, never guessed from the class's
+    own name): a node refuses a modality that declares none, naming the class."""
+    unnamed = modality("x", 300, 301)
+    del unnamed.name
+    node = Node(ChannelManager(VEHICLE, [LinkConfig(0, nui(), dst=TOPSIDE)]))
+    with pytest.raises(ConfigError, match="declares no name"):
+        node.add_sender(unnamed, TagSender(300), StreamConfig(5, "x"))
+    with pytest.raises(ConfigError, match="declares no name"):
+        node.add_receiver(unnamed, TagReceiver())

@@ -26,7 +26,7 @@ from coex_core.messages import (
     Opaque,
     QueueConfig,
     SpareConfig,
-    Subgrid,
+    SubgridMessage,
     TransferProgress,
     VehicleMode,
     VehicleStatus,
@@ -313,7 +313,7 @@ def test_a_region_request_over_ground_not_yet_surveyed_stands_until_the_data_exi
     xs, ys = np.meshgrid(np.arange(0.5, 16.0, 0.5), np.arange(0.5, 16.0, 0.5))
     pts = np.column_stack([xs.ravel(), ys.ravel(), -50.0 + 0.01 * xs.ravel()])
     sender.ingest(pts, 100.0)
-    sent = [m for m in sender.fill(240, 106.0) if isinstance(m, Subgrid)]
+    sent = [m for m in sender.fill(240, 106.0) if isinstance(m, SubgridMessage)]
     assert {(s.level, s.ix, s.iy) for s in sent} >= {(0, 0, 0), (0, 1, 0), (0, 0, 1), (0, 1, 1)}
     assert sender.standing() == []
     # an expired standing request is forgotten
@@ -542,11 +542,11 @@ _RESTARTED_SENDER = """
 import sys
 import coex_plugins.bathymetry  # registers its state classes
 from coex_core import state
-from coex_core.messages import Subgrid
+from coex_core.messages import SubgridMessage
 sender = state.loads(sys.stdin.buffer.read())
 sg = sender._built((0, 0, 0))[0]
 sender.lost(sg, 200.0)  # a copy sent before the restart was lost; another copy had arrived
-keys = [(m.level, m.ix, m.iy) for m in sender.spare(4096, 201.0) if isinstance(m, Subgrid)]
+keys = [(m.level, m.ix, m.iy) for m in sender.spare(4096, 201.0) if isinstance(m, SubgridMessage)]
 print((0, 0, 0) in keys)
 """
 
@@ -565,11 +565,11 @@ def test_a_confirmed_subgrid_stays_confirmed_in_a_restarted_process() -> None:
     sender = BathymetrySender({"levels": 3, "send_delay": 5.0})
     xs, ys = np.meshgrid(np.arange(0.5, 16.0, 0.5), np.arange(0.5, 16.0, 0.5))
     sender.ingest(np.column_stack([xs.ravel(), ys.ravel(), -50.0 + 0.01 * xs.ravel()]), 100.0)
-    sent = [m for m in sender.fill(4096, 110.0) if isinstance(m, Subgrid)]
+    sent = [m for m in sender.fill(4096, 110.0) if isinstance(m, SubgridMessage)]
     sg = next(m for m in sent if (m.level, m.ix, m.iy) == (0, 0, 0))
     sender.acked(sg, 150.0)
     sender.lost(sg, 151.0)  # in the same process: confirmed, not spare work
-    assert (0, 0, 0) not in {(m.level, m.ix, m.iy) for m in sender.spare(4096, 152.0) if isinstance(m, Subgrid)}
+    assert (0, 0, 0) not in {(m.level, m.ix, m.iy) for m in sender.spare(4096, 152.0) if isinstance(m, SubgridMessage)}
     blob = state.dumps(sender)
     for seed in ("1", "2"):
         out = subprocess.run([sys.executable, "-c", _RESTARTED_SENDER], input=blob, capture_output=True,

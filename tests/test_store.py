@@ -3,6 +3,7 @@ the journal is compacted at each snapshot (what a snapshot holds is not kept twi
 
 from __future__ import annotations
 
+import itertools
 from pathlib import Path
 from typing import Any
 
@@ -150,11 +151,15 @@ def test_a_wrapped_sender_keeps_its_wrapper_and_gets_the_saved_state() -> None:
     assert fresh.manager._streams[3].sender is fresh_wrapper  # packets are filled through it
 
 
-def test_snapshots_are_incremental(tmp_path: Path) -> None:
+def test_snapshots_are_incremental(tmp_path: Path, monkeypatch: Any) -> None:
     """A snapshot writes only the chunks the file does not hold: a second one of an unchanged
     node writes its manifest alone, one after a little more of the dive writes a small part of
-    the state, and the chunks no snapshot uses any more are deleted; the node comes back whole."""
+    the state, and the chunks no snapshot uses any more are deleted (at once here: they are
+    deleted together once there are ``GARBAGE_CHUNKS`` of them); the node comes back whole."""
+    import coex_runtime.store
     from coex_runtime.store import chunk_text
+
+    monkeypatch.setattr(coex_runtime.store, "GARBAGE_CHUNKS", 1)
 
     db = tmp_path / "topside.sqlite"
     dive, store = _dive_with_store(db, compact=True, snapshot_at=T0 + 150.0, until=T0 + 300.0)
@@ -203,3 +208,38 @@ def test_content_defined_chunks_resynchronise() -> None:
     assert b"".join(a) == data and b"".join(b) == edited
     assert all(128 <= len(c) <= 4096 for c in a[:-1])
     assert len(set(a) - set(b)) <= 2 and len(a) > 100
+
+
+def test_chunks_no_snapshot_names_are_deleted_together_and_never_while_named(tmp_path: Path, monkeypatch: Any) -> None:
+    """Chunks the newest snapshot no longer names stay until there are ``GARBAGE_CHUNKS`` of
+    them, then go in one snapshot's transaction (deleting each at the snapshot that dropped it
+    rewrote as many pages every time); a chunk named again meanwhile is kept; the file always
+    restores."""
+    import coex_runtime.store
+    from coex_runtime.store import chunk_text
+
+    monkeypatch.setattr(coex_runtime.store, "GARBAGE_CHUNKS", 40)
+    db = tmp_path / "topside.sqlite"
+    dive, store = _dive_with_store(db, compact=True, snapshot_at=T0 + 100.0, until=T0 + 120.0)
+    del dive.topside.receive
+    unnamed = []
+    try:
+        for k in range(12):
+            run_sim(dive, AcousticChannel(loss=0.1, seed=4), T0 + 120.0 + 15.0 * (k + 1))
+            store.snapshot(dive.topside, T0 + 120.0 + 15.0 * (k + 1))
+            text = store.saved_text()
+            assert text is not None
+            named = {coex_runtime.store._digest(c) for c in chunk_text(text)}
+            held = {bytes(r[0]) for r in store.db.execute("SELECT hash FROM chunk WHERE dtype IS NULL")}
+            assert named <= held  # never a chunk the snapshot names deleted
+            unnamed.append(len(held - named))
+        live = digest(dive.topside, products_only=True)
+    finally:
+        store.close()
+    assert max(unnamed) < 40 + 40 and any(b < a for a, b in itertools.pairwise(unnamed)), unnamed
+    assert max(unnamed) > 0  # kept for a while, not deleted at once
+    store = NodeStore(db)
+    try:
+        assert digest(store.restore(lambda: build_dive(minutes=3).topside), products_only=True) == live
+    finally:
+        store.close()

@@ -23,7 +23,7 @@ from coex_runtime.store import SCHEMA_VERSION
 from ._faults import T0, build_dive, run_sim
 
 FIXTURES = Path(__file__).resolve().parent / "fixtures"
-VERSIONS = ["v1", "v2"]  # v2: incremental snapshots (store schema 2, state in parts)
+VERSIONS = ["v1", "v2", "v3"]  # v2: incremental snapshots (store schema 2, state in parts); v3: chunks by id (schema 3)
 MINUTES = 2
 
 

@@ -289,16 +289,40 @@ def test_history_is_in_the_vehicles_time_order_whatever_order_it_arrives_in() ->
     assert [h[1] for h in rec.history] == ["requested", "accepted", "started", "completed"]
 
 
-def test_an_older_saved_status_without_detail_still_loads() -> None:
+@pytest.mark.parametrize("version", [1, 2])
+def test_an_older_saved_status_without_detail_or_late_answers_still_loads(version: int) -> None:
     s = SurveySender({"geofence": FENCE})
     s.handle(_cmd(1, 1), 0.0)
     data = dumps(s)
     n = int.from_bytes(data[10:14], "big")
-    doc = data[14:14 + n].replace(b'"survey.TxSurvey":2', b'"survey.TxSurvey":1').replace(b',"detail":null', b"")
-    doc = doc.replace(b'"detail":null,', b"")
-    assert b"detail" not in doc and b'"survey.TxSurvey":1' in doc
+    doc = data[14:14 + n].replace(b'"survey.TxSurvey":3', f'"survey.TxSurvey":{version}'.encode())
+    for field in (b'"late":[]', b'"detail":null') if version == 1 else (b'"late":[]',):
+        doc = doc.replace(b"," + field, b"").replace(field + b",", b"")
+    assert b"late" not in doc and (b"detail" not in doc) == (version == 1)
+    assert f'"survey.TxSurvey":{version}'.encode() in doc
     s2 = loads(data[:10] + len(doc).to_bytes(4, "big") + doc + data[14 + n:])
     assert s2.surveys[1].detail is None and s2.surveys[1].status().detail is None
+    assert s2.late(1) == []
+    s2.ingest(SurveyReport(1, SurveyState.COMPLETED, 5.0), 5.0)
+    s2.ingest(SurveyReport(1, SurveyState.STARTED, 6.0, index=0), 6.0)  # late: recorded, not taken
+    assert s2.state_of(1) == SurveyState.COMPLETED and s2.late(1) == [(6.0, "STARTED", 0, "NONE", None)]
+
+
+def test_answers_after_a_survey_ended_are_kept_in_its_record_never_sent() -> None:
+    s = SurveySender({"geofence": FENCE})
+    s.handle(_cmd(1, 1), 0.0)
+    s.ingest(SurveyReport(1, SurveyState.REJECTED, 10.0, SurveyReason.AUTONOMY_NO_ANSWER, detail="10 s"), 10.0)
+    for t in (12.0, 13.0, 14.0):  # a planner repeating itself is kept once
+        s.ingest(SurveyReport(1, SurveyState.STARTED, t, index=0), t)
+    s.ingest(SurveyReport(1, SurveyState.COMPLETED, 20.0), 20.0)
+    assert s.late(1) == [(12.0, "STARTED", 0, "NONE", None), (20.0, "COMPLETED", None, "NONE", None)]
+    assert [m.state for m in s.fill(1000, 30.0)] == [SurveyState.REJECTED]  # the final state only
+    for t in range(40):
+        s.ingest(SurveyReport(1, SurveyState.STARTED, 100.0 + t, index=t % 3), 100.0 + t)
+    assert len(s.late(1)) == 8 and s.late(1)[-1][0] == 139.0
+    restored = loads(dumps(s))
+    assert restored.late(1) == s.late(1) and restored.state_of(1) == SurveyState.REJECTED
+    assert s.late(99) == [] and s.state_of(99) is None
 
 
 def test_the_acks_accepted_takes_the_vehicles_time_when_its_report_comes() -> None:

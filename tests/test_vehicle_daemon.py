@@ -191,6 +191,7 @@ stream = 3
 stream = 4
 [[modems]]
 uri = "loopback://{name}"
+packet_seconds = 0.2
 [[inputs]]
 type = "directory"
 path = "camera"
@@ -272,7 +273,7 @@ def test_a_vehicle_restarted_mid_survey_follows_it_again_to_its_end(tmp_path: Pa
         vehicle.close()  # mid-survey (120 m at 12 m/s)
         again = VehicleApp(load(tmp_path / "v.toml", "vehicle")).start()
         _wait(lambda: rx.surveys[cmd.survey_id].state == "completed", timeout=60.0)
-        assert again._resumed and again.counts["plans"] == 0  # followed again, not submitted as new
+        assert again.lifecycle.counts["resumed"] == 1 and again.counts["plans"] == 0  # followed again, not submitted as new
         assert again.autonomy is not None and again.autonomy._plan.survey_id == cmd.survey_id
     finally:
         vehicle.close()

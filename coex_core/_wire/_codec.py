@@ -16,7 +16,7 @@ import construct as cs
 
 from ..errors import DecodeError, EncodeError
 from ..messages import Frame, FrameHeader, Message, Opaque
-from . import bathymetry, core, detections, imagery, survey, timeseries  # noqa: F401  (they register their messages)
+from . import bathymetry, core, detections, imagery, navigation, survey, timeseries  # noqa: F401  (they register their messages)
 from ._primitives import Bool, Bounded, OutOfRange, UInt
 from ._registry import (
     MAX_MESSAGE_BYTES,
@@ -84,6 +84,37 @@ def _body(spec: MessageSpec) -> cs.Construct:
 
 
 _BODIES: dict[int, cs.Construct] = {tid: _body(spec) for tid, spec in SPECS_BY_ID.items()}
+
+_TO_ASCII = bytes.maketrans(b"\x00\x01", b"01")
+
+
+def _bits_to_bytes(bits: bytes) -> bytes:
+    """construct's ``bits2bytes`` in one step: a bit stream (one byte, 0 or 1, per bit, MSB
+    first) as bytes."""
+    if len(bits) % 8:
+        raise ValueError(f"{len(bits)} bits are not whole bytes")
+    return int(bits.translate(_TO_ASCII), 2).to_bytes(len(bits) // 8, "big") if bits else b""
+
+
+def _builder(con: cs.Construct) -> Any:
+    """``con.build``, faster for a bit-packed body (``Body``: ``Bitwise`` of a variable-length
+    struct, optionally ``Prefixed``): the struct is built into one bit stream, converted to
+    bytes at once, instead of construct's ``Restreamed`` stream converting it eight bits at a
+    time as it is written. The same bytes from the same definitions (the struct sees the same
+    context, path and stream positions); anything else builds as construct does."""
+    prefixed = isinstance(con, cs.Prefixed) and not con.includelength
+    inner = con.subcon if prefixed else con
+    if not (isinstance(inner, cs.Restreamed) and inner.encoder is cs.lib.bits2bytes and inner.encoderunit == 8):
+        return con.build
+    struct, length = inner.subcon, con.lengthfield if prefixed else None
+
+    def build(obj: Any) -> bytes:
+        data = _bits_to_bytes(struct.build(obj))
+        return data if length is None else length.build(len(data)) + data
+    return build
+
+
+_BUILDERS: dict[int, Any] = {tid: _builder(con) for tid, con in _BODIES.items()}
 
 
 # ------------------------------------------------------------------ Container <-> dataclass
@@ -159,7 +190,7 @@ def _encode_cached(message: Message) -> bytes:
 def _encode(message: Message) -> bytes:
     spec = spec_for(message)
     try:
-        data = TYPE_ID.build(spec.type_id) + _BODIES[spec.type_id].build(_to_container(message))
+        data = TYPE_ID.build(spec.type_id) + _BUILDERS[spec.type_id](_to_container(message))
     except Exception as exc:  # construct raises many types; all mean "this value cannot be sent"
         raise EncodeError(f"cannot encode {spec.name}: {_reason(exc)}") from exc
     if len(data) > MAX_MESSAGE_BYTES:

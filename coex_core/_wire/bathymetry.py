@@ -6,7 +6,16 @@ from typing import Any
 
 import construct as cs
 
-from ..messages import MapMetadata, MapRoiReply, MapRoiRequest, Subgrid, SubgridEncoding
+from ..messages import (
+    MapMetadata,
+    MapRoiReply,
+    MapRoiRequest,
+    PredictedSubgrid,
+    Subgrid,
+    SubgridCells,
+    SubgridContext,
+    SubgridEncoding,
+)
 from ._primitives import (
     Bits,
     Body,
@@ -16,6 +25,7 @@ from ._primitives import (
     Entries,
     Enum,
     FieldSpec,
+    OutOfRange,
     Rule,
     SInt,
     Stamp,
@@ -23,6 +33,7 @@ from ._primitives import (
     When,
 )
 from ._registry import MessageSpec, register
+from ._subgrid_code import CodedCells, CodeError, decode_cells, encode_cells, table_for
 
 #: Horizontal cell size at level 0 (metres): a 3-bit code.
 RESOLUTIONS = (0.125, 0.25, 0.5, 1.0, 2.0, 4.0, 8.0, 16.0)
@@ -176,6 +187,121 @@ SUBGRID = Body(
          "`encoding` is GRADIENT and `partial` is 1 (a GRADIENT subgrid has no mask)", "GRADIENT"),
 )
 
+#: Sides of a PredictedSubgrid: a 2-bit code.
+PREDICTED_SIDES = (2, 4, 8, 16)
+#: At most this many bits in the coded cells of a PredictedSubgrid.
+MAX_PREDICTED_CELL_BITS = 1536
+
+
+def _table(ctx: Any) -> int:
+    """The initial probability table (spec/payloads.md 1.7)."""
+    return table_for(ctx.context == SubgridContext.PARENT, int(ctx.level))
+
+
+def _peek(stream: Any, n: int) -> tuple[list[int], int]:
+    """The next ``n`` bits of a construct bit stream without consuming them (0 past its end),
+    and how many of them are in the stream."""
+    if isinstance(stream, cs.core.RestreamedBytesIO):
+        have = bytes(stream.rbuffer)
+        sub = stream.substream
+        pos = sub.tell()
+        more = sub.read((max(0, n - len(have)) + 7) // 8)
+        sub.seek(pos)
+        bits = list(have) + [(b >> (7 - k)) & 1 for b in more for k in range(8)]
+    else:
+        pos = stream.tell()
+        bits = list(stream.read(n))
+        stream.seek(pos)
+    bits = bits[:n]
+    return bits + [0] * (n - len(bits)), len(bits)
+
+
+class ArithCells(cs.Construct):  # type: ignore[misc]
+    """The arithmetic-coded cells of a PredictedSubgrid (spec/payloads.md 1.7): presence when
+    ``partial``, then the residuals; its length follows from the decoding (self-delimiting)."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.coex_spec = FieldSpec("variable", "", note=(
+            "the presence of each cell when `partial` = 1, then the residual of each present cell, "
+            f"binary arithmetic code (spec/payloads.md 1.7), at most {MAX_PREDICTED_CELL_BITS} bits"),
+            coding="arithmetic code")
+
+    def _parse(self, stream: Any, context: Any, path: str) -> dict[str, Any]:
+        side = int(context.side)
+        ahead, real = _peek(stream, MAX_PREDICTED_CELL_BITS + 64)
+        pos = [0]
+
+        def read() -> int:
+            k = pos[0]
+            pos[0] = k + 1
+            return ahead[k] if k < len(ahead) else 0
+
+        try:
+            cells, length = decode_cells(read, side, bool(context.partial), int(context.shift), _table(context),
+                                         MAX_PREDICTED_CELL_BITS)
+        except CodeError as exc:
+            if pos[0] > real:  # a rule broken by bits past the end of the input, which were not there
+                raise OutOfRange(f"truncated: {exc}", path=path, reason="truncated") from None
+            raise OutOfRange(str(exc), path=path, reason=exc.reason) from None
+        cs.stream_read(stream, length, path)  # consume the code (an input ending inside it: truncated)
+        mask = None
+        if cells.present is not None:
+            mask = int("".join("1" if p else "0" for p in cells.present), 2)
+        return {"mask": mask, "residuals": list(cells.residuals)}
+
+    def _build(self, obj: Any, stream: Any, context: Any, path: str) -> Any:
+        side = int(context.side)
+        mask = obj["mask"]
+        residuals = [int(e) for e in obj["residuals"]]
+        n = side * side
+        present = None if mask is None else [bool((int(mask) >> (n - 1 - k)) & 1) for k in range(n)]
+        if mask is not None and not 0 <= int(mask) < (1 << n):
+            raise OutOfRange(f"mask {mask} has more than {n} bits", path=path)
+        try:
+            bits = encode_cells(side, CodedCells(present, residuals), int(context.shift), _table(context))
+        except ValueError as exc:
+            raise OutOfRange(str(exc), path=path) from None
+        if len(bits) > MAX_PREDICTED_CELL_BITS:
+            raise OutOfRange(f"the coded cells take {len(bits)} bits, more than {MAX_PREDICTED_CELL_BITS} "
+                             "(too large)", path=path, reason="too large")
+        cs.stream_write(stream, bytes(bits), len(bits), path)
+        return obj
+
+    def _sizeof(self, context: Any, path: str) -> int:
+        raise cs.SizeofError("arithmetic code", path=path)
+
+
+def _crc(width: int) -> Any:
+    c = UInt(width)
+    c.coex_spec = FieldSpec(str(width), f"0..{(1 << width) - 1}", coding="CRC-8 (spec/payloads.md 1.9)")
+    return c
+
+
+PREDICTED_SUBGRID = Body(
+    "level" / Bounded(0, 15) * "Level (0 = finest; cell size resolution x 2^level)",
+    "ix" / SInt(14) * "Subgrid column index at this level",
+    "iy" / SInt(14) * "Subgrid row index at this level",
+    "stamp" / Stamp() * "Newest update of any cell in the subgrid",
+    "side" / Choice(PREDICTED_SIDES, unit="cells") * "Subgrid side",
+    "context" / Enum(SubgridContext) * "What the cells are predicted from (spec/payloads.md 1.6)",
+    "check" / When("`context` = PARENT", cs.this.context == SubgridContext.PARENT, _crc(8))
+    * "CRC-8 of the parent's cells the prediction reads (spec/payloads.md 1.9)",
+    "resolution" / When("`context` = NONE", cs.this.context == SubgridContext.NONE,
+                        Choice(RESOLUTIONS, unit="m")) * "Cell size at level 0 (PARENT: the parent's)",
+    "vertical_resolution" / When("`context` = NONE", cs.this.context == SubgridContext.NONE,
+                                 Choice(VERTICAL_RESOLUTIONS, unit="m"))
+    * "Elevation quantum (PARENT: the parent's)",
+    "z_base" / When("`context` = NONE", cs.this.context == SubgridContext.NONE, SInt(20))
+    * "Base elevation in vertical-resolution units",
+    "predictor" / Bounded(0, 3) * "The prediction, from the context's table (spec/payloads.md 1.8)",
+    "shift" / Bounded(0, 3, unit="bits") * "Low bits of each residual sent raw",
+    "partial" / cs.Rebuild(Bool(), lambda ctx: ctx.cells["mask"] is not None)
+    * "1 if the presence of each cell is coded (derived)",
+    "cells" / ArithCells() * "Presence and residuals (JSON: an object, section 13.1)",
+)
+
+
 MAP_ROI_REQUEST = Body(
     "request_id" / Bounded(0, 255) * "Request id (wraps)",
     "level" / Bounded(0, 15) * "Level requested",
@@ -260,6 +386,54 @@ register(MessageSpec(
         ("gradient_complete", _sub(level=3, ix=-7, iy=2, stamp=77, encoding=SubgridEncoding.GRADIENT,
                                    z_base=-2950, width=1, values=(0, *tuple(i * 3 % 5 for i in range(63))))),
         ("largest", _LARGEST_SUBGRID),
+    ],
+))
+def _pred(**kw: object) -> PredictedSubgrid:
+    base: dict[str, object] = dict(
+        level=0, ix=0, iy=0, stamp=0, side=8, context=SubgridContext.PARENT, predictor=0, shift=0,
+        cells=SubgridCells(None, (0,) * 64), check=0,
+    )
+    base.update(kw)
+    if base["context"] == SubgridContext.NONE:
+        base.setdefault("resolution", 1.0)
+        base.setdefault("vertical_resolution", 0.1)
+        base.setdefault("z_base", 0)
+        base["check"] = None
+    return PredictedSubgrid(**base)  # type: ignore[arg-type]
+
+
+#: The largest PredictedSubgrid: NONE (geometry and base), side 16, coded cells within 3 bits of
+#: the 1536 allowed (so it takes the most bytes any can; a test checks it).
+_LARGEST_PREDICTED = _pred(
+    level=15, ix=-8192, iy=8191, stamp=2**18 - 1, side=16, context=SubgridContext.NONE, predictor=3, shift=0,
+    resolution=16.0, vertical_resolution=2.0, z_base=-(2**19),
+    cells=SubgridCells(None, tuple(12 if i % 2 else -12 for i in range(245)) + (0,) * 11))
+#: residuals of a typical 1 m subgrid predicted from its parent (0.1 m units)
+_TYPICAL = (0, 1, -1, 0, 2, 0, 0, -1, 1, 0, 0, -2, 1, 0, 0, 0, -1, 0, 3, 1, 0, 0, -1, 0, 0, 0, 1, -1, 0,
+            2, 0, 0, 1, 0, 0, -1, 0, 0, 0, 1, 0, -3, 1, 0, 0, 0, 1, 0, -1, 0, 0, 2, -1, 0, 0, 0, 1, 0, 0, -1,
+            0, 0, 1, 0)
+
+register(MessageSpec(
+    20, PredictedSubgrid, PREDICTED_SUBGRID, False, "bathymetry",
+    "A block of side x side cells at one level predicted from its parent subgrid as topside holds it "
+    "(or from its own base), the residuals arithmetic-coded.",
+    largest=lambda: _LARGEST_PREDICTED,
+    cases=lambda: [
+        ("parent_flat", _pred()),
+        ("parent_typical", _pred(level=0, ix=37, iy=-12, stamp=5400, check=0xA7, cells=SubgridCells(None, _TYPICAL))),
+        ("parent_bilinear_level_1", _pred(level=1, ix=-5, iy=6, stamp=77, check=0x3C, predictor=1,
+                                          cells=SubgridCells(None, tuple((i * 5) % 7 - 3 for i in range(64))))),
+        ("parent_cubic_half_shift", _pred(level=3, ix=2, iy=3, stamp=12345, check=0xFF, predictor=3, shift=2,
+                                          cells=SubgridCells(None, tuple((i * 37) % 61 - 30 for i in range(64))))),
+        ("parent_partial", _pred(level=0, ix=8191, iy=-8192, stamp=2**18 - 1, check=0x00, predictor=2,
+                                 cells=SubgridCells((1 << 64) - (1 << 24), tuple(_TYPICAL[:40])))),
+        ("parent_escape", _pred(level=2, check=0x5A, cells=SubgridCells(None, (0,) * 30 + (-700, 16, -17) + (0,) * 31))),
+        ("none_med", _pred(context=SubgridContext.NONE, level=4, ix=-1, iy=-1, stamp=3000, predictor=1, shift=1,
+                           z_base=-4987, cells=SubgridCells(None, tuple((i * 11) % 9 - 4 for i in range(64))))),
+        ("none_side_2_partial", _pred(context=SubgridContext.NONE, side=2, resolution=0.125, vertical_resolution=0.01,
+                                      z_base=2**19 - 1, predictor=2, cells=SubgridCells(0b1011, (0, -5, 9)))),
+        ("empty_mask", _pred(side=4, cells=SubgridCells(0, ()))),
+        ("largest", _LARGEST_PREDICTED),
     ],
 ))
 register(MessageSpec(

@@ -325,6 +325,69 @@ def _channel(name: bytes = b"t", lo: float = 0.0, hi: float = 1.0, resolution: f
     return bytes([0x30, len(body)]) + body
 
 
+def _predicted_head(shift: int = 0, partial: int = 0) -> list[tuple[int | str, int]]:
+    """PredictedSubgrid 20 up to `partial`: level 0, ix 0, iy 0, stamp 0, side 8 (code 2),
+    PARENT, check 0, predictor 0, ``shift``, ``partial``."""
+    return [(20, 8), (0, 4), (0, 14), (0, 14), (0, 18), (2, 2), (1, 1), (0, 8), (0, 2), (shift, 2), (partial, 1)]
+
+
+def _first_escape(ones: int, low: int, tail: int = 64) -> str:
+    """The coded cells (table 0, full block, shift 0) of a first residual that escapes with an
+    Exp-Golomb prefix of ``ones`` ones and the low bits ``low`` (``ones`` bits), then ``tail``
+    raw zeros (so that the decoder's register never reaches past the input where it stops):
+    bits no encoder writes for residuals it can send."""
+    from ._arith import HALF_P, ArithEncoder
+    from ._subgrid_code import INITIAL
+
+    t = INITIAL[0]
+    z, u = list(t.z), [list(r) for r in t.u]
+    enc = ArithEncoder()
+    enc.adaptive(1, z, 1)  # the first cell has no neighbour: class 1; u > 0
+    for k in range(15):  # u > 1 .. u > 15: an escape
+        enc.adaptive(1, u[1], min(k, 3))
+    for _ in range(ones):
+        enc.encode(1, HALF_P)
+    enc.encode(0, HALF_P)
+    for bit in range(ones - 1, -1, -1):
+        enc.encode((low >> bit) & 1, HALF_P)
+    for _ in range(tail):
+        enc.encode(0, HALF_P)
+    return "".join(str(b) for b in enc.finish())
+
+
+def _long_cells() -> str:
+    """Coded cells (table 0, full block, shift 0) longer than 1536 bits, the message still within
+    251 bytes: what the encoder refuses to send."""
+    from ._subgrid_code import CodedCells, encode_cells
+
+    for m in range(200, 5000, 50):
+        bits = encode_cells(8, CodedCells(None, tuple(m if i % 2 else -m for i in range(64))), 0, 0)
+        if 1600 <= len(bits) <= 1800:
+            return "".join(str(b) for b in bits)
+    raise AssertionError("no long coded cells found")
+
+
+def _noncanonical_cells() -> bytes:
+    """A PredictedSubgrid whose last code bit is flipped where its residuals decode the same:
+    valid bits of the coder, but not those the encoder writes (``canonical``)."""
+    from ..messages import PredictedSubgrid, SubgridCells, SubgridContext
+
+    for k in range(64):
+        msg = PredictedSubgrid(level=0, ix=k, iy=0, stamp=0, side=8, context=SubgridContext.PARENT, predictor=0,
+                               shift=0, cells=SubgridCells(None, tuple((i * (k + 3)) % 5 - 2 for i in range(64))),
+                               check=0)
+        data = bytearray(_codec.encode(msg))
+        for pos in range(8 * len(data) - 1, 8 * 11, -1):
+            bad = bytearray(data)
+            bad[pos // 8] ^= 0x80 >> (pos % 8)
+            try:
+                _codec.decode(bytes(bad))
+            except DecodeError as exc:
+                if exc.reason == "canonical":
+                    return bytes(bad)
+    raise AssertionError("no non-canonical PredictedSubgrid found")
+
+
 def _spec_rule_cases() -> list[tuple[str, str, bytes, str]]:
     """Inputs each invalid by one rule of the document that the encoder never produces."""
     zeros3 = [("0", 0)] * 3  # three more DELTA codes of 0 (Rice, k = 0)
@@ -385,6 +448,12 @@ def _spec_rule_cases() -> list[tuple[str, str, bytes, str]]:
         ("region_empty_rows", "message", _region(0, 20, 10, 5), "empty region"),
         ("crop_empty_columns", "message", _crop(64, 0, 64, 48), "empty region"),
         ("crop_empty_rows", "message", _crop(0, 48, 64, 16), "empty region"),
+        ("predicted_escape_too_long", "message", _bits(*_predicted_head(), (_first_escape(22, 5), 0)),
+         "above maximum"),
+        ("predicted_residual_too_large", "message",
+         _bits(*_predicted_head(), (_first_escape(21, (1 << 21) - 1 - (1 << 20)), 0)), "above maximum"),
+        ("predicted_cells_too_large", "message", _bits(*_predicted_head(), (_long_cells(), 0)), "too large"),
+        ("predicted_cells_not_canonical", "message", _noncanonical_cells(), "canonical"),
     ]
 
 
@@ -400,8 +469,7 @@ def _invalid_cases() -> list[tuple[str, str, bytes, str]]:
         ("empty_input", "message", b"", "empty"),
         ("end_marker_alone", "message", b"\x00", "unknown message type"),
         ("unassigned_builtin_id", "message", b"\x3f\x00", "unknown message type"),
-        ("unassigned_core_id", "message", b"\x0f\x00", "unknown message type"),
-        ("unassigned_bathymetry_id", "message", b"\x14\x00", "unknown message type"),
+        ("unassigned_bathymetry_id", "message", b"\x15\x00", "unknown message type"),
         ("unassigned_imagery_id", "message", b"\x28\x00", "unknown message type"),
         ("unassigned_timeseries_id", "message", b"\x34\x00", "unknown message type"),
         ("reserved_id", "message", b"\x40\x00", "unknown message type"),
@@ -453,11 +521,122 @@ def invalid_vectors() -> dict[str, Any]:
     return {"vectors": out}
 
 
+# -------------------------------------------------------------- cells (payloads.md section 1)
+
+
+def rebuild_cells(message: Message, parent: list[list[int | None]] | None) -> dict[str, Any]:
+    """The answer to a ``cells`` line (section 13.3): the elevations a receiver holding ``parent``
+    (the parent subgrid's cells, vertical units, rows south first, null where absent) rebuilds
+    from ``message``, or ``{"error": "context"}`` when it cannot (payloads.md 1.9)."""
+    from ..messages import SubgridMessage
+    from ..predicted import ContextMismatch, parent_from_rows, subgrid_units, units_rows
+
+    if not isinstance(message, SubgridMessage):
+        return {"error": "bad input", "detail": f"{type(message).__name__} has no cells"}
+    try:
+        return {"cells": units_rows(subgrid_units(message, None if parent is None else parent_from_rows(parent)))}
+    except ContextMismatch as exc:
+        return {"error": "context", "detail": str(exc)}
+
+
+def _cells_cases() -> list[tuple[str, Message, list[list[int | None]] | None]]:
+    """Subgrids with the parent cells a receiver holds (payloads.md 1.1 to 1.10): every
+    PredictedSubgrid predictor and context, quarters of negative indices, parent cells missing
+    (the fallback and the mirror taps), a check that fails, a parent that differs only outside
+    the check region, and a Subgrid of each encoding."""
+    import numpy as np
+
+    from ..messages import SubgridContext, SubgridEncoding
+    from ..predicted import SubgridParent, encode_predicted
+    from ..subgrid import encode_subgrid
+
+    a, b = np.indices((8, 8))
+    smooth = -5000 + 7 * a - 4 * b + (a * b) % 5 + (a * a) // 3
+    full = np.ones((8, 8), bool)
+    parent = SubgridParent(smooth, full)
+    holes = full.copy()
+    holes[[1, 2, 3, 5], [2, 0, 3, 6]] = False
+    holed = SubgridParent(smooth, holes)
+
+    def rows(p: SubgridParent) -> list[list[int | None]]:
+        return [[int(z) if ok else None for z, ok in zip(zr, pr, strict=True)]
+                for zr, pr in zip(p.z.tolist(), p.present.tolist(), strict=True)]
+
+    def child(p: SubgridParent, qx: int, qy: int, wiggle: int = 3) -> Any:
+        i, j = np.indices((8, 8))
+        base = p.z[qy * 4 + i // 2, qx * 4 + j // 2]
+        return base + ((i * 5 + j * 3) % (2 * wiggle + 1)) - wiggle + (i + j) // 3
+
+    out: list[tuple[str, Message, list[list[int | None]] | None]] = []
+
+    def pred(name: str, q: Any, present: Any, level: int, ix: int, iy: int, p: SubgridParent | None,
+             only: tuple[SubgridContext, int, int], given: SubgridParent | None = None, vres: float = 0.1) -> None:
+        got = encode_predicted(q, present, level=level, ix=ix, iy=iy, stamp=4000 + len(out), resolution=1.0,
+                               vertical_resolution=vres, parent=p, only=only)
+        assert got is not None, name
+        held = p if given is None else given
+        out.append((name, got[0], None if held is None else rows(held)))
+
+    P = SubgridContext.PARENT
+    pred("parent_nearest", child(parent, 0, 0), full, 0, 0, 0, parent, (P, 0, 0))
+    pred("parent_bilinear_east_negative_ix", child(parent, 1, 0), full, 0, -3, 2, parent, (P, 1, 0))
+    pred("parent_cubic_north_negative_iy", child(parent, 0, 1), full, 1, 4, -1, parent, (P, 2, 0))
+    pred("parent_cubic_half_shift_2", child(parent, 1, 1, 30), full, 2, 7, 5, parent, (P, 3, 2))
+    partial = np.ones((8, 8), bool)
+    partial[:, 5:] = False
+    partial[0, :3] = False
+    pred("parent_partial_holes_bilinear", child(holed, 0, 0), partial, 0, 6, 8, holed, (P, 1, 0))
+    pred("parent_holes_cubic_mirror", child(holed, 1, 0), full, 0, 1, 0, holed, (P, 3, 0))
+    pred("parent_holes_nearest_fallback", child(holed, 0, 0), full, 0, 0, 0, holed, (P, 0, 1))
+    other = smooth.copy()
+    other[7, 7] += 9  # outside the check region of quarter (0, 0): rows and columns 0..5
+    pred("parent_differs_outside_the_check", child(parent, 0, 0), full, 0, 2, 2, parent, (P, 2, 0),
+         given=SubgridParent(other, full))
+    inside = smooth.copy()
+    inside[5, 5] += 1  # inside it
+    pred("parent_differs_inside_the_check", child(parent, 0, 0), full, 0, 2, 2, parent, (P, 2, 0),
+         given=SubgridParent(inside, full))
+    name, msg, _ = ("parent_not_held", *out[0][1:])
+    out.append((name, msg, None))
+    small = SubgridParent(smooth[:4, :4], full[:4, :4])
+    out.append(("parent_of_another_side", out[0][1], rows(small)))
+    q4 = np.repeat(np.repeat(small.z[2:4, 2:4], 2, 0), 2, 1) + np.arange(16).reshape(4, 4) % 3 - 1
+    pred("side_4_parent_bilinear", q4, np.ones((4, 4), bool), 3, 3, 3, small, (P, 1, 0))
+    N = SubgridContext.NONE
+    qn = child(parent, 0, 0, 6)
+    for k in range(4):
+        pred(f"none_predictor_{k}", qn, full if k != 2 else partial, 4, -1, -1, None, (N, k, k % 2))
+    pred("none_side_4_shift_3", (q4 - 5000) * 9, np.ones((4, 4), bool), 0, 0, 0, None, (N, 1, 3))
+    for enc in SubgridEncoding:
+        present = full if enc == SubgridEncoding.GRADIENT else partial
+        sg = encode_subgrid(qn, present, level=1, ix=-2, iy=3, stamp=77, resolution=1.0, vertical_resolution=0.1,
+                            encodings=(enc,))
+        out.append((f"subgrid_{enc.name.lower()}", sg, None))
+    return out
+
+
+def cells_vectors() -> dict[str, Any]:
+    """``cells.json``: per vector the message's bytes, the parent cells a receiver holds (null:
+    none) and the elevations it rebuilds (``cells``) or ``error`` (section 13.3)."""
+    out = []
+    for name, message, parent in _cells_cases():
+        data = _codec.encode(message)
+        answer = rebuild_cells(_codec.decode(data), parent)
+        vec: dict[str, Any] = {"name": name, "hex": data.hex(), "parent": parent}
+        if "error" in answer:
+            vec["error"] = answer["error"]
+        else:
+            vec["cells"] = answer["cells"]
+        out.append(vec)
+    return {"vectors": out}
+
+
 def all_vector_files() -> dict[str, dict[str, Any]]:
     files = {f"{spec.name}.json": message_vectors(spec) for spec in SPECS_BY_ID.values()}
     files["Opaque.json"] = opaque_vectors()
     files["frames.json"] = frame_vectors()
     files["invalid.json"] = invalid_vectors()
+    files["cells.json"] = cells_vectors()
     return files
 
 
@@ -486,6 +665,17 @@ def write_vectors(directory: str | Path) -> None:
 def decode_line(line: str) -> dict[str, Any]:
     """The reference answer to one line of the vector-checking protocol."""
     scope, _, hexdata = line.strip().partition(" ")
+    if scope == "cells":
+        try:
+            query = json.loads(hexdata)
+            data = bytes.fromhex(query["hex"])
+            parent = query.get("parent")
+        except (ValueError, KeyError, TypeError) as exc:
+            return {"error": "bad input", "detail": f"not a cells query: {exc}"}
+        try:
+            return rebuild_cells(_codec.decode(data), parent)
+        except DecodeError as exc:
+            return {"error": exc.reason or "invalid", "detail": str(exc)}
     try:
         data = bytes.fromhex(hexdata.strip())
     except ValueError:
@@ -524,6 +714,11 @@ def vector_cases(directory: str | Path) -> list[tuple[str, str, str, dict[str, A
         doc = json.loads(path.read_text())
         if path.name == "invalid.json":
             out += [(f"invalid/{v['name']}", v["scope"], v["hex"], {"error": v["reason"]}) for v in doc["vectors"]]
+        elif path.name == "cells.json":
+            for v in doc["vectors"]:
+                query = json.dumps({"hex": v["hex"], "parent": v["parent"]}, separators=(",", ":"))
+                want = {"error": v["error"]} if "error" in v else {"cells": v["cells"]}
+                out.append((f"cells/{v['name']}", "cells", query, want))
         elif path.name == "frames.json":
             out += [(f"frames/{v['name']}", "frame", v["hex"], {"header": v["header"], "messages": v["messages"]})
                     for v in doc["vectors"]]

@@ -71,7 +71,7 @@ SURVEY_STATUS = Body(
     * "STARTED: the waypoint it heads for; REJECTED: the first waypoint that broke the rule",
     "value" / Bounded(0, 10000, 0.1, optional=True, unit="m, or m/s")
     * "REJECTED: how far outside the geofence, the limit that was broken, or the autonomy's code; "
-    "AUTONOMY_NO_ANSWER: the tries made",
+    "AUTONOMY_NO_ANSWER: the tries made; AUTONOMY_SILENT: the seconds of silence",
     "has_detail" / Given("detail"),
     "detail" / When("`has_detail` = 1", cs.this.has_detail, Text(SURVEY_DETAIL_MAX))
     * "REJECTED, ABORTED: the autonomy's own words (e.g. the helm's bad parameters)",
@@ -112,6 +112,8 @@ register(MessageSpec(
                                            "MAV_MISSION_DENIED")),
         ("no_answer", SurveyStatus(7, SurveyState.REJECTED, SurveyReason.AUTONOMY_NO_ANSWER, 950, None, 6.0)),
         ("override", SurveyStatus(8, SurveyState.ABORTED, SurveyReason.MANUAL_OVERRIDE, 1000, 3)),
+        ("silent", SurveyStatus(9, SurveyState.ABORTED, SurveyReason.AUTONOMY_SILENT, 1100, 2, 12.5,
+                                "no HEARTBEAT from 1/1")),
         ("largest", SurveyStatus(1023, SurveyState.ABORTED, SurveyReason.ALL_STOP, 2**18 - 1, 255, 10000.0,
                                  "x" * SURVEY_DETAIL_MAX)),
     ],

@@ -68,32 +68,57 @@ class PackingMixin(PolicyMixin):
         """Pack one packet for ``link`` now (``None`` when there is nothing to send).
 
         Order per frame: pending frame acks, then the contest (tier first, then value), then
-        pulls from modality senders when no queued message fits. Then, within the link's spare
-        share: extra copies of the packet's urgent messages (frame acks, tier-0 messages, the
-        first answer to a request) in other frames, as many as the measured loss calls for
-        (:meth:`copies`); then the spare tier (``ModalitySender.spare``) fills what is left."""
+        pulls from modality senders when no queued message fits (:meth:`_fill_frames`). Then,
+        within the link's spare share: extra copies of the packet's urgent messages (frame
+        acks, tier-0 messages, the first answer to a request) in other frames, as many as the
+        measured loss calls for (:meth:`copies`); then the spare tier
+        (``ModalitySender.spare``) fills what is left. The frames are then sealed
+        (:meth:`_seal`) and the packet counted (:meth:`_transmission`)."""
         st = self._link(link)
         cfg = st.cfg
         self._build_no += 1
         self._follow_link(now)  # the senders learn the measured throughput first
         w = self._window(st, now)
-        hdr_bytes = header_size(FrameHeader(crc=cfg.crc))
-        # stream -> largest budget for which it had nothing (inf: failed or slow, skip it)
-        exhausted: dict[int, float] = {}
         t0 = self.clock() if self.clock is not None else 0.0
         acks = self._take_acks(now)
         reserve = TRAILER_BYTES if (self.signer is not None or self.peer_signers) and any(
             self.is_command(e.message) for e in self._all_entries()) else 0
-        room = cfg.fbytes - hdr_bytes - reserve
+        room = cfg.fbytes - header_size(FrameHeader(crc=cfg.crc)) - reserve
         # the node this packet is for: the link's ``dst`` unless the contest's winner is
         # addressed to another (a network of several nodes: one destination per packet)
         dst = self._packet_dst(link, w, room, now)
         own = dst == cfg.dst  # senders' pulls and spare work go to the link's destination
-        signer = self.signer_for(dst)
         # room kept in each frame for the extra copies of the urgent messages known now (frame
         # acks, tier-0 messages, replies queued on an expedited stream), so that background
         # traffic cannot crowd them out; unused, it goes to the spare tier
         keep = self._copy_reserve(link, acks, room, now, dst)
+        frames_b, urgent = self._fill_frames(link, w, room, keep, acks, own, now, t0, dst)
+        if not frames_b and st.spare <= 0:
+            return None  # nothing but spare work, and no spare tier to fill an empty packet
+        spare_budget = int(st.spare * cfg.n_frames * room)
+        redundant = self._add_copies(link, frames_b, urgent, room, spare_budget)
+        spare = self._fill_spare(link, w, frames_b, room, spare_budget - redundant, now, t0) if own else 0
+        frames_b = [fb for fb in frames_b if fb.msgs]
+        if not frames_b:
+            return None
+        seq0 = st.seq
+        frames = self._seal(link, frames_b, dst, now)
+        used = sum(room - fb.left for fb in frames_b)
+        return self._transmission(link, w, frames, seq0, sum(len(fb.msgs) for fb in frames_b), used, spare,
+                                  redundant, now)
+
+    def _fill_frames(self, link: int, w: SlotWindow, room: int, keep: int, acks: list[Message], own: bool,
+                     now: float, t0: float, dst: int
+                     ) -> tuple[list[_FrameBuild], list[tuple[Message, int, Entry | None]]]:
+        """The packet's frames, each filled with the pending frame acks, then the contest's
+        winners, then pulls from the senders (``own``: the packet goes to the link's own
+        destination) within ``room - keep`` bytes; and its urgent messages (``(message, size,
+        entry)``: frame acks, tier-0 messages, answers on an expedited stream). Acks that did not
+        fit go back for the next packet; a stream that had an entry taken is no longer
+        expedited."""
+        cfg = self._links[link].cfg
+        # stream -> largest budget for which it had nothing (inf: failed or slow, skip it)
+        exhausted: dict[int, float] = {}
         frames_b: list[_FrameBuild] = []
         urgent: list[tuple[Message, int, Entry | None]] = []  # message, size, its entry
         for _ in range(cfg.n_frames):
@@ -118,26 +143,24 @@ class PackingMixin(PolicyMixin):
             if not fb.msgs:
                 break
             frames_b.append(fb)
-        if acks:  # acks that did not fit go back for the next packet
-            for a in acks:
-                self._requeue_ack(a, now)
-        if not frames_b:
-            # nothing but spare work: an empty packet is built only if the spare tier fills it
-            if st.spare <= 0:
-                return None
+        for a in acks:  # acks that did not fit go back for the next packet
+            self._requeue_ack(a, now)
         for fb in frames_b:
             for e in fb.taken:
                 self._streams[e.stream].queue.expedite = False
-        spare_budget = int(st.spare * cfg.n_frames * room)
-        redundant = self._add_copies(link, frames_b, urgent, room, spare_budget)
-        spare = self._fill_spare(link, w, frames_b, room, spare_budget - redundant, now, t0) if own else 0
-        frames_b = [fb for fb in frames_b if fb.msgs]
-        if not frames_b:
-            return None
+        return frames_b, urgent
+
+    def _seal(self, link: int, frames_b: list[_FrameBuild], dst: int, now: float) -> list[bytes]:
+        """The frames' bytes (signed when they carry a command and a key is set), each under the
+        link's next sequence number, with what waits for their acks: the ack-required entries
+        they carry (re-sent after the link's ack timeout unless acknowledged), the senders'
+        messages whose delivery the senders are told (one token shared by a message's copies),
+        and the frames whose loss is measured."""
+        st = self._links[link]
+        cfg = st.cfg
+        signer = self.signer_for(dst)
         frames: list[bytes] = []
         seq0 = st.seq
-        n_msgs = 0
-        used = 0
         tokens: dict[int, int] = {}  # id(message) -> delivery token, shared by its copies
         for i, fb in enumerate(frames_b):
             seq = (seq0 + i) % SEQ_MODULUS
@@ -149,8 +172,6 @@ class PackingMixin(PolicyMixin):
                 self.stats["signed"] += 1
             else:
                 frames.append(pack(fb.msgs, cfg.fbytes, header))
-            n_msgs += len(fb.msgs)
-            used += room - fb.left
             refs = []
             tracked = list(fb.spare)
             for e in fb.taken:
@@ -169,6 +190,14 @@ class PackingMixin(PolicyMixin):
             if any(not isinstance(m, FrameAck) for m in fb.msgs):
                 self._watch_frame(link, seq, now, dst)
         st.seq = (seq0 + len(frames)) % SEQ_MODULUS
+        return frames
+
+    def _transmission(self, link: int, w: SlotWindow, frames: list[bytes], seq0: int, n_msgs: int, used: int,
+                      spare: int, redundant: int, now: float) -> Transmission:
+        """The sealed packet as a :class:`Transmission`, counted in the link's and the manager's
+        statistics; the link is busy for its airtime."""
+        st = self._links[link]
+        cfg = st.cfg
         duration = cfg.airtime(len(frames))
         st.busy_until = now + duration
         st.packets += 1
@@ -244,16 +273,12 @@ class PackingMixin(PolicyMixin):
         left of the packet, within the link's spare share (``budget``) and each stream's
         (``StreamConfig.spare``); returns the spare bytes packed. Senders take turns: the one
         that gave spare work longest ago (weighted by priority) is asked first."""
-        st = self._links[link]
-        cfg = st.cfg
+        cfg = self._links[link].cfg
         if budget <= 0:
             return 0
-        cands = []
-        for sid, s in self._streams.items():
-            q = s.queue
-            if s.sender is None or q.config.spare <= 0 or not self._eligible(q, link, w, now):
-                continue  # (a sender without spare work answers spare() with nothing: the declared default)
-            cands.append(sid)
+        # (a sender without spare work answers spare() with nothing: the declared default)
+        cands = [sid for sid, s in self._streams.items()
+                 if s.sender is not None and s.queue.config.spare > 0 and self._eligible(s.queue, link, w, now)]
         if not cands:
             return 0
         total = 0
@@ -275,40 +300,13 @@ class PackingMixin(PolicyMixin):
                                    * (now - self._spare_turn.get(sid, -math.inf) + 1.0)), sid))
             got_any = False
             for sid in order:
-                s = self._streams[sid]
-                sender = s.sender
-                assert sender is not None
                 ask = min(left, per_stream[sid])
-                cap = s.queue.config.max_bytes_on(link)
+                cap = self._streams[sid].queue.config.max_bytes_on(link)
                 if cap is not None:
                     ask = min(ask, cap)
                 if ask <= 0:
                     continue
-                try:
-                    got = sender.spare(ask, now)
-                    if not isinstance(got, list | tuple):
-                        raise TypeError(f"spare returned {type(got).__name__}, not a list")
-                except Exception as exc:  # a failing sender must never stop the packet
-                    exhausted[sid] = math.inf
-                    self._sender_failed(now, sid, f"spare: {type(exc).__name__}: {exc}")
-                    continue
-                packed = 0
-                for m in got:
-                    try:
-                        size = encoded_size(m)
-                    except (EncodeError, CoexError, TypeError, ValueError) as exc:
-                        s.queue.count_drop("encode")
-                        self._events.append(Dropped(now, sid, "encode"))
-                        self._sender_failed(now, sid, f"unencodable spare message: {exc}")
-                        continue
-                    if size > fb.left or packed + size > ask:
-                        # more than asked for: spare work can be made again, so it is dropped
-                        s.queue.count_drop("overrun")
-                        self._events.append(Dropped(now, sid, "overrun"))
-                        continue
-                    fb.add(m, size)
-                    fb.spare.append((sid, m))
-                    packed += size
+                packed = self._take_spare(sid, fb, ask, now, exhausted)
                 if packed:
                     per_stream[sid] -= packed
                     total += packed
@@ -319,6 +317,42 @@ class PackingMixin(PolicyMixin):
             if not got_any:
                 fb.spare_open = False  # nobody has spare work that fits this frame
         return total
+
+    def _take_spare(self, sid: int, fb: _FrameBuild, ask: int, now: float, exhausted: dict[int, float]) -> int:
+        """Ask stream ``sid``'s sender for at most ``ask`` bytes of spare work and pack what fits
+        into ``fb``; returns the bytes packed. A sender that fails is told as
+        :class:`SenderFailed` and not asked again for this packet (``exhausted``); a message that
+        does not encode, or goes beyond what was asked, is dropped (spare work can be made
+        again) and counted."""
+        s = self._streams[sid]
+        sender = s.sender
+        assert sender is not None
+        try:
+            got = sender.spare(ask, now)
+            if not isinstance(got, list | tuple):
+                raise TypeError(f"spare returned {type(got).__name__}, not a list")
+        except Exception as exc:  # a failing sender must never stop the packet
+            exhausted[sid] = math.inf
+            self._sender_failed(now, sid, f"spare: {type(exc).__name__}: {exc}")
+            return 0
+        packed = 0
+        for m in got:
+            try:
+                size = encoded_size(m)
+            except (EncodeError, CoexError, TypeError, ValueError) as exc:
+                s.queue.count_drop("encode")
+                self._events.append(Dropped(now, sid, "encode"))
+                self._sender_failed(now, sid, f"unencodable spare message: {exc}")
+                continue
+            if size > fb.left or packed + size > ask:
+                # more than asked for: spare work can be made again, so it is dropped
+                s.queue.count_drop("overrun")
+                self._events.append(Dropped(now, sid, "overrun"))
+                continue
+            fb.add(m, size)
+            fb.spare.append((sid, m))
+            packed += size
+        return packed
 
     def _claim_seq(self, st: _Link, link: int, seq: int) -> None:
         """Reusing a seq forgets the old frame's pending records (its ack can no longer be told

@@ -19,9 +19,17 @@ Golden wire vectors ship with the package (:func:`vectors_dir`).
 from __future__ import annotations
 
 import importlib
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import pytest
+
+if TYPE_CHECKING:  # what a plugin author's type checker sees; at run time each loads on first use
+    from .adapters import AutonomyFixtures, AutonomyTests, InputFixtures, InputTests, survey_plan
+    from .fixtures import ModalityFixtures, TransportFixtures
+    from .harness import LinkedPair, run_until
+    from .modality import ModalityTests
+    from .transport import TransportTests
+    from .wire import WireVectorTests, load_vectors, vectors_dir
 
 pytest.register_assert_rewrite("coex_conformance.adapters", "coex_conformance.modality", "coex_conformance.transport", "coex_conformance.wire")
 

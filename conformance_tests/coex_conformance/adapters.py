@@ -17,7 +17,7 @@ A vehicle team's own adapter is tested exactly as the built-ins are::
     class TestMySonar(InputTests, MyFixtures):
         pass
 
-What they check is the contract declared on :class:`coex_core.adapters.Adapter`, ``Input`` and
+What they check is the contract declared on :class:`coex.Adapter`, ``Input`` and
 ``Autonomy``: declared options (an unknown or a missing one refused by name), ``check`` and
 ``paths`` answering in their declared forms, ``poll`` never blocking and giving only the item
 types the adapter says it feeds, what it skipped counted, ``close`` harmless twice; an autonomy
@@ -35,20 +35,21 @@ from typing import Any
 import numpy as np
 import pytest
 
-from coex_core.adapters import (
+from coex import (
     FEEDS,
     Adapter,
     Autonomy,
+    ConfigError,
     Image,
     Input,
     InputContext,
     Nav,
     Points,
+    Problems,
     Samples,
     SurveyPlan,
 )
-from coex_core.errors import ConfigError
-from coex_core.messages import SurveyKind, SurveyReason, SurveyState
+from coex.messages import SurveyKind, SurveyReason, SurveyState
 
 __all__ = ["AutonomyFixtures", "AutonomyTests", "InputFixtures", "InputTests", "survey_plan"]
 
@@ -78,7 +79,7 @@ class InputFixtures(_AdapterFixtures):
 
     @pytest.fixture
     def input_class(self) -> type[Input]:
-        """Required: the :class:`~coex_core.adapters.Input` subclass."""
+        """Required: the :class:`~coex.Input` subclass."""
         raise NotImplementedError("provide an `input_class` fixture")
 
     @pytest.fixture
@@ -104,7 +105,7 @@ class AutonomyFixtures(_AdapterFixtures):
 
     @pytest.fixture
     def autonomy_class(self) -> type[Autonomy]:
-        """Required: the :class:`~coex_core.adapters.Autonomy` subclass."""
+        """Required: the :class:`~coex.Autonomy` subclass."""
         raise NotImplementedError("provide an `autonomy_class` fixture")
 
     @pytest.fixture
@@ -147,10 +148,8 @@ def _unknown_refused(cls: type[Adapter], options: dict[str, Any], context: Input
 
 
 def _no_problem(cls: type[Adapter], options: dict[str, Any]) -> None:
-    """``check`` answers with a list of sentences or a :class:`~coex_core.config.Problems`, and
+    """``check`` answers with a list of sentences or a :class:`~coex.Problems`, and
     finds nothing in working options."""
-    from coex_core.config import Problems
-
     problems = cls.check(options)
     assert isinstance(problems, list | Problems), (
         f"rule: check() answers with a list of sentences or a Problems, got {type(problems).__name__}")
@@ -226,7 +225,7 @@ class InputTests:
                     times = np.asarray(item.times, dtype=float)
                     assert times.shape == np.shape(item.values) and bool(np.isfinite(times).all()), (
                         "rule: every sample has its time (POSIX seconds, finite), one per value")
-                else:
+                elif isinstance(item, Points | Image | Nav):
                     assert isinstance(item.time, float) and math.isfinite(item.time), (
                         "rule: every item has its time (POSIX seconds, finite)")
         finally:
@@ -325,3 +324,30 @@ class AutonomyTests:
             assert started == sorted(started), "rule: STARTED reports head for waypoints in order"
         elif peer is None:
             assert reports == [], "rule: an output with no autonomy behind it reports nothing"
+
+    def test_the_survey_lifecycle_hooks_answer_in_their_forms(
+            self, autonomy_class: type[Autonomy], autonomy_options: dict[str, Any], context: InputContext) -> None:
+        """``end`` (the daemon takes an ended survey back: twice harmless, never waiting; before
+        the output was told anything too, as after a restart), ``heard``, ``silence`` and
+        ``silent_detail`` (the liveness watch) answer in their declared forms."""
+        out = autonomy_class(autonomy_options, context)
+        out.open()
+        try:
+            t0 = time.monotonic()
+            out.end(6, 999.0)  # a survey handed over before a restart: nothing known of it
+            plan = survey_plan(7)
+            out.submit(plan, 1000.0)
+            out.poll(1000.5)
+            for _ in range(2):
+                out.end(plan.survey_id, 1001.0)
+                assert isinstance(out.poll(1001.5), list), "rule: poll after an end returns a list"
+            assert time.monotonic() - t0 < 3 * NO_WAIT, "rule: end never waits for the autonomy"
+            heard = out.heard(1002.0)
+            assert heard is None or (isinstance(heard, int | float) and not isinstance(heard, bool)), (
+                f"rule: heard() is a time (now's clock) or None, got {heard!r}")
+            bound = out.silence()
+            assert isinstance(bound, float) and math.isfinite(bound) and bound >= 0, (
+                f"rule: silence() is seconds >= 0 (0: not watched), got {bound!r}")
+            assert isinstance(out.silent_detail(), str), "rule: silent_detail() is text"
+        finally:
+            out.close()

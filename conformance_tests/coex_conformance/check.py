@@ -26,8 +26,8 @@ from typing import Any
 
 import pytest
 
-from coex_core.errors import ConfigError
-from coex_core.registry import entry_points
+from coex import ConfigError
+from coex.registry import entry_points
 
 from .companions import CONFORMANCE_GROUP, Companion
 from .fixtures import ModalityFixtures

@@ -13,8 +13,8 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
-from coex_core.modality import Modality, ModalityReceiver, ModalitySender
-from coex_core.registry import entry_points
+from coex import Modality, ModalityReceiver, ModalitySender
+from coex.registry import entry_points
 
 __all__ = ["BUILT_IN", "CONFORMANCE_GROUP", "Companion", "companions", "sample"]
 

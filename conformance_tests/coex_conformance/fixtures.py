@@ -8,8 +8,7 @@ from typing import Any
 
 import pytest
 
-from coex_core.modality import Modality, ModalityReceiver, ModalitySender
-from coex_core.transport import Transport
+from coex import Modality, ModalityReceiver, ModalitySender, Transport
 
 
 class ModalityFixtures:
@@ -17,7 +16,7 @@ class ModalityFixtures:
 
     @pytest.fixture
     def modality(self) -> Modality:
-        """Required: an instance of the plugin's :class:`~coex_core.modality.Modality`."""
+        """Required: an instance of the plugin's :class:`~coex.Modality`."""
         raise NotImplementedError("provide a `modality` fixture")
 
     @pytest.fixture

@@ -1,23 +1,21 @@
 """A sender and a receiver joined by a lossy in-memory link, driven round by round: the core's
-one sender↔receiver loop (:class:`coex_core.loopback.RoundTrip`) as the kit runs it.
+one sender↔receiver loop (:class:`coex.RoundTrip`) as the kit runs it.
 
 Each round: the sender fills one frame (``frame_budget`` bytes) that crosses the forward link,
 the receiver takes what arrives and polls for requests that cross the return link in frames,
-and the sender handles them. Frames are real wire frames (``coex_core.wire.pack``/``unpack``).
+and the sender handles them. Frames are real wire frames (``coex.wire.pack``/``unpack``).
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable, Mapping
+from collections.abc import Callable
 from typing import Any
 
-from coex_core.loopback import Bernoulli, RoundTrip
-from coex_core.messages import Message
-from coex_core.modality import ModalityReceiver, ModalitySender
+from coex import Bernoulli, Message, ModalityReceiver, ModalitySender, RoundTrip
 
 
 class LinkedPair(RoundTrip):
-    """:class:`~coex_core.loopback.RoundTrip` as the conformance kit runs it: each side gets the
+    """:class:`~coex.RoundTrip` as the conformance kit runs it: each side gets the
     messages decoded from the frame's bytes, a sender that fills beyond ``frame_budget`` fails
     the test, and the sender's answers go down one a frame with the next round's frame."""
 
@@ -57,4 +55,3 @@ def ingest_all(sender: ModalitySender, inputs: Any) -> float:
     return last
 
 
-_ = Mapping

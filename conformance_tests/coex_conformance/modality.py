@@ -8,11 +8,20 @@ from typing import Any
 
 import pytest
 
-from coex_core import state, wire
-from coex_core.errors import ConfigError, DecodeError, EncodeError, RequestRejected
-from coex_core.messages import Message, Opaque, VehicleMode, VehicleStatus
-from coex_core.modality import Modality, ModalityReceiver, ModalitySender
-from coex_core.routing import declared_ids, routine_ids, type_id
+from coex import (
+    ConfigError,
+    DecodeError,
+    EncodeError,
+    Message,
+    Modality,
+    ModalityReceiver,
+    ModalitySender,
+    RequestRejected,
+    state,
+    wire,
+)
+from coex.messages import Opaque, VehicleMode, VehicleStatus
+from coex.routing import declared_ids, routine_ids, type_id
 
 from .harness import LinkedPair, ingest_all, run_until
 
@@ -102,7 +111,7 @@ class ModalityTests:
         once, without raising, and the sender keeps working."""
         sender = modality.sender(sender_config)
         for hook in ("acked", "lost", "spare", "spare_bytes", "ready_bytes", "pending_bytes", "focus", "throughput",
-                     "bind_peers", "peer"):
+                     "bind_peers", "peer", "detector_view"):
             assert callable(getattr(sender, hook, None)), (
                 f"rule: the channel calls the sender's {hook}(); an attribute of that name hides it")
         now = ingest_all(sender, sample_inputs)
@@ -173,8 +182,8 @@ class ModalityTests:
         round_seconds: float,
     ) -> None:
         """A node store saves the sender and the receiver mid-transfer with
-        :mod:`coex_core.state` (every class they keep must be registered with
-        ``coex_core.state.persistent``) and journals the inputs; restored, they hold the same
+        :mod:`coex.state` (every class they keep must be registered with
+        ``coex.persistent``) and journals the inputs; restored, they hold the same
         products, and the transfer still converges."""
         pair = self._pair(modality, sender_config, receiver_config, loss=loss, frame_budget=frame_budget,
                           round_seconds=round_seconds, seed=9)

@@ -12,13 +12,23 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
-from coex_core.acoustic import AcousticChannel
-from coex_core.channel import ChannelManager, LinkConfig, Received, Schedule, StreamConfig
-from coex_core.messages import CommandAck, Message
-from coex_core.modality import Modality, ModalityReceiver, ModalitySender
-from coex_core.node import Node
-from coex_core.wire import encoded_size
-from coex_runtime.runner import SimNetwork, SimulatedClock
+from coex import (
+    AcousticChannel,
+    ChannelManager,
+    LinkConfig,
+    Message,
+    Modality,
+    ModalityReceiver,
+    ModalitySender,
+    Node,
+    Received,
+    Schedule,
+    SimNetwork,
+    SimulatedClock,
+    StreamConfig,
+)
+from coex.messages import CommandAck
+from coex.wire import encoded_size
 
 from .companions import Companion, companions
 
@@ -109,10 +119,10 @@ class NodeRun:
                 return out
             return wrapped
 
-        receiver.receive = checked_receive  # type: ignore[method-assign]
-        sender.handle = checked_handle  # type: ignore[method-assign]
-        sender.fill = counted(fill)  # type: ignore[method-assign]
-        sender.spare = counted(spare)  # type: ignore[method-assign]
+        receiver.receive = checked_receive  # type: ignore[method-assign,assignment]
+        sender.handle = checked_handle  # type: ignore[method-assign,assignment]
+        sender.fill = counted(fill)  # type: ignore[method-assign,assignment]
+        sender.spare = counted(spare)  # type: ignore[method-assign,assignment]
 
     @property
     def now(self) -> float:

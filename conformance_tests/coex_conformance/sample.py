@@ -14,11 +14,19 @@ import struct
 from collections.abc import Mapping
 from typing import Any, ClassVar
 
-from coex_core.errors import DecodeError, EncodeError, RequestRejected
-from coex_core.messages import Message, Opaque
-from coex_core.modality import Modality, ModalityReceiver, ModalitySender, Product
-from coex_core.state import persistent
-from coex_core.wire import encoded_size
+from coex import (
+    DecodeError,
+    EncodeError,
+    Message,
+    Modality,
+    ModalityReceiver,
+    ModalitySender,
+    Product,
+    RequestRejected,
+    persistent,
+)
+from coex.messages import Opaque
+from coex.wire import encoded_size
 
 SAMPLE_DATA, SAMPLE_ACK = 32700, 32701
 #: values per data message

@@ -6,8 +6,7 @@ from collections.abc import Sequence
 
 import pytest
 
-from coex_core.errors import FrameTooLarge
-from coex_core.transport import Transport
+from coex import FrameTooLarge, Transport
 
 
 def _frame(size: int, salt: int) -> bytes:

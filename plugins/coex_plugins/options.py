@@ -20,6 +20,8 @@ __all__ = [
     "LogOnce",
     "Problems",
     "serial_device",
+    "check_lcm_url",
+    "check_mavlink_connection",
     "check_time_warp",
     "compass_from_enu_yaw",
     "compile_path",
@@ -69,6 +71,57 @@ def serial_device(connection: Any) -> list[tuple[str, str, str]]:
 
 # --------------------------------------------------------------------------- option checks
 # (the checks themselves are coex_core.config.Problems' option_* methods: the one checker)
+#: pymavlink's connection kinds that take ``HOST:PORT`` (``mavutil.mavlink_connection``)
+MAVLINK_NET_KINDS = ("udpin", "udpout", "udpbcast", "udp", "tcp", "tcpin", "mcast", "wsserver")
+#: its other kinds (a Unix socket, a websocket URL, a CSV log): taken as given
+MAVLINK_OTHER_KINDS = ("uds", "unix", "ws", "wss", "csv")
+
+
+def check_mavlink_connection(p: Problems, who: str, options: Mapping[str, Any], key: str = "connection") -> None:
+    """A problem if option ``key`` (a pymavlink connection string) is given and pymavlink would
+    not open it: ``KIND:HOST:PORT`` needs one of pymavlink's kinds (``udpin``, ``udpout``,
+    ``tcp`` ...; a misspelt ``udpinn:`` would be taken for a file name and retried for ever)
+    and a port 1..65535; a serial device (``/dev/ttyACM0``, ``/dev/ttyUSB0,57600``) or a bare
+    ``HOST:PORT`` (UDP) is taken as pymavlink takes it."""
+    v = options.get(key)
+    if not isinstance(v, str) or not v or v.startswith("/") or ":" not in v:
+        return  # not a string (said elsewhere), a device or a file
+    kind, _, rest = v.partition(":")
+    if kind in MAVLINK_OTHER_KINDS:
+        return
+    if kind in MAVLINK_NET_KINDS:
+        host, sep, port = rest.rpartition(":")
+        if kind == "mcast" and not rest:
+            return  # pymavlink's default group
+    else:
+        host, sep, port = v.rpartition(":")
+        if ":" in host or not host:
+            p.said(key, f"{who}: option {key!r}: {kind!r} is not a pymavlink connection kind (known: "
+                        f"{', '.join(MAVLINK_NET_KINDS + MAVLINK_OTHER_KINDS)}; or a serial device), in {v!r}")
+            return
+    listens = kind in ("udpin", "tcpin", "udp", "wsserver")  # port 0: any free port
+    if not sep or not port.isdigit() or not int(not listens) <= int(port) <= 65535:
+        p.said(key, f"{who}: option {key!r} must end in a port 1..65535 ({kind}:HOST:PORT), not {v!r}")
+    elif not host and not listens:
+        p.said(key, f"{who}: option {key!r} needs a host ({kind}:HOST:PORT), not {v!r}")
+
+
+def check_lcm_url(p: Problems, who: str, options: Mapping[str, Any], key: str = "url") -> None:
+    """A problem if option ``key`` (an LCM provider URL; empty: the default) is given and LCM
+    would not open it (``coex.lcm.check_provider_url``: a port above 65535, an address that is
+    not multicast, an unknown option)."""
+    v = options.get(key)
+    if not isinstance(v, str) or not v:
+        return
+    from coex import ConfigError
+    from coex.lcm import check_provider_url
+
+    try:
+        check_provider_url(v)
+    except ConfigError as exc:
+        p.said(key, f"{who}: option {key!r}: {exc}")
+
+
 def check_time_warp(p: Problems, who: str, options: Mapping[str, Any], key: str = "time_warp") -> None:
     """A problem if ``key`` (a MOOS community's ``MOOSTimeWarp``) is given and is not a number
     above 0 and at most MOOS's ``MAX_TIME_WARP`` (400)."""

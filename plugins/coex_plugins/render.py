@@ -50,15 +50,19 @@ def depth_cmap() -> Colormap:
         N=1024)
 
 
-def hillshade(grid: npt.ArrayLike, cell: float, azimuth: float = 315.0, altitude: float = 45.0) -> FloatArray:
-    """Lambertian hillshade in 0..1 (row 0 = south); NaN cells give 1 (unshaded)."""
+def hillshade(grid: npt.ArrayLike, cell: float, azimuth: float = 315.0, altitude: float = 45.0,
+              fill: float | None = None) -> FloatArray:
+    """Lambertian hillshade in 0..1 (row 0 = south); NaN cells give 1 (unshaded). NaN cells are
+    taken at ``fill`` for the slopes of their neighbours (default: the grid's mean)."""
     z = np.asarray(grid, np.float64)
     if z.size == 0:
         return np.ones_like(z)
-    fill = np.where(np.isfinite(z), z, np.nanmean(z) if np.isfinite(z).any() else 0.0)
+    if fill is None:
+        fill = float(np.nanmean(z)) if np.isfinite(z).any() else 0.0
+    fill_grid = np.where(np.isfinite(z), z, fill)
     if min(z.shape) < 2:
         return np.ones_like(z)
-    dzdy, dzdx = np.gradient(fill, cell)
+    dzdy, dzdx = np.gradient(fill_grid, cell)
     az, alt = np.radians(azimuth), np.radians(altitude)
     # sun direction (east, north, up)
     sx, sy, sz = np.sin(az) * np.cos(alt), np.cos(az) * np.cos(alt), np.sin(alt)
@@ -68,17 +72,37 @@ def hillshade(grid: npt.ArrayLike, cell: float, azimuth: float = 315.0, altitude
     return np.asarray(np.where(np.isfinite(z), shade, 1.0), np.float64)
 
 
+#: :func:`elevation_rgba` draws a big grid this many cells at a time (its temporaries, about 80
+#: bytes a cell, stay this size whatever the grid's)
+BAND_CELLS = 1 << 18
+
+
 def elevation_rgba(z: npt.ArrayLike, lo: float, hi: float, cell: float = 1.0) -> npt.NDArray[np.uint8]:
     """RGBA image of an elevation grid (row 0 = south) coloured from ``lo`` (deep) to ``hi``
-    (shallow), times a hillshade; NaN cells are transparent. Row 0 of the image is the north edge."""
+    (shallow), times a hillshade; NaN cells are transparent. Row 0 of the image is the north edge.
+    A big grid is drawn in bands of rows (:data:`BAND_CELLS` cells; each band with a row of its
+    neighbours for the slopes): the same picture, a bounded memory beside the grid and the
+    image (the console draws windows of 4 Mpx)."""
     z = np.asarray(z, np.float64)
-    ok = np.isfinite(z)
-    t = np.clip((np.where(ok, z, lo) - lo) / max(hi - lo, 1e-9), 0.0, 1.0)
-    rgb = np.asarray(depth_cmap()(t))[..., :3] * 255.0
-    rgb *= (SHADE_FLOOR + (1.0 - SHADE_FLOOR) * hillshade(z, cell))[..., None]
     out = np.zeros((*z.shape, 4), np.uint8)
-    out[..., :3] = np.clip(rgb, 0, 255).astype(np.uint8)
-    out[..., 3] = np.where(ok, 255, 0)
+    if z.size == 0:
+        return out[::-1]
+    rows, cols = z.shape[0], max(1, z.shape[1])
+    fill = float(np.nanmean(z)) if np.isfinite(z).any() else 0.0
+    band = max(1, BAND_CELLS // cols)
+    span = max(hi - lo, 1e-9)
+    cmap = depth_cmap()
+    for r0 in range(0, rows, band):
+        r1 = min(rows, r0 + band)
+        a, b = max(0, r0 - 1), min(rows, r1 + 1)  # a row of the neighbours each side: the slopes
+        zb = z[r0:r1]
+        ok = np.isfinite(zb)
+        t = np.clip((np.where(ok, zb, lo) - lo) / span, 0.0, 1.0)
+        rgb = np.asarray(cmap(t))[..., :3] * 255.0
+        shade = hillshade(z[a:b], cell, fill=fill)[r0 - a:r0 - a + (r1 - r0)] if rows >= 2 else np.ones_like(zb)
+        rgb *= (SHADE_FLOOR + (1.0 - SHADE_FLOOR) * shade)[..., None]
+        out[r0:r1, :, :3] = np.clip(rgb, 0, 255).astype(np.uint8)
+        out[r0:r1, :, 3] = np.where(ok, 255, 0)
     return out[::-1]
 
 

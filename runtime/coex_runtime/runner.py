@@ -17,6 +17,13 @@ not logged, and given back to the node (``Node.not_sent``: not an acoustic loss,
 ``settings_path`` the runner loads the node's operator settings (stream settings, links,
 schedules) at start and writes them whenever they change, so they survive a restart.
 
+With a store, a write the store refuses (a full disk, a read-only or damaged file:
+:class:`~coex_runtime.store.StoreError`) never stops the loop: a received frame is still given
+to the node, a packet still goes out, the snapshot is tried again at the next transmission;
+the problem is reported once when it starts (``on_error``) and once when the store writes
+again, and :attr:`Runner.store_problem` holds it meanwhile. :meth:`Runner.ingest` raises it
+(the input is not taken: the caller decides what to keep).
+
 :class:`Runner` is the one loop for every program that drives a node over transports: ``coex
 topside`` (the console) uses it with its hooks (``lock``: the console's lock held around each
 step; ``after_step``: move events to the console; ``snapshot_due``: save the store after an
@@ -45,7 +52,7 @@ from coex_core.loopback import SimClock
 from coex_core.node import Node
 from coex_core.transport import Transport
 
-from .store import NodeStore
+from .store import NodeStore, StoreError
 
 __all__ = ["Clock", "RealClock", "Runner", "SimNetwork", "SimulatedClock", "next_wakeup", "sigterm_as_interrupt"]
 
@@ -129,6 +136,9 @@ def _send(transport: Transport, tx: Transmission) -> None:
 
 #: an error repeated within this many seconds is counted, not reported again
 REPEAT_WINDOW = 60.0
+#: seconds (of the runner's clock) a store that refused a write must take every write before
+#: :attr:`Runner.store_problem` clears and the runner says it writes again
+STORE_RECOVERY = 30.0
 
 
 class Runner:
@@ -190,6 +200,10 @@ class Runner:
         #: frames not sent because their link was down for now (per link id)
         self.not_sent: dict[int, int] = {}
         self._repeat: tuple[str, float, int] | None = None  # (text, first seen, repeats since)
+        #: the store's problem as last reported (None: it keeps everything)
+        self.store_problem: StoreError | None = None
+        self._store_failed = self._store_failed_seen = 0
+        self._store_ok_since: float | None = None
 
     def _error(self, text: str) -> None:
         """Record an error; the same text again within :data:`REPEAT_WINDOW` seconds is counted,
@@ -225,8 +239,38 @@ class Runner:
             force = True
         try:
             self.store.maybe_snapshot(self.node, now, force=force)
-        except Exception as exc:  # a full disk must not stop the node
+        except StoreError:
+            pass  # a full disk must not stop the node: told once (_watch_store)
+        except Exception as exc:
             self._error(f"store: {exc}")
+
+    def _watch_store(self) -> None:
+        """Report the store's problem when it starts or changes kind, and when it is over: after
+        :data:`STORE_RECOVERY` seconds without a refused write (a nearly full disk that takes
+        one snapshot in freed pages and refuses the next is not "writing again")."""
+        if self.store is None:
+            return
+        p, was = self.store.problem, self.store_problem
+        if p is not None:
+            self._store_ok_since = None
+            if was is None or p.kind != was.kind:
+                self._store_failed = self.store.stats["failed"]
+                self._report(f"store: {p}")
+            self.store_problem = p
+            return
+        if was is None:
+            return
+        now = self.clock.time()
+        if self._store_ok_since is None or self.store.stats["failed"] != self._store_failed_seen:
+            self._store_ok_since, self._store_failed_seen = now, self.store.stats["failed"]
+            return
+        if now - self._store_ok_since < STORE_RECOVERY:
+            return
+        refused = self.store.stats["failed"] - self._store_failed + 1
+        self._report(f"store {self.store.path}: writing again ({refused} write{'s' if refused != 1 else ''} "
+                     "refused meanwhile; what comes from now on is kept)")
+        self.store_problem = None
+        self._store_ok_since = None
 
     def _step(self) -> float:
         now = self.clock.time()
@@ -246,7 +290,8 @@ class Runner:
             for tx in txs:
                 for f in tx.frames:
                     if self.store.journal_tx:
-                        self.store.record_tx(tx.link_id, f, now)
+                        with contextlib.suppress(StoreError):  # a record: the packet goes anyway
+                            self.store.record_tx(tx.link_id, f, now)
             # what leaves now is marked sent in the saved state before it leaves
             self._snapshot(now, bool(txs))
         for tx in txs:
@@ -274,13 +319,17 @@ class Runner:
                 self._error(f"after_step {getattr(hook, '__name__', hook)}: {exc}")
         if self.store is not None and self.snapshot_due is not None:
             self._snapshot(self.clock.time(), False)
+        self._watch_store()
         nxt = self.node.next_event(self.clock.time())
         return nxt if nxt is not None else self.clock.time() + self.max_wait
 
     def _receive(self, link: int, frame: bytes) -> None:
         now = self.clock.time()
         if self.store is not None:
-            self.store.record_rx(link, frame, now)  # committed before the node sees it
+            try:
+                self.store.record_rx(link, frame, now)  # committed before the node sees it
+            except StoreError:
+                pass  # not kept across a restart, but the node hears it (commands run)
         self.node.receive(link, frame, now)
 
     def receive(self, link: int, frame: bytes) -> None:
@@ -289,15 +338,19 @@ class Runner:
         with self.lock:
             self._receive(link, frame)
 
-    def ingest(self, name: str, data: Any) -> None:
+    def ingest(self, name: str, data: Any, *, mark: str | None = None) -> None:
         """Give sensor data to the sender of modality ``name`` now (journaled first with a
-        store, so a restart does not lose it)."""
+        store, so a restart does not lose it). ``mark``: a key the store sets in the journal
+        row's transaction (:meth:`NodeStore.record_input <coex_runtime.store.NodeStore.record_input>`:
+        the application's record that it took this input). A
+        :class:`~coex_runtime.store.StoreError` (the store cannot journal it) reaches the
+        caller and the sender does not take the input."""
         with self.lock:
             now = self.clock.time()
             sender = self.node.sender(name)
             if self.store is not None:
                 data = sender.journal_form(data)
-                self.store.record_input(name, data, now)
+                self.store.record_input(name, data, now, mark=mark)
             sender.ingest(data, now)
 
     def save_settings(self) -> bool:

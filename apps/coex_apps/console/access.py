@@ -10,9 +10,11 @@
   password ends the sessions made with the old one, an operator made a viewer is a viewer at
   once (a viewer made an operator signs in again). Failed sign-ins are counted *before* the
   password is checked (parallel guesses see each other) and slow down the next try of that
-  name from that address, and of that address for any name (backoff, never a hard lock of a
-  name: a stranger's guesses from elsewhere cannot keep an operator out). Commands are limited
-  per operator, whatever the number of their sessions. The web server (:mod:`.server`) asks it
+  name from that address, of that address for any name, and of that name from anywhere
+  (backoff, never a hard lock): a browser that signed in as the name before (its signed device
+  cookie) or holds a live session of it is never made to wait by anyone else's failures, only by
+  its own. Commands are limited per operator, whatever the number of their sessions (a refused
+  command does not count). The web server (:mod:`.server`) asks it
   about every request; every refusal is logged with who and why.
 """
 
@@ -34,7 +36,10 @@ from typing import Any
 
 from coex import ConfigError
 
-__all__ = ["Access", "Operator", "OperatorsFile", "Session", "SignInRefused", "ROLES", "password_problem"]
+from .admission import Said
+
+__all__ = ["Access", "Operator", "OperatorsFile", "Session", "SignInRefused", "SignInTry", "ROLES",
+           "password_problem", "secret_file_problem"]
 
 log = logging.getLogger("coex.console.access")
 
@@ -53,6 +58,26 @@ COMMON = frozenset({
     "iloveyou1234", "letmeinletmein", "administrator", "adminadminadmin", "welcome12345",
     "changemechangeme", "changeme1234", "operator1234", "coexcoexcoex", "coexoperator",
 })
+
+
+#: a browser that signed in as a name is known for this many days (its device cookie)
+DEVICE_DAYS = 90.0
+
+
+def secret_file_problem(path: str | Path, what: str = "file") -> str | None:
+    """Why ``path`` may not hold a secret (None: it may): other users (its group, everyone) can
+    read or write it. The operators file, the TLS key: ``chmod 600`` them."""
+    if os.name != "posix":
+        return None
+    try:
+        mode = os.stat(path).st_mode
+    except OSError:
+        return None  # a missing file is said elsewhere
+    if mode & 0o077:
+        who = "everyone" if mode & 0o007 else "its group"
+        return (f"the {what} {path} can be read or changed by {who} (mode {mode & 0o777:04o}): "
+                f"make it private with chmod 600 {path}")
+    return None
 
 
 def password_problem(name: str, secret: str) -> str | None:
@@ -135,7 +160,9 @@ class OperatorsFile:
 
     def reload(self) -> bool:
         """Read the file again if it changed (another inode, time or size); True if it did. A
-        file that cannot be read (or is gone) lets nobody in until it is fixed (logged)."""
+        file that cannot be read (or is gone) lets nobody in until it is fixed (logged). A file
+        other users may read is still followed (the operator keeps her console) and logged as an
+        error until it is made private again."""
         sig = self._signature()
         if sig == self._seen:
             return False
@@ -145,6 +172,9 @@ class OperatorsFile:
                 raise ConfigError(f"the operators file {self.path} is gone")
             self.operators = self._read()
             log.info("operators file %s re-read: %d people", self.path, len(self.operators))
+            problem = secret_file_problem(self.path, "operators file")
+            if problem:
+                log.error("%s (still used meanwhile)", problem)
         except ConfigError as exc:
             log.error("%s: nobody can use the console until it is fixed", exc)
             self.operators = {}
@@ -232,21 +262,37 @@ class SignInRefused(Exception):
         self.wait = wait
 
 
+@dataclass
+class SignInTry:
+    """One sign-in between :meth:`Access.begin` and :meth:`Access.finish`: the failure counters
+    it already counts in, and its class in the queue of password checks (0: from a browser
+    known for the name, 1: from an address without failures, 2: the rest)."""
+
+    name: str
+    client: str
+    keys: list[str]
+    known: bool
+    klass: int
+    at: float
+
+
 class Access:
     """Sign-ins, sessions and limits for one console server (thread-safe).
 
     ``session_hours`` the longest a session lasts; ``idle_minutes`` a session not used for that
     long ends (an open page's event stream is use); ``max_failures`` failed sign-ins of one name
-    from one address before each next try waits ``backoff`` seconds, doubling up to
-    ``max_backoff`` (``address_failures`` for one address whatever the names); failures older
-    than ``window`` seconds are forgotten; ``commands_per_minute`` per operator;
-    ``check_seconds`` how often the operators file is looked at."""
+    from one address (or from one known browser) before each next try waits ``backoff``
+    seconds, doubling up to ``max_backoff``; ``address_failures`` the same for one address
+    whatever the names; ``account_failures`` for one name from anywhere (browsers that signed
+    in as the name before are not held by it); failures older than ``window`` seconds are
+    forgotten; ``commands_per_minute`` per operator; ``check_seconds`` how often the operators
+    file is looked at; ``sign_ins`` password checks at once (scrypt takes 16 MB each)."""
 
     def __init__(self, operators: OperatorsFile, *, session_hours: float = 12.0,
                  idle_minutes: float = 30.0, max_failures: int = 5, address_failures: int = 20,
-                 backoff: float = 2.0, max_backoff: float = 300.0, window: float = 900.0,
-                 commands_per_minute: int = 30, check_seconds: float = 0.2, sign_ins: int = 2,
-                 clock: Callable[[], float] = time.monotonic) -> None:
+                 account_failures: int = 20, backoff: float = 2.0, max_backoff: float = 300.0,
+                 window: float = 900.0, commands_per_minute: int = 30, check_seconds: float = 0.2,
+                 sign_ins: int = 2, clock: Callable[[], float] = time.monotonic) -> None:
         if not operators.operators:
             raise ConfigError(f"the operators file {operators.path} names nobody "
                               "(add one: coex operators add NAME --role operator)")
@@ -255,11 +301,13 @@ class Access:
         self.idle_seconds = float(idle_minutes) * 60.0
         self.max_failures = int(max_failures)
         self.address_failures = int(address_failures)
+        self.account_failures = int(account_failures)
         self.backoff = float(backoff)
         self.max_backoff = float(max_backoff)
         self.window = float(window)
         self.commands_per_minute = int(commands_per_minute)
         self.check_seconds = float(check_seconds)
+        self.sign_ins = max(1, int(sign_ins))
         self.clock = clock
         self._sessions: dict[str, Session] = {}
         self._failures: dict[str, deque[float]] = {}
@@ -267,7 +315,10 @@ class Access:
         self._lock = threading.Lock()
         self._checked = -float("inf")
         #: password checks at once (scrypt takes 16 MB each)
-        self._checking = threading.BoundedSemaphore(max(1, int(sign_ins)))
+        self._checking = threading.BoundedSemaphore(self.sign_ins)
+        #: failed and refused sign-ins are logged with the name and the address, a flood of
+        #: them from one address in one line every ten seconds
+        self.say = Said(logger=log)
 
     # ------------------------------------------------------------------ the operators file
     def refresh(self, force: bool = False) -> None:
@@ -280,6 +331,40 @@ class Access:
             self._checked = now
             self.operators.reload()
 
+    def shown(self, name: str) -> str:
+        """``name`` as a log may show it: an operator's name, else not at all (a password typed
+        into the name field must never reach a log)."""
+        return repr(name) if name in self.operators.operators else "a name that is nobody's"
+
+    # ------------------------------------------------------------------ known browsers
+    def _device_mac(self, op: Operator, issued: int) -> str:
+        # keyed by the operator's password hash (secret, in the 0600 file; a new password
+        # forgets every browser), so the cookie survives a restart of the console
+        key = hashlib.sha256(b"coex-device\0" + bytes.fromhex(op.hash)).digest()
+        return hmac.new(key, f"{op.name}\0{issued}".encode(), hashlib.sha256).hexdigest()[:32]
+
+    def device_cookie(self, s: Session) -> str | None:
+        """The value of the cookie that makes this browser known for ``s``'s name (set at a
+        successful sign-in; :data:`DEVICE_DAYS` days)."""
+        op = self.operators.operators.get(s.name)
+        if op is None:
+            return None
+        issued = int(time.time())
+        return f"{issued}.{self._device_mac(op, issued)}.{op.name}"
+
+    def device(self, cookie: str | None) -> Operator | None:
+        """The operator whose browser ``cookie`` says this is (None: no valid device cookie)."""
+        if not cookie:
+            return None
+        parts = str(cookie).split(".", 2)
+        if len(parts) != 3 or not parts[0].isdigit() or len(parts[0]) > 12:
+            return None
+        issued, mac, name = int(parts[0]), parts[1], parts[2]
+        op = self.operators.operators.get(name)
+        if op is None or not 0 <= time.time() - issued <= DEVICE_DAYS * 86400.0:
+            return None
+        return op if hmac.compare_digest(mac, self._device_mac(op, issued)) else None
+
     # ------------------------------------------------------------------ sign-in
     def _wait(self, key: str, now: float, free: int) -> float:
         fails = self._failures.get(key)
@@ -287,58 +372,113 @@ class Access:
             return 0.0
         while fails and now - fails[0] > self.window:
             fails.popleft()
+        if not fails:
+            del self._failures[key]
+            return 0.0
         if len(fails) < free:
             return 0.0
         delay = min(self.max_backoff, self.backoff * 2.0 ** (len(fails) - free))
         return max(0.0, fails[-1] + delay - now)
 
-    def wait(self, name: str, client: str) -> float:
+    def _keys(self, name: str, client: str, known: str | None) -> list[tuple[str, int]]:
+        if known is not None:  # a known browser answers for its own failures only
+            return [(f"{name}\0known\0{known}", self.max_failures)]
+        return [(f"{name}\0{client}", self.max_failures), (f"\0{client}", self.address_failures),
+                (f"{name}\0*", self.account_failures)]
+
+    def _known(self, name: str, device: str | None, sid: str | None) -> str | None:
+        op = self.device(device)
+        if op is not None and op.name == name:
+            return "device " + str(device).split(".", 2)[1][:12]
+        s = self._sessions.get(sid or "")
+        if s is not None and s.name == name:
+            return "session " + s.sid[:12]
+        return None
+
+    def wait(self, name: str, client: str, device: str | None = None) -> float:
         """Seconds before ``name`` may try to sign in from ``client`` (0: now)."""
         now = self.clock()
         with self._lock:
-            return max(self._wait(f"{name[:MAX_NAME]}\0{client}", now, self.max_failures),
-                       self._wait(f"\0{client}", now, self.address_failures))
+            known = self._known(name[:MAX_NAME], device, None)
+            return max(self._wait(k, now, free) for k, free in self._keys(name[:MAX_NAME], client, known))
 
-    def login(self, name: str, secret: str, client: str) -> Session:
-        """A new session, or :class:`SignInRefused`. The try counts as a failure of the name
-        from ``client`` and of ``client`` before the password is checked (so parallel tries
-        cannot pass the limit together) and is taken back when it was right."""
+    def begin(self, name: str, client: str, device: str | None = None, sid: str | None = None) -> SignInTry:
+        """The first step of a sign-in (no password yet): :class:`SignInRefused` (429) while
+        the try must wait, else a :class:`SignInTry` already counted as a failure of the name
+        from ``client`` (of the known browser, with a valid ``device`` cookie or a live session
+        ``sid`` of the name), so that parallel tries cannot pass the limit together;
+        :meth:`finish` takes it back when the password was right."""
         self.refresh()
         name = str(name)[:MAX_NAME]
-        pair, addr = f"{name}\0{client}", f"\0{client}"
         now = self.clock()
         with self._lock:
-            wait = max(self._wait(pair, now, self.max_failures),
-                       self._wait(addr, now, self.address_failures))
+            known = self._known(name, device, sid)
+            keys = self._keys(name, client, known)
+            wait = max(self._wait(k, now, free) for k, free in keys)
             if wait > 0:
-                log.warning("console sign-in refused for %r from %s: too many failures, %.0f s to wait",
-                            name, client, wait)
+                self.say(client, f"console sign-in refused for {self.shown(name)} from {client}"
+                                 f"{f' ({known})' if known else ''}: too many failures, {wait:.0f} s to wait",
+                         kind=f"refused {self.shown(name)} {known}")
                 raise SignInRefused(429, f"too many failed sign-ins: try again in {wait:.0f} s", wait)
-            for key in (pair, addr):
-                self._failures.setdefault(key, deque()).append(now)
-        with self._checking:
-            op = self.operators.verify(name, secret)
+            # class 1: neither this address nor this name failed lately (a guesser's tries of a
+            # name under attack, or from an address that failed, wait behind)
+            clean = not self._failures.get(f"\0{client}") and not self._failures.get(f"{name}\0*")
+            for k, _ in keys:
+                self._failures.setdefault(k, deque()).append(now)
+        return SignInTry(name, client, [k for k, _ in keys], known is not None,
+                         0 if known is not None else 1 if clean else 2, now)
+
+    def check(self, t: SignInTry, secret: str) -> Operator | None:
+        """The password check of a try (scrypt: call it in a worker thread, a few at a time)."""
+        return self.operators.verify(t.name, secret)
+
+    def finish(self, t: SignInTry, op: Operator | None) -> Session:
+        """The end of a sign-in: a new session, or :class:`SignInRefused` (401)."""
         if op is None:
             done = self.clock()
             with self._lock:  # the backoff runs from when the failure was known
-                for key in (pair, addr):
+                for key in t.keys:
                     fails = self._failures.get(key)
-                    if fails is not None and now in fails:
-                        fails.remove(now)
+                    if fails is not None and t.at in fails:
+                        fails.remove(t.at)
                         fails.append(done)
-            log.warning("console sign-in failed for %r from %s: wrong name or password", name, client)
+            self.say(t.client, f"console sign-in failed for {self.shown(t.name)} from {t.client}: wrong name or "
+                               "password", kind=f"failed {self.shown(t.name)}")
             raise SignInRefused(401, "wrong name or password")
         now2 = self.clock()
         s = Session(secrets.token_urlsafe(32), op.name, op.role, secrets.token_urlsafe(24),
                     now2 + self.session_seconds, op.hash, now2)
         with self._lock:
             self._sessions[s.sid] = s
-            self._failures.pop(pair, None)
-            fails = self._failures.get(addr)
-            if fails is not None and now in fails:
-                fails.remove(now)
-        log.info("console sign-in: %s (%s) from %s", op.name, op.role, client)
+            for key in t.keys:
+                fails = self._failures.get(key)
+                if fails is None:
+                    continue
+                if key == t.keys[0]:
+                    del self._failures[key]  # this name from here (this browser) starts afresh
+                elif t.at in fails:
+                    fails.remove(t.at)
+        log.info("console sign-in: %s (%s) from %s", op.name, op.role, t.client)
         return s
+
+    def cancel(self, t: SignInTry) -> None:
+        """A try that was not checked after all (the console was too busy, the browser left):
+        it counts as no failure."""
+        with self._lock:
+            for key in t.keys:
+                fails = self._failures.get(key)
+                if fails is not None and t.at in fails:
+                    fails.remove(t.at)
+
+    def login(self, name: str, secret: str, client: str, device: str | None = None,
+              sid: str | None = None) -> Session:
+        """A new session, or :class:`SignInRefused` (:meth:`begin`, the password check,
+        :meth:`finish`). The try counts as a failure before the password is checked and is
+        taken back when it was right."""
+        t = self.begin(name, client, device, sid)
+        with self._checking:
+            op = self.check(t, secret)
+        return self.finish(t, op)
 
     # ------------------------------------------------------------------ sessions
     def session(self, sid: str | None, touch: bool = True) -> Session | None:
@@ -397,6 +537,14 @@ class Access:
                 return 60.0 - (now - sent[0])
             sent.append(now)
             return 0.0
+
+    def command_refused(self, s: Session) -> None:
+        """A command :meth:`command_allowed` counted was refused (a bad argument, nothing sent):
+        it does not use up the operator's budget."""
+        with self._lock:
+            sent = self._commands.get(s.name)
+            if sent:
+                sent.pop()
 
 
 def describe(s: Any) -> dict[str, Any]:

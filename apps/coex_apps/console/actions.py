@@ -172,6 +172,13 @@ class ConsoleActions:
             raise RequestRejected("a survey needs x and y (metres east and north of the origin; for "
                                   "waypoints, or the first of at least one [x, y] in points)")
         now = self.clock()
+        nav = self.state.navigation
+        if nav is not None and nav.apply:
+            # drawn on the corrected map: sent in the vehicle's own frame (issue 56), each point
+            # moved by the correction topside estimates now
+            vid = self.state.vehicle_id
+            nums["x"], nums["y"] = nav.to_vehicle(vid, nums["x"], nums["y"], now)
+            pts = [nav.to_vehicle(vid, a, b, now) for a, b in pts]
         # the receiver checks the kind, the fields the kind needs and their wire ranges
         cmd: m.SurveyCommand = rx.request(str(kind), nums["x"], nums["y"], now, heading=nums["heading"],
                          length=nums["length"], width=nums["width"], spacing=nums["spacing"],

@@ -74,17 +74,24 @@ def console_access(host: str, operators: str | Path | None, insecure_open: bool,
     :class:`ConfigError` for a console that would be open to the network without sign-in."""
     import ipaddress
 
-    from .access import Access, OperatorsFile
+    from .access import Access, OperatorsFile, secret_file_problem
     from .server import tls_context
 
     if (tls_cert is None) != (tls_key is None):
         raise ConfigError("give both --tls-cert and --tls-key")
+    if tls_key:  # a secret other users may read is refused (docs/console.md)
+        problem = secret_file_problem(tls_key, "TLS key")
+        if problem:
+            raise ConfigError(problem)
     tls = tls_context(tls_cert, tls_key) if tls_cert and tls_key else None
     if operators is not None:
         path = Path(operators)
         if not path.exists():
             raise ConfigError(f"no operators file {path} (make one: coex operators add NAME --role operator "
                               f"--file {path})")
+        problem = secret_file_problem(path, "operators file")
+        if problem:
+            raise ConfigError(problem)
         return Access(OperatorsFile(path), session_hours=session_hours, idle_minutes=idle_minutes), tls
     try:
         loopback = host == "localhost" or ipaddress.ip_address(host).is_loopback
@@ -125,6 +132,10 @@ def register(subparsers: Any) -> None:
     p.add_argument("--slot", type=float, default=20.0,
                    help="TDMA slot length in seconds (NUI cycle of 6 slots, default 20)")
     p.add_argument("--guard", type=float, default=2.0, help="slot guard time (default 2 s)")
+    p.add_argument("--packet-seconds", type=float, default=None, metavar="S",
+                   help="time a packet takes on every modem (default: a full packet's airtime at the "
+                        "rate; a link without airtime, LCM, MAVLink, MOOS, loopback, takes less: "
+                        "docs/deploy.md, modems[0].packet_seconds)")
     p.add_argument("--schedule", metavar="JSON",
                    help='explicit schedule: {"slots": [{"owner": 1, "duration": 20, '
                         '"guard": 2}, ...], "epoch": 0}')
@@ -154,8 +165,12 @@ def register(subparsers: Any) -> None:
                         "address (a ship's DNS name, a reverse proxy's); other Host headers are refused "
                         "(DNS rebinding). Repeat it for several")
     p.add_argument("--trusted-proxy", action="append", default=[], metavar="ADDRESS",
-                   help="a reverse proxy whose X-Forwarded-For names the client (sign-in limits go by "
-                        "client address); repeat it for several")
+                   help="a reverse proxy whose X-Forwarded-For names the client (limits go by client "
+                        "address) and whose X-Forwarded-Proto says https (Secure cookies); repeat it for several")
+    p.add_argument("--public-origin", action="append", default=[], metavar="URL",
+                   help="an origin the console's page is reached at besides its own address and names, "
+                        "e.g. a reverse proxy's https://console.ship.example (scheme, host and port are "
+                        "compared with a request's Origin); repeat it for several")
     p.add_argument("--command-key-file", metavar="PATH",
                    help="shared command key (hex, or at least 16 raw bytes): every command is "
                         "signed (spec section 10); the vehicle must have the same key")
@@ -186,13 +201,24 @@ class TopsideApp:
         self.stop = threading.Event()
         #: the products on ROS topics (``[ros]``), or None
         self.ros: Any = None
+        #: the ship's USBL and topside's drift estimate (``[usbl]``, :mod:`.usbl`), or None
+        self.usbl: Any = None
+        #: the vehicles heard nothing from (:class:`coex.PeerWatch`; set by :func:`topside_app`)
+        self.peer_watch: Any = None
         self._last_status: dict[int, Any] = {}
         self._commands_seen = self._commands_version()
         self.runner = Runner(node, self.transports, RealClock(clock), store=store,
                              lock=hub.lock, after_step=[self._to_console],
-                             snapshot_due=self._commands_changed,
-                             on_error=lambda text: log.warning("%s", text))
+                             snapshot_due=self._commands_changed, on_error=self._error)
         self.transports = self.runner.transports  # one dict: a link's transport may be swapped
+
+    def _error(self, text: str) -> None:
+        """The runner's errors to the log; the store's (a full disk, and its end) to the
+        console's event log too: the operator must know what topside cannot keep."""
+        log.warning("%s", text)
+        if text.startswith("store"):
+            for state in self._states():
+                state._log(self.clock(), text, "warn")
 
     @property
     def errors(self) -> list[str]:
@@ -222,6 +248,18 @@ class TopsideApp:
         from coex import ResilientTransport
 
         self.hub.pump(self.node, now)
+        if self.usbl is not None:
+            self.usbl.poll(now, self._states())
+        if self.peer_watch is not None:
+            from .fleet import FleetHub
+
+            for change in self.peer_watch.check(now):
+                fleet = isinstance(self.hub, FleetHub)
+                text = change.text(self.hub.names.get(change.peer, "") if fleet else "the vehicle")
+                (log.warning if change.silent else log.info)("%s", text)
+                states = self.hub.states() if fleet else {change.peer: self.hub.state}
+                if change.peer in states:
+                    states[change.peer]._log(now, text, "warn" if change.silent else "info")
         for link, tr in self.transports.items():
             self._modem_status(link, tr)
             if isinstance(tr, ResilientTransport):
@@ -277,12 +315,16 @@ class TopsideApp:
         self.server.close()
         if self.ros is not None:
             self.ros.close()
+        if self.usbl is not None:
+            self.usbl.close()
         for tr in self.transports.values():
             tr.close()
         if self.store is not None:
             with self.hub.lock:
                 try:
                     self.store.snapshot(self.node, self.clock())
+                except CoexError as exc:  # a full disk: said, never a traceback
+                    log.warning("last snapshot not saved: %s", exc)
                 finally:
                     self.store.close()
 
@@ -313,6 +355,8 @@ def _option(key: str, uris: Sequence[str]) -> str:
         return f"--transport {uris[int(modem.group(1))]}"
     if modem and modem.group(2) == "rate":
         return "--rate"
+    if modem and modem.group(2) == "packet_seconds":
+        return "--packet-seconds"
     modality = re.fullmatch(r"modalities\.([^.]+)\.ids(?:\..*)?", key)
     if modality:
         return f"--remap-ids {modality.group(1)}"
@@ -414,6 +458,7 @@ def build_topside(transport_uri: str | Sequence[str], host: str = "127.0.0.1", p
                   tls_cert: str | None = None, tls_key: str | None = None,
                   session_hours: float = 12.0, idle_minutes: float = 30.0,
                   allowed_hosts: Sequence[str] = (), trusted_proxies: Sequence[str] = (),
+                  public_origins: Sequence[str] = (),
                   receiver_options: dict[str, dict[str, Any]] | None = None,
                   link_options: Sequence[dict[str, Any]] | None = None,
                   required: Sequence[bool] | None = None,
@@ -440,7 +485,8 @@ def build_topside(transport_uri: str | Sequence[str], host: str = "127.0.0.1", p
     sign in: operators command, viewers watch. A console on a non-loopback address refuses to
     start without one, unless ``insecure_open`` (logged loudly). ``tls_cert`` and ``tls_key``
     serve HTTPS; ``allowed_hosts`` are names the console answers to besides the loopback ones
-    and ``host``; ``trusted_proxies`` reverse proxies whose ``X-Forwarded-For`` is believed.
+    and ``host``; ``trusted_proxies`` reverse proxies whose ``X-Forwarded-For`` is believed;
+    ``public_origins`` origins the page is reached at besides the console's own (a proxy's).
     ``receiver_options`` gives a modality's receiver its options by name;
     ``link_options`` (one mapping per transport) sets a modem's ``rate``, ``frame_bytes``,
     ``spare``, ``packet_seconds`` (the keys of a file's ``[[modems]]``) link by link. Each
@@ -460,7 +506,8 @@ def build_topside(transport_uri: str | Sequence[str], host: str = "127.0.0.1", p
     return topside_app(cfg, host, port, clock=clock, transports=transports, stream_names=stream_names,
                        missing=missing, operators=operators, insecure_open=insecure_open, tls_cert=tls_cert,
                        tls_key=tls_key, session_hours=session_hours, idle_minutes=idle_minutes,
-                       allowed_hosts=allowed_hosts, trusted_proxies=trusted_proxies)
+                       allowed_hosts=allowed_hosts, trusted_proxies=trusted_proxies,
+                       public_origins=public_origins)
 
 
 def topside_app(cfg: DeployConfig, host: str = "127.0.0.1", port: int = 8080, *,
@@ -469,7 +516,8 @@ def topside_app(cfg: DeployConfig, host: str = "127.0.0.1", port: int = 8080, *,
                 operators: str | Path | None = None, insecure_open: bool = False,
                 tls_cert: str | None = None, tls_key: str | None = None,
                 session_hours: float = 12.0, idle_minutes: float = 30.0,
-                allowed_hosts: Sequence[str] = (), trusted_proxies: Sequence[str] = ()) -> TopsideApp:
+                allowed_hosts: Sequence[str] = (), trusted_proxies: Sequence[str] = (),
+                public_origins: Sequence[str] = ()) -> TopsideApp:
     """The topside a checked :class:`~coex_apps.vehicle.config.DeployConfig` describes (from
     a file, :func:`topside_from_config`, or the options, :func:`build_topside`): its transports
     (one per modem, or ``transports``), the node of ``build_node(cfg, "topside", ...)``, the
@@ -590,7 +638,7 @@ def topside_app(cfg: DeployConfig, host: str = "127.0.0.1", port: int = 8080, *,
             else:
                 nstore.extra = lambda: {"state": hub.state}
         server = serve(hub, host, port, access=access, tls=tls, allowed_hosts=list(allowed_hosts),
-                       trusted_proxies=list(trusted_proxies))
+                       trusted_proxies=list(trusted_proxies), public_origins=list(public_origins))
     except BaseException:
         for tr in links.values():
             tr.close()
@@ -598,6 +646,18 @@ def topside_app(cfg: DeployConfig, host: str = "127.0.0.1", port: int = 8080, *,
             nstore.close()
         raise
     app = TopsideApp(node, links, hub, server, clock, store=nstore)
+    if cfg.usbl is not None:
+        from .usbl import UsblFeed
+
+        try:
+            app.usbl = UsblFeed(cfg, clock).attach(app._states())
+            app.usbl.open()
+        except BaseException:
+            app.close()
+            raise
+    from coex import PeerWatch
+
+    app.peer_watch = PeerWatch(node.manager, cfg.vehicle_ids())  # a vehicle not heard: said
     if cfg.ros is not None:
         from .ros import RosProducts
 
@@ -629,18 +689,25 @@ def topside_from_config(path: str, clock: Callable[[], float] = time.time, *,
         operators=rel("operators"), insecure_open=bool(c.get("insecure_open", False)), tls_cert=rel("tls_cert"),
         tls_key=rel("tls_key"), session_hours=float(c.get("session_hours", 12.0)),
         idle_minutes=float(c.get("idle_minutes", 30.0)), allowed_hosts=[str(h) for h in c.get("allowed_hosts", [])],
-        trusted_proxies=[str(h) for h in c.get("trusted_proxies", [])])
+        trusted_proxies=[str(h) for h in c.get("trusted_proxies", [])],
+        public_origins=[str(h) for h in c.get("public_origins", [])])
 
 
 def run(args: argparse.Namespace) -> int:
     if args.config:
+        # before the app starts its threads: the ROS node's thread puts back the logging it found
+        # after rospy's set-up, so configured later the log would keep the level of before (the
+        # ROS master's loss, a warning, logged; its return, information, not)
+        logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(levelname)s %(message)s",
+                            force=True)
         try:
             app = topside_from_config(args.config)
         except (CoexError, OSError) as exc:
             print(f"coex topside: {exc}", file=sys.stderr)
             return 2
-        logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(levelname)s %(message)s",
-                            force=True)
+        except Exception as exc:  # what no check foresaw: named, never a traceback
+            print(f"coex topside: cannot start: {type(exc).__name__}: {exc}", file=sys.stderr)
+            return 2
         from .fleet import FleetHub
 
         fleet = (", vehicles " + ", ".join(f"{n} ({v})" for v, n in app.hub.names.items())
@@ -657,12 +724,14 @@ def run(args: argparse.Namespace) -> int:
             args.transport, node_id=args.node_id, vehicle_id=args.vehicle_id, link=args.link, rate=args.rate,
             schedule=_schedule(args.schedule), slot=args.slot, guard=args.guard,
             modalities=tuple(m for m in args.modalities.split(",") if m), remap_ids=dict(args.remap_ids),
-            store=args.store, command_key_file=args.command_key_file, missing=missing)
+            store=args.store, command_key_file=args.command_key_file, missing=missing,
+            link_options=None if args.packet_seconds is None else
+            [{"packet_seconds": args.packet_seconds} for _ in args.transport])
         app = topside_app(
             cfg, host, port, stream_names=args.stream_names, missing=missing, operators=args.operators,
             insecure_open=args.insecure_open, tls_cert=args.tls_cert, tls_key=args.tls_key,
             session_hours=args.session_hours, idle_minutes=args.idle_minutes, allowed_hosts=args.allowed_host,
-            trusted_proxies=args.trusted_proxy)
+            trusted_proxies=args.trusted_proxy, public_origins=args.public_origin)
     except (CoexError, OSError) as exc:
         print(f"coex topside: {exc}", file=sys.stderr)
         return 2
@@ -695,22 +764,25 @@ def register_operators(subparsers: Any) -> None:
     """``coex operators add|role|remove|list``: the console's operators file."""
     p = subparsers.add_parser("operators", help="manage who may sign in to the console (operators "
                                                 "command, viewers watch)")
-    p.add_argument("--file", default="coex-operators.json", help="the operators file (default "
-                   "coex-operators.json; created with mode 0600)")
+    file_help = "the operators file (default coex-operators.json; created with mode 0600)"
+    p.add_argument("--file", default="coex-operators.json", help=file_help)
+    # --file also after the action (coex operators add ana --role operator --file ops.json)
+    here = argparse.ArgumentParser(add_help=False)
+    here.add_argument("--file", default=argparse.SUPPRESS, help=file_help)
     sub = p.add_subparsers(dest="op", metavar="ACTION", required=True)
-    a = sub.add_parser("add", help="add or replace an operator; prints a new random token unless "
-                                   "--password-stdin")
+    a = sub.add_parser("add", parents=[here], help="add or replace an operator; prints a new random token "
+                                                   "unless --password-stdin")
     a.add_argument("name")
     a.add_argument("--role", choices=["operator", "viewer"], required=True)
     a.add_argument("--password-stdin", action="store_true", help="read a password (12+ characters, "
                    "not a common one) from standard input instead of making a token")
-    ro = sub.add_parser("role", help="change someone's role, keeping their password (a running console "
+    ro = sub.add_parser("role", parents=[here], help="change someone's role, keeping their password (a running console "
                                      "applies it at once)")
     ro.add_argument("name")
     ro.add_argument("--role", choices=["operator", "viewer"], required=True)
-    r = sub.add_parser("remove", help="remove an operator (a running console ends their sessions at once)")
+    r = sub.add_parser("remove", parents=[here], help="remove an operator (a running console ends their sessions at once)")
     r.add_argument("name")
-    sub.add_parser("list", help="names and roles")
+    sub.add_parser("list", parents=[here], help="names and roles")
     p.set_defaults(func=_operators)
 
 

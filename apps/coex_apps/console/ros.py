@@ -1,5 +1,5 @@
-"""What reached topside, on ROS 1 topics, so that rviz (or any ROS tool on the ship) shows it:
-the ``[ros]`` table of a topside configuration (``docs/deploy.md``).
+"""What reached topside, on ROS 1 topics, so that rviz, rqt and rosbag on the ship show and keep
+it: the ``[ros]`` table of a topside configuration (``docs/deploy.md`` section 8).
 
 :class:`RosProducts` watches the topside node's events (:meth:`Node.subscribe
 <coex_core.node.Node.subscribe>`: the receivers' products and the vehicle status, whoever drains
@@ -9,22 +9,32 @@ topic, only what changed since:
 | topic (``prefix`` = ``/coex``) | type | what |
 |---|---|---|
 | ``/coex/map/level_K`` | ``sensor_msgs/PointCloud2`` | map level K (0 = finest): one point per cell held, at its elevation (z up) |
-| ``/coex/map/level_K/grid`` | ``nav_msgs/OccupancyGrid`` | the same level as a grid: -1 nothing held, 0 its deepest .. 100 its shallowest |
-| ``/coex/image`` | ``sensor_msgs/Image`` | the newest image received or improved (mono8/16, rgb8/16), stamped with its capture time |
+| ``/coex/map/level_K/grid`` | ``nav_msgs/OccupancyGrid`` | the same level as a grid: -1 nothing held, else the elevation on one fixed scale, 0 = ``grid_min`` .. 100 = ``grid_max`` metres (z up) |
+| ``/coex/map/grid_range`` | ``std_msgs/String`` | that scale as JSON: ``{"min": -40.0, "max": -20.0, "unknown": -1, "frame": ...}`` |
+| ``/coex/image`` | ``sensor_msgs/Image`` | the newest image (by capture time), refined as more of it comes; an older image refined later does not replace it |
+| ``/coex/image/compressed`` | ``sensor_msgs/CompressedImage`` | the same, PNG (``image_transport``'s ``compressed`` form) |
 | ``/coex/vehicle/odometry`` | ``nav_msgs/Odometry`` | the vehicle status: x, y, -depth, heading, speed |
 | ``/coex/vehicle/track`` | ``nav_msgs/Path`` | the statuses received (the newest ``track`` of them) |
+| ``/tf`` | ``tf2_msgs/TFMessage`` | ``vehicle_frame`` in ``frame`` at each status (not latched, as tf wants) |
+| ``/coex/series/NAME`` | ``std_msgs/Float64MultiArray`` | each time-series channel: 3 rows (times, values, error bounds) by its newest ``series_samples`` samples |
+| ``/coex/surveys`` | ``std_msgs/String`` | every survey topside follows, as JSON: ``{"surveys": [{"survey_id", "state", "reason", "text", "index", "time", "kind", "waypoints", ...}]}`` |
 
-Every topic is latched (rviz started later shows the newest) and in ``frame`` (``coex_local``: x
-east, y north of ``node.origin``, z up). The node's own loop only records which product changed
-(a dictionary write per event); the publisher copies a changed map level or image under the
-console's lock (``lock``) and converts and publishes it outside it, so the topside node never
-waits for ROS, and a ROS master that is down or slow costs it nothing.
+Every topic but ``/tf`` is latched (rviz started later shows the newest) and everything is in
+``frame`` (``coex_local``: x east, y north of ``node.origin``, z up). ``grid_min`` / ``grid_max``
+fix the grids' scale; without them it is fixed from the first level published (its deepest and
+shallowest, widened to whole 10 m) for the rest of the run, logged and published on
+``/coex/map/grid_range``. The node's own loop only records which product changed (a dictionary
+write per event); the publisher copies a changed map level or image under the console's lock
+(``lock``) and converts and publishes it outside it, so the topside node never waits for ROS,
+and a ROS master that is down or slow costs it nothing.
 """
 
 from __future__ import annotations
 
+import json
 import logging
 import math
+import re
 import threading
 import time
 from collections import deque
@@ -36,7 +46,7 @@ import numpy as np
 
 from coex import Problems
 
-__all__ = ["RosProducts"]
+__all__ = ["RosProducts", "grid_scale", "topic_name"]
 
 log = logging.getLogger(__name__)
 
@@ -53,6 +63,10 @@ class RosProducts:
         "frame": ("coex_local", "frame_id of everything published: the local grid (x east, y north, z up)"),
         "interval": (1.0, "seconds between two publications of one topic, at least"),
         "track": (1000, "statuses kept in the track (nav_msgs/Path)"),
+        "vehicle_frame": ("coex_vehicle", "the vehicle's frame on /tf (and the odometry's child frame)"),
+        "grid_min": (None, "elevation (m, z up) of OccupancyGrid value 0 (absent: fixed from the first level)"),
+        "grid_max": (None, "elevation (m, z up) of OccupancyGrid value 100 (absent: fixed from the first level)"),
+        "series_samples": (10000, "newest samples of each time series published"),
     }
 
     @classmethod
@@ -61,7 +75,7 @@ class RosProducts:
         the key."""
         p = Problems()
         p.unknown(options, tuple(cls.options), "ros")
-        for key in ("master", "node", "prefix", "frame"):
+        for key in ("master", "node", "prefix", "frame", "vehicle_frame"):
             v = options.get(key, "x")
             if not isinstance(v, str) or (key != "master" and not v.strip()):
                 p.add(f"ros.{key}", f"a {'non-empty ' if key != 'master' else ''}string, got {v!r}")
@@ -77,6 +91,19 @@ class RosProducts:
         v = options.get("track", 1000)
         if isinstance(v, bool) or not isinstance(v, int) or not 0 <= v <= 100000:
             p.add("ros.track", f"an integer from 0 to 100000, got {v!r}")
+        v = options.get("series_samples", 10000)
+        if isinstance(v, bool) or not isinstance(v, int) or not 1 <= v <= 1_000_000:
+            p.add("ros.series_samples", f"an integer from 1 to 1000000, got {v!r}")
+        grid = [options.get(k) for k in ("grid_min", "grid_max")]
+        for key, v in zip(("grid_min", "grid_max"), grid, strict=True):
+            if v is not None and (isinstance(v, bool) or not isinstance(v, int | float) or not math.isfinite(v)):
+                p.add(f"ros.{key}", f"an elevation in metres (z up, negative below the surface), got {v!r}")
+        if (grid[0] is None) != (grid[1] is None):
+            p.add("ros.grid_min" if grid[0] is None else "ros.grid_max", "give grid_min and grid_max together")
+        else:
+            lo, hi = grid
+            if isinstance(lo, int | float) and isinstance(hi, int | float) and not float(lo) < float(hi):
+                p.add("ros.grid_max", f"above grid_min ({lo!r}), got {hi!r}")
         return p
 
     def __init__(self, options: Mapping[str, Any] | None = None, *,
@@ -95,15 +122,24 @@ class RosProducts:
         self._mu = threading.Lock()
         self._levels: dict[int, Any] = {}  # level -> newest map-level product not yet published
         self._image: Any = None
+        #: (capture time, image id) of the newest image seen: only it goes on the image topics
+        self._newest: tuple[float, int] | None = None
         self._status: Any = None
+        self._series: dict[str, Any] = {}  # channel name -> newest series product not yet published
+        self._surveys: dict[int, dict[str, Any]] = {}  # survey id -> its newest product's meta
+        self._surveys_changed = False
+        lo, hi = self.config["grid_min"], self.config["grid_max"]
+        #: the OccupancyGrid scale (elevations of 0 and 100), None until fixed
+        self.grid_range: tuple[float, float] | None = None if lo is None else (float(lo), float(hi))
         self._track: deque[tuple[float, float, float, float]] = deque(maxlen=max(1, int(self.config["track"])))
         self._pubs: dict[str, Any] = {}
+        self._no_tf: str | None = None  # why /tf is not published (tf2_msgs missing)
         self._stop = threading.Event()
         self._wake = threading.Event()
         self._thread: threading.Thread | None = None
         self._unsubscribe: Callable[[], None] | None = None
         #: messages published per kind, and conversions that failed
-        self.counts = {"map": 0, "image": 0, "status": 0, "failed": 0}
+        self.counts = {"map": 0, "image": 0, "status": 0, "series": 0, "surveys": 0, "tf": 0, "failed": 0}
 
     # ------------------------------------------------------------------ wiring
     def attach(self, coex_node: Any) -> RosProducts:
@@ -130,13 +166,34 @@ class RosProducts:
                         self._levels[int(p.meta["level"])] = p
                         changed = True
                     elif p.kind == "image" and p.data is not None:
-                        self._image = p
+                        changed = self._take_image(p) or changed
+                    elif p.kind == "series" and p.data is not None:
+                        self._series[str(p.key)] = p
                         changed = True
+                    elif p.kind == "survey":
+                        try:
+                            self._surveys[int(p.meta.get("survey_id", p.key))] = dict(p.meta)
+                        except (TypeError, ValueError):
+                            continue
+                        self._surveys_changed = changed = True
                 elif isinstance(e, Received) and isinstance(e.message, VehicleStatus):
                     self._status = (e.message, float(e.time))
                     changed = True
         if changed:
             self._wake.set()
+
+    def _take_image(self, p: Any) -> bool:
+        """Keep an image product for the image topics if it is the newest image (by capture time,
+        then id) or a refinement of it."""
+        try:
+            key = (float(p.meta.get("time") or 0.0), int(p.meta.get("image_id", p.key)))
+        except (TypeError, ValueError):
+            return False
+        if self._newest is not None and key < self._newest and key[1] != self._newest[1]:
+            return False  # an older image refined: the topics keep showing the newest
+        self._newest = key
+        self._image = p
+        return True
 
     def close(self) -> None:
         if self._unsubscribe is not None:
@@ -151,10 +208,10 @@ class RosProducts:
         self._pubs.clear()
 
     # ------------------------------------------------------------------ publishing
-    def _pub(self, topic: str, msgtype: str) -> Any:
+    def _pub(self, topic: str, msgtype: str, latch: bool = True) -> Any:
         pub = self._pubs.get(topic)
         if pub is None:
-            pub = self._pubs[topic] = self.node.publisher(topic, msgtype, latch=True, queue=2)
+            pub = self._pubs[topic] = self.node.publisher(topic, msgtype, latch=latch, queue=2 if latch else 10)
         return pub
 
     def _run(self) -> None:
@@ -174,50 +231,142 @@ class RosProducts:
     def publish_pending(self) -> None:
         """Publish what changed since the last call (the thread does it, at most every
         ``interval`` s; a test may call it)."""
-        from coex import unwrap
-        from coex.ros import msgs
-
         with self._mu:
             levels, self._levels = self._levels, {}
             image, self._image = self._image, None
             status, self._status = self._status, None
-        cls = self.node.message_class
+            series, self._series = self._series, {}
+            surveys = [self._surveys[k] for k in sorted(self._surveys)] if self._surveys_changed else None
+            self._surveys_changed = False
         now = self.clock()
         for level, product in sorted(levels.items()):
-            with self.lock:  # the receiver may be writing the level's array in the node's thread
-                grid = np.array(product.data, dtype=np.float64, copy=True)
-                meta = dict(product.meta)
-            t = float(meta.get("newest") or now)
-            try:
-                self._pub(f"{self.prefix}/map/level_{level}", "sensor_msgs/PointCloud2").publish(
-                    msgs.level_cloud(grid, meta, cls, t, self.frame))
-                self._pub(f"{self.prefix}/map/level_{level}/grid", "nav_msgs/OccupancyGrid").publish(
-                    msgs.level_grid(grid, meta, cls, t, self.frame))
-                self.counts["map"] += 1
-            except (KeyError, ValueError) as exc:
-                self.counts["failed"] += 1
-                log.warning("ROS products: map level %d not published: %s", level, exc)
+            self._publish_level(level, product, now)
         if image is not None:
-            with self.lock:
-                pixels = np.array(image.data, copy=True)
-                meta = dict(image.meta)
-            try:
-                self._pub(f"{self.prefix}/image", "sensor_msgs/Image").publish(
-                    msgs.image(pixels, cls, float(meta.get("time") or now), "coex_camera"))
-                self.counts["image"] += 1
-            except ValueError as exc:
-                self.counts["failed"] += 1
-                log.warning("ROS products: image %s not published: %s", meta.get("image_id"), exc)
+            self._publish_image(image, now)
         if status is not None:
-            st, received = status
-            t = unwrap(int(st.stamp), received)
-            self._pub(f"{self.prefix}/vehicle/odometry", "nav_msgs/Odometry").publish(
-                msgs.odometry(st, cls, t, self.frame))
-            self._track.append((t, float(st.x), float(st.y), -float(st.depth)))
-            if int(self.config["track"]) > 0:
-                track = msgs.path([(x, y) for _, x, y, _ in self._track], cls, t, self.frame)
-                for pose, (when, _, _, z) in zip(track.poses, self._track, strict=True):
-                    pose.pose.position.z = z
-                    msgs.set_stamp(pose.header, when)
-                self._pub(f"{self.prefix}/vehicle/track", "nav_msgs/Path").publish(track)
-            self.counts["status"] += 1
+            self._publish_status(*status)
+        for name, product in sorted(series.items()):
+            self._publish_series(name, product)
+        if surveys is not None:
+            self._publish_surveys(surveys, now)
+
+    def _publish_level(self, level: int, product: Any, now: float) -> None:
+        from coex.ros import msgs
+
+        cls = self.node.message_class
+        with self.lock:  # the receiver may be writing the level's array in the node's thread
+            grid = np.array(product.data, dtype=np.float64, copy=True)
+            meta = dict(product.meta)
+        t = float(meta.get("newest") or now)
+        if self.grid_range is None and np.isfinite(grid).any():
+            self.grid_range = grid_scale(grid)
+            log.info("ROS products: OccupancyGrid values 0..100 are elevations %g..%g m from now on (fixed for "
+                     "this run from the first level; [ros] grid_min, grid_max fix them)", *self.grid_range)
+        try:
+            self._pub(f"{self.prefix}/map/level_{level}", "sensor_msgs/PointCloud2").publish(
+                msgs.level_cloud(grid, meta, cls, t, self.frame))
+            if self.grid_range is not None:
+                lo, hi = self.grid_range
+                if f"{self.prefix}/map/grid_range" not in self._pubs:
+                    self._pub(f"{self.prefix}/map/grid_range", "std_msgs/String").publish(self.node.message(
+                        "std_msgs/String", data=json.dumps({"min": lo, "max": hi, "unknown": -1, "frame": self.frame})))
+                self._pub(f"{self.prefix}/map/level_{level}/grid", "nav_msgs/OccupancyGrid").publish(
+                    msgs.level_grid(grid, meta, cls, t, self.frame, lo=lo, hi=hi))
+            self.counts["map"] += 1
+        except (KeyError, ValueError) as exc:
+            self.counts["failed"] += 1
+            log.warning("ROS products: map level %d not published: %s", level, exc)
+
+    def _publish_image(self, image: Any, now: float) -> None:
+        from coex.ros import msgs
+
+        cls = self.node.message_class
+        with self.lock:
+            pixels = np.array(image.data, copy=True)
+            meta = dict(image.meta)
+        t = float(meta.get("time") or now)
+        try:
+            self._pub(f"{self.prefix}/image", "sensor_msgs/Image").publish(msgs.image(pixels, cls, t, self.frame))
+            self._pub(f"{self.prefix}/image/compressed", "sensor_msgs/CompressedImage").publish(
+                msgs.compressed_image(pixels, cls, t, self.frame))
+            self.counts["image"] += 1
+        except (ValueError, OSError) as exc:
+            self.counts["failed"] += 1
+            log.warning("ROS products: image %s not published: %s", meta.get("image_id"), exc)
+
+    def _publish_status(self, st: Any, received: float) -> None:
+        from coex import unwrap
+        from coex.ros import msgs
+
+        cls = self.node.message_class
+        t = unwrap(int(st.stamp), received)
+        child = str(self.config["vehicle_frame"])
+        self._pub(f"{self.prefix}/vehicle/odometry", "nav_msgs/Odometry").publish(
+            msgs.odometry(st, cls, t, self.frame, child))
+        self._track.append((t, float(st.x), float(st.y), -float(st.depth)))
+        if int(self.config["track"]) > 0:
+            track = msgs.path([(x, y) for _, x, y, _ in self._track], cls, t, self.frame)
+            for pose, (when, _, _, z) in zip(track.poses, self._track, strict=True):
+                pose.pose.position.z = z
+                msgs.set_stamp(pose.header, when)
+            self._pub(f"{self.prefix}/vehicle/track", "nav_msgs/Path").publish(track)
+        self.counts["status"] += 1
+        if self._no_tf is None:
+            try:
+                tf = msgs.transform(st, cls, t, self.frame, child)
+            except ValueError as exc:  # tf2_msgs not installed
+                self._no_tf = str(exc)
+                log.warning("ROS products: no /tf (%s); the odometry still carries the pose", exc)
+                return
+            self._pub("/tf", "tf2_msgs/TFMessage", latch=False).publish(tf)
+            self.counts["tf"] += 1
+
+    def _publish_series(self, name: str, product: Any) -> None:
+        from coex.ros import msgs
+
+        n = int(self.config["series_samples"])
+        with self.lock:
+            s = product.data
+            times = np.array(s.times[-n:], dtype=np.float64, copy=True)
+            values = np.array(s.values[-n:], dtype=np.float64, copy=True)
+            bounds = np.array(s.bounds[-n:], dtype=np.float64, copy=True)
+        try:
+            self._pub(f"{self.prefix}/series/{topic_name(name)}", "std_msgs/Float64MultiArray").publish(
+                msgs.series(times, values, bounds, self.node.message_class))
+            self.counts["series"] += 1
+        except ValueError as exc:
+            self.counts["failed"] += 1
+            log.warning("ROS products: series %r not published: %s", name, exc)
+
+    def _publish_surveys(self, surveys: list[dict[str, Any]], now: float) -> None:
+        text = json.dumps({"surveys": surveys, "frame": self.frame, "stamp": round(now, 3)}, default=_plain)
+        self._pub(f"{self.prefix}/surveys", "std_msgs/String").publish(self.node.message("std_msgs/String", data=text))
+        self.counts["surveys"] += 1
+
+
+def grid_scale(grid: np.ndarray) -> tuple[float, float]:
+    """The OccupancyGrid scale fixed from a first map level: its deepest and shallowest
+    elevations held, widened to whole 10 m (at least 10 m apart)."""
+    a = np.asarray(grid, dtype=np.float64)
+    held = a[np.isfinite(a)]
+    if not held.size:
+        raise ValueError("no cell held")
+    lo, hi = math.floor(float(held.min()) / 10.0) * 10.0, math.ceil(float(held.max()) / 10.0) * 10.0
+    return lo, hi if hi > lo else lo + 10.0
+
+
+def topic_name(name: str) -> str:
+    """A channel name as a ROS graph name: letters, digits and ``_`` (others become ``_``),
+    starting with a letter (``ch_`` put in front otherwise)."""
+    out = re.sub(r"[^A-Za-z0-9_]", "_", str(name)) or "ch"
+    return out if out[0].isalpha() else f"ch_{out}"
+
+
+def _plain(v: Any) -> Any:
+    """JSON for what a product's meta may hold besides JSON types (numpy numbers, tuples)."""
+    if isinstance(v, np.generic):
+        f = v.item()
+        return None if isinstance(f, float) and not math.isfinite(f) else f
+    if isinstance(v, tuple | set):
+        return list(v)
+    return str(v)

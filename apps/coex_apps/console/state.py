@@ -77,7 +77,7 @@ __all__ = [
 
 #: The sections of a snapshot, in the order the page lays them out.
 SECTIONS = ("vehicle", "map", "surveys", "images", "series", "other", "link", "queues", "commands",
-            "log")
+            "log", "navigation")
 
 #: Modalities with a panel of their own; the products of any other go to the generic panel.
 OWN_PANELS = ("bathymetry", "imagery", "timeseries", "survey", "detections")
@@ -136,7 +136,7 @@ def _upgrade_state(fields: dict[str, Any], saved: int) -> dict[str, Any]:
 
 @persistent("console.State", version=2, upgrade=_upgrade_state,
             transient=("_region_ids", "_png", "_map_summary", "_targets_cache", "_survey_sig", "_survey_rows",
-                       "_repeats", "max_images"))
+                       "_repeats", "max_images", "navigation"))
 class ConsoleState(MapView, SurveysView, ImagesView, LinkView, CommandsView):
     """Everything the console shows, built from messages, products and events.
 
@@ -150,6 +150,9 @@ class ConsoleState(MapView, SurveysView, ImagesView, LinkView, CommandsView):
     #: images kept (the newest): :data:`MAX_IMAGES`, or fewer when the imagery receiver shown
     #: keeps fewer (``coex topside`` sets it from the receiver's ``max_images``; not saved)
     max_images: int = MAX_IMAGES
+    #: topside's navigation (:class:`coex_plugins.navigation.Navigation`: USBL fixes, the drift
+    #: estimate; ``[usbl]`` of the topside file, issue 56), or None; not saved
+    navigation: Any = None
 
     def __init__(
         self,
@@ -345,9 +348,18 @@ class ConsoleState(MapView, SurveysView, ImagesView, LinkView, CommandsView):
 
     @property
     def map_receiver(self) -> BathymetryReceiver | None:
-        """The bathymetry receiver whose levels the map shows (None before any)."""
+        """The bathymetry receiver whose levels the map shows (None before any): with topside's
+        navigation applied, seen through it (each subgrid placed by the drift correction at its
+        stamp, :class:`coex_plugins.navigation.CorrectedMap`)."""
         rx = self.receivers.get("bathymetry")
-        return rx if isinstance(rx, BathymetryReceiver) else None
+        if not isinstance(rx, BathymetryReceiver):
+            return None
+        nav = self.navigation
+        if nav is not None and nav.apply:
+            from coex_plugins.navigation import CorrectedMap
+
+            return CorrectedMap(rx, nav, self.vehicle_id)  # type: ignore[return-value]
+        return rx
 
     def apply_messages(self, msgs: Iterable[m.Message], now: float,
                        link: int | None = None) -> set[str]:
@@ -443,11 +455,18 @@ class ConsoleState(MapView, SurveysView, ImagesView, LinkView, CommandsView):
         t = unwrap(s.stamp, now)
         if self.status_t is not None and t < self.status_t:
             return  # an older status arrived late: keep the newest
+        from coex_apps.vehicle.faults import fault_changes
+
+        for text, came in fault_changes(self.status.faults if self.status is not None else 0, s.faults):
+            self._log(now, text, "warn" if came else "info")  # the vehicle's store, its hearing topside
         self.status, self.status_t = s, t
         if not self.track or self.track[-1][1:3] != (s.x, s.y):
             self.track.append((t, s.x, s.y, s.depth))
         if s.altitude is not None:
             self.altitudes.append((t, float(s.altitude)))
+        if self.navigation is not None:
+            self.navigation.status(self.vehicle_id, s, now)
+            self._touch("navigation", "map")
         self._touch("vehicle")
 
     # -------------------------------------------------------------------------- map
@@ -607,6 +626,18 @@ class ConsoleState(MapView, SurveysView, ImagesView, LinkView, CommandsView):
 
     def section(self, name: str) -> Any:
         return getattr(self, f"_snap_{name}")()
+
+    def navigation_changed(self) -> None:
+        """Topside's navigation took fixes: the section (and the corrected map) changed."""
+        self._touch("navigation", "map")
+
+    def _snap_navigation(self) -> dict[str, Any]:
+        """USBL fixes, the raw (dead-reckoned) and corrected tracks, the correction's size and
+        age (:meth:`coex_plugins.navigation.Navigation.state`); ``{"enabled": false}`` without."""
+        nav = self.navigation
+        if nav is None:
+            return {"enabled": False}
+        return {"enabled": True, **nav.state(self.vehicle_id, self.now)}
 
     def _snap_vehicle(self) -> dict[str, Any]:
         s = self.status

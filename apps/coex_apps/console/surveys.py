@@ -35,6 +35,7 @@ SURVEY_OUTCOMES = {
     ("aborted", "MANUAL_OVERRIDE"): "taken over",
     ("aborted", "AUTONOMY_RESTARTED"): "autonomy restarted",
     ("aborted", "ALL_STOP"): "all-stop",
+    ("aborted", "AUTONOMY_SILENT"): "autopilot silent",
 }
 
 

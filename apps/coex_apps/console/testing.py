@@ -86,7 +86,7 @@ def feed_sample(state: ConsoleState, *, t0: float = 36000.0, seed: int = 0,
     sender = BathymetrySender({"send_delay": 0.0, "levels": 4})
     sender.ingest(survey_points(seed=seed), now - 300)
     msgs = drain(sender, now)
-    subgrids = [x for x in msgs if isinstance(x, m.Subgrid)]
+    subgrids = [x for x in msgs if isinstance(x, m.SubgridMessage)]
     state.apply_messages(msgs, now)
     made["subgrids"] = subgrids
     made["bathymetry_sender"] = sender

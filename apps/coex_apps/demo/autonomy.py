@@ -39,7 +39,7 @@ class Autonomy:
 
     def __init__(self, sender: SurveySender, track: Track, at: Callable[[float, Callable[[float], None]], None],
                  end: float, *, camera_altitude: float, camera_speed: float,
-                 mission: tuple[tuple[float, float], ...] | None = None) -> None:
+                 mission: tuple[tuple[float, float], ...] | None = None, nav: Any = None) -> None:
         self.sender = sender
         self.track = track
         self.at = at
@@ -47,6 +47,9 @@ class Autonomy:
         self.camera_altitude = camera_altitude
         self.camera_speed = camera_speed
         self.mission = mission
+        #: the vehicle's dead reckoning (:class:`~.navigation.DeadReckoning`): it flies waypoints of
+        #: its own frame, so it truly goes where it believes they are, less its error (issue 56)
+        self.nav = nav
         self.active = False
         self.version = sender.plan_version
         self._gen = 0
@@ -116,6 +119,8 @@ class Autonomy:
         else:
             assert mission is not None
             wps, altitude, speed = [tuple(map(float, p)) for p in mission], self.camera_altitude, self.camera_speed
+        if self.nav is not None and self.nav.active:
+            wps = self.nav.true_path(now, pos, wps, [TRANSIT_SPEED] + [speed] * (len(wps) - 1))
         t = now
         dist = math.hypot(wps[0][0] - pos[0], wps[0][1] - pos[1])
         self.track.legs.append(Leg(t, t + dist / TRANSIT_SPEED, pos, wps[0], TRANSIT_ALTITUDE))  # type: ignore[arg-type]

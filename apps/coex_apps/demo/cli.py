@@ -25,7 +25,8 @@ def register(sub: Any) -> None:
     scn.add_argument("--preset", default=None, metavar="NAME",
                      help="a built-in scenario: default (today's dive), dive040 (the ship 1.5 water depths "
                           "away, range-dependent loss), harsh (Micromodem rate 3, bursty loss), lowrate (rate 1, "
-                          "far from the site), fleet (a mapping AUV and a camera vehicle on one network)")
+                          "far from the site), fleet (a mapping AUV and a camera vehicle on one network), "
+                          "container-hull-car (a 20-ft container, a 7 m boat hull and a small pale car)")
     scn.add_argument("--scenario", type=Path, default=None, metavar="FILE.toml",
                      help="a scenario file (site, survey, targets and decoys, modem, TDMA, loss model, ship; "
                           "see docs/demo.md)")
@@ -57,10 +58,16 @@ def register(sub: Any) -> None:
                    help="shared command key (hex, or at least 16 raw bytes) instead of the demo's "
                         "embedded one")
     p.add_argument("--no-auth", action="store_true", help="commands unauthenticated")
+    p.add_argument("--threads", type=int, default=None, metavar="N",
+                   help="threads for the image coding (OpenJPEG; the same images either way; default: one per "
+                        "CPU, up to 4; 0: in the dive's own thread)")
     p.add_argument("--quiet", action="store_true", help="no progress bar and no decision log")
     p.add_argument("--zero-labels", action="store_true",
                    help="a check: the simulator's per-pixel labels are zeros (frames unchanged), so the referee "
                         "sees nothing; the operator's decisions must not change (metrics.json verdicts)")
+    p.add_argument("--no-correction", dest="correction", action="store_false",
+                   help="topside estimates the vehicle's drift from the USBL fixes but does not apply it: the map, "
+                        "images and survey commands stay in the vehicle's drifting frame (docs/navigation.md)")
     p.set_defaults(func=run)
 
 
@@ -73,6 +80,8 @@ def run(args: argparse.Namespace) -> int:
         raise ConfigError("--loss must be in [0, 1)")
     if args.speed <= 0:
         raise ConfigError("--speed must be positive")
+    if args.threads is not None and args.threads < 0:
+        raise ConfigError("--threads must be >= 0")
     if args.images is not None and not args.images.is_dir():
         raise ConfigError(f"--images {args.images} is not a directory")
 
@@ -99,7 +108,8 @@ def run(args: argparse.Namespace) -> int:
     cfg = DemoConfig(out=args.out, loss=args.loss, seed=args.seed, images=args.images, gui=args.gui,
                      http=args.http, quick=args.quick, progress=not args.quiet, burst=args.burst,
                      speed=args.speed, command_key=key, scenario=scenario, operator=args.operator,
-                     operators=args.operators, insecure_open=args.insecure_open, zero_labels=args.zero_labels)
+                     operators=args.operators, insecure_open=args.insecure_open, codec_threads=args.threads,
+                     correction=args.correction, zero_labels=args.zero_labels)
     result = run_demo(cfg, on_decision=say)
     m = result.metrics
     print(f"scenario {m['scenario']['name']}: {m['scenario']['loss_description']}; operator {m['operator']}")

@@ -78,6 +78,10 @@ class DemoConfig:
     operators: Path | None = None
     #: with ``gui``: serve beyond loopback without sign-in
     insecure_open: bool = False
+    #: OpenJPEG threads for the dive's image coding (:func:`coex_plugins.imagery.codec.set_threads`;
+    #: the same images either way); ``None``: one per CPU, up to 4 (a dive alone on a machine).
+    #: A sweep runs one dive per core with 0
+    codec_threads: int | None = None
     #: the vehicle's geofence for survey commands (:class:`~coex_plugins.survey.plan.Geofence`
     #: keys); ``None``: the site with a margin of a quarter of its side, and
     #: :data:`MIN_ALTITUDE`
@@ -86,6 +90,10 @@ class DemoConfig:
     #: wherever the renderer makes them (the frames unchanged); the referee then sees no object
     #: and judges nothing, but the operator must decide exactly as with them (docs/demo.md)
     zero_labels: bool = False
+    #: issue 56: topside applies its estimate of the vehicle's drift (the map, images and
+    #: detections corrected, survey commands put into the vehicle's frame); False
+    #: (``--no-correction``) keeps estimating but shows and sends everything in the vehicle's frame
+    correction: bool = True
 
     def resolved(self) -> tuple[Scenario, str]:
         """The scenario with ``--quick``, ``--loss`` and ``--burst`` applied, and the operator."""

@@ -7,6 +7,7 @@ import contextlib
 import functools
 import json
 import math
+import os
 import sys
 import time
 from collections.abc import Callable
@@ -41,6 +42,7 @@ from .config import (
     DemoResult,
 )
 from .failures import failure_counts, identify_radius
+from .navigation import DiveNavigation
 from .operator import MIN_SCORE, Operator
 from .outcome import World, finish, vehicle_summary
 from .timing import ResponseTimer
@@ -146,6 +148,9 @@ class DiveRun:
         self.decisions: list[Decision] = []
         self._build_world()
         self._build_link()
+        #: issue 56: dead reckoning that drifts, the ship's USBL, topside's estimate (docs/navigation.md)
+        self.navsim = DiveNavigation(self)
+        self.resources.callback(self.navsim.close)  # the USBL's UDP socket and input
         # the camera pass: the operator's survey commands cross the link, the vehicle's autonomy
         # flies them (with --operator none, its own transect through the centre of the site)
         self.half = 30.0 if not cfg.quick else 15.0
@@ -156,16 +161,17 @@ class DiveRun:
         self.autonomy = Autonomy(self.senders["survey"], self.camera_track, self.at, self.end,
                                  camera_altitude=scn.camera_altitude, camera_speed=CAMERA_SPEED,
                                  mission=None if operator_mode == "script" else
-                                 ((mid, mid - self.half), (mid, mid + self.half)))
+                                 ((mid, mid - self.half), (mid, mid + self.half)),
+                                 nav=self.navsim.model(self.navsim.camera_vehicle))
         self.mapper_autonomy = None if self.fleet is None else Autonomy(
             self.fleet.mapper_senders["survey"], self.track, self.at, self.end,
-            camera_altitude=scn.camera_altitude, camera_speed=CAMERA_SPEED)
+            camera_altitude=scn.camera_altitude, camera_speed=CAMERA_SPEED, nav=self.navsim.model(VEHICLE))
         # what the camera saw, for the referee alone (frames showing an object)
         self.frames: dict[float, FrameTruth] = {}
         floor = self.floor
-        # the operator sees what topside received and nothing of the truth: one rule set for
-        # every dive, one vehicle or a fleet
-        self.operator = Operator(self.topside, self.receivers,
+        # the operator sees what topside received (through topside's navigation) and nothing of
+        # the truth: one rule set for every dive, one vehicle or a fleet
+        self.operator = Operator(self.topside, self.navsim.views(self.receivers),
                                  (floor.x0, floor.y0, floor.x0 + floor.size, floor.y0 + floor.size),
                                  self.log, camera_altitude=scn.camera_altitude,
                                  cycle=scn.cycle, active=operator_mode == "script")
@@ -260,10 +266,14 @@ class DiveRun:
 
     def _schedule(self) -> None:
         scn, track = self.scn, self.track
-        for t, xyz in self.survey.pings(batch=20):
+        survey, off = self.survey, 0
+        for t, xyz in survey.pings(batch=20):
             track.add_sample(float(t), float(np.mean(xyz[:, 0])), float(np.mean(xyz[:, 1])),
                              scn.survey_altitude)
-            self.at(float(t), lambda now, xyz=xyz: self.senders["bathymetry"].ingest(xyz, now))
+            rows = slice(off, off + len(xyz))
+            off += len(xyz)
+            self.at(float(t), lambda now, xyz=xyz, rows=rows: self.senders["bathymetry"].ingest(
+                self.navsim.soundings(xyz, survey.ping[rows], survey.times[rows]), now))
         track.samples.sort()
         track.legs.append(Leg(EPOCH, EPOCH + self.descent, (0.0, 0.0), (0.0, 0.0), scn.survey_altitude))
         schedule_series(self.at, self.senders["timeseries"], self.series, EPOCH, self.end)
@@ -312,11 +322,11 @@ class DiveRun:
     def push_status(self, now: float) -> None:
         status = vehicle_status(self.track, now)
         self.channel.set_position(VEHICLE, (status.x, status.y, status.depth or 0.0))  # range loss
-        self.vehicle.push_status(status, now)
+        self.vehicle.push_status(self.navsim.status(VEHICLE, status, now), now)  # where it believes it is
         if self.fleet is not None:
             status = vehicle_status(self.camera_track, now)
             self.channel.set_position(CAMERA, (status.x, status.y, status.depth or 0.0))
-            self.fleet.camera.push_status(status, now)
+            self.fleet.camera.push_status(self.navsim.status(CAMERA, status, now), now)
 
     def push_link_status(self, now: float) -> None:
         status = self.vehicle_modem.link_status()
@@ -393,7 +403,8 @@ class DiveRun:
         ft = frame_truth(now, x, y, heading, img, labels, len(cars), areas, pixel)
         if ft is not None:
             self.frames[now] = ft
-        self.senders["imagery"].ingest(ImageInput(img, time=now, x=round(x, 1), y=round(y, 1)), now)
+        bx, by = self.navsim.believed(self.navsim.camera_vehicle, now, x, y)  # where the vehicle believes it took it
+        self.senders["imagery"].ingest(ImageInput(img, time=now, x=round(bx, 1), y=round(by, 1)), now)
 
     # ------------------------------------------------------------------------ the loop
     def run(self) -> DemoResult:
@@ -407,6 +418,8 @@ class DiveRun:
         server = _start_gui(cfg, self.topside, self.log) if cfg.gui else None
         if server is not None:
             self.resources.callback(server.close)
+        if server is not None and self.navsim.active:  # the console shows and applies topside's navigation
+            server.hub.state.navigation = self.navsim.navigation
         lock = server.hub.lock if server is not None else contextlib.nullcontext()
         progress = _Progress(self.scn.duration, cfg.progress)
         loop = self.loop
@@ -442,12 +455,13 @@ class DiveRun:
         camera = CAMERA if self.fleet is not None else VEHICLE
         for ev in self.topside.events():
             if isinstance(ev, Received) and isinstance(ev.message, VehicleStatus):
+                status = self.navsim.heard_status(ev.src, ev.message, clock.now)  # corrected
                 if ev.src == camera:  # the operator follows the vehicle with the camera
-                    self.operator.on_status(ev.message, clock.now)
+                    self.operator.on_status(status, clock.now)
                 if ev.src == VEHICLE:
-                    self.received_track.append((ev.message.x, ev.message.y))
+                    self.received_track.append((status.x, status.y))
                 else:
-                    self.received_camera_track.append((ev.message.x, ev.message.y))
+                    self.received_camera_track.append((status.x, status.y))
             elif isinstance(ev, ProductUpdated) and ev.modality == "survey":
                 self.operator.on_survey(dict(ev.product.meta), clock.now)
         self.vehicle.events()
@@ -475,8 +489,11 @@ class DiveRun:
         world = World(scn, self.floor, self.cars, self.rocks, self.survey_end, self.frames,
                       self.received_track, self.taken, self.operator_mode, self.autonomy.camera_legs(),
                       surveys, vehicles)
-        metrics = finish(out, cfg, world, self.operator, self.receivers, self.coverage, self.visible_at,
-                         self.decisions, wall, self.runners, self.timer.summary())
+        metrics = finish(out, cfg, world, self.operator, self.navsim.views(self.receivers), self.coverage,
+                         self.visible_at, self.decisions, wall, self.runners, self.timer.summary())
+        metrics["navigation"] = self.navsim.metrics(self.cars, self.operator.candidates, self.autonomy.camera_legs(),
+                                                    self.end)
+        self.navsim.close()
         metrics["modems"] = {"nmea_over": {str(k): v for k, v in ptys.items()}, "rate": scn.modem_rate,
                              "tdma": f"{len(scn.slots)} x {scn.slot_seconds:g} s, guard {scn.guard_seconds:g} s; "
                                      f"topside slots {', '.join(str(i) for i, s in enumerate(scn.slots) if s == 'topside')}; "
@@ -511,4 +528,8 @@ def _stop_on_interrupt() -> None:
 
 def run_demo(config: DemoConfig, *, on_decision: Callable[[Decision], None] | None = None) -> DemoResult:
     """Run one demo dive (:class:`DiveRun`) and write its outputs to ``config.out``."""
+    from coex_plugins.imagery.codec import set_threads
+
+    threads = config.codec_threads
+    set_threads(min(os.cpu_count() or 1, 4) if threads is None else threads)
     return DiveRun(config, on_decision).run()

@@ -61,6 +61,16 @@ A scenario is a TOML file (``coex demo --scenario FILE.toml``) or a built-in pre
     x = 128.0
     y = -200.0
 
+    [navigation]                  # the vehicle's dead reckoning (issue 56, docs/navigation.md)
+    drift = 0.005                 # 1-sigma bias, fraction of the distance travelled (0: perfect navigation)
+    heading_bias = 0.5            # degrees: the vehicle's heading reads this much clockwise of the truth
+    seed_offset = 2.0             # metres of error at the bottom (the descent has no bottom lock)
+
+    [usbl]                        # the ship's USBL fixes of the vehicle
+    interval = 10.0               # seconds between fixes
+    sigma = 0.01                  # 1-sigma horizontal error, fraction of the slant range
+    outliers = 0.02               # fraction of fixes that are wild
+
 ``--seed`` places random targets and decoys and draws the losses; ``--loss`` and ``--burst``
 override the loss model of the scenario.
 """
@@ -232,6 +242,14 @@ class Scenario:
     spare: float = 1.0
     loss: LossSpec = field(default_factory=LossSpec)
     ship: tuple[float, float] = (128.0, -200.0)
+    #: issue 56: the vehicle's dead reckoning ([navigation]; drift 0: perfect navigation) and the
+    #: ship's USBL ([usbl]); apps/coex_apps/demo/navigation.py, docs/navigation.md
+    drift: float = 0.005
+    heading_bias: float = 0.5
+    seed_offset: float = 2.0
+    usbl_interval: float = 10.0
+    usbl_sigma: float = 0.01
+    usbl_outliers: float = 0.02
 
     def __post_init__(self) -> None:
         p = Problems()
@@ -272,6 +290,13 @@ class Scenario:
             if packet > self.slot_seconds - self.guard_seconds:
                 p.said("modem.slot_seconds", f"a rate-{self.modem_rate} packet lasts {packet:.1f} s: "
                                              "modem.slot_seconds minus guard_seconds must be at least that")
+        for key, v, lo, hi in (("navigation.drift", self.drift, 0.0, 0.1),
+                               ("navigation.heading_bias", self.heading_bias, -10.0, 10.0),
+                               ("navigation.seed_offset", self.seed_offset, 0.0, 100.0),
+                               ("usbl.interval", self.usbl_interval, 1.0, 600.0),
+                               ("usbl.sigma", self.usbl_sigma, 0.0, 0.1), ("usbl.outliers", self.usbl_outliers, 0.0, 0.5)):
+            if not lo <= v <= hi:
+                p.said(key, f"{key} must be {lo:g}-{hi:g}, got {v}")
         if self.loss.model not in LOSS_MODELS:
             p.said("loss.model", f"loss.model must be one of {', '.join(LOSS_MODELS)}, got {self.loss.model!r}")
         if not 0.0 <= self.loss.rate < 1.0:
@@ -382,7 +407,7 @@ class Scenario:
 # ---------------------------------------------------------------------------- loading
 
 _TOP = {"name", "area", "water_depth", "duration", "survey", "camera", "seafloor", "targets", "decoys",
-        "modem", "loss", "ship"}
+        "modem", "loss", "ship", "navigation", "usbl"}
 _SECTIONS: dict[str, dict[str, str]] = {
     "survey": {"altitude": "survey_altitude", "line_spacing": "line_spacing", "speed": "survey_speed"},
     "camera": {"altitude": "camera_altitude"},
@@ -391,6 +416,8 @@ _SECTIONS: dict[str, dict[str, str]] = {
                  "decoy_kinds": "decoy_kinds"},
     "modem": {"rate": "modem_rate", "slots": "slots", "slot_seconds": "slot_seconds",
               "guard_seconds": "guard_seconds", "spare": "spare"},
+    "navigation": {"drift": "drift", "heading_bias": "heading_bias", "seed_offset": "seed_offset"},
+    "usbl": {"interval": "usbl_interval", "sigma": "usbl_sigma", "outliers": "usbl_outliers"},
 }
 _OBJECT_KEYS = {"kind", "x", "y", "length", "width", "height", "heading", "albedo"}
 #: scenario keys that are lists of kinds

@@ -69,7 +69,11 @@ def build_node(cfg: DeployConfig, role: str, transports: Mapping[int, Any], *,
     for m in cfg.modalities:
         if role == "vehicle":
             cls = load_modality(m.name)
-            sender = cls().sender(cfg.options(m) or None)
+            opts = cfg.options(m)
+            if m.name == "bathymetry":  # the map's metadata names the local grid's origin: node.origin
+                opts.setdefault("origin_lat", cfg.origin_lat)
+                opts.setdefault("origin_lon", cfg.origin_lon)
+            sender = cls().sender(opts or None)
             node.add_sender(cls, sender, StreamConfig(m.stream, m.name, priority=m.priority,
                                                       low_priority=m.low_priority), ids=m.ids or None)
             continue

@@ -114,6 +114,9 @@ def run_vehicle(args: argparse.Namespace) -> int:
     except (CoexError, OSError) as exc:
         print(f"coex vehicle: {exc}", file=sys.stderr)
         return 2
+    except Exception as exc:  # what no check foresaw: named, never a traceback (exit 2, as above)
+        print(f"coex vehicle: cannot start: {type(exc).__name__}: {exc}", file=sys.stderr)
+        return 2
     st = app.store
     waiting = [f"link {lid} waiting for its modem" for lid, tr in app.transports.items() if not tr.up]
     print(f"coex vehicle: node {cfg.node_id} on {', '.join(m.uri for m in cfg.modems)}"

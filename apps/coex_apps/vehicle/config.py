@@ -34,7 +34,7 @@ STREAM_DEFAULTS: dict[str, tuple[int, int]] = {**DEFAULT_MODALITIES, "detections
 #: the NUI 2022 cycle: 6 slots, topside in slots 0 and 3
 NUI_SLOTS = ("topside", "vehicle", "vehicle", "topside", "vehicle", "vehicle")
 TOP_KEYS = {"node", "modems", "tdma", "modalities", "status", "inputs", "autonomy", "console", "ros",
-            "vehicles"}
+            "vehicles", "usbl"}
 #: a vehicle's name in a fleet topside's ``[[vehicles]]`` (it names the vehicle in TDMA slots
 #: and in the console's ``vehicle`` argument)
 _NAME = re.compile(r"[A-Za-z][A-Za-z0-9_-]{0,31}")
@@ -107,6 +107,8 @@ class DeployConfig:
     console: dict[str, Any] = field(default_factory=dict)
     #: topside: the ``[ros]`` table (received products on ROS topics), None without one
     ros: dict[str, Any] | None = None
+    #: topside: the ``[usbl]`` table (the ship's USBL tracking system, issue 56), None without one
+    usbl: dict[str, Any] | None = None
     #: what the daemon will meet but can live with (a device not plugged in yet, a file not
     #: written yet), each naming its key; ``coex config check`` prints them
     warnings: list[str] = field(default_factory=list)
@@ -241,7 +243,9 @@ def check_problems(raw: Mapping[str, Any], path: Path, role: str | None) -> tupl
     node = p.table(raw.get("node"), "node")
     p.unknown(node, {"role", "id", "peer", "origin", "command_key_file", "peer_key_file", "store",
                      "snapshot_interval", "log_level"}, "node")
-    r = node.get("role", role)
+    # required, also when the caller knows the role (coex vehicle, coex topside): the daemon
+    # refuses what coex config check refuses
+    r = node.get("role")
     if r not in ROLES:
         p.add("node.role", f"'vehicle' or 'topside', got {r!r}" if r is not None else
               "missing: say whether this node is the 'vehicle' or the 'topside'")
@@ -284,10 +288,18 @@ def check_problems(raw: Mapping[str, Any], path: Path, role: str | None) -> tupl
         cfg.store = None
     elif isinstance(store, str) and store:
         cfg.store = cfg.base_dir / store
+        from coex_runtime.store import check_store
+
+        for err in check_store(cfg.store):  # what the daemon's store would refuse at start
+            if err.kind == "full":  # the daemon starts, and writes its store once there is room
+                p.warn("node.store", str(err))
+            else:
+                p.add("node.store", str(err))
     else:
         p.add("node.store", f"a file name (default {r}.sqlite) or false, got {store!r}")
-    _modems(raw, p, cfg)
+    infos = _modems(raw, p, cfg)
     _tdma(raw, p, cfg)
+    _airtime(p, cfg, infos)
     _modalities(raw, p, cfg)
     if r == "vehicle":
         status = p.table(raw.get("status"), "status")
@@ -301,22 +313,29 @@ def check_problems(raw: Mapping[str, Any], path: Path, role: str | None) -> tupl
         if "ros" in raw:
             p.add("ros", "only a topside node publishes its products on ROS: a vehicle reads ROS with "
                          "[[inputs]] type = \"ros\" and flies surveys with [autonomy] type = \"ros\"")
+        if "usbl" in raw:
+            p.add("usbl", "only a topside node reads the ship's USBL (a vehicle takes position fixes through "
+                          "its survey modality's aiding option, docs/navigation.md)")
     else:
         for k in ("inputs", "autonomy", "status"):
             if k in raw:
                 p.add(k, "only a vehicle node has inputs, an autonomy and a status")
         _console(raw, p, cfg)
         _ros(raw, p, cfg)
+        _usbl(raw, p, cfg)
     cfg.warnings = p.warnings
     return cfg, p
 
 
-def _modems(raw: Mapping[str, Any], p: Problems, cfg: DeployConfig) -> None:
+def _modems(raw: Mapping[str, Any], p: Problems, cfg: DeployConfig) -> list[Any]:
+    """``[[modems]]`` into ``cfg.modems``; returns what each URI said (its ``UriInfo``, None when
+    it could not be checked), in order."""
     modems = raw.get("modems")
+    infos: list[Any] = []
     if not isinstance(modems, list) or not modems:
         p.add("modems", "at least one [[modems]] table with a transport uri "
                         "(micromodem:///dev/ttyUSB0?rate=5, mavlink:udpout:host:port, lcm:udpm://...)")
-        return
+        return infos
     known = _entry_points("coex.transports")
     for i, m in enumerate(modems):
         key = f"modems[{i}]"
@@ -332,6 +351,8 @@ def _modems(raw: Mapping[str, Any], p: Problems, cfg: DeployConfig) -> None:
             p.add(f"{key}.uri", f"no transport {scheme!r} (known: {', '.join(sorted(known))})")
         else:
             info = _check_uri(uri, f"{key}.uri", p, cfg)
+            if info is not None:
+                _addresses(info, f"{key}.uri", p, cfg)
         rate = p.number(m, "rate", key, None, lo=0, hi=6, integer=True)
         if info is not None and info.rate is not None:
             if rate is None:
@@ -347,6 +368,66 @@ def _modems(raw: Mapping[str, Any], p: Problems, cfg: DeployConfig) -> None:
             p.add(f"{key}.required", f"true or false, got {required!r}")
             required = False
         cfg.modems.append(ModemConfig(uri, 5 if rate is None else int(rate), fb, spare, packet, required))
+        infos.append(info)
+    return infos
+
+
+def _addresses(info: Any, key: str, p: Problems, cfg: DeployConfig) -> None:
+    """A modem that addresses its packets (``UriInfo.src``, ``dest``) must send as this node and
+    to its peer (or to every node): anything else is a link that carries nothing."""
+    peers = [v.id for v in cfg.vehicles] if cfg.fleet else [cfg.peer]
+    if info.src is not None and info.src != cfg.node_id:
+        given = f"src={info.src}" if "src=" in info.uri else f"src {info.src} (the default: the URI gives no src=)"
+        p.add(key, f"the modem sends as {given}, but this node is {cfg.node_id} (node.id): its peer would "
+                   f"take its packets for another node's; give src={cfg.node_id}")
+    if info.dest is None:
+        return
+    if info.dest == cfg.node_id:
+        p.add(key, f"dest={info.dest} is this node's own id: its packets would go to itself and reach nobody "
+                   f"(give dest={peers[0] if len(peers) == 1 else 0}, or 0: every node)")
+    elif cfg.fleet and info.dest != 0:
+        p.add(key, f"dest={info.dest}: a topside of several vehicles sends to every node (dest=0), or the other "
+                   "vehicles never hear it")
+    elif info.dest not in (0, *peers):
+        p.add(key, f"dest={info.dest} is neither the peer's id ({peers[0]}, node.peer) nor 0 (every node): the "
+                   "peer's modem would not take its packets")
+
+
+def _airtime(p: Problems, cfg: DeployConfig, infos: list[Any]) -> None:
+    """Every TDMA slot of this link's nodes must hold a packet before its guard
+    (``LinkConfig.packet_time``: ``packet_seconds``, else the airtime of a full packet at the
+    modem's rate): in a shorter one nothing is ever sent, and the link carries nothing."""
+    from coex import LinkConfig
+    from coex_core.acoustic import rate_info
+
+    if any(k.startswith("tdma") for k in p.keys()) or len(infos) != len(cfg.modems):
+        return  # the schedule itself is wrong: said already
+    try:
+        schedule = cfg.schedule()
+    except CoexError:
+        return
+    nodes = {cfg.node_id, cfg.peer, *(v.id for v in cfg.vehicles)}
+    slots = [s for s in schedule.slots if s.owner in nodes]
+    for i, (m, info) in enumerate(zip(cfg.modems, infos, strict=True)):
+        try:
+            ri = rate_info(m.rate)
+            fb = m.frame_bytes or min(ri.frame_bytes, int(info.mtu) if info is not None else ri.frame_bytes)
+            link = LinkConfig(i, schedule, rate=m.rate, frame_bytes=fb, packet_seconds=m.packet_seconds)
+        except CoexError:
+            continue  # the rate or the frame size is wrong: said already
+        need = link.packet_time
+        short = [s for s in slots if s.duration - s.guard < need]
+        if not short:
+            continue
+        s = min(short, key=lambda s: s.duration - s.guard)
+        how = (f"modems[{i}].packet_seconds" if m.packet_seconds is not None
+               else f"the airtime of a full rate-{m.rate} packet")
+        p.add("tdma.slot_seconds", f"a {s.duration:g} s slot less its {s.guard:g} s guard leaves "
+                                   f"{s.duration - s.guard:g} s, shorter than a packet on modems[{i}] ({need:.2f} s, "
+                                   f"{how}): nothing would ever be sent in it. Make the slots longer, or, on a "
+                                   f"link without airtime (LCM, MAVLink, MOOS, a simulation), set "
+                                   f"modems[{i}].packet_seconds to the time a packet takes (coex topside: "
+                                   f"--packet-seconds; docs/deploy.md)")
 
 
 def _check_uri(uri: str, key: str, p: Problems, cfg: DeployConfig) -> Any:
@@ -424,7 +505,11 @@ def _key(p: Problems, cfg: DeployConfig, keyfile: Any, key: str) -> tuple[bytes 
 
     kp = cfg.base_dir / str(keyfile)
     try:
-        return parse_key(kp.read_bytes()), kp
+        key_bytes = parse_key(kp.read_bytes())
+        if os.name == "posix" and kp.stat().st_mode & 0o077:  # warned, not refused: git keeps no modes
+            p.warn(key, f"{kp} can be read by other users (mode {kp.stat().st_mode & 0o777:04o}): "
+                        f"chmod 600 {kp}")
+        return key_bytes, kp
     except OSError as exc:
         p.add(key, f"cannot read {kp}: {exc.strerror or exc}")
     except (CoexError, ValueError) as exc:
@@ -608,10 +693,33 @@ def _ros(raw: Mapping[str, Any], p: Problems, cfg: DeployConfig) -> None:
     cfg.ros = t
 
 
+def _usbl(raw: Mapping[str, Any], p: Problems, cfg: DeployConfig) -> None:
+    """Topside: the ``[usbl]`` table, the ship's USBL tracking system
+    (:class:`coex_plugins.navigation.UsblInput` options, and ``apply``)."""
+    if "usbl" not in raw:
+        return
+    from coex import adapter_check
+
+    try:
+        from coex_plugins.navigation import UsblInput
+    except ImportError as exc:
+        p.add("usbl", f"the USBL input cannot load: {exc} (pip install 'coexploration[navigation]')")
+        return
+    t = p.table(raw.get("usbl"), "usbl")
+    options = {k: v for k, v in t.items() if k != "apply"}
+    if not isinstance(t.get("apply", True), bool):
+        p.add("usbl.apply", f"true or false (apply the drift correction topside), got {t.get('apply')!r}")
+    problems = adapter_check(UsblInput, options)
+    p.nest("usbl", problems)
+    if not problems:
+        _paths(UsblInput, options, "usbl", p, cfg)
+    cfg.usbl = dict(t)
+
+
 def _console(raw: Mapping[str, Any], p: Problems, cfg: DeployConfig) -> None:
     c = p.table(raw.get("console"), "console")
     p.unknown(c, {"http", "operators", "insecure_open", "tls_cert", "tls_key", "session_hours",
-                  "idle_minutes", "allowed_hosts", "trusted_proxies", "stream_names"}, "console")
+                  "idle_minutes", "allowed_hosts", "trusted_proxies", "public_origins", "stream_names"}, "console")
     http = c.get("http", "127.0.0.1:8080")
     _host, sep, port = str(http).rpartition(":")
     if not sep or not port.isdigit() or not 0 <= int(port) <= 65535:
@@ -622,12 +730,25 @@ def _console(raw: Mapping[str, Any], p: Problems, cfg: DeployConfig) -> None:
                 p.add(f"console.{k}", f"a file name, got {c[k]!r}")
             elif not (cfg.base_dir / c[k]).exists():
                 p.add(f"console.{k}", f"no file {cfg.base_dir / c[k]}")
+            elif k != "tls_cert":  # secrets other users may read are refused (docs/console.md)
+                from coex_apps.console.access import secret_file_problem
+
+                problem = secret_file_problem(cfg.base_dir / c[k], "operators file" if k == "operators" else "TLS key")
+                if problem:
+                    p.add(f"console.{k}", problem)
     if not isinstance(c.get("insecure_open", False), bool):
         p.add("console.insecure_open", "true or false")
     p.number(c, "session_hours", "console", 12.0, lo=0.01, hi=24 * 365)
     p.number(c, "idle_minutes", "console", 30.0, lo=0.1, hi=24 * 60 * 365)
-    for k in ("allowed_hosts", "trusted_proxies"):
+    for k in ("allowed_hosts", "trusted_proxies", "public_origins"):
         v = c.get(k, [])
         if not isinstance(v, list) or not all(isinstance(h, str) and h for h in v):
             p.add(f"console.{k}", f"a list of names or addresses, got {v!r}")
+        elif k == "public_origins":
+            from urllib.parse import urlsplit
+
+            for h in v:
+                parts = urlsplit(h)
+                if parts.scheme not in ("http", "https") or not parts.hostname or parts.path not in ("", "/"):
+                    p.add("console.public_origins", f"an origin is scheme://host[:port] (http or https), got {h!r}")
     cfg.console = c

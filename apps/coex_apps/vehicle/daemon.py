@@ -12,29 +12,38 @@ closed, the node saved, the store closed; the next start resumes from the store.
 
 from __future__ import annotations
 
+import contextlib
 import json
 import logging
 import math
 import threading
 import time
 from collections.abc import Callable, Mapping
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from coex import CoexError, ConfigError, Nav
+from coex import CoexError, ConfigError, Nav, StoreError
 from coex_plugins.options import LogOnce
 
 from .build import build_node, link_configs
 from .config import DeployConfig
+from .faults import FAULT_PEER_SILENT, FAULT_STORE
 
-__all__ = ["VehicleApp", "build_node", "build_vehicle_node", "link_configs", "open_transports"]
+__all__ = ["FAULT_PEER_SILENT", "FAULT_STORE", "VehicleApp", "build_node", "build_vehicle_node", "link_configs",
+           "open_transports"]
 
 log = logging.getLogger("coex.vehicle")
 
 #: image files already taken (a watched directory read again after a restart), at most
 TAKEN_MAX = 20000
+#: the store's ``meta`` key of an image file taken: this, then "<path>|<time>"; set in the
+#: transaction that journals the image, so a restart never takes a file twice
+TAKEN_PREFIX = "vehicle.taken:"
+#: images and autonomy reports held while the store cannot journal them (taken once it can)
+HELD_MAX = 64
 
 
 def open_transports(cfg: DeployConfig) -> dict[int, Any]:
@@ -127,17 +136,37 @@ class VehicleApp:
         #: whether an input gives navigation (else a simulated autonomy's position stands in)
         self._nav_real = False
         self._last_status: float | None = None
-        self._taken: list[str] = json.loads(self.store.get("vehicle.taken", "[]")) if self.store else []
+        self._taken: list[str] = self._taken_files()
         self._taken_set = set(self._taken)
-        self._submitted = self.store.get("vehicle.submitted") if self.store else None
-        #: whether the survey submitted before a restart was handed back to the autonomy (resume)
-        self._resumed = False
+        #: while the store cannot journal: images (input, item) and autonomy reports held,
+        #: taken once it can; streamed data not kept, counted by kind
+        self._held: list[tuple[Any, Any]] = []
+        self._not_kept: dict[str, int] = {}
+        #: a small value to set in the store once it takes writes again
+        self._unsaved: dict[str, str] = {}
+        self._store_down = False
+        #: hearing nothing from topside for ``SILENT_CYCLES`` TDMA cycles (logged, and a fault
+        #: bit of the status topside gets)
+        from coex_runtime.peers import PeerWatch
+
+        self.peer_watch = PeerWatch(self.node.manager, [cfg.peer])
+        self._peer_silent = False
+        #: the survey lifecycle between the survey sender and the autonomy output (None: no
+        #: autonomy, or no survey modality)
+        self.lifecycle: Any = None
+        if self.autonomy is not None and "survey" in self.names:
+            from coex_plugins.autonomy.lifecycle import SurveyLifecycle
+
+            store = self.store
+            self.lifecycle = SurveyLifecycle(
+                self.autonomy, self.node.sender("survey"), name=str(cfg.autonomy.get("type")),
+                get=None if store is None else store.get, put=None if store is None else self._keep)
         self._broken: dict[str, float] = {}
         self._problem = LogOnce(log)
         #: what was taken; ``skipped``: the autonomy's reports not taken (an input's skipped items
         #: are counted by the input, ``Input.counts["skipped"]``: :meth:`summary` adds them up)
         self.counts: dict[str, int] = {"points": 0, "images": 0, "samples": 0, "nav": 0, "skipped": 0,
-                                       "plans": 0, "reports": 0}
+                                       "plans": 0, "reports": 0, "aids": 0}
         #: per link: (up, outages) last reported topside in a LinkHealth
         self._health_sent: dict[int, tuple[bool, int]] = {}
 
@@ -185,6 +214,8 @@ class VehicleApp:
         if self.store is not None:
             try:
                 self.store.snapshot(self.node, self.clock())
+            except CoexError as exc:  # a full disk: said, never a traceback
+                log.warning("last snapshot not saved: %s", exc)
             finally:
                 self.store.close()
                 self.store = None
@@ -205,9 +236,63 @@ class VehicleApp:
             items = self._guard(inp.coex_key, inp.poll, now) or []
             for item in items:
                 self._take(inp, item, now)
+        self._store_state()
+        for change in self.peer_watch.check(now):
+            (log.warning if change.silent else log.info)("%s", change.text("topside"))
+        self._peer_silent = self.peer_watch.any_silent()
         self._status(now)
         self._link_health(now)
         self._autonomy(now)
+
+    def _keep(self, key: str, value: str) -> None:
+        """A small value into the store now, or once it takes writes again."""
+        try:
+            self.store.set(key, value)
+            self._unsaved.pop(key, None)
+        except CoexError:
+            self._unsaved[key] = value
+
+    def faults(self) -> int:
+        """The ``VehicleStatus.faults`` bits the daemon sets now: :data:`FAULT_STORE` while its
+        store cannot keep anything new, :data:`FAULT_PEER_SILENT` while it hears nothing from
+        topside (docs/deploy.md, "Faults shown topside")."""
+        return (FAULT_STORE if self.runner.store_problem is not None else 0) | \
+            (FAULT_PEER_SILENT if self._peer_silent else 0)
+
+    def _store_state(self) -> None:
+        """While the store cannot journal (a full disk): say once what is held and what is not
+        kept; once it can again, take what was held and say what was not kept."""
+        if self.store is None:
+            return
+        down = self.runner.store_problem is not None or self.store.problem is not None
+        if down and not self._store_down:
+            log.warning("store cannot keep anything new: link and commands run on; images wait in "
+                        "their folder and survey reports are held (up to %d) until it writes again; "
+                        "soundings and series samples taken meanwhile are not kept", HELD_MAX)
+        self._store_down = down
+        if down or not (self._held or self._unsaved or self._not_kept):
+            return
+        if not (self._held or self._not_kept):  # a small value to write again, nothing to say
+            for key, value in list(self._unsaved.items()):
+                self._keep(key, value)
+            return
+        held, self._held = self._held, []
+        for key, value in list(self._unsaved.items()):
+            self._keep(key, value)
+        for inp, item in held:
+            if inp is None:  # an autonomy report
+                if self._ingest("survey", item, f"autonomy report {item!r}", hold=(None, item)):
+                    self.counts["reports"] += 1
+            else:
+                self._image(inp, item)
+        if self._not_kept:
+            log.warning("store writes again: %d held item(s) taken now; not kept while it could not: %s",
+                        len(held) - len(self._held),
+                        ", ".join(f"{n} {name} input(s)" for name, n in sorted(self._not_kept.items())))
+            self.counts["not_kept"] = self.counts.get("not_kept", 0) + sum(self._not_kept.values())
+            self._not_kept = {}
+        else:
+            log.info("store writes again: %d held item(s) taken now", len(held) - len(self._held))
 
     def link_health(self) -> dict[int, Any]:
         """Each modem's :class:`~coex_transports.recovery.Health` (outages, time down); a link
@@ -242,12 +327,30 @@ class VehicleApp:
         return {**self.counts, "skipped": self.counts["skipped"] + sum(by_input.values()),
                 "skipped_by_input": by_input}
 
-    def _ingest(self, name: str, data: Any, what: str, source: Any = None) -> bool:
+    def _taken_files(self) -> list[str]:
+        """The image files taken (oldest first): the store's marks (and the list an earlier
+        version kept under ``vehicle.taken``)."""
+        if self.store is None:
+            return []
+        old = json.loads(self.store.get("vehicle.taken", "[]") or "[]")
+        return [*old, *(k[len(TAKEN_PREFIX):] for k in self.store.marked(TAKEN_PREFIX))]
+
+    def _ingest(self, name: str, data: Any, what: str, source: Any = None, *, mark: str | None = None,
+                hold: Any = None) -> bool:
+        """``data`` to the sender of ``name`` through the runner (journaled first). While the
+        store cannot journal it, ``hold`` (an item to take again) is held, or else the data is
+        not kept (counted by ``name``)."""
         if name not in self.names:
             return False
         try:
-            self.runner.ingest(name, data)
+            self.runner.ingest(name, data, mark=mark)
             return True
+        except StoreError:
+            if hold is not None and len(self._held) < HELD_MAX:
+                self._held.append(hold)
+            else:
+                self._not_kept[name] = self._not_kept.get(name, 0) + 1
+            return False
         except (CoexError, ValueError, TypeError) as exc:  # bad input: logged, skipped, nothing lost
             if source is not None:
                 source.skip()  # counted as the input's
@@ -299,14 +402,19 @@ class VehicleApp:
             x, y = self.nav["x"], self.nav["y"]
         data = ImageInput(np.asarray(pixels), time=item.time,
                           x=None if x is None else round(float(x), 1), y=None if y is None else round(float(y), 1))
-        if self._ingest("imagery", data, f"image {item.path or ''} from {inp.coex_key}", inp):
+        held = (inp, item if item.path is None else replace(item, pixels=None))  # read again when taken
+        if self._ingest("imagery", data, f"image {item.path or ''} from {inp.coex_key}", inp,
+                        mark=None if key is None or self.store is None else TAKEN_PREFIX + key, hold=held):
             self.counts["images"] += 1
             if key is not None:
                 self._taken.append(key)
                 self._taken_set.add(key)
-                del self._taken[:-TAKEN_MAX]
-                if self.store is not None:
-                    self.store.set("vehicle.taken", json.dumps(self._taken))
+                if len(self._taken) > TAKEN_MAX + 1000:  # the oldest marks go, a thousand at a time
+                    gone, self._taken = self._taken[:-TAKEN_MAX], self._taken[-TAKEN_MAX:]
+                    self._taken_set.difference_update(gone)
+                    if self.store is not None:
+                        with contextlib.suppress(CoexError):
+                            self.store.delete([TAKEN_PREFIX + k for k in gone])
 
     def _nav(self, nav: Nav) -> None:
         fields = {"x": nav.x, "y": nav.y, "depth": nav.depth, "altitude": nav.altitude,
@@ -340,36 +448,27 @@ class VehicleApp:
             to_stamp(self.nav_time or now), round(clamp(n["x"], -50000, 50000), 1),
             round(clamp(n["y"], -50000, 50000), 1), round(clamp(n.get("depth", 0.0), 0, 6000), 1),
             None if alt is None else round(clamp(alt, 0, 500), 1), round(float(n.get("heading", 0.0)) % 359.9, 1),
-            round(clamp(n.get("speed", 0.0), 0, 5), 2), 0, mode, 0)
+            round(clamp(n.get("speed", 0.0), 0, 5), 2), 0, mode, self.faults())
         self.node.push_status(status, now)
         self._last_status = now
 
     def _autonomy(self, now: float) -> None:
-        if self.autonomy is None or "survey" not in self.names:
+        """The survey lifecycle's step (:mod:`coex_plugins.autonomy.lifecycle`: hand over the survey
+        to fly now, poll the output, end what ended, record late answers, abort on silence); its
+        reports to the survey sender."""
+        if self.lifecycle is None:
             return
-        survey = self.node.sender("survey")
-        plan = survey.active_plan()
-        key = None if plan is None else f"{plan.survey_id}:{survey.plan_version}"
-        if not self._resumed:
-            self._resumed = True
-            if plan is not None and key == self._submitted:  # flown before the restart: follow it again
-                if self._guard("autonomy resume", self.autonomy.resume, plan, now):
-                    log.info("survey %d: following it again after the restart (%s)", plan.survey_id,
-                             self.cfg.autonomy.get("type"))
-                else:
-                    log.warning("survey %d was given to the %s autonomy before the restart; that output cannot "
-                                "follow it again, so its progress is no longer reported", plan.survey_id,
-                                self.cfg.autonomy.get("type"))
-        if plan is not None and key != self._submitted:
-            log.info("survey %d to the autonomy (%s)", plan.survey_id, self.cfg.autonomy.get("type"))
-            self._guard("autonomy submit", self.autonomy.submit, plan, now)
-            self._submitted = key
-            self.counts["plans"] += 1
-            if self.store is not None:
-                self.store.set("vehicle.submitted", key)
-        for report in self._guard("autonomy poll", self.autonomy.poll, now) or []:
-            if self._ingest("survey", report, f"autonomy report {report!r}"):
+        before = self.lifecycle.counts["submitted"]
+        for report in self._guard("autonomy", self.lifecycle.step, now) or []:
+            if self._ingest("survey", report, f"autonomy report {report!r}", hold=(None, report)):
                 self.counts["reports"] += 1
+        self.counts["plans"] += self.lifecycle.counts["submitted"] - before
+        for fix in self.node.sender("survey").take_aids():  # topside's position fixes (issue 56)
+            if self._guard("autonomy aid", self.autonomy.aid, fix, now):
+                self.counts["aids"] += 1
+            else:
+                self._problem("no-aid", "a position fix from topside was not taken: the %s autonomy output "
+                              "gives the vehicle's navigation no fixes (docs/autonomy.md)", self.cfg.autonomy.get("type"))
         if not self._nav_real:  # without navigation inputs, a simulated autonomy knows where it is
             xy = self._guard("autonomy position", self.autonomy.position, now)
             if xy is not None:

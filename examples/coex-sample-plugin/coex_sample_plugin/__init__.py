@@ -41,12 +41,22 @@ def decode_pings(body: bytes) -> list[tuple[int, int, int]]:
     return [RECORD.unpack_from(body, i) for i in range(0, len(body), RECORD.size)]
 
 
+def sample_inputs() -> list[tuple[float, Any]]:
+    """A minute of pings, one a second: ``(now, (time, range))``."""
+    return [(10.0 + i, (10.0 + i, 20.0 + i / 10)) for i in range(60)]
+
+
+def converged(sender: ModalitySender, receiver: ModalityReceiver) -> bool:
+    """Topside holds every ping the vehicle took."""
+    assert isinstance(sender, PingSender) and isinstance(receiver, PingReceiver)
+    return len(receiver.records) == len(sender.records)
+
+
 def conformance() -> Any:
     """Entry point ``coex.conformance: pings``: what ``coex plugins check pings`` runs it on."""
     from coex_conformance.companions import Companion
 
-    return Companion("pings", PingModality, lambda: [(10.0 + i, (10.0 + i, 20.0 + i / 10)) for i in range(60)],
-                     lambda sender, receiver: len(receiver.records) == len(sender.records))
+    return Companion("pings", PingModality, sample_inputs, converged)
 
 
 @persistent("pings.Sender")  # saved with the node by a store (stable name, not module path)

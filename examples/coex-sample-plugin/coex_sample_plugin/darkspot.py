@@ -2,8 +2,9 @@
 
 What a vehicle team writes to bring its own detector (entry-point group ``coex.detectors``,
 ``docs/plugins.md`` section 5a): a :class:`coex.Detector` subclass that names the modality whose
-vehicle-side data it looks at (``imagery``: the frames the imagery sender holds, through its
-``frames(since)``), says what its findings are found in (IMAGE), and returns
+vehicle-side data it looks at (``imagery``) and the view of it it takes (``coex.ImageFrames``: the
+frames the imagery sender holds, through their ``frames(since)``), says what its findings are
+found in (IMAGE), and returns
 :class:`coex.Finding` objects from :meth:`DarkSpotDetector.detect`. The ``detections`` modality
 runs it every few seconds and sends what it finds topside as suggestions. Its state (the
 capture time of the last frame it looked at) is saved with the vehicle's node: the class is
@@ -18,7 +19,7 @@ from typing import Any, ClassVar
 
 import numpy as np
 
-from coex import ConfigError, Detector, Finding, ModalitySender, merged_config, persistent
+from coex import ConfigError, Detector, Finding, ImageFrames, merged_config, persistent
 from coex.messages import DetectionSource
 
 __all__ = ["DarkSpotDetector"]
@@ -32,11 +33,12 @@ DEFAULTS = {
 
 
 @persistent("sample.DarkSpotDetector")
-class DarkSpotDetector(Detector):
+class DarkSpotDetector(Detector[ImageFrames]):
     """Frames with a dark spot (a hull, a hole, a dark rock) covering ``min_share`` of them."""
 
     name: ClassVar[str] = "darkspot"
     modality: ClassVar[str] = "imagery"
+    view = ImageFrames
     source: ClassVar[DetectionSource] = DetectionSource.IMAGE
 
     def __init__(self, config: Mapping[str, Any] | None = None) -> None:
@@ -48,12 +50,9 @@ class DarkSpotDetector(Detector):
         #: capture time of the newest frame looked at
         self.seen = -math.inf
 
-    def detect(self, data: ModalitySender, now: float) -> list[Finding]:
-        frames = getattr(data, "frames", None)
-        if frames is None:
-            return []
+    def detect(self, data: ImageFrames, now: float) -> list[Finding]:
         out = []
-        for f in frames(self.seen):
+        for f in data.frames(self.seen):
             self.seen = max(self.seen, f.time)
             a = np.asarray(f.image, float)
             if a.ndim == 3:

@@ -32,10 +32,10 @@ from coex import Autonomy, ConfigError
 from coex.lcm import DEFAULT_URL, survey_request_t, survey_state_t
 from coex.messages import SurveyReason, SurveyState
 
-from ..options import Problems
+from ..options import Problems, check_lcm_url
 from ..survey.plan import SurveyReport, cut_detail
 
-__all__ = ["LcmAutonomy", "report_of", "request_of"]
+__all__ = ["LcmAutonomy", "ended_request", "report_of", "request_of"]
 
 log = logging.getLogger(__name__)
 
@@ -76,6 +76,19 @@ def request_of(plan: Any, context: Any, now: float) -> survey_request_t:
     return msg
 
 
+def ended_request(survey_id: int, now: float) -> survey_request_t:
+    """The ended form of a survey: its ``survey_id``, ``n = 0`` (no waypoints), NaN heights and
+    speed."""
+    msg = survey_request_t()
+    msg.utime = round(now * 1e6)
+    msg.survey_id = int(survey_id)
+    msg.kind = 0
+    msg.n = 0
+    msg.x, msg.y, msg.lat, msg.lon = [], [], [], []
+    msg.altitude = msg.depth = msg.speed = math.nan
+    return msg
+
+
 def report_of(msg: survey_state_t, now: float) -> SurveyReport | None:
     """The SurveyReport of a planner's answer (None: a state it cannot be, or RECEIVED)."""
     state = STATES.get(int(msg.state))
@@ -99,6 +112,9 @@ class LcmAutonomy(Autonomy):
                                 "published again (0: do not wait for one)"),
         "retries": (2, "times a request is published again before the survey is given up as "
                        "REJECTED AUTONOMY_NO_ANSWER"),
+        "silence": (10.0, "seconds without a survey_state_t from the planner while a survey flies before "
+                          "it is aborted AUTONOMY_SILENT (0: not watched; a planner repeats its state "
+                          "while it flies)"),
     }
 
     @classmethod
@@ -110,9 +126,13 @@ class LcmAutonomy(Autonomy):
                 p.said(key, f"autonomy 'lcm': {key} must be a non-empty string, got {v!r}")
             elif key != "url" and len(v) > 63:
                 p.said(key, f"autonomy 'lcm': {key} is longer than LCM's 63 characters")
+        check_lcm_url(p, "autonomy 'lcm'", options)
         t = options.get("answer_timeout", 0.0)
         if isinstance(t, bool) or not isinstance(t, int | float) or not math.isfinite(t) or t < 0:
             p.said("answer_timeout", f"autonomy 'lcm': answer_timeout must be a number >= 0 (seconds), got {t!r}")
+        v = options.get("silence", 0.0)
+        if isinstance(v, bool) or not isinstance(v, int | float) or not math.isfinite(v) or v < 0:
+            p.said("silence", f"autonomy 'lcm': silence must be a number >= 0 (seconds), got {v!r}")
         r = options.get("retries", 0)
         if isinstance(r, bool) or not isinstance(r, int) or not 0 <= r <= 100:
             p.said("retries", f"autonomy 'lcm': retries must be an integer in 0..100, got {r!r}")
@@ -127,7 +147,9 @@ class LcmAutonomy(Autonomy):
         #: the request waiting for the planner's first answer: survey id, the encoded request,
         #: when to publish it again, tries made (None: none waits)
         self._waiting: tuple[int, bytes, float, int] | None = None
-        self.stats = {"published": 0, "received": 0, "bad": 0, "resent": 0}
+        #: when the planner's last survey_state_t came (None: never)
+        self.heard_at: float | None = None
+        self.stats = {"published": 0, "received": 0, "bad": 0, "resent": 0, "ended": 0}
 
     def open(self) -> None:
         if self._sub is not None:
@@ -173,6 +195,33 @@ class LcmAutonomy(Autonomy):
         self._waiting = None
         return True
 
+    def end(self, survey_id: int, now: float) -> None:
+        """The survey ended: it is not published again (no resend), and its ended form goes out: a
+        ``survey_request_t`` with its ``survey_id`` and ``n = 0`` (no waypoints: fly nothing of
+        it, stop flying it)."""
+        if self._sub is None:
+            self.open()
+        sid = int(survey_id)
+        if self._waiting is not None and self._waiting[0] == sid:
+            self._waiting = None
+        msg = ended_request(sid, now)
+        try:
+            self.lc.publish(self.config["channel"], bytes(msg.encode()))
+        except OSError as exc:
+            log.warning("lcm: survey %d: publishing its end failed: %s", sid, exc)
+            return
+        self.stats["ended"] += 1
+        log.info("lcm: survey %d ended: an empty request (n = 0) published on %s", sid, self.config["channel"])
+
+    def heard(self, now: float) -> float | None:
+        """When the planner's last ``survey_state_t`` came (-inf: none since this output opened)."""
+        if self._sub is None:
+            return None
+        return -math.inf if self.heard_at is None else self.heard_at
+
+    def silent_detail(self) -> str:
+        return f"no survey_state_t on {self.config['state_channel']}"
+
     def poll(self, now: float) -> list[Any]:
         if self._sub is None:
             return []
@@ -198,6 +247,7 @@ class LcmAutonomy(Autonomy):
                 log.warning("lcm: survey %d: unknown state %d", msg.survey_id, msg.state)
                 continue
             self.stats["received"] += 1
+            self.heard_at = float(now)
             if self._waiting is not None and self._waiting[0] == int(msg.survey_id):
                 self._waiting = None  # the planner answers
             report = report_of(msg, now)

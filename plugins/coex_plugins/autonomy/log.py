@@ -94,5 +94,14 @@ class LogAutonomy(Autonomy):
             with open(self.path, "a", encoding="utf-8") as fh:
                 fh.write(line + "\n")
 
+    def end(self, survey_id: int, now: float) -> None:
+        """The survey ended: said in the log, and as a JSON line ``{"time", "survey_id", "ended":
+        true}`` in the file, so that a script following the file stops flying it."""
+        log.info("autonomy: survey %d ended", survey_id)
+        if self.path is not None:
+            line = json.dumps({"time": now, "survey_id": int(survey_id), "ended": True})
+            with open(self.path, "a", encoding="utf-8") as fh:
+                fh.write(line + "\n")
+
     def poll(self, now: float) -> list[Any]:
         return []

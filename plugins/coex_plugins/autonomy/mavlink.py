@@ -51,7 +51,7 @@ from typing import Any
 from coex import Autonomy, ConfigError
 from coex.messages import SurveyReason, SurveyState
 
-from ..options import Problems
+from ..options import Problems, check_mavlink_connection
 from ..survey.plan import SurveyReport, cut_detail
 
 __all__ = ["MavlinkAutonomy", "MissionItem", "connect", "enum_name", "mission_items", "mode_name"]
@@ -256,6 +256,17 @@ def _pos(p: Problems, options: Mapping[str, Any], key: str, zero: bool = True) -
         p.said(key, f"autonomy 'mavlink': {key} must be a number {'>=' if zero else '>'} 0, got {v!r}")
 
 
+#: GPS_INPUT's ignore flags (MAVLink common GPS_INPUT_IGNORE_FLAGS)
+GPS_INPUT_IGNORE_ALT = 1
+GPS_INPUT_IGNORE_VEL_HORIZ = 8
+GPS_INPUT_IGNORE_VEL_VERT = 16
+GPS_INPUT_IGNORE_SPEED_ACCURACY = 32
+GPS_INPUT_IGNORE_VERTICAL_ACCURACY = 128
+#: the GPS epoch (1980-01-06) in Unix seconds, and GPS less UTC (s)
+GPS_EPOCH = 315964800.0
+GPS_LEAP_SECONDS = 18.0
+
+
 class MavlinkAutonomy(Autonomy):
     """Uploads each plan as a MAVLink mission and follows its progress (module docstring)."""
 
@@ -289,6 +300,13 @@ class MavlinkAutonomy(Autonomy):
                        "(REJECTED AUTONOMY_NO_ANSWER)"),
         "heartbeat": (1.0, "seconds between our HEARTBEATs (0 = none)"),
         "mavlink2": (True, "speak MAVLink 2 from the first packet"),
+        "position_fix": (True, "pass topside's position fixes (PositionFix) to the autopilot as GPS_INPUT "
+                               "(ArduSub: GPS_TYPE = 14, MAV); false: refuse them"),
+        "gps_id": (0, "GPS_INPUT gps_id of the fixes (which GPS instance of the autopilot they feed)"),
+        "silence": (5.0, "seconds without the autopilot's HEARTBEAT while a survey flies before it is "
+                         "aborted AUTONOMY_SILENT (0: not watched)"),
+        "clear": (True, "clear the autopilot's mission (MISSION_CLEAR_ALL) once a survey ended, so that "
+                        "AUTO does not fly it again"),
     }
 
     @classmethod
@@ -297,6 +315,7 @@ class MavlinkAutonomy(Autonomy):
         c = options.get("connection")
         if not isinstance(c, str) or not c:
             p.said("connection", f"autonomy 'mavlink': connection must be a pymavlink connection string, got {c!r}")
+        check_mavlink_connection(p, "autonomy 'mavlink'", options)
         _int(p, options, "baud", 1, 10_000_000)
         _int(p, options, "source_system", 1, 255)
         _int(p, options, "source_component", 0, 255)
@@ -305,10 +324,11 @@ class MavlinkAutonomy(Autonomy):
         for key in ("frame", "altitude_frame"):
             if key in options and options[key] not in _FRAMES:
                 p.said(key, f"autonomy 'mavlink': {key} must be one of {sorted(_FRAMES)}, got {options[key]!r}")
-        for key in ("home_placeholder", "speed_item", "mavlink2"):
+        _int(p, options, "gps_id", 0, 255)
+        for key in ("home_placeholder", "speed_item", "mavlink2", "position_fix", "clear"):
             if key in options and not isinstance(options[key], bool):
                 p.said(key, f"autonomy 'mavlink': {key} must be true or false, got {options[key]!r}")
-        for key in ("acceptance_radius", "hold", "heartbeat"):
+        for key in ("acceptance_radius", "hold", "heartbeat", "silence"):
             _pos(p, options, key)
         _pos(p, options, "timeout", zero=False)
         _pos(p, options, "item_timeout", zero=False)
@@ -354,8 +374,17 @@ class MavlinkAutonomy(Autonomy):
         self._vehicle_mode: int | None = None
         self._vehicle_type: int | None = None
         self._seen_auto = False
+        #: when the target vehicle's HEARTBEAT was last heard (None: never)
+        self.heard_at: float | None = None
+        #: the clearing of an ended survey's mission: survey id, deadline of the answer, tries
+        #: made (None: nothing to clear); ``_clear_later``: given up for now, sent again when the
+        #: autopilot is heard again after a silence or leaves AUTO
+        self._clear: tuple[int, float, int] | None = None
+        self._clear_later: int | None = None
+        #: the survey whose mission may still be on the autopilot (None: cleared, or none)
+        self.on_autopilot: int | None = None
         #: counters for tests and status pages
-        self.stats = {"bad": 0, "ignored": 0, "resent": 0, "uploads": 0, "items_sent": 0}
+        self.stats = {"bad": 0, "ignored": 0, "resent": 0, "uploads": 0, "items_sent": 0, "cleared": 0}
 
     # ------------------------------------------------------------------ connection
     def open(self) -> None:
@@ -374,6 +403,27 @@ class MavlinkAutonomy(Autonomy):
                 self.conn.close()
             finally:
                 self.conn = None
+
+    def aid(self, fix: Any, now: float) -> bool:
+        """A position fix as ``GPS_INPUT`` (latitude and longitude from ``node.origin``, horizontal
+        accuracy ``sigma``, altitude ``-depth``; velocities ignored): ArduSub and PX4 take it as a
+        GPS (ArduSub ``GPS_TYPE = 14``), the way a USBL feeds them."""
+        if not self.config["position_fix"]:
+            return False
+        if self.conn is None:
+            self.open()
+        lat, lon = self.context.geodetic(float(fix.x), float(fix.y))
+        gps = float(fix.time) - GPS_EPOCH + GPS_LEAP_SECONDS
+        week, ms = int(gps // 604800), round((gps % 604800) * 1000)
+        ignore = GPS_INPUT_IGNORE_VEL_HORIZ | GPS_INPUT_IGNORE_VEL_VERT | GPS_INPUT_IGNORE_SPEED_ACCURACY \
+            | GPS_INPUT_IGNORE_VERTICAL_ACCURACY | (GPS_INPUT_IGNORE_ALT if fix.depth is None else 0)
+        sigma = max(float(fix.sigma), 0.1)
+        self._send("gps_input", time_usec=int(float(fix.time) * 1e6), gps_id=int(self.config["gps_id"]),
+                   ignore_flags=ignore, time_week_ms=ms, time_week=week, fix_type=3, lat=_deg_e7(lat),
+                   lon=_deg_e7(lon), alt=0.0 if fix.depth is None else -float(fix.depth), hdop=sigma, vdop=sigma,
+                   vn=0.0, ve=0.0, vd=0.0, speed_accuracy=0.0, horiz_accuracy=sigma, vert_accuracy=0.0,
+                   satellites_visible=0)
+        return True
 
     @property
     def _targets(self) -> tuple[int, int]:
@@ -413,6 +463,8 @@ class MavlinkAutonomy(Autonomy):
         self._heading_for, self._seen_auto = -1, False
         self._command = None
         self._command_deadline = math.inf
+        self._clear, self._clear_later = None, None  # the new mission replaces whatever is there
+        self.on_autopilot = int(plan.survey_id)
         self.stats["uploads"] += 1
         log.info("mavlink: uploading survey %s as %d mission items", plan.survey_id, len(self.items))
         self._send_count(now)
@@ -424,8 +476,58 @@ class MavlinkAutonomy(Autonomy):
         self.phase, self._sent, self._tries, self._heading_for, self._seen_auto = "flying", None, 0, -1, False
         self._command, self._command_deadline = None, math.inf
         self._deadline = math.inf
+        self.on_autopilot = int(plan.survey_id)
         log.info("mavlink: following survey %s again after a restart (nothing uploaded)", plan.survey_id)
         return True
+
+    def end(self, survey_id: int, now: float) -> None:
+        """The survey ended: stop following it (an upload or a start under way is abandoned) and,
+        with ``clear``, clear the autopilot's mission (``MISSION_CLEAR_ALL``), answered by a
+        ``MISSION_ACK``: sent again after ``timeout``, at most ``retries`` times, then again when
+        the autopilot is heard after a silence, or leaves AUTO after refusing (ArduPilot does not
+        clear the mission it flies)."""
+        if self.conn is None:
+            self.open()
+        sid = int(survey_id)
+        if self.plan is not None and int(self.plan.survey_id) == sid and self.phase != "done":
+            self.phase = "done"
+            self._deadline = math.inf
+            self._command, self._command_deadline = None, math.inf
+        if self.on_autopilot is None:
+            self.on_autopilot = sid  # after a restart: whatever it holds may be that survey's
+        if not self.config["clear"] or self.on_autopilot != sid:
+            return  # nothing of it there, or a newer survey's mission replaced it
+        self._clear_later = None
+        self._send_clear(sid, 0, now)
+
+    def _send_clear(self, sid: int, tries: int, now: float) -> None:
+        ts, tc = self._targets
+        self._send("mission_clear_all", target_system=ts, target_component=tc, mission_type=0)
+        self._clear = (sid, now + float(self.config["timeout"]), tries)
+
+    def _clear_answered(self, result: int, now: float) -> None:
+        assert self._clear is not None
+        sid = self._clear[0]
+        self._clear = None
+        if result == MAV_MISSION_ACCEPTED:
+            self.on_autopilot = None
+            self.stats["cleared"] += 1
+            log.info("mavlink: survey %s ended: the autopilot's mission cleared", sid)
+            return
+        name = enum_name("MAV_MISSION_RESULT", result)
+        log.warning("mavlink: survey %s ended, but the autopilot refused to clear its mission (%s)%s", sid, name,
+                    ": cleared once it leaves AUTO" if self._vehicle_mode == int(self.config["auto_mode"]) else "")
+        self._clear_later = sid
+
+    def heard(self, now: float) -> float | None:
+        """When the autopilot's HEARTBEAT was last heard (-inf: never, since this output opened)."""
+        if self.conn is None:
+            return None
+        return -math.inf if self.heard_at is None else self.heard_at
+
+    def silent_detail(self) -> str:
+        ts, tc = self._targets
+        return f"no HEARTBEAT from {ts}/{tc}"
 
     def poll(self, now: float) -> list[Any]:
         if self.conn is None:
@@ -490,6 +592,14 @@ class MavlinkAutonomy(Autonomy):
                 self._send_count(now)
             else:
                 self._send_item(self._sent, now)
+        if self._clear is not None and now >= self._clear[1]:
+            sid, _, tries = self._clear
+            if tries >= int(self.config["retries"]):
+                log.warning("mavlink: survey %s ended; the autopilot did not answer MISSION_CLEAR_ALL (%d tries): "
+                            "its mission may still be on the autopilot (sent again when it is heard)", sid, tries + 1)
+                self._clear, self._clear_later = None, sid
+            else:
+                self._send_clear(sid, tries + 1, now)
         if self._command is not None and now >= self._command_deadline:
             if self._command_tries >= int(self.config["retries"]):
                 self._no_answer(now, _COMMANDS.get(self._command[0], f"command {self._command[0]}"),
@@ -521,7 +631,10 @@ class MavlinkAutonomy(Autonomy):
                 self.stats["ignored"] += 1
                 return
             if kind == "MISSION_ACK":
-                self._ack(msg, now)
+                if self._clear is not None and self.phase != "upload":
+                    self._clear_answered(int(msg.type), now)
+                else:
+                    self._ack(msg, now)
             else:
                 self._request(msg, now)
         elif kind in ("MISSION_ITEM_REACHED", "MISSION_CURRENT"):
@@ -543,10 +656,23 @@ class MavlinkAutonomy(Autonomy):
                 self.target_component = msg.get_srcComponent()
             log.info("mavlink: vehicle %d/%d (type %d, autopilot %d)", msg.get_srcSystem(),
                      msg.get_srcComponent(), msg.type, msg.autopilot)
-        if msg.get_srcSystem() != self.target_system or msg.autopilot != MAV_AUTOPILOT_ARDUPILOTMEGA:
+        if msg.get_srcSystem() != self.target_system:
+            return
+        silence = float(self.config["silence"]) or float(self.config["timeout"])
+        back = self.heard_at is None or now - self.heard_at > silence
+        self.heard_at = float(now)
+        if back and self._clear_later is not None and self._clear is None:
+            sid, self._clear_later = self._clear_later, None
+            log.info("mavlink: the autopilot is heard again: clearing survey %s's mission", sid)
+            self._send_clear(sid, 0, now)
+        if msg.autopilot != MAV_AUTOPILOT_ARDUPILOTMEGA:
             return
         mode = int(msg.custom_mode)
         previous, self._vehicle_mode = self._vehicle_mode, mode
+        if (previous == int(self.config["auto_mode"]) and mode != previous and self._clear_later is not None
+                and self._clear is None):
+            sid, self._clear_later = self._clear_later, None
+            self._send_clear(sid, 0, now)  # it refused while flying it: now it does not
         if self.phase != "flying" or self.config["start"] == "none":
             return
         auto = int(self.config["auto_mode"])
@@ -656,6 +782,15 @@ class MavlinkAutonomy(Autonomy):
         return None
 
     def _progress(self, kind: str, seq: int, now: float) -> None:
+        if (self.phase == "done" and kind == "MISSION_ITEM_REACHED" and self.plan is not None
+                and self.on_autopilot == int(self.plan.survey_id) and self._waypoint_of(seq) is not None):
+            # the autopilot flies the mission of a survey that ended: a late answer (the daemon's
+            # lifecycle records it and ends the survey again)
+            k = self._waypoint_of(seq)
+            assert k is not None
+            last = k == len(self.plan.waypoints) - 1
+            self._report(SurveyState.COMPLETED if last else SurveyState.STARTED, now, index=None if last else k + 1)
+            return
         if self.phase == "starting" and kind == "MISSION_ITEM_REACHED" and self._waypoint_of(seq) is not None:
             # it flies the new mission, though the start command's ack was lost
             self._command, self._command_deadline = None, math.inf

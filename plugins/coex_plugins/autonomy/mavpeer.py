@@ -8,11 +8,14 @@ every item with ``MISSION_REQUEST_INT`` (or the legacy ``MISSION_REQUEST``), che
 give, or the error an item earned). It answers ``MAV_CMD_MISSION_START`` and
 ``MAV_CMD_DO_SET_MODE`` with ``COMMAND_ACK``, switches to AUTO, and, when told to fly, sends
 ``MISSION_CURRENT`` and then ``MISSION_ITEM_REACHED`` for each item at a fixed interval (switching
-to ALT_HOLD at the end, as ArduSub does). It keeps what it received: :attr:`MissionPeer.missions`
+to ALT_HOLD at the end, as ArduSub does). ``MISSION_CLEAR_ALL`` clears the mission it holds
+(acked accepted; refused with ``MAV_MISSION_ERROR`` while it flies it, as ArduPilot does). It
+keeps what it received: :attr:`MissionPeer.missions`
 (each a list of received items), :attr:`~MissionPeer.items` (the last one),
 :attr:`~MissionPeer.acks_sent`, :attr:`~MissionPeer.counts` and :attr:`~MissionPeer.commands`.
 
-As a program it prints one JSON line per received mission::
+As a program it prints one JSON line per received mission (and ``{"clear": true, ...}`` per
+mission cleared)::
 
     python -m coex_plugins.autonomy.mavpeer --listen udpin:127.0.0.1:14551 [--fly 1.0]
 
@@ -54,7 +57,8 @@ log = logging.getLogger(__name__)
 
 MAV_TYPE_SUBMARINE = 12
 MAV_STATE_ACTIVE = 4
-MAV_MISSION_UNSUPPORTED_FRAME = 2  # common.xml (1 is MAV_MISSION_ERROR)
+MAV_MISSION_ERROR = 1
+MAV_MISSION_UNSUPPORTED_FRAME = 2  # common.xml
 MAV_MISSION_UNSUPPORTED = 3
 MAV_RESULT_UNSUPPORTED = 3
 SUB_MODE_ALT_HOLD = 2
@@ -107,6 +111,10 @@ class MissionPeer:
         #: the request message type used (MISSION_REQUEST_INT or MISSION_REQUEST), one per request sent
         self.requests_sent: list[tuple[str, int]] = []
         self.reached: list[int] = []
+        #: MISSION_CLEAR_ALL answers sent (0 cleared; 1 refused: it was flying the mission)
+        self.clears: list[int] = []
+        #: whether it holds a mission (received in full and not cleared since)
+        self.mission_held = False
         self._count = 0
         self._peer: tuple[int, int] = (255, 0)
         self._receiving = False
@@ -153,7 +161,7 @@ class MissionPeer:
                 self._send("heartbeat", type=MAV_TYPE_SUBMARINE, autopilot=MAV_AUTOPILOT_ARDUPILOTMEGA,
                            base_mode=MAV_MODE_FLAG_CUSTOM_MODE_ENABLED, custom_mode=self.custom_mode,
                            system_status=MAV_STATE_ACTIVE)
-                if self.missions:
+                if self.missions and self.mission_held:
                     state = (MISSION_STATE_ACTIVE if self._flying else
                              MISSION_STATE_COMPLETE if self.reached else MISSION_STATE_NOT_STARTED)
                     self._send("mission_current", seq=self._current, total=len(self.missions[-1]),
@@ -197,6 +205,18 @@ class MissionPeer:
             self._item(msg, now)
         elif kind == "COMMAND_LONG" and not self.silent:
             self._command(msg, src, now)
+        elif kind == "MISSION_CLEAR_ALL" and not self.silent and getattr(msg, "mission_type", 0) == 0:
+            self._peer = src
+            if self._flying:  # ArduPilot does not clear the mission it flies
+                self.clears.append(MAV_MISSION_ERROR)
+                self._ack(MAV_MISSION_ERROR)
+                return
+            self.clears.append(MAV_MISSION_ACCEPTED)
+            self.items, self._receiving, self._count = [], False, 0
+            self.mission_held = False
+            self._ack(MAV_MISSION_ACCEPTED)
+            if self.on_mission is not None:
+                self.on_mission({"clear": True, "result": MAV_MISSION_ACCEPTED, "count": 0, "items": []})
 
     def _request(self, seq: int, now: float) -> None:
         name = "mission_request" if self.legacy else "mission_request_int"
@@ -236,6 +256,7 @@ class MissionPeer:
         self._receiving = False
         self._request_at = math.inf
         self.missions.append(list(self.items))
+        self.mission_held = True
         self._current = self._first_nav(self.items)
         self.reached = []
         self._ack(MAV_MISSION_ACCEPTED)
@@ -254,7 +275,7 @@ class MissionPeer:
         result = self.start_result if start and self.start_result is not None else MAV_RESULT_UNSUPPORTED
         if self.ack_start or not start:
             self._send("command_ack", command=cmd, result=result, target_system=src[0], target_component=src[1])
-        if result == 0 and self.missions:
+        if result == 0 and self.missions and self.mission_held:
             self.custom_mode = SUB_MODE_AUTO
             self._next_heartbeat = -math.inf  # tell the new mode at once
             if self.fly_interval is not None:
@@ -301,6 +322,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--silent", action="store_true", help="never answer (an autopilot that is down)")
     parser.add_argument("--fly", type=float, default=None, metavar="SECONDS",
                         help="once started, reach one item every SECONDS")
+    parser.add_argument("--heartbeat", type=float, default=1.0, help="seconds between HEARTBEATs")
     parser.add_argument("--duration", type=float, default=None, help="exit after this many seconds")
     args = parser.parse_args(argv)
 
@@ -310,7 +332,8 @@ def main(argv: list[str] | None = None) -> int:
         print(json.dumps({**mission, "items": items}), flush=True)
 
     peer = MissionPeer(args.listen, system=args.system, component=args.component, result=args.result,
-                       legacy=args.legacy, silent=args.silent, fly_interval=args.fly, on_mission=printed)
+                       legacy=args.legacy, silent=args.silent, fly_interval=args.fly, heartbeat=args.heartbeat,
+                       on_mission=printed)
     peer.start()
     try:
         if args.duration is None:

@@ -61,13 +61,16 @@ so nothing of a refused survey is flown. Then, from what the helm posts after th
 * once the behaviour ran, ``IVPHELM_ALLSTOP`` other than ``clear`` -> ALL_STOP, ``detail`` the
   all-stop (``MissingDecVars:depth``);
 * ``COEX_SURVEY`` set to anything else by someone else, the behaviour idle again before its end,
-  ``IVPHELM_STATE`` neither DRIVE nor PARK (DISABLED, MALCONFIG), no ``IVPHELM_STATE`` for
-  ``timeout`` seconds (the helm gone), or the behaviour not running ``timeout`` seconds after its
-  activation -> AUTONOMY_STOPPED, ``detail`` what was seen.
+  ``IVPHELM_STATE`` neither DRIVE nor PARK (DISABLED, MALCONFIG), or the behaviour not running
+  ``timeout`` seconds after its activation -> AUTONOMY_STOPPED, ``detail`` what was seen.
 
 These end a survey REJECTED when the helm had not taken its updates yet (no answer within
 ``timeout``: AUTONOMY_NO_ANSWER), ABORTED after; every end but COMPLETED posts ``deactivate``
-again so the helm does not resume the survey by itself.
+again so the helm does not resume the survey by itself. Every end is followed by the daemon's
+:meth:`MoosAutonomy.end`: the ended form (``deactivate``, and ``updates_var`` = ``name=<behavior>``,
+no points) stays in MOOSDB for a helm that starts later. The helm's ``IVPHELM_STATE`` is the sign
+of life (:meth:`MoosAutonomy.heard`): the daemon aborts a survey flown while the helm is silent
+for ``silence`` seconds (AUTONOMY_SILENT).
 
 **Time.** ``now`` (reports, timeouts) is CoEx's clock, real seconds. What is posted carries the
 community's MOOS time (``time_warp``, pCoex: the mission's ``MOOSTimeWarp``), so a warped helm
@@ -190,8 +193,14 @@ class MoosAutonomy(Autonomy):
         "wpt_index_var": ("WPT_INDEX", "the behaviour's wpt_index_var"),
         "endflag": ("", "another 'VAR = value' the behaviour posts at its end (COMPLETED); '' = none"),
         "time_warp": (1.0, "the community's MOOSTimeWarp (pCoex: the mission's): posts carry the warped MOOS time"),
-        "timeout": (10.0, "seconds (real) to wait for the helm's answer, for the behaviour to run, "
-                          "and the longest helm silence while flying"),
+        "timeout": (10.0, "seconds (real) to wait for the helm's answer and for the behaviour to run"),
+        "position_fix_var": ("USM_RESET", "variable topside's position fixes are posted to as 'x=X,y=Y' "
+                                          "(uSimMarine's USM_RESET moves the simulated vehicle there; a vehicle's "
+                                          "navigation names its own); '' = refuse them"),
+        "position_fix_full_var": ("COEX_POSITION_FIX", "also posted: 'x=X,y=Y,time=T,sigma=S,depth=D,source=...' "
+                                                       "for a navigation that fuses fixes; '' = none"),
+        "silence": (10.0, "seconds (real) without IVPHELM_STATE while a survey flies before it is aborted "
+                          "AUTONOMY_SILENT (0: not watched)"),
     }
 
     @classmethod
@@ -209,7 +218,7 @@ class MoosAutonomy(Autonomy):
                 except ValueError as exc:
                     p.said(key, f"{who}: option {key!r} must be {exc}")
         for key in ("name", "behavior", "updates_var", "wpt_status_var", "wpt_index_var", "depth_var",
-                    "altitude_var", "deactivate", "update_extra"):
+                    "altitude_var", "deactivate", "update_extra", "position_fix_var", "position_fix_full_var"):
             v = options.get(key, "x")
             must = key in ("name", "behavior", "updates_var", "wpt_status_var", "wpt_index_var", "deactivate")
             if not isinstance(v, str) or (must and not v) or (
@@ -221,6 +230,7 @@ class MoosAutonomy(Autonomy):
                                    "the behaviour's name itself)")
         check_time_warp(p, who, options)
         p.option_number(who, options, "timeout", positive=True)
+        p.option_number(who, options, "silence", minimum=0.0)
         return p
 
     def __init__(self, options: Mapping[str, Any], context: Any, client: Any = None) -> None:
@@ -269,6 +279,22 @@ class MoosAutonomy(Autonomy):
             self.client.close()
             self.client = None
 
+    def aid(self, fix: Any, now: float) -> bool:
+        """A position fix posted to ``position_fix_var`` as ``x=X,y=Y`` (local metres: the MOOS
+        community's NAV frame at ``node.origin``) and to ``position_fix_full_var`` with its time,
+        sigma, depth and source."""
+        var, full = self.config["position_fix_var"], self.config["position_fix_full_var"]
+        if not var:
+            return False
+        if self.client is None:
+            self.open()
+        self.client.notify(var, f"x={_n(fix.x)},y={_n(fix.y)}")
+        if full:
+            depth = "" if fix.depth is None else f",depth={_n(fix.depth)}"
+            self.client.notify(full, f"x={_n(fix.x)},y={_n(fix.y)},time={fix.time:.1f},sigma={_n(fix.sigma)}"
+                                     f"{depth},source={fix.source}")
+        return True
+
     # ------------------------------------------------------------------ submit
     def submit(self, plan: Any, now: float) -> None:
         if self.client is None:
@@ -300,6 +326,34 @@ class MoosAutonomy(Autonomy):
         self._pending = {}
         log.info("moos: following survey %s again after a restart (nothing posted to the helm)", plan.survey_id)
         return True
+
+    def end(self, survey_id: int, now: float) -> None:
+        """The survey ended: stop following it and, unless a newer survey was handed over since,
+        post the ended form: ``activate``'s variable = ``deactivate`` (the behaviour off) and
+        ``updates_var`` = ``name=<behavior>`` (no points: MOOSDB keeps the newest value of a
+        variable, and a helm that starts later reads it, so what it reads is no survey)."""
+        if self.client is None:
+            self.open()
+        sid = int(survey_id)
+        if self.plan is not None and int(self.plan.survey_id) != sid:
+            return  # a newer survey is the helm's now
+        self._phase = None
+        self.client.notify(self.activate_var, self.deactivate_value)
+        self.client.notify(self.config["updates_var"], f"name={self.behavior}")
+        log.info("moos: survey %s ended: %s = %s, %s holds no survey", sid, self.activate_var,
+                 self.deactivate_value, self.config["updates_var"])
+
+    def heard(self, now: float) -> float | None:
+        """When the helm last posted IVPHELM_STATE (it does every iteration; -inf: never); while
+        the MOOSDB itself is out of reach, now (no helm can be heard, nor be called silent)."""
+        if self.client is None:
+            return None
+        if not self.client.connected:
+            return float(now)
+        return -math.inf if self.helm_state_at is None else self.helm_state_at
+
+    def silent_detail(self) -> str:
+        return "no IVPHELM_STATE from the helm"
 
     # ------------------------------------------------------------------ reports
     def _report(self, state: SurveyState, now: float, reason: SurveyReason = SurveyReason.NONE,
@@ -370,8 +424,6 @@ class MoosAutonomy(Autonomy):
         elif self._phase == _ACTIVATED and waited > self.timeout:
             stop = self.allstop if self.allstop and self.allstop.lower() != "clear" else f"helm {self.helm_state}"
             self._end(SurveyReason.AUTONOMY_STOPPED, now, self._no_helm(now) or f"{self.behavior} did not run ({stop})")
-        elif self._phase == _FLYING and self.helm_state_at is not None and now - self.helm_state_at > self.timeout:
-            self._end(SurveyReason.AUTONOMY_STOPPED, now, f"no IVPHELM_STATE for {now - self.helm_state_at:.0f} s")
 
     def _no_helm(self, now: float) -> str:
         """Why no helm answers, or "" when one is heard."""

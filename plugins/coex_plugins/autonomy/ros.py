@@ -23,10 +23,24 @@ What it reads: ``progress_topic`` (``/coex/survey/progress``), a ``std_msgs/Stri
   MANUAL_OVERRIDE, ``aborted all_stop WHY`` -> ALL_STOP, ``aborted restarted WHY`` ->
   AUTONOMY_RESTARTED.
 
-An answer naming another survey, an answer after the survey ended, a repeated ``started K`` and
-anything else are logged (once) and dropped. No answer within ``answer_timeout`` seconds of the
-submit -> REJECTED, AUTONOMY_NO_ANSWER (``value``: the seconds waited; ``detail`` says whether a
-planner was subscribed to the path at all). Reports are stamped with the daemon's ``now``.
+An answer about a survey this output handed over earlier, or about the survey after it ended, is
+reported as it is (the daemon's survey lifecycle records it as a late answer and, for a
+``started``, takes the survey back again); an answer naming a survey it never handed over, a
+repeated ``started K`` and anything else are logged (once) and dropped. No answer within
+``answer_timeout`` seconds of the submit -> REJECTED, AUTONOMY_NO_ANSWER (``detail``: the
+seconds waited, and whether a planner was subscribed to the path at all). Reports are stamped
+with the daemon's ``now``.
+
+**The ended form.** When a survey ends (:meth:`RosAutonomy.end`) and it is the one latched, both
+topics are replaced, still latched: ``path_topic`` by an empty ``nav_msgs/Path`` (no poses; a
+planner flies nothing, and stops flying what it flies) and ``plan_topic`` by ``{"survey_id": 7,
+"ended": true, "waypoints": 0, ...}``. A planner that starts or respawns later gets that, never
+the ended survey.
+
+**Liveness** (:meth:`RosAutonomy.heard`): the planner is alive while its publisher of the
+progress topic is connected to CoEx (ROS 1 connections are peer to peer: a roscore restart does
+not break them; a planner that dies closes it) or it answers; the daemon aborts a survey it
+flies when neither holds for ``silence`` seconds.
 """
 
 from __future__ import annotations
@@ -45,7 +59,7 @@ from coex.messages import SurveyKind, SurveyReason, SurveyState
 from ..options import LogOnce, Problems
 from ..survey.plan import SurveyReport
 
-__all__ = ["RosAutonomy", "parse_progress", "plan_json"]
+__all__ = ["RosAutonomy", "ended_json", "parse_progress", "plan_json"]
 
 log = logging.getLogger(__name__)
 
@@ -88,7 +102,15 @@ def plan_json(plan: Any, stamp: float, frame: str) -> str:
     return json.dumps({
         "survey_id": int(plan.survey_id), "kind": SurveyKind(plan.kind).name.lower(),
         "waypoints": len(plan.waypoints), "altitude": plan.altitude, "depth": plan.depth,
-        "speed": plan.speed, "frame": frame, "stamp": round(float(stamp), 6),
+        "speed": plan.speed, "frame": frame, "stamp": round(float(stamp), 6), "ended": False,
+    })
+
+
+def ended_json(survey_id: int, stamp: float, frame: str) -> str:
+    """The JSON of ``plan_topic`` once survey ``survey_id`` ended (its ended form)."""
+    return json.dumps({
+        "survey_id": int(survey_id), "kind": None, "waypoints": 0, "altitude": None, "depth": None,
+        "speed": None, "frame": frame, "stamp": round(float(stamp), 6), "ended": True,
     })
 
 
@@ -107,12 +129,17 @@ class RosAutonomy(Autonomy):
         "frame": ("coex_local", "frame_id of the path: the local grid (x east, y north, z up)"),
         "answer_timeout": (10.0, "seconds without any answer after a submit before it is reported "
                                  "REJECTED / AUTONOMY_NO_ANSWER (0: wait forever)"),
+        "position_fix_topic": ("/coex/position_fix", "where topside's position fixes go: "
+                                                     "geometry_msgs/PoseWithCovarianceStamped (robot_localization's "
+                                                     "pose input); '' = refuse them"),
+        "silence": (10.0, "seconds without the planner (its progress publisher connected, or an answer) "
+                          "while a survey flies before it is aborted AUTONOMY_SILENT (0: not watched)"),
     }
 
     @classmethod
     def check(cls, options: Mapping[str, Any]) -> Problems:
         p = Problems()
-        for key in ("master", "node", "path_topic", "plan_topic", "progress_topic", "frame"):
+        for key in ("master", "node", "path_topic", "plan_topic", "progress_topic", "frame", "position_fix_topic"):
             v = options.get(key, "x")
             if not isinstance(v, str) or (key in ("node", "path_topic", "progress_topic") and not v.strip()):
                 p.said(key, f"autonomy 'ros': option {key!r} must be a "
@@ -121,10 +148,10 @@ class RosAutonomy(Autonomy):
         master = options.get("master", "")
         if isinstance(master, str) and master and not master.startswith(("http://", "https://")):
             p.said("master", f"autonomy 'ros': option 'master' must be an http:// URI, not {master!r}")
-        t = options.get("answer_timeout", 10.0)
-        if isinstance(t, bool) or not isinstance(t, int | float) or not math.isfinite(t) or t < 0:
-            p.said("answer_timeout",
-                   f"autonomy 'ros': option 'answer_timeout' must be a number of seconds >= 0, not {t!r}")
+        for key in ("answer_timeout", "silence"):
+            t = options.get(key, 10.0)
+            if isinstance(t, bool) or not isinstance(t, int | float) or not math.isfinite(t) or t < 0:
+                p.said(key, f"autonomy 'ros': option {key!r} must be a number of seconds >= 0, not {t!r}")
         return p
 
     def __init__(self, options: Mapping[str, Any], context: Any) -> None:
@@ -132,6 +159,7 @@ class RosAutonomy(Autonomy):
         self.node: Any = None
         self._path: Any = None
         self._plan_pub: Any = None
+        self._fix_pub: Any = None
         self._sub: Any = None
         self._answers: deque[str] = deque(maxlen=1000)
         self._lock = threading.Lock()
@@ -140,8 +168,14 @@ class RosAutonomy(Autonomy):
         self._answered = True
         self._done = True
         self._index: int | None = None
+        #: the survey whose path is latched now (None: none, or its ended form)
+        self.latched: int | None = None
+        #: surveys handed over before the one flown now (their answers are late answers)
+        self._handed: deque[int] = deque(maxlen=64)
+        self._heard: float | None = None
+        self._out: list[SurveyReport] = []
         self._problem = LogOnce(log)
-        self.stats = {"published": 0, "received": 0, "ignored": 0}
+        self.stats = {"published": 0, "received": 0, "ignored": 0, "ended": 0}
 
     def open(self) -> None:
         if self.node is not None:
@@ -153,6 +187,8 @@ class RosAutonomy(Autonomy):
         self._path = node.publisher(c["path_topic"], "nav_msgs/Path", latch=True)
         if c["plan_topic"]:
             self._plan_pub = node.publisher(c["plan_topic"], "std_msgs/String", latch=True)
+        if c["position_fix_topic"]:
+            self._fix_pub = node.publisher(c["position_fix_topic"], "geometry_msgs/PoseWithCovarianceStamped")
         self._sub = node.subscribe(c["progress_topic"], self._on_answer, queue=100)
         self.node = node
 
@@ -171,12 +207,24 @@ class RosAutonomy(Autonomy):
 
     def close(self) -> None:
         if self.node is not None:
-            for pub in (self._path, self._plan_pub):
+            for pub in (self._path, self._plan_pub, self._fix_pub):
                 if pub is not None:
                     pub.close()
             if self._sub is not None:
                 self.node.unsubscribe(self._sub)
             self.node = None
+
+    def aid(self, fix: Any, now: float) -> bool:
+        """A position fix published on ``position_fix_topic`` as a
+        ``geometry_msgs/PoseWithCovarianceStamped`` in ``frame``."""
+        if not self.config["position_fix_topic"]:
+            return False
+        if self.node is None:
+            self.open()
+        from coex.ros import msgs
+
+        self._fix_pub.publish(msgs.position_fix(fix, self.node.message_class, self.config["frame"]))
+        return True
 
     def submit(self, plan: Any, now: float) -> None:
         if self.node is None:
@@ -186,14 +234,16 @@ class RosAutonomy(Autonomy):
         c = self.config
         z = -float(plan.depth) if plan.depth is not None else 0.0
         path = msgs.path(plan.waypoints, self.node.message_class, now, c["frame"], z=z, speed=plan.speed)
-        with self._lock:
-            self._answers.clear()  # answers about an older survey (before publishing: a quick
-            # planner's first answer to this one must not be cleared with them)
+        self._drain(now)  # answers about an older survey are that one's (before publishing: a quick
+        # planner's first answer to this one must not be taken for the older one's)
+        if self.plan is not None:
+            self._handed.append(int(self.plan.survey_id))
         self.plan, self._since, self._answered, self._done, self._index = plan, float(now), False, False, None
         if self._plan_pub is not None:
             text = self.node.message("std_msgs/String", data=plan_json(plan, now, c["frame"]))
             self._plan_pub.publish(text)
         sent = self._path.publish(path)
+        self.latched = int(plan.survey_id)
         self.stats["published"] += 1
         log.info("ros: survey %s (%d waypoints) %s %s", plan.survey_id, len(plan.waypoints),
                  "published on" if sent else "waits for the ROS master to publish on", c["path_topic"])
@@ -212,13 +262,67 @@ class RosAutonomy(Autonomy):
         self.plan, self._since, self._answered, self._done, self._index = plan, float(now), True, False, None
         return True
 
+    def end(self, survey_id: int, now: float) -> None:
+        """The survey ended: stop following it and, when its path is the one latched (or none is,
+        after a restart), latch the ended form instead (module docstring)."""
+        if self.node is None:
+            self.open()
+        sid = int(survey_id)
+        if self.plan is not None and int(self.plan.survey_id) == sid:
+            self._done = True
+        if sid not in self._handed and (self.plan is None or int(self.plan.survey_id) != sid):
+            self._handed.append(sid)  # after a restart: its late answers are still its own
+        if self.latched not in (None, sid):
+            return  # a newer survey is latched: a planner that starts later gets that one
+        c = self.config
+        if self._plan_pub is not None:
+            self._plan_pub.publish(self.node.message("std_msgs/String", data=ended_json(sid, now, c["frame"])))
+        from coex.ros import msgs
+
+        self._path.publish(msgs.path([], self.node.message_class, now, c["frame"]))
+        self.latched = None
+        self.stats["ended"] += 1
+        log.info("ros: survey %s ended: %s holds the ended form (an empty path)", sid, c["path_topic"])
+
+    def heard(self, now: float) -> float | None:
+        """Now while a planner's publisher of the progress topic is connected to CoEx, else when
+        one last was or last answered (-inf: never since this output opened; None: not opened).
+        Only that side is read: a subscriber that dies (the planner's to the path) is noticed
+        by rospy only when the next message is sent, a publisher that dies at once (its
+        connection's end of stream)."""
+        if self.node is None:
+            return None
+        if self._sub is not None and self._sub.connections() > 0:
+            self._heard = float(now)
+        return -math.inf if self._heard is None else self._heard
+
+    def silent_detail(self) -> str:
+        return f"no planner on {self.config['progress_topic']}"
+
     def poll(self, now: float) -> list[Any]:
         if self.node is None:
             return []
+        self._drain(now)
+        out, self._out = self._out, []
+        timeout = float(self.config["answer_timeout"])
+        if self.plan is not None and not self._answered and not self._done and timeout > 0 \
+                and now - self._since >= timeout:
+            listeners = self._path.connections() if self._path is not None else 0
+            waited = now - self._since
+            why = (f"no answer on {self.config['progress_topic']}" if listeners else
+                   f"no planner subscribed to {self.config['path_topic']}")
+            log.warning("ros: survey %s: %s within %g s", self.plan.survey_id, why, timeout)
+            # the seconds first: a long topic name is what the 48 bytes of detail cut
+            self._report(out, SurveyState.REJECTED, now, SurveyReason.AUTONOMY_NO_ANSWER,
+                         detail=f"{round(waited, 1):g} s, {why}")
+        return out
+
+    def _drain(self, now: float) -> None:
+        """The planner's answers received since the last call, into the reports of the next poll."""
         with self._lock:
             answers = list(self._answers)
             self._answers.clear()
-        out: list[Any] = []
+        out = self._out
         for text in answers:
             self.stats["received"] += 1
             try:
@@ -227,11 +331,16 @@ class RosAutonomy(Autonomy):
                 self.stats["ignored"] += 1
                 self._problem(f"parse:{text[:40]}", "ros: answer %r not understood: %s", text, exc)
                 continue
-            if self.plan is None or self._done or (sid is not None and sid != int(self.plan.survey_id)):
+            self._heard = float(now)
+            current = None if self.plan is None else int(self.plan.survey_id)
+            about = current if sid is None else sid
+            if about is None or (about != current and about not in self._handed):
                 self.stats["ignored"] += 1
-                log.info("ros: answer %r dropped (survey %s %s)", text,
-                         None if self.plan is None else self.plan.survey_id,
-                         "ended" if self._done else "flown now")
+                self._problem(f"other:{about}", "ros: answer %r dropped (survey %s was not handed over by "
+                              "this output; survey %s is flown now)", text, about, current)
+                continue
+            if about != current or self._done:  # a late answer: the daemon's lifecycle records it
+                out.append(SurveyReport(int(about), state, float(now), reason, index, None, detail))
                 continue
             if state == SurveyState.STARTED:
                 n = len(self.plan.waypoints)
@@ -244,12 +353,3 @@ class RosAutonomy(Autonomy):
             elif state == SurveyState.COMPLETED and self._index is None:
                 self._report(out, SurveyState.STARTED, now, index=0)  # it did set off
             self._report(out, state, now, reason, index, None, detail)
-        timeout = float(self.config["answer_timeout"])
-        if self.plan is not None and not self._answered and timeout > 0 and now - self._since >= timeout:
-            listeners = self._path.connections() if self._path is not None else 0
-            why = (f"no answer on {self.config['progress_topic']}" if listeners else
-                   f"no planner subscribed to {self.config['path_topic']}")
-            log.warning("ros: survey %s: %s within %g s", self.plan.survey_id, why, timeout)
-            self._report(out, SurveyState.REJECTED, now, SurveyReason.AUTONOMY_NO_ANSWER,
-                         value=round(now - self._since, 1), detail=why)
-        return out

@@ -94,6 +94,14 @@ class SimAutonomy(Autonomy):
         if not self._route:
             self._out.append(SurveyReport(plan.survey_id, SurveyState.COMPLETED, float(now)))
 
+    def end(self, survey_id: int, now: float) -> None:
+        """The survey ended: if it is the one flown, the vehicle stops where it is."""
+        if self._plan is None or int(self._plan.survey_id) != int(survey_id) or self._done:
+            return
+        self._flush(now)
+        here = self.position(now)
+        self._pos, self._t0, self._route, self._arrive, self._done = here, float(now), [], [], True
+
     def poll(self, now: float) -> list[Any]:
         self._flush(now)
         out, self._out = self._out, []

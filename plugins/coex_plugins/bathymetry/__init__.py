@@ -1,7 +1,9 @@
-"""Bathymetry modality: a real-time quadtree seafloor map sent as compact, self-contained subgrids.
+"""Bathymetry modality: a real-time quadtree seafloor map sent as compact subgrids.
 
 Subsea, :class:`BathymetrySender` ingests multibeam soundings (``N x 3`` arrays, ``.npy``, ``.csv``
-or ROS bags) into a :class:`QuadtreeMap` and streams changed subgrids coarsest level first;
+or ROS bags) into a :class:`QuadtreeMap` and streams changed subgrids coarsest level first, each
+predicted from the coarser level topside already holds where frame acks say it does
+(:class:`~coex_core.messages.PredictedSubgrid`), on its own otherwise;
 topside, :class:`BathymetryReceiver` assembles every level, tracks what it holds and how old it
 is, and asks for regions or gaps (:class:`~coex_core.messages.MapRoiRequest`). See
 ``docs/bathymetry.md``.
@@ -13,7 +15,14 @@ from collections.abc import Mapping
 from typing import Any, ClassVar
 
 from coex import Modality, decode_subgrid, decode_subgrid_units, encode_subgrid, subgrid_bits
-from coex.messages import MapMetadata, MapRoiReply, MapRoiRequest, Message, Subgrid
+from coex.messages import (
+    MapMetadata,
+    MapRoiReply,
+    MapRoiRequest,
+    Message,
+    PredictedSubgrid,
+    Subgrid,
+)
 
 from .baseline import size_2022
 from .export import (
@@ -64,7 +73,7 @@ class BathymetryModality(Modality):
 
     name: ClassVar[str] = "bathymetry"
     version: ClassVar[str] = "1"
-    messages: ClassVar[tuple[type[Message], ...]] = (MapMetadata, Subgrid, MapRoiReply)
+    messages: ClassVar[tuple[type[Message], ...]] = (MapMetadata, Subgrid, PredictedSubgrid, MapRoiReply)
     requests: ClassVar[tuple[type[Message], ...]] = (MapRoiRequest,)
     #: map metadata once a minute (23 B) while the dive goes on, after every subgrid is held
     keepalive_bytes_per_hour: ClassVar[int] = 1500

@@ -2,7 +2,8 @@
 
 ``coex bathy roundtrip POINTS --out DIR [--loss P] [--seed S]`` ingests POINTS (``.npy``,
 ``.csv`` or a ROS bag), runs the subsea sender and the topside receiver over an in-memory lossy
-link with the default policy (plus the receiver's automatic gap filling) until everything has
+link with the default policy (plus the receiver's automatic gap filling, and frame acks that
+tell the sender what arrived, so subgrids are predicted from what topside holds) until everything has
 been sent and every gap repaired, and writes ``DIR/messages.jsonl``, ``DIR/level_<k>.tif`` (and a
 ``.png`` preview) per level, and ``DIR/summary.json``.
 
@@ -24,7 +25,6 @@ from coex import (
     CoexError,
     ConfigError,
     RoundTrip,
-    decode_subgrid_units,
     to_json,
     wire,
 )
@@ -33,7 +33,9 @@ from coex.messages import (
     MapRoiReply,
     MapRoiRequest,
     Message,
+    PredictedSubgrid,
     Subgrid,
+    SubgridMessage,
 )
 
 from .baseline import size_2022
@@ -49,7 +51,7 @@ LINK_RATE = 100.0
 
 
 def _level_of(m: Message) -> int | None:
-    if isinstance(m, Subgrid | MapRoiRequest | MapRoiReply):
+    if isinstance(m, SubgridMessage | MapRoiRequest | MapRoiReply):
         return int(m.level)
     return None
 
@@ -60,7 +62,9 @@ def _record(m: Message, t: float, direction: str) -> dict[str, Any]:
                            "bytes": len(data), "hex": data.hex()}
     if isinstance(m, Subgrid):
         rec.update(ix=m.ix, iy=m.iy, stamp=m.stamp, encoding=m.encoding.name)
-    elif not isinstance(m, Subgrid):
+    elif isinstance(m, PredictedSubgrid):
+        rec.update(ix=m.ix, iy=m.iy, stamp=m.stamp, context=m.context.name, predictor=m.predictor)
+    else:
         rec["message"] = {k: v for k, v in to_json(m).items() if k != "type"}
     return rec
 
@@ -91,7 +95,8 @@ def roundtrip(
         n_points += len(xyz)
     sender.map.flush(force=True)
     link = RoundTrip(sender, receiver, mtu=FRAME_BYTES, down=Bernoulli(loss, seed), up=Bernoulli(loss, seed + 1),
-                     round_seconds=round_seconds, now=t_data + sender.send_delay, decode=True, rejects=(CoexError,))
+                     round_seconds=round_seconds, now=t_data + sender.send_delay, decode=True, rejects=(CoexError,),
+                     acks=True)
     rounds = 0
     idle = 0
     while rounds < max_rounds:
@@ -108,11 +113,13 @@ def roundtrip(
     subgrid_bytes: dict[int, list[int]] = {}
     bytes_2022: dict[int, list[int]] = {}
     for m in link.sent:
-        if isinstance(m, Subgrid):
+        if isinstance(m, SubgridMessage):
             subgrid_bytes.setdefault(m.level, []).append(wire.encoded_size(m))
-            q = decode_subgrid_units(m)
-            present = q != np.iinfo(np.int64).min
-            bytes_2022.setdefault(m.level, []).append(size_2022(present, np.where(present, q, 0)))
+            blk = sender.map.block(m.level, m.ix, m.iy)  # every sounding was in before the first fill
+            assert blk is not None
+            present = blk.count > 0
+            q = np.rint(np.where(present, blk.mean, 0.0) / sender.map.vertical_resolution).astype(np.int64)
+            bytes_2022.setdefault(m.level, []).append(size_2022(present, q))
     with (out_dir / "messages.jsonl").open("w") as fh:
         for rec in records:
             fh.write(json.dumps(rec) + "\n")

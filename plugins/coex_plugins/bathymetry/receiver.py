@@ -37,16 +37,21 @@ from coex import (
     RequestRejected,
     StateError,
     Storage,
-    decode_subgrid,
     merged_config,
     persistent,
-    unwrap,
 )
-from coex.messages import MapMetadata, MapRoiReply, MapRoiRequest, Message, Subgrid
+from coex.messages import (
+    MapMetadata,
+    MapRoiReply,
+    MapRoiRequest,
+    Message,
+    SubgridMessage,
+)
 from coex.tracker import Event
 
 from .legacy import import_v1
 from .overview import CHUNK, Overview, blocks_from, cells_from, window_blocks
+from .predicted_rx import PredictedInput
 from .regions import Region, plan
 from .tiles import LevelIndex, LevelStats, Tile, decode_tile, encode_tile, same_storage, tile_name
 from .tilestore import TileCache
@@ -89,12 +94,14 @@ def _upgrade_receiver(fields: dict[str, Any], saved: int) -> dict[str, Any]:
         fields["_legacy"] = (fields.pop("held", {}), fields.pop("_mosaics", {}),
                              fields.pop("off_mosaic", set()))
         fields["config"] = {**RECEIVER_DEFAULTS, **dict(fields.get("config") or {})}
+    if saved < 4:  # version 4 keeps each level's vertical resolution (predicted subgrids)
+        fields.update(_vres={}, set_aside=0, resolved=0)
     return fields
 
 
-@persistent("bathymetry.Receiver", version=3, upgrade=_upgrade_receiver,
-            transient=("_tiles", "_cache", "_overviews", "_ov_dirty"))
-class BathymetryReceiver(ModalityReceiver):
+@persistent("bathymetry.Receiver", version=4, upgrade=_upgrade_receiver,
+            transient=("_tiles", "_cache", "_overviews", "_ov_dirty", "_waiting"))
+class BathymetryReceiver(PredictedInput, ModalityReceiver):
     """Assembles every level as subgrids arrive and keeps, per subgrid, its stamp and arrival time.
 
     Requests: :meth:`request_region` (stamps of what topside holds, the implicit ack; the vehicle
@@ -139,6 +146,10 @@ class BathymetryReceiver(ModalityReceiver):
         self.metadata: MapMetadata | None = None
         self._versions: dict[int, int] = {}
         self._geometry: dict[int, tuple[float, int]] = {}
+        #: each level's vertical resolution (the parent level's is a predicted subgrid's)
+        self._vres: dict[int, float] = {}
+        self.set_aside = 0
+        self.resolved = 0
         self.regions: list[Region] = []
         self._by_id: dict[int, Region] = {}
         self._next_id = 0
@@ -176,6 +187,7 @@ class BathymetryReceiver(ModalityReceiver):
         self._after_restore()
 
     def _after_restore(self) -> None:
+        self._init_waiting()
         legacy = self.__dict__.pop("_legacy", None)
         if legacy is not None:
             self._init_tiles(self.config)
@@ -329,7 +341,7 @@ class BathymetryReceiver(ModalityReceiver):
     # ---------------------------------------------------------------------------- receive
 
     def receive(self, message: Message, now: float) -> list[Product]:
-        if isinstance(message, Subgrid):
+        if isinstance(message, SubgridMessage):
             return self._subgrid(message, now)
         if isinstance(message, MapMetadata):
             self.metadata = message
@@ -361,29 +373,6 @@ class BathymetryReceiver(ModalityReceiver):
                                        due=now + self.request_timeout + self.subgrid_wait * message.queued)
             return []
         return []
-
-    def _subgrid(self, sg: Subgrid, now: float) -> list[Product]:
-        level = sg.level
-        cell = sg.resolution * (1 << level)
-        geometry = self._geometry.get(level)
-        if geometry is None:
-            self._geometry[level] = (cell, sg.side)
-            self._stats[level] = LevelStats()
-        elif geometry[1] != sg.side or geometry[0] != cell:
-            self.mismatched += 1  # the level's cells would not line up: ignored
-            return []
-        stamp = unwrap(sg.stamp, now)
-        n = self.tile_subgrids
-        tx, lx = divmod(sg.ix, n)
-        ty, ly = divmod(sg.iy, n)
-        tile = self._tile(level, tx, ty, create=True)
-        assert tile is not None
-        if tile.held[ly, lx] and tile.stamp[ly, lx] >= stamp:
-            self.duplicates += 1
-            return []
-        self._put(level, tile, sg.ix, sg.iy, lx, ly, stamp, decode_subgrid(sg), now, draw=True)
-        self._versions[level] = self._versions.get(level, 0) + 1
-        return [self.level_product(level)]
 
     def _hold(self, level: int, ix: int, iy: int, stamp: float, values: FloatArray, received: float,
               draw: bool) -> None:

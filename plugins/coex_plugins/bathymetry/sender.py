@@ -5,7 +5,6 @@ from __future__ import annotations
 import heapq
 import logging
 import math
-import zlib
 from collections.abc import Iterable, Mapping
 from typing import Any
 
@@ -16,18 +15,24 @@ from coex import (
     ModalitySender,
     RequestRejected,
     Storage,
-    encode_subgrid,
     merged_config,
     persistent,
-    subgrid_bits,
     to_stamp,
     unwrap,
     wire,
 )
-from coex.messages import MapMetadata, MapRoiReply, MapRoiRequest, Message, Subgrid
+from coex.messages import (
+    MapMetadata,
+    MapRoiReply,
+    MapRoiRequest,
+    Message,
+    SubgridMessage,
+)
 from coex.wire import SUBGRID_RESOLUTIONS as RESOLUTIONS
 from coex.wire import SUBGRID_VERTICAL_RESOLUTIONS as VERTICAL_RESOLUTIONS
 
+from .coding import Built, SubgridCoding
+from .context import ContextBook
 from .points import pointcloud2_xyz
 from .quadtree import InputError, QuadtreeMap, _grow
 
@@ -60,8 +65,9 @@ SENDER_DEFAULTS: dict[str, Any] = {
     "max_standing": 32,
 }
 
-#: Smallest possible subgrid message (an all-equal block): stop filling below this.
-MIN_SUBGRID_BYTES = 12
+#: Smallest possible subgrid message (a predicted block equal to its prediction): stop filling
+#: below this.
+MIN_SUBGRID_BYTES = 10
 #: a provisional subgrid (spare work) has been quiet for at least this long (s)
 PROVISIONAL_QUIET = 3.0
 #: After this many subgrids that did not fit, ``fill`` stops looking for smaller ones (keeps it cheap).
@@ -77,14 +83,6 @@ MAX_REGIONS_REMEMBERED = 1024
 FOCUS_EXPIRY = 1800.0
 
 
-def _fingerprint(sg: Subgrid) -> int:
-    """A digest of a subgrid's wire bytes, the same in every process: it is saved with the
-    sender's state (Python's ``hash`` of a message differs between processes, through the
-    enum's name and ``None``, so a restarted vehicle took a confirmed subgrid's loss for a
-    real one and sent it again)."""
-    return zlib.crc32(wire.encode(sg))
-
-
 def _upgrade_sender(fields: dict[str, Any], saved: int) -> dict[str, Any]:
     """Version 1 (0.1.0 and early 0.2 work) was saved before detections (no focused subgrids,
     no low-link flag) or before spare work (no re-send list, confirmations or standing region
@@ -98,11 +96,16 @@ def _upgrade_sender(fields: dict[str, Any], saved: int) -> dict[str, Any]:
         out.update(_resend={}, _confirmed={}, _standing={}, _standing_checked=-math.inf)
         out.setdefault("standing_expiry", float(SENDER_DEFAULTS["standing_expiry"]))
         out.setdefault("max_standing", int(SENDER_DEFAULTS["max_standing"]))
+    if saved < 3:
+        # version 3 predicts subgrids from what topside holds (ContextBook, built in
+        # _after_restore) and confirms versions by their cells, not their bytes: the cache and
+        # the confirmations of version 2 are dropped (at worst a confirmed subgrid goes again)
+        out.update(_cache={}, _confirmed={}, _book=None)
     return out
 
 
-@persistent("bathymetry.Sender", version=2, upgrade=_upgrade_sender)
-class BathymetrySender(ModalitySender):
+@persistent("bathymetry.Sender", version=3, upgrade=_upgrade_sender)
+class BathymetrySender(SubgridCoding, ModalitySender):
     """Ingests soundings into a :class:`QuadtreeMap` and answers ``fill(max_bytes, now)``.
 
     Policy: requested subgrids first (FIFO), then background subgrids, coarsest level first; a
@@ -156,7 +159,7 @@ class BathymetrySender(ModalitySender):
         self._meta_due = False
         self._had_background = False
         self._pending = 0
-        self._cache: dict[Key, tuple[int, Subgrid, int]] = {}
+        self._cache: dict[Key, Built] = {}
         #: Subgrids whose elevations do not fit the wire (|z| >= 2**19 vertical units): skipped.
         self.unsendable: set[Key] = set()
         self._init_spare()
@@ -170,8 +173,8 @@ class BathymetrySender(ModalitySender):
         self.focus_bytes = 0
         #: subgrids whose last sent version was lost: spare work (key -> when it was lost)
         self._resend: dict[Key, float] = {}
-        #: key -> CRC of the newest version a frame ack confirmed (its other copies' losses
-        #: do not make it spare work again)
+        #: key -> the newest version (content digest) a frame ack confirmed (its other copies'
+        #: losses do not make it spare work again)
         self._confirmed: dict[Key, int] = {}
         #: standing region requests: region -> (subgrids awaiting survey, expiry time)
         self._standing: dict[tuple[int, int, int, int, int, bool], tuple[set[Key], float]] = {}
@@ -183,6 +186,8 @@ class BathymetrySender(ModalitySender):
         cap = 4
         self._sent_t = [np.full((cap, p, p), -np.inf) for p in self._per_tile()]
         self._sent_when = [np.full((cap, p, p), np.nan) for p in self._per_tile()]
+        #: what topside is known to hold of the parent levels (subgrids predicted from them)
+        self._book: ContextBook | None = ContextBook(self._per_tile(), cap)
         #: tiles that may hold subgrids changed since they were sent (the sender looks only there)
         self._reset_index()
         #: what the map reported when it began dropping soundings (logged once)
@@ -205,6 +210,8 @@ class BathymetrySender(ModalitySender):
                 tile, a, b = self.map.tile_of_subgrid(level, ix, iy)
                 if self.map.has_tile(tile):
                     self._sent_when[level][self._sent_row(tile), b, a] = when
+        if self._book is None:  # saved by version 2 (before predicted subgrids)
+            self._book = ContextBook(self._per_tile(), self._sent_t[0].shape[0])
 
     # ---------------------------------------------------------------------------- ingest
 
@@ -226,6 +233,10 @@ class BathymetrySender(ModalitySender):
                 hasattr(data, a) for a in ("fields", "data", "point_step", "width", "height")):
             return pointcloud2_xyz(data)
         return data
+
+    def detector_view(self) -> QuadtreeMap:
+        """Detectors look at the vehicle's full-resolution map (a ``coex.MapView``)."""
+        return self.map
 
     def attach_storage(self, storage: Storage) -> None:
         """Spilled map tiles go to ``storage`` (the node's store)."""
@@ -251,6 +262,7 @@ class BathymetrySender(ModalitySender):
             self._sent_when = [_grow(a, cap, np.nan) for a in self._sent_when]
             self._tmin = [_grow(a, cap, np.inf) for a in self._tmin]
             self._dcount = [_grow(a, cap, 0) for a in self._dcount]
+            self.book.grow(cap)
         return n
 
     def _refresh(self, tile: tuple[int, int], levels: Iterable[int] | None = None) -> None:
@@ -300,54 +312,16 @@ class BathymetrySender(ModalitySender):
             return -math.inf
         return float(self.map.subgrid_times(tile, level)[b, a])
 
-    def build(self, key: Key) -> Subgrid | None:
-        """The current Subgrid message for ``key`` (None when the map has nothing there)."""
-        built = self._built(key)
-        return None if built is None else built[0]
-
-    def _built(self, key: Key) -> tuple[Subgrid, int] | None:
-        """The current Subgrid for ``key`` and its encoded size, cached until its tile changes (a
-        subgrid that did not fit one packet is not coded again for the next)."""
-        level, ix, iy = key
-        tile, _, _ = self.map.tile_of_subgrid(level, ix, iy)
-        version = self.map.tile_version(tile)
-        hit = self._cache.get(key)
-        if hit is not None and hit[0] == version:
-            return hit[1], hit[2]
-        try:
-            sg = self._build(key)
-        except ValueError as exc:  # elevations outside the wire's range: skip, never crash
-            self.unsendable.add(key)
-            log.warning("subgrid %s cannot be sent: %s", key, exc)
-            self._mark_sent(key, self.subgrid_time(key))
-            return None
-        if sg is None:
-            return None
-        size = (subgrid_bits(sg) + 7) // 8
-        self._cache[key] = (version, sg, size)
-        return sg, size
-
-    def _build(self, key: Key) -> Subgrid | None:
-        level, ix, iy = key
-        blk = self.map.block(level, ix, iy)
-        if blk is None or not (blk.count > 0).any():
-            return None
-        present = blk.count > 0
-        q = np.zeros(blk.mean.shape, np.int64)
-        q[present] = np.rint(blk.mean[present] / self.map.vertical_resolution).astype(np.int64)
-        return encode_subgrid(
-            q, present, level=level, ix=ix, iy=iy, stamp=to_stamp(blk.updated),
-            resolution=self.map.resolution, vertical_resolution=self.map.vertical_resolution,
-        )
-
     def _mark_sent(self, key: Key, updated: float, now: float | None = None) -> None:
-        self._cache.pop(key, None)
+        entry = self._cache.pop(key, None)
         self._resend.pop(key, None)
         level, ix, iy = key
         tile, a, b = self.map.tile_of_subgrid(level, ix, iy)
         if not self.map.has_tile(tile):
             return
         n = self._sent_row(tile)
+        if entry is not None and now is not None:  # a version went to the link (not a skip)
+            self.book.on_sent(n, key, entry[5])
         arr = self._sent_t[level][n]
         arr[b, a] = max(arr[b, a], updated)
         if now is not None:
@@ -591,15 +565,22 @@ class BathymetrySender(ModalitySender):
     def acked(self, message: Message, now: float) -> None:
         """A frame that carried a subgrid was acknowledged: a re-send of it (spare work) or a
         request for it still queued is answered, if the acknowledged copy is its current version
-        (a newer version stays queued)."""
-        if not isinstance(message, Subgrid):
+        (a newer version stays queued); at a parent level, topside now holds its cells
+        (predicted children may use them, :mod:`.context`)."""
+        got = self._version(message)
+        if got is None:
             return
-        key = (message.level, message.ix, message.iy)
-        self._confirmed[key] = _fingerprint(message)  # a copy of this version arrived
+        assert isinstance(message, SubgridMessage)
+        key, version = got
+        if version is not None:
+            self._confirmed[key] = version  # a copy of this version arrived
+            rec = self.book.version(message)
+            tile, _, _ = self.map.tile_of_subgrid(*key)
+            if rec is not None and self.map.has_tile(tile):
+                self.book.on_acked(self._sent_row(tile), key, rec[2])
         if key not in self._queued and key not in self._resend:
             return
-        built = self._built(key)
-        if built is not None and built[0] == message:
+        if self._is_current(key, message, version):
             self._resend.pop(key, None)
             if key in self._queued:
                 self._unqueue({key})
@@ -608,13 +589,14 @@ class BathymetrySender(ModalitySender):
         """No frame that carried a subgrid was acknowledged: if it is still the subgrid's
         current version (a newer one goes out with the background anyway), it becomes spare
         work."""
-        if not isinstance(message, Subgrid):
+        got = self._version(message)
+        if got is None:
             return
-        key = (message.level, message.ix, message.iy)
-        if self._confirmed.get(key) == _fingerprint(message):
+        assert isinstance(message, SubgridMessage)
+        key, version = got
+        if version is not None and self._confirmed.get(key) == version:
             return  # another copy of this version arrived (its ack may come after this copy's loss)
-        built = self._built(key)
-        if built is not None and built[0] == message:
+        if self._is_current(key, message, version):
             if self._focused.get(key, -math.inf) >= now and key not in self._queued \
                     and len(self._queue) < self.max_queue:
                 self._queue.append(key)  # around a detection: again, ahead of the background
@@ -751,9 +733,13 @@ class BathymetrySender(ModalitySender):
             if r.fill_gaps:
                 assert r.have is not None
                 want = not (r.have >> (n - 1 - i)) & 1
+                lacks = want
             else:
                 held = r.held[i]
                 want = held is None or math.floor(updated) > unwrap(held, now)
+                lacks = held is None
+            if lacks:
+                self._lacks(key)
             if want:
                 queued += 1
                 if key not in self._queued:
@@ -767,6 +753,14 @@ class BathymetrySender(ModalitySender):
             self._unqueue(held_now)
         waiting = self._stand(region, unsurveyed, now)
         return [MapRoiReply(r.request_id, r.level, min(queued, 1023), min(waiting, 1023))]
+
+    def _lacks(self, key: Key) -> None:
+        """Topside says it lacks ``key`` (whatever frame acks said): no confirmation of it
+        stands, and no child is predicted from its cells until a copy is acknowledged again."""
+        self._confirmed.pop(key, None)
+        tile, _, _ = self.map.tile_of_subgrid(*key)
+        if self.map.has_tile(tile):
+            self.book.forget(self._sent_row(tile), key)
 
     def _stand(self, region: tuple[int, int, int, int, int, bool], keys: set[Key], now: float) -> int:
         """Make the request for ``region`` stand for its ``keys`` not surveyed yet (replacing an

@@ -146,7 +146,7 @@ def _changed(a: float | None, b: float | None, tol: float) -> bool:
     return abs(a - b) >= tol
 
 
-def _build_detector(spec: Any, where: str) -> Detector:
+def _build_detector(spec: Any, where: str) -> Detector[Any]:
     if isinstance(spec, Detector):
         return spec
     if isinstance(spec, str):
@@ -173,8 +173,8 @@ class DetectionsSender(ModalitySender):
         specs = cfg["detectors"]
         if not isinstance(specs, list | tuple):
             raise ConfigError("detections sender: detectors must be a list")
-        self.detectors: list[Detector] = [_build_detector(d, f"detections sender: detectors[{i}]")
-                                          for i, d in enumerate(specs)]
+        self.detectors: list[Detector[Any]] = [_build_detector(d, f"detections sender: detectors[{i}]")
+                                               for i, d in enumerate(specs)]
         try:
             self.interval = float(cfg["interval"])
             self.min_score = float(cfg["min_score"])
@@ -198,7 +198,8 @@ class DetectionsSender(ModalitySender):
         self.focused = 0
         #: bytes of Detection messages handed to the link (each version, each re-send)
         self.bytes_sent = 0
-        #: detectors whose modality is not on this node (logged once each)
+        #: detectors whose modality is not on this node, or offers no view of their type
+        #: (logged once each)
         self._absent: set[int] = set()
 
     # ------------------------------------------------------------------ findings
@@ -220,12 +221,8 @@ class DetectionsSender(ModalitySender):
         self._last_run = now
         n = 0
         for i, d in enumerate(self.detectors):
-            data = self.peer(d.modality)
+            data = self._view(i, d)
             if data is None:
-                if i not in self._absent:
-                    self._absent.add(i)
-                    log.warning("detector %s looks at modality %r, which this node does not send",
-                                d.name, d.modality)
                 continue
             try:
                 found = d.detect(data, now)
@@ -239,7 +236,25 @@ class DetectionsSender(ModalitySender):
         self.found += n
         return n
 
-    def _take(self, detector: int, source: DetectionSource, f: Finding, d: Detector | None, now: float) -> None:
+    def _view(self, i: int, d: Detector[Any]) -> object | None:
+        """The view of ``d.modality``'s data ``d`` takes (its declared ``view``), or None (the
+        modality is not on this node, or offers no such view: logged once)."""
+        sender = self.peer(d.modality)
+        view = None if sender is None else sender.detector_view()
+        if view is not None and isinstance(view, d.view):
+            return view
+        if i not in self._absent:
+            self._absent.add(i)
+            if sender is None:
+                log.warning("detector %s looks at modality %r, which this node does not send",
+                            d.name, d.modality)
+            else:
+                log.warning("detector %s takes a %s of modality %r, whose sender offers %s", d.name,
+                            d.view.__name__, d.modality, "none" if view is None else type(view).__name__)
+        return None
+
+    def _take(self, detector: int, source: DetectionSource, f: Finding, d: Detector[Any] | None,
+              now: float) -> None:
         same = None
         for det in self.detections.values():
             if det.detector != detector:
@@ -261,11 +276,11 @@ class DetectionsSender(ModalitySender):
         # it): the modality sends only what changed since it went
         if (d is not None and f.score >= self.focus_score and d.neighbourhood > 0
                 and f.time > same.focused):
-            data = self.peer(d.modality)
-            if data is not None:
+            sender = self.peer(d.modality)
+            if sender is not None:
                 same.focused = f.time
                 try:
-                    self.focused += int(data.focus(f.x, f.y, d.neighbourhood, now))
+                    self.focused += int(sender.focus(f.x, f.y, d.neighbourhood, now))
                 except Exception as exc:  # the neighbourhood is a bonus: never fatal
                     log.warning("focus on %s failed: %s: %s", d.modality, type(exc).__name__, exc)
 

@@ -15,8 +15,9 @@ hull; :func:`~coex_plugins.bathymetry.relief.range_likeness`), or one ``target``
 A bump is judged only once the cells around it have been quiet for ``settle`` seconds (the
 swath has passed): a tile with a bump still changing is looked at again at the next run.
 
-It reads only the vehicle's map (``BathymetrySender.map``): the soundings as the sonar gave
-them, outliers rejected, never the simulation's truth.
+It reads only the vehicle's map (the bathymetry sender's view for detectors, a
+:class:`coex.MapView`): the soundings as the sonar gave them, outliers rejected, never the
+simulation's truth.
 """
 
 from __future__ import annotations
@@ -27,7 +28,7 @@ from typing import Any, ClassVar
 
 import numpy as np
 
-from coex import ConfigError, Detector, Finding, ModalitySender, merged_config, persistent
+from coex import ConfigError, Detector, Finding, MapView, merged_config, persistent
 from coex.messages import DetectionSource
 from coex_plugins.bathymetry.relief import (
     RANGE_FLATNESS_SPREAD,
@@ -66,11 +67,12 @@ DEFAULTS: dict[str, Any] = {
 
 
 @persistent("detections.ReliefDetector")
-class ReliefDetector(Detector):
+class ReliefDetector(Detector[MapView]):
     """Relief anomalies of the vehicle's bathymetry map (see the module docstring)."""
 
     name: ClassVar[str] = "relief"
     modality: ClassVar[str] = "bathymetry"
+    view = MapView
     source: ClassVar[DetectionSource] = DetectionSource.MAP
 
     def __init__(self, config: Mapping[str, Any] | None = None) -> None:
@@ -98,10 +100,8 @@ class ReliefDetector(Detector):
         #: tile -> the version of it last looked over completely
         self._looked: dict[tuple[int, int], int] = {}
 
-    def detect(self, data: ModalitySender, now: float) -> list[Finding]:
-        qmap = getattr(data, "map", None)
-        if qmap is None or not hasattr(qmap, "window"):
-            return []
+    def detect(self, data: MapView, now: float) -> list[Finding]:
+        qmap = data
         out: list[Finding] = []
         span = qmap.tile * qmap.resolution
         cell = qmap.resolution

@@ -378,9 +378,41 @@ def _scratch() -> str:
     return _tmpdir.name
 
 
-def _glymur() -> Any:
+_THREADS_SET = False
+
+
+def set_threads(n: int) -> None:
+    """OpenJPEG threads for this process's encodes and decodes (glymur's ``lib.num_threads``):
+    0 codes in the caller's thread (the default), more split each image's code-blocks over
+    that many threads. The bytes and pixels are the same either way; more threads only help
+    while cores are idle (a single ``coex demo``), not where every core runs a dive (a sweep)."""
+    global _THREADS_SET
     import glymur
 
+    if n < 0:
+        raise ConfigError(f"threads must be >= 0, got {n}")
+    _THREADS_SET = True
+    if glymur.get_option("lib.num_threads") != n:
+        try:
+            glymur.set_option("lib.num_threads", n)
+        except RuntimeError:  # an OpenJPEG without thread support codes in the caller's thread
+            pass
+
+
+def _glymur() -> Any:
+    """glymur, set once to code in the caller's thread: its default (``lib.num_threads`` 1)
+    hands every encode and decode to a thread pool of one, made and joined each time, which
+    costs CPU and, on a loaded machine, waits (the bytes are the same either way)."""
+    global _THREADS_SET
+    import glymur
+
+    if not _THREADS_SET:
+        _THREADS_SET = True
+        if glymur.get_option("lib.num_threads") == 1:
+            try:
+                glymur.set_option("lib.num_threads", 0)
+            except RuntimeError:  # an OpenJPEG without thread support: nothing to turn off
+                pass
     return glymur
 
 

@@ -282,6 +282,10 @@ class ImagerySender(ModalitySender):
         txs = sorted((tx for tx in self.images.values() if tx.time > since), key=lambda tx: tx.time)
         return [Frame(tx.image_id, tx.time, tx.x, tx.y, tx.enc.image, tx.interest) for tx in txs]
 
+    def detector_view(self) -> ImagerySender:
+        """Detectors look at the frames through :meth:`frames` (a ``coex.ImageFrames``)."""
+        return self
+
     def pending_bytes(self) -> int:
         return sum(tx.unacked() for tx in self.images.values())
 

@@ -44,7 +44,7 @@ import numpy as np
 
 from coex import ConfigError, Input, InputContext, Item, Nav, Points, Samples
 
-from ..options import LogOnce, Problems, check_scale, compile_path, finite, need
+from ..options import LogOnce, Problems, check_lcm_url, check_scale, compile_path, finite, need
 
 __all__ = ["DEFAULT_URL", "LcmInput", "compile_path", "make_nav_t"]
 
@@ -183,6 +183,7 @@ class LcmInput(Input):
         p, who = Problems(), f"input {cls.name!r}"
         for key in ("url", "points_channel", "nav_channel"):
             p.option_str(who, options, key)
+        check_lcm_url(p, who, options)
         if "own" in options:
             _check_own(p, who, options)
         if not (options.get("points_channel") or options.get("nav_channel") or options.get("own")):

@@ -48,6 +48,7 @@ from coex import Image, Input, InputContext, Item, Nav, Samples
 from ..options import (
     LogOnce,
     Problems,
+    check_mavlink_connection,
     need,
     serial_device,
 )
@@ -109,6 +110,7 @@ class MavlinkInput(Input):
     def check(cls, options: Mapping[str, Any]) -> Problems:
         p, who = Problems(), f"input {cls.name!r}"
         p.option_str(who, options, "connection", nonempty=True)
+        check_mavlink_connection(p, who, options)
         p.option_int(who, options, "baud", 1, 10_000_000)
         p.option_int(who, options, "source_system", 1, 255)
         p.option_int(who, options, "source_component", 0, 255)

@@ -127,7 +127,7 @@ class NmeaInput(Input):
     """NMEA-0183 over serial and / or UDP (see the module docstring)."""
 
     name = "nmea"
-    feeds = ("status", "timeseries")
+    feeds: ClassVar[tuple[str, ...]] = ("status", "timeseries")
     options: ClassVar[Mapping[str, tuple[Any, str]]] = {
         "serial": ("", "pyserial port or URL: /dev/ttyUSB2, socket://host:port ..."),
         "baud": (4800, "baud rate of the serial port"),
@@ -171,7 +171,7 @@ class NmeaInput(Input):
     def __init__(self, options: Mapping[str, Any], context: InputContext) -> None:
         super().__init__(options, context)
         self.channels: dict[str, tuple[int, str]] = {}
-        for key, channel in self.config["channels"].items():
+        for key, channel in self.config.get("channels", {}).items():
             sentence, _, index = str(key).rpartition(".")
             self.channels[sentence] = (int(index), channel)
         self._serial: Any = None

@@ -8,7 +8,10 @@
 * ``nav_topic``: ``nav_msgs/Odometry``, ``geometry_msgs/PoseStamped`` (``WithCovariance``) or
   ``sensor_msgs/NavSatFix`` -> :class:`~coex.Nav`;
 * ``series``: numeric fields of any message -> :class:`~coex.Samples`, a field path per
-  channel (``{ topic = "/ctd", channels = { temperature = "temperature" } }``).
+  channel (``{ topic = "/ctd", channels = { temperature = "temperature" } }``);
+* ``altitude_topic``: the vehicle's height above the seafloor (an altimeter's or DVL's
+  ``sensor_msgs/Range``, a ``std_msgs/Float32``/``Float64``, or a field of any message:
+  ``altitude_field``) -> :class:`~coex.Nav` with only ``altitude`` (merged into the vehicle status).
 
 Subscriptions take any type and check it against the role when a message arrives (a topic of
 another type is logged once and skipped). Messages wait in a queue per topic (``queue``, the
@@ -28,7 +31,7 @@ from typing import Any, ClassVar
 
 import numpy as np
 
-from coex import Input, InputContext, Item, Samples
+from coex import Input, InputContext, Item, Nav, Samples
 
 from ..options import LogOnce, Problems, check_scale, compile_path, finite
 from .rosmsg import ROLES, FrameMap, canonical, check_frames, item_of, stamp_of
@@ -98,19 +101,29 @@ class RosInput(Input):
         "stamps": ("header", "'header': an item's time is its header.stamp (when not zero); "
                              "'arrival': when the daemon took it"),
         "nav_images": (True, "images get the newest vehicle position (a camera image has none of its own)"),
+        "altitude_topic": ("", "the vehicle's altitude above the seafloor: sensor_msgs/Range, std_msgs/Float32 "
+                               "or Float64, or any message with altitude_field"),
+        "altitude_field": ("", "field path of the altitude in altitude_topic's messages (default: range for "
+                               "sensor_msgs/Range, data for std_msgs/Float32 and Float64)"),
     }
 
     @classmethod
     def check(cls, options: Mapping[str, Any]) -> Problems:
         p, who = Problems(), f"input {cls.name!r}"
-        for key in ("master", "node", "points_topic", "image_topic", "nav_topic"):
+        for key in ("master", "node", "points_topic", "image_topic", "nav_topic", "altitude_topic", "altitude_field"):
             p.option_str(who, options, key, nonempty=key == "node")
+        field = options.get("altitude_field", "")
+        if isinstance(field, str) and field:
+            try:
+                compile_path(field)
+            except ValueError as exc:
+                p.said("altitude_field", f"{who}: option 'altitude_field': {exc}")
         master = options.get("master", "")
         if isinstance(master, str) and master and not master.startswith(("http://", "https://")):
             p.said("master", f"{who}: option 'master' must be an http:// URI (http://localhost:11311), not {master!r}")
-        if not any(options.get(k) for k in ("points_topic", "image_topic", "nav_topic", "series")):
+        if not any(options.get(k) for k in ("points_topic", "image_topic", "nav_topic", "series", "altitude_topic")):
             p.said("", f"{who} needs at least one of the options 'points_topic', 'image_topic', 'nav_topic', "
-                       "'series'")
+                       "'series', 'altitude_topic'")
         check_frames(p, cls.name, options)
         if "series" in options:
             check_series(p, who, options)
@@ -127,11 +140,17 @@ class RosInput(Input):
         roles = sorted(ROLES.items(), key=lambda kv: kv[0] != "nav")
         self.topics = [_Topic(role, self.config[key], q) for role, (key, _) in roles if self.config[key]]
         self.topics += [_Topic("series", s["topic"], q, s) for s in self.config["series"]]
+        if self.config["altitude_topic"]:
+            self.topics.insert(0, _Topic("altitude", self.config["altitude_topic"], q))
+        field = self.config["altitude_field"]
+        self._altitude_field = compile_path(field)[0] if field else None
         self._node: Any = None
         self._lock = threading.Lock()
         self._problem = LogOnce(log)
         #: messages turned into items, skipped (wrong type, not convertible), dropped (queue full)
-        self.counts = {"points": 0, "image": 0, "nav": 0, "series": 0, "skipped": 0, "dropped": 0}
+        #: and altitudes (``no_altitude``: a message without one: out of the altimeter's range)
+        self.counts = {"points": 0, "image": 0, "nav": 0, "series": 0, "altitude": 0, "no_altitude": 0,
+                       "skipped": 0, "dropped": 0}
 
     @property
     def stamp_images(self) -> bool:
@@ -192,6 +211,8 @@ class RosInput(Input):
     def _convert(self, t: _Topic, msgtype: str, data: bytes, now: float,
                  samples: dict[str, list[tuple[float, float]]]) -> Item | None:
         kind = canonical(msgtype)
+        if t.role == "altitude":
+            return self._altitude(msgtype, data, now)
         if t.role != "series":
             types = ROLES[t.role][1]
             if kind not in types:
@@ -212,6 +233,28 @@ class RosInput(Input):
         if got:
             self.counts["series"] += 1
         return None
+
+    def _altitude(self, msgtype: str, data: bytes, now: float) -> Item | None:
+        """A Nav of the altitude one message gives (None: it gives none: NaN, infinite, or a
+        Range outside its min_range..max_range, which is how a Range says "no bottom")."""
+        kind = canonical(msgtype)
+        msg = self._node.deserialize(msgtype, data)
+        when = now if self.config["stamps"] == "arrival" else (stamp_of(msg) or now)
+        get = self._altitude_field
+        if get is None:
+            if kind == "sensor_msgs/msg/Range":
+                get = compile_path("range")[0]
+            elif kind in ("std_msgs/msg/Float32", "std_msgs/msg/Float64"):
+                get = compile_path("data")[0]
+            else:
+                raise ValueError(f"{msgtype} is not sensor_msgs/Range or std_msgs/Float32/64: give altitude_field")
+        v = finite(get(msg))
+        lo, hi = finite(getattr(msg, "min_range", None)), finite(getattr(msg, "max_range", None))
+        if v is None or v < 0 or (kind == "sensor_msgs/msg/Range" and (
+                (lo is not None and v < lo) or (hi is not None and hi > 0 and v > hi))):
+            self.counts["no_altitude"] += 1
+            return None
+        return Nav(when, altitude=v)
 
     def close(self) -> None:
         if self._node is not None:

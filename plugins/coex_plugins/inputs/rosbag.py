@@ -129,8 +129,8 @@ class RosbagInput(Input):
         if self._next is not None:
             self._t0 = self._next[1]
         clock = self.context.clock
-        if clock is not None and callable(getattr(clock, "time", None)):
-            self._anchor = float(clock.time())
+        if clock is not None:
+            self._anchor = float(clock())
 
     def _select(self, reader: Any) -> list[Any]:
         topics = sorted({f"{c.topic} ({c.msgtype})" for c in reader.connections})

@@ -22,6 +22,7 @@ from coex import (
     Modality,
     ModalityReceiver,
     ModalitySender,
+    PositionAid,
     Product,
     RequestRejected,
     RequestTracker,
@@ -34,6 +35,8 @@ from coex.messages import (
     AckStatus,
     CommandAck,
     Message,
+    PositionFix,
+    PositionSource,
     SurveyCommand,
     SurveyKind,
     SurveyPoint,
@@ -45,7 +48,7 @@ from coex.wire import encode, encoded_size
 
 from .plan import Geofence, Refusal, SurveyPlan, SurveyReport, cut_detail, describe, plan_of
 
-__all__ = ["SurveyModality", "SurveyPlan", "SurveyReceiver", "SurveyReport", "SurveySender"]
+__all__ = ["PositionAid", "SurveyModality", "SurveyPlan", "SurveyReceiver", "SurveyReport", "SurveySender"]
 
 SENDER_DEFAULTS: dict[str, Any] = {
     #: the vehicle's limits (:class:`~.plan.Geofence` keys); empty: no geofence
@@ -57,6 +60,9 @@ SENDER_DEFAULTS: dict[str, Any] = {
     "rto": 120.0,
     #: surveys remembered (finished ones beyond this are forgotten, oldest first)
     "keep": 64,
+    #: whether the vehicle's navigation takes position fixes from topside (``PositionFix``, issue
+    #: 56): accepted and handed to the autonomy output's ``aid`` (False: rejected)
+    "aiding": False,
 }
 RECEIVER_DEFAULTS: dict[str, Any] = {
     #: seconds between re-sends of an unanswered survey command
@@ -71,16 +77,23 @@ class InvalidReport(CoexError, ValueError):
 FINAL = (SurveyState.REJECTED, SurveyState.COMPLETED, SurveyState.ABORTED)
 
 
+#: late answers kept per survey (the newest)
+LATE_MAX = 8
+
+
 def _upgrade_tx_survey(fields: dict[str, Any], saved: int) -> dict[str, Any]:
-    return {"detail": None, **fields}  # version 1 had no detail
+    # version 1 had no detail, versions 1 and 2 kept no late answers
+    return {"detail": None, "late": [], **fields}
 
 
-@persistent("survey.TxSurvey", version=2, upgrade=_upgrade_tx_survey)
+@persistent("survey.TxSurvey", version=3, upgrade=_upgrade_tx_survey)
 class _Survey:
-    """One survey on the vehicle: its plan (None when refused) and its newest state."""
+    """One survey on the vehicle: its plan (None when refused), its newest state, and the
+    autonomy's answers that came after it ended (``late``: ``(time, state, index, reason,
+    detail)``, the newest :data:`LATE_MAX`; kept, never sent: an ended survey's state is final)."""
 
-    __slots__ = ("acked", "command", "detail", "index", "plan", "reason", "sent_at", "state", "survey_id",
-                 "time", "value")
+    __slots__ = ("acked", "command", "detail", "index", "late", "plan", "reason", "sent_at", "state",
+                 "survey_id", "time", "value")
 
     def __init__(self, survey_id: int, command: SurveyCommand | None, plan: SurveyPlan | None,
                  state: SurveyState, time: float, reason: SurveyReason = SurveyReason.NONE,
@@ -90,6 +103,7 @@ class _Survey:
         self.detail = cut_detail(detail)
         self.sent_at: float | None = None
         self.acked = False
+        self.late: list[tuple[float, str, int | None, str, str | None]] = []
 
     def status(self) -> SurveyStatus:
         index = None if self.index is None else max(0, min(int(self.index), 255))
@@ -104,7 +118,11 @@ class _Survey:
         self.sent_at, self.acked = None, False
 
 
-@persistent("survey.Sender")
+def _upgrade_sender(fields: dict[str, Any], saved: int) -> dict[str, Any]:
+    return {"aiding": False, "aids": [], "_fixes_seen": [], **fields}  # version 1 took no position fixes
+
+
+@persistent("survey.Sender", version=2, upgrade=_upgrade_sender)
 class SurveySender(ModalitySender):
     """The vehicle side (see the module docstring)."""
 
@@ -114,6 +132,11 @@ class SurveySender(ModalitySender):
         self.autonomy = bool(cfg["autonomy"])
         self.rto = float(cfg["rto"])
         self.keep = int(cfg["keep"])
+        self.aiding = bool(cfg["aiding"])
+        #: position fixes accepted and not yet taken by the autonomy (:meth:`take_aids`)
+        self.aids: list[PositionAid] = []
+        #: the newest fixes taken (stamp, x, y, sigma): a repeat is answered, not handed on twice
+        self._fixes_seen: list[tuple[int, float, float, float]] = []
         self.surveys: dict[int, _Survey] = {}
         #: accepted surveys not yet finished, in the order they are to be flown (the first is active)
         self.queue: list[int] = []
@@ -128,8 +151,9 @@ class SurveySender(ModalitySender):
     def ingest(self, data: Any, now: float) -> None:
         """Take what the vehicle's autonomy reports (:class:`SurveyReport`, or a sequence of
         them): the survey's new state goes topside. A report on a survey that was already
-        finished (a late "completed" of a superseded plan) is ignored; one on a survey this
-        sender never saw (the vehicle's own mission) is reported as it is."""
+        finished (a late "completed" of a superseded plan, a planner's "started" after it was
+        given up) changes nothing and is kept in the survey's record (:meth:`late`); one on a
+        survey this sender never saw (the vehicle's own mission) is reported as it is."""
         reports = [data] if isinstance(data, SurveyReport) else list(data) if isinstance(data, list | tuple) else None
         if reports is None or not all(isinstance(r, SurveyReport) for r in reports):
             raise InvalidReport(f"the survey sender takes SurveyReports, not {type(data).__name__}")
@@ -145,6 +169,11 @@ class SurveySender(ModalitySender):
         if s is None:
             s = self.surveys[r.survey_id] = _Survey(r.survey_id, None, None, r.state, r.time)
         elif s.state in FINAL:
+            entry = (float(r.time), SurveyState(r.state).name, r.index, SurveyReason(r.reason).name,
+                     cut_detail(r.detail))
+            if not s.late or s.late[-1][1:] != entry[1:]:  # the same answer repeated: kept once
+                s.late.append(entry)
+                del s.late[:-LATE_MAX]
             return
         if s.state == r.state == SurveyState.STARTED and s.index == r.index:
             return
@@ -156,8 +185,41 @@ class SurveySender(ModalitySender):
                 self.plan_version += 1
         self._forget()
 
+    def state_of(self, survey_id: int) -> SurveyState | None:
+        """The newest state of a survey this sender holds (None: not known, or forgotten)."""
+        s = self.surveys.get(int(survey_id))
+        return None if s is None else SurveyState(s.state)
+
+    def late(self, survey_id: int) -> list[tuple[float, str, int | None, str, str | None]]:
+        """The autonomy's answers about a survey that came after it ended: ``(time, state,
+        index, reason, detail)``, oldest first (the newest :data:`LATE_MAX`)."""
+        s = self.surveys.get(int(survey_id))
+        return [] if s is None else list(s.late)
+
     # ------------------------------------------------------------------ topside's commands
+    def take_aids(self) -> list[PositionAid]:
+        """The position fixes accepted since the last call, oldest first (the daemon hands them
+        to the autonomy output's ``aid``)."""
+        out, self.aids = self.aids, []
+        return out
+
+    def _position_fix(self, message: PositionFix, now: float) -> list[Message]:
+        cid = int(message.command_id)
+        if not self.aiding:
+            return [CommandAck(cid, AckStatus.REJECTED)]
+        key = (int(message.stamp), float(message.x), float(message.y), float(message.sigma))
+        if key not in self._fixes_seen:
+            self._fixes_seen = [*self._fixes_seen[-31:], key]
+            t = unwrap(message.stamp, now)
+            newest = max((a.time for a in self.aids), default=-float("inf"))
+            if t >= newest:
+                self.aids.append(PositionAid(t, float(message.x), float(message.y), float(message.sigma),
+                                             message.depth, PositionSource(message.source).name.lower()))
+        return [CommandAck(cid, AckStatus.ACCEPTED)]
+
     def handle(self, message: Message, now: float) -> list[Message]:
+        if isinstance(message, PositionFix):
+            return self._position_fix(message, now)
         if not isinstance(message, SurveyCommand):
             raise RequestRejected(f"the survey sender takes SurveyCommand, not {type(message).__name__}")
         cid, sid = int(message.command_id), int(message.survey_id)
@@ -313,7 +375,11 @@ class SurveyRecord:
         self.version += 1
 
 
-@persistent("survey.Receiver")
+def _upgrade_receiver(fields: dict[str, Any], saved: int) -> dict[str, Any]:
+    return {"fixes": {}, **fields}  # version 1 sent no position fixes
+
+
+@persistent("survey.Receiver", version=2, upgrade=_upgrade_receiver)
 class SurveyReceiver(ModalityReceiver):
     """The topside side (see the module docstring)."""
 
@@ -322,6 +388,9 @@ class SurveyReceiver(ModalityReceiver):
         self._requests: RequestTracker[Message] = RequestTracker(float(cfg["retry"]), int(cfg["max_tries"]))
         self.surveys: dict[int, SurveyRecord] = {}
         self._next_id = 0
+        #: position fixes sent (command id -> ``[state, stamp, x, y, sigma]``; state "requested",
+        #: "accepted", "rejected" or "given up")
+        self.fixes: dict[int, list[Any]] = {}
 
     def request(self, kind: SurveyKind | str, x: float, y: float, now: float, *,
                 heading: float | None = None, length: float | None = None, width: float | None = None,
@@ -356,7 +425,38 @@ class SurveyReceiver(ModalityReceiver):
         self._requests.add(cmd.command_id, cmd)
         return cmd
 
+    def position_fix(self, x: float, y: float, now: float, *, stamp: float | None = None, sigma: float = 1.0,
+                     depth: float | None = None, source: PositionSource | str = PositionSource.ESTIMATE
+                     ) -> PositionFix:
+        """Tell the vehicle where it truly was at ``stamp`` (default ``now``; local metres, 1-sigma
+        ``sigma``): a :class:`~coex_core.messages.PositionFix` (spec type 15), sent at the next
+        :meth:`poll` and again until the vehicle answers (accepted: its navigation takes aiding).
+        :class:`RequestRejected` when it cannot be sent as given."""
+        try:
+            src = PositionSource[source.upper()] if isinstance(source, str) else PositionSource(source)
+        except (KeyError, ValueError):
+            raise RequestRejected(f"unknown position source {source!r} (usbl, estimate, other)") from None
+        fix = PositionFix(0, src, to_stamp(now if stamp is None else stamp), round(float(x), 1), round(float(y), 1),
+                          round(min(max(float(sigma), 0.0), 102.3), 1), None if depth is None else round(float(depth), 1))
+        try:
+            encode(fix)
+        except EncodeError as exc:
+            raise RequestRejected(f"this position fix cannot be sent: {exc}") from None
+        from dataclasses import replace
+
+        fix = replace(fix, command_id=self.next_command_id())
+        self._requests.add(fix.command_id, fix)
+        self.fixes[fix.command_id] = ["requested", now if stamp is None else stamp, fix.x, fix.y, fix.sigma]
+        return fix
+
     def receive(self, message: Message, now: float) -> list[Product]:
+        if isinstance(message, CommandAck) and message.command_id in self.fixes:
+            state = self.fixes[message.command_id]
+            if message.status != AckStatus.PENDING:
+                self._requests.answered(message.command_id, now, message.status.name)
+            if state[0] == "requested" and message.status in (AckStatus.ACCEPTED, AckStatus.REJECTED):
+                state[0] = message.status.name.lower()
+            return []
         if isinstance(message, CommandAck):
             rec = next((s for s in self.surveys.values() if s.command_id == message.command_id
                         and s.state == "requested"), None)
@@ -402,6 +502,9 @@ class SurveyReceiver(ModalityReceiver):
 
     def poll(self, now: float) -> list[Message]:
         out = self._requests.due(now)
+        for cid, state in self.fixes.items():
+            if state[0] == "requested" and cid not in self._requests:
+                state[0] = "given up"
         for rec in self.surveys.values():
             if rec.state == "requested" and rec.command_id is not None and rec.command_id not in self._requests:
                 rec.set("given up", now, "no answer from the vehicle")
@@ -443,7 +546,7 @@ class SurveyModality(Modality):
     name: ClassVar[str] = "survey"
     version: ClassVar[str] = "1.0"
     messages: ClassVar[tuple[type[Message], ...]] = (SurveyStatus,)
-    requests: ClassVar[tuple[type[Message], ...]] = (SurveyCommand,)
+    requests: ClassVar[tuple[type[Message], ...]] = (SurveyCommand, PositionFix)
     #: a finished survey sends nothing; one status per change of state
     keepalive_bytes_per_hour: ClassVar[int] = 0
 

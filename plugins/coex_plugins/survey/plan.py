@@ -236,6 +236,7 @@ _REASONS = {
     SurveyReason.MANUAL_OVERRIDE: "taken over on the vehicle (manual override)",
     SurveyReason.AUTONOMY_RESTARTED: "the vehicle's autonomy restarted and dropped it",
     SurveyReason.ALL_STOP: "the vehicle's autonomy stopped all motion",
+    SurveyReason.AUTONOMY_SILENT: "autopilot silent",
 }
 
 
@@ -266,6 +267,8 @@ def _describe(reason: SurveyReason, index: int | None, value: float | None) -> s
         text += f" (code {value:g})"
     elif value is not None and reason == SurveyReason.AUTONOMY_NO_ANSWER:
         text += f" (after {value:g} tries)"
+    elif value is not None and reason == SurveyReason.AUTONOMY_SILENT:
+        text += f" for {value:g} s"
     return text
 
 

@@ -187,7 +187,8 @@ class TimeSeriesSender(ModalitySender):
     * ``channels``: list of ``{name, unit, lo, hi, resolution[, period][, overview_error]}``;
       channel ids are list positions (at most 32).
     * ``wavelet`` (``"bior4.4"``), ``block_samples`` (4096, at most 4096), ``max_latency``
-      (1200 s: a block closes when full or this long after its first sample),
+      (120 s: a block closes when full or this long after its first sample, so a series shows
+      topside within a minute or two; longer blocks code better: an archive may set 1200),
       ``overview_factor`` (12: the overview's error target is this many noise sigmas, at least
       half the resolution, unless the channel sets ``overview_error``), ``alert_fraction``
       (0.4: when a block holds spikes, i.e. short excursions from its running median, higher than
@@ -210,7 +211,7 @@ class TimeSeriesSender(ModalitySender):
         if not isinstance(bs, int) or isinstance(bs, bool) or not 16 <= bs <= 4096:
             raise ConfigError(f"block_samples must be an integer in 16..4096, got {bs!r}")
         self.block_samples = bs
-        self.max_latency = _positive(config, "max_latency", 1200.0)
+        self.max_latency = _positive(config, "max_latency", 120.0)
         self.overview_factor = _positive(config, "overview_factor", 12.0)
         self.retry_after = _positive(config, "retry_after", 90.0)
         af = config.get("alert_fraction", 0.4)

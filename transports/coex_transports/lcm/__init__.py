@@ -26,7 +26,7 @@ from ._codec import (
     is_frame_t,
     unpack_event,
 )
-from ._transport import DEFAULT_URL, LcmConfig, LcmTransport, parse_lcm_uri
+from ._transport import DEFAULT_URL, LcmConfig, LcmTransport, check_provider_url, parse_lcm_uri
 from ._types import (
     frame_t,
     map_level_t,
@@ -44,6 +44,7 @@ __all__ = [
     "LcmConfig",
     "LcmFrame",
     "LcmTransport",
+    "check_provider_url",
     "decode_frame",
     "encode_frame",
     "frame_t",

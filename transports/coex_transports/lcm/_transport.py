@@ -27,6 +27,7 @@ logged, never returned.
 
 from __future__ import annotations
 
+import ipaddress
 import logging
 import re
 import secrets
@@ -45,7 +46,7 @@ from coex_core.transport import Transport, UriInfo
 
 from ._codec import decode_frame, encode_frame
 
-__all__ = ["DEFAULT_URL", "LcmConfig", "LcmTransport", "parse_lcm_uri"]
+__all__ = ["DEFAULT_URL", "LcmConfig", "LcmTransport", "check_provider_url", "parse_lcm_uri"]
 
 log = logging.getLogger(__name__)
 
@@ -107,6 +108,54 @@ class LcmConfig:
         return replace(self, tx=self.rx, rx=self.tx)
 
 
+def check_provider_url(url: str) -> None:
+    """An LCM provider URL's address, port and options as LCM will need them when it opens
+    (:class:`ConfigError` naming what is wrong): LCM's own library only prints "Bad multicast
+    port" and fails to open, which a daemon would retry for ever. ``udpm``/``mpudpm``: an IPv4
+    multicast group (224.0.0.0/4), a port 1..65535, ``ttl`` 0..255; ``tcpq``: a host and a port
+    1..65535; every provider: only its own options (:data:`PROVIDER_OPTIONS`)."""
+    why = _provider_problem(url)
+    if why is not None:
+        raise ConfigError(f"{url!r}: {why}")
+
+
+def _provider_problem(url: str) -> str | None:
+    """What is wrong with an LCM provider URL (:func:`check_provider_url`), or None."""
+    if "://" not in url:
+        return f"not an LCM provider URL (e.g. {DEFAULT_URL})"
+    parts = urlsplit(url)
+    provider = parts.scheme
+    if provider not in PROVIDER_OPTIONS:
+        return f"unknown LCM provider {provider!r} (known: {', '.join(sorted(PROVIDER_OPTIONS))})"
+    for key, _ in parse_qsl(parts.query, keep_blank_values=True):
+        if key not in PROVIDER_OPTIONS[provider]:
+            return (f"unknown option {key!r} ({provider} options: "
+                    f"{', '.join(sorted(PROVIDER_OPTIONS[provider])) or 'none'})")
+    if provider not in ("udpm", "mpudpm", "tcpq"):
+        return None
+    try:
+        port = parts.port
+    except ValueError:
+        return f"the port must be 1..65535, got {parts.netloc.rpartition(':')[2]!r}"
+    if port == 0:
+        return "the port must be 1..65535, got 0"
+    host = parts.hostname or ""
+    if provider == "tcpq":
+        return None if host else "tcpq needs a host and a port, e.g. tcpq://localhost:7700"
+    multicast = "an IPv4 multicast address (224.0.0.0 to 239.255.255.255; LCM's default 239.255.76.67)"
+    if host:
+        try:
+            group = ipaddress.ip_address(host)
+        except ValueError:
+            return f"{host!r} is not {multicast}"
+        if group.version != 4 or not group.is_multicast:
+            return f"{host} is not {multicast}"
+    ttl = dict(parse_qsl(parts.query)).get("ttl")
+    if ttl is not None and not (ttl.isdigit() and 0 <= int(ttl) <= 255):
+        return f"ttl must be 0..255 (0: this computer only), got {ttl!r}"
+    return None
+
+
 def parse_lcm_uri(uri: str) -> LcmConfig:
     """Parse ``lcm:<provider URL>[?options]`` into an :class:`LcmConfig`."""
     if not uri.startswith("lcm:"):
@@ -145,6 +194,9 @@ def parse_lcm_uri(uri: str) -> LcmConfig:
                 f"{provider} options: {', '.join(sorted(allowed)) or 'none'})")
     query = urlencode(theirs, safe="/:")
     url = f"{parts.scheme}://{parts.netloc}{parts.path}" + (f"?{query}" if query else "")
+    why = _provider_problem(url)
+    if why is not None:
+        raise ConfigError(f"{uri!r}: {why}")
     channel = ours.pop("channel", "COEX")
     return LcmConfig(
         url=url,
@@ -273,7 +325,7 @@ class LcmTransport(Transport):
 
     def _publish_decoded(self, data: bytes) -> None:
         """Publish the decoded types of one received frame (never disturbs frame delivery)."""
-        from coex_core.messages import Subgrid, VehicleStatus
+        from coex_core.messages import SubgridMessage, VehicleStatus
         from coex_core.wire import unpack
 
         from .products import (
@@ -296,7 +348,7 @@ class LcmTransport(Transport):
                 if isinstance(message, VehicleStatus):
                     self._inst.lcm.publish(VEHICLE_STATUS_CHANNEL, vehicle_status_to_lcm(message, utime).encode())
                     self._counts["decoded"] += 1
-                elif isinstance(message, Subgrid):
+                elif isinstance(message, SubgridMessage):
                     if self._maps is None:
                         self._maps = MapLevelSummary()
                     levels.add(self._maps.add(message))

@@ -4,7 +4,9 @@
   convert a :class:`~coex_core.messages.VehicleStatus` both ways (lossless for values on the
   wire grid).
 * ``coex.map_level_t``: :class:`MapLevelSummary` keeps the newest subgrid of each map cell block
-  and summarises each level (subgrids, cells, extent, depth range, newest stamp).
+  and summarises each level (subgrids, cells, extent, depth range, newest stamp). A subgrid
+  predicted from its parent (``PredictedSubgrid``) is rebuilt with the parent's cells the
+  summary holds; without them its depth range is unknown (NaN) until it comes again.
 
 Pure functions and objects: no LCM instance, no I/O.
 """
@@ -17,8 +19,16 @@ from typing import Any
 
 import numpy as np
 
-from coex_core.messages import Subgrid, VehicleMode, VehicleStatus
-from coex_core.subgrid import decode_subgrid
+from coex_core.messages import (
+    PredictedSubgrid,
+    Subgrid,
+    SubgridContext,
+    SubgridMessage,
+    VehicleMode,
+    VehicleStatus,
+)
+from coex_core.predicted import ABSENT, ContextMismatch, SubgridParent, decode_predicted_units
+from coex_core.subgrid import decode_subgrid, decode_subgrid_units
 
 from ._types import map_level_t, vehicle_status_t
 
@@ -71,10 +81,11 @@ def vehicle_status_from_lcm(msg: vehicle_status_t) -> VehicleStatus:
     )
 
 
-def _cells(sub: Subgrid) -> int:
-    if sub.mask is None:
+def _cells(sub: SubgridMessage) -> int:
+    mask = sub.cells.mask if isinstance(sub, PredictedSubgrid) else sub.mask
+    if mask is None:
         return int(sub.side) * int(sub.side)
-    return int(sub.mask).bit_count()
+    return int(mask).bit_count()
 
 
 class MapLevelSummary:
@@ -87,11 +98,45 @@ class MapLevelSummary:
 
     def __init__(self, decoder: Callable[[Subgrid], Any] | None = None) -> None:
         self._decoder: Callable[[Subgrid], Any] = decoder if decoder is not None else decode_subgrid
-        self._blocks: dict[int, dict[tuple[int, int], tuple[Subgrid, float, float]]] = {}
+        self._blocks: dict[int, dict[tuple[int, int], tuple[SubgridMessage, float, float]]] = {}
+        #: cells (vertical units) of the subgrids of the levels above the finest, for their
+        #: children predicted from them; each level's vertical resolution and level-0 cell size
+        self._units: dict[tuple[int, int, int], np.ndarray] = {}
+        self._vres: dict[int, float] = {}
+        self._resolution: float | None = None
 
-    def _z_range(self, sub: Subgrid) -> tuple[float, float]:
+    def _predicted(self, sub: PredictedSubgrid) -> Any:
+        """Elevations (m) of a predicted subgrid, from the parent cells held (NaN: not held)."""
+        if sub.context == SubgridContext.NONE:
+            assert sub.vertical_resolution is not None
+            units, vres = decode_predicted_units(sub), sub.vertical_resolution
+        else:
+            held = self._units.get((sub.level + 1, sub.ix >> 1, sub.iy >> 1))
+            vres_up = self._vres.get(sub.level + 1)
+            if held is None or vres_up is None:
+                return np.full((sub.side, sub.side), np.nan)
+            try:
+                units = decode_predicted_units(sub, SubgridParent(held, held != ABSENT))
+            except ContextMismatch:
+                return np.full((sub.side, sub.side), np.nan)
+            vres = vres_up
+        self._keep(sub.level, sub.ix, sub.iy, units, vres)
+        return np.where(units != ABSENT, units * vres, np.nan)
+
+    def _keep(self, level: int, ix: int, iy: int, units: Any, vres: float) -> None:
+        self._vres[level] = vres
+        if level > 0:  # the finest level's cells are nobody's parent
+            self._units[(level, ix, iy)] = np.asarray(units, np.int64)
+
+    def _z_range(self, sub: SubgridMessage) -> tuple[float, float]:
         try:
-            z = np.asarray(self._decoder(sub), dtype=float)
+            if isinstance(sub, PredictedSubgrid):
+                z = np.asarray(self._predicted(sub), dtype=float)
+            else:
+                self._resolution = sub.resolution
+                z = np.asarray(self._decoder(sub), dtype=float)
+                if sub.level > 0:  # a parent of predicted subgrids: its cells as the wire says
+                    self._keep(sub.level, sub.ix, sub.iy, decode_subgrid_units(sub), sub.vertical_resolution)
         except Exception:
             return math.nan, math.nan
         finite = z[np.isfinite(z)]
@@ -99,8 +144,10 @@ class MapLevelSummary:
             return math.nan, math.nan
         return float(finite.min()), float(finite.max())
 
-    def add(self, sub: Subgrid) -> int:
+    def add(self, sub: SubgridMessage) -> int:
         """Take a received subgrid; return its level."""
+        if isinstance(sub, PredictedSubgrid) and sub.resolution is not None:
+            self._resolution = sub.resolution
         lo, hi = self._z_range(sub)
         self._blocks.setdefault(int(sub.level), {})[(int(sub.ix), int(sub.iy))] = (sub, lo, hi)
         return int(sub.level)
@@ -114,14 +161,15 @@ class MapLevelSummary:
         subs = [entry[0] for entry in blocks.values()]
         ix = np.fromiter((s.ix for s in subs), dtype=np.int64, count=len(subs))
         iy = np.fromiter((s.iy for s in subs), dtype=np.int64, count=len(subs))
+        res0 = self._resolution if self._resolution is not None else math.nan
         span = np.fromiter(
-            (s.resolution * 2.0**s.level * s.side for s in subs), dtype=float, count=len(subs)
-        )
+            ((res0 if s.resolution is None else s.resolution) * 2.0**s.level * s.side for s in subs),
+            dtype=float, count=len(subs))
         z = np.array([(entry[1], entry[2]) for entry in blocks.values()], dtype=float)
         out = map_level_t()
         out.utime = int(utime)
         out.level = int(level)
-        out.resolution = float(subs[0].resolution * 2.0**level)
+        out.resolution = float(res0 * 2.0**level)
         out.subgrids = len(subs)
         out.cells = int(sum(_cells(s) for s in subs))
         out.x_min = float((ix * span).min())

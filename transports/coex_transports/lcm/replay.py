@@ -34,7 +34,7 @@ import numpy as np
 from coex_core import registry
 from coex_core.errors import ConfigError, DecodeError
 from coex_core.jsonfmt import to_json
-from coex_core.messages import Message, Subgrid, VehicleStatus
+from coex_core.messages import Message, SubgridMessage, VehicleStatus
 from coex_core.modality import Modality, ModalityReceiver, Product
 
 from ._codec import is_frame_t, unpack_event
@@ -169,144 +169,177 @@ def replay_log(
     unavailable: dict[str, str] = {}
     if modalities is None:
         modalities, unavailable = load_modalities()
-    receivers: dict[str, ModalityReceiver] = {}
-    routes: dict[type[Message], list[str]] = {}
-    requests: set[type[Message]] = set()
-    for name, modality in modalities.items():
-        try:
-            receivers[name] = modality.receiver()
-        except Exception as exc:
-            unavailable[name] = f"{type(exc).__name__}: {exc}"
-            log.warning("modality %s: cannot create its receiver: %s", name, exc)
-            continue
-        for cls in modality.messages:
-            routes.setdefault(cls, []).append(name)
-        requests.update(modality.requests)
-
-    counts: Counter[str] = Counter()
-    by_type: Counter[str] = Counter()
-    routed: Counter[str] = Counter()
-    unrouted: Counter[str] = Counter()
-    receiver_errors: Counter[str] = Counter()
-    channels: Counter[str] = Counter()
-    errors: list[str] = []
-    first_utime: int | None = None
-    last_utime: int | None = None
-    last_status: VehicleStatus | None = None
-    maps = MapLevelSummary()
-    decoded_events: list[tuple[int, str, bytes]] = []
-
+    replay = _Replay(modalities, unavailable)
     eventlog = _open_log(path)
     try:
+        replay.read(eventlog, pattern, path)
+    finally:
+        eventlog.close()
+    products = replay.products()
+    summary = replay.summary(path, products)
+    if out_dir is not None:
+        summary["files"] = _write_outputs(Path(out_dir), products, replay.decoded_events, summary)
+    return summary
+
+
+class _Replay:
+    """One replay: the topside receivers, the routes of the messages to them, and what was
+    counted and decoded along the way."""
+
+    def __init__(self, modalities: Mapping[str, Modality], unavailable: dict[str, str]) -> None:
+        self.unavailable = unavailable
+        self.receivers: dict[str, ModalityReceiver] = {}
+        #: message type -> the modalities whose receivers take it; the types receivers send
+        self.routes: dict[type[Message], list[str]] = {}
+        self.requests: set[type[Message]] = set()
+        for name, modality in modalities.items():
+            try:
+                self.receivers[name] = modality.receiver()
+            except Exception as exc:
+                unavailable[name] = f"{type(exc).__name__}: {exc}"
+                log.warning("modality %s: cannot create its receiver: %s", name, exc)
+                continue
+            for cls in modality.messages:
+                self.routes.setdefault(cls, []).append(name)
+            self.requests.update(modality.requests)
+        self.counts: Counter[str] = Counter()
+        self.by_type: Counter[str] = Counter()
+        self.routed: Counter[str] = Counter()
+        self.unrouted: Counter[str] = Counter()
+        self.receiver_errors: Counter[str] = Counter()
+        self.channels: Counter[str] = Counter()
+        self.errors: list[str] = []
+        self.first_utime: int | None = None
+        self.last_utime: int | None = None
+        self.last_status: VehicleStatus | None = None
+        self.maps = MapLevelSummary()
+        #: ``(utime, channel, bytes)`` of the LCM events written to ``decoded.lcmlog``
+        self.decoded_events: list[tuple[int, str, bytes]] = []
+
+    def read(self, eventlog: lcm.EventLog, pattern: re.Pattern[str] | None, path: Path) -> None:
+        """Every event of the log: the ``coex.frame_t`` ones (on a channel ``pattern`` matches)
+        unpacked and their messages routed; a truncated or corrupt log keeps what was read."""
         while True:
             try:
                 event = eventlog.read_next_event()
             except StopIteration:
                 break
             except Exception as exc:  # a truncated or corrupt log: keep what was read
-                errors.append(f"log read stopped: {exc}")
+                self.errors.append(f"log read stopped: {exc}")
                 log.warning("%s: log read stopped: %s", path, exc)
                 break
             if event is None:
                 break
-            counts["events"] += 1
+            self.counts["events"] += 1
             if pattern is not None and not pattern.fullmatch(event.channel):
                 continue
             if not is_frame_t(event.data):
                 if pattern is not None:
-                    counts["bad_events"] += 1
-                    errors.append(f"event {event.eventnum} on {event.channel}: not a coex.frame_t")
+                    self.counts["bad_events"] += 1
+                    self.errors.append(f"event {event.eventnum} on {event.channel}: not a coex.frame_t")
                 continue
-            try:
-                lcm_frame, frame = unpack_event(event.data)
-            except DecodeError as exc:
-                counts["bad_events"] += 1
-                errors.append(f"event {event.eventnum} on {event.channel}: {exc}")
-                log.warning("event %d on %s: %s", event.eventnum, event.channel, exc)
-                continue
-            counts["frames"] += 1
-            counts["frame_bytes"] += len(lcm_frame.data)
-            channels[event.channel] += 1
-            utime = int(event.timestamp)
-            first_utime = utime if first_utime is None else min(first_utime, utime)
-            last_utime = utime if last_utime is None else max(last_utime, utime)
-            now = utime / 1e6
-            levels: set[int] = set()
-            for message in frame.messages:
-                kind = type(message).__name__
-                by_type[kind] += 1
-                counts["messages"] += 1
-                if isinstance(message, VehicleStatus):
-                    last_status = message
-                    decoded_events.append(
-                        (utime, VEHICLE_STATUS_CHANNEL, vehicle_status_to_lcm(message, utime).encode())
-                    )
-                elif isinstance(message, Subgrid):
-                    levels.add(maps.add(message))
-                targets = routes.get(type(message), [])
-                if not targets:
-                    unrouted["request" if type(message) in requests else kind] += 1
-                for name in targets:
-                    try:
-                        receivers[name].receive(message, now)
-                        routed[name] += 1
-                    except Exception as exc:  # a receiver bug must not end the re-analysis
-                        receiver_errors[name] += 1
-                        log.warning("modality %s failed on %s: %s", name, kind, exc)
-            for level in sorted(levels):
-                decoded_events.append((utime, MAP_LEVEL_CHANNEL, maps.summary(level, utime).encode()))
-    finally:
-        eventlog.close()
+            self._event(event)
 
-    products: dict[str, list[Product]] = {}
-    for name, receiver in receivers.items():
+    def _event(self, event: Any) -> None:
+        """One ``coex.frame_t`` event: its frame's messages to the receivers that take them."""
         try:
-            products[name] = list(receiver.products())
-        except Exception as exc:
-            receiver_errors[name] += 1
-            log.warning("modality %s: products() failed: %s", name, exc)
+            lcm_frame, frame = unpack_event(event.data)
+        except DecodeError as exc:
+            self.counts["bad_events"] += 1
+            self.errors.append(f"event {event.eventnum} on {event.channel}: {exc}")
+            log.warning("event %d on %s: %s", event.eventnum, event.channel, exc)
+            return
+        self.counts["frames"] += 1
+        self.counts["frame_bytes"] += len(lcm_frame.data)
+        self.channels[event.channel] += 1
+        utime = int(event.timestamp)
+        self.first_utime = utime if self.first_utime is None else min(self.first_utime, utime)
+        self.last_utime = utime if self.last_utime is None else max(self.last_utime, utime)
+        levels: set[int] = set()
+        for message in frame.messages:
+            self._message(message, utime, levels)
+        for level in sorted(levels):
+            self.decoded_events.append((utime, MAP_LEVEL_CHANNEL, self.maps.summary(level, utime).encode()))
 
-    summary: dict[str, Any] = {
-        "log": str(path),
-        "events": counts["events"],
-        "frames": counts["frames"],
-        "frame_bytes": counts["frame_bytes"],
-        "bad_events": counts["bad_events"],
-        "messages": counts["messages"],
-        "channels": dict(sorted(channels.items())),
-        "first_utime": first_utime,
-        "last_utime": last_utime,
-        "duration_s": (last_utime - first_utime) / 1e6 if first_utime is not None and last_utime else 0.0,
-        "messages_by_type": dict(sorted(by_type.items())),
-        "routed": dict(sorted(routed.items())),
-        "unrouted": dict(sorted(unrouted.items())),
-        "modalities": sorted(receivers),
-        "unavailable": dict(sorted(unavailable.items())),
-        "receiver_errors": dict(sorted(receiver_errors.items())),
-        "vehicle_status": to_json(last_status) if last_status is not None else None,
-        "map_levels": [
-            {k: (None if isinstance(v, float) and math.isnan(v) else v)
-             for k, v in ((s, getattr(m, s)) for s in m.__slots__)}
-            for m in maps.summaries(last_utime or 0)
-        ],
-        "products": {name: [_describe(p) for p in items] for name, items in sorted(products.items())},
-        "errors": errors[:100],
-        "files": [],
-    }
-    if out_dir is not None:
-        out = Path(out_dir)
-        out.mkdir(parents=True, exist_ok=True)
-        files = write_products(products, out)
-        if decoded_events:
-            decoded = out / "decoded.lcmlog"
-            writer = lcm.EventLog(str(decoded), "w", overwrite=True)
+    def _message(self, message: Message, utime: int, levels: set[int]) -> None:
+        """One message, counted, decoded for LCM tools (status, map levels) and routed."""
+        kind = type(message).__name__
+        self.by_type[kind] += 1
+        self.counts["messages"] += 1
+        if isinstance(message, VehicleStatus):
+            self.last_status = message
+            self.decoded_events.append(
+                (utime, VEHICLE_STATUS_CHANNEL, vehicle_status_to_lcm(message, utime).encode()))
+        elif isinstance(message, SubgridMessage):
+            levels.add(self.maps.add(message))
+        targets = self.routes.get(type(message), [])
+        if not targets:
+            self.unrouted["request" if type(message) in self.requests else kind] += 1
+        for name in targets:
             try:
-                for utime, chan, data in decoded_events:
-                    writer.write_event(utime, chan, data)
-            finally:
-                writer.close()
-            files.append(decoded.name)
-        files.append("summary.json")
-        summary["files"] = files
-        (out / "summary.json").write_text(json.dumps(summary, indent=2, default=str))
-    return summary
+                self.receivers[name].receive(message, utime / 1e6)
+                self.routed[name] += 1
+            except Exception as exc:  # a receiver bug must not end the re-analysis
+                self.receiver_errors[name] += 1
+                log.warning("modality %s failed on %s: %s", name, kind, exc)
+
+    def products(self) -> dict[str, list[Product]]:
+        """Every receiver's products (a receiver whose ``products()`` fails is counted)."""
+        products: dict[str, list[Product]] = {}
+        for name, receiver in self.receivers.items():
+            try:
+                products[name] = list(receiver.products())
+            except Exception as exc:
+                self.receiver_errors[name] += 1
+                log.warning("modality %s: products() failed: %s", name, exc)
+        return products
+
+    def summary(self, path: Path, products: Mapping[str, list[Product]]) -> dict[str, Any]:
+        first, last = self.first_utime, self.last_utime
+        return {
+            "log": str(path),
+            "events": self.counts["events"],
+            "frames": self.counts["frames"],
+            "frame_bytes": self.counts["frame_bytes"],
+            "bad_events": self.counts["bad_events"],
+            "messages": self.counts["messages"],
+            "channels": dict(sorted(self.channels.items())),
+            "first_utime": first,
+            "last_utime": last,
+            "duration_s": (last - first) / 1e6 if first is not None and last else 0.0,
+            "messages_by_type": dict(sorted(self.by_type.items())),
+            "routed": dict(sorted(self.routed.items())),
+            "unrouted": dict(sorted(self.unrouted.items())),
+            "modalities": sorted(self.receivers),
+            "unavailable": dict(sorted(self.unavailable.items())),
+            "receiver_errors": dict(sorted(self.receiver_errors.items())),
+            "vehicle_status": to_json(self.last_status) if self.last_status is not None else None,
+            "map_levels": [
+                {k: (None if isinstance(v, float) and math.isnan(v) else v)
+                 for k, v in ((s, getattr(m, s)) for s in m.__slots__)}
+                for m in self.maps.summaries(last or 0)
+            ],
+            "products": {name: [_describe(p) for p in items] for name, items in sorted(products.items())},
+            "errors": self.errors[:100],
+            "files": [],
+        }
+
+
+def _write_outputs(out: Path, products: Mapping[str, list[Product]], decoded_events: list[tuple[int, str, bytes]],
+                   summary: dict[str, Any]) -> list[str]:
+    """The replay's files in ``out``: the products, ``decoded.lcmlog`` (when anything was
+    decoded for LCM tools) and ``summary.json`` (with these files); returns their names."""
+    out.mkdir(parents=True, exist_ok=True)
+    files = write_products(products, out)
+    if decoded_events:
+        decoded = out / "decoded.lcmlog"
+        writer = lcm.EventLog(str(decoded), "w", overwrite=True)
+        try:
+            for utime, chan, data in decoded_events:
+                writer.write_event(utime, chan, data)
+        finally:
+            writer.close()
+        files.append(decoded.name)
+    files.append("summary.json")
+    (out / "summary.json").write_text(json.dumps({**summary, "files": files}, indent=2, default=str))
+    return files

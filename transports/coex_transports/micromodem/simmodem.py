@@ -164,11 +164,11 @@ class SimulatedModem:
     def _command(self, s: Sentence, now: float) -> None:
         if s.talker != "CC":
             raise NmeaError(f"${s.ident} is not a host command")
-        handler = getattr(self, "_cc_" + s.kind.lower(), None)
+        handler = _COMMANDS.get(s.kind)
         if handler is None:
             self._emit("CAERR", [nmea.hhmmss(now), "NMEA", 3, f"unknown command {s.ident}"])
             return
-        handler(s, now)
+        handler(self, s, now)
 
     def _cc_cfg(self, s: Sentence, now: float) -> None:
         name, value = s.field(0), s.field(1)
@@ -482,3 +482,13 @@ class SimulatedModem:
         else:
             self._emit_raw(nmea.format_cardp(meta.src_id, meta.dest, meta.rate, False, (), frames))
         self._cst(now, a, meta, frames=len(frames), bad=bad, ptype=_PACKET_TYPE["fdp"])
+
+
+#: the host commands the simulated modem answers (``$CC<kind>``), each by its handler; any other
+#: is answered with ``$CAERR`` ("unknown command")
+_COMMANDS: dict[str, Callable[[SimulatedModem, Sentence, float], None]] = {
+    "CFG": SimulatedModem._cc_cfg, "CFQ": SimulatedModem._cc_cfq, "CLK": SimulatedModem._cc_clk,
+    "TMS": SimulatedModem._cc_tms, "TMQ": SimulatedModem._cc_tmq, "MSC": SimulatedModem._cc_msc,
+    "CYC": SimulatedModem._cc_cyc, "TXD": SimulatedModem._cc_txd, "TDP": SimulatedModem._cc_tdp,
+    "MPC": SimulatedModem._cc_mpc,
+}

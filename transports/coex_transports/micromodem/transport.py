@@ -237,7 +237,7 @@ class MicromodemTransport(Transport):
             paths: tuple[str, ...] = ()
         else:
             paths = (port,)
-        return UriInfo(uri, config.mtu, paths, config.rate)
+        return UriInfo(uri, config.mtu, paths, config.rate, src=config.src, dest=config.dest)
 
     @classmethod
     def open(cls, port: str, config: DriverConfig | None = None, *, baudrate: int = 19200) -> MicromodemTransport:

@@ -10,9 +10,15 @@ counter-clockwise from east (ROS REP 103).
 * :func:`odometry`: a received ``VehicleStatus`` -> ``nav_msgs/Odometry``;
 * :func:`level_cloud`, :func:`level_grid`: a received map level (the bathymetry receiver's
   ``map-level`` product: an array, row 0 south, NaN = nothing) -> ``sensor_msgs/PointCloud2``
-  (one point per cell held, z = elevation) and ``nav_msgs/OccupancyGrid`` (-1 unknown, else
-  0 = the level's deepest .. 100 = its shallowest);
+  (one point per cell held, z = elevation) and ``nav_msgs/OccupancyGrid`` (-1 unknown, else the
+  elevation on a fixed scale: 0 = ``lo`` .. 100 = ``hi`` metres, the same for every message, or
+  without one the level's own deepest .. shallowest);
 * :func:`image`: pixels -> ``sensor_msgs/Image`` (mono8, mono16, rgb8, rgb16);
+  :func:`compressed_image`: the same as a PNG ``sensor_msgs/CompressedImage`` (the
+  ``image_transport`` ``compressed`` form);
+* :func:`transform`: a ``VehicleStatus`` -> ``tf2_msgs/TFMessage`` (the vehicle's pose in the
+  local frame);
+* :func:`series`: a time series (times, values, error bounds) -> ``std_msgs/Float64MultiArray``;
 * :func:`path`: waypoints -> ``nav_msgs/Path`` (what the ``ros`` autonomy output publishes);
 * :func:`cloud`: any ``N x 3`` points -> ``PointCloud2`` (float32 x, y, z).
 """
@@ -25,7 +31,8 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["cloud", "image", "level_cloud", "level_grid", "odometry", "path", "quaternion", "set_stamp", "set_time"]
+__all__ = ["cloud", "compressed_image", "grid_values", "image", "level_cloud", "level_grid", "odometry", "path",
+           "quaternion", "series", "set_stamp", "set_time", "transform"]
 
 ClassOf = Callable[[str], Any]
 
@@ -73,6 +80,26 @@ def odometry(status: Any, cls: ClassOf, t: float, frame: str, child_frame: str =
     return msg
 
 
+def position_fix(fix: Any, cls: ClassOf, frame: str) -> Any:
+    """A ``geometry_msgs/PoseWithCovarianceStamped`` of a position fix (``time``, ``x``, ``y``,
+    ``sigma``, ``depth`` or None): position (x, y, -depth), variance ``sigma``² on x and y, the
+    depth's 0.01 m² when known (else 1e6), orientation unknown (identity, variance 1e6): what
+    robot_localization's ``pose0`` input takes."""
+    msg = cls("geometry_msgs/PoseWithCovarianceStamped")()
+    _header(msg, float(fix.time), frame)
+    p = msg.pose.pose.position
+    p.x, p.y, p.z = float(fix.x), float(fix.y), 0.0 if fix.depth is None else -float(fix.depth)
+    o = msg.pose.pose.orientation
+    o.x, o.y, o.z, o.w = 0.0, 0.0, 0.0, 1.0
+    var = float(fix.sigma) ** 2
+    cov = [0.0] * 36
+    cov[0] = cov[7] = var
+    cov[14] = 1e6 if fix.depth is None else 0.01
+    cov[21] = cov[28] = cov[35] = 1e6
+    msg.pose.covariance = cov
+    return msg
+
+
 def cloud(xyz: np.ndarray, cls: ClassOf, t: float, frame: str) -> Any:
     """A ``sensor_msgs/PointCloud2`` of ``N x 3`` points (float32 x, y, z; little-endian)."""
     pts = np.ascontiguousarray(np.asarray(xyz, dtype="<f4").reshape(-1, 3))
@@ -108,10 +135,28 @@ def level_cloud(grid: np.ndarray, meta: Any, cls: ClassOf, t: float, frame: str)
     return cloud(np.column_stack([x, y, z]), cls, t, frame)
 
 
-def level_grid(grid: np.ndarray, meta: Any, cls: ClassOf, t: float, frame: str) -> Any:
+def grid_values(grid: np.ndarray, lo: float | None = None, hi: float | None = None) -> np.ndarray:
+    """The OccupancyGrid values (int8) of elevations: -1 where nothing is held (NaN), else
+    ``round(100 * (z - lo) / (hi - lo))`` clipped to 0..100, so 0 is ``lo`` (deep) and 100 ``hi``
+    (shallow) on every message alike; without ``lo``/``hi`` the grid's own deepest and
+    shallowest held."""
+    a = np.asarray(grid, dtype=np.float64)
+    held = np.isfinite(a)
+    out = np.full(a.shape, -1, dtype=np.int8)
+    if held.any():
+        if lo is None or hi is None:
+            lo, hi = float(a[held].min()), float(a[held].max())
+        span = hi - lo if hi > lo else 1.0
+        out[held] = np.clip(np.round((a[held] - lo) / span * 100.0), 0, 100).astype(np.int8)
+    return out
+
+
+def level_grid(grid: np.ndarray, meta: Any, cls: ClassOf, t: float, frame: str, *,
+               lo: float | None = None, hi: float | None = None) -> Any:
     """A map level as a ``nav_msgs/OccupancyGrid``: cells of ``meta["cell_size"]`` from the
-    south-west corner ``x0``, ``y0``; -1 where nothing is held, else the elevation scaled from the
-    level's deepest (0) to its shallowest (100) (rviz's ``map`` scheme draws shallow ground dark)."""
+    south-west corner ``x0``, ``y0``; -1 where nothing is held, else the elevation on the scale
+    ``lo`` (0) .. ``hi`` (100) metres (:func:`grid_values`; rviz's ``map`` scheme draws shallow
+    ground dark)."""
     a = np.asarray(grid, dtype=np.float64)
     msg = cls("nav_msgs/OccupancyGrid")()
     _header(msg, t, frame)
@@ -121,13 +166,7 @@ def level_grid(grid: np.ndarray, meta: Any, cls: ClassOf, t: float, frame: str) 
     info.height, info.width = int(a.shape[0]), int(a.shape[1])
     info.origin.position.x, info.origin.position.y = float(meta["x0"]), float(meta["y0"])
     info.origin.orientation.w = 1.0
-    held = np.isfinite(a)
-    out = np.full(a.shape, -1, dtype=np.int8)
-    if held.any():
-        lo, hi = float(a[held].min()), float(a[held].max())
-        span = hi - lo if hi > lo else 1.0
-        out[held] = np.clip(np.round((a[held] - lo) / span * 100.0), 0, 100).astype(np.int8)
-    msg.data = out.ravel().tolist()  # int8[]: a list for genpy and rclpy alike
+    msg.data = grid_values(a, lo, hi).ravel().tolist()  # int8[]: a list for genpy and rclpy alike
     return msg
 
 
@@ -144,6 +183,71 @@ def image(pixels: np.ndarray, cls: ClassOf, t: float, frame: str) -> Any:
     msg.is_bigendian = False
     msg.step = msg.width * (1 if a.ndim == 2 else 3) * size
     msg.data = _bytes(a.astype("<u2") if size == 2 else a)
+    return msg
+
+
+def compressed_image(pixels: np.ndarray, cls: ClassOf, t: float, frame: str) -> Any:
+    """A ``sensor_msgs/CompressedImage`` holding ``pixels`` as a PNG (lossless: the image is
+    already what the link brought), ``format`` as ``image_transport``'s ``compressed`` plugin
+    writes it (``mono8; png compressed mono8``, ``rgb8; png compressed bgr8``, ...), so that
+    rqt_image_view, rviz and ``republish`` decode it. 16-bit colour goes as 8 bits (PNG readers
+    differ on 48-bit colour)."""
+    import io
+
+    from PIL import Image as PilImage
+
+    a = np.asarray(pixels)
+    if a.dtype not in (np.uint8, np.uint16) or a.ndim not in (2, 3) or (a.ndim == 3 and a.shape[2] != 3):
+        raise ValueError(f"pixels of shape {a.shape} and type {a.dtype}: H x W or H x W x 3, uint8 or uint16")
+    if a.ndim == 3 and a.dtype == np.uint16:
+        a = (a >> 8).astype(np.uint8)
+    buf = io.BytesIO()
+    if a.ndim == 2 and a.dtype == np.uint16:
+        PilImage.fromarray(np.ascontiguousarray(a.astype("<u2")), mode="I;16").save(buf, format="PNG")
+        encoding, target = "mono16", "mono16"
+    else:
+        PilImage.fromarray(np.ascontiguousarray(a)).save(buf, format="PNG")
+        encoding, target = ("mono8", "mono8") if a.ndim == 2 else ("rgb8", "bgr8")
+    msg = cls("sensor_msgs/CompressedImage")()
+    _header(msg, t, frame)
+    msg.format = f"{encoding}; png compressed {target}"
+    msg.data = buf.getvalue()
+    return msg
+
+
+def transform(status: Any, cls: ClassOf, t: float, frame: str, child_frame: str = "coex_vehicle") -> Any:
+    """A ``tf2_msgs/TFMessage`` of one ``geometry_msgs/TransformStamped``: ``child_frame`` (the
+    vehicle) in ``frame`` at the status's position (x, y, -depth) and heading (a yaw)."""
+    tf = cls("geometry_msgs/TransformStamped")()
+    _header(tf, t, frame)
+    tf.child_frame_id = child_frame
+    tr = tf.transform.translation
+    tr.x, tr.y, tr.z = float(status.x), float(status.y), -float(status.depth)
+    quaternion(tf.transform.rotation, math.radians(90.0 - float(status.heading)))
+    msg = cls("tf2_msgs/TFMessage")()
+    msg.transforms = [tf]
+    return msg
+
+
+def series(times: np.ndarray, values: np.ndarray, bounds: np.ndarray, cls: ClassOf) -> Any:
+    """A time series as a ``std_msgs/Float64MultiArray`` of 3 rows by N samples, row-major:
+    times (POSIX seconds), values, error bounds (the largest error of each value; ``inf``: not
+    known yet). ``layout.dim``: ``[{label "time,value,bound", size 3, stride 3N}, {label
+    "sample", size N, stride N}]``."""
+    t = np.asarray(times, dtype=np.float64).ravel()
+    v = np.asarray(values, dtype=np.float64).ravel()
+    b = np.asarray(bounds, dtype=np.float64).ravel()
+    if not t.shape == v.shape == b.shape:
+        raise ValueError(f"times, values and bounds of {t.size}, {v.size} and {b.size} samples")
+    n = int(t.size)
+    dim = cls("std_msgs/MultiArrayDimension")
+    rows, cols = dim(), dim()
+    rows.label, rows.size, rows.stride = "time,value,bound", 3, 3 * n
+    cols.label, cols.size, cols.stride = "sample", n, n
+    msg = cls("std_msgs/Float64MultiArray")()
+    msg.layout.dim = [rows, cols]
+    msg.layout.data_offset = 0
+    msg.data = np.concatenate([t, v, b]).tolist()
     return msg
 
 

@@ -44,7 +44,8 @@ log = logging.getLogger(__name__)
 
 #: how to get rospy into CoEx's Python (docs/deploy.md)
 ROSPY_HINT = ("Debian's ROS 1: apt-get install python3-rospy python3-rosmaster python3-roslaunch "
-              "python3-sensor-msgs python3-nav-msgs python3-geometry-msgs python3-std-msgs, then "
+              "python3-sensor-msgs python3-nav-msgs python3-geometry-msgs python3-std-msgs python3-tf2-msgs "
+              "python3-rostopic python3-rosnode python3-rosbag, then "
               "`make ros` (scripts/ros.sh) so the venv imports it (docs/deploy.md)")
 
 
@@ -156,7 +157,7 @@ class RosNode:
         #: master outages seen, registrations made again after a master restart
         self.counts = {"outages": 0, "reregistered": 0}
         self._lock = threading.Lock()
-        self._todo: list[Any] = []
+        self._todo: list[_Sub | RosPublisher] = []
         self._wake = threading.Event()
         self._stop = threading.Event()
         self._pid: int | None = None
@@ -238,7 +239,7 @@ class RosNode:
         return {"state": self.state, "master": self.master, "node": self.name, **self.counts}
 
     # ---------------------------------------------------------------- the node's thread
-    def _ask(self, item: Any) -> None:
+    def _ask(self, item: _Sub | RosPublisher) -> None:
         with self._lock:
             self._todo.append(item)
         self._wake.set()
@@ -318,8 +319,7 @@ class RosNode:
                         item._made(rospy.Publisher(item.topic, self.message_class(item.msgtype),
                                                    latch=item.latch, queue_size=item.queue))
             except Exception as exc:  # one bad topic never stops the others
-                self._problem(f"make {getattr(item, 'topic', item)}",
-                              f"cannot subscribe or publish {getattr(item, 'topic', item)}: {exc}")
+                self._problem(f"make {item.topic}", f"cannot subscribe or publish {item.topic}: {exc}")
 
     def _proxy(self, uri: str) -> Any:
         return xmlrpc.client.ServerProxy(uri, transport=_TimeoutTransport(2.0), allow_none=True)

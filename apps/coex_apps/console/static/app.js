@@ -240,6 +240,7 @@ function drawMap() {
   }
   if (S.fleet && $("#show-track").checked) drawFleet();
   if (S.vehicle && $("#show-track").checked) drawTrack();
+  if (S.navigation && S.navigation.enabled && $("#show-usbl").checked) drawNavigation();
   if ($("#show-images").checked) drawImages();
   drawSurveys();
   if (m) {
@@ -404,7 +405,11 @@ function drawFleet() {
 }
 function drawTrack() {
   const tr = S.vehicle.track;
-  if (tr.length > 1) {
+  // with topside's drift correction applied the corrected track is drawn (drawNavigation) and the
+  // vehicle's arrow stands at its newest corrected point
+  const N = S.navigation, ct = N && N.enabled && N.applied && N.corrected_track && N.corrected_track.length
+    && $("#show-usbl").checked ? N.corrected_track : null;
+  if (tr.length > 1 && !ct) {
     ctx.strokeStyle = "rgba(255,255,255,0.75)"; ctx.lineWidth = 1.5;
     ctx.beginPath();
     tr.forEach((p, i) => { const [x, y] = w2s(p[1], p[2]); if (i) ctx.lineTo(x, y); else ctx.moveTo(x, y); });
@@ -412,12 +417,49 @@ function drawTrack() {
   }
   const st = S.vehicle.status;
   if (st) {
-    const [x, y] = w2s(st.x, st.y), a = (st.heading * Math.PI) / 180;
+    const last = ct ? ct[ct.length - 1] : null;
+    const [x, y] = last ? w2s(last[1], last[2]) : w2s(st.x, st.y), a = (st.heading * Math.PI) / 180;
     ctx.save(); ctx.translate(x, y); ctx.rotate(a);
     ctx.fillStyle = "#f28f3b"; ctx.strokeStyle = "#000";
     ctx.beginPath(); ctx.moveTo(0, -11); ctx.lineTo(7, 8); ctx.lineTo(-7, 8); ctx.closePath();
     ctx.fill(); ctx.stroke(); ctx.restore();
   }
+}
+// Navigation (issue 56): the ship's USBL fixes (dots, wild ones crossed), the vehicle's own
+// dead-reckoned track (dashed) and the track corrected by topside's drift estimate (solid).
+function drawNavigation() {
+  const N = S.navigation;
+  const line = (pts, style, dash) => {
+    if (pts.length < 2) return;
+    ctx.strokeStyle = style; ctx.lineWidth = 1.5; ctx.setLineDash(dash);
+    ctx.beginPath();
+    pts.forEach((p, i) => { const [x, y] = w2s(p[1], p[2]); if (i) ctx.lineTo(x, y); else ctx.moveTo(x, y); });
+    ctx.stroke(); ctx.setLineDash([]);
+  };
+  line(N.raw_track || [], "rgba(200,200,200,0.7)", [5, 4]);
+  line(N.corrected_track || [], "#5fd3a6", []);
+  for (const f of N.fixes || []) {
+    const [x, y] = w2s(f[1], f[2]);
+    if (f[4]) {
+      ctx.strokeStyle = "#ef5f5f"; ctx.lineWidth = 1.5;
+      ctx.beginPath(); ctx.moveTo(x - 4, y - 4); ctx.lineTo(x + 4, y + 4); ctx.moveTo(x + 4, y - 4); ctx.lineTo(x - 4, y + 4); ctx.stroke();
+    } else {
+      ctx.fillStyle = f[3] ? "rgba(120,190,255,0.8)" : "rgba(120,190,255,0.3)";
+      ctx.beginPath(); ctx.arc(x, y, 2.5, 0, 2 * Math.PI); ctx.fill();
+    }
+  }
+}
+function renderNavigation() {
+  const N = S.navigation, box = $("#nav-status");
+  if (!N || !N.enabled) { box.classList.add("hidden"); return; }
+  box.classList.remove("hidden");
+  const c = N.correction;
+  const fixes = `${N.fix_count} USBL fixes, ${N.outliers} rejected as wild`;
+  if (!c) { box.textContent = `Navigation: ${fixes}; no correction yet (waiting for the vehicle's track)`; return; }
+  const age = c.age === null || c.age === undefined ? "no fix used yet" : `newest fix used ${Math.round(c.age)} s ago`;
+  box.textContent = `Navigation ${N.applied ? "corrected" : "NOT applied (shown in the vehicle's frame)"}: `
+    + `correction ${c.size.toFixed(1)} m (east ${c.dx.toFixed(1)}, north ${c.dy.toFixed(1)}) ± ${c.sigma.toFixed(1)} m; `
+    + `${age}; ${fixes}; fixes scatter ${c.fix_sigma.toFixed(1)} m`;
 }
 // Where the images were taken: their footprint (camera field of view at the vehicle's altitude)
 // and a dot; the one open in the viewer, and images answering a request, stand out.
@@ -644,6 +686,7 @@ $("#fit-btn").addEventListener("click", () => { view.auto = true; drawMap(); });
 $("#show-age").addEventListener("change", () => { $("#age-legend").classList.toggle("hidden", !$("#show-age").checked); drawMap(); });
 $("#show-gaps").addEventListener("change", drawMap);
 $("#show-track").addEventListener("change", drawMap);
+$("#show-usbl").addEventListener("change", drawMap);
 $("#show-images").addEventListener("change", drawMap);
 $("#roi-cancel").addEventListener("click", () => { roi = null; $("#roi-bar").classList.add("hidden"); drawMap(); });
 $("#roi-send").addEventListener("click", async () => {
@@ -1778,7 +1821,8 @@ const RENDER = { vehicle: () => { renderVehicle(); drawMap(); }, map: () => { re
   images: () => { renderImages(); drawMap(); },
   surveys: () => { renderSurveys(); renderVehicle(); drawMap(); },
   series: renderSeries, other: renderOther, link: renderLink, queues: renderQueues,
-  commands: () => { renderCommands(); if (S.images) renderImages(); }, log: renderLog };
+  commands: () => { renderCommands(); if (S.images) renderImages(); }, log: renderLog,
+  navigation: () => { renderNavigation(); drawMap(); } };
 
 // A map update is a delta (the server sends a level's blocks only when they changed): merge it
 // into the map the page holds.

@@ -1,0 +1,447 @@
+"""Navigation that holds (issue 56): the drift estimator, the USBL sentences and input, the local
+frame, the demo's dead reckoning, the corrected views, the position-fix command and the
+configuration keys."""
+
+from __future__ import annotations
+
+import math
+import socket
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from coex import ConfigError, InputContext, Nav, PositionAid
+from coex.messages import (
+    AckStatus,
+    CommandAck,
+    PositionFix,
+    PositionSource,
+    VehicleMode,
+    VehicleStatus,
+)
+from coex.wire import decode, encode
+from coex_plugins.navigation import (
+    CorrectedMap,
+    DriftEstimator,
+    LocalFrame,
+    Navigation,
+    UsblInput,
+    VehicleFrameSurveys,
+    gga_sentence,
+    psimssb_sentence,
+    resolve_time,
+    tll_sentence,
+)
+from coex_plugins.survey import SurveyModality
+
+T0 = 1_656_633_600.0  # 2022-07-01T00:00:00Z
+
+
+# ------------------------------------------------------------------ a synthetic dive
+def _lawnmower(n_lines: int = 4, length: float = 256.0, spacing: float = 100.0, speed: float = 1.0
+               ) -> tuple[np.ndarray, np.ndarray]:
+    """True positions every second of a lawnmower (north/south lines), then a hold."""
+    pts = []
+    for i in range(n_lines):
+        ys = np.arange(0.0, length, speed)
+        x = np.full_like(ys, i * spacing)
+        pts.append(np.column_stack([x, ys if i % 2 == 0 else length - ys]))
+        if i + 1 < n_lines:
+            xs = np.arange(i * spacing, (i + 1) * spacing, speed)
+            pts.append(np.column_stack([xs, np.full_like(xs, length if i % 2 == 0 else 0.0)]))
+    xy = np.vstack(pts)
+    xy = np.vstack([xy, np.repeat(xy[-1:], 1200, axis=0)])
+    return np.arange(len(xy), dtype=float), xy
+
+
+def _drift(xy: np.ndarray, rng: np.random.Generator, bias: float = 0.006, psi_deg: float = 0.5) -> np.ndarray:
+    """Believed - true: a bias per metre travelled, a heading bias, a little walk, 2 m at the start."""
+    step = np.diff(xy, axis=0, prepend=xy[:1])
+    d = np.hypot(step[:, 0], step[:, 1])
+    b = rng.normal(0.0, bias / math.sqrt(2), 2)
+    psi = math.radians(psi_deg)
+    inc = b * d[:, None] + psi * np.column_stack([step[:, 1], -step[:, 0]])
+    inc += rng.normal(0.0, 0.02, (len(d), 2)) * np.sqrt(d)[:, None]
+    return np.array([1.5, -1.2]) + np.cumsum(inc, axis=0)
+
+
+def _fed(seed: int, *, sigma: float = 4.0, wild: float = 0.03) -> tuple[DriftEstimator, np.ndarray, np.ndarray,
+                                                                        np.ndarray, set[float]]:
+    rng = np.random.default_rng(seed)
+    t, xy = _lawnmower()
+    err = _drift(xy, rng)
+    est = DriftEstimator()
+    wild_times = set()
+    for k in range(0, len(t), 10):  # a fix every 10 s
+        f = xy[k] + rng.normal(0.0, sigma, 2)
+        if rng.random() < wild:
+            f = f + rng.choice([-1, 1], 2) * rng.uniform(30.0, 120.0, 2)
+            wild_times.add(float(t[k]))
+        est.add_fix(float(t[k]), float(f[0]), float(f[1]))
+    for k in range(0, len(t), 40):  # statuses: the believed track, a third of them lost
+        if rng.random() > 0.33:
+            b = xy[k] + err[k]
+            est.add_track(float(t[k]), float(b[0]), float(b[1]))
+    return est, t, xy, err, wild_times
+
+
+def test_the_estimate_follows_the_drift_and_rejects_wild_fixes() -> None:
+    """With fixes of 4 m per axis every 10 s and a few wild ones 30-120 m off, the smoothed
+    correction stays within about a metre of the true drift over the whole dive (while the drift
+    itself grows to several metres), and the wild fixes are the ones flagged."""
+    est, t, _xy, err, wild = _fed(3)
+    c = est.correction(t)
+    miss = np.hypot(*(c - err).T)
+    assert np.hypot(*err[-1]) > 3.0  # the drift is real ...
+    assert np.median(miss) < 1.0 and np.percentile(miss, 95) < 2.0, (np.median(miss), miss.max())  # ... and followed
+    sol = est.solution()
+    assert sol is not None
+    flagged = {float(r[0]) for r in sol.fixes if r[4] > 0}
+    assert wild and wild <= flagged, (wild - flagged)
+    assert len(flagged - wild) <= 0.02 * len(sol.fixes)
+    assert 2.5 < sol.fix_sigma < 5.5  # learnt from the residuals (true: 4 m per axis)
+    # the correction is smooth: no step between two seconds bigger than the drift can make
+    assert np.abs(np.diff(c, axis=0)).max() < 0.2
+
+
+def test_the_estimate_without_wild_fixes_and_the_gate_matter() -> None:
+    """The same dive with the wild fixes left in and no rejection (a huge gate and threshold) is
+    worse: the robust steps are what keeps the estimate."""
+    from coex_plugins.navigation import NavConfig
+
+    est, t, _xy, err, _ = _fed(5, wild=0.08)
+    blind = DriftEstimator(NavConfig(gate=1e9, reject=1e9))
+    for f in est._fixes:
+        blind.add_fix(*f)
+    for tt, (x, y, _h) in est._track.items():
+        blind.add_track(tt, x, y)
+    good = np.hypot(*(est.correction(t) - err).T).mean()
+    bad = np.hypot(*(blind.correction(t) - err).T).mean()
+    assert good < 0.6 * bad, (good, bad)
+
+
+def test_no_fix_or_no_track_is_no_correction() -> None:
+    est = DriftEstimator()
+    assert est.solution() is None and np.array_equal(est.correction([1.0, 2.0]), np.zeros((2, 2)))
+    est.add_fix(10.0, 1.0, 2.0)
+    assert est.solution() is None  # no track to compare with
+    est.add_track(0.0, 5.0, 5.0)
+    est.add_track(20.0, 5.0, 5.0)
+    c = est.correction(10.0)
+    assert c == pytest.approx([4.0, 3.0], abs=0.5)  # believed (5, 5) less the fix (1, 2)
+
+
+def test_to_vehicle_adds_the_correction() -> None:
+    est, t, _xy, _err, _ = _fed(7)
+    end = float(t[-1])
+    vx, vy = est.to_vehicle(100.0, 100.0, end)
+    c = est.correction(end)
+    assert (vx, vy) == pytest.approx((100.0 + c[0], 100.0 + c[1]))
+
+
+# ------------------------------------------------------------------ USBL sentences and input
+def test_sentences_parse_back_with_their_time_and_position() -> None:
+    frame = LocalFrame(36.8, -122.0)
+    inp = UsblInput({"udp": "127.0.0.1:0"}, InputContext(36.8, -122.0))
+    lat, lon = frame.geodetic(123.4, -56.7)
+    t = T0 + 3600 * 5 + 61.5
+    items: list = []
+    samples: dict = {}
+    for line in (tll_sentence(t, 2, lat, lon), gga_sentence(t, lat, lon, -480.0)):
+        from coex_plugins.inputs.nmea import parse_sentence
+
+        f = parse_sentence(line)
+        kind = f[0][2:]
+        assert inp._sentence(kind, f, t + 3.0, items, samples)
+    e, n = frame.to_utm(123.4, -56.7)
+    from coex_plugins.inputs.nmea import parse_sentence
+
+    f = parse_sentence(psimssb_sentence(t, 2, e, n, 480.0, accuracy=3.2))
+    assert inp._sentence("PSIMSSB", f, t + 3.0, items, samples)
+    assert len(items) == 3
+    for it in items:
+        assert isinstance(it, Nav) and it.time == pytest.approx(t, abs=0.01)
+        assert (it.x, it.y) == pytest.approx((123.4, -56.7), abs=0.05)
+    assert items[0].extra["target"] == 2 and items[1].depth == pytest.approx(480.0)
+    assert items[2].extra == {"target": 2.0, "accuracy": 3.2}
+
+
+def _line(body: str) -> str:
+    from coex_plugins.inputs.nmea import checksum
+
+    return f"${body}*{checksum(body):02X}"
+
+
+def test_ttm_is_a_range_and_bearing_from_the_ship() -> None:
+    frame = LocalFrame(10.0, 20.0)
+    inp = UsblInput({"udp": "127.0.0.1:0", "gga": "ship", "target": "B03"}, InputContext(10.0, 20.0))
+    from coex_plugins.inputs.nmea import parse_sentence
+
+    items: list = []
+    lat, lon = frame.geodetic(0.0, 0.0)
+    ship = gga_sentence(T0 + 10, lat, lon)
+    inp._sentence("GGA", parse_sentence(ship), T0 + 10, items, {})
+    assert items == [] and inp.ship == pytest.approx((0.0, 0.0), abs=0.01)
+    # target 3 at 0.5 km bearing 90 (true): 500 m east; target 4 is filtered out
+    inp._sentence("TTM", parse_sentence(_line("RATTM,03,0.5,90.0,T,0.0,0.0,T,,,K,ROV,T,,000010.00,A")),
+                  T0 + 11, items, {})
+    inp._sentence("TTM", parse_sentence(_line("RATTM,04,0.5,90.0,T,0.0,0.0,T,,,K,X,T,,000010.00,A")),
+                  T0 + 11, items, {})
+    assert len(items) == 1 and (items[0].x, items[0].y) == pytest.approx((500.0, 0.0), abs=0.01)
+    assert items[0].time == pytest.approx(T0 + 10.0) and inp.counts["other_target"] == 1
+    # lost targets and relative bearings without the ship's heading give no fix
+    inp._sentence("TTM", parse_sentence(_line("RATTM,03,0.5,90.0,T,0.0,0.0,T,,,K,ROV,L,,000011.00,A")),
+                  T0 + 12, items, {})
+    inp._sentence("TTM", parse_sentence(_line("RATTM,03,0.5,90.0,R,0.0,0.0,T,,,K,ROV,T,,000012.00,A")),
+                  T0 + 12, items, {})
+    assert len(items) == 1 and inp.counts["void"] == 2
+
+
+def test_fix_times_roll_over_midnight() -> None:
+    day = 86400.0 * 19000
+    assert resolve_time(86399.0, day + 86400.0 + 1.0) == day + 86399.0  # read just after midnight
+    assert resolve_time(1.0, day + 86399.0) == day + 86400.0 + 1.0
+    assert resolve_time(3600.0, day + 3605.0) == day + 3600.0
+
+
+def test_the_usbl_input_reads_udp_counts_bad_lines_and_checks_its_options() -> None:
+    inp = UsblInput({"udp": "127.0.0.1:0"}, InputContext(0.0, 0.0))
+    inp.open()
+    try:
+        host, port = inp.udp_address()  # type: ignore[misc]
+        lat, lon = inp.frame.geodetic(10.0, 20.0)
+        now = time.time()
+        with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+            s.sendto((tll_sentence(now, 2, lat, lon) + "\r\n").encode(), (host, port))
+            s.sendto(b"$RATLL,02,garbage*00\r\n", (host, port))
+            s.sendto(b"$PSIMSSB,000000.00,B02,V,,U,E,M,1,2,3,0,N,,*00\r\n", (host, port))
+        got: list = []
+        for _ in range(50):
+            got += inp.poll(time.time())
+            if inp.counts["lines"] >= 3:
+                break
+            time.sleep(0.02)
+        assert len(got) == 1 and (got[0].x, got[0].y) == pytest.approx((10.0, 20.0), abs=0.05)
+        assert inp.counts["bad_checksum"] == 2 and inp.counts["skipped"] == 2
+    finally:
+        inp.close()
+    problems = UsblInput.check({"udp": "nohost", "gga": "boat", "utm_zone": "99X"}).items
+    assert any("udp" in p for p in problems) and any("gga" in p for p in problems)
+    assert any("utm_zone" in p for p in problems)
+    assert UsblInput.check({}).items  # serial or udp needed
+
+
+def test_local_frame_round_trips_through_pyproj() -> None:
+    f = LocalFrame(-33.9, 151.2)
+    assert f.utm_zone == "56S"
+    lat, lon = f.geodetic(1234.5, -678.9)
+    assert f.local(lat, lon) == pytest.approx((1234.5, -678.9), abs=1e-6)
+    assert f.from_utm(*f.to_utm(1234.5, -678.9)) == pytest.approx((1234.5, -678.9), abs=1e-6)
+    # 1 km north is 1 km: an equidistant projection, not degrees scaled
+    lat1, _ = f.geodetic(0.0, 1000.0)
+    assert (lat1 - (-33.9)) * 110_950 == pytest.approx(1000.0, rel=0.01)
+
+
+# ------------------------------------------------------------------ the position fix on the wire
+def test_the_position_fix_command_round_trips_and_a_vehicle_without_aiding_refuses_it() -> None:
+    fix = PositionFix(3, PositionSource.USBL, 7200, 102.3, -45.6, 5.3, 471.2)
+    assert decode(encode(fix)) == fix
+    rx = SurveyModality().receiver(None)
+    rx.next_command_id = lambda: 9  # type: ignore[method-assign]
+    sent = rx.position_fix(10.0, -20.0, 1000.0, sigma=2.5, source="estimate")
+    assert rx.poll(1000.0) == [sent] and sent.source == PositionSource.ESTIMATE
+    plain = SurveyModality().sender(None)
+    assert plain.handle(sent, 1001.0) == [CommandAck(9, AckStatus.REJECTED)] and plain.take_aids() == []
+    aided = SurveyModality().sender({"aiding": True})
+    ack = aided.handle(sent, 1001.0)
+    assert ack == [CommandAck(9, AckStatus.ACCEPTED)]
+    assert aided.take_aids() == [PositionAid(1000.0, 10.0, -20.0, 2.5, None, "estimate")]
+    assert aided.handle(sent, 1002.0) == ack and aided.take_aids() == []  # a repeat: answered, not twice
+    rx.receive(ack[0], 1003.0)
+    assert rx.fixes[9][0] == "accepted" and 9 not in [m.command_id for m in rx.pending_requests()]
+
+
+def test_autonomy_outputs_map_the_fix() -> None:
+    """The MOOS output posts ``USM_RESET = x=..,y=..`` (uSimMarine moves there) and the full
+    fix; the MAVLink output sends GPS_INPUT at the origin-relative latitude and longitude."""
+    from coex_plugins.autonomy.mavlink import MavlinkAutonomy
+    from coex_plugins.autonomy.moos import MoosAutonomy
+
+    posted: list[tuple[str, str]] = []
+
+    class Client:
+        def notify(self, var: str, value: str) -> None:
+            posted.append((var, value))
+
+    out = MoosAutonomy({}, InputContext(0.0, 0.0), client=Client())
+    fix = PositionAid(T0, 12.34, -5.0, 1.5, 400.0, "usbl")
+    assert out.aid(fix, T0 + 1)
+    assert posted[0] == ("USM_RESET", "x=12.34,y=-5")
+    assert posted[1][0] == "COEX_POSITION_FIX" and "sigma=1.5" in posted[1][1] and "depth=400" in posted[1][1]
+    assert not MoosAutonomy({"position_fix_var": ""}, InputContext(0.0, 0.0), client=Client()).aid(fix, T0)
+
+    sent: list[dict] = []
+
+    class Mav:
+        def gps_input_send(self, **fields: object) -> None:
+            sent.append(dict(fields))
+
+    class Conn:
+        mav = Mav()
+
+    ctx = InputContext(45.0, 7.0)
+    mav = MavlinkAutonomy({"connection": "udpout:127.0.0.1:9"}, ctx)
+    mav.conn = Conn()
+    assert mav.aid(fix, T0)
+    lat, lon = ctx.geodetic(12.34, -5.0)
+    g = sent[0]
+    assert g["lat"] == round(lat * 1e7) and g["lon"] == round(lon * 1e7) and g["alt"] == -400.0
+    assert g["fix_type"] == 3 and g["horiz_accuracy"] == 1.5 and g["time_usec"] == int(T0 * 1e6)
+    assert not MavlinkAutonomy({"connection": "udpout:127.0.0.1:9", "position_fix": False}, ctx).aid(fix, T0)
+
+
+# ------------------------------------------------------------------ topside's corrected views
+class _Rx:
+    """A bathymetry receiver's surface enough for the corrected views: one level of 1 m cells
+    in 8 x 8 subgrids, two subgrids stamped at different times."""
+
+    def __init__(self) -> None:
+        self.z = np.full((8, 16), -100.0)
+        self.z[3:5, 2:4] = -98.0  # a bump in the first subgrid
+        self.requested: list[tuple] = []
+
+    def level_product(self, level: int, now: float | None = None):  # type: ignore[no-untyped-def]
+        from coex import Product
+
+        return Product("map-level", "level-0", 1, self.z, {"cell_size": 1.0, "x0": 0.0, "y0": 0.0})
+
+    def level_version(self, level: int) -> int:
+        return 1
+
+    def geometry(self, level: int) -> tuple[float, int]:
+        return 1.0, 8
+
+    def coverage(self, level: int, max_blocks: int = 4096):  # type: ignore[no-untyped-def]
+        return 1, np.array([[0, 0], [1, 0]]), np.array([100.0, 200.0])
+
+    def request_area(self, *args: float) -> None:
+        self.requested.append(args)
+
+
+def test_a_subgrid_moves_by_the_correction_at_its_stamp() -> None:
+    nav = Navigation()
+    est = nav.estimator(2)
+    for t in (0.0, 300.0):
+        est.add_track(t, 50.0, 50.0)
+    for t in np.arange(0.0, 300.0, 10.0):
+        est.add_fix(float(t), 48.0, 47.0)  # believed (50, 50), truly (48, 47): correction (2, 3)
+    rx = _Rx()
+    view = CorrectedMap(rx, nav, 2)
+    p = view.level_product(0)
+    grid = np.asarray(p.data)
+    x0, y0 = p.meta["x0"], p.meta["y0"]
+    rows, cols = np.nonzero(grid > -99.0)
+    # the bump (cells 2..3, rows 3..4: centre (3, 4)) lands 2 m west and 3 m south
+    cx, cy = x0 + cols.mean() + 0.5, y0 + rows.mean() + 0.5
+    assert (cx, cy) == pytest.approx((1.0, 1.0), abs=0.15)
+    assert np.nanmax(grid) == pytest.approx(-98.0)  # depths kept (a whole-cell shift here)
+    view.request_area(0, 10.0, 10.0, 20.0, 20.0)
+    assert rx.requested[0][1:] == pytest.approx((12.0, 13.0, 22.0, 23.0), abs=0.2)  # in the vehicle's frame
+    surveys = VehicleFrameSurveys(SurveyModality().receiver(None), nav, 2)
+    surveys._rx.next_command_id = lambda: 1
+    cmd = surveys.request("goto", 100.0, 100.0, 300.0)
+    assert (cmd.x, cmd.y) == pytest.approx((102.0, 103.0), abs=0.2)
+    off = Navigation(apply=False)
+    off.estimators[2] = est
+    assert np.array_equal(np.asarray(CorrectedMap(rx, off, 2).level_product(0).data), rx.z)
+
+
+# ------------------------------------------------------------------ the demo's dead reckoning
+def test_dead_reckoning_drifts_with_distance_and_flies_waypoints_in_its_own_frame() -> None:
+    from coex_apps.demo.navigation import DeadReckoning
+    from coex_apps.demo.world import Leg, Track
+    from coex_plugins.bathymetry.sim import Seafloor
+
+    track = Track(Seafloor(size=64.0, depth=100.0, seed=0))
+    track.legs.append(Leg(0.0, 300.0, (0.0, 0.0), (0.0, 0.0), 10.0))
+    dr = DeadReckoning(track, 0.0, 300.0, 5000.0, drift=0.01, heading_bias=1.0, seed_offset=2.0,
+                       rng=np.random.default_rng(1))
+    assert np.hypot(*dr.error(300.0)) == pytest.approx(2.0)  # the error at the bottom
+    assert np.hypot(*dr.error(150.0)) == pytest.approx(1.0)  # grown in time on the way down
+    # the vehicle flies to a waypoint of its own frame: it arrives where it believes it is there
+    wps = dr.true_path(300.0, (0.0, 0.0), [(0.0, 400.0), (400.0, 400.0)], [1.0, 1.0])
+    t1 = 300.0 + math.hypot(*wps[0])
+    t2 = t1 + math.hypot(wps[1][0] - wps[0][0], wps[1][1] - wps[0][1])
+    track.legs += [Leg(300.0, t1, (0.0, 0.0), wps[0], 10.0), Leg(t1, t2, wps[0], wps[1], 10.0)]
+    assert dr.believed(t1, *wps[0]) == pytest.approx((0.0, 400.0), abs=0.05)
+    assert dr.believed(t2, *wps[1]) == pytest.approx((400.0, 400.0), abs=0.05)
+    # ... and truly somewhere else: the drift over 800 m at 1 % and a 1 degree heading bias
+    assert math.hypot(wps[1][0] - 400.0, wps[1][1] - 400.0) > 3.0
+    still = DeadReckoning(track, 0.0, 300.0, 5000.0, drift=0.0, heading_bias=1.0, seed_offset=2.0,
+                          rng=np.random.default_rng(1))
+    assert not still.active and np.array_equal(still.error(t2), np.zeros(2))
+    assert still.true_path(300.0, (0.0, 0.0), [(0.0, 400.0)], [1.0]) == [(0.0, 400.0)]
+
+
+def test_scenario_keys_and_their_ranges() -> None:
+    from coex_apps.demo.scenario import preset, scenario_from_dict
+
+    s = preset("default")
+    assert (s.drift, s.heading_bias, s.seed_offset) == (0.005, 0.5, 2.0)
+    assert (s.usbl_interval, s.usbl_sigma, s.usbl_outliers) == (10.0, 0.01, 0.02)
+    t = scenario_from_dict({"navigation": {"drift": 0.0, "heading_bias": -1.0, "seed_offset": 5.0},
+                            "usbl": {"interval": 30, "sigma": 0.002, "outliers": 0.1}})
+    assert (t.drift, t.heading_bias, t.seed_offset, t.usbl_interval, t.usbl_sigma, t.usbl_outliers) == (
+        0.0, -1.0, 5.0, 30.0, 0.002, 0.1)
+    with pytest.raises(ConfigError) as exc:
+        scenario_from_dict({"navigation": {"drift": -1, "bogus": 1}, "usbl": {"outliers": 0.9}})
+    keys = {p.key for p in exc.value.problems or []}
+    assert {"navigation.drift", "navigation.bogus", "usbl.outliers"} <= keys
+
+
+def test_the_topside_file_knows_usbl(tmp_path: Path) -> None:
+    from coex_apps.vehicle.config import check
+
+    base = ('[node]\nrole = "topside"\nid = 1\nstore = false\n[[modems]]\nuri = "loopback://x"\n')
+    good = tmp_path / "topside.toml"
+    good.write_text(base + '[usbl]\nudp = "0.0.0.0:10111"\ntarget = "B02"\napply = false\n')
+    cfg, problems = check(good)
+    assert not problems and cfg is not None and cfg.usbl == {"udp": "0.0.0.0:10111", "target": "B02", "apply": False}
+    bad = tmp_path / "bad.toml"
+    bad.write_text(base + '[usbl]\nspeed = 3\napply = "yes"\n')
+    _, problems = check(bad)
+    text = "\n".join(problems)
+    assert "'speed'" in text and "usbl.apply" in text
+    bad.write_text(base + '[usbl]\nudp = "nowhere"\n')
+    _, problems = check(bad)
+    assert any("'udp'" in p for p in problems), problems
+    vehicle = tmp_path / "vehicle.toml"
+    vehicle.write_text(base.replace("topside", "vehicle").replace("id = 1", "id = 2") + '[usbl]\nudp = "0.0.0.0:1"\n')
+    _, problems = check(vehicle)
+    assert any(p.startswith("usbl") for p in problems)
+
+
+def test_the_console_survey_action_sends_in_the_vehicles_frame() -> None:
+    from coex_apps.console import ConsoleState
+    from coex_apps.console.actions import ConsoleActions
+
+    nav = Navigation()
+    est = nav.estimator(2)
+    est.add_track(0.0, 50.0, 50.0)
+    est.add_track(100.0, 50.0, 50.0)
+    for t in range(0, 100, 10):
+        est.add_fix(float(t), 45.0, 55.0)  # correction (5, -5)
+    rx = SurveyModality().receiver(None)
+    rx.next_command_id = lambda: 4  # type: ignore[method-assign]
+    state = ConsoleState(receivers={"survey": rx})
+    state.own_receivers = False
+    state.navigation = nav
+    actions = ConsoleActions(state, lambda m: None, lambda: 100.0)
+    cmd = actions.survey("goto", 10.0, 20.0)
+    assert (cmd.x, cmd.y) == pytest.approx((15.0, 15.0), abs=0.3)
+    state.apply_message(VehicleStatus(100, 51.0, 50.0, 400.0, 30.0, 0.0, 1.0, 90, VehicleMode.SURVEY, 0), 100.0)
+    snap = state.section("navigation")
+    assert snap["enabled"] and snap["correction"]["size"] == pytest.approx(7.1, abs=0.4)
+    assert snap["fix_count"] == 10 and snap["raw_track"] and snap["corrected_track"]

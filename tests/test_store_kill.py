@@ -1,0 +1,263 @@
+"""The store fails safe: killed at any moment (``kill -9``), or refused a write at any of its
+write points (a full disk, an I/O error), it leaves a file that opens and restores the node as
+it was at a committed point, and a node that carries on writes everything once the disk takes
+writes again. ``bench/store_kill.py`` runs the kill loop hundreds of times."""
+
+from __future__ import annotations
+
+import os
+import sqlite3
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from coex import AcousticChannel, Node, NodeStore, StoreError
+
+from ._faults import T0, build_dive, run_sim
+from ._store_kill import kill_loop
+from .test_store_fixture import digest
+
+#: kills in CI (``COEX_STORE_KILLS`` for more; the benchmark runs hundreds)
+KILLS = int(os.environ.get("COEX_STORE_KILLS", "24"))
+
+
+def test_kill_9_at_random_moments_never_leaves_an_unreadable_store(tmp_path: Path) -> None:
+    """A writer process (both nodes of a dive, journaling, snapshotting, spilling map tiles)
+    killed with SIGKILL at random moments: after every kill both stores open (SQLite's page
+    check) and restore, and read-only looks taken while it ran restored too."""
+    report = kill_loop(tmp_path, KILLS, seed=7, max_alive=1.0)
+    assert report.failures == [], report
+    assert report.kills == KILLS and report.reopened == 2 * KILLS
+    assert report.looks > 0
+    # the dive advanced from kill to kill (the writer resumed from its stores)
+    assert report.dive_times[-1] > report.dive_times[0], report.dive_times
+
+
+# ------------------------------------------------------------------ fault injection
+class FaultyDb:
+    """A store's SQLite connection whose ``fail_at``-th statement raises ``error`` (as SQLite
+    does when the disk is full: the statement fails, the transaction may stay open), counting
+    the statements it runs."""
+
+    def __init__(self, real: sqlite3.Connection, fail_at: int | None, error: sqlite3.Error) -> None:
+        self.real, self.fail_at, self.error, self.n = real, fail_at, error, 0
+        self.failed = False
+        #: the statements run, in order (the write points)
+        self.sql: list[str] = []
+
+    def _tick(self, sql: str) -> None:
+        self.n += 1
+        self.sql.append(" ".join(sql.split()))
+        if self.n == self.fail_at:
+            self.failed = True
+            raise self.error
+
+    def execute(self, sql: str, *args: Any) -> Any:
+        self._tick(sql)
+        return self.real.execute(sql, *args)
+
+    def executemany(self, sql: str, *args: Any) -> Any:
+        self._tick(sql)
+        return self.real.executemany(sql, *args)
+
+    @property
+    def in_transaction(self) -> bool:
+        return self.real.in_transaction
+
+    def close(self) -> None:
+        self.real.close()
+
+
+def _full() -> sqlite3.Error:
+    err = sqlite3.OperationalError("database or disk is full")
+    err.sqlite_errorcode = 13  # type: ignore[attr-defined]
+    err.sqlite_errorname = "SQLITE_FULL"  # type: ignore[attr-defined]
+    return err
+
+
+def _ioerr() -> sqlite3.Error:
+    err = sqlite3.OperationalError("disk I/O error")
+    err.sqlite_errorcode = 10  # type: ignore[attr-defined]
+    err.sqlite_errorname = "SQLITE_IOERR"  # type: ignore[attr-defined]
+    return err
+
+
+def _frames() -> list[tuple[int, bytes, float]]:
+    """What topside received in the first 200 s of the fault suite's dive."""
+    dive = build_dive(minutes=2)
+    got: list[tuple[int, bytes, float]] = []
+    inner = dive.topside.receive
+
+    def recorder(link: int, frame: bytes, now: float) -> Any:
+        got.append((link, frame, now))
+        return inner(link, frame, now)
+
+    dive.topside.receive = recorder  # type: ignore[method-assign]
+    run_sim(dive, AcousticChannel(loss=0.1, seed=4), T0 + 200.0)
+    return got
+
+
+FRAMES: list[tuple[int, bytes, float]] = []
+
+
+def _topside_ops() -> list[Callable[[Node, NodeStore], None]]:
+    """Topside's writes, as the runner makes them: each frame journaled then received (the
+    map's tiles spill to the store's storage), a snapshot after every quarter of them."""
+    if not FRAMES:
+        FRAMES.extend(_frames())
+    frames = FRAMES[:16]
+
+    def receive(link: int, f: bytes, t: float) -> Callable[[Node, NodeStore], None]:
+        def op(node: Node, store: NodeStore) -> None:
+            try:
+                store.record_rx(link, f, t)
+            finally:  # the runner gives the frame to the node even when the journal fails
+                node.receive(link, f, t)
+        return op
+
+    ops: list[Callable[[Node, NodeStore], None]] = []
+    quarter = max(1, len(frames) // 4)
+    for i, (link, f, t) in enumerate(frames):
+        ops.append(receive(link, f, t))
+        if i % quarter == quarter - 1:
+            ops.append(lambda node, store, t=t: store.snapshot(node, t))
+    return ops
+
+
+def _vehicle_ops() -> list[Callable[[Node, NodeStore], None]]:
+    """The vehicle's writes: inputs journaled with their marks, snapshots between them."""
+    feed = build_dive(minutes=2).feed[:30]
+
+    def take(i: int) -> Callable[[Node, NodeStore], None]:
+        t, name, data = feed[i]
+
+        def op(node: Node, store: NodeStore) -> None:
+            sender = node.sender(name)
+            store.record_input(name, sender.journal_form(data), t, mark=f"fed:{i:04d}")
+            sender.ingest(data, t)
+        return op
+
+    ops: list[Callable[[Node, NodeStore], None]] = []
+    for i in range(len(feed)):
+        ops.append(take(i))
+        if i % 10 == 9:
+            ops.append(lambda node, store, t=feed[i][0]: store.snapshot(node, t))
+    return ops
+
+
+def _topside() -> Node:
+    """The fault suite's topside (``build_dive``'s, without building the whole dive), its map
+    with a tiny tile budget so that its tiles spill to the store's storage."""
+    from coex import ChannelManager, LinkConfig
+    from coex_plugins.bathymetry import BathymetryModality, BathymetryReceiver
+    from coex_plugins.imagery import ImageryModality
+    from coex_plugins.timeseries import TimeSeriesModality
+
+    from ._faults import TOPSIDE, VEHICLE, schedule
+
+    node = Node(ChannelManager(TOPSIDE, [LinkConfig(0, schedule(), rate=5, dst=VEHICLE)]))
+    node.add_receiver(BathymetryModality, BathymetryReceiver({"levels": 3, "memory_budget": 1, "tile_subgrids": 2}))
+    node.add_receiver(ImageryModality, ImageryModality().receiver({"retry": 10.0, "max_tries": 1000}))
+    node.add_receiver(TimeSeriesModality, TimeSeriesModality().receiver(None))
+    return node
+
+
+def _build(role: str) -> Callable[[], Node]:
+    if role == "topside":
+        return _topside
+    return lambda: build_dive(minutes=2).vehicle
+
+
+def _state(node: Node, role: str, store: NodeStore | None = None) -> Any:
+    if role == "topside":
+        return digest(node, products_only=True)
+    return (digest(node)["manager"]["queued"], sorted((s.name, s.sender.pending_bytes()) for s in node._senders),
+            None if store is None else len(store.marked("fed:")))
+
+
+@pytest.mark.parametrize("role", ["topside", "vehicle"])
+def test_a_write_refused_at_any_write_point_leaves_a_store_that_restores(tmp_path: Path, role: str,
+                                                                        monkeypatch: pytest.MonkeyPatch) -> None:
+    """Every statement a node's store runs (journal rows, marks, snapshots: chunks, manifest,
+    journal compaction, the storage's rows and generation) refused in turn, as by a full disk
+    or an I/O error: the store raises :class:`StoreError` naming the file (never an
+    sqlite3 error); a process that dies there leaves a file that restores the node as after
+    the last operation that committed (or the one that failed, when what failed was a spilled
+    tile kept in memory); a node that carries on writes it all with its next snapshot."""
+    import coex_runtime.store
+
+    monkeypatch.setattr(coex_runtime.store, "GARBAGE_CHUNKS", 1)  # unnamed chunks deleted at every snapshot
+    ops = _topside_ops() if role == "topside" else _vehicle_ops()
+    # the states the restored node may be in: before and after each operation
+    ref_store = NodeStore(tmp_path / "ref.sqlite")
+    node = ref_store.restore(_build(role))
+    counter = FaultyDb(ref_store.db, None, _full())
+    ref_store.db = counter  # type: ignore[assignment]
+    ref_store.storage().db = counter  # type: ignore[assignment]
+    states = [_state(node, role)]
+    for op in ops:
+        op(node, ref_store)
+        states.append(_state(node, role))
+    ref_store.close()
+    writes = [i + 1 for i, q in enumerate(counter.sql) if not q.startswith("SELECT")]
+    kinds = {q for q in counter.sql if not q.startswith("SELECT")}
+    assert len(writes) > 30 and len(kinds) >= 10, kinds
+    if role == "topside":  # the map's spilled tiles, their generation's commit, chunks no snapshot names
+        assert {"INSERT OR REPLACE INTO storage (key, gen, data) VALUES (?, ?, ?)",
+                "INSERT OR REPLACE INTO meta (key, value) VALUES ('storage_gen', ?)",
+                "DELETE FROM chunk WHERE id = ?"} <= kinds, kinds
+    else:  # an input and its mark, in one transaction
+        assert "INSERT OR REPLACE INTO meta (key, value) VALUES (?, ?)" in kinds, kinds
+    # every kind of write (and the reads inside a snapshot's transaction), the first and the
+    # last time each is run
+    first: dict[str, int] = {}
+    last: dict[str, int] = {}
+    for i, q in enumerate(counter.sql, 1):
+        first.setdefault(q, i)
+        last[q] = i
+    points = sorted({*first.values(), *last.values()})
+    for k in points:
+        for carry_on in (False, True):
+            db = tmp_path / f"k{k}-{int(carry_on)}.sqlite"
+            store = NodeStore(db)
+            node = store.restore(_build(role))
+            faulty = FaultyDb(store.db, k, _full() if k % 2 else _ioerr())
+            store.db = faulty  # type: ignore[assignment]
+            store.storage().db = faulty  # type: ignore[assignment]
+            failed_op = None
+            for j, op in enumerate(ops):
+                try:
+                    op(node, store)
+                except StoreError as exc:
+                    assert str(db) in str(exc) and exc.kind in ("full", "io"), exc
+                    failed_op = j
+                    if not carry_on:
+                        break
+                if faulty.failed and failed_op is None:
+                    failed_op = j  # a spilled tile refused: kept in memory, no error raised
+                    if not carry_on:
+                        break
+            assert faulty.failed, k
+            if carry_on:
+                store.snapshot(node, 1e10)  # the disk takes writes again: everything is written
+                live = _state(node, role, store)
+            store.db = faulty.real  # type: ignore[assignment]
+            store.close()  # (kill -9: what was not committed is not in the file)
+            again = NodeStore(db)
+            try:
+                back = again.restore(_build(role))
+                got = _state(back, role, again)
+            finally:
+                again.close()
+            if carry_on:
+                assert got == live, (k, failed_op)
+            else:
+                assert failed_op is not None
+                if role == "vehicle":
+                    got = got[:2]
+                    allowed = [s[:2] for s in states[failed_op:failed_op + 2]]
+                else:
+                    allowed = states[failed_op:failed_op + 2]
+                assert got in allowed, (k, failed_op)
