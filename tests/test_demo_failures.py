@@ -25,6 +25,9 @@ class _FakeServer:
 
             lock = threading.Lock()
 
+            class state:  # the console's state: the dive hands it topside's navigation (issue 56)
+                navigation: Any = None
+
             def update(self, fn: Any) -> None:
                 pass
         self.hub = Hub()

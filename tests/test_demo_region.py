@@ -58,7 +58,7 @@ def test_the_operator_asks_for_the_region_of_a_blurry_object_and_the_vehicle_ser
     regions = run.operator.regions
     assert regions, "no region request in the camera pass"
     log = (Path(result.out) / "decisions.csv").read_text()
-    assert "image region" in log and "too blurry to tell" in log
+    assert "image region" in log and "too unclear to tell" in log
     assert not result.metrics["false_confirmations"], result.metrics["false_confirmations"]
     assert all(r["time"] >= result.metrics["survey_end_s"] for r in regions)  # the camera pass
     # every region asked for was accepted by the vehicle and reached the layers asked for
