@@ -193,7 +193,7 @@ def test_with_the_labels_zeroed_the_operator_decides_exactly_the_same(tmp_path: 
         ObjectSpec(28.0, 70.0, 6.06, 2.44, 2.59, 70.0, "box", "container", 0.2)),
         decoys=(ObjectSpec(70.0, 70.0, 3.4, 2.5, 1.5, 10.0, "dome", "dark rock", 0.08),),
         # perfect navigation: this test's subject is who reads the labels (issue 56's drift is
-        # tested in test_navigation_demo.py; with it, seed 3's pale car is missed: docs/demo.md)
+        # tested in test_navigation_demo.py; docs/demo.md says what this scene did with it)
         drift=0.0)
     normal = run_demo(DemoConfig(out=tmp_path / "labels", quick=True, seed=3, progress=False, scenario=scn))
     zeroed = run_demo(DemoConfig(out=tmp_path / "zeros", quick=True, seed=3, progress=False, scenario=scn,

@@ -133,6 +133,9 @@ class CandidateView:
     #: why the vehicle will not fly its camera line (refused, or replaced by someone else's)
     refused: str | None = None
     passed_at: float | None = None
+    #: a look from another line's pass came to a dead end (nothing earlier to step back to):
+    #: only a pass after this time counts (its own camera line's)
+    wait_after: float | None = None
     want: tuple[float, str] | None = None  # (time, "nearest" | "before" | "after")
     want_goal: int | None = None  # image id of a pending request for more layers
     want_region: int | None = None  # command id of that request when it asked for a region
@@ -664,7 +667,7 @@ class Operator:
                 continue
             if cv.passed_at is None:
                 t_pass = self._pass_time(cv, now)
-                if t_pass is not None:
+                if t_pass is not None and (cv.wait_after is None or t_pass > cv.wait_after):
                     cv.passed_at = t_pass
                     self._ask(cv, t_pass, "nearest", now)
                 continue
@@ -796,6 +799,17 @@ class Operator:
         # step on from the furthest image already seen that way: never the same image twice
         times = cv.looked_times.values()
         start = min(times) if direction == "before" else max(times)
+        if direction == "before" and not any(
+                p.kind == "image" and p.meta.get("time") is not None and float(p.meta["time"]) < start
+                for p in self.imagery.products()):  # images are announced in capture order: none earlier
+            line = self.lines.get(cv.survey_id) if cv.survey_id is not None else None
+            if line is not None and line.completed is None and cv.wait_after is None:
+                # seen from another line's pass: wait for its own camera line
+                cv.passed_at, cv.want, cv.want_goal, cv.wait_after = None, None, None, max(times)
+                self.log(now, "image request", f"image {image_id} {why} at ({cv.x:.0f}, {cv.y:.0f}) "
+                         f"[{self._seen(mine)}]: no earlier image; waiting for its own camera line")
+                return
+            direction, start = "after", max(times)  # nothing behind: look ahead instead
         self.log(now, "image request", f"image {image_id} {why} at ({cv.x:.0f}, {cv.y:.0f}) "
                  f"[{self._seen(mine)}]: stepping {'back' if direction == 'before' else 'forward'} in time")
         self._ask(cv, start, direction, now)
