@@ -6,8 +6,11 @@ Runs the demo's full two-hour dive for every seed under each condition, in paral
 * ``60% independent``: preset ``default`` with ``--loss 0.6``;
 * ``50% burst``: preset ``default`` with ``--loss 0.5 --burst`` (Gilbert-Elliott, mean burst 4 frames);
 * ``dive040``: preset ``dive040`` (the ship 1.5 water depths from the site, range-dependent loss);
-* ``30% + 2 decoys``: preset ``default`` with two car-sized boulders placed at random (not in the
-  issue's list; a confirmation of a boulder fails the dive).
+* ``30% + 2 decoys``: preset ``default`` with two decoys placed at random, each a rock, a dark
+  rock (as dark as a car) or dark biology (issue 50: a scene where the wrong answer is possible;
+  a confirmation of a decoy fails the dive).
+* ``container-hull-car``: preset ``container-hull-car`` (issue 50: a 20-ft container, a 7 m boat
+  hull and a small pale car on the default dive's link).
 * ``lowrate``: preset ``lowrate`` (issue 41: Micromodem rate 1, the ship 1.2 km from the site in
   1000 m of water, range-dependent loss of about 50 %: about 14 B/s delivered).
 * ``fleet``: preset ``fleet`` (issue 43: a mapping AUV and a camera vehicle on one network, 30 %
@@ -80,9 +83,11 @@ CONDITIONS: dict[str, tuple[str, float | None, bool, float, dict[str, Any]]] = {
     "60% independent": ("default", 0.6, False, 0.80, {}),
     "50% burst": ("default", 0.5, True, 0.95, {}),
     "dive040": ("dive040", None, False, 0.95, {}),
-    # not in the issue's list: two car-sized boulders beside the two cars, to show that the
-    # operator's eye is not fooled (any confirmation of a boulder fails the dive)
+    # two decoys of random kind (rock, dark rock as dark as a car, dark biology) beside the two
+    # targets: the operator's eye can be wrong here (any confirmation of a decoy fails the dive)
     "30% + 2 decoys": ("default", None, False, 0.95, {"seafloor": {"random_decoys": 2}}),
+    # issue 50: a container, a boat hull and a small pale car (issue 50's target: 90 %)
+    "container-hull-car": ("container-hull-car", None, False, 0.90, {}),
     # issue 41: deep water and long range, Micromodem rate 1 and about 50 % range-dependent loss
     # (about 14 B/s delivered): the vehicle's detections carry the decision
     "lowrate": ("lowrate", None, False, 0.90, {}),
@@ -137,6 +142,13 @@ def digest(condition: str, seed: int, m: dict[str, Any], wall: float) -> dict[st
         "detections": {k: m.get("detection_cost", {}).get(k) for k in
                        ("received", "true", "decoys", "false", "bytes_sent", "neighbourhood_bytes_sent")},
         "goals": {k: v["met"] for k, v in m["goals"].items()},
+        # issue 50: what went wrong, counted, and the eye's kinds against the truth
+        "false_confirmation_count": m.get("false_confirmation_count", len(m["false_confirmations"])),
+        "rejected_frames": m.get("failures", {}).get("rejected_frames"),
+        "sender_failures": m.get("failures", {}).get("sender_failures"),
+        "runner_errors": m.get("failures", {}).get("runner_errors"),
+        "target_kinds": [t.get("kind") for t in m["targets"]],
+        "car_verdicts_on_cars": m.get("verdicts", {}).get("car_verdicts_on_cars"),
     }
 
 

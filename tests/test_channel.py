@@ -231,6 +231,25 @@ def test_failing_sender_never_stops_the_packet() -> None:
     assert len(bad.calls) == 2  # asked again in the next packet
 
 
+class EstimateRaisingSender(FakeSender):
+    def ready_bytes(self, now: float) -> int:
+        raise RuntimeError("estimate exploded")
+
+
+def test_a_sender_whose_estimate_fails_is_counted_and_named() -> None:
+    """``ready_bytes`` (the packet's backlog estimate) raising never stops a packet, and is no
+    longer skipped quietly: counted in ``sender_failures``, per stream by name, and told as a
+    SenderFailed event naming the stream."""
+    m = manager()
+    m.add_stream(StreamConfig(5, "sonar", priority=10), EstimateRaisingSender(size=50, tag=2))
+    tx = m.build(0, 1.0)
+    assert tx is not None and tx.frames  # the packet still goes
+    assert m.stats["sender_failures"] >= 1
+    assert m.sender_failures_by_stream["sonar"] == m.stats["sender_failures"]
+    fails = [e for e in m.events() if isinstance(e, SenderFailed)]
+    assert fails and fails[0].stream == 5 and fails[0].error.startswith("sonar: ready_bytes() failed")
+
+
 def test_slow_sender_is_cut_off_and_loses_nothing() -> None:
     clock = [0.0]
     m = manager(clock=lambda: clock[0], sender_budget=0.1)

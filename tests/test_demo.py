@@ -112,6 +112,19 @@ def test_a_slow_link_still_finds_and_confirms_the_cars(tmp_path: Path) -> None:
     assert "the vehicle suggests" in decisions and "gap request" not in decisions
 
 
+def test_the_dive_counts_its_failures_and_has_none(demo: tuple[Path, dict]) -> None:  # type: ignore[type-arg]
+    """metrics.json counts the frames each node rejected, its senders' failures and its runner's
+    errors (issue 50); a clean dive has none of them. It also carries the count of false
+    confirmations and the eye's verdicts against the truth."""
+    _, metrics = demo
+    f = metrics["failures"]
+    assert set(f["nodes"]) == {"1", "2"}
+    assert (f["rejected_frames"], f["sender_failures"], f["runner_errors"]) == (0, 0, 0), f
+    assert metrics["false_confirmation_count"] == len(metrics["false_confirmations"]) == 0
+    assert {v["truth"] for v in metrics["verdicts"]["candidates"] if v["verdict"] not in ("natural", "given up")} >= {
+        t["name"] for t in metrics["targets"]}
+
+
 def test_link_log_is_json_lines_with_capacity_and_use(demo: tuple[Path, dict]) -> None:  # type: ignore[type-arg]
     out, _ = demo
     records = [json.loads(line) for line in (out / "link.jsonl").read_text().splitlines()]

@@ -27,7 +27,6 @@ from typing import Any
 
 from ..messages import FrameHeader, Message
 from ..state import persistent
-from .events import SenderFailed
 from .tdma import LinksMixin
 
 __all__ = ["LOSS_WINDOW", "REDUNDANCY_TARGET", "DeliveryMixin"]
@@ -227,8 +226,7 @@ class DeliveryMixin(LinksMixin):
         try:
             s.sender.lost(rec.message, now)  # declared on ModalitySender (default: nothing)
         except Exception as exc:  # a sender's hook never stops the channel
-            self.stats["sender_failures"] += 1
-            self._events.append(SenderFailed(now, rec.stream, f"lost() failed: {type(exc).__name__}: {exc}"))
+            self._sender_failed(now, rec.stream, f"lost() failed: {type(exc).__name__}: {exc}")
 
     def _expire_deliveries(self, now: float) -> None:
         """Messages none of whose frames was acknowledged in time go to their sender's ``lost``;

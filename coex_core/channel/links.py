@@ -240,6 +240,20 @@ class _ManagerState:
     _commands: dict[int, Tracked[Message]]
     _command_dst: dict[int, int | None]
     stats: dict[str, int]
+    #: stream name -> failures of its sender (each also in ``stats["sender_failures"]``)
+    sender_failures_by_stream: dict[str, int]
+
+    def _sender_failed(self, now: float, sid: int, error: str, *, slow: bool = False) -> None:
+        """A sender failed (raised, or overran its deadline): counted, per stream by name, and
+        told as a :class:`SenderFailed` event naming the stream. Never raised: a failing sender
+        never stops a packet or the channel."""
+        from .events import SenderFailed
+
+        s = self._streams.get(sid)
+        name = s.queue.config.name if s is not None else str(sid)
+        self.stats["sender_failures"] += 1
+        self.sender_failures_by_stream[name] = self.sender_failures_by_stream.get(name, 0) + 1
+        self._events.append(SenderFailed(now, sid, f"{name}: {error}", slow=slow))
 
     def signer_for(self, dst: int) -> CommandSigner | None:
         """The signer of frames addressed to ``dst``: that peer's key, else the command key."""

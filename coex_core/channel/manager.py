@@ -169,6 +169,7 @@ class ChannelManager(SettingsMixin):
                                       "acked": 0, "resent": 0, "sender_failures": 0,
                                       "signed": 0, "stale_acks": 0, "delivered": 0, "lost": 0,
                                       "spare_bytes": 0, "redundant_bytes": 0}
+        self.sender_failures_by_stream: dict[str, int] = {}
         self._delivery_state()
         #: stream -> when its sender last gave spare work (the spare tier takes turns)
         self._spare_turn: dict[int, float] = {}

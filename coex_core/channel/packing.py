@@ -16,7 +16,6 @@ from ..messages import (
 from ..wire import encoded_size, header_size, pack
 from .events import (
     Dropped,
-    SenderFailed,
 )
 from .links import (
     SEQ_MODULUS,
@@ -219,7 +218,7 @@ class PackingMixin(PolicyMixin):
         (``ModalitySender.ready_bytes``; spare work only where spare traffic is on)."""
         n = sum(s.queue.queued_bytes() for s in self._streams.values() if s.queue.config.enabled)
         spare_on = any(st.spare > 0 for st in self._links.values())
-        for s in self._streams.values():
+        for sid, s in self._streams.items():
             if s.sender is None or not s.queue.config.enabled:
                 continue
             try:
@@ -227,7 +226,8 @@ class PackingMixin(PolicyMixin):
                     n += int(s.sender.ready_bytes(now))
                 else:
                     n += int(s.sender.ready_bytes(now)) - int(s.sender.spare_bytes())
-            except Exception:  # an estimate must never stop a packet
+            except Exception as exc:  # an estimate must never stop a packet: counted and told, by name
+                self._sender_failed(now, sid, f"ready_bytes() failed: {type(exc).__name__}: {exc}")
                 continue
         return max(n, 0)
 
@@ -333,8 +333,7 @@ class PackingMixin(PolicyMixin):
                 raise TypeError(f"spare returned {type(got).__name__}, not a list")
         except Exception as exc:  # a failing sender must never stop the packet
             exhausted[sid] = math.inf
-            self.stats["sender_failures"] += 1
-            self._events.append(SenderFailed(now, sid, f"spare: {type(exc).__name__}: {exc}"))
+            self._sender_failed(now, sid, f"spare: {type(exc).__name__}: {exc}")
             return 0
         packed = 0
         for m in got:
@@ -343,7 +342,7 @@ class PackingMixin(PolicyMixin):
             except (EncodeError, CoexError, TypeError, ValueError) as exc:
                 s.queue.count_drop("encode")
                 self._events.append(Dropped(now, sid, "encode"))
-                self._events.append(SenderFailed(now, sid, f"unencodable spare message: {exc}"))
+                self._sender_failed(now, sid, f"unencodable spare message: {exc}")
                 continue
             if size > fb.left or packed + size > ask:
                 # more than asked for: spare work can be made again, so it is dropped
@@ -517,8 +516,7 @@ class PackingMixin(PolicyMixin):
                     raise TypeError(f"fill returned {type(got).__name__}, not a list")
             except Exception as exc:  # a failing sender must never stop the packet
                 exhausted[q.id] = math.inf
-                self.stats["sender_failures"] += 1
-                self._events.append(SenderFailed(now, q.id, f"{type(exc).__name__}: {exc}"))
+                self._sender_failed(now, q.id, f"{type(exc).__name__}: {exc}")
                 continue
             slow = self.clock is not None and self.clock() - start > self.sender_budget
             fits = False
@@ -528,7 +526,7 @@ class PackingMixin(PolicyMixin):
                 except (EncodeError, CoexError, TypeError, ValueError) as exc:
                     q.count_drop("encode")
                     self._events.append(Dropped(now, q.id, "encode"))
-                    self._events.append(SenderFailed(now, q.id, f"unencodable message: {exc}"))
+                    self._sender_failed(now, q.id, f"unencodable message: {exc}")
                     continue
                 e = self._new_entry(q, m, size, now)
                 if slow:
@@ -538,8 +536,7 @@ class PackingMixin(PolicyMixin):
                     fits = True
             if slow:
                 exhausted[q.id] = math.inf
-                self.stats["sender_failures"] += 1
-                self._events.append(SenderFailed(now, q.id, "fill overran its deadline", slow=True))
+                self._sender_failed(now, q.id, "fill overran its deadline", slow=True)
                 continue
             if fits:
                 return True

@@ -26,7 +26,6 @@ import math
 from typing import Any
 
 from .acks import AcksMixin
-from .events import SenderFailed
 
 __all__ = ["LOW_THROUGHPUT", "NORMAL_THROUGHPUT", "PolicyMixin"]
 
@@ -105,8 +104,7 @@ class PolicyMixin(AcksMixin):
             try:  # declared on ModalitySender (default: nothing)
                 s.sender.throughput(bps, self._low, now)
             except Exception as exc:  # a sender's hook never stops the channel
-                self.stats["sender_failures"] += 1
-                self._events.append(SenderFailed(now, sid, f"throughput() failed: {type(exc).__name__}: {exc}"))
+                self._sender_failed(now, sid, f"throughput() failed: {type(exc).__name__}: {exc}")
 
     def link_state(self, link: int) -> dict[str, Any]:
         """:meth:`DeliveryMixin.link_state`, with the link's ``capacity`` and ``throughput``

@@ -1,13 +1,26 @@
-"""Render downward-looking camera frames from the simulated seafloor.
+"""Render downward-looking camera frames from the simulated seafloor: the simulator's labelled
+renderer (it knows which pixel shows which object). Only the simulation and the referee use it;
+the scripted operator's eye (:mod:`coex_apps.demo.eye`) never imports it, and its parameters
+(the appearance of every kind of object, :data:`APPEARANCE`) are set here, apart from the eye's.
 
 A pinhole camera looks straight down from the vehicle with a co-located light. Each pixel is
-projected to the seafloor (the local height field), where a procedural sand texture, the ripples'
-shading, and any target (a car: a box with a darker, mottled paint and sharp edges) set its
-brightness; then comes the light's fall-off with range and off-axis angle, water attenuation
-(which also tints the colour), backscatter haze and sensor noise. Everything is vectorised numpy.
+projected to the seafloor plane at the vehicle's altitude (an object's top is drawn over its
+footprint, without the perspective of its height), where the sand's albedo (a procedural texture,
+or one built from real dive frames, :mod:`coex_apps.demo.seabed`), the ripples' shading and any
+object set its brightness. The objects, by ``kind`` (:class:`~coex_plugins.bathymetry.sim.Target`):
 
-The result looks like the NUI dive images in the ways that matter to the pipeline: 640 x 480,
-low contrast, vignetted, with a target that is recognisable when it is in frame.
+* ``car``: a box with mottled paint of its ``albedo`` (dark by default; a scenario draws light
+  ones too), encrusting growth and a hard dark rim;
+* ``container``: a box with a corrugated roof (ribs across it every 0.28 m), rust and a dark rim;
+* ``hull``: a small boat's hull, its bow tapering, a pale gunwale round a darker, fouled inside;
+* ``debris``: a patch of pieces of wreckage, each a box with its own tone and hard edges;
+* ``rock``: a lumpy boulder of the sand's colour; ``dark rock``: the same, dark (basalt),
+  mottled; ``biology``: a low lobed mound of dark living things with pale specks.
+
+Then comes the light's fall-off with range and off-axis angle (domes, mounds and hulls are shaded
+by their slopes), water attenuation (which also tints the colour), backscatter haze and sensor
+noise. Everything is vectorised numpy. The result looks like the NUI dive images in the ways that
+matter to the pipeline: 640 x 480, low contrast, vignetted.
 """
 
 from __future__ import annotations
@@ -18,14 +31,28 @@ from typing import Protocol
 
 import numpy as np
 
-__all__ = ["BoxLike", "CameraModel", "SandTexture", "render_labelled", "footprint"]
+from coex_plugins.bathymetry.sim import Target, debris_pieces, hull_halfwidth, object_height
+
+__all__ = ["APPEARANCE", "BoxLike", "CameraModel", "SandTexture", "render_labelled", "footprint"]
+
+#: the renderer's appearance of each kind of object: the default albedo of its top (``None``: the
+#: sand's own), and how much its surface is mottled (a fraction of its albedo)
+APPEARANCE: dict[str, tuple[float | None, float]] = {
+    "car": (0.07, 0.35),
+    "container": (0.30, 0.25),
+    "hull": (0.60, 0.20),
+    "debris": (0.15, 0.40),
+    "rock": (None, 0.15),
+    "dark rock": (0.12, 0.30),
+    "biology": (0.10, 0.30),
+}
 
 HeightFn = Callable[[np.ndarray, np.ndarray], np.ndarray]
 
 
 class BoxLike(Protocol):
-    """A box-shaped target (``coex_plugins.bathymetry.sim.Target``, a frozen dataclass: read
-    only): centre, size (m), heading (deg)."""
+    """An object on the seafloor (``coex_plugins.bathymetry.sim.Target``): centre, size (m),
+    heading (deg)."""
 
     @property
     def x(self) -> float: ...
@@ -41,14 +68,12 @@ class BoxLike(Protocol):
     def heading(self) -> float: ...
 
 
-def _inside(box: BoxLike, gx: np.ndarray, gy: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Mask of ground points under the box, and their coordinates along and across it."""
-    h = np.deg2rad(90.0 - box.heading)  # heading clockwise from north -> angle from east
-    dx, dy = gx - box.x, gy - box.y
-    u = dx * np.cos(h) + dy * np.sin(h)
-    v = -dx * np.sin(h) + dy * np.cos(h)
-    mask = (np.abs(u) <= box.length / 2) & (np.abs(v) <= box.width / 2)
-    return mask, u, v
+def _local(obj: BoxLike, gx: np.ndarray, gy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Ground points in the object's frame (metres along and across it, as the seafloor
+    simulator takes them: :func:`~coex_plugins.bathymetry.sim.object_height`)."""
+    h = np.deg2rad(obj.heading)
+    dx, dy = gx - obj.x, gy - obj.y
+    return dx * np.sin(h) + dy * np.cos(h), dx * np.cos(h) - dy * np.sin(h)
 
 
 @dataclass(frozen=True)
@@ -109,8 +134,67 @@ def _coarse_heights(height_fn: HeightFn, gx: np.ndarray, gy: np.ndarray, step: i
     b = coarse[r0][:, c0 + 1]
     c = coarse[r0 + 1][:, c0]
     d = coarse[r0 + 1][:, c0 + 1]
-    out: np.ndarray = a * (1 - fr) * (1 - fc) + b * (1 - fr) * fc + c * fr * (1 - fc) + d * fr * fc
-    return out
+    return np.asarray(a * (1 - fr) * (1 - fc) + b * (1 - fr) * fc + c * fr * (1 - fc) + d * fr * fc)
+
+
+def _noise(gx: np.ndarray, gy: np.ndarray, k: float, phase: float) -> np.ndarray:
+    """A smooth mottling pattern in [-1, 1] (sums of skewed sinusoids; vectorised)."""
+    return np.asarray(0.5 * np.sin(k * gx + 2.0 * np.sin(0.7 * k * gy + phase))
+                      * np.cos(1.3 * k * gy + 1.5 * np.sin(0.9 * k * gx - phase)), np.float64)
+
+
+def _paint(obj: Target, kind: str, u: np.ndarray, v: np.ndarray, gx: np.ndarray, gy: np.ndarray,
+           sand: np.ndarray, tex: Callable[[np.ndarray, np.ndarray], np.ndarray]) -> np.ndarray:
+    """Albedo of ``obj``'s top at its points (``u``, ``v``: along and across it; ``sand``: the
+    sand's albedo there)."""
+    base, mottle = APPEARANCE.get(kind, APPEARANCE["car"])
+    own = obj.albedo if obj.albedo is not None else base
+    tone = 0.55 if own is None else float(own)  # the sand's mean: only a boulder of the sand's colour has none
+    ph = float((obj.x * 7.3 + obj.y * 3.1) % (2 * np.pi))
+    if kind == "car":
+        # a wreck: corroded panels, bright encrusting growth, a frame of hard dark edges
+        clutter = np.sin(5.3 * u + 2.0 * np.sin(3.1 * v)) * np.cos(6.7 * v + 1.5 * np.sin(4.3 * u))
+        paint = tone * (1.0 + mottle * clutter) + 0.25 * (tex(gx * 2.3, gy * 1.9) - 0.55)
+        growth = clutter > 0.8
+        rim = (np.abs(np.abs(u) - obj.length / 2) < 0.1) | (np.abs(np.abs(v) - obj.width / 2) < 0.1)
+        return np.where(rim, 0.35 * tone, np.where(growth, np.maximum(0.2, 1.4 * tone), paint))
+    if kind == "container":
+        ribs = np.sin(2 * np.pi * u / 0.28)
+        rust = _noise(gx, gy, 2.1, ph)
+        paint = tone * (1.0 + 0.18 * ribs + mottle * rust)
+        rim = (np.abs(np.abs(u) - obj.length / 2) < 0.08) | (np.abs(np.abs(v) - obj.width / 2) < 0.08)
+        return np.where(rim, 0.4 * tone, paint)
+    if kind == "hull":
+        w = hull_halfwidth(obj, u)
+        gunwale = np.abs(v) > w - 0.15
+        fouled = tone * (1.0 + mottle * _noise(gx, gy, 3.3, ph))
+        return np.where(gunwale, np.minimum(1.2 * tone, 0.95), 0.55 * fouled)
+    if kind == "debris":
+        rim = (np.abs(np.abs(u) - obj.length / 2) < 0.05) | (np.abs(np.abs(v) - obj.width / 2) < 0.05)
+        return np.where(rim, 0.5 * tone, tone * (1.0 + mottle * _noise(gx, gy, 4.1, ph)))
+    if kind == "biology":
+        # pale polyps, arms and shells over a dark mat: blobs of an irregular pattern
+        n = _noise(gx, gy, 19.0, ph) + 0.7 * _noise(gy, gx, 31.7, 2.0 * ph) + 0.5 * _noise(gx + gy, gx - gy, 13.3, ph)
+        specks = n > 0.55
+        return np.where(specks, 0.45, tone * (1.0 + mottle * _noise(gx, gy, 6.0, ph)))
+    lumps = np.sin(9.0 * u / max(obj.length, 0.1) * 4.5) * np.cos(8.0 * v / max(obj.width, 0.1) * 2.6)
+    if kind == "dark rock":
+        return tone * (1.0 + mottle * (0.6 * lumps + 0.4 * _noise(gx, gy, 5.0, ph)))
+    # a boulder of the sand's colour, lightly mottled
+    return np.asarray((sand if own is None else np.full_like(sand, tone)) * (0.95 + mottle * lumps))
+
+
+def _as_target(obj: BoxLike, decoy: bool) -> Target:
+    """``obj`` as a :class:`Target` with its kind: a dome or a mound that names no natural kind
+    is a boulder or living things; a decoy without a shape of its own a boulder."""
+    shape = str(getattr(obj, "shape", "dome" if decoy else "box"))
+    kind = str(getattr(obj, "kind", "") or ("rock" if decoy else "car"))
+    if shape == "dome" and kind not in ("rock", "dark rock"):
+        kind = "rock"
+    elif shape == "mound" and kind != "biology":
+        kind = "biology"
+    return Target(obj.x, obj.y, obj.length, obj.width, obj.height, obj.heading, shape, kind,
+                  getattr(obj, "albedo", None))
 
 
 def render_labelled(
@@ -122,18 +206,17 @@ def render_labelled(
     *,
     targets: Sequence[BoxLike] = (),
     rocks: Sequence[BoxLike] = (),
-    texture: SandTexture | None = None,
+    texture: Callable[[np.ndarray, np.ndarray], np.ndarray] | None = None,
     camera: CameraModel | None = None,
     rng: np.random.Generator | None = None,
     grey: bool = False,
 ) -> tuple[np.ndarray, np.ndarray]:
     """A frame from a camera at (x, y, vehicle_z) looking down (uint8, H x W x 3, or H x W if
     ``grey``) and the frame's truth: a label image (uint8, H x W) that is 0 on the
-    seafloor, ``k + 1`` where box ``k`` of ``targets`` is seen and ``len(targets) + k + 1`` where
-    rock ``k`` of ``rocks`` is seen.
-
-    A rock is a car-sized boulder: a rounded, lumpy dome of the sand's colour (lightly mottled,
-    no hard edges); a car is a box with dark, mottled paint and sharp edges."""
+    seafloor, ``k + 1`` where object ``k`` of ``targets`` is seen and ``len(targets) + k + 1``
+    where object ``k`` of ``rocks`` (the decoys) is seen. Each object is drawn by its ``kind``
+    (see the module docstring); an object without one (a plain box) is a car, a decoy without
+    one a boulder of the sand's colour."""
     cam = camera or CameraModel()
     tex = texture or SandTexture()
     rng = rng or np.random.default_rng(0)
@@ -148,39 +231,25 @@ def render_labelled(
     ex, ey = px * np.cos(h) + py * np.sin(h), -px * np.sin(h) + py * np.cos(h)
     gx, gy = x + ex * altitude, y + ey * altitude
     gz = _coarse_heights(height_fn, gx, gy)
-    albedo = tex(gx, gy)
+    albedo = np.asarray(tex(gx, gy), np.float64)
     labels = np.zeros(gz.shape, np.uint8)
-    for k, rock in enumerate(rocks):
-        mask, u, v = _inside(rock, gx, gy)
-        if not mask.any():
-            continue
-        # an ellipsoidal dome inscribed in the box, with lumps; the colour of the sand, mottled
-        um, vm = u[mask] / (rock.length / 2), v[mask] / (rock.width / 2)
-        r2 = um**2 + vm**2
-        dome = r2 < 1.0
-        lumps = 0.12 * np.sin(7.0 * um + 2.0) * np.sin(5.0 * vm + 1.0)
-        hz = np.where(dome, rock.height * np.sqrt(np.clip(1.0 - r2, 0.0, 1.0)) * (1.0 + lumps), 0.0)
-        idx = np.flatnonzero(mask.ravel())[dome]
-        gz.ravel()[np.flatnonzero(mask.ravel())] += hz
-        albedo = albedo.astype(np.float64)
-        albedo.ravel()[idx] = albedo.ravel()[idx] * (0.9 + 0.15 * np.sin(9.0 * um[dome]) * np.cos(8.0 * vm[dome]))
-        labels.ravel()[idx] = len(targets) + k + 1
-    top = np.zeros_like(gz, dtype=bool)
-    for k, box in enumerate(targets):
-        mask, u, v = _inside(box, gx, gy)
-        gz = np.where(mask, gz + box.height, gz)
-        # a wreck: dark corroded panels, bright encrusting growth, a frame of hard dark edges
-        if not mask.any():
-            continue
-        um, vm = u[mask], v[mask]
-        clutter = np.sin(5.3 * um + 2.0 * np.sin(3.1 * vm)) * np.cos(6.7 * vm + 1.5 * np.sin(4.3 * um))
-        paint = 0.07 + 0.03 * clutter + 0.25 * (tex(gx[mask] * 2.3, gy[mask] * 1.9) - 0.55)
-        growth = clutter > 0.8
-        edge = (np.abs(np.abs(um) - box.length / 2) < 0.1) | (np.abs(np.abs(vm) - box.width / 2) < 0.1)
-        albedo = albedo.astype(np.float64)
-        albedo[mask] = np.where(edge, 0.03, np.where(growth, 0.2, paint))
-        top |= mask
-        labels[mask] = k + 1
+    reach = float(np.hypot(gx - x, gy - y).max())
+    for label, obj in enumerate([*targets, *rocks], 1):
+        if np.hypot(obj.x - x, obj.y - y) > reach + max(obj.length, obj.width):
+            continue  # nowhere near the frame
+        full = _as_target(obj, decoy=label > len(targets))
+        kind = full.kind
+        parts = debris_pieces(full) if full.shape == "debris" else (full,)
+        for part in parts:
+            u, v = _local(part, gx, gy)
+            hz = object_height(part, u, v)
+            mask = np.isfinite(hz)
+            if not mask.any():
+                continue
+            gz = np.where(mask, gz + np.where(mask, hz, 0.0), gz)
+            albedo[mask] = _paint(part, kind, u[mask], v[mask], gx[mask], gy[mask], albedo[mask], tex)
+            labels[mask] = label
+    albedo = np.clip(albedo, 0.01, 1.2)
     # surface normals from the height field (finite differences in image space)
     dzx = np.gradient(gz, axis=1) / np.maximum(np.gradient(gx, axis=1) ** 2 + np.gradient(gy, axis=1) ** 2, 1e-9) ** 0.5
     dzy = np.gradient(gz, axis=0) / np.maximum(np.gradient(gx, axis=0) ** 2 + np.gradient(gy, axis=0) ** 2, 1e-9) ** 0.5

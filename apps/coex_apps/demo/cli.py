@@ -25,7 +25,8 @@ def register(sub: Any) -> None:
     scn.add_argument("--preset", default=None, metavar="NAME",
                      help="a built-in scenario: default (today's dive), dive040 (the ship 1.5 water depths "
                           "away, range-dependent loss), harsh (Micromodem rate 3, bursty loss), lowrate (rate 1, "
-                          "far from the site), fleet (a mapping AUV and a camera vehicle on one network)")
+                          "far from the site), fleet (a mapping AUV and a camera vehicle on one network), "
+                          "container-hull-car (a 20-ft container, a 7 m boat hull and a small pale car)")
     scn.add_argument("--scenario", type=Path, default=None, metavar="FILE.toml",
                      help="a scenario file (site, survey, targets and decoys, modem, TDMA, loss model, ship; "
                           "see docs/demo.md)")
@@ -39,7 +40,8 @@ def register(sub: Any) -> None:
                    help="who operates topside: the scripted operator (default without --gui) or nobody but a "
                         "person at the console (default with --gui)")
     p.add_argument("--images", type=Path, default=None,
-                   help="use real image files from DIR along the camera transect instead of rendered frames")
+                   help="build the simulated sand from real seafloor frames in DIR (e.g. ../shared/data/nui040) "
+                        "instead of the generated texture")
     gui = p.add_mutually_exclusive_group()
     gui.add_argument("--gui", action="store_true", help="serve the live web console during the dive")
     gui.add_argument("--no-gui", dest="gui", action="store_false", help="no web console (default)")
@@ -60,6 +62,9 @@ def register(sub: Any) -> None:
                    help="threads for the image coding (OpenJPEG; the same images either way; default: one per "
                         "CPU, up to 4; 0: in the dive's own thread)")
     p.add_argument("--quiet", action="store_true", help="no progress bar and no decision log")
+    p.add_argument("--zero-labels", action="store_true",
+                   help="a check: the simulator's per-pixel labels are zeros (frames unchanged), so the referee "
+                        "sees nothing; the operator's decisions must not change (metrics.json verdicts)")
     p.add_argument("--no-correction", dest="correction", action="store_false",
                    help="topside estimates the vehicle's drift from the USBL fixes but does not apply it: the map, "
                         "images and survey commands stay in the vehicle's drifting frame (docs/navigation.md)")
@@ -104,7 +109,7 @@ def run(args: argparse.Namespace) -> int:
                      http=args.http, quick=args.quick, progress=not args.quiet, burst=args.burst,
                      speed=args.speed, command_key=key, scenario=scenario, operator=args.operator,
                      operators=args.operators, insecure_open=args.insecure_open, codec_threads=args.threads,
-                     correction=args.correction)
+                     correction=args.correction, zero_labels=args.zero_labels)
     result = run_demo(cfg, on_decision=say)
     m = result.metrics
     print(f"scenario {m['scenario']['name']}: {m['scenario']['loss_description']}; operator {m['operator']}")

@@ -3,18 +3,25 @@ operators did by hand, deciding only from what reached topside.
 
 * **The map.** Every half TDMA cycle it looks for bumps on a coarse level and asks for the 1 m
   level around them; in the 1 m map it measures each bump (height above the local background,
-  footprint, length and width from the cells' second moments) and scores how car-like it is
-  (:func:`car_likeness`: a car is about 4.5 x 1.8 m and 1.5 m high; a round boulder or a tall
-  spike scores low). Candidates are visited in that order while camera time remains: the
-  operator sends the vehicle one survey command per candidate (a camera line over it, queued
-  behind the lines already sent), over the acoustic link like every other command; the
-  vehicle's answers (accepted, rejected with its reason, started, completed) come back.
-* **The images.** Once the vehicle has passed over a candidate (closest approach along the track
-  topside received, or the time the vehicle reported reaching the line's start, plus half the
-  line), it asks for the image nearest that time. It looks at the image as received
-  (:class:`~coex_apps.demo.truth.Eye`): a car confirms the candidate; a blurry object makes it
-  ask for more layers of that image; sand makes it step to the previous or next image (towards
-  the candidate, by the frame's position); a boulder, or too many tries, makes it move on.
+  footprint, length, width and orientation from the cells' second moments) and scores how
+  target-like it is (:func:`target_likeness`: an object of the sizes sought, :data:`TARGET_SIZES`,
+  2 to 8 m long by default; a spike or a wide hummock scores low). Candidates are visited in
+  that order while camera time remains: the operator sends the vehicle one survey command per
+  candidate (a camera line across its long axis, high enough for a frame to hold it:
+  :func:`camera_altitude`, queued behind the lines already sent), over the acoustic link like
+  every other command; the vehicle's answers (accepted, rejected with its reason, started,
+  completed) come back.
+* **The images.** Once the vehicle has passed over a candidate (the vehicle's reports of the
+  line, else the closest approach along the track topside received, then the announced frame
+  taken nearest the candidate), it asks for that image. Its eye (:mod:`coex_apps.demo.eye`)
+  looks at the image as received, with nothing but the image, its announced position and time,
+  the vehicle's altitude and the camera's field of view: a target (a car, a container, a hull,
+  debris, or a straight-edged object of no known kind) near the candidate confirms it; an
+  object too unclear to tell makes it ask for that object's region at a higher quality; an
+  object cut by the frame's edge, or sand, makes it step to the previous or next image; a
+  natural object (a rock, a mound of living things), or too many tries, makes it move on.
+
+It imports nothing of the simulation's truth or its labelled renderer (``tests/test_demo_eye.py``).
 """
 
 from __future__ import annotations
@@ -31,19 +38,26 @@ from coex import Node, RequestRejected, unwrap
 from coex.messages import SurveyCommand, VehicleStatus
 from coex.messages import command_id as command_id_of
 from coex_plugins.bathymetry import BathymetryReceiver, find_targets
-from coex_plugins.bathymetry.relief import CAR as CAR_DIMS
-from coex_plugins.bathymetry.relief import FLAT, Bump, bumps, likeness, measure_bump
+from coex_plugins.bathymetry.relief import FLAT, SIZES, Bump, bumps, measure_bump, range_likeness
 from coex_plugins.detections import DetectionsReceiver
 from coex_plugins.imagery import ImageryReceiver
 from coex_plugins.survey import SurveyReceiver
 
-from .config import CAMERA_PERIOD, CAMERA_SPEED, TRANSIT_SPEED
-from .truth import Eye, FrameTruth
+from .eye import TARGET_KINDS, Eye, Sight, metres_per_pixel
+from .specs import (
+    CAMERA_ASPECT,
+    CAMERA_HFOV_DEG,
+    CAMERA_PERIOD,
+    CAMERA_SPEED,
+    TRANSIT_ALTITUDE,
+    TRANSIT_SPEED,
+)
 
-__all__ = ["CameraLine", "CandidateView", "Operator", "car_likeness", "measure"]
+__all__ = ["CameraLine", "CandidateView", "Operator", "camera_altitude", "measure", "target_likeness"]
 
-#: a car as the operator pictures it: length, width, height (m), and the flatness of its top
-CAR = CAR_DIMS
+#: the sizes of the targets sought (length, width, height ranges, m): the vehicle's relief
+#: detector's default (2 to 8 m long), set for the mission, not for the scene
+TARGET_SIZES = SIZES
 #: candidates scoring below this are not worth camera time
 MIN_SCORE = 0.05
 #: layers of a requested image the vehicle sends first (its ``request_goal``: with the default
@@ -61,6 +75,8 @@ REGION_MARGIN = 24
 MAX_LOOKS = 6
 #: an image is "at" a candidate when taken within this distance of it (m)
 NEAR = 6.0
+#: an object the eye sees is the candidate's when it lies within this distance of it (m)
+SIGHT_RADIUS = 5.0
 #: gaps in the 1 m map are asked for in tiles of this size (m), a few tiles per look, each tile
 #: again after GAP_RETRY seconds at the earliest
 GAP_TILE = 64.0
@@ -72,6 +88,20 @@ MAX_OPEN_MAP_REQUESTS = 12
 MAX_OPEN_MAP_REQUESTS_CAMERA = 3
 #: an image request the vehicle has not answered after this many TDMA cycles is asked again
 ANSWER_CYCLES = 3
+#: the highest camera line (m): below the altitude the vehicle transits at, so that a status
+#: from a camera line is told from one in transit
+MAX_CAMERA_ALTITUDE = TRANSIT_ALTITUDE - 1.0
+#: metres added to an object's length across a camera line: where the line passes (a metre
+#: either side) and the object's orientation measured in the 1 m map (15 degrees)
+LINE_MARGIN = 2.5
+#: the camera lines' speed (m/s): slower than the vehicle's usual camera speed, so that frames
+#: are 1.8 m apart and one of them holds an object up to 6 m along the line whole
+LINE_SPEED = 0.3
+#: a camera line reaches this far (m) either side of its candidate
+LINE_HALF = 15.0
+#: every camera line is flown at the altitude that holds the largest object sought (length,
+#: width; :data:`TARGET_SIZES`) in a frame (:func:`camera_altitude`)
+LINE_ALTITUDE_FOR = (TARGET_SIZES[0][1], TARGET_SIZES[1][1])
 
 
 @dataclass
@@ -88,6 +118,8 @@ class CandidateView:
     score: float
     found_at: float
     flatness: float = FLAT
+    #: orientation of its long axis (degrees clockwise from north, 0-180)
+    orientation: float = 0.0
     #: the vehicle's detection of it (its id) and when that first reached topside
     detection: int | None = None
     detected_at: float | None = None
@@ -101,6 +133,9 @@ class CandidateView:
     #: why the vehicle will not fly its camera line (refused, or replaced by someone else's)
     refused: str | None = None
     passed_at: float | None = None
+    #: a look from another line's pass came to a dead end (nothing earlier to step back to):
+    #: only a pass after this time counts (its own camera line's)
+    wait_after: float | None = None
     want: tuple[float, str] | None = None  # (time, "nearest" | "before" | "after")
     want_goal: int | None = None  # image id of a pending request for more layers
     want_region: int | None = None  # command id of that request when it asked for a region
@@ -113,8 +148,13 @@ class CandidateView:
     looked_times: dict[int, float] = field(default_factory=dict)
     image_id: int | None = None
     confirmed_at: float | None = None
-    verdict: str = ""  # "car", "rock", "given up"
+    #: what the eye made of it: a target kind (:data:`~coex_apps.demo.eye.TARGET_KINDS`: car,
+    #: container, hull, debris, object), "natural" or "given up"
+    verdict: str = ""
     verdict_image: int | None = None
+    #: the eye's box (full-size pixels) round the object it confirmed, and what it measured
+    evidence_box: tuple[int, int, int, int] | None = None
+    evidence_sight: dict[str, Any] | None = None
     #: the image as received when the operator confirmed a car (for the referee), its capture
     #: time, position and received bytes
     evidence: Any = field(default=None, repr=False)
@@ -125,6 +165,11 @@ class CandidateView:
     @property
     def done(self) -> bool:
         return bool(self.verdict)
+
+    @property
+    def confirmed(self) -> bool:
+        """The eye saw a target here (its verdict is a target kind)."""
+        return self.verdict in TARGET_KINDS
 
 
 @dataclass
@@ -138,6 +183,9 @@ class CameraLine:
     end: tuple[float, float]
     speed: float
     sent_at: float
+    #: the line's heading (degrees clockwise from north) and altitude (m)
+    heading: float = 0.0
+    altitude: float = 5.0
     state: str = "requested"
     #: the vehicle's stamps: set off for the line (STARTED 0), reached its start (STARTED 1), done
     set_off: float | None = None
@@ -164,35 +212,50 @@ class CameraLine:
         return None
 
 
-def car_likeness(height: float, length: float, width: float, flatness: float = FLAT) -> float:
-    """How car-like a bump is, in [0, 1]: Gaussian likelihoods of its height, length, width and
-    flatness (mean over max height across its footprint) against a car's (4.5 x 1.8 x 1.5 m, a
-    flat top), with the spreads a 1 m map allows (:func:`~coex_plugins.bathymetry.relief.likeness`)."""
-    return likeness(height, length, width, flatness, CAR_DIMS)
+def camera_altitude(length: float, width: float, lowest: float) -> float:
+    """The altitude (m) of a camera line over an object ``length`` x ``width`` metres, flown
+    across its long axis: high enough that one frame holds the object across the line (its
+    length and :data:`LINE_MARGIN` for the line's and the map's errors) and along it (its width,
+    the distance between two frames, :data:`LINE_SPEED` x :data:`CAMERA_PERIOD`, and a metre),
+    so that some frame shows its whole outline; at least ``lowest`` (the scenario's camera
+    altitude) and at most :data:`MAX_CAMERA_ALTITUDE`. The operator flies every line at the
+    altitude for the largest object sought (:data:`LINE_ALTITUDE_FOR`): the 1 m map measures a
+    rounded or tapering object (a hull, a small car) shorter than it is."""
+    span = 2.0 * math.tan(math.radians(CAMERA_HFOV_DEG) / 2.0)
+    across = (length + LINE_MARGIN) / span
+    along = (width + LINE_SPEED * CAMERA_PERIOD + 1.0) / (span * CAMERA_ASPECT)
+    return round(min(max(across, along, lowest), MAX_CAMERA_ALTITUDE), 1)
+
+
+def target_likeness(height: float, length: float, width: float, flatness: float = FLAT,
+                    sizes: tuple[tuple[float, float], tuple[float, float], tuple[float, float]] = TARGET_SIZES) -> float:
+    """How target-like a bump is, in [0, 1]: 1 for a bump of the sizes sought (``sizes``:
+    length, width, height ranges), falling off outside them with the spreads a 1 m map allows,
+    and lower for a rounded top (:func:`~coex_plugins.bathymetry.relief.range_likeness`)."""
+    return range_likeness(height, length, width, flatness, sizes)
 
 
 def measure(grid: np.ndarray, cell: float, x0: float, y0: float, cand: Any, now: float = 0.0,
             ) -> CandidateView | None:
     """Measure a :func:`find_targets` candidate in the 1 m grid
-    (:func:`~coex_plugins.bathymetry.relief.measure_bump`) and score how car-like it is."""
+    (:func:`~coex_plugins.bathymetry.relief.measure_bump`) and score how target-like it is."""
     b = measure_bump(grid, cell, x0, y0, cand.peak_x, cand.peak_y, cand.height)
     return None if b is None else _view(b, now)
 
 
 def _view(b: Bump, now: float) -> CandidateView:
     return CandidateView(round(b.x, 1), round(b.y, 1), round(b.height, 2), b.cells, round(b.length, 1),
-                         round(b.width, 1), round(car_likeness(b.height, b.length, b.width, b.flatness), 3), now,
-                         flatness=round(b.flatness, 2))
+                         round(b.width, 1), round(target_likeness(b.height, b.length, b.width, b.flatness), 3), now,
+                         flatness=round(b.flatness, 2), orientation=round(b.orientation, 1))
 
 
 class Operator:
     """The scripted operator (see the module docstring). It knows the survey box (it planned the
-    survey) and never the targets. ``frames`` gives the simulator's :class:`FrameTruth` of a
-    captured frame by its capture time (the eye needs to know which pixels hold an object)."""
+    survey), the camera altitude it plans with and the camera's field of view, never the
+    targets."""
 
     def __init__(self, topside: Node, receivers: dict[str, Any], box: tuple[float, float, float, float],
-                 log: Callable[..., None], *, frames: Callable[[float], FrameTruth | None],
-                 camera_altitude: float, cycle: float = 120.0, eye: Eye | None = None,
+                 log: Callable[..., None], *, camera_altitude: float, cycle: float = 120.0, eye: Eye | None = None,
                  active: bool = True) -> None:
         self.topside = topside
         self.bathy: BathymetryReceiver = receivers["bathymetry"]
@@ -202,13 +265,16 @@ class Operator:
         self.survey: SurveyReceiver = receivers["survey"]
         self.box = box
         self.log = log
-        self.frames = frames
         self.camera_altitude = camera_altitude
         self.cycle = cycle
         self.eye = eye or Eye()
         #: ``False`` (``--operator none``): the operator watches nothing and asks for nothing
         self.active = active
         self.track: list[tuple[float, float, float, float]] = []  # t, x, y, heading (received)
+        #: t, altitude of every status received from a camera line
+        self.altitudes: list[tuple[float, float]] = []
+        #: every sight of the eye: image id -> what it saw there (for the report)
+        self.sights: dict[int, list[dict[str, Any]]] = {}
         self.coarse_requested: list[tuple[float, float]] = []
         self.candidates: list[CandidateView] = []
         self.camera_phase = False
@@ -231,8 +297,9 @@ class Operator:
         # the status's own time (its stamp), not when it arrived: it may have waited for a slot
         self.position = (s.x, s.y)
         self.positions.append((unwrap(s.stamp, now), s.x, s.y))
-        if s.altitude is not None and s.altitude <= self.camera_altitude + 2.0:  # on a camera transect
+        if s.altitude is not None and s.altitude <= MAX_CAMERA_ALTITUDE + 0.5:  # on a camera line
             self.track.append((unwrap(s.stamp, now), s.x, s.y, s.heading))
+            self.altitudes.append((unwrap(s.stamp, now), float(s.altitude)))
 
     def level_grid(self, level: int) -> tuple[np.ndarray, float, tuple[float, float]] | None:
         try:
@@ -309,7 +376,7 @@ class Operator:
             elif not old.planned:  # more data came in: measure again; once flagged, stay flagged
                 was = old.score
                 old.x, old.y, old.height, old.cells = v.x, v.y, v.height, v.cells
-                old.length, old.width = v.length, v.width
+                old.length, old.width, old.orientation = v.length, v.width, v.orientation
                 # a detection keeps the vehicle's score (measured on its whole map) unless the
                 # received map shows it more car-like
                 old.score = max(v.score, was)
@@ -338,8 +405,8 @@ class Operator:
             if old is None:
                 cv = CandidateView(x, y, float(row["height"] or 0.0), int(row["footprint"] or 0),
                                    float(row["length"] or 0.0), float(row["width"] or 0.0), float(row["score"]),
-                                   now, detection=int(row["id"]), detected_at=float(row["first_at"]),
-                                   measured=False)
+                                   now, orientation=float(row["orientation"] or 0.0), detection=int(row["id"]),
+                                   detected_at=float(row["first_at"]), measured=False)
                 self.candidates.append(cv)
                 if cv.score >= MIN_SCORE:
                     self.log(now, "detection", f"the vehicle suggests ({x:.1f}, {y:.1f}): {row['height']} m high, "
@@ -352,17 +419,10 @@ class Operator:
                 old.x, old.y, old.score = x, y, float(row["score"])
                 old.height, old.length = float(row["height"] or 0.0), float(row["length"] or 0.0)
                 old.width = float(row["width"] or 0.0)
+                old.orientation = float(row["orientation"] or 0.0)
 
     #: the vehicle's node id (for what topside can tell of its link)
     vehicle_id: int = 2
-    #: a fleet dive: a camera vehicle looks at the candidates while the survey still runs, so
-    #: the operator asks for images before the survey ends (set by the demo)
-    imaging: bool = False
-    #: take a candidate's pass time from the vehicle's reports of its camera line only (the
-    #: line's start reached or the line done, exact stamps; else from when it set off), never
-    #: from the received track: a camera vehicle with one slot a cycle sends few statuses, and
-    #: the track between two of them can cut across a transit (set by the demo in a fleet dive)
-    trust_reports: bool = False
 
     def _ask_for_gaps(self, now: float) -> None:
         """Holes in the 1 m map where the coarse map shows the ground was surveyed: ask for the
@@ -421,10 +481,12 @@ class Operator:
     # ------------------------------------------------------------------ the camera pass
     def camera_round(self, now: float, *, end: float, reserve: float, half: float, first: bool = False,
                      free_at: float | None = None) -> None:
-        """Send the vehicle over the candidates not yet sent, most car-like first, while camera
-        time remains: one survey command per candidate, a camera line of ``2 * half`` metres
-        south to north over it at the camera altitude and :data:`CAMERA_SPEED`, queued behind
-        the lines already sent (``append``: commands that cross the link out of order cannot undo
+        """Send the vehicle over the candidates not yet sent, most target-like first, while camera
+        time remains: one survey command per candidate, a camera line of ``2 * half`` metres (at
+        most twice :data:`LINE_HALF`) across the candidate's long axis (as the map measured it)
+        through it, at the altitude that holds the largest object sought in a frame
+        (:func:`camera_altitude`, :data:`LINE_ALTITUDE_FOR`) and :data:`LINE_SPEED`, queued behind the
+        lines already sent (``append``: commands that cross the link out of order cannot undo
         each other; the vehicle holds with an empty queue, so the first starts at once). Camera
         time is counted from topside's estimate of when the vehicle is done with its queue, and
         not before ``free_at`` (when the vehicle's own survey ends: the operator planned it)."""
@@ -437,34 +499,43 @@ class Operator:
         t, pos = self._queue_end(now)
         t = max(t, free_at or t)
         sent = 0
+        half = min(half, LINE_HALF)
+        altitude = camera_altitude(*LINE_ALTITUDE_FOR, self.camera_altitude)
         for cv in self.ranked():
             if cv.planned or cv.refused is not None:
                 continue
-            dist = math.hypot(cv.x - pos[0], cv.y - half - pos[1])
-            if t + dist / TRANSIT_SPEED + 2 * half / CAMERA_SPEED > end - reserve:
+            heading = (cv.orientation + 90.0) % 180.0
+            h = math.radians(heading)
+            start = (cv.x - half * math.sin(h), cv.y - half * math.cos(h))
+            dist = math.hypot(start[0] - pos[0], start[1] - pos[1])
+            if t + dist / TRANSIT_SPEED + 2 * half / LINE_SPEED > end - reserve:
                 break  # no camera time left for the next in rank order
             try:
-                cmd = self.survey.request("line", cv.x, cv.y - half, now, heading=0.0, length=2 * half,
-                                          altitude=self.camera_altitude, speed=CAMERA_SPEED, append=True)
+                cmd = self.survey.request("line", round(start[0], 1), round(start[1], 1), now, heading=round(heading, 1),
+                                          length=2 * half, altitude=altitude, speed=LINE_SPEED, append=True)
             except RequestRejected as exc:
                 cv.refused = f"cannot be sent: {exc}"
                 self.log(now, "survey command", f"a camera line over ({cv.x:.0f}, {cv.y:.0f}) {cv.refused}")
                 continue
             line = self._line(cmd, cv, now)
             cv.planned, cv.survey_id = True, cmd.survey_id
-            t += dist / TRANSIT_SPEED + 2 * half / CAMERA_SPEED
+            t += dist / TRANSIT_SPEED + 2 * half / LINE_SPEED
             pos = line.end
             sent += 1
             self.log(now, "survey command", f"survey {cmd.survey_id} sent: a {2 * half:.0f} m camera line over "
-                     f"({cv.x:.0f}, {cv.y:.0f}) [car-likeness {cv.score:.2f}], at {self.camera_altitude:g} m and "
-                     f"{CAMERA_SPEED:g} m/s, queued after {len(self._open_lines()) - 1} line(s) "
-                     f"[command {cmd.command_id}]")
+                     f"({cv.x:.0f}, {cv.y:.0f}) [target-likeness {cv.score:.2f}, {cv.length:.1f} x {cv.width:.1f} m], "
+                     f"heading {line.heading:.0f} deg at {line.altitude:g} m and {LINE_SPEED:g} m/s, queued after "
+                     f"{len(self._open_lines()) - 1} line(s) [command {cmd.command_id}]")
         if first and not sent:
-            self.log(now, "camera pass", "no car-like candidate in the 1 m map yet: the vehicle holds")
+            self.log(now, "camera pass", "no target-like candidate in the 1 m map yet: the vehicle holds")
 
     def _line(self, cmd: SurveyCommand, cv: CandidateView, now: float) -> CameraLine:
         x, y, length = float(cmd.x), float(cmd.y), float(cmd.length or 0.0)
-        line = CameraLine(int(cmd.survey_id), cv, (x, y), (x, y + length), float(cmd.speed or CAMERA_SPEED), now)
+        heading = float(cmd.heading or 0.0)
+        h = math.radians(heading)
+        line = CameraLine(int(cmd.survey_id), cv, (x, y), (x + length * math.sin(h), y + length * math.cos(h)),
+                          float(cmd.speed or CAMERA_SPEED), now, heading=heading,
+                          altitude=float(cmd.altitude or self.camera_altitude))
         self.lines[line.survey_id] = line
         return line
 
@@ -542,12 +613,11 @@ class Operator:
             cv.planned, cv.survey_id = False, None  # never reached the vehicle: sent again next round
 
     def _pass_time(self, cv: CandidateView, now: float) -> float | None:
-        """When the camera passed ``cv`` (:meth:`_pass_estimate`); with :attr:`trust_reports`,
-        then the capture time of the announced image taken nearest ``cv`` within two cycles of
-        that estimate (every image is announced with where it was taken), if one lies within
-        :data:`NEAR` of it."""
+        """When the camera passed ``cv`` (:meth:`_pass_estimate`), then the capture time of the
+        announced image taken nearest ``cv`` within two cycles of that estimate (every image is
+        announced with where it was taken), if one lies within :data:`NEAR` of it."""
         t = self._pass_estimate(cv, now)
-        if t is None or not self.trust_reports:
+        if t is None:
             return t
         near = [(math.hypot(float(p.meta["x"]) - cv.x, float(p.meta["y"]) - cv.y), float(p.meta["time"]))
                 for p in self.imagery.products()
@@ -558,50 +628,77 @@ class Operator:
 
     def _pass_estimate(self, cv: CandidateView, now: float) -> float | None:
         """When the camera passed ``cv``, from what reached topside, once it is past: the
-        closest approach of the received track (the vehicle more than 10 m beyond); else the
-        vehicle's report of reaching the line's start (or of finishing it), once the next frame
-        after the pass is taken; else, on a lossy link where both are late, from when it set off
-        for this line, a cycle on. Never from another line's reports: the vehicle flies the lines
-        in the order their commands reached it, which loss can make unlike the order sent."""
+        vehicle's report of reaching the line's start (or of finishing it: exact stamps), once
+        the next frame after the pass is taken; else the closest approach of the received track
+        on a camera line (the vehicle more than 10 m beyond); else, on a lossy link where all
+        are late, from when it set off for this line (from where its last status before that put
+        it, or the end of the line it had just finished), a cycle on. Never from another line's
+        reports: the vehicle flies the lines in the order their commands reached it, which loss
+        can make unlike the order sent. One rule for every dive, one vehicle or a fleet."""
+        line = self.lines.get(cv.survey_id) if cv.survey_id is not None else None
+        reported = line.reported_pass() if line is not None else None
+        if reported is not None:  # the image nearest that time exists once the next frame is taken
+            return reported if now >= reported + CAMERA_PERIOD else None
         x_now, y_now = self.position or (self.track[-1][1:3] if self.track else (cv.x, cv.y))
-        if self.track and not self.trust_reports:
+        if self.track:
             d, t_close = closest_approach(self.track, cv.x, cv.y)
             if d < NEAR and math.hypot(x_now - cv.x, y_now - cv.y) > 10.0:
                 return t_close
-        line = self.lines.get(cv.survey_id) if cv.survey_id is not None else None
         if line is None:
             return None
-        reported = line.reported_pass()
-        if reported is not None:  # the image nearest that time exists once the next frame is taken
-            return reported if now >= reported + CAMERA_PERIOD else None
         half = line.length / 2 / line.speed
         est = None
         if line.set_off is not None:
-            start = self._position_at(line.set_off)
-            if self.trust_reports:  # where the last status before it set off put it ...
-                start = self._position_before(line.set_off) or start
-                # ... or the end of the line it had just completed
-                before = [ln for ln in self.lines.values()
-                          if ln.completed is not None and abs(ln.completed - line.set_off) <= 1.0]
-                if before:
-                    start = before[0].end
+            start = self._position_before(line.set_off) or self._position_at(line.set_off)
+            before = [ln for ln in self.lines.values()
+                      if ln.completed is not None and abs(ln.completed - line.set_off) <= 1.0]
+            if before:
+                start = before[0].end
             if start is not None:
                 est = line.set_off + math.hypot(line.start[0] - start[0], line.start[1] - start[1]) / TRANSIT_SPEED + half
         return est if est is not None and now > est + self.cycle else None
 
     def watch_images(self, now: float) -> None:
-        if not self.active or not (self.camera_phase or self.imaging):
+        """Ask for the image of each candidate the camera has passed, and look at what came."""
+        if not self.active:
             return
         for cv in self.ranked():
             if not cv.planned or cv.done:
                 continue
             if cv.passed_at is None:
                 t_pass = self._pass_time(cv, now)
-                if t_pass is not None:
+                if t_pass is not None and (cv.wait_after is None or t_pass > cv.wait_after):
                     cv.passed_at = t_pass
                     self._ask(cv, t_pass, "nearest", now)
                 continue
             self._look(cv, now)
+
+    def frame_geometry(self, cv: CandidateView, meta: dict[str, Any]) -> tuple[float, float]:
+        """The seafloor size of a full-size pixel (m) of an announced image, and the heading it
+        was taken at (degrees), from what topside knows: the altitude of the vehicle's status
+        nearest its capture time (within a cycle), else the altitude of the camera line flown
+        for ``cv``; the line's heading (else the received track's); the camera's field of view."""
+        t = float(meta["time"])
+        line = self.lines.get(cv.survey_id) if cv.survey_id is not None else None
+        near = min(self.altitudes, key=lambda a: abs(a[0] - t), default=None)
+        if near is not None and abs(near[0] - t) <= self.cycle / 2:
+            altitude = near[1]
+        else:
+            altitude = line.altitude if line is not None else self.camera_altitude
+        heading = line.heading if line is not None else (
+            min(self.track, key=lambda p: abs(p[0] - t))[3] if self.track else 0.0)
+        return metres_per_pixel(altitude, int(meta["width"]), CAMERA_HFOV_DEG), heading
+
+    @staticmethod
+    def ground(sight: Sight, meta: dict[str, Any], mpp: float, heading: float) -> tuple[float, float]:
+        """Where on the seafloor the centre of ``sight`` lies: the frame's announced position
+        plus the sight's offset from the frame's centre (right and ahead), turned by the
+        heading."""
+        right = (sight.centre[0] - int(meta["width"]) / 2) * mpp
+        ahead = (int(meta["height"]) / 2 - sight.centre[1]) * mpp
+        h = math.radians(heading)
+        return (float(meta["x"]) + right * math.cos(h) + ahead * math.sin(h),
+                float(meta["y"]) - right * math.sin(h) + ahead * math.cos(h))
 
     def _look(self, cv: CandidateView, now: float) -> None:
         meta = self._answer(cv)
@@ -625,37 +722,49 @@ class Operator:
         image_id = int(meta["image_id"])
         cv.image_id = image_id
         img = self.imagery.image(image_id)
-        truth = self.frames(float(meta["time"]))
         here = math.hypot(float(meta["x"]) - cv.x, float(meta["y"]) - cv.y) <= NEAR
         settled = self._arrived(cv, meta)
-        sights = self.eye.look(img, truth, settled=settled) if (img is not None and truth is not None) else []
-        kinds = {s.kind for s in sights}
         layers = int(meta.get("layers_complete", 0))
         preview = layers < MIN_CONFIRM_LAYERS and not meta.get("complete")
-        if here and "car" in kinds and not preview:
-            cv.verdict, cv.verdict_image, cv.confirmed_at = "car", image_id, now
+        # the best image of it the operator will get: the sharper look asked for has arrived
+        final = settled and (cv.want_goal == image_id or bool(meta.get("complete")) or layers >= MORE_LAYERS)
+        sights: list[Sight] = []
+        mine: list[Sight] = []
+        if img is not None and (settled or not preview):  # a preview is a smudge: not worth a look
+            mpp, heading = self.frame_geometry(cv, meta)
+            sights = self.eye.look(img, mpp, settled=final)
+            self.sights[image_id] = [s.as_dict() for s in sights]
+            mine = [s for s in sights
+                    if math.hypot(*(a - b for a, b in zip(self.ground(s, meta, mpp, heading), (cv.x, cv.y), strict=True)))
+                    <= SIGHT_RADIUS]
+        kinds = {s.kind for s in mine}
+        targets = [s for s in mine if s.target]
+        if here and targets and not preview:
+            best = targets[0]
+            cv.verdict, cv.verdict_image, cv.confirmed_at = best.kind, image_id, now
             cv.evidence = None if img is None else np.array(img, copy=True)
-            cv.evidence_time = truth.time if truth is not None else None
+            cv.evidence_time = float(meta["time"])
             cv.evidence_xy = (float(meta["x"]), float(meta["y"]))
             cv.evidence_bytes = int(meta["bytes_used"])
+            cv.evidence_box, cv.evidence_sight = best.box, best.as_dict()
             dt = now - (cv.request_at or now)
-            self.log(now, "confirming image", f"image {image_id} shows a car at ({cv.x:.0f}, {cv.y:.0f}) "
-                     f"[{self._seen(sights)}]: {meta['bytes_used']} B, {dt:.0f} s after its request")
+            self.log(now, "confirming image", f"image {image_id} shows a {best.kind} at ({cv.x:.0f}, {cv.y:.0f}) "
+                     f"[{best.describe()}]: {meta['bytes_used']} B, {dt:.0f} s after its request")
             return
         if not settled:
             return  # the vehicle is still sending the layers asked for: look again later
         if image_id not in cv.looked:
             cv.looked.append(image_id)
             cv.looked_times[image_id] = float(meta["time"])
-        if here and "rock" in kinds and "unclear" not in kinds:
-            cv.verdict, cv.verdict_image = "rock", image_id
-            self.log(now, "not a target", f"image {image_id} shows a boulder at ({cv.x:.0f}, {cv.y:.0f}), "
-                     f"not a car [{self._seen(sights)}]: moving on")
+        if here and kinds == {"natural"}:
+            cv.verdict, cv.verdict_image = "natural", image_id
+            self.log(now, "not a target", f"image {image_id} shows something natural at ({cv.x:.0f}, {cv.y:.0f}) "
+                     f"[{self._seen(mine)}]: moving on")
             return
         if "unclear" in kinds and cv.want_goal != image_id and layers < MORE_LAYERS:
             cv.want_goal = image_id
             cv.request_at = now
-            box = self._region_of(sights, truth, meta) if truth is not None else None
+            box = self._region_of([s for s in mine if s.kind == "unclear"], meta)
             if box is not None:
                 # look where it matters: only the part of the frame with the unclear object
                 reg = self.imagery.request_region(image_id, box, "layer", MORE_LAYERS, now)
@@ -663,7 +772,7 @@ class Operator:
                 self.regions.append({"image_id": image_id, "box": list(box), "command_id": reg.command_id,
                                      "time": now, "candidate": (cv.x, cv.y)})
                 self.log(now, "image region", f"image {image_id} shows something at ({cv.x:.0f}, {cv.y:.0f}) "
-                         f"too blurry to tell [{self._seen(sights)}]: asking for {MORE_LAYERS} layers of "
+                         f"too unclear to tell [{self._seen(mine)}]: asking for {MORE_LAYERS} layers of "
                          f"its region x {box[0]}..{box[2]}, y {box[1]}..{box[3]} px "
                          f"[command {reg.command_id}]")
                 return
@@ -671,47 +780,58 @@ class Operator:
             msg = self.imagery.request_goal(image_id, "layer", MORE_LAYERS, now)
             cv.command_id = msg.command_id
             self.log(now, "image goal", f"image {image_id} shows something at ({cv.x:.0f}, {cv.y:.0f}) "
-                     f"too blurry to tell [{self._seen(sights)}]: asking for {MORE_LAYERS} layers "
+                     f"too unclear to tell [{self._seen(mine)}]: asking for {MORE_LAYERS} layers "
                      f"[command {msg.command_id}]")
             return
         if len(cv.looked) >= MAX_LOOKS:
             cv.verdict = "given up"
-            self.log(now, "given up", f"no car in {len(cv.looked)} images near ({cv.x:.0f}, {cv.y:.0f}): "
+            self.log(now, "given up", f"no target in {len(cv.looked)} images near ({cv.x:.0f}, {cv.y:.0f}): "
                      "moving on")
             return
-        direction = self._towards(cv, meta)
+        # an object the frame cuts: the rest of it is ahead (the frame's top) or behind
+        cut = {c for s in mine for c in s.cut}
+        if "top" in cut and "bottom" not in cut:
+            direction, why = "after", "runs off the frame ahead"
+        elif "bottom" in cut and "top" not in cut:
+            direction, why = "before", "runs off the frame behind"
+        else:
+            direction, why = self._towards(cv, meta), "shows no target"
         # step on from the furthest image already seen that way: never the same image twice
         times = cv.looked_times.values()
         start = min(times) if direction == "before" else max(times)
-        self.log(now, "image request", f"image {image_id} shows no car at ({cv.x:.0f}, {cv.y:.0f}) "
-                 f"[{self._seen(sights)}]: stepping {'back' if direction == 'before' else 'forward'} in time")
+        if direction == "before" and not any(
+                p.kind == "image" and p.meta.get("time") is not None and float(p.meta["time"]) < start
+                for p in self.imagery.products()):  # images are announced in capture order: none earlier
+            line = self.lines.get(cv.survey_id) if cv.survey_id is not None else None
+            if line is not None and line.completed is None and cv.wait_after is None:
+                # seen from another line's pass: wait for its own camera line
+                cv.passed_at, cv.want, cv.want_goal, cv.wait_after = None, None, None, max(times)
+                self.log(now, "image request", f"image {image_id} {why} at ({cv.x:.0f}, {cv.y:.0f}) "
+                         f"[{self._seen(mine)}]: no earlier image; waiting for its own camera line")
+                return
+            direction, start = "after", max(times)  # nothing behind: look ahead instead
+        self.log(now, "image request", f"image {image_id} {why} at ({cv.x:.0f}, {cv.y:.0f}) "
+                 f"[{self._seen(mine)}]: stepping {'back' if direction == 'before' else 'forward'} in time")
         self._ask(cv, start, direction, now)
 
     @staticmethod
-    def _seen(sights: list[Any]) -> str:
+    def _seen(sights: list[Sight]) -> str:
         if not sights:
             return "sand only"
-        return "; ".join(f"{s.kind} region over {s.share:.0%} of the frame, {s.ratio:.0%} as bright as the "
-                         f"sand, edges {s.sharpness:.1f}x the sand's and {s.edge_width:.1f} px wide" for s in sights)
+        return "; ".join(s.describe() for s in sights)
 
     @staticmethod
-    def _region_of(sights: list[Any], truth: Any, meta: dict[str, Any]) -> tuple[int, int, int, int] | None:
-        """The pixel box around the unclear objects of a frame (their outline in the frame's
-        labels, plus :data:`REGION_MARGIN`), or None when the image cannot be asked for by region
-        (coded without precincts) or the box would be most of the frame."""
-        if not meta.get("precincts"):
+    def _region_of(sights: list[Sight], meta: dict[str, Any]) -> tuple[int, int, int, int] | None:
+        """The pixel box around the eye's unclear objects of a frame (their boxes, plus
+        :data:`REGION_MARGIN`), or None when the image cannot be asked for by region (coded
+        without precincts) or the box would be most of the frame."""
+        if not meta.get("precincts") or not sights:
             return None
-        labels = truth.labels
         width, height = int(meta["width"]), int(meta["height"])
-        mask = np.isin(labels, [s.label for s in sights if s.kind == "unclear"])
-        if not mask.any():
-            return None
-        rows, cols = np.flatnonzero(mask.any(1)), np.flatnonzero(mask.any(0))
-        sx, sy = width / labels.shape[1], height / labels.shape[0]
-        x0 = max(0, int(cols[0] * sx) - REGION_MARGIN)
-        x1 = min(width, math.ceil((cols[-1] + 1) * sx) + REGION_MARGIN)
-        y0 = max(0, int(rows[0] * sy) - REGION_MARGIN)
-        y1 = min(height, math.ceil((rows[-1] + 1) * sy) + REGION_MARGIN)
+        x0 = max(0, min(s.box[0] for s in sights) - REGION_MARGIN)
+        y0 = max(0, min(s.box[1] for s in sights) - REGION_MARGIN)
+        x1 = min(width, max(s.box[2] for s in sights) + REGION_MARGIN)
+        y1 = min(height, max(s.box[3] for s in sights) + REGION_MARGIN)
         if (x1 - x0) * (y1 - y0) > 0.6 * width * height:
             return None
         return (x0, y0, x1, y1)

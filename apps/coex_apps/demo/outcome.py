@@ -27,7 +27,8 @@ from coex_plugins.detections import DetectionsSender
 from coex_plugins.imagery import ImageryReceiver
 from coex_plugins.timeseries import TimeSeriesReceiver
 
-from .config import EPOCH, IDENTIFY_RADIUS, TOPSIDE, VEHICLE, Decision, DemoConfig, DemoResult
+from .config import EPOCH, TOPSIDE, VEHICLE, Decision, DemoConfig, DemoResult
+from .failures import identify_radius
 from .operator import MIN_SCORE, NEAR, Operator
 from .scenario import Scenario
 from .truth import FrameTruth, judge
@@ -68,14 +69,16 @@ class World:
 
 def _judge(world: World, operator: Operator, bytes_of: Callable[[int], int | None],
            cycle: float) -> tuple[list[dict[str, Any] | None], list[dict[str, Any]]]:
-    """Every confirmation the operator made, judged against the truth: per true target the first
-    confirmation by a received image that shows it, and the confirmations that show no target."""
+    """Every confirmation the operator made, judged against the truth by the referee
+    (:func:`~coex_apps.demo.truth.judge`: the object the eye pointed at, a real target, shown
+    faithfully): per true target the first confirmation that shows it, and the confirmations
+    that show no target."""
     per_target: list[dict[str, Any] | None] = [None] * len(world.cars)
     false: list[dict[str, Any]] = []
-    confirmed = sorted((c for c in operator.candidates if c.verdict == "car"), key=lambda c: c.confirmed_at or 0.0)
+    confirmed = sorted((c for c in operator.candidates if c.confirmed), key=lambda c: c.confirmed_at or 0.0)
     for c in confirmed:
         truth = world.frames.get(c.evidence_time) if c.evidence_time is not None else None
-        shown = judge(c.evidence, truth) if (c.evidence is not None and truth is not None) else []
+        shown = judge(c.evidence, truth, c.evidence_box) if (c.evidence is not None and truth is not None) else []
         hit = [k for kind, k in shown if kind == "target"]
         assert c.confirmed_at is not None and c.verdict_image is not None
         record = {"image_id": c.verdict_image,
@@ -89,23 +92,24 @@ def _judge(world: World, operator: Operator, bytes_of: Callable[[int], int | Non
                   "tdma_cycles": None if c.request_at is None else round((c.confirmed_at - c.request_at) / cycle, 2),
                   "tdma_cycles_from_first_request": None if c.first_request_at is None
                   else round((c.confirmed_at - c.first_request_at) / cycle, 2),
-                  "candidate": {"x": c.x, "y": c.y}}
+                  "candidate": {"x": c.x, "y": c.y}, "verdict": c.verdict, "sight": c.evidence_sight}
         if hit:
             for k in hit:
                 if per_target[k] is None:
                     per_target[k] = record
         else:
-            others = [f"decoy {k + 1} (a boulder)" for kind, k in shown if kind == "decoy"]
-            false.append({"x": c.x, "y": c.y, "image_id": c.verdict_image,
+            others = [f"decoy {k + 1} ({world.rocks[k].kind})" for kind, k in shown if kind == "decoy"]
+            false.append({"x": c.x, "y": c.y, "image_id": c.verdict_image, "verdict": c.verdict,
                           "confirmed_at_s": record["confirmed_at_s"],
-                          "shows": ", ".join(others) or "no target (sand, or too little of one, or too blurry)"})
+                          "shows": ", ".join(others) or "no target (sand, or too little of one, or not faithfully "
+                                                        "enough, or not where the eye pointed)"})
     return per_target, false
 
 
 def _detections(receivers: dict[str, Any], runners: dict[int, Runner],
                 truth_near: Callable[[float, float], str]) -> tuple[list[dict[str, Any]], dict[str, Any]]:
     """What the vehicle's detectors suggested, as topside received it and judged against the
-    truth (what really lies within IDENTIFY_RADIUS of each), and what it cost on the link: the
+    truth (what really lies within the identify radius of each), and what it cost on the link: the
     Detection messages the vehicle sent (every version and re-send) and the 1 m subgrids it sent
     around them."""
     rx = receivers.get("detections")
@@ -135,7 +139,7 @@ def _detections(receivers: dict[str, Any], runners: dict[int, Runner],
 def _why_not(i: int, world: World, operator: Operator, visible: float | None) -> str:
     """Why target ``i`` was not confirmed, from the truth."""
     car = world.cars[i]
-    near = [c for c in operator.candidates if math.hypot(c.x - car.x, c.y - car.y) <= IDENTIFY_RADIUS]
+    near = [c for c in operator.candidates if math.hypot(c.x - car.x, c.y - car.y) <= identify_radius(car)]
     shown = sorted(ft.time for ft in world.frames.values() if ft.visible.get(i + 1, 0.0) >= 0.15)
     if shown:
         return (f"photographed ({len(shown)} frames from {shown[0] - EPOCH:.0f} s), but no received image of it "
@@ -206,14 +210,14 @@ def finish(out: Path, cfg: DemoConfig, world: World, operator: Operator, receive
     scn, floor = world.scenario, world.floor
     bathy: BathymetryReceiver = receivers["bathymetry"]
     names = {("target", i): f"target {i + 1}" for i in range(len(world.cars))}
-    names.update({("decoy", k): f"decoy {k + 1} (rock)" for k in range(len(world.rocks))})
+    names.update({("decoy", k): f"decoy {k + 1} ({o.kind})" for k, o in enumerate(world.rocks)})
     ranked = operator.ranked()
     rank_of = {id(c): r for r, c in enumerate(ranked, 1)}
 
     def truth_near(x: float, y: float) -> str:
         for key, objs in (("target", world.cars), ("decoy", world.rocks)):
             for k, o in enumerate(objs):
-                if math.hypot(o.x - x, o.y - y) <= IDENTIFY_RADIUS:
+                if math.hypot(o.x - x, o.y - y) <= identify_radius(o):
                     return names[(key, k)]
         return "none"
 
@@ -251,7 +255,7 @@ def finish(out: Path, cfg: DemoConfig, world: World, operator: Operator, receive
                 title=f"Level {level}: {cell:g} m cells, as received topside",
                 track=world.received_track,
                 targets=[{"x": t.x, "y": t.y, "label": f"target {i + 1}"} for i, t in enumerate(world.cars)],
-                decoys=[{"x": t.x, "y": t.y, "label": f"decoy {i + 1} (rock)"} for i, t in enumerate(world.rocks)],
+                decoys=[{"x": t.x, "y": t.y, "label": f"decoy {i + 1} ({t.kind})"} for i, t in enumerate(world.rocks)],
                 candidates=[{"x": c["x"], "y": c["y"], "label": f"#{c['rank']}", "visited": c["visited"]}
                             for c in candidates if c["rank"] is not None] if level == 0 else [],
                 detections=[{"x": d["x"], "y": d["y"], "label": f"D{d['id']}"} for d in det_rows] if level == 0 else []))
@@ -262,8 +266,8 @@ def finish(out: Path, cfg: DemoConfig, world: World, operator: Operator, receive
     write_geotiff(out / "truth.tif", floor.elevation(gx, gy), x0=floor.x0, y0=floor.y0, cell=1.0)  # row 0 = south
     (out / "truth.json").write_text(json.dumps({
         "seafloor": {"size_m": floor.size, "depth_m": floor.depth, "seed": floor.seed, "cell_m": 1.0},
-        "targets": [{"name": f"target {i + 1}", "kind": "car", **_obj(t)} for i, t in enumerate(world.cars)],
-        "decoys": [{"name": f"decoy {i + 1}", "kind": "rock", **_obj(t)} for i, t in enumerate(world.rocks)],
+        "targets": [{"name": f"target {i + 1}", "kind": t.kind, **_obj(t)} for i, t in enumerate(world.cars)],
+        "decoys": [{"name": f"decoy {i + 1}", "kind": t.kind, **_obj(t)} for i, t in enumerate(world.rocks)],
     }, indent=2))
     # time series
     ts: TimeSeriesReceiver = receivers["timeseries"]
@@ -285,7 +289,8 @@ def finish(out: Path, cfg: DemoConfig, world: World, operator: Operator, receive
         conf = per_target[i]
         first = min((d for d in detections if d["truth"] == names[("target", i)]),
                     key=lambda d: d["first_at_s"], default=None)
-        targets.append({"name": f"target {i + 1}", "x": t.x, "y": t.y, "heading": t.heading,
+        targets.append({"name": f"target {i + 1}", "kind": t.kind, "length": t.length, "x": t.x, "y": t.y,
+                        "heading": t.heading,
                         "identifiable_at_1m_s": None if seen is None else round(seen - EPOCH, 1),
                         "before_survey_end": seen is not None and seen <= world.survey_end,
                         "first_detection": None if first is None else {
@@ -353,7 +358,9 @@ def finish(out: Path, cfg: DemoConfig, world: World, operator: Operator, receive
         "tdma_cycle_s": scn.cycle,
         "targets": targets,
         "false_confirmations": false,
-        "decoys": [{"name": f"decoy {i + 1}", "kind": "rock", "x": t.x, "y": t.y,
+        "false_confirmation_count": len(false),
+        "verdicts": _verdicts(operator, truth_near, world),
+        "decoys": [{"name": f"decoy {i + 1}", "kind": t.kind, "x": t.x, "y": t.y,
                     "visited": world.visited(t.x, t.y)}
                    for i, t in enumerate(world.rocks)],
         "surveys": _surveys(receivers["survey"], operator, world.surveys),
@@ -398,6 +405,24 @@ def finish(out: Path, cfg: DemoConfig, world: World, operator: Operator, receive
         for d in decisions:
             w.writerow([d.t, d.who, d.kind, d.text])
     return metrics
+
+
+def _verdicts(operator: Operator, truth_near: Callable[[float, float], str], world: World) -> dict[str, Any]:
+    """What the eye said of each candidate it gave a verdict on, against what is really there
+    (``truth``: the object's kind, or ``none``); ``car_verdicts_on_cars``: every true car has the
+    eye's "car" verdict and nothing else has (the check of ``--zero-labels``, docs/demo.md)."""
+    kind_of = {f"target {i + 1}": t.kind for i, t in enumerate(world.cars)}
+    kind_of.update({f"decoy {k + 1} ({o.kind})": o.kind for k, o in enumerate(world.rocks)})
+    rows = []
+    for c in operator.candidates:
+        if not c.verdict:
+            continue
+        where = truth_near(c.x, c.y)
+        rows.append({"x": c.x, "y": c.y, "verdict": c.verdict, "truth": where, "kind": kind_of.get(where, "none")})
+    car_rows = {r["truth"] for r in rows if r["verdict"] == "car"}
+    cars = {f"target {i + 1}" for i, t in enumerate(world.cars) if t.kind == "car"}
+    return {"candidates": rows, "car_verdicts_on_cars": car_rows == cars and all(
+        r["kind"] == "car" for r in rows if r["verdict"] == "car")}
 
 
 def _surveys(receiver: Any, operator: Operator, truth: dict[int, dict[str, Any]]) -> list[dict[str, Any]]:

@@ -20,6 +20,11 @@ from .figures import _e, _f, line_chart, map_figure, timeline_chart
 __all__ = ["line_chart", "map_figure", "timeline_chart", "write_report"]
 
 GALLERY_CAP = 60
+#: who sees what, said once on the page (README.md and docs/demo.md say it in the same words)
+WHO_SEES_WHAT = ("The scripted operator sees only what reached topside (the received map, the vehicle's "
+                 "detections and statuses, the received images with their announced time and position, and the "
+                 "camera's field of view); only the referee reads the simulation's truth (where every object is, "
+                 "what it is, and which pixels of each frame show it), and it judges every confirmation by it.")
 
 
 # ------------------------------------------------------------------------------ small helpers
@@ -442,6 +447,7 @@ def write_report(
 <p class="nav"><a href="#outcome">Outcome</a><a href="#map">Map</a><a href="#images">Images</a>
 <a href="#vehicles">Vehicles</a><a href="#time">The dive over time</a><a href="#decisions">Decisions</a><a href="#raw">Raw metrics</a></p>
 <h2 id="outcome">Outcome</h2>
+<p class="note">{_e(WHO_SEES_WHAT)}</p>
 {summary_html}{facts_html}
 <h3>Goals</h3>
 {_goals_table(metrics.get("goals"))}

@@ -33,7 +33,6 @@ from .config import (
     DETECTIONS_STREAM,
     EPOCH,
     HOLD_ALTITUDE,
-    IDENTIFY_RADIUS,
     LINK_STREAM,
     SURVEY_STREAM,
     TOPSIDE,
@@ -42,6 +41,7 @@ from .config import (
     DemoConfig,
     DemoResult,
 )
+from .failures import failure_counts, identify_radius
 from .navigation import DiveNavigation
 from .operator import MIN_SCORE, Operator
 from .outcome import World, finish, vehicle_summary
@@ -126,6 +126,20 @@ class DiveRun:
     outputs (:mod:`coex_apps.demo.outcome`)."""
 
     def __init__(self, config: DemoConfig, on_decision: Callable[[Decision], None] | None = None) -> None:
+        #: everything the dive holds open (the link log, the pseudo-terminals, the console's
+        #: server): released when the dive ends, however it ends (:meth:`close`)
+        self.resources = contextlib.ExitStack()
+        try:
+            self._setup(config, on_decision)
+        except BaseException:
+            self.resources.close()
+            raise
+
+    def close(self) -> None:
+        """Release everything the dive holds open (idempotent)."""
+        self.resources.close()
+
+    def _setup(self, config: DemoConfig, on_decision: Callable[[Decision], None] | None) -> None:
         self.cfg = cfg = config
         self.scn, self.operator_mode = scn, operator_mode = config.resolved()
         self.on_decision = on_decision
@@ -138,6 +152,7 @@ class DiveRun:
         self._build_link()
         #: issue 56: dead reckoning that drifts, the ship's USBL, topside's estimate (docs/navigation.md)
         self.navsim = DiveNavigation(self)
+        self.resources.callback(self.navsim.close)  # the USBL's UDP socket and input
         # the camera pass: the operator's survey commands cross the link, the vehicle's autonomy
         # flies them (with --operator none, its own transect through the centre of the site)
         self.half = 30.0 if not cfg.quick else 15.0
@@ -153,17 +168,16 @@ class DiveRun:
         self.mapper_autonomy = None if self.fleet is None else Autonomy(
             self.fleet.mapper_senders["survey"], self.track, self.at, self.end,
             camera_altitude=scn.camera_altitude, camera_speed=CAMERA_SPEED, nav=self.navsim.model(VEHICLE))
-        # what the camera saw, for the operator's eye and the referee (frames showing an object)
+        # what the camera saw, for the referee alone (frames showing an object)
         self.frames: dict[float, FrameTruth] = {}
         floor = self.floor
+        # the operator sees what topside received (through topside's navigation) and nothing of
+        # the truth: one rule set for every dive, one vehicle or a fleet
         self.operator = Operator(self.topside, self.navsim.views(self.receivers),
                                  (floor.x0, floor.y0, floor.x0 + floor.size, floor.y0 + floor.size),
-                                 self.log, frames=self.frame_at, camera_altitude=scn.camera_altitude,
+                                 self.log, camera_altitude=scn.camera_altitude,
                                  cycle=scn.cycle, active=operator_mode == "script")
         self.operator.epoch = EPOCH
-        # a fleet: the camera vehicle looks at candidates while the mapper's survey runs
-        self.operator.imaging = self.fleet is not None
-        self.operator.trust_reports = self.fleet is not None
         self.received_track: list[tuple[float, float]] = []
         #: the camera vehicle's positions as topside received them (a fleet dive)
         self.received_camera_track: list[tuple[float, float]] = []
@@ -190,7 +204,11 @@ class DiveRun:
         self.floor = Seafloor(size=scn.area, depth=scn.water_depth, relief=scn.relief,
                               ripple_amplitude=scn.ripple_amplitude, targets=self.cars + self.rocks,
                               seed=cfg.seed)
-        self.texture = SandTexture(seed=cfg.seed)
+        self.texture: Callable[[np.ndarray, np.ndarray], np.ndarray] = SandTexture(seed=cfg.seed)
+        if cfg.images is not None:  # the sand built from real frames (docs/demo.md)
+            from .seabed import RealSandTexture, sand_frames
+
+            self.texture = RealSandTexture([load_image(f) for f in sand_frames(image_files(cfg.images))], seed=cfg.seed)
         self.camera = CameraModel()
         self.track = Track(self.floor)
         #: the track the camera flies: the vehicle's, or in a fleet dive the camera vehicle's own
@@ -228,7 +246,8 @@ class DiveRun:
             self.vehicle, self.topside, self.senders, self.receivers = build_nodes(
                 out, [s.channel() for s in self.series], cfg.command_key, scn,
                 auto_fill=self.operator_mode != "script", geofence=cfg.geofence)
-        self.link_log = (out / "link.jsonl").open("w")
+        self.resources.callback(net.close)  # the pseudo-terminals
+        self.link_log = self.resources.enter_context((out / "link.jsonl").open("w"))
         self.runners = {
             VEHICLE: Runner(self.vehicle, {0: net.transport(VEHICLE, rate=scn.modem_rate, dest=TOPSIDE)},
                             SimulatedClock(sim=clock), link_log=self.link_log),
@@ -296,7 +315,6 @@ class DiveRun:
             first = rounds[0] if rounds else self.camera_start
         for t in [first] + [t for t in rounds if t > first]:
             self.at(t, functools.partial(self.camera_round, first=t == first))
-        self.real_images = image_files(self.cfg.images)
         self._shot = iter(range(10**9))
         self.taken: list[float] = []
         self.hfov = math.tan(math.radians(self.camera.hfov_deg) / 2)
@@ -306,10 +324,6 @@ class DiveRun:
             t += CAMERA_PERIOD
 
     # ------------------------------------------------------------------------ events
-    def frame_at(self, t: float) -> FrameTruth | None:
-        best = min(self.frames, key=lambda ft: abs(ft - t), default=None)
-        return self.frames[best] if best is not None and abs(best - t) <= 1.0 else None
-
     def push_status(self, now: float) -> None:
         status = vehicle_status(self.track, now)
         self.channel.set_position(VEHICLE, (status.x, status.y, status.depth or 0.0))  # range loss
@@ -334,10 +348,10 @@ class DiveRun:
             g = operator.level_grid(level)
             frac = 0.0 if g is None else area_fraction(g[0], g[1], g[2], self.floor)
             self.coverage.setdefault(level, []).append((round(now - EPOCH, 1), round(frac, 4)))
-        # judged against the truth: a car-like bump of the received 1 m map where a car is
+        # judged against the truth: a target-like bump of the received 1 m map where a target is
         for i, tgt in enumerate(self.cars):
             if i not in self.visible_at and any(v.score >= MIN_SCORE and math.hypot(v.x - tgt.x, v.y - tgt.y)
-                                                <= IDENTIFY_RADIUS for v in views):
+                                                <= identify_radius(tgt) for v in views):
                 self.visible_at[i] = now
 
     def topside_slots(self, t0: float, t1: float) -> list[float]:
@@ -383,18 +397,14 @@ class DiveRun:
                                            rocks=rocks, texture=self.texture, camera=camera,
                                            rng=rng_for(self.cfg.seed, 100 + k))
         img = rendered
-        if self.real_images:  # a real dive image, with the simulated objects where the camera sees them
-            real = load_image(self.real_images[k % len(self.real_images)])
-            if real.shape == rendered.shape:
-                img = np.where(labels[..., None] > 0, rendered, real)
-            else:
-                img, labels = real, np.zeros(real.shape[:2], np.uint8)
+        if self.cfg.zero_labels:  # the check that nobody but the referee reads them (docs/demo.md)
+            labels = np.zeros_like(labels)
         areas, pixel = {}, {}
         for i, o in enumerate(cars + rocks, 1):
-            dome = o.shape == "dome"
-            areas[i] = o.length * o.width * (math.pi / 4 if dome else 1.0)
-            top = max(alt - o.height * (0.67 if dome else 1.0), 0.3)
-            pixel[i] = (2 * top * self.hfov / camera.width) ** 2
+            rounded = o.shape in ("dome", "mound")
+            areas[i] = o.length * o.width * (math.pi / 4 if rounded else 1.0)
+            # the renderer draws an object's top over its footprint: a pixel covers the seafloor's
+            pixel[i] = (2 * max(alt, 0.3) * self.hfov / camera.width) ** 2
         ft = frame_truth(now, x, y, heading, img, labels, len(cars), areas, pixel)
         if ft is not None:
             self.frames[now] = ft
@@ -403,9 +413,16 @@ class DiveRun:
 
     # ------------------------------------------------------------------------ the loop
     def run(self) -> DemoResult:
-        """Run the dive to its end on the simulated clock, then judge it and write the outputs."""
+        """Run the dive to its end on the simulated clock, then judge it and write the outputs.
+        Whatever happens, everything the dive held open is released."""
+        with self.resources:
+            return self._run()
+
+    def _run(self) -> DemoResult:
         cfg, clock, net, end = self.cfg, self.clock, self.net, self.end
         server = _start_gui(cfg, self.topside, self.log) if cfg.gui else None
+        if server is not None:
+            self.resources.callback(server.close)
         if server is not None and self.navsim.active:  # the console shows and applies topside's navigation
             server.hub.state.navigation = self.navsim.navigation
         lock = server.hub.lock if server is not None else contextlib.nullcontext()
@@ -418,7 +435,6 @@ class DiveRun:
         progress.close()
         self.link_log.close()
         ptys = net.pty_paths()
-        net.close()
         if server is not None:  # the console stops saying "live"
             server.hub.update(lambda st: st.end_contact(clock.now, "the dive is over"))
         if server is not None and cfg.linger:
@@ -430,8 +446,6 @@ class DiveRun:
                     time.sleep(3600)
             except KeyboardInterrupt:
                 pass
-        if server is not None:
-            server.close()
         return self._outputs(ptys)
 
     def _after_runners(self, now: float) -> None:
@@ -498,6 +512,7 @@ class DiveRun:
             "signed_frames": self.topside.manager.stats["signed"],
             "rejected_frames": self.vehicle.stats["unauthenticated"],
         }
+        metrics["failures"] = failure_counts(self.runners)
         (out / "metrics.json").write_text(json.dumps(metrics, indent=2))
         return DemoResult(out, metrics, self.decisions)
 

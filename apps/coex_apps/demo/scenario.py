@@ -21,19 +21,24 @@ A scenario is a TOML file (``coex demo --scenario FILE.toml``) or a built-in pre
     [seafloor]
     relief = 2.0                  # amplitude of the smooth relief (m)
     ripple_amplitude = 0.15       # sand ripples (m)
-    random_targets = 2            # cars placed at random (when no [[targets]] are listed)
-    random_decoys = 0             # car-sized rocks placed at random (when no [[decoys]] are listed)
+    random_targets = 2            # targets placed at random (when no [[targets]] are listed)
+    random_decoys = 0             # decoys placed at random (when no [[decoys]] are listed)
+    target_kinds = ["car", "container", "hull", "debris"]   # what a random target can be
+    target_length = [2.0, 8.0]    # m: a random target's length is drawn in its kind's range and this one
+    decoy_kinds = ["rock", "dark rock", "biology"]          # what a random decoy can be
 
-    [[targets]]                   # true targets: cars (any number of these tables)
+    [[targets]]                   # true targets (any number of these tables)
+    kind = "car"                  # car, container, hull or debris (default car)
     x = 102.0                     # centre (m)
     y = 145.0
-    length = 4.5                  # m (defaults: a car)
+    length = 4.5                  # m (defaults: the kind's nominal size, KINDS)
     width = 1.8
     height = 1.5
     heading = 30.0                # degrees clockwise from north
+    albedo = 0.07                 # reflectance of its top (default: the kind's)
 
-    [[decoys]]                    # objects that are not targets, e.g. car-sized rocks (same keys)
-    x = 170.0
+    [[decoys]]                    # objects that are not targets (same keys; kind rock, dark rock
+    x = 170.0                     # or biology, default rock)
     y = 60.0
 
     [modem]
@@ -86,7 +91,8 @@ from coex import ConfigError, Option, Problem, Problems
 from coex_core.acoustic import RATES, GilbertElliott
 from coex_plugins.bathymetry.sim import Target
 
-__all__ = ["LossSpec", "ObjectSpec", "PRESETS", "Scenario", "load_scenario", "preset"]
+__all__ = ["DECOY_KINDS", "KINDS", "TARGET_KINDS", "Kind", "LossSpec", "ObjectSpec", "PRESETS", "Scenario",
+           "draw_object", "load_scenario", "preset"]
 
 LOSS_MODELS = ("independent", "gilbert-elliott", "range")
 #: who a TDMA slot belongs to: topside, the vehicle (in a fleet: the mapping AUV) or, in a fleet
@@ -94,13 +100,70 @@ LOSS_MODELS = ("independent", "gilbert-elliott", "range")
 SLOT_OWNERS = ("topside", "vehicle", "camera")
 
 
-#: An object of the scenario: a car (``shape="box"``, the targets) or a boulder (``"dome"``, the
-#: decoys), as the seafloor simulator takes it.
+#: An object of the scenario (a target or a decoy), as the seafloor simulator takes it: its
+#: ``kind`` and ``shape`` (:data:`KINDS`), size, heading and ``albedo``.
 ObjectSpec = Target
 
 
+@dataclass(frozen=True)
+class Kind:
+    """What an object of one kind is like in the simulated world: its shape on the seafloor,
+    its nominal size (a listed object's defaults), and the ranges a random one is drawn from
+    (length in m; width and height in m, or as shares of the length with ``*_of_length``; the
+    albedo of its top, ``None``: the sand's own colour). A target kind is man-made."""
+
+    shape: str
+    target: bool
+    nominal: tuple[float, float, float]
+    length: tuple[float, float]
+    width: tuple[float, float]
+    height: tuple[float, float]
+    albedo: tuple[float, float] | None
+    width_of_length: bool = False
+
+
+#: The kinds of objects a scenario can hold. Targets: cars (from a small city car to a large
+#: saloon, dark to pale paint), a 20-ft container (6.06 x 2.44 x 2.59 m), a small boat's hull
+#: (4-8 m) and a patch of debris (2-5 m); decoys: a boulder of the sand's colour, a dark boulder
+#: (basalt, as dark as a car) and a dark mound of living things.
+KINDS: dict[str, Kind] = {
+    "car": Kind("box", True, (4.5, 1.8, 1.5), (2.6, 5.2), (1.5, 1.95), (1.2, 1.8), (0.05, 0.45)),
+    "container": Kind("box", True, (6.06, 2.44, 2.59), (6.06, 6.06), (2.44, 2.44), (2.59, 2.59), (0.12, 0.30)),
+    "hull": Kind("hull", True, (6.0, 2.1, 1.3), (4.0, 8.0), (0.28, 0.38), (1.0, 1.6), (0.20, 0.45), True),
+    "debris": Kind("debris", True, (3.5, 2.6, 1.1), (2.0, 5.0), (0.6, 0.9), (0.9, 1.3), (0.05, 0.35), True),
+    "rock": Kind("dome", False, (3.6, 2.6, 1.6), (2.0, 5.0), (0.55, 0.9), (1.0, 2.0), None, True),
+    "dark rock": Kind("dome", False, (3.6, 2.6, 1.6), (2.0, 5.0), (0.55, 0.9), (1.0, 2.0), (0.06, 0.15), True),
+    "biology": Kind("mound", False, (3.2, 2.4, 1.1), (2.0, 4.5), (0.6, 0.9), (0.8, 1.4), (0.06, 0.14), True),
+}
+TARGET_KINDS = tuple(k for k, v in KINDS.items() if v.target)
+DECOY_KINDS = tuple(k for k, v in KINDS.items() if not v.target)
+
 #: a car-sized rock: about the footprint and height of a car, rounder, and the colour of the sand
-ROCK: dict[str, Any] = {"length": 3.6, "width": 2.6, "height": 1.6, "shape": "dome"}
+ROCK: dict[str, Any] = {"length": 3.6, "width": 2.6, "height": 1.6, "shape": "dome", "kind": "rock"}
+
+
+def draw_object(kind: str, rng: np.random.Generator, x: float, y: float,
+                length: tuple[float, float] = (0.0, math.inf)) -> ObjectSpec:
+    """A random object of ``kind`` at (x, y): its length drawn in the kind's range and
+    ``length``, its width, height, albedo and heading in theirs."""
+    k = KINDS[kind]
+    lo, hi = max(k.length[0], length[0]), min(k.length[1], length[1])
+    ln = float(rng.uniform(lo, hi)) if hi > lo else lo
+    wd = float(rng.uniform(*k.width)) * (ln if k.width_of_length else 1.0)
+    ht = float(rng.uniform(*k.height))
+    alb = None if k.albedo is None else round(float(rng.uniform(*k.albedo)), 3)
+    heading = float(round(rng.uniform(-90, 90), 1))
+    return ObjectSpec(x, y, round(ln, 2), round(min(wd, ln), 2), round(ht, 2), heading, k.shape, kind, alb)
+
+
+def listed_object(values: Mapping[str, Any], decoy: bool) -> ObjectSpec:
+    """A listed ``[[targets]]`` or ``[[decoys]]`` table as an object: its kind's shape and
+    nominal size unless it gives its own."""
+    kind = str(values.get("kind", "rock" if decoy else "car"))
+    k = KINDS[kind]
+    length, width, height = k.nominal
+    return ObjectSpec(**{"length": length, "width": width, "height": height, "shape": k.shape,
+                         **{key: v for key, v in values.items()}, "kind": kind})
 
 
 @dataclass(frozen=True)
@@ -165,6 +228,11 @@ class Scenario:
     ripple_amplitude: float = 0.15
     random_targets: int = 2
     random_decoys: int = 0
+    #: what random targets and decoys are drawn from (:data:`KINDS`), and the random targets'
+    #: length range (m)
+    target_kinds: tuple[str, ...] = TARGET_KINDS
+    target_length: tuple[float, float] = (2.0, 8.0)
+    decoy_kinds: tuple[str, ...] = DECOY_KINDS
     targets: tuple[ObjectSpec, ...] = ()
     decoys: tuple[ObjectSpec, ...] = ()
     modem_rate: int = 5
@@ -242,8 +310,26 @@ class Scenario:
         if self.loss.range_width <= 0 or not 0.0 <= self.loss.range_max <= 1.0:
             p.said("loss.range_width" if self.loss.range_width <= 0 else "loss.range_max",
                    "loss.range_width must be positive and loss.range_max in [0, 1]")
+        if not self.target_kinds or any(k not in TARGET_KINDS for k in self.target_kinds):
+            p.said("seafloor.target_kinds", f"seafloor.target_kinds must list kinds of {', '.join(TARGET_KINDS)}, "
+                                            f"got {list(self.target_kinds)}")
+        elif not (len(self.target_length) == 2 and 0.5 <= self.target_length[0] <= self.target_length[1] <= 30.0):
+            p.said("seafloor.target_length", f"seafloor.target_length must be [min, max] in 0.5-30 m, got "
+                                             f"{list(self.target_length)}")
+        else:
+            lo, hi = self.target_length
+            empty = [k for k in self.target_kinds if KINDS[k].length[0] > hi or KINDS[k].length[1] < lo]
+            if empty:
+                p.said("seafloor.target_length", f"no {', '.join(empty)} is {lo:g}-{hi:g} m long "
+                                                 f"(their lengths: {', '.join(f'{k} {KINDS[k].length[0]:g}-{KINDS[k].length[1]:g} m' for k in empty)})")
+        if not self.decoy_kinds or any(k not in DECOY_KINDS for k in self.decoy_kinds):
+            p.said("seafloor.decoy_kinds", f"seafloor.decoy_kinds must list kinds of {', '.join(DECOY_KINDS)}, "
+                                           f"got {list(self.decoy_kinds)}")
         for kind, objs in (("targets", self.targets), ("decoys", self.decoys)):
             for i, o in enumerate(objs):
+                if o.kind not in (TARGET_KINDS if kind == "targets" else DECOY_KINDS):
+                    p.said(f"{kind}[{i}]", f"{kind}[{i}].kind must be one of "
+                                           f"{', '.join(TARGET_KINDS if kind == 'targets' else DECOY_KINDS)}, got {o.kind!r}")
                 if not (0.0 <= o.x <= self.area and 0.0 <= o.y <= self.area):
                     p.said(f"{kind}[{i}]", f"{kind}: ({o.x}, {o.y}) is outside the area [0, {self.area}]")
                 if not (0.5 <= o.length <= 30 and 0.5 <= o.width <= 30 and 0.2 <= o.height <= 10):
@@ -265,8 +351,9 @@ class Scenario:
         """Targets and decoys: the listed ones, or random ones (the seed places them) well inside
         the area and apart from each other."""
         rng = np.random.default_rng([seed, 1])
-        targets = [replace(o, shape="box") for o in self.targets]
-        decoys = [replace(o, shape="dome") for o in self.decoys]  # boulders, whatever was given
+        # each listed object takes its kind's shape
+        targets = [replace(o, shape=KINDS[o.kind].shape) for o in self.targets]
+        decoys = [replace(o, shape=KINDS[o.kind].shape) for o in self.decoys]
         margin = 0.2 * self.area
         min_gap = 0.25 * self.area if self.random_targets + self.random_decoys <= 3 else 0.12 * self.area
 
@@ -283,11 +370,12 @@ class Scenario:
         if not self.targets:
             for _ in range(self.random_targets):
                 x, y = draw()
-                targets.append(ObjectSpec(x, y, heading=float(round(rng.uniform(-90, 90), 1))))
+                kind = str(rng.choice(list(self.target_kinds)))
+                targets.append(draw_object(kind, rng, x, y, self.target_length))
         if not self.decoys:
             for _ in range(self.random_decoys):
                 x, y = draw()
-                decoys.append(ObjectSpec(x, y, **ROCK, heading=float(round(rng.uniform(-90, 90), 1))))
+                decoys.append(draw_object(str(rng.choice(list(self.decoy_kinds))), rng, x, y))
         return tuple(targets), tuple(decoys)
 
     def quick(self) -> Scenario:
@@ -311,6 +399,8 @@ class Scenario:
     def to_dict(self) -> dict[str, Any]:
         d = asdict(self)
         d["slots"] = list(self.slots)
+        d["target_kinds"], d["decoy_kinds"] = list(self.target_kinds), list(self.decoy_kinds)
+        d["target_length"] = list(self.target_length)
         d["ship"] = {"x": self.ship[0], "y": self.ship[1]}
         d["targets"] = [asdict(o) for o in self.targets]
         d["decoys"] = [asdict(o) for o in self.decoys]
@@ -326,14 +416,17 @@ _SECTIONS: dict[str, dict[str, str]] = {
     "survey": {"altitude": "survey_altitude", "line_spacing": "line_spacing", "speed": "survey_speed"},
     "camera": {"altitude": "camera_altitude"},
     "seafloor": {"relief": "relief", "ripple_amplitude": "ripple_amplitude", "random_targets": "random_targets",
-                 "random_decoys": "random_decoys"},
+                 "random_decoys": "random_decoys", "target_kinds": "target_kinds", "target_length": "target_length",
+                 "decoy_kinds": "decoy_kinds"},
     "modem": {"rate": "modem_rate", "slots": "slots", "slot_seconds": "slot_seconds",
               "guard_seconds": "guard_seconds", "spare": "spare"},
     "navigation": {"drift": "drift", "heading_bias": "heading_bias", "seed_offset": "seed_offset",
                    "aiding": "aiding"},
     "usbl": {"interval": "usbl_interval", "sigma": "usbl_sigma", "outliers": "usbl_outliers"},
 }
-_OBJECT_KEYS = {"x", "y", "length", "width", "height", "heading"}
+_OBJECT_KEYS = {"kind", "x", "y", "length", "width", "height", "heading", "albedo"}
+#: scenario keys that are lists of kinds
+_KIND_LISTS = {"target_kinds", "decoy_kinds"}
 _LOSS_KEYS = {"model", "rate", "mean_burst", "range_50", "range_width", "range_max"}
 
 
@@ -392,6 +485,18 @@ def scenario_from_dict(data: Mapping[str, Any], base: Scenario | None = None) ->
                     p.said("navigation.aiding", "navigation.aiding must be true or false")
                 else:
                     kw[attr] = sec[k]
+            elif attr in _KIND_LISTS:
+                if not isinstance(sec[k], list) or not all(isinstance(s, str) for s in sec[k]):
+                    p.said(f"{section}.{k}", f"{section}.{k} must be a list of kinds (strings)")
+                else:
+                    kw[attr] = tuple(sec[k])
+            elif attr == "target_length":
+                if not isinstance(sec[k], list) or len(sec[k]) != 2:
+                    p.said(f"{section}.{k}", f"{section}.{k} must be [min, max] (m)")
+                else:
+                    pair = [_number(p, f"{section}.{k}", v) for v in sec[k]]
+                    if _NOT_GIVEN not in pair:
+                        kw[attr] = (pair[0], pair[1])
             else:
                 put(attr, _number(p, f"{section}.{k}", sec[k], int if attr in ints else float))
     for kind in ("targets", "decoys"):
@@ -410,10 +515,17 @@ def scenario_from_dict(data: Mapping[str, Any], base: Scenario | None = None) ->
             _unknown(p, f"{kind}[{i}]", item, _OBJECT_KEYS)
             if "x" not in item or "y" not in item:
                 p.said(f"{kind}[{i}]", f"{kind}[{i}] needs x and y")
-            values = {k: _number(p, f"{kind}[{i}].{k}", v) for k, v in item.items() if k in _OBJECT_KEYS}
+            values = {k: _number(p, f"{kind}[{i}].{k}", v) for k, v in item.items()
+                      if k in _OBJECT_KEYS and k != "kind"}
+            if "kind" in item:
+                allowed = TARGET_KINDS if kind == "targets" else DECOY_KINDS
+                if item["kind"] not in allowed:
+                    p.said(f"{kind}[{i}].kind", f"{kind}[{i}].kind must be one of {', '.join(allowed)}, "
+                                                f"got {item['kind']!r}")
+                else:
+                    values["kind"] = item["kind"]
             if len(p) == before:
-                defaults = ROCK if kind == "decoys" else {}
-                objs.append(ObjectSpec(**{**defaults, **values}))
+                objs.append(listed_object(values, kind == "decoys"))
         kw[kind] = tuple(objs)
     base = base or Scenario()
     sec = _table(p, data, "loss")
@@ -476,6 +588,14 @@ PRESETS: dict[str, dict[str, Any]] = {
     # the camera vehicle takes the fourth; the operator sends the camera to the candidates of the
     # mapper's received 1 m map while the survey runs
     "fleet": {"name": "fleet", "modem": {"slots": ["topside", "vehicle", "camera", "topside", "vehicle", "vehicle"]}},
+    # issue 50: a site with a 20-ft container, a 7 m boat hull and a small car (the kinds and sizes
+    # the car-only demo could not see), on the default dive's link
+    "container-hull-car": {
+        "name": "container-hull-car",
+        "targets": [{"kind": "container", "x": 90.0, "y": 170.0, "heading": 35.0},
+                    {"kind": "hull", "x": 172.0, "y": 92.0, "length": 7.0, "width": 2.3, "height": 1.4, "heading": -60.0},
+                    {"kind": "car", "x": 70.0, "y": 68.0, "length": 3.0, "width": 1.6, "height": 1.4, "heading": 10.0,
+                     "albedo": 0.3}]},
 }
 
 

@@ -64,12 +64,13 @@ class Track:
 
     def __init__(self, floor: Seafloor) -> None:
         self.floor = floor
-        # the seafloor on a 1 m grid (with a margin), interpolated for the track's depths
+        # the bare seafloor (the vehicle holds its altitude over the seafloor, not over the
+        # objects on it) on a 1 m grid (with a margin), interpolated for the track's depths
         xs = np.arange(floor.x0 - 64.0, floor.x0 + floor.size + 64.0, 1.0)
         ys = np.arange(floor.y0 - 64.0, floor.y0 + floor.size + 64.0, 1.0)
         self._xs, self._ys = xs, ys
         gx, gy = np.meshgrid(xs, ys)
-        self._grid = floor.elevation(gx, gy)
+        self._grid = floor.ground(gx, gy)
         self.samples: list[tuple[float, float, float, float]] = []  # t, x, y, altitude
         self.legs: list[Leg] = []
 

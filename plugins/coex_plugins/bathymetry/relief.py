@@ -18,7 +18,8 @@ import numpy.typing as npt
 
 from .export import Candidate, find_targets, opening
 
-__all__ = ["Bump", "bumps", "despike", "likeness", "measure_bump"]
+__all__ = ["CAR", "FLAT", "SIZES", "SPREAD", "Bump", "bumps", "despike", "likeness", "measure_bump",
+           "range_likeness"]
 
 #: a flat top (a car's): mean over maximum height across its footprint
 FLAT = 0.93
@@ -26,6 +27,12 @@ FLAT = 0.93
 CAR = (4.5, 1.8, 1.5)
 #: the spreads a 1 m map allows: length, width, height (m), and flatness
 SPREAD = (1.5, 1.0, 0.6, 0.2)
+#: the sizes sought by default (length, width, height ranges, m): objects of 2 to 8 m, from a
+#: debris patch or a small car to a 20-ft container or a small boat's hull
+SIZES: tuple[tuple[float, float], tuple[float, float], tuple[float, float]] = ((2.0, 8.0), (1.0, 3.0), (0.6, 3.0))
+#: the spread of the flatness term when sizes are ranges: a hull's rounded deck or a debris
+#: patch is less flat than a car's roof, and still sought
+RANGE_FLATNESS_SPREAD = 0.35
 
 
 @dataclass(frozen=True)
@@ -55,6 +62,26 @@ def likeness(height: float, length: float, width: float, flatness: float = FLAT,
     sl, sw, sh, sf = spread
     s = (((height - h0) / sh) ** 2 + ((length - l0) / sl) ** 2 + ((width - w0) / sw) ** 2
          + ((min(flatness, FLAT) - FLAT) / sf) ** 2)
+    return float(math.exp(-0.5 * s))
+
+
+def _outside(x: float, lo: float, hi: float) -> float:
+    """How far ``x`` lies outside ``[lo, hi]`` (0 inside)."""
+    return lo - x if x < lo else (x - hi if x > hi else 0.0)
+
+
+def range_likeness(height: float, length: float, width: float, flatness: float = FLAT,
+                   sizes: tuple[tuple[float, float], tuple[float, float], tuple[float, float]] = SIZES,
+                   spread: tuple[float, float, float, float] = (SPREAD[0], SPREAD[1], SPREAD[2],
+                                                                RANGE_FLATNESS_SPREAD)) -> float:
+    """How well a bump matches an object whose length, width and height lie in ``sizes``
+    (ranges, m), in [0, 1]: 1 inside every range, falling off as a Gaussian of the distance
+    outside each with the given ``spread``s, and lower for a rounded top (flatness below
+    :data:`FLAT`). With ranges of one value each it is :func:`likeness`."""
+    (l0, l1), (w0, w1), (h0, h1) = sizes
+    sl, sw, sh, sf = spread
+    s = ((_outside(height, h0, h1) / sh) ** 2 + (_outside(length, l0, l1) / sl) ** 2
+         + (_outside(width, w0, w1) / sw) ** 2 + ((min(flatness, FLAT) - FLAT) / sf) ** 2)
     return float(math.exp(-0.5 * s))
 
 

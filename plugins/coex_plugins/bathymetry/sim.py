@@ -28,16 +28,27 @@ from typing import Any, Protocol
 import numpy as np
 import numpy.typing as npt
 
-__all__ = ["DemSeafloor", "Floor", "Seafloor", "Survey", "Target", "simulate_survey"]
+__all__ = ["SHAPES", "DemSeafloor", "Floor", "Seafloor", "Survey", "Target", "debris_pieces", "hull_halfwidth",
+           "object_height", "outline_scale", "simulate_survey"]
 
 FloatArray = npt.NDArray[np.float64]
+
+
+#: the shapes of :class:`Target` (how it stands on the seafloor)
+SHAPES = ("box", "dome", "hull", "debris", "mound")
 
 
 @dataclass(frozen=True)
 class Target:
     """An object on the seafloor: centre (x, y), length, width, height (m) and heading (deg from
-    north). ``shape`` is ``"box"`` (a car: flat top) or ``"dome"`` (a boulder: a half-ellipsoid
-    inscribed in the same box)."""
+    north). ``shape`` is ``"box"`` (a car or a container: flat top), ``"dome"`` (a boulder: a
+    lumpy half-ellipsoid inscribed in the same box, its outline lobed), ``"hull"`` (a small
+    boat's hull: a rounded deck, its bow tapering over the last third of its length, the bow
+    towards ``heading``), ``"debris"`` (a patch of wreckage: a main piece and scattered smaller
+    ones inside the box, :func:`debris_pieces`) or ``"mound"`` (a low lobed mound, e.g. of
+    living things). ``kind`` names what it is (``"car"``, ``"container"``, ``"hull"``,
+    ``"debris"``, ``"rock"``, ``"dark rock"``, ``"biology"``: the renderer's business, not the
+    map's) and ``albedo`` the reflectance of its top (``None``: its kind's own)."""
 
     x: float
     y: float
@@ -46,6 +57,62 @@ class Target:
     height: float = 1.5
     heading: float = 0.0
     shape: str = "box"
+    kind: str = "car"
+    albedo: float | None = None
+
+
+def _object_rng(t: Target, salt: int = 0) -> np.random.Generator:
+    """A generator fixed by the object's placement (its shape details are part of the object)."""
+    return np.random.default_rng([round(t.x * 10) & 0xFFFFFF, round(t.y * 10) & 0xFFFFFF,
+                                  round(t.length * 100), salt])
+
+
+def lobes(t: Target) -> FloatArray:
+    """The lobes of a dome's or a mound's outline: rows of (harmonic, amplitude, phase); the
+    outline's radius at angle a is ``1 + sum(amp * sin(k * a + phase))`` of the ellipse's."""
+    rng = _object_rng(t, 1)
+    ks = np.array([2.0, 3.0, 5.0])
+    amp = rng.uniform(0.04, 0.12 if t.shape == "dome" else 0.18, 3)
+    return np.stack([ks, amp, rng.uniform(0, 2 * np.pi, 3)], axis=1)
+
+
+def outline_scale(t: Target, angle: npt.NDArray[np.float64]) -> FloatArray:
+    """:func:`lobes` evaluated at ``angle`` (radians in the object's frame)."""
+    lb = lobes(t)
+    return np.asarray(1.0 + (lb[:, 1] * np.sin(np.multiply.outer(angle, lb[:, 0]) + lb[:, 2])).sum(-1), np.float64)
+
+
+def debris_pieces(t: Target) -> tuple[Target, ...]:
+    """The pieces of a ``"debris"`` patch (boxes, in world coordinates): a main piece of about
+    half the patch's length and its full height, and 4 to 7 smaller, lower ones scattered inside
+    the patch at their own headings. Fixed by the patch's placement."""
+    rng = _object_rng(t, 2)
+    h = np.radians(t.heading)
+    along, across = np.array([np.sin(h), np.cos(h)]), np.array([np.cos(h), -np.sin(h)])
+    pieces = []
+    main_l = 0.5 * t.length
+    main_w = min(0.6 * t.width, 0.6 * main_l)
+    pieces.append(Target(float(t.x), float(t.y), main_l, main_w, t.height, t.heading + float(rng.uniform(-15, 15)),
+                         "box", t.kind, t.albedo))
+    for _ in range(int(rng.integers(4, 8))):
+        pl = float(rng.uniform(0.3, 0.3 * t.length + 0.3))
+        pw = float(rng.uniform(0.25, max(0.35, 0.6 * pl)))
+        u = float(rng.uniform(-0.5, 0.5)) * (t.length - pl)
+        v = float(rng.uniform(-0.5, 0.5)) * (t.width - pw)
+        cx, cy = np.array([t.x, t.y]) + u * along + v * across
+        pieces.append(Target(float(cx), float(cy), pl, pw, float(rng.uniform(0.2, 0.5)) * t.height,
+                             float(rng.uniform(0, 180)), "box", t.kind, t.albedo))
+    return tuple(pieces)
+
+
+def hull_halfwidth(t: Target, u: npt.NDArray[np.float64]) -> FloatArray:
+    """Half the width of a ``"hull"`` at ``u`` metres along it from its centre (the bow at
+    ``+length / 2``): full abeam and aft, tapering to a point over the last third (a bow curve)."""
+    half = t.length / 2
+    bow = half - t.length / 3
+    f = np.clip((u - bow) / max(half - bow, 1e-6), 0.0, 1.0)
+    w = (t.width / 2) * np.clip(1.0 - f**1.6, 0.0, 1.0)
+    return np.asarray(np.where(np.abs(u) <= half, w, 0.0), np.float64)
 
 
 @dataclass(frozen=True)
@@ -112,14 +179,34 @@ class Seafloor:
             u = dx * np.sin(h) + dy * np.cos(h)
             v = dx * np.cos(h) - dy * np.sin(h)
             base = float(self.ground(t.x, t.y))
-            if t.shape == "dome":
-                r2 = (u / (t.length / 2)) ** 2 + (v / (t.width / 2)) ** 2
-                top = base + t.height * np.sqrt(np.clip(1.0 - r2, 0.0, 1.0))
-                z = np.where(r2 < 1.0, np.maximum(z, top), z)
-                continue
-            inside = (np.abs(u) <= t.length / 2) & (np.abs(v) <= t.width / 2)
-            z = np.where(inside, np.maximum(z, base + t.height), z)
+            z = np.maximum(z, base + object_height(t, u, v)) if t.shape != "debris" else z
+            if t.shape == "debris":
+                for p in debris_pieces(t):
+                    hp = np.radians(p.heading)
+                    dxp, dyp = xa - p.x, ya - p.y
+                    up = dxp * np.sin(hp) + dyp * np.cos(hp)
+                    vp = dxp * np.cos(hp) - dyp * np.sin(hp)
+                    z = np.maximum(z, base + object_height(p, up, vp))
         return z
+
+
+def object_height(t: Target, u: npt.ArrayLike, v: npt.ArrayLike) -> FloatArray:
+    """Height (m) of ``t`` above its base at (``u`` along, ``v`` across) metres from its centre,
+    -inf outside it (not for ``"debris"``: its pieces are boxes)."""
+    ua, va = np.asarray(u, np.float64), np.asarray(v, np.float64)
+    if t.shape in ("dome", "mound"):
+        scale = outline_scale(t, np.arctan2(va / max(t.width, 1e-6), ua / max(t.length, 1e-6)))
+        r2 = ((ua / (t.length / 2)) ** 2 + (va / (t.width / 2)) ** 2) / scale**2
+        power = 0.5 if t.shape == "dome" else 1.0  # a mound: lower flanks than a boulder
+        top = t.height * np.clip(1.0 - r2, 0.0, 1.0) ** power
+        return np.asarray(np.where(r2 < 1.0, top, -np.inf), np.float64)
+    if t.shape == "hull":
+        w = hull_halfwidth(t, ua)
+        inside = (w > 0) & (np.abs(va) < w)
+        top = t.height * np.sqrt(np.clip(1.0 - (va / np.maximum(w, 1e-6)) ** 4, 0.0, 1.0))
+        return np.asarray(np.where(inside, top, -np.inf), np.float64)
+    inside = (np.abs(ua) <= t.length / 2) & (np.abs(va) <= t.width / 2)
+    return np.asarray(np.where(inside, t.height, -np.inf), np.float64)
 
 
 class Floor(Protocol):

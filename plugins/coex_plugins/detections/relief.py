@@ -7,8 +7,11 @@ the bumps standing more than ``threshold`` metres above the local background (a 
 map less its grey-scale opening with a 9 m square, so that slopes, rolling relief and ripples
 stay in the background; :func:`~coex_plugins.bathymetry.export.find_targets`). Each bump is
 measured (:func:`~coex_plugins.bathymetry.relief.measure_bump`: height, footprint, length,
-width, orientation, flatness of its top) and scored by how well it matches the ``target`` the
-vehicle is told to look for (length, width, height; a flat top), with the given ``spread``s.
+width, orientation, flatness of its top) and scored by how well it matches the sizes the
+vehicle is told to look for: ranges of ``length``, ``width`` and ``height`` (default 2-8 m
+long, 1-3 m wide, 0.6-3 m high: a debris patch or a small car to a container or a small boat's
+hull; :func:`~coex_plugins.bathymetry.relief.range_likeness`), or one ``target`` size
+(:func:`~coex_plugins.bathymetry.relief.likeness`), with the given ``spread``s.
 A bump is judged only once the cells around it have been quiet for ``settle`` seconds (the
 swath has passed): a tile with a bump still changing is looked at again at the next run.
 
@@ -28,15 +31,27 @@ import numpy as np
 from coex import Detector, Finding, MapView, Options, Problems, merged_config, persistent
 from coex.messages import DetectionSource
 from coex.options import anything, integer, number
-from coex_plugins.bathymetry.relief import CAR, SPREAD, bumps, likeness
+from coex_plugins.bathymetry.relief import (
+    RANGE_FLATNESS_SPREAD,
+    SIZES,
+    SPREAD,
+    bumps,
+    likeness,
+    range_likeness,
+)
 
 __all__ = ["DEFAULTS", "OPTIONS", "ReliefDetector"]
 
 #: the detector's options: the one declaration of their types, ranges and units
 OPTIONS = Options(
     threshold=number(0.7, "a bump stands this far above the local background", unit="m", above=0),
-    target=anything(list(CAR), "what the vehicle looks for: [length, width, height] (m)"),
-    spread=anything(list(SPREAD), "the score's spreads: [length, width, height] (m) and flatness, each > 0"),
+    length=anything(list(SIZES[0]), "the lengths looked for: [min, max] (m); the score is 1 inside, "
+                                    "falling off outside"),
+    width=anything(list(SIZES[1]), "the widths looked for: [min, max] (m)"),
+    height=anything(list(SIZES[2]), "the heights looked for: [min, max] (m)"),
+    target=anything(None, "or one size [length, width, height] (m) instead of the ranges; none: the ranges"),
+    spread=anything(None, "the score's spreads: [length, width, height] (m) and flatness, each > 0 "
+                          "(none: 0.2 flatness for one size, 0.35 for ranges)"),
     min_cells=integer(2, "fewest cells of a bump (one cell is a spike)", lo=1),
     max_area=number(40.0, "largest area of a bump (a large one is terrain)", unit="m2", above=0),
     settle=number(20.0, "the cells around a bump are quiet this long before it is judged", unit="s", lo=0),
@@ -67,10 +82,17 @@ class ReliefDetector(Detector[MapView]):
         self.margin = float(cfg["margin"])
         self.neighbourhood = float(cfg["neighbourhood"])
         p = Problems()
-        target = _measures(p, "target", cfg["target"], 3)
-        spread = _measures(p, "spread", cfg["spread"], 4, positive=True)
+        self.target: tuple[float, ...] | None = (None if cfg["target"] is None
+                                                 else _measures(p, "target", cfg["target"], 3))
+        sizes = [_measures(p, k, cfg[k], 2) for k in ("length", "width", "height")]
+        for k, r in zip(("length", "width", "height"), sizes, strict=True):
+            if not 0.0 <= r[0] <= r[1]:
+                p.add(k, f"a range [min, max] (m) with 0 <= min <= max, got {cfg[k]!r}")
+        flat = SPREAD[3] if self.target is not None else RANGE_FLATNESS_SPREAD
+        spread = ((*SPREAD[:3], flat) if cfg["spread"] is None
+                  else _measures(p, "spread", cfg["spread"], 4, positive=True))
         p.check("relief detector")
-        self.target = target
+        self.sizes = tuple(sizes)
         self.spread = spread
         #: tile -> the version of it last looked over completely
         self._looked: dict[tuple[int, int], int] = {}
@@ -101,8 +123,12 @@ class ReliefDetector(Detector[MapView]):
                 if now - newest < self.settle:
                     done = False  # still changing: look again next run
                     continue
-                score = likeness(b.height, b.length, b.width, b.flatness, self.target,  # type: ignore[arg-type]
-                                 self.spread)  # type: ignore[arg-type]
+                if self.target is not None:
+                    score = likeness(b.height, b.length, b.width, b.flatness, self.target,  # type: ignore[arg-type]
+                                     self.spread)  # type: ignore[arg-type]
+                else:
+                    score = range_likeness(b.height, b.length, b.width, b.flatness, self.sizes,  # type: ignore[arg-type]
+                                           self.spread)  # type: ignore[arg-type]
                 out.append(Finding(b.x, b.y, round(score, 3), newest, height=b.height, length=b.length,
                                    width=b.width, orientation=b.orientation, footprint=b.footprint))
             if done:

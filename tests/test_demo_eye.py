@@ -1,0 +1,208 @@
+"""The scripted operator's eye (``coex_apps.demo.eye``) sees only what topside received.
+
+* No module of the operator's imports anything of the simulation's truth or its labelled
+  renderer, however indirectly (a static scan of the imports, like ``test_layers.py``'s).
+* The eye finds objects itself in received frames and names them from their outline: a car, a
+  container, a hull, debris (targets) or something natural (a rock, a mound of living things),
+  on generated sand and with nothing at all on bare sand; a preview (the first quality layer)
+  is never a target.
+"""
+
+from __future__ import annotations
+
+import ast
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from coex_apps.demo.camera import SandTexture, render_labelled
+from coex_apps.demo.config import LAYER_PSNR
+from coex_apps.demo.eye import TARGET_KINDS, Eye, EyeParams, metres_per_pixel
+from coex_apps.demo.operator import camera_altitude
+from coex_apps.demo.specs import CAMERA_HFOV_DEG
+from coex_plugins.bathymetry.sim import Seafloor, Target
+from coex_plugins.imagery.codec import CodingParams, decode_packets, encode_image, split_packets
+
+ROOT = Path(__file__).resolve().parents[1]
+PACKAGES = {"coex_core": "coex_core", "coex_transports": "transports/coex_transports",
+            "coex_runtime": "runtime/coex_runtime", "coex": "coex", "coex_conformance": "conformance_tests/coex_conformance",
+            "coex_plugins": "plugins/coex_plugins", "coex_apps": "apps/coex_apps"}
+#: the scripted operator's modules
+OPERATOR = ("coex_apps.demo.operator", "coex_apps.demo.eye", "coex_apps.demo.specs")
+#: what holds the simulation's truth or draws it: none of it may be reached from the operator
+TRUTH = ("coex_apps.demo.truth", "coex_apps.demo.camera", "coex_apps.demo.seabed", "coex_apps.demo.scenario",
+         "coex_apps.demo.world", "coex_apps.demo.run", "coex_apps.demo.outcome", "coex_apps.demo.failures",
+         "coex_apps.demo.dive", "coex_apps.demo.config", "coex_apps.demo.figures", "coex_apps.demo.report",
+         "coex_apps.demo.navigation", "coex_plugins.bathymetry.sim")
+
+
+def _path(module: str) -> Path | None:
+    top, *rest = module.split(".")
+    if top not in PACKAGES:
+        return None
+    base = ROOT / PACKAGES[top] / Path(*rest) if rest else ROOT / PACKAGES[top]
+    for cand in (base.with_suffix(".py"), base / "__init__.py"):
+        if cand.is_file():
+            return cand
+    return None
+
+
+def _imports(module: str, path: Path) -> set[str]:
+    """Every module ``module`` imports (at any level of its code, relative imports resolved;
+    ``from package import name`` counts the submodule ``package.name`` when there is one)."""
+    pkg = module if path.name == "__init__.py" else module.rpartition(".")[0]
+    out: set[str] = set()
+    for node in ast.walk(ast.parse(path.read_text())):
+        if isinstance(node, ast.Import):
+            out.update(a.name for a in node.names)
+        elif isinstance(node, ast.ImportFrom):
+            if node.level:
+                base = pkg.split(".")
+                base = base[:len(base) - node.level + 1]
+                name = ".".join(base + ([node.module] if node.module else []))
+            else:
+                name = node.module or ""
+            out.add(name)
+            out.update(f"{name}.{a.name}" for a in node.names if _path(f"{name}.{a.name}") is not None)
+    return out
+
+
+def reached(start: tuple[str, ...]) -> dict[str, str]:
+    """The project's modules reachable by the imports written in ``start`` and in what they
+    import, transitively: module -> who imports it. (Python also runs the ``__init__`` of every
+    package on the way, e.g. ``coex_apps.demo``'s, which starts the simulation's side for the
+    ``coex demo`` command; that is the package's, not what the operator's code reads.)"""
+    seen: dict[str, str] = {m: "" for m in start}
+    todo = list(start)
+    while todo:
+        mod = todo.pop()
+        path = _path(mod)
+        if path is None:
+            continue
+        for name in _imports(mod, path):
+            if _path(name) is not None and name not in seen:
+                seen[name] = mod
+                todo.append(name)
+    return seen
+
+
+def test_the_operator_imports_nothing_of_the_truth_or_the_labelled_renderer() -> None:
+    got = reached(OPERATOR)
+    assert "coex_apps.demo.eye" in got and "coex_plugins.imagery" in got  # the scan follows imports
+    bad = {m: got[m] for m in TRUTH if m in got}
+    assert not bad, f"the operator reaches the simulation's truth: {bad} (module: imported by)"
+
+
+def test_the_scan_would_see_a_truth_import(tmp_path: Path) -> None:
+    """The scan can fail: a module importing the referee is caught, through a relative import."""
+    assert "coex_apps.demo.truth" in reached(("coex_apps.demo.outcome",))
+    assert "coex_apps.demo.camera" in reached(("coex_apps.demo.run",))
+
+
+# ---------------------------------------------------------------------------------- the eye
+
+
+def _frame(obj: Target | None, *, decoy: bool = False, layers: int = 3, seed: int = 7) -> tuple[np.ndarray, float]:
+    """A frame of ``obj`` as the operator would take it (across its long axis, at the altitude
+    the operator picks for its size), decoded from ``layers`` quality layers; and its metres per
+    pixel (from the altitude and the field of view, as the operator knows them)."""
+    objs = () if obj is None else (obj,)
+    floor = Seafloor(size=100.0, depth=500.0, relief=1.0, targets=objs, seed=seed)
+    length, width = (obj.length, obj.width) if obj is not None else (4.5, 1.8)
+    alt = camera_altitude(length, width, 5.0)
+    heading = ((obj.heading if obj is not None else 0.0) + 90.0) % 360.0
+    z = float(floor.ground(np.array([50.0]), np.array([50.0]))[0]) + alt
+    img, _ = render_labelled(floor.ground, 50.0, 50.0, z, heading, targets=() if decoy else objs,
+                             rocks=objs if decoy else (), texture=SandTexture(seed), rng=np.random.default_rng(seed))
+    enc = encode_image(img, CodingParams(layer_psnr=LAYER_PSNR))
+    got = decode_packets(enc.params, enc.width, enc.height, split_packets(enc.body, enc.packet_starts, enc.layer_end(layers)))
+    return got, metres_per_pixel(alt, img.shape[1], CAMERA_HFOV_DEG)
+
+
+@pytest.mark.parametrize(("obj", "kind"), [
+    (Target(50.0, 50.0, 4.5, 1.8, 1.5, 20.0, "box", "car"), "car"),
+    (Target(50.0, 50.0, 3.0, 1.6, 1.4, -40.0, "box", "car", 0.4), "car"),  # a small, pale car
+    (Target(50.0, 50.0, 6.06, 2.44, 2.59, 35.0, "box", "container", 0.2), "container"),
+    (Target(50.0, 50.0, 6.0, 2.1, 1.3, -60.0, "hull", "hull", 0.3), "hull"),
+])
+def test_the_eye_names_a_target_from_its_outline(obj: Target, kind: str) -> None:
+    img, mpp = _frame(obj)
+    sights = Eye().look(img, mpp, settled=True)
+    assert sights and sights[0].kind == kind, [s.describe() for s in sights]
+    s = sights[0]
+    assert abs(s.length_m - obj.length) < 0.6 and abs(s.width_m - obj.width) < 0.5  # metres from the altitude
+    # its box is where the object is: the frame's centre
+    x0, y0, x1, y1 = s.box
+    assert x0 < 320 < x1 and y0 < 240 < y1
+
+
+@pytest.mark.parametrize("obj", [
+    Target(50.0, 50.0, 3.6, 2.6, 1.6, 10.0, "dome", "dark rock", 0.08),  # as dark as a car
+    Target(50.0, 50.0, 3.2, 2.4, 1.1, 30.0, "mound", "biology", 0.08),
+    Target(50.0, 50.0, 3.6, 2.6, 1.6, 70.0, "dome", "rock"),
+])
+def test_the_eye_takes_a_dark_rock_or_living_things_for_natural(obj: Target) -> None:
+    img, mpp = _frame(obj, decoy=True)
+    sights = Eye().look(img, mpp, settled=True)
+    assert sights, "the eye sees the object"
+    assert not any(s.target for s in sights), [s.describe() for s in sights]
+    assert sights[0].kind == "natural"
+
+
+def test_bare_sand_shows_no_target_and_a_preview_is_never_one() -> None:
+    img, mpp = _frame(None)
+    assert not any(s.target for s in Eye().look(img, mpp, settled=True))
+    car = Target(50.0, 50.0, 4.5, 1.8, 1.5, 20.0, "box", "car")
+    preview, mpp = _frame(car, layers=1)
+    assert not any(s.target for s in Eye().look(preview, mpp, settled=False))
+
+
+def test_an_uncertain_eye_asks_and_decides_once_settled() -> None:
+    """An eye whose man-made thresholds are all within its margin calls a car unclear (the
+    operator then asks for a sharper region) until every layer asked for has arrived."""
+    car = Target(50.0, 50.0, 4.5, 1.8, 1.5, 20.0, "box", "car")
+    img, mpp = _frame(car)
+    eye = Eye(EyeParams(margin=1.0))
+    assert eye.look(img, mpp, settled=False)[0].kind == "unclear"
+    assert eye.look(img, mpp, settled=True)[0].kind == "car"
+
+
+def test_metres_per_pixel_from_altitude_and_field_of_view() -> None:
+    assert metres_per_pixel(5.0, 640, 62.0) == pytest.approx(2 * 5.0 * math.tan(math.radians(31.0)) / 640)
+    assert {"car", "container", "hull", "debris", "object"} == set(TARGET_KINDS)
+
+
+# ---------------------------------------------------------------------------------- the whole dive
+
+
+@pytest.mark.slow
+def test_with_the_labels_zeroed_the_operator_decides_exactly_the_same(tmp_path: Path) -> None:
+    """The done-criterion of issue 50: the dive re-run with the simulator's per-pixel labels
+    replaced by zeros wherever it renders them (the frames unchanged) has the operator decide
+    exactly as before (the same decisions, word for word) and its own "car" verdicts on every
+    true car and on nothing else (a pale car, a dark car, a container and a dark rock as dark as
+    a car). With the labels zeroed the referee sees no object, so nothing it judges counts."""
+    from coex_apps.demo import DemoConfig, run_demo
+    from coex_apps.demo.scenario import ObjectSpec, Scenario
+
+    scn = Scenario(area=96.0, targets=(
+        ObjectSpec(26.0, 30.0, 4.4, 1.8, 1.5, 20.0, "box", "car", 0.07),
+        ObjectSpec(70.0, 26.0, 3.2, 1.6, 1.4, -50.0, "box", "car", 0.4),
+        ObjectSpec(28.0, 70.0, 6.06, 2.44, 2.59, 70.0, "box", "container", 0.2)),
+        decoys=(ObjectSpec(70.0, 70.0, 3.4, 2.5, 1.5, 10.0, "dome", "dark rock", 0.08),),
+        # perfect navigation: this test's subject is who reads the labels (issue 56's drift is
+        # tested in test_navigation_demo.py; docs/demo.md says what this scene did with it)
+        drift=0.0)
+    normal = run_demo(DemoConfig(out=tmp_path / "labels", quick=True, seed=3, progress=False, scenario=scn))
+    zeroed = run_demo(DemoConfig(out=tmp_path / "zeros", quick=True, seed=3, progress=False, scenario=scn,
+                                 zero_labels=True))
+    assert (tmp_path / "zeros" / "decisions.csv").read_text() == (tmp_path / "labels" / "decisions.csv").read_text()
+    for m in (normal.metrics, zeroed.metrics):
+        verdicts = m["verdicts"]
+        assert verdicts["car_verdicts_on_cars"], verdicts
+        assert sum(1 for v in verdicts["candidates"] if v["verdict"] == "car") == 2
+    assert normal.metrics["success"], normal.metrics["summary"]
+    assert normal.metrics["decoys"][0]["visited"]  # the dark rock was looked at, and not confirmed
+    assert not zeroed.metrics["success"]  # the referee saw nothing: no confirmation counts
