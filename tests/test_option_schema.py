@@ -205,7 +205,8 @@ def _scenario_keys() -> list[str]:
 
     keys = ["area", "water_depth", "duration", "ship.x", "ship.y", "loss.rate", "loss.mean_burst",
             "targets[0].x", "decoys[0].height"]
-    return keys + [f"{s}.{k}" for s, ks in _SECTIONS.items() for k, attr in ks.items() if attr not in ("slots", "aiding")]
+    return keys + [f"{s}.{k}" for s, ks in _SECTIONS.items() for k, attr in ks.items()
+                   if attr not in ("slots", "aiding", "target_kinds", "decoy_kinds", "target_length")]
 
 
 @pytest.mark.parametrize("bad", BAD, ids=BAD_IDS)
@@ -225,6 +226,15 @@ def test_every_scenario_number_refuses_a_non_number(key: str, bad: tuple[str, An
     with pytest.raises(ConfigError) as err:
         scenario_from_dict(data)
     assert any(p.key == key and str(p).startswith(f"{key}: ") for p in err.value.problems), str(err.value)
+
+
+@pytest.mark.parametrize("bad", BAD, ids=BAD_IDS)
+def test_a_scenario_size_range_refuses_a_non_number(bad: tuple[str, Any, str]) -> None:
+    from coex_apps.demo.scenario import scenario_from_dict
+
+    with pytest.raises(ConfigError) as err:
+        scenario_from_dict({"seafloor": {"target_length": [2.0, bad[1]]}})
+    assert any(p.key == "seafloor.target_length" for p in err.value.problems), str(err.value)
 
 
 def test_a_scenario_file_with_nan_is_refused_by_key(tmp_path: Path) -> None:
