@@ -14,6 +14,9 @@ from PIL import Image
 
 from coex_apps.demo import DemoConfig, run_demo
 
+# whole demo dives (a quick dive is ~45 s of CPU): run first, and left out by `make test-fast`
+pytestmark = pytest.mark.slow
+
 
 @pytest.fixture(scope="module")
 def demo(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, dict]:  # type: ignore[type-arg]

@@ -25,6 +25,9 @@ from coex_apps.demo.truth import Eye
 from coex_plugins.imagery import codec
 from coex_plugins.imagery.sender import BRIDGE_BYTES, packet_layers
 
+# a whole demo dive with a region request
+pytestmark = pytest.mark.slow
+
 
 @pytest.fixture(scope="module")
 def dive(tmp_path_factory: pytest.TempPathFactory) -> tuple[DiveRun, Any]:

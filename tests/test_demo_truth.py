@@ -234,6 +234,7 @@ def _quick(tmp: Path, scenario: Scenario, **kw: object) -> dict:  # type: ignore
     return run_demo(DemoConfig(out=tmp, quick=True, progress=False, scenario=scenario, **kw)).metrics  # type: ignore[arg-type]
 
 
+@pytest.mark.slow  # a whole demo dive
 def test_a_decoy_is_looked_at_and_never_confirmed(tmp_path: Path) -> None:
     """A car-sized boulder near the car: the operator visits it (it is car-like enough in the
     map) and sees a boulder; only the car is confirmed."""
@@ -249,6 +250,7 @@ def test_a_decoy_is_looked_at_and_never_confirmed(tmp_path: Path) -> None:
     assert [d["kind"] for d in truth["decoys"]] == ["rock"]
 
 
+@pytest.mark.slow  # a whole demo dive
 def test_report_says_not_met_when_a_target_is_never_photographed(tmp_path: Path) -> None:
     """Nobody operates (``--operator none``): the camera crosses the centre of the site only, so
     the car in the corner is never photographed; the report must say NOT MET and why."""
