@@ -10,7 +10,7 @@ STAMP  := $(VENV)/.coex-installed
 PYTEST_ARGS ?=
 DEMO_ARGS ?=
 
-.PHONY: install demo test lint typecheck pytest moos ros bench clean
+.PHONY: install demo test test-fast lint typecheck pytest moos ros bench clean
 
 install: $(STAMP)
 
@@ -48,7 +48,14 @@ ros: install
 pytest: install moos ros
 	$(VENV)/bin/pytest -n 2 $(PYTEST_ARGS)
 
+# everything: CI's target (.ci/run). pyproject's addopts give each test file whole to one worker
+# (--dist loadfile) and tests/conftest.py starts the files with slow end-to-end tests first
 test: lint typecheck pytest
+
+# the quick loop while developing: lint, types and every test not marked slow (the whole demo
+# dives, Chromium, ROS, MOOS-IvP, daemons on simulated modems run only in `make test`)
+test-fast: lint typecheck install moos ros
+	$(VENV)/bin/pytest -n 2 -m "not slow" $(PYTEST_ARGS)
 
 bench: install
 	@mkdir -p bench/results

@@ -88,7 +88,7 @@ def _drain(s: BathymetrySender, now: float) -> list[Subgrid]:
 
 
 def test_a_request_for_an_evicted_region_is_served_as_from_memory() -> None:
-    batches = survey()
+    batches = survey(n_lines=2, length=300.0)  # 6 tiles for the 4 the budget keeps: tiles are evicted
     ref, small = _sender(512 * 2**20), _sender()
     for s in (ref, small):
         for t, xyz in batches:
@@ -109,7 +109,7 @@ def test_a_request_for_an_evicted_region_is_served_as_from_memory() -> None:
 
 def test_the_sender_looks_only_at_changed_tiles(monkeypatch: pytest.MonkeyPatch) -> None:
     s = _sender(512 * 2**20)
-    batches = survey()
+    batches = survey(n_lines=2, length=400.0)  # 8 tiles, among them (2, 1), where soundings land below
     for t, xyz in batches:
         s.ingest(xyz, t)
     now = batches[-1][0] + 100.0

@@ -38,6 +38,9 @@ from coex_core.registry import open_transport
 from coex_core.timefmt import to_stamp
 from coex_plugins.bathymetry import BathymetryModality, BathymetrySender
 
+# the console in a real Chromium
+pytestmark = pytest.mark.slow
+
 CHROMIUM = os.environ.get("COEX_CHROMIUM", "/usr/bin/chromium")
 ARGS = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
         "--disable-background-networking", "--disable-component-update", "--disable-sync"]

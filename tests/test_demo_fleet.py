@@ -18,6 +18,9 @@ from coex_apps.demo.scenario import preset, scenario_from_dict
 from coex_apps.demo.world import dive_schedule
 from coex_core.errors import ConfigError
 
+# a whole two-vehicle demo dive
+pytestmark = pytest.mark.slow
+
 
 @pytest.fixture(scope="module")
 def dive(tmp_path_factory: pytest.TempPathFactory) -> tuple[DiveRun, dict[str, Any], Path]:

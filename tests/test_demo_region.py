@@ -28,6 +28,9 @@ from coex_apps.demo.scenario import preset
 from coex_plugins.imagery import codec
 from coex_plugins.imagery.sender import BRIDGE_BYTES, packet_layers
 
+# a whole demo dive with a region request
+pytestmark = pytest.mark.slow
+
 
 @pytest.fixture(scope="module")
 def dive(tmp_path_factory: pytest.TempPathFactory) -> tuple[DiveRun, Any]:

@@ -298,6 +298,7 @@ def _quick(tmp: Path, scenario: Scenario, **kw: object) -> dict:  # type: ignore
     return run_demo(DemoConfig(out=tmp, quick=True, progress=False, scenario=scenario, **kw)).metrics  # type: ignore[arg-type]
 
 
+@pytest.mark.slow  # a whole demo dive
 def test_a_dark_decoy_is_looked_at_and_never_confirmed(tmp_path: Path) -> None:
     """A dark boulder (as dark as a car) near the car: the operator visits it (it is
     target-like enough in the map) and its eye sees something natural; only the car is
@@ -315,6 +316,7 @@ def test_a_dark_decoy_is_looked_at_and_never_confirmed(tmp_path: Path) -> None:
     assert m["failures"]["sender_failures"] == m["failures"]["runner_errors"] == m["failures"]["rejected_frames"] == 0
 
 
+@pytest.mark.slow  # a whole demo dive
 def test_report_says_not_met_when_a_target_is_never_photographed(tmp_path: Path) -> None:
     """Nobody operates (``--operator none``): the camera crosses the centre of the site only, so
     the car in the corner is never photographed; the report must say NOT MET and why."""

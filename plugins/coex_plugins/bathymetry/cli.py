@@ -145,8 +145,10 @@ def _run(link: RoundTrip, sender: BathymetrySender, receiver: BathymetryReceiver
     while rounds < max_rounds:
         rounds += 1
         link.step()
-        busy = (bool(link.last_fill) or bool(link.last_requests) or bool(receiver.active_regions())
-                or sender.pending_bytes() > 0)
+        # a region standing for ground not surveyed yet (queued 0, waiting > 0) waits for soundings
+        # that never come here (every sounding was in before the first fill): it is not work
+        busy = (bool(link.last_fill) or bool(link.last_requests) or sender.pending_bytes() > 0
+                or any(not (r.queued == 0 and r.waiting > 0) for r in receiver.active_regions()))
         idle = 0 if busy else idle + 1
         if idle >= 3 and (receiver.metadata is not None or loss == 0.0):
             break
