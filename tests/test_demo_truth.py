@@ -194,7 +194,7 @@ def test_a_sweep_never_draws_the_seeds_the_eye_was_developed_on() -> None:
     from coex_apps.sweep.conditions import is_development_seed
 
     assert 1000 in DEVELOPMENT_SEEDS and 1099 in DEVELOPMENT_SEEDS
-    assert all(is_development_seed(s) for s in (0, 999, 1000, 1050, 1099))
+    assert all(is_development_seed(s) for s in (0, 999, 1000, 1050, 1099, 2000, 2003, 2015, 2099))
     assert not is_development_seed(1100) and not is_development_seed(123456)
 
 
