@@ -34,8 +34,12 @@ def _navigation(state: ConsoleState) -> Navigation:
     rng = np.random.default_rng(4)
     track = np.array([(t, x, y) for t, x, y, _d in state.track])
     t0, t1 = track[0, 0], track[-1, 0]
-    for t, x, y in track:
-        nav.estimator(state.vehicle_id).add_track(float(t), float(x), float(y))
+    from coex import to_stamp
+    from coex.messages import VehicleMode, VehicleStatus
+
+    for t, x, y in track:  # received as statuses (Navigation.track is what topside received)
+        nav.status(state.vehicle_id, VehicleStatus(to_stamp(float(t)), float(x), float(y), 0.0, None, float("nan"), 0.0, 100,
+                                                   VehicleMode(0), 0), float(t))
     for k, t in enumerate(np.arange(t0, t1, 10.0)):
         f = (t - t0) / (t1 - t0)
         bx, by = np.interp(t, track[:, 0], track[:, 1]), np.interp(t, track[:, 0], track[:, 2])
