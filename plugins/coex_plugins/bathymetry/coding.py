@@ -43,12 +43,15 @@ class SubgridCoding:
     unsendable: set[Key]
 
     def _sent_row(self, tile: tuple[int, int]) -> int:
+        """Declared for the type checker: the bathymetry sender, which mixes this class in, defines it."""
         raise NotImplementedError
 
     def _mark_sent(self, key: Key, updated: float, now: float | None = None) -> None:
+        """Declared for the type checker: the bathymetry sender, which mixes this class in, defines it."""
         raise NotImplementedError
 
     def subgrid_time(self, key: Key) -> float:
+        """Declared for the type checker: the bathymetry sender, which mixes this class in, defines it."""
         raise NotImplementedError
 
     @property
