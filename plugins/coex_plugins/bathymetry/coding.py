@@ -6,6 +6,7 @@ holds its cells; cached until the tile or that knowledge changes. Mixed into
 from __future__ import annotations
 
 import logging
+from collections.abc import Callable
 from typing import TypeAlias
 
 import numpy as np
@@ -42,17 +43,10 @@ class SubgridCoding:
     _book: ContextBook | None
     unsendable: set[Key]
 
-    def _sent_row(self, tile: tuple[int, int]) -> int:
-        """Declared for the type checker: the bathymetry sender, which mixes this class in, defines it."""
-        raise NotImplementedError
-
-    def _mark_sent(self, key: Key, updated: float, now: float | None = None) -> None:
-        """Declared for the type checker: the bathymetry sender, which mixes this class in, defines it."""
-        raise NotImplementedError
-
-    def subgrid_time(self, key: Key) -> float:
-        """Declared for the type checker: the bathymetry sender, which mixes this class in, defines it."""
-        raise NotImplementedError
+    #: defined by the bathymetry sender, which mixes this class in (declared for the type checker)
+    _sent_row: Callable[[tuple[int, int]], int]
+    _mark_sent: Callable[..., None]
+    subgrid_time: Callable[[Key], float]
 
     @property
     def book(self) -> ContextBook:
