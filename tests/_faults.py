@@ -1,11 +1,13 @@
 """Fault injection for the fault suite: a simulated acoustic channel that also duplicates,
 reorders, bit-flips and truncates frames, failing modality wrappers, and a short dive with all
-three modalities between a vehicle and a topside node (fixed seeds)."""
+three modalities between a vehicle and a topside node (fixed seeds), and a store's SQLite
+connection that refuses statements as a full or failing disk does."""
 
 from __future__ import annotations
 
 import dataclasses
 import random
+import sqlite3
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
@@ -292,3 +294,61 @@ def series_complete(dive: Dive) -> bool:
     """Topside holds every block the vehicle closed, of every channel, with the vehicle's error
     bound, and every reconstructed value is within its bound of the true sample."""
     return convergence.series_complete(dive.series, dive.series_rx, dive.series_data)
+
+
+# ------------------------------------------------------------------ a failing disk under a store
+def sqlite_full() -> sqlite3.Error:
+    """The error SQLite raises when the disk is full."""
+    err = sqlite3.OperationalError("database or disk is full")
+    err.sqlite_errorcode = 13  # type: ignore[attr-defined]
+    err.sqlite_errorname = "SQLITE_FULL"  # type: ignore[attr-defined]
+    return err
+
+
+def sqlite_ioerr() -> sqlite3.Error:
+    """The error SQLite raises on a failing device."""
+    err = sqlite3.OperationalError("disk I/O error")
+    err.sqlite_errorcode = 10  # type: ignore[attr-defined]
+    err.sqlite_errorname = "SQLITE_IOERR"  # type: ignore[attr-defined]
+    return err
+
+
+class FaultyDb:
+    """A store's SQLite connection on a failing disk, counting the statements it runs (the
+    store's write points, in order, in ``sql``). Two faults, either or both:
+
+    - ``fail_at``: the ``fail_at``-th statement raises ``error`` (as SQLite does when the disk
+      fills or fails mid-transaction: the statement fails, the transaction may stay open);
+    - ``full``: while true, every write is refused with SQLITE_FULL; reads (SELECT, PRAGMA,
+      ROLLBACK) go through. Set it false to give the disk room again."""
+
+    def __init__(self, real: sqlite3.Connection, fail_at: int | None = None,
+                 error: sqlite3.Error | None = None, *, full: bool = False) -> None:
+        self.real, self.fail_at, self.full = real, fail_at, full
+        self.error = error if error is not None else sqlite_full()
+        self.n, self.failed = 0, False
+        self.sql: list[str] = []
+
+    def _tick(self, sql: str) -> None:
+        self.n += 1
+        self.sql.append(" ".join(sql.split()))
+        if self.full and not sql.lstrip().upper().startswith(("SELECT", "PRAGMA", "ROLLBACK")):
+            raise sqlite_full()
+        if self.n == self.fail_at:
+            self.failed = True
+            raise self.error
+
+    def execute(self, sql: str, *args: Any) -> Any:
+        self._tick(sql)
+        return self.real.execute(sql, *args)
+
+    def executemany(self, sql: str, *args: Any) -> Any:
+        self._tick(sql)
+        return self.real.executemany(sql, *args)
+
+    @property
+    def in_transaction(self) -> bool:
+        return self.real.in_transaction
+
+    def close(self) -> None:
+        self.real.close()

@@ -33,6 +33,8 @@ from coex_plugins.imagery import ImageryModality
 from coex_plugins.imagery.synth import seafloor
 from coex_runtime.runner import STORE_RECOVERY
 
+from ._faults import FaultyDb
+
 COEX = [sys.executable, "-m", "coex_core.cli"]
 T = 1_800_000_000.0
 
@@ -139,37 +141,8 @@ def _room(store: Any) -> None:
     store.db.execute("PRAGMA max_page_count = 1073741823")
 
 
-class Full:
-    """A store's connection on a disk with no byte left: every write refused (SQLITE_FULL)
-    while ``full``; reads go through."""
-
-    def __init__(self, real: sqlite3.Connection) -> None:
-        self.real, self.full = real, True
-
-    def _check(self, sql: str) -> None:
-        if self.full and not sql.lstrip().upper().startswith(("SELECT", "PRAGMA", "ROLLBACK")):
-            err = sqlite3.OperationalError("database or disk is full")
-            err.sqlite_errorcode = 13  # type: ignore[attr-defined]
-            raise err
-
-    def execute(self, sql: str, *args: Any) -> Any:
-        self._check(sql)
-        return self.real.execute(sql, *args)
-
-    def executemany(self, sql: str, *args: Any) -> Any:
-        self._check(sql)
-        return self.real.executemany(sql, *args)
-
-    @property
-    def in_transaction(self) -> bool:
-        return self.real.in_transaction
-
-    def close(self) -> None:
-        self.real.close()
-
-
-def _no_room(store: Any) -> Full:
-    full = Full(store.db)
+def _no_room(store: Any) -> FaultyDb:
+    full = FaultyDb(store.db, full=True)
     store.db = full
     store.storage().db = full
     return full

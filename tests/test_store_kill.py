@@ -6,7 +6,6 @@ writes again. ``bench/store_kill.py`` runs the kill loop hundreds of times."""
 from __future__ import annotations
 
 import os
-import sqlite3
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -15,7 +14,7 @@ import pytest
 
 from coex import AcousticChannel, Node, NodeStore, StoreError
 
-from ._faults import T0, build_dive, run_sim
+from ._faults import T0, FaultyDb, build_dive, run_sim, sqlite_full, sqlite_ioerr
 from ._store_kill import kill_loop
 from .test_store_fixture import digest
 
@@ -36,54 +35,6 @@ def test_kill_9_at_random_moments_never_leaves_an_unreadable_store(tmp_path: Pat
 
 
 # ------------------------------------------------------------------ fault injection
-class FaultyDb:
-    """A store's SQLite connection whose ``fail_at``-th statement raises ``error`` (as SQLite
-    does when the disk is full: the statement fails, the transaction may stay open), counting
-    the statements it runs."""
-
-    def __init__(self, real: sqlite3.Connection, fail_at: int | None, error: sqlite3.Error) -> None:
-        self.real, self.fail_at, self.error, self.n = real, fail_at, error, 0
-        self.failed = False
-        #: the statements run, in order (the write points)
-        self.sql: list[str] = []
-
-    def _tick(self, sql: str) -> None:
-        self.n += 1
-        self.sql.append(" ".join(sql.split()))
-        if self.n == self.fail_at:
-            self.failed = True
-            raise self.error
-
-    def execute(self, sql: str, *args: Any) -> Any:
-        self._tick(sql)
-        return self.real.execute(sql, *args)
-
-    def executemany(self, sql: str, *args: Any) -> Any:
-        self._tick(sql)
-        return self.real.executemany(sql, *args)
-
-    @property
-    def in_transaction(self) -> bool:
-        return self.real.in_transaction
-
-    def close(self) -> None:
-        self.real.close()
-
-
-def _full() -> sqlite3.Error:
-    err = sqlite3.OperationalError("database or disk is full")
-    err.sqlite_errorcode = 13  # type: ignore[attr-defined]
-    err.sqlite_errorname = "SQLITE_FULL"  # type: ignore[attr-defined]
-    return err
-
-
-def _ioerr() -> sqlite3.Error:
-    err = sqlite3.OperationalError("disk I/O error")
-    err.sqlite_errorcode = 10  # type: ignore[attr-defined]
-    err.sqlite_errorname = "SQLITE_IOERR"  # type: ignore[attr-defined]
-    return err
-
-
 def _frames() -> list[tuple[int, bytes, float]]:
     """What topside received in the first 200 s of the fault suite's dive."""
     dive = build_dive(minutes=2)
@@ -193,7 +144,7 @@ def test_a_write_refused_at_any_write_point_leaves_a_store_that_restores(tmp_pat
     # the states the restored node may be in: before and after each operation
     ref_store = NodeStore(tmp_path / "ref.sqlite")
     node = ref_store.restore(_build(role))
-    counter = FaultyDb(ref_store.db, None, _full())
+    counter = FaultyDb(ref_store.db)
     ref_store.db = counter  # type: ignore[assignment]
     ref_store.storage().db = counter  # type: ignore[assignment]
     states = [_state(node, role)]
@@ -223,7 +174,7 @@ def test_a_write_refused_at_any_write_point_leaves_a_store_that_restores(tmp_pat
             db = tmp_path / f"k{k}-{int(carry_on)}.sqlite"
             store = NodeStore(db)
             node = store.restore(_build(role))
-            faulty = FaultyDb(store.db, k, _full() if k % 2 else _ioerr())
+            faulty = FaultyDb(store.db, k, sqlite_full() if k % 2 else sqlite_ioerr())
             store.db = faulty  # type: ignore[assignment]
             store.storage().db = faulty  # type: ignore[assignment]
             failed_op = None
