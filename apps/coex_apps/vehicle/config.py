@@ -243,6 +243,27 @@ def check_problems(raw: Mapping[str, Any], path: Path, role: str | None) -> tupl
     node = p.table(raw.get("node"), "node")
     p.unknown(node, {"role", "id", "peer", "origin", "command_key_file", "peer_key_file", "store",
                      "snapshot_interval", "log_level"}, "node")
+    cfg = _node(raw, node, p, path, role)
+    infos = _modems(raw, p, cfg)
+    _tdma(raw, p, cfg)
+    _airtime(p, cfg, infos)
+    _modalities(raw, p, cfg)
+    if cfg.role == "vehicle":
+        _vehicle_tables(raw, p, cfg)
+    else:
+        for k in ("inputs", "autonomy", "status"):
+            if k in raw:
+                p.add(k, "only a vehicle node has inputs, an autonomy and a status")
+        _console(raw, p, cfg)
+        _ros(raw, p, cfg)
+        _usbl(raw, p, cfg)
+    cfg.warnings = p.warnings
+    return cfg, p
+
+
+def _node(raw: Mapping[str, Any], node: dict[str, Any], p: Problems, path: Path, role: str | None) -> DeployConfig:
+    """The ``[node]`` table (role, ids, origin, snapshots, log level, keys, store) and a fleet
+    topside's ``[[vehicles]]``: the configuration they start."""
     # required, also when the caller knows the role (coex vehicle, coex topside): the daemon
     # refuses what coex config check refuses
     r = node.get("role")
@@ -272,17 +293,30 @@ def check_problems(raw: Mapping[str, Any], path: Path, role: str | None) -> tupl
     if level not in ("debug", "info", "warning", "error"):
         p.add("node.log_level", f"debug, info, warning or error, got {level!r}")
     cfg.log_level = str(level)
+    _node_keys(node, p, cfg)
+    _store(node, p, cfg)
+    return cfg
+
+
+def _node_keys(node: Mapping[str, Any], p: Problems, cfg: DeployConfig) -> None:
+    """``node.command_key_file`` (the network key) and a vehicle's ``node.peer_key_file``."""
     keyfile = node.get("command_key_file")
     if keyfile is not None:
         cfg.command_key, cfg.command_key_file = _key(p, cfg, keyfile, "node.command_key_file")
-    if node.get("peer_key_file") is not None:
-        if r != "vehicle":
-            p.add("node.peer_key_file", "a topside gives each vehicle's own key in [[vehicles]] command_key_file")
-        elif keyfile is None:
-            p.add("node.peer_key_file", "a key shared with the topside alone needs the network key in "
-                                        "node.command_key_file (broadcast commands are signed with it)")
-        else:
-            cfg.peer_key = _key(p, cfg, node["peer_key_file"], "node.peer_key_file")[0]
+    if node.get("peer_key_file") is None:
+        return
+    if cfg.role != "vehicle":
+        p.add("node.peer_key_file", "a topside gives each vehicle's own key in [[vehicles]] command_key_file")
+    elif keyfile is None:
+        p.add("node.peer_key_file", "a key shared with the topside alone needs the network key in "
+                                    "node.command_key_file (broadcast commands are signed with it)")
+    else:
+        cfg.peer_key = _key(p, cfg, node["peer_key_file"], "node.peer_key_file")[0]
+
+
+def _store(node: Mapping[str, Any], p: Problems, cfg: DeployConfig) -> None:
+    """``node.store``: the node's SQLite store (default ``ROLE.sqlite``), or false: none."""
+    r = cfg.role
     store = node.get("store", f"{r}.sqlite")
     if store is False:
         cfg.store = None
@@ -297,34 +331,24 @@ def check_problems(raw: Mapping[str, Any], path: Path, role: str | None) -> tupl
                 p.add("node.store", str(err))
     else:
         p.add("node.store", f"a file name (default {r}.sqlite) or false, got {store!r}")
-    infos = _modems(raw, p, cfg)
-    _tdma(raw, p, cfg)
-    _airtime(p, cfg, infos)
-    _modalities(raw, p, cfg)
-    if r == "vehicle":
-        status = p.table(raw.get("status"), "status")
-        p.unknown(status, {"interval"}, "status")
-        cfg.status_interval = float(p.number(status, "interval", "status", 10.0, lo=1, hi=3600))
-        _inputs(raw, p, cfg)
-        _autonomy(raw, p, cfg)
-        for k in ("console",):
-            if k in raw:
-                p.add(k, "only a topside node has a console")
-        if "ros" in raw:
-            p.add("ros", "only a topside node publishes its products on ROS: a vehicle reads ROS with "
-                         "[[inputs]] type = \"ros\" and flies surveys with [autonomy] type = \"ros\"")
-        if "usbl" in raw:
-            p.add("usbl", "only a topside node reads the ship's USBL (a vehicle takes position fixes through "
-                          "its survey modality's aiding option, docs/navigation.md)")
-    else:
-        for k in ("inputs", "autonomy", "status"):
-            if k in raw:
-                p.add(k, "only a vehicle node has inputs, an autonomy and a status")
-        _console(raw, p, cfg)
-        _ros(raw, p, cfg)
-        _usbl(raw, p, cfg)
-    cfg.warnings = p.warnings
-    return cfg, p
+
+
+def _vehicle_tables(raw: Mapping[str, Any], p: Problems, cfg: DeployConfig) -> None:
+    """A vehicle's ``[status]``, ``[[inputs]]`` and ``[autonomy]``; the topside's tables refused."""
+    status = p.table(raw.get("status"), "status")
+    p.unknown(status, {"interval"}, "status")
+    cfg.status_interval = float(p.number(status, "interval", "status", 10.0, lo=1, hi=3600))
+    _inputs(raw, p, cfg)
+    _autonomy(raw, p, cfg)
+    for k in ("console",):
+        if k in raw:
+            p.add(k, "only a topside node has a console")
+    if "ros" in raw:
+        p.add("ros", "only a topside node publishes its products on ROS: a vehicle reads ROS with "
+                     "[[inputs]] type = \"ros\" and flies surveys with [autonomy] type = \"ros\"")
+    if "usbl" in raw:
+        p.add("usbl", "only a topside node reads the ship's USBL (a vehicle takes position fixes through "
+                      "its survey modality's aiding option, docs/navigation.md)")
 
 
 def _modems(raw: Mapping[str, Any], p: Problems, cfg: DeployConfig) -> list[Any]:
