@@ -328,7 +328,8 @@ def test_docs_give_every_option_and_valid_examples() -> None:
     namespace: dict[str, object] = {}
     exec(compile(code, "docs/inputs.md", "exec"), namespace)
     ctd = namespace["CtdInput"]
-    assert check_options(ctd, {"port": 70000}) == ["input 'myctd': option 'port' must be a UDP port, not 70000"]
+    assert check_options(ctd, {"port": 70000}) == ["port: 70000 is outside 1..65535"]
+    assert check_options(ctd, {"port": True}) == ["port: not an integer, got true"]
     import socket
 
     with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as probe:
