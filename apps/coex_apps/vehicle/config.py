@@ -73,6 +73,9 @@ class FleetVehicle:
     #: node's ``command_key`` (the network key) signs its commands
     command_key: bytes | None = None
     command_key_file: Path | None = None
+    #: the modalities this vehicle carries (``modalities = ["imagery", "survey"]``): the topside
+    #: has receivers for these alone; None: every one of the file's ``[modalities]``
+    modalities: tuple[str, ...] | None = None
 
 
 @dataclass
@@ -127,6 +130,14 @@ class DeployConfig:
     def fleet(self) -> bool:
         """A topside of several vehicles (``[[vehicles]]``)."""
         return bool(self.vehicles)
+
+    def carries(self, peer: int | None, modality: str) -> bool:
+        """Whether the topside takes ``modality`` from vehicle ``peer`` (a fleet's
+        ``[[vehicles]]`` ``modalities``; None, a vehicle without the list: every modality)."""
+        for v in self.vehicles:
+            if v.id == peer and v.modalities is not None:
+                return modality in v.modalities
+        return True
 
     def vehicle_ids(self) -> list[int]:
         """The ids of the vehicles this topside talks to (``[[vehicles]]``, else ``node.peer``)."""
@@ -248,6 +259,7 @@ def check_problems(raw: Mapping[str, Any], path: Path, role: str | None) -> tupl
     _tdma(raw, p, cfg)
     _airtime(p, cfg, infos)
     _modalities(raw, p, cfg)
+    _carried(p, cfg)
     if cfg.role == "vehicle":
         _vehicle_tables(raw, p, cfg)
     else:
@@ -490,7 +502,7 @@ def _vehicles(raw: Mapping[str, Any], p: Problems, cfg: DeployConfig, peer_given
     for i, v in enumerate(vs):
         key = f"vehicles[{i}]"
         v = p.table(v, key)
-        p.unknown(v, {"id", "name", "command_key_file"}, key)
+        p.unknown(v, {"id", "name", "command_key_file", "modalities"}, key)
         if "id" not in v:
             p.add(f"{key}.id", "missing: the vehicle's node id (1..15)")
             continue
@@ -512,6 +524,12 @@ def _vehicles(raw: Mapping[str, Any], p: Problems, cfg: DeployConfig, peer_given
         ids[vid] = name
         names.add(name)
         fv = FleetVehicle(vid, name)
+        mods = v.get("modalities")
+        if mods is not None:
+            if not isinstance(mods, list) or not mods or not all(isinstance(m, str) for m in mods):
+                p.add(f"{key}.modalities", f"a list of the modalities this vehicle carries, got {mods!r}")
+            else:
+                fv.modalities = tuple(mods)
         keyfile = v.get("command_key_file")
         if keyfile is not None:
             fv.command_key, fv.command_key_file = _key(p, cfg, keyfile, f"{key}.command_key_file")
@@ -633,6 +651,16 @@ def _modalities(raw: Mapping[str, Any], p: Problems, cfg: DeployConfig) -> None:
         except (CoexError, TypeError, ValueError) as exc:
             p.add(f"{key}.options", f"{type(exc).__name__}: {exc}")
         cfg.modalities.append(mc)
+
+
+def _carried(p: Problems, cfg: DeployConfig) -> None:
+    """A fleet vehicle's ``modalities`` name modalities of this topside."""
+    running = [m.name for m in cfg.modalities]
+    for i, v in enumerate(cfg.vehicles):
+        for name in v.modalities or ():
+            if name not in running:
+                p.add(f"vehicles[{i}].modalities", f"{name!r} is not one of this topside's modalities "
+                                                   f"({', '.join(running) or 'none'})")
 
 
 def _adapter(kind: str, group: str, table: Mapping[str, Any], key: str, p: Problems) -> Any:
