@@ -13,10 +13,11 @@ import pytest
 from coex import AcousticChannel
 from coex_apps.demo.config import CAMERA, EPOCH, LINK_STREAM, TOPSIDE, VEHICLE
 from coex_apps.demo.deployment import node_mapping, receiver_modalities, sender_modalities
-from coex_apps.demo.scenario import preset
+from coex_apps.demo.scenario import PRESETS, preset
 from coex_apps.demo.world import build_fleet, build_nodes, site_geofence
 from coex_apps.vehicle.config import STREAM_DEFAULTS, check_problems
 from coex_core.loopback import SimClock
+from coex_plugins.imagery import ImageryReceiver
 from coex_transports.micromodem.simulator import ModemNetwork
 
 NAMES = ("bathymetry", "imagery", "timeseries", "survey", "detections")
@@ -30,11 +31,12 @@ def network() -> Iterator[ModemNetwork]:
     net.close()
 
 
-@pytest.mark.parametrize("name", ["default", "fleet", "lowrate"])
-def test_every_node_of_a_dive_passes_the_deployment_checker(name: str, tmp_path: Path) -> None:
-    """What ``coex config check`` would say of each node's file: nothing but the warning that
-    its modem's device is not there (it is simulated)."""
-    scn = preset(name).quick()
+@pytest.mark.parametrize("quick", [False, True])
+@pytest.mark.parametrize("name", sorted(PRESETS))
+def test_every_node_of_a_dive_passes_the_deployment_checker(name: str, quick: bool, tmp_path: Path) -> None:
+    """What ``coex config check`` would say of each node's file (every preset, full and
+    ``--quick``): nothing but the warning that its modem's device is not there (it is simulated)."""
+    scn = preset(name).quick() if quick else preset(name)
     fence = site_geofence(scn)
     raws: list[dict[str, Any]] = [
         node_mapping(scn, "vehicle", VEHICLE, TOPSIDE, sender_modalities(NAMES, [], fence, 4), spare=scn.spare),
@@ -42,7 +44,9 @@ def test_every_node_of_a_dive_passes_the_deployment_checker(name: str, tmp_path:
     ]
     if scn.fleet:
         raws[1:] = [node_mapping(scn, "vehicle", CAMERA, TOPSIDE, sender_modalities(("imagery", "survey"), [],
-                                                                                  fence, 4))]
+                                                                                  fence, 4)),
+                    node_mapping(scn, "topside", TOPSIDE, VEHICLE, receiver_modalities(tmp_path, True),
+                                 vehicles={VEHICLE: ("bathymetry", "survey"), CAMERA: ("imagery", "survey")})]
     for raw in raws:
         cfg, p = check_problems(raw, tmp_path / "node.toml", None)
         assert p.items == [], p.items
@@ -70,7 +74,8 @@ def test_the_vehicle_streams_and_priorities_are_the_deployments(tmp_path: Path, 
     assert (vlink.rate, vlink.dst, vlink.spare) == (scn.modem_rate, TOPSIDE, scn.spare)
     assert (tlink.rate, tlink.dst) == (scn.modem_rate, VEHICLE)
     assert vehicle.manager.queue_status_interval == scn.cycle
-    assert topside.manager.queue_status_interval is None  # as coex topside: the vehicle's queues are shown
+    # the demo's one addition to build_node's topside: its own queue status each cycle (as before)
+    assert topside.manager.queue_status_interval == scn.cycle
     assert sorted(modems) == [TOPSIDE, VEHICLE]
 
 
@@ -82,3 +87,10 @@ def test_a_fleets_vehicles_carry_their_own_modalities(tmp_path: Path, network: M
     assert {"imagery", "survey"} <= set(camera) and "bathymetry" not in camera
     assert camera["imagery"][:2] == STREAM_DEFAULTS["imagery"] and mapper["survey"][:2] == STREAM_DEFAULTS["survey"]
     assert fleet.topside.manager._link(0).cfg.dst == 0  # topside broadcasts to its vehicles
+    # topside's receivers: what each vehicle carries, from that vehicle alone
+    held = {(r.name, r.peer) for r in fleet.topside._receivers}
+    assert held == {("bathymetry", VEHICLE), ("timeseries", VEHICLE), ("detections", VEHICLE), ("survey", VEHICLE),
+                    ("imagery", CAMERA), ("survey", CAMERA)}
+    assert fleet.receivers["imagery"] is fleet.topside.receiver("imagery", CAMERA)
+    imagery = fleet.topside.receiver("imagery", CAMERA)
+    assert isinstance(imagery, ImageryReceiver) and imagery.out_dir == str(tmp_path.resolve() / "images")

@@ -25,7 +25,7 @@ from coex_apps.vehicle.config import DeployConfig, from_mapping
 from .config import CAMERA, DEFAULT_LAYERS, EPOCH, LAYER_PSNR, TOPSIDE, VEHICLE
 from .scenario import Scenario
 
-__all__ = ["build", "modem_uri", "node_mapping", "receiver_modalities", "sender_modalities"]
+__all__ = ["FLEET_NAMES", "build", "modem_uri", "node_mapping", "receiver_modalities", "sender_modalities"]
 
 #: the images' priority on a low link (docs/channel.md): the answers to the operator's
 #: requests go before the map's coarse coverage
@@ -55,24 +55,36 @@ def sender_modalities(names: Sequence[str], channels: list[dict[str, Any]], geof
     return {name: table[name] for name in names}
 
 
-def receiver_modalities(out: Path, auto_fill: bool) -> dict[str, dict[str, Any]]:
-    """Topside's ``[modalities]`` table: the map (``auto_fill=False`` when the scripted operator
-    asks for the map's holes itself), the images (written to ``out/images``), the time series,
-    the survey's answers and the detections."""
-    return {"bathymetry": {"options": {"auto_fill": auto_fill}},
-            "imagery": {"options": {"out_dir": str(out / "images")}},
-            "timeseries": {}, "survey": {}, "detections": {}}
+def receiver_modalities(out: Path, auto_fill: bool,
+                        names: Sequence[str] = ("bathymetry", "imagery", "timeseries", "survey", "detections"),
+                        ) -> dict[str, dict[str, Any]]:
+    """Topside's ``[modalities]`` table for ``names`` (in that order): the map
+    (``auto_fill=False`` when the scripted operator asks for the map's holes itself), the
+    images (written to ``out/images``), the time series, the survey's answers and the
+    detections."""
+    table: dict[str, dict[str, Any]] = {
+        "bathymetry": {"options": {"auto_fill": auto_fill}},
+        "imagery": {"options": {"out_dir": str(out / "images")}},
+        "timeseries": {}, "survey": {}, "detections": {}}
+    return {name: table[name] for name in names}
+
+
+#: the names of a fleet's vehicles in topside's ``[[vehicles]]``
+FLEET_NAMES = {VEHICLE: "mapper", CAMERA: "camera"}
 
 
 def _slots(scn: Scenario, role: str, node_id: int) -> list[str | int]:
     """The scenario's TDMA slots as ``tdma.slots`` names them for this node: ``"topside"``,
-    ``"vehicle"`` (a vehicle's own slots; topside's one vehicle) and another vehicle by its id."""
+    ``"vehicle"`` (a vehicle's own slots; topside's one vehicle), a fleet topside's vehicles by
+    name and, in a vehicle's file, another vehicle by its id."""
     ids = {"topside": TOPSIDE, "vehicle": VEHICLE, "camera": CAMERA}
     out: list[str | int] = []
     for s in scn.slots:
         owner = ids[s]
         if owner == TOPSIDE:
             out.append("topside")
+        elif role == "topside" and scn.fleet:
+            out.append(FLEET_NAMES[owner])
         elif role == "topside" or owner == node_id:
             out.append("vehicle")
         else:
@@ -81,21 +93,28 @@ def _slots(scn: Scenario, role: str, node_id: int) -> list[str | int]:
 
 
 def node_mapping(scn: Scenario, role: str, node_id: int, peer: int, modalities: Mapping[str, Any], *,
-                 dest: int | None = None, spare: float | None = None) -> dict[str, Any]:
+                 spare: float | None = None, vehicles: Mapping[int, Sequence[str]] | None = None) -> dict[str, Any]:
     """The deployment configuration of one node of the dive, as the mapping of a TOML file:
-    no store (the dive keeps nothing), its simulated modem (``dest``: where its packets go,
-    default ``peer``; ``spare``: the share of a packet spare traffic may fill) and the
-    scenario's TDMA cycle."""
-    modem: dict[str, Any] = {"uri": modem_uri(node_id, peer if dest is None else dest, scn.modem_rate)}
+    no store (the dive keeps nothing), its simulated modem (its packets go to ``peer``;
+    ``spare``: the share of a packet spare traffic may fill) and the scenario's TDMA cycle.
+    ``vehicles`` (a fleet's topside): each vehicle's id and the modalities it carries, listed
+    in ``[[vehicles]]`` (named :data:`FLEET_NAMES`); its modem then sends to every node."""
+    modem: dict[str, Any] = {"uri": modem_uri(node_id, 0 if vehicles else peer, scn.modem_rate)}
     if spare is not None:
         modem["spare"] = spare
-    return {
-        "node": {"role": role, "id": node_id, "peer": peer, "store": False},
+    raw: dict[str, Any] = {
+        "node": {"role": role, "id": node_id, "store": False},
         "modems": [modem],
         "tdma": {"slots": _slots(scn, role, node_id), "slot_seconds": scn.slot_seconds,
                  "guard": scn.guard_seconds, "epoch": EPOCH},
         "modalities": dict(modalities),
     }
+    if vehicles:
+        raw["vehicles"] = [{"id": vid, "name": FLEET_NAMES[vid], "modalities": list(names)}
+                           for vid, names in vehicles.items()]
+    else:
+        raw["node"]["peer"] = peer
+    return raw
 
 
 def build(raw: Mapping[str, Any], out: Path, network: Any, command_key: bytes | None) -> tuple[Node, Any]:

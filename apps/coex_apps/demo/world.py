@@ -11,14 +11,9 @@ from typing import Any
 
 import numpy as np
 
-from coex import ChannelManager, LinkConfig, Node, Schedule, StreamConfig, to_stamp
+from coex import Node, Schedule, StreamConfig, to_stamp
 from coex.messages import VehicleMode, VehicleStatus
-from coex_plugins.bathymetry import BathymetryModality
 from coex_plugins.bathymetry.sim import Seafloor
-from coex_plugins.detections import DetectionsModality
-from coex_plugins.imagery import ImageryModality
-from coex_plugins.survey import SurveyModality
-from coex_plugins.timeseries import TimeSeriesModality
 
 from .config import (
     CAMERA,
@@ -151,6 +146,11 @@ def build_nodes(out: Path, channels: list[dict[str, Any]], command_key: bytes | 
     vehicle.manager.add_stream(link_stream())
     topside, tmodem = build(node_mapping(scn, "topside", TOPSIDE, VEHICLE, receiver_modalities(out, auto_fill)),
                             out, network, command_key)
+    # The demo's topside has always reported its own queues once a TDMA cycle (coex topside does
+    # not: build_node gives a vehicle alone a queue status interval). Kept so that a dive's
+    # results stay those measured before (issue 50's evaluations); without it every dive differs
+    # (a few uplink bytes a cycle change what each packet carries: docs/demo.md, "The code").
+    topside.manager.queue_status_interval = scn.cycle
     senders = {name: vehicle.sender(name) for name in names}
     receivers = {name: topside.receiver(name) for name in names}
     return vehicle, topside, senders, receivers, {VEHICLE: vmodem, TOPSIDE: tmodem}
@@ -181,37 +181,33 @@ def build_fleet(out: Path, channels: list[dict[str, Any]], command_key: bytes | 
     mapper carries the multibeam, its detector, the sensor channels and a survey sender of its
     own (it could be retargeted; the demo never does, and a command for the camera vehicle must
     never reach it); the camera vehicle carries the camera and the survey sender its autonomy
-    flies. Each vehicle is built from its deployment configuration
-    (:mod:`~coex_apps.demo.deployment`). Topside is built here: a deployment file gives every
-    vehicle of a fleet the same modalities, and topside's receivers here are per vehicle and
-    modality (the map, time series and detections the mapper's, the images the camera
-    vehicle's). Its link broadcasts (``dst`` 0, docs/channel.md); its per-peer receivers address
-    their requests to their vehicle."""
+    flies. Each node is built from its deployment configuration
+    (:mod:`~coex_apps.demo.deployment`); topside's ``[[vehicles]]`` say which modalities each
+    vehicle carries, so its per-vehicle receivers are the map, time series, detections and
+    survey answers of the mapper and the images and survey answers of the camera vehicle. Its
+    link broadcasts (``dst`` 0, docs/channel.md); its per-peer receivers address their requests
+    to their vehicle."""
     fence = site_geofence(scn) if geofence is None else geofence
+    carried = {VEHICLE: ("bathymetry", "timeseries", "detections", "survey"), CAMERA: ("imagery", "survey")}
     mapper, mapper_modem = build(node_mapping(scn, "vehicle", VEHICLE, TOPSIDE, sender_modalities(
         ("bathymetry", "timeseries", "survey", "detections"), channels, fence, CONFIRM_LAYERS), spare=scn.spare),
         out, network, command_key)
     mapper.manager.add_stream(link_stream())
-    topside = Node(ChannelManager(TOPSIDE, [LinkConfig(0, dive_schedule(scn), rate=scn.modem_rate, dst=0)],
-                                  queue_status_interval=scn.cycle, command_key=command_key))
-    topside_modem = network.transport(TOPSIDE, rate=scn.modem_rate, dest=0)
+    topside, topside_modem = build(node_mapping(scn, "topside", TOPSIDE, VEHICLE, receiver_modalities(
+        out, auto_fill, ("bathymetry", "timeseries", "detections", "survey", "imagery")), vehicles=carried),
+        out, network, command_key)
+    topside.manager.queue_status_interval = scn.cycle  # as a single dive's topside (build_nodes)
     camera, camera_modem = build(node_mapping(scn, "vehicle", CAMERA, TOPSIDE, sender_modalities(
         ("imagery", "survey"), channels, fence, CONFIRM_LAYERS), spare=scn.spare), out, network, command_key)
     receivers = {
-        "bathymetry": BathymetryModality().receiver({"auto_fill": auto_fill}),
-        "timeseries": TimeSeriesModality().receiver(None),
-        "detections": DetectionsModality().receiver(None),
-        "imagery": ImageryModality().receiver({"out_dir": str(out / "images")}),
-        "survey": SurveyModality().receiver(None),
+        "bathymetry": topside.receiver("bathymetry", VEHICLE),
+        "timeseries": topside.receiver("timeseries", VEHICLE),
+        "detections": topside.receiver("detections", VEHICLE),
+        "imagery": topside.receiver("imagery", CAMERA),
+        "survey": topside.receiver("survey", CAMERA),
         # the mapper's answers to survey commands (it is never sent one: what would come is shown)
-        "mapper_survey": SurveyModality().receiver(None),
+        "mapper_survey": topside.receiver("survey", VEHICLE),
     }
-    topside.add_receiver(BathymetryModality, receivers["bathymetry"], peer=VEHICLE)
-    topside.add_receiver(TimeSeriesModality, receivers["timeseries"], peer=VEHICLE)
-    topside.add_receiver(DetectionsModality, receivers["detections"], peer=VEHICLE)
-    topside.add_receiver(SurveyModality, receivers["mapper_survey"], peer=VEHICLE)
-    topside.add_receiver(ImageryModality, receivers["imagery"], peer=CAMERA)
-    topside.add_receiver(SurveyModality, receivers["survey"], peer=CAMERA)
     return Fleet(mapper, camera, topside,
                  {name: mapper.sender(name) for name in ("bathymetry", "timeseries", "survey", "detections")},
                  {name: camera.sender(name) for name in ("imagery", "survey")}, receivers,
