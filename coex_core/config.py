@@ -256,6 +256,11 @@ def _is_number(v: Any) -> bool:
     return isinstance(v, numbers.Real) and not isinstance(v, bool) and type(v).__name__ != "bool_"
 
 
+def _bound(x: float) -> str:
+    """A range's bound as written: an integral one in full (``10000000``), else ``:g``."""
+    return str(int(x)) if float(x).is_integer() and abs(x) < 1e16 else f"{x:g}"
+
+
 def shown(v: Any) -> str:
     """A value as a configuration file writes it (``true``, ``nan``, ``-inf``, ``'soon'``)."""
     if isinstance(v, bool):
@@ -300,8 +305,8 @@ class Option:
         """Why ``v`` is out of range (``"is outside 1..8"``, ``"is below 0 s"``); with no
         value, the range itself (``"1..8"``, ``"above 0 s"``)."""
         unit = f" {self.unit}" if self.unit else ""
-        lo = "" if self.lo is None else f"{self.lo:g}"
-        hi = "" if self.hi is None else f"{self.hi:g}"
+        lo = "" if self.lo is None else _bound(self.lo)
+        hi = "" if self.hi is None else _bound(self.hi)
         closed = not (self.lo_open or self.hi_open)
         if v is None:
             if lo and hi and closed:

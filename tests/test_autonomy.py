@@ -298,9 +298,9 @@ def test_lcm_checks_its_options() -> None:
         LcmAutonomy({"channel": "X" * 64}, CTX)
     with pytest.raises(ConfigError, match="state_channel must be a non-empty string"):
         LcmAutonomy({"state_channel": ""}, CTX)
-    with pytest.raises(ConfigError, match="answer_timeout must be a number >= 0"):
+    with pytest.raises(ConfigError, match="answer_timeout: -1 is below 0 s"):
         LcmAutonomy({"answer_timeout": -1}, CTX)
-    with pytest.raises(ConfigError, match="retries must be an integer"):
+    with pytest.raises(ConfigError, match=r"retries: not an integer, got 1\.5"):
         LcmAutonomy({"retries": 1.5}, CTX)
     with pytest.raises(ConfigError, match="silence: not a finite number, got nan"):
         LcmAutonomy({"silence": float("nan")}, CTX)

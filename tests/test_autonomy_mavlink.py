@@ -120,14 +120,14 @@ def test_items_heights_frames_and_speed() -> None:
 @pytest.mark.parametrize(("options", "match"), [
     ({}, "needs option 'connection'"),
     ({"connection": ""}, "connection must be"),
-    ({"connection": "udpout:h:1", "frame": 4}, "frame must be one of"),
-    ({"connection": "udpout:h:1", "start": "go"}, "start must be one of"),
-    ({"connection": "udpout:h:1", "timeout": 0}, "timeout must be a number > 0"),
-    ({"connection": "udpout:h:1", "target_system": 300}, "target_system must be an integer"),
+    ({"connection": "udpout:h:1", "frame": 4}, "frame: one of 0, 3, 6, 10, 11, got 4"),
+    ({"connection": "udpout:h:1", "start": "go"}, "start: one of 'mission_start', 'auto_mode', 'none', got 'go'"),
+    ({"connection": "udpout:h:1", "timeout": 0}, "timeout: 0 is not above 0 s"),
+    ({"connection": "udpout:h:1", "target_system": 300}, "target_system: 300 is outside 0..255"),
     ({"connection": "udpout:h:1", "home_placeholder": "yes"}, "home_placeholder: true or false"),
     ({"connection": "udpout:h:1", "manual_modes": [2, "x"]}, "manual_modes must be a list"),
     ({"connection": "udpout:h:1", "frme": 3}, "unknown option 'frme'"),
-    ({"connection": "udpout:h:1", "silence": -1}, "silence must be a number >= 0"),
+    ({"connection": "udpout:h:1", "silence": -1}, "silence: -1 is below 0 s"),
     ({"connection": "udpout:h:1", "clear": "no"}, "clear: true or false"),
 ])
 def test_options_are_checked(options: dict[str, object], match: str) -> None:

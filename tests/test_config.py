@@ -87,8 +87,8 @@ def test_problems_collects_every_problem_with_its_key(tmp_path: Path) -> None:
 
 
 def test_an_adapters_option_checks_collect_every_problem_with_its_option() -> None:
-    """The vehicle adapters' option checks are the collector's ``option_*``: an NMEA input with
-    four bad options gives four problems, each keyed by its option, in the adapter's words."""
+    """An adapter's problems, each keyed by its option: its own checks in its words (an NMEA
+    input's ``udp``), its declared options' types and ranges in the schema's (``baud``)."""
     from coex_core.adapters import adapter_check, adapter_problems
     from coex_plugins.inputs.nmea import NmeaInput
 
@@ -97,7 +97,7 @@ def test_an_adapters_option_checks_collect_every_problem_with_its_option() -> No
     assert p.keys() == ["udp", "baud", "require_checksum", "variation"]
     assert p.items == [
         "input 'nmea': option 'udp' must be 'host:port' (e.g. '0.0.0.0:10110'), not 'nowhere'",
-        "input 'nmea': option 'baud' must be an integer from 1 to 10000000, not 0",
+        "baud: 0 is outside 1..10000000 baud",
         "require_checksum: true or false, got 'yes'",
         "variation: not a finite number, got nan",
     ]
@@ -107,7 +107,8 @@ def test_an_adapters_option_checks_collect_every_problem_with_its_option() -> No
     out = adapter_check(MavlinkAutonomy, {"connection": "udpout:127.0.0.1:14550", "baud": 0, "hold": -1,
                                           "start": "soon"})
     assert out.keys() == ["baud", "hold", "start"]
-    assert out.items[0] == "autonomy 'mavlink': baud must be an integer in 1..10000000, got 0"
+    assert out.items == ["baud: 0 is outside 1..10000000 baud", "hold: -1 is below 0 s",
+                         "start: one of 'mission_start', 'auto_mode', 'none', got 'soon'"]
     q = Problems()
     q.option_str("input 'x'", {"path": " "}, "path", nonempty=True)
     q.option_number("input 'x'", {"settle": -1}, "settle", minimum=0)
@@ -169,10 +170,10 @@ existing = "yes"
         "inputs[0].udp", "inputs[0].baud", "inputs[1].path", "inputs[1].settle", "inputs[1].existing"]
     assert str(err.value).splitlines()[1:] == [
         "  inputs[0]: input 'nmea': option 'udp' must be 'host:port' (e.g. '0.0.0.0:10110'), not 'nowhere'",
-        "  inputs[0]: input 'nmea': option 'baud' must be an integer from 1 to 10000000, not 0",
+        "  inputs[0].baud: 0 is outside 1..10000000 baud",  # the declared range: the full key
         "  inputs[1]: input 'directory': option 'path' must not be empty",
-        "  inputs[1]: input 'directory': option 'settle' must be at least 0, not -1",
-        "  inputs[1].existing: true or false, got 'yes'",  # the declared type: the full key
+        "  inputs[1].settle: -1 is below 0 s",
+        "  inputs[1].existing: true or false, got 'yes'",
     ]
 
 

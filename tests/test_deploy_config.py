@@ -6,6 +6,7 @@ from __future__ import annotations
 import subprocess
 import sys
 from pathlib import Path
+from typing import Any
 
 import pytest
 
@@ -260,3 +261,62 @@ def test_the_topside_options_are_checked_by_the_files_checker_naming_each_option
     out = subprocess.run([str(Path(sys.executable).with_name("coex")), "topside", "--transport", "loopback://c2",
                           "--vehicle-id", "1"], capture_output=True, text=True, timeout=120)
     assert out.returncode == 2 and "coex topside: --vehicle-id: the other node's id must differ" in out.stderr
+
+
+def _fleet_topside(tmp_path: Path, vehicles: str) -> Path:
+    (tmp_path / "t.toml").write_text(f"""
+[node]
+role = "topside"
+id = 1
+store = false
+{vehicles}
+[[modems]]
+uri = "loopback://fleet"
+packet_seconds = 1.0
+[tdma]
+slots = ["topside", "mapper", "camera"]
+[modalities.bathymetry]
+[modalities.imagery]
+options = {{ out_dir = "images" }}
+[modalities.survey]
+""")
+    return tmp_path / "t.toml"
+
+
+def test_a_fleet_vehicle_carries_the_modalities_it_lists(tmp_path: Path) -> None:
+    """``[[vehicles]] modalities``: topside has receivers for those alone; a vehicle without the
+    list has every modality; one vehicle's imagery writes into ``out_dir`` itself (a folder per
+    vehicle only when several carry it); a name that is not one of the modalities is refused."""
+    from coex_apps.vehicle.build import build_node
+    from coex_core.loopback import LoopbackLink, LoopbackTransport
+
+    path = _fleet_topside(tmp_path, """
+[[vehicles]]
+id = 2
+name = "mapper"
+modalities = ["bathymetry", "survey"]
+[[vehicles]]
+id = 3
+name = "camera"
+""")
+    cfg = load(path, "topside")
+    assert [v.modalities for v in cfg.vehicles] == [("bathymetry", "survey"), None]
+    node = build_node(cfg, "topside", {0: LoopbackTransport(LoopbackLink(), 0)})
+    held = {(r.name, r.peer) for r in node._receivers}
+    assert held == {("bathymetry", 2), ("survey", 2), ("bathymetry", 3), ("imagery", 3), ("survey", 3)}
+    imagery: Any = node.receiver("imagery", 3)
+    assert imagery.out_dir == str(tmp_path.resolve() / "images")  # the camera alone carries it
+    path = _fleet_topside(tmp_path, """
+[[vehicles]]
+id = 2
+name = "mapper"
+modalities = ["bathymetry", "sonar"]
+[[vehicles]]
+id = 3
+name = "camera"
+modalities = "imagery"
+""")
+    _, problems = check(path)
+    assert problems == ["vehicles[1].modalities: a list of the modalities this vehicle carries, got 'imagery'",
+                        "vehicles[0].modalities: 'sonar' is not one of this topside's modalities "
+                        "(bathymetry, imagery, survey)"]

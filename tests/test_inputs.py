@@ -20,6 +20,7 @@ from coex import (
     Image,
     Input,
     InputContext,
+    Options,
     Points,
     check_options,
 )
@@ -56,7 +57,7 @@ def test_every_adapter_is_registered_with_its_extra_and_loads() -> None:
         cls = load(value)
         assert issubclass(cls, Input) and cls.name == name
         assert cls.feeds and set(cls.feeds) <= set(FEEDS)
-        assert all(isinstance(d, str) and d for _, d in cls.options.values())
+        assert all(o.doc for o in Options.of(cls.options).values())  # each option declared with its doc
         assert extras[name] in extras_defined or not extras[name]  # moos, ros (Debian's rospy): no extra
 
 
@@ -65,7 +66,7 @@ def test_unknown_and_missing_options_are_named() -> None:
         DirectoryInput({}, InputContext())
     with pytest.raises(ConfigError, match="unknown option 'paht'"):
         DirectoryInput({"path": "x", "paht": "y"}, InputContext())
-    with pytest.raises(ConfigError, match="'settle' must be at least 0"):
+    with pytest.raises(ConfigError, match="settle: -1 is below 0 s"):
         DirectoryInput({"path": "x", "settle": -1}, InputContext())
     assert check_options(DirectoryInput, {"path": "x", "existing": "yes"}) == [
         "existing: true or false, got 'yes'"]
@@ -327,7 +328,8 @@ def test_docs_give_every_option_and_valid_examples() -> None:
     namespace: dict[str, object] = {}
     exec(compile(code, "docs/inputs.md", "exec"), namespace)
     ctd = namespace["CtdInput"]
-    assert check_options(ctd, {"port": 70000}) == ["input 'myctd': option 'port' must be a UDP port, not 70000"]
+    assert check_options(ctd, {"port": 70000}) == ["port: 70000 is outside 1..65535"]
+    assert check_options(ctd, {"port": True}) == ["port: not an integer, got true"]
     import socket
 
     with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as probe:

@@ -54,10 +54,10 @@ def test_options() -> None:
     problems = check_options(MavlinkInput, {"connection": "udpin:0.0.0.0:1", "source_system": 0,
                                             "pressure_message": "SCALED_PRESSURE9", "water_density": 0})
     assert problems == [
-        "input 'mavlink': option 'source_system' must be an integer from 1 to 255, not 0",
-        "input 'mavlink': option 'pressure_message' must be one of 'SCALED_PRESSURE', "
-        "'SCALED_PRESSURE2', 'SCALED_PRESSURE3', '', not 'SCALED_PRESSURE9'",
-        "input 'mavlink': option 'water_density' must be greater than 0, not 0",
+        "source_system: 0 is outside 1..255",
+        "pressure_message: one of 'SCALED_PRESSURE', 'SCALED_PRESSURE2', 'SCALED_PRESSURE3', '', "
+        "got 'SCALED_PRESSURE9'",
+        "water_density: 0 is not above 0 kg/m^3",
     ]
     with pytest.raises(ConfigError, match="'dialect': no pymavlink dialect 'nodialect'"):
         MavlinkInput({"connection": "udpin:127.0.0.1:0", "dialect": "nodialect"}, InputContext()).open()

@@ -62,7 +62,7 @@ def test_options() -> None:
         "like \"VHW.5\" or \"IIVHW.5\"",
         "input 'nmea': option 'channels.VHW.5' must be a channel name",
     ]
-    with pytest.raises(ConfigError, match="input 'nmea': baud: not a finite number"):
+    with pytest.raises(ConfigError, match="input 'nmea': baud: not an integer, got 'fast'"):
         NmeaInput({"serial": "loop://", "baud": "fast"}, InputContext())
 
 

@@ -71,7 +71,7 @@ def test_options_are_checked() -> None:
         MoosAutonomy({"activate": "COEX_SURVEY"}, ctx)
     with pytest.raises(ConfigError, match="unknown option 'updates'"):
         MoosAutonomy({"updates": "X"}, ctx)
-    with pytest.raises(ConfigError, match="option 'silence' must be at least 0"):
+    with pytest.raises(ConfigError, match="silence: -2 is below 0 s"):
         MoosAutonomy({"silence": -2}, ctx)
 
 

@@ -229,7 +229,10 @@ def test_the_usbl_input_reads_udp_counts_bad_lines_and_checks_its_options() -> N
         assert inp.counts["bad_checksum"] == 2 and inp.counts["skipped"] == 2
     finally:
         inp.close()
-    problems = UsblInput.check({"udp": "nohost", "gga": "boat", "utm_zone": "99X"}).items
+    from coex import adapter_check
+
+    # its own check (udp, utm_zone) and its declared options (gga: "vehicle" or "ship")
+    problems = adapter_check(UsblInput, {"udp": "nohost", "gga": "boat", "utm_zone": "99X"}).items
     assert any("udp" in p for p in problems) and any("gga" in p for p in problems)
     assert any("utm_zone" in p for p in problems)
     assert UsblInput.check({}).items  # serial or udp needed

@@ -292,3 +292,60 @@ def test_a_uri_query_is_read_by_the_declared_options() -> None:
             parse_query(q, {"rate": float})
     with pytest.raises(ConfigError, match="option n: 0 is below 1"):
         parse_query("n=0", {"n": integer(1, lo=1)})
+
+
+# ------------------------------------------------------------------ an adapter's declared ranges
+def _outside(option: Option) -> Any:
+    """A number of the option's kind that its declaration refuses for its range or choices."""
+    if option.choices:
+        return max(option.choices) + 1
+    if option.hi is not None:
+        return option.hi + 1 if option.kind == "integer" else option.hi + 0.5
+    assert option.lo is not None
+    return option.lo - 1 if option.kind == "integer" else option.lo - 0.5
+
+
+ADAPTER_RANGES = [(kind, name, key) for (kind, name), cls in ADAPTERS.items()
+                  for key, o in Options.of(cls.options).items()
+                  if o.numeric and (o.lo is not None or o.hi is not None or o.choices)]
+
+
+def test_the_built_in_adapters_declare_their_ranges() -> None:
+    """Issue 53: the built-in inputs' and autonomy outputs' ranges are declared, not checked in
+    their own ``check()`` (a sample of what must be there)."""
+    for kind, name, key in [("input", "nmea", "baud"), ("input", "nmea", "variation"),
+                            ("input", "mavlink", "source_system"), ("input", "directory", "settle"),
+                            ("input", "ros", "queue"), ("input", "rosbag", "speed"),
+                            ("input", "moos", "time_warp"), ("autonomy", "mavlink", "timeout"),
+                            ("autonomy", "mavlink", "frame"), ("autonomy", "lcm", "retries"),
+                            ("autonomy", "ros", "silence"), ("autonomy", "moos", "timeout"),
+                            ("autonomy", "sim", "speed")]:
+        if (kind, name) in ADAPTERS:
+            assert (kind, name, key) in ADAPTER_RANGES, (kind, name, key)
+
+
+@pytest.mark.parametrize(("kind", "name", "key"), ADAPTER_RANGES, ids=["-".join(x) for x in ADAPTER_RANGES])
+def test_an_adapter_value_out_of_its_declared_range_is_refused_once_by_the_declaration(
+        kind: str, name: str, key: str) -> None:
+    """Out of range: one problem, the declaration's (``baud: 0 is outside 1..10000000 baud``);
+    the adapter's own ``check()`` says nothing of it (no second copy of the range)."""
+    cls: type[Adapter] = ADAPTERS[(kind, name)]
+    declared = Options.of(cls.options)
+    required = {k: "x" for k, o in declared.items() if o.required}
+    value = _outside(declared[key])
+    p = adapter_check(cls, {**required, key: value})
+    assert [q.text for q in p if q.key == key] == [f"{key}: {declared[key].problem(value)}"], p.items
+    own = cls.check({**required, key: value})
+    own_keys = own.keys() if isinstance(own, Problems) else []
+    assert key not in own_keys, own
+
+
+def test_config_check_names_an_adapters_range_problem_by_its_full_key() -> None:
+    raw = _node("vehicle", {"timeseries": {}, "survey": {}},
+                inputs=[{"type": "nmea", "feeds": ["timeseries"], "udp": "0.0.0.0:10110", "baud": 0,
+                         "variation": math.inf}],
+                autonomy={"type": "sim", "speed": 0})
+    p = _problems(raw)
+    assert p.items == ["inputs[0].baud: 0 is outside 1..10000000 baud",
+                       "inputs[0].variation: not a finite number, got inf",
+                       "autonomy.speed: 0 is not above 0 m/s"], p.items

@@ -133,7 +133,7 @@ def test_the_ros_adapters_check_their_options_without_ros() -> None:
         RosInput({"series": [{"topic": "/ctd", "channels": {"t": "temp["}}]}, ctx)
     with pytest.raises(ConfigError, match=r"'series\[0\].scale.s' scales nothing"):
         RosInput({"series": [{"topic": "/ctd", "channels": {"t": "temperature"}, "scale": {"s": 2}}]}, ctx)
-    with pytest.raises(ConfigError, match="option 'queue' must be an integer"):
+    with pytest.raises(ConfigError, match=r"queue: 0 is outside 1\.\.10000"):
         RosInput({"nav_topic": "/odom", "queue": 0}, ctx)
     RosInput({"series": [{"topic": "/ctd", "channels": {"t": "temperature"}}]}, ctx)  # builds, opens nothing
     RosInput({"altitude_topic": "/altimeter"}, ctx)  # an altimeter alone is enough

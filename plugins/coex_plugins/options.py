@@ -15,7 +15,7 @@ from typing import Any
 
 from coex import PluginLoadError, Problems
 from coex.moos import MAX_TIME_WARP
-from coex.options import number
+from coex.options import Option, number
 
 __all__ = [
     "LogOnce",
@@ -23,11 +23,11 @@ __all__ = [
     "serial_device",
     "check_lcm_url",
     "check_mavlink_connection",
-    "check_time_warp",
     "compass_from_enu_yaw",
     "compile_path",
     "finite",
     "need",
+    "time_warp",
     "yaw_of_quaternion",
 ]
 
@@ -123,15 +123,10 @@ def check_lcm_url(p: Problems, who: str, options: Mapping[str, Any], key: str = 
         p.said(key, f"{who}: option {key!r}: {exc}")
 
 
-def check_time_warp(p: Problems, who: str, options: Mapping[str, Any], key: str = "time_warp") -> None:
-    """A problem if ``key`` (a MOOS community's ``MOOSTimeWarp``) is given and is not a number
-    above 0 and at most MOOS's ``MAX_TIME_WARP`` (400)."""
-    if key not in options:
-        return
-    v = options[key]
-    if number(above=0, hi=MAX_TIME_WARP).problem(v) is not None:
-        p.said(key, f"{who}: option {key!r} must be a number above 0 and at most {MAX_TIME_WARP:g} (the "
-                    f"mission's MOOSTimeWarp), not {v!r}")
+def time_warp(doc: str) -> Option:
+    """The declared option of a MOOS community's ``MOOSTimeWarp``: a number above 0 and at most
+    MOOS's ``MAX_TIME_WARP`` (400), default 1."""
+    return number(1.0, doc, above=0, hi=MAX_TIME_WARP)
 
 
 # --------------------------------------------------------------------------- values

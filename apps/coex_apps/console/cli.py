@@ -526,126 +526,173 @@ def topside_app(cfg: DeployConfig, host: str = "127.0.0.1", port: int = 8080, *,
     ``missing``: modalities already left out, shown in the console's log."""
     access, tls = console_access(host, operators, insecure_open, tls_cert, tls_key, session_hours,
                                  idle_minutes)
-    from coex import ResilientTransport
-    from coex_apps.vehicle.build import build_node
+    from .server import serve
 
-    from .fleet import FleetHub, fleet_hub
-    from .node import NodeCommands
-    from .server import ConsoleHub, serve
-    from .state import MAX_IMAGES, ConsoleState
-
-    node_id, vehicle_id, store = cfg.node_id, cfg.peer, cfg.store
-    schedule = cfg.schedule()
     links: dict[int, Any] = {}
-    nstore: Any = None
+    build = _TopsideBuild(cfg, links, clock, stream_names, missing)
     try:
-        if transports is not None:
-            links.update(transports)  # closed with the rest on an error
-            if sorted(transports) != cfg.link_ids():
-                raise ConfigError(f"transports for links {sorted(transports)}, expected "
-                                  f"{cfg.link_ids()} (one per URI)")
-        for lid, m in zip(cfg.link_ids() if transports is None else (), cfg.modems, strict=False):
-            # a modem that goes away (or is not there yet) is reopened while the console runs on
-            links[lid] = ResilientTransport(m.uri, name=f"link {lid}", required=m.required)
-        left_out = list(missing)
-        for text in left_out:
-            log.warning("%s", text)
-
-        def fresh() -> Any:
-            built: list[str] = []
-            node = build_node(cfg, "topside", links, missing=built)
-            for text in built:
-                log.warning("%s", text)
-            left_out.extend(built)
-            return node
-
-        hubs: list[Any] = []
-
-        def new_state(node: Any, vehicle: int) -> Any:
-            names = {s.id: s.config.name for s in node.manager.streams}
-            names.update(stream_names or {})
-            state = ConsoleState(node_id=node_id, vehicle_id=vehicle, stream_names=names,
-                                 receivers=dict(node.receivers()))
-            for lid in links:
-                state.set_schedule(lid, schedule)
-            return state
-
-        def vehicle_hub(node: Any, state: Any) -> Any:
-            # the node's receivers are what the console shows (the saved console holds the
-            # same objects as the restored node: they were saved in one document)
-            state.receivers = dict(node.receivers())
-            state.own_receivers = False
-            from coex_plugins.imagery.receiver import ImageryReceiver
-
-            images = state.receivers.get("imagery")
-            if isinstance(images, ImageryReceiver):  # the console keeps what the receiver keeps
-                state.max_images = min(MAX_IMAGES, images.max_images)
-            hub = ConsoleHub(state, NodeCommands(node, clock), clock)
-            from coex_plugins.bathymetry import BathymetryReceiver
-
-            rx = state.receivers.get("bathymetry")
-            if isinstance(rx, BathymetryReceiver):
-                hub.actions.map_receiver = state.region_source = rx
-            return hub
-
-        def wire(node: Any, extra: Any) -> None:
-            """The console around ``node``: a fresh one, or the one saved with it (a fleet:
-            one console state per vehicle, each with that vehicle's receivers)."""
-            if cfg.fleet:
-                saved = extra.get("states") if isinstance(extra, dict) else None
-                states = {v.id: saved.get(str(v.id)) for v in cfg.vehicles} if isinstance(saved, dict) else {}
-                hubs.append(fleet_hub(node, {v.id: v.name for v in cfg.vehicles}, clock, states=states,
-                                      stream_names=stream_names, schedule=schedule))
-                return
-            if isinstance(extra, dict) and isinstance(extra.get("state"), ConsoleState):
-                state = extra["state"]
-            else:
-                state = new_state(node, vehicle_id)
-            hubs.append(vehicle_hub(node, state))
-
-        if store is None:
-            node = fresh()
-            wire(node, None)
-        else:
-            from coex import NodeStore
-
-            nstore = NodeStore(store, snapshot_interval=cfg.snapshot_interval)
-            resumed = nstore.has_state()
-            node = nstore.restore(fresh, log=None, clock=None, before_replay=wire)
-            if sorted(node.manager.links) != sorted(links):
-                raise ConfigError(
-                    f"{store} holds a node with links {sorted(node.manager.links)}, this run has "
-                    f"{sorted(links)}: give the same transports, or another --store")
-            if node.node_id != node_id:
-                raise ConfigError(f"{store} holds topside node {node.node_id}, not {node_id}")
-            if resumed:
-                log.info("resumed from %s (%d journal rows replayed)", store,
-                         nstore.stats["replayed"])
-        node.set_log(lambda text: log.info("%s", text))
-        hub = hubs[-1]
-        states = list(hub.states().values()) if isinstance(hub, FleetHub) else [hub.state]
-        for state in states:
-            for text in left_out:
-                state._log(0.0, text, "warn")
-        if nstore is not None:
-            if nstore.restored_extra is not None or nstore.stats["replayed"]:
-                for state in states:
-                    state._log(clock(), f"resumed from {store}: {nstore.stats['replayed']} "
-                                        "journaled frames replayed")
-            if isinstance(hub, FleetHub):
-                fleet = hub
-                nstore.extra = lambda: {"states": {str(v): st for v, st in fleet.states().items()}}
-            else:
-                nstore.extra = lambda: {"state": hub.state}
+        _open_links(cfg, transports, links)
+        node = build.restored()
+        hub = build.hubs[-1]
+        _announce(hub, build.left_out, build.nstore, cfg.store, clock)
         server = serve(hub, host, port, access=access, tls=tls, allowed_hosts=list(allowed_hosts),
                        trusted_proxies=list(trusted_proxies), public_origins=list(public_origins))
     except BaseException:
         for tr in links.values():
             tr.close()
-        if nstore is not None:
-            nstore.close()
+        if build.nstore is not None:
+            build.nstore.close()
         raise
-    app = TopsideApp(node, links, hub, server, clock, store=nstore)
+    app = TopsideApp(node, links, hub, server, clock, store=build.nstore)
+    _attach_feeds(app, cfg, node, hub, clock)
+    return app
+
+
+def _open_links(cfg: DeployConfig, transports: Mapping[int, Any] | None, links: dict[int, Any]) -> None:
+    """Topside's links into ``links``: the ``transports`` given (one per modem), else one
+    :class:`~coex.ResilientTransport` per modem (a modem that goes away, or is not there yet, is
+    reopened while the console runs on)."""
+    from coex import ResilientTransport
+
+    if transports is not None:
+        links.update(transports)  # closed with the rest on an error
+        if sorted(transports) != cfg.link_ids():
+            raise ConfigError(f"transports for links {sorted(transports)}, expected "
+                              f"{cfg.link_ids()} (one per URI)")
+        return
+    for lid, m in zip(cfg.link_ids(), cfg.modems, strict=False):
+        links[lid] = ResilientTransport(m.uri, name=f"link {lid}", required=m.required)
+
+
+class _TopsideBuild:
+    """Topside's node (``build_node``) and its console hub, fresh or restored from the store
+    with the console saved with it (:meth:`restored`)."""
+
+    def __init__(self, cfg: DeployConfig, links: dict[int, Any], clock: Callable[[], float],
+                 stream_names: Mapping[int, str] | None, missing: Sequence[str]) -> None:
+        self.cfg, self.links, self.clock, self.stream_names = cfg, links, clock, stream_names
+        self.schedule = cfg.schedule()
+        #: modalities left out (said in the log and in each console)
+        self.left_out = list(missing)
+        self.hubs: list[Any] = []
+        self.nstore: Any = None
+
+    def fresh(self) -> Any:
+        from coex_apps.vehicle.build import build_node
+
+        built: list[str] = []
+        node = build_node(self.cfg, "topside", self.links, missing=built)
+        for text in built:
+            log.warning("%s", text)
+        self.left_out.extend(built)
+        return node
+
+    def new_state(self, node: Any, vehicle: int) -> Any:
+        from .state import ConsoleState
+
+        names = {s.id: s.config.name for s in node.manager.streams}
+        names.update(self.stream_names or {})
+        state = ConsoleState(node_id=self.cfg.node_id, vehicle_id=vehicle, stream_names=names,
+                             receivers=dict(node.receivers()))
+        for lid in self.links:
+            state.set_schedule(lid, self.schedule)
+        return state
+
+    def vehicle_hub(self, node: Any, state: Any) -> Any:
+        """The console of one vehicle around ``node``: the node's receivers are what it shows
+        (the saved console holds the same objects as the restored node: they were saved in one
+        document)."""
+        from .node import NodeCommands
+        from .server import ConsoleHub
+        from .state import MAX_IMAGES
+
+        state.receivers = dict(node.receivers())
+        state.own_receivers = False
+        from coex_plugins.imagery.receiver import ImageryReceiver
+
+        images = state.receivers.get("imagery")
+        if isinstance(images, ImageryReceiver):  # the console keeps what the receiver keeps
+            state.max_images = min(MAX_IMAGES, images.max_images)
+        hub = ConsoleHub(state, NodeCommands(node, self.clock), self.clock)
+        from coex_plugins.bathymetry import BathymetryReceiver
+
+        rx = state.receivers.get("bathymetry")
+        if isinstance(rx, BathymetryReceiver):
+            hub.actions.map_receiver = state.region_source = rx
+        return hub
+
+    def wire(self, node: Any, extra: Any) -> None:
+        """The console around ``node``: a fresh one, or the one saved with it (a fleet:
+        one console state per vehicle, each with that vehicle's receivers)."""
+        from .fleet import fleet_hub
+        from .state import ConsoleState
+
+        cfg = self.cfg
+        if cfg.fleet:
+            saved = extra.get("states") if isinstance(extra, dict) else None
+            states = {v.id: saved.get(str(v.id)) for v in cfg.vehicles} if isinstance(saved, dict) else {}
+            self.hubs.append(fleet_hub(node, {v.id: v.name for v in cfg.vehicles}, self.clock, states=states,
+                                       stream_names=self.stream_names, schedule=self.schedule))
+            return
+        if isinstance(extra, dict) and isinstance(extra.get("state"), ConsoleState):
+            state = extra["state"]
+        else:
+            state = self.new_state(node, cfg.peer)
+        self.hubs.append(self.vehicle_hub(node, state))
+
+    def restored(self) -> Any:
+        """The node with its console: fresh without a store, else restored from it (its journal
+        replayed) and checked against this run's links and node id."""
+        for text in self.left_out:
+            log.warning("%s", text)
+        store = self.cfg.store
+        if store is None:
+            node = self.fresh()
+            self.wire(node, None)
+        else:
+            from coex import NodeStore
+
+            self.nstore = nstore = NodeStore(store, snapshot_interval=self.cfg.snapshot_interval)
+            resumed = nstore.has_state()
+            node = nstore.restore(self.fresh, log=None, clock=None, before_replay=self.wire)
+            if sorted(node.manager.links) != sorted(self.links):
+                raise ConfigError(
+                    f"{store} holds a node with links {sorted(node.manager.links)}, this run has "
+                    f"{sorted(self.links)}: give the same transports, or another --store")
+            if node.node_id != self.cfg.node_id:
+                raise ConfigError(f"{store} holds topside node {node.node_id}, not {self.cfg.node_id}")
+            if resumed:
+                log.info("resumed from %s (%d journal rows replayed)", store,
+                         nstore.stats["replayed"])
+        node.set_log(lambda text: log.info("%s", text))
+        return node
+
+
+def _announce(hub: Any, left_out: list[str], nstore: Any, store: Path | None, clock: Callable[[], float]) -> None:
+    """What each console says first (the modalities left out, a resumed store) and what the store
+    saves with the node (the console states)."""
+    from .fleet import FleetHub
+
+    states = list(hub.states().values()) if isinstance(hub, FleetHub) else [hub.state]
+    for state in states:
+        for text in left_out:
+            state._log(0.0, text, "warn")
+    if nstore is None:
+        return
+    if nstore.restored_extra is not None or nstore.stats["replayed"]:
+        for state in states:
+            state._log(clock(), f"resumed from {store}: {nstore.stats['replayed']} "
+                                "journaled frames replayed")
+    if isinstance(hub, FleetHub):
+        fleet = hub
+        nstore.extra = lambda: {"states": {str(v): st for v, st in fleet.states().items()}}
+    else:
+        nstore.extra = lambda: {"state": hub.state}
+
+
+def _attach_feeds(app: TopsideApp, cfg: DeployConfig, node: Any, hub: Any, clock: Callable[[], float]) -> None:
+    """The running topside's feeds: the ship's USBL (``cfg.usbl``), the watch on silent
+    vehicles and the products on ROS (``cfg.ros``); on an error the app is closed."""
     if cfg.usbl is not None:
         from .usbl import UsblFeed
 
@@ -666,7 +713,6 @@ def topside_app(cfg: DeployConfig, host: str = "127.0.0.1", port: int = 8080, *,
         except BaseException:
             app.close()
             raise
-    return app
 
 
 def topside_from_config(path: str, clock: Callable[[], float] = time.time, *,

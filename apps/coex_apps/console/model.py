@@ -84,7 +84,13 @@ class ConsoleModel:
         self.now: float = 0.0
         self.stream_names: dict[int, str] = dict(stream_names or {})
         self.versions: dict[str, int] = dict.fromkeys(SECTIONS, 0)
-        # vehicle
+        self._init_vehicle(max_track, receivers)
+        self._init_map(auto_targets)
+        self._init_products()
+        self._init_link_and_log(max_log)
+
+    def _init_vehicle(self, max_track: int, receivers: Mapping[str, ModalityReceiver] | None) -> None:
+        """The vehicle's state: its status, the end of contact, its track, the receivers shown."""
         self.status: m.VehicleStatus | None = None
         self.status_t: float | None = None
         #: why contact ended for good (the dive is over, the link closed), or None
@@ -97,7 +103,9 @@ class ConsoleModel:
         #: messages: a log replay, a test)
         self.receivers: dict[str, ModalityReceiver] = dict(receivers or {})
         self.own_receivers: bool = receivers is None
-        # map (the bathymetry receiver's levels)
+
+    def _init_map(self, auto_targets: bool) -> None:
+        """The map: the levels' drawn summaries, candidate targets, detections, regions asked."""
         #: per level: its drawn summary (:data:`MapSummary`)
         self._map_summary: dict[int, MapSummary] = {}
         #: per level: (version, its picture as a PNG)
@@ -127,6 +135,9 @@ class ConsoleModel:
             bathymetry if isinstance(bathymetry, BathymetryReceiver) else None)
         #: the depth range of the colour scale (lowest, highest), None before any level
         self._zrange: tuple[float, float] | None = None
+
+    def _init_products(self) -> None:
+        """Surveys, images and crops, time series and other modalities' products."""
         # surveys: the survey receiver's records (what it asked and what the vehicle answered);
         # products of a survey receiver the console does not hold (rare) are kept here
         self.survey_products: dict[int, SurveyProduct] = {}
@@ -151,6 +162,9 @@ class ConsoleModel:
         self.series_requests: list[dict[str, Any]] = []
         # other modalities: name -> product key -> what the generic panel shows
         self.other: dict[str, dict[str, dict[str, Any]]] = {}
+
+    def _init_link_and_log(self, max_log: int) -> None:
+        """The links and their schedules, the queues, the commands and the event log."""
         # link
         self.links: dict[int, dict[str, Any]] = {}
         self.schedules: dict[int, dict[str, Any]] = {}

@@ -26,11 +26,9 @@ TOPSIDE, VEHICLE = 1, 2
 CAMERA = 3
 EPOCH = 1_656_633_600.0  # 2022-07-01T00:00:00Z: the dive's clock (simulated)
 HOLD_ALTITUDE = 50.0
+#: the vehicle modem's statistics for the console (the demo's own stream; the modalities' streams
+#: are the deployment's, ``coex_apps.vehicle.config.STREAM_DEFAULTS``)
 LINK_STREAM = 6
-#: the survey modality's stream (the vehicle's answers to survey commands)
-SURVEY_STREAM = 7
-#: the detections modality's stream (what the vehicle's detectors found: a few bytes each, first)
-DETECTIONS_STREAM = 8
 #: the lowest altitude (m) the vehicle's geofence lets a survey ask for
 MIN_ALTITUDE = 2.0
 #: the demo's quality marks (``layer_psnr``, dB): the imagery default (25, 30, 35, 40) with a

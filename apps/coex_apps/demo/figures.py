@@ -260,11 +260,8 @@ def map_figure(
     ``label``, ``candidates`` the same plus ``visited``, ``detections`` (the vehicle's
     suggestions) the same. Anything outside the grid is clipped.
     """
-    from matplotlib.cm import ScalarMappable
-    from matplotlib.colors import Normalize
     from matplotlib.lines import Line2D
     from matplotlib.patches import Patch, Rectangle
-    from mpl_toolkits.axes_grid1.anchored_artists import AnchoredSizeBar
 
     z = np.asarray(grid, np.float64)
     if z.ndim != 2 or z.size == 0:
@@ -296,22 +293,47 @@ def map_figure(
     for side in ("top", "right"):
         ax.spines[side].set_visible(True)
 
-    # --- the track, broken where positions are missing
-    handles: list[Any] = []
-    tr = np.asarray(track if isinstance(track, np.ndarray) else list(track), np.float64)
-    if tr.ndim == 2 and tr.shape[0] > 1 and tr.shape[1] >= 2:
-        tr = tr[:, :2]
-        if tr.shape[0] > 6000:  # keep the page light: thin a very long track
-            idx = np.unique(np.r_[np.arange(0, tr.shape[0], math.ceil(tr.shape[0] / 6000)), tr.shape[0] - 1])
-            tr = tr[idx]
-        (line,) = ax.plot(tr[:, 0], tr[:, 1], color=_TRACK, lw=1.0, zorder=3, label="vehicle track",
-                          path_effects=_halo(2.6, "#fff", 0.55))
-        handles.append(line)
+    handles: list[Any] = _draw_track(ax, track)
 
     # --- markers and their labels: candidates underneath (the largest rings), true targets on top
+    legend = _draw_markers(ax, (x0, x1, y0, y1), (("detection", detections), ("candidate", candidates),
+                                                  ("decoy", decoys), ("target", targets)))
+    order = ["true target", "decoy", "flagged candidate", "candidate, imaged", "vehicle's detection"]
+    handles += [legend[k] for k in order if k in legend]
+    if n_gap:
+        handles.append(Patch(facecolor="#f4f4f4", edgecolor="#c4c4c4", hatch="//", label="no data"))
+
+    _depth_bar(fig, ax, z[ok], lo, hi, below, above)
+    if handles:
+        ax.legend(handles=handles, loc="upper center", bbox_to_anchor=(0.5, -0.1), fontsize=9,
+                  ncol=min(4, len(handles)), borderaxespad=0.0, handletextpad=0.6, columnspacing=1.6,
+                  handler_map={Line2D: _legend_marker()})
+
+    _north_and_scale(ax, x0, x1, y0, y1)
+    return _svg(fig, title)
+
+
+def _draw_track(ax: Any, track: Iterable[Sequence[float]] | npt.NDArray[Any]) -> list[Any]:
+    """The vehicle's track (thinned when very long); its legend handle, if drawn."""
+    tr = np.asarray(track if isinstance(track, np.ndarray) else list(track), np.float64)
+    if not (tr.ndim == 2 and tr.shape[0] > 1 and tr.shape[1] >= 2):
+        return []
+    tr = tr[:, :2]
+    if tr.shape[0] > 6000:  # keep the page light: thin a very long track
+        idx = np.unique(np.r_[np.arange(0, tr.shape[0], math.ceil(tr.shape[0] / 6000)), tr.shape[0] - 1])
+        tr = tr[idx]
+    (line,) = ax.plot(tr[:, 0], tr[:, 1], color=_TRACK, lw=1.0, zorder=3, label="vehicle track",
+                      path_effects=_halo(2.6, "#fff", 0.55))
+    return [line]
+
+
+def _draw_markers(ax: Any, extent: tuple[float, float, float, float],
+                  groups: Iterable[tuple[str, Sequence[Mapping[str, Any]]]]) -> dict[str, Any]:
+    """Each group's markers (kind, items with ``x``, ``y``, ``label``, ``visited``) inside
+    ``extent`` (x0, x1, y0, y1), labelled on the side with room; the legend's artists by name."""
+    x0, x1, y0, y1 = extent
     legend: dict[str, Any] = {}
-    for kind, items in (("detection", detections), ("candidate", candidates), ("decoy", decoys),
-                        ("target", targets)):
+    for kind, items in groups:
         *_, colour, side, dy = _MARKERS[kind]
         for it in items:
             x, y = _f(it.get("x")), _f(it.get("y"))
@@ -330,25 +352,29 @@ def map_figure(
                         textcoords="offset points", ha="left" if right else "right", va="center",
                         fontsize=9.5, fontweight="bold", color=colour, zorder=6,
                         path_effects=_halo(3.2), annotation_clip=True)
-    order = ["true target", "decoy", "flagged candidate", "candidate, imaged", "vehicle's detection"]
-    handles += [legend[k] for k in order if k in legend]
-    if n_gap:
-        handles.append(Patch(facecolor="#f4f4f4", edgecolor="#c4c4c4", hatch="//", label="no data"))
+    return legend
 
-    # --- colour bar of depth (positive down), shallow at the top
+
+def _depth_bar(fig: Any, ax: Any, held: npt.NDArray[np.float64], lo: float, hi: float, below: bool,
+               above: bool) -> None:
+    """The colour bar of depth (positive down), shallow at the top, with the data's range
+    (``held``: the grid's finite elevations)."""
+    from matplotlib.cm import ScalarMappable
+    from matplotlib.colors import Normalize
+
     extend = {(True, True): "both", (True, False): "max", (False, True): "min"}.get((below, above), "neither")
     sm = ScalarMappable(norm=Normalize(-hi, -lo), cmap=depth_cmap().reversed())
     cbar = fig.colorbar(sm, ax=ax, fraction=0.035, pad=0.03, extend=extend, shrink=0.7, anchor=(0.0, 1.0))
     cbar.ax.invert_yaxis()
     cbar.ax.set_title("depth (m)", fontsize=9.5, fontweight="bold", loc="left", pad=10)
-    cbar.ax.set_xlabel(f"data: {-float(z[ok].max()):.1f} to {-float(z[ok].min()):.1f} m deep",
+    cbar.ax.set_xlabel(f"data: {-float(held.max()):.1f} to {-float(held.min()):.1f} m deep",
                        fontsize=8, color="#555", loc="left")
-    if handles:
-        ax.legend(handles=handles, loc="upper center", bbox_to_anchor=(0.5, -0.1), fontsize=9,
-                  ncol=min(4, len(handles)), borderaxespad=0.0, handletextpad=0.6, columnspacing=1.6,
-                  handler_map={Line2D: _legend_marker()})
 
-    # --- north arrow and scale bar
+
+def _north_and_scale(ax: Any, x0: float, x1: float, y0: float, y1: float) -> None:
+    """The north arrow (top left) and a scale bar of a round length (bottom right)."""
+    from mpl_toolkits.axes_grid1.anchored_artists import AnchoredSizeBar
+
     ax.annotate("N", xy=(0.05, 0.97), xytext=(0.05, 0.84), xycoords="axes fraction", ha="center",
                 va="top", fontsize=11, fontweight="bold", path_effects=_halo(3.0), zorder=7,
                 arrowprops={"facecolor": "#222", "edgecolor": "#fff", "width": 2.5, "headwidth": 10,
@@ -358,7 +384,6 @@ def map_figure(
     ax.add_artist(AnchoredSizeBar(ax.transData, sb_len, f"{sb_len:g} m", "lower right", pad=0.4,
                                   sep=3, frameon=True, size_vertical=0.012 * (y1 - y0),
                                   color="#222", fontproperties={"size": 8.5}))
-    return _svg(fig, title)
 
 
 def _legend_marker() -> Any:

@@ -204,75 +204,21 @@ def finish(out: Path, cfg: DemoConfig, world: World, operator: Operator, receive
             coverage: dict[int, list[tuple[float, float]]], visible_at: dict[int, float],
             decisions: list[Decision], wall: float, runners: dict[int, Runner],
             responses: dict[str, Any] | None = None) -> dict[str, Any]:
-    from .figures import line_chart, map_figure, timeline_chart
-    from .report import write_report
-
-    scn, floor = world.scenario, world.floor
-    bathy: BathymetryReceiver = receivers["bathymetry"]
-    names = {("target", i): f"target {i + 1}" for i in range(len(world.cars))}
-    names.update({("decoy", k): f"decoy {k + 1} ({o.kind})" for k, o in enumerate(world.rocks)})
-    ranked = operator.ranked()
-    rank_of = {id(c): r for r, c in enumerate(ranked, 1)}
+    """The dive judged against the truth: the map exports and figures, truth.json, the time
+    series, metrics.json, the report and decisions.csv in ``out``; returns the metrics."""
+    scn = world.scenario
+    names = _truth_names(world)
 
     def truth_near(x: float, y: float) -> str:
-        for key, objs in (("target", world.cars), ("decoy", world.rocks)):
-            for k, o in enumerate(objs):
-                if math.hypot(o.x - x, o.y - y) <= identify_radius(o):
-                    return names[(key, k)]
-        return "none"
+        return _truth_near(world, names, x, y)
 
-    candidates = [{"x": c.x, "y": c.y, "height": c.height, "cells": c.cells, "length": c.length, "width": c.width,
-                   "score": c.score, "detection": c.detection, "measured_topside": c.measured,
-                   "rank": rank_of.get(id(c)), "visited": world.visited(c.x, c.y),
-                   "survey_id": c.survey_id, "refused": c.refused, "verdict": c.verdict or None,
-                   "truth": truth_near(c.x, c.y)}
-                  for c in sorted(operator.candidates, key=lambda c: -c.score) if c.score >= MIN_SCORE]
+    candidates = _candidate_rows(operator, world, truth_near)
     det_rx = receivers.get("detections")
     det_rows = det_rx.rows() if det_rx is not None else []
-    map_svgs: list[str] = []
-    for level in range(0, 6):
-        try:
-            p = bathy.level_product(level)
-        except Exception:
-            continue
-        if p.data is None or not np.isfinite(np.asarray(p.data, float)).any():
-            continue
-        meta = dict(p.meta)
-        cell, x0, y0 = float(meta["cell_size"]), float(meta["x0"]), float(meta["y0"])
-        grid = np.asarray(p.data, float)
-        # the GeoTIFF at full resolution, streamed from the receiver's tiles; the PNG and the
-        # figures from its drawn level
-        write_level_geotiff(out / "map" / f"level_{level}.tif", bathy, level,
-                            origin_lat=float(meta.get("origin_lat", 0.0)),
-                            origin_lon=float(meta.get("origin_lon", 0.0)))
-        write_png(out / "map" / f"level_{level}.png", grid, cell=cell)
-        if level <= 3:
-            # the survey box (and a margin), not the whole quadtree
-            sub, sx0, sy0 = _crop(grid, cell, x0, y0, floor.x0 - 8, floor.y0 - 8, floor.x0 + floor.size + 8,
-                                  floor.y0 + floor.size + 8)
-            map_svgs.append(map_figure(
-                sub, cell=cell, x0=sx0, y0=sy0,
-                title=f"Level {level}: {cell:g} m cells, as received topside",
-                track=world.received_track,
-                targets=[{"x": t.x, "y": t.y, "label": f"target {i + 1}"} for i, t in enumerate(world.cars)],
-                decoys=[{"x": t.x, "y": t.y, "label": f"decoy {i + 1} ({t.kind})"} for i, t in enumerate(world.rocks)],
-                candidates=[{"x": c["x"], "y": c["y"], "label": f"#{c['rank']}", "visited": c["visited"]}
-                            for c in candidates if c["rank"] is not None] if level == 0 else [],
-                detections=[{"x": d["x"], "y": d["y"], "label": f"D{d['id']}"} for d in det_rows] if level == 0 else []))
-    # ground truth at 1 m
-    xs = np.arange(0.5, floor.size, 1.0) + floor.x0
-    ys = np.arange(0.5, floor.size, 1.0) + floor.y0
-    gx, gy = np.meshgrid(xs, ys)
-    write_geotiff(out / "truth.tif", floor.elevation(gx, gy), x0=floor.x0, y0=floor.y0, cell=1.0)  # row 0 = south
-    (out / "truth.json").write_text(json.dumps({
-        "seafloor": {"size_m": floor.size, "depth_m": floor.depth, "seed": floor.seed, "cell_m": 1.0},
-        "targets": [{"name": f"target {i + 1}", "kind": t.kind, **_obj(t)} for i, t in enumerate(world.cars)],
-        "decoys": [{"name": f"decoy {i + 1}", "kind": t.kind, **_obj(t)} for i, t in enumerate(world.rocks)],
-    }, indent=2))
-    # time series
+    map_svgs = _map_exports(out, receivers["bathymetry"], world, candidates, det_rows)
+    _write_truth(out, world)
     ts: TimeSeriesReceiver = receivers["timeseries"]
     ts.to_csv(out / "timeseries.csv")
-    # images
     img: ImageryReceiver = receivers["imagery"]
     metas = {int(p.meta["image_id"]): dict(p.meta) for p in img.products() if p.kind == "image"}
 
@@ -283,67 +229,10 @@ def finish(out: Path, cfg: DemoConfig, world: World, operator: Operator, receive
     per_target, false = _judge(world, operator, bytes_of, scn.cycle)
     link = _link_summary(out / "link.jsonl")
     detections, detection_cost = _detections(receivers, runners, truth_near)
-    targets: list[dict[str, Any]] = []  # the results JSON's rows
-    for i, t in enumerate(world.cars):
-        seen = visible_at.get(i)
-        conf = per_target[i]
-        first = min((d for d in detections if d["truth"] == names[("target", i)]),
-                    key=lambda d: d["first_at_s"], default=None)
-        targets.append({"name": f"target {i + 1}", "kind": t.kind, "length": t.length, "x": t.x, "y": t.y,
-                        "heading": t.heading,
-                        "identifiable_at_1m_s": None if seen is None else round(seen - EPOCH, 1),
-                        "before_survey_end": seen is not None and seen <= world.survey_end,
-                        "first_detection": None if first is None else {
-                            "id": first["id"], "first_at_s": first["first_at_s"], "score": first["score"]},
-                        "confirmation": conf,
-                        # issue 43's decision time: from identifiable at 1 m topside to the
-                        # confirming image (negative: confirmed from a detection before the
-                        # received 1 m map showed it)
-                        "decision_time_s": None if seen is None or conf is None
-                        else round(conf["confirmed_at_s"] - (seen - EPOCH), 1),
-                        "detection_to_confirmation_s": None if first is None or conf is None
-                        else round(conf["confirmed_at_s"] - first["first_at_s"], 1),
-                        "why_not": None if conf is not None else _why_not(i, world, operator, seen)})
-    confirming = {c["image_id"]: t["name"] for t in targets if (c := t["confirmation"]) is not None}
-    requested = {i for c in operator.candidates for i in c.looked + ([c.image_id] if c.image_id is not None else [])}
-    images = [{"file": f"images/image_{i:04d}.png", "image_id": i, "time_s": round(float(m["time"]) - EPOCH, 1),
-               "x": m.get("x"), "y": m.get("y"), "bytes": int(m["bytes_used"]), "layers": int(m["layers_complete"]),
-               "confirms": confirming.get(i), "requested": i in requested}
-              for i, m in sorted(metas.items(), key=lambda kv: float(kv[1]["time"]))
-              if (out / "images" / f"image_{i:04d}.png").exists()]
-
+    targets = _target_rows(world, operator, names, per_target, detections, visible_at)
+    images = _image_rows(out, metas, targets, operator)
     regions = _regions(out, img, operator, metas)
-
-    all_identifiable = all(t["before_survey_end"] for t in targets)
-    all_confirmed = all(t["confirmation"] is not None for t in targets)
-    success = all_confirmed and not false
-    cycles = [t["confirmation"]["tdma_cycles"] for t in targets if t["confirmation"] is not None]
-    fast = success and all(c is not None and c <= 2.0 for c in cycles)
-    none_text = "no targets in this scenario" if not targets else ""
-    goals = {
-        "every target identifiable topside at 1 m before the survey ends": {
-            "met": all_identifiable,
-            "detail": "; ".join(
-                f"{t['name']} at ({t['x']:.0f}, {t['y']:.0f}): "
-                + (f"identifiable at {t['identifiable_at_1m_s']:.0f} s" if t["identifiable_at_1m_s"] is not None
-                   else "never identifiable") for t in targets) or none_text
-            + f"; survey ended at {world.survey_end - EPOCH:.0f} s",
-        },
-        "every target confirmed by a received image that shows it, and nothing else confirmed": {
-            "met": success,
-            "detail": "; ".join(
-                f"{t['name']}: " + (f"image {t['confirmation']['image_id']} at {t['confirmation']['confirmed_at_s']:.0f} s"
-                                    if t["confirmation"] else f"NOT confirmed ({t['why_not']})") for t in targets)
-            + (f"; {len(false)} false confirmation(s): " + "; ".join(
-                f"({f['x']:.0f}, {f['y']:.0f}) by image {f['image_id']}, which shows {f['shows']}" for f in false)
-               if false else "; no false confirmation"),
-        },
-        "each confirming image within two TDMA cycles of its request": {
-            "met": fast,
-            "detail": "; ".join(f"{t['name']}: {t['confirmation']['tdma_cycles']} cycles" if t["confirmation"]
-                                else f"{t['name']}: not confirmed" for t in targets) or none_text,
-        },
-    }
+    success, goals = _goals(targets, false, world)
     metrics: dict[str, Any] = {
         "scenario": scn.to_dict(),
         # the key itself never goes into the outputs
@@ -382,7 +271,184 @@ def finish(out: Path, cfg: DemoConfig, world: World, operator: Operator, receive
                        "vehicle": runners[VEHICLE].node.stats.get("bad_frames", 0)},
         "goals": goals,
     }
-    charts = [
+    charts = _charts(world, coverage, visible_at, link, decisions)
+    for k in ("capacity_series", "used_series", "delivered_series"):
+        link.pop(k, None)
+    _write_outputs(out, metrics, charts, map_svgs, images, decisions, regions)
+    return metrics
+
+
+def _truth_names(world: World) -> dict[tuple[str, int], str]:
+    """Each true object's name in the outputs: ``target 1``, ``decoy 2 (boulder)``."""
+    names = {("target", i): f"target {i + 1}" for i in range(len(world.cars))}
+    names.update({("decoy", k): f"decoy {k + 1} ({o.kind})" for k, o in enumerate(world.rocks)})
+    return names
+
+
+def _truth_near(world: World, names: dict[tuple[str, int], str], x: float, y: float) -> str:
+    """The true object at (x, y) (within its identification radius), or ``none``."""
+    for key, objs in (("target", world.cars), ("decoy", world.rocks)):
+        for k, o in enumerate(objs):
+            if math.hypot(o.x - x, o.y - y) <= identify_radius(o):
+                return names[(key, k)]
+    return "none"
+
+
+def _candidate_rows(operator: Operator, world: World, truth_near: Callable[[float, float], str],
+                    ) -> list[dict[str, Any]]:
+    """The operator's candidates worth a look (best first), each with its rank, whether the
+    camera flew over it and what is really there."""
+    ranked = operator.ranked()
+    rank_of = {id(c): r for r, c in enumerate(ranked, 1)}
+    return [{"x": c.x, "y": c.y, "height": c.height, "cells": c.cells, "length": c.length, "width": c.width,
+             "score": c.score, "detection": c.detection, "measured_topside": c.measured,
+             "rank": rank_of.get(id(c)), "visited": world.visited(c.x, c.y),
+             "survey_id": c.survey_id, "refused": c.refused, "verdict": c.verdict or None,
+             "truth": truth_near(c.x, c.y)}
+            for c in sorted(operator.candidates, key=lambda c: -c.score) if c.score >= MIN_SCORE]
+
+
+def _map_exports(out: Path, bathy: BathymetryReceiver, world: World, candidates: list[dict[str, Any]],
+                 det_rows: list[dict[str, Any]]) -> list[str]:
+    """Each received map level as a GeoTIFF (full resolution) and a PNG in ``out/map``; the
+    figures of levels 0 to 3 over the survey box (level 0 with the candidates and detections)."""
+    from .figures import map_figure
+
+    floor = world.floor
+    map_svgs: list[str] = []
+    for level in range(0, 6):
+        try:
+            p = bathy.level_product(level)
+        except Exception:
+            continue
+        if p.data is None or not np.isfinite(np.asarray(p.data, float)).any():
+            continue
+        meta = dict(p.meta)
+        cell, x0, y0 = float(meta["cell_size"]), float(meta["x0"]), float(meta["y0"])
+        grid = np.asarray(p.data, float)
+        # the GeoTIFF at full resolution, streamed from the receiver's tiles; the PNG and the
+        # figures from its drawn level
+        write_level_geotiff(out / "map" / f"level_{level}.tif", bathy, level,
+                            origin_lat=float(meta.get("origin_lat", 0.0)),
+                            origin_lon=float(meta.get("origin_lon", 0.0)))
+        write_png(out / "map" / f"level_{level}.png", grid, cell=cell)
+        if level <= 3:
+            # the survey box (and a margin), not the whole quadtree
+            sub, sx0, sy0 = _crop(grid, cell, x0, y0, floor.x0 - 8, floor.y0 - 8, floor.x0 + floor.size + 8,
+                                  floor.y0 + floor.size + 8)
+            map_svgs.append(map_figure(
+                sub, cell=cell, x0=sx0, y0=sy0,
+                title=f"Level {level}: {cell:g} m cells, as received topside",
+                track=world.received_track,
+                targets=[{"x": t.x, "y": t.y, "label": f"target {i + 1}"} for i, t in enumerate(world.cars)],
+                decoys=[{"x": t.x, "y": t.y, "label": f"decoy {i + 1} ({t.kind})"} for i, t in enumerate(world.rocks)],
+                candidates=[{"x": c["x"], "y": c["y"], "label": f"#{c['rank']}", "visited": c["visited"]}
+                            for c in candidates if c["rank"] is not None] if level == 0 else [],
+                detections=[{"x": d["x"], "y": d["y"], "label": f"D{d['id']}"} for d in det_rows] if level == 0 else []))
+    return map_svgs
+
+
+def _write_truth(out: Path, world: World) -> None:
+    """The ground truth: the seafloor at 1 m (truth.tif) and the objects (truth.json)."""
+    floor = world.floor
+    xs = np.arange(0.5, floor.size, 1.0) + floor.x0
+    ys = np.arange(0.5, floor.size, 1.0) + floor.y0
+    gx, gy = np.meshgrid(xs, ys)
+    write_geotiff(out / "truth.tif", floor.elevation(gx, gy), x0=floor.x0, y0=floor.y0, cell=1.0)  # row 0 = south
+    (out / "truth.json").write_text(json.dumps({
+        "seafloor": {"size_m": floor.size, "depth_m": floor.depth, "seed": floor.seed, "cell_m": 1.0},
+        "targets": [{"name": f"target {i + 1}", "kind": t.kind, **_obj(t)} for i, t in enumerate(world.cars)],
+        "decoys": [{"name": f"decoy {i + 1}", "kind": t.kind, **_obj(t)} for i, t in enumerate(world.rocks)],
+    }, indent=2))
+
+
+def _target_rows(world: World, operator: Operator, names: dict[tuple[str, int], str],
+                 per_target: list[dict[str, Any] | None], detections: list[dict[str, Any]],
+                 visible_at: dict[int, float]) -> list[dict[str, Any]]:
+    """One row per true target (the results JSON's): when it became identifiable topside, its
+    first detection, its confirmation and the decision times (or why it was not confirmed)."""
+    targets: list[dict[str, Any]] = []
+    for i, t in enumerate(world.cars):
+        seen = visible_at.get(i)
+        conf = per_target[i]
+        first = min((d for d in detections if d["truth"] == names[("target", i)]),
+                    key=lambda d: d["first_at_s"], default=None)
+        targets.append({"name": f"target {i + 1}", "kind": t.kind, "length": t.length, "x": t.x, "y": t.y,
+                        "heading": t.heading,
+                        "identifiable_at_1m_s": None if seen is None else round(seen - EPOCH, 1),
+                        "before_survey_end": seen is not None and seen <= world.survey_end,
+                        "first_detection": None if first is None else {
+                            "id": first["id"], "first_at_s": first["first_at_s"], "score": first["score"]},
+                        "confirmation": conf,
+                        # issue 43's decision time: from identifiable at 1 m topside to the
+                        # confirming image (negative: confirmed from a detection before the
+                        # received 1 m map showed it)
+                        "decision_time_s": None if seen is None or conf is None
+                        else round(conf["confirmed_at_s"] - (seen - EPOCH), 1),
+                        "detection_to_confirmation_s": None if first is None or conf is None
+                        else round(conf["confirmed_at_s"] - first["first_at_s"], 1),
+                        "why_not": None if conf is not None else _why_not(i, world, operator, seen)})
+    return targets
+
+
+def _image_rows(out: Path, metas: dict[int, dict[str, Any]], targets: list[dict[str, Any]],
+                operator: Operator) -> list[dict[str, Any]]:
+    """The received images written out (in time order): what each confirms, whether the
+    operator asked for it."""
+    confirming = {c["image_id"]: t["name"] for t in targets if (c := t["confirmation"]) is not None}
+    requested = {i for c in operator.candidates for i in c.looked + ([c.image_id] if c.image_id is not None else [])}
+    return [{"file": f"images/image_{i:04d}.png", "image_id": i, "time_s": round(float(m["time"]) - EPOCH, 1),
+             "x": m.get("x"), "y": m.get("y"), "bytes": int(m["bytes_used"]), "layers": int(m["layers_complete"]),
+             "confirms": confirming.get(i), "requested": i in requested}
+            for i, m in sorted(metas.items(), key=lambda kv: float(kv[1]["time"]))
+            if (out / "images" / f"image_{i:04d}.png").exists()]
+
+
+def _goals(targets: list[dict[str, Any]], false: list[dict[str, Any]], world: World,
+           ) -> tuple[bool, dict[str, Any]]:
+    """The dive's three goals, each met or not with its detail; and its success (every target
+    confirmed, nothing else)."""
+    all_identifiable = all(t["before_survey_end"] for t in targets)
+    all_confirmed = all(t["confirmation"] is not None for t in targets)
+    success = all_confirmed and not false
+    cycles = [t["confirmation"]["tdma_cycles"] for t in targets if t["confirmation"] is not None]
+    fast = success and all(c is not None and c <= 2.0 for c in cycles)
+    none_text = "no targets in this scenario" if not targets else ""
+    goals = {
+        "every target identifiable topside at 1 m before the survey ends": {
+            "met": all_identifiable,
+            "detail": "; ".join(
+                f"{t['name']} at ({t['x']:.0f}, {t['y']:.0f}): "
+                + (f"identifiable at {t['identifiable_at_1m_s']:.0f} s" if t["identifiable_at_1m_s"] is not None
+                   else "never identifiable") for t in targets) or none_text
+            + f"; survey ended at {world.survey_end - EPOCH:.0f} s",
+        },
+        "every target confirmed by a received image that shows it, and nothing else confirmed": {
+            "met": success,
+            "detail": "; ".join(
+                f"{t['name']}: " + (f"image {t['confirmation']['image_id']} at {t['confirmation']['confirmed_at_s']:.0f} s"
+                                    if t["confirmation"] else f"NOT confirmed ({t['why_not']})") for t in targets)
+            + (f"; {len(false)} false confirmation(s): " + "; ".join(
+                f"({f['x']:.0f}, {f['y']:.0f}) by image {f['image_id']}, which shows {f['shows']}" for f in false)
+               if false else "; no false confirmation"),
+        },
+        "each confirming image within two TDMA cycles of its request": {
+            "met": fast,
+            "detail": "; ".join(f"{t['name']}: {t['confirmation']['tdma_cycles']} cycles" if t["confirmation"]
+                                else f"{t['name']}: not confirmed" for t in targets) or none_text,
+        },
+    }
+    return success, goals
+
+
+def _charts(world: World, coverage: dict[int, list[tuple[float, float]]], visible_at: dict[int, float],
+            link: dict[str, Any], decisions: list[Decision]) -> list[str]:
+    """The report's charts: the map filling in, the link's use against its capacity, the
+    decisions on a timeline."""
+    from .figures import line_chart, timeline_chart
+
+    scn = world.scenario
+    return [
         line_chart({f"level {k} ({2**k} m)": v for k, v in sorted(coverage.items())},
                    title="Map filling in over time (fraction of the survey area held topside)",
                    xlabel="dive time (s)", ylabel="fraction",
@@ -394,8 +460,13 @@ def finish(out: Path, cfg: DemoConfig, world: World, operator: Operator, receive
                    xlabel="dive time (s)", ylabel="bytes"),
         timeline_chart([{"t": d.t, "kind": d.kind, "text": d.text} for d in decisions], t_end=scn.duration),
     ]
-    for k in ("capacity_series", "used_series", "delivered_series"):
-        link.pop(k, None)
+
+
+def _write_outputs(out: Path, metrics: dict[str, Any], charts: list[str], map_svgs: list[str],
+                   images: list[dict[str, Any]], decisions: list[Decision], regions: list[dict[str, Any]]) -> None:
+    """The report, metrics.json and decisions.csv."""
+    from .report import write_report
+
     write_report(out, metrics, charts=charts, maps=map_svgs, images=images,
                  decisions=[asdict(d) for d in decisions], regions=regions)
     (out / "metrics.json").write_text(json.dumps(metrics, indent=2))
@@ -404,7 +475,6 @@ def finish(out: Path, cfg: DemoConfig, world: World, operator: Operator, receive
         w.writerow(["dive_time_s", "who", "kind", "text"])
         for d in decisions:
             w.writerow([d.t, d.who, d.kind, d.text])
-    return metrics
 
 
 def _verdicts(operator: Operator, truth_near: Callable[[float, float], str], world: World) -> dict[str, Any]:

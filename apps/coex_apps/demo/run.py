@@ -30,11 +30,9 @@ from .config import (
     CAMERA,
     CAMERA_PERIOD,
     CAMERA_SPEED,
-    DETECTIONS_STREAM,
     EPOCH,
     HOLD_ALTITUDE,
     LINK_STREAM,
-    SURVEY_STREAM,
     TOPSIDE,
     VEHICLE,
     Decision,
@@ -83,7 +81,7 @@ class _Progress:
             sys.stderr.write("\n")
 
 
-def _start_gui(cfg: DemoConfig, topside: Node, log: Callable[..., None]) -> Any:
+def _start_gui(cfg: DemoConfig, topside: Node, vehicle: Node, log: Callable[..., None]) -> Any:
     from coex_apps.console import serve
     from coex_apps.console.cli import console_access
     from coex_apps.console.hub import ConsoleHub
@@ -93,8 +91,7 @@ def _start_gui(cfg: DemoConfig, topside: Node, log: Callable[..., None]) -> Any:
     # the same rule as coex topside: beyond loopback only with sign-in (or --insecure-open)
     access, _ = console_access(host, cfg.operators, cfg.insecure_open, None, None)
     server = serve(topside, host, int(port), access=access,
-                   stream_names={3: "map", 4: "images", 5: "series", LINK_STREAM: "link",
-                                 SURVEY_STREAM: "survey", DETECTIONS_STREAM: "detections"})
+                   stream_names={s.id: s.config.name for s in vehicle.manager.streams})  # the vehicle's queues
     hub = server.hub
     assert isinstance(hub, ConsoleHub)  # one node's console, not a fleet's
     act = hub.act
@@ -231,6 +228,7 @@ class DiveRun:
                                        range_loss=scn.loss.range_loss(), seed=cfg.seed)
         self.net = net = ModemNetwork({TOPSIDE: (scn.ship[0], scn.ship[1], 0.0), VEHICLE: (0.0, 0.0, 0.0)},
                                       channel=self.channel, clock=clock, ptys=True)
+        self.resources.callback(net.close)  # the pseudo-terminals (the nodes open their modems on it)
         self.series = ts_synth.dataset(duration=max(scn.duration, 1200.0), period=1.0, seed=cfg.seed,
                                        t0=EPOCH)
         self.fleet = None
@@ -239,26 +237,20 @@ class DiveRun:
             # docs/micromodem.md), each frame header names the vehicle it is for
             net.add_modem(CAMERA, (scn.area / 2, scn.area / 2, 0.0))
             self.fleet = fleet = build_fleet(out, [s.channel() for s in self.series], cfg.command_key, scn,
-                                             auto_fill=self.operator_mode != "script", geofence=cfg.geofence)
+                                             network=net, auto_fill=self.operator_mode != "script",
+                                             geofence=cfg.geofence)
             self.vehicle, self.topside, self.receivers = fleet.mapper, fleet.topside, fleet.receivers
             self.senders = {**fleet.mapper_senders, **fleet.camera_senders}  # the survey: the camera's
+            nodes, modems = {VEHICLE: fleet.mapper, TOPSIDE: fleet.topside, CAMERA: fleet.camera}, fleet.modems
         else:
-            self.vehicle, self.topside, self.senders, self.receivers = build_nodes(
-                out, [s.channel() for s in self.series], cfg.command_key, scn,
+            self.vehicle, self.topside, self.senders, self.receivers, modems = build_nodes(
+                out, [s.channel() for s in self.series], cfg.command_key, scn, network=net,
                 auto_fill=self.operator_mode != "script", geofence=cfg.geofence)
-        self.resources.callback(net.close)  # the pseudo-terminals
+            nodes = {VEHICLE: self.vehicle, TOPSIDE: self.topside}
         self.link_log = self.resources.enter_context((out / "link.jsonl").open("w"))
-        self.runners = {
-            VEHICLE: Runner(self.vehicle, {0: net.transport(VEHICLE, rate=scn.modem_rate, dest=TOPSIDE)},
-                            SimulatedClock(sim=clock), link_log=self.link_log),
-            TOPSIDE: Runner(self.topside, {0: net.transport(TOPSIDE, rate=scn.modem_rate,
-                                                             dest=0 if self.fleet else VEHICLE)},
-                            SimulatedClock(sim=clock), link_log=self.link_log),
-        }
-        if self.fleet is not None:
-            self.runners[CAMERA] = Runner(self.fleet.camera, {0: net.transport(CAMERA, rate=scn.modem_rate,
-                                                                                dest=TOPSIDE)},
-                                          SimulatedClock(sim=clock), link_log=self.link_log)
+        self.runners = {node_id: Runner(nodes[node_id], {0: modems[node_id]}, SimulatedClock(sim=clock),
+                                        link_log=self.link_log) for node_id in (VEHICLE, TOPSIDE, CAMERA)
+                        if node_id in nodes}
         self.vehicle_modem = self.runners[VEHICLE].transports[0]
         #: the dive's one loop: the modems, the timed events, the runners (then :meth:`_after_runners`; :meth:`_heard` at the end of each pass)
         self.loop = SimLoop(net, list(self.runners.values()))
@@ -420,7 +412,7 @@ class DiveRun:
 
     def _run(self) -> DemoResult:
         cfg, clock, net, end = self.cfg, self.clock, self.net, self.end
-        server = _start_gui(cfg, self.topside, self.log) if cfg.gui else None
+        server = _start_gui(cfg, self.topside, self.vehicle, self.log) if cfg.gui else None
         if server is not None:
             self.resources.callback(server.close)
         if server is not None and self.navsim.active:  # the console shows and applies topside's navigation

@@ -454,14 +454,9 @@ def scenario_from_dict(data: Mapping[str, Any], base: Scenario | None = None) ->
     p = Problems()
     _unknown(p, "", data, _TOP)
     kw: dict[str, Any] = {}
-    ints = {"random_targets", "random_decoys", "modem_rate"}
-
-    def put(attr: str, value: Any) -> None:
-        if value is not _NOT_GIVEN:
-            kw[attr] = value
     for key in ("area", "water_depth", "duration"):
         if key in data:
-            put(key, _number(p, key, data[key]))
+            _put(kw, key, _number(p, key, data[key]))
     if "name" in data:
         if not isinstance(data["name"], str) or not data["name"]:
             p.said("name", "name must be a non-empty string")
@@ -473,61 +468,91 @@ def scenario_from_dict(data: Mapping[str, Any], base: Scenario | None = None) ->
             continue
         _unknown(p, section, sec, keys)
         for k, attr in keys.items():
-            if k not in sec:
-                continue
-            if attr == "slots":
-                if not isinstance(sec[k], list) or not all(isinstance(s, str) for s in sec[k]):
-                    p.said("modem.slots", "modem.slots must be a list of 'topside' / 'vehicle' / 'camera'")
-                else:
-                    kw[attr] = tuple(sec[k])
-            elif attr == "aiding":
-                if not isinstance(sec[k], bool):
-                    p.said("navigation.aiding", "navigation.aiding must be true or false")
-                else:
-                    kw[attr] = sec[k]
-            elif attr in _KIND_LISTS:
-                if not isinstance(sec[k], list) or not all(isinstance(s, str) for s in sec[k]):
-                    p.said(f"{section}.{k}", f"{section}.{k} must be a list of kinds (strings)")
-                else:
-                    kw[attr] = tuple(sec[k])
-            elif attr == "target_length":
-                if not isinstance(sec[k], list) or len(sec[k]) != 2:
-                    p.said(f"{section}.{k}", f"{section}.{k} must be [min, max] (m)")
-                else:
-                    pair = [_number(p, f"{section}.{k}", v) for v in sec[k]]
-                    if _NOT_GIVEN not in pair:
-                        kw[attr] = (pair[0], pair[1])
-            else:
-                put(attr, _number(p, f"{section}.{k}", sec[k], int if attr in ints else float))
+            if k in sec:
+                _section_value(p, f"{section}.{k}", attr, sec[k], kw)
     for kind in ("targets", "decoys"):
-        if kind not in data:
-            continue
-        items = data[kind]
-        if not isinstance(items, list):
-            p.said(kind, f"[[{kind}]] must be an array of tables")
-            continue
-        objs = []
-        for i, item in enumerate(items):
-            if not isinstance(item, Mapping):
-                p.said(f"{kind}[{i}]", f"{kind}[{i}] must be a table")
-                continue
-            before = len(p)
-            _unknown(p, f"{kind}[{i}]", item, _OBJECT_KEYS)
-            if "x" not in item or "y" not in item:
-                p.said(f"{kind}[{i}]", f"{kind}[{i}] needs x and y")
-            values = {k: _number(p, f"{kind}[{i}].{k}", v) for k, v in item.items()
-                      if k in _OBJECT_KEYS and k != "kind"}
-            if "kind" in item:
-                allowed = TARGET_KINDS if kind == "targets" else DECOY_KINDS
-                if item["kind"] not in allowed:
-                    p.said(f"{kind}[{i}].kind", f"{kind}[{i}].kind must be one of {', '.join(allowed)}, "
-                                                f"got {item['kind']!r}")
-                else:
-                    values["kind"] = item["kind"]
-            if len(p) == before:
-                objs.append(listed_object(values, kind == "decoys"))
-        kw[kind] = tuple(objs)
+        if kind in data:
+            objs = _objects(p, kind, data[kind])
+            if objs is not None:
+                kw[kind] = objs
     base = base or Scenario()
+    _loss_and_ship(p, data, base, kw)
+    try:
+        scenario = replace(base, **kw)
+    except ConfigError as exc:  # the values' ranges: every one, with the problems above
+        p.merge(exc.problems or [Problem("", str(exc))])
+        raise p.error() from None
+    p.check()
+    return scenario
+
+
+#: scenario attributes that are integers
+_INTS = {"random_targets", "random_decoys", "modem_rate"}
+
+
+def _put(kw: dict[str, Any], attr: str, value: Any) -> None:
+    if value is not _NOT_GIVEN:
+        kw[attr] = value
+
+
+def _section_value(p: Problems, key: str, attr: str, value: Any, kw: dict[str, Any]) -> None:
+    """One key of a section (``modem.slots``, ``site.area`` ...) into the attribute ``attr``."""
+    if attr == "slots":
+        if not isinstance(value, list) or not all(isinstance(s, str) for s in value):
+            p.said("modem.slots", "modem.slots must be a list of 'topside' / 'vehicle' / 'camera'")
+        else:
+            kw[attr] = tuple(value)
+    elif attr == "aiding":
+        if not isinstance(value, bool):
+            p.said("navigation.aiding", "navigation.aiding must be true or false")
+        else:
+            kw[attr] = value
+    elif attr in _KIND_LISTS:
+        if not isinstance(value, list) or not all(isinstance(s, str) for s in value):
+            p.said(key, f"{key} must be a list of kinds (strings)")
+        else:
+            kw[attr] = tuple(value)
+    elif attr == "target_length":
+        if not isinstance(value, list) or len(value) != 2:
+            p.said(key, f"{key} must be [min, max] (m)")
+        else:
+            pair = [_number(p, key, v) for v in value]
+            if _NOT_GIVEN not in pair:
+                kw[attr] = (pair[0], pair[1])
+    else:
+        _put(kw, attr, _number(p, key, value, int if attr in _INTS else float))
+
+
+def _objects(p: Problems, kind: str, items: Any) -> tuple[ObjectSpec, ...] | None:
+    """``[[targets]]`` or ``[[decoys]]`` placed by hand (None: not a list)."""
+    if not isinstance(items, list):
+        p.said(kind, f"[[{kind}]] must be an array of tables")
+        return None
+    objs = []
+    for i, item in enumerate(items):
+        if not isinstance(item, Mapping):
+            p.said(f"{kind}[{i}]", f"{kind}[{i}] must be a table")
+            continue
+        before = len(p)
+        _unknown(p, f"{kind}[{i}]", item, _OBJECT_KEYS)
+        if "x" not in item or "y" not in item:
+            p.said(f"{kind}[{i}]", f"{kind}[{i}] needs x and y")
+        values = {k: _number(p, f"{kind}[{i}].{k}", v) for k, v in item.items()
+                  if k in _OBJECT_KEYS and k != "kind"}
+        if "kind" in item:
+            allowed = TARGET_KINDS if kind == "targets" else DECOY_KINDS
+            if item["kind"] not in allowed:
+                p.said(f"{kind}[{i}].kind", f"{kind}[{i}].kind must be one of {', '.join(allowed)}, "
+                                            f"got {item['kind']!r}")
+            else:
+                values["kind"] = item["kind"]
+        if len(p) == before:
+            objs.append(listed_object(values, kind == "decoys"))
+    return tuple(objs)
+
+
+def _loss_and_ship(p: Problems, data: Mapping[str, Any], base: Scenario, kw: dict[str, Any]) -> None:
+    """The ``[loss]`` table (on top of ``base``'s loss model) and the ship's position."""
     sec = _table(p, data, "loss")
     if sec is not None:
         _unknown(p, "loss", sec, _LOSS_KEYS)
@@ -539,13 +564,6 @@ def scenario_from_dict(data: Mapping[str, Any], base: Scenario | None = None) ->
         x, y = (_number(p, f"ship.{k}", sec.get(k, d)) for k, d in zip("xy", base.ship, strict=True))
         if x is not _NOT_GIVEN and y is not _NOT_GIVEN:
             kw["ship"] = (x, y)
-    try:
-        scenario = replace(base, **kw)
-    except ConfigError as exc:  # the values' ranges: every one, with the problems above
-        p.merge(exc.problems or [Problem("", str(exc))])
-        raise p.error() from None
-    p.check()
-    return scenario
 
 
 def load_scenario(path: str | Path) -> Scenario:

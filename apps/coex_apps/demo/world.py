@@ -11,29 +11,19 @@ from typing import Any
 
 import numpy as np
 
-from coex import ChannelManager, LinkConfig, Node, Schedule, StreamConfig, to_stamp
+from coex import Node, Schedule, StreamConfig, to_stamp
 from coex.messages import VehicleMode, VehicleStatus
-from coex_plugins.bathymetry import (
-    BathymetryModality,
-)
 from coex_plugins.bathymetry.sim import Seafloor
-from coex_plugins.detections import DetectionsModality
-from coex_plugins.imagery import ImageryModality
-from coex_plugins.survey import SurveyModality
-from coex_plugins.timeseries import TimeSeriesModality
 
 from .config import (
     CAMERA,
-    DEFAULT_LAYERS,
-    DETECTIONS_STREAM,
     EPOCH,
-    LAYER_PSNR,
     LINK_STREAM,
     MIN_ALTITUDE,
-    SURVEY_STREAM,
     TOPSIDE,
     VEHICLE,
 )
+from .deployment import build, node_mapping, receiver_modalities, sender_modalities
 from .operator import CONFIRM_LAYERS
 from .scenario import Scenario
 
@@ -130,59 +120,40 @@ def site_geofence(scn: Scenario) -> dict[str, Any]:
     return {"polygon": [[-m, -m], [a + m, -m], [a + m, a + m], [-m, a + m]], "min_altitude": MIN_ALTITUDE}
 
 
+def link_stream() -> StreamConfig:
+    """The vehicle modem's statistics (SNR, bad frames, Doppler) for the console: newest only.
+    The demo's own stream, beside the deployment's modalities (the daemon has none yet)."""
+    return StreamConfig(LINK_STREAM, "link", priority=40, newest_first=True, max_depth=1)
+
+
 def build_nodes(out: Path, channels: list[dict[str, Any]], command_key: bytes | None = None,
-                scenario: Scenario | None = None, *, auto_fill: bool = True,
+                scenario: Scenario | None = None, *, network: Any, auto_fill: bool = True,
                 geofence: dict[str, Any] | None = None,
-                ) -> tuple[Node, Node, dict[str, Any], dict[str, Any]]:
-    """The two nodes of the dive. ``auto_fill=False`` when the scripted operator asks for the
-    holes of the map itself (the receiver's own gap rounds over the whole map would compete with
-    it, and with image requests, for the uplink). ``geofence``: the vehicle's limits for survey
-    commands (default :func:`site_geofence`)."""
+                ) -> tuple[Node, Node, dict[str, Any], dict[str, Any], dict[int, Any]]:
+    """The two nodes of the dive, each built from its deployment configuration
+    (:mod:`~coex_apps.demo.deployment`) over its modem on ``network``: the vehicle, topside,
+    the vehicle's senders and topside's receivers by modality, and each node's modem by node
+    id. ``auto_fill=False`` when the scripted operator asks for the holes of the map itself
+    (the receiver's own gap rounds over the whole map would compete with it, and with image
+    requests, for the uplink). ``geofence``: the vehicle's limits for survey commands (default
+    :func:`site_geofence`)."""
     scn = scenario or Scenario()
-    sched = dive_schedule(scn)
-    cycle = scn.cycle
-    vehicle = Node(ChannelManager(VEHICLE, [LinkConfig(0, sched, rate=scn.modem_rate, dst=TOPSIDE,
-                                                       spare=scn.spare)],
-                                  queue_status_interval=cycle, command_key=command_key))
-    topside = Node(ChannelManager(TOPSIDE, [LinkConfig(0, sched, rate=scn.modem_rate, dst=VEHICLE)],
-                                  queue_status_interval=cycle, command_key=command_key))
-    senders = {
-        "bathymetry": BathymetryModality().sender({"send_delay": 20.0}),
-        "imagery": ImageryModality().sender({"layer_psnr": list(LAYER_PSNR), "default_goal": f"layer:{DEFAULT_LAYERS}",
-                                             "request_goal": f"layer:{CONFIRM_LAYERS}"}),
-        "timeseries": TimeSeriesModality().sender({"channels": channels}),
-        # survey commands: checked against the vehicle's geofence, then flown by its autonomy
-        "survey": SurveyModality().sender({"geofence": site_geofence(scn) if geofence is None else geofence}),
-        # the vehicle's own detector: relief anomalies of its full-resolution map, car-sized
-        # ones scoring highest (the dive looks for cars)
-        "detections": DetectionsModality().sender({"detectors": [{"type": "relief"}]}),
-    }
-    receivers = {
-        "bathymetry": BathymetryModality().receiver({"auto_fill": auto_fill}),
-        "imagery": ImageryModality().receiver({"out_dir": str(out / "images")}),
-        "timeseries": TimeSeriesModality().receiver(None),
-        "survey": SurveyModality().receiver(None),
-        "detections": DetectionsModality().receiver(None),
-    }
-    # NUI 2022 priorities: map subgrids 30, image fragments 30, time series a little less
-    vehicle.add_sender(BathymetryModality, senders["bathymetry"], StreamConfig(3, "map", priority=30))
-    # on a low link (docs/channel.md) the images stream carries only the answers to the
-    # operator's requests ahead of spare work: they go before the map's coarse coverage
-    vehicle.add_sender(ImageryModality, senders["imagery"], StreamConfig(4, "images", priority=30, low_priority=90))
-    vehicle.add_sender(TimeSeriesModality, senders["timeseries"], StreamConfig(5, "series", priority=20))
-    # the vehicle modem's statistics (SNR, bad frames, Doppler) for the console: newest only
-    vehicle.manager.add_stream(StreamConfig(LINK_STREAM, "link", priority=40, newest_first=True, max_depth=1))
-    # a survey's answers (accepted, rejected with its reason, started, completed): few bytes, first
-    vehicle.add_sender(SurveyModality, senders["survey"], StreamConfig(SURVEY_STREAM, "survey", priority=90))
-    # detections: suggestions of a few bytes each, ahead of every other science stream
-    vehicle.add_sender(DetectionsModality, senders["detections"],
-                       StreamConfig(DETECTIONS_STREAM, "detections", priority=100))
-    topside.add_receiver(BathymetryModality, receivers["bathymetry"])
-    topside.add_receiver(ImageryModality, receivers["imagery"])
-    topside.add_receiver(TimeSeriesModality, receivers["timeseries"])
-    topside.add_receiver(SurveyModality, receivers["survey"])
-    topside.add_receiver(DetectionsModality, receivers["detections"])
-    return vehicle, topside, senders, receivers
+    fence = site_geofence(scn) if geofence is None else geofence
+    names = ("bathymetry", "imagery", "timeseries", "survey", "detections")
+    vehicle, vmodem = build(node_mapping(scn, "vehicle", VEHICLE, TOPSIDE,
+                                         sender_modalities(names, channels, fence, CONFIRM_LAYERS),
+                                         spare=scn.spare), out, network, command_key)
+    vehicle.manager.add_stream(link_stream())
+    topside, tmodem = build(node_mapping(scn, "topside", TOPSIDE, VEHICLE, receiver_modalities(out, auto_fill)),
+                            out, network, command_key)
+    # The demo's topside has always reported its own queues once a TDMA cycle (coex topside does
+    # not: build_node gives a vehicle alone a queue status interval). Kept so that a dive's
+    # results stay those measured before (issue 50's evaluations); without it every dive differs
+    # (a few uplink bytes a cycle change what each packet carries: docs/demo.md, "The code").
+    topside.manager.queue_status_interval = scn.cycle
+    senders = {name: vehicle.sender(name) for name in names}
+    receivers = {name: topside.receiver(name) for name in names}
+    return vehicle, topside, senders, receivers, {VEHICLE: vmodem, TOPSIDE: tmodem}
 
 
 @dataclass
@@ -200,60 +171,47 @@ class Fleet:
     #: topside's receivers by modality: the map, detections and time series are the mapper's,
     #: the images and survey commands the camera vehicle's
     receivers: dict[str, Any]
+    #: each node's modem, by node id
+    modems: dict[int, Any]
 
 
 def build_fleet(out: Path, channels: list[dict[str, Any]], command_key: bytes | None, scn: Scenario, *,
-                auto_fill: bool = True, geofence: dict[str, Any] | None = None) -> Fleet:
-    """The nodes of a fleet dive (see :class:`Fleet`). The mapper carries the multibeam, its
-    detector, the sensor channels and a survey sender of its own (it could be retargeted; the
-    demo never does, and a command for the camera vehicle must never reach it); the camera
-    vehicle carries the camera and the survey sender its autonomy flies. Topside's link
-    broadcasts by default (``dst`` 0, docs/channel.md); its per-peer receivers address their
-    requests to their vehicle."""
-    sched = dive_schedule(scn)
-    cycle = scn.cycle
+                network: Any, auto_fill: bool = True, geofence: dict[str, Any] | None = None) -> Fleet:
+    """The nodes of a fleet dive (see :class:`Fleet`) over their modems on ``network``. The
+    mapper carries the multibeam, its detector, the sensor channels and a survey sender of its
+    own (it could be retargeted; the demo never does, and a command for the camera vehicle must
+    never reach it); the camera vehicle carries the camera and the survey sender its autonomy
+    flies. Each node is built from its deployment configuration
+    (:mod:`~coex_apps.demo.deployment`); topside's ``[[vehicles]]`` say which modalities each
+    vehicle carries, so its per-vehicle receivers are the map, time series, detections and
+    survey answers of the mapper and the images and survey answers of the camera vehicle. Its
+    link broadcasts (``dst`` 0, docs/channel.md); its per-peer receivers address their requests
+    to their vehicle."""
     fence = site_geofence(scn) if geofence is None else geofence
-
-    def vehicle(node_id: int) -> Node:
-        return Node(ChannelManager(node_id, [LinkConfig(0, sched, rate=scn.modem_rate, dst=TOPSIDE, spare=scn.spare)],
-                                   queue_status_interval=cycle, command_key=command_key))
-    mapper, camera = vehicle(VEHICLE), vehicle(CAMERA)
-    topside = Node(ChannelManager(TOPSIDE, [LinkConfig(0, sched, rate=scn.modem_rate, dst=0)],
-                                  queue_status_interval=cycle, command_key=command_key))
-    ms = {
-        "bathymetry": BathymetryModality().sender({"send_delay": 20.0}),
-        "timeseries": TimeSeriesModality().sender({"channels": channels}),
-        "survey": SurveyModality().sender({"geofence": fence}),
-        "detections": DetectionsModality().sender({"detectors": [{"type": "relief"}]}),
-    }
-    cs = {
-        "imagery": ImageryModality().sender({"layer_psnr": list(LAYER_PSNR), "default_goal": f"layer:{DEFAULT_LAYERS}",
-                                             "request_goal": f"layer:{CONFIRM_LAYERS}"}),
-        "survey": SurveyModality().sender({"geofence": fence}),
-    }
-    mapper.add_sender(BathymetryModality, ms["bathymetry"], StreamConfig(3, "map", priority=30))
-    mapper.add_sender(TimeSeriesModality, ms["timeseries"], StreamConfig(5, "series", priority=20))
-    mapper.manager.add_stream(StreamConfig(LINK_STREAM, "link", priority=40, newest_first=True, max_depth=1))
-    mapper.add_sender(SurveyModality, ms["survey"], StreamConfig(SURVEY_STREAM, "survey", priority=90))
-    mapper.add_sender(DetectionsModality, ms["detections"], StreamConfig(DETECTIONS_STREAM, "detections", priority=100))
-    camera.add_sender(ImageryModality, cs["imagery"], StreamConfig(4, "images", priority=30, low_priority=90))
-    camera.add_sender(SurveyModality, cs["survey"], StreamConfig(SURVEY_STREAM, "survey", priority=90))
+    carried = {VEHICLE: ("bathymetry", "timeseries", "detections", "survey"), CAMERA: ("imagery", "survey")}
+    mapper, mapper_modem = build(node_mapping(scn, "vehicle", VEHICLE, TOPSIDE, sender_modalities(
+        ("bathymetry", "timeseries", "survey", "detections"), channels, fence, CONFIRM_LAYERS), spare=scn.spare),
+        out, network, command_key)
+    mapper.manager.add_stream(link_stream())
+    topside, topside_modem = build(node_mapping(scn, "topside", TOPSIDE, VEHICLE, receiver_modalities(
+        out, auto_fill, ("bathymetry", "timeseries", "detections", "survey", "imagery")), vehicles=carried),
+        out, network, command_key)
+    topside.manager.queue_status_interval = scn.cycle  # as a single dive's topside (build_nodes)
+    camera, camera_modem = build(node_mapping(scn, "vehicle", CAMERA, TOPSIDE, sender_modalities(
+        ("imagery", "survey"), channels, fence, CONFIRM_LAYERS), spare=scn.spare), out, network, command_key)
     receivers = {
-        "bathymetry": BathymetryModality().receiver({"auto_fill": auto_fill}),
-        "timeseries": TimeSeriesModality().receiver(None),
-        "detections": DetectionsModality().receiver(None),
-        "imagery": ImageryModality().receiver({"out_dir": str(out / "images")}),
-        "survey": SurveyModality().receiver(None),
+        "bathymetry": topside.receiver("bathymetry", VEHICLE),
+        "timeseries": topside.receiver("timeseries", VEHICLE),
+        "detections": topside.receiver("detections", VEHICLE),
+        "imagery": topside.receiver("imagery", CAMERA),
+        "survey": topside.receiver("survey", CAMERA),
         # the mapper's answers to survey commands (it is never sent one: what would come is shown)
-        "mapper_survey": SurveyModality().receiver(None),
+        "mapper_survey": topside.receiver("survey", VEHICLE),
     }
-    topside.add_receiver(BathymetryModality, receivers["bathymetry"], peer=VEHICLE)
-    topside.add_receiver(TimeSeriesModality, receivers["timeseries"], peer=VEHICLE)
-    topside.add_receiver(DetectionsModality, receivers["detections"], peer=VEHICLE)
-    topside.add_receiver(SurveyModality, receivers["mapper_survey"], peer=VEHICLE)
-    topside.add_receiver(ImageryModality, receivers["imagery"], peer=CAMERA)
-    topside.add_receiver(SurveyModality, receivers["survey"], peer=CAMERA)
-    return Fleet(mapper, camera, topside, ms, cs, receivers)
+    return Fleet(mapper, camera, topside,
+                 {name: mapper.sender(name) for name in ("bathymetry", "timeseries", "survey", "detections")},
+                 {name: camera.sender(name) for name in ("imagery", "survey")}, receivers,
+                 {VEHICLE: mapper_modem, TOPSIDE: topside_modem, CAMERA: camera_modem})
 
 
 def rng_for(seed: int, salt: int) -> np.random.Generator:

@@ -50,7 +50,8 @@ def build_node(cfg: DeployConfig, role: str, transports: Mapping[int, Any], *,
     cannot be made (a plugin not installed, an extra missing) is left out and said in
     ``missing`` (``"modality NAME not available: why"``), the console runs on without it. A
     topside of several vehicles (``[[vehicles]]``) gets one receiver per modality and vehicle
-    (``add_receiver(..., peer=id)``, saved under ``name@id``) and the vehicles' own command
+    (``add_receiver(..., peer=id)``, saved under ``name@id``; a vehicle's ``modalities``, when
+    given, only for those) and the vehicles' own command
     keys (``peer_keys``); a vehicle with ``node.peer_key_file`` holds its key the same way."""
     from coex import ChannelManager, Node, StreamConfig, load_modality
 
@@ -77,23 +78,25 @@ def build_node(cfg: DeployConfig, role: str, transports: Mapping[int, Any], *,
             node.add_sender(cls, sender, StreamConfig(m.stream, m.name, priority=m.priority,
                                                       low_priority=m.low_priority), ids=m.ids or None)
             continue
+        mine = [peer for peer in peers if cfg.carries(peer, m.name)]
         try:
             cls = load_modality(m.name)
-            receivers = [cls().receiver(_peer_options(cfg, m, peer) or None) for peer in peers]
+            receivers = [cls().receiver(_peer_options(cfg, m, peer) or None) for peer in mine]
         except (CoexError, ImportError, AttributeError, TypeError) as exc:
             if missing is not None:
                 missing.append(f"modality {m.name} not available: {exc}")
             continue
-        for peer, receiver in zip(peers, receivers, strict=True):
+        for peer, receiver in zip(mine, receivers, strict=True):
             node.add_receiver(cls, receiver, ids=m.ids or None, peer=peer)
     return node
 
 
 def _peer_options(cfg: DeployConfig, m: Any, peer: int | None) -> dict[str, Any]:
-    """A receiver's options; in a fleet, files it writes (``out_dir``) go to a folder per
-    vehicle (``out_dir/NAME``)."""
+    """A receiver's options; in a fleet where several vehicles carry the modality, files it
+    writes (``out_dir``) go to a folder per vehicle (``out_dir/NAME``)."""
     out = cfg.options(m)
-    if peer is not None and isinstance(out.get("out_dir"), str):
+    several = sum(cfg.carries(v.id, m.name) for v in cfg.vehicles) > 1
+    if peer is not None and several and isinstance(out.get("out_dir"), str):
         name = {v.id: v.name for v in cfg.vehicles}[peer]
         out["out_dir"] = str(Path(out["out_dir"]) / name)
     return out

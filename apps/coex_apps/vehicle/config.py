@@ -73,6 +73,9 @@ class FleetVehicle:
     #: node's ``command_key`` (the network key) signs its commands
     command_key: bytes | None = None
     command_key_file: Path | None = None
+    #: the modalities this vehicle carries (``modalities = ["imagery", "survey"]``): the topside
+    #: has receivers for these alone; None: every one of the file's ``[modalities]``
+    modalities: tuple[str, ...] | None = None
 
 
 @dataclass
@@ -127,6 +130,14 @@ class DeployConfig:
     def fleet(self) -> bool:
         """A topside of several vehicles (``[[vehicles]]``)."""
         return bool(self.vehicles)
+
+    def carries(self, peer: int | None, modality: str) -> bool:
+        """Whether the topside takes ``modality`` from vehicle ``peer`` (a fleet's
+        ``[[vehicles]]`` ``modalities``; None, a vehicle without the list: every modality)."""
+        for v in self.vehicles:
+            if v.id == peer and v.modalities is not None:
+                return modality in v.modalities
+        return True
 
     def vehicle_ids(self) -> list[int]:
         """The ids of the vehicles this topside talks to (``[[vehicles]]``, else ``node.peer``)."""
@@ -243,6 +254,28 @@ def check_problems(raw: Mapping[str, Any], path: Path, role: str | None) -> tupl
     node = p.table(raw.get("node"), "node")
     p.unknown(node, {"role", "id", "peer", "origin", "command_key_file", "peer_key_file", "store",
                      "snapshot_interval", "log_level"}, "node")
+    cfg = _node(raw, node, p, path, role)
+    infos = _modems(raw, p, cfg)
+    _tdma(raw, p, cfg)
+    _airtime(p, cfg, infos)
+    _modalities(raw, p, cfg)
+    _carried(p, cfg)
+    if cfg.role == "vehicle":
+        _vehicle_tables(raw, p, cfg)
+    else:
+        for k in ("inputs", "autonomy", "status"):
+            if k in raw:
+                p.add(k, "only a vehicle node has inputs, an autonomy and a status")
+        _console(raw, p, cfg)
+        _ros(raw, p, cfg)
+        _usbl(raw, p, cfg)
+    cfg.warnings = p.warnings
+    return cfg, p
+
+
+def _node(raw: Mapping[str, Any], node: dict[str, Any], p: Problems, path: Path, role: str | None) -> DeployConfig:
+    """The ``[node]`` table (role, ids, origin, snapshots, log level, keys, store) and a fleet
+    topside's ``[[vehicles]]``: the configuration they start."""
     # required, also when the caller knows the role (coex vehicle, coex topside): the daemon
     # refuses what coex config check refuses
     r = node.get("role")
@@ -272,17 +305,30 @@ def check_problems(raw: Mapping[str, Any], path: Path, role: str | None) -> tupl
     if level not in ("debug", "info", "warning", "error"):
         p.add("node.log_level", f"debug, info, warning or error, got {level!r}")
     cfg.log_level = str(level)
+    _node_keys(node, p, cfg)
+    _store(node, p, cfg)
+    return cfg
+
+
+def _node_keys(node: Mapping[str, Any], p: Problems, cfg: DeployConfig) -> None:
+    """``node.command_key_file`` (the network key) and a vehicle's ``node.peer_key_file``."""
     keyfile = node.get("command_key_file")
     if keyfile is not None:
         cfg.command_key, cfg.command_key_file = _key(p, cfg, keyfile, "node.command_key_file")
-    if node.get("peer_key_file") is not None:
-        if r != "vehicle":
-            p.add("node.peer_key_file", "a topside gives each vehicle's own key in [[vehicles]] command_key_file")
-        elif keyfile is None:
-            p.add("node.peer_key_file", "a key shared with the topside alone needs the network key in "
-                                        "node.command_key_file (broadcast commands are signed with it)")
-        else:
-            cfg.peer_key = _key(p, cfg, node["peer_key_file"], "node.peer_key_file")[0]
+    if node.get("peer_key_file") is None:
+        return
+    if cfg.role != "vehicle":
+        p.add("node.peer_key_file", "a topside gives each vehicle's own key in [[vehicles]] command_key_file")
+    elif keyfile is None:
+        p.add("node.peer_key_file", "a key shared with the topside alone needs the network key in "
+                                    "node.command_key_file (broadcast commands are signed with it)")
+    else:
+        cfg.peer_key = _key(p, cfg, node["peer_key_file"], "node.peer_key_file")[0]
+
+
+def _store(node: Mapping[str, Any], p: Problems, cfg: DeployConfig) -> None:
+    """``node.store``: the node's SQLite store (default ``ROLE.sqlite``), or false: none."""
+    r = cfg.role
     store = node.get("store", f"{r}.sqlite")
     if store is False:
         cfg.store = None
@@ -297,34 +343,24 @@ def check_problems(raw: Mapping[str, Any], path: Path, role: str | None) -> tupl
                 p.add("node.store", str(err))
     else:
         p.add("node.store", f"a file name (default {r}.sqlite) or false, got {store!r}")
-    infos = _modems(raw, p, cfg)
-    _tdma(raw, p, cfg)
-    _airtime(p, cfg, infos)
-    _modalities(raw, p, cfg)
-    if r == "vehicle":
-        status = p.table(raw.get("status"), "status")
-        p.unknown(status, {"interval"}, "status")
-        cfg.status_interval = float(p.number(status, "interval", "status", 10.0, lo=1, hi=3600))
-        _inputs(raw, p, cfg)
-        _autonomy(raw, p, cfg)
-        for k in ("console",):
-            if k in raw:
-                p.add(k, "only a topside node has a console")
-        if "ros" in raw:
-            p.add("ros", "only a topside node publishes its products on ROS: a vehicle reads ROS with "
-                         "[[inputs]] type = \"ros\" and flies surveys with [autonomy] type = \"ros\"")
-        if "usbl" in raw:
-            p.add("usbl", "only a topside node reads the ship's USBL (a vehicle takes position fixes through "
-                          "its survey modality's aiding option, docs/navigation.md)")
-    else:
-        for k in ("inputs", "autonomy", "status"):
-            if k in raw:
-                p.add(k, "only a vehicle node has inputs, an autonomy and a status")
-        _console(raw, p, cfg)
-        _ros(raw, p, cfg)
-        _usbl(raw, p, cfg)
-    cfg.warnings = p.warnings
-    return cfg, p
+
+
+def _vehicle_tables(raw: Mapping[str, Any], p: Problems, cfg: DeployConfig) -> None:
+    """A vehicle's ``[status]``, ``[[inputs]]`` and ``[autonomy]``; the topside's tables refused."""
+    status = p.table(raw.get("status"), "status")
+    p.unknown(status, {"interval"}, "status")
+    cfg.status_interval = float(p.number(status, "interval", "status", 10.0, lo=1, hi=3600))
+    _inputs(raw, p, cfg)
+    _autonomy(raw, p, cfg)
+    for k in ("console",):
+        if k in raw:
+            p.add(k, "only a topside node has a console")
+    if "ros" in raw:
+        p.add("ros", "only a topside node publishes its products on ROS: a vehicle reads ROS with "
+                     "[[inputs]] type = \"ros\" and flies surveys with [autonomy] type = \"ros\"")
+    if "usbl" in raw:
+        p.add("usbl", "only a topside node reads the ship's USBL (a vehicle takes position fixes through "
+                      "its survey modality's aiding option, docs/navigation.md)")
 
 
 def _modems(raw: Mapping[str, Any], p: Problems, cfg: DeployConfig) -> list[Any]:
@@ -466,7 +502,7 @@ def _vehicles(raw: Mapping[str, Any], p: Problems, cfg: DeployConfig, peer_given
     for i, v in enumerate(vs):
         key = f"vehicles[{i}]"
         v = p.table(v, key)
-        p.unknown(v, {"id", "name", "command_key_file"}, key)
+        p.unknown(v, {"id", "name", "command_key_file", "modalities"}, key)
         if "id" not in v:
             p.add(f"{key}.id", "missing: the vehicle's node id (1..15)")
             continue
@@ -488,6 +524,12 @@ def _vehicles(raw: Mapping[str, Any], p: Problems, cfg: DeployConfig, peer_given
         ids[vid] = name
         names.add(name)
         fv = FleetVehicle(vid, name)
+        mods = v.get("modalities")
+        if mods is not None:
+            if not isinstance(mods, list) or not mods or not all(isinstance(m, str) for m in mods):
+                p.add(f"{key}.modalities", f"a list of the modalities this vehicle carries, got {mods!r}")
+            else:
+                fv.modalities = tuple(mods)
         keyfile = v.get("command_key_file")
         if keyfile is not None:
             fv.command_key, fv.command_key_file = _key(p, cfg, keyfile, f"{key}.command_key_file")
@@ -609,6 +651,16 @@ def _modalities(raw: Mapping[str, Any], p: Problems, cfg: DeployConfig) -> None:
         except (CoexError, TypeError, ValueError) as exc:
             p.add(f"{key}.options", f"{type(exc).__name__}: {exc}")
         cfg.modalities.append(mc)
+
+
+def _carried(p: Problems, cfg: DeployConfig) -> None:
+    """A fleet vehicle's ``modalities`` name modalities of this topside."""
+    running = [m.name for m in cfg.modalities]
+    for i, v in enumerate(cfg.vehicles):
+        for name in v.modalities or ():
+            if name not in running:
+                p.add(f"vehicles[{i}].modalities", f"{name!r} is not one of this topside's modalities "
+                                                   f"({', '.join(running) or 'none'})")
 
 
 def _adapter(kind: str, group: str, table: Mapping[str, Any], key: str, p: Problems) -> Any:

@@ -39,7 +39,7 @@ import math
 import os
 import re
 import tomllib
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from pathlib import Path
 from typing import Any
 
@@ -226,6 +226,30 @@ def read_mission(path: str | Path, process: str = "pCoex", *, host: str | None =
     except OSError as exc:
         return None, [f"cannot read the mission file: {exc.strerror or exc}"]
     mission, problems = parse_mission(text)
+    glob = _mission_globals(mission, host, port, problems)
+    server_host, server_port = glob["serverhost"], glob["serverport"]
+    if not server_port.isdigit() or not 0 < int(server_port) < 65536:
+        problems.append(f"ServerPort: a TCP port, got {server_port!r}")
+    warp = _warp(glob.get("moostimewarp", "1"), problems)
+    variables = {**{GLOBALS[k]: v for k, v in glob.items() if k in GLOBALS}, **mission.defines}
+    found = mission.blocks.get(process.lower())
+    if found is None:
+        names = ", ".join(b[0] for b in mission.blocks.values()) or "none"
+        return None, [*problems, f"no ProcessConfig = {process} block (blocks: {names})"]
+    raw, entries = _block_entries(found[1], _expander(variables), path, problems)
+    toml_origin = copy.deepcopy(raw.get("node", {}).get("origin")) if isinstance(raw.get("node"), dict) else None
+    given = _set_entries(raw, entries, problems)
+    _holes(raw, "", problems)
+    if problems:
+        return raw, problems
+    _mission_origin(raw, glob, given, toml_origin, problems)
+    _moos_clients(raw, process, f"{server_host}:{server_port}", warp)
+    return raw, problems
+
+
+def _mission_globals(mission: Mission, host: str | None, port: int | None, problems: list[str]) -> dict[str, str]:
+    """The mission's global settings (lower-case names, ``${...}`` expanded), with the
+    command line's ``host``/``port`` and MOOS's defaults (localhost:9000)."""
     sub = _expander(mission.defines)
     glob: dict[str, str] = {}
     for low, (n, value) in mission.globals.items():
@@ -239,20 +263,16 @@ def read_mission(path: str | Path, process: str = "pCoex", *, host: str | None =
         glob["serverport"] = str(port)
     glob.setdefault("serverhost", "localhost")
     glob.setdefault("serverport", "9000")
-    server_host, server_port = glob["serverhost"], glob["serverport"]
-    if not server_port.isdigit() or not 0 < int(server_port) < 65536:
-        problems.append(f"ServerPort: a TCP port, got {server_port!r}")
-    warp = _warp(glob.get("moostimewarp", "1"), problems)
-    variables = {**{GLOBALS[k]: v for k, v in glob.items() if k in GLOBALS}, **mission.defines}
-    sub = _expander(variables)
-    found = mission.blocks.get(process.lower())
-    if found is None:
-        names = ", ".join(b[0] for b in mission.blocks.values()) or "none"
-        return None, [*problems, f"no ProcessConfig = {process} block (blocks: {names})"]
+    return glob
+
+
+def _block_entries(lines: list[tuple[int, str, str]], sub: Callable[[str], str], path: Path, problems: list[str],
+                   ) -> tuple[dict[str, Any], list[tuple[int, str, str]]]:
+    """A ProcessConfig block's lines, expanded: the TOML file its ``config`` line names (read,
+    or ``{}``) and the other configuration lines ``(line, key, value)`` (MOOS's own skipped)."""
     raw: dict[str, Any] = {}
-    given: dict[str, int] = {}
     entries = []
-    for n, key, value in found[1]:
+    for n, key, value in lines:
         try:
             value = sub(value)
         except ConfigError as exc:
@@ -270,7 +290,12 @@ def read_mission(path: str | Path, process: str = "pCoex", *, host: str | None =
                 problems.append(f"line {n}: config: {toml}: {exc}")
             continue
         entries.append((n, key, value))
-    toml_origin = copy.deepcopy(raw.get("node", {}).get("origin")) if isinstance(raw.get("node"), dict) else None
+    return raw, entries
+
+
+def _set_entries(raw: dict[str, Any], entries: list[tuple[int, str, str]], problems: list[str]) -> dict[str, int]:
+    """Each ``key = value`` line set into ``raw`` by its path; returns each key's line."""
+    given: dict[str, int] = {}
     for n, key, value in entries:
         kp = _path(key)
         if kp is None or not isinstance(kp[0], str):
@@ -285,44 +310,50 @@ def read_mission(path: str | Path, process: str = "pCoex", *, host: str | None =
         why = _set(raw, kp, _value(value))
         if why is not None:
             problems.append(f"{shown}: {why} (line {n})")
-    _holes(raw, "", problems)
-    if problems:
-        return raw, problems
-    # defaults from the mission
+    return given
+
+
+def _mission_origin(raw: dict[str, Any], glob: dict[str, str], given: dict[str, int], toml_origin: Any,
+                    problems: list[str]) -> None:
+    """The node's role (a vehicle) and origin (the mission's ``LatOrigin``/``LongOrigin``)
+    unless the block gives them; a TOML file's other origin is a problem."""
     node = raw.setdefault("node", {})
-    if isinstance(node, dict):
-        node.setdefault("role", "vehicle")
-        lat, lon = glob.get("latorigin"), glob.get("longorigin")
-        if lat is not None and lon is not None and not any(k.startswith("node.origin") for k in given):
-            try:
-                origin = {"lat": float(lat), "lon": float(lon)}
-            except ValueError:
-                problems.append(f"LatOrigin, LongOrigin: numbers, got {lat!r}, {lon!r}")
-            else:
-                if toml_origin is not None and toml_origin != origin:
-                    problems.append(f"node.origin: the TOML file's {toml_origin} is not the mission's LatOrigin, "
-                                    f"LongOrigin {origin} (MOOS x, y are metres from the mission's origin)")
-                node["origin"] = origin
-    server = f"{server_host}:{server_port}"
+    if not isinstance(node, dict):
+        return
+    node.setdefault("role", "vehicle")
+    lat, lon = glob.get("latorigin"), glob.get("longorigin")
+    if lat is not None and lon is not None and not any(k.startswith("node.origin") for k in given):
+        try:
+            origin = {"lat": float(lat), "lon": float(lon)}
+        except ValueError:
+            problems.append(f"LatOrigin, LongOrigin: numbers, got {lat!r}, {lon!r}")
+        else:
+            if toml_origin is not None and toml_origin != origin:
+                problems.append(f"node.origin: the TOML file's {toml_origin} is not the mission's LatOrigin, "
+                                f"LongOrigin {origin} (MOOS x, y are metres from the mission's origin)")
+            node["origin"] = origin
+
+
+def _moos_clients(raw: dict[str, Any], process: str, server: str, warp: float) -> None:
+    """The MOOS inputs and autonomy output talk to the mission's MOOSDB (``server``) under names
+    of the process, and every MOOS client (modems too) takes the mission's time warp."""
     inputs = raw.get("inputs")
-    if isinstance(inputs, list):
-        moos = [t for t in inputs if isinstance(t, dict) and t.get("type") == "moos"]
-        for i, t in enumerate(moos):
-            t.setdefault("server", server)
-            t.setdefault("name", f"{process}_in" if len(moos) == 1 else f"{process}_in{i}")
+    moos = [t for t in inputs if isinstance(t, dict) and t.get("type") == "moos"] if isinstance(inputs, list) else []
+    for i, t in enumerate(moos):
+        t.setdefault("server", server)
+        t.setdefault("name", f"{process}_in" if len(moos) == 1 else f"{process}_in{i}")
     autonomy = raw.get("autonomy")
-    if isinstance(autonomy, dict) and autonomy.get("type") == "moos":
-        autonomy.setdefault("server", server)
-        autonomy.setdefault("name", f"{process}_helm")
+    helm: list[dict[str, Any]] = [autonomy] if isinstance(autonomy, dict) and autonomy.get("type") == "moos" else []
+    for t in helm:
+        t.setdefault("server", server)
+        t.setdefault("name", f"{process}_helm")
     if warp != 1.0:  # MOOS times are warped: every MOOS client of pCoex takes the mission's warp
-        for t in [*(moos if isinstance(inputs, list) else []),
-                  *([autonomy] if isinstance(autonomy, dict) and autonomy.get("type") == "moos" else [])]:
+        for t in [*moos, *helm]:
             t.setdefault("time_warp", warp)
         for m in raw.get("modems") or []:
             uri = m.get("uri") if isinstance(m, dict) else None
             if isinstance(uri, str) and uri.startswith("moos:") and not re.search(r"[?&]warp=", uri):
                 m["uri"] = uri + ("&" if "?" in uri else "?") + f"warp={warp:g}"
-    return raw, problems
 
 
 def _warp(text: str, problems: list[str]) -> float:

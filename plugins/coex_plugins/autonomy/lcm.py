@@ -31,6 +31,7 @@ from typing import Any
 from coex import Autonomy, ConfigError
 from coex.lcm import DEFAULT_URL, survey_request_t, survey_state_t
 from coex.messages import SurveyReason, SurveyState
+from coex.options import integer, number
 
 from ..options import Problems, check_lcm_url
 from ..survey.plan import SurveyReport, cut_detail
@@ -108,13 +109,13 @@ class LcmAutonomy(Autonomy):
         "url": (DEFAULT_URL, "LCM provider URL (udpm://239.255.76.67:7667?ttl=0, memq:// ...)"),
         "channel": ("COEX_SURVEY_REQUEST", "channel of the survey_request_t it publishes"),
         "state_channel": ("COEX_SURVEY_STATE", "channel of the planner's survey_state_t answers"),
-        "answer_timeout": (5.0, "seconds to wait for the planner's first answer to a request before it is "
-                                "published again (0: do not wait for one)"),
-        "retries": (2, "times a request is published again before the survey is given up as "
-                       "REJECTED AUTONOMY_NO_ANSWER"),
-        "silence": (10.0, "seconds without a survey_state_t from the planner while a survey flies before "
-                          "it is aborted AUTONOMY_SILENT (0: not watched; a planner repeats its state "
-                          "while it flies)"),
+        "answer_timeout": number(5.0, "seconds to wait for the planner's first answer to a request before it "
+                                      "is published again (0: do not wait for one)", unit="s", lo=0),
+        "retries": integer(2, "times a request is published again before the survey is given up as "
+                              "REJECTED AUTONOMY_NO_ANSWER", lo=0, hi=100),
+        "silence": number(10.0, "seconds without a survey_state_t from the planner while a survey flies before "
+                                "it is aborted AUTONOMY_SILENT (0: not watched; a planner repeats its state "
+                                "while it flies)", unit="s", lo=0),
     }
 
     @classmethod
@@ -127,15 +128,6 @@ class LcmAutonomy(Autonomy):
             elif key != "url" and len(v) > 63:
                 p.said(key, f"autonomy 'lcm': {key} is longer than LCM's 63 characters")
         check_lcm_url(p, "autonomy 'lcm'", options)
-        t = options.get("answer_timeout", 0.0)
-        if isinstance(t, bool) or not isinstance(t, int | float) or not math.isfinite(t) or t < 0:
-            p.said("answer_timeout", f"autonomy 'lcm': answer_timeout must be a number >= 0 (seconds), got {t!r}")
-        v = options.get("silence", 0.0)
-        if isinstance(v, bool) or not isinstance(v, int | float) or not math.isfinite(v) or v < 0:
-            p.said("silence", f"autonomy 'lcm': silence must be a number >= 0 (seconds), got {v!r}")
-        r = options.get("retries", 0)
-        if isinstance(r, bool) or not isinstance(r, int) or not 0 <= r <= 100:
-            p.said("retries", f"autonomy 'lcm': retries must be an integer in 0..100, got {r!r}")
         return p
 
     def __init__(self, options: Mapping[str, Any], context: Any, instance: Any = None) -> None:

@@ -50,6 +50,7 @@ from typing import Any
 
 from coex import Autonomy, ConfigError
 from coex.messages import SurveyReason, SurveyState
+from coex.options import REQUIRED, anything, flag, integer, number, text
 
 from ..options import Problems, check_mavlink_connection
 from ..survey.plan import SurveyReport, cut_detail
@@ -237,25 +238,6 @@ def read(conn: Any, limit: int = MAX_READ) -> list[Any]:
     return out
 
 
-def _int(p: Problems, options: Mapping[str, Any], key: str, low: int, high: int, none: bool = False) -> None:
-    """A problem (into ``p``) if ``key`` is given and not an integer in range."""
-    v = options.get(key)
-    if v is None and (none or key not in options):
-        return
-    if isinstance(v, bool) or not isinstance(v, int) or not low <= v <= high:
-        p.said(key, f"autonomy 'mavlink': {key} must be an integer in {low}..{high}, got {v!r}")
-
-
-def _pos(p: Problems, options: Mapping[str, Any], key: str, zero: bool = True) -> None:
-    """A problem (into ``p``) if ``key`` is given and not a number >= 0
-    (> 0 unless ``zero``)."""
-    if key not in options:
-        return
-    v = options[key]
-    if isinstance(v, bool) or not isinstance(v, int | float) or not math.isfinite(v) or v < 0 or (v == 0 and not zero):
-        p.said(key, f"autonomy 'mavlink': {key} must be a number {'>=' if zero else '>'} 0, got {v!r}")
-
-
 #: GPS_INPUT's ignore flags (MAVLink common GPS_INPUT_IGNORE_FLAGS)
 GPS_INPUT_IGNORE_ALT = 1
 GPS_INPUT_IGNORE_VEL_HORIZ = 8
@@ -272,41 +254,49 @@ class MavlinkAutonomy(Autonomy):
 
     name = "mavlink"
     options = {
-        "connection": (..., "pymavlink connection string: udpout:HOST:PORT, udpin:HOST:PORT, "
-                            "tcp:HOST:PORT or a serial device such as /dev/ttyACM0"),
-        "baud": (115200, "serial baud rate"),
-        "source_system": (1, "our MAVLink system id (a companion computer shares the vehicle's)"),
-        "source_component": (191, "our component id (191 = MAV_COMP_ID_ONBOARD_COMPUTER)"),
-        "target_system": (None, "the autopilot's system id (default: from its first heartbeat, else 1)"),
-        "target_component": (None, "the autopilot's component id (default: from its first heartbeat, else 1)"),
-        "frame": (MAV_FRAME_GLOBAL_RELATIVE_ALT, "MAV_FRAME of depth items (3 = GLOBAL_RELATIVE_ALT, "
-                                                 "z = -depth above home = the surface)"),
-        "altitude_frame": (MAV_FRAME_GLOBAL_TERRAIN_ALT, "MAV_FRAME of altitude items (10 = "
-                                                         "GLOBAL_TERRAIN_ALT, z = altitude above the "
-                                                         "seafloor; any other: z = 0, the present depth)"),
-        "home_placeholder": (True, "send a placeholder at seq 0 (ArduPilot: seq 0 is home)"),
-        "acceptance_radius": (2.0, "param2 of each waypoint: metres"),
-        "hold": (0.0, "param1 of each waypoint: seconds to hold there"),
-        "speed_item": (True, "when the plan gives a speed, a MAV_CMD_DO_CHANGE_SPEED item before the waypoints"),
-        "start": ("mission_start", "how to start an accepted mission: mission_start (MAV_CMD_MISSION_START), "
-                                   "auto_mode (MAV_CMD_DO_SET_MODE to auto_mode) or none"),
-        "auto_mode": (SUB_MODE_AUTO, "the autopilot's custom mode that flies missions (ArduSub AUTO = 3)"),
-        "manual_modes": (list(SUB_MANUAL_MODES), "custom modes a pilot flies in: leaving AUTO for one of them "
-                                                 "is a manual override (ArduSub STABILIZE 0, ACRO 1, ALT_HOLD 2, "
-                                                 "POSHOLD 16, MANUAL 19)"),
-        "timeout": (1.5, "seconds without a request before MISSION_COUNT (or a command) is sent again"),
-        "item_timeout": (0.25, "seconds without the next request before the last item is sent again"),
-        "retries": (5, "resends in a row without an answer before the upload (or the start) is given up "
-                       "(REJECTED AUTONOMY_NO_ANSWER)"),
-        "heartbeat": (1.0, "seconds between our HEARTBEATs (0 = none)"),
-        "mavlink2": (True, "speak MAVLink 2 from the first packet"),
-        "position_fix": (True, "pass topside's position fixes (PositionFix) to the autopilot as GPS_INPUT "
-                               "(ArduSub: GPS_TYPE = 14, MAV); false: refuse them"),
-        "gps_id": (0, "GPS_INPUT gps_id of the fixes (which GPS instance of the autopilot they feed)"),
-        "silence": (5.0, "seconds without the autopilot's HEARTBEAT while a survey flies before it is "
-                         "aborted AUTONOMY_SILENT (0: not watched)"),
-        "clear": (True, "clear the autopilot's mission (MISSION_CLEAR_ALL) once a survey ended, so that "
-                        "AUTO does not fly it again"),
+        "connection": text(REQUIRED, "pymavlink connection string: udpout:HOST:PORT, udpin:HOST:PORT, "
+                                     "tcp:HOST:PORT or a serial device such as /dev/ttyACM0"),
+        "baud": integer(115200, "serial baud rate", unit="baud", lo=1, hi=10_000_000),
+        "source_system": integer(1, "our MAVLink system id (a companion computer shares the vehicle's)", lo=1, hi=255),
+        "source_component": integer(191, "our component id (191 = MAV_COMP_ID_ONBOARD_COMPUTER)", lo=0, hi=255),
+        "target_system": integer(None, "the autopilot's system id (default: from its first heartbeat, else 1)",
+                                 lo=0, hi=255, none=True),
+        "target_component": integer(None, "the autopilot's component id (default: from its first heartbeat, "
+                                          "else 1)", lo=0, hi=255, none=True),
+        "frame": integer(MAV_FRAME_GLOBAL_RELATIVE_ALT, "MAV_FRAME of depth items (3 = GLOBAL_RELATIVE_ALT, "
+                                                        "z = -depth above home = the surface)",
+                         choices=tuple(sorted(_FRAMES))),
+        "altitude_frame": integer(MAV_FRAME_GLOBAL_TERRAIN_ALT, "MAV_FRAME of altitude items (10 = "
+                                                                "GLOBAL_TERRAIN_ALT, z = altitude above the "
+                                                                "seafloor; any other: z = 0, the present depth)",
+                                  choices=tuple(sorted(_FRAMES))),
+        "home_placeholder": flag(True, "send a placeholder at seq 0 (ArduPilot: seq 0 is home)"),
+        "acceptance_radius": number(2.0, "param2 of each waypoint", unit="m", lo=0),
+        "hold": number(0.0, "param1 of each waypoint: seconds to hold there", unit="s", lo=0),
+        "speed_item": flag(True, "when the plan gives a speed, a MAV_CMD_DO_CHANGE_SPEED item before the waypoints"),
+        "start": text("mission_start", "how to start an accepted mission: mission_start (MAV_CMD_MISSION_START), "
+                                       "auto_mode (MAV_CMD_DO_SET_MODE to auto_mode) or none", choices=_STARTS),
+        "auto_mode": integer(SUB_MODE_AUTO, "the autopilot's custom mode that flies missions (ArduSub AUTO = 3)",
+                             lo=0, hi=2**32 - 1),
+        "manual_modes": anything(list(SUB_MANUAL_MODES), "custom modes a pilot flies in: leaving AUTO for one of "
+                                                         "them is a manual override (ArduSub STABILIZE 0, ACRO 1, "
+                                                         "ALT_HOLD 2, POSHOLD 16, MANUAL 19)"),
+        "timeout": number(1.5, "seconds without a request before MISSION_COUNT (or a command) is sent again",
+                          unit="s", above=0),
+        "item_timeout": number(0.25, "seconds without the next request before the last item is sent again",
+                               unit="s", above=0),
+        "retries": integer(5, "resends in a row without an answer before the upload (or the start) is given up "
+                              "(REJECTED AUTONOMY_NO_ANSWER)", lo=0, hi=100),
+        "heartbeat": number(1.0, "seconds between our HEARTBEATs (0 = none)", unit="s", lo=0),
+        "mavlink2": flag(True, "speak MAVLink 2 from the first packet"),
+        "position_fix": flag(True, "pass topside's position fixes (PositionFix) to the autopilot as GPS_INPUT "
+                                   "(ArduSub: GPS_TYPE = 14, MAV); false: refuse them"),
+        "gps_id": integer(0, "GPS_INPUT gps_id of the fixes (which GPS instance of the autopilot they feed)",
+                          lo=0, hi=255),
+        "silence": number(5.0, "seconds without the autopilot's HEARTBEAT while a survey flies before it is "
+                               "aborted AUTONOMY_SILENT (0: not watched)", unit="s", lo=0),
+        "clear": flag(True, "clear the autopilot's mission (MISSION_CLEAR_ALL) once a survey ended, so that "
+                            "AUTO does not fly it again"),
     }
 
     @classmethod
@@ -316,31 +306,11 @@ class MavlinkAutonomy(Autonomy):
         if not isinstance(c, str) or not c:
             p.said("connection", f"autonomy 'mavlink': connection must be a pymavlink connection string, got {c!r}")
         check_mavlink_connection(p, "autonomy 'mavlink'", options)
-        _int(p, options, "baud", 1, 10_000_000)
-        _int(p, options, "source_system", 1, 255)
-        _int(p, options, "source_component", 0, 255)
-        _int(p, options, "target_system", 0, 255, none=True)
-        _int(p, options, "target_component", 0, 255, none=True)
-        for key in ("frame", "altitude_frame"):
-            if key in options and options[key] not in _FRAMES:
-                p.said(key, f"autonomy 'mavlink': {key} must be one of {sorted(_FRAMES)}, got {options[key]!r}")
-        _int(p, options, "gps_id", 0, 255)
-        for key in ("home_placeholder", "speed_item", "mavlink2", "position_fix", "clear"):
-            if key in options and not isinstance(options[key], bool):
-                p.said(key, f"autonomy 'mavlink': {key} must be true or false, got {options[key]!r}")
-        for key in ("acceptance_radius", "hold", "heartbeat", "silence"):
-            _pos(p, options, key)
-        _pos(p, options, "timeout", zero=False)
-        _pos(p, options, "item_timeout", zero=False)
-        _int(p, options, "retries", 0, 100)
-        _int(p, options, "auto_mode", 0, 2**32 - 1)
         modes = options.get("manual_modes", [])
         if not isinstance(modes, list | tuple) or any(
                 isinstance(v, bool) or not isinstance(v, int) or not 0 <= v < 2**32 for v in modes):
             p.said("manual_modes", f"autonomy 'mavlink': manual_modes must be a list of custom modes (integers), "
                                    f"got {modes!r}")
-        if "start" in options and options["start"] not in _STARTS:
-            p.said("start", f"autonomy 'mavlink': start must be one of {', '.join(_STARTS)}, got {options['start']!r}")
         return p
 
     @classmethod

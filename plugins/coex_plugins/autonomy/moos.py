@@ -89,9 +89,10 @@ from typing import Any
 
 from coex import Autonomy
 from coex.messages import SurveyKind, SurveyReason, SurveyState
+from coex.options import number
 
 from ..inputs.moos import parse_server
-from ..options import LogOnce, Problems, check_time_warp, moos_client
+from ..options import LogOnce, Problems, moos_client, time_warp
 from ..survey.plan import SurveyReport, cut_detail
 
 __all__ = ["MoosAutonomy", "parse_flag", "parse_update_result", "update_of"]
@@ -192,15 +193,16 @@ class MoosAutonomy(Autonomy):
         "wpt_status_var": ("WPT_STAT", "the behaviour's wpt_status_var"),
         "wpt_index_var": ("WPT_INDEX", "the behaviour's wpt_index_var"),
         "endflag": ("", "another 'VAR = value' the behaviour posts at its end (COMPLETED); '' = none"),
-        "time_warp": (1.0, "the community's MOOSTimeWarp (pCoex: the mission's): posts carry the warped MOOS time"),
-        "timeout": (10.0, "seconds (real) to wait for the helm's answer and for the behaviour to run"),
+        "time_warp": time_warp("the community's MOOSTimeWarp (pCoex: the mission's): posts carry the warped MOOS time"),
+        "timeout": number(10.0, "seconds (real) to wait for the helm's answer and for the behaviour to run",
+                          unit="s", above=0),
         "position_fix_var": ("USM_RESET", "variable topside's position fixes are posted to as 'x=X,y=Y' "
                                           "(uSimMarine's USM_RESET moves the simulated vehicle there; a vehicle's "
                                           "navigation names its own); '' = refuse them"),
         "position_fix_full_var": ("COEX_POSITION_FIX", "also posted: 'x=X,y=Y,time=T,sigma=S,depth=D,source=...' "
                                                        "for a navigation that fuses fixes; '' = none"),
-        "silence": (10.0, "seconds (real) without IVPHELM_STATE while a survey flies before it is aborted "
-                          "AUTONOMY_SILENT (0: not watched)"),
+        "silence": number(10.0, "seconds (real) without IVPHELM_STATE while a survey flies before it is aborted "
+                                "AUTONOMY_SILENT (0: not watched)", unit="s", lo=0),
     }
 
     @classmethod
@@ -228,9 +230,6 @@ class MoosAutonomy(Autonomy):
         if isinstance(options.get("update_extra"), str) and "name=" in options["update_extra"].lower():
             p.said("update_extra", f"{who}: option 'update_extra' must not set name= (the output sends "
                                    "the behaviour's name itself)")
-        check_time_warp(p, who, options)
-        p.option_number(who, options, "timeout", positive=True)
-        p.option_number(who, options, "silence", minimum=0.0)
         return p
 
     def __init__(self, options: Mapping[str, Any], context: Any, client: Any = None) -> None:

@@ -55,6 +55,7 @@ from typing import Any
 
 from coex import Autonomy
 from coex.messages import SurveyKind, SurveyReason, SurveyState
+from coex.options import number
 
 from ..options import LogOnce, Problems
 from ..survey.plan import SurveyReport
@@ -127,13 +128,14 @@ class RosAutonomy(Autonomy):
         "progress_topic": ("/coex/survey/progress", "the planner's answers: std_msgs/String "
                                                     "'[ID] started K | completed | refused WHY | aborted WHY'"),
         "frame": ("coex_local", "frame_id of the path: the local grid (x east, y north, z up)"),
-        "answer_timeout": (10.0, "seconds without any answer after a submit before it is reported "
-                                 "REJECTED / AUTONOMY_NO_ANSWER (0: wait forever)"),
+        "answer_timeout": number(10.0, "seconds without any answer after a submit before it is reported "
+                                       "REJECTED / AUTONOMY_NO_ANSWER (0: wait forever)", unit="s", lo=0),
         "position_fix_topic": ("/coex/position_fix", "where topside's position fixes go: "
                                                      "geometry_msgs/PoseWithCovarianceStamped (robot_localization's "
                                                      "pose input); '' = refuse them"),
-        "silence": (10.0, "seconds without the planner (its progress publisher connected, or an answer) "
-                          "while a survey flies before it is aborted AUTONOMY_SILENT (0: not watched)"),
+        "silence": number(10.0, "seconds without the planner (its progress publisher connected, or an answer) "
+                                "while a survey flies before it is aborted AUTONOMY_SILENT (0: not watched)",
+                          unit="s", lo=0),
     }
 
     @classmethod
@@ -148,10 +150,6 @@ class RosAutonomy(Autonomy):
         master = options.get("master", "")
         if isinstance(master, str) and master and not master.startswith(("http://", "https://")):
             p.said("master", f"autonomy 'ros': option 'master' must be an http:// URI, not {master!r}")
-        for key in ("answer_timeout", "silence"):
-            t = options.get(key, 10.0)
-            if isinstance(t, bool) or not isinstance(t, int | float) or not math.isfinite(t) or t < 0:
-                p.said(key, f"autonomy 'ros': option {key!r} must be a number of seconds >= 0, not {t!r}")
         return p
 
     def __init__(self, options: Mapping[str, Any], context: Any) -> None:

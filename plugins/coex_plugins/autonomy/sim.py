@@ -21,6 +21,7 @@ from typing import Any
 
 from coex import Autonomy
 from coex.messages import SurveyState
+from coex.options import number
 
 from ..options import Problems
 from ..survey.plan import SurveyReport
@@ -41,16 +42,13 @@ class SimAutonomy(Autonomy):
 
     name = "sim"
     options = {
-        "speed": (1.0, "metres per second when the plan gives no speed"),
+        "speed": number(1.0, "metres per second when the plan gives no speed", unit="m/s", above=0),
         "start": ([0.0, 0.0], "where the vehicle is before the first plan: [x, y] metres east, north"),
     }
 
     @classmethod
     def check(cls, options: Any) -> Problems:
         p = Problems()
-        s = options.get("speed", 1.0)
-        if isinstance(s, bool) or not isinstance(s, int | float) or not math.isfinite(s) or s <= 0:
-            p.said("speed", f"autonomy 'sim': speed must be a number above 0, got {s!r}")
         if "start" in options and _pair(options["start"]) is None:
             p.said("start", f"autonomy 'sim': start must be [x, y] (metres), got {options['start']!r}")
         return p

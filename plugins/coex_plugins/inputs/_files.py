@@ -287,17 +287,14 @@ class WatchedInput(Input):
 
     @classmethod
     def check(cls, options: Mapping[str, Any]) -> Problems:
-        """The watch's options: ``path``, ``pattern`` (at least one pattern), ``settle``,
-        ``interval``, ``existing``. A subclass adds its own to these."""
+        """The watch's options beyond their declared types and ranges: ``path`` and ``pattern``
+        (at least one pattern) not empty. A subclass adds its own to these."""
         p, who = Problems(), f"input {cls.name!r}"
         p.option_str(who, options, "path", nonempty=True)
         p.option_str(who, options, "pattern", nonempty=True)
         if isinstance(options.get("pattern"), str) and options["pattern"].strip() \
                 and not split_patterns(options["pattern"]):
             p.said("pattern", f"{who}: option 'pattern' holds no pattern")
-        p.option_number(who, options, "settle", minimum=0)
-        p.option_number(who, options, "interval", minimum=0)
-        p.option_bool(who, options, "existing")
         return p
 
     @classmethod

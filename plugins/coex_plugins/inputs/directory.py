@@ -13,11 +13,11 @@ A file that cannot be read is logged once, skipped and counted (``counts["skippe
 from __future__ import annotations
 
 from collections.abc import Mapping
-from typing import Any, ClassVar
+from typing import ClassVar
 
 from coex import Image, Item
+from coex.options import REQUIRED, Option, flag, number, text
 
-from ..options import Problems
 from ._files import WatchedInput, read_image, read_sidecar
 
 __all__ = ["DirectoryInput"]
@@ -31,21 +31,16 @@ class DirectoryInput(WatchedInput):
 
     name = "directory"
     feeds = ("imagery",)
-    options: ClassVar[Mapping[str, tuple[Any, str]]] = {
-        "path": (..., "the directory to watch (relative to the configuration file's directory)"),
-        "pattern": (IMAGE_PATTERNS, "comma-separated file name patterns, case ignored"),
-        "settle": (1.0, "seconds a file's size and mtime must stay unchanged before it is read"),
-        "existing": (False, "also take the files already there when the input opens"),
-        "nav": (False, "the daemon stamps images without a sidecar position with the newest "
-                       "vehicle position"),
-        "interval": (0.5, "seconds between two scans of the directory"),
+    options: ClassVar[Mapping[str, Option]] = {
+        "path": text(REQUIRED, "the directory to watch (relative to the configuration file's directory)"),
+        "pattern": text(IMAGE_PATTERNS, "comma-separated file name patterns, case ignored"),
+        "settle": number(1.0, "seconds a file's size and mtime must stay unchanged before it is read",
+                         unit="s", lo=0),
+        "existing": flag(False, "also take the files already there when the input opens"),
+        "nav": flag(False, "the daemon stamps images without a sidecar position with the newest "
+                           "vehicle position"),
+        "interval": number(0.5, "seconds between two scans of the directory", unit="s", lo=0),
     }
-
-    @classmethod
-    def check(cls, options: Mapping[str, Any]) -> Problems:
-        p = super().check(options)
-        p.option_bool(f"input {cls.name!r}", options, "nav")
-        return p
 
     def poll(self, now: float) -> list[Item]:
         items: list[Item] = []

@@ -44,6 +44,7 @@ from urllib.parse import unquote, urlsplit
 import numpy as np
 
 from coex import Image, Input, InputContext, Item, Nav, Samples
+from coex.options import REQUIRED, Option, flag, integer, number, text
 
 from ..options import (
     LogOnce,
@@ -85,25 +86,26 @@ class MavlinkInput(Input):
 
     name = "mavlink"
     feeds = ("status", "imagery", "timeseries")
-    options: ClassVar[Mapping[str, tuple[Any, str]]] = {
-        "connection": (..., "pymavlink connection: udpin:0.0.0.0:14560, udpout:host:port, "
-                            "tcp:host:port, /dev/ttyACM0 ..."),
-        "baud": (115200, "baud rate of a serial connection"),
-        "source_system": (255, "our MAVLink system id (heartbeats)"),
-        "source_component": (191, "our MAVLink component id (191: onboard computer)"),
-        "system": (0, "only read messages from this system id (0: any)"),
-        "dialect": ("ardupilotmega", "pymavlink MAVLink 2 dialect that parses the messages"),
-        "heartbeat": (1.0, "seconds between our heartbeats (0: send none)"),
-        "pressure_message": ("SCALED_PRESSURE2", "message of the depth sensor: SCALED_PRESSURE, "
-                                                 "SCALED_PRESSURE2, SCALED_PRESSURE3, or '' for none"),
-        "surface_pressure": (1013.25, "absolute pressure at the surface, hPa"),
-        "water_density": (1025.0, "water density for depth from pressure, kg/m^3"),
-        "temperature_channel": ("temperature", "time-series channel of the pressure sensor's "
-                                               "temperature ('' for none)"),
-        "images": (True, "turn CAMERA_IMAGE_CAPTURED into images"),
-        "image_dir": ("", "directory of relative image file names (default: the configuration's)"),
-        "settle": (1.0, "seconds a captured image file must stay unchanged before it is read"),
-        "image_timeout": (60.0, "seconds to wait for a captured image file to appear"),
+    options: ClassVar[Mapping[str, Option]] = {
+        "connection": text(REQUIRED, "pymavlink connection: udpin:0.0.0.0:14560, udpout:host:port, "
+                                     "tcp:host:port, /dev/ttyACM0 ..."),
+        "baud": integer(115200, "baud rate of a serial connection", unit="baud", lo=1, hi=10_000_000),
+        "source_system": integer(255, "our MAVLink system id (heartbeats)", lo=1, hi=255),
+        "source_component": integer(191, "our MAVLink component id (191: onboard computer)", lo=0, hi=255),
+        "system": integer(0, "only read messages from this system id (0: any)", lo=0, hi=255),
+        "dialect": text("ardupilotmega", "pymavlink MAVLink 2 dialect that parses the messages"),
+        "heartbeat": number(1.0, "seconds between our heartbeats (0: send none)", unit="s", lo=0),
+        "pressure_message": text("SCALED_PRESSURE2", "message of the depth sensor: SCALED_PRESSURE, "
+                                                     "SCALED_PRESSURE2, SCALED_PRESSURE3, or '' for none",
+                                 choices=PRESSURE_MESSAGES),
+        "surface_pressure": number(1013.25, "absolute pressure at the surface", unit="hPa", above=0),
+        "water_density": number(1025.0, "water density for depth from pressure", unit="kg/m^3", above=0),
+        "temperature_channel": text("temperature", "time-series channel of the pressure sensor's "
+                                                   "temperature ('' for none)"),
+        "images": flag(True, "turn CAMERA_IMAGE_CAPTURED into images"),
+        "image_dir": text("", "directory of relative image file names (default: the configuration's)"),
+        "settle": number(1.0, "seconds a captured image file must stay unchanged before it is read", unit="s", lo=0),
+        "image_timeout": number(60.0, "seconds to wait for a captured image file to appear", unit="s", lo=0),
     }
 
     @classmethod
@@ -111,20 +113,7 @@ class MavlinkInput(Input):
         p, who = Problems(), f"input {cls.name!r}"
         p.option_str(who, options, "connection", nonempty=True)
         check_mavlink_connection(p, who, options)
-        p.option_int(who, options, "baud", 1, 10_000_000)
-        p.option_int(who, options, "source_system", 1, 255)
-        p.option_int(who, options, "source_component", 0, 255)
-        p.option_int(who, options, "system", 0, 255)
         p.option_str(who, options, "dialect", nonempty=True)
-        p.option_number(who, options, "heartbeat", minimum=0)
-        p.option_choice(who, options, "pressure_message", PRESSURE_MESSAGES)
-        p.option_number(who, options, "surface_pressure", positive=True)
-        p.option_number(who, options, "water_density", positive=True)
-        p.option_str(who, options, "temperature_channel")
-        p.option_str(who, options, "image_dir")
-        p.option_bool(who, options, "images")
-        p.option_number(who, options, "settle", minimum=0)
-        p.option_number(who, options, "image_timeout", minimum=0)
         dialect = options.get("dialect")
         if isinstance(dialect, str) and dialect and not dialect.isidentifier():
             p.said("dialect", f"{who}: option 'dialect' must be a pymavlink dialect name, not {dialect!r}")

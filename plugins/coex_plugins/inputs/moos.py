@@ -33,8 +33,9 @@ from typing import Any, ClassVar
 import numpy as np
 
 from coex import Image, Input, InputContext, Item, Nav, Points, Samples
+from coex.options import Option, anything, flag, text
 
-from ..options import LogOnce, Problems, check_time_warp, moos_client
+from ..options import LogOnce, Problems, moos_client, time_warp
 
 __all__ = ["NAV_DEFAULTS", "MoosInput", "parse_server"]
 
@@ -65,16 +66,16 @@ class MoosInput(Input):
 
     name = "moos"
     feeds = ("status", "timeseries", "imagery", "bathymetry")
-    options: ClassVar[Mapping[str, tuple[Any, str]]] = {
-        "server": ("localhost:9000", "the MOOSDB, host:port (pCoex: the mission's ServerHost:ServerPort)"),
-        "name": ("pCoex_in", "MOOS client name (unique on the MOOSDB)"),
-        "nav": ({}, "navigation variables: { x = 'NAV_X', y = ..., depth, altitude, heading, speed, lat, "
-                    "lon }; '' switches one off"),
-        "channels": ({}, "numeric MOOS variable -> time-series channel name"),
-        "image_var": ("", "string variable whose value is an image file path"),
-        "points_var": ("", "string variable whose value is a .npy / .csv point file"),
-        "nav_images": (True, "images without a position get the newest vehicle position"),
-        "time_warp": (1.0, "the community's MOOSTimeWarp (pCoex: the mission's); MOOS times / warp = Unix times"),
+    options: ClassVar[Mapping[str, Option]] = {
+        "server": text("localhost:9000", "the MOOSDB, host:port (pCoex: the mission's ServerHost:ServerPort)"),
+        "name": text("pCoex_in", "MOOS client name (unique on the MOOSDB)"),
+        "nav": anything({}, "navigation variables: { x = 'NAV_X', y = ..., depth, altitude, heading, speed, lat, "
+                            "lon }; '' switches one off"),
+        "channels": anything({}, "numeric MOOS variable -> time-series channel name"),
+        "image_var": text("", "string variable whose value is an image file path"),
+        "points_var": text("", "string variable whose value is a .npy / .csv point file"),
+        "nav_images": flag(True, "images without a position get the newest vehicle position"),
+        "time_warp": time_warp("the community's MOOSTimeWarp (pCoex: the mission's); MOOS times / warp = Unix times"),
     }
 
     @classmethod
@@ -86,10 +87,6 @@ class MoosInput(Input):
             except ValueError as exc:
                 p.said("server", f"input 'moos': option 'server' must be {exc}")
         p.option_str(who, options, "name", nonempty=True)
-        p.option_str(who, options, "image_var")
-        p.option_str(who, options, "points_var")
-        p.option_bool(who, options, "nav_images")
-        check_time_warp(p, who, options)
         nav = options.get("nav", {})
         if not isinstance(nav, Mapping):
             p.said("nav", f"input 'moos': option 'nav' must be a table like {{ x = \"USM_X\" }}, not {nav!r}")

@@ -37,6 +37,7 @@ from typing import Any, ClassVar
 import numpy as np
 
 from coex import Input, InputContext, Item, Nav, Samples
+from coex.options import Option, anything, flag, integer, number, text
 
 from ..options import LogOnce, Problems, need
 
@@ -128,27 +129,22 @@ class NmeaInput(Input):
 
     name = "nmea"
     feeds: ClassVar[tuple[str, ...]] = ("status", "timeseries")
-    options: ClassVar[Mapping[str, tuple[Any, str]]] = {
-        "serial": ("", "pyserial port or URL: /dev/ttyUSB2, socket://host:port ..."),
-        "baud": (4800, "baud rate of the serial port"),
-        "udp": ("", "host:port to receive datagrams on, e.g. 0.0.0.0:10110"),
-        "require_checksum": (True, "refuse lines without a *hh checksum"),
-        "dbt_is_altitude": (True, "DBT / DPT depth below the transducer is the vehicle's altitude "
-                                  "(a down-looking transducer)"),
-        "variation": (0.0, "magnetic variation in degrees, east positive, for HDM (and HDG "
-                           "without one)"),
-        "channels": ({}, "more time series: \"SENTENCE.field_index\" = \"channel\""),
+    options: ClassVar[Mapping[str, Option]] = {
+        "serial": text("", "pyserial port or URL: /dev/ttyUSB2, socket://host:port ..."),
+        "baud": integer(4800, "baud rate of the serial port", unit="baud", lo=1, hi=10_000_000),
+        "udp": text("", "host:port to receive datagrams on, e.g. 0.0.0.0:10110"),
+        "require_checksum": flag(True, "refuse lines without a *hh checksum"),
+        "dbt_is_altitude": flag(True, "DBT / DPT depth below the transducer is the vehicle's altitude "
+                                      "(a down-looking transducer)"),
+        "variation": number(0.0, "magnetic variation in degrees, east positive, for HDM (and HDG "
+                                 "without one)", unit="deg", lo=-180, hi=180),
+        "channels": anything({}, "more time series: \"SENTENCE.field_index\" = \"channel\""),
     }
 
     @classmethod
     def check(cls, options: Mapping[str, Any]) -> Problems:
         p, who = Problems(), f"input {cls.name!r}"
-        p.option_str(who, options, "serial")
         p.option_host_port(who, options, "udp")
-        p.option_int(who, options, "baud", 1, 10_000_000)
-        p.option_bool(who, options, "require_checksum")
-        p.option_bool(who, options, "dbt_is_altitude")
-        p.option_number(who, options, "variation")
         if not options.get("serial") and not options.get("udp"):
             p.said("", f"{who} needs the option 'serial' or 'udp' (or both)")
         channels = options.get("channels", {})

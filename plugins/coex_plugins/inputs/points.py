@@ -12,11 +12,12 @@ counted (``counts["skipped"]``).
 from __future__ import annotations
 
 from collections.abc import Mapping
-from typing import Any, ClassVar
+from typing import ClassVar
 
 import numpy as np
 
 from coex import Item, Points
+from coex.options import REQUIRED, Option, flag, number, text
 
 from ._files import WatchedInput, read_sidecar
 
@@ -34,13 +35,14 @@ class PointsInput(WatchedInput):
 
     name = "points"
     feeds = ("bathymetry",)
-    options: ClassVar[Mapping[str, tuple[Any, str]]] = {
-        "path": (..., "a .npy / .csv file, or a directory to watch for them"),
-        "pattern": ("*.npy,*.csv", "comma-separated file name patterns in a directory, case ignored"),
-        "settle": (1.0, "seconds a file's size and mtime must stay unchanged before it is read"),
-        "existing": (False, "also take the files already in the directory when the input opens "
-                            "(a single named file is always taken)"),
-        "interval": (0.5, "seconds between two scans of the directory"),
+    options: ClassVar[Mapping[str, Option]] = {
+        "path": text(REQUIRED, "a .npy / .csv file, or a directory to watch for them"),
+        "pattern": text("*.npy,*.csv", "comma-separated file name patterns in a directory, case ignored"),
+        "settle": number(1.0, "seconds a file's size and mtime must stay unchanged before it is read",
+                         unit="s", lo=0),
+        "existing": flag(False, "also take the files already in the directory when the input opens "
+                                "(a single named file is always taken)"),
+        "interval": number(0.5, "seconds between two scans of the directory", unit="s", lo=0),
     }
 
     path_kind = "file or folder"

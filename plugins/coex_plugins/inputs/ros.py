@@ -32,6 +32,7 @@ from typing import Any, ClassVar
 import numpy as np
 
 from coex import Input, InputContext, Item, Nav, Samples
+from coex.options import Option, flag, integer, text
 
 from ..options import LogOnce, Problems, check_scale, compile_path, finite
 from .rosmsg import ROLES, FrameMap, canonical, check_frames, item_of, stamp_of
@@ -85,7 +86,7 @@ class RosInput(Input):
 
     name = "ros"
     feeds = ("bathymetry", "imagery", "status", "timeseries")
-    options: ClassVar[Mapping[str, tuple[Any, str]]] = {
+    options: ClassVar[Mapping[str, tuple[Any, str] | Option]] = {
         "master": ("", "the ROS master URI; empty: $ROS_MASTER_URI, else http://localhost:11311"),
         "node": ("coex_vehicle", "the name of CoEx's ROS node (one per process)"),
         "points_topic": ("", "sensor_msgs/PointCloud2 topic: soundings for the bathymetry map"),
@@ -97,10 +98,11 @@ class RosInput(Input):
                        "maps to the local grid (empty: points ENU, poses nav_frame, any frame id)"),
         "series": ([], "numeric fields as time series: a list of {topic, channels = {channel = "
                        "\"field path\"}, scale} tables"),
-        "queue": (10, "messages kept per topic between two polls (the oldest dropped beyond)"),
-        "stamps": ("header", "'header': an item's time is its header.stamp (when not zero); "
-                             "'arrival': when the daemon took it"),
-        "nav_images": (True, "images get the newest vehicle position (a camera image has none of its own)"),
+        "queue": integer(10, "messages kept per topic between two polls (the oldest dropped beyond)",
+                         lo=1, hi=10000),
+        "stamps": text("header", "'header': an item's time is its header.stamp (when not zero); "
+                                 "'arrival': when the daemon took it", choices=("header", "arrival")),
+        "nav_images": flag(True, "images get the newest vehicle position (a camera image has none of its own)"),
         "altitude_topic": ("", "the vehicle's altitude above the seafloor: sensor_msgs/Range, std_msgs/Float32 "
                                "or Float64, or any message with altitude_field"),
         "altitude_field": ("", "field path of the altitude in altitude_topic's messages (default: range for "
@@ -127,9 +129,6 @@ class RosInput(Input):
         check_frames(p, cls.name, options)
         if "series" in options:
             check_series(p, who, options)
-        p.option_int(who, options, "queue", 1, 10000)
-        p.option_choice(who, options, "stamps", ("header", "arrival"))
-        p.option_bool(who, options, "nav_images")
         return p
 
     def __init__(self, options: Mapping[str, Any], context: InputContext) -> None:

@@ -30,6 +30,7 @@ from pathlib import Path
 from typing import Any, ClassVar
 
 from coex import ConfigError, Input, InputContext, Item
+from coex.options import Option, number, text
 
 from ..options import LogOnce, Problems, need
 from .rosmsg import (
@@ -53,15 +54,15 @@ class RosbagInput(Input):
 
     name = "rosbag"
     feeds = ("bathymetry", "imagery", "status")
-    options: ClassVar[Mapping[str, tuple[Any, str]]] = {
+    options: ClassVar[Mapping[str, tuple[Any, str] | Option]] = {
         "path": (..., "a ROS 1 .bag, or a ROS 2 bag directory (metadata.yaml), .db3 or .mcap"),
         "points_topic": ("", "sensor_msgs/PointCloud2 topic: soundings for the bathymetry map"),
         "image_topic": ("", "sensor_msgs/Image or CompressedImage topic: camera images"),
         "nav_topic": ("", "nav_msgs/Odometry, geometry_msgs/PoseStamped (WithCovariance) or "
                           "sensor_msgs/NavSatFix topic: the vehicle's position"),
-        "start": ("now", "'now': item times shifted so the bag starts when the input opens; "
-                         "'original': item times as recorded"),
-        "speed": (1.0, "replay speed (2.0 = twice as fast)"),
+        "start": text("now", "'now': item times shifted so the bag starts when the input opens; "
+                             "'original': item times as recorded", choices=("now", "original")),
+        "speed": number(1.0, "replay speed (2.0 = twice as fast)", above=0),
         "nav_frame": ("enu", "frame of nav_topic poses: 'enu' (ROS REP 103: x east, y north, "
                              "z up, yaw from east) or 'ned' (x north, y east, z down, yaw from north)"),
         "frames": ({}, "frame id -> 'enu' | 'ned' | {axes, x, y, z, yaw}: how each header.frame_id "
@@ -76,8 +77,6 @@ class RosbagInput(Input):
             p.option_str(who, options, key)
         if not any(options.get(k) for k in ("points_topic", "image_topic", "nav_topic")):
             p.said("", f"{who} needs at least one of the options 'points_topic', 'image_topic', 'nav_topic'")
-        p.option_choice(who, options, "start", ("now", "original"))
-        p.option_number(who, options, "speed", positive=True)
         check_frames(p, cls.name, options)
         return p
 

@@ -33,6 +33,7 @@ from collections.abc import Mapping
 from typing import Any, ClassVar
 
 from coex import InputContext, Item, Nav
+from coex.options import Option, anything, flag, integer, text
 
 from ..inputs.nmea import NmeaInput, _angle, _num, checksum
 from ..options import Problems
@@ -116,32 +117,28 @@ class UsblInput(NmeaInput):
 
     name = "usbl"
     feeds: ClassVar[tuple[str, ...]] = ()
-    options: ClassVar[Mapping[str, tuple[Any, str]]] = {
-        "serial": ("", "pyserial port or URL of the tracking system's output: /dev/ttyUSB3, socket://host:port ..."),
-        "baud": (4800, "baud rate of the serial port"),
-        "udp": ("", "host:port to receive its datagrams on, e.g. 0.0.0.0:10111"),
-        "require_checksum": (True, "refuse lines without a *hh checksum"),
-        "target": ("", "keep only this target or transponder (TLL / TTM target number, PSIMSSB "
-                       "transponder: 2, \"B02\"); empty: every fix"),
-        "gga": ("vehicle", "what a GGA on this line is: \"vehicle\" (a USBL that sends the vehicle's "
-                           "position as GGA) or \"ship\" (the ship's GPS, for TTM and relative PSIMSSB)"),
-        "utm_zone": ("", "the UTM zone of PSIMSSB UTM coordinates, like \"31N\" (default: the origin's)"),
+    options: ClassVar[Mapping[str, Option]] = {
+        "serial": text("", "pyserial port or URL of the tracking system's output: /dev/ttyUSB3, socket://host:port ..."),
+        "baud": integer(4800, "baud rate of the serial port", unit="baud", lo=1, hi=10_000_000),
+        "udp": text("", "host:port to receive its datagrams on, e.g. 0.0.0.0:10111"),
+        "require_checksum": flag(True, "refuse lines without a *hh checksum"),
+        "target": anything("", "keep only this target or transponder (TLL / TTM target number, PSIMSSB "
+                               "transponder: 2, \"B02\"); empty: every fix"),
+        "gga": text("vehicle", "what a GGA on this line is: \"vehicle\" (a USBL that sends the vehicle's "
+                               "position as GGA) or \"ship\" (the ship's GPS, for TTM and relative PSIMSSB)",
+                    choices=("vehicle", "ship")),
+        "utm_zone": text("", "the UTM zone of PSIMSSB UTM coordinates, like \"31N\" (default: the origin's)"),
     }
 
     @classmethod
     def check(cls, options: Mapping[str, Any]) -> Problems:
         p, who = Problems(), f"input {cls.name!r}"
-        p.option_str(who, options, "serial")
         p.option_host_port(who, options, "udp")
-        p.option_int(who, options, "baud", 1, 10_000_000)
-        p.option_bool(who, options, "require_checksum")
         if not options.get("serial") and not options.get("udp"):
             p.said("", f"{who} needs the option 'serial' or 'udp' (or both)")
         target = options.get("target", "")
         if not isinstance(target, str | int) or isinstance(target, bool):
             p.said("target", f"{who}: option 'target' must be a target number or a transponder like \"B02\"")
-        if options.get("gga", "vehicle") not in ("vehicle", "ship"):
-            p.said("gga", f"{who}: option 'gga' must be \"vehicle\" or \"ship\", got {options.get('gga')!r}")
         zone = options.get("utm_zone", "")
         if zone:
             try:
