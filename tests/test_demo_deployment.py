@@ -74,7 +74,7 @@ def test_the_vehicle_streams_and_priorities_are_the_deployments(tmp_path: Path, 
     assert (vlink.rate, vlink.dst, vlink.spare) == (scn.modem_rate, TOPSIDE, scn.spare)
     assert (tlink.rate, tlink.dst) == (scn.modem_rate, VEHICLE)
     assert vehicle.manager.queue_status_interval == scn.cycle
-    # the demo's one addition to build_node's topside: its own queue status each cycle (as before)
+    # the demo topside's file says [tdma] queue_status = true: its own queue status each cycle (as before)
     assert topside.manager.queue_status_interval == scn.cycle
     assert sorted(modems) == [TOPSIDE, VEHICLE]
 

@@ -320,3 +320,49 @@ modalities = "imagery"
     assert problems == ["vehicles[1].modalities: a list of the modalities this vehicle carries, got 'imagery'",
                         "vehicles[0].modalities: 'sonar' is not one of this topside's modalities "
                         "(bathymetry, imagery, survey)"]
+
+
+# --------------------------------------------------------------- [tdma] queue_status
+def _queue_status_interval(text: str, tmp_path: Path) -> float | None:
+    import tomllib
+
+    from coex_apps.vehicle.build import build_node
+    from coex_apps.vehicle.config import from_mapping
+    from coex_core.loopback import LoopbackLink, LoopbackTransport
+
+    cfg = from_mapping(tomllib.loads(text), tmp_path / "n.toml")
+    node = build_node(cfg, cfg.role, {0: LoopbackTransport(LoopbackLink(), 0)})
+    return node.manager.queue_status_interval  # type: ignore[no-any-return]
+
+
+QS = """
+[node]
+role = "{role}"
+id = {id}
+peer = {peer}
+store = false
+[[modems]]
+uri = "loopback://qs"
+[tdma]
+slots = ["topside", "vehicle", "vehicle"]
+slot_seconds = 10
+{qs}
+"""
+
+
+@pytest.mark.parametrize(("role", "qs", "want"), [
+    ("vehicle", "", 30.0), ("topside", "", None),
+    ("topside", "queue_status = true", 30.0), ("vehicle", "queue_status = false", None)])
+def test_tdma_queue_status_says_which_node_reports_its_queues(tmp_path: Path, role: str, qs: str,
+                                                                want: float | None) -> None:
+    ids = {"vehicle": (2, 1), "topside": (1, 2)}[role]
+    text = QS.format(role=role, id=ids[0], peer=ids[1], qs=qs)
+    assert _queue_status_interval(text, tmp_path) == want
+
+
+@pytest.mark.parametrize("bad", ["1", "\"yes\"", "nan"])
+def test_tdma_queue_status_takes_only_true_or_false(tmp_path: Path, bad: str) -> None:
+    f = tmp_path / "v.toml"
+    f.write_text(QS.format(role="vehicle", id=2, peer=1, qs=f"queue_status = {bad}"))
+    _, problems = check(f)
+    assert any(p.startswith("tdma.queue_status: true or false") for p in problems), problems

@@ -106,7 +106,11 @@ def node_mapping(scn: Scenario, role: str, node_id: int, peer: int, modalities: 
         "node": {"role": role, "id": node_id, "store": False},
         "modems": [modem],
         "tdma": {"slots": _slots(scn, role, node_id), "slot_seconds": scn.slot_seconds,
-                 "guard": scn.guard_seconds, "epoch": EPOCH},
+                 "guard": scn.guard_seconds, "epoch": EPOCH,
+                 # the demo's topside reports its own queues once a cycle too (it always has: the
+                 # dives measured for issue 50 were run so; a few uplink bytes a cycle change what
+                 # each packet carries, docs/demo.md "The code")
+                 "queue_status": True},
         "modalities": dict(modalities),
     }
     if vehicles:

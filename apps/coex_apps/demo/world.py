@@ -146,11 +146,6 @@ def build_nodes(out: Path, channels: list[dict[str, Any]], command_key: bytes | 
     vehicle.manager.add_stream(link_stream())
     topside, tmodem = build(node_mapping(scn, "topside", TOPSIDE, VEHICLE, receiver_modalities(out, auto_fill)),
                             out, network, command_key)
-    # The demo's topside has always reported its own queues once a TDMA cycle (coex topside does
-    # not: build_node gives a vehicle alone a queue status interval). Kept so that a dive's
-    # results stay those measured before (issue 50's evaluations); without it every dive differs
-    # (a few uplink bytes a cycle change what each packet carries: docs/demo.md, "The code").
-    topside.manager.queue_status_interval = scn.cycle
     senders = {name: vehicle.sender(name) for name in names}
     receivers = {name: topside.receiver(name) for name in names}
     return vehicle, topside, senders, receivers, {VEHICLE: vmodem, TOPSIDE: tmodem}
@@ -196,7 +191,6 @@ def build_fleet(out: Path, channels: list[dict[str, Any]], command_key: bytes | 
     topside, topside_modem = build(node_mapping(scn, "topside", TOPSIDE, VEHICLE, receiver_modalities(
         out, auto_fill, ("bathymetry", "timeseries", "detections", "survey", "imagery")), vehicles=carried),
         out, network, command_key)
-    topside.manager.queue_status_interval = scn.cycle  # as a single dive's topside (build_nodes)
     camera, camera_modem = build(node_mapping(scn, "vehicle", CAMERA, TOPSIDE, sender_modalities(
         ("imagery", "survey"), channels, fence, CONFIRM_LAYERS), spare=scn.spare), out, network, command_key)
     receivers = {

@@ -45,7 +45,8 @@ def build_node(cfg: DeployConfig, role: str, transports: Mapping[int, Any], *,
     configuration's own) over ``transports`` (:func:`link_configs`), with the command key.
 
     A vehicle gets one sender per modality on its stream and priority (with the file's options
-    and id remapping) and sends its queue status once a TDMA cycle; a modality that cannot be
+    and id remapping) and sends its queue status once a TDMA cycle (``[tdma] queue_status``: a
+    topside too when true); a modality that cannot be
     made is an error. A topside gets one receiver per modality (options, id remapping); one that
     cannot be made (a plugin not installed, an extra missing) is left out and said in
     ``missing`` (``"modality NAME not available: why"``), the console runs on without it. A
@@ -58,7 +59,7 @@ def build_node(cfg: DeployConfig, role: str, transports: Mapping[int, Any], *,
     if role not in ROLES or role != cfg.role:
         raise ConfigError(f"this configuration is the {cfg.role}'s, not the {role}'s")
     kw: dict[str, Any] = {}
-    if role == "vehicle":
+    if cfg.queue_status if cfg.queue_status is not None else role == "vehicle":
         kw["queue_status_interval"] = cfg.slot_seconds * len(cfg.slots)
     keys = {v.id: v.command_key for v in cfg.vehicles if v.command_key is not None}
     if cfg.peer_key is not None:  # a vehicle's key shared with its topside alone

@@ -17,6 +17,7 @@ from pathlib import Path
 from typing import Any
 
 from coex import CoexError, ConfigError, Problems
+from coex.options import flag
 
 __all__ = ["DEFAULT_MODALITIES", "DeployConfig", "FleetVehicle", "ModalityConfig", "check", "check_mapping",
            "check_problems", "from_mapping", "load"]
@@ -103,6 +104,9 @@ class DeployConfig:
     slot_seconds: float = 20.0
     guard: float = 2.0
     epoch: float = 0.0
+    #: ``[tdma] queue_status``: this node sends its queue status (a ``QueueStatus``, about 3 B
+    #: a stream) once a TDMA cycle; default true on a vehicle, false on a topside
+    queue_status: bool | None = None
     modalities: list[ModalityConfig] = field(default_factory=list)
     status_interval: float = 10.0
     inputs: list[dict[str, Any]] = field(default_factory=list)
@@ -559,9 +563,14 @@ def _key(p: Problems, cfg: DeployConfig, keyfile: Any, key: str) -> tuple[bytes 
     return None, None
 
 
+#: ``[tdma] queue_status`` (the one declaration of the key)
+QUEUE_STATUS = flag(None, "send this node's queue status once a TDMA cycle (default: true on a "
+                                  "vehicle, false on a topside)")
+
+
 def _tdma(raw: Mapping[str, Any], p: Problems, cfg: DeployConfig) -> None:
     t = p.table(raw.get("tdma"), "tdma")
-    p.unknown(t, {"slots", "slot_seconds", "guard", "epoch"}, "tdma")
+    p.unknown(t, {"slots", "slot_seconds", "guard", "epoch", "queue_status"}, "tdma")
     slots = t.get("slots", list(NUI_SLOTS))
     names = {v.name: v.id for v in cfg.vehicles}
     if (not isinstance(slots, list) or not slots or len(slots) > 32
@@ -599,6 +608,8 @@ def _tdma(raw: Mapping[str, Any], p: Problems, cfg: DeployConfig) -> None:
     if cfg.guard >= cfg.slot_seconds:
         p.add("tdma.guard", f"the guard ({cfg.guard:g} s) must be shorter than a slot ({cfg.slot_seconds:g} s)")
     cfg.epoch = float(p.number(t, "epoch", "tdma", 0.0))
+    if "queue_status" in t:
+        cfg.queue_status = QUEUE_STATUS.checked(p, "tdma.queue_status", t["queue_status"])
 
 
 def _modalities(raw: Mapping[str, Any], p: Problems, cfg: DeployConfig) -> None:
