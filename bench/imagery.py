@@ -277,18 +277,24 @@ def our_curve(img: np.ndarray, mtu: int, pcurve: list[Any] | None = None,
     return pts, enc
 
 
-def wire_at(img: np.ndarray, mtus: list[int], pcurve: list[Any] | None = None) -> dict[int, dict[str, int | None]]:
-    """Our wire bytes to each threshold at each MTU: ``{mtu: {threshold: bytes or None}}``."""
-    enc = encode(img)
-    pc = pcurve if pcurve is not None else [(n, q, []) for n, q in packet_curve(enc, img)]
+Wire = dict[int, dict[str, int | None]]
+
+
+def wire_at(img: np.ndarray, mtus: list[int], pcurve: list[Any] | None = None) -> tuple[Wire, dict[int, dict[str, int]]]:
+    """Our wire bytes to each threshold at each MTU (``{mtu: {threshold: bytes or None}}``) and
+    the body prefix each of those ends at (``{mtu: {threshold: bytes}}``, thresholds reached)."""
+    pc = pcurve if pcurve is not None else [(n, q, []) for n, q in packet_curve(encode(img), img)]
     # only the prefixes up to the highest threshold matter: the transfer stops there
     last = next((i for i, (_n, q, _) in enumerate(pc) if q >= max(THRESHOLDS)), len(pc) - 1)
     pc = pc[:last + 1]
-    out: dict[int, dict[str, int | None]] = {}
+    out: Wire = {}
+    bodies: dict[int, dict[str, int]] = {}
     for mtu in mtus:
-        pts = [(c, q) for c, q, _, _ in our_curve(img, mtu, pc)[0]]
-        out[mtu] = {str(x): need(pts, x) for x in THRESHOLDS}
-    return out
+        pts = our_curve(img, mtu, pc)[0]
+        out[mtu] = {str(x): need([(c, q) for c, q, _, _ in pts], x) for x in THRESHOLDS}
+        bodies[mtu] = {str(x): next(n for c, q, n, _ in pts if c == out[mtu][str(x)] and q >= x)
+                       for x in THRESHOLDS if out[mtu][str(x)] is not None}
+    return out, bodies
 
 
 def worst_of(wire: dict[int, dict[str, int | None]], base: list[tuple[int, float]],
@@ -310,7 +316,7 @@ def worst_every_mtu(img: np.ndarray, base: list[tuple[int, float]], mtus: list[i
                     pcurve: list[Any] | None = None) -> dict[str, Any]:
     """Ours / 2022 at each threshold, the worst over ``mtus`` (every MTU from 64 up), with the
     MTU and both byte counts: ``{threshold: [ratio, mtu, ours, 2022]}``."""
-    return worst_of(wire_at(img, mtus, pcurve), base)
+    return worst_of(wire_at(img, mtus, pcurve)[0], base)
 
 
 def stress_images(images: list[tuple[str, np.ndarray]]) -> list[tuple[str, np.ndarray]]:
@@ -375,13 +381,87 @@ def target_rows(name: str, group: str, img: np.ndarray, base: list[tuple[int, fl
     """One frame's row of the issue 54 table: ours / 2022 at each TARGET_MTUS and threshold (None
     where either never reaches it), the worst and whether it is at most TARGET_2022."""
     old = {str(x): need(base, x) for x in THRESHOLDS}
-    ratio = {str(m): {x: (None if wire[m][x] is None or not old[x] else round(wire[m][x] / old[x], 4))
-                      for x in old} for m in TARGET_MTUS}
+    ratio = {str(m): {x: _ratio(wire[m][x], old[x]) for x in old} for m in TARGET_MTUS}
     vals = [(v, int(m), x) for m, row in ratio.items() for x, v in row.items() if v is not None]
     worst = max(vals, default=None)
     return {"frame": name, "set": group, "shape": list(img.shape), "2022": old,
             "ours": {str(m): wire[m] for m in TARGET_MTUS}, "ratio": ratio,
             "worst": None if worst is None else list(worst), "met": worst is None or worst[0] <= TARGET_2022}
+
+
+def table_frames(dive: list[tuple[str, np.ndarray]], stress: bool, held_out: bool) -> list[tuple[str, str, np.ndarray]]:
+    """The issue 54 table's frames beside the dive images (``dive``: empty on generated data):
+    the bench's generated images (``stress``) and the held-out frames (``held_out``), each with
+    its set's name."""
+    return ([(n, "bench", i) for n, i in stress_images(dive)] if stress else []) + \
+        ([(n, "held-out", i) for n, i in held_out_images(dive)] if held_out else [])
+
+
+def table_row(name: str, group: str, img: np.ndarray, base: list[tuple[int, float]], mtus: list[int],
+              pcurve: list[Any] | None = None, enc: codec.Encoded | None = None) -> tuple[dict[str, Any], Wire]:
+    """One frame's row of the issue 54 table (:func:`target_rows`, with the body prefix at each
+    point and the layers), its worst point checked end to end (a sender with that byte goal, a
+    receiver: its decoded image must reach the threshold with exactly those wire bytes); and
+    our wire bytes at ``mtus`` and TARGET_MTUS (:func:`wire_at`; ``pcurve`` when known, of
+    ``enc`` when given)."""
+    enc = enc if enc is not None else encode(img)
+    if pcurve is None:
+        pcurve = [(n, q, []) for n, q in packet_curve(enc, img)]
+    wire, bodies = wire_at(img, sorted({*mtus, *TARGET_MTUS}), pcurve)
+    row = target_rows(name, group, img, base, wire)
+    row["layers"] = enc.stream.layers
+    row["body"] = {str(m): bodies[m] for m in TARGET_MTUS}
+    if row["worst"] is not None:
+        _, mtu, x = row["worst"]
+        down, q = verify(img, mtu, bodies[mtu][x])
+        row["verified"] = {"mtu": mtu, "threshold": x, "wire_bytes": down, "psnr": round(q, 3)}
+        if down != wire[mtu][x] or q < float(x):
+            raise AssertionError(f"{name} MTU {mtu}: end to end {down} B / {q:.2f} dB, expected "
+                                 f"{wire[mtu][x]} B / at least {x} dB")
+    return row, wire
+
+
+def table_sets(rows: list[dict[str, Any]]) -> dict[str, Any]:
+    """The issue 54 table by set: frames, the worst point, the worst and the mean ratio per MTU
+    and threshold, whether every frame is within TARGET_2022 and which are not."""
+    def cells(mine: list[dict[str, Any]]) -> dict[str, list[float]]:
+        out: dict[str, list[float]] = {}
+        for m in TARGET_MTUS:
+            for x in THRESHOLDS:
+                vals = [r["ratio"][str(m)][str(x)] for r in mine if r["ratio"][str(m)][str(x)] is not None]
+                if vals:
+                    out[f"{m}/{x}"] = vals
+        return out
+
+    sets: dict[str, Any] = {}
+    for group in dict.fromkeys(r["set"] for r in rows):
+        mine = [r for r in rows if r["set"] == group]
+        worst = max(([*r["worst"], r["frame"]] for r in mine if r["worst"]), default=None)
+        per_cell = cells(mine)
+        sets[group] = {"frames": len(mine), "worst": worst,
+                       "worst_per_mtu_threshold": {k: max(v) for k, v in per_cell.items()},
+                       "mean_per_mtu_threshold": {k: round(float(np.mean(v)), 4) for k, v in per_cell.items()},
+                       "met": all(r["met"] for r in mine), "not_met": [r["frame"] for r in mine if not r["met"]]}
+    return sets
+
+
+def print_table(rows: list[dict[str, Any]], sets: dict[str, Any]) -> None:
+    """The issue 54 table: each frame's ratios at TARGET_MTUS and thresholds, then each set."""
+    print(f"\nissue 54: ours / 2022 per frame at MTU {', '.join(map(str, TARGET_MTUS))} and "
+          f"{' / '.join(f'{x:g}' for x in THRESHOLDS)} dB (- : 2022 or ours never reaches it); at most {TARGET_2022}")
+    print(f"{'frame':24} {'set':9} " + " ".join(f"{'MTU ' + str(m):^17}" for m in TARGET_MTUS) + "  worst")
+    for r in rows:
+        cells = " ".join(" ".join(f"{v:5.3f}" if v is not None else "    -" for v in r["ratio"][str(m)].values())
+                         for m in TARGET_MTUS)
+        w = r["worst"]
+        print(f"{r['frame']:24} {r['set']:9} {cells}  {w[0] if w else '-'} {'MET' if r['met'] else 'NOT MET'}")
+    for group, v in sets.items():
+        w = v["worst"]
+        print(f"  {group}: {v['frames']} frames, worst {w[0]} ({w[3]}, MTU {w[1]}, {w[2]} dB)" if w
+              else f"  {group}: {v['frames']} frames", f"-> {'MET' if v['met'] else 'NOT MET'}"
+              + (f" ({len(v['not_met'])} above: {', '.join(v['not_met'])})" if v["not_met"] else ""))
+        print("    worst per MTU/dB: " + ", ".join(f"{k} {val:.3f}" for k, val in v["worst_per_mtu_threshold"].items()))
+        print("    mean per MTU/dB:  " + ", ".join(f"{k} {val:.3f}" for k, val in v["mean_per_mtu_threshold"].items()))
 
 
 def verify(img: np.ndarray, mtu: int, goal_bytes: int) -> tuple[int, float]:
@@ -518,72 +598,20 @@ def issue54(args: argparse.Namespace) -> int:
     ``bench/results/imagery-issue54.json`` (``--out`` overrides)."""
     t0 = time.time()
     source, images = load_images(False)
-    frames: list[tuple[str, str, np.ndarray]] = [(n, "dive" if source == "nui040" else "synthetic", i)
-                                                 for n, i in images]
     dive = images if source == "nui040" else []
-    if not args.no_stress:
-        frames += [(n, "bench", i) for n, i in stress_images(dive)]
-    if not args.no_held_out:
-        frames += [(n, "held-out", i) for n, i in held_out_images(dive)]
+    frames = [(n, "dive" if source == "nui040" else "synthetic", i) for n, i in images]
+    frames += table_frames(dive, not args.no_stress, not args.no_held_out)
     rows: list[dict[str, Any]] = []
     for name, group, img in frames:
-        base = baseline_curve(img)
-        enc = encode(img)
-        pc: list[Any] = [(n, q, []) for n, q in packet_curve(enc, img)]
-        last = next((i for i, (_n, q, _) in enumerate(pc) if q >= max(THRESHOLDS)), len(pc) - 1)
-        pc = pc[:last + 1]
-        wire: dict[int, dict[str, int | None]] = {}
-        bodies: dict[int, dict[str, int]] = {}
-        for mtu in TARGET_MTUS:
-            pts = our_curve(img, mtu, pc)[0]
-            wire[mtu] = {str(x): need([(c, q) for c, q, _, _ in pts], x) for x in THRESHOLDS}
-            bodies[mtu] = {str(x): next(n for c, q, n, _ in pts if c == wire[mtu][str(x)] and q >= x)
-                           for x in THRESHOLDS if wire[mtu][str(x)] is not None}
-        row = target_rows(name, group, img, base, wire)
-        row["layers"] = enc.stream.layers
-        row["body"] = {str(m): bodies[m] for m in TARGET_MTUS}
-        if row["worst"] is not None:
-            _, mtu, x = row["worst"]
-            down, q = verify(img, mtu, bodies[mtu][x])
-            row["verified"] = {"mtu": mtu, "threshold": x, "wire_bytes": down, "psnr": round(q, 3)}
-            if down != wire[mtu][x] or q < float(x):
-                raise AssertionError(f"{name} MTU {mtu}: end to end {down} B / {q:.2f} dB, expected "
-                                     f"{wire[mtu][x]} B / at least {x} dB")
+        row, wire = table_row(name, group, img, baseline_curve(img), list(TARGET_MTUS))
         rows.append(row)
         print(f"{name:24} {group:9} 2022 {list(row['2022'].values())}  MTU 64 {list(wire[64].values())}  "
               f"worst {row['worst']} {'MET' if row['met'] else 'NOT MET'}  ({time.time() - t0:.0f} s)", flush=True)
-    sets: dict[str, Any] = {}
-    for group in dict.fromkeys(r["set"] for r in rows):
-        mine = [r for r in rows if r["set"] == group]
-        worst = max(([*r["worst"], r["frame"]] for r in mine if r["worst"]), default=None)
-        per_cell = {f"{m}/{x}": max(r["ratio"][str(m)][str(x)] for r in mine if r["ratio"][str(m)][str(x)] is not None)
-                    for m in TARGET_MTUS for x in THRESHOLDS
-                    if any(r["ratio"][str(m)][str(x)] is not None for r in mine)}
-        means = {f"{m}/{x}": round(float(np.mean([r["ratio"][str(m)][str(x)] for r in mine
-                                                  if r["ratio"][str(m)][str(x)] is not None])), 4)
-                 for m in TARGET_MTUS for x in THRESHOLDS
-                 if any(r["ratio"][str(m)][str(x)] is not None for r in mine)}
-        sets[group] = {"frames": len(mine), "worst": worst, "worst_per_mtu_threshold": per_cell,
-                       "mean_per_mtu_threshold": means, "met": all(r["met"] for r in mine),
-                       "not_met": [r["frame"] for r in mine if not r["met"]]}
+    sets = table_sets(rows)
     summary = {"source": source, "options": OPTIONS, "limit": TARGET_2022, "mtus": list(TARGET_MTUS),
                "thresholds": [str(x) for x in THRESHOLDS], "sets": sets,
                "met": all(v["met"] for v in sets.values()), "seconds": round(time.time() - t0, 1)}
-    print(f"\nissue 54: ours / 2022 per frame at MTU {', '.join(map(str, TARGET_MTUS))} and "
-          f"{' / '.join(f'{x:g}' for x in THRESHOLDS)} dB (- : 2022 or ours never reaches it); at most {TARGET_2022}")
-    print(f"{'frame':24} {'set':9} " + " ".join(f"{'MTU ' + str(m):^17}" for m in TARGET_MTUS) + "  worst")
-    for r in rows:
-        cells = " ".join(" ".join(f"{v:5.3f}" if v is not None else "    -" for v in r["ratio"][str(m)].values())
-                         for m in TARGET_MTUS)
-        w = r["worst"]
-        print(f"{r['frame']:24} {r['set']:9} {cells}  {w[0] if w else '-'} {'MET' if r['met'] else 'NOT MET'}")
-    for group, v in sets.items():
-        w = v["worst"]
-        print(f"  {group}: {v['frames']} frames, worst {w[0]} ({w[3]}, MTU {w[1]}, {w[2]} dB)" if w
-              else f"  {group}: {v['frames']} frames", f"-> {'MET' if v['met'] else 'NOT MET'}"
-              + (f" ({len(v['not_met'])} above: {', '.join(v['not_met'])})" if v["not_met"] else ""))
-        print("    worst per MTU/dB: " + ", ".join(f"{k} {val:.3f}" for k, val in v["worst_per_mtu_threshold"].items()))
-        print("    mean per MTU/dB:  " + ", ".join(f"{k} {val:.3f}" for k, val in v["mean_per_mtu_threshold"].items()))
+    print_table(rows, sets)
     print(f"every frame at most {TARGET_2022}x 2022: {'MET' if summary['met'] else 'NOT MET'}   ({summary['seconds']} s)")
     out = Path(args.out if args.out else Path(__file__).parent / "results" / "imagery-issue54.json")
     out.parent.mkdir(parents=True, exist_ok=True)
@@ -671,9 +699,9 @@ def main(argv: list[str] | None = None) -> int:
                 if down != c or abs(q - direct) > 1e-6:
                     raise AssertionError(f"{name} MTU {mtu}: end to end {down} B / {q:.2f} dB, "
                                          f"expected {c} B / {direct:.2f} dB")
-        wire54 = wire_at(img, sorted({*every, *TARGET_MTUS}), pcurve)
+        row, wire54 = table_row(name, "dive" if source == "nui040" else "synthetic", img, base, every, pcurve, enc)
         rec["every_mtu"] = worst_of(wire54, base, every)
-        rows.append(target_rows(name, "dive" if source == "nui040" else "synthetic", img, base, wire54))
+        rows.append(row)
         if not args.quick:
             prev = codec.encode_image(img, codec.CodingParams.from_config(PREVIOUS_DEFAULT))
             pn = body_needs(prev, img)
@@ -719,35 +747,29 @@ def main(argv: list[str] | None = None) -> int:
     summary["worst_every_mtu"] = {str(x): v for x, v in worst_all.items()}
     summary["meets_2022_every_image_every_mtu"] = all(v is None or v[0] <= 1.0 for v in worst_all.values())
     if not args.quick:
-        lay = {}
+        lay: dict[str, dict[str, float]] = {}
         for x in THRESHOLDS:
-            prev = float(np.mean([r["layout"][str(x)]["previous"] for r in per_image]))
-            now = float(np.mean([r["layout"][str(x)]["now"] for r in per_image]))
-            lay[str(x)] = {"previous_mean": prev, "now_mean": now, "ratio": round(now / prev, 4)}
+            prev_mean = float(np.mean([r["layout"][str(x)]["previous"] for r in per_image]))
+            now_mean = float(np.mean([r["layout"][str(x)]["now"] for r in per_image]))
+            lay[str(x)] = {"previous_mean": prev_mean, "now_mean": now_mean, "ratio": round(now_mean / prev_mean, 4)}
         summary["layout"] = lay
         summary["meets_layout"] = all(v["ratio"] <= LAYOUT_SLACK for v in lay.values())
     stress: list[dict[str, Any]] = []
     stress_mtus = _mtu_range(args.stress_mtus)
-    if not args.quick and not args.no_stress:
-        for name, img in stress_images(images if source == "nui040" else []):
-            base = baseline_curve(img)
-            wire54 = wire_at(img, sorted({*stress_mtus, *TARGET_MTUS}))
-            stress.append({"image": name, "shape": list(img.shape), "2022": {str(x): need(base, x) for x in THRESHOLDS},
+    extra = [] if args.quick else table_frames(images if source == "nui040" else [], not args.no_stress,
+                                               not args.no_held_out)
+    for name, group, img in extra:
+        base = baseline_curve(img)
+        row, wire54 = table_row(name, group, img, base, stress_mtus if group == "bench" else list(TARGET_MTUS))
+        rows.append(row)
+        if group == "bench":
+            stress.append({"image": name, "shape": list(img.shape), "2022": row["2022"],
                            "worst": worst_of(wire54, base, stress_mtus)})
-            rows.append(target_rows(name, "bench", img, base, wire54))
+    if stress:
         summary["stress"] = {"images": len(stress), "mtus": [stress_mtus[0], stress_mtus[-1]], "worst": {
             str(x): max(([s["worst"][str(x)][0], s["worst"][str(x)][1], s["image"]] for s in stress
                          if str(x) in s["worst"]), default=None) for x in THRESHOLDS}}
-    if not args.quick and not args.no_held_out:
-        for name, img in held_out_images(images if source == "nui040" else []):
-            base = baseline_curve(img)
-            rows.append(target_rows(name, "held-out", img, base, wire_at(img, list(TARGET_MTUS))))
-    sets: dict[str, Any] = {}
-    for group in dict.fromkeys(r["set"] for r in rows):
-        mine = [r for r in rows if r["set"] == group]
-        worst = max(([*r["worst"], r["frame"]] for r in mine if r["worst"]), default=None)
-        sets[group] = {"frames": len(mine), "worst": worst, "met": all(r["met"] for r in mine),
-                       "not_met": [r["frame"] for r in mine if not r["met"]]}
+    sets = table_sets(rows)
     summary["target_2022"] = {"limit": TARGET_2022, "mtus": list(TARGET_MTUS), "thresholds": [str(x) for x in THRESHOLDS],
                               "sets": sets, "met": all(v["met"] for v in sets.values())}
     regions = region_summary(runs)
@@ -787,9 +809,9 @@ def main(argv: list[str] | None = None) -> int:
     print(f"\n{'MTU':>4} | ours/2022 mean, worst image (25 / 30 / 35 dB)            | wire/bound 30")
     for mtu in mtus:
         e = summary["per_mtu"][str(mtu)]
-        row = "  ".join(f"{e['ratio_to_2022'][str(x)]:.2f} {e['worst_ratio_to_2022'][str(x)]:.2f} "
-                        f"({e['worst_image'][str(x)]})" for x in THRESHOLDS)
-        print(f"{mtu:>4} | {row} | {e['ratio_wire_to_bound_30']:13.3f}")
+        line = "  ".join(f"{e['ratio_to_2022'][str(x)]:.2f} {e['worst_ratio_to_2022'][str(x)]:.2f} "
+                         f"({e['worst_image'][str(x)]})" for x in THRESHOLDS)
+        print(f"{mtu:>4} | {line} | {e['ratio_wire_to_bound_30']:13.3f}")
     print(f"worst ours/2022 over every MTU {every[0]}..{every[-1]}" + (f" (step {every[1] - every[0]})"
                                                                         if len(every) > 1 and every[1] - every[0] > 1 else "")
           + ": " + ", ".join(f"{x:g} dB {v[0]:.3f} ({v[2]}, MTU {v[1]})" for x, v in worst_all.items() if v))
@@ -801,19 +823,7 @@ def main(argv: list[str] | None = None) -> int:
     if "layout" in summary:
         print("layout, body now / previous default (means): " + ", ".join(
             f"{x} dB {v['ratio']:.3f}" for x, v in summary["layout"].items()))
-    print(f"\nissue 54: ours / 2022 per frame at MTU {', '.join(map(str, TARGET_MTUS))} and "
-          f"{' / '.join(f'{x:g}' for x in THRESHOLDS)} dB (- : 2022 or ours never reaches it); at most {TARGET_2022}")
-    print(f"{'frame':24} {'set':9} " + " ".join(f"{'MTU ' + str(m):^17}" for m in TARGET_MTUS) + "  worst")
-    for r in rows:
-        cells = " ".join(" ".join(f"{v:5.3f}" if v is not None else "    -" for v in r["ratio"][str(m)].values())
-                         for m in TARGET_MTUS)
-        w = r["worst"]
-        print(f"{r['frame']:24} {r['set']:9} {cells}  {w[0] if w else '-'} {'MET' if r['met'] else 'NOT MET'}")
-    for group, v in sets.items():
-        w = v["worst"]
-        print(f"  {group}: {v['frames']} frames, worst {w[0] if w else '-'} ({w[3]}, MTU {w[1]}, {w[2]} dB)"
-              if w else f"  {group}: {v['frames']} frames", f"-> {'MET' if v['met'] else 'NOT MET'}"
-              + (f" ({len(v['not_met'])} above: {', '.join(v['not_met'])})" if v["not_met"] else ""))
+    print_table(rows, sets)
     print("\nregions: wire bytes of one region request / the whole image's wire bytes from the same start until "
           "the region is there (mean over requests not there at the start; worst; all bytes)")
     print(f"{'region':8} {'start':8} {'dB':>3} {'MTU':>4} {'way':7} {'n':>3} {'there':>5} {'mean':>6} {'worst':>6} "

@@ -473,15 +473,18 @@ class ImageryReceiver(ModalityReceiver):
         return add_residual(base, crop.image)
 
     def _crop_shown(self, parent: _Rx, crop: _Rx) -> bool:
-        """Whether a crop is shown over its parent: it has pixels, fits the parent, and the parent
-        holds no more quality layers inside the box than the crop covers (else the parent is at
-        least as good there)."""
+        """Whether a crop is shown over its parent (spec/payloads.md 3.7): it has pixels, fits the
+        parent, and the parent holds fewer quality layers inside the box than the crop covers, or
+        as many and the crop is complete (``cover`` is what the *whole* crop is at least as good
+        as: a crop still arriving over a parent that already holds ``cover`` layers there would
+        show less than topside holds)."""
         c = crop.crop
         if c is None or self._crop_pixels(crop) is None:
             return False
         if c.x1 > parent.ann.width or c.y1 > parent.ann.height or bool(c.params & 1) == parent.ann.grey:
             return False
-        return self._region_layers(parent, (c.x0, c.y0, c.x1, c.y1)) <= c.cover
+        layers = self._region_layers(parent, (c.x0, c.y0, c.x1, c.y1))
+        return layers < c.cover or (layers == c.cover and bool(crop.have.all()))
 
     def _compose(self, rx: _Rx) -> None:
         """What topside shows of an image: its decode with its crops pasted at their boxes."""
