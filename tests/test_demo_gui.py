@@ -13,6 +13,8 @@ from pathlib import Path
 
 import pytest
 
+from ._dives import small_file
+
 # a whole demo dive behind the web console
 pytestmark = pytest.mark.slow
 
@@ -23,8 +25,11 @@ def _get(url: str) -> dict:  # type: ignore[type-arg]
 
 
 def test_demo_gui_serves_the_console(tmp_path: Path) -> None:
-    cmd = [sys.executable, "-m", "coex_core.cli", "demo", "--quick", "--gui", "--http", "127.0.0.1:0",
-           "--speed", "5000", "--quiet", "--out", str(tmp_path)]
+    # the small site (a 64 m site, one car, 25 minutes; tests/_dives.py): the console's path is
+    # the subject, not the default site
+    scenario = small_file(tmp_path / "small.toml")
+    cmd = [sys.executable, "-m", "coex_core.cli", "demo", "--scenario", str(scenario), "--gui",
+           "--http", "127.0.0.1:0", "--speed", "5000", "--threads", "0", "--quiet", "--out", str(tmp_path / "out")]
     proc = subprocess.Popen(cmd, stderr=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
     try:
         assert proc.stderr is not None
@@ -61,11 +66,12 @@ def test_demo_gui_serves_the_console(tmp_path: Path) -> None:
     finally:
         if proc.poll() is None:
             proc.kill()
-    assert (tmp_path / "report.html").exists()
+    out = tmp_path / "out"
+    assert (out / "report.html").exists()
     # with the console and no --operator, a person operates: no scripted decision, theirs logged
-    metrics = json.loads((tmp_path / "metrics.json").read_text())
+    metrics = json.loads((out / "metrics.json").read_text())
     assert metrics["operator"] == "none"
-    rows = (tmp_path / "decisions.csv").read_text().splitlines()
+    rows = (out / "decisions.csv").read_text().splitlines()
     assert not any(",script," in r for r in rows)
     assert any(",person,console action," in r and "request_region" in r for r in rows)
-    assert "person" in (tmp_path / "report.html").read_text()
+    assert "person" in (out / "report.html").read_text()
