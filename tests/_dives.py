@@ -31,9 +31,10 @@ __all__ = ["SMALL", "dark_rock_site", "shared_dive", "small", "small_file"]
 SMALL: dict[str, Any] = {"name": "small", "area": 64.0, "duration": 1500.0, "seafloor": {"random_targets": 1}}
 
 
-def small(**sections: Any) -> Scenario:
-    """:data:`SMALL` with ``sections`` added (``navigation={"drift": 0.0}``, ``modem={...}``)."""
-    return scenario_from_dict({**SMALL, **sections})
+def small(base: Scenario | None = None, **sections: Any) -> Scenario:
+    """:data:`SMALL` with ``sections`` added (``navigation={"drift": 0.0}``, ``modem={...}``), on
+    ``base`` (a preset's link and ship; default: preset ``default``)."""
+    return scenario_from_dict({**SMALL, **sections}, base=base)
 
 
 def dark_rock_site() -> Scenario:

@@ -102,16 +102,15 @@ def test_the_vehicle_detected_every_car_and_the_report_judges_its_detections(
 
 
 def test_a_slow_link_still_finds_and_confirms_the_cars(tmp_path: Path) -> None:
-    """Preset lowrate (Micromodem rate 1, about 50 % loss), short scenario: the vehicle's link is
-    low (the operator leaves the 1 m map to it), both cars are detected on the vehicle and
-    confirmed by images that show them, and nothing else is confirmed. Perfect navigation: this
-    is the slow link's test (a 1 % USBL at 1.6 km of slant range: docs/navigation.md)."""
-    from dataclasses import replace
-
+    """Preset lowrate's link (Micromodem rate 1, about 40-50 % loss at its range) on the small
+    site (one car: ``tests/_dives.py``): the vehicle's link is low (the operator leaves the 1 m
+    map to it), every car is detected on the vehicle and confirmed by images that show it, and
+    nothing else is confirmed. Perfect navigation: this is the slow link's test (a 1 % USBL at
+    1.6 km of slant range: docs/navigation.md)."""
     from coex_apps.demo.scenario import preset
 
-    metrics = run_demo(DemoConfig(out=tmp_path, quick=True, seed=1, progress=False,
-                                  scenario=replace(preset("lowrate"), drift=0.0), codec_threads=0)).metrics
+    metrics = run_demo(DemoConfig(out=tmp_path, seed=1, progress=False, codec_threads=0,
+                                  scenario=small(preset("lowrate"), navigation={"drift": 0.0}))).metrics
     assert metrics["scenario"]["modem_rate"] == 1 and metrics["link"]["frame_loss"] > 0.3
     assert metrics["success"] is True, metrics["summary"]
     assert all(t["first_detection"] is not None for t in metrics["targets"])
