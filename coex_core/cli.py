@@ -127,7 +127,23 @@ def _default_vectors() -> str:
     return str(here) if here.is_dir() else "spec/vectors"
 
 
-def build_parser() -> argparse.ArgumentParser:
+def _command_word(argv: Sequence[str]) -> str | None:
+    """The sub-command ``argv`` names (its first word that is not an option), or ``None`` when
+    it names none or asks for the top-level help (every command is listed then). The top-level
+    options (``-v``, ``--version``, ``-h``) take no value, so the first other word is the command."""
+    for word in argv:
+        if word in ("-h", "--help"):
+            return None
+        if not word.startswith("-"):
+            return word
+    return None
+
+
+def build_parser(argv: Sequence[str] | None = None) -> argparse.ArgumentParser:
+    """The ``coex`` parser. With ``argv`` naming a sub-command that a plugin contributes, only
+    that plugin's command is loaded (a ``coex`` call does not import every command: the demo's
+    alone takes most of a second); without ``argv``, or when it names no contributed command,
+    every command is registered (the top-level help lists them all)."""
     parser = argparse.ArgumentParser(
         prog="coex", description="CoEx: live science data from an underwater vehicle over an acoustic link."
     )
@@ -164,7 +180,18 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--write-vectors", metavar="DIR", help="regenerate the golden vectors into DIR")
     p.set_defaults(func=_cmd_spec)
 
-    for ep in entry_points(COMMAND_GROUP).values():  # sorted by name
+    commands = entry_points(COMMAND_GROUP)  # sorted by name
+    word = None if argv is None else _command_word(argv)
+    loaded = [word] if word in commands else []
+    _register(sub, [commands[name] for name in loaded])
+    if word not in sub.choices:  # no command named, or its plugin did not add a parser by that name
+        _register(sub, [ep for name, ep in commands.items() if name not in loaded])
+    return parser
+
+
+def _register(sub: Any, eps: Sequence[Any]) -> None:
+    """Let each command plugin add its parser; a broken one becomes a command saying why."""
+    for ep in eps:
         try:
             register = ep.load()
             register(sub)
@@ -172,7 +199,6 @@ def build_parser() -> argparse.ArgumentParser:
             log.debug("command plugin %s unavailable: %s", ep.name, exc)
             q = sub.add_parser(ep.name, help=f"(unavailable: {exc})")
             q.set_defaults(func=_unavailable(ep.name, exc))
-    return parser
 
 
 def _unavailable(name: str, exc: Exception):  # type: ignore[no-untyped-def]
@@ -184,7 +210,8 @@ def _unavailable(name: str, exc: Exception):  # type: ignore[no-untyped-def]
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    parser = build_parser()
+    argv = sys.argv[1:] if argv is None else list(argv)
+    parser = build_parser(argv)
     args = parser.parse_args(argv)
     level = logging.WARNING - 10 * min(args.verbose, 2)
     logging.basicConfig(level=level, format="%(levelname)s %(name)s: %(message)s")

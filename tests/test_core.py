@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import argparse
 import json
 import subprocess
 import sys
@@ -209,3 +210,27 @@ def test_the_version_is_one_and_the_changelog_says_it(capsys: pytest.CaptureFixt
     with pytest.raises(SystemExit):
         build_parser().parse_args(["--version"])
     assert f"coexploration {declared}" in capsys.readouterr().out
+
+
+def test_a_coex_call_loads_only_the_command_it_names() -> None:
+    """``coex NAME ...`` registers only NAME's plugin command (the core's own commands always):
+    a short command does not import the demo. The top-level help, an unknown word and no argv
+    register every command, so the help and argparse's "invalid choice" still list them all."""
+    from coex_core.cli import _command_word, build_parser
+    from coex_core.registry import COMMAND_GROUP, entry_points
+
+    def names(argv: list[str] | None) -> set[str]:
+        sub = next(a for a in build_parser(argv)._actions if isinstance(a, argparse._SubParsersAction))
+        return set(sub.choices)
+
+    every = {"plugins", "spec", *entry_points(COMMAND_GROUP)}
+    assert {"demo", "operators", "config"} < every
+    assert names(["operators", "add", "ana"]) == {"plugins", "spec", "operators"}
+    assert names(["-v", "config", "check", "x.toml"]) == {"plugins", "spec", "config"}
+    assert names(["spec", "--check"]) == {"plugins", "spec"}
+    assert names(["--help", "demo"]) == names(["nosuch"]) == names([]) == names(None) == every
+    assert _command_word(["-vv", "demo", "--quick"]) == "demo" and _command_word(["-h"]) is None
+    code = ("import sys; from coex_core.cli import build_parser; build_parser(['operators', 'list']); "
+            "print(sorted(m for m in sys.modules if m.startswith('coex_apps.demo')))")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
+    assert out.returncode == 0 and out.stdout.strip() == "[]", out

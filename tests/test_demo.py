@@ -14,6 +14,8 @@ from PIL import Image
 
 from coex_apps.demo import DemoConfig, run_demo
 
+from ._dives import shared_dive, small, small_file
+
 # whole demo dives (a quick dive is ~45 s of CPU): run first, and left out by `make test-fast`
 pytestmark = pytest.mark.slow
 
@@ -21,7 +23,9 @@ pytestmark = pytest.mark.slow
 @pytest.fixture(scope="module")
 def demo(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, dict]:  # type: ignore[type-arg]
     out = tmp_path_factory.mktemp("demo")
-    result = run_demo(DemoConfig(out=out, quick=True, seed=1, progress=False))
+    # OpenJPEG in the dive's own thread (``--threads 0``: the same images, without a thread pool
+    # made per encode; both pytest workers already keep both cores busy)
+    result = run_demo(DemoConfig(out=out, quick=True, seed=1, progress=False, codec_threads=0))
     return out, result.metrics
 
 
@@ -98,16 +102,15 @@ def test_the_vehicle_detected_every_car_and_the_report_judges_its_detections(
 
 
 def test_a_slow_link_still_finds_and_confirms_the_cars(tmp_path: Path) -> None:
-    """Preset lowrate (Micromodem rate 1, about 50 % loss), short scenario: the vehicle's link is
-    low (the operator leaves the 1 m map to it), both cars are detected on the vehicle and
-    confirmed by images that show them, and nothing else is confirmed. Perfect navigation: this
-    is the slow link's test (a 1 % USBL at 1.6 km of slant range: docs/navigation.md)."""
-    from dataclasses import replace
-
+    """Preset lowrate's link (Micromodem rate 1, about 40-50 % loss at its range) on the small
+    site (one car: ``tests/_dives.py``): the vehicle's link is low (the operator leaves the 1 m
+    map to it), every car is detected on the vehicle and confirmed by images that show it, and
+    nothing else is confirmed. Perfect navigation: this is the slow link's test (a 1 % USBL at
+    1.6 km of slant range: docs/navigation.md)."""
     from coex_apps.demo.scenario import preset
 
-    metrics = run_demo(DemoConfig(out=tmp_path, quick=True, seed=1, progress=False,
-                                  scenario=replace(preset("lowrate"), drift=0.0))).metrics
+    metrics = run_demo(DemoConfig(out=tmp_path, seed=1, progress=False, codec_threads=0,
+                                  scenario=small(preset("lowrate"), navigation={"drift": 0.0}))).metrics
     assert metrics["scenario"]["modem_rate"] == 1 and metrics["link"]["frame_loss"] > 0.3
     assert metrics["success"] is True, metrics["summary"]
     assert all(t["first_detection"] is not None for t in metrics["targets"])
@@ -192,14 +195,20 @@ def test_report_has_plots_and_goals(demo: tuple[Path, dict]) -> None:  # type: i
 
 
 def test_images_option_uses_given_files(tmp_path: Path) -> None:
+    """``coex demo --images DIR`` builds the sand from the given frames; the dive's images reach
+    topside at the camera's size. On the small site (``--scenario``): the option's path, not
+    the default site, is the subject; the frames are smooth, since white noise (the sand
+    of an earlier version of this test) costs the image coder most."""
     imgs = tmp_path / "imgs"
     imgs.mkdir()
-    rng = np.random.default_rng(0)
+    rows, cols = np.mgrid[0:480, 0:640]
     for i in range(3):
-        Image.fromarray(rng.integers(90, 160, (480, 640, 3), dtype=np.uint8)).save(imgs / f"image_{i:06d}.tiff")
+        grey = 125 + 30 * np.sin(cols / (17.0 + 5 * i)) * np.cos(rows / (23.0 - 4 * i))
+        Image.fromarray(np.repeat(grey[..., None], 3, axis=2).astype(np.uint8)).save(imgs / f"image_{i:06d}.tiff")
+    scenario = small_file(tmp_path / "small.toml")
     out = tmp_path / "out"
-    cmd = [sys.executable, "-m", "coex_core.cli", "demo", "--quick", "--quiet", "--no-gui", "--seed", "2",
-           "--loss", "0.2", "--images", str(imgs), "--out", str(out)]
+    cmd = [sys.executable, "-m", "coex_core.cli", "demo", "--scenario", str(scenario), "--quiet", "--no-gui",
+           "--seed", "2", "--loss", "0.2", "--threads", "0", "--images", str(imgs), "--out", str(out)]
     proc = subprocess.run(cmd, capture_output=True, text=True, timeout=600)
     assert proc.returncode == 0, proc.stderr
     assert "outputs in" in proc.stdout
@@ -230,24 +239,28 @@ def test_nmea_went_through_pseudo_terminals(demo: tuple[Path, dict]) -> None:  #
 
 
 def test_the_dive_spends_idle_bytes_and_sends_none_when_spare_traffic_is_off(
-        demo: tuple[Path, dict], tmp_path: Path) -> None:  # type: ignore[type-arg]
+        demo: tuple[Path, dict], tmp_path: Path, tmp_path_factory: pytest.TempPathFactory) -> None:  # type: ignore[type-arg]
     """With spare traffic on (the default) the vehicle fills the packets it sends while work is
     ready, lost subgrids come back, requests are answered at the next vehicle slot in the
-    median; with ``modem.spare = 0`` not one spare or redundant byte leaves the vehicle."""
-    from coex_apps.demo.scenario import preset, scenario_from_dict
-
+    median; with ``modem.spare = 0`` not one spare or redundant byte leaves the vehicle, and
+    its packets are emptier than the same dive's with spare traffic on. The pair is the small
+    site's dive (``tests/_dives.py``; test_navigation_demo.py's drift-zero test shares the one
+    with spare traffic on)."""
     _, metrics = demo
     link = metrics["link"]
     assert link["spare_bytes"] > 0 and link["fill_with_work"] >= 0.9
     assert metrics["responses"]["median_vehicle_slots"] == 1
     assert min(metrics["map_coverage_after_survey"].values()) >= 0.995
-    off = run_demo(DemoConfig(out=tmp_path, quick=True, seed=1, progress=False,
-                              scenario=scenario_from_dict({"modem": {"spare": 0.0}}, base=preset("default"))))
+    _, on = shared_dive(tmp_path_factory, DemoConfig(seed=1, progress=False, scenario=small(
+        navigation={"drift": 0.0}), codec_threads=0))
+    off = run_demo(DemoConfig(out=tmp_path, seed=1, progress=False, codec_threads=0, scenario=small(
+        navigation={"drift": 0.0}, modem={"spare": 0.0})))
+    assert on["link"]["spare_bytes"] > 0
     assert off.metrics["link"]["spare_bytes"] == 0 and off.metrics["link"]["redundant_bytes"] == 0
     sent = [json.loads(line) for line in (tmp_path / "link.jsonl").read_text().splitlines()]
     sent = [r for r in sent if r.get("cause") == "sent" and r["src"] == 2]
     assert sent and all(r["spare_bytes"] == 0 and r["redundant_bytes"] == 0 for r in sent)
-    assert off.metrics["link"]["fill"] < link["fill"]
+    assert off.metrics["link"]["fill"] < on["link"]["fill"]
 
 
 def test_the_camera_pass_flew_only_after_a_survey_command_crossed_the_link(
@@ -290,7 +303,7 @@ def test_a_camera_line_outside_the_geofence_is_never_flown(tmp_path: Path) -> No
     vehicle, the camera never runs, the reason reaches topside's decisions, and the referee
     says why the targets were not photographed."""
     fence = {"polygon": [[-500, -500], [-400, -500], [-400, -400], [-500, -400]], "min_altitude": 2.0}
-    result = run_demo(DemoConfig(out=tmp_path, quick=True, seed=1, progress=False, geofence=fence))
+    result = run_demo(DemoConfig(out=tmp_path, quick=True, seed=1, progress=False, geofence=fence, codec_threads=0))
     m = result.metrics
     assert m["surveys"] and m["images_captured"] == 0 and m["success"] is False
     for s in m["surveys"]:

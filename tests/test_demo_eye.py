@@ -178,31 +178,28 @@ def test_metres_per_pixel_from_altitude_and_field_of_view() -> None:
 
 
 @pytest.mark.slow
-def test_with_the_labels_zeroed_the_operator_decides_exactly_the_same(tmp_path: Path) -> None:
+def test_with_the_labels_zeroed_the_operator_decides_exactly_the_same(
+        tmp_path: Path, tmp_path_factory: pytest.TempPathFactory) -> None:
     """The done-criterion of issue 50: the dive re-run with the simulator's per-pixel labels
     replaced by zeros wherever it renders them (the frames unchanged) has the operator decide
     exactly as before (the same decisions, word for word) and its own "car" verdicts on every
     true car and on nothing else (a pale car, a dark car, a container and a dark rock as dark as
-    a car). With the labels zeroed the referee sees no object, so nothing it judges counts."""
+    a car: ``tests/_dives.py`` ``dark_rock_site``). With the labels zeroed the referee sees no
+    object, so nothing it judges counts."""
     from coex_apps.demo import DemoConfig, run_demo
-    from coex_apps.demo.scenario import ObjectSpec, Scenario
 
-    scn = Scenario(area=96.0, targets=(
-        ObjectSpec(26.0, 30.0, 4.4, 1.8, 1.5, 20.0, "box", "car", 0.07),
-        ObjectSpec(70.0, 26.0, 3.2, 1.6, 1.4, -50.0, "box", "car", 0.4),
-        ObjectSpec(28.0, 70.0, 6.06, 2.44, 2.59, 70.0, "box", "container", 0.2)),
-        decoys=(ObjectSpec(70.0, 70.0, 3.4, 2.5, 1.5, 10.0, "dome", "dark rock", 0.08),),
-        # perfect navigation: this test's subject is who reads the labels (issue 56's drift is
-        # tested in test_navigation_demo.py; docs/demo.md says what this scene did with it)
-        drift=0.0)
-    normal = run_demo(DemoConfig(out=tmp_path / "labels", quick=True, seed=3, progress=False, scenario=scn))
-    zeroed = run_demo(DemoConfig(out=tmp_path / "zeros", quick=True, seed=3, progress=False, scenario=scn,
-                                 zero_labels=True))
-    assert (tmp_path / "zeros" / "decisions.csv").read_text() == (tmp_path / "labels" / "decisions.csv").read_text()
-    for m in (normal.metrics, zeroed.metrics):
+    from ._dives import dark_rock_site, shared_dive
+
+    # the dive with the labels is shared: test_demo_truth.py's dark-decoy test reads it too
+    labels, normal = shared_dive(tmp_path_factory, DemoConfig(quick=True, seed=3, progress=False,
+                                                              scenario=dark_rock_site(), codec_threads=0))
+    zeroed = run_demo(DemoConfig(out=tmp_path, quick=True, seed=3, progress=False, scenario=dark_rock_site(),
+                                 zero_labels=True, codec_threads=0)).metrics
+    assert (tmp_path / "decisions.csv").read_text() == (labels / "decisions.csv").read_text()
+    for m in (normal, zeroed):
         verdicts = m["verdicts"]
         assert verdicts["car_verdicts_on_cars"], verdicts
         assert sum(1 for v in verdicts["candidates"] if v["verdict"] == "car") == 2
-    assert normal.metrics["success"], normal.metrics["summary"]
-    assert normal.metrics["decoys"][0]["visited"]  # the dark rock was looked at, and not confirmed
-    assert not zeroed.metrics["success"]  # the referee saw nothing: no confirmation counts
+    assert normal["success"], normal["summary"]
+    assert normal["decoys"][0]["visited"]  # the dark rock was looked at, and not confirmed
+    assert not zeroed["success"]  # the referee saw nothing: no confirmation counts

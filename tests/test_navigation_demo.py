@@ -15,8 +15,8 @@ from coex_apps.demo import run as run_module
 from coex_apps.demo.navigation import DiveNavigation
 from coex_apps.demo.scenario import scenario_from_dict
 
-#: a small, short dive (a 64 m site, one car, 25 minutes): the navigation's every path, quickly
-SMALL: dict[str, Any] = {"name": "small", "area": 64.0, "duration": 1500.0, "seafloor": {"random_targets": 1}}
+# SMALL: a small, short dive (a 64 m site, one car, 25 minutes): the navigation's every path, quickly
+from ._dives import SMALL, shared_dive, small
 
 
 class _NoNavigation(DiveNavigation):
@@ -40,25 +40,29 @@ class _NoNavigation(DiveNavigation):
 
 
 @pytest.mark.slow
-def test_drift_zero_is_todays_dive(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+def test_drift_zero_is_todays_dive(tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
+                                  tmp_path_factory: pytest.TempPathFactory) -> None:
     """With ``drift = 0`` the dive is the one without any navigation code: the same decisions,
     link log and time series, byte for byte; nothing drifted, no fix was drawn."""
-    still = scenario_from_dict({**SMALL, "navigation": {"drift": 0.0}})
-    a = run_demo(DemoConfig(out=tmp_path / "a", seed=1, progress=False, scenario=still))
+    # the dive with the navigation code is shared (test_demo.py's spare-traffic test compares
+    # its own dive with it); the one without runs here
+    a_out, a = shared_dive(tmp_path_factory, DemoConfig(seed=1, progress=False, scenario=small(
+        navigation={"drift": 0.0}), codec_threads=0))
     monkeypatch.setattr(run_module, "DiveNavigation", _NoNavigation)
-    b = run_demo(DemoConfig(out=tmp_path / "b", seed=1, progress=False, scenario=still))
+    run_demo(DemoConfig(out=tmp_path, seed=1, progress=False, scenario=small(navigation={"drift": 0.0}),
+                        codec_threads=0))
     for name in ("decisions.csv", "link.jsonl", "timeseries.csv", "truth.json"):
-        assert (tmp_path / "a" / name).read_bytes() == (tmp_path / "b" / name).read_bytes(), name
-    nav = a.metrics["navigation"]
+        assert (a_out / name).read_bytes() == (tmp_path / name).read_bytes(), name
+    b = json.loads((tmp_path / "metrics.json").read_text())
+    nav = a["navigation"]
     assert nav["drift_at_end_m"] == 0.0 and nav["active"] is False and "usbl" not in nav
     assert all(t["camera_pass_m"] is not None for t in nav["targets"])
-    assert a.metrics["success"] == b.metrics["success"]
+    assert a["success"] == b["success"]
     # the same seed, the same dive (``coex demo --seed S`` is deterministic; this was a second
     # quick dive in test_demo.py): every metric but the navigation's own, the wall time, the
     # configuration's echo and the modems' pty names
     strip = ("wall_seconds", "config", "modems", "navigation")
-    assert {k: v for k, v in a.metrics.items() if k not in strip} == {
-        k: v for k, v in b.metrics.items() if k not in strip}
+    assert {k: v for k, v in a.items() if k not in strip} == {k: v for k, v in b.items() if k not in strip}
 
 
 @pytest.mark.slow
@@ -66,7 +70,8 @@ def test_a_drifting_dive_is_corrected_and_judged_against_the_truth(tmp_path: Pat
     """The default drift and USBL: the vehicle really drifts, every fix went through the USBL
     input, the wild ones are found, the estimate follows the true drift, and the camera still
     passes over every target; metrics.json says all of it (``navigation``)."""
-    result = run_demo(DemoConfig(out=tmp_path, seed=2, progress=False, scenario=scenario_from_dict(SMALL)))
+    result = run_demo(DemoConfig(out=tmp_path, seed=2, progress=False, scenario=scenario_from_dict(SMALL),
+                                 codec_threads=0))
     m = json.loads((tmp_path / "metrics.json").read_text())
     nav = m["navigation"]
     assert nav["active"] and nav["correction"] == "on" and nav["drift_at_end_m"] > 1.0

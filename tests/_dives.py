@@ -1,0 +1,87 @@
+"""Whole demo dives shared by the tests that only read their outputs: one dive per set of
+parameters per ``pytest`` run, whichever test (of whichever file, on whichever xdist worker)
+asks first; the others wait for it and read the same directory (docs/testing.md).
+
+A dive is found by its configuration (every :class:`DemoConfig` field but ``out``), so two tests
+share one only when they ask for the very same dive. The directory lives under the run's own
+base temporary directory (the parent of the workers' directories under xdist), so nothing is
+kept from one ``pytest`` run to the next. A test that changes the dive (monkeypatching its
+modules, replacing its eye, zeroing its labels to compare) runs its own."""
+
+from __future__ import annotations
+
+import fcntl
+import hashlib
+import json
+import os
+import shutil
+from dataclasses import replace
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from coex_apps.demo import DemoConfig, run_demo
+from coex_apps.demo.scenario import ObjectSpec, Scenario, scenario_from_dict
+
+__all__ = ["SMALL", "dark_rock_site", "shared_dive", "small", "small_file"]
+
+#: a small, short dive (a 64 m site, one car, 25 minutes): a whole dive, camera pass included,
+#: for tests whose subject needs one but not the default site
+SMALL: dict[str, Any] = {"name": "small", "area": 64.0, "duration": 1500.0, "seafloor": {"random_targets": 1}}
+
+
+def small(base: Scenario | None = None, **sections: Any) -> Scenario:
+    """:data:`SMALL` with ``sections`` added (``navigation={"drift": 0.0}``, ``modem={...}``), on
+    ``base`` (a preset's link and ship; default: preset ``default``)."""
+    return scenario_from_dict({**SMALL, **sections}, base=base)
+
+
+def dark_rock_site() -> Scenario:
+    """A pale car, a dark car, a container and a dark rock as dark as a car on the quick site
+    (``quick=True, seed=3``): test_demo_eye.py's dive with the labels zeroed is compared with
+    this one, and test_demo_truth.py's dark-decoy test reads it (the rock looked at, never
+    confirmed). Perfect navigation: these tests' subjects are who reads the labels and what the
+    eye makes of a decoy (issue 56's drift is tested in test_navigation_demo.py; docs/demo.md
+    says what this scene did with it)."""
+    return Scenario(area=96.0, targets=(
+        ObjectSpec(26.0, 30.0, 4.4, 1.8, 1.5, 20.0, "box", "car", 0.07),
+        ObjectSpec(70.0, 26.0, 3.2, 1.6, 1.4, -50.0, "box", "car", 0.4),
+        ObjectSpec(28.0, 70.0, 6.06, 2.44, 2.59, 70.0, "box", "container", 0.2)),
+        decoys=(ObjectSpec(70.0, 70.0, 3.4, 2.5, 1.5, 10.0, "dome", "dark rock", 0.08),),
+        drift=0.0)
+
+
+def small_file(path: Path) -> Path:
+    """:data:`SMALL` as a scenario file (``coex demo --scenario PATH``), written to ``path``."""
+    def lines(table: dict[str, Any]) -> list[str]:
+        return [f"{k} = {json.dumps(v)}" for k, v in table.items() if not isinstance(v, dict)]
+
+    text = lines(SMALL) + [f"[{k}]\n" + "\n".join(lines(v)) for k, v in SMALL.items() if isinstance(v, dict)]
+    path.write_text("\n".join(text) + "\n")
+    return path
+
+
+def _root(factory: pytest.TempPathFactory) -> Path:
+    """The directory every worker of this run shares: under xdist each worker's base temporary
+    directory is ``<the run's>/popen-gwN``; without xdist the run's own."""
+    base = factory.getbasetemp()
+    root = (base.parent if os.environ.get("PYTEST_XDIST_WORKER") else base) / "shared-dives"
+    root.mkdir(parents=True, exist_ok=True)
+    return root
+
+
+def shared_dive(factory: pytest.TempPathFactory, config: DemoConfig) -> tuple[Path, dict[str, Any]]:
+    """``run_demo(config)`` once for this ``pytest`` run (``config.out`` is ignored): the
+    directory holding its outputs and its ``metrics.json``. Concurrent callers wait on a file
+    lock; a dive that failed is run again by the next caller (and fails there too)."""
+    key = hashlib.sha256(repr(replace(config, out=Path("-"))).encode()).hexdigest()[:16]
+    root = _root(factory)
+    out, done = root / key, root / f"{key}.done"
+    with open(root / f"{key}.lock", "w") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)  # released when the file closes
+        if not done.exists():
+            shutil.rmtree(out, ignore_errors=True)  # what a failed attempt left
+            run_demo(replace(config, out=out))
+            done.touch()
+    return out, json.loads((out / "metrics.json").read_text())
