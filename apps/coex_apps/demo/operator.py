@@ -18,8 +18,12 @@ operators did by hand, deciding only from what reached topside.
   the vehicle's altitude and the camera's field of view: a target (a car, a container, a hull,
   debris, or a straight-edged object of no known kind) near the candidate confirms it; an
   object too unclear to tell makes it ask for that object's region at a higher quality; an
-  object cut by the frame's edge, or sand, makes it step to the previous or next image; a
-  natural object (a rock, a mound of living things), or too many tries, makes it move on.
+  object cut by the frame's top or bottom edge, or sand, makes it step to the previous or next
+  image; an object cut by the frame's left or right side (the line passed beside it) makes it
+  send one more camera line, through where the eye's sighting puts the object (or, when six
+  images showed no target and the received track passed more than 1.5 m from the candidate,
+  through the candidate again: :meth:`Operator._reaim`, once per candidate); a natural object
+  (a rock, a mound of living things), or too many tries, makes it move on.
 
 It imports nothing of the simulation's truth or its labelled renderer (``tests/test_demo_eye.py``).
 """
