@@ -11,16 +11,24 @@
 from __future__ import annotations
 
 import ast
+import dataclasses
 import math
 from pathlib import Path
 
 import numpy as np
 import pytest
 
+from coex.messages import SurveyCommand
 from coex_apps.demo.camera import SandTexture, render_labelled
 from coex_apps.demo.config import LAYER_PSNR
 from coex_apps.demo.eye import TARGET_KINDS, Eye, EyeParams, metres_per_pixel
-from coex_apps.demo.operator import camera_altitude
+from coex_apps.demo.operator import (
+    LINE_ALTITUDE_FOR,
+    MAX_REAIMS,
+    CandidateView,
+    Operator,
+    camera_altitude,
+)
 from coex_apps.demo.specs import CAMERA_HFOV_DEG
 from coex_plugins.bathymetry.sim import Seafloor, Target
 from coex_plugins.imagery.codec import CodingParams, decode_packets, encode_image, split_packets
@@ -167,6 +175,74 @@ def test_an_uncertain_eye_asks_and_decides_once_settled() -> None:
     eye = Eye(EyeParams(margin=1.0))
     assert eye.look(img, mpp, settled=False)[0].kind == "unclear"
     assert eye.look(img, mpp, settled=True)[0].kind == "car"
+
+
+@pytest.mark.parametrize("off", [3.5, 5.5, -4.5])
+def test_a_container_the_frame_cuts_at_its_side_is_re_aimed_at_from_the_pixels(off: float) -> None:
+    """A camera line that passed ``off`` metres beside a container (the navigation's error):
+    the eye sees it cut by the frame's right (or left) side, and the operator's re-aimed point,
+    from that sight and the frame's announced position only, lies within a metre of the
+    container (which a line through it then holds whole)."""
+    obj = Target(50.0, 50.0 - off, 6.06, 2.44, 2.59, 0.0, "box", "container", 0.2)
+    floor = Seafloor(size=100.0, depth=500.0, relief=1.0, targets=(obj,), seed=7)
+    alt = camera_altitude(*LINE_ALTITUDE_FOR, 5.0)
+    z = float(floor.ground(np.array([50.0]), np.array([50.0]))[0]) + alt
+    img, _ = render_labelled(floor.ground, 50.0, 50.0, z, 90.0, targets=(obj,), texture=SandTexture(7),
+                             rng=np.random.default_rng(7))
+    mpp = metres_per_pixel(alt, img.shape[1], CAMERA_HFOV_DEG)
+    sights = Eye().look(img, mpp, settled=True)
+    assert [set(s.cut) for s in sights] == [{"right" if off > 0 else "left"}]
+    # the map's candidate: a metre off the truth, measured shorter than the container
+    cv = CandidateView(50.0, obj.y + 1.0, 1.5, 10, 5.5, 2.2, 0.9, 0.0)
+    meta = {"x": 50.0, "y": 50.0, "width": img.shape[1], "height": img.shape[0]}
+    aim = Operator._side_cut_aim(cv, sights, meta, mpp, 90.0)
+    assert aim is not None and math.hypot(aim[0] - obj.x, aim[1] - obj.y) < 1.0, aim
+    # an object cut on neither side, or on both (longer than the frame), gives no new aim
+    for cut in [(), ("top",), ("left", "right")]:
+        assert Operator._side_cut_aim(cv, [dataclasses.replace(sights[0], cut=cut)], meta, mpp, 90.0) is None
+
+
+class _Survey:
+    """A survey receiver that accepts every command (what the operator's camera round calls)."""
+
+    surveys: dict[int, object] = {}
+
+    def __init__(self) -> None:
+        self.sent: list[SurveyCommand] = []
+
+    def request(self, kind: str, x: float, y: float, now: float, **kw: object) -> SurveyCommand:
+        cmd = SurveyCommand(command_id=len(self.sent) + 1, survey_id=len(self.sent), kind=kind, x=x, y=y,  # type: ignore[arg-type]
+                            **kw)  # type: ignore[arg-type]
+        self.sent.append(cmd)
+        return cmd
+
+
+def test_a_re_aimed_line_is_sent_once_through_the_new_point_and_its_images_looked_at_afresh() -> None:
+    survey = _Survey()
+    logged: list[str] = []
+    op = Operator(None, {"bathymetry": None, "imagery": None, "survey": survey},  # type: ignore[arg-type]
+                  (0.0, 0.0, 100.0, 100.0), lambda now, kind, text, *a: logged.append(kind),
+                  camera_altitude=5.0)
+    cv = CandidateView(40.0, 40.0, 1.5, 10, 6.0, 2.4, 0.9, 0.0, orientation=0.0)
+    op.candidates.append(cv)
+    op.camera_round(0.0, end=10_000.0, reserve=0.0, half=15.0)
+    assert len(survey.sent) == 1 and cv.survey_id == 0
+    cv.looked, cv.looked_times, cv.passed_at = [3], {3: 900.0}, 890.0
+    assert op._reaim(cv, (40.0, 35.0), "cut at its side", 1000.0)
+    assert not op._reaim(cv, (40.0, 30.0), "again", 1000.0)  # one re-aim per candidate
+    assert MAX_REAIMS == 1
+    op.camera_round(1000.0, end=10_000.0, reserve=0.0, half=15.0)
+    assert len(survey.sent) == 2
+    line = op.lines[1]
+    assert line.heading == op.lines[0].heading  # across the object as before
+    mid = ((line.start[0] + line.end[0]) / 2, (line.start[1] + line.end[1]) / 2)
+    assert math.hypot(mid[0] - 40.0, mid[1] - 35.0) < 0.2
+    assert cv.aim == (40.0, 35.0) and cv.survey_id == 1 and cv.passed_at is None and not cv.looked
+    assert cv.wait_after is not None and cv.wait_after >= 1000.0  # only the new line's pass counts
+    assert cv.point == (40.0, 35.0) and cv.distance(40.0, 40.0) == 0.0 and cv.distance(40.0, 36.0) == 1.0
+    op.camera_round(1100.0, end=10_000.0, reserve=0.0, half=15.0)
+    assert len(survey.sent) == 2  # nothing sent twice
+    assert "re-aim" in logged
 
 
 def test_metres_per_pixel_from_altitude_and_field_of_view() -> None:

@@ -18,8 +18,12 @@ operators did by hand, deciding only from what reached topside.
   the vehicle's altitude and the camera's field of view: a target (a car, a container, a hull,
   debris, or a straight-edged object of no known kind) near the candidate confirms it; an
   object too unclear to tell makes it ask for that object's region at a higher quality; an
-  object cut by the frame's edge, or sand, makes it step to the previous or next image; a
-  natural object (a rock, a mound of living things), or too many tries, makes it move on.
+  object cut by the frame's top or bottom edge, or sand, makes it step to the previous or next
+  image; an object cut by the frame's left or right side (the line passed beside it) makes it
+  send one more camera line, through where the eye's sighting puts the object (or, when six
+  images showed no target and the received track passed more than 1.5 m from the candidate,
+  through the candidate again: :meth:`Operator._reaim`, once per candidate); a natural object
+  (a rock, a mound of living things), or too many tries, makes it move on.
 
 It imports nothing of the simulation's truth or its labelled renderer (``tests/test_demo_eye.py``).
 """
@@ -102,6 +106,11 @@ LINE_HALF = 15.0
 #: every camera line is flown at the altitude that holds the largest object sought (length,
 #: width; :data:`TARGET_SIZES`) in a frame (:func:`camera_altitude`)
 LINE_ALTITUDE_FOR = (TARGET_SIZES[0][1], TARGET_SIZES[1][1])
+#: camera lines re-aimed per candidate at most: when the eye sees the candidate's object cut by
+#: the frame's left or right side (the line passed beside it), or the received track shows the
+#: line passed more than :data:`REAIM_OFF` metres from it and no image showed a target
+MAX_REAIMS = 1
+REAIM_OFF = 1.5
 
 
 @dataclass
@@ -136,6 +145,12 @@ class CandidateView:
     #: a look from another line's pass came to a dead end (nothing earlier to step back to):
     #: only a pass after this time counts (its own camera line's)
     wait_after: float | None = None
+    #: where its latest camera line was re-aimed (from the eye's sighting of it cut by the
+    #: frame's side, or its own position when the received track passed off it), the re-aimed
+    #: lines sent, and a re-aim asked for that the next camera round sends
+    aim: tuple[float, float] | None = None
+    reaims: int = 0
+    reaim_want: tuple[float, float] | None = None
     want: tuple[float, str] | None = None  # (time, "nearest" | "before" | "after")
     want_goal: int | None = None  # image id of a pending request for more layers
     want_region: int | None = None  # command id of that request when it asked for a region
@@ -165,6 +180,16 @@ class CandidateView:
     @property
     def done(self) -> bool:
         return bool(self.verdict)
+
+    @property
+    def point(self) -> tuple[float, float]:
+        """Where its camera line aims: the re-aimed point, else the candidate."""
+        return self.aim if self.aim is not None else (self.x, self.y)
+
+    def distance(self, x: float, y: float) -> float:
+        """Distance (m) from (x, y) to the candidate or to where its line was re-aimed."""
+        d = math.hypot(x - self.x, y - self.y)
+        return d if self.aim is None else min(d, math.hypot(x - self.aim[0], y - self.aim[1]))
 
     @property
     def confirmed(self) -> bool:
@@ -501,6 +526,7 @@ class Operator:
         sent = 0
         half = min(half, LINE_HALF)
         altitude = camera_altitude(*LINE_ALTITUDE_FOR, self.camera_altitude)
+        t, pos = self._send_reaims(now, t, pos, end - reserve, half, altitude)
         for cv in self.ranked():
             if cv.planned or cv.refused is not None:
                 continue
@@ -528,6 +554,76 @@ class Operator:
                      f"{len(self._open_lines()) - 1} line(s) [command {cmd.command_id}]")
         if first and not sent:
             self.log(now, "camera pass", "no target-like candidate in the 1 m map yet: the vehicle holds")
+
+    def _send_reaims(self, now: float, t: float, pos: tuple[float, float], until: float, half: float,
+                     altitude: float) -> tuple[float, tuple[float, float]]:
+        """Send the camera lines re-aimed since the last round (:meth:`_reaim`), queued like the
+        others, each through its new point at its first line's heading, while camera time
+        remains; one that no longer fits is dropped (its candidate's images are looked at on)."""
+        for cv in self.ranked():
+            if cv.reaim_want is None or cv.done:
+                continue
+            aim, cv.reaim_want = cv.reaim_want, None
+            old = self.lines.get(cv.survey_id) if cv.survey_id is not None else None
+            heading = old.heading if old is not None else (cv.orientation + 90.0) % 180.0
+            h = math.radians(heading)
+            start = (aim[0] - half * math.sin(h), aim[1] - half * math.cos(h))
+            dist = math.hypot(start[0] - pos[0], start[1] - pos[1])
+            if t + dist / TRANSIT_SPEED + 2 * half / LINE_SPEED > until:
+                self.log(now, "camera pass", f"no camera time left to re-aim the line over ({cv.x:.0f}, {cv.y:.0f})")
+                continue
+            try:
+                cmd = self.survey.request("line", round(start[0], 1), round(start[1], 1), now, heading=round(heading, 1),
+                                          length=2 * half, altitude=altitude, speed=LINE_SPEED, append=True)
+            except RequestRejected as exc:
+                self.log(now, "survey command", f"a re-aimed camera line over ({aim[0]:.0f}, {aim[1]:.0f}) "
+                         f"cannot be sent: {exc}")
+                continue
+            line = self._line(cmd, cv, now)
+            # only this line's pass counts from now on; its images are looked at afresh
+            cv.wait_after = max([now, *cv.looked_times.values()])
+            cv.aim, cv.survey_id, cv.passed_at = aim, cmd.survey_id, None
+            cv.want = cv.want_goal = cv.want_region = None
+            cv.looked, cv.looked_times = [], {}
+            t += dist / TRANSIT_SPEED + 2 * half / LINE_SPEED
+            pos = line.end
+            self.log(now, "survey command", f"survey {cmd.survey_id} sent: the camera line over ({cv.x:.0f}, "
+                     f"{cv.y:.0f}) re-aimed at ({aim[0]:.1f}, {aim[1]:.1f}), heading {line.heading:.0f} deg at "
+                     f"{line.altitude:g} m and {LINE_SPEED:g} m/s [command {cmd.command_id}]")
+        return t, pos
+
+    def _reaim(self, cv: CandidateView, aim: tuple[float, float], why: str, now: float) -> bool:
+        """Ask the next camera round for one more line over ``cv``, through ``aim`` (at most
+        :data:`MAX_REAIMS` per candidate); False when none is left."""
+        if cv.reaims >= MAX_REAIMS:
+            return False
+        cv.reaims += 1
+        cv.reaim_want = aim
+        self.log(now, "re-aim", f"the candidate at ({cv.x:.0f}, {cv.y:.0f}): {why}: one more camera line, "
+                 f"through ({aim[0]:.1f}, {aim[1]:.1f})")
+        return True
+
+    @staticmethod
+    def _side_cut_aim(cv: CandidateView, mine: list[Sight], meta: dict[str, Any], mpp: float,
+                      heading: float) -> tuple[float, float] | None:
+        """Where an object the frame cuts at its left or right side lies, from what the eye saw:
+        its inner edge plus half its length (the longer of the map's measure and the part seen,
+        at most the largest sought) toward the cut side, across the line; None when no object
+        near ``cv`` is cut at one side only."""
+        sides = [s for s in mine if len({"left", "right"} & set(s.cut)) == 1]
+        if not sides:
+            return None
+        s = max(sides, key=lambda s: s.area_m2)
+        length = min(max(cv.length, s.length_m), TARGET_SIZES[0][1])
+        width, height = int(meta["width"]), int(meta["height"])
+        if "right" in s.cut:
+            right = (s.box[0] - width / 2) * mpp + length / 2
+        else:
+            right = (s.box[2] - width / 2) * mpp - length / 2
+        ahead = (height / 2 - s.centre[1]) * mpp
+        h = math.radians(heading)
+        return (round(float(meta["x"]) + right * math.cos(h) + ahead * math.sin(h), 1),
+                round(float(meta["y"]) - right * math.sin(h) + ahead * math.cos(h), 1))
 
     def _line(self, cmd: SurveyCommand, cv: CandidateView, now: float) -> CameraLine:
         x, y, length = float(cmd.x), float(cmd.y), float(cmd.length or 0.0)
@@ -619,7 +715,8 @@ class Operator:
         t = self._pass_estimate(cv, now)
         if t is None:
             return t
-        near = [(math.hypot(float(p.meta["x"]) - cv.x, float(p.meta["y"]) - cv.y), float(p.meta["time"]))
+        px, py = cv.point
+        near = [(math.hypot(float(p.meta["x"]) - px, float(p.meta["y"]) - py), float(p.meta["time"]))
                 for p in self.imagery.products()
                 if p.kind == "image" and p.meta.get("x") is not None and p.meta.get("time") is not None
                 and abs(float(p.meta["time"]) - t) <= 2 * self.cycle]
@@ -639,10 +736,11 @@ class Operator:
         reported = line.reported_pass() if line is not None else None
         if reported is not None:  # the image nearest that time exists once the next frame is taken
             return reported if now >= reported + CAMERA_PERIOD else None
-        x_now, y_now = self.position or (self.track[-1][1:3] if self.track else (cv.x, cv.y))
+        px, py = cv.point
+        x_now, y_now = self.position or (self.track[-1][1:3] if self.track else (px, py))
         if self.track:
-            d, t_close = closest_approach(self.track, cv.x, cv.y)
-            if d < NEAR and math.hypot(x_now - cv.x, y_now - cv.y) > 10.0:
+            d, t_close = closest_approach(self.track, px, py)
+            if d < NEAR and math.hypot(x_now - px, y_now - py) > 10.0:
                 return t_close
         if line is None:
             return None
@@ -663,8 +761,8 @@ class Operator:
         if not self.active:
             return
         for cv in self.ranked():
-            if not cv.planned or cv.done:
-                continue
+            if not cv.planned or cv.done or cv.reaim_want is not None:
+                continue  # (a re-aimed line asked for: the next camera round sends it)
             if cv.passed_at is None:
                 t_pass = self._pass_time(cv, now)
                 if t_pass is not None and (cv.wait_after is None or t_pass > cv.wait_after):
@@ -722,7 +820,7 @@ class Operator:
         image_id = int(meta["image_id"])
         cv.image_id = image_id
         img = self.imagery.image(image_id)
-        here = math.hypot(float(meta["x"]) - cv.x, float(meta["y"]) - cv.y) <= NEAR
+        here = cv.distance(float(meta["x"]), float(meta["y"])) <= NEAR
         settled = self._arrived(cv, meta)
         layers = int(meta.get("layers_complete", 0))
         preview = layers < MIN_CONFIRM_LAYERS and not meta.get("complete")
@@ -730,13 +828,11 @@ class Operator:
         final = settled and (cv.want_goal == image_id or bool(meta.get("complete")) or layers >= MORE_LAYERS)
         sights: list[Sight] = []
         mine: list[Sight] = []
+        mpp, heading = self.frame_geometry(cv, meta)
         if img is not None and (settled or not preview):  # a preview is a smudge: not worth a look
-            mpp, heading = self.frame_geometry(cv, meta)
             sights = self.eye.look(img, mpp, settled=final)
             self.sights[image_id] = [s.as_dict() for s in sights]
-            mine = [s for s in sights
-                    if math.hypot(*(a - b for a, b in zip(self.ground(s, meta, mpp, heading), (cv.x, cv.y), strict=True)))
-                    <= SIGHT_RADIUS]
+            mine = [s for s in sights if cv.distance(*self.ground(s, meta, mpp, heading)) <= SIGHT_RADIUS]
         kinds = {s.kind for s in mine}
         targets = [s for s in mine if s.target]
         if here and targets and not preview:
@@ -783,7 +879,15 @@ class Operator:
                      f"too unclear to tell [{self._seen(mine)}]: asking for {MORE_LAYERS} layers "
                      f"[command {msg.command_id}]")
             return
+        aim = self._side_cut_aim(cv, mine, meta, mpp, heading)
+        if aim is not None and self._reaim(cv, aim, f"image {image_id} cuts it at its side "
+                                           f"[{self._seen(mine)}]: the line passed beside it", now):
+            return
         if len(cv.looked) >= MAX_LOOKS:
+            off, _ = closest_approach(self.track, *cv.point) if self.track else (0.0, 0.0)
+            if off > REAIM_OFF and self._reaim(cv, cv.point, f"no target in {len(cv.looked)} images and the "
+                                               f"received track passed {off:.1f} m from it", now):
+                return
             cv.verdict = "given up"
             self.log(now, "given up", f"no target in {len(cv.looked)} images near ({cv.x:.0f}, {cv.y:.0f}): "
                      "moving on")
@@ -855,7 +959,8 @@ class Operator:
         if self.track:
             heading = min(self.track, key=lambda p: abs(p[0] - t))[3]
         h = math.radians(heading)
-        ahead = (cv.x - float(meta["x"])) * math.sin(h) + (cv.y - float(meta["y"])) * math.cos(h)
+        px, py = cv.point
+        ahead = (px - float(meta["x"])) * math.sin(h) + (py - float(meta["y"])) * math.cos(h)
         return "after" if ahead > 0 else "before"
 
     def _answer(self, cv: CandidateView) -> dict[str, Any] | None:
