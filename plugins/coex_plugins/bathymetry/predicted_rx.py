@@ -14,6 +14,7 @@ again).
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from typing import Any
 
 import numpy as np
@@ -58,15 +59,10 @@ class PredictedInput:
     _stats: dict[int, LevelStats]
     _versions: dict[int, int]
 
-    def _tile(self, level: int, tx: int, ty: int, create: bool = False) -> Any:
-        raise NotImplementedError
-
-    def _put(self, level: int, tile: Any, ix: int, iy: int, lx: int, ly: int, stamp: float,
-             values: FloatArray, now: float, draw: bool) -> None:
-        raise NotImplementedError
-
-    def level_product(self, level: int, now: float | None = None) -> Product:
-        raise NotImplementedError
+    #: defined by the bathymetry receiver, which mixes this class in (declared for the type checker)
+    _tile: Callable[..., Any]
+    _put: Callable[..., None]
+    level_product: Callable[..., Product]
 
     def _subgrid(self, sg: SubgridMessage, now: float) -> list[Product]:
         level = sg.level
