@@ -799,24 +799,13 @@ class Operator:
                 float(meta["y"]) - right * math.sin(h) + ahead * math.cos(h))
 
     def _look(self, cv: CandidateView, now: float) -> None:
+        """Look at the image answering a candidate's request: confirm it, call it natural, ask for
+        a sharper look at an unclear object, re-aim a line that passed beside it, give up, or
+        step on along the line."""
         meta = self._answer(cv)
-        pending = {command_id_of(m) for m in self.imagery.pending_requests()}
-        if meta is not None and int(meta.get("bytes_used", 0)) > cv.progress[0]:
-            cv.progress = (int(meta["bytes_used"]), now)  # the answer is coming: not stuck
-        since = max(cv.request_at or now, cv.progress[1])
-        stuck = (cv.request_at is not None and now - since > ANSWER_CYCLES * self.cycle
-                 and cv.command_id not in pending)  # still being retried by the receiver: wait
-        if meta is None or (stuck and not self._arrived(cv, meta)):
-            if stuck and cv.want is not None:  # no answer: the request may never have reached the vehicle
-                t, direction = cv.want
-                self.log(now, "image request", f"no answer for {now - (cv.request_at or now):.0f} s: asking again")
-                if cv.want_goal is not None and meta is not None:
-                    cv.request_at = now
-                    cv.want_region = None
-                    cv.command_id = self.imagery.request_goal(cv.want_goal, "layer", MORE_LAYERS, now).command_id
-                else:
-                    self._ask(cv, t, direction, now)
+        if self._unanswered(cv, meta, now):
             return
+        assert meta is not None
         image_id = int(meta["image_id"])
         cv.image_id = image_id
         img = self.imagery.image(image_id)
@@ -836,16 +825,7 @@ class Operator:
         kinds = {s.kind for s in mine}
         targets = [s for s in mine if s.target]
         if here and targets and not preview:
-            best = targets[0]
-            cv.verdict, cv.verdict_image, cv.confirmed_at = best.kind, image_id, now
-            cv.evidence = None if img is None else np.array(img, copy=True)
-            cv.evidence_time = float(meta["time"])
-            cv.evidence_xy = (float(meta["x"]), float(meta["y"]))
-            cv.evidence_bytes = int(meta["bytes_used"])
-            cv.evidence_box, cv.evidence_sight = best.box, best.as_dict()
-            dt = now - (cv.request_at or now)
-            self.log(now, "confirming image", f"image {image_id} shows a {best.kind} at ({cv.x:.0f}, {cv.y:.0f}) "
-                     f"[{best.describe()}]: {meta['bytes_used']} B, {dt:.0f} s after its request")
+            self._confirm(cv, targets[0], img, meta, now)
             return
         if not settled:
             return  # the vehicle is still sending the layers asked for: look again later
@@ -858,26 +838,7 @@ class Operator:
                      f"[{self._seen(mine)}]: moving on")
             return
         if "unclear" in kinds and cv.want_goal != image_id and layers < MORE_LAYERS:
-            cv.want_goal = image_id
-            cv.request_at = now
-            box = self._region_of([s for s in mine if s.kind == "unclear"], meta)
-            if box is not None:
-                # look where it matters: only the part of the frame with the unclear object
-                reg = self.imagery.request_region(image_id, box, "layer", MORE_LAYERS, now)
-                cv.command_id = cv.want_region = reg.command_id
-                self.regions.append({"image_id": image_id, "box": list(box), "command_id": reg.command_id,
-                                     "time": now, "candidate": (cv.x, cv.y)})
-                self.log(now, "image region", f"image {image_id} shows something at ({cv.x:.0f}, {cv.y:.0f}) "
-                         f"too unclear to tell [{self._seen(mine)}]: asking for {MORE_LAYERS} layers of "
-                         f"its region x {box[0]}..{box[2]}, y {box[1]}..{box[3]} px "
-                         f"[command {reg.command_id}]")
-                return
-            cv.want_region = None
-            msg = self.imagery.request_goal(image_id, "layer", MORE_LAYERS, now)
-            cv.command_id = msg.command_id
-            self.log(now, "image goal", f"image {image_id} shows something at ({cv.x:.0f}, {cv.y:.0f}) "
-                     f"too unclear to tell [{self._seen(mine)}]: asking for {MORE_LAYERS} layers "
-                     f"[command {msg.command_id}]")
+            self._ask_sharper(cv, mine, meta, now)
             return
         aim = self._side_cut_aim(cv, mine, meta, mpp, heading)
         if aim is not None and self._reaim(cv, aim, f"image {image_id} cuts it at its side "
@@ -892,6 +853,73 @@ class Operator:
             self.log(now, "given up", f"no target in {len(cv.looked)} images near ({cv.x:.0f}, {cv.y:.0f}): "
                      "moving on")
             return
+        self._step_on(cv, mine, meta, now)
+
+    def _unanswered(self, cv: CandidateView, meta: dict[str, Any] | None, now: float) -> bool:
+        """Whether the candidate's request has no image to look at yet (none announced, or one
+        stuck with no answer for ``ANSWER_CYCLES`` cycles); a stuck request is asked again."""
+        pending = {command_id_of(m) for m in self.imagery.pending_requests()}
+        if meta is not None and int(meta.get("bytes_used", 0)) > cv.progress[0]:
+            cv.progress = (int(meta["bytes_used"]), now)  # the answer is coming: not stuck
+        since = max(cv.request_at or now, cv.progress[1])
+        stuck = (cv.request_at is not None and now - since > ANSWER_CYCLES * self.cycle
+                 and cv.command_id not in pending)  # still being retried by the receiver: wait
+        if not (meta is None or (stuck and not self._arrived(cv, meta))):
+            return False
+        if stuck and cv.want is not None:  # no answer: the request may never have reached the vehicle
+            t, direction = cv.want
+            self.log(now, "image request", f"no answer for {now - (cv.request_at or now):.0f} s: asking again")
+            if cv.want_goal is not None and meta is not None:
+                cv.request_at = now
+                cv.want_region = None
+                cv.command_id = self.imagery.request_goal(cv.want_goal, "layer", MORE_LAYERS, now).command_id
+            else:
+                self._ask(cv, t, direction, now)
+        return True
+
+    def _confirm(self, cv: CandidateView, best: Sight, img: Any, meta: dict[str, Any], now: float) -> None:
+        """The eye saw a target in a received image at the candidate: the operator's verdict,
+        with the image kept as its evidence."""
+        image_id = int(meta["image_id"])
+        cv.verdict, cv.verdict_image, cv.confirmed_at = best.kind, image_id, now
+        cv.evidence = None if img is None else np.array(img, copy=True)
+        cv.evidence_time = float(meta["time"])
+        cv.evidence_xy = (float(meta["x"]), float(meta["y"]))
+        cv.evidence_bytes = int(meta["bytes_used"])
+        cv.evidence_box, cv.evidence_sight = best.box, best.as_dict()
+        dt = now - (cv.request_at or now)
+        self.log(now, "confirming image", f"image {image_id} shows a {best.kind} at ({cv.x:.0f}, {cv.y:.0f}) "
+                 f"[{best.describe()}]: {meta['bytes_used']} B, {dt:.0f} s after its request")
+
+    def _ask_sharper(self, cv: CandidateView, mine: list[Sight], meta: dict[str, Any], now: float) -> None:
+        """An object too unclear to tell: ask for more layers of the region it is in (the whole
+        image when the eye draws no box)."""
+        image_id = int(meta["image_id"])
+        cv.want_goal = image_id
+        cv.request_at = now
+        box = self._region_of([s for s in mine if s.kind == "unclear"], meta)
+        if box is not None:
+            # look where it matters: only the part of the frame with the unclear object
+            reg = self.imagery.request_region(image_id, box, "layer", MORE_LAYERS, now)
+            cv.command_id = cv.want_region = reg.command_id
+            self.regions.append({"image_id": image_id, "box": list(box), "command_id": reg.command_id,
+                                 "time": now, "candidate": (cv.x, cv.y)})
+            self.log(now, "image region", f"image {image_id} shows something at ({cv.x:.0f}, {cv.y:.0f}) "
+                     f"too unclear to tell [{self._seen(mine)}]: asking for {MORE_LAYERS} layers of "
+                     f"its region x {box[0]}..{box[2]}, y {box[1]}..{box[3]} px "
+                     f"[command {reg.command_id}]")
+            return
+        cv.want_region = None
+        msg = self.imagery.request_goal(image_id, "layer", MORE_LAYERS, now)
+        cv.command_id = msg.command_id
+        self.log(now, "image goal", f"image {image_id} shows something at ({cv.x:.0f}, {cv.y:.0f}) "
+                 f"too unclear to tell [{self._seen(mine)}]: asking for {MORE_LAYERS} layers "
+                 f"[command {msg.command_id}]")
+
+    def _step_on(self, cv: CandidateView, mine: list[Sight], meta: dict[str, Any], now: float) -> None:
+        """No verdict from this image: ask for the next one along the line, toward the side where
+        the frame cut the object (or toward the candidate), never an image already seen."""
+        image_id = int(meta["image_id"])
         # an object the frame cuts: the rest of it is ahead (the frame's top) or behind
         cut = {c for s in mine for c in s.cut}
         if "top" in cut and "bottom" not in cut:
