@@ -326,8 +326,9 @@ def test_the_demo_console_follows_the_same_rule_and_logs_who_acted(operators: Pa
                         "--quiet", "--out", str(tmp_path / "out")], capture_output=True, text=True, timeout=120)
     assert r.returncode == 2 and "without sign-in" in r.stderr
     node = Node(ChannelManager(1, [LinkConfig(0, Schedule.simple([1, 2], 20.0, 2.0), dst=2)]))
+    vehicle = Node(ChannelManager(2, [LinkConfig(0, Schedule.simple([1, 2], 20.0, 2.0), dst=1)]))
     said: list[tuple[str, str, str]] = []
-    server = _start_gui(DemoConfig(http="127.0.0.1:0", operators=operators), node,
+    server = _start_gui(DemoConfig(http="127.0.0.1:0", operators=operators), node, vehicle,
                         lambda now, kind, text, who="script": said.append((kind, text, who)))
     try:
         c = Console.__new__(Console)

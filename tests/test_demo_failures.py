@@ -40,7 +40,7 @@ class _FakeServer:
 def test_a_failing_dive_releases_the_link_log_the_ptys_and_the_console(tmp_path: Path,
                                                                       monkeypatch: pytest.MonkeyPatch) -> None:
     server = _FakeServer()
-    monkeypatch.setattr(run_module, "_start_gui", lambda cfg, topside, log: server)
+    monkeypatch.setattr(run_module, "_start_gui", lambda cfg, topside, vehicle, log: server)
     dive = DiveRun(DemoConfig(out=tmp_path, quick=True, seed=1, progress=False, gui=True, linger=False,
                               operator="script"))
     hosts = list(dive.net._hosts)
