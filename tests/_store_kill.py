@@ -179,6 +179,7 @@ def kill_loop(folder: Path, kills: int, *, seed: int = 1, max_alive: float = 1.2
     report = KillReport()
     started = time.monotonic()
     dive_no = 0
+    first_kill = 0  # index in ``dive_times`` of this dive's first kill
     here = folder / f"dive{dive_no}"
     here.mkdir(parents=True, exist_ok=True)
     while report.kills < kills:
@@ -224,9 +225,13 @@ def kill_loop(folder: Path, kills: int, *, seed: int = 1, max_alive: float = 1.2
             break
         # the dive finished: topside must hold everything the vehicle sent
         d = restored_dive(here)
-        if not (map_converged(d) and images_complete(d) and series_complete(d)):
-            report.failures.append((report.kills, "topside", "the finished dive did not converge"))
+        missing = [what for what, ok in (("map", map_converged(d)), ("images", images_complete(d)),
+                                         ("series", series_complete(d))) if not ok]
+        if missing:  # which part topside lacks, and the dive's clock at each kill of this dive
+            report.failures.append((report.kills, "topside", f"the finished dive did not converge: "
+                                    f"{', '.join(missing)} incomplete (kills at {report.dive_times[first_kill:]})"))
         report.dives += 1
+        first_kill = len(report.dive_times)
         dive_no += 1
         here = folder / f"dive{dive_no}"
         here.mkdir(parents=True, exist_ok=True)
