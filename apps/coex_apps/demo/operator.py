@@ -327,10 +327,11 @@ class Operator:
             self.altitudes.append((unwrap(s.stamp, now), float(s.altitude)))
 
     def level_grid(self, level: int) -> tuple[np.ndarray, float, tuple[float, float]] | None:
-        try:
-            p = self.bathy.level_product(level)
-        except Exception:
+        """The received level ``level`` (cells, cell size, south-west corner), or None while
+        no subgrid of it has arrived. Any other failure to read it is raised, not hidden."""
+        if level not in self.bathy.levels():
             return None
+        p = self.bathy.level_product(level)
         if p.data is None:
             return None
         meta = dict(p.meta)
