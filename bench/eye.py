@@ -8,7 +8,8 @@ only (one scene in eight), on generated sand or, when ``--images DIR`` is given 
 passes as the operator sends it: across the object's long axis (its heading known to +-20
 degrees), at the operator's camera altitude (``operator.camera_altitude`` for the largest object
 sought), the object anywhere between two frames along the line (``LINE_SPEED`` x the camera
-period apart) and up to a metre off it across. The frame is coded as the demo's vehicle codes it and decoded at 1, 3 and 4
+period apart) and up to a metre off it across (``--across M``: up to M metres, so that the frame cuts
+objects at its side, as a line flown off its aim does). The frame is coded as the demo's vehicle codes it and decoded at 1, 3 and 4
 quality layers (20, 30, 35 dB), and the eye looks at each (up to 3 layers as at the operator's first
 look, when a marginal object is "unclear"; at 4 layers as at its sharper look, when it decides).
 
@@ -16,7 +17,7 @@ It prints, per layer, what the eye said of each kind (the confusion table), how 
 target on sand or on a decoy (false verdicts) and what it costs per frame, and writes
 ``bench/results/eye.json``. The eye's parameters were set with this script on these seeds only.
 
-    python bench/eye.py [--seeds N] [--first-seed S] [--images DIR] [--layers 1,3,4]
+    python bench/eye.py [--seeds N] [--first-seed S] [--images DIR] [--layers 1,3,4] [--across M]
 """
 
 from __future__ import annotations
@@ -34,7 +35,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 
 
-def scene(seed: int, real: Any | None) -> dict[str, Any]:
+def scene(seed: int, real: Any | None, across_m: float = 1.0) -> dict[str, Any]:
     from coex_apps.demo.camera import CameraModel, SandTexture, render_labelled
     from coex_apps.demo.operator import LINE_ALTITUDE_FOR, LINE_SPEED, camera_altitude
     from coex_apps.demo.scenario import DECOY_KINDS, TARGET_KINDS, draw_object
@@ -50,7 +51,7 @@ def scene(seed: int, real: Any | None) -> dict[str, Any]:
     alt = camera_altitude(*LINE_ALTITUDE_FOR, 5.0)
     across = math.radians(obj.heading + 90.0 + rng.uniform(-20, 20))  # the line's heading
     along = rng.uniform(-0.5, 0.5) * LINE_SPEED * CAMERA_PERIOD
-    off = rng.uniform(-1.0, 1.0)
+    off = rng.uniform(-1.0, 1.0) * across_m
     x = 50.0 + along * math.sin(across) + off * math.cos(across)
     y = 50.0 + along * math.cos(across) - off * math.sin(across)
     z = float(floor.ground(np.array([x]), np.array([y]))[0]) + alt
@@ -78,6 +79,8 @@ def main() -> None:
     ap.add_argument("--first-seed", type=int, default=DEVELOPMENT_SEEDS[0])
     ap.add_argument("--images", type=Path, default=None, help="real frames to build half the scenes' sand from")
     ap.add_argument("--layers", default="1,3,4")
+    ap.add_argument("--across", type=float, default=1.0,
+                    help="the line passes up to this far (m) beside the object (default 1; more cuts objects at the frame's side)")
     ap.add_argument("--verbose", action="store_true")
     args = ap.parse_args()
     seeds = range(args.first_seed, args.first_seed + args.seeds)
@@ -96,7 +99,7 @@ def main() -> None:
     rows = []
     cost: list[float] = []
     for seed in seeds:
-        sc = scene(seed, real)
+        sc = scene(seed, real, args.across)
         enc = encode_image(sc["image"], CodingParams(layer_psnr=LAYER_PSNR))
         mpp = metres_per_pixel(sc["altitude"], sc["image"].shape[1], CAMERA_HFOV_DEG)
         row = {k: sc[k] for k in ("seed", "kind", "altitude", "background", "in_frame", "whole", "length", "width")}
@@ -150,9 +153,10 @@ def main() -> None:
         print(f"  {kind:<10} n={len(got):<3} " + ", ".join(cols))
     ms = 1000 * float(np.median(cost))
     print(f"\neye cost per frame: median {ms:.1f} ms, worst {1000 * max(cost):.1f} ms (shared machine)")
-    out = ROOT / "bench" / "results" / "eye.json"
+    out = ROOT / "bench" / "results" / ("eye.json" if args.across == 1.0 else f"eye-across-{args.across:g}.json")
     out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(json.dumps({"seeds": [seeds[0], seeds[-1]], "real": args.images is not None, "summary": summary,
+    out.write_text(json.dumps({"seeds": [seeds[0], seeds[-1]], "real": args.images is not None, "across_m": args.across,
+                               "summary": summary,
                                "cost_ms": {"median": round(ms, 2), "worst": round(1000 * max(cost), 2)},
                                "scenes": rows}, indent=1, default=str))
 

@@ -21,7 +21,7 @@ import pytest
 from coex.messages import SurveyCommand
 from coex_apps.demo.camera import SandTexture, render_labelled
 from coex_apps.demo.config import LAYER_PSNR
-from coex_apps.demo.eye import TARGET_KINDS, Eye, EyeParams, metres_per_pixel
+from coex_apps.demo.eye import TARGET_KINDS, Eye, EyeParams, Sight, metres_per_pixel
 from coex_apps.demo.operator import (
     LINE_ALTITUDE_FOR,
     MAX_REAIMS,
@@ -200,6 +200,44 @@ def test_a_container_the_frame_cuts_at_its_side_is_re_aimed_at_from_the_pixels(o
     # an object cut on neither side, or on both (longer than the frame), gives no new aim
     for cut in [(), ("top",), ("left", "right")]:
         assert Operator._side_cut_aim(cv, [dataclasses.replace(sights[0], cut=cut)], meta, mpp, 90.0) is None
+
+
+def _shot(targets: tuple[Target, ...], rocks: tuple[Target, ...] = (), seed: int = 7) -> list[Sight]:
+    """What the eye sees in a whole frame (no coding) taken at the camera lines' altitude over
+    (50, 50), heading east."""
+    floor = Seafloor(size=100.0, depth=500.0, relief=1.0, targets=targets + rocks, seed=seed)
+    alt = camera_altitude(*LINE_ALTITUDE_FOR, 5.0)
+    z = float(floor.ground(np.array([50.0]), np.array([50.0]))[0]) + alt
+    img, _ = render_labelled(floor.ground, 50.0, 50.0, z, 90.0, targets=targets, rocks=rocks, texture=SandTexture(seed),
+                             rng=np.random.default_rng(seed))
+    return Eye().look(img, metres_per_pixel(alt, img.shape[1], CAMERA_HFOV_DEG), settled=True)
+
+
+@pytest.mark.parametrize("corner", [(1.9, 3.3), (-1.9, -3.0)])
+def test_a_container_with_a_rock_at_its_corner_is_still_a_container(corner: tuple[float, float]) -> None:
+    """A dark rock touching a container's corner makes one object of the two; the eye tells the
+    container by its own outline once the neck between them is opened away."""
+    box = Target(50.0, 50.0, 6.06, 2.44, 2.59, 0.0, "box", "container", 0.2)
+    rock = Target(50.0 + corner[0], 50.0 + corner[1], 1.4, 1.1, 0.5, 30.0, "dome", "dark rock", 0.08)
+    sights = _shot((box,), (rock,))
+    assert sights and sights[0].kind == "container", [s.describe() for s in sights]
+    assert abs(sights[0].length_m - box.length) < 0.6
+
+
+@pytest.mark.parametrize("off", [4.0, -4.0])
+def test_a_rectangle_the_frame_cuts_is_man_made_and_a_rock_it_cuts_is_not(off: float) -> None:
+    """A line passed ``off`` metres beside the object: the frame cuts it at its side. Straight
+    sides meeting square (a car's width and length showing) are man-made whatever the whole
+    size; a rock or a mound of living things cut the same way stays no target."""
+    car = Target(50.0, 50.0 - off, 3.0, 1.6, 1.4, 0.0, "box", "car", 0.4)
+    sights = _shot((car,))
+    assert sights and set(sights[0].cut) == {"right" if off > 0 else "left"}
+    assert sights[0].target, [s.describe() for s in sights]
+    for decoy in (Target(50.0, 50.0 - off, 3.6, 2.6, 1.6, 0.0, "dome", "rock"),
+                  Target(50.0, 50.0 - off, 3.2, 2.4, 1.1, 0.0, "mound", "biology", 0.08)):
+        sights = _shot((), (decoy,))
+        assert sights and sights[0].cut, "the frame cuts it"
+        assert not any(s.target for s in sights), [s.describe() for s in sights]
 
 
 class _Survey:

@@ -22,7 +22,9 @@ scipy.ndimage):
    hull, and a car as bright as the sand but with its rim and its clutter all stand out.
    Specks are opened away, gaps closed, holes filled, soft patches with no outline (what is
    left of the lighting) dropped; pieces closer than :attr:`EyeParams.group_gap_m` are one
-   object (a debris patch).
+   object (a debris patch). When a group is no target as a whole, its largest piece is looked
+   at alone once the necks joining it to the rest are opened away: a car or a container beside a
+   patch of the sand's clutter or a rock touching its corner keeps its own outline.
 3. **Measures** of each object: its size in metres (second moments, the pixel's size on the
    seafloor from the altitude and the field of view), its outline's fit to a rectangle (how
    much of the rotated bounding box it fills, and what share of its outline lies on the box's
@@ -32,7 +34,10 @@ scipy.ndimage):
 4. **Verdict** (:data:`KINDS`): ``car``, ``container``, ``hull``, ``debris`` (man-made: a
    target), ``object`` (man-made, of no known kind: a target too), ``natural`` (a rounded or
    lobed outline: a rock, a mound of living things, a fish), ``unclear`` (too blurry to tell)
-   or ``partial`` (cut by the frame's edge: the rest is in the frame before or after).
+   or ``partial`` (cut by the frame's edge: the rest is in the frame before or after). A
+   straight-edged rectangle the frame cuts (its outline but the frame's edge on its box's sides,
+   clear of the margin, at least a car's width and length showing) is an ``object``: straight
+   sides meeting square are man-made whatever the whole size.
 
 The parameters (:class:`EyeParams`) were set on the development scenes of ``bench/eye.py`` only
 (rendered frames of every kind of object, seeds :data:`~coex_apps.demo.config.DEVELOPMENT_SEEDS`,
@@ -50,12 +55,14 @@ import numpy as np
 import numpy.typing as npt
 from scipy import ndimage
 
-__all__ = ["KINDS", "TARGET_KINDS", "Eye", "EyeParams", "Segmentation", "Sight", "metres_per_pixel", "shrink"]
+__all__ = ["KINDS", "SHAPED_KINDS", "TARGET_KINDS", "Eye", "EyeParams", "Segmentation", "Sight", "metres_per_pixel", "shrink"]
 
 #: what the eye can say of an object
 KINDS = ("car", "container", "hull", "debris", "object", "natural", "unclear", "partial")
 #: the verdicts that are a target (something man-made): the operator confirms one of these
 TARGET_KINDS = frozenset({"car", "container", "hull", "debris", "object"})
+#: the target verdicts that come from one outline's shape (not from a patch of pieces)
+SHAPED_KINDS = frozenset({"car", "container", "hull", "object"})
 
 FloatImage = npt.NDArray[np.float64]
 Mask = npt.NDArray[np.bool_]
@@ -317,8 +324,36 @@ class Eye:
             obj = (groups[win] == k) & seg.mask[win]
             if float(obj.sum()) * step * step < p.min_area_m2:
                 continue
-            sights.append(self._measure(obj, win, seg, step, settled, (h, w)))
+            sight = self._measure(obj, win, seg, step, settled, (h, w))
+            for piece in ([] if sight.target else self._pieces(obj, step)):
+                # a car or a container beside a patch of the sand's clutter is grouped with it:
+                # its own outline, apart from the patch, tells what it is
+                alone = self._measure(piece, win, seg, step, settled, (h, w))
+                if alone.kind in SHAPED_KINDS:
+                    sight = alone
+                    break
+            sights.append(sight)
         return sorted(sights, key=lambda s: -s.area_m2)
+
+    def _pieces(self, obj: Mask, step: float) -> list[Mask]:
+        """An object's largest piece once necks narrower than 2, 4, then 6 times
+        :attr:`EyeParams.open_m` are opened away (what touches it cut off), each with its
+        corners back (the object's pixels within 0.42 of the opening's radius of it); only
+        pieces large enough to be an object and smaller than the whole."""
+        p = self.params
+        out = []
+        for k in (1, 2, 3):
+            r = max(1, round(k * p.open_m / step))
+            pieces, n = ndimage.label(ndimage.binary_opening(obj, _disk(r)), np.ones((3, 3), bool))
+            if n == 0:
+                continue
+            sizes = np.asarray(ndimage.sum_labels(np.ones_like(pieces), pieces, np.arange(1, n + 1)), np.float64)
+            big = int(np.argmax(sizes))
+            # the opening rounds a corner by at most 0.42 r: grown back that far, within the object
+            piece = obj & ndimage.binary_dilation(pieces == big + 1, _disk(math.ceil(0.42 * r)))
+            if float(piece.sum()) * step * step >= p.min_area_m2 and piece.sum() < 0.97 * obj.sum():
+                out.append(np.asarray(piece))
+        return out
 
     # ------------------------------------------------------------------ one object
     def _measure(self, obj: Mask, win: tuple[slice, slice], seg: Segmentation,
@@ -360,6 +395,9 @@ class Eye:
         tol = p.side_tolerance * step
         on = (np.minimum(np.abs(eu - ulo), np.abs(eu - uhi)) <= tol) | (
             np.minimum(np.abs(ev_ - vlo), np.abs(ev_ - vhi)) <= tol)
+        if cut:  # the frame's edge is no side of the object's own: its outline is the rest
+            inner = (er + r0 > 0) & (er + r0 < h - 1) & (ec + c0 > 0) & (ec + c0 < w - 1)
+            on = on[inner]
         on_sides = float(on.mean()) if on.size else 0.0
         # taper: the object's width near each end of its long axis
         bow = 1.0
@@ -401,6 +439,11 @@ class Eye:
         if sharp < p.min_sharpness:
             return ("natural", "a soft patch with no outline") if settled else ("unclear", "no clear outline")
         if cut:
+            # a rectangle cut by the frame (beyond the margin, at least a car's width and length
+            # showing) is man-made whatever its whole size: straight sides meeting square
+            if (box_fill >= p.min_box_fill + m and on_sides >= p.min_on_sides + m
+                    and min(length, width) >= p.car_width[0] and max(length, width) >= p.car_length[0]):
+                return "object", "a straight-edged rectangle, cut by the frame"
             return "partial", "cut by the frame"
         long = length / max(width, 1e-6) >= p.min_hull_aspect and within(length, p.hull_length)
         hull = long and bow <= p.max_bow_ratio and on_sides >= p.min_hull_sides and box_fill >= p.min_hull_fill
@@ -430,6 +473,13 @@ class Eye:
         if debris:
             return "debris", "a ragged patch of pieces"
         return "natural", "a rounded or irregular outline"
+
+
+@functools.lru_cache(maxsize=16)
+def _disk(r: int) -> Mask:
+    """A disk of radius ``r`` pixels (a structuring element)."""
+    yy, xx = np.mgrid[-r:r + 1, -r:r + 1]
+    return np.asarray(xx * xx + yy * yy <= r * r)
 
 
 def _solidity(edge: Mask, area: int) -> float:
