@@ -31,7 +31,7 @@ from typing import Any
 from coex import AcousticChannel, Node, NodeStore, SimNetwork, SimulatedClock, StoreError
 from coex_plugins.bathymetry import BathymetryReceiver
 
-from ._faults import T0, Dive, build_dive, images_complete, map_converged, series_complete
+from ._faults import T0, Dive, build_dive, images_complete, map_converged, schedule, series_complete
 
 #: minutes of sensor data in the dive; the dive's clock ends at ``T0 + DIVE_SECONDS``
 MINUTES = 3
@@ -87,51 +87,79 @@ def _saved_time(store: NodeStore) -> float:
     return float(row[0]) if row is not None else T0
 
 
+class Life:
+    """One life of the writer: both nodes restored from their stores in ``folder`` (created
+    empty the first time), on a :class:`SimNetwork` over ``channel`` from the newer snapshot's
+    time, the vehicle's inputs fed as they fall due and the operator's request for image 1 in
+    full made once. :meth:`step` runs it; :meth:`close` closes the stores as they are (what a
+    ``kill -9`` leaves: what they committed)."""
+
+    def __init__(self, folder: Path, channel: AcousticChannel) -> None:
+        self.stores = {r: NodeStore(folder / f"{r}.sqlite", snapshot_interval=SNAPSHOT_INTERVAL) for r in ROLES}
+        try:
+            self.nodes = {r: self.stores[r].restore(build(r)) for r in ROLES}
+        except BaseException:
+            self.close()
+            raise
+        self.template = dive()
+        self.start = max(_saved_time(s) for s in self.stores.values())
+        self.fed = len(self.stores["vehicle"].marked("fed:"))
+        self.net = SimNetwork({0: channel}, SimulatedClock(start=self.start))
+        self.net.add_node(_Journaled(self.nodes["vehicle"], self.stores["vehicle"]), (0.0, 0.0, 500.0))  # type: ignore[arg-type]
+        self.net.add_node(_Journaled(self.nodes["topside"], self.stores["topside"]), (100.0, 0.0, 0.0))  # type: ignore[arg-type]
+        self.net.every(1.0, self._inputs, start=self.start)
+
+    def _inputs(self, now: float) -> None:
+        vehicle, vstore, tstore = self.nodes["vehicle"], self.stores["vehicle"], self.stores["topside"]
+        feed = self.template.feed
+        while self.fed < len(feed) and feed[self.fed][0] <= now:
+            _, name, data = feed[self.fed]
+            sender = vehicle.sender(name)
+            data = sender.journal_form(data)
+            # the input and the mark that it was taken: one transaction
+            vstore.record_input(name, data, now, mark=f"fed:{self.fed:06d}")
+            sender.ingest(data, now)
+            self.fed += 1
+        if now >= T0 + 200.0 and tstore.get("goal") is None:
+            self.nodes["topside"].receiver("imagery").request_goal(1, "full", now=now)  # type: ignore[attr-defined]
+            tstore.snapshot(self.nodes["topside"], now)  # the request is in the saved state ...
+            tstore.set("goal", "asked")  # ... before it is marked done
+
+    def step(self, until: float) -> bool:
+        """One event of the network (False once its clock reached ``until``), then the
+        snapshots the runner takes after received frames."""
+        if not self.net.step(until):
+            return False
+        for r in ROLES:
+            self.stores[r].maybe_snapshot(self.nodes[r], self.net.now)
+        return True
+
+    def as_dive(self) -> Dive:
+        """Both nodes as they are now, as a Dive for the fault suite's checks."""
+        return _as_dive(self.nodes["vehicle"], self.nodes["topside"], self.template)
+
+    def close(self) -> None:
+        for s in self.stores.values():
+            s.close()
+
+
 def work(folder: str, seed: int, until: float = T0 + DIVE_SECONDS, ready: Any = None) -> None:
     """The writer (see the module docstring); returns when the dive's clock reaches ``until``.
     ``ready`` (an event) is set once the dive has advanced by a snapshot in this life."""
-    here = Path(folder)
     import coex_runtime.store
 
     coex_runtime.store.GARBAGE_CHUNKS = 64  # chunks no snapshot names are deleted often: killed then too
-    stores = {r: NodeStore(here / f"{r}.sqlite", snapshot_interval=SNAPSHOT_INTERVAL) for r in ROLES}
+    life = Life(Path(folder), AcousticChannel(loss=0.1, seed=seed))
     try:
-        nodes = {r: stores[r].restore(build(r)) for r in ROLES}
-        template = dive()
-        vehicle, vstore, tstore = nodes["vehicle"], stores["vehicle"], stores["topside"]
-        start = max(_saved_time(s) for s in stores.values())
-        fed = len(vstore.marked("fed:"))
-        net = SimNetwork({0: AcousticChannel(loss=0.1, seed=seed)}, SimulatedClock(start=start))
-        net.add_node(_Journaled(vehicle, vstore), (0.0, 0.0, 500.0))  # type: ignore[arg-type]
-        net.add_node(_Journaled(nodes["topside"], tstore), (100.0, 0.0, 0.0))  # type: ignore[arg-type]
-
-        def inputs(now: float) -> None:
-            nonlocal fed
-            while fed < len(template.feed) and template.feed[fed][0] <= now:
-                _, name, data = template.feed[fed]
-                sender = vehicle.sender(name)
-                data = sender.journal_form(data)
-                # the input and the mark that it was taken: one transaction
-                vstore.record_input(name, data, now, mark=f"fed:{fed:06d}")
-                sender.ingest(data, now)
-                fed += 1
-            if now >= T0 + 200.0 and tstore.get("goal") is None:
-                nodes["topside"].receiver("imagery").request_goal(1, "full", now=now)  # type: ignore[attr-defined]
-                tstore.snapshot(nodes["topside"], now)  # the request is in the saved state ...
-                tstore.set("goal", "asked")  # ... before it is marked done
-
-        net.every(1.0, inputs, start=start)
-        first = {r: stores[r].stats["snapshots"] for r in ROLES}
-        while net.step(until):
-            for r in ROLES:
-                stores[r].maybe_snapshot(nodes[r], net.now)
-            if ready is not None and not ready.is_set() and all(stores[r].stats["snapshots"] > first[r] for r in ROLES):
+        first = {r: life.stores[r].stats["snapshots"] for r in ROLES}
+        while life.step(until):
+            if ready is not None and not ready.is_set() and all(
+                    life.stores[r].stats["snapshots"] > first[r] for r in ROLES):
                 ready.set()  # both stores moved on in this life
         for r in ROLES:
-            stores[r].snapshot(nodes[r], net.now)
+            life.stores[r].snapshot(life.nodes[r], life.net.now)
     finally:
-        for s in stores.values():
-            s.close()
+        life.close()
 
 
 def _work_and_exit(folder: str, seed: int, ready: Any) -> None:
@@ -163,6 +191,9 @@ class KillReport:
     failures: list[tuple[int, str, str]] = field(default_factory=list)
     #: the dive's clock at each kill (how far the writer had got)
     dive_times: list[float] = field(default_factory=list)
+    #: for each dive that finished, the number of kills before it finished (where its
+    #: successor's clocks begin in ``dive_times``)
+    finished: list[int] = field(default_factory=list)
     seconds: float = 0.0
 
 
@@ -227,16 +258,49 @@ def kill_loop(folder: Path, kills: int, *, seed: int = 1, max_alive: float = 1.2
         d = restored_dive(here)
         missing = [what for what, ok in (("map", map_converged(d)), ("images", images_complete(d)),
                                          ("series", series_complete(d))) if not ok]
-        if missing:  # which part topside lacks, and the dive's clock at each kill of this dive
+        if missing:  # which part topside lacks, the dive's clock at each kill of this dive, and
+            # whether the dive, run on, converges (a margin) or not (something lost for good)
             report.failures.append((report.kills, "topside", f"the finished dive did not converge: "
-                                    f"{', '.join(missing)} incomplete (kills at {report.dive_times[first_kill:]})"))
+                                    f"{', '.join(missing)} incomplete (kills at {report.dive_times[first_kill:]}; "
+                                    f"{_run_on(here, rng.randrange(1 << 30))})"))
         report.dives += 1
+        report.finished.append(report.kills)
         first_kill = len(report.dive_times)
         dive_no += 1
         here = folder / f"dive{dive_no}"
         here.mkdir(parents=True, exist_ok=True)
     report.seconds = round(time.monotonic() - started, 1)
     return report
+
+
+#: TDMA cycles a finished dive that did not converge is run on, to tell a margin from a loss
+RUN_ON_CYCLES = 20
+
+
+def _run_on(folder: Path, seed: int) -> str:
+    """A finished dive that did not converge, run on from a copy of its stores (the same lossy
+    link) for up to :data:`RUN_ON_CYCLES` TDMA cycles: what it then lacks, in words."""
+    import shutil
+    import tempfile
+
+    with tempfile.TemporaryDirectory() as tmp:
+        for r in ROLES:
+            for suffix in ("", "-wal"):
+                src = folder / f"{r}.sqlite{suffix}"
+                if src.exists():
+                    shutil.copy(src, Path(tmp) / src.name)
+        life = Life(Path(tmp), AcousticChannel(loss=0.1, seed=seed))
+        try:
+            cycle = schedule().cycle
+            for k in range(1, RUN_ON_CYCLES + 1):
+                while life.step(life.start + cycle * k):
+                    pass
+                d = life.as_dive()
+                if map_converged(d) and images_complete(d) and series_complete(d):
+                    return f"run on, it converged within {k} TDMA cycles"
+        finally:
+            life.close()
+    return f"run on for {RUN_ON_CYCLES} TDMA cycles, it still did not converge"
 
 
 def _holders(path: Path) -> str:
@@ -265,9 +329,12 @@ def _dive_clock(folder: Path) -> float:
 
 def restored_dive(folder: Path) -> Dive:
     """Both nodes as their stores in ``folder`` have them, as a Dive for the fault suite's checks."""
-    template = dive()
     v = check_store(folder / "vehicle.sqlite", "vehicle", read_only=True)
     t = check_store(folder / "topside.sqlite", "topside", read_only=True)
+    return _as_dive(v, t, dive())
+
+
+def _as_dive(v: Node, t: Node, template: Dive) -> Dive:
     return Dive(v, t, v.sender("bathymetry"), v.sender("imagery"), v.sender("timeseries"),  # type: ignore[arg-type]
                 t.receiver("bathymetry"), t.receiver("imagery"), t.receiver("timeseries"),  # type: ignore[arg-type]
                 series_data=template.series_data)

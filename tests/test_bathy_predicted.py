@@ -183,6 +183,42 @@ def test_a_newer_parent_overtaking_its_child_sets_the_child_aside_until_it_is_se
     np.testing.assert_array_equal(_held_units(receiver, key), _map_units(sender, key))
 
 
+def test_a_child_lost_after_a_restart_goes_again_though_its_parent_was_acknowledged_since() -> None:
+    """Issue 51 (the kill -9 loop's map that never converged): a change goes out as a new parent
+    and a new child in one fill (the child coded on its own: the new parent is not acknowledged
+    yet); the parent's frame arrives and is acknowledged, the child's is lost, and the vehicle
+    restarts from its saved state before the loss is known. The child's current build is then
+    predicted from the acknowledged parent, another message than the lost one, and the sender
+    no longer knows the lost message's version (not saved): the loss must still send the child
+    again, or topside keeps its old version for good (the background sends a subgrid only when
+    it changes)."""
+    sender, now = _sender()
+    receiver = BathymetryReceiver({"levels": LEVELS, "auto_fill": False})
+    _drain(sender, receiver, now, ack=True)
+    key, pkey = (0, 2, 2), (1, 1, 1)
+    t = now + 5000.0
+    _raise(sender, key, [(3, 3)], t)
+    sent: list[SubgridMessage] = []
+    for i in range(60):  # the background, once the change is quiet
+        sent += [m for m in sender.fill(240, t + i) if isinstance(m, SubgridMessage)]
+    child = next(m for m in sent if (m.level, m.ix, m.iy) == key)
+    assert any((m.level, m.ix, m.iy) == pkey for m in sent)
+    assert not (isinstance(child, PredictedSubgrid) and child.context == SubgridContext.PARENT)
+    for m in sent:  # every frame arrives and is acknowledged but the child's
+        if m is not child:
+            receiver.receive(wire.decode(wire.encode(m)), t + 61.0)
+            sender.acked(m, t + 62.0)
+    restored = state.loads(state.dumps(sender))  # the restart (the node's store saves this state)
+    assert isinstance(restored, BathymetrySender)
+    rebuilt = restored.build(key)
+    assert isinstance(rebuilt, PredictedSubgrid) and rebuilt.context == SubgridContext.PARENT
+    restored.lost(child, t + 80.0)  # the loss, known after the restart
+    again = [m for m in restored.spare(240, t + 81.0) if isinstance(m, SubgridMessage)]
+    assert [(m.level, m.ix, m.iy) for m in again] == [key]
+    receiver.receive(wire.decode(wire.encode(again[0])), t + 82.0)
+    np.testing.assert_array_equal(_held_units(receiver, key), _map_units(restored, key))
+
+
 def test_a_child_set_aside_is_rebuilt_when_its_parent_arrives() -> None:
     sender, now = _sender()
     receiver = BathymetryReceiver({"levels": LEVELS, "auto_fill": False})

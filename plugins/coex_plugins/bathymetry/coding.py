@@ -144,9 +144,24 @@ class SubgridCoding:
         rec = self.book.version(message)
         return key, (rec[1] if rec is not None and rec[0] == key else None)
 
-    def _is_current(self, key: Key, message: SubgridMessage, version: int | None) -> bool:
-        """Whether ``message`` carries the current version of ``key`` (however it is coded)."""
+    def _is_current(self, key: Key, message: SubgridMessage, version: int | None, *, lost: bool = False) -> bool:
+        """Whether ``message`` carries the current version of ``key`` (however it is coded).
+
+        ``version`` None: the message was built before the sender was restored from a saved
+        state (:class:`.context.ContextBook` does not save the versions of the messages it
+        built), or so long ago that the book forgot it. Its version is then judged from the
+        message: the current build itself is the current version; otherwise, for a loss
+        (``lost``), a message with the current version's stamp is taken as the current
+        version. The current build may be coded otherwise than the lost message (what topside
+        is known to hold of the parent changed since: an ack taught the book, so the child is
+        now predicted from its parent), and a loss taken for an old version's is never sent
+        again (the background sends a subgrid only when it changes), so topside would keep
+        the old version for good. A same-stamp misjudgement only sends the current version
+        once more. For an ack the message must be the current build itself: a misjudgement
+        there would drop a re-send topside still needs."""
         entry = self._entry(key)
         if entry is None:
             return False
-        return entry[4] == version if version is not None else entry[1] == message
+        if version is not None:
+            return entry[4] == version
+        return entry[1] == message or (lost and entry[1].stamp == message.stamp)

@@ -69,9 +69,10 @@ def quarter(ix: int, iy: int) -> int:
 class ContextBook:
     """Per parent-level subgrid (levels 1 and up) and quarter: the digest of the cells topside
     is known to hold (``top``, 0: unknown) and of the newest version sent (``last_sent``); and the
-    versions of the messages built, by :func:`message_id` (not saved: after a restart an ack of a
-    message built before it is taken as the sender took it before predicted subgrids, by
-    comparing the message with the current one, and teaches nothing of the parent's cells)."""
+    versions of the messages built, by :func:`message_id` (not saved: after a restart the fate
+    of a message built before it is judged from the message, ``SubgridCoding._is_current``: an
+    ack counts when the message is the current build, a loss when it carries the current
+    version's stamp; and such an ack teaches nothing of the parent's cells)."""
 
     def __init__(self, per_tile: list[int], cap: int = 4) -> None:
         #: subgrids per tile side, by level

@@ -593,7 +593,8 @@ class BathymetrySender(SubgridCoding, ModalitySender):
     def lost(self, message: Message, now: float) -> None:
         """No frame that carried a subgrid was acknowledged: if it is still the subgrid's
         current version (a newer one goes out with the background anyway), it becomes spare
-        work."""
+        work. A message built before a restart whose version the sender no longer knows is
+        taken as current when it has the current version's stamp (``_is_current``)."""
         got = self._version(message)
         if got is None:
             return
@@ -601,7 +602,7 @@ class BathymetrySender(SubgridCoding, ModalitySender):
         key, version = got
         if version is not None and self._confirmed.get(key) == version:
             return  # another copy of this version arrived (its ack may come after this copy's loss)
-        if self._is_current(key, message, version):
+        if self._is_current(key, message, version, lost=True):
             if self._focused.get(key, -math.inf) >= now and key not in self._queued \
                     and len(self._queue) < self.max_queue:
                 self._queue.append(key)  # around a detection: again, ahead of the background
