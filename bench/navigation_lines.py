@@ -21,7 +21,10 @@ a later one when lost (30 %). The vehicle flies its queue in its own frame
 (``DeadReckoning.true_path``). Per line: how long it waited between being sent and flown, the miss
 of its first point (the prediction against the vehicle's true error then) and ``cross_m``, the
 closest distance of the true camera line to the aim point (what ``camera_pass_m`` measures with a
-perfect map). Written to ``bench/results/navigation_lines.json``.
+perfect map); and, to find where a miss comes from, ``live_m`` (topside's estimate against the
+truth when the line was sent), ``true_change`` (how the vehicle's error changed from then to the
+line's start) and ``pred_change`` (how the prediction moved the line's start from the estimate).
+Written to ``bench/results/navigation_lines.json``.
 
 Usage: ``python bench/navigation_lines.py [--seeds N] [--first S] [--policy all|ahead]
 [--ahead S] [--lines K]`` (development seeds: 1000-1099 and 2000 and up).
@@ -73,7 +76,7 @@ def _status(t: float, x: float, y: float, heading: float) -> VehicleStatus:
                          speed=1.0, battery=90, mode=VehicleMode(1), faults=0)
 
 
-def one(seed: int, policy: str, ahead: float, n_lines: int) -> list[dict[str, float]]:
+def one(seed: int, policy: str, ahead: float, n_lines: int) -> list[dict[str, Any]]:
     floor = Seafloor(size=256.0, depth=500.0, relief=2.0, ripple_amplitude=0.15, targets=(), seed=seed)
     track = Track(floor)
     survey = simulate_survey(floor, altitude=30.0, speed=1.0, ping_rate=2.0, beams=256, t0=300.0, turn_time=60.0,

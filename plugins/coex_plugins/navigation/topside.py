@@ -637,7 +637,8 @@ class VehicleFrameSurveys(_View):
     def plan(self) -> list[tuple[float, float, tuple[float, float], tuple[float, float]]]:
         """The legs of the surveys queued (``append``) and not flown yet, as topside expects them:
         (from, until (s), start, end (corrected frame)), in the order the vehicle flies them."""
-        return self.__dict__.setdefault("_plan", [])
+        plan: list[tuple[float, float, tuple[float, float], tuple[float, float]]] = self.__dict__.setdefault("_plan", [])
+        return plan
 
     def _path_from(self, now: float, here: tuple[float, float], path: Sequence[tuple[float, float]],
                    speed: float) -> list[tuple[float, float, float]]:
