@@ -693,3 +693,24 @@ def test_the_operator_sends_a_camera_line_only_when_the_vehicle_nearly_needs_it(
         line.at_start = 0.0
     op.camera_round(200.0, end=100_000.0, reserve=0.0, half=15.0)
     assert len(sent) > n  # the next, once the queue runs short
+
+
+def test_the_report_shows_how_far_the_camera_missed_with_the_correction_off(tmp_path: Path) -> None:
+    from coex_apps.demo.report import write_report
+
+    nav = {"active": True, "correction": "off", "drift_at_end_m": 10.9,
+           "targets": [{"x": 70.7, "y": 117.3, "map_error_m": 5.41, "camera_pass_m": 4.58},
+                       {"x": 116.0, "y": 52.5, "map_error_m": 1.2, "camera_pass_m": None}],
+           "estimate": {"2": {"error_median_m": 0.24, "error_p95_m": 1.24, "error_max_m": 1.58}}}
+    page = write_report(tmp_path, {"navigation": nav}, charts=[], maps=[], images=[], decisions=[]).read_text()
+    section = page[page.index("<h3>Navigation</h3>"):page.index("<h2 id=\"map\">")]
+    assert "OFF (--no-correction)" in section and "10.9 m at the dive" in section
+    assert "<td class='r bad'>4.58</td>" in section and "<td class='r bad'>5.41</td>" in section
+    assert "<td class='r'>1.20</td>" in section and "<td class='bad c'>none</td>" in section
+    assert "95th percentile 1.24 m" in section
+    on = write_report(tmp_path, {"navigation": {**nav, "correction": "on"}}, charts=[], maps=[], images=[],
+                      decisions=[]).read_text()
+    assert "Correction on:" in on
+    # no drift, no navigation section
+    assert "<h3>Navigation</h3>" not in write_report(tmp_path, {"navigation": {"active": False}}, charts=[], maps=[],
+                                                     images=[], decisions=[]).read_text()
