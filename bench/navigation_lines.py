@@ -140,9 +140,9 @@ def one(seed: int, policy: str, ahead: float, n_lines: int) -> list[dict[str, An
         nav.estimator(VEHICLE).add_fix(now, *usbl.log[-1][4:6])
         slot = int(now // SLOT) % 6
         if slot in (1, 2, 4, 5) and lost.random() > LOSS:
-            p1 = track_positions(track, np.array([now + 1.0]))[0]
-            if math.hypot(*(p1 - (x, y))) > 0.05:
-                heading = math.degrees(math.atan2(p1[0] - x, p1[1] - y)) + 0.5
+            p0 = track_positions(track, np.array([now - 10.0]))[0]  # the heading over the last 10 s
+            if math.hypot(x - p0[0], y - p0[1]) > 0.5:
+                heading = math.degrees(math.atan2(x - p0[0], y - p0[1])) + 0.5
             nav.status(VEHICLE, _status(now, x + e[0], y + e[1], heading), now)
         # commands arriving at the end of a topside slot (0, 3), each lost 30 %
         if slot in (0, 3) and now % SLOT == 10.0:
