@@ -599,3 +599,118 @@ def test_version_2_survey_state_loads() -> None:
     assert rx2.fixes[old.command_id][0] == "accepted" and rx2.pending_requests() == []
     new = rx2.position_fix(3.0, 4.0, T0 + 10.0)
     assert rx2.poll(T0 + 10.0) == [new] and rx2.poll(T0 + 71.0) == [new]  # its own 60 s re-send
+
+
+# ------------------------------------------------------------------ camera lines sent in the vehicle's frame
+def test_the_bias_prediction_follows_the_distance_and_relaxes_with_time() -> None:
+    est = DriftEstimator()
+    for t in (0.0, 300.0):
+        est.add_track(t, 50.0, 50.0, 0.0)
+    est.add_fix(100.0, 48.0, 47.0)
+    sol = est.solution()
+    assert sol is not None
+    sol.states[:, 2:] = [0.004, -0.002, 0.0]  # a known bias, no heading bias
+    tau = est.config.drift_time
+    assert est.drift_along(300.0, 0.0, 100.0) == pytest.approx([0.4, -0.2])
+    # the bias grows with the distance travelled, not the displacement: 300 m of path for 100 m
+    assert est.drift_along(300.0, 0.0, 100.0, distance=300.0) == pytest.approx([1.2, -0.6])
+    # and relaxes toward zero: travelled half an hour from now, it is expected smaller by 1/e
+    assert est.drift_along(300.0, 0.0, 100.0, after=tau) == pytest.approx([0.4 / math.e, -0.2 / math.e])
+
+
+def _nav_holding(correction: tuple[float, float], until: float, nav: Navigation | None = None) -> Navigation:
+    """Topside's navigation of vehicle 2 holding at (50, 50) in its own frame, fixed every 10 s
+    up to ``until`` at its true position: (50, 50) less ``correction``."""
+    nav = nav or Navigation()
+    est = nav.estimator(2)
+    for t in np.arange(0.0, until + 1.0, 20.0):
+        nav.status(2, VehicleStatus(to_stamp(T0 + t), 50.0, 50.0, 500.0, 10.0, 0.0, 0.0, 90, VehicleMode.HOVER, 0),
+                   T0 + t)
+    start = max((f[0] for f in est._fixes), default=T0 - 10.0) + 10.0
+    for t in np.arange(start, T0 + until + 1.0, 10.0):
+        est.add_fix(float(t), 50.0 - correction[0], 50.0 - correction[1])
+    return nav
+
+
+def test_a_line_sent_later_is_moved_by_the_estimate_now_not_by_an_earlier_line_s() -> None:
+    """Two camera lines queued one after the other, sent 20 minutes apart: the second is put into
+    the vehicle's frame by the correction topside estimates when it sends it (the vehicle's
+    drift changed meanwhile), not by the correction it had predicted for the first."""
+    nav = _nav_holding((2.0, 3.0), 600.0)
+    surveys = VehicleFrameSurveys(SurveyModality().receiver(None), nav, 2)
+    ids = iter(range(1, 100))
+    surveys._rx.next_command_id = lambda: next(ids)
+    # a long line: the vehicle is still flying it when the next is sent
+    first = surveys.request("line", 60.0, 60.0, T0 + 600.0, heading=0.0, length=200.0, speed=0.1, append=True)
+    assert (first.x, first.y) == pytest.approx((62.0, 63.0), abs=0.3)
+    assert surveys.busy_until > T0 + 1800.0
+    # the drift moved: topside now estimates (5, 3)
+    _nav_holding((5.0, 3.0), 1800.0, nav)
+    est = nav.estimator(2)
+    assert est.correction(T0 + 1800.0) == pytest.approx([5.0, 3.0], abs=0.5)
+    second = surveys.request("line", 80.0, 60.0, T0 + 1800.0, heading=0.0, length=30.0, speed=0.3, append=True)
+    sid, at, c = surveys.sent[-1]
+    assert sid == second.survey_id and at == T0 + 1800.0
+    # the estimate now, plus what the estimated biases add on the way (small here: a holding vehicle)
+    along = np.asarray(c) - est.correction(T0 + 1800.0)
+    assert np.hypot(*along) < 0.5, c
+    assert (second.x, second.y) == pytest.approx((80.0 + c[0], 60.0 + c[1]), abs=0.1)
+    # the plan: what is left of the first line, then the second's transit and line
+    assert [leg[3] for leg in surveys.plan] == [(60.0, 260.0), (80.0, 60.0), (80.0, 90.0)]
+
+
+def test_the_operator_sends_a_camera_line_only_when_the_vehicle_nearly_needs_it() -> None:
+    """The scripted operator keeps at most :data:`LINE_AHEAD` seconds of camera lines queued on
+    the vehicle: each further line is sent (and put into the vehicle's frame) at a later round,
+    nearer the time it is flown, not all at the survey's end."""
+    from coex.messages import SurveyCommand
+    from coex_apps.demo.operator import LINE_AHEAD, CandidateView, Operator
+
+    sent: list[SurveyCommand] = []
+
+    class Survey:
+        surveys: dict[int, object] = {}
+
+        def request(self, kind: str, x: float, y: float, now: float, **kw: object) -> SurveyCommand:
+            cmd = SurveyCommand(command_id=len(sent) + 1, survey_id=len(sent), kind=kind, x=x, y=y,  # type: ignore[arg-type]
+                                **kw)  # type: ignore[arg-type]
+            sent.append(cmd)
+            return cmd
+
+    op = Operator(None, {"bathymetry": None, "imagery": None, "survey": Survey()},  # type: ignore[arg-type]
+                  (0.0, 0.0, 200.0, 200.0), lambda *a: None, camera_altitude=5.0)
+    op.position = (100.0, 100.0)
+    for i in range(4):
+        op.candidates.append(CandidateView(40.0 + 40.0 * i, 60.0, 1.5, 10, 4.5, 1.8, 0.9 - 0.1 * i, 0.0))
+    op.camera_round(0.0, end=100_000.0, reserve=0.0, half=15.0)
+    assert 1 <= len(sent) < 4
+    t, _ = op._queue_end(0.0)
+    assert t <= LINE_AHEAD + 250.0  # the lines queued fill the horizon, not the whole camera time
+    n = len(sent)
+    op.camera_round(10.0, end=100_000.0, reserve=0.0, half=15.0)
+    assert len(sent) == n  # nothing more while the vehicle has lines enough
+    for line in op.lines.values():  # the vehicle reported reaching each line's start
+        line.at_start = 0.0
+    op.camera_round(200.0, end=100_000.0, reserve=0.0, half=15.0)
+    assert len(sent) > n  # the next, once the queue runs short
+
+
+def test_the_report_shows_how_far_the_camera_missed_with_the_correction_off(tmp_path: Path) -> None:
+    from coex_apps.demo.report import write_report
+
+    nav = {"active": True, "correction": "off", "drift_at_end_m": 10.9,
+           "targets": [{"x": 70.7, "y": 117.3, "map_error_m": 5.41, "camera_pass_m": 4.58},
+                       {"x": 116.0, "y": 52.5, "map_error_m": 1.2, "camera_pass_m": None}],
+           "estimate": {"2": {"error_median_m": 0.24, "error_p95_m": 1.24, "error_max_m": 1.58}}}
+    page = write_report(tmp_path, {"navigation": nav}, charts=[], maps=[], images=[], decisions=[]).read_text()
+    section = page[page.index("<h3>Navigation</h3>"):page.index("<h2 id=\"map\">")]
+    assert "OFF (--no-correction)" in section and "10.9 m at the dive" in section
+    assert "<td class='r bad'>4.58</td>" in section and "<td class='r bad'>5.41</td>" in section
+    assert "<td class='r'>1.20</td>" in section and "<td class='bad c'>none</td>" in section
+    assert "95th percentile 1.24 m" in section
+    on = write_report(tmp_path, {"navigation": {**nav, "correction": "on"}}, charts=[], maps=[], images=[],
+                      decisions=[]).read_text()
+    assert "Correction on:" in on
+    # no drift, no navigation section
+    assert "<h3>Navigation</h3>" not in write_report(tmp_path, {"navigation": {"active": False}}, charts=[], maps=[],
+                                                     images=[], decisions=[]).read_text()

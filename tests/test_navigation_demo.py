@@ -87,3 +87,5 @@ def test_a_drifting_dive_is_corrected_and_judged_against_the_truth(tmp_path: Pat
         assert t["camera_pass_m"] is not None and t["camera_pass_m"] <= 3.0, t
         assert t["map_error_m"] is not None and t["map_error_m"] <= 3.5, t
     assert result.metrics["success"]
+    # the report shows it too (the navigation's metrics reach the report, not only metrics.json)
+    assert "<h3>Navigation</h3>" in (tmp_path / "report.html").read_text()

@@ -103,6 +103,11 @@ LINE_MARGIN = 2.5
 LINE_SPEED = 0.3
 #: a camera line reaches this far (m) either side of its candidate
 LINE_HALF = 15.0
+#: a camera line is sent only when topside expects the vehicle to be done with the lines already
+#: sent within this many seconds (s; two TDMA cycles: the command's tries on a lossy uplink):
+#: each line is put into the vehicle's frame by the drift predicted for when it is flown, and that
+#: prediction is only as good as its horizon is short (issue 56; ``bench/navigation_lines.py``)
+LINE_AHEAD = 240.0
 #: every camera line is flown at the altitude that holds the largest object sought (length,
 #: width; :data:`TARGET_SIZES`) in a frame (:func:`camera_altitude`)
 LINE_ALTITUDE_FOR = (TARGET_SIZES[0][1], TARGET_SIZES[1][1])
@@ -531,6 +536,8 @@ class Operator:
         for cv in self.ranked():
             if cv.planned or cv.refused is not None:
                 continue
+            if t - now > LINE_AHEAD:
+                break  # the vehicle has lines enough: the next is aimed nearer its time
             heading = (cv.orientation + 90.0) % 180.0
             h = math.radians(heading)
             start = (cv.x - half * math.sin(h), cv.y - half * math.cos(h))
@@ -564,6 +571,8 @@ class Operator:
         for cv in self.ranked():
             if cv.reaim_want is None or cv.done:
                 continue
+            if t - now > LINE_AHEAD:
+                break  # sent at a later round, nearer its time (:data:`LINE_AHEAD`)
             aim, cv.reaim_want = cv.reaim_want, None
             old = self.lines.get(cv.survey_id) if cv.survey_id is not None else None
             heading = old.heading if old is not None else (cv.orientation + 90.0) % 180.0

@@ -203,9 +203,10 @@ def _regions(out: Path, rx: ImageryReceiver, operator: Operator, metas: dict[int
 def finish(out: Path, cfg: DemoConfig, world: World, operator: Operator, receivers: dict[str, Any],
             coverage: dict[int, list[tuple[float, float]]], visible_at: dict[int, float],
             decisions: list[Decision], wall: float, runners: dict[int, Runner],
-            responses: dict[str, Any] | None = None) -> dict[str, Any]:
+            responses: dict[str, Any] | None = None, navigation: dict[str, Any] | None = None) -> dict[str, Any]:
     """The dive judged against the truth: the map exports and figures, truth.json, the time
-    series, metrics.json, the report and decisions.csv in ``out``; returns the metrics."""
+    series, metrics.json, the report and decisions.csv in ``out``; returns the metrics.
+    ``navigation``: the navigation's metrics (issue 56), in metrics.json and the report."""
     scn = world.scenario
     names = _truth_names(world)
 
@@ -274,6 +275,8 @@ def finish(out: Path, cfg: DemoConfig, world: World, operator: Operator, receive
     charts = _charts(world, coverage, visible_at, link, decisions)
     for k in ("capacity_series", "used_series", "delivered_series"):
         link.pop(k, None)
+    if navigation is not None:
+        metrics["navigation"] = navigation
     _write_outputs(out, metrics, charts, map_svgs, images, decisions, regions)
     return metrics
 

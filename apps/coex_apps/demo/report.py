@@ -115,6 +115,46 @@ def _targets_table(targets: Any) -> str:
             "<th>TDMA cycles after request</th><th>decision time (s)</th></tr>" + "".join(rows) + "</table>")
 
 
+#: issue 56's bound on a target's map error and on the camera's pass over it (m)
+NAV_BOUND_M = 2.0
+
+
+def _navigation_section(nav: Any) -> str:
+    """The vehicle's drift and topside's correction (issue 56): per true target, how far the
+    corrected map put it and how far the camera's true track passed from it, judged against the
+    truth; with the correction off, how far the camera missed."""
+    if not isinstance(nav, Mapping) or not nav.get("active"):
+        return ""
+    on = nav.get("correction") == "on"
+    how = ("on: the map, images and detections were shown corrected and the camera lines sent in the "
+           "vehicle's frame" if on else
+           "OFF (--no-correction): the operator saw the map as the vehicle made it and sent its camera "
+           "lines in those coordinates, so the camera misses by the drift between mapping and the pass")
+    est = nav.get("estimate")
+    est1 = next(iter(est.values()), None) if isinstance(est, Mapping) and est else None
+    est_txt = ""
+    if isinstance(est1, Mapping) and est1.get("error_median_m") is not None:
+        est_txt = (f" Topside's estimate against the true drift: median {_num(est1.get('error_median_m'), '.2f')} m, "
+                   f"95th percentile {_num(est1.get('error_p95_m'), '.2f')} m, worst {_num(est1.get('error_max_m'), '.2f')} m.")
+
+    def cell(v: Any) -> str:
+        x = _f(v)
+        if x is None:
+            return "<td class='bad c'>none</td>"
+        return f"<td class='r'>{x:.2f}</td>" if x <= NAV_BOUND_M else f"<td class='r bad'>{x:.2f}</td>"
+
+    rows = "".join(
+        f"<tr><td>target {i + 1}</td><td>{_pos(t.get('x'), t.get('y'))}</td>{cell(t.get('map_error_m'))}"
+        f"{cell(t.get('camera_pass_m'))}</tr>"
+        for i, t in enumerate(nav.get("targets") or []) if isinstance(t, Mapping))
+    return (f'<h3>Navigation</h3><p class="note">The vehicle dead-reckons and drifts '
+            f"({_num(nav.get('drift_at_end_m'), '.1f')} m at the dive's end); topside fuses the ship's USBL "
+            f"fixes into an estimate of the drift. Correction {_e(how)}.{_e(est_txt)} Judged against the "
+            f"truth; over {NAV_BOUND_M:g} m in red.</p>"
+            "<table><tr><th>target</th><th>true position (m)</th><th>map error (m)</th>"
+            "<th>camera pass: closest distance of the camera's true track (m)</th></tr>" + rows + "</table>")
+
+
 def _vehicles_section(vehicles: Any) -> str:
     """One section per vehicle: its role, its link, what it overheard for the other vehicle, the
     survey commands that reached it and those it flew (the truth), its images and statuses."""
@@ -461,6 +501,7 @@ Decision time: from identifiable at 1 m to the confirming image.</p>
 <p class="note">What the vehicle's own detectors found in its full-resolution data and sent as
 suggestions (the operator decides), judged here against the truth.</p>
 {_detections_table(metrics.get("detections"), metrics.get("detection_cost"), metrics.get("targets"))}
+{_navigation_section(metrics.get("navigation"))}
 <h2 id="map">Map</h2>
 <p class="note">The bathymetry as received topside, finest level first. Colour is depth (with light
 hillshading from the north-west); hatched grey areas hold no data. Red squares are the true targets,

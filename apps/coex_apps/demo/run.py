@@ -488,10 +488,10 @@ class DiveRun:
         world = World(scn, self.floor, self.cars, self.rocks, self.survey_end, self.frames,
                       self.received_track, self.taken, self.operator_mode, self.autonomy.camera_legs(),
                       surveys, vehicles)
+        navigation = self.navsim.metrics(self.cars, self.operator.candidates, self.autonomy.camera_legs(), self.end)
         metrics = finish(out, cfg, world, self.operator, self.navsim.views(self.receivers), self.coverage,
-                         self.visible_at, self.decisions, wall, self.runners, self.timer.summary())
-        metrics["navigation"] = self.navsim.metrics(self.cars, self.operator.candidates, self.autonomy.camera_legs(),
-                                                    self.end)
+                         self.visible_at, self.decisions, wall, self.runners, self.timer.summary(),
+                         navigation=navigation)
         self.navsim.close()
         metrics["modems"] = {"nmea_over": {str(k): v for k, v in ptys.items()}, "rate": scn.modem_rate,
                              "tdma": f"{len(scn.slots)} x {scn.slot_seconds:g} s, guard {scn.guard_seconds:g} s; "

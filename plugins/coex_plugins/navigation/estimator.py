@@ -172,15 +172,21 @@ class DriftEstimator:
         sd = np.sqrt(np.maximum(sol.covs[:, 0, 0], sol.covs[:, 1, 1]))
         return np.asarray(np.interp(times, sol.times, sd), dtype=np.float64)
 
-    def drift_along(self, t: float, dx: float, dy: float) -> FloatArray:
+    def drift_along(self, t: float, dx: float, dy: float, distance: float | None = None, after: float = 0.0
+                    ) -> FloatArray:
         """What the estimated bias and heading bias (at ``t``) add to the correction while the
-        vehicle moves ``(dx, dy)`` metres in a straight line (zeros before any solution)."""
+        vehicle moves ``(dx, dy)`` metres (zeros before any solution). ``distance``: the metres it
+        travels doing so (default: the straight line; the bias grows with the distance travelled,
+        the heading bias with the displacement); ``after``: how many seconds after ``t`` it does so,
+        by when the bias is expected to have relaxed toward zero by ``exp(-after / drift_time)``
+        (the model's bias is a slowly varying process of that time scale, not a constant)."""
         sol = self.solution()
         if sol is None:
             return np.zeros(2)
         i = int(np.clip(np.searchsorted(sol.times, t), 0, len(sol.times) - 1))
         bx, by, psi = sol.states[i, 2:]
-        d = math.hypot(dx, dy)
+        d = math.hypot(dx, dy) if distance is None else float(distance)
+        d *= math.exp(-max(float(after), 0.0) / self.config.drift_time)
         return np.array([bx * d + psi * dy, by * d - psi * dx], dtype=np.float64)
 
     def predict(self, t: float, dx: float, dy: float) -> FloatArray:

@@ -27,7 +27,6 @@ put back into the vehicle's frame. They hold no data of their own.
 
 from __future__ import annotations
 
-import itertools
 import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, replace
@@ -612,19 +611,56 @@ class CorrectedImages(_View):
 
 class VehicleFrameSurveys(_View):
     """A survey receiver whose commands are drawn in the corrected frame and sent in the vehicle's
-    own: each point moved by the correction the vehicle will have when it gets there (from the end
-    of the survey queued before it, or from where it is: :attr:`position`, corrected frame)."""
+    own: each point moved by the correction the vehicle is predicted to have when it gets there.
 
-    #: where the vehicle sets off from for the next survey (corrected frame; None: where it was
-    #: last heard of) and the correction predicted there (None: the correction now)
+    The prediction is made afresh at every command from the estimate *now* (never carried over
+    from an earlier command's): the correction at the newest status, plus what the estimated
+    heading bias adds over the displacement from where the vehicle was then to the point, plus
+    what the estimated bias adds over the distance it will travel to get there, through the
+    surveys it was sent before and has not flown yet (:attr:`plan`, topside's own idea of when
+    each is flown: 1 m/s between them, their own speed along), relaxed by the time it gets there
+    (:meth:`~.estimator.DriftEstimator.drift_along`)."""
+
+    #: the vehicle's speed between surveys (m/s), for :attr:`plan`
+    transit_speed: float = 1.0
+    #: where the vehicle sets off from for the next survey (corrected frame: the end of the plan;
+    #: None: where it was last heard of)
     position: tuple[float, float] | None = None
-    carry: FloatArray | None = None
-    #: when the surveys queued so far should be flown (1 m/s between them, their own speed along):
-    #: after that the vehicle is where it was last heard of, with the correction of then
+    #: when the surveys queued so far should be flown: after that the vehicle is where it was last
+    #: heard of
     busy_until: float = -math.inf
     #: every command sent through the view: (survey id, when, the correction its first point was
     #: moved by, m): what topside predicted the vehicle's error to be when it gets there
     sent: list[tuple[int, float, tuple[float, float]]]
+
+    @property
+    def plan(self) -> list[tuple[float, float, tuple[float, float], tuple[float, float]]]:
+        """The legs of the surveys queued (``append``) and not flown yet, as topside expects them:
+        (from, until (s), start, end (corrected frame)), in the order the vehicle flies them."""
+        plan: list[tuple[float, float, tuple[float, float], tuple[float, float]]] = self.__dict__.setdefault("_plan", [])
+        return plan
+
+    def _path_from(self, now: float, here: tuple[float, float], path: Sequence[tuple[float, float]],
+                   speed: float) -> list[tuple[float, float, float]]:
+        """The pieces the vehicle travels from ``here`` (now) through the plan's legs not yet
+        flown, then along ``path`` (the first leg at the transit speed, the rest at ``speed``):
+        (length, seconds from now to its middle, index in ``path`` of its end or -1) per piece."""
+        pieces: list[tuple[float, float, float]] = []
+        t = now
+        pos = here
+        for _t0, t1, _a, b in self.plan:
+            if t1 <= now:
+                continue
+            d = math.hypot(b[0] - pos[0], b[1] - pos[1])
+            end = max(t1, t + d / self.transit_speed)
+            pieces.append((d, (t + end) / 2 - now, -1.0))
+            t, pos = end, b
+        for i, p in enumerate(path):
+            d = math.hypot(p[0] - pos[0], p[1] - pos[1])
+            dt = d / (self.transit_speed if i == 0 else max(speed, 0.1))
+            pieces.append((d, t + dt / 2 - now, float(i)))
+            t, pos = t + dt, p
+        return pieces
 
     def request(self, kind: Any, x: float, y: float, now: float, *, points: Sequence[tuple[float, float]] = (),
                 **kw: Any) -> SurveyCommand:
@@ -632,38 +668,44 @@ class VehicleFrameSurveys(_View):
         est = nav.estimators.get(vid)
         if not nav.apply or est is None:
             return self._rx.request(kind, x, y, now, points=points, **kw)  # type: ignore[no-any-return]
-        if now > self.busy_until:
-            self.position, self.carry = None, None
-        start = self.position
-        if start is None:
-            track = nav.track(vid)
-            if len(track):
-                start = nav.corrected(vid, float(track[-1, 0]), float(track[-1, 1]), float(track[-1, 2]))
-        # the correction now, in the frame the vehicle will be in once the aids sent are taken
-        c = np.asarray(est.correction(now) - nav.final_shift(vid) if self.carry is None else self.carry,
-                       dtype=float)
-        if start is not None:  # what the estimated biases add on the way there
-            c = c + est.drift_along(now, x - start[0], y - start[1])
-        path = [(x, y)]
+        plan = self.plan
+        plan[:] = [leg for leg in plan if leg[1] > now] if now <= self.busy_until else []
+        track = nav.track(vid)
+        here = (nav.corrected(vid, float(track[-1, 0]), float(track[-1, 1]), float(track[-1, 2]))
+                if len(track) else (plan[0][2] if plan else (x, y)))
+        path = [(float(x), float(y))]
         if kw.get("length") is not None and kw.get("heading") is not None:
             h = math.radians(float(kw["heading"]))
             path.append((x + float(kw["length"]) * math.sin(h), y + float(kw["length"]) * math.cos(h)))
-        pts = []
-        ends = np.array(c)
-        for a, b in points:  # each further waypoint: the correction carried along the path
-            prev = path[-1]
-            ends = ends + est.drift_along(now, a - prev[0], b - prev[1])
-            pts.append((a + float(ends[0]), b + float(ends[1])))
-            path.append((a, b))
+        path += [(float(a), float(b)) for a, b in points]
+        speed = float(kw.get("speed") or 1.0)
+        pieces = self._path_from(now, here, path, speed)
+        # the correction now, in the frame the vehicle will be in once the aids sent are taken
+        c_now = np.asarray(est.correction(now) - nav.final_shift(vid), dtype=float)
+        moved = np.zeros(2)
+        at: dict[int, FloatArray] = {}
+        for d, mid, idx in pieces:  # the bias over the distance travelled, relaxed by then
+            moved = moved + est.drift_along(now, 0.0, 0.0, distance=d, after=mid)
+            if idx >= 0:
+                p = path[int(idx)]
+                turn = est.drift_along(now, p[0] - here[0], p[1] - here[1], distance=0.0)
+                at[int(idx)] = c_now + moved + turn
+        c = at[0]
+        # the line's end is the vehicle's own (its start plus length along heading): only the
+        # further waypoints are moved by their own prediction
+        first = 2 if len(path) > 1 and kw.get("length") is not None and kw.get("heading") is not None else 1
+        pts = [(a + float(at[i][0]), b + float(at[i][1])) for i, (a, b) in enumerate(path) if i >= first]
         cmd: SurveyCommand = self._rx.request(kind, x + float(c[0]), y + float(c[1]), now, points=pts, **kw)
         if "sent" not in self.__dict__:
             self.sent = []
         self.sent.append((int(cmd.survey_id), float(now), (float(c[0]), float(c[1]))))
         if kw.get("append"):
-            if len(path) > 1 and not points:
-                ends = c + est.drift_along(now, path[-1][0] - x, path[-1][1] - y)
-            self.position, self.carry = path[-1], ends
-            along = sum(math.hypot(b[0] - a[0], b[1] - a[1]) for a, b in itertools.pairwise(path))
-            transit = 0.0 if start is None else math.hypot(x - start[0], y - start[1])
-            self.busy_until = max(self.busy_until, now) + transit / 1.0 + along / max(float(kw.get("speed") or 1.0), 0.1)
+            t = max(now, self.busy_until)
+            prev = plan[-1][3] if plan else here
+            for i, p in enumerate(path):
+                d = math.hypot(p[0] - prev[0], p[1] - prev[1])
+                dt = d / (self.transit_speed if i == 0 else max(speed, 0.1))
+                plan.append((t, t + dt, prev, p))
+                t, prev = t + dt, p
+            self.position, self.busy_until = path[-1], t
         return replace(cmd)
