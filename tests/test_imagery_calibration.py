@@ -110,3 +110,33 @@ def test_psnr_of_uint8_images_in_integers_is_the_float_one_to_the_bit() -> None:
         assert codec.psnr(a, b.astype(np.float64)) == codec.psnr(a, b)  # the general path agrees
     assert codec.psnr(a, a) == float("inf")
     assert codec.psnr(np.zeros((4, 4), np.uint8), np.full((4, 4), 255, np.uint8)) == 0.0
+
+
+def test_decodes_run_in_the_callers_thread_whatever_the_encodes_use(monkeypatch: pytest.MonkeyPatch) -> None:
+    import glymur
+
+    img = seafloor(64, 96, seed=1)
+    enc = codec.encode_image(img, CodingParams(layer_bytes=(200, 800)))
+    packets = codec.split_packets(enc.body, enc.packet_starts)
+    before = glymur.get_option("lib.num_threads")
+    seen: list[int] = []
+    real = glymur.Jp2k
+
+    def spy(*args: object, **kwargs: object) -> object:
+        seen.append(glymur.get_option("lib.num_threads"))
+        return real(*args, **kwargs)
+
+    try:
+        codec.set_threads(0)
+        single = codec.decode_packets(enc.params, enc.width, enc.height, packets)
+        codec.set_threads(2)
+        if glymur.get_option("lib.num_threads") != 2:
+            pytest.skip("this OpenJPEG has no thread support")
+        monkeypatch.setattr(glymur, "Jp2k", spy)
+        pooled = codec.decode_packets(enc.params, enc.width, enc.height, packets)
+        assert seen == [0]  # decoded in the caller's thread
+        assert glymur.get_option("lib.num_threads") == 2  # the encodes keep their threads
+        assert np.array_equal(pooled, single)
+    finally:
+        monkeypatch.undo()
+        codec.set_threads(before)
