@@ -285,11 +285,18 @@ def _feasible_resolutions(h: int, w: int, wanted: int) -> int:
 _tmpdir: tempfile.TemporaryDirectory[str] | None = None
 
 
+#: where the scratch directory goes when it can: memory (Linux), not a disk's journal
+_RAM_DIR = "/dev/shm"
+
+
 def _scratch() -> str:
-    """A private scratch directory for glymur, which reads and writes files only."""
+    """A private scratch directory for glymur, which reads and writes files only: in
+    :data:`_RAM_DIR` where there is one to write to (each encode and decode writes, reads and
+    removes a file; a calibration makes about a hundred), else the system's temporary directory."""
     global _tmpdir
     if _tmpdir is None:
-        _tmpdir = tempfile.TemporaryDirectory(prefix="coex-imagery-")
+        ram = _RAM_DIR if os.path.isdir(_RAM_DIR) and os.access(_RAM_DIR, os.W_OK | os.X_OK) else None
+        _tmpdir = tempfile.TemporaryDirectory(prefix="coex-imagery-", dir=ram)
     return _tmpdir.name
 
 
@@ -297,10 +304,11 @@ _THREADS_SET = False
 
 
 def set_threads(n: int) -> None:
-    """OpenJPEG threads for this process's encodes and decodes (glymur's ``lib.num_threads``):
-    0 codes in the caller's thread (the default), more split each image's code-blocks over
-    that many threads. The bytes and pixels are the same either way; more threads only help
-    while cores are idle (a single ``coex demo``), not where every core runs a dive (a sweep)."""
+    """OpenJPEG threads for this process's encodes (glymur's ``lib.num_threads``): 0 codes in
+    the caller's thread (the default), more split each image's code-blocks over that many
+    threads. The bytes are the same either way; more threads only help while cores are idle (a
+    single ``coex demo``), not where every core runs a dive (a sweep). Decodes always run in the
+    caller's thread (:func:`decode_codestream`)."""
     global _THREADS_SET
     import glymur
 
@@ -331,12 +339,39 @@ def _glymur() -> Any:
     return glymur
 
 
-def _write_j2k(path: str, data: npt.NDArray[np.uint8], sp: StreamParams, targets: Sequence[int], plt: bool) -> bytes:
-    glymur = _glymur()
-    raw = data.size
+def _cratios(raw: int, targets: Sequence[int]) -> list[float]:
+    """OpenJPEG's compression ratios for cumulative stream targets (bytes) of a ``raw``-byte image."""
     cratios = [max(raw / t, 1.0001) for t in targets]
     for i in range(1, len(cratios)):  # must strictly decrease
         cratios[i] = min(cratios[i], cratios[i - 1] * 0.999)
+    return cratios
+
+
+def rate_limits(raw: int, targets: Sequence[int], sot: int) -> tuple[int, ...]:
+    """The byte limit OpenJPEG 2.5's rate control gives each layer's packets (all layers up to
+    it) for these cumulative stream ``targets`` of an image of ``raw`` 8-bit samples whose
+    main header (with OpenJPEG's COM) ends at ``sot``: its ``opj_j2k_update_rates`` in the same
+    single-precision steps (the ratio to bytes, less the header; the first layer at least 30,
+    each later one at least 10 above the one before or else 20 above it, the last 2 less) and
+    ``ceil``. Two encodes of an image with the same limits are the same codestream; the packets
+    of the last layer are the fewest bytes within its limit that OpenJPEG's bisection reaches,
+    so an encode whose packets come to ``n`` bytes is also what every limit from ``n`` up to its
+    own gives (:class:`_Trials`)."""
+    f32 = np.float32
+    rates = [f32(float(raw * 8) / float(f32(f32(c) * f32(8.0)))) for c in _cratios(raw, targets)]
+    head = f32(sot)
+    rates[0] = max(f32(rates[0] - head), f32(30.0))
+    last = len(rates) - 1
+    for k in range(1, len(rates)):
+        rates[k] = f32(rates[k] - (head if k < last else f32(head + f32(2.0))))
+        if rates[k] < rates[k - 1] + f32(10.0):
+            rates[k] = f32(rates[k - 1] + f32(20.0))
+    return tuple(int(np.ceil(r)) for r in rates)
+
+
+def _write_j2k(path: str, data: npt.NDArray[np.uint8], sp: StreamParams, targets: Sequence[int], plt: bool) -> bytes:
+    glymur = _glymur()
+    cratios = _cratios(data.size, targets)
     kwargs: dict[str, Any] = dict(
         data=data, numres=sp.resolutions, cratios=cratios, prog=sp.progression, irreversible=sp.irreversible
     )
@@ -392,10 +427,15 @@ def _split(cs: bytes) -> tuple[bytes, int, int, int, list[int]]:
     return bytes(header), sot, sod + 2, body_end, lengths
 
 
-@functools.lru_cache(maxsize=32)
 def main_header(params: int, width: int, height: int) -> bytes:
     """The JPEG 2000 main header (SOC .. before SOT, no COM) for these parameters and size,
     rebuilt by encoding an all-zero image. Raises :class:`DecodeError` for impossible values."""
+    return _main_header(params, width, height)[0]
+
+
+@functools.lru_cache(maxsize=32)
+def _main_header(params: int, width: int, height: int) -> tuple[bytes, int]:
+    """:func:`main_header` and where OpenJPEG's SOT follows it (its COM included)."""
     sp = parse_params(params)
     if not (1 <= width <= 4096 and 1 <= height <= 4096):
         raise DecodeError(f"image size {width}x{height} out of range")
@@ -406,7 +446,14 @@ def main_header(params: int, width: int, height: int) -> bytes:
     targets = [1000 * (i + 1) for i in range(sp.layers)]
     path = os.path.join(_scratch(), "hdr.j2k")
     cs = _write_j2k(path, dummy, sp, targets, plt=False)
-    return _split(cs)[0]
+    header, sot, *_ = _split(cs)
+    return header, sot
+
+
+def _stream_targets(code: int, width: int, height: int, targets: Sequence[int]) -> list[int]:
+    """Cumulative body targets as OpenJPEG's rate control counts them (with its headers)."""
+    overhead = len(main_header(code, width, height)) + 39 + _SOT_LEN + 2  # its COM and SOT/SOD
+    return [overhead + b for b in targets]
 
 
 def _encode_body(data: npt.NDArray[np.uint8], code: int, targets: Sequence[int]) -> tuple[bytes, list[int]]:
@@ -414,9 +461,8 @@ def _encode_body(data: npt.NDArray[np.uint8], code: int, targets: Sequence[int])
     sp = parse_params(code)
     h, w = data.shape[:2]
     hdr = main_header(code, w, h)
-    overhead = len(hdr) + 39 + _SOT_LEN + 2  # rate control counts OpenJPEG's COM and SOT/SOD
     path = os.path.join(_scratch(), "enc.j2k")
-    cs = _write_j2k(path, data, sp, [overhead + b for b in targets], plt=True)
+    cs = _write_j2k(path, data, sp, _stream_targets(code, w, h, targets), plt=True)
     header, _sot, start, end, lengths = _split(cs)
     body = cs[start:end]
     if header != hdr:
@@ -453,12 +499,24 @@ def _quality(data: npt.NDArray[np.uint8], base: npt.NDArray[np.uint8] | None = N
     the packets), against ``data``; with ``base``, ``data`` is a residual (:func:`residual`): the
     PSNR is that of ``add_residual(base, decoded)`` against ``reference``."""
     h, w = data.shape[:2]
+    known: dict[bytes, float] = {}  # the same packets decode to the same image: decoded once
 
     def quality(code: int, packets: Sequence[bytes | None]) -> float:
-        decoded = decode_packets(code, w, h, packets)
-        if base is None:
-            return psnr(decoded, data)
-        return psnr(add_residual(base, decoded), data if reference is None else reference)
+        digest = hashlib.blake2b(code.to_bytes(4, "big"), digest_size=16)
+        for p in packets:
+            digest.update(b"\x00" if p is None else len(p).to_bytes(4, "big") + b"\x01")
+            if p:
+                digest.update(p)
+        key = digest.digest()
+        q = known.get(key)
+        if q is None:
+            decoded = decode_packets(code, w, h, packets)
+            if base is None:
+                q = psnr(decoded, data)
+            else:
+                q = psnr(add_residual(base, decoded), data if reference is None else reference)
+            known[key] = q
+        return q
 
     return quality
 
@@ -478,8 +536,9 @@ def add_residual(base: npt.NDArray[Any], decoded: npt.NDArray[Any]) -> npt.NDArr
 
 
 #: calibrated targets of the last images encoded, by content (an image encoded again, e.g. the
-#: same frame for two senders, is not calibrated twice); bounded
-_TARGETS: dict[tuple[Any, ...], list[int]] = {}
+#: same frame for two senders, is not calibrated twice), with the body those targets encode to
+#: when a trial made it; bounded
+_TARGETS: dict[tuple[Any, ...], tuple[list[int], tuple[bytes, list[int]] | None]] = {}
 _TARGETS_MAX = 64
 
 
@@ -491,15 +550,88 @@ def quality_targets(data: npt.NDArray[np.uint8], cp: CodingParams, resolutions: 
                     base: npt.NDArray[np.uint8] | None = None,
                     reference: npt.NDArray[np.uint8] | None = None) -> list[int]:
     """The layer targets of :func:`calibrate_quality`, remembered for the last 64 images."""
+    return list(_calibrated(data, cp, resolutions, base, reference)[0])
+
+
+def _calibrated(data: npt.NDArray[np.uint8], cp: CodingParams, resolutions: int,
+                base: npt.NDArray[np.uint8] | None, reference: npt.NDArray[np.uint8] | None,
+                ) -> tuple[list[int], tuple[bytes, list[int]] | None]:
     key = (_digest(data), data.shape, cp.progression, cp.irreversible, cp.precincts, cp.layer_psnr, resolutions,
            _digest(base), _digest(reference))
     hit = _TARGETS.get(key)
     if hit is None:
-        hit = calibrate_quality(data, cp, resolutions, base, reference)
+        trials = _Trials(data, base, reference)
+        targets = _calibrate(trials, cp, resolutions)
+        code = params_code(cp.progression, resolutions, len(targets), cp.irreversible, data.ndim == 3, cp.precincts)
+        hit = (targets, trials.known(code, targets))
         if len(_TARGETS) >= _TARGETS_MAX:
             del _TARGETS[next(iter(_TARGETS))]
         _TARGETS[key] = hit
-    return list(hit)
+    return hit
+
+
+class _Trials:
+    """The trial encodes of one image's calibration, each made once: an encode is known by the
+    byte limits OpenJPEG's rate control gives its layers (:func:`rate_limits`). Two targets
+    with the same limits, or whose last limit lies between the packet bytes of an encode with
+    the same earlier limits and that encode's own last limit, encode to the same body (the
+    bisection makes the same choices: every threshold it tries is feasible for both or for
+    neither), so such a trial costs neither an encode nor a decode. Its result is what the
+    encode would have measured, to the bit; only the work is saved."""
+
+    def __init__(self, data: npt.NDArray[np.uint8], base: npt.NDArray[np.uint8] | None,
+                 reference: npt.NDArray[np.uint8] | None) -> None:
+        self.data = data
+        self.quality = _quality(data, base, reference)
+        self.encodes = 0
+        self._done: dict[tuple[int, tuple[int, ...]], list[tuple[int, int, float, bytes, list[int]]]] = {}
+
+    def _limits(self, code: int, targets: Sequence[int]) -> tuple[int, ...]:
+        h, w = self.data.shape[:2]
+        return rate_limits(self.data.size, _stream_targets(code, w, h, targets), _main_header(code, w, h)[1])
+
+    def _find(self, code: int, limits: tuple[int, ...]) -> tuple[int, int, float, bytes, list[int]] | None:
+        for made in self._done.get((code, limits[:-1]), ()):
+            limit, n = made[0], made[1]
+            if limits[-1] == limit or n <= limits[-1] <= limit:
+                return made
+        return None
+
+    def known(self, code: int, targets: Sequence[int]) -> tuple[bytes, list[int]] | None:
+        """The body and packet lengths of these targets if a trial made them, else None."""
+        made = self._find(code, self._limits(code, targets))
+        return None if made is None else (made[3], list(made[4]))
+
+    def last_quality(self, code: int, targets: Sequence[int]) -> float:
+        """The PSNR (dB) of the image decoded from the whole body these targets encode to."""
+        limits = self._limits(code, targets)
+        made = self._find(code, limits)
+        if made is None:
+            body, lengths = _encode_body(self.data, code, targets)
+            self.encodes += 1
+            ends = np.cumsum(lengths)
+            q = self.quality(code, [body[int(e) - n:int(e)] for e, n in zip(ends, lengths, strict=True)])
+            made = (limits[-1], len(body), q, body, lengths)
+            self._done.setdefault((code, limits[:-1]), []).append(made)
+        return made[2]
+
+    def layer_qualities(self, code: int, targets: Sequence[int], enough: float) -> list[float]:
+        """The PSNR (dB) of each layer prefix of the encode of ``targets``, in order, up to the
+        first that reaches ``enough`` (the rest cannot change which layer first reaches a mark
+        at or below it)."""
+        h, w = self.data.shape[:2]
+        body, lengths = _encode_body(self.data, code, targets)
+        self.encodes += 1
+        sp = parse_params(code)
+        layer_of = packet_order(sp, w, h)[:, 0]
+        ends = np.cumsum(lengths)
+        packets = [body[int(e) - n:int(e)] for e, n in zip(ends, lengths, strict=True)]
+        out: list[float] = []
+        for k in range(sp.layers):
+            out.append(self.quality(code, [p if layer_of[i] <= k else None for i, p in enumerate(packets)]))
+            if out[-1] >= enough:
+                break
+        return out
 
 
 def calibrate_quality(data: npt.NDArray[np.uint8], cp: CodingParams, resolutions: int,
@@ -514,27 +646,30 @@ def calibrate_quality(data: npt.NDArray[np.uint8], cp: CodingParams, resolutions
     :data:`QUALITY_CAP_BYTES`) brackets every mark, then each mark's target is narrowed
     (interpolation in log bytes, kept inside the bracket) until its image is at most
     :data:`QUALITY_TOLERANCE_DB` above the mark, with the earlier layers fixed, each trial one
-    encode and one decode. Marks not reached within the cap, or already reached by the
-    layer before, are dropped. Deterministic for a given image."""
-    colour = data.ndim == 3
+    encode and one decode unless an earlier trial already tells its body (:class:`_Trials`).
+    Marks not reached within the cap, or already reached by the layer before, are dropped.
+    Deterministic for a given image."""
+    return _calibrate(_Trials(data, base, reference), cp, resolutions)
+
+
+def _calibrate(trials: _Trials, cp: CodingParams, resolutions: int) -> list[int]:
+    colour = trials.data.ndim == 3
     cap = min(QUALITY_CAP_BYTES, MAX_BODY_BYTES // 2)
+    marks = cp.layer_psnr or ()
 
     def code_for(n: int) -> int:
         return params_code(cp.progression, resolutions, n, cp.irreversible, colour, cp.precincts)
 
     probe = [int(x) for x in np.unique(np.geomspace(16, cap, 24).astype(np.int64))]
-    code = code_for(len(probe))
-    body, lengths = _encode_body(data, code, probe)
-    pq = np.maximum.accumulate(np.asarray(layer_psnrs(data, code, body, lengths, base=base, reference=reference)))
+    pq = np.maximum.accumulate(np.asarray(trials.layer_qualities(code_for(len(probe)), probe,
+                                                                 max(marks, default=float("inf")))))
 
     def trial(targets: list[int]) -> float:
-        c = code_for(len(targets))
-        b, lens = _encode_body(data, c, targets)
-        return layer_psnrs(data, c, b, lens, last_only=True, base=base, reference=reference)[0]
+        return trials.last_quality(code_for(len(targets)), targets)
 
     done: list[int] = []
     q_done = 0.0
-    for mark in cp.layer_psnr or ():
+    for mark in marks:
         if mark > pq[-1]:
             break
         if done and q_done >= mark:
@@ -604,12 +739,15 @@ def _encode(data: npt.NDArray[np.uint8], cp: CodingParams, base: npt.NDArray[np.
         raise ConfigError(f"image {w}x{h} is too small (8 px minimum)")
     colour = data.ndim == 3
     res = _feasible_resolutions(h, w, cp.resolutions)
+    made: tuple[bytes, list[int]] | None = None
     if cp.layer_psnr:
-        targets = quality_targets(data, cp, res, base, reference)
+        targets, made = _calibrated(data, cp, res, base, reference)
+        targets = list(targets)
     else:
         targets = list(cp.layer_bytes)
     code = params_code(cp.progression, res, len(targets), cp.irreversible, colour, cp.precincts)
-    body, lengths = _encode_body(data, code, targets)
+    body, lengths = made if made is not None else _encode_body(data, code, targets)
+    lengths = list(lengths)
     if cp.layer_psnr and cp.tighten:
         body, lengths = tighten(code, w, h, body, cp.layer_psnr, _quality(data, base, reference),
                                 _digest(data) + _digest(base) + _digest(reference))
@@ -651,12 +789,20 @@ def assemble(
 
 
 def decode_codestream(cs: bytes, reduce: int = 0) -> npt.NDArray[np.uint8]:
-    """Decode a codestream with glymur (strict mode); ``reduce`` halves the size that many times."""
+    """Decode a codestream with glymur (strict mode); ``reduce`` halves the size that many times.
+
+    Always in the caller's thread, whatever :func:`set_threads` gave the encodes: a decode of
+    these images takes a few milliseconds, and OpenJPEG makes and joins its pool of threads for
+    each one, which cost 50 % more CPU than the decode saved (measured on a 640 x 480 frame,
+    2.9 against 4.6 ms of CPU, issue 55); the pixels are the same either way."""
     glymur = _glymur()
+    threads = glymur.get_option("lib.num_threads")
     path = os.path.join(_scratch(), "dec.j2k")
     with open(path, "wb") as fh:
         fh.write(cs)
     try:
+        if threads:
+            glymur.set_option("lib.num_threads", 0)
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
             j = glymur.Jp2k(path)
@@ -665,6 +811,8 @@ def decode_codestream(cs: bytes, reduce: int = 0) -> npt.NDArray[np.uint8]:
     except Exception as exc:  # OpenJPEG / glymur raise several types for a bad stream
         raise DecodeError(f"JPEG 2000 decode failed: {exc}") from exc
     finally:
+        if threads:
+            glymur.set_option("lib.num_threads", threads)
         os.unlink(path)
     return np.asarray(out, dtype=np.uint8)
 
@@ -693,7 +841,15 @@ def split_packets(body: bytes, starts: npt.NDArray[np.int64], upto: int | None =
 
 
 def psnr(a: npt.NDArray[Any], b: npt.NDArray[Any]) -> float:
-    """PSNR in dB of two uint8 images (inf when identical)."""
+    """PSNR in dB of two uint8 images (inf when identical). Two uint8 arrays of one shape take a
+    path in integers: their squared differences summed exactly, the same value to the last bit
+    as the mean of the differences squared in float64 (every partial sum there is an integer
+    below 2**53) in a tenth of the time."""
+    a, b = np.asarray(a), np.asarray(b)
+    if a.dtype == np.uint8 and b.dtype == np.uint8 and a.shape == b.shape and a.size:
+        d = np.subtract(a, b, dtype=np.int16).ravel()
+        mse = float(np.einsum("i,i->", d, d, dtype=np.int64)) / d.size
+        return float("inf") if mse == 0 else 10.0 * float(np.log10(255.0**2 / mse))
     d = np.asarray(a, np.float64) - np.asarray(b, np.float64)
     mse = float(np.mean(d * d))
     return float("inf") if mse == 0 else 10.0 * float(np.log10(255.0**2 / mse))
