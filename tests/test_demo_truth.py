@@ -330,3 +330,57 @@ def test_report_says_not_met_when_a_target_is_never_photographed(tmp_path: Path)
     html = (tmp_path / "report.html").read_text()
     assert "NOT MET" in html and "never photographed" in html
     assert m["summary"].startswith("NOT MET: every true target confirmed")
+
+
+# ------------------------------------------------------------------- the map's completeness
+
+
+def _site_soundings(size: float) -> np.ndarray:
+    """A lawnmower's soundings of a ``size`` m site: every 0.5 m from edge to edge."""
+    g = np.arange(0.0, size + 0.25, 0.5)
+    x, y = np.meshgrid(g, g)
+    return np.column_stack([x.ravel(), y.ravel()])
+
+
+def _held(placed: np.ndarray, cell: float, x0: float, y0: float, n: int) -> np.ndarray:
+    """The topside grid of a map that reached topside whole: every cell holding a sounding."""
+    grid = np.full((n, n), np.nan)
+    col = np.floor((placed[:, 0] - x0) / cell).astype(int)
+    row = np.floor((placed[:, 1] - y0) / cell).astype(int)
+    grid[row, col] = -500.0
+    return grid
+
+
+def test_map_completeness_is_judged_in_the_frame_the_vehicle_sent_the_map() -> None:
+    """Issue 54: a map that reached topside whole is complete however far the vehicle's
+    dead-reckoning put it off the truth; a cell that never arrived is missing at every level
+    it belongs to. The site's true cells against the received map (``area_fraction``) mix the
+    frames: the same whole map, placed 3 m south-west, lacks the site's northern and eastern
+    strips there."""
+    from coex_apps.demo.world import SurveyedCells, area_fraction
+
+    floor = Seafloor(size=32.0, relief=0.0)
+    true = _site_soundings(32.0)
+    placed = true + np.array([-3.0, -3.2])  # where a drifting vehicle put them
+    cells = SurveyedCells(floor, resolution=1.0)
+    cells.add(true, placed)
+    cells.add(true + 40.0, placed + 40.0)  # soundings beyond the site are not the site's cells
+    grid = _held(placed, 1.0, -8.0, -8.0, 48)
+    assert cells.fraction(grid, 1.0, (-8.0, -8.0)) == 1.0
+    assert area_fraction(grid, 1.0, (-8.0, -8.0), floor) < 0.9  # the old measure: 29 x 28 of 32 x 32
+    # perfect navigation: the same as the site's cells
+    still = SurveyedCells(floor, resolution=1.0)
+    still.add(true, true)
+    whole = _held(true, 1.0, -8.0, -8.0, 48)
+    assert still.fraction(whole, 1.0, (-8.0, -8.0)) == area_fraction(whole, 1.0, (-8.0, -8.0), floor) == 1.0
+    # one 1 m cell and one 8 x 8 subgrid never arrived: missing at 1 m, the subgrid at 2 m too
+    grid[20, 20] = np.nan
+    grid[8:16, 16:24] = np.nan
+    n0 = np.count_nonzero(cells.cells(1.0))
+    assert cells.fraction(grid, 1.0, (-8.0, -8.0)) == pytest.approx((n0 - 65) / n0)
+    coarse = _held(placed, 2.0, -8.0, -8.0, 24)
+    coarse[4:8, 8:12] = np.nan
+    n1 = np.count_nonzero(cells.cells(2.0))
+    assert cells.fraction(coarse, 2.0, (-8.0, -8.0)) == pytest.approx((n1 - 16) / n1)
+    # nothing surveyed yet: nothing complete
+    assert SurveyedCells(floor).fraction(grid, 1.0, (-8.0, -8.0)) == 0.0

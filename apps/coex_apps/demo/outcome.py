@@ -453,7 +453,7 @@ def _charts(world: World, coverage: dict[int, list[tuple[float, float]]], visibl
     scn = world.scenario
     return [
         line_chart({f"level {k} ({2**k} m)": v for k, v in sorted(coverage.items())},
-                   title="Map filling in over time (fraction of the survey area held topside)",
+                   title="Map filling in over time (fraction of the site's surveyed cells held topside)",
                    xlabel="dive time (s)", ylabel="fraction",
                    markers=[(world.survey_end - EPOCH, "survey ends")] + [
                        (v - EPOCH, f"target {i + 1} identifiable at 1 m") for i, v in visible_at.items()]),

@@ -47,6 +47,7 @@ from .timing import ResponseTimer
 from .truth import FrameTruth, frame_truth
 from .world import (
     Leg,
+    SurveyedCells,
     Track,
     area_fraction,
     build_fleet,
@@ -178,7 +179,12 @@ class DiveRun:
         self.received_track: list[tuple[float, float]] = []
         #: the camera vehicle's positions as topside received them (a fleet dive)
         self.received_camera_track: list[tuple[float, float]] = []
+        #: the map's completeness per level over time: the site's surveyed cells, in the frame the
+        #: vehicle placed them, that topside's received level holds (issue 54: ``map_coverage``)
         self.coverage: dict[int, list[tuple[float, float]]] = {}
+        #: the true site's cells that topside's corrected map holds (``map_coverage_corrected``:
+        #: completeness and the correction's placement at the site's edges together)
+        self.coverage_corrected: dict[int, list[tuple[float, float]]] = {}
         self.visible_at: dict[int, float] = {}
         # timed events (simulated): sensor data, status, operator, camera
         self._schedule()
@@ -261,14 +267,16 @@ class DiveRun:
     def _schedule(self) -> None:
         scn, track = self.scn, self.track
         survey, off = self.survey, 0
+        self.surveyed = SurveyedCells(self.floor, float(self.senders["bathymetry"].config["resolution"]))
         for t, xyz in survey.pings(batch=20):
             track.add_sample(float(t), float(np.mean(xyz[:, 0])), float(np.mean(xyz[:, 1])),
                              scn.survey_altitude)
             rows = slice(off, off + len(xyz))
             off += len(xyz)
             def ingest(now: float, xyz: np.ndarray = xyz, rows: slice = rows) -> None:
-                self.senders["bathymetry"].ingest(
-                    self.navsim.soundings(xyz, survey.ping[rows], survey.times[rows]), now)
+                placed = self.navsim.soundings(xyz, survey.ping[rows], survey.times[rows])
+                self.surveyed.add(xyz, placed)  # the referee: where the vehicle put the site's soundings
+                self.senders["bathymetry"].ingest(placed, now)
 
             self.at(float(t), ingest)
         track.samples.sort()
@@ -336,10 +344,16 @@ class DiveRun:
         operator.watch_map(now, views)
         operator.watch_images(now)
         self.push_link_status(now)
+        raw = self.receivers["bathymetry"]  # what topside received, in the vehicle's frame
         for level in range(0, 4):
+            stamp = round(now - EPOCH, 1)
+            p = raw.level_product(level) if raw.geometry(level) is not None else None
+            frac = 0.0 if p is None or p.data is None else self.surveyed.fraction(
+                np.asarray(p.data, dtype=float), float(p.cell_size), (float(p.x0), float(p.y0)))
+            self.coverage.setdefault(level, []).append((stamp, round(frac, 4)))
             g = operator.level_grid(level)
             frac = 0.0 if g is None else area_fraction(g[0], g[1], g[2], self.floor)
-            self.coverage.setdefault(level, []).append((round(now - EPOCH, 1), round(frac, 4)))
+            self.coverage_corrected.setdefault(level, []).append((stamp, round(frac, 4)))
         # judged against the truth: a target-like bump of the received 1 m map where a target is
         for i, tgt in enumerate(self.cars):
             if i not in self.visible_at and any(v.score >= MIN_SCORE and math.hypot(v.x - tgt.x, v.y - tgt.y)
@@ -492,6 +506,8 @@ class DiveRun:
         metrics = finish(out, cfg, world, self.operator, self.navsim.views(self.receivers), self.coverage,
                          self.visible_at, self.decisions, wall, self.runners, self.timer.summary(),
                          navigation=navigation)
+        metrics["map_coverage_corrected"] = {str(k): v[-1][1] if v else 0.0
+                                             for k, v in self.coverage_corrected.items()}
         self.navsim.close()
         metrics["modems"] = {"nmea_over": {str(k): v for k, v in ptys.items()}, "rate": scn.modem_rate,
                              "tdma": f"{len(scn.slots)} x {scn.slot_seconds:g} s, guard {scn.guard_seconds:g} s; "

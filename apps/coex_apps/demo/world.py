@@ -235,6 +235,68 @@ def load_image(path: Path) -> np.ndarray:
         return np.asarray(im.convert("RGB"))
 
 
+class SurveyedCells:
+    """The referee's count of the site's surveyed cells, in the frame the map is sent in (issue 54).
+
+    The vehicle maps in its believed frame (issue 56): a sounding of the site, truly at ``(x,
+    y)``, lands in the vehicle's map where the vehicle places it. :meth:`add` marks, at
+    ``resolution`` (the map's level-0 cell), every cell where the vehicle placed a sounding whose
+    true position is inside the site ``[x0, x0 + size) x [y0, y0 + size)``; :meth:`fraction`
+    is the share of those cells (at a level's cell size) that a received level holds. So the
+    completeness of the map on the link is judged on what the survey gave the vehicle to send,
+    in the frame it was sent in, and not on where topside's navigation correction puts it
+    (that is ``map_error_m``'s business): with perfect navigation (``drift = 0``) the surveyed
+    cells are the site's cells the survey sounded, the whole site for the demo's lawnmower."""
+
+    def __init__(self, floor: Seafloor, resolution: float = 1.0, margin: float | None = None) -> None:
+        self.floor = floor
+        self.resolution = float(resolution)
+        # the believed frame is the site moved by the dead-reckoning error: room for the site's
+        # side of it all round (the cells placed beyond are counted as not held)
+        margin = float(floor.size if margin is None else margin)
+        self.step = 8 * self.resolution  # the grid's corner on whole cells of levels 0 to 3
+        self.x0 = math.floor((floor.x0 - margin) / self.step) * self.step
+        self.y0 = math.floor((floor.y0 - margin) / self.step) * self.step
+        n = math.ceil((floor.size + 2 * margin) / self.step) * 8
+        self.mask = np.zeros((n, n), dtype=bool)
+        #: soundings of the site placed beyond the grid (a drift larger than the margin)
+        self.beyond = 0
+
+    def add(self, true_xy: np.ndarray, placed_xy: np.ndarray) -> None:
+        """Soundings truly at ``true_xy`` (N x 2) that the vehicle placed at ``placed_xy``."""
+        f = self.floor
+        t = np.asarray(true_xy, dtype=float)[:, :2]
+        site = (t[:, 0] >= f.x0) & (t[:, 0] < f.x0 + f.size) & (t[:, 1] >= f.y0) & (t[:, 1] < f.y0 + f.size)
+        p = np.asarray(placed_xy, dtype=float)[site, :2]
+        col = np.floor((p[:, 0] - self.x0) / self.resolution).astype(np.int64)
+        row = np.floor((p[:, 1] - self.y0) / self.resolution).astype(np.int64)
+        n = self.mask.shape[0]
+        ok = (col >= 0) & (row >= 0) & (col < n) & (row < n)
+        self.beyond += int(np.count_nonzero(~ok))
+        self.mask[row[ok], col[ok]] = True
+
+    def cells(self, cell: float) -> np.ndarray:
+        """The surveyed cells at cell size ``cell`` (a power of two of the resolution, at most
+        8 of them): a boolean grid from ``(x0, y0)``, row 0 south."""
+        k = max(1, round(cell / self.resolution))
+        n = self.mask.shape[0] // k
+        return np.asarray(self.mask[:n * k, :n * k].reshape(n, k, n, k).any(axis=(1, 3)))
+
+    def fraction(self, grid: np.ndarray, cell: float, origin: tuple[float, float]) -> float:
+        """Share of the surveyed cells at ``cell`` that ``grid`` (row 0 south, south-west corner
+        ``origin``, NaN where empty) holds; 0 when nothing was surveyed yet."""
+        want = self.cells(cell)
+        rows, cols = np.nonzero(want)
+        if not len(rows):
+            return 0.0
+        g = np.asarray(grid, dtype=float)
+        c = np.floor((self.x0 + (cols + 0.5) * cell - origin[0]) / cell).astype(np.int64)
+        r = np.floor((self.y0 + (rows + 0.5) * cell - origin[1]) / cell).astype(np.int64)
+        ok = (c >= 0) & (r >= 0) & (c < g.shape[1]) & (r < g.shape[0])
+        held = np.count_nonzero(np.isfinite(g[r[ok], c[ok]]))
+        return float(held / len(rows))
+
+
 def area_fraction(grid: np.ndarray, cell: float, origin: tuple[float, float], floor: Seafloor) -> float:
     """Fraction of the survey area's cells that the topside grid holds."""
     ny, nx = grid.shape
