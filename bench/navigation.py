@@ -35,7 +35,10 @@ from coex_plugins.bathymetry.sim import Seafloor, simulate_survey
 from coex_plugins.navigation import DriftEstimator, LocalFrame
 
 
-def one(seed: int) -> dict[str, float]:
+def survey_track(seed: int) -> tuple[Track, float]:
+    """The true track of a 256 m lawnmower survey at 30 m altitude after a 300 s descent (the
+    benches' vehicle), and the survey's end (s). ``bench/navigation_lines.py`` flies its camera
+    lines after the same survey."""
     floor = Seafloor(size=256.0, depth=500.0, relief=2.0, ripple_amplitude=0.15, targets=(), seed=seed)
     track = Track(floor)
     survey = simulate_survey(floor, altitude=30.0, speed=1.0, ping_rate=2.0, beams=256, t0=300.0, turn_time=60.0,
@@ -44,7 +47,11 @@ def one(seed: int) -> dict[str, float]:
         track.add_sample(float(t), float(np.mean(xyz[:, 0])), float(np.mean(xyz[:, 1])), 30.0)
     track.samples.sort()
     track.legs.append(Leg(0.0, 300.0, (0.0, 0.0), (0.0, 0.0), 30.0))
-    end_survey = float(survey.times[-1])
+    return track, float(survey.times[-1])
+
+
+def one(seed: int) -> dict[str, float]:
+    track, end_survey = survey_track(seed)
     t, p = end_survey, (track.samples[-1][1], track.samples[-1][2])
     for a, b in (((100.0, 70.0), (100.0, 130.0)), ((180.0, 40.0), (180.0, 100.0))):
         d = math.hypot(a[0] - p[0], a[1] - p[1])

@@ -41,12 +41,12 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from navigation import survey_track  # bench/navigation.py: the same survey's true track
 
 from coex.messages import SurveyCommand, VehicleMode, VehicleStatus
 from coex_apps.demo.navigation import DeadReckoning, UsblTracker, track_positions
-from coex_apps.demo.world import Leg, Track
+from coex_apps.demo.world import Leg
 from coex_core.timefmt import to_stamp
-from coex_plugins.bathymetry.sim import Seafloor, simulate_survey
 from coex_plugins.navigation import LocalFrame, Navigation, VehicleFrameSurveys
 
 VEHICLE = 2
@@ -77,14 +77,7 @@ def _status(t: float, x: float, y: float, heading: float) -> VehicleStatus:
 
 
 def one(seed: int, policy: str, ahead: float, n_lines: int) -> list[dict[str, Any]]:
-    floor = Seafloor(size=256.0, depth=500.0, relief=2.0, ripple_amplitude=0.15, targets=(), seed=seed)
-    track = Track(floor)
-    survey = simulate_survey(floor, altitude=30.0, speed=1.0, ping_rate=2.0, beams=256, t0=300.0, turn_time=60.0,
-                             seed=seed + 1)
-    for t, xyz in survey.pings(batch=20):
-        track.add_sample(float(t), float(np.mean(xyz[:, 0])), float(np.mean(xyz[:, 1])), 30.0)
-    track.samples.sort()
-    track.legs.append(Leg(0.0, 300.0, (0.0, 0.0), (0.0, 0.0), 30.0))
+    track, _ = survey_track(seed)
     end_survey = float(track.samples[-1][0])
     end = 7200.0
     dr = DeadReckoning(track, 0.0, 300.0, end, drift=0.005, heading_bias=0.5, seed_offset=2.0,
