@@ -15,16 +15,20 @@ import hashlib
 import json
 import os
 import shutil
+from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+import numpy.typing as npt
 import pytest
 
 from coex_apps.demo import DemoConfig, run_demo
 from coex_apps.demo.scenario import ObjectSpec, Scenario, scenario_from_dict
 
-__all__ = ["SMALL", "dark_rock_site", "shared_dive", "small", "small_file"]
+__all__ = ["SMALL", "dark_rock_site", "encodes_remembered", "shared_dive", "small", "small_file"]
 
 #: a small, short dive (a 64 m site, one car, 25 minutes): a whole dive, camera pass included,
 #: for tests whose subject needs one but not the default site
@@ -40,7 +44,7 @@ def small(base: Scenario | None = None, **sections: Any) -> Scenario:
 def dark_rock_site() -> Scenario:
     """A pale car, a dark car, a container and a dark rock as dark as a car on the quick site
     (``quick=True, seed=3``): test_demo_eye.py's dive with the labels zeroed is compared with
-    this one, and test_demo_truth.py's dark-decoy test reads it (the rock looked at, never
+    this one, and the dark-decoy test there reads it (the rock looked at, never
     confirmed). Perfect navigation: these tests' subjects are who reads the labels and what the
     eye makes of a decoy (issue 56's drift is tested in test_navigation_demo.py; docs/demo.md
     says what this scene did with it)."""
@@ -85,3 +89,36 @@ def shared_dive(factory: pytest.TempPathFactory, config: DemoConfig) -> tuple[Pa
             run_demo(replace(config, out=out))
             done.touch()
     return out, json.loads((out / "metrics.json").read_text())
+
+
+@contextmanager
+def encodes_remembered() -> Iterator[dict[str, int]]:
+    """Image encodes remembered while the block runs (in this process): an image coded again with
+    the same pixels, base and parameters gets the codestream it got the first time, without
+    OpenJPEG (the coding is deterministic: the same bytes). For a test that runs one dive twice
+    to compare what changes but the frames (test_demo_eye.py's labels-zeroed dive): the second
+    dive's image coding, about 60 % of a dive's CPU, is not paid again. Yields the counts
+    ``encodes`` (coded here) and ``reused`` (served from memory)."""
+    from coex_plugins.imagery import codec
+
+    real = codec._encode
+    memo: dict[bytes, codec.Encoded] = {}
+    counts = {"encodes": 0, "reused": 0}
+
+    def remembered(data: npt.NDArray[np.uint8], cp: codec.CodingParams,
+                   base: npt.NDArray[np.uint8] | None = None,
+                   reference: npt.NDArray[np.uint8] | None = None) -> codec.Encoded:
+        h = hashlib.sha256(repr(cp).encode())
+        for a in (data, base, reference):
+            h.update(b"-" if a is None else repr((a.shape, a.dtype.str)).encode() + np.ascontiguousarray(a).tobytes())
+        key = h.digest()
+        if key in memo:
+            counts["reused"] += 1
+        else:
+            counts["encodes"] += 1
+            memo[key] = real(data, cp, base, reference)
+        return memo[key]
+
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setattr(codec, "_encode", remembered)
+        yield counts

@@ -299,17 +299,23 @@ def test_with_the_labels_zeroed_the_operator_decides_exactly_the_same(
     exactly as before (the same decisions, word for word) and its own "car" verdicts on every
     true car and on nothing else (a pale car, a dark car, a container and a dark rock as dark as
     a car: ``tests/_dives.py`` ``dark_rock_site``). With the labels zeroed the referee sees no
-    object, so nothing it judges counts."""
+    object, so nothing it judges counts. The images are coded once for both dives
+    (``encodes_remembered``): the zeroed dive asks for no image the first did not code, which
+    says its frames are the same pixels."""
     from coex_apps.demo import DemoConfig, run_demo
 
-    from ._dives import dark_rock_site, shared_dive
+    from ._dives import dark_rock_site, encodes_remembered, shared_dive
 
-    # the dive with the labels is shared: test_demo_truth.py's dark-decoy test reads it too
-    labels, normal = shared_dive(tmp_path_factory, DemoConfig(quick=True, seed=3, progress=False,
-                                                              scenario=dark_rock_site(), codec_threads=0))
-    zeroed = run_demo(DemoConfig(out=tmp_path, quick=True, seed=3, progress=False, scenario=dark_rock_site(),
-                                 zero_labels=True, codec_threads=0)).metrics
+    # the dive with the labels is shared: the dark-decoy test below reads it too
+    with encodes_remembered() as coded:
+        labels, normal = shared_dive(tmp_path_factory, DemoConfig(quick=True, seed=3, progress=False,
+                                                                  scenario=dark_rock_site(), codec_threads=0))
+        first = dict(coded)
+        zeroed = run_demo(DemoConfig(out=tmp_path, quick=True, seed=3, progress=False, scenario=dark_rock_site(),
+                                     zero_labels=True, codec_threads=0)).metrics
     assert (tmp_path / "decisions.csv").read_text() == (labels / "decisions.csv").read_text()
+    if first["encodes"]:  # the labelled dive ran here (not read from another worker's run)
+        assert coded["encodes"] == first["encodes"] and coded["reused"] > first["reused"], (first, coded)
     for m in (normal, zeroed):
         verdicts = m["verdicts"]
         assert verdicts["car_verdicts_on_cars"], verdicts
@@ -317,3 +323,27 @@ def test_with_the_labels_zeroed_the_operator_decides_exactly_the_same(
     assert normal["success"], normal["summary"]
     assert normal["decoys"][0]["visited"]  # the dark rock was looked at, and not confirmed
     assert not zeroed["success"]  # the referee saw nothing: no confirmation counts
+
+
+@pytest.mark.slow  # reads the dive above (shared, run once; in this file so that one worker runs both)
+def test_a_dark_decoy_is_looked_at_and_never_confirmed(tmp_path_factory: pytest.TempPathFactory) -> None:
+    """A dark boulder (as dark as a car) among the targets: the operator visits it (it is
+    target-like enough in the map) and its eye sees something natural; only the true targets
+    are confirmed. The dive is ``tests/_dives.py``'s ``dark_rock_site``, shared with the test
+    above (which compares it with the same dive, labels zeroed)."""
+    import json
+
+    from coex_apps.demo import DemoConfig
+
+    from ._dives import dark_rock_site, shared_dive
+
+    out, m = shared_dive(tmp_path_factory, DemoConfig(quick=True, seed=3, progress=False, scenario=dark_rock_site(),
+                                                      codec_threads=0))
+    assert m["false_confirmations"] == [] and m["false_confirmation_count"] == 0
+    assert m["decoys"][0]["visited"], "the decoy must be visited for this test to mean anything"
+    at_decoy = [c for c in m["candidates"] if c["truth"] == "decoy 1 (dark rock)"]
+    assert at_decoy and all(c["verdict"] in (None, "natural", "given up") for c in at_decoy)
+    assert all(t["confirmation"] is not None for t in m["targets"]) and m["success"]
+    truth = json.loads((out / "truth.json").read_text())
+    assert [d["kind"] for d in truth["decoys"]] == ["dark rock"]
+    assert m["failures"]["sender_failures"] == m["failures"]["runner_errors"] == m["failures"]["rejected_frames"] == 0

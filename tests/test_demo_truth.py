@@ -3,7 +3,6 @@ and whole short dives with decoys and with a target nobody photographs."""
 
 from __future__ import annotations
 
-import json
 import subprocess
 import sys
 from pathlib import Path
@@ -292,26 +291,6 @@ def test_target_likeness_ranks_targets_of_2_to_8_m_above_a_spike() -> None:
 
 
 # ---------------------------------------------------------------------------------- whole dives
-
-
-@pytest.mark.slow  # a whole demo dive
-def test_a_dark_decoy_is_looked_at_and_never_confirmed(tmp_path_factory: pytest.TempPathFactory) -> None:
-    """A dark boulder (as dark as a car) among the targets: the operator visits it (it is
-    target-like enough in the map) and its eye sees something natural; only the true targets
-    are confirmed. The dive is ``tests/_dives.py``'s ``dark_rock_site``, shared with
-    test_demo_eye.py (which compares it with the same dive, labels zeroed)."""
-    from ._dives import dark_rock_site, shared_dive
-
-    out, m = shared_dive(tmp_path_factory, DemoConfig(quick=True, seed=3, progress=False, scenario=dark_rock_site(),
-                                                      codec_threads=0))
-    assert m["false_confirmations"] == [] and m["false_confirmation_count"] == 0
-    assert m["decoys"][0]["visited"], "the decoy must be visited for this test to mean anything"
-    at_decoy = [c for c in m["candidates"] if c["truth"] == "decoy 1 (dark rock)"]
-    assert at_decoy and all(c["verdict"] in (None, "natural", "given up") for c in at_decoy)
-    assert all(t["confirmation"] is not None for t in m["targets"]) and m["success"]
-    truth = json.loads((out / "truth.json").read_text())
-    assert [d["kind"] for d in truth["decoys"]] == ["dark rock"]
-    assert m["failures"]["sender_failures"] == m["failures"]["runner_errors"] == m["failures"]["rejected_frames"] == 0
 
 
 @pytest.mark.slow  # a whole demo dive
