@@ -26,10 +26,10 @@ def _bench() -> Any:
 
 def test_a_cut_and_a_topside_kill_lose_nothing(tmp_path: Path) -> None:
     sf = _bench()
-    faults = sf.Faults(cuts=[(900.0, 180.0)], kills=[(1800.0, 60.0)])
-    r = sf.Soak(tmp_path, 0.75, faults, light=True, drain=sf.HOUR, progress=lambda _: None).run()
+    faults = sf.Faults(cuts=[(600.0, 180.0)], kills=[(1200.0, 60.0)])
+    r = sf.Soak(tmp_path, 0.5, faults, light=True, drain=sf.HOUR, progress=lambda _: None).run()
     assert r["converged"] == {"map": True, "images": True, "series": True}, r["converged"]
-    assert r["images_taken"] >= 8 and r["images_missing"] == []
+    assert r["images_taken"] >= 5 and r["images_missing"] == []
     assert r["vehicle_link"]["outages"] == 1 and r["topside_heard"]["outages"] == 1
     assert r["topside_restarts"] == 1
     # a state change is a line; nothing is logged per read, send or retry
