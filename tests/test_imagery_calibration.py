@@ -5,10 +5,12 @@ one every trial encoded and decoded would give; the PSNR of uint8 images in inte
 from __future__ import annotations
 
 from collections.abc import Sequence
+from pathlib import Path
 
 import numpy as np
 import pytest
 
+from coex import DecodeError
 from coex_plugins.imagery import codec
 from coex_plugins.imagery.codec import CodingParams
 from coex_plugins.imagery.synth import sand_ripples, seafloor
@@ -114,17 +116,18 @@ def test_psnr_of_uint8_images_in_integers_is_the_float_one_to_the_bit() -> None:
 
 def test_decodes_run_in_the_callers_thread_whatever_the_encodes_use(monkeypatch: pytest.MonkeyPatch) -> None:
     import glymur
+    from glymur.lib import openjp2
 
     img = seafloor(64, 96, seed=1)
     enc = codec.encode_image(img, CodingParams(layer_bytes=(200, 800)))
     packets = codec.split_packets(enc.body, enc.packet_starts)
     before = glymur.get_option("lib.num_threads")
     seen: list[int] = []
-    real = glymur.Jp2k
+    real = openjp2.codec_set_threads
 
-    def spy(*args: object, **kwargs: object) -> object:
-        seen.append(glymur.get_option("lib.num_threads"))
-        return real(*args, **kwargs)
+    def spy(codec_: object, n: int) -> object:
+        seen.append(n)
+        return real(codec_, n)
 
     try:
         codec.set_threads(0)
@@ -132,7 +135,7 @@ def test_decodes_run_in_the_callers_thread_whatever_the_encodes_use(monkeypatch:
         codec.set_threads(2)
         if glymur.get_option("lib.num_threads") != 2:
             pytest.skip("this OpenJPEG has no thread support")
-        monkeypatch.setattr(glymur, "Jp2k", spy)
+        monkeypatch.setattr(openjp2, "codec_set_threads", spy)
         pooled = codec.decode_packets(enc.params, enc.width, enc.height, packets)
         assert seen == [0]  # decoded in the caller's thread
         assert glymur.get_option("lib.num_threads") == 2  # the encodes keep their threads
@@ -140,3 +143,44 @@ def test_decodes_run_in_the_callers_thread_whatever_the_encodes_use(monkeypatch:
     finally:
         monkeypatch.undo()
         codec.set_threads(before)
+
+
+@pytest.mark.parametrize("colour", [False, True])
+def test_the_decode_gives_the_pixels_of_glymurs_reader(tmp_path: Path, colour: bool) -> None:
+    import glymur
+
+    img = seafloor(96, 128, seed=6, colour=colour)
+    code = codec.params_code("LRCP", 5, 3, True, colour, codec.DEFAULT_PRECINCTS)
+    body, lengths = codec._encode_body(img, code, [150, 900, 4000])
+    ends = np.cumsum(lengths)
+    packets: list[bytes | None] = [body[int(e) - n:int(e)] for e, n in zip(ends, lengths, strict=True)]
+    rng = np.random.default_rng(4)
+    for keep in (len(packets), len(packets) // 2, 3):
+        some = [p if rng.random() < 0.8 else None for p in packets[:keep]]
+        cs, _ = codec.assemble(code, 128, 96, some)
+        path = tmp_path / "x.j2k"
+        path.write_bytes(cs)
+        ours = codec.decode_codestream(cs)
+        theirs = np.asarray(glymur.Jp2k(str(path))[:], np.uint8)
+        assert ours.shape == theirs.shape == img.shape and ours.dtype == np.uint8
+        assert np.array_equal(ours, theirs)
+        assert np.array_equal(codec.decode_codestream(cs, reduce=1), np.asarray(glymur.Jp2k(str(path))[::2, ::2]))
+    for bad in (cs[: len(cs) // 3] + b"\xff\xd9", b"\xff\x4f\xff\x51 not a codestream"):
+        with pytest.raises(DecodeError):
+            codec.decode_codestream(bad)
+
+
+@pytest.mark.parametrize("img", [sand_ripples(120, 160, seed=7), seafloor(96, 128, seed=4, colour=True)])
+def test_a_run_of_trials_that_change_nothing_is_made_from_its_last(img: np.ndarray) -> None:
+    """Where trials leave the image below a mark as the bracket's lower end left it, the last
+    trial of that run is made first and tells the others (issue 55): the same targets and final
+    body as the search that makes each in turn, with fewer encodes (these two images have such
+    runs)."""
+    cp = CodingParams(layer_psnr=(20.0, 25.0, 30.0, 35.0, 40.0), grey=img.ndim == 2)
+    res = codec._feasible_resolutions(img.shape[0], img.shape[1], cp.resolutions)
+    ahead, step = codec._Trials(img, None, None), codec._Trials(img, None, None)
+    targets = codec._calibrate(ahead, cp, res)
+    assert targets == codec._calibrate(step, cp, res, ahead=False)
+    assert ahead.encodes < step.encodes, (ahead.encodes, step.encodes)
+    code = codec.params_code(cp.progression, res, len(targets), cp.irreversible, img.ndim == 3, cp.precincts)
+    assert ahead.known(code, targets) == step.known(code, targets) == codec._encode_body(img, code, targets)

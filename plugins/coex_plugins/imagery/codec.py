@@ -16,11 +16,14 @@ depends on it), is replaced by an empty packet (one ``0x00`` byte). The stream i
 
 from __future__ import annotations
 
+import contextlib
+import ctypes
 import functools
 import hashlib
 import itertools
 import os
 import tempfile
+import threading
 import warnings
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
@@ -652,7 +655,11 @@ def calibrate_quality(data: npt.NDArray[np.uint8], cp: CodingParams, resolutions
     return _calibrate(_Trials(data, base, reference), cp, resolutions)
 
 
-def _calibrate(trials: _Trials, cp: CodingParams, resolutions: int) -> list[int]:
+def _calibrate(trials: _Trials, cp: CodingParams, resolutions: int, ahead: bool = True) -> list[int]:
+    """:func:`calibrate_quality` on ``trials``. With ``ahead``, once a trial leaves the image
+    below a mark exactly as the lower end of its bracket left it, the last trial of the run that
+    would follow if every one did the same is made first (:func:`_flat_run`): the same search
+    and the same targets, fewer encodes (issue 55)."""
     colour = trials.data.ndim == 3
     cap = min(QUALITY_CAP_BYTES, MAX_BODY_BYTES // 2)
     marks = cp.layer_psnr or ()
@@ -689,18 +696,45 @@ def _calibrate(trials: _Trials, cp: CodingParams, resolutions: int) -> list[int]
             q_hi = trial([*done, int(hi)])
         if q_hi < mark:
             break
+        flat = False  # the last trial left the image below the mark exactly as it was
         while q_hi - mark > QUALITY_TOLERANCE_DB and hi > max(lo * 1.01, lo + 2):
-            f = (mark - q_lo) / (q_hi - q_lo) if q_hi > q_lo else 0.5
-            g = float(np.exp(np.log(lo) + min(max(f, 0.1), 0.9) * (np.log(hi) - np.log(lo))))
-            t = min(max(round(g), int(lo) + 1), int(hi) - 1)
+            if flat and ahead:  # the trials to come if the image stays as it is, up to one already known
+                run = list(itertools.takewhile(
+                    lambda t: trials.known(code_for(len(done) + 1), [*done, t]) is None,
+                    _flat_run(lo, q_lo, hi, q_hi, mark)))
+                if len(run) > 1:  # the last first: if it is the lower end's body, so are the others
+                    trial([*done, run[-1]])
+            t = _next_target(lo, q_lo, hi, q_hi, mark)
             q = trial([*done, t])
             if q >= mark:
-                hi, q_hi = float(t), q
+                hi, q_hi, flat = float(t), q, False
             else:
-                lo, q_lo = float(t), q
+                lo, q_lo, flat = float(t), q, q == q_lo
         done.append(int(hi))
         q_done = q_hi
     return done or [probe[-1]]
+
+
+def _next_target(lo: float, q_lo: float, hi: float, q_hi: float, mark: float) -> int:
+    """The calibration's next trial target between ``lo`` (below the mark) and ``hi`` (at or
+    above it): interpolation in log bytes, kept inside the bracket."""
+    f = (mark - q_lo) / (q_hi - q_lo) if q_hi > q_lo else 0.5
+    g = float(np.exp(np.log(lo) + min(max(f, 0.1), 0.9) * (np.log(hi) - np.log(lo))))
+    return min(max(round(g), int(lo) + 1), int(hi) - 1)
+
+
+def _flat_run(lo: float, q_lo: float, hi: float, q_hi: float, mark: float) -> list[int]:
+    """The targets the calibration tries next if every one of them leaves the quality at
+    ``q_lo`` (each becomes the new lower end, nothing else changes), up to where its bracket is
+    narrow enough to stop. :func:`_calibrate` runs the last one first: when it gives the lower
+    end's body, every earlier one lies between that body's bytes and its byte limit, so each is
+    that body without an encode (:class:`_Trials`); the search and its result stay the same."""
+    out: list[int] = []
+    while hi > max(lo * 1.01, lo + 2):
+        t = _next_target(lo, q_lo, hi, q_hi, mark)
+        out.append(t)
+        lo = float(t)
+    return out
 
 
 def encode_image(image: npt.NDArray[Any], params: CodingParams | None = None) -> Encoded:
@@ -789,32 +823,79 @@ def assemble(
 
 
 def decode_codestream(cs: bytes, reduce: int = 0) -> npt.NDArray[np.uint8]:
-    """Decode a codestream with glymur (strict mode); ``reduce`` halves the size that many times.
+    """Decode a codestream with OpenJPEG (strict mode); ``reduce`` halves the size that many times.
 
     Always in the caller's thread, whatever :func:`set_threads` gave the encodes: a decode of
     these images takes a few milliseconds, and OpenJPEG makes and joins its pool of threads for
     each one, which cost 50 % more CPU than the decode saved (measured on a 640 x 480 frame,
-    2.9 against 4.6 ms of CPU, issue 55); the pixels are the same either way."""
+    2.9 against 4.6 ms of CPU, issue 55); the pixels are the same either way. A whole-size
+    decode calls OpenJPEG through glymur's bindings directly (:func:`_decode_file`: the calls
+    glymur's ``Jp2k`` reader makes, without its parse of the file's boxes and marker segments
+    in Python, a fifth of a decode's time; the same pixels, tested)."""
     glymur = _glymur()
-    threads = glymur.get_option("lib.num_threads")
-    path = os.path.join(_scratch(), "dec.j2k")
+    path = os.path.join(_scratch(), f"dec-{threading.get_ident()}.j2k")
     with open(path, "wb") as fh:
         fh.write(cs)
     try:
-        if threads:
-            glymur.set_option("lib.num_threads", 0)
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
-            j = glymur.Jp2k(path)
-            step = 1 << reduce
-            out = j[::step, ::step] if reduce else j[:]
+            if not reduce:
+                out = _decode_file(path)
+            else:
+                threads = glymur.get_option("lib.num_threads")
+                if threads:
+                    glymur.set_option("lib.num_threads", 0)
+                try:
+                    step = 1 << reduce
+                    out = glymur.Jp2k(path)[::step, ::step]
+                finally:
+                    if threads:
+                        glymur.set_option("lib.num_threads", threads)
     except Exception as exc:  # OpenJPEG / glymur raise several types for a bad stream
         raise DecodeError(f"JPEG 2000 decode failed: {exc}") from exc
     finally:
-        if threads:
-            glymur.set_option("lib.num_threads", threads)
         os.unlink(path)
     return np.asarray(out, dtype=np.uint8)
+
+
+def _decode_file(path: str) -> npt.NDArray[Any]:
+    """The whole image of the J2K codestream in ``path``, in the caller's thread: the calls of
+    glymur's ``Jp2k(path)[:]`` to OpenJPEG (its bindings, its error and warning handlers,
+    default decoder parameters), without its Python parse of the file. Raises what glymur's
+    bindings raise for a bad stream."""
+    from glymur.lib import openjp2 as opj2
+
+    dparams = opj2.set_default_decoder_parameters()
+    dparams.decod_format = opj2.CODEC_J2K
+    with contextlib.ExitStack() as stack:
+        stream = opj2.stream_create_default_file_stream(path, True)
+        stack.callback(opj2.stream_destroy, stream)
+        codec = opj2.create_decompress(opj2.CODEC_J2K)
+        stack.callback(opj2.destroy_codec, codec)
+        opj2.set_error_handler(codec, opj2._ERROR_CALLBACK)
+        opj2.set_warning_handler(codec, opj2._WARNING_CALLBACK)
+        opj2.set_info_handler(codec, None)
+        opj2.setup_decoder(codec, dparams)
+        opj2.codec_set_threads(codec, 0)
+        raw = opj2.read_header(stream, codec)
+        stack.callback(opj2.image_destroy, raw)
+        opj2.set_decode_area(codec, raw, 0, 0, 0, 0)
+        opj2.decode(codec, stream, raw)
+        opj2.end_decompress(codec, stream)
+        img = raw.contents
+        bands = []
+        for k in range(img.numcomps):
+            comp = img.comps[k]
+            if comp.prec > 8 or comp.sgnd or not comp.w or not comp.h:
+                raise DecodeError(f"component {k}: {comp.prec}-bit{' signed' if comp.sgnd else ''} "
+                                  f"{comp.w} x {comp.h}, not an 8-bit CoEx image")
+            arr = (ctypes.c_int32 * (comp.h * comp.w)).from_address(ctypes.addressof(comp.data.contents))
+            bands.append(np.frombuffer(arr, np.int32).astype(np.uint8).reshape(comp.h, comp.w))
+        if len(bands) == 1:
+            return bands[0]
+        if any(b.shape != bands[0].shape for b in bands):
+            raise DecodeError("components of different sizes")
+        return np.stack(bands, axis=-1)
 
 
 def decode_packets(params: int, width: int, height: int, packets: Sequence[bytes | None]) -> npt.NDArray[np.uint8]:
