@@ -37,7 +37,11 @@ scipy.ndimage):
    or ``partial`` (cut by the frame's edge: the rest is in the frame before or after). A
    straight-edged rectangle the frame cuts (its outline but the frame's edge on its box's sides,
    clear of the margin, at least a car's width and length showing) is an ``object``: straight
-   sides meeting square are man-made whatever the whole size.
+   sides meeting square are man-made whatever the whole size. So is a cut object whose outline
+   runs along two straight parallel lines (:attr:`EyeParams.min_cut_straight`, a boat hull's or
+   a box's flanks; a rock's outline curves all along): a ``hull`` when its end away from the
+   frame tapers. At the first look an object cut at the frame's side is ``unclear`` until the
+   sharper look shows its sides.
 
 The parameters (:class:`EyeParams`) were set on the development scenes of ``bench/eye.py`` only
 (rendered frames of every kind of object, seeds :data:`~coex_apps.demo.config.DEVELOPMENT_SEEDS`,
