@@ -17,7 +17,12 @@ It prints, per layer, what the eye said of each kind (the confusion table), how 
 target on sand or on a decoy (false verdicts) and what it costs per frame, and writes
 ``bench/results/eye.json``. The eye's parameters were set with this script on these seeds only.
 
-    python bench/eye.py [--seeds N] [--first-seed S] [--images DIR] [--layers 1,3,4] [--across M]
+``--kind K`` draws every scene of kind K (the rest of each seed's draw unchanged): e.g. ``--kind hull
+--across 4.5`` for hulls the frame cuts at its side, ``--kind "dark rock"`` for the decoys. Besides
+"right" (the eye named the kind; a cut object named ``object`` or ``hull`` counts as other), it
+prints how many targets it called a target of any kind (what the operator confirms on).
+
+    python bench/eye.py [--seeds N] [--first-seed S] [--images DIR] [--layers 1,3,4] [--across M] [--kind K]
 """
 
 from __future__ import annotations
@@ -35,7 +40,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 
 
-def scene(seed: int, real: Any | None, across_m: float = 1.0) -> dict[str, Any]:
+def scene(seed: int, real: Any | None, across_m: float = 1.0, only: str | None = None) -> dict[str, Any]:
     from coex_apps.demo.camera import CameraModel, SandTexture, render_labelled
     from coex_apps.demo.operator import LINE_ALTITUDE_FOR, LINE_SPEED, camera_altitude
     from coex_apps.demo.scenario import DECOY_KINDS, TARGET_KINDS, draw_object
@@ -45,6 +50,7 @@ def scene(seed: int, real: Any | None, across_m: float = 1.0) -> dict[str, Any]:
     rng = np.random.default_rng([seed, 42])
     kinds = list(TARGET_KINDS) + list(DECOY_KINDS)
     kind = "sand" if rng.random() < 1 / 8 else str(rng.choice(kinds))
+    kind = only or kind  # --kind: every scene of one kind (the rest of the draw unchanged)
     obj = draw_object(kind if kind != "sand" else "car", rng, 50.0, 50.0, (2.0, 8.0))
     objs = () if kind == "sand" else (obj,)
     floor = Seafloor(size=100.0, depth=500.0, relief=1.0, targets=objs, seed=seed)
@@ -81,6 +87,8 @@ def main() -> None:
     ap.add_argument("--layers", default="1,3,4")
     ap.add_argument("--across", type=float, default=1.0,
                     help="the line passes up to this far (m) beside the object (default 1; more cuts objects at the frame's side)")
+    ap.add_argument("--kind", default=None, help="every scene of this kind (car, container, hull, debris, rock, "
+                    "dark rock, biology, sand): the rest of each seed's draw unchanged")
     ap.add_argument("--verbose", action="store_true")
     args = ap.parse_args()
     seeds = range(args.first_seed, args.first_seed + args.seeds)
@@ -99,7 +107,7 @@ def main() -> None:
     rows = []
     cost: list[float] = []
     for seed in seeds:
-        sc = scene(seed, real, args.across)
+        sc = scene(seed, real, args.across, args.kind)
         enc = encode_image(sc["image"], CodingParams(layer_psnr=LAYER_PSNR))
         mpp = metres_per_pixel(sc["altitude"], sc["image"].shape[1], CAMERA_HFOV_DEG)
         row = {k: sc[k] for k in ("seed", "kind", "altitude", "background", "in_frame", "whole", "length", "width")}
@@ -123,10 +131,13 @@ def main() -> None:
     summary: dict[str, Any] = {}
     for k in layers:
         print(f"\nlayer {k} ({LAYER_PSNR[k - 1]:g} dB):")
-        right = wrong = false = 0
+        right = wrong = false = hit = targets = 0
         for truth, got in sorted(table[k].items()):
             print(f"  {truth:<18} " + ", ".join(f"{v} {n}" for v, n in got.most_common()))
             base = truth.split(" (")[0]
+            if base in TARGET_KINDS:  # a target the operator would confirm, whatever kind the eye named
+                targets += sum(got.values())
+                hit += sum(n for v, n in got.items() if v in TARGET_KINDS)
             for v, n in got.items():
                 if v.startswith("FALSE"):
                     false += n
@@ -136,9 +147,10 @@ def main() -> None:
                     right += n
                 else:
                     wrong += n
-        print(f"  right {right}, other {wrong}, target called on sand or a decoy: {false}")
+        print(f"  right {right}, other {wrong}, target called on sand or a decoy: {false}; "
+              f"targets called a target of any kind: {hit} of {targets}")
         summary[str(k)] = {"table": {t: dict(c) for t, c in table[k].items()}, "right": right, "other": wrong,
-                           "false": false}
+                           "false": false, "targets_called_target": hit, "targets": targets}
     # the measures of the largest object the eye saw, per kind, in scenes where it is whole
     print("\nmeasures of whole objects (min / median / max), largest sight, last layer:")
     last = f"layer_{layers[-1]}"
@@ -153,7 +165,8 @@ def main() -> None:
         print(f"  {kind:<10} n={len(got):<3} " + ", ".join(cols))
     ms = 1000 * float(np.median(cost))
     print(f"\neye cost per frame: median {ms:.1f} ms, worst {1000 * max(cost):.1f} ms (shared machine)")
-    out = ROOT / "bench" / "results" / ("eye.json" if args.across == 1.0 else f"eye-across-{args.across:g}.json")
+    name = "eye" + ("" if args.across == 1.0 else f"-across-{args.across:g}") + (f"-{args.kind.replace(' ', '-')}" if args.kind else "")
+    out = ROOT / "bench" / "results" / f"{name}.json"
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(json.dumps({"seeds": [seeds[0], seeds[-1]], "real": args.images is not None, "across_m": args.across,
                                "summary": summary,

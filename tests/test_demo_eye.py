@@ -17,6 +17,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from scipy import ndimage
 
 from coex.messages import SurveyCommand
 from coex_apps.demo.camera import SandTexture, render_labelled
@@ -238,6 +239,70 @@ def test_a_rectangle_the_frame_cuts_is_man_made_and_a_rock_it_cuts_is_not(off: f
         sights = _shot((), (decoy,))
         assert sights and sights[0].cut, "the frame cuts it"
         assert not any(s.target for s in sights), [s.describe() for s in sights]
+
+
+def _seen(targets: tuple[Target, ...], rocks: tuple[Target, ...] = ()) -> tuple[list[Sight], list[Sight]]:
+    """What the eye sees in a whole frame (as :func:`_shot`) when it decides, and at its first look."""
+    floor = Seafloor(size=100.0, depth=500.0, relief=1.0, targets=targets + rocks, seed=7)
+    alt = camera_altitude(*LINE_ALTITUDE_FOR, 5.0)
+    z = float(floor.ground(np.array([50.0]), np.array([50.0]))[0]) + alt
+    img, _ = render_labelled(floor.ground, 50.0, 50.0, z, 90.0, targets=targets, rocks=rocks, texture=SandTexture(7),
+                             rng=np.random.default_rng(7))
+    mpp = metres_per_pixel(alt, img.shape[1], CAMERA_HFOV_DEG)
+    return Eye().look(img, mpp, settled=True), Eye().look(img, mpp, settled=False)
+
+
+@pytest.mark.parametrize(("off", "heading"), [(4.5, 0.0), (-4.5, 180.0), (3.5, 0.0), (4.5, 180.0), (-4.5, 0.0)])
+def test_a_boat_hull_the_frame_cuts_at_its_side_is_man_made(off: float, heading: float) -> None:
+    """A 7 m hull (the container-hull-car site's) ``off`` metres beside the line: the frame cuts
+    it at its side, its bow toward the frame's middle (heading 0 on the right, 180 on the left)
+    or cut off. Its two straight parallel flanks make it man-made, a hull when the end in the
+    frame tapers; at the first look (3 layers' rough outline) it is a target or asked about again."""
+    hull = Target(50.0, 50.0 - off, 7.0, 2.3, 1.4, heading, "hull", "hull")
+    sights, first = _seen((hull,))
+    assert sights and set(sights[0].cut) == {"right" if off > 0 else "left"}
+    assert sights[0].target, [s.describe() for s in sights]
+    assert sights[0].straight_m >= EyeParams().min_cut_straight
+    bow_in_frame = (off > 0) == (heading == 0.0)
+    assert (sights[0].kind == "hull") == bow_in_frame, sights[0].describe()
+    assert first[0].kind in ("unclear", "hull", "object"), first[0].describe()
+
+
+@pytest.mark.parametrize("off", [4.5, -4.5, 3.5])
+def test_a_rock_or_living_things_the_frame_cuts_at_its_side_is_no_target(off: float) -> None:
+    """A rock, a dark rock (as dark as a car) or a mound of living things cut by the frame's side
+    as the hull above: no target when the eye decides nor at its first look (its outline curves
+    all along: no straight parallel sides)."""
+    for decoy in (Target(50.0, 50.0 - off, 3.6, 2.6, 1.6, 0.0, "dome", "dark rock", 0.08),
+                  Target(50.0, 50.0 - off, 4.5, 3.2, 1.6, 0.0, "dome", "rock"),
+                  Target(50.0, 50.0 - off, 4.0, 2.8, 1.1, 0.0, "mound", "biology", 0.08)):
+        for sights in _seen((), (decoy,)):
+            assert sights and sights[0].cut, "the frame cuts it"
+            assert not any(s.target for s in sights), [s.describe() for s in sights]
+            assert sights[0].straight_m < EyeParams().min_cut_straight
+
+
+def test_straight_parallel_sides_are_measured_on_a_slanted_bar_not_on_an_ellipse() -> None:
+    """The measure behind the cut-hull rule: a bar cut at a slant by the frame's edge has two
+    straight parallel sides as long as the part showing; an ellipse's outline curves all along."""
+    from coex_apps.demo.eye import _straight_sides
+
+    yy, xx = np.mgrid[0:120, 0:160].astype(float)
+    step = 0.065
+    a = np.radians(15.0)
+    u, v = (xx - 0) * np.cos(a) + (yy - 60) * np.sin(a), -(xx - 0) * np.sin(a) + (yy - 60) * np.cos(a)
+    bar = (np.abs(v) <= 15) & (u <= 70)  # 30 px (2 m) wide, running off the frame's left edge
+    ellipse = ((xx - 80) / 35) ** 2 + ((yy - 60) / 20) ** 2 <= 1.0
+    p = EyeParams()
+    for mask, man_made, across in ((bar, True, 30 * step), (ellipse, False, 40 * step)):
+        edge = mask & ~ndimage.binary_erosion(mask)
+        er, ec = np.nonzero(edge)
+        inner = (ec > 0) & (ec < 159) & (er > 0) & (er < 119)
+        straight, apart = _straight_sides((ec + 0.5) * step, (er + 0.5) * step, inner, 0.0, step, 1.5 * step)
+        assert (straight >= p.min_cut_straight and straight >= p.min_cut_straight_ratio * apart) == man_made, straight
+        if man_made:
+            assert 3.5 <= straight <= 5.0, straight  # the part showing: about 70 px
+        assert abs(apart - across) < 0.3, (apart, across)  # 2 m and 2.6 m wide
 
 
 class _Survey:

@@ -37,7 +37,11 @@ scipy.ndimage):
    or ``partial`` (cut by the frame's edge: the rest is in the frame before or after). A
    straight-edged rectangle the frame cuts (its outline but the frame's edge on its box's sides,
    clear of the margin, at least a car's width and length showing) is an ``object``: straight
-   sides meeting square are man-made whatever the whole size.
+   sides meeting square are man-made whatever the whole size. So is a cut object whose outline
+   runs along two straight parallel lines (:attr:`EyeParams.min_cut_straight`, a boat hull's or
+   a box's flanks; a rock's outline curves all along): a ``hull`` when its end away from the
+   frame tapers. At the first look an object cut at the frame's side is ``unclear`` until the
+   sharper look shows its sides.
 
 The parameters (:class:`EyeParams`) were set on the development scenes of ``bench/eye.py`` only
 (rendered frames of every kind of object, seeds :data:`~coex_apps.demo.config.DEVELOPMENT_SEEDS`,
@@ -135,6 +139,12 @@ class EyeParams:
     container_width: tuple[float, float] = (2.35, 3.0)
     hull_length: tuple[float, float] = (3.5, 9.0)
     debris_extent: tuple[float, float] = (1.5, 6.5)
+    #: an object the frame cuts with two straight parallel sides (a hull's or a box's flanks), at
+    #: least this long (m) and this many times as long as they are apart, apart by a car's to a
+    #: container's width (m): man-made; a hull when its far end tapers (``max_bow_ratio``)
+    min_cut_straight: float = 1.8
+    min_cut_straight_ratio: float = 0.75
+    cut_apart: tuple[float, float] = (1.2, 3.5)
     #: an outline at all: this many times the sand's median gradient on it
     min_sharpness: float = 1.5
     #: measures this close to a man-made threshold are asked about again at a higher quality
@@ -167,6 +177,11 @@ class Sight:
     #: the frame's edges it touches: "top" (ahead), "bottom" (behind), "left", "right"
     cut: tuple[str, ...] = ()
     why: str = ""
+    #: the longest stretch (m) along its long axis over which both long sides are straight and
+    #: parallel (they lie on its box's sides): a hull's or a box's flank, not a rock's curve
+    straight_m: float = 0.0
+    #: ... and how far apart they are (m)
+    apart_m: float = 0.0
 
     @property
     def target(self) -> bool:
@@ -185,7 +200,8 @@ class Sight:
                 "length_m": self.length_m, "width_m": self.width_m, "area_m2": self.area_m2,
                 "box_fill": self.box_fill, "on_sides": self.on_sides, "bow_ratio": self.bow_ratio,
                 "solidity": self.solidity, "brightness": self.brightness, "contrast": self.contrast,
-                "sharpness": self.sharpness, "edge_width": self.edge_width, "cut": list(self.cut), "why": self.why}
+                "sharpness": self.sharpness, "edge_width": self.edge_width, "cut": list(self.cut), "why": self.why,
+                "straight_m": self.straight_m, "apart_m": self.apart_m}
 
 
 @functools.lru_cache(maxsize=8)
@@ -399,15 +415,23 @@ class Eye:
             inner = (er + r0 > 0) & (er + r0 < h - 1) & (ec + c0 > 0) & (ec + c0 < w - 1)
             on = on[inner]
         on_sides = float(on.mean()) if on.size else 0.0
+        inner_edge = (er + r0 > 0) & (er + r0 < h - 1) & (ec + c0 > 0) & (ec + c0 < w - 1)
+        straight, apart = _straight_sides(ex, ey, inner_edge, math.atan2(major[1], major[0]), step, tol)
         # taper: the object's width near each end of its long axis
         bow = 1.0
+        ends: list[float] = []
         if u.size > 20 and uhi - ulo > 4 * step:
             span = uhi - ulo
-            ends = []
             for a, b in ((ulo + 0.03 * span, ulo + 0.15 * span), (uhi - 0.15 * span, uhi - 0.03 * span)):
                 sel = (u >= a) & (u <= b)
                 ends.append(float(np.percentile(v[sel], 95) - np.percentile(v[sel], 5)) if sel.sum() > 3 else 0.0)
             bow = min(ends) / max(max(ends), 1e-6)
+        # cut by the frame: how the end away from the frame compares with the straight sides'
+        # spacing (a bow tapers; a car's or a container's end is as wide as its sides are apart)
+        far = bow
+        if cut and ends and apart > 0 and not inner_edge.all():
+            at_frame = float(eu[~inner_edge].mean())
+            far = min((ends[1] if at_frame < (ulo + uhi) / 2 else ends[0]) / apart, 1.0)
         # how much of its convex hull it fills: a patch of pieces leaves gaps and notches
         solid = _solidity(edge, rows.size)
         # brightness, and how clear its outline is: the step from the object to the sand around
@@ -420,17 +444,19 @@ class Eye:
         on_edge = float(np.percentile(grad[band], 75)) if band.any() else 0.0
         sharp = float(grad[band].mean()) / seg.sand_energy if band.any() else 0.0
         edge_width = abs(inside - sand_level) / max(on_edge, 1e-6)
-        kind, why = self._verdict(length, width, box_fill, on_sides, bow, solid, sharp, settled, cut)
+        kind, why = self._verdict(length, width, box_fill, on_sides, bow, solid, sharp, settled, cut, (straight, apart, far))
         s = p.scale
         box = (int((c0 + cols.min()) * s), int((r0 + rows.min()) * s), int((c0 + cols.max() + 1) * s),
                int((r0 + rows.max() + 1) * s))
         centre = ((float(cols.mean()) + c0 + 0.5) * s, (float(rows.mean()) + r0 + 0.5) * s)
         return Sight(kind, box, centre, round(length, 2), round(width, 2), round(area, 2), round(box_fill, 2),
                      round(on_sides, 2), round(bow, 2), round(solid, 2), round(math.exp(inside - sand_level), 2),
-                     round((inside - sand_level) / seg.spread, 1), round(sharp, 2), round(edge_width, 1), cut, why)
+                     round((inside - sand_level) / seg.spread, 1), round(sharp, 2), round(edge_width, 1), cut, why,
+                     round(straight, 2), round(apart, 2))
 
     def _verdict(self, length: float, width: float, box_fill: float, on_sides: float, bow: float, solid: float,
-                 sharp: float, settled: bool, cut: tuple[str, ...]) -> tuple[str, str]:
+                 sharp: float, settled: bool, cut: tuple[str, ...],
+                 sides: tuple[float, float, float] = (0.0, 0.0, 1.0)) -> tuple[str, str]:
         p = self.params
         m = p.margin
 
@@ -444,6 +470,18 @@ class Eye:
             if (box_fill >= p.min_box_fill + m and on_sides >= p.min_on_sides + m
                     and min(length, width) >= p.car_width[0] and max(length, width) >= p.car_length[0]):
                 return "object", "a straight-edged rectangle, cut by the frame"
+            # two straight parallel sides running out of the frame (a hull's or a box's flanks;
+            # a rock's or a mound's outline curves all along)
+            straight, apart, far = sides
+            if (straight >= p.min_cut_straight and straight >= p.min_cut_straight_ratio * apart
+                    and within(apart, p.cut_apart)):
+                if far <= p.max_bow_ratio:
+                    return "hull", "straight parallel sides and a tapering end, cut by the frame"
+                return "object", "straight parallel sides, cut by the frame"
+            if not settled and len({"left", "right"} & set(cut)) == 1 and within(apart, p.cut_apart):
+                # the first look's outline is too rough to show straight sides: decide at the
+                # sharper look (nothing along the line would show more of it)
+                return "unclear", "cut by the frame's side: a sharper look would tell its sides"
             return "partial", "cut by the frame"
         long = length / max(width, 1e-6) >= p.min_hull_aspect and within(length, p.hull_length)
         hull = long and bow <= p.max_bow_ratio and on_sides >= p.min_hull_sides and box_fill >= p.min_hull_fill
@@ -473,6 +511,46 @@ class Eye:
         if debris:
             return "debris", "a ragged patch of pieces"
         return "natural", "a rounded or irregular outline"
+
+
+def _straight_sides(x: FloatImage, y: FloatImage, inner: Mask, angle: float, step: float, tol: float,
+                    turn: float = 30.0) -> tuple[float, float]:
+    """The longest stretch (m) over which an object's outline runs along two straight parallel
+    lines (its long sides), and its width across them (m): the outline's points ``x``, ``y`` (m),
+    those not on the frame's edge ``inner``; the directions tried lie within ``turn`` degrees of
+    ``angle`` (radians, its long axis): the frame cuts a bar at a slant, which tilts its axis of
+    inertia off its sides. A side is the outline's points within ``tol`` of the extreme line; its
+    length the longest run of them along the direction, gaps of one pixel bridged."""
+    if int(inner.sum()) < 8:
+        return 0.0, 0.0
+    a = angle + np.radians(np.arange(-turn, turn + 0.1, 1.5))
+    c, s = np.cos(a)[:, None], np.sin(a)[:, None]
+    u = x[None, :] * c + y[None, :] * s  # angles x points
+    v = -x[None, :] * s + y[None, :] * c
+    vhi, vlo = v.max(1, keepdims=True), v.min(1, keepdims=True)
+    n = math.ceil(float(np.ptp(u, 1).max()) / step) + 3
+    bins = np.clip(np.floor((u - u.min(1, keepdims=True)) / step).astype(np.int64) + 1, 0, n - 1)
+    rows = np.broadcast_to(np.arange(a.size)[:, None], u.shape)
+    best, across = 0.0, 0.0
+    runs = []
+    for side in (v >= vhi - tol, v <= vlo + tol):
+        occ = np.zeros((a.size, n), bool)
+        hit = side & inner[None, :]
+        occ[rows[hit], bins[hit]] = True
+        occ[:, 1:-1] |= occ[:, :-2] & occ[:, 2:]  # a one-pixel gap bridged
+        pad = np.zeros((a.size, 1), bool)
+        d = np.diff(np.concatenate([pad, occ, pad], 1).astype(np.int8), axis=1)
+        # the longest run per angle: starts and ends of runs, in order, per row
+        r_s, c_s = np.nonzero(d == 1)
+        _, c_e = np.nonzero(d == -1)
+        longest = np.zeros(a.size)
+        np.maximum.at(longest, r_s, (c_e - c_s).astype(np.float64))
+        runs.append(longest)
+    both = np.minimum(runs[0], runs[1]) * step
+    k = int(np.argmax(both))
+    best = float(both[k])
+    across = float(vhi[k, 0] - vlo[k, 0]) + step
+    return best, across
 
 
 @functools.lru_cache(maxsize=16)
