@@ -275,8 +275,7 @@ class DiveRun:
             off += len(xyz)
             def ingest(now: float, xyz: np.ndarray = xyz, rows: slice = rows) -> None:
                 placed = self.navsim.soundings(xyz, survey.ping[rows], survey.times[rows])
-                # the referee: where the vehicle put the site's valid soundings (not the wild ones)
-                self.surveyed.add(xyz, placed, ~survey.outlier[rows])
+                self.surveyed.add(xyz, placed)  # the referee: where the vehicle put the site's soundings
                 self.senders["bathymetry"].ingest(placed, now)
 
             self.at(float(t), ingest)
