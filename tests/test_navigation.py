@@ -23,6 +23,7 @@ from coex.messages import (
 )
 from coex.wire import decode, encode
 from coex_plugins.navigation import (
+    CorrectedDetections,
     CorrectedMap,
     DriftEstimator,
     LocalFrame,
@@ -714,3 +715,26 @@ def test_the_report_shows_how_far_the_camera_missed_with_the_correction_off(tmp_
     # no drift, no navigation section
     assert "<h3>Navigation</h3>" not in write_report(tmp_path, {"navigation": {"active": False}}, charts=[], maps=[],
                                                      images=[], decisions=[]).read_text()
+
+
+def test_a_map_detection_is_placed_like_the_map_at_its_stamp_not_when_it_arrived() -> None:
+    """A detection the vehicle found in its own map sits where the passes that mapped it put it
+    (as the map around it does), from its stamp (the row's ``time``), not from when its row last
+    reached topside (``updated_at``); a detection of another source takes the correction at its
+    stamp."""
+    nav = _KnownCorrection(swath=135.0)
+    nav.estimator(2)
+    _two_passes(nav)
+
+    class Rows:
+        def rows(self) -> list[dict[str, object]]:
+            return [{"id": 0, "source": "map", "x": 4.0, "y": 100.0, "time": T0 + 700.0, "updated_at": T0 + 100.0},
+                    {"id": 1, "source": "map", "x": 4.0, "y": 120.0, "time": T0 + 150.0, "updated_at": T0 + 700.0},
+                    {"id": 2, "source": "image", "x": 4.0, "y": 140.0, "time": T0 + 700.0, "updated_at": T0 + 100.0}]
+
+    got = {r["id"]: (r["x"], r["y"]) for r in CorrectedDetections(Rows(), nav, 2).rows()}
+    w_near, w_far = 1.0 / (1.0 + (4.0 / 30.0) ** 2), 1.0 / (1.0 + (36.0 / 30.0) ** 2)
+    expect = (2.0 * w_near - 2.0 * w_far) / (w_near + w_far)  # both passes, weighted: about 0.8 m
+    assert got[0] == pytest.approx((4.0 - expect, 100.0), abs=0.15)  # not 4 - 2 (arrival) nor 4 + 2 (stamp)
+    assert got[1] == pytest.approx((2.0, 120.0), abs=0.05)  # stamped before the second pass
+    assert got[2] == pytest.approx((6.0, 140.0), abs=0.05)  # an image's: the correction at its stamp
