@@ -411,11 +411,10 @@ class Eye:
         tol = p.side_tolerance * step
         on = (np.minimum(np.abs(eu - ulo), np.abs(eu - uhi)) <= tol) | (
             np.minimum(np.abs(ev_ - vlo), np.abs(ev_ - vhi)) <= tol)
-        if cut:  # the frame's edge is no side of the object's own: its outline is the rest
-            inner = (er + r0 > 0) & (er + r0 < h - 1) & (ec + c0 > 0) & (ec + c0 < w - 1)
-            on = on[inner]
-        on_sides = float(on.mean()) if on.size else 0.0
         inner_edge = (er + r0 > 0) & (er + r0 < h - 1) & (ec + c0 > 0) & (ec + c0 < w - 1)
+        if cut:  # the frame's edge is no side of the object's own: its outline is the rest
+            on = on[inner_edge]
+        on_sides = float(on.mean()) if on.size else 0.0
         straight, apart = _straight_sides(ex, ey, inner_edge, math.atan2(major[1], major[0]), step, tol)
         # taper: the object's width near each end of its long axis
         bow = 1.0
