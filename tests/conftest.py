@@ -20,7 +20,7 @@ settings.load_profile("ci" if os.environ.get("CI") else "dev")
 def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
     """Files holding a test marked ``slow`` run first (in their order; every other file after,
     in its order). With ``--dist loadfile`` (pyproject's addopts) each file goes whole to one
-    of the ``-n 2`` workers, so the long end-to-end files start at once, the short ones fill
+    of the ``-n 3`` workers, so the long end-to-end files start at once, the short ones fill
     in after, and the two workers finish together instead of one running a slow file at the
     end. Nothing is skipped: only the order changes."""
     def path(item: pytest.Item) -> str:
