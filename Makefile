@@ -14,11 +14,10 @@ DEMO_ARGS ?=
 
 install: $(STAMP)
 
-$(STAMP): pyproject.toml examples/coex-sample-plugin/pyproject.toml scripts/system-deps.sh scripts/ros.sh
+$(STAMP): pyproject.toml examples/coex-sample-plugin/pyproject.toml scripts/system-deps.sh scripts/ros.sh scripts/venv-install.sh
 	@bash scripts/system-deps.sh
 	@test -x $(PY) || $(PYTHON) -m venv $(VENV)
-	@$(PY) -m pip install -q --disable-pip-version-check --upgrade pip
-	@$(PY) -m pip install -q --disable-pip-version-check -e ".[all,dev]" -e examples/coex-sample-plugin
+	@bash scripts/venv-install.sh $(VENV) -e ".[all,dev]" -e examples/coex-sample-plugin
 	@bash scripts/ros.sh $(PY)
 	@touch $(STAMP)
 	@echo "CoEx installed in $(VENV)/ (activate with: . $(VENV)/bin/activate)"
@@ -32,8 +31,7 @@ lint: install
 # strict mypy over every package (pyproject's [tool.mypy] files), then the sample plugin checked
 # from its own directory as its author would run it
 typecheck: install
-	$(VENV)/bin/mypy
-	cd examples/coex-sample-plugin && ../../$(VENV)/bin/mypy coex_sample_plugin tests
+	@bash scripts/typecheck.sh $(VENV)
 
 # a real MOOSDB and pymoos for the MOOS tests, built from ../shared/vendor/moos when there is no
 # MOOSDB on PATH; never fails (the tests needing them are skipped with the reason)
@@ -51,8 +49,11 @@ pytest: install moos ros
 	$(VENV)/bin/pytest -n 3 $(PYTEST_ARGS)
 
 # everything: CI's target (.ci/run). pyproject's addopts give each test file whole to one worker
-# (--dist loadfile) and tests/conftest.py starts the files with slow end-to-end tests first
-test: lint typecheck pytest
+# (--dist loadfile) and tests/conftest.py starts the files with slow end-to-end tests first.
+# `make typecheck` runs beside pytest (scripts/test.sh: about 35 s of one core, while the tests
+# wait on servers); its output is printed after pytest's and either failing fails `make test`
+test: lint install moos ros
+	@bash scripts/test.sh $(VENV) $(PYTEST_ARGS)
 
 # the quick loop while developing: lint, types and every test not marked slow (the whole demo
 # dives, Chromium, ROS, MOOS-IvP, daemons on simulated modems run only in `make test`)
