@@ -126,6 +126,8 @@ def test_the_dive_counts_its_failures_and_has_none(demo: tuple[Path, dict]) -> N
     f = metrics["failures"]
     assert set(f["nodes"]) == {"1", "2"}
     assert (f["rejected_frames"], f["sender_failures"], f["runner_errors"]) == (0, 0, 0), f
+    assert len(f["rejections"]) == f["rejected_messages"]  # each refused message named, with why
+    assert all(r["node"] in (1, 2) and r["message"] and r["reason"] for r in f["rejections"])
     assert metrics["false_confirmation_count"] == len(metrics["false_confirmations"]) == 0
     assert {v["truth"] for v in metrics["verdicts"]["candidates"] if v["verdict"] not in ("natural", "given up")} >= {
         t["name"] for t in metrics["targets"]}

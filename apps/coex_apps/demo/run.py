@@ -16,7 +16,7 @@ from typing import Any
 
 import numpy as np
 
-from coex import AcousticChannel, Node, ProductUpdated, Received, Runner, SimulatedClock
+from coex import AcousticChannel, Node, ProductUpdated, Received, Rejected, Runner, SimulatedClock
 from coex.messages import VehicleStatus
 from coex_core.loopback import SimClock
 from coex_plugins.bathymetry.sim import Seafloor, Survey, simulate_survey
@@ -317,6 +317,8 @@ class DiveRun:
             self.at(t, functools.partial(self.camera_round, first=t == first))
         self._shot = iter(range(10**9))
         self.taken: list[float] = []
+        #: every message a node refused, by name (``metrics.json`` ``failures.rejections``)
+        self.rejections: list[dict[str, Any]] = []
         self.hfov = math.tan(math.radians(self.camera.hfov_deg) / 2)
         t = self.camera_start + CAMERA_PERIOD
         while t < self.end:
@@ -466,7 +468,9 @@ class DiveRun:
         clock = self.clock
         camera = CAMERA if self.fleet is not None else VEHICLE
         for ev in self.topside.events():
-            if isinstance(ev, Received) and isinstance(ev.message, VehicleStatus):
+            if isinstance(ev, Rejected):
+                self._rejected(TOPSIDE, ev)
+            elif isinstance(ev, Received) and isinstance(ev.message, VehicleStatus):
                 status = self.navsim.heard_status(ev.src, ev.message, clock.now)  # corrected
                 if ev.src == camera:  # the operator follows the vehicle with the camera
                     self.operator.on_status(status, clock.now)
@@ -477,11 +481,21 @@ class DiveRun:
             elif isinstance(ev, ProductUpdated) and ev.modality == "survey":
                 self.operator.on_survey(dict(ev.product.meta), clock.now)
         self.navsim.topside_aids(clock.now)  # topside aids the vehicle's navigation when it is time
-        self.vehicle.events()
+        for ev in self.vehicle.events():
+            if isinstance(ev, Rejected):
+                self._rejected(VEHICLE, ev)
         if self.fleet is not None:
-            self.fleet.camera.events()
+            for ev in self.fleet.camera.events():
+                if isinstance(ev, Rejected):
+                    self._rejected(CAMERA, ev)
         for rec in self.channel.log():  # what arrived, per packet and receiver: delivered or lost frames
             self.link_log.write(json.dumps(rec, sort_keys=True, separators=(",", ":")) + "\n")
+
+    def _rejected(self, node: int, ev: Rejected) -> None:
+        """A message a node refused: kept with its reason for the metrics (the count alone does
+        not say what to look at)."""
+        self.rejections.append({"node": node, "time_s": round(ev.time - EPOCH, 1),
+                                "message": type(ev.message).__name__, "reason": ev.reason})
 
     def _outputs(self, ptys: dict[int, str]) -> DemoResult:
         cfg, scn, out = self.cfg, self.scn, self.out
@@ -520,7 +534,7 @@ class DiveRun:
             "signed_frames": self.topside.manager.stats["signed"],
             "rejected_frames": self.vehicle.stats["unauthenticated"],
         }
-        metrics["failures"] = failure_counts(self.runners)
+        metrics["failures"] = {**failure_counts(self.runners), "rejections": self.rejections}
         (out / "metrics.json").write_text(json.dumps(metrics, indent=2))
         return DemoResult(out, metrics, self.decisions)
 
