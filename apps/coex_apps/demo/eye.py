@@ -41,7 +41,10 @@ scipy.ndimage):
    runs along two straight parallel lines (:attr:`EyeParams.min_cut_straight`, a boat hull's or
    a box's flanks; a rock's outline curves all along): a ``hull`` when its end away from the
    frame tapers. At the first look an object cut at the frame's side is ``unclear`` until the
-   sharper look shows its sides.
+   sharper look shows its sides; so is a whole object with a hull's length, aspect and taper
+   whose outline is too rough for a hull (a blurred layer bends an outline, not a size or a
+   taper), and at the sharper look while its measures are within
+   :attr:`EyeParams.hull_doubt` of a hull's: never ``natural``, which ends the candidate.
 
 The parameters (:class:`EyeParams`) were set on the development scenes of ``bench/eye.py`` only
 (rendered frames of every kind of object, seeds :data:`~coex_apps.demo.config.DEVELOPMENT_SEEDS`,
