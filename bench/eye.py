@@ -20,7 +20,9 @@ target on sand or on a decoy (false verdicts) and what it costs per frame, and w
 ``--kind K`` draws every scene of kind K (the rest of each seed's draw unchanged): e.g. ``--kind hull
 --across 4.5`` for hulls the frame cuts at its side, ``--kind "dark rock"`` for the decoys. Besides
 "right" (the eye named the kind; a cut object named ``object`` or ``hull`` counts as other), it
-prints how many targets it called a target of any kind (what the operator confirms on).
+prints how many targets it called a target of any kind (what the operator confirms on), how many
+targets it called ``natural`` (at the first look, 3 layers, that ends the operator's candidate)
+and how many decoys or scenes of sand it called ``unclear`` (what a sharper look costs).
 
     python bench/eye.py [--seeds N] [--first-seed S] [--images DIR] [--layers 1,3,4] [--across M] [--kind K]
 """
@@ -131,13 +133,17 @@ def main() -> None:
     summary: dict[str, Any] = {}
     for k in layers:
         print(f"\nlayer {k} ({LAYER_PSNR[k - 1]:g} dB):")
-        right = wrong = false = hit = targets = 0
+        right = wrong = false = hit = targets = natural = asked = 0
         for truth, got in sorted(table[k].items()):
             print(f"  {truth:<18} " + ", ".join(f"{v} {n}" for v, n in got.most_common()))
             base = truth.split(" (")[0]
             if base in TARGET_KINDS:  # a target the operator would confirm, whatever kind the eye named
                 targets += sum(got.values())
                 hit += sum(n for v, n in got.items() if v in TARGET_KINDS)
+            # a target called natural ends the operator's candidate; unclear on a decoy or sand
+            # costs a sharper look (issue 50's whole-hull rule)
+            natural += sum(n for v, n in got.items() if v == "natural") if base in TARGET_KINDS else 0
+            asked += sum(n for v, n in got.items() if v == "unclear") if base not in TARGET_KINDS else 0
             for v, n in got.items():
                 if v.startswith("FALSE"):
                     false += n
@@ -148,9 +154,11 @@ def main() -> None:
                 else:
                     wrong += n
         print(f"  right {right}, other {wrong}, target called on sand or a decoy: {false}; "
-              f"targets called a target of any kind: {hit} of {targets}")
+              f"targets called a target of any kind: {hit} of {targets}; targets called natural: {natural}; "
+              f"decoys or sand called unclear: {asked}")
         summary[str(k)] = {"table": {t: dict(c) for t, c in table[k].items()}, "right": right, "other": wrong,
-                           "false": false, "targets_called_target": hit, "targets": targets}
+                           "false": false, "targets_called_target": hit, "targets": targets,
+                           "targets_called_natural": natural, "decoys_called_unclear": asked}
     # the measures of the largest object the eye saw, per kind, in scenes where it is whole
     print("\nmeasures of whole objects (min / median / max), largest sight, last layer:")
     last = f"layer_{layers[-1]}"

@@ -348,6 +348,75 @@ def test_a_re_aimed_line_is_sent_once_through_the_new_point_and_its_images_looke
     assert "re-aim" in logged
 
 
+#: (length, width, box fill, straight share, bow ratio, solidity, sharpness) of whole objects
+#: as the eye measured them at a first look (3 layers): the two hulls of the tests' quick dive
+#: (seed 1) with issue 54's bridged map (h54e) and issue 56's operator bumps (h56d) merged, each
+#: called natural by the old rule and its candidate ended; and a dark rock of the development
+#: bench (seed 1087, the longest decoy there: 1.8 times as long as wide)
+DIVE_HULL_H54E = (5.0, 2.0, 0.86, 0.52, 0.58, 0.93, 3.8)
+DIVE_HULL_H56D = (4.5, 2.0, 0.83, 0.58, 0.53, 0.91, 3.5)
+BENCH_DARK_ROCK = (2.6, 1.4, 0.75, 0.50, 0.64, 0.93, 3.7)
+
+
+@pytest.mark.parametrize("measures", [DIVE_HULL_H54E, DIVE_HULL_H56D])
+def test_a_whole_hull_with_a_blurred_outline_is_never_natural(measures: tuple[float, ...]) -> None:
+    """Issue 50's whole-hull rule: a hull seen whole, its outline 52-58 % straight (the coding's
+    blur and ringing bend it) is ``unclear`` at the first look (the operator asks for the sharper
+    layer) and at the sharper look (the straight share within ``hull_doubt`` of the hull's: another
+    frame), never ``natural``, which would end the operator's candidate."""
+    eye = Eye()
+    for settled in (False, True):
+        kind, why = eye._verdict(*measures, settled, ())
+        assert kind == "unclear", (settled, kind, why)
+
+
+def test_the_whole_hull_rule_leaves_rocks_and_clear_outlines_alone() -> None:
+    """A dark rock (not twice as long as wide) stays natural at either look; a hull-shaped
+    outline far outside the doubtful band is natural once the sharper look has come (it is
+    asked about only at the blurred first look); a straight-sided tapering outline is a hull."""
+    eye = Eye()
+    for settled in (False, True):
+        assert eye._verdict(*BENCH_DARK_ROCK, settled, ())[0] == "natural"
+    far = (5.0, 2.0, 0.70, 0.30, 0.58, 0.90, 3.8)
+    assert eye._verdict(*far, False, ())[0] == "unclear"
+    assert eye._verdict(*far, True, ())[0] == "natural"
+    assert eye._verdict(5.0, 2.0, 0.89, 0.80, 0.60, 0.96, 4.5, False, ())[0] == "hull"
+
+
+def _bench_scene(seed: int) -> dict[str, object]:
+    """``bench/eye.py``'s development scene ``seed`` (generated sand), a hull in it."""
+    import importlib.util
+    import sys
+
+    spec = importlib.util.spec_from_file_location("bench_eye", ROOT / "bench" / "eye.py")
+    assert spec is not None and spec.loader is not None
+    module = importlib.util.module_from_spec(spec)
+    sys.modules["bench_eye"] = module
+    spec.loader.exec_module(module)
+    scene: dict[str, object] = module.scene(seed, None, 1.0, "hull")
+    return scene
+
+
+def test_a_rendered_whole_hull_blurred_at_the_first_look_is_asked_about_not_natural() -> None:
+    """Development scene 1000 of ``bench/eye.py``: a 4.1 m hull seen whole; at 3 layers (the
+    first look) its outline is 51 % straight and its box 75 % filled (the old rule said natural,
+    which ends the candidate); the eye asks for the sharper look, at which it is a hull."""
+    sc = _bench_scene(1000)
+    assert sc["whole"], "the frame holds the hull whole"
+    img = np.asarray(sc["image"])
+    enc = encode_image(img, CodingParams(layer_psnr=LAYER_PSNR))
+    mpp = metres_per_pixel(float(sc["altitude"]), img.shape[1], CAMERA_HFOV_DEG)  # type: ignore[arg-type]
+    looks = {}
+    for layers in (3, 4):
+        got = decode_packets(enc.params, enc.width, enc.height, split_packets(enc.body, enc.packet_starts,
+                                                                               enc.layer_end(layers)))
+        looks[layers] = Eye().look(got, mpp, settled=layers > 3)
+    first, sharper = looks[3][0], looks[4][0]
+    assert first.on_sides < EyeParams().min_hull_sides, first.describe()  # the blurred outline
+    assert first.kind == "unclear", first.describe()
+    assert sharper.kind == "hull", sharper.describe()
+
+
 def test_metres_per_pixel_from_altitude_and_field_of_view() -> None:
     assert metres_per_pixel(5.0, 640, 62.0) == pytest.approx(2 * 5.0 * math.tan(math.radians(31.0)) / 640)
     assert {"car", "container", "hull", "debris", "object"} == set(TARGET_KINDS)

@@ -41,7 +41,10 @@ scipy.ndimage):
    runs along two straight parallel lines (:attr:`EyeParams.min_cut_straight`, a boat hull's or
    a box's flanks; a rock's outline curves all along): a ``hull`` when its end away from the
    frame tapers. At the first look an object cut at the frame's side is ``unclear`` until the
-   sharper look shows its sides.
+   sharper look shows its sides; so is a whole object with a hull's length, aspect and taper
+   whose outline is too rough for a hull (a blurred layer bends an outline, not a size or a
+   taper), and at the sharper look while its measures are within
+   :attr:`EyeParams.hull_doubt` of a hull's: never ``natural``, which ends the candidate.
 
 The parameters (:class:`EyeParams`) were set on the development scenes of ``bench/eye.py`` only
 (rendered frames of every kind of object, seeds :data:`~coex_apps.demo.config.DEVELOPMENT_SEEDS`,
@@ -125,6 +128,12 @@ class EyeParams:
     max_bow_ratio: float = 0.75
     min_hull_sides: float = 0.62
     min_hull_fill: float = 0.86
+    #: a whole object with a hull's length, aspect and tapering end whose outline is not straight
+    #: or full enough for a hull is never ``natural`` from a layer still blurred (the first look:
+    #: blur and the coding's ringing bend the outline, not the object's size or taper), and at
+    #: the sharper look not while its straight share and its box's fill are within this of the
+    #: hull's thresholds (``unclear``: another frame would tell)
+    hull_doubt: float = 0.15
     #: debris: a ragged patch, filling at most this share of its convex hull (a rock, a mound
     #: or a car fills 0.9 or more)
     max_debris_solidity: float = 0.82
@@ -509,6 +518,14 @@ class Eye:
             return "object", "a straight-edged rectangle of no known size"
         if debris:
             return "debris", "a ragged patch of pieces"
+        # a hull's length and taper, its outline too rough for a hull's: the first look's layer
+        # is still blurred (issue 50: whole hulls 29-58 % straight at 3 layers, 76 % or more at
+        # 4); at the sharper look a doubtful outline is looked at again in another frame
+        if long and bow <= p.max_bow_ratio + (0.0 if settled else m):
+            if not settled:
+                return "unclear", "a hull's length and taper, its outline blurred: a sharper look would tell"
+            if on_sides >= p.min_hull_sides - p.hull_doubt and box_fill >= p.min_hull_fill - p.hull_doubt:
+                return "unclear", "a hull's length and taper, its outline nearly a hull's: another frame would tell"
         return "natural", "a rounded or irregular outline"
 
 
