@@ -45,7 +45,8 @@ from coex_apps.demo.navigation import (
     UsblTracker,
     believed_soundings,
 )
-from coex_apps.demo.operator import MIN_SCORE, car_likeness
+from coex_apps.demo.operator import MIN_SCORE
+from coex_apps.demo.operator import target_likeness as car_likeness
 from coex_apps.demo.scenario import preset
 from coex_apps.demo.world import Leg, Track, rng_for, vehicle_status
 from coex_core.loopback import RoundTrip
