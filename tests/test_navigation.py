@@ -23,6 +23,7 @@ from coex.messages import (
 )
 from coex.wire import decode, encode
 from coex_plugins.navigation import (
+    CorrectedDetections,
     CorrectedMap,
     DriftEstimator,
     LocalFrame,
@@ -714,3 +715,62 @@ def test_the_report_shows_how_far_the_camera_missed_with_the_correction_off(tmp_
     # no drift, no navigation section
     assert "<h3>Navigation</h3>" not in write_report(tmp_path, {"navigation": {"active": False}}, charts=[], maps=[],
                                                      images=[], decisions=[]).read_text()
+
+
+def test_a_map_detection_is_placed_like_the_map_at_its_stamp_not_when_it_arrived() -> None:
+    """A detection the vehicle found in its own map sits where the passes that mapped it put it
+    (as the map around it does), from its stamp (the row's ``time``), not from when its row last
+    reached topside (``updated_at``); a detection of another source takes the correction at its
+    stamp."""
+    nav = _KnownCorrection(swath=135.0)
+    nav.estimator(2)
+    _two_passes(nav)
+
+    class Rows:
+        def rows(self) -> list[dict[str, object]]:
+            return [{"id": 0, "source": "map", "x": 4.0, "y": 100.0, "time": T0 + 700.0, "updated_at": T0 + 100.0},
+                    {"id": 1, "source": "map", "x": 4.0, "y": 120.0, "time": T0 + 150.0, "updated_at": T0 + 700.0},
+                    {"id": 2, "source": "image", "x": 4.0, "y": 140.0, "time": T0 + 700.0, "updated_at": T0 + 100.0}]
+
+    got = {r["id"]: (r["x"], r["y"]) for r in CorrectedDetections(Rows(), nav, 2).rows()}
+    w_near, w_far = 1.0 / (1.0 + (4.0 / 30.0) ** 2), 1.0 / (1.0 + (36.0 / 30.0) ** 2)
+    expect = (2.0 * w_near - 2.0 * w_far) / (w_near + w_far)  # both passes, weighted: about 0.8 m
+    assert got[0] == pytest.approx((4.0 - expect, 100.0), abs=0.15)  # not 4 - 2 (arrival) nor 4 + 2 (stamp)
+    assert got[1] == pytest.approx((2.0, 120.0), abs=0.05)  # stamped before the second pass
+    assert got[2] == pytest.approx((6.0, 140.0), abs=0.05)  # an image's: the correction at its stamp
+
+
+def test_the_operator_measures_a_small_bump_in_the_map_as_received_and_places_it() -> None:
+    """A two-cell bump 0.9 m high (a small debris patch's main piece) moved by half a cell
+    each way: the corrected level's bilinear resampling spreads it below the bump threshold;
+    the operator measures it in the level as received and places it by the map's correction."""
+    from coex_apps.demo.operator import Operator
+
+    nav = Navigation()
+    est = nav.estimator(2)
+    for t in (0.0, 300.0):
+        est.add_track(t, 50.0, 50.0)
+    for t in np.arange(0.0, 300.0, 10.0):
+        est.add_fix(float(t), 49.5, 49.5)  # believed (50, 50), truly (49.5, 49.5): correction (0.5, 0.5)
+
+    class Small(_Rx):
+        def __init__(self) -> None:
+            super().__init__()
+            self.z = np.full((24, 24), -100.0)
+            self.z[10, 10:12] = -99.1  # cells (10, 10) and (11, 10): centre (11.0, 10.5)
+
+        def levels(self) -> list[int]:
+            return [0]
+
+        def coverage(self, level: int, max_blocks: int = 4096):  # type: ignore[no-untyped-def]
+            return 1, np.array([[i, j] for i in range(3) for j in range(3)]), np.full(9, 100.0)
+
+    view = CorrectedMap(Small(), nav, 2)
+    corrected = np.asarray(view.level_product(0).data)
+    assert np.nanmax(corrected) - np.nanmedian(corrected) < 0.7  # spread below the threshold
+    op = Operator(None, {"bathymetry": view, "imagery": None, "survey": None},  # type: ignore[arg-type]
+                  (0.0, 0.0, 24.0, 24.0), lambda *a: None, camera_altitude=5.0)
+    found = op.measured(0.0)
+    assert len(found) == 1
+    assert (found[0].x, found[0].y) == pytest.approx((10.5, 10.0), abs=0.15)
+    assert found[0].height == pytest.approx(0.9, abs=0.05)

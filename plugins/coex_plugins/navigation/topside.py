@@ -42,7 +42,7 @@ from ..bathymetry.product import MapLevel
 from ..imagery.product import ImageProduct
 from .estimator import DriftEstimator, NavConfig
 
-__all__ = ["Aid", "AidConfig", "CorrectedDetections", "CorrectedImages", "CorrectedMap", "Navigation",
+__all__ = ["Aid", "AidConfig", "CorrectedDetections", "CorrectedImages", "CorrectedMap", "MapField", "Navigation",
            "VehicleFrameSurveys"]
 
 FloatArray = npt.NDArray[np.float64]
@@ -101,6 +101,54 @@ class Aid:
         return self.state in ("requested", "accepted")
 
 
+@dataclass(frozen=True)
+class MapField:
+    """The correction (believed less true, m) of a received map level over the vehicle's frame:
+    one value per coverage block of side ``block`` m (``lut[row, col]``, block ``(col + kx0,
+    row + ky0)``; NaN where nothing is held), bilinear between block centres when ``smooth`` (the
+    pass-weighted corrections of :meth:`Navigation.map_correction`), else constant over each
+    block; ``fill`` (the blocks' mean) outside them. Called with points ``(px, py)`` of the
+    vehicle's frame it gives their corrections, ``(..., 2)``."""
+
+    lut: FloatArray
+    kx0: int
+    ky0: int
+    block: float
+    fill: FloatArray
+    smooth: bool
+
+    @property
+    def limit(self) -> float:
+        """The largest correction of a block along either axis (m)."""
+        return float(np.nanmax(np.abs(self.lut))) if np.isfinite(self.lut).any() else 0.0
+
+    def __call__(self, px: FloatArray, py: FloatArray) -> FloatArray:
+        lut, block, kx0, ky0 = self.lut, self.block, self.kx0, self.ky0
+        if self.smooth:  # bilinear between block centres (over the blocks held)
+            u, v = px / block - 0.5 - kx0, py / block - 0.5 - ky0
+            j0, i0 = np.floor(u).astype(np.int64), np.floor(v).astype(np.int64)
+            fu, fv = (u - j0)[..., None], (v - i0)[..., None]
+            acc = np.zeros((*px.shape, 2))
+            wsum = np.zeros((*px.shape, 1))
+            for di, dj, w in ((0, 0, (1 - fu) * (1 - fv)), (0, 1, fu * (1 - fv)), (1, 0, (1 - fu) * fv),
+                              (1, 1, fu * fv)):
+                ii, jj = i0 + di, j0 + dj
+                inside = (ii >= 0) & (jj >= 0) & (ii < lut.shape[0]) & (jj < lut.shape[1])
+                got = lut[np.clip(ii, 0, lut.shape[0] - 1), np.clip(jj, 0, lut.shape[1] - 1)]
+                ok = (inside & np.isfinite(got[..., 0]))[..., None]
+                acc += np.where(ok, w * got, 0.0)
+                wsum += np.where(ok, w, 0.0)
+            return np.asarray(np.where(wsum > 1e-9, acc / np.maximum(wsum, 1e-9), self.fill), np.float64)
+        bx = np.floor(px / block).astype(np.int64) - kx0
+        by = np.floor(py / block).astype(np.int64) - ky0
+        inside = (bx >= 0) & (by >= 0) & (bx < lut.shape[1]) & (by < lut.shape[0])
+        c = np.broadcast_to(self.fill, (*px.shape, 2)).copy()
+        got = lut[np.clip(by, 0, lut.shape[0] - 1), np.clip(bx, 0, lut.shape[1] - 1)]
+        ok = inside & np.isfinite(got[..., 0])
+        c[ok] = got[ok]
+        return c
+
+
 class Navigation:
     """Topside's estimate of each vehicle's drift (see the module docstring). ``apply``: False
     keeps estimating (what the console shows) but :meth:`correction` is zero: the map, the
@@ -121,6 +169,7 @@ class Navigation:
         self.targets = dict(targets or {})
         self.estimators: dict[int, DriftEstimator] = {}
         self._levels: dict[tuple[int, int, int], tuple[tuple[int, int], Any]] = {}
+        self._fields: dict[tuple[int, int, int], tuple[tuple[int, int], MapField | None]] = {}
         #: per vehicle: the statuses as received (stamp -> x, y, heading: the vehicle's frame of the
         #: time), aiding's configuration and the aids sent (by stamp)
         self._received: dict[int, dict[float, tuple[float, float, float]]] = {}
@@ -336,23 +385,57 @@ class Navigation:
         self._levels[key] = (stamp, out)
         return out
 
-    def _resample(self, receiver: Any, level: int, vehicle: int, z: FloatArray, cell: float,
-                  x0: float, y0: float) -> tuple[FloatArray, float, tuple[float, float]]:
+    def map_field(self, receiver: Any, level: int, vehicle: int) -> MapField | None:
+        """The correction of a received map level as a field over the vehicle's frame
+        (:class:`MapField`: each coverage block's :meth:`map_correction`), the one
+        :meth:`corrected_level` resamples the level by and :meth:`place` moves points of it by;
+        None when nothing is corrected (:attr:`apply` off, no estimate yet, nothing held).
+        Cached until the level or the estimate changes."""
+        est = self.estimators.get(vehicle)
+        if not self.apply or est is None or est.solution() is None:
+            return None
+        key = (id(receiver), level, vehicle)
+        stamp = (receiver.level_version(level), est.version)
+        cached = self._fields.get(key)
+        if cached is not None and cached[0] == stamp:
+            return cached[1]
         geometry = receiver.geometry(level)
         span, keys, stamps = receiver.coverage(level, MAP_BLOCKS)
-        if geometry is None or len(keys) == 0:
+        out: MapField | None = None
+        if geometry is not None and len(keys):
+            level_cell, side = geometry
+            block = float(level_cell) * int(side) * int(span)  # metres per coverage block
+            # the correction of every coverage block (at its oldest stamp: one subgrid at fine levels)
+            centres = (np.asarray(keys, float) + 0.5) * block
+            corr = self.map_correction(vehicle, centres, np.asarray(stamps, float), block)
+            kx0, ky0 = keys.min(axis=0)
+            kx1, ky1 = keys.max(axis=0)
+            lut = np.full((ky1 - ky0 + 1, kx1 - kx0 + 1, 2), np.nan)
+            lut[keys[:, 1] - ky0, keys[:, 0] - kx0] = corr
+            fill = np.nanmean(corr, axis=0) if np.isfinite(corr).any() else np.zeros(2)
+            # pass-weighted corrections vary across blocks: bilinear between block centres, no tears
+            out = MapField(lut, int(kx0), int(ky0), block, fill, self.swath is not None)
+        self._fields[key] = (stamp, out)
+        return out
+
+    def place(self, receiver: Any, level: int, vehicle: int, x: npt.ArrayLike, y: npt.ArrayLike) -> FloatArray:
+        """Points ``(x, y)`` of a received map level (the vehicle's frame, as received) in the
+        corrected frame, ``(..., 2)``: each moved by the correction of the map where it lies
+        (:meth:`map_field`), as :meth:`corrected_level` moves the cells around it. What is
+        measured in the level as received (a bump's centre) is placed by this, without the
+        corrected level's resampling (which spreads a one-cell peak over its neighbours)."""
+        px, py = np.asarray(x, float), np.asarray(y, float)
+        f = self.map_field(receiver, level, vehicle)
+        c = np.zeros((*px.shape, 2)) if f is None else f(px, py)
+        return np.stack([px - c[..., 0], py - c[..., 1]], axis=-1)
+
+    def _resample(self, receiver: Any, level: int, vehicle: int, z: FloatArray, cell: float,
+                  x0: float, y0: float) -> tuple[FloatArray, float, tuple[float, float]]:
+        f = self.map_field(receiver, level, vehicle)
+        if f is None:
             return z, cell, (x0, y0)
-        level_cell, side = geometry
-        block = float(level_cell) * int(side) * int(span)  # metres per coverage block
-        # the correction of every coverage block (at its oldest stamp: one subgrid at fine levels)
-        centres = (np.asarray(keys, float) + 0.5) * block
-        corr = self.map_correction(vehicle, centres, np.asarray(stamps, float), block)
-        kx0, ky0 = keys.min(axis=0)
-        kx1, ky1 = keys.max(axis=0)
-        lut = np.full((ky1 - ky0 + 1, kx1 - kx0 + 1, 2), np.nan)
-        lut[keys[:, 1] - ky0, keys[:, 0] - kx0] = corr
-        fill = np.nanmean(corr, axis=0) if np.isfinite(corr).any() else np.zeros(2)
-        lim = float(np.nanmax(np.abs(corr))) if np.isfinite(corr).any() else 0.0
+        field, fill = f, f.fill
+        lim = f.limit
         pad = math.ceil(lim / cell) + 1
         ny, nx = z.shape
         oy, ox = ny + 2 * pad, nx + 2 * pad
@@ -360,33 +443,6 @@ class Navigation:
         qx = X0 + (np.arange(ox) + 0.5) * cell
         qy = Y0 + (np.arange(oy) + 0.5) * cell
         gx, gy = np.meshgrid(qx, qy)
-
-        smooth = self.swath is not None  # pass-weighted corrections vary across blocks: no tears
-
-        def field(px: FloatArray, py: FloatArray) -> FloatArray:
-            if smooth:  # bilinear between block centres (over the blocks held)
-                u, v = px / block - 0.5 - kx0, py / block - 0.5 - ky0
-                j0, i0 = np.floor(u).astype(np.int64), np.floor(v).astype(np.int64)
-                fu, fv = (u - j0)[..., None], (v - i0)[..., None]
-                acc = np.zeros((*px.shape, 2))
-                wsum = np.zeros((*px.shape, 1))
-                for di, dj, w in ((0, 0, (1 - fu) * (1 - fv)), (0, 1, fu * (1 - fv)), (1, 0, (1 - fu) * fv),
-                                  (1, 1, fu * fv)):
-                    ii, jj = i0 + di, j0 + dj
-                    inside = (ii >= 0) & (jj >= 0) & (ii < lut.shape[0]) & (jj < lut.shape[1])
-                    got = lut[np.clip(ii, 0, lut.shape[0] - 1), np.clip(jj, 0, lut.shape[1] - 1)]
-                    ok = (inside & np.isfinite(got[..., 0]))[..., None]
-                    acc += np.where(ok, w * got, 0.0)
-                    wsum += np.where(ok, w, 0.0)
-                return np.where(wsum > 1e-9, acc / np.maximum(wsum, 1e-9), fill)
-            bx = np.floor(px / block).astype(np.int64) - kx0
-            by = np.floor(py / block).astype(np.int64) - ky0
-            inside = (bx >= 0) & (by >= 0) & (bx < lut.shape[1]) & (by < lut.shape[0])
-            c = np.broadcast_to(fill, (*px.shape, 2)).copy()
-            got = lut[np.clip(by, 0, lut.shape[0] - 1), np.clip(bx, 0, lut.shape[1] - 1)]
-            ok = inside & np.isfinite(got[..., 0])
-            c[ok] = got[ok]
-            return c
 
         # where in the received level does each corrected cell come from: q + c(source), with the
         # source's correction found by two fixed-point steps
@@ -520,6 +576,18 @@ class CorrectedMap(_View):
         grid, cell, (x0, y0) = got
         return replace(p, data=grid, x0=x0, y0=y0, cell_size=cell, corrected=self._nav.apply)
 
+    @property
+    def received(self) -> Any:
+        """The bathymetry receiver seen through this view: its levels as received (the
+        vehicle's frame)."""
+        return self._rx
+
+    def place(self, level: int, x: npt.ArrayLike, y: npt.ArrayLike) -> FloatArray:
+        """Points of the level as received (:attr:`received`) in the corrected frame,
+        ``(..., 2)`` (:meth:`Navigation.place`): a bump measured in the received level, placed
+        where the corrected level puts the cells around it."""
+        return self._nav.place(self._rx, level, self._vehicle, x, y)
+
     def level_version(self, level: int) -> int:
         """Changes when the level or the estimate does (a corrected level moves with the estimate)."""
         est = self._nav.estimators.get(self._vehicle)
@@ -584,15 +652,29 @@ class CorrectedMap(_View):
 
 
 class CorrectedDetections(_View):
-    """A detections receiver whose rows are corrected (at each detection's stamp)."""
+    """A detections receiver whose rows are corrected. A detection is stamped (its row's
+    ``time``) with the newest data it rests on; one the vehicle found in its own map (source
+    ``map``) is placed as the map around it is (:meth:`Navigation.map_correction`: with the
+    swath known, the passes that mapped it up to its stamp), any other by the correction at its
+    stamp. (Before issue 56's fourth pass every detection took the correction at the time its
+    row last reached topside, ``updated_at``.)"""
+
+    #: the side (m) of the map block a map detection is placed as (one 1 m subgrid's cells around it)
+    block: float = 8.0
 
     def rows(self) -> list[dict[str, Any]]:
         rows = self._rx.rows()
+        if not rows:
+            return []
+        t = np.array([float(r.get("time") or r.get("updated_at") or r.get("first_at") or 0.0) for r in rows])
+        xy = np.array([(float(r["x"]), float(r["y"])) for r in rows])
+        c = self._nav.correction(self._vehicle, t)
+        mapped = np.array([r.get("source") == "map" for r in rows])
+        if mapped.any() and self._nav.apply and self._vehicle in self._nav.estimators:
+            c[mapped] = self._nav.map_correction(self._vehicle, xy[mapped], t[mapped], self.block)
         out = []
-        for r in rows:
-            t = r.get("stamp") or r.get("updated_at") or r.get("first_at") or 0.0
-            x, y = self._nav.corrected(self._vehicle, float(t), float(r["x"]), float(r["y"]))
-            out.append({**r, "x": round(x, 1), "y": round(y, 1)})
+        for r, (x, y), (cx, cy) in zip(rows, xy, c, strict=True):
+            out.append({**r, "x": round(float(x - cx), 1), "y": round(float(y - cy), 1)})
         return out
 
 
