@@ -307,8 +307,8 @@ def map_bumps(bathy: Any, now: float = 0.0) -> list[CandidateView]:
     x0, y0 = float(meta["x0"]), float(meta["y0"])
     found = [b for _c, b in bumps(grid, cell=cell, x0=x0, y0=y0, threshold=BUMP_THRESHOLD, min_cells=2,
                                   max_area=40.0, foot=BUMP_FOOT)]
-    if found and source is not bathy:
-        xy = np.asarray(place(0, [b.x for b in found], [b.y for b in found]), dtype=float)
+    if found and place is not None and source is not bathy:
+        xy = np.asarray(place(0, [b.x for b in found], [b.y for b in found]), dtype=np.float64)
         found = [replace(b, x=float(x), y=float(y)) for b, (x, y) in zip(found, xy, strict=True)]
     return [_view(b, now) for b in found]
 
