@@ -90,6 +90,13 @@ def test_a_one_cell_peak_on_a_foot_is_a_bump_with_foot_and_a_lone_one_is_not() -
     (c, b), = bumps(z, cell=1.0, foot=0.5)
     assert (c.peak_x, c.peak_y) == (20.5, 20.5) and b.height == pytest.approx(0.9, abs=0.05)
     assert math.hypot(b.x - 20.5, b.y - 20.5) < 0.6
+    # a wild sounding on a boulder's edge is still a spike (its raised neighbours are the boulder):
+    # the boulder is measured, not a one-cell spike 4.5 m high
+    rock = np.full((40, 40), -100.0)
+    rock[10:12, 30:33] = -98.7
+    rock[10, 33] = -95.5
+    (_, r), = bumps(rock, cell=1.0, foot=0.4)
+    assert r.cells == 6 and r.height == pytest.approx(1.3, abs=0.05)
 
 
 def test_the_despike_median_is_numpys_bit_for_bit() -> None:

@@ -161,15 +161,12 @@ def _nanmedian0(a: npt.NDArray[np.float64]) -> npt.NDArray[np.float64]:
     return np.where(n % 2 == 1, hi, (lo + hi) / 2)
 
 
-def despike(grid: npt.ArrayLike, threshold: float = 1.0, foot: float | None = None) -> npt.NDArray[np.float64]:
+def despike(grid: npt.ArrayLike, threshold: float = 1.0) -> npt.NDArray[np.float64]:
     """``grid`` with its spikes replaced by the median of their 8 neighbours: a cell more than
     ``threshold`` metres above or below that median with at most one neighbour within half of
     ``threshold`` of it (a sounding the outlier rejection let through: it would stand for the
     height of an object it sits on, or lower the background around it). An object two cells or
-    more across keeps every cell: its cells have neighbours of their height. With ``foot``
-    (metres), a cell above the median with at least two neighbours standing more than ``foot``
-    above that median is kept too: the peak of an object one cell across on a foot of raised
-    cells (a small debris patch), where a wild sounding stands alone. Vectorised."""
+    more across keeps every cell: its cells have neighbours of their height. Vectorised."""
     z = np.asarray(grid, np.float64)
     if z.ndim != 2 or min(z.shape) < 3:
         return z.copy()
@@ -182,9 +179,6 @@ def despike(grid: npt.ArrayLike, threshold: float = 1.0, foot: float | None = No
         med = _nanmedian0(nb)
         alike = np.sum(np.abs(nb - z) <= 0.5 * threshold, axis=0)
         spike = np.isfinite(z) & np.isfinite(med) & (np.abs(z - med) > threshold) & (alike <= 1)
-        if foot is not None:
-            raised = np.sum(nb - med > foot, axis=0)
-            spike &= ~((z > med) & (raised >= 2))
     return np.where(spike, med, z)
 
 
@@ -198,9 +192,11 @@ def bumps(grid: npt.ArrayLike, *, cell: float, x0: float = 0.0, y0: float = 0.0,
     more than ``foot`` above the background around a peak higher than ``threshold``, and
     ``min_cells`` and ``max_area`` count those (hysteresis): an object whose highest part fills
     one map cell (a debris patch's main piece a metre or so long, its smaller pieces around it)
-    stands on a foot of raised cells where a spike does not, and despiking keeps such a peak."""
+    stands on a foot of raised cells where a spike does not. (Despiking is the same either way:
+    keeping a high cell because cells around it are raised kept a wild sounding on the edge of a
+    boulder, issue 56's fourth pass.)"""
     if spikes is not None:
-        grid = despike(grid, spikes, foot)
+        grid = despike(grid, spikes)
     out = []
     low = threshold if foot is None else min(float(foot), threshold)
     for c in find_targets(grid, cell=cell, x0=x0, y0=y0, threshold=low, min_cells=min_cells,
