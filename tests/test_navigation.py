@@ -814,3 +814,39 @@ def test_a_map_detection_is_placed_like_the_map_at_its_stamp_not_when_it_arrived
     assert got[0] == pytest.approx((4.0 - expect, 100.0), abs=0.15)  # not 4 - 2 (arrival) nor 4 + 2 (stamp)
     assert got[1] == pytest.approx((2.0, 120.0), abs=0.05)  # stamped before the second pass
     assert got[2] == pytest.approx((6.0, 140.0), abs=0.05)  # an image's: the correction at its stamp
+
+
+def test_the_operator_measures_a_small_bump_in_the_map_as_received_and_places_it() -> None:
+    """A two-cell bump 0.9 m high (a small debris patch's main piece) moved by half a cell
+    each way: the corrected level's bilinear resampling spreads it below the bump threshold;
+    the operator measures it in the level as received and places it by the map's correction."""
+    from coex_apps.demo.operator import Operator
+
+    nav = Navigation()
+    est = nav.estimator(2)
+    for t in (0.0, 300.0):
+        est.add_track(t, 50.0, 50.0)
+    for t in np.arange(0.0, 300.0, 10.0):
+        est.add_fix(float(t), 49.5, 49.5)  # believed (50, 50), truly (49.5, 49.5): correction (0.5, 0.5)
+
+    class Small(_Rx):
+        def __init__(self) -> None:
+            super().__init__()
+            self.z = np.full((24, 24), -100.0)
+            self.z[10, 10:12] = -99.1  # cells (10, 10) and (11, 10): centre (11.0, 10.5)
+
+        def levels(self) -> list[int]:
+            return [0]
+
+        def coverage(self, level: int, max_blocks: int = 4096):  # type: ignore[no-untyped-def]
+            return 1, np.array([[i, j] for i in range(3) for j in range(3)]), np.full(9, 100.0)
+
+    view = CorrectedMap(Small(), nav, 2)
+    corrected = np.asarray(view.level_product(0).data)
+    assert np.nanmax(corrected) - np.nanmedian(corrected) < 0.7  # spread below the threshold
+    op = Operator(None, {"bathymetry": view, "imagery": None, "survey": None},  # type: ignore[arg-type]
+                  (0.0, 0.0, 24.0, 24.0), lambda *a: None, camera_altitude=5.0)
+    found = op.measured(0.0)
+    assert len(found) == 1
+    assert (found[0].x, found[0].y) == pytest.approx((10.5, 10.0), abs=0.15)
+    assert found[0].height == pytest.approx(0.9, abs=0.05)

@@ -421,6 +421,17 @@ class Navigation:
         self._fields[key] = (stamp, out)
         return out
 
+    def place(self, receiver: Any, level: int, vehicle: int, x: npt.ArrayLike, y: npt.ArrayLike) -> FloatArray:
+        """Points ``(x, y)`` of a received map level (the vehicle's frame, as received) in the
+        corrected frame, ``(..., 2)``: each moved by the correction of the map where it lies
+        (:meth:`map_field`), as :meth:`corrected_level` moves the cells around it. What is
+        measured in the level as received (a bump's centre) is placed by this, without the
+        corrected level's resampling (which spreads a one-cell peak over its neighbours)."""
+        px, py = np.asarray(x, float), np.asarray(y, float)
+        f = self.map_field(receiver, level, vehicle)
+        c = np.zeros((*px.shape, 2)) if f is None else f(px, py)
+        return np.stack([px - c[..., 0], py - c[..., 1]], axis=-1)
+
     def _resample(self, receiver: Any, level: int, vehicle: int, z: FloatArray, cell: float,
                   x0: float, y0: float) -> tuple[FloatArray, float, tuple[float, float]]:
         f = self.map_field(receiver, level, vehicle)
@@ -594,6 +605,18 @@ class CorrectedMap(_View):
             return p
         grid, cell, (x0, y0) = got
         return replace(p, data=grid, x0=x0, y0=y0, cell_size=cell, corrected=self._nav.apply)
+
+    @property
+    def received(self) -> Any:
+        """The bathymetry receiver seen through this view: its levels as received (the
+        vehicle's frame)."""
+        return self._rx
+
+    def place(self, level: int, x: npt.ArrayLike, y: npt.ArrayLike) -> FloatArray:
+        """Points of the level as received (:attr:`received`) in the corrected frame,
+        ``(..., 2)`` (:meth:`Navigation.place`): a bump measured in the received level, placed
+        where the corrected level puts the cells around it."""
+        return self._nav.place(self._rx, level, self._vehicle, x, y)
 
     def level_version(self, level: int) -> int:
         """Changes when the level or the estimate does (a corrected level moves with the estimate)."""
