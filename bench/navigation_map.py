@@ -12,15 +12,18 @@ topside's position fixes (aiding) go down in its slots and their answers come up
 vehicle's. The vehicle's soundings, in its believed frame, go into the vehicle's real map
 (``BathymetrySender``); at the end of the survey the whole map is handed to topside's real
 ``BathymetryReceiver`` without loss, topside's ``Navigation`` corrects it (``CorrectedMap``), and
-the scripted operator's bump finder (``relief.bumps``, car-likeness) measures every bump: the
-**map error** of each car is the distance from its true centre to the nearest car-like bump within
-25 m, as ``metrics.json`` ``navigation.targets[].map_error_m`` has it.
+the scripted operator's bump finder (``operator.map_bumps``: measured in the level as received,
+placed by the map's correction) measures every bump: the **map error** of each target is the
+distance from its true centre to the nearest target-like bump within 25 m, as ``metrics.json``
+``navigation.targets[].map_error_m`` has it (the operator's candidates there also come from the
+vehicle's detections). ``--scenario FILE`` runs a scenario file instead of a preset (issue 56's
+fourth pass: debris patches, ``target_kinds = ["debris"]``).
 
 Printed per seed and mode (``off``: no aiding, the first pass's correction alone; ``on``: topside
 aids the vehicle during its survey as the demo does), and written to
 ``bench/results/navigation_map.json``. Development seeds only (2000 and up).
 
-Usage: ``python bench/navigation_map.py [--seeds N] [--first S] [--modes off,on]``
+Usage: ``python bench/navigation_map.py [--seeds N] [--first S] [--modes off,on] [--scenario FILE]``
 """
 
 from __future__ import annotations
@@ -45,8 +48,8 @@ from coex_apps.demo.navigation import (
     UsblTracker,
     believed_soundings,
 )
-from coex_apps.demo.operator import MIN_SCORE, car_likeness
-from coex_apps.demo.scenario import preset
+from coex_apps.demo.operator import MIN_SCORE, map_bumps
+from coex_apps.demo.scenario import Scenario, load_scenario, preset
 from coex_apps.demo.world import Leg, Track, rng_for, vehicle_status
 from coex_core.loopback import RoundTrip
 from coex_plugins.bathymetry import BathymetryModality
@@ -60,9 +63,9 @@ TOPSIDE_SLOTS = (0.0, 60.0)
 LOSS = 0.3
 
 
-def one(seed: int, aiding: bool, scenario: str = "default", swath: float | None = 135.0,
+def one(seed: int, aiding: bool, scenario: str | Scenario = "default", swath: float | None = 135.0,
         keep: dict[str, Any] | None = None) -> dict[str, Any]:
-    scn = preset(scenario)
+    scn = preset(scenario) if isinstance(scenario, str) else scenario
     cars, rocks = scn.place(seed)
     floor = Seafloor(size=scn.area, depth=scn.water_depth, relief=scn.relief, ripple_amplitude=scn.ripple_amplitude,
                      targets=cars + rocks, seed=seed)
@@ -146,12 +149,10 @@ def one(seed: int, aiding: bool, scenario: str = "default", swath: float | None 
     if keep is not None:
         keep.update(nav=nav, rx=rx, cars=cars, dr=dr, track=track)
     views = {"raw": rx, "corrected": CorrectedMap(rx, nav, VEHICLE)}
+    rows["targets"] = [f"{car.kind} {car.length:.1f} m" for car in cars]
     for name, view in views.items():
-        p = view.level_product(0)
-        grid = np.asarray(p.data, float)
-        cell, x0, y0 = float(p.meta["cell_size"]), float(p.meta["x0"]), float(p.meta["y0"])
-        found = [(b.x, b.y, car_likeness(b.height, b.length, b.width, b.flatness))
-                 for _c, b in bumps(grid, cell=cell, x0=x0, y0=y0, threshold=0.7, min_cells=2, max_area=40.0)]
+        # the scripted operator's own measure of the received 1 m map (map_bumps)
+        found = [(v.x, v.y, v.score) for v in map_bumps(view)]
         errs = []
         for car in cars:
             near = [math.hypot(bx - car.x, by - car.y) for bx, by, score in found if score >= MIN_SCORE]
@@ -213,12 +214,14 @@ def main() -> None:
     ap.add_argument("--first", type=int, default=2000)
     ap.add_argument("--modes", default="off,on")
     ap.add_argument("--preset", default="default")
+    ap.add_argument("--scenario", default=None, help="a scenario file instead of --preset (e.g. debris patches)")
     ap.add_argument("--swath", type=float, default=135.0, help="topside's idea of the swath (0: stamps only)")
     args = ap.parse_args()
     rows = []
     for s in range(args.first, args.first + args.seeds):
         for mode in args.modes.split(","):
-            r = one(s, mode == "on", args.preset, args.swath or None)
+            scn = load_scenario(args.scenario) if args.scenario else args.preset
+            r = one(s, mode == "on", scn, args.swath or None)
             rows.append(r)
             print(json.dumps(r), flush=True)
     out = Path(__file__).parent / "results"

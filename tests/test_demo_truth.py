@@ -363,3 +363,27 @@ def test_map_completeness_is_judged_in_the_frame_the_vehicle_sent_the_map() -> N
     assert cells.fraction(coarse, 2.0, (-8.0, -8.0)) == pytest.approx((n1 - 16) / n1)
     # nothing surveyed yet: nothing complete
     assert SurveyedCells(floor).fraction(grid, 1.0, (-8.0, -8.0)) == 0.0
+
+
+def test_a_cell_whose_only_sounding_was_wild_is_not_a_surveyed_cell() -> None:
+    """Issue 54: the simulation's wild soundings (``Survey.outlier``) measure nothing, and the
+    vehicle's outlier screen refuses them; a cell that only a wild sounding fell in is not in
+    the vehicle's map, so it is not counted as surveyed (and missing) either. A cell with a
+    valid sounding beside the wild one still is."""
+    from coex_apps.demo.world import SurveyedCells
+
+    floor = Seafloor(size=32.0, relief=0.0)
+    true = _site_soundings(32.0)
+    placed = true + np.array([-3.0, -3.2])
+    wild = np.array([[40.5, 40.5], [41.5, 40.5], [41.7, 40.7]])  # placed beyond the site's map ...
+    wild_true = np.array([[10.2, 10.2], [11.2, 10.2], [11.4, 10.4]])  # ... truly in the site
+    valid = np.array([False, False, True])  # the third, in the second's cell, measured the bottom
+    cells = SurveyedCells(floor, resolution=1.0)
+    cells.add(np.vstack([true, wild_true]), np.vstack([placed, wild]), np.concatenate([np.ones(len(true), bool), valid]))
+    grid = _held(placed, 1.0, -8.0, -8.0, 56)  # topside holds every cell of the valid soundings
+    n = np.count_nonzero(cells.cells(1.0))
+    assert cells.fraction(grid, 1.0, (-8.0, -8.0)) == pytest.approx((n - 1) / n)  # the valid one's cell
+    assert np.count_nonzero(SurveyedCells(floor).cells(1.0)) == 0
+    every = SurveyedCells(floor, resolution=1.0)
+    every.add(np.vstack([true, wild_true]), np.vstack([placed, wild]))  # without ``valid``: all count
+    assert np.count_nonzero(every.cells(1.0)) == n + 1

@@ -76,6 +76,29 @@ def test_a_wild_sounding_on_a_car_does_not_hide_it() -> None:
     assert np.array_equal(despike(clean), clean)
 
 
+def test_a_one_cell_peak_on_a_foot_is_a_bump_with_foot_and_a_lone_one_is_not() -> None:
+    """A peak filling one map cell (a small debris patch's main piece) with raised cells around
+    it (its smaller pieces) has too few cells above the threshold for a bump; counted on its
+    foot (``foot``) it is one, measured at its peak. One cell raised alone, or a foot without a
+    peak above the threshold, is no bump either way."""
+    z = np.full((40, 40), -100.0)
+    z[20, 20] = -99.1  # the peak: 0.9 m
+    z[20, 21] = z[21, 20] = -99.45  # the foot: 0.55 m
+    z[8, 8] = -99.1  # a lone cell
+    z[30, 30:32] = -99.4  # a foot without a peak: 0.6 m
+    assert bumps(z, cell=1.0) == []
+    (c, b), = bumps(z, cell=1.0, foot=0.5)
+    assert (c.peak_x, c.peak_y) == (20.5, 20.5) and b.height == pytest.approx(0.9, abs=0.05)
+    assert math.hypot(b.x - 20.5, b.y - 20.5) < 0.6
+    # a wild sounding on a boulder's edge is still a spike (its raised neighbours are the boulder):
+    # the boulder is measured, not a one-cell spike 4.5 m high
+    rock = np.full((40, 40), -100.0)
+    rock[10:12, 30:33] = -98.7
+    rock[10, 33] = -95.5
+    (_, r), = bumps(rock, cell=1.0, foot=0.4)
+    assert r.cells == 6 and r.height == pytest.approx(1.3, abs=0.05)
+
+
 def test_the_despike_median_is_numpys_bit_for_bit() -> None:
     """despike's median of the neighbours (one sort, issue 55's speed) is np.nanmedian's, NaN
     and infinite neighbours included."""

@@ -30,6 +30,7 @@ from coex_plugins.navigation import (
     Navigation,
     UsblInput,
     VehicleFrameSurveys,
+    bridge_gaps,
     gga_sentence,
     psimssb_sentence,
     resolve_time,
@@ -360,6 +361,81 @@ def test_a_subgrid_moves_by_the_correction_at_its_stamp() -> None:
     off = Navigation(apply=False)
     off.estimators[2] = est
     assert np.array_equal(np.asarray(CorrectedMap(rx, off, 2).level_product(0).data), rx.z)
+
+
+class _GapRx(_Rx):
+    """A 24 x 24 level of 1 m cells (3 x 3 subgrids, one stamp) on a depth ramp, with a gap of
+    one row across it (row 12: the vehicle's soundings skipped a row of its frame), and a gap
+    two columns wide (columns 16-17 over rows 2-5)."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        iy, ix = np.mgrid[0:24, 0:24]
+        self.ramp = -100.0 + 0.1 * (ix + 0.5) + 0.05 * (iy + 0.5)  # the depth at a cell's centre
+        self.z = self.ramp.copy()
+        self.z[12, :] = np.nan
+        self.z[2:6, 16:18] = np.nan
+
+    def coverage(self, level: int, max_blocks: int = 4096):  # type: ignore[no-untyped-def]
+        keys = np.array([[i, j] for j in range(3) for i in range(3)])
+        return 1, keys, np.full(len(keys), 100.0)
+
+
+def test_the_corrected_map_has_no_holes_where_its_source_lies_between_held_cells() -> None:
+    """Issue 54: a corrected cell whose source point falls in a one-cell gap of the received
+    level (between two held cells) gets a value, read across the gap; nothing is added beyond
+    the held cells (a gap two cells wide, the level's edges)."""
+    nav = Navigation()
+    est = nav.estimator(2)
+    for t in (0.0, 300.0):
+        est.add_track(t, 50.0, 50.0)
+    for t in np.arange(0.0, 300.0, 10.0):
+        est.add_fix(float(t), 49.7, 49.6)  # correction (0.3, 0.4): a fraction of a cell
+    rx = _GapRx()
+    p = CorrectedMap(rx, nav, 2).level_product(0)
+    grid = np.asarray(p.data, dtype=float)
+    x0, y0 = p.meta["x0"], p.meta["y0"]
+    ny, nx = grid.shape
+    qx = x0 + np.arange(nx) + 0.5
+    qy = y0 + np.arange(ny) + 0.5
+    c = nav.correction(2, 100.0)
+    assert c == pytest.approx((0.3, 0.4), abs=0.02)
+    sx, sy = np.meshgrid(qx + c[0], qy + c[1])  # each corrected cell's source point
+    col, row = np.floor(sx).astype(int), np.floor(sy).astype(int)
+    inside = (col >= 0) & (row >= 0) & (col < 24) & (row < 24)
+    wide = inside & (col >= 16) & (col <= 17) & (row >= 2) & (row <= 5)
+    # every cell whose source lies in the held level, or in its one-row gap, is held
+    gap_row = inside & (row == 12)
+    assert gap_row.sum() >= 20 and np.isfinite(grid[gap_row]).all()
+    assert np.isfinite(grid[inside & ~wide]).all()
+    # ... with the ramp's depth there (bilinear, read across the gap)
+    want = -100.0 + 0.1 * sx + 0.05 * sy
+    interior = inside & ~wide & (sx >= 0.5) & (sx <= 23.5) & (sy >= 0.5) & (sy <= 23.5)
+    near_wide = (sx >= 15.0) & (sx <= 19.0) & (sy >= 1.0) & (sy <= 7.0)
+    assert np.abs(grid - want)[interior & ~near_wide].max() < 1e-9
+    # nothing made up: the gap two cells wide and everything beyond the level stay empty
+    assert wide.sum() == 8 and np.isnan(grid[wide]).all()
+    assert np.isnan(grid[~inside]).all()
+    # the received level itself is unchanged (what the vehicle sent, in its frame)
+    assert np.isnan(np.asarray(rx.level_product(0).data)[12]).all()
+
+
+def test_bridge_gaps_fills_one_cell_gaps_only() -> None:
+    z = np.full((5, 6), np.nan)
+    z[1:4, 1:5] = 1.0
+    z[2, 2] = np.nan  # a hole held all round: the mean of four
+    z[1, 4] = 3.0
+    z[3, 4] = 5.0
+    z[2, 4] = np.nan  # held north and south only
+    z[2, 3] = 7.0
+    before = z.copy()
+    out = bridge_gaps(z)
+    assert np.array_equal(z, before, equal_nan=True)  # the input is not changed
+    assert out[2, 2] == pytest.approx((1.0 + 7.0 + 1.0 + 1.0) / 4)
+    assert out[2, 4] == pytest.approx(4.0)  # (3 + 5) / 2: its east is empty
+    assert np.isnan(out[0]).all() and np.isnan(out[:, 0]).all() and np.isnan(out[:, 5]).all()  # no edge grows
+    two = np.array([[1.0, np.nan, np.nan, 2.0]])
+    assert np.isnan(bridge_gaps(two)[0, 1:3]).all()  # a gap two cells wide stays
 
 
 # ------------------------------------------------------------------ the demo's dead reckoning
@@ -738,3 +814,39 @@ def test_a_map_detection_is_placed_like_the_map_at_its_stamp_not_when_it_arrived
     assert got[0] == pytest.approx((4.0 - expect, 100.0), abs=0.15)  # not 4 - 2 (arrival) nor 4 + 2 (stamp)
     assert got[1] == pytest.approx((2.0, 120.0), abs=0.05)  # stamped before the second pass
     assert got[2] == pytest.approx((6.0, 140.0), abs=0.05)  # an image's: the correction at its stamp
+
+
+def test_the_operator_measures_a_small_bump_in_the_map_as_received_and_places_it() -> None:
+    """A two-cell bump 0.9 m high (a small debris patch's main piece) moved by half a cell
+    each way: the corrected level's bilinear resampling spreads it below the bump threshold;
+    the operator measures it in the level as received and places it by the map's correction."""
+    from coex_apps.demo.operator import Operator
+
+    nav = Navigation()
+    est = nav.estimator(2)
+    for t in (0.0, 300.0):
+        est.add_track(t, 50.0, 50.0)
+    for t in np.arange(0.0, 300.0, 10.0):
+        est.add_fix(float(t), 49.5, 49.5)  # believed (50, 50), truly (49.5, 49.5): correction (0.5, 0.5)
+
+    class Small(_Rx):
+        def __init__(self) -> None:
+            super().__init__()
+            self.z = np.full((24, 24), -100.0)
+            self.z[10, 10:12] = -99.1  # cells (10, 10) and (11, 10): centre (11.0, 10.5)
+
+        def levels(self) -> list[int]:
+            return [0]
+
+        def coverage(self, level: int, max_blocks: int = 4096):  # type: ignore[no-untyped-def]
+            return 1, np.array([[i, j] for i in range(3) for j in range(3)]), np.full(9, 100.0)
+
+    view = CorrectedMap(Small(), nav, 2)
+    corrected = np.asarray(view.level_product(0).data)
+    assert np.nanmax(corrected) - np.nanmedian(corrected) < 0.7  # spread below the threshold
+    op = Operator(None, {"bathymetry": view, "imagery": None, "survey": None},  # type: ignore[arg-type]
+                  (0.0, 0.0, 24.0, 24.0), lambda *a: None, camera_altitude=5.0)
+    found = op.measured(0.0)
+    assert len(found) == 1
+    assert (found[0].x, found[0].y) == pytest.approx((10.5, 10.0), abs=0.15)
+    assert found[0].height == pytest.approx(0.9, abs=0.05)

@@ -33,7 +33,7 @@ from __future__ import annotations
 import contextlib
 import math
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
@@ -57,13 +57,19 @@ from .specs import (
     TRANSIT_SPEED,
 )
 
-__all__ = ["CameraLine", "CandidateView", "Operator", "camera_altitude", "measure", "target_likeness"]
+__all__ = ["CameraLine", "CandidateView", "Operator", "camera_altitude", "map_bumps", "measure", "target_likeness"]
 
 #: the sizes of the targets sought (length, width, height ranges, m): the vehicle's relief
 #: detector's default (2 to 8 m long), set for the mission, not for the scene
 TARGET_SIZES = SIZES
 #: candidates scoring below this are not worth camera time
 MIN_SCORE = 0.05
+#: a bump of the received 1 m map peaks this high above its background (m), on a foot of at
+#: least two cells standing :data:`BUMP_FOOT` m above it (:func:`~coex_plugins.bathymetry.relief.
+#: bumps`): a small debris patch's main piece fills one cell, its smaller pieces raise the cells
+#: around (issue 56's fourth pass; ``docs/navigation.md``)
+BUMP_THRESHOLD = 0.7
+BUMP_FOOT = 0.4
 #: layers of a requested image the vehicle sends first (its ``request_goal``: with the default
 #: quality marks 20 / 25 / 30 / 35 dB, layer 3 is where the frame first reaches 30 dB), and the
 #: most the operator asks for, in the region of the frame where something too blurry to tell
@@ -279,6 +285,34 @@ def _view(b: Bump, now: float) -> CandidateView:
                          flatness=round(b.flatness, 2), orientation=round(b.orientation, 1))
 
 
+def map_bumps(bathy: Any, now: float = 0.0) -> list[CandidateView]:
+    """Every bump of a bathymetry receiver's 1 m level, measured and scored: a peak
+    :data:`BUMP_THRESHOLD` m above its background on a foot of two cells or more
+    :data:`BUMP_FOOT` m above it (:func:`~coex_plugins.bathymetry.relief.bumps`, the grid
+    despiked first: a wild sounding on a car would make it a one-cell spike). With a corrected
+    map (a view that can ``place`` what is measured in the level as ``received``:
+    :class:`~coex_plugins.navigation.CorrectedMap`), each bump is measured in the level as
+    received and its centre placed by the map's correction: the corrected level is resampled by
+    fractions of a cell, which spreads a one- or two-cell peak over its neighbours and lowers it."""
+    place = getattr(bathy, "place", None)
+    received = getattr(bathy, "received", None)
+    source = received if place is not None and received is not None else bathy
+    if 0 not in source.levels():
+        return []
+    p = source.level_product(0)
+    if p.data is None:
+        return []
+    meta = dict(p.meta)
+    grid, cell = np.asarray(p.data, dtype=float), float(meta["cell_size"])
+    x0, y0 = float(meta["x0"]), float(meta["y0"])
+    found = [b for _c, b in bumps(grid, cell=cell, x0=x0, y0=y0, threshold=BUMP_THRESHOLD, min_cells=2,
+                                  max_area=40.0, foot=BUMP_FOOT)]
+    if found and place is not None and source is not bathy:
+        xy = np.asarray(place(0, [b.x for b in found], [b.y for b in found]), dtype=np.float64)
+        found = [replace(b, x=float(x), y=float(y)) for b, (x, y) in zip(found, xy, strict=True)]
+    return [_view(b, now) for b in found]
+
+
 class Operator:
     """The scripted operator (see the module docstring). It knows the survey box (it planned the
     survey), the camera altitude it plans with and the camera's field of view, never the
@@ -351,14 +385,9 @@ class Operator:
                 if self.inside(c.x, c.y)]
 
     def measured(self, now: float) -> list[CandidateView]:
-        """Every bump of the received 1 m map, measured and scored (nothing remembered)."""
-        g = self.level_grid(0)
-        if g is None:
-            return []
-        grid, cell, (x0, y0) = g
-        # a wild sounding on a car would make it a one-cell spike: the grid is despiked first
-        return [_view(b, now) for c, b in bumps(grid, cell=cell, x0=x0, y0=y0, threshold=0.7, min_cells=2,
-                                                max_area=40.0) if self.inside(c.x, c.y)]
+        """Every bump of the received 1 m map inside the survey box, measured and scored
+        (:func:`map_bumps`; nothing remembered)."""
+        return [v for v in map_bumps(self.bathy, now) if self.inside(v.x, v.y)]
 
     def ranked(self) -> list[CandidateView]:
         """Candidates worth camera time, most car-like first."""

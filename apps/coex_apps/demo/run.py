@@ -275,7 +275,8 @@ class DiveRun:
             off += len(xyz)
             def ingest(now: float, xyz: np.ndarray = xyz, rows: slice = rows) -> None:
                 placed = self.navsim.soundings(xyz, survey.ping[rows], survey.times[rows])
-                self.surveyed.add(xyz, placed)  # the referee: where the vehicle put the site's soundings
+                # the referee: where the vehicle put the site's valid soundings (not the wild ones)
+                self.surveyed.add(xyz, placed, ~survey.outlier[rows])
                 self.senders["bathymetry"].ingest(placed, now)
 
             self.at(float(t), ingest)

@@ -240,8 +240,8 @@ class SurveyedCells:
 
     The vehicle maps in its believed frame (issue 56): a sounding of the site, truly at ``(x,
     y)``, lands in the vehicle's map where the vehicle places it. :meth:`add` marks, at
-    ``resolution`` (the map's level-0 cell), every cell where the vehicle placed a sounding whose
-    true position is inside the site ``[x0, x0 + size) x [y0, y0 + size)``; :meth:`fraction`
+    ``resolution`` (the map's level-0 cell), every cell where the vehicle placed a valid (not
+    wild) sounding whose true position is inside the site ``[x0, x0 + size) x [y0, y0 + size)``; :meth:`fraction`
     is the share of those cells (at a level's cell size) that a received level holds. So the
     completeness of the map on the link is judged on what the survey gave the vehicle to send,
     in the frame it was sent in, and not on where topside's navigation correction puts it
@@ -262,11 +262,17 @@ class SurveyedCells:
         #: soundings of the site placed beyond the grid (a drift larger than the margin)
         self.beyond = 0
 
-    def add(self, true_xy: np.ndarray, placed_xy: np.ndarray) -> None:
-        """Soundings truly at ``true_xy`` (N x 2) that the vehicle placed at ``placed_xy``."""
+    def add(self, true_xy: np.ndarray, placed_xy: np.ndarray, valid: np.ndarray | None = None) -> None:
+        """Soundings truly at ``true_xy`` (N x 2) that the vehicle placed at ``placed_xy``;
+        ``valid`` (N booleans, default all) marks those that measured the seafloor: the
+        simulation's wild soundings (``Survey.outlier``, metres off, which the vehicle's outlier
+        screen is there to refuse) survey nothing, so a cell whose only soundings were wild is
+        not a surveyed cell (issue 54)."""
         f = self.floor
         t = np.asarray(true_xy, dtype=float)[:, :2]
         site = (t[:, 0] >= f.x0) & (t[:, 0] < f.x0 + f.size) & (t[:, 1] >= f.y0) & (t[:, 1] < f.y0 + f.size)
+        if valid is not None:
+            site &= np.asarray(valid, dtype=bool)
         p = np.asarray(placed_xy, dtype=float)[site, :2]
         col = np.floor((p[:, 0] - self.x0) / self.resolution).astype(np.int64)
         row = np.floor((p[:, 1] - self.y0) / self.resolution).astype(np.int64)

@@ -183,16 +183,26 @@ def despike(grid: npt.ArrayLike, threshold: float = 1.0) -> npt.NDArray[np.float
 
 
 def bumps(grid: npt.ArrayLike, *, cell: float, x0: float = 0.0, y0: float = 0.0, threshold: float = 0.7,
-          min_cells: int = 2, max_area: float = 40.0, spikes: float | None = 1.0) -> list[tuple[Candidate, Bump]]:
+          min_cells: int = 2, max_area: float = 40.0, spikes: float | None = 1.0,
+          foot: float | None = None) -> list[tuple[Candidate, Bump]]:
     """Every bump of ``grid`` higher than ``threshold`` above its background
     (:func:`find_targets`), measured (:func:`measure_bump`); highest first. With ``spikes``
     (metres) the grid is first despiked (:func:`despike`): a single wild sounding on a car would make
-    it a one-cell spike."""
+    it a one-cell spike. With ``foot`` (metres, below ``threshold``) a bump is the cells standing
+    more than ``foot`` above the background around a peak higher than ``threshold``, and
+    ``min_cells`` and ``max_area`` count those (hysteresis): an object whose highest part fills
+    one map cell (a debris patch's main piece a metre or so long, its smaller pieces around it)
+    stands on a foot of raised cells where a spike does not. (Despiking is the same either way:
+    keeping a high cell because cells around it are raised kept a wild sounding on the edge of a
+    boulder, issue 56's fourth pass.)"""
     if spikes is not None:
         grid = despike(grid, spikes)
     out = []
-    for c in find_targets(grid, cell=cell, x0=x0, y0=y0, threshold=threshold, min_cells=min_cells,
+    low = threshold if foot is None else min(float(foot), threshold)
+    for c in find_targets(grid, cell=cell, x0=x0, y0=y0, threshold=low, min_cells=min_cells,
                           max_area=max_area):
+        if c.height <= threshold:
+            continue  # a foot without a peak
         b = measure_bump(grid, cell, x0, y0, c.peak_x, c.peak_y, c.height)
         if b is not None:
             out.append((c, b))

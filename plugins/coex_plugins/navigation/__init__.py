@@ -16,9 +16,10 @@ from .topside import (
     CorrectedMap,
     Navigation,
     VehicleFrameSurveys,
+    bridge_gaps,
 )
 from .usbl import UsblInput, gga_sentence, psimssb_sentence, resolve_time, tll_sentence
 
 __all__ = ["Aid", "AidConfig", "CorrectedDetections", "CorrectedImages", "CorrectedMap", "DriftEstimator", "LocalFrame", "NavConfig",
-           "Navigation", "Solution", "UsblInput", "VehicleFrameSurveys", "gga_sentence", "psimssb_sentence",
+           "Navigation", "Solution", "UsblInput", "VehicleFrameSurveys", "bridge_gaps", "gga_sentence", "psimssb_sentence",
            "resolve_time", "tll_sentence"]

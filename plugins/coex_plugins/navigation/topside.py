@@ -43,7 +43,7 @@ from ..imagery.product import ImageProduct
 from .estimator import DriftEstimator, NavConfig
 
 __all__ = ["Aid", "AidConfig", "CorrectedDetections", "CorrectedImages", "CorrectedMap", "MapField", "Navigation",
-           "VehicleFrameSurveys"]
+           "VehicleFrameSurveys", "bridge_gaps"]
 
 FloatArray = npt.NDArray[np.float64]
 #: blocks of subgrids the correction of a big level is looked up in (the receiver's coverage)
@@ -363,7 +363,10 @@ class Navigation:
         level where the correction of its subgrid (at the subgrid's stamp) puts it, bilinear
         between the four received cells around that point (the nearest where one of them is
         empty), so a subgrid moves whole by a fraction of a cell and two neighbours whose
-        corrections differ meet without a gap. Cached until the level or the estimate changes."""
+        corrections differ meet without a gap. The received level's one-cell gaps (an empty cell
+        between two held ones, :func:`bridge_gaps`) are read across first, so a cell whose
+        source point falls in one is held; nothing is added beyond the held cells. Cached until
+        the level or the estimate changes."""
         try:
             p = receiver.level_product(level)
         except Exception:
@@ -418,6 +421,17 @@ class Navigation:
         self._fields[key] = (stamp, out)
         return out
 
+    def place(self, receiver: Any, level: int, vehicle: int, x: npt.ArrayLike, y: npt.ArrayLike) -> FloatArray:
+        """Points ``(x, y)`` of a received map level (the vehicle's frame, as received) in the
+        corrected frame, ``(..., 2)``: each moved by the correction of the map where it lies
+        (:meth:`map_field`), as :meth:`corrected_level` moves the cells around it. What is
+        measured in the level as received (a bump's centre) is placed by this, without the
+        corrected level's resampling (which spreads a one-cell peak over its neighbours)."""
+        px, py = np.asarray(x, float), np.asarray(y, float)
+        f = self.map_field(receiver, level, vehicle)
+        c = np.zeros((*px.shape, 2)) if f is None else f(px, py)
+        return np.stack([px - c[..., 0], py - c[..., 1]], axis=-1)
+
     def _resample(self, receiver: Any, level: int, vehicle: int, z: FloatArray, cell: float,
                   x0: float, y0: float) -> tuple[FloatArray, float, tuple[float, float]]:
         f = self.map_field(receiver, level, vehicle)
@@ -438,12 +452,13 @@ class Navigation:
         c = field(gx + fill[0], gy + fill[1])
         c = field(gx + c[..., 0], gy + c[..., 1])
         # bilinear between the four source cells around that point (a subgrid lands where its
-        # correction puts it, to a fraction of a cell); nearest where one of them is empty
+        # correction puts it, to a fraction of a cell); nearest where one of them is empty; the
+        # received level's one-cell gaps bridged first (a point between two held cells is held)
         u = (gx + c[..., 0] - x0) / cell - 0.5
         v = (gy + c[..., 1] - y0) / cell - 0.5
         j0, i0 = np.floor(u).astype(np.int64), np.floor(v).astype(np.int64)
         fu, fv = u - j0, v - i0
-        zp = np.pad(z, 1, constant_values=np.nan)  # index + 1: one empty cell all round
+        zp = np.pad(bridge_gaps(z), 1, constant_values=np.nan)  # index + 1: one empty cell all round
 
         def at(i: npt.NDArray[np.int64], j: npt.NDArray[np.int64]) -> FloatArray:
             return zp[np.clip(i + 1, 0, ny + 1), np.clip(j + 1, 0, nx + 1)]
@@ -540,6 +555,32 @@ class Navigation:
         return out
 
 
+def bridge_gaps(z: npt.ArrayLike) -> FloatArray:
+    """A map level (NaN where empty) with its one-cell gaps bridged: an empty cell whose two
+    neighbours along a row (west and east) or along a column (south and north) are both held
+    takes their mean (the mean of all four where both pairs are held). Such a cell lies between
+    held cells, inside what was received; nothing is added beyond the level's held cells (an
+    empty cell at an edge, or in a gap two cells wide, stays empty).
+
+    A vehicle's map has these gaps where its soundings skipped a cell of its own frame: half-way
+    between two lines' swaths, or where its dead-reckoned frame stretched between two pings
+    (the turns at the lines' ends). Topside's correction moves the map by fractions of a cell,
+    so a corrected cell whose source point falls in such a gap would be empty although the
+    ground around it was received (:meth:`Navigation.corrected_level`)."""
+    a = np.asarray(z, dtype=np.float64)
+    if a.ndim != 2 or a.size == 0:
+        return a.copy()
+    p = np.pad(a, 1, constant_values=np.nan)
+    west, east = p[1:-1, :-2], p[1:-1, 2:]
+    south, north = p[:-2, 1:-1], p[2:, 1:-1]
+    row = np.isfinite(west) & np.isfinite(east)
+    col = np.isfinite(south) & np.isfinite(north)
+    total = np.where(row, west + east, 0.0) + np.where(col, south + north, 0.0)
+    count = 2.0 * row + 2.0 * col
+    gap = np.isnan(a) & (count > 0)
+    return np.where(gap, total / np.maximum(count, 1.0), a)
+
+
 # ================================================================================ views
 class _View:
     """A receiver seen through the navigation (attributes not overridden are the receiver's)."""
@@ -564,6 +605,18 @@ class CorrectedMap(_View):
             return p
         grid, cell, (x0, y0) = got
         return replace(p, data=grid, x0=x0, y0=y0, cell_size=cell, corrected=self._nav.apply)
+
+    @property
+    def received(self) -> Any:
+        """The bathymetry receiver seen through this view: its levels as received (the
+        vehicle's frame)."""
+        return self._rx
+
+    def place(self, level: int, x: npt.ArrayLike, y: npt.ArrayLike) -> FloatArray:
+        """Points of the level as received (:attr:`received`) in the corrected frame,
+        ``(..., 2)`` (:meth:`Navigation.place`): a bump measured in the received level, placed
+        where the corrected level puts the cells around it."""
+        return self._nav.place(self._rx, level, self._vehicle, x, y)
 
     def level_version(self, level: int) -> int:
         """Changes when the level or the estimate does (a corrected level moves with the estimate)."""
