@@ -15,6 +15,7 @@ import hashlib
 import json
 import os
 import shutil
+import sys
 from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import replace
@@ -28,7 +29,7 @@ import pytest
 from coex_apps.demo import DemoConfig, run_demo
 from coex_apps.demo.scenario import ObjectSpec, Scenario, scenario_from_dict
 
-__all__ = ["SMALL", "dark_rock_site", "encodes_remembered", "shared_dive", "small", "small_file"]
+__all__ = ["SMALL", "codestreams_at", "codestreams_dir", "codestreams_shared", "coex_command", "dark_rock_site", "encodes_remembered", "shared_dive", "small", "small_file"]
 
 #: a small, short dive (a 64 m site, one car, 25 minutes): a whole dive, camera pass included,
 #: for tests whose subject needs one but not the default site
@@ -122,3 +123,91 @@ def encodes_remembered() -> Iterator[dict[str, int]]:
     with pytest.MonkeyPatch.context() as patch:
         patch.setattr(codec, "_encode", remembered)
         yield counts
+
+
+def _encode_key(data: npt.NDArray[np.uint8], cp: Any, base: npt.NDArray[np.uint8] | None,
+                reference: npt.NDArray[np.uint8] | None) -> str:
+    """What an image's coding depends on: its coding parameters and the three arrays (pixels,
+    base, reference), each with its shape and type."""
+    h = hashlib.sha256(repr(cp).encode())
+    for a in (data, base, reference):
+        h.update(b"-" if a is None else repr((a.shape, a.dtype.str)).encode() + np.ascontiguousarray(a).tobytes())
+    return h.hexdigest()
+
+
+def codestreams_dir(factory: pytest.TempPathFactory) -> Path:
+    """Where this run's dives share their codings (:func:`codestreams_shared`)."""
+    root = _root(factory) / "codestreams"
+    root.mkdir(exist_ok=True)
+    return root
+
+
+@contextmanager
+def codestreams_shared(factory: pytest.TempPathFactory) -> Iterator[dict[str, int]]:
+    """Image codings shared by every dive of this ``pytest`` run, on every xdist worker, while
+    the block runs: :func:`encodes_remembered` on disk, under the run's own base temporary
+    directory (so nothing is kept from one run to the next). An image coded with the same
+    pixels, base and parameters (calibration and tightening included) as one some dive of this
+    run coded already gets that codestream without OpenJPEG (the coding is deterministic:
+    ``tests/test_imagery_calibration.py`` codes one image twice and compares the bytes). Two
+    dives that photograph the same scene (the small site's dives at seed 1 with and without
+    spare traffic, with and without the navigation code) code each frame once. One file lock a
+    frame: a worker that wants a frame another is coding waits for it instead of coding it
+    again. Yields the counts ``encodes`` (coded here) and ``reused`` (read from disk), and
+    appends them to ``codestreams.jsonl`` in the shared directory when the block ends. A dive
+    run as a ``coex`` process shares them too: :func:`coex_command`."""
+    with codestreams_at(codestreams_dir(factory)) as counts:
+        yield counts
+
+
+def coex_command(factory: pytest.TempPathFactory, *args: str) -> list[str]:
+    """The command line of ``coex ARGS`` (as ``python -m coex_core.cli ARGS``) whose dive codes
+    its images with the run's shared codings (``python tests/_coex_shared.py DIR ARGS``)."""
+    return [sys.executable, str(Path(__file__).with_name("_coex_shared.py")), str(codestreams_dir(factory)), *args]
+
+
+@contextmanager
+def codestreams_at(root: Path) -> Iterator[dict[str, int]]:
+    """:func:`codestreams_shared` in the directory ``root``."""
+    from coex_plugins.imagery import codec
+
+    real = codec._encode
+    counts = {"encodes": 0, "reused": 0}
+
+    def read(path: Path, data: npt.NDArray[np.uint8]) -> codec.Encoded:
+        raw = path.read_bytes()
+        head, body = raw.split(b"\n", 1)
+        meta = json.loads(head)
+        return codec.Encoded(body, np.asarray(meta["starts"], np.int64), meta["params"], meta["width"],
+                             meta["height"], meta["grey"], data)
+
+    def shared(data: npt.NDArray[np.uint8], cp: codec.CodingParams,
+               base: npt.NDArray[np.uint8] | None = None,
+               reference: npt.NDArray[np.uint8] | None = None) -> codec.Encoded:
+        key = _encode_key(data, cp, base, reference)
+        path = root / key
+        if path.exists():
+            counts["reused"] += 1
+            return read(path, data)
+        with open(root / f"{key}.lock", "w") as lock:
+            fcntl.flock(lock, fcntl.LOCK_EX)  # released when the file closes
+            if path.exists():  # another worker coded it while this one waited
+                counts["reused"] += 1
+                return read(path, data)
+            enc = real(data, cp, base, reference)
+            head = json.dumps({"starts": enc.packet_starts.tolist(), "params": enc.params, "width": enc.width,
+                               "height": enc.height, "grey": enc.grey}).encode()
+            part = root / f"{key}.part"
+            part.write_bytes(head + b"\n" + enc.body)
+            os.replace(part, path)
+            counts["encodes"] += 1
+            return enc
+
+    try:
+        with pytest.MonkeyPatch.context() as patch:
+            patch.setattr(codec, "_encode", shared)
+            yield counts
+    finally:
+        with open(root.parent / "codestreams.jsonl", "a") as log:
+            log.write(json.dumps({"worker": os.environ.get("PYTEST_XDIST_WORKER", "main"),
+                                  "test": os.environ.get("PYTEST_CURRENT_TEST", ""), **counts}) + "\n")

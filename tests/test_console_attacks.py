@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import http.client
 import json
+import shutil
 import socket
 import ssl
 import subprocess
@@ -33,14 +34,23 @@ T0 = 36000.0
 PASSWORDS = {"ana": "correct horse battery", "vic": "viewer password 1", "bob": "another operator 2"}
 
 
-@pytest.fixture
-def operators(tmp_path: Path) -> Path:
-    path = tmp_path / "operators.json"
+@pytest.fixture(scope="module")
+def hashed_operators(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """The operators file, its passwords hashed once for the module (scrypt takes tens of
+    milliseconds a password); each test gets a copy of its own (``operators``)."""
+    path = tmp_path_factory.mktemp("operators") / "operators.json"
     f = OperatorsFile(path)
     f.add("ana", "operator", PASSWORDS["ana"])
     f.add("bob", "operator", PASSWORDS["bob"])
     f.add("vic", "viewer", PASSWORDS["vic"])
     f.save()
+    return path
+
+
+@pytest.fixture
+def operators(tmp_path: Path, hashed_operators: Path) -> Path:
+    path = tmp_path / "operators.json"
+    shutil.copy(hashed_operators, path)  # its private mode too
     return path
 
 

@@ -14,7 +14,7 @@ from PIL import Image
 
 from coex_apps.demo import DemoConfig, run_demo
 
-from ._dives import shared_dive, small, small_file
+from ._dives import codestreams_shared, shared_dive, small, small_file
 
 # whole demo dives (a quick dive is ~45 s of CPU): run first, and left out by `make test-fast`
 pytestmark = pytest.mark.slow
@@ -25,7 +25,8 @@ def demo(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, dict]:  # type
     out = tmp_path_factory.mktemp("demo")
     # OpenJPEG in the dive's own thread (``--threads 0``: the same images, without a thread pool
     # made per encode; both pytest workers already keep both cores busy)
-    result = run_demo(DemoConfig(out=out, quick=True, seed=1, progress=False, codec_threads=0))
+    with codestreams_shared(tmp_path_factory):
+        result = run_demo(DemoConfig(out=out, quick=True, seed=1, progress=False, codec_threads=0))
     return out, result.metrics
 
 
@@ -101,6 +102,7 @@ def test_the_vehicle_detected_every_car_and_the_report_judges_its_detections(
     assert "<h3>Detections</h3>" in html and ">vehicle's detection</text>" in html  # the map's legend
 
 
+@pytest.mark.usefixtures("shared_codestreams")
 def test_a_slow_link_still_finds_and_confirms_the_cars(tmp_path: Path) -> None:
     """Preset lowrate's link (Micromodem rate 1, about 40-50 % loss at its range) on the small
     site (one car: ``tests/_dives.py``): the vehicle's link is low (the operator leaves the 1 m
@@ -240,6 +242,7 @@ def test_nmea_went_through_pseudo_terminals(demo: tuple[Path, dict]) -> None:  #
     assert all(p.startswith("/dev/pts/") for p in ptys.values())
 
 
+@pytest.mark.usefixtures("shared_codestreams")
 def test_the_dive_spends_idle_bytes_and_sends_none_when_spare_traffic_is_off(
         demo: tuple[Path, dict], tmp_path: Path, tmp_path_factory: pytest.TempPathFactory) -> None:  # type: ignore[type-arg]
     """With spare traffic on (the default) the vehicle fills the packets it sends while work is
@@ -300,6 +303,7 @@ def test_the_camera_pass_flew_only_after_a_survey_command_crossed_the_link(
     assert "survey 0 accepted by the vehicle" in rows and "survey 0 completed" in rows
 
 
+@pytest.mark.usefixtures("shared_codestreams")
 def test_a_camera_line_outside_the_geofence_is_never_flown(tmp_path: Path) -> None:
     """With the vehicle's geofence far from the site, every camera line is refused by the
     vehicle, the camera never runs, the reason reaches topside's decisions, and the referee

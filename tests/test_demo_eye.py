@@ -426,6 +426,7 @@ def test_metres_per_pixel_from_altitude_and_field_of_view() -> None:
 
 
 @pytest.mark.slow
+@pytest.mark.usefixtures("shared_codestreams")
 def test_with_the_labels_zeroed_the_operator_decides_exactly_the_same(
         tmp_path: Path, tmp_path_factory: pytest.TempPathFactory) -> None:
     """The done-criterion of issue 50: the dive re-run with the simulator's per-pixel labels
@@ -460,6 +461,7 @@ def test_with_the_labels_zeroed_the_operator_decides_exactly_the_same(
 
 
 @pytest.mark.slow  # reads the dive above (shared, run once; in this file so that one worker runs both)
+@pytest.mark.usefixtures("shared_codestreams")
 def test_a_dark_decoy_is_looked_at_and_never_confirmed(tmp_path_factory: pytest.TempPathFactory) -> None:
     """A dark boulder (as dark as a car) among the targets: the operator visits it (it is
     target-like enough in the map) and its eye sees something natural; only the true targets

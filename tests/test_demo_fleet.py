@@ -18,6 +18,8 @@ from coex_apps.demo.scenario import preset, scenario_from_dict
 from coex_apps.demo.world import dive_schedule
 from coex_core.errors import ConfigError
 
+from ._dives import codestreams_shared
+
 # a whole two-vehicle demo dive
 pytestmark = pytest.mark.slow
 
@@ -29,7 +31,8 @@ def dive(tmp_path_factory: pytest.TempPathFactory) -> tuple[DiveRun, dict[str, A
     out = tmp_path_factory.mktemp("fleet")
     scn = scenario_from_dict({"survey": {"speed": 0.5, "line_spacing": 24.0}}, base=preset("fleet"))
     run = DiveRun(DemoConfig(out=out, quick=True, seed=1, progress=False, scenario=scn))
-    result = run.run()
+    with codestreams_shared(tmp_path_factory):
+        result = run.run()
     return run, result.metrics, out
 
 

@@ -6,12 +6,13 @@ import json
 import re
 import signal
 import subprocess
-import sys
 import time
 import urllib.request
 from pathlib import Path
 
 import pytest
+
+from ._dives import coex_command
 
 # a whole demo dive behind the web console
 pytestmark = pytest.mark.slow
@@ -22,11 +23,13 @@ def _get(url: str) -> dict:  # type: ignore[type-arg]
         return json.loads(r.read())  # type: ignore[no-any-return]
 
 
-def test_demo_gui_serves_the_console(tmp_path: Path) -> None:
+def test_demo_gui_serves_the_console(tmp_path: Path, tmp_path_factory: pytest.TempPathFactory) -> None:
     # the quick site, not the small one: with nobody operating, the vehicle's own camera
-    # transect on the small site takes twice the frames (20 against 10)
-    cmd = [sys.executable, "-m", "coex_core.cli", "demo", "--quick", "--gui", "--http", "127.0.0.1:0",
-           "--speed", "5000", "--threads", "0", "--quiet", "--out", str(tmp_path / "out")]
+    # transect on the small site takes twice the frames (20 against 10). Its frames are those of
+    # test_demo_truth.py's NOT MET dive (the same site and seed, nobody operating): coded once
+    # for both (``tests/_dives.py`` ``coex_command``)
+    cmd = coex_command(tmp_path_factory, "demo", "--quick", "--gui", "--http", "127.0.0.1:0",
+                       "--speed", "5000", "--threads", "0", "--quiet", "--out", str(tmp_path / "out"))
     proc = subprocess.Popen(cmd, stderr=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
     try:
         assert proc.stderr is not None

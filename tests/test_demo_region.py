@@ -13,7 +13,6 @@ dive's targets; the report shows the region and its bytes.
 
 from __future__ import annotations
 
-from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -24,9 +23,10 @@ from coex_apps.demo import DemoConfig
 from coex_apps.demo.eye import Eye, EyeParams
 from coex_apps.demo.operator import CONFIRM_LAYERS, MORE_LAYERS
 from coex_apps.demo.run import DiveRun
-from coex_apps.demo.scenario import preset
 from coex_plugins.imagery import codec
 from coex_plugins.imagery.sender import BRIDGE_BYTES, packet_layers
+
+from ._dives import codestreams_shared, small
 
 # a whole demo dive with a region request
 pytestmark = pytest.mark.slow
@@ -37,9 +37,11 @@ def dive(tmp_path_factory: pytest.TempPathFactory) -> tuple[DiveRun, Any]:
     out = tmp_path_factory.mktemp("demo_region")
     # perfect navigation: this test's subject is the region path. With issue 56's default drift
     # seed 1's region reached 26.7 dB inside its box where the whole frame at its goal gives 33.0
-    # (after the merge of main into h50; not explained yet: docs/demo.md)
-    scenario = replace(preset("default"), drift=0.0)
-    run = DiveRun(DemoConfig(out=Path(out), quick=True, seed=1, progress=False, scenario=scenario))
+    # (after the merge of main into h50; not explained yet: docs/demo.md). The small site
+    # (tests/_dives.py): the region path, not the default site, is the subject; its frames up
+    # to the first doubt are those of the small site's shared dive (the same seed), coded once
+    run = DiveRun(DemoConfig(out=Path(out), seed=1, progress=False, scenario=small(navigation={"drift": 0.0}),
+                             codec_threads=0))
     # an eye that doubts every target at the first look, and decides at the sharper one
     run.operator.eye = Eye(EyeParams(margin=1.0))
     # the received image and the vehicle's bookkeeping when each region first reaches its goal
@@ -55,7 +57,8 @@ def dive(tmp_path_factory: pytest.TempPathFactory) -> tuple[DiveRun, Any]:
                                         None if tx is None else int(np.count_nonzero(tx.acked)))
 
     run.receivers["imagery"].listeners.append(watch)
-    result = run.run()
+    with codestreams_shared(tmp_path_factory):
+        result = run.run()
     return run, result
 
 

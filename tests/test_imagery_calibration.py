@@ -184,3 +184,27 @@ def test_a_run_of_trials_that_change_nothing_is_made_from_its_last(img: np.ndarr
     assert ahead.encodes < step.encodes, (ahead.encodes, step.encodes)
     code = codec.params_code(cp.progression, res, len(targets), cp.irreversible, img.ndim == 3, cp.precincts)
     assert ahead.known(code, targets) == step.known(code, targets) == codec._encode_body(img, code, targets)
+
+
+def test_an_image_coded_twice_is_the_same_codestream_and_the_dives_share_it(
+        tmp_path_factory: pytest.TempPathFactory, monkeypatch: pytest.MonkeyPatch) -> None:
+    """The coding is deterministic: the same pixels and parameters, calibrated afresh, give the
+    same bytes. That is what lets the test dives share their codings (``tests/_dives.py``
+    ``codestreams_shared``): the second coding of an image is read from the run's shared
+    directory, equal to OpenJPEG's in every field."""
+    from ._dives import codestreams_shared
+
+    img = seafloor(96, 128, seed=6)
+    cp = CodingParams(layer_psnr=(25.0, 30.0, 35.0), grey=True)
+    coded = []
+    for _ in range(2):
+        monkeypatch.setattr(codec, "_TARGETS", {})  # calibrated again, not remembered
+        coded.append(codec.encode_image(img, cp))
+    with codestreams_shared(tmp_path_factory) as counts:
+        coded += [codec.encode_image(img, cp), codec.encode_image(img, cp)]
+    assert counts == {"encodes": 1, "reused": 1}
+    first = coded[0]
+    for enc in coded[1:]:
+        assert enc.body == first.body and enc.packet_starts.tolist() == first.packet_starts.tolist()
+        assert (enc.params, enc.width, enc.height, enc.grey) == (first.params, first.width, first.height, first.grey)
+        assert np.array_equal(enc.image, first.image)

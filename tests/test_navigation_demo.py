@@ -40,6 +40,7 @@ class _NoNavigation(DiveNavigation):
 
 
 @pytest.mark.slow
+@pytest.mark.usefixtures("shared_codestreams")
 def test_drift_zero_is_todays_dive(tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
                                   tmp_path_factory: pytest.TempPathFactory) -> None:
     """With ``drift = 0`` the dive is the one without any navigation code: the same decisions,
@@ -66,6 +67,7 @@ def test_drift_zero_is_todays_dive(tmp_path: Path, monkeypatch: pytest.MonkeyPat
 
 
 @pytest.mark.slow
+@pytest.mark.usefixtures("shared_codestreams")
 def test_a_drifting_dive_is_corrected_and_judged_against_the_truth(tmp_path: Path) -> None:
     """The default drift and USBL: the vehicle really drifts, every fix went through the USBL
     input, the wild ones are found, the estimate follows the true drift, and the camera still
