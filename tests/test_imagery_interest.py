@@ -35,6 +35,20 @@ def test_a_dark_hull_stands_out_from_the_running_background_and_sand_does_not() 
     assert interest(np.zeros((2, 2)), None)[0] == 0.0  # nothing to judge
 
 
+def test_a_colour_frame_scores_the_same_as_its_float_copy() -> None:
+    """A uint8 colour frame takes a path in integers (issue 55): the same score and background,
+    to the bit, as the same frame in float64 (the mean of its channels)."""
+    rng = np.random.default_rng(3)
+    backdrop = fbackdrop = None
+    for _ in range(4):
+        img = rng.integers(0, 256, (96, 128, 3), dtype=np.uint8)
+        img[..., 2] = 255 - img[..., 0] // 3  # sums of all kinds, not only multiples of 3
+        score, backdrop = interest(img, backdrop)
+        fscore, fbackdrop = interest(img.astype(np.float64), fbackdrop)
+        assert score == fscore
+        assert backdrop is not None and fbackdrop is not None and backdrop.tobytes() == fbackdrop.tobytes()
+
+
 def _sender() -> object:
     s = ImageryModality().sender({"layer_bytes": [40, 120, 400, 1200], "default_goal": "layer:1",
                                   "request_goal": "layer:3"})

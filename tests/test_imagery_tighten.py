@@ -14,6 +14,7 @@ from coex_plugins.imagery.codec import CodingParams
 from coex_plugins.imagery.packets import (
     CodeBlock,
     CodeBlocks,
+    LayerWriter,
     PacketParser,
     code_blocks,
     packet_lengths,
@@ -56,6 +57,43 @@ def test_the_writer_refuses_a_layer_that_adds_bytes_but_no_pass() -> None:
     assert packet_lengths(two, enc.width, enc.height, body).tolist() == lengths
     with pytest.raises(ValueError, match="no pass"):
         write_packets(enc.stream, enc.width, enc.height, [cut, {**blocks.allocation(0)}], blocks)
+
+
+@pytest.mark.parametrize(("w", "h", "colour", "cp"), [
+    (640, 480, False, CodingParams(tighten=False)),  # the dive frames' size: 13 precincts a layer
+    (300, 257, True, CodingParams(grey=False, tighten=False)),
+    (128, 96, False, CodingParams(layer_bytes=(30, 60, 120, 240, 480, 900, 1600), precincts=0)),
+])
+def test_the_layer_writer_gives_the_packets_of_write_packets(w: int, h: int, colour: bool, cp: CodingParams) -> None:
+    """The one-layer writer of the tightening's trials (each precinct's packet remembered):
+    the same packets as write_packets for each layer's allocation, and for trials that take
+    bytes off, cut inside a pass or leave out one code-block's contribution, asked in any order
+    and again (issue 55)."""
+    enc = codec.encode_image(seafloor(h, w, seed=7, colour=colour), cp)
+    blocks = code_blocks(enc.params, w, h, enc.body)
+    sp = enc.stream
+    one = codec.parse_params(codec.params_code(sp.progression, sp.resolutions, 1, sp.irreversible, sp.colour,
+                                               sp.precincts))
+    writer = LayerWriter(sp, w, h, blocks)
+    rng = np.random.default_rng(5)
+    trials = []
+    for k in range(blocks.layers):
+        alloc = blocks.allocation(k)
+        trials.append(alloc)
+        for cb in [list(alloc)[int(i)] for i in rng.choice(len(alloc), min(6, len(alloc)), replace=False)]:
+            n, nb = alloc[cb]
+            trials.append({**alloc, cb: (n, max(1, nb - int(rng.integers(1, 40))))})  # cut inside a pass
+            trials.append({c: a for c, a in alloc.items() if c != cb})  # left to the next layer
+    seen = set()
+    for trial in [*trials, *trials[::-1]]:
+        expected, lengths = write_packets(one, w, h, [trial], blocks)
+        got = writer.packets(trial)
+        assert b"".join(got) == expected and [len(p) for p in got] == lengths
+        seen.add(expected)
+    assert len(seen) > blocks.layers  # the trials are different bodies, not one body many times
+    cb = next(iter(blocks.allocation(0)))
+    with pytest.raises(ValueError, match="no pass"):
+        writer.packets({cb: (0, 3)})
 
 
 @pytest.fixture(scope="module")

@@ -130,10 +130,9 @@ def _coarse_heights(height_fn: HeightFn, gx: np.ndarray, gy: np.ndarray, step: i
     c0 = np.minimum(ci.astype(int), len(cols) - 2)
     fr = (ri - r0)[:, None]
     fc = (ci - c0)[None, :]
-    a = coarse[r0][:, c0]
-    b = coarse[r0][:, c0 + 1]
-    c = coarse[r0 + 1][:, c0]
-    d = coarse[r0 + 1][:, c0 + 1]
+    above, below = coarse[r0], coarse[r0 + 1]
+    a, b = above[:, c0], above[:, c0 + 1]
+    c, d = below[:, c0], below[:, c0 + 1]
     return np.asarray(a * (1 - fr) * (1 - fc) + b * (1 - fr) * fc + c * fr * (1 - fc) + d * fr * fc)
 
 
@@ -262,11 +261,14 @@ def render_labelled(
     light = cos_in * falloff * vignette * np.exp(-2 * cam.attenuation * (rng_m - altitude))
     signal = cam.gain * albedo * light * np.exp(-0.05 * max(altitude - 3.0, 0.0))
     haze = 12.0 * (1.0 - np.exp(-cam.attenuation * altitude)) * vignette
-    channels = []
-    for tint in cam.tint:
-        chan = (signal + haze) * tint + rng.normal(0.0, cam.noise, signal.shape)
-        channels.append(chan)
-    img = np.clip(np.stack(channels, axis=-1), 0, 255).astype(np.uint8)
+    # each channel clipped and cast into the frame as it is made (the values of stacking the
+    # channels, clipping and casting, without the stacked copy); the noise drawn in channel order
+    lit = signal + haze
+    img = np.empty((*signal.shape, len(cam.tint)), np.uint8)
+    for i, tint in enumerate(cam.tint):
+        chan = lit * tint
+        chan += rng.normal(0.0, cam.noise, signal.shape)
+        img[..., i] = np.clip(chan, 0, 255, out=chan)
     if grey:
         g = 0.299 * img[..., 0] + 0.587 * img[..., 1] + 0.114 * img[..., 2]
         return np.round(g).astype(np.uint8), labels

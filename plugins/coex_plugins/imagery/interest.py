@@ -23,11 +23,17 @@ def interest(image: Any, backdrop: npt.NDArray[np.float64] | None
     background (the frames before it, each new one weighted :data:`BACKDROP_WEIGHT`): the 95th
     percentile of their absolute difference, relative to the background's mean brightness (the
     first frame: against its own mean). Sand scores low (its texture averages out), a dark hull
-    over a tenth of the frame high. Vectorised; about 0.1 ms a frame."""
+    over a tenth of the frame high. Vectorised; about 1 ms for a 640 x 480 colour frame."""
     try:
-        a = np.asarray(image, np.float64)
-        if a.ndim == 3:
-            a = a[..., :3].mean(-1)
+        raw = np.asarray(image)
+        if raw.dtype == np.uint8 and raw.ndim == 3 and raw.shape[2] >= 3:
+            # the mean of the channels as float64 gives, for whole numbers below 2**53, exactly
+            # their sum in integers over 3 (a tenth of the time on a 640 x 480 frame)
+            a = np.add(np.add(raw[..., 0], raw[..., 1], dtype=np.uint16), raw[..., 2], dtype=np.uint16) / 3.0
+        else:
+            a = np.asarray(raw, np.float64)
+            if a.ndim == 3:
+                a = a[..., :3].mean(-1)
         if a.ndim != 2 or min(a.shape) < 4:
             return 0.0, backdrop
         f = max(1, a.shape[1] // INTEREST_COLUMNS)

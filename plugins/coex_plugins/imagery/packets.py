@@ -61,8 +61,8 @@ from coex import DecodeError
 
 from ._stream import StreamParams, packet_order, parse_params
 
-__all__ = ["CodeBlock", "CodeBlocks", "PacketParser", "code_blocks", "packet_lengths", "precinct_codeblocks",
-           "write_packets"]
+__all__ = ["CodeBlock", "CodeBlocks", "LayerWriter", "PacketParser", "code_blocks", "packet_lengths",
+           "precinct_codeblocks", "write_packets"]
 
 #: Code-block size exponent (COD: exponents 4, 4 -> 2^6 = 64 samples).
 _CBLK_EXP = 6
@@ -657,13 +657,68 @@ def write_packets(sp: StreamParams, width: int, height: int, allocations: Sequen
         if wr_state is None:
             geometry = [g for g in _precinct_codeblocks(spl, width, height, r, p) if g[0] * g[1]]
             wr_state = writers[key] = _PrecinctWriter(geometry, first.get(key, {}), zero.get(key, {}))
-        got = by_precinct[layer].get(key, {})
-        packet = bytearray(wr_state.header(layer, {bk: (v[0], v[2] - v[1]) for bk, v in got.items()}))
-        for b, band in enumerate(wr_state.bands):
-            for k in range(len(band.included)):
-                v = got.get((b, k))
-                if v is not None:
-                    packet += blocks.data[(r, c, p, b, k)][v[1]:v[2]]
+        packet = _packet(wr_state, layer, key, by_precinct[layer].get(key, {}), blocks)
         out += packet
         lengths.append(len(packet))
     return bytes(out), lengths
+
+
+def _packet(writer: _PrecinctWriter, layer: int, key: tuple[int, int, int],
+            got: Mapping[tuple[int, int], tuple[int, int, int]], blocks: CodeBlocks) -> bytes:
+    """The packet of precinct ``key`` for ``layer``: its header (``writer``'s state moves on)
+    and the codeword bytes of ``got`` ((band, code-block) -> (passes added, first byte, end
+    byte)), band by band in raster order."""
+    r, c, p = key
+    packet = bytearray(writer.header(layer, {bk: (v[0], v[2] - v[1]) for bk, v in got.items()}))
+    for b, band in enumerate(writer.bands):
+        for k in range(len(band.included)):
+            v = got.get((b, k))
+            if v is not None:
+                packet += blocks.data[(r, c, p, b, k)][v[1]:v[2]]
+    return bytes(packet)
+
+
+class LayerWriter:
+    """:func:`write_packets` of one layer (``[allocation]``) for one body's ``blocks``, called
+    many times with allocations that differ in a few code-blocks (:mod:`.tighten`'s trials):
+    a one-layer packet depends only on its own precinct's contributions, so each precinct's
+    packet is written once for each set of contributions it is given and remembered. The
+    same bytes as :func:`write_packets` (tested), without writing again the packets a trial
+    leaves as they were."""
+
+    def __init__(self, sp: StreamParams, width: int, height: int, blocks: CodeBlocks) -> None:
+        self.sp = StreamParams(sp.progression, sp.resolutions, 1, sp.irreversible, sp.colour, sp.precincts)
+        self.width, self.height = int(width), int(height)
+        self.blocks = blocks
+        self._keys = [(r, c, p) for _layer, r, c, p in packet_order(self.sp, self.width, self.height).tolist()]
+        self._geometry = {key: [g for g in _precinct_codeblocks(self.sp, self.width, self.height, key[0], key[2])
+                                if g[0] * g[1]] for key in self._keys}
+        self._memo: dict[tuple[tuple[int, int, int], tuple[tuple[int, int, int, int], ...]], bytes] = {}
+
+    def packets(self, allocation: Mapping[CodeBlock, tuple[int, int]]) -> list[bytes]:
+        """The packets (codestream order) of the one-layer body of ``allocation``."""
+        blocks = self.blocks
+        now: dict[tuple[int, int, int], list[tuple[int, int, int, int]]] = {}
+        for cb, (n, nb) in allocation.items():
+            if n > 0:
+                if nb < 0 or nb > len(blocks.data[cb]):
+                    raise ValueError(f"code-block {cb}: bytes {nb} outside 0..{len(blocks.data[cb])}")
+                r, c, p, b, k = cb
+                now.setdefault((r, c, p), []).append((b, k, n, nb))
+            elif nb != 0:
+                raise ValueError(f"code-block {cb}: a layer adds bytes 0..{nb} but no pass")
+        out: list[bytes] = []
+        for key in self._keys:
+            got = tuple(sorted(now.get(key, ())))
+            packet = self._memo.get((key, got))
+            if packet is None:
+                first: dict[int, dict[int, int]] = {}
+                zero: dict[int, dict[int, int]] = {}
+                for b, k, _n, _nb in got:
+                    first.setdefault(b, {})[k] = 0
+                    zero.setdefault(b, {})[k] = blocks.zero[(*key, b, k)]
+                writer = _PrecinctWriter(self._geometry[key], first, zero)
+                packet = _packet(writer, 0, key, {(b, k): (n, 0, nb) for b, k, n, nb in got}, blocks)
+                self._memo[(key, got)] = packet
+            out.append(packet)
+        return out

@@ -24,7 +24,7 @@ from typing import Any
 import numpy as np
 
 from ._stream import StreamParams, params_code, parse_params
-from .packets import CodeBlock, CodeBlocks, code_blocks, packet_lengths, write_packets
+from .packets import CodeBlock, CodeBlocks, LayerWriter, code_blocks, packet_lengths, write_packets
 
 __all__ = ["DECODES", "Quality", "decodes_for", "tighten"]
 
@@ -80,14 +80,14 @@ def _tighten(code: int, w: int, h: int, body: bytes, marks: Sequence[float], qua
     one_code = params_code(sp.progression, sp.resolutions, 1, sp.irreversible, sp.colour, sp.precincts)
     one = parse_params(one_code)
     per_layer = decodes_for(w, h) if budget is None else budget
+    writer = LayerWriter(one, w, h, blocks)
 
     def measure(alloc: Allocation) -> tuple[int, float]:
         """Body bytes and PSNR of the image decoded from ``alloc`` (as one layer: the decode of
-        every layer up to one is that of their union)."""
-        b, lengths = write_packets(one, w, h, [alloc], blocks)
-        ends = np.cumsum(lengths)
-        packets: list[bytes | None] = [b[int(e - n):int(e)] for e, n in zip(ends, lengths, strict=True)]
-        return len(b), quality(one_code, packets)
+        every layer up to one is that of their union; its packets as :func:`write_packets`
+        writes them, each precinct's written once for each set of contributions)."""
+        packets: list[bytes | None] = list(writer.packets(alloc))
+        return sum(len(p) for p in packets if p is not None), quality(one_code, packets)
 
     changed = False
     for layer in range(sp.layers):
