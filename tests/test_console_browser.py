@@ -756,12 +756,15 @@ def test_a_region_over_unsurveyed_ground_waits_then_fills(browser: Any, tmp_path
         req = vehicle.wait_for(m.MapRoiRequest)
         while (req.level, req.w, req.h) != (0, 3, 2):  # the receiver's own gap filling
             req = vehicle.wait_for(m.MapRoiRequest)
-        assert "24 x 16 m at (168, 16) m" in page.inner_text("#commands")
+        # the page learns of the command by the server's next push: wait for it, not read at once
+        # (read at once it raced the push under `pytest -n 4`: "No command sent yet.")
+        page.wait_for_function("document.querySelector('#commands').innerText.includes('24 x 16 m at (168, 16) m')",
+                               timeout=WAIT)
         # not surveyed yet: the request stands on the vehicle
         vehicle.send([m.MapRoiReply(req.request_id, 0, 0, 6)])
         page.wait_for_function("window.coex.S.map.requests.some(r => r.state === 'waiting for data')",
                                timeout=WAIT)
-        assert "6 subgrids not surveyed yet" in page.inner_text("#commands")
+        page.wait_for_function("document.querySelector('#commands').innerText.includes('6 subgrids not surveyed yet')", timeout=WAIT)
         # surveyed now: the vehicle queues them, they arrive, and it has nothing newer
         vehicle.send([m.MapRoiReply(req.request_id, 0, 6, 0)])
         page.wait_for_function("window.coex.S.map.requests.some(r => r.state === 'in flight')", timeout=WAIT)
@@ -771,7 +774,7 @@ def test_a_region_over_unsurveyed_ground_waits_then_fills(browser: Any, tmp_path
                for ix in range(req.x0, req.x0 + 3) for iy in range(req.y0, req.y0 + 2)]
         vehicle.send([*sgs, m.MapRoiReply(req.request_id, 0, 0, 0)])
         page.wait_for_function("window.coex.S.map.requests.some(r => r.state === 'filled')", timeout=WAIT)
-        assert "filled (6 subgrids)" in page.inner_text("#commands")
+        page.wait_for_function("document.querySelector('#commands').innerText.includes('filled (6 subgrids)')", timeout=WAIT)
         page.wait_for_timeout(300)
         page.screenshot(path=str(tmp_path / "roi.png"))
         if os.environ.get("COEX_ROI_SHOT"):
