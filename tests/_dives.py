@@ -103,16 +103,13 @@ def encodes_remembered() -> Iterator[dict[str, int]]:
     from coex_plugins.imagery import codec
 
     real = codec._encode
-    memo: dict[bytes, codec.Encoded] = {}
+    memo: dict[str, codec.Encoded] = {}
     counts = {"encodes": 0, "reused": 0}
 
     def remembered(data: npt.NDArray[np.uint8], cp: codec.CodingParams,
                    base: npt.NDArray[np.uint8] | None = None,
                    reference: npt.NDArray[np.uint8] | None = None) -> codec.Encoded:
-        h = hashlib.sha256(repr(cp).encode())
-        for a in (data, base, reference):
-            h.update(b"-" if a is None else repr((a.shape, a.dtype.str)).encode() + np.ascontiguousarray(a).tobytes())
-        key = h.digest()
+        key = _encode_key(data, cp, base, reference)
         if key in memo:
             counts["reused"] += 1
         else:
