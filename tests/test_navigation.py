@@ -335,13 +335,19 @@ class _Rx:
         self.requested.append(args)
 
 
-def test_a_subgrid_moves_by_the_correction_at_its_stamp() -> None:
+def _steady(dx: float, dy: float) -> Navigation:
+    """Vehicle 2 sat believing (50, 50) for 300 s while USBL fixed it at (50 - dx, 50 - dy)
+    every 10 s: a steady correction (dx, dy)."""
     nav = Navigation()
     est = nav.estimator(2)
     for t in (0.0, 300.0):
         est.add_track(t, 50.0, 50.0)
     for t in np.arange(0.0, 300.0, 10.0):
-        est.add_fix(float(t), 48.0, 47.0)  # believed (50, 50), truly (48, 47): correction (2, 3)
+        est.add_fix(float(t), 50.0 - dx, 50.0 - dy)
+    return nav
+
+def test_a_subgrid_moves_by_the_correction_at_its_stamp() -> None:
+    nav = _steady(2.0, 3.0)  # believed (50, 50), truly (48, 47)
     rx = _Rx()
     view = CorrectedMap(rx, nav, 2)
     p = view.level_product(0)
@@ -359,7 +365,7 @@ def test_a_subgrid_moves_by_the_correction_at_its_stamp() -> None:
     cmd = surveys.request("goto", 100.0, 100.0, 300.0)
     assert (cmd.x, cmd.y) == pytest.approx((102.0, 103.0), abs=0.2)
     off = Navigation(apply=False)
-    off.estimators[2] = est
+    off.estimators[2] = nav.estimators[2]
     assert np.array_equal(np.asarray(CorrectedMap(rx, off, 2).level_product(0).data), rx.z)
 
 
@@ -385,12 +391,7 @@ def test_the_corrected_map_has_no_holes_where_its_source_lies_between_held_cells
     """Issue 54: a corrected cell whose source point falls in a one-cell gap of the received
     level (between two held cells) gets a value, read across the gap; nothing is added beyond
     the held cells (a gap two cells wide, the level's edges)."""
-    nav = Navigation()
-    est = nav.estimator(2)
-    for t in (0.0, 300.0):
-        est.add_track(t, 50.0, 50.0)
-    for t in np.arange(0.0, 300.0, 10.0):
-        est.add_fix(float(t), 49.7, 49.6)  # correction (0.3, 0.4): a fraction of a cell
+    nav = _steady(0.3, 0.4)  # a fraction of a cell
     rx = _GapRx()
     p = CorrectedMap(rx, nav, 2).level_product(0)
     grid = np.asarray(p.data, dtype=float)
@@ -822,12 +823,7 @@ def test_the_operator_measures_a_small_bump_in_the_map_as_received_and_places_it
     the operator measures it in the level as received and places it by the map's correction."""
     from coex_apps.demo.operator import Operator
 
-    nav = Navigation()
-    est = nav.estimator(2)
-    for t in (0.0, 300.0):
-        est.add_track(t, 50.0, 50.0)
-    for t in np.arange(0.0, 300.0, 10.0):
-        est.add_fix(float(t), 49.5, 49.5)  # believed (50, 50), truly (49.5, 49.5): correction (0.5, 0.5)
+    nav = _steady(0.5, 0.5)  # believed (50, 50), truly (49.5, 49.5)
 
     class Small(_Rx):
         def __init__(self) -> None:
