@@ -29,7 +29,7 @@ import pytest
 from coex_apps.demo import DemoConfig, run_demo
 from coex_apps.demo.scenario import ObjectSpec, Scenario, scenario_from_dict
 
-__all__ = ["SMALL", "codestreams_at", "codestreams_dir", "codestreams_shared", "coex_command", "dark_rock_site", "encodes_remembered", "shared_dive", "small", "small_file"]
+__all__ = ["QUICK_SHORT", "SMALL", "codestreams_at", "codestreams_dir", "codestreams_shared", "coex_command", "dark_rock_site", "encodes_remembered", "quick_short", "quick_short_file", "shared_dive", "small", "small_file"]
 
 #: a small, short dive (a 64 m site, one car, 25 minutes): a whole dive, camera pass included,
 #: for tests whose subject needs one but not the default site
@@ -48,13 +48,33 @@ def dark_rock_site() -> Scenario:
     this one, and the dark-decoy test there reads it (the rock looked at, never
     confirmed). Perfect navigation: these tests' subjects are who reads the labels and what the
     eye makes of a decoy (issue 56's drift is tested in test_navigation_demo.py; docs/demo.md
-    says what this scene did with it)."""
-    return Scenario(area=96.0, targets=(
+    says what this scene did with it). A 25-minute dive (the quick preset's is 50): its last
+    decision falls at 18 minutes (the rock called natural), and the half hour after it only moves
+    bytes, about a third of each of the two dives' CPU."""
+    return Scenario(area=96.0, duration=1500.0, targets=(
         ObjectSpec(26.0, 30.0, 4.4, 1.8, 1.5, 20.0, "box", "car", 0.07),
         ObjectSpec(70.0, 26.0, 3.2, 1.6, 1.4, -50.0, "box", "car", 0.4),
         ObjectSpec(28.0, 70.0, 6.06, 2.44, 2.59, 70.0, "box", "container", 0.2)),
         decoys=(ObjectSpec(70.0, 70.0, 3.4, 2.5, 1.5, 10.0, "dome", "dark rock", 0.08),),
         drift=0.0)
+
+
+#: the quick site (preset ``default`` at ``quick=True``, seed 1) in a 20-minute dive instead of 50:
+#: for the dives whose subject is over when the survey is (at 332 s: nobody operating, or a
+#: geofence refusing every camera line); the half hour after only moves bytes
+QUICK_SHORT: dict[str, Any] = {"duration": 1200.0}
+
+
+def quick_short() -> Scenario:
+    """:data:`QUICK_SHORT` as a scenario (``DemoConfig(quick=True, scenario=quick_short())``)."""
+    return scenario_from_dict(QUICK_SHORT)
+
+
+def quick_short_file(path: Path) -> Path:
+    """:data:`QUICK_SHORT` as a scenario file (``coex demo --quick --scenario PATH``): the same
+    scenario as :func:`quick_short`, so the two dives' frames are the same and coded once."""
+    path.write_text("".join(f"{k} = {json.dumps(v)}\n" for k, v in QUICK_SHORT.items()))
+    return path
 
 
 def small_file(path: Path) -> Path:

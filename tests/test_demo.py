@@ -14,7 +14,7 @@ from PIL import Image
 
 from coex_apps.demo import DemoConfig, run_demo
 
-from ._dives import codestreams_shared, shared_dive, small, small_file
+from ._dives import codestreams_shared, quick_short, shared_dive, small, small_file
 
 # whole demo dives (a quick dive is ~45 s of CPU): run first, and left out by `make test-fast`
 pytestmark = pytest.mark.slow
@@ -309,7 +309,8 @@ def test_a_camera_line_outside_the_geofence_is_never_flown(tmp_path: Path) -> No
     vehicle, the camera never runs, the reason reaches topside's decisions, and the referee
     says why the targets were not photographed."""
     fence = {"polygon": [[-500, -500], [-400, -500], [-400, -400], [-500, -400]], "min_altitude": 2.0}
-    result = run_demo(DemoConfig(out=tmp_path, quick=True, seed=1, progress=False, geofence=fence, codec_threads=0))
+    result = run_demo(DemoConfig(out=tmp_path, quick=True, seed=1, progress=False, geofence=fence, codec_threads=0,
+                                 scenario=quick_short()))  # every line refused by 383 s: a 20-minute dive
     m = result.metrics
     assert m["surveys"] and m["images_captured"] == 0 and m["success"] is False
     for s in m["surveys"]:

@@ -12,7 +12,7 @@ from pathlib import Path
 
 import pytest
 
-from ._dives import coex_command
+from ._dives import coex_command, quick_short_file
 
 # a whole demo dive behind the web console
 pytestmark = pytest.mark.slow
@@ -28,7 +28,9 @@ def test_demo_gui_serves_the_console(tmp_path: Path, tmp_path_factory: pytest.Te
     # transect on the small site takes twice the frames (20 against 10). Its frames are those of
     # test_demo_truth.py's NOT MET dive (the same site and seed, nobody operating): coded once
     # for both (``tests/_dives.py`` ``coex_command``)
-    cmd = coex_command(tmp_path_factory, "demo", "--quick", "--gui", "--http", "127.0.0.1:0",
+    # (a 20-minute dive: ``tests/_dives.py`` ``quick_short``, as that one)
+    cmd = coex_command(tmp_path_factory, "demo", "--quick", "--scenario", str(quick_short_file(tmp_path / "quick.toml")),
+                       "--gui", "--http", "127.0.0.1:0",
                        "--speed", "5000", "--threads", "0", "--quiet", "--out", str(tmp_path / "out"))
     proc = subprocess.Popen(cmd, stderr=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
     try:
