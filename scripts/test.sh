@@ -2,13 +2,14 @@
 # `make test` after lint and install: `make typecheck` (scripts/typecheck.sh) in the background
 # beside `pytest -n 3` (the rest of the arguments are pytest's). Strict mypy is about 35 s of one
 # core from a cold cache; pytest leaves CPU idle while tests wait on servers, browsers and
-# daemons, so the two together take pytest's time. mypy's output is printed after pytest's, and
-# `make test` fails when either fails.
+# daemons, so the two together take pytest's time. mypy runs at a lower priority (nice 10): it
+# takes the CPU the tests leave idle instead of slowing the dives that start the run. Its output
+# is printed after pytest's, and `make test` fails when either fails.
 set -uo pipefail
 venv=$1; shift
 log=$(mktemp)
 trap 'rm -f "$log"' EXIT
-bash scripts/typecheck.sh "$venv" >"$log" 2>&1 &
+nice -n 10 bash scripts/typecheck.sh "$venv" >"$log" 2>&1 &
 typecheck=$!
 "$venv/bin/pytest" -n 3 "$@"
 tests=$?

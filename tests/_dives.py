@@ -77,12 +77,14 @@ def quick_short_file(path: Path) -> Path:
     return path
 
 
-def small_file(path: Path) -> Path:
-    """:data:`SMALL` as a scenario file (``coex demo --scenario PATH``), written to ``path``."""
+def small_file(path: Path, **top: Any) -> Path:
+    """:data:`SMALL` as a scenario file (``coex demo --scenario PATH``), written to ``path``, with
+    the top-level keys ``top`` replaced (``duration=1000.0``)."""
     def lines(table: dict[str, Any]) -> list[str]:
         return [f"{k} = {json.dumps(v)}" for k, v in table.items() if not isinstance(v, dict)]
 
-    text = lines(SMALL) + [f"[{k}]\n" + "\n".join(lines(v)) for k, v in SMALL.items() if isinstance(v, dict)]
+    data = {**SMALL, **top}
+    text = lines(data) + [f"[{k}]\n" + "\n".join(lines(v)) for k, v in data.items() if isinstance(v, dict)]
     path.write_text("\n".join(text) + "\n")
     return path
 

@@ -202,14 +202,15 @@ def test_images_option_uses_given_files(tmp_path: Path) -> None:
     """``coex demo --images DIR`` builds the sand from the given frames; the dive's images reach
     topside at the camera's size. On the small site (``--scenario``): the option's path, not
     the default site, is the subject; the frames are smooth, since white noise (the sand
-    of an earlier version of this test) costs the image coder most."""
+    of an earlier version of this test) costs the image coder most. A dive of 1000 s instead of
+    1500: its 17 frames are taken and sent by then (the car confirmed at 720 s)."""
     imgs = tmp_path / "imgs"
     imgs.mkdir()
     rows, cols = np.mgrid[0:480, 0:640]
     for i in range(3):
         grey = 125 + 30 * np.sin(cols / (17.0 + 5 * i)) * np.cos(rows / (23.0 - 4 * i))
         Image.fromarray(np.repeat(grey[..., None], 3, axis=2).astype(np.uint8)).save(imgs / f"image_{i:06d}.tiff")
-    scenario = small_file(tmp_path / "small.toml")
+    scenario = small_file(tmp_path / "small.toml", duration=1000.0)
     out = tmp_path / "out"
     cmd = [sys.executable, "-m", "coex_core.cli", "demo", "--scenario", str(scenario), "--quiet", "--no-gui",
            "--seed", "2", "--loss", "0.2", "--threads", "0", "--images", str(imgs), "--out", str(out)]
