@@ -10,6 +10,13 @@ STAMP  := $(VENV)/.coex-installed
 PYTEST_ARGS ?=
 DEMO_ARGS ?=
 
+# Python writes its compiled modules (.pyc) where it may: an environment that sets
+# PYTHONDONTWRITEBYTECODE (some CI images and sandboxes do) makes every process compile every
+# module it imports again, and the test suite starts about 160 Python processes (daemons, CLIs,
+# workers), each paying 1-2 s of CPU for it (uv installs without .pyc). The .pyc files go to
+# __pycache__/ (git-ignored) and the venv.
+unexport PYTHONDONTWRITEBYTECODE
+
 .PHONY: install demo test test-fast lint typecheck pytest moos ros bench clean
 
 install: $(STAMP)
