@@ -263,7 +263,7 @@ CONDITIONS: dict[str, Callable[[dict[str, Any]], bool]] = {
     "`altitude` and `depth` are both given": lambda f: f["altitude"] is not None and f["depth"] is not None,
     "`has_detail` is 1 and `detail` has no bytes (no detail is `has_detail` = 0)":
         lambda f: f["has_detail"] == 1 and f["detail"] == "",
-    "`width` is above `length` (the length is the long axis)":
+    "`width` is above `length`, both given (the length is the long axis; either alone is valid)":
         lambda f: f["width"] is not None and f["length"] is not None and f["width"] > f["length"],
     "the `values` take more than 1536 bits in all": lambda f: f["_bits"]["values"] > 1536,
     "`encoding` is GRADIENT and `partial` is 1 (a GRADIENT subgrid has no mask)":
