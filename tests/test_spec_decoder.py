@@ -1,6 +1,7 @@
 """A decoder written from spec/wire-format.md alone: the field tables (read from the document,
-not from the construct definitions), sections 2, 5 and 6, the JSON form of section 13.1 and
-the Rice code of spec/payloads.md 1.3. Its decoding uses nothing of coex_core (no codec, no
+not from the construct definitions), sections 2, 4, 5 and 6, the JSON form of section 13.1,
+the Rice code of spec/payloads.md 1.3 and the coded cells of its 1.7 (tests/spec_decoder/
+subgrids.py, from payloads.md alone). Its decoding uses nothing of coex_core (no codec, no
 jsonfmt); only its answers go through `coex spec vectors`' comparison (section 13.3), and they
 must agree with every valid vector, frames and third-party messages included, and reject every
 invalid one for its error word (section 13.2): the rules it checks are those of sections 2 to 6,
@@ -64,10 +65,8 @@ def messages_of_the_document() -> dict[int, dict[str, Any]]:
     for m in re.finditer(r"^### (\d+): (\w+) \(\w+\)\n(.*?)(?=^### |^<!-- END)", TEXT, re.S | re.M):
         tid, name, block = int(m[1]), m[2], m[3]
         rows, entries = _tables(block)
-        size = re.search(r"at most (\d+) bytes including the type id", block)
-        assert size, name
         out[tid] = {"name": name, "prefixed": "VarInt byte length, then the body" in block, "rows": rows,
-                    "entries": entries, "rules": _rules(block), "max_size": int(size[1])}
+                    "entries": entries, "rules": _rules(block)}
     return out
 
 
@@ -273,7 +272,7 @@ CONDITIONS: dict[str, Callable[[dict[str, Any]], bool]] = {
         lambda f: f["far"] == 1 and f["offset"] < 4096,
     "the `packets` entries are not strictly increasing, or one is above the number of `data` bytes":
         lambda f: any(a >= b for a, b in zip(f["packets"], f["packets"][1:]))
-        or any(p > len(f["data"]) // 2 for p in f["packets"]),
+        or any(p > f["n_data"] for p in f["packets"]),
     "`x0` >= `x1` or `y0` >= `y1` (no pixel in the region)": lambda f: f["x0"] >= f["x1"] or f["y0"] >= f["y1"],
     "`x0` >= `x1` or `y0` >= `y1` (no pixel in the crop)": lambda f: f["x0"] >= f["x1"] or f["y0"] >= f["y1"],
 }
