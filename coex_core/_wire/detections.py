@@ -36,7 +36,7 @@ DETECTION = Body(
     "footprint" / Bounded(0, MAX_FOOTPRINT, 1, optional=True, unit="m^2") * "Area that stands out",
     "image_id" / When("`source` = IMAGE", _is_image, Bounded(0, 1023)) * "The frame it was found in",
     Rule(lambda ctx: ctx.length is None or ctx.width is None or ctx.width <= ctx.length,
-         "`width` is above `length` (the length is the long axis)", "width above length"),
+         "`width` is above `length`, both given (the length is the long axis; either alone is valid)", "width above length"),
     Rule(lambda ctx: ctx.image_id is None or _is_image(ctx),
          "`image_id` is given and `source` is not IMAGE", encode_only=True),
 )
@@ -53,6 +53,7 @@ register(MessageSpec(
         ("bare", Detection(17, DetectionSource.OTHER, 0, -50000.0, -50000.0, 0.0)),
         ("round", Detection(5, DetectionSource.MAP, 77, 0.0, -12.5, 0.05, 0.0, 3.0, 3.0, 0.0, 0)),
         ("in_a_frame", Detection(1022, DetectionSource.IMAGE, 4321, 57.4, 104.2, 0.42, image_id=9)),
+        ("width_without_length", Detection(6, DetectionSource.OTHER, 90, 1.0, 2.0, 0.5, width=2.2)),
         ("largest", _LARGEST),
     ],
 ))

@@ -244,10 +244,19 @@ def predicted(b: Bits) -> dict[str, Any]:
     f["predictor"], f["shift"] = b.read(2), b.read(2)
     partial = bool(b.read(1))
     table = (min(f["level"], 2) if parent else 3)
+    mask, res = coded_cells(b, f["side"], partial, f["shift"], table)
+    b.padding()
+    f["cells"] = {"mask": mask, "residuals": res}
+    return f
+
+
+def coded_cells(b: Bits, side: int, partial: bool, shift: int, table: int) -> tuple[int | None, list[int]]:
+    """`cells` (payloads.md 1.7) from ``b.pos``, with every check of that section; ``b.pos`` ends
+    after the last bit of `cells`."""
     start = b.pos
     coder = Coder(b, start)
     try:
-        mask, res = cells_code(f["side"], partial, f["shift"], table, coder)
+        mask, res = cells_code(side, partial, shift, table, coder)
     except Invalid as exc:
         if coder.read_upto > len(b.bits):  # decided on bits past the end: they were not there
             raise Invalid("truncated") from exc
@@ -256,13 +265,11 @@ def predicted(b: Bits) -> dict[str, Any]:
     if start + length > len(b.bits):
         raise Invalid("truncated")
     again = Coder()
-    cells_code(f["side"], partial, f["shift"], table, again, mask, res)
+    cells_code(side, partial, shift, table, again, mask, res)
     if again.finish() != b.bits[start:start + length]:
         raise Invalid("canonical")
     b.pos = start + length
-    b.padding()
-    f["cells"] = {"mask": mask, "residuals": res}
-    return f
+    return mask, res
 
 
 def _rice(b: Bits, k: int) -> int:
