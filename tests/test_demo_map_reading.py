@@ -62,7 +62,7 @@ def test_a_small_debris_patch_is_a_candidate_worth_camera_time(patch: Target, se
     assert BUMP_THRESHOLD <= peak < 1.0
 
 
-@pytest.mark.parametrize("seed", range(6))
+@pytest.mark.parametrize("seed", range(3))
 def test_rippled_sand_with_noisy_soundings_has_no_candidate(seed: int) -> None:
     """The demo's ripples and relief, each cell with 5 cm of noise: no bump anywhere (one-cell
     bumps of the sand stay under BUMP_THRESHOLD); a wild sounding alone is despiked."""
