@@ -64,14 +64,13 @@ LOSS = 0.3
 
 
 def one(seed: int, aiding: bool, scenario: str | Scenario = "default", swath: float | None = 135.0,
-        keep: dict[str, Any] | None = None) -> dict[str, Any]:
+        keep: dict[str, Any] | None = None, descent: float = 300.0, turn_time: float = 60.0) -> dict[str, Any]:
     scn = preset(scenario) if isinstance(scenario, str) else scenario
     cars, rocks = scn.place(seed)
     floor = Seafloor(size=scn.area, depth=scn.water_depth, relief=scn.relief, ripple_amplitude=scn.ripple_amplitude,
                      targets=cars + rocks, seed=seed)
-    descent = 300.0
     survey = simulate_survey(floor, altitude=scn.survey_altitude, line_spacing=scn.line_spacing or None,
-                             speed=scn.survey_speed, ping_rate=2.0, beams=256, t0=EPOCH + descent, turn_time=60.0,
+                             speed=scn.survey_speed, ping_rate=2.0, beams=256, t0=EPOCH + descent, turn_time=turn_time,
                              seed=seed + 1)
     end = float(survey.times[-1])
     track = Track(floor)

@@ -383,8 +383,8 @@ def test_the_whole_hull_rule_leaves_rocks_and_clear_outlines_alone() -> None:
     assert eye._verdict(5.0, 2.0, 0.89, 0.80, 0.60, 0.96, 4.5, False, ())[0] == "hull"
 
 
-def _bench_scene(seed: int) -> dict[str, object]:
-    """``bench/eye.py``'s development scene ``seed`` (generated sand), a hull in it."""
+def _bench_scene(seed: int, kind: str = "hull") -> dict[str, object]:
+    """``bench/eye.py``'s development scene ``seed`` (generated sand), an object of ``kind`` in it."""
     import importlib.util
     import sys
 
@@ -393,7 +393,7 @@ def _bench_scene(seed: int) -> dict[str, object]:
     module = importlib.util.module_from_spec(spec)
     sys.modules["bench_eye"] = module
     spec.loader.exec_module(module)
-    scene: dict[str, object] = module.scene(seed, None, 1.0, "hull")
+    scene: dict[str, object] = module.scene(seed, None, 1.0, kind)
     return scene
 
 
@@ -415,6 +415,62 @@ def test_a_rendered_whole_hull_blurred_at_the_first_look_is_asked_about_not_natu
     assert first.on_sides < EyeParams().min_hull_sides, first.describe()  # the blurred outline
     assert first.kind == "unclear", first.describe()
     assert sharper.kind == "hull", sharper.describe()
+
+
+#: issue 50: measures (length, width, box fill, straight share, ends alike, hull filled,
+#: sharpness) of development debris patches whose pieces merge into one outline at 4 layers
+#: (``bench/eye.py --kind debris`` seeds 1003 and 1018), called natural by the old rule (at most
+#: 0.82 of the convex hull); of the least solid decoy of the development scenes (a mound of
+#: living things, seed 1019, 0.89); and of a container joined by the sand's clutter at 4 layers
+#: (``--kind container`` seed 1033: 91 % of its box filled, 68 % straight)
+BENCH_DEBRIS_1003 = (1.7, 1.7, 0.71, 0.43, 0.82, 0.85, 4.9)
+BENCH_DEBRIS_1018 = (2.4, 1.7, 0.63, 0.38, 0.38, 0.85, 4.9)
+BENCH_MOUND_1019 = (2.81, 1.83, 0.73, 0.41, 0.64, 0.89, 5.03)
+BENCH_CONTAINER_1033 = (6.5, 2.8, 0.91, 0.68, 0.97, 0.91, 3.9)
+
+
+@pytest.mark.parametrize("measures", [BENCH_DEBRIS_1003, BENCH_DEBRIS_1018], ids=["1003", "1018"])
+def test_a_debris_patch_whose_pieces_merge_is_debris_not_natural(measures: tuple[float, ...]) -> None:
+    """A patch filling 85 % of its convex hull is debris at the sharper look (the old rule, at
+    most 82 %, said natural, which ends the operator's candidate) and never natural at the first
+    look; the least solid decoy of the development scenes stays natural once the sharper look has
+    come, and is no target at the first look."""
+    eye = Eye()
+    assert eye._verdict(*measures, True, ())[0] == "debris"
+    assert eye._verdict(*measures, False, ())[0] in ("debris", "unclear")
+    assert eye._verdict(*BENCH_MOUND_1019, True, ())[0] == "natural"
+    assert eye._verdict(*BENCH_MOUND_1019, False, ())[0] in ("natural", "unclear")
+
+
+def test_a_nearly_rectangular_container_at_the_sharper_look_is_asked_about_not_natural() -> None:
+    """A container's outline joined by the sand's clutter (91 % of its box, 68 % straight) is
+    unclear at either look (another frame along the line would tell; the old rule said natural
+    at the sharper look); a rock of a car's size (at most 83 % of its box) stays natural."""
+    eye = Eye()
+    for settled in (False, True):
+        assert eye._verdict(*BENCH_CONTAINER_1033, settled, ())[0] == "unclear", settled
+        assert eye._verdict(*BENCH_DARK_ROCK, settled, ())[0] == "natural", settled
+    assert eye._verdict(4.0, 2.0, 0.82, 0.60, 0.95, 0.95, 4.2, True, ())[0] == "natural"
+
+
+def test_a_rendered_debris_patch_whose_pieces_merge_is_debris_at_the_sharper_look() -> None:
+    """Development scene 1016 of ``bench/eye.py``: a 3.7 m patch seen whole, its pieces merged
+    into one outline filling 84 % of its convex hull; at 3 layers it is asked about (unclear),
+    at 4 layers it is debris (natural by the old rule)."""
+    sc = _bench_scene(1016, "debris")
+    assert sc["whole"], "the frame holds the patch whole"
+    img = np.asarray(sc["image"])
+    enc = encode_image(img, CodingParams(layer_psnr=LAYER_PSNR))
+    mpp = metres_per_pixel(float(sc["altitude"]), img.shape[1], CAMERA_HFOV_DEG)  # type: ignore[arg-type]
+    looks = {}
+    for layers in (3, 4):
+        got = decode_packets(enc.params, enc.width, enc.height, split_packets(enc.body, enc.packet_starts,
+                                                                               enc.layer_end(layers)))
+        looks[layers] = Eye().look(got, mpp, settled=layers > 3)
+    first, sharper = looks[3][0], looks[4][0]
+    assert first.kind in ("unclear", "debris"), first.describe()
+    assert 0.82 < sharper.solidity <= EyeParams().max_debris_solidity, sharper.describe()
+    assert sharper.kind == "debris", sharper.describe()
 
 
 def test_metres_per_pixel_from_altitude_and_field_of_view() -> None:

@@ -44,7 +44,10 @@ scipy.ndimage):
    sharper look shows its sides; so is a whole object with a hull's length, aspect and taper
    whose outline is too rough for a hull (a blurred layer bends an outline, not a size or a
    taper), and at the sharper look while its measures are within
-   :attr:`EyeParams.hull_doubt` of a hull's: never ``natural``, which ends the candidate.
+   :attr:`EyeParams.hull_doubt` of a hull's: never ``natural``, which ends the candidate. Nor is
+   a whole object of a car's or a container's size that is nearly a rectangle (its measures
+   within :attr:`EyeParams.margin` of the rectangle's) at the sharper look: ``unclear``,
+   another frame would tell.
 
 The parameters (:class:`EyeParams`) were set on the development scenes of ``bench/eye.py`` only
 (rendered frames of every kind of object, seeds :data:`~coex_apps.demo.config.DEVELOPMENT_SEEDS`,
@@ -135,8 +138,9 @@ class EyeParams:
     #: hull's thresholds (``unclear``: another frame would tell)
     hull_doubt: float = 0.15
     #: debris: a ragged patch, filling at most this share of its convex hull (a rock, a mound
-    #: or a car fills 0.9 or more)
-    max_debris_solidity: float = 0.82
+    #: or a car fills 0.9 or more; issue 50: 0.82 -> 0.86, chosen after seeing development
+    #: scenes: patches called natural filled 0.83-0.93, decoys 0.89 or more, docs/demo.md)
+    max_debris_solidity: float = 0.86
     #: ... at least this wide (m), its outline this many times the sand's gradient (wreckage has
     #: hard edges; a burrow's trail or a patch of spines on real sand is thin and soft)
     min_debris_width: float = 1.0
@@ -526,6 +530,13 @@ class Eye:
                 return "unclear", "a hull's length and taper, its outline blurred: a sharper look would tell"
             if on_sides >= p.min_hull_sides - p.hull_doubt and box_fill >= p.min_hull_fill - p.hull_doubt:
                 return "unclear", "a hull's length and taper, its outline nearly a hull's: another frame would tell"
+        # nearly a rectangle of a car's or a container's size at the sharper look (a rock or a
+        # mound fills at most 0.83 of its box): another frame would tell, never natural (issue
+        # 50: a container's outline joined by the sand's clutter at 4 layers, 91 % filled)
+        car_size = within(length, p.car_length) and within(width, p.car_width)
+        container_size = within(length, p.container_length) and within(width, p.container_width)
+        if settled and near_rect and (car_size or container_size):
+            return "unclear", "nearly a rectangle of a car's or a container's size: another frame would tell"
         return "natural", "a rounded or irregular outline"
 
 

@@ -65,11 +65,17 @@ TARGET_SIZES = SIZES
 #: candidates scoring below this are not worth camera time
 MIN_SCORE = 0.05
 #: a bump of the received 1 m map peaks this high above its background (m), on a foot of at
-#: least two cells standing :data:`BUMP_FOOT` m above it (:func:`~coex_plugins.bathymetry.relief.
-#: bumps`): a small debris patch's main piece fills one cell, its smaller pieces raise the cells
-#: around (issue 56's fourth pass; ``docs/navigation.md``)
-BUMP_THRESHOLD = 0.7
+#: least :data:`BUMP_MIN_CELLS` cells standing :data:`BUMP_FOOT` m above it
+#: (:func:`~coex_plugins.bathymetry.relief.bumps`; the grid despiked first). A debris patch of 2
+#: to 3 m has a main piece of 1 to 1.5 m: averaged into the 1 m cells it stands 0.5 to 0.9 m in
+#: one cell, often with no neighbour 0.4 m up (issue 50: 0.7 m on a foot of two cells missed 32
+#: of 60 development patches); the sand's ripples and the soundings' noise make one-cell bumps of
+#: up to about 0.4 m (0.45 m: 6 bumps with no object in 30 development maps, 0.4 m: 31, 0.5 m:
+#: 4). Values chosen on the development maps of ``bench/map_targets.py`` (seeds 1000-1029), as
+#: ``docs/demo.md`` says.
+BUMP_THRESHOLD = 0.5
 BUMP_FOOT = 0.4
+BUMP_MIN_CELLS = 1
 #: layers of a requested image the vehicle sends first (its ``request_goal``: with the default
 #: quality marks 20 / 25 / 30 / 35 dB, layer 3 is where the frame first reaches 30 dB), and the
 #: most the operator asks for, in the region of the frame where something too blurry to tell
@@ -287,9 +293,10 @@ def _view(b: Bump, now: float) -> CandidateView:
 
 def map_bumps(bathy: Any, now: float = 0.0) -> list[CandidateView]:
     """Every bump of a bathymetry receiver's 1 m level, measured and scored: a peak
-    :data:`BUMP_THRESHOLD` m above its background on a foot of two cells or more
-    :data:`BUMP_FOOT` m above it (:func:`~coex_plugins.bathymetry.relief.bumps`, the grid
-    despiked first: a wild sounding on a car would make it a one-cell spike). With a corrected
+    :data:`BUMP_THRESHOLD` m above its background (one cell is enough: a small debris patch's
+    main piece) on a foot of :data:`BUMP_MIN_CELLS` cells or more :data:`BUMP_FOOT` m above it
+    (:func:`~coex_plugins.bathymetry.relief.bumps`, the grid despiked first: a wild sounding on a
+    car would make it a one-cell spike, and one on sand a bump). With a corrected
     map (a view that can ``place`` what is measured in the level as ``received``:
     :class:`~coex_plugins.navigation.CorrectedMap`), each bump is measured in the level as
     received and its centre placed by the map's correction: the corrected level is resampled by
@@ -305,8 +312,8 @@ def map_bumps(bathy: Any, now: float = 0.0) -> list[CandidateView]:
     meta = dict(p.meta)
     grid, cell = np.asarray(p.data, dtype=float), float(meta["cell_size"])
     x0, y0 = float(meta["x0"]), float(meta["y0"])
-    found = [b for _c, b in bumps(grid, cell=cell, x0=x0, y0=y0, threshold=BUMP_THRESHOLD, min_cells=2,
-                                  max_area=40.0, foot=BUMP_FOOT)]
+    found = [b for _c, b in bumps(grid, cell=cell, x0=x0, y0=y0, threshold=BUMP_THRESHOLD,
+                                  min_cells=BUMP_MIN_CELLS, max_area=40.0, foot=BUMP_FOOT)]
     if found and place is not None and source is not bathy:
         xy = np.asarray(place(0, [b.x for b in found], [b.y for b in found]), dtype=np.float64)
         found = [replace(b, x=float(x), y=float(y)) for b, (x, y) in zip(found, xy, strict=True)]
