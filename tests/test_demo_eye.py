@@ -397,21 +397,27 @@ def _bench_scene(seed: int, kind: str = "hull") -> dict[str, object]:
     return scene
 
 
+def _first_and_sharper_looks(sc: dict) -> tuple:  # type: ignore[type-arg]
+    """The eye's first finding in a bench scene's frame coded as the demo codes it, decoded at 3
+    layers (the first look) and at 4 (the sharper look, settled)."""
+    img = np.asarray(sc["image"])
+    enc = encode_image(img, CodingParams(layer_psnr=LAYER_PSNR))
+    mpp = metres_per_pixel(float(sc["altitude"]), img.shape[1], CAMERA_HFOV_DEG)
+    looks = {}
+    for layers in (3, 4):
+        got = decode_packets(enc.params, enc.width, enc.height, split_packets(enc.body, enc.packet_starts,
+                                                                               enc.layer_end(layers)))
+        looks[layers] = Eye().look(got, mpp, settled=layers > 3)
+    return looks[3][0], looks[4][0]
+
+
 def test_a_rendered_whole_hull_blurred_at_the_first_look_is_asked_about_not_natural() -> None:
     """Development scene 1000 of ``bench/eye.py``: a 4.1 m hull seen whole; at 3 layers (the
     first look) its outline is 51 % straight and its box 75 % filled (the old rule said natural,
     which ends the candidate); the eye asks for the sharper look, at which it is a hull."""
     sc = _bench_scene(1000)
     assert sc["whole"], "the frame holds the hull whole"
-    img = np.asarray(sc["image"])
-    enc = encode_image(img, CodingParams(layer_psnr=LAYER_PSNR))
-    mpp = metres_per_pixel(float(sc["altitude"]), img.shape[1], CAMERA_HFOV_DEG)  # type: ignore[arg-type]
-    looks = {}
-    for layers in (3, 4):
-        got = decode_packets(enc.params, enc.width, enc.height, split_packets(enc.body, enc.packet_starts,
-                                                                               enc.layer_end(layers)))
-        looks[layers] = Eye().look(got, mpp, settled=layers > 3)
-    first, sharper = looks[3][0], looks[4][0]
+    first, sharper = _first_and_sharper_looks(sc)
     assert first.on_sides < EyeParams().min_hull_sides, first.describe()  # the blurred outline
     assert first.kind == "unclear", first.describe()
     assert sharper.kind == "hull", sharper.describe()
@@ -459,15 +465,7 @@ def test_a_rendered_debris_patch_whose_pieces_merge_is_debris_at_the_sharper_loo
     at 4 layers it is debris (natural by the old rule)."""
     sc = _bench_scene(1016, "debris")
     assert sc["whole"], "the frame holds the patch whole"
-    img = np.asarray(sc["image"])
-    enc = encode_image(img, CodingParams(layer_psnr=LAYER_PSNR))
-    mpp = metres_per_pixel(float(sc["altitude"]), img.shape[1], CAMERA_HFOV_DEG)  # type: ignore[arg-type]
-    looks = {}
-    for layers in (3, 4):
-        got = decode_packets(enc.params, enc.width, enc.height, split_packets(enc.body, enc.packet_starts,
-                                                                               enc.layer_end(layers)))
-        looks[layers] = Eye().look(got, mpp, settled=layers > 3)
-    first, sharper = looks[3][0], looks[4][0]
+    first, sharper = _first_and_sharper_looks(sc)
     assert first.kind in ("unclear", "debris"), first.describe()
     assert 0.82 < sharper.solidity <= EyeParams().max_debris_solidity, sharper.describe()
     assert sharper.kind == "debris", sharper.describe()
