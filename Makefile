@@ -53,7 +53,7 @@ ros: install
 # three workers on CI's two cores: a third of the suite's wall time is tests waiting on real
 # servers, browsers, ROS and daemons, and a third worker runs while they wait (docs/testing.md)
 pytest: install moos ros
-	$(VENV)/bin/pytest -n 4 $(PYTEST_ARGS)
+	$(VENV)/bin/pytest -n 3 $(PYTEST_ARGS)
 
 # everything: CI's target (.ci/run). pyproject's addopts give each test file whole to one worker
 # (--dist loadfile) and tests/conftest.py starts the files with slow end-to-end tests first.
