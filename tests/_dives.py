@@ -72,18 +72,22 @@ def quick_short() -> Scenario:
 
 def quick_short_file(path: Path) -> Path:
     """:data:`QUICK_SHORT` as a scenario file (``coex demo --quick --scenario PATH``): the same
-    scenario as :func:`quick_short`, so the two dives' frames are the same and coded once."""
-    path.write_text("".join(f"{k} = {json.dumps(v)}\n" for k, v in QUICK_SHORT.items()))
-    return path
+    scenario as :func:`quick_short` but for its name (the file's), so the two dives' frames are the
+    same and coded once."""
+    return _scenario_file(path, QUICK_SHORT)
 
 
 def small_file(path: Path, **top: Any) -> Path:
     """:data:`SMALL` as a scenario file (``coex demo --scenario PATH``), written to ``path``, with
     the top-level keys ``top`` replaced (``duration=1000.0``)."""
+    return _scenario_file(path, {**SMALL, **top})
+
+
+def _scenario_file(path: Path, data: dict[str, Any]) -> Path:
+    """``data`` (a scenario's top-level keys and its one-level sections) as TOML at ``path``."""
     def lines(table: dict[str, Any]) -> list[str]:
         return [f"{k} = {json.dumps(v)}" for k, v in table.items() if not isinstance(v, dict)]
 
-    data = {**SMALL, **top}
     text = lines(data) + [f"[{k}]\n" + "\n".join(lines(v)) for k, v in data.items() if isinstance(v, dict)]
     path.write_text("\n".join(text) + "\n")
     return path
