@@ -64,6 +64,10 @@ __all__ = ["CameraLine", "CandidateView", "Operator", "camera_altitude", "map_bu
 TARGET_SIZES = SIZES
 #: candidates scoring below this are not worth camera time
 MIN_SCORE = 0.05
+#: a bump of the received 1 m map is the same candidate as one within this distance (m); a
+#: candidate of the map alone with no bump of the map as it is now within it is gone (not worth
+#: camera time until it shows again: :meth:`Operator.watch_map`)
+GONE_RADIUS = 4.0
 #: a bump of the received 1 m map peaks this high above its background (m), on a foot of at
 #: least :data:`BUMP_MIN_CELLS` cells standing :data:`BUMP_FOOT` m above it
 #: (:func:`~coex_plugins.bathymetry.relief.bumps`; the grid despiked first). A debris patch of 2
@@ -151,6 +155,9 @@ class CandidateView:
     detected_at: float | None = None
     #: the operator measured it in the received 1 m map (not only the vehicle's measures)
     measured: bool = True
+    #: when the received 1 m map last stopped showing it (a bump of the map alone, no camera line
+    #: sent yet): not worth camera time while the map does not show it (:meth:`Operator.watch_map`)
+    gone_at: float | None = None
     #: the camera pass over it: a survey command sent for it (and not refused), then what the
     #: operator made of the images
     planned: bool = False
@@ -397,8 +404,10 @@ class Operator:
         return [v for v in map_bumps(self.bathy, now) if self.inside(v.x, v.y)]
 
     def ranked(self) -> list[CandidateView]:
-        """Candidates worth camera time, most car-like first."""
-        return sorted((c for c in self.candidates if c.score >= MIN_SCORE), key=lambda c: -c.score)
+        """Candidates worth camera time, most car-like first: scoring :data:`MIN_SCORE` or more,
+        and shown by the received map as it is now (not :attr:`CandidateView.gone_at`)."""
+        return sorted((c for c in self.candidates if c.score >= MIN_SCORE and c.gone_at is None),
+                      key=lambda c: -c.score)
 
     def watch_map(self, now: float, views: list[CandidateView] | None = None) -> None:
         """Ask for 1 m data around coarse bumps; measure and rank the bumps of the 1 m map
@@ -434,13 +443,18 @@ class Operator:
                 self.bathy.request_area(level, x0, y0, x1 - 1e-3, y1 - 1e-3)
             self.log(now, "ROI request", f"level {level} ({2 ** level} m) over the whole survey box: the "
                      "overview map")
-        for v in self.measured(now) if views is None else views:
-            old = next((c for c in self.candidates if math.hypot(c.x - v.x, c.y - v.y) < 4.0), None)
+        views = self.measured(now) if views is None else views
+        for v in views:
+            old = next((c for c in self.candidates if math.hypot(c.x - v.x, c.y - v.y) < GONE_RADIUS), None)
             if old is None:
                 self.candidates.append(v)
                 if v.score >= MIN_SCORE:
                     self.log(now, "candidate at 1 m", self._describe(v))
             elif not old.planned:  # more data came in: measure again; once flagged, stay flagged
+                if old.gone_at is not None:
+                    old.gone_at = None
+                    if max(v.score, old.score) >= MIN_SCORE:
+                        self.log(now, "candidate at 1 m", "the received map shows a bump again at " + self._describe(v))
                 was = old.score
                 old.x, old.y, old.height, old.cells = v.x, v.y, v.height, v.cells
                 old.length, old.width, old.orientation = v.length, v.width, v.orientation
@@ -450,6 +464,23 @@ class Operator:
                 old.flatness, old.measured = v.flatness, True
                 if was < MIN_SCORE <= v.score:
                     self.log(now, "candidate at 1 m", self._describe(old))
+        self._forget_gone(now, views)
+
+    def _forget_gone(self, now: float, views: list[CandidateView]) -> None:
+        """A bump of the received 1 m map alone (no detection of the vehicle's), no camera line
+        sent for it yet, that the map as it is now no longer shows (no bump within
+        :data:`GONE_RADIUS`) is not worth camera time until it shows again: a low bump of a
+        partly received map (the edge of what is held, one pass's soundings over ground two
+        passes cover) often goes when the rest of its neighbourhood arrives."""
+        for c in self.candidates:
+            if c.detection is not None or not c.measured or c.planned or c.done or c.gone_at is not None:
+                continue
+            if any(math.hypot(c.x - v.x, c.y - v.y) < GONE_RADIUS for v in views):
+                continue
+            c.gone_at = now
+            if c.score >= MIN_SCORE:
+                self.log(now, "candidate gone", f"the received 1 m map no longer shows a bump at ({c.x:.1f}, "
+                         f"{c.y:.1f}) (car-likeness {c.score:.2f} when it did): no camera time unless it shows again")
 
     def slow_link(self) -> bool:
         """Whether the vehicle's link is slow, as topside can tell: what the vehicle's slots
