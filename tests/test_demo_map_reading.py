@@ -4,12 +4,13 @@ candidate worth camera time; the sand's ripples and its soundings' noise are not
 from __future__ import annotations
 
 import math
+from types import SimpleNamespace
 from typing import Any
 
 import numpy as np
 import pytest
 
-from coex_apps.demo.operator import BUMP_THRESHOLD, MIN_SCORE, map_bumps
+from coex_apps.demo.operator import BUMP_THRESHOLD, MIN_SCORE, Operator, map_bumps
 from coex_plugins.bathymetry.sim import Seafloor, Target
 
 SIZE = 64
@@ -70,3 +71,58 @@ def test_rippled_sand_with_noisy_soundings_has_no_candidate(seed: int) -> None:
     assert [v for v in map_bumps(_Level(z)) if v.score >= MIN_SCORE] == []
     z[20, 40] += 3.0
     assert [v for v in map_bumps(_Level(z)) if v.score >= MIN_SCORE] == []
+
+
+class _Bathy(_Level):
+    """A bathymetry receiver as the operator uses it: its 1 m level (swapped as more arrives),
+    and area requests (none open)."""
+
+    def levels(self) -> list[int]:
+        return [0]
+
+    def active_regions(self) -> list[Any]:
+        return []
+
+    def request_area(self, *args: Any, **kwargs: Any) -> None:
+        pass
+
+
+def _operator(bathy: _Bathy) -> Operator:
+    manager = SimpleNamespace(peer_throughput=lambda vehicle: 100.0, low_throughput=10.0)
+    receivers = {"bathymetry": bathy, "imagery": SimpleNamespace(), "survey": SimpleNamespace()}
+    return Operator(SimpleNamespace(manager=manager), receivers, (0.0, 0.0, float(SIZE), float(SIZE)),
+                    lambda *a, **k: None, camera_altitude=5.0)
+
+
+def _ranked_near(op: Operator, x: float, y: float) -> list[Any]:
+    return [c for c in op.ranked() if math.hypot(c.x - x, c.y - y) <= 3.5]
+
+
+@pytest.mark.parametrize("seed", [3, 4])
+def test_a_bump_the_map_no_longer_shows_costs_no_camera_line(seed: int) -> None:
+    """Issue 50/55: a one-cell bump of a partly received map (here a cell 0.7 m up, as one pass's
+    soundings or the edge of what is held make it) is a candidate while the map shows it; when
+    more of the map arrives and it is gone, it is not worth camera time (no camera line over
+    sand), and it is again if the map shows it again. A small debris patch the map keeps
+    showing stays a candidate throughout."""
+    patch = PATCHES[0]
+    full = _map((patch,), seed=seed)
+    partial = full.copy()
+    partial[:, 48:] = np.nan  # the east of the site not received yet
+    ghost = (44, 12)  # column, row: a cell of the held part, near its edge
+    partial[ghost[1], ghost[0]] += 0.7
+    bathy = _Bathy(partial)
+    op = _operator(bathy)
+    op.watch_map(600.0)
+    gx, gy = ghost[0] + 0.5, ghost[1] + 0.5
+    assert _ranked_near(op, gx, gy), op.candidates  # a candidate while the map shows it
+    assert _ranked_near(op, patch.x, patch.y)
+    bathy.data = full  # the rest of the map arrived: the cell is sand
+    op.watch_map(660.0)
+    assert not _ranked_near(op, gx, gy), op.ranked()
+    assert _ranked_near(op, patch.x, patch.y)
+    again = full.copy()
+    again[ghost[1], ghost[0]] += 0.7
+    bathy.data = again
+    op.watch_map(720.0)
+    assert _ranked_near(op, gx, gy)
