@@ -90,7 +90,8 @@ class _Bathy(_Level):
 def _operator(bathy: _Bathy) -> Operator:
     manager = SimpleNamespace(peer_throughput=lambda vehicle: 100.0, low_throughput=10.0)
     receivers = {"bathymetry": bathy, "imagery": SimpleNamespace(), "survey": SimpleNamespace()}
-    return Operator(SimpleNamespace(manager=manager), receivers, (0.0, 0.0, float(SIZE), float(SIZE)),
+    topside: Any = SimpleNamespace(manager=manager)  # what the operator reads of its node: the link's rate
+    return Operator(topside, receivers, (0.0, 0.0, float(SIZE), float(SIZE)),
                     lambda *a, **k: None, camera_altitude=5.0)
 
 
