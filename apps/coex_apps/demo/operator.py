@@ -5,7 +5,9 @@ operators did by hand, deciding only from what reached topside.
   level around them; in the 1 m map it measures each bump (height above the local background,
   footprint, length, width and orientation from the cells' second moments) and scores how
   target-like it is (:func:`target_likeness`: an object of the sizes sought, :data:`TARGET_SIZES`,
-  2 to 8 m long by default; a spike or a wide hummock scores low). Candidates are visited in
+  2 to 8 m long by default; a spike or a wide hummock scores low). A bump of the map alone that
+  the map as it is now no longer shows (a low bump of a partly received map, gone when the rest
+  of its ground arrived) gets no camera line unless it shows again. Candidates are visited in
   that order while camera time remains: the operator sends the vehicle one survey command per
   candidate (a camera line across its long axis, high enough for a frame to hold it:
   :func:`camera_altitude`, queued behind the lines already sent), over the acoustic link like
