@@ -348,18 +348,12 @@ class ImagerySender(ModalitySender):
         flight (sent within ``rto`` and not found lost)."""
         n = 0
         for tx in self.images.values():
-            unheld = ~tx.acked
-            n += self._due(tx, unheld if tx.goal > 0 and not tx.needs() else unheld & tx.wanted(), now)
+            due = ~tx.acked & (tx.sent_at <= now - self.rto)
+            if tx.goal > 0 and not tx.needs():
+                n += int(np.count_nonzero(due))
+            else:
+                n += int(np.count_nonzero(due & tx.wanted()))
         return n
-
-    def _due(self, tx: _Tx, mask: npt.NDArray[np.bool_], now: float) -> int:
-        """How many bytes of ``mask`` were last sent ``rto`` ago or more (or never): looked for
-        only between the first and the last byte of ``mask``."""
-        a = int(np.argmax(mask)) if mask.size else 0
-        if not mask.size or not mask[a]:
-            return 0
-        b = len(mask) - int(np.argmax(mask[::-1]))
-        return int(np.count_nonzero(mask[a:b] & (tx.sent_at[a:b] <= now - self.rto)))
 
     def unacked_fragments(self) -> int:
         n = 0
@@ -584,8 +578,9 @@ class ImagerySender(ModalitySender):
         flight (sent within ``rto``)."""
         now = self._last_now
         if self._low:
-            return sum(self._due(tx, tx.wanted() & ~tx.acked, now) for tx in self._previews())
-        return sum(self._due(tx, ~tx.acked, now) for tx in self._spare_order())
+            return sum(int(np.count_nonzero(tx.wanted() & ~tx.acked & (tx.sent_at <= now - self.rto)))
+                       for tx in self._previews())
+        return sum(int(np.count_nonzero(~tx.acked & (tx.sent_at <= now - self.rto))) for tx in self._spare_order())
 
     def _marked(self, tx: _Tx, pos: int, goal: int | None) -> bool:
         """Whether a fragment starting at ``pos`` carries packet marks (see ``marks``)."""
