@@ -602,7 +602,7 @@ class ImagerySender(ModalitySender):
         a = int(np.argmax(want)) if want.size else 0
         if not want.size or not want[a]:
             return None
-        b = tx.total - int(np.argmax(want[::-1]))
+        b = tx.total if want[-1] else tx.total - int(np.argmax(want[::-1]))  # mostly a tail
         want = want[a:b]
         sent_at = tx.sent_at[a:b]
         ready = want & (sent_at <= now - self.rto)
