@@ -116,6 +116,58 @@ def _builder(con: cs.Construct) -> Any:
 
 _BUILDERS: dict[int, Any] = {tid: _builder(con) for tid, con in _BODIES.items()}
 
+# construct's bit conversions, one byte (8 bits) at a time: what a bit-packed body's
+# ``Restreamed`` streams call for every byte they read or write (``Bitwise`` reads one byte at a
+# time, ``Bytewise`` data fields 8 bits at a time), through a generator each call
+_BYTE_BITS: dict[bytes, bytes] = {bytes([i]): cs.lib.bytes2bits(bytes([i])) for i in range(256)}
+_BITS_BYTE: dict[bytes, bytes] = {bits: byte for byte, bits in _BYTE_BITS.items()}
+
+
+def _bytes2bits(data: Any) -> bytes:
+    """construct's ``bytes2bits`` (the same value, the same errors), one byte by a lookup."""
+    if type(data) is bytes:
+        bits = _BYTE_BITS.get(data)
+        if bits is not None:
+            return bits
+    out: bytes = cs.lib.bytes2bits(data)
+    return out
+
+
+def _bits2bytes(data: Any) -> bytes:
+    """construct's ``bits2bytes`` (the same value, the same errors), 8 bits by a lookup."""
+    if type(data) is bytes:
+        byte = _BITS_BYTE.get(data)
+        if byte is not None:
+            return byte
+    out: bytes = cs.lib.bits2bytes(data)
+    return out
+
+
+_FAST = {cs.lib.bytes2bits: _bytes2bits, cs.lib.bits2bytes: _bits2bytes}
+
+
+def _fast_conversions(con: Any, seen: set[int]) -> None:
+    """Every ``Restreamed`` stream in ``con`` (``Bitwise``, ``Bytewise`` of a variable size)
+    converts with the lookups above instead of construct's functions: the same bytes and
+    bits, the same errors (anything but one byte or 8 bits goes to construct's own)."""
+    if id(con) in seen:
+        return
+    seen.add(id(con))
+    if isinstance(con, cs.Restreamed):
+        con.decoder = _FAST.get(con.decoder, con.decoder)
+        con.encoder = _FAST.get(con.encoder, con.encoder)
+    for value in vars(con).values():
+        for sub in (value.values() if isinstance(value, dict) else
+                    value if isinstance(value, list | tuple) else (value,)):
+            if isinstance(sub, cs.Construct):
+                _fast_conversions(sub, seen)
+
+
+_seen: set[int] = set()
+for _con in _BODIES.values():  # after _BUILDERS: _builder recognises construct's bits2bytes
+    _fast_conversions(_con, _seen)
+del _seen, _con
+
 
 # ------------------------------------------------------------------ Container <-> dataclass
 

@@ -597,18 +597,27 @@ class ImagerySender(ModalitySender):
     def _fragment(self, tx: _Tx, left: int, now: float, trailing: bool = False,
                   goal: int | None = None) -> ImageFragment | ImageShortFragment | None:
         want = tx.wanted(goal) & ~tx.acked
-        ready = want & (tx.sent_at <= now - self.rto)
+        # the bytes wanted lie in [a, b): what is ready is looked for there only (an image mostly
+        # held topside, or one whose goal is a short prefix, has few of them)
+        a = int(np.argmax(want)) if want.size else 0
+        if not want.size or not want[a]:
+            return None
+        b = tx.total if want[-1] else tx.total - int(np.argmax(want[::-1]))  # mostly a tail
+        want = want[a:b]
+        sent_at = tx.sent_at[a:b]
+        ready = want & (sent_at <= now - self.rto)
         sends = tx.sends
         copies = self.copies() if tx.explicit is not None else 1
         if copies > 1:
             # a requested image under loss: its bytes go again in the next packet, up to
             # ``copies`` times, without waiting for an ack that takes a TDMA cycle to come
-            ready |= want & (sends < copies) & (tx.sent_at < now)
+            ready |= want & (sends[a:b] < copies) & (sent_at < now)
         if not ready.any():
             return None
-        pos = int(np.argmax(ready))
-        stop_rel = np.flatnonzero(~ready[pos:])
-        run = int(stop_rel[0]) if len(stop_rel) else tx.total - pos
+        first = int(np.argmax(ready))
+        pos = a + first
+        stop_rel = np.flatnonzero(~ready[first:])
+        run = int(stop_rel[0]) if len(stop_rel) else b - pos  # want (so ready) is False from b on
         starts = tx.enc.packet_starts
         marked = self._marked(tx, pos, goal)
         left = min(left, MAX_MESSAGE)
