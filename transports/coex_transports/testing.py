@@ -11,8 +11,8 @@ bind, or while a server is down to be restarted on it) can be taken, and the chi
 
 :func:`free_port` instead gives ports *below* the ephemeral range, which the kernel never hands
 out on its own, so only an explicit bind can take them; and each port given is reserved for the
-life of the process that asked, by a lock on a file named after it (``coex-ports-UID/`` in the
-temporary directory): every caller on the machine (each xdist worker, another checkout's test
+life of the process that asked, by a lock on a file named after it (``/tmp/coex-ports-UID/``,
+whatever the process's ``TMPDIR``): every caller on the machine (each xdist worker, another checkout's test
 run, a benchmark) skips a port another process holds. A port is also checked free (TCP and UDP,
 without ``SO_REUSEADDR``, so a connection of an earlier user still in TIME_WAIT counts as taken).
 """
@@ -51,7 +51,9 @@ def _candidates() -> range:
 
 
 def _lock(port: int) -> bool:
-    d = Path(tempfile.gettempdir()) / f"coex-ports-{os.getuid()}"
+    # one directory for every process of the machine, whatever its TMPDIR (a test may give a
+    # child process a TMPDIR of its own)
+    d = (Path("/tmp") if Path("/tmp").is_dir() else Path(tempfile.gettempdir())) / f"coex-ports-{os.getuid()}"
     d.mkdir(exist_ok=True)
     fd = os.open(d / str(port), os.O_RDWR | os.O_CREAT, 0o600)
     try:
