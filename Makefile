@@ -50,10 +50,10 @@ moos: install
 ros: install
 	@bash scripts/ros.sh $(PY)
 
-# three workers on CI's two cores: a third of the suite's wall time is tests waiting on real
-# servers, browsers, ROS and daemons, and a third worker runs while they wait (docs/testing.md)
+# four workers on CI's two cores: the suite's tests wait on real servers, browsers, ROS and
+# daemons about a quarter of the time, and the extra workers run while they wait (docs/testing.md)
 pytest: install moos ros
-	$(VENV)/bin/pytest -n 3 $(PYTEST_ARGS)
+	$(VENV)/bin/pytest -n 4 $(PYTEST_ARGS)
 
 # everything: CI's target (.ci/run). pyproject's addopts give each test file whole to one worker
 # (--dist loadfile) and tests/conftest.py starts the files with slow end-to-end tests first.
@@ -65,7 +65,7 @@ test: lint install moos ros
 # the quick loop while developing: lint, types and every test not marked slow (the whole demo
 # dives, Chromium, ROS, MOOS-IvP, daemons on simulated modems run only in `make test`)
 test-fast: lint typecheck install moos ros
-	$(VENV)/bin/pytest -n 3 -m "not slow" $(PYTEST_ARGS)
+	$(VENV)/bin/pytest -n 4 -m "not slow" $(PYTEST_ARGS)
 
 bench: install
 	@mkdir -p bench/results

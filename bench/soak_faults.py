@@ -93,6 +93,7 @@ from coex_plugins import convergence
 from coex_plugins.autonomy.mavpeer import MissionPeer
 from coex_transports.micromodem.simulator import ModemNetwork, SimLoop
 from coex_transports.recovery import ResilientTransport
+from coex_transports.testing import free_port as _free_udp_port
 
 ROOT = Path(__file__).resolve().parents[1]
 VEHICLE, TOPSIDE = 2, 1
@@ -711,14 +712,6 @@ http = "127.0.0.1:0"
         logging.getLogger().removeHandler(self.log)
         logging.getLogger().setLevel(getattr(self, "_level", logging.WARNING))
         self.log.close()
-
-
-def _free_udp_port() -> int:
-    import socket
-
-    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
 
 
 def report(r: dict[str, Any]) -> list[str]:

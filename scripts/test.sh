@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # `make test` after lint and install: `make typecheck` (scripts/typecheck.sh) in the background
-# beside `pytest -n 3` (the rest of the arguments are pytest's). Strict mypy is about 35 s of one
+# beside `pytest -n 4` (the rest of the arguments are pytest's). Strict mypy is about 35 s of one
 # core from a cold cache; pytest leaves CPU idle while tests wait on servers, browsers and
 # daemons, so the two together take pytest's time. mypy runs at a lower priority (nice 10): it
 # takes the CPU the tests leave idle instead of slowing the dives that start the run. Its output
@@ -15,7 +15,7 @@ typecheck=$!
 # rewriting, about 9 s of CPU) and the modules they import once and writes them (.pyc, see the
 # Makefile on PYTHONDONTWRITEBYTECODE), instead of every worker doing all of it at once
 "$venv/bin/pytest" --collect-only -q -p no:xdist -o addopts="" >/dev/null 2>&1 || true
-"$venv/bin/pytest" -n 3 "$@"
+"$venv/bin/pytest" -n 4 "$@"
 tests=$?
 wait "$typecheck"
 types=$?

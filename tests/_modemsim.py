@@ -11,25 +11,16 @@ import time
 from collections.abc import Iterator
 from pathlib import Path
 
+from coex_transports.testing import free_port
+
 ROOT = Path(__file__).resolve().parents[1]
 
 
 def free_tcp_base(n: int = 2, kind: int = socket.SOCK_STREAM) -> int:
-    """A base port with ``n`` consecutive free ports (TCP; ``kind=socket.SOCK_DGRAM``: UDP)."""
-    for _ in range(50):
-        with socket.socket(socket.AF_INET, kind) as s:
-            s.bind(("127.0.0.1", 0))
-            base = int(s.getsockname()[1])
-        if base + n >= 65000:
-            continue
-        try:
-            for i in range(n):
-                with socket.socket(socket.AF_INET, kind) as t:
-                    t.bind(("127.0.0.1", base + i))
-            return base
-        except OSError:
-            continue
-    raise RuntimeError("no free ports")
+    """A base port with ``n`` consecutive free ports (TCP and UDP, whatever ``kind``), reserved
+    for this process (:func:`coex_transports.testing.free_port`)."""
+    del kind  # both are checked free
+    return free_port(n)
 
 
 @contextlib.contextmanager

@@ -9,13 +9,14 @@ import importlib.util
 import os
 import shutil
 import signal
-import socket
 import subprocess
 import sys
 import tempfile
 import time
 import xmlrpc.client
 from pathlib import Path
+
+from coex_transports.testing import free_port
 
 ROOT = Path(__file__).resolve().parents[1]
 PEER = ROOT / "tests" / "_ros_peer.py"
@@ -66,12 +67,6 @@ def _die_with_parent() -> None:
     except (OSError, AttributeError):
         pass
     os.setsid()  # its own process group: roscore's children (rosmaster, rosout) go with it
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
 
 
 def ros_env(master: str, home: Path, base: dict[str, str] | None = None) -> dict[str, str]:

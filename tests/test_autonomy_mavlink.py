@@ -6,7 +6,6 @@ from __future__ import annotations
 import json
 import math
 import os
-import socket
 import subprocess
 import sys
 import time
@@ -23,16 +22,11 @@ from coex_core.messages import SurveyKind, SurveyReason, SurveyState
 from coex_plugins.autonomy.mavlink import MavlinkAutonomy, mission_items
 from coex_plugins.autonomy.mavpeer import MissionPeer
 from coex_plugins.survey.plan import SurveyPlan, SurveyReport
+from coex_transports.testing import free_port
 
 CTX = InputContext(origin_lat=41.5, origin_lon=-70.7)
 PTS = ((10.0, 0.0), (10.0, 10.0), (0.0, 10.0))
 ROOT = Path(__file__).resolve().parents[1]
-
-
-def free_port() -> int:
-    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
 
 
 def _plan(sid: int = 7, pts: tuple[tuple[float, float], ...] = PTS, **kw: object) -> SurveyPlan:

@@ -10,7 +10,6 @@ completed; a fourth, whose autopilot dies while flying it, "autopilot silent".""
 from __future__ import annotations
 
 import json
-import socket
 import time
 import urllib.request
 from collections.abc import Callable, Iterator
@@ -25,6 +24,7 @@ from coex_apps.console.cli import TopsideApp, topside_from_config
 from coex_apps.vehicle.config import load
 from coex_apps.vehicle.daemon import VehicleApp
 from coex_plugins.autonomy.mavpeer import MissionPeer
+from coex_transports.testing import free_port as _free_udp_port
 
 KEY = "00112233445566778899aabbccddeeff00112233445566778899aabbccddeeff"
 COMMON = """
@@ -70,12 +70,6 @@ http = "127.0.0.1:0"
 uri = "mavlink:udpin:127.0.0.1:{link}?sysid=1&compid=190"
 packet_seconds = 0.2
 """ + COMMON
-
-
-def _free_udp_port() -> int:
-    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
 
 
 def _wait(what: str, cond: Callable[[], Any], timeout: float = 60.0) -> Any:

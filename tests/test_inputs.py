@@ -332,9 +332,9 @@ def test_docs_give_every_option_and_valid_examples() -> None:
     assert check_options(ctd, {"port": True}) == ["port: not an integer, got true"]
     import socket
 
-    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as probe:
-        probe.bind(("127.0.0.1", 0))
-        port = probe.getsockname()[1]
+    from coex_transports.testing import free_port
+
+    port = free_port()
     adapter = ctd({"port": port}, InputContext())
     adapter.open()
     try:

@@ -16,17 +16,12 @@ import pytest
 from coex import Image, InputContext, Item, Nav, Samples, check_options
 from coex_core.errors import ConfigError
 from coex_plugins.inputs.mavlink import MavlinkInput, pressure_depth
+from coex_transports.testing import free_port as free_udp_port
 
 mavutil = pytest.importorskip("pymavlink.mavutil")
 from pymavlink.dialects.v20 import ardupilotmega as v20  # noqa: E402
 
 OLD = time.time() - 3600.0
-
-
-def free_udp_port() -> int:
-    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
 
 
 def sender(port: int, system: int = 1, mavlink2: bool = False) -> Any:
@@ -174,9 +169,7 @@ def test_captured_images(tmp_path: Path, caplog: pytest.LogCaptureFixture) -> No
 
 
 def test_a_connection_that_cannot_open_is_retried(caplog: pytest.LogCaptureFixture) -> None:
-    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
-        s.bind(("127.0.0.1", 0))
-        port = s.getsockname()[1]  # nothing listens on it
+    port = free_udp_port()  # reserved for this process: nothing listens on it
     adapter = MavlinkInput({"connection": f"tcp:127.0.0.1:{port}"}, InputContext())
     with caplog.at_level(logging.WARNING):
         adapter.open()  # logged, not raised

@@ -14,18 +14,13 @@ import pytest
 from coex import InputContext, Item, Nav, Samples, check_options
 from coex_core.errors import ConfigError
 from coex_plugins.inputs.nmea import NmeaError, NmeaInput, checksum, parse_sentence
+from coex_transports.testing import free_port as free_udp_port
 
 KNOT = 1852.0 / 3600.0
 
 
 def nmea(body: str) -> str:
     return f"${body}*{checksum(body):02X}\r\n"
-
-
-def free_udp_port() -> int:
-    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
 
 
 def collect(adapter: NmeaInput, now: float, want: int, timeout: float = 3.0) -> list[Item]:

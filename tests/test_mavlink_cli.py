@@ -10,14 +10,9 @@ from pathlib import Path
 
 from coex_core.messages import FrameHeader, Opaque
 from coex_core.wire import pack, unpack_frame
+from coex_transports.testing import free_port as _free_port
 
 COEX = [str(Path(sys.executable).with_name("coex"))]
-
-
-def _free_port() -> int:
-    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
 
 
 def _wait_bound(port: int, proc: subprocess.Popen[str], limit: float = 20.0) -> None:

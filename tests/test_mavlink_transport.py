@@ -24,18 +24,8 @@ from coex_core.messages import FrameHeader, Opaque
 from coex_core.registry import open_transport
 from coex_core.wire import pack, unpack_frame
 from coex_transports.mavlink import PAYLOAD_TYPE, MavlinkTransport, parse_mavlink_uri, split_frame
-
-
-def free_udp_port() -> int:
-    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
-
-
-def free_tcp_port() -> int:
-    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
+from coex_transports.testing import free_port as free_tcp_port
+from coex_transports.testing import free_port as free_udp_port
 
 
 def coex_frames() -> list[bytes]:

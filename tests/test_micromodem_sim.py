@@ -248,11 +248,9 @@ def test_modem_sim_command_prints_device_paths() -> None:
     lines = proc.stdout.splitlines()
     assert [x.split(":")[0] for x in lines] == ["modem 1", "modem 2", "modem 3"]
     assert all(x.split(": ")[1].startswith("/dev/") for x in lines)
-    import socket
+    from coex_transports.testing import free_port
 
-    with socket.socket() as probe:
-        probe.bind(("127.0.0.1", 0))
-        base = probe.getsockname()[1]
+    base = free_port(2)
     proc = subprocess.run([*COEX, "modem-sim", "--tcp-base", str(base), "--duration", "0.3"], capture_output=True,
                           text=True, timeout=60)
     assert proc.returncode == 0, proc.stderr

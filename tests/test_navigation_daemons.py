@@ -7,7 +7,6 @@ reaches the vehicle in its own frame."""
 from __future__ import annotations
 
 import math
-import socket
 from pathlib import Path
 from typing import Any
 
@@ -22,6 +21,7 @@ from coex_apps.vehicle.daemon import VehicleApp
 from coex_plugins.bathymetry.sim import Seafloor
 from coex_plugins.navigation import LocalFrame
 from coex_transports.micromodem.simulator import ModemNetwork, SimLoop
+from coex_transports.testing import free_port as _free_udp_port
 
 COMMON = """
 [tdma]
@@ -31,12 +31,6 @@ guard = 1.0
 [modalities.survey]
 stream = 7
 """
-
-
-def _free_udp_port() -> int:
-    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
 
 
 class DeadReckoned(Input):

@@ -13,6 +13,8 @@ from pathlib import Path
 
 import pytest
 
+from coex_transports.testing import free_port as _free_port
+
 ROOT = Path(__file__).resolve().parents[1]
 GUIDE = ROOT / "docs" / "plugins.md"
 FILE = re.compile(r"<!-- file: (?P<path>[^ ]+) -->\n```[a-z]*\n(?P<body>.*?)\n```", re.S)
@@ -69,14 +71,6 @@ def test_plugins_check_names_a_plugin_without_conformance_inputs(installed: dict
 
 
 EXAMPLE = re.compile(r"<!-- example: (?P<path>[^ ]+) -->\n```[a-z]*\n(?P<body>.*?)\n```", re.S)
-
-
-def _free_port() -> int:
-    import socket
-
-    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
 
 
 def test_the_guides_transport_passes_the_transport_conformance_tests(tmp_path: Path) -> None:

@@ -16,6 +16,7 @@ from coex_core.errors import ConfigError, FrameTooLarge, LinkDown, TransportErro
 from coex_core.registry import check_transport_uri
 from coex_core.transport import Transport
 from coex_transports.recovery import ResilientTransport, describe_seconds
+from coex_transports.testing import free_port
 
 
 class Clock:
@@ -183,10 +184,12 @@ def test_mavlink_tcp_peer_gone_and_back() -> None:
     pytest.importorskip("pymavlink")
     from coex_transports.mavlink.codec import TunnelCodec
 
+    # a port nobody else is given (coex_transports.testing): nobody takes it while the server is
+    # down, and the link's reconnections never get it as their own end
+    port = free_port()
     srv = socket.socket()
     srv.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
-    srv.bind(("127.0.0.1", 0))
-    port = srv.getsockname()[1]
+    srv.bind(("127.0.0.1", port))
     srv.listen(1)
     uri = f"mavlink:tcp:127.0.0.1:{port}?heartbeat=0"
     link = ResilientTransport(uri, name="link 0", first_retry=0.05, max_retry=0.2)

@@ -5,7 +5,6 @@ store without flying the survey again."""
 
 from __future__ import annotations
 
-import socket
 import time
 from pathlib import Path
 from typing import Any
@@ -13,6 +12,7 @@ from typing import Any
 from coex_apps.console.cli import topside_from_config
 from coex_apps.vehicle.config import load
 from coex_apps.vehicle.daemon import VehicleApp
+from coex_transports.testing import free_port as _free_udp_port
 
 KEY = "00112233445566778899aabbccddeeff00112233445566778899aabbccddeeff"
 
@@ -60,12 +60,6 @@ http = "127.0.0.1:0"
 uri = "mavlink:udpin:127.0.0.1:{port}?sysid=1&compid=190"
 packet_seconds = 0.2
 """ + COMMON
-
-
-def _free_udp_port() -> int:
-    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
 
 
 def _wait(cond: Any, timeout: float = 30.0) -> None:

@@ -1,5 +1,7 @@
 """A real MOOSDB for tests and benchmarks: found on PATH or where ``make moos`` builds it, and
-run on a local port (:class:`MoosDB`: start, stop with a signal, restart on the same port).
+run on a local port (:class:`MoosDB`: start, stop with a signal, restart on the same port). The
+port comes from :func:`coex_transports.testing.free_port`: reserved for the process that asked,
+below the kernel's ephemeral range, so nobody takes it while the MOOSDB is down for a restart.
 
 ``make moos`` (a step of ``make test``) runs ``../shared/vendor/moos/build_moos.sh``, which
 builds MOOSDB under ``$WORK`` (default ``~/.cache/coex-moos``). :func:`find_moosdb` says where it
@@ -17,6 +19,8 @@ import subprocess
 import tempfile
 import time
 from pathlib import Path
+
+from coex_transports.testing import free_port, port_holders
 
 __all__ = ["MoosDB", "die_with_parent", "find_moosdb", "free_port"]
 
@@ -64,12 +68,6 @@ def die_with_parent() -> None:
         pass
 
 
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
-
-
 class MoosDB:
     """One MOOSDB process on a local port (``start``/``stop``/``restart`` on the same port)."""
 
@@ -96,7 +94,9 @@ class MoosDB:
         deadline = time.monotonic() + timeout
         while time.monotonic() < deadline:
             if self.proc.poll() is not None:
-                raise RuntimeError(f"MOOSDB exited with {self.proc.returncode}: {self.log()}")
+                held = port_holders(self.port)
+                why = f" (port {self.port} held by: {'; '.join(held)})" if held else ""
+                raise RuntimeError(f"MOOSDB exited with {self.proc.returncode}{why}: {self.log()}")
             if self._listening():
                 return
             time.sleep(0.05)
