@@ -390,10 +390,10 @@ def test_a_survey_goes_out_as_a_path_and_its_progress_comes_back(roscore: Roscor
     finally:
         kill(planner)
     out.end(7, time.time())  # as the daemon's lifecycle does: the next planner is not handed survey 7
+    fresh = _new_peers(out)  # the killed planner's connections may linger: wait for the refuser's
     refuser = peer(["--name", "planner_refuse", "--planner", "refuse"], roscore.env(), tmp_path / "refuse.log")
     try:
-        _wait("the refusing planner connected both ways",
-              lambda: out._path.connections() > 0 and out._sub.connections() > 0, 30)
+        _wait("the refusing planner connected both ways", fresh, 30)
         plan = SurveyPlan(8, SurveyKind.GOTO, ((5.0, 5.0),), altitude=3.0)
         out.submit(plan, time.time())
         got = _reports(out)
@@ -475,9 +475,10 @@ def test_an_ended_survey_is_never_handed_to_a_planner_started_later(roscore: Ros
     gets_only_the_ended_form("p6_after_completed", 1)
 
     # refused, then a planner started later
+    fresh = _new_peers(out)
     refuser, _ = planner("p6_refuse", "refuse")
     try:
-        _wait("the refusing planner connected both ways", connected, 30)
+        _wait("the refusing planner connected both ways", fresh, 30)
         v.ask(2, x=10.0, kind=SurveyKind.LINE, depth=5.0)
         v.until("survey 2 refused", lambda: v.state(2) == SurveyState.REJECTED)
     finally:
@@ -681,6 +682,22 @@ def _system_state(uri: str) -> Any:
         return None
 
 
+def _peers(topic: Any) -> set[str]:
+    """The peers a CoEx publisher or subscriber (``coex_transports.ros.node``) is connected to
+    now, by rospy's endpoint id (a subscriber's caller id; a publisher's XML-RPC URI)."""
+    handle = topic.handle
+    return set() if handle is None else {str(c.endpoint_id) for c in list(handle.impl.connections)}
+
+
+def _new_peers(out: Any) -> Callable[[], bool]:
+    """Whether the output's path publisher and progress subscriber are both connected to a peer
+    they were not connected to when this was called: a planner started after a killed one
+    (whose connections rospy may still count, or reconnect to, for a while) is connected both
+    ways only when both are connected to *it*."""
+    before = (_peers(out._path), _peers(out._sub))
+    return lambda: bool(_peers(out._path) - before[0]) and bool(_peers(out._sub) - before[1])
+
+
 def _registered(uri: str, topic: str, kind: int) -> bool:
     """Whether some node publishes (``kind`` 0) or subscribes to (1) ``topic`` on the master."""
     state = _system_state(uri)
@@ -767,9 +784,11 @@ def test_a_ros_vehicle_and_ship_through_two_micromodems(tmp_path: Path) -> None:
             levels = (s.get("map") or {}).get("levels") or []
             status = (s.get("vehicle") or {}).get("status")
             imgs = [i for i in (s.get("images") or {}).get("items", []) if i.get("bytes_received")]
-            return s if levels and status and imgs else None
+            # a status sent before the altimeter's first reading reached the vehicle has no
+            # altitude: wait for one that has (none ever is a failure: the wait times out)
+            return s if levels and status and status.get("altitude") is not None and imgs else None
 
-        s = _wait("map, image and vehicle status topside", arrived, 240, procs)
+        s = _wait("map, image and vehicle status (with the altimeter's altitude) topside", arrived, 240, procs)
         status = s["vehicle"]["status"]
         assert abs(status["x"] - 30.0) < 0.2 and abs(status["y"] - 10.0) < 0.2 and abs(status["depth"] - 25.0) < 0.2
         assert status["altitude"] == 5.0, status  # from the altimeter's sensor_msgs/Range
