@@ -9,7 +9,7 @@ import functools
 import io
 import types
 import typing
-from collections.abc import Iterable, Sequence
+from collections.abc import Callable, Iterable, Sequence
 from typing import Any
 
 import construct as cs
@@ -123,24 +123,21 @@ _BYTE_BITS: dict[bytes, bytes] = {bytes([i]): cs.lib.bytes2bits(bytes([i])) for 
 _BITS_BYTE: dict[bytes, bytes] = {bits: byte for byte, bits in _BYTE_BITS.items()}
 
 
-def _bytes2bits(data: Any) -> bytes:
-    """construct's ``bytes2bits`` (the same value, the same errors), one byte by a lookup."""
-    if type(data) is bytes:
-        bits = _BYTE_BITS.get(data)
-        if bits is not None:
-            return bits
-    out: bytes = cs.lib.bytes2bits(data)
-    return out
+def _by_lookup(table: dict[bytes, bytes], construct_fn: Callable[[Any], bytes], what: str) -> Callable[[Any], bytes]:
+    """construct's ``construct_fn`` (the same value, the same errors), one byte or 8 bits by a
+    lookup in ``table``; anything else by construct's own function."""
+    def convert(data: Any) -> bytes:
+        if type(data) is bytes:
+            out = table.get(data)
+            if out is not None:
+                return out
+        return construct_fn(data)
+    convert.__doc__ = f"construct's {what} (the same value, the same errors), by a lookup where it can."
+    return convert
 
 
-def _bits2bytes(data: Any) -> bytes:
-    """construct's ``bits2bytes`` (the same value, the same errors), 8 bits by a lookup."""
-    if type(data) is bytes:
-        byte = _BITS_BYTE.get(data)
-        if byte is not None:
-            return byte
-    out: bytes = cs.lib.bits2bytes(data)
-    return out
+_bytes2bits = _by_lookup(_BYTE_BITS, cs.lib.bytes2bits, "bytes2bits")
+_bits2bytes = _by_lookup(_BITS_BYTE, cs.lib.bits2bytes, "bits2bytes")
 
 
 _FAST = {cs.lib.bytes2bits: _bytes2bits, cs.lib.bits2bytes: _bits2bytes}
